@@ -1,0 +1,94 @@
+//! Generates the typed kernel handles (`enum Kernel`) from the committed manifest
+//! `shaders-rs/spirv/manifest.json`, embedding each module with `include_bytes!`.
+//! A kernel that is not in the manifest therefore does not compile.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+fn camel(entry: &str) -> String {
+    entry
+        .split(|c| c == '_' || c == ':')
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            let mut c = s.chars();
+            c.next().map(|f| f.to_ascii_uppercase().to_string() + c.as_str()).unwrap_or_default()
+        })
+        .collect()
+}
+
+fn main() {
+    let spirv_dir = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").unwrap()).join("../shaders-rs/spirv");
+    let manifest_path = spirv_dir.join("manifest.json");
+    println!("cargo:rerun-if-changed={}", manifest_path.display());
+    let text = std::fs::read_to_string(&manifest_path)
+        .unwrap_or_else(|e| panic!("reading {}: {e}", manifest_path.display()));
+    let manifest: serde_json::Value = serde_json::from_str(&text)
+        .unwrap_or_else(|e| panic!("parsing {}: {e}", manifest_path.display()));
+    let modules = manifest["modules"].as_array().expect("manifest.json: 'modules' is not an array");
+
+    let mut variants = String::new();
+    let mut all = String::new();
+    let mut entry = String::new();
+    let mut spirv = String::new();
+    let mut wg = String::new();
+    let mut bindings = String::new();
+    for m in modules {
+        let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
+        let file = m["file"].as_str().expect("manifest.json: file");
+        let size: Vec<u64> = m["workgroup_size"]
+            .as_array()
+            .expect("manifest.json: workgroup_size")
+            .iter()
+            .map(|v| v.as_u64().expect("manifest.json: workgroup_size entry"))
+            .collect();
+        let nb = m["bindings"].as_u64().expect("manifest.json: bindings");
+        let v = camel(name);
+        let path = spirv_dir.join(file);
+        println!("cargo:rerun-if-changed={}", path.display());
+        writeln!(variants, "    /// Entry point `{name}` ({file}).\n    {v},").unwrap();
+        writeln!(all, "        Kernel::{v},").unwrap();
+        writeln!(entry, "            Kernel::{v} => {name:?},").unwrap();
+        writeln!(spirv, "            Kernel::{v} => include_bytes!({:?}),", path.display().to_string()).unwrap();
+        writeln!(wg, "            Kernel::{v} => [{}, {}, {}],", size[0], size[1], size[2]).unwrap();
+        writeln!(bindings, "            Kernel::{v} => {nb},").unwrap();
+    }
+    let code = format!(
+        "/// Every kernel of the committed manifest, as a typed handle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Kernel {{
+{variants}}}
+
+impl Kernel {{
+    /// All kernels, in manifest order.
+    pub const ALL: &'static [Kernel] = &[
+{all}    ];
+
+    /// The SPIR-V entry point name.
+    pub const fn entry_point(self) -> &'static str {{
+        match self {{
+{entry}        }}
+    }}
+
+    /// The committed SPIR-V module (little-endian words).
+    pub const fn spirv(self) -> &'static [u8] {{
+        match self {{
+{spirv}        }}
+    }}
+
+    /// Workgroup size the manifest records.
+    pub const fn workgroup_size(self) -> [u32; 3] {{
+        match self {{
+{wg}        }}
+    }}
+
+    /// Number of storage-buffer bindings (numbered 0..n) the manifest records.
+    pub const fn binding_count(self) -> u32 {{
+        match self {{
+{bindings}        }}
+    }}
+}}
+"
+    );
+    let out = PathBuf::from(std::env::var("OUT_DIR").unwrap()).join("kernels_generated.rs");
+    std::fs::write(out, code).unwrap();
+}

@@ -1,0 +1,207 @@
+//! RAII buffers: each is named (debug utils), owns its allocation, frees both in `Drop`,
+//! and holds the device alive. With poisoning on, a new buffer is filled with
+//! [`POISON_WORD`](crate::context::POISON_WORD) before anyone sees it.
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+use crate::context::{Context, Device, POISON_WORD};
+use crate::error::{EngineError, Result, VkResultExt};
+
+/// What kind of buffer to make.
+#[derive(Clone, Copy, Debug)]
+pub struct BufferDesc {
+    /// Bytes the caller will use (a zero-length buffer still gets 4 bytes: Vulkan
+    /// forbids empty buffers, and ops bind them even when there is nothing to do).
+    pub size: u64,
+    pub usage: vk::BufferUsageFlags,
+    pub location: MemoryLocation,
+}
+
+impl BufferDesc {
+    /// A storage buffer kernels read and write, also usable for copies and fills.
+    pub fn gpu_only(size: u64) -> Self {
+        Self {
+            size,
+            usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::TRANSFER_SRC
+                | vk::BufferUsageFlags::TRANSFER_DST,
+            location: MemoryLocation::GpuOnly,
+        }
+    }
+
+    /// A host-visible buffer to copy data into the device.
+    pub fn upload(size: u64) -> Self {
+        Self { size, usage: vk::BufferUsageFlags::TRANSFER_SRC, location: MemoryLocation::CpuToGpu }
+    }
+
+    /// A host-visible buffer to copy results back (also the breadcrumb).
+    pub fn readback(size: u64) -> Self {
+        Self {
+            size,
+            usage: vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::STORAGE_BUFFER,
+            location: MemoryLocation::GpuToCpu,
+        }
+    }
+}
+
+/// A Vulkan buffer with its memory.
+pub struct Buffer {
+    pub raw: vk::Buffer,
+    /// Bytes the caller asked for.
+    pub size: u64,
+    allocation: Option<Allocation>,
+    name: String,
+    device: Arc<Device>,
+}
+
+impl Buffer {
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Bytes actually bound to `raw` (at least 4).
+    pub(crate) fn vk_size(&self) -> u64 {
+        self.size.max(4)
+    }
+
+    /// The mapped bytes, when the memory is host-visible and coherent (so no flush or
+    /// invalidate is needed around host access).
+    pub(crate) fn coherent_mapping(&mut self) -> Option<&mut [u8]> {
+        let a = self.allocation.as_mut()?;
+        if !a.memory_properties().contains(vk::MemoryPropertyFlags::HOST_COHERENT) {
+            return None;
+        }
+        let size = self.size as usize;
+        a.mapped_slice_mut().map(|s| &mut s[..size])
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        // SAFETY: callers submit and wait before dropping what a command buffer uses
+        // (recordings wait in submit and hold no buffer past it).
+        unsafe { self.device.raw.destroy_buffer(self.raw, None) };
+        if let Some(a) = self.allocation.take() {
+            let mut alloc = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner());
+            if let Err(e) = alloc.free(a) {
+                log::error!("freeing buffer '{}': {e}", self.name);
+            }
+        }
+    }
+}
+
+impl Context {
+    /// Creates a named buffer.
+    pub fn create_buffer(&self, name: &str, desc: BufferDesc) -> Result<Buffer> {
+        let dev = &self.device.raw;
+        let info = vk::BufferCreateInfo::default()
+            .size(desc.size.max(4))
+            .usage(desc.usage)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        // SAFETY: valid device and create info.
+        let raw = unsafe { dev.create_buffer(&info, None) }.vk("vkCreateBuffer", name)?;
+        // SAFETY: raw is a buffer of this device.
+        let requirements = unsafe { dev.get_buffer_memory_requirements(raw) };
+        let allocated = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner()).allocate(
+            &AllocationCreateDesc {
+                name,
+                requirements,
+                location: desc.location,
+                linear: true,
+                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+            },
+        );
+        let allocation = match allocated {
+            Ok(a) => a,
+            Err(e) => {
+                // SAFETY: unbound, unused buffer.
+                unsafe { dev.destroy_buffer(raw, None) };
+                return Err(match e {
+                    gpu_allocator::AllocationError::OutOfMemory => {
+                        EngineError::OutOfDeviceMemory { what: name.to_string(), bytes: desc.size }
+                    }
+                    e => EngineError::Allocation { what: name.to_string(), detail: e.to_string() },
+                });
+            }
+        };
+        let mut buffer = Buffer { raw, size: desc.size, allocation: Some(allocation), name: name.to_string(), device: self.device.clone() };
+        let a = buffer.allocation.as_ref().expect("just allocated");
+        // SAFETY: memory and offset come from an allocation made for these requirements.
+        unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }.vk("vkBindBufferMemory", name)?;
+        self.set_name(raw, name);
+        if self.device.poison {
+            self.poison(&mut buffer)?;
+        }
+        Ok(buffer)
+    }
+
+    fn poison(&self, buffer: &mut Buffer) -> Result<()> {
+        if let Some(bytes) = buffer.coherent_mapping() {
+            for (i, b) in bytes.iter_mut().enumerate() {
+                *b = POISON_WORD.to_le_bytes()[i % 4];
+            }
+            return Ok(());
+        }
+        let mut rec = self.record("poison")?;
+        rec.fill(buffer, POISON_WORD);
+        rec.submit_and_wait().map(|_| ())
+    }
+
+    /// A new device buffer holding `data`.
+    pub fn upload<T: bytemuck::Pod>(&self, name: &str, data: &[T]) -> Result<Buffer> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        let mut buffer = self.create_buffer(name, BufferDesc::gpu_only(bytes.len() as u64))?;
+        self.write_buffer(&mut buffer, data)?;
+        Ok(buffer)
+    }
+
+    /// Copies `data` to the start of `buffer` (which must be large enough).
+    pub fn write_buffer<T: bytemuck::Pod>(&self, buffer: &mut Buffer, data: &[T]) -> Result<()> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        assert!(bytes.len() as u64 <= buffer.size, "writing {} bytes into '{}' of {} bytes", bytes.len(), buffer.name, buffer.size);
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        if let Some(mapped) = buffer.coherent_mapping() {
+            mapped[..bytes.len()].copy_from_slice(bytes);
+            return Ok(());
+        }
+        let mut staging = self.create_buffer(&format!("{} (upload)", buffer.name), BufferDesc::upload(bytes.len() as u64))?;
+        let staging_name = staging.name.clone();
+        staging
+            .coherent_mapping()
+            .ok_or(EngineError::Allocation { what: staging_name, detail: "upload memory is not host-coherent".into() })?
+            .copy_from_slice(bytes);
+        let mut rec = self.record("upload")?;
+        rec.copy(&staging, buffer, bytes.len() as u64);
+        rec.submit_and_wait().map(|_| ())
+    }
+
+    /// Reads the first `count` elements of `buffer`.
+    pub fn read_buffer<T: bytemuck::Pod>(&self, buffer: &mut Buffer, count: usize) -> Result<Vec<T>> {
+        let len = count * std::mem::size_of::<T>();
+        assert!(len as u64 <= buffer.size, "reading {len} bytes from '{}' of {} bytes", buffer.name, buffer.size);
+        let mut out = vec![T::zeroed(); count];
+        if len == 0 {
+            return Ok(out);
+        }
+        if let Some(mapped) = buffer.coherent_mapping() {
+            bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[..len]);
+            return Ok(out);
+        }
+        let mut staging = self.create_buffer(&format!("{} (readback)", buffer.name), BufferDesc::readback(len as u64))?;
+        let mut rec = self.record("readback")?;
+        rec.copy(buffer, &staging, len as u64);
+        rec.submit_and_wait()?;
+        let staging_name = staging.name.clone();
+        let mapped = staging
+            .coherent_mapping()
+            .ok_or(EngineError::Allocation { what: staging_name, detail: "readback memory is not host-coherent".into() })?;
+        bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[..len]);
+        Ok(out)
+    }
+}

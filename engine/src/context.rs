@@ -1,0 +1,490 @@
+//! The Vulkan context: instance, optional validation, device choice, logical device,
+//! compute queue, memory allocator and the kernel pipeline cache.
+//!
+//! [`Context`] is a cheap handle (`Arc`) to the [`Device`] that owns all of it; buffers
+//! and recordings hold the same `Arc`, so the device outlives everything made from it.
+//! Drop order is deliberate: pipelines, then the allocator, then the device, then the
+//! messenger, then the instance.
+
+use std::collections::HashMap;
+use std::ffi::{c_char, CStr, CString};
+use std::fmt;
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex};
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use crate::error::{EngineError, Result, VkResultExt};
+use crate::kernels::{self, Kernel, Pipeline};
+use crate::validation::{self, ValidationSink};
+
+const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
+
+/// How to open a context.
+#[derive(Clone, Debug, Default)]
+pub struct ContextDesc {
+    /// Case-insensitive substring of the device name to use instead of the automatic
+    /// choice (discrete, then integrated, then CPU).
+    pub device_name: Option<String>,
+    /// Enable `VK_LAYER_KHRONOS_validation` and collect its messages.
+    pub validation: bool,
+    /// Fill every new buffer with [`POISON_WORD`], so code that relies on zeroed memory fails.
+    pub poison_new_buffers: bool,
+}
+
+impl ContextDesc {
+    /// What tests use: validation on, poisoned buffers, device from `DRAPE_DEVICE` if set.
+    pub fn for_tests() -> Self {
+        Self {
+            device_name: std::env::var("DRAPE_DEVICE").ok().filter(|s| !s.is_empty()),
+            validation: true,
+            poison_new_buffers: true,
+        }
+    }
+}
+
+/// The pattern every new buffer is filled with when poisoning is on.
+pub const POISON_WORD: u32 = 0xDEAD_BEEF;
+
+/// Kind of physical device, in order of preference.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum DeviceKind {
+    DiscreteGpu,
+    IntegratedGpu,
+    VirtualGpu,
+    Cpu,
+    Other,
+}
+
+impl DeviceKind {
+    fn from_vk(t: vk::PhysicalDeviceType) -> Self {
+        match t {
+            vk::PhysicalDeviceType::DISCRETE_GPU => Self::DiscreteGpu,
+            vk::PhysicalDeviceType::INTEGRATED_GPU => Self::IntegratedGpu,
+            vk::PhysicalDeviceType::VIRTUAL_GPU => Self::VirtualGpu,
+            vk::PhysicalDeviceType::CPU => Self::Cpu,
+            _ => Self::Other,
+        }
+    }
+}
+
+/// What the chosen device is and can do.
+#[derive(Clone, Debug)]
+pub struct DeviceInfo {
+    pub name: String,
+    pub kind: DeviceKind,
+    pub api_version: (u32, u32, u32),
+    pub driver: String,
+    pub subgroup_size: u32,
+    /// Nanoseconds per timestamp tick.
+    pub timestamp_period_ns: f64,
+    /// Valid bits of compute-queue timestamps (0: no timestamps).
+    pub timestamp_valid_bits: u32,
+    /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float).
+    pub float_atomic_add: bool,
+    pub max_compute_workgroup_count: [u32; 3],
+}
+
+impl fmt::Display for DeviceInfo {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let (ma, mi, pa) = self.api_version;
+        write!(
+            f,
+            "{} [{:?}, Vulkan {ma}.{mi}.{pa}, {}, subgroup {}]",
+            self.name, self.kind, self.driver, self.subgroup_size
+        )
+    }
+}
+
+/// Owner of every Vulkan object of a context. Reached through [`Context`].
+pub struct Device {
+    pub(crate) raw: ash::Device,
+    pub(crate) instance: ash::Instance,
+    pub(crate) queue_family: u32,
+    queue: Mutex<vk::Queue>,
+    pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
+    pub(crate) debug_utils: Option<ash::ext::debug_utils::Device>,
+    pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
+    pub(crate) info: DeviceInfo,
+    pub(crate) poison: bool,
+    debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    validation: Option<Arc<ValidationSink>>,
+    // Keeps libvulkan loaded for as long as any handle exists.
+    _entry: ash::Entry,
+}
+
+/// A cheap, clonable handle to an open device.
+#[derive(Clone)]
+pub struct Context {
+    pub(crate) device: Arc<Device>,
+}
+
+fn load_entry() -> Result<ash::Entry> {
+    // DRAPE_VULKAN_LOADER names a loader library explicitly (tests use it to check the
+    // error a machine without a loader gets).
+    let loaded = match std::env::var_os("DRAPE_VULKAN_LOADER") {
+        // SAFETY: loading libvulkan runs its initialisers; the loader is designed for it.
+        Some(path) => unsafe { ash::Entry::load_from(path) },
+        // SAFETY: as above.
+        None => unsafe { ash::Entry::load() },
+    };
+    loaded.map_err(|e| EngineError::LoaderMissing { detail: e.to_string() })
+}
+
+fn cstr_array(raw: &[c_char]) -> String {
+    // SAFETY: Vulkan property strings are nul-terminated within their fixed arrays.
+    unsafe { CStr::from_ptr(raw.as_ptr()) }.to_string_lossy().into_owned()
+}
+
+struct Candidate {
+    physical: vk::PhysicalDevice,
+    name: String,
+    kind: DeviceKind,
+    queue_family: u32,
+}
+
+impl Context {
+    /// Opens the device `desc` asks for.
+    pub fn new(desc: &ContextDesc) -> Result<Self> {
+        let entry = load_entry()?;
+
+        // SAFETY: plain queries on a loaded entry.
+        let layers = unsafe { entry.enumerate_instance_layer_properties() }
+            .vk("vkEnumerateInstanceLayerProperties", "instance")?;
+        // SAFETY: as above.
+        let extensions = unsafe { entry.enumerate_instance_extension_properties(None) }
+            .vk("vkEnumerateInstanceExtensionProperties", "instance")?;
+        let has_layer = layers.iter().any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER));
+        let has_debug_utils =
+            extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::debug_utils::NAME));
+        if desc.validation && !has_layer {
+            return Err(EngineError::ValidationLayerMissing);
+        }
+
+        let sink = desc.validation.then(|| Arc::new(ValidationSink::default()));
+        let app = vk::ApplicationInfo::default()
+            .application_name(c"drape")
+            .engine_name(c"drape-engine")
+            .api_version(vk::API_VERSION_1_2);
+        let layer_names: Vec<*const c_char> =
+            if desc.validation { vec![VALIDATION_LAYER.as_ptr()] } else { vec![] };
+        let ext_names: Vec<*const c_char> =
+            if has_debug_utils { vec![ash::ext::debug_utils::NAME.as_ptr()] } else { vec![] };
+        let mut instance_info = vk::InstanceCreateInfo::default()
+            .application_info(&app)
+            .enabled_layer_names(&layer_names)
+            .enabled_extension_names(&ext_names);
+        // Chained so that messages during instance creation and destruction are caught.
+        let mut chained_messenger = sink.as_ref().map(validation::messenger_info);
+        if let Some(m) = chained_messenger.as_mut() {
+            instance_info = instance_info.push_next(m);
+        }
+        // SAFETY: every pointer in instance_info refers to locals alive for the call.
+        let instance = unsafe { entry.create_instance(&instance_info, None) }
+            .vk("vkCreateInstance", "instance")?;
+
+        // From here on, a failure must destroy the instance: wrap it in a guard.
+        let guard = InstanceGuard { instance: Some(instance), messenger: None };
+        let mut guard = guard;
+        let instance_ref = guard.instance.as_ref().expect("instance present until disarmed");
+        if let Some(sink) = &sink {
+            let loader = ash::ext::debug_utils::Instance::new(&entry, instance_ref);
+            let info = validation::messenger_info(sink);
+            // SAFETY: valid instance with debug utils enabled; the sink outlives the messenger.
+            let messenger = unsafe { loader.create_debug_utils_messenger(&info, None) }
+                .vk("vkCreateDebugUtilsMessengerEXT", "messenger")?;
+            guard.messenger = Some((loader, messenger));
+        }
+
+        let instance_ref = guard.instance.as_ref().expect("instance present until disarmed");
+        let chosen = choose_device(instance_ref, desc.device_name.as_deref())?;
+        let parts = create_device(instance_ref, chosen, has_debug_utils)?;
+        let (instance, debug_instance) = guard.disarm();
+        let device = Device {
+            raw: parts.raw,
+            instance,
+            queue_family: parts.queue_family,
+            queue: Mutex::new(parts.queue),
+            allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
+            debug_utils: parts.debug_utils,
+            pipelines: Mutex::new(HashMap::new()),
+            info: parts.info,
+            poison: desc.poison_new_buffers,
+            debug_instance,
+            validation: sink,
+            _entry: entry,
+        };
+        let ctx = Context { device: Arc::new(device) };
+        kernels::check_manifest()?;
+        Ok(ctx)
+    }
+
+    /// What the device is.
+    pub fn info(&self) -> &DeviceInfo {
+        &self.device.info
+    }
+
+    /// Takes the validation messages collected so far (empty without validation).
+    pub fn take_validation_messages(&self) -> Vec<String> {
+        self.device.validation.as_ref().map(|s| s.drain()).unwrap_or_default()
+    }
+
+    /// The validation sink, to read messages after the context is dropped.
+    pub fn validation_sink(&self) -> Option<Arc<ValidationSink>> {
+        self.device.validation.clone()
+    }
+
+    /// The pipeline of `kernel`, created on first use.
+    pub(crate) fn pipeline(&self, kernel: Kernel) -> Result<Arc<Pipeline>> {
+        let mut cache = self.device.pipelines.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(p) = cache.get(&kernel) {
+            return Ok(p.clone());
+        }
+        let p = Arc::new(Pipeline::create(&self.device, kernel)?);
+        cache.insert(kernel, p.clone());
+        Ok(p)
+    }
+
+    /// Submits one command buffer and waits for it (the caller holds no other lock).
+    pub(crate) fn submit_and_wait(&self, cmd: vk::CommandBuffer, what: &str) -> Result<()> {
+        let dev = &self.device.raw;
+        // SAFETY: a fence on a valid device.
+        let fence = unsafe { dev.create_fence(&vk::FenceCreateInfo::default(), None) }
+            .vk("vkCreateFence", what)?;
+        let cmds = [cmd];
+        let submit = vk::SubmitInfo::default().command_buffers(&cmds);
+        let result = {
+            let queue = self.device.queue.lock().unwrap_or_else(|p| p.into_inner());
+            // SAFETY: the queue is externally synchronised by the mutex; cmd is executable.
+            unsafe { dev.queue_submit(*queue, &[submit], fence) }
+        };
+        // SAFETY: the fence belongs to this device.
+        let result = result.and_then(|()| unsafe { dev.wait_for_fences(&[fence], true, u64::MAX) });
+        // SAFETY: the fence is signalled or the submit failed; either way it is unused now.
+        unsafe { dev.destroy_fence(fence, None) };
+        result.vk("vkQueueSubmit/vkWaitForFences", what)
+    }
+
+    /// Names a Vulkan object for validation messages and captures.
+    pub(crate) fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
+        if let Some(du) = &self.device.debug_utils {
+            let Ok(name) = CString::new(name.replace('\0', " ")) else { return };
+            let info = vk::DebugUtilsObjectNameInfoEXT::default().object_handle(handle).object_name(&name);
+            // SAFETY: the handle is a live object of this device.
+            let _ = unsafe { du.set_debug_utils_object_name(&info) };
+        }
+    }
+}
+
+impl fmt::Debug for Context {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Context").field("device", &self.device.info.name).finish()
+    }
+}
+
+/// Destroys a half-built instance (and its messenger) if context creation fails.
+struct InstanceGuard {
+    instance: Option<ash::Instance>,
+    messenger: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+}
+
+impl InstanceGuard {
+    #[allow(clippy::type_complexity)]
+    fn disarm(mut self) -> (ash::Instance, Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>) {
+        (self.instance.take().expect("disarmed once"), self.messenger.take())
+    }
+}
+
+impl Drop for InstanceGuard {
+    fn drop(&mut self) {
+        if let Some((loader, m)) = self.messenger.take() {
+            // SAFETY: created from this instance, destroyed once.
+            unsafe { loader.destroy_debug_utils_messenger(m, None) };
+        }
+        if let Some(instance) = self.instance.take() {
+            // SAFETY: no device was created from it (or it was destroyed); destroyed once.
+            unsafe { instance.destroy_instance(None) };
+        }
+    }
+}
+
+fn choose_device(instance: &ash::Instance, requested: Option<&str>) -> Result<Candidate> {
+    // SAFETY: valid instance.
+    let physicals = unsafe { instance.enumerate_physical_devices() }
+        .vk("vkEnumeratePhysicalDevices", "instance")?;
+    let mut all_names = Vec::new();
+    let mut rejected = Vec::new();
+    let mut eligible = Vec::new();
+    for physical in physicals {
+        // SAFETY: physical comes from this instance.
+        let props = unsafe { instance.get_physical_device_properties(physical) };
+        let name = cstr_array(&props.device_name);
+        all_names.push(name.clone());
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12);
+        // SAFETY: Vulkan 1.1+ query with a valid chain.
+        unsafe { instance.get_physical_device_features2(physical, &mut f2) };
+        // SAFETY: as above.
+        let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+        let queue_family = families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE));
+        let reason = if vk::api_version_major(props.api_version) == 1 && vk::api_version_minor(props.api_version) < 2 {
+            Some("Vulkan < 1.2")
+        } else if f12.vulkan_memory_model == vk::FALSE {
+            Some("no vulkanMemoryModel")
+        } else if queue_family.is_none() {
+            Some("no compute queue")
+        } else {
+            None
+        };
+        match (reason, queue_family) {
+            (None, Some(qf)) => eligible.push(Candidate {
+                physical,
+                name,
+                kind: DeviceKind::from_vk(props.device_type),
+                queue_family: qf as u32,
+            }),
+            (r, _) => rejected.push(format!("{name}: {}", r.unwrap_or("unusable"))),
+        }
+    }
+    if let Some(wanted) = requested {
+        let lower = wanted.to_lowercase();
+        return eligible
+            .into_iter()
+            .find(|c| c.name.to_lowercase().contains(&lower))
+            .ok_or(EngineError::DeviceNotFound { requested: wanted.to_string(), available: all_names });
+    }
+    eligible.sort_by_key(|c| c.kind);
+    eligible.into_iter().next().ok_or(EngineError::NoDevice { rejected })
+}
+
+/// A created logical device, before it is owned by a [`Device`].
+struct DeviceParts {
+    raw: ash::Device,
+    queue_family: u32,
+    queue: vk::Queue,
+    allocator: Allocator,
+    debug_utils: Option<ash::ext::debug_utils::Device>,
+    info: DeviceInfo,
+}
+
+fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) -> Result<DeviceParts> {
+    // SAFETY: queries on a physical device of this instance.
+    let props = unsafe { instance.get_physical_device_properties(c.physical) };
+    // SAFETY: as above.
+    let device_exts = unsafe { instance.enumerate_device_extension_properties(c.physical) }
+        .vk("vkEnumerateDeviceExtensionProperties", &c.name)?;
+    let has_float_atomics = device_exts
+        .iter()
+        .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
+
+    let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
+    let mut driver = vk::PhysicalDeviceDriverProperties::default();
+    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver);
+    // SAFETY: valid chain of Vulkan 1.1/1.2 property structs.
+    unsafe { instance.get_physical_device_properties2(c.physical, &mut p2) };
+    let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+    let mut f12_query = vk::PhysicalDeviceVulkan12Features::default();
+    let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12_query);
+    if has_float_atomics {
+        f2 = f2.push_next(&mut atomic_float);
+    }
+    // SAFETY: valid chain.
+    unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
+    let float_atomic_add = has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
+    // SAFETY: query on a physical device of this instance.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(c.physical) };
+    let timestamp_valid_bits = families[c.queue_family as usize].timestamp_valid_bits;
+
+    let info = DeviceInfo {
+        name: c.name.clone(),
+        kind: c.kind,
+        api_version: (
+            vk::api_version_major(props.api_version),
+            vk::api_version_minor(props.api_version),
+            vk::api_version_patch(props.api_version),
+        ),
+        driver: format!("{} {}", cstr_array(&driver.driver_name), cstr_array(&driver.driver_info)),
+        subgroup_size: subgroup.subgroup_size,
+        timestamp_period_ns: f64::from(props.limits.timestamp_period),
+        timestamp_valid_bits,
+        float_atomic_add,
+        max_compute_workgroup_count: props.limits.max_compute_work_group_count,
+    };
+
+    // The rust-gpu modules declare the VulkanMemoryModel capability.
+    let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
+        .vulkan_memory_model(true)
+        .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE);
+    let mut enabled_atomic_float =
+        vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default().shader_buffer_float32_atomic_add(float_atomic_add);
+    let mut ext_names: Vec<*const c_char> = Vec::new();
+    if float_atomic_add {
+        ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
+    }
+    let priorities = [1.0f32];
+    let queue_info = [vk::DeviceQueueCreateInfo::default()
+        .queue_family_index(c.queue_family)
+        .queue_priorities(&priorities)];
+    let mut device_info = vk::DeviceCreateInfo::default()
+        .queue_create_infos(&queue_info)
+        .enabled_extension_names(&ext_names)
+        .push_next(&mut f12);
+    if float_atomic_add {
+        device_info = device_info.push_next(&mut enabled_atomic_float);
+    }
+    // SAFETY: pointers in device_info refer to locals alive for the call.
+    let raw = unsafe { instance.create_device(c.physical, &device_info, None) }
+        .vk("vkCreateDevice", &c.name)?;
+    // SAFETY: family and index 0 were requested above.
+    let queue = unsafe { raw.get_device_queue(c.queue_family, 0) };
+
+    let allocator = Allocator::new(&AllocatorCreateDesc {
+        instance: instance.clone(),
+        device: raw.clone(),
+        physical_device: c.physical,
+        debug_settings: {
+            let mut d = gpu_allocator::AllocatorDebugSettings::default();
+            d.log_leaks_on_shutdown = true;
+            d
+        },
+        buffer_device_address: false,
+        allocation_sizes: gpu_allocator::AllocationSizes::default(),
+    });
+    let allocator = match allocator {
+        Ok(a) => a,
+        Err(e) => {
+            // SAFETY: nothing was created from the device yet.
+            unsafe { raw.destroy_device(None) };
+            return Err(EngineError::Allocation { what: "allocator".into(), detail: e.to_string() });
+        }
+    };
+    let debug_utils = has_debug_utils.then(|| ash::ext::debug_utils::Device::new(instance, &raw));
+    Ok(DeviceParts { raw, queue_family: c.queue_family, queue, allocator, debug_utils, info })
+}
+
+impl Drop for Device {
+    fn drop(&mut self) {
+        // SAFETY: the device is valid; nothing else uses it (we are its last owner).
+        unsafe {
+            let _ = self.raw.device_wait_idle();
+        }
+        let pipelines = std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
+        for (_, p) in pipelines {
+            if let Ok(p) = Arc::try_unwrap(p) {
+                p.destroy(&self.raw);
+            }
+        }
+        // SAFETY: dropped exactly once, here, before the device it allocates from.
+        unsafe { ManuallyDrop::drop(&mut self.allocator) };
+        // SAFETY: all objects of the device are gone: buffers and recordings hold an
+        // Arc<Device>, so none outlives this drop.
+        unsafe { self.raw.destroy_device(None) };
+        if let Some((loader, m)) = self.debug_instance.take() {
+            // SAFETY: created from this instance, destroyed once, before the instance.
+            unsafe { loader.destroy_debug_utils_messenger(m, None) };
+        }
+        // SAFETY: every child object is destroyed.
+        unsafe { self.instance.destroy_instance(None) };
+    }
+}

@@ -1,0 +1,78 @@
+//! The engine's error type: what a caller cannot foresee. Programmer mistakes (a buffer
+//! too small for the op it is passed to, a binding count that does not match the
+//! kernel) are asserts, not errors.
+
+use ash::vk;
+
+/// Errors of the Vulkan runtime and its ops.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// The Vulkan loader (libvulkan.so.1) could not be loaded.
+    #[error("the Vulkan loader could not be loaded ({detail}); install it (Debian: apt-get install libvulkan1 mesa-vulkan-drivers)")]
+    LoaderMissing { detail: String },
+
+    /// No device supports what the engine needs.
+    #[error("no Vulkan device with Vulkan 1.2, a compute queue and vulkanMemoryModel was found{}", list_devices(.rejected))]
+    NoDevice { rejected: Vec<String> },
+
+    /// `--device NAME` matched no device.
+    #[error("no Vulkan device matches '{requested}'; available: {}", if .available.is_empty() { "none".to_string() } else { .available.join(", ") })]
+    DeviceNotFound { requested: String, available: Vec<String> },
+
+    /// Validation was requested but the layer is not installed.
+    #[error("validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: apt-get install vulkan-validationlayers)")]
+    ValidationLayerMissing,
+
+    /// Device or host memory ran out while creating `what`.
+    #[error("out of device memory allocating '{what}' ({bytes} bytes)")]
+    OutOfDeviceMemory { what: String, bytes: u64 },
+
+    /// The device was lost; `pass` is the last pass whose breadcrumb was written.
+    #[error("the Vulkan device was lost during pass '{pass}'")]
+    DeviceLost { pass: String },
+
+    /// An embedded SPIR-V module does not match the kernel manifest.
+    #[error("shader/manifest mismatch for kernel '{kernel}': {detail} (rebuild with tools/shader-builder and commit shaders-rs/spirv)")]
+    ShaderManifestMismatch { kernel: &'static str, detail: String },
+
+    /// Any other Vulkan failure, with the call that returned it.
+    #[error("{call} failed: {result}")]
+    Vulkan { call: &'static str, result: vk::Result },
+
+    /// A memory-allocator failure other than running out of memory.
+    #[error("allocating '{what}': {detail}")]
+    Allocation { what: String, detail: String },
+}
+
+fn list_devices(rejected: &[String]) -> String {
+    if rejected.is_empty() {
+        " (the loader reports no devices; install mesa-vulkan-drivers for lavapipe)".to_string()
+    } else {
+        format!("; rejected: {}", rejected.join("; "))
+    }
+}
+
+/// Result with [`EngineError`].
+pub type Result<T, E = EngineError> = std::result::Result<T, E>;
+
+/// Maps a Vulkan result of `call` to an [`EngineError`], keeping the typed cases.
+pub(crate) fn vk_error(call: &'static str, what: &str, result: vk::Result) -> EngineError {
+    match result {
+        vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
+            EngineError::OutOfDeviceMemory { what: what.to_string(), bytes: 0 }
+        }
+        vk::Result::ERROR_DEVICE_LOST => EngineError::DeviceLost { pass: what.to_string() },
+        result => EngineError::Vulkan { call, result },
+    }
+}
+
+/// `?`-friendly conversion: `.vk("vkCreateBuffer", name)?`.
+pub(crate) trait VkResultExt<T> {
+    fn vk(self, call: &'static str, what: &str) -> Result<T>;
+}
+
+impl<T> VkResultExt<T> for std::result::Result<T, vk::Result> {
+    fn vk(self, call: &'static str, what: &str) -> Result<T> {
+        self.map_err(|r| vk_error(call, what, r))
+    }
+}

@@ -1,0 +1,30 @@
+//! The drape engine: a Vulkan runtime on `ash` and `gpu-allocator`, and the GPU ops
+//! built on it. Kernels are rust-gpu SPIR-V modules committed in `shaders-rs/spirv`
+//! and embedded at build time; [`Kernel`] is their typed handle.
+//!
+//! ```no_run
+//! use drape_engine::{Context, ContextDesc, ops::radix_sort::RadixSort};
+//! # fn main() -> drape_engine::Result<()> {
+//! let ctx = Context::new(&ContextDesc::default())?;
+//! let keys = ctx.upload("keys", &[3u32, 1, 2])?;
+//! let values = ctx.upload("values", &[0u32, 1, 2])?;
+//! let sort = RadixSort::new(&ctx, 3)?;
+//! let mut rec = ctx.record("sort")?;
+//! sort.record(&mut rec, &keys, &values, 3, 32)?;
+//! let timings = rec.submit_and_wait()?;
+//! # Ok(()) }
+//! ```
+
+pub mod buffer;
+pub mod context;
+pub mod error;
+pub mod kernels;
+pub mod ops;
+pub mod recorder;
+pub mod validation;
+
+pub use buffer::{Buffer, BufferDesc};
+pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
+pub use error::{EngineError, Result};
+pub use kernels::Kernel;
+pub use recorder::{PassTimings, Recording};

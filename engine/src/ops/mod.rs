@@ -1,0 +1,6 @@
+//! GPU ops built on the runtime. Each module owns one op: its plan (scratch buffers),
+//! its recording, and the CPU reference it is tested against lives beside the kernel
+//! math in `drape-shared`.
+
+pub mod radix_sort;
+pub mod scan;

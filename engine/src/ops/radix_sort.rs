@@ -1,0 +1,114 @@
+//! Stable LSD radix sort of `u32` keys with `u32` values (kernels `radix_sort::histogram`,
+//! `radix_sort::scatter`, and the scan op for the histogram).
+//!
+//! One pass per `RADIX_BITS`-bit digit of the low `key_bits` bits: histogram, barrier,
+//! scan of the digit-major histogram, barrier, scatter into the other buffer pair,
+//! barrier. Passes ping-pong between the caller's buffers and the plan's scratch; an
+//! odd number of passes ends with a copy back, so the result is always in the caller's
+//! buffers. No workgroup waits on another; no subgroup size is assumed.
+//! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
+
+use drape_shared::radix_sort::{self, pass_count, pass_params, RADIX_BUCKETS, SORT_BLOCK_LEN};
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::context::Context;
+use crate::error::Result;
+use crate::kernels::Kernel;
+use crate::ops::scan::ExclusiveScan;
+use crate::recorder::Recording;
+
+/// A planned sort: scratch keys, values and histogram for lengths up to `max_len`.
+pub struct RadixSort {
+    max_len: u32,
+    keys_scratch: Buffer,
+    values_scratch: Buffer,
+    histogram: Buffer,
+    histogram_scan: ExclusiveScan,
+}
+
+impl RadixSort {
+    /// Largest length one plan accepts (the workgroup-count limit of the sort kernels).
+    pub const LIMIT: u32 = 65_535 * SORT_BLOCK_LEN;
+
+    /// Plans sorts of up to `max_len` pairs.
+    pub fn new(ctx: &Context, max_len: u32) -> Result<Self> {
+        assert!(max_len <= Self::LIMIT, "sort of {max_len} keys exceeds the limit of {}", Self::LIMIT);
+        let bytes = u64::from(max_len) * 4;
+        let histogram_len = RADIX_BUCKETS * radix_sort::block_count(max_len);
+        Ok(Self {
+            max_len,
+            keys_scratch: ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
+            values_scratch: ctx.create_buffer("radix_sort values scratch", BufferDesc::gpu_only(bytes))?,
+            histogram: ctx.create_buffer("radix_sort histogram", BufferDesc::gpu_only(u64::from(histogram_len) * 4))?,
+            histogram_scan: ExclusiveScan::new(ctx, "radix_sort.scan", histogram_len)?,
+        })
+    }
+
+    pub fn max_len(&self) -> u32 {
+        self.max_len
+    }
+
+    /// Records a stable sort of the first `len` (key, value) pairs by the low
+    /// `key_bits` bits of the keys, in place. The caller puts barriers before (if the
+    /// inputs were just written) and after.
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        keys: &'a Buffer,
+        values: &'a Buffer,
+        len: u32,
+        key_bits: u32,
+    ) -> Result<()> {
+        assert!(key_bits <= 32, "key_bits must be at most 32, got {key_bits}");
+        assert!(len <= self.max_len, "sort of {len} keys with a plan for {}", self.max_len);
+        let bytes = u64::from(len) * 4;
+        assert!(bytes <= keys.size && bytes <= values.size, "sort of {len} pairs in buffers of {} and {} bytes", keys.size, values.size);
+        if len <= 1 {
+            return Ok(());
+        }
+        let passes = pass_count(key_bits);
+        let blocks = radix_sort::block_count(len);
+        let mut src = (keys, values);
+        let mut dst = (&self.keys_scratch, &self.values_scratch);
+        for pass in 0..passes {
+            let params = pass_params(len, key_bits, pass);
+            rec.pass("radix_sort.histogram", Kernel::RadixSortHistogram)
+                .read(src.0)
+                .write(&self.histogram)
+                .push(&params)
+                .dispatch([blocks, 1, 1])?;
+            rec.barrier();
+            self.histogram_scan.record(rec, &self.histogram, RADIX_BUCKETS * blocks)?;
+            rec.barrier();
+            rec.pass("radix_sort.scatter", Kernel::RadixSortScatter)
+                .read(src.0)
+                .read(src.1)
+                .read(&self.histogram)
+                .write(dst.0)
+                .write(dst.1)
+                .push(&params)
+                .dispatch([blocks, 1, 1])?;
+            rec.barrier();
+            std::mem::swap(&mut src, &mut dst);
+        }
+        if passes % 2 == 1 {
+            rec.copy(src.0, keys, bytes);
+            rec.copy(src.1, values, bytes);
+        }
+        Ok(())
+    }
+}
+
+/// Sorts host data on the GPU in one submission: upload, sort, read back.
+/// For embedding applications and tests; a frame loop keeps a plan and records.
+pub fn sort_pairs_host(ctx: &Context, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
+    assert_eq!(keys.len(), values.len(), "keys and values differ in length");
+    let len = u32::try_from(keys.len()).expect("at most 2^32 - 1 keys");
+    let mut key_buf = ctx.upload("sort keys", keys)?;
+    let mut value_buf = ctx.upload("sort values", values)?;
+    let plan = RadixSort::new(ctx, len)?;
+    let mut rec = ctx.record("sort_pairs_host")?;
+    plan.record(&mut rec, &key_buf, &value_buf, len, key_bits)?;
+    rec.submit_and_wait()?;
+    Ok((ctx.read_buffer(&mut key_buf, keys.len())?, ctx.read_buffer(&mut value_buf, values.len())?))
+}

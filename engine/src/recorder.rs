@@ -1,0 +1,377 @@
+//! Command recording: named compute passes, explicit barriers, copies and fills,
+//! per-pass GPU timestamps, and a breadcrumb written before each pass so that a lost
+//! device reports the pass that was running.
+//!
+//! A pass reads like a sentence:
+//! `rec.pass("sort.scatter", Kernel::RadixSortScatter).read(&keys).write(&out).push(&params).dispatch([groups, 1, 1])?`.
+//! Bindings are numbered in the order `read`/`write` name them (the order each
+//! kernel's header documents). Nothing orders passes implicitly: independent passes
+//! are recorded back to back and dependent ones are separated by [`Recording::barrier`].
+//! Buffers are borrowed for the recording's lifetime `'a`, so none can be dropped
+//! while the GPU may still use it.
+
+use std::collections::BTreeMap;
+use std::marker::PhantomData;
+
+use ash::vk;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::context::Context;
+use crate::error::{EngineError, Result, VkResultExt};
+use crate::kernels::{Kernel, PUSH_CONSTANT_BYTES};
+
+/// Descriptor sets per descriptor pool; another pool is made when one fills up.
+const SETS_PER_POOL: u32 = 64;
+/// Storage-buffer descriptors per pool (enough for 8 bindings per set).
+const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * 8;
+/// Timestamp queries per query pool (two per pass).
+const QUERIES_PER_POOL: u32 = 256;
+
+/// GPU time of each pass of one submission, in recording order.
+#[derive(Clone, Debug, Default)]
+pub struct PassTimings {
+    /// (pass name, milliseconds). Empty when the queue has no timestamps.
+    pub passes: Vec<(String, f64)>,
+}
+
+impl PassTimings {
+    /// Milliseconds per pass name, summed over passes of the same name.
+    pub fn by_name(&self) -> BTreeMap<String, f64> {
+        let mut out = BTreeMap::new();
+        for (name, ms) in &self.passes {
+            *out.entry(name.clone()).or_insert(0.0) += ms;
+        }
+        out
+    }
+
+    /// Sum over all passes.
+    pub fn total_ms(&self) -> f64 {
+        self.passes.iter().map(|(_, ms)| ms).sum()
+    }
+}
+
+/// One command buffer being recorded.
+pub struct Recording<'a> {
+    ctx: Context,
+    label: String,
+    command_pool: vk::CommandPool,
+    cmd: vk::CommandBuffer,
+    descriptor_pools: Vec<vk::DescriptorPool>,
+    sets_left: u32,
+    query_pools: Vec<vk::QueryPool>,
+    passes: Vec<String>,
+    breadcrumb: Option<Buffer>,
+    _buffers: PhantomData<&'a Buffer>,
+}
+
+impl Context {
+    /// Starts a command buffer; `label` names it in errors.
+    pub fn record<'a>(&self, label: &str) -> Result<Recording<'a>> {
+        let dev = &self.device.raw;
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(self.device.queue_family)
+            .flags(vk::CommandPoolCreateFlags::TRANSIENT);
+        // SAFETY: valid device and create info.
+        let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool", label)?;
+        let mut rec = Recording {
+            ctx: self.clone(),
+            label: label.to_string(),
+            command_pool,
+            cmd: vk::CommandBuffer::null(),
+            descriptor_pools: Vec::new(),
+            sets_left: 0,
+            query_pools: Vec::new(),
+            passes: Vec::new(),
+            breadcrumb: None,
+            _buffers: PhantomData,
+        };
+        let alloc = vk::CommandBufferAllocateInfo::default()
+            .command_pool(command_pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool was just created on this device.
+        rec.cmd = unsafe { dev.allocate_command_buffers(&alloc) }.vk("vkAllocateCommandBuffers", label)?[0];
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: a fresh primary command buffer.
+        unsafe { dev.begin_command_buffer(rec.cmd, &begin) }.vk("vkBeginCommandBuffer", label)?;
+        self.set_name(rec.cmd, label);
+        Ok(rec)
+    }
+}
+
+/// A compute pass being described; recorded by [`PassBuilder::dispatch`].
+pub struct PassBuilder<'r, 'a> {
+    rec: &'r mut Recording<'a>,
+    name: String,
+    kernel: Kernel,
+    buffers: Vec<&'a Buffer>,
+    push: Vec<u8>,
+}
+
+impl<'a> PassBuilder<'_, 'a> {
+    /// Binds the next binding to a buffer the kernel reads.
+    pub fn read(mut self, buffer: &'a Buffer) -> Self {
+        self.buffers.push(buffer);
+        self
+    }
+
+    /// Binds the next binding to a buffer the kernel writes (or reads and writes).
+    pub fn write(mut self, buffer: &'a Buffer) -> Self {
+        self.buffers.push(buffer);
+        self
+    }
+
+    /// The push constants (a `#[repr(C)]` struct from `drape-shared`).
+    pub fn push<T: bytemuck::Pod>(mut self, params: &T) -> Self {
+        self.push = bytemuck::bytes_of(params).to_vec();
+        self
+    }
+
+    /// Records the dispatch of `groups` workgroups (nothing for an empty grid).
+    pub fn dispatch(self, groups: [u32; 3]) -> Result<()> {
+        let PassBuilder { rec, name, kernel, buffers, push } = self;
+        assert_eq!(
+            buffers.len() as u32,
+            kernel.binding_count(),
+            "pass '{name}': kernel {} has {} bindings, {} buffers given",
+            kernel.entry_point(),
+            kernel.binding_count(),
+            buffers.len()
+        );
+        assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
+        let max = rec.ctx.info().max_compute_workgroup_count;
+        assert!(
+            groups.iter().zip(max).all(|(&g, m)| g <= m),
+            "pass '{name}': {groups:?} workgroups exceed the device limit {max:?}"
+        );
+        if groups.contains(&0) {
+            return Ok(());
+        }
+        rec.record_dispatch(&name, kernel, &buffers, &push, groups)
+    }
+}
+
+impl<'a> Recording<'a> {
+    /// Describes a compute pass named `name` running `kernel`.
+    pub fn pass<'r>(&'r mut self, name: &str, kernel: Kernel) -> PassBuilder<'r, 'a> {
+        PassBuilder { rec: self, name: name.to_string(), kernel, buffers: Vec::new(), push: Vec::new() }
+    }
+
+    /// Makes every earlier compute or transfer write visible to every later compute or
+    /// transfer access.
+    pub fn barrier(&mut self) {
+        let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
+        let barrier = vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(
+                vk::AccessFlags::SHADER_READ
+                    | vk::AccessFlags::SHADER_WRITE
+                    | vk::AccessFlags::TRANSFER_READ
+                    | vk::AccessFlags::TRANSFER_WRITE,
+            );
+        // SAFETY: recording command buffer; a global memory barrier has no handles.
+        unsafe {
+            self.ctx.device.raw.cmd_pipeline_barrier(self.cmd, stages, stages, vk::DependencyFlags::empty(), &[barrier], &[], &[])
+        };
+    }
+
+    /// Copies the first `bytes` bytes of `src` to `dst`.
+    pub fn copy(&mut self, src: &'a Buffer, dst: &'a Buffer, bytes: u64) {
+        assert!(bytes <= src.size && bytes <= dst.size, "copy of {bytes} bytes from '{}' to '{}'", src.name(), dst.name());
+        if bytes == 0 {
+            return;
+        }
+        let region = vk::BufferCopy::default().size(bytes);
+        // SAFETY: both buffers are alive for 'a and were created with transfer usage.
+        unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
+    }
+
+    /// Fills the whole of `buffer` with the 32-bit `word`.
+    pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
+        // SAFETY: the buffer is alive for 'a, created with TRANSFER_DST, size a multiple of 4.
+        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, buffer.raw, 0, vk::WHOLE_SIZE, word) };
+    }
+
+    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[&Buffer], push: &[u8], groups: [u32; 3]) -> Result<()> {
+        let pipeline = self.ctx.pipeline(kernel)?;
+        let set = self.allocate_set(pipeline.set_layout)?;
+        let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
+            .iter()
+            .map(|b| [vk::DescriptorBufferInfo::default().buffer(b.raw).offset(0).range(b.vk_size())])
+            .collect();
+        let writes: Vec<vk::WriteDescriptorSet> = infos
+            .iter()
+            .enumerate()
+            .map(|(i, info)| {
+                vk::WriteDescriptorSet::default()
+                    .dst_set(set)
+                    .dst_binding(i as u32)
+                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .buffer_info(info)
+            })
+            .collect();
+        let dev = &self.ctx.device.raw;
+        // SAFETY: the set is freshly allocated and not in use by any command buffer.
+        unsafe { dev.update_descriptor_sets(&writes, &[]) };
+
+        let index = self.passes.len() as u32;
+        self.write_breadcrumb(index)?;
+        let query = self.timestamp_slot(index)?;
+        let dev = &self.ctx.device.raw;
+        // SAFETY: recording command buffer; pipeline, layout and set are alive (the
+        // pipeline is cached by the device, the set by this recording's pools).
+        unsafe {
+            if let Some((pool, q)) = query {
+                dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, q);
+            }
+            dev.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.raw);
+            dev.cmd_bind_descriptor_sets(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.layout, 0, &[set], &[]);
+            if !push.is_empty() {
+                dev.cmd_push_constants(self.cmd, pipeline.layout, vk::ShaderStageFlags::COMPUTE, 0, push);
+            }
+            dev.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
+            if let Some((pool, q)) = query {
+                dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, q + 1);
+            }
+        }
+        self.passes.push(name.to_string());
+        Ok(())
+    }
+
+    fn allocate_set(&mut self, layout: vk::DescriptorSetLayout) -> Result<vk::DescriptorSet> {
+        let dev = &self.ctx.device.raw;
+        if self.sets_left == 0 {
+            let sizes = [vk::DescriptorPoolSize::default()
+                .ty(vk::DescriptorType::STORAGE_BUFFER)
+                .descriptor_count(BUFFERS_PER_POOL)];
+            let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
+            // SAFETY: valid device and create info.
+            let pool = unsafe { dev.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool", &self.label)?;
+            self.descriptor_pools.push(pool);
+            self.sets_left = SETS_PER_POOL;
+        }
+        let layouts = [layout];
+        let info = vk::DescriptorSetAllocateInfo::default()
+            .descriptor_pool(*self.descriptor_pools.last().expect("a pool was just ensured"))
+            .set_layouts(&layouts);
+        // SAFETY: the pool has room (sets_left > 0, at most 8 bindings per set).
+        let set = unsafe { dev.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets", &self.label)?[0];
+        self.sets_left -= 1;
+        Ok(set)
+    }
+
+    fn write_breadcrumb(&mut self, index: u32) -> Result<()> {
+        if self.breadcrumb.is_none() {
+            let b = self.ctx.create_buffer(&format!("{} breadcrumb", self.label), BufferDesc::readback(4))?;
+            self.breadcrumb = Some(b);
+        }
+        let b = self.breadcrumb.as_ref().expect("created above");
+        // SAFETY: recording command buffer; the breadcrumb lives as long as the recording.
+        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, b.raw, 0, 4, index) };
+        Ok(())
+    }
+
+    /// The (pool, first query) of pass `index`, or None without timestamps.
+    fn timestamp_slot(&mut self, index: u32) -> Result<Option<(vk::QueryPool, u32)>> {
+        if self.ctx.info().timestamp_valid_bits == 0 {
+            return Ok(None);
+        }
+        let per_pool = QUERIES_PER_POOL / 2;
+        let pool_index = (index / per_pool) as usize;
+        if pool_index == self.query_pools.len() {
+            let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(QUERIES_PER_POOL);
+            let dev = &self.ctx.device.raw;
+            // SAFETY: valid device and create info.
+            let pool = unsafe { dev.create_query_pool(&info, None) }.vk("vkCreateQueryPool", &self.label)?;
+            // SAFETY: recording command buffer; queries must be reset before first use.
+            unsafe { dev.cmd_reset_query_pool(self.cmd, pool, 0, QUERIES_PER_POOL) };
+            self.query_pools.push(pool);
+        }
+        Ok(Some((self.query_pools[pool_index], (index % per_pool) * 2)))
+    }
+
+    /// Ends recording, submits, waits, and returns the GPU time of every pass.
+    pub fn submit_and_wait(mut self) -> Result<PassTimings> {
+        let dev = self.ctx.device.raw.clone();
+        // Results are read on the host (mapped buffers): make the writes visible there.
+        let to_host = vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(vk::AccessFlags::HOST_READ);
+        // SAFETY: recording command buffer, ended once below.
+        unsafe {
+            dev.cmd_pipeline_barrier(
+                self.cmd,
+                vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::HOST,
+                vk::DependencyFlags::empty(),
+                &[to_host],
+                &[],
+                &[],
+            );
+            dev.end_command_buffer(self.cmd)
+        }
+        .vk("vkEndCommandBuffer", &self.label)?;
+        if let Err(e) = self.ctx.submit_and_wait(self.cmd, &self.label) {
+            return Err(match e {
+                EngineError::DeviceLost { .. } => EngineError::DeviceLost { pass: self.last_pass() },
+                e => e,
+            });
+        }
+        self.read_timings()
+    }
+
+    /// The pass whose breadcrumb was written last (read after a failure).
+    fn last_pass(&mut self) -> String {
+        let label = self.label.clone();
+        let index = self
+            .breadcrumb
+            .as_mut()
+            .and_then(|b| b.coherent_mapping().map(|m| u32::from_le_bytes([m[0], m[1], m[2], m[3]])));
+        match index.and_then(|i| self.passes.get(i as usize)) {
+            Some(name) => format!("{name} (in '{label}')"),
+            None => format!("unknown pass (in '{label}')"),
+        }
+    }
+
+    fn read_timings(&self) -> Result<PassTimings> {
+        let mut timings = PassTimings::default();
+        if self.query_pools.is_empty() {
+            return Ok(timings);
+        }
+        let info = self.ctx.info();
+        let valid_mask = if info.timestamp_valid_bits >= 64 { u64::MAX } else { (1u64 << info.timestamp_valid_bits) - 1 };
+        let per_pool = QUERIES_PER_POOL / 2;
+        let dev = &self.ctx.device.raw;
+        for (p, &pool) in self.query_pools.iter().enumerate() {
+            let first = p * per_pool as usize;
+            let count = (self.passes.len() - first).min(per_pool as usize);
+            let mut ticks = vec![0u64; count * 2];
+            // SAFETY: these queries were written by the submission we waited for.
+            unsafe { dev.get_query_pool_results(pool, 0, &mut ticks, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
+                .vk("vkGetQueryPoolResults", &self.label)?;
+            for i in 0..count {
+                let elapsed = (ticks[2 * i + 1] & valid_mask).wrapping_sub(ticks[2 * i] & valid_mask) & valid_mask;
+                let ms = elapsed as f64 * info.timestamp_period_ns / 1e6;
+                timings.passes.push((self.passes[first + i].clone(), ms));
+            }
+        }
+        Ok(timings)
+    }
+}
+
+impl Drop for Recording<'_> {
+    fn drop(&mut self) {
+        let dev = &self.ctx.device.raw;
+        // SAFETY: the command buffer was never submitted or its submission was waited
+        // for, so none of these objects is in use.
+        unsafe {
+            for &pool in &self.query_pools {
+                dev.destroy_query_pool(pool, None);
+            }
+            for &pool in &self.descriptor_pools {
+                dev.destroy_descriptor_pool(pool, None);
+            }
+            dev.destroy_command_pool(self.command_pool, None);
+        }
+    }
+}

@@ -1,0 +1,15 @@
+//! rust-gpu compute entry points of the drape engine.
+//!
+//! Each entry point only computes indices, moves data between buffers and workgroup
+//! memory, and calls into `drape-shared`, where the math lives (and where the host's
+//! CPU references call the same functions). Modules group the kernels of one op.
+//!
+//! Conventions: bindings are `descriptor_set = 0`, numbered in the order the op's host
+//! code names them; parameters arrive as push constants (`#[repr(C)]` structs from
+//! `drape-shared`); read-only buffers are `&[T]`, written ones `&mut [T]`.
+#![cfg_attr(target_arch = "spirv", no_std)]
+#![forbid(unsafe_code)]
+
+pub mod radix_sort;
+pub mod scan;
+mod workgroup;

@@ -1,0 +1,138 @@
+//! One pass of the stable LSD radix sort: `radix_sort::histogram` and `radix_sort::scatter`.
+//!
+//! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
+//! `RADIX_BUCKETS * params.block_count` counters, digit-major (see
+//! `drape_shared::radix_sort`); the scatter reads it after the exclusive scan.
+//! Workgroup memory `counters[digit * WG + invocation]` gives each invocation its own
+//! column, so counting needs no atomics.
+
+use drape_shared::radix_sort::{
+    digit, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD,
+    SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
+};
+use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
+use spirv_std::glam::UVec3;
+use spirv_std::spirv;
+
+use crate::workgroup::exclusive_scan;
+
+const WG: usize = SORT_WORKGROUP_SIZE as usize;
+const BUCKETS: usize = RADIX_BUCKETS as usize;
+const _: () = assert!(SORT_WORKGROUP_SIZE == 128);
+// The flattened counter scan gives each invocation one whole run of counters.
+const COUNTERS_PER_THREAD: usize = SORT_SHARED_COUNTERS / WG;
+
+/// Zeroes this invocation's column and counts the digits of its keys into it.
+fn count_digits(
+    counters: &mut [u32; SORT_SHARED_COUNTERS],
+    keys: &[u32],
+    params: &SortPassParams,
+    block: u32,
+    lid: u32,
+) {
+    let column = lid as usize;
+    let mut d = 0;
+    while d < BUCKETS {
+        counters[d * WG + column] = 0;
+        d += 1;
+    }
+    let base = block * SORT_BLOCK_LEN + lid * SORT_ITEMS_PER_THREAD;
+    let mut i = 0;
+    while i < SORT_ITEMS_PER_THREAD {
+        let idx = base + i;
+        if idx < params.len {
+            let slot = digit(keys[idx as usize], params) as usize * WG + column;
+            counters[slot] += 1;
+        }
+        i += 1;
+    }
+}
+
+/// `histogram[digit * block_count + block]` = how many keys of this block have `digit`.
+#[spirv(compute(threads(128)))]
+pub fn histogram(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] block: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(workgroup)] counters: &mut [u32; SORT_SHARED_COUNTERS],
+) {
+    count_digits(counters, keys, params, block.x, lid);
+    barrier();
+    if (lid as usize) < BUCKETS {
+        let row = lid as usize * WG;
+        let mut total = 0u32;
+        let mut t = 0;
+        while t < WG {
+            total += counters[row + t];
+            t += 1;
+        }
+        histogram[(lid * params.block_count + block.x) as usize] = total;
+    }
+}
+
+/// Moves every key (and its value) to its place for this digit, stably.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(128)))]
+pub fn scatter(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] block: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] values_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] keys_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
+    #[spirv(workgroup)] counters: &mut [u32; SORT_SHARED_COUNTERS],
+    #[spirv(workgroup)] scratch: &mut [u32; WG],
+    #[spirv(workgroup)] digit_base: &mut [u32; BUCKETS],
+) {
+    count_digits(counters, keys_in, params, block.x, lid);
+    barrier();
+
+    // Exclusive scan of the counters in digit-major order: afterwards
+    // counters[d * WG + t] = keys of this block with a smaller digit, plus keys with
+    // digit d owned by invocations before t.
+    let run = lid as usize * COUNTERS_PER_THREAD;
+    let mut run_total = 0u32;
+    let mut k = 0;
+    while k < COUNTERS_PER_THREAD {
+        run_total += counters[run + k];
+        k += 1;
+    }
+    let (mut running, _) = exclusive_scan(scratch, lid as usize, run_total);
+    k = 0;
+    while k < COUNTERS_PER_THREAD {
+        let c = counters[run + k];
+        counters[run + k] = running;
+        running += c;
+        k += 1;
+    }
+    barrier();
+
+    // Turn block-local positions into global ones: the scanned histogram gives the
+    // first slot of (digit, block); subtract where the digit starts inside the block.
+    if (lid as usize) < BUCKETS {
+        let global = scanned_histogram[(lid * params.block_count + block.x) as usize];
+        digit_base[lid as usize] = global.wrapping_sub(counters[lid as usize * WG]);
+    }
+    barrier();
+
+    let column = lid as usize;
+    let base = block.x * SORT_BLOCK_LEN + lid * SORT_ITEMS_PER_THREAD;
+    let mut i = 0;
+    while i < SORT_ITEMS_PER_THREAD {
+        let idx = base + i;
+        if idx < params.len {
+            let key = keys_in[idx as usize];
+            let d = digit(key, params) as usize;
+            let slot = d * WG + column;
+            let dst = digit_base[d].wrapping_add(counters[slot]) as usize;
+            counters[slot] += 1;
+            keys_out[dst] = key;
+            values_out[dst] = values_in[idx as usize];
+        }
+        i += 1;
+    }
+}

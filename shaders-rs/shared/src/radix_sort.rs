@@ -1,0 +1,87 @@
+//! Stable least-significant-digit radix sort of `u32` keys carrying `u32` values.
+//!
+//! Each pass sorts by one [`RADIX_BITS`]-bit digit and is three steps:
+//! 1. histogram: each workgroup counts the digits of its block of [`SORT_BLOCK_LEN`]
+//!    keys and writes `histogram[digit * block_count + block]` (digit-major, so that
+//!    an exclusive scan of the whole array gives every (digit, block) its first output
+//!    slot, in stable order);
+//! 2. an exclusive scan of the histogram (the scan kernels);
+//! 3. scatter: each workgroup recounts, ranks each key among the equal digits of the
+//!    invocations before it (a scan across invocations in workgroup memory), and writes
+//!    key and value to `scanned[digit * block_count + block] + rank`.
+//!
+//! Invocation `t` of a workgroup owns the [`SORT_ITEMS_PER_THREAD`] consecutive keys
+//! starting at `t * SORT_ITEMS_PER_THREAD` and walks them in order, so keys with equal
+//! digits keep their input order: the sort is stable. Nothing assumes a subgroup size
+//! and no workgroup waits on another one.
+//!
+//! Only the low `key_bits` bits of each key take part: a tile-id sort passes the bits
+//! it needs and skips the passes it does not.
+
+/// Bits per digit (one pass per digit).
+pub const RADIX_BITS: u32 = 4;
+/// Distinct digit values.
+pub const RADIX_BUCKETS: u32 = 1 << RADIX_BITS;
+/// Invocations per workgroup of the sort kernels (the `threads(..)` of the entry points).
+pub const SORT_WORKGROUP_SIZE: u32 = 128;
+/// Consecutive keys each invocation owns.
+pub const SORT_ITEMS_PER_THREAD: u32 = 16;
+/// Keys one workgroup handles per pass.
+pub const SORT_BLOCK_LEN: u32 = SORT_WORKGROUP_SIZE * SORT_ITEMS_PER_THREAD;
+/// Workgroup-memory counters: one per (digit, invocation), digit-major.
+pub const SORT_SHARED_COUNTERS: usize = (RADIX_BUCKETS * SORT_WORKGROUP_SIZE) as usize;
+
+/// Push constants of the sort kernels.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct SortPassParams {
+    /// Number of keys.
+    pub len: u32,
+    /// Bit position of this pass's digit.
+    pub shift: u32,
+    /// Mask applied after the shift (narrower than [`RADIX_BUCKETS`] - 1 on a last,
+    /// partial digit).
+    pub digit_mask: u32,
+    /// Workgroups (blocks) covering `len` keys.
+    pub block_count: u32,
+}
+
+/// Number of passes for `key_bits` significant bits (0 bits: nothing to do).
+pub const fn pass_count(key_bits: u32) -> u32 {
+    key_bits.div_ceil(RADIX_BITS)
+}
+
+/// Number of blocks (workgroups) covering `len` keys.
+pub const fn block_count(len: u32) -> u32 {
+    len.div_ceil(SORT_BLOCK_LEN)
+}
+
+/// The parameters of pass `pass` when sorting `len` keys by their low `key_bits` bits.
+pub const fn pass_params(len: u32, key_bits: u32, pass: u32) -> SortPassParams {
+    let shift = pass * RADIX_BITS;
+    let remaining = key_bits - shift;
+    let bits = if remaining < RADIX_BITS { remaining } else { RADIX_BITS };
+    SortPassParams {
+        len,
+        shift,
+        digit_mask: (1u32 << bits) - 1,
+        block_count: block_count(len),
+    }
+}
+
+/// The digit of `key` in the pass described by `params`.
+#[inline]
+pub fn digit(key: u32, params: &SortPassParams) -> u32 {
+    (key >> params.shift) & params.digit_mask
+}
+
+/// The key the sort orders by: the low `key_bits` bits (all of them for 32).
+#[inline]
+pub const fn significant_bits(key: u32, key_bits: u32) -> u32 {
+    if key_bits >= 32 {
+        key
+    } else {
+        key & ((1u32 << key_bits) - 1)
+    }
+}

@@ -1,0 +1,114 @@
+//! Facts read straight from a SPIR-V module's words: its one entry point's name, its
+//! workgroup size and the bindings it declares. The shader builder writes them into the
+//! manifest; the engine checks each embedded module against the manifest at start-up.
+//! Host-only (never compiled into a kernel).
+
+/// What a compute module declares.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ModuleFacts {
+    /// Word index where the entry point's name (a nul-terminated literal) starts.
+    name_at: usize,
+    /// Number of `OpEntryPoint` instructions (a drape module has exactly one).
+    pub entry_points: u32,
+    /// `LocalSize` execution mode, if declared.
+    pub workgroup_size: Option<[u32; 3]>,
+    /// Bit `b` set when some variable is decorated `Binding b` (b < 64).
+    pub binding_mask: u64,
+}
+
+/// Why a byte string is not a module we can read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SpirvError {
+    /// Fewer than 5 header words, or not a whole number of words.
+    Length,
+    /// The first word is not the SPIR-V magic number.
+    Magic,
+    /// An instruction's word count is 0 or runs past the end.
+    Malformed { word: usize },
+    /// A binding number of 64 or more.
+    BindingOutOfRange { binding: u32 },
+}
+
+impl core::fmt::Display for SpirvError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Length => write!(f, "not a SPIR-V module: its length is not 5 or more whole words"),
+            Self::Magic => write!(f, "not a SPIR-V module: wrong magic number"),
+            Self::Malformed { word } => write!(f, "malformed SPIR-V instruction at word {word}"),
+            Self::BindingOutOfRange { binding } => write!(f, "binding {binding} is out of range (at most 63)"),
+        }
+    }
+}
+
+const MAGIC: u32 = 0x0723_0203;
+const OP_ENTRY_POINT: u32 = 15;
+const OP_EXECUTION_MODE: u32 = 16;
+const OP_DECORATE: u32 = 71;
+const MODE_LOCAL_SIZE: u32 = 17;
+const DECORATION_BINDING: u32 = 33;
+
+/// Word `i` of a little-endian byte string.
+fn word(bytes: &[u8], i: usize) -> u32 {
+    let b = &bytes[i * 4..i * 4 + 4];
+    u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+}
+
+/// Reads the facts of a module given as little-endian bytes (as committed on disk).
+pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
+    if bytes.len() % 4 != 0 || bytes.len() < 20 {
+        return Err(SpirvError::Length);
+    }
+    if word(bytes, 0) != MAGIC {
+        return Err(SpirvError::Magic);
+    }
+    let len = bytes.len() / 4;
+    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0 };
+    let mut at = 5;
+    while at < len {
+        let head = word(bytes, at);
+        let count = (head >> 16) as usize;
+        if count == 0 || at + count > len {
+            return Err(SpirvError::Malformed { word: at });
+        }
+        let operand = |k: usize| word(bytes, at + 1 + k);
+        let operands = count - 1;
+        match head & 0xffff {
+            OP_ENTRY_POINT if operands >= 3 => {
+                facts.entry_points += 1;
+                facts.name_at = at + 3;
+            }
+            OP_EXECUTION_MODE if operands >= 5 && operand(1) == MODE_LOCAL_SIZE => {
+                facts.workgroup_size = Some([operand(2), operand(3), operand(4)]);
+            }
+            OP_DECORATE if operands >= 3 && operand(1) == DECORATION_BINDING => {
+                let binding = operand(2);
+                if binding >= 64 {
+                    return Err(SpirvError::BindingOutOfRange { binding });
+                }
+                facts.binding_mask |= 1 << binding;
+            }
+            _ => {}
+        }
+        at += count;
+    }
+    Ok(facts)
+}
+
+impl ModuleFacts {
+    /// The bytes of the (last) entry point's name, without the terminating nul.
+    pub fn entry_point_name<'a>(&self, bytes: &'a [u8]) -> &'a [u8] {
+        if self.entry_points == 0 {
+            return &[];
+        }
+        let tail = &bytes[self.name_at * 4..];
+        let end = tail.iter().position(|&b| b == 0).unwrap_or(tail.len());
+        &tail[..end]
+    }
+
+    /// `Some(n)` when the bindings are exactly `0..n` (the drape convention).
+    pub fn contiguous_binding_count(&self) -> Option<u32> {
+        let n = self.binding_mask.count_ones();
+        let expected = if n == 64 { u64::MAX } else { (1u64 << n) - 1 };
+        (self.binding_mask == expected).then_some(n)
+    }
+}

@@ -1,0 +1,92 @@
+//! What every drape binary shares: the `--device` / `--validation` options, opening
+//! the context (and printing the chosen device), argument parsing that reports a bad
+//! argument in one line, and a `main` wrapper that turns any error into one line on
+//! stderr and a non-zero exit code, never a panic trace.
+#![forbid(unsafe_code)]
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use drape_engine::{Context, ContextDesc};
+
+/// Device options every binary takes.
+#[derive(Clone, Debug, clap::Args)]
+pub struct DeviceArgs {
+    /// Use the Vulkan device whose name contains NAME (case-insensitive), e.g. "llvmpipe".
+    /// Default: a discrete GPU, then an integrated one, then a CPU implementation.
+    #[arg(long, global = true, value_name = "NAME")]
+    pub device: Option<String>,
+
+    /// Enable the Khronos validation layer and fail on any message.
+    #[arg(long, global = true)]
+    pub validation: bool,
+}
+
+impl DeviceArgs {
+    /// Opens the device and prints which one was chosen (to stderr, so JSON on
+    /// stdout stays clean).
+    pub fn open(&self) -> anyhow::Result<Context> {
+        let ctx = Context::new(&ContextDesc {
+            device_name: self.device.clone(),
+            validation: self.validation,
+            poison_new_buffers: false,
+        })?;
+        eprintln!("device: {}", ctx.info());
+        Ok(ctx)
+    }
+
+    /// With `--validation`, turns collected messages into an error.
+    pub fn check_validation(&self, ctx: &Context) -> anyhow::Result<()> {
+        let messages = ctx.take_validation_messages();
+        anyhow::ensure!(messages.is_empty(), "{} validation message(s); first: {}", messages.len(), messages[0]);
+        Ok(())
+    }
+}
+
+/// Parses arguments; a usage error is printed as its first line only (exit 2), help
+/// and version as clap renders them (exit 0).
+pub fn parse_args<T: Parser>() -> Result<T, ExitCode> {
+    match T::try_parse() {
+        Ok(args) => Ok(args),
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand) {
+                let _ = e.print();
+                return Err(if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand { ExitCode::from(2) } else { ExitCode::SUCCESS });
+            }
+            let rendered = e.render().to_string();
+            let first = rendered.lines().next().unwrap_or("error: bad arguments");
+            eprintln!("{first} (see --help)");
+            Err(ExitCode::from(2))
+        }
+    }
+}
+
+/// Runs `body`; an error is printed as one line (`error: ...: cause`) with exit code 1.
+pub fn run(body: impl FnOnce() -> anyhow::Result<()>) -> ExitCode {
+    match body() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// A length argument: a non-negative integer (underscores allowed, e.g. 1_000_000).
+pub fn parse_len(s: &str) -> Result<u32, String> {
+    let cleaned = s.replace('_', "");
+    if cleaned.starts_with('-') {
+        return Err(format!("'{s}' is negative; a length is a non-negative integer"));
+    }
+    cleaned.parse::<u32>().map_err(|_| format!("'{s}' is not a non-negative integer below 2^32"))
+}
+
+/// Median of a non-empty list (the mean of the middle two for an even count).
+pub fn median(values: &[f64]) -> f64 {
+    assert!(!values.is_empty(), "median of nothing");
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let mid = v.len() / 2;
+    if v.len() % 2 == 0 { (v[mid - 1] + v[mid]) / 2.0 } else { v[mid] }
+}

@@ -1,0 +1,242 @@
+//! `engine-bench`: times the engine's GPU ops on the chosen device, with per-pass GPU
+//! times from timestamp queries and the same job on the CPU in the same run.
+//!
+//! Every figure is a median over `--runs` timed runs after `--warmup` untimed ones.
+//! `median_ms` is wall time from submit to fence (what an application waits);
+//! `gpu_median_ms` is the sum of the passes' timestamps.
+#![forbid(unsafe_code)]
+
+use std::collections::BTreeMap;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use clap::{Parser, Subcommand};
+use drape_cli_support::{median, parse_len, DeviceArgs};
+use drape_engine::ops::{radix_sort::RadixSort, scan::ExclusiveScan};
+use drape_engine::{BufferDesc, Context, PassTimings};
+use drape_shared::radix_sort::significant_bits;
+use rand::{Rng, SeedableRng};
+use serde_json::json;
+
+/// Benchmarks of the drape engine's GPU ops.
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(flatten)]
+    device: DeviceArgs,
+    #[command(subcommand)]
+    job: Job,
+}
+
+#[derive(Clone, Debug, clap::Args)]
+struct Common {
+    /// Number of elements.
+    #[arg(long, value_parser = parse_len, allow_negative_numbers = true, default_value = "1000000")]
+    n: u32,
+    /// Timed runs (the median is reported); at least 10.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(10..))]
+    runs: u32,
+    /// Untimed warm-up runs first.
+    #[arg(long, default_value_t = 2)]
+    warmup: u32,
+    /// Seed of the random input.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Print one JSON object on stdout instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Subcommand, Debug)]
+enum Job {
+    /// Stable radix sort of random u32 keys with u32 values; CPU baseline: the standard
+    /// library's sort_unstable_by_key on the same (key, value) pairs.
+    Sort {
+        #[command(flatten)]
+        common: Common,
+        /// Significant key bits (1-32); keys are random in 0..2^bits.
+        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=32))]
+        bits: u32,
+    },
+    /// Exclusive prefix sum of random u32; CPU baseline: a sequential scan.
+    Scan {
+        #[command(flatten)]
+        common: Common,
+    },
+}
+
+/// Medians over the timed runs.
+struct Measured {
+    wall_ms: f64,
+    gpu_ms: f64,
+    passes: BTreeMap<String, f64>,
+}
+
+fn measure(ctx: &Context, common: &Common, mut run_once: impl FnMut() -> anyhow::Result<(f64, PassTimings)>) -> anyhow::Result<Measured> {
+    let _ = ctx;
+    let mut walls = Vec::new();
+    let mut gpus = Vec::new();
+    let mut per_pass: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for i in 0..common.warmup + common.runs {
+        let (wall, timings) = run_once()?;
+        if i < common.warmup {
+            continue;
+        }
+        walls.push(wall);
+        gpus.push(timings.total_ms());
+        for (name, ms) in timings.by_name() {
+            per_pass.entry(name).or_default().push(ms);
+        }
+    }
+    Ok(Measured {
+        wall_ms: median(&walls),
+        gpu_ms: median(&gpus),
+        passes: per_pass.into_iter().map(|(k, v)| (k, median(&v))).collect(),
+    })
+}
+
+fn cpu_median(runs: u32, mut job: impl FnMut() -> f64) -> f64 {
+    let _ = job(); // warm caches and the allocator
+    let times: Vec<f64> = (0..runs).map(|_| job()).collect();
+    median(&times)
+}
+
+fn bench_sort(ctx: &Context, common: &Common, bits: u32) -> anyhow::Result<serde_json::Value> {
+    let n = common.n;
+    anyhow::ensure!(n <= RadixSort::LIMIT, "--n {n} exceeds the sort's limit of {}", RadixSort::LIMIT);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
+    let keys: Vec<u32> = (0..n).map(|_| significant_bits(rng.random(), bits)).collect();
+    let values: Vec<u32> = (0..n).collect();
+    let pristine_keys = ctx.upload("bench pristine keys", &keys)?;
+    let pristine_values = ctx.upload("bench pristine values", &values)?;
+    let bytes = u64::from(n) * 4;
+    let mut key_buf = ctx.create_buffer("bench keys", BufferDesc::gpu_only(bytes))?;
+    let value_buf = ctx.create_buffer("bench values", BufferDesc::gpu_only(bytes))?;
+    let plan = RadixSort::new(ctx, n)?;
+
+    let measured = measure(ctx, common, || {
+        let mut restore = ctx.record("restore input")?;
+        restore.copy(&pristine_keys, &key_buf, bytes);
+        restore.copy(&pristine_values, &value_buf, bytes);
+        restore.submit_and_wait()?;
+        let mut rec = ctx.record("radix_sort")?;
+        plan.record(&mut rec, &key_buf, &value_buf, n, bits)?;
+        let t0 = Instant::now();
+        let timings = rec.submit_and_wait()?;
+        Ok((t0.elapsed().as_secs_f64() * 1e3, timings))
+    })?;
+    let sorted = ctx.read_buffer::<u32>(&mut key_buf, n as usize)?;
+    anyhow::ensure!(sorted.windows(2).all(|w| w[0] <= w[1]), "the GPU sort's output is not sorted");
+
+    let pairs: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+    let cpu_ms = cpu_median(common.runs, || {
+        let mut p = pairs.clone();
+        let t0 = Instant::now();
+        p.sort_unstable_by_key(|&(k, _)| k);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        std::hint::black_box(&p);
+        ms
+    });
+    Ok(report(ctx, "sort", common, &measured, cpu_ms, "keys_per_s", json!({ "key_bits": bits })))
+}
+
+fn bench_scan(ctx: &Context, common: &Common) -> anyhow::Result<serde_json::Value> {
+    let n = common.n;
+    anyhow::ensure!(n <= ExclusiveScan::LIMIT, "--n {n} exceeds the scan's limit of {}", ExclusiveScan::LIMIT);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
+    let data: Vec<u32> = (0..n).map(|_| rng.random_range(0..1024)).collect();
+    let pristine = ctx.upload("bench pristine data", &data)?;
+    let bytes = u64::from(n) * 4;
+    let mut buf = ctx.create_buffer("bench data", BufferDesc::gpu_only(bytes))?;
+    let plan = ExclusiveScan::new(ctx, "scan", n)?;
+    let measured = measure(ctx, common, || {
+        let mut restore = ctx.record("restore input")?;
+        restore.copy(&pristine, &buf, bytes);
+        restore.submit_and_wait()?;
+        let mut rec = ctx.record("scan")?;
+        plan.record(&mut rec, &buf, n)?;
+        let t0 = Instant::now();
+        let timings = rec.submit_and_wait()?;
+        Ok((t0.elapsed().as_secs_f64() * 1e3, timings))
+    })?;
+    let gpu = ctx.read_buffer::<u32>(&mut buf, n as usize)?;
+    let mut expected = data.clone();
+    drape_shared::scan::exclusive_scan_in_place(&mut expected);
+    anyhow::ensure!(gpu == expected, "the GPU scan's output differs from the CPU scan");
+    let cpu_ms = cpu_median(common.runs, || {
+        let mut d = data.clone();
+        let t0 = Instant::now();
+        drape_shared::scan::exclusive_scan_in_place(&mut d);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        std::hint::black_box(&d);
+        ms
+    });
+    Ok(report(ctx, "scan", common, &measured, cpu_ms, "elems_per_s", json!({})))
+}
+
+fn report(
+    ctx: &Context,
+    job: &str,
+    common: &Common,
+    m: &Measured,
+    cpu_ms: f64,
+    rate_key: &str,
+    extra: serde_json::Value,
+) -> serde_json::Value {
+    let mut out = json!({
+        "job": job,
+        "device": ctx.info().name,
+        "device_kind": format!("{:?}", ctx.info().kind),
+        "n": common.n,
+        "runs": common.runs,
+        "warmup": common.warmup,
+        "median_ms": m.wall_ms,
+        "gpu_median_ms": m.gpu_ms,
+        "cpu_median_ms": cpu_ms,
+        "cpu_over_gpu": cpu_ms / m.wall_ms,
+        "passes": m.passes,
+        "verified": true,
+    });
+    out[rate_key] = json!(f64::from(common.n) / (m.wall_ms / 1e3));
+    out["cpu_".to_string() + rate_key] = json!(f64::from(common.n) / (cpu_ms / 1e3));
+    if let (Some(o), Some(e)) = (out.as_object_mut(), extra.as_object()) {
+        o.extend(e.clone());
+    }
+    out
+}
+
+fn print_table(r: &serde_json::Value) {
+    let rate_key = if r.get("keys_per_s").is_some() { "keys_per_s" } else { "elems_per_s" };
+    println!("{} of {} elements on {} ({} runs, median)", r["job"].as_str().unwrap_or("?"), r["n"], r["device"].as_str().unwrap_or("?"), r["runs"]);
+    println!("  wall (submit to fence)  {:>10.3} ms   {:>8.2} M/s", r["median_ms"].as_f64().unwrap_or(0.0), r[rate_key].as_f64().unwrap_or(0.0) / 1e6);
+    println!("  GPU (timestamps)        {:>10.3} ms", r["gpu_median_ms"].as_f64().unwrap_or(0.0));
+    if let Some(passes) = r["passes"].as_object() {
+        for (name, ms) in passes {
+            println!("    {name:<28}{:>10.3} ms", ms.as_f64().unwrap_or(0.0));
+        }
+    }
+    println!("  CPU baseline            {:>10.3} ms   {:>8.2} M/s", r["cpu_median_ms"].as_f64().unwrap_or(0.0), r[format!("cpu_{rate_key}")].as_f64().unwrap_or(0.0) / 1e6);
+    println!("  CPU time / GPU time     {:>10.2}x", r["cpu_over_gpu"].as_f64().unwrap_or(0.0));
+}
+
+fn main() -> ExitCode {
+    let cli: Cli = match drape_cli_support::parse_args() {
+        Ok(c) => c,
+        Err(code) => return code,
+    };
+    drape_cli_support::run(|| {
+        let ctx = cli.device.open()?;
+        let (result, json_out) = match &cli.job {
+            Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json),
+            Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json),
+        };
+        cli.device.check_validation(&ctx)?;
+        if json_out {
+            println!("{result}");
+        } else {
+            print_table(&result);
+        }
+        Ok(())
+    })
+}

@@ -1,0 +1,212 @@
+//! The shader builder: compiles `shaders-rs/kernels` to SPIR-V with rust-gpu and writes
+//! one module per entry point plus `manifest.json` into `shaders-rs/spirv/`, where they
+//! are committed. `--check` rebuilds into a temporary directory instead and fails,
+//! naming each module, if any byte differs from what is committed.
+//!
+//! It runs on the pinned nightly of its own `rust-toolchain.toml`; the product
+//! workspace never needs that toolchain.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use spirv_builder::{ModuleResult, SpirvBuilder};
+
+use drape_shared::spirv_module;
+
+const TARGET: &str = "spirv-unknown-vulkan1.2";
+/// Must match `rust-toolchain.toml` beside this crate: rust-gpu 0.11 links against it.
+const TOOLCHAIN: &str = "nightly-2026-08-15";
+const USAGE: &str = "\
+shader-builder: compile shaders-rs/kernels to SPIR-V with rust-gpu
+
+USAGE: shader-builder [--check] [--shaders DIR] [--out DIR]
+
+  (no flag)      rebuild and write DIR/spirv/*.spv and manifest.json
+  --check        rebuild into a temporary directory and compare byte for byte with the
+                 committed modules; exit 1 naming every module that differs
+  --shaders DIR  the shaders-rs directory to compile (default: this repository's)
+  --out DIR      where the committed modules live (default: <shaders>/spirv)";
+
+struct Args {
+    check: bool,
+    shaders: PathBuf,
+    out: Option<PathBuf>,
+}
+
+fn parse_args() -> Result<Args, String> {
+    let mut args = Args {
+        check: false,
+        shaders: Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders-rs"),
+        out: None,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--check" => args.check = true,
+            "--shaders" => args.shaders = it.next().ok_or("--shaders needs a directory")?.into(),
+            "--out" => args.out = Some(it.next().ok_or("--out needs a directory")?.into()),
+            "-h" | "--help" => {
+                println!("{USAGE}");
+                std::process::exit(0);
+            }
+            other => return Err(format!("unknown argument '{other}' (see --help)")),
+        }
+    }
+    Ok(args)
+}
+
+/// Compiles the kernels crate under `shaders` and returns entry point -> SPIR-V bytes.
+fn compile(shaders: &Path) -> Result<BTreeMap<String, Vec<u8>>, String> {
+    let kernels = shaders.join("kernels");
+    // One target directory for every build (also of temporary copies) so that
+    // spirv-std and friends are compiled once.
+    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/spirv-kernels");
+    let mut builder = SpirvBuilder::new(&kernels, TARGET);
+    builder.multimodule = true;
+    builder.release = true;
+    builder.target_dir_path = Some(target_dir);
+    builder.build_script.defaults = false;
+    // The nested cargo must run on the pinned nightly, whatever toolchain invoked us.
+    builder.toolchain_overwrite = Some(TOOLCHAIN.to_string());
+    let result = builder
+        .build()
+        .map_err(|e| format!("rust-gpu build of {} failed: {e}", kernels.display()))?;
+    let ModuleResult::MultiModule(modules) = result.module else {
+        return Err("rust-gpu returned a single module; multimodule was requested".into());
+    };
+    let mut out = BTreeMap::new();
+    for (entry, path) in modules {
+        let bytes = std::fs::read(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+        out.insert(entry, bytes);
+    }
+    Ok(out)
+}
+
+/// The file a module is committed as.
+fn module_file(entry: &str) -> String {
+    format!("{}.spv", entry.replace("::", "-"))
+}
+
+fn manifest_json(modules: &BTreeMap<String, Vec<u8>>) -> Result<String, String> {
+    let mut list = Vec::new();
+    for (entry, bytes) in modules {
+        let facts = spirv_module::inspect(bytes).map_err(|e| format!("module {entry}: {e}"))?;
+        let name = String::from_utf8_lossy(facts.entry_point_name(bytes));
+        if facts.entry_points != 1 || name != *entry {
+            return Err(format!(
+                "module {entry}: expected one OpEntryPoint named '{entry}', found {} (last '{name}')",
+                facts.entry_points
+            ));
+        }
+        let workgroup_size = facts
+            .workgroup_size
+            .ok_or_else(|| format!("module {entry}: no LocalSize execution mode"))?;
+        let bindings = facts
+            .contiguous_binding_count()
+            .ok_or_else(|| format!("module {entry}: bindings are not numbered 0..n"))?;
+        list.push(serde_json::json!({
+            "entry_point": entry,
+            "file": module_file(entry),
+            "workgroup_size": workgroup_size,
+            "bindings": bindings,
+            "bytes": bytes.len(),
+        }));
+    }
+    let manifest = serde_json::json!({
+        "generator": "tools/shader-builder (rust-gpu spirv-builder 0.11)",
+        "target": TARGET,
+        "modules": list,
+    });
+    serde_json::to_string_pretty(&manifest)
+        .map(|s| s + "\n")
+        .map_err(|e| e.to_string())
+}
+
+fn write(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<(), String> {
+    std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
+    // Remove modules of entry points that no longer exist.
+    for entry in std::fs::read_dir(out).map_err(|e| e.to_string())? {
+        let path = entry.map_err(|e| e.to_string())?.path();
+        if path.extension().is_some_and(|x| x == "spv") {
+            std::fs::remove_file(&path).map_err(|e| format!("removing {}: {e}", path.display()))?;
+        }
+    }
+    for (entry, bytes) in modules {
+        let path = out.join(module_file(entry));
+        std::fs::write(&path, bytes).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    }
+    let manifest = manifest_json(modules)?;
+    std::fs::write(out.join("manifest.json"), manifest).map_err(|e| e.to_string())?;
+    println!("wrote {} modules and manifest.json to {}", modules.len(), out.display());
+    Ok(())
+}
+
+/// Every difference between a fresh build and the committed files, one line each.
+fn compare(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<Vec<String>, String> {
+    let mut problems = Vec::new();
+    for (entry, bytes) in modules {
+        let path = out.join(module_file(entry));
+        match std::fs::read(&path) {
+            Ok(committed) if committed == *bytes => {}
+            Ok(committed) => {
+                let first = committed.iter().zip(bytes).position(|(a, b)| a != b);
+                problems.push(format!(
+                    "module {entry}: {} differs from a fresh build ({} committed bytes, {} built; first difference at byte {})",
+                    path.display(),
+                    committed.len(),
+                    bytes.len(),
+                    first.unwrap_or(committed.len().min(bytes.len()))
+                ));
+            }
+            Err(_) => problems.push(format!("module {entry}: {} is not committed", path.display())),
+        }
+    }
+    for entry in std::fs::read_dir(out).map_err(|e| format!("reading {}: {e}", out.display()))? {
+        let path = entry.map_err(|e| e.to_string())?.path();
+        if path.extension().is_some_and(|x| x == "spv") {
+            let name = path.file_stem().unwrap_or_default().to_string_lossy().replace('-', "::");
+            if !modules.contains_key(&name) {
+                problems.push(format!("module {name}: {} is committed but no longer built", path.display()));
+            }
+        }
+    }
+    let manifest = manifest_json(modules)?;
+    let manifest_path = out.join("manifest.json");
+    match std::fs::read_to_string(&manifest_path) {
+        Ok(committed) if committed == manifest => {}
+        _ => problems.push(format!("{} differs from a fresh build", manifest_path.display())),
+    }
+    Ok(problems)
+}
+
+fn run() -> Result<ExitCode, String> {
+    let args = parse_args()?;
+    let out = args.out.clone().unwrap_or_else(|| args.shaders.join("spirv"));
+    let modules = compile(&args.shaders)?;
+    if !args.check {
+        write(&out, &modules)?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    let problems = compare(&out, &modules)?;
+    if problems.is_empty() {
+        println!("SPIR-V is fresh: {} modules match {}", modules.len(), out.display());
+        Ok(ExitCode::SUCCESS)
+    } else {
+        for p in &problems {
+            eprintln!("stale SPIR-V: {p}");
+        }
+        eprintln!("run `cargo run --release` in tools/shader-builder and commit shaders-rs/spirv/");
+        Ok(ExitCode::FAILURE)
+    }
+}
+
+fn main() -> ExitCode {
+    match run() {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
