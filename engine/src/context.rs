@@ -235,6 +235,25 @@ impl Context {
         self.device.validation.clone()
     }
 
+    /// Makes one deliberately invalid call (a zero-size buffer) so tests can prove
+    /// that validation messages reach the sink. Not for anything else.
+    #[doc(hidden)]
+    pub fn provoke_validation_error_for_tests(&self) {
+        if self.device.validation.is_none() {
+            return; // without the layer the invalid call would reach the driver
+        }
+        let info = vk::BufferCreateInfo::default()
+            .size(0)
+            .usage(vk::BufferUsageFlags::STORAGE_BUFFER)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        // SAFETY: invalid on purpose (size 0), which the validation layer reports and
+        // lavapipe tolerates; the buffer is never bound or used, and destroyed at once.
+        if let Ok(buffer) = unsafe { self.device.raw.create_buffer(&info, None) } {
+            // SAFETY: created just above, unused.
+            unsafe { self.device.raw.destroy_buffer(buffer, None) };
+        }
+    }
+
     /// The pipeline of `kernel`, created on first use.
     pub(crate) fn pipeline(&self, kernel: Kernel) -> Result<Arc<Pipeline>> {
         let mut cache = self.device.pipelines.lock().unwrap_or_else(|p| p.into_inner());

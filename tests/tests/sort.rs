@@ -1,0 +1,115 @@
+//! GPU radix sort against the CPU reference: a stable sort by the low `key_bits` bits
+//! (`drape_shared::radix_sort::significant_bits`). Values are the input indices, so
+//! exact equality of (key, value) pairs also proves stability. Tolerance: none, the
+//! sort is exact.
+
+use drape_engine::ops::radix_sort::sort_pairs_host;
+use drape_shared::radix_sort::significant_bits;
+use drape_tests::{gpu, Pattern};
+
+const BITS: [u32; 4] = [1, 8, 16, 32];
+
+fn cpu_reference(keys: &[u32], key_bits: u32) -> (Vec<u32>, Vec<u32>) {
+    let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(0..).collect();
+    pairs.sort_by_key(|&(k, _)| significant_bits(k, key_bits)); // std's sort_by_key is stable
+    pairs.into_iter().unzip()
+}
+
+/// Every pattern and key width at one length, on one context.
+fn check_length(len: usize) {
+    let gpu = gpu();
+    for pattern in Pattern::ALL {
+        for bits in BITS {
+            let keys = pattern.generate(len, bits, len as u64 ^ u64::from(bits));
+            let values: Vec<u32> = (0..len as u32).collect();
+            let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, bits).expect("GPU sort");
+            let (ek, ev) = cpu_reference(&keys, bits);
+            assert!(gk == ek, "keys differ: len {len}, {pattern:?}, {bits} bits");
+            assert!(gv == ev, "values (input order) differ: len {len}, {pattern:?}, {bits} bits");
+        }
+    }
+}
+
+#[test]
+fn sort_len_0() {
+    check_length(0);
+}
+
+#[test]
+fn sort_len_1() {
+    check_length(1);
+}
+
+#[test]
+fn sort_len_255() {
+    check_length(255);
+}
+
+#[test]
+fn sort_len_256() {
+    check_length(256);
+}
+
+#[test]
+fn sort_len_257() {
+    check_length(257);
+}
+
+#[test]
+fn sort_len_65537() {
+    check_length(65_537);
+}
+
+#[test]
+fn sort_len_4m() {
+    check_length(4 << 20);
+}
+
+#[test]
+fn sort_len_16m_random_32_bits() {
+    let gpu = gpu();
+    let len = 16 << 20;
+    let keys = Pattern::Random.generate(len, 32, 16);
+    let values: Vec<u32> = (0..len as u32).collect();
+    let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, 32).expect("GPU sort");
+    let (ek, ev) = cpu_reference(&keys, 32);
+    assert!(gk == ek && gv == ev, "16M random keys differ from the CPU reference");
+}
+
+/// Many duplicates spread over many workgroups: equal keys must keep input order.
+#[test]
+fn sort_is_stable_across_workgroups() {
+    let gpu = gpu();
+    let len = 100_003;
+    let keys: Vec<u32> = (0..len as u32).map(|i| (i * 7919) % 3).collect();
+    let values: Vec<u32> = (0..len as u32).collect();
+    let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, 2).expect("GPU sort");
+    for w in gk.iter().zip(&gv).collect::<Vec<_>>().windows(2) {
+        let ((k0, v0), (k1, v1)) = (w[0], w[1]);
+        assert!(k0 < k1 || (k0 == k1 && v0 < v1), "order broken at key {k0}/{k1}, values {v0}/{v1}");
+    }
+}
+
+/// With `key_bits` = 8, bits above the eighth do not take part: keys that differ only
+/// there keep their input order, and those bits travel with the key unchanged.
+#[test]
+fn sort_ignores_bits_above_key_bits() {
+    let gpu = gpu();
+    let keys: Vec<u32> = (0..5000u32).map(|i| (i.wrapping_mul(2_654_435_761)) ^ (i << 8)).collect();
+    let values: Vec<u32> = (0..5000).collect();
+    let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, 8).expect("GPU sort");
+    let (ek, ev) = cpu_reference(&keys, 8);
+    assert_eq!(gk, ek);
+    assert_eq!(gv, ev);
+}
+
+/// Zero key bits: nothing to sort by, so nothing moves.
+#[test]
+fn sort_with_zero_key_bits_is_identity() {
+    let gpu = gpu();
+    let keys = Pattern::Random.generate(3000, 32, 3);
+    let values: Vec<u32> = (0..3000).collect();
+    let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, 0).expect("GPU sort");
+    assert_eq!(gk, keys);
+    assert_eq!(gv, values);
+}
