@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The whole test suite, as CI runs it:
+#  1. rebuild the SPIR-V with rust-gpu and fail, naming the module, if any byte
+#     differs from what is committed;
+#  2. the shader builder's own test (a changed kernel source fails the check);
+#  3. every workspace test on lavapipe with validation layers on (any validation
+#     message fails the test that caused it).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+scripts/setup.sh --shaders
+export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
+
+echo "== 1/3 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
+(cd tools/shader-builder && cargo run --release --locked --quiet -- --check)
+
+echo "== 2/3 shader builder tests"
+(cd tools/shader-builder && cargo test --release --locked)
+
+echo "== 3/3 workspace tests on $DRAPE_DEVICE with validation"
+cargo test --workspace --locked
