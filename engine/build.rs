@@ -32,6 +32,7 @@ fn main() {
     let mut spirv = String::new();
     let mut wg = String::new();
     let mut bindings = String::new();
+    let mut requires = String::new();
     for m in modules {
         let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
         let file = m["file"].as_str().expect("manifest.json: file");
@@ -42,7 +43,12 @@ fn main() {
             .map(|v| v.as_u64().expect("manifest.json: workgroup_size entry"))
             .collect();
         let nb = m["bindings"].as_u64().expect("manifest.json: bindings");
+        let needs_atomics = m["requires"]
+            .as_array()
+            .map(|r| r.iter().any(|c| c.as_str() == Some("AtomicFloat32AddEXT")))
+            .unwrap_or(false);
         let v = camel(name);
+        writeln!(requires, "            Kernel::{v} => {needs_atomics},").unwrap();
         let path = spirv_dir.join(file);
         println!("cargo:rerun-if-changed={}", path.display());
         writeln!(variants, "    /// Entry point `{name}` ({file}).\n    {v},").unwrap();
@@ -79,6 +85,12 @@ impl Kernel {{
     pub const fn workgroup_size(self) -> [u32; 3] {{
         match self {{
 {wg}        }}
+    }}
+
+    /// Whether the module needs `shaderBufferFloat32AtomicAdd`.
+    pub const fn requires_float_atomics(self) -> bool {{
+        match self {{
+{requires}        }}
     }}
 
     /// Number of storage-buffer bindings (numbered 0..n) the manifest records.

@@ -260,6 +260,9 @@ impl Context {
         if let Some(p) = cache.get(&kernel) {
             return Ok(p.clone());
         }
+        if kernel.requires_float_atomics() && !self.device.info.float_atomic_add {
+            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderBufferFloat32AtomicAdd" });
+        }
         let p = Arc::new(Pipeline::create(&self.device, kernel)?);
         cache.insert(kernel, p.clone());
         Ok(p)

@@ -35,6 +35,10 @@ pub enum EngineError {
     #[error("shader/manifest mismatch for kernel '{kernel}': {detail} (rebuild with tools/shader-builder and commit shaders-rs/spirv)")]
     ShaderManifestMismatch { kernel: &'static str, detail: String },
 
+    /// A kernel needs a device feature the device lacks (callers pick a fallback).
+    #[error("kernel '{kernel}' needs {feature}, which the device does not have")]
+    MissingFeature { kernel: &'static str, feature: &'static str },
+
     /// Any other Vulkan failure, with the call that returned it.
     #[error("{call} failed: {result}")]
     Vulkan { call: &'static str, result: vk::Result },

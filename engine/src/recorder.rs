@@ -22,8 +22,10 @@ use crate::kernels::{Kernel, PUSH_CONSTANT_BYTES};
 
 /// Descriptor sets per descriptor pool; another pool is made when one fills up.
 const SETS_PER_POOL: u32 = 64;
-/// Storage-buffer descriptors per pool (enough for 8 bindings per set).
-const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * 8;
+/// Most bindings a kernel may have.
+pub const MAX_BINDINGS: u32 = 16;
+/// Storage-buffer descriptors per pool (enough for every set at the maximum).
+const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * MAX_BINDINGS;
 /// Timestamp queries per query pool (two per pass).
 const QUERIES_PER_POOL: u32 = 256;
 
@@ -138,6 +140,7 @@ impl<'a> PassBuilder<'_, 'a> {
             kernel.binding_count(),
             buffers.len()
         );
+        assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
         assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
         let max = rec.ctx.info().max_compute_workgroup_count;
         assert!(
@@ -254,7 +257,7 @@ impl<'a> Recording<'a> {
         let info = vk::DescriptorSetAllocateInfo::default()
             .descriptor_pool(*self.descriptor_pools.last().expect("a pool was just ensured"))
             .set_layouts(&layouts);
-        // SAFETY: the pool has room (sets_left > 0, at most 8 bindings per set).
+        // SAFETY: the pool has room (sets_left > 0, at most MAX_BINDINGS per set).
         let set = unsafe { dev.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets", &self.label)?[0];
         self.sets_left -= 1;
         Ok(set)

@@ -4,3 +4,4 @@
 
 pub mod radix_sort;
 pub mod scan;
+pub mod splat;

@@ -8,8 +8,12 @@
 //! code names them; parameters arrive as push constants (`#[repr(C)]` structs from
 //! `drape-shared`); read-only buffers are `&[T]`, written ones `&mut [T]`.
 #![cfg_attr(target_arch = "spirv", no_std)]
-#![forbid(unsafe_code)]
+// Only `atomics` may use unsafe (spirv-std's atomics are unsafe fns).
+#![deny(unsafe_code)]
 
+mod atomics;
 pub mod radix_sort;
 pub mod scan;
+pub mod splat;
+pub mod train;
 mod workgroup;

@@ -7,7 +7,10 @@
 #![no_std]
 #![forbid(unsafe_code)]
 
+pub mod adam;
 pub mod radix_sort;
+pub mod real;
 pub mod scan;
+pub mod splat;
 #[cfg(not(target_arch = "spirv"))]
 pub mod spirv_module;

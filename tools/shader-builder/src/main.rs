@@ -56,12 +56,25 @@ fn parse_args() -> Result<Args, String> {
     Ok(args)
 }
 
-/// Compiles the kernels crate under `shaders` and returns entry point -> SPIR-V bytes.
-fn compile(shaders: &Path) -> Result<BTreeMap<String, Vec<u8>>, String> {
+/// A built module and the optional device capability it needs.
+struct Module {
+    bytes: Vec<u8>,
+    /// SPIR-V capability beyond the baseline (e.g. float atomics), or None.
+    requires: Option<&'static str>,
+}
+
+/// Capability of the second build: kernels gated on
+/// the kernels crate's `float-atomics` feature exist only there, so every other
+/// module stays loadable on devices without float atomics.
+const FLOAT_ATOMICS: &str = "AtomicFloat32AddEXT";
+
+fn build_once(shaders: &Path, float_atomics: bool) -> Result<BTreeMap<String, Vec<u8>>, String> {
     let kernels = shaders.join("kernels");
-    // One target directory for every build (also of temporary copies) so that
-    // spirv-std and friends are compiled once.
-    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/spirv-kernels");
+    // One target directory per configuration, shared by every build (also of temporary
+    // copies) so that spirv-std and friends are compiled once; separate per
+    // configuration because cargo does not tell the two apart by their flags alone.
+    let flavour = if float_atomics { "spirv-kernels-float-atomics" } else { "spirv-kernels" };
+    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target").join(flavour);
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
     builder.release = true;
@@ -69,6 +82,12 @@ fn compile(shaders: &Path) -> Result<BTreeMap<String, Vec<u8>>, String> {
     builder.build_script.defaults = false;
     // The nested cargo must run on the pinned nightly, whatever toolchain invoked us.
     builder.toolchain_overwrite = Some(TOOLCHAIN.to_string());
+    if float_atomics {
+        builder = builder
+            .capability(spirv_builder::Capability::AtomicFloat32AddEXT)
+            .extension("SPV_EXT_shader_atomic_float_add");
+        builder.shader_crate_features.features = vec!["float-atomics".to_string()];
+    }
     let result = builder
         .build()
         .map_err(|e| format!("rust-gpu build of {} failed: {e}", kernels.display()))?;
@@ -83,14 +102,30 @@ fn compile(shaders: &Path) -> Result<BTreeMap<String, Vec<u8>>, String> {
     Ok(out)
 }
 
+/// Compiles the kernels crate under `shaders`: the baseline build, plus the modules
+/// that exist only with float atomics.
+fn compile(shaders: &Path) -> Result<BTreeMap<String, Module>, String> {
+    let base = build_once(shaders, false)?;
+    let with_atomics = build_once(shaders, true)?;
+    let mut out: BTreeMap<String, Module> =
+        base.into_iter().map(|(entry, bytes)| (entry, Module { bytes, requires: None })).collect();
+    for (entry, bytes) in with_atomics {
+        if !out.contains_key(&entry) {
+            out.insert(entry, Module { bytes, requires: Some(FLOAT_ATOMICS) });
+        }
+    }
+    Ok(out)
+}
+
 /// The file a module is committed as.
 fn module_file(entry: &str) -> String {
     format!("{}.spv", entry.replace("::", "-"))
 }
 
-fn manifest_json(modules: &BTreeMap<String, Vec<u8>>) -> Result<String, String> {
+fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
     let mut list = Vec::new();
-    for (entry, bytes) in modules {
+    for (entry, module) in modules {
+        let bytes = &module.bytes;
         let facts = spirv_module::inspect(bytes).map_err(|e| format!("module {entry}: {e}"))?;
         let name = String::from_utf8_lossy(facts.entry_point_name(bytes));
         if facts.entry_points != 1 || name != *entry {
@@ -111,6 +146,7 @@ fn manifest_json(modules: &BTreeMap<String, Vec<u8>>) -> Result<String, String> 
             "workgroup_size": workgroup_size,
             "bindings": bindings,
             "bytes": bytes.len(),
+            "requires": module.requires.map(|r| vec![r]).unwrap_or_default(),
         }));
     }
     let manifest = serde_json::json!({
@@ -123,7 +159,7 @@ fn manifest_json(modules: &BTreeMap<String, Vec<u8>>) -> Result<String, String> 
         .map_err(|e| e.to_string())
 }
 
-fn write(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<(), String> {
+fn write(out: &Path, modules: &BTreeMap<String, Module>) -> Result<(), String> {
     std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
     // Remove modules of entry points that no longer exist.
     for entry in std::fs::read_dir(out).map_err(|e| e.to_string())? {
@@ -132,9 +168,9 @@ fn write(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<(), String> 
             std::fs::remove_file(&path).map_err(|e| format!("removing {}: {e}", path.display()))?;
         }
     }
-    for (entry, bytes) in modules {
+    for (entry, module) in modules {
         let path = out.join(module_file(entry));
-        std::fs::write(&path, bytes).map_err(|e| format!("writing {}: {e}", path.display()))?;
+        std::fs::write(&path, &module.bytes).map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
     let manifest = manifest_json(modules)?;
     std::fs::write(out.join("manifest.json"), manifest).map_err(|e| e.to_string())?;
@@ -143,9 +179,10 @@ fn write(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<(), String> 
 }
 
 /// Every difference between a fresh build and the committed files, one line each.
-fn compare(out: &Path, modules: &BTreeMap<String, Vec<u8>>) -> Result<Vec<String>, String> {
+fn compare(out: &Path, modules: &BTreeMap<String, Module>) -> Result<Vec<String>, String> {
     let mut problems = Vec::new();
-    for (entry, bytes) in modules {
+    for (entry, module) in modules {
+        let bytes = &module.bytes;
         let path = out.join(module_file(entry));
         match std::fs::read(&path) {
             Ok(committed) if committed == *bytes => {}

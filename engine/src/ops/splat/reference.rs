@@ -1,0 +1,164 @@
+//! The CPU reference renderer: the same shared functions as the kernels, run on the
+//! host, generic over the float type (f32 to check the GPU, f64 for gradient checks).
+//!
+//! Binning is the GPU's, done directly: splats in a stable order of their f32 depth
+//! bits (culled ones last), then each tile's list in that order. Intersections beyond
+//! what is used are not materialised.
+
+use drape_shared::real::Real;
+use drape_shared::splat::layout::{FrameParams, TILE_SIZE};
+use drape_shared::splat::project::{project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad};
+use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
+
+/// A forward render and what the backward pass needs of it.
+#[derive(Clone, Debug)]
+pub struct ReferenceRender<F> {
+    pub width: u32,
+    pub height: u32,
+    /// 3 per pixel, row-major.
+    pub rgb: Vec<F>,
+    pub alpha: Vec<F>,
+    /// `Σ wᵢ zᵢ` per pixel.
+    pub depth: Vec<F>,
+    pub contributors: Vec<u32>,
+    pub transmittance: Vec<F>,
+    /// Gaussian-pixel blend steps.
+    pub blend_steps: u64,
+    /// Gaussians dropped for non-finite parameters.
+    pub dropped: u32,
+    /// Tile intersections.
+    pub intersections: u64,
+    pub projections: Vec<Projection<F>>,
+    /// Per tile, the Gaussians in blending order.
+    pub tile_lists: Vec<Vec<u32>>,
+}
+
+fn view<F: Real>(p: &Projection<F>) -> SplatView<F> {
+    SplatView { x: p.x, y: p.y, depth: p.depth, conic: p.conic, opacity: p.opacity, color: p.color }
+}
+
+/// Renders `gaussians` with the camera and settings of `frame` (its `count` is ignored).
+pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> ReferenceRender<F> {
+    let cam = Camera::<F>::from_frame(frame);
+    let cfg = BlendSettings::<F>::from_frame(frame);
+    let projections: Vec<Projection<F>> = gaussians.iter().map(|g| project_fwd(g, &cam)).collect();
+    let rects: Vec<Option<[u32; 4]>> = projections
+        .iter()
+        .map(|p| {
+            p.visible
+                .then(|| tile_rect(p.x, p.y, p.radius, frame.tiles_x, frame.tiles_y))
+                .filter(|r| r[2] > r[0] && r[3] > r[1])
+        })
+        .collect();
+    let mut order: Vec<u32> = (0..gaussians.len() as u32).collect();
+    let key = |i: u32| match rects[i as usize] {
+        Some(_) => projections[i as usize].depth.to_f32().to_bits(),
+        None => u32::MAX,
+    };
+    order.sort_by_key(|&i| key(i)); // stable, like the GPU radix sort
+    let tiles = (frame.tiles_x * frame.tiles_y) as usize;
+    let mut tile_lists = vec![Vec::new(); tiles];
+    let mut intersections = 0u64;
+    for &g in &order {
+        if let Some(r) = rects[g as usize] {
+            for ty in r[1]..r[3] {
+                for tx in r[0]..r[2] {
+                    tile_lists[(ty * frame.tiles_x + tx) as usize].push(g);
+                    intersections += 1;
+                }
+            }
+        }
+    }
+
+    let (w, h) = (frame.width, frame.height);
+    let pixels = (w * h) as usize;
+    let mut out = ReferenceRender {
+        width: w,
+        height: h,
+        rgb: vec![F::zero(); 3 * pixels],
+        alpha: vec![F::zero(); pixels],
+        depth: vec![F::zero(); pixels],
+        contributors: vec![0; pixels],
+        transmittance: vec![F::one(); pixels],
+        blend_steps: 0,
+        dropped: projections.iter().filter(|p| p.dropped).count() as u32,
+        intersections,
+        projections: Vec::new(),
+        tile_lists: Vec::new(),
+    };
+    let background = frame.background.map(F::of);
+    for py in 0..h {
+        for px in 0..w {
+            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
+            let mut state = PixelFwd::<F>::new();
+            for (k, &g) in tile_lists[tile].iter().enumerate() {
+                state.blend(&view(&projections[g as usize]), k as u32, fx, fy, &cfg);
+                if state.done {
+                    break;
+                }
+            }
+            let p = (py * w + px) as usize;
+            let c = state.rgb(background);
+            out.rgb[3 * p..3 * p + 3].copy_from_slice(&c);
+            out.alpha[p] = F::one() - state.transmittance;
+            out.depth[p] = state.depth;
+            out.contributors[p] = state.contributors;
+            out.transmittance[p] = state.transmittance;
+            out.blend_steps += u64::from(state.blended);
+        }
+    }
+    out.projections = projections;
+    out.tile_lists = tile_lists;
+    out
+}
+
+/// Gradients of a loss with respect to every Gaussian's parameters, given the loss's
+/// gradient on each pixel's colour (3 per pixel), alpha and depth. Also returns the
+/// per-splat gradients (the GPU's intermediate) for checking.
+pub fn backward<F: Real>(
+    gaussians: &[Gaussian<F>],
+    frame: &FrameParams,
+    fwd: &ReferenceRender<F>,
+    grad_rgb: &[F],
+    grad_alpha: &[F],
+    grad_depth: &[F],
+) -> (Vec<GaussianGrad<F>>, Vec<SplatGrad<F>>) {
+    let cam = Camera::<F>::from_frame(frame);
+    let cfg = BlendSettings::<F>::from_frame(frame);
+    let background = frame.background.map(F::of);
+    let mut splat_grads = vec![SplatGrad::<F>::zero(); gaussians.len()];
+    for py in 0..fwd.height {
+        for px in 0..fwd.width {
+            let p = (py * fwd.width + px) as usize;
+            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
+            let mut state = PixelBwd::new(
+                fwd.transmittance[p],
+                background,
+                [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]],
+                grad_alpha[p],
+                grad_depth[p],
+            );
+            let list = &fwd.tile_lists[tile];
+            for &g in list[..fwd.contributors[p] as usize].iter().rev() {
+                if let Some(d) = state.step(&view(&fwd.projections[g as usize]), fx, fy, &cfg) {
+                    let acc = &mut splat_grads[g as usize];
+                    let (a, b) = (acc.to_array(), d.to_array());
+                    let mut sum = a;
+                    for (s, v) in sum.iter_mut().zip(b) {
+                        *s += v;
+                    }
+                    *acc = SplatGrad::from_array(&sum);
+                }
+            }
+        }
+    }
+    let grads = gaussians
+        .iter()
+        .zip(&fwd.projections)
+        .zip(&splat_grads)
+        .map(|((g, p), up)| if p.visible { project_bwd(g, &cam, up) } else { GaussianGrad::zero() })
+        .collect();
+    (grads, splat_grads)
+}

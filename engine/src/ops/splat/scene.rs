@@ -1,0 +1,288 @@
+//! Gaussians on the host, the pinhole camera, and the render settings; turns them into
+//! the kernels' `FrameParams`.
+
+use drape_shared::splat::layout::{
+    sh_coeffs, FrameParams, DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_DILATION, DEFAULT_FOV_CLAMP,
+    DEFAULT_MAX_SIGMAS, DEFAULT_TRANSMITTANCE_MIN, MAX_SH_COEFFS, MAX_SH_DEGREE, TILE_SIZE,
+};
+use drape_shared::splat::project::Gaussian;
+use drape_shared::real::Real;
+
+/// Which layer of the avatar a Gaussian belongs to (used by compositing).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u32)]
+pub enum Layer {
+    Body = 0,
+    Cloth = 1,
+    Scene = 2,
+}
+
+/// Gaussians as flat arrays (the GPU layout): `means` 3n, `log_scales` 3n, `quats` 4n
+/// (w, x, y, z), `opacity_logits` n, `sh` 3Kn as `[gaussian][k][channel]` with
+/// K = (degree + 1)², `layers` n.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GaussianCloud {
+    pub sh_degree: u32,
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub sh: Vec<f32>,
+    pub layers: Vec<Layer>,
+}
+
+impl GaussianCloud {
+    pub fn new(sh_degree: u32) -> Self {
+        assert!(sh_degree <= MAX_SH_DEGREE, "SH degree {sh_degree} is above {MAX_SH_DEGREE}");
+        Self { sh_degree, ..Default::default() }
+    }
+
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Coefficients per channel.
+    pub fn sh_coeffs(&self) -> usize {
+        sh_coeffs(self.sh_degree)
+    }
+
+    /// Appends one Gaussian (its SH coefficients past the cloud's degree are ignored).
+    pub fn push(&mut self, g: &Gaussian<f32>, layer: Layer) {
+        self.means.extend_from_slice(&g.mean);
+        self.log_scales.extend_from_slice(&g.log_scale);
+        self.quats.extend_from_slice(&g.quat);
+        self.opacity_logits.push(g.opacity_logit);
+        for k in 0..self.sh_coeffs() {
+            self.sh.extend_from_slice(&g.sh[k]);
+        }
+        self.layers.push(layer);
+    }
+
+    /// Gaussian `i` in the float type `F`.
+    pub fn gaussian<F: Real>(&self, i: usize) -> Gaussian<F> {
+        let c = F::of;
+        let k_count = self.sh_coeffs();
+        let mut sh = [[F::zero(); 3]; MAX_SH_COEFFS];
+        for (k, coeffs) in sh.iter_mut().enumerate().take(k_count) {
+            let b = (i * k_count + k) * 3;
+            *coeffs = [c(self.sh[b]), c(self.sh[b + 1]), c(self.sh[b + 2])];
+        }
+        Gaussian {
+            mean: [c(self.means[3 * i]), c(self.means[3 * i + 1]), c(self.means[3 * i + 2])],
+            log_scale: [c(self.log_scales[3 * i]), c(self.log_scales[3 * i + 1]), c(self.log_scales[3 * i + 2])],
+            quat: [c(self.quats[4 * i]), c(self.quats[4 * i + 1]), c(self.quats[4 * i + 2]), c(self.quats[4 * i + 3])],
+            opacity_logit: c(self.opacity_logits[i]),
+            sh,
+        }
+    }
+
+    /// All Gaussians in the float type `F`.
+    pub fn gaussians<F: Real>(&self) -> Vec<Gaussian<F>> {
+        (0..self.len()).map(|i| self.gaussian(i)).collect()
+    }
+
+    /// Appends every Gaussian of `other` (same SH degree).
+    pub fn extend(&mut self, other: &GaussianCloud) {
+        assert_eq!(self.sh_degree, other.sh_degree, "SH degrees differ");
+        self.means.extend_from_slice(&other.means);
+        self.log_scales.extend_from_slice(&other.log_scales);
+        self.quats.extend_from_slice(&other.quats);
+        self.opacity_logits.extend_from_slice(&other.opacity_logits);
+        self.sh.extend_from_slice(&other.sh);
+        self.layers.extend_from_slice(&other.layers);
+    }
+
+    /// `n` random Gaussians in the box `[-extent, extent]^2 x [z_min, z_max]`, with
+    /// scales around `scale`, reproducible from `seed` (for tests and benchmarks).
+    pub fn random(n: usize, sh_degree: u32, extent: f32, z_range: (f32, f32), scale: f32, seed: u64) -> Self {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut cloud = Self::new(sh_degree);
+        for _ in 0..n {
+            let mut sh = [[0.0f32; 3]; MAX_SH_COEFFS];
+            for (k, c) in sh.iter_mut().enumerate().take(sh_coeffs(sh_degree)) {
+                let amp = if k == 0 { 1.2 } else { 0.3 };
+                *c = [rng.random_range(-amp..amp), rng.random_range(-amp..amp), rng.random_range(-amp..amp)];
+            }
+            let g = Gaussian {
+                mean: [rng.random_range(-extent..extent), rng.random_range(-extent..extent), rng.random_range(z_range.0..z_range.1)],
+                log_scale: [0, 1, 2].map(|_| (scale * rng.random_range(0.3f32..1.5)).ln()),
+                quat: [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)],
+                opacity_logit: rng.random_range(-2.0..3.0),
+                sh,
+            };
+            cloud.push(&g, Layer::Scene);
+        }
+        cloud
+    }
+}
+
+/// A pinhole camera: intrinsics in pixels, world-to-camera `p_c = R p_w + t` (x right,
+/// y down, z forward), image size, clipping range and background colour.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PinholeCamera {
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub width: u32,
+    pub height: u32,
+    /// World-to-camera rotation, rows.
+    pub rotation: [[f32; 3]; 3],
+    pub translation: [f32; 3],
+    #[serde(default = "default_near")]
+    pub near: f32,
+    #[serde(default = "default_far")]
+    pub far: f32,
+    #[serde(default)]
+    pub background: [f32; 3],
+}
+
+fn default_near() -> f32 {
+    0.01
+}
+
+fn default_far() -> f32 {
+    1e4
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn normalize(a: [f32; 3]) -> Option<[f32; 3]> {
+    let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    (n > 1e-12 && n.is_finite()).then(|| [a[0] / n, a[1] / n, a[2] / n])
+}
+
+impl PinholeCamera {
+    /// A camera at `eye` looking at `target` with `up` the world's up direction and a
+    /// vertical field of view in degrees. None when eye = target, up is parallel to
+    /// the view direction, or the field of view is not in (0, 180).
+    pub fn look_at(eye: [f32; 3], target: [f32; 3], up: [f32; 3], fov_y_degrees: f32, width: u32, height: u32) -> Option<Self> {
+        if !(fov_y_degrees > 0.0 && fov_y_degrees < 180.0) || width == 0 || height == 0 {
+            return None;
+        }
+        let forward = normalize(sub(target, eye))?;
+        let right = normalize(cross(forward, up))?;
+        let down = cross(forward, right);
+        let rotation = [right, down, forward];
+        let translation = [
+            -(right[0] * eye[0] + right[1] * eye[1] + right[2] * eye[2]),
+            -(down[0] * eye[0] + down[1] * eye[1] + down[2] * eye[2]),
+            -(forward[0] * eye[0] + forward[1] * eye[1] + forward[2] * eye[2]),
+        ];
+        let fy = 0.5 * height as f32 / (0.5 * fov_y_degrees.to_radians()).tan();
+        Some(Self {
+            fx: fy,
+            fy,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+            width,
+            height,
+            rotation,
+            translation,
+            near: default_near(),
+            far: default_far(),
+            background: [0.0; 3],
+        })
+    }
+
+    /// Checks what a camera file could get wrong, naming the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let finite = [self.fx, self.fy, self.cx, self.cy, self.near, self.far].iter().all(|v| v.is_finite())
+            && self.rotation.iter().flatten().chain(&self.translation).chain(&self.background).all(|v| v.is_finite());
+        if !finite {
+            return Err("a camera field is not a finite number".into());
+        }
+        if !(self.fx > 0.0 && self.fy > 0.0) {
+            return Err(format!("fx and fy must be positive (fx {}, fy {})", self.fx, self.fy));
+        }
+        if self.width == 0 || self.height == 0 {
+            return Err(format!("width and height must be positive ({}x{})", self.width, self.height));
+        }
+        if !(self.near > 0.0 && self.far > self.near) {
+            return Err(format!("need 0 < near < far (near {}, far {})", self.near, self.far));
+        }
+        let r = self.rotation;
+        for i in 0..3 {
+            for j in 0..3 {
+                let d = r[i][0] * r[j][0] + r[i][1] * r[j][1] + r[i][2] * r[j][2];
+                let expected = if i == j { 1.0 } else { 0.0 };
+                if (d - expected).abs() > 1e-3 {
+                    return Err(format!("rotation is not orthonormal (row {i} . row {j} = {d})"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn tiles(&self) -> (u32, u32) {
+        (self.width.div_ceil(TILE_SIZE), self.height.div_ceil(TILE_SIZE))
+    }
+}
+
+/// Render settings; `Default` gives the named defaults of `drape_shared::splat::layout`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Antialiased mode: opacity compensated for the dilation (Mip-Splatting).
+    pub antialiased: bool,
+    pub dilation: f32,
+    pub alpha_min: f32,
+    pub alpha_max: f32,
+    pub transmittance_min: f32,
+    pub max_sigmas: f32,
+    pub fov_clamp: f32,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            antialiased: false,
+            dilation: DEFAULT_DILATION,
+            alpha_min: DEFAULT_ALPHA_MIN,
+            alpha_max: DEFAULT_ALPHA_MAX,
+            transmittance_min: DEFAULT_TRANSMITTANCE_MIN,
+            max_sigmas: DEFAULT_MAX_SIGMAS,
+            fov_clamp: DEFAULT_FOV_CLAMP,
+        }
+    }
+}
+
+/// The kernels' view of a camera, settings and scene size.
+pub fn frame_params(cam: &PinholeCamera, settings: &RenderSettings, sh_degree: u32, count: usize) -> FrameParams {
+    let (tiles_x, tiles_y) = cam.tiles();
+    let r = cam.rotation;
+    FrameParams {
+        rot: [r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]],
+        trans: cam.translation,
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+        near: cam.near,
+        far: cam.far,
+        width: cam.width,
+        height: cam.height,
+        tiles_x,
+        tiles_y,
+        background: cam.background,
+        sh_degree,
+        count: u32::try_from(count).expect("at most 2^32 - 1 Gaussians"),
+        antialiased: u32::from(settings.antialiased),
+        dilation: settings.dilation,
+        alpha_min: settings.alpha_min,
+        alpha_max: settings.alpha_max,
+        transmittance_min: settings.transmittance_min,
+        max_sigmas: settings.max_sigmas,
+        fov_clamp: settings.fov_clamp,
+    }
+}

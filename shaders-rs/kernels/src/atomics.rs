@@ -1,0 +1,48 @@
+//! The only `unsafe` of the kernels: SPIR-V atomics, which spirv-std exposes as
+//! `unsafe fn` because they take raw storage pointers. Each call passes a reference
+//! to one element of a storage buffer, which is a valid, aligned location for the
+//! whole dispatch; Relaxed (no) memory semantics suffice because results are only read
+//! after the dispatch, across a pipeline barrier.
+#![allow(unsafe_code)]
+
+use spirv_std::arch::{atomic_compare_exchange, atomic_i_add, atomic_load};
+use spirv_std::memory::{Scope, Semantics};
+
+// QueueFamily, not Device: under the Vulkan memory model, Device scope needs the
+// vulkanMemoryModelDeviceScope feature, and all invocations of a dispatch share a queue.
+const DEVICE: u32 = Scope::QueueFamily as u32;
+const RELAXED: u32 = Semantics::NONE.bits();
+
+/// `*slot += value` for a u32 counter.
+#[inline]
+pub fn add_u32(slot: &mut u32, value: u32) {
+    // SAFETY: see the module header.
+    unsafe { atomic_i_add::<u32, DEVICE, RELAXED>(slot, value) };
+}
+
+/// `grads[index] += value` with a float atomic.
+#[cfg(feature = "float-atomics")]
+#[inline]
+pub fn add_f32(grads: &mut [f32], index: usize, value: f32) {
+    // SAFETY: see the module header.
+    unsafe { spirv_std::arch::atomic_f_add::<f32, DEVICE, RELAXED>(&mut grads[index], value) };
+}
+
+/// `grads[index] += value` on f32 bits stored as u32, by compare-and-swap: for
+/// devices without float atomics. Terminates: each failed exchange means another
+/// invocation's add succeeded.
+#[inline]
+pub fn add_f32_cas(grads: &mut [u32], index: usize, value: f32) {
+    let slot = &mut grads[index];
+    // SAFETY: see the module header.
+    let mut old = unsafe { atomic_load::<u32, DEVICE, RELAXED>(slot) };
+    loop {
+        let new = (f32::from_bits(old) + value).to_bits();
+        // SAFETY: see the module header.
+        let seen = unsafe { atomic_compare_exchange::<u32, DEVICE, RELAXED, RELAXED>(slot, new, old) };
+        if seen == old {
+            break;
+        }
+        old = seen;
+    }
+}

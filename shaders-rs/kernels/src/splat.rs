@@ -1,0 +1,347 @@
+//! Differentiable Gaussian splatting kernels. The math is `drape_shared::splat`; these
+//! entry points index buffers and call it.
+//!
+//! Buffers (n Gaussians, m tile intersections, P pixels, K SH coefficients/channel):
+//! `frame`: one `FrameParams`; parameters `means` 3n, `log_scales` 3n, `quats` 4n,
+//! `opacity_logits` n, `sh` 3Kn as `[gaussian][k][channel]`; `splats` n
+//! `ProjectedSplat`; `depth_keys`/`order` n; `counts`/`offsets` n + 1 (the last is the
+//! total); `isect_keys`/`isect_values` m (tile id, Gaussian); `ranges` 2 per tile
+//! ([start, end) into the sorted intersections, zero-filled before `tile_ranges`);
+//! per-pixel outputs `rgb` 3P, `alpha` P, `depth` P, `contributors` P, `transmittance` P,
+//! `blended` P; per-splat gradients `splat_grads` 10n (zero-filled before the backward
+//! rasterizer); parameter gradients with the parameters' shapes.
+//! NaN policy: a Gaussian with a non-finite parameter gets `tiles = 0` and
+//! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
+
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
+use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
+use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd};
+use spirv_std::glam::UVec3;
+use spirv_std::spirv;
+
+use crate::atomics;
+
+fn load_gaussian(
+    i: usize,
+    degree: u32,
+    means: &[f32],
+    log_scales: &[f32],
+    quats: &[f32],
+    opacity_logits: &[f32],
+    sh: &[f32],
+) -> Gaussian<f32> {
+    let k_count = sh_coeffs(degree);
+    let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
+    let mut k = 0;
+    while k < k_count {
+        let base = (i * k_count + k) * 3;
+        coeffs[k] = [sh[base], sh[base + 1], sh[base + 2]];
+        k += 1;
+    }
+    Gaussian {
+        mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
+        log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
+        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        opacity_logit: opacity_logits[i],
+        sh: coeffs,
+    }
+}
+
+/// Projects Gaussian `i`: its splat, its depth key and its index for the depth sort.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(256)))]
+pub fn project_fwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] opacity_logits: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] sh: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] splats: &mut [ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] depth_keys: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] order: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] dropped: &mut [u32],
+) {
+    let i = id.x as usize;
+    if id.x >= frame.count {
+        return;
+    }
+    let cam = Camera::<f32>::from_frame(frame);
+    let g = load_gaussian(i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+    let p = project_fwd_math(&g, &cam);
+    let mut out = ProjectedSplat::default();
+    if p.visible {
+        let r = tile_rect(p.x, p.y, p.radius, frame.tiles_x, frame.tiles_y);
+        out = ProjectedSplat {
+            x: p.x,
+            y: p.y,
+            depth: p.depth,
+            conic_a: p.conic[0],
+            conic_b: p.conic[1],
+            conic_c: p.conic[2],
+            opacity: p.opacity,
+            r: p.color[0],
+            g: p.color[1],
+            b: p.color[2],
+            tile_x0: r[0],
+            tile_y0: r[1],
+            tile_x1: r[2],
+            tile_y1: r[3],
+            tiles: (r[2] - r[0]) * (r[3] - r[1]),
+            flags: 0,
+        };
+    }
+    if p.dropped {
+        out.flags = SPLAT_DROPPED;
+        atomics::add_u32(&mut dropped[0], 1);
+    }
+    splats[i] = out;
+    // Culled splats sort last; they emit no intersections either way.
+    depth_keys[i] = if out.tiles > 0 { p.depth.to_bits() } else { u32::MAX };
+    order[i] = id.x;
+}
+
+/// `counts[j]` = tiles of the `j`-th splat in depth order; `counts[n]` = 0, so that
+/// after the exclusive scan `offsets[n]` is the number of intersections.
+#[spirv(compute(threads(256)))]
+pub fn gather_counts(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] counts_pc: &SplatCounts,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] order: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] counts: &mut [u32],
+) {
+    let j = id.x;
+    if j < counts_pc.count {
+        counts[j as usize] = splats[order[j as usize] as usize].tiles;
+    } else if j == counts_pc.count {
+        counts[j as usize] = 0;
+    }
+}
+
+/// Writes (tile id, Gaussian) for every tile each splat covers, in depth order.
+#[spirv(compute(threads(256)))]
+pub fn emit_intersections(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] order: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] offsets: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] isect_keys: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] isect_values: &mut [u32],
+) {
+    let j = id.x as usize;
+    if id.x >= frame.count {
+        return;
+    }
+    let g = order[j];
+    let s = splats[g as usize];
+    if s.tiles == 0 {
+        return;
+    }
+    let mut out = offsets[j] as usize;
+    let mut ty = s.tile_y0;
+    while ty < s.tile_y1 {
+        let mut tx = s.tile_x0;
+        while tx < s.tile_x1 {
+            isect_keys[out] = ty * frame.tiles_x + tx;
+            isect_values[out] = g;
+            out += 1;
+            tx += 1;
+        }
+        ty += 1;
+    }
+}
+
+/// `ranges[2t], ranges[2t + 1]` = [start, end) of tile t in the sorted intersections.
+#[spirv(compute(threads(256)))]
+pub fn tile_ranges(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] counts_pc: &SplatCounts,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] isect_keys: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] ranges: &mut [u32],
+) {
+    let k = id.x;
+    let m = counts_pc.intersections;
+    if k >= m {
+        return;
+    }
+    let key = isect_keys[k as usize];
+    if k == 0 || isect_keys[k as usize - 1] != key {
+        ranges[2 * key as usize] = k;
+    }
+    if k + 1 == m || isect_keys[k as usize + 1] != key {
+        ranges[2 * key as usize + 1] = k + 1;
+    }
+}
+
+/// One workgroup per tile, one invocation per pixel: blends the tile's splats front
+/// to back.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(16, 16)))]
+pub fn rasterize_fwd(
+    #[spirv(workgroup_id)] tile: UVec3,
+    #[spirv(local_invocation_id)] local: UVec3,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
+) {
+    let px = tile.x * TILE_SIZE + local.x;
+    let py = tile.y * TILE_SIZE + local.y;
+    if px >= frame.width || py >= frame.height {
+        return;
+    }
+    let cfg = BlendSettings::<f32>::from_frame(frame);
+    let t = (tile.y * frame.tiles_x + tile.x) as usize;
+    let start = ranges[2 * t];
+    let end = ranges[2 * t + 1];
+    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+    let mut state = PixelFwd::<f32>::new();
+    let mut k = start;
+    while k < end && !state.done {
+        let s = splats[isect_values[k as usize] as usize].view();
+        state.blend(&s, k - start, fx, fy, &cfg);
+        k += 1;
+    }
+    let p = (py * frame.width + px) as usize;
+    let c = state.rgb(frame.background);
+    rgb[3 * p] = c[0];
+    rgb[3 * p + 1] = c[1];
+    rgb[3 * p + 2] = c[2];
+    alpha[p] = 1.0 - state.transmittance;
+    depth[p] = state.depth;
+    contributors[p] = state.contributors;
+    transmittance[p] = state.transmittance;
+    blended[p] = state.blended;
+}
+
+/// The backward rasterizer: one workgroup per tile, one invocation per pixel, walking
+/// the pixel's splats back to front; `$accumulate(grads, index, value)` adds into the
+/// per-splat gradients (float atomics or a compare-and-swap loop).
+macro_rules! rasterize_bwd_entry {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(16, 16)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] tile: UVec3,
+            #[spirv(local_invocation_id)] local: UVec3,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] contributors: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittance: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] grad_rgb: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [$grad_ty],
+        ) {
+            let px = tile.x * TILE_SIZE + local.x;
+            let py = tile.y * TILE_SIZE + local.y;
+            if px >= frame.width || py >= frame.height {
+                return;
+            }
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let p = (py * frame.width + px) as usize;
+            let t = (tile.y * frame.tiles_x + tile.x) as usize;
+            let start = ranges[2 * t];
+            let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+            let mut state = PixelBwd::<f32>::new(
+                transmittance[p],
+                frame.background,
+                [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]],
+                grad_alpha[p],
+                grad_depth[p],
+            );
+            let mut k = start + contributors[p];
+            while k > start {
+                k -= 1;
+                let g = isect_values[k as usize] as usize;
+                let s = splats[g].view();
+                if let Some(grad) = state.step(&s, fx, fy, &cfg) {
+                    let values = grad.to_array();
+                    let mut c = 0;
+                    while c < SPLAT_GRAD_FLOATS {
+                        if values[c] != 0.0 {
+                            $accumulate(splat_grads, g * SPLAT_GRAD_FLOATS + c, values[c]);
+                        }
+                        c += 1;
+                    }
+                }
+            }
+        }
+    };
+}
+
+#[cfg(feature = "float-atomics")]
+rasterize_bwd_entry!(rasterize_bwd_atomic, f32, atomics::add_f32, doc = "Backward rasterizer with float atomics (needs shaderBufferFloat32AtomicAdd).");
+rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer with compare-and-swap loops on the bits of f32 (any device).");
+
+/// Gradients of Gaussian `i`'s parameters from its splat's gradient. Culled Gaussians
+/// get zeros.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(256)))]
+pub fn project_bwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] opacity_logits: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] sh: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] splat_grads: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_means: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_log_scales: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_quats: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_opacity_logits: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_sh: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= frame.count {
+        return;
+    }
+    let k_count = sh_coeffs(frame.sh_degree);
+    let mut out = drape_shared::splat::project::GaussianGrad::<f32>::zero();
+    if splats[i].tiles > 0 {
+        let cam = Camera::<f32>::from_frame(frame);
+        let g = load_gaussian(i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+        let base = i * SPLAT_GRAD_FLOATS;
+        let mut up = [0.0f32; SPLAT_GRAD_FLOATS];
+        let mut c = 0;
+        while c < SPLAT_GRAD_FLOATS {
+            up[c] = splat_grads[base + c];
+            c += 1;
+        }
+        out = project_bwd_math(&g, &cam, &SplatGrad::from_array(&up));
+    }
+    let mut c = 0;
+    while c < 3 {
+        grad_means[3 * i + c] = out.mean[c];
+        grad_log_scales[3 * i + c] = out.log_scale[c];
+        c += 1;
+    }
+    c = 0;
+    while c < 4 {
+        grad_quats[4 * i + c] = out.quat[c];
+        c += 1;
+    }
+    grad_opacity_logits[i] = out.opacity_logit;
+    let mut k = 0;
+    while k < k_count {
+        let base = (i * k_count + k) * 3;
+        grad_sh[base] = out.sh[k][0];
+        grad_sh[base + 1] = out.sh[k][1];
+        grad_sh[base + 2] = out.sh[k][2];
+        k += 1;
+    }
+}

@@ -1,0 +1,46 @@
+//! Per-element training kernels: Adam and the image loss gradient.
+//!
+//! `adam_step`: `params`, `grads`, `m`, `v` of `len` floats; updates params, m, v in place
+//! (`drape_shared::adam::adam_update` is the math). `mse_grad`: `pred`, `target` of
+//! `len` floats; writes `grad = 2 (pred - target) * scale` and the squared error.
+
+use drape_shared::adam::{adam_update, AdamParams, LossParams};
+use spirv_std::glam::UVec3;
+use spirv_std::spirv;
+
+#[spirv(compute(threads(256)))]
+pub fn adam_step(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &AdamParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grads: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] m: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] v: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.len {
+        return;
+    }
+    let (np, nm, nv) = adam_update(params[i], grads[i], m[i], v[i], p);
+    params[i] = np;
+    m[i] = nm;
+    v[i] = nv;
+}
+
+#[spirv(compute(threads(256)))]
+pub fn mse_grad(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &LossParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pred: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] target: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] squared_error: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.len {
+        return;
+    }
+    let d = pred[i] - target[i];
+    grad[i] = 2.0 * d * p.scale;
+    squared_error[i] = d * d;
+}

@@ -1,0 +1,110 @@
+//! `#[repr(C)]` layouts of the splatting kernels, and the named defaults.
+
+/// Tile side in pixels (a rasterizer workgroup is one tile).
+pub const TILE_SIZE: u32 = 16;
+/// Low-pass dilation added to the diagonal of every 2D covariance (pixels^2).
+pub const DEFAULT_DILATION: f32 = 0.3;
+/// Smallest alpha a splat must reach at a pixel to be blended there (also the opacity
+/// below which a splat is culled).
+pub const DEFAULT_ALPHA_MIN: f32 = 1.0 / 255.0;
+/// Largest alpha of one splat at one pixel.
+pub const DEFAULT_ALPHA_MAX: f32 = 0.99;
+/// Blending stops once transmittance would fall to or below this.
+pub const DEFAULT_TRANSMITTANCE_MIN: f32 = 1e-4;
+/// Largest extent of a splat in standard deviations.
+pub const DEFAULT_MAX_SIGMAS: f32 = 3.33;
+/// The Jacobian is evaluated at the view point clamped to this many half-fields of view.
+pub const DEFAULT_FOV_CLAMP: f32 = 1.3;
+/// Floats of gradient per projected splat: x, y, conic a, b, c, opacity, r, g, b, depth.
+pub const SPLAT_GRAD_FLOATS: usize = 10;
+/// Largest supported spherical-harmonics degree.
+pub const MAX_SH_DEGREE: u32 = 3;
+/// Coefficients per colour channel at [`MAX_SH_DEGREE`].
+pub const MAX_SH_COEFFS: usize = 16;
+
+/// Coefficients per channel for a degree.
+pub const fn sh_coeffs(degree: u32) -> usize {
+    ((degree + 1) * (degree + 1)) as usize
+}
+
+/// Everything the kernels need about the camera and the render settings. Lives in a
+/// small read-only storage buffer (it does not fit the guaranteed push-constant size).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct FrameParams {
+    /// World-to-camera rotation, row-major.
+    pub rot: [f32; 9],
+    /// World-to-camera translation.
+    pub trans: [f32; 3],
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub near: f32,
+    pub far: f32,
+    pub width: u32,
+    pub height: u32,
+    pub tiles_x: u32,
+    pub tiles_y: u32,
+    pub background: [f32; 3],
+    /// Spherical-harmonics degree of the coefficients (0 to 3).
+    pub sh_degree: u32,
+    /// Number of Gaussians.
+    pub count: u32,
+    /// 1: antialiased mode (opacity compensated for the dilation, as in Mip-Splatting).
+    pub antialiased: u32,
+    pub dilation: f32,
+    pub alpha_min: f32,
+    pub alpha_max: f32,
+    pub transmittance_min: f32,
+    pub max_sigmas: f32,
+    pub fov_clamp: f32,
+}
+
+/// One projected Gaussian, as the rasterizer reads it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ProjectedSplat {
+    /// Centre in pixels.
+    pub x: f32,
+    pub y: f32,
+    /// Camera-space z.
+    pub depth: f32,
+    /// Inverse 2D covariance (a, b, c) of [[a, b], [b, c]].
+    pub conic_a: f32,
+    pub conic_b: f32,
+    pub conic_c: f32,
+    /// Opacity after the sigmoid (and the compensation in antialiased mode).
+    pub opacity: f32,
+    pub r: f32,
+    pub g: f32,
+    pub b: f32,
+    /// Tile rectangle [x0, x1) x [y0, y1).
+    pub tile_x0: u32,
+    pub tile_y0: u32,
+    pub tile_x1: u32,
+    pub tile_y1: u32,
+    /// Tiles covered (0: culled).
+    pub tiles: u32,
+    /// [`SPLAT_DROPPED`] when a parameter was not finite.
+    pub flags: u32,
+}
+
+/// `ProjectedSplat::flags` bit: a parameter was NaN or infinite; the splat is culled.
+pub const SPLAT_DROPPED: u32 = 1;
+
+/// Push constants of the per-element splatting kernels.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct SplatCounts {
+    /// Gaussians.
+    pub count: u32,
+    /// Tile intersections (after the scan).
+    pub intersections: u32,
+    /// 1: accumulate gradients with compare-and-swap loops instead of float atomics.
+    pub use_cas: u32,
+    pub _pad: u32,
+}

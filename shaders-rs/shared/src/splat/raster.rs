@@ -1,0 +1,205 @@
+//! Per-pixel front-to-back blending, forward and backward.
+//!
+//! Forward, for the splats of a pixel's tile in depth order: `σ = ½(a dx² + c dy²) + b dx dy`
+//! with `d = centre - pixel`, `α = min(alpha_max, opacity · e^(-σ))`; splats with
+//! `σ < 0` or `α < alpha_min` are skipped; blending stops before a splat that would
+//! bring transmittance `T` to or below `transmittance_min`. Outputs colour
+//! `Σ wᵢ cᵢ + T·background`, alpha `1 - T` and depth `Σ wᵢ zᵢ` (not normalized by
+//! alpha), with `wᵢ = αᵢ Tᵢ`.
+//!
+//! Backward walks the same splats back to front from the last one blended, undoing
+//! `T` and carrying what lies behind, so each splat's gradient needs no stored
+//! per-splat state.
+
+use crate::real::{Real, V3};
+use crate::splat::project::SplatGrad;
+
+/// What a splat looks like to the rasterizer.
+#[derive(Clone, Copy, Debug)]
+pub struct SplatView<F> {
+    pub x: F,
+    pub y: F,
+    pub depth: F,
+    pub conic: [F; 3],
+    pub opacity: F,
+    pub color: V3<F>,
+}
+
+impl crate::splat::layout::ProjectedSplat {
+    /// The rasterizer's view of a projected splat.
+    #[inline]
+    pub fn view(&self) -> SplatView<f32> {
+        SplatView {
+            x: self.x,
+            y: self.y,
+            depth: self.depth,
+            conic: [self.conic_a, self.conic_b, self.conic_c],
+            opacity: self.opacity,
+            color: [self.r, self.g, self.b],
+        }
+    }
+}
+
+impl<F: Real> BlendSettings<F> {
+    pub fn from_frame(p: &crate::splat::layout::FrameParams) -> Self {
+        Self { alpha_min: F::of(p.alpha_min), alpha_max: F::of(p.alpha_max), transmittance_min: F::of(p.transmittance_min) }
+    }
+}
+
+/// Blending thresholds.
+#[derive(Clone, Copy, Debug)]
+pub struct BlendSettings<F> {
+    pub alpha_min: F,
+    pub alpha_max: F,
+    pub transmittance_min: F,
+}
+
+/// A splat's footprint at a pixel centre.
+#[derive(Clone, Copy, Debug)]
+pub struct Footprint<F> {
+    pub dx: F,
+    pub dy: F,
+    /// `e^(-σ)`.
+    pub gauss: F,
+    /// `opacity · e^(-σ)` before the `alpha_max` clamp.
+    pub raw_alpha: F,
+    pub alpha: F,
+}
+
+/// The footprint at pixel centre (px, py), or None when the splat is skipped there.
+#[inline]
+pub fn footprint<F: Real>(s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>) -> Option<Footprint<F>> {
+    let dx = s.x - px;
+    let dy = s.y - py;
+    let half = F::of(0.5);
+    let sigma = half * (s.conic[0] * dx * dx + s.conic[2] * dy * dy) + s.conic[1] * dx * dy;
+    if !(sigma >= F::zero()) {
+        return None;
+    }
+    let gauss = (-sigma).exp();
+    let raw_alpha = s.opacity * gauss;
+    let alpha = raw_alpha.min(cfg.alpha_max);
+    if !(alpha >= cfg.alpha_min) {
+        return None;
+    }
+    Some(Footprint { dx, dy, gauss, raw_alpha, alpha })
+}
+
+/// Forward blending state of one pixel.
+#[derive(Clone, Copy, Debug)]
+pub struct PixelFwd<F> {
+    pub transmittance: F,
+    pub color: V3<F>,
+    pub depth: F,
+    /// Splats of the tile's list visited up to and including the last one blended.
+    pub contributors: u32,
+    /// Splats actually blended (the benchmark's blend steps).
+    pub blended: u32,
+    pub done: bool,
+}
+
+impl<F: Real> PixelFwd<F> {
+    pub fn new() -> Self {
+        let z = F::zero();
+        Self { transmittance: F::one(), color: [z; 3], depth: z, contributors: 0, blended: 0, done: false }
+    }
+
+    /// Blends the `index`-th splat of the tile list (0-based); sets `done` when the
+    /// pixel is saturated.
+    #[inline]
+    pub fn blend(&mut self, s: &SplatView<F>, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
+        let Some(f) = footprint(s, px, py, cfg) else { return };
+        let next = self.transmittance * (F::one() - f.alpha);
+        if !(next > cfg.transmittance_min) {
+            self.done = true;
+            return;
+        }
+        let w = f.alpha * self.transmittance;
+        let mut ch = 0;
+        while ch < 3 {
+            self.color[ch] += w * s.color[ch];
+            ch += 1;
+        }
+        self.depth += w * s.depth;
+        self.transmittance = next;
+        self.contributors = index + 1;
+        self.blended += 1;
+    }
+
+    /// Final colour over `background`.
+    pub fn rgb(&self, background: V3<F>) -> V3<F> {
+        let t = self.transmittance;
+        [self.color[0] + t * background[0], self.color[1] + t * background[1], self.color[2] + t * background[2]]
+    }
+}
+
+impl<F: Real> Default for PixelFwd<F> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Backward state of one pixel, walking its splats from the last blended to the first.
+#[derive(Clone, Copy, Debug)]
+pub struct PixelBwd<F> {
+    /// Transmittance in front of the splat being visited (starts at the final one).
+    pub transmittance: F,
+    final_transmittance: F,
+    /// Colour (with background) and depth of everything behind the splat being visited.
+    behind_color: V3<F>,
+    behind_depth: F,
+    grad_color: V3<F>,
+    grad_alpha: F,
+    grad_depth: F,
+}
+
+impl<F: Real> PixelBwd<F> {
+    /// Starts from the forward pass's final transmittance and the pixel's upstream
+    /// gradients on colour, alpha and depth.
+    pub fn new(final_transmittance: F, background: V3<F>, grad_color: V3<F>, grad_alpha: F, grad_depth: F) -> Self {
+        let t = final_transmittance;
+        Self {
+            transmittance: t,
+            final_transmittance: t,
+            behind_color: [t * background[0], t * background[1], t * background[2]],
+            behind_depth: F::zero(),
+            grad_color,
+            grad_alpha,
+            grad_depth,
+        }
+    }
+
+    /// The gradient this pixel sends to splat `s` (None when the forward pass skipped it).
+    #[inline]
+    pub fn step(&mut self, s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
+        let f = footprint(s, px, py, cfg)?;
+        let one_minus = F::one() - f.alpha;
+        self.transmittance = self.transmittance / one_minus;
+        let t = self.transmittance;
+        let w = f.alpha * t;
+        let mut g = SplatGrad::zero();
+        let mut g_alpha = F::zero();
+        let mut ch = 0;
+        while ch < 3 {
+            g.color[ch] = w * self.grad_color[ch];
+            g_alpha += self.grad_color[ch] * (s.color[ch] * t - self.behind_color[ch] / one_minus);
+            self.behind_color[ch] += w * s.color[ch];
+            ch += 1;
+        }
+        g.depth = w * self.grad_depth;
+        g_alpha += self.grad_depth * (s.depth * t - self.behind_depth / one_minus);
+        g_alpha += self.grad_alpha * self.final_transmittance / one_minus;
+        self.behind_depth += w * s.depth;
+
+        // α = opacity · e^(-σ) unless clamped at alpha_max (then flat).
+        if f.raw_alpha < cfg.alpha_max {
+            g.opacity = f.gauss * g_alpha;
+            let g_sigma = -s.opacity * f.gauss * g_alpha;
+            let half = F::of(0.5);
+            g.conic = [half * f.dx * f.dx * g_sigma, f.dx * f.dy * g_sigma, half * f.dy * f.dy * g_sigma];
+            g.x = (s.conic[0] * f.dx + s.conic[1] * f.dy) * g_sigma;
+            g.y = (s.conic[2] * f.dy + s.conic[1] * f.dx) * g_sigma;
+        }
+        Some(g)
+    }
+}
