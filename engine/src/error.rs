@@ -39,6 +39,10 @@ pub enum EngineError {
     #[error("kernel '{kernel}' needs {feature}, which the device does not have")]
     MissingFeature { kernel: &'static str, feature: &'static str },
 
+    /// A size beyond what the engine supports.
+    #[error("too many {what}: {requested} (the limit is {limit})")]
+    TooLarge { what: &'static str, requested: u64, limit: u64 },
+
     /// Any other Vulkan failure, with the call that returned it.
     #[error("{call} failed: {result}")]
     Vulkan { call: &'static str, result: vk::Result },

@@ -70,3 +70,38 @@ impl Pattern {
         v
     }
 }
+
+pub mod splat {
+    //! Scenes and helpers for the splatting tests.
+    use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RenderedImage, SplatRenderer};
+    use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
+    use drape_engine::Context;
+
+    /// A camera 5 units from the origin looking at it, with a coloured background.
+    pub fn camera(width: u32, height: u32) -> PinholeCamera {
+        let mut cam = PinholeCamera::look_at([0.3, -0.4, -5.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 45.0, width, height)
+            .expect("valid camera");
+        cam.background = [0.1, 0.2, 0.3];
+        cam
+    }
+
+    /// `n` random Gaussians around the origin, sized so that a few hundred cover the view.
+    pub fn scene(n: usize, sh_degree: u32, seed: u64) -> GaussianCloud {
+        let scale = if n > 1000 { 0.04 } else { 0.12 };
+        GaussianCloud::random(n, sh_degree, 1.6, (-1.0, 1.0), scale, seed)
+    }
+
+    /// Renders on the GPU and reads the image back.
+    pub fn gpu_render(ctx: &Context, cloud: &GaussianCloud, cam: &PinholeCamera, settings: &RenderSettings) -> (RenderedImage, ForwardStats) {
+        let gaussians = GaussianBuffers::upload(ctx, "test gaussians", cloud).expect("upload");
+        let mut renderer = SplatRenderer::new(ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+        let stats = renderer.forward(&gaussians, cam, settings).expect("forward");
+        (renderer.read_image().expect("read"), stats)
+    }
+
+    /// Largest absolute difference.
+    pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+}

@@ -1,1 +1,400 @@
-//! (in progress)
+//! The GPU splatting renderer, forward and backward.
+//!
+//! Forward is two submissions. First: upload the frame parameters, `project_fwd`,
+//! a stable 32-bit radix sort of the splats by depth, `gather_counts` (tiles per
+//! splat in depth order, plus a trailing 0) and an exclusive scan, after which the
+//! host reads the number of tile intersections and grows the intersection buffers if
+//! needed. Second: `emit_intersections` (tile ids in depth order), a stable radix sort
+//! by tile id over only the bits the tile count needs (so each tile's list stays in
+//! depth order), `tile_ranges`, and `rasterize_fwd`.
+//! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`), then
+//! `project_bwd` into the parameter gradients.
+
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectedSplat, SplatCounts, SPLAT_GRAD_FLOATS};
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::context::Context;
+use crate::error::{EngineError, Result};
+use crate::kernels::Kernel;
+use crate::ops::radix_sort::RadixSort;
+use crate::ops::scan::ExclusiveScan;
+use crate::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
+use crate::recorder::PassTimings;
+
+const GROUP: u32 = 256;
+
+fn groups(n: u32) -> [u32; 3] {
+    [n.div_ceil(GROUP), 1, 1]
+}
+
+fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
+    ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
+}
+
+/// Gaussian parameters (or their gradients) on the GPU, in the layout of
+/// [`GaussianCloud`].
+pub struct GaussianBuffers {
+    pub count: u32,
+    pub sh_degree: u32,
+    pub means: Buffer,
+    pub log_scales: Buffer,
+    pub quats: Buffer,
+    pub opacity_logits: Buffer,
+    pub sh: Buffer,
+}
+
+impl GaussianBuffers {
+    /// Uninitialised buffers for `count` Gaussians (e.g. gradients).
+    pub fn new(ctx: &Context, label: &str, count: usize, sh_degree: u32) -> Result<Self> {
+        let k = sh_coeffs(sh_degree);
+        Ok(Self {
+            count: u32::try_from(count).map_err(|_| EngineError::TooLarge { what: "Gaussians", requested: count as u64, limit: u64::from(u32::MAX) })?,
+            sh_degree,
+            means: f32_buffer(ctx, &format!("{label} means"), 3 * count)?,
+            log_scales: f32_buffer(ctx, &format!("{label} log_scales"), 3 * count)?,
+            quats: f32_buffer(ctx, &format!("{label} quats"), 4 * count)?,
+            opacity_logits: f32_buffer(ctx, &format!("{label} opacity_logits"), count)?,
+            sh: f32_buffer(ctx, &format!("{label} sh"), 3 * k * count)?,
+        })
+    }
+
+    /// Copies a cloud to the GPU.
+    pub fn upload(ctx: &Context, label: &str, cloud: &GaussianCloud) -> Result<Self> {
+        let mut b = Self::new(ctx, label, cloud.len(), cloud.sh_degree)?;
+        ctx.write_buffer(&mut b.means, &cloud.means)?;
+        ctx.write_buffer(&mut b.log_scales, &cloud.log_scales)?;
+        ctx.write_buffer(&mut b.quats, &cloud.quats)?;
+        ctx.write_buffer(&mut b.opacity_logits, &cloud.opacity_logits)?;
+        ctx.write_buffer(&mut b.sh, &cloud.sh)?;
+        Ok(b)
+    }
+
+    /// Copies back to the host (layers are not stored on the GPU; `layers` fills them).
+    pub fn download(&mut self, ctx: &Context, layers: &[crate::ops::splat::scene::Layer]) -> Result<GaussianCloud> {
+        let n = self.count as usize;
+        let k = sh_coeffs(self.sh_degree);
+        Ok(GaussianCloud {
+            sh_degree: self.sh_degree,
+            means: ctx.read_buffer(&mut self.means, 3 * n)?,
+            log_scales: ctx.read_buffer(&mut self.log_scales, 3 * n)?,
+            quats: ctx.read_buffer(&mut self.quats, 4 * n)?,
+            opacity_logits: ctx.read_buffer(&mut self.opacity_logits, n)?,
+            sh: ctx.read_buffer(&mut self.sh, 3 * k * n)?,
+            layers: layers.to_vec(),
+        })
+    }
+
+    /// The five buffers in binding order.
+    pub fn all(&self) -> [&Buffer; 5] {
+        [&self.means, &self.log_scales, &self.quats, &self.opacity_logits, &self.sh]
+    }
+
+    /// Element count of each buffer, in the order of [`all`](Self::all).
+    pub fn lens(&self) -> [usize; 5] {
+        let n = self.count as usize;
+        [3 * n, 3 * n, 4 * n, n, 3 * sh_coeffs(self.sh_degree) * n]
+    }
+}
+
+/// How the backward rasterizer accumulates per-splat gradients.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accumulation {
+    /// Float atomics when the device has them, else compare-and-swap.
+    Auto,
+    FloatAtomics,
+    CompareAndSwap,
+}
+
+/// What one forward pass did.
+#[derive(Clone, Debug, Default)]
+pub struct ForwardStats {
+    pub intersections: u32,
+    /// Gaussians dropped for a non-finite parameter.
+    pub dropped: u32,
+    pub timings: PassTimings,
+}
+
+/// Images read back from a forward pass.
+#[derive(Clone, Debug)]
+pub struct RenderedImage {
+    pub width: u32,
+    pub height: u32,
+    /// 3 per pixel, row-major.
+    pub rgb: Vec<f32>,
+    pub alpha: Vec<f32>,
+    /// `Σ wᵢ zᵢ` per pixel (divide by alpha for the expected depth of what is hit).
+    pub depth: Vec<f32>,
+    /// Gaussian-pixel blend steps.
+    pub blend_steps: u64,
+}
+
+/// Per-pixel buffers of one image size.
+struct PixelBuffers {
+    rgb: Buffer,
+    alpha: Buffer,
+    depth: Buffer,
+    contributors: Buffer,
+    transmittance: Buffer,
+    blended: Buffer,
+}
+
+/// A GPU renderer for up to `max_count` Gaussians at one image size; the scratch
+/// buffers are kept between frames (intersection buffers grow as needed).
+pub struct SplatRenderer {
+    ctx: Context,
+    width: u32,
+    height: u32,
+    max_count: u32,
+    frame: Buffer,
+    frame_params: FrameParams,
+    splats: Buffer,
+    depth_keys: Buffer,
+    order: Buffer,
+    counts: Buffer,
+    dropped: Buffer,
+    depth_sort: RadixSort,
+    count_scan: ExclusiveScan,
+    isect_keys: Buffer,
+    isect_values: Buffer,
+    isect_sort: RadixSort,
+    ranges: Buffer,
+    pixels: PixelBuffers,
+    splat_grads: Buffer,
+    intersections: u32,
+}
+
+impl SplatRenderer {
+    /// Largest number of tile intersections one frame may have.
+    pub const MAX_INTERSECTIONS: u32 = RadixSort::LIMIT;
+
+    pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
+        assert!(width > 0 && height > 0, "image size must be positive");
+        let n = u32::try_from(max_count).map_err(|_| EngineError::TooLarge { what: "Gaussians", requested: max_count as u64, limit: u64::from(RadixSort::LIMIT) })?;
+        if n > RadixSort::LIMIT {
+            return Err(EngineError::TooLarge { what: "Gaussians", requested: u64::from(n), limit: u64::from(RadixSort::LIMIT) });
+        }
+        let pixels = (width * height) as usize;
+        let tiles = (width.div_ceil(16) * height.div_ceil(16)) as usize;
+        let initial_isect = n.max(1024);
+        let splat_bytes = std::mem::size_of::<ProjectedSplat>() as u64;
+        Ok(Self {
+            ctx: ctx.clone(),
+            width,
+            height,
+            max_count: n,
+            frame: ctx.create_buffer("splat frame", BufferDesc::gpu_only(std::mem::size_of::<FrameParams>() as u64))?,
+            frame_params: FrameParams::default(),
+            splats: ctx.create_buffer("splat projected", BufferDesc::gpu_only(splat_bytes * u64::from(n)))?,
+            depth_keys: f32_buffer(ctx, "splat depth keys", n as usize)?,
+            order: f32_buffer(ctx, "splat depth order", n as usize)?,
+            counts: f32_buffer(ctx, "splat tile counts", n as usize + 1)?,
+            dropped: f32_buffer(ctx, "splat dropped counter", 1)?,
+            depth_sort: RadixSort::new(ctx, n)?,
+            count_scan: ExclusiveScan::new(ctx, "splat.scan", n + 1)?,
+            isect_keys: f32_buffer(ctx, "splat intersection keys", initial_isect as usize)?,
+            isect_values: f32_buffer(ctx, "splat intersection values", initial_isect as usize)?,
+            isect_sort: RadixSort::new(ctx, initial_isect)?,
+            ranges: f32_buffer(ctx, "splat tile ranges", 2 * tiles)?,
+            pixels: PixelBuffers {
+                rgb: f32_buffer(ctx, "splat rgb", 3 * pixels)?,
+                alpha: f32_buffer(ctx, "splat alpha", pixels)?,
+                depth: f32_buffer(ctx, "splat depth", pixels)?,
+                contributors: f32_buffer(ctx, "splat contributors", pixels)?,
+                transmittance: f32_buffer(ctx, "splat transmittance", pixels)?,
+                blended: f32_buffer(ctx, "splat blend steps", pixels)?,
+            },
+            splat_grads: f32_buffer(ctx, "splat gradients", SPLAT_GRAD_FLOATS * n as usize)?,
+            intersections: 0,
+        })
+    }
+
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// The per-pixel outputs, for losses computed on the GPU: (rgb, alpha, depth).
+    pub fn outputs(&self) -> (&Buffer, &Buffer, &Buffer) {
+        (&self.pixels.rgb, &self.pixels.alpha, &self.pixels.depth)
+    }
+
+    fn grow_intersections(&mut self, needed: u32) -> Result<()> {
+        if needed <= self.isect_sort.max_len() {
+            return Ok(());
+        }
+        if needed > Self::MAX_INTERSECTIONS {
+            return Err(EngineError::TooLarge { what: "tile intersections", requested: u64::from(needed), limit: u64::from(Self::MAX_INTERSECTIONS) });
+        }
+        let capacity = needed.checked_next_power_of_two().unwrap_or(needed).min(Self::MAX_INTERSECTIONS);
+        self.isect_keys = f32_buffer(&self.ctx, "splat intersection keys", capacity as usize)?;
+        self.isect_values = f32_buffer(&self.ctx, "splat intersection values", capacity as usize)?;
+        self.isect_sort = RadixSort::new(&self.ctx, capacity)?;
+        Ok(())
+    }
+
+    /// Renders `gaussians` through `camera` into the renderer's per-pixel buffers.
+    pub fn forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
+        assert_eq!((camera.width, camera.height), (self.width, self.height), "camera size differs from the renderer's");
+        assert!(gaussians.count <= self.max_count, "{} Gaussians for a renderer of {}", gaussians.count, self.max_count);
+        let n = gaussians.count;
+        let fp = frame_params(camera, settings, gaussians.sh_degree, n as usize);
+        self.frame_params = fp;
+        let ctx = self.ctx.clone();
+        ctx.write_buffer(&mut self.frame, std::slice::from_ref(&fp))?;
+        let counts_pc = SplatCounts { count: n, intersections: 0, use_cas: 0, _pad: 0 };
+
+        let mut timings = {
+            let mut rec = ctx.record("splat forward: project and bin")?;
+            rec.fill(&self.dropped, 0);
+            rec.barrier();
+            let [means, log_scales, quats, opacity_logits, sh] = gaussians.all();
+            rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
+                .read(&self.frame)
+                .read(means)
+                .read(log_scales)
+                .read(quats)
+                .read(opacity_logits)
+                .read(sh)
+                .write(&self.splats)
+                .write(&self.depth_keys)
+                .write(&self.order)
+                .write(&self.dropped)
+                .dispatch(groups(n))?;
+            rec.barrier();
+            self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
+            rec.barrier();
+            rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
+                .read(&self.order)
+                .read(&self.splats)
+                .write(&self.counts)
+                .push(&counts_pc)
+                .dispatch(groups(n + 1))?;
+            rec.barrier();
+            self.count_scan.record(&mut rec, &self.counts, n + 1)?;
+            rec.submit_and_wait()?
+        };
+        let total = ctx.read_buffer::<u32>(&mut self.counts, n as usize + 1)?[n as usize];
+        let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
+        // The scan wraps on overflow; more than 2^32 - 1 intersections also cannot be sorted.
+        self.grow_intersections(total)?;
+        self.intersections = total;
+
+        let tiles = fp.tiles_x * fp.tiles_y;
+        let tile_bits = 32 - (tiles.max(1) - 1).leading_zeros();
+        let counts_pc = SplatCounts { count: n, intersections: total, use_cas: 0, _pad: 0 };
+        let mut rec = ctx.record("splat forward: sort and rasterize")?;
+        rec.fill(&self.ranges, 0);
+        rec.pass("splat.emit_intersections", Kernel::SplatEmitIntersections)
+            .read(&self.frame)
+            .read(&self.order)
+            .read(&self.splats)
+            .read(&self.counts)
+            .write(&self.isect_keys)
+            .write(&self.isect_values)
+            .dispatch(groups(n))?;
+        rec.barrier();
+        self.isect_sort.record(&mut rec, &self.isect_keys, &self.isect_values, total, tile_bits)?;
+        rec.barrier();
+        rec.pass("splat.tile_ranges", Kernel::SplatTileRanges)
+            .read(&self.isect_keys)
+            .write(&self.ranges)
+            .push(&counts_pc)
+            .dispatch(groups(total))?;
+        rec.barrier();
+        let p = &self.pixels;
+        rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
+            .read(&self.frame)
+            .read(&self.splats)
+            .read(&self.isect_values)
+            .read(&self.ranges)
+            .write(&p.rgb)
+            .write(&p.alpha)
+            .write(&p.depth)
+            .write(&p.contributors)
+            .write(&p.transmittance)
+            .write(&p.blended)
+            .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
+        let more = rec.submit_and_wait()?;
+        timings.passes.extend(more.passes);
+        Ok(ForwardStats { intersections: total, dropped, timings })
+    }
+
+    /// Reads the last forward pass's images back.
+    pub fn read_image(&mut self) -> Result<RenderedImage> {
+        let pixels = (self.width * self.height) as usize;
+        let ctx = self.ctx.clone();
+        let blended = ctx.read_buffer::<u32>(&mut self.pixels.blended, pixels)?;
+        Ok(RenderedImage {
+            width: self.width,
+            height: self.height,
+            rgb: ctx.read_buffer(&mut self.pixels.rgb, 3 * pixels)?,
+            alpha: ctx.read_buffer(&mut self.pixels.alpha, pixels)?,
+            depth: ctx.read_buffer(&mut self.pixels.depth, pixels)?,
+            blend_steps: blended.iter().map(|&b| u64::from(b)).sum(),
+        })
+    }
+
+    /// Gradients of a loss with respect to the parameters of the Gaussians of the last
+    /// forward pass, given the loss's gradient on rgb (3 per pixel), alpha and depth.
+    pub fn backward(
+        &mut self,
+        gaussians: &GaussianBuffers,
+        grad_rgb: &Buffer,
+        grad_alpha: &Buffer,
+        grad_depth: &Buffer,
+        out: &GaussianBuffers,
+        accumulation: Accumulation,
+    ) -> Result<PassTimings> {
+        assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
+        assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+        let use_atomics = match accumulation {
+            Accumulation::Auto => self.ctx.info().float_atomic_add,
+            Accumulation::FloatAtomics => true,
+            Accumulation::CompareAndSwap => false,
+        };
+        let kernel = if use_atomics { Kernel::SplatRasterizeBwdAtomic } else { Kernel::SplatRasterizeBwdCas };
+        let fp = self.frame_params;
+        let n = gaussians.count;
+        let ctx = self.ctx.clone();
+        let mut rec = ctx.record("splat backward")?;
+        rec.fill(&self.splat_grads, 0);
+        rec.barrier();
+        let p = &self.pixels;
+        rec.pass("splat.rasterize_bwd", kernel)
+            .read(&self.frame)
+            .read(&self.splats)
+            .read(&self.isect_values)
+            .read(&self.ranges)
+            .read(&p.contributors)
+            .read(&p.transmittance)
+            .read(grad_rgb)
+            .read(grad_alpha)
+            .read(grad_depth)
+            .write(&self.splat_grads)
+            .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
+        rec.barrier();
+        let [means, log_scales, quats, opacity_logits, sh] = gaussians.all();
+        let [g_means, g_log_scales, g_quats, g_opacity_logits, g_sh] = out.all();
+        rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
+            .read(&self.frame)
+            .read(means)
+            .read(log_scales)
+            .read(quats)
+            .read(opacity_logits)
+            .read(sh)
+            .read(&self.splats)
+            .read(&self.splat_grads)
+            .write(g_means)
+            .write(g_log_scales)
+            .write(g_quats)
+            .write(g_opacity_logits)
+            .write(g_sh)
+            .dispatch(groups(n))?;
+        rec.submit_and_wait()
+    }
+
+    /// The per-splat gradients of the last backward pass (10 per Gaussian), for tests.
+    pub fn read_splat_grads(&mut self, count: usize) -> Result<Vec<f32>> {
+        let ctx = self.ctx.clone();
+        ctx.read_buffer(&mut self.splat_grads, SPLAT_GRAD_FLOATS * count)
+    }
+}

@@ -193,7 +193,7 @@ pub fn normalize_quat<F: Real>(q: [F; 4]) -> ([F; 4], F) {
 
 #[inline]
 pub fn sigmoid<F: Real>(x: F) -> F {
-    F::one() / (F::one() + (-x).exp())
+    F::one() / (F::one() + (-x).exp_k())
 }
 
 /// Everything the forward pass computes that the backward pass needs again.
@@ -228,7 +228,7 @@ fn chain<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Chain<F> {
     let t = [t0[0] + cam.trans[0], t0[1] + cam.trans[1], t0[2] + cam.trans[2]];
     let (qn, qnorm) = normalize_quat(g.quat);
     let rq = quat_to_mat(qn);
-    let scale = [g.log_scale[0].exp(), g.log_scale[1].exp(), g.log_scale[2].exp()];
+    let scale = [g.log_scale[0].exp_k(), g.log_scale[1].exp_k(), g.log_scale[2].exp_k()];
     let mut m = zero33();
     let mut i = 0;
     while i < 3 {
@@ -314,7 +314,7 @@ pub fn project_fwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Projection<F> {
     if !(opacity >= cam.alpha_min) {
         return Projection::culled(false);
     }
-    let extent = F::of(2.0) * (opacity / cam.alpha_min).ln();
+    let extent = F::of(2.0) * (opacity / cam.alpha_min).ln_k();
     let extent = extent.sqrt().min(cam.max_sigmas);
     let radius = [(extent * a.sqrt()).ceil(), (extent * cc.sqrt()).ceil()];
     let x = cam.fx * c.t[0] / c.t[2] + cam.cx;

@@ -76,7 +76,7 @@ pub fn footprint<F: Real>(s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>
     if !(sigma >= F::zero()) {
         return None;
     }
-    let gauss = (-sigma).exp();
+    let gauss = (-sigma).exp_k();
     let raw_alpha = s.opacity * gauss;
     let alpha = raw_alpha.min(cfg.alpha_max);
     if !(alpha >= cfg.alpha_min) {
