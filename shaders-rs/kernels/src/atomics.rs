@@ -5,13 +5,29 @@
 //! after the dispatch, across a pipeline barrier.
 #![allow(unsafe_code)]
 
-use spirv_std::arch::{atomic_compare_exchange, atomic_i_add, atomic_load};
+use spirv_std::arch::{atomic_compare_exchange, atomic_i_add, atomic_load, atomic_u_max};
 use spirv_std::memory::{Scope, Semantics};
 
 // QueueFamily, not Device: under the Vulkan memory model, Device scope needs the
 // vulkanMemoryModelDeviceScope feature, and all invocations of a dispatch share a queue.
 const DEVICE: u32 = Scope::QueueFamily as u32;
 const RELAXED: u32 = Semantics::NONE.bits();
+
+const WORKGROUP: u32 = Scope::Workgroup as u32;
+
+/// `*slot += value` on a workgroup-memory counter (ordered by the caller's barriers).
+#[inline]
+pub fn add_u32_workgroup(slot: &mut u32, value: u32) {
+    // SAFETY: see the module header.
+    unsafe { atomic_i_add::<u32, WORKGROUP, RELAXED>(slot, value) };
+}
+
+/// `*slot = max(*slot, value)` on a workgroup-memory value.
+#[inline]
+pub fn max_u32_workgroup(slot: &mut u32, value: u32) {
+    // SAFETY: see the module header.
+    unsafe { atomic_u_max::<u32, WORKGROUP, RELAXED>(slot, value) };
+}
 
 /// `*slot += value` for a u32 counter.
 #[inline]
@@ -24,6 +40,9 @@ pub fn add_u32(slot: &mut u32, value: u32) {
 #[cfg(feature = "float-atomics")]
 #[inline]
 pub fn add_f32(grads: &mut [f32], index: usize, value: f32) {
+    if value == 0.0 {
+        return;
+    }
     // SAFETY: see the module header.
     unsafe { spirv_std::arch::atomic_f_add::<f32, DEVICE, RELAXED>(&mut grads[index], value) };
 }
@@ -33,6 +52,9 @@ pub fn add_f32(grads: &mut [f32], index: usize, value: f32) {
 /// invocation's add succeeded.
 #[inline]
 pub fn add_f32_cas(grads: &mut [u32], index: usize, value: f32) {
+    if value == 0.0 {
+        return;
+    }
     let slot = &mut grads[index];
     // SAFETY: see the module header.
     let mut old = unsafe { atomic_load::<u32, DEVICE, RELAXED>(slot) };

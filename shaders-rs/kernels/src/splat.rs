@@ -15,7 +15,8 @@
 
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
-use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd};
+use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
+use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -176,13 +177,63 @@ pub fn tile_ranges(
     }
 }
 
+/// Splats one workgroup loads into workgroup memory at a time. Besides sharing the
+/// loads among a tile's pixels, batching keeps every loop short: llvmpipe abandons a
+/// loop after 65,535 iterations, and a tile's list can be far longer.
+const BATCH: usize = 256;
+const _: () = assert!(BATCH == (TILE_SIZE * TILE_SIZE) as usize);
+const _: () = assert!(BATCH as u32 % UNROLL == 0);
+
+/// Splats handled per iteration of the per-pixel loops (see [`unroll`]).
+const UNROLL: u32 = 8;
+
+/// Repeats `$body` UNROLL (8) times with `$u` = 0, 1, ..., 7, without a loop.
+macro_rules! unroll {
+    ($u:ident, $body:block) => {
+        $body $u += 1; $body $u += 1; $body $u += 1; $body $u += 1;
+        $body $u += 1; $body $u += 1; $body $u += 1; $body
+        let _ = $u;
+    };
+}
+
+/// Stores a splat's fields into slot `slot` of the workgroup batch.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn load_batch_slot(
+    slot: usize,
+    s: &ProjectedSplat,
+    b_xy: &mut [[f32; 2]; BATCH],
+    b_conic: &mut [[f32; 3]; BATCH],
+    b_opacity_depth: &mut [[f32; 2]; BATCH],
+    b_color: &mut [[f32; 3]; BATCH],
+) {
+    b_xy[slot] = [s.x, s.y];
+    b_conic[slot] = [s.conic_a, s.conic_b, s.conic_c];
+    b_opacity_depth[slot] = [s.opacity, s.depth];
+    b_color[slot] = [s.r, s.g, s.b];
+}
+
+#[inline]
+fn batch_view(
+    slot: usize,
+    b_xy: &[[f32; 2]; BATCH],
+    b_conic: &[[f32; 3]; BATCH],
+    b_opacity_depth: &[[f32; 2]; BATCH],
+    b_color: &[[f32; 3]; BATCH],
+) -> SplatView<f32> {
+    let xy = b_xy[slot];
+    let od = b_opacity_depth[slot];
+    SplatView { x: xy[0], y: xy[1], depth: od[1], conic: b_conic[slot], opacity: od[0], color: b_color[slot] }
+}
+
 /// One workgroup per tile, one invocation per pixel: blends the tile's splats front
-/// to back.
+/// to back, a batch at a time, until every pixel of the tile is saturated.
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(16, 16)))]
 pub fn rasterize_fwd(
     #[spirv(workgroup_id)] tile: UVec3,
     #[spirv(local_invocation_id)] local: UVec3,
+    #[spirv(local_invocation_index)] lid: u32,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
@@ -193,23 +244,63 @@ pub fn rasterize_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
+    #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+    #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+    #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+    #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+    #[spirv(workgroup)] done_count: &mut [u32; 1],
 ) {
     let px = tile.x * TILE_SIZE + local.x;
     let py = tile.y * TILE_SIZE + local.y;
-    if px >= frame.width || py >= frame.height {
-        return;
-    }
+    let inside = px < frame.width && py < frame.height;
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let t = (tile.y * frame.tiles_x + tile.x) as usize;
     let start = ranges[2 * t];
     let end = ranges[2 * t + 1];
     let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
     let mut state = PixelFwd::<f32>::new();
-    let mut k = start;
-    while k < end && !state.done {
-        let s = splats[isect_values[k as usize] as usize].view();
-        state.blend(&s, k - start, fx, fy, &cfg);
-        k += 1;
+    state.done = !inside;
+    let slot = lid as usize;
+    let mut base = start;
+    // Uniform loop: `base`, `end` and the vote are the same for the whole workgroup.
+    while base < end {
+        let k = base + lid;
+        if k < end {
+            let s = splats[isect_values[k as usize] as usize];
+            load_batch_slot(slot, &s, b_xy, b_conic, b_opacity_depth, b_color);
+        }
+        if lid == 0 {
+            done_count[0] = 0;
+        }
+        barrier();
+        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+        let mut j = 0u32;
+        while j < count && !state.done {
+            // UNROLL splats per iteration: llvmpipe caps the loop iterations of an
+            // invocation at 65,535, and a tile's list can hold ~10^5 splats.
+            let mut u = 0;
+            unroll!(u, {
+                if j + u < count && !state.done {
+                    let s = batch_view((j + u) as usize, b_xy, b_conic, b_opacity_depth, b_color);
+                    state.blend(&s, base - start + j + u, fx, fy, &cfg);
+                }
+            });
+            j += UNROLL;
+        }
+        if state.done {
+            atomics::add_u32_workgroup(&mut done_count[0], 1);
+        }
+        barrier();
+        let all_done = done_count[0] == BATCH as u32;
+        // Everyone has read the batch and the vote before they are overwritten.
+        barrier();
+        if all_done {
+            break;
+        }
+        base += count;
+    }
+    if !inside {
+        return;
     }
     let p = (py * frame.width + px) as usize;
     let c = state.rgb(frame.background);
@@ -224,8 +315,9 @@ pub fn rasterize_fwd(
 }
 
 /// The backward rasterizer: one workgroup per tile, one invocation per pixel, walking
-/// the pixel's splats back to front; `$accumulate(grads, index, value)` adds into the
-/// per-splat gradients (float atomics or a compare-and-swap loop).
+/// the tile's batches back to front from the last splat any pixel blended, each pixel
+/// skipping what lies behind its own last one; `$accumulate(grads, index, value)` adds
+/// into the per-splat gradients (float atomics or a compare-and-swap loop).
 macro_rules! rasterize_bwd_entry {
     ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
         $(#[$attr])*
@@ -234,6 +326,7 @@ macro_rules! rasterize_bwd_entry {
         pub fn $name(
             #[spirv(workgroup_id)] tile: UVec3,
             #[spirv(local_invocation_id)] local: UVec3,
+            #[spirv(local_invocation_index)] lid: u32,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
@@ -244,39 +337,79 @@ macro_rules! rasterize_bwd_entry {
             #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_alpha: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [$grad_ty],
+            #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_id: &mut [u32; BATCH],
+            #[spirv(workgroup)] max_contributors: &mut [u32; 1],
         ) {
             let px = tile.x * TILE_SIZE + local.x;
             let py = tile.y * TILE_SIZE + local.y;
-            if px >= frame.width || py >= frame.height {
-                return;
-            }
+            let inside = px < frame.width && py < frame.height;
             let cfg = BlendSettings::<f32>::from_frame(frame);
-            let p = (py * frame.width + px) as usize;
             let t = (tile.y * frame.tiles_x + tile.x) as usize;
             let start = ranges[2 * t];
+            let p = if inside { (py * frame.width + px) as usize } else { 0 };
             let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+            let mine = if inside { contributors[p] } else { 0 };
             let mut state = PixelBwd::<f32>::new(
-                transmittance[p],
+                if inside { transmittance[p] } else { 1.0 },
                 frame.background,
-                [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]],
-                grad_alpha[p],
-                grad_depth[p],
+                if inside { [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]] } else { [0.0; 3] },
+                if inside { grad_alpha[p] } else { 0.0 },
+                if inside { grad_depth[p] } else { 0.0 },
             );
-            let mut k = start + contributors[p];
-            while k > start {
-                k -= 1;
-                let g = isect_values[k as usize] as usize;
-                let s = splats[g].view();
-                if let Some(grad) = state.step(&s, fx, fy, &cfg) {
-                    let values = grad.to_array();
-                    let mut c = 0;
-                    while c < SPLAT_GRAD_FLOATS {
-                        if values[c] != 0.0 {
-                            $accumulate(splat_grads, g * SPLAT_GRAD_FLOATS + c, values[c]);
-                        }
-                        c += 1;
-                    }
+            if lid == 0 {
+                max_contributors[0] = 0;
+            }
+            barrier();
+            atomics::max_u32_workgroup(&mut max_contributors[0], mine);
+            barrier();
+            let slot = lid as usize;
+            let mut batch_end = start + max_contributors[0];
+            // Uniform loop: the bounds are the same for the whole workgroup.
+            while batch_end > start {
+                let batch_start = if batch_end - start > BATCH as u32 { batch_end - BATCH as u32 } else { start };
+                let k = batch_start + lid;
+                if k < batch_end {
+                    let id = isect_values[k as usize];
+                    b_id[slot] = id;
+                    load_batch_slot(slot, &splats[id as usize], b_xy, b_conic, b_opacity_depth, b_color);
                 }
+                barrier();
+                // Back to front, UNROLL splats per iteration (see the forward pass).
+                let mut top = batch_end - batch_start;
+                while top > 0 {
+                    let mut u = 0;
+                    unroll!(u, {
+                        if u < top {
+                            let j = top - 1 - u;
+                            let index = batch_start + j;
+                            if index < start + mine {
+                                let s = batch_view(j as usize, b_xy, b_conic, b_opacity_depth, b_color);
+                                if let Some(grad) = state.step(&s, fx, fy, &cfg) {
+                                    let base = b_id[j as usize] as usize * SPLAT_GRAD_FLOATS;
+                                    let v = grad.to_array();
+                                    $accumulate(splat_grads, base, v[0]);
+                                    $accumulate(splat_grads, base + 1, v[1]);
+                                    $accumulate(splat_grads, base + 2, v[2]);
+                                    $accumulate(splat_grads, base + 3, v[3]);
+                                    $accumulate(splat_grads, base + 4, v[4]);
+                                    $accumulate(splat_grads, base + 5, v[5]);
+                                    $accumulate(splat_grads, base + 6, v[6]);
+                                    $accumulate(splat_grads, base + 7, v[7]);
+                                    $accumulate(splat_grads, base + 8, v[8]);
+                                    $accumulate(splat_grads, base + 9, v[9]);
+                                }
+                            }
+                        }
+                    });
+                    top = if top > UNROLL { top - UNROLL } else { 0 };
+                }
+                // Everyone is done with the batch before it is overwritten.
+                barrier();
+                batch_end = batch_start;
             }
         }
     };

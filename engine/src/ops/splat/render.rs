@@ -392,6 +392,16 @@ impl SplatRenderer {
         rec.submit_and_wait()
     }
 
+    /// Sorted intersection keys and values, and the tile ranges, of the last forward
+    /// pass (for tests and debugging).
+    #[doc(hidden)]
+    pub fn read_binning(&mut self) -> Result<(Vec<u32>, Vec<u32>, Vec<u32>)> {
+        let ctx = self.ctx.clone();
+        let m = self.intersections as usize;
+        let tiles = (self.frame_params.tiles_x * self.frame_params.tiles_y) as usize;
+        Ok((ctx.read_buffer(&mut self.isect_keys, m)?, ctx.read_buffer(&mut self.isect_values, m)?, ctx.read_buffer(&mut self.ranges, 2 * tiles)?))
+    }
+
     /// The per-splat gradients of the last backward pass (10 per Gaussian), for tests.
     pub fn read_splat_grads(&mut self, count: usize) -> Result<Vec<f32>> {
         let ctx = self.ctx.clone();

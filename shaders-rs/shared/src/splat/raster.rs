@@ -115,11 +115,11 @@ impl<F: Real> PixelFwd<F> {
             return;
         }
         let w = f.alpha * self.transmittance;
-        let mut ch = 0;
-        while ch < 3 {
-            self.color[ch] += w * s.color[ch];
-            ch += 1;
-        }
+        // Written out, not looped: llvmpipe caps the loop iterations of a whole
+        // invocation at 65,535, and this runs once per splat per pixel.
+        self.color[0] += w * s.color[0];
+        self.color[1] += w * s.color[1];
+        self.color[2] += w * s.color[2];
         self.depth += w * s.depth;
         self.transmittance = next;
         self.contributors = index + 1;
@@ -179,13 +179,14 @@ impl<F: Real> PixelBwd<F> {
         let w = f.alpha * t;
         let mut g = SplatGrad::zero();
         let mut g_alpha = F::zero();
-        let mut ch = 0;
-        while ch < 3 {
-            g.color[ch] = w * self.grad_color[ch];
-            g_alpha += self.grad_color[ch] * (s.color[ch] * t - self.behind_color[ch] / one_minus);
-            self.behind_color[ch] += w * s.color[ch];
-            ch += 1;
-        }
+        // Written out, not looped (see `PixelFwd::blend`).
+        g.color = [w * self.grad_color[0], w * self.grad_color[1], w * self.grad_color[2]];
+        g_alpha += self.grad_color[0] * (s.color[0] * t - self.behind_color[0] / one_minus);
+        g_alpha += self.grad_color[1] * (s.color[1] * t - self.behind_color[1] / one_minus);
+        g_alpha += self.grad_color[2] * (s.color[2] * t - self.behind_color[2] / one_minus);
+        self.behind_color[0] += w * s.color[0];
+        self.behind_color[1] += w * s.color[1];
+        self.behind_color[2] += w * s.color[2];
         g.depth = w * self.grad_depth;
         g_alpha += self.grad_depth * (s.depth * t - self.behind_depth / one_minus);
         g_alpha += self.grad_alpha * self.final_transmittance / one_minus;

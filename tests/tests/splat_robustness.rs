@@ -1,0 +1,233 @@
+//! Invariance and numerical extremes of the GPU splatting renderer (lavapipe,
+//! validation on). Each extreme asserts finite outputs and a sensible image; where a
+//! reference exists the GPU is also compared with the CPU renderer.
+
+use drape_engine::ops::splat::reference;
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
+use drape_shared::splat::layout::MAX_SH_COEFFS;
+use drape_shared::splat::project::Gaussian;
+use drape_tests::splat::{camera, gpu_render, max_abs_diff, scene};
+use drape_tests::{gpu, TestGpu};
+
+fn gaussian(mean: [f32; 3], log_scale: f32, opacity_logit: f32, rgb: [f32; 3]) -> Gaussian<f32> {
+    let mut sh = [[0.0; 3]; MAX_SH_COEFFS];
+    // DC coefficient giving `rgb` (colour = 0.5 + C0 * dc).
+    sh[0] = rgb.map(|c| (c - 0.5) / 0.282_094_8);
+    Gaussian { mean, log_scale: [log_scale; 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit, sh }
+}
+
+fn assert_finite(what: &str, values: &[f32]) {
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        panic!("{what}: value {i} is {}", values[i]);
+    }
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+#[test]
+fn renders_are_bit_identical_run_to_run() {
+    let gpu = gpu();
+    let cloud = scene(2000, 3, 21);
+    let cam = camera(96, 80);
+    let settings = RenderSettings::default();
+    let gaussians = GaussianBuffers::upload(&gpu, "g", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(&gpu, 96, 80, cloud.len()).expect("renderer");
+    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let first = renderer.read_image().expect("read");
+    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let second = renderer.read_image().expect("read");
+    let (third, _) = gpu_render(&gpu, &cloud, &cam, &settings);
+    for other in [&second, &third] {
+        assert_eq!(bits(&first.rgb), bits(&other.rgb));
+        assert_eq!(bits(&first.alpha), bits(&other.alpha));
+        assert_eq!(bits(&first.depth), bits(&other.depth));
+    }
+}
+
+#[test]
+fn hidden_gaussians_leave_the_image_bit_identical() {
+    let gpu = gpu();
+    let cam = camera(80, 64);
+    let settings = RenderSettings::default();
+    let base = scene(500, 3, 22);
+    let (before, _) = gpu_render(&gpu, &base, &cam, &settings);
+    let eye = [0.3, -0.4, -5.0];
+    let mut more = base.clone();
+    // Behind the camera (the camera looks towards +z from z = -5).
+    more.push(&gaussian([eye[0], eye[1], eye[2] - 2.0], -1.0, 3.0, [1.0, 0.0, 0.0]), Layer::Scene);
+    // Far outside the frustum, to the side.
+    more.push(&gaussian([40.0, 0.0, 0.0], -2.0, 3.0, [0.0, 1.0, 0.0]), Layer::Scene);
+    // In plain view but with (numerically) zero opacity.
+    more.push(&gaussian([0.0, 0.0, 0.0], -1.0, -30.0, [0.0, 0.0, 1.0]), Layer::Scene);
+    let (after, stats) = gpu_render(&gpu, &more, &cam, &settings);
+    assert_eq!(stats.dropped, 0);
+    assert_eq!(bits(&before.rgb), bits(&after.rgb));
+    assert_eq!(bits(&before.alpha), bits(&after.alpha));
+    assert_eq!(bits(&before.depth), bits(&after.depth));
+}
+
+fn compare_with_cpu(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str) -> drape_engine::ops::splat::render::RenderedImage {
+    let settings = RenderSettings::default();
+    let (image, _) = gpu_render(gpu, cloud, cam, &settings);
+    assert_finite(&format!("{what}: rgb"), &image.rgb);
+    assert_finite(&format!("{what}: alpha"), &image.alpha);
+    assert_finite(&format!("{what}: depth"), &image.depth);
+    assert!(image.alpha.iter().all(|a| (0.0..=1.0).contains(a)), "{what}: alpha outside [0, 1]");
+    let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
+    let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
+    // Same tolerance as the forward test: same code, deterministic transcendentals.
+    let e = max_abs_diff(&image.rgb, &cpu.rgb);
+    assert!(e <= 1e-5, "{what}: GPU and CPU differ by {e:e}");
+    image
+}
+
+fn backward_is_finite(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str) {
+    let gaussians = GaussianBuffers::upload(gpu, "g", cloud).expect("upload");
+    let mut grads = GaussianBuffers::new(gpu, "grads", cloud.len(), cloud.sh_degree).expect("grads");
+    let mut renderer = SplatRenderer::new(gpu, cam.width, cam.height, cloud.len()).expect("renderer");
+    renderer.forward(&gaussians, cam, &RenderSettings::default()).expect("forward");
+    let pixels = (cam.width * cam.height) as usize;
+    let ones = gpu.upload("grad rgb", &vec![1.0f32; 3 * pixels]).expect("upload");
+    let alpha = gpu.upload("grad alpha", &vec![1.0f32; pixels]).expect("upload");
+    let depth = gpu.upload("grad depth", &vec![0.01f32; pixels]).expect("upload");
+    renderer.backward(&gaussians, &ones, &alpha, &depth, &grads, Accumulation::Auto).expect("backward");
+    let g = grads.download(gpu, &cloud.layers).expect("download");
+    for (name, v) in [("means", &g.means), ("log_scales", &g.log_scales), ("quats", &g.quats), ("opacity_logits", &g.opacity_logits), ("sh", &g.sh)] {
+        assert_finite(&format!("{what}: gradient of {name}"), v);
+    }
+}
+
+#[test]
+fn extreme_scales_from_1e_minus_7_to_1e7() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    for (i, s) in [1e-7f32, 1e-4, 1e-2, 1.0, 1e3, 1e7].iter().enumerate() {
+        let x = -0.8 + 0.3 * i as f32;
+        cloud.push(&gaussian([x, 0.0, 0.0], s.ln(), 1.0, [0.9, 0.5, 0.1]), Layer::Scene);
+    }
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "extreme scales");
+    // The 1e7 Gaussian covers the whole view: no pixel shows only the background.
+    assert!(image.alpha.iter().all(|&a| a > 0.5), "a 1e7-scale splat must cover every pixel");
+    backward_is_finite(&gpu, &cloud, &cam, "extreme scales");
+}
+
+#[test]
+fn tiny_splat_still_shows_as_a_dot() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    cloud.push(&gaussian([0.0, 0.0, 0.0], (1e-7f32).ln(), 5.0, [1.0, 1.0, 1.0]), Layer::Scene);
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "tiny splat");
+    let peak = image.alpha.iter().copied().fold(0.0, f32::max);
+    assert!(peak > 0.3, "the dilation keeps a 1e-7 splat visible (peak alpha {peak})");
+    assert!(image.alpha.iter().filter(|&&a| a > 0.0).count() < 40, "and small");
+}
+
+#[test]
+fn gaussian_straddling_the_near_plane() {
+    let gpu = gpu();
+    let mut cam = camera(64, 64);
+    cam.near = 0.5;
+    // The camera is at distance ~5 from the origin along +z; a large splat whose centre
+    // is just in front of the near plane, and one just behind it.
+    let eye = [0.3f32, -0.4, -5.0];
+    let mut cloud = GaussianCloud::new(0);
+    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.51], (0.8f32).ln(), 1.0, [0.2, 0.9, 0.2]), Layer::Scene);
+    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.49], (0.8f32).ln(), 1.0, [0.9, 0.2, 0.2]), Layer::Scene);
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "near plane");
+    assert!(image.alpha.iter().any(|&a| a > 0.5), "the splat in front of the near plane is drawn");
+    backward_is_finite(&gpu, &cloud, &cam, "near plane");
+}
+
+#[test]
+fn hundred_thousand_gaussians_over_one_pixel() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    // Project the image centre back to z = 0: the camera looks at the origin.
+    for i in 0..100_000 {
+        let jitter = (i % 7) as f32 * 1e-4;
+        cloud.push(&gaussian([jitter, 0.0, 0.01 * (i % 100) as f32], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+    }
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "100k on one pixel");
+    let peak = image.alpha.iter().copied().fold(0.0, f32::max);
+    // Blending stops once transmittance would drop to 1e-4.
+    assert!(peak > 0.999 && peak <= 1.0, "peak alpha {peak}");
+    backward_is_finite(&gpu, &cloud, &cam, "100k on one pixel");
+}
+
+#[test]
+fn opacity_logits_of_plus_and_minus_50() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    cloud.push(&gaussian([-0.5, 0.0, 0.0], (0.2f32).ln(), 50.0, [1.0, 0.0, 0.0]), Layer::Scene);
+    cloud.push(&gaussian([0.5, 0.0, 0.0], (0.2f32).ln(), -50.0, [0.0, 1.0, 0.0]), Layer::Scene);
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "opacity +-50");
+    let peak = image.alpha.iter().copied().fold(0.0, f32::max);
+    // Opacity 1 (sigmoid(50) rounds to 1): alpha reaches the 0.99 clamp near the centre.
+    assert!((0.95..=0.99).contains(&peak), "peak alpha {peak}");
+    // Opacity sigmoid(-50) ~ 2e-22 is culled: the image is that of the first alone.
+    let mut first = GaussianCloud::new(0);
+    first.push(&cloud.gaussian(0), Layer::Scene);
+    let (alone, _) = gpu_render(&gpu, &first, &cam, &RenderSettings::default());
+    assert_eq!(bits(&alone.rgb), bits(&image.rgb));
+    backward_is_finite(&gpu, &cloud, &cam, "opacity +-50");
+}
+
+#[test]
+fn zero_quaternion_renders_as_identity() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut with_zero = GaussianCloud::new(0);
+    let mut g = gaussian([0.1, 0.0, 0.0], (0.3f32).ln(), 1.0, [0.5, 0.7, 0.2]);
+    g.log_scale = [(0.3f32).ln(), (0.05f32).ln(), (0.1f32).ln()];
+    let mut identity = with_zero.clone();
+    identity.push(&g, Layer::Scene);
+    g.quat = [0.0; 4];
+    with_zero.push(&g, Layer::Scene);
+    let a = compare_with_cpu(&gpu, &with_zero, &cam, "zero quaternion");
+    let (b, _) = gpu_render(&gpu, &identity, &cam, &RenderSettings::default());
+    assert_eq!(bits(&a.rgb), bits(&b.rgb), "a zero quaternion means no rotation");
+    backward_is_finite(&gpu, &with_zero, &cam, "zero quaternion");
+}
+
+#[test]
+fn nan_gaussian_is_dropped_and_counted() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let base = scene(300, 1, 23);
+    let (before, stats) = gpu_render(&gpu, &base, &cam, &RenderSettings::default());
+    assert_eq!(stats.dropped, 0);
+    let mut with_nan = base.clone();
+    let mut bad = base.gaussian::<f32>(0);
+    bad.mean[1] = f32::NAN;
+    with_nan.push(&bad, Layer::Scene);
+    let mut bad_sh = base.gaussian::<f32>(1);
+    bad_sh.sh[2][1] = f32::INFINITY;
+    with_nan.push(&bad_sh, Layer::Scene);
+    let (after, stats) = gpu_render(&gpu, &with_nan, &cam, &RenderSettings::default());
+    assert_eq!(stats.dropped, 2, "both non-finite Gaussians are counted");
+    assert_eq!(bits(&before.rgb), bits(&after.rgb), "and the rest of the image is unchanged");
+    backward_is_finite(&gpu, &with_nan, &cam, "NaN Gaussian");
+}
+
+#[test]
+fn one_by_one_image() {
+    let gpu = gpu();
+    let cam = camera(1, 1);
+    let image = compare_with_cpu(&gpu, &scene(200, 3, 24), &cam, "1x1");
+    assert_eq!(image.rgb.len(), 3);
+}
+
+#[test]
+fn image_of_2048_by_2048() {
+    let gpu = gpu();
+    let cam = camera(2048, 2048);
+    let image = compare_with_cpu(&gpu, &scene(3000, 0, 25), &cam, "2048x2048");
+    assert!(image.alpha.iter().filter(|&&a| a > 0.1).count() > 10_000, "the splats cover a good part of the image");
+}
