@@ -105,3 +105,30 @@ pub mod splat {
         a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
     }
 }
+
+/// A procedural 64x64-style test picture: a smooth two-colour gradient, three soft
+/// disks of different colours and sizes, and a ring; values in [0, 1].
+pub fn test_picture(width: u32, height: u32) -> drape_engine::ops::splat::fit::Image {
+    let mut rgb = Vec::with_capacity((3 * width * height) as usize);
+    for y in 0..height {
+        for x in 0..width {
+            let (u, v) = ((x as f32 + 0.5) / width as f32, (y as f32 + 0.5) / height as f32);
+            let mut c = [0.15 + 0.6 * u, 0.2 + 0.5 * v, 0.55 - 0.3 * u * v];
+            let disks = [([0.3, 0.35], 0.18, [0.95, 0.3, 0.2]), ([0.7, 0.6], 0.22, [0.2, 0.8, 0.35]), ([0.45, 0.8], 0.1, [0.95, 0.9, 0.2])];
+            for (centre, radius, colour) in disks {
+                let d = ((u - centre[0]).powi(2) + (v - centre[1]).powi(2)).sqrt();
+                let w = (1.0 - ((d - radius) / 0.02).clamp(-1.0, 1.0)) * 0.5;
+                for k in 0..3 {
+                    c[k] = c[k] * (1.0 - w) + colour[k] * w;
+                }
+            }
+            let d = ((u - 0.72).powi(2) + (v - 0.25).powi(2)).sqrt();
+            let ring = (-((d - 0.12) / 0.025).powi(2)).exp();
+            for k in 0..3 {
+                c[k] = c[k] * (1.0 - ring) + 0.05 * ring;
+            }
+            rgb.extend(c);
+        }
+    }
+    drape_engine::ops::splat::fit::Image { width, height, rgb }
+}

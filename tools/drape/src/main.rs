@@ -1,6 +1,6 @@
-//! `drape`: the product's command line. For now it has one job, `demo`, which sorts
-//! random keys on the GPU and checks them against the CPU; later issues add `render`,
-//! `fit`, `synth`, `train` and friends.
+//! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
+//! `render` (a 3DGS PLY to PNG), `fit` (Gaussians fitted to an image). Later issues
+//! add `body`, `simulate`, `synth`, `train` and friends.
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;
@@ -10,6 +10,10 @@ use clap::{Parser, Subcommand};
 use drape_cli_support::{parse_len, DeviceArgs};
 use drape_engine::ops::radix_sort::sort_pairs_host;
 use rand::{Rng, SeedableRng};
+
+mod fit;
+mod image_io;
+mod render;
 
 /// Cloth-aware human Gaussian-splat avatars on Vulkan.
 #[derive(Parser, Debug)]
@@ -21,7 +25,7 @@ struct Cli {
     command: Command,
 }
 
-#[derive(Subcommand, Debug)]
+#[derive(Subcommand, Debug, Clone)]
 enum Command {
     /// Sort random (key, value) pairs with the GPU radix sort, check the result
     /// against the CPU's stable sort, and print a summary.
@@ -33,6 +37,11 @@ enum Command {
         #[arg(long, default_value_t = 7)]
         seed: u64,
     },
+    /// Render a 3D Gaussian Splatting PLY file to a PNG, from a look-at camera or a
+    /// JSON camera file.
+    Render(render::RenderArgs),
+    /// Fit random Gaussians to an image with the GPU optimizer and save them as PLY.
+    Fit(fit::FitArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -63,7 +72,9 @@ fn main() -> ExitCode {
         Ok(c) => c,
         Err(code) => return code,
     };
-    drape_cli_support::run(|| match cli.command {
+    drape_cli_support::run(|| match cli.command.clone() {
         Command::Demo { n, seed } => demo(&cli.device, n, seed),
+        Command::Render(args) => render::run(&cli.device, &args),
+        Command::Fit(args) => fit::run(&cli.device, &args),
     })
 }

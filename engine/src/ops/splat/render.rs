@@ -408,3 +408,13 @@ impl SplatRenderer {
         ctx.read_buffer(&mut self.splat_grads, SPLAT_GRAD_FLOATS * count)
     }
 }
+
+/// Renders a cloud once and returns the image: the one-call entry point for
+/// applications that embed the engine (a frame loop keeps a [`SplatRenderer`] and
+/// [`GaussianBuffers`] instead, and can read `outputs()` without leaving the GPU).
+pub fn render_image(ctx: &Context, cloud: &GaussianCloud, camera: &PinholeCamera, settings: &RenderSettings) -> Result<(RenderedImage, ForwardStats)> {
+    let gaussians = GaussianBuffers::upload(ctx, "render_image gaussians", cloud)?;
+    let mut renderer = SplatRenderer::new(ctx, camera.width, camera.height, cloud.len())?;
+    let stats = renderer.forward(&gaussians, camera, settings)?;
+    Ok((renderer.read_image()?, stats))
+}
