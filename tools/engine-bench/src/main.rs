@@ -19,6 +19,8 @@ use drape_shared::radix_sort::significant_bits;
 use rand::{Rng, SeedableRng};
 use serde_json::json;
 
+mod splat;
+
 /// Benchmarks of the drape engine's GPU ops.
 #[derive(Parser, Debug)]
 #[command(version, about, long_about = None)]
@@ -64,6 +66,10 @@ enum Job {
         #[command(flatten)]
         common: Common,
     },
+    /// Gaussian splatting: forward and forward+backward FPS, per-pass GPU ms and
+    /// blend steps per second, at 512x512 and 1920x1080 with 10k, 100k and 1M random
+    /// Gaussians by default, or on a PLY file.
+    Splat(splat::SplatArgs),
 }
 
 /// Medians over the timed runs.
@@ -230,6 +236,16 @@ fn main() -> ExitCode {
         let (result, json_out) = match &cli.job {
             Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json),
             Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json),
+            Job::Splat(args) => {
+                let result = splat::run(&ctx, args)?;
+                cli.device.check_validation(&ctx)?;
+                if args.json {
+                    println!("{result}");
+                } else {
+                    splat::print_table(&result);
+                }
+                return Ok(());
+            }
         };
         cli.device.check_validation(&ctx)?;
         if json_out {
