@@ -1,4 +1,8 @@
-//! The Cloth-HUGS avatar (body model, garments, cloth simulation, datasets, training,
-//! evaluation). Nothing is implemented here yet: the body-and-cloth and dataset issues
-//! fill this crate. It exists so the workspace layout of `DESIGN.md` holds from the start.
+//! The Cloth-HUGS avatar side of drape: the SMPL-format body (model, loader, the
+//! project's procedural body, posing), NumPy file formats, and (in later issues)
+//! garments, cloth simulation, datasets, training and evaluation.
 #![forbid(unsafe_code)]
+
+pub mod body;
+pub mod mesh;
+pub mod npy;

@@ -1,0 +1,177 @@
+//! Triangle-mesh utilities in f64: edges and their face counts (watertightness),
+//! vertex normals, adjacency, and a triangle-triangle intersection test for checking
+//! that a mesh does not cross itself.
+
+use std::collections::HashMap;
+
+pub type V3 = [f64; 3];
+
+pub fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub fn add(a: V3, b: V3) -> V3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+pub fn scale(a: V3, s: f64) -> V3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+pub fn dot(a: V3, b: V3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub fn cross(a: V3, b: V3) -> V3 {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+pub fn norm(a: V3) -> f64 {
+    dot(a, a).sqrt()
+}
+
+pub fn normalize(a: V3) -> V3 {
+    let n = norm(a);
+    if n > 0.0 { scale(a, 1.0 / n) } else { [0.0, 0.0, 1.0] }
+}
+
+/// Undirected edges with the number of faces using each.
+pub fn edge_face_counts(faces: &[[u32; 3]]) -> HashMap<(u32, u32), u32> {
+    let mut counts = HashMap::new();
+    for f in faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *counts.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    counts
+}
+
+/// Every edge shared by exactly two faces.
+pub fn is_watertight(faces: &[[u32; 3]]) -> bool {
+    edge_face_counts(faces).values().all(|&c| c == 2)
+}
+
+/// Area-weighted vertex normals.
+pub fn vertex_normals(vertices: &[V3], faces: &[[u32; 3]]) -> Vec<V3> {
+    let mut n = vec![[0.0; 3]; vertices.len()];
+    for f in faces {
+        let [a, b, c] = f.map(|i| vertices[i as usize]);
+        let fn_ = cross(sub(b, a), sub(c, a));
+        for &i in f {
+            n[i as usize] = add(n[i as usize], fn_);
+        }
+    }
+    n.into_iter().map(normalize).collect()
+}
+
+/// Neighbours of every vertex.
+pub fn adjacency(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
+    let mut adj = vec![Vec::new(); num_vertices];
+    for f in faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            if !adj[a as usize].contains(&b) {
+                adj[a as usize].push(b);
+            }
+            if !adj[b as usize].contains(&a) {
+                adj[b as usize].push(a);
+            }
+        }
+    }
+    adj
+}
+
+/// Signed volume (positive for outward-facing triangles of a closed mesh).
+pub fn signed_volume(vertices: &[V3], faces: &[[u32; 3]]) -> f64 {
+    faces.iter().map(|f| dot(vertices[f[0] as usize], cross(vertices[f[1] as usize], vertices[f[2] as usize])) / 6.0).sum()
+}
+
+fn segment_hits_triangle(p: V3, q: V3, t: [V3; 3]) -> bool {
+    // Möller-Trumbore on the segment p->q, strict inside tests.
+    let e1 = sub(t[1], t[0]);
+    let e2 = sub(t[2], t[0]);
+    let d = sub(q, p);
+    let h = cross(d, e2);
+    let a = dot(e1, h);
+    if a.abs() < 1e-14 {
+        return false;
+    }
+    let f = 1.0 / a;
+    let s = sub(p, t[0]);
+    let u = f * dot(s, h);
+    if !(u > 1e-9 && u < 1.0 - 1e-9) {
+        return false;
+    }
+    let qv = cross(s, e1);
+    let v = f * dot(d, qv);
+    if !(v > 1e-9 && u + v < 1.0 - 1e-9) {
+        return false;
+    }
+    let t_hit = f * dot(e2, qv);
+    t_hit > 1e-9 && t_hit < 1.0 - 1e-9
+}
+
+/// Whether two triangles that share no vertex intersect (an edge of one crosses the
+/// interior of the other).
+pub fn triangles_intersect(a: [V3; 3], b: [V3; 3]) -> bool {
+    (0..3).any(|k| segment_hits_triangle(a[k], a[(k + 1) % 3], b)) || (0..3).any(|k| segment_hits_triangle(b[k], b[(k + 1) % 3], a))
+}
+
+/// Pairs of faces, sharing no vertex, that intersect (uses a uniform grid).
+pub fn self_intersections(vertices: &[V3], faces: &[[u32; 3]], limit: usize) -> Vec<(usize, usize)> {
+    let mut lo = [f64::MAX; 3];
+    let mut hi = [f64::MIN; 3];
+    for v in vertices {
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    let cell = faces
+        .iter()
+        .map(|f| norm(sub(vertices[f[0] as usize], vertices[f[1] as usize])))
+        .sum::<f64>()
+        / faces.len().max(1) as f64
+        * 2.0;
+    let cell = cell.max(1e-6);
+    let key = |p: V3| [0, 1, 2].map(|k| ((p[k] - lo[k]) / cell).floor() as i64);
+    let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+    for (i, f) in faces.iter().enumerate() {
+        let pts = f.map(|v| vertices[v as usize]);
+        let (mut a, mut b) = ([i64::MAX; 3], [i64::MIN; 3]);
+        for p in pts {
+            let k = key(p);
+            for d in 0..3 {
+                a[d] = a[d].min(k[d]);
+                b[d] = b[d].max(k[d]);
+            }
+        }
+        for x in a[0]..=b[0] {
+            for y in a[1]..=b[1] {
+                for z in a[2]..=b[2] {
+                    grid.entry([x, y, z]).or_default().push(i);
+                }
+            }
+        }
+    }
+    let _ = hi;
+    let mut found = std::collections::BTreeSet::new();
+    for list in grid.values() {
+        for (ii, &i) in list.iter().enumerate() {
+            for &j in &list[ii + 1..] {
+                let (fi, fj) = (faces[i], faces[j]);
+                if fi.iter().any(|v| fj.contains(v)) {
+                    continue;
+                }
+                if triangles_intersect(fi.map(|v| vertices[v as usize]), fj.map(|v| vertices[v as usize])) {
+                    found.insert((i.min(j), i.max(j)));
+                    if found.len() >= limit {
+                        return found.into_iter().collect();
+                    }
+                }
+            }
+        }
+    }
+    found.into_iter().collect()
+}

@@ -1,0 +1,226 @@
+//! NumPy `.npy` arrays and `.npz` archives, as numpy writes and reads them (format
+//! 1.0/2.0/3.0 headers; little-endian `f8`, `f4`, `i8`, `i4`, `u4`, `u1`, `b1`; C
+//! order). Every error names the file and, inside an archive, the key.
+
+use std::collections::BTreeMap;
+use std::io::{Read, Write};
+use std::path::Path;
+
+/// Element types this module reads and writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dtype {
+    F64,
+    F32,
+    I64,
+    I32,
+    U32,
+    U8,
+    Bool,
+}
+
+impl Dtype {
+    fn descr(self) -> &'static str {
+        match self {
+            Dtype::F64 => "<f8",
+            Dtype::F32 => "<f4",
+            Dtype::I64 => "<i8",
+            Dtype::I32 => "<i4",
+            Dtype::U32 => "<u4",
+            Dtype::U8 => "|u1",
+            Dtype::Bool => "|b1",
+        }
+    }
+
+    fn size(self) -> usize {
+        match self {
+            Dtype::F64 | Dtype::I64 => 8,
+            Dtype::F32 | Dtype::I32 | Dtype::U32 => 4,
+            Dtype::U8 | Dtype::Bool => 1,
+        }
+    }
+
+    fn parse(descr: &str) -> Option<Self> {
+        Some(match descr {
+            "<f8" | "f8" => Dtype::F64,
+            "<f4" | "f4" => Dtype::F32,
+            "<i8" | "i8" => Dtype::I64,
+            "<i4" | "i4" => Dtype::I32,
+            "<u4" | "u4" => Dtype::U32,
+            "|u1" | "u1" | "<u1" => Dtype::U8,
+            "|b1" | "b1" | "?" => Dtype::Bool,
+            _ => return None,
+        })
+    }
+}
+
+/// An n-dimensional array with its values widened to f64 (all dtypes above are exact
+/// in f64 except i64 beyond 2^53, which the loaders never need).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Array {
+    pub dtype: Dtype,
+    pub shape: Vec<usize>,
+    pub data: Vec<f64>,
+}
+
+impl Array {
+    pub fn new(dtype: Dtype, shape: Vec<usize>, data: Vec<f64>) -> Self {
+        assert_eq!(shape.iter().product::<usize>(), data.len(), "shape {shape:?} does not hold {} values", data.len());
+        Self { dtype, shape, data }
+    }
+
+    pub fn f64(shape: Vec<usize>, data: Vec<f64>) -> Self {
+        Self::new(Dtype::F64, shape, data)
+    }
+}
+
+/// Why an array or archive could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum NpyError {
+    #[error("{file}: {source}")]
+    Io { file: String, source: std::io::Error },
+    #[error("{file}{}: {problem}", key.as_ref().map(|k| format!(" ['{k}']")).unwrap_or_default())]
+    Format { file: String, key: Option<String>, problem: String },
+}
+
+fn fmt_err(file: &str, key: Option<&str>, problem: impl Into<String>) -> NpyError {
+    NpyError::Format { file: file.to_string(), key: key.map(str::to_string), problem: problem.into() }
+}
+
+/// Encodes one array as `.npy` bytes (format 1.0).
+pub fn encode(a: &Array) -> Vec<u8> {
+    let shape = match a.shape.len() {
+        1 => format!("({},)", a.shape[0]),
+        _ => format!("({})", a.shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")),
+    };
+    let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}", a.dtype.descr());
+    // Pad so that the data starts at a multiple of 64 bytes, ending in '\n'.
+    let total = 10 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - total % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + a.data.len() * a.dtype.size());
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for &v in &a.data {
+        match a.dtype {
+            Dtype::F64 => out.extend_from_slice(&v.to_le_bytes()),
+            Dtype::F32 => out.extend_from_slice(&(v as f32).to_le_bytes()),
+            Dtype::I64 => out.extend_from_slice(&(v as i64).to_le_bytes()),
+            Dtype::I32 => out.extend_from_slice(&(v as i32).to_le_bytes()),
+            Dtype::U32 => out.extend_from_slice(&(v as u32).to_le_bytes()),
+            Dtype::U8 => out.push(v as u8),
+            Dtype::Bool => out.push(u8::from(v != 0.0)),
+        }
+    }
+    out
+}
+
+fn header_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
+    let at = header.find(&format!("'{key}'"))? + key.len() + 2;
+    let rest = header[at..].trim_start().strip_prefix(':')?.trim_start();
+    if let Some(stripped) = rest.strip_prefix('(') {
+        return stripped.find(')').map(|end| &stripped[..end]);
+    }
+    let end = rest.find([',', '}']).unwrap_or(rest.len());
+    Some(rest[..end].trim().trim_matches('\''))
+}
+
+/// Decodes `.npy` bytes; `file`/`key` name them in errors.
+pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyError> {
+    let err = |p: String| fmt_err(file, key, p);
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err(err("not a .npy array (bad magic)".into()));
+    }
+    let (header_len, start) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 => {
+            if bytes.len() < 12 {
+                return Err(err("truncated header".into()));
+            }
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+        }
+        v => return Err(err(format!("unsupported .npy version {v}"))),
+    };
+    let header_end = start + header_len;
+    if bytes.len() < header_end {
+        return Err(err("truncated header".into()));
+    }
+    let header = std::str::from_utf8(&bytes[start..header_end]).map_err(|_| err("header is not text".into()))?;
+    let descr = header_value(header, "descr").ok_or_else(|| err("header has no 'descr'".into()))?;
+    let dtype = Dtype::parse(descr).ok_or_else(|| err(format!("dtype '{descr}' is not supported (need little-endian f8, f4, i8, i4, u4, u1 or b1; pickled objects are read by the ZJU loader)")))?;
+    if header_value(header, "fortran_order") == Some("True") {
+        return Err(err("Fortran-order arrays are not supported".into()));
+    }
+    let shape_text = header_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
+    let shape: Vec<usize> = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.parse::<usize>().map_err(|_| err(format!("shape '({shape_text})' is not a tuple of sizes"))))
+        .collect::<Result<_, _>>()?;
+    let count: usize = shape.iter().product();
+    let needed = count * dtype.size();
+    let body = &bytes[header_end..];
+    if body.len() < needed {
+        return Err(err(format!("truncated: shape {shape:?} needs {needed} bytes, found {}", body.len())));
+    }
+    let data: Vec<f64> = body[..needed]
+        .chunks_exact(dtype.size())
+        .map(|c| match dtype {
+            Dtype::F64 => f64::from_le_bytes(c.try_into().expect("8 bytes")),
+            Dtype::F32 => f64::from(f32::from_le_bytes(c.try_into().expect("4 bytes"))),
+            Dtype::I64 => i64::from_le_bytes(c.try_into().expect("8 bytes")) as f64,
+            Dtype::I32 => f64::from(i32::from_le_bytes(c.try_into().expect("4 bytes"))),
+            Dtype::U32 => f64::from(u32::from_le_bytes(c.try_into().expect("4 bytes"))),
+            Dtype::U8 | Dtype::Bool => f64::from(c[0]),
+        })
+        .collect();
+    Ok(Array { dtype, shape, data })
+}
+
+/// Writes arrays as an uncompressed `.npz` (what `numpy.savez` writes).
+pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), NpyError> {
+    let file_name = path.display().to_string();
+    let io = |source| NpyError::Io { file: file_name.clone(), source };
+    let file = std::fs::File::create(path).map_err(io)?;
+    let mut zip = zip::ZipWriter::new(file);
+    let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    for (key, array) in arrays {
+        zip.start_file(format!("{key}.npy"), options).map_err(|e| fmt_err(&file_name, Some(key), e.to_string()))?;
+        zip.write_all(&encode(array)).map_err(io)?;
+    }
+    zip.finish().map_err(|e| fmt_err(&file_name, None, e.to_string()))?;
+    Ok(())
+}
+
+/// Reads every array of an `.npz` archive (stored or deflated entries).
+pub fn read_npz(path: &Path) -> Result<BTreeMap<String, Array>, NpyError> {
+    let file_name = path.display().to_string();
+    let file = std::fs::File::open(path).map_err(|source| NpyError::Io { file: file_name.clone(), source })?;
+    let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
+    let mut out = BTreeMap::new();
+    for i in 0..zip.len() {
+        let mut entry = zip.by_index(i).map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
+        let name = entry.name().to_string();
+        let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
+        let mut bytes = Vec::with_capacity(entry.size() as usize);
+        entry.read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
+        out.insert(key.clone(), decode(&bytes, &file_name, Some(&key))?);
+    }
+    Ok(out)
+}
+
+/// Looks up `key` and checks its shape (`None` in `shape` matches any size) and that
+/// every value is finite.
+pub fn require<'a>(arrays: &'a BTreeMap<String, Array>, file: &str, key: &str, shape: &[Option<usize>]) -> Result<&'a Array, NpyError> {
+    let a = arrays.get(key).ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
+    let matches = a.shape.len() == shape.len() && a.shape.iter().zip(shape).all(|(&d, s)| s.is_none_or(|s| s == d));
+    if !matches {
+        let want: Vec<String> = shape.iter().map(|s| s.map(|d| d.to_string()).unwrap_or("*".into())).collect();
+        return Err(fmt_err(file, Some(key), format!("shape {:?}, expected ({})", a.shape, want.join(", "))));
+    }
+    if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
+        return Err(fmt_err(file, Some(key), format!("value {i} is {} (not finite)", a.data[i])));
+    }
+    Ok(a)
+}
