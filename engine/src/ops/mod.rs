@@ -4,4 +4,5 @@
 
 pub mod radix_sort;
 pub mod scan;
+pub mod skinning;
 pub mod splat;

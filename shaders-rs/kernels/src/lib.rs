@@ -14,6 +14,7 @@
 mod atomics;
 pub mod radix_sort;
 pub mod scan;
+pub mod skinning;
 pub mod splat;
 pub mod train;
 mod workgroup;

@@ -11,6 +11,7 @@ pub mod adam;
 pub mod radix_sort;
 pub mod real;
 pub mod scan;
+pub mod skinning;
 pub mod splat;
 #[cfg(not(target_arch = "spirv"))]
 pub mod spirv_module;

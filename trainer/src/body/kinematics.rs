@@ -180,24 +180,13 @@ pub fn pose_features(pose: &Pose) -> [f64; NUM_POSE_FEATURES] {
 /// Linear blend skinning of points with per-point joint weights, as
 /// `p + Σ_j w_j (A_j p - p)` (equal to `Σ_j w_j A_j p` for weights summing to 1, and
 /// exactly `p` when every transform is the identity).
+/// The GPU kernel's CPU reference (`drape_engine::ops::skinning`) runs the very same
+/// shared functions.
 pub fn skin(weights: &[[f64; NUM_JOINTS]], transforms: &[Affine; NUM_JOINTS], points: &[V3]) -> Vec<V3> {
-    points
-        .iter()
-        .zip(weights)
-        .map(|(p, w)| {
-            let mut delta = [0.0; 3];
-            for (j, a) in transforms.iter().enumerate() {
-                if w[j] == 0.0 {
-                    continue;
-                }
-                for r in 0..3 {
-                    let moved = a[r][0] * p[0] + a[r][1] * p[1] + a[r][2] * p[2] + a[r][3];
-                    delta[r] += w[j] * (moved - p[r]);
-                }
-            }
-            add(*p, delta)
-        })
-        .collect()
+    let flat_t: Vec<f64> = transforms.iter().flatten().flatten().copied().collect();
+    let flat_w: Vec<f64> = weights.iter().flatten().copied().collect();
+    let flat_p: Vec<f64> = points.iter().flatten().copied().collect();
+    drape_engine::ops::skinning::reference_fwd(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
 }
 
 /// A posed body.
