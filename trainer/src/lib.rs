@@ -4,5 +4,8 @@
 #![forbid(unsafe_code)]
 
 pub mod body;
+pub mod cloth;
+pub mod garment;
 pub mod mesh;
+pub mod motion;
 pub mod npy;

@@ -2,6 +2,7 @@
 //! procedural body in that format, and posing (forward kinematics and linear blend
 //! skinning).
 
+pub mod gaussians;
 pub mod kinematics;
 pub mod model;
 pub mod procedural;

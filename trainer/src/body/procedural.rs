@@ -134,8 +134,11 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
         for y in 0..n[1] {
             for z in 0..n[2] {
                 let v = f(pos(x, y, z));
-                // Never exactly zero, so every crossing is strict.
-                values[idx(x, y, z)] = if v.abs() < 1e-12 { 1e-12 } else { v };
+                // Keep grid values away from zero: a crossing then never lies within
+                // ~8% of a grid point, which would make slivers and near-duplicate
+                // vertices (any nonzero values still give a closed surface).
+                let eps = 0.15 * h;
+                values[idx(x, y, z)] = if v.abs() < eps { if v < 0.0 { -eps } else { eps } } else { v };
             }
         }
     }
@@ -212,6 +215,38 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
     (vertices, faces)
 }
 
+/// Evens out the triangles: each vertex moves halfway to its neighbours' centroid,
+/// then back onto the zero level along the field's gradient. Connectivity is
+/// unchanged, so the mesh stays closed.
+fn relax_on_surface(v: &mut [V3], faces: &[[u32; 3]], f: &dyn Fn(V3) -> f64, iterations: usize) {
+    let adj = adjacency(v.len(), faces);
+    let h = 1e-4;
+    for _ in 0..iterations {
+        let prev = v.to_vec();
+        for (i, p) in v.iter_mut().enumerate() {
+            let nb = &adj[i];
+            if nb.is_empty() {
+                continue;
+            }
+            let c = nb.iter().fold([0.0; 3], |acc, &k| add(acc, scale(prev[k as usize], 1.0 / nb.len() as f64)));
+            let mut q = add(scale(prev[i], 0.5), scale(c, 0.5));
+            for _ in 0..3 {
+                let d = f(q);
+                let g = [0, 1, 2].map(|k| {
+                    let mut a = q;
+                    let mut b = q;
+                    a[k] += h;
+                    b[k] -= h;
+                    (f(a) - f(b)) / (2.0 * h)
+                });
+                let g2 = dot(g, g).max(1e-12);
+                q = sub(q, scale(g, d / g2));
+            }
+            *p = q;
+        }
+    }
+}
+
 /// Options of the procedural body.
 #[derive(Clone, Copy, Debug)]
 pub struct BodyOptions {
@@ -231,8 +266,9 @@ impl Default for BodyOptions {
 pub fn default_body(options: &BodyOptions) -> SmplModel {
     let parts = parts();
     let sdf = |p: V3| body_sdf(p, &parts);
-    let (v, faces) = marching_tetrahedra(&sdf, [-0.95, -0.06, -0.25], [0.95, 1.80, 0.30], options.cell);
+    let (mut v, faces) = marching_tetrahedra(&sdf, [-0.95, -0.06, -0.25], [0.95, 1.80, 0.30], options.cell);
     let nv = v.len();
+    relax_on_surface(&mut v, &faces, &sdf, 6);
 
     // Skinning weights: Gaussian falloff from each joint's parts, smoothed over the
     // mesh, normalized to a partition of unity.
@@ -241,7 +277,17 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
         .iter()
         .map(|&p| {
             let mut w = [0.0; NUM_JOINTS];
-            let dists: Vec<(usize, f64)> = parts.iter().map(|q| (q.joint, part_sdf(p, q))).collect();
+            // A point before the start of a part (in its rounded cap, towards the
+            // parent) belongs to the parent: penalise it, or a lowered arm would drag
+            // the top of the shoulder with it.
+            let dists: Vec<(usize, f64)> = parts
+                .iter()
+                .map(|q| {
+                    let ab = sub(q.b, q.a);
+                    let t_raw = dot(sub(p, q.a), ab) / dot(ab, ab).max(1e-12);
+                    (q.joint, part_sdf(p, q) + 3.0 * (-t_raw).max(0.0) * norm(ab))
+                })
+                .collect();
             let best = dists.iter().map(|d| d.1).fold(f64::MAX, f64::min);
             for (j, d) in dists {
                 let e = (d - best) / sigma;

@@ -1,0 +1,125 @@
+//! Gaussians initialized from a skinned mesh, as HUGS does for the body and Cloth-HUGS
+//! for the garments: the mesh subdivided (midpoint, twice by default) with skinning
+//! weights and shape blend shapes averaged onto the new vertices; one Gaussian per
+//! vertex, rotated so its third axis is the surface normal, flat along the normal and
+//! as wide as half the mean incident edge in the tangent plane; opacity 0.1, SH DC 0.5.
+
+use std::collections::HashMap;
+
+use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_shared::splat::layout::MAX_SH_COEFFS;
+use drape_shared::splat::project::Gaussian;
+
+use crate::body::model::NUM_JOINTS;
+use crate::mesh::{add, cross, norm, normalize, scale, sub, vertex_normals, V3};
+
+/// A triangle mesh with per-vertex skinning weights and shape blend shapes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SkinnedMesh {
+    pub vertices: Vec<V3>,
+    pub faces: Vec<[u32; 3]>,
+    pub weights: Vec<[f64; NUM_JOINTS]>,
+    /// `shapedirs[v][axis][b]` (may have zero betas).
+    pub shapedirs: Vec<[Vec<f64>; 3]>,
+}
+
+impl SkinnedMesh {
+    /// One level of midpoint subdivision: every triangle into four, new vertices on
+    /// edge midpoints with averaged weights and blend shapes.
+    pub fn subdivide(&self) -> Self {
+        let mut out = self.clone();
+        let mut midpoint: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut faces = Vec::with_capacity(self.faces.len() * 4);
+        let mut mid = |a: u32, b: u32, out: &mut SkinnedMesh| -> u32 {
+            *midpoint.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                let (ia, ib) = (a as usize, b as usize);
+                out.vertices.push(scale(add(self.vertices[ia], self.vertices[ib]), 0.5));
+                let mut w = [0.0; NUM_JOINTS];
+                for j in 0..NUM_JOINTS {
+                    w[j] = 0.5 * (self.weights[ia][j] + self.weights[ib][j]);
+                }
+                out.weights.push(w);
+                let d = [0, 1, 2].map(|k| self.shapedirs[ia][k].iter().zip(&self.shapedirs[ib][k]).map(|(x, y)| 0.5 * (x + y)).collect());
+                out.shapedirs.push(d);
+                (out.vertices.len() - 1) as u32
+            })
+        };
+        for f in &self.faces {
+            let [a, b, c] = *f;
+            let ab = mid(a, b, &mut out);
+            let bc = mid(b, c, &mut out);
+            let ca = mid(c, a, &mut out);
+            faces.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+        }
+        out.faces = faces;
+        out
+    }
+}
+
+/// Rotation matrix (columns = axes) to a unit quaternion (w, x, y, z).
+fn quat_from_axes(x: V3, y: V3, z: V3) -> [f64; 4] {
+    let m = [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]];
+    let trace = m[0][0] + m[1][1] + m[2][2];
+    let q = if trace > 0.0 {
+        let s = (trace + 1.0).sqrt() * 2.0;
+        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
+    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
+        let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
+        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
+    } else if m[1][1] > m[2][2] {
+        let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
+        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
+    } else {
+        let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
+        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
+    };
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    q.map(|v| v / n)
+}
+
+/// Gaussians at the vertices of `mesh` after `levels` subdivisions, with their
+/// skinning weights (the subdivided mesh is returned too).
+pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, layer: Layer) -> (GaussianCloud, SkinnedMesh) {
+    let mut m = mesh.clone();
+    for _ in 0..levels {
+        m = m.subdivide();
+    }
+    let normals = vertex_normals(&m.vertices, &m.faces);
+    let mut edge_sum = vec![0.0; m.vertices.len()];
+    let mut edge_count = vec![0u32; m.vertices.len()];
+    for f in &m.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k] as usize, f[(k + 1) % 3] as usize);
+            let l = norm(sub(m.vertices[a], m.vertices[b]));
+            // Each interior edge is seen from two faces, so both ends count it twice.
+            edge_sum[a] += l;
+            edge_sum[b] += l;
+            edge_count[a] += 1;
+            edge_count[b] += 1;
+        }
+    }
+    let mut cloud = GaussianCloud::new(sh_degree);
+    let opacity_logit = (0.1f64 / 0.9).ln() as f32;
+    for (i, v) in m.vertices.iter().enumerate() {
+        let n = normals[i];
+        let helper = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let t1 = normalize(cross(helper, n));
+        let t2 = cross(n, t1);
+        let q = quat_from_axes(t1, t2, n);
+        let mean_edge = edge_sum[i] / f64::from(edge_count[i].max(1));
+        let tangent = (0.5 * mean_edge).max(1e-5);
+        let mut sh = [[0.0f32; 3]; MAX_SH_COEFFS];
+        sh[0] = [0.5; 3];
+        cloud.push(
+            &Gaussian {
+                mean: v.map(|x| x as f32),
+                log_scale: [tangent.ln() as f32, tangent.ln() as f32, (0.1 * tangent).ln() as f32],
+                quat: q.map(|x| x as f32),
+                opacity_logit,
+                sh,
+            },
+            layer,
+        );
+    }
+    (cloud, m)
+}

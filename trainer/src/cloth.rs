@@ -1,0 +1,458 @@
+//! XPBD cloth simulation (the stand-in for SNUG's garment network): stretch and
+//! bending constraints, collision with the posed body with a margin, gravity,
+//! damping, substeps, strain limiting, and attached regions that follow the body's
+//! skinning. Deterministic: sequential Gauss-Seidel in a fixed order.
+//!
+//! Per frame the body and the attachment targets are interpolated linearly between
+//! the previous and the next frame over the substeps (small-steps XPBD: the Lagrange
+//! multipliers restart every substep).
+
+use std::collections::HashMap;
+
+use crate::body::kinematics::{pose_body, skin, Pose};
+use crate::body::model::SmplModel;
+use crate::garment::Garment;
+use crate::mesh::{add, cross, dot, norm, normalize, scale, sub, V3};
+use crate::motion::Motion;
+
+/// Simulation settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClothParams {
+    pub substeps: u32,
+    /// Constraint sweeps per substep.
+    pub iterations: u32,
+    pub gravity: f64,
+    /// Fraction of velocity lost per second.
+    pub damping: f64,
+    /// XPBD compliance of the stretch constraints (m/N).
+    pub stretch_compliance: f64,
+    /// XPBD compliance of the bending (cross-edge distance) constraints.
+    pub bend_compliance: f64,
+    /// Cloth keeps at least this far outside the body (metres).
+    pub margin: f64,
+    /// Edges are never longer than this factor of their rest length after a substep.
+    pub max_stretch: f64,
+}
+
+impl Default for ClothParams {
+    fn default() -> Self {
+        Self {
+            substeps: 8,
+            iterations: 2,
+            gravity: -9.81,
+            damping: 0.5,
+            stretch_compliance: 1e-8,
+            bend_compliance: 1e-4,
+            margin: 0.004,
+            max_stretch: 1.06,
+        }
+    }
+}
+
+impl ClothParams {
+    /// One substep with enough sweeps to match the default's total work.
+    pub fn one_substep() -> Self {
+        Self { substeps: 1, iterations: 16, ..Self::default() }
+    }
+}
+
+/// The posed body over one frame as a collider: its vertices at the frame's start and
+/// end (queried at any fraction between), triangles in a uniform grid covering both.
+pub struct BodyCollider {
+    start: Vec<V3>,
+    end: Vec<V3>,
+    faces: Vec<[u32; 3]>,
+    cell: f64,
+    grid: HashMap<[i64; 3], Vec<u32>>,
+}
+
+fn closest_point_on_triangle(p: V3, a: V3, b: V3, c: V3) -> V3 {
+    // Ericson, Real-Time Collision Detection, 5.1.5.
+    let ab = sub(b, a);
+    let ac = sub(c, a);
+    let ap = sub(p, a);
+    let d1 = dot(ab, ap);
+    let d2 = dot(ac, ap);
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return a;
+    }
+    let bp = sub(p, b);
+    let d3 = dot(ab, bp);
+    let d4 = dot(ac, bp);
+    if d3 >= 0.0 && d4 <= d3 {
+        return b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return add(a, scale(ab, d1 / (d1 - d3)));
+    }
+    let cp = sub(p, c);
+    let d5 = dot(ab, cp);
+    let d6 = dot(ac, cp);
+    if d6 >= 0.0 && d5 <= d6 {
+        return c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return add(a, scale(ac, d2 / (d2 - d6)));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return add(b, scale(sub(c, b), (d4 - d3) / ((d4 - d3) + (d5 - d6))));
+    }
+    let denom = 1.0 / (va + vb + vc);
+    add(a, add(scale(ab, vb * denom), scale(ac, vc * denom)))
+}
+
+/// Grid cell of the collider (metres).
+const COLLIDER_CELL: f64 = 0.03;
+/// Triangles are filed in every cell within this distance, so that a query of one
+/// cell sees every triangle that close to the point.
+const COLLIDER_REACH: f64 = 0.02;
+
+impl BodyCollider {
+    /// A body that does not move.
+    pub fn new(vertices: Vec<V3>, faces: &[[u32; 3]]) -> Self {
+        Self::moving(vertices.clone(), vertices, faces)
+    }
+
+    /// A body moving linearly from `start` to `end` over the frame.
+    pub fn moving(start: Vec<V3>, end: Vec<V3>, faces: &[[u32; 3]]) -> Self {
+        let cell = COLLIDER_CELL;
+        let mut grid: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
+        for (i, f) in faces.iter().enumerate() {
+            let pts = [f.map(|k| start[k as usize]), f.map(|k| end[k as usize])];
+            let lo = [0, 1, 2].map(|k| ((pts.iter().flatten().map(|p| p[k]).fold(f64::MAX, f64::min) - COLLIDER_REACH) / cell).floor() as i64);
+            let hi = [0, 1, 2].map(|k| ((pts.iter().flatten().map(|p| p[k]).fold(f64::MIN, f64::max) + COLLIDER_REACH) / cell).floor() as i64);
+            for x in lo[0]..=hi[0] {
+                for y in lo[1]..=hi[1] {
+                    for z in lo[2]..=hi[2] {
+                        grid.entry([x, y, z]).or_default().push(i as u32);
+                    }
+                }
+            }
+        }
+        Self { start, end, faces: faces.to_vec(), cell, grid }
+    }
+
+    /// Signed distance to the body (negative inside) and the closest surface point and
+    /// normal, exact for points within `COLLIDER_REACH` of the surface; None when
+    /// nothing is that near.
+    pub fn query(&self, p: V3) -> Option<(f64, V3, V3)> {
+        self.query_at(p, 1.0)
+    }
+
+    /// [`query`](Self::query) against the body at fraction `s` of the frame.
+    pub fn query_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3)> {
+        let c = p.map(|x| (x / self.cell).floor() as i64);
+        let mut best: Option<(f64, V3, V3)> = None;
+        {
+            {
+                {
+                    let Some(list) = self.grid.get(&c) else { return None };
+                    for &t in list {
+                        let [a, b, cc] = self.faces[t as usize].map(|k| {
+                            let (x, y) = (self.start[k as usize], self.end[k as usize]);
+                            add(scale(x, 1.0 - s), scale(y, s))
+                        });
+                        let q = closest_point_on_triangle(p, a, b, cc);
+                        let d = norm(sub(p, q));
+                        if best.is_none_or(|(bd, _, _)| d < bd.abs() - 1e-12) {
+                            let n = normalize(cross(sub(b, a), sub(cc, a)));
+                            let s = if dot(sub(p, q), n) < 0.0 { -d } else { d };
+                            best = Some((s, q, n));
+                        }
+                    }
+                }
+            }
+        }
+        best
+    }
+}
+
+/// Gauss-Seidel sweeps of the strain limit after each collision pass.
+const STRAIN_SWEEPS: usize = 10;
+
+/// One garment being simulated.
+pub struct ClothSim {
+    pub positions: Vec<V3>,
+    velocities: Vec<V3>,
+    inv_mass: Vec<f64>,
+    stretch: Vec<(u32, u32, f64)>,
+    bend: Vec<(u32, u32, f64)>,
+    attached: Vec<bool>,
+    params: ClothParams,
+}
+
+impl ClothSim {
+    pub fn new(garment: &Garment, params: ClothParams) -> Self {
+        let mut edges: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+        for f in &garment.faces {
+            for k in 0..3 {
+                let (a, b, opposite) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+                edges.entry((a.min(b), a.max(b))).or_default().push(opposite);
+            }
+        }
+        let mut keys: Vec<&(u32, u32)> = edges.keys().collect();
+        keys.sort();
+        let v = &garment.vertices;
+        let length = |a: u32, b: u32| norm(sub(v[a as usize], v[b as usize]));
+        // Strain limiting sweeps the edges outward from the attached vertices (by hop
+        // count), so that one Gauss-Seidel sweep carries a correction across the cloth.
+        let mut hops = vec![u32::MAX; v.len()];
+        let mut queue: std::collections::VecDeque<u32> = (0..v.len() as u32).filter(|&i| garment.attached[i as usize]).collect();
+        for &i in &queue {
+            hops[i as usize] = 0;
+        }
+        let mut neighbours = vec![Vec::new(); v.len()];
+        for &&(a, b) in &keys {
+            neighbours[a as usize].push(b);
+            neighbours[b as usize].push(a);
+        }
+        while let Some(i) = queue.pop_front() {
+            for &n in &neighbours[i as usize] {
+                if hops[n as usize] == u32::MAX {
+                    hops[n as usize] = hops[i as usize] + 1;
+                    queue.push_back(n);
+                }
+            }
+        }
+        let mut stretch: Vec<(u32, u32, f64)> = keys.iter().map(|&&(a, b)| (a, b, length(a, b))).collect();
+        stretch.sort_by_key(|&(a, b, _)| (hops[a as usize].min(hops[b as usize]), a, b));
+        let bend = keys
+            .iter()
+            .filter_map(|k| {
+                let o = &edges[k];
+                (o.len() == 2).then(|| (o[0], o[1], length(o[0], o[1])))
+            })
+            .collect();
+        Self {
+            positions: v.clone(),
+            velocities: vec![[0.0; 3]; v.len()],
+            inv_mass: garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect(),
+            stretch,
+            bend,
+            attached: garment.attached.clone(),
+            params,
+        }
+    }
+
+    fn solve_distance(&mut self, constraints_bend: bool, h: f64) {
+        let (list, compliance) = if constraints_bend { (&self.bend, self.params.bend_compliance) } else { (&self.stretch, self.params.stretch_compliance) };
+        let alpha = compliance / (h * h);
+        for &(a, b, rest) in list {
+            let (ia, ib) = (a as usize, b as usize);
+            let (wa, wb) = (self.inv_mass[ia], self.inv_mass[ib]);
+            if wa + wb == 0.0 {
+                continue;
+            }
+            let d = sub(self.positions[ia], self.positions[ib]);
+            let l = norm(d);
+            if l < 1e-12 {
+                continue;
+            }
+            let c = l - rest;
+            let dl = -c / (wa + wb + alpha);
+            let n = scale(d, 1.0 / l);
+            self.positions[ia] = add(self.positions[ia], scale(n, wa * dl));
+            self.positions[ib] = sub(self.positions[ib], scale(n, wb * dl));
+        }
+    }
+
+    fn limit_strain(&mut self) {
+        let max = self.params.max_stretch;
+        for &(a, b, rest) in &self.stretch {
+            let (ia, ib) = (a as usize, b as usize);
+            let (wa, wb) = (self.inv_mass[ia], self.inv_mass[ib]);
+            if wa + wb == 0.0 {
+                continue;
+            }
+            let d = sub(self.positions[ia], self.positions[ib]);
+            let l = norm(d);
+            if l <= max * rest {
+                continue;
+            }
+            let c = l - max * rest;
+            let n = scale(d, 1.0 / l);
+            self.positions[ia] = sub(self.positions[ia], scale(n, c * wa / (wa + wb)));
+            self.positions[ib] = add(self.positions[ib], scale(n, c * wb / (wa + wb)));
+        }
+    }
+
+    fn collide(&mut self, body: &BodyCollider, s: f64) {
+        let margin = self.params.margin;
+        for i in 0..self.positions.len() {
+            if self.attached[i] {
+                continue;
+            }
+            if let Some((d, q, n)) = body.query_at(self.positions[i], s) {
+                if d < margin {
+                    self.positions[i] = add(q, scale(n, margin));
+                }
+            }
+        }
+    }
+
+    /// Advances one frame of `dt` seconds against `collider` (the body moving over the
+    /// frame); `targets(s)` gives the attached vertices' positions at fraction s of it.
+    pub fn step_frame(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<V3>) {
+        self.step_frame_carried(dt, collider, targets, &|_| None);
+    }
+
+    /// [`step_frame`](Self::step_frame), with the free vertices first carried along by
+    /// the body: `carried(s)` gives every vertex's skinned rest position at fraction s
+    /// (None: not carried). Each substep moves a free vertex by the change of its
+    /// skinned position, and the dynamics add what differs from skinning (gravity,
+    /// inertia, collisions); so a fast limb does not leave its sleeve behind, even
+    /// with one substep.
+    pub fn step_frame_carried(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<V3>, carried: &dyn Fn(f64) -> Option<Vec<V3>>) {
+        let n = self.params.substeps.max(1);
+        let h = dt / f64::from(n);
+        let keep = (1.0 - self.params.damping * h).clamp(0.0, 1.0);
+        let mut carried_before = carried(0.0);
+        for s in 1..=n {
+            let frac = f64::from(s) / f64::from(n);
+            let goal = targets(frac);
+            let carried_now = carried(frac);
+            if let (Some(a), Some(b)) = (&carried_before, &carried_now) {
+                for i in 0..self.positions.len() {
+                    if !self.attached[i] {
+                        self.positions[i] = add(self.positions[i], sub(b[i], a[i]));
+                    }
+                }
+            }
+            carried_before = carried_now;
+            let previous = self.positions.clone();
+            for i in 0..self.positions.len() {
+                if self.attached[i] {
+                    self.positions[i] = goal[i];
+                    continue;
+                }
+                self.velocities[i][1] += self.params.gravity * h;
+                self.velocities[i] = scale(self.velocities[i], keep);
+                self.positions[i] = add(self.positions[i], scale(self.velocities[i], h));
+            }
+            for _ in 0..self.params.iterations.max(1) {
+                self.solve_distance(false, h);
+                self.solve_distance(true, h);
+            }
+            // Strain limit, then collisions last: nothing ends a substep inside the body.
+            for _ in 0..STRAIN_SWEEPS {
+                self.limit_strain();
+            }
+            self.collide(collider, frac);
+            for i in 0..self.positions.len() {
+                self.velocities[i] = scale(sub(self.positions[i], previous[i]), 1.0 / h);
+            }
+        }
+    }
+
+    /// Largest edge length over rest length, and that edge.
+    pub fn max_strain_edge(&self) -> (f64, u32, u32) {
+        self.stretch
+            .iter()
+            .map(|&(a, b, rest)| (norm(sub(self.positions[a as usize], self.positions[b as usize])) / rest, a, b))
+            .fold((0.0, 0, 0), |m, e| if e.0 > m.0 { e } else { m })
+    }
+
+    /// Largest edge length over rest length.
+    pub fn max_strain(&self) -> f64 {
+        self.max_strain_edge().0
+    }
+
+    /// Whether vertex `i` follows the body.
+    pub fn is_attached(&self, i: usize) -> bool {
+        self.attached[i]
+    }
+}
+
+/// Per-frame meshes of every garment, and what the simulation measured.
+#[derive(Clone, Debug)]
+pub struct SimulationResult {
+    /// `frames[f][g]` = positions of garment g after frame f.
+    pub frames: Vec<Vec<Vec<V3>>>,
+    /// Deepest penetration into the body over all frames (metres, positive = inside).
+    pub max_penetration: f64,
+    /// Largest edge strain (length / rest length) over all frames.
+    pub max_strain: f64,
+    /// Where the largest strain was: (frame, garment, vertex a, vertex b).
+    pub max_strain_at: (usize, usize, u32, u32),
+    /// Where the deepest penetration was: (frame, garment, vertex).
+    pub max_penetration_at: (usize, usize, usize),
+    pub any_nan: bool,
+}
+
+/// Simulates `garments` on `body` through `motion`, after `pre_roll` frames that blend
+/// from the T-pose into the first frame.
+pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize) -> SimulationResult {
+    let dt = 1.0 / motion.fps;
+    let rest_pose: Pose = [[0.0; 3]; 24];
+    let mut schedule: Vec<(Pose, V3)> = (1..=pre_roll)
+        .map(|k| {
+            let t = k as f64 / pre_roll as f64;
+            let s = t * t * (3.0 - 2.0 * t);
+            let first = motion.poses.first().copied().unwrap_or(rest_pose);
+            (std::array::from_fn(|j| scale(first[j], s)), scale(motion.translations.first().copied().unwrap_or([0.0; 3]), s))
+        })
+        .collect();
+    let recorded_from = schedule.len();
+    schedule.extend(motion.poses.iter().copied().zip(motion.translations.iter().copied()));
+
+    let mut sims: Vec<ClothSim> = garments.iter().map(|g| ClothSim::new(g, params)).collect();
+    let mut prev = pose_body(body, &[], &rest_pose, [0.0; 3]);
+    let mut result = SimulationResult {
+        frames: Vec::new(),
+        max_penetration: f64::MIN,
+        max_strain: 0.0,
+        max_strain_at: (0, 0, 0, 0),
+        max_penetration_at: (0, 0, 0),
+        any_nan: false,
+    };
+    for (f, (pose, trans)) in schedule.iter().enumerate() {
+        let next = pose_body(body, &[], pose, *trans);
+        let prev_t = prev.transforms;
+        let next_t = next.transforms;
+        let lerp = |a: &[V3], b: &[V3], s: f64| -> Vec<V3> { a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect() };
+        let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
+        let prev_trans_vec = if f == 0 { [0.0; 3] } else { schedule[f - 1].1 };
+        for (g, sim) in garments.iter().zip(sims.iter_mut()) {
+            // Attached vertices move rigidly with the garment's attachment joint.
+            let mut rigid = [0.0; 24];
+            rigid[g.attach_joint] = 1.0;
+            let rigid = vec![rigid; g.vertices.len()];
+            let a0: Vec<V3> = skin(&rigid, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
+            let a1: Vec<V3> = skin(&rigid, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
+            let targets = |s: f64| lerp(&a0, &a1, s);
+            let c0: Vec<V3> = skin(&g.weights_blend6, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
+            let c1: Vec<V3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
+            let carried = |s: f64| Some(lerp(&c0, &c1, s));
+            sim.step_frame_carried(dt, &collider, &targets, &carried);
+        }
+        if f >= recorded_from {
+            let mut frame = Vec::with_capacity(sims.len());
+            let index = f - recorded_from;
+            for (gi, sim) in sims.iter().enumerate() {
+                for (vi, p) in sim.positions.iter().enumerate() {
+                    if p.iter().any(|v| !v.is_finite()) {
+                        result.any_nan = true;
+                    }
+                    if let Some((s, _, _)) = collider.query(*p) {
+                        if -s > result.max_penetration {
+                            result.max_penetration = -s;
+                            result.max_penetration_at = (index, gi, vi);
+                        }
+                    }
+                }
+                let (strain, a, b) = sim.max_strain_edge();
+                if strain > result.max_strain {
+                    result.max_strain = strain;
+                    result.max_strain_at = (index, gi, a, b);
+                }
+                frame.push(sim.positions.clone());
+            }
+            result.frames.push(frame);
+        }
+        prev = next;
+    }
+    result
+}

@@ -1,0 +1,268 @@
+//! Garments: the T-shirt and pants the project makes around the default body (regions
+//! of its surface lifted along the normals; open at neck, sleeves, waist and legs;
+//! cylindrical UVs), OBJ garments a user supplies (read with `tobj`), skinning weights
+//! from the body (nearest vertex, and HUGS' 6-nearest blend with weights `exp(-d²)`,
+//! d in metres), and the attachment regions that follow skinning in the simulator.
+
+use std::path::Path;
+
+use crate::body::model::{SmplModel, NUM_JOINTS};
+use crate::mesh::{add, norm, scale, sub, vertex_normals, V3};
+
+/// A garment mesh bound to a body.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Garment {
+    pub name: String,
+    /// Rest positions (on the body in T-pose).
+    pub vertices: Vec<V3>,
+    pub faces: Vec<[u32; 3]>,
+    pub uvs: Vec<[f64; 2]>,
+    /// Weights of the nearest body vertex.
+    pub weights: Vec<[f64; NUM_JOINTS]>,
+    /// HUGS' target: the 6 nearest body vertices blended with `exp(-d²)`.
+    pub weights_blend6: Vec<[f64; NUM_JOINTS]>,
+    /// Vertices that follow the body (waistband, shoulders): rigidly with
+    /// `attach_joint`, so that the attached band itself never stretches.
+    pub attached: Vec<bool>,
+    pub attach_joint: usize,
+}
+
+/// Why a garment file could not be used; names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum GarmentError {
+    #[error("{path}: {problem}")]
+    Invalid { path: String, problem: String },
+}
+
+/// Indices of the k nearest body vertices (brute force over a coarse grid).
+struct NearestBody<'a> {
+    vertices: &'a [V3],
+    cell: f64,
+    grid: std::collections::HashMap<[i64; 3], Vec<u32>>,
+}
+
+impl<'a> NearestBody<'a> {
+    fn new(vertices: &'a [V3]) -> Self {
+        let cell = 0.05;
+        let mut grid: std::collections::HashMap<[i64; 3], Vec<u32>> = Default::default();
+        for (i, v) in vertices.iter().enumerate() {
+            grid.entry(v.map(|x| (x / cell).floor() as i64)).or_default().push(i as u32);
+        }
+        Self { vertices, cell, grid }
+    }
+
+    fn k_nearest(&self, p: V3, k: usize) -> Vec<(u32, f64)> {
+        let c = p.map(|x| (x / self.cell).floor() as i64);
+        let mut ring = 1;
+        loop {
+            let mut found: Vec<(u32, f64)> = Vec::new();
+            for dx in -ring..=ring {
+                for dy in -ring..=ring {
+                    for dz in -ring..=ring {
+                        if let Some(list) = self.grid.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
+                            found.extend(list.iter().map(|&i| (i, norm(sub(self.vertices[i as usize], p)))));
+                        }
+                    }
+                }
+            }
+            // Everything within `ring` cells is exact; beyond needs a larger ring.
+            found.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+            if found.len() >= k && found[k - 1].1 <= ring as f64 * self.cell {
+                found.truncate(k);
+                return found;
+            }
+            if ring > 40 {
+                found.truncate(k);
+                return found;
+            }
+            ring += 1;
+        }
+    }
+}
+
+/// Binds garment vertices to a body: nearest-vertex weights and the 6-nearest blend.
+pub fn bind_weights(body: &SmplModel, vertices: &[V3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
+    let near = NearestBody::new(&body.v_template);
+    let mut nearest = Vec::with_capacity(vertices.len());
+    let mut blend = Vec::with_capacity(vertices.len());
+    for &v in vertices {
+        let k = near.k_nearest(v, 6);
+        nearest.push(body.weights[k[0].0 as usize]);
+        let mut w = [0.0; NUM_JOINTS];
+        let mut total = 0.0;
+        for &(i, d) in &k {
+            let e = (-d * d).exp();
+            total += e;
+            for j in 0..NUM_JOINTS {
+                w[j] += e * body.weights[i as usize][j];
+            }
+        }
+        for x in w.iter_mut() {
+            *x /= total;
+        }
+        blend.push(w);
+    }
+    (nearest, blend)
+}
+
+/// A garment from the body faces whose vertices all satisfy `region`, lifted by
+/// `offset` along the vertex normals; `attach` marks the attached vertices (by rest
+/// position).
+fn from_region(body: &SmplModel, name: &str, region: impl Fn(V3) -> bool, offset: f64, attach: impl Fn(V3) -> bool, attach_joint: usize) -> Garment {
+    let normals = vertex_normals(&body.v_template, &body.faces);
+    let mut map = vec![u32::MAX; body.num_vertices()];
+    let mut vertices = Vec::new();
+    let mut faces = Vec::new();
+    for f in &body.faces {
+        if f.iter().all(|&i| region(body.v_template[i as usize])) {
+            let mut g = [0u32; 3];
+            for (k, &i) in f.iter().enumerate() {
+                if map[i as usize] == u32::MAX {
+                    map[i as usize] = vertices.len() as u32;
+                    vertices.push(add(body.v_template[i as usize], scale(normals[i as usize], offset)));
+                }
+                g[k] = map[i as usize];
+            }
+            faces.push(g);
+        }
+    }
+    relax_off_body(&mut vertices, &faces, body, offset, 30);
+    let uvs = vertices
+        .iter()
+        .map(|v| [(v[0].atan2(v[2]) / std::f64::consts::TAU + 0.5), (v[1] - 0.0) / 1.8])
+        .collect();
+    let (weights, weights_blend6) = bind_weights(body, &vertices);
+    let attached = vertices.iter().map(|&v| attach(v)).collect();
+    Garment { name: name.to_string(), vertices, faces, uvs, weights, weights_blend6, attached, attach_joint }
+}
+
+/// Smooths a garment's rest shape the way cloth hangs: Laplacian steps that bridge
+/// concave places (the crotch, the armpits) instead of following the skin into them,
+/// each followed by pushing every vertex back to at least `clearance` off the body.
+/// Offsetting along normals alone folds the surface where facing normals converge.
+fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body: &SmplModel, clearance: f64, iterations: usize) {
+    let collider = crate::cloth::BodyCollider::new(body.v_template.clone(), &body.faces);
+    let adj = crate::mesh::adjacency(vertices.len(), faces);
+    let boundary: Vec<bool> = {
+        let counts = crate::mesh::edge_face_counts(faces);
+        let mut b = vec![false; vertices.len()];
+        for (&(x, y), &c) in &counts {
+            if c == 1 {
+                b[x as usize] = true;
+                b[y as usize] = true;
+            }
+        }
+        b
+    };
+    for _ in 0..iterations {
+        let prev = vertices.to_vec();
+        for (i, v) in vertices.iter_mut().enumerate() {
+            // Openings keep their shape (the smoothing would shrink them).
+            if boundary[i] || adj[i].is_empty() {
+                continue;
+            }
+            let c = adj[i].iter().fold([0.0; 3], |acc, &k| add(acc, scale(prev[k as usize], 1.0 / adj[i].len() as f64)));
+            *v = add(scale(prev[i], 0.5), scale(c, 0.5));
+            if let Some((d, q, n)) = collider.query(*v) {
+                if d < clearance {
+                    *v = add(q, scale(n, clearance));
+                }
+            }
+        }
+    }
+}
+
+/// Lift of the T-shirt off the skin (metres).
+pub const TSHIRT_OFFSET: f64 = 0.015;
+/// Lift of the pants off the skin.
+pub const PANTS_OFFSET: f64 = 0.012;
+
+/// A short-sleeved T-shirt around the default body: torso from the hips to below the
+/// neck, sleeves to mid upper arm; attached on top of the shoulders, inside the
+/// shoulder joint (so that raising or lowering the arms does not stretch it).
+pub fn tshirt(body: &SmplModel) -> Garment {
+    from_region(
+        body,
+        "tshirt",
+        |v| {
+            let torso = v[1] > 0.96 && v[1] < 1.43 && v[0].abs() < 0.22;
+            let sleeve = v[1] > 1.30 && v[1] < 1.50 && v[0].abs() < 0.36;
+            let neck = v[1] > 1.40 && v[0].abs() < 0.075;
+            (torso || sleeve) && !neck
+        },
+        TSHIRT_OFFSET,
+        |v| v[1] > 1.40 && v[0].abs() > 0.08 && v[0].abs() < 0.14,
+        9, // spine3: the collars are its children and the shoulders beyond them
+    )
+}
+
+/// Long pants around the default body: from the waist to above the ankles; attached
+/// at the waistband.
+pub fn pants(body: &SmplModel) -> Garment {
+    from_region(body, "pants", |v| v[1] > 0.14 && v[1] < 1.0 && v[0].abs() < 0.25, PANTS_OFFSET, |v| v[1] > 0.95, 0)
+}
+
+/// Reads an OBJ garment (triangulated; UVs kept when present) and binds it to `body`;
+/// attached vertices are those within 1 cm of the body in its rest pose.
+pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> {
+    let err = |problem: String| GarmentError::Invalid { path: path.display().to_string(), problem };
+    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() }).map_err(|e| err(e.to_string()))?;
+    let mut vertices = Vec::new();
+    let mut faces = Vec::new();
+    let mut uvs = Vec::new();
+    for m in &models {
+        let base = vertices.len() as u32;
+        let mesh = &m.mesh;
+        if mesh.positions.iter().any(|v| !v.is_finite()) {
+            return Err(err(format!("object '{}' has a non-finite vertex coordinate", m.name)));
+        }
+        vertices.extend(mesh.positions.chunks_exact(3).map(|c| [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])]));
+        if mesh.texcoords.len() / 2 == mesh.positions.len() / 3 {
+            uvs.extend(mesh.texcoords.chunks_exact(2).map(|c| [f64::from(c[0]), f64::from(c[1])]));
+        } else {
+            uvs.extend(std::iter::repeat_n([0.0, 0.0], mesh.positions.len() / 3));
+        }
+        for f in mesh.indices.chunks_exact(3) {
+            faces.push([base + f[0], base + f[1], base + f[2]]);
+        }
+    }
+    if faces.is_empty() {
+        return Err(err("no triangles".into()));
+    }
+    let (weights, weights_blend6) = bind_weights(body, &vertices);
+    let near = NearestBody::new(&body.v_template);
+    let attached: Vec<bool> = vertices.iter().map(|&v| near.k_nearest(v, 1)[0].1 < 0.01).collect();
+    // The joint that moves the attached vertices most, on average.
+    let mut total = [0.0; NUM_JOINTS];
+    for (w, _) in weights.iter().zip(&attached).filter(|(_, a)| **a) {
+        for j in 0..NUM_JOINTS {
+            total[j] += w[j];
+        }
+    }
+    let attach_joint = (0..NUM_JOINTS).max_by(|&a, &b| total[a].total_cmp(&total[b])).unwrap_or(0);
+    let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "garment".into());
+    Ok(Garment { name, vertices, faces, uvs, weights, weights_blend6, attached, attach_joint })
+}
+
+/// Writes a mesh as OBJ (positions, optional UVs, triangles).
+pub fn write_obj(path: &Path, vertices: &[V3], faces: &[[u32; 3]], uvs: Option<&[[f64; 2]]>) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
+    for v in vertices {
+        writeln!(out, "v {:.6} {:.6} {:.6}", v[0], v[1], v[2])?;
+    }
+    if let Some(uvs) = uvs {
+        for t in uvs {
+            writeln!(out, "vt {:.6} {:.6}", t[0], t[1])?;
+        }
+    }
+    for f in faces {
+        let [a, b, c] = f.map(|i| i + 1);
+        if uvs.is_some() {
+            writeln!(out, "f {a}/{a} {b}/{b} {c}/{c}")?;
+        } else {
+            writeln!(out, "f {a} {b} {c}")?;
+        }
+    }
+    out.flush()
+}
