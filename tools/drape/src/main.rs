@@ -1,6 +1,7 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
-//! `render` (a 3DGS PLY to PNG), `fit` (Gaussians fitted to an image). Later issues
-//! add `body`, `simulate`, `synth`, `train` and friends.
+//! `render` (a 3DGS PLY to PNG), `fit` (Gaussians fitted to an image), `body` (the
+//! default body as SMPL .npz), `simulate` (garments on a motion). Later issues add
+//! `synth`, `train` and friends.
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;
@@ -11,6 +12,7 @@ use drape_cli_support::{parse_len, DeviceArgs};
 use drape_engine::ops::radix_sort::sort_pairs_host;
 use rand::{Rng, SeedableRng};
 
+mod body;
 mod fit;
 mod image_io;
 mod render;
@@ -42,6 +44,11 @@ enum Command {
     Render(render::RenderArgs),
     /// Fit random Gaussians to an image with the GPU optimizer and save them as PLY.
     Fit(fit::FitArgs),
+    /// Write the project's default body (SMPL format, smplx .npz layout).
+    Body(body::BodyArgs),
+    /// Simulate the T-shirt and pants (and any OBJ garments) on the default body
+    /// through a motion; writes one OBJ per frame per garment.
+    Simulate(body::SimulateArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -76,5 +83,7 @@ fn main() -> ExitCode {
         Command::Demo { n, seed } => demo(&cli.device, n, seed),
         Command::Render(args) => render::run(&cli.device, &args),
         Command::Fit(args) => fit::run(&cli.device, &args),
+        Command::Body(args) => body::run_body(&args),
+        Command::Simulate(args) => body::run_simulate(&args),
     })
 }
