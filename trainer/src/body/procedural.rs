@@ -321,7 +321,11 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
     let mut j_regressor = vec![vec![0.0; nv]; NUM_JOINTS];
     for (j, row) in j_regressor.iter_mut().enumerate() {
         let c = JOINTS[j];
-        let child = (0..NUM_JOINTS).find(|&k| PARENTS[k] == j as i32);
+        // The child that continues the limb (for the pelvis and spine3, the spine, the
+        // most central child).
+        let child = (0..NUM_JOINTS)
+            .filter(|&k| PARENTS[k] == j as i32)
+            .min_by(|&a, &b| (JOINTS[a][0] - c[0]).abs().total_cmp(&(JOINTS[b][0] - c[0]).abs()));
         let axis = match child {
             Some(k) => crate::mesh::normalize(sub(JOINTS[k], c)),
             None => crate::mesh::normalize(sub(c, JOINTS[PARENTS[j] as usize])),
