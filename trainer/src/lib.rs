@@ -5,6 +5,7 @@
 
 pub mod body;
 pub mod cloth;
+pub mod dataset;
 pub mod garment;
 pub mod mesh;
 pub mod motion;

@@ -1,0 +1,229 @@
+//! COLMAP's text model (`cameras.txt`, `images.txt`, `points3D.txt`), written and
+//! parsed exactly as COLMAP does: `images.txt` has two lines per image (pose and
+//! name, then its 2D points as `X Y POINT3D_ID` triples, -1 for none), quaternions
+//! are (w, x, y, z) world-to-camera, `p_c = R(q) p_w + t`. Errors name the file and line.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+/// A camera: COLMAP model name and its parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapCamera {
+    pub id: u32,
+    /// PINHOLE (fx fy cx cy), SIMPLE_PINHOLE (f cx cy), SIMPLE_RADIAL (f cx cy k),
+    /// OPENCV (fx fy cx cy k1 k2 p1 p2), ...
+    pub model: String,
+    pub width: u32,
+    pub height: u32,
+    pub params: Vec<f64>,
+}
+
+impl ColmapCamera {
+    /// (fx, fy, cx, cy) for the pinhole part of any supported model.
+    pub fn pinhole(&self) -> Option<(f64, f64, f64, f64)> {
+        let p = &self.params;
+        match self.model.as_str() {
+            "PINHOLE" | "OPENCV" | "FULL_OPENCV" if p.len() >= 4 => Some((p[0], p[1], p[2], p[3])),
+            "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" if p.len() >= 3 => Some((p[0], p[0], p[1], p[2])),
+            _ => None,
+        }
+    }
+}
+
+/// A registered image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapImage {
+    pub id: u32,
+    /// (w, x, y, z), world to camera.
+    pub qvec: [f64; 4],
+    pub tvec: [f64; 3],
+    pub camera_id: u32,
+    pub name: String,
+    /// (x, y, point3D id or -1).
+    pub points2d: Vec<(f64, f64, i64)>,
+}
+
+impl ColmapImage {
+    /// World-to-camera rotation (rows).
+    pub fn rotation(&self) -> [[f64; 3]; 3] {
+        let n = self.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let [w, x, y, z] = self.qvec.map(|v| v / n);
+        [
+            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+        ]
+    }
+}
+
+/// A 3D point with its colour, error and track.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapPoint {
+    pub id: u64,
+    pub xyz: [f64; 3],
+    pub rgb: [u8; 3],
+    pub error: f64,
+    /// (image id, index of the 2D point in that image).
+    pub track: Vec<(u32, u32)>,
+}
+
+/// A whole text model.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ColmapModel {
+    pub cameras: BTreeMap<u32, ColmapCamera>,
+    pub images: BTreeMap<u32, ColmapImage>,
+    pub points: BTreeMap<u64, ColmapPoint>,
+}
+
+/// Why a model could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum ColmapError {
+    #[error("{path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("{path}:{line}: {problem}")]
+    Parse { path: String, line: usize, problem: String },
+}
+
+/// Formats a float the way Python's `repr` would for round-tripping: shortest exact.
+fn num(v: f64) -> String {
+    let s = format!("{v}");
+    if s.contains('.') || s.contains('e') || s.contains("inf") || s.contains("NaN") { s } else { format!("{s}.0") }
+}
+
+impl ColmapModel {
+    /// Writes `cameras.txt`, `images.txt` and `points3D.txt` into `dir`.
+    pub fn write_text(&self, dir: &Path) -> Result<(), ColmapError> {
+        let io = |path: &Path| {
+            let p = path.display().to_string();
+            move |source| ColmapError::Io { path: p.clone(), source }
+        };
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        let mut cams = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+        let _ = writeln!(cams, "# Number of cameras: {}", self.cameras.len());
+        for c in self.cameras.values() {
+            let params: Vec<String> = c.params.iter().map(|&p| num(p)).collect();
+            let _ = writeln!(cams, "{} {} {} {} {}", c.id, c.model, c.width, c.height, params.join(" "));
+        }
+        let mut imgs = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
+        let _ = writeln!(imgs, "# Number of images: {}", self.images.len());
+        for i in self.images.values() {
+            let q: Vec<String> = i.qvec.iter().chain(&i.tvec).map(|&v| num(v)).collect();
+            let _ = writeln!(imgs, "{} {} {} {}", i.id, q.join(" "), i.camera_id, i.name);
+            let pts: Vec<String> = i.points2d.iter().map(|(x, y, id)| format!("{} {} {id}", num(*x), num(*y))).collect();
+            let _ = writeln!(imgs, "{}", pts.join(" "));
+        }
+        let mut pts = String::from("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
+        let _ = writeln!(pts, "# Number of points: {}", self.points.len());
+        for p in self.points.values() {
+            let track: Vec<String> = p.track.iter().map(|(i, k)| format!("{i} {k}")).collect();
+            let _ = writeln!(
+                pts,
+                "{} {} {} {} {} {} {} {} {}",
+                p.id,
+                num(p.xyz[0]),
+                num(p.xyz[1]),
+                num(p.xyz[2]),
+                p.rgb[0],
+                p.rgb[1],
+                p.rgb[2],
+                num(p.error),
+                track.join(" ")
+            );
+        }
+        for (name, text) in [("cameras.txt", cams), ("images.txt", imgs), ("points3D.txt", pts)] {
+            let path = dir.join(name);
+            std::fs::write(&path, text).map_err(io(&path))?;
+        }
+        Ok(())
+    }
+
+    /// Reads the three files from `dir`.
+    pub fn read_text(dir: &Path) -> Result<Self, ColmapError> {
+        let read = |name: &str| {
+            let path = dir.join(name);
+            std::fs::read_to_string(&path).map(|t| (path.display().to_string(), t)).map_err(|source| ColmapError::Io { path: path.display().to_string(), source })
+        };
+        let mut model = ColmapModel::default();
+
+        let (path, text) = read("cameras.txt")?;
+        for (n, line) in data_lines(&text) {
+            let err = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let w: Vec<&str> = line.split_whitespace().collect();
+            if w.len() < 5 {
+                return Err(err(format!("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got '{line}'")));
+            }
+            let cam = ColmapCamera {
+                id: parse(w[0], "CAMERA_ID").map_err(err)?,
+                model: w[1].to_string(),
+                width: parse(w[2], "WIDTH").map_err(err)?,
+                height: parse(w[3], "HEIGHT").map_err(err)?,
+                params: w[4..].iter().map(|v| parse::<f64>(v, "PARAMS")).collect::<Result<_, _>>().map_err(err)?,
+            };
+            model.cameras.insert(cam.id, cam);
+        }
+
+        let (path, text) = read("images.txt")?;
+        let lines: Vec<(usize, &str)> = text.lines().enumerate().map(|(i, l)| (i + 1, l)).filter(|(_, l)| !l.starts_with('#')).collect();
+        let mut k = 0;
+        while k < lines.len() {
+            let (n, line) = lines[k];
+            if line.trim().is_empty() {
+                k += 1;
+                continue;
+            }
+            let perr = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let w: Vec<&str> = line.split_whitespace().collect();
+            if w.len() < 10 {
+                return Err(perr(format!("expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got '{line}'")));
+            }
+            let f = |i: usize, what: &str| parse::<f64>(w[i], what).map_err(&perr);
+            let qvec = [f(1, "QW")?, f(2, "QX")?, f(3, "QY")?, f(4, "QZ")?];
+            let tvec = [f(5, "TX")?, f(6, "TY")?, f(7, "TZ")?];
+            let id: u32 = parse(w[0], "IMAGE_ID").map_err(&perr)?;
+            let camera_id: u32 = parse(w[8], "CAMERA_ID").map_err(&perr)?;
+            if !model.cameras.contains_key(&camera_id) {
+                return Err(perr(format!("image {id} uses camera {camera_id}, which cameras.txt does not list")));
+            }
+            let name = w[9..].join(" ");
+            let (n2, points_line) = lines.get(k + 1).copied().unwrap_or((n + 1, ""));
+            let v: Vec<&str> = points_line.split_whitespace().collect();
+            if v.len() % 3 != 0 {
+                return Err(ColmapError::Parse { path: path.clone(), line: n2, problem: "POINTS2D is not a list of X Y POINT3D_ID triples".into() });
+            }
+            let e2 = |p: String| ColmapError::Parse { path: path.clone(), line: n2, problem: p };
+            let mut points2d = Vec::with_capacity(v.len() / 3);
+            for c in v.chunks_exact(3) {
+                points2d.push((parse(c[0], "X").map_err(e2)?, parse(c[1], "Y").map_err(e2)?, parse(c[2], "POINT3D_ID").map_err(e2)?));
+            }
+            model.images.insert(id, ColmapImage { id, qvec, tvec, camera_id, name, points2d });
+            k += 2;
+        }
+
+        let (path, text) = read("points3D.txt")?;
+        for (n, line) in data_lines(&text) {
+            let perr = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let w: Vec<&str> = line.split_whitespace().collect();
+            if w.len() < 8 || (w.len() - 8) % 2 != 0 {
+                return Err(perr(format!("expected POINT3D_ID X Y Z R G B ERROR TRACK..., got '{line}'")));
+            }
+            let p = ColmapPoint {
+                id: parse(w[0], "POINT3D_ID").map_err(&perr)?,
+                xyz: [parse(w[1], "X").map_err(&perr)?, parse(w[2], "Y").map_err(&perr)?, parse(w[3], "Z").map_err(&perr)?],
+                rgb: [parse(w[4], "R").map_err(&perr)?, parse(w[5], "G").map_err(&perr)?, parse(w[6], "B").map_err(&perr)?],
+                error: parse(w[7], "ERROR").map_err(&perr)?,
+                track: w[8..].chunks_exact(2).map(|c| Ok((parse(c[0], "IMAGE_ID")?, parse(c[1], "POINT2D_IDX")?))).collect::<Result<_, String>>().map_err(&perr)?,
+            };
+            model.points.insert(p.id, p);
+        }
+        Ok(model)
+    }
+}
+
+fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
+    text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+}
+
+fn parse<T: std::str::FromStr>(s: &str, what: &str) -> Result<T, String> {
+    s.parse::<T>().map_err(|_| format!("{what} '{s}' is not a valid number"))
+}

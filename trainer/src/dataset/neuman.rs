@@ -1,0 +1,79 @@
+//! NeuMan's SMPL file as HUGS reads it, `4d_humans/smpl_optimized_aligned_scale.npz`:
+//! per frame `global_orient` (F×3), `body_pose` (F×69), `betas` (F×10), `transl` (F×3),
+//! and `scale` (F, or one value). Errors name the file and the key.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use crate::body::kinematics::Pose;
+use crate::body::NUM_JOINTS;
+use crate::mesh::V3;
+use crate::npy::{self, Array, NpyError};
+
+/// Per-frame SMPL parameters of one sequence.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SmplSequence {
+    pub poses: Vec<Pose>,
+    pub betas: Vec<Vec<f64>>,
+    pub translations: Vec<V3>,
+    pub scales: Vec<f64>,
+}
+
+impl SmplSequence {
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+
+    pub fn write_npz(&self, path: &Path) -> Result<(), NpyError> {
+        let f = self.len();
+        let nb = self.betas.first().map_or(10, Vec::len);
+        let mut a = BTreeMap::new();
+        a.insert("global_orient".into(), Array::f64(vec![f, 3], self.poses.iter().flat_map(|p| p[0]).collect()));
+        a.insert("body_pose".into(), Array::f64(vec![f, 69], self.poses.iter().flat_map(|p| p[1..].iter().flatten().copied().collect::<Vec<_>>()).collect()));
+        a.insert("betas".into(), Array::f64(vec![f, nb], self.betas.iter().flatten().copied().collect()));
+        a.insert("transl".into(), Array::f64(vec![f, 3], self.translations.iter().flatten().copied().collect()));
+        a.insert("scale".into(), Array::f64(vec![f], self.scales.clone()));
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(|source| NpyError::Io { file: parent.display().to_string(), source })?;
+        }
+        npy::write_npz(path, &a)
+    }
+
+    pub fn read_npz(path: &Path) -> Result<Self, NpyError> {
+        let file = path.display().to_string();
+        let a = npy::read_npz(path)?;
+        let go = npy::require(&a, &file, "global_orient", &[None, Some(3)])?;
+        let f = go.shape[0];
+        let bp = npy::require(&a, &file, "body_pose", &[Some(f), Some(3 * (NUM_JOINTS - 1))])?;
+        let betas = npy::require(&a, &file, "betas", &[Some(f), None])
+            .or_else(|_| npy::require(&a, &file, "betas", &[None]))?;
+        let tr = npy::require(&a, &file, "transl", &[Some(f), Some(3)])?;
+        let scale = npy::require(&a, &file, "scale", &[None])?;
+        if scale.data.len() != f && scale.data.len() != 1 {
+            return Err(NpyError::Format { file, key: Some("scale".into()), problem: format!("{} values for {f} frames (need {f} or 1)", scale.data.len()) });
+        }
+        let poses = (0..f)
+            .map(|i| {
+                let mut p: Pose = [[0.0; 3]; NUM_JOINTS];
+                p[0] = [go.data[3 * i], go.data[3 * i + 1], go.data[3 * i + 2]];
+                for j in 1..NUM_JOINTS {
+                    let b = i * 69 + 3 * (j - 1);
+                    p[j] = [bp.data[b], bp.data[b + 1], bp.data[b + 2]];
+                }
+                p
+            })
+            .collect();
+        let nb = *betas.shape.last().expect("betas has a shape");
+        let betas = if betas.shape.len() == 2 { betas.data.chunks_exact(nb).map(<[f64]>::to_vec).collect() } else { vec![betas.data.clone(); f] };
+        Ok(Self {
+            poses,
+            betas,
+            translations: tr.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            scales: if scale.data.len() == 1 { vec![scale.data[0]; f] } else { scale.data.clone() },
+        })
+    }
+}
