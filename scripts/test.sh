@@ -9,6 +9,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 scripts/setup.sh --shaders
+# A real client of the NumPy files the project writes (pickled annots.npy, .npz).
+if ! python3 -c "import numpy" 2>/dev/null; then
+    echo "setup: installing numpy for Python 3"
+    python3 -m pip install -q numpy
+fi
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 
 echo "== 1/3 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"

@@ -10,3 +10,4 @@ pub mod garment;
 pub mod mesh;
 pub mod motion;
 pub mod npy;
+pub mod pickle;
