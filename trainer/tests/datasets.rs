@@ -104,3 +104,79 @@ fn split_protocols() {
     assert_eq!(s[0], Split::Train);
     assert_eq!(s.iter().filter(|x| **x == Split::Test).count(), 22);
 }
+
+mod zju {
+    use super::temp;
+    use drape_trainer::dataset::zju::{mask_path, read_vertices, write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
+
+    fn annots() -> ZjuAnnots {
+        let rot = |a: f64| [[a.cos(), 0.0, a.sin()], [0.0, 1.0, 0.0], [-a.sin(), 0.0, a.cos()]];
+        ZjuAnnots {
+            cameras: (0..3)
+                .map(|c| ZjuCamera { k: [[500.0, 0.0, 256.0], [0.0, 500.0, 256.0], [0.0, 0.0, 1.0]], d: [0.0; 5], r: rot(0.5 * f64::from(c)), t: [0.1, -0.2, 3.5 + f64::from(c)] })
+                .collect(),
+            images: (0..4).map(|f| (0..3).map(|c| format!("images/Camera_B{}/{f:06}.jpg", c + 1)).collect()).collect(),
+        }
+    }
+
+    #[test]
+    fn annots_round_trip_with_t_in_millimetres() {
+        let dir = temp("zju");
+        let a = annots();
+        a.write(&dir).unwrap();
+        let back = ZjuAnnots::read(&dir).unwrap();
+        assert_eq!(back.images, a.images);
+        for (x, y) in back.cameras.iter().zip(&a.cameras) {
+            // Metres -> millimetres -> metres: within rounding.
+            for k in 0..3 {
+                assert!((x.t[k] - y.t[k]).abs() < 1e-12);
+            }
+            assert_eq!(x.r, y.r);
+            assert_eq!(x.k, y.k);
+        }
+        assert_eq!(mask_path(&a.images[0][1]), "mask/Camera_B2/000000.png");
+    }
+
+    #[test]
+    fn numpy_reads_annots_smpl_params_and_vertices() {
+        let dir = temp("zju-numpy");
+        annots().write(&dir).unwrap();
+        ZjuSmpl { poses: [0.1; 72], rh: [0.0, 1.0, 0.0], th: [0.0, 0.0, 0.5], shapes: [0.0; 10] }.write(&dir, 0).unwrap();
+        write_vertices(&dir, 0, &[[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]).unwrap();
+        let script = format!(
+            r#"
+import numpy as np
+a = np.load({a:?}, allow_pickle=True).item()
+assert len(a['cams']['K']) == 3 and a['cams']['T'][2].shape == (3, 1)
+assert abs(a['cams']['T'][2][2, 0] - 5500.0) < 1e-9, a['cams']['T'][2]
+assert len(a['ims']) == 4 and a['ims'][3]['ims'][2] == 'images/Camera_B3/000003.jpg'
+p = np.load({p:?}, allow_pickle=True).item()
+assert p['poses'].shape == (1, 72) and p['Rh'].shape == (1, 3) and p['Th'].shape == (1, 3) and p['shapes'].shape == (1, 10)
+v = np.load({v:?})
+assert v.shape == (2, 3) and v[1, 2] == 5.0
+"#,
+            a = dir.join("annots.npy").display().to_string(),
+            p = dir.join("smpl_params/0.npy").display().to_string(),
+            v = dir.join("vertices/0.npy").display().to_string(),
+        );
+        let out = std::process::Command::new("python3").arg("-c").arg(script).output().expect("python3 runs");
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert_eq!(ZjuSmpl::read(&dir, 0).unwrap().th, [0.0, 0.0, 0.5]);
+        assert_eq!(read_vertices(&dir, 0).unwrap()[1], [3.0, 4.0, 5.0]);
+    }
+
+    #[test]
+    fn singular_rotation_and_nan_pose_are_named() {
+        let dir = temp("zju-bad");
+        let mut a = annots();
+        a.cameras[1].r = [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        a.write(&dir).unwrap();
+        let err = ZjuAnnots::read(&dir).unwrap_err();
+        assert!(err.contains("annots.npy") && err.contains("cams['R'][1]"), "{err}");
+        let mut p = ZjuSmpl { poses: [0.0; 72], rh: [0.0; 3], th: [0.0; 3], shapes: [0.0; 10] };
+        p.poses[5] = f64::NAN;
+        p.write(&dir, 3).unwrap();
+        let err = ZjuSmpl::read(&dir, 3).unwrap_err();
+        assert!(err.contains("3.npy") && err.contains("'poses'") && err.contains("not finite"), "{err}");
+    }
+}

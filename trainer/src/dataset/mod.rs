@@ -5,3 +5,4 @@
 pub mod colmap;
 pub mod neuman;
 pub mod split;
+pub mod zju;

@@ -1,0 +1,190 @@
+//! The ZJU-MoCap layout as public loaders read it: `annots.npy` (a pickled dict with
+//! `cams` {K, D, R, T} per camera, T in millimetres, `p_c = R p_w + T`, and `ims`: per
+//! frame the image path of every camera), `smpl_params/{i}.npy` (a pickled dict with
+//! `poses` 1×72, `Rh` 1×3, `Th` 1×3, `shapes` 1×10) and `vertices/{i}.npy` (V×3).
+//! Mask paths are image paths with `images` -> `mask` and `.jpg` -> `.png`.
+
+use std::path::{Path, PathBuf};
+
+use crate::npy::{self, Array};
+use crate::pickle::{decode_object_npy, encode_object_npy, PyValue};
+
+/// One camera in metres.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ZjuCamera {
+    /// 3x3 intrinsics, rows.
+    pub k: [[f64; 3]; 3],
+    /// Distortion (k1 k2 p1 p2 k3).
+    pub d: [f64; 5],
+    /// World-to-camera rotation, rows.
+    pub r: [[f64; 3]; 3],
+    /// World-to-camera translation in metres (stored in millimetres on disk).
+    pub t: [f64; 3],
+}
+
+/// Per-frame SMPL parameters in ZJU's convention.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ZjuSmpl {
+    pub poses: [f64; 72],
+    pub rh: [f64; 3],
+    pub th: [f64; 3],
+    pub shapes: [f64; 10],
+}
+
+/// A sequence's annotations.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ZjuAnnots {
+    pub cameras: Vec<ZjuCamera>,
+    /// `images[frame][camera]`, relative to the sequence directory.
+    pub images: Vec<Vec<String>>,
+}
+
+fn arr(rows: usize, cols: usize, data: Vec<f64>) -> PyValue {
+    PyValue::Array(Array::f64(vec![rows, cols], data))
+}
+
+/// The mask path of an image path, as ZJU loaders derive it.
+pub fn mask_path(image: &str) -> String {
+    image.replacen("images", "mask", 1).replace(".jpg", ".png")
+}
+
+impl ZjuAnnots {
+    pub fn write(&self, dir: &Path) -> Result<(), String> {
+        let cams = PyValue::dict(vec![
+            ("K", PyValue::List(self.cameras.iter().map(|c| arr(3, 3, c.k.iter().flatten().copied().collect())).collect())),
+            ("D", PyValue::List(self.cameras.iter().map(|c| arr(5, 1, c.d.to_vec())).collect())),
+            ("R", PyValue::List(self.cameras.iter().map(|c| arr(3, 3, c.r.iter().flatten().copied().collect())).collect())),
+            ("T", PyValue::List(self.cameras.iter().map(|c| arr(3, 1, c.t.iter().map(|v| v * 1000.0).collect())).collect())),
+        ]);
+        let ims = PyValue::List(self.images.iter().map(|paths| PyValue::dict(vec![("ims", PyValue::List(paths.iter().map(|p| PyValue::Str(p.clone())).collect()))])).collect());
+        let path = dir.join("annots.npy");
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        std::fs::write(&path, encode_object_npy(&PyValue::dict(vec![("cams", cams), ("ims", ims)]))).map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    pub fn read(dir: &Path) -> Result<Self, String> {
+        let path = dir.join("annots.npy");
+        let name = path.display().to_string();
+        let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
+        let v = decode_object_npy(&bytes, &name)?;
+        let field = |key: &str| -> Result<Vec<Array>, String> {
+            v.get("cams")
+                .and_then(|c| c.get(key))
+                .and_then(PyValue::as_list)
+                .ok_or_else(|| format!("{name}: cams['{key}'] is missing or not a list"))?
+                .iter()
+                .enumerate()
+                .map(|(i, a)| a.as_array().cloned().ok_or_else(|| format!("{name}: cams['{key}'][{i}] is not an array")))
+                .collect()
+        };
+        let (ks, ds, rs, ts) = (field("K")?, field("D")?, field("R")?, field("T")?);
+        if ks.len() != rs.len() || ks.len() != ts.len() || ks.len() != ds.len() {
+            return Err(format!("{name}: cams has {} K, {} D, {} R and {} T", ks.len(), ds.len(), rs.len(), ts.len()));
+        }
+        let mut cameras = Vec::new();
+        for i in 0..ks.len() {
+            let check = |a: &Array, key: &str, n: usize| -> Result<(), String> {
+                if a.data.len() != n {
+                    return Err(format!("{name}: cams['{key}'][{i}] has shape {:?}", a.shape));
+                }
+                if a.data.iter().any(|x| !x.is_finite()) {
+                    return Err(format!("{name}: cams['{key}'][{i}] has a non-finite value"));
+                }
+                Ok(())
+            };
+            check(&ks[i], "K", 9)?;
+            check(&rs[i], "R", 9)?;
+            check(&ts[i], "T", 3)?;
+            let m = |a: &Array| [[a.data[0], a.data[1], a.data[2]], [a.data[3], a.data[4], a.data[5]], [a.data[6], a.data[7], a.data[8]]];
+            let r = m(&rs[i]);
+            let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0]) + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+            if (det - 1.0).abs() > 1e-3 {
+                return Err(format!("{name}: cams['R'][{i}] is not a rotation (determinant {det})"));
+            }
+            let mut d = [0.0; 5];
+            for (k, x) in ds[i].data.iter().take(5).enumerate() {
+                d[k] = *x;
+            }
+            cameras.push(ZjuCamera { k: m(&ks[i]), d, r, t: [0, 1, 2].map(|k| ts[i].data[k] / 1000.0) });
+        }
+        let images = v
+            .get("ims")
+            .and_then(PyValue::as_list)
+            .ok_or_else(|| format!("{name}: 'ims' is missing or not a list"))?
+            .iter()
+            .enumerate()
+            .map(|(f, entry)| {
+                entry
+                    .get("ims")
+                    .and_then(PyValue::as_list)
+                    .ok_or_else(|| format!("{name}: ims[{f}]['ims'] is missing"))?
+                    .iter()
+                    .map(|p| p.as_str().map(str::to_string).ok_or_else(|| format!("{name}: ims[{f}] has a non-string path")))
+                    .collect::<Result<Vec<_>, _>>()
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Self { cameras, images })
+    }
+}
+
+impl ZjuSmpl {
+    /// Writes `smpl_params/{frame}.npy`.
+    pub fn write(&self, dir: &Path, frame: usize) -> Result<PathBuf, String> {
+        let sub = dir.join("smpl_params");
+        std::fs::create_dir_all(&sub).map_err(|e| format!("{}: {e}", sub.display()))?;
+        let path = sub.join(format!("{frame}.npy"));
+        let v = PyValue::dict(vec![
+            ("poses", arr(1, 72, self.poses.to_vec())),
+            ("Rh", arr(1, 3, self.rh.to_vec())),
+            ("Th", arr(1, 3, self.th.to_vec())),
+            ("shapes", arr(1, 10, self.shapes.to_vec())),
+        ]);
+        std::fs::write(&path, encode_object_npy(&v)).map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(path)
+    }
+
+    /// Reads `smpl_params/{frame}.npy`, or `params/{frame}.npy` when that is what exists.
+    pub fn read(dir: &Path, frame: usize) -> Result<Self, String> {
+        let path = ["smpl_params", "params"].iter().map(|d| dir.join(d).join(format!("{frame}.npy"))).find(|p| p.exists()).unwrap_or_else(|| dir.join("smpl_params").join(format!("{frame}.npy")));
+        let name = path.display().to_string();
+        let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
+        let v = decode_object_npy(&bytes, &name)?;
+        let get = |key: &str, n: usize| -> Result<Vec<f64>, String> {
+            let a = v.get(key).and_then(PyValue::as_array).ok_or_else(|| format!("{name}: key '{key}' is missing or not an array"))?;
+            if a.data.len() != n {
+                return Err(format!("{name}: key '{key}' has shape {:?}, expected (1, {n})", a.shape));
+            }
+            if let Some(i) = a.data.iter().position(|x| !x.is_finite()) {
+                return Err(format!("{name}: key '{key}' value {i} is {} (not finite)", a.data[i]));
+            }
+            Ok(a.data.clone())
+        };
+        Ok(Self {
+            poses: get("poses", 72)?.try_into().expect("72"),
+            rh: get("Rh", 3)?.try_into().expect("3"),
+            th: get("Th", 3)?.try_into().expect("3"),
+            shapes: get("shapes", 10)?.try_into().expect("10"),
+        })
+    }
+}
+
+/// Writes `vertices/{frame}.npy` (V×3 float64).
+pub fn write_vertices(dir: &Path, frame: usize, vertices: &[[f64; 3]]) -> Result<(), String> {
+    let sub = dir.join("vertices");
+    std::fs::create_dir_all(&sub).map_err(|e| format!("{}: {e}", sub.display()))?;
+    let path = sub.join(format!("{frame}.npy"));
+    let a = Array::f64(vec![vertices.len(), 3], vertices.iter().flatten().copied().collect());
+    std::fs::write(&path, npy::encode(&a)).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// Reads `vertices/{frame}.npy`.
+pub fn read_vertices(dir: &Path, frame: usize) -> Result<Vec<[f64; 3]>, String> {
+    let path = dir.join("vertices").join(format!("{frame}.npy"));
+    let name = path.display().to_string();
+    let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
+    let a = npy::decode(&bytes, &name, None).map_err(|e| e.to_string())?;
+    if a.shape.len() != 2 || a.shape[1] != 3 {
+        return Err(format!("{name}: shape {:?}, expected (V, 3)", a.shape));
+    }
+    Ok(a.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+}
