@@ -49,6 +49,10 @@ enum Command {
     /// Simulate the T-shirt and pants (and any OBJ garments) on the default body
     /// through a motion; writes one OBJ per frame per garment.
     Simulate(body::SimulateArgs),
+    /// Generate the synthetic dataset: a clothed person walking in a room, rendered
+    /// for a moving camera (NeuMan layout) and a ring of cameras (ZJU-MoCap layout),
+    /// with masks, depth and ground-truth body and cloth.
+    Synth(body::SynthArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -85,5 +89,6 @@ fn main() -> ExitCode {
         Command::Fit(args) => fit::run(&cli.device, &args),
         Command::Body(args) => body::run_body(&args),
         Command::Simulate(args) => body::run_simulate(&args),
+        Command::Synth(args) => body::run_synth(&args),
     })
 }

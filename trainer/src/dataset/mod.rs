@@ -5,7 +5,9 @@
 //! dataset type the trainer consumes.
 
 pub mod colmap;
+pub mod image;
 pub mod neuman;
 pub mod raster;
 pub mod split;
+pub mod synth;
 pub mod zju;

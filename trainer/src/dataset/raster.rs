@@ -23,6 +23,23 @@ pub struct RasterCamera {
 }
 
 impl RasterCamera {
+    /// A camera at `eye` looking at `target`, world up `up`, focal length `f` pixels,
+    /// principal point at the image centre.
+    pub fn look_at(eye: V3, target: V3, up: V3, f: f64, width: u32, height: u32) -> Self {
+        let forward = normalize(sub(target, eye));
+        let right = normalize(cross(forward, up));
+        let down = cross(forward, right);
+        let rotation = [right, down, forward];
+        let translation = [-dot(right, eye), -dot(down, eye), -dot(forward, eye)];
+        Self { fx: f, fy: f, cx: f64::from(width) / 2.0, cy: f64::from(height) / 2.0, width, height, rotation, translation, near: 0.05 }
+    }
+
+    /// Pixel coordinates of a world point (None behind the camera).
+    pub fn project(&self, p: V3) -> Option<[f64; 2]> {
+        let c = self.to_camera(p);
+        (c[2] > 0.0).then(|| self.project_camera(c))
+    }
+
     pub fn to_camera(&self, p: V3) -> V3 {
         let r = &self.rotation;
         [dot(r[0], p) + self.translation[0], dot(r[1], p) + self.translation[1], dot(r[2], p) + self.translation[2]]
