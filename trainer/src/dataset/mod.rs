@@ -1,11 +1,11 @@
 //! Datasets: the on-disk formats of NeuMan (COLMAP text model, the HUGS SMPL file)
 //! and ZJU-MoCap (annotations, SMPL parameters, vertices), and the split protocols.
-//! The CPU mesh rasterizer the synthetic generator will use is here; not written
-//! yet (see the datasets issue): the generator itself, image and mask files, and the
-//! dataset type the trainer consumes.
+//! `synth` generates the project's own data in both layouts with the CPU rasterizer
+//! (`raster`); `loader` reads either layout into the dataset type the trainer consumes.
 
 pub mod colmap;
 pub mod image;
+pub mod loader;
 pub mod neuman;
 pub mod raster;
 pub mod split;

@@ -1,0 +1,185 @@
+//! The synthetic generator and the NeuMan / ZJU-MoCap loaders on its output.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use drape_trainer::body::kinematics::pose_body;
+use drape_trainer::body::procedural::{default_body, BodyOptions};
+use drape_trainer::body::SmplModel;
+use drape_trainer::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit};
+use drape_trainer::dataset::raster::{render, Drawable};
+use drape_trainer::dataset::split::Split;
+use drape_trainer::dataset::synth::{generate, handheld_camera, posed_from_zju, ring_camera, SynthOptions};
+use drape_trainer::motion::{procedural, MotionKind};
+
+const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1 };
+
+fn base() -> &'static PathBuf {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("drape-synth-tests-{}", std::process::id())).join("base");
+        generate(&dir, &OPTIONS, &mut |_, _, _| {}).expect("synth");
+        dir
+    })
+}
+
+fn model() -> &'static SmplModel {
+    static M: OnceLock<SmplModel> = OnceLock::new();
+    M.get_or_init(|| default_body(&BodyOptions::default()))
+}
+
+/// A private copy of the generated data to damage.
+fn copy(name: &str) -> PathBuf {
+    fn rec(from: &Path, to: &Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let e = e.unwrap();
+            let (src, dst) = (e.path(), to.join(e.file_name()));
+            if src.is_dir() { rec(&src, &dst) } else { std::fs::copy(&src, &dst).unwrap(); }
+        }
+    }
+    let dst = base().parent().unwrap().join(name);
+    let _ = std::fs::remove_dir_all(&dst);
+    rec(base(), &dst);
+    dst
+}
+
+#[test]
+fn loaders_read_every_frame_and_split() {
+    let n = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).expect("neuman");
+    assert_eq!(n.len(), OPTIONS.frames);
+    assert_eq!(n.iter().filter(|f| f.split == Split::Test).count(), 1, "frame 2 of 6");
+    assert!(n.iter().all(|f| f.garment_masks.is_some() && f.rgb.len() == 64 * 64 * 3));
+    let z = load_zju(&base().join("zju"), 0).expect("zju");
+    assert_eq!(z.len(), OPTIONS.frames * OPTIONS.cameras);
+    assert_eq!(z.iter().filter(|f| f.split == Split::Train).count(), OPTIONS.frames);
+}
+
+#[test]
+fn loaded_cameras_project_like_the_generator() {
+    let motion = procedural(OPTIONS.motion, OPTIONS.frames, 30.0, 1.0);
+    let points: Vec<[f64; 3]> = model().v_template.iter().step_by(500).map(|v| [v[0], v[1], v[2] + 0.3]).collect();
+    let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).abs().max((a[1] - b[1]).abs());
+    for f in load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap() {
+        let t = motion.translations[f.frame];
+        let truth = handheld_camera(f.frame, OPTIONS.frames, [t[0], t[1] + 1.0, t[2]], OPTIONS.seed, 64, 64);
+        for p in &points {
+            let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
+            // 1e-3 px: the COLMAP text keeps every digit of the quaternion and translation.
+            assert!(close(a, b) < 1e-3, "NeuMan frame {}: {a:?} vs {b:?}", f.frame);
+        }
+    }
+    let mean = motion.translations.iter().fold([0.0; 3], |a, t| [a[0] + t[0], a[1] + t[1], a[2] + t[2]]).map(|v| v / OPTIONS.frames as f64);
+    for f in load_zju(&base().join("zju"), 0).unwrap() {
+        let truth = ring_camera(f.view, OPTIONS.cameras, [mean[0], mean[1] + 1.0, mean[2]], 64, 64);
+        for p in &points {
+            let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
+            // 1e-3 px: T goes through millimetres and back.
+            assert!(close(a, b) < 1e-3, "ZJU view {}: {a:?} vs {b:?}", f.view);
+        }
+    }
+}
+
+fn posed(frame: &DatasetFrame) -> Vec<[f64; 3]> {
+    match &frame.body {
+        BodyParams::Smpl { pose, betas, translation, .. } => pose_body(model(), betas, pose, *translation).vertices,
+        BodyParams::Zju(p) => posed_from_zju(model(), p),
+    }
+}
+
+fn iou_with_reprojected_body(frame: &DatasetFrame) -> f64 {
+    let v = posed(frame);
+    let white = |_uv: [f64; 2]| [1.0, 1.0, 1.0];
+    let uvs = vec![[0.0; 2]; v.len()];
+    let r = render(&frame.camera, &[Drawable { vertices: &v, faces: &model().faces, uvs: &uvs, object: 1, texture: &white, two_sided: true }], 2, [0.0; 3], [0.0, 1.0, 0.0], 1.0);
+    let body: Vec<bool> = r.coverage[1].iter().map(|&c| c >= 0.5).collect();
+    let inter = body.iter().zip(&frame.mask).filter(|(a, b)| **a && **b).count();
+    let union = body.iter().zip(&frame.mask).filter(|(a, b)| **a || **b).count();
+    inter as f64 / union.max(1) as f64
+}
+
+#[test]
+fn masks_align_with_the_reprojected_body() {
+    let frames = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap().into_iter().chain(load_zju(&base().join("zju"), 0).unwrap());
+    for f in frames {
+        let iou = iou_with_reprojected_body(&f);
+        // 0.9: the person mask also holds the clothes, 1-2 cm outside the skin.
+        assert!(iou >= 0.9, "{}: IoU {iou:.3}", f.image_path.display());
+    }
+}
+
+#[test]
+fn numpy_reads_annots_and_every_npz() {
+    let dir = base();
+    let script = format!(
+        r#"
+import glob, numpy as np
+a = np.load({annots:?}, allow_pickle=True).item()
+assert set(a) == {{'cams', 'ims'}} and len(a['cams']['K']) == {cams} and len(a['ims']) == {frames}
+assert a['cams']['R'][0].shape == (3, 3) and a['cams']['T'][0].shape == (3, 1) and a['cams']['D'][0].shape == (5, 1)
+for p in sorted(glob.glob({params:?})):
+    d = np.load(p, allow_pickle=True).item()
+    assert d['poses'].shape == (1, 72) and d['Rh'].shape == (1, 3) and d['Th'].shape == (1, 3) and d['shapes'].shape == (1, 10), p
+for p in glob.glob({npz:?}, recursive=True):
+    z = np.load(p)
+    assert z['global_orient'].shape == ({frames}, 3) and z['body_pose'].shape == ({frames}, 69), p
+    assert z['betas'].shape == ({frames}, 10) and z['transl'].shape == ({frames}, 3) and z['scale'].shape == ({frames},), p
+v = np.load({verts:?})
+assert v.ndim == 2 and v.shape[1] == 3
+d = np.load({depth:?})
+assert d.shape == (64, 64) and d.dtype == np.float32 and d.max() > 0
+"#,
+        annots = dir.join("zju/annots.npy").display().to_string(),
+        params = dir.join("zju/smpl_params/*.npy").display().to_string(),
+        npz = dir.join("**/*.npz").display().to_string(),
+        verts = dir.join("zju/vertices/0.npy").display().to_string(),
+        depth = dir.join("neuman/depths/00000.npy").display().to_string(),
+        cams = OPTIONS.cameras,
+        frames = OPTIONS.frames,
+    );
+    let out = std::process::Command::new("python3").arg("-c").arg(script).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn expect_err(result: Result<Vec<DatasetFrame>, String>, needles: &[&str]) {
+    let err = result.err().expect("bad data must not load");
+    for n in needles {
+        assert!(err.contains(n), "'{n}' not in: {err}");
+    }
+}
+
+#[test]
+fn bad_input_is_named() {
+    // A missing image.
+    let d = copy("missing");
+    std::fs::remove_file(d.join("neuman/images/00003.png")).unwrap();
+    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images/00003.png"]);
+    // A truncated PNG.
+    let d = copy("truncated");
+    let p = d.join("zju/images/Camera_B2/000001.png");
+    let bytes = std::fs::read(&p).unwrap();
+    std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    expect_err(load_zju(&d.join("zju"), 0), &["Camera_B2/000001.png"]);
+    // A wrong array shape.
+    let d = copy("shape");
+    let mut arrays = drape_trainer::npy::read_npz(&d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz")).unwrap();
+    arrays.insert("body_pose".into(), drape_trainer::npy::Array::f64(vec![OPTIONS.frames, 66], vec![0.0; OPTIONS.frames * 66]));
+    drape_trainer::npy::write_npz(&d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz"), &arrays).unwrap();
+    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["smpl_optimized_aligned_scale.npz", "body_pose", "shape"]);
+    // A NaN pose.
+    let d = copy("nan");
+    let mut p = drape_trainer::dataset::zju::ZjuSmpl::read(&d.join("zju"), 4).unwrap();
+    p.poses[10] = f64::NAN;
+    p.write(&d.join("zju"), 4).unwrap();
+    expect_err(load_zju(&d.join("zju"), 0), &["smpl_params/4.npy", "'poses'", "not finite"]);
+    // A camera with a singular rotation.
+    let d = copy("singular");
+    let images = d.join("neuman/sparse/images.txt");
+    let text = std::fs::read_to_string(&images).unwrap();
+    let broken: Vec<String> = text
+        .lines()
+        .map(|l| if l.starts_with("2 ") { let w: Vec<&str> = l.split(' ').collect(); format!("2 0 0 0 0 {}", w[5..].join(" ")) } else { l.to_string() })
+        .collect();
+    std::fs::write(&images, broken.join("\n") + "\n").unwrap();
+    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images.txt", "singular rotation"]);
+}
