@@ -144,31 +144,58 @@ impl BodyCollider {
 
     /// [`query`](Self::query) against the body at fraction `s` of the frame.
     pub fn query_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3)> {
+        self.query_face_at(p, s).map(|(d, q, n, _)| (d, q, n))
+    }
+
+    /// [`query_at`](Self::query_at), also naming the closest triangle.
+    fn query_face_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3, u32)> {
         let c = p.map(|x| (x / self.cell).floor() as i64);
-        let mut best: Option<(f64, V3, V3)> = None;
-        {
-            {
-                {
-                    let Some(list) = self.grid.get(&c) else { return None };
-                    for &t in list {
-                        let [a, b, cc] = self.faces[t as usize].map(|k| {
-                            let (x, y) = (self.start[k as usize], self.end[k as usize]);
-                            add(scale(x, 1.0 - s), scale(y, s))
-                        });
-                        let q = closest_point_on_triangle(p, a, b, cc);
-                        let d = norm(sub(p, q));
-                        if best.is_none_or(|(bd, _, _)| d < bd.abs() - 1e-12) {
-                            let n = normalize(cross(sub(b, a), sub(cc, a)));
-                            let s = if dot(sub(p, q), n) < 0.0 { -d } else { d };
-                            best = Some((s, q, n));
-                        }
-                    }
-                }
+        self.closest_among(p, s, self.grid.get(&c)?.iter().copied())
+    }
+
+    /// The closest of `faces` to `p` at fraction `s`: (signed distance, point, normal, face).
+    fn closest_among(&self, p: V3, s: f64, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
+        let mut best: Option<(f64, V3, V3, u32)> = None;
+        for t in faces {
+            let [a, b, cc] = self.faces[t as usize].map(|k| {
+                let (x, y) = (self.start[k as usize], self.end[k as usize]);
+                add(scale(x, 1.0 - s), scale(y, s))
+            });
+            let q = closest_point_on_triangle(p, a, b, cc);
+            let d = norm(sub(p, q));
+            if best.is_none_or(|(bd, ..)| d < bd.abs() - 1e-12) {
+                let n = normalize(cross(sub(b, a), sub(cc, a)));
+                let signed = if dot(sub(p, q), n) < 0.0 { -d } else { d };
+                best = Some((signed, q, n, t));
             }
         }
         best
     }
 }
+
+/// For every body triangle, the triangles sharing a vertex with it (itself included):
+/// the neighbourhood an anchored cloth vertex collides with.
+pub fn face_neighbourhoods(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
+    let mut by_vertex = vec![Vec::new(); num_vertices];
+    for (i, f) in faces.iter().enumerate() {
+        for &v in f {
+            by_vertex[v as usize].push(i as u32);
+        }
+    }
+    faces
+        .iter()
+        .map(|f| {
+            let mut n: Vec<u32> = f.iter().flat_map(|&v| by_vertex[v as usize].iter().copied()).collect();
+            n.sort_unstable();
+            n.dedup();
+            n
+        })
+        .collect()
+}
+
+/// How far (m) an anchored vertex may be from its anchor's neighbourhood before it is
+/// re-anchored by a search of the whole body.
+const ANCHOR_REACH: f64 = 0.02;
 
 /// Gauss-Seidel sweeps of the strain limit after each collision pass.
 const STRAIN_SWEEPS: usize = 10;
@@ -182,6 +209,10 @@ pub struct ClothSim {
     bend: Vec<(u32, u32, f64)>,
     attached: Vec<bool>,
     params: ClothParams,
+    /// Each vertex's body triangle (u32::MAX: none yet). Collisions look only around
+    /// it, so cloth in a fold (crotch, armpit) is never thrown onto the far side.
+    anchors: Vec<u32>,
+    neighbourhoods: Option<std::sync::Arc<Vec<Vec<u32>>>>,
 }
 
 impl ClothSim {
@@ -234,6 +265,8 @@ impl ClothSim {
             bend,
             attached: garment.attached.clone(),
             params,
+            anchors: vec![u32::MAX; v.len()],
+            neighbourhoods: None,
         }
     }
 
@@ -279,13 +312,25 @@ impl ClothSim {
         }
     }
 
+    /// Anchors collisions to the body's triangles (see `anchors`); `neighbourhoods`
+    /// from [`face_neighbourhoods`] of the body this garment collides with.
+    pub fn anchor_to(&mut self, neighbourhoods: std::sync::Arc<Vec<Vec<u32>>>) {
+        self.neighbourhoods = Some(neighbourhoods);
+    }
+
     fn collide(&mut self, body: &BodyCollider, s: f64) {
         let margin = self.params.margin;
         for i in 0..self.positions.len() {
             if self.attached[i] {
                 continue;
             }
-            if let Some((d, q, n)) = body.query_at(self.positions[i], s) {
+            let p = self.positions[i];
+            let local = match (&self.neighbourhoods, self.anchors[i]) {
+                (Some(nb), a) if a != u32::MAX => body.closest_among(p, s, nb[a as usize].iter().copied()).filter(|h| h.0.abs() < ANCHOR_REACH),
+                _ => None,
+            };
+            if let Some((d, q, n, face)) = local.or_else(|| body.query_face_at(p, s)) {
+                self.anchors[i] = face;
                 if d < margin {
                     self.positions[i] = add(q, scale(n, margin));
                 }
@@ -398,7 +443,15 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
     let recorded_from = schedule.len();
     schedule.extend(motion.poses.iter().copied().zip(motion.translations.iter().copied()));
 
-    let mut sims: Vec<ClothSim> = garments.iter().map(|g| ClothSim::new(g, params)).collect();
+    let neighbourhoods = std::sync::Arc::new(face_neighbourhoods(body.num_vertices(), &body.faces));
+    let mut sims: Vec<ClothSim> = garments
+        .iter()
+        .map(|g| {
+            let mut sim = ClothSim::new(g, params);
+            sim.anchor_to(neighbourhoods.clone());
+            sim
+        })
+        .collect();
     let mut prev = pose_body(body, &[], &rest_pose, [0.0; 3]);
     let mut result = SimulationResult {
         frames: Vec::new(),
