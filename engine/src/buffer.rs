@@ -183,19 +183,26 @@ impl Context {
 
     /// Reads the first `count` elements of `buffer`.
     pub fn read_buffer<T: bytemuck::Pod>(&self, buffer: &mut Buffer, count: usize) -> Result<Vec<T>> {
-        let len = count * std::mem::size_of::<T>();
-        assert!(len as u64 <= buffer.size, "reading {len} bytes from '{}' of {} bytes", buffer.name, buffer.size);
+        self.read_buffer_at(buffer, 0, count)
+    }
+
+    /// Reads `count` elements of `buffer` starting at element `first` (only those
+    /// bytes cross to the host).
+    pub fn read_buffer_at<T: bytemuck::Pod>(&self, buffer: &mut Buffer, first: usize, count: usize) -> Result<Vec<T>> {
+        let size = std::mem::size_of::<T>();
+        let (start, len) = (first * size, count * size);
+        assert!((start + len) as u64 <= buffer.size, "reading {len} bytes at {start} from '{}' of {} bytes", buffer.name, buffer.size);
         let mut out = vec![T::zeroed(); count];
         if len == 0 {
             return Ok(out);
         }
         if let Some(mapped) = buffer.coherent_mapping() {
-            bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[..len]);
+            bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[start..start + len]);
             return Ok(out);
         }
         let mut staging = self.create_buffer(&format!("{} (readback)", buffer.name), BufferDesc::readback(len as u64))?;
         let mut rec = self.record("readback")?;
-        rec.copy(buffer, &staging, len as u64);
+        rec.copy_from(buffer, start as u64, &staging, len as u64);
         rec.submit_and_wait()?;
         let staging_name = staging.name.clone();
         let mapped = staging

@@ -117,6 +117,18 @@ impl<'a> PassBuilder<'_, 'a> {
         self
     }
 
+    /// Binds the next bindings, in order, to buffers the kernel reads.
+    pub fn read_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
+        self.buffers.extend(buffers);
+        self
+    }
+
+    /// Binds the next bindings, in order, to buffers the kernel writes.
+    pub fn write_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
+        self.buffers.extend(buffers);
+        self
+    }
+
     /// Binds the next binding to a buffer the kernel writes (or reads and writes).
     pub fn write(mut self, buffer: &'a Buffer) -> Self {
         self.buffers.push(buffer);
@@ -180,11 +192,16 @@ impl<'a> Recording<'a> {
 
     /// Copies the first `bytes` bytes of `src` to `dst`.
     pub fn copy(&mut self, src: &'a Buffer, dst: &'a Buffer, bytes: u64) {
-        assert!(bytes <= src.size && bytes <= dst.size, "copy of {bytes} bytes from '{}' to '{}'", src.name(), dst.name());
+        self.copy_from(src, 0, dst, bytes);
+    }
+
+    /// Copies `bytes` bytes of `src` starting at `src_offset` to the start of `dst`.
+    pub fn copy_from(&mut self, src: &'a Buffer, src_offset: u64, dst: &'a Buffer, bytes: u64) {
+        assert!(src_offset + bytes <= src.size && bytes <= dst.size, "copy of {bytes} bytes at {src_offset} from '{}' to '{}'", src.name(), dst.name());
         if bytes == 0 {
             return;
         }
-        let region = vk::BufferCopy::default().size(bytes);
+        let region = vk::BufferCopy::default().src_offset(src_offset).size(bytes);
         // SAFETY: both buffers are alive for 'a and were created with transfer usage.
         unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
     }

@@ -197,6 +197,25 @@ pub fn face_neighbourhoods(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u
 /// re-anchored by a search of the whole body.
 const ANCHOR_REACH: f64 = 0.02;
 
+/// One XPBD step of the distance constraint `|x_a - x_b| = target` with compliance
+/// `alpha` (already divided by the substep squared), moving each end by its inverse mass.
+fn project_distance(positions: &mut [V3], inv_mass: &[f64], a: u32, b: u32, target: f64, alpha: f64) {
+    let (ia, ib) = (a as usize, b as usize);
+    let (wa, wb) = (inv_mass[ia], inv_mass[ib]);
+    if wa + wb == 0.0 {
+        return;
+    }
+    let d = sub(positions[ia], positions[ib]);
+    let l = norm(d);
+    if l < 1e-12 {
+        return;
+    }
+    let dl = -(l - target) / (wa + wb + alpha);
+    let n = scale(d, 1.0 / l);
+    positions[ia] = add(positions[ia], scale(n, wa * dl));
+    positions[ib] = sub(positions[ib], scale(n, wb * dl));
+}
+
 /// Gauss-Seidel sweeps of the strain limit after each collision pass.
 const STRAIN_SWEEPS: usize = 10;
 
@@ -274,41 +293,18 @@ impl ClothSim {
         let (list, compliance) = if constraints_bend { (&self.bend, self.params.bend_compliance) } else { (&self.stretch, self.params.stretch_compliance) };
         let alpha = compliance / (h * h);
         for &(a, b, rest) in list {
-            let (ia, ib) = (a as usize, b as usize);
-            let (wa, wb) = (self.inv_mass[ia], self.inv_mass[ib]);
-            if wa + wb == 0.0 {
-                continue;
-            }
-            let d = sub(self.positions[ia], self.positions[ib]);
-            let l = norm(d);
-            if l < 1e-12 {
-                continue;
-            }
-            let c = l - rest;
-            let dl = -c / (wa + wb + alpha);
-            let n = scale(d, 1.0 / l);
-            self.positions[ia] = add(self.positions[ia], scale(n, wa * dl));
-            self.positions[ib] = sub(self.positions[ib], scale(n, wb * dl));
+            project_distance(&mut self.positions, &self.inv_mass, a, b, rest, alpha);
         }
     }
 
+    /// The strain limit: a hard (zero-compliance) distance constraint on the edges
+    /// longer than `max_stretch` times their rest length.
     fn limit_strain(&mut self) {
         let max = self.params.max_stretch;
         for &(a, b, rest) in &self.stretch {
-            let (ia, ib) = (a as usize, b as usize);
-            let (wa, wb) = (self.inv_mass[ia], self.inv_mass[ib]);
-            if wa + wb == 0.0 {
-                continue;
+            if norm(sub(self.positions[a as usize], self.positions[b as usize])) > max * rest {
+                project_distance(&mut self.positions, &self.inv_mass, a, b, max * rest, 0.0);
             }
-            let d = sub(self.positions[ia], self.positions[ib]);
-            let l = norm(d);
-            if l <= max * rest {
-                continue;
-            }
-            let c = l - max * rest;
-            let n = scale(d, 1.0 / l);
-            self.positions[ia] = sub(self.positions[ia], scale(n, c * wa / (wa + wb)));
-            self.positions[ib] = add(self.positions[ib], scale(n, c * wb / (wa + wb)));
         }
     }
 

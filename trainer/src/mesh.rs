@@ -35,6 +35,28 @@ pub fn normalize(a: V3) -> V3 {
     if n > 0.0 { scale(a, 1.0 / n) } else { [0.0, 0.0, 1.0] }
 }
 
+/// Unit quaternion (w, x, y, z) of a rotation matrix (rows).
+pub fn rotation_to_quaternion(m: &[[f64; 3]; 3]) -> [f64; 4] {
+    let trace = m[0][0] + m[1][1] + m[2][2];
+    let q = if trace > 0.0 {
+        let s = (trace + 1.0).sqrt() * 2.0;
+        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
+    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
+        let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
+        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
+    } else if m[1][1] > m[2][2] {
+        let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
+        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
+    } else {
+        let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
+        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
+    };
+    // w >= 0, as COLMAP writes them (q and -q are the same rotation).
+    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    q.map(|v| sign * v / n)
+}
+
 /// Undirected edges with the number of faces using each.
 pub fn edge_face_counts(faces: &[[u32; 3]]) -> HashMap<(u32, u32), u32> {
     let mut counts = HashMap::new();

@@ -11,7 +11,7 @@ use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 
 use crate::body::model::NUM_JOINTS;
-use crate::mesh::{add, cross, norm, normalize, scale, sub, vertex_normals, V3};
+use crate::mesh::{add, cross, norm, normalize, rotation_to_quaternion, scale, sub, vertex_normals, V3};
 
 /// A triangle mesh with per-vertex skinning weights and shape blend shapes.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,27 +56,6 @@ impl SkinnedMesh {
     }
 }
 
-/// Rotation matrix (columns = axes) to a unit quaternion (w, x, y, z).
-fn quat_from_axes(x: V3, y: V3, z: V3) -> [f64; 4] {
-    let m = [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]];
-    let trace = m[0][0] + m[1][1] + m[2][2];
-    let q = if trace > 0.0 {
-        let s = (trace + 1.0).sqrt() * 2.0;
-        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
-    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
-        let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
-        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
-    } else if m[1][1] > m[2][2] {
-        let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
-        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
-    } else {
-        let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
-        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
-    };
-    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-    q.map(|v| v / n)
-}
-
 /// Gaussians at the vertices of `mesh` after `levels` subdivisions, with their
 /// skinning weights (the subdivided mesh is returned too).
 pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, layer: Layer) -> (GaussianCloud, SkinnedMesh) {
@@ -105,7 +84,8 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
         let helper = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
         let t1 = normalize(cross(helper, n));
         let t2 = cross(n, t1);
-        let q = quat_from_axes(t1, t2, n);
+        // The rotation whose columns are the tangents and the normal.
+        let q = rotation_to_quaternion(&[[t1[0], t2[0], n[0]], [t1[1], t2[1], n[1]], [t1[2], t2[2], n[2]]]);
         let mean_edge = edge_sum[i] / f64::from(edge_count[i].max(1));
         let tangent = (0.5 * mean_edge).max(1e-5);
         let mut sh = [[0.0f32; 3]; MAX_SH_COEFFS];

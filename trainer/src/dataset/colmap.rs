@@ -7,6 +7,9 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
+/// COLMAP's quaternions come from the shared conversion (w kept >= 0, as COLMAP does).
+pub use crate::mesh::rotation_to_quaternion;
+
 /// A camera: COLMAP model name and its parameters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ColmapCamera {
@@ -45,38 +48,11 @@ pub struct ColmapImage {
 }
 
 impl ColmapImage {
-    /// World-to-camera rotation (rows).
+    /// World-to-camera rotation (rows), from the normalized quaternion.
     pub fn rotation(&self) -> [[f64; 3]; 3] {
-        let n = self.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let [w, x, y, z] = self.qvec.map(|v| v / n);
-        [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
-        ]
+        let (q, _) = drape_shared::splat::project::normalize_quat(self.qvec);
+        drape_shared::splat::project::quat_to_mat(q)
     }
-}
-
-/// Unit quaternion (w, x, y, z) of a rotation matrix (rows).
-pub fn rotation_to_quaternion(m: &[[f64; 3]; 3]) -> [f64; 4] {
-    let trace = m[0][0] + m[1][1] + m[2][2];
-    let q = if trace > 0.0 {
-        let s = (trace + 1.0).sqrt() * 2.0;
-        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
-    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
-        let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
-        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
-    } else if m[1][1] > m[2][2] {
-        let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
-        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
-    } else {
-        let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
-        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
-    };
-    // COLMAP keeps w >= 0.
-    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-    q.map(|v| sign * v / n)
 }
 
 /// A 3D point with its colour, error and track.

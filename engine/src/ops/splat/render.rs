@@ -246,14 +246,9 @@ impl SplatRenderer {
             let mut rec = ctx.record("splat forward: project and bin")?;
             rec.fill(&self.dropped, 0);
             rec.barrier();
-            let [means, log_scales, quats, opacity_logits, sh] = gaussians.all();
             rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
                 .read(&self.frame)
-                .read(means)
-                .read(log_scales)
-                .read(quats)
-                .read(opacity_logits)
-                .read(sh)
+                .read_all(gaussians.all())
                 .write(&self.splats)
                 .write(&self.depth_keys)
                 .write(&self.order)
@@ -272,7 +267,8 @@ impl SplatRenderer {
             self.count_scan.record(&mut rec, &self.counts, n + 1)?;
             rec.submit_and_wait()?
         };
-        let total = ctx.read_buffer::<u32>(&mut self.counts, n as usize + 1)?[n as usize];
+        // Only the scan's last element, the total, comes back.
+        let total = ctx.read_buffer_at::<u32>(&mut self.counts, n as usize, 1)?[0];
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
         // The scan wraps on overflow; more than 2^32 - 1 intersections also cannot be sorted.
         self.grow_intersections(total)?;
@@ -372,22 +368,12 @@ impl SplatRenderer {
             .write(&self.splat_grads)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
         rec.barrier();
-        let [means, log_scales, quats, opacity_logits, sh] = gaussians.all();
-        let [g_means, g_log_scales, g_quats, g_opacity_logits, g_sh] = out.all();
         rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
             .read(&self.frame)
-            .read(means)
-            .read(log_scales)
-            .read(quats)
-            .read(opacity_logits)
-            .read(sh)
+            .read_all(gaussians.all())
             .read(&self.splats)
             .read(&self.splat_grads)
-            .write(g_means)
-            .write(g_log_scales)
-            .write(g_quats)
-            .write(g_opacity_logits)
-            .write(g_sh)
+            .write_all(out.all())
             .dispatch(groups(n))?;
         rec.submit_and_wait()
     }
