@@ -9,7 +9,7 @@
 
 use std::collections::HashMap;
 
-use crate::body::kinematics::{pose_body, skin, Pose};
+use crate::body::kinematics::{pose_body, relative_transforms, skin, Affine, Pose};
 use crate::body::model::SmplModel;
 use crate::garment::Garment;
 use crate::mesh::{add, cross, dot, norm, normalize, scale, sub, V3};
@@ -44,7 +44,7 @@ impl Default for ClothParams {
             stretch_compliance: 1e-8,
             bend_compliance: 1e-4,
             margin: 0.004,
-            max_stretch: 1.06,
+            max_stretch: 1.03,
         }
     }
 }
@@ -197,11 +197,13 @@ pub fn face_neighbourhoods(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u
 /// re-anchored by a search of the whole body.
 const ANCHOR_REACH: f64 = 0.02;
 
+/// Vertices within this distance (m) of the body get a contact plane.
+const PLANE_REACH: f64 = 0.01;
+
 /// One XPBD step of the distance constraint `|x_a - x_b| = target` with compliance
 /// `alpha` (already divided by the substep squared), moving each end by its inverse mass.
-fn project_distance(positions: &mut [V3], inv_mass: &[f64], a: u32, b: u32, target: f64, alpha: f64) {
+fn project_distance(positions: &mut [V3], [wa, wb]: [f64; 2], a: u32, b: u32, target: f64, alpha: f64) {
     let (ia, ib) = (a as usize, b as usize);
-    let (wa, wb) = (inv_mass[ia], inv_mass[ib]);
     if wa + wb == 0.0 {
         return;
     }
@@ -216,8 +218,28 @@ fn project_distance(positions: &mut [V3], inv_mass: &[f64], a: u32, b: u32, targ
     positions[ib] = sub(positions[ib], scale(n, wb * dl));
 }
 
-/// Gauss-Seidel sweeps of the strain limit after each collision pass.
-const STRAIN_SWEEPS: usize = 10;
+/// Puts vertex `i` back `margin` outside its contact plane, if it has one.
+fn keep_outside(positions: &mut [V3], planes: &[Option<(V3, V3)>], margin: f64, i: u32) {
+    if let Some((q, n)) = planes[i as usize] {
+        let p = &mut positions[i as usize];
+        let depth = margin - dot(sub(*p, q), n);
+        if depth > 0.0 {
+            *p = add(*p, scale(n, depth));
+        }
+    }
+}
+
+/// At most this many Gauss-Seidel sweeps of the strain limit per iteration; the sweeps
+/// stop sooner once no edge is longer than `max_stretch + STRAIN_TOLERANCE` times
+/// its rest length.
+const MAX_STRAIN_SWEEPS: usize = 300;
+const STRAIN_TOLERANCE: f64 = 0.01;
+
+/// In the strain limit, an edge's end nearer the attachments moves this fraction of
+/// what the farther end moves (by inverse mass): a taut edge pulls its cloth towards
+/// where the garment hangs from, so that one sweep carries the pull across the cloth
+/// the way tension does, while contact can still push the nearer end.
+const LIMIT_PARENT_WEIGHT: f64 = 0.6;
 
 /// One garment being simulated.
 pub struct ClothSim {
@@ -225,6 +247,8 @@ pub struct ClothSim {
     velocities: Vec<V3>,
     inv_mass: Vec<f64>,
     stretch: Vec<(u32, u32, f64)>,
+    /// Inverse masses the strain limit uses per stretch edge (see `new`).
+    limit_weights: Vec<[f64; 2]>,
     bend: Vec<(u32, u32, f64)>,
     attached: Vec<bool>,
     params: ClothParams,
@@ -232,6 +256,11 @@ pub struct ClothSim {
     /// it, so cloth in a fold (crotch, armpit) is never thrown onto the far side.
     anchors: Vec<u32>,
     neighbourhoods: Option<std::sync::Arc<Vec<Vec<u32>>>>,
+    /// Per vertex, the body's tangent plane (point, outward normal) found by the last
+    /// collision pass when the vertex was within `PLANE_REACH` of the body: the
+    /// constraint sweeps keep the vertex `margin` outside it, so that they shorten an
+    /// edge by sliding over the body instead of pulling into it.
+    planes: Vec<Option<(V3, V3)>>,
 }
 
 impl ClothSim {
@@ -269,6 +298,17 @@ impl ClothSim {
         }
         let mut stretch: Vec<(u32, u32, f64)> = keys.iter().map(|&&(a, b)| (a, b, length(a, b))).collect();
         stretch.sort_by_key(|&(a, b, _)| (hops[a as usize].min(hops[b as usize]), a, b));
+        // See `LIMIT_PARENT_WEIGHT`; equally far ends move alike.
+        let inv_mass: Vec<f64> = garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect();
+        let limit_weights = stretch
+            .iter()
+            .map(|&(a, b, _)| {
+                let (ha, hb) = (hops[a as usize], hops[b as usize]);
+                let w = [inv_mass[a as usize], inv_mass[b as usize]];
+                let pw = LIMIT_PARENT_WEIGHT;
+                if ha < hb { [pw * w[0], w[1]] } else if hb < ha { [w[0], pw * w[1]] } else { w }
+            })
+            .collect();
         let bend = keys
             .iter()
             .filter_map(|k| {
@@ -279,13 +319,15 @@ impl ClothSim {
         Self {
             positions: v.clone(),
             velocities: vec![[0.0; 3]; v.len()],
-            inv_mass: garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect(),
+            inv_mass,
             stretch,
+            limit_weights,
             bend,
             attached: garment.attached.clone(),
             params,
             anchors: vec![u32::MAX; v.len()],
             neighbourhoods: None,
+            planes: vec![None; v.len()],
         }
     }
 
@@ -293,19 +335,31 @@ impl ClothSim {
         let (list, compliance) = if constraints_bend { (&self.bend, self.params.bend_compliance) } else { (&self.stretch, self.params.stretch_compliance) };
         let alpha = compliance / (h * h);
         for &(a, b, rest) in list {
-            project_distance(&mut self.positions, &self.inv_mass, a, b, rest, alpha);
+            project_distance(&mut self.positions, [self.inv_mass[a as usize], self.inv_mass[b as usize]], a, b, rest, alpha);
+            keep_outside(&mut self.positions, &self.planes, self.params.margin, a);
+            keep_outside(&mut self.positions, &self.planes, self.params.margin, b);
         }
     }
 
-    /// The strain limit: a hard (zero-compliance) distance constraint on the edges
-    /// longer than `max_stretch` times their rest length.
-    fn limit_strain(&mut self) {
+
+
+    /// One sweep of the strain limit: a hard (zero-compliance) distance constraint on
+    /// the edges longer than `max_stretch` times their rest length, keeping vertices
+    /// outside their contact planes. Returns the largest strain it met.
+    fn limit_strain(&mut self) -> f64 {
+        let mut worst: f64 = 0.0;
         let max = self.params.max_stretch;
-        for &(a, b, rest) in &self.stretch {
-            if norm(sub(self.positions[a as usize], self.positions[b as usize])) > max * rest {
-                project_distance(&mut self.positions, &self.inv_mass, a, b, max * rest, 0.0);
+        let margin = self.params.margin;
+        for (&(a, b, rest), &w) in self.stretch.iter().zip(&self.limit_weights) {
+            let l = norm(sub(self.positions[a as usize], self.positions[b as usize]));
+            worst = worst.max(l / rest);
+            if l > max * rest {
+                project_distance(&mut self.positions, w, a, b, max * rest, 0.0);
+                keep_outside(&mut self.positions, &self.planes, margin, a);
+                keep_outside(&mut self.positions, &self.planes, margin, b);
             }
         }
+        worst
     }
 
     /// Anchors collisions to the body's triangles (see `anchors`); `neighbourhoods`
@@ -325,10 +379,17 @@ impl ClothSim {
                 (Some(nb), a) if a != u32::MAX => body.closest_among(p, s, nb[a as usize].iter().copied()).filter(|h| h.0.abs() < ANCHOR_REACH),
                 _ => None,
             };
+            self.planes[i] = None;
             if let Some((d, q, n, face)) = local.or_else(|| body.query_face_at(p, s)) {
                 self.anchors[i] = face;
                 if d < margin {
                     self.positions[i] = add(q, scale(n, margin));
+                }
+                if d < PLANE_REACH {
+                    // The plane through the closest point, facing the vertex: the
+                    // triangle's own normal misleads at edges and corners.
+                    let out = if d < margin { n } else { normalize(sub(self.positions[i], q)) };
+                    self.planes[i] = Some((q, out));
                 }
             }
         }
@@ -373,15 +434,20 @@ impl ClothSim {
                 self.velocities[i] = scale(self.velocities[i], keep);
                 self.positions[i] = add(self.positions[i], scale(self.velocities[i], h));
             }
+            self.collide(collider, frac);
+            // Each iteration ends with the strain limit and then the collisions, so
+            // nothing ends a substep inside the body; with one substep the
+            // iterations give collisions and limit their many rounds.
             for _ in 0..self.params.iterations.max(1) {
                 self.solve_distance(false, h);
                 self.solve_distance(true, h);
+                for _ in 0..MAX_STRAIN_SWEEPS {
+                    if self.limit_strain() <= self.params.max_stretch + STRAIN_TOLERANCE {
+                        break;
+                    }
+                }
+                self.collide(collider, frac);
             }
-            // Strain limit, then collisions last: nothing ends a substep inside the body.
-            for _ in 0..STRAIN_SWEEPS {
-                self.limit_strain();
-            }
-            self.collide(collider, frac);
             for i in 0..self.positions.len() {
                 self.velocities[i] = scale(sub(self.positions[i], previous[i]), 1.0 / h);
             }
@@ -424,31 +490,40 @@ pub struct SimulationResult {
 }
 
 /// Simulates `garments` on `body` through `motion`, after `pre_roll` frames that blend
-/// from the T-pose into the first frame.
+/// from the first garment's build pose (the pose the clothes were made in) into the
+/// motion's first frame.
 pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize) -> SimulationResult {
     let dt = 1.0 / motion.fps;
-    let rest_pose: Pose = [[0.0; 3]; 24];
+    let start_pose: Pose = garments.first().map_or([[0.0; 3]; 24], |g| g.build_pose);
+    let first = motion.poses.first().copied().unwrap_or(start_pose);
     let mut schedule: Vec<(Pose, V3)> = (1..=pre_roll)
         .map(|k| {
             let t = k as f64 / pre_roll as f64;
             let s = t * t * (3.0 - 2.0 * t);
-            let first = motion.poses.first().copied().unwrap_or(rest_pose);
-            (std::array::from_fn(|j| scale(first[j], s)), scale(motion.translations.first().copied().unwrap_or([0.0; 3]), s))
+            (std::array::from_fn(|j| add(scale(start_pose[j], 1.0 - s), scale(first[j], s))), scale(motion.translations.first().copied().unwrap_or([0.0; 3]), s))
         })
         .collect();
     let recorded_from = schedule.len();
     schedule.extend(motion.poses.iter().copied().zip(motion.translations.iter().copied()));
 
+    let start = pose_body(body, &[], &start_pose, [0.0; 3]);
+    // Per garment, the skinning transforms of its build pose: a garment made in pose B
+    // is skinned into pose P with A(P) · A(B)⁻¹.
+    let build: Vec<[Affine; 24]> = garments.iter().map(|g| pose_body(body, &[], &g.build_pose, [0.0; 3]).transforms).collect();
     let neighbourhoods = std::sync::Arc::new(face_neighbourhoods(body.num_vertices(), &body.faces));
     let mut sims: Vec<ClothSim> = garments
         .iter()
-        .map(|g| {
+        .zip(&build)
+        .map(|(g, b)| {
             let mut sim = ClothSim::new(g, params);
+            if g.build_pose != start_pose {
+                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices);
+            }
             sim.anchor_to(neighbourhoods.clone());
             sim
         })
         .collect();
-    let mut prev = pose_body(body, &[], &rest_pose, [0.0; 3]);
+    let mut prev = start;
     let mut result = SimulationResult {
         frames: Vec::new(),
         max_penetration: f64::MIN,
@@ -464,7 +539,8 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
         let lerp = |a: &[V3], b: &[V3], s: f64| -> Vec<V3> { a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect() };
         let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
         let prev_trans_vec = if f == 0 { [0.0; 3] } else { schedule[f - 1].1 };
-        for (g, sim) in garments.iter().zip(sims.iter_mut()) {
+        for ((g, sim), b) in garments.iter().zip(sims.iter_mut()).zip(&build) {
+            let (prev_t, next_t) = (relative_transforms(&prev_t, b), relative_transforms(&next_t, b));
             // Attached vertices move rigidly with the garment's attachment joint.
             let mut rigid = [0.0; 24];
             rigid[g.attach_joint] = 1.0;

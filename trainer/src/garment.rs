@@ -1,11 +1,19 @@
 //! Garments: the T-shirt and pants the project makes around the default body (regions
-//! of its surface lifted along the normals; open at neck, sleeves, waist and legs;
-//! cylindrical UVs), OBJ garments a user supplies (read with `tobj`), skinning weights
-//! from the body (nearest vertex, and HUGS' 6-nearest blend with weights `exp(-d²)`,
-//! d in metres), and the attachment regions that follow skinning in the simulator.
+//! of its surface, posed in the A-pose the motions start from, lifted along the
+//! normals; open at neck, sleeves, waist and legs; cylindrical UVs), OBJ garments a
+//! user supplies (read with `tobj`), skinning weights from the body (nearest vertex,
+//! and HUGS' 6-nearest blend with weights `exp(-d²)`, d in metres), and the attachment
+//! regions that follow skinning in the simulator.
+//!
+//! A garment's rest shape is the shape it has on the body in its `build_pose`; its
+//! edge lengths there are the lengths the simulator keeps. Making the clothes in the
+//! A-pose rather than the T-pose matters: linear blend skinning stretches the skin on
+//! top of the shoulder by tens of percent when the arms come down, and a shirt made in
+//! the T-pose would have to stretch with it.
 
 use std::path::Path;
 
+use crate::body::kinematics::{a_pose, pose_body, t_pose, Pose};
 use crate::body::model::{SmplModel, NUM_JOINTS};
 use crate::mesh::{add, norm, scale, sub, vertex_normals, V3};
 
@@ -13,7 +21,7 @@ use crate::mesh::{add, norm, scale, sub, vertex_normals, V3};
 #[derive(Clone, Debug, PartialEq)]
 pub struct Garment {
     pub name: String,
-    /// Rest positions (on the body in T-pose).
+    /// Rest positions, on the body posed in `build_pose`.
     pub vertices: Vec<V3>,
     pub faces: Vec<[u32; 3]>,
     pub uvs: Vec<[f64; 2]>,
@@ -25,6 +33,8 @@ pub struct Garment {
     /// `attach_joint`, so that the attached band itself never stretches.
     pub attached: Vec<bool>,
     pub attach_joint: usize,
+    /// The body pose the rest positions are in (zero translation, zero shape).
+    pub build_pose: Pose,
 }
 
 /// Why a garment file could not be used; names the file.
@@ -80,9 +90,10 @@ impl<'a> NearestBody<'a> {
     }
 }
 
-/// Binds garment vertices to a body: nearest-vertex weights and the 6-nearest blend.
-pub fn bind_weights(body: &SmplModel, vertices: &[V3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
-    let near = NearestBody::new(&body.v_template);
+/// Binds garment vertices to a body whose vertices are at `body_vertices` (the body
+/// posed as the garment is): nearest-vertex weights and the 6-nearest blend.
+pub fn bind_weights(body: &SmplModel, body_vertices: &[V3], vertices: &[V3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
+    let near = NearestBody::new(body_vertices);
     let mut nearest = Vec::with_capacity(vertices.len());
     let mut blend = Vec::with_capacity(vertices.len());
     for &v in vertices {
@@ -105,43 +116,50 @@ pub fn bind_weights(body: &SmplModel, vertices: &[V3]) -> (Vec<[f64; NUM_JOINTS]
     (nearest, blend)
 }
 
-/// A garment from the body faces whose vertices all satisfy `region`, lifted by
-/// `offset` along the vertex normals; `attach` marks the attached vertices (by rest
-/// position).
-fn from_region(body: &SmplModel, name: &str, region: impl Fn(V3) -> bool, offset: f64, attach: impl Fn(V3) -> bool, attach_joint: usize) -> Garment {
-    let normals = vertex_normals(&body.v_template, &body.faces);
+/// A garment from the body faces whose vertices all satisfy `region`, made on the body
+/// posed in `build_pose` and lifted by `offset` along its vertex normals; `attach`
+/// marks the attached vertices. `region`, `attach` and the UVs see the T-pose
+/// position of the body vertex a garment vertex comes from.
+fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(V3) -> bool, offset: impl Fn(V3) -> f64, attach: impl Fn(V3) -> bool, attach_joint: usize) -> Garment {
+    let posed = pose_body(body, &[], &build_pose, [0.0; 3]).vertices;
+    let normals = vertex_normals(&posed, &body.faces);
     let mut map = vec![u32::MAX; body.num_vertices()];
-    let mut vertices = Vec::new();
+    let mut source = Vec::new();
     let mut faces = Vec::new();
     for f in &body.faces {
         if f.iter().all(|&i| region(body.v_template[i as usize])) {
             let mut g = [0u32; 3];
             for (k, &i) in f.iter().enumerate() {
                 if map[i as usize] == u32::MAX {
-                    map[i as usize] = vertices.len() as u32;
-                    vertices.push(add(body.v_template[i as usize], scale(normals[i as usize], offset)));
+                    map[i as usize] = source.len() as u32;
+                    source.push(i as usize);
                 }
                 g[k] = map[i as usize];
             }
             faces.push(g);
         }
     }
-    relax_off_body(&mut vertices, &faces, body, offset, 30);
-    let uvs = vertices
+    let clearance: Vec<f64> = source.iter().map(|&i| offset(body.v_template[i])).collect();
+    let mut vertices: Vec<V3> = source.iter().zip(&clearance).map(|(&i, &c)| add(posed[i], scale(normals[i], c))).collect();
+    relax_off_body(&mut vertices, &faces, &posed, &body.faces, &clearance, 30);
+    let uvs = source
         .iter()
-        .map(|v| [(v[0].atan2(v[2]) / std::f64::consts::TAU + 0.5), (v[1] - 0.0) / 1.8])
+        .map(|&i| {
+            let v = body.v_template[i];
+            [(v[0].atan2(v[2]) / std::f64::consts::TAU + 0.5), v[1] / 1.8]
+        })
         .collect();
-    let (weights, weights_blend6) = bind_weights(body, &vertices);
-    let attached = vertices.iter().map(|&v| attach(v)).collect();
-    Garment { name: name.to_string(), vertices, faces, uvs, weights, weights_blend6, attached, attach_joint }
+    let (weights, weights_blend6) = bind_weights(body, &posed, &vertices);
+    let attached = source.iter().map(|&i| attach(body.v_template[i])).collect();
+    Garment { name: name.to_string(), vertices, faces, uvs, weights, weights_blend6, attached, attach_joint, build_pose }
 }
 
 /// Smooths a garment's rest shape the way cloth hangs: Laplacian steps that bridge
 /// concave places (the crotch, the armpits) instead of following the skin into them,
 /// each followed by pushing every vertex back to at least `clearance` off the body.
 /// Offsetting along normals alone folds the surface where facing normals converge.
-fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body: &SmplModel, clearance: f64, iterations: usize) {
-    let collider = crate::cloth::BodyCollider::new(body.v_template.clone(), &body.faces);
+fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body_vertices: &[V3], body_faces: &[[u32; 3]], clearance: &[f64], iterations: usize) {
+    let collider = crate::cloth::BodyCollider::new(body_vertices.to_vec(), body_faces);
     let adj = crate::mesh::adjacency(vertices.len(), faces);
     let boundary: Vec<bool> = {
         let counts = crate::mesh::edge_face_counts(faces);
@@ -164,8 +182,8 @@ fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body: &SmplModel, cle
             let c = adj[i].iter().fold([0.0; 3], |acc, &k| add(acc, scale(prev[k as usize], 1.0 / adj[i].len() as f64)));
             *v = add(scale(prev[i], 0.5), scale(c, 0.5));
             if let Some((d, q, n)) = collider.query(*v) {
-                if d < clearance {
-                    *v = add(q, scale(n, clearance));
+                if d < clearance[i] {
+                    *v = add(q, scale(n, clearance[i]));
                 }
             }
         }
@@ -183,6 +201,7 @@ pub const PANTS_OFFSET: f64 = 0.012;
 pub fn tshirt(body: &SmplModel) -> Garment {
     from_region(
         body,
+        a_pose(),
         "tshirt",
         |v| {
             let torso = v[1] > 0.96 && v[1] < 1.43 && v[0].abs() < 0.22;
@@ -190,20 +209,33 @@ pub fn tshirt(body: &SmplModel) -> Garment {
             let neck = v[1] > 1.40 && v[0].abs() < 0.075;
             (torso || sleeve) && !neck
         },
-        TSHIRT_OFFSET,
+        |_| TSHIRT_OFFSET,
         |v| v[1] > 1.40 && v[0].abs() > 0.08 && v[0].abs() < 0.14,
         9, // spine3: the collars are its children and the shoulders beyond them
     )
 }
 
+/// Extra lift of the trouser legs from the knees down (metres).
+pub const PANTS_LEG_EASE: f64 = 0.01;
+
+/// The pants' lift off the skin at a T-pose body point: `PANTS_OFFSET` from the waist
+/// to the upper thigh, growing smoothly to `PANTS_LEG_EASE` more from above the knee
+/// down: trouser legs are looser than the seat, and a knee bends inside them.
+fn pants_offset(v: V3) -> f64 {
+    let (top, bottom) = (0.75, 0.55);
+    let t = ((top - v[1]) / (top - bottom)).clamp(0.0, 1.0);
+    PANTS_OFFSET + PANTS_LEG_EASE * t * t * (3.0 - 2.0 * t)
+}
+
 /// Long pants around the default body: from the waist to above the ankles; attached
 /// at the waistband.
 pub fn pants(body: &SmplModel) -> Garment {
-    from_region(body, "pants", |v| v[1] > 0.14 && v[1] < 1.0 && v[0].abs() < 0.25, PANTS_OFFSET, |v| v[1] > 0.95, 0)
+    from_region(body, a_pose(), "pants", |v| v[1] > 0.14 && v[1] < 1.0 && v[0].abs() < 0.25, pants_offset, |v| v[1] > 0.95, 0)
 }
 
-/// Reads an OBJ garment (triangulated; UVs kept when present) and binds it to `body`;
-/// attached vertices are those within 1 cm of the body in its rest pose.
+/// Reads an OBJ garment (triangulated; UVs kept when present) made on `body` in its
+/// rest pose (the T-pose) and binds it to the body; attached vertices are those
+/// within 1 cm of the body.
 pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> {
     let err = |problem: String| GarmentError::Invalid { path: path.display().to_string(), problem };
     let (models, _) = tobj::load_obj(path, &tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() }).map_err(|e| err(e.to_string()))?;
@@ -229,7 +261,7 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     if faces.is_empty() {
         return Err(err("no triangles".into()));
     }
-    let (weights, weights_blend6) = bind_weights(body, &vertices);
+    let (weights, weights_blend6) = bind_weights(body, &body.v_template, &vertices);
     let near = NearestBody::new(&body.v_template);
     let attached: Vec<bool> = vertices.iter().map(|&v| near.k_nearest(v, 1)[0].1 < 0.01).collect();
     // The joint that moves the attached vertices most, on average.
@@ -241,7 +273,7 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     }
     let attach_joint = (0..NUM_JOINTS).max_by(|&a, &b| total[a].total_cmp(&total[b])).unwrap_or(0);
     let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "garment".into());
-    Ok(Garment { name, vertices, faces, uvs, weights, weights_blend6, attached, attach_joint })
+    Ok(Garment { name, vertices, faces, uvs, weights, weights_blend6, attached, attach_joint, build_pose: t_pose() })
 }
 
 /// Writes a mesh as OBJ (positions, optional UVs, triangles).

@@ -7,7 +7,6 @@ use std::f64::consts::PI;
 use std::path::Path;
 
 use crate::body::kinematics::Pose;
-use crate::body::NUM_JOINTS;
 use crate::mesh::V3;
 use crate::npy::{self, Array, NpyError};
 
@@ -56,15 +55,12 @@ fn ease_in(t: f64, ramp: f64) -> f64 {
 pub fn procedural(kind: MotionKind, frames: usize, fps: f64, speed: f64) -> Motion {
     let mut poses = Vec::with_capacity(frames);
     let mut translations = Vec::with_capacity(frames);
-    // Arms lowered from the T-pose by 43 degrees (an A-pose that leaves the armpits open).
-    let arms_down = 0.75;
+    let arms_down = crate::body::kinematics::A_POSE_ARMS_DOWN;
     for f in 0..frames {
         let t = f as f64 / fps * speed;
         let e = ease_in(t, 0.6);
-        let mut p: Pose = [[0.0; 3]; NUM_JOINTS];
-        // Shoulders: rotate the arms down about z (left +x arm down is -z rotation).
-        p[16][2] = -arms_down;
-        p[17][2] = arms_down;
+        // Every motion starts from the A-pose.
+        let mut p: Pose = crate::body::kinematics::a_pose();
         let mut trans = [0.0; 3];
         match kind {
             MotionKind::Walk | MotionKind::Jog => {

@@ -28,7 +28,7 @@ fn square() -> Garment {
     attached[0] = true;
     attached[n - 1] = true;
     let count = vertices.len();
-    Garment { name: "square".into(), uvs: vec![[0.0; 2]; count], weights: vec![[0.0; 24]; count], weights_blend6: vec![[0.0; 24]; count], vertices, faces, attached, attach_joint: 0 }
+    Garment { name: "square".into(), uvs: vec![[0.0; 2]; count], weights: vec![[0.0; 24]; count], weights_blend6: vec![[0.0; 24]; count], vertices, faces, attached, attach_joint: 0, build_pose: [[0.0; 3]; 24] }
 }
 
 const FRAMES: usize = 450;
@@ -75,6 +75,8 @@ fn walk_check(speed: f64, params: ClothParams) -> drape_trainer::cloth::Simulati
     // Penetration is measured after every frame against the posed body.
     assert!(r.max_penetration <= params.margin, "penetration {} m deeper than the margin {}", r.max_penetration, params.margin);
     eprintln!("speed {speed}, {} substeps: max penetration {:.4} m, max strain {:.3} at {:?}", params.substeps, r.max_penetration, r.max_strain, r.max_strain_at);
+    // The acceptance bound: no edge longer than 110% of its rest length after any frame.
+    assert!(r.max_strain <= 1.10, "an edge stretched to {:.3} of its rest length (frame, garment, edge) {:?}", r.max_strain, r.max_strain_at);
     r
 }
 

@@ -107,6 +107,49 @@ pub fn t_pose() -> Pose {
     [[0.0; 3]; NUM_JOINTS]
 }
 
+/// How far the A-pose lowers the arms from the T-pose (radians, about 43 degrees: the
+/// armpits stay open).
+pub const A_POSE_ARMS_DOWN: f64 = 0.75;
+
+/// The A-pose: the T-pose with both arms lowered by [`A_POSE_ARMS_DOWN`] about z. The
+/// procedural motions start from it and the project's garments are made in it.
+pub fn a_pose() -> Pose {
+    let mut p = t_pose();
+    // The left arm points along +x, so lowering it is a negative rotation about z.
+    p[16][2] = -A_POSE_ARMS_DOWN;
+    p[17][2] = A_POSE_ARMS_DOWN;
+    p
+}
+
+/// `a · b` for affine transforms.
+pub fn compose(a: &Affine, b: &Affine) -> Affine {
+    let mut o = [[0.0; 4]; 3];
+    for i in 0..3 {
+        for j in 0..4 {
+            o[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum::<f64>() + if j == 3 { a[i][3] } else { 0.0 };
+        }
+    }
+    o
+}
+
+/// The inverse of a rigid transform `[R | t]`: `[Rᵀ | -Rᵀ t]`.
+pub fn rigid_inverse(a: &Affine) -> Affine {
+    let mut o = [[0.0; 4]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            o[i][j] = a[j][i];
+        }
+        o[i][3] = -(0..3).map(|k| a[k][i] * a[k][3]).sum::<f64>();
+    }
+    o
+}
+
+/// Skinning transforms that take points from the body in pose `from` to pose `to`:
+/// `A_j(to) · A_j(from)⁻¹` per joint (what a mesh made on the posed body is skinned with).
+pub fn relative_transforms(to: &[Affine; NUM_JOINTS], from: &[Affine; NUM_JOINTS]) -> [Affine; NUM_JOINTS] {
+    std::array::from_fn(|j| compose(&to[j], &rigid_inverse(&from[j])))
+}
+
 /// Template plus shape blend shapes (missing betas count as 0, extra ones are ignored).
 pub fn shaped_vertices(model: &SmplModel, betas: &[f64]) -> Vec<V3> {
     let b = betas.len().min(model.num_betas);
