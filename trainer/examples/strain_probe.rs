@@ -1,5 +1,6 @@
 //! Diagnostic: per-frame strain of the garments on a walk, where it is, and whether the
 //! stretched edge is in contact with the body.
+//! `strain_probe [SPEED] [SUBSTEPS] [ITERATIONS] > frames.txt`
 use drape_trainer::body::kinematics::pose_body;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::cloth::{simulate, BodyCollider, ClothParams};
@@ -11,7 +12,10 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let speed: f64 = args.get(1).map(|s| s.parse().unwrap()).unwrap_or(1.0);
     let substeps: u32 = args.get(2).map(|s| s.parse().unwrap()).unwrap_or(8);
-    let params = if substeps == 1 { ClothParams::one_substep() } else { ClothParams { substeps, ..ClothParams::default() } };
+    let mut params = ClothParams::with_substeps(substeps);
+    if let Some(iterations) = args.get(3) {
+        params.iterations = iterations.parse().unwrap();
+    }
     let body = default_body(&BodyOptions::default());
     let garments = [tshirt(&body), pants(&body)];
     let motion = procedural(MotionKind::Walk, 90, 30.0, speed);

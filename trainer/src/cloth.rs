@@ -38,21 +38,28 @@ impl Default for ClothParams {
     fn default() -> Self {
         Self {
             substeps: 8,
-            iterations: 2,
+            iterations: 1,
             gravity: -9.81,
             damping: 0.5,
             stretch_compliance: 1e-8,
             bend_compliance: 1e-4,
             margin: 0.004,
-            max_stretch: 1.03,
+            max_stretch: 1.05,
         }
     }
 }
 
 impl ClothParams {
-    /// One substep with enough sweeps to match the default's total work.
+    /// `substeps` per frame; fewer substeps get more iterations (each ends with the
+    /// strain limit and a collision pass), 16 per frame below 8 substeps.
+    pub fn with_substeps(substeps: u32) -> Self {
+        let substeps = substeps.max(1);
+        Self { substeps, iterations: if substeps >= 8 { 1 } else { 16 / substeps }, ..Self::default() }
+    }
+
+    /// One substep per frame (16 iterations).
     pub fn one_substep() -> Self {
-        Self { substeps: 1, iterations: 16, ..Self::default() }
+        Self::with_substeps(1)
     }
 }
 
@@ -64,6 +71,8 @@ pub struct BodyCollider {
     faces: Vec<[u32; 3]>,
     cell: f64,
     grid: HashMap<[i64; 3], Vec<u32>>,
+    /// The farthest any vertex moves over the frame.
+    travel: f64,
 }
 
 fn closest_point_on_triangle(p: V3, a: V3, b: V3, c: V3) -> V3 {
@@ -132,7 +141,8 @@ impl BodyCollider {
                 }
             }
         }
-        Self { start, end, faces: faces.to_vec(), cell, grid }
+        let travel = start.iter().zip(&end).map(|(a, b)| norm(sub(*a, *b))).fold(0.0, f64::max);
+        Self { start, end, faces: faces.to_vec(), cell, grid, travel }
     }
 
     /// Signed distance to the body (negative inside) and the closest surface point and
@@ -147,29 +157,42 @@ impl BodyCollider {
         self.query_face_at(p, s).map(|(d, q, n, _)| (d, q, n))
     }
 
+    /// The farthest any body vertex moves over the frame.
+    pub fn max_travel(&self) -> f64 {
+        self.travel
+    }
+
+    /// The body's vertices at fraction `s` of the frame.
+    pub fn vertices_at(&self, s: f64) -> Vec<V3> {
+        self.start.iter().zip(&self.end).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect()
+    }
+
     /// [`query_at`](Self::query_at), also naming the closest triangle.
     fn query_face_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3, u32)> {
         let c = p.map(|x| (x / self.cell).floor() as i64);
-        self.closest_among(p, s, self.grid.get(&c)?.iter().copied())
+        let vertex = |k: u32| add(scale(self.start[k as usize], 1.0 - s), scale(self.end[k as usize], s));
+        self.closest_among(p, vertex, self.grid.get(&c)?.iter().copied())
     }
 
-    /// The closest of `faces` to `p` at fraction `s`: (signed distance, point, normal, face).
-    fn closest_among(&self, p: V3, s: f64, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
-        let mut best: Option<(f64, V3, V3, u32)> = None;
+    /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:
+    /// (signed distance, point, normal, face).
+    fn closest_among(&self, p: V3, vertex: impl Fn(u32) -> V3, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
+        let mut best: Option<(f64, V3, [V3; 3], u32)> = None;
         for t in faces {
-            let [a, b, cc] = self.faces[t as usize].map(|k| {
-                let (x, y) = (self.start[k as usize], self.end[k as usize]);
-                add(scale(x, 1.0 - s), scale(y, s))
-            });
-            let q = closest_point_on_triangle(p, a, b, cc);
-            let d = norm(sub(p, q));
-            if best.is_none_or(|(bd, ..)| d < bd.abs() - 1e-12) {
-                let n = normalize(cross(sub(b, a), sub(cc, a)));
-                let signed = if dot(sub(p, q), n) < 0.0 { -d } else { d };
-                best = Some((signed, q, n, t));
+            let [a, b, c] = self.faces[t as usize].map(&vertex);
+            let q = closest_point_on_triangle(p, a, b, c);
+            let d = sub(p, q);
+            let d2 = dot(d, d);
+            // Squared distances; ties go to the first triangle (a fixed order).
+            if best.is_none_or(|(bd2, ..)| d2 < bd2 - 1e-24) {
+                best = Some((d2, q, [a, b, c], t));
             }
         }
-        best
+        best.map(|(d2, q, [a, b, c], t)| {
+            let n = normalize(cross(sub(b, a), sub(c, a)));
+            let d = d2.sqrt();
+            (if dot(sub(p, q), n) < 0.0 { -d } else { d }, q, n, t)
+        })
     }
 }
 
@@ -233,13 +256,8 @@ fn keep_outside(positions: &mut [V3], planes: &[Option<(V3, V3)>], margin: f64, 
 /// stop sooner once no edge is longer than `max_stretch + STRAIN_TOLERANCE` times
 /// its rest length.
 const MAX_STRAIN_SWEEPS: usize = 300;
-const STRAIN_TOLERANCE: f64 = 0.01;
+const STRAIN_TOLERANCE: f64 = 0.02;
 
-/// In the strain limit, an edge's end nearer the attachments moves this fraction of
-/// what the farther end moves (by inverse mass): a taut edge pulls its cloth towards
-/// where the garment hangs from, so that one sweep carries the pull across the cloth
-/// the way tension does, while contact can still push the nearer end.
-const LIMIT_PARENT_WEIGHT: f64 = 0.6;
 
 /// One garment being simulated.
 pub struct ClothSim {
@@ -247,8 +265,6 @@ pub struct ClothSim {
     velocities: Vec<V3>,
     inv_mass: Vec<f64>,
     stretch: Vec<(u32, u32, f64)>,
-    /// Inverse masses the strain limit uses per stretch edge (see `new`).
-    limit_weights: Vec<[f64; 2]>,
     bend: Vec<(u32, u32, f64)>,
     attached: Vec<bool>,
     params: ClothParams,
@@ -261,6 +277,12 @@ pub struct ClothSim {
     /// constraint sweeps keep the vertex `margin` outside it, so that they shorten an
     /// edge by sliding over the body instead of pulling into it.
     planes: Vec<Option<(V3, V3)>>,
+    /// Per vertex, where it was at its last global collision query, how far from the
+    /// body it was then (a lower bound), and `body_travel` then.
+    clearance: Vec<(V3, f64, f64)>,
+    /// Sum over the substeps so far of the farthest any body vertex moved: how far
+    /// any point of the body surface can have moved since a given time.
+    body_travel: f64,
 }
 
 impl ClothSim {
@@ -298,17 +320,6 @@ impl ClothSim {
         }
         let mut stretch: Vec<(u32, u32, f64)> = keys.iter().map(|&&(a, b)| (a, b, length(a, b))).collect();
         stretch.sort_by_key(|&(a, b, _)| (hops[a as usize].min(hops[b as usize]), a, b));
-        // See `LIMIT_PARENT_WEIGHT`; equally far ends move alike.
-        let inv_mass: Vec<f64> = garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect();
-        let limit_weights = stretch
-            .iter()
-            .map(|&(a, b, _)| {
-                let (ha, hb) = (hops[a as usize], hops[b as usize]);
-                let w = [inv_mass[a as usize], inv_mass[b as usize]];
-                let pw = LIMIT_PARENT_WEIGHT;
-                if ha < hb { [pw * w[0], w[1]] } else if hb < ha { [w[0], pw * w[1]] } else { w }
-            })
-            .collect();
         let bend = keys
             .iter()
             .filter_map(|k| {
@@ -319,15 +330,16 @@ impl ClothSim {
         Self {
             positions: v.clone(),
             velocities: vec![[0.0; 3]; v.len()],
-            inv_mass,
+            inv_mass: garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect(),
             stretch,
-            limit_weights,
             bend,
             attached: garment.attached.clone(),
             params,
             anchors: vec![u32::MAX; v.len()],
             neighbourhoods: None,
             planes: vec![None; v.len()],
+            clearance: vec![([0.0; 3], 0.0, 0.0); v.len()],
+            body_travel: 0.0,
         }
     }
 
@@ -350,11 +362,11 @@ impl ClothSim {
         let mut worst: f64 = 0.0;
         let max = self.params.max_stretch;
         let margin = self.params.margin;
-        for (&(a, b, rest), &w) in self.stretch.iter().zip(&self.limit_weights) {
+        for &(a, b, rest) in &self.stretch {
             let l = norm(sub(self.positions[a as usize], self.positions[b as usize]));
             worst = worst.max(l / rest);
             if l > max * rest {
-                project_distance(&mut self.positions, w, a, b, max * rest, 0.0);
+                project_distance(&mut self.positions, [self.inv_mass[a as usize], self.inv_mass[b as usize]], a, b, max * rest, 0.0);
                 keep_outside(&mut self.positions, &self.planes, margin, a);
                 keep_outside(&mut self.positions, &self.planes, margin, b);
             }
@@ -368,19 +380,38 @@ impl ClothSim {
         self.neighbourhoods = Some(neighbourhoods);
     }
 
-    fn collide(&mut self, body: &BodyCollider, s: f64) {
+    /// Pushes every free vertex `margin` outside the body at fraction `s` of the frame,
+    /// whose vertices are `body_now`, and records the contact planes.
+    fn collide(&mut self, body: &BodyCollider, body_now: &[V3], s: f64) {
         let margin = self.params.margin;
         for i in 0..self.positions.len() {
             if self.attached[i] {
                 continue;
             }
             let p = self.positions[i];
+            // Far from the body at the last global query, and not moved (with the body)
+            // enough since to come within PLANE_REACH: nothing to do.
+            let (at, clear, travel) = self.clearance[i];
+            if norm(sub(p, at)) + (self.body_travel - travel) < clear - PLANE_REACH {
+                self.planes[i] = None;
+                // Coming back, it searches the whole body again, as it would have.
+                self.anchors[i] = u32::MAX;
+                continue;
+            }
+            self.clearance[i] = (p, 0.0, self.body_travel);
             let local = match (&self.neighbourhoods, self.anchors[i]) {
-                (Some(nb), a) if a != u32::MAX => body.closest_among(p, s, nb[a as usize].iter().copied()).filter(|h| h.0.abs() < ANCHOR_REACH),
+                (Some(nb), a) if a != u32::MAX => body.closest_among(p, |k| body_now[k as usize], nb[a as usize].iter().copied()).filter(|h| h.0.abs() < ANCHOR_REACH),
                 _ => None,
             };
             self.planes[i] = None;
-            if let Some((d, q, n, face)) = local.or_else(|| body.query_face_at(p, s)) {
+            let hit = local.or_else(|| {
+                let global = body.query_face_at(p, s);
+                // Nothing nearer than COLLIDER_REACH escapes the grid query.
+                let clear = global.map_or(COLLIDER_REACH, |h| h.0.clamp(0.0, COLLIDER_REACH));
+                self.clearance[i] = (p, clear, self.body_travel);
+                global
+            });
+            if let Some((d, q, n, face)) = hit {
                 self.anchors[i] = face;
                 if d < margin {
                     self.positions[i] = add(q, scale(n, margin));
@@ -434,19 +465,23 @@ impl ClothSim {
                 self.velocities[i] = scale(self.velocities[i], keep);
                 self.positions[i] = add(self.positions[i], scale(self.velocities[i], h));
             }
-            self.collide(collider, frac);
-            // Each iteration ends with the strain limit and then the collisions, so
-            // nothing ends a substep inside the body; with one substep the
-            // iterations give collisions and limit their many rounds.
+            let body_now = collider.vertices_at(frac);
+            self.body_travel += collider.max_travel() / f64::from(n);
+            self.collide(collider, &body_now, frac);
+            // Each iteration ends with a collision pass and then the strain limit,
+            // which keeps every vertex outside the contact plane that pass found: so
+            // a substep ends with both the strain bound and (up to the body's
+            // curvature over a few millimetres of sliding) the margin. With one
+            // substep the iterations give collisions and limit their many rounds.
             for _ in 0..self.params.iterations.max(1) {
                 self.solve_distance(false, h);
                 self.solve_distance(true, h);
+                self.collide(collider, &body_now, frac);
                 for _ in 0..MAX_STRAIN_SWEEPS {
                     if self.limit_strain() <= self.params.max_stretch + STRAIN_TOLERANCE {
                         break;
                     }
                 }
-                self.collide(collider, frac);
             }
             for i in 0..self.positions.len() {
                 self.velocities[i] = scale(sub(self.positions[i], previous[i]), 1.0 / h);

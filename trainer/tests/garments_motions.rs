@@ -50,6 +50,10 @@ fn garments_are_open_where_clothes_are() {
             assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-9);
         }
         assert!(g.attached.iter().any(|&a| a) && !g.attached.iter().all(|&a| a));
+        // Rest lengths are what the simulator keeps: none may be (nearly) zero. 1 mm
+        // is a tenth of the shortest edge the body mesh has.
+        let shortest = counts.keys().map(|&(a, b)| drape_trainer::mesh::norm(drape_trainer::mesh::sub(g.vertices[a as usize], g.vertices[b as usize]))).fold(f64::MAX, f64::min);
+        assert!(shortest > 1e-3, "{}: an edge of {shortest} m", g.name);
     }
 }
 

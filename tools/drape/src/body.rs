@@ -75,7 +75,7 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
         garments.push(load_obj(path, &body)?);
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("{}: cannot create", args.out.display()))?;
-    let params = ClothParams { substeps: args.substeps, iterations: (16 / args.substeps).max(2), ..ClothParams::default() };
+    let params = ClothParams::with_substeps(args.substeps);
     eprintln!("simulating {} garments ({} vertices) over {} frames...", garments.len(), garments.iter().map(|g| g.vertices.len()).sum::<usize>(), motion.len());
     let t0 = std::time::Instant::now();
     let result = simulate(&body, &garments, &motion, params, 20);
