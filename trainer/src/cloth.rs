@@ -358,17 +358,26 @@ impl ClothSim {
     /// One sweep of the strain limit: a hard (zero-compliance) distance constraint on
     /// the edges longer than `max_stretch` times their rest length, keeping vertices
     /// outside their contact planes. Returns the largest strain it met.
-    fn limit_strain(&mut self) -> f64 {
+    fn limit_strain(&mut self, moved_before: &[bool], moved: &mut [bool]) -> f64 {
         let mut worst: f64 = 0.0;
         let max = self.params.max_stretch;
         let margin = self.params.margin;
+        moved.fill(false);
         for &(a, b, rest) in &self.stretch {
-            let l = norm(sub(self.positions[a as usize], self.positions[b as usize]));
+            let (ia, ib) = (a as usize, b as usize);
+            // An edge neither of whose ends moved since the last sweep looked at it is
+            // as that sweep left it: no longer than `max` times its rest length.
+            if !(moved_before[ia] || moved_before[ib] || moved[ia] || moved[ib]) {
+                continue;
+            }
+            let l = norm(sub(self.positions[ia], self.positions[ib]));
             worst = worst.max(l / rest);
             if l > max * rest {
-                project_distance(&mut self.positions, [self.inv_mass[a as usize], self.inv_mass[b as usize]], a, b, max * rest, 0.0);
+                project_distance(&mut self.positions, [self.inv_mass[ia], self.inv_mass[ib]], a, b, max * rest, 0.0);
                 keep_outside(&mut self.positions, &self.planes, margin, a);
                 keep_outside(&mut self.positions, &self.planes, margin, b);
+                moved[ia] = true;
+                moved[ib] = true;
             }
         }
         worst
@@ -477,10 +486,13 @@ impl ClothSim {
                 self.solve_distance(false, h);
                 self.solve_distance(true, h);
                 self.collide(collider, &body_now, frac);
+                let mut moved_before = vec![true; self.positions.len()];
+                let mut moved = vec![false; self.positions.len()];
                 for _ in 0..MAX_STRAIN_SWEEPS {
-                    if self.limit_strain() <= self.params.max_stretch + STRAIN_TOLERANCE {
+                    if self.limit_strain(&moved_before, &mut moved) <= self.params.max_stretch + STRAIN_TOLERANCE {
                         break;
                     }
+                    std::mem::swap(&mut moved_before, &mut moved);
                 }
             }
             for i in 0..self.positions.len() {

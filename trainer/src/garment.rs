@@ -15,7 +15,7 @@ use std::path::Path;
 
 use crate::body::kinematics::{a_pose, pose_body, t_pose, Pose};
 use crate::body::model::{SmplModel, NUM_JOINTS};
-use crate::mesh::{add, norm, scale, sub, vertex_normals, V3};
+use crate::mesh::{add, norm, normalize, scale, sub, vertex_normals, V3};
 
 /// A garment mesh bound to a body.
 #[derive(Clone, Debug, PartialEq)]
@@ -183,7 +183,11 @@ fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body_vertices: &[V3],
             *v = add(scale(prev[i], 0.5), scale(c, 0.5));
             if let Some((d, q, n)) = collider.query(*v) {
                 if d < clearance[i] {
-                    *v = add(q, scale(n, clearance[i]));
+                    // Away from the closest point rather than along its triangle's
+                    // normal: in a crease (an armpit) many vertices share one closest
+                    // point, and the normal would put them all in one place.
+                    let out = if d > 1e-6 { normalize(sub(*v, q)) } else { n };
+                    *v = add(q, scale(out, clearance[i]));
                 }
             }
         }
