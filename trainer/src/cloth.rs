@@ -5,7 +5,14 @@
 //!
 //! Per frame the body and the attachment targets are interpolated linearly between
 //! the previous and the next frame over the substeps (small-steps XPBD: the Lagrange
-//! multipliers restart every substep).
+//! multipliers restart every substep). A substep carries the free cloth along with
+//! the skinning, predicts with gravity and damping, then iterates: stretch and
+//! bending, a collision pass that also records each near vertex's contact plane, and
+//! the strain limit swept until no edge is more than `max_stretch + 0.02` long,
+//! keeping every vertex outside its contact plane, so that a taut edge shortens by
+//! sliding its cloth over the body rather than through it. Ending on the limit (not
+//! on the collisions) is what bounds the strain; the planes keep the margin up to the
+//! body's curvature over the millimetres a vertex slides.
 
 use std::collections::HashMap;
 
