@@ -10,6 +10,7 @@ use drape_trainer::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetF
 use drape_trainer::dataset::raster::{render, Drawable};
 use drape_trainer::dataset::split::Split;
 use drape_trainer::dataset::synth::{generate, handheld_camera, posed_from_zju, ring_camera, SynthOptions};
+use drape_trainer::garment::load_obj;
 use drape_trainer::motion::{procedural, MotionKind};
 
 const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1 };
@@ -87,25 +88,39 @@ fn posed(frame: &DatasetFrame) -> Vec<[f64; 3]> {
     }
 }
 
-fn iou_with_reprojected_body(frame: &DatasetFrame) -> f64 {
+/// IoU of the frame's person mask with the body posed from the loaded parameters, seen
+/// through the loaded camera, dressed in the generator's garment meshes of that frame
+/// (`gt/garments/`): what is checked is the camera and the body parameters.
+fn iou_with_reprojected_person(frame: &DatasetFrame) -> f64 {
     let v = posed(frame);
+    let garments: Vec<_> = ["tshirt", "pants"]
+        .iter()
+        .map(|name| load_obj(&base().join("gt/garments").join(format!("{name}_{:04}.obj", frame.frame)), model()).expect("ground-truth garment"))
+        .collect();
     let white = |_uv: [f64; 2]| [1.0, 1.0, 1.0];
     let uvs = vec![[0.0; 2]; v.len()];
-    let r = render(&frame.camera, &[Drawable { vertices: &v, faces: &model().faces, uvs: &uvs, object: 1, texture: &white, two_sided: true }], 2, [0.0; 3], [0.0, 1.0, 0.0], 1.0);
-    let body: Vec<bool> = r.coverage[1].iter().map(|&c| c >= 0.5).collect();
-    let inter = body.iter().zip(&frame.mask).filter(|(a, b)| **a && **b).count();
-    let union = body.iter().zip(&frame.mask).filter(|(a, b)| **a || **b).count();
+    let mut items = vec![Drawable { vertices: &v, faces: &model().faces, uvs: &uvs, object: 1, texture: &white, two_sided: true }];
+    items.extend(garments.iter().map(|g| Drawable { vertices: &g.vertices, faces: &g.faces, uvs: &g.uvs, object: 1, texture: &white, two_sided: true }));
+    let r = render(&frame.camera, &items, OPTIONS.samples, [0.0; 3], [0.0, 1.0, 0.0], 1.0);
+    let person: Vec<bool> = r.coverage[1].iter().map(|&c| c >= 0.5).collect();
+    let inter = person.iter().zip(&frame.mask).filter(|(a, b)| **a && **b).count();
+    let union = person.iter().zip(&frame.mask).filter(|(a, b)| **a || **b).count();
     inter as f64 / union.max(1) as f64
 }
 
 #[test]
-fn masks_align_with_the_reprojected_body() {
+fn masks_align_with_the_reprojected_person() {
     let frames = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap().into_iter().chain(load_zju(&base().join("zju"), 0).unwrap());
+    let mut worst = 1.0f64;
     for f in frames {
-        let iou = iou_with_reprojected_body(&f);
-        // 0.9: the person mask also holds the clothes, 1-2 cm outside the skin.
-        assert!(iou >= 0.9, "{}: IoU {iou:.3}", f.image_path.display());
+        let iou = iou_with_reprojected_person(&f);
+        worst = worst.min(iou);
+        // 0.98: the generator's geometry, rasterizer and sampling; only the camera and
+        // the body parameters went through the files (0.997 was the worst seen), and
+        // an edge pixel is 1/300 of the union at 64x64.
+        assert!(iou >= 0.98, "{}: IoU {iou:.3}", f.image_path.display());
     }
+    eprintln!("worst IoU {worst:.3}");
 }
 
 #[test]
