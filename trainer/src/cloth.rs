@@ -593,7 +593,9 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
         let lerp = |a: &[V3], b: &[V3], s: f64| -> Vec<V3> { a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect() };
         let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
         let prev_trans_vec = if f == 0 { [0.0; 3] } else { schedule[f - 1].1 };
-        for ((g, sim), b) in garments.iter().zip(sims.iter_mut()).zip(&build) {
+        // Garments do not collide with each other, so each steps on its own thread
+        // (each one's result is the same as stepped alone: deterministic).
+        let step_garment = |g: &Garment, sim: &mut ClothSim, b: &[Affine; 24]| {
             let (prev_t, next_t) = (relative_transforms(&prev_t, b), relative_transforms(&next_t, b));
             // Attached vertices move rigidly with the garment's attachment joint.
             let mut rigid = [0.0; 24];
@@ -606,7 +608,12 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
             let c1: Vec<V3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
             let carried = |s: f64| Some(lerp(&c0, &c1, s));
             sim.step_frame_carried(dt, &collider, &targets, &carried);
-        }
+        };
+        std::thread::scope(|scope| {
+            for ((g, sim), b) in garments.iter().zip(sims.iter_mut()).zip(&build) {
+                scope.spawn(move || step_garment(g, sim, b));
+            }
+        });
         if f >= recorded_from {
             let mut frame = Vec::with_capacity(sims.len());
             let index = f - recorded_from;

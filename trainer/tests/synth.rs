@@ -116,8 +116,7 @@ fn masks_align_with_the_reprojected_person() {
         let iou = iou_with_reprojected_person(&f);
         worst = worst.min(iou);
         // 0.98: the generator's geometry, rasterizer and sampling; only the camera and
-        // the body parameters went through the files (0.997 was the worst seen), and
-        // an edge pixel is 1/300 of the union at 64x64.
+        // the body parameters went through the files (0.997 was the worst seen).
         assert!(iou >= 0.98, "{}: IoU {iou:.3}", f.image_path.display());
     }
     eprintln!("worst IoU {worst:.3}");
