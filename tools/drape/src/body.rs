@@ -42,13 +42,15 @@ pub struct SimulateArgs {
     /// Playback speed of a procedural motion (2 = twice as fast).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
-    /// Substeps per frame.
+    /// Substeps per frame (below 8, the iterations per substep grow so that a frame
+    /// still gets about 16 rounds of collisions and strain limiting).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub substeps: u32,
     /// Body model .npz (default: the project's body).
     #[arg(long)]
     pub body: Option<PathBuf>,
-    /// Extra OBJ garments to simulate besides the T-shirt and pants.
+    /// Extra OBJ garments to simulate besides the T-shirt and pants, made on the body
+    /// in its rest pose (the T-pose, arms out).
     #[arg(long)]
     pub garment: Vec<PathBuf>,
     /// Output directory for <garment>_<frame>.obj.
