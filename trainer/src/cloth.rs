@@ -547,6 +547,12 @@ pub struct SimulationResult {
 /// from the first garment's build pose (the pose the clothes were made in) into the
 /// motion's first frame.
 pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize) -> SimulationResult {
+    simulate_with_progress(body, garments, motion, params, pre_roll, &mut |_, _| {})
+}
+
+/// [`simulate`], calling `progress(frame, total)` as it starts each frame (1-based;
+/// settling frames included in both).
+pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize, progress: &mut dyn FnMut(usize, usize)) -> SimulationResult {
     let dt = 1.0 / motion.fps;
     let start_pose: Pose = garments.first().map_or([[0.0; 3]; 24], |g| g.build_pose);
     let first = motion.poses.first().copied().unwrap_or(start_pose);
@@ -587,6 +593,7 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
         any_nan: false,
     };
     for (f, (pose, trans)) in schedule.iter().enumerate() {
+        progress(f + 1, schedule.len());
         let next = pose_body(body, &[], pose, *trans);
         let prev_t = prev.transforms;
         let next_t = next.transforms;

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context as _;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::SmplModel;
-use drape_trainer::cloth::{simulate, ClothParams};
+use drape_trainer::cloth::{simulate_with_progress, ClothParams};
 use drape_trainer::garment::{load_obj, pants, tshirt, write_obj};
 use drape_trainer::motion::{procedural, Motion, MotionKind};
 
@@ -80,7 +80,8 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
     let params = ClothParams::with_substeps(args.substeps);
     eprintln!("simulating {} garments ({} vertices) over {} frames...", garments.len(), garments.iter().map(|g| g.vertices.len()).sum::<usize>(), motion.len());
     let t0 = std::time::Instant::now();
-    let result = simulate(&body, &garments, &motion, params, 20);
+    let result = simulate_with_progress(&body, &garments, &motion, params, 20, &mut |done, total| eprint!("\rframe {done:>5}/{total} (20 settling)   "));
+    eprintln!();
     let seconds = t0.elapsed().as_secs_f64();
     for (f, frame) in result.frames.iter().enumerate() {
         for (g, positions) in garments.iter().zip(frame) {

@@ -13,7 +13,7 @@ use std::path::Path;
 use crate::body::kinematics::{pose_body, Pose};
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
-use crate::cloth::{simulate, ClothParams};
+use crate::cloth::{simulate_with_progress, ClothParams};
 use crate::dataset::colmap::{rotation_to_quaternion, ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
 use crate::dataset::image::{write_mask, write_rgb};
 use crate::dataset::neuman::SmplSequence;
@@ -207,8 +207,7 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
     let model = default_body(&BodyOptions::default());
     let garments: [Garment; 2] = [tshirt(&model), pants(&model)];
     let motion = procedural(o.motion, o.frames, 30.0, 1.0);
-    progress("simulating cloth", 0, o.frames);
-    let sim = simulate(&model, &garments, &motion, ClothParams::default(), 20);
+    let sim = simulate_with_progress(&model, &garments, &motion, ClothParams::default(), 20, &mut |done, total| progress("simulating cloth", done, total));
     if sim.any_nan {
         return Err("the cloth simulation produced non-finite positions".into());
     }
