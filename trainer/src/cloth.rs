@@ -57,8 +57,8 @@ impl Default for ClothParams {
 }
 
 impl ClothParams {
-    /// `substeps` per frame; fewer substeps get more iterations (each ends with the
-    /// strain limit and a collision pass), 16 per frame below 8 substeps.
+    /// `substeps` per frame; fewer substeps get more iterations (each a collision pass
+    /// and then the strain limit): about 16 per frame below 8 substeps.
     pub fn with_substeps(substeps: u32) -> Self {
         let substeps = substeps.max(1);
         Self { substeps, iterations: if substeps >= 8 { 1 } else { 16 / substeps }, ..Self::default() }
@@ -265,7 +265,6 @@ fn keep_outside(positions: &mut [V3], planes: &[Option<(V3, V3)>], margin: f64, 
 const MAX_STRAIN_SWEEPS: usize = 300;
 const STRAIN_TOLERANCE: f64 = 0.02;
 
-
 /// One garment being simulated.
 pub struct ClothSim {
     pub positions: Vec<V3>,
@@ -359,8 +358,6 @@ impl ClothSim {
             keep_outside(&mut self.positions, &self.planes, self.params.margin, b);
         }
     }
-
-
 
     /// One sweep of the strain limit: a hard (zero-compliance) distance constraint on
     /// the edges longer than `max_stretch` times their rest length, keeping vertices
