@@ -70,6 +70,11 @@ impl ClothParams {
     }
 }
 
+/// Points moving linearly from `a` to `b`, at fraction `s`.
+fn lerp_points(a: &[V3], b: &[V3], s: f64) -> Vec<V3> {
+    a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect()
+}
+
 /// The posed body over one frame as a collider: its vertices at the frame's start and
 /// end (queried at any fraction between), triangles in a uniform grid covering both.
 pub struct BodyCollider {
@@ -171,7 +176,7 @@ impl BodyCollider {
 
     /// The body's vertices at fraction `s` of the frame.
     pub fn vertices_at(&self, s: f64) -> Vec<V3> {
-        self.start.iter().zip(&self.end).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect()
+        lerp_points(&self.start, &self.end, s)
     }
 
     /// [`query_at`](Self::query_at), also naming the closest triangle.
@@ -594,7 +599,6 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
         let next = pose_body(body, &[], pose, *trans);
         let prev_t = prev.transforms;
         let next_t = next.transforms;
-        let lerp = |a: &[V3], b: &[V3], s: f64| -> Vec<V3> { a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect() };
         let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
         let prev_trans_vec = if f == 0 { [0.0; 3] } else { schedule[f - 1].1 };
         // Garments do not collide with each other, so each steps on its own thread
@@ -607,10 +611,10 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
             let rigid = vec![rigid; g.vertices.len()];
             let a0: Vec<V3> = skin(&rigid, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
             let a1: Vec<V3> = skin(&rigid, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
-            let targets = |s: f64| lerp(&a0, &a1, s);
+            let targets = |s: f64| lerp_points(&a0, &a1, s);
             let c0: Vec<V3> = skin(&g.weights_blend6, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
             let c1: Vec<V3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
-            let carried = |s: f64| Some(lerp(&c0, &c1, s));
+            let carried = |s: f64| Some(lerp_points(&c0, &c1, s));
             sim.step_frame_carried(dt, &collider, &targets, &carried);
         };
         std::thread::scope(|scope| {

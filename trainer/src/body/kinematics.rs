@@ -185,17 +185,8 @@ pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS]
         let r = rodrigues(pose[j]);
         let rj = mat_vec(&r, joints[j]);
         let local_t = sub(joints[j], rj);
-        let (rot, t) = if parents[j] < 0 {
-            (r, local_t)
-        } else {
-            let p = parents[j] as usize;
-            let prot = [[a[p][0][0], a[p][0][1], a[p][0][2]], [a[p][1][0], a[p][1][1], a[p][1][2]], [a[p][2][0], a[p][2][1], a[p][2][2]]];
-            let pt = [a[p][0][3], a[p][1][3], a[p][2][3]];
-            (mat_mul(&prot, &r), add(mat_vec(&prot, local_t), pt))
-        };
-        for row in 0..3 {
-            a[j][row] = [rot[row][0], rot[row][1], rot[row][2], t[row]];
-        }
+        let local: Affine = std::array::from_fn(|row| [r[row][0], r[row][1], r[row][2], local_t[row]]);
+        a[j] = if parents[j] < 0 { local } else { compose(&a[parents[j] as usize], &local) };
     }
     let mut g = a;
     for j in 0..NUM_JOINTS {
