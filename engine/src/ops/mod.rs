@@ -2,7 +2,10 @@
 //! its recording, and the CPU reference it is tested against lives beside the kernel
 //! math in `drape-shared`.
 
+pub mod deform;
+pub mod nn;
 pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+pub mod triplane;

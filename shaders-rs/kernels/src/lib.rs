@@ -12,9 +12,12 @@
 #![deny(unsafe_code)]
 
 mod atomics;
+pub mod deform;
+pub mod nn;
 pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
 pub mod train;
+pub mod triplane;
 mod workgroup;

@@ -1,4 +1,4 @@
-//! Per-element training kernels: Adam and the image loss gradient.
+//! Per-element training kernels: Adam and the image loss gradients (MSE, L1).
 //!
 //! `adam_step`: `params`, `grads`, `m`, `v` of `len` floats; updates params, m, v in place
 //! (`drape_shared::adam::adam_update` is the math). `mse_grad`: `pred`, `target` of
@@ -43,4 +43,24 @@ pub fn mse_grad(
     let d = pred[i] - target[i];
     grad[i] = 2.0 * d * p.scale;
     squared_error[i] = d * d;
+}
+
+/// L1 image loss: `grad = sign(pred - target) * scale` (0 where equal, as PyTorch's
+/// `l1_loss`), and the absolute error per element.
+#[spirv(compute(threads(256)))]
+pub fn l1_grad(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &LossParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pred: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] target: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] abs_error: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.len {
+        return;
+    }
+    let d = pred[i] - target[i];
+    grad[i] = if d > 0.0 { p.scale } else if d < 0.0 { -p.scale } else { 0.0 };
+    abs_error[i] = d.abs();
 }

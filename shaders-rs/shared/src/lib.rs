@@ -8,10 +8,13 @@
 #![forbid(unsafe_code)]
 
 pub mod adam;
+pub mod deform;
+pub mod nn;
 pub mod radix_sort;
 pub mod real;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+pub mod triplane;
 #[cfg(not(target_arch = "spirv"))]
 pub mod spirv_module;

@@ -1,0 +1,140 @@
+//! Deforming and posing the Gaussians of a triplane-driven layer on the GPU (kernels
+//! `deform::*`): decoded offsets, 6D rotations and log-scale deltas applied to the
+//! canonical Gaussians, then skinning with the predicted weights; forward and
+//! backward, with the CPU reference from the same shared functions
+//! (`drape_shared::deform`, which states what happens to the rotation).
+
+use drape_shared::deform::{deform_bwd, deform_fwd, DeformGrad, DeformInput, DeformOutput, DeformParams};
+use drape_shared::real::Real;
+use drape_shared::skinning::SKIN_JOINTS;
+
+use crate::buffer::Buffer;
+use crate::error::Result;
+use crate::kernels::Kernel;
+use crate::recorder::Recording;
+
+/// The per-Gaussian inputs of a deformation, on the GPU (n Gaussians).
+pub struct DeformInputs<'a> {
+    /// 24 × 12 (3x4 row-major per joint).
+    pub transforms: &'a Buffer,
+    /// n × 3, canonical.
+    pub means: &'a Buffer,
+    /// n × 4 unit quaternions, canonical.
+    pub quats: &'a Buffer,
+    /// n × 3, canonical.
+    pub log_scales: &'a Buffer,
+    /// n × 3, decoded.
+    pub offsets: &'a Buffer,
+    /// n × 6, decoded.
+    pub rot6d: &'a Buffer,
+    /// n × 3, decoded.
+    pub log_scale_deltas: &'a Buffer,
+    /// n × 24, decoded (rows sum to 1).
+    pub weights: &'a Buffer,
+}
+
+impl<'a> DeformInputs<'a> {
+    fn all(&self) -> [&'a Buffer; 8] {
+        [self.transforms, self.means, self.quats, self.log_scales, self.offsets, self.rot6d, self.log_scale_deltas, self.weights]
+    }
+}
+
+/// Records the posed means (n × 3), quaternions (n × 4, not normalised) and
+/// log-scales (n × 3).
+pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32) -> Result<()> {
+    let p = DeformParams { count, _pad: [0; 3] };
+    rec.pass("deform.fwd", Kernel::DeformDeformFwd)
+        .read_all(inputs.all())
+        .write(posed_means)
+        .write(posed_quats)
+        .write(posed_log_scales)
+        .push(&p)
+        .dispatch([count.div_ceil(256), 1, 1])
+}
+
+/// The gradients [`record_backward`] writes (n rows each).
+pub struct DeformGrads<'a> {
+    pub means: &'a Buffer,
+    pub offsets: &'a Buffer,
+    pub rot6d: &'a Buffer,
+    pub log_scale_deltas: &'a Buffer,
+    pub weights: &'a Buffer,
+}
+
+/// Records the backward pass from the gradients on the posed means, quaternions and
+/// log-scales.
+#[allow(clippy::too_many_arguments)]
+pub fn record_backward<'a>(
+    rec: &mut Recording<'a>,
+    inputs: &DeformInputs<'a>,
+    grad_posed_means: &'a Buffer,
+    grad_posed_quats: &'a Buffer,
+    grad_posed_log_scales: &'a Buffer,
+    out: &DeformGrads<'a>,
+    count: u32,
+) -> Result<()> {
+    let p = DeformParams { count, _pad: [0; 3] };
+    rec.pass("deform.bwd", Kernel::DeformDeformBwd)
+        .read_all(inputs.all())
+        .read(grad_posed_means)
+        .read(grad_posed_quats)
+        .read(grad_posed_log_scales)
+        .write(out.means)
+        .write(out.offsets)
+        .write(out.rot6d)
+        .write(out.log_scale_deltas)
+        .write(out.weights)
+        .push(&p)
+        .dispatch([count.div_ceil(256), 1, 1])
+}
+
+/// Host copies of the inputs (flat, the GPU layout), for the CPU reference.
+#[derive(Clone, Debug, Default)]
+pub struct HostInputs<F> {
+    pub transforms: Vec<F>,
+    pub means: Vec<F>,
+    pub quats: Vec<F>,
+    pub log_scales: Vec<F>,
+    pub offsets: Vec<F>,
+    pub rot6d: Vec<F>,
+    pub log_scale_deltas: Vec<F>,
+    pub weights: Vec<F>,
+}
+
+impl<F: Real> HostInputs<F> {
+    pub fn len(&self) -> usize {
+        self.means.len() / 3
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Gaussian `i`'s inputs.
+    pub fn gaussian(&self, i: usize) -> DeformInput<F> {
+        let v3 = |b: &[F]| [b[3 * i], b[3 * i + 1], b[3 * i + 2]];
+        let mut weights = [F::zero(); SKIN_JOINTS];
+        weights.copy_from_slice(&self.weights[i * SKIN_JOINTS..(i + 1) * SKIN_JOINTS]);
+        let mut rot6d = [F::zero(); 6];
+        rot6d.copy_from_slice(&self.rot6d[6 * i..6 * i + 6]);
+        DeformInput {
+            mean: v3(&self.means),
+            quat: [self.quats[4 * i], self.quats[4 * i + 1], self.quats[4 * i + 2], self.quats[4 * i + 3]],
+            log_scale: v3(&self.log_scales),
+            offset: v3(&self.offsets),
+            rot6d,
+            log_scale_delta: v3(&self.log_scale_deltas),
+            weights,
+        }
+    }
+}
+
+/// CPU reference of the forward pass.
+pub fn reference_forward<F: Real>(inputs: &HostInputs<F>) -> Vec<DeformOutput<F>> {
+    (0..inputs.len()).map(|i| deform_fwd(&inputs.gaussian(i), &inputs.transforms)).collect()
+}
+
+/// CPU reference of the backward pass.
+pub fn reference_backward<F: Real>(inputs: &HostInputs<F>, upstream: &[DeformOutput<F>]) -> Vec<DeformGrad<F>> {
+    (0..inputs.len()).map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i])).collect()
+}

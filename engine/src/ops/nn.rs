@@ -1,0 +1,629 @@
+//! Multi-layer perceptrons on the GPU (kernels `nn::*`): linear layers as a tiled GEMM,
+//! GELU / sigmoid / exp / softmax activations, several output heads on one trunk,
+//! forward and backward, and the CPU reference from the same shared functions
+//! (`drape_shared::nn`), generic over f32/f64.
+//!
+//! An [`Mlp`] is described by an input width, hidden layers (width and activation) and
+//! heads (width, activation, optional zero init): `x → [Linear → act]* → {Linear_h →
+//! act_h}` for every head h. Heads are separate linear layers on the last hidden
+//! output, which is the same function as one linear layer over the concatenated
+//! heads followed by per-column-range activations. All weights and biases live in
+//! one flat parameter buffer (for each layer: W out × in, row-major as PyTorch's
+//! `nn.Linear.weight`, then b), so one Adam group covers a decoder.
+//!
+//! Backward is deterministic: the weight gradient sums rows in fixed chunks and adds
+//! the chunks in order (`nn::sum_weight_grad`), with no atomics.
+
+use drape_shared::nn::{
+    activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_EXP, ACT_GELU,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_ONES_COLUMN, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+};
+use drape_shared::real::Real;
+use rand::{Rng, SeedableRng};
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::context::Context;
+use crate::error::{EngineError, Result};
+use crate::kernels::Kernel;
+use crate::recorder::Recording;
+
+/// An activation after a linear layer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Activation {
+    Identity,
+    /// `x Φ(x)` (PyTorch's default, erf form).
+    Gelu,
+    Sigmoid,
+    Exp,
+    /// `softmax(x / temperature)` over the layer's whole output (at most 32 wide).
+    Softmax { temperature: f32 },
+}
+
+impl Activation {
+    fn kind(self) -> u32 {
+        match self {
+            Activation::Identity => ACT_IDENTITY,
+            Activation::Gelu => ACT_GELU,
+            Activation::Sigmoid => ACT_SIGMOID,
+            Activation::Exp => ACT_EXP,
+            Activation::Softmax { .. } => ACT_SOFTMAX,
+        }
+    }
+
+    fn temperature(self) -> f32 {
+        match self {
+            Activation::Softmax { temperature } => temperature,
+            _ => 1.0,
+        }
+    }
+}
+
+/// One output head.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeadDesc {
+    pub name: String,
+    pub width: usize,
+    pub activation: Activation,
+    /// Start with zero weights and bias (so the head first outputs `act(0)`).
+    pub zero_init: bool,
+}
+
+impl HeadDesc {
+    pub fn new(name: &str, width: usize, activation: Activation) -> Self {
+        Self { name: name.to_string(), width, activation, zero_init: false }
+    }
+
+    pub fn zero_init(mut self) -> Self {
+        self.zero_init = true;
+        self
+    }
+}
+
+/// The shape of an MLP.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MlpDesc {
+    pub input: usize,
+    /// (width, activation) of each hidden layer.
+    pub hidden: Vec<(usize, Activation)>,
+    pub heads: Vec<HeadDesc>,
+}
+
+impl MlpDesc {
+    /// HUGS's appearance decoder: 96-64-64 (GELU) → opacity logit (1) and SH (48).
+    /// The opacity head has no activation here because the splatter applies the
+    /// sigmoid to the logit itself (the same function as HUGS's sigmoid head).
+    pub fn hugs_appearance(input: usize, sh_values: usize) -> Self {
+        Self {
+            input,
+            hidden: vec![(64, Activation::Gelu), (64, Activation::Gelu)],
+            heads: vec![HeadDesc::new("opacity", 1, Activation::Identity), HeadDesc::new("sh", sh_values, Activation::Identity)],
+        }
+    }
+
+    /// HUGS's geometry decoder: 96-128-128 (GELU) → offset (3), 6D rotation (6),
+    /// log-scale delta (3).
+    pub fn hugs_geometry(input: usize) -> Self {
+        Self {
+            input,
+            hidden: vec![(128, Activation::Gelu), (128, Activation::Gelu)],
+            heads: vec![
+                HeadDesc::new("offset", 3, Activation::Identity),
+                HeadDesc::new("rot6d", 6, Activation::Identity),
+                HeadDesc::new("log_scale_delta", 3, Activation::Identity),
+            ],
+        }
+    }
+
+    /// HUGS's deformation decoder: 96-128-128-128-128 (GELU) → 24 skinning weights
+    /// (softmax, T = 0.1).
+    pub fn hugs_deformation(input: usize) -> Self {
+        Self {
+            input,
+            hidden: vec![(128, Activation::Gelu); 4],
+            heads: vec![HeadDesc::new("skinning_weights", 24, Activation::Softmax { temperature: 0.1 })],
+        }
+    }
+
+    /// (in, out) of every linear layer: the hidden layers, then the heads.
+    pub fn linears(&self) -> Vec<(usize, usize)> {
+        let mut out = Vec::new();
+        let mut width = self.input;
+        for &(w, _) in &self.hidden {
+            out.push((width, w));
+            width = w;
+        }
+        for h in &self.heads {
+            out.push((width, h.width));
+        }
+        out
+    }
+
+    /// Offsets of (W, b) of each linear layer in the flat parameter vector, and its length.
+    pub fn layout(&self) -> (Vec<(usize, usize)>, usize) {
+        let mut at = 0;
+        let mut offsets = Vec::new();
+        for (i, o) in self.linears() {
+            offsets.push((at, at + i * o));
+            at += i * o + o;
+        }
+        (offsets, at)
+    }
+
+    /// Width of the trunk's output (the heads' input).
+    pub fn trunk_width(&self) -> usize {
+        self.hidden.last().map_or(self.input, |h| h.0)
+    }
+
+    fn activations(&self) -> Vec<Activation> {
+        self.hidden.iter().map(|h| h.1).chain(self.heads.iter().map(|h| h.activation)).collect()
+    }
+
+    fn check(&self) {
+        assert!(!self.heads.is_empty(), "an MLP needs at least one head");
+        for (i, o) in self.linears() {
+            assert!(i > 0 && o > 0 && i <= 1024 && o <= 1024, "layer widths must be 1..=1024, got {i} -> {o}");
+        }
+        for a in self.activations() {
+            if let Activation::Softmax { temperature } = a {
+                assert!(temperature > 0.0, "softmax temperature must be positive");
+            }
+        }
+        for h in &self.heads {
+            if matches!(h.activation, Activation::Softmax { .. }) {
+                assert!(h.width <= SOFTMAX_MAX_WIDTH, "softmax heads are at most {SOFTMAX_MAX_WIDTH} wide");
+            }
+        }
+        for &(w, a) in &self.hidden {
+            if matches!(a, Activation::Softmax { .. }) {
+                assert!(w <= SOFTMAX_MAX_WIDTH, "softmax layers are at most {SOFTMAX_MAX_WIDTH} wide");
+            }
+        }
+    }
+
+    /// Parameters initialised as PyTorch's `nn.Linear` default (weights and biases
+    /// uniform in ±1/√in), reproducible from `seed`; zero-init heads are zero.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let (offsets, len) = self.layout();
+        let mut params = vec![0.0f32; len];
+        let hidden = self.hidden.len();
+        for (l, ((i, o), (w_off, _))) in self.linears().into_iter().zip(offsets).enumerate() {
+            if l >= hidden && self.heads[l - hidden].zero_init {
+                continue;
+            }
+            let bound = 1.0 / (i as f32).sqrt();
+            for v in &mut params[w_off..w_off + i * o + o] {
+                *v = rng.random_range(-bound..bound);
+            }
+        }
+        params
+    }
+}
+
+/// Largest number of rows the weight gradient is split into.
+const MAX_SPLITS: u32 = 64;
+/// Fewest rows one split of the weight gradient sums.
+const MIN_ROWS_PER_SPLIT: u32 = 1024;
+
+fn splits_for(rows: u32) -> (u32, u32) {
+    let splits = rows.div_ceil(MIN_ROWS_PER_SPLIT).clamp(1, MAX_SPLITS);
+    (splits, rows.div_ceil(splits).max(1))
+}
+
+fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
+    ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
+}
+
+/// Activations of one linear layer for up to `max_rows` rows.
+struct LayerBuffers {
+    /// Linear output (before the activation).
+    pre: Buffer,
+    /// Activation output (unused for the identity: `pre` is the output).
+    post: Buffer,
+    /// Gradient on the output.
+    grad_post: Buffer,
+    /// Gradient on `pre` (unused for the identity).
+    grad_pre: Buffer,
+}
+
+/// An MLP's parameters, gradients and saved activations on the GPU.
+pub struct Mlp {
+    pub desc: MlpDesc,
+    max_rows: u32,
+    offsets: Vec<(usize, usize)>,
+    /// All weights and biases (see the module header).
+    pub params: Buffer,
+    /// Their gradients, written by [`Mlp::record_backward`].
+    pub grads: Buffer,
+    layers: Vec<LayerBuffers>,
+    partials: Buffer,
+}
+
+/// The linear layer whose output layer `l` reads (`None`: the MLP's input); heads
+/// (`l >= hidden`) read the last hidden layer.
+fn below(l: usize, hidden: usize) -> Option<usize> {
+    if l < hidden {
+        l.checked_sub(1)
+    } else {
+        hidden.checked_sub(1)
+    }
+}
+
+fn grid(n: u32) -> [u32; 3] {
+    // 2-D when one dimension would pass 65,535 groups (the kernels read num_workgroups).
+    let groups = n.div_ceil(256);
+    if groups <= 65_535 {
+        [groups, 1, 1]
+    } else {
+        [65_535, groups.div_ceil(65_535), 1]
+    }
+}
+
+impl Mlp {
+    /// An MLP for up to `max_rows` rows with parameters from [`MlpDesc::init_params`].
+    pub fn new(ctx: &Context, label: &str, desc: MlpDesc, max_rows: usize, seed: u64) -> Result<Self> {
+        let params = desc.init_params(seed);
+        Self::with_params(ctx, label, desc, max_rows, &params)
+    }
+
+    /// An MLP with the given flat parameters.
+    pub fn with_params(ctx: &Context, label: &str, desc: MlpDesc, max_rows: usize, params: &[f32]) -> Result<Self> {
+        desc.check();
+        let (offsets, len) = desc.layout();
+        assert_eq!(params.len(), len, "{label}: {} parameters for a layout of {len}", params.len());
+        let max_rows_u32 = u32::try_from(max_rows)
+            .ok()
+            .filter(|&r| u64::from(r) * 1024 <= u64::from(u32::MAX))
+            .ok_or(EngineError::TooLarge { what: "MLP rows", requested: max_rows as u64, limit: u64::from(u32::MAX) / 1024 })?;
+        let acts = desc.activations();
+        let mut layers = Vec::new();
+        let mut partial_len = 0usize;
+        for (l, (i, o)) in desc.linears().into_iter().enumerate() {
+            let identity = acts[l] == Activation::Identity;
+            let n = max_rows * o;
+            let post_len = if identity { 0 } else { n };
+            layers.push(LayerBuffers {
+                pre: f32_buffer(ctx, &format!("{label} layer {l} pre"), n)?,
+                post: f32_buffer(ctx, &format!("{label} layer {l} post"), post_len)?,
+                grad_post: f32_buffer(ctx, &format!("{label} layer {l} grad post"), n)?,
+                grad_pre: f32_buffer(ctx, &format!("{label} layer {l} grad pre"), post_len)?,
+            });
+            partial_len = partial_len.max(splits_for(max_rows_u32).0 as usize * o * (i + 1));
+        }
+        let mut p = f32_buffer(ctx, &format!("{label} params"), len)?;
+        ctx.write_buffer(&mut p, params)?;
+        Ok(Self {
+            desc,
+            max_rows: max_rows_u32,
+            offsets,
+            params: p,
+            grads: f32_buffer(ctx, &format!("{label} grads"), len)?,
+            layers,
+            partials: f32_buffer(ctx, &format!("{label} weight-grad partials"), partial_len)?,
+        })
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.desc.layout().1
+    }
+
+    pub fn max_rows(&self) -> u32 {
+        self.max_rows
+    }
+
+    fn output_of(&self, l: usize) -> &Buffer {
+        let layer = &self.layers[l];
+        if self.desc.activations()[l] == Activation::Identity {
+            &layer.pre
+        } else {
+            &layer.post
+        }
+    }
+
+    /// Head `h`'s output after the last forward pass: rows × width.
+    pub fn head_output(&self, h: usize) -> &Buffer {
+        self.output_of(self.desc.hidden.len() + h)
+    }
+
+    /// Where the caller writes the gradient on head `h`'s output before
+    /// [`record_backward`](Self::record_backward).
+    pub fn head_grad(&self, h: usize) -> &Buffer {
+        &self.layers[self.desc.hidden.len() + h].grad_post
+    }
+
+    /// Copies a head's output gradient from the host (tests, small inputs).
+    pub fn write_head_grad(&mut self, ctx: &Context, h: usize, data: &[f32]) -> Result<()> {
+        let l = self.desc.hidden.len() + h;
+        ctx.write_buffer(&mut self.layers[l].grad_post, data)
+    }
+
+    /// Reads a head's output for `rows` rows back to the host.
+    pub fn read_head(&mut self, ctx: &Context, h: usize, rows: usize) -> Result<Vec<f32>> {
+        let l = self.desc.hidden.len() + h;
+        let len = rows * self.desc.heads[h].width;
+        let layer = &mut self.layers[l];
+        let buffer = if self.desc.heads[h].activation == Activation::Identity { &mut layer.pre } else { &mut layer.post };
+        ctx.read_buffer(buffer, len)
+    }
+
+    /// Index of the head named `name`.
+    pub fn head(&self, name: &str) -> usize {
+        self.desc.heads.iter().position(|h| h.name == name).unwrap_or_else(|| panic!("no head named '{name}'"))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn record_gemm<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
+        rec.pass(name, Kernel::NnGemm)
+            .read(a)
+            .read(b)
+            .read(bias)
+            .write(c)
+            .push(&p)
+            .dispatch([p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits])
+    }
+
+    fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
+        let p = ActParams { rows, width, kind: act.kind(), temperature: act.temperature() };
+        let n = if act.kind() == ACT_SOFTMAX { rows } else { rows * width };
+        rec.pass(name, Kernel::NnActFwd).read(pre).write(post).push(&p).dispatch(grid(n))
+    }
+
+    /// Records the forward pass over `rows` rows of `input` (rows × `desc.input`).
+    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32) -> Result<()> {
+        assert!(rows <= self.max_rows, "{rows} rows for an MLP of {}", self.max_rows);
+        let acts = self.desc.activations();
+        let linears = self.desc.linears();
+        let hidden = self.desc.hidden.len();
+        for (l, &(i, o)) in linears.iter().enumerate() {
+            let x = match below(l, hidden) {
+                Some(k) => self.output_of(k),
+                None => input,
+            };
+            let (w_off, b_off) = self.offsets[l];
+            let p = GemmParams {
+                m: rows,
+                n: o as u32,
+                k: i as u32,
+                flags: GEMM_BIAS,
+                a_sm: i as u32,
+                a_sk: 1,
+                b_off: w_off as u32,
+                b_sk: 1,
+                b_sn: i as u32,
+                ldc: o as u32,
+                bias_off: b_off as u32,
+                k_chunk: i as u32,
+                ..Default::default()
+            };
+            let layer = &self.layers[l];
+            Self::record_gemm(rec, "mlp.linear_fwd", x, &self.params, &self.params, &layer.pre, p, 1)?;
+            if acts[l] != Activation::Identity {
+                rec.barrier();
+                Self::record_act(rec, "mlp.act_fwd", acts[l], &layer.pre, &layer.post, rows, o as u32)?;
+            }
+            // Heads read the trunk only; they need no barrier between each other.
+            if l < hidden || l == linears.len() - 1 {
+                rec.barrier();
+            }
+        }
+        Ok(())
+    }
+
+    /// Records the backward pass: reads the gradients the caller wrote into every
+    /// [`head_grad`](Self::head_grad), writes the parameter gradients to `grads` and,
+    /// when given, the input's gradient (rows × `desc.input`) to `grad_input`.
+    /// `input` and `rows` must be those of the last forward pass.
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32, grad_input: Option<&'a Buffer>) -> Result<()> {
+        assert!(rows <= self.max_rows, "{rows} rows for an MLP of {}", self.max_rows);
+        let acts = self.desc.activations();
+        let linears = self.desc.linears();
+        let hidden = self.desc.hidden.len();
+        let (splits, k_chunk) = splits_for(rows);
+        // Heads first (each adds its input gradient to the trunk's), then the trunk
+        // from the top.
+        let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
+        for (step, &l) in order.iter().enumerate() {
+            let (i, o) = linears[l];
+            let layer = &self.layers[l];
+            let x = match below(l, hidden) {
+                Some(k) => self.output_of(k),
+                None => input,
+            };
+            let g = if acts[l] == Activation::Identity {
+                &layer.grad_post
+            } else {
+                let p = ActParams { rows, width: o as u32, kind: acts[l].kind(), temperature: acts[l].temperature() };
+                let n = if acts[l].kind() == ACT_SOFTMAX { rows } else { rows * o as u32 };
+                rec.pass("mlp.act_bwd", Kernel::NnActBwd)
+                    .read(&layer.pre)
+                    .read(&layer.post)
+                    .read(&layer.grad_post)
+                    .write(&layer.grad_pre)
+                    .push(&p)
+                    .dispatch(grid(n))?;
+                rec.barrier();
+                &layer.grad_pre
+            };
+            let (w_off, b_off) = self.offsets[l];
+            // dW (with db as the ones column): out × (in + 1) per split.
+            let p = GemmParams {
+                m: o as u32,
+                n: i as u32 + 1,
+                k: rows,
+                flags: GEMM_ONES_COLUMN,
+                a_sm: 1,
+                a_sk: o as u32,
+                b_sk: i as u32,
+                b_sn: 1,
+                ldc: i as u32 + 1,
+                k_chunk,
+                c_split: (o * (i + 1)) as u32,
+                ..Default::default()
+            };
+            Self::record_gemm(rec, "mlp.weight_grad", g, x, &self.params, &self.partials, p, splits)?;
+            // dX = g W, into the layer below's grad_post (heads: the trunk's; the first
+            // head overwrites, the others add).
+            let target = match below(l, hidden) {
+                Some(k) => Some(&self.layers[k].grad_post),
+                None => grad_input,
+            };
+            if let Some(target) = target {
+                // Every head adds to the trunk's gradient; the first one overwrites it.
+                let accumulate = l > hidden;
+                let p = GemmParams {
+                    m: rows,
+                    n: i as u32,
+                    k: o as u32,
+                    flags: if accumulate { GEMM_ACCUMULATE } else { 0 },
+                    a_sm: o as u32,
+                    a_sk: 1,
+                    b_off: w_off as u32,
+                    b_sk: i as u32,
+                    b_sn: 1,
+                    ldc: i as u32,
+                    k_chunk: o as u32,
+                    ..Default::default()
+                };
+                Self::record_gemm(rec, "mlp.input_grad", g, &self.params, &self.params, target, p, 1)?;
+            }
+            rec.barrier();
+            let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };
+            rec.pass("mlp.sum_weight_grad", Kernel::NnSumWeightGrad)
+                .read(&self.partials)
+                .write(&self.grads)
+                .push(&wp)
+                .dispatch(grid(wp.out_features * (wp.in_features + 1)))?;
+            // The next layer's dW reuses the partials, and reads the dX just written.
+            if step + 1 < order.len() {
+                rec.barrier();
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the CPU reference's forward pass saves: each linear layer's output before and
+/// after its activation (rows × width).
+#[derive(Clone, Debug)]
+pub struct ReferenceActivations<F> {
+    pub pre: Vec<Vec<F>>,
+    pub post: Vec<Vec<F>>,
+}
+
+impl<F: Real> ReferenceActivations<F> {
+    /// Head `h`'s output.
+    pub fn head(&self, desc: &MlpDesc, h: usize) -> &[F] {
+        &self.post[desc.hidden.len() + h]
+    }
+}
+
+fn apply<F: Real>(act: Activation, pre: &[F], width: usize) -> Vec<F> {
+    if let Activation::Softmax { temperature } = act {
+        let mut out = Vec::with_capacity(pre.len());
+        for row in pre.chunks_exact(width) {
+            let mut r = [F::zero(); SOFTMAX_MAX_WIDTH];
+            r[..width].copy_from_slice(row);
+            softmax_row(&mut r, width, F::of(temperature));
+            out.extend_from_slice(&r[..width]);
+        }
+        out
+    } else {
+        pre.iter().map(|&x| activate(act.kind(), x)).collect()
+    }
+}
+
+fn apply_bwd<F: Real>(act: Activation, pre: &[F], post: &[F], grad: &[F], width: usize) -> Vec<F> {
+    if let Activation::Softmax { temperature } = act {
+        let mut out = Vec::with_capacity(pre.len());
+        for (y, g) in post.chunks_exact(width).zip(grad.chunks_exact(width)) {
+            let mut yy = [F::zero(); SOFTMAX_MAX_WIDTH];
+            let mut gg = [F::zero(); SOFTMAX_MAX_WIDTH];
+            yy[..width].copy_from_slice(y);
+            gg[..width].copy_from_slice(g);
+            softmax_row_bwd(&yy, &mut gg, width, F::of(temperature));
+            out.extend_from_slice(&gg[..width]);
+        }
+        out
+    } else {
+        pre.iter().zip(post).zip(grad).map(|((&x, &y), &g)| activate_bwd(act.kind(), x, y, g)).collect()
+    }
+}
+
+fn linear<F: Real>(x: &[F], w: &[F], b: &[F], rows: usize, i: usize, o: usize) -> Vec<F> {
+    let mut y = vec![F::zero(); rows * o];
+    for r in 0..rows {
+        for c in 0..o {
+            let mut s = b[c];
+            for k in 0..i {
+                s += x[r * i + k] * w[c * i + k];
+            }
+            y[r * o + c] = s;
+        }
+    }
+    y
+}
+
+/// CPU reference of the forward pass.
+pub fn reference_forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> ReferenceActivations<F> {
+    let (offsets, _) = desc.layout();
+    let acts = desc.activations();
+    let hidden = desc.hidden.len();
+    let mut pre = Vec::new();
+    let mut post: Vec<Vec<F>> = Vec::new();
+    for (l, (i, o)) in desc.linears().into_iter().enumerate() {
+        let x: &[F] = match below(l, hidden) {
+            Some(k) => &post[k],
+            None => input,
+        };
+        let (w_off, b_off) = offsets[l];
+        let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
+        let a = apply(acts[l], &y, o);
+        pre.push(y);
+        post.push(a);
+    }
+    ReferenceActivations { pre, post }
+}
+
+/// CPU reference of the backward pass from the gradients on each head's output:
+/// (parameter gradients, input gradient).
+pub fn reference_backward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize, saved: &ReferenceActivations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+    let (offsets, len) = desc.layout();
+    let acts = desc.activations();
+    let linears = desc.linears();
+    let hidden = desc.hidden.len();
+    let mut grads = vec![F::zero(); len];
+    let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
+    for (h, g) in head_grads.iter().enumerate() {
+        grad_out[hidden + h] = g.clone();
+    }
+    let mut grad_input = vec![F::zero(); rows * desc.input];
+    let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
+    for l in order {
+        let (i, o) = linears[l];
+        let g = apply_bwd(acts[l], &saved.pre[l], &saved.post[l], &grad_out[l], o);
+        let x: &[F] = match below(l, hidden) {
+            Some(k) => &saved.post[k],
+            None => input,
+        };
+        let (w_off, b_off) = offsets[l];
+        let mut gx = vec![F::zero(); rows * i];
+        for r in 0..rows {
+            for c in 0..o {
+                let gc = g[r * o + c];
+                grads[b_off + c] += gc;
+                for k in 0..i {
+                    grads[w_off + c * i + k] += gc * x[r * i + k];
+                    gx[r * i + k] += gc * params[w_off + c * i + k];
+                }
+            }
+        }
+        let target = match below(l, hidden) {
+            Some(k) => &mut grad_out[k],
+            None => &mut grad_input,
+        };
+        for (d, v) in target.iter_mut().zip(gx) {
+            *d += v;
+        }
+    }
+    (grads, grad_input)
+}

@@ -1,0 +1,123 @@
+//! Per-Gaussian deformation and skinning with learned weights, forward and backward
+//! (`drape_shared::deform` is the math and says what happens to the rotation).
+//!
+//! `deform_fwd` bindings (n Gaussians): `transforms` 24×12, `means` n×3, `quats` n×4,
+//! `log_scales` n×3, `offsets` n×3, `rot6d` n×6, `log_scale_deltas` n×3, `weights`
+//! n×24 (read); `posed_means` n×3, `posed_quats` n×4, `posed_log_scales` n×3 (written).
+//! `deform_bwd`: the eight inputs, then `grad_posed_means`, `grad_posed_quats`,
+//! `grad_posed_log_scales` (read); `grad_means`, `grad_offsets`, `grad_rot6d`,
+//! `grad_log_scale_deltas`, `grad_weights` (written).
+
+use drape_shared::deform::{deform_bwd as bwd_math, deform_fwd as fwd_math, DeformInput, DeformOutput, DeformParams};
+use drape_shared::skinning::SKIN_JOINTS;
+use spirv_std::glam::UVec3;
+use spirv_std::spirv;
+
+fn v3(b: &[f32], i: usize) -> [f32; 3] {
+    [b[3 * i], b[3 * i + 1], b[3 * i + 2]]
+}
+
+#[allow(clippy::too_many_arguments)]
+fn load(i: usize, means: &[f32], quats: &[f32], log_scales: &[f32], offsets: &[f32], rot6d: &[f32], deltas: &[f32], weights: &[f32]) -> DeformInput<f32> {
+    let mut w = [0.0f32; SKIN_JOINTS];
+    let mut j = 0;
+    while j < SKIN_JOINTS {
+        w[j] = weights[i * SKIN_JOINTS + j];
+        j += 1;
+    }
+    DeformInput {
+        mean: v3(means, i),
+        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        log_scale: v3(log_scales, i),
+        offset: v3(offsets, i),
+        rot6d: [rot6d[6 * i], rot6d[6 * i + 1], rot6d[6 * i + 2], rot6d[6 * i + 3], rot6d[6 * i + 4], rot6d[6 * i + 5]],
+        log_scale_delta: v3(deltas, i),
+        weights: w,
+    }
+}
+
+fn store3(b: &mut [f32], i: usize, v: [f32; 3]) {
+    b[3 * i] = v[0];
+    b[3 * i + 1] = v[1];
+    b[3 * i + 2] = v[2];
+}
+
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(256)))]
+pub fn deform_fwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &DeformParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] transforms: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] offsets: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] rot6d: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] deltas: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] weights: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] posed_means: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] posed_quats: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] posed_log_scales: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.count {
+        return;
+    }
+    let g = load(i, means, quats, log_scales, offsets, rot6d, deltas, weights);
+    let out = fwd_math(&g, transforms);
+    store3(posed_means, i, out.mean);
+    let mut k = 0;
+    while k < 4 {
+        posed_quats[4 * i + k] = out.quat[k];
+        k += 1;
+    }
+    store3(posed_log_scales, i, out.log_scale);
+}
+
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(256)))]
+pub fn deform_bwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &DeformParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] transforms: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] offsets: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] rot6d: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] deltas: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] weights: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_posed_means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_posed_quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_posed_log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_means: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_offsets: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 13)] grad_rot6d: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 14)] grad_deltas: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 15)] grad_weights: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.count {
+        return;
+    }
+    let g = load(i, means, quats, log_scales, offsets, rot6d, deltas, weights);
+    let up = DeformOutput {
+        mean: v3(grad_posed_means, i),
+        quat: [grad_posed_quats[4 * i], grad_posed_quats[4 * i + 1], grad_posed_quats[4 * i + 2], grad_posed_quats[4 * i + 3]],
+        log_scale: v3(grad_posed_log_scales, i),
+    };
+    let out = bwd_math(&g, transforms, &up);
+    store3(grad_means, i, out.mean);
+    store3(grad_offsets, i, out.offset);
+    let mut k = 0;
+    while k < 6 {
+        grad_rot6d[6 * i + k] = out.rot6d[k];
+        k += 1;
+    }
+    store3(grad_deltas, i, out.log_scale_delta);
+    k = 0;
+    while k < SKIN_JOINTS {
+        grad_weights[i * SKIN_JOINTS + k] = out.weights[k];
+        k += 1;
+    }
+}

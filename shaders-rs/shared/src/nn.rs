@@ -1,0 +1,216 @@
+//! Neural-network math shared by the `nn::*` kernels and their CPU references: the
+//! tiled GEMM's parameters, the activations (GELU in PyTorch's erf form, sigmoid, exp,
+//! softmax with a temperature) and their derivatives.
+//!
+//! One GEMM serves a linear layer's forward and both halves of its backward because
+//! it addresses its operands by strides: `C[m][n] (+)= Σ_k A[m][k] B[k][n] (+ bias[n])`
+//! with `A[m][k] = a[a_off + m a_sm + k a_sk]` and `B[k][n] = b[b_off + k b_sk + n b_sn]`.
+//! For `y = x Wᵀ + b` with `x` rows × in and `W` out × in (PyTorch's layout):
+//! forward `A = x`, `B = Wᵀ`; `dx = dy W`; `dW = dyᵀ x`, with the bias gradient
+//! as one more column of `x` that is all ones ([`GEMM_ONES_COLUMN`]), the rows split
+//! into chunks whose partial sums a second kernel adds in a fixed order (no atomics,
+//! so the result is deterministic).
+
+use crate::real::Real;
+
+/// Output rows and columns one workgroup computes (each of its 256 invocations owns a
+/// 4 × 4 block).
+pub const GEMM_TILE: u32 = 64;
+/// Depth of one step through `k` (the workgroup-memory tiles are 64 × 16).
+pub const GEMM_K_STEP: u32 = 16;
+
+/// Add `bias[bias_off + n]` to every row.
+pub const GEMM_BIAS: u32 = 1;
+/// Add to `C` instead of overwriting it.
+pub const GEMM_ACCUMULATE: u32 = 2;
+/// `B[k][n] = 1` for `n = n_count - 1` (the bias column of a weight gradient).
+pub const GEMM_ONES_COLUMN: u32 = 4;
+
+/// Push constants of `nn::gemm`. The dispatch is `[ceil(n / 64), ceil(m / 64), splits]`;
+/// split `z` sums `k` over `[z k_chunk, (z + 1) k_chunk)` and writes its `C` at
+/// `c_off + z c_split + m ldc + n`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct GemmParams {
+    pub m: u32,
+    pub n: u32,
+    pub k: u32,
+    pub flags: u32,
+    pub a_off: u32,
+    pub a_sm: u32,
+    pub a_sk: u32,
+    pub b_off: u32,
+    pub b_sk: u32,
+    pub b_sn: u32,
+    pub c_off: u32,
+    pub ldc: u32,
+    pub bias_off: u32,
+    pub k_chunk: u32,
+    pub c_split: u32,
+    pub _pad: u32,
+}
+
+/// Push constants of `nn::sum_weight_grad`: adds `splits` partial `out × (in + 1)`
+/// matrices and writes the weight part to `grad[w_off..]` (out × in) and the last
+/// column to `grad[b_off..]` (out).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct WeightGradParams {
+    pub out_features: u32,
+    pub in_features: u32,
+    pub splits: u32,
+    pub w_off: u32,
+    pub b_off: u32,
+    pub _pad: [u32; 3],
+}
+
+/// No activation (a head's raw output).
+pub const ACT_IDENTITY: u32 = 0;
+/// `x Φ(x)`, PyTorch's default (erf) GELU.
+pub const ACT_GELU: u32 = 1;
+pub const ACT_SIGMOID: u32 = 2;
+pub const ACT_EXP: u32 = 3;
+/// `softmax(x / T)` over each whole row.
+pub const ACT_SOFTMAX: u32 = 4;
+
+/// Push constants of `nn::act_fwd` / `nn::act_bwd`: `rows × width`, row-major.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ActParams {
+    pub rows: u32,
+    pub width: u32,
+    pub kind: u32,
+    /// Softmax temperature.
+    pub temperature: f32,
+}
+
+/// Longest row a softmax kernel handles (SMPL's 24 joints fit).
+pub const SOFTMAX_MAX_WIDTH: usize = 32;
+
+/// `erfc(x)` with fractional error below 1.2e-7 everywhere (Numerical Recipes'
+/// Chebyshev fit `erfcc`): relative accuracy also in the tail, where `1 - erf(x)`
+/// would cancel; only adds, multiplies and one `exp`.
+#[inline]
+pub fn erfc<F: Real>(x: F) -> F {
+    let c = F::of;
+    let z = x.abs();
+    let t = F::one() / (F::one() + c(0.5) * z);
+    let poly = c(-1.265_512_2)
+        + t * (c(1.000_023_7)
+            + t * (c(0.374_091_96)
+                + t * (c(0.096_784_18)
+                    + t * (c(-0.186_288_06)
+                        + t * (c(0.278_868_07) + t * (c(-1.135_203_98) + t * (c(1.488_515_87) + t * (c(-0.822_152_23) + t * c(0.170_872_77)))))))));
+    let ans = t * (poly - z * z).exp_k();
+    if x >= F::zero() {
+        ans
+    } else {
+        c(2.0) - ans
+    }
+}
+
+/// `Φ(x)`, the standard normal CDF.
+#[inline]
+pub fn normal_cdf<F: Real>(x: F) -> F {
+    F::of(0.5) * erfc(-x * F::of(core::f32::consts::FRAC_1_SQRT_2))
+}
+
+/// GELU, erf form: `x Φ(x)`. Finite for every finite `x` (0 below -14, `x` above 14).
+#[inline]
+pub fn gelu<F: Real>(x: F) -> F {
+    x * normal_cdf(x)
+}
+
+/// `d gelu / dx = Φ(x) + x φ(x)`.
+#[inline]
+pub fn gelu_grad<F: Real>(x: F) -> F {
+    let pdf = F::of(0.398_942_28) * (F::of(-0.5) * x * x).exp_k();
+    normal_cdf(x) + x * pdf
+}
+
+/// Logistic sigmoid, evaluated so that neither branch overflows (finite at ±80 and
+/// beyond).
+#[inline]
+pub fn sigmoid<F: Real>(x: F) -> F {
+    if x >= F::zero() {
+        F::one() / (F::one() + (-x).exp_k())
+    } else {
+        let e = x.exp_k();
+        e / (F::one() + e)
+    }
+}
+
+/// Element-wise activation (not softmax).
+#[inline]
+pub fn activate<F: Real>(kind: u32, x: F) -> F {
+    if kind == ACT_GELU {
+        gelu(x)
+    } else if kind == ACT_SIGMOID {
+        sigmoid(x)
+    } else if kind == ACT_EXP {
+        x.exp_k()
+    } else {
+        x
+    }
+}
+
+/// Gradient on the input of an element-wise activation from the gradient `g` on its
+/// output, given the input `x` and the output `y`.
+#[inline]
+pub fn activate_bwd<F: Real>(kind: u32, x: F, y: F, g: F) -> F {
+    if kind == ACT_GELU {
+        g * gelu_grad(x)
+    } else if kind == ACT_SIGMOID {
+        g * y * (F::one() - y)
+    } else if kind == ACT_EXP {
+        g * y
+    } else {
+        g
+    }
+}
+
+/// `softmax(x / t)` of one row of `width <= SOFTMAX_MAX_WIDTH` values, in place.
+/// Subtracts the row's largest value first, so logits of any finite size stay finite.
+#[inline]
+pub fn softmax_row<F: Real>(row: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F) {
+    let mut max = row[0];
+    let mut j = 1;
+    while j < width {
+        if row[j] > max {
+            max = row[j];
+        }
+        j += 1;
+    }
+    let mut sum = F::zero();
+    j = 0;
+    while j < width {
+        row[j] = ((row[j] - max) / t).exp_k();
+        sum += row[j];
+        j += 1;
+    }
+    j = 0;
+    while j < width {
+        row[j] /= sum;
+        j += 1;
+    }
+}
+
+/// Gradient on the logits of `y = softmax(x / t)`: `(y ⊙ (g - Σ g y)) / t`, in place
+/// over `g`.
+#[inline]
+pub fn softmax_row_bwd<F: Real>(y: &[F; SOFTMAX_MAX_WIDTH], g: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F) {
+    let mut dot = F::zero();
+    let mut j = 0;
+    while j < width {
+        dot += g[j] * y[j];
+        j += 1;
+    }
+    j = 0;
+    while j < width {
+        g[j] = y[j] * (g[j] - dot) / t;
+        j += 1;
+    }
+}

@@ -1,0 +1,189 @@
+//! MLPs on the GPU against the CPU reference (f64), and the reference's gradients
+//! against central differences in f64.
+
+use drape_engine::ops::nn::{reference_backward, reference_forward, Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::{Buffer, Context};
+use drape_tests::gpu;
+use rand::{Rng, SeedableRng};
+
+/// A small MLP with every activation and several heads.
+fn small_desc() -> MlpDesc {
+    MlpDesc {
+        input: 7,
+        hidden: vec![(16, Activation::Gelu), (13, Activation::Gelu)],
+        heads: vec![
+            HeadDesc::new("opacity", 1, Activation::Sigmoid),
+            HeadDesc::new("raw", 5, Activation::Identity),
+            HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
+            HeadDesc::new("scale", 2, Activation::Exp),
+        ],
+    }
+}
+
+fn random(len: usize, amp: f64, seed: u64) -> Vec<f64> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    (0..len).map(|_| rng.random_range(-amp..amp)).collect()
+}
+
+fn to_f32(v: &[f64]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32).collect()
+}
+
+fn to_f64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+/// Largest |a - b| divided by the largest |b| (at least `floor`): a relative error of
+/// the whole array, so entries near zero are not judged on their own.
+fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
+    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+struct GpuRun {
+    heads: Vec<Vec<f64>>,
+    grads: Vec<f64>,
+    grad_input: Vec<f64>,
+}
+
+fn run_gpu(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_grads: &[Vec<f64>], rows: usize) -> GpuRun {
+    let mut mlp = Mlp::with_params(ctx, "test mlp", desc.clone(), rows, &to_f32(params)).expect("mlp");
+    let x = ctx.upload("test input", &to_f32(input)).expect("upload");
+    let mut gx: Buffer = ctx.create_buffer("test grad input", drape_engine::BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
+    for (h, g) in head_grads.iter().enumerate() {
+        mlp.write_head_grad(ctx, h, &to_f32(g)).expect("write head grad");
+    }
+    {
+        let mut rec = ctx.record("mlp test").expect("record");
+        mlp.record_forward(&mut rec, &x, rows as u32).expect("fwd");
+        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx)).expect("bwd");
+        rec.submit_and_wait().expect("submit");
+    }
+    let mut heads = Vec::new();
+    for h in 0..desc.heads.len() {
+        heads.push(to_f64(&mlp.read_head(ctx, h, rows).expect("read head")));
+    }
+    let n = mlp.param_count();
+    let grads = to_f64(&ctx.read_buffer::<f32>(&mut mlp.grads, n).expect("read grads"));
+    let grad_input = to_f64(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read gx"));
+    GpuRun { heads, grads, grad_input }
+}
+
+#[test]
+fn mlp_gpu_matches_cpu_reference() {
+    let ctx = gpu();
+    let desc = small_desc();
+    let params = to_f64(&desc.init_params(3));
+    for rows in [0usize, 1, 7, 1000, 100_003] {
+        let input = random(rows * desc.input, 2.0, rows as u64);
+        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 100 + h as u64)).collect();
+        let saved = reference_forward(&desc, &params, &input, rows);
+        let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
+        for h in 0..desc.heads.len() {
+            // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.
+            let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
+            assert!(e <= 1e-5, "rows {rows} head {}: forward relative error {e:e}", desc.heads[h].name);
+        }
+        // Weight gradients sum up to 100k rows in f32 (chunks of 1024, then in order):
+        // relative rounding ~1e-6 · sqrt(chunks); 1e-4 leaves a margin of ten.
+        let e = rel_err(&run.grads, &ref_grads, 1e-3);
+        assert!(e <= 1e-4, "rows {rows}: parameter gradient relative error {e:e}");
+        let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
+        assert!(e <= 1e-4, "rows {rows}: input gradient relative error {e:e}");
+    }
+}
+
+#[test]
+fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
+    let ctx = gpu();
+    let rows = 300;
+    for desc in [MlpDesc::hugs_appearance(96, 48), MlpDesc::hugs_geometry(96), MlpDesc::hugs_deformation(96)] {
+        let params = to_f64(&desc.init_params(11));
+        let input = random(rows * desc.input, 1.0, 5);
+        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 50 + h as u64)).collect();
+        let saved = reference_forward(&desc, &params, &input, rows);
+        let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
+        for h in 0..desc.heads.len() {
+            // Sums of up to 128 products in f32.
+            let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
+            assert!(e <= 1e-5, "{}: forward relative error {e:e}", desc.heads[h].name);
+        }
+        let e = rel_err(&run.grads, &ref_grads, 1e-3);
+        assert!(e <= 1e-4, "parameter gradient relative error {e:e}");
+        let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
+        assert!(e <= 1e-4, "input gradient relative error {e:e}");
+    }
+}
+
+/// Loss `Σ_h Σ head_h ⊙ c_h` in f64.
+fn loss(desc: &MlpDesc, params: &[f64], input: &[f64], rows: usize, coeffs: &[Vec<f64>]) -> f64 {
+    let saved = reference_forward(desc, params, input, rows);
+    (0..desc.heads.len()).map(|h| saved.head(desc, h).iter().zip(&coeffs[h]).map(|(a, b)| a * b).sum::<f64>()).sum()
+}
+
+#[test]
+fn mlp_gradients_match_central_differences() {
+    let desc = small_desc();
+    let rows = 3;
+    let params = to_f64(&desc.init_params(7));
+    let input = random(rows * desc.input, 2.0, 9);
+    let coeffs: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 20 + h as u64)).collect();
+    let saved = reference_forward(&desc, &params, &input, rows);
+    let (grads, gx) = reference_backward(&desc, &params, &input, rows, &saved, &coeffs);
+    let h = 1e-6;
+    let check = |analytic: &[f64], values: &[f64], set: &dyn Fn(usize, f64) -> f64, what: &str| {
+        let numeric: Vec<f64> = (0..values.len()).map(|i| (set(i, values[i] + h) - set(i, values[i] - h)) / (2.0 * h)).collect();
+        // Central differences at h = 1e-6 in f64: truncation ~h² · f''' and rounding
+        // ~1e-16 / h ≈ 1e-10; 1e-6 of the largest gradient bounds both.
+        let e = rel_err(analytic, &numeric, 1e-6);
+        assert!(e <= 1e-6, "{what}: relative error {e:e} against central differences");
+    };
+    check(&grads, &params, &|i, v| {
+        let mut p = params.clone();
+        p[i] = v;
+        loss(&desc, &p, &input, rows, &coeffs)
+    }, "parameters");
+    check(&gx, &input, &|i, v| {
+        let mut x = input.clone();
+        x[i] = v;
+        loss(&desc, &params, &x, rows, &coeffs)
+    }, "input");
+}
+
+#[test]
+fn activations_stay_finite_at_the_extremes() {
+    let ctx = gpu();
+    // One hidden layer that passes its input through (identity weights), so the heads
+    // see the extreme values as logits.
+    let desc = MlpDesc {
+        input: 4,
+        hidden: vec![(4, Activation::Gelu)],
+        heads: vec![HeadDesc::new("sigmoid", 4, Activation::Sigmoid), HeadDesc::new("softmax", 4, Activation::Softmax { temperature: 0.1 })],
+    };
+    let (offsets, len) = desc.layout();
+    let mut params = vec![0.0f64; len];
+    for l in 0..3 {
+        for i in 0..4 {
+            params[offsets[l].0 + i * 4 + i] = 1.0;
+        }
+    }
+    // GELU of ±1e4 is 1e4 and -0; the heads then see ±80 scaled by the identity.
+    let input = vec![1e4, -1e4, 80.0, -80.0, 80.0, -80.0, 0.0, 1e-3];
+    let rows = 2;
+    let head_grads = vec![vec![1.0; 8], vec![0.5; 8]];
+    let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
+    let saved = reference_forward(&desc, &params, &input, rows);
+    for v in run.heads.iter().flatten().chain(&run.grads).chain(&run.grad_input) {
+        assert!(v.is_finite(), "non-finite value {v} at extreme logits");
+    }
+    // sigmoid(1e4) = 1, sigmoid(gelu(-1e4) = 0) = 0.5, sigmoid(80) = 1, sigmoid(gelu(-80)) = 0.5.
+    let expect = [1.0, 0.5, 1.0, 0.5];
+    for (a, b) in run.heads[0][..4].iter().zip(expect) {
+        assert!((a - b).abs() < 1e-6, "sigmoid head {a} vs {b}");
+    }
+    let e = rel_err(&run.heads[1], saved.head(&desc, 1), 1e-3);
+    assert!(e <= 1e-5, "softmax at extreme logits: relative error {e:e}");
+}
