@@ -57,7 +57,7 @@ fn run_gpu(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_gr
     {
         let mut rec = ctx.record("mlp test").expect("record");
         mlp.record_forward(&mut rec, &x, rows as u32).expect("fwd");
-        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx)).expect("bwd");
+        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false).expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
     let mut heads = Vec::new();

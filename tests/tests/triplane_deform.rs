@@ -245,7 +245,7 @@ fn deform_gpu_matches_cpu_reference() {
             let inputs = DeformInputs { transforms: &t, means: &m, quats: &q, log_scales: &s, offsets: &o, rot6d: &r6, log_scale_deltas: &ds, weights: &w };
             let grads = DeformGrads { means: &gm, offsets: &go, rot6d: &g6, log_scale_deltas: &gd, weights: &gw };
             let mut rec = ctx.record("deform test").expect("record");
-            deform::record_forward(&mut rec, &inputs, &pm, &pq, &ps, n as u32).expect("fwd");
+            deform::record_forward(&mut rec, &inputs, &pm, &pq, &ps, n as u32, 0.0).expect("fwd");
             deform::record_backward(&mut rec, &inputs, &gum, &guq, &gus, &grads, n as u32).expect("bwd");
             rec.submit_and_wait().expect("submit");
         }

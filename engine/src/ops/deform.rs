@@ -41,8 +41,11 @@ impl<'a> DeformInputs<'a> {
 
 /// Records the posed means (n × 3), quaternions (n × 4, not normalised) and
 /// log-scales (n × 3).
-pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32) -> Result<()> {
-    let p = DeformParams { count, _pad: [0; 3] };
+/// `log_scale_offset` (`ln` of the frame's global scale) is added to every posed
+/// log-scale; the transforms carry the same scale for the means.
+#[allow(clippy::too_many_arguments)]
+pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32, log_scale_offset: f32) -> Result<()> {
+    let p = DeformParams { count, log_scale_offset, _pad: [0; 2] };
     rec.pass("deform.fwd", Kernel::DeformDeformFwd)
         .read_all(inputs.all())
         .write(posed_means)
@@ -73,7 +76,7 @@ pub fn record_backward<'a>(
     out: &DeformGrads<'a>,
     count: u32,
 ) -> Result<()> {
-    let p = DeformParams { count, _pad: [0; 3] };
+    let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
     rec.pass("deform.bwd", Kernel::DeformDeformBwd)
         .read_all(inputs.all())
         .read(grad_posed_means)

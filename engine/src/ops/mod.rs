@@ -2,6 +2,7 @@
 //! its recording, and the CPU reference it is tested against lives beside the kernel
 //! math in `drape-shared`.
 
+pub mod adam;
 pub mod deform;
 pub mod nn;
 pub mod radix_sort;

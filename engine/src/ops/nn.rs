@@ -412,8 +412,10 @@ impl Mlp {
     /// Records the backward pass: reads the gradients the caller wrote into every
     /// [`head_grad`](Self::head_grad), writes the parameter gradients to `grads` and,
     /// when given, the input's gradient (rows × `desc.input`) to `grad_input`.
-    /// `input` and `rows` must be those of the last forward pass.
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32, grad_input: Option<&'a Buffer>) -> Result<()> {
+    /// `input` and `rows` must be those of the last forward pass. With `add_to_grad_input`
+    /// the input's gradient is added to what `grad_input` holds (several MLPs reading
+    /// one input).
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32, grad_input: Option<&'a Buffer>, add_to_grad_input: bool) -> Result<()> {
         assert!(rows <= self.max_rows, "{rows} rows for an MLP of {}", self.max_rows);
         let acts = self.desc.activations();
         let linears = self.desc.linears();
@@ -469,7 +471,7 @@ impl Mlp {
             };
             if let Some(target) = target {
                 // Every head adds to the trunk's gradient; the first one overwrites it.
-                let accumulate = l > hidden;
+                let accumulate = l > hidden || (below(l, hidden).is_none() && add_to_grad_input);
                 let p = GemmParams {
                     m: rows,
                     n: i as u32,

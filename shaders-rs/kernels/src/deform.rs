@@ -71,7 +71,8 @@ pub fn deform_fwd(
         posed_quats[4 * i + k] = out.quat[k];
         k += 1;
     }
-    store3(posed_log_scales, i, out.log_scale);
+    let o = p.log_scale_offset;
+    store3(posed_log_scales, i, [out.log_scale[0] + o, out.log_scale[1] + o, out.log_scale[2] + o]);
 }
 
 #[allow(clippy::too_many_arguments)]

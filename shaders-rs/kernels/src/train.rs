@@ -64,3 +64,18 @@ pub fn l1_grad(
     grad[i] = if d > 0.0 { p.scale } else if d < 0.0 { -p.scale } else { 0.0 };
     abs_error[i] = d.abs();
 }
+
+/// `dst[i] += src[i]` (sums gradients that reach one parameter along two paths).
+#[spirv(compute(threads(256)))]
+pub fn add_into(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &LossParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] src: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
+) {
+    let i = id.x as usize;
+    if id.x >= p.len {
+        return;
+    }
+    dst[i] += src[i];
+}

@@ -27,11 +27,13 @@ pub const NORMALIZE_EPS: f32 = 1e-12;
 
 /// Push constants of the `deform::*` kernels.
 #[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
 pub struct DeformParams {
     pub count: u32,
-    pub _pad: [u32; 3],
+    /// Added to every posed log-scale: `ln` of the frame's global body scale.
+    pub log_scale_offset: f32,
+    pub _pad: [u32; 2],
 }
 
 /// `a × b`.
