@@ -167,6 +167,11 @@ impl<'a> PassBuilder<'_, 'a> {
 }
 
 impl<'a> Recording<'a> {
+    /// The context this recording belongs to.
+    pub fn context(&self) -> &Context {
+        &self.ctx
+    }
+
     /// Describes a compute pass named `name` running `kernel`.
     pub fn pass<'r>(&'r mut self, name: &str, kernel: Kernel) -> PassBuilder<'r, 'a> {
         PassBuilder { rec: self, name: name.to_string(), kernel, buffers: Vec::new(), push: Vec::new() }

@@ -1,7 +1,7 @@
 //! MLPs on the GPU against the CPU reference (f64), and the reference's gradients
 //! against central differences in f64.
 
-use drape_engine::ops::nn::{reference_backward, reference_forward, Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{reference_backward, reference_forward, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::{Buffer, Context};
 use drape_tests::gpu;
 use rand::{Rng, SeedableRng};
@@ -48,7 +48,12 @@ struct GpuRun {
 }
 
 fn run_gpu(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_grads: &[Vec<f64>], rows: usize) -> GpuRun {
+    run_gpu_with(ctx, desc, params, input, head_grads, rows, GemmVariant::Auto)
+}
+
+fn run_gpu_with(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_grads: &[Vec<f64>], rows: usize, variant: GemmVariant) -> GpuRun {
     let mut mlp = Mlp::with_params(ctx, "test mlp", desc.clone(), rows, &to_f32(params)).expect("mlp");
+    mlp.variant = variant;
     let x = ctx.upload("test input", &to_f32(input)).expect("upload");
     let mut gx: Buffer = ctx.create_buffer("test grad input", drape_engine::BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
     for (h, g) in head_grads.iter().enumerate() {
@@ -80,18 +85,20 @@ fn mlp_gpu_matches_cpu_reference() {
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 100 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
-        let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
-        for h in 0..desc.heads.len() {
-            // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.
-            let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
-            assert!(e <= 1e-5, "rows {rows} head {}: forward relative error {e:e}", desc.heads[h].name);
+        for variant in [GemmVariant::Tiled, GemmVariant::Blocked] {
+            let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
+            for h in 0..desc.heads.len() {
+                // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.
+                let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
+                assert!(e <= 1e-5, "{variant:?}, rows {rows} head {}: forward relative error {e:e}", desc.heads[h].name);
+            }
+            // Weight gradients sum up to 100k rows in f32 (chunks of >= 1024, then in
+            // order): relative rounding ~1e-6 · sqrt(chunks); 1e-4 leaves a margin.
+            let e = rel_err(&run.grads, &ref_grads, 1e-3);
+            assert!(e <= 1e-4, "{variant:?}, rows {rows}: parameter gradient relative error {e:e}");
+            let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
+            assert!(e <= 1e-4, "{variant:?}, rows {rows}: input gradient relative error {e:e}");
         }
-        // Weight gradients sum up to 100k rows in f32 (chunks of 1024, then in order):
-        // relative rounding ~1e-6 · sqrt(chunks); 1e-4 leaves a margin of ten.
-        let e = rel_err(&run.grads, &ref_grads, 1e-3);
-        assert!(e <= 1e-4, "rows {rows}: parameter gradient relative error {e:e}");
-        let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
-        assert!(e <= 1e-4, "rows {rows}: input gradient relative error {e:e}");
     }
 }
 

@@ -3,6 +3,7 @@
 //! garments, cloth simulation, datasets, training and evaluation.
 #![forbid(unsafe_code)]
 
+pub mod avatar;
 pub mod body;
 pub mod cloth;
 pub mod dataset;

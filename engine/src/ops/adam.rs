@@ -4,6 +4,8 @@
 //! moments; [`AdamGroup::reset_rows`] zeroes the moments of rows that densification
 //! adds.
 
+use std::cell::Cell;
+
 use drape_shared::adam::AdamParams;
 
 use crate::buffer::{Buffer, BufferDesc};
@@ -49,7 +51,9 @@ pub struct AdamGroup {
     pub beta1: f32,
     pub beta2: f32,
     pub eps: f32,
-    step: u32,
+    /// Steps recorded so far (a `Cell` so that a step borrows the group immutably for
+    /// the recording's lifetime, like every other buffer it records).
+    step: Cell<u32>,
     m: Buffer,
     v: Buffer,
 }
@@ -63,26 +67,26 @@ impl AdamGroup {
         rec.fill(&m, 0);
         rec.fill(&v, 0);
         rec.submit_and_wait()?;
-        Ok(Self { name: name.to_string(), len, schedule, beta1: 0.9, beta2: 0.999, eps: 1e-15, step: 0, m, v })
+        Ok(Self { name: name.to_string(), len, schedule, beta1: 0.9, beta2: 0.999, eps: 1e-15, step: Cell::new(0), m, v })
     }
 
     /// Steps taken so far.
     pub fn steps(&self) -> u32 {
-        self.step
+        self.step.get()
     }
 
     /// The learning rate the next step uses.
     pub fn lr(&self) -> f32 {
-        self.schedule.at(self.step)
+        self.schedule.at(self.step.get())
     }
 
     /// Records one step on `params` from `grads` (both at least `len` floats). A
     /// non-finite gradient element leaves its parameter and moments unchanged.
-    pub fn record_step<'a>(&'a mut self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer) -> Result<()> {
+    pub fn record_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer) -> Result<()> {
         assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
         let lr = self.lr();
-        self.step += 1;
-        let t = self.step as i32;
+        self.step.set(self.step.get() + 1);
+        let t = self.step.get() as i32;
         let pc = AdamParams {
             len: self.len as u32,
             lr,
@@ -112,7 +116,7 @@ impl AdamGroup {
         assert!(m.len() == self.len && v.len() == self.len, "Adam group '{}': moments of the wrong length", self.name);
         ctx.write_buffer(&mut self.m, m)?;
         ctx.write_buffer(&mut self.v, v)?;
-        self.step = step;
+        self.step.set(step);
         Ok(())
     }
 }

@@ -16,13 +16,13 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_ONES_COLUMN, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::context::Context;
+use crate::context::{Context, DeviceKind};
 use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
 use crate::recorder::Recording;
@@ -200,8 +200,22 @@ impl MlpDesc {
     }
 }
 
-/// Largest number of rows the weight gradient is split into.
-const MAX_SPLITS: u32 = 64;
+/// Which GEMM kernel an [`Mlp`] records.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum GemmVariant {
+    /// Register-blocked on CPU devices (lavapipe), tiled through workgroup memory on
+    /// GPUs.
+    #[default]
+    Auto,
+    /// `nn::gemm_tiled`: slices of `B` staged in workgroup memory.
+    Tiled,
+    /// `nn::gemm_blocked`: 8 × 8 blocks in registers.
+    Blocked,
+}
+
+/// Largest number of chunks the weight gradient's rows are split into (2M rows give
+/// chunks of 8,192, well inside llvmpipe's 65,535 loop iterations per invocation).
+const MAX_SPLITS: u32 = 256;
 /// Fewest rows one split of the weight gradient sums.
 const MIN_ROWS_PER_SPLIT: u32 = 1024;
 
@@ -229,6 +243,8 @@ struct LayerBuffers {
 /// An MLP's parameters, gradients and saved activations on the GPU.
 pub struct Mlp {
     pub desc: MlpDesc,
+    /// The GEMM kernel to record (both give the same sums in the same order).
+    pub variant: GemmVariant,
     max_rows: u32,
     offsets: Vec<(usize, usize)>,
     /// All weights and biases (see the module header).
@@ -294,6 +310,7 @@ impl Mlp {
         ctx.write_buffer(&mut p, params)?;
         Ok(Self {
             desc,
+            variant: GemmVariant::Auto,
             max_rows: max_rows_u32,
             offsets,
             params: p,
@@ -352,14 +369,18 @@ impl Mlp {
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn record_gemm<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
-        rec.pass(name, Kernel::NnGemm)
-            .read(a)
-            .read(b)
-            .read(bias)
-            .write(c)
-            .push(&p)
-            .dispatch([p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits])
+    fn record_gemm<'a>(&self, rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
+        let blocked = match self.variant {
+            GemmVariant::Auto => rec.context().info().kind == DeviceKind::Cpu,
+            GemmVariant::Tiled => false,
+            GemmVariant::Blocked => true,
+        };
+        let (kernel, groups) = if blocked {
+            (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits])
+        } else {
+            (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_COLS), p.m.div_ceil(GEMM_ROWS), splits])
+        };
+        rec.pass(name, kernel).read(a).read(b).read(bias).write(c).push(&p).dispatch(groups)
     }
 
     fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
@@ -396,7 +417,7 @@ impl Mlp {
                 ..Default::default()
             };
             let layer = &self.layers[l];
-            Self::record_gemm(rec, "mlp.linear_fwd", x, &self.params, &self.params, &layer.pre, p, 1)?;
+            self.record_gemm(rec, "mlp.linear_fwd", x, &self.params, &self.params, &layer.pre, p, 1)?;
             if acts[l] != Activation::Identity {
                 rec.barrier();
                 Self::record_act(rec, "mlp.act_fwd", acts[l], &layer.pre, &layer.post, rows, o as u32)?;
@@ -447,22 +468,22 @@ impl Mlp {
                 &layer.grad_pre
             };
             let (w_off, b_off) = self.offsets[l];
-            // dW (with db as the ones column): out × (in + 1) per split.
+            // dWᵀ = xᵀ g (with db as the ones row): (in + 1) × out per split.
             let p = GemmParams {
-                m: o as u32,
-                n: i as u32 + 1,
+                m: i as u32 + 1,
+                n: o as u32,
                 k: rows,
-                flags: GEMM_ONES_COLUMN,
+                flags: GEMM_ONES_ROW,
                 a_sm: 1,
-                a_sk: o as u32,
-                b_sk: i as u32,
+                a_sk: i as u32,
+                b_sk: o as u32,
                 b_sn: 1,
-                ldc: i as u32 + 1,
+                ldc: o as u32,
                 k_chunk,
                 c_split: (o * (i + 1)) as u32,
                 ..Default::default()
             };
-            Self::record_gemm(rec, "mlp.weight_grad", g, x, &self.params, &self.partials, p, splits)?;
+            self.record_gemm(rec, "mlp.weight_grad", x, g, &self.params, &self.partials, p, splits)?;
             // dX = g W, into the layer below's grad_post (heads: the trunk's; the first
             // head overwrites, the others add).
             let target = match below(l, hidden) {
@@ -486,7 +507,7 @@ impl Mlp {
                     k_chunk: o as u32,
                     ..Default::default()
                 };
-                Self::record_gemm(rec, "mlp.input_grad", g, &self.params, &self.params, target, p, 1)?;
+                self.record_gemm(rec, "mlp.input_grad", g, &self.params, &self.params, target, p, 1)?;
             }
             rec.barrier();
             let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };

@@ -1,30 +1,434 @@
-//! Dense layers on the GPU: a tiled GEMM in workgroup memory (forward and both halves
-//! of the backward of `y = x Wᵀ + b`, chosen by strides: see `drape_shared::nn`), the
-//! deterministic reduction of split weight gradients, and the activations.
+//! Dense layers on the GPU: GEMM (forward and both halves of the backward of
+//! `y = x Wᵀ + b`, chosen by strides: see `drape_shared::nn`) in two variants with the
+//! same bindings and parameters, the deterministic reduction of split weight
+//! gradients, and the activations.
 //!
-//! `gemm` bindings: `a`, `b`, `bias` (read), `c` (written, or added to). One workgroup
-//! of 16 × 16 invocations computes a 64 × 64 block of `C`, each invocation a 4 × 4
-//! sub-block, stepping through `k` 16 at a time with the 64 × 16 slices of `A` and `B`
-//! staged in workgroup memory (two barriers per step).
+//! `gemm_tiled` / `gemm_blocked` bindings: `a`, `b`, `bias` (read), `c` (written, or
+//! added to). `gemm_tiled` (GPUs) stages slices of `B` in workgroup memory;
+//! `gemm_blocked` (CPU devices) keeps an 8 × 8 block per invocation in registers.
 //! `sum_weight_grad` bindings: `partials` (read), `grad` (written).
 //! `act_fwd`: `pre` (read), `post` (written). `act_bwd`: `pre`, `post`, `grad_post`
 //! (read), `grad_pre` (written).
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_SOFTMAX,
-    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_K_STEP, GEMM_ONES_COLUMN, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
-const TILE: usize = GEMM_TILE as usize;
+const COLS: usize = GEMM_COLS as usize;
 const KS: usize = GEMM_K_STEP as usize;
-const STAGED: usize = TILE * KS;
+const STAGED: usize = KS * COLS;
+const PER_INVOCATION: usize = STAGED / GEMM_ROWS as usize;
 
-/// `C (+)= A B (+ bias)` for one 64 × 64 block of one split of `k`.
-#[spirv(compute(threads(16, 16)))]
-pub fn gemm(
+/// `acc[j] += a * tile[base + j]` for the 32 columns, written out so that every index
+/// is a constant and the accumulators stay in registers.
+macro_rules! fma_row {
+    ($acc:ident, $a:expr, $tile:ident, $base:expr) => {{
+        let a = $a;
+        let base = $base;
+        $acc[0] += a * $tile[base + 0];
+        $acc[1] += a * $tile[base + 1];
+        $acc[2] += a * $tile[base + 2];
+        $acc[3] += a * $tile[base + 3];
+        $acc[4] += a * $tile[base + 4];
+        $acc[5] += a * $tile[base + 5];
+        $acc[6] += a * $tile[base + 6];
+        $acc[7] += a * $tile[base + 7];
+        $acc[8] += a * $tile[base + 8];
+        $acc[9] += a * $tile[base + 9];
+        $acc[10] += a * $tile[base + 10];
+        $acc[11] += a * $tile[base + 11];
+        $acc[12] += a * $tile[base + 12];
+        $acc[13] += a * $tile[base + 13];
+        $acc[14] += a * $tile[base + 14];
+        $acc[15] += a * $tile[base + 15];
+        $acc[16] += a * $tile[base + 16];
+        $acc[17] += a * $tile[base + 17];
+        $acc[18] += a * $tile[base + 18];
+        $acc[19] += a * $tile[base + 19];
+        $acc[20] += a * $tile[base + 20];
+        $acc[21] += a * $tile[base + 21];
+        $acc[22] += a * $tile[base + 22];
+        $acc[23] += a * $tile[base + 23];
+        $acc[24] += a * $tile[base + 24];
+        $acc[25] += a * $tile[base + 25];
+        $acc[26] += a * $tile[base + 26];
+        $acc[27] += a * $tile[base + 27];
+        $acc[28] += a * $tile[base + 28];
+        $acc[29] += a * $tile[base + 29];
+        $acc[30] += a * $tile[base + 30];
+        $acc[31] += a * $tile[base + 31];
+    }};
+}
+
+/// Stores (adds the bias to, or accumulates) the accumulators of the columns inside
+/// the matrix, each with a constant index.
+macro_rules! store_row {
+    ($acc:ident, $n0:expr, $p:ident, $row:expr, $bias:ident, $c:ident) => {{
+        if $n0 + 0 < $p.n {
+            let at = ($row + 0) as usize;
+            let mut v = $acc[0];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 1 < $p.n {
+            let at = ($row + 1) as usize;
+            let mut v = $acc[1];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 2 < $p.n {
+            let at = ($row + 2) as usize;
+            let mut v = $acc[2];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 3 < $p.n {
+            let at = ($row + 3) as usize;
+            let mut v = $acc[3];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 4 < $p.n {
+            let at = ($row + 4) as usize;
+            let mut v = $acc[4];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 5 < $p.n {
+            let at = ($row + 5) as usize;
+            let mut v = $acc[5];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 6 < $p.n {
+            let at = ($row + 6) as usize;
+            let mut v = $acc[6];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 7 < $p.n {
+            let at = ($row + 7) as usize;
+            let mut v = $acc[7];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 8 < $p.n {
+            let at = ($row + 8) as usize;
+            let mut v = $acc[8];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 8) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 9 < $p.n {
+            let at = ($row + 9) as usize;
+            let mut v = $acc[9];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 9) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 10 < $p.n {
+            let at = ($row + 10) as usize;
+            let mut v = $acc[10];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 10) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 11 < $p.n {
+            let at = ($row + 11) as usize;
+            let mut v = $acc[11];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 11) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 12 < $p.n {
+            let at = ($row + 12) as usize;
+            let mut v = $acc[12];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 12) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 13 < $p.n {
+            let at = ($row + 13) as usize;
+            let mut v = $acc[13];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 13) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 14 < $p.n {
+            let at = ($row + 14) as usize;
+            let mut v = $acc[14];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 14) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 15 < $p.n {
+            let at = ($row + 15) as usize;
+            let mut v = $acc[15];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 15) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 16 < $p.n {
+            let at = ($row + 16) as usize;
+            let mut v = $acc[16];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 16) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 17 < $p.n {
+            let at = ($row + 17) as usize;
+            let mut v = $acc[17];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 17) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 18 < $p.n {
+            let at = ($row + 18) as usize;
+            let mut v = $acc[18];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 18) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 19 < $p.n {
+            let at = ($row + 19) as usize;
+            let mut v = $acc[19];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 19) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 20 < $p.n {
+            let at = ($row + 20) as usize;
+            let mut v = $acc[20];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 20) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 21 < $p.n {
+            let at = ($row + 21) as usize;
+            let mut v = $acc[21];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 21) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 22 < $p.n {
+            let at = ($row + 22) as usize;
+            let mut v = $acc[22];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 22) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 23 < $p.n {
+            let at = ($row + 23) as usize;
+            let mut v = $acc[23];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 23) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 24 < $p.n {
+            let at = ($row + 24) as usize;
+            let mut v = $acc[24];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 24) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 25 < $p.n {
+            let at = ($row + 25) as usize;
+            let mut v = $acc[25];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 25) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 26 < $p.n {
+            let at = ($row + 26) as usize;
+            let mut v = $acc[26];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 26) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 27 < $p.n {
+            let at = ($row + 27) as usize;
+            let mut v = $acc[27];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 27) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 28 < $p.n {
+            let at = ($row + 28) as usize;
+            let mut v = $acc[28];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 28) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 29 < $p.n {
+            let at = ($row + 29) as usize;
+            let mut v = $acc[29];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 29) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 30 < $p.n {
+            let at = ($row + 30) as usize;
+            let mut v = $acc[30];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 30) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $n0 + 31 < $p.n {
+            let at = ($row + 31) as usize;
+            let mut v = $acc[31];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 31) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+    }};
+}
+
+/// `C (+)= A B (+ bias)` for 64 rows × 32 columns of one split of `k`: invocation
+/// `lid` owns row `m0 + lid` and keeps its 32 sums in registers; the 64 × 32 slice of
+/// `B` for each step through `k` is staged in workgroup memory and read by every
+/// invocation at the same (uniform) index.
+#[spirv(compute(threads(64)))]
+pub fn gemm_tiled(
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(push_constant)] p: &GemmParams,
@@ -32,84 +436,882 @@ pub fn gemm(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] b: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
-    #[spirv(workgroup)] a_tile: &mut [f32; STAGED],
     #[spirv(workgroup)] b_tile: &mut [f32; STAGED],
 ) {
-    let lid = lid as usize;
-    let n0 = group.x * GEMM_TILE;
-    let m0 = group.y * GEMM_TILE;
+    let m = group.y * GEMM_ROWS + lid;
+    let n0 = group.x * GEMM_COLS;
     let k_begin = group.z * p.k_chunk;
     let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let tx = (lid % 16) * 4;
-    let ty = (lid / 16) * 4;
-    let ones_col = if p.flags & GEMM_ONES_COLUMN != 0 { p.n - 1 } else { u32::MAX };
-    let mut acc = [[0.0f32; 4]; 4];
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    let mut acc = [0.0f32; COLS];
     let mut k0 = k_begin;
     while k0 < k_end {
-        // Stage A[m0.., k0..] as a_tile[kk * 64 + row] and B[k0.., n0..] as
-        // b_tile[kk * 64 + col]; out-of-range elements are 0.
         let mut l = 0;
-        while l < STAGED / 256 {
-            let idx = lid + 256 * l;
-            let row = (idx / KS) as u32;
-            let kk = (idx % KS) as u32;
-            let (m, k) = (m0 + row, k0 + kk);
-            a_tile[kk as usize * TILE + row as usize] =
-                if m < p.m && k < k_end { a[(p.a_off + m * p.a_sm + k * p.a_sk) as usize] } else { 0.0 };
-            let kk = (idx / TILE) as u32;
-            let col = (idx % TILE) as u32;
-            let (k, n) = (k0 + kk, n0 + col);
-            b_tile[kk as usize * TILE + col as usize] = if k < k_end && n < p.n {
-                if n == ones_col {
-                    1.0
-                } else {
-                    b[(p.b_off + k * p.b_sk + n * p.b_sn) as usize]
-                }
-            } else {
-                0.0
-            };
+        while l < PER_INVOCATION {
+            let idx = lid as usize + GEMM_ROWS as usize * l;
+            let (k, n) = (k0 + (idx / COLS) as u32, n0 + (idx % COLS) as u32);
+            b_tile[idx] = if k < k_end && n < p.n { b[(p.b_off + k * p.b_sk + n * p.b_sn) as usize] } else { 0.0 };
             l += 1;
         }
         barrier();
+        let steps = if k_end - k0 < GEMM_K_STEP { k_end - k0 } else { GEMM_K_STEP };
         let mut kk = 0;
-        while kk < KS {
-            let ar = [a_tile[kk * TILE + ty], a_tile[kk * TILE + ty + 1], a_tile[kk * TILE + ty + 2], a_tile[kk * TILE + ty + 3]];
-            let br = [b_tile[kk * TILE + tx], b_tile[kk * TILE + tx + 1], b_tile[kk * TILE + tx + 2], b_tile[kk * TILE + tx + 3]];
-            let mut i = 0;
-            while i < 4 {
-                acc[i][0] += ar[i] * br[0];
-                acc[i][1] += ar[i] * br[1];
-                acc[i][2] += ar[i] * br[2];
-                acc[i][3] += ar[i] * br[3];
-                i += 1;
-            }
+        while kk < steps {
+            let av = if m >= p.m {
+                0.0
+            } else if m == ones_row {
+                1.0
+            } else {
+                a[(p.a_off + m * p.a_sm + (k0 + kk) * p.a_sk) as usize]
+            };
+            fma_row!(acc, av, b_tile, kk as usize * COLS);
             kk += 1;
         }
-        // Everyone is done with the slices before they are overwritten.
+        // Everyone is done with the slice before it is overwritten.
         barrier();
         k0 += GEMM_K_STEP;
     }
-    let mut i = 0;
-    while i < 4 {
-        let m = m0 + ty as u32 + i as u32;
-        let mut j = 0;
-        while j < 4 {
-            let n = n0 + tx as u32 + j as u32;
-            if m < p.m && n < p.n {
-                let at = (p.c_off + group.z * p.c_split + m * p.ldc + n) as usize;
-                let mut v = acc[i][j];
-                if p.flags & GEMM_BIAS != 0 {
-                    v += bias[(p.bias_off + n) as usize];
-                }
-                if p.flags & GEMM_ACCUMULATE != 0 {
-                    v += c[at];
-                }
-                c[at] = v;
-            }
-            j += 1;
-        }
-        i += 1;
+    if m < p.m {
+        let row = p.c_off + group.z * p.c_split + m * p.ldc + n0;
+        store_row!(acc, n0, p, row, bias, c);
     }
+}
+
+/// One step of `k` of the register-blocked GEMM: 8 values of `A` (a column of the
+/// invocation's rows) and 8 of `B` (a row of its columns), 64 multiply-adds into
+/// accumulators with constant indices. Out-of-range rows and columns read the last
+/// valid element (their results are never stored).
+macro_rules! block_step {
+    ($acc:ident, $a:ident, $b:ident, $p:ident, $m0:expr, $n0:expr, $k:expr, $ones_row:expr, $m_last:expr) => {{
+        let a0 = if $m0 + 0 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 0).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a1 = if $m0 + 1 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 1).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a2 = if $m0 + 2 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 2).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a3 = if $m0 + 3 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 3).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a4 = if $m0 + 4 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 4).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a5 = if $m0 + 5 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 5).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a6 = if $m0 + 6 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 6).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let a7 = if $m0 + 7 == $ones_row { 1.0 } else { $a[($p.a_off + ($m0 + 7).min($m_last) * $p.a_sm + $k * $p.a_sk) as usize] };
+        let b0 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 0).min($p.n - 1) * $p.b_sn) as usize];
+        let b1 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 1).min($p.n - 1) * $p.b_sn) as usize];
+        let b2 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 2).min($p.n - 1) * $p.b_sn) as usize];
+        let b3 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 3).min($p.n - 1) * $p.b_sn) as usize];
+        let b4 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 4).min($p.n - 1) * $p.b_sn) as usize];
+        let b5 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 5).min($p.n - 1) * $p.b_sn) as usize];
+        let b6 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 6).min($p.n - 1) * $p.b_sn) as usize];
+        let b7 = $b[($p.b_off + $k * $p.b_sk + ($n0 + 7).min($p.n - 1) * $p.b_sn) as usize];
+        $acc[0] += a0 * b0;
+        $acc[1] += a0 * b1;
+        $acc[2] += a0 * b2;
+        $acc[3] += a0 * b3;
+        $acc[4] += a0 * b4;
+        $acc[5] += a0 * b5;
+        $acc[6] += a0 * b6;
+        $acc[7] += a0 * b7;
+        $acc[8] += a1 * b0;
+        $acc[9] += a1 * b1;
+        $acc[10] += a1 * b2;
+        $acc[11] += a1 * b3;
+        $acc[12] += a1 * b4;
+        $acc[13] += a1 * b5;
+        $acc[14] += a1 * b6;
+        $acc[15] += a1 * b7;
+        $acc[16] += a2 * b0;
+        $acc[17] += a2 * b1;
+        $acc[18] += a2 * b2;
+        $acc[19] += a2 * b3;
+        $acc[20] += a2 * b4;
+        $acc[21] += a2 * b5;
+        $acc[22] += a2 * b6;
+        $acc[23] += a2 * b7;
+        $acc[24] += a3 * b0;
+        $acc[25] += a3 * b1;
+        $acc[26] += a3 * b2;
+        $acc[27] += a3 * b3;
+        $acc[28] += a3 * b4;
+        $acc[29] += a3 * b5;
+        $acc[30] += a3 * b6;
+        $acc[31] += a3 * b7;
+        $acc[32] += a4 * b0;
+        $acc[33] += a4 * b1;
+        $acc[34] += a4 * b2;
+        $acc[35] += a4 * b3;
+        $acc[36] += a4 * b4;
+        $acc[37] += a4 * b5;
+        $acc[38] += a4 * b6;
+        $acc[39] += a4 * b7;
+        $acc[40] += a5 * b0;
+        $acc[41] += a5 * b1;
+        $acc[42] += a5 * b2;
+        $acc[43] += a5 * b3;
+        $acc[44] += a5 * b4;
+        $acc[45] += a5 * b5;
+        $acc[46] += a5 * b6;
+        $acc[47] += a5 * b7;
+        $acc[48] += a6 * b0;
+        $acc[49] += a6 * b1;
+        $acc[50] += a6 * b2;
+        $acc[51] += a6 * b3;
+        $acc[52] += a6 * b4;
+        $acc[53] += a6 * b5;
+        $acc[54] += a6 * b6;
+        $acc[55] += a6 * b7;
+        $acc[56] += a7 * b0;
+        $acc[57] += a7 * b1;
+        $acc[58] += a7 * b2;
+        $acc[59] += a7 * b3;
+        $acc[60] += a7 * b4;
+        $acc[61] += a7 * b5;
+        $acc[62] += a7 * b6;
+        $acc[63] += a7 * b7;
+    }};
+}
+
+/// Stores the invocation's 8 × 8 block (bias added or accumulated as flagged).
+macro_rules! block_store {
+    ($acc:ident, $p:ident, $m0:expr, $n0:expr, $z:expr, $bias:ident, $c:ident) => {{
+        if $m0 + 0 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[0];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[1];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[2];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[3];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[4];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[5];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[6];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 0 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 0) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[7];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[8];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[9];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[10];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[11];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[12];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[13];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[14];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 1 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 1) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[15];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[16];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[17];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[18];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[19];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[20];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[21];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[22];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 2 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 2) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[23];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[24];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[25];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[26];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[27];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[28];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[29];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[30];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 3 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 3) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[31];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[32];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[33];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[34];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[35];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[36];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[37];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[38];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 4 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 4) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[39];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[40];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[41];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[42];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[43];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[44];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[45];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[46];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 5 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 5) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[47];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[48];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[49];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[50];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[51];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[52];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[53];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[54];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 6 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 6) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[55];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 0 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 0) as usize;
+            let mut v = $acc[56];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 0) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 1 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 1) as usize;
+            let mut v = $acc[57];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 1) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 2 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 2) as usize;
+            let mut v = $acc[58];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 2) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 3 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 3) as usize;
+            let mut v = $acc[59];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 3) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 4 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 4) as usize;
+            let mut v = $acc[60];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 4) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 5 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 5) as usize;
+            let mut v = $acc[61];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 5) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 6 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 6) as usize;
+            let mut v = $acc[62];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 6) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+        if $m0 + 7 < $p.m && $n0 + 7 < $p.n {
+            let at = ($p.c_off + $z * $p.c_split + ($m0 + 7) * $p.ldc + $n0 + 7) as usize;
+            let mut v = $acc[63];
+            if $p.flags & GEMM_BIAS != 0 {
+                v += $bias[($p.bias_off + $n0 + 7) as usize];
+            }
+            if $p.flags & GEMM_ACCUMULATE != 0 {
+                v += $c[at];
+            }
+            $c[at] = v;
+        }
+    }};
+}
+
+/// `C (+)= A B (+ bias)` register-blocked for CPU devices (lavapipe): invocation
+/// (x, y) of an 8 × 8 workgroup owns rows `m0..m0 + 8` and columns `n0..n0 + 8` of one
+/// split of `k` and keeps the 64 sums in registers. On llvmpipe every buffer or
+/// workgroup-memory load is a loop over the SIMD lanes (about as costly as 30
+/// multiply-adds), so this kernel makes 16 loads per 64 multiply-adds, where the
+/// tiled kernel makes 33 per 32 and its staging through workgroup memory only adds
+/// loads (measured: `engine-bench ops`).
+#[spirv(compute(threads(8, 8)))]
+pub fn gemm_blocked(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] a: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] b: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    let n0 = id.x * GEMM_BLOCK;
+    let m0 = id.y * GEMM_BLOCK;
+    let z = id.z;
+    if m0 >= p.m || n0 >= p.n {
+        return;
+    }
+    let k_begin = z * p.k_chunk;
+    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    // The last row of A that exists (the ones row is not stored). Every load uses an
+    // in-range index: the ones row's load may be evaluated and then discarded, and an
+    // out-of-range index would end the invocation (slice bounds check).
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let mut acc = [0.0f32; 64];
+    let mut k = k_begin;
+    while k < k_end {
+        block_step!(acc, a, b, p, m0, n0, k, ones_row, m_last);
+        k += 1;
+    }
+    block_store!(acc, p, m0, n0, z, bias, c);
 }
 
 /// Sums the splits of a weight gradient in split order and scatters the weight and
@@ -126,13 +1328,15 @@ pub fn sum_weight_grad(
     if id.x >= slots {
         return;
     }
+    let (o, i) = (id.x / cols, id.x % cols);
+    // Partials are dWᵀ: [split][input (+ the ones row)][output].
+    let at = i * p.out_features + o;
     let mut sum = 0.0f32;
     let mut s = 0;
     while s < p.splits {
-        sum += partials[(s * slots + id.x) as usize];
+        sum += partials[(s * slots + at) as usize];
         s += 1;
     }
-    let (o, i) = (id.x / cols, id.x % cols);
     if i == p.in_features {
         grad[(p.b_off + o) as usize] = sum;
     } else {

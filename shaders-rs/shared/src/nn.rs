@@ -6,27 +6,40 @@
 //! it addresses its operands by strides: `C[m][n] (+)= Σ_k A[m][k] B[k][n] (+ bias[n])`
 //! with `A[m][k] = a[a_off + m a_sm + k a_sk]` and `B[k][n] = b[b_off + k b_sk + n b_sn]`.
 //! For `y = x Wᵀ + b` with `x` rows × in and `W` out × in (PyTorch's layout):
-//! forward `A = x`, `B = Wᵀ`; `dx = dy W`; `dW = dyᵀ x`, with the bias gradient
-//! as one more column of `x` that is all ones ([`GEMM_ONES_COLUMN`]), the rows split
-//! into chunks whose partial sums a second kernel adds in a fixed order (no atomics,
-//! so the result is deterministic).
+//! forward `A = x`, `B = Wᵀ`; `dx = dy W`; `dWᵀ = xᵀ dy`, with the bias gradient as
+//! one more row of `xᵀ` that is all ones ([`GEMM_ONES_ROW`]), the rows split into
+//! chunks whose partial sums a second kernel adds in a fixed order (no atomics, so
+//! the result is deterministic).
+//!
+//! The kernel gives each invocation one row of `C` and 32 columns of it in registers,
+//! and stages the slice of `B` it needs in workgroup memory, read by all invocations
+//! at the same index. That shape suits both targets: on a GPU the staged slice is a
+//! broadcast, and on lavapipe (a CPU running 8 invocations per SIMD instruction)
+//! uniform reads are scalar loads while per-invocation indices into workgroup memory
+//! would be gathers.
 
 use crate::real::Real;
 
-/// Output rows and columns one workgroup computes (each of its 256 invocations owns a
-/// 4 × 4 block).
-pub const GEMM_TILE: u32 = 64;
-/// Depth of one step through `k` (the workgroup-memory tiles are 64 × 16).
-pub const GEMM_K_STEP: u32 = 16;
+/// Output rows one workgroup computes: one per invocation.
+pub const GEMM_ROWS: u32 = 64;
+/// Output columns one workgroup computes: each invocation keeps this many sums in
+/// registers.
+pub const GEMM_COLS: u32 = 32;
+/// Rows and columns of `C` one invocation of the register-blocked kernel owns.
+pub const GEMM_BLOCK: u32 = 8;
+/// Depth of one step through `k` (the staged slice of `B` is 64 × 32).
+pub const GEMM_K_STEP: u32 = 64;
 
 /// Add `bias[bias_off + n]` to every row.
 pub const GEMM_BIAS: u32 = 1;
 /// Add to `C` instead of overwriting it.
 pub const GEMM_ACCUMULATE: u32 = 2;
-/// `B[k][n] = 1` for `n = n_count - 1` (the bias column of a weight gradient).
-pub const GEMM_ONES_COLUMN: u32 = 4;
+/// `A[m][k] = 1` for `m = m_count - 1` (the bias row of a transposed weight gradient).
+pub const GEMM_ONES_ROW: u32 = 4;
 
-/// Push constants of `nn::gemm`. The dispatch is `[ceil(n / 64), ceil(m / 64), splits]`;
+/// Push constants of `nn::gemm_tiled` and `nn::gemm_blocked`. The dispatch is
+/// `[ceil(n / 32), ceil(m / 64), splits]` (tiled) or `[ceil(n / 64), ceil(m / 64),
+/// splits]` (blocked, 8 × 8 invocations of 8 × 8);
 /// split `z` sums `k` over `[z k_chunk, (z + 1) k_chunk)` and writes its `C` at
 /// `c_off + z c_split + m ldc + n`.
 #[repr(C)]
@@ -51,8 +64,8 @@ pub struct GemmParams {
     pub _pad: u32,
 }
 
-/// Push constants of `nn::sum_weight_grad`: adds `splits` partial `out × (in + 1)`
-/// matrices and writes the weight part to `grad[w_off..]` (out × in) and the last
+/// Push constants of `nn::sum_weight_grad`: adds `splits` partial `(in + 1) × out`
+/// matrices (`dWᵀ` with the bias row) and writes the weight part to `grad[w_off..]` (out × in) and the last
 /// column to `grad[b_off..]` (out).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

@@ -16,6 +16,7 @@ mod body;
 mod fit;
 mod image_io;
 mod render;
+mod train;
 
 /// Cloth-aware human Gaussian-splat avatars on Vulkan.
 #[derive(Parser, Debug)]
@@ -53,6 +54,9 @@ enum Command {
     /// for a moving camera (NeuMan layout) and a ring of cameras (ZJU-MoCap layout),
     /// with masks, depth and ground-truth body and cloth.
     Synth(body::SynthArgs),
+    /// Train the avatar on a sequence (NeuMan or ZJU-MoCap layout, or `drape synth`
+    /// output) and evaluate it on the held-out frames.
+    Train(train::TrainArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -90,5 +94,6 @@ fn main() -> ExitCode {
         Command::Body(args) => body::run_body(&args),
         Command::Simulate(args) => body::run_simulate(&args),
         Command::Synth(args) => body::run_synth(&args),
+        Command::Train(args) => train::run(&cli.device, &args),
     })
 }

@@ -19,6 +19,7 @@ use drape_shared::radix_sort::significant_bits;
 use rand::{Rng, SeedableRng};
 use serde_json::json;
 
+mod ops;
 mod splat;
 
 /// Benchmarks of the drape engine's GPU ops.
@@ -70,6 +71,10 @@ enum Job {
     /// blend steps per second, at 512x512 and 1920x1080 with 10k, 100k and 1M random
     /// Gaussians by default, or on a PLY file.
     Splat(splat::SplatArgs),
+    /// Neural ops: GEMM GFLOP/s of the HUGS decoder layers (forward, backward) beside
+    /// a CPU GEMM (matrixmultiply) on the same matrices, the decoders' forward +
+    /// backward, triplane sampling points/s.
+    Ops(ops::OpsArgs),
 }
 
 /// Medians over the timed runs.
@@ -236,6 +241,16 @@ fn main() -> ExitCode {
         let (result, json_out) = match &cli.job {
             Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json),
             Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json),
+            Job::Ops(args) => {
+                let result = ops::run(&ctx, args)?;
+                cli.device.check_validation(&ctx)?;
+                if args.json {
+                    println!("{result}");
+                } else {
+                    ops::print_table(&result);
+                }
+                return Ok(());
+            }
             Job::Splat(args) => {
                 let result = splat::run(&ctx, args)?;
                 cli.device.check_validation(&ctx)?;

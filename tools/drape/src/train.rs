@@ -1,0 +1,131 @@
+//! `drape train`: fits the avatar to a sequence (NeuMan or ZJU-MoCap layout, or the
+//! root `drape synth` writes) and writes a run directory: `config.json`, `log.jsonl`
+//! (one line per logged step), `metrics.json`, `eval/` (ground truth | render for
+//! every held-out frame) and the posed body of the first held-out frame as PLY.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use drape_cli_support::DeviceArgs;
+use drape_trainer::avatar::train::{body_model, load_sequence, train, Layout, Progress, TrainConfig};
+
+/// Options of `drape train`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct TrainArgs {
+    /// The sequence: a NeuMan directory (sparse/), a ZJU-MoCap one (annots.npy), or the
+    /// output root of `drape synth` (its neuman/ is used).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// The run directory to create (must not exist, or be empty).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// `quick` (finishes in about ten minutes on lavapipe at 128x128) or `paper`
+    /// (the paper's setting, for a GPU).
+    #[arg(long, default_value = "quick")]
+    pub preset: String,
+    /// A TOML file overriding any field of the preset (see `config.json` of a run for
+    /// the fields); unknown keys are an error.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Training steps (overrides the preset and the config file).
+    #[arg(long)]
+    pub steps: Option<u32>,
+    /// An SMPL-format body (.npz, smplx layout); default: the project's procedural body,
+    /// which is also what `drape synth` animates.
+    #[arg(long)]
+    pub body: Option<PathBuf>,
+}
+
+/// Merges the TOML table `over` into `base`, naming the first key `base` lacks.
+fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), String> {
+    match (base, over) {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
+            for (k, v) in o {
+                let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                match b.get_mut(k) {
+                    Some(slot) => merge(slot, v, &key)?,
+                    None => return Err(format!("unknown key '{key}'")),
+                }
+            }
+            Ok(())
+        }
+        (b, o) => {
+            *b = o.clone();
+            Ok(())
+        }
+    }
+}
+
+fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
+    let mut config = TrainConfig::preset(&args.preset).map_err(anyhow::Error::msg)?;
+    if let Some(path) = &args.config {
+        let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        let over: toml::Value = toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
+        let mut base = toml::Value::try_from(&config).map_err(|e| anyhow::anyhow!("{e}"))?;
+        merge(&mut base, &over, "").map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        config = base.try_into().map_err(|e: toml::de::Error| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
+        config.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    }
+    if let Some(s) = args.steps {
+        config.steps = s;
+    }
+    config.validate().map_err(anyhow::Error::msg)?;
+    Ok(config)
+}
+
+pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
+    let config = load_config(args)?;
+    let seq = load_sequence(&args.data, config.zju_train_camera).map_err(anyhow::Error::msg)?;
+    let model = body_model(args.body.as_deref()).map_err(anyhow::Error::msg)?;
+    let ctx = device.open()?;
+    let (train_n, test_n) = seq.frames.iter().fold((0, 0), |(a, b), f| match f.split {
+        drape_trainer::dataset::split::Split::Train => (a + 1, b),
+        drape_trainer::dataset::split::Split::Test => (a, b + 1),
+        drape_trainer::dataset::split::Split::Val => (a, b),
+    });
+    let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
+    println!("data: {} ({:?} layout), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.layout, seq.frames[0].width, seq.frames[0].height);
+    println!("model ({} preset, on {}):", config.preset, ctx.info().name);
+    println!("  body layer: triplane {0}x{0}x{1}, HUGS decoders, SH degree {2}, subdivision {3}", config.body.triplane_resolution, config.body.triplane_channels, config.body.sh_degree, config.subdivision);
+    println!(
+        "  cloth layer: {} (single-layer mode: the cloth is folded into the body, as HUGS)",
+        if garments { "the data has garment masks, but the cloth layer is not built yet" } else { "none (no garment masks in the data)" }
+    );
+    println!(
+        "  scene layer: {} (trained against the person on a random background colour)",
+        match seq.layout {
+            Layout::NeuMan => "the data has a scene, but the scene layer is not built yet",
+            Layout::ZjuMocap => "none (masked studio data)",
+        }
+    );
+    let t0 = std::time::Instant::now();
+    let mut last_eval = usize::MAX;
+    let report = train(&ctx, &seq, model, &config, &args.out, &mut |p| {
+        match p {
+            Progress::Fit { step, total, mse } => eprint!("\rfitting skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
+            Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
+            Progress::Eval { done, total } => {
+                if done == 0 && last_eval != 0 {
+                    eprintln!();
+                }
+                last_eval = done;
+                eprint!("\revaluating {}/{total}   ", done + 1)
+            }
+        }
+        let _ = std::io::stderr().flush();
+    })
+    .map_err(anyhow::Error::msg)?;
+    eprintln!();
+    device.check_validation(&ctx)?;
+    println!(
+        "fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); trained {} steps in {:.1} s ({:.2} it/s); {} body Gaussians",
+        report.fit_steps, report.fit_seconds, report.fit_mse, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians[0].1
+    );
+    println!(
+        "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop (before training: {:.2} / {:.2})",
+        report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.initial.psnr_full, report.initial.psnr_crop
+    );
+    println!("wrote {} in {:.1} s", args.out.display(), t0.elapsed().as_secs_f64());
+    Ok(())
+}

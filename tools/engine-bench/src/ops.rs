@@ -1,0 +1,173 @@
+//! `engine-bench ops`: the neural ops the avatar runs every step. GEMM throughput of
+//! the HUGS decoder layer shapes at `--rows` rows (forward `y = x Wᵀ + b` and the
+//! backward pair dW, dx), with a CPU GEMM from the `matrixmultiply` crate (through ndarray, all cores)
+//! on the same matrices in the same run; the three decoders' forward + backward; and
+//! triplane sampling forward + backward in points per second.
+
+use std::time::Instant;
+
+use drape_cli_support::{median, parse_len};
+use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
+use drape_engine::{BufferDesc, Context, PassTimings};
+use rand::{Rng, SeedableRng};
+use serde_json::json;
+
+/// Options of `engine-bench ops`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct OpsArgs {
+    /// Rows (Gaussians) per op.
+    #[arg(long, value_parser = parse_len, allow_negative_numbers = true, default_value = "150000")]
+    pub rows: u32,
+    /// Timed runs (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub runs: u32,
+    /// Untimed warm-up runs first.
+    #[arg(long, default_value_t = 1)]
+    pub warmup: u32,
+    /// Triplane side and channels.
+    #[arg(long, default_value_t = 256)]
+    pub triplane_resolution: u32,
+    #[arg(long, default_value_t = 32)]
+    pub triplane_channels: u32,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn timed(ctx: &Context, args: &OpsArgs, mut record: impl FnMut() -> anyhow::Result<PassTimings>) -> anyhow::Result<(f64, f64)> {
+    let _ = ctx;
+    let mut walls = Vec::new();
+    let mut gpus = Vec::new();
+    for i in 0..args.warmup + args.runs {
+        let t0 = Instant::now();
+        let timings = record()?;
+        if i >= args.warmup {
+            walls.push(t0.elapsed().as_secs_f64() * 1e3);
+            gpus.push(timings.total_ms());
+        }
+    }
+    Ok((median(&walls), median(&gpus)))
+}
+
+fn random(len: usize, seed: u64) -> Vec<f32> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    (0..len).map(|_| rng.random_range(-1.0..1.0)).collect()
+}
+
+/// The linear layers of HUGS's three decoders on a 96-wide feature: (in, out).
+const SHAPES: [(usize, usize); 6] = [(96, 64), (64, 64), (64, 49), (96, 128), (128, 128), (128, 24)];
+
+fn cpu_gemm_ms(args: &OpsArgs, rows: usize, i: usize, o: usize, x: &[f32], w: &[f32]) -> f64 {
+    let mut y = vec![0.0f32; rows * o];
+    let mut times = Vec::new();
+    for run in 0..args.warmup + args.runs {
+        let t0 = Instant::now();
+        gemm_cpu(rows, i, o, x, w, &mut y);
+        if run >= args.warmup {
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        std::hint::black_box(&y);
+    }
+    median(&times)
+}
+
+/// `y = x Wᵀ` on the CPU (x rows×i, W o×i, y rows×o, all row-major) through
+/// ndarray's `general_mat_mul`, which is `matrixmultiply`'s packed, multithreaded
+/// sgemm behind a safe API.
+fn gemm_cpu(rows: usize, i: usize, o: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+    use ndarray::{linalg::general_mat_mul, ArrayView2, ArrayViewMut2};
+    let a = ArrayView2::from_shape((rows, i), &x[..rows * i]).expect("x is rows × in");
+    let b = ArrayView2::from_shape((o, i), &w[..o * i]).expect("W is out × in");
+    let mut c = ArrayViewMut2::from_shape((rows, o), &mut y[..rows * o]).expect("y is rows × out");
+    general_mat_mul(1.0, &a, &b.t(), 0.0, &mut c);
+}
+
+pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
+    let rows = args.rows as usize;
+    let mut gemms = Vec::new();
+    for &(i, o) in &SHAPES {
+        let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)] };
+        let mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
+        let x_host = random(rows * i, 2);
+        let x = ctx.upload("bench x", &x_host)?;
+        let gx = ctx.create_buffer("bench gx", BufferDesc::gpu_only((rows * i * 4) as u64))?;
+        let (fwd_wall, fwd_gpu) = timed(ctx, args, || {
+            let mut rec = ctx.record("bench linear fwd")?;
+            mlp.record_forward(&mut rec, &x, rows as u32)?;
+            Ok(rec.submit_and_wait()?)
+        })?;
+        let (bwd_wall, bwd_gpu) = timed(ctx, args, || {
+            let mut rec = ctx.record("bench linear bwd")?;
+            mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false)?;
+            Ok(rec.submit_and_wait()?)
+        })?;
+        let w_host = desc.init_params(1);
+        let cpu_ms = cpu_gemm_ms(args, rows, i, o, &x_host, &w_host[..i * o]);
+        let flops = 2.0 * rows as f64 * i as f64 * o as f64;
+        gemms.push(json!({
+            "in": i, "out": o, "rows": rows,
+            "forward_ms": fwd_wall, "forward_gpu_ms": fwd_gpu, "forward_gflops": flops / fwd_gpu.max(1e-9) / 1e6,
+            "backward_ms": bwd_wall, "backward_gpu_ms": bwd_gpu, "backward_gflops": 2.0 * flops / bwd_gpu.max(1e-9) / 1e6,
+            "cpu_forward_ms": cpu_ms, "cpu_gflops": flops / cpu_ms.max(1e-9) / 1e6,
+            "gpu_over_cpu_throughput": cpu_ms / fwd_gpu.max(1e-9),
+        }));
+    }
+    // The three decoders together, forward and backward.
+    let width = 3 * args.triplane_channels as usize;
+    let decoders = [MlpDesc::hugs_appearance(width, 3), MlpDesc::hugs_geometry(width), MlpDesc::hugs_deformation(width)];
+    let mlps: Vec<Mlp> = decoders.iter().enumerate().map(|(k, d)| Mlp::new(ctx, "bench decoder", d.clone(), rows, k as u64)).collect::<Result<_, _>>()?;
+    let feats = ctx.upload("bench features", &random(rows * width, 3))?;
+    let gfeats = ctx.create_buffer("bench feature grads", BufferDesc::gpu_only((rows * width * 4) as u64))?;
+    let (dec_wall, dec_gpu) = timed(ctx, args, || {
+        let mut rec = ctx.record("bench decoders")?;
+        for m in &mlps {
+            m.record_forward(&mut rec, &feats, rows as u32)?;
+        }
+        for (k, m) in mlps.iter().enumerate() {
+            m.record_backward(&mut rec, &feats, rows as u32, Some(&gfeats), k > 0)?;
+            rec.barrier();
+        }
+        Ok(rec.submit_and_wait()?)
+    })?;
+    // Triplane sample + backward.
+    let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+    let pts: Vec<f32> = (0..3 * rows).map(|_| rng.random_range(-0.9..0.9)).collect();
+    let tdesc = TriplaneDesc { resolution: args.triplane_resolution, channels: args.triplane_channels, box_min: [-1.0; 3], box_max: [1.0; 3] };
+    let tp = Triplane::new(ctx, "bench triplane", tdesc, TriplaneInit::Normal { seed: 5 })?;
+    let points = ctx.upload("bench points", &pts)?;
+    let gpoints = ctx.create_buffer("bench point grads", BufferDesc::gpu_only((rows * 12) as u64))?;
+    let atomics = ctx.info().float_atomic_add;
+    let (tp_wall, tp_gpu) = timed(ctx, args, || {
+        let mut rec = ctx.record("bench triplane")?;
+        tp.record_forward(&mut rec, &points, &feats, rows as u32)?;
+        rec.barrier();
+        tp.record_backward(&mut rec, &points, &feats, &gpoints, rows as u32, atomics)?;
+        Ok(rec.submit_and_wait()?)
+    })?;
+    Ok(json!({
+        "job": "ops",
+        "device": ctx.info().name,
+        "rows": rows,
+        "runs": args.runs,
+        "gemm": gemms,
+        "decoders_fwd_bwd_ms": dec_wall,
+        "decoders_fwd_bwd_gpu_ms": dec_gpu,
+        "triplane": { "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "float_atomics": atomics },
+    }))
+}
+
+pub fn print_table(r: &serde_json::Value) {
+    println!("neural ops at {} rows on {} (median of {} runs)", r["rows"], r["device"].as_str().unwrap_or("?"), r["runs"]);
+    println!("  {:>9} {:>11} {:>10} {:>11} {:>10} {:>11} {:>8}", "layer", "fwd GPU ms", "GFLOP/s", "bwd GPU ms", "GFLOP/s", "CPU GFLOP/s", "GPU/CPU");
+    for g in r["gemm"].as_array().into_iter().flatten() {
+        println!(
+            "  {:>4}->{:<4} {:>11.2} {:>10.2} {:>11.2} {:>10.2} {:>11.2} {:>8.2}",
+            g["in"], g["out"], g["forward_gpu_ms"].as_f64().unwrap_or(0.0), g["forward_gflops"].as_f64().unwrap_or(0.0), g["backward_gpu_ms"].as_f64().unwrap_or(0.0),
+            g["backward_gflops"].as_f64().unwrap_or(0.0), g["cpu_gflops"].as_f64().unwrap_or(0.0), g["gpu_over_cpu_throughput"].as_f64().unwrap_or(0.0)
+        );
+    }
+    println!("  three HUGS decoders, forward + backward: {:.1} ms GPU", r["decoders_fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+    let t = &r["triplane"];
+    println!("  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)", t["resolution"], t["resolution"], t["channels"], t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0), t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6);
+}

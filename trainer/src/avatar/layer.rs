@@ -1,0 +1,320 @@
+//! A triplane-driven Gaussian layer of the avatar (body or cloth): its canonical
+//! Gaussians, triplane, the three decoders, the posed Gaussians the renderer reads,
+//! and its optimiser groups. Every per-Gaussian step runs on the GPU:
+//!
+//! forward: triplane(μ) → appearance / geometry / deformation decoders → deform and
+//! skin (`ops::deform`) → posed Gaussians;
+//! backward: posed gradients (from the splatter) → deform backward → decoder
+//! backwards (their input gradients summed) → triplane backward → Adam.
+//!
+//! Decoder heads start at the initial values rather than being fitted to them (HUGS
+//! fits for 7,000 steps): the opacity, SH, offset, rotation and log-scale heads have
+//! zero weights and a bias equal to the initial value (opacity logit of 0.1, SH 0,
+//! zero offset, the identity 6D rotation, zero log-scale delta), so the first forward
+//! pass reproduces the initial Gaussians exactly. Only the skinning weights, a softmax
+//! of a per-Gaussian function, need a fit ([`HumanLayer::fit_skinning_weights`]).
+
+use drape_engine::ops::adam::{AdamGroup, LrSchedule};
+use drape_engine::ops::deform::{self, DeformGrads, DeformInputs};
+use drape_engine::ops::nn::{Mlp, MlpDesc};
+use drape_engine::ops::splat::render::GaussianBuffers;
+use drape_engine::ops::splat::scene::GaussianCloud;
+use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
+use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_shared::adam::LossParams;
+use drape_shared::splat::layout::sh_coeffs;
+
+use crate::body::model::NUM_JOINTS;
+
+/// Sizes and rates of one layer.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LayerConfig {
+    /// Texels per plane side (HUGS: 256).
+    pub triplane_resolution: u32,
+    /// Channels per plane (HUGS: 32; the feature is 3×).
+    pub triplane_channels: u32,
+    /// SH degree of the layer's colour (HUGS's human layer: 0).
+    pub sh_degree: u32,
+    /// Canonical-mean learning rate, decaying ×0.01 over the run (paper: 1.6e-4).
+    pub lr_position: f32,
+    /// HUGS: 1e-3.
+    pub lr_triplane: f32,
+    /// Appearance and geometry decoders (HUGS: 1e-3).
+    pub lr_decoders: f32,
+    /// Deformation decoder (HUGS: 1e-4).
+    pub lr_deformation: f32,
+}
+
+impl Default for LayerConfig {
+    fn default() -> Self {
+        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4 }
+    }
+}
+
+/// The identity rotation in the 6D representation (first two rows of I).
+const IDENTITY_6D: [f32; 6] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+
+/// A layer on the GPU.
+pub struct HumanLayer {
+    pub name: String,
+    pub count: u32,
+    pub config: LayerConfig,
+    /// Canonical means (learned), quaternions and log-scales (fixed).
+    pub means: Buffer,
+    quats: Buffer,
+    log_scales: Buffer,
+    pub triplane: Triplane,
+    features: Buffer,
+    grad_features: Buffer,
+    pub appearance: Mlp,
+    pub geometry: Mlp,
+    pub deformation: Mlp,
+    /// The frame's 24 transforms (written before each forward pass).
+    pub transforms: Buffer,
+    /// Posed Gaussians, as the splatter reads them.
+    pub posed: GaussianBuffers,
+    /// Their gradients, as the splatter's backward writes them.
+    pub posed_grads: GaussianBuffers,
+    grad_means: Buffer,
+    grad_points: Buffer,
+    /// Target skinning weights (count × 24).
+    pub weight_targets: Buffer,
+    weight_sq_error: Buffer,
+    pub groups: LayerGroups,
+}
+
+/// The layer's Adam groups.
+pub struct LayerGroups {
+    pub position: AdamGroup,
+    pub triplane: AdamGroup,
+    pub appearance: AdamGroup,
+    pub geometry: AdamGroup,
+    pub deformation: AdamGroup,
+}
+
+fn set_head_bias(desc: &MlpDesc, params: &mut [f32], head: usize, bias: &[f32]) {
+    let (offsets, _) = desc.layout();
+    let (w_off, b_off) = offsets[desc.hidden.len() + head];
+    params[w_off..b_off].fill(0.0);
+    params[b_off..b_off + bias.len()].copy_from_slice(bias);
+}
+
+fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
+    ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
+}
+
+impl HumanLayer {
+    /// A layer of the Gaussians of `cloud` (canonical space) with `weights` (count × 24)
+    /// as the skinning targets; `steps` sizes the position schedule.
+    pub fn new(ctx: &Context, name: &str, cloud: &GaussianCloud, weights: &[f32], config: &LayerConfig, steps: u32, seed: u64) -> Result<Self> {
+        let n = cloud.len();
+        assert_eq!(weights.len(), n * NUM_JOINTS, "{name}: skinning targets for another cloud");
+        // The triplane's box: the canonical bounds, 10% larger on every side.
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        for p in cloud.means.chunks_exact(3) {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+        for a in 0..3 {
+            let pad = 0.1 * (hi[a] - lo[a]).max(0.01);
+            lo[a] -= pad;
+            hi[a] += pad;
+        }
+        let tdesc = TriplaneDesc { resolution: config.triplane_resolution, channels: config.triplane_channels, box_min: lo, box_max: hi };
+        let triplane = Triplane::new(ctx, &format!("{name} triplane"), tdesc, TriplaneInit::Normal { seed })?;
+        let width = tdesc.feature_width();
+        let sh_values = 3 * sh_coeffs(config.sh_degree);
+
+        let appearance_desc = MlpDesc::hugs_appearance(width, sh_values);
+        let mut appearance_params = appearance_desc.init_params(seed + 1);
+        let opacity_logit = (0.1f32 / 0.9).ln();
+        set_head_bias(&appearance_desc, &mut appearance_params, 0, &[opacity_logit]);
+        // SH 0 is colour 0.5 (the splatter adds 0.5), HUGS's initial colour.
+        set_head_bias(&appearance_desc, &mut appearance_params, 1, &vec![0.0; sh_values]);
+        let geometry_desc = MlpDesc::hugs_geometry(width);
+        let mut geometry_params = geometry_desc.init_params(seed + 2);
+        set_head_bias(&geometry_desc, &mut geometry_params, 0, &[0.0; 3]);
+        set_head_bias(&geometry_desc, &mut geometry_params, 1, &IDENTITY_6D);
+        set_head_bias(&geometry_desc, &mut geometry_params, 2, &[0.0; 3]);
+        let deformation_desc = MlpDesc::hugs_deformation(width);
+        let appearance = Mlp::with_params(ctx, &format!("{name} appearance"), appearance_desc, n, &appearance_params)?;
+        let geometry = Mlp::with_params(ctx, &format!("{name} geometry"), geometry_desc, n, &geometry_params)?;
+        let deformation = Mlp::new(ctx, &format!("{name} deformation"), deformation_desc, n, seed + 3)?;
+
+        let mut means = f32_buffer(ctx, &format!("{name} canonical means"), 3 * n)?;
+        ctx.write_buffer(&mut means, &cloud.means)?;
+        let mut quats = f32_buffer(ctx, &format!("{name} canonical quats"), 4 * n)?;
+        ctx.write_buffer(&mut quats, &cloud.quats)?;
+        let mut log_scales = f32_buffer(ctx, &format!("{name} canonical log-scales"), 3 * n)?;
+        ctx.write_buffer(&mut log_scales, &cloud.log_scales)?;
+        let mut weight_targets = f32_buffer(ctx, &format!("{name} skinning targets"), NUM_JOINTS * n)?;
+        ctx.write_buffer(&mut weight_targets, weights)?;
+
+        let groups = LayerGroups {
+            position: AdamGroup::new(ctx, &format!("{name} position"), 3 * n, LrSchedule::exponential(config.lr_position, 0.01 * config.lr_position, steps))?,
+            triplane: AdamGroup::new(ctx, &format!("{name} triplane"), tdesc.len(), LrSchedule::constant(config.lr_triplane))?,
+            appearance: AdamGroup::new(ctx, &format!("{name} appearance"), appearance.param_count(), LrSchedule::constant(config.lr_decoders))?,
+            geometry: AdamGroup::new(ctx, &format!("{name} geometry"), geometry.param_count(), LrSchedule::constant(config.lr_decoders))?,
+            deformation: AdamGroup::new(ctx, &format!("{name} deformation"), deformation.param_count(), LrSchedule::constant(config.lr_deformation))?,
+        };
+        Ok(Self {
+            name: name.to_string(),
+            count: n as u32,
+            config: config.clone(),
+            means,
+            quats,
+            log_scales,
+            triplane,
+            features: f32_buffer(ctx, &format!("{name} features"), width * n)?,
+            grad_features: f32_buffer(ctx, &format!("{name} feature grads"), width * n)?,
+            appearance,
+            geometry,
+            deformation,
+            transforms: f32_buffer(ctx, &format!("{name} transforms"), NUM_JOINTS * 12)?,
+            posed: GaussianBuffers::new(ctx, &format!("{name} posed"), n, config.sh_degree)?,
+            posed_grads: GaussianBuffers::new(ctx, &format!("{name} posed grads"), n, config.sh_degree)?,
+            grad_means: f32_buffer(ctx, &format!("{name} canonical mean grads"), 3 * n)?,
+            grad_points: f32_buffer(ctx, &format!("{name} triplane point grads"), 3 * n)?,
+            weight_targets,
+            weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
+            groups,
+        })
+    }
+
+    fn deform_inputs(&self) -> DeformInputs<'_> {
+        DeformInputs {
+            transforms: &self.transforms,
+            means: &self.means,
+            quats: &self.quats,
+            log_scales: &self.log_scales,
+            offsets: self.geometry.head_output(0),
+            rot6d: self.geometry.head_output(1),
+            log_scale_deltas: self.geometry.head_output(2),
+            weights: self.deformation.head_output(0),
+        }
+    }
+
+    /// Records the forward pass into `posed` (the transforms must be written).
+    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
+        let n = self.count;
+        self.triplane.record_forward(rec, &self.means, &self.features, n)?;
+        rec.barrier();
+        self.appearance.record_forward(rec, &self.features, n)?;
+        self.geometry.record_forward(rec, &self.features, n)?;
+        self.deformation.record_forward(rec, &self.features, n)?;
+        let inputs = self.deform_inputs();
+        deform::record_forward(rec, &inputs, &self.posed.means, &self.posed.quats, &self.posed.log_scales, n, log_scale_offset)?;
+        rec.copy(self.appearance.head_output(0), &self.posed.opacity_logits, u64::from(n) * 4);
+        rec.copy(self.appearance.head_output(1), &self.posed.sh, self.posed.sh.size.min(self.appearance.head_output(1).size));
+        rec.barrier();
+        Ok(())
+    }
+
+    /// Records the backward pass from `posed_grads` into every parameter's gradient.
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+        let n = self.count;
+        rec.copy(&self.posed_grads.opacity_logits, self.appearance.head_grad(0), u64::from(n) * 4);
+        rec.copy(&self.posed_grads.sh, self.appearance.head_grad(1), self.posed_grads.sh.size.min(self.appearance.head_grad(1).size));
+        let inputs = self.deform_inputs();
+        let grads = DeformGrads {
+            means: &self.grad_means,
+            offsets: self.geometry.head_grad(0),
+            rot6d: self.geometry.head_grad(1),
+            log_scale_deltas: self.geometry.head_grad(2),
+            weights: self.deformation.head_grad(0),
+        };
+        deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
+        rec.barrier();
+        self.record_decoder_backward(rec, use_atomics, true)
+    }
+
+    /// Decoders' and triplane's backward from the gradients in the decoders' heads;
+    /// with `to_means`, the canonical means' gradient (deformation path + triplane
+    /// path) ends in `grad_means`.
+    fn record_decoder_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool, to_means: bool) -> Result<()> {
+        let n = self.count;
+        // The decoders add their input gradients into one buffer: one after another.
+        self.appearance.record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
+        rec.barrier();
+        self.geometry.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
+        rec.barrier();
+        self.deformation.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
+        rec.barrier();
+        self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, use_atomics)?;
+        rec.barrier();
+        if to_means {
+            let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
+            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read(&self.grad_points).write(&self.grad_means).push(&p).dispatch([p.len.div_ceil(256), 1, 1])?;
+            rec.barrier();
+        }
+        Ok(())
+    }
+
+    /// Records one Adam step of every group (after the backward pass).
+    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, include_position: bool) -> Result<()> {
+        let g = &self.groups;
+        if include_position {
+            g.position.record_step(rec, &self.means, &self.grad_means)?;
+        }
+        g.triplane.record_step(rec, &self.triplane.planes, &self.triplane.grads)?;
+        g.appearance.record_step(rec, &self.appearance.params, &self.appearance.grads)?;
+        g.geometry.record_step(rec, &self.geometry.params, &self.geometry.grads)?;
+        g.deformation.record_step(rec, &self.deformation.params, &self.deformation.grads)?;
+        rec.barrier();
+        Ok(())
+    }
+
+    /// Fits the deformation decoder (and the triplane) to the skinning targets by the
+    /// mean squared error of the weights, for `steps` Adam steps at `lr` with their
+    /// own moments; returns the mean squared error after each reported step
+    /// (`report(step, mse)` every `report_every`).
+    pub fn fit_skinning_weights(&mut self, ctx: &Context, steps: u32, lr: f32, report_every: u32, mut report: impl FnMut(u32, f64)) -> Result<f64> {
+        let n = self.count;
+        let len = NUM_JOINTS * n as usize;
+        let deformation_adam = AdamGroup::new(ctx, "fit deformation", self.deformation.param_count(), LrSchedule::constant(lr))?;
+        let triplane_adam = AdamGroup::new(ctx, "fit triplane", self.triplane.desc.len(), LrSchedule::constant(lr))?;
+        let p = LossParams { len: len as u32, scale: 1.0 / len.max(1) as f32, _pad: [0; 2] };
+        let mut mse = f64::NAN;
+        for step in 0..=steps {
+            {
+                let mut rec = ctx.record("fit skinning weights")?;
+                self.triplane.record_forward(&mut rec, &self.means, &self.features, n)?;
+                rec.barrier();
+                self.deformation.record_forward(&mut rec, &self.features, n)?;
+                rec.pass("fit.weight_mse", Kernel::TrainMseGrad)
+                    .read(self.deformation.head_output(0))
+                    .read(&self.weight_targets)
+                    .write(self.deformation.head_grad(0))
+                    .write(&self.weight_sq_error)
+                    .push(&p)
+                    .dispatch([p.len.div_ceil(256), 1, 1])?;
+                rec.barrier();
+                if step < steps {
+                    self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;
+                    rec.barrier();
+                    self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, ctx.info().float_atomic_add)?;
+                    rec.barrier();
+                    deformation_adam.record_step(&mut rec, &self.deformation.params, &self.deformation.grads)?;
+                    triplane_adam.record_step(&mut rec, &self.triplane.planes, &self.triplane.grads)?;
+                }
+                rec.submit_and_wait()?;
+            }
+            if step == steps || (report_every > 0 && step % report_every == 0) {
+                let e = ctx.read_buffer::<f32>(&mut self.weight_sq_error, len)?;
+                mse = e.iter().map(|&v| f64::from(v)).sum::<f64>() / len.max(1) as f64;
+                report(step, mse);
+            }
+        }
+        Ok(mse)
+    }
+
+    /// The posed Gaussians of the last forward pass, read back.
+    pub fn read_posed(&mut self, ctx: &Context) -> Result<GaussianCloud> {
+        let layers = vec![drape_engine::ops::splat::scene::Layer::Body; self.count as usize];
+        self.posed.download(ctx, &layers)
+    }
+}

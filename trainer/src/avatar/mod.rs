@@ -1,0 +1,7 @@
+//! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
+//! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
+//! and optimiser groups (`layer`), and training (`train`).
+
+pub mod layer;
+pub mod rig;
+pub mod train;
