@@ -39,6 +39,9 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Midpoint subdivisions of the body mesh for the body layer's Gaussians (0-2).
     pub subdivision: u32,
+    /// Keep every n-th of the body's Gaussians (1: all), each widened by √n in the
+    /// surface plane so the body stays covered: for tests and quick looks.
+    pub decimate: u32,
     pub body: LayerConfig,
     /// Adam steps fitting the deformation decoder to the body's skinning weights.
     pub fit_steps: u32,
@@ -59,6 +62,7 @@ impl TrainConfig {
             steps: 1500,
             seed: 1,
             subdivision: 0,
+            decimate: 1,
             body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
             fit_steps: 400,
             fit_lr: 1e-3,
@@ -94,6 +98,9 @@ impl TrainConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite rate >= 0, got {v}"));
             }
+        }
+        if self.decimate == 0 {
+            return Err("decimate must be >= 1".into());
         }
         if self.subdivision > 2 {
             return Err(format!("subdivision must be 0, 1 or 2, got {}", self.subdivision));
@@ -250,8 +257,19 @@ fn body_layer(ctx: &Context, rig: &Rig, config: &TrainConfig) -> Result<HumanLay
         weights: rig.model.weights.clone(),
         shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; rig.model.num_vertices()],
     };
-    let (cloud, sub) = gaussians_from_mesh(&mesh, config.subdivision, config.body.sh_degree, Layer::Body);
-    let weights: Vec<f32> = sub.weights.iter().flatten().map(|&w| w as f32).collect();
+    let (full, sub) = gaussians_from_mesh(&mesh, config.subdivision, config.body.sh_degree, Layer::Body);
+    let keep = config.decimate.max(1) as usize;
+    let widen = 0.5 * (keep as f32).ln();
+    let mut cloud = drape_engine::ops::splat::scene::GaussianCloud::new(full.sh_degree);
+    let mut weights = Vec::new();
+    for i in (0..full.len()).step_by(keep) {
+        let mut g = full.gaussian::<f32>(i);
+        // The two tangent axes (the third is the normal).
+        g.log_scale[0] += widen;
+        g.log_scale[1] += widen;
+        cloud.push(&g, Layer::Body);
+        weights.extend(sub.weights[i].iter().map(|&w| w as f32));
+    }
     gpu(HumanLayer::new(ctx, "body", &cloud, &weights, &config.body, config.steps, config.seed))
 }
 
