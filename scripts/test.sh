@@ -14,6 +14,9 @@ if ! python3 -c "import numpy" 2>/dev/null; then
     echo "setup: installing numpy for Python 3"
     python3 -m pip install -q numpy
 fi
+# The independent reference for the neural ops: PyTorch (CPU) in target/torch-venv.
+DRAPE_TORCH_PYTHON="$(scripts/torch-env.sh | tail -1)"
+export DRAPE_TORCH_PYTHON
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 
 echo "== 1/3 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"

@@ -23,7 +23,7 @@ fn model() -> &'static SmplModel {
 fn data() -> &'static PathBuf {
     static D: OnceLock<PathBuf> = OnceLock::new();
     D.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("drape-train-test-{}", std::process::id()));
+        let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-data");
         let _ = std::fs::remove_dir_all(&dir);
         let o = SynthOptions { width: 64, height: 64, frames: 10, cameras: 2, ..SynthOptions::default() };
         generate(&dir, &o, &mut |_, _, _| {}).expect("synthetic data");
@@ -84,7 +84,7 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     let ctx = gpu();
     let seq = load_sequence(data(), 0).expect("the synth root loads as NeuMan");
     assert_eq!(seq.layout, Layout::NeuMan);
-    let out = std::env::temp_dir().join(format!("drape-train-run-{}", std::process::id()));
+    let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-neuman-run");
     let _ = std::fs::remove_dir_all(&out);
     let report = train(&ctx, &seq, model().clone(), &tiny_config(), &out, &mut |_| {}).expect("training");
     eprintln!(
@@ -117,7 +117,7 @@ fn body_layer_trains_on_the_zju_layout() {
     let ctx = gpu();
     let seq = load_sequence(&data().join("zju"), 0).expect("ZJU-MoCap layout");
     assert_eq!(seq.layout, Layout::ZjuMocap);
-    let out = std::env::temp_dir().join(format!("drape-train-zju-{}", std::process::id()));
+    let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-zju-run");
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
     config.steps = 20;

@@ -9,4 +9,5 @@ pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+pub mod ssim;
 pub mod triplane;

@@ -18,6 +18,7 @@ pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+pub mod ssim;
 pub mod train;
 pub mod triplane;
 mod workgroup;

@@ -15,6 +15,7 @@ pub mod real;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+pub mod ssim;
 pub mod triplane;
 #[cfg(not(target_arch = "spirv"))]
 pub mod spirv_module;

@@ -1,0 +1,332 @@
+//! The neural ops against an independent implementation: PyTorch (CPU, float64) on the
+//! same inputs, through `tests/python/torch_reference.py` in the virtual environment
+//! `scripts/torch-env.sh` makes (the test command runs it). `nn.Linear` + `F.gelu` +
+//! sigmoid / exp / softmax heads (outputs and every gradient), `F.grid_sample`
+//! triplanes (align_corners=True, zeros padding), the 6D rotation (PyTorch3D's
+//! formula).
+//!
+//! Without the environment these tests fail (they are not skipped): set
+//! `DRAPE_TORCH_PYTHON` to a Python with torch, or run `scripts/torch-env.sh`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use drape_engine::ops::deform::{self, HostInputs};
+use drape_engine::ops::nn::{reference_backward, Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::triplane::{Triplane, TriplaneDesc};
+use drape_engine::{BufferDesc, Context};
+use drape_shared::deform::rot6d_to_matrix;
+use drape_tests::gpu;
+use drape_trainer::npy::{decode, encode, Array};
+use rand::{Rng, SeedableRng};
+
+fn python() -> PathBuf {
+    if let Ok(p) = std::env::var("DRAPE_TORCH_PYTHON") {
+        return p.into();
+    }
+    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/torch-venv/bin/python");
+    assert!(venv.exists(), "no PyTorch environment: run scripts/torch-env.sh (the test command does) or set DRAPE_TORCH_PYTHON");
+    venv
+}
+
+fn case_dir(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("torch-cases").join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("case directory");
+    d
+}
+
+fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
+    std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
+}
+
+fn get(dir: &Path, name: &str) -> Vec<f64> {
+    let path = dir.join(format!("{name}.npy"));
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
+}
+
+fn run_torch(dir: &Path, case: serde_json::Value) {
+    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/torch_reference.py");
+    let out = Command::new(python()).arg(&script).arg(dir).output().expect("running the PyTorch reference");
+    assert!(out.status.success(), "PyTorch reference failed: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn random(len: usize, amp: f64, seed: u64) -> Vec<f64> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    (0..len).map(|_| rng.random_range(-amp..amp)).collect()
+}
+
+fn f32s(v: &[f64]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32).collect()
+}
+
+fn f64s(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+/// Largest |a - b| over the largest |b| (at least `floor`).
+fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
+    assert_eq!(a.len(), b.len(), "lengths differ");
+    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
+    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+fn act_name(a: Activation) -> &'static str {
+    match a {
+        Activation::Identity => "identity",
+        Activation::Gelu => "gelu",
+        Activation::Sigmoid => "sigmoid",
+        Activation::Exp => "exp",
+        Activation::Softmax { .. } => "softmax",
+    }
+}
+
+/// Runs `desc` on the GPU and in PyTorch (heads concatenated into one last layer, the
+/// same function) and compares outputs and every gradient.
+fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
+    let params = f64s(&desc.init_params(17));
+    let input = random(rows * desc.input, 2.0, 3);
+    let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 30 + h as u64)).collect();
+    // GPU.
+    let mut mlp = Mlp::with_params(ctx, name, desc.clone(), rows, &f32s(&params)).expect("mlp");
+    for (h, g) in head_grads.iter().enumerate() {
+        mlp.write_head_grad(ctx, h, &f32s(g)).expect("head grad");
+    }
+    let x = ctx.upload("x", &f32s(&input)).expect("upload");
+    let mut gx = ctx.create_buffer("gx", BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
+    {
+        let mut rec = ctx.record("torch check").expect("record");
+        mlp.record_forward(&mut rec, &x, rows as u32).expect("fwd");
+        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false).expect("bwd");
+        rec.submit_and_wait().expect("submit");
+    }
+    let heads: Vec<Vec<f64>> = (0..desc.heads.len()).map(|h| f64s(&mlp.read_head(ctx, h, rows).expect("read"))).collect();
+    let grads = f64s(&ctx.read_buffer::<f32>(&mut mlp.grads, mlp.param_count()).expect("read"));
+    let gpu_gx = f64s(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
+
+    // PyTorch: hidden layers as they are, the heads as one concatenated last layer.
+    let dir = case_dir(name);
+    let (offsets, _) = desc.layout();
+    let linears = desc.linears();
+    let hidden = desc.hidden.len();
+    let mut layers = Vec::new();
+    for l in 0..hidden {
+        let (i, o) = linears[l];
+        put(&dir, &format!("w{l}"), &[o, i], &params[offsets[l].0..offsets[l].1]);
+        put(&dir, &format!("b{l}"), &[o], &params[offsets[l].1..offsets[l].1 + o]);
+        layers.push(serde_json::json!({ "in": i, "out": o, "act": act_name(desc.hidden[l].1) }));
+    }
+    let trunk = desc.trunk_width();
+    let total: usize = desc.heads.iter().map(|h| h.width).sum();
+    let (mut w, mut b, mut heads_json, mut gy) = (Vec::new(), Vec::new(), Vec::new(), vec![0.0; rows * total]);
+    let mut start = 0;
+    for (h, d) in desc.heads.iter().enumerate() {
+        let l = hidden + h;
+        w.extend_from_slice(&params[offsets[l].0..offsets[l].1]);
+        b.extend_from_slice(&params[offsets[l].1..offsets[l].1 + d.width]);
+        let mut j = serde_json::json!({ "start": start, "end": start + d.width, "act": act_name(d.activation) });
+        if let Activation::Softmax { temperature } = d.activation {
+            j["temperature"] = serde_json::json!(temperature);
+        }
+        heads_json.push(j);
+        for r in 0..rows {
+            gy[r * total + start..r * total + start + d.width].copy_from_slice(&head_grads[h][r * d.width..(r + 1) * d.width]);
+        }
+        start += d.width;
+    }
+    put(&dir, &format!("w{hidden}"), &[total, trunk], &w);
+    put(&dir, &format!("b{hidden}"), &[total], &b);
+    layers.push(serde_json::json!({ "in": trunk, "out": total, "act": "none" }));
+    put(&dir, "x", &[rows, desc.input], &input);
+    put(&dir, "gy", &[rows, total], &gy);
+    run_torch(&dir, serde_json::json!({ "op": "mlp", "layers": layers, "heads": heads_json }));
+    let ty = get(&dir, "y");
+    let tgx = get(&dir, "gx");
+    // Forward: f32 GPU sums of up to 128 products against float64 PyTorch.
+    let mut start = 0;
+    for (h, d) in desc.heads.iter().enumerate() {
+        let t: Vec<f64> = (0..rows).flat_map(|r| ty[r * total + start..r * total + start + d.width].to_vec()).collect();
+        let e = rel_err(&heads[h], &t, 1e-3);
+        assert!(e <= 1e-5, "{name}: head {} differs from PyTorch by {e:e} (relative)", d.name);
+        start += d.width;
+    }
+    // Gradients: f32 sums over the rows; 1e-4 as the issue asks.
+    let e = rel_err(&gpu_gx, &tgx, 1e-3);
+    assert!(e <= 1e-4, "{name}: input gradient differs from PyTorch by {e:e}");
+    for l in 0..hidden {
+        let (i, o) = linears[l];
+        let e = rel_err(&grads[offsets[l].0..offsets[l].1], &get(&dir, &format!("gw{l}")), 1e-3);
+        assert!(e <= 1e-4, "{name}: weight gradient of layer {l} differs from PyTorch by {e:e}");
+        let e = rel_err(&grads[offsets[l].1..offsets[l].1 + o], &get(&dir, &format!("gb{l}")), 1e-3);
+        assert!(e <= 1e-4, "{name}: bias gradient of layer {l} ({i}->{o}) differs from PyTorch by {e:e}");
+    }
+    let (tgw, tgb) = (get(&dir, &format!("gw{hidden}")), get(&dir, &format!("gb{hidden}")));
+    let mut row0 = 0;
+    for (h, d) in desc.heads.iter().enumerate() {
+        let l = hidden + h;
+        let e = rel_err(&grads[offsets[l].0..offsets[l].1], &tgw[row0 * trunk..(row0 + d.width) * trunk], 1e-3);
+        assert!(e <= 1e-4, "{name}: weight gradient of head {} differs from PyTorch by {e:e}", d.name);
+        let e = rel_err(&grads[offsets[l].1..offsets[l].1 + d.width], &tgb[row0..row0 + d.width], 1e-3);
+        assert!(e <= 1e-4, "{name}: bias gradient of head {} differs from PyTorch by {e:e}", d.name);
+        row0 += d.width;
+    }
+    // The CPU reference agrees too (it is what the other tests trust).
+    let saved = drape_engine::ops::nn::reference_forward(desc, &params, &input, rows);
+    let (ref_grads, _) = reference_backward(desc, &params, &input, rows, &saved, &head_grads);
+    assert!(rel_err(&ref_grads, &grads, 1e-3) <= 1e-4, "{name}: CPU reference and GPU disagree");
+}
+
+#[test]
+fn mlps_match_pytorch() {
+    let ctx = gpu();
+    let mixed = MlpDesc {
+        input: 9,
+        hidden: vec![(20, Activation::Gelu), (17, Activation::Gelu)],
+        heads: vec![
+            HeadDesc::new("opacity", 1, Activation::Sigmoid),
+            HeadDesc::new("raw", 5, Activation::Identity),
+            HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
+            HeadDesc::new("scale", 3, Activation::Exp),
+        ],
+    };
+    check_mlp(&ctx, "mixed", &mixed, 1000);
+    check_mlp(&ctx, "mixed-one-row", &mixed, 1);
+    check_mlp(&ctx, "appearance", &MlpDesc::hugs_appearance(96, 48), 300);
+    check_mlp(&ctx, "geometry", &MlpDesc::hugs_geometry(96), 300);
+    check_mlp(&ctx, "deformation", &MlpDesc::hugs_deformation(96), 300);
+}
+
+#[test]
+fn triplane_matches_grid_sample() {
+    let ctx = gpu();
+    let desc = TriplaneDesc { resolution: 13, channels: 6, box_min: [-1.0, -0.3, -2.0], box_max: [0.8, 1.7, 0.5] };
+    let planes = random(desc.len(), 1.0, 8);
+    let n = 2000;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+    let mut pts = Vec::new();
+    for i in 0..n {
+        for a in 0..3 {
+            let (lo, hi) = (f64::from(desc.box_min[a]), f64::from(desc.box_max[a]));
+            let w = hi - lo;
+            // Inside, on the faces, just outside (zero padding fades) and far outside.
+            pts.push(match i % 8 {
+                0 => lo,
+                1 => hi,
+                2 => hi + 0.03 * w,
+                3 => lo - 2.0 * w,
+                _ => rng.random_range(lo - 0.05 * w..hi + 0.05 * w),
+            });
+        }
+    }
+    let gfeat = random(n * desc.feature_width(), 1.0, 10);
+    let mut tp = Triplane::with_planes(&ctx, "torch triplane", desc, &f32s(&planes)).expect("triplane");
+    let p = ctx.upload("points", &f32s(&pts)).expect("upload");
+    let g = ctx.upload("gfeat", &f32s(&gfeat)).expect("upload");
+    let mut f = ctx.create_buffer("features", BufferDesc::gpu_only((gfeat.len() * 4) as u64)).expect("buffer");
+    let mut gp = ctx.create_buffer("grad points", BufferDesc::gpu_only((pts.len() * 4) as u64)).expect("buffer");
+    {
+        let mut rec = ctx.record("triplane torch").expect("record");
+        tp.record_forward(&mut rec, &p, &f, n as u32).expect("fwd");
+        tp.record_backward(&mut rec, &p, &g, &gp, n as u32, ctx.info().float_atomic_add).expect("bwd");
+        rec.submit_and_wait().expect("submit");
+    }
+    let feat = f64s(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));
+    let gplanes = f64s(&ctx.read_buffer::<f32>(&mut tp.grads, desc.len()).expect("read"));
+    let gpoints = f64s(&ctx.read_buffer::<f32>(&mut gp, pts.len()).expect("read"));
+    let dir = case_dir("triplane");
+    let r = desc.resolution as usize;
+    let c = desc.channels as usize;
+    put(&dir, "planes", &[3, r, r, c], &planes);
+    put(&dir, "points", &[n, 3], &pts);
+    put(&dir, "gfeat", &[n, 3 * c], &gfeat);
+    run_torch(&dir, serde_json::json!({ "op": "triplane", "box_min": desc.box_min, "box_max": desc.box_max }));
+    // Four products per feature in f32; the box mapping in f32 moves a sample by
+    // ~1e-7 of the box, i.e. ~1e-6 of a texel's value.
+    let e = rel_err(&feat, &get(&dir, "feat"), 1e-3);
+    assert!(e <= 1e-5, "features differ from grid_sample by {e:e}");
+    let e = rel_err(&gplanes, &get(&dir, "gplanes"), 1e-3);
+    assert!(e <= 1e-4, "plane gradient differs from grid_sample's by {e:e}");
+    // Point gradients are differences of texels times (R-1)/2 / half-extent: f32
+    // rounding of the sample position and of the texel differences, 1e-4 relative.
+    let e = rel_err(&gpoints, &get(&dir, "gpoints"), 1e-3);
+    assert!(e <= 1e-4, "point gradient differs from grid_sample's by {e:e}");
+}
+
+#[test]
+fn rotation_6d_matches_pytorch() {
+    let n = 500;
+    let r6 = random(6 * n, 2.0, 11);
+    let g = random(9 * n, 1.0, 12);
+    let dir = case_dir("rot6d");
+    put(&dir, "r6", &[n, 6], &r6);
+    put(&dir, "gR", &[n, 3, 3], &g);
+    run_torch(&dir, serde_json::json!({ "op": "rot6d" }));
+    let (tr, tg) = (get(&dir, "R"), get(&dir, "gr6"));
+    let mut ours = Vec::new();
+    let mut ours_g = Vec::new();
+    for i in 0..n {
+        let v: [f64; 6] = r6[6 * i..6 * i + 6].try_into().expect("6");
+        ours.extend(rot6d_to_matrix(v).iter().flatten());
+        let gm = [[g[9 * i], g[9 * i + 1], g[9 * i + 2]], [g[9 * i + 3], g[9 * i + 4], g[9 * i + 5]], [g[9 * i + 6], g[9 * i + 7], g[9 * i + 8]]];
+        ours_g.extend(drape_shared::deform::rot6d_to_matrix_bwd(v, &gm));
+    }
+    // Both in float64: agreement to rounding.
+    assert!(rel_err(&ours, &tr, 1e-6) <= 1e-12, "6D rotation differs from PyTorch");
+    assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-10, "6D rotation gradient differs from PyTorch");
+    // And the GPU's deformation path uses the same functions: a quick consistency
+    // check of the CPU reference on one Gaussian with identity transforms.
+    let mut host = HostInputs::<f64>::default();
+    host.transforms = (0..24).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).collect();
+    host.means = vec![0.1, 0.2, 0.3];
+    host.quats = vec![1.0, 0.0, 0.0, 0.0];
+    host.log_scales = vec![-3.0; 3];
+    host.offsets = vec![0.0; 3];
+    host.rot6d = r6[..6].to_vec();
+    host.log_scale_deltas = vec![0.0; 3];
+    host.weights = vec![1.0 / 24.0; 24];
+    let out = deform::reference_forward(&host);
+    let q = out[0].quat;
+    let back = drape_shared::splat::project::quat_to_mat(drape_shared::splat::project::normalize_quat(q).0);
+    let flat: Vec<f64> = back.iter().flatten().copied().collect();
+    assert!(rel_err(&flat, &tr[..9], 1e-6) <= 1e-9, "posed rotation under identity transforms is not R6(r)");
+}
+
+#[test]
+fn ssim_interior_matches_pytorch_msssim() {
+    let ctx = gpu();
+    let (w, h) = (48usize, 40usize);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(21);
+    let target: Vec<f64> = (0..w * h * 3).map(|i| (0.5 + 0.35 * ((i as f64 * 0.013).sin()) + rng.random_range(-0.1..0.1)).clamp(0.0, 1.0)).collect();
+    let pred: Vec<f64> = target.iter().map(|&v| (v + rng.random_range(-0.2..0.2)).clamp(0.0, 1.0)).collect();
+    let p = ctx.upload("pred", &f32s(&pred)).expect("upload");
+    let t = ctx.upload("target", &f32s(&target)).expect("upload");
+    let mut s = drape_engine::ops::ssim::Ssim::new(&ctx, w as u32, h as u32).expect("ssim");
+    {
+        let mut rec = ctx.record("ssim torch").expect("record");
+        s.record(&mut rec, &p, &t, None).expect("record");
+        rec.submit_and_wait().expect("submit");
+    }
+    let map = f64s(&s.read_map(&ctx).expect("map"));
+    // pytorch-msssim convolves without padding ("valid"): its mean is the mean of
+    // drape's map over the pixels at least 5 from every border.
+    let mut sum = 0.0;
+    let mut count = 0;
+    for y in 5..h - 5 {
+        for x in 5..w - 5 {
+            for c in 0..3 {
+                sum += map[(y * w + x) * 3 + c];
+                count += 1;
+            }
+        }
+    }
+    let interior = sum / f64::from(count);
+    let dir = case_dir("ssim");
+    put(&dir, "img1", &[h, w, 3], &pred);
+    put(&dir, "img2", &[h, w, 3], &target);
+    run_torch(&dir, serde_json::json!({ "op": "ssim" }));
+    let theirs = get(&dir, "ssim")[0];
+    // f32 moments on the GPU against float64: 1e-5 relative.
+    assert!((interior - theirs).abs() <= 1e-5 * theirs.abs(), "interior SSIM {interior} vs pytorch-msssim {theirs}");
+}
