@@ -103,7 +103,8 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         rec.submit_and_wait().expect("submit");
     }
     let heads: Vec<Vec<f64>> = (0..desc.heads.len()).map(|h| f64s(&mlp.read_head(ctx, h, rows).expect("read"))).collect();
-    let grads = f64s(&ctx.read_buffer::<f32>(&mut mlp.grads, mlp.param_count()).expect("read"));
+    let count = mlp.param_count();
+    let grads = f64s(&ctx.read_buffer::<f32>(&mut mlp.grads, count).expect("read"));
     let gpu_gx = f64s(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
 
     // PyTorch: hidden layers as they are, the heads as one concatenated last layer.

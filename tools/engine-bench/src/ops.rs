@@ -1,8 +1,9 @@
 //! `engine-bench ops`: the neural ops the avatar runs every step. GEMM throughput of
 //! the HUGS decoder layer shapes at `--rows` rows (forward `y = x Wᵀ + b` and the
 //! backward pair dW, dx), with a CPU GEMM from the `matrixmultiply` crate (through ndarray, all cores)
-//! on the same matrices in the same run; the three decoders' forward + backward; and
-//! triplane sampling forward + backward in points per second.
+//! on the same matrices in the same run; the three decoders' forward + backward;
+//! triplane sampling forward + backward in points per second; SSIM (map and
+//! gradient) at 512 × 512.
 
 use std::time::Instant;
 
@@ -145,8 +146,22 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
         tp.record_backward(&mut rec, &points, &feats, &gpoints, rows as u32, atomics)?;
         Ok(rec.submit_and_wait()?)
     })?;
+    // SSIM (forward + gradient) at 512 x 512.
+    let side = 512u32;
+    let px = (side * side * 3) as usize;
+    let img_a = ctx.upload("bench ssim a", &random(px, 6).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
+    let img_b = ctx.upload("bench ssim b", &random(px, 7).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
+    let ssim_grad = ctx.create_buffer("bench ssim grad", BufferDesc::gpu_only((px * 4) as u64))?;
+    let ssim = drape_engine::ops::ssim::Ssim::new(ctx, side, side)?;
+    let (ssim_wall, ssim_gpu) = timed(ctx, args, || {
+        let mut rec = ctx.record("bench ssim")?;
+        ssim.record(&mut rec, &img_a, &img_b, Some((&ssim_grad, -1.0)))?;
+        Ok(rec.submit_and_wait()?)
+    })?;
     Ok(json!({
         "job": "ops",
+        "ssim_512": { "fwd_bwd_ms": ssim_wall, "fwd_bwd_gpu_ms": ssim_gpu },
+        "lpips_512": "n/a (LPIPS is not built yet)",
         "device": ctx.info().name,
         "rows": rows,
         "runs": args.runs,
@@ -168,6 +183,7 @@ pub fn print_table(r: &serde_json::Value) {
         );
     }
     println!("  three HUGS decoders, forward + backward: {:.1} ms GPU", r["decoders_fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+    println!("  SSIM 512x512, map + gradient: {:.1} ms GPU; LPIPS: not built yet", r["ssim_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
     let t = &r["triplane"];
     println!("  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)", t["resolution"], t["resolution"], t["channels"], t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0), t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6);
 }
