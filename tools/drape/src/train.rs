@@ -51,7 +51,15 @@ fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), S
             Ok(())
         }
         (b, o) => {
-            *b = o.clone();
+            // A leaf keeps its type (an integer may stand for a float).
+            let same = std::mem::discriminant(b) == std::mem::discriminant(o) || matches!((&*b, o), (toml::Value::Float(_), toml::Value::Integer(_)));
+            if !same {
+                return Err(format!("'{path}' must be {}, got {}", b.type_str(), o.type_str()));
+            }
+            *b = match (&*b, o) {
+                (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(*i as f64),
+                _ => o.clone(),
+            };
             Ok(())
         }
     }
