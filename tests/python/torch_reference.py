@@ -2,19 +2,26 @@
 
 Usage: python torch_reference.py CASE_DIR
 
-CASE_DIR holds case.json ({"op": ...}) and the op's inputs as float64 .npy files; the
-outputs are written there as float64 .npy files. Ops:
+CASE_DIR holds case.json ({"op": ...}) and the op's inputs as float64 .npy files (C
+order); the outputs are written there as float64, C-order .npy files. Exit status 0, or
+1 with one line on stderr naming the op and the file at fault. Ops:
 
-  mlp       x, w{i}, b{i}, gy -> y, gx, gw{i}, gb{i}: nn.Linear layers with F.gelu (erf)
-            or no activation, then heads over column ranges of the last layer
-            (identity, sigmoid, exp, softmax(z / T)); gradients of sum(y * gy).
-  triplane  planes (3, R, R, C) channels-last, points (n, 3), gfeat (n, 3C) -> feat,
-            gplanes, gpoints: F.grid_sample(bilinear, zeros, align_corners=True) on
-            the XY, XZ and YZ planes of the box-normalised points.
-  rot6d     r6 (n, 6), gR (n, 3, 3) -> R, gr6: PyTorch3D's rotation_6d_to_matrix.
-  ssim      img1, img2 (H, W, 3) -> ssim (1,), gimg1: pytorch_msssim.ssim, window 11,
-            sigma 1.5, data range 1.
-  l1        a, b -> loss (1,), ga: F.l1_loss.
+  mlp       x (n, in0), w{i} (out, in), b{i} (out,), gy (n, out_last)
+            -> y, gx, gw{i}, gb{i}: nn.Linear layers, each followed by F.gelu (erf
+            form) or nothing, then heads over column ranges [start, end) of the last
+            layer (identity, sigmoid, exp, softmax(z / T) over the range; columns no
+            head covers pass through); gradients of sum(y * gy). n may be 0.
+  triplane  planes (3, R, R, C) channels-last (planes[p][row = y][col = x][c]),
+            points (n, 3), gfeat (n, 3C) -> feat (n, 3C), gplanes, gpoints:
+            F.grid_sample(bilinear, zeros padding, align_corners=True) on the XY, XZ
+            and YZ planes at u = (p - box_min) / (box_max - box_min) * 2 - 1;
+            gradients of sum(feat * gfeat), gpoints through the box mapping.
+  rot6d     r6 (n, 6), gR (n, 3, 3) -> R (rows b1, b2, b3), gr6: PyTorch3D's
+            rotation_6d_to_matrix (Zhou et al. 2019), written out here.
+  ssim      img1, img2 (H, W, 3) -> ssim (1,), gimg1: pytorch_msssim.ssim (valid
+            11-tap Gaussian, sigma 1.5, data range 1, K = (0.01, 0.03)) with the
+            window built in float64.
+  l1        a, b (same shape) -> loss (1,), ga: F.l1_loss (mean |a - b|).
 """
 
 import json
@@ -28,12 +35,28 @@ import torch.nn.functional as F
 torch.set_default_dtype(torch.float64)
 
 
-def load(d, name):
-    return torch.from_numpy(np.load(os.path.join(d, name + ".npy")).astype(np.float64))
+class CaseError(Exception):
+    pass
+
+
+def load(d, name, shape=None):
+    """Loads NAME.npy as a float64 tensor; `shape` entries that are None match anything."""
+    path = os.path.join(d, name + ".npy")
+    try:
+        a = np.load(path, allow_pickle=False)
+    except Exception as e:
+        raise CaseError(f"{path}: cannot read: {e}") from None
+    if shape is not None:
+        ok = a.ndim == len(shape) and all(s is None or s == t for s, t in zip(shape, a.shape))
+        if not ok:
+            want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+            raise CaseError(f"{path}: shape {a.shape}, expected {want}")
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
 
 
 def save(d, name, t):
-    np.save(os.path.join(d, name + ".npy"), t.detach().cpu().numpy().astype(np.float64))
+    a = np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+    np.save(os.path.join(d, name + ".npy"), a)
 
 
 def grad_or_zeros(t):
@@ -41,25 +64,38 @@ def grad_or_zeros(t):
 
 
 def op_mlp(d, case):
-    x = load(d, "x").requires_grad_(True)
+    specs = case["layers"]
+    if not specs:
+        raise CaseError("case.json: 'layers' is empty")
+    for i in range(1, len(specs)):
+        if specs[i]["in"] != specs[i - 1]["out"]:
+            raise CaseError(f"case.json: layer {i} takes {specs[i]['in']} inputs but layer {i - 1} gives {specs[i - 1]['out']}")
+    x = load(d, "x", (None, specs[0]["in"])).requires_grad_(True)
+    n = x.shape[0]
     layers = []
-    for i, spec in enumerate(case["layers"]):
+    for i, spec in enumerate(specs):
+        if spec["act"] not in ("gelu", "none"):
+            raise CaseError(f"case.json: layer {i}: unknown activation '{spec['act']}'")
         lin = torch.nn.Linear(spec["in"], spec["out"], dtype=torch.float64)
         with torch.no_grad():
-            lin.weight.copy_(load(d, f"w{i}").reshape(spec["out"], spec["in"]))
-            lin.bias.copy_(load(d, f"b{i}").reshape(spec["out"]))
+            lin.weight.copy_(load(d, f"w{i}", (spec["out"], spec["in"])))
+            lin.bias.copy_(load(d, f"b{i}", (spec["out"],)))
         layers.append((lin, spec["act"]))
     h = x
     for lin, act in layers:
         h = lin(h)
         if act == "gelu":
-            h = F.gelu(h)
-        elif act != "none":
-            raise ValueError(f"unknown layer activation {act}")
-    parts = []
-    for head in case["heads"]:
-        z = h[:, head["start"]:head["end"]]
-        act = head["act"]
+            h = F.gelu(h)  # approximate="none": x * Phi(x) with erf
+    width = h.shape[1]
+    heads = sorted(case.get("heads", []), key=lambda hd: hd["start"])
+    parts, col = [], 0
+    for hd in heads:
+        s, e, act = hd["start"], hd["end"], hd["act"]
+        if not (col <= s < e <= width):
+            raise CaseError(f"case.json: head [{s}, {e}) overlaps another or leaves the {width} output columns")
+        if s > col:
+            parts.append(h[:, col:s])
+        z = h[:, s:e]
         if act == "identity":
             parts.append(z)
         elif act == "sigmoid":
@@ -67,11 +103,14 @@ def op_mlp(d, case):
         elif act == "exp":
             parts.append(torch.exp(z))
         elif act == "softmax":
-            parts.append(torch.softmax(z / head["temperature"], dim=-1))
+            parts.append(torch.softmax(z / float(hd["temperature"]), dim=-1))
         else:
-            raise ValueError(f"unknown head activation {act}")
+            raise CaseError(f"case.json: head [{s}, {e}): unknown activation '{act}'")
+        col = e
+    if col < width:
+        parts.append(h[:, col:])
     y = torch.cat(parts, dim=-1)
-    gy = load(d, "gy").reshape(y.shape)
+    gy = load(d, "gy", (n, width))
     (y * gy).sum().backward()
     save(d, "y", y)
     save(d, "gx", grad_or_zeros(x))
@@ -81,20 +120,26 @@ def op_mlp(d, case):
 
 
 def op_triplane(d, case):
-    planes = load(d, "planes").requires_grad_(True)  # (3, R, R, C)
-    points = load(d, "points").requires_grad_(True)  # (n, 3)
-    lo = torch.tensor(case["box_min"], dtype=torch.float64)
-    hi = torch.tensor(case["box_max"], dtype=torch.float64)
+    planes = load(d, "planes", (3, None, None, None))
+    r, r2, c = planes.shape[1:]
+    if r != r2:
+        raise CaseError(f"{os.path.join(d, 'planes.npy')}: planes are {r}x{r2}, expected square")
+    planes.requires_grad_(True)
+    points = load(d, "points", (None, 3)).requires_grad_(True)
+    n = points.shape[0]
+    lo = torch.tensor([float(v) for v in case["box_min"]])
+    hi = torch.tensor([float(v) for v in case["box_max"]])
+    if lo.shape != (3,) or hi.shape != (3,):
+        raise CaseError("case.json: box_min and box_max need 3 numbers each")
     u = (points - lo) / (hi - lo) * 2.0 - 1.0
-    axes = [(0, 1), (0, 2), (1, 2)]
     feats = []
-    for p, (ax, ay) in enumerate(axes):
-        plane = planes[p].permute(2, 0, 1).unsqueeze(0)  # (1, C, R, R): rows are y
-        grid = torch.stack([u[:, ax], u[:, ay]], dim=-1).reshape(1, 1, -1, 2)
+    for p, (ax, ay) in enumerate([(0, 1), (0, 2), (1, 2)]):
+        plane = planes[p].permute(2, 0, 1).unsqueeze(0)  # (1, C, R, R): dim 2 is y (row), dim 3 is x (col)
+        grid = torch.stack([u[:, ax], u[:, ay]], dim=-1).reshape(1, 1, n, 2)  # (..., 0) = x, (..., 1) = y
         f = F.grid_sample(plane, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
         feats.append(f[0, :, 0, :].transpose(0, 1))  # (n, C)
     feat = torch.cat(feats, dim=-1)
-    gfeat = load(d, "gfeat").reshape(feat.shape)
+    gfeat = load(d, "gfeat", (n, 3 * c))
     (feat * gfeat).sum().backward()
     save(d, "feat", feat)
     save(d, "gplanes", grad_or_zeros(planes))
@@ -111,27 +156,46 @@ def rotation_6d_to_matrix(r6):
 
 
 def op_rot6d(d, case):
-    r6 = load(d, "r6").requires_grad_(True)
+    r6 = load(d, "r6", (None, 6)).requires_grad_(True)
     r = rotation_6d_to_matrix(r6)
-    (r * load(d, "gR").reshape(r.shape)).sum().backward()
+    (r * load(d, "gR", (r6.shape[0], 3, 3))).sum().backward()
     save(d, "R", r)
     save(d, "gr6", grad_or_zeros(r6))
+
+
+def gaussian_window(size, sigma):
+    """pytorch_msssim's _fspecial_gauss_1d, but in float64 (it builds float32)."""
+    coords = torch.arange(size, dtype=torch.float64) - size // 2
+    g = torch.exp(-(coords**2) / (2 * sigma**2))
+    return (g / g.sum()).reshape(1, 1, size)
 
 
 def op_ssim(d, case):
     from pytorch_msssim import ssim
 
-    a = load(d, "img1").permute(2, 0, 1).unsqueeze(0).requires_grad_(True)
-    b = load(d, "img2").permute(2, 0, 1).unsqueeze(0)
-    s = ssim(a, b, data_range=1.0, size_average=True, win_size=11, win_sigma=1.5, K=(0.01, 0.03))
+    win_size, win_sigma = 11, 1.5
+    img1 = load(d, "img1", (None, None, 3))
+    h, w = img1.shape[:2]
+    if h < win_size or w < win_size:
+        # pytorch_msssim would skip the blur along that axis (with a warning).
+        raise CaseError(f"{os.path.join(d, 'img1.npy')}: {h}x{w} is smaller than the {win_size}-tap window")
+    img2 = load(d, "img2", (h, w, 3))
+    a = img1.permute(2, 0, 1).unsqueeze(0).contiguous().requires_grad_(True)  # (1, 3, H, W)
+    b = img2.permute(2, 0, 1).unsqueeze(0).contiguous()
+    win = gaussian_window(win_size, win_sigma).repeat(3, 1, 1, 1)  # (3, 1, 1, 11), as ssim() makes it
+    s = ssim(a, b, data_range=1.0, size_average=True, win=win, K=(0.01, 0.03))
+    if s.dtype != torch.float64:
+        raise CaseError(f"ssim: pytorch_msssim computed in {s.dtype}")
     s.backward()
     save(d, "ssim", s.reshape(1))
     save(d, "gimg1", grad_or_zeros(a)[0].permute(1, 2, 0))
 
 
 def op_l1(d, case):
-    a = load(d, "a").requires_grad_(True)
-    loss = F.l1_loss(a, load(d, "b"))
+    a = load(d, "a")
+    b = load(d, "b", tuple(a.shape))
+    a.requires_grad_(True)
+    loss = F.l1_loss(a, b)
     loss.backward()
     save(d, "loss", loss.reshape(1))
     save(d, "ga", grad_or_zeros(a))
@@ -143,17 +207,26 @@ OPS = {"mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssi
 def main():
     if len(sys.argv) != 2:
         print("usage: torch_reference.py CASE_DIR", file=sys.stderr)
-        return 2
+        return 1
     d = sys.argv[1]
+    op = "?"
     try:
-        with open(os.path.join(d, "case.json")) as f:
-            case = json.load(f)
-        op = case["op"]
+        path = os.path.join(d, "case.json")
+        try:
+            with open(path) as f:
+                case = json.load(f)
+        except Exception as e:
+            raise CaseError(f"{path}: {e}") from None
+        op = str(case.get("op", "?"))
         if op not in OPS:
-            raise ValueError(f"unknown op '{op}'")
+            raise CaseError(f"{path}: unknown op '{op}' (known: {', '.join(OPS)})")
         OPS[op](d, case)
-    except Exception as e:  # one line, naming the case
-        print(f"torch_reference: {d}: {type(e).__name__}: {e}", file=sys.stderr)
+    except CaseError as e:
+        print(" ".join(f"torch_reference: {op}: {e}".split()), file=sys.stderr)
+        return 1
+    except Exception as e:  # a missing key, a PyTorch error: still one line, naming the case
+        msg = f"torch_reference: {op}: {d}: {type(e).__name__}: {e}"
+        print(" ".join(msg.split()), file=sys.stderr)
         return 1
     return 0
 

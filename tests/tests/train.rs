@@ -86,7 +86,7 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     assert_eq!(seq.layout, Layout::NeuMan);
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-neuman-run");
     let _ = std::fs::remove_dir_all(&out);
-    let report = train(&ctx, &seq, model().clone(), &tiny_config(), &out, &mut |_| {}).expect("training");
+    let report = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).expect("training");
     eprintln!(
         "held-out PSNR {:.2} -> {:.2} dB full, {:.2} -> {:.2} dB crop; fit mse {:.2e}; {:.2} it/s",
         report.initial.psnr_full, report.fin.psnr_full, report.initial.psnr_crop, report.fin.psnr_crop, report.fit_mse, report.iterations_per_second
@@ -103,11 +103,11 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     assert!(l1.len() >= 6, "{} log lines", l1.len());
     let tail = l1[l1.len() - 3..].iter().sum::<f64>() / 3.0;
     assert!(tail < l1[0], "L1 {} at the start, {tail} at the end", l1[0]);
-    for f in ["config.json", "metrics.json", "body_frame0002.ply"] {
+    for f in ["config.json", "metrics.json", "body_frame0002.ply", "model.npz", "checkpoint.npz", "novel_pose.png"] {
         assert!(out.join(f).is_file(), "{f} missing from the run directory");
     }
     // A second run into the same (now full) directory is refused, and leaves it as it was.
-    let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, &mut |_| {}).err().expect("non-empty run directory refused");
+    let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).err().expect("non-empty run directory refused");
     assert!(err.contains("not empty"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -121,9 +121,77 @@ fn body_layer_trains_on_the_zju_layout() {
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
     config.steps = 20;
-    let report = train(&ctx, &seq, model().clone(), &config, &out, &mut |_| {}).expect("training");
+    let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
     eprintln!("ZJU held-out PSNR {:.2} -> {:.2} dB", report.initial.psnr_full, report.fin.psnr_full);
     assert_eq!(report.fin.frames, 10, "one held-out camera of two, ten frames");
     assert!(report.fin.psnr_full.is_finite() && report.fin.psnr_full > report.initial.psnr_full, "PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Fast settings for the checkpoint tests (quality is not the point).
+fn resume_config(steps: u32) -> TrainConfig {
+    let mut c = tiny_config();
+    c.decimate = 8;
+    c.fit_steps = 5;
+    c.steps = steps;
+    c.log_every = 5;
+    c.checkpoint_every = 10;
+    c
+}
+
+#[test]
+fn resume_continues_from_the_checkpoint() {
+    use drape_trainer::avatar::checkpoint;
+    let ctx = gpu();
+    let seq = load_sequence(data(), 0).expect("data");
+    let base = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-resume");
+    let _ = std::fs::remove_dir_all(&base);
+    let (whole, split) = (base.join("whole"), base.join("split"));
+    // 20 steps at once, and 10 steps then resumed to 20.
+    train(&ctx, &seq, model().clone(), &resume_config(20), &whole, false, &mut |_| {}).expect("uninterrupted run");
+    train(&ctx, &seq, model().clone(), &resume_config(10), &split, false, &mut |_| {}).expect("first half");
+    // A checkpoint write that was killed leaves only a temporary file: ignored.
+    std::fs::write(split.join("checkpoint.npz.tmp"), b"PK\x03\x04 half a zip").unwrap();
+    let report = train(&ctx, &seq, model().clone(), &resume_config(20), &split, true, &mut |_| {}).expect("resumed run");
+    assert_eq!(report.start_step, 10, "resumed from the wrong step");
+    let log = std::fs::read_to_string(split.join("log.jsonl")).unwrap();
+    let steps: Vec<u64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, vec![0, 5, 9, 10, 15, 19], "the log continues where it stopped");
+    // The same frames and backgrounds are drawn from (seed, step): the resumed model
+    // matches the uninterrupted one up to the order of float atomics.
+    let shape = |dir: &std::path::Path| {
+        let bytes = std::fs::read(dir.join("model.npz")).unwrap();
+        bytes.len()
+    };
+    assert_eq!(shape(&whole), shape(&split), "model files of different layouts");
+    let a = drape_trainer::npy::read_npz(&whole.join("model.npz")).unwrap();
+    let b = drape_trainer::npy::read_npz(&split.join("model.npz")).unwrap();
+    let mut worst = 0.0f64;
+    let mut identical = true;
+    for (k, va) in &a {
+        let vb = &b[k];
+        assert_eq!(va.shape, vb.shape, "{k}");
+        for (x, y) in va.data.iter().zip(&vb.data) {
+            identical &= x.to_bits() == y.to_bits();
+            worst = worst.max((x - y).abs() / (1.0 + x.abs()));
+        }
+    }
+    eprintln!("resumed vs uninterrupted: identical {identical}, largest relative difference {worst:e}");
+    // Atomic accumulation order differs between runs; 20 Adam steps cannot drift
+    // further than a few learning rates (1e-3) from the same start.
+    assert!(worst < 1e-2, "resumed model differs by {worst}");
+    // A truncated checkpoint is refused with its name.
+    let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
+    std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
+    let err = train(&ctx, &seq, model().clone(), &resume_config(30), &split, true, &mut |_| {}).err().expect("truncated checkpoint refused");
+    assert!(err.contains("checkpoint.npz"), "{err}");
+    // A checkpoint of another model (a different Gaussian count) is refused, naming the array.
+    std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
+    let mut other = resume_config(30);
+    other.decimate = 4;
+    let err = train(&ctx, &seq, model().clone(), &other, &split, true, &mut |_| {}).err().expect("other model refused");
+    assert!(err.contains("checkpoint.npz") && err.contains("body."), "{err}");
+    let state = checkpoint::read(&whole.join("model.npz"), &[]).expect("header-only read");
+    assert_eq!(state.step, 20);
+    let _ = std::fs::remove_dir_all(&base);
 }

@@ -1,7 +1,10 @@
 //! `drape train`: fits the avatar to a sequence (NeuMan or ZJU-MoCap layout, or the
 //! root `drape synth` writes) and writes a run directory: `config.json`, `log.jsonl`
-//! (one line per logged step), `metrics.json`, `eval/` (ground truth | render for
-//! every held-out frame) and the posed body of the first held-out frame as PLY.
+//! (one line per logged step), `checkpoint.npz` (every `checkpoint_every` steps,
+//! replaced atomically; `--resume RUN` continues from it), `model.npz` (the trained
+//! model; format in `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/`
+//! (ground truth | render for every held-out frame), `novel_pose.png` and the posed
+//! body of the first held-out frame as PLY.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -18,8 +21,12 @@ pub struct TrainArgs {
     #[arg(long)]
     pub data: PathBuf,
     /// The run directory to create (must not exist, or be empty).
+    #[arg(long, required_unless_present = "resume", conflicts_with = "resume")]
+    pub out: Option<PathBuf>,
+    /// Continue the run in this directory from its last checkpoint, with its
+    /// config.json (`--steps` may raise the step count).
     #[arg(long)]
-    pub out: PathBuf,
+    pub resume: Option<PathBuf>,
     /// `quick` (finishes in about ten minutes on lavapipe at 128x128) or `paper`
     /// (the paper's setting, for a GPU).
     #[arg(long, default_value = "quick")]
@@ -66,6 +73,14 @@ fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), S
 }
 
 fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
+    if let Some(run) = &args.resume {
+        anyhow::ensure!(args.config.is_none(), "--config cannot change a run being resumed (edit {} instead)", run.join("config.json").display());
+        let mut config = TrainConfig::read_run(run).map_err(anyhow::Error::msg)?;
+        if let Some(s) = args.steps {
+            config.steps = s;
+        }
+        return Ok(config);
+    }
     let mut config = TrainConfig::preset(&args.preset).map_err(anyhow::Error::msg)?;
     if let Some(path) = &args.config {
         let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
@@ -109,7 +124,12 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     );
     let t0 = std::time::Instant::now();
     let mut last_eval = usize::MAX;
-    let report = train(&ctx, &seq, model, &config, &args.out, &mut |p| {
+    let (out, resume) = match (&args.resume, &args.out) {
+        (Some(run), _) => (run.clone(), true),
+        (None, Some(out)) => (out.clone(), false),
+        (None, None) => anyhow::bail!("--out or --resume is required"),
+    };
+    let report = train(&ctx, &seq, model, &config, &out, resume, &mut |p| {
         match p {
             Progress::Fit { step, total, mse } => eprint!("\rfitting skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
@@ -127,13 +147,14 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     eprintln!();
     device.check_validation(&ctx)?;
     println!(
-        "fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); trained {} steps in {:.1} s ({:.2} it/s); {} body Gaussians",
-        report.fit_steps, report.fit_seconds, report.fit_mse, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians[0].1
+        "{}trained steps {}..{} in {:.1} s ({:.2} it/s); {} body Gaussians",
+        if report.start_step == 0 { format!("fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ", report.fit_steps, report.fit_seconds, report.fit_mse) } else { format!("resumed at step {}; ", report.start_step) },
+        report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians[0].1
     );
     println!(
         "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop (before training: {:.2} / {:.2})",
         report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.initial.psnr_full, report.initial.psnr_crop
     );
-    println!("wrote {} in {:.1} s", args.out.display(), t0.elapsed().as_secs_f64());
+    println!("wrote {} (model.npz, checkpoint.npz, eval/, novel_pose.png, log.jsonl, metrics.json) in {:.1} s", out.display(), t0.elapsed().as_secs_f64());
     Ok(())
 }

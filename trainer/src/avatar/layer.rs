@@ -24,6 +24,7 @@ use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
 
+use crate::avatar::checkpoint::{AdamState, LayerShape, LayerState};
 use crate::body::model::NUM_JOINTS;
 
 /// Sizes and rates of one layer.
@@ -310,6 +311,65 @@ impl HumanLayer {
             }
         }
         Ok(mse)
+    }
+
+    /// What a file must hold to be loaded into this layer.
+    pub fn shape(&self) -> LayerShape {
+        let g = &self.groups;
+        LayerShape {
+            name: self.name.clone(),
+            count: self.count as usize,
+            triplane_size: (self.triplane.desc.resolution, self.triplane.desc.channels),
+            decoders: [self.appearance.param_count(), self.geometry.param_count(), self.deformation.param_count()],
+            adam: [g.position.len, g.triplane.len, g.appearance.len, g.geometry.len, g.deformation.len],
+        }
+    }
+
+    fn groups_mut(&mut self) -> [&mut AdamGroup; 5] {
+        let g = &mut self.groups;
+        [&mut g.position, &mut g.triplane, &mut g.appearance, &mut g.geometry, &mut g.deformation]
+    }
+
+    /// Everything learned, and the optimiser's state, read back to the host.
+    pub fn state(&mut self, ctx: &Context) -> Result<LayerState> {
+        let n = self.count as usize;
+        let d = self.triplane.desc;
+        let sizes = [self.appearance.param_count(), self.geometry.param_count(), self.deformation.param_count()];
+        let mut adam = Vec::new();
+        for g in self.groups_mut() {
+            let step = g.steps();
+            let (m, v) = g.read_moments(ctx)?;
+            adam.push(AdamState { m, v, step });
+        }
+        Ok(LayerState {
+            means: ctx.read_buffer(&mut self.means, 3 * n)?,
+            quats: ctx.read_buffer(&mut self.quats, 4 * n)?,
+            log_scales: ctx.read_buffer(&mut self.log_scales, 3 * n)?,
+            triplane: ctx.read_buffer(&mut self.triplane.planes, d.len())?,
+            triplane_size: (d.resolution, d.channels),
+            triplane_box: [d.box_min, d.box_max],
+            appearance: ctx.read_buffer(&mut self.appearance.params, sizes[0])?,
+            geometry: ctx.read_buffer(&mut self.geometry.params, sizes[1])?,
+            deformation: ctx.read_buffer(&mut self.deformation.params, sizes[2])?,
+            adam,
+        })
+    }
+
+    /// Loads a state read by `checkpoint::read` against [`shape`](Self::shape).
+    pub fn restore(&mut self, ctx: &Context, s: &LayerState) -> Result<()> {
+        ctx.write_buffer(&mut self.means, &s.means)?;
+        ctx.write_buffer(&mut self.quats, &s.quats)?;
+        ctx.write_buffer(&mut self.log_scales, &s.log_scales)?;
+        self.triplane.desc.box_min = s.triplane_box[0];
+        self.triplane.desc.box_max = s.triplane_box[1];
+        ctx.write_buffer(&mut self.triplane.planes, &s.triplane)?;
+        ctx.write_buffer(&mut self.appearance.params, &s.appearance)?;
+        ctx.write_buffer(&mut self.geometry.params, &s.geometry)?;
+        ctx.write_buffer(&mut self.deformation.params, &s.deformation)?;
+        for (g, a) in self.groups_mut().into_iter().zip(&s.adam) {
+            g.restore(ctx, &a.m, &a.v, a.step)?;
+        }
+        Ok(())
     }
 
     /// The posed Gaussians of the last forward pass, read back.

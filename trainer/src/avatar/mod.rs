@@ -1,7 +1,9 @@
 //! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
-//! and optimiser groups (`layer`), and training (`train`).
+//! and optimiser groups (`layer`), the model and checkpoint file (`checkpoint`), and
+//! training (`train`).
 
+pub mod checkpoint;
 pub mod layer;
 pub mod rig;
 pub mod train;

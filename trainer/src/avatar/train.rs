@@ -7,8 +7,8 @@
 //! (1 - SSIM) + Adam), trained
 //! against the person masked onto a random background colour each step (HUGS), which
 //! folds the cloth into the body as HUGS does (the single-layer baseline). The cloth
-//! and scene layers, compositing, LPIPS and the cloth losses, pose refinement,
-//! densification and checkpoints come next.
+//! and scene layers, compositing, LPIPS and the cloth losses, pose refinement and
+//! densification come next.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -22,6 +22,7 @@ use drape_engine::{BufferDesc, Context, Kernel};
 use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
 
+use crate::avatar::checkpoint::{self, ModelState};
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::Rig;
 use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
@@ -50,6 +51,9 @@ pub struct TrainConfig {
     pub fit_lr: f32,
     /// Steps between log lines (loss and training PSNR).
     pub log_every: u32,
+    /// Steps between checkpoints (`checkpoint.npz`, replaced atomically); one is also
+    /// written at the end.
+    pub checkpoint_every: u32,
     /// Image loss `λ_l1 L1 + λ_ssim (1 - SSIM)` (paper: 0.8, 0.2).
     pub lambda_l1: f32,
     pub lambda_ssim: f32,
@@ -74,6 +78,7 @@ impl TrainConfig {
             fit_steps: 150,
             fit_lr: 3e-3,
             log_every: 25,
+            checkpoint_every: 200,
             lambda_l1: 0.8,
             lambda_ssim: 0.2,
             zju_train_camera: 0,
@@ -83,7 +88,7 @@ impl TrainConfig {
     /// The paper's setting (for a GPU): two subdivisions, 256 × 256 × 32 triplanes,
     /// 20k steps.
     pub fn paper() -> Self {
-        Self { preset: "paper".into(), steps: 20_000, subdivision: 2, decimate: 1, body: LayerConfig::default(), fit_steps: 3000, fit_lr: 1e-3, log_every: 100, ..Self::quick() }
+        Self { preset: "paper".into(), steps: 20_000, subdivision: 2, decimate: 1, body: LayerConfig::default(), fit_steps: 3000, fit_lr: 1e-3, log_every: 100, checkpoint_every: 1000, ..Self::quick() }
     }
 
     pub fn preset(name: &str) -> Result<Self, String> {
@@ -217,6 +222,17 @@ pub struct EvalMetrics {
     pub psnr_crop: f64,
 }
 
+impl TrainConfig {
+    /// Reads a run's `config.json` (for `--resume`), naming the file on any problem.
+    pub fn read_run(dir: &Path) -> Result<Self, String> {
+        let path = dir.join("config.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let c: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        c.validate().map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(c)
+    }
+}
+
 /// What a run did.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct TrainReport {
@@ -225,6 +241,8 @@ pub struct TrainReport {
     pub fit_steps: u32,
     pub fit_mse: f64,
     pub fit_seconds: f64,
+    /// The step training started from (0, or the checkpoint's when resumed).
+    pub start_step: u32,
     pub steps: u32,
     pub train_seconds: f64,
     pub iterations_per_second: f64,
@@ -331,8 +349,11 @@ fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> 
     std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-/// Trains on `seq` into the run directory `out` (created; must not exist or be empty).
-pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
+/// Trains on `seq` into the run directory `out`: a new one (it must not exist, or be
+/// empty), or with `resume` the run's last checkpoint (`out/checkpoint.npz`), continued
+/// to `config.steps`. The step's frame and background come from `(seed, step)`, so a
+/// resumed run samples what the uninterrupted one would have.
+pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
     let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
@@ -343,22 +364,37 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     if let Some(f) = seq.frames.iter().find(|f| (f.width, f.height) != (width, height)) {
         return Err(format!("{}: {}x{}, but the sequence's first training image is {width}x{height}", f.image_path.display(), f.width, f.height));
     }
-    if out.exists() && std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?.next().is_some() {
-        return Err(format!("{}: the run directory exists and is not empty", out.display()));
+    let checkpoint_path = out.join("checkpoint.npz");
+    if resume {
+        if !checkpoint_path.is_file() {
+            return Err(format!("{}: no checkpoint to resume from", checkpoint_path.display()));
+        }
+    } else {
+        if out.exists() && std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?.next().is_some() {
+            return Err(format!("{}: the run directory exists and is not empty (use --resume to continue it)", out.display()));
+        }
+        std::fs::create_dir_all(out.join("eval")).map_err(|e| format!("{}: {e}", out.display()))?;
+        write_json(&out.join("config.json"), config)?;
     }
-    std::fs::create_dir_all(out.join("eval")).map_err(|e| format!("{}: {e}", out.display()))?;
-    write_json(&out.join("config.json"), config)?;
-    let mut log = std::fs::File::create(out.join("log.jsonl")).map_err(|e| format!("{}: {e}", out.join("log.jsonl").display()))?;
+    let log_path = out.join("log.jsonl");
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
     let mut layer = body_layer(ctx, &rig, config)?;
     let n = layer.count;
     let mut renderer = gpu(SplatRenderer::new(ctx, width, height, n as usize))?;
 
-    // 1. The deformation decoder learns the body's skinning weights.
+    // 1. The deformation decoder learns the body's skinning weights (or the run's
+    //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
     let total_fit = config.fit_steps;
-    let fit_mse = gpu(layer.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { step, total: total_fit, mse })))?;
+    let (start_step, fit_mse) = if resume {
+        let state = checkpoint::read(&checkpoint_path, &[layer.shape()])?;
+        gpu(layer.restore(ctx, &state.layers[0].1))?;
+        (state.step, f64::NAN)
+    } else {
+        (0, gpu(layer.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { step, total: total_fit, mse })))?)
+    };
     let fit_seconds = t0.elapsed().as_secs_f64();
     let initial = evaluate(ctx, &mut layer, &rig, &test_frames, &mut renderer, None, progress)?;
 
@@ -377,10 +413,14 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     let mut ssim = gpu(Ssim::new(ctx, width, height))?;
     let settings = RenderSettings::default();
     let use_atomics = ctx.info().float_atomic_add;
-    let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ 0x5eed);
     let t_train = Instant::now();
     let skipped = 0u32;
-    for step in 0..config.steps {
+    let save = |layer: &mut HumanLayer, step: u32, path: &Path| -> Result<(), String> {
+        let state = ModelState { step, layers: vec![("body".into(), gpu(layer.state(ctx))?)] };
+        checkpoint::write(path, &state)
+    };
+    for step in start_step..config.steps {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let f = train_frames[rng.random_range(0..train_frames.len())];
         let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
         let ft = rig.frame(&f.body);
@@ -416,12 +456,17 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
             let p = -10.0 * mse.max(1e-20).log10();
             let ssim_value = gpu(ssim.read_mean(ctx))?;
             let secs = t_train.elapsed().as_secs_f64();
-            let it_per_s = f64::from(step + 1) / secs.max(1e-9);
+            let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
             let line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": layer.groups.position.lr(), "seconds": secs });
             writeln!(log, "{line}").map_err(|e| format!("{}: {e}", out.join("log.jsonl").display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
+        if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < config.steps {
+            save(&mut layer, step + 1, &checkpoint_path)?;
+        }
     }
+    save(&mut layer, config.steps.max(start_step), &checkpoint_path)?;
+    save(&mut layer, config.steps.max(start_step), &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
     let fin = evaluate(ctx, &mut layer, &rig, &test_frames, &mut renderer, Some(&out.join("eval")), progress)?;
     // The posed body of the first held-out frame as a standard 3DGS PLY.
@@ -473,9 +518,10 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
         fit_steps: total_fit,
         fit_mse,
         fit_seconds,
+        start_step,
         steps: config.steps,
         train_seconds,
-        iterations_per_second: f64::from(config.steps) / train_seconds.max(1e-9),
+        iterations_per_second: f64::from(config.steps.saturating_sub(start_step)) / train_seconds.max(1e-9),
         skipped_steps: skipped,
         initial,
         fin,

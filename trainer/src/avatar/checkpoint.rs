@@ -1,0 +1,159 @@
+//! The avatar's file: one NumPy `.npz` archive (numpy reads it as it is), written whole
+//! to a temporary file and renamed over the old one, so a crash mid-write leaves the
+//! previous file intact. The same format is the checkpoint (`checkpoint.npz`, with the
+//! optimiser's moments) and the final model (`model.npz`).
+//!
+//! Arrays (f32 unless noted; `L` is a layer name such as `body`):
+//! - `format_version` (u32, 1 value): [`FORMAT_VERSION`];
+//! - `step` (u32, 1 value): training steps taken;
+//! - `L.means`, `L.quats`, `L.log_scales`: the canonical Gaussians (n×3, n×4, n×3);
+//! - `L.triplane` (3×R×R×C, channels-last) and `L.triplane_box` (2×3: min, max);
+//! - `L.appearance`, `L.geometry`, `L.deformation`: each decoder's flat parameters
+//!   (per linear layer W out×in, then b; `ops::nn`);
+//! - `L.adam.G.m`, `L.adam.G.v` (f32) and `L.adam.G.step` (u32) for each Adam group G
+//!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`).
+//!
+//! Loading checks every array's presence, dtype and shape against the model it is
+//! loaded into and names the file and array on a mismatch.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use crate::npy::{read_npz, write_npz, Array, Dtype};
+
+/// Version of the archive layout.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// One Adam group's state.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdamState {
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+    pub step: u32,
+}
+
+/// One layer's state on the host.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerState {
+    pub means: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub triplane: Vec<f32>,
+    /// (resolution, channels).
+    pub triplane_size: (u32, u32),
+    pub triplane_box: [[f32; 3]; 2],
+    pub appearance: Vec<f32>,
+    pub geometry: Vec<f32>,
+    pub deformation: Vec<f32>,
+    /// By group name, in [`ADAM_GROUPS`] order.
+    pub adam: Vec<AdamState>,
+}
+
+/// The Adam groups of a layer, in file order.
+pub const ADAM_GROUPS: [&str; 5] = ["position", "triplane", "appearance", "geometry", "deformation"];
+
+/// A whole model.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelState {
+    pub step: u32,
+    pub layers: Vec<(String, LayerState)>,
+}
+
+fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
+    Array::new(Dtype::F32, shape, data.iter().map(|&v| f64::from(v)).collect())
+}
+
+fn u32_array(v: u32) -> Array {
+    Array::new(Dtype::U32, vec![1], vec![f64::from(v)])
+}
+
+/// Writes `state` to `path` atomically (temporary file, then rename).
+pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
+    let mut a = BTreeMap::new();
+    a.insert("format_version".to_string(), u32_array(FORMAT_VERSION));
+    a.insert("step".to_string(), u32_array(state.step));
+    for (name, l) in &state.layers {
+        let n = l.means.len() / 3;
+        let (r, c) = (l.triplane_size.0 as usize, l.triplane_size.1 as usize);
+        a.insert(format!("{name}.means"), f32_array(vec![n, 3], &l.means));
+        a.insert(format!("{name}.quats"), f32_array(vec![n, 4], &l.quats));
+        a.insert(format!("{name}.log_scales"), f32_array(vec![n, 3], &l.log_scales));
+        a.insert(format!("{name}.triplane"), f32_array(vec![3, r, r, c], &l.triplane));
+        a.insert(format!("{name}.triplane_box"), f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()));
+        a.insert(format!("{name}.appearance"), f32_array(vec![l.appearance.len()], &l.appearance));
+        a.insert(format!("{name}.geometry"), f32_array(vec![l.geometry.len()], &l.geometry));
+        a.insert(format!("{name}.deformation"), f32_array(vec![l.deformation.len()], &l.deformation));
+        for (g, s) in ADAM_GROUPS.iter().zip(&l.adam) {
+            a.insert(format!("{name}.adam.{g}.m"), f32_array(vec![s.m.len()], &s.m));
+            a.insert(format!("{name}.adam.{g}.v"), f32_array(vec![s.v.len()], &s.v));
+            a.insert(format!("{name}.adam.{g}.step"), u32_array(s.step));
+        }
+    }
+    let tmp = path.with_extension("npz.tmp");
+    write_npz(&tmp, &a).map_err(|e| e.to_string())?;
+    // The data is on disk before the rename makes it the file.
+    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// What a layer of the model being loaded into expects: (name, Gaussians, triplane
+/// resolution and channels, decoder parameter counts, Adam group lengths).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerShape {
+    pub name: String,
+    pub count: usize,
+    pub triplane_size: (u32, u32),
+    pub decoders: [usize; 3],
+    pub adam: [usize; 5],
+}
+
+/// Reads `path`, checking it against `shapes` (the model it is loaded into).
+pub fn read(path: &Path, shapes: &[LayerShape]) -> Result<ModelState, String> {
+    let file = path.display().to_string();
+    let a = read_npz(path).map_err(|e| e.to_string())?;
+    let get = |key: &str, dtype: Dtype, len: usize| -> Result<Vec<f32>, String> {
+        let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
+        if arr.dtype != dtype {
+            return Err(format!("{file}: array '{key}' has dtype {:?}, expected {dtype:?}", arr.dtype));
+        }
+        if arr.data.len() != len {
+            return Err(format!("{file}: array '{key}' has shape {:?} ({} values), but this model needs {len}", arr.shape, arr.data.len()));
+        }
+        Ok(arr.data.iter().map(|&v| v as f32).collect())
+    };
+    let version = get("format_version", Dtype::U32, 1)?[0] as u32;
+    if version != FORMAT_VERSION {
+        return Err(format!("{file}: format version {version}, this drape reads version {FORMAT_VERSION}"));
+    }
+    let step = get("step", Dtype::U32, 1)?[0] as u32;
+    let mut layers = Vec::new();
+    for s in shapes {
+        let (n, name) = (s.count, &s.name);
+        let (r, c) = (s.triplane_size.0 as usize, s.triplane_size.1 as usize);
+        let bx = get(&format!("{name}.triplane_box"), Dtype::F32, 6)?;
+        let mut adam = Vec::new();
+        for (g, &len) in ADAM_GROUPS.iter().zip(&s.adam) {
+            adam.push(AdamState {
+                m: get(&format!("{name}.adam.{g}.m"), Dtype::F32, len)?,
+                v: get(&format!("{name}.adam.{g}.v"), Dtype::F32, len)?,
+                step: get(&format!("{name}.adam.{g}.step"), Dtype::U32, 1)?[0] as u32,
+            });
+        }
+        layers.push((
+            name.clone(),
+            LayerState {
+                means: get(&format!("{name}.means"), Dtype::F32, 3 * n)?,
+                quats: get(&format!("{name}.quats"), Dtype::F32, 4 * n)?,
+                log_scales: get(&format!("{name}.log_scales"), Dtype::F32, 3 * n)?,
+                triplane: get(&format!("{name}.triplane"), Dtype::F32, 3 * r * r * c)?,
+                triplane_size: s.triplane_size,
+                triplane_box: [[bx[0], bx[1], bx[2]], [bx[3], bx[4], bx[5]]],
+                appearance: get(&format!("{name}.appearance"), Dtype::F32, s.decoders[0])?,
+                geometry: get(&format!("{name}.geometry"), Dtype::F32, s.decoders[1])?,
+                deformation: get(&format!("{name}.deformation"), Dtype::F32, s.decoders[2])?,
+                adam,
+            },
+        ));
+    }
+    Ok(ModelState { step, layers })
+}
