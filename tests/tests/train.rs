@@ -195,3 +195,35 @@ fn resume_continues_from_the_checkpoint() {
     assert_eq!(state.step, 20);
     let _ = std::fs::remove_dir_all(&base);
 }
+
+#[test]
+fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() {
+    use drape_trainer::dataset::split::Split;
+    let ctx = gpu();
+    let base = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-guard");
+    let _ = std::fs::remove_dir_all(&base);
+    // One training image with a NaN pixel inside the person: SSIM's window spreads it
+    // into the gradient of every Gaussian that covers it.
+    let mut seq = load_sequence(data(), 0).expect("data");
+    let first_train = seq.frames.iter().position(|f| f.split == Split::Train).unwrap();
+    let poison = |f: &mut drape_trainer::dataset::loader::DatasetFrame| {
+        let inside = f.mask.iter().position(|&m| m).expect("person visible");
+        f.rgb[3 * inside] = f32::NAN;
+    };
+    poison(&mut seq.frames[first_train]);
+    let report = train(&ctx, &seq, model().clone(), &resume_config(30), &base.join("one"), false, &mut |_| {}).expect("a bad frame does not stop the run");
+    assert!(report.skipped_steps > 0, "the poisoned frame was never drawn or not caught");
+    let model_file = drape_trainer::npy::read_npz(&base.join("one/model.npz")).unwrap();
+    assert!(model_file.values().all(|a| a.data.iter().all(|v| v.is_finite())), "a non-finite value reached the model");
+    let log = std::fs::read_to_string(base.join("one/log.jsonl")).unwrap();
+    assert_eq!(log.lines().filter(|l| l.contains("\"skipped\":true")).count() as u32, report.skipped_steps, "every skipped step is logged");
+    // Every training frame poisoned: the run stops after max_skipped_steps, saying why.
+    for f in seq.frames.iter_mut().filter(|f| f.split == Split::Train) {
+        poison(f);
+    }
+    let mut config = resume_config(30);
+    config.max_skipped_steps = 3;
+    let err = train(&ctx, &seq, model().clone(), &config, &base.join("all"), false, &mut |_| {}).err().expect("the run stops");
+    assert!(err.contains("3 steps in a row had non-finite gradients"), "{err}");
+    let _ = std::fs::remove_dir_all(&base);
+}

@@ -79,3 +79,22 @@ pub fn add_into(
     }
     dst[i] += src[i];
 }
+
+/// `counter[0] += 1` for every element of `values[..len]` that is NaN or infinite (the
+/// training step's guard reads it before applying Adam).
+#[spirv(compute(threads(256)))]
+pub fn count_nonfinite(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &LossParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] values: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] counter: &mut [u32],
+) {
+    let i = id.y * groups.x * 256 + id.x;
+    if i >= p.len {
+        return;
+    }
+    if !values[i as usize].is_finite() {
+        crate::atomics::add_u32(&mut counter[0], 1);
+    }
+}

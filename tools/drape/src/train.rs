@@ -151,6 +151,9 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         if report.start_step == 0 { format!("fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ", report.fit_steps, report.fit_seconds, report.fit_mse) } else { format!("resumed at step {}; ", report.start_step) },
         report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians[0].1
     );
+    if report.skipped_steps > 0 {
+        println!("skipped {} steps with non-finite gradients (logged in log.jsonl)", report.skipped_steps);
+    }
     println!(
         "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop (before training: {:.2} / {:.2})",
         report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.initial.psnr_full, report.initial.psnr_crop

@@ -255,6 +255,27 @@ impl HumanLayer {
         Ok(())
     }
 
+    /// Records a count of the non-finite values among every gradient the Adam step
+    /// would apply into `counter[0]` (which the caller zeroes first).
+    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+        let g = &self.groups;
+        let buffers: [(&Buffer, usize); 5] = [
+            (&self.grad_means, g.position.len),
+            (&self.triplane.grads, g.triplane.len),
+            (&self.appearance.grads, g.appearance.len),
+            (&self.geometry.grads, g.geometry.len),
+            (&self.deformation.grads, g.deformation.len),
+        ];
+        for (b, len) in buffers {
+            let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
+            let groups = p.len.div_ceil(256);
+            let grid = if groups <= 65_535 { [groups, 1, 1] } else { [65_535, groups.div_ceil(65_535), 1] };
+            rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(grid)?;
+        }
+        rec.barrier();
+        Ok(())
+    }
+
     /// Records one Adam step of every group (after the backward pass).
     pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, include_position: bool) -> Result<()> {
         let g = &self.groups;

@@ -54,6 +54,9 @@ pub struct TrainConfig {
     /// Steps between checkpoints (`checkpoint.npz`, replaced atomically); one is also
     /// written at the end.
     pub checkpoint_every: u32,
+    /// A step with any non-finite gradient is skipped (counted and logged); this many
+    /// in a row stop the run.
+    pub max_skipped_steps: u32,
     /// Image loss `λ_l1 L1 + λ_ssim (1 - SSIM)` (paper: 0.8, 0.2).
     pub lambda_l1: f32,
     pub lambda_ssim: f32,
@@ -79,6 +82,7 @@ impl TrainConfig {
             fit_lr: 3e-3,
             log_every: 25,
             checkpoint_every: 200,
+            max_skipped_steps: 10,
             lambda_l1: 0.8,
             lambda_ssim: 0.2,
             zju_train_camera: 0,
@@ -414,7 +418,9 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     let settings = RenderSettings::default();
     let use_atomics = ctx.info().float_atomic_add;
     let t_train = Instant::now();
-    let skipped = 0u32;
+    let mut skipped = 0u32;
+    let mut skipped_in_a_row = 0u32;
+    let mut nonfinite = gpu(ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4)))?;
     let save = |layer: &mut HumanLayer, step: u32, path: &Path| -> Result<(), String> {
         let state = ModelState { step, layers: vec![("body".into(), gpu(layer.state(ctx))?)] };
         checkpoint::write(path, &state)
@@ -445,7 +451,31 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
         gpu(renderer.backward(&layer.posed, &grad_rgb, &zeros, &zeros, &layer.posed_grads, Accumulation::Auto))?;
         {
             let mut rec = gpu(ctx.record("train backward"))?;
+            rec.fill(&nonfinite, 0);
             gpu(layer.record_backward(&mut rec, use_atomics))?;
+            gpu(layer.record_count_nonfinite(&mut rec, &nonfinite))?;
+            gpu(rec.submit_and_wait())?;
+        }
+        // The guard: a step with a non-finite gradient is never applied.
+        let bad = gpu(ctx.read_buffer::<u32>(&mut nonfinite, 1))?[0];
+        if bad > 0 {
+            skipped += 1;
+            skipped_in_a_row += 1;
+            let line = serde_json::json!({ "step": step, "frame": f.frame, "skipped": true, "nonfinite_gradients": bad });
+            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
+            if skipped_in_a_row >= config.max_skipped_steps.max(1) {
+                return Err(format!(
+                    "stopped at step {step}: {skipped_in_a_row} steps in a row had non-finite gradients ({bad} values in the last, frame {} of {}); the last checkpoint is {}",
+                    f.frame,
+                    seq.dir.display(),
+                    checkpoint_path.display()
+                ));
+            }
+            continue;
+        }
+        skipped_in_a_row = 0;
+        {
+            let mut rec = gpu(ctx.record("train adam"))?;
             gpu(layer.record_adam(&mut rec, true))?;
             gpu(rec.submit_and_wait())?;
         }
@@ -458,7 +488,7 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
             let secs = t_train.elapsed().as_secs_f64();
             let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
             let line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": layer.groups.position.lr(), "seconds": secs });
-            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", out.join("log.jsonl").display()))?;
+            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
         if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < config.steps {
