@@ -29,6 +29,18 @@ const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * MAX_BINDINGS;
 /// Timestamp queries per query pool (two per pass).
 const QUERIES_PER_POOL: u32 = 256;
 
+/// Workgroups for `invocations` one-per-element invocations in groups of 256: one row
+/// of groups while that fits the 65,535 every device allows per dimension, else a 2-D
+/// grid; kernels dispatched this way index `id.y * num_workgroups.x * 256 + id.x`.
+pub fn flat_grid(invocations: u32) -> [u32; 3] {
+    let groups = invocations.div_ceil(256);
+    if groups <= 65_535 {
+        [groups, 1, 1]
+    } else {
+        [65_535, groups.div_ceil(65_535), 1]
+    }
+}
+
 /// GPU time of each pass of one submission, in recording order.
 #[derive(Clone, Debug, Default)]
 pub struct PassTimings {
@@ -202,11 +214,21 @@ impl<'a> Recording<'a> {
 
     /// Copies `bytes` bytes of `src` starting at `src_offset` to the start of `dst`.
     pub fn copy_from(&mut self, src: &'a Buffer, src_offset: u64, dst: &'a Buffer, bytes: u64) {
-        assert!(src_offset + bytes <= src.size && bytes <= dst.size, "copy of {bytes} bytes at {src_offset} from '{}' to '{}'", src.name(), dst.name());
+        self.copy_region(src, src_offset, dst, 0, bytes);
+    }
+
+    /// Copies `bytes` bytes of `src` at `src_offset` to `dst` at `dst_offset`.
+    pub fn copy_region(&mut self, src: &'a Buffer, src_offset: u64, dst: &'a Buffer, dst_offset: u64, bytes: u64) {
+        assert!(
+            src_offset + bytes <= src.size && dst_offset + bytes <= dst.size,
+            "copy of {bytes} bytes at {src_offset} from '{}' to '{}' at {dst_offset}",
+            src.name(),
+            dst.name()
+        );
         if bytes == 0 {
             return;
         }
-        let region = vk::BufferCopy::default().src_offset(src_offset).size(bytes);
+        let region = vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes);
         // SAFETY: both buffers are alive for 'a and were created with transfer usage.
         unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
     }

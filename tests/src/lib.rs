@@ -71,6 +71,34 @@ impl Pattern {
     }
 }
 
+pub mod num {
+    //! Numbers for the op tests: random inputs, conversions, and the one error measure
+    //! every GPU-vs-reference assertion uses.
+    use rand::{Rng, SeedableRng};
+
+    /// `len` values uniform in `[lo, hi)`, reproducible from `seed`.
+    pub fn uniform(len: usize, lo: f64, hi: f64, seed: u64) -> Vec<f64> {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        (0..len).map(|_| rng.random_range(lo..hi)).collect()
+    }
+
+    pub fn to_f32(v: &[f64]) -> Vec<f32> {
+        v.iter().map(|&x| x as f32).collect()
+    }
+
+    pub fn to_f64(v: &[f32]) -> Vec<f64> {
+        v.iter().map(|&x| f64::from(x)).collect()
+    }
+
+    /// Largest |a - b| divided by the largest |b| (at least `floor`): a relative error
+    /// of the whole array, so entries near zero are not judged on their own.
+    pub fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
+        assert_eq!(a.len(), b.len(), "lengths differ");
+        let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
+        a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+    }
+}
+
 pub mod splat {
     //! Scenes and helpers for the splatting tests.
     use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RenderedImage, SplatRenderer};

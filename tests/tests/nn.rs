@@ -4,7 +4,7 @@
 use drape_engine::ops::nn::{reference_backward, reference_forward, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::{Buffer, Context};
 use drape_tests::gpu;
-use rand::{Rng, SeedableRng};
+use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
 
 /// A small MLP with every activation and several heads.
 fn small_desc() -> MlpDesc {
@@ -18,27 +18,6 @@ fn small_desc() -> MlpDesc {
             HeadDesc::new("scale", 2, Activation::Exp),
         ],
     }
-}
-
-fn random(len: usize, amp: f64, seed: u64) -> Vec<f64> {
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    (0..len).map(|_| rng.random_range(-amp..amp)).collect()
-}
-
-fn to_f32(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
-}
-
-fn to_f64(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| f64::from(x)).collect()
-}
-
-/// Largest |a - b| divided by the largest |b| (at least `floor`): a relative error of
-/// the whole array, so entries near zero are not judged on their own.
-fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
-    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
 }
 
 struct GpuRun {
@@ -81,8 +60,8 @@ fn mlp_gpu_matches_cpu_reference() {
     let desc = small_desc();
     let params = to_f64(&desc.init_params(3));
     for rows in [0usize, 1, 7, 1000, 100_003] {
-        let input = random(rows * desc.input, 2.0, rows as u64);
-        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 100 + h as u64)).collect();
+        let input = uniform(rows * desc.input, -2.0, 2.0, rows as u64);
+        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
         for variant in [GemmVariant::Tiled, GemmVariant::Blocked] {
@@ -108,8 +87,8 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
     let rows = 300;
     for desc in [MlpDesc::hugs_appearance(96, 48), MlpDesc::hugs_geometry(96), MlpDesc::hugs_deformation(96)] {
         let params = to_f64(&desc.init_params(11));
-        let input = random(rows * desc.input, 1.0, 5);
-        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 50 + h as u64)).collect();
+        let input = uniform(rows * desc.input, -1.0, 1.0, 5);
+        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
         let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
@@ -136,8 +115,8 @@ fn mlp_gradients_match_central_differences() {
     let desc = small_desc();
     let rows = 3;
     let params = to_f64(&desc.init_params(7));
-    let input = random(rows * desc.input, 2.0, 9);
-    let coeffs: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 20 + h as u64)).collect();
+    let input = uniform(rows * desc.input, -2.0, 2.0, 9);
+    let coeffs: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 20 + h as u64)).collect();
     let saved = reference_forward(&desc, &params, &input, rows);
     let (grads, gx) = reference_backward(&desc, &params, &input, rows, &saved, &coeffs);
     let h = 1e-6;

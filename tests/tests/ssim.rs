@@ -4,6 +4,7 @@
 use drape_engine::ops::ssim::{reference, Ssim};
 use drape_engine::{BufferDesc, Context};
 use drape_tests::gpu;
+use drape_tests::num::rel_err;
 use rand::{Rng, SeedableRng};
 
 fn image(w: usize, h: usize, seed: u64) -> Vec<f64> {
@@ -33,11 +34,6 @@ fn gpu_ssim(ctx: &Context, pred: &[f64], target: &[f64], w: u32, h: u32, scale: 
     }
     let grad = ctx.read_buffer::<f32>(&mut g, pred.len()).expect("read").iter().map(|&v| f64::from(v)).collect();
     (s.read_mean(ctx).expect("mean"), grad)
-}
-
-fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
-    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
-    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
 }
 
 #[test]

@@ -17,6 +17,7 @@ use drape_engine::ops::triplane::{Triplane, TriplaneDesc};
 use drape_engine::{BufferDesc, Context};
 use drape_shared::deform::rot6d_to_matrix;
 use drape_tests::gpu;
+use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
 use drape_trainer::npy::{decode, encode, Array};
 use rand::{Rng, SeedableRng};
 
@@ -53,26 +54,6 @@ fn run_torch(dir: &Path, case: serde_json::Value) {
     assert!(out.status.success(), "PyTorch reference failed: {}", String::from_utf8_lossy(&out.stderr));
 }
 
-fn random(len: usize, amp: f64, seed: u64) -> Vec<f64> {
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    (0..len).map(|_| rng.random_range(-amp..amp)).collect()
-}
-
-fn f32s(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
-}
-
-fn f64s(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| f64::from(x)).collect()
-}
-
-/// Largest |a - b| over the largest |b| (at least `floor`).
-fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
-    assert_eq!(a.len(), b.len(), "lengths differ");
-    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
-    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
-}
-
 fn act_name(a: Activation) -> &'static str {
     match a {
         Activation::Identity => "identity",
@@ -86,15 +67,15 @@ fn act_name(a: Activation) -> &'static str {
 /// Runs `desc` on the GPU and in PyTorch (heads concatenated into one last layer, the
 /// same function) and compares outputs and every gradient.
 fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
-    let params = f64s(&desc.init_params(17));
-    let input = random(rows * desc.input, 2.0, 3);
-    let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| random(rows * d.width, 1.0, 30 + h as u64)).collect();
+    let params = to_f64(&desc.init_params(17));
+    let input = uniform(rows * desc.input, -2.0, 2.0, 3);
+    let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 30 + h as u64)).collect();
     // GPU.
-    let mut mlp = Mlp::with_params(ctx, name, desc.clone(), rows, &f32s(&params)).expect("mlp");
+    let mut mlp = Mlp::with_params(ctx, name, desc.clone(), rows, &to_f32(&params)).expect("mlp");
     for (h, g) in head_grads.iter().enumerate() {
-        mlp.write_head_grad(ctx, h, &f32s(g)).expect("head grad");
+        mlp.write_head_grad(ctx, h, &to_f32(g)).expect("head grad");
     }
-    let x = ctx.upload("x", &f32s(&input)).expect("upload");
+    let x = ctx.upload("x", &to_f32(&input)).expect("upload");
     let mut gx = ctx.create_buffer("gx", BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
     {
         let mut rec = ctx.record("torch check").expect("record");
@@ -102,10 +83,10 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false).expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
-    let heads: Vec<Vec<f64>> = (0..desc.heads.len()).map(|h| f64s(&mlp.read_head(ctx, h, rows).expect("read"))).collect();
+    let heads: Vec<Vec<f64>> = (0..desc.heads.len()).map(|h| to_f64(&mlp.read_head(ctx, h, rows).expect("read"))).collect();
     let count = mlp.param_count();
-    let grads = f64s(&ctx.read_buffer::<f32>(&mut mlp.grads, count).expect("read"));
-    let gpu_gx = f64s(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
+    let grads = to_f64(&ctx.read_buffer::<f32>(&mut mlp.grads, count).expect("read"));
+    let gpu_gx = to_f64(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
 
     // PyTorch: hidden layers as they are, the heads as one concatenated last layer.
     let dir = case_dir(name);
@@ -203,7 +184,7 @@ fn mlps_match_pytorch() {
 fn triplane_matches_grid_sample() {
     let ctx = gpu();
     let desc = TriplaneDesc { resolution: 13, channels: 6, box_min: [-1.0, -0.3, -2.0], box_max: [0.8, 1.7, 0.5] };
-    let planes = random(desc.len(), 1.0, 8);
+    let planes = uniform(desc.len(), -1.0, 1.0, 8);
     let n = 2000;
     let mut rng = rand::rngs::StdRng::seed_from_u64(9);
     let mut pts = Vec::new();
@@ -221,10 +202,10 @@ fn triplane_matches_grid_sample() {
             });
         }
     }
-    let gfeat = random(n * desc.feature_width(), 1.0, 10);
-    let mut tp = Triplane::with_planes(&ctx, "torch triplane", desc, &f32s(&planes)).expect("triplane");
-    let p = ctx.upload("points", &f32s(&pts)).expect("upload");
-    let g = ctx.upload("gfeat", &f32s(&gfeat)).expect("upload");
+    let gfeat = uniform(n * desc.feature_width(), -1.0, 1.0, 10);
+    let mut tp = Triplane::with_planes(&ctx, "torch triplane", desc, &to_f32(&planes)).expect("triplane");
+    let p = ctx.upload("points", &to_f32(&pts)).expect("upload");
+    let g = ctx.upload("gfeat", &to_f32(&gfeat)).expect("upload");
     let mut f = ctx.create_buffer("features", BufferDesc::gpu_only((gfeat.len() * 4) as u64)).expect("buffer");
     let mut gp = ctx.create_buffer("grad points", BufferDesc::gpu_only((pts.len() * 4) as u64)).expect("buffer");
     {
@@ -233,9 +214,9 @@ fn triplane_matches_grid_sample() {
         tp.record_backward(&mut rec, &p, &g, &gp, n as u32, ctx.info().float_atomic_add).expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
-    let feat = f64s(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));
-    let gplanes = f64s(&ctx.read_buffer::<f32>(&mut tp.grads, desc.len()).expect("read"));
-    let gpoints = f64s(&ctx.read_buffer::<f32>(&mut gp, pts.len()).expect("read"));
+    let feat = to_f64(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));
+    let gplanes = to_f64(&ctx.read_buffer::<f32>(&mut tp.grads, desc.len()).expect("read"));
+    let gpoints = to_f64(&ctx.read_buffer::<f32>(&mut gp, pts.len()).expect("read"));
     let dir = case_dir("triplane");
     let r = desc.resolution as usize;
     let c = desc.channels as usize;
@@ -258,8 +239,8 @@ fn triplane_matches_grid_sample() {
 #[test]
 fn rotation_6d_matches_pytorch() {
     let n = 500;
-    let r6 = random(6 * n, 2.0, 11);
-    let g = random(9 * n, 1.0, 12);
+    let r6 = uniform(6 * n, -2.0, 2.0, 11);
+    let g = uniform(9 * n, -1.0, 1.0, 12);
     let dir = case_dir("rot6d");
     put(&dir, "r6", &[n, 6], &r6);
     put(&dir, "gR", &[n, 3, 3], &g);
@@ -301,15 +282,15 @@ fn ssim_interior_matches_pytorch_msssim() {
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
     let target: Vec<f64> = (0..w * h * 3).map(|i| (0.5 + 0.35 * ((i as f64 * 0.013).sin()) + rng.random_range(-0.1..0.1)).clamp(0.0, 1.0)).collect();
     let pred: Vec<f64> = target.iter().map(|&v| (v + rng.random_range(-0.2..0.2)).clamp(0.0, 1.0)).collect();
-    let p = ctx.upload("pred", &f32s(&pred)).expect("upload");
-    let t = ctx.upload("target", &f32s(&target)).expect("upload");
+    let p = ctx.upload("pred", &to_f32(&pred)).expect("upload");
+    let t = ctx.upload("target", &to_f32(&target)).expect("upload");
     let mut s = drape_engine::ops::ssim::Ssim::new(&ctx, w as u32, h as u32).expect("ssim");
     {
         let mut rec = ctx.record("ssim torch").expect("record");
         s.record(&mut rec, &p, &t, None).expect("record");
         rec.submit_and_wait().expect("submit");
     }
-    let map = f64s(&s.read_map(&ctx).expect("map"));
+    let map = to_f64(&s.read_map(&ctx).expect("map"));
     // pytorch-msssim convolves without padding ("valid"): its mean is the mean of
     // drape's map over the pixels at least 5 from every border.
     let mut sum = 0.0;

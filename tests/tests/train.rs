@@ -38,6 +38,8 @@ fn tiny_config() -> TrainConfig {
     c.decimate = 4;
     c.body.triplane_resolution = 32;
     c.body.triplane_channels = 8;
+    c.cloth.triplane_resolution = 32;
+    c.cloth.triplane_channels = 8;
     c.fit_steps = 60;
     c.fit_lr = 3e-3;
     c.steps = 60;
@@ -91,6 +93,10 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
         "held-out PSNR {:.2} -> {:.2} dB full, {:.2} -> {:.2} dB crop; fit mse {:.2e}; {:.2} it/s",
         report.initial.psnr_full, report.fin.psnr_full, report.initial.psnr_crop, report.fin.psnr_crop, report.fit_mse, report.iterations_per_second
     );
+    // The data has garment masks: body and cloth layers, as printed at start.
+    let names: Vec<&str> = report.gaussians.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["body", "cloth"], "layers built");
+    assert!(report.gaussians.iter().all(|(_, c)| *c > 100), "{:?}", report.gaussians);
     // The skinning-weight fit converges well below the initial error (~2.7e-2).
     assert!(report.fit_mse < 5e-3, "skinning weights fitted to mse {}", report.fit_mse);
     // 60 steps on 6 training frames: measured +2.4 dB full and +2.3 dB on the crop;
@@ -103,7 +109,7 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     assert!(l1.len() >= 6, "{} log lines", l1.len());
     let tail = l1[l1.len() - 3..].iter().sum::<f64>() / 3.0;
     assert!(tail < l1[0], "L1 {} at the start, {tail} at the end", l1[0]);
-    for f in ["config.json", "metrics.json", "body_frame0002.ply", "model.npz", "checkpoint.npz", "novel_pose.png"] {
+    for f in ["config.json", "metrics.json", "body_frame0002.ply", "cloth_frame0002.ply", "model.npz", "checkpoint.npz", "novel_pose.png"] {
         assert!(out.join(f).is_file(), "{f} missing from the run directory");
     }
     // A second run into the same (now full) directory is refused, and leaves it as it was.
@@ -124,6 +130,8 @@ fn body_layer_trains_on_the_zju_layout() {
     let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
     eprintln!("ZJU held-out PSNR {:.2} -> {:.2} dB", report.initial.psnr_full, report.fin.psnr_full);
     assert_eq!(report.fin.frames, 10, "one held-out camera of two, ten frames");
+    // No garment masks in the ZJU-MoCap layout: no cloth layer (the model is HUGS).
+    assert_eq!(report.gaussians.len(), 1, "{:?}", report.gaussians);
     assert!(report.fin.psnr_full.is_finite() && report.fin.psnr_full > report.initial.psnr_full, "PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -149,7 +157,7 @@ fn resume_continues_from_the_checkpoint() {
     let (whole, split) = (base.join("whole"), base.join("split"));
     // 20 steps at once, and 10 steps then resumed to 20.
     train(&ctx, &seq, model().clone(), &resume_config(20), &whole, false, &mut |_| {}).expect("uninterrupted run");
-    train(&ctx, &seq, model().clone(), &resume_config(10), &split, false, &mut |_| {}).expect("first half");
+    drape_trainer::avatar::train::train_until(&ctx, &seq, model().clone(), &resume_config(20), &split, false, 10, &mut |_| {}).expect("first half");
     // A checkpoint write that was killed leaves only a temporary file: ignored.
     std::fs::write(split.join("checkpoint.npz.tmp"), b"PK\x03\x04 half a zip").unwrap();
     let report = train(&ctx, &seq, model().clone(), &resume_config(20), &split, true, &mut |_| {}).expect("resumed run");
@@ -167,19 +175,25 @@ fn resume_continues_from_the_checkpoint() {
     let a = drape_trainer::npy::read_npz(&whole.join("model.npz")).unwrap();
     let b = drape_trainer::npy::read_npz(&split.join("model.npz")).unwrap();
     let mut worst = 0.0f64;
+    let mut worst_key = String::new();
     let mut identical = true;
     for (k, va) in &a {
         let vb = &b[k];
         assert_eq!(va.shape, vb.shape, "{k}");
         for (x, y) in va.data.iter().zip(&vb.data) {
             identical &= x.to_bits() == y.to_bits();
-            worst = worst.max((x - y).abs() / (1.0 + x.abs()));
+            let d = (x - y).abs() / (1.0 + x.abs());
+            if d > worst {
+                worst = d;
+                worst_key = k.clone();
+            }
         }
     }
-    eprintln!("resumed vs uninterrupted: identical {identical}, largest relative difference {worst:e}");
-    // Atomic accumulation order differs between runs; 20 Adam steps cannot drift
-    // further than a few learning rates (1e-3) from the same start.
-    assert!(worst < 1e-2, "resumed model differs by {worst}");
+    eprintln!("resumed vs uninterrupted: identical {identical}, largest relative difference {worst:e} (in {worst_key})");
+    // Float atomics (triplane and splat backward) add in a different order on every
+    // run: two uninterrupted runs differ by ~1e-7 after the fit and the difference
+X
+    assert!(worst < 1e-2, "resumed model differs by {worst} in {worst_key}");
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
     std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();

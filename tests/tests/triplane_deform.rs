@@ -8,26 +8,8 @@ use drape_engine::{BufferDesc, Context};
 use drape_shared::deform::{rot6d_to_matrix, DeformOutput};
 use drape_shared::skinning::SKIN_JOINTS;
 use drape_tests::gpu;
+use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
 use rand::{Rng, SeedableRng};
-
-fn random(len: usize, lo: f64, hi: f64, seed: u64) -> Vec<f64> {
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    (0..len).map(|_| rng.random_range(lo..hi)).collect()
-}
-
-fn to_f32(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
-}
-
-fn to_f64(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| f64::from(x)).collect()
-}
-
-fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
-    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
-}
 
 fn desc() -> TriplaneDesc {
     TriplaneDesc { resolution: 9, channels: 5, box_min: [-1.0, -0.5, -2.0], box_max: [1.0, 1.5, 0.0] }
@@ -90,14 +72,14 @@ fn run_triplane(ctx: &Context, planes: &[f64], pts: &[f64], gfeat: &[f64], atomi
 fn triplane_gpu_matches_cpu_reference() {
     let ctx = gpu();
     let d = desc();
-    let planes = random(d.len(), -1.0, 1.0, 1);
+    let planes = uniform(d.len(), -1.0, 1.0, 1);
     let modes: &[bool] = if ctx.info().float_atomic_add { &[true, false] } else { &[false] };
     if !ctx.info().float_atomic_add {
         eprintln!("SKIPPED: the float-atomic triplane backward (device lacks shaderBufferFloat32AtomicAdd); compare-and-swap checked");
     }
     for n in [0usize, 1, 7, 1000, 100_003] {
         let pts = points(n, n as u64);
-        let gfeat = random(n * d.feature_width(), -1.0, 1.0, 7);
+        let gfeat = uniform(n * d.feature_width(), -1.0, 1.0, 7);
         let f_ref = triplane::reference_forward(&d, &planes, &pts);
         let (gpl_ref, gpt_ref) = triplane::reference_backward(&d, &planes, &pts, &gfeat);
         for &atomics in modes {
@@ -118,7 +100,7 @@ fn triplane_gpu_matches_cpu_reference() {
 #[test]
 fn triplane_padding_at_and_beyond_the_box() {
     let d = desc();
-    let planes = random(d.len(), -1.0, 1.0, 2);
+    let planes = uniform(d.len(), -1.0, 1.0, 2);
     let r = d.resolution as usize;
     let ch = d.channels as usize;
     let texel = |p: usize, row: usize, col: usize, c: usize| planes[((p * r + row) * r + col) * ch + c];
@@ -149,13 +131,13 @@ fn triplane_padding_at_and_beyond_the_box() {
 #[test]
 fn triplane_gradients_match_central_differences() {
     let d = desc();
-    let planes = random(d.len(), -1.0, 1.0, 3);
+    let planes = uniform(d.len(), -1.0, 1.0, 3);
     // Inside points only: central differences across a texel edge see a kink.
     let pts: Vec<f64> = (0..6).flat_map(|i| (0..3).map(move |a| {
         let (lo, hi) = (f64::from(d.box_min[a]), f64::from(d.box_max[a]));
         lo + (hi - lo) * (0.13 + 0.137 * i as f64 + 0.05 * a as f64)
     })).collect();
-    let gfeat = random(6 * d.feature_width(), -1.0, 1.0, 4);
+    let gfeat = uniform(6 * d.feature_width(), -1.0, 1.0, 4);
     let (gpl, gpt) = triplane::reference_backward(&d, &planes, &pts, &gfeat);
     let loss = |pl: &[f64], pt: &[f64]| triplane::reference_forward(&d, pl, pt).iter().zip(&gfeat).map(|(a, b)| a * b).sum::<f64>();
     let h = 1e-6;
@@ -180,8 +162,8 @@ fn triplane_gradients_match_central_differences() {
 fn random_transforms(seed: u64) -> Vec<f64> {
     // Rotations from random 6D vectors, translations up to 0.5.
     let mut t = Vec::new();
-    let r6 = random(6 * SKIN_JOINTS, -1.0, 1.0, seed);
-    let tr = random(3 * SKIN_JOINTS, -0.5, 0.5, seed + 1);
+    let r6 = uniform(6 * SKIN_JOINTS, -1.0, 1.0, seed);
+    let tr = uniform(3 * SKIN_JOINTS, -0.5, 0.5, seed + 1);
     for j in 0..SKIN_JOINTS {
         let mut v = [0.0; 6];
         v.copy_from_slice(&r6[6 * j..6 * j + 6]);
@@ -195,13 +177,13 @@ fn random_transforms(seed: u64) -> Vec<f64> {
 }
 
 fn deform_inputs(n: usize, seed: u64) -> HostInputs<f64> {
-    let mut quats = random(4 * n, -1.0, 1.0, seed + 2);
+    let mut quats = uniform(4 * n, -1.0, 1.0, seed + 2);
     for q in quats.chunks_exact_mut(4) {
         let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
         q.iter_mut().for_each(|v| *v /= norm);
     }
     // Softmax-like weights: positive, summing to 1, a few dominant.
-    let mut weights = random(SKIN_JOINTS * n, 0.0, 1.0, seed + 3);
+    let mut weights = uniform(SKIN_JOINTS * n, 0.0, 1.0, seed + 3);
     for w in weights.chunks_exact_mut(SKIN_JOINTS) {
         w.iter_mut().for_each(|v| *v = v.powi(6));
         let s: f64 = w.iter().sum();
@@ -209,12 +191,12 @@ fn deform_inputs(n: usize, seed: u64) -> HostInputs<f64> {
     }
     HostInputs {
         transforms: random_transforms(seed),
-        means: random(3 * n, -1.0, 1.0, seed + 4),
+        means: uniform(3 * n, -1.0, 1.0, seed + 4),
         quats,
-        log_scales: random(3 * n, -5.0, -2.0, seed + 5),
-        offsets: random(3 * n, -0.05, 0.05, seed + 6),
-        rot6d: random(6 * n, -1.0, 1.0, seed + 7),
-        log_scale_deltas: random(3 * n, -0.3, 0.3, seed + 8),
+        log_scales: uniform(3 * n, -5.0, -2.0, seed + 5),
+        offsets: uniform(3 * n, -0.05, 0.05, seed + 6),
+        rot6d: uniform(6 * n, -1.0, 1.0, seed + 7),
+        log_scale_deltas: uniform(3 * n, -0.3, 0.3, seed + 8),
         weights,
     }
 }
@@ -229,7 +211,7 @@ fn deform_gpu_matches_cpu_reference() {
     for n in [0usize, 1, 7, 1000, 100_003] {
         let host = deform_inputs(n, n as u64);
         let up: Vec<DeformOutput<f64>> = {
-            let r = random(10 * n, -1.0, 1.0, 99);
+            let r = uniform(10 * n, -1.0, 1.0, 99);
             (0..n).map(|i| DeformOutput { mean: [r[10 * i], r[10 * i + 1], r[10 * i + 2]], quat: [r[10 * i + 3], r[10 * i + 4], r[10 * i + 5], r[10 * i + 6]], log_scale: [r[10 * i + 7], r[10 * i + 8], r[10 * i + 9]] }).collect()
         };
         let fwd = deform::reference_forward(&host);
@@ -277,7 +259,7 @@ fn deform_gpu_matches_cpu_reference() {
 fn deform_gradients_match_central_differences() {
     let n = 5;
     let host = deform_inputs(n, 42);
-    let up_r = random(10 * n, -1.0, 1.0, 43);
+    let up_r = uniform(10 * n, -1.0, 1.0, 43);
     let up: Vec<DeformOutput<f64>> = (0..n).map(|i| DeformOutput { mean: [up_r[10 * i], up_r[10 * i + 1], up_r[10 * i + 2]], quat: [up_r[10 * i + 3], up_r[10 * i + 4], up_r[10 * i + 5], up_r[10 * i + 6]], log_scale: [up_r[10 * i + 7], up_r[10 * i + 8], up_r[10 * i + 9]] }).collect();
     let loss = |h: &HostInputs<f64>| -> f64 {
         deform::reference_forward(h).iter().zip(&up).map(|(o, u)| {
@@ -313,7 +295,7 @@ fn deform_gradients_match_central_differences() {
 fn rot6d_gives_rotations_and_quaternions_match_them() {
     use drape_shared::deform::matrix_to_quat;
     use drape_shared::splat::project::{normalize_quat, quat_to_mat};
-    for (i, r) in random(6 * 200, -2.0, 2.0, 5).chunks_exact(6).enumerate() {
+    for (i, r) in uniform(6 * 200, -2.0, 2.0, 5).chunks_exact(6).enumerate() {
         let m = rot6d_to_matrix([r[0], r[1], r[2], r[3], r[4], r[5]]);
         for a in 0..3 {
             for b in 0..3 {

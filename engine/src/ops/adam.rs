@@ -43,6 +43,13 @@ impl LrSchedule {
     }
 }
 
+/// The push constants of Adam step `t` (1-based) over `len` floats, with the bias
+/// corrections `1 - β^t`.
+pub fn step_params(len: u32, lr: f32, beta1: f32, beta2: f32, eps: f32, t: u32) -> AdamParams {
+    let t = t as i32;
+    AdamParams { len, lr, beta1, beta2, eps, bias1: 1.0 - beta1.powi(t), bias2: 1.0 - beta2.powi(t), _pad: 0 }
+}
+
 /// One parameter group: `len` floats of some parameter buffer.
 pub struct AdamGroup {
     pub name: String,
@@ -86,17 +93,7 @@ impl AdamGroup {
         assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
         let lr = self.lr();
         self.step.set(self.step.get() + 1);
-        let t = self.step.get() as i32;
-        let pc = AdamParams {
-            len: self.len as u32,
-            lr,
-            beta1: self.beta1,
-            beta2: self.beta2,
-            eps: self.eps,
-            bias1: 1.0 - self.beta1.powi(t),
-            bias2: 1.0 - self.beta2.powi(t),
-            _pad: 0,
-        };
+        let pc = step_params(self.len as u32, lr, self.beta1, self.beta2, self.eps, self.step.get());
         rec.pass("adam.step", Kernel::TrainAdamStep)
             .write(params)
             .read(grads)

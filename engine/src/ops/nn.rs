@@ -25,7 +25,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::{Context, DeviceKind};
 use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
-use crate::recorder::Recording;
+use crate::recorder::{flat_grid as grid, Recording};
 
 /// An activation after a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -265,15 +265,6 @@ fn below(l: usize, hidden: usize) -> Option<usize> {
     }
 }
 
-fn grid(n: u32) -> [u32; 3] {
-    // 2-D when one dimension would pass 65,535 groups (the kernels read num_workgroups).
-    let groups = n.div_ceil(256);
-    if groups <= 65_535 {
-        [groups, 1, 1]
-    } else {
-        [65_535, groups.div_ceil(65_535), 1]
-    }
-}
 
 impl Mlp {
     /// An MLP for up to `max_rows` rows with parameters from [`MlpDesc::init_params`].

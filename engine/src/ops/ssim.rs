@@ -10,16 +10,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
-use crate::recorder::Recording;
-
-fn grid(n: u32) -> [u32; 3] {
-    let groups = n.div_ceil(256);
-    if groups <= 65_535 {
-        [groups, 1, 1]
-    } else {
-        [65_535, groups.div_ceil(65_535), 1]
-    }
-}
+use crate::recorder::{flat_grid as grid, Recording};
 
 /// Scratch for the SSIM of `width × height × 3` images.
 pub struct Ssim {

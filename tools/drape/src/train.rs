@@ -35,6 +35,10 @@ pub struct TrainArgs {
     /// the fields); unknown keys are an error.
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Which layers: auto (a cloth layer where the data has garment masks), body (the
+    /// single-layer baseline, as HUGS) or body+cloth (overrides the config).
+    #[arg(long)]
+    pub layers: Option<String>,
     /// Training steps (overrides the preset and the config file).
     #[arg(long)]
     pub steps: Option<u32>,
@@ -93,7 +97,10 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(s) = args.steps {
         config.steps = s;
     }
-    config.validate().map_err(anyhow::Error::msg)?;
+    if let Some(l) = &args.layers {
+        config.layers = l.clone();
+    }
+    config.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(config)
 }
 
@@ -108,13 +115,18 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         drape_trainer::dataset::split::Split::Val => (a, b),
     });
     let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
+    let cloth = drape_trainer::avatar::train::wants_cloth(&seq, &config).map_err(anyhow::Error::msg)?;
     println!("data: {} ({:?} layout), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.layout, seq.frames[0].width, seq.frames[0].height);
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
     println!("  body layer: triplane {0}x{0}x{1}, HUGS decoders, SH degree {2}, subdivision {3}", config.body.triplane_resolution, config.body.triplane_channels, config.body.sh_degree, config.subdivision);
-    println!(
-        "  cloth layer: {} (single-layer mode: the cloth is folded into the body, as HUGS)",
-        if garments { "the data has garment masks, but the cloth layer is not built yet" } else { "none (no garment masks in the data)" }
-    );
+    match (cloth, garments) {
+        (true, _) => println!(
+            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, HUGS decoders, cloth-LBS {2}; rendered with the body in one depth-sorted pass",
+            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs
+        ),
+        (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
+        (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
+    }
     println!(
         "  scene layer: {} (trained against the person on a random background colour)",
         match seq.layout {
@@ -131,7 +143,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     };
     let report = train(&ctx, &seq, model, &config, &out, resume, &mut |p| {
         match p {
-            Progress::Fit { step, total, mse } => eprint!("\rfitting skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
+            Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
             Progress::Eval { done, total } => {
                 if done == 0 && last_eval != 0 {
@@ -147,16 +159,16 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     eprintln!();
     device.check_validation(&ctx)?;
     println!(
-        "{}trained steps {}..{} in {:.1} s ({:.2} it/s); {} body Gaussians",
+        "{}trained steps {}..{} in {:.1} s ({:.2} it/s); Gaussians: {}",
         if report.start_step == 0 { format!("fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ", report.fit_steps, report.fit_seconds, report.fit_mse) } else { format!("resumed at step {}; ", report.start_step) },
-        report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians[0].1
+        report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians.iter().map(|(n, c)| format!("{c} {n}")).collect::<Vec<_>>().join(", ")
     );
     if report.skipped_steps > 0 {
         println!("skipped {} steps with non-finite gradients (logged in log.jsonl)", report.skipped_steps);
     }
     println!(
-        "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop (before training: {:.2} / {:.2})",
-        report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.initial.psnr_full, report.initial.psnr_crop
+        "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop; SSIM {:.4} full, {:.4} crop (before training: PSNR {:.2} / {:.2}, SSIM {:.4} / {:.4})",
+        report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.fin.ssim_full, report.fin.ssim_crop, report.initial.psnr_full, report.initial.psnr_crop, report.initial.ssim_full, report.initial.ssim_crop
     );
     println!("wrote {} (model.npz, checkpoint.npz, eval/, novel_pose.png, log.jsonl, metrics.json) in {:.1} s", out.display(), t0.elapsed().as_secs_f64());
     Ok(())

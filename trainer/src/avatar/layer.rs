@@ -20,6 +20,7 @@ use drape_engine::ops::nn::{Mlp, MlpDesc};
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::GaussianCloud;
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
+use drape_engine::recorder::flat_grid;
 use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
@@ -82,6 +83,8 @@ pub struct HumanLayer {
     /// Target skinning weights (count × 24).
     pub weight_targets: Buffer,
     weight_sq_error: Buffer,
+    /// The cloth-LBS term's gradient on the weights, added to the deformation head's.
+    lbs_grad: Buffer,
     pub groups: LayerGroups,
 }
 
@@ -182,6 +185,7 @@ impl HumanLayer {
             grad_points: f32_buffer(ctx, &format!("{name} triplane point grads"), 3 * n)?,
             weight_targets,
             weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
+            lbs_grad: f32_buffer(ctx, &format!("{name} cloth-LBS gradient"), NUM_JOINTS * n)?,
             groups,
         })
     }
@@ -215,8 +219,10 @@ impl HumanLayer {
         Ok(())
     }
 
-    /// Records the backward pass from `posed_grads` into every parameter's gradient.
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+    /// Records the backward pass from `posed_grads` into every parameter's gradient,
+    /// with the skinning-weight term `lbs_weight · mean((W - W_gt)²)` (the paper's
+    /// cloth-LBS loss; 0 leaves it out).
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool, lbs_weight: f32) -> Result<()> {
         let n = self.count;
         rec.copy(&self.posed_grads.opacity_logits, self.appearance.head_grad(0), u64::from(n) * 4);
         rec.copy(&self.posed_grads.sh, self.appearance.head_grad(1), self.posed_grads.sh.size.min(self.appearance.head_grad(1).size));
@@ -230,6 +236,20 @@ impl HumanLayer {
         };
         deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
         rec.barrier();
+        if lbs_weight > 0.0 {
+            let len = NUM_JOINTS as u32 * n;
+            let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
+            rec.pass("loss.cloth_lbs", Kernel::TrainMseGrad)
+                .read(self.deformation.head_output(0))
+                .read(&self.weight_targets)
+                .write(&self.lbs_grad)
+                .write(&self.weight_sq_error)
+                .push(&p)
+                .dispatch([len.div_ceil(256), 1, 1])?;
+            rec.barrier();
+            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read(&self.lbs_grad).write(self.deformation.head_grad(0)).push(&p).dispatch([len.div_ceil(256), 1, 1])?;
+            rec.barrier();
+        }
         self.record_decoder_backward(rec, use_atomics, true)
     }
 
@@ -268,9 +288,7 @@ impl HumanLayer {
         ];
         for (b, len) in buffers {
             let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
-            let groups = p.len.div_ceil(256);
-            let grid = if groups <= 65_535 { [groups, 1, 1] } else { [65_535, groups.div_ceil(65_535), 1] };
-            rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(grid)?;
+            rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(flat_grid(p.len))?;
         }
         rec.barrier();
         Ok(())

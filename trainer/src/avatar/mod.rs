@@ -1,9 +1,10 @@
 //! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
-//! and optimiser groups (`layer`), the model and checkpoint file (`checkpoint`), and
+//! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), and
 //! training (`train`).
 
 pub mod checkpoint;
 pub mod layer;
+pub mod model;
 pub mod rig;
 pub mod train;

@@ -37,6 +37,11 @@ impl Rig {
         Self { model, betas: betas.to_vec(), rest_joints, canonical }
     }
 
+    /// Rest joint positions of the shaped body.
+    pub fn rest_joints(&self) -> [V3; NUM_JOINTS] {
+        self.rest_joints
+    }
+
     /// The body's vertices in the canonical pose.
     pub fn canonical_vertices(&self) -> Vec<V3> {
         skin(&self.model.weights, &self.canonical, &shaped_vertices(&self.model, &self.betas))

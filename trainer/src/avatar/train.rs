@@ -2,13 +2,13 @@
 //! skinning weights, then step (sample a training frame → deform → render → L1 →
 //! backward → Adam) and evaluate on the held-out frames.
 //!
-//! What is built so far (the rest of the issue is not): the body layer (the thin,
-//! whole path: triplane + decoders + learned skinning + splatting + 0.8 L1 + 0.2
-//! (1 - SSIM) + Adam), trained
-//! against the person masked onto a random background colour each step (HUGS), which
-//! folds the cloth into the body as HUGS does (the single-layer baseline). The cloth
-//! and scene layers, compositing, LPIPS and the cloth losses, pose refinement and
-//! densification come next.
+//! What is built so far (the rest of the issue is not): the body layer and, where the
+//! data shows garments, the cloth layer (`model`): triplane + decoders + learned
+//! skinning, rendered together in one depth-sorted pass, trained with 0.8 L1 + 0.2
+//! (1 - SSIM) against the person masked onto a random background colour each step
+//! (HUGS) and the cloth-LBS loss, by Adam. The scene layer, the three-pass compositor,
+//! LPIPS, the Chamfer / ARAP / mask cloth losses, pose refinement and densification
+//! come next.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -22,10 +22,10 @@ use drape_engine::{BufferDesc, Context, Kernel};
 use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
 
-use crate::avatar::checkpoint::{self, ModelState};
-use crate::avatar::layer::{HumanLayer, LayerConfig};
+use crate::avatar::checkpoint;
+use crate::avatar::layer::LayerConfig;
+use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::avatar::rig::Rig;
-use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
 use crate::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit};
@@ -46,6 +46,12 @@ pub struct TrainConfig {
     /// surface plane so the body stays covered: for tests and quick looks.
     pub decimate: u32,
     pub body: LayerConfig,
+    /// `auto` (a cloth layer where the data has garment masks), `body` (the
+    /// single-layer baseline: cloth folded into the body, as HUGS) or `body+cloth`.
+    pub layers: String,
+    pub cloth: LayerConfig,
+    /// Weight of the cloth-LBS loss `mean((W - W_gt)²)` on the cloth layer (paper: 1000).
+    pub lambda_cloth_lbs: f32,
     /// Adam steps fitting the deformation decoder to the body's skinning weights.
     pub fit_steps: u32,
     pub fit_lr: f32,
@@ -78,6 +84,9 @@ impl TrainConfig {
             subdivision: 0,
             decimate: 2,
             body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
+            layers: "auto".into(),
+            cloth: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
+            lambda_cloth_lbs: 1000.0,
             fit_steps: 150,
             fit_lr: 3e-3,
             log_every: 25,
@@ -92,7 +101,7 @@ impl TrainConfig {
     /// The paper's setting (for a GPU): two subdivisions, 256 × 256 × 32 triplanes,
     /// 20k steps.
     pub fn paper() -> Self {
-        Self { preset: "paper".into(), steps: 20_000, subdivision: 2, decimate: 1, body: LayerConfig::default(), fit_steps: 3000, fit_lr: 1e-3, log_every: 100, checkpoint_every: 1000, ..Self::quick() }
+        Self { preset: "paper".into(), steps: 20_000, subdivision: 2, decimate: 1, body: LayerConfig::default(), cloth: LayerConfig::default(), fit_steps: 3000, fit_lr: 1e-3, log_every: 100, checkpoint_every: 1000, ..Self::quick() }
     }
 
     pub fn preset(name: &str) -> Result<Self, String> {
@@ -105,7 +114,19 @@ impl TrainConfig {
 
     /// Checks values a config file could get wrong, naming the field.
     pub fn validate(&self) -> Result<(), String> {
+        LayerChoice::parse(&self.layers)?;
+        if self.cloth.sh_degree != self.body.sh_degree {
+            return Err(format!("cloth.sh_degree ({}) must equal body.sh_degree ({}): the layers are rendered together", self.cloth.sh_degree, self.body.sh_degree));
+        }
+        if self.cloth.triplane_resolution < 2 || self.cloth.triplane_channels == 0 {
+            return Err("cloth.triplane_resolution must be >= 2 and cloth.triplane_channels >= 1".into());
+        }
         let rates = [
+            ("cloth.lr_position", self.cloth.lr_position),
+            ("cloth.lr_triplane", self.cloth.lr_triplane),
+            ("cloth.lr_decoders", self.cloth.lr_decoders),
+            ("cloth.lr_deformation", self.cloth.lr_deformation),
+            ("lambda_cloth_lbs", self.lambda_cloth_lbs),
             ("body.lr_position", self.body.lr_position),
             ("body.lr_triplane", self.body.lr_triplane),
             ("body.lr_decoders", self.body.lr_decoders),
@@ -220,10 +241,13 @@ fn crop(rgb: &[f32], width: u32, (x0, y0, x1, y1): (u32, u32, u32, u32)) -> Vec<
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct EvalMetrics {
     pub frames: usize,
-    /// Whole image, the person on black (the body layer alone is evaluated).
+    /// Whole image, the person on black (the avatar without a scene layer).
     pub psnr_full: f64,
     /// The person mask's bounding box (HUGS's human crop).
     pub psnr_crop: f64,
+    /// SSIM (11 × 11 Gaussian window, zero padding, as the loss) on the same images.
+    pub ssim_full: f64,
+    pub ssim_crop: f64,
 }
 
 impl TrainConfig {
@@ -258,7 +282,7 @@ pub struct TrainReport {
 /// Progress of a run, for a progress line.
 #[derive(Clone, Debug)]
 pub enum Progress {
-    Fit { step: u32, total: u32, mse: f64 },
+    Fit { layer: String, step: u32, total: u32, mse: f64 },
     Step { step: u32, total: u32, l1: f64, psnr: f64, it_per_s: f64 },
     Eval { done: usize, total: usize },
 }
@@ -282,50 +306,52 @@ fn gpu<T>(r: drape_engine::Result<T>) -> Result<T, String> {
     r.map_err(|e| e.to_string())
 }
 
-/// The body layer's canonical Gaussians and their skinning targets.
-fn body_layer(ctx: &Context, rig: &Rig, config: &TrainConfig) -> Result<HumanLayer, String> {
-    let mesh = SkinnedMesh {
-        vertices: rig.canonical_vertices(),
-        faces: rig.model.faces.clone(),
-        weights: rig.model.weights.clone(),
-        shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; rig.model.num_vertices()],
-    };
-    let (full, sub) = gaussians_from_mesh(&mesh, config.subdivision, config.body.sh_degree, Layer::Body);
-    let keep = config.decimate.max(1) as usize;
-    let widen = 0.5 * (keep as f32).ln();
-    let mut cloud = drape_engine::ops::splat::scene::GaussianCloud::new(full.sh_degree);
-    let mut weights = Vec::new();
-    for i in (0..full.len()).step_by(keep) {
-        let mut g = full.gaussian::<f32>(i);
-        // The two tangent axes (the third is the normal).
-        g.log_scale[0] += widen;
-        g.log_scale[1] += widen;
-        cloud.push(&g, Layer::Body);
-        weights.extend(sub.weights[i].iter().map(|&w| w as f32));
+/// Whether the sequence gets a cloth layer: forced by `config.layers`, else where the
+/// data has garment masks.
+pub fn wants_cloth(seq: &Sequence, config: &TrainConfig) -> Result<bool, String> {
+    Ok(match LayerChoice::parse(&config.layers)? {
+        LayerChoice::Body => false,
+        LayerChoice::BodyAndCloth => true,
+        LayerChoice::Auto => seq.frames.iter().any(|f| f.garment_masks.is_some()),
+    })
+}
+
+/// The avatar the data requires.
+fn build_avatar(ctx: &Context, rig: &Rig, config: &TrainConfig, cloth: bool) -> Result<Avatar, String> {
+    let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
+    let mut configs = vec![config.body.clone()];
+    let mut lbs = vec![0.0];
+    if cloth {
+        inits.push(cloth_init(rig, config.decimate, config.cloth.sh_degree));
+        configs.push(config.cloth.clone());
+        lbs.push(config.lambda_cloth_lbs);
     }
-    gpu(HumanLayer::new(ctx, "body", &cloud, &weights, &config.body, config.steps, config.seed))
+    gpu(Avatar::new(ctx, &inits, &configs, &lbs, config.steps, config.seed))
 }
 
 /// Renders every held-out frame on black and compares with the masked ground truth.
-fn evaluate(ctx: &Context, layer: &mut HumanLayer, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut SplatRenderer, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
+fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut SplatRenderer, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
     let settings = RenderSettings::default();
     let mut m = EvalMetrics::default();
     for (k, f) in frames.iter().enumerate() {
         progress(Progress::Eval { done: k, total: frames.len() });
         let ft = rig.frame(&f.body);
-        gpu(ctx.write_buffer(&mut layer.transforms, &ft.transforms))?;
+        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
         {
             let mut rec = gpu(ctx.record("eval forward"))?;
-            gpu(layer.record_forward(&mut rec, ft.log_scale))?;
+            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
         let cam = camera(&f.camera, [0.0; 3]);
-        gpu(renderer.forward(&layer.posed, &cam, &settings))?;
+        gpu(renderer.forward(&avatar.posed, &cam, &settings))?;
         let image = gpu(renderer.read_image())?;
         let target = masked_target(f, [0.0; 3]);
         m.psnr_full += psnr(&image.rgb, &target);
+        m.ssim_full += ssim_of(&image.rgb, &target, f.width, f.height);
         if let Some(b) = mask_bbox(&f.mask, f.width) {
-            m.psnr_crop += psnr(&crop(&image.rgb, f.width, b), &crop(&target, f.width, b));
+            let (cr, ct) = (crop(&image.rgb, f.width, b), crop(&target, f.width, b));
+            m.psnr_crop += psnr(&cr, &ct);
+            m.ssim_crop += ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1);
         }
         if let Some(dir) = out_dir {
             // Ground truth | render, side by side.
@@ -342,7 +368,15 @@ fn evaluate(ctx: &Context, layer: &mut HumanLayer, rig: &Rig, frames: &[&Dataset
     let n = frames.len().max(1) as f64;
     m.psnr_full /= n;
     m.psnr_crop /= n;
+    m.ssim_full /= n;
+    m.ssim_crop /= n;
     Ok(m)
+}
+
+/// Mean SSIM (the training loss's form, `ops::ssim`) computed on the CPU in f64.
+fn ssim_of(a: &[f32], b: &[f32], width: u32, height: u32) -> f64 {
+    let (a, b): (Vec<f64>, Vec<f64>) = (a.iter().map(|&v| f64::from(v)).collect(), b.iter().map(|&v| f64::from(v)).collect());
+    drape_engine::ops::ssim::reference(&a, &b, width as usize, height as usize).1
 }
 
 fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> {
@@ -358,6 +392,15 @@ fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> 
 /// to `config.steps`. The step's frame and background come from `(seed, step)`, so a
 /// resumed run samples what the uninterrupted one would have.
 pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
+    train_until(ctx, seq, model, config, out, resume, config.steps, progress)
+}
+
+/// [`train`], stopping after step `stop_at` (at most `config.steps`) as if the run
+/// had been interrupted there: the checkpoint is written, the schedules still run to
+/// `config.steps`, and a later `resume` continues as the uninterrupted run would.
+#[allow(clippy::too_many_arguments)]
+pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
+    let stop_at = stop_at.min(config.steps);
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
     let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
@@ -384,8 +427,8 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
-    let mut layer = body_layer(ctx, &rig, config)?;
-    let n = layer.count;
+    let mut avatar = build_avatar(ctx, &rig, config, wants_cloth(seq, config)?)?;
+    let n: u32 = avatar.layers.iter().map(|l| l.count).sum();
     let mut renderer = gpu(SplatRenderer::new(ctx, width, height, n as usize))?;
 
     // 1. The deformation decoder learns the body's skinning weights (or the run's
@@ -393,14 +436,20 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     let t0 = Instant::now();
     let total_fit = config.fit_steps;
     let (start_step, fit_mse) = if resume {
-        let state = checkpoint::read(&checkpoint_path, &[layer.shape()])?;
-        gpu(layer.restore(ctx, &state.layers[0].1))?;
+        let state = checkpoint::read(&checkpoint_path, &avatar.shapes())?;
+        gpu(avatar.restore(ctx, &state.layers))?;
         (state.step, f64::NAN)
     } else {
-        (0, gpu(layer.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { step, total: total_fit, mse })))?)
+        let mut worst = 0.0f64;
+        for l in &mut avatar.layers {
+            let name = l.name.clone();
+            let mse = gpu(l.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total: total_fit, mse })))?;
+            worst = worst.max(mse);
+        }
+        (0, worst)
     };
     let fit_seconds = t0.elapsed().as_secs_f64();
-    let initial = evaluate(ctx, &mut layer, &rig, &test_frames, &mut renderer, None, progress)?;
+    let initial = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, None, progress)?;
 
     // 2. The main loop.
     let pixels = (width * height) as usize;
@@ -421,24 +470,24 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
     let mut skipped = 0u32;
     let mut skipped_in_a_row = 0u32;
     let mut nonfinite = gpu(ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4)))?;
-    let save = |layer: &mut HumanLayer, step: u32, path: &Path| -> Result<(), String> {
-        let state = ModelState { step, layers: vec![("body".into(), gpu(layer.state(ctx))?)] };
+    let save = |avatar: &mut Avatar, step: u32, path: &Path| -> Result<(), String> {
+        let state = gpu(avatar.state(ctx, step))?;
         checkpoint::write(path, &state)
     };
-    for step in start_step..config.steps {
+    for step in start_step..stop_at {
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let f = train_frames[rng.random_range(0..train_frames.len())];
         let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
         let ft = rig.frame(&f.body);
-        gpu(ctx.write_buffer(&mut layer.transforms, &ft.transforms))?;
+        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
         gpu(ctx.write_buffer(&mut target, &masked_target(f, background)))?;
         {
             let mut rec = gpu(ctx.record("train forward"))?;
-            gpu(layer.record_forward(&mut rec, ft.log_scale))?;
+            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
         let cam = camera(&f.camera, background);
-        gpu(renderer.forward(&layer.posed, &cam, &settings))?;
+        gpu(renderer.forward(&avatar.posed, &cam, &settings))?;
         {
             let (rgb, _, _) = renderer.outputs();
             let mut rec = gpu(ctx.record("train loss"))?;
@@ -448,12 +497,12 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
             gpu(ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim))))?;
             gpu(rec.submit_and_wait())?;
         }
-        gpu(renderer.backward(&layer.posed, &grad_rgb, &zeros, &zeros, &layer.posed_grads, Accumulation::Auto))?;
+        gpu(renderer.backward(&avatar.posed, &grad_rgb, &zeros, &zeros, &avatar.posed_grads, Accumulation::Auto))?;
         {
             let mut rec = gpu(ctx.record("train backward"))?;
             rec.fill(&nonfinite, 0);
-            gpu(layer.record_backward(&mut rec, use_atomics))?;
-            gpu(layer.record_count_nonfinite(&mut rec, &nonfinite))?;
+            gpu(avatar.record_backward(&mut rec, use_atomics))?;
+            gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
             gpu(rec.submit_and_wait())?;
         }
         // The guard: a step with a non-finite gradient is never applied.
@@ -476,10 +525,10 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
         skipped_in_a_row = 0;
         {
             let mut rec = gpu(ctx.record("train adam"))?;
-            gpu(layer.record_adam(&mut rec, true))?;
+            gpu(avatar.record_adam(&mut rec))?;
             gpu(rec.submit_and_wait())?;
         }
-        if step % config.log_every.max(1) == 0 || step + 1 == config.steps {
+        if step % config.log_every.max(1) == 0 || step + 1 == stop_at {
             let e = gpu(ctx.read_buffer::<f32>(&mut abs_error, 3 * pixels))?;
             let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / e.len() as f64;
             let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / e.len() as f64;
@@ -487,30 +536,41 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
             let ssim_value = gpu(ssim.read_mean(ctx))?;
             let secs = t_train.elapsed().as_secs_f64();
             let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
-            let line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": layer.groups.position.lr(), "seconds": secs });
+            let line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": secs });
             writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
-        if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < config.steps {
-            save(&mut layer, step + 1, &checkpoint_path)?;
+        if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at {
+            save(&mut avatar, step + 1, &checkpoint_path)?;
         }
     }
-    save(&mut layer, config.steps.max(start_step), &checkpoint_path)?;
-    save(&mut layer, config.steps.max(start_step), &out.join("model.npz"))?;
+    let last = stop_at.max(start_step);
+    save(&mut avatar, last, &checkpoint_path)?;
+    save(&mut avatar, last, &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
-    let fin = evaluate(ctx, &mut layer, &rig, &test_frames, &mut renderer, Some(&out.join("eval")), progress)?;
+    let fin = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, Some(&out.join("eval")), progress)?;
     // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
         let ft = rig.frame(&f.body);
-        gpu(ctx.write_buffer(&mut layer.transforms, &ft.transforms))?;
+        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
         {
             let mut rec = gpu(ctx.record("export forward"))?;
-            gpu(layer.record_forward(&mut rec, ft.log_scale))?;
+            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        let cloud = gpu(layer.read_posed(ctx))?;
-        let path = out.join(format!("body_frame{:04}.ply", f.frame));
-        ply::write(&path, &cloud).map_err(|e| e.to_string())?;
+        let cloud = gpu(avatar.read_posed(ctx))?;
+        // One standard 3DGS PLY per layer.
+        for layer in [Layer::Body, Layer::Cloth] {
+            let mut part = drape_engine::ops::splat::scene::GaussianCloud::new(cloud.sh_degree);
+            for i in (0..cloud.len()).filter(|&i| cloud.layers[i] == layer) {
+                part.push(&cloud.gaussian::<f32>(i), layer);
+            }
+            if !part.is_empty() {
+                let name = if layer == Layer::Body { "body" } else { "cloth" };
+                let path = out.join(format!("{name}_frame{:04}.ply", f.frame));
+                ply::write(&path, &part).map_err(|e| e.to_string())?;
+            }
+        }
     }
     // A novel pose (the procedural raise-arms motion, halfway) on the first held-out
     // frame's root, translation and camera.
@@ -532,26 +592,26 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
             }
         };
         let ft = rig.frame(&body);
-        gpu(ctx.write_buffer(&mut layer.transforms, &ft.transforms))?;
+        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
         {
             let mut rec = gpu(ctx.record("novel pose forward"))?;
-            gpu(layer.record_forward(&mut rec, ft.log_scale))?;
+            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        gpu(renderer.forward(&layer.posed, &camera(&f.camera, [0.0; 3]), &settings))?;
+        gpu(renderer.forward(&avatar.posed, &camera(&f.camera, [0.0; 3]), &settings))?;
         let image = gpu(renderer.read_image())?;
         crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &image.rgb)?;
     }
     let report = TrainReport {
         layout: seq.layout,
-        gaussians: vec![("body".into(), n)],
+        gaussians: avatar.counts(),
         fit_steps: total_fit,
         fit_mse,
         fit_seconds,
         start_step,
-        steps: config.steps,
+        steps: stop_at,
         train_seconds,
-        iterations_per_second: f64::from(config.steps.saturating_sub(start_step)) / train_seconds.max(1e-9),
+        iterations_per_second: f64::from(stop_at.saturating_sub(start_step)) / train_seconds.max(1e-9),
         skipped_steps: skipped,
         initial,
         fin,

@@ -2,7 +2,6 @@
 //! `drape_shared::adam`). One learning rate per parameter group; the moments live in
 //! two more sets of [`GaussianBuffers`].
 
-use drape_shared::adam::AdamParams;
 
 use crate::context::Context;
 use crate::error::Result;
@@ -62,22 +61,12 @@ impl GaussianAdam {
         assert_eq!(params.count, grads.count, "gradients are for another cloud");
         assert_eq!(params.count, self.m.count, "Adam state is for another cloud");
         self.step += 1;
-        let t = self.step as i32;
         let lens = params.lens();
         let lrs = self.lrs.in_binding_order();
         let (p, g, m, v) = (params.all(), grads.all(), self.m.all(), self.v.all());
         for i in 0..5 {
             let len = lens[i] as u32;
-            let pc = AdamParams {
-                len,
-                lr: lrs[i],
-                beta1: self.beta1,
-                beta2: self.beta2,
-                eps: self.eps,
-                bias1: 1.0 - self.beta1.powi(t),
-                bias2: 1.0 - self.beta2.powi(t),
-                _pad: 0,
-            };
+            let pc = crate::ops::adam::step_params(len, lrs[i], self.beta1, self.beta2, self.eps, self.step);
             rec.pass("adam.step", Kernel::TrainAdamStep)
                 .write(p[i])
                 .read(g[i])

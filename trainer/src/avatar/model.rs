@@ -1,0 +1,240 @@
+//! The avatar: the set of layers the data requires (decided from the data and
+//! printed at start), and the one set of posed Gaussians the splatter renders them
+//! from.
+//!
+//! Layers: the body (Gaussians of the SMPL-format body in the canonical Da-pose) and,
+//! when the data shows garments, the cloth (the T-shirt and the pants sharing one
+//! triplane and one set of decoders, as the paper says). Each layer deforms and skins
+//! its own Gaussians; their posed Gaussians are copied into one cloud and rendered in
+//! one pass sorted by depth (the "fused" variant of the paper's compositing: the
+//! three-pass compositor is not built yet), and the gradients are copied back.
+//!
+//! Cloth Gaussians come from the garment meshes made in their build pose (A-pose),
+//! brought to the canonical pose by `A(Da) A(build)⁻¹` with the garments' weights;
+//! their skinning targets are the nearest body vertex's weights (the paper's W_gt),
+//! and the cloth-LBS loss `λ ‖W - W_gt‖²` keeps the predicted weights near them.
+
+use drape_engine::ops::splat::render::GaussianBuffers;
+use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::{Buffer, Context, Recording, Result};
+
+use crate::avatar::checkpoint::{LayerShape, LayerState, ModelState};
+use crate::avatar::layer::{HumanLayer, LayerConfig};
+use crate::avatar::rig::Rig;
+use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
+use crate::body::kinematics::{forward_kinematics, relative_transforms, skin};
+use crate::garment::{pants, tshirt};
+
+/// Which layers to build.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LayerChoice {
+    /// From the data: a cloth layer where it has garment masks.
+    Auto,
+    /// The body alone (cloth folded into it, as HUGS): the baseline.
+    Body,
+    /// Body and cloth.
+    BodyAndCloth,
+}
+
+impl LayerChoice {
+    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "auto" => Ok(Self::Auto),
+            "body" => Ok(Self::Body),
+            "body+cloth" => Ok(Self::BodyAndCloth),
+            other => Err(format!("layers must be auto, body or body+cloth, got '{other}'")),
+        }
+    }
+}
+
+/// Canonical Gaussians of one layer with their skinning targets (count × 24).
+pub struct LayerInit {
+    pub name: String,
+    pub cloud: GaussianCloud,
+    pub weights: Vec<f32>,
+}
+
+/// Every `keep`-th Gaussian of `full`, widened by √keep in the surface plane, with
+/// its row of `weights`.
+fn decimated(name: &str, full: &GaussianCloud, weights: &[[f64; 24]], keep: usize, layer: Layer) -> LayerInit {
+    let keep = keep.max(1);
+    let widen = 0.5 * (keep as f32).ln();
+    let mut cloud = GaussianCloud::new(full.sh_degree);
+    let mut w = Vec::new();
+    for i in (0..full.len()).step_by(keep) {
+        let mut g = full.gaussian::<f32>(i);
+        // The two tangent axes (the third is the normal).
+        g.log_scale[0] += widen;
+        g.log_scale[1] += widen;
+        cloud.push(&g, layer);
+        w.extend(weights[i].iter().map(|&v| v as f32));
+    }
+    LayerInit { name: name.to_string(), cloud, weights: w }
+}
+
+/// The body layer's canonical Gaussians.
+pub fn body_init(rig: &Rig, subdivision: u32, decimate: u32, sh_degree: u32) -> LayerInit {
+    let mesh = SkinnedMesh {
+        vertices: rig.canonical_vertices(),
+        faces: rig.model.faces.clone(),
+        weights: rig.model.weights.clone(),
+        shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; rig.model.num_vertices()],
+    };
+    let (full, sub) = gaussians_from_mesh(&mesh, subdivision, sh_degree, Layer::Body);
+    decimated("body", &full, &sub.weights, decimate as usize, Layer::Body)
+}
+
+/// The cloth layer's canonical Gaussians: the project's T-shirt and pants made on the
+/// rig's body (the garments `drape synth` dresses it in).
+pub fn cloth_init(rig: &Rig, decimate: u32, sh_degree: u32) -> LayerInit {
+    let (canonical, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &crate::body::kinematics::da_pose());
+    let mut vertices = Vec::new();
+    let mut faces = Vec::new();
+    let mut weights = Vec::new();
+    for g in [tshirt(&rig.model), pants(&rig.model)] {
+        let (built, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &g.build_pose);
+        let to_canonical = relative_transforms(&canonical, &built);
+        let base = vertices.len() as u32;
+        vertices.extend(skin(&g.weights, &to_canonical, &g.vertices));
+        faces.extend(g.faces.iter().map(|f| f.map(|i| i + base)));
+        weights.extend(g.weights.iter().copied());
+    }
+    let n = vertices.len();
+    let mesh = SkinnedMesh { vertices, faces, weights, shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; n] };
+    let (full, sub) = gaussians_from_mesh(&mesh, 0, sh_degree, Layer::Cloth);
+    decimated("cloth", &full, &sub.weights, decimate as usize, Layer::Cloth)
+}
+
+/// The layers and the cloud they are rendered from.
+pub struct Avatar {
+    pub layers: Vec<HumanLayer>,
+    /// All layers' posed Gaussians, layer after layer.
+    pub posed: GaussianBuffers,
+    pub posed_grads: GaussianBuffers,
+    /// Cloth-LBS weight per layer (0 for the body).
+    pub lbs_weights: Vec<f32>,
+}
+
+impl Avatar {
+    /// Builds the layers from their initial Gaussians (configs and LBS weights in the
+    /// same order).
+    pub fn new(ctx: &Context, inits: &[LayerInit], configs: &[LayerConfig], lbs_weights: &[f32], steps: u32, seed: u64) -> Result<Self> {
+        let mut layers = Vec::new();
+        for (k, (init, config)) in inits.iter().zip(configs).enumerate() {
+            layers.push(HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?);
+        }
+        let total: usize = layers.iter().map(|l| l.count as usize).sum();
+        let sh = configs[0].sh_degree;
+        assert!(configs.iter().all(|c| c.sh_degree == sh), "layers rendered together share an SH degree");
+        Ok(Self {
+            layers,
+            posed: GaussianBuffers::new(ctx, "avatar posed", total, sh)?,
+            posed_grads: GaussianBuffers::new(ctx, "avatar posed grads", total, sh)?,
+            lbs_weights: lbs_weights.to_vec(),
+        })
+    }
+
+    /// Gaussians per layer.
+    pub fn counts(&self) -> Vec<(String, u32)> {
+        self.layers.iter().map(|l| (l.name.clone(), l.count)).collect()
+    }
+
+    /// Floats per Gaussian of each parameter buffer (means, log-scales, quats,
+    /// opacity, SH).
+    fn floats_per_gaussian(&self) -> [u64; 5] {
+        let k = 3 * drape_shared::splat::layout::sh_coeffs(self.posed.sh_degree) as u64;
+        [3, 3, 4, 1, k]
+    }
+
+    /// Records every layer's forward pass for the frame's transforms (written into
+    /// each layer's `transforms` before) and gathers the posed cloud.
+    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
+        let per = self.floats_per_gaussian();
+        let mut first = 0u64;
+        for l in &self.layers {
+            l.record_forward(rec, log_scale_offset)?;
+            let n = u64::from(l.count);
+            let src = l.posed.all();
+            let dst = self.posed.all();
+            // Each buffer's slice of this layer starts at `first` Gaussians.
+            for k in 0..5 {
+                rec.copy_region(src[k], 0, dst[k], 4 * per[k] * first, 4 * per[k] * n);
+            }
+            first += n;
+        }
+        rec.barrier();
+        Ok(())
+    }
+
+    /// Records the backward pass from `posed_grads` (the splatter's), through every
+    /// layer, with each layer's cloth-LBS term.
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+        let per = self.floats_per_gaussian();
+        let mut first = 0u64;
+        for l in &self.layers {
+            let n = u64::from(l.count);
+            let src = self.posed_grads.all();
+            let dst = l.posed_grads.all();
+            for k in 0..5 {
+                rec.copy_region(src[k], 4 * per[k] * first, dst[k], 0, 4 * per[k] * n);
+            }
+            first += n;
+        }
+        rec.barrier();
+        for (l, &lbs) in self.layers.iter().zip(&self.lbs_weights) {
+            l.record_backward(rec, use_atomics, lbs)?;
+        }
+        Ok(())
+    }
+
+    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+        for l in &self.layers {
+            l.record_count_nonfinite(rec, counter)?;
+        }
+        Ok(())
+    }
+
+    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
+        for l in &self.layers {
+            l.record_adam(rec, true)?;
+        }
+        Ok(())
+    }
+
+    /// Writes the frame's transforms into every layer.
+    pub fn set_transforms(&mut self, ctx: &Context, transforms: &[f32]) -> Result<()> {
+        for l in &mut self.layers {
+            ctx.write_buffer(&mut l.transforms, transforms)?;
+        }
+        Ok(())
+    }
+
+    pub fn shapes(&self) -> Vec<LayerShape> {
+        self.layers.iter().map(|l| l.shape()).collect()
+    }
+
+    pub fn state(&mut self, ctx: &Context, step: u32) -> Result<ModelState> {
+        let mut layers = Vec::new();
+        for l in &mut self.layers {
+            layers.push((l.name.clone(), l.state(ctx)?));
+        }
+        Ok(ModelState { step, layers })
+    }
+
+    pub fn restore(&mut self, ctx: &Context, states: &[(String, LayerState)]) -> Result<()> {
+        for (l, (_, s)) in self.layers.iter_mut().zip(states) {
+            l.restore(ctx, s)?;
+        }
+        Ok(())
+    }
+
+    /// The posed cloud of the last forward pass, read back, with each Gaussian's layer.
+    pub fn read_posed(&mut self, ctx: &Context) -> Result<GaussianCloud> {
+        let mut kinds = Vec::new();
+        for l in &self.layers {
+            let kind = if l.name == "cloth" { Layer::Cloth } else { Layer::Body };
+            kinds.extend(std::iter::repeat_n(kind, l.count as usize));
+        }
+        self.posed.download(ctx, &kinds)
+    }
+}
