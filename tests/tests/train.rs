@@ -191,9 +191,9 @@ fn resume_continues_from_the_checkpoint() {
     }
     eprintln!("resumed vs uninterrupted: identical {identical}, largest relative difference {worst:e} (in {worst_key})");
     // Float atomics (triplane and splat backward) add in a different order on every
-    // run: two uninterrupted runs differ by ~1e-7 after the fit and the difference
-X
-    assert!(worst < 1e-2, "resumed model differs by {worst} in {worst_key}");
+    // run: two uninterrupted runs differ by ~1e-7 after the fit, growing through
+    // Adam's normalised steps; measured 2.5e-5 after 20 steps, bound 1e-3.
+    assert!(worst < 1e-3, "resumed model differs by {worst} in {worst_key}");
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
     std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
