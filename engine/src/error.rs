@@ -43,6 +43,10 @@ pub enum EngineError {
     #[error("too many {what}: {requested} (the limit is {limit})")]
     TooLarge { what: &'static str, requested: u64, limit: u64 },
 
+    /// An op was given an empty input it has no value for.
+    #[error("{what} is empty: {why}")]
+    Empty { what: &'static str, why: &'static str },
+
     /// Any other Vulkan failure, with the call that returned it.
     #[error("{call} failed: {result}")]
     Vulkan { call: &'static str, result: vk::Result },

@@ -201,7 +201,55 @@ def op_l1(d, case):
     save(d, "ga", grad_or_zeros(a))
 
 
-OPS = {"mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1}
+def op_chamfer(d, case):
+    """Bidirectional Chamfer through Geman-McClure (torch.cdist, min, autograd)."""
+    p = load(d, "pred", (None, 3))
+    q = load(d, "target", (None, 3))
+    sigma = float(case["sigma"])
+    p.requires_grad_(True)
+    d2 = torch.cdist(p, q) ** 2
+    rho = lambda x: x / (x + sigma**2)
+    loss = 0.5 * (rho(d2.min(dim=1).values).mean() + rho(d2.min(dim=0).values).mean())
+    loss.backward()
+    save(d, "loss", loss.reshape(1))
+    save(d, "gpred", grad_or_zeros(p))
+
+
+def op_arap(d, case):
+    """Variance (population) of the edge lengths, with autograd."""
+    v = load(d, "positions", (None, 3))
+    e = load(d, "edges", (None, 2)).long()
+    v.requires_grad_(True)
+    lengths = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
+    loss = lengths.var(unbiased=False)
+    loss.backward()
+    save(d, "loss", loss.reshape(1))
+    save(d, "gpositions", grad_or_zeros(v))
+
+
+def op_lpips(d, case):
+    """The `lpips` package with a seeded random backbone: its weights written by
+    scripts/lpips-to-safetensors.py's functions, LPIPS(img0, img1, normalize=True)
+    and its gradient to img0 by autograd."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("lpips_convert", case["converter"])
+    conv = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(conv)
+    from safetensors.torch import save_file
+
+    model = conv.build(case["net"], int(case["seed"])).double()
+    save_file(conv.state(model), os.path.join(d, "weights.safetensors"))
+    a = load(d, "img0", (None, None, 3)).permute(2, 0, 1).unsqueeze(0).contiguous()
+    b = load(d, "img1", tuple(a.shape[2:]) + (3,)).permute(2, 0, 1).unsqueeze(0).contiguous()
+    a.requires_grad_(True)
+    v = model(a, b, normalize=True).sum()
+    v.backward()
+    save(d, "lpips", v.reshape(1))
+    save(d, "gimg0", grad_or_zeros(a)[0].permute(1, 2, 0))
+
+
+OPS = {"lpips": op_lpips, "mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1, "chamfer": op_chamfer, "arap": op_arap}
 
 
 def main():

@@ -312,3 +312,106 @@ fn ssim_interior_matches_pytorch_msssim() {
     // f32 moments on the GPU against float64: 1e-5 relative.
     assert!((interior - theirs).abs() <= 1e-5 * theirs.abs(), "interior SSIM {interior} vs pytorch-msssim {theirs}");
 }
+
+#[test]
+fn chamfer_geman_mcclure_matches_pytorch() {
+    use drape_engine::ops::cloth_loss::Chamfer;
+    let ctx = gpu();
+    let (n, m, sigma) = (700usize, 900usize, 0.05f32);
+    let pred = uniform(3 * n, -0.3, 0.3, 41);
+    let target = uniform(3 * m, -0.3, 0.3, 42);
+    let p = ctx.upload("pred", &to_f32(&pred)).expect("upload");
+    let t = ctx.upload("target", &to_f32(&target)).expect("upload");
+    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * n as u64)).expect("buffer");
+    let mut c = Chamfer::new(&ctx, n as u32, m as u32).expect("chamfer");
+    {
+        let mut rec = ctx.record("chamfer torch").expect("record");
+        rec.fill(&g, 0);
+        rec.barrier();
+        c.record(&mut rec, &p, n as u32, &t, m as u32, sigma, Some((&g, 1.0))).expect("record");
+        rec.submit_and_wait().expect("submit");
+    }
+    let loss = c.read_value(&ctx).expect("value").robust;
+    let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * n).expect("read"));
+    let dir = case_dir("chamfer");
+    put(&dir, "pred", &[n, 3], &pred);
+    put(&dir, "target", &[m, 3], &target);
+    run_torch(&dir, serde_json::json!({ "op": "chamfer", "sigma": sigma }));
+    let theirs = get(&dir, "loss")[0];
+    // f32 distances on the GPU against float64 cdist: 1e-5 relative on the loss.
+    assert!((loss - theirs).abs() <= 1e-5 * theirs, "loss {loss} vs PyTorch {theirs}");
+    // Gradients: 1e-4 of the largest (f32 pair terms).
+    let e = rel_err(&grad, &get(&dir, "gpred"), 1e-12);
+    assert!(e <= 1e-4, "gradient relative error {e:e} against PyTorch autograd");
+}
+
+#[test]
+fn arap_matches_pytorch() {
+    use drape_engine::ops::cloth_loss::Arap;
+    let ctx = gpu();
+    let n = 500usize;
+    let positions = uniform(3 * n, -0.2, 0.2, 51);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(52);
+    let edges: Vec<[u32; 2]> = (0..1500)
+        .map(|_| {
+            let a = rng.random_range(0..n as u32);
+            let b = (a + rng.random_range(1..n as u32)) % n as u32;
+            [a, b]
+        })
+        .collect();
+    let p = ctx.upload("positions", &to_f32(&positions)).expect("upload");
+    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * n as u64)).expect("buffer");
+    let mut a = Arap::new(&ctx, n as u32, &edges).expect("arap");
+    {
+        let mut rec = ctx.record("arap torch").expect("record");
+        rec.fill(&g, 0);
+        rec.barrier();
+        a.record(&mut rec, &p, Some((&g, 1.0))).expect("record");
+        rec.submit_and_wait().expect("submit");
+    }
+    let var = f64::from(a.read_stats(&ctx).expect("stats")[1]);
+    let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * n).expect("read"));
+    let dir = case_dir("arap");
+    put(&dir, "positions", &[n, 3], &positions);
+    put(&dir, "edges", &[edges.len(), 2], &edges.iter().flatten().map(|&v| f64::from(v)).collect::<Vec<_>>());
+    run_torch(&dir, serde_json::json!({ "op": "arap" }));
+    let theirs = get(&dir, "loss")[0];
+    // The f32 variance of lengths ~0.2 (mean subtracted on the GPU): 1e-4 relative.
+    assert!((var - theirs).abs() <= 1e-4 * theirs, "variance {var} vs PyTorch {theirs}");
+    let e = rel_err(&grad, &get(&dir, "gpositions"), 1e-12);
+    assert!(e <= 1e-4, "gradient relative error {e:e} against PyTorch autograd");
+}
+
+#[test]
+fn lpips_matches_the_lpips_package() {
+    use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
+    let ctx = gpu();
+    let (w, h) = (64usize, 48usize);
+    let a = uniform(3 * w * h, 0.0, 1.0, 61);
+    let b: Vec<f64> = a.iter().zip(uniform(3 * w * h, -0.3, 0.3, 62)).map(|(x, d)| (x + d).clamp(0.0, 1.0)).collect();
+    let dir = case_dir("lpips");
+    put(&dir, "img0", &[h, w, 3], &a);
+    put(&dir, "img1", &[h, w, 3], &b);
+    let converter = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/lpips-to-safetensors.py");
+    run_torch(&dir, serde_json::json!({ "op": "lpips", "net": "alex", "seed": 7, "converter": converter }));
+    // The weights the package used, through the conversion script, read by drape.
+    let weights = LpipsWeights::load(&dir.join("weights.safetensors"), LpipsNet::Alex).expect("the converted weights load");
+    let mut l = Lpips::new(&ctx, &weights, w as u32, h as u32).expect("lpips");
+    let pa = ctx.upload("a", &to_f32(&a)).expect("upload");
+    let pb = ctx.upload("b", &to_f32(&b)).expect("upload");
+    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(4 * a.len() as u64)).expect("buffer");
+    {
+        let mut rec = ctx.record("lpips torch").expect("record");
+        rec.fill(&g, 0);
+        rec.barrier();
+        l.record(&mut rec, &pa, &pb, Some((&g, 1.0))).expect("record");
+        rec.submit_and_wait().expect("submit");
+    }
+    let value = l.read_value(&ctx).expect("value");
+    let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, a.len()).expect("read"));
+    let theirs = get(&dir, "lpips")[0];
+    // f32 convolutions on the GPU against the package in float64: 1e-4 relative.
+    assert!((value - theirs).abs() <= 1e-4 * theirs, "LPIPS {value} vs the lpips package {theirs}");
+    let e = rel_err(&grad, &get(&dir, "gimg0"), 1e-12);
+    assert!(e <= 1e-3, "gradient relative error {e:e} against autograd through the lpips package");
+}

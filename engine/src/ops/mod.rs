@@ -3,7 +3,9 @@
 //! math in `drape-shared`.
 
 pub mod adam;
+pub mod cloth_loss;
 pub mod deform;
+pub mod lpips;
 pub mod nn;
 pub mod radix_sort;
 pub mod scan;

@@ -12,7 +12,9 @@
 #![deny(unsafe_code)]
 
 mod atomics;
+pub mod cloth_loss;
 pub mod deform;
+pub mod lpips;
 pub mod nn;
 pub mod radix_sort;
 pub mod scan;

@@ -8,7 +8,9 @@
 #![forbid(unsafe_code)]
 
 pub mod adam;
+pub mod cloth_loss;
 pub mod deform;
+pub mod lpips;
 pub mod nn;
 pub mod radix_sort;
 pub mod real;

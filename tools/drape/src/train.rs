@@ -35,10 +35,16 @@ pub struct TrainArgs {
     /// the fields); unknown keys are an error.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Which layers: auto (a cloth layer where the data has garment masks), body (the
-    /// single-layer baseline, as HUGS) or body+cloth (overrides the config).
+    /// Which layers: auto (a cloth layer where the data has garment masks, a scene
+    /// layer where it has sparse scene points: NeuMan), or body joined by '+' with
+    /// cloth and/or scene: body (the single-layer baseline, as HUGS), body+cloth,
+    /// body+scene, body+cloth+scene (overrides the config).
     #[arg(long)]
     pub layers: Option<String>,
+    /// LPIPS weights (safetensors, from scripts/lpips-to-safetensors.py): LPIPS joins
+    /// the loss (weight lambda_lpips) and the metrics; without it, LPIPS is n/a.
+    #[arg(long)]
+    pub lpips_weights: Option<PathBuf>,
     /// Training steps (overrides the preset and the config file).
     #[arg(long)]
     pub steps: Option<u32>,
@@ -100,6 +106,9 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(l) = &args.layers {
         config.layers = l.clone();
     }
+    if let Some(w) = &args.lpips_weights {
+        config.lpips_weights = Some(w.clone());
+    }
     config.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(config)
 }
@@ -115,25 +124,24 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         drape_trainer::dataset::split::Split::Val => (a, b),
     });
     let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
-    let cloth = drape_trainer::avatar::train::wants_cloth(&seq, &config).map_err(anyhow::Error::msg)?;
+    let layers = drape_trainer::avatar::train::choose_layers(&seq, &config).map_err(anyhow::Error::msg)?;
+    let cloth = layers.cloth;
     println!("data: {} ({:?} layout), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.layout, seq.frames[0].width, seq.frames[0].height);
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
     println!("  body layer: triplane {0}x{0}x{1}, HUGS decoders, SH degree {2}, subdivision {3}", config.body.triplane_resolution, config.body.triplane_channels, config.body.sh_degree, config.subdivision);
     match (cloth, garments) {
         (true, _) => println!(
-            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, HUGS decoders, cloth-LBS {2}; rendered with the body in one depth-sorted pass",
-            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs
+            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, HUGS decoders; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; rendered with the body in one depth-sorted pass",
+            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
     }
-    println!(
-        "  scene layer: {} (trained against the person on a random background colour)",
-        match seq.layout {
-            Layout::NeuMan => "the data has a scene, but the scene layer is not built yet",
-            Layout::ZjuMocap => "none (masked studio data)",
-        }
-    );
+    match (layers.scene, seq.layout) {
+        (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.body.sh_degree, config.scene.lr_position, config.scene.lr_position_final),
+        (false, Layout::NeuMan) => println!("  scene layer: none (--layers without scene: the person is trained on a random background colour)"),
+        (false, Layout::ZjuMocap) => println!("  scene layer: none (masked studio data: the person is trained on a random background colour)"),
+    }
     let t0 = std::time::Instant::now();
     let mut last_eval = usize::MAX;
     let (out, resume) = match (&args.resume, &args.out) {
@@ -145,6 +153,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
+            Progress::Simulate { done, total } => eprint!("\rsimulating the garments through the motion {done:>4}/{total}   "),
             Progress::Eval { done, total } => {
                 if done == 0 && last_eval != 0 {
                     eprintln!();
@@ -167,9 +176,15 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         println!("skipped {} steps with non-finite gradients (logged in log.jsonl)", report.skipped_steps);
     }
     println!(
-        "held-out ({} images, person on black): PSNR {:.2} dB full, {:.2} dB human crop; SSIM {:.4} full, {:.4} crop (before training: PSNR {:.2} / {:.2}, SSIM {:.4} / {:.4})",
-        report.fin.frames, report.fin.psnr_full, report.fin.psnr_crop, report.fin.ssim_full, report.fin.ssim_crop, report.initial.psnr_full, report.initial.psnr_crop, report.initial.ssim_full, report.initial.ssim_crop
+        "held-out ({} images, {}): PSNR {:.2} dB full, {:.2} dB human crop; SSIM {:.4} full, {:.4} crop (before training: PSNR {:.2} / {:.2}, SSIM {:.4} / {:.4})",
+        report.fin.frames,
+        if layers.scene { "whole frame" } else { "person on black" }, report.fin.psnr_full, report.fin.psnr_crop, report.fin.ssim_full, report.fin.ssim_crop, report.initial.psnr_full, report.initial.psnr_crop, report.initial.ssim_full, report.initial.ssim_crop
     );
+    let na = |v: Option<f64>| v.map_or("n/a (no --lpips-weights)".to_string(), |v| format!("{v:.4}"));
+    println!("held-out LPIPS ({}): {} full, {} crop", config.lpips_net, na(report.fin.lpips_full), na(report.fin.lpips_crop));
+    if let (Some(before), Some(after)) = (report.initial.cloth_chamfer, report.fin.cloth_chamfer) {
+        println!("cloth Gaussians to the ground-truth garments (held-out frames): Chamfer {:.2} mm (before training: {:.2} mm)", 1e3 * after, 1e3 * before);
+    }
     println!("wrote {} (model.npz, checkpoint.npz, eval/, novel_pose.png, log.jsonl, metrics.json) in {:.1} s", out.display(), t0.elapsed().as_secs_f64());
     Ok(())
 }

@@ -72,3 +72,48 @@ fn bad_configs_name_the_file_and_field() {
     let e = fails(&data, &["--config", d.join("missing.toml").to_str().unwrap()], &out);
     assert!(e.contains("missing.toml"), "{e}");
 }
+
+/// A run SIGKILLed in the middle of writing a checkpoint resumes from the one before:
+/// the half-written temporary file never replaces it.
+#[test]
+fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
+    use std::io::{BufRead, BufReader};
+    let d = dir("sigkill");
+    let data = d.join("data");
+    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "64", "--frames", "8", "--cameras", "1", "--samples", "1"]);
+    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let config = d.join("tiny.toml");
+    std::fs::write(&config, "steps = 12\nfit_steps = 10\ndecimate = 6\ncheckpoint_every = 4\nlog_every = 4\nlayers = \"body\"\n[body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
+    let run = d.join("run");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
+        .args(["train", "--data", data.to_str().unwrap(), "--out", run.to_str().unwrap(), "--config", config.to_str().unwrap()])
+        .env("DRAPE_FAILPOINT", "stall-in-checkpoint-write:2")
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("drape train starts");
+    // Wait for the second checkpoint write (step 8) to stall half written, then SIGKILL.
+    let stderr = child.stderr.take().unwrap();
+    let mut seen = String::new();
+    for line in BufReader::new(stderr).split(b'\n').map_while(Result::ok) {
+        let line = String::from_utf8_lossy(&line).to_string();
+        seen.push_str(&line);
+        seen.push('\n');
+        if line.contains("failpoint: stalled writing") {
+            break;
+        }
+    }
+    assert!(seen.contains("failpoint: stalled writing"), "the run ended before the failpoint: {seen}");
+    child.kill().expect("SIGKILL");
+    child.wait().expect("reaped");
+    let tmp = run.join("checkpoint.npz.tmp");
+    assert!(tmp.is_file(), "the half-written temporary file is what the kill left");
+    let ckpt = drape_trainer::npy::read_npz(&run.join("checkpoint.npz")).expect("the previous checkpoint is intact");
+    assert_eq!(ckpt["step"].data, vec![4.0], "the checkpoint on disk is the first one (step 4)");
+    let o = drape(&["train", "--data", data.to_str().unwrap(), "--resume", run.to_str().unwrap()]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "resume failed: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("resumed at step 4"), "{stdout}");
+    let done = drape_trainer::npy::read_npz(&run.join("model.npz")).expect("model written");
+    assert_eq!(done["step"].data, vec![12.0], "the resumed run finished all steps");
+}

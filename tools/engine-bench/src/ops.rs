@@ -158,10 +158,26 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
         ssim.record(&mut rec, &img_a, &img_b, Some((&ssim_grad, -1.0)))?;
         Ok(rec.submit_and_wait()?)
     })?;
+    // LPIPS (AlexNet, value + gradient to the first image) at 512 x 512, with seeded
+    // random weights: the cost does not depend on the values.
+    let net = drape_engine::ops::lpips::LpipsNet::Alex;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(8);
+    let tensors = net.tensors().into_iter().map(|(name, shape)| {
+        let n: usize = shape.iter().product();
+        (name, (0..n).map(|_| rng.random_range(-0.05f32..0.05).abs()).collect::<Vec<f32>>())
+    });
+    let weights = drape_engine::ops::lpips::LpipsWeights { net, tensors: tensors.collect() };
+    let lpips = drape_engine::ops::lpips::Lpips::new(ctx, &weights, side, side).map_err(anyhow::Error::msg)?;
+    let lpips_grad = ctx.create_buffer("bench lpips grad", BufferDesc::gpu_only((px * 4) as u64))?;
+    let (lpips_wall, lpips_gpu) = timed(ctx, args, || {
+        let mut rec = ctx.record("bench lpips")?;
+        lpips.record(&mut rec, &img_a, &img_b, Some((&lpips_grad, 1.0)))?;
+        Ok(rec.submit_and_wait()?)
+    })?;
     Ok(json!({
         "job": "ops",
         "ssim_512": { "fwd_bwd_ms": ssim_wall, "fwd_bwd_gpu_ms": ssim_gpu },
-        "lpips_512": "n/a (LPIPS is not built yet)",
+        "lpips_alex_512": { "fwd_bwd_ms": lpips_wall, "fwd_bwd_gpu_ms": lpips_gpu, "weights": "random (timing only)" },
         "device": ctx.info().name,
         "rows": rows,
         "runs": args.runs,
@@ -183,7 +199,8 @@ pub fn print_table(r: &serde_json::Value) {
         );
     }
     println!("  three HUGS decoders, forward + backward: {:.1} ms GPU", r["decoders_fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
-    println!("  SSIM 512x512, map + gradient: {:.1} ms GPU; LPIPS: not built yet", r["ssim_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+    println!("  SSIM 512x512, map + gradient: {:.1} ms GPU", r["ssim_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+    println!("  LPIPS (AlexNet) 512x512, value + gradient: {:.1} ms GPU", r["lpips_alex_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
     let t = &r["triplane"];
     println!("  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)", t["resolution"], t["resolution"], t["channels"], t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0), t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6);
 }

@@ -11,7 +11,10 @@
 //! - `L.appearance`, `L.geometry`, `L.deformation`: each decoder's flat parameters
 //!   (per linear layer W out×in, then b; `ops::nn`);
 //! - `L.adam.G.m`, `L.adam.G.v` (f32) and `L.adam.G.step` (u32) for each Adam group G
-//!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`).
+//!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`);
+//! - with a scene layer: `scene.means` (n×3), `scene.log_scales` (n×3), `scene.quats`
+//!   (n×4), `scene.opacity_logits` (n), `scene.sh` (n×K×3, K = (degree + 1)²), and
+//!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them.
 //!
 //! Loading checks every array's presence, dtype and shape against the model it is
 //! loaded into and names the file and array on a mismatch.
@@ -19,6 +22,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use crate::avatar::scene::{SceneState, SCENE_PARAMS};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
 
 /// Version of the archive layout.
@@ -57,6 +61,7 @@ pub const ADAM_GROUPS: [&str; 5] = ["position", "triplane", "appearance", "geome
 pub struct ModelState {
     pub step: u32,
     pub layers: Vec<(String, LayerState)>,
+    pub scene: Option<SceneState>,
 }
 
 fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
@@ -89,11 +94,48 @@ pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
             a.insert(format!("{name}.adam.{g}.step"), u32_array(s.step));
         }
     }
+    if let Some(sc) = &state.scene {
+        let n = sc.params[3].len();
+        for ((name, p), ad) in SCENE_PARAMS.iter().zip(&sc.params).zip(&sc.adam) {
+            let shape = match *name {
+                "opacity_logits" => vec![n],
+                "sh" => vec![n, p.len() / (3 * n.max(1)), 3],
+                _ => vec![n, p.len() / n.max(1)],
+            };
+            a.insert(format!("scene.{name}"), f32_array(shape, p));
+            a.insert(format!("scene.adam.{name}.m"), f32_array(vec![ad.m.len()], &ad.m));
+            a.insert(format!("scene.adam.{name}.v"), f32_array(vec![ad.v.len()], &ad.v));
+            a.insert(format!("scene.adam.{name}.step"), u32_array(ad.step));
+        }
+    }
     let tmp = path.with_extension("npz.tmp");
     write_npz(&tmp, &a).map_err(|e| e.to_string())?;
+    stall_if_asked(&tmp);
     // The data is on disk before the rename makes it the file.
     std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| format!("{}: {e}", tmp.display()))?;
     std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// The crash test's hook: with `DRAPE_FAILPOINT=stall-in-checkpoint-write:K`, the
+/// K-th checkpoint write of the process leaves its temporary file half written, says
+/// so on stderr and waits forever, so that a test can SIGKILL the process in the
+/// middle of a write. Unset (always, outside that test), it does nothing.
+fn stall_if_asked(tmp: &Path) {
+    static WRITES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else { return };
+    let Some(k) = spec.strip_prefix("stall-in-checkpoint-write:").and_then(|k| k.parse::<u32>().ok()) else { return };
+    if WRITES.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 != k {
+        return;
+    }
+    if let Ok(f) = std::fs::OpenOptions::new().write(true).open(tmp) {
+        let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+        let _ = f.set_len(len / 2);
+        let _ = f.sync_all();
+    }
+    eprintln!("failpoint: stalled writing {}", tmp.display());
+    loop {
+        std::thread::sleep(std::time::Duration::from_secs(1));
+    }
 }
 
 /// What a layer of the model being loaded into expects: (name, Gaussians, triplane
@@ -107,8 +149,9 @@ pub struct LayerShape {
     pub adam: [usize; 5],
 }
 
-/// Reads `path`, checking it against `shapes` (the model it is loaded into).
-pub fn read(path: &Path, shapes: &[LayerShape]) -> Result<ModelState, String> {
+/// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's
+/// parameter lengths (the model it is loaded into).
+pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Result<ModelState, String> {
     let file = path.display().to_string();
     let a = read_npz(path).map_err(|e| e.to_string())?;
     let get = |key: &str, dtype: Dtype, len: usize| -> Result<Vec<f32>, String> {
@@ -155,5 +198,26 @@ pub fn read(path: &Path, shapes: &[LayerShape]) -> Result<ModelState, String> {
             },
         ));
     }
-    Ok(ModelState { step, layers })
+    let scene = match scene {
+        None => {
+            if a.contains_key("scene.means") {
+                return Err(format!("{file}: the file has a scene layer, but this model has none (trained with other --layers?)"));
+            }
+            None
+        }
+        Some(lens) => {
+            let mut params = Vec::new();
+            let mut adam = Vec::new();
+            for (name, len) in SCENE_PARAMS.iter().zip(lens) {
+                params.push(get(&format!("scene.{name}"), Dtype::F32, len)?);
+                adam.push(AdamState {
+                    m: get(&format!("scene.adam.{name}.m"), Dtype::F32, len)?,
+                    v: get(&format!("scene.adam.{name}.v"), Dtype::F32, len)?,
+                    step: get(&format!("scene.adam.{name}.step"), Dtype::U32, 1)?[0] as u32,
+                });
+            }
+            Some(SceneState { params, adam })
+        }
+    };
+    Ok(ModelState { step, layers, scene })
 }

@@ -1,10 +1,14 @@
 //! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
-//! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), and
-//! training (`train`).
+//! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), the cloth
+//! layer's simulated targets and edge graph (`cloth_target`), the scene layer
+//! (`scene`), and training (`train`).
 
 pub mod checkpoint;
+pub mod cloth_losses;
+pub mod cloth_target;
 pub mod layer;
 pub mod model;
 pub mod rig;
+pub mod scene;
 pub mod train;

@@ -2,9 +2,10 @@
 //! printed at start), and the one set of posed Gaussians the splatter renders them
 //! from.
 //!
-//! Layers: the body (Gaussians of the SMPL-format body in the canonical Da-pose) and,
+//! Layers: the body (Gaussians of the SMPL-format body in the canonical Da-pose);
 //! when the data shows garments, the cloth (the T-shirt and the pants sharing one
-//! triplane and one set of decoders, as the paper says). Each layer deforms and skins
+//! triplane and one set of decoders, as the paper says); when it shows a scene (an
+//! unmasked capture with sparse points: NeuMan), the scene (plain 3DGS, `scene`). Each layer deforms and skins
 //! its own Gaussians; their posed Gaussians are copied into one cloud and rendered in
 //! one pass sorted by depth (the "fused" variant of the paper's compositing: the
 //! three-pass compositor is not built yet), and the gradients are copied back.
@@ -18,32 +19,40 @@ use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
 use drape_engine::{Buffer, Context, Recording, Result};
 
-use crate::avatar::checkpoint::{LayerShape, LayerState, ModelState};
+use crate::avatar::checkpoint::{LayerShape, ModelState};
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::Rig;
+use crate::avatar::scene::SceneLayer;
 use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
 use crate::body::kinematics::{forward_kinematics, relative_transforms, skin};
-use crate::garment::{pants, tshirt};
+use crate::avatar::cloth_target::{contracted_edges, garments};
 
-/// Which layers to build.
+/// Which layers to build: each optional layer forced on or off, or (None) decided
+/// from the data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LayerChoice {
-    /// From the data: a cloth layer where it has garment masks.
-    Auto,
-    /// The body alone (cloth folded into it, as HUGS): the baseline.
-    Body,
-    /// Body and cloth.
-    BodyAndCloth,
+pub struct LayerChoice {
+    pub cloth: Option<bool>,
+    pub scene: Option<bool>,
 }
 
 impl LayerChoice {
+    /// `auto`, or the layers joined by `+`, body first: `body` (the single-layer
+    /// baseline: cloth folded into the body, as HUGS), `body+cloth`, `body+scene`,
+    /// `body+cloth+scene`.
     pub fn parse(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "auto" => Ok(Self::Auto),
-            "body" => Ok(Self::Body),
-            "body+cloth" => Ok(Self::BodyAndCloth),
-            other => Err(format!("layers must be auto, body or body+cloth, got '{other}'")),
+        if s == "auto" {
+            return Ok(Self { cloth: None, scene: None });
         }
+        let parts: Vec<&str> = s.split('+').collect();
+        let bad = || format!("layers must be auto, or body joined with cloth and/or scene by '+' (body, body+cloth, body+scene, body+cloth+scene), got '{s}'");
+        if parts.first() != Some(&"body") || parts[1..].iter().any(|p| !["cloth", "scene"].contains(p)) {
+            return Err(bad());
+        }
+        let has = |name: &str| parts.iter().filter(|p| **p == name).count();
+        if has("cloth") > 1 || has("scene") > 1 {
+            return Err(bad());
+        }
+        Ok(Self { cloth: Some(has("cloth") == 1), scene: Some(has("scene") == 1) })
     }
 }
 
@@ -52,6 +61,9 @@ pub struct LayerInit {
     pub name: String,
     pub cloud: GaussianCloud,
     pub weights: Vec<f32>,
+    /// The mesh edges between this layer's Gaussians (contracted onto the kept ones
+    /// when decimated): the cloth layer's ARAP graph; empty for the body.
+    pub edges: Vec<[u32; 2]>,
 }
 
 /// Every `keep`-th Gaussian of `full`, widened by √keep in the surface plane, with
@@ -69,7 +81,7 @@ fn decimated(name: &str, full: &GaussianCloud, weights: &[[f64; 24]], keep: usiz
         cloud.push(&g, layer);
         w.extend(weights[i].iter().map(|&v| v as f32));
     }
-    LayerInit { name: name.to_string(), cloud, weights: w }
+    LayerInit { name: name.to_string(), cloud, weights: w, edges: Vec::new() }
 }
 
 /// The body layer's canonical Gaussians.
@@ -91,7 +103,7 @@ pub fn cloth_init(rig: &Rig, decimate: u32, sh_degree: u32) -> LayerInit {
     let mut vertices = Vec::new();
     let mut faces = Vec::new();
     let mut weights = Vec::new();
-    for g in [tshirt(&rig.model), pants(&rig.model)] {
+    for g in garments(rig) {
         let (built, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &g.build_pose);
         let to_canonical = relative_transforms(&canonical, &built);
         let base = vertices.len() as u32;
@@ -102,12 +114,16 @@ pub fn cloth_init(rig: &Rig, decimate: u32, sh_degree: u32) -> LayerInit {
     let n = vertices.len();
     let mesh = SkinnedMesh { vertices, faces, weights, shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; n] };
     let (full, sub) = gaussians_from_mesh(&mesh, 0, sh_degree, Layer::Cloth);
-    decimated("cloth", &full, &sub.weights, decimate as usize, Layer::Cloth)
+    let mut init = decimated("cloth", &full, &sub.weights, decimate as usize, Layer::Cloth);
+    init.edges = contracted_edges(sub.vertices.len(), &sub.faces, decimate as usize);
+    init
 }
 
 /// The layers and the cloud they are rendered from.
 pub struct Avatar {
     pub layers: Vec<HumanLayer>,
+    /// Plain 3DGS in world space, rendered after the human layers' Gaussians.
+    pub scene: Option<SceneLayer>,
     /// All layers' posed Gaussians, layer after layer.
     pub posed: GaussianBuffers,
     pub posed_grads: GaussianBuffers,
@@ -118,25 +134,36 @@ pub struct Avatar {
 impl Avatar {
     /// Builds the layers from their initial Gaussians (configs and LBS weights in the
     /// same order).
-    pub fn new(ctx: &Context, inits: &[LayerInit], configs: &[LayerConfig], lbs_weights: &[f32], steps: u32, seed: u64) -> Result<Self> {
+    pub fn new(ctx: &Context, inits: &[LayerInit], configs: &[LayerConfig], lbs_weights: &[f32], scene: Option<SceneLayer>, steps: u32, seed: u64) -> Result<Self> {
         let mut layers = Vec::new();
         for (k, (init, config)) in inits.iter().zip(configs).enumerate() {
             layers.push(HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?);
         }
-        let total: usize = layers.iter().map(|l| l.count as usize).sum();
+        let total: usize = layers.iter().map(|l| l.count as usize).sum::<usize>() + scene.as_ref().map_or(0, |s| s.count as usize);
         let sh = configs[0].sh_degree;
         assert!(configs.iter().all(|c| c.sh_degree == sh), "layers rendered together share an SH degree");
+        assert!(scene.as_ref().is_none_or(|s| s.params.sh_degree == sh), "the scene layer is rendered with the others: same SH degree");
         Ok(Self {
             layers,
+            scene,
             posed: GaussianBuffers::new(ctx, "avatar posed", total, sh)?,
             posed_grads: GaussianBuffers::new(ctx, "avatar posed grads", total, sh)?,
             lbs_weights: lbs_weights.to_vec(),
         })
     }
 
+    /// The cloth layer, if the avatar has one.
+    pub fn cloth(&self) -> Option<&HumanLayer> {
+        self.layers.iter().find(|l| l.name == "cloth")
+    }
+
     /// Gaussians per layer.
     pub fn counts(&self) -> Vec<(String, u32)> {
-        self.layers.iter().map(|l| (l.name.clone(), l.count)).collect()
+        let mut c: Vec<(String, u32)> = self.layers.iter().map(|l| (l.name.clone(), l.count)).collect();
+        if let Some(s) = &self.scene {
+            c.push(("scene".into(), s.count));
+        }
+        c
     }
 
     /// Floats per Gaussian of each parameter buffer (means, log-scales, quats,
@@ -162,6 +189,12 @@ impl Avatar {
             }
             first += n;
         }
+        if let Some(s) = &self.scene {
+            let (src, dst) = (s.params.all(), self.posed.all());
+            for k in 0..5 {
+                rec.copy_region(src[k], 0, dst[k], 4 * per[k] * first, 4 * per[k] * u64::from(s.count));
+            }
+        }
         rec.barrier();
         Ok(())
     }
@@ -169,6 +202,13 @@ impl Avatar {
     /// Records the backward pass from `posed_grads` (the splatter's), through every
     /// layer, with each layer's cloth-LBS term.
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+        self.record_scatter_grads(rec);
+        self.record_layers_backward(rec, use_atomics)
+    }
+
+    /// Copies each layer's slice of `posed_grads` into the layer's own `posed_grads`
+    /// (where per-layer losses then add theirs), with a barrier after.
+    pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) {
         let per = self.floats_per_gaussian();
         let mut first = 0u64;
         for l in &self.layers {
@@ -180,7 +220,18 @@ impl Avatar {
             }
             first += n;
         }
+        if let Some(s) = &self.scene {
+            let (src, dst) = (self.posed_grads.all(), s.grads.all());
+            for k in 0..5 {
+                rec.copy_region(src[k], 4 * per[k] * first, dst[k], 0, 4 * per[k] * u64::from(s.count));
+            }
+        }
         rec.barrier();
+    }
+
+    /// Records every layer's backward pass from its own `posed_grads`, with each
+    /// layer's cloth-LBS term.
+    pub fn record_layers_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
         for (l, &lbs) in self.layers.iter().zip(&self.lbs_weights) {
             l.record_backward(rec, use_atomics, lbs)?;
         }
@@ -191,12 +242,21 @@ impl Avatar {
         for l in &self.layers {
             l.record_count_nonfinite(rec, counter)?;
         }
+        if let Some(s) = &self.scene {
+            for (b, len) in s.grads.all().into_iter().zip(s.lens()) {
+                let p = drape_shared::adam::LossParams { len: len as u32, scale: 0.0, _pad: [0; 2] };
+                rec.pass("scene.count_nonfinite", drape_engine::Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(drape_engine::recorder::flat_grid(len as u32))?;
+            }
+        }
         Ok(())
     }
 
     pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         for l in &self.layers {
             l.record_adam(rec, true)?;
+        }
+        if let Some(s) = &self.scene {
+            s.record_adam(rec)?;
         }
         Ok(())
     }
@@ -213,17 +273,29 @@ impl Avatar {
         self.layers.iter().map(|l| l.shape()).collect()
     }
 
+    /// The scene layer's parameter lengths (for reading a checkpoint), if it has one.
+    pub fn scene_lens(&self) -> Option<[usize; 5]> {
+        self.scene.as_ref().map(SceneLayer::lens)
+    }
+
     pub fn state(&mut self, ctx: &Context, step: u32) -> Result<ModelState> {
         let mut layers = Vec::new();
         for l in &mut self.layers {
             layers.push((l.name.clone(), l.state(ctx)?));
         }
-        Ok(ModelState { step, layers })
+        let scene = match &mut self.scene {
+            Some(s) => Some(s.state(ctx)?),
+            None => None,
+        };
+        Ok(ModelState { step, layers, scene })
     }
 
-    pub fn restore(&mut self, ctx: &Context, states: &[(String, LayerState)]) -> Result<()> {
-        for (l, (_, s)) in self.layers.iter_mut().zip(states) {
+    pub fn restore(&mut self, ctx: &Context, state: &ModelState) -> Result<()> {
+        for (l, (_, s)) in self.layers.iter_mut().zip(&state.layers) {
             l.restore(ctx, s)?;
+        }
+        if let (Some(s), Some(st)) = (&mut self.scene, &state.scene) {
+            s.restore(ctx, st)?;
         }
         Ok(())
     }
@@ -234,6 +306,9 @@ impl Avatar {
         for l in &self.layers {
             let kind = if l.name == "cloth" { Layer::Cloth } else { Layer::Body };
             kinds.extend(std::iter::repeat_n(kind, l.count as usize));
+        }
+        if let Some(s) = &self.scene {
+            kinds.extend(std::iter::repeat_n(Layer::Scene, s.count as usize));
         }
         self.posed.download(ctx, &kinds)
     }

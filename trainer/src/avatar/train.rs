@@ -1,14 +1,16 @@
 //! Training the avatar: load a sequence, build the layers the data requires, fit the
-//! skinning weights, then step (sample a training frame → deform → render → L1 →
+//! skinning weights, then step (sample a training frame → deform → render → losses →
 //! backward → Adam) and evaluate on the held-out frames.
 //!
 //! What is built so far (the rest of the issue is not): the body layer and, where the
 //! data shows garments, the cloth layer (`model`): triplane + decoders + learned
 //! skinning, rendered together in one depth-sorted pass, trained with 0.8 L1 + 0.2
 //! (1 - SSIM) against the person masked onto a random background colour each step
-//! (HUGS) and the cloth-LBS loss, by Adam. The scene layer, the three-pass compositor,
-//! LPIPS, the Chamfer / ARAP / mask cloth losses, pose refinement and densification
-//! come next.
+//! (HUGS), and on the cloth layer the paper's cloth-LBS, simulation (Chamfer +
+//! Geman–McClure to the garments simulated through the sequence's motion), ARAP and
+//! cloth-mask losses (`cloth_losses`), LPIPS where weights are given, and where the
+//! data has a scene, the scene layer (`scene`) against the whole frame; by Adam. The
+//! three-pass compositor, pose refinement and densification come next.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -23,6 +25,12 @@ use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
 
 use crate::avatar::checkpoint;
+use crate::avatar::scene::{scene_init, SceneConfig, SceneLayer};
+use crate::dataset::colmap::ColmapModel;
+use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses};
+use crate::avatar::cloth_target;
+use drape_engine::ops::cloth_loss::Chamfer;
+use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::avatar::rig::Rig;
@@ -50,8 +58,20 @@ pub struct TrainConfig {
     /// single-layer baseline: cloth folded into the body, as HUGS) or `body+cloth`.
     pub layers: String,
     pub cloth: LayerConfig,
+    /// The scene layer (plain 3DGS from the sparse points), where there is one.
+    pub scene: SceneConfig,
     /// Weight of the cloth-LBS loss `mean((W - W_gt)²)` on the cloth layer (paper: 1000).
     pub lambda_cloth_lbs: f32,
+    /// Weight of the simulation loss (Chamfer + Geman–McClure to the frame's simulated
+    /// garments, with the ½; paper: 1.0); 0 turns it off.
+    pub lambda_sim: f32,
+    /// Geman–McClure σ of the simulation loss (metres).
+    pub gm_sigma: f32,
+    /// Weight of ARAP (variance of the cloth graph's edge lengths; paper: 0.5).
+    pub lambda_arap: f32,
+    /// Weight of the cloth mask loss (MSE of the cloth alpha against the garment
+    /// masks; paper: 1.0).
+    pub lambda_mask: f32,
     /// Adam steps fitting the deformation decoder to the body's skinning weights.
     pub fit_steps: u32,
     pub fit_lr: f32,
@@ -68,6 +88,14 @@ pub struct TrainConfig {
     pub lambda_ssim: f32,
     /// ZJU-MoCap: the training camera's index.
     pub zju_train_camera: usize,
+    /// LPIPS weights (a safetensors file from `scripts/lpips-to-safetensors.py`):
+    /// with them LPIPS joins the image loss and the metrics; without, it is left out
+    /// and reported as n/a.
+    pub lpips_weights: Option<PathBuf>,
+    /// `alex` (the metric HUGS reports) or `vgg`.
+    pub lpips_net: String,
+    /// Weight of LPIPS in the image loss (paper: 1.0).
+    pub lambda_lpips: f32,
 }
 
 impl TrainConfig {
@@ -87,7 +115,12 @@ impl TrainConfig {
             body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
             layers: "auto".into(),
             cloth: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
+            scene: SceneConfig::default(),
             lambda_cloth_lbs: 1000.0,
+            lambda_sim: 1.0,
+            gm_sigma: drape_shared::cloth_loss::GM_SIGMA_DEFAULT,
+            lambda_arap: 0.5,
+            lambda_mask: 1.0,
             fit_steps: 150,
             fit_lr: 3e-3,
             log_every: 25,
@@ -96,6 +129,9 @@ impl TrainConfig {
             lambda_l1: 0.8,
             lambda_ssim: 0.2,
             zju_train_camera: 0,
+            lpips_weights: None,
+            lpips_net: "alex".into(),
+            lambda_lpips: 1.0,
         }
     }
 
@@ -128,6 +164,9 @@ impl TrainConfig {
             ("cloth.lr_decoders", self.cloth.lr_decoders),
             ("cloth.lr_deformation", self.cloth.lr_deformation),
             ("lambda_cloth_lbs", self.lambda_cloth_lbs),
+            ("lambda_sim", self.lambda_sim),
+            ("lambda_arap", self.lambda_arap),
+            ("lambda_mask", self.lambda_mask),
             ("body.lr_position", self.body.lr_position),
             ("body.lr_triplane", self.body.lr_triplane),
             ("body.lr_decoders", self.body.lr_decoders),
@@ -135,11 +174,16 @@ impl TrainConfig {
             ("fit_lr", self.fit_lr),
             ("lambda_l1", self.lambda_l1),
             ("lambda_ssim", self.lambda_ssim),
+            ("lambda_lpips", self.lambda_lpips),
         ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite rate >= 0, got {v}"));
             }
+        }
+        LpipsNet::parse(&self.lpips_net).map_err(|e| format!("lpips_net: {e}"))?;
+        if !(self.gm_sigma.is_finite() && self.gm_sigma > 0.0) {
+            return Err(format!("gm_sigma must be a finite length > 0, got {}", self.gm_sigma));
         }
         if self.decimate == 0 {
             return Err("decimate must be >= 1".into());
@@ -242,13 +286,20 @@ fn crop(rgb: &[f32], width: u32, (x0, y0, x1, y1): (u32, u32, u32, u32)) -> Vec<
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct EvalMetrics {
     pub frames: usize,
-    /// Whole image, the person on black (the avatar without a scene layer).
+    /// Whole image: the frame itself with a scene layer, else the person on black.
     pub psnr_full: f64,
     /// The person mask's bounding box (HUGS's human crop).
     pub psnr_crop: f64,
     /// SSIM (11 × 11 Gaussian window, zero padding, as the loss) on the same images.
     pub ssim_full: f64,
     pub ssim_crop: f64,
+    /// The cloth Gaussians' Chamfer distance to the ground-truth garments (metres,
+    /// `½ (mean d(p, Q) + mean d(q, P))`), over the held-out frames that have them
+    /// (synthetic data); None without a cloth layer or ground truth.
+    pub cloth_chamfer: Option<f64>,
+    /// LPIPS (the configured network) on the same images; None (n/a) without weights.
+    pub lpips_full: Option<f64>,
+    pub lpips_crop: Option<f64>,
 }
 
 impl TrainConfig {
@@ -286,6 +337,8 @@ pub enum Progress {
     Fit { layer: String, step: u32, total: u32, mse: f64 },
     Step { step: u32, total: u32, l1: f64, psnr: f64, it_per_s: f64 },
     Eval { done: usize, total: usize },
+    /// Simulating the garments through the sequence (frames, settling ones included).
+    Simulate { done: usize, total: usize },
 }
 
 /// The default body (the project's procedural one) or an SMPL file.
@@ -307,18 +360,38 @@ fn gpu<T>(r: drape_engine::Result<T>) -> Result<T, String> {
     r.map_err(|e| e.to_string())
 }
 
-/// Whether the sequence gets a cloth layer: forced by `config.layers`, else where the
-/// data has garment masks.
-pub fn wants_cloth(seq: &Sequence, config: &TrainConfig) -> Result<bool, String> {
-    Ok(match LayerChoice::parse(&config.layers)? {
-        LayerChoice::Body => false,
-        LayerChoice::BodyAndCloth => true,
-        LayerChoice::Auto => seq.frames.iter().any(|f| f.garment_masks.is_some()),
-    })
+/// The optional layers a run builds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Layers {
+    pub cloth: bool,
+    pub scene: bool,
 }
 
-/// The avatar the data requires.
-fn build_avatar(ctx: &Context, rig: &Rig, config: &TrainConfig, cloth: bool) -> Result<Avatar, String> {
+/// The sequence's sparse scene points (NeuMan's `sparse/`), if it has any.
+pub fn scene_points(seq: &Sequence) -> Result<Option<ColmapModel>, String> {
+    if seq.layout != Layout::NeuMan {
+        return Ok(None);
+    }
+    let m = ColmapModel::read_text(&seq.dir.join("sparse")).map_err(|e| e.to_string())?;
+    Ok((!m.points.is_empty()).then_some(m))
+}
+
+/// The layers the run builds, each forced by `config.layers` or else decided from the
+/// data: a cloth layer where it has garment masks, a scene layer where it has scene
+/// points (an unmasked capture; ZJU-MoCap's studio frames are masked and have none).
+pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> Result<Layers, String> {
+    let choice = LayerChoice::parse(&config.layers)?;
+    let scene = match choice.scene {
+        Some(true) if scene_points(seq)?.is_none() => return Err(format!("--layers {}: {} has no scene points (NeuMan's sparse/points3D.txt) to build a scene layer from", config.layers, seq.dir.display())),
+        Some(s) => s,
+        None => scene_points(seq)?.is_some(),
+    };
+    Ok(Layers { cloth: choice.cloth.unwrap_or_else(|| seq.frames.iter().any(|f| f.garment_masks.is_some())), scene })
+}
+
+/// The avatar the data requires, and the cloth layer's edge graph (empty without one).
+fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<(Avatar, Vec<[u32; 2]>), String> {
+    let cloth = layers.cloth;
     let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
     let mut configs = vec![config.body.clone()];
     let mut lbs = vec![0.0];
@@ -327,13 +400,28 @@ fn build_avatar(ctx: &Context, rig: &Rig, config: &TrainConfig, cloth: bool) -> 
         configs.push(config.cloth.clone());
         lbs.push(config.lambda_cloth_lbs);
     }
-    gpu(Avatar::new(ctx, &inits, &configs, &lbs, config.steps, config.seed))
+    let edges = inits.iter().find(|i| i.name == "cloth").map(|i| i.edges.clone()).unwrap_or_default();
+    let scene = match (layers.scene, scene_points(seq)?) {
+        (true, Some(colmap)) => {
+            let (cloud, extent) = scene_init(&colmap, config.body.sh_degree, config.scene.max_points);
+            Some(gpu(SceneLayer::new(ctx, &cloud, extent, &config.scene, config.steps))?)
+        }
+        _ => None,
+    };
+    Ok((gpu(Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed))?, edges))
 }
 
 /// Renders every held-out frame on black and compares with the masked ground truth.
-fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut SplatRenderer, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
+#[allow(clippy::too_many_arguments)]
+fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut SplatRenderer, ground_truth: Option<&Path>, lpips: Option<&LpipsWeights>, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
+    let mut lpips_sums = (0.0, 0.0, 0usize);
+    let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
     let mut m = EvalMetrics::default();
+    let names: Vec<String> = cloth_target::garments(rig).iter().map(|g| g.name.clone()).collect();
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
+    let mut chamfer_sum = 0.0;
+    let mut chamfer_frames = 0usize;
     for (k, f) in frames.iter().enumerate() {
         progress(Progress::Eval { done: k, total: frames.len() });
         let ft = rig.frame(&f.body);
@@ -343,16 +431,38 @@ fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFra
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
+        if let (Some(dir), Some(cloth)) = (ground_truth, avatar.cloth()) {
+            if let Some(points) = cloth_target::ground_truth(dir, &names, f.frame)? {
+                chamfer_sum += gpu(cloth_chamfer(ctx, cloth, &points))?;
+                chamfer_frames += 1;
+            }
+        }
         let cam = camera(&f.camera, [0.0; 3]);
         gpu(renderer.forward(&avatar.posed, &cam, &settings))?;
         let image = gpu(renderer.read_image())?;
-        let target = masked_target(f, [0.0; 3]);
+        let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
         m.psnr_full += psnr(&image.rgb, &target);
         m.ssim_full += ssim_of(&image.rgb, &target, f.width, f.height);
         if let Some(b) = mask_bbox(&f.mask, f.width) {
             let (cr, ct) = (crop(&image.rgb, f.width, b), crop(&target, f.width, b));
             m.psnr_crop += psnr(&cr, &ct);
             m.ssim_crop += ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1);
+            if let Some(w) = lpips {
+                lpips_sums.0 += lpips_of(ctx, w, &image.rgb, &target, f.width, f.height)?;
+                // A crop below the network's minimum is widened to it (centred, clamped).
+                let min = LpipsWeights::min_side(w.net);
+                let grow = |lo: u32, hi: u32, size: u32| -> (u32, u32) {
+                    let want = (hi - lo).max(min.min(size));
+                    let lo = (lo + hi).saturating_sub(want) / 2;
+                    let lo = lo.min(size - want);
+                    (lo, lo + want)
+                };
+                let (x0, x1) = grow(b.0, b.2, f.width);
+                let (y0, y1) = grow(b.1, b.3, f.height);
+                let bb = (x0, y0, x1, y1);
+                lpips_sums.1 += lpips_of(ctx, w, &crop(&image.rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?;
+                lpips_sums.2 += 1;
+            }
         }
         if let Some(dir) = out_dir {
             // Ground truth | render, side by side.
@@ -371,7 +481,41 @@ fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFra
     m.psnr_crop /= n;
     m.ssim_full /= n;
     m.ssim_crop /= n;
+    m.cloth_chamfer = (chamfer_frames > 0).then(|| chamfer_sum / chamfer_frames as f64);
+    if lpips_sums.2 > 0 {
+        m.lpips_full = Some(lpips_sums.0 / lpips_sums.2 as f64);
+        m.lpips_crop = Some(lpips_sums.1 / lpips_sums.2 as f64);
+    }
     Ok(m)
+}
+
+/// LPIPS of two HWC images on the GPU (a network planned for their size).
+fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: u32, height: u32) -> Result<f64, String> {
+    let mut l = Lpips::new(ctx, weights, width, height)?;
+    let pa = gpu(ctx.upload("eval lpips a", a))?;
+    let pb = gpu(ctx.upload("eval lpips b", b))?;
+    {
+        let mut rec = gpu(ctx.record("eval lpips"))?;
+        gpu(l.record(&mut rec, &pa, &pb, None))?;
+        gpu(rec.submit_and_wait())?;
+    }
+    gpu(l.read_value(ctx))
+}
+
+/// The plain Chamfer distance between the cloth layer's posed centres (of the last
+/// forward pass) and `points`, on the GPU.
+fn cloth_chamfer(ctx: &Context, cloth: &crate::avatar::layer::HumanLayer, points: &[[f32; 3]]) -> drape_engine::Result<f64> {
+    let m = points.len() as u32;
+    let chamfer = Chamfer::new(ctx, cloth.count, m)?;
+    let mut target = ctx.create_buffer("eval garment points", BufferDesc::gpu_only(12 * u64::from(m.max(1))))?;
+    ctx.write_buffer(&mut target, &points.iter().flatten().copied().collect::<Vec<f32>>())?;
+    {
+        let mut rec = ctx.record("eval cloth chamfer")?;
+        chamfer.record(&mut rec, &cloth.posed.means, cloth.count, &target, m, 1.0, None)?;
+        rec.submit_and_wait()?;
+    }
+    let mut chamfer = chamfer;
+    Ok(chamfer.read_value(ctx)?.distance)
 }
 
 /// Mean SSIM (the training loss's form, `ops::ssim`) computed on the CPU in f64.
@@ -428,17 +572,29 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
-    let mut avatar = build_avatar(ctx, &rig, config, wants_cloth(seq, config)?)?;
-    let n: u32 = avatar.layers.iter().map(|l| l.count).sum();
-    let mut renderer = gpu(SplatRenderer::new(ctx, width, height, n as usize))?;
+    let (mut avatar, cloth_edges) = build_avatar(ctx, &rig, seq, config, choose_layers(seq, config)?)?;
+    // With a scene layer the avatar is trained and judged on the whole image; without
+    // one, on the person over a background colour.
+    let whole_image = avatar.scene.is_some();
+    let mut renderer = gpu(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize))?;
+    let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
+    // The cloth layer's physics targets: the garments simulated through the motion.
+    let mut cloth_losses = match avatar.cloth() {
+        Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
+            let garments = cloth_target::simulate_sequence(&rig, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
+            let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
+            Some(gpu(ClothLosses::new(ctx, cloth, &cloth_edges, garments, weights, width, height))?)
+        }
+        _ => None,
+    };
 
     // 1. The deformation decoder learns the body's skinning weights (or the run's
     //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
     let total_fit = config.fit_steps;
     let (start_step, fit_mse) = if resume {
-        let state = checkpoint::read(&checkpoint_path, &avatar.shapes())?;
-        gpu(avatar.restore(ctx, &state.layers))?;
+        let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_lens())?;
+        gpu(avatar.restore(ctx, &state))?;
         (state.step, f64::NAN)
     } else {
         let mut worst = 0.0f64;
@@ -450,7 +606,16 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         (0, worst)
     };
     let fit_seconds = t0.elapsed().as_secs_f64();
-    let initial = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, None, progress)?;
+    // LPIPS where the run has weights (checked before anything is trained).
+    let lpips_weights = match &config.lpips_weights {
+        Some(path) => Some(LpipsWeights::load(path, LpipsNet::parse(&config.lpips_net)?).map_err(|e| e.to_string())?),
+        None => None,
+    };
+    let mut lpips = match &lpips_weights {
+        Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
+        _ => None,
+    };
+    let initial = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, ground_truth.as_deref(), lpips_weights.as_ref(), None, progress)?;
 
     // 2. The main loop.
     let pixels = (width * height) as usize;
@@ -458,6 +623,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let grad_rgb = gpu(ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels as u64)))?;
     let mut abs_error = gpu(ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels as u64)))?;
     let zeros = gpu(ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels as u64)))?;
+    let mut cloth_values = ClothLossValues::default();
     {
         let mut rec = gpu(ctx.record("train zero"))?;
         rec.fill(&zeros, 0);
@@ -479,9 +645,13 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let f = train_frames[rng.random_range(0..train_frames.len())];
         let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
+        let background = if whole_image { [0.0; 3] } else { background };
         let ft = rig.frame(&f.body);
         gpu(avatar.set_transforms(ctx, &ft.transforms))?;
-        gpu(ctx.write_buffer(&mut target, &masked_target(f, background)))?;
+        gpu(ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) }))?;
+        if let Some(c) = cloth_losses.as_mut() {
+            gpu(c.set_frame(ctx, f))?;
+        }
         {
             let mut rec = gpu(ctx.record("train forward"))?;
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
@@ -496,13 +666,23 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             rec.barrier();
             // λ (1 - SSIM): adds -λ ∂SSIM/∂rgb to the L1 gradient.
             gpu(ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim))))?;
+            if let Some(l) = &lpips {
+                gpu(l.record(&mut rec, rgb, &target, Some((&grad_rgb, config.lambda_lpips))))?;
+            }
             gpu(rec.submit_and_wait())?;
         }
         gpu(renderer.backward(&avatar.posed, &grad_rgb, &zeros, &zeros, &avatar.posed_grads, Accumulation::Auto))?;
+        if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
+            gpu(c.mask_pass(ctx, cloth, &cam, &settings))?;
+        }
         {
             let mut rec = gpu(ctx.record("train backward"))?;
             rec.fill(&nonfinite, 0);
-            gpu(avatar.record_backward(&mut rec, use_atomics))?;
+            avatar.record_scatter_grads(&mut rec);
+            if let (Some(c), Some(cloth)) = (cloth_losses.as_ref(), avatar.cloth()) {
+                gpu(c.record(&mut rec, cloth))?;
+            }
+            gpu(avatar.record_layers_backward(&mut rec, use_atomics))?;
             gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
             gpu(rec.submit_and_wait())?;
         }
@@ -535,9 +715,22 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / e.len() as f64;
             let p = -10.0 * mse.max(1e-20).log10();
             let ssim_value = gpu(ssim.read_mean(ctx))?;
+            if let Some(c) = cloth_losses.as_mut() {
+                cloth_values = gpu(c.read_values(ctx))?;
+            }
+            let lpips_value = match lpips.as_mut() {
+                Some(l) => Some(gpu(l.read_value(ctx))?),
+                None => None,
+            };
             let secs = t_train.elapsed().as_secs_f64();
             let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
-            let line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": secs });
+            let mut line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": secs });
+            if cloth_losses.is_some() {
+                line["cloth"] = serde_json::to_value(cloth_values).map_err(|e| e.to_string())?;
+            }
+            if let Some(v) = lpips_value {
+                line["lpips"] = v.into();
+            }
             writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
@@ -549,7 +742,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     save(&mut avatar, last, &checkpoint_path)?;
     save(&mut avatar, last, &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
-    let fin = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, Some(&out.join("eval")), progress)?;
+    let fin = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, ground_truth.as_deref(), lpips_weights.as_ref(), Some(&out.join("eval")), progress)?;
     // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
         let ft = rig.frame(&f.body);

@@ -1,0 +1,254 @@
+//! The cloth layer's physics losses on the GPU (kernels `cloth_loss::*`): the
+//! simulation term (bidirectional Chamfer through Geman–McClure, nearest neighbours by
+//! tiled brute force) and ARAP (the variance of edge lengths), each adding its
+//! gradient to the posed Gaussian centres; and their CPU references from the same
+//! shared functions (`drape_shared::cloth_loss`, which states the math), generic over
+//! f32/f64.
+
+use drape_shared::cloth_loss::{arap_edge_grad, chamfer_pair_grad, distance2, geman_mcclure, ArapParams, ChamferParams, CHAMFER_CHUNK, CHAMFER_MERGE, CHAMFER_OWN_TERM};
+use drape_shared::real::Real;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::context::Context;
+use crate::error::{EngineError, Result};
+use crate::kernels::Kernel;
+use crate::recorder::{flat_grid as grid, Recording};
+
+/// Scratch for Chamfer losses between up to `max_pred` predicted and `max_target`
+/// target points.
+pub struct Chamfer {
+    max_pred: u32,
+    max_target: u32,
+    pred_nearest: Buffer,
+    pred_d2: Buffer,
+    target_nearest: Buffer,
+    target_d2: Buffer,
+    /// (n, m, σ²) of the last recording, for reading its values back.
+    last: std::cell::Cell<(u32, u32, f32)>,
+}
+
+/// `½ (mean ρ(d(p, Q)) + mean ρ(d(q, P)))` and the plain Chamfer distance
+/// `½ (mean d(p, Q) + mean d(q, P))` of one evaluation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChamferValue {
+    pub robust: f64,
+    pub distance: f64,
+}
+
+impl Chamfer {
+    pub fn new(ctx: &Context, max_pred: u32, max_target: u32) -> Result<Self> {
+        let b = |name: &str, n: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(n.max(1))));
+        Ok(Self {
+            max_pred,
+            max_target,
+            pred_nearest: b("chamfer pred nearest", max_pred)?,
+            pred_d2: b("chamfer pred d2", max_pred)?,
+            target_nearest: b("chamfer target nearest", max_target)?,
+            target_d2: b("chamfer target d2", max_target)?,
+            last: std::cell::Cell::new((0, 0, 0.0)),
+        })
+    }
+
+    /// Records the nearest neighbours of `pred` (`n` points, xyz) in `target` (`m`)
+    /// and back and, with `grad = Some((buffer, λ))`, adds `λ ∂L_sim/∂pred` to it.
+    /// An empty set is an error (the distance has no value), as is one larger than
+    /// this scratch was made for.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, n: u32, target: &'a Buffer, m: u32, sigma: f32, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+        if n == 0 {
+            return Err(EngineError::Empty { what: "the predicted point set", why: "the Chamfer distance needs a point on each side" });
+        }
+        if m == 0 {
+            return Err(EngineError::Empty { what: "the target point set", why: "the Chamfer distance needs a point on each side" });
+        }
+        if n > self.max_pred {
+            return Err(EngineError::TooLarge { what: "predicted Chamfer points", requested: n.into(), limit: self.max_pred.into() });
+        }
+        if m > self.max_target {
+            return Err(EngineError::TooLarge { what: "target Chamfer points", requested: m.into(), limit: self.max_target.into() });
+        }
+        let sigma2 = sigma * sigma;
+        self.last.set((n, m, sigma2));
+        let this = self;
+        // Each dispatch walks one chunk of the searched set (llvmpipe's loop cap),
+        // merging with the chunks before; the chunks of one search are ordered by
+        // barriers, the two directions are independent.
+        for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
+            let p = ChamferParams { queries: n, points: m, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
+            rec.pass("chamfer.nearest_pred", Kernel::ClothLossNearest).read(pred).read(target).write(&this.pred_nearest).write(&this.pred_d2).push(&p).dispatch(grid(n))?;
+            rec.barrier();
+        }
+        for (k, offset) in (0..n).step_by(CHAMFER_CHUNK as usize).enumerate() {
+            let p = ChamferParams { queries: m, points: n, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
+            rec.pass("chamfer.nearest_target", Kernel::ClothLossNearest).read(target).read(pred).write(&this.target_nearest).write(&this.target_d2).push(&p).dispatch(grid(m))?;
+            rec.barrier();
+        }
+        if let Some((g, lambda)) = grad {
+            for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
+                let p = ChamferParams { queries: n, points: m, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, offset, flags: if k == 0 { CHAMFER_OWN_TERM } else { 0 }, _pad: 0 };
+                rec.pass("chamfer.grad", Kernel::ClothLossChamferGrad).read(pred).read(target).read(&this.pred_nearest).read(&this.target_nearest).write(g).push(&p).dispatch(grid(n))?;
+                rec.barrier();
+            }
+        }
+        Ok(())
+    }
+
+    /// The values of the last recorded evaluation (reads the distances back).
+    pub fn read_value(&mut self, ctx: &Context) -> Result<ChamferValue> {
+        let (n, m, sigma2) = self.last.get();
+        let a = ctx.read_buffer::<f32>(&mut self.pred_d2, n as usize)?;
+        let b = ctx.read_buffer::<f32>(&mut self.target_d2, m as usize)?;
+        Ok(chamfer_value(&a, &b, f64::from(sigma2)))
+    }
+
+    /// The nearest-neighbour indices of the last evaluation: (pred → target, target → pred).
+    pub fn read_nearest(&mut self, ctx: &Context) -> Result<(Vec<u32>, Vec<u32>)> {
+        let (n, m, _) = self.last.get();
+        Ok((ctx.read_buffer(&mut self.pred_nearest, n as usize)?, ctx.read_buffer(&mut self.target_nearest, m as usize)?))
+    }
+}
+
+fn chamfer_value(pred_d2: &[f32], target_d2: &[f32], sigma2: f64) -> ChamferValue {
+    let mean = |v: &[f32], f: &dyn Fn(f64) -> f64| v.iter().map(|&d| f(f64::from(d))).sum::<f64>() / v.len().max(1) as f64;
+    let rho = |d2: f64| geman_mcclure(d2, sigma2).0;
+    ChamferValue { robust: 0.5 * (mean(pred_d2, &rho) + mean(target_d2, &rho)), distance: 0.5 * (mean(pred_d2, &f64::sqrt) + mean(target_d2, &f64::sqrt)) }
+}
+
+/// Nearest point of `points` to each of `queries` (lower index on ties) and its
+/// squared distance: the CPU reference of `cloth_loss::nearest`.
+pub fn nearest_reference<F: Real>(queries: &[[F; 3]], points: &[[F; 3]]) -> Vec<(usize, F)> {
+    queries
+        .iter()
+        .map(|&q| {
+            let mut best = (usize::MAX, F::infinity());
+            for (j, &p) in points.iter().enumerate() {
+                let d = distance2(q, p);
+                if d < best.1 {
+                    best = (j, d);
+                }
+            }
+            best
+        })
+        .collect()
+}
+
+/// CPU reference: (`L_sim` without λ, `∂L_sim/∂pred`) for non-empty sets.
+pub fn chamfer_reference<F: Real>(pred: &[[F; 3]], target: &[[F; 3]], sigma: F) -> (F, Vec<[F; 3]>) {
+    let sigma2 = sigma * sigma;
+    let half = F::of(0.5);
+    let (n, m) = (F::of(pred.len() as f32), F::of(target.len() as f32));
+    let fwd = nearest_reference(pred, target);
+    let bwd = nearest_reference(target, pred);
+    let mut loss = F::zero();
+    let mut grad = vec![[F::zero(); 3]; pred.len()];
+    for (i, &(j, d2)) in fwd.iter().enumerate() {
+        loss += half * geman_mcclure(d2, sigma2).0 / n;
+        grad[i] = chamfer_pair_grad(pred[i], target[j], sigma2, half / n);
+    }
+    for (j, &(i, d2)) in bwd.iter().enumerate() {
+        loss += half * geman_mcclure(d2, sigma2).0 / m;
+        let g = chamfer_pair_grad(pred[i], target[j], sigma2, half / m);
+        for c in 0..3 {
+            grad[i][c] += g[c];
+        }
+    }
+    (loss, grad)
+}
+
+/// The edge graph of a point set and scratch for its ARAP term.
+pub struct Arap {
+    pub vertices: u32,
+    pub edges: u32,
+    edge_list: Buffer,
+    offsets: Buffer,
+    neighbours: Buffer,
+    lengths: Buffer,
+    stats: Buffer,
+}
+
+impl Arap {
+    /// Uploads the graph of `edges` (pairs of distinct vertex indices below `vertices`;
+    /// checked) in both the edge-list and the per-vertex (CSR) form.
+    pub fn new(ctx: &Context, vertices: u32, edges: &[[u32; 2]]) -> Result<Self> {
+        for (k, e) in edges.iter().enumerate() {
+            assert!(e[0] < vertices && e[1] < vertices && e[0] != e[1], "ARAP edge {k} {e:?} is not a pair of distinct vertices below {vertices}");
+        }
+        let (offsets, neighbours) = csr(vertices as usize, edges);
+        let b = |name: &str, words: usize| ctx.create_buffer(name, BufferDesc::gpu_only(4 * words.max(1) as u64));
+        let mut edge_list = b("arap edges", 2 * edges.len())?;
+        let mut off = b("arap offsets", offsets.len())?;
+        let mut nb = b("arap neighbours", neighbours.len())?;
+        if !edges.is_empty() {
+            ctx.write_buffer(&mut edge_list, &edges.iter().flatten().copied().collect::<Vec<u32>>())?;
+            ctx.write_buffer(&mut nb, &neighbours)?;
+        }
+        ctx.write_buffer(&mut off, &offsets)?;
+        Ok(Self { vertices, edges: edges.len() as u32, edge_list, offsets: off, neighbours: nb, lengths: b("arap lengths", edges.len())?, stats: b("arap stats", 2)? })
+    }
+
+    /// Records the edge-length variance of `positions` (this graph's vertices, xyz)
+    /// and, with `grad = Some((buffer, λ))`, adds `λ ∂var/∂positions` to it.
+    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, positions: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+        let p = ArapParams { edges: self.edges, vertices: self.vertices, scale: grad.map_or(0.0, |g| g.1), _pad: 0 };
+        rec.pass("arap.lengths", Kernel::ClothLossArapLengths).read(positions).read(&self.edge_list).write(&self.lengths).push(&p).dispatch(grid(self.edges))?;
+        rec.barrier();
+        rec.pass("arap.stats", Kernel::ClothLossArapStats).read(&self.lengths).write(&self.stats).push(&p).dispatch([1, 1, 1])?;
+        rec.barrier();
+        if let Some((g, _)) = grad {
+            rec.pass("arap.grad", Kernel::ClothLossArapGrad).read(positions).read(&self.offsets).read(&self.neighbours).read(&self.stats).write(g).push(&p).dispatch(grid(self.vertices))?;
+            rec.barrier();
+        }
+        Ok(())
+    }
+
+    /// `[mean edge length, variance]` of the last recorded evaluation.
+    pub fn read_stats(&mut self, ctx: &Context) -> Result<[f32; 2]> {
+        let v = ctx.read_buffer::<f32>(&mut self.stats, 2)?;
+        Ok([v[0], v[1]])
+    }
+}
+
+/// The per-vertex adjacency of an edge list: `offsets` (vertices + 1) into
+/// `neighbours` (each edge appears at both ends).
+pub fn csr(vertices: usize, edges: &[[u32; 2]]) -> (Vec<u32>, Vec<u32>) {
+    let mut degree = vec![0u32; vertices + 1];
+    for e in edges {
+        degree[e[0] as usize + 1] += 1;
+        degree[e[1] as usize + 1] += 1;
+    }
+    for v in 0..vertices {
+        degree[v + 1] += degree[v];
+    }
+    let offsets = degree.clone();
+    let mut fill = degree;
+    let mut neighbours = vec![0u32; 2 * edges.len()];
+    for e in edges {
+        for (a, b) in [(e[0], e[1]), (e[1], e[0])] {
+            neighbours[fill[a as usize] as usize] = b;
+            fill[a as usize] += 1;
+        }
+    }
+    (offsets, neighbours)
+}
+
+/// CPU reference: (variance of the edge lengths, its gradient to the positions).
+pub fn arap_reference<F: Real>(positions: &[[F; 3]], edges: &[[u32; 2]]) -> (F, Vec<[F; 3]>) {
+    let mut grad = vec![[F::zero(); 3]; positions.len()];
+    if edges.is_empty() {
+        return (F::zero(), grad);
+    }
+    let e = F::of(edges.len() as f32);
+    let lengths: Vec<F> = edges.iter().map(|&[a, b]| distance2(positions[a as usize], positions[b as usize]).sqrt()).collect();
+    let mean = lengths.iter().fold(F::zero(), |s, &l| s + l) / e;
+    let var = lengths.iter().fold(F::zero(), |s, &l| s + (l - mean) * (l - mean)) / e;
+    for &[a, b] in edges {
+        let (pa, pb) = (positions[a as usize], positions[b as usize]);
+        let ga = arap_edge_grad(pa, pb, mean, e, F::one());
+        let gb = arap_edge_grad(pb, pa, mean, e, F::one());
+        for c in 0..3 {
+            grad[a as usize][c] += ga[c];
+            grad[b as usize][c] += gb[c];
+        }
+    }
+    (var, grad)
+}

@@ -1,0 +1,171 @@
+//! The cloth layer's training losses beyond cloth-LBS, each with the paper's weight
+//! as its default and 0 turning it off (the ablation): the simulation term (Chamfer +
+//! Geman–McClure to the frame's simulated garments), ARAP (the variance of the edge
+//! lengths of the cloth Gaussians' garment graph), and the cloth mask (the mean
+//! squared error between the cloth layer's own alpha, rendered alone, and the frame's
+//! garment mask: the paper's matte V where there is no scene layer, since its matte
+//! lets nothing but the scene hide the cloth).
+//!
+//! Each adds its gradient to the cloth layer's posed-Gaussian gradients between the
+//! splatter's backward and the layer's own (`Avatar::record_scatter_grads` /
+//! `record_layers_backward`).
+
+use drape_engine::ops::cloth_loss::{Arap, Chamfer};
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
+use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_shared::adam::LossParams;
+
+use crate::avatar::cloth_target::GarmentFrames;
+use crate::avatar::layer::HumanLayer;
+use crate::dataset::loader::DatasetFrame;
+
+/// Weights and σ of the cloth losses.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClothLossWeights {
+    pub sim: f32,
+    pub gm_sigma: f32,
+    pub arap: f32,
+    pub mask: f32,
+    /// Every k-th vertex of the simulated garments is a Chamfer target: the stride the
+    /// cloth Gaussians were decimated with, so both sides have the same density.
+    pub target_stride: u32,
+}
+
+/// The values of one step's cloth losses (without their weights).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct ClothLossValues {
+    /// `½ (mean ρ(d(p, Q)) + mean ρ(d(q, P)))`.
+    pub sim: f64,
+    /// The plain Chamfer distance to the simulated garments (metres).
+    pub chamfer: f64,
+    /// Variance of the garment graph's edge lengths (m²).
+    pub arap: f64,
+    /// Mean squared error of the cloth alpha against the garment mask.
+    pub mask: f64,
+}
+
+/// Scratch and targets of the cloth losses.
+pub struct ClothLosses {
+    pub weights: ClothLossWeights,
+    pub garments: GarmentFrames,
+    count: u32,
+    chamfer: Chamfer,
+    arap: Arap,
+    target_points: Buffer,
+    target_count: u32,
+    renderer: SplatRenderer,
+    mask_target: Buffer,
+    grad_alpha: Buffer,
+    mask_sq_error: Buffer,
+    zeros: Buffer,
+    mask_grads: GaussianBuffers,
+    pixels: u32,
+    has_mask: bool,
+}
+
+impl ClothLosses {
+    pub fn new(ctx: &Context, cloth: &HumanLayer, edges: &[[u32; 2]], garments: GarmentFrames, weights: ClothLossWeights, width: u32, height: u32) -> Result<Self> {
+        let pixels = width * height;
+        let b = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))));
+        let zeros = b("cloth mask zeros", 3 * pixels)?;
+        {
+            let mut rec = ctx.record("cloth mask zero")?;
+            rec.fill(&zeros, 0);
+            rec.submit_and_wait()?;
+        }
+        Ok(Self {
+            weights,
+            count: cloth.count,
+            chamfer: Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?,
+            arap: Arap::new(ctx, cloth.count, edges)?,
+            target_points: b("cloth target points", 3 * garments.vertices as u32)?,
+            target_count: 0,
+            renderer: SplatRenderer::new(ctx, width, height, cloth.count as usize)?,
+            mask_target: b("cloth mask target", pixels)?,
+            grad_alpha: b("cloth mask grad alpha", pixels)?,
+            mask_sq_error: b("cloth mask squared error", pixels)?,
+            zeros,
+            mask_grads: GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.posed.sh_degree)?,
+            garments,
+            pixels,
+            has_mask: false,
+        })
+    }
+
+    /// Uploads the frame's targets: its simulated garments and its garment mask.
+    pub fn set_frame(&mut self, ctx: &Context, f: &DatasetFrame) -> Result<()> {
+        let points = self.garments.by_frame.get(&f.frame).expect("every frame of the sequence was simulated");
+        let kept: Vec<f32> = points.iter().step_by(self.weights.target_stride.max(1) as usize).flatten().copied().collect();
+        self.target_count = (kept.len() / 3) as u32;
+        ctx.write_buffer(&mut self.target_points, &kept)?;
+        self.has_mask = self.weights.mask > 0.0 && f.garment_masks.is_some();
+        if let Some((upper, lower)) = &f.garment_masks {
+            let m: Vec<f32> = upper.iter().zip(lower).map(|(&a, &b)| if a || b { 1.0 } else { 0.0 }).collect();
+            ctx.write_buffer(&mut self.mask_target, &m)?;
+        }
+        Ok(())
+    }
+
+    /// Renders the cloth layer alone (after the avatar's forward pass) and back-
+    /// propagates the mask loss into `mask_grads`: two submissions of the renderer.
+    pub fn mask_pass(&mut self, ctx: &Context, cloth: &HumanLayer, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        if !self.has_mask {
+            return Ok(());
+        }
+        self.renderer.forward(&cloth.posed, camera, settings)?;
+        {
+            let (_, alpha, _) = self.renderer.outputs();
+            let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
+            let mut rec = ctx.record("cloth mask loss")?;
+            rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read(alpha).read(&self.mask_target).write(&self.grad_alpha).write(&self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+            rec.submit_and_wait()?;
+        }
+        self.renderer.backward(&cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, Accumulation::Auto)?;
+        Ok(())
+    }
+
+    /// Records the three losses' gradients into the cloth layer's posed gradients
+    /// (after `Avatar::record_scatter_grads`).
+    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer) -> Result<()> {
+        let w = self.weights;
+        let this = self;
+        if this.has_mask {
+            let per = [3u32, 3, 4, 1];
+            let src = [&this.mask_grads.means, &this.mask_grads.log_scales, &this.mask_grads.quats, &this.mask_grads.opacity_logits];
+            let dst = [&cloth.posed_grads.means, &cloth.posed_grads.log_scales, &cloth.posed_grads.quats, &cloth.posed_grads.opacity_logits];
+            for k in 0..4 {
+                let len = per[k] * this.count;
+                let p = LossParams { len, scale: 1.0, _pad: [0; 2] };
+                rec.pass("cloth.mask_add", Kernel::TrainAddInto).read(src[k]).write(dst[k]).push(&p).dispatch(drape_engine::recorder::flat_grid(len))?;
+            }
+            rec.barrier();
+        }
+        let grad = &cloth.posed_grads.means;
+        if w.sim > 0.0 {
+            this.chamfer.record(rec, &cloth.posed.means, this.count, &this.target_points, this.target_count, w.gm_sigma, Some((grad, w.sim)))?;
+        }
+        if w.arap > 0.0 {
+            this.arap.record(rec, &cloth.posed.means, Some((grad, w.arap)))?;
+        }
+        Ok(())
+    }
+
+    /// The last step's loss values (reads them back).
+    pub fn read_values(&mut self, ctx: &Context) -> Result<ClothLossValues> {
+        let mut v = ClothLossValues::default();
+        if self.weights.sim > 0.0 {
+            let c = self.chamfer.read_value(ctx)?;
+            v.sim = c.robust;
+            v.chamfer = c.distance;
+        }
+        if self.weights.arap > 0.0 {
+            v.arap = f64::from(self.arap.read_stats(ctx)?[1]);
+        }
+        if self.has_mask {
+            let e = ctx.read_buffer::<f32>(&mut self.mask_sq_error, self.pixels as usize)?;
+            v.mask = e.iter().map(|&x| f64::from(x)).sum::<f64>() / f64::from(self.pixels.max(1));
+        }
+        Ok(v)
+    }
+}

@@ -1,0 +1,157 @@
+//! What the cloth layer is compared with: the garments simulated through the
+//! sequence's own body motion (the paper's `L_sim` target: a physics simulation driven
+//! by the fitted SMPL parameters, not ground truth), one mesh per frame in the frame's
+//! world; the ground-truth garments where a synthetic sequence ships them (for the
+//! evaluation only); and the cloth Gaussians' edge graph for ARAP.
+//!
+//! The simulation is the project's XPBD solver (`cloth::simulate`) with its default
+//! parameters, over every frame of the sequence in order (train and held-out frames
+//! alike: cloth has momentum), 30 frames per second, after 20 settling frames. On a
+//! `drape synth` sequence this reproduces the generator's own simulation, so the target
+//! equals the ground truth there; on a real capture it is the estimate the paper uses.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::avatar::rig::Rig;
+use crate::body::kinematics::{regress_joints, rodrigues, Pose};
+use crate::body::model::NUM_JOINTS;
+use crate::cloth::{simulate_with_progress, ClothParams};
+use crate::dataset::loader::{BodyParams, DatasetFrame};
+use crate::garment::{pants, tshirt, Garment};
+use crate::mesh::V3;
+use crate::motion::Motion;
+
+/// World-space garment vertices per frame (the T-shirt's, then the pants').
+pub struct GarmentFrames {
+    pub by_frame: BTreeMap<usize, Vec<[f32; 3]>>,
+    pub vertices: usize,
+    pub seconds: f64,
+}
+
+/// The garments the cloth layer is made of, in the order its Gaussians are.
+pub fn garments(rig: &Rig) -> [Garment; 2] {
+    [tshirt(&rig.model), pants(&rig.model)]
+}
+
+/// A frame's body in the simulator's convention: (pose with root, translation) in
+/// model space, then `world = scale · x`.
+fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, V3, f64) {
+    match body {
+        BodyParams::Smpl { pose, translation, scale, .. } => (*pose, translation.map(|t| t / scale), *scale),
+        BodyParams::Zju(p) => {
+            // ZJU: world = R(Rh) x₀ + Th with x₀ posed about a zero root; SMPL turns about
+            // the pelvis j, so the same pose is root Rh with translation Th + R j - j.
+            let mut pose: Pose = [[0.0; 3]; NUM_JOINTS];
+            pose[0] = p.rh;
+            for (j, q) in pose.iter_mut().enumerate().skip(1) {
+                *q = [p.poses[3 * j], p.poses[3 * j + 1], p.poses[3 * j + 2]];
+            }
+            let pelvis = regress_joints(&rig.model, &rig.model.v_template)[0];
+            let r = rodrigues(p.rh);
+            let rj: V3 = std::array::from_fn(|k| (0..3).map(|c| r[k][c] * pelvis[c]).sum::<f64>());
+            (pose, std::array::from_fn(|k| p.th[k] + rj[k] - pelvis[k]), 1.0)
+        }
+    }
+}
+
+/// Simulates the garments through every frame of `frames` (each frame index once, in
+/// order); `progress(done, total)` as it goes.
+pub fn simulate_sequence(rig: &Rig, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> Result<GarmentFrames, String> {
+    let t0 = std::time::Instant::now();
+    let mut bodies: BTreeMap<usize, &BodyParams> = BTreeMap::new();
+    for f in frames {
+        bodies.entry(f.frame).or_insert(&f.body);
+    }
+    let order: Vec<(usize, (Pose, V3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
+    let motion = Motion { fps: 30.0, poses: order.iter().map(|(_, p)| p.0).collect(), translations: order.iter().map(|(_, p)| p.1).collect() };
+    let garments = garments(rig);
+    let sim = simulate_with_progress(&rig.model, &garments, &motion, ClothParams::default(), 20, progress);
+    if sim.any_nan {
+        return Err("the cloth simulation of the sequence's motion produced non-finite positions".into());
+    }
+    let mut by_frame = BTreeMap::new();
+    for ((frame, (_, _, scale)), meshes) in order.iter().zip(&sim.frames) {
+        let points: Vec<[f32; 3]> = meshes.iter().flatten().map(|v| v.map(|x| (x * scale) as f32)).collect();
+        by_frame.insert(*frame, points);
+    }
+    let vertices = garments.iter().map(|g| g.vertices.len()).sum();
+    Ok(GarmentFrames { by_frame, vertices, seconds: t0.elapsed().as_secs_f64() })
+}
+
+/// The directory of ground-truth garments of a `drape synth` sequence
+/// (`<root>/gt/garments`, beside the layout directory), if there is one.
+pub fn ground_truth_dir(sequence_dir: &Path) -> Option<PathBuf> {
+    [sequence_dir.join("gt"), sequence_dir.parent().map(|p| p.join("gt")).unwrap_or_default()].into_iter().map(|d| d.join("garments")).find(|d| d.is_dir())
+}
+
+/// The ground-truth garment vertices of `frame` (`tshirt_0007.obj` and
+/// `pants_0007.obj`), or None when the frame has none.
+pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> Result<Option<Vec<[f32; 3]>>, String> {
+    let mut points = Vec::new();
+    for name in names {
+        let path = dir.join(format!("{name}_{frame:04}.obj"));
+        if !path.is_file() {
+            return Ok(None);
+        }
+        points.extend(obj_vertices(&path)?);
+    }
+    Ok(Some(points))
+}
+
+/// The `v x y z` lines of an OBJ file.
+pub fn obj_vertices(path: &Path) -> Result<Vec<[f32; 3]>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        if let Some(rest) = line.strip_prefix("v ") {
+            let v: Vec<f32> = rest.split_whitespace().take(3).map(str::parse).collect::<Result<_, _>>().map_err(|e| format!("{}:{}: vertex: {e}", path.display(), n + 1))?;
+            if v.len() != 3 {
+                return Err(format!("{}:{}: a vertex needs three coordinates", path.display(), n + 1));
+            }
+            out.push([v[0], v[1], v[2]]);
+        }
+    }
+    Ok(out)
+}
+
+/// The garment mesh's edges contracted onto the kept vertices (every `keep`-th): each
+/// vertex joins the kept vertex nearest to it through the mesh (breadth-first from all
+/// kept vertices at once, lower index first), and an edge between two groups becomes
+/// an edge between their kept vertices, numbered as the kept vertices are. With
+/// `keep = 1`: the mesh's own edges.
+pub fn contracted_edges(vertices: usize, faces: &[[u32; 3]], keep: usize) -> Vec<[u32; 2]> {
+    let keep = keep.max(1);
+    let mut adjacency = vec![Vec::new(); vertices];
+    for f in faces {
+        for k in 0..3 {
+            let (a, b) = (f[k] as usize, f[(k + 1) % 3] as usize);
+            adjacency[a].push(b);
+            adjacency[b].push(a);
+        }
+    }
+    let mut group = vec![u32::MAX; vertices];
+    let mut queue = std::collections::VecDeque::new();
+    for v in (0..vertices).step_by(keep) {
+        group[v] = (v / keep) as u32;
+        queue.push_back(v);
+    }
+    while let Some(v) = queue.pop_front() {
+        for &w in &adjacency[v] {
+            if group[w] == u32::MAX {
+                group[w] = group[v];
+                queue.push_back(w);
+            }
+        }
+    }
+    let mut edges = std::collections::BTreeSet::new();
+    for (a, list) in adjacency.iter().enumerate() {
+        for &b in list {
+            let (ga, gb) = (group[a], group[b]);
+            if ga != gb && ga != u32::MAX && gb != u32::MAX {
+                edges.insert([ga.min(gb), ga.max(gb)]);
+            }
+        }
+    }
+    edges.into_iter().collect()
+}
