@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job on the embedded default data: generate the synthetic sequence (NeuMan
 # and ZJU-MoCap layouts) into target/demo-data, train the avatar on it with the quick
-# preset (about ten minutes on lavapipe), and print the held-out metrics. The run
+# preset (see the README for its speed on lavapipe), and print the held-out metrics. The run
 # directory target/demo-run holds the held-out renders (eval/: ground truth | render),
 # a novel pose (novel_pose.png), the log, the metrics and a posed PLY.
 set -euo pipefail

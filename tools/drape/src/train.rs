@@ -27,7 +27,7 @@ pub struct TrainArgs {
     /// config.json (`--steps` may raise the step count).
     #[arg(long)]
     pub resume: Option<PathBuf>,
-    /// `quick` (finishes in about ten minutes on lavapipe at 128x128) or `paper`
+    /// `quick` (small sizes for lavapipe at 128x128; see the README for its current speed) or `paper`
     /// (the paper's setting, for a GPU).
     #[arg(long, default_value = "quick")]
     pub preset: String,

@@ -99,7 +99,9 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
-    /// What finishes in about ten minutes on lavapipe on a 2-core machine at the
+    /// Sized to finish in about ten minutes on lavapipe on a 2-core machine for the body
+    /// and cloth layers without the physics losses (with them and the scene layer it now
+    /// runs at ~0.2 it/s there: to be re-sized) at the
     /// synthetic data's 128 × 128: every third vertex of the body mesh without
     /// subdivision (3,134 Gaussians) and of the garments (2,225), 64 × 64 × 16
     /// triplanes, the full HUGS decoders, 150 fitting and 600 training steps. The
