@@ -99,20 +99,10 @@ pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> Result<Option<V
     Ok(Some(points))
 }
 
-/// The `v x y z` lines of an OBJ file.
+/// The vertices of an OBJ file (read with `tobj`, as the garment loader does).
 pub fn obj_vertices(path: &Path) -> Result<Vec<[f32; 3]>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut out = Vec::new();
-    for (n, line) in text.lines().enumerate() {
-        if let Some(rest) = line.strip_prefix("v ") {
-            let v: Vec<f32> = rest.split_whitespace().take(3).map(str::parse).collect::<Result<_, _>>().map_err(|e| format!("{}:{}: vertex: {e}", path.display(), n + 1))?;
-            if v.len() != 3 {
-                return Err(format!("{}:{}: a vertex needs three coordinates", path.display(), n + 1));
-            }
-            out.push([v[0], v[1], v[2]]);
-        }
-    }
-    Ok(out)
+    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(models.iter().flat_map(|m| m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]])).collect())
 }
 
 /// The garment mesh's edges contracted onto the kept vertices (every `keep`-th): each

@@ -286,10 +286,7 @@ impl HumanLayer {
             (&self.geometry.grads, g.geometry.len),
             (&self.deformation.grads, g.deformation.len),
         ];
-        for (b, len) in buffers {
-            let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
-            rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(flat_grid(p.len))?;
-        }
+        record_count_nonfinite(rec, buffers, counter)?;
         rec.barrier();
         Ok(())
     }
@@ -416,4 +413,14 @@ impl HumanLayer {
         let layers = vec![drape_engine::ops::splat::scene::Layer::Body; self.count as usize];
         self.posed.download(ctx, &layers)
     }
+}
+
+/// Records `counter[0] += ` the number of non-finite values in each `(buffer, floats)`
+/// (the training guard's count; independent passes, no barrier).
+pub fn record_count_nonfinite<'a>(rec: &mut Recording<'a>, buffers: impl IntoIterator<Item = (&'a Buffer, usize)>, counter: &'a Buffer) -> Result<()> {
+    for (b, len) in buffers {
+        let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
+        rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(flat_grid(p.len))?;
+    }
+    Ok(())
 }

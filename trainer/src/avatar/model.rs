@@ -243,10 +243,7 @@ impl Avatar {
             l.record_count_nonfinite(rec, counter)?;
         }
         if let Some(s) = &self.scene {
-            for (b, len) in s.grads.all().into_iter().zip(s.lens()) {
-                let p = drape_shared::adam::LossParams { len: len as u32, scale: 0.0, _pad: [0; 2] };
-                rec.pass("scene.count_nonfinite", drape_engine::Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(drape_engine::recorder::flat_grid(len as u32))?;
-            }
+            crate::avatar::layer::record_count_nonfinite(rec, s.grads.all().into_iter().zip(s.lens()), counter)?;
         }
         Ok(())
     }
