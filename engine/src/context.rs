@@ -17,6 +17,7 @@ use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::kernels::{self, Kernel, Pipeline};
+use crate::profile::Profile;
 use crate::validation::{self, ValidationSink};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
@@ -110,6 +111,8 @@ pub struct Device {
     pub(crate) poison: bool,
     debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
     validation: Option<Arc<ValidationSink>>,
+    /// Pass and submission times while a profile is on (`Context::start_profile`).
+    pub(crate) profile: Mutex<Option<Profile>>,
     // Keeps libvulkan loaded for as long as any handle exists.
     _entry: ash::Entry,
 }
@@ -213,6 +216,7 @@ impl Context {
             poison: desc.poison_new_buffers,
             debug_instance,
             validation: sink,
+            profile: Mutex::new(None),
             _entry: entry,
         };
         let ctx = Context { device: Arc::new(device) };
@@ -223,6 +227,29 @@ impl Context {
     /// What the device is.
     pub fn info(&self) -> &DeviceInfo {
         &self.device.info
+    }
+
+    /// Starts (or restarts, discarding what was gathered) the context-wide profile:
+    /// from now on every submission adds its passes' GPU time and its host wall time.
+    pub fn start_profile(&self) {
+        *self.device.profile.lock().unwrap_or_else(|p| p.into_inner()) = Some(Profile::default());
+    }
+
+    /// Stops the profile and returns what it gathered (None when none was started).
+    pub fn take_profile(&self) -> Option<Profile> {
+        self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+
+    /// Adds a host phase the caller timed (`ms`) to the running profile, if any.
+    pub fn profile_host(&self, name: &str, ms: f64) {
+        if let Some(p) = self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+            p.add_host(name, ms);
+        }
+    }
+
+    /// Whether a profile is running (callers skip their own timing otherwise).
+    pub fn profiling(&self) -> bool {
+        self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).is_some()
     }
 
     /// Takes the validation messages collected so far (empty without validation).

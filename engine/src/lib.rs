@@ -20,6 +20,7 @@ pub mod context;
 pub mod error;
 pub mod kernels;
 pub mod ops;
+pub mod profile;
 pub mod recorder;
 pub mod validation;
 
@@ -27,4 +28,5 @@ pub use buffer::{Buffer, BufferDesc};
 pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
 pub use error::{EngineError, Result};
 pub use kernels::Kernel;
+pub use profile::{Profile, ProfileEntry};
 pub use recorder::{PassTimings, Recording};

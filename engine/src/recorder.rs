@@ -358,13 +358,22 @@ impl<'a> Recording<'a> {
             dev.end_command_buffer(self.cmd)
         }
         .vk("vkEndCommandBuffer", &self.label)?;
+        let started = std::time::Instant::now();
         if let Err(e) = self.ctx.submit_and_wait(self.cmd, &self.label) {
             return Err(match e {
                 EngineError::DeviceLost { .. } => EngineError::DeviceLost { pass: self.last_pass() },
                 e => e,
             });
         }
-        self.read_timings()
+        let wall_ms = started.elapsed().as_secs_f64() * 1e3;
+        let timings = self.read_timings()?;
+        if let Some(p) = self.ctx.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+            p.add_submission(&self.label, wall_ms);
+            for (name, ms) in &timings.passes {
+                p.add_pass(name, *ms);
+            }
+        }
+        Ok(timings)
     }
 
     /// The pass whose breadcrumb was written last (read after a failure).

@@ -124,6 +124,16 @@ impl MlpDesc {
         }
     }
 
+    /// The same MLP with every hidden layer at most `max_width` wide (a speed knob:
+    /// `hugs_deformation(96).capped(64)` is 96-64-64-64-64 → 24). Heads keep their
+    /// widths.
+    pub fn capped(mut self, max_width: usize) -> Self {
+        for (w, _) in &mut self.hidden {
+            *w = (*w).min(max_width.max(1));
+        }
+        self
+    }
+
     /// (in, out) of every linear layer: the hidden layers, then the heads.
     pub fn linears(&self) -> Vec<(usize, usize)> {
         let mut out = Vec::new();
@@ -640,4 +650,19 @@ pub fn reference_backward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], ro
         }
     }
     (grads, grad_input)
+}
+
+#[cfg(test)]
+mod capped_tests {
+    use super::*;
+
+    #[test]
+    fn capped_narrows_hidden_layers_only() {
+        let d = MlpDesc::hugs_deformation(48).capped(64);
+        assert_eq!(d.linears(), vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]);
+        let a = MlpDesc::hugs_appearance(48, 3).capped(64);
+        assert_eq!(a, MlpDesc::hugs_appearance(48, 3), "the appearance decoder is 64 wide already");
+        let g = MlpDesc::hugs_geometry(96).capped(200);
+        assert_eq!(g, MlpDesc::hugs_geometry(96), "a cap above every width changes nothing");
+    }
 }

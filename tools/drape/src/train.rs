@@ -4,7 +4,8 @@
 //! replaced atomically; `--resume RUN` continues from it), `model.npz` (the trained
 //! model; format in `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/`
 //! (ground truth | render for every held-out frame), `novel_pose.png` and the posed
-//! body of the first held-out frame as PLY.
+//! body of the first held-out frame as PLY; with `--profile`, `profile.txt` and
+//! `profile.json` (where a step's time goes).
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -52,6 +53,11 @@ pub struct TrainArgs {
     /// which is also what `drape synth` animates.
     #[arg(long)]
     pub body: Option<PathBuf>,
+    /// Profile the training steps: GPU time per pass and per stage (from timestamp
+    /// queries), host wall time per submission and host phase; printed at the end and
+    /// written to RUN/profile.txt and RUN/profile.json.
+    #[arg(long)]
+    pub profile: bool,
 }
 
 /// Merges the TOML table `over` into `base`, naming the first key `base` lacks.
@@ -113,6 +119,17 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     Ok(config)
 }
 
+/// "every vertex", "every 2nd vertex", "every 6th vertex" (the decimation).
+fn every_nth_vertex(n: u32) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (1, r) if r != 11 => "st",
+        (2, r) if r != 12 => "nd",
+        (3, r) if r != 13 => "rd",
+        _ => "th",
+    };
+    if n <= 1 { "every vertex".into() } else { format!("every {n}{suffix} vertex") }
+}
+
 pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let config = load_config(args)?;
     let seq = load_sequence(&args.data, config.zju_train_camera).map_err(anyhow::Error::msg)?;
@@ -128,11 +145,20 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let cloth = layers.cloth;
     println!("data: {} ({:?} layout), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.layout, seq.frames[0].width, seq.frames[0].height);
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
-    println!("  body layer: triplane {0}x{0}x{1}, HUGS decoders, SH degree {2}, subdivision {3}", config.body.triplane_resolution, config.body.triplane_channels, config.body.sh_degree, config.subdivision);
+    let decoders = |w: u32| if w >= 128 { "HUGS decoders".to_string() } else { format!("HUGS decoders at most {w} wide (HUGS: 128)") };
+    println!(
+        "  body layer: triplane {0}x{0}x{1}, {2}, SH degree {3}, subdivision {4}, {5}",
+        config.body.triplane_resolution,
+        config.body.triplane_channels,
+        decoders(config.body.decoder_width),
+        config.body.sh_degree,
+        config.subdivision,
+        every_nth_vertex(config.decimate)
+    );
     match (cloth, garments) {
         (true, _) => println!(
-            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, HUGS decoders; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; rendered with the body in one depth-sorted pass",
-            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask
+            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; rendered with the body in one depth-sorted pass",
+            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width)
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
@@ -149,6 +175,9 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         (None, Some(out)) => (out.clone(), false),
         (None, None) => anyhow::bail!("--out or --resume is required"),
     };
+    if args.profile {
+        ctx.start_profile();
+    }
     let report = train(&ctx, &seq, model, &config, &out, resume, &mut |p| {
         match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
@@ -172,6 +201,11 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         if report.start_step == 0 { format!("fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ", report.fit_steps, report.fit_seconds, report.fit_mse) } else { format!("resumed at step {}; ", report.start_step) },
         report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians.iter().map(|(n, c)| format!("{c} {n}")).collect::<Vec<_>>().join(", ")
     );
+    if args.profile {
+        let path = out.join("profile.txt");
+        let table = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
+        println!("profile of the training steps ({}):\n{table}", path.display());
+    }
     if report.skipped_steps > 0 {
         println!("skipped {} steps with non-finite gradients (logged in log.jsonl)", report.skipped_steps);
     }

@@ -58,6 +58,7 @@ fn bad_configs_name_the_file_and_field() {
         ("typo.toml", "steps = 10\n[body]\nlr_positon = 1e-4\n", "body.lr_positon"),
         ("negative.toml", "[body]\nlr_triplane = -1e-3\n", "body.lr_triplane"),
         ("wrong-type.toml", "steps = \"many\"\n", "steps"),
+        ("zero-width.toml", "[cloth]\ndecoder_width = 0\n", "cloth.decoder_width"),
         ("broken.toml", "steps = \n", "broken.toml"),
     ];
     for (name, text, field) in cases {

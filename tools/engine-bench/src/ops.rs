@@ -8,7 +8,7 @@
 use std::time::Instant;
 
 use drape_cli_support::{median, parse_len};
-use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::{BufferDesc, Context, PassTimings};
 use rand::{Rng, SeedableRng};
@@ -34,6 +34,28 @@ pub struct OpsArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Run only these parts (comma-separated): gemm, decoders, triplane, ssim, lpips.
+    /// Default: all. LPIPS at 512 x 512 takes minutes on lavapipe.
+    #[arg(long, value_delimiter = ',', value_parser = ["gemm", "decoders", "triplane", "ssim", "lpips"])]
+    pub only: Vec<String>,
+    /// GEMM kernel: auto (register-blocked on CPU devices, tiled on GPUs), tiled or
+    /// blocked.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked"])]
+    pub gemm: String,
+}
+
+impl OpsArgs {
+    fn variant(&self) -> GemmVariant {
+        match self.gemm.as_str() {
+            "tiled" => GemmVariant::Tiled,
+            "blocked" => GemmVariant::Blocked,
+            _ => GemmVariant::Auto,
+        }
+    }
+
+    fn wants(&self, part: &str) -> bool {
+        self.only.is_empty() || self.only.iter().any(|p| p == part)
+    }
 }
 
 fn timed(ctx: &Context, args: &OpsArgs, mut record: impl FnMut() -> anyhow::Result<PassTimings>) -> anyhow::Result<(f64, f64)> {
@@ -86,10 +108,12 @@ fn gemm_cpu(rows: usize, i: usize, o: usize, x: &[f32], w: &[f32], y: &mut [f32]
 
 pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     let rows = args.rows as usize;
+    let mut out = json!({ "job": "ops", "device": ctx.info().name, "rows": rows, "runs": args.runs, "gemm_kernel": args.gemm });
     let mut gemms = Vec::new();
-    for &(i, o) in &SHAPES {
+    for &(i, o) in SHAPES.iter().filter(|_| args.wants("gemm")) {
         let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)] };
-        let mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
+        let mut mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
+        mlp.variant = args.variant();
         let x_host = random(rows * i, 2);
         let x = ctx.upload("bench x", &x_host)?;
         let gx = ctx.create_buffer("bench gx", BufferDesc::gpu_only((rows * i * 4) as u64))?;
@@ -114,24 +138,51 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
             "gpu_over_cpu_throughput": cpu_ms / fwd_gpu.max(1e-9),
         }));
     }
-    // The three decoders together, forward and backward.
+    if args.wants("gemm") {
+        out["gemm"] = gemms.into();
+    }
     let width = 3 * args.triplane_channels as usize;
-    let decoders = [MlpDesc::hugs_appearance(width, 3), MlpDesc::hugs_geometry(width), MlpDesc::hugs_deformation(width)];
-    let mlps: Vec<Mlp> = decoders.iter().enumerate().map(|(k, d)| Mlp::new(ctx, "bench decoder", d.clone(), rows, k as u64)).collect::<Result<_, _>>()?;
     let feats = ctx.upload("bench features", &random(rows * width, 3))?;
+    if args.wants("decoders") {
+        decoders(ctx, args, &mut out, &feats, width)?;
+    }
+    if args.wants("triplane") {
+        triplane(ctx, args, &mut out, &feats)?;
+    }
+    if args.wants("ssim") || args.wants("lpips") {
+        images(ctx, args, &mut out)?;
+    }
+    Ok(out)
+}
+
+/// The three decoders together, forward and backward.
+fn decoders(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &drape_engine::Buffer, width: usize) -> anyhow::Result<()> {
+    let rows = args.rows as usize;
+    let decoders = [MlpDesc::hugs_appearance(width, 3), MlpDesc::hugs_geometry(width), MlpDesc::hugs_deformation(width)];
+    let mut mlps: Vec<Mlp> = decoders.iter().enumerate().map(|(k, d)| Mlp::new(ctx, "bench decoder", d.clone(), rows, k as u64)).collect::<Result<_, _>>()?;
+    for m in &mut mlps {
+        m.variant = args.variant();
+    }
     let gfeats = ctx.create_buffer("bench feature grads", BufferDesc::gpu_only((rows * width * 4) as u64))?;
     let (dec_wall, dec_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench decoders")?;
         for m in &mlps {
-            m.record_forward(&mut rec, &feats, rows as u32)?;
+            m.record_forward(&mut rec, feats, rows as u32)?;
         }
         for (k, m) in mlps.iter().enumerate() {
-            m.record_backward(&mut rec, &feats, rows as u32, Some(&gfeats), k > 0)?;
+            m.record_backward(&mut rec, feats, rows as u32, Some(&gfeats), k > 0)?;
             rec.barrier();
         }
         Ok(rec.submit_and_wait()?)
     })?;
-    // Triplane sample + backward.
+    out["decoders_fwd_bwd_ms"] = dec_wall.into();
+    out["decoders_fwd_bwd_gpu_ms"] = dec_gpu.into();
+    Ok(())
+}
+
+/// Triplane sample + backward.
+fn triplane(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &drape_engine::Buffer) -> anyhow::Result<()> {
+    let rows = args.rows as usize;
     let mut rng = rand::rngs::StdRng::seed_from_u64(4);
     let pts: Vec<f32> = (0..3 * rows).map(|_| rng.random_range(-0.9..0.9)).collect();
     let tdesc = TriplaneDesc { resolution: args.triplane_resolution, channels: args.triplane_channels, box_min: [-1.0; 3], box_max: [1.0; 3] };
@@ -141,23 +192,34 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     let atomics = ctx.info().float_atomic_add;
     let (tp_wall, tp_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench triplane")?;
-        tp.record_forward(&mut rec, &points, &feats, rows as u32)?;
+        tp.record_forward(&mut rec, &points, feats, rows as u32)?;
         rec.barrier();
-        tp.record_backward(&mut rec, &points, &feats, &gpoints, rows as u32, atomics)?;
+        tp.record_backward(&mut rec, &points, feats, &gpoints, rows as u32, atomics)?;
         Ok(rec.submit_and_wait()?)
     })?;
-    // SSIM (forward + gradient) at 512 x 512.
+    out["triplane"] = json!({ "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "float_atomics": atomics });
+    Ok(())
+}
+
+/// SSIM (map + gradient) and LPIPS (value + gradient) at 512 x 512.
+fn images(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow::Result<()> {
     let side = 512u32;
     let px = (side * side * 3) as usize;
     let img_a = ctx.upload("bench ssim a", &random(px, 6).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
     let img_b = ctx.upload("bench ssim b", &random(px, 7).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
-    let ssim_grad = ctx.create_buffer("bench ssim grad", BufferDesc::gpu_only((px * 4) as u64))?;
-    let ssim = drape_engine::ops::ssim::Ssim::new(ctx, side, side)?;
-    let (ssim_wall, ssim_gpu) = timed(ctx, args, || {
-        let mut rec = ctx.record("bench ssim")?;
-        ssim.record(&mut rec, &img_a, &img_b, Some((&ssim_grad, -1.0)))?;
-        Ok(rec.submit_and_wait()?)
-    })?;
+    if args.wants("ssim") {
+        let ssim_grad = ctx.create_buffer("bench ssim grad", BufferDesc::gpu_only((px * 4) as u64))?;
+        let ssim = drape_engine::ops::ssim::Ssim::new(ctx, side, side)?;
+        let (ssim_wall, ssim_gpu) = timed(ctx, args, || {
+            let mut rec = ctx.record("bench ssim")?;
+            ssim.record(&mut rec, &img_a, &img_b, Some((&ssim_grad, -1.0)))?;
+            Ok(rec.submit_and_wait()?)
+        })?;
+        out["ssim_512"] = json!({ "fwd_bwd_ms": ssim_wall, "fwd_bwd_gpu_ms": ssim_gpu });
+    }
+    if !args.wants("lpips") {
+        return Ok(());
+    }
     // LPIPS (AlexNet, value + gradient to the first image) at 512 x 512, with seeded
     // random weights: the cost does not depend on the values.
     let net = drape_engine::ops::lpips::LpipsNet::Alex;
@@ -174,18 +236,8 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
         lpips.record(&mut rec, &img_a, &img_b, Some((&lpips_grad, 1.0)))?;
         Ok(rec.submit_and_wait()?)
     })?;
-    Ok(json!({
-        "job": "ops",
-        "ssim_512": { "fwd_bwd_ms": ssim_wall, "fwd_bwd_gpu_ms": ssim_gpu },
-        "lpips_alex_512": { "fwd_bwd_ms": lpips_wall, "fwd_bwd_gpu_ms": lpips_gpu, "weights": "random (timing only)" },
-        "device": ctx.info().name,
-        "rows": rows,
-        "runs": args.runs,
-        "gemm": gemms,
-        "decoders_fwd_bwd_ms": dec_wall,
-        "decoders_fwd_bwd_gpu_ms": dec_gpu,
-        "triplane": { "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "float_atomics": atomics },
-    }))
+    out["lpips_alex_512"] = json!({ "fwd_bwd_ms": lpips_wall, "fwd_bwd_gpu_ms": lpips_gpu, "weights": "random (timing only)" });
+    Ok(())
 }
 
 pub fn print_table(r: &serde_json::Value) {
@@ -198,9 +250,18 @@ pub fn print_table(r: &serde_json::Value) {
             g["backward_gflops"].as_f64().unwrap_or(0.0), g["cpu_gflops"].as_f64().unwrap_or(0.0), g["gpu_over_cpu_throughput"].as_f64().unwrap_or(0.0)
         );
     }
-    println!("  three HUGS decoders, forward + backward: {:.1} ms GPU", r["decoders_fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
-    println!("  SSIM 512x512, map + gradient: {:.1} ms GPU", r["ssim_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
-    println!("  LPIPS (AlexNet) 512x512, value + gradient: {:.1} ms GPU", r["lpips_alex_512"]["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+    if let Some(ms) = r["decoders_fwd_bwd_gpu_ms"].as_f64() {
+        println!("  three HUGS decoders, forward + backward: {ms:.1} ms GPU");
+    }
+    if let Some(ms) = r["ssim_512"]["fwd_bwd_gpu_ms"].as_f64() {
+        println!("  SSIM 512x512, map + gradient: {ms:.1} ms GPU");
+    }
+    if let Some(ms) = r["lpips_alex_512"]["fwd_bwd_gpu_ms"].as_f64() {
+        println!("  LPIPS (AlexNet) 512x512, value + gradient: {ms:.1} ms GPU");
+    }
     let t = &r["triplane"];
+    if t.is_null() {
+        return;
+    }
     println!("  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)", t["resolution"], t["resolution"], t["channels"], t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0), t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6);
 }

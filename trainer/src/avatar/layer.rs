@@ -46,11 +46,21 @@ pub struct LayerConfig {
     pub lr_decoders: f32,
     /// Deformation decoder (HUGS: 1e-4).
     pub lr_deformation: f32,
+    /// Widest hidden layer of the decoders (HUGS: 128, i.e. appearance 64-64,
+    /// geometry 128-128, deformation 4 × 128); narrower is a speed knob: the decoders
+    /// dominate a training step on CPU devices. Runs written before this field existed
+    /// read as 128.
+    #[serde(default = "hugs_decoder_width")]
+    pub decoder_width: u32,
+}
+
+fn hugs_decoder_width() -> u32 {
+    128
 }
 
 impl Default for LayerConfig {
     fn default() -> Self {
-        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4 }
+        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width() }
     }
 }
 
@@ -133,18 +143,19 @@ impl HumanLayer {
         let width = tdesc.feature_width();
         let sh_values = 3 * sh_coeffs(config.sh_degree);
 
-        let appearance_desc = MlpDesc::hugs_appearance(width, sh_values);
+        let cap = config.decoder_width as usize;
+        let appearance_desc = MlpDesc::hugs_appearance(width, sh_values).capped(cap);
         let mut appearance_params = appearance_desc.init_params(seed + 1);
         let opacity_logit = (0.1f32 / 0.9).ln();
         set_head_bias(&appearance_desc, &mut appearance_params, 0, &[opacity_logit]);
         // SH 0 is colour 0.5 (the splatter adds 0.5), HUGS's initial colour.
         set_head_bias(&appearance_desc, &mut appearance_params, 1, &vec![0.0; sh_values]);
-        let geometry_desc = MlpDesc::hugs_geometry(width);
+        let geometry_desc = MlpDesc::hugs_geometry(width).capped(cap);
         let mut geometry_params = geometry_desc.init_params(seed + 2);
         set_head_bias(&geometry_desc, &mut geometry_params, 0, &[0.0; 3]);
         set_head_bias(&geometry_desc, &mut geometry_params, 1, &IDENTITY_6D);
         set_head_bias(&geometry_desc, &mut geometry_params, 2, &[0.0; 3]);
-        let deformation_desc = MlpDesc::hugs_deformation(width);
+        let deformation_desc = MlpDesc::hugs_deformation(width).capped(cap);
         let appearance = Mlp::with_params(ctx, &format!("{name} appearance"), appearance_desc, n, &appearance_params)?;
         let geometry = Mlp::with_params(ctx, &format!("{name} geometry"), geometry_desc, n, &geometry_params)?;
         let deformation = Mlp::new(ctx, &format!("{name} deformation"), deformation_desc, n, seed + 3)?;

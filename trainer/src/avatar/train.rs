@@ -99,24 +99,24 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
-    /// Sized to finish in about ten minutes on lavapipe on a 2-core machine for the body
-    /// and cloth layers without the physics losses (with them and the scene layer it now
-    /// runs at ~0.2 it/s there: to be re-sized) at the
-    /// synthetic data's 128 × 128: every third vertex of the body mesh without
-    /// subdivision (3,134 Gaussians) and of the garments (2,225), 64 × 64 × 16
-    /// triplanes, the full HUGS decoders, 150 fitting and 600 training steps. The
-    /// decoders dominate a step there (the GEMM runs at ~7 GFLOP/s on lavapipe), so
-    /// the Gaussian count sets the pace.
+    /// Sized for lavapipe on a 2-core machine at the synthetic data's 128 × 128, with
+    /// every layer and loss the data asks for (body, cloth and scene; cloth-LBS,
+    /// simulation, ARAP and mask): every sixth vertex of the body mesh without
+    /// subdivision (1,567 Gaussians) and of the garments (1,113), each widened to keep
+    /// the surface covered; 64 × 64 × 16 triplanes; decoders at most 64 wide (HUGS: 128);
+    /// 150 fitting and 400 training steps. The decoders dominate a step there (the GEMM
+    /// runs at ~2 GFLOP/s on llvmpipe): halving their width cut a step from 3.3 s to
+    /// 1.9 s and halving the Gaussians to 1.1 s (`drape train --profile`; README).
     pub fn quick() -> Self {
         Self {
             preset: "quick".into(),
-            steps: 600,
+            steps: 400,
             seed: 1,
             subdivision: 0,
-            decimate: 3,
-            body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
+            decimate: 6,
+            body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, decoder_width: 64, ..LayerConfig::default() },
             layers: "auto".into(),
-            cloth: LayerConfig { triplane_resolution: 64, triplane_channels: 16, ..LayerConfig::default() },
+            cloth: LayerConfig { triplane_resolution: 64, triplane_channels: 16, decoder_width: 64, ..LayerConfig::default() },
             scene: SceneConfig::default(),
             lambda_cloth_lbs: 1000.0,
             lambda_sim: 1.0,
@@ -198,6 +198,11 @@ impl TrainConfig {
         }
         if self.body.triplane_resolution < 2 || self.body.triplane_channels == 0 {
             return Err("body.triplane_resolution must be >= 2 and body.triplane_channels >= 1".into());
+        }
+        for (name, w) in [("body.decoder_width", self.body.decoder_width), ("cloth.decoder_width", self.cloth.decoder_width)] {
+            if !(1..=1024).contains(&w) {
+                return Err(format!("{name} must be 1-1024 (HUGS: 128), got {w}"));
+            }
         }
         Ok(())
     }
@@ -411,6 +416,31 @@ fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, 
         _ => None,
     };
     Ok((gpu(Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed))?, edges))
+}
+
+/// Times host phases of a step into the context's profile (a no-op without one).
+struct Lap<'c> {
+    ctx: &'c Context,
+    on: bool,
+    since: Instant,
+}
+
+impl<'c> Lap<'c> {
+    fn new(ctx: &'c Context, on: bool) -> Self {
+        Self { ctx, on, since: Instant::now() }
+    }
+
+    fn reset(&mut self) {
+        self.since = Instant::now();
+    }
+
+    /// Adds the time since the last reset or phase under `name`.
+    fn host(&mut self, name: &str) {
+        if self.on {
+            self.ctx.profile_host(name, self.since.elapsed().as_secs_f64() * 1e3);
+            self.since = Instant::now();
+        }
+    }
 }
 
 /// Renders every held-out frame on black and compares with the masked ground truth.
@@ -643,7 +673,14 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         let state = gpu(avatar.state(ctx, step))?;
         checkpoint::write(path, &state)
     };
+    // With a profile running (`drape train --profile`), it covers the steps alone.
+    let profiling = ctx.profiling();
+    if profiling {
+        ctx.start_profile();
+    }
+    let mut lap = Lap::new(ctx, profiling);
     for step in start_step..stop_at {
+        lap.reset();
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let f = train_frames[rng.random_range(0..train_frames.len())];
         let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
@@ -654,6 +691,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         if let Some(c) = cloth_losses.as_mut() {
             gpu(c.set_frame(ctx, f))?;
         }
+        lap.host("host.frame_setup");
         {
             let mut rec = gpu(ctx.record("train forward"))?;
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
@@ -688,8 +726,10 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
             gpu(rec.submit_and_wait())?;
         }
+        lap.reset();
         // The guard: a step with a non-finite gradient is never applied.
         let bad = gpu(ctx.read_buffer::<u32>(&mut nonfinite, 1))?[0];
+        lap.host("host.read_guard");
         if bad > 0 {
             skipped += 1;
             skipped_in_a_row += 1;
@@ -711,6 +751,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(avatar.record_adam(&mut rec))?;
             gpu(rec.submit_and_wait())?;
         }
+        lap.reset();
         if step % config.log_every.max(1) == 0 || step + 1 == stop_at {
             let e = gpu(ctx.read_buffer::<f32>(&mut abs_error, 3 * pixels))?;
             let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / e.len() as f64;
@@ -736,9 +777,18 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
+        lap.host("host.log");
         if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at {
             save(&mut avatar, step + 1, &checkpoint_path)?;
         }
+    }
+    let loop_seconds = t_train.elapsed().as_secs_f64();
+    let profile = if profiling { ctx.take_profile() } else { None };
+    if let Some(p) = &profile {
+        let steps = u64::from(stop_at.saturating_sub(start_step));
+        let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}", 1e3 * loop_seconds / steps.max(1) as f64, p.table(1e3 * loop_seconds, steps, 25));
+        std::fs::write(out.join("profile.txt"), &table).map_err(|e| format!("{}: {e}", out.join("profile.txt").display()))?;
+        write_json(&out.join("profile.json"), p)?;
     }
     let last = stop_at.max(start_step);
     save(&mut avatar, last, &checkpoint_path)?;
