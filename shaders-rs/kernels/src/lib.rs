@@ -13,6 +13,7 @@
 
 mod atomics;
 pub mod cloth_loss;
+pub mod composite;
 pub mod deform;
 pub mod lpips;
 pub mod nn;

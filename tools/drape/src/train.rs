@@ -46,6 +46,13 @@ pub struct TrainArgs {
     /// the loss (weight lambda_lpips) and the metrics; without it, LPIPS is n/a.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
+    /// How the layers become one image where there is a cloth layer: three-pass (the
+    /// paper's: body + scene, cloth, and a matte in which only the scene hides the
+    /// cloth, composited), three-pass-occlusion (the body also hides the cloth in the
+    /// matte), or single-pass (every layer in one depth-sorted pass; no matte)
+    /// (overrides the config).
+    #[arg(long)]
+    pub compositing: Option<String>,
     /// Training steps (overrides the preset and the config file).
     #[arg(long)]
     pub steps: Option<u32>,
@@ -112,6 +119,9 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(l) = &args.layers {
         config.layers = l.clone();
     }
+    if let Some(c) = &args.compositing {
+        config.compositing = c.clone();
+    }
     if let Some(w) = &args.lpips_weights {
         config.lpips_weights = Some(w.clone());
     }
@@ -157,8 +167,13 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     );
     match (cloth, garments) {
         (true, _) => println!(
-            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; rendered with the body in one depth-sorted pass",
-            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width)
+            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
+            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width),
+            match config.compositing.as_str() {
+                "single-pass" => "rendered with the other layers in one depth-sorted pass",
+                "three-pass-occlusion" => "rendered alone and composited over body + scene through a matte in which the scene and the body hide it",
+                _ => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
+            }
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),

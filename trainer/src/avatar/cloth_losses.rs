@@ -62,6 +62,9 @@ pub struct ClothLosses {
     mask_grads: GaussianBuffers,
     pixels: u32,
     has_mask: bool,
+    /// The mask gradient joins the compositor's cloth pass (`record_mask_grad`)
+    /// instead of coming from a render of its own (`mask_pass`).
+    mask_in_composite: bool,
 }
 
 impl ClothLosses {
@@ -90,6 +93,7 @@ impl ClothLosses {
             garments,
             pixels,
             has_mask: false,
+            mask_in_composite: false,
         })
     }
 
@@ -104,6 +108,26 @@ impl ClothLosses {
             let m: Vec<f32> = upper.iter().zip(lower).map(|(&a, &b)| if a || b { 1.0 } else { 0.0 }).collect();
             ctx.write_buffer(&mut self.mask_target, &m)?;
         }
+        Ok(())
+    }
+
+    /// Takes the mask loss from the compositor's cloth pass (`record_mask_grad`) rather
+    /// than from a render of its own (`mask_pass`).
+    pub fn set_mask_in_composite(&mut self, on: bool) {
+        self.mask_in_composite = on;
+    }
+
+    /// Records the mask loss on `alpha` (the cloth rendered alone, by the compositor)
+    /// and adds its gradient into `grad_alpha` (that pass's alpha gradient).
+    pub fn record_mask_grad<'a>(&'a self, rec: &mut Recording<'a>, alpha: &'a Buffer, grad_alpha: &'a Buffer) -> Result<()> {
+        if !self.has_mask {
+            return Ok(());
+        }
+        let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
+        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read(alpha).read(&self.mask_target).write(&self.grad_alpha).write(&self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        rec.barrier();
+        let p = LossParams { len: self.pixels, scale: 1.0, _pad: [0; 2] };
+        rec.pass("cloth.mask_add", Kernel::TrainAddInto).read(&self.grad_alpha).write(grad_alpha).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
         Ok(())
     }
 
@@ -130,7 +154,7 @@ impl ClothLosses {
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer) -> Result<()> {
         let w = self.weights;
         let this = self;
-        if this.has_mask {
+        if this.has_mask && !this.mask_in_composite {
             let per = [3u32, 3, 4, 1];
             let src = [&this.mask_grads.means, &this.mask_grads.log_scales, &this.mask_grads.quats, &this.mask_grads.opacity_logits];
             let dst = [&cloth.posed_grads.means, &cloth.posed_grads.log_scales, &cloth.posed_grads.quats, &cloth.posed_grads.opacity_logits];

@@ -7,6 +7,7 @@
 pub mod checkpoint;
 pub mod cloth_losses;
 pub mod cloth_target;
+pub mod composite;
 pub mod layer;
 pub mod model;
 pub mod rig;

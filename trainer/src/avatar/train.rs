@@ -4,13 +4,13 @@
 //!
 //! What is built so far (the rest of the issue is not): the body layer and, where the
 //! data shows garments, the cloth layer (`model`): triplane + decoders + learned
-//! skinning, rendered together in one depth-sorted pass, trained with 0.8 L1 + 0.2
+//! skinning, rendered by the paper's three passes and composite (`composite`), trained with 0.8 L1 + 0.2
 //! (1 - SSIM) against the person masked onto a random background colour each step
 //! (HUGS), and on the cloth layer the paper's cloth-LBS, simulation (Chamfer +
 //! Geman–McClure to the garments simulated through the sequence's motion), ARAP and
 //! cloth-mask losses (`cloth_losses`), LPIPS where weights are given, and where the
 //! data has a scene, the scene layer (`scene`) against the whole frame; by Adam. The
-//! three-pass compositor, pose refinement and densification come next.
+//! overlapped single-submission frame, pose refinement and densification come next.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -18,7 +18,6 @@ use std::time::Instant;
 
 use drape_engine::ops::splat::ply;
 use drape_engine::ops::ssim::Ssim;
-use drape_engine::ops::splat::render::{Accumulation, SplatRenderer};
 use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
 use drape_engine::{BufferDesc, Context, Kernel};
 use drape_shared::adam::LossParams;
@@ -31,6 +30,7 @@ use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses
 use crate::avatar::cloth_target;
 use drape_engine::ops::cloth_loss::Chamfer;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
+use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::avatar::rig::Rig;
@@ -96,6 +96,16 @@ pub struct TrainConfig {
     pub lpips_net: String,
     /// Weight of LPIPS in the image loss (paper: 1.0).
     pub lambda_lpips: f32,
+    /// How the layers become one image where there is a cloth layer: `three-pass` (the
+    /// paper's: body + scene, cloth and a matte in which only the scene hides the cloth,
+    /// composited), `three-pass-occlusion` (the body hides the cloth in the matte too) or
+    /// `single-pass` (every layer in one depth-sorted pass).
+    #[serde(default = "paper_compositing")]
+    pub compositing: String,
+}
+
+fn paper_compositing() -> String {
+    "three-pass".into()
 }
 
 impl TrainConfig {
@@ -134,6 +144,7 @@ impl TrainConfig {
             lpips_weights: None,
             lpips_net: "alex".into(),
             lambda_lpips: 1.0,
+            compositing: paper_compositing(),
         }
     }
 
@@ -184,6 +195,7 @@ impl TrainConfig {
             }
         }
         LpipsNet::parse(&self.lpips_net).map_err(|e| format!("lpips_net: {e}"))?;
+        Compositing::parse(&self.compositing).map_err(|e| format!("compositing: {e}"))?;
         if !(self.gm_sigma.is_finite() && self.gm_sigma > 0.0) {
             return Err(format!("gm_sigma must be a finite length > 0, got {}", self.gm_sigma));
         }
@@ -445,7 +457,7 @@ impl<'c> Lap<'c> {
 
 /// Renders every held-out frame on black and compares with the masked ground truth.
 #[allow(clippy::too_many_arguments)]
-fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut SplatRenderer, ground_truth: Option<&Path>, lpips: Option<&LpipsWeights>, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
+fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut AvatarRenderer, ground_truth: Option<&Path>, lpips: Option<&LpipsWeights>, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
     let mut lpips_sums = (0.0, 0.0, 0usize);
     let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
@@ -470,17 +482,17 @@ fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFra
             }
         }
         let cam = camera(&f.camera, [0.0; 3]);
-        gpu(renderer.forward(&avatar.posed, &cam, &settings))?;
-        let image = gpu(renderer.read_image())?;
+        gpu(renderer.forward(ctx, avatar, &cam, &settings))?;
+        let rgb = gpu(renderer.read_rgb(ctx))?;
         let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
-        m.psnr_full += psnr(&image.rgb, &target);
-        m.ssim_full += ssim_of(&image.rgb, &target, f.width, f.height);
+        m.psnr_full += psnr(&rgb, &target);
+        m.ssim_full += ssim_of(&rgb, &target, f.width, f.height);
         if let Some(b) = mask_bbox(&f.mask, f.width) {
-            let (cr, ct) = (crop(&image.rgb, f.width, b), crop(&target, f.width, b));
+            let (cr, ct) = (crop(&rgb, f.width, b), crop(&target, f.width, b));
             m.psnr_crop += psnr(&cr, &ct);
             m.ssim_crop += ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1);
             if let Some(w) = lpips {
-                lpips_sums.0 += lpips_of(ctx, w, &image.rgb, &target, f.width, f.height)?;
+                lpips_sums.0 += lpips_of(ctx, w, &rgb, &target, f.width, f.height)?;
                 // A crop below the network's minimum is widened to it (centred, clamped).
                 let min = LpipsWeights::min_side(w.net);
                 let grow = |lo: u32, hi: u32, size: u32| -> (u32, u32) {
@@ -492,7 +504,7 @@ fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFra
                 let (x0, x1) = grow(b.0, b.2, f.width);
                 let (y0, y1) = grow(b.1, b.3, f.height);
                 let bb = (x0, y0, x1, y1);
-                lpips_sums.1 += lpips_of(ctx, w, &crop(&image.rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?;
+                lpips_sums.1 += lpips_of(ctx, w, &crop(&rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?;
                 lpips_sums.2 += 1;
             }
         }
@@ -502,7 +514,7 @@ fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFra
             let mut sheet = Vec::with_capacity(2 * target.len());
             for y in 0..f.height as usize {
                 sheet.extend_from_slice(&target[3 * y * w..3 * (y + 1) * w]);
-                sheet.extend_from_slice(&image.rgb[3 * y * w..3 * (y + 1) * w]);
+                sheet.extend_from_slice(&rgb[3 * y * w..3 * (y + 1) * w]);
             }
             crate::dataset::image::write_rgb(&dir.join(format!("frame{:04}_view{}.png", f.frame, f.view)), 2 * f.width, f.height, &sheet)?;
         }
@@ -608,7 +620,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // With a scene layer the avatar is trained and judged on the whole image; without
     // one, on the person over a background colour.
     let whole_image = avatar.scene.is_some();
-    let mut renderer = gpu(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize))?;
+    let mut renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
     // The cloth layer's physics targets: the garments simulated through the motion.
     let mut cloth_losses = match avatar.cloth() {
@@ -643,6 +655,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         Some(path) => Some(LpipsWeights::load(path, LpipsNet::parse(&config.lpips_net)?).map_err(|e| e.to_string())?),
         None => None,
     };
+    if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
+        c.set_mask_in_composite(true);
+    }
     let mut lpips = match &lpips_weights {
         Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
         _ => None,
@@ -698,9 +713,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(rec.submit_and_wait())?;
         }
         let cam = camera(&f.camera, background);
-        gpu(renderer.forward(&avatar.posed, &cam, &settings))?;
+        gpu(renderer.forward(ctx, &avatar, &cam, &settings))?;
         {
-            let (rgb, _, _) = renderer.outputs();
+            let rgb = renderer.rgb();
             let mut rec = gpu(ctx.record("train loss"))?;
             gpu(rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read(rgb).read(&target).write(&grad_rgb).write(&abs_error).push(&loss).dispatch([loss.len.div_ceil(256), 1, 1]))?;
             rec.barrier();
@@ -711,14 +726,11 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             }
             gpu(rec.submit_and_wait())?;
         }
-        gpu(renderer.backward(&avatar.posed, &grad_rgb, &zeros, &zeros, &avatar.posed_grads, Accumulation::Auto))?;
-        if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
-            gpu(c.mask_pass(ctx, cloth, &cam, &settings))?;
-        }
+        gpu(renderer.backward(ctx, &avatar, &grad_rgb, &zeros, cloth_losses.as_mut(), &cam, &settings))?;
         {
             let mut rec = gpu(ctx.record("train backward"))?;
             rec.fill(&nonfinite, 0);
-            avatar.record_scatter_grads(&mut rec);
+            gpu(renderer.record_scatter(&mut rec, &avatar))?;
             if let (Some(c), Some(cloth)) = (cloth_losses.as_ref(), avatar.cloth()) {
                 gpu(c.record(&mut rec, cloth))?;
             }
@@ -844,9 +856,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        gpu(renderer.forward(&avatar.posed, &camera(&f.camera, [0.0; 3]), &settings))?;
-        let image = gpu(renderer.read_image())?;
-        crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &image.rgb)?;
+        gpu(renderer.forward(ctx, &avatar, &camera(&f.camera, [0.0; 3]), &settings))?;
+        let rgb = gpu(renderer.read_rgb(ctx))?;
+        crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &rgb)?;
     }
     let report = TrainReport {
         layout: seq.layout,

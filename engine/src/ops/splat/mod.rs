@@ -5,11 +5,13 @@
 //! - [`reference`]: the CPU renderer, forward and backward, generic over f32/f64;
 //! - [`render`]: the GPU renderer (project, depth sort, tile binning, tile sort,
 //!   rasterize; and the backward passes);
+//! - [`composite`]: depth-aware compositing of three passes (forward, backward);
 //! - [`ply`]: 3D Gaussian Splatting PLY files;
 //! - [`adam`]: Adam over the Gaussian parameters on the GPU;
 //! - [`fit`]: fitting Gaussians to an image.
 
 pub mod adam;
+pub mod composite;
 pub mod fit;
 pub mod ply;
 pub mod reference;

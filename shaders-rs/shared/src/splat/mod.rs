@@ -9,6 +9,7 @@
 //! opacities as logits. NaN policy: guards are written so that NaN fails them, and a
 //! Gaussian with any non-finite parameter is dropped (and counted) before projection.
 
+pub mod composite;
 pub mod layout;
 pub mod project;
 pub mod raster;

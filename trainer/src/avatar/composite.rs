@@ -1,0 +1,353 @@
+//! Rendering the avatar: the paper's depth-aware three-pass composite (Sec. 2.3), or one
+//! depth-sorted pass of every layer (the baseline without compositing).
+//!
+//! Three passes, each the engine's splatter: the base (body + scene over the frame's
+//! background), the cloth alone (over black: its premultiplied colour and alpha), and
+//! the matte (cloth in colour 1 and its occluders in colour 0, over black: the cloth's
+//! visibility V), composited by `drape_engine::ops::splat::composite` into
+//! `I = (C_cloth / A_cloth) · V + I_base · (1 − V)`. The paper's matte lets only the scene
+//! hide the cloth (the body never does: an arm in front of the shirt is drawn behind
+//! it); [`Matte::Occlusion`] adds the body as an occluder. The matte pass renders at SH
+//! degree 0 from constant colours, so it sends gradients to geometry and opacity only.
+//! Where nothing can hide the cloth (the paper's matte without a scene layer: masked
+//! studio data) the matte equals the cloth pass's alpha and is not rendered.
+//! The cloth mask loss reads the cloth pass's alpha (the matte without occluders) and
+//! joins the composite's gradient on it, so the cloth is rendered once per step.
+//!
+//! Today each pass is the splatter's two submissions with a host read between them,
+//! one pass after another; the single-submission overlapped frame and the fused
+//! rasterizer of the compositing issue are not built.
+
+use drape_engine::ops::splat::composite::{record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
+use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
+
+use crate::avatar::cloth_losses::ClothLosses;
+use crate::avatar::model::Avatar;
+
+/// Which Gaussians may hide the cloth in the matte.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Matte {
+    /// The paper's: the scene only.
+    Paper,
+    /// The scene and the body.
+    Occlusion,
+}
+
+/// How the layers become one image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compositing {
+    /// Every layer in one depth-sorted pass (no matte): the baseline.
+    SinglePass,
+    /// The paper's three passes and composite (needs a cloth layer; without one the
+    /// avatar renders in one pass).
+    ThreePass(Matte),
+}
+
+impl Compositing {
+    /// `three-pass` (the paper's matte), `three-pass-occlusion` or `single-pass`.
+    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "three-pass" => Ok(Self::ThreePass(Matte::Paper)),
+            "three-pass-occlusion" => Ok(Self::ThreePass(Matte::Occlusion)),
+            "single-pass" => Ok(Self::SinglePass),
+            other => Err(format!("must be three-pass, three-pass-occlusion or single-pass, got '{other}'")),
+        }
+    }
+}
+
+/// One source of Gaussians in a pass: a human layer (by index) or the scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Source {
+    Layer(usize),
+    Scene,
+}
+
+/// A source's slice of a pass (in Gaussians).
+#[derive(Clone, Copy, Debug)]
+struct Part {
+    source: Source,
+    first: u32,
+    count: u32,
+    /// Matte colour (1 for the cloth, 0 for an occluder); unused in the base pass.
+    matte: bool,
+}
+
+fn params<'a>(avatar: &'a Avatar, s: Source) -> &'a GaussianBuffers {
+    match s {
+        Source::Layer(k) => &avatar.layers[k].posed,
+        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").params,
+    }
+}
+
+fn grads<'a>(avatar: &'a Avatar, s: Source) -> &'a GaussianBuffers {
+    match s {
+        Source::Layer(k) => &avatar.layers[k].posed_grads,
+        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").grads,
+    }
+}
+
+fn parts(avatar: &Avatar, sources: &[(Source, bool)]) -> (Vec<Part>, u32) {
+    let mut first = 0;
+    let mut out = Vec::new();
+    for &(source, matte) in sources {
+        let count = match source {
+            Source::Layer(k) => avatar.layers[k].count,
+            Source::Scene => avatar.scene.as_ref().map_or(0, |s| s.count),
+        };
+        out.push(Part { source, first, count, matte });
+        first += count;
+    }
+    (out, first)
+}
+
+/// Floats per Gaussian of means, log-scales, quaternions, opacity.
+const GEOMETRY_FLOATS: [u32; 4] = [3, 3, 4, 1];
+
+/// The matte pass, where something can hide the cloth.
+struct MattePass {
+    parts: Vec<Part>,
+    gaussians: GaussianBuffers,
+    grads: GaussianBuffers,
+    renderer: SplatRenderer,
+    grad_image: Buffer,
+}
+
+struct ThreePass {
+    cloth: usize,
+    base_parts: Vec<Part>,
+    base: GaussianBuffers,
+    base_grads: GaussianBuffers,
+    base_renderer: SplatRenderer,
+    cloth_renderer: SplatRenderer,
+    matte: Option<MattePass>,
+    occluders: Vec<&'static str>,
+    image: Buffer,
+    grad_base: Buffer,
+    grad_cloth: Buffer,
+    grad_cloth_alpha: Buffer,
+    pixels: u32,
+}
+
+enum Inner {
+    Single(SplatRenderer),
+    ThreePass(Box<ThreePass>),
+}
+
+/// The avatar's renderer: forward to an image on the GPU, backward to every layer's
+/// posed-Gaussian gradients.
+pub struct AvatarRenderer {
+    inner: Inner,
+}
+
+impl AvatarRenderer {
+    pub fn new(ctx: &Context, avatar: &Avatar, width: u32, height: u32, compositing: Compositing) -> Result<Self> {
+        let cloth = avatar.layers.iter().position(|l| l.name == "cloth");
+        let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
+            return Ok(Self { inner: Inner::Single(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?) });
+        };
+        let humans: Vec<Source> = (0..avatar.layers.len()).filter(|&k| k != cloth).map(Source::Layer).collect();
+        let scene: Vec<Source> = avatar.scene.iter().map(|_| Source::Scene).collect();
+        let base_sources: Vec<(Source, bool)> = humans.iter().chain(&scene).map(|&s| (s, false)).collect();
+        let mut matte_sources: Vec<(Source, bool)> = scene.iter().map(|&s| (s, false)).collect();
+        if matte == Matte::Occlusion {
+            matte_sources.extend(humans.iter().map(|&s| (s, false)));
+        }
+        matte_sources.push((Source::Layer(cloth), true));
+        let (base_parts, base_count) = parts(avatar, &base_sources);
+        let (matte_parts, matte_count) = parts(avatar, &matte_sources);
+        let sh = avatar.posed.sh_degree;
+        let pixels = width * height;
+        let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
+        let occluders: Vec<&'static str> = matte_parts.iter().filter(|p| !p.matte && p.count > 0).map(|p| if p.source == Source::Scene { "scene" } else { "body" }).collect();
+        let matte = if occluders.is_empty() {
+            None
+        } else {
+            let mut gaussians = GaussianBuffers::new(ctx, "composite matte", matte_count as usize, 0)?;
+            // Degree-0 colour 0.5 + C0 · dc: 1 for the cloth, -0.5 (clamped to 0) for occluders.
+            const C0: f32 = 0.282_094_8;
+            let colours: Vec<f32> = matte_parts.iter().flat_map(|p| std::iter::repeat_n(if p.matte { 0.5 / C0 } else { -1.0 / C0 }, 3 * p.count as usize)).collect();
+            ctx.write_buffer(&mut gaussians.sh, &colours)?;
+            Some(MattePass {
+                grads: GaussianBuffers::new(ctx, "composite matte grads", matte_count as usize, 0)?,
+                renderer: SplatRenderer::new(ctx, width, height, matte_count as usize)?,
+                grad_image: image("composite grad matte", 3 * pixels)?,
+                gaussians,
+                parts: matte_parts,
+            })
+        };
+        let pass = ThreePass {
+            cloth,
+            base: GaussianBuffers::new(ctx, "composite base", base_count as usize, sh)?,
+            base_grads: GaussianBuffers::new(ctx, "composite base grads", base_count as usize, sh)?,
+            base_renderer: SplatRenderer::new(ctx, width, height, base_count as usize)?,
+            cloth_renderer: SplatRenderer::new(ctx, width, height, avatar.layers[cloth].count as usize)?,
+            matte,
+            occluders,
+            image: image("composite image", 3 * pixels)?,
+            grad_base: image("composite grad base", 3 * pixels)?,
+            grad_cloth: image("composite grad cloth", 3 * pixels)?,
+            grad_cloth_alpha: image("composite grad cloth alpha", pixels)?,
+            base_parts,
+            pixels,
+        };
+        Ok(Self { inner: Inner::ThreePass(Box::new(pass)) })
+    }
+
+    /// What the renderer does, for the start-of-run printout.
+    pub fn describe(&self) -> String {
+        match &self.inner {
+            Inner::Single(_) => "one depth-sorted pass of every layer".into(),
+            Inner::ThreePass(t) if t.occluders.is_empty() => "two passes (body, cloth) composited: nothing hides the cloth in the matte, so the matte is the cloth's alpha".into(),
+            Inner::ThreePass(t) => format!("three passes (body + scene, cloth, matte) composited; what hides the cloth in the matte: {}", t.occluders.join(" + ")),
+        }
+    }
+
+    /// Renders the avatar's posed Gaussians (of the last `Avatar::record_forward`).
+    pub fn forward(&mut self, ctx: &Context, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        let t = match &mut self.inner {
+            Inner::Single(r) => {
+                r.forward(&avatar.posed, camera, settings)?;
+                return Ok(());
+            }
+            Inner::ThreePass(t) => t,
+        };
+        {
+            let mut rec = ctx.record("composite gather")?;
+            for p in &t.base_parts {
+                let (src, dst) = (params(avatar, p.source).all(), t.base.all());
+                let per = [3, 3, 4, 1, 3 * drape_shared::splat::layout::sh_coeffs(t.base.sh_degree) as u64];
+                for k in 0..5 {
+                    rec.copy_region(src[k], 0, dst[k], 4 * per[k] * u64::from(p.first), 4 * per[k] * u64::from(p.count));
+                }
+            }
+            for p in t.matte.iter().flat_map(|m| &m.parts) {
+                let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
+                let src = params(avatar, p.source).all();
+                for k in 0..4 {
+                    let per = u64::from(GEOMETRY_FLOATS[k]);
+                    rec.copy_region(src[k], 0, dst[k], 4 * per * u64::from(p.first), 4 * per * u64::from(p.count));
+                }
+            }
+            rec.submit_and_wait()?;
+        }
+        let black = PinholeCamera { background: [0.0; 3], ..*camera };
+        t.base_renderer.forward(&t.base, camera, settings)?;
+        t.cloth_renderer.forward(&avatar.layers[t.cloth].posed, &black, settings)?;
+        if let Some(m) = &mut t.matte {
+            m.renderer.forward(&m.gaussians, &black, settings)?;
+        }
+        let mut rec = ctx.record("composite")?;
+        record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
+        rec.submit_and_wait()?;
+        Ok(())
+    }
+
+    /// Whether the cloth is rendered in its own pass (the mask loss then reads it).
+    pub fn is_three_pass(&self) -> bool {
+        matches!(self.inner, Inner::ThreePass(_))
+    }
+
+    /// The last forward's image (3 floats per pixel) on the GPU.
+    pub fn rgb(&self) -> &Buffer {
+        match &self.inner {
+            Inner::Single(r) => r.outputs().0,
+            Inner::ThreePass(t) => &t.image,
+        }
+    }
+
+    /// The last forward's image, read back.
+    pub fn read_rgb(&mut self, ctx: &Context) -> Result<Vec<f32>> {
+        match &mut self.inner {
+            Inner::Single(r) => Ok(r.read_image()?.rgb),
+            Inner::ThreePass(t) => ctx.read_buffer(&mut t.image, 3 * t.pixels as usize),
+        }
+    }
+
+    /// The three passes' images of the last forward (base, cloth, matte), read back;
+    /// None for the single pass.
+    pub fn read_passes(&mut self) -> Result<Option<[Vec<f32>; 3]>> {
+        match &mut self.inner {
+            Inner::Single(_) => Ok(None),
+            Inner::ThreePass(t) => {
+                let cloth = t.cloth_renderer.read_image()?;
+                let matte = match &mut t.matte {
+                    Some(m) => m.renderer.read_image()?.rgb,
+                    None => cloth.alpha.iter().flat_map(|&a| [a; 3]).collect(),
+                };
+                Ok(Some([t.base_renderer.read_image()?.rgb, cloth.rgb, matte]))
+            }
+        }
+    }
+
+    /// Back-propagates `grad_rgb` (the loss's gradient on [`rgb`](Self::rgb)) and, with
+    /// `cloth_losses`, the cloth mask loss, through the passes; then
+    /// [`record_scatter`](Self::record_scatter) moves the gradients into every layer.
+    /// `zeros` holds at least one zero float per pixel.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        match &mut self.inner {
+            Inner::Single(r) => {
+                r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, Accumulation::Auto)?;
+                if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
+                    c.mask_pass(ctx, cloth, camera, settings)?;
+                }
+            }
+            Inner::ThreePass(t) => {
+                {
+                    let mut rec = ctx.record("composite backward")?;
+                    let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_cloth, over_alpha: &t.grad_cloth_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
+                    record_composite_backward(&mut rec, grad_rgb, t.inputs(), grads, t.pixels)?;
+                    if let Some(c) = cloth_losses.as_ref() {
+                        rec.barrier();
+                        c.record_mask_grad(&mut rec, t.cloth_renderer.outputs().1, &t.grad_cloth_alpha)?;
+                    }
+                    rec.submit_and_wait()?;
+                }
+                t.base_renderer.backward(&t.base, &t.grad_base, zeros, zeros, &t.base_grads, Accumulation::Auto)?;
+                let cloth = &avatar.layers[t.cloth];
+                t.cloth_renderer.backward(&cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, Accumulation::Auto)?;
+                if let Some(m) = &mut t.matte {
+                    m.renderer.backward(&m.gaussians, &m.grad_image, zeros, zeros, &m.grads, Accumulation::Auto)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Records the move of the passes' gradients into every layer's own posed
+    /// gradients (where the per-layer losses then add theirs), with a barrier after.
+    pub fn record_scatter<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
+        let t = match &self.inner {
+            Inner::Single(_) => {
+                avatar.record_scatter_grads(rec);
+                return Ok(());
+            }
+            Inner::ThreePass(t) => t,
+        };
+        let per = [3, 3, 4, 1, 3 * drape_shared::splat::layout::sh_coeffs(t.base.sh_degree) as u64];
+        for p in &t.base_parts {
+            let (src, dst) = (t.base_grads.all(), grads(avatar, p.source).all());
+            for k in 0..5 {
+                rec.copy_region(src[k], 4 * per[k] * u64::from(p.first), dst[k], 0, 4 * per[k] * u64::from(p.count));
+            }
+        }
+        rec.barrier();
+        for (m, p) in t.matte.iter().flat_map(|m| m.parts.iter().map(move |p| (m, p))) {
+            let (src, dst) = (m.grads.all(), grads(avatar, p.source).all());
+            for k in 0..4 {
+                let per = GEOMETRY_FLOATS[k];
+                record_add_slice(rec, src[k], per * p.first, dst[k], per * p.count)?;
+            }
+        }
+        rec.barrier();
+        Ok(())
+    }
+}
+
+impl ThreePass {
+    fn inputs(&self) -> CompositeInputs<'_> {
+        CompositeInputs { base_rgb: self.base_renderer.outputs().0, over_rgb: self.cloth_renderer.outputs().0, over_alpha: self.cloth_renderer.outputs().1, matte_rgb: self.matte.as_ref().map(|m| m.renderer.outputs().0) }
+    }
+}
