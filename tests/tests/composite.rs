@@ -197,8 +197,11 @@ fn sources(l: &Layered, occlusion: bool) -> [Vec<(usize, usize)>; 3] {
     [base, cloth, matte]
 }
 
+type Renders = [drape_engine::ops::splat::reference::ReferenceRender<f64>; 3];
+type Accessor = Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>;
+
 /// `Σ w · composite` of the layers in f64, with the three passes' renders.
-fn composite_loss(layers: &[Vec<Gaussian<f64>>; 3], srcs: &[Vec<(usize, usize)>; 3], frames: &[drape_shared::splat::layout::FrameParams; 3], w: &[f64]) -> (f64, [drape_engine::ops::splat::reference::ReferenceRender<f64>; 3], [Vec<Gaussian<f64>>; 3]) {
+fn composite_loss(layers: &[Vec<Gaussian<f64>>; 3], srcs: &[Vec<(usize, usize)>; 3], frames: &[drape_shared::splat::layout::FrameParams; 3], w: &[f64]) -> (f64, Renders, [Vec<Gaussian<f64>>; 3]) {
     let pass_gaussians: [Vec<Gaussian<f64>>; 3] = [0, 1, 2].map(|p| {
         srcs[p]
             .iter()
@@ -281,7 +284,7 @@ fn check_gradients(occlusion: bool, seed: u64) {
     for (layer, name) in [(0, "body"), (1, "cloth"), (2, "scene")] {
         let (mut err, mut scale) = (0.0f64, 0.0f64);
         for i in 0..layers[layer].len() {
-            let mut params: Vec<(Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>, f64)> = Vec::new();
+            let mut params: Vec<(Accessor, f64)> = Vec::new();
             let t = total[layer][i];
             for a in 0..3 {
                 params.push((Box::new(move |g: &mut Gaussian<f64>| &mut g.mean[a]), t.mean[a]));

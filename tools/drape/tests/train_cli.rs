@@ -59,6 +59,7 @@ fn bad_configs_name_the_file_and_field() {
         ("negative.toml", "[body]\nlr_triplane = -1e-3\n", "body.lr_triplane"),
         ("wrong-type.toml", "steps = \"many\"\n", "steps"),
         ("zero-width.toml", "[cloth]\ndecoder_width = 0\n", "cloth.decoder_width"),
+        ("compositing.toml", "compositing = \"fused\"\n", "compositing"),
         ("broken.toml", "steps = \n", "broken.toml"),
     ];
     for (name, text, field) in cases {

@@ -74,14 +74,14 @@ struct Part {
     matte: bool,
 }
 
-fn params<'a>(avatar: &'a Avatar, s: Source) -> &'a GaussianBuffers {
+fn params(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
         Source::Layer(k) => &avatar.layers[k].posed,
         Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").params,
     }
 }
 
-fn grads<'a>(avatar: &'a Avatar, s: Source) -> &'a GaussianBuffers {
+fn grads(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
         Source::Layer(k) => &avatar.layers[k].posed_grads,
         Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").grads,
@@ -122,7 +122,6 @@ struct ThreePass {
     base_renderer: SplatRenderer,
     cloth_renderer: SplatRenderer,
     matte: Option<MattePass>,
-    occluders: Vec<&'static str>,
     image: Buffer,
     grad_base: Buffer,
     grad_cloth: Buffer,
@@ -131,7 +130,7 @@ struct ThreePass {
 }
 
 enum Inner {
-    Single(SplatRenderer),
+    Single(Box<SplatRenderer>),
     ThreePass(Box<ThreePass>),
 }
 
@@ -145,7 +144,7 @@ impl AvatarRenderer {
     pub fn new(ctx: &Context, avatar: &Avatar, width: u32, height: u32, compositing: Compositing) -> Result<Self> {
         let cloth = avatar.layers.iter().position(|l| l.name == "cloth");
         let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
-            return Ok(Self { inner: Inner::Single(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?) });
+            return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)) });
         };
         let humans: Vec<Source> = (0..avatar.layers.len()).filter(|&k| k != cloth).map(Source::Layer).collect();
         let scene: Vec<Source> = avatar.scene.iter().map(|_| Source::Scene).collect();
@@ -160,8 +159,8 @@ impl AvatarRenderer {
         let sh = avatar.posed.sh_degree;
         let pixels = width * height;
         let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
-        let occluders: Vec<&'static str> = matte_parts.iter().filter(|p| !p.matte && p.count > 0).map(|p| if p.source == Source::Scene { "scene" } else { "body" }).collect();
-        let matte = if occluders.is_empty() {
+        // Without occluders the matte is the cloth pass's alpha: no pass for it.
+        let matte = if !matte_parts.iter().any(|p| !p.matte && p.count > 0) {
             None
         } else {
             let mut gaussians = GaussianBuffers::new(ctx, "composite matte", matte_count as usize, 0)?;
@@ -184,7 +183,6 @@ impl AvatarRenderer {
             base_renderer: SplatRenderer::new(ctx, width, height, base_count as usize)?,
             cloth_renderer: SplatRenderer::new(ctx, width, height, avatar.layers[cloth].count as usize)?,
             matte,
-            occluders,
             image: image("composite image", 3 * pixels)?,
             grad_base: image("composite grad base", 3 * pixels)?,
             grad_cloth: image("composite grad cloth", 3 * pixels)?,
@@ -193,15 +191,6 @@ impl AvatarRenderer {
             pixels,
         };
         Ok(Self { inner: Inner::ThreePass(Box::new(pass)) })
-    }
-
-    /// What the renderer does, for the start-of-run printout.
-    pub fn describe(&self) -> String {
-        match &self.inner {
-            Inner::Single(_) => "one depth-sorted pass of every layer".into(),
-            Inner::ThreePass(t) if t.occluders.is_empty() => "two passes (body, cloth) composited: nothing hides the cloth in the matte, so the matte is the cloth's alpha".into(),
-            Inner::ThreePass(t) => format!("three passes (body + scene, cloth, matte) composited; what hides the cloth in the matte: {}", t.occluders.join(" + ")),
-        }
     }
 
     /// Renders the avatar's posed Gaussians (of the last `Avatar::record_forward`).
