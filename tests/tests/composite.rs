@@ -4,7 +4,7 @@
 //! the composite and the three passes against f64 central differences, for both
 //! mattes; and the scene the paper's matte gets wrong (an arm in front of the shirt).
 
-use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
 use drape_engine::ops::splat::reference::{backward, render};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
@@ -14,30 +14,6 @@ use drape_shared::splat::layout::{sh_coeffs, MAX_SH_COEFFS};
 use drape_shared::splat::project::{Gaussian, GaussianGrad};
 use drape_tests::gpu;
 use rand::{Rng, SeedableRng};
-
-/// Degree-0 SH DC giving colour 1 (cloth) or -0.5, clamped to 0 (an occluder).
-fn matte_dc(cloth: bool) -> f32 {
-    const C0: f32 = 0.282_094_8;
-    if cloth {
-        0.5 / C0
-    } else {
-        -1.0 / C0
-    }
-}
-
-/// The matte pass's cloud: each part's Gaussians at SH degree 0 in its binary colour.
-fn matte_cloud(parts: &[(&GaussianCloud, bool)]) -> GaussianCloud {
-    let mut out = GaussianCloud::new(0);
-    for (cloud, cloth) in parts {
-        for i in 0..cloud.len() {
-            let mut g = cloud.gaussian::<f32>(i);
-            g.sh = [[0.0; 3]; MAX_SH_COEFFS];
-            g.sh[0] = [matte_dc(*cloth); 3];
-            out.push(&g, Layer::Scene);
-        }
-    }
-    out
-}
 
 fn joined(a: &GaussianCloud, b: &GaussianCloud) -> GaussianCloud {
     let mut out = a.clone();
@@ -209,7 +185,7 @@ fn composite_loss(layers: &[Vec<Gaussian<f64>>; 3], srcs: &[Vec<(usize, usize)>;
                 let mut g = layers[layer][i];
                 if p == 2 {
                     g.sh = [[0.0; 3]; MAX_SH_COEFFS];
-                    g.sh[0] = [f64::from(matte_dc(layer == 1)); 3];
+                    g.sh[0] = [f64::from(matte_sh_dc(layer == 1)); 3];
                 }
                 g
             })

@@ -19,6 +19,7 @@ use drape_shared::radix_sort::significant_bits;
 use rand::{Rng, SeedableRng};
 use serde_json::json;
 
+mod composite;
 mod ops;
 mod splat;
 
@@ -75,6 +76,10 @@ enum Job {
     /// a CPU GEMM (matrixmultiply) on the same matrices, the decoders' forward +
     /// backward, triplane sampling points/s.
     Ops(ops::OpsArgs),
+    /// Layered avatar-sized scene (150k body, 30k cloth, 100k scene Gaussians by
+    /// default): the paper's three passes composited, against one depth-sorted pass of
+    /// every layer; forward and forward + backward frame time, per-pass GPU ms.
+    Composite(composite::CompositeArgs),
 }
 
 /// Medians over the timed runs.
@@ -248,6 +253,16 @@ fn main() -> ExitCode {
                     println!("{result}");
                 } else {
                     ops::print_table(&result);
+                }
+                return Ok(());
+            }
+            Job::Composite(args) => {
+                let result = composite::run(&ctx, args)?;
+                cli.device.check_validation(&ctx)?;
+                if args.json {
+                    println!("{result}");
+                } else {
+                    composite::print_table(&result);
                 }
                 return Ok(());
             }

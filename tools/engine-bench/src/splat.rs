@@ -40,7 +40,7 @@ pub struct SplatArgs {
     pub json: bool,
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
+pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once('x').ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT"))?;
     let parse = |v: &str| v.trim().parse::<u32>().ok().filter(|&v| v > 0 && v <= 16384);
     match (parse(w), parse(h)) {

@@ -18,7 +18,7 @@
 //! one pass after another; the single-submission overlapped frame and the fused
 //! rasterizer of the compositing issue are not built.
 
-use drape_engine::ops::splat::composite::{record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
@@ -164,9 +164,7 @@ impl AvatarRenderer {
             None
         } else {
             let mut gaussians = GaussianBuffers::new(ctx, "composite matte", matte_count as usize, 0)?;
-            // Degree-0 colour 0.5 + C0 · dc: 1 for the cloth, -0.5 (clamped to 0) for occluders.
-            const C0: f32 = 0.282_094_8;
-            let colours: Vec<f32> = matte_parts.iter().flat_map(|p| std::iter::repeat_n(if p.matte { 0.5 / C0 } else { -1.0 / C0 }, 3 * p.count as usize)).collect();
+            let colours: Vec<f32> = matte_parts.iter().flat_map(|p| std::iter::repeat_n(matte_sh_dc(p.matte), 3 * p.count as usize)).collect();
             ctx.write_buffer(&mut gaussians.sh, &colours)?;
             Some(MattePass {
                 grads: GaussianBuffers::new(ctx, "composite matte grads", matte_count as usize, 0)?,

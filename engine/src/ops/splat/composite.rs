@@ -11,7 +11,11 @@
 
 use drape_shared::splat::composite::{composite, composite_grad, CompositeParams, SliceParams};
 
+use drape_shared::splat::layout::MAX_SH_COEFFS;
+use drape_shared::splat::sh::C0;
+
 use crate::buffer::Buffer;
+use crate::ops::splat::scene::GaussianCloud;
 use crate::error::Result;
 use crate::kernels::Kernel;
 use crate::recorder::{flat_grid, Recording};
@@ -85,6 +89,32 @@ pub fn record_add_slice<'a>(rec: &mut Recording<'a>, src: &'a Buffer, src_offset
     }
     let p = SliceParams { len, src_offset, _pad: [0; 2] };
     rec.pass("composite.add_slice", Kernel::CompositeAddSlice).read(src).write(dst).push(&p).dispatch(flat_grid(len))
+}
+
+/// The degree-0 SH coefficient (all three channels) of a Gaussian in the matte pass:
+/// colour `0.5 + C0 · dc` is 1 for the composited layer and -0.5, clamped to 0 by the
+/// splatter, for an occluder.
+pub fn matte_sh_dc(composited: bool) -> f32 {
+    if composited {
+        0.5 / C0
+    } else {
+        -1.0 / C0
+    }
+}
+
+/// The matte pass's cloud built on the host: each part's Gaussians at SH degree 0 in its
+/// binary colour (`true`: the composited layer).
+pub fn matte_cloud(parts: &[(&GaussianCloud, bool)]) -> GaussianCloud {
+    let mut out = GaussianCloud::new(0);
+    for (cloud, composited) in parts {
+        for i in 0..cloud.len() {
+            let mut g = cloud.gaussian::<f32>(i);
+            g.sh = [[0.0; 3]; MAX_SH_COEFFS];
+            g.sh[0] = [matte_sh_dc(*composited); 3];
+            out.push(&g, cloud.layers[i]);
+        }
+    }
+    out
 }
 
 fn rgb(b: &[f32], i: usize) -> [f32; 3] {
