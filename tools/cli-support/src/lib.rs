@@ -55,7 +55,10 @@ pub fn parse_args<T: Parser>() -> Result<T, ExitCode> {
                 return Err(if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand { ExitCode::from(2) } else { ExitCode::SUCCESS });
             }
             let rendered = e.render().to_string();
-            let first = rendered.lines().next().unwrap_or("error: bad arguments");
+            // The message up to the usage block, on one line (clap puts the missing
+            // arguments on the lines after the first).
+            let message: Vec<&str> = rendered.lines().take_while(|l| !l.trim().is_empty()).map(str::trim).collect();
+            let first = if message.is_empty() { "error: bad arguments".to_string() } else { message.join(" ") };
             eprintln!("{first} (see --help)");
             Err(ExitCode::from(2))
         }

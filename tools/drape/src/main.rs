@@ -1,7 +1,7 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
 //! `render` (a 3DGS PLY to PNG), `fit` (Gaussians fitted to an image), `body` (the
-//! default body as SMPL .npz), `simulate` (garments on a motion). Later issues add
-//! `synth`, `train` and friends.
+//! default body as SMPL .npz), `simulate` (garments on a motion), `synth` (the
+//! synthetic data), `train` (the avatar), `eval`, `animate` and `edit` (a trained run).
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;
@@ -12,7 +12,10 @@ use drape_cli_support::{parse_len, DeviceArgs};
 use drape_engine::ops::radix_sort::sort_pairs_host;
 use rand::{Rng, SeedableRng};
 
+mod animate;
 mod body;
+mod edit;
+mod eval;
 mod fit;
 mod image_io;
 mod render;
@@ -57,6 +60,13 @@ enum Command {
     /// Train the avatar on a sequence (NeuMan or ZJU-MoCap layout, or `drape synth`
     /// output) and evaluate it on the held-out frames.
     Train(train::TrainArgs),
+    /// Measure a trained run on its held-out frames: PSNR, SSIM, LPIPS (full image and
+    /// human crop), cloth Chamfer; a table, JSON, Markdown and a sheet per frame.
+    Eval(eval::EvalArgs),
+    /// Render a trained run in a new motion from an orbiting camera: PNG frames and a GIF.
+    Animate(animate::AnimateArgs),
+    /// Change a trained run's clothes (remove, recolour, swap) into a new run.
+    Edit(edit::EditArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -95,5 +105,8 @@ fn main() -> ExitCode {
         Command::Simulate(args) => body::run_simulate(&args),
         Command::Synth(args) => body::run_synth(&args),
         Command::Train(args) => train::run(&cli.device, &args),
+        Command::Eval(args) => eval::run(&cli.device, &args),
+        Command::Animate(args) => animate::run(&cli.device, &args),
+        Command::Edit(args) => edit::run(&cli.device, &args),
     })
 }

@@ -3,7 +3,7 @@
 //! (one line per logged step), `checkpoint.npz` (every `checkpoint_every` steps,
 //! replaced atomically; `--resume RUN` continues from it), `model.npz` (the trained
 //! model; format in `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/`
-//! (ground truth | render for every held-out frame), `novel_pose.png` and the posed
+//! (a sheet for every held-out frame, `eval.json`, `eval.md`), `novel_pose.png` and the posed
 //! body of the first held-out frame as PLY; with `--profile`, `profile.txt` and
 //! `profile.json` (where a step's time goes).
 
@@ -12,6 +12,7 @@ use std::path::PathBuf;
 
 use anyhow::Context as _;
 use drape_cli_support::DeviceArgs;
+use drape_trainer::avatar::run::RunInfo;
 use drape_trainer::avatar::train::{body_model, load_sequence, train, Layout, Progress, TrainConfig};
 
 /// Options of `drape train`.
@@ -212,6 +213,12 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     })
     .map_err(anyhow::Error::msg)?;
     eprintln!();
+    // Which data and body the run was trained on, for `drape eval` and `drape animate`.
+    let body = match (&args.resume, &args.body) {
+        (Some(run), None) => RunInfo::read(run).map_err(anyhow::Error::msg)?.and_then(|i| i.body),
+        (_, b) => b.clone(),
+    };
+    RunInfo::new(&args.data, body.as_deref()).write(&out).map_err(anyhow::Error::msg)?;
     device.check_validation(&ctx)?;
     println!(
         "{}trained steps {}..{} in {:.1} s ({:.2} it/s); Gaussians: {}",

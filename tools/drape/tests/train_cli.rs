@@ -119,3 +119,38 @@ fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     let done = drape_trainer::npy::read_npz(&run.join("model.npz")).expect("model written");
     assert_eq!(done["step"].data, vec![12.0], "the resumed run finished all steps");
 }
+
+/// `drape eval`, `animate` and `edit` on bad input: one error line naming the problem,
+/// a non-zero exit, nothing written.
+#[test]
+fn eval_animate_and_edit_name_bad_input() {
+    let d = dir("run-tools");
+    let check = |args: &[&str], want: &[&str]| {
+        let o = drape(args);
+        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(!o.status.success(), "{args:?}: expected failure, got success");
+        assert_eq!(stderr.trim().lines().filter(|l| l.starts_with("error")).count(), 1, "{args:?}: one error line expected: {stderr}");
+        for w in want {
+            assert!(stderr.contains(w), "{args:?}: '{w}' missing from: {stderr}");
+        }
+    };
+    let missing = d.join("no-run");
+    let m = missing.to_str().unwrap();
+    check(&["eval", m], &["no-run", "no such run directory"]);
+    // A directory without a model.
+    let empty = d.join("empty-run");
+    std::fs::create_dir_all(&empty).unwrap();
+    check(&["eval", empty.to_str().unwrap()], &["no model.npz"]);
+    // A motion that is neither a name nor a file is refused before any run is opened.
+    check(&["animate", m, "--motion", "moonwalk"], &["moonwalk", "walk, jog"]);
+    // A motion file with 23 joints (69 pose values) names the file and the array.
+    let motion = d.join("bad-motion.npz");
+    std::fs::write(&motion, b"not a zip").unwrap();
+    check(&["animate", m, "--motion", motion.to_str().unwrap()], &["bad-motion.npz"]);
+    check(&["animate", m, "--background", "2,0,0"], &["--background"]);
+    // edit needs exactly one edit and refuses a non-empty output.
+    let out = d.join("edited");
+    check(&["edit", m, "--out", out.to_str().unwrap()], &["--remove-cloth"]);
+    check(&["edit", m, "--out", empty.parent().unwrap().to_str().unwrap(), "--remove-cloth"], &["not empty"]);
+    assert!(!out.exists(), "nothing written");
+}

@@ -2,14 +2,19 @@
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
 //! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), the cloth
 //! layer's simulated targets and edge graph (`cloth_target`), the scene layer
-//! (`scene`), and training (`train`).
+//! (`scene`), training (`train`), held-out evaluation (`eval`), and a finished run
+//! opened again (`run`) to animate (`animate`) or edit (`edit`).
 
+pub mod animate;
 pub mod checkpoint;
 pub mod cloth_losses;
 pub mod cloth_target;
 pub mod composite;
+pub mod edit;
+pub mod eval;
 pub mod layer;
 pub mod model;
 pub mod rig;
+pub mod run;
 pub mod scene;
 pub mod train;

@@ -24,11 +24,12 @@ use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
 
 use crate::avatar::checkpoint;
+use crate::avatar::eval::{evaluate, write_reports, EvalInputs};
+pub use crate::avatar::eval::{mask_bbox, psnr, EvalMetrics};
 use crate::avatar::scene::{scene_init, SceneConfig, SceneLayer};
 use crate::dataset::colmap::ColmapModel;
 use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses};
 use crate::avatar::cloth_target;
-use drape_engine::ops::cloth_loss::Chamfer;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::layer::LayerConfig;
@@ -252,7 +253,7 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> Result<Sequence, St
     Err(format!("{}: neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)", dir.display()))
 }
 
-fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
+pub(crate) fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
     PinholeCamera {
         fx: c.fx as f32,
         fy: c.fy as f32,
@@ -269,56 +270,8 @@ fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
 }
 
 /// The frame's person on a constant background.
-fn masked_target(f: &DatasetFrame, background: [f32; 3]) -> Vec<f32> {
+pub(crate) fn masked_target(f: &DatasetFrame, background: [f32; 3]) -> Vec<f32> {
     f.mask.iter().enumerate().flat_map(|(i, &m)| if m { [f.rgb[3 * i], f.rgb[3 * i + 1], f.rgb[3 * i + 2]] } else { background }).collect()
-}
-
-/// Peak signal-to-noise ratio (dB) of images in [0, 1].
-pub fn psnr(a: &[f32], b: &[f32]) -> f64 {
-    let mse = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64;
-    -10.0 * mse.max(1e-20).log10()
-}
-
-/// The bounding box of a mask: (x0, y0, x1, y1), exclusive ends; None when empty.
-pub fn mask_bbox(mask: &[bool], width: u32) -> Option<(u32, u32, u32, u32)> {
-    let mut b: Option<(u32, u32, u32, u32)> = None;
-    for (i, _) in mask.iter().enumerate().filter(|(_, &m)| m) {
-        let (x, y) = (i as u32 % width, i as u32 / width);
-        b = Some(match b {
-            None => (x, y, x + 1, y + 1),
-            Some((x0, y0, x1, y1)) => (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1)),
-        });
-    }
-    b
-}
-
-fn crop(rgb: &[f32], width: u32, (x0, y0, x1, y1): (u32, u32, u32, u32)) -> Vec<f32> {
-    let mut out = Vec::new();
-    for y in y0..y1 {
-        let row = 3 * (y * width) as usize;
-        out.extend_from_slice(&rgb[row + 3 * x0 as usize..row + 3 * x1 as usize]);
-    }
-    out
-}
-
-/// Held-out metrics: means over the evaluated frames.
-#[derive(Clone, Debug, Default, serde::Serialize)]
-pub struct EvalMetrics {
-    pub frames: usize,
-    /// Whole image: the frame itself with a scene layer, else the person on black.
-    pub psnr_full: f64,
-    /// The person mask's bounding box (HUGS's human crop).
-    pub psnr_crop: f64,
-    /// SSIM (11 × 11 Gaussian window, zero padding, as the loss) on the same images.
-    pub ssim_full: f64,
-    pub ssim_crop: f64,
-    /// The cloth Gaussians' Chamfer distance to the ground-truth garments (metres,
-    /// `½ (mean d(p, Q) + mean d(q, P))`), over the held-out frames that have them
-    /// (synthetic data); None without a cloth layer or ground truth.
-    pub cloth_chamfer: Option<f64>,
-    /// LPIPS (the configured network) on the same images; None (n/a) without weights.
-    pub lpips_full: Option<f64>,
-    pub lpips_crop: Option<f64>,
 }
 
 impl TrainConfig {
@@ -368,14 +321,14 @@ pub fn body_model(path: Option<&Path>) -> Result<SmplModel, String> {
     }
 }
 
-fn betas_of(f: &DatasetFrame) -> Vec<f64> {
+pub(crate) fn betas_of(f: &DatasetFrame) -> Vec<f64> {
     match &f.body {
         BodyParams::Smpl { betas, .. } => betas.clone(),
         BodyParams::Zju(p) => p.shapes.to_vec(),
     }
 }
 
-fn gpu<T>(r: drape_engine::Result<T>) -> Result<T, String> {
+pub(crate) fn gpu<T>(r: drape_engine::Result<T>) -> Result<T, String> {
     r.map_err(|e| e.to_string())
 }
 
@@ -409,7 +362,7 @@ pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> Result<Layers, Str
 }
 
 /// The avatar the data requires, and the cloth layer's edge graph (empty without one).
-fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<(Avatar, Vec<[u32; 2]>), String> {
+pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<(Avatar, Vec<[u32; 2]>), String> {
     let cloth = layers.cloth;
     let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
     let mut configs = vec![config.body.clone()];
@@ -455,120 +408,7 @@ impl<'c> Lap<'c> {
     }
 }
 
-/// Renders every held-out frame on black and compares with the masked ground truth.
-#[allow(clippy::too_many_arguments)]
-fn evaluate(ctx: &Context, avatar: &mut Avatar, rig: &Rig, frames: &[&DatasetFrame], renderer: &mut AvatarRenderer, ground_truth: Option<&Path>, lpips: Option<&LpipsWeights>, out_dir: Option<&Path>, progress: &mut dyn FnMut(Progress)) -> Result<EvalMetrics, String> {
-    let mut lpips_sums = (0.0, 0.0, 0usize);
-    let whole_image = avatar.scene.is_some();
-    let settings = RenderSettings::default();
-    let mut m = EvalMetrics::default();
-    let names: Vec<String> = cloth_target::garments(rig).iter().map(|g| g.name.clone()).collect();
-    let names: Vec<&str> = names.iter().map(String::as_str).collect();
-    let mut chamfer_sum = 0.0;
-    let mut chamfer_frames = 0usize;
-    for (k, f) in frames.iter().enumerate() {
-        progress(Progress::Eval { done: k, total: frames.len() });
-        let ft = rig.frame(&f.body);
-        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
-        {
-            let mut rec = gpu(ctx.record("eval forward"))?;
-            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
-        }
-        if let (Some(dir), Some(cloth)) = (ground_truth, avatar.cloth()) {
-            if let Some(points) = cloth_target::ground_truth(dir, &names, f.frame)? {
-                chamfer_sum += gpu(cloth_chamfer(ctx, cloth, &points))?;
-                chamfer_frames += 1;
-            }
-        }
-        let cam = camera(&f.camera, [0.0; 3]);
-        gpu(renderer.forward(ctx, avatar, &cam, &settings))?;
-        let rgb = gpu(renderer.read_rgb(ctx))?;
-        let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
-        m.psnr_full += psnr(&rgb, &target);
-        m.ssim_full += ssim_of(&rgb, &target, f.width, f.height);
-        if let Some(b) = mask_bbox(&f.mask, f.width) {
-            let (cr, ct) = (crop(&rgb, f.width, b), crop(&target, f.width, b));
-            m.psnr_crop += psnr(&cr, &ct);
-            m.ssim_crop += ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1);
-            if let Some(w) = lpips {
-                lpips_sums.0 += lpips_of(ctx, w, &rgb, &target, f.width, f.height)?;
-                // A crop below the network's minimum is widened to it (centred, clamped).
-                let min = LpipsWeights::min_side(w.net);
-                let grow = |lo: u32, hi: u32, size: u32| -> (u32, u32) {
-                    let want = (hi - lo).max(min.min(size));
-                    let lo = (lo + hi).saturating_sub(want) / 2;
-                    let lo = lo.min(size - want);
-                    (lo, lo + want)
-                };
-                let (x0, x1) = grow(b.0, b.2, f.width);
-                let (y0, y1) = grow(b.1, b.3, f.height);
-                let bb = (x0, y0, x1, y1);
-                lpips_sums.1 += lpips_of(ctx, w, &crop(&rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?;
-                lpips_sums.2 += 1;
-            }
-        }
-        if let Some(dir) = out_dir {
-            // Ground truth | render, side by side.
-            let w = f.width as usize;
-            let mut sheet = Vec::with_capacity(2 * target.len());
-            for y in 0..f.height as usize {
-                sheet.extend_from_slice(&target[3 * y * w..3 * (y + 1) * w]);
-                sheet.extend_from_slice(&rgb[3 * y * w..3 * (y + 1) * w]);
-            }
-            crate::dataset::image::write_rgb(&dir.join(format!("frame{:04}_view{}.png", f.frame, f.view)), 2 * f.width, f.height, &sheet)?;
-        }
-    }
-    m.frames = frames.len();
-    let n = frames.len().max(1) as f64;
-    m.psnr_full /= n;
-    m.psnr_crop /= n;
-    m.ssim_full /= n;
-    m.ssim_crop /= n;
-    m.cloth_chamfer = (chamfer_frames > 0).then(|| chamfer_sum / chamfer_frames as f64);
-    if lpips_sums.2 > 0 {
-        m.lpips_full = Some(lpips_sums.0 / lpips_sums.2 as f64);
-        m.lpips_crop = Some(lpips_sums.1 / lpips_sums.2 as f64);
-    }
-    Ok(m)
-}
-
-/// LPIPS of two HWC images on the GPU (a network planned for their size).
-fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: u32, height: u32) -> Result<f64, String> {
-    let mut l = Lpips::new(ctx, weights, width, height)?;
-    let pa = gpu(ctx.upload("eval lpips a", a))?;
-    let pb = gpu(ctx.upload("eval lpips b", b))?;
-    {
-        let mut rec = gpu(ctx.record("eval lpips"))?;
-        gpu(l.record(&mut rec, &pa, &pb, None))?;
-        gpu(rec.submit_and_wait())?;
-    }
-    gpu(l.read_value(ctx))
-}
-
-/// The plain Chamfer distance between the cloth layer's posed centres (of the last
-/// forward pass) and `points`, on the GPU.
-fn cloth_chamfer(ctx: &Context, cloth: &crate::avatar::layer::HumanLayer, points: &[[f32; 3]]) -> drape_engine::Result<f64> {
-    let m = points.len() as u32;
-    let chamfer = Chamfer::new(ctx, cloth.count, m)?;
-    let mut target = ctx.create_buffer("eval garment points", BufferDesc::gpu_only(12 * u64::from(m.max(1))))?;
-    ctx.write_buffer(&mut target, &points.iter().flatten().copied().collect::<Vec<f32>>())?;
-    {
-        let mut rec = ctx.record("eval cloth chamfer")?;
-        chamfer.record(&mut rec, &cloth.posed.means, cloth.count, &target, m, 1.0, None)?;
-        rec.submit_and_wait()?;
-    }
-    let mut chamfer = chamfer;
-    Ok(chamfer.read_value(ctx)?.distance)
-}
-
-/// Mean SSIM (the training loss's form, `ops::ssim`) computed on the CPU in f64.
-fn ssim_of(a: &[f32], b: &[f32], width: u32, height: u32) -> f64 {
-    let (a, b): (Vec<f64>, Vec<f64>) = (a.iter().map(|&v| f64::from(v)).collect(), b.iter().map(|&v| f64::from(v)).collect());
-    drape_engine::ops::ssim::reference(&a, &b, width as usize, height as usize).1
-}
-
-fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> {
+pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> {
     let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
     // Written whole to a temporary file, then renamed: never half a file.
     let tmp = path.with_extension("tmp");
@@ -662,7 +502,8 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
         _ => None,
     };
-    let initial = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, ground_truth.as_deref(), lpips_weights.as_ref(), None, progress)?;
+    let eval_inputs = |sheets| EvalInputs { rig: &rig, frames: &test_frames, ground_truth: ground_truth.as_deref(), lpips: lpips_weights.as_ref(), sheets };
+    let (initial, _) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(None), progress)?;
 
     // 2. The main loop.
     let pixels = (width * height) as usize;
@@ -806,7 +647,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     save(&mut avatar, last, &checkpoint_path)?;
     save(&mut avatar, last, &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
-    let fin = evaluate(ctx, &mut avatar, &rig, &test_frames, &mut renderer, ground_truth.as_deref(), lpips_weights.as_ref(), Some(&out.join("eval")), progress)?;
+    let eval_dir = out.join("eval");
+    let (fin, per_frame) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(Some(&eval_dir)), progress)?;
+    write_reports(&eval_dir, &format!("{} after {last} steps, {} held-out images of {}", out.display(), per_frame.len(), seq.dir.display()), &fin, &per_frame)?;
     // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
         let ft = rig.frame(&f.body);

@@ -1,0 +1,94 @@
+//! `drape animate RUN --motion M`: the trained avatar in a motion it was not trained on
+//! (walk, jog, raise-arms, turn, or an `.npz` motion with `poses` F×72, `trans` F×3 and
+//! `fps`), from a camera that orbits it, as `OUT/frameNNNN.png` and `OUT/animation.gif`
+//! at the run's resolution, with the time per frame.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use drape_cli_support::DeviceArgs;
+use drape_trainer::avatar::animate::{animate, AnimateOptions};
+use drape_trainer::avatar::run::OpenRun;
+use drape_trainer::motion::{procedural, Motion, MotionKind};
+
+/// Options of `drape animate`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct AnimateArgs {
+    /// The run directory (`drape train --out`, or `drape edit --out`).
+    pub run: PathBuf,
+    /// walk, jog, raise-arms, turn, or a motion file (.npz: poses F×72 axis-angle SMPL
+    /// joints, trans F×3 metres, fps).
+    #[arg(long, default_value = "walk")]
+    pub motion: String,
+    /// Frames to render (a motion file: at most its own).
+    #[arg(long, default_value_t = 60)]
+    pub frames: usize,
+    /// Frame rate of the procedural motions and the GIF.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Degrees the camera circles the person over the animation (0: fixed camera).
+    #[arg(long, default_value_t = 360.0, allow_negative_numbers = true)]
+    pub orbit: f64,
+    /// Background colour r,g,b in [0, 1] where nothing is rendered.
+    #[arg(long, default_value = "1,1,1")]
+    pub background: String,
+    /// Skip the GIF (PNG frames only).
+    #[arg(long)]
+    pub no_gif: bool,
+    /// The sequence the run was trained on (default: from its run.json).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Output directory (default: RUN/animate-MOTION).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+fn parse_background(s: &str) -> anyhow::Result<[f32; 3]> {
+    let v: Vec<f32> = s.split(',').map(|p| p.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|e| anyhow::anyhow!("--background {s}: {e}"))?;
+    anyhow::ensure!(v.len() == 3 && v.iter().all(|c| (0.0..=1.0).contains(c)), "--background {s}: three values in [0, 1] expected, as r,g,b");
+    Ok([v[0], v[1], v[2]])
+}
+
+pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.frames > 0, "--frames must be at least 1");
+    anyhow::ensure!(args.fps > 0.0 && args.fps.is_finite(), "--fps must be positive");
+    let background = parse_background(&args.background)?;
+    // The motion first: a bad file is reported before the GPU is touched.
+    let (motion, name): (Motion, String) = match MotionKind::parse(&args.motion) {
+        Some(kind) => (procedural(kind, args.frames, args.fps, 1.0), kind.name().to_string()),
+        None => {
+            let path = PathBuf::from(&args.motion);
+            anyhow::ensure!(path.is_file(), "--motion {}: neither walk, jog, raise-arms, turn nor a motion file", args.motion);
+            let m = Motion::load_npz(&path).map_err(|e| anyhow::anyhow!("{e}"))?;
+            anyhow::ensure!(!m.is_empty(), "{}: the motion has no frames", path.display());
+            (m, path.file_stem().map_or("motion".into(), |s| s.to_string_lossy().into_owned()))
+        }
+    };
+    let ctx = device.open()?;
+    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let out = args.out.clone().unwrap_or_else(|| run.dir.join(format!("animate-{name}")));
+    std::fs::create_dir_all(&out).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
+    let options = AnimateOptions { frames: args.frames, orbit_degrees: args.orbit, background, gif: !args.no_gif };
+    let report = animate(&ctx, &mut run, &motion, &options, &out, &mut |k, n| {
+        eprint!("\rrendering {}/{n}   ", k + 1);
+        let _ = std::io::stderr().flush();
+    })
+    .map_err(anyhow::Error::msg)?;
+    eprintln!();
+    device.check_validation(&ctx)?;
+    let mut sorted = report.frame_ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    println!(
+        "{} frames of {name} at {}x{} on {}: {:.1} ms per frame (median {:.1}, max {:.1}; posing + rendering + reading back), {:.2} FPS",
+        report.frames,
+        report.width,
+        report.height,
+        ctx.info().name,
+        report.mean_ms,
+        sorted[sorted.len() / 2],
+        sorted[sorted.len() - 1],
+        report.fps
+    );
+    println!("wrote {}/frame0000.png ..{}", out.display(), if options.gif { " and animation.gif" } else { "" });
+    Ok(())
+}

@@ -1,0 +1,127 @@
+//! A finished run opened again (`drape eval`, `drape animate`, `drape edit`): its
+//! `config.json`, the data and body it was trained on (`run.json`, written by
+//! `drape train`), the body rig, and the trained avatar loaded from `model.npz` onto
+//! the GPU with its renderer, ready to pose and render.
+//!
+//! Which layers the avatar has is read from `model.npz` itself (the arrays it holds),
+//! so an edited run (the cloth removed) opens as what it is.
+
+use std::path::{Path, PathBuf};
+
+use drape_engine::Context;
+
+use crate::avatar::checkpoint;
+use crate::avatar::composite::{AvatarRenderer, Compositing};
+use crate::avatar::model::Avatar;
+use crate::avatar::rig::Rig;
+use crate::avatar::train::{betas_of, body_model, build_avatar, gpu, load_sequence, write_json, Layers, Sequence, TrainConfig};
+use crate::dataset::split::Split;
+use crate::npy::read_npz;
+
+/// Version of `run.json`.
+pub const RUN_INFO_VERSION: u32 = 1;
+
+/// Where a run's inputs came from (`run.json`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunInfo {
+    pub format_version: u32,
+    /// The sequence (absolute path when it was written).
+    pub data: PathBuf,
+    /// The SMPL-format body file; None: the project's procedural body.
+    pub body: Option<PathBuf>,
+    /// What made the run when it was not `drape train` (e.g. "edit: cloth removed").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub made_by: Option<String>,
+}
+
+impl RunInfo {
+    pub fn new(data: &Path, body: Option<&Path>) -> Self {
+        let abs = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+        Self { format_version: RUN_INFO_VERSION, data: abs(data), body: body.map(abs), made_by: None }
+    }
+
+    pub fn write(&self, run: &Path) -> Result<(), String> {
+        write_json(&run.join("run.json"), self)
+    }
+
+    /// Reads `run/run.json`; Ok(None) when the run has none (made before it existed).
+    pub fn read(run: &Path) -> Result<Option<Self>, String> {
+        let path = run.join("run.json");
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let info: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        if info.format_version != RUN_INFO_VERSION {
+            return Err(format!("{}: format_version {}, this drape reads version {RUN_INFO_VERSION}", path.display(), info.format_version));
+        }
+        Ok(Some(info))
+    }
+}
+
+/// A run ready to render.
+pub struct OpenRun {
+    pub dir: PathBuf,
+    pub config: TrainConfig,
+    pub info: RunInfo,
+    pub seq: Sequence,
+    pub rig: Rig,
+    pub avatar: Avatar,
+    pub renderer: AvatarRenderer,
+    pub layers: Layers,
+    /// Training steps the model had taken.
+    pub step: u32,
+}
+
+/// The layers a model file holds (beyond the body, which every model has).
+pub fn model_layers(path: &Path) -> Result<Layers, String> {
+    let a = read_npz(path).map_err(|e| e.to_string())?;
+    if !a.contains_key("body.means") {
+        return Err(format!("{}: array 'body.means' is missing (not a drape model?)", path.display()));
+    }
+    Ok(Layers { cloth: a.contains_key("cloth.means"), scene: a.contains_key("scene.means") })
+}
+
+impl OpenRun {
+    /// Opens `dir` (a run directory with `config.json` and `model.npz`). `data` and
+    /// `body` override `run.json`'s; a run without `run.json` needs `data`.
+    pub fn open(ctx: &Context, dir: &Path, data: Option<&Path>, body: Option<&Path>) -> Result<Self, String> {
+        if !dir.is_dir() {
+            return Err(format!("{}: no such run directory", dir.display()));
+        }
+        let model_path = dir.join("model.npz");
+        if !model_path.is_file() {
+            return Err(format!("{}: no model.npz (the run has not finished training?)", dir.display()));
+        }
+        let config = TrainConfig::read_run(dir)?;
+        let info = match (RunInfo::read(dir)?, data) {
+            (Some(mut i), Some(d)) => {
+                i.data = d.to_path_buf();
+                i
+            }
+            (Some(i), None) => i,
+            (None, Some(d)) => RunInfo::new(d, body),
+            (None, None) => return Err(format!("{}: no run.json saying which data the run was trained on (a run from before drape 0.1's eval); give --data DIR", dir.display())),
+        };
+        let body = body.map(Path::to_path_buf).or_else(|| info.body.clone());
+        let seq = load_sequence(&info.data, config.zju_train_camera)?;
+        let first = seq.frames.iter().find(|f| f.split == Split::Train).ok_or_else(|| format!("{}: no training frames", seq.dir.display()))?;
+        let (width, height) = (first.width, first.height);
+        let rig = Rig::new(body_model(body.as_deref())?, &betas_of(first));
+        let layers = model_layers(&model_path)?;
+        if layers.scene && crate::avatar::train::scene_points(&seq)?.is_none() {
+            return Err(format!("{}: the model has a scene layer, but {} has no scene points to build it on (another sequence?)", model_path.display(), seq.dir.display()));
+        }
+        let (mut avatar, _) = build_avatar(ctx, &rig, &seq, &config, layers)?;
+        let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_lens())?;
+        gpu(avatar.restore(ctx, &state))?;
+        let renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+        Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })
+    }
+
+    /// The held-out frames of the run's protocol.
+    pub fn test_frames(&self) -> Vec<&crate::dataset::loader::DatasetFrame> {
+        self.seq.frames.iter().filter(|f| f.split == Split::Test).collect()
+    }
+}
