@@ -122,6 +122,19 @@ fn composite_kernels_match_the_cpu_reference() {
     assert_eq!(&want[..3], &base[..3]);
 }
 
+/// The three passes' last forward images (base, over, matte) composited on the GPU
+/// and read back.
+fn composite_passes(ctx: &drape_engine::Context, renderers: &[SplatRenderer], pixels: u32) -> Vec<f32> {
+    let mut out = ctx.create_buffer("composite", BufferDesc::gpu_only(12 * u64::from(pixels))).expect("buffer");
+    {
+        let inputs = CompositeInputs { base_rgb: renderers[0].outputs().0, over_rgb: renderers[1].outputs().0, over_alpha: renderers[1].outputs().1, matte_rgb: Some(renderers[2].outputs().0) };
+        let mut rec = ctx.record("composite").expect("record");
+        record_composite(&mut rec, inputs, &out, pixels).expect("fwd");
+        rec.submit_and_wait().expect("submit");
+    }
+    ctx.read_buffer::<f32>(&mut out, 3 * pixels as usize).expect("read")
+}
+
 #[test]
 fn three_gpu_passes_composite_as_the_cpu_splatter_does() {
     let ctx = gpu();
@@ -144,15 +157,7 @@ fn three_gpu_passes_composite_as_the_cpu_splatter_does() {
             renderers.push(r);
             buffers.push(b);
         }
-        let pixels = cam.width * cam.height;
-        let mut out = ctx.create_buffer("composite", BufferDesc::gpu_only(12 * u64::from(pixels))).expect("buffer");
-        {
-            let inputs = CompositeInputs { base_rgb: renderers[0].outputs().0, over_rgb: renderers[1].outputs().0, over_alpha: renderers[1].outputs().1, matte_rgb: Some(renderers[2].outputs().0) };
-            let mut rec = ctx.record("composite").expect("record");
-            record_composite(&mut rec, inputs, &out, pixels).expect("fwd");
-            rec.submit_and_wait().expect("submit");
-        }
-        let got = ctx.read_buffer::<f32>(&mut out, 3 * pixels as usize).expect("read");
+        let got = composite_passes(&ctx, &renderers, cam.width * cam.height);
         let want = composite_cpu(&outputs[0].rgb, &outputs[1].rgb, &outputs[1].alpha, Some(&outputs[2].rgb));
         let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         // The acceptance bound of the compositing issue: the GPU splatter matches its
@@ -340,14 +345,7 @@ fn the_papers_matte_draws_the_shirt_over_an_arm_in_front_of_it() {
             keep.push(b);
         }
         let pixels = cam.width * cam.height;
-        let mut out = ctx.create_buffer("composite", BufferDesc::gpu_only(12 * u64::from(pixels))).expect("buffer");
-        {
-            let inputs = CompositeInputs { base_rgb: renderers[0].outputs().0, over_rgb: renderers[1].outputs().0, over_alpha: renderers[1].outputs().1, matte_rgb: Some(renderers[2].outputs().0) };
-            let mut rec = ctx.record("composite").expect("record");
-            record_composite(&mut rec, inputs, &out, pixels).expect("fwd");
-            rec.submit_and_wait().expect("submit");
-        }
-        images.push(ctx.read_buffer::<f32>(&mut out, 3 * pixels as usize).expect("read"));
+        images.push(composite_passes(&ctx, &renderers, pixels));
         // Gradients flow through the matte pass too (used in training): one backward
         // of the matte pass must run clean under validation.
         let g = ctx.upload("g", &vec![1.0f32; 3 * pixels as usize]).expect("upload");

@@ -253,7 +253,8 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> Result<Sequence, St
     Err(format!("{}: neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)", dir.display()))
 }
 
-pub(crate) fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
+/// The splatter's camera for a dataset camera, over `background`.
+pub fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
     PinholeCamera {
         fx: c.fx as f32,
         fy: c.fy as f32,
