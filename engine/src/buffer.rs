@@ -54,6 +54,8 @@ pub struct Buffer {
     /// Bytes the caller asked for.
     pub size: u64,
     allocation: Option<Allocation>,
+    /// Whether the host may map this buffer's memory (see `ContextDesc::force_staging`).
+    host_access: bool,
     name: String,
     device: Arc<Device>,
 }
@@ -71,6 +73,9 @@ impl Buffer {
     /// The mapped bytes, when the memory is host-visible and coherent (so no flush or
     /// invalidate is needed around host access).
     pub(crate) fn coherent_mapping(&mut self) -> Option<&mut [u8]> {
+        if !self.host_access {
+            return None;
+        }
         let a = self.allocation.as_mut()?;
         if !a.memory_properties().contains(vk::MemoryPropertyFlags::HOST_COHERENT) {
             return None;
@@ -95,15 +100,29 @@ impl Drop for Buffer {
 }
 
 impl Context {
-    /// Creates a named buffer.
+    /// Creates a named buffer. A size past the device's limits (one allocation; one
+    /// storage-buffer binding, which every storage buffer here is bound as whole) is
+    /// [`EngineError::TooLarge`] naming the buffer, the size and the limit.
     pub fn create_buffer(&self, name: &str, desc: BufferDesc) -> Result<Buffer> {
+        let limits = self.info();
+        if desc.usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER) && desc.size > limits.max_storage_buffer_range {
+            return Err(EngineError::too_large(format!("bytes of buffer '{name}'"), desc.size, limits.max_storage_buffer_range, "the device's maxStorageBufferRange"));
+        }
+        if desc.size > limits.max_memory_allocation_size {
+            return Err(EngineError::too_large(format!("bytes of buffer '{name}'"), desc.size, limits.max_memory_allocation_size, "the device's maxMemoryAllocationSize"));
+        }
         let dev = &self.device.raw;
         let info = vk::BufferCreateInfo::default()
             .size(desc.size.max(4))
             .usage(desc.usage)
             .sharing_mode(vk::SharingMode::EXCLUSIVE);
         // SAFETY: valid device and create info.
-        let raw = unsafe { dev.create_buffer(&info, None) }.vk("vkCreateBuffer", name)?;
+        let raw = unsafe { dev.create_buffer(&info, None) }.map_err(|r| match r {
+            vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
+                EngineError::OutOfDeviceMemory { what: name.to_string(), bytes: desc.size }
+            }
+            r => crate::error::vk_error("vkCreateBuffer", name, r),
+        })?;
         // SAFETY: raw is a buffer of this device.
         let requirements = unsafe { dev.get_buffer_memory_requirements(raw) };
         let allocated = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner()).allocate(
@@ -128,7 +147,11 @@ impl Context {
                 });
             }
         };
-        let mut buffer = Buffer { raw, size: desc.size, allocation: Some(allocation), name: name.to_string(), device: self.device.clone() };
+        // Staging and readback buffers are always mapped; forcing staging only stops
+        // the host from reaching into device buffers.
+        let host_access = !(self.device.force_staging && desc.location == MemoryLocation::GpuOnly);
+        let mut buffer =
+            Buffer { raw, size: desc.size, allocation: Some(allocation), host_access, name: name.to_string(), device: self.device.clone() };
         let a = buffer.allocation.as_ref().expect("just allocated");
         // SAFETY: memory and offset come from an allocation made for these requirements.
         unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }.vk("vkBindBufferMemory", name)?;

@@ -32,6 +32,12 @@ pub struct ContextDesc {
     pub validation: bool,
     /// Fill every new buffer with [`POISON_WORD`], so code that relies on zeroed memory fails.
     pub poison_new_buffers: bool,
+    /// Never map device buffers, even where their memory is host-visible (lavapipe, and
+    /// integrated GPUs): uploads and readbacks go through staging buffers and copies, and
+    /// poisoning through `vkCmdFillBuffer`, the path a discrete GPU takes. `for_tests`
+    /// sets it from `DRAPE_FORCE_STAGING=1`, so the test command runs the GPU suite this
+    /// way once on a machine without a discrete GPU.
+    pub force_staging: bool,
 }
 
 impl ContextDesc {
@@ -41,6 +47,7 @@ impl ContextDesc {
             device_name: std::env::var("DRAPE_DEVICE").ok().filter(|s| !s.is_empty()),
             validation: true,
             poison_new_buffers: true,
+            force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
         }
     }
 }
@@ -85,6 +92,10 @@ pub struct DeviceInfo {
     /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float).
     pub float_atomic_add: bool,
     pub max_compute_workgroup_count: [u32; 3],
+    /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
+    pub max_storage_buffer_range: u64,
+    /// `maxMemoryAllocationSize` (Vulkan 1.1): the most bytes one allocation may have.
+    pub max_memory_allocation_size: u64,
 }
 
 impl fmt::Display for DeviceInfo {
@@ -109,6 +120,8 @@ pub struct Device {
     pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
     pub(crate) info: DeviceInfo,
     pub(crate) poison: bool,
+    /// See [`ContextDesc::force_staging`].
+    pub(crate) force_staging: bool,
     debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
     validation: Option<Arc<ValidationSink>>,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
@@ -214,6 +227,7 @@ impl Context {
             pipelines: Mutex::new(HashMap::new()),
             info: parts.info,
             poison: desc.poison_new_buffers,
+            force_staging: desc.force_staging,
             debug_instance,
             validation: sink,
             profile: Mutex::new(None),
@@ -429,7 +443,8 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
 
     let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
     let mut driver = vk::PhysicalDeviceDriverProperties::default();
-    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver);
+    let mut maintenance3 = vk::PhysicalDeviceMaintenance3Properties::default();
+    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver).push_next(&mut maintenance3);
     // SAFETY: valid chain of Vulkan 1.1/1.2 property structs.
     unsafe { instance.get_physical_device_properties2(c.physical, &mut p2) };
     let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
@@ -459,6 +474,8 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         timestamp_valid_bits,
         float_atomic_add,
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
+        max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
+        max_memory_allocation_size: maintenance3.max_memory_allocation_size,
     };
 
     // The rust-gpu modules declare the VulkanMemoryModel capability.

@@ -39,9 +39,10 @@ pub enum EngineError {
     #[error("kernel '{kernel}' needs {feature}, which the device does not have")]
     MissingFeature { kernel: &'static str, feature: &'static str },
 
-    /// A size beyond what the engine supports.
-    #[error("too many {what}: {requested} (the limit is {limit})")]
-    TooLarge { what: &'static str, requested: u64, limit: u64 },
+    /// A size beyond what the engine or the device supports; `limit_name` says whose
+    /// limit (a Vulkan device limit by its name, or the engine's own).
+    #[error("{what}: {requested} is more than {limit_name} allows ({limit})")]
+    TooLarge { what: String, requested: u64, limit: u64, limit_name: &'static str },
 
     /// An op was given an empty input it has no value for.
     #[error("{what} is empty: {why}")]
@@ -54,6 +55,13 @@ pub enum EngineError {
     /// A memory-allocator failure other than running out of memory.
     #[error("allocating '{what}': {detail}")]
     Allocation { what: String, detail: String },
+}
+
+impl EngineError {
+    /// [`EngineError::TooLarge`] for `what` (a count or a size, named with its unit).
+    pub fn too_large(what: impl Into<String>, requested: u64, limit: u64, limit_name: &'static str) -> Self {
+        Self::TooLarge { what: what.into(), requested, limit, limit_name }
+    }
 }
 
 fn list_devices(rejected: &[String]) -> String {

@@ -33,7 +33,8 @@ const QUERIES_PER_POOL: u32 = 256;
 /// of groups while that fits the 65,535 every device allows per dimension, else a 2-D
 /// grid; kernels dispatched this way index `id.y * num_workgroups.x * 256 + id.x`.
 pub fn flat_grid(invocations: u32) -> [u32; 3] {
-    let groups = invocations.div_ceil(256);
+    // In u64: `invocations + 255` must not wrap for counts near 2^32.
+    let groups = (u64::from(invocations).div_ceil(256)) as u32;
     if groups <= 65_535 {
         [groups, 1, 1]
     } else {
@@ -166,11 +167,13 @@ impl<'a> PassBuilder<'_, 'a> {
         );
         assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
         assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
+        // A grid past the device's limit is a size the caller could not foresee (an op
+        // sized by its input), so it is an error naming the pass, not a panic.
         let max = rec.ctx.info().max_compute_workgroup_count;
-        assert!(
-            groups.iter().zip(max).all(|(&g, m)| g <= m),
-            "pass '{name}': {groups:?} workgroups exceed the device limit {max:?}"
-        );
+        if let Some(axis) = (0..3).find(|&a| groups[a] > max[a]) {
+            let what = format!("workgroups along {} in pass '{name}' (grid {groups:?})", ["x", "y", "z"][axis]);
+            return Err(EngineError::too_large(what, u64::from(groups[axis]), u64::from(max[axis]), "the device's maxComputeWorkGroupCount"));
+        }
         if groups.contains(&0) {
             return Ok(());
         }

@@ -12,7 +12,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
-use crate::recorder::Recording;
+use crate::recorder::{flat_grid, Recording};
 
 /// A learning rate, constant or decaying exponentially from `initial` to `final_lr`
 /// over `steps` steps (log-linear interpolation, as 3DGS's position schedule), then
@@ -100,7 +100,7 @@ impl AdamGroup {
             .write(&self.m)
             .write(&self.v)
             .push(&pc)
-            .dispatch([pc.len.div_ceil(256), 1, 1])
+            .dispatch(flat_grid(pc.len))
     }
 
     /// The moments, for checkpoints: (m, v).

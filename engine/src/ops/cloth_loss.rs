@@ -62,10 +62,10 @@ impl Chamfer {
             return Err(EngineError::Empty { what: "the target point set", why: "the Chamfer distance needs a point on each side" });
         }
         if n > self.max_pred {
-            return Err(EngineError::TooLarge { what: "predicted Chamfer points", requested: n.into(), limit: self.max_pred.into() });
+            return Err(EngineError::too_large("predicted Chamfer points", n.into(), self.max_pred.into(), "the Chamfer plan"));
         }
         if m > self.max_target {
-            return Err(EngineError::TooLarge { what: "target Chamfer points", requested: m.into(), limit: self.max_target.into() });
+            return Err(EngineError::too_large("target Chamfer points", m.into(), self.max_target.into(), "the Chamfer plan"));
         }
         let sigma2 = sigma * sigma;
         self.last.set((n, m, sigma2));

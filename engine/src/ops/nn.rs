@@ -291,7 +291,7 @@ impl Mlp {
         let max_rows_u32 = u32::try_from(max_rows)
             .ok()
             .filter(|&r| u64::from(r) * 1024 <= u64::from(u32::MAX))
-            .ok_or(EngineError::TooLarge { what: "MLP rows", requested: max_rows as u64, limit: u64::from(u32::MAX) / 1024 })?;
+            .ok_or(EngineError::too_large("MLP rows", max_rows as u64, u64::from(u32::MAX) / 1024, "the MLP (u32 indices over 1,024 columns)"))?;
         let acts = desc.activations();
         let mut layers = Vec::new();
         let mut partial_len = 0usize;

@@ -12,7 +12,7 @@ use drape_shared::radix_sort::{self, pass_count, pass_params, RADIX_BUCKETS, SOR
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
-use crate::error::Result;
+use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
 use crate::ops::scan::ExclusiveScan;
 use crate::recorder::Recording;
@@ -32,7 +32,9 @@ impl RadixSort {
 
     /// Plans sorts of up to `max_len` pairs.
     pub fn new(ctx: &Context, max_len: u32) -> Result<Self> {
-        assert!(max_len <= Self::LIMIT, "sort of {max_len} keys exceeds the limit of {}", Self::LIMIT);
+        if max_len > Self::LIMIT {
+            return Err(EngineError::too_large("keys to sort", max_len.into(), Self::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"));
+        }
         let bytes = u64::from(max_len) * 4;
         let histogram_len = RADIX_BUCKETS * radix_sort::block_count(max_len);
         Ok(Self {
@@ -60,7 +62,9 @@ impl RadixSort {
         key_bits: u32,
     ) -> Result<()> {
         assert!(key_bits <= 32, "key_bits must be at most 32, got {key_bits}");
-        assert!(len <= self.max_len, "sort of {len} keys with a plan for {}", self.max_len);
+        if len > self.max_len {
+            return Err(EngineError::too_large("keys to sort", len.into(), self.max_len.into(), "the sort's plan"));
+        }
         let bytes = u64::from(len) * 4;
         assert!(bytes <= keys.size && bytes <= values.size, "sort of {len} pairs in buffers of {} and {} bytes", keys.size, values.size);
         if len <= 1 {
@@ -103,7 +107,7 @@ impl RadixSort {
 /// For embedding applications and tests; a frame loop keeps a plan and records.
 pub fn sort_pairs_host(ctx: &Context, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
     assert_eq!(keys.len(), values.len(), "keys and values differ in length");
-    let len = u32::try_from(keys.len()).expect("at most 2^32 - 1 keys");
+    let len = u32::try_from(keys.len()).map_err(|_| EngineError::too_large("keys to sort", keys.len() as u64, RadixSort::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"))?;
     let mut key_buf = ctx.upload("sort keys", keys)?;
     let mut value_buf = ctx.upload("sort values", values)?;
     let plan = RadixSort::new(ctx, len)?;

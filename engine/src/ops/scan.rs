@@ -10,7 +10,7 @@ use drape_shared::scan::{block_count, ScanParams, SCAN_BLOCK_LEN};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
-use crate::error::Result;
+use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
 use crate::recorder::Recording;
 
@@ -30,7 +30,9 @@ impl ExclusiveScan {
 
     /// Plans scans of up to `max_len` elements; `label` prefixes pass names.
     pub fn new(ctx: &Context, label: &str, max_len: u32) -> Result<Self> {
-        assert!(max_len <= Self::LIMIT, "scan of {max_len} elements exceeds the limit of {}", Self::LIMIT);
+        if max_len > Self::LIMIT {
+            return Err(EngineError::too_large("elements to scan", max_len.into(), Self::LIMIT.into(), "the scan (65,535 workgroups of its block)"));
+        }
         let mut level_sums = Vec::new();
         let mut len = max_len;
         while len > SCAN_BLOCK_LEN {
@@ -53,7 +55,9 @@ impl ExclusiveScan {
     /// Records an in-place exclusive scan of the first `len` elements of `data`.
     /// The caller puts barriers before (if `data` was just written) and after.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32) -> Result<()> {
-        assert!(len <= self.max_len, "scan of {len} elements with a plan for {}", self.max_len);
+        if len > self.max_len {
+            return Err(EngineError::too_large("elements to scan", len.into(), self.max_len.into(), "the scan's plan"));
+        }
         assert!(u64::from(len) * 4 <= data.size, "scan of {len} elements in '{}' of {} bytes", data.name(), data.size);
         self.record_level(rec, data, len, 0)
     }
@@ -94,7 +98,7 @@ impl ExclusiveScan {
 /// Scans host data on the GPU in one submission: upload, scan, read back.
 /// For embedding applications and tests; a frame loop keeps a plan and records.
 pub fn exclusive_scan_host(ctx: &Context, data: &[u32]) -> Result<Vec<u32>> {
-    let len = u32::try_from(data.len()).expect("at most 2^32 - 1 elements");
+    let len = u32::try_from(data.len()).map_err(|_| EngineError::too_large("elements to scan", data.len() as u64, ExclusiveScan::LIMIT.into(), "the scan (65,535 workgroups of its block)"))?;
     let mut buf = ctx.upload("scan data", data)?;
     let plan = ExclusiveScan::new(ctx, "scan", len)?;
     let mut rec = ctx.record("exclusive_scan_host")?;

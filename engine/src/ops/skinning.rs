@@ -11,7 +11,7 @@ use drape_shared::skinning::{dot3, rotation_minus_identity_t, transform_delta, S
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
-use crate::error::Result;
+use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
 use crate::recorder::Recording;
 
@@ -26,7 +26,12 @@ pub struct Skinning {
 
 impl Skinning {
     pub fn new(ctx: &Context, max_count: usize) -> Result<Self> {
-        let max_count = u32::try_from(max_count).expect("at most 2^32 - 1 points");
+        // Beyond 65,535 workgroups of 256 the 1-D dispatches would not fit; say so now.
+        let limit = 65_535u64 * 256;
+        if max_count as u64 > limit {
+            return Err(EngineError::too_large("points to skin", max_count as u64, limit, "skinning (65,535 workgroups of 256)"));
+        }
+        let max_count = max_count as u32;
         let groups = max_count.div_ceil(TRANSFORM_GRAD_CHUNK).max(1);
         Ok(Self {
             max_count,
@@ -36,7 +41,9 @@ impl Skinning {
 
     /// Records `skinned = skin(points)`.
     pub fn record_fwd<'a>(&'a self, rec: &mut Recording<'a>, transforms: &'a Buffer, weights: &'a Buffer, points: &'a Buffer, skinned: &'a Buffer, count: u32) -> Result<()> {
-        assert!(count <= self.max_count, "{count} points for a plan of {}", self.max_count);
+        if count > self.max_count {
+            return Err(EngineError::too_large("points to skin", count.into(), self.max_count.into(), "the skinning plan"));
+        }
         let p = SkinParams { count, groups: 0, _pad: [0; 2] };
         rec.pass("skinning.fwd", Kernel::SkinningSkinFwd)
             .read(transforms)
@@ -61,7 +68,9 @@ impl Skinning {
         grad_transforms: &'a Buffer,
         count: u32,
     ) -> Result<()> {
-        assert!(count <= self.max_count, "{count} points for a plan of {}", self.max_count);
+        if count > self.max_count {
+            return Err(EngineError::too_large("points to skin", count.into(), self.max_count.into(), "the skinning plan"));
+        }
         let groups = count.div_ceil(TRANSFORM_GRAD_CHUNK);
         let p = SkinParams { count, groups, _pad: [0; 2] };
         // The two passes read the same inputs and write different buffers: no barrier.

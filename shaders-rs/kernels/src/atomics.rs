@@ -32,8 +32,15 @@ pub fn max_u32_workgroup(slot: &mut u32, value: u32) {
 /// `*slot += value` for a u32 counter.
 #[inline]
 pub fn add_u32(slot: &mut u32, value: u32) {
+    fetch_add_u32(slot, value);
+}
+
+/// `*slot += value` (wrapping) for a u32 counter; returns the value before the add, so
+/// that the caller can see whether its own add wrapped.
+#[inline]
+pub fn fetch_add_u32(slot: &mut u32, value: u32) -> u32 {
     // SAFETY: see the module header.
-    unsafe { atomic_i_add::<u32, DEVICE, RELAXED>(slot, value) };
+    unsafe { atomic_i_add::<u32, DEVICE, RELAXED>(slot, value) }
 }
 
 /// `grads[index] += value` with a float atomic.

@@ -22,6 +22,14 @@ use spirv_std::spirv;
 
 use crate::atomics;
 
+/// Index of an invocation of the 1-D kernels, which the engine dispatches on its
+/// `flat_grid` (a row of up to 65,535 workgroups of 256, then more rows), so that counts
+/// past 16.7M fit the workgroup-count limit every device has.
+#[inline]
+fn flat_index(id: UVec3, groups: UVec3) -> u32 {
+    id.y * groups.x * 256 + id.x
+}
+
 fn load_gaussian(
     i: usize,
     degree: u32,
@@ -53,6 +61,7 @@ fn load_gaussian(
 #[spirv(compute(threads(256)))]
 pub fn project_fwd(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
@@ -64,8 +73,9 @@ pub fn project_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] order: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] dropped: &mut [u32],
 ) {
-    let i = id.x as usize;
-    if id.x >= frame.count {
+    let index = flat_index(id, groups);
+    let i = index as usize;
+    if index >= frame.count {
         return;
     }
     let cam = Camera::<f32>::from_frame(frame);
@@ -100,24 +110,51 @@ pub fn project_fwd(
     splats[i] = out;
     // Culled splats sort last; they emit no intersections either way.
     depth_keys[i] = if out.tiles > 0 { p.depth.to_bits() } else { u32::MAX };
-    order[i] = id.x;
+    order[i] = index;
 }
 
 /// `counts[j]` = tiles of the `j`-th splat in depth order; `counts[n]` = 0, so that
-/// after the exclusive scan `offsets[n]` is the number of intersections.
+/// after the exclusive scan `offsets[n]` is the number of intersections. The scan is
+/// u32 and wraps past 2^32 - 1, so the total is also summed here without wrap:
+/// `total[0]` (low word) and `total[1]` (carries), zero-filled before. A workgroup's
+/// sum cannot wrap: 256 splats of at most 2^24 tiles each (the renderer refuses larger
+/// tile grids).
+#[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(256)))]
 pub fn gather_counts(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lid: u32,
     #[spirv(push_constant)] counts_pc: &SplatCounts,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] order: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] counts: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] total: &mut [u32],
+    #[spirv(workgroup)] group_sum: &mut [u32; 1],
 ) {
-    let j = id.x;
+    let j = flat_index(id, groups);
+    if lid == 0 {
+        group_sum[0] = 0;
+    }
+    barrier();
+    let mut tiles = 0;
     if j < counts_pc.count {
-        counts[j as usize] = splats[order[j as usize] as usize].tiles;
+        tiles = splats[order[j as usize] as usize].tiles;
+        counts[j as usize] = tiles;
     } else if j == counts_pc.count {
         counts[j as usize] = 0;
+    }
+    if tiles > 0 {
+        atomics::add_u32_workgroup(&mut group_sum[0], tiles);
+    }
+    barrier();
+    if lid == 0 && group_sum[0] > 0 {
+        let sum = group_sum[0];
+        // Each add sees the value before it: exactly the adds that wrap carry.
+        let before = atomics::fetch_add_u32(&mut total[0], sum);
+        if before > u32::MAX - sum {
+            atomics::add_u32(&mut total[1], 1);
+        }
     }
 }
 
@@ -125,6 +162,7 @@ pub fn gather_counts(
 #[spirv(compute(threads(256)))]
 pub fn emit_intersections(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] order: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] splats: &[ProjectedSplat],
@@ -132,10 +170,11 @@ pub fn emit_intersections(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] isect_keys: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] isect_values: &mut [u32],
 ) {
-    let j = id.x as usize;
-    if id.x >= frame.count {
+    let index = flat_index(id, groups);
+    if index >= frame.count {
         return;
     }
+    let j = index as usize;
     let g = order[j];
     let s = splats[g as usize];
     if s.tiles == 0 {
@@ -159,11 +198,12 @@ pub fn emit_intersections(
 #[spirv(compute(threads(256)))]
 pub fn tile_ranges(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] counts_pc: &SplatCounts,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] isect_keys: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] ranges: &mut [u32],
 ) {
-    let k = id.x;
+    let k = flat_index(id, groups);
     let m = counts_pc.intersections;
     if k >= m {
         return;
@@ -425,6 +465,7 @@ rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backwa
 #[spirv(compute(threads(256)))]
 pub fn project_bwd(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
@@ -439,10 +480,11 @@ pub fn project_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_opacity_logits: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_sh: &mut [f32],
 ) {
-    let i = id.x as usize;
-    if id.x >= frame.count {
+    let index = flat_index(id, groups);
+    if index >= frame.count {
         return;
     }
+    let i = index as usize;
     let k_count = sh_coeffs(frame.sh_degree);
     let mut out = drape_shared::splat::project::GaussianGrad::<f32>::zero();
     if splats[i].tiles > 0 {

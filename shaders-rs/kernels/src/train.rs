@@ -1,4 +1,6 @@
-//! Per-element training kernels: Adam and the image loss gradients (MSE, L1).
+//! Per-element training kernels: Adam and the image loss gradients (MSE, L1). All are
+//! dispatched on the engine's `flat_grid` (index `id.y * num_workgroups.x * 256 + id.x`),
+//! so a parameter group may pass 16.7M floats (6M Gaussians' SH is 288M).
 //!
 //! `adam_step`: `params`, `grads`, `m`, `v` of `len` floats; updates params, m, v in place
 //! (`drape_shared::adam::adam_update` is the math). `mse_grad`: `pred`, `target` of
@@ -11,16 +13,18 @@ use spirv_std::spirv;
 #[spirv(compute(threads(256)))]
 pub fn adam_step(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] p: &AdamParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grads: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] m: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] v: &mut [f32],
 ) {
-    let i = id.x as usize;
-    if id.x >= p.len {
+    let index = id.y * groups.x * 256 + id.x;
+    if index >= p.len {
         return;
     }
+    let i = index as usize;
     let (np, nm, nv) = adam_update(params[i], grads[i], m[i], v[i], p);
     params[i] = np;
     m[i] = nm;
@@ -30,16 +34,18 @@ pub fn adam_step(
 #[spirv(compute(threads(256)))]
 pub fn mse_grad(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] p: &LossParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pred: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] target: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] squared_error: &mut [f32],
 ) {
-    let i = id.x as usize;
-    if id.x >= p.len {
+    let index = id.y * groups.x * 256 + id.x;
+    if index >= p.len {
         return;
     }
+    let i = index as usize;
     let d = pred[i] - target[i];
     grad[i] = 2.0 * d * p.scale;
     squared_error[i] = d * d;
@@ -50,16 +56,18 @@ pub fn mse_grad(
 #[spirv(compute(threads(256)))]
 pub fn l1_grad(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] p: &LossParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pred: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] target: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] abs_error: &mut [f32],
 ) {
-    let i = id.x as usize;
-    if id.x >= p.len {
+    let index = id.y * groups.x * 256 + id.x;
+    if index >= p.len {
         return;
     }
+    let i = index as usize;
     let d = pred[i] - target[i];
     grad[i] = if d > 0.0 { p.scale } else if d < 0.0 { -p.scale } else { 0.0 };
     abs_error[i] = d.abs();
@@ -69,14 +77,16 @@ pub fn l1_grad(
 #[spirv(compute(threads(256)))]
 pub fn add_into(
     #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] p: &LossParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] src: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
 ) {
-    let i = id.x as usize;
-    if id.x >= p.len {
+    let index = id.y * groups.x * 256 + id.x;
+    if index >= p.len {
         return;
     }
+    let i = index as usize;
     dst[i] += src[i];
 }
 

@@ -256,9 +256,9 @@ impl HumanLayer {
                 .write(&self.lbs_grad)
                 .write(&self.weight_sq_error)
                 .push(&p)
-                .dispatch([len.div_ceil(256), 1, 1])?;
+                .dispatch(flat_grid(len))?;
             rec.barrier();
-            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read(&self.lbs_grad).write(self.deformation.head_grad(0)).push(&p).dispatch([len.div_ceil(256), 1, 1])?;
+            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read(&self.lbs_grad).write(self.deformation.head_grad(0)).push(&p).dispatch(flat_grid(len))?;
             rec.barrier();
         }
         self.record_decoder_backward(rec, use_atomics, true)
@@ -280,7 +280,7 @@ impl HumanLayer {
         rec.barrier();
         if to_means {
             let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
-            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read(&self.grad_points).write(&self.grad_means).push(&p).dispatch([p.len.div_ceil(256), 1, 1])?;
+            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read(&self.grad_points).write(&self.grad_means).push(&p).dispatch(flat_grid(p.len))?;
             rec.barrier();
         }
         Ok(())
@@ -339,7 +339,7 @@ impl HumanLayer {
                     .write(self.deformation.head_grad(0))
                     .write(&self.weight_sq_error)
                     .push(&p)
-                    .dispatch([p.len.div_ceil(256), 1, 1])?;
+                    .dispatch(flat_grid(p.len))?;
                 rec.barrier();
                 if step < steps {
                     self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;

@@ -7,7 +7,7 @@ use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
 use crate::ops::splat::render::GaussianBuffers;
-use crate::recorder::Recording;
+use crate::recorder::{flat_grid, Recording};
 
 /// Learning rate of each parameter group.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -73,7 +73,7 @@ impl GaussianAdam {
                 .write(m[i])
                 .write(v[i])
                 .push(&pc)
-                .dispatch([len.div_ceil(256), 1, 1])?;
+                .dispatch(flat_grid(len))?;
         }
         Ok(())
     }

@@ -15,6 +15,7 @@ use crate::buffer::BufferDesc;
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
+use crate::recorder::flat_grid;
 use crate::ops::splat::adam::{GaussianAdam, LearningRates};
 use crate::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use crate::ops::splat::scene::{GaussianCloud, Layer, PinholeCamera, RenderSettings};
@@ -148,7 +149,7 @@ pub fn fit_image(ctx: &Context, target: &Image, cfg: &FitConfig, report_every: u
                 .write(&grad_rgb)
                 .write(&squared_error)
                 .push(&loss)
-                .dispatch([loss.len.div_ceil(256), 1, 1])?;
+                .dispatch(flat_grid(loss.len))?;
             rec.submit_and_wait()?;
         }
         if it == 1 || it % report_every.max(1) == 0 || it == cfg.iterations {

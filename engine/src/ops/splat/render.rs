@@ -2,9 +2,12 @@
 //!
 //! Forward is two submissions. First: upload the frame parameters, `project_fwd`,
 //! a stable 32-bit radix sort of the splats by depth, `gather_counts` (tiles per
-//! splat in depth order, plus a trailing 0) and an exclusive scan, after which the
-//! host reads the number of tile intersections and grows the intersection buffers if
-//! needed. Second: `emit_intersections` (tile ids in depth order), a stable radix sort
+//! splat in depth order, plus a trailing 0, and their total summed without wrap) and
+//! an exclusive scan, after which the host reads the number of tile intersections and
+//! grows the intersection buffers if needed (or refuses a total past what one sort or
+//! one buffer binding can hold, with `TooLarge`).
+//! Per-Gaussian and per-intersection kernels run on `flat_grid`, so no count the
+//! buffers allow passes the workgroup-count limit. Second: `emit_intersections` (tile ids in depth order), a stable radix sort
 //! by tile id over only the bits the tile count needs (so each tile's list stays in
 //! depth order), `tile_ranges`, and `rasterize_fwd`.
 //! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`), then
@@ -19,13 +22,12 @@ use crate::kernels::Kernel;
 use crate::ops::radix_sort::RadixSort;
 use crate::ops::scan::ExclusiveScan;
 use crate::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
-use crate::recorder::PassTimings;
+use crate::recorder::{flat_grid as groups, PassTimings};
 
-const GROUP: u32 = 256;
-
-fn groups(n: u32) -> [u32; 3] {
-    [n.div_ceil(GROUP), 1, 1]
-}
+/// Most tiles an image may have: `gather_counts` sums 256 splats' tile counts in u32
+/// per workgroup, which cannot wrap below 2^24 tiles each. (One colour buffer within a
+/// 4 GiB binding already keeps images far smaller: about 1.4M tiles.)
+const MAX_TILES: u64 = 1 << 24;
 
 fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
     ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
@@ -48,7 +50,7 @@ impl GaussianBuffers {
     pub fn new(ctx: &Context, label: &str, count: usize, sh_degree: u32) -> Result<Self> {
         let k = sh_coeffs(sh_degree);
         Ok(Self {
-            count: u32::try_from(count).map_err(|_| EngineError::TooLarge { what: "Gaussians", requested: count as u64, limit: u64::from(u32::MAX) })?,
+            count: u32::try_from(count).map_err(|_| EngineError::too_large("Gaussians", count as u64, u64::from(u32::MAX), "u32 indices"))?,
             sh_degree,
             means: f32_buffer(ctx, &format!("{label} means"), 3 * count)?,
             log_scales: f32_buffer(ctx, &format!("{label} log_scales"), 3 * count)?,
@@ -152,6 +154,8 @@ pub struct SplatRenderer {
     order: Buffer,
     counts: Buffer,
     dropped: Buffer,
+    /// The intersection total as (low word, carries), from `gather_counts`.
+    total: Buffer,
     depth_sort: RadixSort,
     count_scan: ExclusiveScan,
     isect_keys: Buffer,
@@ -168,13 +172,29 @@ impl SplatRenderer {
     pub const MAX_INTERSECTIONS: u32 = RadixSort::LIMIT;
 
     pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
-        assert!(width > 0 && height > 0, "image size must be positive");
-        let n = u32::try_from(max_count).map_err(|_| EngineError::TooLarge { what: "Gaussians", requested: max_count as u64, limit: u64::from(RadixSort::LIMIT) })?;
-        if n > RadixSort::LIMIT {
-            return Err(EngineError::TooLarge { what: "Gaussians", requested: u64::from(n), limit: u64::from(RadixSort::LIMIT) });
+        if width == 0 || height == 0 {
+            return Err(EngineError::Empty { what: "the image", why: "width and height must be at least 1 pixel" });
         }
-        let pixels = (width * height) as usize;
-        let tiles = (width.div_ceil(16) * height.div_ceil(16)) as usize;
+        // The depth sort holds every Gaussian (and the count scan one more).
+        let sort_limit = u64::from(RadixSort::LIMIT.min(ExclusiveScan::LIMIT - 1));
+        if max_count as u64 > sort_limit {
+            return Err(EngineError::too_large("Gaussians", max_count as u64, sort_limit, "one depth sort (65,535 workgroups of its block)"));
+        }
+        let n = max_count as u32;
+        // In u64: a 100,000 x 100,000 image has more pixels than u32 counts.
+        let pixels64 = u64::from(width) * u64::from(height);
+        let colour_bytes = 12 * pixels64;
+        let binding = ctx.info().max_storage_buffer_range;
+        if colour_bytes > binding {
+            return Err(EngineError::too_large(format!("bytes of the colour buffer of a {width}x{height} image"), colour_bytes, binding, "the device's maxStorageBufferRange"));
+        }
+        let tiles64 = u64::from(width.div_ceil(16)) * u64::from(height.div_ceil(16));
+        let grid = ctx.info().max_compute_workgroup_count;
+        if tiles64 > MAX_TILES || width.div_ceil(16) > grid[0] || height.div_ceil(16) > grid[1] {
+            return Err(EngineError::too_large(format!("16x16 tiles of a {width}x{height} image"), tiles64, MAX_TILES.min(u64::from(grid[0]) * u64::from(grid[1])), "the rasterizer (one workgroup per tile)"));
+        }
+        let pixels = pixels64 as usize;
+        let tiles = tiles64 as usize;
         let initial_isect = n.max(1024);
         let splat_bytes = std::mem::size_of::<ProjectedSplat>() as u64;
         Ok(Self {
@@ -189,6 +209,7 @@ impl SplatRenderer {
             order: f32_buffer(ctx, "splat depth order", n as usize)?,
             counts: f32_buffer(ctx, "splat tile counts", n as usize + 1)?,
             dropped: f32_buffer(ctx, "splat dropped counter", 1)?,
+            total: f32_buffer(ctx, "splat intersection total", 2)?,
             depth_sort: RadixSort::new(ctx, n)?,
             count_scan: ExclusiveScan::new(ctx, "splat.scan", n + 1)?,
             isect_keys: f32_buffer(ctx, "splat intersection keys", initial_isect as usize)?,
@@ -217,14 +238,22 @@ impl SplatRenderer {
         (&self.pixels.rgb, &self.pixels.alpha, &self.pixels.depth)
     }
 
-    fn grow_intersections(&mut self, needed: u32) -> Result<()> {
-        if needed <= self.isect_sort.max_len() {
+    /// Most intersections this device can take: one sort, and one buffer binding of keys.
+    pub fn max_intersections(&self) -> u64 {
+        u64::from(Self::MAX_INTERSECTIONS).min(self.ctx.info().max_storage_buffer_range / 4)
+    }
+
+    fn grow_intersections(&mut self, needed: u64) -> Result<()> {
+        if needed <= u64::from(self.isect_sort.max_len()) {
             return Ok(());
         }
-        if needed > Self::MAX_INTERSECTIONS {
-            return Err(EngineError::TooLarge { what: "tile intersections", requested: u64::from(needed), limit: u64::from(Self::MAX_INTERSECTIONS) });
+        let limit = self.max_intersections();
+        if needed > limit {
+            let whose = if limit < u64::from(Self::MAX_INTERSECTIONS) { "the device's maxStorageBufferRange (4 bytes each)" } else { "one radix sort (65,535 workgroups of its block)" };
+            return Err(EngineError::too_large(format!("tile intersections of a {}x{} frame", self.width, self.height), needed, limit, whose));
         }
-        let capacity = needed.checked_next_power_of_two().unwrap_or(needed).min(Self::MAX_INTERSECTIONS);
+        let needed = needed as u32;
+        let capacity = needed.checked_next_power_of_two().unwrap_or(needed).min(limit as u32);
         self.isect_keys = f32_buffer(&self.ctx, "splat intersection keys", capacity as usize)?;
         self.isect_values = f32_buffer(&self.ctx, "splat intersection values", capacity as usize)?;
         self.isect_sort = RadixSort::new(&self.ctx, capacity)?;
@@ -234,7 +263,9 @@ impl SplatRenderer {
     /// Renders `gaussians` through `camera` into the renderer's per-pixel buffers.
     pub fn forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
         assert_eq!((camera.width, camera.height), (self.width, self.height), "camera size differs from the renderer's");
-        assert!(gaussians.count <= self.max_count, "{} Gaussians for a renderer of {}", gaussians.count, self.max_count);
+        if gaussians.count > self.max_count {
+            return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
+        }
         let n = gaussians.count;
         let fp = frame_params(camera, settings, gaussians.sh_degree, n as usize);
         self.frame_params = fp;
@@ -245,6 +276,7 @@ impl SplatRenderer {
         let mut timings = {
             let mut rec = ctx.record("splat forward: project and bin")?;
             rec.fill(&self.dropped, 0);
+            rec.fill(&self.total, 0);
             rec.barrier();
             rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
                 .read(&self.frame)
@@ -261,17 +293,21 @@ impl SplatRenderer {
                 .read(&self.order)
                 .read(&self.splats)
                 .write(&self.counts)
+                .write(&self.total)
                 .push(&counts_pc)
                 .dispatch(groups(n + 1))?;
             rec.barrier();
             self.count_scan.record(&mut rec, &self.counts, n + 1)?;
             rec.submit_and_wait()?
         };
-        // Only the scan's last element, the total, comes back.
-        let total = ctx.read_buffer_at::<u32>(&mut self.counts, n as usize, 1)?[0];
+        // Only the total (two words) comes back. The scan wraps past 2^32 - 1; the total
+        // from gather_counts does not, so an overflow is refused before anything is
+        // emitted into buffers sized by a wrapped count.
+        let words = ctx.read_buffer::<u32>(&mut self.total, 2)?;
+        let total64 = u64::from(words[0]) | (u64::from(words[1]) << 32);
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
-        // The scan wraps on overflow; more than 2^32 - 1 intersections also cannot be sorted.
-        self.grow_intersections(total)?;
+        self.grow_intersections(total64)?;
+        let total = total64 as u32;
         self.intersections = total;
 
         let tiles = fp.tiles_x * fp.tiles_y;

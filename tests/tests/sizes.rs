@@ -1,0 +1,175 @@
+//! Sizes that scale (lavapipe, validation on): counts past one row of 65,535
+//! workgroups run on the 2-D grid, the intersection total is summed without wrap, and
+//! every size past a limit is `EngineError::TooLarge` naming the size and the limit,
+//! never a panic and never a wrong image.
+
+use drape_engine::ops::adam::{AdamGroup, LrSchedule};
+use drape_engine::ops::radix_sort::RadixSort;
+use drape_engine::ops::scan::ExclusiveScan;
+use drape_engine::ops::splat::reference;
+use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, RenderSettings};
+use drape_engine::{EngineError, Kernel};
+use drape_shared::adam::{adam_update, LossParams};
+use drape_shared::splat::layout::MAX_SH_COEFFS;
+use drape_shared::splat::project::Gaussian;
+use drape_tests::gpu;
+use drape_tests::splat::camera;
+use rand::{Rng, SeedableRng};
+
+fn gaussian(mean: [f32; 3], scale: f32, opacity_logit: f32, rgb: [f32; 3]) -> Gaussian<f32> {
+    let mut sh = [[0.0; 3]; MAX_SH_COEFFS];
+    sh[0] = rgb.map(|c| (c - 0.5) / 0.282_094_8);
+    Gaussian { mean, log_scale: [scale.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit, sh }
+}
+
+fn expect_too_large<T>(result: Result<T, EngineError>, what: &str) -> String {
+    match result {
+        Err(e @ EngineError::TooLarge { .. }) => e.to_string(),
+        Err(e) => panic!("{what}: expected TooLarge, got {e}"),
+        Ok(_) => panic!("{what}: expected TooLarge, got Ok"),
+    }
+}
+
+/// 20M tile intersections (the per-intersection pass needs 78K workgroups, past one
+/// row of 65,535) through the whole forward at 1920x1080, against the CPU reference.
+#[test]
+fn twenty_million_intersections_render_as_the_reference_does() {
+    let gpu = gpu();
+    let (w, h) = (1920, 1080);
+    let cam = camera(w, h);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(31);
+    let mut cloud = GaussianCloud::new(0);
+    // Large splats (a third to most of the view) with high opacity: every one covers
+    // thousands of tiles, but a pixel saturates after a few, so rasterizing stays fast.
+    for _ in 0..6_500 {
+        let mean = [rng.random_range(-1.5..1.5), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+        let colour = [rng.random_range(0.0..1.0), rng.random_range(0.0..1.0), rng.random_range(0.0..1.0)];
+        cloud.push(&gaussian(mean, rng.random_range(0.35..0.75), rng.random_range(2.0..5.0), colour), Layer::Scene);
+    }
+    let settings = RenderSettings::default();
+    let gaussians = GaussianBuffers::upload(&gpu, "gaussians", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(&gpu, w, h, cloud.len()).expect("renderer");
+    let stats = renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let image = renderer.read_image().expect("read");
+    let frame = frame_params(&cam, &settings, 0, cloud.len());
+    let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
+    eprintln!("{} intersections (CPU {}), {} blend steps", stats.intersections, cpu.intersections, image.blend_steps);
+    assert!(stats.intersections > 20_000_000, "the scene must reach 20M intersections, got {}", stats.intersections);
+    assert!(u64::from(stats.intersections) > 65_535 * 256, "past one row of workgroups");
+    // Same count on both sides on lavapipe (no fused multiply-add); a GPU that fuses
+    // may move a pair at a tile edge: 1e-4 relative.
+    let d = (i64::from(stats.intersections) - cpu.intersections as i64).unsigned_abs();
+    assert!(d as f64 <= 1e-4 * cpu.intersections as f64, "intersections GPU {} vs CPU {}", stats.intersections, cpu.intersections);
+    // Every 7th pixel (a sample spread over every tile): the forward test's 1e-5 on
+    // colour and alpha (same f32 code both sides); depth is Σ w z with z near 5: 1e-5
+    // relative to it.
+    let mut checked = 0;
+    for p in (0..(w * h) as usize).step_by(7) {
+        for c in 0..3 {
+            assert!((image.rgb[3 * p + c] - cpu.rgb[3 * p + c]).abs() <= 1e-5, "pixel {p} channel {c}: {} vs {}", image.rgb[3 * p + c], cpu.rgb[3 * p + c]);
+        }
+        assert!((image.alpha[p] - cpu.alpha[p]).abs() <= 1e-5, "pixel {p} alpha");
+        assert!((image.depth[p] - cpu.depth[p]).abs() <= 1e-5 * cpu.depth[p].abs().max(1.0), "pixel {p} depth {} vs {}", image.depth[p], cpu.depth[p]);
+        checked += 1;
+    }
+    assert!(image.alpha.iter().filter(|&&a| a > 0.5).count() > (w * h / 2) as usize, "the splats cover most of the view");
+    eprintln!("{checked} pixels compared");
+}
+
+/// More than 2^32 - 1 intersections: the u32 scan would wrap to 48,904 and the frame
+/// would be rendered from a wrong count; the total is summed without wrap and refused.
+#[test]
+fn an_intersection_total_past_u32_is_refused_with_its_exact_size() {
+    let gpu = gpu();
+    let (w, h) = (1920, 1080);
+    let cam = camera(w, h);
+    let tiles: u64 = 120 * 68;
+    // ceil(2^32 / 8160) splats, each covering every tile.
+    let n = (1u64 << 32).div_ceil(tiles) as usize;
+    let expected = n as u64 * tiles;
+    assert!(expected > u64::from(u32::MAX) && (expected as u32) < 100_000);
+    let mut cloud = GaussianCloud::new(0);
+    let big = gaussian([0.0, 0.0, 0.0], 1e3, 3.0, [0.5, 0.5, 0.5]);
+    for _ in 0..n {
+        cloud.push(&big, Layer::Scene);
+    }
+    let gaussians = GaussianBuffers::upload(&gpu, "gaussians", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(&gpu, w, h, n).expect("renderer");
+    let text = expect_too_large(renderer.forward(&gaussians, &cam, &RenderSettings::default()), "4.3G intersections");
+    assert!(text.contains(&expected.to_string()) && text.contains("1920x1080"), "{text}");
+}
+
+#[test]
+fn an_image_past_one_binding_is_too_large_naming_its_size() {
+    let gpu = gpu();
+    let text = expect_too_large(SplatRenderer::new(&gpu, 100_000, 100_000, 10), "100000x100000");
+    assert!(text.contains("100000x100000") && text.contains("120000000000") && text.contains("maxStorageBufferRange"), "{text}");
+    let err = SplatRenderer::new(&gpu, 0, 64, 10).err().expect("a zero width is refused");
+    assert!(err.to_string().contains("at least 1 pixel"), "{err}");
+}
+
+#[test]
+fn plans_and_buffers_past_the_limits_are_too_large() {
+    let gpu = gpu();
+    let text = expect_too_large(ExclusiveScan::new(&gpu, "scan", ExclusiveScan::LIMIT + 1), "scan plan");
+    assert!(text.contains("elements to scan"), "{text}");
+    let text = expect_too_large(RadixSort::new(&gpu, RadixSort::LIMIT + 1), "sort plan");
+    assert!(text.contains("keys to sort"), "{text}");
+    let info = gpu.info().clone();
+    eprintln!("maxStorageBufferRange {}, maxMemoryAllocationSize {}", info.max_storage_buffer_range, info.max_memory_allocation_size);
+    assert!(info.max_storage_buffer_range >= 1 << 27, "Vulkan guarantees 2^27");
+    let text = expect_too_large(gpu.create_buffer("huge", drape_engine::BufferDesc::gpu_only(info.max_storage_buffer_range + 4)), "buffer");
+    assert!(text.contains("'huge'") && text.contains("maxStorageBufferRange"), "{text}");
+    let text = expect_too_large(SplatRenderer::new(&gpu, 64, 64, RadixSort::LIMIT as usize + 1), "Gaussians");
+    assert!(text.contains("Gaussians"), "{text}");
+    // A renderer made for 10 Gaussians given 11.
+    let mut renderer = SplatRenderer::new(&gpu, 64, 64, 10).expect("renderer");
+    let mut cloud = GaussianCloud::new(0);
+    for i in 0..11 {
+        cloud.push(&gaussian([0.1 * i as f32, 0.0, 0.0], 0.1, 1.0, [0.5; 3]), Layer::Scene);
+    }
+    let g = GaussianBuffers::upload(&gpu, "g", &cloud).expect("upload");
+    let text = expect_too_large(renderer.forward(&g, &camera(64, 64), &RenderSettings::default()), "capacity");
+    assert!(text.contains("capacity"), "{text}");
+}
+
+#[test]
+fn a_grid_past_the_workgroup_limit_is_an_error_naming_the_pass() {
+    let gpu = gpu();
+    let a = gpu.upload("a", &[0.0f32; 4]).expect("upload");
+    let b = gpu.upload("b", &[0.0f32; 4]).expect("upload");
+    let limit = gpu.info().max_compute_workgroup_count[0];
+    let mut rec = gpu.record("too many groups").expect("record");
+    let p = LossParams { len: 4, scale: 1.0, _pad: [0; 2] };
+    let err = rec.pass("test.add_into", Kernel::TrainAddInto).read(&a).write(&b).push(&p).dispatch([limit + 1, 1, 1]).err().expect("refused");
+    let text = err.to_string();
+    assert!(matches!(err, EngineError::TooLarge { .. }) && text.contains("test.add_into") && text.contains("maxComputeWorkGroupCount"), "{text}");
+    drop(rec);
+}
+
+/// Adam over 17M floats (67K workgroups of 256, past one row) updates every element:
+/// the first, the last and a sample between against the shared CPU update.
+#[test]
+fn adam_covers_a_group_past_one_row_of_workgroups() {
+    let gpu = gpu();
+    let len = 65_536 * 256 + 1_000;
+    let params: Vec<f32> = (0..len).map(|i| (i % 1000) as f32 * 1e-3).collect();
+    let grads: Vec<f32> = (0..len).map(|i| ((i % 7) as f32 - 3.0) * 0.1).collect();
+    let mut p = gpu.upload("params", &params).expect("upload");
+    let g = gpu.upload("grads", &grads).expect("upload");
+    let group = AdamGroup::new(&gpu, "big", len, LrSchedule::constant(0.01)).expect("group");
+    let mut rec = gpu.record("adam").expect("record");
+    group.record_step(&mut rec, &p, &g).expect("record step");
+    rec.submit_and_wait().expect("submit");
+    let out = gpu.read_buffer::<f32>(&mut p, len).expect("read");
+    let pc = drape_engine::ops::adam::step_params(len as u32, 0.01, 0.9, 0.999, 1e-15, 1);
+    for i in (0..len).step_by(4099).chain([len - 1]) {
+        let (expected, _, _) = adam_update(params[i], grads[i], 0.0, 0.0, &pc);
+        // Same shared f32 function on both sides.
+        assert!((out[i] - expected).abs() <= 1e-6, "element {i}: {} vs {expected}", out[i]);
+        if grads[i] != 0.0 {
+            assert_ne!(out[i], params[i], "element {i} was not updated");
+        }
+    }
+}
