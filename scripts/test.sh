@@ -4,7 +4,12 @@
 #     differs from what is committed;
 #  2. the shader builder's own test (a changed kernel source fails the check);
 #  3. every workspace test on lavapipe with validation layers on (any validation
-#     message fails the test that caused it).
+#     message fails the test that caused it);
+#  4. the engine's GPU tests again with DRAPE_FORCE_STAGING=1: uploads, readbacks and
+#     buffer poisoning through staging copies, the path a discrete GPU takes (lavapipe
+#     maps every buffer otherwise).
+# A test that needs a device feature reports "SKIPPED: ..." without it; on lavapipe
+# DRAPE_EXPECT_FEATURES turns such a skip into a failure (CI's device lost a feature).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -18,12 +23,20 @@ fi
 DRAPE_TORCH_PYTHON="$(scripts/torch-env.sh | tail -1)"
 export DRAPE_TORCH_PYTHON
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
+if [ "$DRAPE_DEVICE" = llvmpipe ]; then
+    export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps}"
+fi
 
-echo "== 1/3 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
+echo "== 1/4 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
 (cd tools/shader-builder && cargo run --release --locked --quiet -- --check)
 
-echo "== 2/3 shader builder tests"
+echo "== 2/4 shader builder tests"
 (cd tools/shader-builder && cargo test --release --locked)
 
-echo "== 3/3 workspace tests on $DRAPE_DEVICE with validation"
+echo "== 3/4 workspace tests on $DRAPE_DEVICE with validation"
 cargo test --workspace --locked
+
+echo "== 4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
+DRAPE_FORCE_STAGING=1 cargo test --locked -p drape-tests \
+    --test runtime --test scan --test sort --test splat_gpu --test splat_robustness \
+    --test splat_gradients --test composite --test nn --test skinning --test ssim --test sizes

@@ -65,6 +65,12 @@ impl Buffer {
         &self.name
     }
 
+    /// Whether host reads and writes reach this buffer's memory directly (mapped and
+    /// coherent); otherwise they go through a staging buffer and a copy.
+    pub fn host_mapped(&mut self) -> bool {
+        self.coherent_mapping().is_some()
+    }
+
     /// Bytes actually bound to `raw` (at least 4).
     pub(crate) fn vk_size(&self) -> u64 {
         self.size.max(4)

@@ -41,6 +41,48 @@ impl Drop for TestGpu {
     }
 }
 
+/// Device features a test may need. A test that cannot run without one calls
+/// [`has_feature`] and reports itself skipped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Feature {
+    /// `shaderBufferFloat32AtomicAdd`.
+    FloatAtomics,
+    /// Compute-queue timestamps.
+    Timestamps,
+}
+
+impl Feature {
+    pub fn name(self) -> &'static str {
+        match self {
+            Feature::FloatAtomics => "float-atomics",
+            Feature::Timestamps => "timestamps",
+        }
+    }
+
+    fn present(self, ctx: &Context) -> bool {
+        match self {
+            Feature::FloatAtomics => ctx.info().float_atomic_add,
+            Feature::Timestamps => ctx.info().timestamp_valid_bits > 0,
+        }
+    }
+}
+
+/// Whether the device has `feature`. Without it, prints `SKIPPED: <test>: ...` on
+/// stderr (visible in the test output, so a skip is not mistaken for a pass), and
+/// panics instead when `DRAPE_EXPECT_FEATURES` (comma-separated names; the test
+/// command sets what lavapipe has) lists it: CI fails if its device lost a feature.
+pub fn has_feature(ctx: &Context, feature: Feature, test: &str) -> bool {
+    if feature.present(ctx) {
+        return true;
+    }
+    let expected = std::env::var("DRAPE_EXPECT_FEATURES").unwrap_or_default();
+    if expected.split(',').any(|f| f.trim() == feature.name()) {
+        panic!("{test}: the device '{}' lacks {}, which DRAPE_EXPECT_FEATURES says it has", ctx.info().name, feature.name());
+    }
+    eprintln!("SKIPPED: {test}: the device '{}' lacks {}", ctx.info().name, feature.name());
+    false
+}
+
 /// Input orders every GPU op is tested on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Pattern {

@@ -6,11 +6,11 @@ use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRende
 use drape_engine::ops::splat::scene::{frame_params, RenderSettings};
 use drape_shared::splat::layout::sh_coeffs;
 use drape_tests::splat::{camera, gpu_render, max_abs_diff, scene};
-use drape_tests::gpu;
+use drape_tests::{gpu, has_feature, Feature};
 use rand::{Rng, SeedableRng};
 
-/// RGB and alpha within 1e-5: both sides run the same f32 code; only the
-/// transcendental functions (exp, ln) may differ in their last bits.
+/// RGB, alpha and depth (relative) within 1e-5: both sides run the same f32 code; only
+/// the transcendental functions (exp, ln) may differ in their last bits.
 const FORWARD_TOLERANCE: f32 = 1e-5;
 
 fn check_forward(sizes: &[(u32, u32)], counts: &[usize]) {
@@ -26,11 +26,18 @@ fn check_forward(sizes: &[(u32, u32)], counts: &[usize]) {
                     let frame = frame_params(&cam, &settings, degree, cloud.len());
                     let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
                     let what = format!("{n} Gaussians, {w}x{h}, degree {degree}, antialiased {antialiased}");
-                    assert_eq!(u64::from(stats.intersections), cpu.intersections, "intersections: {what}");
+                    // Equal on lavapipe; a GPU that fuses a * b + c may move a pair whose
+                    // splat's bound falls on a tile edge: at most 0.1% + 2 pairs.
+                    let d = (i64::from(stats.intersections) - cpu.intersections as i64).unsigned_abs();
+                    assert!(d as f64 <= 1e-3 * cpu.intersections as f64 + 2.0, "intersections GPU {} vs CPU {}: {what}", stats.intersections, cpu.intersections);
                     let e_rgb = max_abs_diff(&image.rgb, &cpu.rgb);
                     let e_alpha = max_abs_diff(&image.alpha, &cpu.alpha);
                     assert!(e_rgb <= FORWARD_TOLERANCE, "rgb error {e_rgb:e}: {what}");
                     assert!(e_alpha <= FORWARD_TOLERANCE, "alpha error {e_alpha:e}: {what}");
+                    // Depth is Σ wᵢ zᵢ with z near 5: the same 1e-5 relative to the depth.
+                    let e_depth = image.depth.iter().zip(&cpu.depth).map(|(g, c)| (g - c).abs() / c.abs().max(1.0)).fold(0.0, f32::max);
+                    assert!(e_depth <= FORWARD_TOLERANCE, "depth error {e_depth:e}: {what}");
+                    assert!(cpu.depth.iter().any(|&z| z > 1.0) || n == 1, "depth is exercised: {what}");
                     assert!(image.alpha.iter().any(|&a| a > 0.1) || n == 1, "the scene must be visible: {what}");
                 }
             }
@@ -108,8 +115,7 @@ fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation) {
 
 #[test]
 fn backward_matches_cpu_float_atomics() {
-    if !gpu().info().float_atomic_add {
-        eprintln!("device has no float atomics; the CAS test covers this device");
+    if !has_feature(&gpu(), Feature::FloatAtomics, "backward_matches_cpu_float_atomics") {
         return;
     }
     check_backward(3, false, Accumulation::FloatAtomics);
