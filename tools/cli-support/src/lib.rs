@@ -30,6 +30,8 @@ impl DeviceArgs {
             device_name: self.device.clone(),
             validation: self.validation,
             poison_new_buffers: false,
+            // As in the tests: DRAPE_FORCE_STAGING=1 takes the discrete-GPU data path.
+            force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
         })?;
         eprintln!("device: {}", ctx.info());
         Ok(ctx)
