@@ -106,14 +106,12 @@ impl Drop for Buffer {
 }
 
 impl Context {
-    /// Creates a named buffer. A size past the device's limits (one allocation; one
-    /// storage-buffer binding, which every storage buffer here is bound as whole) is
-    /// [`EngineError::TooLarge`] naming the buffer, the size and the limit.
+    /// Creates a named buffer. A size past the device's `maxMemoryAllocationSize` is
+    /// [`EngineError::TooLarge`] naming the buffer, the size and the limit; binding more
+    /// than `maxStorageBufferRange` of it is refused by the recorder the same way.
     pub fn create_buffer(&self, name: &str, desc: BufferDesc) -> Result<Buffer> {
+        // (maxStorageBufferRange limits a binding, not a buffer: the recorder checks it.)
         let limits = self.info();
-        if desc.usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER) && desc.size > limits.max_storage_buffer_range {
-            return Err(EngineError::too_large(format!("bytes of buffer '{name}'"), desc.size, limits.max_storage_buffer_range, "the device's maxStorageBufferRange"));
-        }
         if desc.size > limits.max_memory_allocation_size {
             return Err(EngineError::too_large(format!("bytes of buffer '{name}'"), desc.size, limits.max_memory_allocation_size, "the device's maxMemoryAllocationSize"));
         }

@@ -96,6 +96,8 @@ pub struct DeviceInfo {
     pub max_storage_buffer_range: u64,
     /// `maxMemoryAllocationSize` (Vulkan 1.1): the most bytes one allocation may have.
     pub max_memory_allocation_size: u64,
+    /// `minStorageBufferOffsetAlignment`: a binding of part of a buffer starts at a multiple.
+    pub min_storage_buffer_offset_alignment: u64,
 }
 
 impl fmt::Display for DeviceInfo {
@@ -476,6 +478,7 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
         max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
         max_memory_allocation_size: maintenance3.max_memory_allocation_size,
+        min_storage_buffer_offset_alignment: props.limits.min_storage_buffer_offset_alignment,
     };
 
     // The rust-gpu modules declare the VulkanMemoryModel capability.

@@ -114,37 +114,62 @@ impl Context {
     }
 }
 
+/// One binding of a pass: a buffer, or a byte range of one.
+#[derive(Clone, Copy)]
+struct Binding<'a> {
+    buffer: &'a Buffer,
+    offset: u64,
+    range: u64,
+}
+
+impl<'a> Binding<'a> {
+    fn whole(buffer: &'a Buffer) -> Self {
+        Self { buffer, offset: 0, range: buffer.vk_size() }
+    }
+}
+
 /// A compute pass being described; recorded by [`PassBuilder::dispatch`].
 pub struct PassBuilder<'r, 'a> {
     rec: &'r mut Recording<'a>,
     name: String,
     kernel: Kernel,
-    buffers: Vec<&'a Buffer>,
+    buffers: Vec<Binding<'a>>,
     push: Vec<u8>,
 }
 
 impl<'a> PassBuilder<'_, 'a> {
     /// Binds the next binding to a buffer the kernel reads.
     pub fn read(mut self, buffer: &'a Buffer) -> Self {
-        self.buffers.push(buffer);
+        self.buffers.push(Binding::whole(buffer));
+        self
+    }
+
+    /// Binds the next binding to `bytes` bytes of `buffer` from `offset` (a multiple of
+    /// the device's `minStorageBufferOffsetAlignment`): for a buffer larger than one
+    /// binding may cover, processed in chunks.
+    pub fn range(mut self, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
+        let align = self.rec.ctx.info().min_storage_buffer_offset_alignment;
+        assert!(offset % align == 0, "pass '{}': offset {offset} into '{}' is not a multiple of {align}", self.name, buffer.name());
+        assert!(offset + bytes <= buffer.vk_size() && bytes > 0, "pass '{}': bytes {offset}..{} of '{}' ({} bytes)", self.name, offset + bytes, buffer.name(), buffer.size);
+        self.buffers.push(Binding { buffer, offset, range: bytes });
         self
     }
 
     /// Binds the next bindings, in order, to buffers the kernel reads.
     pub fn read_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
-        self.buffers.extend(buffers);
+        self.buffers.extend(buffers.into_iter().map(Binding::whole));
         self
     }
 
     /// Binds the next bindings, in order, to buffers the kernel writes.
     pub fn write_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
-        self.buffers.extend(buffers);
+        self.buffers.extend(buffers.into_iter().map(Binding::whole));
         self
     }
 
     /// Binds the next binding to a buffer the kernel writes (or reads and writes).
     pub fn write(mut self, buffer: &'a Buffer) -> Self {
-        self.buffers.push(buffer);
+        self.buffers.push(Binding::whole(buffer));
         self
     }
 
@@ -170,6 +195,12 @@ impl<'a> PassBuilder<'_, 'a> {
         // A grid past the device's limit is a size the caller could not foresee (an op
         // sized by its input), so it is an error naming the pass, not a panic.
         let max = rec.ctx.info().max_compute_workgroup_count;
+        // Likewise a binding past what one storage-buffer descriptor may cover.
+        let range_limit = rec.ctx.info().max_storage_buffer_range;
+        if let Some(b) = buffers.iter().find(|b| b.range > range_limit) {
+            let what = format!("bytes bound of buffer '{}' in pass '{name}'", b.buffer.name());
+            return Err(EngineError::too_large(what, b.range, range_limit, "the device's maxStorageBufferRange"));
+        }
         if let Some(axis) = (0..3).find(|&a| groups[a] > max[a]) {
             let what = format!("workgroups along {} in pass '{name}' (grid {groups:?})", ["x", "y", "z"][axis]);
             return Err(EngineError::too_large(what, u64::from(groups[axis]), u64::from(max[axis]), "the device's maxComputeWorkGroupCount"));
@@ -242,12 +273,12 @@ impl<'a> Recording<'a> {
         unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, buffer.raw, 0, vk::WHOLE_SIZE, word) };
     }
 
-    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[&Buffer], push: &[u8], groups: [u32; 3]) -> Result<()> {
+    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
         let pipeline = self.ctx.pipeline(kernel)?;
         let set = self.allocate_set(pipeline.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
             .iter()
-            .map(|b| [vk::DescriptorBufferInfo::default().buffer(b.raw).offset(0).range(b.vk_size())])
+            .map(|b| [vk::DescriptorBufferInfo::default().buffer(b.buffer.raw).offset(b.offset).range(b.range)])
             .collect();
         let writes: Vec<vk::WriteDescriptorSet> = infos
             .iter()

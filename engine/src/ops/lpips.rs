@@ -126,8 +126,10 @@ pub enum Stage {
 /// A problem with a weights file, naming the file and the tensor.
 #[derive(Debug, thiserror::Error)]
 pub enum WeightsError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    // `error`, not `source`: the message already carries it, and a `source` would make
+    // anyhow print the OS error twice.
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
     #[error("{path}: not a safetensors file: {detail}")]
     Format { path: PathBuf, detail: String },
     #[error("{path}: tensor '{tensor}' is missing (is this an LPIPS {net} file?)")]
@@ -147,7 +149,7 @@ impl LpipsWeights {
     /// Reads and checks a safetensors file: every tensor the network needs present,
     /// float32, of the right shape, and inside the file.
     pub fn load(path: &Path, net: LpipsNet) -> std::result::Result<Self, WeightsError> {
-        let bytes = std::fs::read(path).map_err(|source| WeightsError::Io { path: path.into(), source })?;
+        let bytes = std::fs::read(path).map_err(|error| WeightsError::Io { path: path.into(), error })?;
         let format = |detail: String| WeightsError::Format { path: path.into(), detail };
         if bytes.len() < 8 {
             return Err(format(format!("{} bytes, shorter than the 8-byte header length", bytes.len())));

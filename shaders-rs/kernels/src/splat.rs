@@ -13,7 +13,7 @@
 //! NaN policy: a Gaussian with a non-finite parameter gets `tiles = 0` and
 //! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
 
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
 use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
@@ -30,8 +30,12 @@ fn flat_index(id: UVec3, groups: UVec3) -> u32 {
     id.y * groups.x * 256 + id.x
 }
 
+/// Gaussian `i`, whose SH starts at Gaussian `sh_i` of the `sh` binding (see
+/// `ProjectChunk`).
+#[allow(clippy::too_many_arguments)]
 fn load_gaussian(
     i: usize,
+    sh_i: usize,
     degree: u32,
     means: &[f32],
     log_scales: &[f32],
@@ -43,7 +47,7 @@ fn load_gaussian(
     let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
     let mut k = 0;
     while k < k_count {
-        let base = (i * k_count + k) * 3;
+        let base = (sh_i * k_count + k) * 3;
         coeffs[k] = [sh[base], sh[base + 1], sh[base + 2]];
         k += 1;
     }
@@ -62,6 +66,7 @@ fn load_gaussian(
 pub fn project_fwd(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] chunk: &ProjectChunk,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
@@ -73,13 +78,14 @@ pub fn project_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] order: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] dropped: &mut [u32],
 ) {
-    let index = flat_index(id, groups);
-    let i = index as usize;
-    if index >= frame.count {
+    let local = flat_index(id, groups);
+    let index = chunk.first + local;
+    if local >= chunk.len || index >= frame.count {
         return;
     }
+    let i = index as usize;
     let cam = Camera::<f32>::from_frame(frame);
-    let g = load_gaussian(i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+    let g = load_gaussian(i, local as usize, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
     let p = project_fwd_math(&g, &cam);
     let mut out = ProjectedSplat::default();
     if p.visible {
@@ -466,6 +472,7 @@ rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backwa
 pub fn project_bwd(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] chunk: &ProjectChunk,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
@@ -480,16 +487,18 @@ pub fn project_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_opacity_logits: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_sh: &mut [f32],
 ) {
-    let index = flat_index(id, groups);
-    if index >= frame.count {
+    let local = flat_index(id, groups);
+    let index = chunk.first + local;
+    if local >= chunk.len || index >= frame.count {
         return;
     }
     let i = index as usize;
+    let sh_i = local as usize;
     let k_count = sh_coeffs(frame.sh_degree);
     let mut out = drape_shared::splat::project::GaussianGrad::<f32>::zero();
     if splats[i].tiles > 0 {
         let cam = Camera::<f32>::from_frame(frame);
-        let g = load_gaussian(i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+        let g = load_gaussian(i, sh_i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
         let base = i * SPLAT_GRAD_FLOATS;
         let mut up = [0.0f32; SPLAT_GRAD_FLOATS];
         let mut c = 0;
@@ -513,7 +522,7 @@ pub fn project_bwd(
     grad_opacity_logits[i] = out.opacity_logit;
     let mut k = 0;
     while k < k_count {
-        let base = (i * k_count + k) * 3;
+        let base = (sh_i * k_count + k) * 3;
         grad_sh[base] = out.sh[k][0];
         grad_sh[base + 1] = out.sh[k][1];
         grad_sh[base + 2] = out.sh[k][2];

@@ -33,9 +33,11 @@ pub struct RenderArgs {
     /// Vertical field of view in degrees.
     #[arg(long, default_value_t = 50.0)]
     pub fov: f32,
-    #[arg(long, default_value_t = 512)]
+    /// Image width in pixels (at least 1).
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..))]
     pub width: u32,
-    #[arg(long, default_value_t = 512)]
+    /// Image height in pixels (at least 1).
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..))]
     pub height: u32,
     /// Background colour r,g,b in [0, 1].
     #[arg(long, value_parser = parse_vec3, default_value = "0,0,0")]

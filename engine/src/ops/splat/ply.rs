@@ -16,8 +16,10 @@ use crate::ops::splat::scene::{GaussianCloud, Layer};
 /// Why a PLY file could not be read or written; every message names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum PlyError {
-    #[error("{path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    // `error`, not `source`: the message already carries it, and a `source` would make
+    // anyhow print the OS error twice.
+    #[error("{path}: {error}")]
+    Io { path: String, error: std::io::Error },
     #[error("{path}: {problem}")]
     Format { path: String, problem: String },
 }
@@ -91,7 +93,7 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, PlyError> {
 
 /// Reads a 3DGS PLY file.
 pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
-    let bytes = std::fs::read(path).map_err(|source| PlyError::Io { path: path.display().to_string(), source })?;
+    let bytes = std::fs::read(path).map_err(|error| PlyError::Io { path: path.display().to_string(), error })?;
     let header = parse_header(path, &bytes)?;
     let index = |name: &str| header.names.iter().position(|n| n == name);
     for name in REQUIRED {
@@ -144,7 +146,7 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
 
 /// Writes a 3DGS PLY file (normals written as 0, as the reference implementation does).
 pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<(), PlyError> {
-    let io = |source| PlyError::Io { path: path.display().to_string(), source };
+    let io = |error| PlyError::Io { path: path.display().to_string(), error };
     let k = cloud.sh_coeffs();
     let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
     header += &format!("element vertex {}\n", cloud.len());

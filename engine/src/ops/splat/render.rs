@@ -13,7 +13,7 @@
 //! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`), then
 //! `project_bwd` into the parameter gradients.
 
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectedSplat, SplatCounts, SPLAT_GRAD_FLOATS};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, SPLAT_GRAD_FLOATS};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -28,6 +28,24 @@ use crate::recorder::{flat_grid as groups, PassTimings};
 /// per workgroup, which cannot wrap below 2^24 tiles each. (One colour buffer within a
 /// 4 GiB binding already keeps images far smaller: about 1.4M tiles.)
 const MAX_TILES: u64 = 1 << 24;
+
+/// The chunks `project_fwd` and `project_bwd` run in: as many Gaussians as one binding
+/// of their SH may cover (one chunk unless the SH passes `maxStorageBufferRange`), in
+/// multiples of 256 so that each chunk's SH offset (a multiple of 3,072 bytes) meets any
+/// `minStorageBufferOffsetAlignment` (at most 256).
+fn project_chunks(ctx: &Context, count: u32, sh_degree: u32) -> Vec<ProjectChunk> {
+    let sh_bytes = 12 * sh_coeffs(sh_degree) as u64;
+    let per_chunk = ((ctx.info().max_storage_buffer_range / sh_bytes) / 256 * 256).clamp(256, u64::from(u32::MAX)) as u32;
+    (0..count.div_ceil(per_chunk))
+        .map(|c| ProjectChunk { first: c * per_chunk, len: per_chunk.min(count - c * per_chunk), _pad: [0; 2] })
+        .collect()
+}
+
+/// The byte range of chunk `c`'s SH in a buffer of SH for every Gaussian.
+fn sh_range(chunk: &ProjectChunk, sh_degree: u32) -> (u64, u64) {
+    let sh_bytes = 12 * sh_coeffs(sh_degree) as u64;
+    (u64::from(chunk.first) * sh_bytes, u64::from(chunk.len) * sh_bytes)
+}
 
 fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
     ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
@@ -278,14 +296,19 @@ impl SplatRenderer {
             rec.fill(&self.dropped, 0);
             rec.fill(&self.total, 0);
             rec.barrier();
-            rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
-                .read(&self.frame)
-                .read_all(gaussians.all())
-                .write(&self.splats)
-                .write(&self.depth_keys)
-                .write(&self.order)
-                .write(&self.dropped)
-                .dispatch(groups(n))?;
+            for chunk in project_chunks(&ctx, n, gaussians.sh_degree) {
+                let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
+                rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
+                    .read(&self.frame)
+                    .read_all(gaussians.all().into_iter().take(4))
+                    .range(&gaussians.sh, offset, bytes)
+                    .write(&self.splats)
+                    .write(&self.depth_keys)
+                    .write(&self.order)
+                    .write(&self.dropped)
+                    .push(&chunk)
+                    .dispatch(groups(chunk.len))?;
+            }
             rec.barrier();
             self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
             rec.barrier();
@@ -385,7 +408,6 @@ impl SplatRenderer {
         };
         let kernel = if use_atomics { Kernel::SplatRasterizeBwdAtomic } else { Kernel::SplatRasterizeBwdCas };
         let fp = self.frame_params;
-        let n = gaussians.count;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
         rec.fill(&self.splat_grads, 0);
@@ -404,13 +426,19 @@ impl SplatRenderer {
             .write(&self.splat_grads)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
         rec.barrier();
-        rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
-            .read(&self.frame)
-            .read_all(gaussians.all())
-            .read(&self.splats)
-            .read(&self.splat_grads)
-            .write_all(out.all())
-            .dispatch(groups(n))?;
+        for chunk in project_chunks(&ctx, gaussians.count, gaussians.sh_degree) {
+            let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
+            rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
+                .read(&self.frame)
+                .read_all(gaussians.all().into_iter().take(4))
+                .range(&gaussians.sh, offset, bytes)
+                .read(&self.splats)
+                .read(&self.splat_grads)
+                .write_all(out.all().into_iter().take(4))
+                .range(&out.sh, offset, bytes)
+                .push(&chunk)
+                .dispatch(groups(chunk.len))?;
+        }
         rec.submit_and_wait()
     }
 

@@ -96,6 +96,19 @@ pub struct ProjectedSplat {
 pub const SPLAT_DROPPED: u32 = 1;
 
 /// Push constants of the per-element splatting kernels.
+/// Push constants of `project_fwd` and `project_bwd`: Gaussians `[first, first + len)`.
+/// Their `sh` (and `grad_sh`) bindings start at Gaussian `first`, so a cloud whose SH
+/// is larger than one storage-buffer binding may hold (lavapipe: 128 MiB, 699k
+/// Gaussians at degree 3) is projected in chunks; every other binding is whole.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ProjectChunk {
+    pub first: u32,
+    pub len: u32,
+    pub _pad: [u32; 2],
+}
+
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
