@@ -14,7 +14,7 @@ use drape_trainer::avatar::animate::{animate, place_pose, AnimateOptions};
 use drape_trainer::avatar::edit::{edit, Edit};
 use drape_trainer::avatar::eval::{evaluate, EvalInputs};
 use drape_trainer::avatar::run::{OpenRun, RunInfo};
-use drape_trainer::avatar::train::{camera, load_sequence, train, TrainConfig};
+use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::dataset::loader::BodyParams;
 use drape_trainer::dataset::synth::{generate, SynthOptions};
@@ -74,7 +74,7 @@ fn render_first(ctx: &Context, run: &mut OpenRun) -> (Vec<f32>, Option<Vec<f32>>
     let mut rec = ctx.record("test forward").expect("record");
     run.avatar.record_forward(&mut rec, ft.log_scale).expect("forward");
     rec.submit_and_wait().expect("submit");
-    let cam = camera(&f.camera, [0.0; 3]);
+    let cam = f.camera.to_pinhole([0.0; 3]);
     run.renderer.forward(ctx, &run.avatar, &cam, &RenderSettings::default()).expect("render");
     let rgb = run.renderer.read_rgb(ctx).expect("read");
     let matte = run.renderer.read_passes().expect("passes").map(|[_, _, m]| m);

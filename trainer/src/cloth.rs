@@ -19,6 +19,7 @@ use std::collections::HashMap;
 use crate::body::kinematics::{pose_body, relative_transforms, skin, Affine, Pose};
 use crate::body::model::SmplModel;
 use crate::garment::Garment;
+use crate::grid::{bounds, Grid};
 use crate::mesh::{add, cross, dot, norm, normalize, scale, sub, V3};
 use crate::motion::Motion;
 
@@ -81,8 +82,8 @@ pub struct BodyCollider {
     start: Vec<V3>,
     end: Vec<V3>,
     faces: Vec<[u32; 3]>,
-    cell: f64,
-    grid: HashMap<[i64; 3], Vec<u32>>,
+    /// Each triangle filed by its bounds over the frame, grown by `COLLIDER_REACH`.
+    grid: Grid,
     /// The farthest any vertex moves over the frame.
     travel: f64,
 }
@@ -139,22 +140,10 @@ impl BodyCollider {
 
     /// A body moving linearly from `start` to `end` over the frame.
     pub fn moving(start: Vec<V3>, end: Vec<V3>, faces: &[[u32; 3]]) -> Self {
-        let cell = COLLIDER_CELL;
-        let mut grid: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
-        for (i, f) in faces.iter().enumerate() {
-            let pts = [f.map(|k| start[k as usize]), f.map(|k| end[k as usize])];
-            let lo = [0, 1, 2].map(|k| ((pts.iter().flatten().map(|p| p[k]).fold(f64::MAX, f64::min) - COLLIDER_REACH) / cell).floor() as i64);
-            let hi = [0, 1, 2].map(|k| ((pts.iter().flatten().map(|p| p[k]).fold(f64::MIN, f64::max) + COLLIDER_REACH) / cell).floor() as i64);
-            for x in lo[0]..=hi[0] {
-                for y in lo[1]..=hi[1] {
-                    for z in lo[2]..=hi[2] {
-                        grid.entry([x, y, z]).or_default().push(i as u32);
-                    }
-                }
-            }
-        }
+        let boxes = faces.iter().map(|f| bounds(f.map(|k| start[k as usize]).into_iter().chain(f.map(|k| end[k as usize]))));
+        let grid = Grid::of_boxes(boxes, COLLIDER_CELL, COLLIDER_REACH);
         let travel = start.iter().zip(&end).map(|(a, b)| norm(sub(*a, *b))).fold(0.0, f64::max);
-        Self { start, end, faces: faces.to_vec(), cell, grid, travel }
+        Self { start, end, faces: faces.to_vec(), grid, travel }
     }
 
     /// Signed distance to the body (negative inside) and the closest surface point and
@@ -181,9 +170,8 @@ impl BodyCollider {
 
     /// [`query_at`](Self::query_at), also naming the closest triangle.
     fn query_face_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3, u32)> {
-        let c = p.map(|x| (x / self.cell).floor() as i64);
         let vertex = |k: u32| add(scale(self.start[k as usize], 1.0 - s), scale(self.end[k as usize], s));
-        self.closest_among(p, vertex, self.grid.get(&c)?.iter().copied())
+        self.closest_among(p, vertex, self.grid.at(p).iter().copied())
     }
 
     /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:

@@ -15,6 +15,7 @@ use std::path::Path;
 
 use crate::body::kinematics::{a_pose, pose_body, t_pose, Pose};
 use crate::body::model::{SmplModel, NUM_JOINTS};
+use crate::grid::Grid;
 use crate::mesh::{add, norm, normalize, scale, sub, vertex_normals, V3};
 
 /// A garment mesh bound to a body.
@@ -47,37 +48,21 @@ pub enum GarmentError {
 /// Indices of the k nearest body vertices (brute force over a coarse grid).
 struct NearestBody<'a> {
     vertices: &'a [V3],
-    cell: f64,
-    grid: std::collections::HashMap<[i64; 3], Vec<u32>>,
+    grid: Grid,
 }
 
 impl<'a> NearestBody<'a> {
     fn new(vertices: &'a [V3]) -> Self {
-        let cell = 0.05;
-        let mut grid: std::collections::HashMap<[i64; 3], Vec<u32>> = Default::default();
-        for (i, v) in vertices.iter().enumerate() {
-            grid.entry(v.map(|x| (x / cell).floor() as i64)).or_default().push(i as u32);
-        }
-        Self { vertices, cell, grid }
+        Self { vertices, grid: Grid::of_points(vertices, 0.05) }
     }
 
     fn k_nearest(&self, p: V3, k: usize) -> Vec<(u32, f64)> {
-        let c = p.map(|x| (x / self.cell).floor() as i64);
         let mut ring = 1;
         loop {
-            let mut found: Vec<(u32, f64)> = Vec::new();
-            for dx in -ring..=ring {
-                for dy in -ring..=ring {
-                    for dz in -ring..=ring {
-                        if let Some(list) = self.grid.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                            found.extend(list.iter().map(|&i| (i, norm(sub(self.vertices[i as usize], p)))));
-                        }
-                    }
-                }
-            }
+            let mut found: Vec<(u32, f64)> = self.grid.around(p, ring).map(|i| (i, norm(sub(self.vertices[i as usize], p)))).collect();
             // Everything within `ring` cells is exact; beyond needs a larger ring.
             found.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
-            if found.len() >= k && found[k - 1].1 <= ring as f64 * self.cell {
+            if found.len() >= k && found[k - 1].1 <= ring as f64 * self.grid.cell_size() {
                 found.truncate(k);
                 return found;
             }

@@ -5,9 +5,11 @@
 
 pub mod avatar;
 pub mod body;
+pub mod camera;
 pub mod cloth;
 pub mod dataset;
 pub mod garment;
+pub mod grid;
 pub mod mesh;
 pub mod motion;
 pub mod npy;

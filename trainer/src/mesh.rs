@@ -1,8 +1,10 @@
 //! Triangle-mesh utilities in f64: edges and their face counts (watertightness),
 //! vertex normals, adjacency, and a triangle-triangle intersection test for checking
-//! that a mesh does not cross itself.
+//! that a mesh does not cross itself (its candidates from the spatial grid in `grid`).
 
 use std::collections::HashMap;
+
+use crate::grid::{bounds, Grid};
 
 pub type V3 = [f64; 3];
 
@@ -140,16 +142,12 @@ pub fn triangles_intersect(a: [V3; 3], b: [V3; 3]) -> bool {
     (0..3).any(|k| segment_hits_triangle(a[k], a[(k + 1) % 3], b)) || (0..3).any(|k| segment_hits_triangle(b[k], b[(k + 1) % 3], a))
 }
 
-/// Pairs of faces, sharing no vertex, that intersect (uses a uniform grid).
+/// Pairs of faces, sharing no vertex, that intersect, at most `limit` of them (the
+/// same ones every run). Candidates are the pairs filed in a common cell of a grid of
+/// the faces' bounds: two triangles that meet have overlapping bounds, hence a cell in
+/// common.
 pub fn self_intersections(vertices: &[V3], faces: &[[u32; 3]], limit: usize) -> Vec<(usize, usize)> {
-    let mut lo = [f64::MAX; 3];
-    let mut hi = [f64::MIN; 3];
-    for v in vertices {
-        for k in 0..3 {
-            lo[k] = lo[k].min(v[k]);
-            hi[k] = hi[k].max(v[k]);
-        }
-    }
+    // Cells about two edges long: a face spans few cells and a cell holds few faces.
     let cell = faces
         .iter()
         .map(|f| norm(sub(vertices[f[0] as usize], vertices[f[1] as usize])))
@@ -157,37 +155,17 @@ pub fn self_intersections(vertices: &[V3], faces: &[[u32; 3]], limit: usize) -> 
         / faces.len().max(1) as f64
         * 2.0;
     let cell = cell.max(1e-6);
-    let key = |p: V3| [0, 1, 2].map(|k| ((p[k] - lo[k]) / cell).floor() as i64);
-    let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-    for (i, f) in faces.iter().enumerate() {
-        let pts = f.map(|v| vertices[v as usize]);
-        let (mut a, mut b) = ([i64::MAX; 3], [i64::MIN; 3]);
-        for p in pts {
-            let k = key(p);
-            for d in 0..3 {
-                a[d] = a[d].min(k[d]);
-                b[d] = b[d].max(k[d]);
-            }
-        }
-        for x in a[0]..=b[0] {
-            for y in a[1]..=b[1] {
-                for z in a[2]..=b[2] {
-                    grid.entry([x, y, z]).or_default().push(i);
-                }
-            }
-        }
-    }
-    let _ = hi;
+    let grid = Grid::of_boxes(faces.iter().map(|f| bounds(f.map(|v| vertices[v as usize]))), cell, 0.0);
     let mut found = std::collections::BTreeSet::new();
-    for list in grid.values() {
+    for list in grid.cells() {
         for (ii, &i) in list.iter().enumerate() {
             for &j in &list[ii + 1..] {
-                let (fi, fj) = (faces[i], faces[j]);
+                let (fi, fj) = (faces[i as usize], faces[j as usize]);
                 if fi.iter().any(|v| fj.contains(v)) {
                     continue;
                 }
                 if triangles_intersect(fi.map(|v| vertices[v as usize]), fj.map(|v| vertices[v as usize])) {
-                    found.insert((i.min(j), i.max(j)));
+                    found.insert((i.min(j) as usize, i.max(j) as usize));
                     if found.len() >= limit {
                         return found.into_iter().collect();
                     }

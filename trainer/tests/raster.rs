@@ -1,9 +1,10 @@
 //! The CPU mesh rasterizer of the synthetic data.
 
-use drape_trainer::dataset::raster::{render, Drawable, RasterCamera};
+use drape_trainer::camera::Camera;
+use drape_trainer::dataset::raster::{render, Drawable};
 
-fn camera(w: u32, h: u32) -> RasterCamera {
-    RasterCamera { fx: 100.0, fy: 100.0, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0, width: w, height: h, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3], near: 0.05 }
+fn camera(w: u32, h: u32) -> Camera {
+    Camera { fx: 100.0, fy: 100.0, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0, width: w, height: h, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3], near: Camera::NEAR }
 }
 
 /// A square of side `size` at depth z, facing the camera, UV 0..1.

@@ -15,10 +15,10 @@ use std::time::Instant;
 use drape_engine::ops::splat::scene::RenderSettings;
 
 use crate::avatar::run::OpenRun;
-use crate::avatar::train::{camera, gpu};
+use crate::avatar::train::gpu;
 use crate::body::kinematics::{rodrigues, Pose, M3};
+use crate::camera::Camera;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
-use crate::dataset::raster::RasterCamera;
 use crate::mesh::{add, cross, dot, normalize, rotation_to_quaternion, scale, sub, V3};
 use crate::motion::Motion;
 
@@ -104,17 +104,12 @@ fn rotate_about(v: V3, k: V3, angle: f64) -> V3 {
 
 /// The orbit's camera for a frame: `start`'s height and distance from the anchor's
 /// pelvis, turned by `angle` about `up`, looking at `pelvis`.
-fn orbit_camera(start: &RasterCamera, anchor_pelvis: V3, up: V3, pelvis: V3, angle: f64) -> RasterCamera {
-    let r = &start.rotation;
-    // The camera centre: -Rᵀ t.
-    let centre: V3 = std::array::from_fn(|a| -(0..3).map(|k| r[k][a] * start.translation[k]).sum::<f64>());
-    let offset = sub(centre, anchor_pelvis);
+fn orbit_camera(start: &Camera, anchor_pelvis: V3, up: V3, pelvis: V3, angle: f64) -> Camera {
+    let offset = sub(start.centre(), anchor_pelvis);
     let h = dot(offset, up);
     let radial = sub(offset, scale(up, h));
     let eye = add(add(pelvis, scale(up, h)), rotate_about(radial, up, angle));
-    let mut cam = RasterCamera::look_at(eye, pelvis, up, start.fx, start.width, start.height);
-    (cam.cx, cam.cy, cam.fy, cam.near) = (start.cx, start.cy, start.fy, start.near);
-    cam
+    start.moved_to(eye, pelvis, up)
 }
 
 /// Renders `motion` on the run's avatar into `out` (which must exist): `frameNNNN.png`
@@ -146,7 +141,7 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
             gpu(run.avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        gpu(run.renderer.forward(ctx, &run.avatar, &camera(&cam, options.background), &settings))?;
+        gpu(run.renderer.forward(ctx, &run.avatar, &cam.to_pinhole(options.background), &settings))?;
         let rgb = gpu(run.renderer.read_rgb(ctx))?;
         frame_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         crate::dataset::image::write_rgb(&out.join(format!("frame{k:04}.png")), width, height, &rgb)?;

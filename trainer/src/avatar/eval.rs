@@ -18,7 +18,7 @@ use crate::avatar::cloth_target;
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{camera, gpu, masked_target, write_json, Progress};
+use crate::avatar::train::{gpu, masked_target, write_json, Progress};
 use crate::dataset::loader::DatasetFrame;
 
 /// How much the error panel of a sheet amplifies `|render - truth|` (mean over RGB).
@@ -122,7 +122,7 @@ pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRendere
                 m.cloth_chamfer = Some(gpu(cloth_chamfer(ctx, cloth, &points))?);
             }
         }
-        gpu(renderer.forward(ctx, avatar, &camera(&f.camera, [0.0; 3]), &settings))?;
+        gpu(renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), &settings))?;
         let rgb = gpu(renderer.read_rgb(ctx))?;
         let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
         m.psnr_full = psnr(&rgb, &target);

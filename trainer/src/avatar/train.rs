@@ -18,7 +18,7 @@ use std::time::Instant;
 
 use drape_engine::ops::splat::ply;
 use drape_engine::ops::ssim::Ssim;
-use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
+use drape_engine::ops::splat::scene::{Layer, RenderSettings};
 use drape_engine::{BufferDesc, Context, Kernel};
 use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
@@ -38,7 +38,6 @@ use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
 use crate::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit};
-use crate::dataset::raster::RasterCamera;
 use crate::dataset::split::Split;
 
 /// Everything a run is configured by (written to the run directory as `config.json`).
@@ -251,23 +250,6 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> Result<Sequence, St
         return Err(format!("{}: no such directory", dir.display()));
     }
     Err(format!("{}: neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)", dir.display()))
-}
-
-/// The splatter's camera for a dataset camera, over `background`.
-pub fn camera(c: &RasterCamera, background: [f32; 3]) -> PinholeCamera {
-    PinholeCamera {
-        fx: c.fx as f32,
-        fy: c.fy as f32,
-        cx: c.cx as f32,
-        cy: c.cy as f32,
-        width: c.width,
-        height: c.height,
-        rotation: c.rotation.map(|r| r.map(|v| v as f32)),
-        translation: c.translation.map(|v| v as f32),
-        near: c.near as f32,
-        far: 1e4,
-        background,
-    }
 }
 
 /// The frame's person on a constant background.
@@ -554,7 +536,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        let cam = camera(&f.camera, background);
+        let cam = f.camera.to_pinhole(background);
         gpu(renderer.forward(ctx, &avatar, &cam, &settings))?;
         {
             let rgb = renderer.rgb();
@@ -700,7 +682,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
             gpu(rec.submit_and_wait())?;
         }
-        gpu(renderer.forward(ctx, &avatar, &camera(&f.camera, [0.0; 3]), &settings))?;
+        gpu(renderer.forward(ctx, &avatar, &f.camera.to_pinhole([0.0; 3]), &settings))?;
         let rgb = gpu(renderer.read_rgb(ctx))?;
         crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &rgb)?;
     }

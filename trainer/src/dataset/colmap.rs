@@ -2,10 +2,14 @@
 //! parsed exactly as COLMAP does: `images.txt` has two lines per image (pose and
 //! name, then its 2D points as `X Y POINT3D_ID` triples, -1 for none), quaternions
 //! are (w, x, y, z) world-to-camera, `p_c = R(q) p_w + t`. Errors name the file and line.
+//! The records are what the files hold; [`ColmapImage::camera`] and the `from_camera`
+//! constructors convert to and from the trainer's [`Camera`].
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
+
+use crate::camera::Camera;
 
 /// COLMAP's quaternions come from the shared conversion (w kept >= 0, as COLMAP does).
 pub use crate::mesh::rotation_to_quaternion;
@@ -23,6 +27,11 @@ pub struct ColmapCamera {
 }
 
 impl ColmapCamera {
+    /// A PINHOLE record of `camera`'s intrinsics and image size.
+    pub fn from_camera(id: u32, camera: &Camera) -> Self {
+        Self { id, model: "PINHOLE".into(), width: camera.width, height: camera.height, params: vec![camera.fx, camera.fy, camera.cx, camera.cy] }
+    }
+
     /// (fx, fy, cx, cy) for the pinhole part of any supported model.
     pub fn pinhole(&self) -> Option<(f64, f64, f64, f64)> {
         let p = &self.params;
@@ -48,6 +57,19 @@ pub struct ColmapImage {
 }
 
 impl ColmapImage {
+    /// The record of an image `name` taken by `camera` (COLMAP camera `camera_id`).
+    pub fn from_camera(id: u32, camera_id: u32, name: String, camera: &Camera) -> Self {
+        Self { id, qvec: rotation_to_quaternion(&camera.rotation), tvec: camera.translation, camera_id, name, points2d: vec![] }
+    }
+
+    /// The camera that took this image with intrinsics from `camera` (its record in
+    /// `cameras.txt`); None for a model without a pinhole part. Distortion is dropped:
+    /// the rasterizer and the splatter are pure pinholes.
+    pub fn camera(&self, camera: &ColmapCamera) -> Option<Camera> {
+        let (fx, fy, cx, cy) = camera.pinhole()?;
+        Some(Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR })
+    }
+
     /// World-to-camera rotation (rows), from the normalized quaternion.
     pub fn rotation(&self) -> [[f64; 3]; 3] {
         let (q, _) = drape_shared::splat::project::normalize_quat(self.qvec);

@@ -4,10 +4,10 @@
 use std::path::{Path, PathBuf};
 
 use crate::body::kinematics::Pose;
+use crate::camera::Camera;
 use crate::dataset::colmap::ColmapModel;
 use crate::dataset::image::{read, read_mask};
 use crate::dataset::neuman::SmplSequence;
-use crate::dataset::raster::RasterCamera;
 use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, zju_by_camera, Split};
 use crate::dataset::zju::{mask_path, ZjuAnnots, ZjuSmpl};
 use crate::mesh::V3;
@@ -36,7 +36,7 @@ pub struct DatasetFrame {
     pub mask: Vec<bool>,
     /// Upper and lower garment masks when the sequence has them (synthetic data).
     pub garment_masks: Option<(Vec<bool>, Vec<bool>)>,
-    pub camera: RasterCamera,
+    pub camera: Camera,
     pub body: BodyParams,
     pub split: Split,
 }
@@ -85,12 +85,11 @@ pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, 
     let mut out = Vec::with_capacity(images.len());
     for (f, img) in images.iter().enumerate() {
         let cam = &model.cameras[&img.camera_id];
-        let (fx, fy, cx, cy) = cam.pinhole().ok_or_else(|| format!("{}: camera {} has model {}, which is not a pinhole model", dir.join("sparse/cameras.txt").display(), cam.id, cam.model))?;
+        let camera = img.camera(cam).ok_or_else(|| format!("{}: camera {} has model {}, which is not a pinhole model", dir.join("sparse/cameras.txt").display(), cam.id, cam.model))?;
         let qn = img.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
         if !(qn > 1e-9) || img.qvec.iter().chain(&img.tvec).any(|v| !v.is_finite()) {
             return Err(format!("{}: image {} ('{}') has a singular rotation (qvec {:?})", sparse.display(), img.id, img.name, img.qvec));
         }
-        let camera = RasterCamera { fx, fy, cx, cy, width: cam.width, height: cam.height, rotation: img.rotation(), translation: img.tvec, near: 0.05 };
         let image_path = dir.join("images").join(&img.name);
         let rgb = load_rgb(&image_path, cam.width, cam.height)?;
         let mask = load_mask(&dir.join("segmentations").join(&img.name), cam.width, cam.height)?;
@@ -132,7 +131,7 @@ pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, St
             let cam = &annots.cameras[c];
             let image_path = dir.join(rel);
             let (w, h, _, _) = read(&image_path)?;
-            let camera = RasterCamera { fx: cam.k[0][0], fy: cam.k[1][1], cx: cam.k[0][2], cy: cam.k[1][2], width: w, height: h, rotation: cam.r, translation: cam.t, near: 0.05 };
+            let camera = cam.camera(w, h);
             out.push(DatasetFrame {
                 frame: f,
                 view: c,

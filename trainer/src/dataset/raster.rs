@@ -3,53 +3,11 @@
 //! and supersampled antialiasing; per pixel it also reports which object is visible
 //! (for masks) and its depth.
 //!
-//! Camera convention as everywhere in drape: `p_c = R p_w + t`, x right, y down,
-//! z forward, pixel centres at +0.5.
+//! It draws through the trainer's one camera type, [`Camera`] (x right, y down,
+//! z forward, pixel centres at +0.5).
 
+use crate::camera::Camera;
 use crate::mesh::{cross, dot, normalize, sub, V3};
-
-/// A pinhole camera in f64.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RasterCamera {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub width: u32,
-    pub height: u32,
-    pub rotation: [[f64; 3]; 3],
-    pub translation: V3,
-    pub near: f64,
-}
-
-impl RasterCamera {
-    /// A camera at `eye` looking at `target`, world up `up`, focal length `f` pixels,
-    /// principal point at the image centre.
-    pub fn look_at(eye: V3, target: V3, up: V3, f: f64, width: u32, height: u32) -> Self {
-        let forward = normalize(sub(target, eye));
-        let right = normalize(cross(forward, up));
-        let down = cross(forward, right);
-        let rotation = [right, down, forward];
-        let translation = [-dot(right, eye), -dot(down, eye), -dot(forward, eye)];
-        Self { fx: f, fy: f, cx: f64::from(width) / 2.0, cy: f64::from(height) / 2.0, width, height, rotation, translation, near: 0.05 }
-    }
-
-    /// Pixel coordinates of a world point (None behind the camera).
-    pub fn project(&self, p: V3) -> Option<[f64; 2]> {
-        let c = self.to_camera(p);
-        (c[2] > 0.0).then(|| self.project_camera(c))
-    }
-
-    pub fn to_camera(&self, p: V3) -> V3 {
-        let r = &self.rotation;
-        [dot(r[0], p) + self.translation[0], dot(r[1], p) + self.translation[1], dot(r[2], p) + self.translation[2]]
-    }
-
-    /// Pixel coordinates (not rounded) of a camera-space point in front of the camera.
-    pub fn project_camera(&self, c: V3) -> [f64; 2] {
-        [self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy]
-    }
-}
 
 /// Something to draw: triangles with UVs, an object id for masks, and a texture.
 pub struct Drawable<'a> {
@@ -118,7 +76,7 @@ fn clip_near(tri: [Vertex; 3], near: f64) -> Vec<[Vertex; 3]> {
 
 /// Renders `drawables` with `samples` x `samples` supersampling; `light` is the
 /// direction towards the light in world space; `ambient` the unlit share.
-pub fn render(camera: &RasterCamera, drawables: &[Drawable<'_>], samples: u32, background: [f64; 3], light: V3, ambient: f64) -> Frame {
+pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, background: [f64; 3], light: V3, ambient: f64) -> Frame {
     let s = samples.max(1);
     let (w, h) = (camera.width * s, camera.height * s);
     let mut zbuf = vec![f64::INFINITY; (w * h) as usize];

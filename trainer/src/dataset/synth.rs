@@ -13,11 +13,12 @@ use std::path::Path;
 use crate::body::kinematics::{pose_body, Pose};
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
+use crate::camera::Camera;
 use crate::cloth::{simulate_with_progress, ClothParams};
-use crate::dataset::colmap::{rotation_to_quaternion, ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
+use crate::dataset::colmap::{ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
 use crate::dataset::image::{write_mask, write_rgb};
 use crate::dataset::neuman::SmplSequence;
-use crate::dataset::raster::{render, Drawable, RasterCamera};
+use crate::dataset::raster::{render, Drawable};
 use crate::dataset::zju::{write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
 use crate::garment::{pants, tshirt, write_obj, Garment};
 use crate::mesh::{add, scale, sub, V3};
@@ -136,20 +137,20 @@ fn pants_texture(uv: [f64; 2]) -> [f64; 3] {
 
 /// The handheld camera of frame i: a slow arc in front of the person with a little
 /// shake, looking at the chest.
-pub fn handheld_camera(i: usize, frames: usize, centre: V3, seed: u64, width: u32, height: u32) -> RasterCamera {
+pub fn handheld_camera(i: usize, frames: usize, centre: V3, seed: u64, width: u32, height: u32) -> Camera {
     let s = seed as f64;
     let t = i as f64 / frames.max(1) as f64;
     let angle = -0.5 + 0.8 * t + 0.1 * (s * 1.7).sin();
     let shake = [0.02 * (2.3 * i as f64 + s).sin(), 0.015 * (3.1 * i as f64 + 2.0 * s).sin(), 0.0];
     let eye = add(add(centre, [3.2 * angle.sin(), 0.5, 3.2 * angle.cos()]), shake);
-    RasterCamera::look_at(eye, add(centre, [0.0, 0.0, 0.0]), [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
+    Camera::look_at(eye, add(centre, [0.0, 0.0, 0.0]), [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
 }
 
 /// Camera c of the static ring around `centre`.
-pub fn ring_camera(c: usize, cameras: usize, centre: V3, width: u32, height: u32) -> RasterCamera {
+pub fn ring_camera(c: usize, cameras: usize, centre: V3, width: u32, height: u32) -> Camera {
     let angle = TAU * c as f64 / cameras.max(1) as f64;
     let eye = add(centre, [3.6 * angle.sin(), 0.4, 3.6 * angle.cos()]);
-    RasterCamera::look_at(eye, centre, [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
+    Camera::look_at(eye, centre, [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
 }
 
 /// Rotates a vector by an axis-angle.
@@ -221,9 +222,8 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
     let gt = out.join("gt");
     let mean_translation = scale(motion.translations.iter().fold([0.0; 3], |a, t| add(a, *t)), 1.0 / o.frames as f64);
     let ring_centre = add(mean_translation, [0.0, 1.0, 0.0]);
-    let ring: Vec<RasterCamera> = (0..o.cameras).map(|c| ring_camera(c, o.cameras, ring_centre, o.width, o.height)).collect();
+    let ring: Vec<Camera> = (0..o.cameras).map(|c| ring_camera(c, o.cameras, ring_centre, o.width, o.height)).collect();
     let mut colmap = ColmapModel::default();
-    colmap.cameras.insert(1, ColmapCamera { id: 1, model: "PINHOLE".into(), width: o.width, height: o.height, params: vec![1.2 * f64::from(o.width), 1.2 * f64::from(o.width), f64::from(o.width) / 2.0, f64::from(o.height) / 2.0] });
     let mut zju_images = Vec::with_capacity(o.frames);
 
     for f in 0..o.frames {
@@ -231,7 +231,7 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         let posed = pose_body(&model, &[], &motion.poses[f], motion.translations[f]);
         let shirt = &sim.frames[f][0];
         let trousers = &sim.frames[f][1];
-        let draw = |cam: &RasterCamera| {
+        let draw = |cam: &Camera| {
             let items = [
                 Drawable { vertices: &room.vertices, faces: &room.faces, uvs: &room.uvs, object: SCENE, texture: &room_texture, two_sided: true },
                 Drawable { vertices: &posed.vertices, faces: &model.faces, uvs: &body_uv, object: BODY, texture: &skin_texture, two_sided: false },
@@ -253,10 +253,9 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         let depth_path = neuman.join("depths").join(format!("{f:05}.npy"));
         std::fs::create_dir_all(depth_path.parent().expect("has a parent")).map_err(|e| e.to_string())?;
         std::fs::write(&depth_path, npy::encode(&depth)).map_err(|e| format!("{}: {e}", depth_path.display()))?;
-        colmap.images.insert(
-            f as u32 + 1,
-            ColmapImage { id: f as u32 + 1, qvec: rotation_to_quaternion(&cam.rotation), tvec: cam.translation, camera_id: 1, name: name.clone(), points2d: vec![] },
-        );
+        // Every handheld frame has the same intrinsics: one COLMAP camera.
+        colmap.cameras.entry(1).or_insert_with(|| ColmapCamera::from_camera(1, &cam));
+        colmap.images.insert(f as u32 + 1, ColmapImage::from_camera(f as u32 + 1, 1, name.clone(), &cam));
         // ZJU-MoCap: the ring.
         let mut paths = Vec::with_capacity(o.cameras);
         for (c, rc) in ring.iter().enumerate() {
@@ -298,7 +297,7 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
     seq.write_npz(&neuman.join("4d_humans").join("smpl_optimized_aligned_scale.npz")).map_err(|e| e.to_string())?;
     seq.write_npz(&gt.join("smpl.npz")).map_err(|e| e.to_string())?;
     let annots = ZjuAnnots {
-        cameras: ring.iter().map(|c| ZjuCamera { k: [[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation }).collect(),
+        cameras: ring.iter().map(ZjuCamera::from_camera).collect(),
         images: zju_images,
     };
     annots.write(&zju)?;

@@ -3,9 +3,12 @@
 //! frame the image path of every camera), `smpl_params/{i}.npy` (a pickled dict with
 //! `poses` 1×72, `Rh` 1×3, `Th` 1×3, `shapes` 1×10) and `vertices/{i}.npy` (V×3).
 //! Mask paths are image paths with `images` -> `mask` and `.jpg` -> `.png`.
+//! [`ZjuCamera`] is the record `annots.npy` holds; it converts to and from the
+//! trainer's [`Camera`].
 
 use std::path::{Path, PathBuf};
 
+use crate::camera::Camera;
 use crate::npy::{self, Array};
 use crate::pickle::{decode_object_npy, encode_object_npy, PyValue};
 
@@ -20,6 +23,21 @@ pub struct ZjuCamera {
     pub r: [[f64; 3]; 3],
     /// World-to-camera translation in metres (stored in millimetres on disk).
     pub t: [f64; 3],
+}
+
+impl ZjuCamera {
+    /// The record of `camera`: no skew, no distortion.
+    pub fn from_camera(camera: &Camera) -> Self {
+        let c = camera;
+        Self { k: [[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation }
+    }
+
+    /// The camera for images of `width` x `height` (the annotations do not say).
+    /// Skew and distortion are dropped: the rasterizer and the splatter are pure pinholes.
+    pub fn camera(&self, width: u32, height: u32) -> Camera {
+        let k = &self.k;
+        Camera { fx: k[0][0], fy: k[1][1], cx: k[0][2], cy: k[1][2], width, height, rotation: self.r, translation: self.t, near: Camera::NEAR }
+    }
 }
 
 /// Per-frame SMPL parameters in ZJU's convention.
