@@ -76,8 +76,10 @@ impl Array {
 /// Why an array or archive could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum NpyError {
-    #[error("{file}: {source}")]
-    Io { file: String, source: std::io::Error },
+    // `error`, not `source`: the message carries it; a `source` would make anyhow
+    // print the OS error twice.
+    #[error("{file}: {error}")]
+    Io { file: String, error: std::io::Error },
     #[error("{file}{}: {problem}", key.as_ref().map(|k| format!(" ['{k}']")).unwrap_or_default())]
     Format { file: String, key: Option<String>, problem: String },
 }
@@ -181,7 +183,7 @@ pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyE
 /// Writes arrays as an uncompressed `.npz` (what `numpy.savez` writes).
 pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), NpyError> {
     let file_name = path.display().to_string();
-    let io = |source| NpyError::Io { file: file_name.clone(), source };
+    let io = |error| NpyError::Io { file: file_name.clone(), error };
     let file = std::fs::File::create(path).map_err(io)?;
     let mut zip = zip::ZipWriter::new(file);
     let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
@@ -196,7 +198,7 @@ pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), Np
 /// Reads every array of an `.npz` archive (stored or deflated entries).
 pub fn read_npz(path: &Path) -> Result<BTreeMap<String, Array>, NpyError> {
     let file_name = path.display().to_string();
-    let file = std::fs::File::open(path).map_err(|source| NpyError::Io { file: file_name.clone(), source })?;
+    let file = std::fs::File::open(path).map_err(|error| NpyError::Io { file: file_name.clone(), error })?;
     let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
     let mut out = BTreeMap::new();
     for i in 0..zip.len() {

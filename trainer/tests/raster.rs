@@ -27,8 +27,32 @@ fn square_covers_its_projected_area_with_depth_and_id() {
     assert!((frame.depth[centre] - 5.0).abs() < 1e-6);
     assert!((frame.rgb[3 * centre] - 1.0).abs() < 1e-6, "lit head-on");
     assert_eq!(frame.depth[0], 0.0, "background has no depth");
-    // Antialiased edges: partially covered pixels at the border.
-    assert!(frame.coverage[3].iter().any(|&c| c > 0.0 && c < 1.0) || covered == 400.0);
+}
+
+/// Antialiasing: a square whose edges fall a quarter into pixels. 1.025 m at 5 m with
+/// f = 100 px is 20.5 px, centred on x = y = 32: edges at 21.75 and 42.25. With 4 x 4
+/// samples per pixel (at 1/8, 3/8, 5/8, 7/8) exactly one column (row) of samples of
+/// each edge pixel is inside, so each edge pixel is 1/4 covered, each corner 1/16, and
+/// the total is 20.5² = 420.25 px exactly (no pixel-aligned edge can pass this).
+#[test]
+fn edges_inside_pixels_are_partially_covered() {
+    let cam = camera(64, 64);
+    let (v, f, uv) = square(1.025, 5.0);
+    let white = |_uv: [f64; 2]| [1.0, 1.0, 1.0];
+    let d = Drawable { vertices: &v, faces: &f, uvs: &uv, object: 3, texture: &white, two_sided: true };
+    let frame = render(&cam, &[d], 4, [0.0; 3], [0.0, 0.0, -1.0], 0.0);
+    let coverage = &frame.coverage[3];
+    let covered: f32 = coverage.iter().sum();
+    // f32 sums of 4,096 multiples of 1/16: exact to ~1e-4.
+    assert!((covered - 420.25).abs() < 1e-3, "covered {covered} px");
+    let at = |x: usize, y: usize| coverage[y * 64 + x];
+    assert_eq!((at(21, 32), at(42, 32), at(32, 21), at(32, 42)), (0.25, 0.25, 0.25, 0.25), "edge pixels");
+    assert_eq!((at(21, 21), at(42, 42)), (0.0625, 0.0625), "corner pixels");
+    assert_eq!(at(32, 32), 1.0, "interior");
+    let partial = coverage.iter().filter(|&&c| c > 0.0 && c < 1.0).count();
+    assert_eq!(partial, 4 * 20 + 4, "every edge and corner pixel is partial");
+    // Grey at the edges: the colour is the mean over the samples.
+    assert!((frame.rgb[3 * (32 * 64 + 21)] - 0.25).abs() < 1e-6);
 }
 
 #[test]

@@ -54,6 +54,29 @@ fn assert_one_line_error(out: &std::process::Output, needle: &str) {
 fn render_reports_a_missing_ply_in_one_line() {
     let out = drape(&["render", "--ply", "/nonexistent/scene.ply", "--out", "/tmp/x.png"]);
     assert_one_line_error(&out, "/nonexistent/scene.ply");
+    // The OS's reason once, not once from the message and again from its source.
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(stderr.matches("No such file or directory").count(), 1, "{stderr}");
+}
+
+/// Sizes are named: a zero width by its option, an image too large for one binding by
+/// its size in pixels and bytes and the device limit (it said "0 bytes" before).
+#[test]
+fn render_names_bad_image_sizes() {
+    let target = temp("size-target.png");
+    write_target(&target);
+    let ply = temp("size.ply");
+    let out = drape(&["fit", "--target", target.to_str().unwrap(), "--n", "50", "--iters", "1", "--out", ply.to_str().unwrap()]);
+    assert!(out.status.success(), "fit failed: {}", String::from_utf8_lossy(&out.stderr));
+    let out = drape(&["render", "--ply", ply.to_str().unwrap(), "--width", "0", "--out", "/tmp/x.png"]);
+    assert_one_line_error(&out, "'--width <WIDTH>'");
+    let image = temp("huge.png");
+    let out = drape(&["render", "--ply", ply.to_str().unwrap(), "--width", "100000", "--height", "100000", "--out", image.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let error: Vec<&str> = stderr.lines().filter(|l| !l.starts_with("device:")).collect();
+    assert!(!out.status.success() && error.len() == 1, "{stderr}");
+    assert!(error[0].contains("100000x100000") && error[0].contains("120000000000") && error[0].contains("maxStorageBufferRange"), "{stderr}");
+    assert!(!image.exists(), "nothing written");
 }
 
 #[test]

@@ -99,8 +99,10 @@ pub struct ColmapModel {
 /// Why a model could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum ColmapError {
-    #[error("{path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    // `error`, not `source`: the message carries it; a `source` would make anyhow
+    // print the OS error twice.
+    #[error("{path}: {error}")]
+    Io { path: String, error: std::io::Error },
     #[error("{path}:{line}: {problem}")]
     Parse { path: String, line: usize, problem: String },
 }
@@ -116,7 +118,7 @@ impl ColmapModel {
     pub fn write_text(&self, dir: &Path) -> Result<(), ColmapError> {
         let io = |path: &Path| {
             let p = path.display().to_string();
-            move |source| ColmapError::Io { path: p.clone(), source }
+            move |error| ColmapError::Io { path: p.clone(), error }
         };
         std::fs::create_dir_all(dir).map_err(io(dir))?;
         let mut cams = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
@@ -162,7 +164,7 @@ impl ColmapModel {
     pub fn read_text(dir: &Path) -> Result<Self, ColmapError> {
         let read = |name: &str| {
             let path = dir.join(name);
-            std::fs::read_to_string(&path).map(|t| (path.display().to_string(), t)).map_err(|source| ColmapError::Io { path: path.display().to_string(), source })
+            std::fs::read_to_string(&path).map(|t| (path.display().to_string(), t)).map_err(|error| ColmapError::Io { path: path.display().to_string(), error })
         };
         let mut model = ColmapModel::default();
 

@@ -38,7 +38,7 @@ impl SmplSequence {
         a.insert("transl".into(), Array::f64(vec![f, 3], self.translations.iter().flatten().copied().collect()));
         a.insert("scale".into(), Array::f64(vec![f], self.scales.clone()));
         if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent).map_err(|source| NpyError::Io { file: parent.display().to_string(), source })?;
+            std::fs::create_dir_all(parent).map_err(|error| NpyError::Io { file: parent.display().to_string(), error })?;
         }
         npy::write_npz(path, &a)
     }
