@@ -19,6 +19,7 @@ use drape_shared::radix_sort::significant_bits;
 use rand::{Rng, SeedableRng};
 use serde_json::json;
 
+mod avatar;
 mod composite;
 mod ops;
 mod splat;
@@ -80,6 +81,11 @@ enum Job {
     /// default): the paper's three passes composited, against one depth-sorted pass of
     /// every layer; forward and forward + backward frame time, per-pass GPU ms.
     Composite(composite::CompositeArgs),
+    /// A trained avatar (a `drape train` run): frame time and FPS at 512x512 and
+    /// 1920x1080 through each compositing variant with the GPU split (decoders,
+    /// skinning, projection, sorts, rasterization, composite), and training it/s with
+    /// the split of a step.
+    Avatar(avatar::AvatarArgs),
 }
 
 /// Medians over the timed runs.
@@ -253,6 +259,16 @@ fn main() -> ExitCode {
                     println!("{result}");
                 } else {
                     ops::print_table(&result);
+                }
+                return Ok(());
+            }
+            Job::Avatar(args) => {
+                let result = avatar::run(&ctx, args)?;
+                cli.device.check_validation(&ctx)?;
+                if args.json {
+                    println!("{result}");
+                } else {
+                    avatar::print_table(&result);
                 }
                 return Ok(());
             }

@@ -73,3 +73,14 @@ fn scan_json_has_the_documented_fields() {
     }
     assert!(j["passes"].get("scan.reduce").is_some(), "{j}");
 }
+
+#[test]
+fn avatar_names_a_missing_run_in_one_line() {
+    let out = bench(&["avatar", "/nonexistent/run"], &[]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    // The device line comes first (the run is opened on the device).
+    let lines: Vec<&str> = stderr.lines().filter(|l| !l.starts_with("device:")).collect();
+    assert!(!out.status.success() && !stderr.contains("panicked"), "{stderr}");
+    assert_eq!(lines.len(), 1, "{stderr}");
+    assert!(lines[0].contains("/nonexistent/run") && lines[0].contains("no such run directory"), "{stderr}");
+}

@@ -1,0 +1,258 @@
+//! `engine-bench avatar RUN`: the frame rate of a trained avatar (a `drape train` run)
+//! and where a frame goes. For each image size and compositing variant: the held-out
+//! view's camera scaled to the size, the avatar posed as in that frame, and per frame
+//! the decoders (triplane + MLPs), skinning, projection, binning and sorts,
+//! rasterization and composite, each as GPU ms from the context's profile; median
+//! frame time and FPS. Then, unless `--train-steps 0`, training it/s with the split of
+//! a step: a fresh model from the run's configuration and data trained for that many
+//! steps in a temporary directory (the run itself is not touched; the decoders' initial
+//! fit is shortened to `--fit-steps`, which changes nothing about a step's cost).
+//!
+//! Not built yet: a synthetic model of the paper's size when no run is given; the
+//! overlapped single-submission frame and the fused rasterizer (the compositing issue).
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use drape_cli_support::median;
+use drape_engine::ops::splat::scene::RenderSettings;
+use drape_engine::{Context, Profile};
+use drape_trainer::avatar::composite::{AvatarRenderer, Compositing};
+use drape_trainer::avatar::run::OpenRun;
+use drape_trainer::avatar::train::{body_model, train_until};
+use serde_json::json;
+
+/// Options of `engine-bench avatar`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct AvatarArgs {
+    /// A finished `drape train` run directory (config.json, model.npz, run.json).
+    pub run: PathBuf,
+    /// The sequence the run was trained on, when run.json is missing or the data moved.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Image sizes, WIDTHxHEIGHT, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "512x512,1920x1080", value_parser = crate::splat::parse_size)]
+    pub sizes: Vec<(u32, u32)>,
+    /// Compositing variants: three-pass (the paper's), three-pass-occlusion, single-pass.
+    #[arg(long, value_delimiter = ',', default_value = "three-pass,three-pass-occlusion,single-pass")]
+    pub compositing: Vec<String>,
+    /// Timed frames per configuration (the median is reported).
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
+    pub runs: u32,
+    /// Untimed warm-up frames first.
+    #[arg(long, default_value_t = 1)]
+    pub warmup: u32,
+    /// Training steps to time (0: skip the training measurement).
+    #[arg(long, default_value_t = 10)]
+    pub train_steps: u32,
+    /// Steps of the decoders' initial fit before the timed training steps.
+    #[arg(long, default_value_t = 20)]
+    pub fit_steps: u32,
+    /// Print one JSON object on stdout instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The stage a pass belongs to, by its name.
+fn stage(pass: &str) -> &'static str {
+    let starts = |p: &str| pass.starts_with(p);
+    if starts("nn.") || starts("mlp.") || starts("triplane.") {
+        "decoders"
+    } else if starts("deform.") || starts("skinning.") || starts("layer.") {
+        "skinning"
+    } else if starts("splat.project") {
+        "projection"
+    } else if starts("radix_sort.") || starts("splat.scan") || starts("splat.gather_counts") || starts("splat.emit_intersections") || starts("splat.tile_ranges") {
+        "binning and sorts"
+    } else if starts("splat.rasterize") {
+        "rasterization"
+    } else if starts("composite.") {
+        "composite"
+    } else {
+        "other"
+    }
+}
+
+fn by_stage(profile: &Profile) -> BTreeMap<String, f64> {
+    let mut stages = BTreeMap::new();
+    for (name, e) in &profile.gpu_passes {
+        *stages.entry(stage(name).to_string()).or_insert(0.0) += e.ms;
+    }
+    stages
+}
+
+fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (u32, u32), variant: &str) -> anyhow::Result<serde_json::Value> {
+    let compositing = Compositing::parse(variant).map_err(|e| anyhow::anyhow!("--compositing: {e}"))?;
+    let frame = *run.test_frames().first().ok_or_else(|| anyhow::anyhow!("{}: the run's data has no held-out frame to pose the avatar in", run.dir.display()))?;
+    let (body, mut camera) = (frame.body.clone(), frame.camera.clone());
+    // The held-out view at the benchmark's size (each axis scaled on its own).
+    let (sx, sy) = (f64::from(w) / f64::from(camera.width), f64::from(h) / f64::from(camera.height));
+    (camera.fx, camera.cx, camera.fy, camera.cy, camera.width, camera.height) = (camera.fx * sx, camera.cx * sx, camera.fy * sy, camera.cy * sy, w, h);
+    let pinhole = camera.to_pinhole([0.5; 3]);
+    let transforms = run.rig.frame(&body);
+    let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
+    let settings = RenderSettings::default();
+    let (mut totals, mut stages): (Vec<f64>, BTreeMap<String, Vec<f64>>) = (Vec::new(), BTreeMap::new());
+    for i in 0..args.warmup + args.runs {
+        ctx.start_profile();
+        let t0 = Instant::now();
+        // A viewer poses the avatar every frame: the decoders and skinning run each time.
+        run.avatar.set_transforms(ctx, &transforms.transforms)?;
+        {
+            let mut rec = ctx.record("avatar decode and skin")?;
+            run.avatar.record_forward(&mut rec, transforms.log_scale)?;
+            rec.submit_and_wait()?;
+        }
+        renderer.forward(ctx, &run.avatar, &pinhole, &settings)?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        let profile = ctx.take_profile().unwrap_or_default();
+        if i < args.warmup {
+            continue;
+        }
+        totals.push(ms);
+        for (k, v) in by_stage(&profile) {
+            stages.entry(k).or_default().push(v);
+        }
+    }
+    let frame_ms = median(&totals);
+    let stages: BTreeMap<String, f64> = stages.into_iter().map(|(k, v)| (k, median(&v))).collect();
+    Ok(json!({
+        "width": w,
+        "height": h,
+        "compositing": variant,
+        "passes_rendered": if renderer.is_three_pass() { 3 } else { 1 },
+        "frame_median_ms": frame_ms,
+        "fps": 1e3 / frame_ms,
+        "stages_gpu_ms": stages,
+    }))
+}
+
+/// Trains a fresh model from the run's configuration for `args.train_steps` steps in a
+/// temporary directory with the profile on; it/s and the GPU split of one step.
+fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Result<serde_json::Value> {
+    let out = std::env::temp_dir().join(format!("engine-bench-avatar-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out)?;
+    let mut config = run.config.clone();
+    config.steps = args.train_steps;
+    config.fit_steps = args.fit_steps;
+    config.checkpoint_every = 0;
+    config.log_every = args.train_steps.max(1);
+    let model = body_model(run.info.body.as_deref()).map_err(anyhow::Error::msg)?;
+    // A running profile makes train_until profile its steps (and only them).
+    ctx.start_profile();
+    let report = train_until(ctx, &run.seq, model, &config, &out, false, args.train_steps, &mut |_| {}).map_err(anyhow::Error::msg);
+    let _ = ctx.take_profile();
+    let report = report?;
+    let profile_path = out.join("profile.json");
+    let profile: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&profile_path)?)?;
+    let _ = std::fs::remove_dir_all(&out);
+    let steps = f64::from(args.train_steps.max(1));
+    let mut stages: BTreeMap<String, f64> = BTreeMap::new();
+    let mut passes: Vec<(String, f64)> = Vec::new();
+    for (name, e) in profile["gpu_passes"].as_object().into_iter().flatten() {
+        let ms = e["ms"].as_f64().unwrap_or(0.0) / steps;
+        *stages.entry(train_stage(name).to_string()).or_insert(0.0) += ms;
+        passes.push((name.clone(), ms));
+    }
+    passes.sort_by(|a, b| b.1.total_cmp(&a.1));
+    Ok(json!({
+        "steps": args.train_steps,
+        "iterations_per_second": report.iterations_per_second,
+        "ms_per_step": 1e3 / report.iterations_per_second.max(1e-9),
+        "stages_gpu_ms_per_step": stages,
+        "top_passes_gpu_ms_per_step": passes.into_iter().take(8).collect::<BTreeMap<_, _>>(),
+        "gaussians": report.gaussians,
+    }))
+}
+
+/// A training step's stages: the render stages, the losses, and the optimiser.
+fn train_stage(pass: &str) -> &'static str {
+    match stage(pass) {
+        "other" if pass.starts_with("adam") => "adam",
+        "other" if pass.starts_with("ssim.") || pass.starts_with("loss.") || pass.starts_with("lpips.") => "image losses",
+        "other" if pass.starts_with("chamfer.") || pass.starts_with("arap.") || pass.starts_with("cloth.") => "cloth losses",
+        s => s,
+    }
+}
+
+pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value> {
+    let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let mut results = Vec::new();
+    for &size in &args.sizes {
+        for variant in &args.compositing {
+            eprintln!("avatar: {}x{} {variant} ...", size.0, size.1);
+            results.push(render_variant(ctx, &mut run, args, size, variant)?);
+        }
+    }
+    let training = if args.train_steps > 0 {
+        eprintln!("avatar: training {} steps (fresh model, temporary directory) ...", args.train_steps);
+        train_steps(ctx, &run, args)?
+    } else {
+        json!("skipped (--train-steps 0)")
+    };
+    Ok(json!({
+        "job": "avatar",
+        "device": ctx.info().name,
+        "device_kind": format!("{:?}", ctx.info().kind),
+        "run": args.run.display().to_string(),
+        "gaussians": run.avatar.counts(),
+        "runs": args.runs,
+        "warmup": args.warmup,
+        "render": results,
+        "training": training,
+        "not_built": ["a synthetic paper-size model without a run", "the overlapped single-submission frame", "the fused rasterizer"],
+    }))
+}
+
+pub fn print_table(r: &serde_json::Value) {
+    println!("avatar {} on {} ({} frames, median); Gaussians {}", r["run"].as_str().unwrap_or("?"), r["device"].as_str().unwrap_or("?"), r["runs"], r["gaussians"]);
+    for c in r["render"].as_array().into_iter().flatten() {
+        let stages: Vec<String> = c["stages_gpu_ms"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0))).collect();
+        println!(
+            "  {}x{} {:<22} {:>9.1} ms {:>6.2} FPS | GPU ms: {}",
+            c["width"],
+            c["height"],
+            c["compositing"].as_str().unwrap_or("?"),
+            c["frame_median_ms"].as_f64().unwrap_or(0.0),
+            c["fps"].as_f64().unwrap_or(0.0),
+            stages.join(", ")
+        );
+    }
+    let t = &r["training"];
+    if let Some(its) = t["iterations_per_second"].as_f64() {
+        let stages: Vec<String> = t["stages_gpu_ms_per_step"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0))).collect();
+        println!("  training: {its:.2} it/s ({:.0} ms/step over {} steps) | GPU ms/step: {}", t["ms_per_step"].as_f64().unwrap_or(0.0), t["steps"], stages.join(", "));
+    } else {
+        println!("  training: {}", t.as_str().unwrap_or("?"));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn passes_fall_into_the_stages_a_frame_has() {
+        for (pass, want) in [
+            ("nn.gemm", "decoders"),
+            ("triplane.sample_fwd", "decoders"),
+            ("skinning.fwd", "skinning"),
+            ("deform.fwd", "skinning"),
+            ("splat.project_fwd", "projection"),
+            ("splat.scan.reduce", "binning and sorts"),
+            ("radix_sort.scatter", "binning and sorts"),
+            ("splat.tile_ranges", "binning and sorts"),
+            ("splat.rasterize_fwd", "rasterization"),
+            ("composite.fwd", "composite"),
+            ("adam.step", "other"),
+        ] {
+            assert_eq!(stage(pass), want, "{pass}");
+        }
+        assert_eq!(train_stage("adam.step"), "adam");
+        assert_eq!(train_stage("ssim.map"), "image losses");
+        assert_eq!(train_stage("chamfer.grad"), "cloth losses");
+        assert_eq!(train_stage("splat.rasterize_bwd"), "rasterization");
+    }
+}
