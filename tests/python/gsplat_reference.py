@@ -48,40 +48,14 @@ import sys
 import numpy as np
 import torch
 
+from case_io import CaseError, grad_or_zeros, load, save  # tests/python/case_io.py
+
 torch.set_default_dtype(torch.float64)
 
 # gsplat's CUDA constants, as float32 (Common.h, RasterizeToPixels3DGSFwd.cu).
 ALPHA_THRESHOLD = float(np.float32(1.0 / 255.0))
 ALPHA_MAX = float(np.float32(0.999))
 T_MIN = float(np.float32(1e-4))
-
-
-class CaseError(Exception):
-    pass
-
-
-def load(d, name, shape=None):
-    """Loads NAME.npy as a float64 tensor; `shape` entries that are None match anything."""
-    path = os.path.join(d, name + ".npy")
-    try:
-        a = np.load(path, allow_pickle=False)
-    except Exception as e:
-        raise CaseError(f"{path}: cannot read: {e}") from None
-    if shape is not None:
-        ok = a.ndim == len(shape) and all(s is None or s == t for s, t in zip(shape, a.shape))
-        if not ok:
-            want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-            raise CaseError(f"{path}: shape {a.shape}, expected {want}")
-    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
-
-
-def save(d, name, t):
-    a = np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
-    np.save(os.path.join(d, name + ".npy"), a)
-
-
-def grad_or_zeros(t):
-    return t.grad if t.grad is not None else torch.zeros_like(t)
 
 
 def composite(means2d, conics, opacities, colors, background, flatten_ids, offsets, width, height, tile_size):

@@ -202,3 +202,56 @@ pub fn test_picture(width: u32, height: u32) -> drape_engine::ops::splat::fit::I
     }
     drape_engine::ops::splat::fit::Image { width, height, rgb }
 }
+
+pub mod reference_python {
+    //! Running the independent Python references (`tests/python/*.py`) in the virtual
+    //! environment `scripts/torch-env.sh` makes: NumPy files in, NumPy files out, one
+    //! directory per case. Without the environment the calling test fails, it is not
+    //! skipped.
+    use std::path::{Path, PathBuf};
+    use std::process::Command;
+
+    use drape_trainer::npy::{decode, encode, Array};
+
+    /// `DRAPE_TORCH_PYTHON`, else the project's `target/torch-venv`.
+    pub fn python() -> PathBuf {
+        if let Ok(p) = std::env::var("DRAPE_TORCH_PYTHON") {
+            return p.into();
+        }
+        let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/torch-venv/bin/python");
+        assert!(venv.exists(), "no reference environment (PyTorch, gsplat, scikit-image): run scripts/torch-env.sh (the test command does) or set DRAPE_TORCH_PYTHON");
+        venv
+    }
+
+    /// A fresh, empty directory for one case: `<target>/tmp/<group>/<name>`, beside the
+    /// test binary (`<target>/<profile>/deps/`), where cargo's `CARGO_TARGET_TMPDIR` is
+    /// (that variable exists only when integration tests themselves compile).
+    pub fn case_dir(group: &str, name: &str) -> PathBuf {
+        let exe = std::env::current_exe().expect("test executable");
+        let target = exe.ancestors().nth(3).expect("<target>/<profile>/deps/<test>");
+        let d = target.join("tmp").join(group).join(name);
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).expect("case directory");
+        d
+    }
+
+    /// Writes `dir/name.npy` (float64).
+    pub fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
+        std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
+    }
+
+    /// Reads `dir/name.npy` as f64.
+    pub fn get(dir: &Path, name: &str) -> Vec<f64> {
+        let path = dir.join(format!("{name}.npy"));
+        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
+    }
+
+    /// Runs `tests/python/<script>` on `dirs` and fails the test, with its stderr, if
+    /// the script fails.
+    pub fn run(script: &str, dirs: &[PathBuf]) {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("python").join(script);
+        let out = Command::new(python()).arg(&path).args(dirs).output().unwrap_or_else(|e| panic!("running {script}: {e}"));
+        assert!(out.status.success(), "{script} failed: {}", String::from_utf8_lossy(&out.stderr));
+    }
+}

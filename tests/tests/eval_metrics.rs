@@ -14,17 +14,16 @@
 //! Without the environment these tests fail (they are not skipped): set
 //! `DRAPE_TORCH_PYTHON` to a Python with scikit-image, or run `scripts/torch-env.sh`.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
 use drape_engine::ops::cloth_loss::Chamfer;
 use drape_engine::ops::ssim::{reference as ssim_reference, Ssim};
 use drape_engine::Context;
 use drape_tests::gpu;
+use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{to_f32, to_f64, uniform};
 use drape_tests::test_picture;
 use drape_trainer::avatar::eval::{crop, mask_bbox, psnr};
-use drape_trainer::npy::{decode, encode, Array};
 use rand::{Rng, SeedableRng};
 
 /// (x0, y0, x1, y1), exclusive ends, as `eval::mask_bbox`.
@@ -34,37 +33,9 @@ type Points = Vec<[f64; 3]>;
 /// skimage crops this many pixels from each border before averaging (win_size 11).
 const BORDER: usize = 5;
 
-fn python() -> PathBuf {
-    if let Ok(p) = std::env::var("DRAPE_TORCH_PYTHON") {
-        return p.into();
-    }
-    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/torch-venv/bin/python");
-    assert!(venv.exists(), "no reference environment: run scripts/torch-env.sh (the test command does) or set DRAPE_TORCH_PYTHON");
-    venv
-}
-
-fn case_dir(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("skimage-cases").join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("case directory");
-    d
-}
-
-fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
-    std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
-}
-
-fn get(dir: &Path, name: &str) -> Vec<f64> {
-    let path = dir.join(format!("{name}.npy"));
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
-}
-
 fn run_skimage(dir: &Path, case: serde_json::Value) -> serde_json::Value {
     std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/skimage_metrics.py");
-    let out = Command::new(python()).arg(&script).arg(dir).output().expect("running the scikit-image reference");
-    assert!(out.status.success(), "scikit-image reference failed: {}", String::from_utf8_lossy(&out.stderr));
+    drape_tests::reference_python::run("skimage_metrics.py", &[dir.to_path_buf()]);
     serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).expect("results.json")).expect("results json")
 }
 
@@ -128,7 +99,7 @@ fn interior(ours: &[f64], theirs: &[f64], w: usize, h: usize) -> (f64, f64) {
 fn psnr_and_ssim_match_scikit_image() {
     let ctx = gpu();
     let pairs = pairs();
-    let dir = case_dir("psnr_ssim");
+    let dir = case_dir("skimage-cases", "psnr_ssim");
     for p in &pairs {
         put(&dir, &format!("{}_a", p.name), &[p.height, p.width, 3], &to_f64(&p.a));
         put(&dir, &format!("{}_b", p.name), &[p.height, p.width, 3], &to_f64(&p.b));

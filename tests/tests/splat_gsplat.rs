@@ -64,15 +64,14 @@
 //! `DRAPE_TORCH_PYTHON` to a Python with torch and gsplat, or run `scripts/torch-env.sh`.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Instant;
 
 use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
 use drape_tests::gpu;
+use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{rel_err, to_f64};
-use drape_trainer::npy::{decode, encode, Array};
 use rand::{Rng, SeedableRng};
 
 const GAUSSIANS: usize = 300;
@@ -86,37 +85,9 @@ const GRADIENT_REL: f64 = 2e-5;
 /// A radius whose value before the ceil is this close to an integer is not compared.
 const RADIUS_CUTOFF: f64 = 1e-4;
 
-fn python() -> PathBuf {
-    if let Ok(p) = std::env::var("DRAPE_TORCH_PYTHON") {
-        return p.into();
-    }
-    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/torch-venv/bin/python");
-    assert!(venv.exists(), "no PyTorch environment with gsplat: run scripts/torch-env.sh (the test command does) or set DRAPE_TORCH_PYTHON");
-    venv
-}
-
-fn case_dir(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("gsplat-cases").join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("case directory");
-    d
-}
-
-fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
-    std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
-}
-
-fn get(dir: &Path, name: &str) -> Vec<f64> {
-    let path = dir.join(format!("{name}.npy"));
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
-}
-
 /// Runs the reference on every case directory in one process (torch is imported once).
 fn run_gsplat(dirs: &[PathBuf]) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/gsplat_reference.py");
-    let out = Command::new(python()).arg(&script).args(dirs).output().expect("running the gsplat reference");
-    assert!(out.status.success(), "gsplat reference failed: {}", String::from_utf8_lossy(&out.stderr));
+    drape_tests::reference_python::run("gsplat_reference.py", dirs);
 }
 
 /// A camera 5 units from the origin, off-centre principal point and fx ≠ fy.
@@ -353,7 +324,7 @@ fn splatter_matches_gsplat() {
     let dirs: Vec<PathBuf> = cases
         .iter()
         .map(|c| {
-            let d = case_dir(&c.name);
+            let d = case_dir("gsplat-cases", &c.name);
             write_case(&d, c);
             d
         })

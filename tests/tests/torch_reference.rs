@@ -8,8 +8,7 @@
 //! Without the environment these tests fail (they are not skipped): set
 //! `DRAPE_TORCH_PYTHON` to a Python with torch, or run `scripts/torch-env.sh`.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
 use drape_engine::ops::deform::{self, HostInputs};
 use drape_engine::ops::nn::{reference_backward, Activation, HeadDesc, Mlp, MlpDesc};
@@ -17,41 +16,13 @@ use drape_engine::ops::triplane::{Triplane, TriplaneDesc};
 use drape_engine::{BufferDesc, Context};
 use drape_shared::deform::rot6d_to_matrix;
 use drape_tests::gpu;
+use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
-use drape_trainer::npy::{decode, encode, Array};
 use rand::{Rng, SeedableRng};
-
-fn python() -> PathBuf {
-    if let Ok(p) = std::env::var("DRAPE_TORCH_PYTHON") {
-        return p.into();
-    }
-    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/torch-venv/bin/python");
-    assert!(venv.exists(), "no PyTorch environment: run scripts/torch-env.sh (the test command does) or set DRAPE_TORCH_PYTHON");
-    venv
-}
-
-fn case_dir(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("torch-cases").join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("case directory");
-    d
-}
-
-fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
-    std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
-}
-
-fn get(dir: &Path, name: &str) -> Vec<f64> {
-    let path = dir.join(format!("{name}.npy"));
-    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
-}
 
 fn run_torch(dir: &Path, case: serde_json::Value) {
     std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/torch_reference.py");
-    let out = Command::new(python()).arg(&script).arg(dir).output().expect("running the PyTorch reference");
-    assert!(out.status.success(), "PyTorch reference failed: {}", String::from_utf8_lossy(&out.stderr));
+    drape_tests::reference_python::run("torch_reference.py", &[dir.to_path_buf()]);
 }
 
 fn act_name(a: Activation) -> &'static str {
@@ -89,7 +60,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let gpu_gx = to_f64(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
 
     // PyTorch: hidden layers as they are, the heads as one concatenated last layer.
-    let dir = case_dir(name);
+    let dir = case_dir("torch-cases", name);
     let (offsets, _) = desc.layout();
     let linears = desc.linears();
     let hidden = desc.hidden.len();
@@ -217,7 +188,7 @@ fn triplane_matches_grid_sample() {
     let feat = to_f64(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));
     let gplanes = to_f64(&ctx.read_buffer::<f32>(&mut tp.grads, desc.len()).expect("read"));
     let gpoints = to_f64(&ctx.read_buffer::<f32>(&mut gp, pts.len()).expect("read"));
-    let dir = case_dir("triplane");
+    let dir = case_dir("torch-cases", "triplane");
     let r = desc.resolution as usize;
     let c = desc.channels as usize;
     put(&dir, "planes", &[3, r, r, c], &planes);
@@ -241,7 +212,7 @@ fn rotation_6d_matches_pytorch() {
     let n = 500;
     let r6 = uniform(6 * n, -2.0, 2.0, 11);
     let g = uniform(9 * n, -1.0, 1.0, 12);
-    let dir = case_dir("rot6d");
+    let dir = case_dir("torch-cases", "rot6d");
     put(&dir, "r6", &[n, 6], &r6);
     put(&dir, "gR", &[n, 3, 3], &g);
     run_torch(&dir, serde_json::json!({ "op": "rot6d" }));
@@ -304,7 +275,7 @@ fn ssim_interior_matches_pytorch_msssim() {
         }
     }
     let interior = sum / f64::from(count);
-    let dir = case_dir("ssim");
+    let dir = case_dir("torch-cases", "ssim");
     put(&dir, "img1", &[h, w, 3], &pred);
     put(&dir, "img2", &[h, w, 3], &target);
     run_torch(&dir, serde_json::json!({ "op": "ssim" }));
@@ -333,7 +304,7 @@ fn chamfer_geman_mcclure_matches_pytorch() {
     }
     let loss = c.read_value(&ctx).expect("value").robust;
     let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * n).expect("read"));
-    let dir = case_dir("chamfer");
+    let dir = case_dir("torch-cases", "chamfer");
     put(&dir, "pred", &[n, 3], &pred);
     put(&dir, "target", &[m, 3], &target);
     run_torch(&dir, serde_json::json!({ "op": "chamfer", "sigma": sigma }));
@@ -371,7 +342,7 @@ fn arap_matches_pytorch() {
     }
     let var = f64::from(a.read_stats(&ctx).expect("stats")[1]);
     let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * n).expect("read"));
-    let dir = case_dir("arap");
+    let dir = case_dir("torch-cases", "arap");
     put(&dir, "positions", &[n, 3], &positions);
     put(&dir, "edges", &[edges.len(), 2], &edges.iter().flatten().map(|&v| f64::from(v)).collect::<Vec<_>>());
     run_torch(&dir, serde_json::json!({ "op": "arap" }));
@@ -389,7 +360,7 @@ fn lpips_matches_the_lpips_package() {
     let (w, h) = (64usize, 48usize);
     let a = uniform(3 * w * h, 0.0, 1.0, 61);
     let b: Vec<f64> = a.iter().zip(uniform(3 * w * h, -0.3, 0.3, 62)).map(|(x, d)| (x + d).clamp(0.0, 1.0)).collect();
-    let dir = case_dir("lpips");
+    let dir = case_dir("torch-cases", "lpips");
     put(&dir, "img0", &[h, w, 3], &a);
     put(&dir, "img1", &[h, w, 3], &b);
     let converter = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/lpips-to-safetensors.py");

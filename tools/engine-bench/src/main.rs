@@ -249,55 +249,20 @@ fn main() -> ExitCode {
     };
     drape_cli_support::run(|| {
         let ctx = cli.device.open()?;
-        let (result, json_out) = match &cli.job {
-            Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json),
-            Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json),
-            Job::Ops(args) => {
-                let result = ops::run(&ctx, args)?;
-                cli.device.check_validation(&ctx)?;
-                if args.json {
-                    println!("{result}");
-                } else {
-                    ops::print_table(&result);
-                }
-                return Ok(());
-            }
-            Job::Avatar(args) => {
-                let result = avatar::run(&ctx, args)?;
-                cli.device.check_validation(&ctx)?;
-                if args.json {
-                    println!("{result}");
-                } else {
-                    avatar::print_table(&result);
-                }
-                return Ok(());
-            }
-            Job::Composite(args) => {
-                let result = composite::run(&ctx, args)?;
-                cli.device.check_validation(&ctx)?;
-                if args.json {
-                    println!("{result}");
-                } else {
-                    composite::print_table(&result);
-                }
-                return Ok(());
-            }
-            Job::Splat(args) => {
-                let result = splat::run(&ctx, args)?;
-                cli.device.check_validation(&ctx)?;
-                if args.json {
-                    println!("{result}");
-                } else {
-                    splat::print_table(&result);
-                }
-                return Ok(());
-            }
+        // Each job gives its JSON, whether to print it as JSON, and its table printer.
+        let (result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
+            Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json, print_table),
+            Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json, print_table),
+            Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
+            Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
+            Job::Composite(args) => (composite::run(&ctx, args)?, args.json, composite::print_table),
+            Job::Splat(args) => (splat::run(&ctx, args)?, args.json, splat::print_table),
         };
         cli.device.check_validation(&ctx)?;
         if json_out {
             println!("{result}");
         } else {
-            print_table(&result);
+            table(&result);
         }
         Ok(())
     })
