@@ -30,7 +30,7 @@ pub fn fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] matte: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] out: &mut [f32],
 ) {
-    let i = id.y * groups.x * 256 + id.x;
+    let i = crate::flat_index(id, groups);
     if i >= p.pixels {
         return;
     }
@@ -57,7 +57,7 @@ pub fn bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_over_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_matte: &mut [f32],
 ) {
-    let i = id.y * groups.x * 256 + id.x;
+    let i = crate::flat_index(id, groups);
     if i >= p.pixels {
         return;
     }
@@ -88,7 +88,7 @@ pub fn add_slice(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] src: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
 ) {
-    let i = id.y * groups.x * 256 + id.x;
+    let i = crate::flat_index(id, groups);
     if i >= p.len {
         return;
     }

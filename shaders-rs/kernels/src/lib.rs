@@ -25,3 +25,11 @@ pub mod ssim;
 pub mod train;
 pub mod triplane;
 mod workgroup;
+
+/// Index of an invocation of a one-element-per-invocation kernel (256 per workgroup),
+/// which the engine dispatches on `recorder::flat_grid`: a row of up to 65,535
+/// workgroups, then more rows, so counts past 16.7M fit the limit every device has.
+#[inline]
+pub(crate) fn flat_index(id: spirv_std::glam::UVec3, groups: spirv_std::glam::UVec3) -> u32 {
+    id.y * groups.x * 256 + id.x
+}

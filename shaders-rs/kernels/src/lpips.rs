@@ -8,9 +8,7 @@ use drape_shared::lpips::{conv_at, conv_input_grad_at, layer_distance_at, layer_
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
-fn flat(id: UVec3, groups: UVec3) -> u32 {
-    id.y * groups.x * 256 + id.x
-}
+use crate::flat_index;
 
 /// `out[c][y][x] = (2 rgb[y][x][c] - 1 - shift_c) / scale_c` (HWC in [0, 1] to the
 /// network's CHW input); `p.c = 3`, `p.in_h`, `p.in_w`.
@@ -22,7 +20,7 @@ pub fn scale_input(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] rgb: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] out: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= 3 * hw {
         return;
@@ -40,7 +38,7 @@ pub fn scale_input_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] grad: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grad_rgb: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= 3 * hw {
         return;
@@ -59,7 +57,7 @@ pub fn conv_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] output: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.out_h * p.out_w;
     if i >= p.out_c * hw {
         return;
@@ -79,7 +77,7 @@ pub fn conv_bwd_input(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] weights: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_in: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= p.in_c * hw {
         return;
@@ -97,7 +95,7 @@ pub fn pool_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] output: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] argmax: &mut [u32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.out_h * p.out_w;
     if i >= p.c * hw {
         return;
@@ -117,7 +115,7 @@ pub fn pool_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grad_out: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_in: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= p.c * hw {
         return;
@@ -138,7 +136,7 @@ pub fn distance(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] lin: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] out: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= hw {
         return;
@@ -159,7 +157,7 @@ pub fn distance_grad(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] lin: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &mut [f32],
 ) {
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     let hw = p.in_h * p.in_w;
     if i >= p.c * hw {
         return;

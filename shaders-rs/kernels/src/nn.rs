@@ -1354,7 +1354,7 @@ pub fn act_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [f32],
 ) {
     // Two-dimensional grid: 150k rows of 128 are more than 65,535 groups of 256.
-    let flat = id.y * groups.x * 256 + id.x;
+    let flat = crate::flat_index(id, groups);
     let i = flat as usize;
     if p.kind == ACT_SOFTMAX {
         if flat >= p.rows {
@@ -1393,7 +1393,7 @@ pub fn act_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [f32],
 ) {
     // Two-dimensional grid: 150k rows of 128 are more than 65,535 groups of 256.
-    let flat = id.y * groups.x * 256 + id.x;
+    let flat = crate::flat_index(id, groups);
     let i = flat as usize;
     if p.kind == ACT_SOFTMAX {
         if flat >= p.rows {

@@ -20,15 +20,8 @@ use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
-use crate::atomics;
+use crate::{atomics, flat_index};
 
-/// Index of an invocation of the 1-D kernels, which the engine dispatches on its
-/// `flat_grid` (a row of up to 65,535 workgroups of 256, then more rows), so that counts
-/// past 16.7M fit the workgroup-count limit every device has.
-#[inline]
-fn flat_index(id: UVec3, groups: UVec3) -> u32 {
-    id.y * groups.x * 256 + id.x
-}
 
 /// Gaussian `i`, whose SH starts at Gaussian `sh_i` of the `sh` binding (see
 /// `ProjectChunk`).

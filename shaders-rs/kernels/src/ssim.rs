@@ -11,9 +11,7 @@ use drape_shared::ssim::{ssim_pointwise, SsimParams, SSIM_WINDOW};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
-fn flat(id: UVec3, groups: UVec3) -> u32 {
-    id.y * groups.x * 256 + id.x
-}
+use crate::flat_index;
 
 #[spirv(compute(threads(256)))]
 pub fn moments(
@@ -25,7 +23,7 @@ pub fn moments(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] planes: &mut [f32],
 ) {
     let n = p.width * p.height * 3;
-    let i = flat(id, groups);
+    let i = flat_index(id, groups);
     if i >= n {
         return;
     }
@@ -48,7 +46,7 @@ pub fn blur(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
 ) {
     let image = p.width * p.height * 3;
-    let e = flat(id, groups);
+    let e = flat_index(id, groups);
     if e >= image * p.planes {
         return;
     }
@@ -81,7 +79,7 @@ pub fn map(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] partials: &mut [f32],
 ) {
     let n = (p.width * p.height * 3) as usize;
-    let i = flat(id, groups) as usize;
+    let i = flat_index(id, groups) as usize;
     if i >= n {
         return;
     }
@@ -103,7 +101,7 @@ pub fn grad(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &mut [f32],
 ) {
     let n = (p.width * p.height * 3) as usize;
-    let i = flat(id, groups) as usize;
+    let i = flat_index(id, groups) as usize;
     if i >= n {
         return;
     }

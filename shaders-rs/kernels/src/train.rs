@@ -20,7 +20,7 @@ pub fn adam_step(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] m: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] v: &mut [f32],
 ) {
-    let index = id.y * groups.x * 256 + id.x;
+    let index = crate::flat_index(id, groups);
     if index >= p.len {
         return;
     }
@@ -41,7 +41,7 @@ pub fn mse_grad(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] squared_error: &mut [f32],
 ) {
-    let index = id.y * groups.x * 256 + id.x;
+    let index = crate::flat_index(id, groups);
     if index >= p.len {
         return;
     }
@@ -63,7 +63,7 @@ pub fn l1_grad(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] abs_error: &mut [f32],
 ) {
-    let index = id.y * groups.x * 256 + id.x;
+    let index = crate::flat_index(id, groups);
     if index >= p.len {
         return;
     }
@@ -82,7 +82,7 @@ pub fn add_into(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] src: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
 ) {
-    let index = id.y * groups.x * 256 + id.x;
+    let index = crate::flat_index(id, groups);
     if index >= p.len {
         return;
     }
@@ -100,7 +100,7 @@ pub fn count_nonfinite(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] values: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] counter: &mut [u32],
 ) {
-    let i = id.y * groups.x * 256 + id.x;
+    let i = crate::flat_index(id, groups);
     if i >= p.len {
         return;
     }
