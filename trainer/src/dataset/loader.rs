@@ -5,11 +5,12 @@ use std::path::{Path, PathBuf};
 
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
-use crate::dataset::colmap::ColmapModel;
-use crate::dataset::image::{read, read_mask};
+use crate::dataset::error::DatasetError;
+use crate::dataset::image::{read_mask, read_rgb, MaskRule};
+use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, ZjuFiles};
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, zju_by_camera, Split};
-use crate::dataset::zju::{mask_path, ZjuAnnots, ZjuSmpl};
+use crate::dataset::zju::ZjuSmpl;
 use crate::mesh::V3;
 
 /// The body's parameters in a frame, in the convention of the layout it came from.
@@ -50,59 +51,84 @@ pub enum NeumanSplit {
     EightyTenTen,
 }
 
-fn load_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, String> {
-    let (w, h, c, bytes) = read(path)?;
-    if (w, h) != (width, height) {
-        return Err(format!("{}: {w}x{h}, but its camera is {width}x{height}", path.display()));
-    }
-    Ok(bytes.chunks_exact(c).flat_map(|p| if c >= 3 { [p[0], p[1], p[2]] } else { [p[0]; 3] }).map(|v| f32::from(v) / 255.0).collect())
+fn size_mismatch(path: &Path, got: (u32, u32), want: (u32, u32), of: &str) -> DatasetError {
+    DatasetError::image(path, format!("{}x{}, but its {of} is {}x{}", got.0, got.1, want.0, want.1))
 }
 
-fn load_mask(path: &Path, width: u32, height: u32) -> Result<Vec<bool>, String> {
-    let (w, h, m) = read_mask(path)?;
-    if (w, h) != (width, height) {
-        return Err(format!("{}: {w}x{h}, but its image is {width}x{height}", path.display()));
+fn load_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DatasetError> {
+    let img = read_rgb(path)?;
+    if (img.width, img.height) != (width, height) {
+        return Err(size_mismatch(path, (img.width, img.height), (width, height), "camera"));
     }
-    Ok(m)
+    Ok(img.rgb)
 }
 
-/// Loads a NeuMan-layout sequence: `images/`, `segmentations/`, `sparse/` and
-/// `4d_humans/smpl_optimized_aligned_scale.npz` (images in name order are frames).
-pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, String> {
-    let model = ColmapModel::read_text(&dir.join("sparse")).map_err(|e| e.to_string())?;
-    let smpl_path = dir.join("4d_humans").join("smpl_optimized_aligned_scale.npz");
-    let smpl = SmplSequence::read_npz(&smpl_path).map_err(|e| e.to_string())?;
-    let mut images: Vec<_> = model.images.values().collect();
-    images.sort_by(|a, b| a.name.cmp(&b.name));
-    if images.len() != smpl.len() {
-        return Err(format!("{}: {} frames of SMPL parameters for {} registered images", smpl_path.display(), smpl.len(), images.len()));
+/// The union of an image's person masks.
+fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32) -> Result<Vec<bool>, DatasetError> {
+    let mut union = vec![false; width as usize * height as usize];
+    for path in paths {
+        let (w, h, m) = read_mask(path, rule)?;
+        if (w, h) != (width, height) {
+            return Err(size_mismatch(path, (w, h), (width, height), "image"));
+        }
+        union.iter_mut().zip(m).for_each(|(u, m)| *u |= m);
+    }
+    Ok(union)
+}
+
+/// Loads a NeuMan-layout sequence (either variant, see [`crate::dataset::layout`]);
+/// images in name order are frames.
+pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, DatasetError> {
+    match locate(dir)? {
+        SequenceFiles::Neuman(files) => load_neuman_files(&files, split),
+        SequenceFiles::Zju(z) => Err(DatasetError::layout(dir, format!("a ZJU-MoCap sequence ({}), not NeuMan", z.variant.name()))),
+    }
+}
+
+/// Loads a located NeuMan sequence.
+pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<DatasetFrame>, DatasetError> {
+    let (dir, model) = (&files.dir, &files.model);
+    let smpl = SmplSequence::read_npz(&files.smpl)?;
+    if files.images.len() != smpl.len() {
+        return Err(DatasetError::Field {
+            file: files.smpl.display().to_string(),
+            field: "global_orient".into(),
+            problem: format!("{} frames of SMPL parameters for {} registered images", smpl.len(), files.images.len()),
+        });
     }
     let splits = match split {
-        NeumanSplit::EveryFifth => neuman_every_fifth(images.len()),
-        NeumanSplit::EightyTenTen => neuman_80_10_10(images.len()),
+        NeumanSplit::EveryFifth => neuman_every_fifth(files.images.len()),
+        NeumanSplit::EightyTenTen => neuman_80_10_10(files.images.len()),
     };
     let sparse = dir.join("sparse").join("images.txt");
-    let mut out = Vec::with_capacity(images.len());
-    for (f, img) in images.iter().enumerate() {
+    let rule = files.variant.mask_rule();
+    let mut out = Vec::with_capacity(files.images.len());
+    for (f, (id, paths)) in files.images.iter().enumerate() {
+        let img = &model.images[id];
         let cam = &model.cameras[&img.camera_id];
-        let camera = img.camera(cam).ok_or_else(|| format!("{}: camera {} has model {}, which is not a pinhole model", dir.join("sparse/cameras.txt").display(), cam.id, cam.model))?;
+        let camera = img.camera(cam).ok_or_else(|| DatasetError::Field {
+            file: dir.join("sparse/cameras.txt").display().to_string(),
+            field: format!("camera {}", cam.id),
+            problem: format!("model {} is not a pinhole model", cam.model),
+        })?;
         let qn = img.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
         if !(qn > 1e-9) || img.qvec.iter().chain(&img.tvec).any(|v| !v.is_finite()) {
-            return Err(format!("{}: image {} ('{}') has a singular rotation (qvec {:?})", sparse.display(), img.id, img.name, img.qvec));
+            return Err(DatasetError::Field {
+                file: sparse.display().to_string(),
+                field: format!("image {} ('{}')", img.id, img.name),
+                problem: format!("a singular rotation (qvec {:?})", img.qvec),
+            });
         }
-        let image_path = dir.join("images").join(&img.name);
-        let rgb = load_rgb(&image_path, cam.width, cam.height)?;
-        let mask = load_mask(&dir.join("segmentations").join(&img.name), cam.width, cam.height)?;
-        let upper = dir.join("masks_upper").join(&img.name);
-        let garment_masks = if upper.exists() {
-            Some((load_mask(&upper, cam.width, cam.height)?, load_mask(&dir.join("masks_lower").join(&img.name), cam.width, cam.height)?))
-        } else {
-            None
+        let rgb = load_rgb(&paths.image, cam.width, cam.height)?;
+        let mask = load_masks(&paths.masks, rule, cam.width, cam.height)?;
+        let garment_masks = match &paths.garment_masks {
+            Some((upper, lower)) => Some((load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height)?, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height)?)),
+            None => None,
         };
         out.push(DatasetFrame {
             frame: f,
             view: 0,
-            image_path,
+            image_path: paths.image.clone(),
             width: cam.width,
             height: cam.height,
             rgb,
@@ -116,34 +142,39 @@ pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, 
     Ok(out)
 }
 
-/// Loads a ZJU-MoCap-layout sequence: `annots.npy`, images and masks per camera,
-/// `smpl_params/` (or `params/`); `train_camera` is the training view.
-pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, String> {
-    let annots = ZjuAnnots::read(dir)?;
+/// Loads a ZJU-MoCap-layout sequence (any variant, see [`crate::dataset::layout`]);
+/// `train_camera` is the training view.
+pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+    match locate(dir)? {
+        SequenceFiles::Zju(files) => load_zju_files(&files, train_camera),
+        SequenceFiles::Neuman(n) => Err(DatasetError::layout(dir, format!("a NeuMan sequence ({}), not ZJU-MoCap", n.variant.name()))),
+    }
+}
+
+/// Loads a located ZJU-MoCap sequence.
+pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+    let annots = &files.annots;
     let splits = zju_by_camera(annots.cameras.len(), train_camera);
+    let rule = files.variant.mask_rule();
     let mut out = Vec::new();
-    for (f, paths) in annots.images.iter().enumerate() {
-        if paths.len() != annots.cameras.len() {
-            return Err(format!("{}: ims[{f}] lists {} images for {} cameras", dir.join("annots.npy").display(), paths.len(), annots.cameras.len()));
-        }
-        let body = ZjuSmpl::read(dir, f)?;
-        for (c, rel) in paths.iter().enumerate() {
-            let cam = &annots.cameras[c];
-            let image_path = dir.join(rel);
-            let (w, h, _, _) = read(&image_path)?;
-            let camera = cam.camera(w, h);
+    for (params, views) in &files.frames {
+        let body = ZjuSmpl::read_file(params)?;
+        for paths in views {
+            let cam = &annots.cameras[paths.view];
+            let img = read_rgb(&paths.image)?;
+            let (w, h) = (img.width, img.height);
             out.push(DatasetFrame {
-                frame: f,
-                view: c,
-                rgb: load_rgb(&image_path, w, h)?,
-                mask: load_mask(&dir.join(mask_path(rel)), w, h)?,
-                image_path,
+                frame: paths.frame,
+                view: paths.view,
+                rgb: img.rgb,
+                mask: load_masks(&paths.masks, rule, w, h)?,
+                image_path: paths.image.clone(),
                 width: w,
                 height: h,
                 garment_masks: None,
-                camera,
+                camera: cam.camera(w, h),
                 body: BodyParams::Zju(body.clone()),
-                split: splits[c],
+                split: splits[paths.view],
             });
         }
     }

@@ -4,10 +4,14 @@
 //! (`raster`); `loader` reads either layout into the dataset type the trainer consumes.
 
 pub mod colmap;
+pub mod error;
 pub mod image;
+pub mod inspect;
+pub mod layout;
 pub mod loader;
 pub mod neuman;
 pub mod raster;
 pub mod split;
 pub mod synth;
+pub mod variants;
 pub mod zju;

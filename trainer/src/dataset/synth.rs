@@ -16,7 +16,7 @@ use crate::body::SmplModel;
 use crate::camera::Camera;
 use crate::cloth::{simulate_with_progress, ClothParams};
 use crate::dataset::colmap::{ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
-use crate::dataset::image::{write_mask, write_rgb};
+use crate::dataset::image::{write_mask, write_mask_values, write_rgb};
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::raster::{render, Drawable};
 use crate::dataset::zju::{write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
@@ -246,7 +246,10 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         let name = format!("{f:05}.png");
         write_rgb(&neuman.join("images").join(&name), o.width, o.height, &frame.rgb)?;
         let [person, upper, lower] = masks(&frame);
-        write_mask(&neuman.join("segmentations").join(&name), o.width, o.height, &person)?;
+        // As released: Detectron2's masks, the person black on white; and HUGS's SAM
+        // masks, the person white on black (which the loader then prefers).
+        write_mask_values(&neuman.join("segmentations").join(&name), o.width, o.height, &person, 0, 255)?;
+        write_mask(&neuman.join("4d_humans").join("sam_segmentations").join(&name), o.width, o.height, &person)?;
         write_mask(&neuman.join("masks_upper").join(&name), o.width, o.height, &upper)?;
         write_mask(&neuman.join("masks_lower").join(&name), o.width, o.height, &lower)?;
         let depth = Array::new(npy::Dtype::F32, vec![o.height as usize, o.width as usize], frame.depth.iter().map(|&d| f64::from(d)).collect());
@@ -260,7 +263,8 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         let mut paths = Vec::with_capacity(o.cameras);
         for (c, rc) in ring.iter().enumerate() {
             let frame = draw(rc);
-            let rel = format!("images/Camera_B{}/{f:06}.png", c + 1);
+            // JPEG like the release (quality `image::ZJU_JPEG_QUALITY`).
+            let rel = format!("images/Camera_B{}/{f:06}.jpg", c + 1);
             write_rgb(&zju.join(&rel), o.width, o.height, &frame.rgb)?;
             let [person, _, _] = masks(&frame);
             write_mask(&zju.join(crate::dataset::zju::mask_path(&rel)), o.width, o.height, &person)?;

@@ -161,9 +161,14 @@ impl ZjuSmpl {
         Ok(path)
     }
 
-    /// Reads `smpl_params/{frame}.npy`, or `params/{frame}.npy` when that is what exists.
+    /// Reads `smpl_params/{frame}.npy`, or `new_params/` or `params/` when that is what exists.
     pub fn read(dir: &Path, frame: usize) -> Result<Self, String> {
-        let path = ["smpl_params", "params"].iter().map(|d| dir.join(d).join(format!("{frame}.npy"))).find(|p| p.exists()).unwrap_or_else(|| dir.join("smpl_params").join(format!("{frame}.npy")));
+        let path = ["smpl_params", "new_params", "params"].iter().map(|d| dir.join(d).join(format!("{frame}.npy"))).find(|p| p.exists()).unwrap_or_else(|| dir.join("smpl_params").join(format!("{frame}.npy")));
+        Self::read_file(&path)
+    }
+
+    /// Reads one parameter file (a pickled dict in a `.npy`).
+    pub fn read_file(path: &Path) -> Result<Self, String> {
         let name = path.display().to_string();
         let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
         let v = decode_object_npy(&bytes, &name)?;
