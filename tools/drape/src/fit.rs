@@ -8,12 +8,13 @@ use drape_engine::ops::splat::ply;
 use drape_engine::ops::splat::render::render_image;
 use drape_engine::ops::splat::scene::RenderSettings;
 
-use crate::image_io::{read_png, write_png};
+use crate::image_io::{read_rgb, write_png};
 
 /// Options of `drape fit`.
 #[derive(Clone, Debug, clap::Args)]
 pub struct FitArgs {
-    /// Target PNG (8 or 16 bit, grey, RGB or RGBA; alpha is ignored).
+    /// Target image: PNG (8 or 16 bit; grey, grey + alpha, RGB or RGBA; alpha is
+    /// ignored) or JPEG (grey, RGB or CMYK).
     #[arg(long)]
     pub target: PathBuf,
     /// Number of Gaussians.
@@ -34,7 +35,7 @@ pub struct FitArgs {
 }
 
 pub fn run(device: &DeviceArgs, args: &FitArgs) -> anyhow::Result<()> {
-    let target = read_png(&args.target)?;
+    let target = read_rgb(&args.target)?;
     anyhow::ensure!(target.width * target.height <= 4096 * 4096, "{}: {}x{} is larger than 4096x4096", args.target.display(), target.width, target.height);
     let ctx = device.open()?;
     let cfg = FitConfig { count: args.n as usize, iterations: args.iters, seed: args.seed, ..FitConfig::default() };

@@ -1,46 +1,201 @@
-//! PNG in and out for the CLI: 8-bit RGB(A) or grey, any bit depth the `png` crate
-//! expands; pixels as floats in [0, 1].
+//! Images in and out for the CLI, through the `image` crate: targets read as RGB floats
+//! in [0, 1], and `drape render`'s outputs (PNG, NumPy `.npy`, OpenEXR). Every error is
+//! one line that names the file.
 
-use std::path::Path;
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
+use anyhow::anyhow;
 use drape_engine::ops::splat::fit::Image;
+use drape_engine::ops::splat::render::RenderedImage;
+use drape_trainer::npy;
+use image::{DynamicImage, ImageDecoder as _, ImageError, ImageFormat, ImageReader};
 
-/// Reads a PNG as RGB floats (alpha dropped, grey expanded).
-pub fn read_png(path: &Path) -> anyhow::Result<Image> {
-    let file = std::fs::File::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
-    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
-    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-    let mut reader = decoder.read_info().with_context(|| format!("{}: not a PNG file", path.display()))?;
-    let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).with_context(|| format!("{}: truncated or corrupt PNG data", path.display()))?;
-    let channels = match info.color_type {
-        png::ColorType::Grayscale => 1,
-        png::ColorType::GrayscaleAlpha => 2,
-        png::ColorType::Rgb => 3,
-        png::ColorType::Rgba => 4,
-        other => bail!("{}: colour type {other:?} is not supported", path.display()),
-    };
-    let (w, h) = (info.width, info.height);
-    let mut rgb = Vec::with_capacity((3 * w * h) as usize);
-    for px in buf[..info.buffer_size()].chunks_exact(channels) {
-        let c = |i: usize| f32::from(px[i]) / 255.0;
-        match channels {
-            1 | 2 => rgb.extend([c(0); 3]),
-            _ => rgb.extend([c(0), c(1), c(2)]),
+/// Reads a PNG (8 or 16 bit; grey, grey + alpha, RGB or RGBA) or a JPEG (grey, RGB or
+/// CMYK) as RGB floats in [0, 1]: alpha is dropped, grey is repeated, 16-bit samples
+/// keep their precision (v / 65535), and a JPEG's EXIF orientation is applied so that
+/// the pixels are the picture a viewer shows.
+pub fn read_rgb(path: &Path) -> anyhow::Result<Image> {
+    let named = |e: ImageError| anyhow!("{}: {}", path.display(), describe(&e));
+    let bytes = std::fs::read(path).map_err(|e| anyhow!("{}: cannot read: {e}", path.display()))?;
+    // By content, not by name: a PNG called `x.jpg` is still a PNG.
+    let reader = ImageReader::new(Cursor::new(&bytes)).with_guessed_format().map_err(|e| named(e.into()))?;
+    if reader.format() == Some(ImageFormat::Jpeg) {
+        jpeg_complete(&bytes).map_err(|problem| anyhow!("{}: {problem}", path.display()))?;
+    }
+    let mut decoder = reader.into_decoder().map_err(named)?;
+    let orientation = decoder.orientation().map_err(named)?;
+    let mut image = DynamicImage::from_decoder(decoder).map_err(named)?;
+    image.apply_orientation(orientation);
+    let rgb = image.to_rgb32f();
+    Ok(Image { width: rgb.width(), height: rgb.height(), rgb: rgb.into_raw() })
+}
+
+/// One line for an `ImageError`, saying which kind of trouble it is. Formatted here
+/// rather than kept as an error source, so anyhow does not print the cause twice.
+fn describe(e: &ImageError) -> String {
+    let detail = e.to_string();
+    let detail = detail.trim();
+    match e {
+        ImageError::Unsupported(_) => format!("not a PNG or JPEG this program reads: {detail}"),
+        // The bytes are already in memory, so the decoder's only I/O error is running
+        // out of them.
+        ImageError::Decoding(_) | ImageError::IoError(_) => format!("truncated or corrupt image: {detail}"),
+        ImageError::Limits(_) => format!("too large: {detail}"),
+        _ => detail.to_string(),
+    }
+}
+
+/// Whether a JPEG's markers run through to its end-of-image marker. The `image`
+/// crate's JPEG decoder is lenient: a file cut short decodes without error, the missing
+/// part filled in grey, which would silently become a wrong training or fitting target.
+/// Walking the markers finds the cut without decoding: outside the entropy-coded data
+/// every segment states its length, and inside it a 0xFF byte is always followed by a
+/// stuffed 0x00, a restart marker or the next marker.
+fn jpeg_complete(b: &[u8]) -> Result<(), String> {
+    let truncated = || "truncated JPEG (the data ends before its end-of-image marker)".to_string();
+    let mut i = 2; // past SOI, which guessing the format checked
+    loop {
+        // Garbage between segments is skipped, as libjpeg does (with a warning).
+        while i < b.len() && b[i] != 0xFF {
+            i += 1;
+        }
+        // Any number of 0xFF fill bytes may precede a marker.
+        while i < b.len() && b[i] == 0xFF {
+            i += 1;
+        }
+        let Some(&marker) = b.get(i) else { return Err(truncated()) };
+        i += 1;
+        match marker {
+            0xD9 => return Ok(()),
+            // Standalone markers (TEM, RSTn) carry no length.
+            0x01 | 0xD0..=0xD7 => continue,
+            _ => {}
+        }
+        let Some(len) = b.get(i..i + 2).map(|l| usize::from(u16::from_be_bytes([l[0], l[1]]))) else { return Err(truncated()) };
+        if len < 2 {
+            return Err(format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2));
+        }
+        i += len;
+        if i > b.len() {
+            return Err(truncated());
+        }
+        if marker == 0xDA {
+            // Start of scan: entropy-coded data up to the next marker.
+            loop {
+                match (b.get(i), b.get(i + 1)) {
+                    (Some(0xFF), Some(0x00 | 0xD0..=0xD7)) => i += 2,
+                    (Some(0xFF), Some(_)) => break,
+                    (Some(_), _) => i += 1,
+                    (None, _) => return Err(truncated()),
+                }
+            }
         }
     }
-    Ok(Image { width: w, height: h, rgb })
 }
 
 /// Writes RGB floats (clamped to [0, 1]) as an 8-bit RGB PNG.
 pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> anyhow::Result<()> {
-    let file = std::fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
-    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    let mut writer = encoder.write_header().with_context(|| format!("{}: writing the header", path.display()))?;
     let bytes: Vec<u8> = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
-    writer.write_image_data(&bytes).with_context(|| format!("{}: writing pixels", path.display()))?;
-    Ok(())
+    let image = image::RgbImage::from_raw(width, height, bytes).ok_or_else(|| anyhow!("{}: {width}x{height} does not match {} samples", path.display(), rgb.len()))?;
+    image.save_with_format(path, ImageFormat::Png).map_err(|e| anyhow!("{}: cannot write: {e}", path.display()))
+}
+
+/// The files `drape render --out` writes, chosen by the extension.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RenderFormat {
+    /// 8-bit RGB over the background.
+    Png,
+    /// float32 H x W x 5: premultiplied R, G, B, alpha, depth.
+    Npy,
+    /// float32 premultiplied RGBA, plus depth in `<stem>.depth.exr`.
+    Exr,
+}
+
+impl RenderFormat {
+    pub const ACCEPTED: &'static str = ".png, .npy, .exr";
+
+    /// The format `path`'s extension names (in any case), or an error listing those
+    /// accepted.
+    pub fn from_path(path: &Path) -> anyhow::Result<Self> {
+        let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+        match ext.as_deref() {
+            Some("png") => Ok(Self::Png),
+            Some("npy") => Ok(Self::Npy),
+            Some("exr") => Ok(Self::Exr),
+            Some(other) => Err(anyhow!("{}: unknown output format '.{other}'; accepted: {}", path.display(), Self::ACCEPTED)),
+            None => Err(anyhow!("{}: no extension to choose the output format by; accepted: {}", path.display(), Self::ACCEPTED)),
+        }
+    }
+}
+
+/// `<stem>.depth.exr` beside an EXR output: the `image` crate writes only RGB and RGBA
+/// EXR, so depth cannot be a fifth channel of the colour file.
+pub fn depth_exr_path(path: &Path) -> PathBuf {
+    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    path.with_file_name(format!("{stem}.depth.exr"))
+}
+
+/// Colour premultiplied by alpha: the renderer's colour is `Σ wᵢ cᵢ + (1 - alpha)·background`,
+/// so the background is taken back out (exact for the default black one; within float
+/// rounding otherwise), making the float files independent of `background`.
+fn premultiplied(image: &RenderedImage, background: [f32; 3]) -> Vec<f32> {
+    let mut rgb = image.rgb.clone();
+    if background != [0.0; 3] {
+        for (px, &a) in rgb.chunks_exact_mut(3).zip(&image.alpha) {
+            for (c, b) in px.iter_mut().zip(background) {
+                *c -= (1.0 - a) * b;
+            }
+        }
+    }
+    rgb
+}
+
+/// Expected camera-space z of what each pixel hits (`Σ wᵢ zᵢ / alpha`), 0 where alpha
+/// is 0 (nothing hit), as in `drape synth`'s depth maps.
+fn expected_depth(image: &RenderedImage) -> Vec<f32> {
+    image.depth.iter().zip(&image.alpha).map(|(&d, &a)| if a > 0.0 { d / a } else { 0.0 }).collect()
+}
+
+fn sizes_differ(path: &Path, image: &RenderedImage) -> anyhow::Error {
+    anyhow!("{}: the render's {}x{} image holds {} colour, {} alpha and {} depth values", path.display(), image.width, image.height, image.rgb.len(), image.alpha.len(), image.depth.len())
+}
+
+/// Writes a render in `format`; `background` is the colour the renderer composited
+/// over. Returns the files written.
+pub fn write_render(path: &Path, format: RenderFormat, image: &RenderedImage, background: [f32; 3]) -> anyhow::Result<Vec<PathBuf>> {
+    let (w, h) = (image.width, image.height);
+    let pixels = w as usize * h as usize;
+    if image.rgb.len() != 3 * pixels || image.alpha.len() != pixels || image.depth.len() != pixels {
+        return Err(sizes_differ(path, image));
+    }
+    match format {
+        RenderFormat::Png => {
+            write_png(path, w, h, &image.rgb)?;
+            Ok(vec![path.to_path_buf()])
+        }
+        RenderFormat::Npy => {
+            let rgb = premultiplied(image, background);
+            let depth = expected_depth(image);
+            let mut data = Vec::with_capacity(5 * depth.len());
+            for (i, px) in rgb.chunks_exact(3).enumerate() {
+                data.extend([px[0], px[1], px[2], image.alpha[i], depth[i]].map(f64::from));
+            }
+            let array = npy::Array::new(npy::Dtype::F32, vec![h as usize, w as usize, 5], data);
+            std::fs::write(path, npy::encode(&array)).map_err(|e| anyhow!("{}: cannot write: {e}", path.display()))?;
+            Ok(vec![path.to_path_buf()])
+        }
+        RenderFormat::Exr => {
+            let rgb = premultiplied(image, background);
+            let rgba: Vec<f32> = rgb.chunks_exact(3).zip(&image.alpha).flat_map(|(px, &a)| [px[0], px[1], px[2], a]).collect();
+            let colour = image::Rgba32FImage::from_raw(w, h, rgba).ok_or_else(|| sizes_differ(path, image))?;
+            colour.save_with_format(path, ImageFormat::OpenExr).map_err(|e| anyhow!("{}: cannot write: {e}", path.display()))?;
+            // Grey as R = G = B: the only one-value layout the encoder has.
+            let depth_path = depth_exr_path(path);
+            let depth: Vec<f32> = expected_depth(image).into_iter().flat_map(|d| [d; 3]).collect();
+            let depth_image = image::Rgb32FImage::from_raw(w, h, depth).ok_or_else(|| sizes_differ(&depth_path, image))?;
+            depth_image.save_with_format(&depth_path, ImageFormat::OpenExr).map_err(|e| anyhow!("{}: cannot write: {e}", depth_path.display()))?;
+            Ok(vec![path.to_path_buf(), depth_path])
+        }
+    }
 }

@@ -1,5 +1,5 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
-//! `render` (a 3DGS PLY to PNG), `fit` (Gaussians fitted to an image), `body` (the
+//! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image), `body` (the
 //! default body as SMPL .npz), `simulate` (garments on a motion), `synth` (the
 //! synthetic data), `train` (the avatar), `eval`, `animate` and `edit` (a trained run).
 #![forbid(unsafe_code)]
@@ -43,8 +43,8 @@ enum Command {
         #[arg(long, default_value_t = 7)]
         seed: u64,
     },
-    /// Render a 3D Gaussian Splatting PLY file to a PNG, from a look-at camera or a
-    /// JSON camera file.
+    /// Render a 3D Gaussian Splatting PLY file to a PNG, a NumPy .npy (colour, alpha,
+    /// depth) or an OpenEXR, from a look-at camera or a JSON camera file.
     Render(render::RenderArgs),
     /// Fit random Gaussians to an image with the GPU optimizer and save them as PLY.
     Fit(fit::FitArgs),

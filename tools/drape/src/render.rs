@@ -1,4 +1,4 @@
-//! `drape render`: one image of a 3DGS PLY file.
+//! `drape render`: one image of a 3DGS PLY file, as PNG, NumPy or OpenEXR.
 
 use std::path::PathBuf;
 
@@ -8,7 +8,7 @@ use drape_engine::ops::splat::ply;
 use drape_engine::ops::splat::render::render_image;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 
-use crate::image_io::write_png;
+use crate::image_io::{write_render, RenderFormat};
 
 /// Options of `drape render`.
 #[derive(Clone, Debug, clap::Args)]
@@ -45,7 +45,13 @@ pub struct RenderArgs {
     /// Antialiased mode (opacity compensated for the low-pass dilation).
     #[arg(long)]
     pub antialiased: bool,
-    /// Output PNG.
+    /// Output file; its extension chooses the format. `.png`: 8-bit RGB over the
+    /// background (no alpha channel). `.npy`: float32 height x width x 5 (R, G, B,
+    /// alpha, depth). `.exr`: float32 RGBA, with depth in `<stem>.depth.exr` (R = G = B
+    /// = depth; the EXR writer has no fifth channel). In .npy and .exr, colour is
+    /// premultiplied by alpha (the image over black, whatever the background), and
+    /// depth is the expected camera-space z (along the view axis, scene units) of what
+    /// the pixel hits, sum(w_i z_i) / alpha, and 0 where alpha is 0.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -78,6 +84,8 @@ fn camera(args: &RenderArgs) -> anyhow::Result<PinholeCamera> {
 }
 
 pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
+    // Before any work, so that a typo in the name costs nothing.
+    let format = RenderFormat::from_path(&args.out)?;
     let cam = camera(args)?;
     let cloud = ply::read(&args.ply)?;
     let ctx = device.open()?;
@@ -86,7 +94,7 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let (image, stats) = render_image(&ctx, &cloud, &cam, &settings)?;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     device.check_validation(&ctx)?;
-    write_png(&args.out, image.width, image.height, &image.rgb)?;
+    let written = write_render(&args.out, format, &image, cam.background)?;
     eprintln!(
         "rendered {} Gaussians (SH degree {}) at {}x{} in {ms:.1} ms: {} tile intersections, {} blend steps, {} dropped; wrote {}",
         cloud.len(),
@@ -96,7 +104,7 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
         stats.intersections,
         image.blend_steps,
         stats.dropped,
-        args.out.display()
+        written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" and ")
     );
     Ok(())
 }

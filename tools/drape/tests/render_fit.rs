@@ -13,15 +13,10 @@ fn temp(name: &str) -> PathBuf {
     dir.join(name)
 }
 
-/// A 16x16 PNG: a red square on blue, written with the same `png` crate.
+/// A 16x16 PNG: a red square on blue, written with the same `image` crate.
 fn write_target(path: &PathBuf) {
-    let file = std::fs::File::create(path).unwrap();
-    let mut enc = png::Encoder::new(file, 16, 16);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    let mut w = enc.write_header().unwrap();
     let data: Vec<u8> = (0..256).flat_map(|i| if (i % 16 > 4) && (i / 16 > 4) { [220, 40, 30] } else { [20, 40, 200] }).collect();
-    w.write_image_data(&data).unwrap();
+    image::RgbImage::from_raw(16, 16, data).unwrap().save_with_format(path, image::ImageFormat::Png).unwrap();
 }
 
 #[test]
@@ -37,9 +32,7 @@ fn fit_then_render_round_trip() {
     let image = temp("render.png");
     let out = drape(&["--validation", "render", "--ply", ply.to_str().unwrap(), "--eye", "0,0,0", "--look-at", "0,0,3", "--width", "40", "--height", "30", "--out", image.to_str().unwrap()]);
     assert!(out.status.success(), "render failed: {}", String::from_utf8_lossy(&out.stderr));
-    let decoder = png::Decoder::new(std::fs::File::open(&image).unwrap());
-    let reader = decoder.read_info().unwrap();
-    assert_eq!((reader.info().width, reader.info().height), (40, 30));
+    assert_eq!(image::image_dimensions(&image).unwrap(), (40, 30));
 }
 
 fn assert_one_line_error(out: &std::process::Output, needle: &str) {
