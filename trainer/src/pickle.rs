@@ -236,8 +236,34 @@ fn into_value(o: Obj) -> Result<PyValue, String> {
     }
 }
 
+/// A pickle that cannot be read: the file (or what the bytes are) and the problem.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{file}: {problem}")]
+pub struct PickleError {
+    pub file: String,
+    pub problem: String,
+}
+
+impl PickleError {
+    /// The decoder's messages start with `what`; keep the rest as the problem.
+    fn new(what: &str, message: String) -> Self {
+        let problem = message.strip_prefix(what).and_then(|m| m.strip_prefix(": ")).map_or_else(|| message.clone(), str::to_string);
+        Self { file: what.to_string(), problem }
+    }
+}
+
+impl From<PickleError> for String {
+    fn from(e: PickleError) -> Self {
+        e.to_string()
+    }
+}
+
 /// Decodes a pickle into a value; `what` names it in errors.
-pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, String> {
+pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
+    decode_inner(bytes, what).map_err(|m| PickleError::new(what, m))
+}
+
+fn decode_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
     let mut stack: Vec<Obj> = Vec::new();
     let mut memo: std::collections::HashMap<u32, Obj> = Default::default();
     let mut at = 0usize;
@@ -470,7 +496,11 @@ fn build_array(state: Vec<Obj>) -> Result<PyValue, String> {
 }
 
 /// Reads a `.npy` holding a pickled object (as `numpy.save` writes a dict).
-pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, String> {
+pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
+    decode_object_npy_inner(bytes, what).map_err(|m| PickleError::new(what, m))
+}
+
+fn decode_object_npy_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(format!("{what}: not a .npy file"));
     }
@@ -482,5 +512,5 @@ pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, String> {
     if !header.contains("'|O'") {
         return Err(format!("{what}: not an object array (header {})", header.trim()));
     }
-    decode(&bytes[start + len..], what)
+    decode_inner(&bytes[start + len..], what)
 }

@@ -9,6 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::camera::Camera;
+use crate::dataset::error::DatasetError;
 use crate::npy::{self, Array};
 use crate::pickle::{decode_object_npy, encode_object_npy, PyValue};
 
@@ -67,7 +68,7 @@ pub fn mask_path(image: &str) -> String {
 }
 
 impl ZjuAnnots {
-    pub fn write(&self, dir: &Path) -> Result<(), String> {
+    pub fn write(&self, dir: &Path) -> Result<(), DatasetError> {
         let cams = PyValue::dict(vec![
             ("K", PyValue::List(self.cameras.iter().map(|c| arr(3, 3, c.k.iter().flatten().copied().collect())).collect())),
             ("D", PyValue::List(self.cameras.iter().map(|c| arr(5, 1, c.d.to_vec())).collect())),
@@ -76,37 +77,38 @@ impl ZjuAnnots {
         ]);
         let ims = PyValue::List(self.images.iter().map(|paths| PyValue::dict(vec![("ims", PyValue::List(paths.iter().map(|p| PyValue::Str(p.clone())).collect()))])).collect());
         let path = dir.join("annots.npy");
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-        std::fs::write(&path, encode_object_npy(&PyValue::dict(vec![("cams", cams), ("ims", ims)]))).map_err(|e| format!("{}: {e}", path.display()))
+        std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
+        std::fs::write(&path, encode_object_npy(&PyValue::dict(vec![("cams", cams), ("ims", ims)]))).map_err(|e| DatasetError::io(&path, e))
     }
 
-    pub fn read(dir: &Path) -> Result<Self, String> {
+    pub fn read(dir: &Path) -> Result<Self, DatasetError> {
         let path = dir.join("annots.npy");
         let name = path.display().to_string();
-        let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
-        let v = decode_object_npy(&bytes, &name)?;
-        let field = |key: &str| -> Result<Vec<Array>, String> {
+        let bytes = std::fs::read(&path).map_err(|e| DatasetError::io(&path, e))?;
+        let v = decode_object_npy(&bytes, &name).map_err(|e| DatasetError::Format(e.to_string()))?;
+        let bad = |field: String, problem: &str| DatasetError::Field { file: name.clone(), field, problem: problem.to_string() };
+        let field = |key: &str| -> Result<Vec<Array>, DatasetError> {
             v.get("cams")
                 .and_then(|c| c.get(key))
                 .and_then(PyValue::as_list)
-                .ok_or_else(|| format!("{name}: cams['{key}'] is missing or not a list"))?
+                .ok_or_else(|| bad(format!("cams['{key}']"), "missing or not a list"))?
                 .iter()
                 .enumerate()
-                .map(|(i, a)| a.as_array().cloned().ok_or_else(|| format!("{name}: cams['{key}'][{i}] is not an array")))
+                .map(|(i, a)| a.as_array().cloned().ok_or_else(|| bad(format!("cams['{key}'][{i}]"), "not an array")))
                 .collect()
         };
         let (ks, ds, rs, ts) = (field("K")?, field("D")?, field("R")?, field("T")?);
         if ks.len() != rs.len() || ks.len() != ts.len() || ks.len() != ds.len() {
-            return Err(format!("{name}: cams has {} K, {} D, {} R and {} T", ks.len(), ds.len(), rs.len(), ts.len()));
+            return Err(bad("cams".into(), &format!("{} K, {} D, {} R and {} T", ks.len(), ds.len(), rs.len(), ts.len())));
         }
         let mut cameras = Vec::new();
         for i in 0..ks.len() {
-            let check = |a: &Array, key: &str, n: usize| -> Result<(), String> {
+            let check = |a: &Array, key: &str, n: usize| -> Result<(), DatasetError> {
                 if a.data.len() != n {
-                    return Err(format!("{name}: cams['{key}'][{i}] has shape {:?}", a.shape));
+                    return Err(bad(format!("cams['{key}'][{i}]"), &format!("shape {:?}, expected {n} values", a.shape)));
                 }
                 if a.data.iter().any(|x| !x.is_finite()) {
-                    return Err(format!("{name}: cams['{key}'][{i}] has a non-finite value"));
+                    return Err(bad(format!("cams['{key}'][{i}]"), "a non-finite value"));
                 }
                 Ok(())
             };
@@ -117,7 +119,7 @@ impl ZjuAnnots {
             let r = m(&rs[i]);
             let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0]) + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
             if (det - 1.0).abs() > 1e-3 {
-                return Err(format!("{name}: cams['R'][{i}] is not a rotation (determinant {det})"));
+                return Err(bad(format!("cams['R'][{i}]"), &format!("not a rotation (determinant {det})")));
             }
             let mut d = [0.0; 5];
             for (k, x) in ds[i].data.iter().take(5).enumerate() {
@@ -128,16 +130,16 @@ impl ZjuAnnots {
         let images = v
             .get("ims")
             .and_then(PyValue::as_list)
-            .ok_or_else(|| format!("{name}: 'ims' is missing or not a list"))?
+            .ok_or_else(|| bad("ims".into(), "missing or not a list"))?
             .iter()
             .enumerate()
             .map(|(f, entry)| {
                 entry
                     .get("ims")
                     .and_then(PyValue::as_list)
-                    .ok_or_else(|| format!("{name}: ims[{f}]['ims'] is missing"))?
+                    .ok_or_else(|| bad(format!("ims[{f}]['ims']"), "missing"))?
                     .iter()
-                    .map(|p| p.as_str().map(str::to_string).ok_or_else(|| format!("{name}: ims[{f}] has a non-string path")))
+                    .map(|p| p.as_str().map(str::to_string).ok_or_else(|| bad(format!("ims[{f}]"), "a non-string path")))
                     .collect::<Result<Vec<_>, _>>()
             })
             .collect::<Result<_, _>>()?;
@@ -147,9 +149,9 @@ impl ZjuAnnots {
 
 impl ZjuSmpl {
     /// Writes `smpl_params/{frame}.npy`.
-    pub fn write(&self, dir: &Path, frame: usize) -> Result<PathBuf, String> {
+    pub fn write(&self, dir: &Path, frame: usize) -> Result<PathBuf, DatasetError> {
         let sub = dir.join("smpl_params");
-        std::fs::create_dir_all(&sub).map_err(|e| format!("{}: {e}", sub.display()))?;
+        std::fs::create_dir_all(&sub).map_err(|e| DatasetError::io(&sub, e))?;
         let path = sub.join(format!("{frame}.npy"));
         let v = PyValue::dict(vec![
             ("poses", arr(1, 72, self.poses.to_vec())),
@@ -157,28 +159,29 @@ impl ZjuSmpl {
             ("Th", arr(1, 3, self.th.to_vec())),
             ("shapes", arr(1, 10, self.shapes.to_vec())),
         ]);
-        std::fs::write(&path, encode_object_npy(&v)).map_err(|e| format!("{}: {e}", path.display()))?;
+        std::fs::write(&path, encode_object_npy(&v)).map_err(|e| DatasetError::io(&path, e))?;
         Ok(path)
     }
 
     /// Reads `smpl_params/{frame}.npy`, or `new_params/` or `params/` when that is what exists.
-    pub fn read(dir: &Path, frame: usize) -> Result<Self, String> {
+    pub fn read(dir: &Path, frame: usize) -> Result<Self, DatasetError> {
         let path = ["smpl_params", "new_params", "params"].iter().map(|d| dir.join(d).join(format!("{frame}.npy"))).find(|p| p.exists()).unwrap_or_else(|| dir.join("smpl_params").join(format!("{frame}.npy")));
         Self::read_file(&path)
     }
 
     /// Reads one parameter file (a pickled dict in a `.npy`).
-    pub fn read_file(path: &Path) -> Result<Self, String> {
+    pub fn read_file(path: &Path) -> Result<Self, DatasetError> {
         let name = path.display().to_string();
-        let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
-        let v = decode_object_npy(&bytes, &name)?;
-        let get = |key: &str, n: usize| -> Result<Vec<f64>, String> {
-            let a = v.get(key).and_then(PyValue::as_array).ok_or_else(|| format!("{name}: key '{key}' is missing or not an array"))?;
+        let bytes = std::fs::read(path).map_err(|e| DatasetError::io(path, e))?;
+        let v = decode_object_npy(&bytes, &name).map_err(|e| DatasetError::Format(e.to_string()))?;
+        let bad = |key: &str, problem: String| DatasetError::Field { file: name.clone(), field: format!("'{key}'"), problem };
+        let get = |key: &str, n: usize| -> Result<Vec<f64>, DatasetError> {
+            let a = v.get(key).and_then(PyValue::as_array).ok_or_else(|| bad(key, "missing or not an array".into()))?;
             if a.data.len() != n {
-                return Err(format!("{name}: key '{key}' has shape {:?}, expected (1, {n})", a.shape));
+                return Err(bad(key, format!("shape {:?}, expected (1, {n})", a.shape)));
             }
             if let Some(i) = a.data.iter().position(|x| !x.is_finite()) {
-                return Err(format!("{name}: key '{key}' value {i} is {} (not finite)", a.data[i]));
+                return Err(bad(key, format!("value {i} is {} (not finite)", a.data[i])));
             }
             Ok(a.data.clone())
         };
@@ -192,22 +195,22 @@ impl ZjuSmpl {
 }
 
 /// Writes `vertices/{frame}.npy` (V×3 float64).
-pub fn write_vertices(dir: &Path, frame: usize, vertices: &[[f64; 3]]) -> Result<(), String> {
+pub fn write_vertices(dir: &Path, frame: usize, vertices: &[[f64; 3]]) -> Result<(), DatasetError> {
     let sub = dir.join("vertices");
-    std::fs::create_dir_all(&sub).map_err(|e| format!("{}: {e}", sub.display()))?;
+    std::fs::create_dir_all(&sub).map_err(|e| DatasetError::io(&sub, e))?;
     let path = sub.join(format!("{frame}.npy"));
     let a = Array::f64(vec![vertices.len(), 3], vertices.iter().flatten().copied().collect());
-    std::fs::write(&path, npy::encode(&a)).map_err(|e| format!("{}: {e}", path.display()))
+    std::fs::write(&path, npy::encode(&a)).map_err(|e| DatasetError::io(&path, e))
 }
 
 /// Reads `vertices/{frame}.npy`.
-pub fn read_vertices(dir: &Path, frame: usize) -> Result<Vec<[f64; 3]>, String> {
+pub fn read_vertices(dir: &Path, frame: usize) -> Result<Vec<[f64; 3]>, DatasetError> {
     let path = dir.join("vertices").join(format!("{frame}.npy"));
     let name = path.display().to_string();
-    let bytes = std::fs::read(&path).map_err(|e| format!("{name}: {e}"))?;
-    let a = npy::decode(&bytes, &name, None).map_err(|e| e.to_string())?;
+    let bytes = std::fs::read(&path).map_err(|e| DatasetError::io(&path, e))?;
+    let a = npy::decode(&bytes, &name, None)?;
     if a.shape.len() != 2 || a.shape[1] != 3 {
-        return Err(format!("{name}: shape {:?}, expected (V, 3)", a.shape));
+        return Err(DatasetError::Field { file: name, field: "(array)".into(), problem: format!("shape {:?}, expected (V, 3)", a.shape) });
     }
     Ok(a.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
