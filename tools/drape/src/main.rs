@@ -1,7 +1,8 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
 //! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image), `body` (the
 //! default body as SMPL .npz), `simulate` (garments on a motion), `synth` (the
-//! synthetic data), `train` (the avatar), `eval`, `animate` and `edit` (a trained run).
+//! synthetic data), `inspect` (a sequence's layout and problems), `train` (the avatar),
+//! `eval`, `animate` and `edit` (a trained run).
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;
@@ -18,6 +19,7 @@ mod edit;
 mod eval;
 mod fit;
 mod image_io;
+mod inspect;
 mod render;
 mod train;
 
@@ -57,6 +59,9 @@ enum Command {
     /// for a moving camera (NeuMan layout) and a ring of cameras (ZJU-MoCap layout),
     /// with masks, depth and ground-truth body and cloth.
     Synth(body::SynthArgs),
+    /// Say which layout and variant a sequence directory is in, its frames, cameras,
+    /// image size, masks, parameters and split, and the first problem found.
+    Inspect(inspect::InspectArgs),
     /// Train the avatar on a sequence (NeuMan or ZJU-MoCap layout, or `drape synth`
     /// output) and evaluate it on the held-out frames.
     Train(train::TrainArgs),
@@ -104,6 +109,7 @@ fn main() -> ExitCode {
         Command::Body(args) => body::run_body(&args),
         Command::Simulate(args) => body::run_simulate(&args),
         Command::Synth(args) => body::run_synth(&args),
+        Command::Inspect(args) => inspect::run(&args),
         Command::Train(args) => train::run(&cli.device, &args),
         Command::Eval(args) => eval::run(&cli.device, &args),
         Command::Animate(args) => animate::run(&cli.device, &args),
