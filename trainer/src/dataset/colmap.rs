@@ -2,14 +2,16 @@
 //! parsed exactly as COLMAP does: `images.txt` has two lines per image (pose and
 //! name, then its 2D points as `X Y POINT3D_ID` triples, -1 for none), quaternions
 //! are (w, x, y, z) world-to-camera, `p_c = R(q) p_w + t`. Errors name the file and line.
-//! The records are what the files hold; [`ColmapImage::camera`] and the `from_camera`
-//! constructors convert to and from the trainer's [`Camera`].
+//! The records are what the files hold; [`ColmapImage::camera_and_distortion`] (or
+//! [`ColmapImage::camera`], which drops the lens) and the `from_camera` constructors
+//! convert to and from the trainer's [`Camera`] and [`Distortion`].
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
 use crate::camera::Camera;
+use crate::dataset::distortion::Distortion;
 
 /// COLMAP's quaternions come from the shared conversion (w kept >= 0, as COLMAP does).
 pub use crate::mesh::rotation_to_quaternion;
@@ -30,6 +32,67 @@ impl ColmapCamera {
     /// A PINHOLE record of `camera`'s intrinsics and image size.
     pub fn from_camera(id: u32, camera: &Camera) -> Self {
         Self { id, model: "PINHOLE".into(), width: camera.width, height: camera.height, params: vec![camera.fx, camera.fy, camera.cx, camera.cy] }
+    }
+
+    /// A record of `camera`'s intrinsics and image size with lens `distortion`: PINHOLE
+    /// without one, OPENCV when k3 is zero, else FULL_OPENCV with k4 = k5 = k6 = 0
+    /// (COLMAP's OPENCV has no k3). [`Self::intrinsics`] reads each back.
+    pub fn from_camera_and_distortion(id: u32, camera: &Camera, distortion: &Distortion) -> Self {
+        let d = distortion;
+        if d.is_identity() {
+            return Self::from_camera(id, camera);
+        }
+        let mut params = vec![camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2];
+        let model = if d.k3 == 0.0 {
+            "OPENCV"
+        } else {
+            params.extend([d.k3, 0.0, 0.0, 0.0]);
+            "FULL_OPENCV"
+        };
+        Self { id, model: model.into(), width: camera.width, height: camera.height, params }
+    }
+
+    /// The pinhole intrinsics `[fx, fy, cx, cy]` and the lens of this record, for the
+    /// models drape undistorts: SIMPLE_PINHOLE (f cx cy), PINHOLE (fx fy cx cy),
+    /// SIMPLE_RADIAL (f cx cy k), RADIAL (f cx cy k1 k2), OPENCV (fx fy cx cy k1 k2 p1
+    /// p2) and FULL_OPENCV (fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6) when its rational
+    /// terms k4..k6 are zero. The error names `cameras.txt`, the camera and the field.
+    pub fn intrinsics(&self) -> Result<([f64; 4], Distortion), String> {
+        let id = self.id;
+        let (names, simple): (&[&str], bool) = match self.model.as_str() {
+            "SIMPLE_PINHOLE" => (&["f", "cx", "cy"], true),
+            "PINHOLE" => (&["fx", "fy", "cx", "cy"], false),
+            "SIMPLE_RADIAL" => (&["f", "cx", "cy", "k"], true),
+            "RADIAL" => (&["f", "cx", "cy", "k1", "k2"], true),
+            "OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"], false),
+            "FULL_OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"], false),
+            other => return Err(format!("cameras.txt: camera {id} has model {other}, which drape does not undistort (it reads SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV)")),
+        };
+        let p = &self.params;
+        if p.len() != names.len() {
+            return Err(format!("cameras.txt: camera {id} ({}) has {} PARAMS, expected {} ({})", self.model, p.len(), names.len(), names.join(" ")));
+        }
+        if let Some(i) = p.iter().position(|v| !v.is_finite()) {
+            return Err(format!("cameras.txt: camera {id} ({}) has {} = {}, which is not finite", self.model, names[i], p[i]));
+        }
+        let (k, rest) = if simple { ([p[0], p[0], p[1], p[2]], &p[3..]) } else { ([p[0], p[1], p[2], p[3]], &p[4..]) };
+        if !(k[0] > 0.0 && k[1] > 0.0) {
+            return Err(format!("cameras.txt: camera {id} ({}) has focal length {} x {}, which is not positive", self.model, k[0], k[1]));
+        }
+        let c = |i: usize| rest.get(i).copied().unwrap_or(0.0);
+        let distortion = match self.model.as_str() {
+            "SIMPLE_RADIAL" | "RADIAL" => Distortion { k1: c(0), k2: c(1), ..Distortion::NONE },
+            "OPENCV" | "FULL_OPENCV" => {
+                // FULL_OPENCV's k4..k6 (rest[5..8]) divide by a second polynomial, which
+                // `Distortion` does not model.
+                if let Some(i) = (5..rest.len()).find(|&i| rest[i] != 0.0) {
+                    return Err(format!("cameras.txt: camera {id} (FULL_OPENCV) has {} = {}: drape does not undistort the rational model (k4, k5, k6 must be 0)", names[i + 4], rest[i]));
+                }
+                Distortion { k1: c(0), k2: c(1), p1: c(2), p2: c(3), k3: c(4) }
+            }
+            _ => Distortion::NONE,
+        };
+        Ok((k, distortion))
     }
 
     /// (fx, fy, cx, cy) for the pinhole part of any supported model.
@@ -64,10 +127,20 @@ impl ColmapImage {
 
     /// The camera that took this image with intrinsics from `camera` (its record in
     /// `cameras.txt`); None for a model without a pinhole part. Distortion is dropped:
-    /// the rasterizer and the splatter are pure pinholes.
+    /// [`Self::camera_and_distortion`] keeps it, for loaders that undistort.
     pub fn camera(&self, camera: &ColmapCamera) -> Option<Camera> {
         let (fx, fy, cx, cy) = camera.pinhole()?;
         Some(Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR })
+    }
+
+    /// The pinhole camera that took this image, with intrinsics from `camera` (its
+    /// record in `cameras.txt`), and its lens: the images are this camera's after
+    /// [`crate::dataset::distortion::Undistorter`]. An error for a model drape does not
+    /// undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE) or a malformed record;
+    /// see [`ColmapCamera::intrinsics`].
+    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> Result<(Camera, Distortion), String> {
+        let ([fx, fy, cx, cy], distortion) = camera.intrinsics()?;
+        Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR }, distortion))
     }
 
     /// World-to-camera rotation (rows), from the normalized quaternion.

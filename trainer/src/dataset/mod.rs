@@ -4,6 +4,7 @@
 //! (`raster`); `loader` reads either layout into the dataset type the trainer consumes.
 
 pub mod colmap;
+pub mod distortion;
 pub mod error;
 pub mod image;
 pub mod inspect;
