@@ -1,13 +1,43 @@
 //! Motions: per-frame SMPL pose parameters at a frame rate, made procedurally (walk,
 //! jog, raise arms, turn in place) or loaded, saved as `.npz` with `poses` F×72,
 //! `trans` F×3 and `fps` (1).
+//!
+//! The frame is the body's: y up, the body facing +z (see `body::procedural`). A
+//! motion's translation moves the body from where its rest pose stands: every
+//! procedural motion starts at zero, and its users add it to where the body already is
+//! (the cloth simulation ramps it in from zero while settling; `animate` carries it into
+//! a run's world).
+//!
+//! [`Motion::load_npz`] reads motions as people have them:
+//! - Ours and numpy users': `poses` F×72 (SMPL's 24 joints), `trans` F×3 and `fps`,
+//!   0-d (`np.savez(f, fps=30)`) or of shape (1); taken as written.
+//! - `poses` F×66: SMPL's first 22 joints only (text-to-motion outputs such as
+//!   HumanML3D-style SMPL fits); the two hand joints are set to zero as below.
+//! - AMASS, recognised by `mocap_framerate` (SMPL-X releases: `mocap_frame_rate`) or by
+//!   `poses` of 156 columns (SMPL-H, 52 joints × 3) or 165 (SMPL-X, 55 × 3). The first
+//!   22 joints of SMPL-H and SMPL-X are SMPL's first 22 in the same order (pelvis to
+//!   wrists) and are taken as they are. SMPL's joints 22 and 23 (one rigid 'hand'
+//!   beyond each wrist) have no SMPL-H or SMPL-X counterpart, whose hands are 15 finger
+//!   joints each, so they get zero rotation, as the common AMASS-to-SMPL converters do.
+//!   `betas`, `gender`, `dmpls` and the like are not read (a text or pickled `gender`
+//!   no longer stops the file being read, see `npy::Npz`).
+//!
+//!   AMASS is z up. Its motions are brought into our y-up frame by the -90° rotation
+//!   about x that AMASS users apply, (x, y, z) -> (x, z, -y), to the root orientation
+//!   (composed on the left) and to `trans`. Its `trans` is where the body is in the
+//!   capture room (the root about 0.9 m above the floor, wherever the subject began),
+//!   not a displacement from rest, so the first frame's is subtracted from every frame:
+//!   the motion starts where the body stands, as the procedural ones do. That also
+//!   removes the constant `(R - I)·pelvis` that rotating about the world origin instead
+//!   of the pelvis adds, which the loader could not compute without the body. The
+//!   heading and every later displacement (a jump, a walk) are kept.
 
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
 use std::path::Path;
 
 use crate::body::kinematics::Pose;
-use crate::mesh::V3;
+use crate::mesh::{sub, V3};
 use crate::npy::{self, Array, NpyError};
 
 /// A sequence of poses.
@@ -118,20 +148,92 @@ impl Motion {
         npy::write_npz(path, &a)
     }
 
+    /// Reads a motion file of any layout in the module header. Errors are one line
+    /// naming the file and the field.
     pub fn load_npz(path: &Path) -> Result<Self, NpyError> {
-        let file = path.display().to_string();
-        let a = npy::read_npz(path)?;
-        let poses = npy::require(&a, &file, "poses", &[None, Some(72)])?;
-        let frames = poses.shape[0];
-        let trans = npy::require(&a, &file, "trans", &[Some(frames), Some(3)])?;
-        let fps = npy::require(&a, &file, "fps", &[Some(1)])?.data[0];
-        if !(fps > 0.0) {
-            return Err(NpyError::Format { file, key: Some("fps".into()), problem: format!("{fps} is not a positive frame rate") });
+        let npz = npy::Npz::read(path)?;
+        let bad = |key: &str, problem: String| NpyError::Format { file: npz.file.clone(), key: Some(key.to_string()), problem };
+        let poses = npz.require("poses", &[None, None])?;
+        let (frames, width) = (poses.shape[0], poses.shape[1]);
+        // Joints read from the file; SMPL's others (the hands) stay at zero.
+        let joints = match width {
+            72 => 24,
+            66 | 156 | 165 => 22,
+            _ => {
+                return Err(bad(
+                    "poses",
+                    format!("{width} values per frame; expected 72 (SMPL, 24 joints × 3), 66 (22 body joints), 156 (SMPL-H, AMASS) or 165 (SMPL-X)"),
+                ))
+            }
+        };
+        if frames == 0 {
+            return Err(bad("poses", format!("no frames (shape [0, {width}])")));
         }
-        Ok(Self {
-            fps,
-            poses: poses.data.chunks_exact(72).map(|c| std::array::from_fn(|j| [c[3 * j], c[3 * j + 1], c[3 * j + 2]])).collect(),
-            translations: trans.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
-        })
+        let trans = npz.require("trans", &[None, Some(3)])?;
+        if trans.shape[0] != frames {
+            return Err(bad("trans", format!("{} frames, but 'poses' has {frames}", trans.shape[0])));
+        }
+        let rate_key = ["fps", "mocap_framerate", "mocap_frame_rate"].into_iter().find(|k| npz.contains(k));
+        let rate_key = rate_key.ok_or_else(|| bad("fps", "missing key (nor is there AMASS's 'mocap_framerate')".into()))?;
+        let fps = npz.scalar(rate_key)?;
+        if !(fps > 0.0) {
+            return Err(bad(rate_key, format!("{fps} is not a positive frame rate")));
+        }
+        let amass = width == 156 || width == 165 || npz.contains("mocap_framerate") || npz.contains("mocap_frame_rate");
+        let mut poses: Vec<Pose> = poses
+            .data
+            .chunks_exact(width)
+            .map(|c| std::array::from_fn(|j| if j < joints { [c[3 * j], c[3 * j + 1], c[3 * j + 2]] } else { [0.0; 3] }))
+            .collect();
+        let mut translations: Vec<V3> = trans.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        if amass {
+            let first = z_up_to_y_up(translations[0]);
+            for t in &mut translations {
+                *t = sub(z_up_to_y_up(*t), first);
+            }
+            for p in &mut poses {
+                p[0] = z_up_to_y_up_orientation(p[0]);
+            }
+        }
+        Ok(Self { fps, poses, translations })
     }
+}
+
+/// The -90° rotation about x: AMASS's z-up world to our y-up one.
+fn z_up_to_y_up(v: V3) -> V3 {
+    [v[0], v[2], -v[1]]
+}
+
+/// An axis-angle root orientation in AMASS's world, in ours: the -90° rotation about x
+/// composed on the left. Through quaternions, which stay accurate near 180°.
+fn z_up_to_y_up_orientation(r: V3) -> V3 {
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    quaternion_to_axis_angle(quaternion_mul([h, -h, 0.0, 0.0], axis_angle_to_quaternion(r)))
+}
+
+/// `[w, x, y, z]` of the rotation by |r| about r.
+fn axis_angle_to_quaternion(r: V3) -> [f64; 4] {
+    let angle = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
+    // sin(a/2)/a, by its series where the division loses accuracy.
+    let k = if angle < 1e-6 { 0.5 - angle * angle / 48.0 } else { (angle / 2.0).sin() / angle };
+    [(angle / 2.0).cos(), k * r[0], k * r[1], k * r[2]]
+}
+
+fn quaternion_mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+    [
+        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+    ]
+}
+
+/// The axis-angle of a unit quaternion, angle in [0, π].
+fn quaternion_to_axis_angle(q: [f64; 4]) -> V3 {
+    let q = if q[0] < 0.0 { q.map(|c| -c) } else { q };
+    let s = (q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    let angle = 2.0 * s.atan2(q[0]);
+    // angle / sin(angle/2), which tends to 2/w for a small angle.
+    let k = if s < 1e-12 { 2.0 / q[0] } else { angle / s };
+    [k * q[1], k * q[2], k * q[3]]
 }

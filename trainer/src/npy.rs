@@ -1,6 +1,15 @@
 //! NumPy `.npy` arrays and `.npz` archives, as numpy writes and reads them (format
-//! 1.0/2.0/3.0 headers; little-endian `f8`, `f4`, `i8`, `i4`, `u4`, `u1`, `b1`; C
-//! order). Every error names the file and, inside an archive, the key.
+//! 1.0/2.0/3.0 headers; little-endian `f8`, `f4`, `i8`, `i4`, `u4`, `u1`, `b1`; C or
+//! Fortran order, written in C order). Every error names the file and, inside an
+//! archive, the key.
+//!
+//! Archives from the wild carry entries we have no use for and cannot decode: AMASS
+//! stores `gender` as text (`<U4`, `|S6`) or as a pickled object (`|O`). Reading an
+//! archive therefore never fails on an entry's dtype: [`Npz`] keeps such entries as
+//! [`Undecoded`], and only asking for one ([`Npz::require`]) is an error, naming the
+//! file, the key and the dtype. A corrupt or truncated entry still fails the read.
+//! Scalars are accepted as numpy writes them (`np.savez(f, fps=30)` is a 0-d array) and
+//! as 1-element arrays ([`scalar`]).
 
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
@@ -127,9 +136,16 @@ fn header_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
     Some(rest[..end].trim().trim_matches('\''))
 }
 
-/// Decodes `.npy` bytes; `file`/`key` name them in errors.
-pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyError> {
-    let err = |p: String| fmt_err(file, key, p);
+/// What a `.npy` header says.
+struct Header {
+    descr: String,
+    fortran_order: bool,
+    shape: Vec<usize>,
+    /// Offset of the first data byte.
+    data_start: usize,
+}
+
+fn parse_header(bytes: &[u8], err: &dyn Fn(String) -> NpyError) -> Result<Header, NpyError> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(err("not a .npy array (bad magic)".into()));
     }
@@ -149,10 +165,6 @@ pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyE
     }
     let header = std::str::from_utf8(&bytes[start..header_end]).map_err(|_| err("header is not text".into()))?;
     let descr = header_value(header, "descr").ok_or_else(|| err("header has no 'descr'".into()))?;
-    let dtype = Dtype::parse(descr).ok_or_else(|| err(format!("dtype '{descr}' is not supported (need little-endian f8, f4, i8, i4, u4, u1 or b1; pickled objects are read by the ZJU loader)")))?;
-    if header_value(header, "fortran_order") == Some("True") {
-        return Err(err("Fortran-order arrays are not supported".into()));
-    }
     let shape_text = header_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
     let shape: Vec<usize> = shape_text
         .split(',')
@@ -160,9 +172,26 @@ pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyE
         .filter(|s| !s.is_empty())
         .map(|s| s.parse::<usize>().map_err(|_| err(format!("shape '({shape_text})' is not a tuple of sizes"))))
         .collect::<Result<_, _>>()?;
+    Ok(Header { descr: descr.to_string(), fortran_order: header_value(header, "fortran_order") == Some("True"), shape, data_start: header_end })
+}
+
+/// Decodes `.npy` bytes; `file`/`key` name them in errors.
+pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyError> {
+    let err = |p: String| fmt_err(file, key, p);
+    let header = parse_header(bytes, &err)?;
+    let dtype = Dtype::parse(&header.descr).ok_or_else(|| err(unsupported_dtype(&header.descr)))?;
+    decode_body(bytes, &header, dtype, &err)
+}
+
+fn unsupported_dtype(descr: &str) -> String {
+    format!("dtype '{descr}' is not supported (need little-endian f8, f4, i8, i4, u4, u1 or b1; pickled objects are read by the ZJU loader)")
+}
+
+fn decode_body(bytes: &[u8], header: &Header, dtype: Dtype, err: &dyn Fn(String) -> NpyError) -> Result<Array, NpyError> {
+    let shape = &header.shape;
     let count: usize = shape.iter().product();
     let needed = count * dtype.size();
-    let body = &bytes[header_end..];
+    let body = &bytes[header.data_start..];
     if body.len() < needed {
         return Err(err(format!("truncated: shape {shape:?} needs {needed} bytes, found {}", body.len())));
     }
@@ -177,7 +206,34 @@ pub fn decode(bytes: &[u8], file: &str, key: Option<&str>) -> Result<Array, NpyE
             Dtype::U8 | Dtype::Bool => f64::from(c[0]),
         })
         .collect();
-    Ok(Array { dtype, shape, data })
+    // numpy saves an array that is Fortran- but not C-contiguous (a transpose, say) in
+    // Fortran order; callers index in C order, so reorder.
+    let data = if header.fortran_order && shape.len() > 1 { fortran_to_c(&data, shape) } else { data };
+    Ok(Array { dtype, shape: shape.clone(), data })
+}
+
+/// `data` laid out with the first index fastest, rewritten with the last fastest.
+fn fortran_to_c(data: &[f64], shape: &[usize]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(data.len());
+    let mut index = vec![0usize; shape.len()];
+    for _ in 0..data.len() {
+        let mut offset = 0;
+        let mut stride = 1;
+        for (i, &d) in index.iter().zip(shape) {
+            offset += i * stride;
+            stride *= d;
+        }
+        out.push(data[offset]);
+        // Advance the C-order multi-index, last axis fastest.
+        for axis in (0..shape.len()).rev() {
+            index[axis] += 1;
+            if index[axis] < shape[axis] {
+                break;
+            }
+            index[axis] = 0;
+        }
+    }
+    out
 }
 
 /// Writes arrays as an uncompressed `.npz` (what `numpy.savez` writes).
@@ -195,21 +251,81 @@ pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), Np
     Ok(())
 }
 
-/// Reads every array of an `.npz` archive (stored or deflated entries).
-pub fn read_npz(path: &Path) -> Result<BTreeMap<String, Array>, NpyError> {
-    let file_name = path.display().to_string();
-    let file = std::fs::File::open(path).map_err(|error| NpyError::Io { file: file_name.clone(), error })?;
-    let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
-    let mut out = BTreeMap::new();
-    for i in 0..zip.len() {
-        let mut entry = zip.by_index(i).map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
-        let name = entry.name().to_string();
-        let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
-        let mut bytes = Vec::with_capacity(entry.size() as usize);
-        entry.read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
-        out.insert(key.clone(), decode(&bytes, &file_name, Some(&key))?);
+/// An archive entry whose dtype this module does not decode (text, bytes, pickled
+/// objects, big-endian numbers): what it is, for the error if a caller asks for it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Undecoded {
+    pub descr: String,
+    pub shape: Vec<usize>,
+}
+
+/// An `.npz` archive as read: the arrays this module decodes, and the entries it does
+/// not, kept so that asking for one says why it cannot be had.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Npz {
+    /// The path as given, for errors.
+    pub file: String,
+    pub arrays: BTreeMap<String, Array>,
+    pub undecoded: BTreeMap<String, Undecoded>,
+}
+
+impl Npz {
+    /// Reads an archive (stored or deflated entries). Fails on an unreadable or corrupt
+    /// archive or entry, not on an entry's dtype.
+    pub fn read(path: &Path) -> Result<Self, NpyError> {
+        let file_name = path.display().to_string();
+        let file = std::fs::File::open(path).map_err(|error| NpyError::Io { file: file_name.clone(), error })?;
+        let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
+        let mut out = Npz { file: file_name.clone(), ..Npz::default() };
+        for i in 0..zip.len() {
+            let mut entry = zip.by_index(i).map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
+            let name = entry.name().to_string();
+            let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
+            let mut bytes = Vec::with_capacity(entry.size() as usize);
+            entry.read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
+            let err = |p: String| fmt_err(&file_name, Some(&key), p);
+            let header = parse_header(&bytes, &err)?;
+            match Dtype::parse(&header.descr) {
+                Some(dtype) => {
+                    out.arrays.insert(key.clone(), decode_body(&bytes, &header, dtype, &err)?);
+                }
+                None => {
+                    out.undecoded.insert(key.clone(), Undecoded { descr: header.descr, shape: header.shape });
+                }
+            }
+        }
+        Ok(out)
     }
-    Ok(out)
+
+    /// Whether the archive has `key`, decoded or not.
+    pub fn contains(&self, key: &str) -> bool {
+        self.arrays.contains_key(key) || self.undecoded.contains_key(key)
+    }
+
+    /// [`require`] on this archive; an undecoded `key` is an error naming its dtype.
+    pub fn require(&self, key: &str, shape: &[Option<usize>]) -> Result<&Array, NpyError> {
+        self.check_decoded(key)?;
+        require(&self.arrays, &self.file, key, shape)
+    }
+
+    /// [`scalar`] on this archive; an undecoded `key` is an error naming its dtype.
+    pub fn scalar(&self, key: &str) -> Result<f64, NpyError> {
+        self.check_decoded(key)?;
+        scalar(&self.arrays, &self.file, key)
+    }
+
+    fn check_decoded(&self, key: &str) -> Result<(), NpyError> {
+        match self.undecoded.get(key) {
+            Some(u) => Err(fmt_err(&self.file, Some(key), format!("{} (shape {:?})", unsupported_dtype(&u.descr), u.shape))),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Reads the arrays of an `.npz` archive that this module decodes, leaving out entries
+/// of other dtypes (see [`Npz`] to learn which).
+pub fn read_npz(path: &Path) -> Result<BTreeMap<String, Array>, NpyError> {
+    Npz::read(path).map(|npz| npz.arrays)
 }
 
 /// Looks up `key` and checks its shape (`None` in `shape` matches any size) and that
@@ -225,4 +341,18 @@ pub fn require<'a>(arrays: &'a BTreeMap<String, Array>, file: &str, key: &str, s
         return Err(fmt_err(file, Some(key), format!("value {i} is {} (not finite)", a.data[i])));
     }
     Ok(a)
+}
+
+/// A finite scalar under `key`: a 0-d array (what `np.savez(f, fps=30)` writes) or a
+/// 1-element one (shape `[1]`, what this module's writers use).
+pub fn scalar(arrays: &BTreeMap<String, Array>, file: &str, key: &str) -> Result<f64, NpyError> {
+    let a = arrays.get(key).ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
+    if !(a.shape.is_empty() || a.shape == [1]) {
+        return Err(fmt_err(file, Some(key), format!("shape {:?}, expected a scalar (shape () or (1))", a.shape)));
+    }
+    let v = a.data[0];
+    if !v.is_finite() {
+        return Err(fmt_err(file, Some(key), format!("{v} is not finite")));
+    }
+    Ok(v)
 }
