@@ -295,3 +295,51 @@ fn inspect_names_the_variant_and_the_first_missing_file() {
     let problem = inspect(&dir).problem.expect("no SMPL file is a problem");
     assert!(problem.contains("smpl_optimized_aligned_scale.npz") && problem.contains("neuman+hugs"), "{problem}");
 }
+
+/// A ZJU-MoCap sequence seen through the release's kind of lens (non-zero D) loads back
+/// to the pinhole frames: the loader undistorts images and masks as `cv2.undistort`
+/// does (the map itself is checked against OpenCV in tests/tests/distortion.rs).
+#[test]
+fn distorted_zju_frames_are_undistorted_at_load() {
+    let dir = base().parent().unwrap().join("distorted");
+    let _ = std::fs::remove_dir_all(&dir);
+    // ZJU-like barrel distortion with tangential terms, strong at 64 px.
+    let d = [-0.3, 0.1, 1e-3, -5e-4, 0.0];
+    drape_trainer::dataset::variants::write_zju_distorted(&base().join("zju"), &dir, &d).unwrap();
+    let pinhole = load_zju(&base().join("zju"), 0).unwrap();
+    let got = load_zju(&dir, 0).unwrap();
+    let raw = drape_trainer::dataset::image::read_rgb(&dir.join("images/Camera_B1/000000.jpg")).unwrap();
+    let und = drape_trainer::dataset::distortion::Undistorter::new(&got[0].camera, drape_trainer::dataset::distortion::Distortion::from_opencv(&d));
+    let lens = drape_trainer::dataset::distortion::Distortion::from_opencv(&d);
+    let mean_abs = |x: &[f32], y: &[f32], inside: &[usize]| inside.iter().flat_map(|&i| (0..3).map(move |k| 3 * i + k)).map(|j| f64::from((x[j] - y[j]).abs())).sum::<f64>() / (3 * inside.len()) as f64;
+    let (mut worst_jpeg, mut worst_err, mut worst_iou, mut worst_raw) = (0.0f64, 0.0f64, 1.0f64, f64::INFINITY);
+    for (a, b) in got.iter().zip(&pinhole) {
+        assert_eq!(a.camera, b.camera, "the pinhole camera is unchanged");
+        // Interior: pixels whose source lies at least 2 px inside the image (outside it
+        // the distorted image holds no data).
+        let inside: Vec<usize> = (0..a.mask.len())
+            .filter(|&i| {
+                let s = und.source((i % 64) as u32, (i / 64) as u32);
+                s[0] >= 2.0 && s[1] >= 2.0 && s[0] <= 61.0 && s[1] <= 61.0
+            })
+            .collect();
+        // What the loader must return, computed in memory: the pinhole frame distorted
+        // and undistorted; the file in between adds only a JPEG encoding.
+        let expected = und.rgb(&drape_trainer::dataset::distortion::distort_rgb(&b.camera, lens, &b.rgb));
+        worst_jpeg = worst_jpeg.max(mean_abs(&a.rgb, &expected, &inside));
+        worst_err = worst_err.max(mean_abs(&a.rgb, &b.rgb, &inside));
+        let inter = inside.iter().filter(|&&i| a.mask[i] && b.mask[i]).count();
+        let union = inside.iter().filter(|&&i| a.mask[i] || b.mask[i]).count();
+        worst_iou = worst_iou.min(inter as f64 / union.max(1) as f64);
+        if a.frame == 0 && a.view == 0 {
+            worst_raw = mean_abs(&raw.rgb, &b.rgb, &inside);
+        }
+    }
+    eprintln!("loaded vs undistort(distort(pinhole)): {worst_jpeg:.4}; vs pinhole {worst_err:.4} (the raw distorted frame {worst_raw:.4}); mask IoU {worst_iou:.3}");
+    // One JPEG encoding at quality 95 of a 64 px render: under 2 8-bit steps on average.
+    assert!(worst_jpeg < 2.0 / 255.0, "loaded vs expected: {worst_jpeg}");
+    // The two bilinear resamplings blur the 64 px textures (0.03 here); the raw
+    // distorted frame is far further off, so the loader did undo the lens.
+    assert!(worst_raw > 2.0 * worst_err, "vs pinhole {worst_err}, raw {worst_raw}");
+    assert!(worst_iou > 0.9, "mask IoU {worst_iou}");
+}

@@ -2,96 +2,21 @@
 //! in [0, 1], and `drape render`'s outputs (PNG, NumPy `.npy`, OpenEXR). Every error is
 //! one line that names the file.
 
-use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
 use anyhow::anyhow;
 use drape_engine::ops::splat::fit::Image;
 use drape_engine::ops::splat::render::RenderedImage;
 use drape_trainer::npy;
-use image::{DynamicImage, ImageDecoder as _, ImageError, ImageFormat, ImageReader};
+use image::ImageFormat;
 
 /// Reads a PNG (8 or 16 bit; grey, grey + alpha, RGB or RGBA) or a JPEG (grey, RGB or
-/// CMYK) as RGB floats in [0, 1]: alpha is dropped, grey is repeated, 16-bit samples
-/// keep their precision (v / 65535), and a JPEG's EXIF orientation is applied so that
-/// the pixels are the picture a viewer shows.
+/// CMYK) as RGB floats in [0, 1], through the datasets' reader (`drape_trainer::dataset::
+/// image`, which says how alpha, grey, 16 bits, EXIF orientation and truncated JPEGs
+/// are handled), so that a target and a training frame are read alike.
 pub fn read_rgb(path: &Path) -> anyhow::Result<Image> {
-    let named = |e: ImageError| anyhow!("{}: {}", path.display(), describe(&e));
-    let bytes = std::fs::read(path).map_err(|e| anyhow!("{}: cannot read: {e}", path.display()))?;
-    // By content, not by name: a PNG called `x.jpg` is still a PNG.
-    let reader = ImageReader::new(Cursor::new(&bytes)).with_guessed_format().map_err(|e| named(e.into()))?;
-    if reader.format() == Some(ImageFormat::Jpeg) {
-        jpeg_complete(&bytes).map_err(|problem| anyhow!("{}: {problem}", path.display()))?;
-    }
-    let mut decoder = reader.into_decoder().map_err(named)?;
-    let orientation = decoder.orientation().map_err(named)?;
-    let mut image = DynamicImage::from_decoder(decoder).map_err(named)?;
-    image.apply_orientation(orientation);
-    let rgb = image.to_rgb32f();
-    Ok(Image { width: rgb.width(), height: rgb.height(), rgb: rgb.into_raw() })
-}
-
-/// One line for an `ImageError`, saying which kind of trouble it is. Formatted here
-/// rather than kept as an error source, so anyhow does not print the cause twice.
-fn describe(e: &ImageError) -> String {
-    let detail = e.to_string();
-    let detail = detail.trim();
-    match e {
-        ImageError::Unsupported(_) => format!("not a PNG or JPEG this program reads: {detail}"),
-        // The bytes are already in memory, so the decoder's only I/O error is running
-        // out of them.
-        ImageError::Decoding(_) | ImageError::IoError(_) => format!("truncated or corrupt image: {detail}"),
-        ImageError::Limits(_) => format!("too large: {detail}"),
-        _ => detail.to_string(),
-    }
-}
-
-/// Whether a JPEG's markers run through to its end-of-image marker. The `image`
-/// crate's JPEG decoder is lenient: a file cut short decodes without error, the missing
-/// part filled in grey, which would silently become a wrong training or fitting target.
-/// Walking the markers finds the cut without decoding: outside the entropy-coded data
-/// every segment states its length, and inside it a 0xFF byte is always followed by a
-/// stuffed 0x00, a restart marker or the next marker.
-fn jpeg_complete(b: &[u8]) -> Result<(), String> {
-    let truncated = || "truncated JPEG (the data ends before its end-of-image marker)".to_string();
-    let mut i = 2; // past SOI, which guessing the format checked
-    loop {
-        // Garbage between segments is skipped, as libjpeg does (with a warning).
-        while i < b.len() && b[i] != 0xFF {
-            i += 1;
-        }
-        // Any number of 0xFF fill bytes may precede a marker.
-        while i < b.len() && b[i] == 0xFF {
-            i += 1;
-        }
-        let Some(&marker) = b.get(i) else { return Err(truncated()) };
-        i += 1;
-        match marker {
-            0xD9 => return Ok(()),
-            // Standalone markers (TEM, RSTn) carry no length.
-            0x01 | 0xD0..=0xD7 => continue,
-            _ => {}
-        }
-        let Some(len) = b.get(i..i + 2).map(|l| usize::from(u16::from_be_bytes([l[0], l[1]]))) else { return Err(truncated()) };
-        if len < 2 {
-            return Err(format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2));
-        }
-        i += len;
-        if i > b.len() {
-            return Err(truncated());
-        }
-        if marker == 0xDA {
-            // Start of scan: entropy-coded data up to the next marker.
-            loop {
-                match (b.get(i), b.get(i + 1)) {
-                    (Some(0xFF), Some(0x00 | 0xD0..=0xD7)) => i += 2,
-                    (Some(0xFF), Some(_)) => break,
-                    (Some(_), _) => i += 1,
-                    (None, _) => return Err(truncated()),
-                }
-            }
-        }
-    }
+    let img = drape_trainer::dataset::image::read_rgb(path).map_err(|e| anyhow!("{e}"))?;
+    Ok(Image { width: img.width, height: img.height, rgb: img.rgb })
 }
 
 /// Writes RGB floats (clamped to [0, 1]) as an 8-bit RGB PNG.

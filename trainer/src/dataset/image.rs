@@ -3,6 +3,9 @@
 //! back with errors that name the file. Writing: PNG, or JPEG at a stated quality
 //! (ZJU-MoCap ships JPEG frames).
 //!
+//! Orientation: a JPEG's EXIF orientation is applied (the picture a viewer shows).
+//! A JPEG that ends before its end-of-image marker is refused (see `jpeg_complete`).
+//!
 //! Colour: an image with alpha is read as its colour channels (alpha dropped: the
 //! datasets' images are opaque photographs; a mask says where the person is). 16-bit
 //! PNGs keep their precision: values are divided by 65535, not truncated to 8 bits.
@@ -12,9 +15,11 @@
 //! disagree: ZJU-MoCap's loaders take any non-zero pixel, NeuMan's Detectron2 masks mark
 //! the person black on white, HUGS's SAM masks mark it white on black.
 
+use std::io::Cursor;
 use std::path::Path;
 
-use image::{DynamicImage, ExtendedColorType, ImageReader};
+use image::metadata::Orientation;
+use image::{DynamicImage, ExtendedColorType, ImageDecoder as _, ImageError, ImageFormat, ImageReader};
 
 use crate::dataset::error::DatasetError;
 
@@ -63,40 +68,98 @@ pub struct RgbImage {
     pub rgb: Vec<f32>,
 }
 
-fn decode(path: &Path) -> Result<DynamicImage, DatasetError> {
-    let reader = ImageReader::open(path).map_err(|e| DatasetError::io(path, e))?;
-    let reader = reader.with_guessed_format().map_err(|e| DatasetError::io(path, e))?;
+fn reader(path: &Path, bytes: &[u8]) -> Result<ImageReader<Cursor<Vec<u8>>>, DatasetError> {
+    // By content, not by name: a PNG called `x.jpg` is still a PNG.
+    let reader = ImageReader::new(Cursor::new(bytes.to_vec())).with_guessed_format().map_err(|e| DatasetError::io(path, e))?;
     match reader.format() {
-        None => return Err(DatasetError::image(path, "not a PNG or JPEG file (unrecognised contents)")),
-        Some(image::ImageFormat::Jpeg) => check_jpeg_end(path)?,
+        None => return Err(DatasetError::image(path, "not a PNG or JPEG this program reads (unrecognised contents)")),
+        Some(ImageFormat::Jpeg) => jpeg_complete(bytes).map_err(|problem| DatasetError::image(path, problem))?,
         Some(_) => {}
     }
-    // `image`'s messages can run over several lines; keep the first.
-    reader.decode().map_err(|e| DatasetError::image(path, format!("cannot decode ({})", e.to_string().lines().next().unwrap_or("corrupt"))))
+    Ok(reader)
 }
 
-/// The JPEG decoder fills a truncated file's missing blocks with grey instead of
-/// failing, so a frame cut short by a broken download would train as data: require the
-/// end-of-image marker (FF D9) near the end (some writers pad a few bytes after it).
-fn check_jpeg_end(path: &Path) -> Result<(), DatasetError> {
-    use std::io::{Read, Seek, SeekFrom};
-    let mut file = std::fs::File::open(path).map_err(|e| DatasetError::io(path, e))?;
-    let len = file.metadata().map_err(|e| DatasetError::io(path, e))?.len();
-    let tail_len = len.min(64);
-    file.seek(SeekFrom::Start(len - tail_len)).map_err(|e| DatasetError::io(path, e))?;
-    let mut tail = vec![0u8; tail_len as usize];
-    file.read_exact(&mut tail).map_err(|e| DatasetError::io(path, e))?;
-    if tail.windows(2).any(|w| w == [0xFF, 0xD9]) {
-        Ok(())
-    } else {
-        Err(DatasetError::image(path, "truncated JPEG (no end-of-image marker)"))
+/// Decodes a file with its EXIF orientation applied (the picture a viewer shows, as
+/// OpenCV's `imread` returns it).
+fn decode(path: &Path) -> Result<DynamicImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|e| DatasetError::io(path, e))?;
+    let named = |e: ImageError| DatasetError::image(path, describe(&e));
+    let mut decoder = reader(path, &bytes)?.into_decoder().map_err(named)?;
+    let orientation = decoder.orientation().map_err(named)?;
+    let mut image = DynamicImage::from_decoder(decoder).map_err(named)?;
+    image.apply_orientation(orientation);
+    Ok(image)
+}
+
+/// One line for an `ImageError`, saying which kind of trouble it is.
+fn describe(e: &ImageError) -> String {
+    let detail = e.to_string();
+    let detail = detail.lines().next().unwrap_or("").trim();
+    match e {
+        ImageError::Unsupported(_) => format!("not a PNG or JPEG this program reads: {detail}"),
+        // The bytes are in memory, so the decoder's only I/O error is running out of them.
+        ImageError::Decoding(_) | ImageError::IoError(_) => format!("truncated or corrupt image: {detail}"),
+        ImageError::Limits(_) => format!("too large: {detail}"),
+        _ => detail.to_string(),
     }
 }
 
-/// The size of an image, from its header alone.
+/// Whether a JPEG's markers run through to its end-of-image marker. The `image` crate's
+/// JPEG decoder is lenient: a file cut short decodes without error, the missing part
+/// grey, which would silently become a wrong training target. Walking the markers finds
+/// the cut without decoding: outside the entropy-coded data every segment states its
+/// length, and inside it a 0xFF byte is always followed by a stuffed 0x00, a restart
+/// marker or the next marker. Bytes after the end marker (camera trailers) are allowed.
+fn jpeg_complete(b: &[u8]) -> Result<(), String> {
+    let truncated = || "truncated JPEG (the data ends before its end-of-image marker)".to_string();
+    let mut i = 2; // past SOI, which guessing the format checked
+    loop {
+        // Garbage between segments is skipped, as libjpeg does (with a warning).
+        while i < b.len() && b[i] != 0xFF {
+            i += 1;
+        }
+        // Any number of 0xFF fill bytes may precede a marker.
+        while i < b.len() && b[i] == 0xFF {
+            i += 1;
+        }
+        let Some(&marker) = b.get(i) else { return Err(truncated()) };
+        i += 1;
+        match marker {
+            0xD9 => return Ok(()),
+            // Standalone markers (TEM, RSTn) carry no length.
+            0x01 | 0xD0..=0xD7 => continue,
+            _ => {}
+        }
+        let Some(len) = b.get(i..i + 2).map(|l| usize::from(u16::from_be_bytes([l[0], l[1]]))) else { return Err(truncated()) };
+        if len < 2 {
+            return Err(format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2));
+        }
+        i += len;
+        if i > b.len() {
+            return Err(truncated());
+        }
+        if marker == 0xDA {
+            // Start of scan: entropy-coded data up to the next marker.
+            loop {
+                match (b.get(i), b.get(i + 1)) {
+                    (Some(0xFF), Some(0x00 | 0xD0..=0xD7)) => i += 2,
+                    (Some(0xFF), Some(_)) => break,
+                    (Some(_), _) => i += 1,
+                    (None, _) => return Err(truncated()),
+                }
+            }
+        }
+    }
+}
+
+/// The size of an image as decoded (EXIF orientation applied), from its header alone.
 pub fn dimensions(path: &Path) -> Result<(u32, u32), DatasetError> {
-    let reader = ImageReader::open(path).map_err(|e| DatasetError::io(path, e))?.with_guessed_format().map_err(|e| DatasetError::io(path, e))?;
-    reader.into_dimensions().map_err(|e| DatasetError::image(path, format!("cannot read the header ({})", e.to_string().lines().next().unwrap_or("corrupt"))))
+    let bytes = std::fs::read(path).map_err(|e| DatasetError::io(path, e))?;
+    let named = |e: ImageError| DatasetError::image(path, describe(&e));
+    let mut decoder = reader(path, &bytes)?.into_decoder().map_err(named)?;
+    let (w, h) = decoder.dimensions();
+    let turned = matches!(decoder.orientation().map_err(named)?, Orientation::Rotate90 | Orientation::Rotate270 | Orientation::Rotate90FlipH | Orientation::Rotate270FlipH);
+    Ok(if turned { (h, w) } else { (w, h) })
 }
 
 /// Reads an RGB image (see the module header for the formats).

@@ -1,10 +1,12 @@
 //! The dataset type the trainer consumes, and the loaders that build it from the
 //! NeuMan and ZJU-MoCap layouts (real sequences or `drape synth` output alike).
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
+use crate::dataset::distortion::Undistorter;
 use crate::dataset::error::DatasetError;
 use crate::dataset::image::{read_mask, read_rgb, MaskRule};
 use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, ZjuFiles};
@@ -63,6 +65,23 @@ fn load_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DatasetErr
     Ok(img.rgb)
 }
 
+/// Distortion is undone once, at load, with OpenCV's map (`cv2.undistort` with the
+/// same K as the new camera, as the public ZJU-MoCap loaders do), because the splatter
+/// and the rasterizer are pure pinholes and a per-step distortion would cost every step.
+fn undistorted_rgb(undistort: &Option<Undistorter>, rgb: Vec<f32>) -> Vec<f32> {
+    match undistort {
+        Some(u) => u.rgb(&rgb),
+        None => rgb,
+    }
+}
+
+fn undistorted_mask(undistort: &Option<Undistorter>, mask: Vec<bool>) -> Vec<bool> {
+    match undistort {
+        Some(u) => u.mask(&mask),
+        None => mask,
+    }
+}
+
 /// The union of an image's person masks.
 fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32) -> Result<Vec<bool>, DatasetError> {
     let mut union = vec![false; width as usize * height as usize];
@@ -102,15 +121,14 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
     };
     let sparse = dir.join("sparse").join("images.txt");
     let rule = files.variant.mask_rule();
+    // Undistortion maps, one per COLMAP camera (None for a pinhole).
+    let mut undistorters: HashMap<u32, Option<Undistorter>> = HashMap::new();
     let mut out = Vec::with_capacity(files.images.len());
     for (f, (id, paths)) in files.images.iter().enumerate() {
         let img = &model.images[id];
         let cam = &model.cameras[&img.camera_id];
-        let camera = img.camera(cam).ok_or_else(|| DatasetError::Field {
-            file: dir.join("sparse/cameras.txt").display().to_string(),
-            field: format!("camera {}", cam.id),
-            problem: format!("model {} is not a pinhole model", cam.model),
-        })?;
+        let (camera, distortion) = img.camera_and_distortion(cam)?;
+        let undistort = undistorters.entry(cam.id).or_insert_with(|| (!distortion.is_identity()).then(|| Undistorter::new(&camera, distortion)));
         let qn = img.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
         if !(qn > 1e-9) || img.qvec.iter().chain(&img.tvec).any(|v| !v.is_finite()) {
             return Err(DatasetError::Field {
@@ -119,10 +137,13 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
                 problem: format!("a singular rotation (qvec {:?})", img.qvec),
             });
         }
-        let rgb = load_rgb(&paths.image, cam.width, cam.height)?;
-        let mask = load_masks(&paths.masks, rule, cam.width, cam.height)?;
+        let rgb = undistorted_rgb(undistort, load_rgb(&paths.image, cam.width, cam.height)?);
+        let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height)?);
         let garment_masks = match &paths.garment_masks {
-            Some((upper, lower)) => Some((load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height)?, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height)?)),
+            Some((upper, lower)) => Some((
+                undistorted_mask(undistort, load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height)?),
+                undistorted_mask(undistort, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height)?),
+            )),
             None => None,
         };
         out.push(DatasetFrame {
@@ -156,6 +177,8 @@ pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<Datas
     let annots = &files.annots;
     let splits = zju_by_camera(annots.cameras.len(), train_camera);
     let rule = files.variant.mask_rule();
+    // Undistortion maps per camera and image size (None for a pinhole).
+    let mut undistorters: HashMap<(usize, u32, u32), Option<Undistorter>> = HashMap::new();
     let mut out = Vec::new();
     for (params, views) in &files.frames {
         let body = ZjuSmpl::read_file(params)?;
@@ -163,16 +186,18 @@ pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<Datas
             let cam = &annots.cameras[paths.view];
             let img = read_rgb(&paths.image)?;
             let (w, h) = (img.width, img.height);
+            let camera = cam.camera(w, h);
+            let undistort = undistorters.entry((paths.view, w, h)).or_insert_with(|| (!cam.distortion().is_identity()).then(|| Undistorter::new(&camera, cam.distortion())));
             out.push(DatasetFrame {
                 frame: paths.frame,
                 view: paths.view,
-                rgb: img.rgb,
-                mask: load_masks(&paths.masks, rule, w, h)?,
+                rgb: undistorted_rgb(undistort, img.rgb),
+                mask: undistorted_mask(undistort, load_masks(&paths.masks, rule, w, h)?),
                 image_path: paths.image.clone(),
                 width: w,
                 height: h,
                 garment_masks: None,
-                camera: cam.camera(w, h),
+                camera,
                 body: BodyParams::Zju(body.clone()),
                 split: splits[paths.view],
             });

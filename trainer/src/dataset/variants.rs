@@ -91,3 +91,29 @@ pub fn write_zju_variant(src: &Path, dst: &Path, variant: Variant) -> Result<(),
     ZjuAnnots { cameras: annots.cameras, images }.write(dst)?;
     Ok(())
 }
+
+/// Writes `drape synth`'s ZJU-MoCap sequence `src` into `dst` as if seen through a lens
+/// with `distortion` (OpenCV's k1 k2 p1 p2 k3): every image and mask is distorted from
+/// the pinhole render, and `annots.npy` carries the coefficients as the release does.
+/// Loading it must give back the pinhole frames (up to resampling and JPEG).
+pub fn write_zju_distorted(src: &Path, dst: &Path, distortion: &[f64; 5]) -> Result<(), DatasetError> {
+    use crate::dataset::distortion::{distort_mask, distort_rgb, Distortion};
+    use crate::dataset::image::{read_mask, read_rgb, write_mask, write_rgb, MaskRule};
+    let mut annots = ZjuAnnots::read(src)?;
+    let d = Distortion::from_opencv(distortion);
+    for (f, paths) in annots.images.iter().enumerate() {
+        for (c, rel) in paths.iter().enumerate() {
+            let img = read_rgb(&src.join(rel))?;
+            let camera = annots.cameras[c].camera(img.width, img.height);
+            write_rgb(&dst.join(rel), img.width, img.height, &distort_rgb(&camera, d, &img.rgb))?;
+            let (w, h, mask) = read_mask(&src.join(mask_path(rel)), MaskRule::NonZero)?;
+            write_mask(&dst.join(mask_path(rel)), w, h, &distort_mask(&camera, d, &mask))?;
+        }
+        copy(&src.join("smpl_params").join(format!("{f}.npy")), &dst.join("smpl_params").join(format!("{f}.npy")))?;
+        copy(&src.join("vertices").join(format!("{f}.npy")), &dst.join("vertices").join(format!("{f}.npy")))?;
+    }
+    for cam in &mut annots.cameras {
+        cam.d = *distortion;
+    }
+    annots.write(dst)
+}

@@ -9,6 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::camera::Camera;
+use crate::dataset::distortion::Distortion;
 use crate::dataset::error::DatasetError;
 use crate::npy::{self, Array};
 use crate::pickle::{decode_object_npy, encode_object_npy, PyValue};
@@ -27,17 +28,25 @@ pub struct ZjuCamera {
 }
 
 impl ZjuCamera {
-    /// The record of `camera`: no skew, no distortion.
+    /// The record of `camera`: no skew, no distortion. `K` is in OpenCV's pixel
+    /// convention (pixel centres at integers), drape's camera in COLMAP's (centres at
+    /// +0.5): the principal point moves by half a pixel.
     pub fn from_camera(camera: &Camera) -> Self {
         let c = camera;
-        Self { k: [[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation }
+        Self { k: [[c.fx, 0.0, c.cx - 0.5], [0.0, c.fy, c.cy - 0.5], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation }
     }
 
-    /// The camera for images of `width` x `height` (the annotations do not say).
-    /// Skew and distortion are dropped: the rasterizer and the splatter are pure pinholes.
+    /// The pinhole camera for images of `width` x `height` (the annotations do not say),
+    /// in drape's pixel convention (see [`Self::from_camera`]). Skew is dropped; the
+    /// distortion is [`Self::distortion`], which the loader undoes on the images.
     pub fn camera(&self, width: u32, height: u32) -> Camera {
         let k = &self.k;
-        Camera { fx: k[0][0], fy: k[1][1], cx: k[0][2], cy: k[1][2], width, height, rotation: self.r, translation: self.t, near: Camera::NEAR }
+        Camera { fx: k[0][0], fy: k[1][1], cx: k[0][2] + 0.5, cy: k[1][2] + 0.5, width, height, rotation: self.r, translation: self.t, near: Camera::NEAR }
+    }
+
+    /// The lens distortion `D` (k1 k2 p1 p2 k3, OpenCV's model).
+    pub fn distortion(&self) -> Distortion {
+        Distortion::from_opencv(&self.d)
     }
 }
 
