@@ -16,8 +16,9 @@ use drape_trainer::motion::{procedural, Motion, MotionKind};
 pub struct AnimateArgs {
     /// The run directory (`drape train --out`, or `drape edit --out`).
     pub run: PathBuf,
-    /// walk, jog, raise-arms, turn, or a motion file (.npz: poses F×72 axis-angle SMPL
-    /// joints, trans F×3 metres, fps).
+    /// walk, jog, raise-arms, turn, or a motion file (.npz: poses F×72 or F×66 axis-angle
+    /// SMPL joints, trans F×3 metres, fps as a scalar; or an AMASS file: SMPL-H/SMPL-X
+    /// poses, trans, mocap_framerate, turned from z-up to y-up, hands at rest).
     #[arg(long, default_value = "walk")]
     pub motion: String,
     /// Frames to render (a motion file: at most its own).

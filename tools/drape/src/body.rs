@@ -33,7 +33,9 @@ pub fn run_body(args: &BodyArgs) -> anyhow::Result<()> {
 /// Options of `drape simulate`.
 #[derive(Clone, Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Motion: walk, jog, raise-arms, turn; or an .npz with poses (F x 72), trans (F x 3), fps.
+    /// Motion: walk, jog, raise-arms, turn; or an .npz: drape's (poses F x 72 or F x 66,
+    /// trans F x 3, fps as a scalar) or an AMASS file (SMPL-H or SMPL-X poses, trans,
+    /// mocap_framerate; z-up turned to y-up, started at the origin, hands at rest).
     #[arg(long, default_value = "walk")]
     pub motion: String,
     /// Frames of a procedural motion.
