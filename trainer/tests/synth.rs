@@ -343,3 +343,21 @@ fn distorted_zju_frames_are_undistorted_at_load() {
     assert!(worst_raw > 2.0 * worst_err, "vs pinhole {worst_err}, raw {worst_raw}");
     assert!(worst_iou > 0.9, "mask IoU {worst_iou}");
 }
+
+/// NeuMan masks written the other way round (the person white in `segmentations/`, as
+/// drape synth wrote them before it followed the release) are refused, not inverted
+/// silently.
+#[test]
+fn inverted_neuman_masks_are_refused() {
+    let dir = base().parent().unwrap().join("inverted");
+    let _ = std::fs::remove_dir_all(&dir);
+    write_neuman_variant(&base().join("neuman"), &dir, Variant::Neuman).unwrap();
+    for entry in std::fs::read_dir(dir.join("segmentations")).unwrap() {
+        let path = entry.unwrap().path();
+        let (w, h, mask) = drape_trainer::dataset::image::read_mask(&path, drape_trainer::dataset::image::MaskRule::BelowHalf).unwrap();
+        drape_trainer::dataset::image::write_mask(&path, w, h, &mask).unwrap();
+    }
+    expect_err(load_neuman(&dir, NeumanSplit::EveryFifth), &["segmentations/00000.png", "sam_segmentations"]);
+    let problem = inspect(&dir).problem.expect("inverted masks are a problem");
+    assert!(problem.contains("segmentations/00000.png"), "{problem}");
+}

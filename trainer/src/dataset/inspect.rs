@@ -118,7 +118,8 @@ fn check(dir: &Path, files: &SequenceFiles, images: &[&crate::dataset::layout::I
     let size = dimensions(&first.image)?;
     read_rgb(&first.image)?;
     for m in &first.masks {
-        read_mask(m, files.variant().mask_rule())?;
+        let (_, _, mask) = read_mask(m, files.variant().mask_rule())?;
+        crate::dataset::loader::check_not_inverted(files.variant(), m, &mask)?;
     }
     for f in images {
         for p in std::iter::once(&f.image).chain(&f.masks) {

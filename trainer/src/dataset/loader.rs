@@ -9,7 +9,7 @@ use crate::camera::Camera;
 use crate::dataset::distortion::Undistorter;
 use crate::dataset::error::DatasetError;
 use crate::dataset::image::{read_mask, read_rgb, MaskRule};
-use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, ZjuFiles};
+use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, Variant, ZjuFiles};
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, zju_by_camera, Split};
 use crate::dataset::zju::ZjuSmpl;
@@ -82,6 +82,21 @@ fn undistorted_mask(undistort: &Option<Undistorter>, mask: Vec<bool>) -> Vec<boo
     }
 }
 
+/// NeuMan's Detectron2 masks mark the person black; a mask written the other way round
+/// (the person white, as `drape synth` wrote `segmentations/` before it followed the
+/// release) would train the background as the person. Where the person would cover most
+/// of the frame, refuse, naming the file and the two conventions.
+pub fn check_not_inverted(variant: Variant, path: &Path, mask: &[bool]) -> Result<(), DatasetError> {
+    let person = mask.iter().filter(|&&m| m).count() as f64 / mask.len().max(1) as f64;
+    if variant == Variant::Neuman && person > 0.6 {
+        return Err(DatasetError::image(
+            path,
+            format!("{:.0}% of the frame is the person under NeuMan's rule (Detectron2: the person black); a mask with the person white belongs in 4d_humans/sam_segmentations/ (variant neuman+hugs)", 100.0 * person),
+        ));
+    }
+    Ok(())
+}
+
 /// The union of an image's person masks.
 fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32) -> Result<Vec<bool>, DatasetError> {
     let mut union = vec![false; width as usize * height as usize];
@@ -139,6 +154,7 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
         }
         let rgb = undistorted_rgb(undistort, load_rgb(&paths.image, cam.width, cam.height)?);
         let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height)?);
+        check_not_inverted(files.variant, &paths.masks[0], &mask)?;
         let garment_masks = match &paths.garment_masks {
             Some((upper, lower)) => Some((
                 undistorted_mask(undistort, load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height)?),
