@@ -15,7 +15,9 @@
 
 use drape_engine::ops::splat::scene::PinholeCamera;
 
-use crate::mesh::{cross, dot, normalize, sub, V3};
+use glam::{DMat3, DVec3};
+
+use crate::mesh::V3;
 
 /// A pinhole camera in f64: intrinsics in pixels, world-to-camera pose, image size and
 /// the near clipping distance.
@@ -36,10 +38,12 @@ pub struct Camera {
 /// The world-to-camera pose of a camera at `eye` looking at `target` with world up
 /// `up`: rows right, down, forward.
 fn pose_looking_at(eye: V3, target: V3, up: V3) -> ([[f64; 3]; 3], V3) {
-    let forward = normalize(sub(target, eye));
-    let right = normalize(cross(forward, up));
-    let down = cross(forward, right);
-    ([right, down, forward], [-dot(right, eye), -dot(down, eye), -dot(forward, eye)])
+    let eye = DVec3::from(eye);
+    // A zero direction gives +z, as `mesh::normalize` does.
+    let forward = (DVec3::from(target) - eye).normalize_or(DVec3::Z);
+    let right = forward.cross(up.into()).normalize_or(DVec3::Z);
+    let down = forward.cross(right);
+    ([right, down, forward].map(Into::into), [-right.dot(eye), -down.dot(eye), -forward.dot(eye)])
 }
 
 impl Camera {
@@ -64,10 +68,14 @@ impl Camera {
         Self { rotation, translation, ..*self }
     }
 
+    /// The rotation as glam's (column-major) matrix.
+    fn rotation_matrix(&self) -> DMat3 {
+        DMat3::from_cols_array_2d(&self.rotation).transpose()
+    }
+
     /// The camera centre in the world, `-Rᵀ t`.
     pub fn centre(&self) -> V3 {
-        let r = &self.rotation;
-        std::array::from_fn(|a| -(0..3).map(|k| r[k][a] * self.translation[k]).sum::<f64>())
+        (-(self.rotation_matrix().transpose() * DVec3::from(self.translation))).to_array()
     }
 
     /// Pixel coordinates of a world point (None behind the camera).
@@ -78,8 +86,7 @@ impl Camera {
 
     /// A world point in camera space.
     pub fn to_camera(&self, p: V3) -> V3 {
-        let r = &self.rotation;
-        [dot(r[0], p) + self.translation[0], dot(r[1], p) + self.translation[1], dot(r[2], p) + self.translation[2]]
+        (self.rotation_matrix() * DVec3::from(p) + DVec3::from(self.translation)).to_array()
     }
 
     /// Pixel coordinates (not rounded) of a camera-space point in front of the camera.

@@ -16,11 +16,13 @@
 
 use std::collections::HashMap;
 
+use glam::DVec3;
+
 use crate::body::kinematics::{pose_body, relative_transforms, skin, Affine, Pose};
 use crate::body::model::SmplModel;
 use crate::garment::Garment;
 use crate::grid::{bounds, Grid};
-use crate::mesh::{add, cross, dot, norm, normalize, scale, sub, V3};
+use crate::mesh::{add, norm, scale, sub, V3};
 use crate::motion::Motion;
 
 /// Simulation settings.
@@ -88,42 +90,37 @@ pub struct BodyCollider {
     travel: f64,
 }
 
-fn closest_point_on_triangle(p: V3, a: V3, b: V3, c: V3) -> V3 {
+fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
     // Ericson, Real-Time Collision Detection, 5.1.5.
-    let ab = sub(b, a);
-    let ac = sub(c, a);
-    let ap = sub(p, a);
-    let d1 = dot(ab, ap);
-    let d2 = dot(ac, ap);
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
     if d1 <= 0.0 && d2 <= 0.0 {
         return a;
     }
-    let bp = sub(p, b);
-    let d3 = dot(ab, bp);
-    let d4 = dot(ac, bp);
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
     if d3 >= 0.0 && d4 <= d3 {
         return b;
     }
     let vc = d1 * d4 - d3 * d2;
     if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        return add(a, scale(ab, d1 / (d1 - d3)));
+        return a + ab * (d1 / (d1 - d3));
     }
-    let cp = sub(p, c);
-    let d5 = dot(ab, cp);
-    let d6 = dot(ac, cp);
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
     if d6 >= 0.0 && d5 <= d6 {
         return c;
     }
     let vb = d5 * d2 - d1 * d6;
     if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        return add(a, scale(ac, d2 / (d2 - d6)));
+        return a + ac * (d2 / (d2 - d6));
     }
     let va = d3 * d6 - d5 * d4;
     if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        return add(b, scale(sub(c, b), (d4 - d3) / ((d4 - d3) + (d5 - d6))));
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
     }
     let denom = 1.0 / (va + vb + vc);
-    add(a, add(scale(ab, vb * denom), scale(ac, vc * denom)))
+    a + (ab * (vb * denom) + ac * (vc * denom))
 }
 
 /// Grid cell of the collider (metres).
@@ -177,21 +174,21 @@ impl BodyCollider {
     /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:
     /// (signed distance, point, normal, face).
     fn closest_among(&self, p: V3, vertex: impl Fn(u32) -> V3, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
-        let mut best: Option<(f64, V3, [V3; 3], u32)> = None;
+        let p = DVec3::from(p);
+        let mut best: Option<(f64, DVec3, [DVec3; 3], u32)> = None;
         for t in faces {
-            let [a, b, c] = self.faces[t as usize].map(&vertex);
+            let [a, b, c] = self.faces[t as usize].map(|k| DVec3::from(vertex(k)));
             let q = closest_point_on_triangle(p, a, b, c);
-            let d = sub(p, q);
-            let d2 = dot(d, d);
+            let d2 = (p - q).length_squared();
             // Squared distances; ties go to the first triangle (a fixed order).
             if best.is_none_or(|(bd2, ..)| d2 < bd2 - 1e-24) {
                 best = Some((d2, q, [a, b, c], t));
             }
         }
         best.map(|(d2, q, [a, b, c], t)| {
-            let n = normalize(cross(sub(b, a), sub(c, a)));
+            let n = (b - a).cross(c - a).normalize_or(DVec3::Z);
             let d = d2.sqrt();
-            (if dot(sub(p, q), n) < 0.0 { -d } else { d }, q, n, t)
+            (if (p - q).dot(n) < 0.0 { -d } else { d }, q.to_array(), n.to_array(), t)
         })
     }
 }
@@ -230,24 +227,24 @@ fn project_distance(positions: &mut [V3], [wa, wb]: [f64; 2], a: u32, b: u32, ta
     if wa + wb == 0.0 {
         return;
     }
-    let d = sub(positions[ia], positions[ib]);
-    let l = norm(d);
+    let (pa, pb) = (DVec3::from(positions[ia]), DVec3::from(positions[ib]));
+    let l = (pa - pb).length();
     if l < 1e-12 {
         return;
     }
     let dl = -(l - target) / (wa + wb + alpha);
-    let n = scale(d, 1.0 / l);
-    positions[ia] = add(positions[ia], scale(n, wa * dl));
-    positions[ib] = sub(positions[ib], scale(n, wb * dl));
+    let n = (pa - pb) * (1.0 / l);
+    positions[ia] = (pa + n * (wa * dl)).to_array();
+    positions[ib] = (pb - n * (wb * dl)).to_array();
 }
 
 /// Puts vertex `i` back `margin` outside its contact plane, if it has one.
-fn keep_outside(positions: &mut [V3], planes: &[Option<(V3, V3)>], margin: f64, i: u32) {
+fn keep_outside(positions: &mut [V3], planes: &[Option<(DVec3, DVec3)>], margin: f64, i: u32) {
     if let Some((q, n)) = planes[i as usize] {
-        let p = &mut positions[i as usize];
-        let depth = margin - dot(sub(*p, q), n);
+        let p = DVec3::from(positions[i as usize]);
+        let depth = margin - (p - q).dot(n);
         if depth > 0.0 {
-            *p = add(*p, scale(n, depth));
+            positions[i as usize] = (p + n * depth).to_array();
         }
     }
 }
@@ -261,7 +258,7 @@ const STRAIN_TOLERANCE: f64 = 0.02;
 /// One garment being simulated.
 pub struct ClothSim {
     pub positions: Vec<V3>,
-    velocities: Vec<V3>,
+    velocities: Vec<DVec3>,
     inv_mass: Vec<f64>,
     stretch: Vec<(u32, u32, f64)>,
     bend: Vec<(u32, u32, f64)>,
@@ -275,7 +272,7 @@ pub struct ClothSim {
     /// collision pass when the vertex was within `PLANE_REACH` of the body: the
     /// constraint sweeps keep the vertex `margin` outside it, so that they shorten an
     /// edge by sliding over the body instead of pulling into it.
-    planes: Vec<Option<(V3, V3)>>,
+    planes: Vec<Option<(DVec3, DVec3)>>,
     /// Per vertex, where it was at its last global collision query, how far from the
     /// body it was then (a lower bound), and `body_travel` then.
     clearance: Vec<(V3, f64, f64)>,
@@ -328,7 +325,7 @@ impl ClothSim {
             .collect();
         Self {
             positions: v.clone(),
-            velocities: vec![[0.0; 3]; v.len()],
+            velocities: vec![DVec3::ZERO; v.len()],
             inv_mass: garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect(),
             stretch,
             bend,
@@ -418,14 +415,15 @@ impl ClothSim {
                 global
             });
             if let Some((d, q, n, face)) = hit {
+                let (q, n) = (DVec3::from(q), DVec3::from(n));
                 self.anchors[i] = face;
                 if d < margin {
-                    self.positions[i] = add(q, scale(n, margin));
+                    self.positions[i] = (q + n * margin).to_array();
                 }
                 if d < PLANE_REACH {
                     // The plane through the closest point, facing the vertex: the
                     // triangle's own normal misleads at edges and corners.
-                    let out = if d < margin { n } else { normalize(sub(self.positions[i], q)) };
+                    let out = if d < margin { n } else { (DVec3::from(self.positions[i]) - q).normalize_or(DVec3::Z) };
                     self.planes[i] = Some((q, out));
                 }
             }
@@ -467,9 +465,10 @@ impl ClothSim {
                     self.positions[i] = goal[i];
                     continue;
                 }
-                self.velocities[i][1] += self.params.gravity * h;
-                self.velocities[i] = scale(self.velocities[i], keep);
-                self.positions[i] = add(self.positions[i], scale(self.velocities[i], h));
+                let v = &mut self.velocities[i];
+                v.y += self.params.gravity * h;
+                *v *= keep;
+                self.positions[i] = (DVec3::from(self.positions[i]) + *v * h).to_array();
             }
             let body_now = collider.vertices_at(frac);
             self.body_travel += collider.max_travel() / f64::from(n);
@@ -493,7 +492,7 @@ impl ClothSim {
                 }
             }
             for i in 0..self.positions.len() {
-                self.velocities[i] = scale(sub(self.positions[i], previous[i]), 1.0 / h);
+                self.velocities[i] = (DVec3::from(self.positions[i]) - DVec3::from(previous[i])) * (1.0 / h);
             }
         }
     }

@@ -4,6 +4,8 @@
 
 use std::collections::HashMap;
 
+use glam::DVec3;
+
 use crate::grid::{bounds, Grid};
 
 pub type V3 = [f64; 3];
@@ -32,12 +34,16 @@ pub fn norm(a: V3) -> f64 {
     dot(a, a).sqrt()
 }
 
+/// `a / |a|`, or +z where that is not finite (a zero vector).
 pub fn normalize(a: V3) -> V3 {
-    let n = norm(a);
-    if n > 0.0 { scale(a, 1.0 / n) } else { [0.0, 0.0, 1.0] }
+    DVec3::from(a).normalize_or(DVec3::Z).to_array()
 }
 
 /// Unit quaternion (w, x, y, z) of a rotation matrix (rows).
+///
+/// Not glam's `DQuat::from_mat3`: that one picks its branch differently and rounds
+/// differently, and the quaternions in the COLMAP files `drape synth` writes come from
+/// this formula.
 pub fn rotation_to_quaternion(m: &[[f64; 3]; 3]) -> [f64; 4] {
     let trace = m[0][0] + m[1][1] + m[2][2];
     let q = if trace > 0.0 {
@@ -113,26 +119,25 @@ pub fn signed_volume(vertices: &[V3], faces: &[[u32; 3]]) -> f64 {
 
 fn segment_hits_triangle(p: V3, q: V3, t: [V3; 3]) -> bool {
     // Möller-Trumbore on the segment p->q, strict inside tests.
-    let e1 = sub(t[1], t[0]);
-    let e2 = sub(t[2], t[0]);
-    let d = sub(q, p);
-    let h = cross(d, e2);
-    let a = dot(e1, h);
+    let (p, t) = (DVec3::from(p), t.map(DVec3::from));
+    let (e1, e2, d) = (t[1] - t[0], t[2] - t[0], DVec3::from(q) - p);
+    let h = d.cross(e2);
+    let a = e1.dot(h);
     if a.abs() < 1e-14 {
         return false;
     }
     let f = 1.0 / a;
-    let s = sub(p, t[0]);
-    let u = f * dot(s, h);
+    let s = p - t[0];
+    let u = f * s.dot(h);
     if !(u > 1e-9 && u < 1.0 - 1e-9) {
         return false;
     }
-    let qv = cross(s, e1);
-    let v = f * dot(d, qv);
+    let qv = s.cross(e1);
+    let v = f * d.dot(qv);
     if !(v > 1e-9 && u + v < 1.0 - 1e-9) {
         return false;
     }
-    let t_hit = f * dot(e2, qv);
+    let t_hit = f * e2.dot(qv);
     t_hit > 1e-9 && t_hit < 1.0 - 1e-9
 }
 

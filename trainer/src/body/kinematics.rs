@@ -7,8 +7,10 @@
 //! skinning transform of joint j is `A_j = G_j · [I | -J_j]`, where `G_j` is the joint's
 //! world transform and `J_j` its rest position, so the rest pose gives identities.
 
+use glam::{DAffine3, DMat3, DVec3};
+
 use crate::body::model::{SmplModel, NUM_JOINTS, NUM_POSE_FEATURES};
-use crate::mesh::{add, cross, dot, norm, scale, sub, V3};
+use crate::mesh::{add, scale, V3};
 
 pub type M3 = [[f64; 3]; 3];
 /// `[R | t]`, row-major 3x4.
@@ -16,78 +18,66 @@ pub type Affine = [[f64; 4]; 3];
 
 pub const IDENTITY: M3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
-fn mat_mul(a: &M3, b: &M3) -> M3 {
-    let mut o = [[0.0; 3]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            o[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-        }
+// The public types stay row-major arrays (other modules and the skinning kernel's
+// flat layout read them); the arithmetic is glam's, whose matrices are column-major.
+// glam's products sum in the same order as the loops they replace (k = 0, 1, 2), so
+// the results are the same bits, up to the sign of an exact zero (the loops added
+// +0.0 in places, which turns -0.0 into +0.0).
+
+/// A row-major matrix as glam's.
+fn mat(m: &M3) -> DMat3 {
+    DMat3::from_cols_array_2d(m).transpose()
+}
+
+/// A glam matrix as rows.
+fn rows(m: DMat3) -> M3 {
+    m.transpose().to_cols_array_2d()
+}
+
+fn affine(a: &Affine) -> DAffine3 {
+    DAffine3::from_mat3_translation(mat(&a.map(|r| [r[0], r[1], r[2]])), DVec3::new(a[0][3], a[1][3], a[2][3]))
+}
+
+fn affine_rows(a: DAffine3) -> Affine {
+    let (m, t) = (rows(a.matrix3), a.translation);
+    std::array::from_fn(|r| [m[r][0], m[r][1], m[r][2], t[r]])
+}
+
+/// `[v]x`, written entry by entry so that its zeros keep the signs they always had.
+fn skew(v: DVec3) -> DMat3 {
+    mat(&[[0.0, -v.z, v.y], [v.z, 0.0, -v.x], [-v.y, v.x, 0.0]])
+}
+
+/// [`rodrigues`] in glam.
+fn rotation(r: DVec3) -> DMat3 {
+    let theta = r.length();
+    if theta < 1e-12 {
+        // First order: I + [r]x (the diagonal set, not added, so the zeros keep their signs).
+        let k = skew(r);
+        return DMat3::from_cols(k.x_axis.with_x(1.0), k.y_axis.with_y(1.0), k.z_axis.with_z(1.0));
     }
-    o
-}
-
-fn mat_vec(a: &M3, v: V3) -> V3 {
-    [dot(a[0], v), dot(a[1], v), dot(a[2], v)]
-}
-
-fn transpose(a: &M3) -> M3 {
-    [[a[0][0], a[1][0], a[2][0]], [a[0][1], a[1][1], a[2][1]], [a[0][2], a[1][2], a[2][2]]]
-}
-
-fn skew(v: V3) -> M3 {
-    [[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]
+    let k = skew(r * (1.0 / theta));
+    let (s, c) = theta.sin_cos();
+    DMat3::IDENTITY + (k * s + k * k * (1.0 - c))
 }
 
 /// Rotation of an axis-angle vector (Rodrigues).
 pub fn rodrigues(r: V3) -> M3 {
-    let theta = norm(r);
-    if theta < 1e-12 {
-        // First order: I + [r]x.
-        let k = skew(r);
-        return [[1.0, k[0][1], k[0][2]], [k[1][0], 1.0, k[1][2]], [k[2][0], k[2][1], 1.0]];
-    }
-    let k = skew(scale(r, 1.0 / theta));
-    let k2 = mat_mul(&k, &k);
-    let (s, c) = theta.sin_cos();
-    let mut out = IDENTITY;
-    for i in 0..3 {
-        for j in 0..3 {
-            out[i][j] += s * k[i][j] + (1.0 - c) * k2[i][j];
-        }
-    }
-    out
+    rows(rotation(r.into()))
 }
 
-/// dR/dr_i for each axis i (Gallego and Yezzi's formula; first order near 0).
+/// dR/dr_i for each axis i (Gallego and Yezzi's formula; first order near 0):
+/// `(r_i [r]x + [r × (I - R) e_i]x) R / |r|²`.
 pub fn rodrigues_jacobian(r: V3) -> [M3; 3] {
-    let theta2 = dot(r, r);
-    let e = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let r = DVec3::from(r);
+    let theta2 = r.length_squared();
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
     if theta2 < 1e-16 {
-        return e.map(skew);
+        return axes.map(|e| rows(skew(e)));
     }
-    let rot = rodrigues(r);
-    let i_minus_r = {
-        let mut m = IDENTITY;
-        for a in 0..3 {
-            for b in 0..3 {
-                m[a][b] -= rot[a][b];
-            }
-        }
-        m
-    };
-    e.map(|ei| {
-        let k = add(scale(r, 0.0), cross(r, mat_vec(&i_minus_r, ei)));
-        let vi = dot(r, ei);
-        let s = skew(r);
-        let mut m = [[0.0; 3]; 3];
-        let ks = skew(k);
-        for a in 0..3 {
-            for b in 0..3 {
-                m[a][b] = (vi * s[a][b] + ks[a][b]) / theta2;
-            }
-        }
-        mat_mul(&m, &rot)
-    })
+    let rot = rotation(r);
+    let i_minus_r = DMat3::IDENTITY - rot;
+    axes.map(|e| rows((skew(r) * r.dot(e) + skew(r.cross(i_minus_r * e))) / theta2 * rot))
 }
 
 /// Pose parameters: 24 axis-angle vectors, root first (SMPL's 72 numbers).
@@ -123,25 +113,14 @@ pub fn a_pose() -> Pose {
 
 /// `a · b` for affine transforms.
 pub fn compose(a: &Affine, b: &Affine) -> Affine {
-    let mut o = [[0.0; 4]; 3];
-    for i in 0..3 {
-        for j in 0..4 {
-            o[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum::<f64>() + if j == 3 { a[i][3] } else { 0.0 };
-        }
-    }
-    o
+    affine_rows(affine(a) * affine(b))
 }
 
 /// The inverse of a rigid transform `[R | t]`: `[Rᵀ | -Rᵀ t]`.
 pub fn rigid_inverse(a: &Affine) -> Affine {
-    let mut o = [[0.0; 4]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            o[i][j] = a[j][i];
-        }
-        o[i][3] = -(0..3).map(|k| a[k][i] * a[k][3]).sum::<f64>();
-    }
-    o
+    let a = affine(a);
+    let rt = a.matrix3.transpose();
+    affine_rows(DAffine3::from_mat3_translation(rt, -(rt * a.translation)))
 }
 
 /// Skinning transforms that take points from the body in pose `from` to pose `to`:
@@ -180,33 +159,22 @@ pub fn regress_joints(model: &SmplModel, vertices: &[V3]) -> [V3; NUM_JOINTS] {
 /// at rest every factor is exactly the identity, so the rest pose reproduces the
 /// template bit for bit.
 pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pose: &Pose) -> ([Affine; NUM_JOINTS], [Affine; NUM_JOINTS]) {
-    let mut a = [[[0.0; 4]; 3]; NUM_JOINTS];
+    let mut a = [DAffine3::IDENTITY; NUM_JOINTS];
     for j in 0..NUM_JOINTS {
-        let r = rodrigues(pose[j]);
-        let rj = mat_vec(&r, joints[j]);
-        let local_t = sub(joints[j], rj);
-        let local: Affine = std::array::from_fn(|row| [r[row][0], r[row][1], r[row][2], local_t[row]]);
-        a[j] = if parents[j] < 0 { local } else { compose(&a[parents[j] as usize], &local) };
+        let (r, joint) = (rotation(pose[j].into()), DVec3::from(joints[j]));
+        let local = DAffine3::from_mat3_translation(r, joint - r * joint);
+        a[j] = if parents[j] < 0 { local } else { a[parents[j] as usize] * local };
     }
-    let mut g = a;
-    for j in 0..NUM_JOINTS {
-        for r in 0..3 {
-            g[j][r][3] = a[j][r][3] + (0..3).map(|c| a[j][r][c] * joints[j][c]).sum::<f64>();
-        }
-    }
-    (a, g)
+    // G_j = A_j · [I | J_j].
+    let g = std::array::from_fn(|j| affine_rows(DAffine3 { translation: a[j].translation + a[j].matrix3 * DVec3::from(joints[j]), ..a[j] }));
+    (a.map(affine_rows), g)
 }
 
 /// SMPL's pose features: `R_j - I` of joints 1..23, flattened row-major.
 pub fn pose_features(pose: &Pose) -> [f64; NUM_POSE_FEATURES] {
     let mut f = [0.0; NUM_POSE_FEATURES];
-    for j in 1..NUM_JOINTS {
-        let r = rodrigues(pose[j]);
-        for a in 0..3 {
-            for b in 0..3 {
-                f[9 * (j - 1) + 3 * a + b] = r[a][b] - IDENTITY[a][b];
-            }
-        }
+    for (j, out) in f.chunks_exact_mut(9).enumerate() {
+        out.copy_from_slice(rows(rotation(pose[j + 1].into()) - DMat3::IDENTITY).as_flattened());
     }
     f
 }
@@ -258,44 +226,46 @@ pub fn pose_body(model: &SmplModel, betas: &[f64], pose: &Pose, translation: V3)
 /// the skinning transforms `A_j` (pose blend shapes not included).
 pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pose: &Pose, grad_a: &[Affine; NUM_JOINTS]) -> Pose {
     let (_, g) = forward_kinematics(parents, joints, pose);
-    let rot = |m: &Affine| -> M3 { [[m[0][0], m[0][1], m[0][2]], [m[1][0], m[1][1], m[1][2]], [m[2][0], m[2][1], m[2][2]]] };
+    let joints = joints.map(DVec3::from);
+    // `x yᵀ`.
+    let outer = |x: DVec3, y: DVec3| DMat3::from_cols(x * y.x, x * y.y, x * y.z);
     // A = [G_R | G_t - G_R J]: dG_R = dA_R - dA_t Jᵀ, dG_t = dA_t.
-    let mut d_rot = [[[0.0; 3]; 3]; NUM_JOINTS];
-    let mut d_t = [[0.0; 3]; NUM_JOINTS];
-    for j in 0..NUM_JOINTS {
-        for r in 0..3 {
-            d_t[j][r] = grad_a[j][r][3];
-            for c in 0..3 {
-                d_rot[j][r][c] = grad_a[j][r][c] - grad_a[j][r][3] * joints[j][c];
-            }
-        }
-    }
-    let mut d_local = [[[0.0; 3]; 3]; NUM_JOINTS];
+    let grad_a = grad_a.map(|m| affine(&m));
+    let mut d_t = grad_a.map(|m| m.translation);
+    let mut d_rot: [DMat3; NUM_JOINTS] = std::array::from_fn(|j| grad_a[j].matrix3 - outer(d_t[j], joints[j]));
+    let mut d_local = [DMat3::ZERO; NUM_JOINTS];
     for j in (0..NUM_JOINTS).rev() {
         if parents[j] < 0 {
             d_local[j] = d_rot[j];
             continue;
         }
         let p = parents[j] as usize;
-        let prot = rot(&g[p]);
-        let r = rodrigues(pose[j]);
-        let offset = sub(joints[j], joints[p]);
         // G_R,j = G_R,p R_j ; G_t,j = G_R,p (J_j - J_p) + G_t,p
-        d_local[j] = mat_mul(&transpose(&prot), &d_rot[j]);
-        let d_prot_from_rot = mat_mul(&d_rot[j], &transpose(&r));
-        for a in 0..3 {
-            for b in 0..3 {
-                d_rot[p][a][b] += d_prot_from_rot[a][b] + d_t[j][a] * offset[b];
-            }
-            d_t[p][a] += d_t[j][a];
-        }
+        d_local[j] = affine(&g[p]).matrix3.transpose() * d_rot[j];
+        let d_prot = d_rot[j] * rotation(pose[j].into()).transpose() + outer(d_t[j], joints[j] - joints[p]);
+        d_rot[p] += d_prot;
+        d_t[p] += d_t[j];
     }
-    let mut out = [[0.0; 3]; NUM_JOINTS];
-    for j in 0..NUM_JOINTS {
-        let jac = rodrigues_jacobian(pose[j]);
-        for (i, d) in jac.iter().enumerate() {
-            out[j][i] = (0..3).flat_map(|a| (0..3).map(move |b| (a, b))).map(|(a, b)| d[a][b] * d_local[j][a][b]).sum();
-        }
+    std::array::from_fn(|j| {
+        // Summed row by row, as it always was (a column-major sum would round differently).
+        let dl = rows(d_local[j]);
+        rodrigues_jacobian(pose[j]).map(|d| d.as_flattened().iter().zip(dl.as_flattened()).map(|(a, b)| a * b).sum())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Our matrices are rows, glam's are columns: the conversions keep every entry in
+    /// place, and a product through glam is the row-major one.
+    #[test]
+    fn glam_conversions_keep_rows() {
+        let m = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 10.0]];
+        assert_eq!(rows(mat(&m)), m);
+        assert_eq!(mat(&m) * DVec3::new(1.0, 10.0, 100.0), DVec3::new(321.0, 654.0, 1087.0));
+        let a: Affine = [[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0], [9.0, 10.0, 11.0, 12.0]];
+        assert_eq!(affine_rows(affine(&a)), a);
+        assert_eq!(affine(&a).transform_point3(DVec3::X), DVec3::new(5.0, 13.0, 21.0));
     }
-    out
 }
