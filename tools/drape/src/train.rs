@@ -154,7 +154,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
     let layers = drape_trainer::avatar::train::choose_layers(&seq, &config).map_err(anyhow::Error::msg)?;
     let cloth = layers.cloth;
-    println!("data: {} ({:?} layout), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.layout, seq.frames[0].width, seq.frames[0].height);
+    println!("data: {} ({}: {}), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.variant.name(), seq.variant.describe(), seq.frames[0].width, seq.frames[0].height);
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
     let decoders = |w: u32| if w >= 128 { "HUGS decoders".to_string() } else { format!("HUGS decoders at most {w} wide (HUGS: 128)") };
     println!(

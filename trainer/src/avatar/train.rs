@@ -37,7 +37,8 @@ use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
-use crate::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit};
+use crate::dataset::layout::{locate, SequenceFiles, Variant};
+use crate::dataset::loader::{load_neuman_files, load_zju_files, BodyParams, DatasetFrame, NeumanSplit};
 use crate::dataset::split::Split;
 
 /// Everything a run is configured by (written to the run directory as `config.json`).
@@ -231,25 +232,22 @@ pub enum Layout {
 pub struct Sequence {
     pub dir: PathBuf,
     pub layout: Layout,
+    /// The published variant the files were read as (see `dataset::layout`).
+    pub variant: Variant,
     pub frames: Vec<DatasetFrame>,
 }
 
-/// Loads `dir` in whichever layout it is: NeuMan (`sparse/`), ZJU-MoCap
+/// Loads `dir` in whichever layout and variant it is: NeuMan (`sparse/`), ZJU-MoCap
 /// (`annots.npy`), or the root `drape synth` writes (its `neuman/`).
 pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> Result<Sequence, String> {
-    if dir.join("sparse").is_dir() {
-        return Ok(Sequence { dir: dir.into(), layout: Layout::NeuMan, frames: load_neuman(dir, NeumanSplit::EveryFifth)? });
-    }
-    if dir.join("annots.npy").is_file() {
-        return Ok(Sequence { dir: dir.into(), layout: Layout::ZjuMocap, frames: load_zju(dir, zju_train_camera)? });
-    }
-    if dir.join("neuman").join("sparse").is_dir() {
+    if !dir.join("sparse").is_dir() && !dir.join("annots.npy").is_file() && dir.join("neuman").join("sparse").is_dir() {
         return load_sequence(&dir.join("neuman"), zju_train_camera);
     }
-    if !dir.exists() {
-        return Err(format!("{}: no such directory", dir.display()));
-    }
-    Err(format!("{}: neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)", dir.display()))
+    let (layout, variant, frames) = match locate(dir)? {
+        SequenceFiles::Neuman(files) => (Layout::NeuMan, files.variant, load_neuman_files(&files, NeumanSplit::EveryFifth)?),
+        SequenceFiles::Zju(files) => (Layout::ZjuMocap, files.variant, load_zju_files(&files, zju_train_camera)?),
+    };
+    Ok(Sequence { dir: dir.into(), layout, variant, frames })
 }
 
 /// The frame's person on a constant background.

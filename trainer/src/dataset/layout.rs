@@ -161,7 +161,7 @@ pub fn detect(dir: &Path) -> Result<Variant, DatasetError> {
         let annots = ZjuAnnots::read(dir)?;
         return Ok(annots.images.first().and_then(|v| v.first()).map_or(Variant::ZjuNeuralBody, |rel| zju_variant(rel)));
     }
-    Err(DatasetError::layout(dir, "neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy)"))
+    Err(DatasetError::layout(dir, "neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)"))
 }
 
 /// Locates every file of a sequence directory, NeuMan (`sparse/`) or ZJU-MoCap
@@ -176,7 +176,7 @@ pub fn locate(dir: &Path) -> Result<SequenceFiles, DatasetError> {
     if !dir.exists() {
         return Err(DatasetError::layout(dir, "no such directory"));
     }
-    Err(DatasetError::layout(dir, "neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy)"))
+    Err(DatasetError::layout(dir, "neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)"))
 }
 
 fn locate_neuman(dir: &Path) -> Result<NeumanFiles, DatasetError> {
