@@ -74,7 +74,7 @@ fn stage(pass: &str) -> &'static str {
     }
 }
 
-fn by_stage(profile: &Profile) -> BTreeMap<String, f64> {
+pub(crate) fn by_stage(profile: &Profile) -> BTreeMap<String, f64> {
     let mut stages = BTreeMap::new();
     for (name, e) in &profile.gpu_passes {
         *stages.entry(stage(name).to_string()).or_insert(0.0) += e.ms;

@@ -23,6 +23,7 @@ mod avatar;
 mod composite;
 mod ops;
 mod splat;
+mod trade;
 
 /// Benchmarks of the drape engine's GPU ops.
 #[derive(Parser, Debug)]
@@ -86,6 +87,12 @@ enum Job {
     /// skinning, projection, sorts, rasterization, composite), and training it/s with
     /// the split of a step.
     Avatar(avatar::AvatarArgs),
+    /// The speed/accuracy trade of a trained avatar: for each knob built today
+    /// (resolution, SH degree per layer, pruning by opacity, compositing) the held-out
+    /// frames rendered and compared with the ground truth and with the default render
+    /// (PSNR, SSIM, LPIPS with weights) beside the GPU ms per frame; writes trade.json,
+    /// trade.md and a Pareto plot trade.png; lists the knobs not built.
+    Trade(trade::TradeArgs),
 }
 
 /// Medians over the timed runs.
@@ -257,6 +264,7 @@ fn main() -> ExitCode {
             Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
             Job::Composite(args) => (composite::run(&ctx, args)?, args.json, composite::print_table),
             Job::Splat(args) => (splat::run(&ctx, args)?, args.json, splat::print_table),
+            Job::Trade(args) => (trade::run(&ctx, args)?, args.json, |r| print!("{}", trade::markdown(r))),
         };
         cli.device.check_validation(&ctx)?;
         if json_out {

@@ -84,3 +84,82 @@ fn avatar_names_a_missing_run_in_one_line() {
     assert_eq!(lines.len(), 1, "{stderr}");
     assert!(lines[0].contains("/nonexistent/run") && lines[0].contains("no such run directory"), "{stderr}");
 }
+
+/// A tiny run (body + cloth at SH degree 1, 64 x 64, a few steps) trained in-process:
+/// enough for `engine-bench trade` to have every knob, small enough for seconds.
+fn tiny_run() -> std::path::PathBuf {
+    use drape_trainer::avatar::run::RunInfo;
+    use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
+    use drape_trainer::body::procedural::{default_body, BodyOptions};
+    use drape_trainer::dataset::synth::{generate, SynthOptions};
+    let root = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("engine-bench-trade");
+    let _ = std::fs::remove_dir_all(&root);
+    let data = root.join("data");
+    let o = SynthOptions { width: 64, height: 64, frames: 10, cameras: 2, ..SynthOptions::default() };
+    generate(&data, &o, &mut |_, _, _| {}).expect("synthetic data");
+    let ctx = drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
+    let seq = load_sequence(&data, 0).expect("sequence");
+    let mut c = TrainConfig::quick();
+    for l in [&mut c.body, &mut c.cloth] {
+        (l.triplane_resolution, l.triplane_channels, l.decoder_width, l.sh_degree) = (16, 8, 32, 1);
+    }
+    (c.fit_steps, c.steps, c.log_every, c.checkpoint_every) = (10, 10, 10, 0);
+    c.layers = "body+cloth".into();
+    let run = root.join("run");
+    train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &run, false, &mut |_| {}).expect("training");
+    RunInfo::new(&data, None).write(&run).expect("run.json");
+    run
+}
+
+#[test]
+fn trade_measures_every_knob_and_the_default_matches_itself() {
+    let run = tiny_run();
+    let out = run.join("trade-out");
+    let j = json_of(&["--validation", "trade", run.to_str().unwrap(), "--runs", "1", "--warmup", "0", "--max-frames", "2", "--json", "--out", out.to_str().unwrap()]);
+    let settings = j["settings"].as_array().expect("settings");
+    let of = |knob: &str| settings.iter().filter(|s| s["knob"] == knob).collect::<Vec<_>>();
+    for knob in ["resolution", "sh_degree", "pruning", "compositing"] {
+        assert!(j["knobs"][knob].as_str().is_some_and(|s| s.starts_with("measured")), "knob '{knob}': {}", j["knobs"]);
+    }
+    // 0.5x and 2x; degree 0 for the body, the cloth and both; four thresholds; the two
+    // other compositing variants.
+    assert_eq!(of("resolution").len(), 2, "{j}");
+    assert_eq!(of("sh_degree").len(), 3, "{j}");
+    assert_eq!(of("pruning").len(), 4, "{j}");
+    assert_eq!(of("compositing").len(), 2, "{j}");
+    let default = of("default");
+    assert_eq!(default.len(), 1, "{j}");
+    // The default render against itself: identical (PSNR at its 200 dB floor, SSIM 1).
+    assert!(default[0]["vs_default"]["psnr"].as_f64().is_some_and(|p| p >= 199.0), "{}", default[0]);
+    assert!(default[0]["vs_default"]["ssim"].as_f64().is_some_and(|s| (s - 1.0).abs() < 1e-9), "{}", default[0]);
+    let total: u64 = j["gaussians"].as_array().into_iter().flatten().map(|p| p[1].as_u64().unwrap()).sum();
+    let mut last = total;
+    for s in settings {
+        assert!(s["ms_per_frame"].as_f64().is_some_and(|v| v > 0.0), "{s}");
+        assert!(s["vs_ground_truth"]["psnr"].as_f64().is_some_and(|v| v.is_finite() && v > 5.0), "{s}");
+        assert!(s["vs_default"]["lpips"].is_null(), "no weights: LPIPS n/a, {s}");
+    }
+    for s in of("pruning") {
+        // Higher thresholds keep no more Gaussians.
+        let kept = s["gaussians_kept"].as_u64().unwrap();
+        assert!(kept <= last, "{s}");
+        last = kept;
+    }
+    // Zeroing a layer's degree-1 coefficients changes its render, not to the default's.
+    for s in of("sh_degree") {
+        assert!(s["vs_default"]["psnr"].as_f64().unwrap() < 199.0, "{s}");
+    }
+    let not_built: Vec<&str> = j["not_built"].as_array().into_iter().flatten().map(|n| n["knob"].as_str().unwrap()).collect();
+    for k in ["tile size 8 / 32", "half-precision SH", "half-precision projected splats", "fused compositing", "float-atomic vs deterministic backward"] {
+        assert!(not_built.contains(&k), "'{k}' not listed as not built: {not_built:?}");
+    }
+    assert!(settings.iter().any(|s| s["pareto"] == true), "{j}");
+    // The files: the same JSON, a Markdown row per setting, a decodable plot.
+    let written: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("trade.json")).expect("trade.json")).expect("JSON");
+    assert_eq!(written["settings"], j["settings"]);
+    let md = std::fs::read_to_string(out.join("trade.md")).expect("trade.md");
+    assert_eq!(md.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| knob") && !l.starts_with("| ---")).count(), settings.len(), "{md}");
+    assert!(md.contains("not built") || md.contains("Not built"), "{md}");
+    let png = image::open(out.join("trade.png")).expect("trade.png decodes");
+    assert_eq!((png.width(), png.height()), (640, 480));
+}
