@@ -241,6 +241,32 @@ fn animate_poses_the_avatar_in_a_new_motion_from_an_orbiting_camera() {
     assert_eq!(n, 4, "GIF frames");
 }
 
+/// An AMASS file as numpy writes it (SMPL-H poses, a string gender, 120 fps) drives
+/// `animate` through the same loader `drape animate --motion FILE.npz` uses.
+#[test]
+fn animate_takes_an_amass_file_numpy_wrote() {
+    let dir = drape_tests::reference_python::case_dir("run_tools", "amass");
+    drape_tests::reference_python::run("write_motions.py", std::slice::from_ref(&dir));
+    let motion = drape_trainer::motion::Motion::load_npz(&dir.join("amass.npz")).expect("AMASS loads");
+    assert_eq!(motion.fps, 120.0);
+    let ctx = gpu();
+    let mut run = OpenRun::open(&ctx, &runs()[0], None, None).expect("open");
+    let out = tmp("run-tools-animate-amass");
+    std::fs::create_dir_all(&out).expect("out");
+    let background = [1.0, 0.0, 1.0];
+    let report = animate(&ctx, &mut run, &motion, &AnimateOptions { frames: 3, orbit_degrees: 0.0, background, gif: false }, &out, &mut |_, _| {}).expect("animate");
+    assert_eq!(report.frames, 3);
+    for k in 0..3 {
+        let img = drape_trainer::dataset::image::read_rgb(&out.join(format!("frame{k:04}.png"))).expect("frame written");
+        let (w, h) = (img.width as usize, img.height as usize);
+        // The camera looks at the pelvis: the person covers the image centre (magenta is
+        // the background), whatever the AMASS root orientation did to the body.
+        let c = 3 * ((h / 2) * w + w / 2);
+        let centre = [img.rgb[c], img.rgb[c + 1], img.rgb[c + 2]];
+        assert!(centre != [1.0, 0.0, 1.0], "frame {k}: the image centre shows the background");
+    }
+}
+
 #[test]
 fn placing_the_anchor_pose_reproduces_the_anchor() {
     let ctx = gpu();
