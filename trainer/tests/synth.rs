@@ -17,7 +17,7 @@ use drape_trainer::dataset::synth::{generate, handheld_camera, posed_from_zju, r
 use drape_trainer::garment::load_obj;
 use drape_trainer::motion::{procedural, MotionKind};
 
-const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1 };
+const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1, garment: drape_trainer::garment::GarmentFit::Tight };
 
 fn base() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();

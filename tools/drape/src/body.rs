@@ -6,7 +6,7 @@ use anyhow::Context as _;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::SmplModel;
 use drape_trainer::cloth::{simulate_with_progress, ClothParams};
-use drape_trainer::garment::{load_obj, pants, tshirt, write_obj};
+use drape_trainer::garment::{load_obj, pants, tshirt, write_obj, GarmentFit};
 use drape_trainer::motion::{procedural, Motion, MotionKind};
 
 /// Options of `drape body`.
@@ -129,12 +129,17 @@ pub struct SynthArgs {
     /// Supersampling per axis (antialiasing).
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
     pub samples: u32,
+    /// The T-shirt's fit: tight (1.5 cm off the skin, hem at the hips) or loose (4.5 cm
+    /// of ease around the torso, hem 10 cm lower); the pants are the same for both.
+    #[arg(long, default_value = "tight")]
+    pub fit: String,
 }
 
 pub fn run_synth(args: &SynthArgs) -> anyhow::Result<()> {
     use drape_trainer::dataset::synth::{generate, SynthOptions};
     let motion = MotionKind::parse(&args.motion).ok_or_else(|| anyhow::anyhow!("--motion '{}' is not one of walk, jog, raise-arms, turn", args.motion))?;
-    let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: args.cameras as usize, motion, seed: args.seed, samples: args.samples };
+    let garment = GarmentFit::parse(&args.fit).ok_or_else(|| anyhow::anyhow!("--fit '{}' is not one of tight, loose", args.fit))?;
+    let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: args.cameras as usize, motion, seed: args.seed, samples: args.samples, garment };
     let summary = generate(&args.out, &options, &mut |stage, done, total| {
         eprint!("\r{stage:<18} {done:>5}/{total}   ");
     })

@@ -20,7 +20,7 @@ use crate::dataset::image::{write_mask, write_mask_values, write_rgb};
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::raster::{render, Drawable};
 use crate::dataset::zju::{write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
-use crate::garment::{pants, tshirt, write_obj, Garment};
+use crate::garment::{pants, write_obj, Garment, GarmentFit};
 use crate::mesh::{add, scale, sub, V3};
 use crate::motion::{procedural, MotionKind};
 use crate::npy::{self, Array};
@@ -38,11 +38,13 @@ pub struct SynthOptions {
     pub seed: u64,
     /// Supersampling per axis.
     pub samples: u32,
+    /// The T-shirt's fit (the pants are the same for both).
+    pub garment: GarmentFit,
 }
 
 impl Default for SynthOptions {
     fn default() -> Self {
-        Self { width: 128, height: 128, frames: 30, cameras: 4, motion: MotionKind::Walk, seed: 1, samples: 2 }
+        Self { width: 128, height: 128, frames: 30, cameras: 4, motion: MotionKind::Walk, seed: 1, samples: 2, garment: GarmentFit::Tight }
     }
 }
 
@@ -206,7 +208,7 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         return Err("width, height and frames must be positive".into());
     }
     let model = default_body(&BodyOptions::default());
-    let garments: [Garment; 2] = [tshirt(&model), pants(&model)];
+    let garments: [Garment; 2] = [o.garment.upper(&model), pants(&model)];
     let motion = procedural(o.motion, o.frames, 30.0, 1.0);
     let sim = simulate_with_progress(&model, &garments, &motion, ClothParams::default(), 20, &mut |done, total| progress("simulating cloth", done, total));
     if sim.any_nan {
