@@ -2,7 +2,7 @@
 //! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image), `body` (the
 //! default body as SMPL .npz), `simulate` (garments on a motion), `synth` (the
 //! synthetic data), `inspect` (a sequence's layout and problems), `train` (the avatar),
-//! `eval`, `animate` and `edit` (a trained run).
+//! `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic cloth benchmark).
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;
@@ -14,6 +14,7 @@ use drape_engine::ops::radix_sort::sort_pairs_host;
 use rand::{Rng, SeedableRng};
 
 mod animate;
+mod bench_cloth;
 mod body;
 mod edit;
 mod eval;
@@ -72,6 +73,10 @@ enum Command {
     Animate(animate::AnimateArgs),
     /// Change a trained run's clothes (remove, recolour, swap) into a new run.
     Edit(edit::EditArgs),
+    /// The synthetic cloth benchmark: synthesise loose / tight garment sequences, train
+    /// the full model, the paper's ablation rows and the single-layer baseline on each,
+    /// and write bench.json, bench.md (with the paper's claim checked) and bench.png.
+    BenchCloth(bench_cloth::BenchClothArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -114,5 +119,6 @@ fn main() -> ExitCode {
         Command::Eval(args) => eval::run(&cli.device, &args),
         Command::Animate(args) => animate::run(&cli.device, &args),
         Command::Edit(args) => edit::run(&cli.device, &args),
+        Command::BenchCloth(args) => bench_cloth::run(&cli.device, &args),
     })
 }
