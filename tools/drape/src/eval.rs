@@ -1,7 +1,8 @@
 //! `drape eval RUN`: measures a trained run on the held-out frames of its protocol
 //! (NeuMan: every fifth frame from the second; ZJU-MoCap: the cameras not trained on):
 //! PSNR, SSIM and LPIPS (with weights; n/a without) on the whole image and the human
-//! crop, the cloth Gaussians' Chamfer distance to the ground-truth garments where the
+//! crop, FID over all held-out renders against their ground truths (whole and crop;
+//! with `--fid-weights`, n/a without; computed on the CPU), the cloth Gaussians' Chamfer distance to the ground-truth garments where the
 //! data has them; per frame and as means, printed as a table and written to
 //! `OUT/eval.json` and `OUT/eval.md`, with a sheet per frame (`OUT/frameNNNN_viewV.png`:
 //! ground truth | render | error ×4 | base pass | cloth pass | matte).
@@ -12,7 +13,8 @@ use std::path::PathBuf;
 use drape_cli_support::DeviceArgs;
 use drape_engine::ops::lpips::{LpipsNet, LpipsWeights};
 use drape_trainer::avatar::cloth_target::ground_truth_dir;
-use drape_trainer::avatar::eval::{evaluate, markdown_table, write_reports, EvalInputs, ERROR_GAIN};
+use drape_trainer::avatar::eval::{evaluate_with_fid, markdown_table, write_reports, EvalInputs, ERROR_GAIN};
+use drape_trainer::avatar::fid::FidInception;
 use drape_trainer::avatar::run::OpenRun;
 use drape_trainer::avatar::train::Progress;
 
@@ -31,6 +33,10 @@ pub struct EvalArgs {
     /// LPIPS weights (safetensors; default: the run's config); without any, LPIPS is n/a.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
+    /// FID Inception weights (safetensors from `scripts/fid-to-safetensors.py`, pytorch-fid's
+    /// network); without them, FID is n/a.
+    #[arg(long)]
+    pub fid_weights: Option<PathBuf>,
     /// Where the tables and sheets go (default: RUN/eval).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -44,6 +50,10 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
         Some(p) => Some(LpipsWeights::load(p, LpipsNet::parse(&run.config.lpips_net).map_err(anyhow::Error::msg)?).map_err(|e| anyhow::anyhow!("{e}"))?),
         None => None,
     };
+    let fid = match &args.fid_weights {
+        Some(p) => Some(FidInception::load(p).map_err(|e| anyhow::anyhow!("{e}"))?),
+        None => None,
+    };
     let ground_truth = ground_truth_dir(&run.seq.dir);
     let frames: Vec<_> = run.test_frames().into_iter().cloned().collect();
     anyhow::ensure!(!frames.is_empty(), "{}: no held-out frames in this sequence's protocol", run.seq.dir.display());
@@ -52,7 +62,7 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&out).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
     let inputs = EvalInputs { rig: &run.rig, frames: &frame_refs, ground_truth: ground_truth.as_deref(), lpips: lpips.as_ref(), sheets: Some(&out) };
     let t0 = std::time::Instant::now();
-    let (mean, per_frame) = evaluate(&ctx, &mut run.avatar, &mut run.renderer, &inputs, &mut |p| {
+    let (mean, per_frame) = evaluate_with_fid(&ctx, &mut run.avatar, &mut run.renderer, &inputs, fid.as_ref(), &mut |p| {
         if let Progress::Eval { done, total } = p {
             eprint!("\revaluating {}/{total}   ", done + 1);
             let _ = std::io::stderr().flush();
@@ -63,7 +73,7 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
     device.check_validation(&ctx)?;
     let layers = format!("body{}{}", if run.layers.cloth { " + cloth" } else { "" }, if run.layers.scene { " + scene" } else { "" });
     let header = format!(
-        "{} ({layers}, step {}) on {}: {} held-out images, {}; LPIPS {}",
+        "{} ({layers}, step {}) on {}: {} held-out images, {}; LPIPS {}; FID {}",
         run.dir.display(),
         run.step,
         run.seq.dir.display(),
@@ -72,6 +82,11 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
         match &lpips_path {
             Some(p) => format!("{} from {}", run.config.lpips_net, p.display()),
             None => "n/a (no --lpips-weights)".into(),
+        },
+        match &args.fid_weights {
+            Some(_) if per_frame.len() < 2 => "n/a (fewer than 2 held-out images: no covariance)".into(),
+            Some(p) => format!("pytorch-fid Inception from {}", p.display()),
+            None => "n/a (no --fid-weights)".into(),
         }
     );
     write_reports(&out, &header, &mean, &per_frame).map_err(anyhow::Error::msg)?;

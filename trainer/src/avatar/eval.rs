@@ -2,7 +2,10 @@
 //! frame rendered and compared with its ground truth, per frame and as means: PSNR and
 //! SSIM on the whole image and on the human crop (the person mask's bounding box, as
 //! HUGS), LPIPS where weights are given, and the cloth Gaussians' Chamfer distance to
-//! the ground-truth garments where the data has them. With an output directory, one
+//! the ground-truth garments where the data has them; FID (a set-level metric: renders
+//! against ground truths, whole and cropped, every image resized to 299) where
+//! Inception weights are given ([`evaluate_with_fid`]; `drape eval --fid-weights`;
+//! training's own final evaluation does not compute it). With an output directory, one
 //! sheet per frame (ground truth | render | error ×4, then the base, cloth and matte
 //! passes where the frame was rendered in three) and the tables `eval.json` and
 //! `eval.md`.
@@ -16,6 +19,7 @@ use drape_engine::{BufferDesc, Context};
 
 use crate::avatar::cloth_target;
 use crate::avatar::composite::AvatarRenderer;
+use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
 use crate::avatar::train::{gpu, masked_target, write_json, Progress};
@@ -71,6 +75,11 @@ pub struct EvalMetrics {
     /// LPIPS (the configured network) on the same images; None (n/a) without weights.
     pub lpips_full: Option<f64>,
     pub lpips_crop: Option<f64>,
+    /// FID of the renders against the ground truths over all evaluated frames (whole
+    /// image, and human crops); None (n/a) without Inception weights or with fewer
+    /// than two images.
+    pub fid_full: Option<f64>,
+    pub fid_crop: Option<f64>,
 }
 
 /// One held-out frame's metrics (the fields as in [`EvalMetrics`]; a frame with an
@@ -102,11 +111,20 @@ pub struct EvalInputs<'a> {
 /// Renders every held-out frame (on black without a scene layer, compared with the
 /// masked ground truth; with one, the whole frame) and measures it.
 pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, progress: &mut dyn FnMut(Progress)) -> Result<(EvalMetrics, Vec<FrameMetrics>), String> {
+    evaluate_with_fid(ctx, avatar, renderer, inputs, None, progress)
+}
+
+/// [`evaluate`], and with `fid` the FID of the renders against the ground truths, on
+/// the whole images and on the human crops (the mask's bounding box, unwidened), on the
+/// CPU (four Inception passes per frame, about 5.7 GFLOP each).
+pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, fid: Option<&FidInception>, progress: &mut dyn FnMut(Progress)) -> Result<(EvalMetrics, Vec<FrameMetrics>), String> {
     let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
     let names: Vec<String> = cloth_target::garments(inputs.rig).iter().map(|g| g.name.clone()).collect();
     let names: Vec<&str> = names.iter().map(String::as_str).collect();
     let mut per_frame = Vec::with_capacity(inputs.frames.len());
+    // Features of (render, truth) on the whole image and on the crop, frame by frame.
+    let mut features: [[Vec<Vec<f32>>; 2]; 2] = Default::default();
     for (k, f) in inputs.frames.iter().enumerate() {
         progress(Progress::Eval { done: k, total: inputs.frames.len() });
         let mut m = FrameMetrics { frame: f.frame, view: f.view, ..FrameMetrics::default() };
@@ -134,6 +152,13 @@ pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRendere
             let (cr, ct) = (crop(&rgb, f.width, b), crop(&target, f.width, b));
             m.psnr_crop = Some(psnr(&cr, &ct));
             m.ssim_crop = Some(ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1));
+            if let Some(net) = fid {
+                let (w, h) = (b.2 - b.0, b.3 - b.1);
+                let pair = net.features_of_images(&[ImageRef { rgb: &cr, width: w, height: h }, ImageRef { rgb: &ct, width: w, height: h }])?;
+                let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).map_err(|_| "FID: two crops in, not two feature vectors out".to_string())?;
+                features[1][0].push(fr);
+                features[1][1].push(ft);
+            }
             if let Some(w) = inputs.lpips {
                 // A crop below the network's minimum is widened to it (centred, clamped).
                 let min = LpipsWeights::min_side(w.net);
@@ -149,6 +174,12 @@ pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRendere
                 m.lpips_crop = Some(lpips_of(ctx, w, &crop(&rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?);
             }
         }
+        if let Some(net) = fid {
+            let pair = net.features_of_images(&[ImageRef { rgb: &rgb, width: f.width, height: f.height }, ImageRef { rgb: &target, width: f.width, height: f.height }])?;
+            let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).map_err(|_| "FID: two images in, not two feature vectors out".to_string())?;
+            features[0][0].push(fr);
+            features[0][1].push(ft);
+        }
         if let Some(dir) = inputs.sheets {
             let mut panels = vec![target.clone(), rgb.clone(), error_panel(&rgb, &target)];
             if let Some(passes) = gpu(renderer.read_passes())? {
@@ -159,7 +190,17 @@ pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRendere
         }
         per_frame.push(m);
     }
-    Ok((mean_metrics(&per_frame), per_frame))
+    let mut mean = mean_metrics(&per_frame);
+    // Fewer than two images leave no covariance: n/a, as without weights.
+    let fid_of = |[renders, truths]: &[Vec<Vec<f32>>; 2]| -> Result<Option<f64>, String> {
+        if renders.len() < 2 {
+            return Ok(None);
+        }
+        frechet_distance_of_features(renders, truths).map(Some).map_err(|e| format!("FID: {e}"))
+    };
+    mean.fid_full = fid_of(&features[0])?;
+    mean.fid_crop = fid_of(&features[1])?;
+    Ok((mean, per_frame))
 }
 
 /// Means over frames; crop and LPIPS means over the frames that have them.
@@ -178,6 +219,8 @@ pub fn mean_metrics(frames: &[FrameMetrics]) -> EvalMetrics {
         cloth_chamfer: mean_of(&|f| f.cloth_chamfer),
         lpips_full: mean_of(&|f| f.lpips_full),
         lpips_crop: mean_of(&|f| f.lpips_crop),
+        fid_full: None,
+        fid_crop: None,
     }
 }
 
@@ -235,6 +278,14 @@ pub fn markdown_table(header: &str, mean: &EvalMetrics, frames: &[FrameMetrics])
         fmt(mean.lpips_full, 4, 1.0),
         fmt(mean.lpips_crop, 4, 1.0),
         fmt(mean.cloth_chamfer, 2, 1e3)
+    );
+    // FID is one number per set, not per frame; with tens of images it is biased upward
+    // (a 2048-d covariance from so few), so it compares runs on the same frames only.
+    s += &format!(
+        "\nFID (the {} renders against their ground truths, pytorch-fid's 2048-d pool3; compare only on the same frames): full **{}**, human crop **{}**\n",
+        mean.frames,
+        fmt(mean.fid_full, 2, 1.0),
+        fmt(mean.fid_crop, 2, 1.0)
     );
     s
 }
