@@ -222,12 +222,17 @@ fn deform_gpu_matches_cpu_reference() {
         let out = |name: &str, len: usize| ctx.create_buffer(name, BufferDesc::gpu_only((len.max(1) * 4) as u64)).expect("buffer");
         let (mut pm, mut pq, mut ps) = (out("pm", 3 * n), out("pq", 4 * n), out("ps", 3 * n));
         let (mut gm, mut go, mut g6, mut gd, mut gw) = (out("gm", 3 * n), out("go", 3 * n), out("g6", 6 * n), out("gd", 3 * n), out("gw", SKIN_JOINTS * n));
+        let terms = out("terms", deform::transform_terms_len(n as u32));
+        let partials_len = deform::transform_partials_len(n as u32);
+        let mut partials = out("partials", partials_len);
         {
             let inputs = DeformInputs { transforms: &t, means: &m, quats: &q, log_scales: &s, offsets: &o, rot6d: &r6, log_scale_deltas: &ds, weights: &w };
-            let grads = DeformGrads { means: &gm, offsets: &go, rot6d: &g6, log_scale_deltas: &gd, weights: &gw };
+            let grads = DeformGrads { means: &gm, offsets: &go, rot6d: &g6, log_scale_deltas: &gd, weights: &gw, transform_terms: &terms };
             let mut rec = ctx.record("deform test").expect("record");
             deform::record_forward(&mut rec, &inputs, &pm, &pq, &ps, n as u32, 0.0).expect("fwd");
             deform::record_backward(&mut rec, &inputs, &gum, &guq, &gus, &grads, n as u32).expect("bwd");
+            rec.barrier();
+            deform::record_transform_grad(&mut rec, &w, &terms, &partials, n as u32).expect("transform grad");
             rec.submit_and_wait().expect("submit");
         }
         let read = |buf: &mut drape_engine::Buffer, len: usize| to_f64(&ctx.read_buffer::<f32>(buf, len).expect("read"));
@@ -251,7 +256,40 @@ fn deform_gpu_matches_cpu_reference() {
             let e = rel_err(&gpu_v, &cpu_v, 1e-3);
             assert!(e <= 1e-4, "n {n}: gradient on {what}: relative error {e:e}");
         }
+        // The transforms' gradient: a sum over up to 100,003 Gaussians of terms of
+        // either sign, each rounded in f32 (chunks of 256 summed in f32, then in f64):
+        // 1e-4 of the largest entry.
+        let gpu_t = deform::sum_transform_partials(&ctx.read_buffer::<f32>(&mut partials, partials_len).expect("read"));
+        let cpu_t = deform::reference_transform_grad(&host, &bwd);
+        let e = rel_err(&gpu_t, &cpu_t, 1e-3);
+        assert!(e <= 1e-4, "n {n}: gradient on the transforms: relative error {e:e}");
+        if n == 0 {
+            assert!(gpu_t.iter().all(|&v| v == 0.0), "no Gaussians, no gradient");
+        }
     }
+}
+
+#[test]
+fn transform_gradient_matches_central_differences() {
+    let n = 9;
+    let host = deform_inputs(n, 77);
+    let up_r = uniform(10 * n, -1.0, 1.0, 78);
+    let up: Vec<DeformOutput<f64>> = (0..n).map(|i| DeformOutput { mean: [up_r[10 * i], up_r[10 * i + 1], up_r[10 * i + 2]], quat: [up_r[10 * i + 3], up_r[10 * i + 4], up_r[10 * i + 5], up_r[10 * i + 6]], log_scale: [up_r[10 * i + 7], up_r[10 * i + 8], up_r[10 * i + 9]] }).collect();
+    let loss = |h: &HostInputs<f64>| -> f64 {
+        deform::reference_forward(h).iter().zip(&up).map(|(o, u)| (0..3).map(|k| o.mean[k] * u.mean[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()).sum()
+    };
+    let analytic = deform::reference_transform_grad(&host, &deform::reference_backward(&host, &up));
+    let h = 1e-6;
+    let numeric: Vec<f64> = (0..host.transforms.len()).map(|i| {
+        let (mut a, mut b) = (host.clone(), host.clone());
+        a.transforms[i] += h;
+        b.transforms[i] -= h;
+        (loss(&a) - loss(&b)) / (2.0 * h)
+    }).collect();
+    // Linear in each transform entry away from Shepperd branch switches: central
+    // differences in f64 agree to ~1e-9.
+    let e = rel_err(&analytic, &numeric, 1e-6);
+    assert!(e <= 1e-6, "transforms: relative error {e:e} against central differences");
 }
 
 #[test]

@@ -3,10 +3,15 @@
 //! canonical Gaussians, then skinning with the predicted weights; forward and
 //! backward, with the CPU reference from the same shared functions
 //! (`drape_shared::deform`, which states what happens to the rotation).
+//!
+//! The gradient on the frame's 24 transforms (what pose refinement follows) is summed
+//! in two deterministic stages: the backward writes 15 terms per Gaussian,
+//! [`record_transform_grad`] sums them per (chunk of 1,024 Gaussians, joint) on the GPU,
+//! and [`sum_transform_partials`] adds the chunks in order in f64 on the host.
 
-use drape_shared::deform::{deform_bwd, deform_fwd, DeformGrad, DeformInput, DeformOutput, DeformParams};
+use drape_shared::deform::{deform_bwd, deform_fwd, transform_grad_add, DeformGrad, DeformInput, DeformOutput, DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
 use drape_shared::real::Real;
-use drape_shared::skinning::SKIN_JOINTS;
+use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 
 use crate::buffer::Buffer;
 use crate::error::Result;
@@ -37,6 +42,12 @@ impl<'a> DeformInputs<'a> {
     fn all(&self) -> [&'a Buffer; 8] {
         [self.transforms, self.means, self.quats, self.log_scales, self.offsets, self.rot6d, self.log_scale_deltas, self.weights]
     }
+
+    /// What the backward reads: the log-scales and their deltas do not enter its
+    /// gradients.
+    fn for_backward(&self) -> [&'a Buffer; 6] {
+        [self.transforms, self.means, self.quats, self.offsets, self.rot6d, self.weights]
+    }
 }
 
 /// Records the posed means (n × 3), quaternions (n × 4, not normalised) and
@@ -62,6 +73,58 @@ pub struct DeformGrads<'a> {
     pub rot6d: &'a Buffer,
     pub log_scale_deltas: &'a Buffer,
     pub weights: &'a Buffer,
+    /// n × 15: the terms [`record_transform_grad`] sums.
+    pub transform_terms: &'a Buffer,
+}
+
+/// Floats of the transforms' gradient over all joints (24 × 3x4).
+pub const TRANSFORM_GRAD_FLOATS: usize = SKIN_JOINTS * TRANSFORM_FLOATS;
+
+/// Floats of the per-Gaussian terms buffer for `count` Gaussians.
+pub fn transform_terms_len(count: u32) -> usize {
+    count as usize * TRANSFORM_TERMS
+}
+
+/// Floats of the partial sums [`record_transform_grad`] writes for `count` Gaussians.
+pub fn transform_partials_len(count: u32) -> usize {
+    count.div_ceil(TRANSFORM_GRAD_CHUNK) as usize * TRANSFORM_GRAD_FLOATS
+}
+
+/// Records the per-chunk sums of `∂L/∂A_j` from the backward's terms (`weights`:
+/// the decoded skinning weights, n × 24) into `partials`
+/// ([`transform_partials_len`] floats).
+pub fn record_transform_grad<'a>(rec: &mut Recording<'a>, weights: &'a Buffer, terms: &'a Buffer, partials: &'a Buffer, count: u32) -> Result<()> {
+    let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
+    let invocations = count.div_ceil(TRANSFORM_GRAD_CHUNK) * SKIN_JOINTS as u32;
+    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read(weights).read(terms).write(partials).push(&p).dispatch([invocations.div_ceil(64), 1, 1])
+}
+
+/// `∂L/∂A` (24 × 12, row-major 3x4 per joint) from the partial sums, chunks added in
+/// order in f64 (the same result however the GPU scheduled the chunks).
+pub fn sum_transform_partials(partials: &[f32]) -> Vec<f64> {
+    let mut sum = vec![0.0f64; TRANSFORM_GRAD_FLOATS];
+    for chunk in partials.chunks_exact(TRANSFORM_GRAD_FLOATS) {
+        for (s, &v) in sum.iter_mut().zip(chunk) {
+            *s += f64::from(v);
+        }
+    }
+    sum
+}
+
+/// CPU reference of `∂L/∂A` (24 × 12): every Gaussian's terms from the reference
+/// backward, summed over the Gaussians.
+pub fn reference_transform_grad<F: Real>(inputs: &HostInputs<F>, grads: &[DeformGrad<F>]) -> Vec<F> {
+    let mut out = vec![F::zero(); TRANSFORM_GRAD_FLOATS];
+    for (i, g) in grads.iter().enumerate() {
+        for j in 0..SKIN_JOINTS {
+            let mut a = [F::zero(); TRANSFORM_FLOATS];
+            transform_grad_add(&g.transform_terms, inputs.weights[i * SKIN_JOINTS + j], &mut a);
+            for (o, v) in out[j * TRANSFORM_FLOATS..(j + 1) * TRANSFORM_FLOATS].iter_mut().zip(a) {
+                *o += v;
+            }
+        }
+    }
+    out
 }
 
 /// Records the backward pass from the gradients on the posed means, quaternions and
@@ -78,7 +141,7 @@ pub fn record_backward<'a>(
 ) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
     rec.pass("deform.bwd", Kernel::DeformDeformBwd)
-        .read_all(inputs.all())
+        .read_all(inputs.for_backward())
         .read(grad_posed_means)
         .read(grad_posed_quats)
         .read(grad_posed_log_scales)
@@ -87,6 +150,7 @@ pub fn record_backward<'a>(
         .write(out.rot6d)
         .write(out.log_scale_deltas)
         .write(out.weights)
+        .write(out.transform_terms)
         .push(&p)
         .dispatch([count.div_ceil(256), 1, 1])
 }

@@ -4,12 +4,16 @@
 //! `deform_fwd` bindings (n Gaussians): `transforms` 24×12, `means` n×3, `quats` n×4,
 //! `log_scales` n×3, `offsets` n×3, `rot6d` n×6, `log_scale_deltas` n×3, `weights`
 //! n×24 (read); `posed_means` n×3, `posed_quats` n×4, `posed_log_scales` n×3 (written).
-//! `deform_bwd`: the eight inputs, then `grad_posed_means`, `grad_posed_quats`,
+//! `deform_bwd`: the inputs less `log_scales` and `log_scale_deltas` (its gradients do
+//! not depend on them), then `grad_posed_means`, `grad_posed_quats`,
 //! `grad_posed_log_scales` (read); `grad_means`, `grad_offsets`, `grad_rot6d`,
-//! `grad_log_scale_deltas`, `grad_weights` (written).
+//! `grad_log_scale_deltas`, `grad_weights`, `grad_transform_terms` n×15 (written).
+//! `deform_transform_grad`: `weights` n×24, `terms` n×15 (read); `partials`
+//! ceil(n / 1024)×24×12 (written): invocation (chunk, joint) sums its chunk's share of
+//! `∂L/∂A_joint` in Gaussian order, so the result does not depend on scheduling.
 
-use drape_shared::deform::{deform_bwd as bwd_math, deform_fwd as fwd_math, DeformInput, DeformOutput, DeformParams};
-use drape_shared::skinning::SKIN_JOINTS;
+use drape_shared::deform::{deform_bwd as bwd_math, deform_fwd as fwd_math, transform_grad_add, DeformInput, DeformOutput, DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
+use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -17,8 +21,9 @@ fn v3(b: &[f32], i: usize) -> [f32; 3] {
     [b[3 * i], b[3 * i + 1], b[3 * i + 2]]
 }
 
-#[allow(clippy::too_many_arguments)]
-fn load(i: usize, means: &[f32], quats: &[f32], log_scales: &[f32], offsets: &[f32], rot6d: &[f32], deltas: &[f32], weights: &[f32]) -> DeformInput<f32> {
+/// Gaussian `i`'s inputs, the log-scales left at zero (the backward does not read
+/// them; the forward fills them in).
+fn load(i: usize, means: &[f32], quats: &[f32], offsets: &[f32], rot6d: &[f32], weights: &[f32]) -> DeformInput<f32> {
     let mut w = [0.0f32; SKIN_JOINTS];
     let mut j = 0;
     while j < SKIN_JOINTS {
@@ -28,10 +33,10 @@ fn load(i: usize, means: &[f32], quats: &[f32], log_scales: &[f32], offsets: &[f
     DeformInput {
         mean: v3(means, i),
         quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
-        log_scale: v3(log_scales, i),
+        log_scale: [0.0; 3],
         offset: v3(offsets, i),
         rot6d: [rot6d[6 * i], rot6d[6 * i + 1], rot6d[6 * i + 2], rot6d[6 * i + 3], rot6d[6 * i + 4], rot6d[6 * i + 5]],
-        log_scale_delta: v3(deltas, i),
+        log_scale_delta: [0.0; 3],
         weights: w,
     }
 }
@@ -63,7 +68,9 @@ pub fn deform_fwd(
     if id.x >= p.count {
         return;
     }
-    let g = load(i, means, quats, log_scales, offsets, rot6d, deltas, weights);
+    let mut g = load(i, means, quats, offsets, rot6d, weights);
+    g.log_scale = v3(log_scales, i);
+    g.log_scale_delta = v3(deltas, i);
     let out = fwd_math(&g, transforms);
     store3(posed_means, i, out.mean);
     let mut k = 0;
@@ -83,25 +90,24 @@ pub fn deform_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] transforms: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] quats: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] log_scales: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] offsets: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] rot6d: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] deltas: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] weights: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_posed_means: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_posed_quats: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_posed_log_scales: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_means: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_offsets: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 13)] grad_rot6d: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 14)] grad_deltas: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 15)] grad_weights: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] offsets: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rot6d: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] weights: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] grad_posed_means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_posed_quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_posed_log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_means: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_offsets: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] grad_rot6d: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] grad_deltas: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 13)] grad_weights: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 14)] grad_transform_terms: &mut [f32],
 ) {
     let i = id.x as usize;
     if id.x >= p.count {
         return;
     }
-    let g = load(i, means, quats, log_scales, offsets, rot6d, deltas, weights);
+    let g = load(i, means, quats, offsets, rot6d, weights);
     let up = DeformOutput {
         mean: v3(grad_posed_means, i),
         quat: [grad_posed_quats[4 * i], grad_posed_quats[4 * i + 1], grad_posed_quats[4 * i + 2], grad_posed_quats[4 * i + 3]],
@@ -119,6 +125,47 @@ pub fn deform_bwd(
     k = 0;
     while k < SKIN_JOINTS {
         grad_weights[i * SKIN_JOINTS + k] = out.weights[k];
+        k += 1;
+    }
+    k = 0;
+    while k < TRANSFORM_TERMS {
+        grad_transform_terms[i * TRANSFORM_TERMS + k] = out.transform_terms[k];
+        k += 1;
+    }
+}
+
+#[spirv(compute(threads(64)))]
+pub fn deform_transform_grad(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &DeformParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] weights: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] terms: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] partials: &mut [f32],
+) {
+    let chunks = p.count.div_ceil(TRANSFORM_GRAD_CHUNK);
+    if id.x >= chunks * SKIN_JOINTS as u32 {
+        return;
+    }
+    let chunk = id.x / SKIN_JOINTS as u32;
+    let joint = (id.x % SKIN_JOINTS as u32) as usize;
+    let start = chunk * TRANSFORM_GRAD_CHUNK;
+    let end = (start + TRANSFORM_GRAD_CHUNK).min(p.count);
+    let mut sum = [0.0f32; TRANSFORM_FLOATS];
+    let mut i = start as usize;
+    while i < end as usize {
+        let mut t = [0.0f32; TRANSFORM_TERMS];
+        let mut k = 0;
+        while k < TRANSFORM_TERMS {
+            t[k] = terms[i * TRANSFORM_TERMS + k];
+            k += 1;
+        }
+        transform_grad_add(&t, weights[i * SKIN_JOINTS + joint], &mut sum);
+        i += 1;
+    }
+    let base = id.x as usize * TRANSFORM_FLOATS;
+    let mut k = 0;
+    while k < TRANSFORM_FLOATS {
+        partials[base + k] = sum[k];
         k += 1;
     }
 }

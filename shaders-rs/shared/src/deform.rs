@@ -17,13 +17,27 @@
 //!   rotation), and the splatter normalises it. The shrink is thus dropped rather than
 //!   applied to the scales, as HUGS does by converting the blended matrix.
 //! - log-scales: `s₀ + Δs`.
+//!
+//! The gradient on the 24 transforms (for pose and translation refinement) is a sum
+//! over the Gaussians: `∂L/∂A_j = Σ_i w_ij [g_i x̂_iᵀ + (G_B,i | 0)]`, with `g` the
+//! posed mean's gradient, `x̂ = (μ + Δμ, 1)` and `G_B` the blended rotation's. The
+//! backward writes each Gaussian's `TRANSFORM_TERMS` (g, x, G_B) and
+//! [`transform_grad_add`] sums them per joint, in fixed chunks (no atomics).
 
 use crate::real::{mat_mul, transpose, Real, M3, V3};
 use crate::skinning::{dot3, rotation_minus_identity_t, transform_delta, SKIN_JOINTS, TRANSFORM_FLOATS};
+/// Gaussians one invocation of the transforms' gradient sums (one chunk), as the
+/// body skinning's: the partial sums are `ceil(n / CHUNK) × 24 × 12` floats.
+pub use crate::skinning::TRANSFORM_GRAD_CHUNK;
 use crate::splat::project::quat_to_mat;
 
 /// Below this norm a 6D column is divided by it instead (PyTorch's `F.normalize` eps).
 pub const NORMALIZE_EPS: f32 = 1e-12;
+
+/// Floats per Gaussian of the terms the transforms' gradient is summed from: the
+/// posed mean's gradient (3), `x = μ + Δμ` (3) and the blended rotation's gradient
+/// (9, row-major).
+pub const TRANSFORM_TERMS: usize = 15;
 
 /// Push constants of the `deform::*` kernels.
 #[repr(C)]
@@ -222,6 +236,26 @@ pub struct DeformGrad<F> {
     pub rot6d: [F; 6],
     pub log_scale_delta: V3<F>,
     pub weights: [F; SKIN_JOINTS],
+    /// The terms the transforms' gradient is summed from ([`TRANSFORM_TERMS`]).
+    pub transform_terms: [F; TRANSFORM_TERMS],
+}
+
+/// Adds one Gaussian's share of `∂L/∂A_j` (3x4 row-major) for its weight `w` on
+/// joint `j`, from its [`TRANSFORM_TERMS`] (the posed mean is `x + Σ w_j (A_j x̂ - x)`
+/// and the blended rotation `Σ w_j R_j`).
+#[inline]
+pub fn transform_grad_add<F: Real>(terms: &[F; TRANSFORM_TERMS], w: F, out: &mut [F; TRANSFORM_FLOATS]) {
+    let mut r = 0;
+    while r < 3 {
+        let g = terms[r];
+        let mut c = 0;
+        while c < 3 {
+            out[4 * r + c] += w * (g * terms[3 + c] + terms[6 + 3 * r + c]);
+            c += 1;
+        }
+        out[4 * r + 3] += w * g;
+        r += 1;
+    }
 }
 
 /// Transform `j` of 24 packed 3x4 transforms.
@@ -311,5 +345,8 @@ pub fn deform_bwd<F: Real>(g: &DeformInput<F>, transforms: &[F], up: &DeformOutp
         gx = add3(gx, scale3(rotation_minus_identity_t(&a, up.mean), g.weights[j]));
         j += 1;
     }
-    DeformGrad { mean: gx, offset: gx, rot6d: rot6d_to_matrix_bwd(g.rot6d, &g6), log_scale_delta: up.log_scale, weights }
+    let transform_terms = [
+        up.mean[0], up.mean[1], up.mean[2], x[0], x[1], x[2], gb[0][0], gb[0][1], gb[0][2], gb[1][0], gb[1][1], gb[1][2], gb[2][0], gb[2][1], gb[2][2],
+    ];
+    DeformGrad { mean: gx, offset: gx, rot6d: rot6d_to_matrix_bwd(g.rot6d, &g6), log_scale_delta: up.log_scale, weights, transform_terms }
 }

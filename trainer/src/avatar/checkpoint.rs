@@ -14,7 +14,11 @@
 //!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`);
 //! - with a scene layer: `scene.means` (n×3), `scene.log_scales` (n×3), `scene.quats`
 //!   (n×4), `scene.opacity_logits` (n), `scene.sh` (n×K×3, K = (degree + 1)²), and
-//!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them.
+//!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them;
+//! - with pose refinement (optional: a file without it loads, with no corrections):
+//!   `poses.frames` (u32, F: the training frames' numbers), `poses.delta` (f64,
+//!   F×75: root rotation, 23 joints' axis-angles, translation, added to the data's),
+//!   `poses.adam.m`, `poses.adam.v` (f64, F×75) and `poses.adam.step` (u32, F).
 //!
 //! Loading checks every array's presence, dtype and shape against the model it is
 //! loaded into and names the file and array on a mismatch.
@@ -22,6 +26,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use crate::avatar::pose_refine::PoseState;
+use crate::avatar::rig::REFINED_PARAMS;
 use crate::avatar::scene::{SceneState, SCENE_PARAMS};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
 
@@ -62,6 +68,8 @@ pub struct ModelState {
     pub step: u32,
     pub layers: Vec<(String, LayerState)>,
     pub scene: Option<SceneState>,
+    /// The training frames' pose corrections, where the run refines them.
+    pub poses: Option<PoseState>,
 }
 
 fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
@@ -107,6 +115,15 @@ pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
             a.insert(format!("scene.adam.{name}.v"), f32_array(vec![ad.v.len()], &ad.v));
             a.insert(format!("scene.adam.{name}.step"), u32_array(ad.step));
         }
+    }
+    if let Some(p) = &state.poses {
+        let f = p.frames.len();
+        let rows = |v: &[[f64; REFINED_PARAMS]]| Array::new(Dtype::F64, vec![f, REFINED_PARAMS], v.iter().flatten().copied().collect());
+        a.insert("poses.frames".into(), Array::new(Dtype::U32, vec![f], p.frames.iter().map(|&v| f64::from(v)).collect()));
+        a.insert("poses.delta".into(), rows(&p.deltas));
+        a.insert("poses.adam.m".into(), rows(&p.m));
+        a.insert("poses.adam.v".into(), rows(&p.v));
+        a.insert("poses.adam.step".into(), Array::new(Dtype::U32, vec![f], p.steps.iter().map(|&v| f64::from(v)).collect()));
     }
     let tmp = path.with_extension("npz.tmp");
     write_npz(&tmp, &a).map_err(|e| e.to_string())?;
@@ -219,5 +236,24 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Re
             Some(SceneState { params, adam })
         }
     };
-    Ok(ModelState { step, layers, scene })
+    let poses = match a.get("poses.frames") {
+        None => None,
+        Some(frames) => {
+            let frames: Vec<u32> = match frames.dtype {
+                Dtype::U32 => frames.data.iter().map(|&v| v as u32).collect(),
+                other => return Err(format!("{file}: array 'poses.frames' has dtype {other:?}, expected U32")),
+            };
+            let f = frames.len();
+            let rows = |key: &str| -> Result<Vec<[f64; REFINED_PARAMS]>, String> {
+                let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (poses.frames is there)"))?;
+                if arr.dtype != Dtype::F64 || arr.data.len() != f * REFINED_PARAMS {
+                    return Err(format!("{file}: array '{key}' is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape));
+                }
+                Ok(arr.data.chunks_exact(REFINED_PARAMS).map(|c| std::array::from_fn(|k| c[k])).collect())
+            };
+            let steps: Vec<u32> = get("poses.adam.step", Dtype::U32, f)?.iter().map(|&v| v as u32).collect();
+            Some(PoseState { frames, deltas: rows("poses.delta")?, m: rows("poses.adam.m")?, v: rows("poses.adam.v")?, steps })
+        }
+    };
+    Ok(ModelState { step, layers, scene, poses })
 }

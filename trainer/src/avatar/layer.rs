@@ -95,6 +95,10 @@ pub struct HumanLayer {
     weight_sq_error: Buffer,
     /// The cloth-LBS term's gradient on the weights, added to the deformation head's.
     lbs_grad: Buffer,
+    /// Per-Gaussian terms of the transforms' gradient, and their per-chunk sums
+    /// (`ops::deform`): what pose refinement reads.
+    transform_terms: Buffer,
+    transform_partials: Buffer,
     pub groups: LayerGroups,
 }
 
@@ -197,6 +201,8 @@ impl HumanLayer {
             weight_targets,
             weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
             lbs_grad: f32_buffer(ctx, &format!("{name} cloth-LBS gradient"), NUM_JOINTS * n)?,
+            transform_terms: f32_buffer(ctx, &format!("{name} transform gradient terms"), deform::transform_terms_len(n as u32))?,
+            transform_partials: f32_buffer(ctx, &format!("{name} transform gradient partials"), deform::transform_partials_len(n as u32))?,
             groups,
         })
     }
@@ -244,9 +250,11 @@ impl HumanLayer {
             rot6d: self.geometry.head_grad(1),
             log_scale_deltas: self.geometry.head_grad(2),
             weights: self.deformation.head_grad(0),
+            transform_terms: &self.transform_terms,
         };
         deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
         rec.barrier();
+        deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
         if lbs_weight > 0.0 {
             let len = NUM_JOINTS as u32 * n;
             let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
@@ -262,6 +270,13 @@ impl HumanLayer {
             rec.barrier();
         }
         self.record_decoder_backward(rec, use_atomics, true)
+    }
+
+    /// `∂L/∂A` on the frame's 24 transforms (24 × 12, row-major 3x4) from the last
+    /// backward pass.
+    pub fn read_transform_grad(&mut self, ctx: &Context) -> Result<Vec<f64>> {
+        let partials = ctx.read_buffer::<f32>(&mut self.transform_partials, deform::transform_partials_len(self.count))?;
+        Ok(deform::sum_transform_partials(&partials))
     }
 
     /// Decoders' and triplane's backward from the gradients in the decoders' heads;

@@ -2,7 +2,7 @@
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
 //! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), the cloth
 //! layer's simulated targets and edge graph (`cloth_target`), the scene layer
-//! (`scene`), training (`train`), held-out evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
+//! (`scene`), per-frame pose refinement (`pose_refine`), training (`train`), held-out evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
 //! opened again (`run`) to animate (`animate`) or edit (`edit`).
 
 pub mod animate;
@@ -15,6 +15,7 @@ pub mod eval;
 pub mod fid;
 pub mod layer;
 pub mod model;
+pub mod pose_refine;
 pub mod rig;
 pub mod run;
 pub mod scene;

@@ -284,7 +284,7 @@ impl Avatar {
             Some(s) => Some(s.state(ctx)?),
             None => None,
         };
-        Ok(ModelState { step, layers, scene })
+        Ok(ModelState { step, layers, scene, poses: None })
     }
 
     pub fn restore(&mut self, ctx: &Context, state: &ModelState) -> Result<()> {

@@ -9,8 +9,9 @@
 //! (HUGS), and on the cloth layer the paper's cloth-LBS, simulation (Chamfer +
 //! Geman–McClure to the garments simulated through the sequence's motion), ARAP and
 //! cloth-mask losses (`cloth_losses`), LPIPS where weights are given, and where the
-//! data has a scene, the scene layer (`scene`) against the whole frame; by Adam. The
-//! overlapped single-submission frame, pose refinement and densification come next.
+//! data has a scene, the scene layer (`scene`) against the whole frame; by Adam; with
+//! each training frame's pose and translation refined (`pose_refine`). The overlapped
+//! single-submission frame and densification come next.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -34,6 +35,7 @@ use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
+use crate::avatar::pose_refine::PoseRefiner;
 use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
@@ -103,10 +105,28 @@ pub struct TrainConfig {
     /// `single-pass` (every layer in one depth-sorted pass).
     #[serde(default = "paper_compositing")]
     pub compositing: String,
+    /// Per-frame refinement of the training frames' pose and translation
+    /// (`pose_refine`); HUGS refines the pose only.
+    #[serde(default = "yes")]
+    pub refine_pose: bool,
+    /// Adam rate of the refined root and joint axis-angles (HUGS: 1e-4, on 6D).
+    #[serde(default = "hugs_pose_rate")]
+    pub lr_pose: f32,
+    /// Adam rate of the refined translation (in the data's units; HUGS: none).
+    #[serde(default = "hugs_pose_rate")]
+    pub lr_translation: f32,
 }
 
 fn paper_compositing() -> String {
     "three-pass".into()
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn hugs_pose_rate() -> f32 {
+    1e-4
 }
 
 impl TrainConfig {
@@ -146,6 +166,9 @@ impl TrainConfig {
             lpips_net: "alex".into(),
             lambda_lpips: 1.0,
             compositing: paper_compositing(),
+            refine_pose: true,
+            lr_pose: hugs_pose_rate(),
+            lr_translation: hugs_pose_rate(),
         }
     }
 
@@ -189,6 +212,8 @@ impl TrainConfig {
             ("lambda_l1", self.lambda_l1),
             ("lambda_ssim", self.lambda_ssim),
             ("lambda_lpips", self.lambda_lpips),
+            ("lr_pose", self.lr_pose),
+            ("lr_translation", self.lr_translation),
         ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
@@ -457,9 +482,13 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
     let total_fit = config.fit_steps;
+    let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
         let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_lens())?;
         gpu(avatar.restore(ctx, &state))?;
+        if let (Some(r), Some(p)) = (refiner.as_mut(), state.poses) {
+            r.restore(p).map_err(|e| format!("{}: {e}", checkpoint_path.display()))?;
+        }
         (state.step, f64::NAN)
     } else {
         let mut worst = 0.0f64;
@@ -506,8 +535,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let mut skipped = 0u32;
     let mut skipped_in_a_row = 0u32;
     let mut nonfinite = gpu(ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4)))?;
-    let save = |avatar: &mut Avatar, step: u32, path: &Path| -> Result<(), String> {
-        let state = gpu(avatar.state(ctx, step))?;
+    let save = |avatar: &mut Avatar, refiner: &Option<PoseRefiner>, step: u32, path: &Path| -> Result<(), String> {
+        let mut state = gpu(avatar.state(ctx, step))?;
+        state.poses = refiner.as_ref().map(|r| r.state().clone());
         checkpoint::write(path, &state)
     };
     // With a profile running (`drape train --profile`), it covers the steps alone.
@@ -519,10 +549,15 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     for step in start_step..stop_at {
         lap.reset();
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        let f = train_frames[rng.random_range(0..train_frames.len())];
+        let index = rng.random_range(0..train_frames.len());
+        let f = train_frames[index];
         let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
         let background = if whole_image { [0.0; 3] } else { background };
-        let ft = rig.frame(&f.body);
+        let body = match &refiner {
+            Some(r) => r.body(index, &f.body),
+            None => f.body.clone(),
+        };
+        let ft = rig.frame(&body);
         gpu(avatar.set_transforms(ctx, &ft.transforms))?;
         gpu(ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) }))?;
         if let Some(c) = cloth_losses.as_mut() {
@@ -562,8 +597,24 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         }
         lap.reset();
         // The guard: a step with a non-finite gradient is never applied.
-        let bad = gpu(ctx.read_buffer::<u32>(&mut nonfinite, 1))?[0];
+        let mut bad = gpu(ctx.read_buffer::<u32>(&mut nonfinite, 1))?[0];
         lap.host("host.read_guard");
+        // The frame's pose gradient: every human layer's share of ∂L/∂A, through the rig.
+        let pose_grad = match &refiner {
+            Some(_) => {
+                let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
+                for l in &mut avatar.layers {
+                    for (g, v) in grad.iter_mut().zip(gpu(l.read_transform_grad(ctx))?) {
+                        *g += v;
+                    }
+                }
+                let g = rig.frame_gradient(&body, &grad);
+                bad += g.iter().filter(|v| !v.is_finite()).count() as u32;
+                Some(g)
+            }
+            None => None,
+        };
+        lap.host("host.pose_gradient");
         if bad > 0 {
             skipped += 1;
             skipped_in_a_row += 1;
@@ -584,6 +635,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             let mut rec = gpu(ctx.record("train adam"))?;
             gpu(avatar.record_adam(&mut rec))?;
             gpu(rec.submit_and_wait())?;
+        }
+        if let (Some(r), Some(g)) = (refiner.as_mut(), pose_grad) {
+            r.step(index, &g);
         }
         lap.reset();
         if step % config.log_every.max(1) == 0 || step + 1 == stop_at {
@@ -608,12 +662,19 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             if let Some(v) = lpips_value {
                 line["lpips"] = v.into();
             }
+            if let Some(r) = &refiner {
+                // Mean over training frames of the largest joint correction and of the
+                // translation's.
+                let (rot, tr) = r.summary();
+                line["pose_correction_rad"] = rot.into();
+                line["translation_correction"] = tr.into();
+            }
             writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
         lap.host("host.log");
         if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at {
-            save(&mut avatar, step + 1, &checkpoint_path)?;
+            save(&mut avatar, &refiner, step + 1, &checkpoint_path)?;
         }
     }
     let loop_seconds = t_train.elapsed().as_secs_f64();
@@ -625,8 +686,8 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         write_json(&out.join("profile.json"), p)?;
     }
     let last = stop_at.max(start_step);
-    save(&mut avatar, last, &checkpoint_path)?;
-    save(&mut avatar, last, &out.join("model.npz"))?;
+    save(&mut avatar, &refiner, last, &checkpoint_path)?;
+    save(&mut avatar, &refiner, last, &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
     let eval_dir = out.join("eval");
     let (fin, per_frame) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(Some(&eval_dir)), progress)?;

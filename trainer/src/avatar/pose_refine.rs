@@ -1,0 +1,143 @@
+//! Per-frame pose and translation refinement: every training frame carries a
+//! learned correction to its body parameters (root rotation, the 23 joints'
+//! axis-angles, translation; `rig::REFINED_PARAMS`), added to what the data says.
+//!
+//! The image and cloth losses reach it through the skinning transforms: each layer's
+//! backward sums `∂L/∂A_j` on the GPU (`ops::deform`), the rig chains that through
+//! the kinematic tree to the parameters (`Rig::frame_gradient`), and a per-frame Adam
+//! on the host (75 values a frame; f64, so deterministic) applies it. HUGS refines
+//! the pose as 6D rotations at 1e-4 and never the translation (PAPER.md); we refine
+//! the axis-angles directly, at the same rate, and the translation as well, since
+//! a monocular capture's depth is its least certain part. Each frame's Adam counts its
+//! own steps (a frame is visited on average once per `frames` steps, and its bias
+//! correction must follow its own updates). Held-out frames are rendered with the
+//! data's parameters: there is nothing to refine them from.
+
+use crate::avatar::rig::{refined_body, REFINED_PARAMS};
+use crate::dataset::loader::BodyParams;
+
+/// HUGS's Adam ε (its optimiser's for every group).
+const ADAM_EPS: f64 = 1e-15;
+const BETA1: f64 = 0.9;
+const BETA2: f64 = 0.999;
+
+/// Saved state: per frame (by dataset frame number) its correction, Adam moments and
+/// step count.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PoseState {
+    pub frames: Vec<u32>,
+    pub deltas: Vec<[f64; REFINED_PARAMS]>,
+    pub m: Vec<[f64; REFINED_PARAMS]>,
+    pub v: Vec<[f64; REFINED_PARAMS]>,
+    pub steps: Vec<u32>,
+}
+
+impl PoseState {
+    /// No frame refined yet.
+    pub fn zeros(frames: &[u32]) -> Self {
+        let z = vec![[0.0; REFINED_PARAMS]; frames.len()];
+        Self { frames: frames.to_vec(), deltas: z.clone(), m: z.clone(), v: z, steps: vec![0; frames.len()] }
+    }
+}
+
+/// The refinement of a run's training frames.
+#[derive(Clone, Debug)]
+pub struct PoseRefiner {
+    state: PoseState,
+    lr_pose: f64,
+    lr_translation: f64,
+}
+
+impl PoseRefiner {
+    /// Corrections (all zero) for the training frames `frames` (dataset frame numbers,
+    /// in the order the trainer indexes them).
+    pub fn new(frames: &[u32], lr_pose: f64, lr_translation: f64) -> Self {
+        Self { state: PoseState::zeros(frames), lr_pose, lr_translation }
+    }
+
+    /// The body parameters training frame `index` is rendered with.
+    pub fn body(&self, index: usize, body: &BodyParams) -> BodyParams {
+        refined_body(body, &self.state.deltas[index])
+    }
+
+    /// One Adam step on training frame `index` from the gradient on its parameters.
+    /// A non-finite gradient is the caller's to refuse (the step guard).
+    pub fn step(&mut self, index: usize, grad: &[f64; REFINED_PARAMS]) {
+        let s = &mut self.state;
+        s.steps[index] += 1;
+        let t = s.steps[index] as i32;
+        let (c1, c2) = (1.0 - BETA1.powi(t), 1.0 - BETA2.powi(t));
+        for k in 0..REFINED_PARAMS {
+            let lr = if k >= REFINED_PARAMS - 3 { self.lr_translation } else { self.lr_pose };
+            let g = grad[k];
+            s.m[index][k] = BETA1 * s.m[index][k] + (1.0 - BETA1) * g;
+            s.v[index][k] = BETA2 * s.v[index][k] + (1.0 - BETA2) * g * g;
+            s.deltas[index][k] -= lr * (s.m[index][k] / c1) / ((s.v[index][k] / c2).sqrt() + ADAM_EPS);
+        }
+    }
+
+    /// The correction of training frame `index`.
+    pub fn delta(&self, index: usize) -> &[f64; REFINED_PARAMS] {
+        &self.state.deltas[index]
+    }
+
+    pub fn state(&self) -> &PoseState {
+        &self.state
+    }
+
+    /// Restores saved corrections; the frames must be this run's, in its order.
+    pub fn restore(&mut self, state: PoseState) -> Result<(), String> {
+        if state.frames != self.state.frames {
+            return Err(format!("the refined poses are of frames {:?}, this run trains on {:?}", state.frames, self.state.frames));
+        }
+        self.state = state;
+        Ok(())
+    }
+
+    /// Mean over frames of the largest joint-rotation correction (radians) and of
+    /// the translation correction's length: what the log reports.
+    pub fn summary(&self) -> (f64, f64) {
+        let n = self.state.deltas.len().max(1) as f64;
+        let t = REFINED_PARAMS - 3;
+        let rot = self.state.deltas.iter().map(|d| d[..t].chunks_exact(3).map(|r| (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt()).fold(0.0, f64::max)).sum::<f64>() / n;
+        let tr = self.state.deltas.iter().map(|d| (d[t] * d[t] + d[t + 1] * d[t + 1] + d[t + 2] * d[t + 2]).sqrt()).sum::<f64>() / n;
+        (rot, tr)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Adam on f(x) = ½ Σ (x - c)² moves every parameter toward c, the first step by
+    /// exactly the learning rate (bias-corrected m / √v = ±1).
+    #[test]
+    fn adam_steps_toward_the_minimum() {
+        let mut r = PoseRefiner::new(&[4, 9], 1e-2, 1e-3);
+        let target: [f64; REFINED_PARAMS] = std::array::from_fn(|k| 0.05 * ((k % 7) as f64 - 3.0));
+        let grad = |d: &[f64; REFINED_PARAMS]| -> [f64; REFINED_PARAMS] { std::array::from_fn(|k| d[k] - target[k]) };
+        let g = grad(r.delta(1));
+        r.step(1, &g);
+        for k in 0..REFINED_PARAMS {
+            let lr = if k >= REFINED_PARAMS - 3 { 1e-3 } else { 1e-2 };
+            let expected = if target[k] == 0.0 { 0.0 } else { lr * target[k].signum() };
+            assert!((r.delta(1)[k] - expected).abs() < 1e-12, "parameter {k}: {} vs {expected}", r.delta(1)[k]);
+        }
+        assert_eq!(r.delta(0), &[0.0; REFINED_PARAMS], "another frame is untouched");
+        let start: f64 = target.iter().map(|t| t * t).sum();
+        for _ in 0..200 {
+            let g = grad(r.delta(1));
+            r.step(1, &g);
+        }
+        let end: f64 = r.delta(1).iter().zip(&target).map(|(d, t)| (d - t) * (d - t)).sum();
+        assert!(end < 0.05 * start, "200 steps: squared error {end} from {start}");
+        assert_eq!(r.state().steps, vec![0, 201]);
+    }
+
+    #[test]
+    fn restore_refuses_other_frames() {
+        let mut r = PoseRefiner::new(&[1, 2], 1e-4, 1e-4);
+        let e = r.restore(PoseState::zeros(&[1, 3])).unwrap_err();
+        assert!(e.contains("[1, 3]") && e.contains("[1, 2]"), "{e}");
+    }
+}
