@@ -200,6 +200,12 @@ fn deform_inputs(n: usize, seed: u64) -> HostInputs<f64> {
     }
 }
 
+/// Gradients on n posed Gaussians (mean, quaternion, log-scale), uniform in [-1, 1].
+fn random_upstream(n: usize, seed: u64) -> Vec<DeformOutput<f64>> {
+    let r = uniform(10 * n, -1.0, 1.0, seed);
+    r.chunks_exact(10).map(|c| DeformOutput { mean: [c[0], c[1], c[2]], quat: [c[3], c[4], c[5], c[6]], log_scale: [c[7], c[8], c[9]] }).collect()
+}
+
 fn flat_outputs(o: &[DeformOutput<f64>]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     (o.iter().flat_map(|g| g.mean).collect(), o.iter().flat_map(|g| g.quat).collect(), o.iter().flat_map(|g| g.log_scale).collect())
 }
@@ -209,10 +215,7 @@ fn deform_gpu_matches_cpu_reference() {
     let ctx = gpu();
     for n in [0usize, 1, 7, 1000, 100_003] {
         let host = deform_inputs(n, n as u64);
-        let up: Vec<DeformOutput<f64>> = {
-            let r = uniform(10 * n, -1.0, 1.0, 99);
-            (0..n).map(|i| DeformOutput { mean: [r[10 * i], r[10 * i + 1], r[10 * i + 2]], quat: [r[10 * i + 3], r[10 * i + 4], r[10 * i + 5], r[10 * i + 6]], log_scale: [r[10 * i + 7], r[10 * i + 8], r[10 * i + 9]] }).collect()
-        };
+        let up = random_upstream(n, 99);
         let fwd = deform::reference_forward(&host);
         let bwd = deform::reference_backward(&host, &up);
         let b = |name: &str, v: &[f64]| ctx.upload(name, &to_f32(v)).expect("upload");
@@ -273,8 +276,7 @@ fn deform_gpu_matches_cpu_reference() {
 fn transform_gradient_matches_central_differences() {
     let n = 9;
     let host = deform_inputs(n, 77);
-    let up_r = uniform(10 * n, -1.0, 1.0, 78);
-    let up: Vec<DeformOutput<f64>> = (0..n).map(|i| DeformOutput { mean: [up_r[10 * i], up_r[10 * i + 1], up_r[10 * i + 2]], quat: [up_r[10 * i + 3], up_r[10 * i + 4], up_r[10 * i + 5], up_r[10 * i + 6]], log_scale: [up_r[10 * i + 7], up_r[10 * i + 8], up_r[10 * i + 9]] }).collect();
+    let up = random_upstream(n, 78);
     let loss = |h: &HostInputs<f64>| -> f64 {
         deform::reference_forward(h).iter().zip(&up).map(|(o, u)| (0..3).map(|k| o.mean[k] * u.mean[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()).sum()
     };
@@ -296,8 +298,7 @@ fn transform_gradient_matches_central_differences() {
 fn deform_gradients_match_central_differences() {
     let n = 5;
     let host = deform_inputs(n, 42);
-    let up_r = uniform(10 * n, -1.0, 1.0, 43);
-    let up: Vec<DeformOutput<f64>> = (0..n).map(|i| DeformOutput { mean: [up_r[10 * i], up_r[10 * i + 1], up_r[10 * i + 2]], quat: [up_r[10 * i + 3], up_r[10 * i + 4], up_r[10 * i + 5], up_r[10 * i + 6]], log_scale: [up_r[10 * i + 7], up_r[10 * i + 8], up_r[10 * i + 9]] }).collect();
+    let up = random_upstream(n, 43);
     let loss = |h: &HostInputs<f64>| -> f64 {
         deform::reference_forward(h).iter().zip(&up).map(|(o, u)| {
             (0..3).map(|k| o.mean[k] * u.mean[k] + o.log_scale[k] * u.log_scale[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()
