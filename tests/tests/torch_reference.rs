@@ -182,7 +182,7 @@ fn triplane_matches_grid_sample() {
     {
         let mut rec = ctx.record("triplane torch").expect("record");
         tp.record_forward(&mut rec, &p, &f, n as u32).expect("fwd");
-        tp.record_backward(&mut rec, &p, &g, &gp, n as u32, ctx.info().float_atomic_add).expect("bwd");
+        tp.record_backward(&mut rec, &p, &g, &gp, n as u32, drape_engine::ops::accumulate::Accumulation::Auto).expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
     let feat = to_f64(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));

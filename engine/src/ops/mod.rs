@@ -2,6 +2,7 @@
 //! its recording, and the CPU reference it is tested against lives beside the kernel
 //! math in `drape-shared`.
 
+pub mod accumulate;
 pub mod adam;
 pub mod cloth_loss;
 pub mod deform;

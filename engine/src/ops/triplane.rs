@@ -13,6 +13,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
+use crate::ops::accumulate::{Accumulation, FixedPointScratch, Method};
 use crate::recorder::Recording;
 
 /// How the planes start.
@@ -97,6 +98,8 @@ pub struct Triplane {
     pub planes: Buffer,
     /// Gradient on the planes, accumulated by [`Triplane::record_backward`].
     pub grads: Buffer,
+    /// For [`Accumulation::Deterministic`], made by [`Triplane::prepare`].
+    fixed: Option<FixedPointScratch>,
 }
 
 impl Triplane {
@@ -110,7 +113,16 @@ impl Triplane {
         let bytes = desc.len() as u64 * 4;
         let mut p = ctx.create_buffer(&format!("{label} planes"), BufferDesc::gpu_only(bytes))?;
         ctx.write_buffer(&mut p, planes)?;
-        Ok(Self { desc, planes: p, grads: ctx.create_buffer(&format!("{label} plane grads"), BufferDesc::gpu_only(bytes))? })
+        Ok(Self { desc, planes: p, grads: ctx.create_buffer(&format!("{label} plane grads"), BufferDesc::gpu_only(bytes))?, fixed: None })
+    }
+
+    /// Allocates what `accumulation` needs in [`record_backward`](Self::record_backward)
+    /// (for the deterministic way, a fixed-point scratch twice the planes' size).
+    pub fn prepare(&mut self, ctx: &Context, accumulation: Accumulation) -> Result<()> {
+        if accumulation == Accumulation::Deterministic && self.fixed.is_none() {
+            self.fixed = Some(FixedPointScratch::new(ctx, "triplane plane grads", self.desc.len() as u32)?);
+        }
+        Ok(())
     }
 
     /// Records `features = sample(points)` for `count` points (features count × 3C).
@@ -124,22 +136,45 @@ impl Triplane {
             .dispatch([count.div_ceil(256), 1, 1])
     }
 
-    /// Records the backward pass: zeroes and then accumulates the plane gradient, and
-    /// writes the points' gradient (count × 3). Float atomics when the device has them
-    /// (`use_atomics`), else compare-and-swap.
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, points: &'a Buffer, grad_features: &'a Buffer, grad_points: &'a Buffer, count: u32, use_atomics: bool) -> Result<()> {
+    /// Records the backward pass: the plane gradient (overwritten) and the points'
+    /// gradient (count × 3, written). `accumulation` picks the scatter-add: float
+    /// atomics, compare-and-swap, or deterministic fixed point (which needs
+    /// [`prepare`](Self::prepare) first).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        points: &'a Buffer,
+        grad_features: &'a Buffer,
+        grad_points: &'a Buffer,
+        count: u32,
+        accumulation: Accumulation,
+    ) -> Result<()> {
         let p = self.desc.params(count);
-        rec.fill(&self.grads, 0);
+        let method = accumulation.method(rec.context());
+        let (kernel, target) = match method {
+            Method::FloatAtomics => (Kernel::TriplaneSampleBwdAtomic, &self.grads),
+            Method::CompareAndSwap => (Kernel::TriplaneSampleBwdCas, &self.grads),
+            Method::FixedPoint => {
+                let fixed = self.fixed.as_ref().expect("Triplane::prepare(ctx, Accumulation::Deterministic) before a deterministic backward");
+                (Kernel::TriplaneSampleBwdFixed, fixed.buffer())
+            }
+        };
+        rec.fill(target, 0);
         rec.barrier();
-        let kernel = if use_atomics { Kernel::TriplaneSampleBwdAtomic } else { Kernel::TriplaneSampleBwdCas };
         rec.pass("triplane.sample_bwd", kernel)
             .read(&self.planes)
             .read(points)
             .read(grad_features)
-            .write(&self.grads)
+            .write(target)
             .write(grad_points)
             .push(&p)
-            .dispatch([count.div_ceil(256), 1, 1])
+            .dispatch([count.div_ceil(256), 1, 1])?;
+        if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
+            rec.barrier();
+            fixed.record_resolve(rec, &self.grads, self.desc.len() as u32)?;
+        }
+        Ok(())
     }
 }
 

@@ -43,6 +43,37 @@ pub fn fetch_add_u32(slot: &mut u32, value: u32) -> u32 {
     unsafe { atomic_i_add::<u32, DEVICE, RELAXED>(slot, value) }
 }
 
+/// `*slot = max(*slot, value)` for a u32 flag or maximum.
+#[inline]
+pub fn max_u32(slot: &mut u32, value: u32) {
+    // SAFETY: see the module header.
+    unsafe { atomic_u_max::<u32, DEVICE, RELAXED>(slot, value) };
+}
+
+/// `grads[index] += value` in 64-bit fixed point (`drape_shared::fixed_point`): words
+/// `2·index` (low) and `2·index + 1` (high); the buffer's last word is the flag a
+/// non-finite value raises. Integer adds commute, so the sum's bits do not depend on
+/// the order the invocations run in.
+#[inline]
+pub fn add_fixed(grads: &mut [u32], index: usize, value: f32) {
+    if value == 0.0 {
+        return;
+    }
+    if !value.is_finite() {
+        let flag = grads.len() - 1;
+        max_u32(&mut grads[flag], 1);
+        return;
+    }
+    let [lo, hi] = drape_shared::fixed_point::encode(value);
+    let before = fetch_add_u32(&mut grads[2 * index], lo);
+    // The low word wrapped: carry one into the high word.
+    let carry = if before.wrapping_add(lo) < before { 1 } else { 0 };
+    let high = hi.wrapping_add(carry);
+    if high != 0 {
+        fetch_add_u32(&mut grads[2 * index + 1], high);
+    }
+}
+
 /// `grads[index] += value` with a float atomic.
 #[cfg(feature = "float-atomics")]
 #[inline]

@@ -15,6 +15,7 @@ mod atomics;
 pub mod cloth_loss;
 pub mod composite;
 pub mod deform;
+pub mod fixed_point;
 pub mod lpips;
 pub mod nn;
 pub mod radix_sort;

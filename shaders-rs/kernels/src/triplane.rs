@@ -2,10 +2,11 @@
 //! math and states the padding).
 //!
 //! `sample_fwd` bindings: `planes` 3·R·R·C, `points` n×3 (read), `features` n×3C
-//! (written). `sample_bwd_{atomic,cas}`: `planes`, `points`, `grad_features` (read),
+//! (written). `sample_bwd_{atomic,cas,fixed}`: `planes`, `points`, `grad_features` (read),
 //! `grad_planes` 3·R·R·C (added to: the caller zeroes it), `grad_points` n×3 (written).
 //! One invocation per point; the plane gradient is a scatter-add of four bilinear
-//! weights per channel per plane, with float atomics or the compare-and-swap fallback.
+//! weights per channel per plane, with float atomics, the compare-and-swap fallback,
+//! or (deterministic) fixed-point integer atomics into a scratch buffer.
 
 use drape_shared::triplane::{corners, footprint, inside, normalise, texel_index, TriplaneParams, PLANE_AXES};
 use spirv_std::glam::UVec3;
@@ -129,3 +130,9 @@ macro_rules! sample_bwd_entry {
 #[cfg(feature = "float-atomics")]
 sample_bwd_entry!(sample_bwd_atomic, f32, atomics::add_f32, doc = "Backward with float atomics (needs shaderBufferFloat32AtomicAdd).");
 sample_bwd_entry!(sample_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward with compare-and-swap on the bits of f32 (any device).");
+sample_bwd_entry!(
+    sample_bwd_fixed,
+    u32,
+    atomics::add_fixed,
+    doc = "Deterministic backward: the plane gradient in 64-bit fixed point (2·3·R·R·C + 1 words; `fixed_point::resolve` turns it into f32)."
+);

@@ -10,6 +10,7 @@
 pub mod adam;
 pub mod cloth_loss;
 pub mod deform;
+pub mod fixed_point;
 pub mod lpips;
 pub mod nn;
 pub mod radix_sort;

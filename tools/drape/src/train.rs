@@ -66,6 +66,12 @@ pub struct TrainArgs {
     /// written to RUN/profile.txt and RUN/profile.json.
     #[arg(long)]
     pub profile: bool,
+    /// Bit-identical runs: the splat and triplane backward passes add their gradients
+    /// in 64-bit fixed point instead of float atomics, so two runs with the same seed
+    /// (or a run resumed from a checkpoint and one that was not) end with the same
+    /// bits. Slower backward passes; gradients rounded to 2^-36 (sets `deterministic`).
+    #[arg(long)]
+    pub deterministic: bool,
 }
 
 /// Merges the TOML table `over` into `base`, naming the first key `base` lacks.
@@ -126,6 +132,9 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(w) = &args.lpips_weights {
         config.lpips_weights = Some(w.clone());
     }
+    if args.deterministic {
+        config.deterministic = true;
+    }
     config.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(config)
 }
@@ -185,6 +194,9 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.body.sh_degree, config.scene.lr_position, config.scene.lr_position_final),
         (false, Layout::NeuMan) => println!("  scene layer: none (--layers without scene: the person is trained on a random background colour)"),
         (false, Layout::ZjuMocap) => println!("  scene layer: none (masked studio data: the person is trained on a random background colour)"),
+    }
+    if config.deterministic {
+        println!("  gradients: deterministic (fixed-point accumulation; a rerun or a resumed run gives the same bits)");
     }
     let t0 = std::time::Instant::now();
     let mut last_eval = usize::MAX;

@@ -8,6 +8,7 @@
 use std::time::Instant;
 
 use drape_cli_support::{median, parse_len};
+use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::{BufferDesc, Context, PassTimings};
@@ -42,6 +43,10 @@ pub struct OpsArgs {
     /// blocked.
     #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked"])]
     pub gemm: String,
+    /// Triplane backward: accumulate the plane gradient deterministically (64-bit
+    /// fixed-point integer atomics) instead of with float atomics.
+    #[arg(long)]
+    pub deterministic: bool,
 }
 
 impl OpsArgs {
@@ -186,18 +191,19 @@ fn triplane(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &
     let mut rng = rand::rngs::StdRng::seed_from_u64(4);
     let pts: Vec<f32> = (0..3 * rows).map(|_| rng.random_range(-0.9..0.9)).collect();
     let tdesc = TriplaneDesc { resolution: args.triplane_resolution, channels: args.triplane_channels, box_min: [-1.0; 3], box_max: [1.0; 3] };
-    let tp = Triplane::new(ctx, "bench triplane", tdesc, TriplaneInit::Normal { seed: 5 })?;
+    let mut tp = Triplane::new(ctx, "bench triplane", tdesc, TriplaneInit::Normal { seed: 5 })?;
+    let accumulation = if args.deterministic { Accumulation::Deterministic } else { Accumulation::Auto };
+    tp.prepare(ctx, accumulation)?;
     let points = ctx.upload("bench points", &pts)?;
     let gpoints = ctx.create_buffer("bench point grads", BufferDesc::gpu_only((rows * 12) as u64))?;
-    let atomics = ctx.info().float_atomic_add;
     let (tp_wall, tp_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench triplane")?;
         tp.record_forward(&mut rec, &points, feats, rows as u32)?;
         rec.barrier();
-        tp.record_backward(&mut rec, &points, feats, &gpoints, rows as u32, atomics)?;
+        tp.record_backward(&mut rec, &points, feats, &gpoints, rows as u32, accumulation)?;
         Ok(rec.submit_and_wait()?)
     })?;
-    out["triplane"] = json!({ "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "float_atomics": atomics });
+    out["triplane"] = json!({ "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "accumulation": accumulation.describe(ctx) });
     Ok(())
 }
 

@@ -33,11 +33,25 @@ pub struct SplatArgs {
     #[arg(long, default_value_t = 2)]
     pub warmup: u32,
     /// Accumulate gradients with compare-and-swap instead of float atomics.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "deterministic")]
     pub cas: bool,
+    /// Accumulate gradients deterministically (64-bit fixed-point integer atomics):
+    /// the same bits on every run.
+    #[arg(long)]
+    pub deterministic: bool,
     /// Print one JSON object on stdout instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+fn accumulation(args: &SplatArgs) -> Accumulation {
+    if args.cas {
+        Accumulation::CompareAndSwap
+    } else if args.deterministic {
+        Accumulation::Deterministic
+    } else {
+        Accumulation::Auto
+    }
 }
 
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -104,7 +118,7 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs) -> anyhow::Result<se
     let grad_rgb = ctx.upload("bench grad rgb", &vec![1e-3f32; 3 * pixels])?;
     let grad_alpha = ctx.upload("bench grad alpha", &vec![1e-3f32; pixels])?;
     let grad_depth = ctx.upload("bench grad depth", &vec![0.0f32; pixels])?;
-    let accumulation = if args.cas { Accumulation::CompareAndSwap } else { Accumulation::Auto };
+    let accumulation = accumulation(args);
 
     let mut fwd_ms = Vec::new();
     let mut both_ms = Vec::new();
@@ -162,7 +176,7 @@ pub fn run(ctx: &Context, args: &SplatArgs) -> anyhow::Result<serde_json::Value>
         "device_kind": format!("{:?}", ctx.info().kind),
         "runs": args.runs,
         "warmup": args.warmup,
-        "accumulation": if args.cas { "compare-and-swap" } else if ctx.info().float_atomic_add { "float atomics" } else { "compare-and-swap" },
+        "accumulation": accumulation(args).describe(ctx),
         "results": results,
     }))
 }

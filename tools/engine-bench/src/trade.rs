@@ -239,7 +239,6 @@ fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
         json!({"knob": "half-precision SH", "why": "the kernels read f32 SH only"}),
         json!({"knob": "half-precision projected splats", "why": "ProjectedSplat is f32 only"}),
         json!({"knob": "fused compositing", "why": "the fused rasterizer of the compositing issue is not built (three-pass is three splatter passes and a composite)"}),
-        json!({"knob": "float-atomic vs deterministic backward", "why": "a training knob: the splatter's backward has float-atomic and compare-and-swap accumulation, both order-dependent; no deterministic backward is built, and neither changes a render"}),
         json!({"knob": "pruning by contribution", "why": "needs a per-Gaussian accumulated blend weight from the rasterizer, which it does not write"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
         json!({"knob": "pose-dependent offsets on/off", "why": "not present: the geometry decoder reads only the canonical triplane features, so its offsets do not depend on the pose"}),

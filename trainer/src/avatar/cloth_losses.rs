@@ -11,7 +11,7 @@
 //! `record_layers_backward`).
 
 use drape_engine::ops::cloth_loss::{Arap, Chamfer};
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
 use drape_shared::adam::LossParams;
@@ -145,7 +145,7 @@ impl ClothLosses {
             rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read(alpha).read(&self.mask_target).write(&self.grad_alpha).write(&self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
             rec.submit_and_wait()?;
         }
-        self.renderer.backward(&cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, Accumulation::Auto)?;
+        self.renderer.backward(&cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
         Ok(())
     }
 

@@ -19,7 +19,7 @@
 //! rasterizer of the compositing issue are not built.
 
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
 
@@ -276,7 +276,7 @@ impl AvatarRenderer {
     pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
         match &mut self.inner {
             Inner::Single(r) => {
-                r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, Accumulation::Auto)?;
+                r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
                 if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
                     c.mask_pass(ctx, cloth, camera, settings)?;
                 }
@@ -292,11 +292,11 @@ impl AvatarRenderer {
                     }
                     rec.submit_and_wait()?;
                 }
-                t.base_renderer.backward(&t.base, &t.grad_base, zeros, zeros, &t.base_grads, Accumulation::Auto)?;
+                t.base_renderer.backward(&t.base, &t.grad_base, zeros, zeros, &t.base_grads, avatar.accumulation())?;
                 let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.backward(&cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, Accumulation::Auto)?;
+                t.cloth_renderer.backward(&cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
                 if let Some(m) = &mut t.matte {
-                    m.renderer.backward(&m.gaussians, &m.grad_image, zeros, zeros, &m.grads, Accumulation::Auto)?;
+                    m.renderer.backward(&m.gaussians, &m.grad_image, zeros, zeros, &m.grads, avatar.accumulation())?;
                 }
             }
         }

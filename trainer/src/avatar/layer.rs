@@ -16,6 +16,7 @@
 
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::deform::{self, DeformGrads, DeformInputs};
+use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Mlp, MlpDesc};
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::GaussianCloud;
@@ -100,6 +101,8 @@ pub struct HumanLayer {
     transform_terms: Buffer,
     transform_partials: Buffer,
     pub groups: LayerGroups,
+    /// How the triplane's backward accumulates ([`set_accumulation`](Self::set_accumulation)).
+    accumulation: Accumulation,
 }
 
 /// The layer's Adam groups.
@@ -204,7 +207,20 @@ impl HumanLayer {
             transform_terms: f32_buffer(ctx, &format!("{name} transform gradient terms"), deform::transform_terms_len(n as u32))?,
             transform_partials: f32_buffer(ctx, &format!("{name} transform gradient partials"), deform::transform_partials_len(n as u32))?,
             groups,
+            accumulation: Accumulation::Auto,
         })
+    }
+
+    /// Chooses how the triplane's backward accumulates (deterministic: bit-identical
+    /// runs, at the cost of a fixed-point scratch and slower atomics).
+    pub fn set_accumulation(&mut self, ctx: &Context, accumulation: Accumulation) -> Result<()> {
+        self.triplane.prepare(ctx, accumulation)?;
+        self.accumulation = accumulation;
+        Ok(())
+    }
+
+    pub fn accumulation(&self) -> Accumulation {
+        self.accumulation
     }
 
     fn deform_inputs(&self) -> DeformInputs<'_> {
@@ -238,8 +254,10 @@ impl HumanLayer {
 
     /// Records the backward pass from `posed_grads` into every parameter's gradient,
     /// with the skinning-weight term `lbs_weight · mean((W - W_gt)²)` (the paper's
-    /// cloth-LBS loss; 0 leaves it out).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool, lbs_weight: f32) -> Result<()> {
+    /// cloth-LBS loss; 0 leaves it out); with `pose_gradient`, also the chunk sums of
+    /// the gradient on the frame's transforms that [`read_transform_grad`](Self::read_transform_grad)
+    /// reads (pose refinement; left out otherwise).
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, lbs_weight: f32, pose_gradient: bool) -> Result<()> {
         let n = self.count;
         rec.copy(&self.posed_grads.opacity_logits, self.appearance.head_grad(0), u64::from(n) * 4);
         rec.copy(&self.posed_grads.sh, self.appearance.head_grad(1), self.posed_grads.sh.size.min(self.appearance.head_grad(1).size));
@@ -254,7 +272,9 @@ impl HumanLayer {
         };
         deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
         rec.barrier();
-        deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
+        if pose_gradient {
+            deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
+        }
         if lbs_weight > 0.0 {
             let len = NUM_JOINTS as u32 * n;
             let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
@@ -269,7 +289,7 @@ impl HumanLayer {
             rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read(&self.lbs_grad).write(self.deformation.head_grad(0)).push(&p).dispatch(flat_grid(len))?;
             rec.barrier();
         }
-        self.record_decoder_backward(rec, use_atomics, true)
+        self.record_decoder_backward(rec, true)
     }
 
     /// `∂L/∂A` on the frame's 24 transforms (24 × 12, row-major 3x4) from the last
@@ -282,7 +302,7 @@ impl HumanLayer {
     /// Decoders' and triplane's backward from the gradients in the decoders' heads;
     /// with `to_means`, the canonical means' gradient (deformation path + triplane
     /// path) ends in `grad_means`.
-    fn record_decoder_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool, to_means: bool) -> Result<()> {
+    fn record_decoder_backward<'a>(&'a self, rec: &mut Recording<'a>, to_means: bool) -> Result<()> {
         let n = self.count;
         // The decoders add their input gradients into one buffer: one after another.
         self.appearance.record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
@@ -291,7 +311,7 @@ impl HumanLayer {
         rec.barrier();
         self.deformation.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
         rec.barrier();
-        self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, use_atomics)?;
+        self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
         rec.barrier();
         if to_means {
             let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
@@ -359,7 +379,7 @@ impl HumanLayer {
                 if step < steps {
                     self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;
                     rec.barrier();
-                    self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, ctx.info().float_atomic_add)?;
+                    self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
                     rec.barrier();
                     deformation_adam.record_step(&mut rec, &self.deformation.params, &self.deformation.grads)?;
                     triplane_adam.record_step(&mut rec, &self.triplane.planes, &self.triplane.grads)?;

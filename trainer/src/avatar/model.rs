@@ -15,6 +15,7 @@
 //! their skinning targets are the nearest body vertex's weights (the paper's W_gt),
 //! and the cloth-LBS loss `λ ‖W - W_gt‖²` keeps the predicted weights near them.
 
+use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
 use drape_engine::{Buffer, Context, Recording, Result};
@@ -129,6 +130,8 @@ pub struct Avatar {
     pub posed_grads: GaussianBuffers,
     /// Cloth-LBS weight per layer (0 for the body).
     pub lbs_weights: Vec<f32>,
+    /// How every scatter-add backward accumulates ([`set_accumulation`](Self::set_accumulation)).
+    accumulation: Accumulation,
 }
 
 impl Avatar {
@@ -149,7 +152,23 @@ impl Avatar {
             posed: GaussianBuffers::new(ctx, "avatar posed", total, sh)?,
             posed_grads: GaussianBuffers::new(ctx, "avatar posed grads", total, sh)?,
             lbs_weights: lbs_weights.to_vec(),
+            accumulation: Accumulation::Auto,
         })
+    }
+
+    /// Chooses how the backward passes accumulate, in every layer and in the
+    /// renderers that read [`accumulation`](Self::accumulation):
+    /// [`Accumulation::Deterministic`] makes a training step bit-identical from run to run.
+    pub fn set_accumulation(&mut self, ctx: &Context, accumulation: Accumulation) -> Result<()> {
+        for l in &mut self.layers {
+            l.set_accumulation(ctx, accumulation)?;
+        }
+        self.accumulation = accumulation;
+        Ok(())
+    }
+
+    pub fn accumulation(&self) -> Accumulation {
+        self.accumulation
     }
 
     /// The cloth layer, if the avatar has one.
@@ -200,10 +219,11 @@ impl Avatar {
     }
 
     /// Records the backward pass from `posed_grads` (the splatter's), through every
-    /// layer, with each layer's cloth-LBS term.
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+    /// layer, with each layer's cloth-LBS term (and, with `pose_gradient`, the
+    /// transforms' gradient for pose refinement).
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
         self.record_scatter_grads(rec);
-        self.record_layers_backward(rec, use_atomics)
+        self.record_layers_backward(rec, pose_gradient)
     }
 
     /// Copies each layer's slice of `posed_grads` into the layer's own `posed_grads`
@@ -230,10 +250,10 @@ impl Avatar {
     }
 
     /// Records every layer's backward pass from its own `posed_grads`, with each
-    /// layer's cloth-LBS term.
-    pub fn record_layers_backward<'a>(&'a self, rec: &mut Recording<'a>, use_atomics: bool) -> Result<()> {
+    /// layer's cloth-LBS term (and, with `pose_gradient`, the transforms' gradient).
+    pub fn record_layers_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
         for (l, &lbs) in self.layers.iter().zip(&self.lbs_weights) {
-            l.record_backward(rec, use_atomics, lbs)?;
+            l.record_backward(rec, lbs, pose_gradient)?;
         }
         Ok(())
     }

@@ -31,6 +31,7 @@ use crate::avatar::scene::{scene_init, SceneConfig, SceneLayer};
 use crate::dataset::colmap::ColmapModel;
 use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses};
 use crate::avatar::cloth_target;
+use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::layer::LayerConfig;
@@ -115,6 +116,12 @@ pub struct TrainConfig {
     /// Adam rate of the refined translation (in the data's units; HUGS: none).
     #[serde(default = "hugs_pose_rate")]
     pub lr_translation: f32,
+    /// Bit-identical runs: the splat and triplane backward passes accumulate in
+    /// 64-bit fixed point instead of float atomics (whose order, and so last bits,
+    /// changes from run to run), so a resumed run ends where an uninterrupted one does.
+    /// Costs two integer atomics per value and gradients rounded to 2^-36.
+    #[serde(default)]
+    pub deterministic: bool,
 }
 
 fn paper_compositing() -> String {
@@ -169,6 +176,7 @@ impl TrainConfig {
             refine_pose: true,
             lr_pose: hugs_pose_rate(),
             lr_translation: hugs_pose_rate(),
+            deterministic: false,
         }
     }
 
@@ -386,7 +394,11 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
         }
         _ => None,
     };
-    Ok((gpu(Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed))?, edges))
+    let mut avatar = gpu(Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed))?;
+    if config.deterministic {
+        gpu(avatar.set_accumulation(ctx, Accumulation::Deterministic))?;
+    }
+    Ok((avatar, edges))
 }
 
 /// Times host phases of a step into the context's profile (a no-op without one).
@@ -530,7 +542,6 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let loss = LossParams { len: 3 * pixels as u32, scale: config.lambda_l1 / (3 * pixels) as f32, _pad: [0; 2] };
     let mut ssim = gpu(Ssim::new(ctx, width, height))?;
     let settings = RenderSettings::default();
-    let use_atomics = ctx.info().float_atomic_add;
     let t_train = Instant::now();
     let mut skipped = 0u32;
     let mut skipped_in_a_row = 0u32;
@@ -591,7 +602,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             if let (Some(c), Some(cloth)) = (cloth_losses.as_ref(), avatar.cloth()) {
                 gpu(c.record(&mut rec, cloth))?;
             }
-            gpu(avatar.record_layers_backward(&mut rec, use_atomics))?;
+            gpu(avatar.record_layers_backward(&mut rec, refiner.is_some()))?;
             gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
             gpu(rec.submit_and_wait())?;
         }

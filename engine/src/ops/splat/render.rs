@@ -10,7 +10,8 @@
 //! buffers allow passes the workgroup-count limit. Second: `emit_intersections` (tile ids in depth order), a stable radix sort
 //! by tile id over only the bits the tile count needs (so each tile's list stays in
 //! depth order), `tile_ranges`, and `rasterize_fwd`.
-//! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`), then
+//! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`, or the
+//! deterministic `_fixed` into a fixed-point scratch and `fixed_point::resolve`), then
 //! `project_bwd` into the parameter gradients.
 
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, SPLAT_GRAD_FLOATS};
@@ -19,6 +20,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
+use crate::ops::accumulate::{FixedPointScratch, Method};
 use crate::ops::radix_sort::RadixSort;
 use crate::ops::scan::ExclusiveScan;
 use crate::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
@@ -116,14 +118,9 @@ impl GaussianBuffers {
     }
 }
 
-/// How the backward rasterizer accumulates per-splat gradients.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Accumulation {
-    /// Float atomics when the device has them, else compare-and-swap.
-    Auto,
-    FloatAtomics,
-    CompareAndSwap,
-}
+/// How the backward rasterizer accumulates per-splat gradients (shared with the
+/// triplane's backward).
+pub use crate::ops::accumulate::Accumulation;
 
 /// What one forward pass did.
 #[derive(Clone, Debug, Default)]
@@ -182,6 +179,8 @@ pub struct SplatRenderer {
     ranges: Buffer,
     pixels: PixelBuffers,
     splat_grads: Buffer,
+    /// For [`Accumulation::Deterministic`]: made on the first such backward.
+    fixed: Option<FixedPointScratch>,
     intersections: u32,
 }
 
@@ -243,6 +242,7 @@ impl SplatRenderer {
                 blended: f32_buffer(ctx, "splat blend steps", pixels)?,
             },
             splat_grads: f32_buffer(ctx, "splat gradients", SPLAT_GRAD_FLOATS * n as usize)?,
+            fixed: None,
             intersections: 0,
         })
     }
@@ -401,16 +401,20 @@ impl SplatRenderer {
     ) -> Result<PassTimings> {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
-        let use_atomics = match accumulation {
-            Accumulation::Auto => self.ctx.info().float_atomic_add,
-            Accumulation::FloatAtomics => true,
-            Accumulation::CompareAndSwap => false,
+        let method = accumulation.method(&self.ctx);
+        let values = SPLAT_GRAD_FLOATS as u32 * gaussians.count;
+        if method == Method::FixedPoint && self.fixed.is_none() {
+            self.fixed = Some(FixedPointScratch::new(&self.ctx, "splat gradients", SPLAT_GRAD_FLOATS as u32 * self.max_count)?);
+        }
+        let (kernel, target) = match method {
+            Method::FloatAtomics => (Kernel::SplatRasterizeBwdAtomic, &self.splat_grads),
+            Method::CompareAndSwap => (Kernel::SplatRasterizeBwdCas, &self.splat_grads),
+            Method::FixedPoint => (Kernel::SplatRasterizeBwdFixed, self.fixed.as_ref().expect("made above").buffer()),
         };
-        let kernel = if use_atomics { Kernel::SplatRasterizeBwdAtomic } else { Kernel::SplatRasterizeBwdCas };
         let fp = self.frame_params;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
-        rec.fill(&self.splat_grads, 0);
+        rec.fill(target, 0);
         rec.barrier();
         let p = &self.pixels;
         rec.pass("splat.rasterize_bwd", kernel)
@@ -423,9 +427,13 @@ impl SplatRenderer {
             .read(grad_rgb)
             .read(grad_alpha)
             .read(grad_depth)
-            .write(&self.splat_grads)
+            .write(target)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
         rec.barrier();
+        if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
+            fixed.record_resolve(&mut rec, &self.splat_grads, values)?;
+            rec.barrier();
+        }
         for chunk in project_chunks(&ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
