@@ -138,8 +138,15 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-neuman-run");
     let _ = std::fs::remove_dir_all(&out);
     // Body and cloth (the scene layer has its own test): the cloth losses' path.
+    // 80 steps at three times HUGS's triplane and decoder rates (3e-3: a short run's
+    // rates; the presets keep HUGS's 1e-3).
     let mut config = tiny_config();
     config.layers = "body+cloth".into();
+    config.steps = 80;
+    for layer in [&mut config.body, &mut config.cloth] {
+        layer.lr_triplane = 3e-3;
+        layer.lr_decoders = 3e-3;
+    }
     let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
     eprintln!(
         "held-out PSNR {:.2} -> {:.2} dB full, {:.2} -> {:.2} dB crop; fit mse {:.2e}; {:.2} it/s",
@@ -151,11 +158,13 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     // The skinning-weight fit converges well below the initial error (~2.7e-2): measured
     // 6.1e-3 after these 60 steps with decoders 64 wide (the quick preset's 150 reach 1.1e-3).
     assert!(report.fit_mse < 1e-2, "skinning weights fitted to mse {}", report.fit_mse);
-    // 60 steps on 8 training frames with the cloth losses: measured +4.5 dB full and
-    // +4.5 dB on the crop;
-    // 1 dB is far above run-to-run noise (the run is deterministic up to atomics).
-    assert!(report.fin.psnr_full >= report.initial.psnr_full + 1.0, "full-image PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
-    assert!(report.fin.psnr_crop >= report.initial.psnr_crop + 1.0, "human-crop PSNR {} -> {}", report.initial.psnr_crop, report.fin.psnr_crop);
+    // The bound: +6 dB over the initial model. 80 steps on 8 training frames
+    // with the cloth losses: measured +7.7 dB full (20.79 -> 28.47) and +7.7 dB on the
+    // crop (15.90 -> 23.63) with `drape train` on this data and config; run-to-run
+    // noise (float atomics) is far below the 1.7 dB margin. (At HUGS's 1e-3 rates the
+    // same run gains +4.4 dB in 60 steps and +6.3 dB in 120.)
+    assert!(report.fin.psnr_full >= report.initial.psnr_full + 6.0, "full-image PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
+    assert!(report.fin.psnr_crop >= report.initial.psnr_crop + 6.0, "human-crop PSNR {} -> {}", report.initial.psnr_crop, report.fin.psnr_crop);
     // The L1 of the logged steps falls: the mean of the last three below the first.
     let log = std::fs::read_to_string(out.join("log.jsonl")).expect("log");
     let l1: Vec<f64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json line")["l1"].as_f64().expect("l1")).collect();
@@ -167,10 +176,20 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     // see the eprintln above).
     let cloth: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json line")["cloth"].clone()).collect();
     let term = |k: &str| cloth.iter().map(|c| c[k].as_f64().unwrap_or_else(|| panic!("cloth.{k} missing from the log"))).collect::<Vec<f64>>();
+    // Every loss term falls over the run (each logged step draws another frame, so
+    // compare the mean of the last three logged values with the first; measured with
+    // this config: sim 0.40 -> 0.23, mask 0.013 -> 0.0075, ARAP 0.0067 -> 0.0027,
+    // 1 - SSIM 0.18 -> 0.07).
+    let falls = |name: &str, v: &[f64]| {
+        assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{name}: {v:?}");
+        let tail = v[v.len() - 3..].iter().sum::<f64>() / 3.0;
+        assert!(tail < v[0], "{name} did not fall: {v:?}");
+    };
     for k in ["sim", "mask", "arap"] {
-        let v = term(k);
-        assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "cloth.{k}: {v:?}");
+        falls(&format!("cloth.{k}"), &term(k));
     }
+    let dssim: Vec<f64> = log.lines().map(|l| 1.0 - serde_json::from_str::<serde_json::Value>(l).expect("json line")["ssim"].as_f64().expect("ssim")).collect();
+    falls("1 - SSIM", &dssim);
     let (before, after) = (report.initial.cloth_chamfer.expect("synthetic data has ground-truth garments"), report.fin.cloth_chamfer.expect("chamfer after"));
     eprintln!("cloth Chamfer to the ground truth {:.2} -> {:.2} mm", 1e3 * before, 1e3 * after);
     assert!(after < before, "cloth Chamfer to the ground-truth garments {before} -> {after}");
