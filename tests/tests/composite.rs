@@ -371,3 +371,48 @@ fn the_papers_matte_draws_the_shirt_over_an_arm_in_front_of_it() {
     assert!(arm_in_front >= 28, "occlusion matte: arm in front at only {arm_in_front}/32 pixels");
     assert!(changed >= 32, "the mattes differ at only {changed} pixels");
 }
+
+/// Layers of different SH degrees share one posed cloud at the highest degree
+/// (`ops::splat::sh_copy`): a lower degree is padded with zeros, and the way back keeps
+/// only the receiving degree's coefficients. Checked against the CPU reference and,
+/// independently of the shared index math, coefficient by coefficient.
+#[test]
+fn sh_copy_pads_and_truncates_between_degrees() {
+    use drape_engine::ops::splat::sh_copy::{record_copy_sh, reference_copy_sh, ShSlice};
+    let ctx = gpu();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(21);
+    let (count, src_first, dst_first) = (37u32, 5u32, 11u32);
+    for (src_degree, dst_degree) in [(1u32, 3u32), (3, 0), (2, 2), (0, 1)] {
+        let (ks, kd) = (sh_coeffs(src_degree), sh_coeffs(dst_degree));
+        let src: Vec<f32> = (0..3 * ks * (count + src_first) as usize).map(|_| rng.random_range(-1.0..1.0)).collect();
+        // The destination starts full of a marker: what the copy leaves alone keeps it.
+        let dst_len = 3 * kd * (count + dst_first + 2) as usize;
+        let src_buf = ctx.upload("sh src", &src).expect("upload");
+        let mut dst_buf = ctx.upload("sh dst", &vec![7.0f32; dst_len]).expect("upload");
+        {
+            let mut rec = ctx.record("sh copy test").expect("record");
+            record_copy_sh(&mut rec, ShSlice { buffer: &src_buf, degree: src_degree, first: src_first }, ShSlice { buffer: &dst_buf, degree: dst_degree, first: dst_first }, count).expect("copy");
+            rec.submit_and_wait().expect("submit");
+        }
+        let got = ctx.read_buffer::<f32>(&mut dst_buf, dst_len).expect("read");
+        let mut want = vec![7.0f32; dst_len];
+        reference_copy_sh(&src, (src_degree, src_first), &mut want, (dst_degree, dst_first), count);
+        assert_eq!(got, want, "degree {src_degree} -> {dst_degree}: GPU and reference differ");
+        for g in 0..(count + dst_first + 2) as usize {
+            for k in 0..kd {
+                for c in 0..3 {
+                    let v = got[(g * kd + k) * 3 + c];
+                    let inside = g >= dst_first as usize && g < (dst_first + count) as usize;
+                    let expected = if !inside {
+                        7.0
+                    } else if k < ks {
+                        src[((g - dst_first as usize + src_first as usize) * ks + k) * 3 + c]
+                    } else {
+                        0.0
+                    };
+                    assert_eq!(v, expected, "degree {src_degree} -> {dst_degree}: Gaussian {g}, coefficient {k}, channel {c}");
+                }
+            }
+        }
+    }
+}

@@ -233,8 +233,12 @@ fn scene_layer_trains_on_the_whole_frame() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-scene-run");
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
-    // Every layer: the paper's three passes with a matte in which the scene hides the cloth.
+    // Every layer: the paper's three passes with a matte in which the scene hides the
+    // cloth; each layer at its own SH degree (the scene at 3DGS's 3, the cloth at 1,
+    // the body at HUGS's 0), rendered together at the highest.
     config.layers = "body+cloth+scene".into();
+    config.scene.sh_degree = 3;
+    config.cloth.sh_degree = 1;
     config.decimate = 8;
     config.fit_steps = 10;
     config.steps = 30;
@@ -250,7 +254,13 @@ fn scene_layer_trains_on_the_whole_frame() {
     // The model file holds the scene layer, and a body-only model refuses it.
     let arrays = drape_trainer::npy::read_npz(&out.join("model.npz")).expect("model");
     assert_eq!(arrays["scene.means"].shape, vec![560, 3]);
-    assert_eq!(arrays["scene.sh"].shape, vec![560, 1, 3]);
+    assert_eq!(arrays["scene.sh"].shape, vec![560, 16, 3]);
+    // The cloth's appearance decoder has an SH head of 4 coefficients x 3 (after the
+    // opacity head): its last bias is 12 wide, the body's 3.
+    let width = config.cloth.decoder_width as usize;
+    let cloth_appearance = arrays["cloth.appearance"].data.len();
+    let body_appearance = arrays["body.appearance"].data.len();
+    assert_eq!(cloth_appearance - body_appearance, (width + 1) * 9, "SH head sizes: cloth {cloth_appearance}, body {body_appearance} floats");
     let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it");
     assert!(err.contains("scene layer"), "{err}");
     let _ = std::fs::remove_dir_all(&out);

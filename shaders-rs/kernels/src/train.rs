@@ -5,8 +5,10 @@
 //! `adam_step`: `params`, `grads`, `m`, `v` of `len` floats; updates params, m, v in place
 //! (`drape_shared::adam::adam_update` is the math). `mse_grad`: `pred`, `target` of
 //! `len` floats; writes `grad = 2 (pred - target) * scale` and the squared error.
+//! `copy_sh`: `src`, `dst` SH buffers of two degrees (layers rendered together).
 
 use drape_shared::adam::{adam_update, AdamParams, LossParams};
+use drape_shared::splat::layout::{sh_copy_indices, ShCopyParams};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -88,6 +90,27 @@ pub fn add_into(
     }
     let i = index as usize;
     dst[i] += src[i];
+}
+
+/// Copies SH between buffers of different degrees (`drape_shared::splat::layout::
+/// ShCopyParams`): one invocation per destination float; padded coefficients get 0.
+#[spirv(compute(threads(256)))]
+pub fn copy_sh(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ShCopyParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] src: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] dst: &mut [f32],
+) {
+    let i = crate::flat_index(id, groups);
+    if i >= p.floats() {
+        return;
+    }
+    let (d, s) = sh_copy_indices(i, p);
+    dst[d] = match s {
+        Some(s) => src[s],
+        None => 0.0,
+    };
 }
 
 /// `counter[0] += 1` for every element of `values[..len]` that is NaN or infinite (the

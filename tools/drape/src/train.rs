@@ -177,7 +177,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     );
     match (cloth, garments) {
         (true, _) => println!(
-            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
+            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}, SH degree {9}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
             config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width),
             match (config.compositing.as_str(), layers.scene) {
                 ("single-pass", _) => "rendered with the other layers in one depth-sorted pass",
@@ -185,13 +185,14 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
                 ("three-pass-occlusion", false) => "rendered alone and composited over the body through a matte in which the body hides it",
                 (_, true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
                 (_, false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
-            }
+            },
+            config.cloth.sh_degree
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
     }
     match (layers.scene, seq.layout) {
-        (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.body.sh_degree, config.scene.lr_position, config.scene.lr_position_final),
+        (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.scene.sh_degree, config.scene.lr_position, config.scene.lr_position_final),
         (false, Layout::NeuMan) => println!("  scene layer: none (--layers without scene: the person is trained on a random background colour)"),
         (false, Layout::ZjuMocap) => println!("  scene layer: none (masked studio data: the person is trained on a random background colour)"),
     }

@@ -205,21 +205,23 @@ fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static
         out.push(Setting { knob: "resolution", label: format!("{s}x"), scale: s, ..base.clone() });
     }
     knobs.insert("resolution", json!(format!("measured: scales {:?} of the data's size, resampled to it for the metrics", args.scales)));
-    let degree = run.avatar.posed.sh_degree;
+    let degrees = part_degrees(&run.avatar);
+    let degree = run.avatar.sh_degree();
     if degree == 0 {
         knobs.insert("sh_degree", json!("not applicable: the run was trained at SH degree 0 (nothing to truncate)"));
     } else {
         for keep in 0..degree {
-            for (k, name) in parts.iter().enumerate() {
+            for (k, name) in parts.iter().enumerate().filter(|&(k, _)| keep < degrees[k]) {
                 let mut sh_keep = vec![None; parts.len()];
                 sh_keep[k] = Some(keep);
-                out.push(Setting { knob: "sh_degree", label: format!("{name} at degree {keep} (others {degree})"), sh_keep, ..base.clone() });
+                out.push(Setting { knob: "sh_degree", label: format!("{name} at degree {keep} (trained at {})", degrees[k]), sh_keep, ..base.clone() });
             }
             if parts.len() > 1 {
-                out.push(Setting { knob: "sh_degree", label: format!("every layer at degree {keep}"), sh_keep: vec![Some(keep); parts.len()], ..base.clone() });
+                out.push(Setting { knob: "sh_degree", label: format!("every layer at degree {keep} at most"), sh_keep: vec![Some(keep); parts.len()], ..base.clone() });
             }
         }
-        knobs.insert("sh_degree", json!(format!("measured: degrees 0..{degree} per layer ({}) and for every layer; time is the full degree's (the kernels evaluate every coefficient)", parts.join(", "))));
+        let trained: Vec<String> = parts.iter().zip(&degrees).map(|(p, d)| format!("{p} {d}")).collect();
+        knobs.insert("sh_degree", json!(format!("measured: each layer below the degree it was trained at ({}), and every layer; time is the full degree's (the kernels evaluate every coefficient of the highest degree)", trained.join(", "))));
     }
     for &t in &args.prune {
         out.push(Setting { knob: "pruning", label: format!("opacity < {t}"), prune: Some(t), ..base.clone() });
@@ -250,14 +252,18 @@ fn part_names(avatar: &Avatar) -> Vec<String> {
     avatar.counts().into_iter().map(|(n, _)| n).collect()
 }
 
+/// The SH degree of each part (the human layers in order, then the scene).
+fn part_degrees(avatar: &Avatar) -> Vec<u32> {
+    avatar.layers.iter().map(|l| l.posed.sh_degree).chain(avatar.scene.iter().map(|s| s.params.sh_degree)).collect()
+}
+
 /// Applies a setting's SH truncation and pruning to the decoded Gaussians (each layer's
-/// `posed`, the scene's parameters) and rewrites the gathered `avatar.posed` from them;
-/// returns the Gaussians kept per part. Host reads and writes: not GPU passes.
+/// `posed`, the scene's parameters, each at its own SH degree) and gathers
+/// `avatar.posed` from them again; returns the Gaussians kept per part. Host reads and
+/// writes, then the GPU gather.
 fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Result<Vec<usize>> {
-    let degree = avatar.posed.sh_degree;
-    let k = 3 * sh_coeffs(degree);
-    let (mut all_op, mut all_sh, mut kept) = (Vec::new(), Vec::new(), Vec::new());
-    let edit = |op: &mut Vec<f32>, sh: &mut Vec<f32>, keep: Option<u32>| -> usize {
+    let mut kept = Vec::new();
+    let edit = |op: &mut Vec<f32>, sh: &mut Vec<f32>, degree: u32, keep: Option<u32>| -> usize {
         if let Some(d) = keep {
             truncate_sh(sh, degree, d);
         }
@@ -269,27 +275,26 @@ fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Resul
     let mut part = 0;
     for l in &mut avatar.layers {
         let n = l.count as usize;
+        let degree = l.posed.sh_degree;
         let mut op = ctx.read_buffer::<f32>(&mut l.posed.opacity_logits, n)?;
-        let mut sh = ctx.read_buffer::<f32>(&mut l.posed.sh, k * n)?;
-        kept.push(edit(&mut op, &mut sh, s.sh_keep[part]));
+        let mut sh = ctx.read_buffer::<f32>(&mut l.posed.sh, 3 * sh_coeffs(degree) * n)?;
+        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part]));
         ctx.write_buffer(&mut l.posed.opacity_logits, &op)?;
         ctx.write_buffer(&mut l.posed.sh, &sh)?;
-        all_op.extend(op);
-        all_sh.extend(sh);
         part += 1;
     }
     if let Some(scene) = &mut avatar.scene {
         let n = scene.count as usize;
+        let degree = scene.params.sh_degree;
         let mut op = ctx.read_buffer::<f32>(&mut scene.params.opacity_logits, n)?;
-        let mut sh = ctx.read_buffer::<f32>(&mut scene.params.sh, k * n)?;
-        kept.push(edit(&mut op, &mut sh, s.sh_keep[part]));
+        let mut sh = ctx.read_buffer::<f32>(&mut scene.params.sh, 3 * sh_coeffs(degree) * n)?;
+        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part]));
         ctx.write_buffer(&mut scene.params.opacity_logits, &op)?;
         ctx.write_buffer(&mut scene.params.sh, &sh)?;
-        all_op.extend(op);
-        all_sh.extend(sh);
     }
-    ctx.write_buffer(&mut avatar.posed.opacity_logits, &all_op)?;
-    ctx.write_buffer(&mut avatar.posed.sh, &all_sh)?;
+    let mut rec = ctx.record("trade gather")?;
+    avatar.record_gather(&mut rec)?;
+    rec.submit_and_wait()?;
     Ok(kept)
 }
 
@@ -298,10 +303,10 @@ fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Resul
 type SceneOriginal = Option<(Vec<f32>, Vec<f32>)>;
 
 fn read_scene(ctx: &Context, avatar: &mut Avatar) -> anyhow::Result<SceneOriginal> {
-    let k = 3 * sh_coeffs(avatar.posed.sh_degree);
     match &mut avatar.scene {
         Some(s) => {
             let n = s.count as usize;
+            let k = 3 * sh_coeffs(s.params.sh_degree);
             Ok(Some((ctx.read_buffer(&mut s.params.opacity_logits, n)?, ctx.read_buffer(&mut s.params.sh, k * n)?)))
         }
         None => Ok(None),
@@ -440,6 +445,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     let scene_original = read_scene(ctx, &mut run.avatar)?;
     let (settings, knobs) = settings(args, &run);
     let parts = part_names(&run.avatar);
+    let degrees = part_degrees(&run.avatar);
     let mut renderers = BTreeMap::new();
     let mut defaults: Vec<Vec<f32>> = Vec::new();
     let mut rows = Vec::new();
@@ -482,7 +488,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
             "width": size.0,
             "height": size.1,
             "compositing": s.compositing,
-            "sh_degree_kept": parts.iter().zip(&s.sh_keep).map(|(p, k)| (p.clone(), k.unwrap_or(run.avatar.posed.sh_degree))).collect::<BTreeMap<_, _>>(),
+            "sh_degree_kept": parts.iter().zip(&s.sh_keep).zip(&degrees).map(|((p, k), &d)| (p.clone(), k.map_or(d, |k| k.min(d)))).collect::<BTreeMap<_, _>>(),
             "gaussians_kept": kept.iter().sum::<usize>(),
             "gaussians_kept_per_layer": parts.iter().cloned().zip(kept.iter().copied()).collect::<BTreeMap<_, _>>(),
             "ms_per_frame": ms,
@@ -505,7 +511,8 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
         "data": run.seq.dir.display().to_string(),
         "step": run.step,
         "gaussians": run.avatar.counts(),
-        "sh_degree": run.avatar.posed.sh_degree,
+        "sh_degree": run.avatar.sh_degree(),
+        "sh_degree_per_layer": parts.iter().cloned().zip(degrees.iter().copied()).collect::<BTreeMap<String, u32>>(),
         "frames": frames.len(),
         "frame_size": [frames[0].width, frames[0].height],
         "runs": args.runs,

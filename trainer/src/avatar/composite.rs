@@ -103,7 +103,7 @@ fn parts(avatar: &Avatar, sources: &[(Source, bool)]) -> (Vec<Part>, u32) {
 }
 
 /// Floats per Gaussian of means, log-scales, quaternions, opacity.
-const GEOMETRY_FLOATS: [u32; 4] = [3, 3, 4, 1];
+pub(crate) const GEOMETRY_FLOATS: [u32; 4] = [3, 3, 4, 1];
 
 /// The matte pass, where something can hide the cloth.
 struct MattePass {
@@ -203,11 +203,7 @@ impl AvatarRenderer {
         {
             let mut rec = ctx.record("composite gather")?;
             for p in &t.base_parts {
-                let (src, dst) = (params(avatar, p.source).all(), t.base.all());
-                let per = [3, 3, 4, 1, 3 * drape_shared::splat::layout::sh_coeffs(t.base.sh_degree) as u64];
-                for k in 0..5 {
-                    rec.copy_region(src[k], 0, dst[k], 4 * per[k] * u64::from(p.first), 4 * per[k] * u64::from(p.count));
-                }
+                Avatar::record_move(&mut rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
             }
             for p in t.matte.iter().flat_map(|m| &m.parts) {
                 let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
@@ -308,17 +304,13 @@ impl AvatarRenderer {
     pub fn record_scatter<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
         let t = match &self.inner {
             Inner::Single(_) => {
-                avatar.record_scatter_grads(rec);
+                avatar.record_scatter_grads(rec)?;
                 return Ok(());
             }
             Inner::ThreePass(t) => t,
         };
-        let per = [3, 3, 4, 1, 3 * drape_shared::splat::layout::sh_coeffs(t.base.sh_degree) as u64];
         for p in &t.base_parts {
-            let (src, dst) = (t.base_grads.all(), grads(avatar, p.source).all());
-            for k in 0..5 {
-                rec.copy_region(src[k], 4 * per[k] * u64::from(p.first), dst[k], 0, 4 * per[k] * u64::from(p.count));
-            }
+            Avatar::record_move(rec, grads(avatar, p.source), &t.base_grads, p.first, p.count, true)?;
         }
         rec.barrier();
         for (m, p) in t.matte.iter().flat_map(|m| m.parts.iter().map(move |p| (m, p))) {

@@ -17,10 +17,12 @@
 
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::splat::render::GaussianBuffers;
+use drape_engine::ops::splat::sh_copy::{record_copy_sh, ShSlice};
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
 use drape_engine::{Buffer, Context, Recording, Result};
 
 use crate::avatar::checkpoint::{LayerShape, ModelState};
+use crate::avatar::composite::GEOMETRY_FLOATS;
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::Rig;
 use crate::avatar::scene::SceneLayer;
@@ -143,9 +145,9 @@ impl Avatar {
             layers.push(HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?);
         }
         let total: usize = layers.iter().map(|l| l.count as usize).sum::<usize>() + scene.as_ref().map_or(0, |s| s.count as usize);
-        let sh = configs[0].sh_degree;
-        assert!(configs.iter().all(|c| c.sh_degree == sh), "layers rendered together share an SH degree");
-        assert!(scene.as_ref().is_none_or(|s| s.params.sh_degree == sh), "the scene layer is rendered with the others: same SH degree");
+        // Each layer keeps its own SH degree; the posed cloud that the layers are
+        // rendered from together has the highest (`ops::splat::sh_copy` pads the rest).
+        let sh = configs.iter().map(|c| c.sh_degree).chain(scene.iter().map(|s| s.params.sh_degree)).max().unwrap_or(0);
         Ok(Self {
             layers,
             scene,
@@ -185,34 +187,46 @@ impl Avatar {
         c
     }
 
-    /// Floats per Gaussian of each parameter buffer (means, log-scales, quats,
-    /// opacity, SH).
-    fn floats_per_gaussian(&self) -> [u64; 5] {
-        let k = 3 * drape_shared::splat::layout::sh_coeffs(self.posed.sh_degree) as u64;
-        [3, 3, 4, 1, k]
+    /// The posed cloud's SH degree: the highest of the layers'.
+    pub fn sh_degree(&self) -> u32 {
+        self.posed.sh_degree
+    }
+
+    /// Records the copy of one layer's posed Gaussians (`count`, from its own buffers)
+    /// into the slice of `dst` that starts at Gaussian `first`, or back with
+    /// `to_layer`: geometry and opacity as they are, SH padded or truncated to the
+    /// receiving buffer's degree.
+    pub(crate) fn record_move<'a>(rec: &mut Recording<'a>, layer: &'a GaussianBuffers, shared: &'a GaussianBuffers, first: u32, count: u32, to_layer: bool) -> Result<()> {
+        let (src, dst) = if to_layer { (shared, layer) } else { (layer, shared) };
+        let (src_first, dst_first) = if to_layer { (first, 0) } else { (0, first) };
+        let (s, d) = (src.all(), dst.all());
+        for k in 0..4 {
+            let per = 4 * u64::from(GEOMETRY_FLOATS[k]);
+            rec.copy_region(s[k], per * u64::from(src_first), d[k], per * u64::from(dst_first), per * u64::from(count));
+        }
+        record_copy_sh(rec, ShSlice { buffer: &src.sh, degree: src.sh_degree, first: src_first }, ShSlice { buffer: &dst.sh, degree: dst.sh_degree, first: dst_first }, count)
     }
 
     /// Records every layer's forward pass for the frame's transforms (written into
     /// each layer's `transforms` before) and gathers the posed cloud.
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
-        let per = self.floats_per_gaussian();
-        let mut first = 0u64;
         for l in &self.layers {
             l.record_forward(rec, log_scale_offset)?;
-            let n = u64::from(l.count);
-            let src = l.posed.all();
-            let dst = self.posed.all();
+        }
+        self.record_gather(rec)
+    }
+
+    /// Records the gather of every layer's posed Gaussians (and the scene's) into
+    /// [`posed`](Self::posed), layer after layer, with a barrier after.
+    pub fn record_gather<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
+        let mut first = 0;
+        for l in &self.layers {
             // Each buffer's slice of this layer starts at `first` Gaussians.
-            for k in 0..5 {
-                rec.copy_region(src[k], 0, dst[k], 4 * per[k] * first, 4 * per[k] * n);
-            }
-            first += n;
+            Self::record_move(rec, &l.posed, &self.posed, first, l.count, false)?;
+            first += l.count;
         }
         if let Some(s) = &self.scene {
-            let (src, dst) = (s.params.all(), self.posed.all());
-            for k in 0..5 {
-                rec.copy_region(src[k], 0, dst[k], 4 * per[k] * first, 4 * per[k] * u64::from(s.count));
-            }
+            Self::record_move(rec, &s.params, &self.posed, first, s.count, false)?;
         }
         rec.barrier();
         Ok(())
@@ -222,31 +236,23 @@ impl Avatar {
     /// layer, with each layer's cloth-LBS term (and, with `pose_gradient`, the
     /// transforms' gradient for pose refinement).
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
-        self.record_scatter_grads(rec);
+        self.record_scatter_grads(rec)?;
         self.record_layers_backward(rec, pose_gradient)
     }
 
     /// Copies each layer's slice of `posed_grads` into the layer's own `posed_grads`
     /// (where per-layer losses then add theirs), with a barrier after.
-    pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) {
-        let per = self.floats_per_gaussian();
-        let mut first = 0u64;
+    pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
+        let mut first = 0;
         for l in &self.layers {
-            let n = u64::from(l.count);
-            let src = self.posed_grads.all();
-            let dst = l.posed_grads.all();
-            for k in 0..5 {
-                rec.copy_region(src[k], 4 * per[k] * first, dst[k], 0, 4 * per[k] * n);
-            }
-            first += n;
+            Self::record_move(rec, &l.posed_grads, &self.posed_grads, first, l.count, true)?;
+            first += l.count;
         }
         if let Some(s) = &self.scene {
-            let (src, dst) = (self.posed_grads.all(), s.grads.all());
-            for k in 0..5 {
-                rec.copy_region(src[k], 4 * per[k] * first, dst[k], 0, 4 * per[k] * u64::from(s.count));
-            }
+            Self::record_move(rec, &s.grads, &self.posed_grads, first, s.count, true)?;
         }
         rec.barrier();
+        Ok(())
     }
 
     /// Records every layer's backward pass from its own `posed_grads`, with each

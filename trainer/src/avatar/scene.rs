@@ -29,11 +29,15 @@ pub struct SceneConfig {
     pub lr_sh: f32,
     /// At most this many COLMAP points become Gaussians (every k-th beyond it).
     pub max_points: u32,
+    /// SH degree of the scene's colours (3DGS: 3; the human layers have their own).
+    /// Missing from a config file: 0, what runs made before the key existed used.
+    #[serde(default)]
+    pub sh_degree: u32,
 }
 
 impl Default for SceneConfig {
     fn default() -> Self {
-        Self { lr_position: 1.6e-4, lr_position_final: 1.6e-6, lr_rotation: 1e-3, lr_scale: 5e-3, lr_opacity: 5e-2, lr_sh: 2.5e-3, max_points: 100_000 }
+        Self { lr_position: 1.6e-4, lr_position_final: 1.6e-6, lr_rotation: 1e-3, lr_scale: 5e-3, lr_opacity: 5e-2, lr_sh: 2.5e-3, max_points: 100_000, sh_degree: 3 }
     }
 }
 

@@ -17,3 +17,4 @@ pub mod ply;
 pub mod reference;
 pub mod render;
 pub mod scene;
+pub mod sh_copy;

@@ -121,3 +121,43 @@ pub struct SplatCounts {
     pub use_cas: u32,
     pub _pad: u32,
 }
+
+/// Push constants of `train::copy_sh`: copies `count` Gaussians' SH from a buffer of
+/// `src_coeffs` coefficients per channel (starting at Gaussian `src_first`) into one
+/// of `dst_coeffs` (starting at `dst_first`). Layers of different SH degrees are
+/// rendered together this way: a lower degree is padded with zero coefficients (the
+/// same colour), and the gradient going back is truncated to the lower degree.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ShCopyParams {
+    pub count: u32,
+    pub src_coeffs: u32,
+    pub dst_coeffs: u32,
+    pub src_first: u32,
+    pub dst_first: u32,
+    pub _pad: [u32; 3],
+}
+
+impl ShCopyParams {
+    /// Destination floats the copy writes (one invocation each).
+    pub const fn floats(&self) -> u32 {
+        3 * self.count * self.dst_coeffs
+    }
+}
+
+/// For destination float `i` of the copy (`i < floats()`): its index in the
+/// destination buffer, and the source index it takes (None: a padded coefficient, 0).
+/// The layout is `[gaussian][coefficient][channel]` on both sides.
+#[inline]
+pub fn sh_copy_indices(i: u32, p: &ShCopyParams) -> (usize, Option<usize>) {
+    let per_dst = 3 * p.dst_coeffs;
+    let g = i / per_dst;
+    let r = i % per_dst;
+    let dst = ((p.dst_first + g) * per_dst + r) as usize;
+    if r / 3 < p.src_coeffs {
+        (dst, Some(((p.src_first + g) * 3 * p.src_coeffs + r) as usize))
+    } else {
+        (dst, None)
+    }
+}
