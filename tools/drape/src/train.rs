@@ -177,7 +177,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     );
     match (cloth, garments) {
         (true, _) => println!(
-            "  cloth layer: T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}, SH degree {9}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
+            "  cloth layer: {10} T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}, SH degree {9}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
             config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width),
             match (config.compositing.as_str(), layers.scene) {
                 ("single-pass", _) => "rendered with the other layers in one depth-sorted pass",
@@ -186,7 +186,8 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
                 (_, true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
                 (_, false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
             },
-            config.cloth.sh_degree
+            config.cloth.sh_degree,
+            config.cloth_fit
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),

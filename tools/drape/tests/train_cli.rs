@@ -61,6 +61,7 @@ fn bad_configs_name_the_file_and_field() {
         ("zero-width.toml", "[cloth]\ndecoder_width = 0\n", "cloth.decoder_width"),
         ("compositing.toml", "compositing = \"fused\"\n", "compositing"),
         ("sh.toml", "[scene]\nsh_degree = 4\n", "scene.sh_degree"),
+        ("fit.toml", "cloth_fit = \"baggy\"\n", "cloth_fit"),
         ("broken.toml", "steps = \n", "broken.toml"),
     ];
     for (name, text, field) in cases {

@@ -18,7 +18,7 @@ use crate::body::kinematics::{regress_joints, rodrigues, Pose};
 use crate::body::model::NUM_JOINTS;
 use crate::cloth::{simulate_with_progress, ClothParams};
 use crate::dataset::loader::{BodyParams, DatasetFrame};
-use crate::garment::{pants, tshirt, Garment};
+use crate::garment::{pants, Garment, GarmentFit};
 use crate::mesh::V3;
 use crate::motion::Motion;
 
@@ -29,9 +29,10 @@ pub struct GarmentFrames {
     pub seconds: f64,
 }
 
-/// The garments the cloth layer is made of, in the order its Gaussians are.
-pub fn garments(rig: &Rig) -> [Garment; 2] {
-    [tshirt(&rig.model), pants(&rig.model)]
+/// The garments the cloth layer is made of, in the order its Gaussians are: the
+/// T-shirt of `fit` (both are named `tshirt`) and the pants.
+pub fn garments(rig: &Rig, fit: GarmentFit) -> [Garment; 2] {
+    [fit.upper(&rig.model), pants(&rig.model)]
 }
 
 /// A frame's body in the simulator's convention: (pose with root, translation) in
@@ -57,7 +58,7 @@ fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, V3, f64) {
 
 /// Simulates the garments through every frame of `frames` (each frame index once, in
 /// order); `progress(done, total)` as it goes.
-pub fn simulate_sequence(rig: &Rig, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> Result<GarmentFrames, String> {
+pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> Result<GarmentFrames, String> {
     let t0 = std::time::Instant::now();
     let mut bodies: BTreeMap<usize, &BodyParams> = BTreeMap::new();
     for f in frames {
@@ -65,7 +66,7 @@ pub fn simulate_sequence(rig: &Rig, frames: &[DatasetFrame], progress: &mut dyn 
     }
     let order: Vec<(usize, (Pose, V3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
     let motion = Motion { fps: 30.0, poses: order.iter().map(|(_, p)| p.0).collect(), translations: order.iter().map(|(_, p)| p.1).collect() };
-    let garments = garments(rig);
+    let garments = garments(rig, fit);
     let sim = simulate_with_progress(&rig.model, &garments, &motion, ClothParams::default(), 20, progress);
     if sim.any_nan {
         return Err("the cloth simulation of the sequence's motion produced non-finite positions".into());

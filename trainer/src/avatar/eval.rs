@@ -18,6 +18,7 @@ use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{BufferDesc, Context};
 
 use crate::avatar::cloth_target;
+use crate::garment::GarmentFit;
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
@@ -120,7 +121,8 @@ pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRendere
 pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, fid: Option<&FidInception>, progress: &mut dyn FnMut(Progress)) -> Result<(EvalMetrics, Vec<FrameMetrics>), String> {
     let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
-    let names: Vec<String> = cloth_target::garments(inputs.rig).iter().map(|g| g.name.clone()).collect();
+    // Both fits' T-shirts are named `tshirt`: the names do not depend on the fit.
+    let names: Vec<String> = cloth_target::garments(inputs.rig, GarmentFit::Tight).iter().map(|g| g.name.clone()).collect();
     let names: Vec<&str> = names.iter().map(String::as_str).collect();
     let mut per_frame = Vec::with_capacity(inputs.frames.len());
     // Features of (render, truth) on the whole image and on the crop, frame by frame.

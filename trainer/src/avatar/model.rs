@@ -25,6 +25,7 @@ use crate::avatar::checkpoint::{LayerShape, ModelState};
 use crate::avatar::composite::GEOMETRY_FLOATS;
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::Rig;
+use crate::garment::GarmentFit;
 use crate::avatar::scene::SceneLayer;
 use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
 use crate::body::kinematics::{forward_kinematics, relative_transforms, skin};
@@ -99,14 +100,14 @@ pub fn body_init(rig: &Rig, subdivision: u32, decimate: u32, sh_degree: u32) -> 
     decimated("body", &full, &sub.weights, decimate as usize, Layer::Body)
 }
 
-/// The cloth layer's canonical Gaussians: the project's T-shirt and pants made on the
-/// rig's body (the garments `drape synth` dresses it in).
-pub fn cloth_init(rig: &Rig, decimate: u32, sh_degree: u32) -> LayerInit {
+/// The cloth layer's canonical Gaussians: the project's T-shirt of `fit` and pants made
+/// on the rig's body (the garments `drape synth` dresses it in).
+pub fn cloth_init(rig: &Rig, fit: GarmentFit, decimate: u32, sh_degree: u32) -> LayerInit {
     let (canonical, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &crate::body::kinematics::da_pose());
     let mut vertices = Vec::new();
     let mut faces = Vec::new();
     let mut weights = Vec::new();
-    for g in garments(rig) {
+    for g in garments(rig, fit) {
         let (built, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &g.build_pose);
         let to_canonical = relative_transforms(&canonical, &built);
         let base = vertices.len() as u32;

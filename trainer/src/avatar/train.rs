@@ -31,6 +31,7 @@ use crate::avatar::scene::{scene_init, SceneConfig, SceneLayer};
 use crate::dataset::colmap::ColmapModel;
 use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses};
 use crate::avatar::cloth_target;
+use crate::garment::GarmentFit;
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::composite::{AvatarRenderer, Compositing};
@@ -122,6 +123,15 @@ pub struct TrainConfig {
     /// Costs two integer atomics per value and gradients rounded to 2^-36.
     #[serde(default)]
     pub deterministic: bool,
+    /// The T-shirt the cloth layer is made of and simulated with: `tight` or `loose`
+    /// (`drape synth --fit`); on synthetic data, the one the data was made with.
+    /// Missing from a config file: tight, what earlier runs used.
+    #[serde(default = "tight_fit")]
+    pub cloth_fit: String,
+}
+
+fn tight_fit() -> String {
+    GarmentFit::Tight.name().into()
 }
 
 fn paper_compositing() -> String {
@@ -179,6 +189,7 @@ impl TrainConfig {
             lr_pose: hugs_pose_rate(),
             lr_translation: hugs_pose_rate(),
             deterministic: false,
+            cloth_fit: tight_fit(),
         }
     }
 
@@ -210,9 +221,15 @@ impl TrainConfig {
         }
     }
 
+    /// The T-shirt of [`cloth_fit`](Self::cloth_fit).
+    pub fn garment_fit(&self) -> Result<GarmentFit, String> {
+        GarmentFit::parse(&self.cloth_fit).ok_or_else(|| format!("cloth_fit must be tight or loose, got '{}'", self.cloth_fit))
+    }
+
     /// Checks values a config file could get wrong, naming the field.
     pub fn validate(&self) -> Result<(), String> {
         LayerChoice::parse(&self.layers)?;
+        self.garment_fit()?;
         if self.cloth.triplane_resolution < 2 || self.cloth.triplane_channels == 0 {
             return Err("cloth.triplane_resolution must be >= 2 and cloth.triplane_channels >= 1".into());
         }
@@ -397,7 +414,7 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
     let mut configs = vec![config.body.clone()];
     let mut lbs = vec![0.0];
     if cloth {
-        inits.push(cloth_init(rig, config.decimate, config.cloth.sh_degree));
+        inits.push(cloth_init(rig, config.garment_fit()?, config.decimate, config.cloth.sh_degree));
         configs.push(config.cloth.clone());
         lbs.push(config.lambda_cloth_lbs);
     }
@@ -498,7 +515,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // The cloth layer's physics targets: the garments simulated through the motion.
     let mut cloth_losses = match avatar.cloth() {
         Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
-            let garments = cloth_target::simulate_sequence(&rig, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
+            let garments = cloth_target::simulate_sequence(&rig, config.garment_fit()?, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
             let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
             Some(gpu(ClothLosses::new(ctx, cloth, &cloth_edges, garments, weights, width, height))?)
         }
