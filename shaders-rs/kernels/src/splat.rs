@@ -524,3 +524,29 @@ pub fn project_bwd(
         k += 1;
     }
 }
+
+/// Densification statistics (`drape_shared::splat::densify`): one invocation per
+/// Gaussian of `[p.first, p.first + p.count)` of the last render adds its frame into
+/// `stats[3 (p.out_first + local) ..]`; reads the projected splats and the per-splat
+/// gradients of the last backward pass.
+#[spirv(compute(threads(256)))]
+pub fn screen_stats(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &drape_shared::splat::densify::ScreenStatsParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splat_grads: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] stats: &mut [f32],
+) {
+    let local = flat_index(id, groups);
+    if local >= p.count {
+        return;
+    }
+    let i = (p.first + local) as usize;
+    let o = 3 * (p.out_first + local) as usize;
+    let g = i * SPLAT_GRAD_FLOATS;
+    let s = drape_shared::splat::densify::accumulate([stats[o], stats[o + 1], stats[o + 2]], &splats[i], splat_grads[g], splat_grads[g + 1], p.width, p.height);
+    stats[o] = s[0];
+    stats[o + 1] = s[1];
+    stats[o + 2] = s[2];
+}

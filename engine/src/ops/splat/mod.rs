@@ -6,12 +6,14 @@
 //! - [`render`]: the GPU renderer (project, depth sort, tile binning, tile sort,
 //!   rasterize; and the backward passes);
 //! - [`composite`]: depth-aware compositing of three passes (forward, backward);
+//! - [`densify`]: the screen-space statistics densification reads;
 //! - [`ply`]: 3D Gaussian Splatting PLY files;
 //! - [`adam`]: Adam over the Gaussian parameters on the GPU;
 //! - [`fit`]: fitting Gaussians to an image.
 
 pub mod adam;
 pub mod composite;
+pub mod densify;
 pub mod fit;
 pub mod ply;
 pub mod reference;

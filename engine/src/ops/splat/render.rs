@@ -460,6 +460,19 @@ impl SplatRenderer {
         Ok((ctx.read_buffer(&mut self.isect_keys, m)?, ctx.read_buffer(&mut self.isect_values, m)?, ctx.read_buffer(&mut self.ranges, 2 * tiles)?))
     }
 
+    /// The projected splats of the last forward pass and the per-splat gradients of
+    /// the last backward pass (`ops::splat::densify` reads them on the GPU).
+    pub(crate) fn splat_buffers(&self) -> (&Buffer, &Buffer) {
+        (&self.splats, &self.splat_grads)
+    }
+
+    /// The projected splats of the last forward pass, for tests and references.
+    #[doc(hidden)]
+    pub fn read_splats(&mut self, count: usize) -> Result<Vec<ProjectedSplat>> {
+        let ctx = self.ctx.clone();
+        ctx.read_buffer(&mut self.splats, count)
+    }
+
     /// The per-splat gradients of the last backward pass (10 per Gaussian), for tests.
     pub fn read_splat_grads(&mut self, count: usize) -> Result<Vec<f32>> {
         let ctx = self.ctx.clone();

@@ -10,6 +10,7 @@
 //! Gaussian with any non-finite parameter is dropped (and counted) before projection.
 
 pub mod composite;
+pub mod densify;
 pub mod layout;
 pub mod project;
 pub mod raster;
