@@ -333,6 +333,10 @@ fn resume_config(steps: u32) -> TrainConfig {
     // apart after 20 steps).
     c.layers = "body+cloth+scene".into();
     c.deterministic = true;
+    // Densified and pruned after steps 4, 8, 12 and 16: two events on each side of the
+    // checkpoint at 10, the statistics of 9-12 spanning it. The thresholds are set so
+    // that every layer clones, splits and prunes at 64 px, and reaches the cap.
+    c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 4, from: 4, until: 16, grad_threshold: 2e-5, min_opacity: 0.09, max_gaussians: 4000, ..Default::default() };
     c
 }
 
@@ -352,8 +356,21 @@ fn resume_continues_from_the_checkpoint() {
     let report = train(&ctx, &seq, model().clone(), &resume_config(20), &split, true, &mut |_| {}).expect("resumed run");
     assert_eq!(report.start_step, 10, "resumed from the wrong step");
     let log = std::fs::read_to_string(split.join("log.jsonl")).unwrap();
-    let steps: Vec<u64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
+    let lines: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let steps: Vec<u64> = lines.iter().filter(|l| l.get("l1").is_some()).map(|l| l["step"].as_u64().unwrap()).collect();
     assert_eq!(steps, vec![0, 5, 9, 10, 15, 19], "the log continues where it stopped");
+    // Every densification grew and pruned the layers, and the two runs did the same.
+    let densified = |log: &str| -> Vec<serde_json::Value> { log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|l| l.get("densify").is_some()).collect() };
+    let events = densified(&log);
+    eprintln!("densification: {}", events.iter().map(|e| e.to_string()).collect::<Vec<_>>().join("\n"));
+    assert_eq!(events.iter().map(|e| e["step"].as_u64().unwrap()).collect::<Vec<_>>(), vec![3, 7, 11, 15], "densified after steps 4, 8, 12, 16");
+    assert_eq!(events, densified(&std::fs::read_to_string(whole.join("log.jsonl")).unwrap()), "the resumed run densified as the uninterrupted one");
+    for layer in ["body", "cloth", "scene"] {
+        let total = |key: &str| events.iter().map(|e| e["densify"][layer][key].as_u64().unwrap()).sum::<u64>();
+        assert!(total("cloned") > 0 && total("split") > 0 && total("pruned") > 0, "{layer}: cloned {}, split {}, pruned {} over the run", total("cloned"), total("split"), total("pruned"));
+    }
+    // After step 12 the body is at its cap; the checkpoint holds its count.
+    assert_eq!(events[2]["densify"]["body"]["after"], 4000, "the cap holds");
     // The same frames and backgrounds are drawn from (seed, step), and the
     // deterministic mode adds gradients in fixed point: the resumed model is the
     // uninterrupted one, bit for bit.
@@ -364,8 +381,8 @@ fn resume_continues_from_the_checkpoint() {
     assert_eq!(shape(&whole), shape(&split), "model files of different layouts");
     // The refined poses are part of the checkpoint: every frame's Adam count (and so
     // every correction) continues where it stopped.
-    // (The scene layer's lengths, for the checked read: 560 points at SH degree 0.)
-    let scene = Some([3 * 560, 3 * 560, 4 * 560, 560, 3 * 560]);
+    // (The scene layer's SH degree, for the checked read.)
+    let scene = Some(0);
     let pose_steps = |dir: &std::path::Path| checkpoint::read(&dir.join("model.npz"), &[], scene).expect("model").poses.expect("refined poses saved").steps;
     assert_eq!(pose_steps(&whole), pose_steps(&split), "per-frame pose refinement steps after resume");
     assert_eq!(pose_steps(&whole).iter().sum::<u32>(), 20, "one pose step per training step");
@@ -393,10 +410,10 @@ fn resume_continues_from_the_checkpoint() {
     std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
     let err = train(&ctx, &seq, model().clone(), &resume_config(30), &split, true, &mut |_| {}).err().expect("truncated checkpoint refused");
     assert!(err.contains("checkpoint.npz"), "{err}");
-    // A checkpoint of another model (a different Gaussian count) is refused, naming the array.
+    // A checkpoint of another model (a different triplane) is refused, naming the array.
     std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
-    other.decimate = 4;
+    other.body.triplane_resolution = 16;
     let err = train(&ctx, &seq, model().clone(), &other, &split, true, &mut |_| {}).err().expect("other model refused");
     assert!(err.contains("checkpoint.npz") && err.contains("body."), "{err}");
     let state = checkpoint::read(&whole.join("model.npz"), &[], scene).expect("header-only read");

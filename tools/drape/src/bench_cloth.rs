@@ -203,6 +203,7 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
                         Progress::Fit { layer, step, total, .. } => eprint!("\r  fitting {layer} skinning weights {step:>5}/{total}   "),
                         Progress::Step { step, total, psnr, it_per_s, .. } => eprint!("\r  step {step:>6}/{total}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
                         Progress::Simulate { done, total } => eprint!("\r  simulating the garments {done:>4}/{total}   "),
+                        Progress::Densify { .. } => {}
                         Progress::Eval { done, total } => eprint!("\r  evaluating {}/{total}   ", done + 1),
                     }
                     let _ = std::io::stderr().flush();

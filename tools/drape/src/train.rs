@@ -215,6 +215,10 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
             Progress::Simulate { done, total } => eprint!("\rsimulating the garments through the motion {done:>4}/{total}   "),
+            Progress::Densify { step, counts } => {
+                let c: Vec<String> = counts.iter().map(|(name, before, after)| format!("{name} {before} -> {after}")).collect();
+                eprintln!("\rdensified after step {step}: {}            ", c.join(", "));
+            }
             Progress::Eval { done, total } => {
                 if done == 0 && last_eval != 0 {
                     eprintln!();

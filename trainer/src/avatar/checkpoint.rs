@@ -12,16 +12,24 @@
 //!   (per linear layer W out×in, then b; `ops::nn`);
 //! - `L.adam.G.m`, `L.adam.G.v` (f32) and `L.adam.G.step` (u32) for each Adam group G
 //!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`);
+//! - `L.weight_targets` (n×24: the skinning targets), `L.screen_stats` (n×3: the
+//!   densification statistics since the last densification, `ops::splat::densify`) and
+//!   `L.edges` (u32, E×2: the ARAP graph between the layer's Gaussians; E may be 0).
+//!   Files written before densification existed lack them; they load into a model of
+//!   the same Gaussian count, keeping its own targets and graph and zero statistics.
 //! - with a scene layer: `scene.means` (n×3), `scene.log_scales` (n×3), `scene.quats`
 //!   (n×4), `scene.opacity_logits` (n), `scene.sh` (n×K×3, K = (degree + 1)²), and
-//!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them;
+//!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them; and
+//!   `scene.screen_stats` (n×3, optional as the layers' are);
 //! - with pose refinement (optional: a file without it loads, with no corrections):
 //!   `poses.frames` (u32, F: the training frames' numbers), `poses.delta` (f64,
 //!   F×75: root rotation, 23 joints' axis-angles, translation, added to the data's),
 //!   `poses.adam.m`, `poses.adam.v` (f64, F×75) and `poses.adam.step` (u32, F).
 //!
-//! Loading checks every array's presence, dtype and shape against the model it is
-//! loaded into and names the file and array on a mismatch.
+//! A layer's Gaussian count n is the file's (densification changes it): loading checks
+//! that every per-Gaussian array agrees with `L.means`, and every other array's
+//! presence, dtype and shape against the model it is loaded into, and names the file
+//! and array on a mismatch.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -57,6 +65,19 @@ pub struct LayerState {
     pub deformation: Vec<f32>,
     /// By group name, in [`ADAM_GROUPS`] order.
     pub adam: Vec<AdamState>,
+    /// The skinning targets (n×24); None from a file written before they were saved.
+    pub weight_targets: Option<Vec<f32>>,
+    /// Densification statistics (n×3); None: zero.
+    pub screen_stats: Option<Vec<f32>>,
+    /// The ARAP graph between the layer's Gaussians; None: the model's own.
+    pub edges: Option<Vec<[u32; 2]>>,
+}
+
+impl LayerState {
+    /// Gaussians in the state.
+    pub fn count(&self) -> usize {
+        self.means.len() / 3
+    }
 }
 
 /// The Adam groups of a layer, in file order.
@@ -80,6 +101,10 @@ fn u32_array(v: u32) -> Array {
     Array::new(Dtype::U32, vec![1], vec![f64::from(v)])
 }
 
+fn edge_array(edges: &[[u32; 2]]) -> Array {
+    Array::new(Dtype::U32, vec![edges.len(), 2], edges.iter().flatten().map(|&v| f64::from(v)).collect())
+}
+
 /// Writes `state` to `path` atomically (temporary file, then rename).
 pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
     let mut a = BTreeMap::new();
@@ -101,6 +126,15 @@ pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
             a.insert(format!("{name}.adam.{g}.v"), f32_array(vec![s.v.len()], &s.v));
             a.insert(format!("{name}.adam.{g}.step"), u32_array(s.step));
         }
+        if let Some(w) = &l.weight_targets {
+            a.insert(format!("{name}.weight_targets"), f32_array(vec![n, 24], w));
+        }
+        if let Some(st) = &l.screen_stats {
+            a.insert(format!("{name}.screen_stats"), f32_array(vec![n, 3], st));
+        }
+        if let Some(e) = &l.edges {
+            a.insert(format!("{name}.edges"), edge_array(e));
+        }
     }
     if let Some(sc) = &state.scene {
         let n = sc.params[3].len();
@@ -114,6 +148,9 @@ pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
             a.insert(format!("scene.adam.{name}.m"), f32_array(vec![ad.m.len()], &ad.m));
             a.insert(format!("scene.adam.{name}.v"), f32_array(vec![ad.v.len()], &ad.v));
             a.insert(format!("scene.adam.{name}.step"), u32_array(ad.step));
+        }
+        if let Some(st) = &sc.screen_stats {
+            a.insert("scene.screen_stats".into(), f32_array(vec![n, 3], st));
         }
     }
     if let Some(p) = &state.poses {
@@ -155,20 +192,21 @@ fn stall_if_asked(tmp: &Path) {
     }
 }
 
-/// What a layer of the model being loaded into expects: (name, Gaussians, triplane
-/// resolution and channels, decoder parameter counts, Adam group lengths).
+/// What a layer of the model being loaded into expects: its name, triplane resolution
+/// and channels, and decoder parameter counts. Its Gaussian count is the file's;
+/// `count` (the model's own) only decides whether the file must carry the layer's
+/// skinning targets (a file of another count, made by densification, must).
 #[derive(Clone, Debug, PartialEq)]
 pub struct LayerShape {
     pub name: String,
     pub count: usize,
     pub triplane_size: (u32, u32),
     pub decoders: [usize; 3],
-    pub adam: [usize; 5],
 }
 
-/// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's
-/// parameter lengths (the model it is loaded into).
-pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Result<ModelState, String> {
+/// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's SH
+/// degree (the model it is loaded into).
+pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) -> Result<ModelState, String> {
     let file = path.display().to_string();
     let a = read_npz(path).map_err(|e| e.to_string())?;
     let get = |key: &str, dtype: Dtype, len: usize| -> Result<Vec<f32>, String> {
@@ -187,12 +225,23 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Re
     }
     let step = get("step", Dtype::U32, 1)?[0] as u32;
     let mut layers = Vec::new();
+    // The Gaussian count of a per-Gaussian array of `width` floats each: the file's.
+    let count_of = |key: &str, width: usize| -> Result<usize, String> {
+        let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
+        if arr.data.is_empty() || arr.data.len() % width != 0 {
+            return Err(format!("{file}: array '{key}' has {} values, not a positive multiple of {width}", arr.data.len()));
+        }
+        Ok(arr.data.len() / width)
+    };
+    let optional = |key: &str, len: usize| -> Result<Option<Vec<f32>>, String> { if a.contains_key(key) { get(key, Dtype::F32, len).map(Some) } else { Ok(None) } };
     for s in shapes {
-        let (n, name) = (s.count, &s.name);
+        let name = &s.name;
+        let n = count_of(&format!("{name}.means"), 3)?;
         let (r, c) = (s.triplane_size.0 as usize, s.triplane_size.1 as usize);
         let bx = get(&format!("{name}.triplane_box"), Dtype::F32, 6)?;
+        let adam_lens = [3 * n, 3 * r * r * c, s.decoders[0], s.decoders[1], s.decoders[2]];
         let mut adam = Vec::new();
-        for (g, &len) in ADAM_GROUPS.iter().zip(&s.adam) {
+        for (g, &len) in ADAM_GROUPS.iter().zip(&adam_lens) {
             adam.push(AdamState {
                 m: get(&format!("{name}.adam.{g}.m"), Dtype::F32, len)?,
                 v: get(&format!("{name}.adam.{g}.v"), Dtype::F32, len)?,
@@ -212,17 +261,38 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Re
                 geometry: get(&format!("{name}.geometry"), Dtype::F32, s.decoders[1])?,
                 deformation: get(&format!("{name}.deformation"), Dtype::F32, s.decoders[2])?,
                 adam,
+                weight_targets: match optional(&format!("{name}.weight_targets"), 24 * n)? {
+                    None if n != s.count => return Err(format!("{file}: layer '{name}' has {n} Gaussians but no array '{name}.weight_targets' (this model has {}; a checkpoint of another model?)", s.count)),
+                    w => w,
+                },
+                screen_stats: optional(&format!("{name}.screen_stats"), 3 * n)?,
+                edges: match a.get(&format!("{name}.edges")) {
+                    None => None,
+                    Some(arr) => {
+                        let key = format!("{name}.edges");
+                        if arr.dtype != Dtype::U32 || arr.data.len() % 2 != 0 {
+                            return Err(format!("{file}: array '{key}' is {:?} of shape {:?}, expected U32 of shape [E, 2]", arr.dtype, arr.shape));
+                        }
+                        if let Some(&bad) = arr.data.iter().find(|&&v| v as usize >= n) {
+                            return Err(format!("{file}: array '{key}' names Gaussian {bad}, but the layer has {n}"));
+                        }
+                        Some(arr.data.chunks_exact(2).map(|e| [e[0] as u32, e[1] as u32]).collect())
+                    }
+                },
             },
         ));
     }
-    let scene = match scene {
+    let scene = match scene_sh_degree {
         None => {
             if a.contains_key("scene.means") {
                 return Err(format!("{file}: the file has a scene layer, but this model has none (trained with other --layers?)"));
             }
             None
         }
-        Some(lens) => {
+        Some(degree) => {
+            let n = count_of("scene.opacity_logits", 1)?;
+            let k = drape_shared::splat::layout::sh_coeffs(degree);
+            let lens = [3 * n, 3 * n, 4 * n, n, 3 * k * n];
             let mut params = Vec::new();
             let mut adam = Vec::new();
             for (name, len) in SCENE_PARAMS.iter().zip(lens) {
@@ -233,7 +303,7 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene: Option<[usize; 5]>) -> Re
                     step: get(&format!("scene.adam.{name}.step"), Dtype::U32, 1)?[0] as u32,
                 });
             }
-            Some(SceneState { params, adam })
+            Some(SceneState { params, adam, screen_stats: optional("scene.screen_stats", 3 * n)? })
         }
     };
     let poses = match a.get("poses.frames") {

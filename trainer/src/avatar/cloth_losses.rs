@@ -68,7 +68,8 @@ pub struct ClothLosses {
 }
 
 impl ClothLosses {
-    pub fn new(ctx: &Context, cloth: &HumanLayer, edges: &[[u32; 2]], garments: GarmentFrames, weights: ClothLossWeights, width: u32, height: u32) -> Result<Self> {
+    /// The losses of the layer `cloth` (its ARAP graph is `cloth.edges`).
+    pub fn new(ctx: &Context, cloth: &HumanLayer, garments: GarmentFrames, weights: ClothLossWeights, width: u32, height: u32) -> Result<Self> {
         let pixels = width * height;
         let b = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))));
         let zeros = b("cloth mask zeros", 3 * pixels)?;
@@ -81,7 +82,7 @@ impl ClothLosses {
             weights,
             count: cloth.count,
             chamfer: Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?,
-            arap: Arap::new(ctx, cloth.count, edges)?,
+            arap: Arap::new(ctx, cloth.count, &cloth.edges)?,
             target_points: b("cloth target points", 3 * garments.vertices as u32)?,
             target_count: 0,
             renderer: SplatRenderer::new(ctx, width, height, cloth.count as usize)?,
@@ -95,6 +96,19 @@ impl ClothLosses {
             has_mask: false,
             mask_in_composite: false,
         })
+    }
+
+    /// Re-allocates what depends on the cloth layer's Gaussians (after densification
+    /// changed them): the Chamfer and ARAP scratch, the mask pass; the next
+    /// [`set_frame`](Self::set_frame) uploads the targets again.
+    pub fn resize(&mut self, ctx: &Context, cloth: &HumanLayer) -> Result<()> {
+        let (width, height) = self.renderer.size();
+        self.count = cloth.count;
+        self.chamfer = Chamfer::new(ctx, cloth.count, self.garments.vertices.div_ceil(self.weights.target_stride.max(1) as usize) as u32)?;
+        self.arap = Arap::new(ctx, cloth.count, &cloth.edges)?;
+        self.renderer = SplatRenderer::new(ctx, width, height, cloth.count as usize)?;
+        self.mask_grads = GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.posed.sh_degree)?;
+        Ok(())
     }
 
     /// Uploads the frame's targets: its simulated garments and its garment mask.

@@ -18,6 +18,7 @@
 //! one pass after another; the single-submission overlapped frame and the fused
 //! rasterizer of the compositing issue are not built.
 
+use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
@@ -78,6 +79,13 @@ fn params(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
         Source::Layer(k) => &avatar.layers[k].posed,
         Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").params,
+    }
+}
+
+fn screen_stats(avatar: &Avatar, s: Source) -> &Buffer {
+    match s {
+        Source::Layer(k) => &avatar.layers[k].screen_stats,
+        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").screen_stats,
     }
 }
 
@@ -296,6 +304,34 @@ impl AvatarRenderer {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Records the addition of the last step into every layer's densification
+    /// statistics (`ops::splat::densify`), from the pass that draws the layer in colour:
+    /// the base pass for the body and the scene, the cloth pass for the cloth (the
+    /// matte's gradients are left out); one pass for everything without compositing.
+    pub fn record_screen_stats<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
+        match &self.inner {
+            Inner::Single(r) => {
+                let mut first = 0;
+                for l in &avatar.layers {
+                    record_screen_stats(rec, r, first, l.count, &l.screen_stats, 0)?;
+                    first += l.count;
+                }
+                if let Some(s) = &avatar.scene {
+                    record_screen_stats(rec, r, first, s.count, &s.screen_stats, 0)?;
+                }
+            }
+            Inner::ThreePass(t) => {
+                for p in &t.base_parts {
+                    record_screen_stats(rec, &t.base_renderer, p.first, p.count, screen_stats(avatar, p.source), 0)?;
+                }
+                let cloth = &avatar.layers[t.cloth];
+                record_screen_stats(rec, &t.cloth_renderer, 0, cloth.count, &cloth.screen_stats, 0)?;
+            }
+        }
+        rec.barrier();
         Ok(())
     }
 

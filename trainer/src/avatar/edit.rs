@@ -94,7 +94,8 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
                 return Err(format!("{}: the model has no cloth layer to swap in", other.dir.display()));
             };
             let mine = &state.layers[cloth_index].1;
-            let shape = |l: &checkpoint::LayerState| (l.means.len() / 3, l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
+            // The Gaussian counts may differ (densification); the networks may not.
+            let shape = |l: &checkpoint::LayerState| (l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
             if shape(mine) != shape(&cloth) {
                 return Err(format!(
                     "{}: its cloth layer ({} Gaussians, triplane {:?}, decoders {}/{}/{} parameters) differs in shape from {}'s ({} Gaussians, triplane {:?}, decoders {}/{}/{}): swap needs runs made with the same garments and preset",

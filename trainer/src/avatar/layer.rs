@@ -18,8 +18,9 @@ use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::deform::{self, DeformGrads, DeformInputs};
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Mlp, MlpDesc};
+use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
 use drape_engine::ops::splat::render::GaussianBuffers;
-use drape_engine::ops::splat::scene::GaussianCloud;
+use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::recorder::flat_grid;
 use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
@@ -103,6 +104,14 @@ pub struct HumanLayer {
     pub groups: LayerGroups,
     /// How the triplane's backward accumulates ([`set_accumulation`](Self::set_accumulation)).
     accumulation: Accumulation,
+    /// Densification statistics since the last densification (`ops::splat::densify`).
+    pub screen_stats: Buffer,
+    /// The mesh edges between the layer's Gaussians (the cloth's ARAP graph; empty for
+    /// the body).
+    pub edges: Vec<[u32; 2]>,
+    /// The run's steps and the layer's seed (to rebuild it at another size).
+    steps: u32,
+    seed: u64,
 }
 
 /// The layer's Adam groups.
@@ -208,6 +217,10 @@ impl HumanLayer {
             transform_partials: f32_buffer(ctx, &format!("{name} transform gradient partials"), deform::transform_partials_len(n as u32))?,
             groups,
             accumulation: Accumulation::Auto,
+            screen_stats: ctx.upload(&format!("{name} screen stats"), &vec![0.0f32; SCREEN_STATS_FLOATS * n.max(1)])?,
+            edges: Vec::new(),
+            steps,
+            seed,
         })
     }
 
@@ -397,13 +410,11 @@ impl HumanLayer {
 
     /// What a file must hold to be loaded into this layer.
     pub fn shape(&self) -> LayerShape {
-        let g = &self.groups;
         LayerShape {
             name: self.name.clone(),
             count: self.count as usize,
             triplane_size: (self.triplane.desc.resolution, self.triplane.desc.channels),
             decoders: [self.appearance.param_count(), self.geometry.param_count(), self.deformation.param_count()],
-            adam: [g.position.len, g.triplane.len, g.appearance.len, g.geometry.len, g.deformation.len],
         }
     }
 
@@ -434,11 +445,36 @@ impl HumanLayer {
             geometry: ctx.read_buffer(&mut self.geometry.params, sizes[1])?,
             deformation: ctx.read_buffer(&mut self.deformation.params, sizes[2])?,
             adam,
+            weight_targets: Some(ctx.read_buffer(&mut self.weight_targets, NUM_JOINTS * n)?),
+            screen_stats: Some(ctx.read_buffer(&mut self.screen_stats, SCREEN_STATS_FLOATS * n)?),
+            edges: Some(self.edges.clone()),
         })
     }
 
-    /// Loads a state read by `checkpoint::read` against [`shape`](Self::shape).
+    /// Loads a state read by `checkpoint::read` against [`shape`](Self::shape). A state
+    /// of another Gaussian count (densified) rebuilds the layer at that count first;
+    /// such a state carries its skinning targets (`checkpoint::read` checks).
     pub fn restore(&mut self, ctx: &Context, s: &LayerState) -> Result<()> {
+        let n = s.count();
+        if n != self.count as usize {
+            let k = sh_coeffs(self.config.sh_degree);
+            let cloud = GaussianCloud { sh_degree: self.config.sh_degree, means: s.means.clone(), log_scales: s.log_scales.clone(), quats: s.quats.clone(), opacity_logits: vec![0.0; n], sh: vec![0.0; 3 * k * n], layers: vec![Layer::Body; n] };
+            let weights = s.weight_targets.as_deref().expect("checkpoint::read requires the skinning targets of a layer of another count");
+            let mut fresh = Self::new(ctx, &self.name, &cloud, weights, &self.config, self.steps, self.seed)?;
+            fresh.set_accumulation(ctx, self.accumulation)?;
+            fresh.edges = std::mem::take(&mut self.edges);
+            *self = fresh;
+        }
+        if let Some(w) = &s.weight_targets {
+            ctx.write_buffer(&mut self.weight_targets, w)?;
+        }
+        match &s.screen_stats {
+            Some(st) => ctx.write_buffer(&mut self.screen_stats, st)?,
+            None => ctx.write_buffer(&mut self.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?,
+        }
+        if let Some(e) = &s.edges {
+            self.edges = e.clone();
+        }
         ctx.write_buffer(&mut self.means, &s.means)?;
         ctx.write_buffer(&mut self.quats, &s.quats)?;
         ctx.write_buffer(&mut self.log_scales, &s.log_scales)?;

@@ -2,7 +2,8 @@
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
 //! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), the cloth
 //! layer's simulated targets and edge graph (`cloth_target`), the scene layer
-//! (`scene`), per-frame pose refinement (`pose_refine`), training (`train`), held-out evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
+//! (`scene`), per-frame pose refinement (`pose_refine`), densification and pruning
+//! (`densify`), training (`train`), held-out evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
 //! opened again (`run`) to animate (`animate`) or edit (`edit`).
 
 pub mod animate;
@@ -10,6 +11,7 @@ pub mod checkpoint;
 pub mod cloth_losses;
 pub mod cloth_target;
 pub mod composite;
+pub mod densify;
 pub mod edit;
 pub mod eval;
 pub mod fid;

@@ -143,7 +143,9 @@ impl Avatar {
     pub fn new(ctx: &Context, inits: &[LayerInit], configs: &[LayerConfig], lbs_weights: &[f32], scene: Option<SceneLayer>, steps: u32, seed: u64) -> Result<Self> {
         let mut layers = Vec::new();
         for (k, (init, config)) in inits.iter().zip(configs).enumerate() {
-            layers.push(HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?);
+            let mut layer = HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?;
+            layer.edges = init.edges.clone();
+            layers.push(layer);
         }
         let total: usize = layers.iter().map(|l| l.count as usize).sum::<usize>() + scene.as_ref().map_or(0, |s| s.count as usize);
         // Each layer keeps its own SH degree; the posed cloud that the layers are
@@ -297,9 +299,25 @@ impl Avatar {
         self.layers.iter().map(|l| l.shape()).collect()
     }
 
-    /// The scene layer's parameter lengths (for reading a checkpoint), if it has one.
-    pub fn scene_lens(&self) -> Option<[usize; 5]> {
-        self.scene.as_ref().map(SceneLayer::lens)
+    /// The scene layer's SH degree (for reading a checkpoint), if it has one.
+    pub fn scene_sh_degree(&self) -> Option<u32> {
+        self.scene.as_ref().map(|s| s.params.sh_degree)
+    }
+
+    /// Gaussians of every layer together.
+    pub fn total_count(&self) -> u32 {
+        self.layers.iter().map(|l| l.count).sum::<u32>() + self.scene.as_ref().map_or(0, |s| s.count)
+    }
+
+    /// Re-allocates the posed cloud after a layer changed its count (densification).
+    pub fn resize_posed(&mut self, ctx: &Context) -> Result<()> {
+        let total = self.total_count() as usize;
+        if total != self.posed.count as usize {
+            let sh = self.posed.sh_degree;
+            self.posed = GaussianBuffers::new(ctx, "avatar posed", total, sh)?;
+            self.posed_grads = GaussianBuffers::new(ctx, "avatar posed grads", total, sh)?;
+        }
+        Ok(())
     }
 
     pub fn state(&mut self, ctx: &Context, step: u32) -> Result<ModelState> {
@@ -321,7 +339,7 @@ impl Avatar {
         if let (Some(s), Some(st)) = (&mut self.scene, &state.scene) {
             s.restore(ctx, st)?;
         }
-        Ok(())
+        self.resize_posed(ctx)
     }
 
     /// The posed cloud of the last forward pass, read back, with each Gaussian's layer.

@@ -113,8 +113,8 @@ impl OpenRun {
         if layers.scene && crate::avatar::train::scene_points(&seq)?.is_none() {
             return Err(format!("{}: the model has a scene layer, but {} has no scene points to build it on (another sequence?)", model_path.display(), seq.dir.display()));
         }
-        let (mut avatar, _) = build_avatar(ctx, &rig, &seq, &config, layers)?;
-        let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_lens())?;
+        let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;
+        let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         gpu(avatar.restore(ctx, &state))?;
         let renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
         Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })

@@ -8,7 +8,8 @@
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
-use drape_engine::{Context, Recording, Result};
+use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
+use drape_engine::{Buffer, Context, Recording, Result};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 
@@ -87,6 +88,19 @@ pub struct SceneLayer {
     pub params: GaussianBuffers,
     pub grads: GaussianBuffers,
     pub groups: Vec<AdamGroup>,
+    /// Densification statistics since the last densification (`ops::splat::densify`).
+    pub screen_stats: Buffer,
+    /// The largest distance of an initial point from their centroid (3DGS's scene
+    /// extent: it scales the position rate and the densification sizes).
+    pub extent: f32,
+    config: SceneConfig,
+    steps: u32,
+}
+
+/// The scene's parameters of `s` as a cloud (to rebuild the layer at its size).
+fn cloud_of(s: &SceneState, sh_degree: u32) -> GaussianCloud {
+    let n = s.params[3].len();
+    GaussianCloud { sh_degree, means: s.params[0].clone(), log_scales: s.params[1].clone(), quats: s.params[2].clone(), opacity_logits: s.params[3].clone(), sh: s.params[4].clone(), layers: vec![Layer::Scene; n] }
 }
 
 impl SceneLayer {
@@ -105,7 +119,8 @@ impl SceneLayer {
         for ((name, len), schedule) in SCENE_PARAMS.iter().zip(lens).zip(schedules) {
             groups.push(AdamGroup::new(ctx, &format!("scene {name}"), len, schedule)?);
         }
-        Ok(Self { count: params.count, params, grads, groups })
+        let screen_stats = ctx.upload("scene screen stats", &vec![0.0f32; SCREEN_STATS_FLOATS * cloud.len().max(1)])?;
+        Ok(Self { count: params.count, params, grads, groups, screen_stats, extent, config: config.clone(), steps })
     }
 
     /// Records one Adam step of every group (independent passes).
@@ -134,10 +149,20 @@ impl SceneLayer {
             let (m, v) = g.read_moments(ctx)?;
             adam.push(AdamState { m, v, step });
         }
-        Ok(SceneState { params, adam })
+        let screen_stats = Some(ctx.read_buffer(&mut self.screen_stats, SCREEN_STATS_FLOATS * self.count as usize)?);
+        Ok(SceneState { params, adam, screen_stats })
     }
 
+    /// Loads `s` (of any Gaussian count: the layer is rebuilt at the state's size
+    /// where it differs, as after densification).
     pub fn restore(&mut self, ctx: &Context, s: &SceneState) -> Result<()> {
+        if s.params[3].len() != self.count as usize {
+            *self = Self::new(ctx, &cloud_of(s, self.params.sh_degree), self.extent, &self.config, self.steps)?;
+        }
+        match &s.screen_stats {
+            Some(st) => ctx.write_buffer(&mut self.screen_stats, st)?,
+            None => ctx.write_buffer(&mut self.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * self.count as usize])?,
+        }
         for (b, p) in [&mut self.params.means, &mut self.params.log_scales, &mut self.params.quats, &mut self.params.opacity_logits, &mut self.params.sh].into_iter().zip(&s.params) {
             ctx.write_buffer(b, p)?;
         }
@@ -154,4 +179,6 @@ impl SceneLayer {
 pub struct SceneState {
     pub params: Vec<Vec<f32>>,
     pub adam: Vec<AdamState>,
+    /// Densification statistics (n×3); None: zero.
+    pub screen_stats: Option<Vec<f32>>,
 }

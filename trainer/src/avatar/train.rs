@@ -35,6 +35,7 @@ use crate::garment::GarmentFit;
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::avatar::composite::{AvatarRenderer, Compositing};
+use crate::avatar::densify::{self, DensifyConfig};
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::avatar::pose_refine::PoseRefiner;
@@ -128,6 +129,11 @@ pub struct TrainConfig {
     /// Missing from a config file: tight, what earlier runs used.
     #[serde(default = "tight_fit")]
     pub cloth_fit: String,
+    /// Densification and pruning of every layer (`densify`; HUGS's schedule and
+    /// thresholds in the paper preset). Missing from a config file: off, what runs made
+    /// before the key existed did.
+    #[serde(default = "DensifyConfig::off")]
+    pub densify: DensifyConfig,
 }
 
 fn tight_fit() -> String {
@@ -190,6 +196,9 @@ impl TrainConfig {
             lr_translation: hugs_pose_rate(),
             deterministic: false,
             cloth_fit: tight_fit(),
+            // HUGS densifies every 600 steps from 15% to 75% of its 20k; here every
+            // 100 from 25% to 75% of 400 (three times), each layer at most 4x its start.
+            densify: DensifyConfig { every: 100, from: 100, until: 300, max_gaussians: 8192, ..DensifyConfig::default() },
         }
     }
 
@@ -209,6 +218,7 @@ impl TrainConfig {
             fit_lr: 1e-3,
             log_every: 100,
             checkpoint_every: 1000,
+            densify: DensifyConfig::default(),
             ..Self::quick()
         }
     }
@@ -259,6 +269,7 @@ impl TrainConfig {
             }
         }
         LpipsNet::parse(&self.lpips_net).map_err(|e| format!("lpips_net: {e}"))?;
+        self.densify.validate()?;
         Compositing::parse(&self.compositing).map_err(|e| format!("compositing: {e}"))?;
         if !(self.gm_sigma.is_finite() && self.gm_sigma > 0.0) {
             return Err(format!("gm_sigma must be a finite length > 0, got {}", self.gm_sigma));
@@ -357,6 +368,8 @@ pub enum Progress {
     Eval { done: usize, total: usize },
     /// Simulating the garments through the sequence (frames, settling ones included).
     Simulate { done: usize, total: usize },
+    /// The layers were densified and pruned after `step` steps: (layer, before, after).
+    Densify { step: u32, counts: Vec<(String, usize, usize)> },
 }
 
 /// The default body (the project's procedural one) or an SMPL file.
@@ -407,8 +420,8 @@ pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> Result<Layers, Str
     Ok(Layers { cloth: choice.cloth.unwrap_or_else(|| seq.frames.iter().any(|f| f.garment_masks.is_some())), scene })
 }
 
-/// The avatar the data requires, and the cloth layer's edge graph (empty without one).
-pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<(Avatar, Vec<[u32; 2]>), String> {
+/// The avatar the data requires.
+pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<Avatar, String> {
     let cloth = layers.cloth;
     let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
     let mut configs = vec![config.body.clone()];
@@ -418,7 +431,6 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
         configs.push(config.cloth.clone());
         lbs.push(config.lambda_cloth_lbs);
     }
-    let edges = inits.iter().find(|i| i.name == "cloth").map(|i| i.edges.clone()).unwrap_or_default();
     let scene = match (layers.scene, scene_points(seq)?) {
         (true, Some(colmap)) => {
             let (cloud, extent) = scene_init(&colmap, config.scene.sh_degree, config.scene.max_points);
@@ -430,7 +442,7 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
     if config.deterministic {
         gpu(avatar.set_accumulation(ctx, Accumulation::Deterministic))?;
     }
-    Ok((avatar, edges))
+    Ok(avatar)
 }
 
 /// Times host phases of a step into the context's profile (a no-op without one).
@@ -506,7 +518,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
-    let (mut avatar, cloth_edges) = build_avatar(ctx, &rig, seq, config, choose_layers(seq, config)?)?;
+    let mut avatar = build_avatar(ctx, &rig, seq, config, choose_layers(seq, config)?)?;
     // With a scene layer the avatar is trained and judged on the whole image; without
     // one, on the person over a background colour.
     let whole_image = avatar.scene.is_some();
@@ -517,7 +529,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
             let garments = cloth_target::simulate_sequence(&rig, config.garment_fit()?, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
             let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
-            Some(gpu(ClothLosses::new(ctx, cloth, &cloth_edges, garments, weights, width, height))?)
+            Some(gpu(ClothLosses::new(ctx, cloth, garments, weights, width, height))?)
         }
         _ => None,
     };
@@ -528,8 +540,13 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let total_fit = config.fit_steps;
     let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
-        let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_lens())?;
+        let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         gpu(avatar.restore(ctx, &state))?;
+        // The checkpoint's layers may have been densified to other counts.
+        renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+        if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
+            gpu(c.resize(ctx, cloth))?;
+        }
         if let (Some(r), Some(p)) = (refiner.as_mut(), state.poses) {
             r.restore(p).map_err(|e| format!("{}: {e}", checkpoint_path.display()))?;
         }
@@ -589,6 +606,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         ctx.start_profile();
     }
     let mut lap = Lap::new(ctx, profiling);
+    // Statistics are gathered from the step after one densification up to the next.
+    let dc = &config.densify;
+    let densifying = |step: u32| dc.every > 0 && step < dc.until.min(config.steps.saturating_sub(1));
     for step in start_step..stop_at {
         lap.reset();
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
@@ -636,6 +656,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             }
             gpu(avatar.record_layers_backward(&mut rec, refiner.is_some()))?;
             gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
+            if densifying(step) {
+                gpu(renderer.record_screen_stats(&mut rec, &avatar))?;
+            }
             gpu(rec.submit_and_wait())?;
         }
         lap.reset();
@@ -716,6 +739,32 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
         lap.host("host.log");
+        if dc.due(step + 1) && step + 1 < config.steps {
+            let mut counts = Vec::new();
+            let mut summaries = serde_json::Map::new();
+            let seed = config.seed ^ u64::from(step + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
+            for (k, l) in avatar.layers.iter_mut().enumerate() {
+                let s = densify::apply_to_layer(ctx, l, dc, ft.log_scale, seed.wrapping_add(k as u64))?;
+                counts.push((l.name.clone(), s.before, s.after));
+                summaries.insert(l.name.clone(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
+            }
+            if let Some(sc) = avatar.scene.as_mut() {
+                let s = densify::apply_to_scene(ctx, sc, dc, seed.wrapping_add(1000))?;
+                counts.push(("scene".into(), s.before, s.after));
+                summaries.insert("scene".into(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
+            }
+            // Everything sized by the layers' counts follows them.
+            gpu(avatar.resize_posed(ctx))?;
+            renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+            if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
+                gpu(c.resize(ctx, cloth))?;
+                c.set_mask_in_composite(renderer.is_three_pass());
+            }
+            let line = serde_json::json!({ "step": step, "densify": summaries });
+            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
+            progress(Progress::Densify { step: step + 1, counts });
+            lap.host("host.densify");
+        }
         if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at {
             save(&mut avatar, &refiner, step + 1, &checkpoint_path)?;
         }

@@ -52,8 +52,8 @@ pub fn accumulate(stats: [f32; 3], splat: &ProjectedSplat, gx: f32, gy: f32, wid
     }
     let nx = gx * 0.5 * width as f32;
     let ny = gy * 0.5 * height as f32;
-    let norm = (nx * nx + ny * ny).sqrt();
-    if !norm.is_finite() {
+    let norm = Float::sqrt(nx * nx + ny * ny);
+    if !Float::is_finite(norm) {
         return stats;
     }
     let radius = screen_radius([splat.conic_a, splat.conic_b, splat.conic_c]);
