@@ -22,6 +22,10 @@ order); the outputs are written there as float64, C-order .npy files. Exit statu
             11-tap Gaussian, sigma 1.5, data range 1, K = (0.01, 0.03)) with the
             window built in float64.
   l1        a, b (same shape) -> loss (1,), ga: F.l1_loss (mean |a - b|).
+  pose_blend pose (24, 3) axis-angles, basis (n, 207, 3), decoded (n, 3), g (n, 3)
+            -> features (207,): (R_j - I) of joints 1-23 by smplx's Rodrigues, offsets
+            (n, 3) = decoded + einsum(basis, features), gbasis: gradient of
+            sum(offsets * g).
 """
 
 import json
@@ -136,6 +140,32 @@ def op_rot6d(d, case):
     save(d, "gr6", grad_or_zeros(r6))
 
 
+def batch_rodrigues(r):
+    """smplx's batch_rodrigues (axis-angle -> rotation matrix), without its 1e-8 guard
+    (the cases have no zero rotations)."""
+    angle = torch.norm(r, dim=1, keepdim=True)
+    k = r / angle
+    cos, sin = torch.cos(angle)[:, :, None], torch.sin(angle)[:, :, None]
+    z = torch.zeros_like(k[:, 0])
+    skew = torch.stack((z, -k[:, 2], k[:, 1], k[:, 2], z, -k[:, 0], -k[:, 1], k[:, 0], z), dim=1).view(-1, 3, 3)
+    eye = torch.eye(3)[None]
+    return eye + sin * skew + (1 - cos) * torch.bmm(skew, skew)
+
+
+def op_pose_blend(d, case):
+    pose = load(d, "pose", (24, 3))
+    basis = load(d, "basis", (None, 207, 3)).requires_grad_(True)
+    n = basis.shape[0]
+    decoded = load(d, "decoded", (n, 3))
+    # SMPL's pose feature: (R_j - I) of joints 1-23, flattened.
+    features = (batch_rodrigues(pose[1:]) - torch.eye(3)[None]).reshape(-1)
+    offsets = decoded + torch.einsum("nka,k->na", basis, features)
+    (offsets * load(d, "g", (n, 3))).sum().backward()
+    save(d, "features", features)
+    save(d, "offsets", offsets)
+    save(d, "gbasis", grad_or_zeros(basis))
+
+
 def gaussian_window(size, sigma):
     """pytorch_msssim's _fspecial_gauss_1d, but in float64 (it builds float32)."""
     coords = torch.arange(size, dtype=torch.float64) - size // 2
@@ -222,7 +252,7 @@ def op_lpips(d, case):
     save(d, "gimg0", grad_or_zeros(a)[0].permute(1, 2, 0))
 
 
-OPS = {"lpips": op_lpips, "mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1, "chamfer": op_chamfer, "arap": op_arap}
+OPS = {"lpips": op_lpips, "mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1, "chamfer": op_chamfer, "arap": op_arap, "pose_blend": op_pose_blend}
 
 
 def main():

@@ -57,6 +57,12 @@ fn runs() -> &'static [PathBuf; 2] {
             c.log_every = 10;
             c.seed = seed;
             c.layers = "body+cloth".into();
+            // Densified twice and with pose-dependent offsets, so that opening a run
+            // (eval, animate, edit) meets layers of counts other than their initial
+            // ones and the pose-blend head.
+            c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 10, from: 10, until: 20, grad_threshold: 2e-5, ..c.densify.clone() };
+            c.body.pose_offsets = true;
+            c.cloth.pose_offsets = true;
             let out = tmp(&format!("run-tools-run{seed}"));
             train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &out, false, &mut |_| {}).expect("training");
             RunInfo::new(data(), None).write(&out).expect("run.json");
@@ -70,7 +76,7 @@ fn runs() -> &'static [PathBuf; 2] {
 fn render_first(ctx: &Context, run: &mut OpenRun) -> (Vec<f32>, Option<Vec<f32>>) {
     let f = run.test_frames()[0].clone();
     let ft = run.rig.frame(&f.body);
-    run.avatar.set_transforms(ctx, &ft.transforms).expect("transforms");
+    run.avatar.set_frame(ctx, &ft).expect("transforms");
     let mut rec = ctx.record("test forward").expect("record");
     run.avatar.record_forward(&mut rec, ft.log_scale).expect("forward");
     rec.submit_and_wait().expect("submit");
@@ -110,6 +116,15 @@ fn eval_reproduces_the_training_metrics_and_writes_its_tables() {
     let run_dir = &runs()[0];
     let mut run = OpenRun::open(&ctx, run_dir, None, None).expect("open");
     assert_eq!(run.step, 30);
+    // The run was densified: its layers hold other counts than they started with.
+    let log = std::fs::read_to_string(run_dir.join("log.jsonl")).expect("log");
+    let grown = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json")).filter(|l| l.get("densify").is_some()).any(|l| l["densify"]["body"]["after"] != l["densify"]["body"]["before"]);
+    assert!(grown, "no densification changed the body's count");
+    // The pose-blend head (the deformation decoder's last: its bias is the last 621
+    // values) started at zero and was trained.
+    let model = drape_trainer::npy::read_npz(&run_dir.join("model.npz")).expect("model");
+    let deformation = &model["body.deformation"].data;
+    assert!(deformation[deformation.len() - 621..].iter().any(|&v| v != 0.0), "the pose-blend head did not move");
     let frames: Vec<_> = run.test_frames().into_iter().cloned().collect();
     let refs: Vec<_> = frames.iter().collect();
     let gt = drape_trainer::avatar::cloth_target::ground_truth_dir(&run.seq.dir);

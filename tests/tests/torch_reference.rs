@@ -386,3 +386,39 @@ fn lpips_matches_the_lpips_package() {
     let e = rel_err(&grad, &get(&dir, "gimg0"), 1e-12);
     assert!(e <= 1e-3, "gradient relative error {e:e} against autograd through the lpips package");
 }
+
+/// The pose-dependent offsets against PyTorch: the rig's pose features against SMPL's
+/// `(R_j − I)` with smplx's Rodrigues formula, and the blend (forward and basis
+/// gradient, the f64 reference the GPU is checked against) against `torch.einsum`.
+#[test]
+fn pose_blend_matches_pytorch() {
+    use drape_engine::ops::deform::{reference_pose_blend_backward, reference_pose_blend_forward, POSE_BLEND_FLOATS};
+    use drape_trainer::avatar::rig::Rig;
+    use drape_trainer::body::procedural::{default_body, BodyOptions};
+    use drape_trainer::dataset::loader::BodyParams;
+    let n = 50;
+    let pose_flat = uniform(72, -0.8, 0.8, 60);
+    let basis = uniform(n * POSE_BLEND_FLOATS, -0.01, 0.01, 61);
+    let decoded = uniform(3 * n, -0.05, 0.05, 62);
+    let g = uniform(3 * n, -1.0, 1.0, 63);
+    let dir = case_dir("torch-cases", "pose_blend");
+    put(&dir, "pose", &[24, 3], &pose_flat);
+    put(&dir, "basis", &[n, 207, 3], &basis);
+    put(&dir, "decoded", &[n, 3], &decoded);
+    put(&dir, "g", &[n, 3], &g);
+    run_torch(&dir, serde_json::json!({ "op": "pose_blend" }));
+    let (tf, to, tg) = (get(&dir, "features"), get(&dir, "offsets"), get(&dir, "gbasis"));
+    let mut pose = [[0.0f64; 3]; 24];
+    for (j, p) in pose.iter_mut().enumerate() {
+        *p = [pose_flat[3 * j], pose_flat[3 * j + 1], pose_flat[3 * j + 2]];
+    }
+    let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
+    let ft = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: [0.0; 3], scale: 1.0 });
+    // f32 features from f64 matrices: rounding only.
+    assert!(rel_err(&to_f64(&ft.pose_features), &tf, 1e-6) <= 1e-6, "pose features differ from SMPL's: {}", rel_err(&to_f64(&ft.pose_features), &tf, 1e-6));
+    // Both in float64: agreement to rounding.
+    let ours = reference_pose_blend_forward(&basis, &tf, &decoded);
+    assert!(rel_err(&ours, &to, 1e-6) <= 1e-12, "offsets differ from PyTorch");
+    let ours_g = reference_pose_blend_backward(&tf, &g);
+    assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-12, "basis gradient differs from PyTorch");
+}

@@ -335,8 +335,9 @@ fn resume_config(steps: u32) -> TrainConfig {
     c.deterministic = true;
     // Densified and pruned after steps 4, 8, 12 and 16: two events on each side of the
     // checkpoint at 10, the statistics of 9-12 spanning it. The thresholds are set so
-    // that every layer clones, splits and prunes at 64 px, and reaches the cap.
-    c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 4, from: 4, until: 16, grad_threshold: 2e-5, min_opacity: 0.09, max_gaussians: 4000, ..Default::default() };
+    // that every layer clones, splits and prunes at 64 px (the size prunes from step 12),
+    // and reaches the cap.
+    c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 4, from: 4, until: 16, grad_threshold: 2e-5, min_opacity: 0.09, size_prune_after: 8, max_gaussians: 4000, ..Default::default() };
     c
 }
 

@@ -4,19 +4,24 @@
 //! backward, with the CPU reference from the same shared functions
 //! (`drape_shared::deform`, which states what happens to the rotation).
 //!
+//! Optionally (a layer's `pose_offsets`), pose-dependent offsets are added to the
+//! decoded offsets first ([`record_pose_blend_forward`]: HUGS's per-Gaussian pose-blend
+//! basis, as SMPL's pose blend shapes).
+//!
 //! The gradient on the frame's 24 transforms (what pose refinement follows) is summed
 //! in two deterministic stages: the backward writes 15 terms per Gaussian,
 //! [`record_transform_grad`] sums them per (chunk of 1,024 Gaussians, joint) on the GPU,
 //! and [`sum_transform_partials`] adds the chunks in order in f64 on the host.
 
-use drape_shared::deform::{deform_bwd, deform_fwd, transform_grad_add, DeformGrad, DeformInput, DeformOutput, DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
+pub use drape_shared::deform::{POSE_BLEND_FLOATS, POSE_FEATURES};
+use drape_shared::deform::{deform_bwd, deform_fwd, pose_blend_basis_grad, pose_blend_offset, transform_grad_add, DeformGrad, DeformInput, DeformOutput, DeformParams, PoseBlendParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
 use drape_shared::real::Real;
 use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 
 use crate::buffer::Buffer;
 use crate::error::Result;
 use crate::kernels::Kernel;
-use crate::recorder::Recording;
+use crate::recorder::{flat_grid, Recording};
 
 /// The per-Gaussian inputs of a deformation, on the GPU (n Gaussians).
 pub struct DeformInputs<'a> {
@@ -204,4 +209,44 @@ pub fn reference_forward<F: Real>(inputs: &HostInputs<F>) -> Vec<DeformOutput<F>
 /// CPU reference of the backward pass.
 pub fn reference_backward<F: Real>(inputs: &HostInputs<F>, upstream: &[DeformOutput<F>]) -> Vec<DeformGrad<F>> {
     (0..inputs.len()).map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i])).collect()
+}
+
+/// Records the pose-dependent offsets (kernel `deform::pose_blend_fwd`, an option of a
+/// layer): `offsets` (n × 3) = `decoded` (the geometry decoder's offsets) + the blend
+/// of each Gaussian's basis (n × [`POSE_BLEND_FLOATS`], the deformation decoder's
+/// pose-blend head) by the frame's pose `features` ([`POSE_FEATURES`]: `R_j − I` of
+/// joints 1-23). The deformation then reads `offsets`.
+pub fn record_pose_blend_forward<'a>(rec: &mut Recording<'a>, basis: &'a Buffer, features: &'a Buffer, decoded: &'a Buffer, offsets: &'a Buffer, count: u32) -> Result<()> {
+    if count == 0 {
+        return Ok(());
+    }
+    let p = PoseBlendParams { count, _pad: [0; 3] };
+    rec.pass("deform.pose_blend_fwd", Kernel::DeformPoseBlendFwd).read(basis).read(features).read(decoded).write(offsets).push(&p).dispatch(flat_grid(count))
+}
+
+/// Records the basis's gradient from the offsets' (kernel `deform::pose_blend_bwd`).
+/// The decoded offsets' gradient is the offsets' itself (they are added), so the
+/// deformation's backward writes it straight into the geometry decoder's head. The
+/// pose features' own dependence on the pose is not differentiated (pose refinement
+/// sees the skinning transforms only).
+pub fn record_pose_blend_backward<'a>(rec: &mut Recording<'a>, features: &'a Buffer, grad_offsets: &'a Buffer, grad_basis: &'a Buffer, count: u32) -> Result<()> {
+    if count == 0 {
+        return Ok(());
+    }
+    let p = PoseBlendParams { count, _pad: [0; 3] };
+    rec.pass("deform.pose_blend_bwd", Kernel::DeformPoseBlendBwd).read(features).read(grad_offsets).write(grad_basis).push(&p).dispatch(flat_grid(count * POSE_BLEND_FLOATS as u32))
+}
+
+/// CPU reference of [`record_pose_blend_forward`].
+pub fn reference_pose_blend_forward<F: Real>(basis: &[F], features: &[F], decoded: &[F]) -> Vec<F> {
+    let n = decoded.len() / 3;
+    (0..n).flat_map(|i| {
+        let o = pose_blend_offset(basis, i, features);
+        [decoded[3 * i] + o[0], decoded[3 * i + 1] + o[1], decoded[3 * i + 2] + o[2]]
+    }).collect()
+}
+
+/// CPU reference of [`record_pose_blend_backward`].
+pub fn reference_pose_blend_backward<F: Real>(features: &[F], grad_offsets: &[F]) -> Vec<F> {
+    (0..grad_offsets.len() / 3 * POSE_BLEND_FLOATS).map(|j| pose_blend_basis_grad(j, features, grad_offsets)).collect()
 }

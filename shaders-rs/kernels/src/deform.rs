@@ -169,3 +169,45 @@ pub fn deform_transform_grad(
         k += 1;
     }
 }
+
+/// Pose-dependent offsets (`drape_shared::deform::pose_blend_offset`): `offsets` n×3 =
+/// `decoded` n×3 (the geometry decoder's offsets) + the pose blend of `basis` n×621 by
+/// `features` 207.
+#[spirv(compute(threads(256)))]
+pub fn pose_blend_fwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &drape_shared::deform::PoseBlendParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] basis: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] features: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] decoded: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] offsets: &mut [f32],
+) {
+    let i = crate::flat_index(id, groups);
+    if i >= p.count {
+        return;
+    }
+    let i = i as usize;
+    let o = drape_shared::deform::pose_blend_offset(basis, i, features);
+    offsets[3 * i] = decoded[3 * i] + o[0];
+    offsets[3 * i + 1] = decoded[3 * i + 1] + o[1];
+    offsets[3 * i + 2] = decoded[3 * i + 2] + o[2];
+}
+
+/// The basis's gradient (`drape_shared::deform::pose_blend_basis_grad`): one invocation
+/// per float of `grad_basis` n×621, from `features` 207 and `grad_offsets` n×3.
+#[spirv(compute(threads(256)))]
+pub fn pose_blend_bwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &drape_shared::deform::PoseBlendParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] features: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grad_offsets: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_basis: &mut [f32],
+) {
+    let j = crate::flat_index(id, groups);
+    if j >= p.count * drape_shared::deform::POSE_BLEND_FLOATS as u32 {
+        return;
+    }
+    grad_basis[j as usize] = drape_shared::deform::pose_blend_basis_grad(j as usize, features, grad_offsets);
+}

@@ -350,3 +350,43 @@ pub fn deform_bwd<F: Real>(g: &DeformInput<F>, transforms: &[F], up: &DeformOutp
     ];
     DeformGrad { mean: gx, offset: gx, rot6d: rot6d_to_matrix_bwd(g.rot6d, &g6), log_scale_delta: up.log_scale, weights, transform_terms }
 }
+
+/// Pose features of the pose-dependent offsets: `R_j − I` of joints 1-23, each 3x3
+/// row-major (SMPL's `pose_feature`, 23 × 9).
+pub const POSE_FEATURES: usize = 207;
+/// Floats of one Gaussian's pose-blend basis: 207 × 3, feature-major (`B[3k + a]`).
+pub const POSE_BLEND_FLOATS: usize = 3 * POSE_FEATURES;
+
+/// Push constants of `deform::pose_blend_fwd` (`count` Gaussians) and
+/// `deform::pose_blend_bwd` (`count` Gaussians, one invocation per basis float).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct PoseBlendParams {
+    pub count: u32,
+    pub _pad: [u32; 3],
+}
+
+/// The pose-dependent offset of Gaussian `i` (HUGS's per-Gaussian `posedirs`, as
+/// SMPL's pose blend shapes): `Σ_k B_i[k] p_k`, a 3-vector per pose feature `p_k`.
+pub fn pose_blend_offset<F: Real>(basis: &[F], i: usize, features: &[F]) -> [F; 3] {
+    let mut out = [F::zero(); 3];
+    let base = i * POSE_BLEND_FLOATS;
+    let mut k = 0;
+    while k < POSE_FEATURES {
+        let p = features[k];
+        out[0] += basis[base + 3 * k] * p;
+        out[1] += basis[base + 3 * k + 1] * p;
+        out[2] += basis[base + 3 * k + 2] * p;
+        k += 1;
+    }
+    out
+}
+
+/// The gradient on basis float `j` of all Gaussians' (`j = i · 621 + 3k + a`) from the
+/// offsets' gradient: `∂L/∂B_i[k][a] = p_k · ∂L/∂o_i[a]` (the offset is linear in it).
+pub fn pose_blend_basis_grad<F: Real>(j: usize, features: &[F], grad_offsets: &[F]) -> F {
+    let i = j / POSE_BLEND_FLOATS;
+    let r = j % POSE_BLEND_FLOATS;
+    features[r / 3] * grad_offsets[3 * i + r % 3]
+}

@@ -98,7 +98,7 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
         ctx.start_profile();
         let t0 = Instant::now();
         // A viewer poses the avatar every frame: the decoders and skinning run each time.
-        run.avatar.set_transforms(ctx, &transforms.transforms)?;
+        run.avatar.set_frame(ctx, &transforms)?;
         {
             let mut rec = ctx.record("avatar decode and skin")?;
             run.avatar.record_forward(&mut rec, transforms.log_scale)?;

@@ -352,7 +352,7 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
     let transforms = run.rig.frame(&f.body);
     ctx.start_profile();
     let result = (|| -> anyhow::Result<Vec<usize>> {
-        run.avatar.set_transforms(ctx, &transforms.transforms)?;
+        run.avatar.set_frame(ctx, &transforms)?;
         {
             let mut rec = ctx.record("trade decode and skin")?;
             run.avatar.record_forward(&mut rec, transforms.log_scale)?;

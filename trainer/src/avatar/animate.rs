@@ -135,7 +135,7 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
         let angle = options.orbit_degrees.to_radians() * k as f64 / frames as f64;
         let cam = orbit_camera(&start_camera, anchor_pelvis, up, pelvis, angle);
         let t0 = Instant::now();
-        gpu(run.avatar.set_transforms(ctx, &ft.transforms))?;
+        gpu(run.avatar.set_frame(ctx, &ft))?;
         {
             let mut rec = gpu(ctx.record("animate forward"))?;
             gpu(run.avatar.record_forward(&mut rec, ft.log_scale))?;

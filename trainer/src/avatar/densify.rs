@@ -7,7 +7,8 @@
 //! steps from `from` to `until` the trainer reads them with the layer's current
 //! opacity and scale, and [`plan`] decides, per Gaussian:
 //! - prune: opacity below `min_opacity`, or a screen radius above `max_screen_radius`
-//!   pixels, or a largest scale above the layer's world-size limit;
+//!   pixels, or a largest scale above the layer's world-size limit (the two size
+//!   prunes from `size_prune_after` steps on, as 3DGS after its first opacity reset);
 //! - otherwise, where the mean gradient norm reaches `grad_threshold`: split (two
 //!   children drawn from the Gaussian, scales divided by 1.6, the parent removed) when
 //!   its largest scale is above `percent_dense` of the layer's extent, else clone (a
@@ -58,6 +59,12 @@ pub struct DensifyConfig {
     pub min_opacity: f32,
     /// Screen radius in pixels above which a Gaussian is pruned (HUGS: 20).
     pub max_screen_radius: f32,
+    /// Steps done after which the two size prunes (screen radius, world size) apply:
+    /// 3DGS applies them only after its first opacity reset (3,000 steps), so that a
+    /// scene's large background splats are not pruned before smaller ones can cover
+    /// their area. Missing from a config file: 3,000.
+    #[serde(default = "first_opacity_reset")]
+    pub size_prune_after: u32,
     /// Largest scale above which a Gaussian is pruned: metres for the human layers
     /// (HUGS: 0.1), a fraction of the scene's extent for the scene layer (3DGS: 0.1).
     pub max_world_size: f32,
@@ -68,9 +75,13 @@ pub struct DensifyConfig {
     pub max_gaussians: u32,
 }
 
+fn first_opacity_reset() -> u32 {
+    3000
+}
+
 impl Default for DensifyConfig {
     fn default() -> Self {
-        Self { every: 600, from: 3000, until: 15000, grad_threshold: 2e-4, min_opacity: 0.005, max_screen_radius: 20.0, max_world_size: 0.1, percent_dense: 0.01, max_gaussians: 524_288 }
+        Self { every: 600, from: 3000, until: 15000, grad_threshold: 2e-4, min_opacity: 0.005, max_screen_radius: 20.0, size_prune_after: first_opacity_reset(), max_world_size: 0.1, percent_dense: 0.01, max_gaussians: 524_288 }
     }
 }
 
@@ -157,8 +168,8 @@ pub fn extent(means: &[f32]) -> f32 {
 /// Decides what to do with each of a layer's Gaussians from its statistics
 /// (`SCREEN_STATS_FLOATS` per Gaussian), opacity logits and log-scales (the decoded
 /// ones for a triplane-driven layer, without the frame's global scale), the layer's
-/// extent (for `percent_dense`) and its world-size limit.
-pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f32, world_limit: f32, c: &DensifyConfig) -> Plan {
+/// extent (for `percent_dense`) and its world-size limit (None: no size prunes yet).
+pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f32, world_limit: Option<f32>, c: &DensifyConfig) -> Plan {
     let n = opacity_logits.len();
     assert_eq!(stats.len(), SCREEN_STATS_FLOATS * n, "statistics of another layer");
     assert_eq!(log_scales.len(), 3 * n, "scales of another layer");
@@ -171,7 +182,8 @@ pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f
         let max_scale = log_scales[3 * i..3 * i + 3].iter().copied().fold(f32::NEG_INFINITY, f32::max).exp();
         let s = &stats[SCREEN_STATS_FLOATS * i..SCREEN_STATS_FLOATS * (i + 1)];
         // NaN opacity or scale fails the keep test: such a Gaussian is pruned.
-        let fine = opacity >= c.min_opacity && s[2] <= c.max_screen_radius && max_scale <= world_limit;
+        let small = world_limit.is_none_or(|limit| s[2] <= c.max_screen_radius && max_scale <= limit);
+        let fine = opacity >= c.min_opacity && small;
         if !fine {
             p.pruned += 1;
             continue;
@@ -245,13 +257,14 @@ fn gather_rows(src: &[f32], width: usize, rows: &[Option<u32>]) -> Vec<f32> {
 /// Densifies and prunes a triplane-driven layer: reads its statistics and its last
 /// forward pass's decoded opacity and scales (`log_scale_offset`: the frame's global
 /// scale, taken off), plans, and rebuilds the layer at its new size.
-pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, log_scale_offset: f32, seed: u64) -> Result<Summary, String> {
+pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, done: u32, log_scale_offset: f32, seed: u64) -> Result<Summary, String> {
     let n = layer.count as usize;
     let stats = gpu(ctx.read_buffer::<f32>(&mut layer.screen_stats, SCREEN_STATS_FLOATS * n))?;
     let opacity = gpu(ctx.read_buffer::<f32>(&mut layer.posed.opacity_logits, n))?;
     let decoded: Vec<f32> = gpu(ctx.read_buffer::<f32>(&mut layer.posed.log_scales, 3 * n))?.iter().map(|v| v - log_scale_offset).collect();
     let state = gpu(layer.state(ctx))?;
-    let p = plan(&stats, &opacity, &decoded, extent(&state.means), c.max_world_size, c);
+    let limit = (done > c.size_prune_after).then_some(c.max_world_size);
+    let p = plan(&stats, &opacity, &decoded, extent(&state.means), limit, c);
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
         // Nothing changes but the statistics, which start again.
@@ -307,11 +320,12 @@ fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32], seed: u64) -> LayerS
 
 /// Densifies and prunes the scene layer (plain 3DGS: its parameters are its values;
 /// the world-size limit is `max_world_size` of its extent).
-pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, seed: u64) -> Result<Summary, String> {
+pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, done: u32, seed: u64) -> Result<Summary, String> {
     let n = scene.count as usize;
     let stats = gpu(ctx.read_buffer::<f32>(&mut scene.screen_stats, SCREEN_STATS_FLOATS * n))?;
     let state = gpu(scene.state(ctx))?;
-    let p = plan(&stats, &state.params[3], &state.params[1], scene.extent, c.max_world_size * scene.extent, c);
+    let limit = (done > c.size_prune_after).then_some(c.max_world_size * scene.extent);
+    let p = plan(&stats, &state.params[3], &state.params[1], scene.extent, limit, c);
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
         gpu(ctx.write_buffer(&mut scene.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n]))?;
@@ -376,12 +390,16 @@ mod tests {
         ];
         let opacity = [logit(0.5), logit(0.5), logit(0.5), logit(0.001), logit(0.5), logit(0.5)];
         let scales: Vec<f32> = [small, large, small, small, small, (0.2f32).ln()].iter().flat_map(|&s| [s, s - 1.0, s - 2.0]).collect();
-        let p = plan(&stats(&rows), &opacity, &scales, 1.0, c.max_world_size, &c);
+        let p = plan(&stats(&rows), &opacity, &scales, 1.0, Some(c.max_world_size), &c);
         assert_eq!(p.keep, vec![0, 2]);
         assert_eq!(p.clone, vec![0]);
         assert_eq!(p.split, vec![1]);
         assert_eq!(p.pruned, 3);
         assert_eq!(p.count(), 5);
+        // Before the size prunes apply, only the transparent one goes.
+        let early = plan(&stats(&rows), &opacity, &scales, 1.0, None, &c);
+        assert_eq!(early.keep, vec![0, 2, 4, 5]);
+        assert_eq!(early.pruned, 1);
     }
 
     #[test]
@@ -390,7 +408,7 @@ mod tests {
         let rows: Vec<(f32, f32)> = [1e-3, 5e-3, 2e-3, 4e-3].iter().map(|&g| (g, 1.0)).collect();
         let opacity = [0.0; 4];
         let scales = vec![(0.001f32).ln(); 12];
-        let p = plan(&stats(&rows), &opacity, &scales, 1.0, 0.1, &c);
+        let p = plan(&stats(&rows), &opacity, &scales, 1.0, Some(0.1), &c);
         // 4 survivors + 1 growth: the largest gradient (Gaussian 1) grows.
         assert_eq!(p.clone, vec![1]);
         assert_eq!(p.count(), 5);
@@ -401,7 +419,7 @@ mod tests {
         let c = DensifyConfig::default();
         let opacity = [logit(0.001), f32::NAN, logit(0.002)];
         let scales = vec![(0.001f32).ln(); 9];
-        let p = plan(&stats(&[(0.0, 1.0); 3]), &opacity, &scales, 1.0, 0.1, &c);
+        let p = plan(&stats(&[(0.0, 1.0); 3]), &opacity, &scales, 1.0, Some(0.1), &c);
         assert_eq!(p.keep, vec![2], "the most opaque stays");
         assert_eq!(p.pruned, 2);
     }

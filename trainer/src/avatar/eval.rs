@@ -131,7 +131,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         progress(Progress::Eval { done: k, total: inputs.frames.len() });
         let mut m = FrameMetrics { frame: f.frame, view: f.view, ..FrameMetrics::default() };
         let ft = inputs.rig.frame(&f.body);
-        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
+        gpu(avatar.set_frame(ctx, &ft))?;
         {
             let mut rec = gpu(ctx.record("eval forward"))?;
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;

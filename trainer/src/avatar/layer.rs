@@ -17,7 +17,7 @@
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::deform::{self, DeformGrads, DeformInputs};
 use drape_engine::ops::accumulate::Accumulation;
-use drape_engine::ops::nn::{Mlp, MlpDesc};
+use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
@@ -54,6 +54,13 @@ pub struct LayerConfig {
     /// read as 128.
     #[serde(default = "hugs_decoder_width")]
     pub decoder_width: u32,
+    /// Pose-dependent offsets (the paper's option; HUGS's `posedirs`, off in its
+    /// released configs): the deformation decoder gains a zero-initialised head of a
+    /// 207 × 3 pose-blend basis per Gaussian, blended by the frame's pose features and
+    /// added to the decoded offset before skinning (`ops::deform::record_pose_blend_forward`).
+    /// Off by default, and for runs made before the key existed.
+    #[serde(default)]
+    pub pose_offsets: bool,
 }
 
 fn hugs_decoder_width() -> u32 {
@@ -62,7 +69,7 @@ fn hugs_decoder_width() -> u32 {
 
 impl Default for LayerConfig {
     fn default() -> Self {
-        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width() }
+        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width(), pose_offsets: false }
     }
 }
 
@@ -112,6 +119,12 @@ pub struct HumanLayer {
     /// The run's steps and the layer's seed (to rebuild it at another size).
     steps: u32,
     seed: u64,
+    /// The frame's pose features (`FrameTransforms::pose_features`; read with
+    /// `pose_offsets` only).
+    pub pose_features: Buffer,
+    /// With `pose_offsets`: the decoded offsets plus the pose blend (n × 3), which the
+    /// deformation reads instead of the geometry decoder's offsets.
+    blended_offsets: Option<Buffer>,
 }
 
 /// The layer's Adam groups.
@@ -171,7 +184,11 @@ impl HumanLayer {
         set_head_bias(&geometry_desc, &mut geometry_params, 0, &[0.0; 3]);
         set_head_bias(&geometry_desc, &mut geometry_params, 1, &IDENTITY_6D);
         set_head_bias(&geometry_desc, &mut geometry_params, 2, &[0.0; 3]);
-        let deformation_desc = MlpDesc::hugs_deformation(width).capped(cap);
+        let mut deformation_desc = MlpDesc::hugs_deformation(width).capped(cap);
+        if config.pose_offsets {
+            // Zero weights and bias: no offsets until training moves them (HUGS).
+            deformation_desc.heads.push(HeadDesc::new("pose_blend", deform::POSE_BLEND_FLOATS, Activation::Identity).zero_init());
+        }
         let appearance = Mlp::with_params(ctx, &format!("{name} appearance"), appearance_desc, n, &appearance_params)?;
         let geometry = Mlp::with_params(ctx, &format!("{name} geometry"), geometry_desc, n, &geometry_params)?;
         let deformation = Mlp::new(ctx, &format!("{name} deformation"), deformation_desc, n, seed + 3)?;
@@ -221,6 +238,8 @@ impl HumanLayer {
             edges: Vec::new(),
             steps,
             seed,
+            pose_features: f32_buffer(ctx, &format!("{name} pose features"), deform::POSE_FEATURES)?,
+            blended_offsets: if config.pose_offsets { Some(f32_buffer(ctx, &format!("{name} pose-blended offsets"), 3 * n)?) } else { None },
         })
     }
 
@@ -242,7 +261,7 @@ impl HumanLayer {
             means: &self.means,
             quats: &self.quats,
             log_scales: &self.log_scales,
-            offsets: self.geometry.head_output(0),
+            offsets: self.blended_offsets.as_ref().unwrap_or(self.geometry.head_output(0)),
             rot6d: self.geometry.head_output(1),
             log_scale_deltas: self.geometry.head_output(2),
             weights: self.deformation.head_output(0),
@@ -257,6 +276,11 @@ impl HumanLayer {
         self.appearance.record_forward(rec, &self.features, n)?;
         self.geometry.record_forward(rec, &self.features, n)?;
         self.deformation.record_forward(rec, &self.features, n)?;
+        if let Some(blended) = &self.blended_offsets {
+            rec.barrier();
+            deform::record_pose_blend_forward(rec, self.deformation.head_output(1), &self.pose_features, self.geometry.head_output(0), blended, n)?;
+            rec.barrier();
+        }
         let inputs = self.deform_inputs();
         deform::record_forward(rec, &inputs, &self.posed.means, &self.posed.quats, &self.posed.log_scales, n, log_scale_offset)?;
         rec.copy(self.appearance.head_output(0), &self.posed.opacity_logits, u64::from(n) * 4);
@@ -285,6 +309,12 @@ impl HumanLayer {
         };
         deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
         rec.barrier();
+        if self.blended_offsets.is_some() {
+            // The offsets' gradient (in the geometry head: the blend adds to it) drives
+            // the basis's.
+            deform::record_pose_blend_backward(rec, &self.pose_features, self.geometry.head_grad(0), self.deformation.head_grad(1), n)?;
+            rec.barrier();
+        }
         if pose_gradient {
             deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
         }
@@ -378,6 +408,10 @@ impl HumanLayer {
         for step in 0..=steps {
             {
                 let mut rec = ctx.record("fit skinning weights")?;
+                if self.blended_offsets.is_some() {
+                    // Only the weights are fitted: the pose-blend head gets no gradient.
+                    rec.fill(self.deformation.head_grad(1), 0);
+                }
                 self.triplane.record_forward(&mut rec, &self.means, &self.features, n)?;
                 rec.barrier();
                 self.deformation.record_forward(&mut rec, &self.features, n)?;

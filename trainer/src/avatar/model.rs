@@ -24,7 +24,7 @@ use drape_engine::{Buffer, Context, Recording, Result};
 use crate::avatar::checkpoint::{LayerShape, ModelState};
 use crate::avatar::composite::GEOMETRY_FLOATS;
 use crate::avatar::layer::{HumanLayer, LayerConfig};
-use crate::avatar::rig::Rig;
+use crate::avatar::rig::{FrameTransforms, Rig};
 use crate::garment::GarmentFit;
 use crate::avatar::scene::SceneLayer;
 use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
@@ -287,10 +287,11 @@ impl Avatar {
         Ok(())
     }
 
-    /// Writes the frame's transforms into every layer.
-    pub fn set_transforms(&mut self, ctx: &Context, transforms: &[f32]) -> Result<()> {
+    /// Writes the frame's transforms and pose features into every layer.
+    pub fn set_frame(&mut self, ctx: &Context, frame: &FrameTransforms) -> Result<()> {
         for l in &mut self.layers {
-            ctx.write_buffer(&mut l.transforms, transforms)?;
+            ctx.write_buffer(&mut l.transforms, &frame.transforms)?;
+            ctx.write_buffer(&mut l.pose_features, &frame.pose_features)?;
         }
         Ok(())
     }

@@ -32,6 +32,9 @@ pub struct FrameTransforms {
     pub transforms: Vec<f32>,
     /// `ln s` of the frame's global scale (0 for ZJU-MoCap).
     pub log_scale: f32,
+    /// The pose features of the pose-dependent offsets: `R_j − I` of joints 1-23, each
+    /// 3x3 row-major (SMPL's `pose_feature`; `ops::deform::POSE_FEATURES` values).
+    pub pose_features: Vec<f32>,
 }
 
 impl Rig {
@@ -61,7 +64,12 @@ impl Rig {
     /// The frame's transforms from canonical to world.
     pub fn frame(&self, body: &BodyParams) -> FrameTransforms {
         let (transforms, scale) = self.frame_f64(body);
-        FrameTransforms { transforms: transforms.iter().map(|&v| v as f32).collect(), log_scale: scale.ln() as f32 }
+        let pose = self.decompose(body).pose;
+        let pose_features = pose[1..].iter().flat_map(|&r| {
+            let m = rodrigues(r);
+            (0..9).map(move |k| (m[k / 3][k % 3] - if k / 3 == k % 3 { 1.0 } else { 0.0 }) as f32)
+        }).collect();
+        FrameTransforms { transforms: transforms.iter().map(|&v| v as f32).collect(), log_scale: scale.ln() as f32, pose_features }
     }
 
     /// The frame's transforms (24 × 3x4, row-major) in f64, and its global scale.

@@ -198,6 +198,7 @@ impl TrainConfig {
             cloth_fit: tight_fit(),
             // HUGS densifies every 600 steps from 15% to 75% of its 20k; here every
             // 100 from 25% to 75% of 400 (three times), each layer at most 4x its start.
+            // No size prunes within the run (3DGS starts them at 3,000 steps).
             densify: DensifyConfig { every: 100, from: 100, until: 300, max_gaussians: 8192, ..DensifyConfig::default() },
         }
     }
@@ -621,7 +622,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             None => f.body.clone(),
         };
         let ft = rig.frame(&body);
-        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
+        gpu(avatar.set_frame(ctx, &ft))?;
         gpu(ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) }))?;
         if let Some(c) = cloth_losses.as_mut() {
             gpu(c.set_frame(ctx, f))?;
@@ -744,12 +745,12 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             let mut summaries = serde_json::Map::new();
             let seed = config.seed ^ u64::from(step + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
             for (k, l) in avatar.layers.iter_mut().enumerate() {
-                let s = densify::apply_to_layer(ctx, l, dc, ft.log_scale, seed.wrapping_add(k as u64))?;
+                let s = densify::apply_to_layer(ctx, l, dc, step + 1, ft.log_scale, seed.wrapping_add(k as u64))?;
                 counts.push((l.name.clone(), s.before, s.after));
                 summaries.insert(l.name.clone(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
             }
             if let Some(sc) = avatar.scene.as_mut() {
-                let s = densify::apply_to_scene(ctx, sc, dc, seed.wrapping_add(1000))?;
+                let s = densify::apply_to_scene(ctx, sc, dc, step + 1, seed.wrapping_add(1000))?;
                 counts.push(("scene".into(), s.before, s.after));
                 summaries.insert("scene".into(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
             }
@@ -787,7 +788,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
         let ft = rig.frame(&f.body);
-        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
+        gpu(avatar.set_frame(ctx, &ft))?;
         {
             let mut rec = gpu(ctx.record("export forward"))?;
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
@@ -827,7 +828,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             }
         };
         let ft = rig.frame(&body);
-        gpu(avatar.set_transforms(ctx, &ft.transforms))?;
+        gpu(avatar.set_frame(ctx, &ft))?;
         {
             let mut rec = gpu(ctx.record("novel pose forward"))?;
             gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
