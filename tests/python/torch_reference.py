@@ -7,7 +7,9 @@ order); the outputs are written there as float64, C-order .npy files. Exit statu
 1 with one line on stderr naming the op and the file at fault. Ops:
 
   mlp       x (n, in0), w{i} (out, in), b{i} (out,), gy (n, out_last)
-            -> y, gx, gw{i}, gb{i}: nn.Linear layers, each followed by F.gelu (erf
+            -> y, gx, gw{i}, gb{i}: nn.Linear layers (a layer with "weight_norm":
+            true is wrapped in torch's weight_norm(dim=0) with v = w{i}, g = g{i}
+            (out,), and also gives gg{i}; gw{i} is then v's gradient), each followed by F.gelu (erf
             form) or nothing, then heads over column ranges [start, end) of the last
             layer (identity, sigmoid, exp, softmax(z / T) over the range; columns no
             head covers pass through); gradients of sum(y * gy). n may be 0.
@@ -57,6 +59,13 @@ def op_mlp(d, case):
         with torch.no_grad():
             lin.weight.copy_(load(d, f"w{i}", (spec["out"], spec["in"])))
             lin.bias.copy_(load(d, f"b{i}", (spec["out"],)))
+        if spec.get("weight_norm"):
+            # PyTorch's own weight normalisation (dim=0): original0 is g (out, 1),
+            # original1 is v; w{i} holds v and g{i} holds g.
+            lin = torch.nn.utils.parametrizations.weight_norm(lin, dim=0)
+            with torch.no_grad():
+                lin.parametrizations.weight.original0.copy_(load(d, f"g{i}", (spec["out"],)).view(-1, 1))
+                lin.parametrizations.weight.original1.copy_(load(d, f"w{i}", (spec["out"], spec["in"])))
         layers.append((lin, spec["act"]))
     h = x
     for lin, act in layers:
@@ -92,6 +101,11 @@ def op_mlp(d, case):
     save(d, "y", y)
     save(d, "gx", grad_or_zeros(x))
     for i, (lin, _) in enumerate(layers):
+        if hasattr(lin, "parametrizations"):
+            save(d, f"gw{i}", grad_or_zeros(lin.parametrizations.weight.original1))
+            save(d, f"gg{i}", grad_or_zeros(lin.parametrizations.weight.original0).view(-1))
+            save(d, f"gb{i}", grad_or_zeros(lin.bias))
+            continue
         save(d, f"gw{i}", grad_or_zeros(lin.weight))
         save(d, f"gb{i}", grad_or_zeros(lin.bias))
 

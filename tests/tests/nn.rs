@@ -17,6 +17,7 @@ fn small_desc() -> MlpDesc {
             HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
             HeadDesc::new("scale", 2, Activation::Exp),
         ],
+        weight_norm: vec![],
     }
 }
 
@@ -54,12 +55,24 @@ fn run_gpu_with(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], he
     GpuRun { heads, grads, grad_input }
 }
 
+/// `small_desc` with weight normalisation on its second hidden layer and on a head.
+fn normed_desc() -> MlpDesc {
+    MlpDesc { weight_norm: vec![1, 3], ..small_desc() }
+}
+
 #[test]
 fn mlp_gpu_matches_cpu_reference() {
     let ctx = gpu();
-    let desc = small_desc();
+    for (desc, sizes) in [(small_desc(), &[0usize, 1, 7, 1000, 100_003][..]), (normed_desc(), &[0, 1, 7, 1000][..])] {
+        check_against_reference(&ctx, &desc, sizes);
+    }
+}
+
+fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
+    let desc = desc.clone();
+    let ctx = ctx.clone();
     let params = to_f64(&desc.init_params(3));
-    for rows in [0usize, 1, 7, 1000, 100_003] {
+    for &rows in sizes {
         let input = uniform(rows * desc.input, -2.0, 2.0, rows as u64);
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
@@ -85,7 +98,7 @@ fn mlp_gpu_matches_cpu_reference() {
 fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
     let ctx = gpu();
     let rows = 300;
-    for desc in [MlpDesc::hugs_appearance(96, 48), MlpDesc::hugs_geometry(96), MlpDesc::hugs_deformation(96)] {
+    for desc in [MlpDesc::hugs_appearance(96, 48), MlpDesc::hugs_geometry(96), MlpDesc::hugs_deformation(96), MlpDesc::hugs_deformation(96).with_weight_norm(3)] {
         let params = to_f64(&desc.init_params(11));
         let input = uniform(rows * desc.input, -1.0, 1.0, 5);
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64)).collect();
@@ -112,7 +125,13 @@ fn loss(desc: &MlpDesc, params: &[f64], input: &[f64], rows: usize, coeffs: &[Ve
 
 #[test]
 fn mlp_gradients_match_central_differences() {
-    let desc = small_desc();
+    for desc in [small_desc(), normed_desc()] {
+        check_central_differences(&desc);
+    }
+}
+
+fn check_central_differences(desc: &MlpDesc) {
+    let desc = desc.clone();
     let rows = 3;
     let params = to_f64(&desc.init_params(7));
     let input = uniform(rows * desc.input, -2.0, 2.0, 9);
@@ -148,6 +167,7 @@ fn activations_stay_finite_at_the_extremes() {
         input: 4,
         hidden: vec![(4, Activation::Gelu)],
         heads: vec![HeadDesc::new("sigmoid", 4, Activation::Sigmoid), HeadDesc::new("softmax", 4, Activation::Softmax { temperature: 0.1 })],
+        weight_norm: vec![],
     };
     let (offsets, len) = desc.layout();
     let mut params = vec![0.0f64; len];

@@ -65,11 +65,19 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let linears = desc.linears();
     let hidden = desc.hidden.len();
     let mut layers = Vec::new();
+    assert!(desc.weight_norm.iter().all(|&l| l < hidden), "{name}: the check covers weight normalisation on hidden layers only");
+    let norms = desc.weight_norm_params();
     for l in 0..hidden {
         let (i, o) = linears[l];
         put(&dir, &format!("w{l}"), &[o, i], &params[offsets[l].0..offsets[l].1]);
         put(&dir, &format!("b{l}"), &[o], &params[offsets[l].1..offsets[l].1 + o]);
-        layers.push(serde_json::json!({ "in": i, "out": o, "act": act_name(desc.hidden[l].1) }));
+        let mut j = serde_json::json!({ "in": i, "out": o, "act": act_name(desc.hidden[l].1) });
+        if let Some(k) = desc.weight_norm.iter().position(|&w| w == l) {
+            let g = norms[k].g_off as usize;
+            put(&dir, &format!("g{l}"), &[o], &params[g..g + o]);
+            j["weight_norm"] = true.into();
+        }
+        layers.push(j);
     }
     let trunk = desc.trunk_width();
     let total: usize = desc.heads.iter().map(|h| h.width).sum();
@@ -114,6 +122,11 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         assert!(e <= 1e-4, "{name}: weight gradient of layer {l} differs from PyTorch by {e:e}");
         let e = rel_err(&grads[offsets[l].1..offsets[l].1 + o], &get(&dir, &format!("gb{l}")), 1e-3);
         assert!(e <= 1e-4, "{name}: bias gradient of layer {l} ({i}->{o}) differs from PyTorch by {e:e}");
+        if let Some(k) = desc.weight_norm.iter().position(|&w| w == l) {
+            let g = norms[k].g_off as usize;
+            let e = rel_err(&grads[g..g + o], &get(&dir, &format!("gg{l}")), 1e-3);
+            assert!(e <= 1e-4, "{name}: weight-norm g gradient of layer {l} differs from PyTorch by {e:e}");
+        }
     }
     let (tgw, tgb) = (get(&dir, &format!("gw{hidden}")), get(&dir, &format!("gb{hidden}")));
     let mut row0 = 0;
@@ -143,8 +156,15 @@ fn mlps_match_pytorch() {
             HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
             HeadDesc::new("scale", 3, Activation::Exp),
         ],
+        weight_norm: vec![],
     };
     check_mlp(&ctx, "mixed", &mixed, 1000);
+    // Weight normalisation against torch.nn.utils.parametrizations.weight_norm, on the
+    // mixed MLP's second hidden layer and on HUGS's deformation decoder's last.
+    let mut normed = mixed.clone();
+    normed.weight_norm = vec![1];
+    check_mlp(&ctx, "mixed-weight-norm", &normed, 1000);
+    check_mlp(&ctx, "deformation-weight-norm", &MlpDesc::hugs_deformation(96).with_weight_norm(3), 300);
     check_mlp(&ctx, "mixed-one-row", &mixed, 1);
     check_mlp(&ctx, "appearance", &MlpDesc::hugs_appearance(96, 48), 300);
     check_mlp(&ctx, "geometry", &MlpDesc::hugs_geometry(96), 300);

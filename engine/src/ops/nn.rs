@@ -11,11 +11,19 @@
 //! one flat parameter buffer (for each layer: W out × in, row-major as PyTorch's
 //! `nn.Linear.weight`, then b), so one Adam group covers a decoder.
 //!
+//! Weight normalisation (PyTorch's `weight_norm(dim=0)`, which HUGS puts on its
+//! deformation decoder) is an option per linear layer ([`MlpDesc::weight_norm`]): the
+//! layer's `W` slot holds the direction `v` and its norms `g` (one per output) follow
+//! every layer's parameters at the end of the buffer; the forward pass writes
+//! `W = g v / ‖v‖` into a copy of the parameters that the GEMMs read
+//! (`nn::weight_norm_fwd`), and the backward turns `∂L/∂W` into `∂L/∂v` and `∂L/∂g`
+//! (`nn::weight_norm_bwd`; `drape_shared::nn` is the math).
+//!
 //! Backward is deterministic: the weight gradient sums rows in fixed chunks and adds
 //! the chunks in order (`nn::sum_weight_grad`), with no atomics.
 
 use drape_shared::nn::{
-    activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_EXP, ACT_GELU,
+    activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
     ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
@@ -80,12 +88,15 @@ impl HeadDesc {
 }
 
 /// The shape of an MLP.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct MlpDesc {
     pub input: usize,
     /// (width, activation) of each hidden layer.
     pub hidden: Vec<(usize, Activation)>,
     pub heads: Vec<HeadDesc>,
+    /// Linear layers (hidden layers, then heads, counted from 0) under weight
+    /// normalisation, in increasing order.
+    pub weight_norm: Vec<usize>,
 }
 
 impl MlpDesc {
@@ -97,6 +108,7 @@ impl MlpDesc {
             input,
             hidden: vec![(64, Activation::Gelu), (64, Activation::Gelu)],
             heads: vec![HeadDesc::new("opacity", 1, Activation::Identity), HeadDesc::new("sh", sh_values, Activation::Identity)],
+            weight_norm: Vec::new(),
         }
     }
 
@@ -111,6 +123,7 @@ impl MlpDesc {
                 HeadDesc::new("rot6d", 6, Activation::Identity),
                 HeadDesc::new("log_scale_delta", 3, Activation::Identity),
             ],
+            weight_norm: Vec::new(),
         }
     }
 
@@ -121,7 +134,33 @@ impl MlpDesc {
             input,
             hidden: vec![(128, Activation::Gelu); 4],
             heads: vec![HeadDesc::new("skinning_weights", 24, Activation::Softmax { temperature: 0.1 })],
+            weight_norm: Vec::new(),
         }
+    }
+
+    /// The same MLP with weight normalisation on linear layer `layer` (HUGS: the
+    /// deformation decoder's last hidden layer, before the skinning logits).
+    pub fn with_weight_norm(mut self, layer: usize) -> Self {
+        if !self.weight_norm.contains(&layer) {
+            self.weight_norm.push(layer);
+            self.weight_norm.sort_unstable();
+        }
+        self
+    }
+
+    /// Where each weight-normalised layer's `g` lives: (`WeightNormParams` of the layer).
+    pub fn weight_norm_params(&self) -> Vec<WeightNormParams> {
+        let (offsets, mut at) = self.plain_layout();
+        let linears = self.linears();
+        self.weight_norm
+            .iter()
+            .map(|&l| {
+                let (i, o) = linears[l];
+                let p = WeightNormParams { out_features: o as u32, in_features: i as u32, w_off: offsets[l].0 as u32, g_off: at as u32 };
+                at += o;
+                p
+            })
+            .collect()
     }
 
     /// The same MLP with every hidden layer at most `max_width` wide (a speed knob:
@@ -148,8 +187,15 @@ impl MlpDesc {
         out
     }
 
-    /// Offsets of (W, b) of each linear layer in the flat parameter vector, and its length.
+    /// Offsets of (W, b) of each linear layer in the flat parameter vector, and its
+    /// length (the weight-normalised layers' `g` come after every `W` and `b`).
     pub fn layout(&self) -> (Vec<(usize, usize)>, usize) {
+        let (offsets, at) = self.plain_layout();
+        let gs: usize = self.weight_norm.iter().map(|&l| self.linears()[l].1).sum();
+        (offsets, at + gs)
+    }
+
+    fn plain_layout(&self) -> (Vec<(usize, usize)>, usize) {
         let mut at = 0;
         let mut offsets = Vec::new();
         for (i, o) in self.linears() {
@@ -170,6 +216,8 @@ impl MlpDesc {
 
     fn check(&self) {
         assert!(!self.heads.is_empty(), "an MLP needs at least one head");
+        assert!(self.weight_norm.windows(2).all(|w| w[0] < w[1]), "weight_norm layers must be increasing");
+        assert!(self.weight_norm.iter().all(|&l| l < self.linears().len()), "weight_norm names a layer the MLP does not have");
         for (i, o) in self.linears() {
             assert!(i > 0 && o > 0 && i <= 1024 && o <= 1024, "layer widths must be 1..=1024, got {i} -> {o}");
         }
@@ -204,6 +252,14 @@ impl MlpDesc {
             let bound = 1.0 / (i as f32).sqrt();
             for v in &mut params[w_off..w_off + i * o + o] {
                 *v = rng.random_range(-bound..bound);
+            }
+        }
+        // As PyTorch's `weight_norm` when applied to an initialised layer: v = W and
+        // g = ‖W_o‖, so the layer starts as the plain one.
+        let wide: Vec<f64> = params.iter().map(|&v| f64::from(v)).collect();
+        for p in self.weight_norm_params() {
+            for o in 0..p.out_features as usize {
+                params[p.g_off as usize + o] = weight_norm_row_norm(&wide, &p, o) as f32;
             }
         }
         params
@@ -263,6 +319,9 @@ pub struct Mlp {
     pub grads: Buffer,
     layers: Vec<LayerBuffers>,
     partials: Buffer,
+    /// With weight normalisation: the parameters with every normalised `W` slot holding
+    /// `g v / ‖v‖` (what the GEMMs read); without, the GEMMs read `params`.
+    effective: Option<Buffer>,
 }
 
 /// The linear layer whose output layer `l` reads (`None`: the MLP's input); heads
@@ -309,6 +368,7 @@ impl Mlp {
         }
         let mut p = f32_buffer(ctx, &format!("{label} params"), len)?;
         ctx.write_buffer(&mut p, params)?;
+        let desc_has_weight_norm = !desc.weight_norm.is_empty();
         Ok(Self {
             desc,
             variant: GemmVariant::Auto,
@@ -318,7 +378,13 @@ impl Mlp {
             grads: f32_buffer(ctx, &format!("{label} grads"), len)?,
             layers,
             partials: f32_buffer(ctx, &format!("{label} weight-grad partials"), partial_len)?,
+            effective: if desc_has_weight_norm { Some(f32_buffer(ctx, &format!("{label} weight-normalised params"), len)?) } else { None },
         })
+    }
+
+    /// The weights the GEMMs read.
+    fn weights(&self) -> &Buffer {
+        self.effective.as_ref().unwrap_or(&self.params)
     }
 
     pub fn param_count(&self) -> usize {
@@ -396,6 +462,14 @@ impl Mlp {
         let acts = self.desc.activations();
         let linears = self.desc.linears();
         let hidden = self.desc.hidden.len();
+        if let Some(effective) = &self.effective {
+            rec.copy(&self.params, effective, self.params.size);
+            rec.barrier();
+            for p in self.desc.weight_norm_params() {
+                rec.pass("mlp.weight_norm_fwd", Kernel::NnWeightNormFwd).read(&self.params).write(effective).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
+            }
+            rec.barrier();
+        }
         for (l, &(i, o)) in linears.iter().enumerate() {
             let x = match below(l, hidden) {
                 Some(k) => self.output_of(k),
@@ -418,7 +492,7 @@ impl Mlp {
                 ..Default::default()
             };
             let layer = &self.layers[l];
-            self.record_gemm(rec, "mlp.linear_fwd", x, &self.params, &self.params, &layer.pre, p, 1)?;
+            self.record_gemm(rec, "mlp.linear_fwd", x, self.weights(), self.weights(), &layer.pre, p, 1)?;
             if acts[l] != Activation::Identity {
                 rec.barrier();
                 Self::record_act(rec, "mlp.act_fwd", acts[l], &layer.pre, &layer.post, rows, o as u32)?;
@@ -508,7 +582,7 @@ impl Mlp {
                     k_chunk: o as u32,
                     ..Default::default()
                 };
-                self.record_gemm(rec, "mlp.input_grad", g, &self.params, &self.params, target, p, 1)?;
+                self.record_gemm(rec, "mlp.input_grad", g, self.weights(), self.weights(), target, p, 1)?;
             }
             rec.barrier();
             let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };
@@ -520,6 +594,12 @@ impl Mlp {
             // The next layer's dW reuses the partials, and reads the dX just written.
             if step + 1 < order.len() {
                 rec.barrier();
+            }
+        }
+        if self.effective.is_some() {
+            rec.barrier();
+            for p in self.desc.weight_norm_params() {
+                rec.pass("mlp.weight_norm_bwd", Kernel::NnWeightNormBwd).read(&self.params).write(&self.grads).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
             }
         }
         Ok(())
@@ -587,8 +667,24 @@ fn linear<F: Real>(x: &[F], w: &[F], b: &[F], rows: usize, i: usize, o: usize) -
     y
 }
 
+/// The parameters with every weight-normalised layer's `W` slot holding `g v / ‖v‖`
+/// (what the GPU's GEMMs read); the parameters themselves without weight normalisation.
+pub fn reference_effective_params<F: Real>(desc: &MlpDesc, params: &[F]) -> Vec<F> {
+    let mut out = params.to_vec();
+    for p in desc.weight_norm_params() {
+        for o in 0..p.out_features as usize {
+            let norm = weight_norm_row_norm(params, &p, o);
+            for i in 0..p.in_features as usize {
+                out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
+            }
+        }
+    }
+    out
+}
+
 /// CPU reference of the forward pass.
 pub fn reference_forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> ReferenceActivations<F> {
+    let params = &reference_effective_params(desc, params)[..];
     let (offsets, _) = desc.layout();
     let acts = desc.activations();
     let hidden = desc.hidden.len();
@@ -610,7 +706,9 @@ pub fn reference_forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], row
 
 /// CPU reference of the backward pass from the gradients on each head's output:
 /// (parameter gradients, input gradient).
-pub fn reference_backward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize, saved: &ReferenceActivations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+pub fn reference_backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &ReferenceActivations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+    let effective = reference_effective_params(desc, raw_params);
+    let params = &effective[..];
     let (offsets, len) = desc.layout();
     let acts = desc.activations();
     let linears = desc.linears();
@@ -647,6 +745,11 @@ pub fn reference_backward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], ro
         };
         for (d, v) in target.iter_mut().zip(gx) {
             *d += v;
+        }
+    }
+    for p in desc.weight_norm_params() {
+        for o in 0..p.out_features as usize {
+            weight_norm_row_bwd(raw_params, &mut grads, &p, o);
         }
     }
     (grads, grad_input)

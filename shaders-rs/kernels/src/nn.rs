@@ -1421,3 +1421,43 @@ pub fn act_bwd(
         grad_pre[i] = activate_bwd(p.kind, pre[i], post[i], grad_post[i]);
     }
 }
+
+/// Weight normalisation's forward (`drape_shared::nn::weight_norm_value`): one
+/// invocation per output row writes the row of `W = g v / ‖v‖` into `effective` (a copy
+/// of the parameters the GEMMs then read).
+#[spirv(compute(threads(64)))]
+pub fn weight_norm_fwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &drape_shared::nn::WeightNormParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] effective: &mut [f32],
+) {
+    let o = id.x;
+    if o >= p.out_features {
+        return;
+    }
+    let o = o as usize;
+    let norm = drape_shared::nn::weight_norm_row_norm(params, p, o);
+    let base = p.w_off as usize + o * p.in_features as usize;
+    let mut i = 0;
+    while i < p.in_features as usize {
+        effective[base + i] = drape_shared::nn::weight_norm_value(params, p, o, i, norm);
+        i += 1;
+    }
+}
+
+/// Weight normalisation's backward (`drape_shared::nn::weight_norm_row_bwd`): one
+/// invocation per output row turns the row's `∂L/∂W` in `grads` into `∂L/∂v` (in place)
+/// and `∂L/∂g`.
+#[spirv(compute(threads(64)))]
+pub fn weight_norm_bwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &drape_shared::nn::WeightNormParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grads: &mut [f32],
+) {
+    if id.x >= p.out_features {
+        return;
+    }
+    drape_shared::nn::weight_norm_row_bwd(params, grads, p, id.x as usize);
+}

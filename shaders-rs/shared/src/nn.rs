@@ -227,3 +227,63 @@ pub fn softmax_row_bwd<F: Real>(y: &[F; SOFTMAX_MAX_WIDTH], g: &mut [F; SOFTMAX_
         j += 1;
     }
 }
+
+/// Push constants of `nn::weight_norm_fwd` and `nn::weight_norm_bwd`: a weight-normalised
+/// linear layer of `out_features` × `in_features` whose direction `v` is at `w_off` of the
+/// parameters (where a plain layer's `W` is) and whose norms `g` (one per output) are at
+/// `g_off`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct WeightNormParams {
+    pub out_features: u32,
+    pub in_features: u32,
+    pub w_off: u32,
+    pub g_off: u32,
+}
+
+/// Below this a direction's norm is taken as this (a zero-initialised head: PyTorch
+/// would divide by zero).
+pub const WEIGHT_NORM_EPS: f32 = 1e-12;
+
+/// `‖v_o‖` of output row `o`, at least [`WEIGHT_NORM_EPS`].
+pub fn weight_norm_row_norm<F: Real>(params: &[F], p: &WeightNormParams, o: usize) -> F {
+    let base = p.w_off as usize + o * p.in_features as usize;
+    let mut s = F::zero();
+    let mut i = 0;
+    while i < p.in_features as usize {
+        let v = params[base + i];
+        s += v * v;
+        i += 1;
+    }
+    s.sqrt().max(F::of(WEIGHT_NORM_EPS))
+}
+
+/// PyTorch's `weight_norm(dim=0)`: element `(o, i)` of `W = g_o v_o / ‖v_o‖`, given the
+/// row's norm.
+pub fn weight_norm_value<F: Real>(params: &[F], p: &WeightNormParams, o: usize, i: usize, norm: F) -> F {
+    params[p.g_off as usize + o] * params[p.w_off as usize + o * p.in_features as usize + i] / norm
+}
+
+/// The backward of one output row: from `∂L/∂W_o` (in `grads` at the row's `W` slot) to
+/// `∂L/∂g_o = (∂L/∂W_o · v_o) / ‖v_o‖` and `∂L/∂v_o = (g_o / ‖v_o‖) ∂L/∂W_o −
+/// (g_o ∂L/∂g_o / ‖v_o‖²) v_o`, written over the `W` slot and into `g`'s.
+pub fn weight_norm_row_bwd<F: Real>(params: &[F], grads: &mut [F], p: &WeightNormParams, o: usize) {
+    let base = p.w_off as usize + o * p.in_features as usize;
+    let n = p.in_features as usize;
+    let norm = weight_norm_row_norm(params, p, o);
+    let g = params[p.g_off as usize + o];
+    let mut dot = F::zero();
+    let mut i = 0;
+    while i < n {
+        dot += grads[base + i] * params[base + i];
+        i += 1;
+    }
+    let dg = dot / norm;
+    let mut i = 0;
+    while i < n {
+        grads[base + i] = g / norm * grads[base + i] - g * dg / (norm * norm) * params[base + i];
+        i += 1;
+    }
+    grads[p.g_off as usize + o] = dg;
+}

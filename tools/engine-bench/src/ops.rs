@@ -116,7 +116,7 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     let mut out = json!({ "job": "ops", "device": ctx.info().name, "rows": rows, "runs": args.runs, "gemm_kernel": args.gemm });
     let mut gemms = Vec::new();
     for &(i, o) in SHAPES.iter().filter(|_| args.wants("gemm")) {
-        let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)] };
+        let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)], weight_norm: vec![] };
         let mut mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
         mlp.variant = args.variant();
         let x_host = random(rows * i, 2);

@@ -61,6 +61,12 @@ pub struct LayerConfig {
     /// Off by default, and for runs made before the key existed.
     #[serde(default)]
     pub pose_offsets: bool,
+    /// Weight normalisation (PyTorch's `weight_norm`, dim 0) on the deformation
+    /// decoder's last hidden layer, before the skinning logits, as HUGS has it. On in
+    /// both presets; off for runs made before the key existed (their decoders have no
+    /// norms to load).
+    #[serde(default)]
+    pub weight_norm: bool,
 }
 
 fn hugs_decoder_width() -> u32 {
@@ -69,7 +75,7 @@ fn hugs_decoder_width() -> u32 {
 
 impl Default for LayerConfig {
     fn default() -> Self {
-        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width(), pose_offsets: false }
+        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width(), pose_offsets: false, weight_norm: true }
     }
 }
 
@@ -185,6 +191,10 @@ impl HumanLayer {
         set_head_bias(&geometry_desc, &mut geometry_params, 1, &IDENTITY_6D);
         set_head_bias(&geometry_desc, &mut geometry_params, 2, &[0.0; 3]);
         let mut deformation_desc = MlpDesc::hugs_deformation(width).capped(cap);
+        if config.weight_norm {
+            let last_hidden = deformation_desc.hidden.len() - 1;
+            deformation_desc = deformation_desc.with_weight_norm(last_hidden);
+        }
         if config.pose_offsets {
             // Zero weights and bias: no offsets until training moves them (HUGS).
             deformation_desc.heads.push(HeadDesc::new("pose_blend", deform::POSE_BLEND_FLOATS, Activation::Identity).zero_init());
