@@ -157,7 +157,8 @@ impl TrainConfig {
     /// every layer and loss the data asks for (body, cloth and scene; cloth-LBS,
     /// simulation, ARAP and mask): every sixth vertex of the body mesh without
     /// subdivision (1,567 Gaussians) and of the garments (1,113), each widened to keep
-    /// the surface covered; 64 × 64 × 16 triplanes; decoders at most 64 wide (HUGS: 128);
+    /// the surface covered, densified after 100 and 200 steps (at most 4,096 per
+    /// layer); 64 × 64 × 16 triplanes; decoders at most 64 wide (HUGS: 128);
     /// 150 fitting and 400 training steps. The decoders dominate a step there (the GEMM
     /// runs at ~2 GFLOP/s on llvmpipe): halving their width cut a step from 3.3 s to
     /// 1.9 s and halving the Gaussians to 1.1 s (`drape train --profile`; README).
