@@ -33,6 +33,7 @@ fn main() {
     let mut wg = String::new();
     let mut bindings = String::new();
     let mut requires = String::new();
+    let mut requires_ballot = String::new();
     for m in modules {
         let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
         let file = m["file"].as_str().expect("manifest.json: file");
@@ -47,8 +48,13 @@ fn main() {
             .as_array()
             .map(|r| r.iter().any(|c| c.as_str() == Some("AtomicFloat32AddEXT")))
             .unwrap_or(false);
+        let needs_ballot = m["requires"]
+            .as_array()
+            .map(|r| r.iter().any(|c| c.as_str() == Some("GroupNonUniformBallot")))
+            .unwrap_or(false);
         let v = camel(name);
         writeln!(requires, "            Kernel::{v} => {needs_atomics},").unwrap();
+        writeln!(requires_ballot, "            Kernel::{v} => {needs_ballot},").unwrap();
         let path = spirv_dir.join(file);
         println!("cargo:rerun-if-changed={}", path.display());
         writeln!(variants, "    /// Entry point `{name}` ({file}).\n    {v},").unwrap();
@@ -91,6 +97,12 @@ impl Kernel {{
     pub const fn requires_float_atomics(self) -> bool {{
         match self {{
 {requires}        }}
+    }}
+
+    /// Whether the module broadcasts within subgroups (`GroupNonUniformBallot`).
+    pub const fn requires_subgroup_ballot(self) -> bool {{
+        match self {{
+{requires_ballot}        }}
     }}
 
     /// Number of storage-buffer bindings (numbered 0..n) the manifest records.

@@ -1,7 +1,7 @@
 //! MLPs on the GPU against the CPU reference (f64), and the reference's gradients
 //! against central differences in f64.
 
-use drape_engine::ops::nn::{reference_backward, reference_forward, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{reference_backward, reference_forward, subgroup_gemm_supported, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::{Buffer, Context};
 use drape_tests::gpu;
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
@@ -77,7 +77,13 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
-        for variant in [GemmVariant::Tiled, GemmVariant::Blocked] {
+        let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
+        if subgroup_gemm_supported(ctx.info()) {
+            variants.push(GemmVariant::Subgroup);
+        } else if rows == sizes[0] {
+            eprintln!("SKIPPED: nn::gemm_subgroup (needs subgroups of 8 lanes with ballot; {})", ctx.info());
+        }
+        for variant in variants {
             let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
             for h in 0..desc.heads.len() {
                 // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.

@@ -24,7 +24,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_ONES_ROW, GEMM_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -269,14 +269,25 @@ impl MlpDesc {
 /// Which GEMM kernel an [`Mlp`] records.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum GemmVariant {
-    /// Register-blocked on CPU devices (lavapipe), tiled through workgroup memory on
-    /// GPUs.
+    /// On CPU devices (lavapipe): the subgroup-broadcast kernel where subgroups are 8
+    /// lanes with ballot operations and `C` has at least 16 columns, else the
+    /// register-blocked one (narrow heads waste less of its 8-column blocks); on GPUs
+    /// the workgroup-tiled kernel.
     #[default]
     Auto,
     /// `nn::gemm_tiled`: slices of `B` staged in workgroup memory.
     Tiled,
     /// `nn::gemm_blocked`: 8 × 8 blocks in registers.
     Blocked,
+    /// `nn::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by broadcasts.
+    /// Needs subgroups of exactly 8 lanes with ballot operations.
+    Subgroup,
+}
+
+/// Whether the device can run `nn::gemm_subgroup` (subgroups of 8 lanes, ballot
+/// operations in compute).
+pub fn subgroup_gemm_supported(info: &crate::DeviceInfo) -> bool {
+    info.subgroup_size == 8 && info.subgroup_ballot
 }
 
 /// Largest number of chunks the weight gradient's rows are split into (2M rows give
@@ -437,15 +448,26 @@ impl Mlp {
 
     #[allow(clippy::too_many_arguments)]
     fn record_gemm<'a>(&self, rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
-        let blocked = match self.variant {
-            GemmVariant::Auto => rec.context().info().kind == DeviceKind::Cpu,
-            GemmVariant::Tiled => false,
-            GemmVariant::Blocked => true,
+        let info = rec.context().info();
+        let variant = match self.variant {
+            GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
+            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
+            GemmVariant::Auto => GemmVariant::Blocked,
+            v => v,
         };
-        let (kernel, groups) = if blocked {
-            (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits])
-        } else {
-            (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_COLS), p.m.div_ceil(GEMM_ROWS), splits])
+        if variant == GemmVariant::Subgroup && !subgroup_gemm_supported(info) {
+            return Err(EngineError::MissingFeature { kernel: "nn::gemm_subgroup", feature: "subgroups of 8 lanes with ballot operations" });
+        }
+        let (kernel, groups) = match variant {
+            GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
+            GemmVariant::Subgroup => {
+                // One workgroup (one subgroup) per 32 × 32 tile, in rows of at most
+                // 65,535 workgroups, the limit every device has.
+                let tiles = p.m.div_ceil(GEMM_SG_ROWS) * p.n.div_ceil(GEMM_SG_COLS);
+                let x = tiles.min(65_535);
+                (Kernel::NnGemmSubgroup, [x, tiles.div_ceil(x.max(1)), splits])
+            }
+            _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_COLS), p.m.div_ceil(GEMM_ROWS), splits]),
         };
         rec.pass(name, kernel).read(a).read(b).read(bias).write(c).push(&p).dispatch(groups)
     }

@@ -8,7 +8,8 @@
 //! code names them; parameters arrive as push constants (`#[repr(C)]` structs from
 //! `drape-shared`); read-only buffers are `&[T]`, written ones `&mut [T]`.
 #![cfg_attr(target_arch = "spirv", no_std)]
-// Only `atomics` may use unsafe (spirv-std's atomics are unsafe fns).
+// Only `atomics` and `subgroup` may use unsafe (spirv-std's atomics and broadcasts
+// are unsafe fns).
 #![deny(unsafe_code)]
 
 mod atomics;
@@ -23,6 +24,8 @@ pub mod scan;
 pub mod skinning;
 pub mod splat;
 pub mod ssim;
+#[cfg(feature = "subgroup-ballot")]
+mod subgroup;
 pub mod train;
 pub mod triplane;
 mod workgroup;

@@ -12,7 +12,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_SOFTMAX,
-    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
+    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -1312,6 +1312,151 @@ pub fn gemm_blocked(
         k += 1;
     }
     block_store!(acc, p, m0, n0, z, bias, c);
+}
+
+/// `acc[r][c] += a[r] * b` for a lane's four rows and column `c`, `b` being lane `j`'s
+/// value of `bv` (the subgroup loaded 8 columns of `B` with one load, lane `j` column
+/// `j`).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_column {
+    ($acc:ident, $a:ident, $bv:ident, $c:expr, $j:literal) => {{
+        let b = crate::subgroup::broadcast::<$j>($bv);
+        $acc[0][$c] += $a[0] * b;
+        $acc[1][$c] += $a[1] * b;
+        $acc[2][$c] += $a[2] * b;
+        $acc[3][$c] += $a[3] * b;
+    }};
+}
+
+/// The 8 columns `8 g .. 8 g + 8` of the tile from one load of `B` per lane.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_group {
+    ($acc:ident, $a:ident, $bv:ident, $g:literal) => {{
+        sg_column!($acc, $a, $bv, $g * 8 + 0, 0);
+        sg_column!($acc, $a, $bv, $g * 8 + 1, 1);
+        sg_column!($acc, $a, $bv, $g * 8 + 2, 2);
+        sg_column!($acc, $a, $bv, $g * 8 + 3, 3);
+        sg_column!($acc, $a, $bv, $g * 8 + 4, 4);
+        sg_column!($acc, $a, $bv, $g * 8 + 5, 5);
+        sg_column!($acc, $a, $bv, $g * 8 + 6, 6);
+        sg_column!($acc, $a, $bv, $g * 8 + 7, 7);
+    }};
+}
+
+/// Writes one lane's row of a tile (bias and accumulation as the flags say). A loop,
+/// not 32 written-out stores: every bounds-checked store nests the rest of the kernel
+/// one level deeper, and llvmpipe stops masking correctly past 80 levels (stores went
+/// missing at the third row when they were written out).
+#[cfg(feature = "subgroup-ballot")]
+#[inline]
+fn store_tile_row(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; GEMM_SG_COLS as usize], row: u32, n0: u32, z: u32) {
+    if row >= p.m {
+        return;
+    }
+    let mut j = 0;
+    while j < GEMM_SG_COLS {
+        let col = n0 + j;
+        if col < p.n {
+            let at = (p.c_off + z * p.c_split + row * p.ldc + col) as usize;
+            let mut v = vals[j as usize];
+            if p.flags & GEMM_BIAS != 0 {
+                v += bias[(p.bias_off + col) as usize];
+            }
+            if p.flags & GEMM_ACCUMULATE != 0 {
+                v += c[at];
+            }
+            c[at] = v;
+        }
+        j += 1;
+    }
+}
+
+/// `C (+)= A B (+ bias)` for CPU devices whose subgroups are 8 lanes of one SIMD
+/// register (lavapipe): each subgroup owns a 32 × 32 tile of `C`, lane `l` its rows
+/// `l, l + 8, l + 16, l + 24`. Per step through `k` a lane loads its 4 values of `A`
+/// and one value of each of the tile's 4 groups of 8 columns of `B`, and the 32 values
+/// of `B` reach every lane by broadcasts with constant lane numbers, which llvmpipe
+/// compiles to a register shuffle. So 8 loads feed 128 multiply-adds per lane, where
+/// `gemm_blocked` makes 16 loads for 64: on llvmpipe a load the compiler cannot prove
+/// uniform is a loop over the 8 lanes and costs tens of multiply-adds. A workgroup is
+/// one subgroup; the engine dispatches it only where the subgroup size is 8 (every lane of a subgroup runs the
+/// same `k` loop, so all lanes are active at each broadcast).
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_subgroup(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] a: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] b: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    let row_tiles = (p.m + GEMM_SG_ROWS - 1) / GEMM_SG_ROWS;
+    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
+    // A workgroup is one subgroup of 8, so the tile never depends on how a device
+    // numbers the subgroups of a workgroup. Workgroups in rows of at most 65,535
+    // (2M rows of 1,024 columns are 2M tiles).
+    let tile = group.y * groups.x + group.x;
+    // The whole subgroup leaves together, so no broadcast ever reads an inactive lane.
+    if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
+        return;
+    }
+    let m0 = (tile % row_tiles) * GEMM_SG_ROWS;
+    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
+    let z = group.z;
+    let k_begin = z * p.k_chunk;
+    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    // The last row of A that exists (the ones row is not stored): rows past it load
+    // that row (in range: an out-of-range index would end the invocation) and are
+    // never stored.
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24];
+    let a_row = [
+        p.a_off + rows[0].min(m_last) * p.a_sm,
+        p.a_off + rows[1].min(m_last) * p.a_sm,
+        p.a_off + rows[2].min(m_last) * p.a_sm,
+        p.a_off + rows[3].min(m_last) * p.a_sm,
+    ];
+    let ones = [rows[0] == ones_row, rows[1] == ones_row, rows[2] == ones_row, rows[3] == ones_row];
+    let last_col = p.n - 1;
+    let b_col = [
+        p.b_off + (n0 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 8 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
+    ];
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 4];
+    let mut k = k_begin;
+    while k < k_end {
+        let ka = k * p.a_sk;
+        let a0 = a[(a_row[0] + ka) as usize];
+        let a1 = a[(a_row[1] + ka) as usize];
+        let a2 = a[(a_row[2] + ka) as usize];
+        let a3 = a[(a_row[3] + ka) as usize];
+        let av = [
+            if ones[0] { 1.0 } else { a0 },
+            if ones[1] { 1.0 } else { a1 },
+            if ones[2] { 1.0 } else { a2 },
+            if ones[3] { 1.0 } else { a3 },
+        ];
+        let kb = k * p.b_sk;
+        let bv0 = b[(b_col[0] + kb) as usize];
+        let bv1 = b[(b_col[1] + kb) as usize];
+        let bv2 = b[(b_col[2] + kb) as usize];
+        let bv3 = b[(b_col[3] + kb) as usize];
+        sg_group!(acc, av, bv0, 0);
+        sg_group!(acc, av, bv1, 1);
+        sg_group!(acc, av, bv2, 2);
+        sg_group!(acc, av, bv3, 3);
+        k += 1;
+    }
+    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
+    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
+    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
+    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
 }
 
 /// Sums the splits of a weight gradient in split order and scatters the weight and

@@ -29,6 +29,11 @@ pub const GEMM_COLS: u32 = 32;
 pub const GEMM_BLOCK: u32 = 8;
 /// Depth of one step through `k` (the staged slice of `B` is 64 × 32).
 pub const GEMM_K_STEP: u32 = 64;
+/// Rows of `C` one subgroup of the broadcast kernel (`nn::gemm_subgroup`) owns: 8 per
+/// lane of a subgroup of 8.
+pub const GEMM_SG_ROWS: u32 = 32;
+/// Columns of `C` one subgroup of the broadcast kernel owns.
+pub const GEMM_SG_COLS: u32 = 32;
 
 /// Add `bias[bias_off + n]` to every row.
 pub const GEMM_BIAS: u32 = 1;
@@ -37,9 +42,11 @@ pub const GEMM_ACCUMULATE: u32 = 2;
 /// `A[m][k] = 1` for `m = m_count - 1` (the bias row of a transposed weight gradient).
 pub const GEMM_ONES_ROW: u32 = 4;
 
-/// Push constants of `nn::gemm_tiled` and `nn::gemm_blocked`. The dispatch is
-/// `[ceil(n / 32), ceil(m / 64), splits]` (tiled) or `[ceil(n / 64), ceil(m / 64),
-/// splits]` (blocked, 8 × 8 invocations of 8 × 8);
+/// Push constants of `nn::gemm_tiled`, `nn::gemm_blocked` and `nn::gemm_subgroup`. The
+/// dispatch is `[ceil(n / 32), ceil(m / 64), splits]` (tiled), `[ceil(n / 64),
+/// ceil(m / 64), splits]` (blocked, 8 × 8 invocations of 8 × 8) or
+/// `[x, y, splits]` with `x y >= ceil(m / 32) ceil(n / 32)` (subgroup: one 32 × 32 tile
+/// per workgroup of 8, rows fastest);
 /// split `z` sums `k` over `[z k_chunk, (z + 1) k_chunk)` and writes its `C` at
 /// `c_off + z c_split + m ldc + n`.
 #[repr(C)]

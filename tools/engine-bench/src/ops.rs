@@ -39,9 +39,10 @@ pub struct OpsArgs {
     /// Default: all. LPIPS at 512 x 512 takes minutes on lavapipe.
     #[arg(long, value_delimiter = ',', value_parser = ["gemm", "decoders", "triplane", "ssim", "lpips"])]
     pub only: Vec<String>,
-    /// GEMM kernel: auto (register-blocked on CPU devices, tiled on GPUs), tiled or
-    /// blocked.
-    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked"])]
+    /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel where subgroups
+    /// are 8 lanes, register-blocked for narrow outputs; tiled on GPUs), tiled, blocked
+    /// or subgroup.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked", "subgroup"])]
     pub gemm: String,
     /// Triplane backward: accumulate the plane gradient deterministically (64-bit
     /// fixed-point integer atomics) instead of with float atomics.
@@ -54,6 +55,7 @@ impl OpsArgs {
         match self.gemm.as_str() {
             "tiled" => GemmVariant::Tiled,
             "blocked" => GemmVariant::Blocked,
+            "subgroup" => GemmVariant::Subgroup,
             _ => GemmVariant::Auto,
         }
     }

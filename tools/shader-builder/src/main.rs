@@ -63,18 +63,44 @@ struct Module {
     requires: Option<&'static str>,
 }
 
-/// Capability of the second build: kernels gated on
-/// the kernels crate's `float-atomics` feature exist only there, so every other
-/// module stays loadable on devices without float atomics.
-const FLOAT_ATOMICS: &str = "AtomicFloat32AddEXT";
+/// One rust-gpu build of the kernels crate. Capabilities are declared per build, not per
+/// entry point, so kernels that need one exist only in the build of their cargo
+/// feature, and every other module stays loadable on devices without it.
+struct Flavour {
+    /// The kernels crate's feature (None: the baseline build).
+    feature: Option<&'static str>,
+    capabilities: &'static [spirv_builder::Capability],
+    extension: Option<&'static str>,
+    /// What the manifest records as the device capability its new modules need.
+    requires: Option<&'static str>,
+}
 
-fn build_once(shaders: &Path, float_atomics: bool) -> Result<BTreeMap<String, Vec<u8>>, String> {
+const FLAVOURS: &[Flavour] = &[
+    Flavour { feature: None, capabilities: &[], extension: None, requires: None },
+    Flavour {
+        feature: Some("float-atomics"),
+        capabilities: &[spirv_builder::Capability::AtomicFloat32AddEXT],
+        extension: Some("SPV_EXT_shader_atomic_float_add"),
+        requires: Some("AtomicFloat32AddEXT"),
+    },
+    Flavour {
+        feature: Some("subgroup-ballot"),
+        capabilities: &[spirv_builder::Capability::GroupNonUniform, spirv_builder::Capability::GroupNonUniformBallot],
+        extension: None,
+        requires: Some("GroupNonUniformBallot"),
+    },
+];
+
+fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<u8>>, String> {
     let kernels = shaders.join("kernels");
     // One target directory per configuration, shared by every build (also of temporary
     // copies) so that spirv-std and friends are compiled once; separate per
     // configuration because cargo does not tell the two apart by their flags alone.
-    let flavour = if float_atomics { "spirv-kernels-float-atomics" } else { "spirv-kernels" };
-    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target").join(flavour);
+    let dir = match flavour.feature {
+        None => "spirv-kernels".to_string(),
+        Some(f) => format!("spirv-kernels-{f}"),
+    };
+    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target").join(dir);
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
     builder.release = true;
@@ -82,11 +108,14 @@ fn build_once(shaders: &Path, float_atomics: bool) -> Result<BTreeMap<String, Ve
     builder.build_script.defaults = false;
     // The nested cargo must run on the pinned nightly, whatever toolchain invoked us.
     builder.toolchain_overwrite = Some(TOOLCHAIN.to_string());
-    if float_atomics {
-        builder = builder
-            .capability(spirv_builder::Capability::AtomicFloat32AddEXT)
-            .extension("SPV_EXT_shader_atomic_float_add");
-        builder.shader_crate_features.features = vec!["float-atomics".to_string()];
+    for &c in flavour.capabilities {
+        builder = builder.capability(c);
+    }
+    if let Some(e) = flavour.extension {
+        builder = builder.extension(e);
+    }
+    if let Some(f) = flavour.feature {
+        builder.shader_crate_features.features = vec![f.to_string()];
     }
     let result = builder
         .build()
@@ -103,15 +132,12 @@ fn build_once(shaders: &Path, float_atomics: bool) -> Result<BTreeMap<String, Ve
 }
 
 /// Compiles the kernels crate under `shaders`: the baseline build, plus the modules
-/// that exist only with float atomics.
+/// that exist only in a flavour with an extra capability.
 fn compile(shaders: &Path) -> Result<BTreeMap<String, Module>, String> {
-    let base = build_once(shaders, false)?;
-    let with_atomics = build_once(shaders, true)?;
-    let mut out: BTreeMap<String, Module> =
-        base.into_iter().map(|(entry, bytes)| (entry, Module { bytes, requires: None })).collect();
-    for (entry, bytes) in with_atomics {
-        if !out.contains_key(&entry) {
-            out.insert(entry, Module { bytes, requires: Some(FLOAT_ATOMICS) });
+    let mut out: BTreeMap<String, Module> = BTreeMap::new();
+    for flavour in FLAVOURS {
+        for (entry, bytes) in build_once(shaders, flavour)? {
+            out.entry(entry).or_insert(Module { bytes, requires: flavour.requires });
         }
     }
     Ok(out)
