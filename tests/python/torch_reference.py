@@ -180,6 +180,70 @@ def op_pose_blend(d, case):
     save(d, "gbasis", grad_or_zeros(basis))
 
 
+def quat_to_matrix(q):
+    """(w, x, y, z) -> rotation, the splatter's formula (unit quaternions)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)), -1),
+        torch.stack((2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)), -1),
+        torch.stack((2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), -1),
+    ]
+    return torch.stack(rows, -2)
+
+
+def matrix_to_quat_unnormalised(m):
+    """Shepperd's method without the final normalisation: the candidate of the largest
+    of (trace, m00, m11, m22), the first one on ties (drape's rule; the blended rotation
+    is not orthogonal, so the branch decides the value)."""
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cands = torch.stack(
+        (
+            torch.stack((1 + tr, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]), -1),
+            torch.stack((m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]), -1),
+            torch.stack((m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]), -1),
+            torch.stack((m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]), -1),
+        ),
+        1,
+    )
+    keys = torch.stack((tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]), -1).detach()
+    branch = torch.zeros(m.shape[0], dtype=torch.long)
+    best = keys[:, 0].clone()
+    for i in range(1, 4):
+        better = keys[:, i] > best
+        branch = torch.where(better, torch.full_like(branch, i), branch)
+        best = torch.where(better, keys[:, i], best)
+    return cands[torch.arange(m.shape[0]), branch]
+
+
+def op_deform(d, case):
+    """HUGS's skinning of a decoded Gaussian, by autograd: posed mean
+    x + sum_j w_j (A_j [x; 1] - x) with x = mean + offset, posed rotation
+    (sum_j w_j R_j) R_q R_6d as an unnormalised quaternion, log-scale + delta."""
+    transforms = load(d, "transforms", (24, 3, 4)).requires_grad_(True)
+    means = load(d, "means", (None, 3)).requires_grad_(True)
+    n = means.shape[0]
+    quats = load(d, "quats", (n, 4))
+    offsets = load(d, "offsets", (n, 3)).requires_grad_(True)
+    rot6d = load(d, "rot6d", (n, 6)).requires_grad_(True)
+    log_scales = load(d, "log_scales", (n, 3))
+    deltas = load(d, "log_scale_deltas", (n, 3)).requires_grad_(True)
+    weights = load(d, "weights", (n, 24)).requires_grad_(True)
+    x = means + offsets
+    rot, trans = transforms[:, :, :3], transforms[:, :, 3]
+    ax = torch.einsum("jab,nb->nja", rot, x) + trans[None]
+    mean = x + torch.einsum("nj,nja->na", weights, ax - x[:, None, :])
+    blended = torch.einsum("nj,jab->nab", weights, rot)
+    posed = blended @ quat_to_matrix(quats) @ rotation_6d_to_matrix(rot6d)
+    quat = matrix_to_quat_unnormalised(posed)
+    log_scale = log_scales + deltas
+    loss = (mean * load(d, "g_mean", (n, 3))).sum() + (quat * load(d, "g_quat", (n, 4))).sum() + (log_scale * load(d, "g_log_scale", (n, 3))).sum()
+    loss.backward()
+    save(d, "mean", mean)
+    save(d, "quat", quat)
+    for name, t in [("transforms", transforms), ("means", means), ("offsets", offsets), ("rot6d", rot6d), ("log_scale_deltas", deltas), ("weights", weights)]:
+        save(d, "g" + name, grad_or_zeros(t))
+
+
 def gaussian_window(size, sigma):
     """pytorch_msssim's _fspecial_gauss_1d, but in float64 (it builds float32)."""
     coords = torch.arange(size, dtype=torch.float64) - size // 2
@@ -266,7 +330,7 @@ def op_lpips(d, case):
     save(d, "gimg0", grad_or_zeros(a)[0].permute(1, 2, 0))
 
 
-OPS = {"lpips": op_lpips, "mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1, "chamfer": op_chamfer, "arap": op_arap, "pose_blend": op_pose_blend}
+OPS = {"lpips": op_lpips, "mlp": op_mlp, "triplane": op_triplane, "rot6d": op_rot6d, "ssim": op_ssim, "l1": op_l1, "chamfer": op_chamfer, "arap": op_arap, "pose_blend": op_pose_blend, "deform": op_deform}
 
 
 def main():

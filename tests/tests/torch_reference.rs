@@ -442,3 +442,80 @@ fn pose_blend_matches_pytorch() {
     let ours_g = reference_pose_blend_backward(&tf, &g);
     assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-12, "basis gradient differs from PyTorch");
 }
+
+#[test]
+fn skinning_and_its_transform_gradient_match_pytorch() {
+    use drape_engine::ops::deform::{reference_backward as deform_backward, reference_forward as deform_forward, reference_transform_grad};
+    use drape_shared::deform::DeformOutput;
+    use drape_trainer::avatar::rig::Rig;
+    use drape_trainer::body::procedural::{default_body, BodyOptions};
+    use drape_trainer::dataset::loader::BodyParams;
+    let n = 60;
+    // A posed, translated and scaled body's 24 skinning transforms (3 x 4 each).
+    let pose_flat = uniform(72, -0.6, 0.6, 70);
+    let mut pose = [[0.0f64; 3]; 24];
+    for (j, p) in pose.iter_mut().enumerate() {
+        *p = [pose_flat[3 * j], pose_flat[3 * j + 1], pose_flat[3 * j + 2]];
+    }
+    let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
+    let frame = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: [0.1, -0.2, 2.5], scale: 1.0 });
+    let mut rng = rand::rngs::StdRng::seed_from_u64(71);
+    let mut host = HostInputs::<f64> { transforms: to_f64(&frame.transforms), ..Default::default() };
+    host.means = uniform(3 * n, -0.8, 0.8, 72);
+    host.offsets = uniform(3 * n, -0.05, 0.05, 73);
+    host.rot6d = uniform(6 * n, -1.0, 1.0, 74);
+    host.log_scales = uniform(3 * n, -5.0, -3.0, 75);
+    host.log_scale_deltas = uniform(3 * n, -0.5, 0.5, 76);
+    for _ in 0..n {
+        let q: [f64; 4] = std::array::from_fn(|_| rng.gen_range(-1.0..1.0));
+        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        host.quats.extend(q.map(|v| v / norm));
+        // Softmax-like weights, some exactly zero (the forward skips those joints; the
+        // gradient to their weights is still defined).
+        let w: [f64; 24] = std::array::from_fn(|_| if rng.gen_bool(0.3) { 0.0 } else { rng.gen_range(0.0..1.0) });
+        let sum: f64 = w.iter().sum::<f64>().max(1e-9);
+        host.weights.extend(w.map(|v| v / sum));
+    }
+    let (g_mean, g_quat, g_log_scale) = (uniform(3 * n, -1.0, 1.0, 77), uniform(4 * n, -1.0, 1.0, 78), uniform(3 * n, -1.0, 1.0, 79));
+    let dir = case_dir("torch-cases", "deform");
+    put(&dir, "transforms", &[24, 3, 4], &host.transforms);
+    put(&dir, "means", &[n, 3], &host.means);
+    put(&dir, "quats", &[n, 4], &host.quats);
+    put(&dir, "offsets", &[n, 3], &host.offsets);
+    put(&dir, "rot6d", &[n, 6], &host.rot6d);
+    put(&dir, "log_scales", &[n, 3], &host.log_scales);
+    put(&dir, "log_scale_deltas", &[n, 3], &host.log_scale_deltas);
+    put(&dir, "weights", &[n, 24], &host.weights);
+    put(&dir, "g_mean", &[n, 3], &g_mean);
+    put(&dir, "g_quat", &[n, 4], &g_quat);
+    put(&dir, "g_log_scale", &[n, 3], &g_log_scale);
+    run_torch(&dir, serde_json::json!({ "op": "deform" }));
+
+    let out = deform_forward(&host);
+    let upstream: Vec<DeformOutput<f64>> = (0..n)
+        .map(|i| DeformOutput {
+            mean: [g_mean[3 * i], g_mean[3 * i + 1], g_mean[3 * i + 2]],
+            quat: [g_quat[4 * i], g_quat[4 * i + 1], g_quat[4 * i + 2], g_quat[4 * i + 3]],
+            log_scale: [g_log_scale[3 * i], g_log_scale[3 * i + 1], g_log_scale[3 * i + 2]],
+        })
+        .collect();
+    let grads = deform_backward(&host, &upstream);
+    let gather = |f: &dyn Fn(usize) -> Vec<f64>| -> Vec<f64> { (0..n).flat_map(f).collect() };
+    // Both in float64: agreement to rounding (sums of 24 joints' terms).
+    let checks: [(&str, Vec<f64>, f64); 8] = [
+        ("mean", gather(&|i| out[i].mean.to_vec()), 1e-12),
+        ("quat", gather(&|i| out[i].quat.to_vec()), 1e-12),
+        ("gtransforms", reference_transform_grad(&host, &grads), 1e-10),
+        ("gmeans", gather(&|i| grads[i].mean.to_vec()), 1e-10),
+        ("goffsets", gather(&|i| grads[i].offset.to_vec()), 1e-10),
+        ("grot6d", gather(&|i| grads[i].rot6d.to_vec()), 1e-10),
+        ("glog_scale_deltas", gather(&|i| grads[i].log_scale_delta.to_vec()), 1e-10),
+        ("gweights", gather(&|i| grads[i].weights.to_vec()), 1e-10),
+    ];
+    for (name, ours, tol) in checks {
+        let theirs = get(&dir, name);
+        assert_eq!(ours.len(), theirs.len(), "{name}: lengths");
+        let e = rel_err(&ours, &theirs, 1e-6);
+        assert!(e <= tol, "{name} differs from PyTorch's autograd by {e:e} (relative)");
+    }
+}
