@@ -76,3 +76,21 @@ fn simulate_refuses_a_bad_motion_file_in_one_line() {
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
     assert!(stderr.contains(motion.to_str().unwrap()) && stderr.contains("['poses']") && stderr.contains("100 values per frame"), "{stderr}");
 }
+
+#[test]
+fn simulate_refuses_an_obj_garment_without_faces_in_one_line_and_writes_nothing() {
+    let d = std::env::temp_dir().join(format!("drape-obj-no-faces-{}", std::process::id()));
+    std::fs::create_dir_all(&d).expect("temp dir");
+    let obj = d.join("points_only.obj");
+    std::fs::write(&obj, "# three vertices, no face\nv 0 1.2 0.1\nv 0.1 1.2 0.1\nv 0 1.3 0.1\n").expect("write obj");
+    let out = d.join("sim");
+    let o = Command::new(env!("CARGO_BIN_EXE_drape"))
+        .args(["simulate", "--frames", "2", "--garment", obj.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .output()
+        .expect("drape runs");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains(obj.to_str().unwrap()) && stderr.contains("no triangles"), "{stderr}");
+    assert!(!out.exists(), "the output directory was created");
+}
