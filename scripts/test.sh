@@ -23,6 +23,9 @@ fi
 DRAPE_TORCH_PYTHON="$(scripts/torch-env.sh | tail -1)"
 export DRAPE_TORCH_PYTHON
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
+# Incremental caches would be written once per test binary and never reused on a
+# clean clone: disk CI does not have to spare.
+export CARGO_INCREMENTAL=0
 if [ "$DRAPE_DEVICE" = llvmpipe ]; then
     export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps}"
 fi
@@ -37,6 +40,8 @@ echo "== 3/4 workspace tests on $DRAPE_DEVICE with validation"
 cargo test --workspace --locked
 
 echo "== 4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
-DRAPE_FORCE_STAGING=1 cargo test --locked -p drape-tests \
+# --workspace, not -p drape-tests: the same feature unification as step 3, so this
+# reuses its build instead of compiling every dependency a second time.
+DRAPE_FORCE_STAGING=1 cargo test --workspace --locked \
     --test runtime --test scan --test sort --test splat_gpu --test splat_robustness \
     --test splat_gradients --test composite --test nn --test skinning --test ssim --test sizes
