@@ -2,7 +2,7 @@
 //! against their CPU references (f64), the references' gradients against central
 //! differences, and the extremes (coincident points, empty sets, zero-length edges).
 
-use drape_engine::ops::cloth_loss::{arap_reference, chamfer_reference, csr, nearest_reference, Arap, Chamfer};
+use drape_engine::ops::cloth_loss::{arap_reference, chamfer_reference, csr, nearest_reference, Arap, Chamfer, NearestSearch};
 use drape_engine::{BufferDesc, Context, EngineError};
 use drape_tests::gpu;
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
@@ -17,10 +17,16 @@ fn flat(p: &[[f64; 3]]) -> Vec<f64> {
 
 /// (robust loss, gradient with λ = 1, pred → target nearest indices) on the GPU.
 fn gpu_chamfer(ctx: &Context, pred: &[[f64; 3]], target: &[[f64; 3]], sigma: f32) -> (f64, Vec<f64>, Vec<u32>) {
+    let (loss, grad, near, _) = gpu_chamfer_with(ctx, pred, target, sigma, NearestSearch::BruteForce);
+    (loss, grad, near)
+}
+
+/// `gpu_chamfer` with a chosen search, and the target → pred nearest indices too.
+fn gpu_chamfer_with(ctx: &Context, pred: &[[f64; 3]], target: &[[f64; 3]], sigma: f32, search: NearestSearch) -> (f64, Vec<f64>, Vec<u32>, Vec<u32>) {
     let p = ctx.upload("pred", &to_f32(&flat(pred))).expect("upload");
     let t = ctx.upload("target", &to_f32(&flat(target))).expect("upload");
     let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * pred.len() as u64)).expect("buffer");
-    let mut c = Chamfer::new(ctx, pred.len() as u32, target.len() as u32).expect("chamfer");
+    let mut c = Chamfer::with_search(ctx, pred.len() as u32, target.len() as u32, search).expect("chamfer");
     {
         let mut rec = ctx.record("chamfer test").expect("record");
         rec.fill(&g, 0);
@@ -29,8 +35,8 @@ fn gpu_chamfer(ctx: &Context, pred: &[[f64; 3]], target: &[[f64; 3]], sigma: f32
         rec.submit_and_wait().expect("submit");
     }
     let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * pred.len()).expect("read"));
-    let (near, _) = c.read_nearest(ctx).expect("nearest");
-    (c.read_value(ctx).expect("value").robust, grad, near)
+    let (near, back) = c.read_nearest(ctx).expect("nearest");
+    (c.read_value(ctx).expect("value").robust, grad, near, back)
 }
 
 #[test]
@@ -204,4 +210,150 @@ fn csr_lists_each_edge_at_both_ends() {
     let (offsets, neighbours) = csr(5, &edges);
     assert_eq!(offsets, vec![0, 2, 4, 7, 8, 8]);
     assert_eq!(neighbours, vec![1, 2, 0, 2, 1, 0, 3, 2]);
+}
+
+/// Point sets that stress the grid: a cube, a sphere shell (a surface: most cells
+/// empty), a flat sheet, a thin line, duplicated points (ties), all points coincident,
+/// and predictions far outside the target box (whose shell search runs out of budget
+/// and is finished by brute force).
+fn grid_cases() -> Vec<(&'static str, Vec<[f64; 3]>, Vec<[f64; 3]>)> {
+    let shell = |n: usize, seed: u64, r: f64| -> Vec<[f64; 3]> {
+        points(n, seed)
+            .into_iter()
+            .map(|p| {
+                let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-9);
+                [r * p[0] / l, r * p[1] / l, r * p[2] / l]
+            })
+            .collect()
+    };
+    let sheet = |n: usize, seed: u64| -> Vec<[f64; 3]> { points(n, seed).into_iter().map(|p| [p[0], p[1], 0.0]).collect() };
+    let line = |n: usize, seed: u64| -> Vec<[f64; 3]> { points(n, seed).into_iter().map(|p| [p[0], 1e-4 * p[1], 0.0]).collect() };
+    let mut dup = points(3000, 31);
+    dup.extend_from_within(..1500);
+    let mut far = points(2000, 41);
+    far.extend(points(40, 42).into_iter().map(|p| [p[0] + 30.0, p[1] - 20.0, p[2]]));
+    vec![
+        ("cube", points(20_000, 21), points(15_000, 22)),
+        ("shell", shell(12_000, 23, 0.25), shell(9_000, 24, 0.26)),
+        ("sheet", sheet(8_000, 25), sheet(8_000, 26)),
+        ("line", line(5_000, 27), line(6_000, 28)),
+        ("duplicates", points(2_000, 32), dup),
+        ("coincident", vec![[0.1, 0.2, 0.3]; 700], vec![[0.1, 0.2, 0.3]; 500]),
+        ("far queries", far, points(20_000, 43)),
+        ("one point", points(1, 44), points(7, 45)),
+    ]
+}
+
+#[test]
+fn grid_search_finds_what_brute_force_finds() {
+    let ctx = gpu();
+    let sigma = 0.02f32;
+    for (name, pred, target) in grid_cases() {
+        let (bl, bg, bn, bb) = gpu_chamfer_with(&ctx, &pred, &target, sigma, NearestSearch::BruteForce);
+        let (gl, gg, gn, gb) = gpu_chamfer_with(&ctx, &pred, &target, sigma, NearestSearch::Grid);
+        // The same f32 distances and the same tie rule (lower index): the same indices.
+        for (dir, g, b) in [("pred -> target", &gn, &bn), ("target -> pred", &gb, &bb)] {
+            let wrong: Vec<usize> = (0..g.len()).filter(|&i| g[i] != b[i]).collect();
+            assert!(wrong.is_empty(), "{name}: {dir}: {} of {} nearest indices differ from brute force (first: query {}, {} vs {})", wrong.len(), g.len(), wrong[0], g[wrong[0]], b[wrong[0]]);
+        }
+        // Same per-point terms; the mean is summed on the host from the same d² values.
+        assert_eq!(gl, bl, "{name}: loss {gl} vs brute force {bl}");
+        // The target terms are summed in 2^-36 fixed point (grid) and in f32 (brute
+        // force): 1e-5 of the largest component.
+        let e = rel_err(&gg, &bg, 1e-12);
+        assert!(e < 1e-5, "{name}: gradient relative error {e:e} against brute force");
+        // And against the f64 reference, as the brute-force test states it, on the
+        // points as uploaded (f32) so that both see the same sets.
+        let f32_points = |v: &[[f64; 3]]| -> Vec<[f64; 3]> { v.iter().map(|p| p.map(|c| f64::from(c as f32))).collect() };
+        let (loss, grad) = chamfer_reference(&f32_points(&pred), &f32_points(&target), f64::from(sigma));
+        assert!((gl - loss).abs() <= 1e-5 * loss.abs().max(1e-3), "{name}: loss {gl} vs {loss}");
+        let e = rel_err(&gg, &flat(&grad), 1e-12);
+        assert!(e < 1e-4, "{name}: gradient relative error {e:e} against the f64 reference");
+        println!("{name}: {} x {} points, loss {gl:.6}, grid = brute force", pred.len(), target.len());
+    }
+}
+
+/// The f32 nearest of `points` to `q` by brute force (lower index on ties), as the
+/// kernels compute distances.
+fn nearest_f32(q: [f32; 3], points: &[[f32; 3]]) -> (u32, f32) {
+    let mut best = (u32::MAX, f32::INFINITY);
+    for (j, p) in points.iter().enumerate() {
+        let d = drape_shared::cloth_loss::distance2(q, *p);
+        if d < best.1 {
+            best = (j as u32, d);
+        }
+    }
+    best
+}
+
+#[test]
+fn chamfer_of_a_million_points_each_way() {
+    let ctx = gpu();
+    const N: usize = 1_000_000;
+    // Two samplings of a garment-like surface (a wavy cylinder, 0.3 m across, 0.6 m
+    // tall), the predictions jittered off it by a few millimetres.
+    let surface = |n: usize, seed: u64, jitter: f64| -> Vec<[f32; 3]> {
+        let u = uniform(4 * n, 0.0, 1.0, seed);
+        (0..n)
+            .map(|i| {
+                let (a, h, j) = (u[4 * i] * std::f64::consts::TAU, u[4 * i + 1] * 0.6, (u[4 * i + 2] - 0.5) * jitter);
+                let r = 0.15 + 0.01 * (5.0 * a).sin() * (10.0 * h).cos() + j;
+                [(r * a.cos()) as f32, h as f32, (r * a.sin()) as f32]
+            })
+            .collect()
+    };
+    let pred = surface(N, 51, 0.006);
+    let target = surface(N, 52, 0.0);
+    let flat32 = |p: &[[f32; 3]]| p.iter().flatten().copied().collect::<Vec<f32>>();
+    let pb = ctx.upload("pred", &flat32(&pred)).expect("upload");
+    let tb = ctx.upload("target", &flat32(&target)).expect("upload");
+    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * N as u64)).expect("buffer");
+    let mut c = Chamfer::new(&ctx, N as u32, N as u32).expect("chamfer");
+    let sigma = 0.02f32;
+    let start = std::time::Instant::now();
+    {
+        let mut rec = ctx.record("chamfer 1M").expect("record");
+        rec.fill(&g, 0);
+        rec.barrier();
+        c.record(&mut rec, &pb, N as u32, &tb, N as u32, sigma, Some((&g, 1.0))).expect("record");
+        rec.submit_and_wait().expect("submit");
+    }
+    println!("1M x 1M Chamfer with its gradient (Auto: the grid) took {:.1} s on this device", start.elapsed().as_secs_f64());
+    let value = c.read_value(&ctx).expect("value");
+    let (near, back) = c.read_nearest(&ctx).expect("nearest");
+    let grad = ctx.read_buffer::<f32>(&mut g, 3 * N).expect("read");
+    // Brute force over all 10^12 pairs is out of reach in a test: 300 queries each way,
+    // spread over the sets, against an exhaustive f32 search.
+    for (dir, queries, points, found) in [("pred -> target", &pred, &target, &near), ("target -> pred", &target, &pred, &back)] {
+        for q in (0..N).step_by(N / 300) {
+            let (j, d) = nearest_f32(queries[q], points);
+            assert_eq!(found[q], j, "{dir}: query {q} found {} at {} vs {j} at {d}", found[q], drape_shared::cloth_loss::distance2(queries[q], points[found[q] as usize]));
+        }
+    }
+    // The loss and the gradient recomputed on the host (f64) from the indices found.
+    let to64 = |p: [f32; 3]| [f64::from(p[0]), f64::from(p[1]), f64::from(p[2])];
+    let s2 = f64::from(sigma * sigma);
+    let mut loss = 0.0;
+    let mut want = vec![[0.0f64; 3]; N];
+    for i in 0..N {
+        let (p, t) = (to64(pred[i]), to64(target[near[i] as usize]));
+        loss += 0.5 * drape_shared::cloth_loss::geman_mcclure(drape_shared::cloth_loss::distance2(p, t), s2).0 / N as f64;
+        want[i] = drape_shared::cloth_loss::chamfer_pair_grad(p, t, s2, 0.5 / N as f64);
+    }
+    for j in 0..N {
+        let i = back[j] as usize;
+        let (p, t) = (to64(pred[i]), to64(target[j]));
+        loss += 0.5 * drape_shared::cloth_loss::geman_mcclure(drape_shared::cloth_loss::distance2(p, t), s2).0 / N as f64;
+        let d = drape_shared::cloth_loss::chamfer_pair_grad(p, t, s2, 0.5 / N as f64);
+        for k in 0..3 {
+            want[i][k] += d[k];
+        }
+    }
+    // f32 distances summed over 2M terms in f64 on both sides: 1e-5 relative.
+    assert!((value.robust - loss).abs() <= 1e-5 * loss, "loss {} vs host {loss}", value.robust);
+    let e = rel_err(&to_f64(&grad), &flat(&want), 1e-12);
+    // Per-point sums of a few f32 pair terms (fixed point for the target terms): 1e-4.
+    assert!(e < 1e-4, "gradient relative error {e:e}");
+    assert!(grad.iter().all(|v| v.is_finite()), "non-finite gradient");
+    println!("1M x 1M: robust loss {:.6}, Chamfer distance {:.3} mm", value.robust, value.distance * 1e3);
 }

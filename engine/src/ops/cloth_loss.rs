@@ -1,18 +1,116 @@
 //! The cloth layer's physics losses on the GPU (kernels `cloth_loss::*`): the
-//! simulation term (bidirectional Chamfer through Geman–McClure, nearest neighbours by
-//! tiled brute force) and ARAP (the variance of edge lengths), each adding its
-//! gradient to the posed Gaussian centres; and their CPU references from the same
-//! shared functions (`drape_shared::cloth_loss`, which states the math), generic over
-//! f32/f64.
+//! simulation term (bidirectional Chamfer through Geman–McClure) and ARAP (the
+//! variance of edge lengths), each adding its gradient to the posed Gaussian centres;
+//! and their CPU references from the same shared functions (`drape_shared::cloth_loss`,
+//! which states the math), generic over f32/f64.
+//!
+//! Nearest neighbours two ways ([`NearestSearch`]): tiled brute force (exact, no build
+//! step, deterministic gradient gathered per point; what training's 10⁴ × 10⁴ sets
+//! use) and a uniform grid (bounds, cell keys, the stable radix sort, cell ranges, a
+//! shell search with a brute-force finish for the queries it could not settle within
+//! llvmpipe's loop budget; the gradient's target terms scattered in deterministic
+//! fixed point): exact too, and what makes 10⁶ × 10⁶ sets possible. `Auto` picks the
+//! grid above [`AUTO_GRID_PAIRS`] point pairs.
 
-use drape_shared::cloth_loss::{arap_edge_grad, chamfer_pair_grad, distance2, geman_mcclure, ArapParams, ChamferParams, CHAMFER_CHUNK, CHAMFER_MERGE, CHAMFER_OWN_TERM};
+use drape_shared::cloth_loss::{
+    arap_edge_grad, chamfer_pair_grad, distance2, geman_mcclure, ArapParams, ChamferParams, GridParams, CHAMFER_CHUNK, CHAMFER_FINISH, CHAMFER_LAST, CHAMFER_MERGE, CHAMFER_OWN_TERM,
+    GRID_BOUNDS_WORDS, GRID_CELL_BITS, GRID_MAX_CELLS,
+};
 use drape_shared::real::Real;
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
+use crate::ops::accumulate::FixedPointScratch;
+use crate::ops::radix_sort::RadixSort;
 use crate::recorder::{flat_grid as grid, Recording};
+
+/// How [`Chamfer`] finds nearest neighbours. Both are exact (ties to the lower index).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NearestSearch {
+    /// The grid when `n · m` exceeds [`AUTO_GRID_PAIRS`], else brute force.
+    #[default]
+    Auto,
+    BruteForce,
+    Grid,
+}
+
+/// Above this many point pairs `Auto` searches through the grid: brute force costs
+/// `n · m` distances (about a second per 10⁹ on lavapipe), the grid a sort and a few
+/// hundred distances per point.
+pub const AUTO_GRID_PAIRS: u64 = 1 << 30;
+
+/// The grid's scratch: bounds, (cell, point) pairs and their sort, cell ranges, and
+/// the fixed-point sums of the gradient's target terms.
+struct GridScratch {
+    bounds: Buffer,
+    keys: Buffer,
+    order: Buffer,
+    start: Buffer,
+    end: Buffer,
+    sort: RadixSort,
+    target_terms: FixedPointScratch,
+}
+
+impl GridScratch {
+    fn new(ctx: &Context, max_pred: u32, max_target: u32) -> Result<Self> {
+        let len = max_pred.max(max_target).max(1);
+        let b = |name: &str, words: u64| ctx.create_buffer(name, BufferDesc::gpu_only(4 * words));
+        let cells = u64::from(GRID_MAX_CELLS);
+        Ok(Self {
+            bounds: b("chamfer grid bounds", u64::from(GRID_BOUNDS_WORDS))?,
+            keys: b("chamfer grid keys", len.into())?,
+            order: b("chamfer grid order", len.into())?,
+            start: b("chamfer grid cell starts", cells)?,
+            end: b("chamfer grid cell ends", cells)?,
+            sort: RadixSort::new(ctx, len)?,
+            target_terms: FixedPointScratch::new(ctx, "chamfer target terms", 3 * max_pred.max(1))?,
+        })
+    }
+
+    /// Records the nearest of `points` (`np`) to each of `queries` (`nq`) into
+    /// `index_out` and `d2_out`.
+    #[allow(clippy::too_many_arguments)]
+    fn record_nearest<'a>(&'a self, rec: &mut Recording<'a>, queries: &'a Buffer, nq: u32, points: &'a Buffer, np: u32, index_out: &'a Buffer, d2_out: &'a Buffer) -> Result<()> {
+        let p = GridParams { queries: np, points: np, _pad: [0; 2] };
+        rec.fill(&self.bounds, 0);
+        rec.fill(&self.start, 0);
+        rec.fill(&self.end, 0);
+        rec.barrier();
+        rec.pass("chamfer.grid_bounds", Kernel::ClothLossBounds).read(points).write(&self.bounds).push(&p).dispatch(grid(np))?;
+        rec.barrier();
+        rec.pass("chamfer.grid_keys", Kernel::ClothLossCellKeys).read(points).read(&self.bounds).write(&self.keys).write(&self.order).push(&p).dispatch(grid(np))?;
+        rec.barrier();
+        self.sort.record(rec, &self.keys, &self.order, np, GRID_CELL_BITS)?;
+        rec.barrier();
+        rec.pass("chamfer.grid_ranges", Kernel::ClothLossCellRanges).read(&self.keys).write(&self.start).write(&self.end).push(&p).dispatch(grid(np))?;
+        rec.barrier();
+        let q = GridParams { queries: nq, points: np, _pad: [0; 2] };
+        rec.pass("chamfer.grid_search", Kernel::ClothLossNearestGrid)
+            .read(queries)
+            .read(points)
+            .read(&self.bounds)
+            .read(&self.start)
+            .read(&self.end)
+            .read(&self.order)
+            .write(index_out)
+            .write(d2_out)
+            .push(&q)
+            .dispatch(grid(nq))?;
+        rec.barrier();
+        // Queries the grid left unfinished (over the step budget) by brute force; a
+        // workgroup with none returns at once.
+        let chunks = np.div_ceil(CHAMFER_CHUNK);
+        for (k, offset) in (0..np).step_by(CHAMFER_CHUNK as usize).enumerate() {
+            let last = if k + 1 == chunks as usize { CHAMFER_LAST } else { 0 };
+            let f = ChamferParams { queries: nq, points: np, offset, flags: CHAMFER_FINISH | last, ..Default::default() };
+            rec.pass("chamfer.grid_finish", Kernel::ClothLossNearest).read(queries).read(points).write(index_out).write(d2_out).push(&f).dispatch(grid(nq))?;
+            rec.barrier();
+        }
+        Ok(())
+    }
+}
 
 /// Scratch for Chamfer losses between up to `max_pred` predicted and `max_target`
 /// target points.
@@ -23,6 +121,9 @@ pub struct Chamfer {
     pred_d2: Buffer,
     target_nearest: Buffer,
     target_d2: Buffer,
+    search: NearestSearch,
+    /// Made when `search` can pick the grid for sets of the planned size.
+    grid: Option<GridScratch>,
     /// (n, m, σ²) of the last recording, for reading its values back.
     last: std::cell::Cell<(u32, u32, f32)>,
 }
@@ -37,8 +138,20 @@ pub struct ChamferValue {
 
 impl Chamfer {
     pub fn new(ctx: &Context, max_pred: u32, max_target: u32) -> Result<Self> {
+        Self::with_search(ctx, max_pred, max_target, NearestSearch::Auto)
+    }
+
+    /// A plan that finds nearest neighbours as `search` says.
+    pub fn with_search(ctx: &Context, max_pred: u32, max_target: u32, search: NearestSearch) -> Result<Self> {
         let b = |name: &str, n: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(n.max(1))));
+        let may_grid = match search {
+            NearestSearch::BruteForce => false,
+            NearestSearch::Grid => true,
+            NearestSearch::Auto => u64::from(max_pred) * u64::from(max_target) > AUTO_GRID_PAIRS,
+        };
         Ok(Self {
+            search,
+            grid: if may_grid { Some(GridScratch::new(ctx, max_pred, max_target)?) } else { None },
             max_pred,
             max_target,
             pred_nearest: b("chamfer pred nearest", max_pred)?,
@@ -70,6 +183,39 @@ impl Chamfer {
         let sigma2 = sigma * sigma;
         self.last.set((n, m, sigma2));
         let this = self;
+        let use_grid = match self.search {
+            NearestSearch::BruteForce => false,
+            NearestSearch::Grid => true,
+            NearestSearch::Auto => u64::from(n) * u64::from(m) > AUTO_GRID_PAIRS,
+        };
+        if let (true, Some(gs)) = (use_grid, &this.grid) {
+            gs.record_nearest(rec, pred, n, target, m, &this.pred_nearest, &this.pred_d2)?;
+            gs.record_nearest(rec, target, m, pred, n, &this.target_nearest, &this.target_d2)?;
+            if let Some((g, lambda)) = grad {
+                let p = ChamferParams { queries: m, points: n, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, ..Default::default() };
+                gs.target_terms.record_clear(rec);
+                rec.barrier();
+                rec.pass("chamfer.grad_scatter", Kernel::ClothLossChamferGradScatter)
+                    .read(pred)
+                    .read(target)
+                    .read(&this.target_nearest)
+                    .write(gs.target_terms.buffer())
+                    .push(&p)
+                    .dispatch(grid(m))?;
+                rec.barrier();
+                let q = ChamferParams { queries: n, points: m, ..p };
+                rec.pass("chamfer.grad_gather", Kernel::ClothLossChamferGradGather)
+                    .read(pred)
+                    .read(target)
+                    .read(&this.pred_nearest)
+                    .read(gs.target_terms.buffer())
+                    .write(g)
+                    .push(&q)
+                    .dispatch(grid(n))?;
+                rec.barrier();
+            }
+            return Ok(());
+        }
         // Each dispatch walks one chunk of the searched set (llvmpipe's loop cap),
         // merging with the chunks before; the chunks of one search are ordered by
         // barriers, the two directions are independent.
