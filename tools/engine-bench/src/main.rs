@@ -88,7 +88,8 @@ enum Job {
     /// the split of a step.
     Avatar(avatar::AvatarArgs),
     /// The speed/accuracy trade of a trained avatar: for each knob built today
-    /// (resolution, SH degree per layer, pruning by opacity, compositing) the held-out
+    /// (resolution, SH degree per layer, pruning by opacity, compositing, pose-dependent
+    /// offsets off where the run has them) the held-out
     /// frames rendered and compared with the ground truth and with the default render
     /// (PSNR, SSIM, LPIPS with weights) beside the GPU ms per frame; writes trade.json,
     /// trade.md and a Pareto plot trade.png; lists the knobs not built.

@@ -16,7 +16,10 @@
 //! - Gaussians pruned by opacity (`--prune`): a pruned Gaussian's opacity logit is set to
 //!   [`PRUNED_LOGIT`], which the projection culls (opacity below `alpha_min`), so it
 //!   leaves no intersection, exactly as if removed;
-//! - compositing: three-pass, three-pass-occlusion, single-pass.
+//! - compositing: three-pass, three-pass-occlusion, single-pass;
+//! - pose-dependent offsets off, for runs whose layers were trained with them: the
+//!   deformation reads the decoded offsets without the pose blend (which also saves
+//!   the blend's pass).
 //!
 //! The edits are host reads and writes between the decoders and the render, outside the
 //! GPU time. They change what is rendered, not how: the kernels still evaluate every SH
@@ -108,6 +111,8 @@ struct Setting {
     /// SH degree kept per part (the human layers in order, then the scene); None: all.
     sh_keep: Vec<Option<u32>>,
     prune: Option<f32>,
+    /// The pose blend of layers trained with pose-dependent offsets.
+    pose_offsets: bool,
 }
 
 impl Setting {
@@ -198,7 +203,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static str, serde_json::Value>) {
     let default_comp = run.config.compositing.clone();
     let parts = part_names(&run.avatar);
-    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None };
+    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, pose_offsets: true };
     let mut out = vec![base.clone()];
     let mut knobs = BTreeMap::new();
     for &s in args.scales.iter().filter(|&&s| s != 1.0) {
@@ -231,6 +236,13 @@ fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static
         out.push(Setting { knob: "compositing", label: c.to_string(), compositing: c.to_string(), ..base.clone() });
     }
     knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass; the fused rasterizer does not exist"));
+    let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.has_pose_blend()).map(|l| l.name.as_str()).collect();
+    if blended.is_empty() {
+        knobs.insert("pose_offsets", json!("not applicable: no layer of this run was trained with pose-dependent offsets (config body.pose_offsets / cloth.pose_offsets)"));
+    } else {
+        out.push(Setting { knob: "pose_offsets", label: format!("off ({} without the pose blend)", blended.join(", ")), pose_offsets: false, ..base.clone() });
+        knobs.insert("pose_offsets", json!(format!("measured: {} rendered without the pose blend (the decoded offsets alone)", blended.join(", "))));
+    }
     (out, knobs)
 }
 
@@ -243,7 +255,6 @@ fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
         json!({"knob": "fused compositing", "why": "the fused rasterizer of the compositing issue is not built (three-pass is three splatter passes and a composite)"}),
         json!({"knob": "pruning by contribution", "why": "needs a per-Gaussian accumulated blend weight from the rasterizer, which it does not write"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
-        json!({"knob": "pose-dependent offsets on/off", "why": "not present: the geometry decoder reads only the canonical triplane features, so its offsets do not depend on the pose"}),
     ]
 }
 
@@ -353,6 +364,9 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
     ctx.start_profile();
     let result = (|| -> anyhow::Result<Vec<usize>> {
         run.avatar.set_frame(ctx, &transforms)?;
+        for l in &mut run.avatar.layers {
+            l.set_pose_blend(s.pose_offsets);
+        }
         {
             let mut rec = ctx.record("trade decode and skin")?;
             run.avatar.record_forward(&mut rec, transforms.log_scale)?;
@@ -601,8 +615,14 @@ pub fn markdown(r: &serde_json::Value) -> String {
 }
 
 /// Point colours per knob: (knob, colour name, RGB).
-const KNOB_COLOURS: [(&str, &str, [u8; 3]); 5] =
-    [("default", "black", [0, 0, 0]), ("resolution", "blue", [30, 90, 220]), ("sh_degree", "green", [20, 150, 40]), ("pruning", "orange", [230, 130, 0]), ("compositing", "purple", [140, 40, 170])];
+const KNOB_COLOURS: [(&str, &str, [u8; 3]); 6] = [
+    ("default", "black", [0, 0, 0]),
+    ("resolution", "blue", [30, 90, 220]),
+    ("sh_degree", "green", [20, 150, 40]),
+    ("pruning", "orange", [230, 130, 0]),
+    ("compositing", "purple", [140, 40, 170]),
+    ("pose_offsets", "teal", [0, 150, 150]),
+];
 
 fn put(img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]) {
     if x >= 0 && y >= 0 && x < i64::from(img.width()) && y < i64::from(img.height()) {

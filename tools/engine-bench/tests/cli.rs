@@ -85,7 +85,8 @@ fn avatar_names_a_missing_run_in_one_line() {
     assert!(lines[0].contains("/nonexistent/run") && lines[0].contains("no such run directory"), "{stderr}");
 }
 
-/// A tiny run (body + cloth at SH degree 1, 64 x 64, a few steps) trained in-process:
+/// A tiny run (body + cloth at SH degree 1, 64 x 64, a few steps, the cloth with
+/// pose-dependent offsets) trained in-process:
 /// enough for `engine-bench trade` to have every knob, small enough for seconds.
 fn tiny_run() -> std::path::PathBuf {
     use drape_trainer::avatar::run::RunInfo;
@@ -104,6 +105,7 @@ fn tiny_run() -> std::path::PathBuf {
         (l.triplane_resolution, l.triplane_channels, l.decoder_width, l.sh_degree) = (16, 8, 32, 1);
     }
     (c.fit_steps, c.steps, c.log_every, c.checkpoint_every) = (10, 10, 10, 0);
+    c.cloth.pose_offsets = true;
     c.layers = "body+cloth".into();
     let run = root.join("run");
     train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &run, false, &mut |_| {}).expect("training");
@@ -118,7 +120,7 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     let j = json_of(&["--validation", "trade", run.to_str().unwrap(), "--runs", "1", "--warmup", "0", "--max-frames", "2", "--json", "--out", out.to_str().unwrap()]);
     let settings = j["settings"].as_array().expect("settings");
     let of = |knob: &str| settings.iter().filter(|s| s["knob"] == knob).collect::<Vec<_>>();
-    for knob in ["resolution", "sh_degree", "pruning", "compositing"] {
+    for knob in ["resolution", "sh_degree", "pruning", "compositing", "pose_offsets"] {
         assert!(j["knobs"][knob].as_str().is_some_and(|s| s.starts_with("measured")), "knob '{knob}': {}", j["knobs"]);
     }
     // 0.5x and 2x; degree 0 for the body, the cloth and both; four thresholds; the two
@@ -127,6 +129,12 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     assert_eq!(of("sh_degree").len(), 3, "{j}");
     assert_eq!(of("pruning").len(), 4, "{j}");
     assert_eq!(of("compositing").len(), 2, "{j}");
+    // The cloth's pose blend off: one setting, and ten steps moved the blend head off
+    // its zero init, so the render differs from the default.
+    let pose = of("pose_offsets");
+    assert_eq!(pose.len(), 1, "{j}");
+    assert!(pose[0]["setting"].as_str().is_some_and(|l| l.contains("cloth") && !l.contains("body")), "{}", pose[0]);
+    assert!(pose[0]["vs_default"]["psnr"].as_f64().is_some_and(|p| p < 199.0), "{}", pose[0]);
     let default = of("default");
     assert_eq!(default.len(), 1, "{j}");
     // The default render against itself: identical (PSNR at its 200 dB floor, SSIM 1).

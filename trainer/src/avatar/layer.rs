@@ -131,6 +131,9 @@ pub struct HumanLayer {
     /// With `pose_offsets`: the decoded offsets plus the pose blend (n × 3), which the
     /// deformation reads instead of the geometry decoder's offsets.
     blended_offsets: Option<Buffer>,
+    /// Whether the forward adds the pose blend (with `pose_offsets`); off only for
+    /// renders that measure what it is worth (`engine-bench trade`).
+    pose_blend_on: bool,
 }
 
 /// The layer's Adam groups.
@@ -250,6 +253,7 @@ impl HumanLayer {
             seed,
             pose_features: f32_buffer(ctx, &format!("{name} pose features"), deform::POSE_FEATURES)?,
             blended_offsets: if config.pose_offsets { Some(f32_buffer(ctx, &format!("{name} pose-blended offsets"), 3 * n)?) } else { None },
+            pose_blend_on: true,
         })
     }
 
@@ -265,13 +269,29 @@ impl HumanLayer {
         self.accumulation
     }
 
+    /// Whether the layer was built with pose-dependent offsets.
+    pub fn has_pose_blend(&self) -> bool {
+        self.blended_offsets.is_some()
+    }
+
+    /// Renders with (`true`, the default) or without the pose blend: without it the
+    /// deformation reads the decoded offsets alone. For measuring the blend's worth in
+    /// renders; the backward needs it on (asserted).
+    pub fn set_pose_blend(&mut self, on: bool) {
+        self.pose_blend_on = on;
+    }
+
+    fn pose_blended(&self) -> Option<&Buffer> {
+        self.blended_offsets.as_ref().filter(|_| self.pose_blend_on)
+    }
+
     fn deform_inputs(&self) -> DeformInputs<'_> {
         DeformInputs {
             transforms: &self.transforms,
             means: &self.means,
             quats: &self.quats,
             log_scales: &self.log_scales,
-            offsets: self.blended_offsets.as_ref().unwrap_or(self.geometry.head_output(0)),
+            offsets: self.pose_blended().unwrap_or(self.geometry.head_output(0)),
             rot6d: self.geometry.head_output(1),
             log_scale_deltas: self.geometry.head_output(2),
             weights: self.deformation.head_output(0),
@@ -286,7 +306,7 @@ impl HumanLayer {
         self.appearance.record_forward(rec, &self.features, n)?;
         self.geometry.record_forward(rec, &self.features, n)?;
         self.deformation.record_forward(rec, &self.features, n)?;
-        if let Some(blended) = &self.blended_offsets {
+        if let Some(blended) = self.pose_blended() {
             rec.barrier();
             deform::record_pose_blend_forward(rec, self.deformation.head_output(1), &self.pose_features, self.geometry.head_output(0), blended, n)?;
             rec.barrier();
@@ -305,6 +325,7 @@ impl HumanLayer {
     /// the gradient on the frame's transforms that [`read_transform_grad`](Self::read_transform_grad)
     /// reads (pose refinement; left out otherwise).
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, lbs_weight: f32, pose_gradient: bool) -> Result<()> {
+        assert!(self.pose_blend_on, "the backward of a layer rendered without its pose blend");
         let n = self.count;
         rec.copy(&self.posed_grads.opacity_logits, self.appearance.head_grad(0), u64::from(n) * 4);
         rec.copy(&self.posed_grads.sh, self.appearance.head_grad(1), self.posed_grads.sh.size.min(self.appearance.head_grad(1).size));
