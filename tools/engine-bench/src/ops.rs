@@ -3,7 +3,8 @@
 //! backward pair dW, dx), with a CPU GEMM from the `matrixmultiply` crate (through ndarray, all cores)
 //! on the same matrices in the same run; the three decoders' forward + backward;
 //! triplane sampling forward + backward in points per second; SSIM (map and
-//! gradient) at 512 × 512.
+//! gradient) at 512 × 512; the cloth Chamfer loss with its gradient through the uniform
+//! grid at `--chamfer-points` per side, and grid against brute force at 32,768.
 
 use std::time::Instant;
 
@@ -35,10 +36,14 @@ pub struct OpsArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// Run only these parts (comma-separated): gemm, decoders, triplane, ssim, lpips.
-    /// Default: all. LPIPS at 512 x 512 takes minutes on lavapipe.
-    #[arg(long, value_delimiter = ',', value_parser = ["gemm", "decoders", "triplane", "ssim", "lpips"])]
+    /// Run only these parts (comma-separated): gemm, decoders, triplane, ssim, lpips,
+    /// chamfer. Default: all. LPIPS at 512 x 512 takes minutes on lavapipe.
+    #[arg(long, value_delimiter = ',', value_parser = ["gemm", "decoders", "triplane", "ssim", "lpips", "chamfer"])]
     pub only: Vec<String>,
+    /// Points on each side of the Chamfer loss timed through the uniform grid (two
+    /// samplings of a garment-like surface).
+    #[arg(long, value_parser = parse_len, default_value = "1000000")]
+    pub chamfer_points: u32,
     /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel where subgroups
     /// are 8 lanes, register-blocked for narrow outputs; tiled on GPUs), tiled, blocked
     /// or subgroup.
@@ -159,7 +164,47 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     if args.wants("ssim") || args.wants("lpips") {
         images(ctx, args, &mut out)?;
     }
+    if args.wants("chamfer") {
+        chamfer(ctx, args, &mut out)?;
+    }
     Ok(out)
+}
+
+/// `n` points on a wavy cylinder 0.3 m across and 0.6 m tall (a garment's size),
+/// pushed off it by up to `jitter / 2`: flat xyz.
+fn garment_like(n: usize, seed: u64, jitter: f64) -> Vec<f32> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let mut v = Vec::with_capacity(3 * n);
+    for _ in 0..n {
+        let (a, h, j): (f64, f64, f64) = (rng.random_range(0.0..std::f64::consts::TAU), rng.random_range(0.0..0.6), rng.random_range(-0.5..0.5) * jitter);
+        let r = 0.15 + 0.01 * (5.0 * a).sin() * (10.0 * h).cos() + j;
+        v.extend([(r * a.cos()) as f32, h as f32, (r * a.sin()) as f32]);
+    }
+    v
+}
+
+/// The Chamfer loss and its gradient (both directions): the grid at
+/// `--chamfer-points`, then grid and brute force at 32,768 points each (a size
+/// training reaches), where they meet.
+fn chamfer(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow::Result<()> {
+    use drape_engine::ops::cloth_loss::{Chamfer, NearestSearch};
+    let mut rows = Vec::new();
+    for (label, n, search) in [("grid", args.chamfer_points, NearestSearch::Grid), ("grid", 32_768, NearestSearch::Grid), ("brute force", 32_768, NearestSearch::BruteForce)] {
+        let pred = ctx.upload("bench chamfer pred", &garment_like(n as usize, 9, 0.006))?;
+        let target = ctx.upload("bench chamfer target", &garment_like(n as usize, 10, 0.0))?;
+        let grad = ctx.create_buffer("bench chamfer grad", BufferDesc::gpu_only(12 * u64::from(n.max(1))))?;
+        let c = Chamfer::with_search(ctx, n, n, search)?;
+        let (wall, gpu) = timed(ctx, args, || {
+            let mut rec = ctx.record("bench chamfer")?;
+            rec.fill(&grad, 0);
+            rec.barrier();
+            c.record(&mut rec, &pred, n, &target, n, 0.02, Some((&grad, 1.0)))?;
+            Ok(rec.submit_and_wait()?)
+        })?;
+        rows.push(json!({ "search": label, "points": n, "fwd_bwd_ms": wall, "fwd_bwd_gpu_ms": gpu }));
+    }
+    out["chamfer"] = rows.into();
+    Ok(())
 }
 
 /// The three decoders together, forward and backward.
@@ -266,6 +311,9 @@ pub fn print_table(r: &serde_json::Value) {
     }
     if let Some(ms) = r["lpips_alex_512"]["fwd_bwd_gpu_ms"].as_f64() {
         println!("  LPIPS (AlexNet) 512x512, value + gradient: {ms:.1} ms GPU");
+    }
+    for c in r["chamfer"].as_array().into_iter().flatten() {
+        println!("  Chamfer {} x {} points ({}), both directions + gradient: {:.1} ms GPU", c["points"], c["points"], c["search"].as_str().unwrap_or("?"), c["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
     }
     let t = &r["triplane"];
     if t.is_null() {

@@ -174,3 +174,15 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     let png = image::open(out.join("trade.png")).expect("trade.png decodes");
     assert_eq!((png.width(), png.height()), (640, 480));
 }
+
+#[test]
+fn ops_times_chamfer_through_the_grid_and_by_brute_force() {
+    let j = json_of(&["--validation", "ops", "--only", "chamfer", "--chamfer-points", "5000", "--runs", "1", "--warmup", "0", "--json"]);
+    let rows = j["chamfer"].as_array().expect("chamfer rows");
+    let got: Vec<(String, u64)> = rows.iter().map(|r| (r["search"].as_str().unwrap().to_string(), r["points"].as_u64().unwrap())).collect();
+    assert_eq!(got, [("grid".to_string(), 5000), ("grid".to_string(), 32768), ("brute force".to_string(), 32768)], "{j}");
+    for r in rows {
+        assert!(r["fwd_bwd_gpu_ms"].as_f64().is_some_and(|v| v > 0.0), "{r}");
+    }
+    assert!(j.get("gemm").is_none_or(|g| g.as_array().is_none_or(|a| a.is_empty())), "--only chamfer ran the GEMMs: {j}");
+}
