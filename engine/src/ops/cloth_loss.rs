@@ -5,11 +5,12 @@
 //! which states the math), generic over f32/f64.
 //!
 //! Nearest neighbours two ways ([`NearestSearch`]): tiled brute force (exact, no build
-//! step, deterministic gradient gathered per point; what training's 10⁴ × 10⁴ sets
-//! use) and a uniform grid (bounds, cell keys, the stable radix sort, cell ranges, a
+//! step, deterministic gradient gathered per point; the faster one below about 700 ×
+//! 700 points) and a uniform grid (bounds, cell keys, the stable radix sort, cell ranges, a
 //! shell search with a brute-force finish for the queries it could not settle within
 //! llvmpipe's loop budget; the gradient's target terms scattered in deterministic
-//! fixed point): exact too, and what makes 10⁶ × 10⁶ sets possible. `Auto` picks the
+//! fixed point): exact too, the faster one from a few thousand points per side (what
+//! training's cloth losses use), and what makes 10⁶ × 10⁶ sets possible. `Auto` picks the
 //! grid above [`AUTO_GRID_PAIRS`] point pairs.
 
 use drape_shared::cloth_loss::{
@@ -36,10 +37,12 @@ pub enum NearestSearch {
     Grid,
 }
 
-/// Above this many point pairs `Auto` searches through the grid: brute force costs
-/// `n · m` distances (about a second per 10⁹ on lavapipe), the grid a sort and a few
-/// hundred distances per point.
-pub const AUTO_GRID_PAIRS: u64 = 1 << 30;
+/// Above this many point pairs `Auto` searches through the grid. Measured on lavapipe
+/// (`engine-bench ops --only chamfer --chamfer-compare N`, loss and gradient): 500²
+/// points 6.0 ms grid / 4.6 ms brute force, 1,000² 8.3 / 21.0, 2,000² 8.1 / 65.3,
+/// 4,000² 17.3 / 312.9, 32,768² 71 / 13,595: the grid has a fixed cost (fills, sort
+/// passes) and then wins from about 700² on.
+pub const AUTO_GRID_PAIRS: u64 = 1 << 19;
 
 /// The grid's scratch: bounds, (cell, point) pairs and their sort, cell ranges, and
 /// the fixed-point sums of the gradient's target terms.

@@ -4,7 +4,8 @@
 //! on the same matrices in the same run; the three decoders' forward + backward;
 //! triplane sampling forward + backward in points per second; SSIM (map and
 //! gradient) at 512 × 512; the cloth Chamfer loss with its gradient through the uniform
-//! grid at `--chamfer-points` per side, and grid against brute force at 32,768.
+//! grid at `--chamfer-points` per side, and grid against brute force at
+//! `--chamfer-compare`.
 
 use std::time::Instant;
 
@@ -44,6 +45,9 @@ pub struct OpsArgs {
     /// samplings of a garment-like surface).
     #[arg(long, value_parser = parse_len, default_value = "1000000")]
     pub chamfer_points: u32,
+    /// Points on each side where grid and brute force are timed side by side.
+    #[arg(long, value_parser = parse_len, default_value = "32768")]
+    pub chamfer_compare: u32,
     /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel where subgroups
     /// are 8 lanes, register-blocked for narrow outputs; tiled on GPUs), tiled, blocked
     /// or subgroup.
@@ -184,12 +188,13 @@ fn garment_like(n: usize, seed: u64, jitter: f64) -> Vec<f32> {
 }
 
 /// The Chamfer loss and its gradient (both directions): the grid at
-/// `--chamfer-points`, then grid and brute force at 32,768 points each (a size
-/// training reaches), where they meet.
+/// `--chamfer-points`, then grid and brute force side by side at `--chamfer-compare`
+/// points each.
 fn chamfer(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow::Result<()> {
     use drape_engine::ops::cloth_loss::{Chamfer, NearestSearch};
     let mut rows = Vec::new();
-    for (label, n, search) in [("grid", args.chamfer_points, NearestSearch::Grid), ("grid", 32_768, NearestSearch::Grid), ("brute force", 32_768, NearestSearch::BruteForce)] {
+    let k = args.chamfer_compare;
+    for (label, n, search) in [("grid", args.chamfer_points, NearestSearch::Grid), ("grid", k, NearestSearch::Grid), ("brute force", k, NearestSearch::BruteForce)] {
         let pred = ctx.upload("bench chamfer pred", &garment_like(n as usize, 9, 0.006))?;
         let target = ctx.upload("bench chamfer target", &garment_like(n as usize, 10, 0.0))?;
         let grad = ctx.create_buffer("bench chamfer grad", BufferDesc::gpu_only(12 * u64::from(n.max(1))))?;
