@@ -43,7 +43,20 @@ fn main() {
             .iter()
             .map(|v| v.as_u64().expect("manifest.json: workgroup_size entry"))
             .collect();
-        let nb = m["bindings"].as_u64().expect("manifest.json: bindings");
+        let decls: Vec<String> = m["bindings"]
+            .as_array()
+            .expect("manifest.json: 'bindings' is not an array (rebuild the shaders with tools/shader-builder)")
+            .iter()
+            .map(|b| {
+                let binding = b["name"].as_str().expect("manifest.json: binding name");
+                let read_only = match b["access"].as_str().expect("manifest.json: binding access") {
+                    "read" => true,
+                    "read_write" => false,
+                    other => panic!("manifest.json: {name}: binding '{binding}' has access '{other}'"),
+                };
+                format!("BindingDecl {{ name: {binding:?}, read_only: {read_only} }}")
+            })
+            .collect();
         let needs_atomics = m["requires"]
             .as_array()
             .map(|r| r.iter().any(|c| c.as_str() == Some("AtomicFloat32AddEXT")))
@@ -62,7 +75,7 @@ fn main() {
         writeln!(entry, "            Kernel::{v} => {name:?},").unwrap();
         writeln!(spirv, "            Kernel::{v} => include_bytes!({:?}),", path.display().to_string()).unwrap();
         writeln!(wg, "            Kernel::{v} => [{}, {}, {}],", size[0], size[1], size[2]).unwrap();
-        writeln!(bindings, "            Kernel::{v} => {nb},").unwrap();
+        writeln!(bindings, "            Kernel::{v} => &[{}],", decls.join(", ")).unwrap();
     }
     let code = format!(
         "/// Every kernel of the committed manifest, as a typed handle.
@@ -105,10 +118,16 @@ impl Kernel {{
 {requires_ballot}        }}
     }}
 
-    /// Number of storage-buffer bindings (numbered 0..n) the manifest records.
-    pub const fn binding_count(self) -> u32 {{
+    /// The storage-buffer bindings (numbered 0..n) the manifest records: the kernel
+    /// parameter's name and whether the SPIR-V declares it `NonWritable`.
+    pub const fn bindings(self) -> &'static [BindingDecl] {{
         match self {{
 {bindings}        }}
+    }}
+
+    /// Number of storage-buffer bindings (numbered 0..n).
+    pub const fn binding_count(self) -> u32 {{
+        self.bindings().len() as u32
     }}
 }}
 "

@@ -38,6 +38,11 @@ pub struct ContextDesc {
     /// sets it from `DRAPE_FORCE_STAGING=1`, so the test command runs the GPU suite this
     /// way once on a machine without a discrete GPU.
     pub force_staging: bool,
+    /// With `validation`: also turn on the layer's synchronization validation, which
+    /// reports read-after-write and write-after-read hazards between commands that no
+    /// barrier orders (what a missing derived barrier would be). Needs the layer's
+    /// `VK_EXT_validation_features`; an error without it.
+    pub synchronization_validation: bool,
 }
 
 impl ContextDesc {
@@ -48,6 +53,7 @@ impl ContextDesc {
             validation: true,
             poison_new_buffers: true,
             force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
+            synchronization_validation: true,
         }
     }
 }
@@ -189,12 +195,27 @@ impl Context {
             .api_version(vk::API_VERSION_1_2);
         let layer_names: Vec<*const c_char> =
             if desc.validation { vec![VALIDATION_LAYER.as_ptr()] } else { vec![] };
-        let ext_names: Vec<*const c_char> =
+        let mut ext_names: Vec<*const c_char> =
             if has_debug_utils { vec![ash::ext::debug_utils::NAME.as_ptr()] } else { vec![] };
+        let sync_validation = desc.validation && desc.synchronization_validation;
+        if sync_validation {
+            // SAFETY: a plain query of the layer's own extensions.
+            let layer_extensions = unsafe { entry.enumerate_instance_extension_properties(Some(VALIDATION_LAYER)) }
+                .vk("vkEnumerateInstanceExtensionProperties", "validation layer")?;
+            if !layer_extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::validation_features::NAME)) {
+                return Err(EngineError::ValidationLayerMissing);
+            }
+            ext_names.push(ash::ext::validation_features::NAME.as_ptr());
+        }
+        let enabled_features = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
+        let mut validation_features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enabled_features);
         let mut instance_info = vk::InstanceCreateInfo::default()
             .application_info(&app)
             .enabled_layer_names(&layer_names)
             .enabled_extension_names(&ext_names);
+        if sync_validation {
+            instance_info = instance_info.push_next(&mut validation_features);
+        }
         // Chained so that messages during instance creation and destruction are caught.
         let mut chained_messenger = sink.as_ref().map(validation::messenger_info);
         if let Some(m) = chained_messenger.as_mut() {

@@ -35,6 +35,12 @@ pub enum EngineError {
     #[error("shader/manifest mismatch for kernel '{kernel}': {detail} (rebuild with tools/shader-builder and commit shaders-rs/spirv)")]
     ShaderManifestMismatch { kernel: &'static str, detail: String },
 
+    /// A pass binds its buffers against what the kernel's SPIR-V declares: a name the
+    /// kernel lacks, a binding left unbound or bound twice, or an access that disagrees
+    /// with the declaration (writing through a `NonWritable` binding).
+    #[error("pass '{pass}': kernel '{kernel}', binding '{binding}': {problem}")]
+    Binding { pass: String, kernel: &'static str, binding: String, problem: String },
+
     /// A kernel needs a device feature the device lacks (callers pick a fallback).
     #[error("kernel '{kernel}' needs {feature}, which the device does not have")]
     MissingFeature { kernel: &'static str, feature: &'static str },

@@ -16,6 +16,22 @@ use crate::error::{EngineError, Result, VkResultExt};
 
 include!(concat!(env!("OUT_DIR"), "/kernels_generated.rs"));
 
+/// One storage-buffer binding of a kernel, as its SPIR-V declares it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BindingDecl {
+    /// The kernel parameter's name (the module's `OpName` of the variable).
+    pub name: &'static str,
+    /// Decorated `NonWritable`: the kernel only reads it.
+    pub read_only: bool,
+}
+
+impl Kernel {
+    /// The binding number of `name`, if the kernel has a binding of that name.
+    pub fn binding_index(self, name: &str) -> Option<usize> {
+        self.bindings().iter().position(|b| b.name == name)
+    }
+}
+
 /// Bytes of the push-constant range every pipeline layout declares (the minimum
 /// every Vulkan device guarantees).
 pub const PUSH_CONSTANT_BYTES: u32 = 128;
@@ -53,6 +69,26 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
             facts.binding_mask,
             kernel.binding_count()
         )));
+    }
+    for (b, decl) in kernel.bindings().iter().enumerate() {
+        let b = b as u32;
+        let name = spirv_module::binding_name(bytes, b).unwrap_or_default();
+        if name != decl.name.as_bytes() {
+            return Err(mismatch(format!(
+                "binding {b} is named '{}' in the module, '{}' in the manifest",
+                String::from_utf8_lossy(name),
+                decl.name
+            )));
+        }
+        let read_only = facts.read_only_mask & (1 << b) != 0;
+        if read_only != decl.read_only {
+            return Err(mismatch(format!(
+                "binding {b} ('{}') is {} in the module, {} in the manifest",
+                decl.name,
+                if read_only { "read-only" } else { "writable" },
+                if decl.read_only { "read-only" } else { "writable" }
+            )));
+        }
     }
     Ok(())
 }

@@ -29,4 +29,4 @@ pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
 pub use error::{EngineError, Result};
 pub use kernels::Kernel;
 pub use profile::{Profile, ProfileEntry};
-pub use recorder::{PassTimings, Recording};
+pub use recorder::{PassBuilder, PassTimings, Recording};

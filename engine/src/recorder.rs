@@ -1,16 +1,27 @@
-//! Command recording: named compute passes, explicit barriers, copies and fills,
-//! per-pass GPU timestamps, and a breadcrumb written before each pass so that a lost
-//! device reports the pass that was running.
+//! Command recording: named compute passes bound by name, barriers derived from the
+//! kernels' declared accesses, copies and fills, per-pass GPU timestamps, and a
+//! breadcrumb written as each pass starts so that a lost device reports the pass that
+//! was running.
 //!
 //! A pass reads like a sentence:
-//! `rec.pass("sort.scatter", Kernel::RadixSortScatter).read(&keys).write(&out).push(&params).dispatch([groups, 1, 1])?`.
-//! Bindings are numbered in the order `read`/`write` name them (the order each
-//! kernel's header documents). Nothing orders passes implicitly: independent passes
-//! are recorded back to back and dependent ones are separated by [`Recording::barrier`].
-//! Buffers are borrowed for the recording's lifetime `'a`, so none can be dropped
-//! while the GPU may still use it.
+//! `rec.pass("sort.scatter", Kernel::RadixSortScatter).read("keys_in", &keys).write("keys_out", &out).push(&params).dispatch([groups, 1, 1])?`.
+//! Each buffer is bound to the kernel parameter of that name (the manifest records the
+//! names and which bindings the SPIR-V declares `NonWritable`); `read` is for those,
+//! `write` for the rest. A name the kernel lacks, a binding left unbound or bound twice,
+//! or a verb that disagrees with the declaration is an [`EngineError::Binding`] naming
+//! the pass, the kernel and the binding.
+//!
+//! Barriers are not placed by hand. The recording keeps, per buffer, whether a command
+//! since the last barrier read or wrote it, and records a barrier before a command
+//! that would race: one that reads or writes a buffer written since, or writes one
+//! read since (copies and fills count as their reads and writes). Commands that share
+//! only read-only data are therefore free to overlap, and no dependency can be
+//! forgotten. The barrier is a global compute+transfer memory barrier, so it orders
+//! everything before it, as a pipeline barrier on one queue does in any case. Buffers
+//! are borrowed for the recording's lifetime `'a`, so none can be dropped while the
+//! GPU may still use it.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::marker::PhantomData;
 
 use ash::vk;
@@ -26,6 +37,8 @@ const SETS_PER_POOL: u32 = 64;
 pub const MAX_BINDINGS: u32 = 16;
 /// Storage-buffer descriptors per pool (enough for every set at the maximum).
 const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * MAX_BINDINGS;
+/// Breadcrumb slots per breadcrumb buffer.
+const BREADCRUMB_SLOTS: u32 = 1024;
 /// Timestamp queries per query pool (two per pass).
 const QUERIES_PER_POOL: u32 = 256;
 
@@ -47,6 +60,10 @@ pub fn flat_grid(invocations: u32) -> [u32; 3] {
 pub struct PassTimings {
     /// (pass name, milliseconds). Empty when the queue has no timestamps.
     pub passes: Vec<(String, f64)>,
+    /// Each pass's (start, end) in milliseconds from the submission's first timestamp,
+    /// in the order of `passes`. Passes the recorder left free to overlap have
+    /// overlapping intervals.
+    pub intervals: Vec<(f64, f64)>,
 }
 
 impl PassTimings {
@@ -59,9 +76,36 @@ impl PassTimings {
         out
     }
 
-    /// Sum over all passes.
+    /// Sum over all passes (counts time twice where passes overlapped).
     pub fn total_ms(&self) -> f64 {
         self.passes.iter().map(|(_, ms)| ms).sum()
+    }
+
+    /// GPU time during which at least one pass ran: the union of the passes'
+    /// intervals, so passes that overlapped are not counted twice.
+    pub fn busy_ms(&self) -> f64 {
+        let mut spans = self.intervals.clone();
+        spans.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut busy = 0.0;
+        let mut current: Option<(f64, f64)> = None;
+        for (start, end) in spans {
+            current = match current {
+                Some((s, e)) if start <= e => Some((s, e.max(end))),
+                Some((s, e)) => {
+                    busy += e - s;
+                    Some((start, end))
+                }
+                None => Some((start, end)),
+            };
+        }
+        busy + current.map_or(0.0, |(s, e)| e - s)
+    }
+
+    /// Appends another submission's passes (its intervals after this one's).
+    pub fn extend(&mut self, other: PassTimings) {
+        let offset = self.intervals.iter().map(|i| i.1).fold(0.0, f64::max);
+        self.passes.extend(other.passes);
+        self.intervals.extend(other.intervals.into_iter().map(|(s, e)| (s + offset, e + offset)));
     }
 }
 
@@ -75,7 +119,12 @@ pub struct Recording<'a> {
     sets_left: u32,
     query_pools: Vec<vk::QueryPool>,
     passes: Vec<String>,
-    breadcrumb: Option<Buffer>,
+    /// One 4-byte slot per pass, set to 1 when the pass starts (slots, not one shared
+    /// word, so that passes free to overlap do not race on it).
+    breadcrumbs: Vec<Buffer>,
+    /// Accesses since the last barrier, per buffer (see [`Recording::before_access`]).
+    pending: HashMap<vk::Buffer, Pending>,
+    barriers: u32,
     _buffers: PhantomData<&'a Buffer>,
 }
 
@@ -97,7 +146,9 @@ impl Context {
             sets_left: 0,
             query_pools: Vec::new(),
             passes: Vec::new(),
-            breadcrumb: None,
+            breadcrumbs: Vec::new(),
+            pending: HashMap::new(),
+            barriers: 0,
             _buffers: PhantomData,
         };
         let alloc = vk::CommandBufferAllocateInfo::default()
@@ -122,55 +173,97 @@ struct Binding<'a> {
     range: u64,
 }
 
-impl<'a> Binding<'a> {
-    fn whole(buffer: &'a Buffer) -> Self {
-        Self { buffer, offset: 0, range: buffer.vk_size() }
-    }
+/// How the caller says a pass uses a binding; checked against the SPIR-V.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Access {
+    Read,
+    Write,
 }
 
 /// A compute pass being described; recorded by [`PassBuilder::dispatch`].
+///
+/// Buffers are bound by the kernel parameter's name. `read` is for a binding the
+/// SPIR-V declares `NonWritable` and `write` for one it does not, so a binding bound
+/// with the wrong verb (or two names swapped between a read and a write) is an error
+/// at [`PassBuilder::dispatch`], as is a name the kernel lacks or one left unbound.
 pub struct PassBuilder<'r, 'a> {
     rec: &'r mut Recording<'a>,
     name: String,
     kernel: Kernel,
-    buffers: Vec<Binding<'a>>,
+    buffers: Vec<Option<Binding<'a>>>,
     push: Vec<u8>,
+    error: Option<EngineError>,
 }
 
 impl<'a> PassBuilder<'_, 'a> {
-    /// Binds the next binding to a buffer the kernel reads.
-    pub fn read(mut self, buffer: &'a Buffer) -> Self {
-        self.buffers.push(Binding::whole(buffer));
-        self
+    /// Binds the kernel's read-only binding `binding` to the whole of `buffer`.
+    pub fn read(self, binding: &str, buffer: &'a Buffer) -> Self {
+        self.bind(binding, Access::Read, Binding { buffer, offset: 0, range: buffer.vk_size() })
     }
 
-    /// Binds the next binding to `bytes` bytes of `buffer` from `offset` (a multiple of
-    /// the device's `minStorageBufferOffsetAlignment`): for a buffer larger than one
+    /// Binds the kernel's writable binding `binding` to the whole of `buffer` (the
+    /// kernel may read it too).
+    pub fn write(self, binding: &str, buffer: &'a Buffer) -> Self {
+        self.bind(binding, Access::Write, Binding { buffer, offset: 0, range: buffer.vk_size() })
+    }
+
+    /// Binds read-only `binding` to `bytes` bytes of `buffer` from `offset` (a multiple
+    /// of the device's `minStorageBufferOffsetAlignment`): for a buffer larger than one
     /// binding may cover, processed in chunks.
-    pub fn range(mut self, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
+    pub fn read_range(self, binding: &str, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
+        let b = self.checked_range(buffer, offset, bytes);
+        self.bind(binding, Access::Read, b)
+    }
+
+    /// Binds writable `binding` to `bytes` bytes of `buffer` from `offset`.
+    pub fn write_range(self, binding: &str, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
+        let b = self.checked_range(buffer, offset, bytes);
+        self.bind(binding, Access::Write, b)
+    }
+
+    fn checked_range(&self, buffer: &'a Buffer, offset: u64, bytes: u64) -> Binding<'a> {
         let align = self.rec.ctx.info().min_storage_buffer_offset_alignment;
         assert!(offset % align == 0, "pass '{}': offset {offset} into '{}' is not a multiple of {align}", self.name, buffer.name());
         assert!(offset + bytes <= buffer.vk_size() && bytes > 0, "pass '{}': bytes {offset}..{} of '{}' ({} bytes)", self.name, offset + bytes, buffer.name(), buffer.size);
-        self.buffers.push(Binding { buffer, offset, range: bytes });
+        Binding { buffer, offset, range: bytes }
+    }
+
+    fn bind(mut self, binding: &str, access: Access, b: Binding<'a>) -> Self {
+        if self.error.is_some() {
+            return self;
+        }
+        let problem = match self.kernel.binding_index(binding) {
+            None => Some(format!(
+                "the kernel has no binding of that name (it has {})",
+                self.kernel.bindings().iter().map(|d| d.name).collect::<Vec<_>>().join(", ")
+            )),
+            Some(i) if self.buffers[i].is_some() => Some("bound twice".to_string()),
+            Some(i) => {
+                let read_only = self.kernel.bindings()[i].read_only;
+                match (access, read_only) {
+                    (Access::Write, true) => Some(format!(
+                        "bound with write() but the SPIR-V declares it read-only (NonWritable); bind '{}' with read()",
+                        b.buffer.name()
+                    )),
+                    (Access::Read, false) => Some(format!(
+                        "bound with read() but the SPIR-V declares it writable; bind '{}' with write()",
+                        b.buffer.name()
+                    )),
+                    _ => {
+                        self.buffers[i] = Some(b);
+                        None
+                    }
+                }
+            }
+        };
+        if let Some(problem) = problem {
+            self.error = Some(self.binding_error(binding, problem));
+        }
         self
     }
 
-    /// Binds the next bindings, in order, to buffers the kernel reads.
-    pub fn read_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
-        self.buffers.extend(buffers.into_iter().map(Binding::whole));
-        self
-    }
-
-    /// Binds the next bindings, in order, to buffers the kernel writes.
-    pub fn write_all(mut self, buffers: impl IntoIterator<Item = &'a Buffer>) -> Self {
-        self.buffers.extend(buffers.into_iter().map(Binding::whole));
-        self
-    }
-
-    /// Binds the next binding to a buffer the kernel writes (or reads and writes).
-    pub fn write(mut self, buffer: &'a Buffer) -> Self {
-        self.buffers.push(Binding::whole(buffer));
-        self
+    fn binding_error(&self, binding: &str, problem: String) -> EngineError {
+        EngineError::Binding { pass: self.name.clone(), kernel: self.kernel.entry_point(), binding: binding.to_string(), problem }
     }
 
     /// The push constants (a `#[repr(C)]` struct from `drape-shared`).
@@ -179,17 +272,18 @@ impl<'a> PassBuilder<'_, 'a> {
         self
     }
 
-    /// Records the dispatch of `groups` workgroups (nothing for an empty grid).
+    /// Records the dispatch of `groups` workgroups (nothing for an empty grid), after a
+    /// barrier when one is needed (see [`Recording`]).
     pub fn dispatch(self, groups: [u32; 3]) -> Result<()> {
-        let PassBuilder { rec, name, kernel, buffers, push } = self;
-        assert_eq!(
-            buffers.len() as u32,
-            kernel.binding_count(),
-            "pass '{name}': kernel {} has {} bindings, {} buffers given",
-            kernel.entry_point(),
-            kernel.binding_count(),
-            buffers.len()
-        );
+        if let Some(e) = self.error {
+            return Err(e);
+        }
+        if let Some(i) = self.buffers.iter().position(Option::is_none) {
+            let decl = self.kernel.bindings()[i];
+            return Err(self.binding_error(decl.name, "left unbound".to_string()));
+        }
+        let PassBuilder { rec, name, kernel, buffers, push, .. } = self;
+        let buffers: Vec<Binding<'_>> = buffers.into_iter().flatten().collect();
         assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
         assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
         // A grid past the device's limit is a size the caller could not foresee (an op
@@ -212,6 +306,13 @@ impl<'a> PassBuilder<'_, 'a> {
     }
 }
 
+/// What the commands recorded since the last barrier did to one buffer.
+#[derive(Clone, Copy, Debug, Default)]
+struct Pending {
+    read: bool,
+    written: bool,
+}
+
 impl<'a> Recording<'a> {
     /// The context this recording belongs to.
     pub fn context(&self) -> &Context {
@@ -220,12 +321,42 @@ impl<'a> Recording<'a> {
 
     /// Describes a compute pass named `name` running `kernel`.
     pub fn pass<'r>(&'r mut self, name: &str, kernel: Kernel) -> PassBuilder<'r, 'a> {
-        PassBuilder { rec: self, name: name.to_string(), kernel, buffers: Vec::new(), push: Vec::new() }
+        let buffers = vec![None; kernel.bindings().len()];
+        PassBuilder { rec: self, name: name.to_string(), kernel, buffers, push: Vec::new(), error: None }
+    }
+
+    /// Number of pipeline barriers recorded so far (the derived ones; for tests and
+    /// profiles).
+    pub fn barrier_count(&self) -> u32 {
+        self.barriers
+    }
+
+    /// Records a barrier before a command that accesses `accesses` (buffer, writes) when
+    /// it would race with what was recorded since the last barrier: it reads or writes
+    /// a buffer written since, or writes one read since. Independent commands are left
+    /// free to overlap.
+    fn before_access(&mut self, accesses: &[(vk::Buffer, bool)]) {
+        let hazard = accesses.iter().any(|&(buffer, writes)| {
+            self.pending.get(&buffer).is_some_and(|p| p.written || (writes && p.read))
+        });
+        if hazard {
+            self.barrier();
+        }
+        for &(buffer, writes) in accesses {
+            let p = self.pending.entry(buffer).or_default();
+            if writes {
+                p.written = true;
+            } else {
+                p.read = true;
+            }
+        }
     }
 
     /// Makes every earlier compute or transfer write visible to every later compute or
-    /// transfer access.
-    pub fn barrier(&mut self) {
+    /// transfer access, and orders every earlier access before every later one.
+    fn barrier(&mut self) {
+        self.pending.clear();
+        self.barriers += 1;
         let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
         let barrier = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
@@ -262,6 +393,7 @@ impl<'a> Recording<'a> {
         if bytes == 0 {
             return;
         }
+        self.before_access(&[(src.raw, false), (dst.raw, true)]);
         let region = vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes);
         // SAFETY: both buffers are alive for 'a and were created with transfer usage.
         unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
@@ -269,11 +401,15 @@ impl<'a> Recording<'a> {
 
     /// Fills the whole of `buffer` with the 32-bit `word`.
     pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
+        self.before_access(&[(buffer.raw, true)]);
         // SAFETY: the buffer is alive for 'a, created with TRANSFER_DST, size a multiple of 4.
         unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, buffer.raw, 0, vk::WHOLE_SIZE, word) };
     }
 
     fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
+        let accesses: Vec<(vk::Buffer, bool)> =
+            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (b.buffer.raw, !decl.read_only)).collect();
+        self.before_access(&accesses);
         let pipeline = self.ctx.pipeline(kernel)?;
         let set = self.allocate_set(pipeline.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
@@ -342,13 +478,21 @@ impl<'a> Recording<'a> {
     }
 
     fn write_breadcrumb(&mut self, index: u32) -> Result<()> {
-        if self.breadcrumb.is_none() {
-            let b = self.ctx.create_buffer(&format!("{} breadcrumb", self.label), BufferDesc::readback(4))?;
-            self.breadcrumb = Some(b);
+        let chunk = (index / BREADCRUMB_SLOTS) as usize;
+        if chunk == self.breadcrumbs.len() {
+            let name = format!("{} breadcrumbs {chunk}", self.label);
+            let mut b = self.ctx.create_buffer(&name, BufferDesc::readback(u64::from(BREADCRUMB_SLOTS) * 4))?;
+            // Zeroed by the host, not by a fill that the slots' fills would race with;
+            // where the memory is not host-coherent the breadcrumbs cannot be read anyway.
+            if let Some(m) = b.coherent_mapping() {
+                m.fill(0);
+            }
+            self.breadcrumbs.push(b);
         }
-        let b = self.breadcrumb.as_ref().expect("created above");
+        let b = &self.breadcrumbs[chunk];
+        let offset = u64::from(index % BREADCRUMB_SLOTS) * 4;
         // SAFETY: recording command buffer; the breadcrumb lives as long as the recording.
-        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, b.raw, 0, 4, index) };
+        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, b.raw, offset, 4, 1) };
         Ok(())
     }
 
@@ -410,14 +554,21 @@ impl<'a> Recording<'a> {
         Ok(timings)
     }
 
-    /// The pass whose breadcrumb was written last (read after a failure).
+    /// The last pass in recording order whose breadcrumb was written (read after a
+    /// failure): the one running, or the last of those running side by side.
     fn last_pass(&mut self) -> String {
         let label = self.label.clone();
-        let index = self
-            .breadcrumb
-            .as_mut()
-            .and_then(|b| b.coherent_mapping().map(|m| u32::from_le_bytes([m[0], m[1], m[2], m[3]])));
-        match index.and_then(|i| self.passes.get(i as usize)) {
+        let mut started = None;
+        for (chunk, b) in self.breadcrumbs.iter_mut().enumerate() {
+            if let Some(m) = b.coherent_mapping() {
+                for (slot, word) in m.chunks_exact(4).enumerate() {
+                    if word != [0, 0, 0, 0] {
+                        started = Some(chunk * BREADCRUMB_SLOTS as usize + slot);
+                    }
+                }
+            }
+        }
+        match started.and_then(|i| self.passes.get(i)) {
             Some(name) => format!("{name} (in '{label}')"),
             None => format!("unknown pass (in '{label}')"),
         }
@@ -432,18 +583,23 @@ impl<'a> Recording<'a> {
         let valid_mask = if info.timestamp_valid_bits >= 64 { u64::MAX } else { (1u64 << info.timestamp_valid_bits) - 1 };
         let per_pool = QUERIES_PER_POOL / 2;
         let dev = &self.ctx.device.raw;
+        let mut ticks = Vec::with_capacity(self.passes.len() * 2);
         for (p, &pool) in self.query_pools.iter().enumerate() {
             let first = p * per_pool as usize;
             let count = (self.passes.len() - first).min(per_pool as usize);
-            let mut ticks = vec![0u64; count * 2];
+            let mut pool_ticks = vec![0u64; count * 2];
             // SAFETY: these queries were written by the submission we waited for.
-            unsafe { dev.get_query_pool_results(pool, 0, &mut ticks, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
+            unsafe { dev.get_query_pool_results(pool, 0, &mut pool_ticks, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
                 .vk("vkGetQueryPoolResults", &self.label)?;
-            for i in 0..count {
-                let elapsed = (ticks[2 * i + 1] & valid_mask).wrapping_sub(ticks[2 * i] & valid_mask) & valid_mask;
-                let ms = elapsed as f64 * info.timestamp_period_ns / 1e6;
-                timings.passes.push((self.passes[first + i].clone(), ms));
-            }
+            ticks.extend(pool_ticks.into_iter().map(|t| t & valid_mask));
+        }
+        let origin = ticks.iter().step_by(2).copied().min().unwrap_or(0);
+        let ms = |from: u64, to: u64| (to.wrapping_sub(from) & valid_mask) as f64 * info.timestamp_period_ns / 1e6;
+        for (i, name) in self.passes.iter().enumerate() {
+            let (start, end) = (ticks[2 * i], ticks[2 * i + 1]);
+            timings.passes.push((name.clone(), ms(start, end)));
+            let at = ms(origin, start);
+            timings.intervals.push((at, at + ms(start, end)));
         }
         Ok(timings)
     }

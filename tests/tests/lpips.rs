@@ -54,7 +54,6 @@ fn gpu_lpips(ctx: &Context, weights: &LpipsWeights, a: &[f64], b: &[f64], w: u32
     {
         let mut rec = ctx.record("lpips test").expect("record");
         rec.fill(&g, 0);
-        rec.barrier();
         l.record(&mut rec, &pa, &pb, Some((&g, 1.0))).expect("record");
         rec.submit_and_wait().expect("submit");
     }

@@ -125,7 +125,7 @@ fn plans_and_buffers_past_the_limits_are_too_large() {
     let small = gpu.upload("small", &[0.0f32; 4]).expect("upload");
     let mut rec = gpu.record("too wide a binding").expect("record");
     let p = LossParams { len: 4, scale: 1.0, _pad: [0; 2] };
-    let text = expect_too_large(rec.pass("test.add_into", Kernel::TrainAddInto).read(&huge).write(&small).push(&p).dispatch([1, 1, 1]), "binding");
+    let text = expect_too_large(rec.pass("test.add_into", Kernel::TrainAddInto).read("src", &huge).write("dst", &small).push(&p).dispatch([1, 1, 1]), "binding");
     assert!(text.contains("'huge'") && text.contains("test.add_into") && text.contains("maxStorageBufferRange"), "{text}");
     drop(rec);
     let text = expect_too_large(SplatRenderer::new(&gpu, 64, 64, RadixSort::LIMIT as usize + 1), "Gaussians");
@@ -202,7 +202,7 @@ fn a_grid_past_the_workgroup_limit_is_an_error_naming_the_pass() {
     let limit = gpu.info().max_compute_workgroup_count[0];
     let mut rec = gpu.record("too many groups").expect("record");
     let p = LossParams { len: 4, scale: 1.0, _pad: [0; 2] };
-    let err = rec.pass("test.add_into", Kernel::TrainAddInto).read(&a).write(&b).push(&p).dispatch([limit + 1, 1, 1]).err().expect("refused");
+    let err = rec.pass("test.add_into", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&p).dispatch([limit + 1, 1, 1]).err().expect("refused");
     let text = err.to_string();
     assert!(matches!(err, EngineError::TooLarge { .. }) && text.contains("test.add_into") && text.contains("maxComputeWorkGroupCount"), "{text}");
     drop(rec);

@@ -28,7 +28,6 @@ fn gpu_ssim(ctx: &Context, pred: &[f64], target: &[f64], w: u32, h: u32, scale: 
     {
         let mut rec = ctx.record("ssim test").expect("record");
         rec.fill(&g, 0);
-        rec.barrier();
         s.record(&mut rec, &p, &t, Some((&g, scale))).expect("record");
         rec.submit_and_wait().expect("submit");
     }

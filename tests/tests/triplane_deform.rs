@@ -271,7 +271,6 @@ fn deform_gpu_matches_cpu_reference() {
             let mut rec = ctx.record("deform test").expect("record");
             deform::record_forward(&mut rec, &inputs, &pm, &pq, &ps, n as u32, 0.0).expect("fwd");
             deform::record_backward(&mut rec, &inputs, &gum, &guq, &gus, &grads, n as u32).expect("bwd");
-            rec.barrier();
             deform::record_transform_grad(&mut rec, &w, &terms, &partials, n as u32).expect("transform grad");
             rec.submit_and_wait().expect("submit");
         }

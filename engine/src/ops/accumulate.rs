@@ -83,19 +83,18 @@ impl FixedPointScratch {
         &self.buffer
     }
 
-    /// Zeroes the sums and the flag (the caller records a barrier before the adds).
+    /// Zeroes the sums and the flag.
     pub fn record_clear<'a>(&'a self, rec: &mut Recording<'a>) {
         rec.fill(&self.buffer, 0);
     }
 
     /// Records `out[i] = value i` for the first `count` values (overwriting `out`), or
-    /// NaN everywhere if a non-finite value was added. The caller records a barrier
-    /// between the adds and this pass.
+    /// NaN everywhere if a non-finite value was added.
     pub fn record_resolve<'a>(&'a self, rec: &mut Recording<'a>, out: &'a Buffer, count: u32) -> Result<()> {
         assert!(count <= self.capacity, "resolving {count} values from a scratch of {}", self.capacity);
         rec.pass("fixed_point.resolve", Kernel::FixedPointResolve)
-            .read(&self.buffer)
-            .write(out)
+            .read("scratch", &self.buffer)
+            .write("out", out)
             .push(&ResolveParams { count, _pad: [0; 3] })
             .dispatch(flat_grid(count))
     }

@@ -95,10 +95,10 @@ impl AdamGroup {
         self.step.set(self.step.get() + 1);
         let pc = step_params(self.len as u32, lr, self.beta1, self.beta2, self.eps, self.step.get());
         rec.pass("adam.step", Kernel::TrainAdamStep)
-            .write(params)
-            .read(grads)
-            .write(&self.m)
-            .write(&self.v)
+            .write("params", params)
+            .read("grads", grads)
+            .write("m", &self.m)
+            .write("v", &self.v)
             .push(&pc)
             .dispatch(flat_grid(pc.len))
     }

@@ -80,36 +80,29 @@ impl GridScratch {
         rec.fill(&self.bounds, 0);
         rec.fill(&self.start, 0);
         rec.fill(&self.end, 0);
-        rec.barrier();
-        rec.pass("chamfer.grid_bounds", Kernel::ClothLossBounds).read(points).write(&self.bounds).push(&p).dispatch(grid(np))?;
-        rec.barrier();
-        rec.pass("chamfer.grid_keys", Kernel::ClothLossCellKeys).read(points).read(&self.bounds).write(&self.keys).write(&self.order).push(&p).dispatch(grid(np))?;
-        rec.barrier();
+        rec.pass("chamfer.grid_bounds", Kernel::ClothLossBounds).read("points", points).write("bounds", &self.bounds).push(&p).dispatch(grid(np))?;
+        rec.pass("chamfer.grid_keys", Kernel::ClothLossCellKeys).read("points", points).read("bounds", &self.bounds).write("keys", &self.keys).write("values", &self.order).push(&p).dispatch(grid(np))?;
         self.sort.record(rec, &self.keys, &self.order, np, GRID_CELL_BITS)?;
-        rec.barrier();
-        rec.pass("chamfer.grid_ranges", Kernel::ClothLossCellRanges).read(&self.keys).write(&self.start).write(&self.end).push(&p).dispatch(grid(np))?;
-        rec.barrier();
+        rec.pass("chamfer.grid_ranges", Kernel::ClothLossCellRanges).read("keys", &self.keys).write("start", &self.start).write("end", &self.end).push(&p).dispatch(grid(np))?;
         let q = GridParams { queries: nq, points: np, _pad: [0; 2] };
         rec.pass("chamfer.grid_search", Kernel::ClothLossNearestGrid)
-            .read(queries)
-            .read(points)
-            .read(&self.bounds)
-            .read(&self.start)
-            .read(&self.end)
-            .read(&self.order)
-            .write(index_out)
-            .write(d2_out)
+            .read("queries", queries)
+            .read("points", points)
+            .read("bounds", &self.bounds)
+            .read("start", &self.start)
+            .read("end", &self.end)
+            .read("order", &self.order)
+            .write("index_out", index_out)
+            .write("d2_out", d2_out)
             .push(&q)
             .dispatch(grid(nq))?;
-        rec.barrier();
         // Queries the grid left unfinished (over the step budget) by brute force; a
         // workgroup with none returns at once.
         let chunks = np.div_ceil(CHAMFER_CHUNK);
         for (k, offset) in (0..np).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let last = if k + 1 == chunks as usize { CHAMFER_LAST } else { 0 };
             let f = ChamferParams { queries: nq, points: np, offset, flags: CHAMFER_FINISH | last, ..Default::default() };
-            rec.pass("chamfer.grid_finish", Kernel::ClothLossNearest).read(queries).read(points).write(index_out).write(d2_out).push(&f).dispatch(grid(nq))?;
-            rec.barrier();
+            rec.pass("chamfer.grid_finish", Kernel::ClothLossNearest).read("queries", queries).read("points", points).write("index_out", index_out).write("d2_out", d2_out).push(&f).dispatch(grid(nq))?;
         }
         Ok(())
     }
@@ -197,25 +190,22 @@ impl Chamfer {
             if let Some((g, lambda)) = grad {
                 let p = ChamferParams { queries: m, points: n, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, ..Default::default() };
                 gs.target_terms.record_clear(rec);
-                rec.barrier();
                 rec.pass("chamfer.grad_scatter", Kernel::ClothLossChamferGradScatter)
-                    .read(pred)
-                    .read(target)
-                    .read(&this.target_nearest)
-                    .write(gs.target_terms.buffer())
+                    .read("pred", pred)
+                    .read("target", target)
+                    .read("target_nearest", &this.target_nearest)
+                    .write("scratch", gs.target_terms.buffer())
                     .push(&p)
                     .dispatch(grid(m))?;
-                rec.barrier();
                 let q = ChamferParams { queries: n, points: m, ..p };
                 rec.pass("chamfer.grad_gather", Kernel::ClothLossChamferGradGather)
-                    .read(pred)
-                    .read(target)
-                    .read(&this.pred_nearest)
-                    .read(gs.target_terms.buffer())
-                    .write(g)
+                    .read("pred", pred)
+                    .read("target", target)
+                    .read("pred_nearest", &this.pred_nearest)
+                    .read("scratch", gs.target_terms.buffer())
+                    .write("grad", g)
                     .push(&q)
                     .dispatch(grid(n))?;
-                rec.barrier();
             }
             return Ok(());
         }
@@ -224,19 +214,16 @@ impl Chamfer {
         // barriers, the two directions are independent.
         for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let p = ChamferParams { queries: n, points: m, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.pass("chamfer.nearest_pred", Kernel::ClothLossNearest).read(pred).read(target).write(&this.pred_nearest).write(&this.pred_d2).push(&p).dispatch(grid(n))?;
-            rec.barrier();
+            rec.pass("chamfer.nearest_pred", Kernel::ClothLossNearest).read("queries", pred).read("points", target).write("index_out", &this.pred_nearest).write("d2_out", &this.pred_d2).push(&p).dispatch(grid(n))?;
         }
         for (k, offset) in (0..n).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let p = ChamferParams { queries: m, points: n, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.pass("chamfer.nearest_target", Kernel::ClothLossNearest).read(target).read(pred).write(&this.target_nearest).write(&this.target_d2).push(&p).dispatch(grid(m))?;
-            rec.barrier();
+            rec.pass("chamfer.nearest_target", Kernel::ClothLossNearest).read("queries", target).read("points", pred).write("index_out", &this.target_nearest).write("d2_out", &this.target_d2).push(&p).dispatch(grid(m))?;
         }
         if let Some((g, lambda)) = grad {
             for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
                 let p = ChamferParams { queries: n, points: m, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, offset, flags: if k == 0 { CHAMFER_OWN_TERM } else { 0 }, _pad: 0 };
-                rec.pass("chamfer.grad", Kernel::ClothLossChamferGrad).read(pred).read(target).read(&this.pred_nearest).read(&this.target_nearest).write(g).push(&p).dispatch(grid(n))?;
-                rec.barrier();
+                rec.pass("chamfer.grad", Kernel::ClothLossChamferGrad).read("pred", pred).read("target", target).read("pred_nearest", &this.pred_nearest).read("target_nearest", &this.target_nearest).write("grad", g).push(&p).dispatch(grid(n))?;
             }
         }
         Ok(())
@@ -339,13 +326,10 @@ impl Arap {
     /// and, with `grad = Some((buffer, λ))`, adds `λ ∂var/∂positions` to it.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, positions: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let p = ArapParams { edges: self.edges, vertices: self.vertices, scale: grad.map_or(0.0, |g| g.1), _pad: 0 };
-        rec.pass("arap.lengths", Kernel::ClothLossArapLengths).read(positions).read(&self.edge_list).write(&self.lengths).push(&p).dispatch(grid(self.edges))?;
-        rec.barrier();
-        rec.pass("arap.stats", Kernel::ClothLossArapStats).read(&self.lengths).write(&self.stats).push(&p).dispatch([1, 1, 1])?;
-        rec.barrier();
+        rec.pass("arap.lengths", Kernel::ClothLossArapLengths).read("positions", positions).read("edges", &self.edge_list).write("lengths", &self.lengths).push(&p).dispatch(grid(self.edges))?;
+        rec.pass("arap.stats", Kernel::ClothLossArapStats).read("lengths", &self.lengths).write("stats", &self.stats).push(&p).dispatch([1, 1, 1])?;
         if let Some((g, _)) = grad {
-            rec.pass("arap.grad", Kernel::ClothLossArapGrad).read(positions).read(&self.offsets).read(&self.neighbours).read(&self.stats).write(g).push(&p).dispatch(grid(self.vertices))?;
-            rec.barrier();
+            rec.pass("arap.grad", Kernel::ClothLossArapGrad).read("positions", positions).read("offsets", &self.offsets).read("neighbours", &self.neighbours).read("stats", &self.stats).write("grad", g).push(&p).dispatch(grid(self.vertices))?;
         }
         Ok(())
     }

@@ -43,17 +43,6 @@ pub struct DeformInputs<'a> {
     pub weights: &'a Buffer,
 }
 
-impl<'a> DeformInputs<'a> {
-    fn all(&self) -> [&'a Buffer; 8] {
-        [self.transforms, self.means, self.quats, self.log_scales, self.offsets, self.rot6d, self.log_scale_deltas, self.weights]
-    }
-
-    /// What the backward reads: the log-scales and their deltas do not enter its
-    /// gradients.
-    fn for_backward(&self) -> [&'a Buffer; 6] {
-        [self.transforms, self.means, self.quats, self.offsets, self.rot6d, self.weights]
-    }
-}
 
 /// Records the posed means (n × 3), quaternions (n × 4, not normalised) and
 /// log-scales (n × 3).
@@ -63,10 +52,17 @@ impl<'a> DeformInputs<'a> {
 pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32, log_scale_offset: f32) -> Result<()> {
     let p = DeformParams { count, log_scale_offset, _pad: [0; 2] };
     rec.pass("deform.fwd", Kernel::DeformDeformFwd)
-        .read_all(inputs.all())
-        .write(posed_means)
-        .write(posed_quats)
-        .write(posed_log_scales)
+        .read("transforms", inputs.transforms)
+        .read("means", inputs.means)
+        .read("quats", inputs.quats)
+        .read("log_scales", inputs.log_scales)
+        .read("offsets", inputs.offsets)
+        .read("rot6d", inputs.rot6d)
+        .read("deltas", inputs.log_scale_deltas)
+        .read("weights", inputs.weights)
+        .write("posed_means", posed_means)
+        .write("posed_quats", posed_quats)
+        .write("posed_log_scales", posed_log_scales)
         .push(&p)
         .dispatch([count.div_ceil(256), 1, 1])
 }
@@ -101,7 +97,7 @@ pub fn transform_partials_len(count: u32) -> usize {
 pub fn record_transform_grad<'a>(rec: &mut Recording<'a>, weights: &'a Buffer, terms: &'a Buffer, partials: &'a Buffer, count: u32) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
     let invocations = count.div_ceil(TRANSFORM_GRAD_CHUNK) * SKIN_JOINTS as u32;
-    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read(weights).read(terms).write(partials).push(&p).dispatch([invocations.div_ceil(64), 1, 1])
+    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read("weights", weights).read("terms", terms).write("partials", partials).push(&p).dispatch([invocations.div_ceil(64), 1, 1])
 }
 
 /// `∂L/∂A` (24 × 12, row-major 3x4 per joint) from the partial sums, chunks added in
@@ -146,16 +142,21 @@ pub fn record_backward<'a>(
 ) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
     rec.pass("deform.bwd", Kernel::DeformDeformBwd)
-        .read_all(inputs.for_backward())
-        .read(grad_posed_means)
-        .read(grad_posed_quats)
-        .read(grad_posed_log_scales)
-        .write(out.means)
-        .write(out.offsets)
-        .write(out.rot6d)
-        .write(out.log_scale_deltas)
-        .write(out.weights)
-        .write(out.transform_terms)
+        .read("transforms", inputs.transforms)
+        .read("means", inputs.means)
+        .read("quats", inputs.quats)
+        .read("offsets", inputs.offsets)
+        .read("rot6d", inputs.rot6d)
+        .read("weights", inputs.weights)
+        .read("grad_posed_means", grad_posed_means)
+        .read("grad_posed_quats", grad_posed_quats)
+        .read("grad_posed_log_scales", grad_posed_log_scales)
+        .write("grad_means", out.means)
+        .write("grad_offsets", out.offsets)
+        .write("grad_rot6d", out.rot6d)
+        .write("grad_deltas", out.log_scale_deltas)
+        .write("grad_weights", out.weights)
+        .write("grad_transform_terms", out.transform_terms)
         .push(&p)
         .dispatch([count.div_ceil(256), 1, 1])
 }
@@ -221,7 +222,7 @@ pub fn record_pose_blend_forward<'a>(rec: &mut Recording<'a>, basis: &'a Buffer,
         return Ok(());
     }
     let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.pass("deform.pose_blend_fwd", Kernel::DeformPoseBlendFwd).read(basis).read(features).read(decoded).write(offsets).push(&p).dispatch(flat_grid(count))
+    rec.pass("deform.pose_blend_fwd", Kernel::DeformPoseBlendFwd).read("basis", basis).read("features", features).read("decoded", decoded).write("offsets", offsets).push(&p).dispatch(flat_grid(count))
 }
 
 /// Records the basis's gradient from the offsets' (kernel `deform::pose_blend_bwd`).
@@ -234,7 +235,7 @@ pub fn record_pose_blend_backward<'a>(rec: &mut Recording<'a>, features: &'a Buf
         return Ok(());
     }
     let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.pass("deform.pose_blend_bwd", Kernel::DeformPoseBlendBwd).read(features).read(grad_offsets).write(grad_basis).push(&p).dispatch(flat_grid(count * POSE_BLEND_FLOATS as u32))
+    rec.pass("deform.pose_blend_bwd", Kernel::DeformPoseBlendBwd).read("features", features).read("grad_offsets", grad_offsets).write("grad_basis", grad_basis).push(&p).dispatch(flat_grid(count * POSE_BLEND_FLOATS as u32))
 }
 
 /// CPU reference of [`record_pose_blend_forward`].

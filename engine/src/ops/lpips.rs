@@ -311,9 +311,8 @@ impl Lpips {
         let (w, h) = (self.width, self.height);
         let scale = PoolParams { c: 3, in_h: h, in_w: w, ..Default::default() };
         for (k, img) in [pred, target].into_iter().enumerate() {
-            rec.pass("lpips.scale_input", Kernel::LpipsScaleInput).read(img).write(&self.acts[k][0]).push(&scale).dispatch(grid(3 * w * h))?;
+            rec.pass("lpips.scale_input", Kernel::LpipsScaleInput).read("rgb", img).write("out", &self.acts[k][0]).push(&scale).dispatch(grid(3 * w * h))?;
         }
-        rec.barrier();
         // Forward, both images side by side (no barrier between them).
         let stack = self.net.stack();
         let (mut at, mut conv_i, mut tap) = (0usize, 0usize, 0usize);
@@ -323,29 +322,26 @@ impl Lpips {
                     let p = self.conv_params(at, kernel, stride, pad);
                     for k in 0..2 {
                         let (wt, bias) = &self.conv[conv_i];
-                        rec.pass("lpips.conv_fwd", Kernel::LpipsConvFwd).read(&self.acts[k][at]).read(wt).read(bias).write(&self.acts[k][at + 1]).push(&p).dispatch(grid(p.out_c * p.out_h * p.out_w))?;
+                        rec.pass("lpips.conv_fwd", Kernel::LpipsConvFwd).read("input", &self.acts[k][at]).read("weights", wt).read("bias", bias).write("output", &self.acts[k][at + 1]).push(&p).dispatch(grid(p.out_c * p.out_h * p.out_w))?;
                     }
-                    rec.barrier();
                     at += 1;
                     conv_i += 1;
                 }
                 Stage::Pool { kernel, stride } => {
                     let p = self.pool_params(at, kernel, stride);
                     for k in 0..2 {
-                        rec.pass("lpips.pool_fwd", Kernel::LpipsPoolFwd).read(&self.acts[k][at]).write(&self.acts[k][at + 1]).write(&self.argmax[k][at + 1]).push(&p).dispatch(grid(p.c * p.out_h * p.out_w))?;
+                        rec.pass("lpips.pool_fwd", Kernel::LpipsPoolFwd).read("input", &self.acts[k][at]).write("output", &self.acts[k][at + 1]).write("argmax", &self.argmax[k][at + 1]).push(&p).dispatch(grid(p.c * p.out_h * p.out_w))?;
                     }
-                    rec.barrier();
                     at += 1;
                 }
                 Stage::Tap => {
                     let (c, th, tw) = self.sizes[at];
                     let p = PoolParams { c, in_h: th, in_w: tw, ..Default::default() };
-                    rec.pass("lpips.distance", Kernel::LpipsDistance).read(&self.acts[0][at]).read(&self.acts[1][at]).read(&self.lin[tap]).write(&self.distances[tap]).push(&p).dispatch(grid(th * tw))?;
+                    rec.pass("lpips.distance", Kernel::LpipsDistance).read("f0", &self.acts[0][at]).read("f1", &self.acts[1][at]).read("lin", &self.lin[tap]).write("out", &self.distances[tap]).push(&p).dispatch(grid(th * tw))?;
                     tap += 1;
                 }
             }
         }
-        rec.barrier();
         let Some((grad_rgb, lambda)) = grad else { return Ok(()) };
         // Backward from the deepest stage: a tap writes (the deepest) or adds its
         // gradient to its activation's; a conv or pool writes its input's.
@@ -356,30 +352,26 @@ impl Lpips {
                     tap -= 1;
                     let (c, th, tw) = self.sizes[at];
                     let p = PoolParams { c, in_h: th, in_w: tw, kernel: u32::from(written[at]), scale: 1.0 / (th * tw) as f32, ..Default::default() };
-                    rec.pass("lpips.distance_grad", Kernel::LpipsDistanceGrad).read(&self.acts[0][at]).read(&self.acts[1][at]).read(&self.lin[tap]).write(&self.grads[at]).push(&p).dispatch(grid(c * th * tw))?;
-                    rec.barrier();
+                    rec.pass("lpips.distance_grad", Kernel::LpipsDistanceGrad).read("f0", &self.acts[0][at]).read("f1", &self.acts[1][at]).read("lin", &self.lin[tap]).write("grad", &self.grads[at]).push(&p).dispatch(grid(c * th * tw))?;
                     written[at] = true;
                 }
                 Stage::Conv { kernel, stride, pad, .. } => {
                     conv_i -= 1;
                     at -= 1;
                     let p = self.conv_params(at, kernel, stride, pad);
-                    rec.pass("lpips.conv_bwd_input", Kernel::LpipsConvBwdInput).read(&self.acts[0][at + 1]).read(&self.grads[at + 1]).read(&self.conv[conv_i].0).write(&self.grads[at]).push(&p).dispatch(grid(p.in_c * p.in_h * p.in_w))?;
-                    rec.barrier();
+                    rec.pass("lpips.conv_bwd_input", Kernel::LpipsConvBwdInput).read("output", &self.acts[0][at + 1]).read("grad_out", &self.grads[at + 1]).read("weights", &self.conv[conv_i].0).write("grad_in", &self.grads[at]).push(&p).dispatch(grid(p.in_c * p.in_h * p.in_w))?;
                     written[at] = true;
                 }
                 Stage::Pool { kernel, stride } => {
                     at -= 1;
                     let p = self.pool_params(at, kernel, stride);
-                    rec.pass("lpips.pool_bwd", Kernel::LpipsPoolBwd).read(&self.argmax[0][at + 1]).read(&self.grads[at + 1]).write(&self.grads[at]).push(&p).dispatch(grid(p.c * p.in_h * p.in_w))?;
-                    rec.barrier();
+                    rec.pass("lpips.pool_bwd", Kernel::LpipsPoolBwd).read("argmax", &self.argmax[0][at + 1]).read("grad_out", &self.grads[at + 1]).write("grad_in", &self.grads[at]).push(&p).dispatch(grid(p.c * p.in_h * p.in_w))?;
                     written[at] = true;
                 }
             }
         }
         let p = PoolParams { c: 3, in_h: h, in_w: w, scale: lambda, ..Default::default() };
-        rec.pass("lpips.scale_input_bwd", Kernel::LpipsScaleInputBwd).read(&self.grads[0]).write(grad_rgb).push(&p).dispatch(grid(3 * w * h))?;
-        rec.barrier();
+        rec.pass("lpips.scale_input_bwd", Kernel::LpipsScaleInputBwd).read("grad", &self.grads[0]).write("grad_rgb", grad_rgb).push(&p).dispatch(grid(3 * w * h))?;
         Ok(())
     }
 

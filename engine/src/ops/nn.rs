@@ -469,13 +469,13 @@ impl Mlp {
             }
             _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_COLS), p.m.div_ceil(GEMM_ROWS), splits]),
         };
-        rec.pass(name, kernel).read(a).read(b).read(bias).write(c).push(&p).dispatch(groups)
+        rec.pass(name, kernel).read("a", a).read("b", b).read("bias", bias).write("c", c).push(&p).dispatch(groups)
     }
 
     fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
         let p = ActParams { rows, width, kind: act.kind(), temperature: act.temperature() };
         let n = if act.kind() == ACT_SOFTMAX { rows } else { rows * width };
-        rec.pass(name, Kernel::NnActFwd).read(pre).write(post).push(&p).dispatch(grid(n))
+        rec.pass(name, Kernel::NnActFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(n))
     }
 
     /// Records the forward pass over `rows` rows of `input` (rows × `desc.input`).
@@ -486,11 +486,9 @@ impl Mlp {
         let hidden = self.desc.hidden.len();
         if let Some(effective) = &self.effective {
             rec.copy(&self.params, effective, self.params.size);
-            rec.barrier();
             for p in self.desc.weight_norm_params() {
-                rec.pass("mlp.weight_norm_fwd", Kernel::NnWeightNormFwd).read(&self.params).write(effective).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
+                rec.pass("mlp.weight_norm_fwd", Kernel::NnWeightNormFwd).read("params", &self.params).write("effective", effective).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
             }
-            rec.barrier();
         }
         for (l, &(i, o)) in linears.iter().enumerate() {
             let x = match below(l, hidden) {
@@ -516,12 +514,10 @@ impl Mlp {
             let layer = &self.layers[l];
             self.record_gemm(rec, "mlp.linear_fwd", x, self.weights(), self.weights(), &layer.pre, p, 1)?;
             if acts[l] != Activation::Identity {
-                rec.barrier();
                 Self::record_act(rec, "mlp.act_fwd", acts[l], &layer.pre, &layer.post, rows, o as u32)?;
             }
             // Heads read the trunk only; they need no barrier between each other.
             if l < hidden || l == linears.len() - 1 {
-                rec.barrier();
             }
         }
         Ok(())
@@ -555,13 +551,12 @@ impl Mlp {
                 let p = ActParams { rows, width: o as u32, kind: acts[l].kind(), temperature: acts[l].temperature() };
                 let n = if acts[l].kind() == ACT_SOFTMAX { rows } else { rows * o as u32 };
                 rec.pass("mlp.act_bwd", Kernel::NnActBwd)
-                    .read(&layer.pre)
-                    .read(&layer.post)
-                    .read(&layer.grad_post)
-                    .write(&layer.grad_pre)
+                    .read("pre", &layer.pre)
+                    .read("post", &layer.post)
+                    .read("grad_post", &layer.grad_post)
+                    .write("grad_pre", &layer.grad_pre)
                     .push(&p)
                     .dispatch(grid(n))?;
-                rec.barrier();
                 &layer.grad_pre
             };
             let (w_off, b_off) = self.offsets[l];
@@ -606,22 +601,19 @@ impl Mlp {
                 };
                 self.record_gemm(rec, "mlp.input_grad", g, self.weights(), self.weights(), target, p, 1)?;
             }
-            rec.barrier();
             let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };
             rec.pass("mlp.sum_weight_grad", Kernel::NnSumWeightGrad)
-                .read(&self.partials)
-                .write(&self.grads)
+                .read("partials", &self.partials)
+                .write("grad", &self.grads)
                 .push(&wp)
                 .dispatch(grid(wp.out_features * (wp.in_features + 1)))?;
             // The next layer's dW reuses the partials, and reads the dX just written.
             if step + 1 < order.len() {
-                rec.barrier();
             }
         }
         if self.effective.is_some() {
-            rec.barrier();
             for p in self.desc.weight_norm_params() {
-                rec.pass("mlp.weight_norm_bwd", Kernel::NnWeightNormBwd).read(&self.params).write(&self.grads).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
+                rec.pass("mlp.weight_norm_bwd", Kernel::NnWeightNormBwd).read("params", &self.params).write("grads", &self.grads).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
             }
         }
         Ok(())

@@ -1,11 +1,11 @@
 //! Stable LSD radix sort of `u32` keys with `u32` values (kernels `radix_sort::histogram`,
 //! `radix_sort::scatter`, and the scan op for the histogram).
 //!
-//! One pass per `RADIX_BITS`-bit digit of the low `key_bits` bits: histogram, barrier,
-//! scan of the digit-major histogram, barrier, scatter into the other buffer pair,
-//! barrier. Passes ping-pong between the caller's buffers and the plan's scratch; an
-//! odd number of passes ends with a copy back, so the result is always in the caller's
-//! buffers. No workgroup waits on another; no subgroup size is assumed.
+//! One pass per `RADIX_BITS`-bit digit of the low `key_bits` bits: histogram, scan of
+//! the digit-major histogram, scatter into the other buffer pair (the recorder derives
+//! the barriers between them). Passes ping-pong between the caller's buffers and the
+//! plan's scratch; an odd number of passes ends with a copy back, so the result is
+//! always in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
 
 use drape_shared::radix_sort::{self, pass_count, pass_params, RADIX_BUCKETS, SORT_BLOCK_LEN};
@@ -51,8 +51,7 @@ impl RadixSort {
     }
 
     /// Records a stable sort of the first `len` (key, value) pairs by the low
-    /// `key_bits` bits of the keys, in place. The caller puts barriers before (if the
-    /// inputs were just written) and after.
+    /// `key_bits` bits of the keys, in place.
     pub fn record<'a>(
         &'a self,
         rec: &mut Recording<'a>,
@@ -77,22 +76,19 @@ impl RadixSort {
         for pass in 0..passes {
             let params = pass_params(len, key_bits, pass);
             rec.pass("radix_sort.histogram", Kernel::RadixSortHistogram)
-                .read(src.0)
-                .write(&self.histogram)
+                .read("keys", src.0)
+                .write("histogram", &self.histogram)
                 .push(&params)
                 .dispatch([blocks, 1, 1])?;
-            rec.barrier();
             self.histogram_scan.record(rec, &self.histogram, RADIX_BUCKETS * blocks)?;
-            rec.barrier();
             rec.pass("radix_sort.scatter", Kernel::RadixSortScatter)
-                .read(src.0)
-                .read(src.1)
-                .read(&self.histogram)
-                .write(dst.0)
-                .write(dst.1)
+                .read("keys_in", src.0)
+                .read("values_in", src.1)
+                .read("scanned_histogram", &self.histogram)
+                .write("keys_out", dst.0)
+                .write("values_out", dst.1)
                 .push(&params)
                 .dispatch([blocks, 1, 1])?;
-            rec.barrier();
             std::mem::swap(&mut src, &mut dst);
         }
         if passes % 2 == 1 {

@@ -53,7 +53,6 @@ impl ExclusiveScan {
     }
 
     /// Records an in-place exclusive scan of the first `len` elements of `data`.
-    /// The caller puts barriers before (if `data` was just written) and after.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32) -> Result<()> {
         if len > self.max_len {
             return Err(EngineError::too_large("elements to scan", len.into(), self.max_len.into(), "the scan's plan"));
@@ -71,8 +70,8 @@ impl ExclusiveScan {
             // Single block: `block_offsets` is unread; bind `data` to satisfy the layout.
             return rec
                 .pass(&self.pass_downsweep, Kernel::ScanDownsweep)
-                .write(data)
-                .read(data)
+                .write("data", data)
+                .read("block_offsets", data)
                 .push(&params)
                 .dispatch([1, 1, 1]);
         }
@@ -80,16 +79,14 @@ impl ExclusiveScan {
         let sums = &self.level_sums[level];
         let params = ScanParams { len, add_block_offsets: 1, _pad: [0; 2] };
         rec.pass(&self.pass_reduce, Kernel::ScanReduce)
-            .read(data)
-            .write(sums)
+            .read("data", data)
+            .write("block_sums", sums)
             .push(&params)
             .dispatch([blocks, 1, 1])?;
-        rec.barrier();
         self.record_level(rec, sums, blocks, level + 1)?;
-        rec.barrier();
         rec.pass(&self.pass_downsweep, Kernel::ScanDownsweep)
-            .write(data)
-            .read(sums)
+            .write("data", data)
+            .read("block_offsets", sums)
             .push(&params)
             .dispatch([blocks, 1, 1])
     }

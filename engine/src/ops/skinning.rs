@@ -46,10 +46,10 @@ impl Skinning {
         }
         let p = SkinParams { count, groups: 0, _pad: [0; 2] };
         rec.pass("skinning.fwd", Kernel::SkinningSkinFwd)
-            .read(transforms)
-            .read(weights)
-            .read(points)
-            .write(skinned)
+            .read("transforms", transforms)
+            .read("weights", weights)
+            .read("points", points)
+            .write("skinned", skinned)
             .push(&p)
             .dispatch([count.div_ceil(256), 1, 1])
     }
@@ -75,29 +75,28 @@ impl Skinning {
         let p = SkinParams { count, groups, _pad: [0; 2] };
         // The two passes read the same inputs and write different buffers: no barrier.
         rec.pass("skinning.bwd_points", Kernel::SkinningSkinBwdPoints)
-            .read(transforms)
-            .read(weights)
-            .read(points)
-            .read(grad_skinned)
-            .write(grad_points)
-            .write(grad_weights)
+            .read("transforms", transforms)
+            .read("weights", weights)
+            .read("points", points)
+            .read("grad_skinned", grad_skinned)
+            .write("grad_points", grad_points)
+            .write("grad_weights", grad_weights)
             .push(&p)
             .dispatch([count.div_ceil(256), 1, 1])?;
         rec.pass("skinning.bwd_transforms", Kernel::SkinningSkinBwdTransforms)
-            .read(weights)
-            .read(points)
-            .read(grad_skinned)
-            .write(&self.partials)
+            .read("weights", weights)
+            .read("points", points)
+            .read("grad_skinned", grad_skinned)
+            .write("partials", &self.partials)
             .push(&p)
             .dispatch([groups, 1, 1])?;
-        rec.barrier();
         if groups == 0 {
             rec.fill(grad_transforms, 0);
             return Ok(());
         }
         rec.pass("skinning.sum_partials", Kernel::SkinningSumPartials)
-            .read(&self.partials)
-            .write(grad_transforms)
+            .read("partials", &self.partials)
+            .write("grad_transforms", grad_transforms)
             .push(&p)
             .dispatch([(TRANSFORMS_LEN as u32).div_ceil(256), 1, 1])
     }

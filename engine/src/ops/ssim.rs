@@ -47,17 +47,14 @@ impl Ssim {
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let n = self.pixels();
         let p = self.params(SSIM_MOMENTS, false, 0.0);
-        rec.pass("ssim.moments", Kernel::SsimMoments).read(pred).read(target).write(&self.a).push(&p).dispatch(grid(n))?;
-        rec.barrier();
+        rec.pass("ssim.moments", Kernel::SsimMoments).read("x", pred).read("y", target).write("planes", &self.a).push(&p).dispatch(grid(n))?;
         self.record_blur(rec, SSIM_MOMENTS, &self.a, &self.b)?;
-        rec.pass("ssim.map", Kernel::SsimMap).read(&self.a).write(&self.smap).write(&self.b).push(&p).dispatch(grid(n))?;
-        rec.barrier();
+        rec.pass("ssim.map", Kernel::SsimMap).read("moments", &self.a).write("smap", &self.smap).write("partials", &self.b).push(&p).dispatch(grid(n))?;
         if let Some((g, scale)) = grad {
             // The blurred partials end in b (b -> a -> b).
             self.record_blur(rec, 3, &self.b, &self.a)?;
             let p = self.params(3, false, scale / n.max(1) as f32);
-            rec.pass("ssim.grad", Kernel::SsimGrad).read(pred).read(target).read(&self.b).write(g).push(&p).dispatch(grid(n))?;
-            rec.barrier();
+            rec.pass("ssim.grad", Kernel::SsimGrad).read("x", pred).read("y", target).read("partials", &self.b).write("grad", g).push(&p).dispatch(grid(n))?;
         }
         Ok(())
     }
@@ -66,11 +63,9 @@ impl Ssim {
     fn record_blur<'a>(&'a self, rec: &mut Recording<'a>, planes: u32, src: &'a Buffer, tmp: &'a Buffer) -> Result<()> {
         let total = self.pixels() * planes;
         let h = self.params(planes, false, 0.0);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read(src).write(tmp).push(&h).dispatch(grid(total))?;
-        rec.barrier();
+        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", src).write("dst", tmp).push(&h).dispatch(grid(total))?;
         let v = self.params(planes, true, 0.0);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read(tmp).write(src).push(&v).dispatch(grid(total))?;
-        rec.barrier();
+        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", tmp).write("dst", src).push(&v).dispatch(grid(total))?;
         Ok(())
     }
 

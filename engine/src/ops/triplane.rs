@@ -129,9 +129,9 @@ impl Triplane {
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, points: &'a Buffer, features: &'a Buffer, count: u32) -> Result<()> {
         let p = self.desc.params(count);
         rec.pass("triplane.sample_fwd", Kernel::TriplaneSampleFwd)
-            .read(&self.planes)
-            .read(points)
-            .write(features)
+            .read("planes", &self.planes)
+            .read("points", points)
+            .write("features", features)
             .push(&p)
             .dispatch([count.div_ceil(256), 1, 1])
     }
@@ -161,17 +161,15 @@ impl Triplane {
             }
         };
         rec.fill(target, 0);
-        rec.barrier();
         rec.pass("triplane.sample_bwd", kernel)
-            .read(&self.planes)
-            .read(points)
-            .read(grad_features)
-            .write(target)
-            .write(grad_points)
+            .read("planes", &self.planes)
+            .read("points", points)
+            .read("grad_features", grad_features)
+            .write("grad_planes", target)
+            .write("grad_points", grad_points)
             .push(&p)
             .dispatch([count.div_ceil(256), 1, 1])?;
         if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
-            rec.barrier();
             fixed.record_resolve(rec, &self.grads, self.desc.len() as u32)?;
         }
         Ok(())

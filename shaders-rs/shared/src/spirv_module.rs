@@ -14,6 +14,9 @@ pub struct ModuleFacts {
     pub workgroup_size: Option<[u32; 3]>,
     /// Bit `b` set when some variable is decorated `Binding b` (b < 64).
     pub binding_mask: u64,
+    /// Bit `b` set when the variable of binding `b` is decorated `NonWritable`: the
+    /// kernel only reads it (rust-gpu declares a `&[T]` storage buffer so).
+    pub read_only_mask: u64,
 }
 
 /// Why a byte string is not a module we can read.
@@ -43,7 +46,9 @@ impl core::fmt::Display for SpirvError {
 const MAGIC: u32 = 0x0723_0203;
 const OP_ENTRY_POINT: u32 = 15;
 const OP_EXECUTION_MODE: u32 = 16;
+const OP_NAME: u32 = 5;
 const OP_DECORATE: u32 = 71;
+const DECORATION_NON_WRITABLE: u32 = 24;
 const MODE_LOCAL_SIZE: u32 = 17;
 const DECORATION_BINDING: u32 = 33;
 
@@ -62,7 +67,7 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
         return Err(SpirvError::Magic);
     }
     let len = bytes.len() / 4;
-    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0 };
+    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0 };
     let mut at = 5;
     while at < len {
         let head = word(bytes, at);
@@ -87,11 +92,63 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
                 }
                 facts.binding_mask |= 1 << binding;
             }
+            OP_DECORATE if operands >= 2 && operand(1) == DECORATION_NON_WRITABLE => {
+                if let Some(binding) = binding_of(bytes, operand(0)) {
+                    if binding < 64 {
+                        facts.read_only_mask |= 1 << binding;
+                    }
+                }
+            }
             _ => {}
         }
         at += count;
     }
     Ok(facts)
+}
+
+/// Calls `f(opcode, first operand word index, operand count)` for every instruction of
+/// a module `inspect` has accepted; stops early when `f` returns `Some`.
+fn find_instruction<T>(bytes: &[u8], mut f: impl FnMut(u32, usize, usize) -> Option<T>) -> Option<T> {
+    let len = bytes.len() / 4;
+    let mut at = 5;
+    while at < len {
+        let head = word(bytes, at);
+        let count = (head >> 16) as usize;
+        if count == 0 || at + count > len {
+            return None;
+        }
+        if let Some(found) = f(head & 0xffff, at + 1, count - 1) {
+            return Some(found);
+        }
+        at += count;
+    }
+    None
+}
+
+/// The binding number the variable `id` is decorated with, if any.
+fn binding_of(bytes: &[u8], id: u32) -> Option<u32> {
+    find_instruction(bytes, |op, first, operands| {
+        (op == OP_DECORATE && operands >= 3 && word(bytes, first) == id && word(bytes, first + 1) == DECORATION_BINDING)
+            .then(|| word(bytes, first + 2))
+    })
+}
+
+/// The `OpName` of the variable decorated `Binding binding` (the kernel parameter's
+/// name when the module was built with rust-gpu's `NameVariables` metadata), without
+/// its terminating nul; `None` when the binding or its name is absent.
+pub fn binding_name(bytes: &[u8], binding: u32) -> Option<&[u8]> {
+    let id = find_instruction(bytes, |op, first, operands| {
+        (op == OP_DECORATE && operands >= 3 && word(bytes, first + 1) == DECORATION_BINDING && word(bytes, first + 2) == binding)
+            .then(|| word(bytes, first))
+    })?;
+    find_instruction(bytes, |op, first, operands| {
+        if op != OP_NAME || operands < 2 || word(bytes, first) != id {
+            return None;
+        }
+        let tail = &bytes[(first + 1) * 4..(first + operands) * 4];
+        let end = tail.iter().position(|&b| b == 0).unwrap_or(tail.len());
+        Some(&tail[..end])
+    })
 }
 
 impl ModuleFacts {

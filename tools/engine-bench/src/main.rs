@@ -114,7 +114,7 @@ fn measure(ctx: &Context, common: &Common, mut run_once: impl FnMut() -> anyhow:
             continue;
         }
         walls.push(wall);
-        gpus.push(timings.total_ms());
+        gpus.push(timings.busy_ms());
         for (name, ms) in timings.by_name() {
             per_pass.entry(name).or_default().push(ms);
         }

@@ -104,6 +104,9 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
     builder.release = true;
+    // Keep the `OpName` of interface variables: the manifest names each binding after
+    // the kernel parameter, and the engine binds by those names.
+    builder.spirv_metadata = spirv_builder::SpirvMetadata::NameVariables;
     builder.target_dir_path = Some(target_dir);
     builder.build_script.defaults = false;
     // The nested cargo must run on the pinned nightly, whatever toolchain invoked us.
@@ -163,9 +166,16 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
         let workgroup_size = facts
             .workgroup_size
             .ok_or_else(|| format!("module {entry}: no LocalSize execution mode"))?;
-        let bindings = facts
+        let count = facts
             .contiguous_binding_count()
             .ok_or_else(|| format!("module {entry}: bindings are not numbered 0..n"))?;
+        let mut bindings = Vec::new();
+        for b in 0..count {
+            let name = spirv_module::binding_name(bytes, b)
+                .ok_or_else(|| format!("module {entry}: binding {b} has no OpName (built without NameVariables?)"))?;
+            let access = if facts.read_only_mask & (1 << b) != 0 { "read" } else { "read_write" };
+            bindings.push(serde_json::json!({ "name": String::from_utf8_lossy(name), "access": access }));
+        }
         list.push(serde_json::json!({
             "entry_point": entry,
             "file": module_file(entry),

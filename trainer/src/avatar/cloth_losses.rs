@@ -138,10 +138,9 @@ impl ClothLosses {
             return Ok(());
         }
         let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
-        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read(alpha).read(&self.mask_target).write(&self.grad_alpha).write(&self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
-        rec.barrier();
+        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
         let p = LossParams { len: self.pixels, scale: 1.0, _pad: [0; 2] };
-        rec.pass("cloth.mask_add", Kernel::TrainAddInto).read(&self.grad_alpha).write(grad_alpha).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        rec.pass("cloth.mask_add", Kernel::TrainAddInto).read("src", &self.grad_alpha).write("dst", grad_alpha).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
         Ok(())
     }
 
@@ -156,7 +155,7 @@ impl ClothLosses {
             let (_, alpha, _) = self.renderer.outputs();
             let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
             let mut rec = ctx.record("cloth mask loss")?;
-            rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read(alpha).read(&self.mask_target).write(&self.grad_alpha).write(&self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+            rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
             rec.submit_and_wait()?;
         }
         self.renderer.backward(&cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
@@ -175,9 +174,8 @@ impl ClothLosses {
             for k in 0..4 {
                 let len = per[k] * this.count;
                 let p = LossParams { len, scale: 1.0, _pad: [0; 2] };
-                rec.pass("cloth.mask_add", Kernel::TrainAddInto).read(src[k]).write(dst[k]).push(&p).dispatch(drape_engine::recorder::flat_grid(len))?;
+                rec.pass("cloth.mask_add", Kernel::TrainAddInto).read("src", src[k]).write("dst", dst[k]).push(&p).dispatch(drape_engine::recorder::flat_grid(len))?;
             }
-            rec.barrier();
         }
         let grad = &cloth.posed_grads.means;
         if w.sim > 0.0 {

@@ -291,7 +291,6 @@ impl AvatarRenderer {
                     let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_cloth, over_alpha: &t.grad_cloth_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
                     record_composite_backward(&mut rec, grad_rgb, t.inputs(), grads, t.pixels)?;
                     if let Some(c) = cloth_losses.as_ref() {
-                        rec.barrier();
                         c.record_mask_grad(&mut rec, t.cloth_renderer.outputs().1, &t.grad_cloth_alpha)?;
                     }
                     rec.submit_and_wait()?;
@@ -331,12 +330,11 @@ impl AvatarRenderer {
                 record_screen_stats(rec, &t.cloth_renderer, 0, cloth.count, &cloth.screen_stats, 0)?;
             }
         }
-        rec.barrier();
         Ok(())
     }
 
     /// Records the move of the passes' gradients into every layer's own posed
-    /// gradients (where the per-layer losses then add theirs), with a barrier after.
+    /// gradients (where the per-layer losses then add theirs).
     pub fn record_scatter<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
         let t = match &self.inner {
             Inner::Single(_) => {
@@ -348,7 +346,6 @@ impl AvatarRenderer {
         for p in &t.base_parts {
             Avatar::record_move(rec, grads(avatar, p.source), &t.base_grads, p.first, p.count, true)?;
         }
-        rec.barrier();
         for (m, p) in t.matte.iter().flat_map(|m| m.parts.iter().map(move |p| (m, p))) {
             let (src, dst) = (m.grads.all(), grads(avatar, p.source).all());
             for k in 0..4 {
@@ -356,7 +353,6 @@ impl AvatarRenderer {
                 record_add_slice(rec, src[k], per * p.first, dst[k], per * p.count)?;
             }
         }
-        rec.barrier();
         Ok(())
     }
 }

@@ -302,20 +302,16 @@ impl HumanLayer {
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
         let n = self.count;
         self.triplane.record_forward(rec, &self.means, &self.features, n)?;
-        rec.barrier();
         self.appearance.record_forward(rec, &self.features, n)?;
         self.geometry.record_forward(rec, &self.features, n)?;
         self.deformation.record_forward(rec, &self.features, n)?;
         if let Some(blended) = self.pose_blended() {
-            rec.barrier();
             deform::record_pose_blend_forward(rec, self.deformation.head_output(1), &self.pose_features, self.geometry.head_output(0), blended, n)?;
-            rec.barrier();
         }
         let inputs = self.deform_inputs();
         deform::record_forward(rec, &inputs, &self.posed.means, &self.posed.quats, &self.posed.log_scales, n, log_scale_offset)?;
         rec.copy(self.appearance.head_output(0), &self.posed.opacity_logits, u64::from(n) * 4);
         rec.copy(self.appearance.head_output(1), &self.posed.sh, self.posed.sh.size.min(self.appearance.head_output(1).size));
-        rec.barrier();
         Ok(())
     }
 
@@ -339,12 +335,10 @@ impl HumanLayer {
             transform_terms: &self.transform_terms,
         };
         deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
-        rec.barrier();
         if self.blended_offsets.is_some() {
             // The offsets' gradient (in the geometry head: the blend adds to it) drives
             // the basis's.
             deform::record_pose_blend_backward(rec, &self.pose_features, self.geometry.head_grad(0), self.deformation.head_grad(1), n)?;
-            rec.barrier();
         }
         if pose_gradient {
             deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
@@ -353,15 +347,13 @@ impl HumanLayer {
             let len = NUM_JOINTS as u32 * n;
             let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
             rec.pass("loss.cloth_lbs", Kernel::TrainMseGrad)
-                .read(self.deformation.head_output(0))
-                .read(&self.weight_targets)
-                .write(&self.lbs_grad)
-                .write(&self.weight_sq_error)
+                .read("pred", self.deformation.head_output(0))
+                .read("target", &self.weight_targets)
+                .write("grad", &self.lbs_grad)
+                .write("squared_error", &self.weight_sq_error)
                 .push(&p)
                 .dispatch(flat_grid(len))?;
-            rec.barrier();
-            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read(&self.lbs_grad).write(self.deformation.head_grad(0)).push(&p).dispatch(flat_grid(len))?;
-            rec.barrier();
+            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read("src", &self.lbs_grad).write("dst", self.deformation.head_grad(0)).push(&p).dispatch(flat_grid(len))?;
         }
         self.record_decoder_backward(rec, true)
     }
@@ -380,17 +372,12 @@ impl HumanLayer {
         let n = self.count;
         // The decoders add their input gradients into one buffer: one after another.
         self.appearance.record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
-        rec.barrier();
         self.geometry.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        rec.barrier();
         self.deformation.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        rec.barrier();
         self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
-        rec.barrier();
         if to_means {
             let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
-            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read(&self.grad_points).write(&self.grad_means).push(&p).dispatch(flat_grid(p.len))?;
-            rec.barrier();
+            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read("src", &self.grad_points).write("dst", &self.grad_means).push(&p).dispatch(flat_grid(p.len))?;
         }
         Ok(())
     }
@@ -407,7 +394,6 @@ impl HumanLayer {
             (&self.deformation.grads, g.deformation.len),
         ];
         record_count_nonfinite(rec, buffers, counter)?;
-        rec.barrier();
         Ok(())
     }
 
@@ -421,7 +407,6 @@ impl HumanLayer {
         g.appearance.record_step(rec, &self.appearance.params, &self.appearance.grads)?;
         g.geometry.record_step(rec, &self.geometry.params, &self.geometry.grads)?;
         g.deformation.record_step(rec, &self.deformation.params, &self.deformation.grads)?;
-        rec.barrier();
         Ok(())
     }
 
@@ -444,21 +429,17 @@ impl HumanLayer {
                     rec.fill(self.deformation.head_grad(1), 0);
                 }
                 self.triplane.record_forward(&mut rec, &self.means, &self.features, n)?;
-                rec.barrier();
                 self.deformation.record_forward(&mut rec, &self.features, n)?;
                 rec.pass("fit.weight_mse", Kernel::TrainMseGrad)
-                    .read(self.deformation.head_output(0))
-                    .read(&self.weight_targets)
-                    .write(self.deformation.head_grad(0))
-                    .write(&self.weight_sq_error)
+                    .read("pred", self.deformation.head_output(0))
+                    .read("target", &self.weight_targets)
+                    .write("grad", self.deformation.head_grad(0))
+                    .write("squared_error", &self.weight_sq_error)
                     .push(&p)
                     .dispatch(flat_grid(p.len))?;
-                rec.barrier();
                 if step < steps {
                     self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;
-                    rec.barrier();
                     self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
-                    rec.barrier();
                     deformation_adam.record_step(&mut rec, &self.deformation.params, &self.deformation.grads)?;
                     triplane_adam.record_step(&mut rec, &self.triplane.planes, &self.triplane.grads)?;
                 }
@@ -567,7 +548,7 @@ impl HumanLayer {
 pub fn record_count_nonfinite<'a>(rec: &mut Recording<'a>, buffers: impl IntoIterator<Item = (&'a Buffer, usize)>, counter: &'a Buffer) -> Result<()> {
     for (b, len) in buffers {
         let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
-        rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read(b).write(counter).push(&p).dispatch(flat_grid(p.len))?;
+        rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read("values", b).write("counter", counter).push(&p).dispatch(flat_grid(p.len))?;
     }
     Ok(())
 }

@@ -220,7 +220,7 @@ impl Avatar {
     }
 
     /// Records the gather of every layer's posed Gaussians (and the scene's) into
-    /// [`posed`](Self::posed), layer after layer, with a barrier after.
+    /// [`posed`](Self::posed), layer after layer.
     pub fn record_gather<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         let mut first = 0;
         for l in &self.layers {
@@ -231,7 +231,6 @@ impl Avatar {
         if let Some(s) = &self.scene {
             Self::record_move(rec, &s.params, &self.posed, first, s.count, false)?;
         }
-        rec.barrier();
         Ok(())
     }
 
@@ -244,7 +243,7 @@ impl Avatar {
     }
 
     /// Copies each layer's slice of `posed_grads` into the layer's own `posed_grads`
-    /// (where per-layer losses then add theirs), with a barrier after.
+    /// (where per-layer losses then add theirs).
     pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         let mut first = 0;
         for l in &self.layers {
@@ -254,7 +253,6 @@ impl Avatar {
         if let Some(s) = &self.scene {
             Self::record_move(rec, &s.grads, &self.posed_grads, first, s.count, true)?;
         }
-        rec.barrier();
         Ok(())
     }
 

@@ -640,8 +640,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         {
             let rgb = renderer.rgb();
             let mut rec = gpu(ctx.record("train loss"))?;
-            gpu(rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read(rgb).read(&target).write(&grad_rgb).write(&abs_error).push(&loss).dispatch(drape_engine::recorder::flat_grid(loss.len)))?;
-            rec.barrier();
+            gpu(rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read("pred", rgb).read("target", &target).write("grad", &grad_rgb).write("abs_error", &abs_error).push(&loss).dispatch(drape_engine::recorder::flat_grid(loss.len)))?;
             // λ (1 - SSIM): adds -λ ∂SSIM/∂rgb to the L1 gradient.
             gpu(ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim))))?;
             if let Some(l) = &lpips {

@@ -55,8 +55,7 @@ impl GaussianAdam {
         self.step
     }
 
-    /// Records one step of every group (independent passes, no barriers between
-    /// them). The caller puts a barrier before (gradients just written) and after.
+    /// Records one step of every group (independent passes: no barriers between them).
     pub fn record_step<'a>(&'a mut self, rec: &mut Recording<'a>, params: &'a GaussianBuffers, grads: &'a GaussianBuffers) -> Result<()> {
         assert_eq!(params.count, grads.count, "gradients are for another cloud");
         assert_eq!(params.count, self.m.count, "Adam state is for another cloud");
@@ -68,10 +67,10 @@ impl GaussianAdam {
             let len = lens[i] as u32;
             let pc = crate::ops::adam::step_params(len, lrs[i], self.beta1, self.beta2, self.eps, self.step);
             rec.pass("adam.step", Kernel::TrainAdamStep)
-                .write(p[i])
-                .read(g[i])
-                .write(m[i])
-                .write(v[i])
+                .write("params", p[i])
+                .read("grads", g[i])
+                .write("m", m[i])
+                .write("v", v[i])
                 .push(&pc)
                 .dispatch(flat_grid(len))?;
         }

@@ -52,11 +52,11 @@ pub fn record_composite<'a>(rec: &mut Recording<'a>, inputs: CompositeInputs<'a>
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte the kernel reads V from the alpha; the binding still needs a buffer.
     rec.pass("composite.fwd", Kernel::CompositeFwd)
-        .read(inputs.base_rgb)
-        .read(inputs.over_rgb)
-        .read(inputs.over_alpha)
-        .read(inputs.matte_rgb.unwrap_or(inputs.over_alpha))
-        .write(out)
+        .read("base", inputs.base_rgb)
+        .read("over", inputs.over_rgb)
+        .read("over_alpha", inputs.over_alpha)
+        .read("matte", inputs.matte_rgb.unwrap_or(inputs.over_alpha))
+        .write("out", out)
         .push(&p)
         .dispatch(flat_grid(pixels))
 }
@@ -68,15 +68,15 @@ pub fn record_composite_backward<'a>(rec: &mut Recording<'a>, grad: &'a Buffer, 
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte neither matte binding is touched; they still need buffers.
     rec.pass("composite.bwd", Kernel::CompositeBwd)
-        .read(grad)
-        .read(inputs.base_rgb)
-        .read(inputs.over_rgb)
-        .read(inputs.over_alpha)
-        .read(inputs.matte_rgb.unwrap_or(inputs.over_alpha))
-        .write(grads.base_rgb)
-        .write(grads.over_rgb)
-        .write(grads.over_alpha)
-        .write(grads.matte_rgb.unwrap_or(grads.over_rgb))
+        .read("grad", grad)
+        .read("base", inputs.base_rgb)
+        .read("over", inputs.over_rgb)
+        .read("over_alpha", inputs.over_alpha)
+        .read("matte", inputs.matte_rgb.unwrap_or(inputs.over_alpha))
+        .write("grad_base", grads.base_rgb)
+        .write("grad_over", grads.over_rgb)
+        .write("grad_over_alpha", grads.over_alpha)
+        .write("grad_matte", grads.matte_rgb.unwrap_or(grads.over_rgb))
         .push(&p)
         .dispatch(flat_grid(pixels))
 }
@@ -88,7 +88,7 @@ pub fn record_add_slice<'a>(rec: &mut Recording<'a>, src: &'a Buffer, src_offset
         return Ok(());
     }
     let p = SliceParams { len, src_offset, _pad: [0; 2] };
-    rec.pass("composite.add_slice", Kernel::CompositeAddSlice).read(src).write(dst).push(&p).dispatch(flat_grid(len))
+    rec.pass("composite.add_slice", Kernel::CompositeAddSlice).read("src", src).write("dst", dst).push(&p).dispatch(flat_grid(len))
 }
 
 /// The degree-0 SH coefficient (all three channels) of a Gaussian in the matte pass:

@@ -18,7 +18,7 @@ use crate::recorder::{flat_grid, Recording};
 /// Records the addition of the last frame of `renderer` (its forward and backward
 /// passes) for its Gaussians `[first, first + count)` into `stats` starting at
 /// Gaussian `out_first` ([`SCREEN_STATS_FLOATS`] per Gaussian). Statistics of one
-/// buffer from two renders are recorded with a barrier between them.
+/// buffer from two renders are ordered by the barrier the recorder derives.
 pub fn record_screen_stats<'a>(rec: &mut Recording<'a>, renderer: &'a SplatRenderer, first: u32, count: u32, stats: &'a Buffer, out_first: u32) -> Result<()> {
     if count == 0 {
         return Ok(());
@@ -26,7 +26,7 @@ pub fn record_screen_stats<'a>(rec: &mut Recording<'a>, renderer: &'a SplatRende
     let (width, height) = renderer.size();
     let (splats, grads) = renderer.splat_buffers();
     let p = ScreenStatsParams { first, count, out_first, width, height, _pad: [0; 3] };
-    rec.pass("splat.screen_stats", Kernel::SplatScreenStats).read(splats).read(grads).write(stats).push(&p).dispatch(flat_grid(count))
+    rec.pass("splat.screen_stats", Kernel::SplatScreenStats).read("splats", splats).read("splat_grads", grads).write("stats", stats).push(&p).dispatch(flat_grid(count))
 }
 
 /// The CPU reference of [`record_screen_stats`] on read-back splats and per-splat

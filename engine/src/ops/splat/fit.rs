@@ -144,10 +144,10 @@ pub fn fit_image(ctx: &Context, target: &Image, cfg: &FitConfig, report_every: u
             let (rgb, _, _) = renderer.outputs();
             let mut rec = ctx.record("fit loss")?;
             rec.pass("loss.mse_grad", Kernel::TrainMseGrad)
-                .read(rgb)
-                .read(&target_buf)
-                .write(&grad_rgb)
-                .write(&squared_error)
+                .read("pred", rgb)
+                .read("target", &target_buf)
+                .write("grad", &grad_rgb)
+                .write("squared_error", &squared_error)
                 .push(&loss)
                 .dispatch(flat_grid(loss.len))?;
             rec.submit_and_wait()?;

@@ -295,31 +295,30 @@ impl SplatRenderer {
             let mut rec = ctx.record("splat forward: project and bin")?;
             rec.fill(&self.dropped, 0);
             rec.fill(&self.total, 0);
-            rec.barrier();
             for chunk in project_chunks(&ctx, n, gaussians.sh_degree) {
                 let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
                 rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
-                    .read(&self.frame)
-                    .read_all(gaussians.all().into_iter().take(4))
-                    .range(&gaussians.sh, offset, bytes)
-                    .write(&self.splats)
-                    .write(&self.depth_keys)
-                    .write(&self.order)
-                    .write(&self.dropped)
+                    .read("frame", &self.frame)
+                    .read("means", &gaussians.means)
+                    .read("log_scales", &gaussians.log_scales)
+                    .read("quats", &gaussians.quats)
+                    .read("opacity_logits", &gaussians.opacity_logits)
+                    .read_range("sh", &gaussians.sh, offset, bytes)
+                    .write("splats", &self.splats)
+                    .write("depth_keys", &self.depth_keys)
+                    .write("order", &self.order)
+                    .write("dropped", &self.dropped)
                     .push(&chunk)
                     .dispatch(groups(chunk.len))?;
             }
-            rec.barrier();
             self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
-            rec.barrier();
             rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
-                .read(&self.order)
-                .read(&self.splats)
-                .write(&self.counts)
-                .write(&self.total)
+                .read("order", &self.order)
+                .read("splats", &self.splats)
+                .write("counts", &self.counts)
+                .write("total", &self.total)
                 .push(&counts_pc)
                 .dispatch(groups(n + 1))?;
-            rec.barrier();
             self.count_scan.record(&mut rec, &self.counts, n + 1)?;
             rec.submit_and_wait()?
         };
@@ -339,37 +338,34 @@ impl SplatRenderer {
         let mut rec = ctx.record("splat forward: sort and rasterize")?;
         rec.fill(&self.ranges, 0);
         rec.pass("splat.emit_intersections", Kernel::SplatEmitIntersections)
-            .read(&self.frame)
-            .read(&self.order)
-            .read(&self.splats)
-            .read(&self.counts)
-            .write(&self.isect_keys)
-            .write(&self.isect_values)
+            .read("frame", &self.frame)
+            .read("order", &self.order)
+            .read("splats", &self.splats)
+            .read("offsets", &self.counts)
+            .write("isect_keys", &self.isect_keys)
+            .write("isect_values", &self.isect_values)
             .dispatch(groups(n))?;
-        rec.barrier();
         self.isect_sort.record(&mut rec, &self.isect_keys, &self.isect_values, total, tile_bits)?;
-        rec.barrier();
         rec.pass("splat.tile_ranges", Kernel::SplatTileRanges)
-            .read(&self.isect_keys)
-            .write(&self.ranges)
+            .read("isect_keys", &self.isect_keys)
+            .write("ranges", &self.ranges)
             .push(&counts_pc)
             .dispatch(groups(total))?;
-        rec.barrier();
         let p = &self.pixels;
         rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
-            .read(&self.frame)
-            .read(&self.splats)
-            .read(&self.isect_values)
-            .read(&self.ranges)
-            .write(&p.rgb)
-            .write(&p.alpha)
-            .write(&p.depth)
-            .write(&p.contributors)
-            .write(&p.transmittance)
-            .write(&p.blended)
+            .read("frame", &self.frame)
+            .read("splats", &self.splats)
+            .read("isect_values", &self.isect_values)
+            .read("ranges", &self.ranges)
+            .write("rgb", &p.rgb)
+            .write("alpha", &p.alpha)
+            .write("depth", &p.depth)
+            .write("contributors", &p.contributors)
+            .write("transmittance", &p.transmittance)
+            .write("blended", &p.blended)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
         let more = rec.submit_and_wait()?;
-        timings.passes.extend(more.passes);
+        timings.extend(more);
         Ok(ForwardStats { intersections: total, dropped, timings })
     }
 
@@ -415,35 +411,38 @@ impl SplatRenderer {
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
         rec.fill(target, 0);
-        rec.barrier();
         let p = &self.pixels;
         rec.pass("splat.rasterize_bwd", kernel)
-            .read(&self.frame)
-            .read(&self.splats)
-            .read(&self.isect_values)
-            .read(&self.ranges)
-            .read(&p.contributors)
-            .read(&p.transmittance)
-            .read(grad_rgb)
-            .read(grad_alpha)
-            .read(grad_depth)
-            .write(target)
+            .read("frame", &self.frame)
+            .read("splats", &self.splats)
+            .read("isect_values", &self.isect_values)
+            .read("ranges", &self.ranges)
+            .read("contributors", &p.contributors)
+            .read("transmittance", &p.transmittance)
+            .read("grad_rgb", grad_rgb)
+            .read("grad_alpha", grad_alpha)
+            .read("grad_depth", grad_depth)
+            .write("splat_grads", target)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
-        rec.barrier();
         if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
             fixed.record_resolve(&mut rec, &self.splat_grads, values)?;
-            rec.barrier();
         }
         for chunk in project_chunks(&ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
-                .read(&self.frame)
-                .read_all(gaussians.all().into_iter().take(4))
-                .range(&gaussians.sh, offset, bytes)
-                .read(&self.splats)
-                .read(&self.splat_grads)
-                .write_all(out.all().into_iter().take(4))
-                .range(&out.sh, offset, bytes)
+                .read("frame", &self.frame)
+                .read("means", &gaussians.means)
+                .read("log_scales", &gaussians.log_scales)
+                .read("quats", &gaussians.quats)
+                .read("opacity_logits", &gaussians.opacity_logits)
+                .read_range("sh", &gaussians.sh, offset, bytes)
+                .read("splats", &self.splats)
+                .read("splat_grads", &self.splat_grads)
+                .write("grad_means", &out.means)
+                .write("grad_log_scales", &out.log_scales)
+                .write("grad_quats", &out.quats)
+                .write("grad_opacity_logits", &out.opacity_logits)
+                .write_range("grad_sh", &out.sh, offset, bytes)
                 .push(&chunk)
                 .dispatch(groups(chunk.len))?;
         }

@@ -24,8 +24,7 @@ fn params(src: (u32, u32), dst: (u32, u32), count: u32) -> ShCopyParams {
     ShCopyParams { count, src_coeffs: sh_coeffs(src.0) as u32, dst_coeffs: sh_coeffs(dst.0) as u32, src_first: src.1, dst_first: dst.1, _pad: [0; 3] }
 }
 
-/// Records the copy of `count` Gaussians' SH from `src` into `dst` (the caller records
-/// the barrier before whatever reads `dst`).
+/// Records the copy of `count` Gaussians' SH from `src` into `dst`.
 pub fn record_copy_sh<'a>(rec: &mut Recording<'a>, src: ShSlice<'a>, dst: ShSlice<'a>, count: u32) -> Result<()> {
     if count == 0 {
         return Ok(());
@@ -36,7 +35,7 @@ pub fn record_copy_sh<'a>(rec: &mut Recording<'a>, src: ShSlice<'a>, dst: ShSlic
         return Ok(());
     }
     let p = params((src.degree, src.first), (dst.degree, dst.first), count);
-    rec.pass("train.copy_sh", Kernel::TrainCopySh).read(src.buffer).write(dst.buffer).push(&p).dispatch(flat_grid(p.floats()))
+    rec.pass("train.copy_sh", Kernel::TrainCopySh).read("src", src.buffer).write("dst", dst.buffer).push(&p).dispatch(flat_grid(p.floats()))
 }
 
 /// CPU reference: `dst` after the same copy.
