@@ -136,6 +136,8 @@ pub struct Device {
     validation: Option<Arc<ValidationSink>>,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
+    /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
+    submissions: std::sync::atomic::AtomicU64,
     // Keeps libvulkan loaded for as long as any handle exists.
     _entry: ash::Entry,
 }
@@ -256,6 +258,7 @@ impl Context {
             debug_instance,
             validation: sink,
             profile: Mutex::new(None),
+            submissions: std::sync::atomic::AtomicU64::new(0),
             _entry: entry,
         };
         let ctx = Context { device: Arc::new(device) };
@@ -345,6 +348,7 @@ impl Context {
             .vk("vkCreateFence", what)?;
         let cmds = [cmd];
         let submit = vk::SubmitInfo::default().command_buffers(&cmds);
+        self.device.submissions.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let result = {
             let queue = self.device.queue.lock().unwrap_or_else(|p| p.into_inner());
             // SAFETY: the queue is externally synchronised by the mutex; cmd is executable.
@@ -355,6 +359,12 @@ impl Context {
         // SAFETY: the fence is signalled or the submit failed; either way it is unused now.
         unsafe { dev.destroy_fence(fence, None) };
         result.vk("vkQueueSubmit/vkWaitForFences", what)
+    }
+
+    /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
+    /// tests and profiles: a rendered frame should cost one.
+    pub fn submission_count(&self) -> u64 {
+        self.device.submissions.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Names a Vulkan object for validation messages and captures.

@@ -399,6 +399,27 @@ impl<'a> Recording<'a> {
         unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
     }
 
+    /// Writes `data` (at most 65,536 bytes, a multiple of 4) to the start of `buffer`
+    /// from the command buffer itself (`vkCmdUpdateBuffer`): small per-frame parameters
+    /// without a staging copy or a submission of their own.
+    pub fn update<T: bytemuck::Pod>(&mut self, buffer: &'a Buffer, data: &[T]) {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        assert!(
+            bytes.len() <= 65_536 && bytes.len() % 4 == 0 && bytes.len() as u64 <= buffer.size,
+            "update of {} bytes into '{}' of {} bytes (at most 65,536, a multiple of 4)",
+            bytes.len(),
+            buffer.name(),
+            buffer.size
+        );
+        if bytes.is_empty() {
+            return;
+        }
+        self.before_access(&[(buffer.raw, true)]);
+        // SAFETY: the buffer is alive for 'a and was created with TRANSFER_DST; the size
+        // was checked above.
+        unsafe { self.ctx.device.raw.cmd_update_buffer(self.cmd, buffer.raw, 0, bytes) };
+    }
+
     /// Fills the whole of `buffer` with the 32-bit `word`.
     pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
         self.before_access(&[(buffer.raw, true)]);

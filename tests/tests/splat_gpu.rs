@@ -259,3 +259,48 @@ fn screen_stats_are_in_3dgs_units() {
     assert!((f64::from(got[0]) - want_norm).abs() <= 1e-2 * want_norm, "gradient norm {} vs {want_norm}", got[0]);
     assert_eq!(got[2], want_radius, "screen radius");
 }
+
+/// A forward frame is one `vkQueueSubmit` with no host read inside it; a frame whose
+/// tile intersections overflow the capacity it was recorded with (forced tiny here)
+/// grows its buffers and renders again, and its image is the CPU reference's, not one
+/// drawn from a truncated list.
+#[test]
+fn a_frame_is_one_submission_and_an_intersection_overflow_still_renders_correctly() {
+    let gpu = gpu();
+    let cloud = scene(1000, 3, 41);
+    let cam = camera(96, 64);
+    let settings = RenderSettings::default();
+    let frame = frame_params(&cam, &settings, 3, cloud.len());
+    let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
+    assert!(cpu.intersections > 1000, "the scene must have many intersections ({})", cpu.intersections);
+    let gaussians = GaussianBuffers::upload(&gpu, "frame test", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(&gpu, cam.width, cam.height, cloud.len()).expect("renderer");
+    renderer.set_intersection_capacity(cpu.intersections as u32 + 100).expect("capacity");
+
+    let before = gpu.submission_count();
+    let stats = renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    assert_eq!(gpu.submission_count() - before, 1, "a frame with room for its intersections is one submission");
+    assert!(!stats.rerendered);
+    let ample = renderer.read_image().expect("read");
+
+    for capacity in [1, 7, cpu.intersections as u32 / 2] {
+        renderer.set_intersection_capacity(capacity).expect("capacity");
+        // (Not counted: growing makes new buffers, which tests poison, through
+        // submissions of their own where device buffers are not mapped.)
+        let stats = renderer.forward(&gaussians, &cam, &settings).expect("forward");
+        assert!(stats.rerendered, "capacity {capacity}: the overflow is reported");
+        assert_eq!(u64::from(stats.intersections), cpu.intersections, "capacity {capacity}");
+        assert!(u64::from(renderer.intersection_capacity()) >= cpu.intersections, "capacity {capacity}: the buffers grew");
+        let image = renderer.read_image().expect("read");
+        // The same frame as with room to spare, bit for bit, and the CPU reference's.
+        let differ = image.rgb.iter().zip(&ample.rgb).chain(image.alpha.iter().zip(&ample.alpha)).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "capacity {capacity}: values that differ from the frame with room to spare");
+        let e = max_abs_diff(&image.rgb, &cpu.rgb).max(max_abs_diff(&image.alpha, &cpu.alpha));
+        assert!(e <= FORWARD_TOLERANCE, "capacity {capacity}: error {e:e} against the CPU reference");
+        // The next frame fits: one submission again.
+        let before = gpu.submission_count();
+        let again = renderer.forward(&gaussians, &cam, &settings).expect("forward");
+        assert_eq!(gpu.submission_count() - before, 1);
+        assert!(!again.rerendered);
+    }
+}

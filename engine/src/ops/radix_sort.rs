@@ -8,7 +8,7 @@
 //! always in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
 
-use drape_shared::radix_sort::{self, pass_count, pass_params, RADIX_BUCKETS, SORT_BLOCK_LEN};
+use drape_shared::radix_sort::{self, pass_count, pass_params, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -60,6 +60,36 @@ impl RadixSort {
         len: u32,
         key_bits: u32,
     ) -> Result<()> {
+        self.record_sort(rec, keys, values, len, None, key_bits)
+    }
+
+    /// Records a stable sort whose length the GPU computed: the first
+    /// `min(count, capacity)` pairs, where `count` is the little-endian u64 in the
+    /// first two words of `count_words`, written by an earlier command of the same
+    /// recording. The passes are sized for `capacity`; workgroups past the count do
+    /// nothing, so no host read of the count sits inside the frame.
+    pub fn record_bounded<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        keys: &'a Buffer,
+        values: &'a Buffer,
+        capacity: u32,
+        count_words: &'a Buffer,
+        key_bits: u32,
+    ) -> Result<()> {
+        assert!(count_words.size >= 8, "the count of a bounded sort is two u32 words ('{}' has {} bytes)", count_words.name(), count_words.size);
+        self.record_sort(rec, keys, values, capacity, Some(count_words), key_bits)
+    }
+
+    fn record_sort<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        keys: &'a Buffer,
+        values: &'a Buffer,
+        len: u32,
+        count_words: Option<&'a Buffer>,
+        key_bits: u32,
+    ) -> Result<()> {
         assert!(key_bits <= 32, "key_bits must be at most 32, got {key_bits}");
         if len > self.max_len {
             return Err(EngineError::too_large("keys to sort", len.into(), self.max_len.into(), "the sort's plan"));
@@ -74,10 +104,13 @@ impl RadixSort {
         let mut src = (keys, values);
         let mut dst = (&self.keys_scratch, &self.values_scratch);
         for pass in 0..passes {
-            let params = pass_params(len, key_bits, pass);
+            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..pass_params(len, key_bits, pass) };
+            // Unread when unbounded; the keys stand in for the binding.
+            let len_words = count_words.unwrap_or(src.0);
             rec.pass("radix_sort.histogram", Kernel::RadixSortHistogram)
                 .read("keys", src.0)
                 .write("histogram", &self.histogram)
+                .read("len_words", len_words)
                 .push(&params)
                 .dispatch([blocks, 1, 1])?;
             self.histogram_scan.record(rec, &self.histogram, RADIX_BUCKETS * blocks)?;
@@ -87,6 +120,7 @@ impl RadixSort {
                 .read("scanned_histogram", &self.histogram)
                 .write("keys_out", dst.0)
                 .write("values_out", dst.1)
+                .read("len_words", len_words)
                 .push(&params)
                 .dispatch([blocks, 1, 1])?;
             std::mem::swap(&mut src, &mut dst);

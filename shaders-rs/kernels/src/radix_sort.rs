@@ -4,10 +4,12 @@
 //! `RADIX_BUCKETS * params.block_count` counters, digit-major (see
 //! `drape_shared::radix_sort`); the scatter reads it after the exclusive scan.
 //! Workgroup memory `counters[digit * WG + invocation]` gives each invocation its own
-//! column, so counting needs no atomics.
+//! column, so counting needs no atomics. `len_words` holds a GPU-computed 64-bit
+//! count when `params.bounded` is 1 (read only then; unbounded sorts bind the keys
+//! there).
 
 use drape_shared::radix_sort::{
-    digit, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD,
+    bounded_len, digit, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD,
     SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
@@ -27,6 +29,7 @@ fn count_digits(
     counters: &mut [u32; SORT_SHARED_COUNTERS],
     keys: &[u32],
     params: &SortPassParams,
+    len: u32,
     block: u32,
     lid: u32,
 ) {
@@ -40,11 +43,20 @@ fn count_digits(
     let mut i = 0;
     while i < SORT_ITEMS_PER_THREAD {
         let idx = base + i;
-        if idx < params.len {
+        if idx < len {
             let slot = digit(keys[idx as usize], params) as usize * WG + column;
             counters[slot] += 1;
         }
         i += 1;
+    }
+}
+
+/// The number of keys this pass sorts.
+fn keys_to_sort(params: &SortPassParams, len_words: &[u32]) -> u32 {
+    if params.bounded != 0 {
+        bounded_len(params.len, len_words[0], len_words[1])
+    } else {
+        params.len
     }
 }
 
@@ -56,9 +68,11 @@ pub fn histogram(
     #[spirv(push_constant)] params: &SortPassParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; SORT_SHARED_COUNTERS],
 ) {
-    count_digits(counters, keys, params, block.x, lid);
+    let len = keys_to_sort(params, len_words);
+    count_digits(counters, keys, params, len, block.x, lid);
     barrier();
     if (lid as usize) < BUCKETS {
         let row = lid as usize * WG;
@@ -84,11 +98,13 @@ pub fn scatter(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] keys_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; SORT_SHARED_COUNTERS],
     #[spirv(workgroup)] scratch: &mut [u32; WG],
     #[spirv(workgroup)] digit_base: &mut [u32; BUCKETS],
 ) {
-    count_digits(counters, keys_in, params, block.x, lid);
+    let len = keys_to_sort(params, len_words);
+    count_digits(counters, keys_in, params, len, block.x, lid);
     barrier();
 
     // Exclusive scan of the counters in digit-major order: afterwards
@@ -124,7 +140,7 @@ pub fn scatter(
     let mut i = 0;
     while i < SORT_ITEMS_PER_THREAD {
         let idx = base + i;
-        if idx < params.len {
+        if idx < len {
             let key = keys_in[idx as usize];
             let d = digit(key, params) as usize;
             let slot = d * WG + column;

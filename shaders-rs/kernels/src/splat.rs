@@ -13,6 +13,7 @@
 //! NaN policy: a Gaussian with a non-finite parameter gets `tiles = 0` and
 //! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
 
+use drape_shared::radix_sort::bounded_len;
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
 use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
@@ -157,22 +158,30 @@ pub fn gather_counts(
     }
 }
 
-/// Writes (tile id, Gaussian) for every tile each splat covers, in depth order.
+/// Writes (tile id, Gaussian) for every tile each splat covers, in depth order, into
+/// buffers of `counts_pc.intersections` (their capacity) entries. Past the capacity
+/// (the 64-bit `total` says so) nothing beyond it is written; the host sees the total
+/// after the frame and renders again with larger buffers.
+#[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(256)))]
 pub fn emit_intersections(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] counts_pc: &SplatCounts,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] order: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] splats: &[ProjectedSplat],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] offsets: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] isect_keys: &mut [u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] isect_values: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] total: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] isect_keys: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] isect_values: &mut [u32],
 ) {
     let index = flat_index(id, groups);
-    if index >= frame.count {
+    // A total past 2^32 wrapped the scanned offsets: write nothing.
+    if index >= frame.count || total[1] != 0 {
         return;
     }
+    let capacity = counts_pc.intersections as usize;
     let j = index as usize;
     let g = order[j];
     let s = splats[g as usize];
@@ -184,8 +193,10 @@ pub fn emit_intersections(
     while ty < s.tile_y1 {
         let mut tx = s.tile_x0;
         while tx < s.tile_x1 {
-            isect_keys[out] = ty * frame.tiles_x + tx;
-            isect_values[out] = g;
+            if out < capacity {
+                isect_keys[out] = ty * frame.tiles_x + tx;
+                isect_values[out] = g;
+            }
             out += 1;
             tx += 1;
         }
@@ -193,17 +204,20 @@ pub fn emit_intersections(
     }
 }
 
-/// `ranges[2t], ranges[2t + 1]` = [start, end) of tile t in the sorted intersections.
+/// `ranges[2t], ranges[2t + 1]` = [start, end) of tile t in the sorted intersections:
+/// the GPU-computed `total` of them, bounded by the capacity `counts_pc.intersections`
+/// (the grid covers the capacity).
 #[spirv(compute(threads(256)))]
 pub fn tile_ranges(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(push_constant)] counts_pc: &SplatCounts,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] isect_keys: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] ranges: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] total: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] ranges: &mut [u32],
 ) {
     let k = flat_index(id, groups);
-    let m = counts_pc.intersections;
+    let m = bounded_len(counts_pc.intersections, total[0], total[1]);
     if k >= m {
         return;
     }

@@ -45,6 +45,11 @@ pub struct SortPassParams {
     pub digit_mask: u32,
     /// Workgroups (blocks) covering `len` keys.
     pub block_count: u32,
+    /// 1: `len` is a capacity and the keys to sort are [`bounded_len`] of it and the
+    /// 64-bit count in the kernels' `len_words` (a count the GPU computed, so no host
+    /// read sits between the pass that counts and the sort); 0: `len` keys.
+    pub bounded: u32,
+    pub _pad: [u32; 3],
 }
 
 /// Number of passes for `key_bits` significant bits (0 bits: nothing to do).
@@ -67,6 +72,27 @@ pub const fn pass_params(len: u32, key_bits: u32, pass: u32) -> SortPassParams {
         shift,
         digit_mask: (1u32 << bits) - 1,
         block_count: block_count(len),
+        bounded: 0,
+        _pad: [0; 3],
+    }
+}
+
+/// The number of elements to process when a GPU-computed 64-bit count (`lo`, `hi`)
+/// meets a buffer of `capacity` elements: the count, or the capacity where the count
+/// exceeds it (the caller then sees the overflow in the count and runs again larger).
+///
+/// ```
+/// use drape_shared::radix_sort::bounded_len;
+/// assert_eq!(bounded_len(100, 7, 0), 7);
+/// assert_eq!(bounded_len(100, 700, 0), 100);
+/// assert_eq!(bounded_len(100, 7, 1), 100);
+/// ```
+#[inline]
+pub const fn bounded_len(capacity: u32, lo: u32, hi: u32) -> u32 {
+    if hi != 0 || lo > capacity {
+        capacity
+    } else {
+        lo
     }
 }
 

@@ -1,15 +1,18 @@
 //! The GPU splatting renderer, forward and backward.
 //!
-//! Forward is two submissions. First: upload the frame parameters, `project_fwd`,
-//! a stable 32-bit radix sort of the splats by depth, `gather_counts` (tiles per
-//! splat in depth order, plus a trailing 0, and their total summed without wrap) and
-//! an exclusive scan, after which the host reads the number of tile intersections and
-//! grows the intersection buffers if needed (or refuses a total past what one sort or
-//! one buffer binding can hold, with `TooLarge`).
+//! Forward is one submission: the frame parameters (`vkCmdUpdateBuffer`),
+//! `project_fwd`, a stable 32-bit radix sort of the splats by depth, `gather_counts`
+//! (tiles per splat in depth order, plus a trailing 0, and their total summed without
+//! wrap on the GPU), an exclusive scan, `emit_intersections` (tile ids in depth order,
+//! nothing past the intersection buffers' capacity), a stable radix sort by tile id
+//! over only the bits the tile count needs (so each tile's list stays in depth order)
+//! of the GPU's total bounded by the capacity (`RadixSort::record_bounded`),
+//! `tile_ranges` (likewise bounded) and `rasterize_fwd`. No host read sits inside the
+//! frame. After it the host reads the total: past the capacity, the buffers grow and
+//! the frame is rendered again (or a total past what one sort or one buffer binding
+//! can hold is refused with `TooLarge`).
 //! Per-Gaussian and per-intersection kernels run on `flat_grid`, so no count the
-//! buffers allow passes the workgroup-count limit. Second: `emit_intersections` (tile ids in depth order), a stable radix sort
-//! by tile id over only the bits the tile count needs (so each tile's list stays in
-//! depth order), `tile_ranges`, and `rasterize_fwd`.
+//! buffers allow passes the workgroup-count limit.
 //! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`, or the
 //! deterministic `_fixed` into a fixed-point scratch and `fixed_point::resolve`), then
 //! `project_bwd` into the parameter gradients.
@@ -128,6 +131,9 @@ pub struct ForwardStats {
     pub intersections: u32,
     /// Gaussians dropped for a non-finite parameter.
     pub dropped: u32,
+    /// The intersections overflowed the capacity the frame was recorded with: the
+    /// buffers grew and the frame was rendered again (two submissions, not one).
+    pub rerendered: bool,
     pub timings: PassTimings,
 }
 
@@ -212,7 +218,10 @@ impl SplatRenderer {
         }
         let pixels = pixels64 as usize;
         let tiles = tiles64 as usize;
-        let initial_isect = n.max(1024);
+        // Two tiles per Gaussian to start with; a frame with more grows it (and is
+        // rendered again), so a renderer pays that once.
+        let isect_limit = u64::from(Self::MAX_INTERSECTIONS).min(ctx.info().max_storage_buffer_range / 4);
+        let initial_isect = (u64::from(n) * 2).clamp(4096, isect_limit) as u32;
         let splat_bytes = std::mem::size_of::<ProjectedSplat>() as u64;
         Ok(Self {
             ctx: ctx.clone(),
@@ -225,8 +234,10 @@ impl SplatRenderer {
             depth_keys: f32_buffer(ctx, "splat depth keys", n as usize)?,
             order: f32_buffer(ctx, "splat depth order", n as usize)?,
             counts: f32_buffer(ctx, "splat tile counts", n as usize + 1)?,
-            dropped: f32_buffer(ctx, "splat dropped counter", 1)?,
-            total: f32_buffer(ctx, "splat intersection total", 2)?,
+            // Host-visible, so reading them after a frame costs no submission of its
+            // own, even where device buffers go through staging copies.
+            dropped: ctx.create_buffer("splat dropped counter", BufferDesc::readback(4))?,
+            total: ctx.create_buffer("splat intersection total", BufferDesc::readback(8))?,
             depth_sort: RadixSort::new(ctx, n)?,
             count_scan: ExclusiveScan::new(ctx, "splat.scan", n + 1)?,
             isect_keys: f32_buffer(ctx, "splat intersection keys", initial_isect as usize)?,
@@ -272,85 +283,123 @@ impl SplatRenderer {
         }
         let needed = needed as u32;
         let capacity = needed.checked_next_power_of_two().unwrap_or(needed).min(limit as u32);
+        self.resize_intersections(capacity)
+    }
+
+    fn resize_intersections(&mut self, capacity: u32) -> Result<()> {
         self.isect_keys = f32_buffer(&self.ctx, "splat intersection keys", capacity as usize)?;
         self.isect_values = f32_buffer(&self.ctx, "splat intersection values", capacity as usize)?;
         self.isect_sort = RadixSort::new(&self.ctx, capacity)?;
         Ok(())
     }
 
+    /// Room for tile intersections the next frame is recorded with (it grows by itself
+    /// when a frame has more).
+    pub fn intersection_capacity(&self) -> u32 {
+        self.isect_sort.max_len()
+    }
+
+    /// Sets the intersection capacity (at least 1): smaller to save memory, larger to
+    /// spare the first frames a re-render, tiny in a test of the overflow path.
+    pub fn set_intersection_capacity(&mut self, capacity: u32) -> Result<()> {
+        let limit = self.max_intersections();
+        if u64::from(capacity) > limit {
+            return Err(EngineError::too_large("intersection capacity", capacity.into(), limit, "one radix sort or one buffer binding"));
+        }
+        self.resize_intersections(capacity.max(1))
+    }
+
     /// Renders `gaussians` through `camera` into the renderer's per-pixel buffers.
+    ///
+    /// One submission: the frame parameters are written by the command buffer, and
+    /// the intersection total stays on the GPU, where the tile sort and the tile
+    /// ranges read it (bounded by the capacity). After the frame the host reads the
+    /// total; if it passed the capacity, the buffers grow and the frame is recorded
+    /// and rendered again (`ForwardStats::rerendered`), so no image is drawn from
+    /// a truncated list.
     pub fn forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
         assert_eq!((camera.width, camera.height), (self.width, self.height), "camera size differs from the renderer's");
         if gaussians.count > self.max_count {
             return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
         }
-        let n = gaussians.count;
-        let fp = frame_params(camera, settings, gaussians.sh_degree, n as usize);
+        let fp = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
         self.frame_params = fp;
+        let mut timings = self.record_frame(gaussians)?;
+        // Only the total (two words) and the dropped count come back, after the frame.
         let ctx = self.ctx.clone();
-        ctx.write_buffer(&mut self.frame, std::slice::from_ref(&fp))?;
-        let counts_pc = SplatCounts { count: n, intersections: 0, use_cas: 0, _pad: 0 };
-
-        let mut timings = {
-            let mut rec = ctx.record("splat forward: project and bin")?;
-            rec.fill(&self.dropped, 0);
-            rec.fill(&self.total, 0);
-            for chunk in project_chunks(&ctx, n, gaussians.sh_degree) {
-                let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
-                rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
-                    .read("frame", &self.frame)
-                    .read("means", &gaussians.means)
-                    .read("log_scales", &gaussians.log_scales)
-                    .read("quats", &gaussians.quats)
-                    .read("opacity_logits", &gaussians.opacity_logits)
-                    .read_range("sh", &gaussians.sh, offset, bytes)
-                    .write("splats", &self.splats)
-                    .write("depth_keys", &self.depth_keys)
-                    .write("order", &self.order)
-                    .write("dropped", &self.dropped)
-                    .push(&chunk)
-                    .dispatch(groups(chunk.len))?;
-            }
-            self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
-            rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
-                .read("order", &self.order)
-                .read("splats", &self.splats)
-                .write("counts", &self.counts)
-                .write("total", &self.total)
-                .push(&counts_pc)
-                .dispatch(groups(n + 1))?;
-            self.count_scan.record(&mut rec, &self.counts, n + 1)?;
-            rec.submit_and_wait()?
-        };
-        // Only the total (two words) comes back. The scan wraps past 2^32 - 1; the total
-        // from gather_counts does not, so an overflow is refused before anything is
-        // emitted into buffers sized by a wrapped count.
         let words = ctx.read_buffer::<u32>(&mut self.total, 2)?;
         let total64 = u64::from(words[0]) | (u64::from(words[1]) << 32);
+        let mut rerendered = false;
+        if total64 > u64::from(self.intersection_capacity()) {
+            // Refuses a total past one sort or one binding rather than rendering it.
+            self.grow_intersections(total64)?;
+            timings.extend(self.record_frame(gaussians)?);
+            rerendered = true;
+        }
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
-        self.grow_intersections(total64)?;
         let total = total64 as u32;
         self.intersections = total;
+        Ok(ForwardStats { intersections: total, dropped, rerendered, timings })
+    }
 
+    /// Records and submits one whole forward frame with the current capacity.
+    fn record_frame(&self, gaussians: &GaussianBuffers) -> Result<PassTimings> {
+        let n = gaussians.count;
+        let fp = self.frame_params;
+        let ctx = self.ctx.clone();
+        let capacity = self.intersection_capacity();
         let tiles = fp.tiles_x * fp.tiles_y;
         let tile_bits = 32 - (tiles.max(1) - 1).leading_zeros();
-        let counts_pc = SplatCounts { count: n, intersections: total, use_cas: 0, _pad: 0 };
-        let mut rec = ctx.record("splat forward: sort and rasterize")?;
+        let counts_pc = SplatCounts { count: n, intersections: capacity, use_cas: 0, _pad: 0 };
+        let mut rec = ctx.record("splat forward")?;
+        rec.update(&self.frame, std::slice::from_ref(&fp));
+        rec.fill(&self.dropped, 0);
+        rec.fill(&self.total, 0);
         rec.fill(&self.ranges, 0);
+        for chunk in project_chunks(&ctx, n, gaussians.sh_degree) {
+            let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
+            rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
+                .read("frame", &self.frame)
+                .read("means", &gaussians.means)
+                .read("log_scales", &gaussians.log_scales)
+                .read("quats", &gaussians.quats)
+                .read("opacity_logits", &gaussians.opacity_logits)
+                .read_range("sh", &gaussians.sh, offset, bytes)
+                .write("splats", &self.splats)
+                .write("depth_keys", &self.depth_keys)
+                .write("order", &self.order)
+                .write("dropped", &self.dropped)
+                .push(&chunk)
+                .dispatch(groups(chunk.len))?;
+        }
+        self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
+        rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
+            .read("order", &self.order)
+            .read("splats", &self.splats)
+            .write("counts", &self.counts)
+            .write("total", &self.total)
+            .push(&counts_pc)
+            .dispatch(groups(n + 1))?;
+        // The scan wraps past 2^32 - 1; the total from gather_counts does not, and the
+        // kernels below read nothing through offsets a wrapped scan made.
+        self.count_scan.record(&mut rec, &self.counts, n + 1)?;
         rec.pass("splat.emit_intersections", Kernel::SplatEmitIntersections)
             .read("frame", &self.frame)
             .read("order", &self.order)
             .read("splats", &self.splats)
             .read("offsets", &self.counts)
+            .read("total", &self.total)
             .write("isect_keys", &self.isect_keys)
             .write("isect_values", &self.isect_values)
+            .push(&counts_pc)
             .dispatch(groups(n))?;
-        self.isect_sort.record(&mut rec, &self.isect_keys, &self.isect_values, total, tile_bits)?;
+        self.isect_sort.record_bounded(&mut rec, &self.isect_keys, &self.isect_values, capacity, &self.total, tile_bits)?;
         rec.pass("splat.tile_ranges", Kernel::SplatTileRanges)
             .read("isect_keys", &self.isect_keys)
+            .read("total", &self.total)
             .write("ranges", &self.ranges)
             .push(&counts_pc)
-            .dispatch(groups(total))?;
+            .dispatch(groups(capacity))?;
         let p = &self.pixels;
         rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
             .read("frame", &self.frame)
@@ -364,9 +413,7 @@ impl SplatRenderer {
             .write("transmittance", &p.transmittance)
             .write("blended", &p.blended)
             .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
-        let more = rec.submit_and_wait()?;
-        timings.extend(more);
-        Ok(ForwardStats { intersections: total, dropped, timings })
+        rec.submit_and_wait()
     }
 
     /// Reads the last forward pass's images back.
