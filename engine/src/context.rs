@@ -136,6 +136,10 @@ pub struct Device {
     validation: Option<Arc<ValidationSink>>,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
+    /// Command, descriptor and query pools of finished recordings, for the next ones.
+    pub(crate) recycled_pools: Mutex<Vec<crate::recorder::RecordingPools>>,
+    /// Command pools created so far (see [`Context::command_pools_created`]).
+    pub(crate) command_pools_created: std::sync::atomic::AtomicU64,
     /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
     submissions: std::sync::atomic::AtomicU64,
     // Keeps libvulkan loaded for as long as any handle exists.
@@ -259,6 +263,8 @@ impl Context {
             validation: sink,
             profile: Mutex::new(None),
             submissions: std::sync::atomic::AtomicU64::new(0),
+            recycled_pools: Mutex::new(Vec::new()),
+            command_pools_created: std::sync::atomic::AtomicU64::new(0),
             _entry: entry,
         };
         let ctx = Context { device: Arc::new(device) };
@@ -365,6 +371,12 @@ impl Context {
     /// tests and profiles: a rendered frame should cost one.
     pub fn submission_count(&self) -> u64 {
         self.device.submissions.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many command pools recordings have created: a frame loop reuses the pools
+    /// of finished recordings, so this stays flat (for tests).
+    pub fn command_pools_created(&self) -> u64 {
+        self.device.command_pools_created.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Names a Vulkan object for validation messages and captures.
@@ -575,6 +587,9 @@ impl Drop for Device {
         // SAFETY: the device is valid; nothing else uses it (we are its last owner).
         unsafe {
             let _ = self.raw.device_wait_idle();
+        }
+        for pools in std::mem::take(&mut *self.recycled_pools.lock().unwrap_or_else(|p| p.into_inner())) {
+            pools.destroy(&self.raw);
         }
         let pipelines = std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
         for (_, p) in pipelines {

@@ -11,13 +11,15 @@
 //! or a verb that disagrees with the declaration is an [`EngineError::Binding`] naming
 //! the pass, the kernel and the binding.
 //!
-//! Barriers are not placed by hand. The recording keeps, per buffer, whether a command
-//! since the last barrier read or wrote it, and records a barrier before a command
-//! that would race: one that reads or writes a buffer written since, or writes one
-//! read since (copies and fills count as their reads and writes). Commands that share
-//! only read-only data are therefore free to overlap, and no dependency can be
-//! forgotten. The barrier is a global compute+transfer memory barrier, so it orders
-//! everything before it, as a pipeline barrier on one queue does in any case. Buffers
+//! Barriers are not placed by hand. Commands (dispatches, copies, fills, updates) are
+//! collected with the buffers they read and write, and each is scheduled into the first
+//! *wave* after every earlier command it conflicts with: one that wrote a buffer it
+//! reads or writes, or read a buffer it writes (a dispatch's accesses are its
+//! bindings' declared ones). At submission the waves are recorded in order with one
+//! barrier between consecutive waves. So no dependency can be forgotten, commands that
+//! share only read-only data never wait for each other, and independent chains of
+//! passes (three renders of one frame) interleave wave by wave and overlap. The
+//! barrier is a global compute+transfer memory barrier. Buffers
 //! are borrowed for the recording's lifetime `'a`, so none can be dropped while the
 //! GPU may still use it.
 
@@ -109,22 +111,56 @@ impl PassTimings {
     }
 }
 
+/// The Vulkan objects a recording records with: kept by the device between
+/// recordings (reset, not destroyed), so a frame loop creates none of them per frame.
+pub(crate) struct RecordingPools {
+    command_pool: vk::CommandPool,
+    cmd: vk::CommandBuffer,
+    descriptor_pools: Vec<vk::DescriptorPool>,
+    query_pools: Vec<vk::QueryPool>,
+}
+
+impl RecordingPools {
+    pub(crate) fn destroy(self, dev: &ash::Device) {
+        // SAFETY: called by the owner when no command buffer of these pools is pending.
+        unsafe {
+            for pool in self.query_pools {
+                dev.destroy_query_pool(pool, None);
+            }
+            for pool in self.descriptor_pools {
+                dev.destroy_descriptor_pool(pool, None);
+            }
+            dev.destroy_command_pool(self.command_pool, None);
+        }
+    }
+}
+
+/// Most sets of pools the device keeps for reuse (more recordings alive at once make
+/// their own and destroy them).
+const RECYCLED_POOLS: usize = 8;
+
 /// One command buffer being recorded.
 pub struct Recording<'a> {
     ctx: Context,
     label: String,
-    command_pool: vk::CommandPool,
+    pools: RecordingPools,
     cmd: vk::CommandBuffer,
-    descriptor_pools: Vec<vk::DescriptorPool>,
+    descriptor_pools_used: usize,
     sets_left: u32,
-    query_pools: Vec<vk::QueryPool>,
+    query_pools_used: usize,
+    /// False from submission until its wait succeeded: a failed submission's pools
+    /// are destroyed, not reused.
+    reusable: bool,
     passes: Vec<String>,
     /// One 4-byte slot per pass, set to 1 when the pass starts (slots, not one shared
     /// word, so that passes free to overlap do not race on it).
     breadcrumbs: Vec<Buffer>,
-    /// Accesses since the last barrier, per buffer (see [`Recording::before_access`]).
-    pending: HashMap<vk::Buffer, Pending>,
-    barriers: u32,
+    /// Commands in program order with the wave each was scheduled into (see
+    /// [`Recording::schedule`]); emitted wave by wave at submission.
+    commands: Vec<(u32, Command)>,
+    /// Per buffer, the last wave that wrote it and the last wave that read it.
+    last_write: HashMap<vk::Buffer, u32>,
+    last_read: HashMap<vk::Buffer, u32>,
     _buffers: PhantomData<&'a Buffer>,
 }
 
@@ -132,33 +168,51 @@ impl Context {
     /// Starts a command buffer; `label` names it in errors.
     pub fn record<'a>(&self, label: &str) -> Result<Recording<'a>> {
         let dev = &self.device.raw;
-        let pool_info = vk::CommandPoolCreateInfo::default()
-            .queue_family_index(self.device.queue_family)
-            .flags(vk::CommandPoolCreateFlags::TRANSIENT);
-        // SAFETY: valid device and create info.
-        let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool", label)?;
-        let mut rec = Recording {
+        let recycled = self.device.recycled_pools.lock().unwrap_or_else(|p| p.into_inner()).pop();
+        let pools = match recycled {
+            Some(p) => p,
+            None => {
+                let pool_info = vk::CommandPoolCreateInfo::default()
+                    .queue_family_index(self.device.queue_family)
+                    .flags(vk::CommandPoolCreateFlags::TRANSIENT);
+                // SAFETY: valid device and create info.
+                let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool", label)?;
+                self.device.command_pools_created.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let alloc = vk::CommandBufferAllocateInfo::default()
+                    .command_pool(command_pool)
+                    .level(vk::CommandBufferLevel::PRIMARY)
+                    .command_buffer_count(1);
+                // SAFETY: the pool was just created on this device.
+                let cmd = match unsafe { dev.allocate_command_buffers(&alloc) } {
+                    Ok(c) => c[0],
+                    Err(e) => {
+                        // SAFETY: created above, unused.
+                        unsafe { dev.destroy_command_pool(command_pool, None) };
+                        return Err(crate::error::vk_error("vkAllocateCommandBuffers", label, e));
+                    }
+                };
+                RecordingPools { command_pool, cmd, descriptor_pools: Vec::new(), query_pools: Vec::new() }
+            }
+        };
+        let cmd = pools.cmd;
+        let rec = Recording {
             ctx: self.clone(),
             label: label.to_string(),
-            command_pool,
-            cmd: vk::CommandBuffer::null(),
-            descriptor_pools: Vec::new(),
+            pools,
+            cmd,
+            descriptor_pools_used: 0,
             sets_left: 0,
-            query_pools: Vec::new(),
+            query_pools_used: 0,
+            reusable: true,
             passes: Vec::new(),
             breadcrumbs: Vec::new(),
-            pending: HashMap::new(),
-            barriers: 0,
+            commands: Vec::new(),
+            last_write: HashMap::new(),
+            last_read: HashMap::new(),
             _buffers: PhantomData,
         };
-        let alloc = vk::CommandBufferAllocateInfo::default()
-            .command_pool(command_pool)
-            .level(vk::CommandBufferLevel::PRIMARY)
-            .command_buffer_count(1);
-        // SAFETY: the pool was just created on this device.
-        rec.cmd = unsafe { dev.allocate_command_buffers(&alloc) }.vk("vkAllocateCommandBuffers", label)?[0];
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        // SAFETY: a fresh primary command buffer.
+        // SAFETY: a fresh primary command buffer, or one whose pool was reset.
         unsafe { dev.begin_command_buffer(rec.cmd, &begin) }.vk("vkBeginCommandBuffer", label)?;
         self.set_name(rec.cmd, label);
         Ok(rec)
@@ -306,11 +360,12 @@ impl<'a> PassBuilder<'_, 'a> {
     }
 }
 
-/// What the commands recorded since the last barrier did to one buffer.
-#[derive(Clone, Copy, Debug, Default)]
-struct Pending {
-    read: bool,
-    written: bool,
+/// A command waiting in a recording for its wave.
+enum Command {
+    Dispatch { name: String, pipeline: vk::Pipeline, layout: vk::PipelineLayout, set: vk::DescriptorSet, push: Vec<u8>, groups: [u32; 3] },
+    Copy { src: vk::Buffer, dst: vk::Buffer, region: vk::BufferCopy },
+    Update { buffer: vk::Buffer, data: Vec<u8> },
+    Fill { buffer: vk::Buffer, word: u32 },
 }
 
 impl<'a> Recording<'a> {
@@ -325,38 +380,41 @@ impl<'a> Recording<'a> {
         PassBuilder { rec: self, name: name.to_string(), kernel, buffers, push: Vec::new(), error: None }
     }
 
-    /// Number of pipeline barriers recorded so far (the derived ones; for tests and
-    /// profiles).
+    /// Number of pipeline barriers the recording will have: one between consecutive
+    /// waves (for tests and profiles).
     pub fn barrier_count(&self) -> u32 {
-        self.barriers
+        self.commands.iter().map(|c| c.0).max().unwrap_or(0)
     }
 
-    /// Records a barrier before a command that accesses `accesses` (buffer, writes) when
-    /// it would race with what was recorded since the last barrier: it reads or writes
-    /// a buffer written since, or writes one read since. Independent commands are left
-    /// free to overlap.
-    fn before_access(&mut self, accesses: &[(vk::Buffer, bool)]) {
-        let hazard = accesses.iter().any(|&(buffer, writes)| {
-            self.pending.get(&buffer).is_some_and(|p| p.written || (writes && p.read))
-        });
-        if hazard {
-            self.barrier();
-        }
+    /// Places a command that accesses `accesses` (buffer, writes) in the first wave
+    /// after every wave holding an earlier command it conflicts with: one that wrote a
+    /// buffer it reads or writes, or read a buffer it writes. Commands of one wave are
+    /// therefore independent, and a barrier between waves orders every dependency; a
+    /// chain of passes that shares only read-only data with another chain runs beside
+    /// it, wave for wave, instead of after it.
+    fn schedule(&mut self, accesses: &[(vk::Buffer, bool)], command: Command) {
+        let mut wave = 0;
         for &(buffer, writes) in accesses {
-            let p = self.pending.entry(buffer).or_default();
+            if let Some(&w) = self.last_write.get(&buffer) {
+                wave = wave.max(w + 1);
+            }
             if writes {
-                p.written = true;
-            } else {
-                p.read = true;
+                if let Some(&r) = self.last_read.get(&buffer) {
+                    wave = wave.max(r + 1);
+                }
             }
         }
+        for &(buffer, writes) in accesses {
+            let last = if writes { &mut self.last_write } else { &mut self.last_read };
+            let w = last.entry(buffer).or_insert(wave);
+            *w = (*w).max(wave);
+        }
+        self.commands.push((wave, command));
     }
 
     /// Makes every earlier compute or transfer write visible to every later compute or
     /// transfer access, and orders every earlier access before every later one.
-    fn barrier(&mut self) {
-        self.pending.clear();
-        self.barriers += 1;
+    fn emit_barrier(&self) {
         let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
         let barrier = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
@@ -393,10 +451,8 @@ impl<'a> Recording<'a> {
         if bytes == 0 {
             return;
         }
-        self.before_access(&[(src.raw, false), (dst.raw, true)]);
         let region = vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes);
-        // SAFETY: both buffers are alive for 'a and were created with transfer usage.
-        unsafe { self.ctx.device.raw.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &[region]) };
+        self.schedule(&[(src.raw, false), (dst.raw, true)], Command::Copy { src: src.raw, dst: dst.raw, region });
     }
 
     /// Writes `data` (at most 65,536 bytes, a multiple of 4) to the start of `buffer`
@@ -414,23 +470,15 @@ impl<'a> Recording<'a> {
         if bytes.is_empty() {
             return;
         }
-        self.before_access(&[(buffer.raw, true)]);
-        // SAFETY: the buffer is alive for 'a and was created with TRANSFER_DST; the size
-        // was checked above.
-        unsafe { self.ctx.device.raw.cmd_update_buffer(self.cmd, buffer.raw, 0, bytes) };
+        self.schedule(&[(buffer.raw, true)], Command::Update { buffer: buffer.raw, data: bytes.to_vec() });
     }
 
     /// Fills the whole of `buffer` with the 32-bit `word`.
     pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
-        self.before_access(&[(buffer.raw, true)]);
-        // SAFETY: the buffer is alive for 'a, created with TRANSFER_DST, size a multiple of 4.
-        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, buffer.raw, 0, vk::WHOLE_SIZE, word) };
+        self.schedule(&[(buffer.raw, true)], Command::Fill { buffer: buffer.raw, word });
     }
 
     fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
-        let accesses: Vec<(vk::Buffer, bool)> =
-            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (b.buffer.raw, !decl.read_only)).collect();
-        self.before_access(&accesses);
         let pipeline = self.ctx.pipeline(kernel)?;
         let set = self.allocate_set(pipeline.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
@@ -448,49 +496,87 @@ impl<'a> Recording<'a> {
                     .buffer_info(info)
             })
             .collect();
-        let dev = &self.ctx.device.raw;
         // SAFETY: the set is freshly allocated and not in use by any command buffer.
-        unsafe { dev.update_descriptor_sets(&writes, &[]) };
+        unsafe { self.ctx.device.raw.update_descriptor_sets(&writes, &[]) };
+        let accesses: Vec<(vk::Buffer, bool)> =
+            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (b.buffer.raw, !decl.read_only)).collect();
+        let command = Command::Dispatch { name: name.to_string(), pipeline: pipeline.raw, layout: pipeline.layout, set, push: push.to_vec(), groups };
+        self.schedule(&accesses, command);
+        Ok(())
+    }
 
-        let index = self.passes.len() as u32;
-        self.write_breadcrumb(index)?;
-        let query = self.timestamp_slot(index)?;
-        let dev = &self.ctx.device.raw;
-        // SAFETY: recording command buffer; pipeline, layout and set are alive (the
-        // pipeline is cached by the device, the set by this recording's pools).
-        unsafe {
-            if let Some((pool, q)) = query {
-                dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, q);
+    /// Records the scheduled commands into the command buffer, wave by wave with a
+    /// barrier between waves (program order within a wave), each dispatch with its
+    /// breadcrumb and timestamps.
+    fn emit(&mut self) -> Result<()> {
+        let mut commands = std::mem::take(&mut self.commands);
+        // Stable: commands of one wave keep their program order.
+        commands.sort_by_key(|c| c.0);
+        let dispatches = commands.iter().filter(|c| matches!(c.1, Command::Dispatch { .. })).count() as u32;
+        for index in 0..dispatches {
+            self.timestamp_slot(index)?;
+        }
+        let mut wave = 0;
+        for (w, command) in commands {
+            if w != wave {
+                self.emit_barrier();
+                wave = w;
             }
-            dev.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.raw);
-            dev.cmd_bind_descriptor_sets(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.layout, 0, &[set], &[]);
-            if !push.is_empty() {
-                dev.cmd_push_constants(self.cmd, pipeline.layout, vk::ShaderStageFlags::COMPUTE, 0, push);
-            }
-            dev.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
-            if let Some((pool, q)) = query {
-                dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, q + 1);
+            let dev = self.ctx.device.raw.clone();
+            match command {
+                Command::Dispatch { name, pipeline, layout, set, push, groups } => {
+                    let index = self.passes.len() as u32;
+                    self.write_breadcrumb(index)?;
+                    let query = self.timestamp_slot(index)?;
+                    // SAFETY: recording command buffer; pipeline, layout and set are alive
+                    // (the pipeline is cached by the device, the set by this recording's
+                    // pools), and every buffer the set names is borrowed for 'a.
+                    unsafe {
+                        if let Some((pool, q)) = query {
+                            dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, q);
+                        }
+                        dev.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
+                        dev.cmd_bind_descriptor_sets(self.cmd, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
+                        if !push.is_empty() {
+                            dev.cmd_push_constants(self.cmd, layout, vk::ShaderStageFlags::COMPUTE, 0, &push);
+                        }
+                        dev.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
+                        if let Some((pool, q)) = query {
+                            dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, q + 1);
+                        }
+                    }
+                    self.passes.push(name);
+                }
+                // SAFETY (the three below): recording command buffer; the buffers are
+                // borrowed for 'a, were created with transfer usage, and the ranges
+                // were checked when the command was scheduled.
+                Command::Copy { src, dst, region } => unsafe { dev.cmd_copy_buffer(self.cmd, src, dst, &[region]) },
+                Command::Update { buffer, data } => unsafe { dev.cmd_update_buffer(self.cmd, buffer, 0, &data) },
+                Command::Fill { buffer, word } => unsafe { dev.cmd_fill_buffer(self.cmd, buffer, 0, vk::WHOLE_SIZE, word) },
             }
         }
-        self.passes.push(name.to_string());
         Ok(())
     }
 
     fn allocate_set(&mut self, layout: vk::DescriptorSetLayout) -> Result<vk::DescriptorSet> {
         let dev = &self.ctx.device.raw;
         if self.sets_left == 0 {
-            let sizes = [vk::DescriptorPoolSize::default()
-                .ty(vk::DescriptorType::STORAGE_BUFFER)
-                .descriptor_count(BUFFERS_PER_POOL)];
-            let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
-            // SAFETY: valid device and create info.
-            let pool = unsafe { dev.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool", &self.label)?;
-            self.descriptor_pools.push(pool);
+            if self.descriptor_pools_used == self.pools.descriptor_pools.len() {
+                let sizes = [vk::DescriptorPoolSize::default()
+                    .ty(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_count(BUFFERS_PER_POOL)];
+                let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
+                // SAFETY: valid device and create info.
+                let pool = unsafe { dev.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool", &self.label)?;
+                self.pools.descriptor_pools.push(pool);
+            }
+            // A reused pool was reset when its last recording ended.
+            self.descriptor_pools_used += 1;
             self.sets_left = SETS_PER_POOL;
         }
         let layouts = [layout];
         let info = vk::DescriptorSetAllocateInfo::default()
-            .descriptor_pool(*self.descriptor_pools.last().expect("a pool was just ensured"))
+            .descriptor_pool(self.pools.descriptor_pools[self.descriptor_pools_used - 1])
             .set_layouts(&layouts);
         // SAFETY: the pool has room (sets_left > 0, at most MAX_BINDINGS per set).
         let set = unsafe { dev.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets", &self.label)?[0];
@@ -524,20 +610,23 @@ impl<'a> Recording<'a> {
         }
         let per_pool = QUERIES_PER_POOL / 2;
         let pool_index = (index / per_pool) as usize;
-        if pool_index == self.query_pools.len() {
-            let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(QUERIES_PER_POOL);
-            let dev = &self.ctx.device.raw;
-            // SAFETY: valid device and create info.
-            let pool = unsafe { dev.create_query_pool(&info, None) }.vk("vkCreateQueryPool", &self.label)?;
-            // SAFETY: recording command buffer; queries must be reset before first use.
-            unsafe { dev.cmd_reset_query_pool(self.cmd, pool, 0, QUERIES_PER_POOL) };
-            self.query_pools.push(pool);
+        if pool_index == self.query_pools_used {
+            if pool_index == self.pools.query_pools.len() {
+                let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(QUERIES_PER_POOL);
+                // SAFETY: valid device and create info.
+                let pool = unsafe { self.ctx.device.raw.create_query_pool(&info, None) }.vk("vkCreateQueryPool", &self.label)?;
+                self.pools.query_pools.push(pool);
+            }
+            // SAFETY: recording command buffer; queries must be reset before each use.
+            unsafe { self.ctx.device.raw.cmd_reset_query_pool(self.cmd, self.pools.query_pools[pool_index], 0, QUERIES_PER_POOL) };
+            self.query_pools_used += 1;
         }
-        Ok(Some((self.query_pools[pool_index], (index % per_pool) * 2)))
+        Ok(Some((self.pools.query_pools[pool_index], (index % per_pool) * 2)))
     }
 
     /// Ends recording, submits, waits, and returns the GPU time of every pass.
     pub fn submit_and_wait(mut self) -> Result<PassTimings> {
+        self.emit()?;
         let dev = self.ctx.device.raw.clone();
         // Results are read on the host (mapped buffers): make the writes visible there.
         let to_host = vk::MemoryBarrier::default()
@@ -558,12 +647,14 @@ impl<'a> Recording<'a> {
         }
         .vk("vkEndCommandBuffer", &self.label)?;
         let started = std::time::Instant::now();
+        self.reusable = false;
         if let Err(e) = self.ctx.submit_and_wait(self.cmd, &self.label) {
             return Err(match e {
                 EngineError::DeviceLost { .. } => EngineError::DeviceLost { pass: self.last_pass() },
                 e => e,
             });
         }
+        self.reusable = true;
         let wall_ms = started.elapsed().as_secs_f64() * 1e3;
         let timings = self.read_timings()?;
         if let Some(p) = self.ctx.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
@@ -597,7 +688,7 @@ impl<'a> Recording<'a> {
 
     fn read_timings(&self) -> Result<PassTimings> {
         let mut timings = PassTimings::default();
-        if self.query_pools.is_empty() {
+        if self.query_pools_used == 0 {
             return Ok(timings);
         }
         let info = self.ctx.info();
@@ -605,7 +696,7 @@ impl<'a> Recording<'a> {
         let per_pool = QUERIES_PER_POOL / 2;
         let dev = &self.ctx.device.raw;
         let mut ticks = Vec::with_capacity(self.passes.len() * 2);
-        for (p, &pool) in self.query_pools.iter().enumerate() {
+        for (p, &pool) in self.pools.query_pools[..self.query_pools_used].iter().enumerate() {
             let first = p * per_pool as usize;
             let count = (self.passes.len() - first).min(per_pool as usize);
             let mut pool_ticks = vec![0u64; count * 2];
@@ -629,16 +720,26 @@ impl<'a> Recording<'a> {
 impl Drop for Recording<'_> {
     fn drop(&mut self) {
         let dev = &self.ctx.device.raw;
-        // SAFETY: the command buffer was never submitted or its submission was waited
-        // for, so none of these objects is in use.
-        unsafe {
-            for &pool in &self.query_pools {
-                dev.destroy_query_pool(pool, None);
+        let pools = std::mem::replace(
+            &mut self.pools,
+            RecordingPools { command_pool: vk::CommandPool::null(), cmd: vk::CommandBuffer::null(), descriptor_pools: Vec::new(), query_pools: Vec::new() },
+        );
+        if self.reusable {
+            // SAFETY: the command buffer was never submitted or its submission was
+            // waited for, so nothing of these pools is in use; resetting returns the
+            // command buffer to its initial state and frees every set.
+            let reset = unsafe {
+                dev.reset_command_pool(pools.command_pool, vk::CommandPoolResetFlags::empty())
+                    .and_then(|()| pools.descriptor_pools.iter().try_for_each(|&p| dev.reset_descriptor_pool(p, vk::DescriptorPoolResetFlags::empty())))
+            };
+            let mut recycled = self.ctx.device.recycled_pools.lock().unwrap_or_else(|p| p.into_inner());
+            if reset.is_ok() && recycled.len() < RECYCLED_POOLS {
+                recycled.push(pools);
+                return;
             }
-            for &pool in &self.descriptor_pools {
-                dev.destroy_descriptor_pool(pool, None);
-            }
-            dev.destroy_command_pool(self.command_pool, None);
         }
+        // SAFETY (in destroy): not reusable means a failed submission, after which the
+        // device is lost or the wait failed; nothing more will run on these objects.
+        pools.destroy(dev);
     }
 }

@@ -464,12 +464,12 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
     host.log_scales = uniform(3 * n, -5.0, -3.0, 75);
     host.log_scale_deltas = uniform(3 * n, -0.5, 0.5, 76);
     for _ in 0..n {
-        let q: [f64; 4] = std::array::from_fn(|_| rng.gen_range(-1.0..1.0));
+        let q: [f64; 4] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
         let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
         host.quats.extend(q.map(|v| v / norm));
         // Softmax-like weights, some exactly zero (the forward skips those joints; the
         // gradient to their weights is still defined).
-        let w: [f64; 24] = std::array::from_fn(|_| if rng.gen_bool(0.3) { 0.0 } else { rng.gen_range(0.0..1.0) });
+        let w: [f64; 24] = std::array::from_fn(|_| if rng.random_bool(0.3) { 0.0 } else { rng.random_range(0.0..1.0) });
         let sum: f64 = w.iter().sum::<f64>().max(1e-9);
         host.weights.extend(w.map(|v| v / sum));
     }

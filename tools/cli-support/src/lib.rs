@@ -17,7 +17,8 @@ pub struct DeviceArgs {
     #[arg(long, global = true, value_name = "NAME")]
     pub device: Option<String>,
 
-    /// Enable the Khronos validation layer and fail on any message.
+    /// Enable the Khronos validation layer, with synchronization validation, and fail
+    /// on any message.
     #[arg(long, global = true)]
     pub validation: bool,
 }
@@ -32,6 +33,7 @@ impl DeviceArgs {
             poison_new_buffers: false,
             // As in the tests: DRAPE_FORCE_STAGING=1 takes the discrete-GPU data path.
             force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
+            synchronization_validation: self.validation,
         })?;
         eprintln!("device: {}", ctx.info());
         Ok(ctx)

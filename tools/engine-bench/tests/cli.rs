@@ -186,3 +186,19 @@ fn ops_times_chamfer_through_the_grid_and_by_brute_force() {
     }
     assert!(j.get("gemm").is_none_or(|g| g.as_array().is_none_or(|a| a.is_empty())), "--only chamfer ran the GEMMs: {j}");
 }
+
+#[test]
+fn composite_times_the_three_passes_serialised_and_in_one_submission() {
+    let j = json_of(&["composite", "--sizes", "64x48", "--body", "300", "--cloth", "100", "--scene", "200", "--runs", "1", "--warmup", "1", "--json"]);
+    let r = &j["results"][0];
+    assert_eq!((r["width"].as_u64(), r["height"].as_u64()), (Some(64), Some(48)), "{r}");
+    for key in ["three_pass_serialised", "three_pass_overlapped", "one_pass"] {
+        assert!(r[key]["forward_median_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{key}: {r}");
+        assert!(r[key]["passes_gpu_ms"]["splat.rasterize_fwd"].as_f64().is_some_and(|ms| ms >= 0.0), "{key}: {r}");
+    }
+    // After the warm-up frame grew the intersection buffers, the overlapped frame is
+    // one vkQueueSubmit: three renders and the composite.
+    assert_eq!(r["three_pass_overlapped"]["forward_submissions"].as_u64(), Some(1), "{r}");
+    assert!(r["three_pass_overlapped"]["passes_gpu_ms"]["composite.fwd"].as_f64().is_some(), "{r}");
+    assert_eq!(r["fused"], "not built", "{r}");
+}

@@ -208,31 +208,47 @@ impl AvatarRenderer {
             }
             Inner::ThreePass(t) => t,
         };
-        {
-            let mut rec = ctx.record("composite gather")?;
-            for p in &t.base_parts {
-                Avatar::record_move(&mut rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
-            }
-            for p in t.matte.iter().flat_map(|m| &m.parts) {
-                let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
-                let src = params(avatar, p.source).all();
-                for k in 0..4 {
-                    let per = u64::from(GEOMETRY_FLOATS[k]);
-                    rec.copy_region(src[k], 0, dst[k], 4 * per * u64::from(p.first), 4 * per * u64::from(p.count));
-                }
-            }
-            rec.submit_and_wait()?;
-        }
         let black = PinholeCamera { background: [0.0; 3], ..*camera };
-        t.base_renderer.forward(&t.base, camera, settings)?;
-        t.cloth_renderer.forward(&avatar.layers[t.cloth].posed, &black, settings)?;
+        t.base_renderer.prepare_forward(&t.base, camera, settings)?;
+        t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].posed, &black, settings)?;
         if let Some(m) = &mut t.matte {
-            m.renderer.forward(&m.gaussians, &black, settings)?;
+            m.renderer.prepare_forward(&m.gaussians, &black, settings)?;
         }
-        let mut rec = ctx.record("composite")?;
-        record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
-        rec.submit_and_wait()?;
-        Ok(())
+        // One submission per frame: the gather, the three renders (which share only
+        // what they read, so the recorder interleaves them) and the composite. A
+        // render whose tile intersections outgrew its buffers grows them, and the
+        // frame is recorded again.
+        loop {
+            {
+                let mut rec = ctx.record("composite frame")?;
+                for p in &t.base_parts {
+                    Avatar::record_move(&mut rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
+                }
+                for p in t.matte.iter().flat_map(|m| &m.parts) {
+                    let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
+                    let src = params(avatar, p.source).all();
+                    for k in 0..4 {
+                        let per = u64::from(GEOMETRY_FLOATS[k]);
+                        rec.copy_region(src[k], 0, dst[k], 4 * per * u64::from(p.first), 4 * per * u64::from(p.count));
+                    }
+                }
+                t.base_renderer.record_forward(&mut rec, &t.base)?;
+                t.cloth_renderer.record_forward(&mut rec, &avatar.layers[t.cloth].posed)?;
+                if let Some(m) = &t.matte {
+                    m.renderer.record_forward(&mut rec, &m.gaussians)?;
+                }
+                record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
+                rec.submit_and_wait()?;
+            }
+            let mut again = t.base_renderer.finish_forward()?.rerendered;
+            again |= t.cloth_renderer.finish_forward()?.rerendered;
+            if let Some(m) = &mut t.matte {
+                again |= m.renderer.finish_forward()?.rerendered;
+            }
+            if !again {
+                return Ok(());
+            }
+        }
     }
 
     /// Whether the cloth is rendered in its own pass (the mask loss then reads it).

@@ -27,7 +27,7 @@ use crate::ops::accumulate::{FixedPointScratch, Method};
 use crate::ops::radix_sort::RadixSort;
 use crate::ops::scan::ExclusiveScan;
 use crate::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
-use crate::recorder::{flat_grid as groups, PassTimings};
+use crate::recorder::{flat_grid as groups, PassTimings, Recording};
 
 /// Most tiles an image may have: `gather_counts` sums 256 splats' tile counts in u32
 /// per workgroup, which cannot wrap below 2^24 tiles each. (One colour buffer within a
@@ -316,43 +316,72 @@ impl SplatRenderer {
     /// ranges read it (bounded by the capacity). After the frame the host reads the
     /// total; if it passed the capacity, the buffers grow and the frame is recorded
     /// and rendered again (`ForwardStats::rerendered`), so no image is drawn from
-    /// a truncated list.
+    /// a truncated list. [`prepare_forward`](Self::prepare_forward),
+    /// [`record_forward`](Self::record_forward) and
+    /// [`finish_forward`](Self::finish_forward) do the same for several renders in one
+    /// recording.
     pub fn forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
+        self.prepare_forward(gaussians, camera, settings)?;
+        let mut timings = self.record_frame(gaussians)?;
+        let mut stats = self.finish_forward()?;
+        if stats.rerendered {
+            timings.extend(self.record_frame(gaussians)?);
+            stats = ForwardStats { rerendered: true, ..self.finish_forward()? };
+        }
+        stats.timings = timings;
+        Ok(stats)
+    }
+
+    /// Checks `gaussians` against the renderer and sets the frame's parameters for
+    /// [`record_forward`](Self::record_forward).
+    pub fn prepare_forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
         assert_eq!((camera.width, camera.height), (self.width, self.height), "camera size differs from the renderer's");
         if gaussians.count > self.max_count {
             return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
         }
-        let fp = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
-        self.frame_params = fp;
-        let mut timings = self.record_frame(gaussians)?;
-        // Only the total (two words) and the dropped count come back, after the frame.
+        self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
+        Ok(())
+    }
+
+    /// After the submission of a recording with [`record_forward`](Self::record_forward):
+    /// reads the intersection total and the dropped count. Past the capacity the
+    /// buffers grow and the result says `rerendered: true`: the image is not valid and
+    /// the caller records and submits the frame again (then calls this once more).
+    /// A total past one sort or one binding is `TooLarge`.
+    pub fn finish_forward(&mut self) -> Result<ForwardStats> {
         let ctx = self.ctx.clone();
         let words = ctx.read_buffer::<u32>(&mut self.total, 2)?;
         let total64 = u64::from(words[0]) | (u64::from(words[1]) << 32);
-        let mut rerendered = false;
-        if total64 > u64::from(self.intersection_capacity()) {
-            // Refuses a total past one sort or one binding rather than rendering it.
+        let overflowed = total64 > u64::from(self.intersection_capacity());
+        if overflowed {
             self.grow_intersections(total64)?;
-            timings.extend(self.record_frame(gaussians)?);
-            rerendered = true;
         }
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
-        let total = total64 as u32;
-        self.intersections = total;
-        Ok(ForwardStats { intersections: total, dropped, rerendered, timings })
+        self.intersections = total64 as u32;
+        Ok(ForwardStats { intersections: total64 as u32, dropped, rerendered: overflowed, timings: PassTimings::default() })
     }
 
     /// Records and submits one whole forward frame with the current capacity.
     fn record_frame(&self, gaussians: &GaussianBuffers) -> Result<PassTimings> {
+        let mut rec = self.ctx.record("splat forward")?;
+        self.record_forward(&mut rec, gaussians)?;
+        rec.submit_and_wait()
+    }
+
+    /// Records the forward pass of the frame [`prepare_forward`](Self::prepare_forward)
+    /// set, with no host read inside it; after the submission,
+    /// [`finish_forward`](Self::finish_forward). The renders of several renderers
+    /// recorded into one recording share only what they read, so the recorder
+    /// interleaves them.
+    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         let n = gaussians.count;
-        let fp = self.frame_params;
+        let fp = &self.frame_params;
         let ctx = self.ctx.clone();
         let capacity = self.intersection_capacity();
         let tiles = fp.tiles_x * fp.tiles_y;
         let tile_bits = 32 - (tiles.max(1) - 1).leading_zeros();
         let counts_pc = SplatCounts { count: n, intersections: capacity, use_cas: 0, _pad: 0 };
-        let mut rec = ctx.record("splat forward")?;
-        rec.update(&self.frame, std::slice::from_ref(&fp));
+        rec.update(&self.frame, std::slice::from_ref(fp));
         rec.fill(&self.dropped, 0);
         rec.fill(&self.total, 0);
         rec.fill(&self.ranges, 0);
@@ -372,7 +401,7 @@ impl SplatRenderer {
                 .push(&chunk)
                 .dispatch(groups(chunk.len))?;
         }
-        self.depth_sort.record(&mut rec, &self.depth_keys, &self.order, n, 32)?;
+        self.depth_sort.record(rec, &self.depth_keys, &self.order, n, 32)?;
         rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
             .read("order", &self.order)
             .read("splats", &self.splats)
@@ -382,7 +411,7 @@ impl SplatRenderer {
             .dispatch(groups(n + 1))?;
         // The scan wraps past 2^32 - 1; the total from gather_counts does not, and the
         // kernels below read nothing through offsets a wrapped scan made.
-        self.count_scan.record(&mut rec, &self.counts, n + 1)?;
+        self.count_scan.record(rec, &self.counts, n + 1)?;
         rec.pass("splat.emit_intersections", Kernel::SplatEmitIntersections)
             .read("frame", &self.frame)
             .read("order", &self.order)
@@ -393,7 +422,7 @@ impl SplatRenderer {
             .write("isect_values", &self.isect_values)
             .push(&counts_pc)
             .dispatch(groups(n))?;
-        self.isect_sort.record_bounded(&mut rec, &self.isect_keys, &self.isect_values, capacity, &self.total, tile_bits)?;
+        self.isect_sort.record_bounded(rec, &self.isect_keys, &self.isect_values, capacity, &self.total, tile_bits)?;
         rec.pass("splat.tile_ranges", Kernel::SplatTileRanges)
             .read("isect_keys", &self.isect_keys)
             .read("total", &self.total)
@@ -412,8 +441,7 @@ impl SplatRenderer {
             .write("contributors", &p.contributors)
             .write("transmittance", &p.transmittance)
             .write("blended", &p.blended)
-            .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
-        rec.submit_and_wait()
+            .dispatch([fp.tiles_x, fp.tiles_y, 1])
     }
 
     /// Reads the last forward pass's images back.
