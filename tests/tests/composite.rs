@@ -416,3 +416,62 @@ fn sh_copy_pads_and_truncates_between_degrees() {
         }
     }
 }
+
+/// The fused frame (one sort, one binning, one walk with three states per pixel)
+/// against the three GPU passes: the same sums in the same order, so the base, cloth,
+/// alpha and matte images and their composite agree within float tolerance, for the
+/// paper's matte and the occlusion-correct one.
+#[test]
+fn fused_frame_equals_the_three_passes() {
+    use drape_engine::ops::splat::fused::{layer_masks, FusedRenderer};
+    let ctx = gpu();
+    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 96, 64).expect("camera");
+    let settings = RenderSettings::default();
+    let l = layered(80, 2, 17);
+    let pixels = (cam.width * cam.height) as usize;
+    // Body, scene, cloth: each pass's cloud is a subsequence in the same order.
+    let fused_cloud = joined(&joined(&l.body, &l.scene), &l.cloth);
+    let layers: Vec<Layer> = [(Layer::Body, l.body.len()), (Layer::Scene, l.scene.len()), (Layer::Cloth, l.cloth.len())].iter().flat_map(|&(layer, n)| std::iter::repeat_n(layer, n)).collect();
+    let fused_buffers = GaussianBuffers::upload(&ctx, "fused", &fused_cloud).expect("upload");
+    let mut fused = FusedRenderer::new(&ctx, cam.width, cam.height, fused_cloud.len()).expect("fused");
+    for occlusion in [false, true] {
+        let clouds = passes(&l, occlusion);
+        let mut renderers = Vec::new();
+        let mut images = Vec::new();
+        for (k, cloud) in clouds.iter().enumerate() {
+            cam.background = if k == 0 { [0.2, 0.5, 0.7] } else { [0.0; 3] };
+            let b = GaussianBuffers::upload(&ctx, "pass", cloud).expect("upload");
+            let mut r = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+            r.forward(&b, &cam, &settings).expect("forward");
+            images.push(r.read_image().expect("read"));
+            renderers.push(r);
+        }
+        let three = composite_passes(&ctx, &renderers, pixels as u32);
+
+        cam.background = [0.2, 0.5, 0.7];
+        fused.set_masks(&ctx, &layer_masks(&layers, occlusion)).expect("masks");
+        let before = ctx.submission_count();
+        let stats = fused.forward(&ctx, &fused_buffers, &cam, &settings).expect("fused forward");
+        if !stats.rerendered {
+            assert_eq!(ctx.submission_count() - before, 1, "a fused frame is one submission");
+        }
+        let [base, cloth, alpha, matte] = fused.read_images(&ctx).expect("read");
+        let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        // Same f32 operations in the same order per state; the matte's colour comes
+        // from SH in its own pass (1 or 0 up to rounding) and is exact here.
+        for (what, got, want) in [("base", &base, &images[0].rgb), ("cloth", &cloth, &images[1].rgb), ("cloth alpha", &alpha, &images[1].alpha), ("matte", &matte, &images[2].rgb)] {
+            let e = worst(got, want);
+            assert!(e <= 1e-5, "occlusion {occlusion}: {what} differs from its pass by {e:e}");
+        }
+        assert!(alpha.iter().any(|&a| a > 0.5) && matte.iter().any(|&m| m > 0.5), "occlusion {occlusion}: the cloth and matte are exercised");
+        let mut out = ctx.create_buffer("fused composite", BufferDesc::gpu_only(12 * pixels as u64)).expect("buffer");
+        {
+            let mut rec = ctx.record("fused composite").expect("record");
+            record_composite(&mut rec, fused.outputs(), &out, pixels as u32).expect("composite");
+            rec.submit_and_wait().expect("submit");
+        }
+        let composite = ctx.read_buffer::<f32>(&mut out, 3 * pixels).expect("read");
+        let e = worst(&composite, &three);
+        assert!(e <= 1e-5, "occlusion {occlusion}: fused composite differs from three-pass by {e:e}");
+    }
+}

@@ -16,7 +16,7 @@
 use drape_shared::radix_sort::bounded_len;
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
-use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
+use drape_shared::splat::raster::{BlendSettings, FusedPixel, PixelBwd, PixelFwd, SplatView};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
@@ -365,6 +365,100 @@ pub fn rasterize_fwd(
     contributors[p] = state.contributors;
     transmittance[p] = state.transmittance;
     blended[p] = state.blended;
+}
+
+/// The fused rasterizer (`ops::splat::fused`): one walk of each tile's depth-sorted
+/// list of every layer's splats, blending each into the base, cloth and matte states
+/// its layer mask (`masks`, per Gaussian) names (`drape_shared::splat::raster::FusedPixel`);
+/// writes the base image over the frame's background, the cloth image and alpha over
+/// black, and the matte (3 channels, over black) for the composite.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(16, 16)))]
+pub fn rasterize_fused_fwd(
+    #[spirv(workgroup_id)] tile: UVec3,
+    #[spirv(local_invocation_id)] local: UVec3,
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+    #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+    #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+    #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+    #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+    #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
+    #[spirv(workgroup)] done_count: &mut [u32; 1],
+) {
+    let px = tile.x * TILE_SIZE + local.x;
+    let py = tile.y * TILE_SIZE + local.y;
+    let inside = px < frame.width && py < frame.height;
+    let cfg = BlendSettings::<f32>::from_frame(frame);
+    let t = (tile.y * frame.tiles_x + tile.x) as usize;
+    let start = ranges[2 * t];
+    let end = ranges[2 * t + 1];
+    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+    let mut state = FusedPixel::<f32>::new();
+    let mut done = !inside;
+    let slot = lid as usize;
+    let mut base = start;
+    // Uniform loop, as in rasterize_fwd.
+    while base < end {
+        let k = base + lid;
+        if k < end {
+            let g = isect_values[k as usize];
+            let s = splats[g as usize];
+            load_batch_slot(slot, &s, b_xy, b_conic, b_opacity_depth, b_color);
+            b_mask[slot] = masks[g as usize];
+        }
+        if lid == 0 {
+            done_count[0] = 0;
+        }
+        barrier();
+        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+        let mut j = 0u32;
+        while j < count && !done {
+            let mut u = 0;
+            unroll!(u, {
+                if j + u < count && !done {
+                    let slot = (j + u) as usize;
+                    let s = batch_view(slot, b_xy, b_conic, b_opacity_depth, b_color);
+                    state.blend(&s, b_mask[slot], fx, fy, &cfg);
+                    done = state.done();
+                }
+            });
+            j += UNROLL;
+        }
+        if done {
+            atomics::add_u32_workgroup(&mut done_count[0], 1);
+        }
+        barrier();
+        let all_done = done_count[0] == BATCH as u32;
+        barrier();
+        if all_done {
+            break;
+        }
+        base += count;
+    }
+    if !inside {
+        return;
+    }
+    let p = (py * frame.width + px) as usize;
+    let c = state.base.rgb(frame.background);
+    base_rgb[3 * p] = c[0];
+    base_rgb[3 * p + 1] = c[1];
+    base_rgb[3 * p + 2] = c[2];
+    cloth_rgb[3 * p] = state.cloth.color[0];
+    cloth_rgb[3 * p + 1] = state.cloth.color[1];
+    cloth_rgb[3 * p + 2] = state.cloth.color[2];
+    cloth_alpha[p] = 1.0 - state.cloth.transmittance;
+    matte_rgb[3 * p] = state.matte.color[0];
+    matte_rgb[3 * p + 1] = state.matte.color[1];
+    matte_rgb[3 * p + 2] = state.matte.color[2];
 }
 
 /// The backward rasterizer: one workgroup per tile, one invocation per pixel, walking

@@ -188,7 +188,7 @@ fn ops_times_chamfer_through_the_grid_and_by_brute_force() {
 }
 
 #[test]
-fn composite_times_the_three_passes_serialised_and_in_one_submission() {
+fn composite_times_the_three_passes_serialised_in_one_submission_and_fused() {
     let j = json_of(&["composite", "--sizes", "64x48", "--body", "300", "--cloth", "100", "--scene", "200", "--runs", "1", "--warmup", "1", "--json"]);
     let r = &j["results"][0];
     assert_eq!((r["width"].as_u64(), r["height"].as_u64()), (Some(64), Some(48)), "{r}");
@@ -200,5 +200,7 @@ fn composite_times_the_three_passes_serialised_and_in_one_submission() {
     // one vkQueueSubmit: three renders and the composite.
     assert_eq!(r["three_pass_overlapped"]["forward_submissions"].as_u64(), Some(1), "{r}");
     assert!(r["three_pass_overlapped"]["passes_gpu_ms"]["composite.fwd"].as_f64().is_some(), "{r}");
-    assert_eq!(r["fused"], "not built", "{r}");
+    assert!(r["fused"]["forward_median_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{r}");
+    assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fused_fwd"].as_f64().is_some(), "{r}");
+    assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fwd"].is_null(), "the fused frame rasterizes once: {r}");
 }

@@ -6,6 +6,7 @@
 //! - [`render`]: the GPU renderer (project, depth sort, tile binning, tile sort,
 //!   rasterize; and the backward passes);
 //! - [`composite`]: depth-aware compositing of three passes (forward, backward);
+//! - [`fused`]: the three passes in one sort, one binning and one rasterization;
 //! - [`densify`]: the screen-space statistics densification reads;
 //! - [`ply`]: 3D Gaussian Splatting PLY files;
 //! - [`adam`]: Adam over the Gaussian parameters on the GPU;
@@ -15,6 +16,7 @@ pub mod adam;
 pub mod composite;
 pub mod densify;
 pub mod fit;
+pub mod fused;
 pub mod ply;
 pub mod reference;
 pub mod render;

@@ -374,6 +374,34 @@ impl SplatRenderer {
     /// recorded into one recording share only what they read, so the recorder
     /// interleaves them.
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
+        self.record_binning(rec, gaussians)?;
+        let fp = &self.frame_params;
+        let p = &self.pixels;
+        rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
+            .read("frame", &self.frame)
+            .read("splats", &self.splats)
+            .read("isect_values", &self.isect_values)
+            .read("ranges", &self.ranges)
+            .write("rgb", &p.rgb)
+            .write("alpha", &p.alpha)
+            .write("depth", &p.depth)
+            .write("contributors", &p.contributors)
+            .write("transmittance", &p.transmittance)
+            .write("blended", &p.blended)
+            .dispatch([fp.tiles_x, fp.tiles_y, 1])
+    }
+
+    /// The buffers a rasterizer reads after [`record_binning`](Self::record_binning):
+    /// frame parameters, projected splats, sorted intersection values, tile ranges; and
+    /// the tile grid.
+    pub(crate) fn binned(&self) -> (&Buffer, &Buffer, &Buffer, &Buffer, [u32; 3]) {
+        (&self.frame, &self.splats, &self.isect_values, &self.ranges, [self.frame_params.tiles_x, self.frame_params.tiles_y, 1])
+    }
+
+    /// Everything of [`record_forward`](Self::record_forward) before rasterization:
+    /// projection, depth sort, tile counts, intersections, tile sort and ranges (the
+    /// fused rasterizer walks the same lists).
+    pub(crate) fn record_binning<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         let n = gaussians.count;
         let fp = &self.frame_params;
         let ctx = self.ctx.clone();
@@ -428,20 +456,7 @@ impl SplatRenderer {
             .read("total", &self.total)
             .write("ranges", &self.ranges)
             .push(&counts_pc)
-            .dispatch(groups(capacity))?;
-        let p = &self.pixels;
-        rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
-            .read("frame", &self.frame)
-            .read("splats", &self.splats)
-            .read("isect_values", &self.isect_values)
-            .read("ranges", &self.ranges)
-            .write("rgb", &p.rgb)
-            .write("alpha", &p.alpha)
-            .write("depth", &p.depth)
-            .write("contributors", &p.contributors)
-            .write("transmittance", &p.transmittance)
-            .write("blended", &p.blended)
-            .dispatch([fp.tiles_x, fp.tiles_y, 1])
+            .dispatch(groups(capacity))
     }
 
     /// Reads the last forward pass's images back.

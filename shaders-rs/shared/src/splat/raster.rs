@@ -109,6 +109,13 @@ impl<F: Real> PixelFwd<F> {
     #[inline]
     pub fn blend(&mut self, s: &SplatView<F>, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
         let Some(f) = footprint(s, px, py, cfg) else { return };
+        self.blend_footprint(&f, s.color, s.depth, index, cfg);
+    }
+
+    /// [`blend`](Self::blend) with the footprint already computed (the fused
+    /// rasterizer blends one footprint into several states) and the colour given.
+    #[inline]
+    pub fn blend_footprint(&mut self, f: &Footprint<F>, color: V3<F>, depth: F, index: u32, cfg: &BlendSettings<F>) {
         let next = self.transmittance * (F::one() - f.alpha);
         if !(next > cfg.transmittance_min) {
             self.done = true;
@@ -117,10 +124,10 @@ impl<F: Real> PixelFwd<F> {
         let w = f.alpha * self.transmittance;
         // Written out, not looped: llvmpipe caps the loop iterations of a whole
         // invocation at 65,535, and this runs once per splat per pixel.
-        self.color[0] += w * s.color[0];
-        self.color[1] += w * s.color[1];
-        self.color[2] += w * s.color[2];
-        self.depth += w * s.depth;
+        self.color[0] += w * color[0];
+        self.color[1] += w * color[1];
+        self.color[2] += w * color[2];
+        self.depth += w * depth;
         self.transmittance = next;
         self.contributors = index + 1;
         self.blended += 1;
@@ -134,6 +141,83 @@ impl<F: Real> PixelFwd<F> {
 }
 
 impl<F: Real> Default for PixelFwd<F> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Layer-mask bits of the fused rasterizer: which of a pixel's three states a splat
+/// blends into. Body: base (and, in the occlusion-correct matte, matte at 0); cloth:
+/// cloth, and matte at 1; scene: base, and matte at 0.
+pub const FUSED_BASE: u32 = 1;
+pub const FUSED_CLOTH: u32 = 2;
+/// Blends into the matte with colour 0 (an occluder of the cloth).
+pub const FUSED_MATTE_ZERO: u32 = 4;
+/// Blends into the matte with colour 1 (the cloth).
+pub const FUSED_MATTE_ONE: u32 = 8;
+
+/// The three forward states of one pixel of the fused rasterizer: the base pass
+/// (body and scene), the cloth pass and the matte, each blended exactly as its own
+/// pass would blend it, in one walk of the tile's depth-sorted list of every layer.
+/// Each state's members keep their depth order in the merged list, so each state
+/// sums the same terms in the same order as its own pass.
+#[derive(Clone, Copy, Debug)]
+pub struct FusedPixel<F> {
+    pub base: PixelFwd<F>,
+    pub cloth: PixelFwd<F>,
+    pub matte: PixelFwd<F>,
+    /// Each state's index in its own pass's tile list: the splats of its layers seen so far.
+    pub seen: [u32; 3],
+}
+
+impl<F: Real> FusedPixel<F> {
+    /// A state is done when saturated; one that never saturates (no cloth over a
+    /// pixel) keeps the walk going to the end of the list, where its own pass would
+    /// also have ended.
+    pub fn new() -> Self {
+        Self { base: PixelFwd::new(), cloth: PixelFwd::new(), matte: PixelFwd::new(), seen: [0; 3] }
+    }
+
+    /// All three states saturated.
+    #[inline]
+    pub fn done(&self) -> bool {
+        self.base.done && self.cloth.done && self.matte.done
+    }
+
+    /// Blends the next splat of the merged tile list, with layer mask `mask`.
+    #[inline]
+    pub fn blend(&mut self, s: &SplatView<F>, mask: u32, px: F, py: F, cfg: &BlendSettings<F>) {
+        let in_base = mask & FUSED_BASE != 0;
+        let in_cloth = mask & FUSED_CLOTH != 0;
+        let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0;
+        let wanted = (in_base && !self.base.done) || (in_cloth && !self.cloth.done) || (in_matte && !self.matte.done);
+        if wanted {
+            if let Some(f) = footprint(s, px, py, cfg) {
+                if in_base && !self.base.done {
+                    self.base.blend_footprint(&f, s.color, s.depth, self.seen[0], cfg);
+                }
+                if in_cloth && !self.cloth.done {
+                    self.cloth.blend_footprint(&f, s.color, s.depth, self.seen[1], cfg);
+                }
+                if in_matte && !self.matte.done {
+                    let m = if mask & FUSED_MATTE_ONE != 0 { F::one() } else { F::zero() };
+                    self.matte.blend_footprint(&f, [m, m, m], s.depth, self.seen[2], cfg);
+                }
+            }
+        }
+        if in_base {
+            self.seen[0] += 1;
+        }
+        if in_cloth {
+            self.seen[1] += 1;
+        }
+        if in_matte {
+            self.seen[2] += 1;
+        }
+    }
+}
+
+impl<F: Real> Default for FusedPixel<F> {
     fn default() -> Self {
         Self::new()
     }
