@@ -455,7 +455,7 @@ fn fused_frame_equals_the_three_passes() {
         if !stats.rerendered {
             assert_eq!(ctx.submission_count() - before, 1, "a fused frame is one submission");
         }
-        let [base, cloth, alpha, matte] = fused.read_images(&ctx).expect("read");
+        let [base, cloth, alpha, matte] = fused.read_images().expect("read");
         let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
         // Same f32 operations in the same order per state; the matte's colour comes
         // from SH in its own pass (1 or 0 up to rounding) and is exact here.

@@ -51,7 +51,8 @@ pub struct TrainArgs {
     /// paper's: body + scene, cloth, and a matte in which only the scene hides the
     /// cloth, composited), three-pass-occlusion (the body also hides the cloth in the
     /// matte), or single-pass (every layer in one depth-sorted pass; no matte)
-    /// (overrides the config).
+    /// (overrides the config). fused / fused-occlusion render the three-pass images
+    /// from one sort (engine-bench avatar, trade) but have no backward: refused here.
     #[arg(long)]
     pub compositing: Option<String>,
     /// Training steps (overrides the preset and the config file).

@@ -16,7 +16,7 @@
 //! - Gaussians pruned by opacity (`--prune`): a pruned Gaussian's opacity logit is set to
 //!   [`PRUNED_LOGIT`], which the projection culls (opacity below `alpha_min`), so it
 //!   leaves no intersection, exactly as if removed;
-//! - compositing: three-pass, three-pass-occlusion, single-pass;
+//! - compositing: three-pass, three-pass-occlusion, single-pass, fused;
 //! - pose-dependent offsets off, for runs whose layers were trained with them: the
 //!   deformation reads the decoded offsets without the pose blend (which also saves
 //!   the blend's pass).
@@ -232,10 +232,10 @@ fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static
         out.push(Setting { knob: "pruning", label: format!("opacity < {t}"), prune: Some(t), ..base.clone() });
     }
     knobs.insert("pruning", json!(format!("measured: opacity thresholds {:?}; pruned Gaussians are culled at projection (decoders and projection still run on all)", args.prune)));
-    for c in ["three-pass", "three-pass-occlusion", "single-pass"].into_iter().filter(|&c| c != default_comp) {
+    for c in ["three-pass", "three-pass-occlusion", "single-pass", "fused"].into_iter().filter(|&c| c != default_comp) {
         out.push(Setting { knob: "compositing", label: c.to_string(), compositing: c.to_string(), ..base.clone() });
     }
-    knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass; the fused rasterizer does not exist"));
+    knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass, fused (the paper's matte from one sort and one walk of every layer; forward only)"));
     let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.has_pose_blend()).map(|l| l.name.as_str()).collect();
     if blended.is_empty() {
         knobs.insert("pose_offsets", json!("not applicable: no layer of this run was trained with pose-dependent offsets (config body.pose_offsets / cloth.pose_offsets)"));
@@ -252,7 +252,6 @@ fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
         json!({"knob": "tile size 8 / 32", "why": "TILE_SIZE = 16 is a constant compiled into the splatting kernels (a rasterizer workgroup is one tile)"}),
         json!({"knob": "half-precision SH", "why": "the kernels read f32 SH only"}),
         json!({"knob": "half-precision projected splats", "why": "ProjectedSplat is f32 only"}),
-        json!({"knob": "fused compositing", "why": "the fused rasterizer of the compositing issue is not built (three-pass is three splatter passes and a composite)"}),
         json!({"knob": "pruning by contribution", "why": "needs a per-Gaussian accumulated blend weight from the rasterizer, which it does not write"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
     ]

@@ -14,15 +14,18 @@
 //! The cloth mask loss reads the cloth pass's alpha (the matte without occluders) and
 //! joins the composite's gradient on it, so the cloth is rendered once per step.
 //!
-//! Today each pass is the splatter's two submissions with a host read between them,
-//! one pass after another; the single-submission overlapped frame and the fused
-//! rasterizer of the compositing issue are not built.
+//! A frame is one submission: the gather, the three renders (which the recorder
+//! interleaves, as they share only what they read) and the composite. The fused
+//! variant ([`Compositing::Fused`], `ops::splat::fused`) renders the same three images
+//! from one sort and one walk of every layer's Gaussians; it has no backward yet, so
+//! training refuses it and it serves rendering (`engine-bench avatar`, `trade`).
 
 use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::fused::{layer_masks, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
-use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
+use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
+use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
 
 use crate::avatar::cloth_losses::ClothLosses;
 use crate::avatar::model::Avatar;
@@ -44,17 +47,28 @@ pub enum Compositing {
     /// The paper's three passes and composite (needs a cloth layer; without one the
     /// avatar renders in one pass).
     ThreePass(Matte),
+    /// The same three images from one depth sort and one rasterization of every layer
+    /// (forward only).
+    Fused(Matte),
 }
 
 impl Compositing {
-    /// `three-pass` (the paper's matte), `three-pass-occlusion` or `single-pass`.
+    /// `three-pass` (the paper's matte), `three-pass-occlusion`, `single-pass`,
+    /// `fused` or `fused-occlusion`.
     pub fn parse(s: &str) -> std::result::Result<Self, String> {
         match s {
             "three-pass" => Ok(Self::ThreePass(Matte::Paper)),
             "three-pass-occlusion" => Ok(Self::ThreePass(Matte::Occlusion)),
             "single-pass" => Ok(Self::SinglePass),
-            other => Err(format!("must be three-pass, three-pass-occlusion or single-pass, got '{other}'")),
+            "fused" => Ok(Self::Fused(Matte::Paper)),
+            "fused-occlusion" => Ok(Self::Fused(Matte::Occlusion)),
+            other => Err(format!("must be three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion, got '{other}'")),
         }
+    }
+
+    /// Whether training can back-propagate through it (the fused variant cannot yet).
+    pub fn trains(self) -> bool {
+        !matches!(self, Self::Fused(_))
     }
 }
 
@@ -137,9 +151,19 @@ struct ThreePass {
     pixels: u32,
 }
 
+/// What training through the fused variant meets (the config check refuses it first).
+const FUSED_HAS_NO_BACKWARD: EngineError = EngineError::NotBuilt { what: "the fused compositing's backward", instead: "train with three-pass or three-pass-occlusion; fused renders a trained avatar" };
+
+struct Fused {
+    renderer: FusedRenderer,
+    image: Buffer,
+    pixels: u32,
+}
+
 enum Inner {
     Single(Box<SplatRenderer>),
     ThreePass(Box<ThreePass>),
+    Fused(Box<Fused>),
 }
 
 /// The avatar's renderer: forward to an image on the GPU, backward to every layer's
@@ -151,6 +175,20 @@ pub struct AvatarRenderer {
 impl AvatarRenderer {
     pub fn new(ctx: &Context, avatar: &Avatar, width: u32, height: u32, compositing: Compositing) -> Result<Self> {
         let cloth = avatar.layers.iter().position(|l| l.name == "cloth");
+        if let (Compositing::Fused(matte), Some(_)) = (compositing, cloth) {
+            // The avatar's posed buffer holds every layer, then the scene.
+            let mut layers = Vec::new();
+            for l in &avatar.layers {
+                let kind = if l.name == "cloth" { Layer::Cloth } else { Layer::Body };
+                layers.extend(std::iter::repeat_n(kind, l.count as usize));
+            }
+            layers.extend(std::iter::repeat_n(Layer::Scene, avatar.scene.as_ref().map_or(0, |s| s.count as usize)));
+            let mut renderer = FusedRenderer::new(ctx, width, height, avatar.posed.count as usize)?;
+            renderer.set_masks(ctx, &layer_masks(&layers, matte == Matte::Occlusion))?;
+            let pixels = width * height;
+            let image = ctx.create_buffer("composite image", BufferDesc::gpu_only(12 * u64::from(pixels)))?;
+            return Ok(Self { inner: Inner::Fused(Box::new(Fused { renderer, image, pixels })) });
+        }
         let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
             return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)) });
         };
@@ -205,6 +243,20 @@ impl AvatarRenderer {
             Inner::Single(r) => {
                 r.forward(&avatar.posed, camera, settings)?;
                 return Ok(());
+            }
+            Inner::Fused(f) => {
+                f.renderer.prepare_forward(&avatar.posed, camera, settings)?;
+                loop {
+                    {
+                        let mut rec = ctx.record("fused frame")?;
+                        f.renderer.record_forward(&mut rec, &avatar.posed)?;
+                        record_composite(&mut rec, f.renderer.outputs(), &f.image, f.pixels)?;
+                        rec.submit_and_wait()?;
+                    }
+                    if !f.renderer.finish_forward()?.rerendered {
+                        return Ok(());
+                    }
+                }
             }
             Inner::ThreePass(t) => t,
         };
@@ -261,6 +313,7 @@ impl AvatarRenderer {
         match &self.inner {
             Inner::Single(r) => r.outputs().0,
             Inner::ThreePass(t) => &t.image,
+            Inner::Fused(f) => &f.image,
         }
     }
 
@@ -269,6 +322,7 @@ impl AvatarRenderer {
         match &mut self.inner {
             Inner::Single(r) => Ok(r.read_image()?.rgb),
             Inner::ThreePass(t) => ctx.read_buffer(&mut t.image, 3 * t.pixels as usize),
+            Inner::Fused(f) => ctx.read_buffer(&mut f.image, 3 * f.pixels as usize),
         }
     }
 
@@ -285,6 +339,10 @@ impl AvatarRenderer {
                 };
                 Ok(Some([t.base_renderer.read_image()?.rgb, cloth.rgb, matte]))
             }
+            Inner::Fused(f) => {
+                let [base, cloth, _, matte] = f.renderer.read_images()?;
+                Ok(Some([base, cloth, matte]))
+            }
         }
     }
 
@@ -295,6 +353,7 @@ impl AvatarRenderer {
     #[allow(clippy::too_many_arguments)]
     pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
         match &mut self.inner {
+            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
             Inner::Single(r) => {
                 r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
                 if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
@@ -328,6 +387,7 @@ impl AvatarRenderer {
     /// matte's gradients are left out); one pass for everything without compositing.
     pub fn record_screen_stats<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
         match &self.inner {
+            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
             Inner::Single(r) => {
                 let mut first = 0;
                 for l in &avatar.layers {
@@ -357,6 +417,7 @@ impl AvatarRenderer {
                 avatar.record_scatter_grads(rec)?;
                 return Ok(());
             }
+            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
             Inner::ThreePass(t) => t,
         };
         for p in &t.base_parts {

@@ -41,6 +41,7 @@ pub fn layer_masks(layers: &[Layer], occlusion: bool) -> Vec<u32> {
 
 /// A fused renderer for clouds of up to `max_count` Gaussians at one image size.
 pub struct FusedRenderer {
+    ctx: Context,
     renderer: SplatRenderer,
     masks: Buffer,
     base_rgb: Buffer,
@@ -56,6 +57,7 @@ impl FusedRenderer {
         let pixels = width * height;
         let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
         Ok(Self {
+            ctx: ctx.clone(),
             renderer,
             masks: ctx.create_buffer("fused layer masks", BufferDesc::gpu_only(4 * max_count.max(1) as u64))?,
             base_rgb: image("fused base rgb", 3 * pixels)?,
@@ -127,8 +129,9 @@ impl FusedRenderer {
     }
 
     /// Reads the last forward's (base, cloth, cloth alpha, matte) images back.
-    pub fn read_images(&mut self, ctx: &Context) -> Result<[Vec<f32>; 4]> {
+    pub fn read_images(&mut self) -> Result<[Vec<f32>; 4]> {
         let n = self.pixels as usize;
+        let ctx = self.ctx.clone();
         Ok([
             ctx.read_buffer(&mut self.base_rgb, 3 * n)?,
             ctx.read_buffer(&mut self.cloth_rgb, 3 * n)?,
