@@ -27,7 +27,7 @@ export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 # clean clone: disk CI does not have to spare.
 export CARGO_INCREMENTAL=0
 if [ "$DRAPE_DEVICE" = llvmpipe ]; then
-    export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps}"
+    export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps,subgroup-raster}"
 fi
 
 echo "== 1/4 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"

@@ -49,6 +49,8 @@ pub enum Feature {
     FloatAtomics,
     /// Compute-queue timestamps.
     Timestamps,
+    /// The subgroup rasterizers: a CPU device with subgroups of 8 lanes and ballot.
+    SubgroupRaster,
 }
 
 impl Feature {
@@ -56,6 +58,7 @@ impl Feature {
         match self {
             Feature::FloatAtomics => "float-atomics",
             Feature::Timestamps => "timestamps",
+            Feature::SubgroupRaster => "subgroup-raster",
         }
     }
 
@@ -63,6 +66,7 @@ impl Feature {
         match self {
             Feature::FloatAtomics => ctx.info().float_atomic_add,
             Feature::Timestamps => ctx.info().timestamp_valid_bits > 0,
+            Feature::SubgroupRaster => drape_engine::ops::splat::render::subgroup_raster_supported(ctx.info()),
         }
     }
 }
@@ -143,7 +147,7 @@ pub mod num {
 
 pub mod splat {
     //! Scenes and helpers for the splatting tests.
-    use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RenderedImage, SplatRenderer};
+    use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RasterVariant, RenderedImage, SplatRenderer};
     use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
     use drape_engine::Context;
 
@@ -163,10 +167,27 @@ pub mod splat {
 
     /// Renders on the GPU and reads the image back.
     pub fn gpu_render(ctx: &Context, cloud: &GaussianCloud, cam: &PinholeCamera, settings: &RenderSettings) -> (RenderedImage, ForwardStats) {
+        gpu_render_with(ctx, cloud, cam, settings, RasterVariant::Auto)
+    }
+
+    /// [`gpu_render`] through the given rasterizer kernels.
+    pub fn gpu_render_with(ctx: &Context, cloud: &GaussianCloud, cam: &PinholeCamera, settings: &RenderSettings, variant: RasterVariant) -> (RenderedImage, ForwardStats) {
         let gaussians = GaussianBuffers::upload(ctx, "test gaussians", cloud).expect("upload");
         let mut renderer = SplatRenderer::new(ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+        renderer.set_raster_variant(variant).expect("raster variant");
         let stats = renderer.forward(&gaussians, cam, settings).expect("forward");
         (renderer.read_image().expect("read"), stats)
+    }
+
+    /// The rasterizer variants this device runs: the workgroup kernels always, the
+    /// subgroup ones where the device has them (else `test` prints that it skipped them,
+    /// or fails where `DRAPE_EXPECT_FEATURES` names `subgroup-raster`).
+    pub fn raster_variants(ctx: &Context, test: &str) -> Vec<RasterVariant> {
+        let mut v = vec![RasterVariant::Workgroup];
+        if crate::has_feature(ctx, crate::Feature::SubgroupRaster, &format!("{test} (subgroup rasterizer)")) {
+            v.push(RasterVariant::Subgroup);
+        }
+        v
     }
 
     /// Largest absolute difference.

@@ -6,13 +6,14 @@
 
 use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
 use drape_engine::ops::splat::reference::{backward, render};
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
 use drape_engine::BufferDesc;
 use drape_shared::splat::composite::composite_grad;
 use drape_shared::splat::layout::{sh_coeffs, MAX_SH_COEFFS};
 use drape_shared::splat::project::{Gaussian, GaussianGrad};
 use drape_tests::gpu;
+use drape_tests::splat::raster_variants;
 use rand::{Rng, SeedableRng};
 
 fn joined(a: &GaussianCloud, b: &GaussianCloud) -> GaussianCloud {
@@ -442,36 +443,41 @@ fn fused_frame_equals_the_three_passes() {
             cam.background = if k == 0 { [0.2, 0.5, 0.7] } else { [0.0; 3] };
             let b = GaussianBuffers::upload(&ctx, "pass", cloud).expect("upload");
             let mut r = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+            // The three passes through the workgroup kernels, the fused frame through each.
+            r.set_raster_variant(RasterVariant::Workgroup).expect("raster variant");
             r.forward(&b, &cam, &settings).expect("forward");
             images.push(r.read_image().expect("read"));
             renderers.push(r);
         }
         let three = composite_passes(&ctx, &renderers, pixels as u32);
 
-        cam.background = [0.2, 0.5, 0.7];
-        fused.set_masks(&ctx, &layer_masks(&layers, occlusion)).expect("masks");
-        let before = ctx.submission_count();
-        let stats = fused.forward(&ctx, &fused_buffers, &cam, &settings).expect("fused forward");
-        if !stats.rerendered {
-            assert_eq!(ctx.submission_count() - before, 1, "a fused frame is one submission");
+        for variant in raster_variants(&ctx, "fused_frame_equals_the_three_passes") {
+            fused.set_raster_variant(variant).expect("raster variant");
+            cam.background = [0.2, 0.5, 0.7];
+            fused.set_masks(&ctx, &layer_masks(&layers, occlusion)).expect("masks");
+            let before = ctx.submission_count();
+            let stats = fused.forward(&ctx, &fused_buffers, &cam, &settings).expect("fused forward");
+            if !stats.rerendered {
+                assert_eq!(ctx.submission_count() - before, 1, "a fused frame is one submission");
+            }
+            let [base, cloth, alpha, matte] = fused.read_images().expect("read");
+            let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            // Same f32 operations in the same order per state; the matte's colour comes
+            // from SH in its own pass (1 or 0 up to rounding) and is exact here.
+            for (what, got, want) in [("base", &base, &images[0].rgb), ("cloth", &cloth, &images[1].rgb), ("cloth alpha", &alpha, &images[1].alpha), ("matte", &matte, &images[2].rgb)] {
+                let e = worst(got, want);
+                assert!(e <= 1e-5, "occlusion {occlusion}, {variant:?} rasterizer: {what} differs from its pass by {e:e}");
+            }
+            assert!(alpha.iter().any(|&a| a > 0.5) && matte.iter().any(|&m| m > 0.5), "occlusion {occlusion}: the cloth and matte are exercised");
+            let mut out = ctx.create_buffer("fused composite", BufferDesc::gpu_only(12 * pixels as u64)).expect("buffer");
+            {
+                let mut rec = ctx.record("fused composite").expect("record");
+                record_composite(&mut rec, fused.outputs(), &out, pixels as u32).expect("composite");
+                rec.submit_and_wait().expect("submit");
+            }
+            let composite = ctx.read_buffer::<f32>(&mut out, 3 * pixels).expect("read");
+            let e = worst(&composite, &three);
+            assert!(e <= 1e-5, "occlusion {occlusion}, {variant:?} rasterizer: fused composite differs from three-pass by {e:e}");
         }
-        let [base, cloth, alpha, matte] = fused.read_images().expect("read");
-        let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-        // Same f32 operations in the same order per state; the matte's colour comes
-        // from SH in its own pass (1 or 0 up to rounding) and is exact here.
-        for (what, got, want) in [("base", &base, &images[0].rgb), ("cloth", &cloth, &images[1].rgb), ("cloth alpha", &alpha, &images[1].alpha), ("matte", &matte, &images[2].rgb)] {
-            let e = worst(got, want);
-            assert!(e <= 1e-5, "occlusion {occlusion}: {what} differs from its pass by {e:e}");
-        }
-        assert!(alpha.iter().any(|&a| a > 0.5) && matte.iter().any(|&m| m > 0.5), "occlusion {occlusion}: the cloth and matte are exercised");
-        let mut out = ctx.create_buffer("fused composite", BufferDesc::gpu_only(12 * pixels as u64)).expect("buffer");
-        {
-            let mut rec = ctx.record("fused composite").expect("record");
-            record_composite(&mut rec, fused.outputs(), &out, pixels as u32).expect("composite");
-            rec.submit_and_wait().expect("submit");
-        }
-        let composite = ctx.read_buffer::<f32>(&mut out, 3 * pixels).expect("read");
-        let e = worst(&composite, &three);
-        assert!(e <= 1e-5, "occlusion {occlusion}: fused composite differs from three-pass by {e:e}");
     }
 }

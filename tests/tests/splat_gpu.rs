@@ -2,10 +2,10 @@
 //! forward and backward, on lavapipe with validation.
 
 use drape_engine::ops::splat::reference;
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, RenderSettings};
 use drape_shared::splat::layout::sh_coeffs;
-use drape_tests::splat::{camera, gpu_render, max_abs_diff, scene};
+use drape_tests::splat::{camera, gpu_render_with, max_abs_diff, raster_variants, scene};
 use drape_tests::{gpu, has_feature, Feature};
 use rand::{Rng, SeedableRng};
 
@@ -13,19 +13,20 @@ use rand::{Rng, SeedableRng};
 /// the transcendental functions (exp, ln) may differ in their last bits.
 const FORWARD_TOLERANCE: f32 = 1e-5;
 
-fn check_forward(sizes: &[(u32, u32)], counts: &[usize]) {
+fn check_forward(sizes: &[(u32, u32)], counts: &[usize], test: &str) {
     let gpu = gpu();
+    let variants = raster_variants(&gpu, test);
     for &(w, h) in sizes {
         for &n in counts {
             for degree in [0, 3] {
-                for antialiased in [false, true] {
+                for (antialiased, &variant) in [false, true].into_iter().flat_map(|a| variants.iter().map(move |v| (a, v))) {
                     let cloud = scene(n, degree, n as u64 * 7 + u64::from(w));
                     let cam = camera(w, h);
                     let settings = RenderSettings { antialiased, ..RenderSettings::default() };
-                    let (image, stats) = gpu_render(&gpu, &cloud, &cam, &settings);
+                    let (image, stats) = gpu_render_with(&gpu, &cloud, &cam, &settings, variant);
                     let frame = frame_params(&cam, &settings, degree, cloud.len());
                     let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
-                    let what = format!("{n} Gaussians, {w}x{h}, degree {degree}, antialiased {antialiased}");
+                    let what = format!("{n} Gaussians, {w}x{h}, degree {degree}, antialiased {antialiased}, {variant:?} rasterizer");
                     // Equal on lavapipe; a GPU that fuses a * b + c may move a pair whose
                     // splat's bound falls on a tile edge: at most 0.1% + 2 pairs.
                     let d = (i64::from(stats.intersections) - cpu.intersections as i64).unsigned_abs();
@@ -47,17 +48,17 @@ fn check_forward(sizes: &[(u32, u32)], counts: &[usize]) {
 
 #[test]
 fn forward_matches_cpu_64x64() {
-    check_forward(&[(64, 64)], &[1, 16, 1000, 10_000]);
+    check_forward(&[(64, 64)], &[1, 16, 1000, 10_000], "forward_matches_cpu_64x64");
 }
 
 #[test]
 fn forward_matches_cpu_128x128() {
-    check_forward(&[(128, 128)], &[1, 16, 1000, 10_000]);
+    check_forward(&[(128, 128)], &[1, 16, 1000, 10_000], "forward_matches_cpu_128x128");
 }
 
 #[test]
 fn forward_matches_cpu_97x61() {
-    check_forward(&[(97, 61)], &[1, 16, 1000, 10_000]);
+    check_forward(&[(97, 61)], &[1, 16, 1000, 10_000], "forward_matches_cpu_97x61");
 }
 
 /// ||a - b|| / ||b|| over one parameter group.
@@ -73,9 +74,11 @@ fn relative_error(gpu: &[f32], cpu: &[f32]) -> f64 {
 const BACKWARD_TOLERANCE: f64 = 1e-4;
 
 /// Checks the GPU backward against the CPU reference; returns the gradients' bits.
-fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation) -> Vec<u32> {
+fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation, variant: RasterVariant) -> Vec<u32> {
     let gpu = gpu();
-    let (w, h) = (64, 48);
+    // Not multiples of 16 (nor of the subgroup kernels' 8 x 4 blocks): edge tiles and
+    // blocks with lanes and rows outside the image.
+    let (w, h) = (61, 45);
     let cloud = scene(300, degree, 11 + u64::from(degree));
     let cam = camera(w, h);
     let settings = RenderSettings { antialiased, ..RenderSettings::default() };
@@ -88,6 +91,7 @@ fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation) ->
     let gaussians = GaussianBuffers::upload(&gpu, "params", &cloud).expect("upload");
     let mut grads = GaussianBuffers::new(&gpu, "grads", cloud.len(), degree).expect("grads");
     let mut renderer = SplatRenderer::new(&gpu, w, h, cloud.len()).expect("renderer");
+    renderer.set_raster_variant(variant).expect("raster variant");
     renderer.forward(&gaussians, &cam, &settings).expect("forward");
     let b_rgb = gpu.upload("grad rgb", &g_rgb).expect("upload");
     let b_alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
@@ -110,21 +114,24 @@ fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation) ->
     for (name, c, g) in groups {
         assert!(c.iter().any(|v| *v != 0.0), "{name}: the CPU gradient is all zero; the check would be vacuous");
         let e = relative_error(g, &c);
-        assert!(e <= BACKWARD_TOLERANCE, "{name}: relative error {e:e} (degree {degree}, antialiased {antialiased}, {accumulation:?})");
+        assert!(e <= BACKWARD_TOLERANCE, "{name}: relative error {e:e} (degree {degree}, antialiased {antialiased}, {accumulation:?}, {variant:?} rasterizer)");
     }
     [&gpu_grads.means, &gpu_grads.log_scales, &gpu_grads.quats, &gpu_grads.opacity_logits, &gpu_grads.sh].into_iter().flatten().map(|v| v.to_bits()).collect()
 }
 
 /// Fixed-point accumulation matches the reference as the float paths do, and gives
-/// the same bits on every run (float atomics need not: their order varies).
+/// the same bits on every run (float atomics need not: their order varies), with each
+/// rasterizer.
 #[test]
 fn backward_matches_cpu_deterministic_and_repeats_bit_for_bit() {
-    let first = check_backward(3, false, Accumulation::Deterministic);
-    check_backward(1, true, Accumulation::Deterministic);
-    for repeat in 0..2 {
-        let again = check_backward(3, false, Accumulation::Deterministic);
-        let differing = first.iter().zip(&again).filter(|(a, b)| a != b).count();
-        assert_eq!(differing, 0, "repeat {repeat}: {differing} of {} gradient values changed bits", first.len());
+    for variant in raster_variants(&gpu(), "backward_matches_cpu_deterministic_and_repeats_bit_for_bit") {
+        let first = check_backward(3, false, Accumulation::Deterministic, variant);
+        check_backward(1, true, Accumulation::Deterministic, variant);
+        for repeat in 0..2 {
+            let again = check_backward(3, false, Accumulation::Deterministic, variant);
+            let differing = first.iter().zip(&again).filter(|(a, b)| a != b).count();
+            assert_eq!(differing, 0, "{variant:?} rasterizer, repeat {repeat}: {differing} of {} gradient values changed bits", first.len());
+        }
     }
 }
 
@@ -133,14 +140,18 @@ fn backward_matches_cpu_float_atomics() {
     if !has_feature(&gpu(), Feature::FloatAtomics, "backward_matches_cpu_float_atomics") {
         return;
     }
-    check_backward(3, false, Accumulation::FloatAtomics);
-    check_backward(0, true, Accumulation::FloatAtomics);
+    for variant in raster_variants(&gpu(), "backward_matches_cpu_float_atomics") {
+        check_backward(3, false, Accumulation::FloatAtomics, variant);
+        check_backward(0, true, Accumulation::FloatAtomics, variant);
+    }
 }
 
 #[test]
 fn backward_matches_cpu_compare_and_swap() {
-    check_backward(3, false, Accumulation::CompareAndSwap);
-    check_backward(1, true, Accumulation::CompareAndSwap);
+    for variant in raster_variants(&gpu(), "backward_matches_cpu_compare_and_swap") {
+        check_backward(3, false, Accumulation::CompareAndSwap, variant);
+        check_backward(1, true, Accumulation::CompareAndSwap, variant);
+    }
 }
 
 /// Densification statistics (`ops::splat::densify`) of two frames of one render, for a

@@ -658,3 +658,418 @@ pub fn screen_stats(
     stats[o + 1] = s[1];
     stats[o + 2] = s[2];
 }
+
+// ---------------------------------------------------------------------------------
+// Subgroup rasterizers for CPU devices (lavapipe), built with `subgroup-ballot`.
+//
+// llvmpipe runs the 8 lanes of a subgroup as one SIMD register, compiles a load whose
+// address it cannot prove uniform to a loop over the lanes, and runs a workgroup
+// barrier as a switch between coroutines. The workgroup rasterizers above pay both for
+// every splat: 256 invocations read each splat's 10 fields from workgroup memory, and
+// each batch costs three barriers. Here a workgroup is one subgroup of 8 lanes covering
+// an 8 × 4 block of a tile (8 workgroups per 16 × 16 tile); each lane loads one splat
+// of the next 8 of the tile's list, and every lane gets each of the 8 by broadcasts
+// with constant lane numbers (a register shuffle there): 11 loads per lane feed
+// 8 splats × 4 pixels, and no barrier is needed. The engine records these only where
+// the device is a CPU with subgroups of exactly 8 lanes, so every loop below is uniform
+// (the whole subgroup runs it to the end) and every broadcast reads an active lane.
+// ---------------------------------------------------------------------------------
+
+/// Pixel rows per lane of the subgroup rasterizers (an 8 × 4 block per workgroup).
+#[cfg(feature = "subgroup-ballot")]
+const SG_ROWS: u32 = 4;
+#[cfg(feature = "subgroup-ballot")]
+const _: () = assert!(TILE_SIZE == 16 && SG_ROWS == 4);
+
+/// Lane `$u`'s splat view, in every lane.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_view {
+    ($s:ident, $u:literal) => {
+        SplatView {
+            x: crate::subgroup::broadcast::<$u>($s.x),
+            y: crate::subgroup::broadcast::<$u>($s.y),
+            depth: crate::subgroup::broadcast::<$u>($s.depth),
+            conic: [
+                crate::subgroup::broadcast::<$u>($s.conic[0]),
+                crate::subgroup::broadcast::<$u>($s.conic[1]),
+                crate::subgroup::broadcast::<$u>($s.conic[2]),
+            ],
+            opacity: crate::subgroup::broadcast::<$u>($s.opacity),
+            color: [
+                crate::subgroup::broadcast::<$u>($s.color[0]),
+                crate::subgroup::broadcast::<$u>($s.color[1]),
+                crate::subgroup::broadcast::<$u>($s.color[2]),
+            ],
+        }
+    };
+}
+
+/// Repeats `$m!(u, ...)` for u = 0..8 (constant lane numbers for the broadcasts).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_lanes {
+    ($m:ident $(, $arg:tt)*) => {
+        $m!(0 $(, $arg)*); $m!(1 $(, $arg)*); $m!(2 $(, $arg)*); $m!(3 $(, $arg)*);
+        $m!(4 $(, $arg)*); $m!(5 $(, $arg)*); $m!(6 $(, $arg)*); $m!(7 $(, $arg)*);
+    };
+}
+
+/// Writes one pixel of the forward outputs.
+#[cfg(feature = "subgroup-ballot")]
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn store_pixel_fwd(
+    p: usize,
+    state: &PixelFwd<f32>,
+    frame: &FrameParams,
+    rgb: &mut [f32],
+    alpha: &mut [f32],
+    depth: &mut [f32],
+    contributors: &mut [u32],
+    transmittance: &mut [f32],
+    blended: &mut [u32],
+) {
+    let c = state.rgb(frame.background);
+    rgb[3 * p] = c[0];
+    rgb[3 * p + 1] = c[1];
+    rgb[3 * p + 2] = c[2];
+    alpha[p] = 1.0 - state.transmittance;
+    depth[p] = state.depth;
+    contributors[p] = state.contributors;
+    transmittance[p] = state.transmittance;
+    blended[p] = state.blended;
+}
+
+/// [`rasterize_fwd`] for CPU devices with subgroups of 8 (see the section header):
+/// the same blending of the same splats in the same order per pixel, so the same
+/// outputs. Dispatched on `[2 · tiles_x, 4 · tiles_y]` workgroups of 8.
+#[cfg(feature = "subgroup-ballot")]
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn rasterize_fwd_subgroup(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
+) {
+    let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
+    let px = group.x * 8 + lane;
+    let py = group.y * SG_ROWS;
+    let cfg = BlendSettings::<f32>::from_frame(frame);
+    let start = ranges[2 * t];
+    let end = ranges[2 * t + 1];
+    let fx = px as f32 + 0.5;
+    let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
+    let inside_x = px < frame.width;
+    let mut s0 = PixelFwd::<f32>::new();
+    let mut s1 = PixelFwd::<f32>::new();
+    let mut s2 = PixelFwd::<f32>::new();
+    let mut s3 = PixelFwd::<f32>::new();
+    s0.done = !(inside_x && py < frame.height);
+    s1.done = !(inside_x && py + 1 < frame.height);
+    s2.done = !(inside_x && py + 2 < frame.height);
+    s3.done = !(inside_x && py + 3 < frame.height);
+    let mut base = start;
+    // Uniform loop (start, end and the vote are the same in every lane); 8 splats per
+    // iteration, so a tile's list may hold 8 × 65,535 splats under llvmpipe's cap.
+    while base < end {
+        // Lanes past the list's end load its first splat of this round, never used.
+        let k = if base + lane < end { base + lane } else { base };
+        let mine = splats[isect_values[k as usize] as usize].view();
+        macro_rules! step {
+            ($u:literal) => {
+                if base + $u < end {
+                    let v = sg_view!(mine, $u);
+                    let index = base - start + $u;
+                    if !s0.done {
+                        s0.blend(&v, index, fx, fy[0], &cfg);
+                    }
+                    if !s1.done {
+                        s1.blend(&v, index, fx, fy[1], &cfg);
+                    }
+                    if !s2.done {
+                        s2.blend(&v, index, fx, fy[2], &cfg);
+                    }
+                    if !s3.done {
+                        s3.blend(&v, index, fx, fy[3], &cfg);
+                    }
+                }
+            };
+        }
+        sg_lanes!(step);
+        if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
+            break;
+        }
+        base += 8;
+    }
+    if !inside_x {
+        return;
+    }
+    let w = frame.width;
+    if py < frame.height {
+        store_pixel_fwd((py * w + px) as usize, &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    }
+    if py + 1 < frame.height {
+        store_pixel_fwd(((py + 1) * w + px) as usize, &s1, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    }
+    if py + 2 < frame.height {
+        store_pixel_fwd(((py + 2) * w + px) as usize, &s2, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    }
+    if py + 3 < frame.height {
+        store_pixel_fwd(((py + 3) * w + px) as usize, &s3, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    }
+}
+
+/// Writes one pixel of the fused rasterizer's outputs.
+#[cfg(feature = "subgroup-ballot")]
+#[inline]
+fn store_pixel_fused(p: usize, state: &FusedPixel<f32>, frame: &FrameParams, base_rgb: &mut [f32], cloth_rgb: &mut [f32], cloth_alpha: &mut [f32], matte_rgb: &mut [f32]) {
+    let c = state.base.rgb(frame.background);
+    base_rgb[3 * p] = c[0];
+    base_rgb[3 * p + 1] = c[1];
+    base_rgb[3 * p + 2] = c[2];
+    cloth_rgb[3 * p] = state.cloth.color[0];
+    cloth_rgb[3 * p + 1] = state.cloth.color[1];
+    cloth_rgb[3 * p + 2] = state.cloth.color[2];
+    cloth_alpha[p] = 1.0 - state.cloth.transmittance;
+    matte_rgb[3 * p] = state.matte.color[0];
+    matte_rgb[3 * p + 1] = state.matte.color[1];
+    matte_rgb[3 * p + 2] = state.matte.color[2];
+}
+
+/// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
+/// header), on `[2 · tiles_x, 4 · tiles_y]` workgroups of 8.
+#[cfg(feature = "subgroup-ballot")]
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn rasterize_fused_fwd_subgroup(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+) {
+    let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
+    let px = group.x * 8 + lane;
+    let py = group.y * SG_ROWS;
+    let cfg = BlendSettings::<f32>::from_frame(frame);
+    let start = ranges[2 * t];
+    let end = ranges[2 * t + 1];
+    let fx = px as f32 + 0.5;
+    let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
+    let inside_x = px < frame.width;
+    let mut s0 = FusedPixel::<f32>::new();
+    let mut s1 = FusedPixel::<f32>::new();
+    let mut s2 = FusedPixel::<f32>::new();
+    let mut s3 = FusedPixel::<f32>::new();
+    let mut d0 = !(inside_x && py < frame.height);
+    let mut d1 = !(inside_x && py + 1 < frame.height);
+    let mut d2 = !(inside_x && py + 2 < frame.height);
+    let mut d3 = !(inside_x && py + 3 < frame.height);
+    let mut base = start;
+    // Uniform loop, as in rasterize_fwd_subgroup.
+    while base < end {
+        let k = if base + lane < end { base + lane } else { base };
+        let g = isect_values[k as usize] as usize;
+        let mine = splats[g].view();
+        let mine_mask = masks[g];
+        macro_rules! step {
+            ($u:literal) => {
+                if base + $u < end {
+                    let v = sg_view!(mine, $u);
+                    let mask = crate::subgroup::broadcast_u32::<$u>(mine_mask);
+                    if !d0 {
+                        s0.blend(&v, mask, fx, fy[0], &cfg);
+                        d0 = s0.done();
+                    }
+                    if !d1 {
+                        s1.blend(&v, mask, fx, fy[1], &cfg);
+                        d1 = s1.done();
+                    }
+                    if !d2 {
+                        s2.blend(&v, mask, fx, fy[2], &cfg);
+                        d2 = s2.done();
+                    }
+                    if !d3 {
+                        s3.blend(&v, mask, fx, fy[3], &cfg);
+                        d3 = s3.done();
+                    }
+                }
+            };
+        }
+        sg_lanes!(step);
+        if crate::subgroup::all8(d0 && d1 && d2 && d3) {
+            break;
+        }
+        base += 8;
+    }
+    if !inside_x {
+        return;
+    }
+    let w = frame.width;
+    if py < frame.height {
+        store_pixel_fused((py * w + px) as usize, &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    }
+    if py + 1 < frame.height {
+        store_pixel_fused(((py + 1) * w + px) as usize, &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    }
+    if py + 2 < frame.height {
+        store_pixel_fused(((py + 2) * w + px) as usize, &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    }
+    if py + 3 < frame.height {
+        store_pixel_fused(((py + 3) * w + px) as usize, &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    }
+}
+
+/// One pixel's backward state for [`rasterize_bwd_subgroup_entry`]: its state, and the
+/// number of its tile's splats it blended up to its last (0 outside the image).
+#[cfg(feature = "subgroup-ballot")]
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn load_pixel_bwd(
+    px: u32,
+    py: u32,
+    frame: &FrameParams,
+    contributors: &[u32],
+    transmittance: &[f32],
+    grad_rgb: &[f32],
+    grad_alpha: &[f32],
+    grad_depth: &[f32],
+) -> (PixelBwd<f32>, u32) {
+    if px >= frame.width || py >= frame.height {
+        return (PixelBwd::new(1.0, frame.background, [0.0; 3], 0.0, 0.0), 0);
+    }
+    let p = (py * frame.width + px) as usize;
+    let state = PixelBwd::new(
+        transmittance[p],
+        frame.background,
+        [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]],
+        grad_alpha[p],
+        grad_depth[p],
+    );
+    (state, contributors[p])
+}
+
+/// The backward rasterizer for CPU devices with subgroups of 8 (see the section
+/// header): each workgroup walks its 8 × 4 block's splats back to front, 8 at a time
+/// (lane `l` loads the `l`-th from the back), each pixel skipping what lies behind its
+/// own last splat; per splat the lanes' gradients (4 pixels each) are summed across
+/// the subgroup by broadcasts and the splat's lane adds the sum once, so a splat costs
+/// 10 atomics per block instead of 10 per pixel. `$accumulate(grads, index, value)`
+/// adds into the per-splat gradients (compare-and-swap on f32 bits, or fixed point).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rasterize_bwd_subgroup_entry {
+    ($name:ident, $accumulate:path, $($attr:meta),*) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] contributors: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittance: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] grad_rgb: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
+        ) {
+            let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
+            let px = group.x * 8 + lane;
+            let py = group.y * SG_ROWS;
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let start = ranges[2 * t];
+            let fx = px as f32 + 0.5;
+            let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
+            let (mut s0, m0) = load_pixel_bwd(px, py, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s1, m1) = load_pixel_bwd(px, py + 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s2, m2) = load_pixel_bwd(px, py + 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s3, m3) = load_pixel_bwd(px, py + 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
+            // `top`: splats of the tile's list still to visit (uniform).
+            let mut top = last;
+            while top > 0 {
+                let len = if top < 8 { top } else { 8 };
+                // Lane l: list index top - 1 - l (lanes past the round load its first).
+                let index = if lane < len { top - 1 - lane } else { top - 1 };
+                let id = isect_values[(start + index) as usize];
+                let mine = splats[id as usize].view();
+                // The subgroup's sums for this lane's splat.
+                let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
+                let mut hit = false;
+                macro_rules! step {
+                    ($u:literal) => {
+                        if $u < len {
+                            let v = sg_view!(mine, $u);
+                            let at = top - 1 - $u;
+                            let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
+                            let mut any = false;
+                            macro_rules! pixel {
+                                ($s:ident, $m:ident, $r:literal) => {
+                                    if at < $m {
+                                        if let Some(grad) = $s.step(&v, fx, fy[$r], &cfg) {
+                                            let a = grad.to_array();
+                                            g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
+                                            g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
+                                            any = true;
+                                        }
+                                    }
+                                };
+                            }
+                            pixel!(s0, m0, 0);
+                            pixel!(s1, m1, 1);
+                            pixel!(s2, m2, 2);
+                            pixel!(s3, m3, 3);
+                            if !crate::subgroup::all8(!any) {
+                                let total = [
+                                    crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
+                                    crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
+                                    crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
+                                    crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
+                                    crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
+                                ];
+                                if lane == $u {
+                                    sums = total;
+                                    hit = true;
+                                }
+                            }
+                        }
+                    };
+                }
+                sg_lanes!(step);
+                // One lane per splat adds the block's sum (written once, not per step:
+                // each bounds-checked access nests the rest of the kernel deeper).
+                if hit {
+                    let base = id as usize * SPLAT_GRAD_FLOATS;
+                    let mut i = 0;
+                    while i < SPLAT_GRAD_FLOATS {
+                        $accumulate(splat_grads, base + i, sums[i]);
+                        i += 1;
+                    }
+                }
+                top -= len;
+            }
+        }
+    };
+}
+
+#[cfg(feature = "subgroup-ballot")]
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, atomics::add_f32_cas, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
+#[cfg(feature = "subgroup-ballot")]
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, atomics::add_fixed, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");

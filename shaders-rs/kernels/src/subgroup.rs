@@ -18,3 +18,35 @@ pub fn broadcast<const LANE: u32>(v: f32) -> f32 {
     // is all OpGroupNonUniformBroadcast requires for a defined result.
     unsafe { subgroup_broadcast_const::<f32, LANE>(v) }
 }
+
+/// [`broadcast`] for a `u32`.
+#[inline]
+pub fn broadcast_u32<const LANE: u32>(v: u32) -> u32 {
+    // SAFETY: as in `broadcast`.
+    unsafe { subgroup_broadcast_const::<u32, LANE>(v) }
+}
+
+/// The sum over the 8 lanes of `v`, in every lane (lane order, so every lane gets the
+/// same bits). Same conditions as [`broadcast`], for lanes 0..8.
+#[inline]
+pub fn sum8(v: f32) -> f32 {
+    ((broadcast::<0>(v) + broadcast::<1>(v)) + (broadcast::<2>(v) + broadcast::<3>(v)))
+        + ((broadcast::<4>(v) + broadcast::<5>(v)) + (broadcast::<6>(v) + broadcast::<7>(v)))
+}
+
+/// The largest `v` over the 8 lanes, in every lane (same conditions as [`sum8`]).
+#[inline]
+pub fn max8_u32(v: u32) -> u32 {
+    let a = broadcast_u32::<0>(v).max(broadcast_u32::<1>(v)).max(broadcast_u32::<2>(v).max(broadcast_u32::<3>(v)));
+    let b = broadcast_u32::<4>(v).max(broadcast_u32::<5>(v)).max(broadcast_u32::<6>(v).max(broadcast_u32::<7>(v)));
+    a.max(b)
+}
+
+/// Whether `v` holds in all 8 lanes (same conditions as [`sum8`]).
+#[inline]
+pub fn all8(v: bool) -> bool {
+    let x = if v { 1u32 } else { 0 };
+    (broadcast_u32::<0>(x) & broadcast_u32::<1>(x) & broadcast_u32::<2>(x) & broadcast_u32::<3>(x)
+        & broadcast_u32::<4>(x) & broadcast_u32::<5>(x) & broadcast_u32::<6>(x) & broadcast_u32::<7>(x))
+        != 0
+}

@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::Context as _;
 use drape_cli_support::median;
 use drape_engine::ops::splat::ply;
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
 use drape_engine::Context;
 use serde_json::json;
@@ -39,9 +39,34 @@ pub struct SplatArgs {
     /// the same bits on every run.
     #[arg(long)]
     pub deterministic: bool,
+    /// Rasterizer kernels, comma-separated to measure several side by side: auto
+    /// (subgroup on a CPU device with subgroups of 8, else workgroup), workgroup
+    /// (16x16 invocations per tile, batches in workgroup memory: the GPU kernels) or
+    /// subgroup (one subgroup of 8 per 8x4 block, broadcasts instead of workgroup
+    /// memory: for lavapipe).
+    #[arg(long, value_delimiter = ',', default_value = "auto")]
+    pub raster: Vec<RasterChoice>,
     /// Print one JSON object on stdout instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `--raster` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum RasterChoice {
+    Auto,
+    Workgroup,
+    Subgroup,
+}
+
+impl RasterChoice {
+    pub fn variant(self) -> RasterVariant {
+        match self {
+            RasterChoice::Auto => RasterVariant::Auto,
+            RasterChoice::Workgroup => RasterVariant::Workgroup,
+            RasterChoice::Subgroup => RasterVariant::Subgroup,
+        }
+    }
 }
 
 fn accumulation(args: &SplatArgs) -> Accumulation {
@@ -107,13 +132,14 @@ fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
     Ok(out)
 }
 
-fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs) -> anyhow::Result<serde_json::Value> {
+fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice) -> anyhow::Result<serde_json::Value> {
     let (w, h) = (cfg.camera.width, cfg.camera.height);
     let n = cfg.cloud.len();
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(ctx, "bench params", &cfg.cloud)?;
     let grads = GaussianBuffers::new(ctx, "bench grads", n, cfg.cloud.sh_degree)?;
     let mut renderer = SplatRenderer::new(ctx, w, h, n)?;
+    renderer.set_raster_variant(raster.variant())?;
     let pixels = (w * h) as usize;
     let grad_rgb = ctx.upload("bench grad rgb", &vec![1e-3f32; 3 * pixels])?;
     let grad_alpha = ctx.upload("bench grad alpha", &vec![1e-3f32; pixels])?;
@@ -158,6 +184,7 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs) -> anyhow::Result<se
         "forward_fps": 1e3 / fwd,
         "forward_backward_median_ms": both,
         "forward_backward_fps": 1e3 / both,
+        "raster": format!("{:?}", renderer.raster_variant()).to_lowercase(),
         "blend_steps": image.blend_steps,
         "blend_steps_per_s": image.blend_steps as f64 / (fwd / 1e3),
         "passes": passes.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>(),
@@ -167,8 +194,10 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs) -> anyhow::Result<se
 pub fn run(ctx: &Context, args: &SplatArgs) -> anyhow::Result<serde_json::Value> {
     let mut results = Vec::new();
     for cfg in configs(args)? {
-        eprintln!("splat: {} ...", cfg.label);
-        results.push(bench_one(ctx, &cfg, args).with_context(|| format!("splat benchmark '{}'", cfg.label))?);
+        for &raster in &args.raster {
+            eprintln!("splat: {} ({raster:?} rasterizer) ...", cfg.label);
+            results.push(bench_one(ctx, &cfg, args, raster).with_context(|| format!("splat benchmark '{}' ({raster:?} rasterizer)", cfg.label))?);
+        }
     }
     Ok(json!({
         "job": "splat",
@@ -185,8 +214,9 @@ pub fn print_table(r: &serde_json::Value) {
     println!("splat on {} ({} runs, median)", r["device"].as_str().unwrap_or("?"), r["runs"]);
     for c in r["results"].as_array().into_iter().flatten() {
         println!(
-            "  {:<28} fwd {:>9.2} ms {:>7.2} FPS | fwd+bwd {:>9.2} ms {:>7.2} FPS | {:>10} isect | {:>7.1} M blend/s",
+            "  {:<28} {:<9} fwd {:>9.2} ms {:>7.2} FPS | fwd+bwd {:>9.2} ms {:>7.2} FPS | {:>10} isect | {:>7.1} M blend/s",
             c["config"].as_str().unwrap_or("?"),
+            c["raster"].as_str().unwrap_or("?"),
             c["forward_median_ms"].as_f64().unwrap_or(0.0),
             c["forward_fps"].as_f64().unwrap_or(0.0),
             c["forward_backward_median_ms"].as_f64().unwrap_or(0.0),

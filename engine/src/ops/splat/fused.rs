@@ -68,6 +68,11 @@ impl FusedRenderer {
         })
     }
 
+    /// Chooses the rasterizer kernels (see [`SplatRenderer::set_raster_variant`]).
+    pub fn set_raster_variant(&mut self, variant: crate::ops::splat::render::RasterVariant) -> Result<()> {
+        self.renderer.set_raster_variant(variant)
+    }
+
     /// Sets each Gaussian's layer mask ([`layer_masks`]), in the cloud's order.
     pub fn set_masks(&mut self, ctx: &Context, masks: &[u32]) -> Result<()> {
         ctx.write_buffer(&mut self.masks, masks)
@@ -81,8 +86,9 @@ impl FusedRenderer {
     /// Records projection, one depth sort, binning and the fused rasterization.
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         self.renderer.record_binning(rec, gaussians)?;
-        let (frame, splats, isect_values, ranges, tiles) = self.renderer.binned();
-        rec.pass("splat.rasterize_fused_fwd", Kernel::SplatRasterizeFusedFwd)
+        let (frame, splats, isect_values, ranges) = self.renderer.binned();
+        let (kernel, grid) = self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatRasterizeFusedFwdSubgroup);
+        rec.pass("splat.rasterize_fused_fwd", kernel)
             .read("frame", frame)
             .read("splats", splats)
             .read("isect_values", isect_values)
@@ -92,7 +98,7 @@ impl FusedRenderer {
             .write("cloth_rgb", &self.cloth_rgb)
             .write("cloth_alpha", &self.cloth_alpha)
             .write("matte_rgb", &self.matte_rgb)
-            .dispatch(tiles)
+            .dispatch(grid)
     }
 
     /// As [`SplatRenderer::finish_forward`].

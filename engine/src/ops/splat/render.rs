@@ -56,6 +56,32 @@ fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
     ctx.create_buffer(name, BufferDesc::gpu_only(len as u64 * 4))
 }
 
+/// Which rasterizer kernels a renderer records (forward, fused and backward alike).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RasterVariant {
+    /// [`Subgroup`](Self::Subgroup) on CPU devices with subgroups of 8 lanes and ballot
+    /// operations (lavapipe), [`Workgroup`](Self::Workgroup) elsewhere.
+    #[default]
+    Auto,
+    /// One workgroup of 16 × 16 invocations per tile, batches of 256 splats staged in
+    /// workgroup memory: the GPU kernels.
+    Workgroup,
+    /// One subgroup of 8 lanes per 8 × 4 block of a tile, splats passed between lanes by
+    /// broadcasts, no workgroup memory or barriers; the backward sums each splat's
+    /// gradient over the block before one atomic add per value (compare-and-swap where
+    /// float atomics were asked: the adds are 32x rarer). For llvmpipe, where a load
+    /// whose address is not provably uniform is a loop over the lanes and a barrier a
+    /// coroutine switch. Needs a CPU device with subgroups of exactly 8 lanes.
+    Subgroup,
+}
+
+/// Whether the device can run the subgroup rasterizers: a CPU device (where they are
+/// faster; on a GPU 8-invocation workgroups would waste most of each core) whose
+/// subgroups are 8 lanes with ballot operations in compute.
+pub fn subgroup_raster_supported(info: &crate::DeviceInfo) -> bool {
+    info.kind == crate::DeviceKind::Cpu && info.subgroup_size == 8 && info.subgroup_ballot
+}
+
 /// Gaussian parameters (or their gradients) on the GPU, in the layout of
 /// [`GaussianCloud`].
 pub struct GaussianBuffers {
@@ -188,6 +214,8 @@ pub struct SplatRenderer {
     /// For [`Accumulation::Deterministic`]: made on the first such backward.
     fixed: Option<FixedPointScratch>,
     intersections: u32,
+    /// The rasterizer kernels recorded (never `Auto`).
+    raster: RasterVariant,
 }
 
 impl SplatRenderer {
@@ -255,7 +283,53 @@ impl SplatRenderer {
             splat_grads: f32_buffer(ctx, "splat gradients", SPLAT_GRAD_FLOATS * n as usize)?,
             fixed: None,
             intersections: 0,
+            raster: Self::resolve_variant(ctx, RasterVariant::Auto, fp_tiles(width, height))?,
         })
+    }
+
+    /// `variant` as this device runs it for a grid of `tiles` 16 × 16 tiles.
+    fn resolve_variant(ctx: &Context, variant: RasterVariant, tiles: [u32; 2]) -> Result<RasterVariant> {
+        let info = ctx.info();
+        let grid = info.max_compute_workgroup_count;
+        // The subgroup kernels run 2 × 4 workgroups per tile.
+        let fits = u64::from(tiles[0]) * 2 <= u64::from(grid[0]) && u64::from(tiles[1]) * 4 <= u64::from(grid[1]);
+        match variant {
+            RasterVariant::Auto if subgroup_raster_supported(info) && fits => Ok(RasterVariant::Subgroup),
+            RasterVariant::Auto | RasterVariant::Workgroup => Ok(RasterVariant::Workgroup),
+            RasterVariant::Subgroup if !subgroup_raster_supported(info) => Err(EngineError::MissingFeature {
+                kernel: "splat::rasterize_fwd_subgroup",
+                feature: "a CPU device with subgroups of 8 lanes with ballot operations",
+            }),
+            RasterVariant::Subgroup if !fits => Err(EngineError::too_large(
+                "16x16 tiles along an image side for the subgroup rasterizer (4 workgroups per tile row)",
+                u64::from(tiles[1]) * 4,
+                u64::from(grid[1]),
+                "the device's maxComputeWorkGroupCount",
+            )),
+            RasterVariant::Subgroup => Ok(RasterVariant::Subgroup),
+        }
+    }
+
+    /// Chooses the rasterizer kernels (see [`RasterVariant`]); both give the same
+    /// images, and gradients equal up to the order of float additions.
+    pub fn set_raster_variant(&mut self, variant: RasterVariant) -> Result<()> {
+        self.raster = Self::resolve_variant(&self.ctx, variant, fp_tiles(self.width, self.height))?;
+        Ok(())
+    }
+
+    /// The rasterizer kernels this renderer records (`Workgroup` or `Subgroup`).
+    pub fn raster_variant(&self) -> RasterVariant {
+        self.raster
+    }
+
+    /// The kernel of the chosen variant and its dispatch, given the workgroup kernel
+    /// and its subgroup twin.
+    pub(crate) fn raster_dispatch(&self, workgroup: Kernel, subgroup: Kernel) -> (Kernel, [u32; 3]) {
+        let fp = &self.frame_params;
+        match self.raster {
+            RasterVariant::Subgroup => (subgroup, [fp.tiles_x * 2, fp.tiles_y * 4, 1]),
+            _ => (workgroup, [fp.tiles_x, fp.tiles_y, 1]),
+        }
     }
 
     pub fn size(&self) -> (u32, u32) {
@@ -375,9 +449,9 @@ impl SplatRenderer {
     /// interleaves them.
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         self.record_binning(rec, gaussians)?;
-        let fp = &self.frame_params;
+        let (kernel, grid) = self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatRasterizeFwdSubgroup);
         let p = &self.pixels;
-        rec.pass("splat.rasterize_fwd", Kernel::SplatRasterizeFwd)
+        rec.pass("splat.rasterize_fwd", kernel)
             .read("frame", &self.frame)
             .read("splats", &self.splats)
             .read("isect_values", &self.isect_values)
@@ -388,14 +462,13 @@ impl SplatRenderer {
             .write("contributors", &p.contributors)
             .write("transmittance", &p.transmittance)
             .write("blended", &p.blended)
-            .dispatch([fp.tiles_x, fp.tiles_y, 1])
+            .dispatch(grid)
     }
 
     /// The buffers a rasterizer reads after [`record_binning`](Self::record_binning):
-    /// frame parameters, projected splats, sorted intersection values, tile ranges; and
-    /// the tile grid.
-    pub(crate) fn binned(&self) -> (&Buffer, &Buffer, &Buffer, &Buffer, [u32; 3]) {
-        (&self.frame, &self.splats, &self.isect_values, &self.ranges, [self.frame_params.tiles_x, self.frame_params.tiles_y, 1])
+    /// frame parameters, projected splats, sorted intersection values, tile ranges.
+    pub(crate) fn binned(&self) -> (&Buffer, &Buffer, &Buffer, &Buffer) {
+        (&self.frame, &self.splats, &self.isect_values, &self.ranges)
     }
 
     /// Everything of [`record_forward`](Self::record_forward) before rasterization:
@@ -492,12 +565,15 @@ impl SplatRenderer {
         if method == Method::FixedPoint && self.fixed.is_none() {
             self.fixed = Some(FixedPointScratch::new(&self.ctx, "splat gradients", SPLAT_GRAD_FLOATS as u32 * self.max_count)?);
         }
+        let subgroup = self.raster == RasterVariant::Subgroup;
         let (kernel, target) = match method {
+            Method::FloatAtomics | Method::CompareAndSwap if subgroup => (Kernel::SplatRasterizeBwdSubgroupCas, &self.splat_grads),
             Method::FloatAtomics => (Kernel::SplatRasterizeBwdAtomic, &self.splat_grads),
             Method::CompareAndSwap => (Kernel::SplatRasterizeBwdCas, &self.splat_grads),
+            Method::FixedPoint if subgroup => (Kernel::SplatRasterizeBwdSubgroupFixed, self.fixed.as_ref().expect("made above").buffer()),
             Method::FixedPoint => (Kernel::SplatRasterizeBwdFixed, self.fixed.as_ref().expect("made above").buffer()),
         };
-        let fp = self.frame_params;
+        let (_, grid) = self.raster_dispatch(kernel, kernel);
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
         rec.fill(target, 0);
@@ -513,7 +589,7 @@ impl SplatRenderer {
             .read("grad_alpha", grad_alpha)
             .read("grad_depth", grad_depth)
             .write("splat_grads", target)
-            .dispatch([fp.tiles_x, fp.tiles_y, 1])?;
+            .dispatch(grid)?;
         if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
             fixed.record_resolve(&mut rec, &self.splat_grads, values)?;
         }
@@ -577,4 +653,9 @@ pub fn render_image(ctx: &Context, cloud: &GaussianCloud, camera: &PinholeCamera
     let mut renderer = SplatRenderer::new(ctx, camera.width, camera.height, cloud.len())?;
     let stats = renderer.forward(&gaussians, camera, settings)?;
     Ok((renderer.read_image()?, stats))
+}
+
+/// The 16 × 16 tile grid of a `width` × `height` image.
+fn fp_tiles(width: u32, height: u32) -> [u32; 2] {
+    [width.div_ceil(16), height.div_ceil(16)]
 }
