@@ -969,10 +969,11 @@ fn load_pixel_bwd(
 /// own last splat; per splat the lanes' gradients (4 pixels each) are summed across
 /// the subgroup by broadcasts and the splat's lane adds the sum once, so a splat costs
 /// 10 atomics per block instead of 10 per pixel. `$accumulate(grads, index, value)`
-/// adds into the per-splat gradients (compare-and-swap on f32 bits, or fixed point).
+/// adds into the per-splat gradients (float atomics, compare-and-swap on f32 bits, or
+/// fixed point).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rasterize_bwd_subgroup_entry {
-    ($name:ident, $accumulate:path, $($attr:meta),*) => {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(8)))]
@@ -988,7 +989,7 @@ macro_rules! rasterize_bwd_subgroup_entry {
             #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] grad_rgb: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_alpha: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [$grad_ty],
         ) {
             let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
             let px = group.x * 8 + lane;
@@ -1069,7 +1070,9 @@ macro_rules! rasterize_bwd_subgroup_entry {
     };
 }
 
+#[cfg(all(feature = "subgroup-ballot", feature = "float-atomics"))]
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_atomic, f32, atomics::add_f32, doc = "Backward rasterizer for CPU devices with subgroups of 8, float atomics.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, atomics::add_f32_cas, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, atomics::add_fixed, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");

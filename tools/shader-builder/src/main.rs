@@ -59,35 +59,47 @@ fn parse_args() -> Result<Args, String> {
 /// A built module and the optional device capability it needs.
 struct Module {
     bytes: Vec<u8>,
-    /// SPIR-V capability beyond the baseline (e.g. float atomics), or None.
-    requires: Option<&'static str>,
+    /// SPIR-V capabilities beyond the baseline (e.g. float atomics).
+    requires: &'static [&'static str],
 }
 
 /// One rust-gpu build of the kernels crate. Capabilities are declared per build, not per
 /// entry point, so kernels that need one exist only in the build of their cargo
 /// feature, and every other module stays loadable on devices without it.
 struct Flavour {
-    /// The kernels crate's feature (None: the baseline build).
-    feature: Option<&'static str>,
+    /// The kernels crate's features (none: the baseline build).
+    features: &'static [&'static str],
     capabilities: &'static [spirv_builder::Capability],
     extension: Option<&'static str>,
-    /// What the manifest records as the device capability its new modules need.
-    requires: Option<&'static str>,
+    /// What the manifest records as the device capabilities its new modules need.
+    requires: &'static [&'static str],
 }
 
 const FLAVOURS: &[Flavour] = &[
-    Flavour { feature: None, capabilities: &[], extension: None, requires: None },
+    Flavour { features: &[], capabilities: &[], extension: None, requires: &[] },
     Flavour {
-        feature: Some("float-atomics"),
+        features: &["float-atomics"],
         capabilities: &[spirv_builder::Capability::AtomicFloat32AddEXT],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
-        requires: Some("AtomicFloat32AddEXT"),
+        requires: &["AtomicFloat32AddEXT"],
     },
     Flavour {
-        feature: Some("subgroup-ballot"),
+        features: &["subgroup-ballot"],
         capabilities: &[spirv_builder::Capability::GroupNonUniform, spirv_builder::Capability::GroupNonUniformBallot],
         extension: None,
-        requires: Some("GroupNonUniformBallot"),
+        requires: &["GroupNonUniformBallot"],
+    },
+    // Kernels that need both (the subgroup rasterizer's float-atomic backward); every
+    // other module of this build was already taken from an earlier one.
+    Flavour {
+        features: &["subgroup-ballot", "float-atomics"],
+        capabilities: &[
+            spirv_builder::Capability::GroupNonUniform,
+            spirv_builder::Capability::GroupNonUniformBallot,
+            spirv_builder::Capability::AtomicFloat32AddEXT,
+        ],
+        extension: Some("SPV_EXT_shader_atomic_float_add"),
+        requires: &["GroupNonUniformBallot", "AtomicFloat32AddEXT"],
     },
 ];
 
@@ -96,10 +108,7 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     // One target directory per configuration, shared by every build (also of temporary
     // copies) so that spirv-std and friends are compiled once; separate per
     // configuration because cargo does not tell the two apart by their flags alone.
-    let dir = match flavour.feature {
-        None => "spirv-kernels".to_string(),
-        Some(f) => format!("spirv-kernels-{f}"),
-    };
+    let dir = if flavour.features.is_empty() { "spirv-kernels".to_string() } else { format!("spirv-kernels-{}", flavour.features.join("-")) };
     let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target").join(dir);
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
@@ -117,8 +126,8 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     if let Some(e) = flavour.extension {
         builder = builder.extension(e);
     }
-    if let Some(f) = flavour.feature {
-        builder.shader_crate_features.features = vec![f.to_string()];
+    if !flavour.features.is_empty() {
+        builder.shader_crate_features.features = flavour.features.iter().map(|f| f.to_string()).collect();
     }
     let result = builder
         .build()
@@ -182,7 +191,7 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
             "workgroup_size": workgroup_size,
             "bindings": bindings,
             "bytes": bytes.len(),
-            "requires": module.requires.map(|r| vec![r]).unwrap_or_default(),
+            "requires": module.requires,
         }));
     }
     let manifest = serde_json::json!({

@@ -68,8 +68,7 @@ pub enum RasterVariant {
     Workgroup,
     /// One subgroup of 8 lanes per 8 × 4 block of a tile, splats passed between lanes by
     /// broadcasts, no workgroup memory or barriers; the backward sums each splat's
-    /// gradient over the block before one atomic add per value (compare-and-swap where
-    /// float atomics were asked: the adds are 32x rarer). For llvmpipe, where a load
+    /// gradient over the block before one atomic add per value. For llvmpipe, where a load
     /// whose address is not provably uniform is a loop over the lanes and a barrier a
     /// coroutine switch. Needs a CPU device with subgroups of exactly 8 lanes.
     Subgroup,
@@ -567,7 +566,8 @@ impl SplatRenderer {
         }
         let subgroup = self.raster == RasterVariant::Subgroup;
         let (kernel, target) = match method {
-            Method::FloatAtomics | Method::CompareAndSwap if subgroup => (Kernel::SplatRasterizeBwdSubgroupCas, &self.splat_grads),
+            Method::FloatAtomics if subgroup => (Kernel::SplatRasterizeBwdSubgroupAtomic, &self.splat_grads),
+            Method::CompareAndSwap if subgroup => (Kernel::SplatRasterizeBwdSubgroupCas, &self.splat_grads),
             Method::FloatAtomics => (Kernel::SplatRasterizeBwdAtomic, &self.splat_grads),
             Method::CompareAndSwap => (Kernel::SplatRasterizeBwdCas, &self.splat_grads),
             Method::FixedPoint if subgroup => (Kernel::SplatRasterizeBwdSubgroupFixed, self.fixed.as_ref().expect("made above").buffer()),
