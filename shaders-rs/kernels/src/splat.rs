@@ -713,6 +713,44 @@ macro_rules! sg_lanes {
     };
 }
 
+/// Where one lane of a subgroup rasterizer works: its tile, its pixel column and the 4
+/// rows of its 8 × 4 block (workgroup `group` of the `[2 · tiles_x, 4 · tiles_y]` grid).
+#[cfg(feature = "subgroup-ballot")]
+struct Block {
+    tile: usize,
+    px: u32,
+    /// The block's first row.
+    py: u32,
+    fx: f32,
+    fy: [f32; 4],
+    /// Whether the lane's pixel of each row is inside the image.
+    inside: [bool; 4],
+}
+
+#[cfg(feature = "subgroup-ballot")]
+impl Block {
+    #[inline]
+    fn new(group: UVec3, lane: u32, frame: &FrameParams) -> Self {
+        let px = group.x * 8 + lane;
+        let py = group.y * SG_ROWS;
+        let x_in = px < frame.width;
+        Block {
+            tile: ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize,
+            px,
+            py,
+            fx: px as f32 + 0.5,
+            fy: [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5],
+            inside: [x_in && py < frame.height, x_in && py + 1 < frame.height, x_in && py + 2 < frame.height, x_in && py + 3 < frame.height],
+        }
+    }
+
+    /// The pixel index of row `r` (only meaningful where `inside[r]`).
+    #[inline]
+    fn pixel(&self, r: u32, frame: &FrameParams) -> usize {
+        ((self.py + r) * frame.width + self.px) as usize
+    }
+}
+
 /// Writes one pixel of the forward outputs.
 #[cfg(feature = "subgroup-ballot")]
 #[allow(clippy::too_many_arguments)]
@@ -759,23 +797,19 @@ pub fn rasterize_fwd_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
 ) {
-    let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
-    let px = group.x * 8 + lane;
-    let py = group.y * SG_ROWS;
+    let b = Block::new(group, lane, frame);
+    let (fx, fy) = (b.fx, b.fy);
     let cfg = BlendSettings::<f32>::from_frame(frame);
-    let start = ranges[2 * t];
-    let end = ranges[2 * t + 1];
-    let fx = px as f32 + 0.5;
-    let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
-    let inside_x = px < frame.width;
+    let start = ranges[2 * b.tile];
+    let end = ranges[2 * b.tile + 1];
     let mut s0 = PixelFwd::<f32>::new();
     let mut s1 = PixelFwd::<f32>::new();
     let mut s2 = PixelFwd::<f32>::new();
     let mut s3 = PixelFwd::<f32>::new();
-    s0.done = !(inside_x && py < frame.height);
-    s1.done = !(inside_x && py + 1 < frame.height);
-    s2.done = !(inside_x && py + 2 < frame.height);
-    s3.done = !(inside_x && py + 3 < frame.height);
+    s0.done = !b.inside[0];
+    s1.done = !b.inside[1];
+    s2.done = !b.inside[2];
+    s3.done = !b.inside[3];
     let mut base = start;
     // Uniform loop (start, end and the vote are the same in every lane); 8 splats per
     // iteration, so a tile's list may hold 8 × 65,535 splats under llvmpipe's cap.
@@ -809,21 +843,17 @@ pub fn rasterize_fwd_subgroup(
         }
         base += 8;
     }
-    if !inside_x {
-        return;
+    if b.inside[0] {
+        store_pixel_fwd(b.pixel(0, frame), &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
     }
-    let w = frame.width;
-    if py < frame.height {
-        store_pixel_fwd((py * w + px) as usize, &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    if b.inside[1] {
+        store_pixel_fwd(b.pixel(1, frame), &s1, frame, rgb, alpha, depth, contributors, transmittance, blended);
     }
-    if py + 1 < frame.height {
-        store_pixel_fwd(((py + 1) * w + px) as usize, &s1, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    if b.inside[2] {
+        store_pixel_fwd(b.pixel(2, frame), &s2, frame, rgb, alpha, depth, contributors, transmittance, blended);
     }
-    if py + 2 < frame.height {
-        store_pixel_fwd(((py + 2) * w + px) as usize, &s2, frame, rgb, alpha, depth, contributors, transmittance, blended);
-    }
-    if py + 3 < frame.height {
-        store_pixel_fwd(((py + 3) * w + px) as usize, &s3, frame, rgb, alpha, depth, contributors, transmittance, blended);
+    if b.inside[3] {
+        store_pixel_fwd(b.pixel(3, frame), &s3, frame, rgb, alpha, depth, contributors, transmittance, blended);
     }
 }
 
@@ -862,23 +892,19 @@ pub fn rasterize_fused_fwd_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
 ) {
-    let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
-    let px = group.x * 8 + lane;
-    let py = group.y * SG_ROWS;
+    let b = Block::new(group, lane, frame);
+    let (fx, fy) = (b.fx, b.fy);
     let cfg = BlendSettings::<f32>::from_frame(frame);
-    let start = ranges[2 * t];
-    let end = ranges[2 * t + 1];
-    let fx = px as f32 + 0.5;
-    let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
-    let inside_x = px < frame.width;
+    let start = ranges[2 * b.tile];
+    let end = ranges[2 * b.tile + 1];
     let mut s0 = FusedPixel::<f32>::new();
     let mut s1 = FusedPixel::<f32>::new();
     let mut s2 = FusedPixel::<f32>::new();
     let mut s3 = FusedPixel::<f32>::new();
-    let mut d0 = !(inside_x && py < frame.height);
-    let mut d1 = !(inside_x && py + 1 < frame.height);
-    let mut d2 = !(inside_x && py + 2 < frame.height);
-    let mut d3 = !(inside_x && py + 3 < frame.height);
+    let mut d0 = !b.inside[0];
+    let mut d1 = !b.inside[1];
+    let mut d2 = !b.inside[2];
+    let mut d3 = !b.inside[3];
     let mut base = start;
     // Uniform loop, as in rasterize_fwd_subgroup.
     while base < end {
@@ -916,21 +942,17 @@ pub fn rasterize_fused_fwd_subgroup(
         }
         base += 8;
     }
-    if !inside_x {
-        return;
+    if b.inside[0] {
+        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
     }
-    let w = frame.width;
-    if py < frame.height {
-        store_pixel_fused((py * w + px) as usize, &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    if b.inside[1] {
+        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
     }
-    if py + 1 < frame.height {
-        store_pixel_fused(((py + 1) * w + px) as usize, &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    if b.inside[2] {
+        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
     }
-    if py + 2 < frame.height {
-        store_pixel_fused(((py + 2) * w + px) as usize, &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
-    }
-    if py + 3 < frame.height {
-        store_pixel_fused(((py + 3) * w + px) as usize, &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+    if b.inside[3] {
+        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
     }
 }
 
@@ -940,8 +962,8 @@ pub fn rasterize_fused_fwd_subgroup(
 #[allow(clippy::too_many_arguments)]
 #[inline]
 fn load_pixel_bwd(
-    px: u32,
-    py: u32,
+    b: &Block,
+    r: u32,
     frame: &FrameParams,
     contributors: &[u32],
     transmittance: &[f32],
@@ -949,10 +971,10 @@ fn load_pixel_bwd(
     grad_alpha: &[f32],
     grad_depth: &[f32],
 ) -> (PixelBwd<f32>, u32) {
-    if px >= frame.width || py >= frame.height {
+    if !b.inside[r as usize] {
         return (PixelBwd::new(1.0, frame.background, [0.0; 3], 0.0, 0.0), 0);
     }
-    let p = (py * frame.width + px) as usize;
+    let p = b.pixel(r, frame);
     let state = PixelBwd::new(
         transmittance[p],
         frame.background,
@@ -991,17 +1013,14 @@ macro_rules! rasterize_bwd_subgroup_entry {
             #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [$grad_ty],
         ) {
-            let t = ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize;
-            let px = group.x * 8 + lane;
-            let py = group.y * SG_ROWS;
+            let b = Block::new(group, lane, frame);
+            let (fx, fy) = (b.fx, b.fy);
             let cfg = BlendSettings::<f32>::from_frame(frame);
-            let start = ranges[2 * t];
-            let fx = px as f32 + 0.5;
-            let fy = [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5];
-            let (mut s0, m0) = load_pixel_bwd(px, py, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-            let (mut s1, m1) = load_pixel_bwd(px, py + 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-            let (mut s2, m2) = load_pixel_bwd(px, py + 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-            let (mut s3, m3) = load_pixel_bwd(px, py + 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let start = ranges[2 * b.tile];
+            let (mut s0, m0) = load_pixel_bwd(&b, 0, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s1, m1) = load_pixel_bwd(&b, 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s2, m2) = load_pixel_bwd(&b, 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+            let (mut s3, m3) = load_pixel_bwd(&b, 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
             let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
             // `top`: splats of the tile's list still to visit (uniform).
             let mut top = last;
@@ -1013,14 +1032,12 @@ macro_rules! rasterize_bwd_subgroup_entry {
                 let mine = splats[id as usize].view();
                 // The subgroup's sums for this lane's splat.
                 let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
-                let mut hit = false;
                 macro_rules! step {
                     ($u:literal) => {
                         if $u < len {
                             let v = sg_view!(mine, $u);
                             let at = top - 1 - $u;
                             let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
-                            let mut any = false;
                             macro_rules! pixel {
                                 ($s:ident, $m:ident, $r:literal) => {
                                     if at < $m {
@@ -1028,7 +1045,6 @@ macro_rules! rasterize_bwd_subgroup_entry {
                                             let a = grad.to_array();
                                             g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
                                             g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
-                                            any = true;
                                         }
                                     }
                                 };
@@ -1037,32 +1053,38 @@ macro_rules! rasterize_bwd_subgroup_entry {
                             pixel!(s1, m1, 1);
                             pixel!(s2, m2, 2);
                             pixel!(s3, m3, 3);
-                            if !crate::subgroup::all8(!any) {
-                                let total = [
-                                    crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
-                                    crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
-                                    crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
-                                    crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
-                                    crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
-                                ];
-                                if lane == $u {
-                                    sums = total;
-                                    hit = true;
-                                }
+                            // No vote on whether any pixel was hit: llvmpipe would run
+                            // the sums anyway (it predicates every `if`), and a zero sum
+                            // adds nothing below.
+                            let total = [
+                                crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
+                                crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
+                                crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
+                                crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
+                                crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
+                            ];
+                            if lane == $u {
+                                sums = total;
                             }
                         }
                     };
                 }
                 sg_lanes!(step);
-                // One lane per splat adds the block's sum (written once, not per step:
-                // each bounds-checked access nests the rest of the kernel deeper).
-                if hit {
+                // One lane per splat adds the block's sum (the accumulators skip zeros).
+                // Written out, not looped: a loop here would spend 10 of llvmpipe's
+                // 65,535 loop iterations per round and cap a tile's list at ~47,000.
+                if lane < len {
                     let base = id as usize * SPLAT_GRAD_FLOATS;
-                    let mut i = 0;
-                    while i < SPLAT_GRAD_FLOATS {
-                        $accumulate(splat_grads, base + i, sums[i]);
-                        i += 1;
-                    }
+                    $accumulate(splat_grads, base, sums[0]);
+                    $accumulate(splat_grads, base + 1, sums[1]);
+                    $accumulate(splat_grads, base + 2, sums[2]);
+                    $accumulate(splat_grads, base + 3, sums[3]);
+                    $accumulate(splat_grads, base + 4, sums[4]);
+                    $accumulate(splat_grads, base + 5, sums[5]);
+                    $accumulate(splat_grads, base + 6, sums[6]);
+                    $accumulate(splat_grads, base + 7, sums[7]);
+                    $accumulate(splat_grads, base + 8, sums[8]);
+                    $accumulate(splat_grads, base + 9, sums[9]);
                 }
                 top -= len;
             }

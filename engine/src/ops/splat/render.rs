@@ -238,9 +238,10 @@ impl SplatRenderer {
         if colour_bytes > binding {
             return Err(EngineError::too_large(format!("bytes of the colour buffer of a {width}x{height} image"), colour_bytes, binding, "the device's maxStorageBufferRange"));
         }
-        let tiles64 = u64::from(width.div_ceil(16)) * u64::from(height.div_ceil(16));
+        let [tiles_x, tiles_y] = tile_grid(width, height);
+        let tiles64 = u64::from(tiles_x) * u64::from(tiles_y);
         let grid = ctx.info().max_compute_workgroup_count;
-        if tiles64 > MAX_TILES || width.div_ceil(16) > grid[0] || height.div_ceil(16) > grid[1] {
+        if tiles64 > MAX_TILES || tiles_x > grid[0] || tiles_y > grid[1] {
             return Err(EngineError::too_large(format!("16x16 tiles of a {width}x{height} image"), tiles64, MAX_TILES.min(u64::from(grid[0]) * u64::from(grid[1])), "the rasterizer (one workgroup per tile)"));
         }
         let pixels = pixels64 as usize;
@@ -282,7 +283,7 @@ impl SplatRenderer {
             splat_grads: f32_buffer(ctx, "splat gradients", SPLAT_GRAD_FLOATS * n as usize)?,
             fixed: None,
             intersections: 0,
-            raster: Self::resolve_variant(ctx, RasterVariant::Auto, fp_tiles(width, height))?,
+            raster: Self::resolve_variant(ctx, RasterVariant::Auto, [tiles_x, tiles_y])?,
         })
     }
 
@@ -312,7 +313,7 @@ impl SplatRenderer {
     /// Chooses the rasterizer kernels (see [`RasterVariant`]); both give the same
     /// images, and gradients equal up to the order of float additions.
     pub fn set_raster_variant(&mut self, variant: RasterVariant) -> Result<()> {
-        self.raster = Self::resolve_variant(&self.ctx, variant, fp_tiles(self.width, self.height))?;
+        self.raster = Self::resolve_variant(&self.ctx, variant, tile_grid(self.width, self.height))?;
         Ok(())
     }
 
@@ -324,10 +325,17 @@ impl SplatRenderer {
     /// The kernel of the chosen variant and its dispatch, given the workgroup kernel
     /// and its subgroup twin.
     pub(crate) fn raster_dispatch(&self, workgroup: Kernel, subgroup: Kernel) -> (Kernel, [u32; 3]) {
+        let kernel = if self.raster == RasterVariant::Subgroup { subgroup } else { workgroup };
+        (kernel, self.raster_grid())
+    }
+
+    /// The rasterizer's workgroup grid: one per tile, or 2 x 4 (8 x 4 blocks) per tile
+    /// for the subgroup kernels.
+    fn raster_grid(&self) -> [u32; 3] {
         let fp = &self.frame_params;
         match self.raster {
-            RasterVariant::Subgroup => (subgroup, [fp.tiles_x * 2, fp.tiles_y * 4, 1]),
-            _ => (workgroup, [fp.tiles_x, fp.tiles_y, 1]),
+            RasterVariant::Subgroup => [fp.tiles_x * 2, fp.tiles_y * 4, 1],
+            _ => [fp.tiles_x, fp.tiles_y, 1],
         }
     }
 
@@ -573,7 +581,7 @@ impl SplatRenderer {
             Method::FixedPoint if subgroup => (Kernel::SplatRasterizeBwdSubgroupFixed, self.fixed.as_ref().expect("made above").buffer()),
             Method::FixedPoint => (Kernel::SplatRasterizeBwdFixed, self.fixed.as_ref().expect("made above").buffer()),
         };
-        let (_, grid) = self.raster_dispatch(kernel, kernel);
+        let grid = self.raster_grid();
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
         rec.fill(target, 0);
@@ -656,6 +664,6 @@ pub fn render_image(ctx: &Context, cloud: &GaussianCloud, camera: &PinholeCamera
 }
 
 /// The 16 × 16 tile grid of a `width` × `height` image.
-fn fp_tiles(width: u32, height: u32) -> [u32; 2] {
+fn tile_grid(width: u32, height: u32) -> [u32; 2] {
     [width.div_ceil(16), height.div_ceil(16)]
 }
