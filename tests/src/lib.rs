@@ -147,9 +147,13 @@ pub mod num {
 
 pub mod splat {
     //! Scenes and helpers for the splatting tests.
+    use drape_engine::context::DeviceKind;
+    use drape_engine::ops::splat::reference::{self, ReferenceRender};
     use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RasterVariant, RenderedImage, SplatRenderer};
     use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
     use drape_engine::Context;
+    use drape_shared::splat::layout::FrameParams;
+    use drape_shared::splat::project::Gaussian;
 
     /// A camera 5 units from the origin looking at it, with a coloured background.
     pub fn camera(width: u32, height: u32) -> PinholeCamera {
@@ -194,6 +198,95 @@ pub mod splat {
     pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
         a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+
+    /// Forward tolerance on a CPU device (lavapipe): RGB and alpha absolute, depth
+    /// relative to itself. Both sides run the same f32 code and llvmpipe computes exp
+    /// and ln as the host does; only their last bits may differ.
+    pub const CPU_DEVICE_FORWARD_TOLERANCE: f32 = 1e-5;
+    /// The same on a GPU. Vulkan allows exp a few ULP (3 + 2|x|; an H100 is within
+    /// about 6e-7 relative for a splat above `alpha_min`, where |x| ≤ 5.5) and may fuse
+    /// a·b + c. A pixel's colour is Σ cᵢ αᵢ Tᵢ, and an error δ in one α moves every later
+    /// term by at most Tᵢ αᵢ δ / (1 - αᵢ) ≤ δ in all: n splats give at most n δ, 6e-5 for
+    /// the ~100 splats of the densest pixels here (an H100: at most 8.0e-5, at 128x128
+    /// with 10,000 Gaussians).
+    pub const GPU_FORWARD_TOLERANCE: f32 = 1e-4;
+    /// How far the CPU reference's thresholds (`alpha_min`, `transmittance_min`) are
+    /// moved, relatively, to find pixels where a decision is near its threshold.
+    pub const THRESHOLD_NUDGE: f32 = 1e-3;
+
+    /// What [`assert_forward_close`] saw.
+    #[derive(Debug)]
+    pub struct ForwardComparison {
+        /// Largest difference (RGB and alpha absolute, depth relative) at pixels with
+        /// no decision near its threshold.
+        pub max_error: f32,
+        /// Pixels compared, and of those the ones with a decision near its threshold
+        /// (always 0 on a CPU device, which gets no such allowance).
+        pub pixels: usize,
+        pub near_threshold: usize,
+    }
+
+    /// Checks a GPU forward `image` against the CPU reference `cpu` (of `gaussians` at
+    /// `frame`) at every `step`-th pixel, panicking with `what` and the pixel.
+    ///
+    /// On a CPU device every pixel is within [`CPU_DEVICE_FORWARD_TOLERANCE`]. On a GPU
+    /// the transcendental functions and fused multiply-adds differ in their last bits,
+    /// which can flip a decision that lies within rounding of its threshold (`α ≥
+    /// alpha_min`, `T > transmittance_min`) and so add or drop a whole splat at that
+    /// pixel. The reference is rendered twice more with both thresholds moved by
+    /// [`THRESHOLD_NUDGE`] down and up; where that changes a pixel, the pixel may differ
+    /// by those two changes added (what flipping its near decisions either way can
+    /// do) on top of [`GPU_FORWARD_TOLERANCE`]; every other pixel is within
+    /// [`GPU_FORWARD_TOLERANCE`]. At most 5% of the pixels may be near a threshold, so
+    /// the allowance cannot swallow the comparison (an H100: 0.3-0.4% at 64x64 to 128x128,
+    /// 2.6% in the 1080p scene of 6,500 large splats, whose `alpha_min` rims cover many
+    /// pixels).
+    pub fn assert_forward_close(ctx: &Context, image: &RenderedImage, gaussians: &[Gaussian<f32>], frame: &FrameParams, cpu: &ReferenceRender<f32>, step: usize, what: &str) -> ForwardComparison {
+        let pixels = (image.width * image.height) as usize;
+        assert_eq!((cpu.width, cpu.height), (image.width, image.height), "{what}: image sizes");
+        let on_cpu = ctx.info().kind == DeviceKind::Cpu;
+        let nudged = |factor: f32| {
+            let mut f = *frame;
+            f.alpha_min *= factor;
+            f.transmittance_min *= factor;
+            reference::render(gaussians, &f)
+        };
+        let (lo, hi) = if on_cpu { (None, None) } else { (Some(nudged(1.0 - THRESHOLD_NUDGE)), Some(nudged(1.0 + THRESHOLD_NUDGE))) };
+        let tolerance = if on_cpu { CPU_DEVICE_FORWARD_TOLERANCE } else { GPU_FORWARD_TOLERANCE };
+        let mut seen = ForwardComparison { max_error: 0.0, pixels: 0, near_threshold: 0 };
+        for p in (0..pixels).step_by(step.max(1)) {
+            // (value, GPU, CPU, lower, upper, scale): colour and alpha absolute, depth
+            // relative to the depth (Σ w z with z near 5).
+            let get = |r: &Option<ReferenceRender<f32>>, v: fn(&ReferenceRender<f32>, usize) -> f32| r.as_ref().map(|r| v(r, p));
+            let values: [(&str, f32, fn(&ReferenceRender<f32>, usize) -> f32, f32); 5] = [
+                ("red", image.rgb[3 * p], |r, p| r.rgb[3 * p], 1.0),
+                ("green", image.rgb[3 * p + 1], |r, p| r.rgb[3 * p + 1], 1.0),
+                ("blue", image.rgb[3 * p + 2], |r, p| r.rgb[3 * p + 2], 1.0),
+                ("alpha", image.alpha[p], |r, p| r.alpha[p], 1.0),
+                ("depth", image.depth[p], |r, p| r.depth[p], cpu.depth[p].abs().max(1.0)),
+            ];
+            let mut near = false;
+            let mut checks = Vec::with_capacity(5);
+            for (name, g, v, scale) in values {
+                let c = v(cpu, p);
+                let slack = [get(&lo, v), get(&hi, v)].into_iter().flatten().map(|x| (x - c).abs() / scale).sum::<f32>();
+                near |= slack > tolerance;
+                checks.push((name, g, c, scale, slack));
+            }
+            for (name, g, c, scale, slack) in checks {
+                let e = (g - c).abs() / scale;
+                let allowed = tolerance + if near { slack } else { 0.0 };
+                assert!(e <= allowed, "{what}: pixel {p} ({}, {}) {name}: GPU {g} vs CPU {c}, error {e:e} over {allowed:e} (near a threshold: {near}, nudged thresholds move it {slack:e})", p % image.width as usize, p / image.width as usize);
+                if !near {
+                    seen.max_error = seen.max_error.max(e);
+                }
+            }
+            seen.pixels += 1;
+            seen.near_threshold += usize::from(near);
+        }
+        assert!(seen.near_threshold * 20 <= seen.pixels, "{what}: {} of {} pixels near a threshold: the comparison would be too loose", seen.near_threshold, seen.pixels);
+        seen
     }
 }
 

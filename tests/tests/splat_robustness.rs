@@ -8,7 +8,7 @@ use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRende
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
-use drape_tests::splat::{camera, gpu_render, max_abs_diff, scene};
+use drape_tests::splat::{assert_forward_close, camera, gpu_render, scene};
 use drape_tests::{gpu, TestGpu};
 
 fn gaussian(mean: [f32; 3], log_scale: f32, opacity_logit: f32, rgb: [f32; 3]) -> Gaussian<f32> {
@@ -78,10 +78,10 @@ fn compare_with_cpu(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, w
     assert_finite(&format!("{what}: depth"), &image.depth);
     assert!(image.alpha.iter().all(|a| (0.0..=1.0).contains(a)), "{what}: alpha outside [0, 1]");
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
-    let cpu = reference::render(&cloud.gaussians::<f32>(), &frame);
-    // Same tolerance as the forward test: same code, deterministic transcendentals.
-    let e = max_abs_diff(&image.rgb, &cpu.rgb);
-    assert!(e <= 1e-5, "{what}: GPU and CPU differ by {e:e}");
+    let gaussians = cloud.gaussians::<f32>();
+    let cpu = reference::render(&gaussians, &frame);
+    // The forward test's comparison (1e-5 on a CPU device; see assert_forward_close).
+    assert_forward_close(gpu, &image, &gaussians, &frame, &cpu, 1, what);
     image
 }
 

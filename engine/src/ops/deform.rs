@@ -10,7 +10,8 @@
 //!
 //! The gradient on the frame's 24 transforms (what pose refinement follows) is summed
 //! in two deterministic stages: the backward writes 15 terms per Gaussian,
-//! [`record_transform_grad`] sums them per (chunk of 1,024 Gaussians, joint) on the GPU,
+//! [`record_transform_grad`] sums them per (chunk of 1,024 Gaussians, joint) on the GPU
+//! (a workgroup each, in a fixed order),
 //! and [`sum_transform_partials`] adds the chunks in order in f64 on the host.
 
 pub use drape_shared::deform::{POSE_BLEND_FLOATS, POSE_FEATURES};
@@ -96,8 +97,8 @@ pub fn transform_partials_len(count: u32) -> usize {
 /// ([`transform_partials_len`] floats).
 pub fn record_transform_grad<'a>(rec: &mut Recording<'a>, weights: &'a Buffer, terms: &'a Buffer, partials: &'a Buffer, count: u32) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
-    let invocations = count.div_ceil(TRANSFORM_GRAD_CHUNK) * SKIN_JOINTS as u32;
-    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read("weights", weights).read("terms", terms).write("partials", partials).push(&p).dispatch([invocations.div_ceil(64), 1, 1])
+    // One workgroup per (chunk, joint); 65,535 chunks are 67M Gaussians.
+    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read("weights", weights).read("terms", terms).write("partials", partials).push(&p).dispatch([count.div_ceil(TRANSFORM_GRAD_CHUNK), SKIN_JOINTS as u32, 1])
 }
 
 /// `∂L/∂A` (24 × 12, row-major 3x4 per joint) from the partial sums, chunks added in

@@ -293,11 +293,19 @@ pub fn subgroup_gemm_supported(info: &crate::DeviceInfo) -> bool {
 /// Largest number of chunks the weight gradient's rows are split into (2M rows give
 /// chunks of 8,192, well inside llvmpipe's 65,535 loop iterations per invocation).
 const MAX_SPLITS: u32 = 256;
-/// Fewest rows one split of the weight gradient sums.
-const MIN_ROWS_PER_SPLIT: u32 = 1024;
+/// Fewest rows one split of the weight gradient sums on a CPU device: there a split
+/// is a core's serial loop, and more splits only add partials to sum.
+const MIN_ROWS_PER_SPLIT_CPU: u32 = 1024;
+/// The same on a GPU: a split and an output tile make one workgroup, so the splits are
+/// what fills the device. A decoder layer's weight gradient has 4-12 output tiles; at
+/// the avatar's few thousand Gaussians per layer, 1,024 rows per split gave 12-36
+/// workgroups on an H100's 132 multiprocessors, each walking 1,024 rows alone
+/// (`mlp.weight_grad` was a third of a quick-preset training step's GPU time there).
+const MIN_ROWS_PER_SPLIT_GPU: u32 = 128;
 
-fn splits_for(rows: u32) -> (u32, u32) {
-    let splits = rows.div_ceil(MIN_ROWS_PER_SPLIT).clamp(1, MAX_SPLITS);
+/// How many chunks the weight gradient's `rows` are summed in, and the rows per chunk.
+fn splits_for(rows: u32, min_rows_per_split: u32) -> (u32, u32) {
+    let splits = rows.div_ceil(min_rows_per_split).clamp(1, MAX_SPLITS);
     (splits, rows.div_ceil(splits).max(1))
 }
 
@@ -330,6 +338,8 @@ pub struct Mlp {
     pub grads: Buffer,
     layers: Vec<LayerBuffers>,
     partials: Buffer,
+    /// Fewest rows per chunk of the weight gradient on this device (see [`splits_for`]).
+    min_rows_per_split: u32,
     /// With weight normalisation: the parameters with every normalised `W` slot holding
     /// `g v / ‖v‖` (what the GEMMs read); without, the GEMMs read `params`.
     effective: Option<Buffer>,
@@ -363,6 +373,7 @@ impl Mlp {
             .filter(|&r| u64::from(r) * 1024 <= u64::from(u32::MAX))
             .ok_or(EngineError::too_large("MLP rows", max_rows as u64, u64::from(u32::MAX) / 1024, "the MLP (u32 indices over 1,024 columns)"))?;
         let acts = desc.activations();
+        let min_rows_per_split = if ctx.info().kind == DeviceKind::Cpu { MIN_ROWS_PER_SPLIT_CPU } else { MIN_ROWS_PER_SPLIT_GPU };
         let mut layers = Vec::new();
         let mut partial_len = 0usize;
         for (l, (i, o)) in desc.linears().into_iter().enumerate() {
@@ -375,7 +386,7 @@ impl Mlp {
                 grad_post: f32_buffer(ctx, &format!("{label} layer {l} grad post"), n)?,
                 grad_pre: f32_buffer(ctx, &format!("{label} layer {l} grad pre"), post_len)?,
             });
-            partial_len = partial_len.max(splits_for(max_rows_u32).0 as usize * o * (i + 1));
+            partial_len = partial_len.max(splits_for(max_rows_u32, min_rows_per_split).0 as usize * o * (i + 1));
         }
         let mut p = f32_buffer(ctx, &format!("{label} params"), len)?;
         ctx.write_buffer(&mut p, params)?;
@@ -389,6 +400,7 @@ impl Mlp {
             grads: f32_buffer(ctx, &format!("{label} grads"), len)?,
             layers,
             partials: f32_buffer(ctx, &format!("{label} weight-grad partials"), partial_len)?,
+            min_rows_per_split,
             effective: if desc_has_weight_norm { Some(f32_buffer(ctx, &format!("{label} weight-normalised params"), len)?) } else { None },
         })
     }
@@ -534,7 +546,7 @@ impl Mlp {
         let acts = self.desc.activations();
         let linears = self.desc.linears();
         let hidden = self.desc.hidden.len();
-        let (splits, k_chunk) = splits_for(rows);
+        let (splits, k_chunk) = splits_for(rows, self.min_rows_per_split);
         // Heads first (each adds its input gradient to the trunk's), then the trunk
         // from the top.
         let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
