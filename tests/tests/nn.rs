@@ -90,7 +90,8 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
                 let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
                 assert!(e <= 1e-5, "{variant:?}, rows {rows} head {}: forward relative error {e:e}", desc.heads[h].name);
             }
-            // Weight gradients sum up to 100k rows in f32 (chunks of >= 1024, then in
+            // Weight gradients sum up to 100k rows in f32 (chunks of >= 1024 rows on CPU
+            // devices, >= 128 on GPUs, then in
             // order): relative rounding ~1e-6 · sqrt(chunks); 1e-4 leaves a margin.
             let e = rel_err(&run.grads, &ref_grads, 1e-3);
             assert!(e <= 1e-4, "{variant:?}, rows {rows}: parameter gradient relative error {e:e}");
@@ -110,16 +111,24 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
-        let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
-        for h in 0..desc.heads.len() {
-            // Sums of up to 128 products in f32.
-            let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
-            assert!(e <= 1e-5, "{}: forward relative error {e:e}", desc.heads[h].name);
+        // Every GEMM kernel, whichever the device would pick: the decoders' widths (up to
+        // 128) reach every row and column block of the GPU's 64 x 64 tiles.
+        let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
+        if subgroup_gemm_supported(ctx.info()) {
+            variants.push(GemmVariant::Subgroup);
         }
-        let e = rel_err(&run.grads, &ref_grads, 1e-3);
-        assert!(e <= 1e-4, "parameter gradient relative error {e:e}");
-        let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
-        assert!(e <= 1e-4, "input gradient relative error {e:e}");
+        for variant in variants {
+            let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
+            for h in 0..desc.heads.len() {
+                // Sums of up to 128 products in f32.
+                let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
+                assert!(e <= 1e-5, "{variant:?}, {}: forward relative error {e:e}", desc.heads[h].name);
+            }
+            let e = rel_err(&run.grads, &ref_grads, 1e-3);
+            assert!(e <= 1e-4, "{variant:?}: parameter gradient relative error {e:e}");
+            let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
+            assert!(e <= 1e-4, "{variant:?}: input gradient relative error {e:e}");
+        }
     }
 }
 

@@ -24,7 +24,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_COLS, GEMM_ONES_ROW, GEMM_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -479,7 +479,7 @@ impl Mlp {
                 let x = tiles.min(65_535);
                 (Kernel::NnGemmSubgroup, [x, tiles.div_ceil(x.max(1)), splits])
             }
-            _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_COLS), p.m.div_ceil(GEMM_ROWS), splits]),
+            _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits]),
         };
         rec.pass(name, kernel).read("a", a).read("b", b).read("bias", bias).write("c", c).push(&p).dispatch(groups)
     }

@@ -11,24 +11,23 @@
 //! chunks whose partial sums a second kernel adds in a fixed order (no atomics, so
 //! the result is deterministic).
 //!
-//! The kernel gives each invocation one row of `C` and 32 columns of it in registers,
-//! and stages the slice of `B` it needs in workgroup memory, read by all invocations
-//! at the same index. That shape suits both targets: on a GPU the staged slice is a
-//! broadcast, and on lavapipe (a CPU running 8 invocations per SIMD instruction)
-//! uniform reads are scalar loads while per-invocation indices into workgroup memory
-//! would be gathers.
+//! Three kernels compute it, the same sums in the same order of `k`: `gemm_tiled` for
+//! GPUs (a 64 × 64 tile per workgroup, slices of `A` and `B` staged in workgroup
+//! memory, a 4 × 4 block of sums per invocation), and for CPU devices `gemm_subgroup`
+//! (lanes of a subgroup of 8 passing values by broadcasts) and `gemm_blocked` (an 8 × 8
+//! block per invocation, for narrow outputs): on lavapipe, which runs 8 invocations per
+//! SIMD instruction, per-invocation indices into workgroup memory are gathers.
 
 use crate::real::Real;
 
-/// Output rows one workgroup computes: one per invocation.
-pub const GEMM_ROWS: u32 = 64;
-/// Output columns one workgroup computes: each invocation keeps this many sums in
-/// registers.
-pub const GEMM_COLS: u32 = 32;
+/// Rows and columns of the tile of `C` one workgroup of `nn::gemm_tiled` computes
+/// (16 × 16 invocations of 4 × 4).
+pub const GEMM_TILE: u32 = 64;
 /// Rows and columns of `C` one invocation of the register-blocked kernel owns.
 pub const GEMM_BLOCK: u32 = 8;
-/// Depth of one step through `k` (the staged slice of `B` is 64 × 32).
-pub const GEMM_K_STEP: u32 = 64;
+/// Depth of one step of `nn::gemm_tiled` through `k` (the staged slices of `A` and `B`
+/// are 16 × 64).
+pub const GEMM_K_STEP: u32 = 16;
 /// Rows of `C` one subgroup of the broadcast kernel (`nn::gemm_subgroup`) owns: 8 per
 /// lane of a subgroup of 8.
 pub const GEMM_SG_ROWS: u32 = 32;
@@ -43,7 +42,7 @@ pub const GEMM_ACCUMULATE: u32 = 2;
 pub const GEMM_ONES_ROW: u32 = 4;
 
 /// Push constants of `nn::gemm_tiled`, `nn::gemm_blocked` and `nn::gemm_subgroup`. The
-/// dispatch is `[ceil(n / 32), ceil(m / 64), splits]` (tiled), `[ceil(n / 64),
+/// dispatch is `[ceil(n / 64), ceil(m / 64), splits]` (tiled), `[ceil(n / 64),
 /// ceil(m / 64), splits]` (blocked, 8 × 8 invocations of 8 × 8) or
 /// `[x, y, splits]` with `x y >= ceil(m / 32) ceil(n / 32)` (subgroup: one 32 × 32 tile
 /// per workgroup of 8, rows fastest);
