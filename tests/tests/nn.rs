@@ -68,6 +68,18 @@ fn mlp_gpu_matches_cpu_reference() {
     }
 }
 
+/// Every GEMM kernel the device runs: the subgroup one only where subgroups are 8 lanes
+/// with ballot (`report`: say so when it is left out).
+fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
+    let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
+    if subgroup_gemm_supported(ctx.info()) {
+        variants.push(GemmVariant::Subgroup);
+    } else if report {
+        eprintln!("SKIPPED: nn::gemm_subgroup (needs subgroups of 8 lanes with ballot; {})", ctx.info());
+    }
+    variants
+}
+
 fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
     let desc = desc.clone();
     let ctx = ctx.clone();
@@ -77,13 +89,7 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
         let saved = reference_forward(&desc, &params, &input, rows);
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
-        let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
-        if subgroup_gemm_supported(ctx.info()) {
-            variants.push(GemmVariant::Subgroup);
-        } else if rows == sizes[0] {
-            eprintln!("SKIPPED: nn::gemm_subgroup (needs subgroups of 8 lanes with ballot; {})", ctx.info());
-        }
-        for variant in variants {
+        for variant in gemm_variants(&ctx, rows == sizes[0]) {
             let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
             for h in 0..desc.heads.len() {
                 // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.
@@ -113,11 +119,7 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
         let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
         // Every GEMM kernel, whichever the device would pick: the decoders' widths (up to
         // 128) reach every row and column block of the GPU's 64 x 64 tiles.
-        let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
-        if subgroup_gemm_supported(ctx.info()) {
-            variants.push(GemmVariant::Subgroup);
-        }
-        for variant in variants {
+        for variant in gemm_variants(&ctx, false) {
             let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
             for h in 0..desc.heads.len() {
                 // Sums of up to 128 products in f32.

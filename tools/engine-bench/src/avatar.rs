@@ -44,7 +44,7 @@ pub struct AvatarArgs {
     /// Timed frames per configuration (the median is reported).
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     pub runs: u32,
-    /// Untimed warm-up frames first.
+    /// Untimed warm-up frames first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
     /// Training steps to time (0: skip the training measurement).
@@ -98,7 +98,7 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
     let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
     let settings = RenderSettings::default();
     let (mut totals, mut stages): (Vec<f64>, BTreeMap<String, Vec<f64>>) = (Vec::new(), BTreeMap::new());
-    for i in 0..args.warmup + args.runs {
+    for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         ctx.start_profile();
         let t0 = Instant::now();
         // A viewer poses the avatar every frame: the decoders and skinning run each time.
@@ -111,7 +111,7 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
         renderer.forward(ctx, &run.avatar, &pinhole, &settings)?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let profile = ctx.take_profile().unwrap_or_default();
-        if i < args.warmup {
+        if !timed {
             continue;
         }
         totals.push(ms);

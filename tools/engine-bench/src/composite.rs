@@ -39,7 +39,7 @@ pub struct CompositeArgs {
     /// Timed runs per configuration (the median is reported).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..))]
     pub runs: u32,
-    /// Untimed warm-up runs first.
+    /// Untimed warm-up runs first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
     /// Print one JSON object on stdout instead of a table.
@@ -88,12 +88,12 @@ fn add(into: &mut BTreeMap<String, f64>, t: &PassTimings) {
 fn time(args: &CompositeArgs, mut frame: impl FnMut(&mut BTreeMap<String, f64>) -> anyhow::Result<f64>) -> anyhow::Result<(f64, f64, BTreeMap<String, f64>)> {
     let (mut fwd, mut both) = (Vec::new(), Vec::new());
     let mut passes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for i in 0..args.warmup + args.runs {
+    for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         let mut p = BTreeMap::new();
         let t0 = Instant::now();
         let t_fwd = frame(&mut p)?;
         let t_both = t0.elapsed().as_secs_f64() * 1e3;
-        if i < args.warmup {
+        if !timed {
             continue;
         }
         fwd.push(t_fwd);

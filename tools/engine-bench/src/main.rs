@@ -1,7 +1,9 @@
 //! `engine-bench`: times the engine's GPU ops on the chosen device, with per-pass GPU
 //! times from timestamp queries and the same job on the CPU in the same run.
 //!
-//! Every figure is a median over `--runs` timed runs after `--warmup` untimed ones.
+//! Every figure is a median over `--runs` timed runs after untimed ones: at least
+//! `--warmup` of them, for at least `--warm-seconds` (1 s on a GPU, whose clocks ramp up
+//! from idle; see `schedule`).
 //! `median_ms` is wall time from submit to fence (what an application waits);
 //! `gpu_median_ms` is the sum of the passes' timestamps.
 #![forbid(unsafe_code)]
@@ -22,6 +24,7 @@ use serde_json::json;
 mod avatar;
 mod composite;
 mod ops;
+mod schedule;
 mod splat;
 mod trade;
 
@@ -31,6 +34,11 @@ mod trade;
 struct Cli {
     #[command(flatten)]
     device: DeviceArgs,
+    /// Least warm-up time of every timed loop, in seconds: warm-up runs go on until
+    /// `--warmup` runs are done and this much time has passed, so that a GPU's clocks
+    /// have ramped up from idle. Default: 1 on a GPU, 0 on a CPU device.
+    #[arg(long, global = true, value_name = "SECONDS", value_parser = parse_seconds, allow_negative_numbers = true)]
+    warm_seconds: Option<f64>,
     #[command(subcommand)]
     job: Job,
 }
@@ -43,7 +51,7 @@ struct Common {
     /// Timed runs (the median is reported); at least 10.
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(10..))]
     runs: u32,
-    /// Untimed warm-up runs first.
+    /// Untimed warm-up runs first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 2)]
     warmup: u32,
     /// Seed of the random input.
@@ -108,9 +116,9 @@ fn measure(ctx: &Context, common: &Common, mut run_once: impl FnMut() -> anyhow:
     let mut walls = Vec::new();
     let mut gpus = Vec::new();
     let mut per_pass: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for i in 0..common.warmup + common.runs {
+    for timed in schedule::Runs::new(common.warmup, common.runs) {
         let (wall, timings) = run_once()?;
-        if i < common.warmup {
+        if !timed {
             continue;
         }
         walls.push(wall);
@@ -250,6 +258,14 @@ fn print_table(r: &serde_json::Value) {
     println!("  CPU time / GPU time     {:>10.2}x", r["cpu_over_gpu"].as_f64().unwrap_or(0.0));
 }
 
+/// A number of seconds, at least 0.
+fn parse_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a number of seconds (0 or more)")),
+    }
+}
+
 fn main() -> ExitCode {
     let cli: Cli = match drape_cli_support::parse_args() {
         Ok(c) => c,
@@ -257,8 +273,10 @@ fn main() -> ExitCode {
     };
     drape_cli_support::run(|| {
         let ctx = cli.device.open()?;
+        let on_gpu = ctx.info().kind != drape_engine::DeviceKind::Cpu;
+        schedule::set_warm_seconds(cli.warm_seconds.unwrap_or(if on_gpu { 1.0 } else { 0.0 }));
         // Each job gives its JSON, whether to print it as JSON, and its table printer.
-        let (result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
+        let (mut result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
             Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json, print_table),
             Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json, print_table),
             Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
@@ -268,6 +286,9 @@ fn main() -> ExitCode {
             Job::Trade(args) => (trade::run(&ctx, args)?, args.json, |r| print!("{}", trade::markdown(r))),
         };
         cli.device.check_validation(&ctx)?;
+        if let Some(object) = result.as_object_mut() {
+            object.insert("warm_seconds".into(), json!(schedule::warm_seconds()));
+        }
         if json_out {
             println!("{result}");
         } else {

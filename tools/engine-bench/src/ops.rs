@@ -26,7 +26,7 @@ pub struct OpsArgs {
     /// Timed runs (the median is reported).
     #[arg(long, default_value_t = 5)]
     pub runs: u32,
-    /// Untimed warm-up runs first.
+    /// Untimed warm-up runs first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
     /// Triplane side and channels.
@@ -78,10 +78,10 @@ fn timed(ctx: &Context, args: &OpsArgs, mut record: impl FnMut() -> anyhow::Resu
     let _ = ctx;
     let mut walls = Vec::new();
     let mut gpus = Vec::new();
-    for i in 0..args.warmup + args.runs {
+    for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         let t0 = Instant::now();
         let timings = record()?;
-        if i >= args.warmup {
+        if timed {
             walls.push(t0.elapsed().as_secs_f64() * 1e3);
             gpus.push(timings.busy_ms());
         }
@@ -100,10 +100,10 @@ const SHAPES: [(usize, usize); 6] = [(96, 64), (64, 64), (64, 49), (96, 128), (1
 fn cpu_gemm_ms(args: &OpsArgs, rows: usize, i: usize, o: usize, x: &[f32], w: &[f32]) -> f64 {
     let mut y = vec![0.0f32; rows * o];
     let mut times = Vec::new();
-    for run in 0..args.warmup + args.runs {
+    for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         let t0 = Instant::now();
         gemm_cpu(rows, i, o, x, w, &mut y);
-        if run >= args.warmup {
+        if timed {
             times.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         std::hint::black_box(&y);

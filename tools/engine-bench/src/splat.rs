@@ -29,7 +29,7 @@ pub struct SplatArgs {
     /// Timed runs per configuration (the median is reported); at least 10.
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(10..))]
     pub runs: u32,
-    /// Untimed warm-up runs first.
+    /// Untimed warm-up runs first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 2)]
     pub warmup: u32,
     /// Accumulate gradients with compare-and-swap instead of float atomics.
@@ -150,13 +150,13 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
     let mut both_ms = Vec::new();
     let mut passes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut intersections = 0;
-    for i in 0..args.warmup + args.runs {
+    for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         let t0 = Instant::now();
         let stats = renderer.forward(&gaussians, &cfg.camera, &settings)?;
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
         let bwd = renderer.backward(&gaussians, &grad_rgb, &grad_alpha, &grad_depth, &grads, accumulation)?;
         let t_both = t0.elapsed().as_secs_f64() * 1e3;
-        if i < args.warmup {
+        if !timed {
             continue;
         }
         intersections = stats.intersections;

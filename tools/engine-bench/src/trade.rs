@@ -63,7 +63,8 @@ pub struct TradeArgs {
     /// runs × frames.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..))]
     pub runs: u32,
-    /// Untimed warm-up renders (of the first held-out frame) before each setting.
+    /// Untimed warm-up renders (of the first held-out frame) before each setting (at least
+    /// this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
     /// LPIPS weights (safetensors, the run's `lpips_net`; default: the run's config).
@@ -464,7 +465,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     let mut rows = Vec::new();
     for s in &settings {
         eprintln!("trade: {} {} ...", s.knob, s.label);
-        for _ in 0..args.warmup {
+        for _ in crate::schedule::Runs::new(args.warmup, 0) {
             render_frame(ctx, &mut run, &mut renderers, &frames[0], s)?;
         }
         let (mut times, mut stages, mut vs_gt, mut vs_default) = (Vec::new(), BTreeMap::<String, Vec<f64>>::new(), Vec::new(), Vec::new());

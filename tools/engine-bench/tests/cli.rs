@@ -41,6 +41,12 @@ fn missing_vulkan_loader_is_reported_in_one_line() {
 }
 
 #[test]
+fn a_negative_warm_time_is_rejected_in_one_line() {
+    let out = bench(&["--warm-seconds", "-1", "sort", "--n", "10"], &[]);
+    assert_one_line_error(&out, "not a number of seconds");
+}
+
+#[test]
 fn too_few_runs_are_rejected() {
     let out = bench(&["scan", "--n", "10", "--runs", "3"], &[]);
     assert_one_line_error(&out, "--runs");
@@ -72,6 +78,12 @@ fn scan_json_has_the_documented_fields() {
         assert!(j.get(key).is_some(), "missing '{key}' in {j}");
     }
     assert!(j["passes"].get("scan.reduce").is_some(), "{j}");
+    // By default a CPU device warms up for no minimum time, a GPU for 1 s; asked, the
+    // JSON says what was asked.
+    let default = if j["device_kind"] == "Cpu" { 0.0 } else { 1.0 };
+    assert_eq!(j["warm_seconds"], default, "{j}");
+    let j = json_of(&["--warm-seconds", "0.25", "scan", "--n", "5000", "--json"]);
+    assert_eq!(j["warm_seconds"], 0.25, "{j}");
 }
 
 #[test]
