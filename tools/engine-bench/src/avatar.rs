@@ -22,7 +22,7 @@ use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{Context, Profile};
 use drape_trainer::avatar::composite::{AvatarRenderer, Compositing};
 use drape_trainer::avatar::run::OpenRun;
-use drape_trainer::avatar::train::{body_model, train_until};
+use drape_trainer::avatar::train::{body_model, train_until, Progress};
 use serde_json::json;
 
 /// Options of `engine-bench avatar`.
@@ -50,6 +50,10 @@ pub struct AvatarArgs {
     /// Training steps to time (0: skip the training measurement).
     #[arg(long, default_value_t = 10)]
     pub train_steps: u32,
+    /// Untimed training steps before the timed ones (the first steps build pipelines and
+    /// find a GPU at idle clocks; their time and GPU passes are left out).
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
+    pub train_warmup: u32,
     /// Steps of the decoders' initial fit before the timed training steps.
     #[arg(long, default_value_t = 20)]
     pub fit_steps: u32,
@@ -132,26 +136,43 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
     }))
 }
 
-/// Trains a fresh model from the run's configuration for `args.train_steps` steps in a
-/// temporary directory with the profile on; it/s and the GPU split of one step.
+/// Trains a fresh model from the run's configuration for `args.train_warmup +
+/// args.train_steps` steps in a temporary directory, profiling the last
+/// `args.train_steps`: it/s and the GPU split of one step.
 fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Result<serde_json::Value> {
     let out = std::env::temp_dir().join(format!("engine-bench-avatar-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     std::fs::create_dir_all(&out)?;
     let mut config = run.config.clone();
-    config.steps = args.train_steps;
+    let total = args.train_warmup + args.train_steps;
+    config.steps = total;
     config.fit_steps = args.fit_steps;
     config.checkpoint_every = 0;
-    config.log_every = args.train_steps.max(1);
+    // A progress event after every step: the clock and the profile start after the
+    // warm-up steps and stop after the last step (before the evaluation).
+    config.log_every = 1;
     let model = body_model(run.info.body.as_deref()).map_err(anyhow::Error::msg)?;
-    // A running profile makes train_until profile its steps (and only them).
-    ctx.start_profile();
-    let report = train_until(ctx, &run.seq, model, &config, &out, false, args.train_steps, &mut |_| {}).map_err(anyhow::Error::msg);
+    let (mut timed_from, mut timed_to, mut profile) = (None, None, None);
+    let report = train_until(ctx, &run.seq, model, &config, &out, false, total, &mut |p| {
+        if let Progress::Step { step, .. } = p {
+            if step == args.train_warmup {
+                ctx.start_profile();
+                timed_from = Some(Instant::now());
+            }
+            if step == total {
+                timed_to = Some(Instant::now());
+                profile = ctx.take_profile();
+            }
+        }
+    });
     let _ = ctx.take_profile();
-    let report = report?;
-    let profile_path = out.join("profile.json");
-    let profile: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&profile_path)?)?;
     let _ = std::fs::remove_dir_all(&out);
+    let report = report.map_err(anyhow::Error::msg)?;
+    let (Some(from), Some(to), Some(profile)) = (timed_from, timed_to, profile) else {
+        anyhow::bail!("training stopped before its {total} steps");
+    };
+    let seconds = to.duration_since(from).as_secs_f64();
+    let profile = serde_json::to_value(&profile)?;
     let steps = f64::from(args.train_steps.max(1));
     let mut stages: BTreeMap<String, f64> = BTreeMap::new();
     let mut passes: Vec<(String, f64)> = Vec::new();
@@ -163,8 +184,9 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     passes.sort_by(|a, b| b.1.total_cmp(&a.1));
     Ok(json!({
         "steps": args.train_steps,
-        "iterations_per_second": report.iterations_per_second,
-        "ms_per_step": 1e3 / report.iterations_per_second.max(1e-9),
+        "warmup_steps": args.train_warmup,
+        "iterations_per_second": steps / seconds.max(1e-9),
+        "ms_per_step": 1e3 * seconds / steps,
         "stages_gpu_ms_per_step": stages,
         "top_passes_gpu_ms_per_step": passes.into_iter().take(8).collect::<BTreeMap<_, _>>(),
         "gaussians": report.gaussians,
