@@ -83,10 +83,11 @@ impl ClothLosses {
             count: cloth.count,
             chamfer: Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?,
             arap: Arap::new(ctx, cloth.count, &cloth.edges)?,
-            target_points: b("cloth target points", 3 * garments.vertices as u32)?,
+            // The frame's targets are rewritten every step (`set_frame`): host-written memory.
+            target_points: ctx.create_buffer("cloth target points", BufferDesc::host_written(4 * u64::from((3 * garments.vertices as u32).max(1))))?,
             target_count: 0,
             renderer: SplatRenderer::new(ctx, width, height, cloth.count as usize)?,
-            mask_target: b("cloth mask target", pixels)?,
+            mask_target: ctx.create_buffer("cloth mask target", BufferDesc::host_written(4 * u64::from(pixels.max(1))))?,
             grad_alpha: b("cloth mask grad alpha", pixels)?,
             mask_sq_error: b("cloth mask squared error", pixels)?,
             zeros,

@@ -235,7 +235,8 @@ impl HumanLayer {
             appearance,
             geometry,
             deformation,
-            transforms: f32_buffer(ctx, &format!("{name} transforms"), NUM_JOINTS * 12)?,
+            // Rewritten every frame (`AvatarModel::set_frame`): host-written memory.
+            transforms: ctx.create_buffer(&format!("{name} transforms"), BufferDesc::host_written(NUM_JOINTS as u64 * 12 * 4))?,
             posed: GaussianBuffers::new(ctx, &format!("{name} posed"), n, config.sh_degree)?,
             posed_grads: GaussianBuffers::new(ctx, &format!("{name} posed grads"), n, config.sh_degree)?,
             grad_means: f32_buffer(ctx, &format!("{name} canonical mean grads"), 3 * n)?,
@@ -244,14 +245,16 @@ impl HumanLayer {
             weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
             lbs_grad: f32_buffer(ctx, &format!("{name} cloth-LBS gradient"), NUM_JOINTS * n)?,
             transform_terms: f32_buffer(ctx, &format!("{name} transform gradient terms"), deform::transform_terms_len(n as u32))?,
-            transform_partials: f32_buffer(ctx, &format!("{name} transform gradient partials"), deform::transform_partials_len(n as u32))?,
+            // Read by the host every step (the pose gradient): the kernel writes it into
+            // host-visible memory, so reading it needs no copy submission.
+            transform_partials: ctx.create_buffer(&format!("{name} transform gradient partials"), BufferDesc::readback(4 * deform::transform_partials_len(n as u32).max(1) as u64))?,
             groups,
             accumulation: Accumulation::Auto,
             screen_stats: ctx.upload(&format!("{name} screen stats"), &vec![0.0f32; SCREEN_STATS_FLOATS * n.max(1)])?,
             edges: Vec::new(),
             steps,
             seed,
-            pose_features: f32_buffer(ctx, &format!("{name} pose features"), deform::POSE_FEATURES)?,
+            pose_features: ctx.create_buffer(&format!("{name} pose features"), BufferDesc::host_written(deform::POSE_FEATURES as u64 * 4))?,
             blended_offsets: if config.pose_offsets { Some(f32_buffer(ctx, &format!("{name} pose-blended offsets"), 3 * n)?) } else { None },
             pose_blend_on: true,
         })

@@ -583,7 +583,8 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
 
     // 2. The main loop.
     let pixels = (width * height) as usize;
-    let mut target = gpu(ctx.create_buffer("train target", BufferDesc::gpu_only(12 * pixels as u64)))?;
+    // Rewritten every step: host-written memory (no staging submission).
+    let mut target = gpu(ctx.create_buffer("train target", BufferDesc::host_written(12 * pixels as u64)))?;
     let grad_rgb = gpu(ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels as u64)))?;
     let mut abs_error = gpu(ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels as u64)))?;
     let zeros = gpu(ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels as u64)))?;
