@@ -85,11 +85,12 @@ fn test_mask(w: u32, h: u32) -> Vec<bool> {
 }
 
 /// The case directory of one lens with OpenCV's outputs for `small_camera`,
-/// `smooth_image` and `test_mask`.
-fn opencv_image_case(name: &str, d: Distortion) -> std::path::PathBuf {
+/// `smooth_image` and `test_mask`; one per calling test (`test`), since tests run in
+/// parallel and a case directory is emptied when it is made.
+fn opencv_image_case(test: &str, name: &str, d: Distortion) -> std::path::PathBuf {
     let cam = small_camera();
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let dir = case_dir("opencv-distortion", &format!("image_{name}"));
+    let dir = case_dir("opencv-distortion", &format!("{test}_image_{name}"));
     let img = smooth_image(cam.width, cam.height, 7);
     put(&dir, "image", &[h, w, 3], &img.iter().map(|&v| (f64::from(v) * 255.0).round()).collect::<Vec<_>>());
     put(&dir, "mask", &[h, w], &test_mask(cam.width, cam.height).iter().map(|&m| f64::from(u8::from(m))).collect::<Vec<_>>());
@@ -173,7 +174,7 @@ fn undistortion_map_and_images_match_opencv() {
     let img = smooth_image(cam.width, cam.height, 7);
     let mut fails = Vec::new();
     for (name, d) in LENSES {
-        let dir = opencv_image_case(name, d);
+        let dir = opencv_image_case("maps", name, d);
         let u = Undistorter::new(&cam, d);
         assert_eq!((u.width(), u.height()), (cam.width, cam.height));
 
@@ -242,7 +243,7 @@ fn undistorted_masks_match_opencv() {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut fails = Vec::new();
     for (name, d) in LENSES {
-        let dir = opencv_image_case(name, d);
+        let dir = opencv_image_case("masks", name, d);
         let ours = Undistorter::new(&cam, d).mask(&test_mask(cam.width, cam.height));
         // Our rule (bilinear of 0/1, then >= 0.5) on OpenCV's side: cv2.undistort of the
         // 0/255 mask, then >= 128 (255 / 2 = 127.5 rounds up to 128).
