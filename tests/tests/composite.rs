@@ -260,6 +260,12 @@ fn check_gradients(occlusion: bool, seed: u64) {
             }
         }
     }
+    assert_finite_differences(&total, &layers, &srcs, &frames, &w, sh_degree, &format!("three passes, occlusion matte {occlusion}"));
+}
+
+/// Analytic gradients per layer (body, cloth, scene) against central differences of
+/// the three-pass composite loss in f64, for every parameter of every Gaussian.
+fn assert_finite_differences(total: &[Vec<GaussianGrad<f64>>; 3], layers: &[Vec<Gaussian<f64>>; 3], srcs: &[Vec<(usize, usize)>; 3], frames: &[drape_shared::splat::layout::FrameParams; 3], w: &[f64], sh_degree: u32, what: &str) {
     // Central differences with h = 1e-6 in f64: truncation ~h², rounding ~1e-16 / h,
     // far below the 1e-5 relative bound (as the splatter's own check).
     let h = 1e-6;
@@ -286,13 +292,148 @@ fn check_gradients(occlusion: bool, seed: u64) {
                 *param(&mut plus[layer][i]) += h;
                 let mut minus = layers.clone();
                 *param(&mut minus[layer][i]) -= h;
-                let numeric = (composite_loss(&plus, &srcs, &frames, &w).0 - composite_loss(&minus, &srcs, &frames, &w).0) / (2.0 * h);
+                let numeric = (composite_loss(&plus, srcs, frames, w).0 - composite_loss(&minus, srcs, frames, w).0) / (2.0 * h);
                 err = err.max((analytic - numeric).abs());
                 scale = scale.max(numeric.abs());
             }
         }
         assert!(scale > 0.0, "{name}: every gradient is zero; the check would be vacuous");
-        assert!(err <= 1e-5 * scale, "{name} (occlusion matte {occlusion}): max |analytic - numeric| = {err:e}, largest gradient {scale:e}");
+        assert!(err <= 1e-5 * scale, "{name} ({what}): max |analytic - numeric| = {err:e}, largest gradient {scale:e}");
+    }
+}
+
+/// The fused frame of a layered scene in its merged order (body, scene, cloth: each
+/// pass's cloud a subsequence in the same order), its layer masks, and which layer and
+/// index each merged Gaussian comes from (0 body, 1 cloth, 2 scene).
+fn merged(l: &Layered, occlusion: bool) -> (GaussianCloud, Vec<u32>, Vec<(usize, usize)>) {
+    use drape_engine::ops::splat::fused::layer_masks;
+    let cloud = joined(&joined(&l.body, &l.scene), &l.cloth);
+    let parts = [(Layer::Body, 0, l.body.len()), (Layer::Scene, 2, l.scene.len()), (Layer::Cloth, 1, l.cloth.len())];
+    let layers: Vec<Layer> = parts.iter().flat_map(|&(layer, _, n)| std::iter::repeat_n(layer, n)).collect();
+    let sources = parts.iter().flat_map(|&(_, k, n)| (0..n).map(move |i| (k, i))).collect();
+    (cloud, layer_masks(&layers, occlusion), sources)
+}
+
+/// The fused backward (`FusedPixelBwd` over the merged list, CPU reference in f64) of
+/// the composite loss against central differences of the three-pass loss: the fused
+/// forward is the same function, so its gradient must be the same, for both mattes.
+fn check_fused_gradients(occlusion: bool, seed: u64) {
+    use drape_engine::ops::splat::reference::{fused_backward, fused_render};
+    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 40, 24).expect("camera");
+    let settings = RenderSettings { alpha_min: 0.0, max_sigmas: 8.0, ..RenderSettings::default() };
+    let sh_degree = 1;
+    let l = layered(4, sh_degree, seed);
+    let frames = [0, 1, 2].map(|p| {
+        cam.background = if p == 0 { [0.2, 0.5, 0.7] } else { [0.0; 3] };
+        frame_params(&cam, &settings, if p == 2 { 0 } else { sh_degree }, 8)
+    });
+    let layers = [l.body.gaussians::<f64>(), l.cloth.gaussians::<f64>(), l.scene.gaussians::<f64>()];
+    let srcs = sources(&l, occlusion);
+    let pixels = (cam.width * cam.height) as usize;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed + 7);
+    let w: Vec<f64> = (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let (_, renders, _) = composite_loss(&layers, &srcs, &frames, &w);
+
+    let (cloud, masks, from) = merged(&l, occlusion);
+    cam.background = [0.2, 0.5, 0.7];
+    let frame = frame_params(&cam, &settings, sh_degree, cloud.len());
+    let gaussians = cloud.gaussians::<f64>();
+    let fwd = render(&gaussians, &frame);
+    let fused = fused_render(&fwd, &masks, &frame);
+    // The same images as the three passes (f64: same terms, same order), but for the
+    // matte pass's colour, which comes from an f32 SH coefficient (1 within ~1e-8),
+    // where the fused matte blends exactly 1.
+    let worst = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+    for (what, got, want, tolerance) in [("base", &fused.base_rgb, &renders[0].rgb, 1e-12), ("cloth", &fused.cloth_rgb, &renders[1].rgb, 1e-12), ("cloth alpha", &fused.cloth_alpha, &renders[1].alpha, 1e-12), ("matte", &fused.matte_rgb, &renders[2].rgb, 1e-7)] {
+        assert!(worst(got, want) <= tolerance, "occlusion {occlusion}: fused {what} differs from its pass by {:e}", worst(got, want));
+    }
+    let (mut gb, mut gc, mut ga, mut gm) = (vec![0.0; 3 * pixels], vec![0.0; 3 * pixels], vec![0.0; pixels], vec![0.0; 3 * pixels]);
+    for i in 0..pixels {
+        let px = |v: &[f64]| [v[3 * i], v[3 * i + 1], v[3 * i + 2]];
+        let (b, o, a, m) = composite_grad(px(&w), px(&fused.base_rgb), px(&fused.cloth_rgb), fused.cloth_alpha[i], fused.matte_rgb[3 * i]);
+        gb[3 * i..3 * i + 3].copy_from_slice(&b);
+        gc[3 * i..3 * i + 3].copy_from_slice(&o);
+        ga[i] = a;
+        gm[3 * i] = m;
+    }
+    let (grads, _) = fused_backward(&gaussians, &masks, &frame, &fwd, &fused, &gb, &gc, &ga, &gm);
+    let mut total: [Vec<GaussianGrad<f64>>; 3] = [0, 1, 2].map(|k| vec![GaussianGrad::zero(); layers[k].len()]);
+    for (g, &(layer, i)) in grads.into_iter().zip(&from) {
+        total[layer][i] = g;
+    }
+    assert_finite_differences(&total, &layers, &srcs, &frames, &w, sh_degree, &format!("fused, occlusion matte {occlusion}"));
+}
+
+#[test]
+fn fused_backward_matches_finite_differences_with_the_papers_matte() {
+    check_fused_gradients(false, 3);
+}
+
+#[test]
+fn fused_backward_matches_finite_differences_with_the_occlusion_matte() {
+    check_fused_gradients(true, 5);
+}
+
+/// The fused backward on the GPU (`FusedRenderer::backward`, workgroup kernels, after a
+/// forward through each rasterizer variant) against the CPU reference in f32, every
+/// parameter group, for both mattes and every accumulation.
+#[test]
+fn fused_backward_on_the_gpu_matches_the_cpu_reference() {
+    use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
+    use drape_engine::ops::splat::reference::{fused_backward, fused_render};
+    let ctx = gpu();
+    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 61, 45).expect("camera");
+    cam.background = [0.2, 0.5, 0.7];
+    let settings = RenderSettings::default();
+    let sh_degree = 2;
+    let l = layered(80, sh_degree, 29);
+    let pixels = (cam.width * cam.height) as usize;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(31);
+    let mut random = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0..1.0)).collect() };
+    let (g_base, g_cloth, g_alpha, g_matte) = (random(3 * pixels), random(3 * pixels), random(pixels), random(3 * pixels));
+    let buffers = [&g_base, &g_cloth, &g_alpha, &g_matte].map(|v| ctx.upload("fused upstream", v).expect("upload"));
+    let upstream = FusedGrads { base_rgb: &buffers[0], cloth_rgb: &buffers[1], cloth_alpha: &buffers[2], matte_rgb: &buffers[3] };
+    let mut accumulations = vec![Accumulation::Deterministic, Accumulation::CompareAndSwap];
+    if drape_tests::has_feature(&ctx, drape_tests::Feature::FloatAtomics, "fused_backward_on_the_gpu_matches_the_cpu_reference") {
+        accumulations.push(Accumulation::FloatAtomics);
+    }
+    for occlusion in [false, true] {
+        let (cloud, masks, _) = merged(&l, occlusion);
+        let frame = frame_params(&cam, &settings, sh_degree, cloud.len());
+        let gaussians = cloud.gaussians::<f32>();
+        let fwd = render(&gaussians, &frame);
+        let fused_cpu = fused_render(&fwd, &masks, &frame);
+        let (want, _) = fused_backward(&gaussians, &masks, &frame, &fwd, &fused_cpu, &g_base, &g_cloth, &g_alpha, &g_matte);
+        let k = sh_coeffs(sh_degree);
+        let want_groups: [(&str, Vec<f32>); 5] = [
+            ("means", want.iter().flat_map(|g| g.mean).collect()),
+            ("log_scales", want.iter().flat_map(|g| g.log_scale).collect()),
+            ("quats", want.iter().flat_map(|g| g.quat).collect()),
+            ("opacity_logits", want.iter().map(|g| g.opacity_logit).collect()),
+            ("sh", want.iter().flat_map(|g| g.sh[..k].iter().flatten().copied().collect::<Vec<_>>()).collect()),
+        ];
+        let params = GaussianBuffers::upload(&ctx, "fused params", &cloud).expect("upload");
+        let mut grads = GaussianBuffers::new(&ctx, "fused grads", cloud.len(), sh_degree).expect("grads");
+        let mut fused = FusedRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("fused");
+        fused.set_masks(&ctx, &masks).expect("masks");
+        for variant in raster_variants(&ctx, "fused_backward_on_the_gpu_matches_the_cpu_reference") {
+            fused.set_raster_variant(variant).expect("raster variant");
+            fused.forward(&ctx, &params, &cam, &settings).expect("fused forward");
+            for &accumulation in &accumulations {
+                fused.backward(&params, upstream, &grads, accumulation).expect("fused backward");
+                let got = grads.download(&ctx, &cloud.layers).expect("download");
+                let got_groups = [&got.means, &got.log_scales, &got.quats, &got.opacity_logits, &got.sh];
+                for ((name, c), g) in want_groups.iter().zip(got_groups) {
+                    assert!(c.iter().any(|v| *v != 0.0), "{name}: the CPU gradient is all zero; the check would be vacuous");
+                    let num: f64 = g.iter().zip(c).map(|(a, b)| f64::from(a - b).powi(2)).sum();
+                    let den: f64 = c.iter().map(|b| f64::from(*b).powi(2)).sum();
+                    let e = (num / den).sqrt();
+                    // As the splatter's backward check: the GPU adds per-splat gradients
+                    // in the atomics' order, the CPU in pixel order (~1e-6 relative).
+                    assert!(e <= 1e-4, "{name}: relative error {e:e} (occlusion {occlusion}, {accumulation:?}, forward through the {variant:?} rasterizer)");
+                }
+            }
+        }
     }
 }
 

@@ -151,6 +151,57 @@ fn backward_matches_cpu_compare_and_swap() {
     }
 }
 
+/// Each Gaussian's contribution to a frame (`SplatRenderer::contributions`, the sum of
+/// its blend weights `α · T` over the pixels, for pruning by contribution) matches the
+/// reference's colour gradient under a red-only upstream of ones, and, checked without
+/// the backward's code, the contributions sum to the sum of the forward's alpha image
+/// (per pixel the weights add up to `1 - T`).
+#[test]
+fn contributions_match_the_reference_and_sum_to_the_alpha_image() {
+    let gpu = gpu();
+    for variant in raster_variants(&gpu, "contributions_match_the_reference_and_sum_to_the_alpha_image") {
+        for &((w, h), n) in &[((64u32, 64u32), 1000usize), ((97, 61), 300)] {
+            let cloud = scene(n, 0, 23 + n as u64);
+            let cam = camera(w, h);
+            let settings = RenderSettings::default();
+            let gaussians = GaussianBuffers::upload(&gpu, "contribution scene", &cloud).expect("upload");
+            let mut renderer = SplatRenderer::new(&gpu, w, h, cloud.len()).expect("renderer");
+            renderer.set_raster_variant(variant).expect("raster variant");
+            renderer.forward(&gaussians, &cam, &settings).expect("forward");
+            let image = renderer.read_image().expect("read");
+            let got = renderer.contributions().expect("contributions");
+            assert_eq!(got.len(), n);
+
+            let frame = frame_params(&cam, &settings, 0, n);
+            let gs = cloud.gaussians::<f32>();
+            let fwd = reference::render(&gs, &frame);
+            let pixels = (w * h) as usize;
+            let red: Vec<f32> = (0..pixels).flat_map(|_| [1.0f32, 0.0, 0.0]).collect();
+            let zeros = vec![0.0f32; pixels];
+            let (_, splat_grads) = reference::backward(&gs, &frame, &fwd, &red, &zeros, &zeros);
+            let what = format!("{n} Gaussians, {w}x{h}, {variant:?} rasterizer");
+            assert!(splat_grads.iter().filter(|g| g.color[0] > 1.0).count() > n / 10, "most Gaussians must cover a pixel or more: {what}");
+            let mut worst = 0.0f32;
+            for (i, (g, c)) in got.iter().zip(&splat_grads).enumerate() {
+                let want = c.color[0];
+                // The reference adds its weights in f32 pixel by pixel, the GPU in
+                // 64-bit fixed point in the atomics' order: f32 sums of up to a few
+                // thousand weights differ by ~1e-6 relative; 1e-4 leaves room and still
+                // catches a dropped pixel or splat (at least 1/pixels relative).
+                let err = (g - want).abs() / want.max(1.0);
+                worst = worst.max(err);
+                assert!(err <= 1e-4, "Gaussian {i}: contribution {g} vs reference {want}: {what}");
+            }
+            let total: f64 = got.iter().map(|&c| f64::from(c)).sum();
+            let alpha: f64 = image.alpha.iter().map(|&a| f64::from(a)).sum();
+            // Per pixel Σ α·T = 1 - T_final exactly; in f32 the backward's T (recovered
+            // by division) drifts ~n·ε relative from the forward's product.
+            assert!((total - alpha).abs() <= 1e-4 * alpha, "contributions sum to {total}, the alpha image to {alpha}: {what}");
+            eprintln!("contributions, {what}: largest relative error {worst:e}; sum {total:.4} vs alpha {alpha:.4}");
+        }
+    }
+}
+
 /// Densification statistics (`ops::splat::densify`) of two frames of one render, for a
 /// slice of the Gaussians written at an offset, match the CPU reference: the visible
 /// counts exactly, the gradient-norm sums to 1e-6 relative (the same f32 operations

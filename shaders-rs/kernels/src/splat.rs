@@ -16,7 +16,7 @@
 use drape_shared::radix_sort::bounded_len;
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
-use drape_shared::splat::raster::{BlendSettings, FusedPixel, PixelBwd, PixelFwd, SplatView};
+use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
@@ -371,7 +371,8 @@ pub fn rasterize_fwd(
 /// list of every layer's splats, blending each into the base, cloth and matte states
 /// its layer mask (`masks`, per Gaussian) names (`drape_shared::splat::raster::FusedPixel`);
 /// writes the base image over the frame's background, the cloth image and alpha over
-/// black, and the matte (3 channels, over black) for the composite.
+/// black, and the matte (3 channels, over black) for the composite, and for the
+/// backward each state's final transmittance and end in the merged list (3 per pixel).
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(16, 16)))]
 pub fn rasterize_fused_fwd(
@@ -387,6 +388,8 @@ pub fn rasterize_fused_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
     #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
     #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
     #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
@@ -427,7 +430,7 @@ pub fn rasterize_fused_fwd(
                 if j + u < count && !done {
                     let slot = (j + u) as usize;
                     let s = batch_view(slot, b_xy, b_conic, b_opacity_depth, b_color);
-                    state.blend(&s, b_mask[slot], fx, fy, &cfg);
+                    state.blend(&s, b_mask[slot], base - start + j + u, fx, fy, &cfg);
                     done = state.done();
                 }
             });
@@ -448,6 +451,23 @@ pub fn rasterize_fused_fwd(
         return;
     }
     let p = (py * frame.width + px) as usize;
+    store_pixel_fused(p, &state, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+}
+
+/// Writes one pixel of the fused rasterizer's outputs (both variants).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn store_pixel_fused(
+    p: usize,
+    state: &FusedPixel<f32>,
+    frame: &FrameParams,
+    base_rgb: &mut [f32],
+    cloth_rgb: &mut [f32],
+    cloth_alpha: &mut [f32],
+    matte_rgb: &mut [f32],
+    transmittances: &mut [f32],
+    ends: &mut [u32],
+) {
     let c = state.base.rgb(frame.background);
     base_rgb[3 * p] = c[0];
     base_rgb[3 * p + 1] = c[1];
@@ -459,6 +479,14 @@ pub fn rasterize_fused_fwd(
     matte_rgb[3 * p] = state.matte.color[0];
     matte_rgb[3 * p + 1] = state.matte.color[1];
     matte_rgb[3 * p + 2] = state.matte.color[2];
+    let t = state.transmittances();
+    let e = state.ends();
+    transmittances[3 * p] = t[0];
+    transmittances[3 * p + 1] = t[1];
+    transmittances[3 * p + 2] = t[2];
+    ends[3 * p] = e[0];
+    ends[3 * p + 1] = e[1];
+    ends[3 * p + 2] = e[2];
 }
 
 /// The backward rasterizer: one workgroup per tile, one invocation per pixel, walking
@@ -567,6 +595,125 @@ rasterize_bwd_entry!(rasterize_bwd_atomic, f32, atomics::add_f32, doc = "Backwar
 rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer with compare-and-swap loops on the bits of f32 (any device).");
 // One line per entry: the kernel list test (`tests/tests/runtime.rs`) reads the name here.
 rasterize_bwd_entry!(rasterize_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer: per-splat gradients in 64-bit fixed point (`fixed_point::resolve` turns them into f32).");
+
+/// The fused rasterizer's backward (`ops::splat::fused`): one workgroup per tile, one
+/// invocation per pixel, walking the merged list back to front from the furthest end
+/// any pixel's states reached; each pixel runs its three states' backward walks
+/// (`drape_shared::splat::raster::FusedPixelBwd`) and adds each splat the sum of what
+/// they send it. Upstream: the gradients on the base rgb, the cloth rgb and alpha, and
+/// the matte (channel 0 of 3, as the composite's backward writes it).
+/// `$accumulate(grads, index, value)` adds into the per-splat gradients.
+macro_rules! rasterize_fused_bwd_entry {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(16, 16)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] tile: UVec3,
+            #[spirv(local_invocation_id)] local: UVec3,
+            #[spirv(local_invocation_index)] lid: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittances: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] ends: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_base: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_cloth: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_cloth_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [$grad_ty],
+            #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_id: &mut [u32; BATCH],
+            #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
+            #[spirv(workgroup)] max_end: &mut [u32; 1],
+        ) {
+            let px = tile.x * TILE_SIZE + local.x;
+            let py = tile.y * TILE_SIZE + local.y;
+            let inside = px < frame.width && py < frame.height;
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let t = (tile.y * frame.tiles_x + tile.x) as usize;
+            let start = ranges[2 * t];
+            let p = if inside { (py * frame.width + px) as usize } else { 0 };
+            let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+            let mut state = if inside {
+                FusedPixelBwd::<f32>::new(
+                    [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
+                    [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
+                    frame.background,
+                    [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
+                    [grad_cloth[3 * p], grad_cloth[3 * p + 1], grad_cloth[3 * p + 2]],
+                    grad_cloth_alpha[p],
+                    grad_matte[3 * p],
+                )
+            } else {
+                FusedPixelBwd::<f32>::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0)
+            };
+            let mine = state.end();
+            if lid == 0 {
+                max_end[0] = 0;
+            }
+            barrier();
+            atomics::max_u32_workgroup(&mut max_end[0], mine);
+            barrier();
+            let slot = lid as usize;
+            let mut batch_end = start + max_end[0];
+            // Uniform loop: the bounds are the same for the whole workgroup.
+            while batch_end > start {
+                let batch_start = if batch_end - start > BATCH as u32 { batch_end - BATCH as u32 } else { start };
+                let k = batch_start + lid;
+                if k < batch_end {
+                    let id = isect_values[k as usize];
+                    b_id[slot] = id;
+                    b_mask[slot] = masks[id as usize];
+                    load_batch_slot(slot, &splats[id as usize], b_xy, b_conic, b_opacity_depth, b_color);
+                }
+                barrier();
+                // Back to front, UNROLL splats per iteration (see the forward pass).
+                let mut top = batch_end - batch_start;
+                while top > 0 {
+                    let mut u = 0;
+                    unroll!(u, {
+                        if u < top {
+                            let j = top - 1 - u;
+                            let index = batch_start + j - start;
+                            if index < mine {
+                                let s = batch_view(j as usize, b_xy, b_conic, b_opacity_depth, b_color);
+                                if let Some(grad) = state.step(&s, b_mask[j as usize], index, fx, fy, &cfg) {
+                                    let base = b_id[j as usize] as usize * SPLAT_GRAD_FLOATS;
+                                    let v = grad.to_array();
+                                    $accumulate(splat_grads, base, v[0]);
+                                    $accumulate(splat_grads, base + 1, v[1]);
+                                    $accumulate(splat_grads, base + 2, v[2]);
+                                    $accumulate(splat_grads, base + 3, v[3]);
+                                    $accumulate(splat_grads, base + 4, v[4]);
+                                    $accumulate(splat_grads, base + 5, v[5]);
+                                    $accumulate(splat_grads, base + 6, v[6]);
+                                    $accumulate(splat_grads, base + 7, v[7]);
+                                    $accumulate(splat_grads, base + 8, v[8]);
+                                    $accumulate(splat_grads, base + 9, v[9]);
+                                }
+                            }
+                        }
+                    });
+                    top = if top > UNROLL { top - UNROLL } else { 0 };
+                }
+                // Everyone is done with the batch before it is overwritten.
+                barrier();
+                batch_end = batch_start;
+            }
+        }
+    };
+}
+
+#[cfg(feature = "float-atomics")]
+rasterize_fused_bwd_entry!(rasterize_fused_bwd_atomic, f32, atomics::add_f32, doc = "Fused backward rasterizer with float atomics (needs shaderBufferFloat32AtomicAdd).");
+rasterize_fused_bwd_entry!(rasterize_fused_bwd_cas, u32, atomics::add_f32_cas, doc = "Fused backward rasterizer with compare-and-swap loops on the bits of f32 (any device).");
+rasterize_fused_bwd_entry!(rasterize_fused_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic fused backward rasterizer: per-splat gradients in 64-bit fixed point.");
 
 /// Gradients of Gaussian `i`'s parameters from its splat's gradient. Culled Gaussians
 /// get zeros.
@@ -857,23 +1004,6 @@ pub fn rasterize_fwd_subgroup(
     }
 }
 
-/// Writes one pixel of the fused rasterizer's outputs.
-#[cfg(feature = "subgroup-ballot")]
-#[inline]
-fn store_pixel_fused(p: usize, state: &FusedPixel<f32>, frame: &FrameParams, base_rgb: &mut [f32], cloth_rgb: &mut [f32], cloth_alpha: &mut [f32], matte_rgb: &mut [f32]) {
-    let c = state.base.rgb(frame.background);
-    base_rgb[3 * p] = c[0];
-    base_rgb[3 * p + 1] = c[1];
-    base_rgb[3 * p + 2] = c[2];
-    cloth_rgb[3 * p] = state.cloth.color[0];
-    cloth_rgb[3 * p + 1] = state.cloth.color[1];
-    cloth_rgb[3 * p + 2] = state.cloth.color[2];
-    cloth_alpha[p] = 1.0 - state.cloth.transmittance;
-    matte_rgb[3 * p] = state.matte.color[0];
-    matte_rgb[3 * p + 1] = state.matte.color[1];
-    matte_rgb[3 * p + 2] = state.matte.color[2];
-}
-
 /// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
 /// header), on `[2 · tiles_x, 4 · tiles_y]` workgroups of 8.
 #[cfg(feature = "subgroup-ballot")]
@@ -891,6 +1021,8 @@ pub fn rasterize_fused_fwd_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
 ) {
     let b = Block::new(group, lane, frame);
     let (fx, fy) = (b.fx, b.fy);
@@ -917,20 +1049,21 @@ pub fn rasterize_fused_fwd_subgroup(
                 if base + $u < end {
                     let v = sg_view!(mine, $u);
                     let mask = crate::subgroup::broadcast_u32::<$u>(mine_mask);
+                    let index = base - start + $u;
                     if !d0 {
-                        s0.blend(&v, mask, fx, fy[0], &cfg);
+                        s0.blend(&v, mask, index, fx, fy[0], &cfg);
                         d0 = s0.done();
                     }
                     if !d1 {
-                        s1.blend(&v, mask, fx, fy[1], &cfg);
+                        s1.blend(&v, mask, index, fx, fy[1], &cfg);
                         d1 = s1.done();
                     }
                     if !d2 {
-                        s2.blend(&v, mask, fx, fy[2], &cfg);
+                        s2.blend(&v, mask, index, fx, fy[2], &cfg);
                         d2 = s2.done();
                     }
                     if !d3 {
-                        s3.blend(&v, mask, fx, fy[3], &cfg);
+                        s3.blend(&v, mask, index, fx, fy[3], &cfg);
                         d3 = s3.done();
                     }
                 }
@@ -943,16 +1076,16 @@ pub fn rasterize_fused_fwd_subgroup(
         base += 8;
     }
     if b.inside[0] {
-        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[1] {
-        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[2] {
-        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[3] {
-        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb);
+        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
     }
 }
 

@@ -60,8 +60,6 @@ fn bad_configs_name_the_file_and_field() {
         ("wrong-type.toml", "steps = \"many\"\n", "steps"),
         ("zero-width.toml", "[cloth]\ndecoder_width = 0\n", "cloth.decoder_width"),
         ("compositing.toml", "compositing = \"blended\"\n", "compositing"),
-        // A render-only variant: refused for training, saying so.
-        ("fused.toml", "compositing = \"fused\"\n", "renders only"),
         ("sh.toml", "[scene]\nsh_degree = 4\n", "scene.sh_degree"),
         ("fit.toml", "cloth_fit = \"baggy\"\n", "cloth_fit"),
         ("broken.toml", "steps = \n", "broken.toml"),

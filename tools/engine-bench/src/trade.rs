@@ -16,6 +16,11 @@
 //! - Gaussians pruned by opacity (`--prune`): a pruned Gaussian's opacity logit is set to
 //!   [`PRUNED_LOGIT`], which the projection culls (opacity below `alpha_min`), so it
 //!   leaves no intersection, exactly as if removed;
+//! - Gaussians pruned by contribution (`--prune-contribution`): each Gaussian's blend
+//!   weight `α · T` summed over the pixels of `--contribution-frames` training frames
+//!   (one depth-sorted render of every layer per frame, posed as in that frame,
+//!   `SplatRenderer::contributions`: the backward rasterizer's colour gradient under
+//!   an upstream of ones), and the given fraction with the least culled as above;
 //! - compositing: three-pass, three-pass-occlusion, single-pass, fused;
 //! - pose-dependent offsets off, for runs whose layers were trained with them: the
 //!   deformation reads the decoded offsets without the pose blend (which also saves
@@ -24,7 +29,7 @@
 //! The edits are host reads and writes between the decoders and the render, outside the
 //! GPU time. They change what is rendered, not how: the kernels still evaluate every SH
 //! coefficient of the trained degree and project every Gaussian, so SH truncation saves
-//! no time here and pruning saves binning, sorting and rasterization but not the
+//! no time here and pruning (by opacity or contribution) saves binning, sorting and rasterization but not the
 //! decoders or the projection (a compacted model would). Knobs that need kernels not
 //! built yet are listed under `not_built` with no numbers.
 
@@ -33,6 +38,7 @@ use std::path::{Path, PathBuf};
 
 use drape_cli_support::median;
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
+use drape_engine::ops::splat::render::SplatRenderer;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::Context;
 use drape_shared::splat::layout::sh_coeffs;
@@ -41,6 +47,7 @@ use drape_trainer::avatar::eval::psnr;
 use drape_trainer::avatar::model::Avatar;
 use drape_trainer::avatar::run::OpenRun;
 use drape_trainer::dataset::loader::DatasetFrame;
+use drape_trainer::dataset::split::Split;
 use serde_json::json;
 
 /// The opacity logit of a pruned Gaussian: sigmoid(-30) ≈ 9e-14, far below the
@@ -77,6 +84,14 @@ pub struct TradeArgs {
     /// Pruning knob: Gaussians whose opacity is below each threshold are culled.
     #[arg(long, value_delimiter = ',', default_value = "0.005,0.02,0.05,0.1", value_parser = parse_threshold)]
     pub prune: Vec<f32>,
+    /// Pruning by contribution: each fraction of the Gaussians with the least summed
+    /// blend weight over training frames is culled.
+    #[arg(long, value_delimiter = ',', default_value = "0.1,0.25,0.5", value_parser = parse_fraction)]
+    pub prune_contribution: Vec<f64>,
+    /// Training frames (spread evenly over the training split; 0: all) whose renders
+    /// measure each Gaussian's contribution.
+    #[arg(long, default_value_t = 8)]
+    pub contribution_frames: usize,
     /// Use only the first N held-out frames (0: all of them).
     #[arg(long, default_value_t = 0)]
     pub max_frames: usize,
@@ -102,6 +117,13 @@ fn parse_threshold(s: &str) -> Result<f32, String> {
     }
 }
 
+fn parse_fraction(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v > 0.0 && v < 1.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a fraction of the Gaussians in (0, 1)")),
+    }
+}
+
 /// One point of the trade: how the frame is rendered.
 #[derive(Clone, Debug)]
 struct Setting {
@@ -112,13 +134,16 @@ struct Setting {
     /// SH degree kept per part (the human layers in order, then the scene); None: all.
     sh_keep: Vec<Option<u32>>,
     prune: Option<f32>,
+    /// Gaussians culled by contribution (true), in the gathered order: the human layers,
+    /// then the scene.
+    prune_mask: Option<std::rc::Rc<Vec<bool>>>,
     /// The pose blend of layers trained with pose-dependent offsets.
     pose_offsets: bool,
 }
 
 impl Setting {
     fn edits(&self) -> bool {
-        self.prune.is_some() || self.sh_keep.iter().any(Option::is_some)
+        self.prune.is_some() || self.prune_mask.is_some() || self.sh_keep.iter().any(Option::is_some)
     }
 }
 
@@ -144,6 +169,74 @@ pub fn prune_by_opacity(opacity_logits: &mut [f32], threshold: f32) -> usize {
         }
     }
     kept
+}
+
+/// Culls the Gaussians marked in `pruned` (one flag per logit) by setting their logit to
+/// [`PRUNED_LOGIT`]; returns how many are kept.
+pub fn prune_masked(opacity_logits: &mut [f32], pruned: &[bool]) -> usize {
+    assert_eq!(opacity_logits.len(), pruned.len(), "one flag per Gaussian");
+    let mut kept = 0;
+    for (l, &p) in opacity_logits.iter_mut().zip(pruned) {
+        if p {
+            *l = PRUNED_LOGIT;
+        } else {
+            kept += 1;
+        }
+    }
+    kept
+}
+
+/// The `fraction` of the Gaussians with the least contribution (ties broken by index,
+/// so the choice is the same on every run): true for each culled one.
+pub fn least_contributing(contributions: &[f64], fraction: f64) -> Vec<bool> {
+    let mut order: Vec<usize> = (0..contributions.len()).collect();
+    order.sort_by(|&a, &b| contributions[a].total_cmp(&contributions[b]).then(a.cmp(&b)));
+    let cut = (fraction * contributions.len() as f64).floor() as usize;
+    let mut pruned = vec![false; contributions.len()];
+    for &i in &order[..cut.min(order.len())] {
+        pruned[i] = true;
+    }
+    pruned
+}
+
+/// Each Gaussian's contribution, in the gathered order (the human layers, then the
+/// scene), summed over up to `max_frames` training frames spread evenly over the
+/// training split (0: all): its blend weights `α · T` over the pixels of one
+/// depth-sorted render of every layer, posed as in the frame, from its camera
+/// (`SplatRenderer::contributions`). Returns the sums and the frames used.
+fn contributions(ctx: &Context, run: &mut OpenRun, max_frames: usize) -> anyhow::Result<(Vec<f64>, usize)> {
+    let train: Vec<DatasetFrame> = run.seq.frames.iter().filter(|f| f.split == Split::Train).cloned().collect();
+    anyhow::ensure!(!train.is_empty(), "{}: the run's data has no training frame to measure contributions on", run.seq.dir.display());
+    let picked: Vec<&DatasetFrame> = if max_frames == 0 || train.len() <= max_frames {
+        train.iter().collect()
+    } else {
+        (0..max_frames).map(|k| &train[k * train.len() / max_frames]).collect()
+    };
+    let total = run.avatar.posed.count;
+    let mut sums = vec![0.0f64; total as usize];
+    let mut renderers: BTreeMap<(u32, u32), SplatRenderer> = BTreeMap::new();
+    for f in &picked {
+        let cam = f.camera.to_pinhole([0.0; 3]);
+        let transforms = run.rig.frame(&f.body);
+        run.avatar.set_frame(ctx, &transforms)?;
+        for l in &mut run.avatar.layers {
+            l.set_pose_blend(true);
+        }
+        {
+            let mut rec = ctx.record("trade contributions decode and skin")?;
+            run.avatar.record_forward(&mut rec, transforms.log_scale)?;
+            rec.submit_and_wait()?;
+        }
+        let renderer = match renderers.entry((cam.width, cam.height)) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(e) => e.insert(SplatRenderer::new(ctx, cam.width, cam.height, total as usize)?),
+        };
+        renderer.forward(&run.avatar.posed, &cam, &RenderSettings::default())?;
+        for (s, c) in sums.iter_mut().zip(renderer.contributions()?) {
+            *s += f64::from(c);
+        }
+    }
+    Ok((sums, picked.len()))
 }
 
 /// Resamples an HWC RGB image: by box averaging when the source is an integer multiple
@@ -201,10 +294,10 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 }
 
 /// The settings of every measured knob; the first is the default.
-fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static str, serde_json::Value>) {
+fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
     let default_comp = run.config.compositing.clone();
     let parts = part_names(&run.avatar);
-    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, pose_offsets: true };
+    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true };
     let mut out = vec![base.clone()];
     let mut knobs = BTreeMap::new();
     for &s in args.scales.iter().filter(|&&s| s != 1.0) {
@@ -233,10 +326,21 @@ fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static
         out.push(Setting { knob: "pruning", label: format!("opacity < {t}"), prune: Some(t), ..base.clone() });
     }
     knobs.insert("pruning", json!(format!("measured: opacity thresholds {:?}; pruned Gaussians are culled at projection (decoders and projection still run on all)", args.prune)));
+    if !args.prune_contribution.is_empty() {
+        let (sums, frames) = contributions(ctx, run, args.contribution_frames)?;
+        for &q in &args.prune_contribution {
+            let mask = least_contributing(&sums, q);
+            // The least contribution kept, as pixels of weight per frame.
+            let floor = sums.iter().zip(&mask).filter(|(_, &p)| !p).map(|(&c, _)| c).fold(f64::INFINITY, f64::min) / frames as f64;
+            out.push(Setting { knob: "contribution pruning", label: format!("least-contributing {:.0}% (kept: at least {floor:.3} px of weight per frame)", 100.0 * q), prune_mask: Some(std::rc::Rc::new(mask)), ..base.clone() });
+        }
+        let zero = sums.iter().filter(|&&c| c == 0.0).count();
+        knobs.insert("contribution pruning", json!(format!("measured: the fractions {:?} of the Gaussians with the least contribution (blend weight summed over the pixels of {frames} training frames, a depth-sorted render of every layer each; {zero} of {} Gaussians contribute nothing) culled at projection", args.prune_contribution, sums.len())));
+    }
     for c in ["three-pass", "three-pass-occlusion", "single-pass", "fused"].into_iter().filter(|&c| c != default_comp) {
         out.push(Setting { knob: "compositing", label: c.to_string(), compositing: c.to_string(), ..base.clone() });
     }
-    knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass, fused (the paper's matte from one sort and one walk of every layer; forward only)"));
+    knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass, fused (the paper's matte from one sort and one walk of every layer)"));
     let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.has_pose_blend()).map(|l| l.name.as_str()).collect();
     if blended.is_empty() {
         knobs.insert("pose_offsets", json!("not applicable: no layer of this run was trained with pose-dependent offsets (config body.pose_offsets / cloth.pose_offsets)"));
@@ -244,7 +348,7 @@ fn settings(args: &TradeArgs, run: &OpenRun) -> (Vec<Setting>, BTreeMap<&'static
         out.push(Setting { knob: "pose_offsets", label: format!("off ({} without the pose blend)", blended.join(", ")), pose_offsets: false, ..base.clone() });
         knobs.insert("pose_offsets", json!(format!("measured: {} rendered without the pose blend (the decoded offsets alone)", blended.join(", "))));
     }
-    (out, knobs)
+    Ok((out, knobs))
 }
 
 /// Knobs that need kernel support not built yet: no numbers.
@@ -253,7 +357,6 @@ fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
         json!({"knob": "tile size 8 / 32", "why": "TILE_SIZE = 16 is a constant compiled into the splatting kernels (a rasterizer workgroup is one tile)"}),
         json!({"knob": "half-precision SH", "why": "the kernels read f32 SH only"}),
         json!({"knob": "half-precision projected splats", "why": "ProjectedSplat is f32 only"}),
-        json!({"knob": "pruning by contribution", "why": "needs a per-Gaussian accumulated blend weight from the rasterizer, which it does not write"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
     ]
 }
@@ -274,32 +377,38 @@ fn part_degrees(avatar: &Avatar) -> Vec<u32> {
 /// writes, then the GPU gather.
 fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Result<Vec<usize>> {
     let mut kept = Vec::new();
-    let edit = |op: &mut Vec<f32>, sh: &mut Vec<f32>, degree: u32, keep: Option<u32>| -> usize {
+    // `first`: the part's first Gaussian in the gathered order.
+    let edit = |op: &mut Vec<f32>, sh: &mut Vec<f32>, degree: u32, keep: Option<u32>, first: usize| -> usize {
         if let Some(d) = keep {
             truncate_sh(sh, degree, d);
         }
-        match s.prune {
-            Some(t) => prune_by_opacity(op, t),
-            None => op.len(),
+        match (s.prune, &s.prune_mask) {
+            (Some(t), _) => prune_by_opacity(op, t),
+            (None, Some(mask)) => {
+                let n = op.len();
+                prune_masked(op, &mask[first..first + n])
+            }
+            (None, None) => op.len(),
         }
     };
-    let mut part = 0;
+    let (mut part, mut first) = (0, 0);
     for l in &mut avatar.layers {
         let n = l.count as usize;
         let degree = l.posed.sh_degree;
         let mut op = ctx.read_buffer::<f32>(&mut l.posed.opacity_logits, n)?;
         let mut sh = ctx.read_buffer::<f32>(&mut l.posed.sh, 3 * sh_coeffs(degree) * n)?;
-        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part]));
+        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part], first));
         ctx.write_buffer(&mut l.posed.opacity_logits, &op)?;
         ctx.write_buffer(&mut l.posed.sh, &sh)?;
         part += 1;
+        first += n;
     }
     if let Some(scene) = &mut avatar.scene {
         let n = scene.count as usize;
         let degree = scene.params.sh_degree;
         let mut op = ctx.read_buffer::<f32>(&mut scene.params.opacity_logits, n)?;
         let mut sh = ctx.read_buffer::<f32>(&mut scene.params.sh, 3 * sh_coeffs(degree) * n)?;
-        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part]));
+        kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part], first));
         ctx.write_buffer(&mut scene.params.opacity_logits, &op)?;
         ctx.write_buffer(&mut scene.params.sh, &sh)?;
     }
@@ -457,7 +566,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     let whole_image = run.avatar.scene.is_some();
     let targets: Vec<Vec<f32>> = frames.iter().map(|f| target(f, whole_image)).collect();
     let scene_original = read_scene(ctx, &mut run.avatar)?;
-    let (settings, knobs) = settings(args, &run);
+    let (settings, knobs) = settings(ctx, args, &mut run)?;
     let parts = part_names(&run.avatar);
     let degrees = part_degrees(&run.avatar);
     let mut renderers = BTreeMap::new();
@@ -770,6 +879,43 @@ mod tests {
         assert_eq!(prune_by_opacity(&mut twice, 0.3), a);
         let mut nan = vec![f32::NAN, 3.0];
         assert_eq!(prune_by_opacity(&mut nan, 0.01), 1, "a NaN opacity is pruned");
+    }
+
+    /// The knob's GPU-vs-CPU test: contributions measured on the GPU, the least
+    /// contributing culled, rendered on the GPU as the CPU reference renders the cloud
+    /// without them; the culled ones contribute no more than any kept one.
+    #[test]
+    fn least_contributing_are_culled_as_if_removed() {
+        use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
+        let ctx = Context::new(&ContextDesc::for_tests()).expect("test device");
+        let cam = camera(64, 48);
+        let cloud = GaussianCloud::random(400, 1, 1.5, (3.0, 7.0), 0.15, 13);
+        let buffers = GaussianBuffers::upload(&ctx, "contribution cloud", &cloud).expect("upload");
+        let mut renderer = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+        renderer.forward(&buffers, &cam, &RenderSettings::default()).expect("forward");
+        let sums: Vec<f64> = renderer.contributions().expect("contributions").into_iter().map(f64::from).collect();
+        for fraction in [0.1, 0.3, 0.6] {
+            let mask = least_contributing(&sums, fraction);
+            let culled = mask.iter().filter(|&&m| m).count();
+            assert_eq!(culled, (fraction * cloud.len() as f64).floor() as usize);
+            let most_culled = sums.iter().zip(&mask).filter(|(_, &m)| m).map(|(&c, _)| c).fold(0.0, f64::max);
+            let least_kept = sums.iter().zip(&mask).filter(|(_, &m)| !m).map(|(&c, _)| c).fold(f64::INFINITY, f64::min);
+            assert!(most_culled <= least_kept, "fraction {fraction}: culled {most_culled} > kept {least_kept}");
+            let mut pruned = cloud.clone();
+            assert_eq!(prune_masked(&mut pruned.opacity_logits, &mask), cloud.len() - culled);
+            let mut removed = GaussianCloud::new(cloud.sh_degree);
+            for i in (0..cloud.len()).filter(|&i| !mask[i]) {
+                removed.push(&cloud.gaussian::<f32>(i), cloud.layers[i]);
+            }
+            let (gpu, _) = render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
+            let e = max_abs_diff(&gpu.rgb, &cpu_render(&removed, &cam));
+            assert!(e <= TOLERANCE, "fraction {fraction}: GPU vs CPU reference without the culled {e:e}");
+            if fraction > 0.5 {
+                assert!(max_abs_diff(&gpu.rgb, &cpu_render(&cloud, &cam)) > 1e-3, "culling {culled} Gaussians must change the image");
+            }
+        }
+        // Ties go by index: the same choice on every run.
+        assert_eq!(least_contributing(&[1.0, 0.0, 0.0, 2.0], 0.25), [false, true, false, false]);
     }
 
     #[test]

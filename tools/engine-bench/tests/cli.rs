@@ -132,7 +132,7 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     let j = json_of(&["--validation", "trade", run.to_str().unwrap(), "--runs", "1", "--warmup", "0", "--max-frames", "2", "--json", "--out", out.to_str().unwrap()]);
     let settings = j["settings"].as_array().expect("settings");
     let of = |knob: &str| settings.iter().filter(|s| s["knob"] == knob).collect::<Vec<_>>();
-    for knob in ["resolution", "sh_degree", "pruning", "compositing", "pose_offsets"] {
+    for knob in ["resolution", "sh_degree", "pruning", "contribution pruning", "compositing", "pose_offsets"] {
         assert!(j["knobs"][knob].as_str().is_some_and(|s| s.starts_with("measured")), "knob '{knob}': {}", j["knobs"]);
     }
     // 0.5x and 2x; degree 0 for the body, the cloth and both; four thresholds; the two
@@ -141,6 +141,15 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     assert_eq!(of("sh_degree").len(), 3, "{j}");
     assert_eq!(of("pruning").len(), 4, "{j}");
     assert_eq!(of("compositing").len(), 3, "{j}");
+    // 10%, 25% and 50% of the Gaussians with the least contribution culled: exactly
+    // those counts.
+    let by_contribution = of("contribution pruning");
+    assert_eq!(by_contribution.len(), 3, "{j}");
+    let all: u64 = j["gaussians"].as_array().into_iter().flatten().map(|p| p[1].as_u64().unwrap()).sum();
+    for (s, q) in by_contribution.iter().zip([0.1, 0.25, 0.5]) {
+        assert_eq!(s["gaussians_kept"].as_u64(), Some(all - (q * all as f64).floor() as u64), "{s}");
+        assert!(s["vs_default"]["psnr"].as_f64().is_some_and(|p| p < 199.0), "culling changes the render: {s}");
+    }
     // The fused frame renders the default three-pass frame's image (same sums, same
     // order): within float rounding of it.
     let fused: Vec<_> = of("compositing").into_iter().filter(|s| s["setting"] == "fused").collect();

@@ -17,15 +17,15 @@
 //! A frame is one submission: the gather, the three renders (which the recorder
 //! interleaves, as they share only what they read) and the composite. The fused
 //! variant ([`Compositing::Fused`], `ops::splat::fused`) renders the same three images
-//! from one sort and one walk of every layer's Gaussians; it has no backward yet, so
-//! training refuses it and it serves rendering (`engine-bench avatar`, `trade`).
+//! from one sort and one walk of every layer's Gaussians, and back-propagates in one
+//! walk too (its densification statistics then include the matte's gradients).
 
 use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
-use drape_engine::ops::splat::fused::{layer_masks, FusedRenderer};
+use drape_engine::ops::splat::fused::{layer_masks, FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
+use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
 
 use crate::avatar::cloth_losses::ClothLosses;
 use crate::avatar::model::Avatar;
@@ -47,8 +47,8 @@ pub enum Compositing {
     /// The paper's three passes and composite (needs a cloth layer; without one the
     /// avatar renders in one pass).
     ThreePass(Matte),
-    /// The same three images from one depth sort and one rasterization of every layer
-    /// (forward only).
+    /// The same three images from one depth sort and one rasterization of every layer,
+    /// and one backward walk (`ops::splat::fused`).
     Fused(Matte),
 }
 
@@ -66,10 +66,6 @@ impl Compositing {
         }
     }
 
-    /// Whether training can back-propagate through it (the fused variant cannot yet).
-    pub fn trains(self) -> bool {
-        !matches!(self, Self::Fused(_))
-    }
 }
 
 /// One source of Gaussians in a pass: a human layer (by index) or the scene.
@@ -151,12 +147,14 @@ struct ThreePass {
     pixels: u32,
 }
 
-/// What training through the fused variant meets (the config check refuses it first).
-const FUSED_HAS_NO_BACKWARD: EngineError = EngineError::NotBuilt { what: "the fused compositing's backward", instead: "train with three-pass or three-pass-occlusion; fused renders a trained avatar" };
-
 struct Fused {
     renderer: FusedRenderer,
     image: Buffer,
+    /// The composite's backward writes the three images' gradients here.
+    grad_base: Buffer,
+    grad_cloth: Buffer,
+    grad_cloth_alpha: Buffer,
+    grad_matte: Buffer,
     pixels: u32,
 }
 
@@ -186,8 +184,17 @@ impl AvatarRenderer {
             let mut renderer = FusedRenderer::new(ctx, width, height, avatar.posed.count as usize)?;
             renderer.set_masks(ctx, &layer_masks(&layers, matte == Matte::Occlusion))?;
             let pixels = width * height;
-            let image = ctx.create_buffer("composite image", BufferDesc::gpu_only(12 * u64::from(pixels)))?;
-            return Ok(Self { inner: Inner::Fused(Box::new(Fused { renderer, image, pixels })) });
+            let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
+            let fused = Fused {
+                renderer,
+                image: image("composite image", 3 * pixels)?,
+                grad_base: image("fused grad base", 3 * pixels)?,
+                grad_cloth: image("fused grad cloth", 3 * pixels)?,
+                grad_cloth_alpha: image("fused grad cloth alpha", pixels)?,
+                grad_matte: image("fused grad matte", 3 * pixels)?,
+                pixels,
+            };
+            return Ok(Self { inner: Inner::Fused(Box::new(fused)) });
         }
         let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
             return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)) });
@@ -303,9 +310,15 @@ impl AvatarRenderer {
         }
     }
 
-    /// Whether the cloth is rendered in its own pass (the mask loss then reads it).
+    /// Whether the cloth is rendered apart, in its own pass or the fused frame's cloth
+    /// state (the mask loss then reads it, and there are three images to show).
     pub fn is_three_pass(&self) -> bool {
-        matches!(self.inner, Inner::ThreePass(_))
+        matches!(self.inner, Inner::ThreePass(_) | Inner::Fused(_))
+    }
+
+    /// Whether the three images come from one fused walk.
+    pub fn is_fused(&self) -> bool {
+        matches!(self.inner, Inner::Fused(_))
     }
 
     /// The last forward's image (3 floats per pixel) on the GPU.
@@ -353,7 +366,19 @@ impl AvatarRenderer {
     #[allow(clippy::too_many_arguments)]
     pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
         match &mut self.inner {
-            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
+            Inner::Fused(f) => {
+                let accumulation = avatar.accumulation();
+                f.renderer.prepare_backward(accumulation)?;
+                let mut rec = ctx.record("fused backward")?;
+                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_cloth, over_alpha: &f.grad_cloth_alpha, matte_rgb: Some(&f.grad_matte) };
+                record_composite_backward(&mut rec, grad_rgb, f.renderer.outputs(), grads, f.pixels)?;
+                if let Some(c) = cloth_losses.as_ref() {
+                    c.record_mask_grad(&mut rec, f.renderer.outputs().over_alpha, &f.grad_cloth_alpha)?;
+                }
+                let upstream = FusedGrads { base_rgb: &f.grad_base, cloth_rgb: &f.grad_cloth, cloth_alpha: &f.grad_cloth_alpha, matte_rgb: &f.grad_matte };
+                f.renderer.record_backward(&mut rec, &avatar.posed, upstream, &avatar.posed_grads, accumulation)?;
+                rec.submit_and_wait()?;
+            }
             Inner::Single(r) => {
                 r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
                 if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
@@ -384,27 +409,28 @@ impl AvatarRenderer {
     /// Records the addition of the last step into every layer's densification
     /// statistics (`ops::splat::densify`), from the pass that draws the layer in colour:
     /// the base pass for the body and the scene, the cloth pass for the cloth (the
-    /// matte's gradients are left out); one pass for everything without compositing.
+    /// matte's gradients are left out); one pass for everything without compositing;
+    /// the fused walk's per-splat gradients (there the matte's are summed in: its walk
+    /// does not keep them apart).
     pub fn record_screen_stats<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
-        match &self.inner {
-            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
-            Inner::Single(r) => {
-                let mut first = 0;
-                for l in &avatar.layers {
-                    record_screen_stats(rec, r, first, l.count, &l.screen_stats, 0)?;
-                    first += l.count;
-                }
-                if let Some(s) = &avatar.scene {
-                    record_screen_stats(rec, r, first, s.count, &s.screen_stats, 0)?;
-                }
-            }
+        let r = match &self.inner {
+            Inner::Single(r) => &**r,
+            Inner::Fused(f) => f.renderer.splat_renderer(),
             Inner::ThreePass(t) => {
                 for p in &t.base_parts {
                     record_screen_stats(rec, &t.base_renderer, p.first, p.count, screen_stats(avatar, p.source), 0)?;
                 }
                 let cloth = &avatar.layers[t.cloth];
-                record_screen_stats(rec, &t.cloth_renderer, 0, cloth.count, &cloth.screen_stats, 0)?;
+                return record_screen_stats(rec, &t.cloth_renderer, 0, cloth.count, &cloth.screen_stats, 0);
             }
+        };
+        let mut first = 0;
+        for l in &avatar.layers {
+            record_screen_stats(rec, r, first, l.count, &l.screen_stats, 0)?;
+            first += l.count;
+        }
+        if let Some(s) = &avatar.scene {
+            record_screen_stats(rec, r, first, s.count, &s.screen_stats, 0)?;
         }
         Ok(())
     }
@@ -413,11 +439,10 @@ impl AvatarRenderer {
     /// gradients (where the per-layer losses then add theirs).
     pub fn record_scatter<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
         let t = match &self.inner {
-            Inner::Single(_) => {
+            Inner::Single(_) | Inner::Fused(_) => {
                 avatar.record_scatter_grads(rec)?;
                 return Ok(());
             }
-            Inner::Fused(_) => return Err(FUSED_HAS_NO_BACKWARD),
             Inner::ThreePass(t) => t,
         };
         for p in &t.base_parts {

@@ -273,9 +273,7 @@ impl TrainConfig {
         }
         LpipsNet::parse(&self.lpips_net).map_err(|e| format!("lpips_net: {e}"))?;
         self.densify.validate()?;
-        if !Compositing::parse(&self.compositing).map_err(|e| format!("compositing: {e}"))?.trains() {
-            return Err(format!("compositing: '{}' renders only (its backward is not built); train with three-pass or three-pass-occlusion", self.compositing));
-        }
+        Compositing::parse(&self.compositing).map_err(|e| format!("compositing: {e}"))?;
         if !(self.gm_sigma.is_finite() && self.gm_sigma > 0.0) {
             return Err(format!("gm_sigma must be a finite length > 0, got {}", self.gm_sigma));
         }

@@ -10,8 +10,14 @@
 //! images equal the three-pass renders within float tolerance (tested). Layer masks
 //! (`drape_shared::splat::raster::FUSED_*`) say which states a Gaussian blends into,
 //! for the paper's matte (cloth against the scene) or the occlusion-correct one (the
-//! body hides the cloth too). Forward only: training's backward goes through the three
-//! passes.
+//! body hides the cloth too).
+//!
+//! The backward ([`FusedRenderer::backward`]) walks the same merged list back to front
+//! once, each pixel running its three states' backward walks from where the forward
+//! left them (each state's final transmittance and end in the merged list, saved per
+//! pixel) and adding each Gaussian the sum of what its states send it: the three
+//! passes' backward passes summed, with no colour gradient from the matte (its colour
+//! is fixed). It runs the workgroup kernels on every device (no subgroup twin yet).
 
 use drape_shared::splat::raster::{FUSED_BASE, FUSED_CLOTH, FUSED_MATTE_ONE, FUSED_MATTE_ZERO};
 
@@ -19,6 +25,8 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
+use crate::ops::accumulate::{Accumulation, Method};
+use crate::recorder::PassTimings;
 use crate::ops::splat::composite::CompositeInputs;
 use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SplatRenderer};
 use crate::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
@@ -48,7 +56,22 @@ pub struct FusedRenderer {
     cloth_rgb: Buffer,
     cloth_alpha: Buffer,
     matte_rgb: Buffer,
+    /// Per pixel, each state's final transmittance (base, cloth, matte).
+    transmittances: Buffer,
+    /// Per pixel, each state's end in the merged tile list.
+    ends: Buffer,
     pixels: u32,
+}
+
+/// The upstream gradients of a fused backward: on the base rgb and the cloth rgb (3 per
+/// pixel), the cloth alpha (1 per pixel) and the matte (3 per pixel, only channel 0
+/// read: the composite's backward writes the visibility's gradient there).
+#[derive(Clone, Copy)]
+pub struct FusedGrads<'a> {
+    pub base_rgb: &'a Buffer,
+    pub cloth_rgb: &'a Buffer,
+    pub cloth_alpha: &'a Buffer,
+    pub matte_rgb: &'a Buffer,
 }
 
 impl FusedRenderer {
@@ -64,6 +87,8 @@ impl FusedRenderer {
             cloth_rgb: image("fused cloth rgb", 3 * pixels)?,
             cloth_alpha: image("fused cloth alpha", pixels)?,
             matte_rgb: image("fused matte", 3 * pixels)?,
+            transmittances: image("fused final transmittances", 3 * pixels)?,
+            ends: image("fused state ends", 3 * pixels)?,
             pixels,
         })
     }
@@ -98,7 +123,66 @@ impl FusedRenderer {
             .write("cloth_rgb", &self.cloth_rgb)
             .write("cloth_alpha", &self.cloth_alpha)
             .write("matte_rgb", &self.matte_rgb)
+            .write("transmittances", &self.transmittances)
+            .write("ends", &self.ends)
             .dispatch(grid)
+    }
+
+    /// Records the backward of the last forward into the per-splat gradients and then
+    /// every Gaussian's parameter gradients (`out`, written, not accumulated), given
+    /// the loss's gradients on the three images. Call [`Self::prepare_backward`] first.
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
+        let method = accumulation.method(&self.ctx);
+        let kernel = match method {
+            Method::FloatAtomics => Kernel::SplatRasterizeFusedBwdAtomic,
+            Method::CompareAndSwap => Kernel::SplatRasterizeFusedBwdCas,
+            Method::FixedPoint => Kernel::SplatRasterizeFusedBwdFixed,
+        };
+        let (frame, splats, isect_values, ranges) = self.renderer.binned();
+        let target = self.renderer.grad_target(method);
+        rec.fill(target, 0);
+        rec.pass("splat.rasterize_fused_bwd", kernel)
+            .read("frame", frame)
+            .read("splats", splats)
+            .read("isect_values", isect_values)
+            .read("ranges", ranges)
+            .read("masks", &self.masks)
+            .read("transmittances", &self.transmittances)
+            .read("ends", &self.ends)
+            .read("grad_base", grads.base_rgb)
+            .read("grad_cloth", grads.cloth_rgb)
+            .read("grad_cloth_alpha", grads.cloth_alpha)
+            .read("grad_matte", grads.matte_rgb)
+            .write("splat_grads", target)
+            .dispatch(self.renderer.tile_dispatch())?;
+        self.renderer.record_grad_resolve(rec, gaussians.count, method)?;
+        self.renderer.record_project_backward(rec, gaussians, out)
+    }
+
+    /// Makes what a backward adding with `accumulation` needs (the fixed-point scratch).
+    pub fn prepare_backward(&mut self, accumulation: Accumulation) -> Result<()> {
+        let method = accumulation.method(&self.ctx);
+        self.renderer.make_scratch(method)
+    }
+
+    /// The backward in one submission (see [`Self::record_backward`]).
+    pub fn backward(&mut self, gaussians: &GaussianBuffers, grads: FusedGrads<'_>, out: &GaussianBuffers, accumulation: Accumulation) -> Result<PassTimings> {
+        self.prepare_backward(accumulation)?;
+        let ctx = self.ctx.clone();
+        let mut rec = ctx.record("fused backward")?;
+        self.record_backward(&mut rec, gaussians, grads, out, accumulation)?;
+        rec.submit_and_wait()
+    }
+
+    /// The splatter whose projection, sorts and binning the fused frame uses (its
+    /// per-splat gradients are the fused backward's: `ops::splat::densify` reads them).
+    pub fn splat_renderer(&self) -> &SplatRenderer {
+        &self.renderer
+    }
+
+    /// The per-splat gradients of the last backward (10 per Gaussian), for tests.
+    pub fn read_splat_grads(&mut self, count: usize) -> Result<Vec<f32>> {
+        self.renderer.read_splat_grads(count)
     }
 
     /// As [`SplatRenderer::finish_forward`].

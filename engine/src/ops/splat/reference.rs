@@ -8,7 +8,7 @@
 use drape_shared::real::Real;
 use drape_shared::splat::layout::{FrameParams, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad};
-use drape_shared::splat::raster::{BlendSettings, PixelBwd, PixelFwd, SplatView};
+use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 
 /// A forward render and what the backward pass needs of it.
 #[derive(Clone, Debug)]
@@ -150,6 +150,110 @@ pub fn backward<F: Real>(
                         *s += v;
                     }
                     *acc = SplatGrad::from_array(&sum);
+                }
+            }
+        }
+    }
+    let grads = gaussians
+        .iter()
+        .zip(&fwd.projections)
+        .zip(&splat_grads)
+        .map(|((g, p), up)| if p.visible { project_bwd(g, &cam, up) } else { GaussianGrad::zero() })
+        .collect();
+    (grads, splat_grads)
+}
+
+/// The fused rasterizer's forward on the CPU (`ops::splat::fused`): per pixel, the
+/// three states of [`FusedPixel`] over the merged tile list of `fwd` (a [`render`] of
+/// the merged cloud, for its projections and lists), with each Gaussian's layer mask.
+#[derive(Clone, Debug)]
+pub struct FusedReference<F> {
+    /// 3 per pixel: the base over the frame's background, the cloth over black, the
+    /// matte (all three channels equal).
+    pub base_rgb: Vec<F>,
+    pub cloth_rgb: Vec<F>,
+    pub cloth_alpha: Vec<F>,
+    pub matte_rgb: Vec<F>,
+    /// 3 per pixel (base, cloth, matte).
+    pub transmittances: Vec<F>,
+    pub ends: Vec<u32>,
+}
+
+/// Runs the fused forward over `fwd`'s merged lists (see [`FusedReference`]).
+pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &FrameParams) -> FusedReference<F> {
+    let cfg = BlendSettings::<F>::from_frame(frame);
+    let pixels = (fwd.width * fwd.height) as usize;
+    let z = F::zero();
+    let mut out = FusedReference {
+        base_rgb: vec![z; 3 * pixels],
+        cloth_rgb: vec![z; 3 * pixels],
+        cloth_alpha: vec![z; pixels],
+        matte_rgb: vec![z; 3 * pixels],
+        transmittances: vec![F::one(); 3 * pixels],
+        ends: vec![0; 3 * pixels],
+    };
+    let background = frame.background.map(F::of);
+    for py in 0..fwd.height {
+        for px in 0..fwd.width {
+            let p = (py * fwd.width + px) as usize;
+            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
+            let mut state = FusedPixel::<F>::new();
+            for (k, &g) in fwd.tile_lists[tile].iter().enumerate() {
+                state.blend(&view(&fwd.projections[g as usize]), masks[g as usize], k as u32, fx, fy, &cfg);
+                if state.done() {
+                    break;
+                }
+            }
+            out.base_rgb[3 * p..3 * p + 3].copy_from_slice(&state.base.rgb(background));
+            out.cloth_rgb[3 * p..3 * p + 3].copy_from_slice(&state.cloth.color);
+            out.cloth_alpha[p] = F::one() - state.cloth.transmittance;
+            out.matte_rgb[3 * p..3 * p + 3].copy_from_slice(&state.matte.color);
+            out.transmittances[3 * p..3 * p + 3].copy_from_slice(&state.transmittances());
+            out.ends[3 * p..3 * p + 3].copy_from_slice(&state.ends());
+        }
+    }
+    out
+}
+
+/// The fused backward on the CPU: gradients of a loss with respect to every Gaussian of
+/// the merged cloud, given the loss's gradients on the base rgb, the cloth rgb and
+/// alpha, and the matte (channel 0 of 3 per pixel); also the per-splat gradients.
+#[allow(clippy::too_many_arguments)]
+pub fn fused_backward<F: Real>(
+    gaussians: &[Gaussian<F>],
+    masks: &[u32],
+    frame: &FrameParams,
+    fwd: &ReferenceRender<F>,
+    fused: &FusedReference<F>,
+    grad_base: &[F],
+    grad_cloth: &[F],
+    grad_cloth_alpha: &[F],
+    grad_matte: &[F],
+) -> (Vec<GaussianGrad<F>>, Vec<SplatGrad<F>>) {
+    let cam = Camera::<F>::from_frame(frame);
+    let cfg = BlendSettings::<F>::from_frame(frame);
+    let background = frame.background.map(F::of);
+    let mut splat_grads = vec![SplatGrad::<F>::zero(); gaussians.len()];
+    for py in 0..fwd.height {
+        for px in 0..fwd.width {
+            let p = (py * fwd.width + px) as usize;
+            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
+            let three = |v: &[F]| [v[3 * p], v[3 * p + 1], v[3 * p + 2]];
+            let mut state = FusedPixelBwd::new(
+                three(&fused.transmittances),
+                [fused.ends[3 * p], fused.ends[3 * p + 1], fused.ends[3 * p + 2]],
+                background,
+                three(grad_base),
+                three(grad_cloth),
+                grad_cloth_alpha[p],
+                grad_matte[3 * p],
+            );
+            let list = &fwd.tile_lists[tile];
+            for (k, &g) in list.iter().enumerate().take(state.end() as usize).rev() {
+                if let Some(d) = state.step(&view(&fwd.projections[g as usize]), masks[g as usize], k as u32, fx, fy, &cfg) {
+                    splat_grads[g as usize] = splat_grads[g as usize].add(&d);
                 }
             }
         }

@@ -568,22 +568,29 @@ impl SplatRenderer {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
         let method = accumulation.method(&self.ctx);
-        let values = SPLAT_GRAD_FLOATS as u32 * gaussians.count;
-        if method == Method::FixedPoint && self.fixed.is_none() {
-            self.fixed = Some(FixedPointScratch::new(&self.ctx, "splat gradients", SPLAT_GRAD_FLOATS as u32 * self.max_count)?);
-        }
-        let subgroup = self.raster == RasterVariant::Subgroup;
-        let (kernel, target) = match method {
-            Method::FloatAtomics if subgroup => (Kernel::SplatRasterizeBwdSubgroupAtomic, &self.splat_grads),
-            Method::CompareAndSwap if subgroup => (Kernel::SplatRasterizeBwdSubgroupCas, &self.splat_grads),
-            Method::FloatAtomics => (Kernel::SplatRasterizeBwdAtomic, &self.splat_grads),
-            Method::CompareAndSwap => (Kernel::SplatRasterizeBwdCas, &self.splat_grads),
-            Method::FixedPoint if subgroup => (Kernel::SplatRasterizeBwdSubgroupFixed, self.fixed.as_ref().expect("made above").buffer()),
-            Method::FixedPoint => (Kernel::SplatRasterizeBwdFixed, self.fixed.as_ref().expect("made above").buffer()),
-        };
-        let grid = self.raster_grid();
+        self.make_scratch(method)?;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
+        self.record_raster_backward(&mut rec, gaussians.count, grad_rgb, grad_alpha, grad_depth, method)?;
+        self.record_project_backward(&mut rec, gaussians, out)?;
+        rec.submit_and_wait()
+    }
+
+    /// Records the backward rasterization of the last forward pass into the per-splat
+    /// gradients (`SPLAT_GRAD_FLOATS` per splat, zeroed first) from the loss's gradient
+    /// on each pixel's rgb, alpha and depth.
+    /// Call [`Self::make_scratch`] for `method` first.
+    fn record_raster_backward<'a>(&'a self, rec: &mut Recording<'a>, count: u32, grad_rgb: &'a Buffer, grad_alpha: &'a Buffer, grad_depth: &'a Buffer, method: Method) -> Result<()> {
+        let subgroup = self.raster == RasterVariant::Subgroup;
+        let kernel = match method {
+            Method::FloatAtomics if subgroup => Kernel::SplatRasterizeBwdSubgroupAtomic,
+            Method::CompareAndSwap if subgroup => Kernel::SplatRasterizeBwdSubgroupCas,
+            Method::FixedPoint if subgroup => Kernel::SplatRasterizeBwdSubgroupFixed,
+            Method::FloatAtomics => Kernel::SplatRasterizeBwdAtomic,
+            Method::CompareAndSwap => Kernel::SplatRasterizeBwdCas,
+            Method::FixedPoint => Kernel::SplatRasterizeBwdFixed,
+        };
+        let target = self.grad_target(method);
         rec.fill(target, 0);
         let p = &self.pixels;
         rec.pass("splat.rasterize_bwd", kernel)
@@ -597,11 +604,16 @@ impl SplatRenderer {
             .read("grad_alpha", grad_alpha)
             .read("grad_depth", grad_depth)
             .write("splat_grads", target)
-            .dispatch(grid)?;
-        if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
-            fixed.record_resolve(&mut rec, &self.splat_grads, values)?;
-        }
-        for chunk in project_chunks(&ctx, gaussians.count, gaussians.sh_degree) {
+            .dispatch(self.raster_grid())?;
+        self.record_grad_resolve(rec, count, method)
+    }
+
+    /// Records the projection's backward from the per-splat gradients to every
+    /// Gaussian's parameters (`out`, written, not accumulated).
+    pub(crate) fn record_project_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, out: &'a GaussianBuffers) -> Result<()> {
+        assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
+        assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+        for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
                 .read("frame", &self.frame)
@@ -620,7 +632,65 @@ impl SplatRenderer {
                 .push(&chunk)
                 .dispatch(groups(chunk.len))?;
         }
-        rec.submit_and_wait()
+        Ok(())
+    }
+
+    /// Where a backward rasterizer adding with `method` writes the per-splat gradients
+    /// (the fixed-point scratch, resolved into them by [`Self::record_grad_resolve`]).
+    /// Call [`Self::make_scratch`] first.
+    pub(crate) fn grad_target(&self, method: Method) -> &Buffer {
+        match method {
+            Method::FixedPoint => self.fixed.as_ref().expect("made by make_scratch").buffer(),
+            _ => &self.splat_grads,
+        }
+    }
+
+    /// Records the fixed-point sums' conversion into the per-splat gradients of `count`
+    /// splats (nothing for the float methods).
+    pub(crate) fn record_grad_resolve<'a>(&'a self, rec: &mut Recording<'a>, count: u32, method: Method) -> Result<()> {
+        if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
+            fixed.record_resolve(rec, &self.splat_grads, SPLAT_GRAD_FLOATS as u32 * count)?;
+        }
+        Ok(())
+    }
+
+    /// The workgroup rasterizers' grid: one workgroup per 16 × 16 tile.
+    pub(crate) fn tile_dispatch(&self) -> [u32; 3] {
+        [self.frame_params.tiles_x, self.frame_params.tiles_y, 1]
+    }
+
+    /// Makes the fixed-point scratch on the first backward that adds in fixed point.
+    pub(crate) fn make_scratch(&mut self, method: Method) -> Result<()> {
+        if method == Method::FixedPoint && self.fixed.is_none() {
+            self.fixed = Some(FixedPointScratch::new(&self.ctx, "splat gradients", SPLAT_GRAD_FLOATS as u32 * self.max_count)?);
+        }
+        Ok(())
+    }
+
+    /// Each splat's contribution to the last forward pass's image: the sum over the
+    /// pixels of its blend weight `α · T` (its share of each pixel, the weight its colour
+    /// gets there), for pruning by contribution. It is the colour gradient the backward
+    /// rasterizer gives a splat when every pixel's upstream gradient on red is 1 (and 0
+    /// on green, blue, alpha and depth), so it is computed by that kernel, in 64-bit
+    /// fixed point (the same bits on every run). The contributions of a frame sum to the
+    /// sum of its alpha image. One value per Gaussian of the last forward pass (culled
+    /// ones 0).
+    pub fn contributions(&mut self) -> Result<Vec<f32>> {
+        let count = self.frame_params.count;
+        let ctx = self.ctx.clone();
+        let pixels = (self.width * self.height) as usize;
+        let red: Vec<f32> = (0..pixels).flat_map(|_| [1.0f32, 0.0, 0.0]).collect();
+        let upstream = ctx.upload("splat contribution upstream", &red)?;
+        let zeros = ctx.upload("splat contribution zeros", &vec![0.0f32; pixels])?;
+        self.make_scratch(Method::FixedPoint)?;
+        {
+            let mut rec = ctx.record("splat contributions")?;
+            self.record_raster_backward(&mut rec, count, &upstream, &zeros, &zeros, Method::FixedPoint)?;
+            rec.submit_and_wait()?;
+        }
+        let grads = self.read_splat_grads(count as usize)?;
+        // Index 6 of a splat's gradient is its colour's red (`SplatGrad::to_array`).
+        Ok(grads.chunks_exact(SPLAT_GRAD_FLOATS).map(|g| g[6]).collect())
     }
 
     /// Sorted intersection keys and values, and the tile ranges, of the last forward

@@ -147,6 +147,19 @@ impl<F: Real> SplatGrad<F> {
     pub fn from_array(a: &[F; 10]) -> Self {
         Self { x: a[0], y: a[1], conic: [a[2], a[3], a[4]], opacity: a[5], color: [a[6], a[7], a[8]], depth: a[9] }
     }
+
+    /// The sum of two gradients (written out: no loop for llvmpipe's loop budget).
+    #[inline]
+    pub fn add(&self, o: &Self) -> Self {
+        Self {
+            x: self.x + o.x,
+            y: self.y + o.y,
+            conic: [self.conic[0] + o.conic[0], self.conic[1] + o.conic[1], self.conic[2] + o.conic[2]],
+            opacity: self.opacity + o.opacity,
+            color: [self.color[0] + o.color[0], self.color[1] + o.color[1], self.color[2] + o.color[2]],
+            depth: self.depth + o.depth,
+        }
+    }
 }
 
 /// Gradient of a loss with respect to one Gaussian's parameters.

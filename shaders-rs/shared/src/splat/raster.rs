@@ -160,14 +160,14 @@ pub const FUSED_MATTE_ONE: u32 = 8;
 /// (body and scene), the cloth pass and the matte, each blended exactly as its own
 /// pass would blend it, in one walk of the tile's depth-sorted list of every layer.
 /// Each state's members keep their depth order in the merged list, so each state
-/// sums the same terms in the same order as its own pass.
+/// sums the same terms in the same order as its own pass. A state's `contributors`
+/// counts the merged list (one past its last blended splat there), which is where
+/// its backward walk ([`FusedPixelBwd`]) starts.
 #[derive(Clone, Copy, Debug)]
 pub struct FusedPixel<F> {
     pub base: PixelFwd<F>,
     pub cloth: PixelFwd<F>,
     pub matte: PixelFwd<F>,
-    /// Each state's index in its own pass's tile list: the splats of its layers seen so far.
-    pub seen: [u32; 3],
 }
 
 impl<F: Real> FusedPixel<F> {
@@ -175,7 +175,7 @@ impl<F: Real> FusedPixel<F> {
     /// pixel) keeps the walk going to the end of the list, where its own pass would
     /// also have ended.
     pub fn new() -> Self {
-        Self { base: PixelFwd::new(), cloth: PixelFwd::new(), matte: PixelFwd::new(), seen: [0; 3] }
+        Self { base: PixelFwd::new(), cloth: PixelFwd::new(), matte: PixelFwd::new() }
     }
 
     /// All three states saturated.
@@ -184,9 +184,10 @@ impl<F: Real> FusedPixel<F> {
         self.base.done && self.cloth.done && self.matte.done
     }
 
-    /// Blends the next splat of the merged tile list, with layer mask `mask`.
+    /// Blends the `index`-th splat of the merged tile list (0-based), with layer mask
+    /// `mask`.
     #[inline]
-    pub fn blend(&mut self, s: &SplatView<F>, mask: u32, px: F, py: F, cfg: &BlendSettings<F>) {
+    pub fn blend(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
         let in_base = mask & FUSED_BASE != 0;
         let in_cloth = mask & FUSED_CLOTH != 0;
         let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0;
@@ -194,32 +195,120 @@ impl<F: Real> FusedPixel<F> {
         if wanted {
             if let Some(f) = footprint(s, px, py, cfg) {
                 if in_base && !self.base.done {
-                    self.base.blend_footprint(&f, s.color, s.depth, self.seen[0], cfg);
+                    self.base.blend_footprint(&f, s.color, s.depth, index, cfg);
                 }
                 if in_cloth && !self.cloth.done {
-                    self.cloth.blend_footprint(&f, s.color, s.depth, self.seen[1], cfg);
+                    self.cloth.blend_footprint(&f, s.color, s.depth, index, cfg);
                 }
                 if in_matte && !self.matte.done {
-                    let m = if mask & FUSED_MATTE_ONE != 0 { F::one() } else { F::zero() };
-                    self.matte.blend_footprint(&f, [m, m, m], s.depth, self.seen[2], cfg);
+                    let m = matte_value::<F>(mask);
+                    self.matte.blend_footprint(&f, [m, m, m], s.depth, index, cfg);
                 }
             }
         }
-        if in_base {
-            self.seen[0] += 1;
-        }
-        if in_cloth {
-            self.seen[1] += 1;
-        }
-        if in_matte {
-            self.seen[2] += 1;
-        }
+    }
+
+    /// The states' final transmittances (base, cloth, matte): what the backward starts from.
+    #[inline]
+    pub fn transmittances(&self) -> [F; 3] {
+        [self.base.transmittance, self.cloth.transmittance, self.matte.transmittance]
+    }
+
+    /// The states' ends in the merged list (base, cloth, matte): one past each one's
+    /// last blended splat.
+    #[inline]
+    pub fn ends(&self) -> [u32; 3] {
+        [self.base.contributors, self.cloth.contributors, self.matte.contributors]
     }
 }
 
 impl<F: Real> Default for FusedPixel<F> {
     fn default() -> Self {
         Self::new()
+    }
+}
+
+/// A splat's colour in the matte: 1 for the composited layer, 0 for an occluder.
+#[inline]
+fn matte_value<F: Real>(mask: u32) -> F {
+    if mask & FUSED_MATTE_ONE != 0 {
+        F::one()
+    } else {
+        F::zero()
+    }
+}
+
+/// Backward state of one pixel of the fused rasterizer: the three states' backward
+/// walks ([`PixelBwd`], as each pass's own) over the merged list, back to front. A
+/// splat gets the sum of what the states it blended into send it; the matte's colour
+/// is fixed (1 or 0), so the matte sends no colour gradient.
+#[derive(Clone, Copy, Debug)]
+pub struct FusedPixelBwd<F> {
+    pub base: PixelBwd<F>,
+    pub cloth: PixelBwd<F>,
+    pub matte: PixelBwd<F>,
+    /// The forward's [`FusedPixel::ends`].
+    pub ends: [u32; 3],
+}
+
+impl<F: Real> FusedPixelBwd<F> {
+    /// From the forward's final transmittances and ends ([`FusedPixel::transmittances`],
+    /// [`FusedPixel::ends`]) and the pixel's upstream gradients: on the base rgb (drawn
+    /// over `background`), the cloth rgb and alpha (over black), and the matte's value.
+    pub fn new(transmittances: [F; 3], ends: [u32; 3], background: V3<F>, grad_base: V3<F>, grad_cloth: V3<F>, grad_cloth_alpha: F, grad_matte: F) -> Self {
+        let z = F::zero();
+        Self {
+            base: PixelBwd::new(transmittances[0], background, grad_base, z, z),
+            cloth: PixelBwd::new(transmittances[1], [z; 3], grad_cloth, grad_cloth_alpha, z),
+            matte: PixelBwd::new(transmittances[2], [z; 3], [grad_matte, z, z], z, z),
+            ends,
+        }
+    }
+
+    /// The furthest end of the three: where the pixel's backward walk starts.
+    #[inline]
+    pub fn end(&self) -> u32 {
+        let e = if self.ends[0] > self.ends[1] { self.ends[0] } else { self.ends[1] };
+        if e > self.ends[2] {
+            e
+        } else {
+            self.ends[2]
+        }
+    }
+
+    /// The gradient this pixel sends to the `index`-th splat of the merged list (layer
+    /// mask `mask`); visit the splats from the last to the first. None when no state
+    /// blended it.
+    #[inline]
+    pub fn step(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
+        let mut total = SplatGrad::zero();
+        let mut any = false;
+        if mask & FUSED_BASE != 0 && index < self.ends[0] {
+            if let Some(g) = self.base.step(s, px, py, cfg) {
+                total = total.add(&g);
+                any = true;
+            }
+        }
+        if mask & FUSED_CLOTH != 0 && index < self.ends[1] {
+            if let Some(g) = self.cloth.step(s, px, py, cfg) {
+                total = total.add(&g);
+                any = true;
+            }
+        }
+        if mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0 && index < self.ends[2] {
+            let m = matte_value::<F>(mask);
+            let v = SplatView { color: [m, m, m], ..*s };
+            if let Some(mut g) = self.matte.step(&v, px, py, cfg) {
+                g.color = [F::zero(); 3];
+                total = total.add(&g);
+                any = true;
+            }
+        }
+        if any {
+            Some(total)
+        } else {
+            None
+        }
     }
 }
 
