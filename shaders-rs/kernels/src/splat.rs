@@ -1231,3 +1231,142 @@ rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_atomic, f32, atomics::add_f
 rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
 #[cfg(feature = "subgroup-ballot")]
 rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
+
+/// One pixel's state for [`rasterize_fused_bwd_subgroup_entry`]: its three backward
+/// walks and where the furthest starts (0 outside the image).
+#[cfg(feature = "subgroup-ballot")]
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn load_pixel_fused_bwd(
+    b: &Block,
+    r: u32,
+    frame: &FrameParams,
+    transmittances: &[f32],
+    ends: &[u32],
+    grad_base: &[f32],
+    grad_cloth: &[f32],
+    grad_cloth_alpha: &[f32],
+    grad_matte: &[f32],
+) -> (FusedPixelBwd<f32>, u32) {
+    if !b.inside[r as usize] {
+        return (FusedPixelBwd::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0), 0);
+    }
+    let p = b.pixel(r, frame);
+    let state = FusedPixelBwd::new(
+        [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
+        [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
+        frame.background,
+        [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
+        [grad_cloth[3 * p], grad_cloth[3 * p + 1], grad_cloth[3 * p + 2]],
+        grad_cloth_alpha[p],
+        grad_matte[3 * p],
+    );
+    let end = state.end();
+    (state, end)
+}
+
+/// The fused backward for CPU devices with subgroups of 8: the walk of
+/// [`rasterize_bwd_subgroup_entry`] (8 splats a round from the back, each lane's 4 pixels,
+/// block sums by broadcasts, one lane adding each splat's sum) with each pixel's three
+/// states (`FusedPixelBwd`) and each splat's layer mask broadcast beside its view.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rasterize_fused_bwd_subgroup_entry {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittances: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] ends: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_base: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_cloth: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_cloth_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [$grad_ty],
+        ) {
+            let b = Block::new(group, lane, frame);
+            let (fx, fy) = (b.fx, b.fy);
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let start = ranges[2 * b.tile];
+            let (mut s0, m0) = load_pixel_fused_bwd(&b, 0, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
+            let (mut s1, m1) = load_pixel_fused_bwd(&b, 1, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
+            let (mut s2, m2) = load_pixel_fused_bwd(&b, 2, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
+            let (mut s3, m3) = load_pixel_fused_bwd(&b, 3, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
+            let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
+            let mut top = last;
+            while top > 0 {
+                let len = if top < 8 { top } else { 8 };
+                let index = if lane < len { top - 1 - lane } else { top - 1 };
+                let id = isect_values[(start + index) as usize];
+                let mine = splats[id as usize].view();
+                let mine_mask = masks[id as usize];
+                let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
+                macro_rules! step {
+                    ($u:literal) => {
+                        if $u < len {
+                            let v = sg_view!(mine, $u);
+                            let mask = crate::subgroup::broadcast_u32::<$u>(mine_mask);
+                            let at = top - 1 - $u;
+                            let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
+                            macro_rules! pixel {
+                                ($s:ident, $m:ident, $r:literal) => {
+                                    if at < $m {
+                                        if let Some(grad) = $s.step(&v, mask, at, fx, fy[$r], &cfg) {
+                                            let a = grad.to_array();
+                                            g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
+                                            g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
+                                        }
+                                    }
+                                };
+                            }
+                            pixel!(s0, m0, 0);
+                            pixel!(s1, m1, 1);
+                            pixel!(s2, m2, 2);
+                            pixel!(s3, m3, 3);
+                            let total = [
+                                crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
+                                crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
+                                crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
+                                crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
+                                crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
+                            ];
+                            if lane == $u {
+                                sums = total;
+                            }
+                        }
+                    };
+                }
+                sg_lanes!(step);
+                // Written out, as in rasterize_bwd_subgroup_entry (llvmpipe's loop budget).
+                if lane < len {
+                    let base = id as usize * SPLAT_GRAD_FLOATS;
+                    $accumulate(splat_grads, base, sums[0]);
+                    $accumulate(splat_grads, base + 1, sums[1]);
+                    $accumulate(splat_grads, base + 2, sums[2]);
+                    $accumulate(splat_grads, base + 3, sums[3]);
+                    $accumulate(splat_grads, base + 4, sums[4]);
+                    $accumulate(splat_grads, base + 5, sums[5]);
+                    $accumulate(splat_grads, base + 6, sums[6]);
+                    $accumulate(splat_grads, base + 7, sums[7]);
+                    $accumulate(splat_grads, base + 8, sums[8]);
+                    $accumulate(splat_grads, base + 9, sums[9]);
+                }
+                top -= len;
+            }
+        }
+    };
+}
+
+#[cfg(all(feature = "subgroup-ballot", feature = "float-atomics"))]
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_atomic, f32, atomics::add_f32, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, float atomics.");
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_cas, u32, atomics::add_f32_cas, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_fixed, u32, atomics::add_fixed, doc = "Deterministic fused backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");

@@ -10,8 +10,8 @@
 //!
 //! Every three-pass frame is one submission whose renders the recorder interleaves;
 //! `fused` renders the same images from one sort and one rasterization. The training
-//! measurement uses the run's own compositing (`fused` trains too, through its one-walk
-//! backward). Not built yet: a synthetic model of the paper's size when no run is given.
+//! measurement uses the run's own compositing or `--train-compositing` (`fused` trains
+//! too, through its one-walk backward). Not built yet: a synthetic model of the paper's size when no run is given.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -54,6 +54,9 @@ pub struct AvatarArgs {
     /// find a GPU at idle clocks; their time and GPU passes are left out).
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     pub train_warmup: u32,
+    /// The compositing the training measurement trains through (default: the run's).
+    #[arg(long)]
+    pub train_compositing: Option<String>,
     /// Steps of the decoders' initial fit before the timed training steps.
     #[arg(long, default_value_t = 20)]
     pub fit_steps: u32,
@@ -148,6 +151,10 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     config.steps = total;
     config.fit_steps = args.fit_steps;
     config.checkpoint_every = 0;
+    if let Some(c) = &args.train_compositing {
+        Compositing::parse(c).map_err(|e| anyhow::anyhow!("--train-compositing: {e}"))?;
+        config.compositing = c.clone();
+    }
     // A progress event after every step: the clock and the profile start after the
     // warm-up steps and stop after the last step (before the evaluation).
     config.log_every = 1;
@@ -183,6 +190,7 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     }
     passes.sort_by(|a, b| b.1.total_cmp(&a.1));
     Ok(json!({
+        "compositing": config.compositing,
         "steps": args.train_steps,
         "warmup_steps": args.train_warmup,
         "iterations_per_second": steps / seconds.max(1e-9),

@@ -577,12 +577,15 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
         for _ in crate::schedule::Runs::new(args.warmup, 0) {
             render_frame(ctx, &mut run, &mut renderers, &frames[0], s)?;
         }
-        let (mut times, mut stages, mut vs_gt, mut vs_default) = (Vec::new(), BTreeMap::<String, Vec<f64>>::new(), Vec::new(), Vec::new());
+        let (mut times, mut render_times, mut stages, mut vs_gt, mut vs_default) = (Vec::new(), Vec::new(), BTreeMap::<String, Vec<f64>>::new(), Vec::new(), Vec::new());
         let (mut kept, mut size) = (Vec::new(), (0, 0));
         for r in 0..args.runs {
             for (i, f) in frames.iter().enumerate() {
                 let out = render_frame(ctx, &mut run, &mut renderers, f, s)?;
                 times.push(out.gpu_ms);
+                // What the knobs act on: the frame without the decoders and skinning
+                // (the same work in every setting, and the noisiest on a busy CPU).
+                render_times.push(out.stages.iter().filter(|(k, _)| !matches!(k.as_str(), "decoders" | "skinning" | "other")).map(|(_, v)| v).sum::<f64>());
                 for (k, v) in out.stages {
                     stages.entry(k).or_default().push(v);
                 }
@@ -615,6 +618,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
             "gaussians_kept": kept.iter().sum::<usize>(),
             "gaussians_kept_per_layer": parts.iter().cloned().zip(kept.iter().copied()).collect::<BTreeMap<_, _>>(),
             "ms_per_frame": ms,
+            "render_ms_per_frame": median(&render_times),
             "fps": 1e3 / ms.max(1e-9),
             "stages_gpu_ms": stages.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>(),
             "vs_ground_truth": mean_metrics(&vs_gt),
@@ -643,6 +647,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
         "lpips": lpips_path.map_or_else(|| json!(null), |p| json!(p.display().to_string())),
         "compared_with": if whole_image { "the whole frame (the run has a scene layer)" } else { "the person on black (the masked frame), as drape eval" },
         "ms_per_frame_is": "GPU ms of the frame's passes (decoders, skinning, projection, binning and sorts, rasterization, composite) from timestamps, median over runs x frames; the host edits of the SH and pruning settings are not counted",
+        "render_ms_per_frame_is": "the same without the decoders and skinning (projection, binning and sorts, rasterization, composite: what the knobs change), median over runs x frames",
         "identical_psnr_db": IDENTICAL_PSNR_DB,
         "knobs": knobs,
         "settings": rows,
@@ -669,7 +674,7 @@ fn num(v: &serde_json::Value, digits: usize) -> String {
 /// The table as Markdown, with what was not built and the plot's axis ranges.
 pub fn markdown(r: &serde_json::Value) -> String {
     let mut s = format!(
-        "`engine-bench trade {}` on {}: {} held-out frame(s) at {}x{}, step {}, Gaussians {}; compared with {}; {}; LPIPS {}.\n\n",
+        "`engine-bench trade {}` on {}: {} held-out frame(s) at {}x{}, step {}, Gaussians {}; compared with {}; ms/frame: {}; render ms: {}; LPIPS {}.\n\n",
         r["run"].as_str().unwrap_or("?"),
         r["device"].as_str().unwrap_or("?"),
         r["frames"],
@@ -679,20 +684,22 @@ pub fn markdown(r: &serde_json::Value) -> String {
         r["gaussians"],
         r["compared_with"].as_str().unwrap_or("?"),
         r["ms_per_frame_is"].as_str().unwrap_or("?"),
+        r["render_ms_per_frame_is"].as_str().unwrap_or("?"),
         r["lpips"].as_str().unwrap_or("n/a (no weights)")
     );
-    s += "| knob | setting | render size | Gaussians kept | ms/frame | FPS | PSNR vs GT (dB) | SSIM vs GT | LPIPS vs GT | PSNR vs default (dB) | SSIM vs default | LPIPS vs default | Pareto |\n";
-    s += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n";
+    s += "| knob | setting | render size | Gaussians kept | ms/frame | render ms | FPS | PSNR vs GT (dB) | SSIM vs GT | LPIPS vs GT | PSNR vs default (dB) | SSIM vs default | LPIPS vs default | Pareto |\n";
+    s += "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n";
     for row in r["settings"].as_array().into_iter().flatten() {
         let (g, d) = (&row["vs_ground_truth"], &row["vs_default"]);
         s += &format!(
-            "| {} | {} | {}x{} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {}x{} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             row["knob"].as_str().unwrap_or("?"),
             row["setting"].as_str().unwrap_or("?"),
             row["width"],
             row["height"],
             row["gaussians_kept"],
             num(&row["ms_per_frame"], 1),
+            num(&row["render_ms_per_frame"], 1),
             num(&row["fps"], 2),
             num(&g["psnr"], 2),
             num(&g["ssim"], 4),
@@ -724,13 +731,14 @@ pub fn markdown(r: &serde_json::Value) -> String {
 }
 
 /// Point colours per knob: (knob, colour name, RGB).
-const KNOB_COLOURS: [(&str, &str, [u8; 3]); 6] = [
+const KNOB_COLOURS: [(&str, &str, [u8; 3]); 7] = [
     ("default", "black", [0, 0, 0]),
     ("resolution", "blue", [30, 90, 220]),
     ("sh_degree", "green", [20, 150, 40]),
     ("pruning", "orange", [230, 130, 0]),
     ("compositing", "purple", [140, 40, 170]),
     ("pose_offsets", "teal", [0, 150, 150]),
+    ("contribution pruning", "brown", [140, 80, 20]),
 ];
 
 fn put(img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]) {

@@ -170,6 +170,8 @@ fn trade_measures_every_knob_and_the_default_matches_itself() {
     let mut last = total;
     for s in settings {
         assert!(s["ms_per_frame"].as_f64().is_some_and(|v| v > 0.0), "{s}");
+        // The render alone is part of the frame.
+        assert!(s["render_ms_per_frame"].as_f64().is_some_and(|v| v > 0.0 && v < s["ms_per_frame"].as_f64().unwrap()), "{s}");
         assert!(s["vs_ground_truth"]["psnr"].as_f64().is_some_and(|v| v.is_finite() && v > 5.0), "{s}");
         assert!(s["vs_default"]["lpips"].is_null(), "no weights: LPIPS n/a, {s}");
     }

@@ -17,7 +17,8 @@
 //! left them (each state's final transmittance and end in the merged list, saved per
 //! pixel) and adding each Gaussian the sum of what its states send it: the three
 //! passes' backward passes summed, with no colour gradient from the matte (its colour
-//! is fixed). It runs the workgroup kernels on every device (no subgroup twin yet).
+//! is fixed). Like the forward, it runs the workgroup kernels on GPUs and their
+//! subgroup twins on CPU devices with subgroups of 8 (`RasterVariant`).
 
 use drape_shared::splat::raster::{FUSED_BASE, FUSED_CLOTH, FUSED_MATTE_ONE, FUSED_MATTE_ZERO};
 
@@ -133,10 +134,10 @@ impl FusedRenderer {
     /// the loss's gradients on the three images. Call [`Self::prepare_backward`] first.
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
         let method = accumulation.method(&self.ctx);
-        let kernel = match method {
-            Method::FloatAtomics => Kernel::SplatRasterizeFusedBwdAtomic,
-            Method::CompareAndSwap => Kernel::SplatRasterizeFusedBwdCas,
-            Method::FixedPoint => Kernel::SplatRasterizeFusedBwdFixed,
+        let (kernel, grid) = match method {
+            Method::FloatAtomics => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdAtomic, Kernel::SplatRasterizeFusedBwdSubgroupAtomic),
+            Method::CompareAndSwap => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdCas, Kernel::SplatRasterizeFusedBwdSubgroupCas),
+            Method::FixedPoint => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdFixed, Kernel::SplatRasterizeFusedBwdSubgroupFixed),
         };
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let target = self.renderer.grad_target(method);
@@ -154,7 +155,7 @@ impl FusedRenderer {
             .read("grad_cloth_alpha", grads.cloth_alpha)
             .read("grad_matte", grads.matte_rgb)
             .write("splat_grads", target)
-            .dispatch(self.renderer.tile_dispatch())?;
+            .dispatch(grid)?;
         self.renderer.record_grad_resolve(rec, gaussians.count, method)?;
         self.renderer.record_project_backward(rec, gaussians, out)
     }

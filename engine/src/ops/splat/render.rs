@@ -654,11 +654,6 @@ impl SplatRenderer {
         Ok(())
     }
 
-    /// The workgroup rasterizers' grid: one workgroup per 16 × 16 tile.
-    pub(crate) fn tile_dispatch(&self) -> [u32; 3] {
-        [self.frame_params.tiles_x, self.frame_params.tiles_y, 1]
-    }
-
     /// Makes the fixed-point scratch on the first backward that adds in fixed point.
     pub(crate) fn make_scratch(&mut self, method: Method) -> Result<()> {
         if method == Method::FixedPoint && self.fixed.is_none() {
