@@ -8,14 +8,15 @@
 //! composite in one recording, which the recorder interleaves wave by wave: one
 //! submission), fused (`ops::splat::fused`: one sort and binning of every layer, one
 //! rasterization with three states per pixel, and the composite: one submission; the
-//! paper's matte; forward only), and one depth-sorted pass.
+//! paper's matte; forward, then the composite's backward and the fused one-walk
+//! backward in a second submission), and one depth-sorted pass.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
 
 use drape_cli_support::median;
 use drape_engine::ops::splat::composite::{matte_cloud, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
-use drape_engine::ops::splat::fused::{layer_masks, FusedRenderer};
+use drape_engine::ops::splat::fused::{layer_masks, FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer, PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, PassTimings};
@@ -181,6 +182,7 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     all_cloud.extend(cloth);
     let layers: Vec<Layer> = [(Layer::Body, body.len()), (Layer::Scene, scene.len()), (Layer::Cloth, cloth.len())].iter().flat_map(|&(l, n)| std::iter::repeat_n(l, n)).collect();
     let fused_gaussians = GaussianBuffers::upload(ctx, "bench fused", &all_cloud)?;
+    let fused_grads = GaussianBuffers::new(ctx, "bench fused grads", all_cloud.len(), all_cloud.sh_degree)?;
     let mut fused = FusedRenderer::new(ctx, w, h, all_cloud.len())?;
     fused.set_masks(ctx, &layer_masks(&layers, false))?;
     let fused_time = time(args, |p| {
@@ -197,9 +199,18 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
                 break;
             }
         }
-        Ok(t0.elapsed().as_secs_f64() * 1e3)
+        let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
+        // The composite's backward and the one-walk backward, in one submission.
+        fused.prepare_backward(Accumulation::Auto)?;
+        let grads = CompositeGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: Some(&g_matte) };
+        let upstream = FusedGrads { base_rgb: &g_base, cloth_rgb: &g_over, cloth_alpha: &g_alpha, matte_rgb: &g_matte };
+        let mut rec = ctx.record("fused backward")?;
+        record_composite_backward(&mut rec, &grad_rgb, fused.outputs(), grads, pixels as u32)?;
+        fused.record_backward(&mut rec, &fused_gaussians, upstream, &fused_grads, Accumulation::Auto)?;
+        add(p, &rec.submit_and_wait()?);
+        Ok(t_fwd)
     })?;
-    drop((fused, fused_gaussians));
+    drop((fused, fused_gaussians, fused_grads));
 
     // One depth-sorted pass of every layer.
     let mut all = Pass::new(ctx, "bench one pass", &all_cloud, w, h)?;
@@ -211,6 +222,7 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         Ok(t_fwd)
     })?;
     let three_fwd = three.0;
+    let three_both = three.1;
     let variant = |(fwd, both, passes): (f64, f64, BTreeMap<String, f64>)| json!({ "forward_median_ms": fwd, "forward_fps": 1e3 / fwd, "forward_backward_median_ms": both, "passes_gpu_ms": passes });
     Ok(json!({
         "width": w,
@@ -226,8 +238,10 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         "fused": json!({
             "forward_median_ms": fused_time.0,
             "forward_fps": 1e3 / fused_time.0,
+            "forward_backward_median_ms": fused_time.1,
             "passes_gpu_ms": fused_time.2,
             "speedup_over_serialised": three_fwd / fused_time.0,
+            "forward_backward_speedup_over_serialised": three_both / fused_time.1,
         }),
     }))
 }
@@ -275,6 +289,12 @@ pub fn print_table(r: &serde_json::Value) {
                 println!("      GPU ms: {}", line.join(", "));
             }
         }
-        println!("  {}x{} fused forward {:.2}x faster than three serialised passes", c["width"], c["height"], c["fused"]["speedup_over_serialised"].as_f64().unwrap_or(0.0));
+        println!(
+            "  {}x{} fused forward {:.2}x faster than three serialised passes, forward + backward {:.2}x",
+            c["width"],
+            c["height"],
+            c["fused"]["speedup_over_serialised"].as_f64().unwrap_or(0.0),
+            c["fused"]["forward_backward_speedup_over_serialised"].as_f64().unwrap_or(0.0)
+        );
     }
 }

@@ -231,4 +231,8 @@ fn composite_times_the_three_passes_serialised_in_one_submission_and_fused() {
     assert!(r["fused"]["forward_median_ms"].as_f64().is_some_and(|ms| ms > 0.0), "{r}");
     assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fused_fwd"].as_f64().is_some(), "{r}");
     assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fwd"].is_null(), "the fused frame rasterizes once: {r}");
+    // And back-propagates in one walk.
+    assert!(r["fused"]["forward_backward_median_ms"].as_f64().is_some_and(|ms| ms > r["fused"]["forward_median_ms"].as_f64().unwrap()), "{r}");
+    assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fused_bwd"].as_f64().is_some(), "{r}");
+    assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_bwd"].is_null(), "{r}");
 }

@@ -281,34 +281,29 @@ impl<F: Real> FusedPixelBwd<F> {
     /// blended it.
     #[inline]
     pub fn step(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
+        let in_base = mask & FUSED_BASE != 0 && index < self.ends[0];
+        let in_cloth = mask & FUSED_CLOTH != 0 && index < self.ends[1];
+        let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0 && index < self.ends[2];
+        if !(in_base || in_cloth || in_matte) {
+            return None;
+        }
+        // One footprint for every state (the forward blended one footprint into each).
+        let f = footprint(s, px, py, cfg)?;
         let mut total = SplatGrad::zero();
-        let mut any = false;
-        if mask & FUSED_BASE != 0 && index < self.ends[0] {
-            if let Some(g) = self.base.step(s, px, py, cfg) {
-                total = total.add(&g);
-                any = true;
-            }
+        if in_base {
+            total = total.add(&self.base.step_footprint(&f, s, cfg));
         }
-        if mask & FUSED_CLOTH != 0 && index < self.ends[1] {
-            if let Some(g) = self.cloth.step(s, px, py, cfg) {
-                total = total.add(&g);
-                any = true;
-            }
+        if in_cloth {
+            total = total.add(&self.cloth.step_footprint(&f, s, cfg));
         }
-        if mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0 && index < self.ends[2] {
+        if in_matte {
             let m = matte_value::<F>(mask);
             let v = SplatView { color: [m, m, m], ..*s };
-            if let Some(mut g) = self.matte.step(&v, px, py, cfg) {
-                g.color = [F::zero(); 3];
-                total = total.add(&g);
-                any = true;
-            }
+            let mut g = self.matte.step_footprint(&f, &v, cfg);
+            g.color = [F::zero(); 3];
+            total = total.add(&g);
         }
-        if any {
-            Some(total)
-        } else {
-            None
-        }
+        Some(total)
     }
 }
 
@@ -346,6 +341,13 @@ impl<F: Real> PixelBwd<F> {
     #[inline]
     pub fn step(&mut self, s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
         let f = footprint(s, px, py, cfg)?;
+        Some(self.step_footprint(&f, s, cfg))
+    }
+
+    /// [`step`](Self::step) with the footprint already computed (the fused backward
+    /// steps one footprint through several states).
+    #[inline]
+    pub fn step_footprint(&mut self, f: &Footprint<F>, s: &SplatView<F>, cfg: &BlendSettings<F>) -> SplatGrad<F> {
         let one_minus = F::one() - f.alpha;
         self.transmittance = self.transmittance / one_minus;
         let t = self.transmittance;
@@ -374,6 +376,6 @@ impl<F: Real> PixelBwd<F> {
             g.x = (s.conic[0] * f.dx + s.conic[1] * f.dy) * g_sigma;
             g.y = (s.conic[2] * f.dy + s.conic[1] * f.dx) * g_sigma;
         }
-        Some(g)
+        g
     }
 }
