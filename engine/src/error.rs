@@ -50,9 +50,10 @@ pub enum EngineError {
     #[error("{what}: {requested} is more than {limit_name} allows ({limit})")]
     TooLarge { what: String, requested: u64, limit: u64, limit_name: &'static str },
 
-    /// A path that exists for some uses but not this one (named, with what to use).
-    #[error("{what} is not built; {instead}")]
-    NotBuilt { what: &'static str, instead: &'static str },
+    /// A backward was given the saved state of another forward pass: another renderer's,
+    /// an earlier one (the renderer has rendered since), or one of another cloud.
+    #[error("{op}: {problem}")]
+    StaleForward { op: &'static str, problem: String },
 
     /// An op was given an empty input it has no value for.
     #[error("{what} is empty: {why}")]

@@ -418,9 +418,9 @@ fn fused_backward_on_the_gpu_matches_the_cpu_reference() {
         fused.set_masks(&ctx, &masks).expect("masks");
         for variant in raster_variants(&ctx, "fused_backward_on_the_gpu_matches_the_cpu_reference") {
             fused.set_raster_variant(variant).expect("raster variant");
-            fused.forward(&ctx, &params, &cam, &settings).expect("fused forward");
+            let saved = fused.forward(&ctx, &params, &cam, &settings).expect("fused forward").saved;
             for &accumulation in &accumulations {
-                fused.backward(&params, upstream, &grads, accumulation).expect("fused backward");
+                fused.backward(&saved, &params, upstream, &grads, accumulation).expect("fused backward");
                 let got = grads.download(&ctx, &cloud.layers).expect("download");
                 let got_groups = [&got.means, &got.log_scales, &got.quats, &got.opacity_logits, &got.sh];
                 for ((name, c), g) in want_groups.iter().zip(got_groups) {
@@ -478,11 +478,12 @@ fn the_papers_matte_draws_the_shirt_over_an_arm_in_front_of_it() {
         let clouds = passes(&l, occlusion);
         let mut renderers = Vec::new();
         let mut keep = Vec::new();
+        let mut saved = Vec::new();
         cam.background = [0.0; 3];
         for cloud in &clouds {
             let b = GaussianBuffers::upload(&ctx, "pass", cloud).expect("upload");
             let mut r = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
-            r.forward(&b, &cam, &settings).expect("forward");
+            saved.push(r.forward(&b, &cam, &settings).expect("forward").saved);
             renderers.push(r);
             keep.push(b);
         }
@@ -493,7 +494,7 @@ fn the_papers_matte_draws_the_shirt_over_an_arm_in_front_of_it() {
         let g = ctx.upload("g", &vec![1.0f32; 3 * pixels as usize]).expect("upload");
         let zeros = ctx.upload("zeros", &vec![0.0f32; pixels as usize]).expect("upload");
         let grads = GaussianBuffers::new(&ctx, "grads", clouds[2].len(), 0).expect("grads");
-        renderers[2].backward(&keep[2], &g, &zeros, &zeros, &grads, Accumulation::Auto).expect("backward");
+        renderers[2].backward(&saved[2], &keep[2], &g, &zeros, &zeros, &grads, Accumulation::Auto).expect("backward");
     }
     // Pixels where the arm covers the shirt: a column through the centre.
     let arm_on_shirt: Vec<usize> = (16..48).map(|y| y * 64 + 32).collect();

@@ -162,7 +162,7 @@ fn sh_past_one_binding_is_projected_in_chunks() {
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(&gpu, "gaussians", &cloud).expect("upload");
     let mut renderer = SplatRenderer::new(&gpu, 48, 32, n).expect("renderer");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
     let image = renderer.read_image().expect("read");
     let frame = frame_params(&cam, &settings, 3, n);
     let gs = cloud.gaussians::<f32>();
@@ -177,7 +177,7 @@ fn sh_past_one_binding_is_projected_in_chunks() {
     let b_alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let b_depth = gpu.upload("grad depth", &g_depth).expect("upload");
     let mut grads = GaussianBuffers::new(&gpu, "grads", n, 3).expect("grads");
-    renderer.backward(&gaussians, &b_rgb, &b_alpha, &b_depth, &grads, drape_engine::ops::splat::render::Accumulation::Auto).expect("backward");
+    renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, drape_engine::ops::splat::render::Accumulation::Auto).expect("backward");
     let got = grads.download(&gpu, &cloud.layers).expect("download");
     let (want, _) = reference::backward(&gs, &frame, &cpu, &g_rgb, &g_alpha, &g_depth);
     // The last chunk starts at the largest multiple of 256 that one binding covers.

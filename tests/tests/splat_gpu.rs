@@ -89,11 +89,11 @@ fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation, va
     let mut grads = GaussianBuffers::new(&gpu, "grads", cloud.len(), degree).expect("grads");
     let mut renderer = SplatRenderer::new(&gpu, w, h, cloud.len()).expect("renderer");
     renderer.set_raster_variant(variant).expect("raster variant");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
     let b_rgb = gpu.upload("grad rgb", &g_rgb).expect("upload");
     let b_alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let b_depth = gpu.upload("grad depth", &g_depth).expect("upload");
-    renderer.backward(&gaussians, &b_rgb, &b_alpha, &b_depth, &grads, accumulation).expect("backward");
+    renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, accumulation).expect("backward");
     let gpu_grads = grads.download(&gpu, &cloud.layers).expect("download");
 
     let frame = frame_params(&cam, &settings, degree, cloud.len());
@@ -167,9 +167,9 @@ fn contributions_match_the_reference_and_sum_to_the_alpha_image() {
             let gaussians = GaussianBuffers::upload(&gpu, "contribution scene", &cloud).expect("upload");
             let mut renderer = SplatRenderer::new(&gpu, w, h, cloud.len()).expect("renderer");
             renderer.set_raster_variant(variant).expect("raster variant");
-            renderer.forward(&gaussians, &cam, &settings).expect("forward");
+            let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
             let image = renderer.read_image().expect("read");
-            let got = renderer.contributions().expect("contributions");
+            let got = renderer.contributions(&saved).expect("contributions");
             assert_eq!(got.len(), n);
 
             let frame = frame_params(&cam, &settings, 0, n);
@@ -202,6 +202,42 @@ fn contributions_match_the_reference_and_sum_to_the_alpha_image() {
     }
 }
 
+/// The backward takes what its forward returned (`SavedForward`) and refuses, naming
+/// why, the state of a forward the renderer has since overwritten, another renderer's,
+/// a default value, and a forward of another number of Gaussians; the last forward's
+/// own is accepted.
+#[test]
+fn a_backward_refuses_the_saved_state_of_another_forward() {
+    use drape_engine::ops::splat::render::SavedForward;
+    let gpu = gpu();
+    let (w, h) = (32u32, 32u32);
+    let (a, b) = (scene(50, 0, 1), scene(40, 0, 2));
+    let (ga, gb) = (GaussianBuffers::upload(&gpu, "a", &a).expect("upload"), GaussianBuffers::upload(&gpu, "b", &b).expect("upload"));
+    let grads_b = GaussianBuffers::new(&gpu, "grads b", b.len(), 0).expect("grads");
+    let mut renderer = SplatRenderer::new(&gpu, w, h, 50).expect("renderer");
+    let mut other = SplatRenderer::new(&gpu, w, h, 50).expect("renderer");
+    let cam = camera(w, h);
+    let settings = RenderSettings::default();
+    let pixels = (w * h) as usize;
+    let g_rgb = gpu.upload("grad rgb", &vec![1.0f32; 3 * pixels]).expect("upload");
+    let zeros = gpu.upload("zeros", &vec![0.0f32; pixels]).expect("upload");
+    let first = renderer.forward(&ga, &cam, &settings).expect("forward").saved;
+    let second = renderer.forward(&gb, &cam, &settings).expect("forward").saved;
+    let from_other = other.forward(&gb, &cam, &settings).expect("forward").saved;
+    renderer.backward(&second, &gb, &g_rgb, &zeros, &zeros, &grads_b, Accumulation::Auto).expect("the last forward's own state");
+    for (saved, why) in [(first, "earlier forward"), (from_other, "another renderer"), (SavedForward::default(), "no complete forward")] {
+        let e = renderer.backward(&saved, &gb, &g_rgb, &zeros, &zeros, &grads_b, Accumulation::Auto).expect_err(why);
+        let text = e.to_string();
+        eprintln!("{text}");
+        assert!(text.contains("splat backward") && text.contains(why), "{why}: {text}");
+    }
+    // The state of a forward of 50 Gaussians, for a cloud of 40.
+    let third = renderer.forward(&ga, &cam, &settings).expect("forward").saved;
+    let e = renderer.backward(&third, &gb, &g_rgb, &zeros, &zeros, &grads_b, Accumulation::Auto).expect_err("another count");
+    assert!(e.to_string().contains("50 Gaussians, but 40"), "{e}");
+    assert!(renderer.contributions(&second).is_err(), "contributions take the last forward's state too");
+}
+
 /// Densification statistics (`ops::splat::densify`) of two frames of one render, for a
 /// slice of the Gaussians written at an offset, match the CPU reference: the visible
 /// counts exactly, the gradient-norm sums to 1e-6 relative (the same f32 operations
@@ -221,10 +257,10 @@ fn screen_stats_match_the_reference() {
     let gaussians = GaussianBuffers::upload(&ctx, "params", &cloud).expect("upload");
     let grads = GaussianBuffers::new(&ctx, "grads", cloud.len(), 0).expect("grads");
     let mut renderer = SplatRenderer::new(&ctx, w, h, cloud.len()).expect("renderer");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
     let b_rgb = ctx.upload("grad rgb", &g_rgb).expect("upload");
     let zeros = ctx.upload("zeros", &vec![0.0f32; pixels]).expect("upload");
-    renderer.backward(&gaussians, &b_rgb, &zeros, &zeros, &grads, Accumulation::Deterministic).expect("backward");
+    renderer.backward(&saved, &gaussians, &b_rgb, &zeros, &zeros, &grads, Accumulation::Deterministic).expect("backward");
     let (first, count, out_first) = (40u32, 200u32, 7u32);
     let len = SCREEN_STATS_FLOATS * (out_first + count + 3) as usize;
     let mut stats = ctx.upload("stats", &vec![0.0f32; len]).expect("upload");
@@ -301,10 +337,10 @@ fn screen_stats_are_in_3dgs_units() {
     let gaussians = GaussianBuffers::upload(&ctx, "one", &cloud).expect("upload");
     let grads = GaussianBuffers::new(&ctx, "grads", 1, 0).expect("grads");
     let mut renderer = SplatRenderer::new(&ctx, w, h, 1).expect("renderer");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
     let b_rgb = ctx.upload("grad rgb", &g_rgb).expect("upload");
     let zeros = ctx.upload("zeros", &vec![0.0f32; pixels]).expect("upload");
-    renderer.backward(&gaussians, &b_rgb, &zeros, &zeros, &grads, Accumulation::CompareAndSwap).expect("backward");
+    renderer.backward(&saved, &gaussians, &b_rgb, &zeros, &zeros, &grads, Accumulation::CompareAndSwap).expect("backward");
     let mut stats = ctx.upload("stats", &[0.0f32; SCREEN_STATS_FLOATS]).expect("upload");
     let mut rec = ctx.record("stats").expect("record");
     record_screen_stats(&mut rec, &renderer, 0, 1, &stats, 0).expect("stats");

@@ -95,13 +95,13 @@ fn backward_matches_reference(gpu: &TestGpu, cloud: &GaussianCloud, cam: &Pinhol
     let gaussians = GaussianBuffers::upload(gpu, "g", cloud).expect("upload");
     let mut grads = GaussianBuffers::new(gpu, "grads", cloud.len(), cloud.sh_degree).expect("grads");
     let mut renderer = SplatRenderer::new(gpu, cam.width, cam.height, cloud.len()).expect("renderer");
-    renderer.forward(&gaussians, cam, &settings).expect("forward");
+    let saved = renderer.forward(&gaussians, cam, &settings).expect("forward").saved;
     let pixels = (cam.width * cam.height) as usize;
     let (g_rgb, g_alpha, g_depth) = (vec![1.0f32; 3 * pixels], vec![1.0f32; pixels], vec![0.01f32; pixels]);
     let ones = gpu.upload("grad rgb", &g_rgb).expect("upload");
     let alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let depth = gpu.upload("grad depth", &g_depth).expect("upload");
-    renderer.backward(&gaussians, &ones, &alpha, &depth, &grads, Accumulation::Auto).expect("backward");
+    renderer.backward(&saved, &gaussians, &ones, &alpha, &depth, &grads, Accumulation::Auto).expect("backward");
     let g = grads.download(gpu, &cloud.layers).expect("download");
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
     let gs = cloud.gaussians::<f64>();

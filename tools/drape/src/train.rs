@@ -51,8 +51,9 @@ pub struct TrainArgs {
     /// paper's: body + scene, cloth, and a matte in which only the scene hides the
     /// cloth, composited), three-pass-occlusion (the body also hides the cloth in the
     /// matte), or single-pass (every layer in one depth-sorted pass; no matte)
-    /// (overrides the config). fused / fused-occlusion render the three-pass images
-    /// from one sort (engine-bench avatar, trade) but have no backward: refused here.
+    /// (overrides the config). fused / fused-occlusion: the same images and gradients as
+    /// three-pass / three-pass-occlusion from one sort and one walk of every layer,
+    /// forward and backward.
     #[arg(long)]
     pub compositing: Option<String>,
     /// Training steps (overrides the preset and the config file).
@@ -184,6 +185,10 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
                 ("single-pass", _) => "rendered with the other layers in one depth-sorted pass",
                 ("three-pass-occlusion", true) => "rendered alone and composited over body + scene through a matte in which the scene and the body hide it",
                 ("three-pass-occlusion", false) => "rendered alone and composited over the body through a matte in which the body hides it",
+                ("fused", true) => "composited over body + scene through a matte in which the scene hides it (the paper's three images from one sort and one walk of every layer, forward and backward)",
+                ("fused", false) => "composited over the body (the paper's images from one sort and one walk of every layer, forward and backward; nothing hides the cloth)",
+                ("fused-occlusion", true) => "composited over body + scene through a matte in which the scene and the body hide it (one sort and one walk of every layer, forward and backward)",
+                ("fused-occlusion", false) => "composited over the body through a matte in which the body hides it (one sort and one walk of every layer, forward and backward)",
                 (_, true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
                 (_, false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
             },

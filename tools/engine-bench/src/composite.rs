@@ -127,9 +127,12 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     let (g_base, g_over, g_alpha, g_matte) = (image("bench g base", 3 * pixels)?, image("bench g cloth", 3 * pixels)?, image("bench g alpha", pixels)?, image("bench g matte", 3 * pixels)?);
     let three = time(args, |p| {
         let t0 = Instant::now();
-        add(p, &base.renderer.forward(&base.gaussians, &camera, &settings)?.timings);
-        add(p, &over.renderer.forward(&over.gaussians, &black, &settings)?.timings);
-        add(p, &matte.renderer.forward(&matte.gaussians, &black, &settings)?.timings);
+        let mut saved = Vec::new();
+        for (pass, cam) in [(&mut base, &camera), (&mut over, &black), (&mut matte, &black)] {
+            let stats = pass.renderer.forward(&pass.gaussians, cam, &settings)?;
+            add(p, &stats.timings);
+            saved.push(stats.saved);
+        }
         let inputs = CompositeInputs { base_rgb: base.renderer.outputs().0, over_rgb: over.renderer.outputs().0, over_alpha: over.renderer.outputs().1, matte_rgb: Some(matte.renderer.outputs().0) };
         {
             let mut rec = ctx.record("composite")?;
@@ -143,9 +146,9 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
             record_composite_backward(&mut rec, &grad_rgb, inputs, grads, pixels as u32)?;
             add(p, &rec.submit_and_wait()?);
         }
-        add(p, &base.renderer.backward(&base.gaussians, &g_base, &zeros, &zeros, &base.grads, Accumulation::Auto)?);
-        add(p, &over.renderer.backward(&over.gaussians, &g_over, &g_alpha, &zeros, &over.grads, Accumulation::Auto)?);
-        add(p, &matte.renderer.backward(&matte.gaussians, &g_matte, &zeros, &zeros, &matte.grads, Accumulation::Auto)?);
+        add(p, &base.renderer.backward(&saved[0], &base.gaussians, &g_base, &zeros, &zeros, &base.grads, Accumulation::Auto)?);
+        add(p, &over.renderer.backward(&saved[1], &over.gaussians, &g_over, &g_alpha, &zeros, &over.grads, Accumulation::Auto)?);
+        add(p, &matte.renderer.backward(&saved[2], &matte.gaussians, &g_matte, &zeros, &zeros, &matte.grads, Accumulation::Auto)?);
         Ok(t_fwd)
     })?;
     // The same three passes and composite recorded into one submission.
@@ -188,17 +191,18 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     let fused_time = time(args, |p| {
         let t0 = Instant::now();
         fused.prepare_forward(&fused_gaussians, &camera, &settings)?;
-        loop {
+        let saved = loop {
             {
                 let mut rec = ctx.record("fused frame")?;
                 fused.record_forward(&mut rec, &fused_gaussians)?;
                 record_composite(&mut rec, fused.outputs(), &out, pixels as u32)?;
                 add(p, &rec.submit_and_wait()?);
             }
-            if !fused.finish_forward()?.rerendered {
-                break;
+            let stats = fused.finish_forward()?;
+            if !stats.rerendered {
+                break stats.saved;
             }
-        }
+        };
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
         // The composite's backward and the one-walk backward, in one submission.
         fused.prepare_backward(Accumulation::Auto)?;
@@ -206,7 +210,7 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         let upstream = FusedGrads { base_rgb: &g_base, cloth_rgb: &g_over, cloth_alpha: &g_alpha, matte_rgb: &g_matte };
         let mut rec = ctx.record("fused backward")?;
         record_composite_backward(&mut rec, &grad_rgb, fused.outputs(), grads, pixels as u32)?;
-        fused.record_backward(&mut rec, &fused_gaussians, upstream, &fused_grads, Accumulation::Auto)?;
+        fused.record_backward(&mut rec, &saved, &fused_gaussians, upstream, &fused_grads, Accumulation::Auto)?;
         add(p, &rec.submit_and_wait()?);
         Ok(t_fwd)
     })?;
@@ -216,9 +220,10 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     let mut all = Pass::new(ctx, "bench one pass", &all_cloud, w, h)?;
     let one = time(args, |p| {
         let t0 = Instant::now();
-        add(p, &all.renderer.forward(&all.gaussians, &camera, &settings)?.timings);
+        let stats = all.renderer.forward(&all.gaussians, &camera, &settings)?;
+        add(p, &stats.timings);
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
-        add(p, &all.renderer.backward(&all.gaussians, &grad_rgb, &zeros, &zeros, &all.grads, Accumulation::Auto)?);
+        add(p, &all.renderer.backward(&stats.saved, &all.gaussians, &grad_rgb, &zeros, &zeros, &all.grads, Accumulation::Auto)?);
         Ok(t_fwd)
     })?;
     let three_fwd = three.0;

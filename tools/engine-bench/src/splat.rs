@@ -154,7 +154,7 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
         let t0 = Instant::now();
         let stats = renderer.forward(&gaussians, &cfg.camera, &settings)?;
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
-        let bwd = renderer.backward(&gaussians, &grad_rgb, &grad_alpha, &grad_depth, &grads, accumulation)?;
+        let bwd = renderer.backward(&stats.saved, &gaussians, &grad_rgb, &grad_alpha, &grad_depth, &grads, accumulation)?;
         let t_both = t0.elapsed().as_secs_f64() * 1e3;
         if !timed {
             continue;

@@ -231,8 +231,8 @@ fn contributions(ctx: &Context, run: &mut OpenRun, max_frames: usize) -> anyhow:
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
             std::collections::btree_map::Entry::Vacant(e) => e.insert(SplatRenderer::new(ctx, cam.width, cam.height, total as usize)?),
         };
-        renderer.forward(&run.avatar.posed, &cam, &RenderSettings::default())?;
-        for (s, c) in sums.iter_mut().zip(renderer.contributions()?) {
+        let saved = renderer.forward(&run.avatar.posed, &cam, &RenderSettings::default())?.saved;
+        for (s, c) in sums.iter_mut().zip(renderer.contributions(&saved)?) {
             *s += f64::from(c);
         }
     }
@@ -900,8 +900,8 @@ mod tests {
         let cloud = GaussianCloud::random(400, 1, 1.5, (3.0, 7.0), 0.15, 13);
         let buffers = GaussianBuffers::upload(&ctx, "contribution cloud", &cloud).expect("upload");
         let mut renderer = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
-        renderer.forward(&buffers, &cam, &RenderSettings::default()).expect("forward");
-        let sums: Vec<f64> = renderer.contributions().expect("contributions").into_iter().map(f64::from).collect();
+        let saved = renderer.forward(&buffers, &cam, &RenderSettings::default()).expect("forward").saved;
+        let sums: Vec<f64> = renderer.contributions(&saved).expect("contributions").into_iter().map(f64::from).collect();
         for fraction in [0.1, 0.3, 0.6] {
             let mask = least_contributing(&sums, fraction);
             let culled = mask.iter().filter(|&&m| m).count();

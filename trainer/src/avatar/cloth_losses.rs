@@ -151,7 +151,7 @@ impl ClothLosses {
         if !self.has_mask {
             return Ok(());
         }
-        self.renderer.forward(&cloth.posed, camera, settings)?;
+        let saved = self.renderer.forward(&cloth.posed, camera, settings)?.saved;
         {
             let (_, alpha, _) = self.renderer.outputs();
             let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
@@ -159,7 +159,7 @@ impl ClothLosses {
             rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
             rec.submit_and_wait()?;
         }
-        self.renderer.backward(&cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
+        self.renderer.backward(&saved, &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
         Ok(())
     }
 

@@ -23,9 +23,9 @@
 use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
 use drape_engine::ops::splat::fused::{layer_masks, FusedGrads, FusedRenderer};
-use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
+use drape_engine::ops::splat::render::{GaussianBuffers, SavedForward, SplatRenderer};
 use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
+use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
 
 use crate::avatar::cloth_losses::ClothLosses;
 use crate::avatar::model::Avatar;
@@ -168,6 +168,9 @@ enum Inner {
 /// posed-Gaussian gradients.
 pub struct AvatarRenderer {
     inner: Inner,
+    /// What the last forward's renders left for the backward (single or fused: one;
+    /// three passes: base, cloth, and the matte's where it is rendered).
+    saved: Vec<SavedForward>,
 }
 
 impl AvatarRenderer {
@@ -194,10 +197,10 @@ impl AvatarRenderer {
                 grad_matte: image("fused grad matte", 3 * pixels)?,
                 pixels,
             };
-            return Ok(Self { inner: Inner::Fused(Box::new(fused)) });
+            return Ok(Self { inner: Inner::Fused(Box::new(fused)), saved: Vec::new() });
         }
         let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
-            return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)) });
+            return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)), saved: Vec::new() });
         };
         let humans: Vec<Source> = (0..avatar.layers.len()).filter(|&k| k != cloth).map(Source::Layer).collect();
         let scene: Vec<Source> = avatar.scene.iter().map(|_| Source::Scene).collect();
@@ -241,14 +244,14 @@ impl AvatarRenderer {
             base_parts,
             pixels,
         };
-        Ok(Self { inner: Inner::ThreePass(Box::new(pass)) })
+        Ok(Self { inner: Inner::ThreePass(Box::new(pass)), saved: Vec::new() })
     }
 
     /// Renders the avatar's posed Gaussians (of the last `Avatar::record_forward`).
     pub fn forward(&mut self, ctx: &Context, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
         let t = match &mut self.inner {
             Inner::Single(r) => {
-                r.forward(&avatar.posed, camera, settings)?;
+                self.saved = vec![r.forward(&avatar.posed, camera, settings)?.saved];
                 return Ok(());
             }
             Inner::Fused(f) => {
@@ -260,7 +263,9 @@ impl AvatarRenderer {
                         record_composite(&mut rec, f.renderer.outputs(), &f.image, f.pixels)?;
                         rec.submit_and_wait()?;
                     }
-                    if !f.renderer.finish_forward()?.rerendered {
+                    let stats = f.renderer.finish_forward()?;
+                    if !stats.rerendered {
+                        self.saved = vec![stats.saved];
                         return Ok(());
                     }
                 }
@@ -299,12 +304,12 @@ impl AvatarRenderer {
                 record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
                 rec.submit_and_wait()?;
             }
-            let mut again = t.base_renderer.finish_forward()?.rerendered;
-            again |= t.cloth_renderer.finish_forward()?.rerendered;
+            let mut stats = vec![t.base_renderer.finish_forward()?, t.cloth_renderer.finish_forward()?];
             if let Some(m) = &mut t.matte {
-                again |= m.renderer.finish_forward()?.rerendered;
+                stats.push(m.renderer.finish_forward()?);
             }
-            if !again {
+            if !stats.iter().any(|s| s.rerendered) {
+                self.saved = stats.into_iter().map(|s| s.saved).collect();
                 return Ok(());
             }
         }
@@ -365,6 +370,9 @@ impl AvatarRenderer {
     /// `zeros` holds at least one zero float per pixel.
     #[allow(clippy::too_many_arguments)]
     pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        if self.saved.is_empty() {
+            return Err(EngineError::StaleForward { op: "avatar backward", problem: "no forward pass to back-propagate through".into() });
+        }
         match &mut self.inner {
             Inner::Fused(f) => {
                 let accumulation = avatar.accumulation();
@@ -376,11 +384,11 @@ impl AvatarRenderer {
                     c.record_mask_grad(&mut rec, f.renderer.outputs().over_alpha, &f.grad_cloth_alpha)?;
                 }
                 let upstream = FusedGrads { base_rgb: &f.grad_base, cloth_rgb: &f.grad_cloth, cloth_alpha: &f.grad_cloth_alpha, matte_rgb: &f.grad_matte };
-                f.renderer.record_backward(&mut rec, &avatar.posed, upstream, &avatar.posed_grads, accumulation)?;
+                f.renderer.record_backward(&mut rec, &self.saved[0], &avatar.posed, upstream, &avatar.posed_grads, accumulation)?;
                 rec.submit_and_wait()?;
             }
             Inner::Single(r) => {
-                r.backward(&avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
+                r.backward(&self.saved[0], &avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
                 if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
                     c.mask_pass(ctx, cloth, camera, settings)?;
                 }
@@ -395,11 +403,11 @@ impl AvatarRenderer {
                     }
                     rec.submit_and_wait()?;
                 }
-                t.base_renderer.backward(&t.base, &t.grad_base, zeros, zeros, &t.base_grads, avatar.accumulation())?;
+                t.base_renderer.backward(&self.saved[0], &t.base, &t.grad_base, zeros, zeros, &t.base_grads, avatar.accumulation())?;
                 let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.backward(&cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
+                t.cloth_renderer.backward(&self.saved[1], &cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
                 if let Some(m) = &mut t.matte {
-                    m.renderer.backward(&m.gaussians, &m.grad_image, zeros, zeros, &m.grads, avatar.accumulation())?;
+                    m.renderer.backward(&self.saved[2], &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, avatar.accumulation())?;
                 }
             }
         }

@@ -104,8 +104,9 @@ pub struct TrainConfig {
     pub lambda_lpips: f32,
     /// How the layers become one image where there is a cloth layer: `three-pass` (the
     /// paper's: body + scene, cloth and a matte in which only the scene hides the cloth,
-    /// composited), `three-pass-occlusion` (the body hides the cloth in the matte too) or
-    /// `single-pass` (every layer in one depth-sorted pass).
+    /// composited), `three-pass-occlusion` (the body hides the cloth in the matte too),
+    /// `fused` / `fused-occlusion` (the same images and gradients from one sort and one
+    /// walk of every layer) or `single-pass` (every layer in one depth-sorted pass).
     #[serde(default = "paper_compositing")]
     pub compositing: String,
     /// Per-frame refinement of the training frames' pose and translation

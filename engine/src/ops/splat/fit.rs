@@ -139,7 +139,7 @@ pub fn fit_image(ctx: &Context, target: &Image, cfg: &FitConfig, report_every: u
     let loss = LossParams { len: 3 * pixels as u32, scale: 1.0 / (3 * pixels) as f32, _pad: [0; 2] };
     let mut history = Vec::new();
     for it in 1..=cfg.iterations {
-        renderer.forward(&params, &cam, &settings)?;
+        let saved = renderer.forward(&params, &cam, &settings)?.saved;
         {
             let (rgb, _, _) = renderer.outputs();
             let mut rec = ctx.record("fit loss")?;
@@ -159,7 +159,7 @@ pub fn fit_image(ctx: &Context, target: &Image, cfg: &FitConfig, report_every: u
             history.push((it - 1, p));
             report(it - 1, p);
         }
-        renderer.backward(&params, &grad_rgb, &zeros, &zeros, &grads, Accumulation::Auto)?;
+        renderer.backward(&saved, &params, &grad_rgb, &zeros, &zeros, &grads, Accumulation::Auto)?;
         let mut rec = ctx.record("fit adam")?;
         adam.record_step(&mut rec, &params, &grads)?;
         rec.submit_and_wait()?;

@@ -29,7 +29,7 @@ use crate::kernels::Kernel;
 use crate::ops::accumulate::{Accumulation, Method};
 use crate::recorder::PassTimings;
 use crate::ops::splat::composite::CompositeInputs;
-use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SplatRenderer};
+use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SavedForward, SplatRenderer};
 use crate::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
 use crate::recorder::Recording;
 
@@ -131,8 +131,10 @@ impl FusedRenderer {
 
     /// Records the backward of the last forward into the per-splat gradients and then
     /// every Gaussian's parameter gradients (`out`, written, not accumulated), given
-    /// the loss's gradients on the three images. Call [`Self::prepare_backward`] first.
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
+    /// the loss's gradients on the three images, for the forward `saved` names. Call
+    /// [`Self::prepare_backward`] first.
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, saved: &SavedForward, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
+        self.renderer.check_saved("fused backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
         let (kernel, grid) = match method {
             Method::FloatAtomics => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdAtomic, Kernel::SplatRasterizeFusedBwdSubgroupAtomic),
@@ -167,11 +169,11 @@ impl FusedRenderer {
     }
 
     /// The backward in one submission (see [`Self::record_backward`]).
-    pub fn backward(&mut self, gaussians: &GaussianBuffers, grads: FusedGrads<'_>, out: &GaussianBuffers, accumulation: Accumulation) -> Result<PassTimings> {
+    pub fn backward(&mut self, saved: &SavedForward, gaussians: &GaussianBuffers, grads: FusedGrads<'_>, out: &GaussianBuffers, accumulation: Accumulation) -> Result<PassTimings> {
         self.prepare_backward(accumulation)?;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("fused backward")?;
-        self.record_backward(&mut rec, gaussians, grads, out, accumulation)?;
+        self.record_backward(&mut rec, saved, gaussians, grads, out, accumulation)?;
         rec.submit_and_wait()
     }
 

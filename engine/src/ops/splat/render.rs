@@ -150,9 +150,29 @@ impl GaussianBuffers {
 /// triplane's backward).
 pub use crate::ops::accumulate::Accumulation;
 
+/// Names the state one forward pass leaves on its renderer for the backward (the
+/// projected splats, the sorted intersections and tile ranges, each pixel's last
+/// contributor and final transmittance; the fused frame's per-state ones): the forward
+/// returns it ([`ForwardStats::saved`]), the backward takes it and refuses one from
+/// another renderer, from a forward the renderer has since overwritten, or for a cloud
+/// of another size ([`EngineError::StaleForward`]). The buffers stay on the renderer,
+/// reused from frame to frame; this value says whose they are.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SavedForward {
+    renderer: u64,
+    frame: u64,
+    /// Gaussians of the forward pass.
+    pub count: u32,
+}
+
+/// Renderer identities for [`SavedForward`] (0 is no renderer's).
+static NEXT_RENDERER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+
 /// What one forward pass did.
 #[derive(Clone, Debug, Default)]
 pub struct ForwardStats {
+    /// What the backward of this forward takes.
+    pub saved: SavedForward,
     pub intersections: u32,
     /// Gaussians dropped for a non-finite parameter.
     pub dropped: u32,
@@ -215,6 +235,9 @@ pub struct SplatRenderer {
     intersections: u32,
     /// The rasterizer kernels recorded (never `Auto`).
     raster: RasterVariant,
+    /// This renderer's identity and its forward passes so far (see [`SavedForward`]).
+    id: u64,
+    frames: u64,
 }
 
 impl SplatRenderer {
@@ -284,6 +307,8 @@ impl SplatRenderer {
             fixed: None,
             intersections: 0,
             raster: Self::resolve_variant(ctx, RasterVariant::Auto, [tiles_x, tiles_y])?,
+            id: NEXT_RENDERER.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            frames: 0,
         })
     }
 
@@ -421,6 +446,8 @@ impl SplatRenderer {
             return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
         }
         self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
+        // The saved state is about to be overwritten: no earlier forward's stands.
+        self.frames += 1;
         Ok(())
     }
 
@@ -439,7 +466,26 @@ impl SplatRenderer {
         }
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
         self.intersections = total64 as u32;
-        Ok(ForwardStats { intersections: total64 as u32, dropped, rerendered: overflowed, timings: PassTimings::default() })
+        self.frames += 1;
+        // An overflowed frame is rendered again: its state stands for nothing.
+        let saved = if overflowed { SavedForward::default() } else { SavedForward { renderer: self.id, frame: self.frames, count: self.frame_params.count } };
+        Ok(ForwardStats { saved, intersections: total64 as u32, dropped, rerendered: overflowed, timings: PassTimings::default() })
+    }
+
+    /// Checks that `saved` names this renderer's last forward pass, of `count` Gaussians.
+    pub(crate) fn check_saved(&self, op: &'static str, saved: &SavedForward, count: u32) -> Result<()> {
+        let problem = if saved.renderer == 0 {
+            "the saved state of no complete forward pass (an overflowed frame's, or a default value)".to_string()
+        } else if saved.renderer != self.id {
+            "another renderer's forward pass".to_string()
+        } else if saved.frame != self.frames {
+            "the saved state of an earlier forward pass, overwritten since by another".to_string()
+        } else if saved.count != count {
+            format!("a forward pass of {} Gaussians, but {count} to back-propagate into", saved.count)
+        } else {
+            return Ok(());
+        };
+        Err(EngineError::StaleForward { op, problem })
     }
 
     /// Records and submits one whole forward frame with the current capacity.
@@ -558,6 +604,7 @@ impl SplatRenderer {
     /// forward pass, given the loss's gradient on rgb (3 per pixel), alpha and depth.
     pub fn backward(
         &mut self,
+        saved: &SavedForward,
         gaussians: &GaussianBuffers,
         grad_rgb: &Buffer,
         grad_alpha: &Buffer,
@@ -567,6 +614,7 @@ impl SplatRenderer {
     ) -> Result<PassTimings> {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+        self.check_saved("splat backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
         self.make_scratch(method)?;
         let ctx = self.ctx.clone();
@@ -668,10 +716,11 @@ impl SplatRenderer {
     /// rasterizer gives a splat when every pixel's upstream gradient on red is 1 (and 0
     /// on green, blue, alpha and depth), so it is computed by that kernel, in 64-bit
     /// fixed point (the same bits on every run). The contributions of a frame sum to the
-    /// sum of its alpha image. One value per Gaussian of the last forward pass (culled
-    /// ones 0).
-    pub fn contributions(&mut self) -> Result<Vec<f32>> {
-        let count = self.frame_params.count;
+    /// sum of its alpha image. One value per Gaussian of the forward pass `saved` names
+    /// (culled ones 0).
+    pub fn contributions(&mut self, saved: &SavedForward) -> Result<Vec<f32>> {
+        self.check_saved("splat contributions", saved, saved.count)?;
+        let count = saved.count;
         let ctx = self.ctx.clone();
         let pixels = (self.width * self.height) as usize;
         let red: Vec<f32> = (0..pixels).flat_map(|_| [1.0f32, 0.0, 0.0]).collect();
