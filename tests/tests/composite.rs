@@ -306,7 +306,7 @@ fn assert_finite_differences(total: &[Vec<GaussianGrad<f64>>; 3], layers: &[Vec<
 /// pass's cloud a subsequence in the same order), its layer masks, and which layer and
 /// index each merged Gaussian comes from (0 body, 1 cloth, 2 scene).
 fn merged(l: &Layered, occlusion: bool) -> (GaussianCloud, Vec<u32>, Vec<(usize, usize)>) {
-    use drape_engine::ops::splat::fused::layer_masks;
+    use drape_trainer::avatar::composite::layer_masks;
     let cloud = joined(&joined(&l.body, &l.scene), &l.cloth);
     let parts = [(Layer::Body, 0, l.body.len()), (Layer::Scene, 2, l.scene.len()), (Layer::Cloth, 1, l.cloth.len())];
     let layers: Vec<Layer> = parts.iter().flat_map(|&(layer, _, n)| std::iter::repeat_n(layer, n)).collect();
@@ -344,13 +344,13 @@ fn check_fused_gradients(occlusion: bool, seed: u64) {
     // matte pass's colour, which comes from an f32 SH coefficient (1 within ~1e-8),
     // where the fused matte blends exactly 1.
     let worst = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
-    for (what, got, want, tolerance) in [("base", &fused.base_rgb, &renders[0].rgb, 1e-12), ("cloth", &fused.cloth_rgb, &renders[1].rgb, 1e-12), ("cloth alpha", &fused.cloth_alpha, &renders[1].alpha, 1e-12), ("matte", &fused.matte_rgb, &renders[2].rgb, 1e-7)] {
+    for (what, got, want, tolerance) in [("base", &fused.base_rgb, &renders[0].rgb, 1e-12), ("cloth", &fused.over_rgb, &renders[1].rgb, 1e-12), ("cloth alpha", &fused.over_alpha, &renders[1].alpha, 1e-12), ("matte", &fused.matte_rgb, &renders[2].rgb, 1e-7)] {
         assert!(worst(got, want) <= tolerance, "occlusion {occlusion}: fused {what} differs from its pass by {:e}", worst(got, want));
     }
     let (mut gb, mut gc, mut ga, mut gm) = (vec![0.0; 3 * pixels], vec![0.0; 3 * pixels], vec![0.0; pixels], vec![0.0; 3 * pixels]);
     for i in 0..pixels {
         let px = |v: &[f64]| [v[3 * i], v[3 * i + 1], v[3 * i + 2]];
-        let (b, o, a, m) = composite_grad(px(&w), px(&fused.base_rgb), px(&fused.cloth_rgb), fused.cloth_alpha[i], fused.matte_rgb[3 * i]);
+        let (b, o, a, m) = composite_grad(px(&w), px(&fused.base_rgb), px(&fused.over_rgb), fused.over_alpha[i], fused.matte_rgb[3 * i]);
         gb[3 * i..3 * i + 3].copy_from_slice(&b);
         gc[3 * i..3 * i + 3].copy_from_slice(&o);
         ga[i] = a;
@@ -392,7 +392,7 @@ fn fused_backward_on_the_gpu_matches_the_cpu_reference() {
     let mut random = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0..1.0)).collect() };
     let (g_base, g_cloth, g_alpha, g_matte) = (random(3 * pixels), random(3 * pixels), random(pixels), random(3 * pixels));
     let buffers = [&g_base, &g_cloth, &g_alpha, &g_matte].map(|v| ctx.upload("fused upstream", v).expect("upload"));
-    let upstream = FusedGrads { base_rgb: &buffers[0], cloth_rgb: &buffers[1], cloth_alpha: &buffers[2], matte_rgb: &buffers[3] };
+    let upstream = FusedGrads { base_rgb: &buffers[0], over_rgb: &buffers[1], over_alpha: &buffers[2], matte_rgb: &buffers[3] };
     let mut accumulations = vec![Accumulation::Deterministic, Accumulation::CompareAndSwap];
     if drape_tests::has_feature(&ctx, drape_tests::Feature::FloatAtomics, "fused_backward_on_the_gpu_matches_the_cpu_reference") {
         accumulations.push(Accumulation::FloatAtomics);
@@ -566,7 +566,8 @@ fn sh_copy_pads_and_truncates_between_degrees() {
 /// paper's matte and the occlusion-correct one.
 #[test]
 fn fused_frame_equals_the_three_passes() {
-    use drape_engine::ops::splat::fused::{layer_masks, FusedRenderer};
+    use drape_engine::ops::splat::fused::FusedRenderer;
+    use drape_trainer::avatar::composite::layer_masks;
     let ctx = gpu();
     let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 96, 64).expect("camera");
     let settings = RenderSettings::default();

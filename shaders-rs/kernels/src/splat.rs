@@ -368,10 +368,10 @@ pub fn rasterize_fwd(
 }
 
 /// The fused rasterizer (`ops::splat::fused`): one walk of each tile's depth-sorted
-/// list of every layer's splats, blending each into the base, cloth and matte states
-/// its layer mask (`masks`, per Gaussian) names (`drape_shared::splat::raster::FusedPixel`);
-/// writes the base image over the frame's background, the cloth image and alpha over
-/// black, and the matte (3 channels, over black) for the composite, and for the
+/// list of every cloud's splats, blending each into the base, over and matte states
+/// its mask (`masks`, per Gaussian) names (`drape_shared::splat::raster::FusedPixel`);
+/// writes the base image over the frame's background, the over pass's image and alpha
+/// over black, and the matte (3 channels, over black) for the composite, and for the
 /// backward each state's final transmittance and end in the merged list (3 per pixel).
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(16, 16)))]
@@ -385,8 +385,8 @@ pub fn rasterize_fused_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
@@ -451,7 +451,7 @@ pub fn rasterize_fused_fwd(
         return;
     }
     let p = (py * frame.width + px) as usize;
-    store_pixel_fused(p, &state, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+    store_pixel_fused(p, &state, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
 }
 
 /// Writes one pixel of the fused rasterizer's outputs (both variants).
@@ -462,8 +462,8 @@ fn store_pixel_fused(
     state: &FusedPixel<f32>,
     frame: &FrameParams,
     base_rgb: &mut [f32],
-    cloth_rgb: &mut [f32],
-    cloth_alpha: &mut [f32],
+    over_rgb: &mut [f32],
+    over_alpha: &mut [f32],
     matte_rgb: &mut [f32],
     transmittances: &mut [f32],
     ends: &mut [u32],
@@ -472,10 +472,10 @@ fn store_pixel_fused(
     base_rgb[3 * p] = c[0];
     base_rgb[3 * p + 1] = c[1];
     base_rgb[3 * p + 2] = c[2];
-    cloth_rgb[3 * p] = state.cloth.color[0];
-    cloth_rgb[3 * p + 1] = state.cloth.color[1];
-    cloth_rgb[3 * p + 2] = state.cloth.color[2];
-    cloth_alpha[p] = 1.0 - state.cloth.transmittance;
+    over_rgb[3 * p] = state.over.color[0];
+    over_rgb[3 * p + 1] = state.over.color[1];
+    over_rgb[3 * p + 2] = state.over.color[2];
+    over_alpha[p] = 1.0 - state.over.transmittance;
     matte_rgb[3 * p] = state.matte.color[0];
     matte_rgb[3 * p + 1] = state.matte.color[1];
     matte_rgb[3 * p + 2] = state.matte.color[2];
@@ -600,7 +600,7 @@ rasterize_bwd_entry!(rasterize_bwd_fixed, u32, atomics::add_fixed, doc = "Determ
 /// invocation per pixel, walking the merged list back to front from the furthest end
 /// any pixel's states reached; each pixel runs its three states' backward walks
 /// (`drape_shared::splat::raster::FusedPixelBwd`) and adds each splat the sum of what
-/// they send it. Upstream: the gradients on the base rgb, the cloth rgb and alpha, and
+/// they send it. Upstream: the gradients on the base rgb, the over rgb and alpha, and
 /// the matte (channel 0 of 3, as the composite's backward writes it).
 /// `$accumulate(grads, index, value)` adds into the per-splat gradients.
 macro_rules! rasterize_fused_bwd_entry {
@@ -620,8 +620,8 @@ macro_rules! rasterize_fused_bwd_entry {
             #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittances: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] ends: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_base: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_cloth: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_cloth_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_over: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_over_alpha: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [$grad_ty],
             #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
@@ -646,8 +646,8 @@ macro_rules! rasterize_fused_bwd_entry {
                     [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
                     frame.background,
                     [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
-                    [grad_cloth[3 * p], grad_cloth[3 * p + 1], grad_cloth[3 * p + 2]],
-                    grad_cloth_alpha[p],
+                    [grad_over[3 * p], grad_over[3 * p + 1], grad_over[3 * p + 2]],
+                    grad_over_alpha[p],
                     grad_matte[3 * p],
                 )
             } else {
@@ -1018,8 +1018,8 @@ pub fn rasterize_fused_fwd_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] cloth_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] cloth_alpha: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
@@ -1076,16 +1076,16 @@ pub fn rasterize_fused_fwd_subgroup(
         base += 8;
     }
     if b.inside[0] {
-        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[1] {
-        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[2] {
-        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
     }
     if b.inside[3] {
-        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, cloth_rgb, cloth_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
     }
 }
 
@@ -1244,8 +1244,8 @@ fn load_pixel_fused_bwd(
     transmittances: &[f32],
     ends: &[u32],
     grad_base: &[f32],
-    grad_cloth: &[f32],
-    grad_cloth_alpha: &[f32],
+    grad_over: &[f32],
+    grad_over_alpha: &[f32],
     grad_matte: &[f32],
 ) -> (FusedPixelBwd<f32>, u32) {
     if !b.inside[r as usize] {
@@ -1257,8 +1257,8 @@ fn load_pixel_fused_bwd(
         [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
         frame.background,
         [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
-        [grad_cloth[3 * p], grad_cloth[3 * p + 1], grad_cloth[3 * p + 2]],
-        grad_cloth_alpha[p],
+        [grad_over[3 * p], grad_over[3 * p + 1], grad_over[3 * p + 2]],
+        grad_over_alpha[p],
         grad_matte[3 * p],
     );
     let end = state.end();
@@ -1286,8 +1286,8 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
             #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] transmittances: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] ends: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] grad_base: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_cloth: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_cloth_alpha: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_over: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] grad_over_alpha: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [$grad_ty],
         ) {
@@ -1295,10 +1295,10 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
             let (fx, fy) = (b.fx, b.fy);
             let cfg = BlendSettings::<f32>::from_frame(frame);
             let start = ranges[2 * b.tile];
-            let (mut s0, m0) = load_pixel_fused_bwd(&b, 0, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
-            let (mut s1, m1) = load_pixel_fused_bwd(&b, 1, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
-            let (mut s2, m2) = load_pixel_fused_bwd(&b, 2, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
-            let (mut s3, m3) = load_pixel_fused_bwd(&b, 3, frame, transmittances, ends, grad_base, grad_cloth, grad_cloth_alpha, grad_matte);
+            let (mut s0, m0) = load_pixel_fused_bwd(&b, 0, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+            let (mut s1, m1) = load_pixel_fused_bwd(&b, 1, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+            let (mut s2, m2) = load_pixel_fused_bwd(&b, 2, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+            let (mut s3, m3) = load_pixel_fused_bwd(&b, 3, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
             let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
             let mut top = last;
             while top > 0 {

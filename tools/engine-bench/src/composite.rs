@@ -16,7 +16,8 @@ use std::time::Instant;
 
 use drape_cli_support::median;
 use drape_engine::ops::splat::composite::{matte_cloud, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
-use drape_engine::ops::splat::fused::{layer_masks, FusedGrads, FusedRenderer};
+use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
+use drape_trainer::avatar::composite::layer_masks;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, Layer, PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, PassTimings};
@@ -207,7 +208,7 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         // The composite's backward and the one-walk backward, in one submission.
         fused.prepare_backward(Accumulation::Auto)?;
         let grads = CompositeGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: Some(&g_matte) };
-        let upstream = FusedGrads { base_rgb: &g_base, cloth_rgb: &g_over, cloth_alpha: &g_alpha, matte_rgb: &g_matte };
+        let upstream = FusedGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: &g_matte };
         let mut rec = ctx.record("fused backward")?;
         record_composite_backward(&mut rec, &grad_rgb, fused.outputs(), grads, pixels as u32)?;
         fused.record_backward(&mut rec, &saved, &fused_gaussians, upstream, &fused_grads, Accumulation::Auto)?;

@@ -22,9 +22,10 @@
 
 use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
-use drape_engine::ops::splat::fused::{layer_masks, FusedGrads, FusedRenderer};
+use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SavedForward, SplatRenderer};
 use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
+use drape_shared::splat::raster::{FUSED_BASE, FUSED_MATTE_ONE, FUSED_MATTE_ZERO, FUSED_OVER};
 use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
 
 use crate::avatar::cloth_losses::ClothLosses;
@@ -66,6 +67,21 @@ impl Compositing {
         }
     }
 
+}
+
+/// The fused rasterizer's mask of each Gaussian (`drape_shared::splat::raster::FUSED_*`):
+/// the body into the base (and, with `occlusion`, into the matte at 0), the cloth into
+/// the over state and the matte at 1, the scene into the base and the matte at 0.
+pub fn layer_masks(layers: &[Layer], occlusion: bool) -> Vec<u32> {
+    layers
+        .iter()
+        .map(|l| match l {
+            Layer::Body if occlusion => FUSED_BASE | FUSED_MATTE_ZERO,
+            Layer::Body => FUSED_BASE,
+            Layer::Cloth => FUSED_OVER | FUSED_MATTE_ONE,
+            Layer::Scene => FUSED_BASE | FUSED_MATTE_ZERO,
+        })
+        .collect()
 }
 
 /// One source of Gaussians in a pass: a human layer (by index) or the scene.
@@ -142,8 +158,8 @@ struct ThreePass {
     matte: Option<MattePass>,
     image: Buffer,
     grad_base: Buffer,
-    grad_cloth: Buffer,
-    grad_cloth_alpha: Buffer,
+    grad_over: Buffer,
+    grad_over_alpha: Buffer,
     pixels: u32,
 }
 
@@ -152,8 +168,8 @@ struct Fused {
     image: Buffer,
     /// The composite's backward writes the three images' gradients here.
     grad_base: Buffer,
-    grad_cloth: Buffer,
-    grad_cloth_alpha: Buffer,
+    grad_over: Buffer,
+    grad_over_alpha: Buffer,
     grad_matte: Buffer,
     pixels: u32,
 }
@@ -192,8 +208,8 @@ impl AvatarRenderer {
                 renderer,
                 image: image("composite image", 3 * pixels)?,
                 grad_base: image("fused grad base", 3 * pixels)?,
-                grad_cloth: image("fused grad cloth", 3 * pixels)?,
-                grad_cloth_alpha: image("fused grad cloth alpha", pixels)?,
+                grad_over: image("fused grad cloth", 3 * pixels)?,
+                grad_over_alpha: image("fused grad cloth alpha", pixels)?,
                 grad_matte: image("fused grad matte", 3 * pixels)?,
                 pixels,
             };
@@ -239,8 +255,8 @@ impl AvatarRenderer {
             matte,
             image: image("composite image", 3 * pixels)?,
             grad_base: image("composite grad base", 3 * pixels)?,
-            grad_cloth: image("composite grad cloth", 3 * pixels)?,
-            grad_cloth_alpha: image("composite grad cloth alpha", pixels)?,
+            grad_over: image("composite grad cloth", 3 * pixels)?,
+            grad_over_alpha: image("composite grad cloth alpha", pixels)?,
             base_parts,
             pixels,
         };
@@ -378,12 +394,12 @@ impl AvatarRenderer {
                 let accumulation = avatar.accumulation();
                 f.renderer.prepare_backward(accumulation)?;
                 let mut rec = ctx.record("fused backward")?;
-                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_cloth, over_alpha: &f.grad_cloth_alpha, matte_rgb: Some(&f.grad_matte) };
+                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: Some(&f.grad_matte) };
                 record_composite_backward(&mut rec, grad_rgb, f.renderer.outputs(), grads, f.pixels)?;
                 if let Some(c) = cloth_losses.as_ref() {
-                    c.record_mask_grad(&mut rec, f.renderer.outputs().over_alpha, &f.grad_cloth_alpha)?;
+                    c.record_mask_grad(&mut rec, f.renderer.outputs().over_alpha, &f.grad_over_alpha)?;
                 }
-                let upstream = FusedGrads { base_rgb: &f.grad_base, cloth_rgb: &f.grad_cloth, cloth_alpha: &f.grad_cloth_alpha, matte_rgb: &f.grad_matte };
+                let upstream = FusedGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: &f.grad_matte };
                 f.renderer.record_backward(&mut rec, &self.saved[0], &avatar.posed, upstream, &avatar.posed_grads, accumulation)?;
                 rec.submit_and_wait()?;
             }
@@ -396,16 +412,16 @@ impl AvatarRenderer {
             Inner::ThreePass(t) => {
                 {
                     let mut rec = ctx.record("composite backward")?;
-                    let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_cloth, over_alpha: &t.grad_cloth_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
+                    let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_over, over_alpha: &t.grad_over_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
                     record_composite_backward(&mut rec, grad_rgb, t.inputs(), grads, t.pixels)?;
                     if let Some(c) = cloth_losses.as_ref() {
-                        c.record_mask_grad(&mut rec, t.cloth_renderer.outputs().1, &t.grad_cloth_alpha)?;
+                        c.record_mask_grad(&mut rec, t.cloth_renderer.outputs().1, &t.grad_over_alpha)?;
                     }
                     rec.submit_and_wait()?;
                 }
                 t.base_renderer.backward(&self.saved[0], &t.base, &t.grad_base, zeros, zeros, &t.base_grads, avatar.accumulation())?;
                 let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.backward(&self.saved[1], &cloth.posed, &t.grad_cloth, &t.grad_cloth_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
+                t.cloth_renderer.backward(&self.saved[1], &cloth.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
                 if let Some(m) = &mut t.matte {
                     m.renderer.backward(&self.saved[2], &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, avatar.accumulation())?;
                 }

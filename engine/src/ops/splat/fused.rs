@@ -1,16 +1,17 @@
-//! The fused three-pass frame: one depth sort of every layer's Gaussians (each tagged
-//! with its layer), one tile binning, and one rasterization (`splat::rasterize_fused_fwd`)
-//! that keeps three blending states per pixel and writes the base image (body and
-//! scene), the cloth image and alpha, and the matte in a single walk of each tile,
-//! for the composite of `ops::splat::composite`.
+//! The fused three-pass frame: one depth sort of one cloud holding every pass's
+//! Gaussians (each with a mask naming the passes it is drawn in), one tile binning, and
+//! one rasterization (`splat::rasterize_fused_fwd`) that keeps three blending states
+//! per pixel and writes the base image, the over pass's image and alpha, and the matte
+//! in a single walk of each tile, for the composite of `ops::splat::composite`.
 //!
 //! Each state's Gaussians keep their depth order in the merged list (the sort is
 //! stable and each pass's cloud is a subsequence of the fused one in the same order),
 //! so each state sums the same terms in the same order as its own pass: the three
-//! images equal the three-pass renders within float tolerance (tested). Layer masks
-//! (`drape_shared::splat::raster::FUSED_*`) say which states a Gaussian blends into,
-//! for the paper's matte (cloth against the scene) or the occlusion-correct one (the
-//! body hides the cloth too).
+//! images equal the three-pass renders within float tolerance (tested). The masks
+//! (`drape_shared::splat::raster::FUSED_*`, one per Gaussian, set by the caller) say
+//! which states a Gaussian blends into and in which matte colour; the trainer's
+//! `avatar::composite::layer_masks` makes the paper's matte (the cloth against the
+//! scene) or the occlusion-correct one (the body hides the cloth too).
 //!
 //! The backward ([`FusedRenderer::backward`]) walks the same merged list back to front
 //! once, each pixel running its three states' backward walks from where the forward
@@ -20,7 +21,6 @@
 //! is fixed). Like the forward, it runs the workgroup kernels on GPUs and their
 //! subgroup twins on CPU devices with subgroups of 8 (`RasterVariant`).
 
-use drape_shared::splat::raster::{FUSED_BASE, FUSED_CLOTH, FUSED_MATTE_ONE, FUSED_MATTE_ZERO};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -30,23 +30,8 @@ use crate::ops::accumulate::{Accumulation, Method};
 use crate::recorder::PassTimings;
 use crate::ops::splat::composite::CompositeInputs;
 use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SavedForward, SplatRenderer};
-use crate::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
+use crate::ops::splat::scene::{PinholeCamera, RenderSettings};
 use crate::recorder::Recording;
-
-/// The fused rasterizer's layer mask of each Gaussian: body into the base (and, with
-/// `occlusion`, into the matte at 0), cloth into the cloth state and the matte at 1,
-/// scene into the base and the matte at 0.
-pub fn layer_masks(layers: &[Layer], occlusion: bool) -> Vec<u32> {
-    layers
-        .iter()
-        .map(|l| match l {
-            Layer::Body if occlusion => FUSED_BASE | FUSED_MATTE_ZERO,
-            Layer::Body => FUSED_BASE,
-            Layer::Cloth => FUSED_CLOTH | FUSED_MATTE_ONE,
-            Layer::Scene => FUSED_BASE | FUSED_MATTE_ZERO,
-        })
-        .collect()
-}
 
 /// A fused renderer for clouds of up to `max_count` Gaussians at one image size.
 pub struct FusedRenderer {
@@ -54,24 +39,24 @@ pub struct FusedRenderer {
     renderer: SplatRenderer,
     masks: Buffer,
     base_rgb: Buffer,
-    cloth_rgb: Buffer,
-    cloth_alpha: Buffer,
+    over_rgb: Buffer,
+    over_alpha: Buffer,
     matte_rgb: Buffer,
-    /// Per pixel, each state's final transmittance (base, cloth, matte).
+    /// Per pixel, each state's final transmittance (base, over, matte).
     transmittances: Buffer,
     /// Per pixel, each state's end in the merged tile list.
     ends: Buffer,
     pixels: u32,
 }
 
-/// The upstream gradients of a fused backward: on the base rgb and the cloth rgb (3 per
-/// pixel), the cloth alpha (1 per pixel) and the matte (3 per pixel, only channel 0
+/// The upstream gradients of a fused backward: on the base rgb and the over rgb (3 per
+/// pixel), the over alpha (1 per pixel) and the matte (3 per pixel, only channel 0
 /// read: the composite's backward writes the visibility's gradient there).
 #[derive(Clone, Copy)]
 pub struct FusedGrads<'a> {
     pub base_rgb: &'a Buffer,
-    pub cloth_rgb: &'a Buffer,
-    pub cloth_alpha: &'a Buffer,
+    pub over_rgb: &'a Buffer,
+    pub over_alpha: &'a Buffer,
     pub matte_rgb: &'a Buffer,
 }
 
@@ -85,8 +70,8 @@ impl FusedRenderer {
             renderer,
             masks: ctx.create_buffer("fused layer masks", BufferDesc::gpu_only(4 * max_count.max(1) as u64))?,
             base_rgb: image("fused base rgb", 3 * pixels)?,
-            cloth_rgb: image("fused cloth rgb", 3 * pixels)?,
-            cloth_alpha: image("fused cloth alpha", pixels)?,
+            over_rgb: image("fused over rgb", 3 * pixels)?,
+            over_alpha: image("fused over alpha", pixels)?,
             matte_rgb: image("fused matte", 3 * pixels)?,
             transmittances: image("fused final transmittances", 3 * pixels)?,
             ends: image("fused state ends", 3 * pixels)?,
@@ -99,7 +84,8 @@ impl FusedRenderer {
         self.renderer.set_raster_variant(variant)
     }
 
-    /// Sets each Gaussian's layer mask ([`layer_masks`]), in the cloud's order.
+    /// Sets each Gaussian's mask (`drape_shared::splat::raster::FUSED_*`), in the
+    /// cloud's order.
     pub fn set_masks(&mut self, ctx: &Context, masks: &[u32]) -> Result<()> {
         ctx.write_buffer(&mut self.masks, masks)
     }
@@ -121,8 +107,8 @@ impl FusedRenderer {
             .read("ranges", ranges)
             .read("masks", &self.masks)
             .write("base_rgb", &self.base_rgb)
-            .write("cloth_rgb", &self.cloth_rgb)
-            .write("cloth_alpha", &self.cloth_alpha)
+            .write("over_rgb", &self.over_rgb)
+            .write("over_alpha", &self.over_alpha)
             .write("matte_rgb", &self.matte_rgb)
             .write("transmittances", &self.transmittances)
             .write("ends", &self.ends)
@@ -153,8 +139,8 @@ impl FusedRenderer {
             .read("transmittances", &self.transmittances)
             .read("ends", &self.ends)
             .read("grad_base", grads.base_rgb)
-            .read("grad_cloth", grads.cloth_rgb)
-            .read("grad_cloth_alpha", grads.cloth_alpha)
+            .read("grad_over", grads.over_rgb)
+            .read("grad_over_alpha", grads.over_alpha)
             .read("grad_matte", grads.matte_rgb)
             .write("splat_grads", target)
             .dispatch(grid)?;
@@ -213,7 +199,7 @@ impl FusedRenderer {
 
     /// The three images, as the composite reads them (the matte is 3 channels).
     pub fn outputs(&self) -> CompositeInputs<'_> {
-        CompositeInputs { base_rgb: &self.base_rgb, over_rgb: &self.cloth_rgb, over_alpha: &self.cloth_alpha, matte_rgb: Some(&self.matte_rgb) }
+        CompositeInputs { base_rgb: &self.base_rgb, over_rgb: &self.over_rgb, over_alpha: &self.over_alpha, matte_rgb: Some(&self.matte_rgb) }
     }
 
     /// Pixels of one image.
@@ -221,14 +207,14 @@ impl FusedRenderer {
         self.pixels
     }
 
-    /// Reads the last forward's (base, cloth, cloth alpha, matte) images back.
+    /// Reads the last forward's (base, over, over alpha, matte) images back.
     pub fn read_images(&mut self) -> Result<[Vec<f32>; 4]> {
         let n = self.pixels as usize;
         let ctx = self.ctx.clone();
         Ok([
             ctx.read_buffer(&mut self.base_rgb, 3 * n)?,
-            ctx.read_buffer(&mut self.cloth_rgb, 3 * n)?,
-            ctx.read_buffer(&mut self.cloth_alpha, n)?,
+            ctx.read_buffer(&mut self.over_rgb, 3 * n)?,
+            ctx.read_buffer(&mut self.over_alpha, n)?,
             ctx.read_buffer(&mut self.matte_rgb, 3 * n)?,
         ])
     }

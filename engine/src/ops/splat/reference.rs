@@ -168,13 +168,13 @@ pub fn backward<F: Real>(
 /// the merged cloud, for its projections and lists), with each Gaussian's layer mask.
 #[derive(Clone, Debug)]
 pub struct FusedReference<F> {
-    /// 3 per pixel: the base over the frame's background, the cloth over black, the
+    /// 3 per pixel: the base over the frame's background, the over pass over black, the
     /// matte (all three channels equal).
     pub base_rgb: Vec<F>,
-    pub cloth_rgb: Vec<F>,
-    pub cloth_alpha: Vec<F>,
+    pub over_rgb: Vec<F>,
+    pub over_alpha: Vec<F>,
     pub matte_rgb: Vec<F>,
-    /// 3 per pixel (base, cloth, matte).
+    /// 3 per pixel (base, over, matte).
     pub transmittances: Vec<F>,
     pub ends: Vec<u32>,
 }
@@ -186,8 +186,8 @@ pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &Fr
     let z = F::zero();
     let mut out = FusedReference {
         base_rgb: vec![z; 3 * pixels],
-        cloth_rgb: vec![z; 3 * pixels],
-        cloth_alpha: vec![z; pixels],
+        over_rgb: vec![z; 3 * pixels],
+        over_alpha: vec![z; pixels],
         matte_rgb: vec![z; 3 * pixels],
         transmittances: vec![F::one(); 3 * pixels],
         ends: vec![0; 3 * pixels],
@@ -206,8 +206,8 @@ pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &Fr
                 }
             }
             out.base_rgb[3 * p..3 * p + 3].copy_from_slice(&state.base.rgb(background));
-            out.cloth_rgb[3 * p..3 * p + 3].copy_from_slice(&state.cloth.color);
-            out.cloth_alpha[p] = F::one() - state.cloth.transmittance;
+            out.over_rgb[3 * p..3 * p + 3].copy_from_slice(&state.over.color);
+            out.over_alpha[p] = F::one() - state.over.transmittance;
             out.matte_rgb[3 * p..3 * p + 3].copy_from_slice(&state.matte.color);
             out.transmittances[3 * p..3 * p + 3].copy_from_slice(&state.transmittances());
             out.ends[3 * p..3 * p + 3].copy_from_slice(&state.ends());
@@ -217,7 +217,7 @@ pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &Fr
 }
 
 /// The fused backward on the CPU: gradients of a loss with respect to every Gaussian of
-/// the merged cloud, given the loss's gradients on the base rgb, the cloth rgb and
+/// the merged cloud, given the loss's gradients on the base rgb, the over rgb and
 /// alpha, and the matte (channel 0 of 3 per pixel); also the per-splat gradients.
 #[allow(clippy::too_many_arguments)]
 pub fn fused_backward<F: Real>(
@@ -227,8 +227,8 @@ pub fn fused_backward<F: Real>(
     fwd: &ReferenceRender<F>,
     fused: &FusedReference<F>,
     grad_base: &[F],
-    grad_cloth: &[F],
-    grad_cloth_alpha: &[F],
+    grad_over: &[F],
+    grad_over_alpha: &[F],
     grad_matte: &[F],
 ) -> (Vec<GaussianGrad<F>>, Vec<SplatGrad<F>>) {
     let cam = Camera::<F>::from_frame(frame);
@@ -246,8 +246,8 @@ pub fn fused_backward<F: Real>(
                 [fused.ends[3 * p], fused.ends[3 * p + 1], fused.ends[3 * p + 2]],
                 background,
                 three(grad_base),
-                three(grad_cloth),
-                grad_cloth_alpha[p],
+                three(grad_over),
+                grad_over_alpha[p],
                 grad_matte[3 * p],
             );
             let list = &fwd.tile_lists[tile];

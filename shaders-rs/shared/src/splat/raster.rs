@@ -146,18 +146,20 @@ impl<F: Real> Default for PixelFwd<F> {
     }
 }
 
-/// Layer-mask bits of the fused rasterizer: which of a pixel's three states a splat
-/// blends into. Body: base (and, in the occlusion-correct matte, matte at 0); cloth:
-/// cloth, and matte at 1; scene: base, and matte at 0.
+/// Mask bits of the fused rasterizer: which of a pixel's three states a splat blends
+/// into, the three passes of `ops::splat::composite` (the caller says which of its
+/// clouds goes where; the trainer: body and scene into the base, the cloth over it).
+/// Blends into the base pass.
 pub const FUSED_BASE: u32 = 1;
-pub const FUSED_CLOTH: u32 = 2;
-/// Blends into the matte with colour 0 (an occluder of the cloth).
+/// Blends into the over pass (the layer composited over the base, drawn alone).
+pub const FUSED_OVER: u32 = 2;
+/// Blends into the matte with colour 0 (an occluder of the over layer).
 pub const FUSED_MATTE_ZERO: u32 = 4;
-/// Blends into the matte with colour 1 (the cloth).
+/// Blends into the matte with colour 1 (the over layer).
 pub const FUSED_MATTE_ONE: u32 = 8;
 
-/// The three forward states of one pixel of the fused rasterizer: the base pass
-/// (body and scene), the cloth pass and the matte, each blended exactly as its own
+/// The three forward states of one pixel of the fused rasterizer: the base pass, the
+/// over pass and the matte, each blended exactly as its own
 /// pass would blend it, in one walk of the tile's depth-sorted list of every layer.
 /// Each state's members keep their depth order in the merged list, so each state
 /// sums the same terms in the same order as its own pass. A state's `contributors`
@@ -166,22 +168,22 @@ pub const FUSED_MATTE_ONE: u32 = 8;
 #[derive(Clone, Copy, Debug)]
 pub struct FusedPixel<F> {
     pub base: PixelFwd<F>,
-    pub cloth: PixelFwd<F>,
+    pub over: PixelFwd<F>,
     pub matte: PixelFwd<F>,
 }
 
 impl<F: Real> FusedPixel<F> {
-    /// A state is done when saturated; one that never saturates (no cloth over a
+    /// A state is done when saturated; one that never saturates (no over layer at a
     /// pixel) keeps the walk going to the end of the list, where its own pass would
     /// also have ended.
     pub fn new() -> Self {
-        Self { base: PixelFwd::new(), cloth: PixelFwd::new(), matte: PixelFwd::new() }
+        Self { base: PixelFwd::new(), over: PixelFwd::new(), matte: PixelFwd::new() }
     }
 
     /// All three states saturated.
     #[inline]
     pub fn done(&self) -> bool {
-        self.base.done && self.cloth.done && self.matte.done
+        self.base.done && self.over.done && self.matte.done
     }
 
     /// Blends the `index`-th splat of the merged tile list (0-based), with layer mask
@@ -189,16 +191,16 @@ impl<F: Real> FusedPixel<F> {
     #[inline]
     pub fn blend(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
         let in_base = mask & FUSED_BASE != 0;
-        let in_cloth = mask & FUSED_CLOTH != 0;
+        let in_over = mask & FUSED_OVER != 0;
         let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0;
-        let wanted = (in_base && !self.base.done) || (in_cloth && !self.cloth.done) || (in_matte && !self.matte.done);
+        let wanted = (in_base && !self.base.done) || (in_over && !self.over.done) || (in_matte && !self.matte.done);
         if wanted {
             if let Some(f) = footprint(s, px, py, cfg) {
                 if in_base && !self.base.done {
                     self.base.blend_footprint(&f, s.color, s.depth, index, cfg);
                 }
-                if in_cloth && !self.cloth.done {
-                    self.cloth.blend_footprint(&f, s.color, s.depth, index, cfg);
+                if in_over && !self.over.done {
+                    self.over.blend_footprint(&f, s.color, s.depth, index, cfg);
                 }
                 if in_matte && !self.matte.done {
                     let m = matte_value::<F>(mask);
@@ -208,17 +210,17 @@ impl<F: Real> FusedPixel<F> {
         }
     }
 
-    /// The states' final transmittances (base, cloth, matte): what the backward starts from.
+    /// The states' final transmittances (base, over, matte): what the backward starts from.
     #[inline]
     pub fn transmittances(&self) -> [F; 3] {
-        [self.base.transmittance, self.cloth.transmittance, self.matte.transmittance]
+        [self.base.transmittance, self.over.transmittance, self.matte.transmittance]
     }
 
-    /// The states' ends in the merged list (base, cloth, matte): one past each one's
+    /// The states' ends in the merged list (base, over, matte): one past each one's
     /// last blended splat.
     #[inline]
     pub fn ends(&self) -> [u32; 3] {
-        [self.base.contributors, self.cloth.contributors, self.matte.contributors]
+        [self.base.contributors, self.over.contributors, self.matte.contributors]
     }
 }
 
@@ -245,7 +247,7 @@ fn matte_value<F: Real>(mask: u32) -> F {
 #[derive(Clone, Copy, Debug)]
 pub struct FusedPixelBwd<F> {
     pub base: PixelBwd<F>,
-    pub cloth: PixelBwd<F>,
+    pub over: PixelBwd<F>,
     pub matte: PixelBwd<F>,
     /// The forward's [`FusedPixel::ends`].
     pub ends: [u32; 3],
@@ -254,12 +256,13 @@ pub struct FusedPixelBwd<F> {
 impl<F: Real> FusedPixelBwd<F> {
     /// From the forward's final transmittances and ends ([`FusedPixel::transmittances`],
     /// [`FusedPixel::ends`]) and the pixel's upstream gradients: on the base rgb (drawn
-    /// over `background`), the cloth rgb and alpha (over black), and the matte's value.
-    pub fn new(transmittances: [F; 3], ends: [u32; 3], background: V3<F>, grad_base: V3<F>, grad_cloth: V3<F>, grad_cloth_alpha: F, grad_matte: F) -> Self {
+    /// over `background`), the over pass's rgb and alpha (over black), and the matte's
+    /// value.
+    pub fn new(transmittances: [F; 3], ends: [u32; 3], background: V3<F>, grad_base: V3<F>, grad_over: V3<F>, grad_over_alpha: F, grad_matte: F) -> Self {
         let z = F::zero();
         Self {
             base: PixelBwd::new(transmittances[0], background, grad_base, z, z),
-            cloth: PixelBwd::new(transmittances[1], [z; 3], grad_cloth, grad_cloth_alpha, z),
+            over: PixelBwd::new(transmittances[1], [z; 3], grad_over, grad_over_alpha, z),
             matte: PixelBwd::new(transmittances[2], [z; 3], [grad_matte, z, z], z, z),
             ends,
         }
@@ -282,9 +285,9 @@ impl<F: Real> FusedPixelBwd<F> {
     #[inline]
     pub fn step(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
         let in_base = mask & FUSED_BASE != 0 && index < self.ends[0];
-        let in_cloth = mask & FUSED_CLOTH != 0 && index < self.ends[1];
+        let in_over = mask & FUSED_OVER != 0 && index < self.ends[1];
         let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0 && index < self.ends[2];
-        if !(in_base || in_cloth || in_matte) {
+        if !(in_base || in_over || in_matte) {
             return None;
         }
         // One footprint for every state (the forward blended one footprint into each).
@@ -293,8 +296,8 @@ impl<F: Real> FusedPixelBwd<F> {
         if in_base {
             total = total.add(&self.base.step_footprint(&f, s, cfg));
         }
-        if in_cloth {
-            total = total.add(&self.cloth.step_footprint(&f, s, cfg));
+        if in_over {
+            total = total.add(&self.over.step_footprint(&f, s, cfg));
         }
         if in_matte {
             let m = matte_value::<F>(mask);
