@@ -27,6 +27,9 @@ impl ProfileEntry {
 pub struct Profile {
     /// GPU milliseconds per pass name (summed over every submission).
     pub gpu_passes: BTreeMap<String, ProfileEntry>,
+    /// GPU milliseconds per scope (`Recording::set_scope`: a layer, a render), each
+    /// submission's passes of the scope counted once where they ran side by side.
+    pub gpu_scopes: BTreeMap<String, ProfileEntry>,
     /// Host wall milliseconds per submission label, submit to end of wait: GPU time
     /// plus the queue's latency.
     pub submissions: BTreeMap<String, ProfileEntry>,
@@ -37,6 +40,10 @@ pub struct Profile {
 impl Profile {
     pub(crate) fn add_pass(&mut self, name: &str, ms: f64) {
         self.gpu_passes.entry(name.to_string()).or_default().add(ms);
+    }
+
+    pub(crate) fn add_scope(&mut self, scope: &str, ms: f64) {
+        self.gpu_scopes.entry(scope.to_string()).or_default().add(ms);
     }
 
     pub(crate) fn add_submission(&mut self, label: &str, ms: f64) {
@@ -84,6 +91,7 @@ impl Profile {
         section("submission (host wall)", sorted(self.submissions.clone()));
         section("host phase", sorted(self.host.clone()));
         section("GPU stage", self.gpu_by_stage());
+        section("GPU scope (layer or render)", sorted(self.gpu_scopes.clone()));
         section(&format!("GPU pass (top {top})"), self.passes_by_time().into_iter().take(top).collect());
         s
     }

@@ -62,6 +62,9 @@ pub fn flat_grid(invocations: u32) -> [u32; 3] {
 pub struct PassTimings {
     /// (pass name, milliseconds). Empty when the queue has no timestamps.
     pub passes: Vec<(String, f64)>,
+    /// Each pass's scope ([`Recording::set_scope`]: the layer or render it belongs to;
+    /// empty for none), in the order of `passes`.
+    pub scopes: Vec<String>,
     /// Each pass's (start, end) in milliseconds from the submission's first timestamp,
     /// in the order of `passes`. Passes the recorder left free to overlap have
     /// overlapping intervals.
@@ -78,6 +81,19 @@ impl PassTimings {
         out
     }
 
+    /// GPU time per scope ([`Recording::set_scope`]; unscoped passes left out): the
+    /// union of the scope's passes' intervals, so passes of one scope that ran side by
+    /// side are not counted twice (scopes that ran side by side each count the time).
+    pub fn by_scope(&self) -> BTreeMap<String, f64> {
+        let mut spans: BTreeMap<&str, Vec<(f64, f64)>> = BTreeMap::new();
+        for (scope, &interval) in self.scopes.iter().zip(&self.intervals) {
+            if !scope.is_empty() {
+                spans.entry(scope.as_str()).or_default().push(interval);
+            }
+        }
+        spans.into_iter().map(|(scope, s)| (scope.to_string(), union_ms(s))).collect()
+    }
+
     /// Sum over all passes (counts time twice where passes overlapped).
     pub fn total_ms(&self) -> f64 {
         self.passes.iter().map(|(_, ms)| ms).sum()
@@ -86,29 +102,34 @@ impl PassTimings {
     /// GPU time during which at least one pass ran: the union of the passes'
     /// intervals, so passes that overlapped are not counted twice.
     pub fn busy_ms(&self) -> f64 {
-        let mut spans = self.intervals.clone();
-        spans.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let mut busy = 0.0;
-        let mut current: Option<(f64, f64)> = None;
-        for (start, end) in spans {
-            current = match current {
-                Some((s, e)) if start <= e => Some((s, e.max(end))),
-                Some((s, e)) => {
-                    busy += e - s;
-                    Some((start, end))
-                }
-                None => Some((start, end)),
-            };
-        }
-        busy + current.map_or(0.0, |(s, e)| e - s)
+        union_ms(self.intervals.clone())
     }
 
     /// Appends another submission's passes (its intervals after this one's).
     pub fn extend(&mut self, other: PassTimings) {
         let offset = self.intervals.iter().map(|i| i.1).fold(0.0, f64::max);
         self.passes.extend(other.passes);
+        self.scopes.extend(other.scopes);
         self.intervals.extend(other.intervals.into_iter().map(|(s, e)| (s + offset, e + offset)));
     }
+}
+
+/// The length of the union of `spans` (start, end), in their unit.
+fn union_ms(mut spans: Vec<(f64, f64)>) -> f64 {
+    spans.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut busy = 0.0;
+    let mut current: Option<(f64, f64)> = None;
+    for (start, end) in spans {
+        current = match current {
+            Some((s, e)) if start <= e => Some((s, e.max(end))),
+            Some((s, e)) => {
+                busy += e - s;
+                Some((start, end))
+            }
+            None => Some((start, end)),
+        };
+    }
+    busy + current.map_or(0.0, |(s, e)| e - s)
 }
 
 /// The Vulkan objects a recording records with: kept by the device between
@@ -152,6 +173,10 @@ pub struct Recording<'a> {
     /// are destroyed, not reused.
     reusable: bool,
     passes: Vec<String>,
+    /// Each emitted pass's scope, in the order of `passes`.
+    pass_scopes: Vec<String>,
+    /// The scope passes recorded now get ([`Recording::set_scope`]).
+    scope: String,
     /// One 4-byte slot per pass, set to 1 when the pass starts (slots, not one shared
     /// word, so that passes free to overlap do not race on it).
     breadcrumbs: Vec<Buffer>,
@@ -205,6 +230,8 @@ impl Context {
             query_pools_used: 0,
             reusable: true,
             passes: Vec::new(),
+            pass_scopes: Vec::new(),
+            scope: String::new(),
             breadcrumbs: Vec::new(),
             commands: Vec::new(),
             last_write: HashMap::new(),
@@ -362,7 +389,7 @@ impl<'a> PassBuilder<'_, 'a> {
 
 /// A command waiting in a recording for its wave.
 enum Command {
-    Dispatch { name: String, pipeline: vk::Pipeline, layout: vk::PipelineLayout, set: vk::DescriptorSet, push: Vec<u8>, groups: [u32; 3] },
+    Dispatch { name: String, scope: String, pipeline: vk::Pipeline, layout: vk::PipelineLayout, set: vk::DescriptorSet, push: Vec<u8>, groups: [u32; 3] },
     Copy { src: vk::Buffer, dst: vk::Buffer, region: vk::BufferCopy },
     Update { buffer: vk::Buffer, data: Vec<u8> },
     Fill { buffer: vk::Buffer, word: u32 },
@@ -372,6 +399,14 @@ impl<'a> Recording<'a> {
     /// The context this recording belongs to.
     pub fn context(&self) -> &Context {
         &self.ctx
+    }
+
+    /// Names the scope (a layer, a render of a composite: any group of passes) that the
+    /// passes recorded from now on belong to, for GPU time per scope
+    /// ([`PassTimings::by_scope`], the profile's `gpu_scopes`); "" ends it. Pass names
+    /// are unchanged.
+    pub fn set_scope(&mut self, scope: &str) {
+        self.scope = scope.to_string();
     }
 
     /// Describes a compute pass named `name` running `kernel`.
@@ -500,7 +535,7 @@ impl<'a> Recording<'a> {
         unsafe { self.ctx.device.raw.update_descriptor_sets(&writes, &[]) };
         let accesses: Vec<(vk::Buffer, bool)> =
             buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (b.buffer.raw, !decl.read_only)).collect();
-        let command = Command::Dispatch { name: name.to_string(), pipeline: pipeline.raw, layout: pipeline.layout, set, push: push.to_vec(), groups };
+        let command = Command::Dispatch { name: name.to_string(), scope: self.scope.clone(), pipeline: pipeline.raw, layout: pipeline.layout, set, push: push.to_vec(), groups };
         self.schedule(&accesses, command);
         Ok(())
     }
@@ -524,7 +559,7 @@ impl<'a> Recording<'a> {
             }
             let dev = self.ctx.device.raw.clone();
             match command {
-                Command::Dispatch { name, pipeline, layout, set, push, groups } => {
+                Command::Dispatch { name, scope, pipeline, layout, set, push, groups } => {
                     let index = self.passes.len() as u32;
                     self.write_breadcrumb(index)?;
                     let query = self.timestamp_slot(index)?;
@@ -546,6 +581,7 @@ impl<'a> Recording<'a> {
                         }
                     }
                     self.passes.push(name);
+                    self.pass_scopes.push(scope);
                 }
                 // SAFETY (the three below): recording command buffer; the buffers are
                 // borrowed for 'a, were created with transfer usage, and the ranges
@@ -662,6 +698,9 @@ impl<'a> Recording<'a> {
             for (name, ms) in &timings.passes {
                 p.add_pass(name, *ms);
             }
+            for (scope, ms) in timings.by_scope() {
+                p.add_scope(&scope, ms);
+            }
         }
         Ok(timings)
     }
@@ -710,6 +749,7 @@ impl<'a> Recording<'a> {
         for (i, name) in self.passes.iter().enumerate() {
             let (start, end) = (ticks[2 * i], ticks[2 * i + 1]);
             timings.passes.push((name.clone(), ms(start, end)));
+            timings.scopes.push(self.pass_scopes[i].clone());
             let at = ms(origin, start);
             timings.intervals.push((at, at + ms(start, end)));
         }

@@ -146,15 +146,60 @@ fn a_module_whose_bindings_disagree_with_the_manifest_is_named() {
 #[test]
 fn busy_time_counts_overlapping_passes_once() {
     let timings = PassTimings {
-        passes: vec![("a".into(), 2.0), ("b".into(), 2.0), ("c".into(), 1.0)],
-        // a and b overlap by 1 ms; c starts after a gap.
-        intervals: vec![(0.0, 2.0), (1.0, 3.0), (5.0, 6.0)],
+        passes: vec![("a".into(), 2.0), ("b".into(), 2.0), ("c".into(), 1.0), ("d".into(), 1.0)],
+        // a and b overlap by 1 ms; c starts after a gap; d runs beside c.
+        intervals: vec![(0.0, 2.0), (1.0, 3.0), (5.0, 6.0), (5.0, 6.0)],
+        // a and b are the body's, c the cloth's, d has no scope.
+        scopes: vec!["body".into(), "body".into(), "cloth".into(), String::new()],
     };
-    assert_eq!(timings.total_ms(), 5.0);
+    assert_eq!(timings.total_ms(), 6.0);
     assert_eq!(timings.busy_ms(), 4.0);
+    // Per scope: the body's two passes overlap and count 3 ms, not 4; unscoped left out.
+    let scopes = timings.by_scope();
+    assert_eq!(scopes.into_iter().collect::<Vec<_>>(), [("body".to_string(), 3.0), ("cloth".to_string(), 1.0)]);
     let mut two = timings.clone();
     two.extend(timings);
     assert_eq!(two.busy_ms(), 8.0, "a second submission's passes follow the first's");
+    assert_eq!(two.by_scope()["body"], 6.0, "and their scopes with them");
+}
+
+/// Passes recorded under a scope carry it into the submission's timings and the
+/// profile (`gpu_scopes`); pass names are unchanged; a scope ends with "".
+#[test]
+fn scoped_passes_are_timed_per_scope() {
+    let gpu = gpu();
+    if !drape_tests::has_feature(&gpu, drape_tests::Feature::Timestamps, "scoped_passes_are_timed_per_scope") {
+        return;
+    }
+    let n = LEN as usize;
+    let a = gpu.upload("a", &vec![1.0f32; n]).expect("upload");
+    let b = gpu.upload("b", &vec![2.0f32; n]).expect("upload");
+    let c = gpu.upload("c", &vec![3.0f32; n]).expect("upload");
+    let p = params();
+    gpu.start_profile();
+    let mut rec = gpu.record("scopes").expect("record");
+    rec.set_scope("body");
+    rec.pass("add.body", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&p).dispatch(groups()).expect("pass");
+    rec.set_scope("cloth");
+    rec.pass("add.cloth", Kernel::TrainAddInto).read("src", &a).write("dst", &c).push(&p).dispatch(groups()).expect("pass");
+    rec.set_scope("");
+    rec.pass("add.none", Kernel::TrainAddInto).read("src", &b).write("dst", &c).push(&p).dispatch(groups()).expect("pass");
+    let timings = rec.submit_and_wait().expect("submit");
+    let profile = gpu.take_profile().expect("profile");
+    assert_eq!(timings.scopes, ["body", "cloth", ""]);
+    let names: Vec<&str> = timings.passes.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["add.body", "add.cloth", "add.none"]);
+    let by_scope = timings.by_scope();
+    assert_eq!(by_scope.keys().collect::<Vec<_>>(), ["body", "cloth"]);
+    for (scope, pass) in [("body", 0), ("cloth", 1)] {
+        // One pass each: the scope's time is the pass's (up to the rounding of its
+        // interval, start + ms - start, in f64).
+        let ms = timings.passes[pass].1;
+        assert!(ms > 0.0, "{scope}: a timed pass");
+        assert!((by_scope[scope] - ms).abs() <= 1e-9 * ms, "{scope}: {} vs {ms}", by_scope[scope]);
+        assert!((profile.gpu_scopes[scope].ms - ms).abs() <= 1e-9 * ms, "{scope}: profile {} vs {ms}", profile.gpu_scopes[scope].ms);
+        assert_eq!(profile.gpu_scopes[scope].calls, 1);
+    }
 }
 
 /// Two chains of dependent passes recorded one after the other (as two renders of one

@@ -104,7 +104,7 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
     let transforms = run.rig.frame(&body);
     let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
     let settings = RenderSettings::default();
-    let (mut totals, mut stages): (Vec<f64>, BTreeMap<String, Vec<f64>>) = (Vec::new(), BTreeMap::new());
+    let (mut totals, mut stages, mut scopes): (Vec<f64>, BTreeMap<String, Vec<f64>>, BTreeMap<String, Vec<f64>>) = (Vec::new(), BTreeMap::new(), BTreeMap::new());
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         ctx.start_profile();
         let t0 = Instant::now();
@@ -125,6 +125,9 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
         for (k, v) in by_stage(&profile) {
             stages.entry(k).or_default().push(v);
         }
+        for (k, e) in &profile.gpu_scopes {
+            scopes.entry(k.clone()).or_default().push(e.ms);
+        }
     }
     let frame_ms = median(&totals);
     let stages: BTreeMap<String, f64> = stages.into_iter().map(|(k, v)| (k, median(&v))).collect();
@@ -136,6 +139,8 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
         "frame_median_ms": frame_ms,
         "fps": 1e3 / frame_ms,
         "stages_gpu_ms": stages,
+        // Per layer (its decoders and skinning) and per render of the composite.
+        "scopes_gpu_ms": scopes.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>(),
     }))
 }
 
@@ -189,6 +194,7 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
         passes.push((name.clone(), ms));
     }
     passes.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let scopes: BTreeMap<String, f64> = profile["gpu_scopes"].as_object().into_iter().flatten().map(|(k, e)| (k.clone(), e["ms"].as_f64().unwrap_or(0.0) / steps)).collect();
     Ok(json!({
         "compositing": config.compositing,
         "steps": args.train_steps,
@@ -196,6 +202,7 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
         "iterations_per_second": steps / seconds.max(1e-9),
         "ms_per_step": 1e3 * seconds / steps,
         "stages_gpu_ms_per_step": stages,
+        "scopes_gpu_ms_per_step": scopes,
         "top_passes_gpu_ms_per_step": passes.into_iter().take(8).collect::<BTreeMap<_, _>>(),
         "gaussians": report.gaussians,
     }))

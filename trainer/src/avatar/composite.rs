@@ -275,6 +275,7 @@ impl AvatarRenderer {
                 loop {
                     {
                         let mut rec = ctx.record("fused frame")?;
+                        rec.set_scope("render.fused");
                         f.renderer.record_forward(&mut rec, &avatar.posed)?;
                         record_composite(&mut rec, f.renderer.outputs(), &f.image, f.pixels)?;
                         rec.submit_and_wait()?;
@@ -312,11 +313,16 @@ impl AvatarRenderer {
                         rec.copy_region(src[k], 0, dst[k], 4 * per * u64::from(p.first), 4 * per * u64::from(p.count));
                     }
                 }
+                // Each render timed under its pass (interleaved passes counted once each).
+                rec.set_scope("render.base");
                 t.base_renderer.record_forward(&mut rec, &t.base)?;
+                rec.set_scope("render.cloth");
                 t.cloth_renderer.record_forward(&mut rec, &avatar.layers[t.cloth].posed)?;
                 if let Some(m) = &t.matte {
+                    rec.set_scope("render.matte");
                     m.renderer.record_forward(&mut rec, &m.gaussians)?;
                 }
+                rec.set_scope("");
                 record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
                 rec.submit_and_wait()?;
             }

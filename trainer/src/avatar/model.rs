@@ -211,11 +211,14 @@ impl Avatar {
     }
 
     /// Records every layer's forward pass for the frame's transforms (written into
-    /// each layer's `transforms` before) and gathers the posed cloud.
+    /// each layer's `transforms` before) and gathers the posed cloud. Each layer's
+    /// passes are timed under its name (`Recording::set_scope`).
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
         for l in &self.layers {
+            rec.set_scope(&l.name);
             l.record_forward(rec, log_scale_offset)?;
         }
+        rec.set_scope("");
         self.record_gather(rec)
     }
 
@@ -260,8 +263,10 @@ impl Avatar {
     /// layer's cloth-LBS term (and, with `pose_gradient`, the transforms' gradient).
     pub fn record_layers_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
         for (l, &lbs) in self.layers.iter().zip(&self.lbs_weights) {
+            rec.set_scope(&l.name);
             l.record_backward(rec, lbs, pose_gradient)?;
         }
+        rec.set_scope("");
         Ok(())
     }
 
@@ -277,11 +282,14 @@ impl Avatar {
 
     pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         for l in &self.layers {
+            rec.set_scope(&l.name);
             l.record_adam(rec, true)?;
         }
         if let Some(s) = &self.scene {
+            rec.set_scope("scene");
             s.record_adam(rec)?;
         }
+        rec.set_scope("");
         Ok(())
     }
 
