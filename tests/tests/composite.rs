@@ -207,10 +207,22 @@ fn composite_loss(layers: &[Vec<Gaussian<f64>>; 3], srcs: &[Vec<(usize, usize)>;
     (loss, renders, pass_gaussians)
 }
 
-/// The composite's backward (shared `composite_grad`, then the reference splatter's
-/// backward per pass, summed per source Gaussian; the matte pass gives no SH gradient)
-/// against central differences in f64 for every parameter of every layer.
-fn check_gradients(occlusion: bool, seed: u64) {
+/// The small layered scene of the f64 gradient checks: its camera (background the base
+/// pass's), settings (no alpha cut-off, wide footprints: differentiable everywhere), the
+/// layers, each pass's sources and frame, and a random weighting of the composite.
+struct GradientCase {
+    cam: PinholeCamera,
+    settings: RenderSettings,
+    sh_degree: u32,
+    l: Layered,
+    layers: [Vec<Gaussian<f64>>; 3],
+    srcs: [Vec<(usize, usize)>; 3],
+    frames: [drape_shared::splat::layout::FrameParams; 3],
+    w: Vec<f64>,
+    pixels: usize,
+}
+
+fn gradient_case(occlusion: bool, seed: u64) -> GradientCase {
     let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 40, 24).expect("camera");
     let settings = RenderSettings { alpha_min: 0.0, max_sigmas: 8.0, ..RenderSettings::default() };
     let sh_degree = 1;
@@ -219,11 +231,20 @@ fn check_gradients(occlusion: bool, seed: u64) {
         cam.background = if p == 0 { [0.2, 0.5, 0.7] } else { [0.0; 3] };
         frame_params(&cam, &settings, if p == 2 { 0 } else { sh_degree }, 8)
     });
+    cam.background = [0.2, 0.5, 0.7];
     let layers = [l.body.gaussians::<f64>(), l.cloth.gaussians::<f64>(), l.scene.gaussians::<f64>()];
     let srcs = sources(&l, occlusion);
     let pixels = (cam.width * cam.height) as usize;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed + 7);
     let w: Vec<f64> = (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect();
+    GradientCase { cam, settings, sh_degree, l, layers, srcs, frames, w, pixels }
+}
+
+/// The composite's backward (shared `composite_grad`, then the reference splatter's
+/// backward per pass, summed per source Gaussian; the matte pass gives no SH gradient)
+/// against central differences in f64 for every parameter of every layer.
+fn check_gradients(occlusion: bool, seed: u64) {
+    let GradientCase { sh_degree, layers, srcs, frames, w, pixels, .. } = gradient_case(occlusion, seed);
     let (_, renders, pass_gaussians) = composite_loss(&layers, &srcs, &frames, &w);
     // Analytic: composite gradient per pixel, then each pass's backward.
     let mut g_pass: [Vec<f64>; 3] = [vec![0.0; 3 * pixels], vec![0.0; 3 * pixels], vec![0.0; 3 * pixels]];
@@ -319,23 +340,10 @@ fn merged(l: &Layered, occlusion: bool) -> (GaussianCloud, Vec<u32>, Vec<(usize,
 /// forward is the same function, so its gradient must be the same, for both mattes.
 fn check_fused_gradients(occlusion: bool, seed: u64) {
     use drape_engine::ops::splat::reference::{fused_backward, fused_render};
-    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 40, 24).expect("camera");
-    let settings = RenderSettings { alpha_min: 0.0, max_sigmas: 8.0, ..RenderSettings::default() };
-    let sh_degree = 1;
-    let l = layered(4, sh_degree, seed);
-    let frames = [0, 1, 2].map(|p| {
-        cam.background = if p == 0 { [0.2, 0.5, 0.7] } else { [0.0; 3] };
-        frame_params(&cam, &settings, if p == 2 { 0 } else { sh_degree }, 8)
-    });
-    let layers = [l.body.gaussians::<f64>(), l.cloth.gaussians::<f64>(), l.scene.gaussians::<f64>()];
-    let srcs = sources(&l, occlusion);
-    let pixels = (cam.width * cam.height) as usize;
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed + 7);
-    let w: Vec<f64> = (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let GradientCase { cam, settings, sh_degree, l, layers, srcs, frames, w, pixels } = gradient_case(occlusion, seed);
     let (_, renders, _) = composite_loss(&layers, &srcs, &frames, &w);
 
     let (cloud, masks, from) = merged(&l, occlusion);
-    cam.background = [0.2, 0.5, 0.7];
     let frame = frame_params(&cam, &settings, sh_degree, cloud.len());
     let gaussians = cloud.gaussians::<f64>();
     let fwd = render(&gaussians, &frame);
