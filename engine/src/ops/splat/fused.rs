@@ -21,17 +21,15 @@
 //! is fixed). Like the forward, it runs the workgroup kernels on GPUs and their
 //! subgroup twins on CPU devices with subgroups of 8 (`RasterVariant`).
 
-
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
 use crate::ops::accumulate::{Accumulation, Method};
-use crate::recorder::PassTimings;
 use crate::ops::splat::composite::CompositeInputs;
 use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SavedForward, SplatRenderer};
 use crate::ops::splat::scene::{PinholeCamera, RenderSettings};
-use crate::recorder::Recording;
+use crate::recorder::{PassTimings, Recording};
 
 /// A fused renderer for clouds of up to `max_count` Gaussians at one image size.
 pub struct FusedRenderer {
@@ -118,7 +116,7 @@ impl FusedRenderer {
     /// Records the backward of the last forward into the per-splat gradients and then
     /// every Gaussian's parameter gradients (`out`, written, not accumulated), given
     /// the loss's gradients on the three images, for the forward `saved` names. Call
-    /// [`Self::prepare_backward`] first.
+    /// [`Self::prepare_backward`] first (a deterministic backward panics without it).
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, saved: &SavedForward, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
         self.renderer.check_saved("fused backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);

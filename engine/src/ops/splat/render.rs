@@ -688,7 +688,7 @@ impl SplatRenderer {
     /// Call [`Self::make_scratch`] first.
     pub(crate) fn grad_target(&self, method: Method) -> &Buffer {
         match method {
-            Method::FixedPoint => self.fixed.as_ref().expect("made by make_scratch").buffer(),
+            Method::FixedPoint => self.fixed.as_ref().expect("the fixed-point scratch is made before a deterministic backward is recorded (FusedRenderer::prepare_backward)").buffer(),
             _ => &self.splat_grads,
         }
     }
