@@ -143,24 +143,22 @@ pub fn backward<F: Real>(
             let list = &fwd.tile_lists[tile];
             for &g in list[..fwd.contributors[p] as usize].iter().rev() {
                 if let Some(d) = state.step(&view(&fwd.projections[g as usize]), fx, fy, &cfg) {
-                    let acc = &mut splat_grads[g as usize];
-                    let (a, b) = (acc.to_array(), d.to_array());
-                    let mut sum = a;
-                    for (s, v) in sum.iter_mut().zip(b) {
-                        *s += v;
-                    }
-                    *acc = SplatGrad::from_array(&sum);
+                    splat_grads[g as usize] = splat_grads[g as usize].add(&d);
                 }
             }
         }
     }
-    let grads = gaussians
+    (project_grads(gaussians, &cam, &fwd.projections, &splat_grads), splat_grads)
+}
+
+/// Every Gaussian's parameter gradients from its splat's (culled ones get zeros).
+fn project_grads<F: Real>(gaussians: &[Gaussian<F>], cam: &Camera<F>, projections: &[Projection<F>], splat_grads: &[SplatGrad<F>]) -> Vec<GaussianGrad<F>> {
+    gaussians
         .iter()
-        .zip(&fwd.projections)
-        .zip(&splat_grads)
-        .map(|((g, p), up)| if p.visible { project_bwd(g, &cam, up) } else { GaussianGrad::zero() })
-        .collect();
-    (grads, splat_grads)
+        .zip(projections)
+        .zip(splat_grads)
+        .map(|((g, p), up)| if p.visible { project_bwd(g, cam, up) } else { GaussianGrad::zero() })
+        .collect()
 }
 
 /// The fused rasterizer's forward on the CPU (`ops::splat::fused`): per pixel, the
@@ -258,11 +256,5 @@ pub fn fused_backward<F: Real>(
             }
         }
     }
-    let grads = gaussians
-        .iter()
-        .zip(&fwd.projections)
-        .zip(&splat_grads)
-        .map(|((g, p), up)| if p.visible { project_bwd(g, &cam, up) } else { GaussianGrad::zero() })
-        .collect();
-    (grads, splat_grads)
+    (project_grads(gaussians, &cam, &fwd.projections, &splat_grads), splat_grads)
 }
