@@ -187,6 +187,27 @@ fn hundred_thousand_gaussians_over_one_pixel() {
     backward_matches_reference(&gpu, &cloud, &cam, "100k on one pixel");
 }
 
+/// A walk longer than the subgroup rasterizers take sparsely (`SPARSE_MAX_WALK`, 56,000
+/// splats, llvmpipe's loop budget): 60,000 tiny splats in front at the image centre put
+/// every other pixel of their tile's blocks behind 60,000 splats that miss it, before
+/// the large splat behind that it blends. The forward walks that tile's list densely,
+/// and so does the backward of those pixels (their last splat is the 60,001st).
+#[test]
+fn sixty_thousand_splats_ahead_of_the_one_a_pixel_blends() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    for i in 0..60_000 {
+        let jitter = (i % 7) as f32 * 1e-4;
+        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+    }
+    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    let image = compare_with_cpu(&gpu, &cloud, &cam, "60k ahead");
+    // The large splat shows around the stack.
+    assert!(image.alpha.iter().filter(|&&a| a > 0.5).count() > 100, "the splat behind is blended");
+    backward_matches_reference(&gpu, &cloud, &cam, "60k ahead");
+}
+
 #[test]
 fn opacity_logits_of_plus_and_minus_50() {
     let gpu = gpu();

@@ -16,6 +16,8 @@
 use drape_shared::radix_sort::bounded_len;
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
+#[cfg(feature = "subgroup-ballot")]
+use drape_shared::splat::raster::may_touch_rect;
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -828,24 +830,24 @@ const SG_ROWS: u32 = 4;
 #[cfg(feature = "subgroup-ballot")]
 const _: () = assert!(TILE_SIZE == 16 && SG_ROWS == 4);
 
-/// Lane `$u`'s splat view, in every lane.
+/// Lane `$u`'s splat view, in every lane, for a uniform but not constant `$u`.
 #[cfg(feature = "subgroup-ballot")]
-macro_rules! sg_view {
-    ($s:ident, $u:literal) => {
+macro_rules! sg_view_at {
+    ($s:ident, $u:expr) => {
         SplatView {
-            x: crate::subgroup::broadcast::<$u>($s.x),
-            y: crate::subgroup::broadcast::<$u>($s.y),
-            depth: crate::subgroup::broadcast::<$u>($s.depth),
+            x: crate::subgroup::broadcast_at($s.x, $u),
+            y: crate::subgroup::broadcast_at($s.y, $u),
+            depth: crate::subgroup::broadcast_at($s.depth, $u),
             conic: [
-                crate::subgroup::broadcast::<$u>($s.conic[0]),
-                crate::subgroup::broadcast::<$u>($s.conic[1]),
-                crate::subgroup::broadcast::<$u>($s.conic[2]),
+                crate::subgroup::broadcast_at($s.conic[0], $u),
+                crate::subgroup::broadcast_at($s.conic[1], $u),
+                crate::subgroup::broadcast_at($s.conic[2], $u),
             ],
-            opacity: crate::subgroup::broadcast::<$u>($s.opacity),
+            opacity: crate::subgroup::broadcast_at($s.opacity, $u),
             color: [
-                crate::subgroup::broadcast::<$u>($s.color[0]),
-                crate::subgroup::broadcast::<$u>($s.color[1]),
-                crate::subgroup::broadcast::<$u>($s.color[2]),
+                crate::subgroup::broadcast_at($s.color[0], $u),
+                crate::subgroup::broadcast_at($s.color[1], $u),
+                crate::subgroup::broadcast_at($s.color[2], $u),
             ],
         }
     };
@@ -860,6 +862,17 @@ macro_rules! sg_lanes {
     };
 }
 
+/// Longest walk (splats of a tile's list) the subgroup rasterizers take sparsely: a
+/// round of 8 splats, then a loop over those that may reach the block
+/// ([`may_touch_rect`]), so only those cost a blend (llvmpipe runs both sides of every
+/// `if`; only a loop skips work). llvmpipe stops an invocation's loops after 65,535
+/// iterations in all, and a sparse walk of `n` splats may spend `n / 8 + n`; longer
+/// walks go densely, every lane's splat by constant lane numbers, one iteration per
+/// round (`8 × 65,535` splats). The choice is made once per walk, outside the loops,
+/// so the branch not taken costs one masked round.
+#[cfg(feature = "subgroup-ballot")]
+const SPARSE_MAX_WALK: u32 = 56_000;
+
 /// Where one lane of a subgroup rasterizer works: its tile, its pixel column and the 4
 /// rows of its 8 × 4 block (workgroup `group` of the `[2 · tiles_x, 4 · tiles_y]` grid).
 #[cfg(feature = "subgroup-ballot")]
@@ -872,6 +885,9 @@ struct Block {
     fy: [f32; 4],
     /// Whether the lane's pixel of each row is inside the image.
     inside: [bool; 4],
+    /// The block's first and last pixel centres (for [`may_touch_rect`]).
+    lo: [f32; 2],
+    hi: [f32; 2],
 }
 
 #[cfg(feature = "subgroup-ballot")]
@@ -888,6 +904,8 @@ impl Block {
             fx: px as f32 + 0.5,
             fy: [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5],
             inside: [x_in && py < frame.height, x_in && py + 1 < frame.height, x_in && py + 2 < frame.height, x_in && py + 3 < frame.height],
+            lo: [(group.x * 8) as f32 + 0.5, py as f32 + 0.5],
+            hi: [(group.x * 8) as f32 + 7.5, py as f32 + 3.5],
         }
     }
 
@@ -957,38 +975,62 @@ pub fn rasterize_fwd_subgroup(
     s1.done = !b.inside[1];
     s2.done = !b.inside[2];
     s3.done = !b.inside[3];
+    // Blends lane `u`'s splat of the round at `base` into the 4 pixels.
+    macro_rules! blend {
+        ($mine:ident, $base:ident, $u:expr) => {{
+            let u = $u;
+            let v = sg_view_at!($mine, u);
+            let index = $base - start + u;
+            if !s0.done {
+                s0.blend(&v, index, fx, fy[0], &cfg);
+            }
+            if !s1.done {
+                s1.blend(&v, index, fx, fy[1], &cfg);
+            }
+            if !s2.done {
+                s2.blend(&v, index, fx, fy[2], &cfg);
+            }
+            if !s3.done {
+                s3.blend(&v, index, fx, fy[3], &cfg);
+            }
+        }};
+    }
+    // Uniform loops (start, end and the votes are the same in every lane).
     let mut base = start;
-    // Uniform loop (start, end and the vote are the same in every lane); 8 splats per
-    // iteration, so a tile's list may hold 8 × 65,535 splats under llvmpipe's cap.
-    while base < end {
-        // Lanes past the list's end load its first splat of this round, never used.
-        let k = if base + lane < end { base + lane } else { base };
-        let mine = splats[isect_values[k as usize] as usize].view();
-        macro_rules! step {
-            ($u:literal) => {
-                if base + $u < end {
-                    let v = sg_view!(mine, $u);
-                    let index = base - start + $u;
-                    if !s0.done {
-                        s0.blend(&v, index, fx, fy[0], &cfg);
-                    }
-                    if !s1.done {
-                        s1.blend(&v, index, fx, fy[1], &cfg);
-                    }
-                    if !s2.done {
-                        s2.blend(&v, index, fx, fy[2], &cfg);
-                    }
-                    if !s3.done {
-                        s3.blend(&v, index, fx, fy[3], &cfg);
-                    }
-                }
-            };
+    if end - start <= SPARSE_MAX_WALK {
+        while base < end {
+            // Lanes past the list's end load its first splat of this round, never used.
+            let k = if base + lane < end { base + lane } else { base };
+            let mine = splats[isect_values[k as usize] as usize].view();
+            // The round's splats that may reach the block, in list order.
+            let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine, b.lo, b.hi, &cfg));
+            while todo != 0 {
+                let u = todo.trailing_zeros();
+                todo &= todo - 1;
+                blend!(mine, base, u);
+            }
+            if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
+                break;
+            }
+            base += 8;
         }
-        sg_lanes!(step);
-        if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
-            break;
+    } else {
+        while base < end {
+            let k = if base + lane < end { base + lane } else { base };
+            let mine = splats[isect_values[k as usize] as usize].view();
+            macro_rules! lane {
+                ($u:literal) => {
+                    if base + $u < end {
+                        blend!(mine, base, $u);
+                    }
+                };
+            }
+            sg_lanes!(lane);
+            if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
+                break;
+            }
+            base += 8;
         }
-        base += 8;
     }
     if b.inside[0] {
         store_pixel_fwd(b.pixel(0, frame), &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
@@ -1037,43 +1079,69 @@ pub fn rasterize_fused_fwd_subgroup(
     let mut d1 = !b.inside[1];
     let mut d2 = !b.inside[2];
     let mut d3 = !b.inside[3];
+    // Blends lane `u`'s splat of the round at `base` into the 4 pixels' states.
+    macro_rules! blend {
+        ($mine:ident, $mine_mask:ident, $base:ident, $u:expr) => {{
+            let u = $u;
+            let v = sg_view_at!($mine, u);
+            let mask = crate::subgroup::broadcast_u32_at($mine_mask, u);
+            let index = $base - start + u;
+            if !d0 {
+                s0.blend(&v, mask, index, fx, fy[0], &cfg);
+                d0 = s0.done();
+            }
+            if !d1 {
+                s1.blend(&v, mask, index, fx, fy[1], &cfg);
+                d1 = s1.done();
+            }
+            if !d2 {
+                s2.blend(&v, mask, index, fx, fy[2], &cfg);
+                d2 = s2.done();
+            }
+            if !d3 {
+                s3.blend(&v, mask, index, fx, fy[3], &cfg);
+                d3 = s3.done();
+            }
+        }};
+    }
+    // Uniform loops, sparse or dense as in rasterize_fwd_subgroup.
     let mut base = start;
-    // Uniform loop, as in rasterize_fwd_subgroup.
-    while base < end {
-        let k = if base + lane < end { base + lane } else { base };
-        let g = isect_values[k as usize] as usize;
-        let mine = splats[g].view();
-        let mine_mask = masks[g];
-        macro_rules! step {
-            ($u:literal) => {
-                if base + $u < end {
-                    let v = sg_view!(mine, $u);
-                    let mask = crate::subgroup::broadcast_u32::<$u>(mine_mask);
-                    let index = base - start + $u;
-                    if !d0 {
-                        s0.blend(&v, mask, index, fx, fy[0], &cfg);
-                        d0 = s0.done();
-                    }
-                    if !d1 {
-                        s1.blend(&v, mask, index, fx, fy[1], &cfg);
-                        d1 = s1.done();
-                    }
-                    if !d2 {
-                        s2.blend(&v, mask, index, fx, fy[2], &cfg);
-                        d2 = s2.done();
-                    }
-                    if !d3 {
-                        s3.blend(&v, mask, index, fx, fy[3], &cfg);
-                        d3 = s3.done();
-                    }
-                }
-            };
+    if end - start <= SPARSE_MAX_WALK {
+        while base < end {
+            let k = if base + lane < end { base + lane } else { base };
+            let g = isect_values[k as usize] as usize;
+            let mine = splats[g].view();
+            let mine_mask = masks[g];
+            let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine, b.lo, b.hi, &cfg));
+            while todo != 0 {
+                let u = todo.trailing_zeros();
+                todo &= todo - 1;
+                blend!(mine, mine_mask, base, u);
+            }
+            if crate::subgroup::all8(d0 && d1 && d2 && d3) {
+                break;
+            }
+            base += 8;
         }
-        sg_lanes!(step);
-        if crate::subgroup::all8(d0 && d1 && d2 && d3) {
-            break;
+    } else {
+        while base < end {
+            let k = if base + lane < end { base + lane } else { base };
+            let g = isect_values[k as usize] as usize;
+            let mine = splats[g].view();
+            let mine_mask = masks[g];
+            macro_rules! lane {
+                ($u:literal) => {
+                    if base + $u < end {
+                        blend!(mine, mine_mask, base, $u);
+                    }
+                };
+            }
+            sg_lanes!(lane);
+            if crate::subgroup::all8(d0 && d1 && d2 && d3) {
+                break;
+            }
+            base += 8;
         }
-        base += 8;
     }
     if b.inside[0] {
         store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
@@ -1155,71 +1223,109 @@ macro_rules! rasterize_bwd_subgroup_entry {
             let (mut s2, m2) = load_pixel_bwd(&b, 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
             let (mut s3, m3) = load_pixel_bwd(&b, 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
             let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
-            // `top`: splats of the tile's list still to visit (uniform).
-            let mut top = last;
-            while top > 0 {
-                let len = if top < 8 { top } else { 8 };
-                // Lane l: list index top - 1 - l (lanes past the round load its first).
-                let index = if lane < len { top - 1 - lane } else { top - 1 };
-                let id = isect_values[(start + index) as usize];
-                let mine = splats[id as usize].view();
-                // The subgroup's sums for this lane's splat.
-                let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
-                macro_rules! step {
-                    ($u:literal) => {
-                        if $u < len {
-                            let v = sg_view!(mine, $u);
-                            let at = top - 1 - $u;
-                            let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
-                            macro_rules! pixel {
-                                ($s:ident, $m:ident, $r:literal) => {
-                                    if at < $m {
-                                        if let Some(grad) = $s.step(&v, fx, fy[$r], &cfg) {
-                                            let a = grad.to_array();
-                                            g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
-                                            g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
-                                        }
-                                    }
-                                };
+            // Lane `u`'s splat of the round ending at `top`: its gradient from the 4
+            // pixels, summed over the block (into `sums` of lane `u`).
+            macro_rules! splat {
+                ($mine:ident, $top:ident, $sums:ident, $u:expr) => {{
+                    let u = $u;
+                    let v = sg_view_at!($mine, u);
+                    let at = $top - 1 - u;
+                    let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
+                    macro_rules! pixel {
+                        ($s:ident, $m:ident, $r:literal) => {
+                            if at < $m {
+                                if let Some(grad) = $s.step(&v, fx, fy[$r], &cfg) {
+                                    let a = grad.to_array();
+                                    g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
+                                    g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
+                                }
                             }
-                            pixel!(s0, m0, 0);
-                            pixel!(s1, m1, 1);
-                            pixel!(s2, m2, 2);
-                            pixel!(s3, m3, 3);
-                            // No vote on whether any pixel was hit: llvmpipe would run
-                            // the sums anyway (it predicates every `if`), and a zero sum
-                            // adds nothing below.
-                            let total = [
-                                crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
-                                crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
-                                crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
-                                crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
-                                crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
-                            ];
-                            if lane == $u {
-                                sums = total;
+                        };
+                    }
+                    pixel!(s0, m0, 0);
+                    pixel!(s1, m1, 1);
+                    pixel!(s2, m2, 2);
+                    pixel!(s3, m3, 3);
+                    // No vote on whether any pixel was hit: llvmpipe would run
+                    // the sums anyway (it predicates every `if`), and a zero sum
+                    // adds nothing below.
+                    let total = [
+                        crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
+                        crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
+                        crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
+                        crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
+                        crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
+                    ];
+                    if lane == u {
+                        $sums = total;
+                    }
+                }};
+            }
+            // The round's splats that may reach the block, back to front (lowest lane
+            // first); the others send nothing.
+            macro_rules! sparse {
+                ($mine:ident, $top:ident, $len:ident, $sums:ident) => {
+                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine, b.lo, b.hi, &cfg));
+                    while todo != 0 {
+                        let u = todo.trailing_zeros();
+                        todo &= todo - 1;
+                        splat!($mine, $top, $sums, u);
+                    }
+                };
+            }
+            // Every lane's splat, by constant lane numbers.
+            macro_rules! dense {
+                ($mine:ident, $top:ident, $len:ident, $sums:ident) => {
+                    macro_rules! lane {
+                        ($u:literal) => {
+                            if $u < $len {
+                                splat!($mine, $top, $sums, $u);
                             }
+                        };
+                    }
+                    sg_lanes!(lane);
+                };
+            }
+            // The walk: `top` is the number of the tile's splats still to visit (uniform),
+            // 8 a round from the back, each round visited by `$visit`.
+            macro_rules! walk {
+                ($visit:ident) => {
+                    let mut top = last;
+                    while top > 0 {
+                        let len = if top < 8 { top } else { 8 };
+                        // Lane l: list index top - 1 - l (lanes past the round load its first).
+                        let index = if lane < len { top - 1 - lane } else { top - 1 };
+                        let id = isect_values[(start + index) as usize];
+                        let mine = splats[id as usize].view();
+                        // The subgroup's sums for this lane's splat.
+                        let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
+                        $visit!(mine, top, len, sums);
+                        // One lane per splat adds the block's sum (the accumulators skip zeros).
+                        // Written out, not looped: a loop here would spend 10 of llvmpipe's
+                        // 65,535 loop iterations per round (the loop over the round's splats
+                        // above already spends up to 8).
+                        if lane < len {
+                            let base = id as usize * SPLAT_GRAD_FLOATS;
+                            $accumulate(splat_grads, base, sums[0]);
+                            $accumulate(splat_grads, base + 1, sums[1]);
+                            $accumulate(splat_grads, base + 2, sums[2]);
+                            $accumulate(splat_grads, base + 3, sums[3]);
+                            $accumulate(splat_grads, base + 4, sums[4]);
+                            $accumulate(splat_grads, base + 5, sums[5]);
+                            $accumulate(splat_grads, base + 6, sums[6]);
+                            $accumulate(splat_grads, base + 7, sums[7]);
+                            $accumulate(splat_grads, base + 8, sums[8]);
+                            $accumulate(splat_grads, base + 9, sums[9]);
                         }
-                    };
-                }
-                sg_lanes!(step);
-                // One lane per splat adds the block's sum (the accumulators skip zeros).
-                // Written out, not looped: a loop here would spend 10 of llvmpipe's
-                // 65,535 loop iterations per round and cap a tile's list at ~47,000.
-                if lane < len {
-                    let base = id as usize * SPLAT_GRAD_FLOATS;
-                    $accumulate(splat_grads, base, sums[0]);
-                    $accumulate(splat_grads, base + 1, sums[1]);
-                    $accumulate(splat_grads, base + 2, sums[2]);
-                    $accumulate(splat_grads, base + 3, sums[3]);
-                    $accumulate(splat_grads, base + 4, sums[4]);
-                    $accumulate(splat_grads, base + 5, sums[5]);
-                    $accumulate(splat_grads, base + 6, sums[6]);
-                    $accumulate(splat_grads, base + 7, sums[7]);
-                    $accumulate(splat_grads, base + 8, sums[8]);
-                    $accumulate(splat_grads, base + 9, sums[9]);
-                }
-                top -= len;
+                        top -= len;
+                    }
+                };
+            }
+            // Sparse or dense once per walk, as the forward (SPARSE_MAX_WALK).
+            if last <= SPARSE_MAX_WALK {
+                walk!(sparse);
+            } else {
+                walk!(dense);
             }
         }
     };
@@ -1300,65 +1406,104 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
             let (mut s2, m2) = load_pixel_fused_bwd(&b, 2, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
             let (mut s3, m3) = load_pixel_fused_bwd(&b, 3, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
             let last = crate::subgroup::max8_u32(m0.max(m1).max(m2.max(m3)));
-            let mut top = last;
-            while top > 0 {
-                let len = if top < 8 { top } else { 8 };
-                let index = if lane < len { top - 1 - lane } else { top - 1 };
-                let id = isect_values[(start + index) as usize];
-                let mine = splats[id as usize].view();
-                let mine_mask = masks[id as usize];
-                let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
-                macro_rules! step {
-                    ($u:literal) => {
-                        if $u < len {
-                            let v = sg_view!(mine, $u);
-                            let mask = crate::subgroup::broadcast_u32::<$u>(mine_mask);
-                            let at = top - 1 - $u;
-                            let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
-                            macro_rules! pixel {
-                                ($s:ident, $m:ident, $r:literal) => {
-                                    if at < $m {
-                                        if let Some(grad) = $s.step(&v, mask, at, fx, fy[$r], &cfg) {
-                                            let a = grad.to_array();
-                                            g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
-                                            g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
-                                        }
-                                    }
-                                };
+            // Lane `u`'s splat of the round ending at `top`: its gradient from the 4
+            // pixels, summed over the block (into `sums` of lane `u`).
+            macro_rules! splat {
+                ($mine:ident, $mine_mask:ident, $top:ident, $sums:ident, $u:expr) => {{
+                    let u = $u;
+                    let v = sg_view_at!($mine, u);
+                    let mask = crate::subgroup::broadcast_u32_at($mine_mask, u);
+                    let at = $top - 1 - u;
+                    let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
+                    macro_rules! pixel {
+                        ($s:ident, $m:ident, $r:literal) => {
+                            if at < $m {
+                                if let Some(grad) = $s.step(&v, mask, at, fx, fy[$r], &cfg) {
+                                    let a = grad.to_array();
+                                    g[0] += a[0]; g[1] += a[1]; g[2] += a[2]; g[3] += a[3]; g[4] += a[4];
+                                    g[5] += a[5]; g[6] += a[6]; g[7] += a[7]; g[8] += a[8]; g[9] += a[9];
+                                }
                             }
-                            pixel!(s0, m0, 0);
-                            pixel!(s1, m1, 1);
-                            pixel!(s2, m2, 2);
-                            pixel!(s3, m3, 3);
-                            let total = [
-                                crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
-                                crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
-                                crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
-                                crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
-                                crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
-                            ];
-                            if lane == $u {
-                                sums = total;
+                        };
+                    }
+                    pixel!(s0, m0, 0);
+                    pixel!(s1, m1, 1);
+                    pixel!(s2, m2, 2);
+                    pixel!(s3, m3, 3);
+                    let total = [
+                        crate::subgroup::sum8(g[0]), crate::subgroup::sum8(g[1]),
+                        crate::subgroup::sum8(g[2]), crate::subgroup::sum8(g[3]),
+                        crate::subgroup::sum8(g[4]), crate::subgroup::sum8(g[5]),
+                        crate::subgroup::sum8(g[6]), crate::subgroup::sum8(g[7]),
+                        crate::subgroup::sum8(g[8]), crate::subgroup::sum8(g[9]),
+                    ];
+                    if lane == u {
+                        $sums = total;
+                    }
+                }};
+            }
+            // The round's splats that may reach the block, back to front (lowest lane
+            // first); the others send nothing.
+            macro_rules! sparse {
+                ($mine:ident, $mine_mask:ident, $top:ident, $len:ident, $sums:ident) => {
+                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine, b.lo, b.hi, &cfg));
+                    while todo != 0 {
+                        let u = todo.trailing_zeros();
+                        todo &= todo - 1;
+                        splat!($mine, $mine_mask, $top, $sums, u);
+                    }
+                };
+            }
+            // Every lane's splat, by constant lane numbers.
+            macro_rules! dense {
+                ($mine:ident, $mine_mask:ident, $top:ident, $len:ident, $sums:ident) => {
+                    macro_rules! lane {
+                        ($u:literal) => {
+                            if $u < $len {
+                                splat!($mine, $mine_mask, $top, $sums, $u);
                             }
+                        };
+                    }
+                    sg_lanes!(lane);
+                };
+            }
+            // The walk: `top` is the number of the tile's splats still to visit (uniform),
+            // 8 a round from the back, each round visited by `$visit`.
+            macro_rules! walk {
+                ($visit:ident) => {
+                    let mut top = last;
+                    while top > 0 {
+                        let len = if top < 8 { top } else { 8 };
+                        let index = if lane < len { top - 1 - lane } else { top - 1 };
+                        let id = isect_values[(start + index) as usize];
+                        let mine = splats[id as usize].view();
+                        let mine_mask = masks[id as usize];
+                        // The subgroup's sums for this lane's splat.
+                        let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
+                        $visit!(mine, mine_mask, top, len, sums);
+                        // Written out, as in rasterize_bwd_subgroup_entry (llvmpipe's loop budget).
+                        if lane < len {
+                            let base = id as usize * SPLAT_GRAD_FLOATS;
+                            $accumulate(splat_grads, base, sums[0]);
+                            $accumulate(splat_grads, base + 1, sums[1]);
+                            $accumulate(splat_grads, base + 2, sums[2]);
+                            $accumulate(splat_grads, base + 3, sums[3]);
+                            $accumulate(splat_grads, base + 4, sums[4]);
+                            $accumulate(splat_grads, base + 5, sums[5]);
+                            $accumulate(splat_grads, base + 6, sums[6]);
+                            $accumulate(splat_grads, base + 7, sums[7]);
+                            $accumulate(splat_grads, base + 8, sums[8]);
+                            $accumulate(splat_grads, base + 9, sums[9]);
                         }
-                    };
-                }
-                sg_lanes!(step);
-                // Written out, as in rasterize_bwd_subgroup_entry (llvmpipe's loop budget).
-                if lane < len {
-                    let base = id as usize * SPLAT_GRAD_FLOATS;
-                    $accumulate(splat_grads, base, sums[0]);
-                    $accumulate(splat_grads, base + 1, sums[1]);
-                    $accumulate(splat_grads, base + 2, sums[2]);
-                    $accumulate(splat_grads, base + 3, sums[3]);
-                    $accumulate(splat_grads, base + 4, sums[4]);
-                    $accumulate(splat_grads, base + 5, sums[5]);
-                    $accumulate(splat_grads, base + 6, sums[6]);
-                    $accumulate(splat_grads, base + 7, sums[7]);
-                    $accumulate(splat_grads, base + 8, sums[8]);
-                    $accumulate(splat_grads, base + 9, sums[9]);
-                }
-                top -= len;
+                        top -= len;
+                    }
+                };
+            }
+            // Sparse or dense once per walk, as the forward (SPARSE_MAX_WALK).
+            if last <= SPARSE_MAX_WALK {
+                walk!(sparse);
+            } else {
+                walk!(dense);
             }
         }
     };

@@ -4,7 +4,7 @@
 //! `subgroup-ballot` feature (the shader builder's build that declares the capability).
 #![allow(unsafe_code)]
 
-use spirv_std::arch::subgroup_broadcast_const;
+use spirv_std::arch::{subgroup_broadcast, subgroup_broadcast_const};
 
 /// The value `v` of lane `LANE` of this subgroup, to every lane.
 ///
@@ -24,6 +24,37 @@ pub fn broadcast<const LANE: u32>(v: f32) -> f32 {
 pub fn broadcast_u32<const LANE: u32>(v: u32) -> u32 {
     // SAFETY: as in `broadcast`.
     unsafe { subgroup_broadcast_const::<u32, LANE>(v) }
+}
+
+/// The value `v` of lane `lane` of this subgroup, to every lane: `lane` is the same in
+/// every lane (dynamically uniform, which SPIR-V 1.5 allows for
+/// OpGroupNonUniformBroadcast; llvmpipe reads lane 0's index and extracts that element,
+/// one shuffle, as for a constant lane). Same conditions as [`broadcast`], `lane < 8`.
+#[inline]
+pub fn broadcast_at(v: f32, lane: u32) -> f32 {
+    // SAFETY: `lane` is uniform, inside the subgroup and active (see above).
+    unsafe { subgroup_broadcast(v, lane) }
+}
+
+/// [`broadcast_at`] for a `u32`.
+#[inline]
+pub fn broadcast_u32_at(v: u32, lane: u32) -> u32 {
+    // SAFETY: as in `broadcast_at`.
+    unsafe { subgroup_broadcast(v, lane) }
+}
+
+/// Bit `l` set where `v` holds in lane `l`, in every lane (same conditions as [`sum8`]).
+#[inline]
+pub fn ballot8(v: bool) -> u32 {
+    let x = if v { 1u32 } else { 0 };
+    broadcast_u32::<0>(x)
+        | (broadcast_u32::<1>(x) << 1)
+        | (broadcast_u32::<2>(x) << 2)
+        | (broadcast_u32::<3>(x) << 3)
+        | (broadcast_u32::<4>(x) << 4)
+        | (broadcast_u32::<5>(x) << 5)
+        | (broadcast_u32::<6>(x) << 6)
+        | (broadcast_u32::<7>(x) << 7)
 }
 
 /// The sum over the 8 lanes of `v`, in every lane (lane order, so every lane gets the

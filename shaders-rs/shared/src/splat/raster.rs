@@ -11,7 +11,7 @@
 //! `T` and carrying what lies behind, so each splat's gradient needs no stored
 //! per-splat state.
 
-use crate::real::{Real, V3};
+use crate::real::{Float, Real, V3};
 use crate::splat::project::SplatGrad;
 
 /// What a splat looks like to the rasterizer.
@@ -83,6 +83,46 @@ pub fn footprint<F: Real>(s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>
         return None;
     }
     Some(Footprint { dx, dy, gauss, raw_alpha, alpha })
+}
+
+/// Conic condition number `(a + c)² / (ac − b²)` above which [`may_touch_rect`] does not
+/// cull: past it `σ`'s rounding in f32 (about `4ε` of `(a + c)·|d|²`) is no longer small
+/// against `σ` itself, and the exact ellipse no longer bounds where `footprint` passes.
+const CULL_MAX_CONDITION: f32 = 1.0e4;
+
+/// Whether `s` may be blended at a pixel centre inside `[lo, hi]` (pixel-centre
+/// coordinates, `lo ≤ hi`): false only when [`footprint`] returns None at every pixel
+/// centre there, so a rasterizer may skip the splat for that block of pixels and
+/// blend exactly what it would have blended.
+///
+/// A splat passes [`footprint`] only where `opacity · e^(-σ) ≥ alpha_min`, i.e.
+/// `σ ≤ t = ln(opacity / alpha_min)`, inside the ellipse `dᵀ C d ≤ 2t` whose bounding
+/// box has half-widths `√(2t·c/det)` and `√(2t·a/det)`. The box is widened for f32
+/// rounding: `t` by 5% and 0.02 (`σ`'s rounding is under 0.3% of `σ` below
+/// [`CULL_MAX_CONDITION`]; `exp_f32` and `ln_f32` are within a few ulp), the widths by
+/// 0.01 px and 1e-5 of the centre's coordinates (the rounding of `d`). Degenerate or
+/// non-finite conics are never culled.
+#[inline]
+pub fn may_touch_rect(s: &SplatView<f32>, lo: [f32; 2], hi: [f32; 2], cfg: &BlendSettings<f32>) -> bool {
+    // opacity · e^(-σ) ≤ opacity for σ ≥ 0 (the product rounds to at most opacity).
+    if s.opacity < cfg.alpha_min {
+        return false;
+    }
+    let [a, b, c] = s.conic;
+    let det = a * c - b * b;
+    let trace = a + c;
+    // Written so that NaN anywhere keeps the splat.
+    if !(det > 0.0 && a > 0.0 && c > 0.0 && trace * trace <= CULL_MAX_CONDITION * det) {
+        return true;
+    }
+    let t = (s.opacity / cfg.alpha_min).ln_k() * 1.05 + 0.02;
+    let slack = 0.01 + 1e-5 * (Float::abs(s.x) + Float::abs(s.y));
+    let half_x = Float::sqrt(2.0 * t * c / det) + slack;
+    let half_y = Float::sqrt(2.0 * t * a / det) + slack;
+    // Distance from the centre to the rectangle along each axis (0 inside).
+    let out_x = (lo[0] - s.x).max(s.x - hi[0]).max(0.0);
+    let out_y = (lo[1] - s.y).max(s.y - hi[1]).max(0.0);
+    !(out_x > half_x || out_y > half_y)
 }
 
 /// Forward blending state of one pixel.
