@@ -574,12 +574,35 @@ fn sh_copy_pads_and_truncates_between_degrees() {
 /// paper's matte and the occlusion-correct one.
 #[test]
 fn fused_frame_equals_the_three_passes() {
+    check_fused_frame(&layered(80, 2, 17), 96, 64, "fused_frame_equals_the_three_passes");
+}
+
+/// The fused frame with a merged list longer than the subgroup kernels walk sparsely
+/// (`SPARSE_MAX_WALK`, 56,000 splats): 30,000 tiny body and 30,000 tiny cloth splats
+/// stacked at the image centre in front of the scene, so the centre tile's list holds
+/// over 60,000 and that tile is walked densely (the others sparsely).
+#[test]
+fn fused_frame_equals_the_three_passes_through_a_dense_walk() {
+    let clamp = |mut c: GaussianCloud| {
+        for l in &mut c.opacity_logits {
+            *l = l.clamp(-1.5, 1.5);
+        }
+        c
+    };
+    let l = Layered {
+        body: clamp(GaussianCloud::random(30_000, 0, 0.002, (-1.0, -0.5), 0.002, 21)),
+        cloth: clamp(GaussianCloud::random(30_000, 0, 0.002, (-1.0, -0.5), 0.002, 22)),
+        scene: clamp(GaussianCloud::random(60, 0, 0.9, (0.5, 1.5), 0.25, 23)),
+    };
+    check_fused_frame(&l, 32, 32, "fused_frame_equals_the_three_passes_through_a_dense_walk");
+}
+
+fn check_fused_frame(l: &Layered, width: u32, height: u32, what: &str) {
     use drape_engine::ops::splat::fused::FusedRenderer;
     use drape_trainer::avatar::composite::layer_masks;
     let ctx = gpu();
-    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 96, 64).expect("camera");
+    let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, width, height).expect("camera");
     let settings = RenderSettings::default();
-    let l = layered(80, 2, 17);
     let pixels = (cam.width * cam.height) as usize;
     // Body, scene, cloth: each pass's cloud is a subsequence in the same order.
     let fused_cloud = joined(&joined(&l.body, &l.scene), &l.cloth);
@@ -587,7 +610,7 @@ fn fused_frame_equals_the_three_passes() {
     let fused_buffers = GaussianBuffers::upload(&ctx, "fused", &fused_cloud).expect("upload");
     let mut fused = FusedRenderer::new(&ctx, cam.width, cam.height, fused_cloud.len()).expect("fused");
     for occlusion in [false, true] {
-        let clouds = passes(&l, occlusion);
+        let clouds = passes(l, occlusion);
         let mut renderers = Vec::new();
         let mut images = Vec::new();
         for (k, cloud) in clouds.iter().enumerate() {
@@ -602,7 +625,7 @@ fn fused_frame_equals_the_three_passes() {
         }
         let three = composite_passes(&ctx, &renderers, pixels as u32);
 
-        for variant in raster_variants(&ctx, "fused_frame_equals_the_three_passes") {
+        for variant in raster_variants(&ctx, what) {
             fused.set_raster_variant(variant).expect("raster variant");
             cam.background = [0.2, 0.5, 0.7];
             fused.set_masks(&ctx, &layer_masks(&layers, occlusion)).expect("masks");
