@@ -873,6 +873,12 @@ macro_rules! sg_lanes {
 #[cfg(feature = "subgroup-ballot")]
 const SPARSE_MAX_WALK: u32 = 56_000;
 
+/// [`SPARSE_MAX_WALK`] for the compare-and-swap backwards, where each of a lane's 10 adds
+/// a round is a loop of at least one iteration (taken or not: llvmpipe runs a loop in an
+/// untaken branch once): a sparse walk of `n` may spend `11 n / 8 + n`.
+#[cfg(feature = "subgroup-ballot")]
+const SPARSE_MAX_WALK_CAS: u32 = 24_000;
+
 /// Where one lane of a subgroup rasterizer works: its tile, its pixel column and the 4
 /// rows of its 8 × 4 block (workgroup `group` of the `[2 · tiles_x, 4 · tiles_y]` grid).
 #[cfg(feature = "subgroup-ballot")]
@@ -1196,7 +1202,7 @@ fn load_pixel_bwd(
 /// fixed point).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rasterize_bwd_subgroup_entry {
-    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $sparse_max:expr, $($attr:meta),*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(8)))]
@@ -1321,8 +1327,8 @@ macro_rules! rasterize_bwd_subgroup_entry {
                     }
                 };
             }
-            // Sparse or dense once per walk, as the forward (SPARSE_MAX_WALK).
-            if last <= SPARSE_MAX_WALK {
+            // Sparse or dense once per walk, as the forward.
+            if last <= $sparse_max {
                 walk!(sparse);
             } else {
                 walk!(dense);
@@ -1332,11 +1338,11 @@ macro_rules! rasterize_bwd_subgroup_entry {
 }
 
 #[cfg(all(feature = "subgroup-ballot", feature = "float-atomics"))]
-rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_atomic, f32, atomics::add_f32, doc = "Backward rasterizer for CPU devices with subgroups of 8, float atomics.");
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_atomic, f32, atomics::add_f32, SPARSE_MAX_WALK, doc = "Backward rasterizer for CPU devices with subgroups of 8, float atomics.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_cas, u32, atomics::add_f32_cas, SPARSE_MAX_WALK_CAS, doc = "Backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
+rasterize_bwd_subgroup_entry!(rasterize_bwd_subgroup_fixed, u32, atomics::add_fixed, SPARSE_MAX_WALK, doc = "Deterministic backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
 
 /// One pixel's state for [`rasterize_fused_bwd_subgroup_entry`]: its three backward
 /// walks and where the furthest starts (0 outside the image).
@@ -1377,7 +1383,7 @@ fn load_pixel_fused_bwd(
 /// states (`FusedPixelBwd`) and each splat's layer mask broadcast beside its view.
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rasterize_fused_bwd_subgroup_entry {
-    ($name:ident, $grad_ty:ty, $accumulate:path, $($attr:meta),*) => {
+    ($name:ident, $grad_ty:ty, $accumulate:path, $sparse_max:expr, $($attr:meta),*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(8)))]
@@ -1499,8 +1505,8 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
                     }
                 };
             }
-            // Sparse or dense once per walk, as the forward (SPARSE_MAX_WALK).
-            if last <= SPARSE_MAX_WALK {
+            // Sparse or dense once per walk, as the forward.
+            if last <= $sparse_max {
                 walk!(sparse);
             } else {
                 walk!(dense);
@@ -1510,8 +1516,8 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
 }
 
 #[cfg(all(feature = "subgroup-ballot", feature = "float-atomics"))]
-rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_atomic, f32, atomics::add_f32, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, float atomics.");
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_atomic, f32, atomics::add_f32, SPARSE_MAX_WALK, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, float atomics.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_cas, u32, atomics::add_f32_cas, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_cas, u32, atomics::add_f32_cas, SPARSE_MAX_WALK_CAS, doc = "Fused backward rasterizer for CPU devices with subgroups of 8, compare-and-swap on the bits of f32.");
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_fixed, u32, atomics::add_fixed, doc = "Deterministic fused backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
+rasterize_fused_bwd_subgroup_entry!(rasterize_fused_bwd_subgroup_fixed, u32, atomics::add_fixed, SPARSE_MAX_WALK, doc = "Deterministic fused backward rasterizer for CPU devices with subgroups of 8 (64-bit fixed point).");
