@@ -49,12 +49,13 @@ fn main() {
             .iter()
             .map(|b| {
                 let binding = b["name"].as_str().expect("manifest.json: binding name");
-                let read_only = match b["access"].as_str().expect("manifest.json: binding access") {
-                    "read" => true,
-                    "read_write" => false,
+                let (read_only, texel) = match b["access"].as_str().expect("manifest.json: binding access") {
+                    "read" => (true, false),
+                    "read_write" => (false, false),
+                    "texel" => (true, true),
                     other => panic!("manifest.json: {name}: binding '{binding}' has access '{other}'"),
                 };
-                format!("BindingDecl {{ name: {binding:?}, read_only: {read_only} }}")
+                format!("BindingDecl {{ name: {binding:?}, read_only: {read_only}, texel: {texel} }}")
             })
             .collect();
         let needs_atomics = m["requires"]
@@ -118,14 +119,15 @@ impl Kernel {{
 {requires_ballot}        }}
     }}
 
-    /// The storage-buffer bindings (numbered 0..n) the manifest records: the kernel
-    /// parameter's name and whether the SPIR-V declares it `NonWritable`.
+    /// The buffer bindings (numbered 0..n) the manifest records: the kernel parameter's
+    /// name, whether the SPIR-V declares it `NonWritable` and whether it is a uniform
+    /// texel buffer.
     pub const fn bindings(self) -> &'static [BindingDecl] {{
         match self {{
 {bindings}        }}
     }}
 
-    /// Number of storage-buffer bindings (numbered 0..n).
+    /// Number of buffer bindings (numbered 0..n).
     pub const fn binding_count(self) -> u32 {{
         self.bindings().len() as u32
     }}

@@ -2,7 +2,7 @@
 //! and holds the device alive. With poisoning on, a new buffer is filled with
 //! [`POISON_WORD`](crate::context::POISON_WORD) before anyone sees it.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
@@ -22,11 +22,13 @@ pub struct BufferDesc {
 }
 
 impl BufferDesc {
-    /// A storage buffer kernels read and write, also usable for copies and fills.
+    /// A storage buffer kernels read and write, also usable for copies and fills and
+    /// readable as a uniform texel buffer of `f32` (see [`BindingDecl::texel`](crate::kernels::BindingDecl::texel)).
     pub fn gpu_only(size: u64) -> Self {
         Self {
             size,
             usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER
                 | vk::BufferUsageFlags::TRANSFER_SRC
                 | vk::BufferUsageFlags::TRANSFER_DST,
             location: MemoryLocation::GpuOnly,
@@ -42,7 +44,10 @@ impl BufferDesc {
     pub fn host_written(size: u64) -> Self {
         Self {
             size,
-            usage: vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST,
+            usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER
+                | vk::BufferUsageFlags::TRANSFER_SRC
+                | vk::BufferUsageFlags::TRANSFER_DST,
             location: MemoryLocation::CpuToGpu,
         }
     }
@@ -70,6 +75,10 @@ pub struct Buffer {
     allocation: Option<Allocation>,
     /// Whether the host may map this buffer's memory (see `ContextDesc::force_staging`).
     host_access: bool,
+    usage: vk::BufferUsageFlags,
+    /// The whole buffer as `R32_SFLOAT` texels, made the first time a texel binding
+    /// reads the buffer and destroyed with it.
+    texel_view: OnceLock<vk::BufferView>,
     name: String,
     device: Arc<Device>,
 }
@@ -90,6 +99,35 @@ impl Buffer {
         self.size.max(4)
     }
 
+    /// The buffer's `R32_SFLOAT` view for texel bindings (made on first use): an error
+    /// naming the buffer when it was not made for texel reads or holds more texels than
+    /// `maxTexelBufferElements`.
+    pub(crate) fn texel_view(&self, max_texels: u64) -> Result<vk::BufferView> {
+        if let Some(&view) = self.texel_view.get() {
+            return Ok(view);
+        }
+        if !self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER) {
+            return Err(EngineError::Allocation {
+                what: self.name.clone(),
+                detail: "it was not made for texel reads (UNIFORM_TEXEL_BUFFER usage: BufferDesc::gpu_only or host_written)".into(),
+            });
+        }
+        let texels = self.vk_size() / 4;
+        if texels > max_texels {
+            return Err(EngineError::too_large(format!("f32 texels of buffer '{}'", self.name), texels, max_texels, "the device's maxTexelBufferElements"));
+        }
+        let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(vk::Format::R32_SFLOAT).offset(0).range(texels * 4);
+        // SAFETY: a buffer of this device made with UNIFORM_TEXEL_BUFFER usage; the range
+        // lies inside it and R32_SFLOAT uniform texel buffers are required of every device.
+        let view = unsafe { self.device.raw.create_buffer_view(&info, None) }.vk("vkCreateBufferView", &self.name)?;
+        if let Err(ours) = self.texel_view.set(view) {
+            // Another thread made one first: keep its view.
+            // SAFETY: ours was never used.
+            unsafe { self.device.raw.destroy_buffer_view(ours, None) };
+        }
+        Ok(*self.texel_view.get().expect("set above"))
+    }
+
     /// The mapped bytes, when the memory is host-visible and coherent (so no flush or
     /// invalidate is needed around host access).
     pub(crate) fn coherent_mapping(&mut self) -> Option<&mut [u8]> {
@@ -108,8 +146,13 @@ impl Buffer {
 impl Drop for Buffer {
     fn drop(&mut self) {
         // SAFETY: callers submit and wait before dropping what a command buffer uses
-        // (recordings wait in submit and hold no buffer past it).
-        unsafe { self.device.raw.destroy_buffer(self.raw, None) };
+        // (recordings wait in submit and hold no buffer past it); the view goes first.
+        unsafe {
+            if let Some(&view) = self.texel_view.get() {
+                self.device.raw.destroy_buffer_view(view, None);
+            }
+            self.device.raw.destroy_buffer(self.raw, None)
+        };
         if let Some(a) = self.allocation.take() {
             let mut alloc = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner());
             if let Err(e) = alloc.free(a) {
@@ -169,7 +212,16 @@ impl Context {
         // the host from reaching into device buffers.
         let host_access = !(self.device.force_staging && desc.location == MemoryLocation::GpuOnly);
         let mut buffer =
-            Buffer { raw, size: desc.size, allocation: Some(allocation), host_access, name: name.to_string(), device: self.device.clone() };
+            Buffer {
+                raw,
+                size: desc.size,
+                allocation: Some(allocation),
+                host_access,
+                usage: desc.usage,
+                texel_view: OnceLock::new(),
+                name: name.to_string(),
+                device: self.device.clone(),
+            };
         let a = buffer.allocation.as_ref().expect("just allocated");
         // SAFETY: memory and offset come from an allocation made for these requirements.
         unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }.vk("vkBindBufferMemory", name)?;

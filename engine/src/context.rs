@@ -106,6 +106,9 @@ pub struct DeviceInfo {
     pub max_memory_allocation_size: u64,
     /// `minStorageBufferOffsetAlignment`: a binding of part of a buffer starts at a multiple.
     pub min_storage_buffer_offset_alignment: u64,
+    /// `maxTexelBufferElements`: the most texels (here `f32`s) one texel-buffer view may
+    /// cover; a buffer past it cannot be bound to a texel binding.
+    pub max_texel_buffer_elements: u64,
 }
 
 impl fmt::Display for DeviceInfo {
@@ -529,6 +532,7 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
         max_memory_allocation_size: maintenance3.max_memory_allocation_size,
         min_storage_buffer_offset_alignment: props.limits.min_storage_buffer_offset_alignment,
+        max_texel_buffer_elements: u64::from(props.limits.max_texel_buffer_elements),
     };
 
     // The rust-gpu modules declare the VulkanMemoryModel capability.

@@ -16,13 +16,30 @@ use crate::error::{EngineError, Result, VkResultExt};
 
 include!(concat!(env!("OUT_DIR"), "/kernels_generated.rs"));
 
-/// One storage-buffer binding of a kernel, as its SPIR-V declares it.
+/// One buffer binding of a kernel, as its SPIR-V declares it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct BindingDecl {
     /// The kernel parameter's name (the module's `OpName` of the variable).
     pub name: &'static str,
-    /// Decorated `NonWritable`: the kernel only reads it.
+    /// Decorated `NonWritable`, or a texel buffer: the kernel only reads it.
     pub read_only: bool,
+    /// A uniform texel buffer of `f32` (`Image!(buffer, type=f32, sampled)`), bound
+    /// through the buffer's `R32_SFLOAT` view ([`crate::Buffer`] makes it on first use)
+    /// instead of as a storage buffer. On llvmpipe a texel fetch is a branch-free gather
+    /// of the 8 lanes, where a storage-buffer load whose index the compiler cannot
+    /// prove uniform is a loop over the lanes with a branch per lane.
+    pub texel: bool,
+}
+
+impl BindingDecl {
+    /// The Vulkan descriptor type this binding is bound as.
+    pub fn descriptor_type(&self) -> vk::DescriptorType {
+        if self.texel {
+            vk::DescriptorType::UNIFORM_TEXEL_BUFFER
+        } else {
+            vk::DescriptorType::STORAGE_BUFFER
+        }
+    }
 }
 
 impl Kernel {
@@ -80,7 +97,16 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
                 decl.name
             )));
         }
-        let read_only = facts.read_only_mask & (1 << b) != 0;
+        let texel = facts.texel_mask & (1 << b) != 0;
+        if texel != decl.texel {
+            return Err(mismatch(format!(
+                "binding {b} ('{}') is {} in the module, {} in the manifest",
+                decl.name,
+                if texel { "a texel buffer" } else { "a storage buffer" },
+                if decl.texel { "a texel buffer" } else { "a storage buffer" }
+            )));
+        }
+        let read_only = texel || facts.read_only_mask & (1 << b) != 0;
         if read_only != decl.read_only {
             return Err(mismatch(format!(
                 "binding {b} ('{}') is {} in the module, {} in the manifest",
@@ -109,7 +135,7 @@ impl Pipeline {
             .map(|b| {
                 vk::DescriptorSetLayoutBinding::default()
                     .binding(b)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_type(kernel.bindings()[b as usize].descriptor_type())
                     .descriptor_count(1)
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })

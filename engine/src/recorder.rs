@@ -37,7 +37,8 @@ use crate::kernels::{Kernel, PUSH_CONSTANT_BYTES};
 const SETS_PER_POOL: u32 = 64;
 /// Most bindings a kernel may have.
 pub const MAX_BINDINGS: u32 = 16;
-/// Storage-buffer descriptors per pool (enough for every set at the maximum).
+/// Storage-buffer and texel-buffer descriptors per pool, each (enough for every set at
+/// the maximum).
 const BUFFERS_PER_POOL: u32 = SETS_PER_POOL * MAX_BINDINGS;
 /// Breadcrumb slots per breadcrumb buffer.
 const BREADCRUMB_SLOTS: u32 = 1024;
@@ -319,6 +320,10 @@ impl<'a> PassBuilder<'_, 'a> {
                 self.kernel.bindings().iter().map(|d| d.name).collect::<Vec<_>>().join(", ")
             )),
             Some(i) if self.buffers[i].is_some() => Some("bound twice".to_string()),
+            Some(i) if self.kernel.bindings()[i].texel && (b.offset != 0 || b.range != b.buffer.vk_size()) => Some(format!(
+                "a texel binding reads the whole buffer through its view; bind '{}' with read(), not a range",
+                b.buffer.name()
+            )),
             Some(i) => {
                 let read_only = self.kernel.bindings()[i].read_only;
                 match (access, read_only) {
@@ -371,8 +376,9 @@ impl<'a> PassBuilder<'_, 'a> {
         // sized by its input), so it is an error naming the pass, not a panic.
         let max = rec.ctx.info().max_compute_workgroup_count;
         // Likewise a binding past what one storage-buffer descriptor may cover.
+        // (A texel binding's limit, maxTexelBufferElements, is checked with its view.)
         let range_limit = rec.ctx.info().max_storage_buffer_range;
-        if let Some(b) = buffers.iter().find(|b| b.range > range_limit) {
+        if let Some((b, _)) = buffers.iter().zip(kernel.bindings()).find(|(b, decl)| !decl.texel && b.range > range_limit) {
             let what = format!("bytes bound of buffer '{}' in pass '{name}'", b.buffer.name());
             return Err(EngineError::too_large(what, b.range, range_limit, "the device's maxStorageBufferRange"));
         }
@@ -515,6 +521,22 @@ impl<'a> Recording<'a> {
 
     fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
         let pipeline = self.ctx.pipeline(kernel)?;
+        let max_texels = self.ctx.info().max_texel_buffer_elements;
+        let views: Vec<[vk::BufferView; 1]> = buffers
+            .iter()
+            .zip(kernel.bindings())
+            .map(|(b, decl)| {
+                if !decl.texel {
+                    return Ok([vk::BufferView::null()]);
+                }
+                b.buffer.texel_view(max_texels).map(|v| [v]).map_err(|e| match e {
+                    e @ (EngineError::TooLarge { .. } | EngineError::Allocation { .. }) => {
+                        EngineError::Binding { pass: name.to_string(), kernel: kernel.entry_point(), binding: decl.name.to_string(), problem: e.to_string() }
+                    }
+                    e => e,
+                })
+            })
+            .collect::<Result<_>>()?;
         let set = self.allocate_set(pipeline.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
             .iter()
@@ -522,13 +544,16 @@ impl<'a> Recording<'a> {
             .collect();
         let writes: Vec<vk::WriteDescriptorSet> = infos
             .iter()
+            .zip(&views)
+            .zip(kernel.bindings())
             .enumerate()
-            .map(|(i, info)| {
-                vk::WriteDescriptorSet::default()
-                    .dst_set(set)
-                    .dst_binding(i as u32)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                    .buffer_info(info)
+            .map(|(i, ((info, view), decl))| {
+                let write = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(decl.descriptor_type());
+                if decl.texel {
+                    write.texel_buffer_view(view)
+                } else {
+                    write.buffer_info(info)
+                }
             })
             .collect();
         // SAFETY: the set is freshly allocated and not in use by any command buffer.
@@ -598,9 +623,10 @@ impl<'a> Recording<'a> {
         let dev = &self.ctx.device.raw;
         if self.sets_left == 0 {
             if self.descriptor_pools_used == self.pools.descriptor_pools.len() {
-                let sizes = [vk::DescriptorPoolSize::default()
-                    .ty(vk::DescriptorType::STORAGE_BUFFER)
-                    .descriptor_count(BUFFERS_PER_POOL)];
+                let sizes = [
+                    vk::DescriptorPoolSize::default().ty(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(BUFFERS_PER_POOL),
+                    vk::DescriptorPoolSize::default().ty(vk::DescriptorType::UNIFORM_TEXEL_BUFFER).descriptor_count(BUFFERS_PER_POOL),
+                ];
                 let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
                 // SAFETY: valid device and create info.
                 let pool = unsafe { dev.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool", &self.label)?;

@@ -68,14 +68,15 @@ fn mlp_gpu_matches_cpu_reference() {
     }
 }
 
-/// Every GEMM kernel the device runs: the subgroup one only where subgroups are 8 lanes
-/// with ballot (`report`: say so when it is left out).
+/// Every GEMM kernel the device runs: the subgroup and texel ones only where subgroups
+/// are 8 lanes with ballot (`report`: say so when they are left out).
 fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
     let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
     if subgroup_gemm_supported(ctx.info()) {
         variants.push(GemmVariant::Subgroup);
+        variants.push(GemmVariant::Texel);
     } else if report {
-        eprintln!("SKIPPED: nn::gemm_subgroup (needs subgroups of 8 lanes with ballot; {})", ctx.info());
+        eprintln!("SKIPPED: nn::gemm_subgroup and nn::gemm_texel (need subgroups of 8 lanes with ballot; {})", ctx.info());
     }
     variants
 }

@@ -6,8 +6,9 @@
 //! up as a validation message (and fails the test that caused it).
 
 use drape_engine::kernels::{check_module, Kernel};
-use drape_engine::{Buffer, EngineError, PassBuilder, PassTimings};
+use drape_engine::{Buffer, BufferDesc, EngineError, PassBuilder, PassTimings};
 use drape_shared::adam::LossParams;
+use drape_shared::nn::GemmParams;
 use drape_tests::gpu;
 
 const LEN: u32 = 1000;
@@ -275,4 +276,75 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     drop((a, b));
     let sums = gpu.read_buffer::<f32>(&mut y, n).expect("read");
     assert!(sums.iter().all(|&v| v == 66.0), "22 frames of 3 adds: {}", sums[0]);
+}
+
+/// A pass of `nn::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
+/// written) over 8 × 8 matrices, bound by `bind`; its dispatch's result.
+fn texel_pass(bind: impl for<'r, 'a> FnOnce(PassBuilder<'r, 'a>, &'a Buffer, &'a Buffer, &'a Buffer) -> PassBuilder<'r, 'a>) -> drape_engine::Result<()> {
+    let gpu = gpu();
+    let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
+    let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
+    let readback = gpu.create_buffer("readback", BufferDesc::readback(256)).expect("buffer");
+    let mut rec = gpu.record("texel bindings").expect("record");
+    let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
+    let pass = rec.pass("test.gemm", Kernel::NnGemmTexel);
+    bind(pass, &a, &c, &readback).push(&p).dispatch([1, 1, 1])
+}
+
+fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[&str]) {
+    let err = result.expect_err("a wrong texel binding must be refused");
+    let text = err.to_string();
+    match &err {
+        EngineError::Binding { kernel, binding: b, pass, .. } => {
+            assert_eq!(*kernel, "nn::gemm_texel", "{text}");
+            assert_eq!(b, binding, "{text}");
+            assert_eq!(pass, "test.gemm", "{text}");
+        }
+        other => panic!("expected a binding error, got {other:?}"),
+    }
+    for w in words {
+        assert!(text.contains(w), "'{w}' missing from: {text}");
+    }
+}
+
+/// Texel bindings read a whole buffer through its `R32_SFLOAT` view: a correct pass
+/// runs; a range, a write, or a buffer not made for texel reads (a readback buffer) is
+/// an error naming the pass, the kernel and the binding.
+#[test]
+fn texel_bindings_read_whole_buffers_through_their_views() {
+    if !drape_engine::ops::nn::subgroup_gemm_supported(gpu().info()) {
+        eprintln!("SKIPPED: nn::gemm_texel needs subgroups of 8 lanes with ballot ({})", gpu().info());
+        return;
+    }
+    texel_pass(|p, a, c, _| p.read("a", a).read("b", a).read("bias", a).write("c", c)).expect("whole buffers bind");
+    let err = texel_pass(|p, a, c, _| p.read_range("a", a, 0, 128).read("b", a).read("bias", a).write("c", c));
+    assert_texel_error(err, "a", &["texel binding", "whole buffer", "'a'"]);
+    let err = texel_pass(|p, a, c, _| p.read("a", a).write("b", c).read("bias", a).write("c", c));
+    assert_texel_error(err, "b", &["read-only"]);
+    let err = texel_pass(|p, a, c, r| p.read("a", a).read("b", r).read("bias", a).write("c", c));
+    assert_texel_error(err, "b", &["'readback'", "texel reads", "UNIFORM_TEXEL_BUFFER"]);
+}
+
+/// The start-up check tells a texel binding from a storage buffer by the module's
+/// types: the same module with its buffer images turned into 1-D images no longer
+/// declares texel buffers, and the check names the binding.
+#[test]
+fn a_texel_binding_the_module_does_not_declare_is_named() {
+    let original = Kernel::NnGemmTexel.spirv();
+    check_module(Kernel::NnGemmTexel, original).expect("the committed module matches");
+    let words: Vec<u32> = original.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let mut patched = original.to_vec();
+    let (mut at, mut found) = (5, false);
+    while at < words.len() {
+        let (op, count) = (words[at] & 0xffff, (words[at] >> 16) as usize);
+        // OpTypeImage %result %sampled Dim(Buffer = 5) ...: make the Dim 1D (0).
+        if op == 25 && count >= 4 && words[at + 3] == 5 {
+            patched[(at + 3) * 4..(at + 4) * 4].copy_from_slice(&0u32.to_le_bytes());
+            found = true;
+        }
+        at += count;
+    }
+    assert!(found, "gemm_texel declares a buffer image");
+    let text = check_module(Kernel::NnGemmTexel, &patched).expect_err("no texel buffer").to_string();
+    assert!(text.contains("binding 0") && text.contains("'a'") && text.contains("a storage buffer in the module, a texel buffer in the manifest"), "{text}");
 }

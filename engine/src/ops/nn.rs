@@ -24,7 +24,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -282,6 +282,11 @@ pub enum GemmVariant {
     /// `nn::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by broadcasts.
     /// Needs subgroups of exactly 8 lanes with ballot operations.
     Subgroup,
+    /// `nn::gemm_texel`: `gemm_subgroup` reading `A` and `B` as uniform texel buffers
+    /// (on llvmpipe a gather per read instead of a loop over the lanes; the same sums in
+    /// the same order). Same device needs, and both operands within
+    /// `maxTexelBufferElements` floats.
+    Texel,
 }
 
 /// Whether the device can run `nn::gemm_subgroup` (subgroups of 8 lanes, ballot
@@ -461,23 +466,30 @@ impl Mlp {
     #[allow(clippy::too_many_arguments)]
     fn record_gemm<'a>(&self, rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
         let info = rec.context().info();
+        // Texel views cover a whole buffer, so both must be within the device's limit.
+        let texels_fit = [a, b].iter().all(|buf| buf.vk_size() / 4 <= info.max_texel_buffer_elements);
         let variant = match self.variant {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
+            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 && texels_fit => GemmVariant::Texel,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
         };
-        if variant == GemmVariant::Subgroup && !subgroup_gemm_supported(info) {
-            return Err(EngineError::MissingFeature { kernel: "nn::gemm_subgroup", feature: "subgroups of 8 lanes with ballot operations" });
+        if matches!(variant, GemmVariant::Subgroup | GemmVariant::Texel) && !subgroup_gemm_supported(info) {
+            let kernel = if variant == GemmVariant::Texel { "nn::gemm_texel" } else { "nn::gemm_subgroup" };
+            return Err(EngineError::MissingFeature { kernel, feature: "subgroups of 8 lanes with ballot operations" });
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
-            GemmVariant::Subgroup => {
-                // One workgroup (one subgroup) per 32 × 32 tile, in rows of at most
-                // 65,535 workgroups, the limit every device has.
-                let tiles = p.m.div_ceil(GEMM_SG_ROWS) * p.n.div_ceil(GEMM_SG_COLS);
+            GemmVariant::Subgroup | GemmVariant::Texel => {
+                // One workgroup (one subgroup) per tile (32 × 32, or 64 × 32 for the
+                // texel kernel), in rows of at most 65,535 workgroups, the limit every
+                // device has.
+                let (kernel, tile_rows) =
+                    if variant == GemmVariant::Texel { (Kernel::NnGemmTexel, GEMM_TX_ROWS) } else { (Kernel::NnGemmSubgroup, GEMM_SG_ROWS) };
+                let tiles = p.m.div_ceil(tile_rows) * p.n.div_ceil(GEMM_SG_COLS);
                 let x = tiles.min(65_535);
-                (Kernel::NnGemmSubgroup, [x, tiles.div_ceil(x.max(1)), splits])
+                (kernel, [x, tiles.div_ceil(x.max(1)), splits])
             }
             _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits]),
         };

@@ -8,8 +8,10 @@
 //! code names them; parameters arrive as push constants (`#[repr(C)]` structs from
 //! `drape-shared`); read-only buffers are `&[T]`, written ones `&mut [T]`.
 #![cfg_attr(target_arch = "spirv", no_std)]
-// Only `atomics` and `subgroup` may use unsafe (spirv-std's atomics and broadcasts
-// are unsafe fns).
+// Inline SPIR-V, for the texel fetches of `texel` (built only with subgroups).
+#![cfg_attr(all(target_arch = "spirv", feature = "subgroup-ballot"), feature(asm_experimental_arch))]
+// Only `atomics`, `subgroup` and `texel` may use unsafe (spirv-std's atomics and
+// broadcasts are unsafe fns; a texel fetch is inline SPIR-V).
 #![deny(unsafe_code)]
 
 mod atomics;
@@ -26,6 +28,8 @@ pub mod splat;
 pub mod ssim;
 #[cfg(feature = "subgroup-ballot")]
 mod subgroup;
+#[cfg(feature = "subgroup-ballot")]
+mod texel;
 pub mod train;
 pub mod triplane;
 mod workgroup;

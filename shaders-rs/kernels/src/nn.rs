@@ -12,7 +12,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_SOFTMAX,
-    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -1138,6 +1138,131 @@ pub fn gemm_subgroup(
     store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
     store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
     store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
+}
+
+/// `acc[r][c] += a[r] * b` for a lane's eight rows and column `c` of `gemm_texel`,
+/// `b` being lane `j`'s value of `bv`.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! tx_column {
+    ($acc:ident, $a:ident, $bv:ident, $c:expr, $j:literal) => {{
+        let b = crate::subgroup::broadcast::<$j>($bv);
+        $acc[0][$c] += $a[0] * b;
+        $acc[1][$c] += $a[1] * b;
+        $acc[2][$c] += $a[2] * b;
+        $acc[3][$c] += $a[3] * b;
+        $acc[4][$c] += $a[4] * b;
+        $acc[5][$c] += $a[5] * b;
+        $acc[6][$c] += $a[6] * b;
+        $acc[7][$c] += $a[7] * b;
+    }};
+}
+
+/// The 8 columns `8 g .. 8 g + 8` of a `gemm_texel` tile from one fetch of `B` per lane.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! tx_group {
+    ($acc:ident, $a:ident, $bv:ident, $g:literal) => {{
+        tx_column!($acc, $a, $bv, $g * 8 + 0, 0);
+        tx_column!($acc, $a, $bv, $g * 8 + 1, 1);
+        tx_column!($acc, $a, $bv, $g * 8 + 2, 2);
+        tx_column!($acc, $a, $bv, $g * 8 + 3, 3);
+        tx_column!($acc, $a, $bv, $g * 8 + 4, 4);
+        tx_column!($acc, $a, $bv, $g * 8 + 5, 5);
+        tx_column!($acc, $a, $bv, $g * 8 + 6, 6);
+        tx_column!($acc, $a, $bv, $g * 8 + 7, 7);
+    }};
+}
+
+/// `C (+)= A B (+ bias)` for CPU devices with subgroups of 8 (lavapipe), reading `A`
+/// and `B` as uniform texel buffers (`crate::texel`): each subgroup owns a 64 × 32
+/// tile of `C`, lane `l` its rows `l + 8 i` (i < 8); per step through `k` a lane
+/// fetches its 8 values of `A` and one value of each of the tile's 4 groups of 8
+/// columns of `B`, and the 32 values of `B` reach every lane by broadcasts, as in
+/// [`gemm_subgroup`], whose sums (in the same order of `k`) these are. What it costs
+/// on llvmpipe 22.3 (its machine code read at the hot addresses): a fetch is a call
+/// with one `vpgatherdd`, where a storage-buffer load is a loop over the lanes; a
+/// broadcast is a loop over the 8 lanes finding the first active one (about as dear
+/// as a fetch); a multiply-add, a masked store of the accumulator. So 8 rows per lane
+/// (twice `gemm_subgroup`'s) halve the broadcasts and fetches per multiply-add. Rows
+/// past `m` and columns past `n` read clamped indices and are never stored.
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_texel(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    use crate::texel::fetch;
+    let row_tiles = (p.m + GEMM_TX_ROWS - 1) / GEMM_TX_ROWS;
+    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
+    let tile = group.y * groups.x + group.x;
+    // The whole subgroup leaves together, so no broadcast ever reads an inactive lane.
+    if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
+        return;
+    }
+    let m0 = (tile % row_tiles) * GEMM_TX_ROWS;
+    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
+    let z = group.z;
+    let k_begin = z * p.k_chunk;
+    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
+    let a_row = [
+        p.a_off + rows[0].min(m_last) * p.a_sm,
+        p.a_off + rows[1].min(m_last) * p.a_sm,
+        p.a_off + rows[2].min(m_last) * p.a_sm,
+        p.a_off + rows[3].min(m_last) * p.a_sm,
+        p.a_off + rows[4].min(m_last) * p.a_sm,
+        p.a_off + rows[5].min(m_last) * p.a_sm,
+        p.a_off + rows[6].min(m_last) * p.a_sm,
+        p.a_off + rows[7].min(m_last) * p.a_sm,
+    ];
+    let last_col = p.n - 1;
+    let b_col = [
+        p.b_off + (n0 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 8 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
+    ];
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+    let mut k = k_begin;
+    while k < k_end {
+        let ka = k * p.a_sk;
+        // The ones row (the bias column of a weight gradient) is not stored in `A`.
+        let av = [
+            if rows[0] == ones_row { 1.0 } else { fetch(a, a_row[0] + ka) },
+            if rows[1] == ones_row { 1.0 } else { fetch(a, a_row[1] + ka) },
+            if rows[2] == ones_row { 1.0 } else { fetch(a, a_row[2] + ka) },
+            if rows[3] == ones_row { 1.0 } else { fetch(a, a_row[3] + ka) },
+            if rows[4] == ones_row { 1.0 } else { fetch(a, a_row[4] + ka) },
+            if rows[5] == ones_row { 1.0 } else { fetch(a, a_row[5] + ka) },
+            if rows[6] == ones_row { 1.0 } else { fetch(a, a_row[6] + ka) },
+            if rows[7] == ones_row { 1.0 } else { fetch(a, a_row[7] + ka) },
+        ];
+        let kb = k * p.b_sk;
+        let bv0 = fetch(b, b_col[0] + kb);
+        let bv1 = fetch(b, b_col[1] + kb);
+        let bv2 = fetch(b, b_col[2] + kb);
+        let bv3 = fetch(b, b_col[3] + kb);
+        tx_group!(acc, av, bv0, 0);
+        tx_group!(acc, av, bv1, 1);
+        tx_group!(acc, av, bv2, 2);
+        tx_group!(acc, av, bv3, 3);
+        k += 1;
+    }
+    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
+    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
+    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
+    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
+    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
+    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
+    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
+    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
 }
 
 /// Sums the splits of a weight gradient in split order and scatters the weight and

@@ -33,6 +33,9 @@ pub const GEMM_K_STEP: u32 = 16;
 pub const GEMM_SG_ROWS: u32 = 32;
 /// Columns of `C` one subgroup of the broadcast kernel owns.
 pub const GEMM_SG_COLS: u32 = 32;
+/// Rows of the tile of `nn::gemm_texel` (8 per lane of a subgroup of 8; its columns
+/// are `GEMM_SG_COLS`).
+pub const GEMM_TX_ROWS: u32 = 64;
 
 /// Add `bias[bias_off + n]` to every row.
 pub const GEMM_BIAS: u32 = 1;

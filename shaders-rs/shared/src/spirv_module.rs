@@ -17,6 +17,10 @@ pub struct ModuleFacts {
     /// Bit `b` set when the variable of binding `b` is decorated `NonWritable`: the
     /// kernel only reads it (rust-gpu declares a `&[T]` storage buffer so).
     pub read_only_mask: u64,
+    /// Bit `b` set when the variable of binding `b` is a uniform texel buffer (an
+    /// `OpTypeImage` of `Dim Buffer`, sampled, in `UniformConstant`): read-only by nature,
+    /// bound through a buffer view (`Image!(buffer, type=f32, sampled)` in rust-gpu).
+    pub texel_mask: u64,
 }
 
 /// Why a byte string is not a module we can read.
@@ -51,6 +55,11 @@ const OP_DECORATE: u32 = 71;
 const DECORATION_NON_WRITABLE: u32 = 24;
 const MODE_LOCAL_SIZE: u32 = 17;
 const DECORATION_BINDING: u32 = 33;
+const OP_TYPE_IMAGE: u32 = 25;
+const OP_TYPE_POINTER: u32 = 32;
+const OP_VARIABLE: u32 = 59;
+const DIM_BUFFER: u32 = 5;
+const STORAGE_UNIFORM_CONSTANT: u32 = 0;
 
 /// Word `i` of a little-endian byte string.
 fn word(bytes: &[u8], i: usize) -> u32 {
@@ -67,7 +76,12 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
         return Err(SpirvError::Magic);
     }
     let len = bytes.len() / 4;
-    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0 };
+    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0, texel_mask: 0 };
+    // Types precede the variables that use them, and decorations precede both, so one
+    // pass collects buffer images, pointers to them and the variables of those pointers.
+    let mut buffer_images: [u32; 8] = [0; 8];
+    let mut buffer_image_pointers: [u32; 8] = [0; 8];
+    let (mut images, mut pointers) = (0usize, 0usize);
     let mut at = 5;
     while at < len {
         let head = word(bytes, at);
@@ -91,6 +105,27 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
                     return Err(SpirvError::BindingOutOfRange { binding });
                 }
                 facts.binding_mask |= 1 << binding;
+            }
+            // OpTypeImage: result, sampled type, Dim, Depth, Arrayed, MS, Sampled (1: with a sampler).
+            OP_TYPE_IMAGE if operands >= 7 && operand(2) == DIM_BUFFER && operand(6) == 1 && images < buffer_images.len() => {
+                buffer_images[images] = operand(0);
+                images += 1;
+            }
+            OP_TYPE_POINTER
+                if operands >= 3
+                    && operand(1) == STORAGE_UNIFORM_CONSTANT
+                    && buffer_images[..images].contains(&operand(2))
+                    && pointers < buffer_image_pointers.len() =>
+            {
+                buffer_image_pointers[pointers] = operand(0);
+                pointers += 1;
+            }
+            OP_VARIABLE if operands >= 3 && buffer_image_pointers[..pointers].contains(&operand(0)) => {
+                if let Some(binding) = binding_of(bytes, operand(1)) {
+                    if binding < 64 {
+                        facts.texel_mask |= 1 << binding;
+                    }
+                }
             }
             OP_DECORATE if operands >= 2 && operand(1) == DECORATION_NON_WRITABLE => {
                 if let Some(binding) = binding_of(bytes, operand(0)) {

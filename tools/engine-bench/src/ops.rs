@@ -48,10 +48,11 @@ pub struct OpsArgs {
     /// Points on each side where grid and brute force are timed side by side.
     #[arg(long, value_parser = parse_len, default_value = "32768")]
     pub chamfer_compare: u32,
-    /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel where subgroups
-    /// are 8 lanes, register-blocked for narrow outputs; tiled on GPUs), tiled, blocked
-    /// or subgroup.
-    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked", "subgroup"])]
+    /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel reading texel
+    /// buffers where subgroups are 8 lanes, register-blocked for narrow outputs; tiled on
+    /// GPUs), tiled, blocked, subgroup (the same broadcasts reading storage buffers) or
+    /// texel.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked", "subgroup", "texel"])]
     pub gemm: String,
     /// Triplane backward: accumulate the plane gradient deterministically (64-bit
     /// fixed-point integer atomics) instead of with float atomics.
@@ -65,6 +66,7 @@ impl OpsArgs {
             "tiled" => GemmVariant::Tiled,
             "blocked" => GemmVariant::Blocked,
             "subgroup" => GemmVariant::Subgroup,
+            "texel" => GemmVariant::Texel,
             _ => GemmVariant::Auto,
         }
     }

@@ -85,7 +85,13 @@ const FLAVOURS: &[Flavour] = &[
     },
     Flavour {
         features: &["subgroup-ballot"],
-        capabilities: &[spirv_builder::Capability::GroupNonUniform, spirv_builder::Capability::GroupNonUniformBallot],
+        // SampledBuffer (core Vulkan, no device feature): the texel-buffer reads of
+        // kernels for CPU devices (`kernels/src/texel.rs`).
+        capabilities: &[
+            spirv_builder::Capability::GroupNonUniform,
+            spirv_builder::Capability::GroupNonUniformBallot,
+            spirv_builder::Capability::SampledBuffer,
+        ],
         extension: None,
         requires: &["GroupNonUniformBallot"],
     },
@@ -96,6 +102,7 @@ const FLAVOURS: &[Flavour] = &[
         capabilities: &[
             spirv_builder::Capability::GroupNonUniform,
             spirv_builder::Capability::GroupNonUniformBallot,
+            spirv_builder::Capability::SampledBuffer,
             spirv_builder::Capability::AtomicFloat32AddEXT,
         ],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
@@ -182,7 +189,13 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
         for b in 0..count {
             let name = spirv_module::binding_name(bytes, b)
                 .ok_or_else(|| format!("module {entry}: binding {b} has no OpName (built without NameVariables?)"))?;
-            let access = if facts.read_only_mask & (1 << b) != 0 { "read" } else { "read_write" };
+            let access = if facts.texel_mask & (1 << b) != 0 {
+                "texel"
+            } else if facts.read_only_mask & (1 << b) != 0 {
+                "read"
+            } else {
+                "read_write"
+            };
             bindings.push(serde_json::json!({ "name": String::from_utf8_lossy(name), "access": access }));
         }
         list.push(serde_json::json!({

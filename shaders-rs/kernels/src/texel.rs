@@ -1,0 +1,42 @@
+//! Uniform texel buffers of `f32`, the third `unsafe` of the kernels: a texel fetch is
+//! `OpImageFetch` through inline SPIR-V (spirv-std's `fetch` adds an explicit `Lod`,
+//! which a buffer image may not take, and `NonUniform` decorations that would need
+//! another capability).
+//!
+//! Why kernels read through them at all: on llvmpipe a storage-buffer load whose index
+//! the compiler cannot prove uniform (any index computed from a loop counter or the
+//! workgroup id) becomes a loop over the 8 SIMD lanes with two branches per lane, about
+//! 160 cycles, while a texel fetch goes through the sampler's gather: 8 scalar loads and
+//! inserts with no branch. Out-of-range fetches return 0 (robust buffer access), so a
+//! fetch never ends the invocation. The engine binds these through a buffer's
+//! `R32_SFLOAT` view (`BindingDecl::texel`). Built only with the `subgroup-ballot`
+//! feature, the only kernels that use it; that build declares `SampledBuffer`.
+#![allow(unsafe_code)]
+
+use core::arch::asm;
+use spirv_std::glam::Vec4;
+use spirv_std::Image;
+
+/// A read-only buffer of `f32` bound as a uniform texel buffer.
+pub type TexelBuffer = Image!(buffer, type=f32, sampled);
+
+/// Element `index` of `buffer` (0 past its end).
+#[inline]
+pub fn fetch(buffer: &TexelBuffer, index: u32) -> f32 {
+    let mut texel = Vec4::ZERO;
+    let coordinate = index as i32;
+    // SAFETY: OpImageFetch on a sampled buffer image with an integer coordinate and no
+    // image operands is valid SPIR-V for any coordinate; Vulkan returns zeros for a
+    // coordinate past the view instead of reading outside it.
+    unsafe {
+        asm! {
+            "%image = OpLoad _ {buffer}",
+            "%texel = OpImageFetch typeof*{texel} %image {coordinate}",
+            "OpStore {texel} %texel",
+            buffer = in(reg) buffer,
+            coordinate = in(reg) coordinate,
+            texel = in(reg) &mut texel,
+        }
+    }
+    texel.x
+}
