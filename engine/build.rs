@@ -113,7 +113,8 @@ impl Kernel {{
 {requires}        }}
     }}
 
-    /// Whether the module broadcasts within subgroups (`GroupNonUniformBallot`).
+    /// Whether the module uses subgroup operations (`GroupNonUniformBallot`, with
+    /// `GroupNonUniformVote` and `GroupNonUniformArithmetic`).
     pub const fn requires_subgroup_ballot(self) -> bool {{
         match self {{
 {requires_ballot}        }}

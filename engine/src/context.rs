@@ -97,7 +97,8 @@ pub struct DeviceInfo {
     pub timestamp_valid_bits: u32,
     /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float).
     pub float_atomic_add: bool,
-    /// Subgroup ballot operations (broadcast) in compute shaders.
+    /// Subgroup ballot (broadcast, ballot), vote and arithmetic (reduce) operations in
+    /// compute shaders: what the modules built with subgroups use.
     pub subgroup_ballot: bool,
     pub max_compute_workgroup_count: [u32; 3],
     /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
@@ -342,7 +343,7 @@ impl Context {
             return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderBufferFloat32AtomicAdd" });
         }
         if kernel.requires_subgroup_ballot() && !self.device.info.subgroup_ballot {
-            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot operations in compute" });
+            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot, vote and arithmetic operations in compute" });
         }
         let p = Arc::new(Pipeline::create(&self.device, kernel)?);
         cache.insert(kernel, p.clone());
@@ -527,7 +528,9 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         timestamp_valid_bits,
         float_atomic_add,
         subgroup_ballot: subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
-            && subgroup.supported_operations.contains(vk::SubgroupFeatureFlags::BALLOT),
+            && subgroup.supported_operations.contains(
+                vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::VOTE | vk::SubgroupFeatureFlags::ARITHMETIC,
+            ),
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
         max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
         max_memory_allocation_size: maintenance3.max_memory_allocation_size,

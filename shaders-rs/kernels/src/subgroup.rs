@@ -4,7 +4,7 @@
 //! `subgroup-ballot` feature (the shader builder's build that declares the capability).
 #![allow(unsafe_code)]
 
-use spirv_std::arch::{subgroup_broadcast, subgroup_broadcast_const};
+use spirv_std::arch::{subgroup_all, subgroup_ballot, subgroup_broadcast, subgroup_broadcast_const, subgroup_f_add, subgroup_u_max};
 
 /// The value `v` of lane `LANE` of this subgroup, to every lane.
 ///
@@ -46,38 +46,34 @@ pub fn broadcast_u32_at(v: u32, lane: u32) -> u32 {
 /// Bit `l` set where `v` holds in lane `l`, in every lane (same conditions as [`sum8`]).
 #[inline]
 pub fn ballot8(v: bool) -> u32 {
-    let x = if v { 1u32 } else { 0 };
-    broadcast_u32::<0>(x)
-        | (broadcast_u32::<1>(x) << 1)
-        | (broadcast_u32::<2>(x) << 2)
-        | (broadcast_u32::<3>(x) << 3)
-        | (broadcast_u32::<4>(x) << 4)
-        | (broadcast_u32::<5>(x) << 5)
-        | (broadcast_u32::<6>(x) << 6)
-        | (broadcast_u32::<7>(x) << 7)
+    // OpGroupNonUniformBallot: one loop over the lanes on llvmpipe, where eight
+    // broadcasts were eight loops (each looks for the first active lane).
+    subgroup_ballot(v).x & 0xff
 }
 
-/// The sum over the 8 lanes of `v`, in every lane (lane order, so every lane gets the
-/// same bits). Same conditions as [`broadcast`], for lanes 0..8.
+/// The sum over the 8 lanes of `v`, in every lane, every lane getting the same bits.
+/// Same conditions as [`broadcast`], for lanes 0..8.
+///
+/// `OpGroupNonUniformFAdd` (reduce): llvmpipe 22.3 compiles it to one loop adding the
+/// active lanes in lane order, while a broadcast is a loop of its own (it looks for the
+/// first active lane before it extracts the one asked for), so this is one loop where
+/// the eight broadcasts it replaces were eight. The order of the sum is the device's:
+/// lane order there, a tree on others.
 #[inline]
 pub fn sum8(v: f32) -> f32 {
-    ((broadcast::<0>(v) + broadcast::<1>(v)) + (broadcast::<2>(v) + broadcast::<3>(v)))
-        + ((broadcast::<4>(v) + broadcast::<5>(v)) + (broadcast::<6>(v) + broadcast::<7>(v)))
+    subgroup_f_add(v)
 }
 
-/// The largest `v` over the 8 lanes, in every lane (same conditions as [`sum8`]).
+/// The largest `v` over the 8 lanes, in every lane (same conditions as [`sum8`]; one
+/// `OpGroupNonUniformUMax` reduce).
 #[inline]
 pub fn max8_u32(v: u32) -> u32 {
-    let a = broadcast_u32::<0>(v).max(broadcast_u32::<1>(v)).max(broadcast_u32::<2>(v).max(broadcast_u32::<3>(v)));
-    let b = broadcast_u32::<4>(v).max(broadcast_u32::<5>(v)).max(broadcast_u32::<6>(v).max(broadcast_u32::<7>(v)));
-    a.max(b)
+    subgroup_u_max(v)
 }
 
-/// Whether `v` holds in all 8 lanes (same conditions as [`sum8`]).
+/// Whether `v` holds in all 8 lanes (same conditions as [`sum8`]; one
+/// `OpGroupNonUniformAll`).
 #[inline]
 pub fn all8(v: bool) -> bool {
-    let x = if v { 1u32 } else { 0 };
-    (broadcast_u32::<0>(x) & broadcast_u32::<1>(x) & broadcast_u32::<2>(x) & broadcast_u32::<3>(x)
-        & broadcast_u32::<4>(x) & broadcast_u32::<5>(x) & broadcast_u32::<6>(x) & broadcast_u32::<7>(x))
-        != 0
+    subgroup_all(v)
 }
