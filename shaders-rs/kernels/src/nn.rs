@@ -1052,6 +1052,55 @@ fn store_tile_row(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; GEMM_
     }
 }
 
+/// Where a subgroup GEMM's workgroup works: its tile of `C` (rows from `m0`, columns
+/// from `n0`), its split `z` of `k` (`k_begin..k_end`), the ones row (`u32::MAX` when
+/// none), the last row of `A` that exists, and the offsets in `B` of the lane's 4
+/// columns (`n0 + lane + 8 g`, clamped to the last).
+#[cfg(feature = "subgroup-ballot")]
+struct SgTile {
+    m0: u32,
+    n0: u32,
+    z: u32,
+    k_begin: u32,
+    k_end: u32,
+    ones_row: u32,
+    m_last: u32,
+    b_col: [u32; 4],
+}
+
+/// The tile of workgroup `group` for tiles of `tile_rows` × `GEMM_SG_COLS` (a workgroup
+/// is one subgroup of 8, so the tile never depends on how a device numbers the
+/// subgroups of a workgroup), or `None` past the last tile (the whole subgroup leaves together, so no broadcast ever reads
+/// an inactive lane). Workgroups come in rows of at most 65,535 (2M rows of 1,024
+/// columns are 2M tiles).
+#[cfg(feature = "subgroup-ballot")]
+#[inline]
+fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u32) -> Option<SgTile> {
+    let row_tiles = (p.m + tile_rows - 1) / tile_rows;
+    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
+    let tile = group.y * groups.x + group.x;
+    if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
+        return None;
+    }
+    let m0 = (tile % row_tiles) * tile_rows;
+    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
+    let z = group.z;
+    let k_begin = z * p.k_chunk;
+    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    // The last row of A that exists (the ones row is not stored): rows past it read
+    // that row (in range) and are never stored.
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let last_col = p.n - 1;
+    let b_col = [
+        p.b_off + (n0 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 8 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
+        p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
+    ];
+    Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col })
+}
+
 /// `C (+)= A B (+ bias)` for CPU devices whose subgroups are 8 lanes of one SIMD
 /// register (lavapipe): each subgroup owns a 32 × 32 tile of `C`, lane `l` its rows
 /// `l, l + 8, l + 16, l + 24`. Per step through `k` a lane loads its 4 values of `A`
@@ -1074,26 +1123,9 @@ pub fn gemm_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
-    let row_tiles = (p.m + GEMM_SG_ROWS - 1) / GEMM_SG_ROWS;
-    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
-    // A workgroup is one subgroup of 8, so the tile never depends on how a device
-    // numbers the subgroups of a workgroup. Workgroups in rows of at most 65,535
-    // (2M rows of 1,024 columns are 2M tiles).
-    let tile = group.y * groups.x + group.x;
-    // The whole subgroup leaves together, so no broadcast ever reads an inactive lane.
-    if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_SG_ROWS) else {
         return;
-    }
-    let m0 = (tile % row_tiles) * GEMM_SG_ROWS;
-    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
-    let z = group.z;
-    let k_begin = z * p.k_chunk;
-    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
-    // The last row of A that exists (the ones row is not stored): rows past it load
-    // that row (in range: an out-of-range index would end the invocation) and are
-    // never stored.
-    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24];
     let a_row = [
         p.a_off + rows[0].min(m_last) * p.a_sm,
@@ -1102,13 +1134,6 @@ pub fn gemm_subgroup(
         p.a_off + rows[3].min(m_last) * p.a_sm,
     ];
     let ones = [rows[0] == ones_row, rows[1] == ones_row, rows[2] == ones_row, rows[3] == ones_row];
-    let last_col = p.n - 1;
-    let b_col = [
-        p.b_off + (n0 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 8 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
-    ];
     let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 4];
     let mut k = k_begin;
     while k < k_end {
@@ -1197,20 +1222,9 @@ pub fn gemm_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
     use crate::texel::fetch;
-    let row_tiles = (p.m + GEMM_TX_ROWS - 1) / GEMM_TX_ROWS;
-    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
-    let tile = group.y * groups.x + group.x;
-    // The whole subgroup leaves together, so no broadcast ever reads an inactive lane.
-    if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
         return;
-    }
-    let m0 = (tile % row_tiles) * GEMM_TX_ROWS;
-    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
-    let z = group.z;
-    let k_begin = z * p.k_chunk;
-    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
-    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
     let a_row = [
         p.a_off + rows[0].min(m_last) * p.a_sm,
@@ -1221,13 +1235,6 @@ pub fn gemm_texel(
         p.a_off + rows[5].min(m_last) * p.a_sm,
         p.a_off + rows[6].min(m_last) * p.a_sm,
         p.a_off + rows[7].min(m_last) * p.a_sm,
-    ];
-    let last_col = p.n - 1;
-    let b_col = [
-        p.b_off + (n0 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 8 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
-        p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
     ];
     let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
     let mut k = k_begin;
