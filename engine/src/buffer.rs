@@ -99,23 +99,23 @@ impl Buffer {
         self.size.max(4)
     }
 
-    /// The buffer's `R32_SFLOAT` view for texel bindings (made on first use): an error
-    /// naming the buffer when it was not made for texel reads or holds more texels than
-    /// `maxTexelBufferElements`.
-    pub(crate) fn texel_view(&self, max_texels: u64) -> Result<vk::BufferView> {
+    /// Whether a texel binding can read this buffer: made with `UNIFORM_TEXEL_BUFFER`
+    /// usage and holding at most `max_texels` `f32`s (ops choose a texel kernel only
+    /// then).
+    pub fn texel_readable(&self, max_texels: u64) -> bool {
+        self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER) && self.vk_size() / 4 <= max_texels
+    }
+
+    /// The buffer's `R32_SFLOAT` view for texel bindings, made on first use. Callers
+    /// check [`texel_readable`](Self::texel_readable) first (the recorder does, and
+    /// names the pass and binding when it does not hold).
+    pub(crate) fn texel_view(&self) -> Result<vk::BufferView> {
         if let Some(&view) = self.texel_view.get() {
             return Ok(view);
         }
-        if !self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER) {
-            return Err(EngineError::Allocation {
-                what: self.name.clone(),
-                detail: "it was not made for texel reads (UNIFORM_TEXEL_BUFFER usage: BufferDesc::gpu_only or host_written)".into(),
-            });
-        }
+        // The callers' check, kept here because the view's validity rests on it.
+        assert!(self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER), "texel view of '{}', made without texel usage", self.name);
         let texels = self.vk_size() / 4;
-        if texels > max_texels {
-            return Err(EngineError::too_large(format!("f32 texels of buffer '{}'", self.name), texels, max_texels, "the device's maxTexelBufferElements"));
-        }
         let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(vk::Format::R32_SFLOAT).offset(0).range(texels * 4);
         // SAFETY: a buffer of this device made with UNIFORM_TEXEL_BUFFER usage; the range
         // lies inside it and R32_SFLOAT uniform texel buffers are required of every device.

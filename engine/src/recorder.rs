@@ -529,12 +529,16 @@ impl<'a> Recording<'a> {
                 if !decl.texel {
                     return Ok([vk::BufferView::null()]);
                 }
-                b.buffer.texel_view(max_texels).map(|v| [v]).map_err(|e| match e {
-                    e @ (EngineError::TooLarge { .. } | EngineError::Allocation { .. }) => {
-                        EngineError::Binding { pass: name.to_string(), kernel: kernel.entry_point(), binding: decl.name.to_string(), problem: e.to_string() }
-                    }
-                    e => e,
-                })
+                if !b.buffer.texel_readable(max_texels) {
+                    let texels = b.buffer.vk_size() / 4;
+                    let problem = if texels > max_texels {
+                        format!("'{}' holds {texels} f32s, past the device's maxTexelBufferElements ({max_texels})", b.buffer.name())
+                    } else {
+                        format!("'{}' was not made for texel reads (it needs UNIFORM_TEXEL_BUFFER usage: BufferDesc::gpu_only or host_written)", b.buffer.name())
+                    };
+                    return Err(EngineError::Binding { pass: name.to_string(), kernel: kernel.entry_point(), binding: decl.name.to_string(), problem });
+                }
+                b.buffer.texel_view().map(|v| [v])
             })
             .collect::<Result<_>>()?;
         let set = self.allocate_set(pipeline.set_layout)?;

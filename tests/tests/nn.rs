@@ -211,3 +211,29 @@ fn activations_stay_finite_at_the_extremes() {
     let e = rel_err(&run.heads[1], saved.head(&desc, 1), 1e-3);
     assert!(e <= 1e-5, "softmax at extreme logits: relative error {e:e}");
 }
+
+/// `Auto` takes the texel GEMM only for operands a texel binding can read: an MLP fed
+/// from a storage buffer made without texel usage (a readback buffer) still runs, on
+/// the storage-buffer kernel, and gives the same outputs.
+#[test]
+fn auto_gemm_reads_buffers_without_texel_usage_through_storage_bindings() {
+    let ctx = gpu();
+    let desc = small_desc();
+    let rows = 37;
+    let params = to_f64(&desc.init_params(5));
+    let input = uniform(rows * desc.input, -1.0, 1.0, 9);
+    let mut mlp = Mlp::with_params(&ctx, "test mlp", desc.clone(), rows, &to_f32(&params)).expect("mlp");
+    let mut plain = ctx.create_buffer("input (readback memory)", drape_engine::BufferDesc::readback((rows * desc.input * 4) as u64)).expect("buffer");
+    ctx.write_buffer(&mut plain, &to_f32(&input)).expect("write");
+    assert!(!plain.texel_readable(u64::MAX), "a readback buffer is not made for texel reads");
+    let mut rec = ctx.record("mlp from a readback buffer").expect("record");
+    mlp.record_forward(&mut rec, &plain, rows as u32).expect("the forward records");
+    rec.submit_and_wait().expect("submit");
+    let saved = reference_forward(&desc, &params, &input, rows);
+    for h in 0..desc.heads.len() {
+        let got = mlp.read_head(&ctx, h, rows).expect("read");
+        // f32 against f64, sums of at most 16 products.
+        let e = rel_err(&to_f64(&got), saved.head(&desc, h), 1e-3);
+        assert!(e <= 1e-5, "head {h}: forward relative error {e:e}");
+    }
+}

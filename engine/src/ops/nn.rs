@@ -466,8 +466,9 @@ impl Mlp {
     #[allow(clippy::too_many_arguments)]
     fn record_gemm<'a>(&self, rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
         let info = rec.context().info();
-        // Texel views cover a whole buffer, so both must be within the device's limit.
-        let texels_fit = [a, b].iter().all(|buf| buf.vk_size() / 4 <= info.max_texel_buffer_elements);
+        // Texel views cover a whole buffer, so both must be within the device's limit
+        // (and made for texel reads: a caller's buffer may not be).
+        let texels_fit = a.texel_readable(info.max_texel_buffer_elements) && b.texel_readable(info.max_texel_buffer_elements);
         let variant = match self.variant {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 && texels_fit => GemmVariant::Texel,
