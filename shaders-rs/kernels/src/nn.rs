@@ -12,8 +12,10 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_SOFTMAX,
-    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+    GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
+#[cfg(feature = "subgroup-ballot")]
+use drape_shared::nn::{GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;

@@ -1,7 +1,8 @@
-//! Subgroup broadcasts, the second `unsafe` of the kernels: spirv-std exposes
-//! `OpGroupNonUniformBroadcast` as an `unsafe fn` because its result is undefined when
-//! the source lane is inactive or outside the subgroup. Built only with the
-//! `subgroup-ballot` feature (the shader builder's build that declares the capability).
+//! Subgroup broadcasts and reductions, the second `unsafe` of the kernels: spirv-std
+//! exposes `OpGroupNonUniformBroadcast` as an `unsafe fn` because its result is
+//! undefined when the source lane is inactive or outside the subgroup (its reduces,
+//! votes and ballots are safe). Built only with the `subgroup-ballot` feature (the
+//! shader builder's builds that declare the subgroup capabilities).
 #![allow(unsafe_code)]
 
 use spirv_std::arch::{subgroup_all, subgroup_ballot, subgroup_broadcast, subgroup_broadcast_const, subgroup_f_add, subgroup_u_max};
@@ -17,13 +18,6 @@ pub fn broadcast<const LANE: u32>(v: f32) -> f32 {
     // SAFETY: the lane is constant, inside the subgroup and active (see above), which
     // is all OpGroupNonUniformBroadcast requires for a defined result.
     unsafe { subgroup_broadcast_const::<f32, LANE>(v) }
-}
-
-/// [`broadcast`] for a `u32`.
-#[inline]
-pub fn broadcast_u32<const LANE: u32>(v: u32) -> u32 {
-    // SAFETY: as in `broadcast`.
-    unsafe { subgroup_broadcast_const::<u32, LANE>(v) }
 }
 
 /// The value `v` of lane `lane` of this subgroup, to every lane: `lane` is the same in
