@@ -91,6 +91,12 @@ fn compare_with_cpu(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, w
 /// 0.3 px² dilation and sums of up to 100k splats per pixel; the absolute floor covers
 /// groups whose f64 gradient is ~0.
 fn backward_matches_reference(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str) {
+    backward_matches_reference_with(gpu, cloud, cam, what, Accumulation::Auto);
+}
+
+/// [`backward_matches_reference`] with the backward accumulating its gradients by
+/// `accumulation`.
+fn backward_matches_reference_with(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str, accumulation: Accumulation) {
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(gpu, "g", cloud).expect("upload");
     let mut grads = GaussianBuffers::new(gpu, "grads", cloud.len(), cloud.sh_degree).expect("grads");
@@ -101,7 +107,7 @@ fn backward_matches_reference(gpu: &TestGpu, cloud: &GaussianCloud, cam: &Pinhol
     let ones = gpu.upload("grad rgb", &g_rgb).expect("upload");
     let alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let depth = gpu.upload("grad depth", &g_depth).expect("upload");
-    renderer.backward(&saved, &gaussians, &ones, &alpha, &depth, &grads, Accumulation::Auto).expect("backward");
+    renderer.backward(&saved, &gaussians, &ones, &alpha, &depth, &grads, accumulation).expect("backward");
     let g = grads.download(gpu, &cloud.layers).expect("download");
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
     let gs = cloud.gaussians::<f64>();
@@ -206,6 +212,25 @@ fn sixty_thousand_splats_ahead_of_the_one_a_pixel_blends() {
     // The large splat shows around the stack.
     assert!(image.alpha.iter().filter(|&&a| a > 0.5).count() > 100, "the splat behind is blended");
     backward_matches_reference(&gpu, &cloud, &cam, "60k ahead");
+}
+
+/// The compare-and-swap backward's sparse walk spends a loop iteration per round, per
+/// visited splat and per add (each add is a loop), so it walks sparsely only up to
+/// 24,000 splats (`SPARSE_MAX_WALK_CAS`), not the 56,000 of the other backwards: pixels
+/// behind 40,000 tiny splats that miss them, before the large splat they blend, get
+/// their gradient from a dense walk there and from a sparse one with float atomics.
+#[test]
+fn forty_thousand_splats_ahead_through_the_compare_and_swap_backward() {
+    let gpu = gpu();
+    let cam = camera(64, 64);
+    let mut cloud = GaussianCloud::new(0);
+    for i in 0..40_000 {
+        let jitter = (i % 7) as f32 * 1e-4;
+        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+    }
+    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, compare-and-swap", Accumulation::CompareAndSwap);
+    backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, float atomics", Accumulation::Auto);
 }
 
 #[test]
