@@ -193,6 +193,19 @@ fn hundred_thousand_gaussians_over_one_pixel() {
     backward_matches_reference(&gpu, &cloud, &cam, "100k on one pixel");
 }
 
+/// `n` tiny splats stacked in front of the image centre (depths 0 to 0.99), then one
+/// large splat behind them at depth 1.5: pixels of the stack's blocks that the tiny
+/// splats miss blend only the large one, behind `n` splats in their tile's list.
+fn stack_ahead_of_a_large_splat(n: usize) -> GaussianCloud {
+    let mut cloud = GaussianCloud::new(0);
+    for i in 0..n {
+        let jitter = (i % 7) as f32 * 1e-4;
+        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+    }
+    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    cloud
+}
+
 /// A walk longer than the subgroup rasterizers take sparsely (`SPARSE_MAX_WALK`, 56,000
 /// splats, llvmpipe's loop budget): 60,000 tiny splats in front at the image centre put
 /// every other pixel of their tile's blocks behind 60,000 splats that miss it, before
@@ -202,12 +215,7 @@ fn hundred_thousand_gaussians_over_one_pixel() {
 fn sixty_thousand_splats_ahead_of_the_one_a_pixel_blends() {
     let gpu = gpu();
     let cam = camera(64, 64);
-    let mut cloud = GaussianCloud::new(0);
-    for i in 0..60_000 {
-        let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
-    }
-    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    let cloud = stack_ahead_of_a_large_splat(60_000);
     let image = compare_with_cpu(&gpu, &cloud, &cam, "60k ahead");
     // The large splat shows around the stack.
     assert!(image.alpha.iter().filter(|&&a| a > 0.5).count() > 100, "the splat behind is blended");
@@ -223,12 +231,7 @@ fn sixty_thousand_splats_ahead_of_the_one_a_pixel_blends() {
 fn forty_thousand_splats_ahead_through_the_compare_and_swap_backward() {
     let gpu = gpu();
     let cam = camera(64, 64);
-    let mut cloud = GaussianCloud::new(0);
-    for i in 0..40_000 {
-        let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
-    }
-    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    let cloud = stack_ahead_of_a_large_splat(40_000);
     backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, compare-and-swap", Accumulation::CompareAndSwap);
     backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, float atomics", Accumulation::Auto);
 }
