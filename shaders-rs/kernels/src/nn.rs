@@ -997,32 +997,31 @@ pub fn gemm_blocked(
     block_store!(acc, p, m0, n0, z, bias, c);
 }
 
-/// `acc[r][c] += a[r] * b` for a lane's four rows and column `c`, `b` being lane `j`'s
-/// value of `bv` (the subgroup loaded 8 columns of `B` with one load, lane `j` column
-/// `j`).
+/// `acc[r][c] += a[r] * b` for each of a lane's rows `r` listed (written out with
+/// constant indices, which keep the sums in registers) and column `c`, `b` being lane
+/// `j`'s value of `bv` (the subgroup loaded 8 columns of `B` with one load, lane `j`
+/// column `j`).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! sg_column {
-    ($acc:ident, $a:ident, $bv:ident, $c:expr, $j:literal) => {{
+    ($acc:ident, $a:ident, $bv:ident, $c:expr, $j:literal; $($r:literal),+) => {{
         let b = crate::subgroup::broadcast::<$j>($bv);
-        $acc[0][$c] += $a[0] * b;
-        $acc[1][$c] += $a[1] * b;
-        $acc[2][$c] += $a[2] * b;
-        $acc[3][$c] += $a[3] * b;
+        $( $acc[$r][$c] += $a[$r] * b; )+
     }};
 }
 
-/// The 8 columns `8 g .. 8 g + 8` of the tile from one load of `B` per lane.
+/// The 8 columns `8 g .. 8 g + 8` of the tile from one load of `B` per lane, for the
+/// lane's rows listed.
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! sg_group {
-    ($acc:ident, $a:ident, $bv:ident, $g:literal) => {{
-        sg_column!($acc, $a, $bv, $g * 8 + 0, 0);
-        sg_column!($acc, $a, $bv, $g * 8 + 1, 1);
-        sg_column!($acc, $a, $bv, $g * 8 + 2, 2);
-        sg_column!($acc, $a, $bv, $g * 8 + 3, 3);
-        sg_column!($acc, $a, $bv, $g * 8 + 4, 4);
-        sg_column!($acc, $a, $bv, $g * 8 + 5, 5);
-        sg_column!($acc, $a, $bv, $g * 8 + 6, 6);
-        sg_column!($acc, $a, $bv, $g * 8 + 7, 7);
+    ($acc:ident, $a:ident, $bv:ident, $g:literal; $($r:literal),+) => {{
+        sg_column!($acc, $a, $bv, $g * 8 + 0, 0; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 1, 1; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 2, 2; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 3, 3; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 4, 4; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 5, 5; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 6, 6; $($r),+);
+        sg_column!($acc, $a, $bv, $g * 8 + 7, 7; $($r),+);
     }};
 }
 
@@ -1072,9 +1071,9 @@ struct SgTile {
 
 /// The tile of workgroup `group` for tiles of `tile_rows` × `GEMM_SG_COLS` (a workgroup
 /// is one subgroup of 8, so the tile never depends on how a device numbers the
-/// subgroups of a workgroup), or `None` past the last tile (the whole subgroup leaves together, so no broadcast ever reads
-/// an inactive lane). Workgroups come in rows of at most 65,535 (2M rows of 1,024
-/// columns are 2M tiles).
+/// subgroups of a workgroup), or `None` past the last tile (the whole subgroup leaves
+/// together, so no broadcast ever reads an inactive lane). Workgroups come in rows of
+/// at most 65,535 (2M rows of 1,024 columns are 2M tiles).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u32) -> Option<SgTile> {
@@ -1155,48 +1154,16 @@ pub fn gemm_subgroup(
         let bv1 = b[(b_col[1] + kb) as usize];
         let bv2 = b[(b_col[2] + kb) as usize];
         let bv3 = b[(b_col[3] + kb) as usize];
-        sg_group!(acc, av, bv0, 0);
-        sg_group!(acc, av, bv1, 1);
-        sg_group!(acc, av, bv2, 2);
-        sg_group!(acc, av, bv3, 3);
+        sg_group!(acc, av, bv0, 0; 0, 1, 2, 3);
+        sg_group!(acc, av, bv1, 1; 0, 1, 2, 3);
+        sg_group!(acc, av, bv2, 2; 0, 1, 2, 3);
+        sg_group!(acc, av, bv3, 3; 0, 1, 2, 3);
         k += 1;
     }
     store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
     store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
     store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
     store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
-}
-
-/// `acc[r][c] += a[r] * b` for a lane's eight rows and column `c` of `gemm_texel`,
-/// `b` being lane `j`'s value of `bv`.
-#[cfg(feature = "subgroup-ballot")]
-macro_rules! tx_column {
-    ($acc:ident, $a:ident, $bv:ident, $c:expr, $j:literal) => {{
-        let b = crate::subgroup::broadcast::<$j>($bv);
-        $acc[0][$c] += $a[0] * b;
-        $acc[1][$c] += $a[1] * b;
-        $acc[2][$c] += $a[2] * b;
-        $acc[3][$c] += $a[3] * b;
-        $acc[4][$c] += $a[4] * b;
-        $acc[5][$c] += $a[5] * b;
-        $acc[6][$c] += $a[6] * b;
-        $acc[7][$c] += $a[7] * b;
-    }};
-}
-
-/// The 8 columns `8 g .. 8 g + 8` of a `gemm_texel` tile from one fetch of `B` per lane.
-#[cfg(feature = "subgroup-ballot")]
-macro_rules! tx_group {
-    ($acc:ident, $a:ident, $bv:ident, $g:literal) => {{
-        tx_column!($acc, $a, $bv, $g * 8 + 0, 0);
-        tx_column!($acc, $a, $bv, $g * 8 + 1, 1);
-        tx_column!($acc, $a, $bv, $g * 8 + 2, 2);
-        tx_column!($acc, $a, $bv, $g * 8 + 3, 3);
-        tx_column!($acc, $a, $bv, $g * 8 + 4, 4);
-        tx_column!($acc, $a, $bv, $g * 8 + 5, 5);
-        tx_column!($acc, $a, $bv, $g * 8 + 6, 6);
-        tx_column!($acc, $a, $bv, $g * 8 + 7, 7);
-    }};
 }
 
 /// `C (+)= A B (+ bias)` for CPU devices with subgroups of 8 (lavapipe), reading `A`
@@ -1258,10 +1225,10 @@ pub fn gemm_texel(
         let bv1 = fetch(b, b_col[1] + kb);
         let bv2 = fetch(b, b_col[2] + kb);
         let bv3 = fetch(b, b_col[3] + kb);
-        tx_group!(acc, av, bv0, 0);
-        tx_group!(acc, av, bv1, 1);
-        tx_group!(acc, av, bv2, 2);
-        tx_group!(acc, av, bv3, 3);
+        sg_group!(acc, av, bv0, 0; 0, 1, 2, 3, 4, 5, 6, 7);
+        sg_group!(acc, av, bv1, 1; 0, 1, 2, 3, 4, 5, 6, 7);
+        sg_group!(acc, av, bv2, 2; 0, 1, 2, 3, 4, 5, 6, 7);
+        sg_group!(acc, av, bv3, 3; 0, 1, 2, 3, 4, 5, 6, 7);
         k += 1;
     }
     store_tile_row(p, c, bias, acc[0], rows[0], n0, z);

@@ -22,8 +22,9 @@ pub fn broadcast<const LANE: u32>(v: f32) -> f32 {
 
 /// The value `v` of lane `lane` of this subgroup, to every lane: `lane` is the same in
 /// every lane (dynamically uniform, which SPIR-V 1.5 allows for
-/// OpGroupNonUniformBroadcast; llvmpipe reads lane 0's index and extracts that element,
-/// one shuffle, as for a constant lane). Same conditions as [`broadcast`], `lane < 8`.
+/// OpGroupNonUniformBroadcast; llvmpipe 22.3 runs a loop over the lanes to find the
+/// first active one, reads its index and extracts that element, as for a constant
+/// lane). Same conditions as [`broadcast`], `lane < 8`.
 #[inline]
 pub fn broadcast_at(v: f32, lane: u32) -> f32 {
     // SAFETY: `lane` is uniform, inside the subgroup and active (see above).

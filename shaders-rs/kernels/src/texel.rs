@@ -5,9 +5,10 @@
 //!
 //! Why kernels read through them at all: on llvmpipe a storage-buffer load whose index
 //! the compiler cannot prove uniform (any index computed from a loop counter or the
-//! workgroup id) becomes a loop over the 8 SIMD lanes with two branches per lane, about
-//! 160 cycles, while a texel fetch goes through the sampler's gather: 8 scalar loads and
-//! inserts with no branch. Out-of-range fetches return 0 (robust buffer access), so a
+//! workgroup id) becomes a loop over the 8 SIMD lanes with two branches per lane, while
+//! a texel fetch is a call into the sampler code with one bounds compare and one
+//! `vpgatherdd`, no branch (read off llvmpipe 22.3's machine code). Out-of-range
+//! fetches return 0 (robust buffer access), so a
 //! fetch never ends the invocation. The engine binds these through a buffer's
 //! `R32_SFLOAT` view (`BindingDecl::texel`). Built only with the `subgroup-ballot`
 //! feature, the only kernels that use it; that build declares `SampledBuffer`.
