@@ -55,6 +55,10 @@ pub enum EngineError {
     #[error("{op}: {problem}")]
     StaleForward { op: &'static str, problem: String },
 
+    /// A render or op setting outside what the kernels take (`what` names it).
+    #[error("{what}: {problem}")]
+    InvalidSetting { what: &'static str, problem: String },
+
     /// An op was given an empty input it has no value for.
     #[error("{what} is empty: {why}")]
     Empty { what: &'static str, why: &'static str },

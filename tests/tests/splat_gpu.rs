@@ -4,14 +4,21 @@
 use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, RenderSettings};
-use drape_shared::splat::layout::sh_coeffs;
+use drape_engine::error::EngineError;
+use drape_shared::half::round_to_f16;
+use drape_shared::splat::layout::{sh_coeffs, DEFAULT_TILE_SIZE, RASTER_BLOCK};
 use drape_tests::splat::{assert_forward_close, camera, gpu_render_with, raster_variants, scene};
 use drape_tests::{gpu, has_feature, Feature};
 use rand::{Rng, SeedableRng};
 
 fn check_forward(sizes: &[(u32, u32)], counts: &[usize], test: &str) {
+    check_forward_tiles(sizes, counts, DEFAULT_TILE_SIZE, test);
+}
+
+/// [`check_forward`] with tiles of `tile_size`, on every rasterizer that takes them.
+fn check_forward_tiles(sizes: &[(u32, u32)], counts: &[usize], tile_size: u32, test: &str) {
     let gpu = gpu();
-    let variants = raster_variants(&gpu, test);
+    let variants: Vec<RasterVariant> = raster_variants(&gpu, test).into_iter().filter(|&v| tile_size >= RASTER_BLOCK || v == RasterVariant::Subgroup).collect();
     let (mut worst, mut near_threshold) = (0.0f32, 0);
     for &(w, h) in sizes {
         for &n in counts {
@@ -19,12 +26,12 @@ fn check_forward(sizes: &[(u32, u32)], counts: &[usize], test: &str) {
                 for (antialiased, &variant) in [false, true].into_iter().flat_map(|a| variants.iter().map(move |v| (a, v))) {
                     let cloud = scene(n, degree, n as u64 * 7 + u64::from(w));
                     let cam = camera(w, h);
-                    let settings = RenderSettings { antialiased, ..RenderSettings::default() };
+                    let settings = RenderSettings { antialiased, tile_size, ..RenderSettings::default() };
                     let (image, stats) = gpu_render_with(&gpu, &cloud, &cam, &settings, variant);
                     let frame = frame_params(&cam, &settings, degree, cloud.len());
                     let gaussians = cloud.gaussians::<f32>();
                     let cpu = reference::render(&gaussians, &frame);
-                    let what = format!("{n} Gaussians, {w}x{h}, degree {degree}, antialiased {antialiased}, {variant:?} rasterizer");
+                    let what = format!("{n} Gaussians, {w}x{h}, degree {degree}, antialiased {antialiased}, {variant:?} rasterizer, tiles of {tile_size}");
                     // Equal on lavapipe; a GPU that fuses a * b + c may move a pair whose
                     // splat's bound falls on a tile edge: at most 0.1% + 2 pairs.
                     let d = (i64::from(stats.intersections) - cpu.intersections as i64).unsigned_abs();
@@ -72,13 +79,18 @@ const BACKWARD_TOLERANCE: f64 = 1e-4;
 
 /// Checks the GPU backward against the CPU reference; returns the gradients' bits.
 fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation, variant: RasterVariant) -> Vec<u32> {
+    check_backward_tiles(degree, antialiased, accumulation, variant, DEFAULT_TILE_SIZE)
+}
+
+/// [`check_backward`] with tiles of `tile_size`.
+fn check_backward_tiles(degree: u32, antialiased: bool, accumulation: Accumulation, variant: RasterVariant, tile_size: u32) -> Vec<u32> {
     let gpu = gpu();
     // Not multiples of 16 (nor of the subgroup kernels' 8 x 4 blocks): edge tiles and
     // blocks with lanes and rows outside the image.
     let (w, h) = (61, 45);
     let cloud = scene(300, degree, 11 + u64::from(degree));
     let cam = camera(w, h);
-    let settings = RenderSettings { antialiased, ..RenderSettings::default() };
+    let settings = RenderSettings { antialiased, tile_size, ..RenderSettings::default() };
     let pixels = (w * h) as usize;
     let mut rng = rand::rngs::StdRng::seed_from_u64(5);
     let g_rgb: Vec<f32> = (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect();
@@ -111,7 +123,7 @@ fn check_backward(degree: u32, antialiased: bool, accumulation: Accumulation, va
     for (name, c, g) in groups {
         assert!(c.iter().any(|v| *v != 0.0), "{name}: the CPU gradient is all zero; the check would be vacuous");
         let e = relative_error(g, &c);
-        assert!(e <= BACKWARD_TOLERANCE, "{name}: relative error {e:e} (degree {degree}, antialiased {antialiased}, {accumulation:?}, {variant:?} rasterizer)");
+        assert!(e <= BACKWARD_TOLERANCE, "{name}: relative error {e:e} (degree {degree}, antialiased {antialiased}, {accumulation:?}, {variant:?} rasterizer, tiles of {tile_size})");
     }
     [&gpu_grads.means, &gpu_grads.log_scales, &gpu_grads.quats, &gpu_grads.opacity_logits, &gpu_grads.sh].into_iter().flatten().map(|v| v.to_bits()).collect()
 }
@@ -398,4 +410,106 @@ fn a_frame_is_one_submission_and_an_intersection_overflow_still_renders_correctl
         assert_eq!(gpu.submission_count() - before, 1);
         assert!(!again.rerendered);
     }
+}
+
+/// The tile-size knob (`engine-bench trade`): tiles of 8 and 32 render what the CPU
+/// reference renders at that size, forward (sizes no multiple of 32, so edge tiles and
+/// blocks are partial) and backward, on every rasterizer that takes the size; the
+/// image is the one tiles of 16 give, and the intersections move the way tile size
+/// says they must.
+#[test]
+fn tile_sizes_8_and_32_match_cpu() {
+    let test = "tile_sizes_8_and_32_match_cpu";
+    for tile_size in [8, 32] {
+        check_forward_tiles(&[(97, 61)], &[16, 3000], tile_size, test);
+        for variant in raster_variants(&gpu(), test) {
+            if tile_size >= RASTER_BLOCK || variant == RasterVariant::Subgroup {
+                check_backward_tiles(3, false, Accumulation::Deterministic, variant, tile_size);
+            }
+        }
+    }
+    let gpu = gpu();
+    let cloud = scene(3000, 3, 17);
+    let cam = camera(97, 61);
+    let variant = *raster_variants(&gpu, test).last().expect("a rasterizer");
+    let render = |tile_size| gpu_render_with(&gpu, &cloud, &cam, &RenderSettings { tile_size, ..RenderSettings::default() }, variant);
+    let (image16, stats16) = render(16);
+    let mut intersections = vec![];
+    for tile_size in [8, 32] {
+        let (image, stats) = render(tile_size);
+        // The same splats blend in the same order at every pixel; only the entries a
+        // pixel skips differ, so the colours agree to the last bits (1e-6: a GPU may
+        // contract the blend differently per kernel build).
+        let d = drape_tests::splat::max_abs_diff(&image.rgb, &image16.rgb).max(drape_tests::splat::max_abs_diff(&image.alpha, &image16.alpha));
+        assert!(d <= 1e-6, "tiles of {tile_size} vs 16: colour differs by {d} ({variant:?})");
+        intersections.push(stats.intersections);
+    }
+    // A splat's extent covers more small tiles than large ones.
+    assert!(intersections[0] > stats16.intersections && stats16.intersections > intersections[1], "intersections at tiles of 8, 16, 32: {}, {}, {}", intersections[0], stats16.intersections, intersections[1]);
+
+    // What the kernels cannot take is refused before anything is recorded.
+    let gaussians = GaussianBuffers::upload(&gpu, "params", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(&gpu, 97, 61, cloud.len()).expect("renderer");
+    let err = renderer.forward(&gaussians, &cam, &RenderSettings { tile_size: 12, ..RenderSettings::default() }).expect_err("tile size 12");
+    assert!(matches!(err, EngineError::InvalidSetting { .. }) && err.to_string().contains("tile size 12"), "{err}");
+    renderer.set_raster_variant(RasterVariant::Workgroup).expect("workgroup rasterizer");
+    let err = renderer.forward(&gaussians, &cam, &RenderSettings { tile_size: 8, ..RenderSettings::default() }).expect_err("tiles of 8 on the workgroup rasterizer");
+    assert!(matches!(err, EngineError::MissingFeature { .. }) && err.to_string().contains("tiles of 8"), "{err}");
+}
+
+/// The half-precision SH knob (`RenderSettings::half_sh`): the GPU render from packed
+/// halves equals the CPU reference rendered from the same SH rounded on the host
+/// (`drape_shared::half`, the same rounding bit for bit), and differs from the
+/// full-precision reference by no more than half precision allows; its backward is
+/// refused.
+#[test]
+fn half_precision_sh_matches_cpu() {
+    let test = "half_precision_sh_matches_cpu";
+    let gpu = gpu();
+    // Degrees 0 and 2 pack an odd count of halves (a padded word per Gaussian).
+    for degree in [0, 2, 3] {
+        for &variant in &raster_variants(&gpu, test) {
+            let cloud = scene(3000, degree, 23 + u64::from(degree));
+            let cam = camera(97, 61);
+            let settings = RenderSettings { half_sh: true, ..RenderSettings::default() };
+            let (image, _) = gpu_render_with(&gpu, &cloud, &cam, &settings, variant);
+            let frame = frame_params(&cam, &settings, degree, cloud.len());
+            let full = cloud.gaussians::<f32>();
+            let mut rounded = full.clone();
+            // Per Gaussian and channel, the colour can move by at most Σ_k |Y_k| |δ_k|
+            // ≤ Σ_k |δ_k| (every real SH basis function up to degree 3 is at most 1 in
+            // magnitude on the sphere; the clamp at 0 cannot add to it).
+            let mut colour_bound = 0.0f32;
+            for g in &mut rounded {
+                let mut moved = [0.0f32; 3];
+                for k in g.sh.iter_mut() {
+                    for (c, v) in k.iter_mut().enumerate() {
+                        let r = round_to_f16(*v);
+                        moved[c] += (r - *v).abs();
+                        *v = r;
+                    }
+                }
+                colour_bound = colour_bound.max(moved[0]).max(moved[1]).max(moved[2]);
+            }
+            let what = format!("half-precision SH, degree {degree}, {variant:?} rasterizer");
+            let cpu = reference::render(&rounded, &frame);
+            assert_forward_close(&gpu, &image, &rounded, &frame, &cpu, 1, &what);
+            // A pixel's colour is a convex combination of its splats' colours (alpha is
+            // untouched by SH): it moves by at most the largest splat's move, plus the
+            // forward tolerance of the comparison (1e-4 covers a GPU's; see splat.rs).
+            let reference_full = reference::render(&full, &frame);
+            let d = drape_tests::splat::max_abs_diff(&image.rgb, &reference_full.rgb);
+            assert!(d <= colour_bound + 1e-4, "{what}: {d} from the full-precision reference, bound {colour_bound}");
+            assert!(d > 0.0 || degree == 0, "{what}: rounding to half changed nothing; the knob is not in effect");
+        }
+    }
+    let cloud = scene(300, 3, 5);
+    let cam = camera(61, 45);
+    let gaussians = GaussianBuffers::upload(&gpu, "params", &cloud).expect("upload");
+    let grads = GaussianBuffers::new(&gpu, "grads", cloud.len(), 3).expect("grads");
+    let mut renderer = SplatRenderer::new(&gpu, 61, 45, cloud.len()).expect("renderer");
+    let saved = renderer.forward(&gaussians, &cam, &RenderSettings { half_sh: true, ..RenderSettings::default() }).expect("forward").saved;
+    let zeros = gpu.upload("zeros", &vec![0.0f32; 3 * 61 * 45]).expect("upload");
+    let err = renderer.backward(&saved, &gaussians, &zeros, &zeros, &zeros, &grads, Accumulation::Deterministic).expect_err("a half-precision frame has no backward");
+    assert!(matches!(err, EngineError::InvalidSetting { .. }) && err.to_string().contains("half"), "{err}");
 }

@@ -14,8 +14,9 @@
 //! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
 
 use drape_shared::radix_sort::bounded_len;
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, TILE_SIZE};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, RASTER_BLOCK};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
+use drape_shared::half::{pack2, sh_half_sources, sh_half_words, unpack2, ShHalfParams};
 #[cfg(feature = "subgroup-ballot")]
 use drape_shared::splat::raster::may_touch_rect;
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
@@ -79,13 +80,106 @@ pub fn project_fwd(
     if local >= chunk.len || index >= frame.count {
         return;
     }
+    let g = load_gaussian(index as usize, local as usize, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+    project_store(index, &g, frame, splats, depth_keys, order, dropped);
+}
+
+/// [`project_fwd`] reading half-precision SH (`sh_half`: two halves a word,
+/// [`sh_half_words`] words per Gaussian from `splat::pack_sh_half`): the render-only
+/// knob of `engine-bench trade` (no backward reads these).
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(256)))]
+pub fn project_fwd_sh_half(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] chunk: &ProjectChunk,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] means: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] log_scales: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] quats: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] opacity_logits: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] sh_half: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] splats: &mut [ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] depth_keys: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] order: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] dropped: &mut [u32],
+) {
+    let local = flat_index(id, groups);
+    let index = chunk.first + local;
+    if local >= chunk.len || index >= frame.count {
+        return;
+    }
+    let i = index as usize;
+    let k_count = sh_coeffs(frame.sh_degree);
+    let words = sh_half_words(k_count);
+    let mut flat = [0.0f32; 3 * MAX_SH_COEFFS];
+    let mut w = 0;
+    while w < words {
+        let v = unpack2(sh_half[local as usize * words + w]);
+        flat[2 * w] = v[0];
+        // The padding half of an odd count lands past the last coefficient: unread.
+        if 2 * w + 1 < 3 * MAX_SH_COEFFS {
+            flat[2 * w + 1] = v[1];
+        }
+        w += 1;
+    }
+    let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
+    let mut k = 0;
+    while k < k_count {
+        coeffs[k] = [flat[3 * k], flat[3 * k + 1], flat[3 * k + 2]];
+        k += 1;
+    }
+    let g = Gaussian {
+        mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
+        log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
+        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        opacity_logit: opacity_logits[i],
+        sh: coeffs,
+    };
+    project_store(index, &g, frame, splats, depth_keys, order, dropped);
+}
+
+/// Packs SH to half precision for [`project_fwd_sh_half`]: output word `w` holds two
+/// consecutive floats of the `[gaussian][k][channel]` layout, rounded to nearest even
+/// (`drape_shared::half`, the same bits on every device).
+#[spirv(compute(threads(256)))]
+pub fn pack_sh_half(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ShHalfParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] sh: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] sh_half: &mut [u32],
+) {
+    let w = flat_index(id, groups);
+    if w >= p.count * sh_half_words(p.coeffs as usize) as u32 {
+        return;
+    }
+    let (lo, hi) = sh_half_sources(w, p.coeffs);
+    let hi = match hi {
+        Some(j) => sh[j],
+        None => 0.0,
+    };
+    sh_half[w as usize] = pack2(sh[lo], hi);
+}
+
+/// Writes the projection of Gaussian `index` (its splat, depth key and sort index).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn project_store(
+    index: u32,
+    g: &Gaussian<f32>,
+    frame: &FrameParams,
+    splats: &mut [ProjectedSplat],
+    depth_keys: &mut [u32],
+    order: &mut [u32],
+    dropped: &mut [u32],
+) {
     let i = index as usize;
     let cam = Camera::<f32>::from_frame(frame);
-    let g = load_gaussian(i, local as usize, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
-    let p = project_fwd_math(&g, &cam);
+    let p = project_fwd_math(g, &cam);
     let mut out = ProjectedSplat::default();
     if p.visible {
-        let r = tile_rect(p.x, p.y, p.radius, frame.tiles_x, frame.tiles_y);
+        let r = tile_rect(p.x, p.y, p.radius, frame.tile_size, frame.tiles_x, frame.tiles_y);
         out = ProjectedSplat {
             x: p.x,
             y: p.y,
@@ -236,7 +330,7 @@ pub fn tile_ranges(
 /// loads among a tile's pixels, batching keeps every loop short: llvmpipe abandons a
 /// loop after 65,535 iterations, and a tile's list can be far longer.
 const BATCH: usize = 256;
-const _: () = assert!(BATCH == (TILE_SIZE * TILE_SIZE) as usize);
+const _: () = assert!(BATCH == (RASTER_BLOCK * RASTER_BLOCK) as usize);
 const _: () = assert!(BATCH as u32 % UNROLL == 0);
 
 /// Splats handled per iteration of the per-pixel loops (see [`unroll`]).
@@ -281,12 +375,23 @@ fn batch_view(
     SplatView { x: xy[0], y: xy[1], depth: od[1], conic: b_conic[slot], opacity: od[0], color: b_color[slot] }
 }
 
-/// One workgroup per tile, one invocation per pixel: blends the tile's splats front
-/// to back, a batch at a time, until every pixel of the tile is saturated.
+/// The tile whose list the workgroup rasterizer `group` walks: its 16 × 16 block's
+/// (a tile of 32 is 2 × 2 blocks; the engine records these kernels for tiles of 16
+/// and 32 only).
+#[inline]
+fn block_tile(group: UVec3, frame: &FrameParams) -> usize {
+    let per = frame.tile_size / RASTER_BLOCK;
+    let per = if per == 0 { 1 } else { per };
+    ((group.y / per) * frame.tiles_x + group.x / per) as usize
+}
+
+/// One workgroup per 16 × 16 block of a tile, one invocation per pixel: blends the
+/// tile's splats front to back, a batch at a time, until every pixel of the block is
+/// saturated.
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(16, 16)))]
 pub fn rasterize_fwd(
-    #[spirv(workgroup_id)] tile: UVec3,
+    #[spirv(workgroup_id)] group: UVec3,
     #[spirv(local_invocation_id)] local: UVec3,
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
@@ -305,11 +410,11 @@ pub fn rasterize_fwd(
     #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
     #[spirv(workgroup)] done_count: &mut [u32; 1],
 ) {
-    let px = tile.x * TILE_SIZE + local.x;
-    let py = tile.y * TILE_SIZE + local.y;
+    let px = group.x * RASTER_BLOCK + local.x;
+    let py = group.y * RASTER_BLOCK + local.y;
     let inside = px < frame.width && py < frame.height;
     let cfg = BlendSettings::<f32>::from_frame(frame);
-    let t = (tile.y * frame.tiles_x + tile.x) as usize;
+    let t = block_tile(group, frame);
     let start = ranges[2 * t];
     let end = ranges[2 * t + 1];
     let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
@@ -378,7 +483,7 @@ pub fn rasterize_fwd(
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(16, 16)))]
 pub fn rasterize_fused_fwd(
-    #[spirv(workgroup_id)] tile: UVec3,
+    #[spirv(workgroup_id)] group: UVec3,
     #[spirv(local_invocation_id)] local: UVec3,
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
@@ -399,11 +504,11 @@ pub fn rasterize_fused_fwd(
     #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
     #[spirv(workgroup)] done_count: &mut [u32; 1],
 ) {
-    let px = tile.x * TILE_SIZE + local.x;
-    let py = tile.y * TILE_SIZE + local.y;
+    let px = group.x * RASTER_BLOCK + local.x;
+    let py = group.y * RASTER_BLOCK + local.y;
     let inside = px < frame.width && py < frame.height;
     let cfg = BlendSettings::<f32>::from_frame(frame);
-    let t = (tile.y * frame.tiles_x + tile.x) as usize;
+    let t = block_tile(group, frame);
     let start = ranges[2 * t];
     let end = ranges[2 * t + 1];
     let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
@@ -491,7 +596,7 @@ fn store_pixel_fused(
     ends[3 * p + 2] = e[2];
 }
 
-/// The backward rasterizer: one workgroup per tile, one invocation per pixel, walking
+/// The backward rasterizer: one workgroup per 16 × 16 block, one invocation per pixel, walking
 /// the tile's batches back to front from the last splat any pixel blended, each pixel
 /// skipping what lies behind its own last one; `$accumulate(grads, index, value)` adds
 /// into the per-splat gradients (float atomics or a compare-and-swap loop).
@@ -501,7 +606,7 @@ macro_rules! rasterize_bwd_entry {
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(16, 16)))]
         pub fn $name(
-            #[spirv(workgroup_id)] tile: UVec3,
+            #[spirv(workgroup_id)] group: UVec3,
             #[spirv(local_invocation_id)] local: UVec3,
             #[spirv(local_invocation_index)] lid: u32,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
@@ -521,11 +626,11 @@ macro_rules! rasterize_bwd_entry {
             #[spirv(workgroup)] b_id: &mut [u32; BATCH],
             #[spirv(workgroup)] max_contributors: &mut [u32; 1],
         ) {
-            let px = tile.x * TILE_SIZE + local.x;
-            let py = tile.y * TILE_SIZE + local.y;
+            let px = group.x * RASTER_BLOCK + local.x;
+            let py = group.y * RASTER_BLOCK + local.y;
             let inside = px < frame.width && py < frame.height;
             let cfg = BlendSettings::<f32>::from_frame(frame);
-            let t = (tile.y * frame.tiles_x + tile.x) as usize;
+            let t = block_tile(group, frame);
             let start = ranges[2 * t];
             let p = if inside { (py * frame.width + px) as usize } else { 0 };
             let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
@@ -598,7 +703,7 @@ rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backwa
 // One line per entry: the kernel list test (`tests/tests/runtime.rs`) reads the name here.
 rasterize_bwd_entry!(rasterize_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer: per-splat gradients in 64-bit fixed point (`fixed_point::resolve` turns them into f32).");
 
-/// The fused rasterizer's backward (`ops::splat::fused`): one workgroup per tile, one
+/// The fused rasterizer's backward (`ops::splat::fused`): one workgroup per 16 × 16 block, one
 /// invocation per pixel, walking the merged list back to front from the furthest end
 /// any pixel's states reached; each pixel runs its three states' backward walks
 /// (`drape_shared::splat::raster::FusedPixelBwd`) and adds each splat the sum of what
@@ -611,7 +716,7 @@ macro_rules! rasterize_fused_bwd_entry {
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(16, 16)))]
         pub fn $name(
-            #[spirv(workgroup_id)] tile: UVec3,
+            #[spirv(workgroup_id)] group: UVec3,
             #[spirv(local_invocation_id)] local: UVec3,
             #[spirv(local_invocation_index)] lid: u32,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
@@ -634,11 +739,11 @@ macro_rules! rasterize_fused_bwd_entry {
             #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
             #[spirv(workgroup)] max_end: &mut [u32; 1],
         ) {
-            let px = tile.x * TILE_SIZE + local.x;
-            let py = tile.y * TILE_SIZE + local.y;
+            let px = group.x * RASTER_BLOCK + local.x;
+            let py = group.y * RASTER_BLOCK + local.y;
             let inside = px < frame.width && py < frame.height;
             let cfg = BlendSettings::<f32>::from_frame(frame);
-            let t = (tile.y * frame.tiles_x + tile.x) as usize;
+            let t = block_tile(group, frame);
             let start = ranges[2 * t];
             let p = if inside { (py * frame.width + px) as usize } else { 0 };
             let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
@@ -816,7 +921,8 @@ pub fn screen_stats(
 // barrier as a switch between coroutines. The workgroup rasterizers above pay both for
 // every splat: 256 invocations read each splat's 10 fields from workgroup memory, and
 // each batch costs three barriers. Here a workgroup is one subgroup of 8 lanes covering
-// an 8 × 4 block of a tile (8 workgroups per 16 × 16 tile); each lane loads one splat
+// an 8 × 4 block of a tile (8 workgroups per 16 × 16 tile, 2 per tile of 8, 32 per tile
+// of 32); each lane loads one splat
 // of the next 8 of the tile's list, and every lane gets each of the 8 by broadcasts
 // with constant lane numbers (a register shuffle there): 11 loads per lane feed
 // 8 splats × 4 pixels, and no barrier is needed. The engine records these only where
@@ -828,7 +934,6 @@ pub fn screen_stats(
 #[cfg(feature = "subgroup-ballot")]
 const SG_ROWS: u32 = 4;
 #[cfg(feature = "subgroup-ballot")]
-const _: () = assert!(TILE_SIZE == 16 && SG_ROWS == 4);
 
 /// Lane `$u`'s splat view, in every lane, for a uniform but not constant `$u`.
 #[cfg(feature = "subgroup-ballot")]
@@ -880,7 +985,8 @@ const SPARSE_MAX_WALK: u32 = 56_000;
 const SPARSE_MAX_WALK_CAS: u32 = 24_000;
 
 /// Where one lane of a subgroup rasterizer works: its tile, its pixel column and the 4
-/// rows of its 8 × 4 block (workgroup `group` of the `[2 · tiles_x, 4 · tiles_y]` grid).
+/// rows of its 8 × 4 block (workgroup `group` of the `[T/8 · tiles_x, T/4 · tiles_y]`
+/// grid for tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
 struct Block {
     tile: usize,
@@ -904,7 +1010,7 @@ impl Block {
         let py = group.y * SG_ROWS;
         let x_in = px < frame.width;
         Block {
-            tile: ((group.y / SG_ROWS) * frame.tiles_x + group.x / 2) as usize,
+            tile: ((group.y / (frame.tile_size / SG_ROWS)) * frame.tiles_x + group.x / (frame.tile_size / 8)) as usize,
             px,
             py,
             fx: px as f32 + 0.5,
@@ -950,7 +1056,7 @@ fn store_pixel_fwd(
 
 /// [`rasterize_fwd`] for CPU devices with subgroups of 8 (see the section header):
 /// the same blending of the same splats in the same order per pixel, so the same
-/// outputs. Dispatched on `[2 · tiles_x, 4 · tiles_y]` workgroups of 8.
+/// outputs. Dispatched on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(8)))]
@@ -1053,7 +1159,7 @@ pub fn rasterize_fwd_subgroup(
 }
 
 /// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
-/// header), on `[2 · tiles_x, 4 · tiles_y]` workgroups of 8.
+/// header), on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(8)))]

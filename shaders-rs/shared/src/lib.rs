@@ -11,6 +11,7 @@ pub mod adam;
 pub mod cloth_loss;
 pub mod deform;
 pub mod fixed_point;
+pub mod half;
 pub mod lpips;
 pub mod nn;
 pub mod radix_sort;

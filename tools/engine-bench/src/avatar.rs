@@ -72,7 +72,7 @@ fn stage(pass: &str) -> &'static str {
         "decoders"
     } else if starts("deform.") || starts("skinning.") || starts("layer.") {
         "skinning"
-    } else if starts("splat.project") {
+    } else if starts("splat.project") || starts("splat.pack_sh_half") {
         "projection"
     } else if starts("radix_sort.") || starts("splat.scan") || starts("splat.gather_counts") || starts("splat.emit_intersections") || starts("splat.tile_ranges") {
         "binning and sorts"

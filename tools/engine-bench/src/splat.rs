@@ -13,6 +13,7 @@ use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVari
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
 use drape_engine::Context;
 use serde_json::json;
+use drape_shared::splat::layout::TILE_SIZES;
 
 /// Options of `engine-bench splat`.
 #[derive(Clone, Debug, clap::Args)]
@@ -46,6 +47,11 @@ pub struct SplatArgs {
     /// memory: for lavapipe).
     #[arg(long, value_delimiter = ',', default_value = "auto")]
     pub raster: Vec<RasterChoice>,
+    /// Tile sides in pixels (8, 16 or 32), comma-separated to measure several side by
+    /// side: the same image, with more intersections to sort and shorter lists to walk
+    /// as tiles shrink. 8 needs the subgroup rasterizer.
+    #[arg(long, value_delimiter = ',', default_value = "16", value_parser = parse_tile_size)]
+    pub tile_sizes: Vec<u32>,
     /// Print one JSON object on stdout instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -76,6 +82,13 @@ fn accumulation(args: &SplatArgs) -> Accumulation {
         Accumulation::Deterministic
     } else {
         Accumulation::Auto
+    }
+}
+
+fn parse_tile_size(s: &str) -> Result<u32, String> {
+    match s.trim().parse::<u32>() {
+        Ok(t) if TILE_SIZES.contains(&t) => Ok(t),
+        _ => Err(format!("'{s}' is not a tile size ({TILE_SIZES:?})")),
     }
 }
 
@@ -132,10 +145,10 @@ fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
     Ok(out)
 }
 
-fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice) -> anyhow::Result<serde_json::Value> {
+fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice, tile_size: u32) -> anyhow::Result<serde_json::Value> {
     let (w, h) = (cfg.camera.width, cfg.camera.height);
     let n = cfg.cloud.len();
-    let settings = RenderSettings::default();
+    let settings = RenderSettings { tile_size, ..RenderSettings::default() };
     let gaussians = GaussianBuffers::upload(ctx, "bench params", &cfg.cloud)?;
     let grads = GaussianBuffers::new(ctx, "bench grads", n, cfg.cloud.sh_degree)?;
     let mut renderer = SplatRenderer::new(ctx, w, h, n)?;
@@ -179,6 +192,7 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
         "gaussians": n,
         "width": w,
         "height": h,
+        "tile_size": tile_size,
         "intersections": intersections,
         "forward_median_ms": fwd,
         "forward_fps": 1e3 / fwd,
@@ -195,8 +209,10 @@ pub fn run(ctx: &Context, args: &SplatArgs) -> anyhow::Result<serde_json::Value>
     let mut results = Vec::new();
     for cfg in configs(args)? {
         for &raster in &args.raster {
-            eprintln!("splat: {} ({raster:?} rasterizer) ...", cfg.label);
-            results.push(bench_one(ctx, &cfg, args, raster).with_context(|| format!("splat benchmark '{}' ({raster:?} rasterizer)", cfg.label))?);
+            for &tile in &args.tile_sizes {
+                eprintln!("splat: {} ({raster:?} rasterizer, tiles of {tile}) ...", cfg.label);
+                results.push(bench_one(ctx, &cfg, args, raster, tile).with_context(|| format!("splat benchmark '{}' ({raster:?} rasterizer, tiles of {tile})", cfg.label))?);
+            }
         }
     }
     Ok(json!({
@@ -214,9 +230,10 @@ pub fn print_table(r: &serde_json::Value) {
     println!("splat on {} ({} runs, median)", r["device"].as_str().unwrap_or("?"), r["runs"]);
     for c in r["results"].as_array().into_iter().flatten() {
         println!(
-            "  {:<28} {:<9} fwd {:>9.2} ms {:>7.2} FPS | fwd+bwd {:>9.2} ms {:>7.2} FPS | {:>10} isect | {:>7.1} M blend/s",
+            "  {:<28} {:<9} {:>2}px fwd {:>9.2} ms {:>7.2} FPS | fwd+bwd {:>9.2} ms {:>7.2} FPS | {:>10} isect | {:>7.1} M blend/s",
             c["config"].as_str().unwrap_or("?"),
             c["raster"].as_str().unwrap_or("?"),
+            c["tile_size"],
             c["forward_median_ms"].as_f64().unwrap_or(0.0),
             c["forward_fps"].as_f64().unwrap_or(0.0),
             c["forward_backward_median_ms"].as_f64().unwrap_or(0.0),

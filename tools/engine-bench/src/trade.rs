@@ -22,6 +22,10 @@
 //!   `SplatRenderer::contributions`: the backward rasterizer's colour gradient under
 //!   an upstream of ones), and the given fraction with the least culled as above;
 //! - compositing: three-pass, three-pass-occlusion, single-pass, fused;
+//! - tile size: 8 (subgroup rasterizers only) and 32 against the default 16; the image
+//!   is the same, the binning, sorts and walks are not;
+//! - half-precision SH: the decoded SH packed to binary16 every frame (the packing's
+//!   pass is in the time) and the projection reading half the words;
 //! - pose-dependent offsets off, for runs whose layers were trained with them: the
 //!   deformation reads the decoded offsets without the pose blend (which also saves
 //!   the blend's pass).
@@ -41,7 +45,8 @@ use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use drape_engine::ops::splat::render::SplatRenderer;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::Context;
-use drape_shared::splat::layout::sh_coeffs;
+use drape_engine::ops::splat::render::subgroup_raster_supported;
+use drape_shared::splat::layout::{sh_coeffs, DEFAULT_TILE_SIZE, RASTER_BLOCK, TILE_SIZES};
 use drape_trainer::avatar::composite::{AvatarRenderer, Compositing};
 use drape_trainer::avatar::eval::psnr;
 use drape_trainer::avatar::model::Avatar;
@@ -139,6 +144,10 @@ struct Setting {
     prune_mask: Option<std::rc::Rc<Vec<bool>>>,
     /// The pose blend of layers trained with pose-dependent offsets.
     pose_offsets: bool,
+    /// Tile side of binning and rasterization (`RenderSettings::tile_size`).
+    tile_size: u32,
+    /// Render from half-precision SH (`RenderSettings::half_sh`).
+    half_sh: bool,
 }
 
 impl Setting {
@@ -297,7 +306,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
     let default_comp = run.config.compositing.clone();
     let parts = part_names(&run.avatar);
-    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true };
+    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false };
     let mut out = vec![base.clone()];
     let mut knobs = BTreeMap::new();
     for &s in args.scales.iter().filter(|&&s| s != 1.0) {
@@ -348,14 +357,21 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
         out.push(Setting { knob: "pose_offsets", label: format!("off ({} without the pose blend)", blended.join(", ")), pose_offsets: false, ..base.clone() });
         knobs.insert("pose_offsets", json!(format!("measured: {} rendered without the pose blend (the decoded offsets alone)", blended.join(", "))));
     }
+    let subgroup = subgroup_raster_supported(ctx.info());
+    let tiles: Vec<u32> = TILE_SIZES.into_iter().filter(|&t| t != DEFAULT_TILE_SIZE && (t >= RASTER_BLOCK || subgroup)).collect();
+    for &t in &tiles {
+        out.push(Setting { knob: "tile size", label: format!("{t} x {t} tiles"), tile_size: t, ..base.clone() });
+    }
+    let why8 = if subgroup { "" } else { "; 8 needs the subgroup rasterizers of CPU devices, not this device's" };
+    knobs.insert("tile_size", json!(format!("measured: tiles of {tiles:?} against the default {DEFAULT_TILE_SIZE} (the same image: a tile only groups the splats that pixels walk){why8}")));
+    out.push(Setting { knob: "half-precision SH", label: "SH packed to binary16 each frame".into(), half_sh: true, ..base.clone() });
+    knobs.insert("half_sh", json!("measured: the SH the decoders wrote packed to binary16 (round to nearest even) every frame (splat.pack_sh_half, in the time) and the projection reading the halves"));
     Ok((out, knobs))
 }
 
 /// Knobs that need kernel support not built yet: no numbers.
 fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
     vec![
-        json!({"knob": "tile size 8 / 32", "why": "TILE_SIZE = 16 is a constant compiled into the splatting kernels (a rasterizer workgroup is one tile)"}),
-        json!({"knob": "half-precision SH", "why": "the kernels read f32 SH only"}),
         json!({"knob": "half-precision projected splats", "why": "ProjectedSplat is f32 only"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
     ]
@@ -482,7 +498,7 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
             rec.submit_and_wait()?;
         }
         let kept = if s.edits() { apply_edits(ctx, &mut run.avatar, s)? } else { run.avatar.counts().iter().map(|c| c.1 as usize).collect() };
-        renderer.forward(ctx, &run.avatar, &cam, &RenderSettings::default())?;
+        renderer.forward(ctx, &run.avatar, &cam, &RenderSettings { tile_size: s.tile_size, half_sh: s.half_sh, ..RenderSettings::default() })?;
         Ok(kept)
     })();
     let profile = ctx.take_profile().unwrap_or_default();

@@ -6,7 +6,7 @@
 //! what is used are not materialised.
 
 use drape_shared::real::Real;
-use drape_shared::splat::layout::{FrameParams, TILE_SIZE};
+use drape_shared::splat::layout::FrameParams;
 use drape_shared::splat::project::{project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad};
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 
@@ -46,7 +46,7 @@ pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> Refere
         .iter()
         .map(|p| {
             p.visible
-                .then(|| tile_rect(p.x, p.y, p.radius, frame.tiles_x, frame.tiles_y))
+                .then(|| tile_rect(p.x, p.y, p.radius, frame.tile_size, frame.tiles_x, frame.tiles_y))
                 .filter(|r| r[2] > r[0] && r[3] > r[1])
         })
         .collect();
@@ -89,7 +89,7 @@ pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> Refere
     let background = frame.background.map(F::of);
     for py in 0..h {
         for px in 0..w {
-            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let tile = ((py / frame.tile_size) * frame.tiles_x + px / frame.tile_size) as usize;
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = PixelFwd::<F>::new();
             for (k, &g) in tile_lists[tile].iter().enumerate() {
@@ -131,7 +131,7 @@ pub fn backward<F: Real>(
     for py in 0..fwd.height {
         for px in 0..fwd.width {
             let p = (py * fwd.width + px) as usize;
-            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let tile = ((py / frame.tile_size) * frame.tiles_x + px / frame.tile_size) as usize;
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = PixelBwd::new(
                 fwd.transmittance[p],
@@ -194,7 +194,7 @@ pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &Fr
     for py in 0..fwd.height {
         for px in 0..fwd.width {
             let p = (py * fwd.width + px) as usize;
-            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let tile = ((py / frame.tile_size) * frame.tiles_x + px / frame.tile_size) as usize;
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = FusedPixel::<F>::new();
             for (k, &g) in fwd.tile_lists[tile].iter().enumerate() {
@@ -236,7 +236,7 @@ pub fn fused_backward<F: Real>(
     for py in 0..fwd.height {
         for px in 0..fwd.width {
             let p = (py * fwd.width + px) as usize;
-            let tile = ((py / TILE_SIZE) * frame.tiles_x + px / TILE_SIZE) as usize;
+            let tile = ((py / frame.tile_size) * frame.tiles_x + px / frame.tile_size) as usize;
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let three = |v: &[F]| [v[3 * p], v[3 * p + 1], v[3 * p + 2]];
             let mut state = FusedPixelBwd::new(

@@ -17,7 +17,8 @@
 //! deterministic `_fixed` into a fixed-point scratch and `fixed_point::resolve`), then
 //! `project_bwd` into the parameter gradients.
 
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, SPLAT_GRAD_FLOATS};
+use drape_shared::half::{sh_half_words, ShHalfParams};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -235,6 +236,10 @@ pub struct SplatRenderer {
     intersections: u32,
     /// The rasterizer kernels recorded (never `Auto`).
     raster: RasterVariant,
+    /// Half-precision SH for `RenderSettings::half_sh` (made on the first such frame,
+    /// for `max_count` Gaussians at degree 3), and whether the frame prepared uses it.
+    sh_half: Option<Buffer>,
+    half_sh: bool,
     /// This renderer's identity and its forward passes so far (see [`SavedForward`]).
     id: u64,
     frames: u64,
@@ -261,11 +266,14 @@ impl SplatRenderer {
         if colour_bytes > binding {
             return Err(EngineError::too_large(format!("bytes of the colour buffer of a {width}x{height} image"), colour_bytes, binding, "the device's maxStorageBufferRange"));
         }
-        let [tiles_x, tiles_y] = tile_grid(width, height);
+        // The tile ranges are sized for the smallest tile, so every tile size fits.
+        let smallest = TILE_SIZES[0];
+        let [tiles_x, tiles_y] = tile_grid(width, height, smallest);
         let tiles64 = u64::from(tiles_x) * u64::from(tiles_y);
         let grid = ctx.info().max_compute_workgroup_count;
-        if tiles64 > MAX_TILES || tiles_x > grid[0] || tiles_y > grid[1] {
-            return Err(EngineError::too_large(format!("16x16 tiles of a {width}x{height} image"), tiles64, MAX_TILES.min(u64::from(grid[0]) * u64::from(grid[1])), "the rasterizer (one workgroup per tile)"));
+        let blocks = raster_grid(RasterVariant::Workgroup, TILE_SIZES[TILE_SIZES.len() - 1], width, height);
+        if tiles64 > MAX_TILES || blocks[0] > grid[0] || blocks[1] > grid[1] {
+            return Err(EngineError::too_large(format!("{smallest}x{smallest} tiles of a {width}x{height} image"), tiles64, MAX_TILES, "the rasterizer (one workgroup per 16x16 block, within maxComputeWorkGroupCount)"));
         }
         let pixels = pixels64 as usize;
         let tiles = tiles64 as usize;
@@ -306,18 +314,22 @@ impl SplatRenderer {
             splat_grads: f32_buffer(ctx, "splat gradients", SPLAT_GRAD_FLOATS * n as usize)?,
             fixed: None,
             intersections: 0,
-            raster: Self::resolve_variant(ctx, RasterVariant::Auto, [tiles_x, tiles_y])?,
+            raster: Self::resolve_variant(ctx, RasterVariant::Auto, width, height)?,
+            sh_half: None,
+            half_sh: false,
             id: NEXT_RENDERER.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             frames: 0,
         })
     }
 
-    /// `variant` as this device runs it for a grid of `tiles` 16 × 16 tiles.
-    fn resolve_variant(ctx: &Context, variant: RasterVariant, tiles: [u32; 2]) -> Result<RasterVariant> {
+    /// `variant` as this device runs it for a `width` × `height` image.
+    fn resolve_variant(ctx: &Context, variant: RasterVariant, width: u32, height: u32) -> Result<RasterVariant> {
         let info = ctx.info();
         let grid = info.max_compute_workgroup_count;
-        // The subgroup kernels run 2 × 4 workgroups per tile.
-        let fits = u64::from(tiles[0]) * 2 <= u64::from(grid[0]) && u64::from(tiles[1]) * 4 <= u64::from(grid[1]);
+        // The subgroup kernels run one workgroup per 8 × 4 block, at every tile size.
+        let blocks = TILE_SIZES.map(|t| raster_grid(RasterVariant::Subgroup, t, width, height));
+        let fits = blocks.iter().all(|b| b[0] <= grid[0] && b[1] <= grid[1]);
+        let tiles = [u64::from(blocks[2][0]), u64::from(blocks[2][1])];
         match variant {
             RasterVariant::Auto if subgroup_raster_supported(info) && fits => Ok(RasterVariant::Subgroup),
             RasterVariant::Auto | RasterVariant::Workgroup => Ok(RasterVariant::Workgroup),
@@ -326,8 +338,8 @@ impl SplatRenderer {
                 feature: "a CPU device with subgroups of 8 lanes with ballot operations",
             }),
             RasterVariant::Subgroup if !fits => Err(EngineError::too_large(
-                "16x16 tiles along an image side for the subgroup rasterizer (4 workgroups per tile row)",
-                u64::from(tiles[1]) * 4,
+                "8x4 blocks along an image side for the subgroup rasterizer (one workgroup each)",
+                tiles[1].max(tiles[0]),
                 u64::from(grid[1]),
                 "the device's maxComputeWorkGroupCount",
             )),
@@ -338,7 +350,7 @@ impl SplatRenderer {
     /// Chooses the rasterizer kernels (see [`RasterVariant`]); both give the same
     /// images, and gradients equal up to the order of float additions.
     pub fn set_raster_variant(&mut self, variant: RasterVariant) -> Result<()> {
-        self.raster = Self::resolve_variant(&self.ctx, variant, tile_grid(self.width, self.height))?;
+        self.raster = Self::resolve_variant(&self.ctx, variant, self.width, self.height)?;
         Ok(())
     }
 
@@ -354,14 +366,10 @@ impl SplatRenderer {
         (kernel, self.raster_grid())
     }
 
-    /// The rasterizer's workgroup grid: one per tile, or 2 x 4 (8 x 4 blocks) per tile
-    /// for the subgroup kernels.
+    /// The rasterizer's workgroup grid for the frame's tile size.
     fn raster_grid(&self) -> [u32; 3] {
         let fp = &self.frame_params;
-        match self.raster {
-            RasterVariant::Subgroup => [fp.tiles_x * 2, fp.tiles_y * 4, 1],
-            _ => [fp.tiles_x, fp.tiles_y, 1],
-        }
+        raster_grid(self.raster, fp.tile_size, fp.width, fp.height)
     }
 
     pub fn size(&self) -> (u32, u32) {
@@ -445,6 +453,18 @@ impl SplatRenderer {
         if gaussians.count > self.max_count {
             return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
         }
+        settings.validate().map_err(|problem| EngineError::InvalidSetting { what: "render settings", problem })?;
+        if settings.tile_size < RASTER_BLOCK && self.raster != RasterVariant::Subgroup {
+            return Err(EngineError::MissingFeature {
+                kernel: "splat::rasterize_fwd",
+                feature: "tiles of 8 pixels: the workgroup rasterizers walk 16x16 blocks, so tiles of 8 need the subgroup rasterizers of CPU devices (take 16 or 32)",
+            });
+        }
+        if settings.half_sh && self.sh_half.is_none() {
+            let bytes = 4 * sh_half_words(MAX_SH_COEFFS) as u64 * u64::from(self.max_count.max(1));
+            self.sh_half = Some(self.ctx.create_buffer("splat half-precision sh", BufferDesc::gpu_only(bytes))?);
+        }
+        self.half_sh = settings.half_sh;
         self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
         // The saved state is about to be overwritten: no earlier forward's stands.
         self.frames += 1;
@@ -541,6 +561,10 @@ impl SplatRenderer {
         rec.fill(&self.ranges, 0);
         for chunk in project_chunks(&ctx, n, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
+            if self.half_sh {
+                self.record_project_sh_half(rec, gaussians, &chunk, (offset, bytes))?;
+                continue;
+            }
             rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
                 .read("frame", &self.frame)
                 .read("means", &gaussians.means)
@@ -583,6 +607,35 @@ impl SplatRenderer {
             .write("ranges", &self.ranges)
             .push(&counts_pc)
             .dispatch(groups(capacity))
+    }
+
+    /// The projection of one chunk from half-precision SH: packs the chunk's SH
+    /// (`splat.pack_sh_half`), then projects with `splat::project_fwd_sh_half`.
+    fn record_project_sh_half<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, chunk: &ProjectChunk, (offset, bytes): (u64, u64)) -> Result<()> {
+        let sh_half = self.sh_half.as_ref().expect("prepare_forward makes the half-precision SH buffer");
+        let coeffs = sh_coeffs(gaussians.sh_degree);
+        let words = sh_half_words(coeffs) as u64 * u64::from(chunk.len);
+        let half_offset = 4 * sh_half_words(coeffs) as u64 * u64::from(chunk.first);
+        let params = ShHalfParams { count: chunk.len, coeffs: coeffs as u32, _pad: [0; 2] };
+        rec.pass("splat.pack_sh_half", Kernel::SplatPackShHalf)
+            .read_range("sh", &gaussians.sh, offset, bytes)
+            .write_range("sh_half", sh_half, half_offset, 4 * words)
+            .push(&params)
+            .dispatch(groups(words as u32))?;
+        rec.pass("splat.project_fwd", Kernel::SplatProjectFwdShHalf)
+            .read("frame", &self.frame)
+            .read("means", &gaussians.means)
+            .read("log_scales", &gaussians.log_scales)
+            .read("quats", &gaussians.quats)
+            .read("opacity_logits", &gaussians.opacity_logits)
+            .read_range("sh_half", sh_half, half_offset, 4 * words)
+            .write("splats", &self.splats)
+            .write("depth_keys", &self.depth_keys)
+            .write("order", &self.order)
+            .write("dropped", &self.dropped)
+            .push(chunk)
+            .dispatch(groups(chunk.len))?;
+        Ok(())
     }
 
     /// Reads the last forward pass's images back.
@@ -661,6 +714,9 @@ impl SplatRenderer {
     pub(crate) fn record_project_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, out: &'a GaussianBuffers) -> Result<()> {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+        if self.half_sh {
+            return Err(EngineError::InvalidSetting { what: "render settings", problem: "a frame rendered from half-precision SH (half_sh) has no backward: it is a render-only knob".into() });
+        }
         for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
@@ -777,7 +833,21 @@ pub fn render_image(ctx: &Context, cloud: &GaussianCloud, camera: &PinholeCamera
     Ok((renderer.read_image()?, stats))
 }
 
-/// The 16 × 16 tile grid of a `width` × `height` image.
-fn tile_grid(width: u32, height: u32) -> [u32; 2] {
-    [width.div_ceil(16), height.div_ceil(16)]
+/// The grid of `tile` × `tile` tiles of a `width` × `height` image.
+fn tile_grid(width: u32, height: u32, tile: u32) -> [u32; 2] {
+    [width.div_ceil(tile), height.div_ceil(tile)]
+}
+
+/// The workgroup grid of the rasterizer `variant` for tiles of side `tile`: every tile
+/// of the image covered by whole blocks (16 × 16 for the workgroup kernels, 8 × 4 for
+/// the subgroup ones), so the kernels find their tile by dividing the block's position.
+fn raster_grid(variant: RasterVariant, tile: u32, width: u32, height: u32) -> [u32; 3] {
+    let [tx, ty] = tile_grid(width, height, tile);
+    match variant {
+        RasterVariant::Subgroup => [tx * (tile / 8), ty * (tile / 4), 1],
+        _ => {
+            let per = (tile / RASTER_BLOCK).max(1);
+            [tx * per, ty * per, 1]
+        }
+    }
 }

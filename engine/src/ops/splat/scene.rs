@@ -3,7 +3,7 @@
 
 use drape_shared::splat::layout::{
     sh_coeffs, FrameParams, DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_DILATION, DEFAULT_FOV_CLAMP,
-    DEFAULT_MAX_SIGMAS, DEFAULT_TRANSMITTANCE_MIN, MAX_SH_COEFFS, MAX_SH_DEGREE, TILE_SIZE,
+    DEFAULT_MAX_SIGMAS, DEFAULT_TRANSMITTANCE_MIN, MAX_SH_COEFFS, MAX_SH_DEGREE, DEFAULT_TILE_SIZE, TILE_SIZES,
 };
 use drape_shared::splat::project::Gaussian;
 use drape_shared::real::Real;
@@ -225,8 +225,9 @@ impl PinholeCamera {
         Ok(())
     }
 
-    pub fn tiles(&self) -> (u32, u32) {
-        (self.width.div_ceil(TILE_SIZE), self.height.div_ceil(TILE_SIZE))
+    /// The image's grid of tiles of side `tile_size`.
+    pub fn tiles(&self, tile_size: u32) -> (u32, u32) {
+        (self.width.div_ceil(tile_size), self.height.div_ceil(tile_size))
     }
 }
 
@@ -241,6 +242,25 @@ pub struct RenderSettings {
     pub transmittance_min: f32,
     pub max_sigmas: f32,
     pub fov_clamp: f32,
+    /// Tile side in pixels: 8, 16 or 32 ([`TILE_SIZES`]). The image does not depend on
+    /// it; the time does (smaller tiles: more intersections to sort, shorter lists to
+    /// walk). 8 needs the subgroup rasterizers (lavapipe); the workgroup ones rasterize
+    /// 16 × 16 blocks.
+    pub tile_size: u32,
+    /// Render from half-precision SH (binary16, rounded to nearest even): each frame
+    /// packs the SH (`splat.pack_sh_half`) and the projection reads half the words. A
+    /// render-only knob: a frame rendered so has no backward.
+    pub half_sh: bool,
+}
+
+impl RenderSettings {
+    /// Checks the settings a kernel cannot: the tile size.
+    pub fn validate(&self) -> Result<(), String> {
+        if !TILE_SIZES.contains(&self.tile_size) {
+            return Err(format!("tile size {} is not one of {TILE_SIZES:?}", self.tile_size));
+        }
+        Ok(())
+    }
 }
 
 impl Default for RenderSettings {
@@ -253,13 +273,15 @@ impl Default for RenderSettings {
             transmittance_min: DEFAULT_TRANSMITTANCE_MIN,
             max_sigmas: DEFAULT_MAX_SIGMAS,
             fov_clamp: DEFAULT_FOV_CLAMP,
+            tile_size: DEFAULT_TILE_SIZE,
+            half_sh: false,
         }
     }
 }
 
 /// The kernels' view of a camera, settings and scene size.
 pub fn frame_params(cam: &PinholeCamera, settings: &RenderSettings, sh_degree: u32, count: usize) -> FrameParams {
-    let (tiles_x, tiles_y) = cam.tiles();
+    let (tiles_x, tiles_y) = cam.tiles(settings.tile_size);
     let r = cam.rotation;
     FrameParams {
         rot: [r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]],
@@ -274,6 +296,7 @@ pub fn frame_params(cam: &PinholeCamera, settings: &RenderSettings, sh_degree: u
         height: cam.height,
         tiles_x,
         tiles_y,
+        tile_size: settings.tile_size,
         background: cam.background,
         sh_degree,
         count: u32::try_from(count).expect("at most 2^32 - 1 Gaussians"),

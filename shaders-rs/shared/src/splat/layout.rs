@@ -1,7 +1,16 @@
 //! `#[repr(C)]` layouts of the splatting kernels, and the named defaults.
 
-/// Tile side in pixels (a rasterizer workgroup is one tile).
-pub const TILE_SIZE: u32 = 16;
+/// Default tile side in pixels. A tile is the unit of binning (every splat is listed in
+/// each tile its extent reaches, and each tile's list is sorted by depth) and of the
+/// rasterizer's walk (every pixel of a tile walks that tile's list). Smaller tiles mean
+/// more intersections to sort and shorter lists to walk; the image is the same.
+pub const DEFAULT_TILE_SIZE: u32 = 16;
+/// The tile sides the kernels take ([`FrameParams::tile_size`]).
+pub const TILE_SIZES: [u32; 3] = [8, 16, 32];
+/// Side of the pixel block of one workgroup rasterizer (16 × 16 invocations): a tile
+/// of 32 is 2 × 2 such blocks walking the same list; tiles of 8 need the subgroup
+/// rasterizers (8 × 4 blocks).
+pub const RASTER_BLOCK: u32 = 16;
 /// Low-pass dilation added to the diagonal of every 2D covariance (pixels^2).
 pub const DEFAULT_DILATION: f32 = 0.3;
 /// Smallest alpha a splat must reach at a pixel to be blended there (also the opacity
@@ -47,6 +56,8 @@ pub struct FrameParams {
     pub height: u32,
     pub tiles_x: u32,
     pub tiles_y: u32,
+    /// Tile side in pixels, one of [`TILE_SIZES`].
+    pub tile_size: u32,
     pub background: [f32; 3],
     /// Spherical-harmonics degree of the coefficients (0 to 3).
     pub sh_degree: u32,

@@ -14,7 +14,7 @@
 //! colour, depth); the extent and the culling tests are not differentiated.
 
 use crate::real::{all_finite, dot3, mat_mul, mat_t_vec, mat_vec, transpose, zero33, Real, M3, V3};
-use crate::splat::layout::{FrameParams, MAX_SH_COEFFS, TILE_SIZE};
+use crate::splat::layout::{FrameParams, MAX_SH_COEFFS};
 use crate::splat::sh;
 
 /// The camera and render settings in the float type of the computation.
@@ -32,6 +32,7 @@ pub struct Camera<F> {
     pub height: u32,
     pub tiles_x: u32,
     pub tiles_y: u32,
+    pub tile_size: u32,
     pub sh_degree: u32,
     pub antialiased: bool,
     pub dilation: F,
@@ -57,6 +58,7 @@ impl<F: Real> Camera<F> {
             height: p.height,
             tiles_x: p.tiles_x,
             tiles_y: p.tiles_y,
+            tile_size: p.tile_size,
             sh_degree: p.sh_degree,
             antialiased: p.antialiased != 0,
             dilation: c(p.dilation),
@@ -363,10 +365,10 @@ pub fn project_fwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Projection<F> {
 }
 
 /// Tile rectangle `[x0, x1) x [y0, y1)` covered by a splat at (x, y) with the given
-/// radii, clamped to the image's tiles. Clamping happens in floating point before the
-/// conversion, so huge or infinite extents are safe.
-pub fn tile_rect<F: Real>(x: F, y: F, radius: [F; 2], tiles_x: u32, tiles_y: u32) -> [u32; 4] {
-    let ts = F::of(TILE_SIZE as f32);
+/// radii, clamped to the image's tiles of side `tile_size`. Clamping happens in
+/// floating point before the conversion, so huge or infinite extents are safe.
+pub fn tile_rect<F: Real>(x: F, y: F, radius: [F; 2], tile_size: u32, tiles_x: u32, tiles_y: u32) -> [u32; 4] {
+    let ts = F::of(tile_size as f32);
     let tx = F::of(tiles_x as f32);
     let ty = F::of(tiles_y as f32);
     let clamp = |v: F, hi: F| -> u32 { v.max(F::zero()).min(hi).to_f32() as u32 };
