@@ -602,14 +602,15 @@ fn check_fused_frame(l: &Layered, width: u32, height: u32, what: &str) {
     use drape_trainer::avatar::composite::layer_masks;
     let ctx = gpu();
     let mut cam = PinholeCamera::look_at([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, width, height).expect("camera");
-    let settings = RenderSettings::default();
     let pixels = (cam.width * cam.height) as usize;
     // Body, scene, cloth: each pass's cloud is a subsequence in the same order.
     let fused_cloud = joined(&joined(&l.body, &l.scene), &l.cloth);
     let layers: Vec<Layer> = [(Layer::Body, l.body.len()), (Layer::Scene, l.scene.len()), (Layer::Cloth, l.cloth.len())].iter().flat_map(|&(layer, n)| std::iter::repeat_n(layer, n)).collect();
     let fused_buffers = GaussianBuffers::upload(&ctx, "fused", &fused_cloud).expect("upload");
     let mut fused = FusedRenderer::new(&ctx, cam.width, cam.height, fused_cloud.len()).expect("fused");
-    for occlusion in [false, true] {
+    // f32 splats, and the half-precision ones (RenderSettings::half_splats) on both sides.
+    for (occlusion, half_splats) in [(false, false), (true, false), (false, true)] {
+        let settings = RenderSettings { half_splats, ..RenderSettings::default() };
         let clouds = passes(l, occlusion);
         let mut renderers = Vec::new();
         let mut images = Vec::new();
@@ -640,7 +641,7 @@ fn check_fused_frame(l: &Layered, width: u32, height: u32, what: &str) {
             // from SH in its own pass (1 or 0 up to rounding) and is exact here.
             for (what, got, want) in [("base", &base, &images[0].rgb), ("cloth", &cloth, &images[1].rgb), ("cloth alpha", &alpha, &images[1].alpha), ("matte", &matte, &images[2].rgb)] {
                 let e = worst(got, want);
-                assert!(e <= 1e-5, "occlusion {occlusion}, {variant:?} rasterizer: {what} differs from its pass by {e:e}");
+                assert!(e <= 1e-5, "occlusion {occlusion}, half splats {half_splats}, {variant:?} rasterizer: {what} differs from its pass by {e:e}");
             }
             assert!(alpha.iter().any(|&a| a > 0.5) && matte.iter().any(|&m| m > 0.5), "occlusion {occlusion}: the cloth and matte are exercised");
             let mut out = ctx.create_buffer("fused composite", BufferDesc::gpu_only(12 * pixels as u64)).expect("buffer");
@@ -651,7 +652,7 @@ fn check_fused_frame(l: &Layered, width: u32, height: u32, what: &str) {
             }
             let composite = ctx.read_buffer::<f32>(&mut out, 3 * pixels).expect("read");
             let e = worst(&composite, &three);
-            assert!(e <= 1e-5, "occlusion {occlusion}, {variant:?} rasterizer: fused composite differs from three-pass by {e:e}");
+            assert!(e <= 1e-5, "occlusion {occlusion}, half splats {half_splats}, {variant:?} rasterizer: fused composite differs from three-pass by {e:e}");
         }
     }
 }

@@ -14,7 +14,7 @@
 //! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
 
 use drape_shared::radix_sort::bounded_len;
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, RASTER_BLOCK};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, RASTER_BLOCK};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
 use drape_shared::half::{pack2, sh_half_sources, sh_half_words, unpack2, ShHalfParams};
 #[cfg(feature = "subgroup-ballot")]
@@ -350,16 +350,16 @@ macro_rules! unroll {
 #[inline]
 fn load_batch_slot(
     slot: usize,
-    s: &ProjectedSplat,
+    s: &SplatView<f32>,
     b_xy: &mut [[f32; 2]; BATCH],
     b_conic: &mut [[f32; 3]; BATCH],
     b_opacity_depth: &mut [[f32; 2]; BATCH],
     b_color: &mut [[f32; 3]; BATCH],
 ) {
     b_xy[slot] = [s.x, s.y];
-    b_conic[slot] = [s.conic_a, s.conic_b, s.conic_c];
+    b_conic[slot] = s.conic;
     b_opacity_depth[slot] = [s.opacity, s.depth];
-    b_color[slot] = [s.r, s.g, s.b];
+    b_color[slot] = s.color;
 }
 
 #[inline]
@@ -388,91 +388,98 @@ fn block_tile(group: UVec3, frame: &FrameParams) -> usize {
 /// One workgroup per 16 × 16 block of a tile, one invocation per pixel: blends the
 /// tile's splats front to back, a batch at a time, until every pixel of the block is
 /// saturated.
-#[allow(clippy::too_many_arguments)]
-#[spirv(compute(threads(16, 16)))]
-pub fn rasterize_fwd(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(local_invocation_id)] local: UVec3,
-    #[spirv(local_invocation_index)] lid: u32,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
-    #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
-    #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
-    #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
-    #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
-    #[spirv(workgroup)] done_count: &mut [u32; 1],
-) {
-    let px = group.x * RASTER_BLOCK + local.x;
-    let py = group.y * RASTER_BLOCK + local.y;
-    let inside = px < frame.width && py < frame.height;
-    let cfg = BlendSettings::<f32>::from_frame(frame);
-    let t = block_tile(group, frame);
-    let start = ranges[2 * t];
-    let end = ranges[2 * t + 1];
-    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
-    let mut state = PixelFwd::<f32>::new();
-    state.done = !inside;
-    let slot = lid as usize;
-    let mut base = start;
-    // Uniform loop: `base`, `end` and the vote are the same for the whole workgroup.
-    while base < end {
-        let k = base + lid;
-        if k < end {
-            let s = splats[isect_values[k as usize] as usize];
-            load_batch_slot(slot, &s, b_xy, b_conic, b_opacity_depth, b_color);
-        }
-        if lid == 0 {
-            done_count[0] = 0;
-        }
-        barrier();
-        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
-        let mut j = 0u32;
-        while j < count && !state.done {
-            // UNROLL splats per iteration: llvmpipe caps the loop iterations of an
-            // invocation at 65,535, and a tile's list can hold ~10^5 splats.
-            let mut u = 0;
-            unroll!(u, {
-                if j + u < count && !state.done {
-                    let s = batch_view((j + u) as usize, b_xy, b_conic, b_opacity_depth, b_color);
-                    state.blend(&s, base - start + j + u, fx, fy, &cfg);
+macro_rules! rasterize_fwd_entry {
+    ($(#[$attr:meta])*, $name:ident, $splat:ty) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(16, 16)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_id)] local: UVec3,
+            #[spirv(local_invocation_index)] lid: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[$splat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
+            #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] done_count: &mut [u32; 1],
+        ) {
+            let px = group.x * RASTER_BLOCK + local.x;
+            let py = group.y * RASTER_BLOCK + local.y;
+            let inside = px < frame.width && py < frame.height;
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let t = block_tile(group, frame);
+            let start = ranges[2 * t];
+            let end = ranges[2 * t + 1];
+            let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+            let mut state = PixelFwd::<f32>::new();
+            state.done = !inside;
+            let slot = lid as usize;
+            let mut base = start;
+            // Uniform loop: `base`, `end` and the vote are the same for the whole workgroup.
+            while base < end {
+                let k = base + lid;
+                if k < end {
+                    let s = splats[isect_values[k as usize] as usize];
+                    load_batch_slot(slot, &s.view(), b_xy, b_conic, b_opacity_depth, b_color);
                 }
-            });
-            j += UNROLL;
+                if lid == 0 {
+                    done_count[0] = 0;
+                }
+                barrier();
+                let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+                let mut j = 0u32;
+                while j < count && !state.done {
+                    // UNROLL splats per iteration: llvmpipe caps the loop iterations of an
+                    // invocation at 65,535, and a tile's list can hold ~10^5 splats.
+                    let mut u = 0;
+                    unroll!(u, {
+                        if j + u < count && !state.done {
+                            let s = batch_view((j + u) as usize, b_xy, b_conic, b_opacity_depth, b_color);
+                            state.blend(&s, base - start + j + u, fx, fy, &cfg);
+                        }
+                    });
+                    j += UNROLL;
+                }
+                if state.done {
+                    atomics::add_u32_workgroup(&mut done_count[0], 1);
+                }
+                barrier();
+                let all_done = done_count[0] == BATCH as u32;
+                // Everyone has read the batch and the vote before they are overwritten.
+                barrier();
+                if all_done {
+                    break;
+                }
+                base += count;
+            }
+            if !inside {
+                return;
+            }
+            let p = (py * frame.width + px) as usize;
+            let c = state.rgb(frame.background);
+            rgb[3 * p] = c[0];
+            rgb[3 * p + 1] = c[1];
+            rgb[3 * p + 2] = c[2];
+            alpha[p] = 1.0 - state.transmittance;
+            depth[p] = state.depth;
+            contributors[p] = state.contributors;
+            transmittance[p] = state.transmittance;
+            blended[p] = state.blended;
         }
-        if state.done {
-            atomics::add_u32_workgroup(&mut done_count[0], 1);
-        }
-        barrier();
-        let all_done = done_count[0] == BATCH as u32;
-        // Everyone has read the batch and the vote before they are overwritten.
-        barrier();
-        if all_done {
-            break;
-        }
-        base += count;
-    }
-    if !inside {
-        return;
-    }
-    let p = (py * frame.width + px) as usize;
-    let c = state.rgb(frame.background);
-    rgb[3 * p] = c[0];
-    rgb[3 * p + 1] = c[1];
-    rgb[3 * p + 2] = c[2];
-    alpha[p] = 1.0 - state.transmittance;
-    depth[p] = state.depth;
-    contributors[p] = state.contributors;
-    transmittance[p] = state.transmittance;
-    blended[p] = state.blended;
+    };
 }
+rasterize_fwd_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fwd, ProjectedSplat);
+rasterize_fwd_entry!(#[doc = "[`rasterize_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."], rasterize_fwd_half, HalfSplat);
 
 /// The fused rasterizer (`ops::splat::fused`): one walk of each tile's depth-sorted
 /// list of every cloud's splats, blending each into the base, over and matte states
@@ -480,86 +487,93 @@ pub fn rasterize_fwd(
 /// writes the base image over the frame's background, the over pass's image and alpha
 /// over black, and the matte (3 channels, over black) for the composite, and for the
 /// backward each state's final transmittance and end in the merged list (3 per pixel).
-#[allow(clippy::too_many_arguments)]
-#[spirv(compute(threads(16, 16)))]
-pub fn rasterize_fused_fwd(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(local_invocation_id)] local: UVec3,
-    #[spirv(local_invocation_index)] lid: u32,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
-    #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
-    #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
-    #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
-    #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
-    #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
-    #[spirv(workgroup)] done_count: &mut [u32; 1],
-) {
-    let px = group.x * RASTER_BLOCK + local.x;
-    let py = group.y * RASTER_BLOCK + local.y;
-    let inside = px < frame.width && py < frame.height;
-    let cfg = BlendSettings::<f32>::from_frame(frame);
-    let t = block_tile(group, frame);
-    let start = ranges[2 * t];
-    let end = ranges[2 * t + 1];
-    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
-    let mut state = FusedPixel::<f32>::new();
-    let mut done = !inside;
-    let slot = lid as usize;
-    let mut base = start;
-    // Uniform loop, as in rasterize_fwd.
-    while base < end {
-        let k = base + lid;
-        if k < end {
-            let g = isect_values[k as usize];
-            let s = splats[g as usize];
-            load_batch_slot(slot, &s, b_xy, b_conic, b_opacity_depth, b_color);
-            b_mask[slot] = masks[g as usize];
-        }
-        if lid == 0 {
-            done_count[0] = 0;
-        }
-        barrier();
-        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
-        let mut j = 0u32;
-        while j < count && !done {
-            let mut u = 0;
-            unroll!(u, {
-                if j + u < count && !done {
-                    let slot = (j + u) as usize;
-                    let s = batch_view(slot, b_xy, b_conic, b_opacity_depth, b_color);
-                    state.blend(&s, b_mask[slot], base - start + j + u, fx, fy, &cfg);
-                    done = state.done();
+macro_rules! rasterize_fused_fwd_entry {
+    ($(#[$attr:meta])*, $name:ident, $splat:ty) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(16, 16)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_id)] local: UVec3,
+            #[spirv(local_invocation_index)] lid: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[$splat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
+            #[spirv(workgroup)] b_xy: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_conic: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_opacity_depth: &mut [[f32; 2]; BATCH],
+            #[spirv(workgroup)] b_color: &mut [[f32; 3]; BATCH],
+            #[spirv(workgroup)] b_mask: &mut [u32; BATCH],
+            #[spirv(workgroup)] done_count: &mut [u32; 1],
+        ) {
+            let px = group.x * RASTER_BLOCK + local.x;
+            let py = group.y * RASTER_BLOCK + local.y;
+            let inside = px < frame.width && py < frame.height;
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let t = block_tile(group, frame);
+            let start = ranges[2 * t];
+            let end = ranges[2 * t + 1];
+            let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+            let mut state = FusedPixel::<f32>::new();
+            let mut done = !inside;
+            let slot = lid as usize;
+            let mut base = start;
+            // Uniform loop, as in rasterize_fwd.
+            while base < end {
+                let k = base + lid;
+                if k < end {
+                    let g = isect_values[k as usize];
+                    let s = splats[g as usize];
+                    load_batch_slot(slot, &s.view(), b_xy, b_conic, b_opacity_depth, b_color);
+                    b_mask[slot] = masks[g as usize];
                 }
-            });
-            j += UNROLL;
+                if lid == 0 {
+                    done_count[0] = 0;
+                }
+                barrier();
+                let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+                let mut j = 0u32;
+                while j < count && !done {
+                    let mut u = 0;
+                    unroll!(u, {
+                        if j + u < count && !done {
+                            let slot = (j + u) as usize;
+                            let s = batch_view(slot, b_xy, b_conic, b_opacity_depth, b_color);
+                            state.blend(&s, b_mask[slot], base - start + j + u, fx, fy, &cfg);
+                            done = state.done();
+                        }
+                    });
+                    j += UNROLL;
+                }
+                if done {
+                    atomics::add_u32_workgroup(&mut done_count[0], 1);
+                }
+                barrier();
+                let all_done = done_count[0] == BATCH as u32;
+                barrier();
+                if all_done {
+                    break;
+                }
+                base += count;
+            }
+            if !inside {
+                return;
+            }
+            let p = (py * frame.width + px) as usize;
+            store_pixel_fused(p, &state, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
         }
-        if done {
-            atomics::add_u32_workgroup(&mut done_count[0], 1);
-        }
-        barrier();
-        let all_done = done_count[0] == BATCH as u32;
-        barrier();
-        if all_done {
-            break;
-        }
-        base += count;
-    }
-    if !inside {
-        return;
-    }
-    let p = (py * frame.width + px) as usize;
-    store_pixel_fused(p, &state, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+    };
 }
+rasterize_fused_fwd_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fused_fwd, ProjectedSplat);
+rasterize_fused_fwd_entry!(#[doc = "[`rasterize_fused_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."], rasterize_fused_fwd_half, HalfSplat);
 
 /// Writes one pixel of the fused rasterizer's outputs (both variants).
 #[allow(clippy::too_many_arguments)]
@@ -657,7 +671,7 @@ macro_rules! rasterize_bwd_entry {
                 if k < batch_end {
                     let id = isect_values[k as usize];
                     b_id[slot] = id;
-                    load_batch_slot(slot, &splats[id as usize], b_xy, b_conic, b_opacity_depth, b_color);
+                    load_batch_slot(slot, &splats[id as usize].view(), b_xy, b_conic, b_opacity_depth, b_color);
                 }
                 barrier();
                 // Back to front, UNROLL splats per iteration (see the forward pass).
@@ -777,7 +791,7 @@ macro_rules! rasterize_fused_bwd_entry {
                     let id = isect_values[k as usize];
                     b_id[slot] = id;
                     b_mask[slot] = masks[id as usize];
-                    load_batch_slot(slot, &splats[id as usize], b_xy, b_conic, b_opacity_depth, b_color);
+                    load_batch_slot(slot, &splats[id as usize].view(), b_xy, b_conic, b_opacity_depth, b_color);
                 }
                 barrier();
                 // Back to front, UNROLL splats per iteration (see the forward pass).
@@ -887,6 +901,24 @@ pub fn project_bwd(
     }
 }
 
+/// Packs the projected splats for the half-precision rasterizers
+/// (`RenderSettings::half_splats`): `half[i]` = [`HalfSplat::pack`] of splat `i`, for
+/// `i < counts.count`.
+#[spirv(compute(threads(256)))]
+pub fn pack_splats_half(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] counts: &SplatCounts,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] splats: &[ProjectedSplat],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] half_splats: &mut [HalfSplat],
+) {
+    let i = flat_index(id, groups);
+    if i >= counts.count {
+        return;
+    }
+    half_splats[i as usize] = HalfSplat::pack(&splats[i as usize].view());
+}
+
 /// Densification statistics (`drape_shared::splat::densify`): one invocation per
 /// Gaussian of `[p.first, p.first + p.count)` of the last render adds its frame into
 /// `stats[3 (p.out_first + local) ..]`; reads the projected splats and the per-splat
@@ -955,6 +987,39 @@ macro_rules! sg_view_at {
                 crate::subgroup::broadcast_at($s.color[2], $u),
             ],
         }
+    };
+}
+
+/// Lane `$u`'s [`HalfSplat`]'s view, in every lane: 6 broadcasts (the centre and the
+/// four packed words), unpacked after.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_half_at {
+    ($s:ident, $u:expr) => {
+        HalfSplat {
+            x: crate::subgroup::broadcast_at($s.x, $u),
+            y: crate::subgroup::broadcast_at($s.y, $u),
+            conic_ab: crate::subgroup::broadcast_u32_at($s.conic_ab, $u),
+            conic_c_opacity: crate::subgroup::broadcast_u32_at($s.conic_c_opacity, $u),
+            rg: crate::subgroup::broadcast_u32_at($s.rg, $u),
+            b_depth: crate::subgroup::broadcast_u32_at($s.b_depth, $u),
+        }
+        .view()
+    };
+}
+
+/// A lane's splat as the f32 subgroup rasterizers keep it: its view.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_load_view {
+    ($e:expr) => {
+        $e.view()
+    };
+}
+
+/// A lane's splat as the half-precision subgroup rasterizers keep it: packed.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! sg_load_raw {
+    ($e:expr) => {
+        $e
     };
 }
 
@@ -1058,216 +1123,234 @@ fn store_pixel_fwd(
 /// the same blending of the same splats in the same order per pixel, so the same
 /// outputs. Dispatched on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
-#[allow(clippy::too_many_arguments)]
-#[spirv(compute(threads(8)))]
-pub fn rasterize_fwd_subgroup(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(local_invocation_index)] lane: u32,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
-) {
-    let b = Block::new(group, lane, frame);
-    let (fx, fy) = (b.fx, b.fy);
-    let cfg = BlendSettings::<f32>::from_frame(frame);
-    let start = ranges[2 * b.tile];
-    let end = ranges[2 * b.tile + 1];
-    let mut s0 = PixelFwd::<f32>::new();
-    let mut s1 = PixelFwd::<f32>::new();
-    let mut s2 = PixelFwd::<f32>::new();
-    let mut s3 = PixelFwd::<f32>::new();
-    s0.done = !b.inside[0];
-    s1.done = !b.inside[1];
-    s2.done = !b.inside[2];
-    s3.done = !b.inside[3];
-    // Blends lane `u`'s splat of the round at `base` into the 4 pixels.
-    macro_rules! blend {
-        ($mine:ident, $base:ident, $u:expr) => {{
-            let u = $u;
-            let v = sg_view_at!($mine, u);
-            let index = $base - start + u;
-            if !s0.done {
-                s0.blend(&v, index, fx, fy[0], &cfg);
-            }
-            if !s1.done {
-                s1.blend(&v, index, fx, fy[1], &cfg);
-            }
-            if !s2.done {
-                s2.blend(&v, index, fx, fy[2], &cfg);
-            }
-            if !s3.done {
-                s3.blend(&v, index, fx, fy[3], &cfg);
-            }
-        }};
-    }
-    // Uniform loops (start, end and the votes are the same in every lane).
-    let mut base = start;
-    if end - start <= SPARSE_MAX_WALK {
-        while base < end {
-            // Lanes past the list's end load its first splat of this round, never used.
-            let k = if base + lane < end { base + lane } else { base };
-            let mine = splats[isect_values[k as usize] as usize].view();
-            // The round's splats that may reach the block, in list order.
-            let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine, b.lo, b.hi, &cfg));
-            while todo != 0 {
-                let u = todo.trailing_zeros();
-                todo &= todo - 1;
-                blend!(mine, base, u);
-            }
-            if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
-                break;
-            }
-            base += 8;
-        }
-    } else {
-        while base < end {
-            let k = if base + lane < end { base + lane } else { base };
-            let mine = splats[isect_values[k as usize] as usize].view();
-            macro_rules! lane {
-                ($u:literal) => {
-                    if base + $u < end {
-                        blend!(mine, base, $u);
+macro_rules! rasterize_fwd_subgroup_entry {
+    ($(#[$attr:meta])*, $name:ident, $splat:ty, $load:ident, $at:ident) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[$splat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] alpha: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] depth: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] contributors: &mut [u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
+        ) {
+            let b = Block::new(group, lane, frame);
+            let (fx, fy) = (b.fx, b.fy);
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let start = ranges[2 * b.tile];
+            let end = ranges[2 * b.tile + 1];
+            let mut s0 = PixelFwd::<f32>::new();
+            let mut s1 = PixelFwd::<f32>::new();
+            let mut s2 = PixelFwd::<f32>::new();
+            let mut s3 = PixelFwd::<f32>::new();
+            s0.done = !b.inside[0];
+            s1.done = !b.inside[1];
+            s2.done = !b.inside[2];
+            s3.done = !b.inside[3];
+            // Blends lane `u`'s splat of the round at `base` into the 4 pixels.
+            macro_rules! blend {
+                ($mine:ident, $base:ident, $u:expr) => {{
+                    let u = $u;
+                    let v = $at!($mine, u);
+                    let index = $base - start + u;
+                    if !s0.done {
+                        s0.blend(&v, index, fx, fy[0], &cfg);
                     }
-                };
+                    if !s1.done {
+                        s1.blend(&v, index, fx, fy[1], &cfg);
+                    }
+                    if !s2.done {
+                        s2.blend(&v, index, fx, fy[2], &cfg);
+                    }
+                    if !s3.done {
+                        s3.blend(&v, index, fx, fy[3], &cfg);
+                    }
+                }};
             }
-            sg_lanes!(lane);
-            if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
-                break;
+            // Uniform loops (start, end and the votes are the same in every lane).
+            let mut base = start;
+            if end - start <= SPARSE_MAX_WALK {
+                while base < end {
+                    // Lanes past the list's end load its first splat of this round, never used.
+                    let k = if base + lane < end { base + lane } else { base };
+                    let mine = $load!(splats[isect_values[k as usize] as usize]);
+                    // The round's splats that may reach the block, in list order.
+                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.view(), b.lo, b.hi, &cfg));
+                    while todo != 0 {
+                        let u = todo.trailing_zeros();
+                        todo &= todo - 1;
+                        blend!(mine, base, u);
+                    }
+                    if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
+                        break;
+                    }
+                    base += 8;
+                }
+            } else {
+                while base < end {
+                    let k = if base + lane < end { base + lane } else { base };
+                    let mine = $load!(splats[isect_values[k as usize] as usize]);
+                    macro_rules! lane {
+                        ($u:literal) => {
+                            if base + $u < end {
+                                blend!(mine, base, $u);
+                            }
+                        };
+                    }
+                    sg_lanes!(lane);
+                    if crate::subgroup::all8(s0.done && s1.done && s2.done && s3.done) {
+                        break;
+                    }
+                    base += 8;
+                }
             }
-            base += 8;
+            if b.inside[0] {
+                store_pixel_fwd(b.pixel(0, frame), &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
+            }
+            if b.inside[1] {
+                store_pixel_fwd(b.pixel(1, frame), &s1, frame, rgb, alpha, depth, contributors, transmittance, blended);
+            }
+            if b.inside[2] {
+                store_pixel_fwd(b.pixel(2, frame), &s2, frame, rgb, alpha, depth, contributors, transmittance, blended);
+            }
+            if b.inside[3] {
+                store_pixel_fwd(b.pixel(3, frame), &s3, frame, rgb, alpha, depth, contributors, transmittance, blended);
+            }
         }
-    }
-    if b.inside[0] {
-        store_pixel_fwd(b.pixel(0, frame), &s0, frame, rgb, alpha, depth, contributors, transmittance, blended);
-    }
-    if b.inside[1] {
-        store_pixel_fwd(b.pixel(1, frame), &s1, frame, rgb, alpha, depth, contributors, transmittance, blended);
-    }
-    if b.inside[2] {
-        store_pixel_fwd(b.pixel(2, frame), &s2, frame, rgb, alpha, depth, contributors, transmittance, blended);
-    }
-    if b.inside[3] {
-        store_pixel_fwd(b.pixel(3, frame), &s3, frame, rgb, alpha, depth, contributors, transmittance, blended);
-    }
+    };
 }
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fwd_subgroup_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at);
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fwd_subgroup_entry!(#[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."], rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at);
 
 /// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
 /// header), on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
-#[allow(clippy::too_many_arguments)]
-#[spirv(compute(threads(8)))]
-pub fn rasterize_fused_fwd_subgroup(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(local_invocation_index)] lane: u32,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
-) {
-    let b = Block::new(group, lane, frame);
-    let (fx, fy) = (b.fx, b.fy);
-    let cfg = BlendSettings::<f32>::from_frame(frame);
-    let start = ranges[2 * b.tile];
-    let end = ranges[2 * b.tile + 1];
-    let mut s0 = FusedPixel::<f32>::new();
-    let mut s1 = FusedPixel::<f32>::new();
-    let mut s2 = FusedPixel::<f32>::new();
-    let mut s3 = FusedPixel::<f32>::new();
-    let mut d0 = !b.inside[0];
-    let mut d1 = !b.inside[1];
-    let mut d2 = !b.inside[2];
-    let mut d3 = !b.inside[3];
-    // Blends lane `u`'s splat of the round at `base` into the 4 pixels' states.
-    macro_rules! blend {
-        ($mine:ident, $mine_mask:ident, $base:ident, $u:expr) => {{
-            let u = $u;
-            let v = sg_view_at!($mine, u);
-            let mask = crate::subgroup::broadcast_u32_at($mine_mask, u);
-            let index = $base - start + u;
-            if !d0 {
-                s0.blend(&v, mask, index, fx, fy[0], &cfg);
-                d0 = s0.done();
-            }
-            if !d1 {
-                s1.blend(&v, mask, index, fx, fy[1], &cfg);
-                d1 = s1.done();
-            }
-            if !d2 {
-                s2.blend(&v, mask, index, fx, fy[2], &cfg);
-                d2 = s2.done();
-            }
-            if !d3 {
-                s3.blend(&v, mask, index, fx, fy[3], &cfg);
-                d3 = s3.done();
-            }
-        }};
-    }
-    // Uniform loops, sparse or dense as in rasterize_fwd_subgroup.
-    let mut base = start;
-    if end - start <= SPARSE_MAX_WALK {
-        while base < end {
-            let k = if base + lane < end { base + lane } else { base };
-            let g = isect_values[k as usize] as usize;
-            let mine = splats[g].view();
-            let mine_mask = masks[g];
-            let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine, b.lo, b.hi, &cfg));
-            while todo != 0 {
-                let u = todo.trailing_zeros();
-                todo &= todo - 1;
-                blend!(mine, mine_mask, base, u);
-            }
-            if crate::subgroup::all8(d0 && d1 && d2 && d3) {
-                break;
-            }
-            base += 8;
-        }
-    } else {
-        while base < end {
-            let k = if base + lane < end { base + lane } else { base };
-            let g = isect_values[k as usize] as usize;
-            let mine = splats[g].view();
-            let mine_mask = masks[g];
-            macro_rules! lane {
-                ($u:literal) => {
-                    if base + $u < end {
-                        blend!(mine, mine_mask, base, $u);
+macro_rules! rasterize_fused_fwd_subgroup_entry {
+    ($(#[$attr:meta])*, $name:ident, $splat:ty, $load:ident, $at:ident) => {
+        $(#[$attr])*
+        #[allow(clippy::too_many_arguments)]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[$splat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] base_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] over_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] over_alpha: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] matte_rgb: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
+        ) {
+            let b = Block::new(group, lane, frame);
+            let (fx, fy) = (b.fx, b.fy);
+            let cfg = BlendSettings::<f32>::from_frame(frame);
+            let start = ranges[2 * b.tile];
+            let end = ranges[2 * b.tile + 1];
+            let mut s0 = FusedPixel::<f32>::new();
+            let mut s1 = FusedPixel::<f32>::new();
+            let mut s2 = FusedPixel::<f32>::new();
+            let mut s3 = FusedPixel::<f32>::new();
+            let mut d0 = !b.inside[0];
+            let mut d1 = !b.inside[1];
+            let mut d2 = !b.inside[2];
+            let mut d3 = !b.inside[3];
+            // Blends lane `u`'s splat of the round at `base` into the 4 pixels' states.
+            macro_rules! blend {
+                ($mine:ident, $mine_mask:ident, $base:ident, $u:expr) => {{
+                    let u = $u;
+                    let v = $at!($mine, u);
+                    let mask = crate::subgroup::broadcast_u32_at($mine_mask, u);
+                    let index = $base - start + u;
+                    if !d0 {
+                        s0.blend(&v, mask, index, fx, fy[0], &cfg);
+                        d0 = s0.done();
                     }
-                };
+                    if !d1 {
+                        s1.blend(&v, mask, index, fx, fy[1], &cfg);
+                        d1 = s1.done();
+                    }
+                    if !d2 {
+                        s2.blend(&v, mask, index, fx, fy[2], &cfg);
+                        d2 = s2.done();
+                    }
+                    if !d3 {
+                        s3.blend(&v, mask, index, fx, fy[3], &cfg);
+                        d3 = s3.done();
+                    }
+                }};
             }
-            sg_lanes!(lane);
-            if crate::subgroup::all8(d0 && d1 && d2 && d3) {
-                break;
+            // Uniform loops, sparse or dense as in rasterize_fwd_subgroup.
+            let mut base = start;
+            if end - start <= SPARSE_MAX_WALK {
+                while base < end {
+                    let k = if base + lane < end { base + lane } else { base };
+                    let g = isect_values[k as usize] as usize;
+                    let mine = $load!(splats[g]);
+                    let mine_mask = masks[g];
+                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.view(), b.lo, b.hi, &cfg));
+                    while todo != 0 {
+                        let u = todo.trailing_zeros();
+                        todo &= todo - 1;
+                        blend!(mine, mine_mask, base, u);
+                    }
+                    if crate::subgroup::all8(d0 && d1 && d2 && d3) {
+                        break;
+                    }
+                    base += 8;
+                }
+            } else {
+                while base < end {
+                    let k = if base + lane < end { base + lane } else { base };
+                    let g = isect_values[k as usize] as usize;
+                    let mine = $load!(splats[g]);
+                    let mine_mask = masks[g];
+                    macro_rules! lane {
+                        ($u:literal) => {
+                            if base + $u < end {
+                                blend!(mine, mine_mask, base, $u);
+                            }
+                        };
+                    }
+                    sg_lanes!(lane);
+                    if crate::subgroup::all8(d0 && d1 && d2 && d3) {
+                        break;
+                    }
+                    base += 8;
+                }
             }
-            base += 8;
+            if b.inside[0] {
+                store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+            }
+            if b.inside[1] {
+                store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+            }
+            if b.inside[2] {
+                store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+            }
+            if b.inside[3] {
+                store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+            }
         }
-    }
-    if b.inside[0] {
-        store_pixel_fused(b.pixel(0, frame), &s0, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
-    }
-    if b.inside[1] {
-        store_pixel_fused(b.pixel(1, frame), &s1, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
-    }
-    if b.inside[2] {
-        store_pixel_fused(b.pixel(2, frame), &s2, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
-    }
-    if b.inside[3] {
-        store_pixel_fused(b.pixel(3, frame), &s3, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
-    }
+    };
 }
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fused_fwd_subgroup_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fused_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at);
+#[cfg(feature = "subgroup-ballot")]
+rasterize_fused_fwd_subgroup_entry!(#[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."], rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at);
 
 /// One pixel's backward state for [`rasterize_bwd_subgroup_entry`]: its state, and the
 /// number of its tile's splats it blended up to its last (0 outside the image).

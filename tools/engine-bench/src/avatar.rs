@@ -76,7 +76,7 @@ fn stage(pass: &str) -> &'static str {
         "projection"
     } else if starts("radix_sort.") || starts("splat.scan") || starts("splat.gather_counts") || starts("splat.emit_intersections") || starts("splat.tile_ranges") {
         "binning and sorts"
-    } else if starts("splat.rasterize") {
+    } else if starts("splat.rasterize") || starts("splat.pack_splats_half") {
         "rasterization"
     } else if starts("composite.") {
         "composite"

@@ -52,6 +52,11 @@ pub struct SplatArgs {
     /// as tiles shrink. 8 needs the subgroup rasterizer.
     #[arg(long, value_delimiter = ',', default_value = "16", value_parser = parse_tile_size)]
     pub tile_sizes: Vec<u32>,
+    /// Also time each configuration forward-only from half-precision SH
+    /// (RenderSettings::half_sh: packed every frame) and from half-precision projected
+    /// splats (half_splats), beside the f32 forward.
+    #[arg(long)]
+    pub half: bool,
     /// Print one JSON object on stdout instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -183,6 +188,25 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
             passes.entry(k).or_default().push(v);
         }
     }
+    // Forward-only times of the render-only knobs (they have no backward).
+    let mut half = serde_json::Map::new();
+    if args.half {
+        for (name, knob) in [("half_sh", RenderSettings { half_sh: true, ..settings }), ("half_splats", RenderSettings { half_splats: true, ..settings })] {
+            let mut ms = Vec::new();
+            let mut knob_passes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+            for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
+                let t0 = Instant::now();
+                let stats = renderer.forward(&gaussians, &cfg.camera, &knob)?;
+                if timed {
+                    ms.push(t0.elapsed().as_secs_f64() * 1e3);
+                    for (k, v) in stats.timings.by_name() {
+                        knob_passes.entry(k).or_default().push(v);
+                    }
+                }
+            }
+            half.insert(name.into(), json!({"forward_median_ms": median(&ms), "passes": knob_passes.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>()}));
+        }
+    }
     renderer.forward(&gaussians, &cfg.camera, &settings)?;
     let image = renderer.read_image()?;
     let fwd = median(&fwd_ms);
@@ -202,6 +226,7 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
         "blend_steps": image.blend_steps,
         "blend_steps_per_s": image.blend_steps as f64 / (fwd / 1e3),
         "passes": passes.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>(),
+        "half": half,
     }))
 }
 
@@ -244,6 +269,10 @@ pub fn print_table(r: &serde_json::Value) {
         if let Some(passes) = c["passes"].as_object() {
             let line: Vec<String> = passes.iter().map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0))).collect();
             println!("      GPU ms: {}", line.join(", "));
+        }
+        for (k, v) in c["half"].as_object().into_iter().flatten() {
+            let line: Vec<String> = v["passes"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0))).collect();
+            println!("      {k}: fwd {:.2} ms; GPU ms: {}", v["forward_median_ms"].as_f64().unwrap_or(0.0), line.join(", "));
         }
     }
 }

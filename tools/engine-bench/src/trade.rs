@@ -26,6 +26,8 @@
 //!   is the same, the binning, sorts and walks are not;
 //! - half-precision SH: the decoded SH packed to binary16 every frame (the packing's
 //!   pass is in the time) and the projection reading half the words;
+//! - half-precision projected splats: packed after binning (the pass is in the time),
+//!   the forward rasterizers reading 6 words a splat instead of 10;
 //! - pose-dependent offsets off, for runs whose layers were trained with them: the
 //!   deformation reads the decoded offsets without the pose blend (which also saves
 //!   the blend's pass).
@@ -34,8 +36,8 @@
 //! GPU time. They change what is rendered, not how: the kernels still evaluate every SH
 //! coefficient of the trained degree and project every Gaussian, so SH truncation saves
 //! no time here and pruning (by opacity or contribution) saves binning, sorting and rasterization but not the
-//! decoders or the projection (a compacted model would). Knobs that need kernels not
-//! built yet are listed under `not_built` with no numbers.
+//! decoders or the projection (a compacted model would). Knobs a run cannot measure
+//! (the subdivision level: another trained run) are listed under `not_built`.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -148,6 +150,8 @@ struct Setting {
     tile_size: u32,
     /// Render from half-precision SH (`RenderSettings::half_sh`).
     half_sh: bool,
+    /// Rasterize half-precision projected splats (`RenderSettings::half_splats`).
+    half_splats: bool,
 }
 
 impl Setting {
@@ -306,7 +310,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
     let default_comp = run.config.compositing.clone();
     let parts = part_names(&run.avatar);
-    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false };
+    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false, half_splats: false };
     let mut out = vec![base.clone()];
     let mut knobs = BTreeMap::new();
     for &s in args.scales.iter().filter(|&&s| s != 1.0) {
@@ -366,13 +370,14 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
     knobs.insert("tile_size", json!(format!("measured: tiles of {tiles:?} against the default {DEFAULT_TILE_SIZE} (the same image: a tile only groups the splats that pixels walk){why8}")));
     out.push(Setting { knob: "half-precision SH", label: "SH packed to binary16 each frame".into(), half_sh: true, ..base.clone() });
     knobs.insert("half_sh", json!("measured: the SH the decoders wrote packed to binary16 (round to nearest even) every frame (splat.pack_sh_half, in the time) and the projection reading the halves"));
+    out.push(Setting { knob: "half-precision splats", label: "projected splats packed to binary16 (centre f32)".into(), half_splats: true, ..base.clone() });
+    knobs.insert("half_splats", json!("measured: the projected splats packed after binning (splat.pack_splats_half, in the time: centre f32, conic, opacity, colour and depth binary16) and the forward rasterizers reading 6 words a splat instead of 10"));
     Ok((out, knobs))
 }
 
-/// Knobs that need kernel support not built yet: no numbers.
+/// Knobs this run cannot measure (each needs another trained run): no numbers.
 fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
     vec![
-        json!({"knob": "half-precision projected splats", "why": "ProjectedSplat is f32 only"}),
         json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
     ]
 }
@@ -498,7 +503,7 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
             rec.submit_and_wait()?;
         }
         let kept = if s.edits() { apply_edits(ctx, &mut run.avatar, s)? } else { run.avatar.counts().iter().map(|c| c.1 as usize).collect() };
-        renderer.forward(ctx, &run.avatar, &cam, &RenderSettings { tile_size: s.tile_size, half_sh: s.half_sh, ..RenderSettings::default() })?;
+        renderer.forward(ctx, &run.avatar, &cam, &RenderSettings { tile_size: s.tile_size, half_sh: s.half_sh, half_splats: s.half_splats, ..RenderSettings::default() })?;
         Ok(kept)
     })();
     let profile = ctx.take_profile().unwrap_or_default();

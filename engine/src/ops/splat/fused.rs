@@ -97,7 +97,11 @@ impl FusedRenderer {
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         self.renderer.record_binning(rec, gaussians)?;
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
-        let (kernel, grid) = self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatRasterizeFusedFwdSubgroup);
+        let (kernel, grid) = if self.renderer.half_splats() {
+            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwdHalf, Kernel::SplatRasterizeFusedFwdSubgroupHalf)
+        } else {
+            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatRasterizeFusedFwdSubgroup)
+        };
         rec.pass("splat.rasterize_fused_fwd", kernel)
             .read("frame", frame)
             .read("splats", splats)
@@ -118,6 +122,7 @@ impl FusedRenderer {
     /// the loss's gradients on the three images, for the forward `saved` names. Call
     /// [`Self::prepare_backward`] first (a deterministic backward panics without it).
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, saved: &SavedForward, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
+        self.renderer.refuse_render_only()?;
         self.renderer.check_saved("fused backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
         let (kernel, grid) = match method {

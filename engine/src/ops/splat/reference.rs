@@ -6,7 +6,7 @@
 //! what is used are not materialised.
 
 use drape_shared::real::Real;
-use drape_shared::splat::layout::FrameParams;
+use drape_shared::splat::layout::{FrameParams, HalfSplat};
 use drape_shared::splat::project::{project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad};
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 
@@ -39,6 +39,18 @@ fn view<F: Real>(p: &Projection<F>) -> SplatView<F> {
 
 /// Renders `gaussians` with the camera and settings of `frame` (its `count` is ignored).
 pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> ReferenceRender<F> {
+    render_with(gaussians, frame, |v| v)
+}
+
+/// [`render`] rasterizing half-precision projected splats, as the GPU does with
+/// `RenderSettings::half_splats`: each splat's view packed to a [`HalfSplat`] and
+/// unpacked (binning from the f32 projection, as there).
+pub fn render_half_splats(gaussians: &[Gaussian<f32>], frame: &FrameParams) -> ReferenceRender<f32> {
+    render_with(gaussians, frame, |v| HalfSplat::pack(&v).view())
+}
+
+/// [`render`] with every splat's view passed through `rasterized` before blending.
+fn render_with<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams, rasterized: impl Fn(SplatView<F>) -> SplatView<F>) -> ReferenceRender<F> {
     let cam = Camera::<F>::from_frame(frame);
     let cfg = BlendSettings::<F>::from_frame(frame);
     let projections: Vec<Projection<F>> = gaussians.iter().map(|g| project_fwd(g, &cam)).collect();
@@ -93,7 +105,7 @@ pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> Refere
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = PixelFwd::<F>::new();
             for (k, &g) in tile_lists[tile].iter().enumerate() {
-                state.blend(&view(&projections[g as usize]), k as u32, fx, fy, &cfg);
+                state.blend(&rasterized(view(&projections[g as usize])), k as u32, fx, fy, &cfg);
                 if state.done {
                     break;
                 }

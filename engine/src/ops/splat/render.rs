@@ -18,7 +18,7 @@
 //! `project_bwd` into the parameter gradients.
 
 use drape_shared::half::{sh_half_words, ShHalfParams};
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
+use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -240,6 +240,10 @@ pub struct SplatRenderer {
     /// for `max_count` Gaussians at degree 3), and whether the frame prepared uses it.
     sh_half: Option<Buffer>,
     half_sh: bool,
+    /// [`HalfSplat`]s for `RenderSettings::half_splats` (made on the first such frame),
+    /// and whether the frame prepared uses them.
+    splats_half: Option<Buffer>,
+    half_splats: bool,
     /// This renderer's identity and its forward passes so far (see [`SavedForward`]).
     id: u64,
     frames: u64,
@@ -317,6 +321,8 @@ impl SplatRenderer {
             raster: Self::resolve_variant(ctx, RasterVariant::Auto, width, height)?,
             sh_half: None,
             half_sh: false,
+            splats_half: None,
+            half_splats: false,
             id: NEXT_RENDERER.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             frames: 0,
         })
@@ -465,6 +471,11 @@ impl SplatRenderer {
             self.sh_half = Some(self.ctx.create_buffer("splat half-precision sh", BufferDesc::gpu_only(bytes))?);
         }
         self.half_sh = settings.half_sh;
+        if settings.half_splats && self.splats_half.is_none() {
+            let bytes = std::mem::size_of::<HalfSplat>() as u64 * u64::from(self.max_count.max(1));
+            self.splats_half = Some(self.ctx.create_buffer("splat projected half", BufferDesc::gpu_only(bytes))?);
+        }
+        self.half_splats = settings.half_splats;
         self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
         // The saved state is about to be overwritten: no earlier forward's stands.
         self.frames += 1;
@@ -522,11 +533,16 @@ impl SplatRenderer {
     /// interleaves them.
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         self.record_binning(rec, gaussians)?;
-        let (kernel, grid) = self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatRasterizeFwdSubgroup);
+        let (kernel, grid) = if self.half_splats {
+            self.raster_dispatch(Kernel::SplatRasterizeFwdHalf, Kernel::SplatRasterizeFwdSubgroupHalf)
+        } else {
+            self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatRasterizeFwdSubgroup)
+        };
         let p = &self.pixels;
+        let (_, splats, _, _) = self.binned();
         rec.pass("splat.rasterize_fwd", kernel)
             .read("frame", &self.frame)
-            .read("splats", &self.splats)
+            .read("splats", splats)
             .read("isect_values", &self.isect_values)
             .read("ranges", &self.ranges)
             .write("rgb", &p.rgb)
@@ -539,9 +555,26 @@ impl SplatRenderer {
     }
 
     /// The buffers a rasterizer reads after [`record_binning`](Self::record_binning):
-    /// frame parameters, projected splats, sorted intersection values, tile ranges.
+    /// frame parameters, projected splats (the [`HalfSplat`]s in a half-splat frame),
+    /// sorted intersection values, tile ranges.
     pub(crate) fn binned(&self) -> (&Buffer, &Buffer, &Buffer, &Buffer) {
-        (&self.frame, &self.splats, &self.isect_values, &self.ranges)
+        let splats = if self.half_splats { self.splats_half.as_ref().expect("prepare_forward makes the half splats") } else { &self.splats };
+        (&self.frame, splats, &self.isect_values, &self.ranges)
+    }
+
+    /// A backward of a frame rendered with a render-only knob is an error (before
+    /// anything is recorded).
+    pub(crate) fn refuse_render_only(&self) -> Result<()> {
+        if self.half_sh || self.half_splats {
+            return Err(EngineError::InvalidSetting { what: "render settings", problem: "a frame rendered from half-precision SH or splats (half_sh, half_splats) has no backward: they are render-only knobs".into() });
+        }
+        Ok(())
+    }
+
+    /// Whether the frame prepared rasterizes [`HalfSplat`]s (the `*_half` forward
+    /// kernels read what [`binned`](Self::binned) returns).
+    pub(crate) fn half_splats(&self) -> bool {
+        self.half_splats
     }
 
     /// Everything of [`record_forward`](Self::record_forward) before rasterization:
@@ -606,7 +639,15 @@ impl SplatRenderer {
             .read("total", &self.total)
             .write("ranges", &self.ranges)
             .push(&counts_pc)
-            .dispatch(groups(capacity))
+            .dispatch(groups(capacity))?;
+        if let (true, Some(half)) = (self.half_splats, &self.splats_half) {
+            rec.pass("splat.pack_splats_half", Kernel::SplatPackSplatsHalf)
+                .read("splats", &self.splats)
+                .write("half_splats", half)
+                .push(&counts_pc)
+                .dispatch(groups(n))?;
+        }
+        Ok(())
     }
 
     /// The projection of one chunk from half-precision SH: packs the chunk's SH
@@ -682,6 +723,7 @@ impl SplatRenderer {
     /// on each pixel's rgb, alpha and depth.
     /// Call [`Self::make_scratch`] for `method` first.
     fn record_raster_backward<'a>(&'a self, rec: &mut Recording<'a>, count: u32, grad_rgb: &'a Buffer, grad_alpha: &'a Buffer, grad_depth: &'a Buffer, method: Method) -> Result<()> {
+        self.refuse_render_only()?;
         let subgroup = self.raster == RasterVariant::Subgroup;
         let kernel = match method {
             Method::FloatAtomics if subgroup => Kernel::SplatRasterizeBwdSubgroupAtomic,
@@ -714,9 +756,7 @@ impl SplatRenderer {
     pub(crate) fn record_project_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, out: &'a GaussianBuffers) -> Result<()> {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
-        if self.half_sh {
-            return Err(EngineError::InvalidSetting { what: "render settings", problem: "a frame rendered from half-precision SH (half_sh) has no backward: it is a render-only knob".into() });
-        }
+        self.refuse_render_only()?;
         for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)

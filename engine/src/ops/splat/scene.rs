@@ -251,6 +251,11 @@ pub struct RenderSettings {
     /// packs the SH (`splat.pack_sh_half`) and the projection reads half the words. A
     /// render-only knob: a frame rendered so has no backward.
     pub half_sh: bool,
+    /// Rasterize half-precision projected splats (`HalfSplat`: centre f32, the rest
+    /// binary16): each frame packs them after binning (`splat.pack_splats_half`) and the
+    /// forward rasterizers read 6 words a splat instead of 10. Render-only, as
+    /// `half_sh`.
+    pub half_splats: bool,
 }
 
 impl RenderSettings {
@@ -275,6 +280,7 @@ impl Default for RenderSettings {
             fov_clamp: DEFAULT_FOV_CLAMP,
             tile_size: DEFAULT_TILE_SIZE,
             half_sh: false,
+            half_splats: false,
         }
     }
 }

@@ -103,6 +103,27 @@ pub struct ProjectedSplat {
     pub flags: u32,
 }
 
+/// A projected splat as the half-precision rasterizers read it
+/// (`RenderSettings::half_splats`, a render-only knob): the centre stays f32 (past 2048
+/// pixels a half cannot tell neighbouring pixels apart), conic, opacity, colour and
+/// depth are binary16 (`drape_shared::half`, round to nearest even), two to a word:
+/// 6 words where the rasterizers read 10.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct HalfSplat {
+    pub x: f32,
+    pub y: f32,
+    /// conic a (low half), conic b (high half).
+    pub conic_ab: u32,
+    /// conic c, opacity.
+    pub conic_c_opacity: u32,
+    /// red, green.
+    pub rg: u32,
+    /// blue, depth.
+    pub b_depth: u32,
+}
+
 /// `ProjectedSplat::flags` bit: a parameter was NaN or infinite; the splat is culled.
 pub const SPLAT_DROPPED: u32 = 1;
 

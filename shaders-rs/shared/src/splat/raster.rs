@@ -40,6 +40,41 @@ impl crate::splat::layout::ProjectedSplat {
     }
 }
 
+impl crate::splat::layout::HalfSplat {
+    /// Packs a projected splat's view (see the type).
+    #[inline]
+    pub fn pack(s: &SplatView<f32>) -> Self {
+        use crate::half::pack2;
+        Self {
+            x: s.x,
+            y: s.y,
+            conic_ab: pack2(s.conic[0], s.conic[1]),
+            conic_c_opacity: pack2(s.conic[2], s.opacity),
+            rg: pack2(s.color[0], s.color[1]),
+            b_depth: pack2(s.color[2], s.depth),
+        }
+    }
+
+    /// The rasterizer's view (exact: every half is an f32).
+    #[inline]
+    pub fn view(&self) -> SplatView<f32> {
+        use crate::half::unpack2;
+        let ab = unpack2(self.conic_ab);
+        let co = unpack2(self.conic_c_opacity);
+        let rg = unpack2(self.rg);
+        let bd = unpack2(self.b_depth);
+        SplatView { x: self.x, y: self.y, depth: bd[1], conic: [ab[0], ab[1], co[0]], opacity: co[1], color: [rg[0], rg[1], bd[0]] }
+    }
+}
+
+impl SplatView<f32> {
+    /// The view, for code generic over the splat layouts (`HalfSplat::view`).
+    #[inline]
+    pub fn view(&self) -> SplatView<f32> {
+        *self
+    }
+}
+
 impl<F: Real> BlendSettings<F> {
     pub fn from_frame(p: &crate::splat::layout::FrameParams) -> Self {
         Self { alpha_min: F::of(p.alpha_min), alpha_max: F::of(p.alpha_max), transmittance_min: F::of(p.transmittance_min) }
