@@ -115,11 +115,14 @@ pub fn project_fwd_sh_half(
     let mut flat = [0.0f32; 3 * MAX_SH_COEFFS];
     let mut w = 0;
     while w < words {
-        let v = unpack2(sh_half[local as usize * words + w]);
-        flat[2 * w] = v[0];
+        // GLSL's UnpackHalf2x16: exact, as `half::unpack2` (one conversion instruction
+        // on llvmpipe where the integer code is a dozen).
+        let v = spirv_std::float::f16x2_to_vec2(sh_half[local as usize * words + w]);
+        let (lo, hi) = (v.x, v.y);
+        flat[2 * w] = lo;
         // The padding half of an odd count lands past the last coefficient: unread.
         if 2 * w + 1 < 3 * MAX_SH_COEFFS {
-            flat[2 * w + 1] = v[1];
+            flat[2 * w + 1] = hi;
         }
         w += 1;
     }
@@ -345,6 +348,39 @@ macro_rules! unroll {
     };
 }
 
+/// A splat layout the forward rasterizers read: its view.
+trait RasterSplat {
+    fn raster_view(&self) -> SplatView<f32>;
+}
+
+impl RasterSplat for ProjectedSplat {
+    #[inline]
+    fn raster_view(&self) -> SplatView<f32> {
+        self.view()
+    }
+}
+
+impl RasterSplat for SplatView<f32> {
+    #[inline]
+    fn raster_view(&self) -> SplatView<f32> {
+        *self
+    }
+}
+
+impl RasterSplat for HalfSplat {
+    /// [`HalfSplat::view`] through GLSL's UnpackHalf2x16: exact, as the shared integer
+    /// code, and one conversion instruction on llvmpipe where that is a dozen.
+    #[inline]
+    fn raster_view(&self) -> SplatView<f32> {
+        use spirv_std::float::f16x2_to_vec2;
+        let ab = f16x2_to_vec2(self.conic_ab);
+        let co = f16x2_to_vec2(self.conic_c_opacity);
+        let rg = f16x2_to_vec2(self.rg);
+        let bd = f16x2_to_vec2(self.b_depth);
+        SplatView { x: self.x, y: self.y, depth: bd.y, conic: [ab.x, ab.y, co.x], opacity: co.y, color: [rg.x, rg.y, bd.x] }
+    }
+}
+
 /// Stores a splat's fields into slot `slot` of the workgroup batch.
 #[allow(clippy::too_many_arguments)]
 #[inline]
@@ -430,7 +466,7 @@ macro_rules! rasterize_fwd_entry {
                 let k = base + lid;
                 if k < end {
                     let s = splats[isect_values[k as usize] as usize];
-                    load_batch_slot(slot, &s.view(), b_xy, b_conic, b_opacity_depth, b_color);
+                    load_batch_slot(slot, &s.raster_view(), b_xy, b_conic, b_opacity_depth, b_color);
                 }
                 if lid == 0 {
                     done_count[0] = 0;
@@ -532,7 +568,7 @@ macro_rules! rasterize_fused_fwd_entry {
                 if k < end {
                     let g = isect_values[k as usize];
                     let s = splats[g as usize];
-                    load_batch_slot(slot, &s.view(), b_xy, b_conic, b_opacity_depth, b_color);
+                    load_batch_slot(slot, &s.raster_view(), b_xy, b_conic, b_opacity_depth, b_color);
                     b_mask[slot] = masks[g as usize];
                 }
                 if lid == 0 {
@@ -1003,7 +1039,7 @@ macro_rules! sg_half_at {
             rg: crate::subgroup::broadcast_u32_at($s.rg, $u),
             b_depth: crate::subgroup::broadcast_u32_at($s.b_depth, $u),
         }
-        .view()
+        .raster_view()
     };
 }
 
@@ -1183,7 +1219,7 @@ macro_rules! rasterize_fwd_subgroup_entry {
                     let k = if base + lane < end { base + lane } else { base };
                     let mine = $load!(splats[isect_values[k as usize] as usize]);
                     // The round's splats that may reach the block, in list order.
-                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.view(), b.lo, b.hi, &cfg));
+                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, &cfg));
                     while todo != 0 {
                         let u = todo.trailing_zeros();
                         todo &= todo - 1;
@@ -1301,7 +1337,7 @@ macro_rules! rasterize_fused_fwd_subgroup_entry {
                     let g = isect_values[k as usize] as usize;
                     let mine = $load!(splats[g]);
                     let mine_mask = masks[g];
-                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.view(), b.lo, b.hi, &cfg));
+                    let mut todo = crate::subgroup::ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, &cfg));
                     while todo != 0 {
                         let u = todo.trailing_zeros();
                         todo &= todo - 1;
