@@ -752,7 +752,7 @@ pub fn markdown(r: &serde_json::Value) -> String {
 }
 
 /// Point colours per knob: (knob, colour name, RGB).
-const KNOB_COLOURS: [(&str, &str, [u8; 3]); 7] = [
+const KNOB_COLOURS: [(&str, &str, [u8; 3]); 10] = [
     ("default", "black", [0, 0, 0]),
     ("resolution", "blue", [30, 90, 220]),
     ("sh_degree", "green", [20, 150, 40]),
@@ -760,6 +760,9 @@ const KNOB_COLOURS: [(&str, &str, [u8; 3]); 7] = [
     ("compositing", "purple", [140, 40, 170]),
     ("pose_offsets", "teal", [0, 150, 150]),
     ("contribution pruning", "brown", [140, 80, 20]),
+    ("tile size", "grey", [130, 130, 130]),
+    ("half-precision SH", "pink", [230, 80, 160]),
+    ("half-precision splats", "olive", [120, 130, 0]),
 ];
 
 fn put(img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]) {
