@@ -16,7 +16,7 @@
 use drape_shared::radix_sort::bounded_len;
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, RASTER_BLOCK};
 use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
-use drape_shared::half::{pack2, sh_half_sources, sh_half_words, unpack2, ShHalfParams};
+use drape_shared::half::{pack2, sh_half_sources, sh_half_words, ShHalfParams};
 #[cfg(feature = "subgroup-ballot")]
 use drape_shared::splat::raster::may_touch_rect;
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
