@@ -42,12 +42,13 @@ fn load_gaussian(
 ) -> Gaussian<f32> {
     let k_count = sh_coeffs(degree);
     let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
-    let mut k = 0;
-    while k < k_count {
-        let base = (sh_i * k_count + k) * 3;
-        coeffs[k] = [sh[base], sh[base + 1], sh[base + 2]];
-        k += 1;
-    }
+    // Constant indices into `coeffs` (see `each_sh_coeff!`).
+    drape_shared::each_sh_coeff!(k => {
+        if k < k_count {
+            let base = (sh_i * k_count + k) * 3;
+            coeffs[k] = [sh[base], sh[base + 1], sh[base + 2]];
+        }
+    });
     Gaussian {
         mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
         log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
@@ -127,11 +128,11 @@ pub fn project_fwd_sh_half(
         w += 1;
     }
     let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
-    let mut k = 0;
-    while k < k_count {
-        coeffs[k] = [flat[3 * k], flat[3 * k + 1], flat[3 * k + 2]];
-        k += 1;
-    }
+    drape_shared::each_sh_coeff!(k => {
+        if k < k_count {
+            coeffs[k] = [flat[3 * k], flat[3 * k + 1], flat[3 * k + 2]];
+        }
+    });
     let g = Gaussian {
         mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
         log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
@@ -927,14 +928,14 @@ pub fn project_bwd(
         c += 1;
     }
     grad_opacity_logits[i] = out.opacity_logit;
-    let mut k = 0;
-    while k < k_count {
-        let base = (sh_i * k_count + k) * 3;
-        grad_sh[base] = out.sh[k][0];
-        grad_sh[base + 1] = out.sh[k][1];
-        grad_sh[base + 2] = out.sh[k][2];
-        k += 1;
-    }
+    drape_shared::each_sh_coeff!(k => {
+        if k < k_count {
+            let base = (sh_i * k_count + k) * 3;
+            grad_sh[base] = out.sh[k][0];
+            grad_sh[base + 1] = out.sh[k][1];
+            grad_sh[base + 2] = out.sh[k][2];
+        }
+    });
 }
 
 /// Packs the projected splats for the half-precision rasterizers

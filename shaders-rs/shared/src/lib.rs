@@ -7,6 +7,20 @@
 #![no_std]
 #![forbid(unsafe_code)]
 
+/// Runs `$body` once for each SH coefficient index `$k` = 0..16, each a constant: no
+/// loop. A loop's counter indexing a local array is a dynamic index, which llvmpipe
+/// turns into code that tries every element; constant indices cost nothing.
+#[macro_export]
+macro_rules! each_sh_coeff {
+    ($k:ident => $body:block) => {{
+        { let $k: usize = 0; $body } { let $k: usize = 1; $body } { let $k: usize = 2; $body } { let $k: usize = 3; $body }
+        { let $k: usize = 4; $body } { let $k: usize = 5; $body } { let $k: usize = 6; $body } { let $k: usize = 7; $body }
+        { let $k: usize = 8; $body } { let $k: usize = 9; $body } { let $k: usize = 10; $body } { let $k: usize = 11; $body }
+        { let $k: usize = 12; $body } { let $k: usize = 13; $body } { let $k: usize = 14; $body } { let $k: usize = 15; $body }
+    }};
+}
+const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
+
 pub mod adam;
 pub mod cloth_loss;
 pub mod deform;
