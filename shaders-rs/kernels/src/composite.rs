@@ -64,12 +64,10 @@ pub fn bwd(
     let i = i as usize;
     let v = if p.matte_is_alpha != 0 { over_alpha[i] } else { matte[3 * i] };
     let (gb, go, ga, gm) = composite_grad(rgb(grad, i), rgb(base, i), rgb(over, i), over_alpha[i], v);
-    let mut ch = 0;
-    while ch < 3 {
+    drape_shared::each_index!(3, ch => {
         grad_base[3 * i + ch] = gb[ch];
         grad_over[3 * i + ch] = go[ch];
-        ch += 1;
-    }
+    });
     if p.matte_is_alpha != 0 {
         grad_over_alpha[i] = ga + gm;
     } else {

@@ -75,11 +75,9 @@ pub fn deform_fwd(
     g.log_scale_delta = v3(deltas, i);
     let out = fwd_math(&g, transforms);
     store3(posed_means, i, out.mean);
-    let mut k = 0;
-    while k < 4 {
+    drape_shared::each_index!(4, k => {
         posed_quats[4 * i + k] = out.quat[k];
-        k += 1;
-    }
+    });
     let o = p.log_scale_offset;
     store3(posed_log_scales, i, [out.log_scale[0] + o, out.log_scale[1] + o, out.log_scale[2] + o]);
 }

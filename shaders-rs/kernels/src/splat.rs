@@ -873,6 +873,8 @@ rasterize_fused_bwd_entry!(rasterize_fused_bwd_atomic, f32, atomics::add_f32, do
 rasterize_fused_bwd_entry!(rasterize_fused_bwd_cas, u32, atomics::add_f32_cas, doc = "Fused backward rasterizer with compare-and-swap loops on the bits of f32 (any device).");
 rasterize_fused_bwd_entry!(rasterize_fused_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic fused backward rasterizer: per-splat gradients in 64-bit fixed point.");
 
+const _: () = assert!(SPLAT_GRAD_FLOATS == 10, "project_bwd unrolls the splat gradient's 10 floats");
+
 /// Gradients of Gaussian `i`'s parameters from its splat's gradient. Culled Gaussians
 /// get zeros.
 #[allow(clippy::too_many_arguments)]
@@ -909,24 +911,18 @@ pub fn project_bwd(
         let g = load_gaussian(i, sh_i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
         let base = i * SPLAT_GRAD_FLOATS;
         let mut up = [0.0f32; SPLAT_GRAD_FLOATS];
-        let mut c = 0;
-        while c < SPLAT_GRAD_FLOATS {
+        drape_shared::each_index!(10, c => {
             up[c] = splat_grads[base + c];
-            c += 1;
-        }
+        });
         out = project_bwd_math(&g, &cam, &SplatGrad::from_array(&up));
     }
-    let mut c = 0;
-    while c < 3 {
+    drape_shared::each_index!(3, c => {
         grad_means[3 * i + c] = out.mean[c];
         grad_log_scales[3 * i + c] = out.log_scale[c];
-        c += 1;
-    }
-    c = 0;
-    while c < 4 {
+    });
+    drape_shared::each_index!(4, c => {
         grad_quats[4 * i + c] = out.quat[c];
-        c += 1;
-    }
+    });
     grad_opacity_logits[i] = out.opacity_logit;
     drape_shared::each_sh_coeff!(k => {
         if k < k_count {

@@ -245,17 +245,13 @@ pub struct DeformGrad<F> {
 /// and the blended rotation `Σ w_j R_j`).
 #[inline]
 pub fn transform_grad_add<F: Real>(terms: &[F; TRANSFORM_TERMS], w: F, out: &mut [F; TRANSFORM_FLOATS]) {
-    let mut r = 0;
-    while r < 3 {
+    crate::each_index!(3, r => {
         let g = terms[r];
-        let mut c = 0;
-        while c < 3 {
+        crate::each_index!(3, c => {
             out[4 * r + c] += w * (g * terms[3 + c] + terms[6 + 3 * r + c]);
-            c += 1;
-        }
+        });
         out[4 * r + 3] += w * g;
-        r += 1;
-    }
+    });
 }
 
 /// Transform `j` of 24 packed 3x4 transforms.

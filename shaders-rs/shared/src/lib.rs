@@ -21,6 +21,26 @@ macro_rules! each_sh_coeff {
 }
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
+/// Runs `$body` for `$i` = 0..N (N = 2, 3, 4 or 10), each a constant: the small loops over
+/// vector and matrix components, for the reason of [`each_sh_coeff!`].
+#[macro_export]
+macro_rules! each_index {
+    (2, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body }
+    }};
+    (3, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body }
+    }};
+    (4, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+    }};
+    (10, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body }
+    }};
+}
+
 pub mod adam;
 pub mod cloth_loss;
 pub mod deform;

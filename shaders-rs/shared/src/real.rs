@@ -169,15 +169,11 @@ pub fn mat_t_vec<F: Real>(m: &M3<F>, v: V3<F>) -> V3<F> {
 /// `a * b`.
 pub fn mat_mul<F: Real>(a: &M3<F>, b: &M3<F>) -> M3<F> {
     let mut out = zero33();
-    let mut i = 0;
-    while i < 3 {
-        let mut j = 0;
-        while j < 3 {
+    crate::each_index!(3, i => {
+        crate::each_index!(3, j => {
             out[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
-            j += 1;
-        }
-        i += 1;
-    }
+        });
+    });
     out
 }
 

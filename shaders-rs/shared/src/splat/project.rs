@@ -245,15 +245,11 @@ fn chain<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Chain<F> {
     let rq = quat_to_mat(qn);
     let scale = [g.log_scale[0].exp_k(), g.log_scale[1].exp_k(), g.log_scale[2].exp_k()];
     let mut m = zero33();
-    let mut i = 0;
-    while i < 3 {
-        let mut k = 0;
-        while k < 3 {
+    crate::each_index!(3, i => {
+        crate::each_index!(3, k => {
             m[i][k] = rq[i][k] * scale[k];
-            k += 1;
-        }
-        i += 1;
-    }
+        });
+    });
     let sigma = mat_mul(&m, &transpose(&m));
     let vc = mat_mul(&mat_mul(&cam.rot, &sigma), &transpose(&cam.rot));
 
@@ -342,11 +338,9 @@ pub fn project_fwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Projection<F> {
         return Projection::culled(false);
     }
     let (mut color, _, _) = sh_color(g, cam);
-    let mut ch = 0;
-    while ch < 3 {
+    crate::each_index!(3, ch => {
         color[ch] = color[ch].max(F::zero());
-        ch += 1;
-    }
+    });
     Projection {
         visible: true,
         dropped: false,
@@ -421,53 +415,37 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
     let g2 = [[g_cov[0], g_cov[1] * half], [g_cov[1] * half, g_cov[2]]];
     // dL/dV = Jᵀ G2 J
     let mut g_vc = zero33();
-    let mut i = 0;
-    while i < 3 {
-        let mut k = 0;
-        while k < 3 {
+    crate::each_index!(3, i => {
+        crate::each_index!(3, k => {
             let mut s = F::zero();
-            let mut r = 0;
-            while r < 2 {
-                let mut q = 0;
-                while q < 2 {
+            crate::each_index!(2, r => {
+                crate::each_index!(2, q => {
                     s += c.j[r][i] * g2[r][q] * c.j[q][k];
-                    q += 1;
-                }
-                r += 1;
-            }
+                });
+            });
             g_vc[i][k] = s;
-            k += 1;
-        }
-        i += 1;
-    }
+        });
+    });
     // dL/dJ = 2 G2 J V
     let jv = [mat_t_vec(&c.vc, c.j[0]), mat_t_vec(&c.vc, c.j[1])];
     let mut g_j = [[F::zero(); 3]; 2];
-    let mut r = 0;
-    while r < 2 {
-        let mut k = 0;
-        while k < 3 {
+    crate::each_index!(2, r => {
+        crate::each_index!(3, k => {
             g_j[r][k] = two * (g2[r][0] * jv[0][k] + g2[r][1] * jv[1][k]);
-            k += 1;
-        }
-        r += 1;
-    }
+        });
+    });
 
     // V = W Σ Wᵀ -> dL/dΣ = Wᵀ dL/dV W; Σ = M Mᵀ -> dL/dM = 2 dL/dΣ M.
     let g_sigma = mat_mul(&mat_mul(&transpose(&cam.rot), &g_vc), &cam.rot);
     let g_m = mat_mul(&g_sigma, &c.m);
     let mut g_rq = zero33();
-    let mut i = 0;
-    while i < 3 {
-        let mut k = 0;
-        while k < 3 {
+    crate::each_index!(3, i => {
+        crate::each_index!(3, k => {
             let gm = two * g_m[i][k];
             g_rq[i][k] = gm * c.scale[k];
             out.log_scale[k] += gm * c.rq[i][k] * c.scale[k];
-            k += 1;
-        }
-        i += 1;
-    }
+        });
+    });
 
     // R(q̂) -> q̂ -> q.
     if c.qnorm > F::zero() {
@@ -479,11 +457,9 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
         let gz = two * (-two * z * gr[0][0] - w * gr[0][1] + x * gr[0][2] + w * gr[1][0] - two * z * gr[1][1] + y * gr[1][2] + x * gr[2][0] + y * gr[2][1]);
         let gq = [gw, gx, gy, gz];
         let proj = gq[0] * c.qn[0] + gq[1] * c.qn[1] + gq[2] * c.qn[2] + gq[3] * c.qn[3];
-        let mut k = 0;
-        while k < 4 {
+        crate::each_index!(4, k => {
             out.quat[k] = (gq[k] - c.qn[k] * proj) / c.qnorm;
-            k += 1;
-        }
+        });
     }
 
     // Camera-space mean: through J, the 2D mean and the depth.
@@ -512,13 +488,11 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
     // Colour: clamp, SH coefficients, and the view direction's path to the mean.
     let (raw, dir, len) = sh_color(g, cam);
     let mut g_col = up.color;
-    let mut ch = 0;
-    while ch < 3 {
+    crate::each_index!(3, ch => {
         if !(raw[ch] > F::zero()) {
             g_col[ch] = F::zero();
         }
-        ch += 1;
-    }
+    });
     let basis = sh::basis(cam.sh_degree, dir);
     let mut weights = [F::zero(); MAX_SH_COEFFS];
     crate::each_sh_coeff!(k => {
@@ -528,11 +502,9 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
     if len > F::zero() {
         let g_dir = sh::basis_weighted_grad(cam.sh_degree, dir, &weights);
         let along = dot3(g_dir, dir);
-        let mut k = 0;
-        while k < 3 {
+        crate::each_index!(3, k => {
             out.mean[k] += (g_dir[k] - dir[k] * along) / len;
-            k += 1;
-        }
+        });
     }
     out
 }
