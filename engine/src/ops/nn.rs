@@ -499,8 +499,10 @@ impl Mlp {
 
     fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
         let p = ActParams { rows, width, kind: act.kind(), temperature: act.temperature() };
-        let n = if act.kind() == ACT_SOFTMAX { rows } else { rows * width };
-        rec.pass(name, Kernel::NnActFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(n))
+        if act.kind() == ACT_SOFTMAX {
+            return rec.pass(name, Kernel::NnSoftmaxFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows));
+        }
+        rec.pass(name, Kernel::NnActFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows * width))
     }
 
     /// Records the forward pass over `rows` rows of `input` (rows × `desc.input`).
@@ -574,14 +576,22 @@ impl Mlp {
                 &layer.grad_post
             } else {
                 let p = ActParams { rows, width: o as u32, kind: acts[l].kind(), temperature: acts[l].temperature() };
-                let n = if acts[l].kind() == ACT_SOFTMAX { rows } else { rows * o as u32 };
-                rec.pass("mlp.act_bwd", Kernel::NnActBwd)
-                    .read("pre", &layer.pre)
-                    .read("post", &layer.post)
-                    .read("grad_post", &layer.grad_post)
-                    .write("grad_pre", &layer.grad_pre)
-                    .push(&p)
-                    .dispatch(grid(n))?;
+                if acts[l].kind() == ACT_SOFTMAX {
+                    rec.pass("mlp.act_bwd", Kernel::NnSoftmaxBwd)
+                        .read("post", &layer.post)
+                        .read("grad_post", &layer.grad_post)
+                        .write("grad_pre", &layer.grad_pre)
+                        .push(&p)
+                        .dispatch(grid(rows))?;
+                } else {
+                    rec.pass("mlp.act_bwd", Kernel::NnActBwd)
+                        .read("pre", &layer.pre)
+                        .read("post", &layer.post)
+                        .read("grad_post", &layer.grad_post)
+                        .write("grad_pre", &layer.grad_pre)
+                        .push(&p)
+                        .dispatch(grid(rows * o as u32))?;
+                }
                 &layer.grad_pre
             };
             let (w_off, b_off) = self.offsets[l];

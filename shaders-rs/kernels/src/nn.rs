@@ -11,7 +11,7 @@
 //! (read), `grad_pre` (written).
 
 use drape_shared::nn::{
-    activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, ACT_SOFTMAX,
+    activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams,
     GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
 #[cfg(feature = "subgroup-ballot")]
@@ -1271,7 +1271,7 @@ pub fn sum_weight_grad(
     }
 }
 
-/// `post = act(pre)`; softmax runs one invocation per row, the others one per element.
+/// `post = act(pre)`, one invocation per element (softmax: [`softmax_fwd`]).
 #[spirv(compute(threads(256)))]
 pub fn act_fwd(
     #[spirv(global_invocation_id)] id: UVec3,
@@ -1282,33 +1282,14 @@ pub fn act_fwd(
 ) {
     // Two-dimensional grid: 150k rows of 128 are more than 65,535 groups of 256.
     let flat = crate::flat_index(id, groups);
-    let i = flat as usize;
-    if p.kind == ACT_SOFTMAX {
-        if flat >= p.rows {
-            return;
-        }
-        let w = p.width as usize;
-        let mut row = [0.0f32; SOFTMAX_MAX_WIDTH];
-        let mut j = 0;
-        while j < w {
-            row[j] = pre[i * w + j];
-            j += 1;
-        }
-        softmax_row(&mut row, w, p.temperature);
-        j = 0;
-        while j < w {
-            post[i * w + j] = row[j];
-            j += 1;
-        }
-    } else {
-        if flat >= p.rows * p.width {
-            return;
-        }
-        post[i] = activate(p.kind, pre[i]);
+    if flat >= p.rows * p.width {
+        return;
     }
+    let i = flat as usize;
+    post[i] = activate(p.kind, pre[i]);
 }
 
-/// `grad_pre` from `grad_post` (the layout of [`act_fwd`]).
+/// `grad_pre` from `grad_post`, one invocation per element (softmax: [`softmax_bwd`]).
 #[spirv(compute(threads(256)))]
 pub fn act_bwd(
     #[spirv(global_invocation_id)] id: UVec3,
@@ -1319,34 +1300,74 @@ pub fn act_bwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_post: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [f32],
 ) {
-    // Two-dimensional grid: 150k rows of 128 are more than 65,535 groups of 256.
     let flat = crate::flat_index(id, groups);
+    if flat >= p.rows * p.width {
+        return;
+    }
     let i = flat as usize;
-    if p.kind == ACT_SOFTMAX {
-        if flat >= p.rows {
-            return;
+    grad_pre[i] = activate_bwd(p.kind, pre[i], post[i], grad_post[i]);
+}
+
+/// `post = softmax(pre / T)` of each row of `p.width` (at most 32), one invocation per
+/// row. Its own kernel: llvmpipe runs both sides of a branch, so a softmax in
+/// [`act_fwd`] would cost every element-wise activation its code.
+#[spirv(compute(threads(256)))]
+pub fn softmax_fwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [f32],
+) {
+    let flat = crate::flat_index(id, groups);
+    if flat >= p.rows {
+        return;
+    }
+    let (i, w) = (flat as usize, p.width as usize);
+    // Constant indices into the row (see `drape_shared::each_index!`).
+    let mut row = [0.0f32; SOFTMAX_MAX_WIDTH];
+    drape_shared::each_index!(32, j => {
+        if j < w {
+            row[j] = pre[i * w + j];
         }
-        let w = p.width as usize;
-        let mut y = [0.0f32; SOFTMAX_MAX_WIDTH];
-        let mut g = [0.0f32; SOFTMAX_MAX_WIDTH];
-        let mut j = 0;
-        while j < w {
+    });
+    softmax_row(&mut row, w, p.temperature);
+    drape_shared::each_index!(32, j => {
+        if j < w {
+            post[i * w + j] = row[j];
+        }
+    });
+}
+
+/// The gradient of [`softmax_fwd`] on its logits, one invocation per row.
+#[spirv(compute(threads(256)))]
+pub fn softmax_bwd(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] post: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grad_post: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_pre: &mut [f32],
+) {
+    let flat = crate::flat_index(id, groups);
+    if flat >= p.rows {
+        return;
+    }
+    let (i, w) = (flat as usize, p.width as usize);
+    let mut y = [0.0f32; SOFTMAX_MAX_WIDTH];
+    let mut g = [0.0f32; SOFTMAX_MAX_WIDTH];
+    drape_shared::each_index!(32, j => {
+        if j < w {
             y[j] = post[i * w + j];
             g[j] = grad_post[i * w + j];
-            j += 1;
         }
-        softmax_row_bwd(&y, &mut g, w, p.temperature);
-        j = 0;
-        while j < w {
+    });
+    softmax_row_bwd(&y, &mut g, w, p.temperature);
+    drape_shared::each_index!(32, j => {
+        if j < w {
             grad_pre[i * w + j] = g[j];
-            j += 1;
         }
-    } else {
-        if flat >= p.rows * p.width {
-            return;
-        }
-        grad_pre[i] = activate_bwd(p.kind, pre[i], post[i], grad_post[i]);
-    }
+    });
 }
 
 /// Weight normalisation's forward (`drape_shared::nn::weight_norm_value`): one

@@ -111,6 +111,7 @@ pub struct ActParams {
 
 /// Longest row a softmax kernel handles (SMPL's 24 joints fit).
 pub const SOFTMAX_MAX_WIDTH: usize = 32;
+const _: () = assert!(SOFTMAX_MAX_WIDTH == 32, "softmax_row unrolls 32 columns");
 
 /// `erfc(x)` with fractional error below 1.2e-7 everywhere (Numerical Recipes'
 /// Chebyshev fit `erfcc`): relative accuracy also in the tail, where `1 - erf(x)`
@@ -198,26 +199,25 @@ pub fn activate_bwd<F: Real>(kind: u32, x: F, y: F, g: F) -> F {
 /// Subtracts the row's largest value first, so logits of any finite size stay finite.
 #[inline]
 pub fn softmax_row<F: Real>(row: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F) {
+    // Constant indices, each guarded by the width (see `each_index!`).
     let mut max = row[0];
-    let mut j = 1;
-    while j < width {
-        if row[j] > max {
+    crate::each_index!(32, j => {
+        if j >= 1 && j < width && row[j] > max {
             max = row[j];
         }
-        j += 1;
-    }
+    });
     let mut sum = F::zero();
-    j = 0;
-    while j < width {
-        row[j] = ((row[j] - max) / t).exp_k();
-        sum += row[j];
-        j += 1;
-    }
-    j = 0;
-    while j < width {
-        row[j] /= sum;
-        j += 1;
-    }
+    crate::each_index!(32, j => {
+        if j < width {
+            row[j] = ((row[j] - max) / t).exp_k();
+            sum += row[j];
+        }
+    });
+    crate::each_index!(32, j => {
+        if j < width {
+            row[j] /= sum;
+        }
+    });
 }
 
 /// Gradient on the logits of `y = softmax(x / t)`: `(y ⊙ (g - Σ g y)) / t`, in place
@@ -225,16 +225,16 @@ pub fn softmax_row<F: Real>(row: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F
 #[inline]
 pub fn softmax_row_bwd<F: Real>(y: &[F; SOFTMAX_MAX_WIDTH], g: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F) {
     let mut dot = F::zero();
-    let mut j = 0;
-    while j < width {
-        dot += g[j] * y[j];
-        j += 1;
-    }
-    j = 0;
-    while j < width {
-        g[j] = y[j] * (g[j] - dot) / t;
-        j += 1;
-    }
+    crate::each_index!(32, j => {
+        if j < width {
+            dot += g[j] * y[j];
+        }
+    });
+    crate::each_index!(32, j => {
+        if j < width {
+            g[j] = y[j] * (g[j] - dot) / t;
+        }
+    });
 }
 
 /// Push constants of `nn::weight_norm_fwd` and `nn::weight_norm_bwd`: a weight-normalised
