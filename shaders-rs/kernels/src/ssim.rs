@@ -8,6 +8,7 @@
 //! One invocation per element on a two-dimensional grid (1080p moments are 31M).
 
 use drape_shared::ssim::{ssim_pointwise, SsimParams, SSIM_WINDOW};
+const _: () = assert!(SSIM_WINDOW == 11, "blur unrolls 11 taps");
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -57,15 +58,14 @@ pub fn blur(
     let (px, py) = ((pixel % p.width) as i32, (pixel / p.width) as i32);
     let half = (SSIM_WINDOW / 2) as i32;
     let mut sum = 0.0f32;
-    let mut t = 0;
-    while t < SSIM_WINDOW {
+    // Constant tap indices (see `drape_shared::each_index!`).
+    drape_shared::each_index!(11, t => {
         let d = t as i32 - half;
         let (qx, qy) = if p.vertical != 0 { (px, py + d) } else { (px + d, py) };
         if qx >= 0 && qy >= 0 && qx < p.width as i32 && qy < p.height as i32 {
             sum += p.taps[t] * src[(base + (qy as u32 * p.width + qx as u32) * 3 + c) as usize];
         }
-        t += 1;
-    }
+    });
     dst[e as usize] = sum;
 }
 

@@ -21,7 +21,7 @@ macro_rules! each_sh_coeff {
 }
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
-/// Runs `$body` for `$i` = 0..N (N = 2, 3, 4, 10 or 32), each a constant: the small loops over
+/// Runs `$body` for `$i` = 0..N (N = 2, 3, 4, 10, 11 or 32), each a constant: the small loops over
 /// vector and matrix components, for the reason of [`each_sh_coeff!`].
 #[macro_export]
 macro_rules! each_index {
@@ -43,6 +43,11 @@ macro_rules! each_index {
         { let $i: usize = 20; $body } { let $i: usize = 21; $body } { let $i: usize = 22; $body } { let $i: usize = 23; $body }
         { let $i: usize = 24; $body } { let $i: usize = 25; $body } { let $i: usize = 26; $body } { let $i: usize = 27; $body }
         { let $i: usize = 28; $body } { let $i: usize = 29; $body } { let $i: usize = 30; $body } { let $i: usize = 31; $body }
+    }};
+    (11, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body }
     }};
     (10, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
