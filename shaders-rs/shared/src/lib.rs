@@ -21,8 +21,11 @@ macro_rules! each_sh_coeff {
 }
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
-/// Runs `$body` for `$i` = 0..N (N = 2, 3, 4, 10, 11 or 32), each a constant: the small loops over
-/// vector and matrix components, for the reason of [`each_sh_coeff!`].
+/// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 9, 10, 11, 12,
+/// 15, 24, 32): the small loops over vector, matrix and window components, for the
+/// reason of [`each_sh_coeff!`]. Not everywhere: the deformation's 24-joint loops written
+/// out this way came out wrong on llvmpipe 22.3 (posed means off by 1e19 against the
+/// CPU reference, `deform_gpu_matches_cpu_reference`), so they stay loops.
 #[macro_export]
 macro_rules! each_index {
     (2, $i:ident => $body:block) => {{
@@ -34,6 +37,44 @@ macro_rules! each_index {
     (4, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
     }};
+    (6, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body }
+    }};
+    (9, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body }
+    }};
+    (10, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body }
+    }};
+    (11, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body }
+    }};
+    (12, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body } { let $i: usize = 11; $body }
+    }};
+    (15, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body } { let $i: usize = 11; $body }
+        { let $i: usize = 12; $body } { let $i: usize = 13; $body } { let $i: usize = 14; $body }
+    }};
+    (24, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body } { let $i: usize = 11; $body }
+        { let $i: usize = 12; $body } { let $i: usize = 13; $body } { let $i: usize = 14; $body } { let $i: usize = 15; $body }
+        { let $i: usize = 16; $body } { let $i: usize = 17; $body } { let $i: usize = 18; $body } { let $i: usize = 19; $body }
+        { let $i: usize = 20; $body } { let $i: usize = 21; $body } { let $i: usize = 22; $body } { let $i: usize = 23; $body }
+    }};
     (32, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
         { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
@@ -43,16 +84,6 @@ macro_rules! each_index {
         { let $i: usize = 20; $body } { let $i: usize = 21; $body } { let $i: usize = 22; $body } { let $i: usize = 23; $body }
         { let $i: usize = 24; $body } { let $i: usize = 25; $body } { let $i: usize = 26; $body } { let $i: usize = 27; $body }
         { let $i: usize = 28; $body } { let $i: usize = 29; $body } { let $i: usize = 30; $body } { let $i: usize = 31; $body }
-    }};
-    (11, $i:ident => $body:block) => {{
-        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
-        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
-        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body }
-    }};
-    (10, $i:ident => $body:block) => {{
-        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
-        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
-        { let $i: usize = 8; $body } { let $i: usize = 9; $body }
     }};
 }
 
