@@ -426,7 +426,7 @@ fn block_tile(group: UVec3, frame: &FrameParams) -> usize {
 /// tile's splats front to back, a batch at a time, until every pixel of the block is
 /// saturated.
 macro_rules! rasterize_fwd_entry {
-    ($(#[$attr:meta])*, $name:ident, $splat:ty) => {
+    ($name:ident, $splat:ty, $(#[$attr:meta])*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(16, 16)))]
@@ -515,8 +515,8 @@ macro_rules! rasterize_fwd_entry {
         }
     };
 }
-rasterize_fwd_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fwd, ProjectedSplat);
-rasterize_fwd_entry!(#[doc = "[`rasterize_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."], rasterize_fwd_half, HalfSplat);
+rasterize_fwd_entry!(rasterize_fwd, ProjectedSplat, #[doc = "The f32 splats' kernel (see the macro)."]);
+rasterize_fwd_entry!(rasterize_fwd_half, HalfSplat, #[doc = "[`rasterize_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."]);
 
 /// The fused rasterizer (`ops::splat::fused`): one walk of each tile's depth-sorted
 /// list of every cloud's splats, blending each into the base, over and matte states
@@ -525,7 +525,7 @@ rasterize_fwd_entry!(#[doc = "[`rasterize_fwd`] reading [`HalfSplat`]s (`RenderS
 /// over black, and the matte (3 channels, over black) for the composite, and for the
 /// backward each state's final transmittance and end in the merged list (3 per pixel).
 macro_rules! rasterize_fused_fwd_entry {
-    ($(#[$attr:meta])*, $name:ident, $splat:ty) => {
+    ($name:ident, $splat:ty, $(#[$attr:meta])*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(16, 16)))]
@@ -609,8 +609,8 @@ macro_rules! rasterize_fused_fwd_entry {
         }
     };
 }
-rasterize_fused_fwd_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fused_fwd, ProjectedSplat);
-rasterize_fused_fwd_entry!(#[doc = "[`rasterize_fused_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."], rasterize_fused_fwd_half, HalfSplat);
+rasterize_fused_fwd_entry!(rasterize_fused_fwd, ProjectedSplat, #[doc = "The f32 splats' kernel (see the macro)."]);
+rasterize_fused_fwd_entry!(rasterize_fused_fwd_half, HalfSplat, #[doc = "[`rasterize_fused_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`)."]);
 
 /// Writes one pixel of the fused rasterizer's outputs (both variants).
 #[allow(clippy::too_many_arguments)]
@@ -1157,7 +1157,7 @@ fn store_pixel_fwd(
 /// outputs. Dispatched on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rasterize_fwd_subgroup_entry {
-    ($(#[$attr:meta])*, $name:ident, $splat:ty, $load:ident, $at:ident) => {
+    ($name:ident, $splat:ty, $load:ident, $at:ident, $(#[$attr:meta])*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(8)))]
@@ -1261,15 +1261,15 @@ macro_rules! rasterize_fwd_subgroup_entry {
     };
 }
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fwd_subgroup_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at);
+rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fwd_subgroup_entry!(#[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."], rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at);
+rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
 
 /// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
 /// header), on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rasterize_fused_fwd_subgroup_entry {
-    ($(#[$attr:meta])*, $name:ident, $splat:ty, $load:ident, $at:ident) => {
+    ($name:ident, $splat:ty, $load:ident, $at:ident, $(#[$attr:meta])*) => {
         $(#[$attr])*
         #[allow(clippy::too_many_arguments)]
         #[spirv(compute(threads(8)))]
@@ -1381,9 +1381,9 @@ macro_rules! rasterize_fused_fwd_subgroup_entry {
     };
 }
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_fwd_subgroup_entry!(#[doc = "The f32 splats' kernel (see the macro)."], rasterize_fused_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at);
+rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_fwd_subgroup_entry!(#[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."], rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at);
+rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
 
 /// One pixel's backward state for [`rasterize_bwd_subgroup_entry`]: its state, and the
 /// number of its tile's splats it blended up to its last (0 outside the image).
