@@ -630,6 +630,12 @@ fn check_fused_frame(l: &Layered, width: u32, height: u32, what: &str) {
             fused.set_raster_variant(variant).expect("raster variant");
             cam.background = [0.2, 0.5, 0.7];
             fused.set_masks(&ctx, &layer_masks(&layers, occlusion)).expect("masks");
+            if half_splats {
+                // The half splats' buffer is made on the first such frame, and tests
+                // poison new buffers (a staged upload where device memory is not
+                // host-visible, DRAPE_FORCE_STAGING): count a frame after it.
+                fused.forward(&ctx, &fused_buffers, &cam, &settings).expect("fused forward");
+            }
             let before = ctx.submission_count();
             let stats = fused.forward(&ctx, &fused_buffers, &cam, &settings).expect("fused forward");
             if !stats.rerendered {
