@@ -42,8 +42,8 @@ fn load_gaussian(
 ) -> Gaussian<f32> {
     let k_count = sh_coeffs(degree);
     let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
-    // Constant indices into `coeffs` (see `each_sh_coeff!`).
-    drape_shared::each_sh_coeff!(k => {
+    // Constant indices into `coeffs` (see `drape_shared::each_index!`).
+    drape_shared::each_index!(16, k => {
         if k < k_count {
             let base = (sh_i * k_count + k) * 3;
             coeffs[k] = [sh[base], sh[base + 1], sh[base + 2]];
@@ -128,7 +128,7 @@ pub fn project_fwd_sh_half(
         w += 1;
     }
     let mut coeffs = [[0.0f32; 3]; MAX_SH_COEFFS];
-    drape_shared::each_sh_coeff!(k => {
+    drape_shared::each_index!(16, k => {
         if k < k_count {
             coeffs[k] = [flat[3 * k], flat[3 * k + 1], flat[3 * k + 2]];
         }
@@ -924,7 +924,7 @@ pub fn project_bwd(
         grad_quats[4 * i + c] = out.quat[c];
     });
     grad_opacity_logits[i] = out.opacity_logit;
-    drape_shared::each_sh_coeff!(k => {
+    drape_shared::each_index!(16, k => {
         if k < k_count {
             let base = (sh_i * k_count + k) * 3;
             grad_sh[base] = out.sh[k][0];

@@ -7,23 +7,13 @@
 #![no_std]
 #![forbid(unsafe_code)]
 
-/// Runs `$body` once for each SH coefficient index `$k` = 0..16, each a constant: no
-/// loop. A loop's counter indexing a local array is a dynamic index, which llvmpipe
-/// turns into code that tries every element; constant indices cost nothing.
-#[macro_export]
-macro_rules! each_sh_coeff {
-    ($k:ident => $body:block) => {{
-        { let $k: usize = 0; $body } { let $k: usize = 1; $body } { let $k: usize = 2; $body } { let $k: usize = 3; $body }
-        { let $k: usize = 4; $body } { let $k: usize = 5; $body } { let $k: usize = 6; $body } { let $k: usize = 7; $body }
-        { let $k: usize = 8; $body } { let $k: usize = 9; $body } { let $k: usize = 10; $body } { let $k: usize = 11; $body }
-        { let $k: usize = 12; $body } { let $k: usize = 13; $body } { let $k: usize = 14; $body } { let $k: usize = 15; $body }
-    }};
-}
+// The SH loops write `each_index!(16, ..)` for the 16 coefficients of degree 3.
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
 /// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 9, 10, 11, 12,
-/// 15, 24, 32): the small loops over vector, matrix and window components, for the
-/// reason of [`each_sh_coeff!`]. Not everywhere: the deformation's 24-joint loops written
+/// 15, 16, 24, 32): no loop. llvmpipe does not unroll rust-gpu's loops, and a loop's
+/// counter indexing a local array is a dynamic index, which it turns into code that
+/// tries every element; constant indices cost nothing. Not everywhere: the deformation's 24-joint loops written
 /// out this way came out wrong on llvmpipe 22.3 (posed means off by 1e19 against the
 /// CPU reference, `deform_gpu_matches_cpu_reference`), so they stay loops.
 #[macro_export]
@@ -66,6 +56,12 @@ macro_rules! each_index {
         { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
         { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body } { let $i: usize = 11; $body }
         { let $i: usize = 12; $body } { let $i: usize = 13; $body } { let $i: usize = 14; $body }
+    }};
+    (16, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
+        { let $i: usize = 8; $body } { let $i: usize = 9; $body } { let $i: usize = 10; $body } { let $i: usize = 11; $body }
+        { let $i: usize = 12; $body } { let $i: usize = 13; $body } { let $i: usize = 14; $body } { let $i: usize = 15; $body }
     }};
     (24, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }

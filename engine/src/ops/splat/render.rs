@@ -756,7 +756,6 @@ impl SplatRenderer {
     pub(crate) fn record_project_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, out: &'a GaussianBuffers) -> Result<()> {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
-        self.refuse_render_only()?;
         for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)

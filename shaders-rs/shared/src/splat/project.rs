@@ -290,7 +290,7 @@ fn sh_color<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> (V3<F>, V3<F>, F) {
     let dir = if len > F::zero() { [d[0] / len, d[1] / len, d[2] / len] } else { [F::zero(), F::zero(), F::one()] };
     let b = sh::basis(cam.sh_degree, dir);
     let mut color = [F::of(0.5); 3];
-    crate::each_sh_coeff!(k => {
+    crate::each_index!(16, k => {
         color[0] += b[k] * g.sh[k][0];
         color[1] += b[k] * g.sh[k][1];
         color[2] += b[k] * g.sh[k][2];
@@ -495,7 +495,7 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
     });
     let basis = sh::basis(cam.sh_degree, dir);
     let mut weights = [F::zero(); MAX_SH_COEFFS];
-    crate::each_sh_coeff!(k => {
+    crate::each_index!(16, k => {
         out.sh[k] = [basis[k] * g_col[0], basis[k] * g_col[1], basis[k] * g_col[2]];
         weights[k] = g.sh[k][0] * g_col[0] + g.sh[k][1] * g_col[1] + g.sh[k][2] * g_col[2];
     });
