@@ -1,11 +1,21 @@
 //! GPU radix sort against the CPU reference: a stable sort by the low `key_bits` bits
 //! (`drape_shared::radix_sort::significant_bits`). Values are the input indices, so
 //! exact equality of (key, value) pairs also proves stability. Tolerance: none, the
-//! sort is exact.
+//! sort is exact. Both variants run on every device: the block kernels (GPUs) and the
+//! chunk kernels (CPU devices), whichever `Auto` picks here.
 
-use drape_engine::ops::radix_sort::sort_pairs_host;
-use drape_shared::radix_sort::significant_bits;
+use drape_engine::ops::radix_sort::{sort_pairs_host_with, RadixSort, SortVariant};
+use drape_shared::radix_sort::{chunk_count, significant_bits, CHUNK_MAX_LEN};
 use drape_tests::{gpu, Pattern};
+
+const VARIANTS: [SortVariant; 2] = [SortVariant::Blocks, SortVariant::Chunks];
+
+fn sort_pairs_host(gpu: &drape_engine::Context, keys: &[u32], values: &[u32], bits: u32) -> drape_engine::Result<(Vec<u32>, Vec<u32>)> {
+    let (k, v) = sort_pairs_host_with(gpu, SortVariant::Blocks, keys, values, bits)?;
+    let (ck, cv) = sort_pairs_host_with(gpu, SortVariant::Chunks, keys, values, bits)?;
+    assert!(k == ck && v == cv, "the block and chunk variants disagree ({} keys, {bits} bits)", keys.len());
+    Ok((k, v))
+}
 
 const BITS: [u32; 4] = [1, 8, 16, 32];
 
@@ -69,11 +79,45 @@ fn sort_len_4m() {
 fn sort_len_16m_random_32_bits() {
     let gpu = gpu();
     let len = 16 << 20;
+    // Past 64 chunks of CHUNK_MAX_LEN: the chunk variant cuts this into more chunks.
+    assert!(chunk_count(len as u32) > 64 && len as u32 / chunk_count(len as u32) <= CHUNK_MAX_LEN);
     let keys = Pattern::Random.generate(len, 32, 16);
     let values: Vec<u32> = (0..len as u32).collect();
-    let (gk, gv) = sort_pairs_host(&gpu, &keys, &values, 32).expect("GPU sort");
     let (ek, ev) = cpu_reference(&keys, 32);
-    assert!(gk == ek && gv == ev, "16M random keys differ from the CPU reference");
+    for variant in VARIANTS {
+        let (gk, gv) = sort_pairs_host_with(&gpu, variant, &keys, &values, 32).expect("GPU sort");
+        assert!(gk == ek && gv == ev, "16M random keys differ from the CPU reference ({variant:?})");
+    }
+}
+
+/// A sort whose length the GPU wrote (`record_bounded`): the first `count` pairs of a
+/// larger capacity are sorted (what follows them is scratch: an odd number of passes
+/// copies the whole capacity back); a count past the capacity sorts
+/// the whole capacity. Both variants, and a count far below the capacity (the chunk
+/// variant divides the count, not the capacity, over its chunks).
+#[test]
+fn bounded_sort_sorts_the_gpu_count() {
+    let gpu = gpu();
+    let capacity = 300_000u32;
+    let keys = Pattern::Random.generate(capacity as usize, 20, 5);
+    let values: Vec<u32> = (0..capacity).collect();
+    for variant in VARIANTS {
+        let plan = RadixSort::with_variant(&gpu, capacity, variant).expect("plan");
+        assert_eq!(plan.variant(), variant);
+        for count in [0u64, 1, 4_097, 123_457, u64::from(capacity), u64::from(capacity) + 9, 1 << 33] {
+            let mut key_buf = gpu.upload("keys", &keys).unwrap();
+            let mut value_buf = gpu.upload("values", &values).unwrap();
+            let count_buf = gpu.upload("count", &[count as u32, (count >> 32) as u32]).unwrap();
+            let mut rec = gpu.record("bounded sort").unwrap();
+            plan.record_bounded(&mut rec, &key_buf, &value_buf, capacity, &count_buf, 20).unwrap();
+            rec.submit_and_wait().unwrap();
+            let gk = gpu.read_buffer::<u32>(&mut key_buf, capacity as usize).unwrap();
+            let gv = gpu.read_buffer::<u32>(&mut value_buf, capacity as usize).unwrap();
+            let sorted = count.min(u64::from(capacity)) as usize;
+            let (ek, ev) = cpu_reference(&keys[..sorted], 20);
+            assert!(gk[..sorted] == ek[..] && gv[..sorted] == ev[..], "{variant:?}, count {count}: differs from the reference");
+        }
+    }
 }
 
 /// Many duplicates spread over many workgroups: equal keys must keep input order.

@@ -1,14 +1,20 @@
-//! Stable LSD radix sort of `u32` keys with `u32` values (kernels `radix_sort::histogram`,
-//! `radix_sort::scatter`, and the scan op for the histogram).
+//! Stable LSD radix sort of `u32` keys with `u32` values, in two variants of the same
+//! three steps ([`SortVariant`]): kernels `radix_sort::histogram` / `radix_sort::scatter`
+//! (blocks ranked by a workgroup scan: GPUs) or `radix_sort::chunk_histogram` /
+//! `radix_sort::chunk_scatter` (long runs walked by one invocation each: CPU devices),
+//! and the scan op for the histogram.
 //!
-//! One pass per `RADIX_BITS`-bit digit of the low `key_bits` bits: histogram, scan of
-//! the digit-major histogram, scatter into the other buffer pair (the recorder derives
-//! the barriers between them). Passes ping-pong between the caller's buffers and the
+//! One pass per digit (4 bits in blocks, 8 in chunks) of the low `key_bits` bits:
+//! histogram, scan of the digit-major histogram, scatter into the other buffer pair
+//! (the recorder derives the barriers between them). Passes ping-pong between the caller's buffers and the
 //! plan's scratch; an odd number of passes ends with a copy back, so the result is
 //! always in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
 
-use drape_shared::radix_sort::{self, pass_count, pass_params, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN};
+use drape_shared::radix_sort::{
+    self, chunk_count, chunk_pass_count, chunk_pass_params, pass_count, pass_params, SortPassParams, CHUNK_BUCKETS, CHUNK_WORKGROUP_SIZE,
+    RADIX_BUCKETS, SORT_BLOCK_LEN,
+};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -17,9 +23,36 @@ use crate::kernels::Kernel;
 use crate::ops::scan::ExclusiveScan;
 use crate::recorder::Recording;
 
+/// Which kernels a sort records; both give the same (exact, stable) result.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum SortVariant {
+    /// [`Chunks`](Self::Chunks) on CPU devices, [`Blocks`](Self::Blocks) elsewhere.
+    #[default]
+    Auto,
+    /// Workgroups of 128 invocations rank blocks of 2,048 keys by 4-bit digits with a
+    /// workgroup scan: the GPU kernels.
+    Blocks,
+    /// Each invocation walks one of 64 or more long runs of the keys alone, by 8-bit
+    /// digits, with no barriers (`drape_shared::radix_sort::CHUNK_RADIX_BITS` says why
+    /// this suits llvmpipe; a GPU would sit mostly idle).
+    Chunks,
+}
+
+impl SortVariant {
+    /// The variant `Auto` stands for on this device.
+    pub fn resolve(self, ctx: &Context) -> Self {
+        match self {
+            Self::Auto if ctx.info().kind == crate::DeviceKind::Cpu => Self::Chunks,
+            Self::Auto => Self::Blocks,
+            chosen => chosen,
+        }
+    }
+}
+
 /// A planned sort: scratch keys, values and histogram for lengths up to `max_len`.
 pub struct RadixSort {
     max_len: u32,
+    variant: SortVariant,
     keys_scratch: Buffer,
     values_scratch: Buffer,
     histogram: Buffer,
@@ -30,15 +63,25 @@ impl RadixSort {
     /// Largest length one plan accepts (the workgroup-count limit of the sort kernels).
     pub const LIMIT: u32 = 65_535 * SORT_BLOCK_LEN;
 
-    /// Plans sorts of up to `max_len` pairs.
+    /// Plans sorts of up to `max_len` pairs with the device's variant.
     pub fn new(ctx: &Context, max_len: u32) -> Result<Self> {
+        Self::with_variant(ctx, max_len, SortVariant::Auto)
+    }
+
+    /// Plans sorts of up to `max_len` pairs with the given kernels.
+    pub fn with_variant(ctx: &Context, max_len: u32, variant: SortVariant) -> Result<Self> {
         if max_len > Self::LIMIT {
             return Err(EngineError::too_large("keys to sort", max_len.into(), Self::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"));
         }
+        let variant = variant.resolve(ctx);
         let bytes = u64::from(max_len) * 4;
-        let histogram_len = RADIX_BUCKETS * radix_sort::block_count(max_len);
+        let histogram_len = match variant {
+            SortVariant::Chunks => CHUNK_BUCKETS * chunk_count(max_len),
+            _ => RADIX_BUCKETS * radix_sort::block_count(max_len),
+        };
         Ok(Self {
             max_len,
+            variant,
             keys_scratch: ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
             values_scratch: ctx.create_buffer("radix_sort values scratch", BufferDesc::gpu_only(bytes))?,
             histogram: ctx.create_buffer("radix_sort histogram", BufferDesc::gpu_only(u64::from(histogram_len) * 4))?,
@@ -48,6 +91,11 @@ impl RadixSort {
 
     pub fn max_len(&self) -> u32 {
         self.max_len
+    }
+
+    /// The kernels this plan records (never `Auto`).
+    pub fn variant(&self) -> SortVariant {
+        self.variant
     }
 
     /// Records a stable sort of the first `len` (key, value) pairs by the low
@@ -67,7 +115,8 @@ impl RadixSort {
     /// `min(count, capacity)` pairs, where `count` is the little-endian u64 in the
     /// first two words of `count_words`, written by an earlier command of the same
     /// recording. The passes are sized for `capacity`; workgroups past the count do
-    /// nothing, so no host read of the count sits inside the frame.
+    /// nothing, so no host read of the count sits inside the frame. The pairs past the
+    /// count are scratch afterwards (an odd number of passes copies the whole capacity back).
     pub fn record_bounded<'a>(
         &'a self,
         rec: &mut Recording<'a>,
@@ -99,22 +148,30 @@ impl RadixSort {
         if len <= 1 {
             return Ok(());
         }
-        let passes = pass_count(key_bits);
-        let blocks = radix_sort::block_count(len);
+        let chunked = self.variant == SortVariant::Chunks;
+        let passes = if chunked { chunk_pass_count(key_bits) } else { pass_count(key_bits) };
+        let (histogram, scatter, buckets, blocks, groups) = if chunked {
+            let chunks = chunk_count(len);
+            (Kernel::RadixSortChunkHistogram, Kernel::RadixSortChunkScatter, CHUNK_BUCKETS, chunks, chunks / CHUNK_WORKGROUP_SIZE)
+        } else {
+            let blocks = radix_sort::block_count(len);
+            (Kernel::RadixSortHistogram, Kernel::RadixSortScatter, RADIX_BUCKETS, blocks, blocks)
+        };
         let mut src = (keys, values);
         let mut dst = (&self.keys_scratch, &self.values_scratch);
         for pass in 0..passes {
-            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..pass_params(len, key_bits, pass) };
+            let params = if chunked { chunk_pass_params(len, key_bits, pass) } else { pass_params(len, key_bits, pass) };
+            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..params };
             // Unread when unbounded; the keys stand in for the binding.
             let len_words = count_words.unwrap_or(src.0);
-            rec.pass("radix_sort.histogram", Kernel::RadixSortHistogram)
+            rec.pass("radix_sort.histogram", histogram)
                 .read("keys", src.0)
                 .write("histogram", &self.histogram)
                 .read("len_words", len_words)
                 .push(&params)
-                .dispatch([blocks, 1, 1])?;
-            self.histogram_scan.record(rec, &self.histogram, RADIX_BUCKETS * blocks)?;
-            rec.pass("radix_sort.scatter", Kernel::RadixSortScatter)
+                .dispatch([groups, 1, 1])?;
+            self.histogram_scan.record(rec, &self.histogram, buckets * blocks)?;
+            rec.pass("radix_sort.scatter", scatter)
                 .read("keys_in", src.0)
                 .read("values_in", src.1)
                 .read("scanned_histogram", &self.histogram)
@@ -122,7 +179,7 @@ impl RadixSort {
                 .write("values_out", dst.1)
                 .read("len_words", len_words)
                 .push(&params)
-                .dispatch([blocks, 1, 1])?;
+                .dispatch([groups, 1, 1])?;
             std::mem::swap(&mut src, &mut dst);
         }
         if passes % 2 == 1 {
@@ -136,11 +193,16 @@ impl RadixSort {
 /// Sorts host data on the GPU in one submission: upload, sort, read back.
 /// For embedding applications and tests; a frame loop keeps a plan and records.
 pub fn sort_pairs_host(ctx: &Context, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
+    sort_pairs_host_with(ctx, SortVariant::Auto, keys, values, key_bits)
+}
+
+/// [`sort_pairs_host`] with the given kernels.
+pub fn sort_pairs_host_with(ctx: &Context, variant: SortVariant, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
     assert_eq!(keys.len(), values.len(), "keys and values differ in length");
     let len = u32::try_from(keys.len()).map_err(|_| EngineError::too_large("keys to sort", keys.len() as u64, RadixSort::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"))?;
     let mut key_buf = ctx.upload("sort keys", keys)?;
     let mut value_buf = ctx.upload("sort values", values)?;
-    let plan = RadixSort::new(ctx, len)?;
+    let plan = RadixSort::with_variant(ctx, len, variant)?;
     let mut rec = ctx.record("sort_pairs_host")?;
     plan.record(&mut rec, &key_buf, &value_buf, len, key_bits)?;
     rec.submit_and_wait()?;

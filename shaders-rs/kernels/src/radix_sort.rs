@@ -1,4 +1,7 @@
-//! One pass of the stable LSD radix sort: `radix_sort::histogram` and `radix_sort::scatter`.
+//! One pass of the stable LSD radix sort: `radix_sort::histogram` and `radix_sort::scatter`
+//! (the block variant, for GPUs), `radix_sort::chunk_histogram` and
+//! `radix_sort::chunk_scatter` (the chunked variant, for CPU devices; see
+//! `drape_shared::radix_sort::CHUNK_RADIX_BITS`).
 //!
 //! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
 //! `RADIX_BUCKETS * params.block_count` counters, digit-major (see
@@ -9,8 +12,8 @@
 //! there).
 
 use drape_shared::radix_sort::{
-    bounded_len, digit, SortPassParams, RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD,
-    SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
+    bounded_len, chunk_range, digit, SortPassParams, CHUNK_BUCKETS, CHUNK_SHARED_COUNTERS, CHUNK_WORKGROUP_SIZE,
+    RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -149,6 +152,84 @@ pub fn scatter(
             keys_out[dst] = key;
             values_out[dst] = values_in[idx as usize];
         }
+        i += 1;
+    }
+}
+
+const CHUNK_LANES: usize = CHUNK_WORKGROUP_SIZE as usize;
+const _: () = assert!(CHUNK_WORKGROUP_SIZE == 8);
+
+/// `histogram[digit * chunks + chunk]` = how many keys of chunk `chunk` have `digit`;
+/// `params.block_count` is the chunk count, a multiple of 8, dispatched as
+/// `chunks / 8` workgroups. Each invocation counts its own chunk into its own column.
+#[spirv(compute(threads(8)))]
+pub fn chunk_histogram(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let len = keys_to_sort(params, len_words);
+    let chunks = params.block_count;
+    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
+    let lane = lid as usize;
+    let mut d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        counters[d * CHUNK_LANES + lane] = 0;
+        d += 1;
+    }
+    let (start, end) = chunk_range(len, chunks, chunk);
+    let mut i = start;
+    while i < end {
+        let slot = digit(keys[i as usize], params) as usize * CHUNK_LANES + lane;
+        counters[slot] += 1;
+        i += 1;
+    }
+    d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        histogram[d * chunks as usize + chunk as usize] = counters[d * CHUNK_LANES + lane];
+        d += 1;
+    }
+}
+
+/// Moves every key of each chunk (and its value) to its place for this digit, in
+/// order: the scanned histogram gives the chunk's first slot per digit, and the
+/// invocation's column counts on from there.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] values_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] keys_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let len = keys_to_sort(params, len_words);
+    let chunks = params.block_count;
+    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
+    let lane = lid as usize;
+    let mut d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        counters[d * CHUNK_LANES + lane] = scanned_histogram[d * chunks as usize + chunk as usize];
+        d += 1;
+    }
+    let (start, end) = chunk_range(len, chunks, chunk);
+    let mut i = start;
+    while i < end {
+        let key = keys_in[i as usize];
+        let slot = digit(key, params) as usize * CHUNK_LANES + lane;
+        let dst = counters[slot];
+        counters[slot] = dst + 1;
+        keys_out[dst as usize] = key;
+        values_out[dst as usize] = values_in[i as usize];
         i += 1;
     }
 }

@@ -15,7 +15,10 @@ use std::time::Instant;
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use drape_cli_support::{median, parse_len, DeviceArgs};
-use drape_engine::ops::{radix_sort::RadixSort, scan::ExclusiveScan};
+use drape_engine::ops::{
+    radix_sort::{RadixSort, SortVariant},
+    scan::ExclusiveScan,
+};
 use drape_engine::{BufferDesc, Context, PassTimings};
 use drape_shared::radix_sort::significant_bits;
 use rand::{Rng, SeedableRng};
@@ -72,6 +75,11 @@ enum Job {
         /// Significant key bits (1-32); keys are random in 0..2^bits.
         #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=32))]
         bits: u32,
+        /// Sort kernels: auto (chunks on CPU devices, blocks on GPUs), blocks (workgroups
+        /// rank blocks of 2,048 keys by 4-bit digits) or chunks (one invocation walks each
+        /// long run by 8-bit digits).
+        #[arg(long, value_enum, default_value_t = SortKernels::Auto)]
+        variant: SortKernels,
     },
     /// Exclusive prefix sum of random u32; CPU baseline: a sequential scan.
     Scan {
@@ -140,7 +148,15 @@ fn cpu_median(runs: u32, mut job: impl FnMut() -> f64) -> f64 {
     median(&times)
 }
 
-fn bench_sort(ctx: &Context, common: &Common, bits: u32) -> anyhow::Result<serde_json::Value> {
+/// `--variant` of `engine-bench sort`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum SortKernels {
+    Auto,
+    Blocks,
+    Chunks,
+}
+
+fn bench_sort(ctx: &Context, common: &Common, bits: u32, variant: SortKernels) -> anyhow::Result<serde_json::Value> {
     let n = common.n;
     anyhow::ensure!(n <= RadixSort::LIMIT, "--n {n} exceeds the sort's limit of {}", RadixSort::LIMIT);
     let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
@@ -151,7 +167,12 @@ fn bench_sort(ctx: &Context, common: &Common, bits: u32) -> anyhow::Result<serde
     let bytes = u64::from(n) * 4;
     let mut key_buf = ctx.create_buffer("bench keys", BufferDesc::gpu_only(bytes))?;
     let value_buf = ctx.create_buffer("bench values", BufferDesc::gpu_only(bytes))?;
-    let plan = RadixSort::new(ctx, n)?;
+    let variant = match variant {
+        SortKernels::Auto => SortVariant::Auto,
+        SortKernels::Blocks => SortVariant::Blocks,
+        SortKernels::Chunks => SortVariant::Chunks,
+    };
+    let plan = RadixSort::with_variant(ctx, n, variant)?;
 
     let measured = measure(ctx, common, || {
         let mut restore = ctx.record("restore input")?;
@@ -176,7 +197,7 @@ fn bench_sort(ctx: &Context, common: &Common, bits: u32) -> anyhow::Result<serde
         std::hint::black_box(&p);
         ms
     });
-    Ok(report(ctx, "sort", common, &measured, cpu_ms, "keys_per_s", json!({ "key_bits": bits })))
+    Ok(report(ctx, "sort", common, &measured, cpu_ms, "keys_per_s", json!({ "key_bits": bits, "variant": format!("{:?}", plan.variant()).to_lowercase() })))
 }
 
 fn bench_scan(ctx: &Context, common: &Common) -> anyhow::Result<serde_json::Value> {
@@ -246,7 +267,8 @@ fn report(
 
 fn print_table(r: &serde_json::Value) {
     let rate_key = if r.get("keys_per_s").is_some() { "keys_per_s" } else { "elems_per_s" };
-    println!("{} of {} elements on {} ({} runs, median)", r["job"].as_str().unwrap_or("?"), r["n"], r["device"].as_str().unwrap_or("?"), r["runs"]);
+    let kernels = r["variant"].as_str().map(|v| format!(", {v} kernels")).unwrap_or_default();
+    println!("{} of {} elements on {} ({} runs, median{kernels})", r["job"].as_str().unwrap_or("?"), r["n"], r["device"].as_str().unwrap_or("?"), r["runs"]);
     println!("  wall (submit to fence)  {:>10.3} ms   {:>8.2} M/s", r["median_ms"].as_f64().unwrap_or(0.0), r[rate_key].as_f64().unwrap_or(0.0) / 1e6);
     println!("  GPU (timestamps)        {:>10.3} ms", r["gpu_median_ms"].as_f64().unwrap_or(0.0));
     if let Some(passes) = r["passes"].as_object() {
@@ -277,7 +299,7 @@ fn main() -> ExitCode {
         schedule::set_warm_seconds(cli.warm_seconds.unwrap_or(if on_gpu { 1.0 } else { 0.0 }));
         // Each job gives its JSON, whether to print it as JSON, and its table printer.
         let (mut result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
-            Job::Sort { common, bits } => (bench_sort(&ctx, common, *bits).context("sort benchmark")?, common.json, print_table),
+            Job::Sort { common, bits, variant } => (bench_sort(&ctx, common, *bits, *variant).context("sort benchmark")?, common.json, print_table),
             Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json, print_table),
             Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
             Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
