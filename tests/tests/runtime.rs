@@ -2,7 +2,7 @@
 //! kernel-manifest check, per-pass timestamps, and that validation messages are caught.
 
 use drape_engine::kernels::{check_module, Kernel};
-use drape_engine::ops::scan::ExclusiveScan;
+use drape_engine::ops::scan::{ExclusiveScan, ScanVariant};
 use drape_engine::{BufferDesc, Context, ContextDesc, EngineError, POISON_WORD};
 use drape_tests::{gpu, has_feature, Feature};
 
@@ -154,7 +154,7 @@ fn passes_are_timed_by_name() {
     }
     let data: Vec<u32> = vec![1; 100_000];
     let buffer = gpu.upload("timed", &data).expect("upload");
-    let plan = ExclusiveScan::new(&gpu, "scan", 100_000).expect("plan");
+    let plan = ExclusiveScan::with_variant(&gpu, "scan", 100_000, ScanVariant::Blocks).expect("plan");
     let mut rec = gpu.record("timed scan").expect("record");
     plan.record(&mut rec, &buffer, 100_000).expect("record scan");
     let timings = rec.submit_and_wait().expect("submit");

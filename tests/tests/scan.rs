@@ -1,10 +1,20 @@
 //! GPU exclusive scan against the CPU reference `exclusive_scan_in_place` (the same
 //! function the shared crate documents). Exact: integer arithmetic, wrapping on both
-//! sides.
+//! sides. Both variants run on every device: the block kernels (GPUs) and the chunk
+//! kernels (CPU devices).
 
-use drape_engine::ops::scan::exclusive_scan_host;
+use drape_engine::ops::scan::{exclusive_scan_host_with, ScanVariant};
+use drape_shared::chunks::{chunk_count, CHUNK_MAX_LEN};
 use drape_shared::scan::exclusive_scan_in_place;
 use drape_tests::{gpu, Pattern};
+
+/// Both variants' scans, which must agree.
+fn exclusive_scan_host(gpu: &drape_engine::Context, data: &[u32]) -> drape_engine::Result<Vec<u32>> {
+    let blocks = exclusive_scan_host_with(gpu, ScanVariant::Blocks, data)?;
+    let chunks = exclusive_scan_host_with(gpu, ScanVariant::Chunks, data)?;
+    assert!(blocks == chunks, "the block and chunk variants disagree ({} elements)", data.len());
+    Ok(blocks)
+}
 
 fn check_length(len: usize) {
     let gpu = gpu();
@@ -55,10 +65,12 @@ fn scan_len_4m() {
     check_length(4 << 20);
 }
 
-/// Three levels (16M = 16,384 blocks of 1,024, then 16, then 1).
+/// Three levels (16M = 16,384 blocks of 1,024, then 16, then 1); 512 chunks of at most
+/// `CHUNK_MAX_LEN`.
 #[test]
 fn scan_len_16m() {
     let gpu = gpu();
+    assert!(chunk_count(16 << 20) == 512 && (16 << 20) / 512 <= CHUNK_MAX_LEN);
     let data = Pattern::Random.generate(16 << 20, 32, 99);
     let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
     let mut expected = data.clone();
@@ -70,7 +82,9 @@ fn scan_len_16m() {
 #[test]
 fn scan_level_boundaries() {
     let gpu = gpu();
-    for len in [1023, 1024, 1025, 1024 * 1024, 1024 * 1024 + 1] {
+    // Block boundaries, and chunk ones: 1,024 elements a chunk up to 64 chunks; 65
+    // chunks' worth rounds up to 72 chunks, several of them empty.
+    for len in [7, 1023, 1024, 1025, 8 * 1024 + 1, 64 * 1024 + 3, 1024 * 1024, 1024 * 1024 + 1] {
         let data = Pattern::Random.generate(len, 16, len as u64);
         let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
         let mut expected = data.clone();

@@ -1,11 +1,14 @@
-//! Exclusive prefix sum of `u32`: `scan::reduce` and `scan::downsweep`.
+//! Exclusive prefix sum of `u32`: `scan::reduce` and `scan::downsweep` (blocks, for
+//! GPUs), `scan::chunk_reduce`, `scan::chunk_sums` and `scan::chunk_downsweep` (long runs
+//! walked by one invocation each, for CPU devices: `drape_shared::chunks`).
 //!
 //! Buffers: `data` holds `params.len` elements at this level; `block_sums` /
 //! `block_offsets` one element per block of `SCAN_BLOCK_LEN` (see
 //! `drape_shared::scan` for the level structure). Out-of-range elements read as 0 and
 //! are never written. Sums wrap, like `u32::wrapping_add`.
 
-use drape_shared::scan::{ScanParams, SCAN_BLOCK_LEN, SCAN_ITEMS_PER_THREAD, SCAN_WORKGROUP_SIZE};
+use drape_shared::chunks::{chunk_range, CHUNK_WORKGROUP_SIZE};
+use drape_shared::scan::{ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SCAN_ITEMS_PER_THREAD, SCAN_WORKGROUP_SIZE};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -73,6 +76,65 @@ pub fn downsweep(
             data[idx as usize] = running;
             running = running.wrapping_add(v);
         }
+        i += 1;
+    }
+}
+
+/// `chunk_sums[chunk]` = the (wrapping) sum of chunk `chunk`'s elements; `chunks / 8`
+/// workgroups, one chunk per invocation.
+#[spirv(compute(threads(8)))]
+pub fn chunk_reduce(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &ChunkScanParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] chunk_sums: &mut [u32],
+) {
+    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
+    let (start, end) = chunk_range(params.len, params.chunks, chunk);
+    let mut sum = 0u32;
+    let mut i = start;
+    while i < end {
+        sum = sum.wrapping_add(data[i as usize]);
+        i += 1;
+    }
+    chunk_sums[chunk as usize] = sum;
+}
+
+/// Scans the `params.chunks` chunk sums in place, exclusively, in one invocation (a
+/// few thousand at most, and its index is uniform, so each load is a scalar one).
+#[spirv(compute(threads(1)))]
+pub fn chunk_sums(
+    #[spirv(push_constant)] params: &ChunkScanParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] chunk_sums: &mut [u32],
+) {
+    let mut running = 0u32;
+    let mut c = 0;
+    while c < params.chunks as usize {
+        let v = chunk_sums[c];
+        chunk_sums[c] = running;
+        running = running.wrapping_add(v);
+        c += 1;
+    }
+}
+
+/// Scans each chunk in place starting from its offset in the scanned chunk sums.
+#[spirv(compute(threads(8)))]
+pub fn chunk_downsweep(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &ChunkScanParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] chunk_offsets: &[u32],
+) {
+    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
+    let (start, end) = chunk_range(params.len, params.chunks, chunk);
+    let mut running = chunk_offsets[chunk as usize];
+    let mut i = start;
+    while i < end {
+        let v = data[i as usize];
+        data[i as usize] = running;
+        running = running.wrapping_add(v);
         i += 1;
     }
 }

@@ -84,6 +84,7 @@ macro_rules! each_index {
 }
 
 pub mod adam;
+pub mod chunks;
 pub mod cloth_loss;
 pub mod deform;
 pub mod fixed_point;

@@ -112,6 +112,8 @@ pub const fn significant_bits(key: u32, key_bits: u32) -> u32 {
     }
 }
 
+pub use crate::chunks::{chunk_count, chunk_len, chunk_range, CHUNK_MAX_LEN, CHUNK_WORKGROUP_SIZE};
+
 /// The chunked variant, for CPU devices (`radix_sort::chunk_histogram`,
 /// `radix_sort::chunk_scatter`): the keys are cut into [`chunk_count`] equal runs and
 /// each invocation walks one run alone, in order, counting and then placing its keys
@@ -131,65 +133,9 @@ pub const fn significant_bits(key: u32, key_bits: u32) -> u32 {
 pub const CHUNK_RADIX_BITS: u32 = 8;
 /// Distinct digit values of the chunked variant.
 pub const CHUNK_BUCKETS: u32 = 1 << CHUNK_RADIX_BITS;
-/// Invocations per workgroup of the chunked kernels (one chunk each).
-pub const CHUNK_WORKGROUP_SIZE: u32 = 8;
 /// Workgroup-memory counters of the chunked kernels: one column of
 /// [`CHUNK_BUCKETS`] per invocation, `counters[digit * CHUNK_WORKGROUP_SIZE + lane]`.
 pub const CHUNK_SHARED_COUNTERS: usize = (CHUNK_BUCKETS * CHUNK_WORKGROUP_SIZE) as usize;
-/// Longest run one invocation walks. llvmpipe stops a shader's loops after 65,535
-/// iterations in all (its loop limiter); a walk plus the two 256-counter loops stays
-/// well inside that.
-pub const CHUNK_MAX_LEN: u32 = 32_768;
-/// Chunks wanted when there are keys enough: 8 workgroups, so both of a small CPU's
-/// cores get work and the histogram (256 counters a chunk) stays short to scan.
-pub const CHUNK_TARGET_COUNT: u32 = 64;
-/// Fewest keys a chunk gets before there are fewer chunks than the target.
-pub const CHUNK_MIN_LEN: u32 = 1024;
-
-/// Number of chunks the chunked variant cuts a sort of up to `capacity` keys into: a
-/// multiple of [`CHUNK_WORKGROUP_SIZE`], at least one workgroup's, enough that no chunk
-/// exceeds [`CHUNK_MAX_LEN`]. Fixed by the capacity, so a bounded sort (whose count the
-/// GPU computes) is dispatched without reading the count; the kernels then divide the
-/// actual count over these chunks ([`chunk_len`]), so a short list is still shared by all.
-///
-/// ```
-/// use drape_shared::radix_sort::chunk_count;
-/// assert_eq!(chunk_count(0), 8);
-/// assert_eq!(chunk_count(10_000), 16);
-/// assert_eq!(chunk_count(1 << 20), 64);
-/// assert_eq!(chunk_count(16 << 20), 512);
-/// ```
-pub const fn chunk_count(capacity: u32) -> u32 {
-    let by_min_len = capacity.div_ceil(CHUNK_MIN_LEN);
-    let wanted = if by_min_len < CHUNK_TARGET_COUNT { by_min_len } else { CHUNK_TARGET_COUNT };
-    let needed = capacity.div_ceil(CHUNK_MAX_LEN);
-    let chunks = if wanted > needed { wanted } else { needed };
-    let rounded = chunks.div_ceil(CHUNK_WORKGROUP_SIZE) * CHUNK_WORKGROUP_SIZE;
-    if rounded == 0 {
-        CHUNK_WORKGROUP_SIZE
-    } else {
-        rounded
-    }
-}
-
-/// Keys per chunk when `len` keys are cut into `chunks` runs (the last ones may be
-/// shorter or empty).
-#[inline]
-pub const fn chunk_len(len: u32, chunks: u32) -> u32 {
-    len.div_ceil(chunks)
-}
-
-/// The keys of chunk `chunk`: `start..end` of `len` keys cut into `chunks` runs.
-#[inline]
-pub const fn chunk_range(len: u32, chunks: u32, chunk: u32) -> (u32, u32) {
-    let run = chunk_len(len, chunks);
-    // chunk < chunks, so chunk * run < len + chunks: no overflow below 2^32 - 2^16.
-    let start = chunk * run;
-    let start = if start < len { start } else { len };
-    let end = if len - start < run { len } else { start + run };
-    (start, end)
-}
-
 /// Number of passes of the chunked variant for `key_bits` significant bits.
 pub const fn chunk_pass_count(key_bits: u32) -> u32 {
     key_bits.div_ceil(CHUNK_RADIX_BITS)
@@ -211,26 +157,3 @@ pub const fn chunk_pass_params(capacity: u32, key_bits: u32, pass: u32) -> SortP
     }
 }
 
-#[cfg(test)]
-mod chunk_tests {
-    use super::*;
-
-    #[test]
-    fn chunks_cover_every_key_once_in_order() {
-        for len in [0u32, 1, 7, 8, 9, 1000, 1023, 1025, 65_537, 1 << 20, (1 << 21) + 3, 16 << 20] {
-            let chunks = chunk_count(len);
-            assert_eq!(chunks % CHUNK_WORKGROUP_SIZE, 0);
-            // A bounded sort divides any count up to its capacity over the same chunks.
-            for count in [len, len / 3, len.saturating_sub(1)] {
-                let mut next = 0;
-                for c in 0..chunks {
-                    let (start, end) = chunk_range(count, chunks, c);
-                    assert!(start <= end && end - start <= CHUNK_MAX_LEN, "len {len} count {count} chunk {c}: {start}..{end}");
-                    assert_eq!(start, next.min(count), "len {len} count {count} chunk {c}");
-                    next = end.max(next);
-                }
-                assert_eq!(next, count, "len {len} count {count}: chunks end at {next}");
-            }
-        }
-    }
-}

@@ -30,6 +30,21 @@ pub struct ScanParams {
     pub _pad: [u32; 2],
 }
 
+/// Push constants of the chunked scan kernels (`scan::chunk_*`, for CPU devices: each
+/// invocation sums and then scans one of `chunks` runs of `len` elements, see
+/// [`crate::chunks`]; one invocation scans the chunk sums in between).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ChunkScanParams {
+    /// Number of elements.
+    pub len: u32,
+    /// Number of chunks ([`crate::chunks::chunk_count`] of the plan's length), a
+    /// multiple of [`crate::chunks::CHUNK_WORKGROUP_SIZE`].
+    pub chunks: u32,
+    pub _pad: [u32; 2],
+}
+
 /// Number of blocks (workgroups) that cover `len` elements.
 pub const fn block_count(len: u32) -> u32 {
     len.div_ceil(SCAN_BLOCK_LEN)

@@ -17,7 +17,7 @@ use clap::{Parser, Subcommand};
 use drape_cli_support::{median, parse_len, DeviceArgs};
 use drape_engine::ops::{
     radix_sort::{RadixSort, SortVariant},
-    scan::ExclusiveScan,
+    scan::{ExclusiveScan, ScanVariant},
 };
 use drape_engine::{BufferDesc, Context, PassTimings};
 use drape_shared::radix_sort::significant_bits;
@@ -85,6 +85,10 @@ enum Job {
     Scan {
         #[command(flatten)]
         common: Common,
+        /// Scan kernels: auto (chunks on CPU devices, blocks on GPUs), blocks (workgroups
+        /// scan blocks of 1,024, level by level) or chunks (one invocation per long run).
+        #[arg(long, value_enum, default_value_t = SortKernels::Auto)]
+        variant: SortKernels,
     },
     /// Gaussian splatting: forward and forward+backward FPS, per-pass GPU ms and
     /// blend steps per second, at 512x512 and 1920x1080 with 10k, 100k and 1M random
@@ -148,7 +152,7 @@ fn cpu_median(runs: u32, mut job: impl FnMut() -> f64) -> f64 {
     median(&times)
 }
 
-/// `--variant` of `engine-bench sort`.
+/// `--variant` of `engine-bench sort` and `scan`.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum SortKernels {
     Auto,
@@ -200,7 +204,7 @@ fn bench_sort(ctx: &Context, common: &Common, bits: u32, variant: SortKernels) -
     Ok(report(ctx, "sort", common, &measured, cpu_ms, "keys_per_s", json!({ "key_bits": bits, "variant": format!("{:?}", plan.variant()).to_lowercase() })))
 }
 
-fn bench_scan(ctx: &Context, common: &Common) -> anyhow::Result<serde_json::Value> {
+fn bench_scan(ctx: &Context, common: &Common, variant: SortKernels) -> anyhow::Result<serde_json::Value> {
     let n = common.n;
     anyhow::ensure!(n <= ExclusiveScan::LIMIT, "--n {n} exceeds the scan's limit of {}", ExclusiveScan::LIMIT);
     let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
@@ -208,7 +212,12 @@ fn bench_scan(ctx: &Context, common: &Common) -> anyhow::Result<serde_json::Valu
     let pristine = ctx.upload("bench pristine data", &data)?;
     let bytes = u64::from(n) * 4;
     let mut buf = ctx.create_buffer("bench data", BufferDesc::gpu_only(bytes))?;
-    let plan = ExclusiveScan::new(ctx, "scan", n)?;
+    let variant = match variant {
+        SortKernels::Auto => ScanVariant::Auto,
+        SortKernels::Blocks => ScanVariant::Blocks,
+        SortKernels::Chunks => ScanVariant::Chunks,
+    };
+    let plan = ExclusiveScan::with_variant(ctx, "scan", n, variant)?;
     let measured = measure(ctx, common, || {
         let mut restore = ctx.record("restore input")?;
         restore.copy(&pristine, &buf, bytes);
@@ -231,7 +240,7 @@ fn bench_scan(ctx: &Context, common: &Common) -> anyhow::Result<serde_json::Valu
         std::hint::black_box(&d);
         ms
     });
-    Ok(report(ctx, "scan", common, &measured, cpu_ms, "elems_per_s", json!({})))
+    Ok(report(ctx, "scan", common, &measured, cpu_ms, "elems_per_s", json!({ "variant": format!("{:?}", plan.variant()).to_lowercase() })))
 }
 
 fn report(
@@ -300,7 +309,7 @@ fn main() -> ExitCode {
         // Each job gives its JSON, whether to print it as JSON, and its table printer.
         let (mut result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
             Job::Sort { common, bits, variant } => (bench_sort(&ctx, common, *bits, *variant).context("sort benchmark")?, common.json, print_table),
-            Job::Scan { common } => (bench_scan(&ctx, common).context("scan benchmark")?, common.json, print_table),
+            Job::Scan { common, variant } => (bench_scan(&ctx, common, *variant).context("scan benchmark")?, common.json, print_table),
             Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
             Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
             Job::Composite(args) => (composite::run(&ctx, args)?, args.json, composite::print_table),
