@@ -82,9 +82,10 @@ fn scan_len_16m() {
 #[test]
 fn scan_level_boundaries() {
     let gpu = gpu();
-    // Block boundaries, and chunk ones: 1,024 elements a chunk up to 64 chunks; 65
-    // chunks' worth rounds up to 72 chunks, several of them empty.
-    for len in [7, 1023, 1024, 1025, 8 * 1024 + 1, 64 * 1024 + 3, 1024 * 1024, 1024 * 1024 + 1] {
+    // Block boundaries, and chunk ones: 9 elements make 8 chunks of 2 (one of 1, then
+    // three empty); 8,193 make 9 chunks' worth, rounded up to 16 chunks of 513 (the last
+    // shorter); 64K + 3 make 64 chunks of 1,025.
+    for len in [7, 9, 1023, 1024, 1025, 8 * 1024 + 1, 64 * 1024 + 3, 1024 * 1024, 1024 * 1024 + 1] {
         let data = Pattern::Random.generate(len, 16, len as u64);
         let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
         let mut expected = data.clone();

@@ -5,7 +5,7 @@
 //! chunk kernels (CPU devices), whichever `Auto` picks here.
 
 use drape_engine::ops::radix_sort::{sort_pairs_host_with, RadixSort, SortVariant};
-use drape_shared::radix_sort::{chunk_count, significant_bits, CHUNK_MAX_LEN};
+use drape_shared::radix_sort::{chunk_count, chunk_len, significant_bits, CHUNK_MAX_LEN};
 use drape_tests::{gpu, Pattern};
 
 const VARIANTS: [SortVariant; 2] = [SortVariant::Blocks, SortVariant::Chunks];
@@ -80,7 +80,7 @@ fn sort_len_16m_random_32_bits() {
     let gpu = gpu();
     let len = 16 << 20;
     // Past 64 chunks of CHUNK_MAX_LEN: the chunk variant cuts this into more chunks.
-    assert!(chunk_count(len as u32) > 64 && len as u32 / chunk_count(len as u32) <= CHUNK_MAX_LEN);
+    assert!(chunk_count(len as u32) > 64 && chunk_len(len as u32, chunk_count(len as u32)) <= CHUNK_MAX_LEN);
     let keys = Pattern::Random.generate(len, 32, 16);
     let values: Vec<u32> = (0..len as u32).collect();
     let (ek, ev) = cpu_reference(&keys, 32);

@@ -20,7 +20,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
-use crate::ops::scan::ExclusiveScan;
+use crate::ops::scan::{ExclusiveScan, ScanVariant};
 use crate::recorder::Recording;
 
 /// Which kernels a sort records; both give the same (exact, stable) result.
@@ -32,7 +32,8 @@ pub enum SortVariant {
     /// Workgroups of 128 invocations rank blocks of 2,048 keys by 4-bit digits with a
     /// workgroup scan: the GPU kernels.
     Blocks,
-    /// Each invocation walks one of 64 or more long runs of the keys alone, by 8-bit
+    /// Each invocation walks one long run of the keys alone (64 runs from 64K keys,
+    /// more past 2M, 8 or more below; `drape_shared::chunks`), by 8-bit
     /// digits, with no barriers (`drape_shared::radix_sort::CHUNK_RADIX_BITS` says why
     /// this suits llvmpipe; a GPU would sit mostly idle).
     Chunks,
@@ -85,7 +86,13 @@ impl RadixSort {
             keys_scratch: ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
             values_scratch: ctx.create_buffer("radix_sort values scratch", BufferDesc::gpu_only(bytes))?,
             histogram: ctx.create_buffer("radix_sort histogram", BufferDesc::gpu_only(u64::from(histogram_len) * 4))?,
-            histogram_scan: ExclusiveScan::new(ctx, "radix_sort.scan", histogram_len)?,
+            // The scan of the same family, so that each variant is the whole of itself.
+            histogram_scan: ExclusiveScan::with_variant(
+                ctx,
+                "radix_sort.scan",
+                histogram_len,
+                if variant == SortVariant::Chunks { ScanVariant::Chunks } else { ScanVariant::Blocks },
+            )?,
         })
     }
 
@@ -114,8 +121,9 @@ impl RadixSort {
     /// Records a stable sort whose length the GPU computed: the first
     /// `min(count, capacity)` pairs, where `count` is the little-endian u64 in the
     /// first two words of `count_words`, written by an earlier command of the same
-    /// recording. The passes are sized for `capacity`; workgroups past the count do
-    /// nothing, so no host read of the count sits inside the frame. The pairs past the
+    /// recording. The passes are sized for `capacity`, so no host read of the count
+    /// sits inside the frame: with blocks, workgroups past the count do nothing; with
+    /// chunks, the kernels divide the count over the capacity's chunks. The pairs past the
     /// count are scratch afterwards (an odd number of passes copies the whole capacity back).
     pub fn record_bounded<'a>(
         &'a self,

@@ -5,7 +5,8 @@
 //! (recursively), then scan each block again starting from its block's offset. Two
 //! dispatches per level and one for the top.
 //! Chunks (CPU devices; `scan::chunk_reduce`, `scan::chunk_sums`,
-//! `scan::chunk_downsweep`): each invocation sums one of 64 or more long runs
+//! `scan::chunk_downsweep`): each invocation sums one of up to 64 long runs (more past
+//! 2M elements)
 //! (`drape_shared::chunks`), one invocation scans those sums, and each run is scanned
 //! from its offset: three dispatches, no barriers.
 //! No workgroup waits on another. In place; wrapping arithmetic; any length up to

@@ -4,10 +4,11 @@
 //! `drape_shared::radix_sort::CHUNK_RADIX_BITS`).
 //!
 //! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
-//! `RADIX_BUCKETS * params.block_count` counters, digit-major (see
-//! `drape_shared::radix_sort`); the scatter reads it after the exclusive scan.
-//! Workgroup memory `counters[digit * WG + invocation]` gives each invocation its own
-//! column, so counting needs no atomics. `len_words` holds a GPU-computed 64-bit
+//! `RADIX_BUCKETS * params.block_count` counters (blocks; chunks: `CHUNK_BUCKETS` per
+//! chunk), digit-major (see `drape_shared::radix_sort`); the scatter reads it after the
+//! exclusive scan. Workgroup memory `counters[digit * WG + invocation]` (chunks:
+//! `[digit * 8 + lane]`) gives each invocation its own column, so counting needs no
+//! atomics. `len_words` holds a GPU-computed 64-bit
 //! count when `params.bounded` is 1 (read only then; unbounded sorts bind the keys
 //! there).
 

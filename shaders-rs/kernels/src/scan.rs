@@ -2,9 +2,10 @@
 //! GPUs), `scan::chunk_reduce`, `scan::chunk_sums` and `scan::chunk_downsweep` (long runs
 //! walked by one invocation each, for CPU devices: `drape_shared::chunks`).
 //!
-//! Buffers: `data` holds `params.len` elements at this level; `block_sums` /
+//! Buffers (blocks): `data` holds `params.len` elements at this level; `block_sums` /
 //! `block_offsets` one element per block of `SCAN_BLOCK_LEN` (see
-//! `drape_shared::scan` for the level structure). Out-of-range elements read as 0 and
+//! `drape_shared::scan` for the level structure). Chunks: `chunk_sums` /
+//! `chunk_offsets` one element per chunk. Out-of-range elements read as 0 and
 //! are never written. Sums wrap, like `u32::wrapping_add`.
 
 use drape_shared::chunks::{chunk_range, CHUNK_WORKGROUP_SIZE};

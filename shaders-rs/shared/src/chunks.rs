@@ -17,8 +17,12 @@ pub const CHUNK_MAX_LEN: u32 = 32_768;
 /// Chunks wanted when there are elements enough: 8 workgroups, so both of a small CPU's
 /// cores get work, and what is kept per chunk (the sort's 256 counters) stays short.
 pub const CHUNK_TARGET_COUNT: u32 = 64;
-/// Fewest elements a chunk gets before there are fewer chunks than the target.
+/// The run length [`chunk_count`] aims at for lengths short of the target count of
+/// chunks (before it rounds the count up to whole workgroups, which shortens them).
 pub const CHUNK_MIN_LEN: u32 = 1024;
+/// The budget [`CHUNK_MAX_LEN`] keeps within: a walk plus two loops over the sort's 256
+/// counters (`radix_sort::CHUNK_BUCKETS`), under llvmpipe's 65,535 loop iterations.
+const _: () = assert!(CHUNK_MAX_LEN + 2 * 256 <= 65_535);
 
 /// Number of chunks a length of up to `capacity` is cut into: a
 /// multiple of [`CHUNK_WORKGROUP_SIZE`], at least one workgroup's, enough that no chunk
@@ -70,7 +74,8 @@ mod tests {
 
     #[test]
     fn chunks_cover_every_key_once_in_order() {
-        for len in [0u32, 1, 7, 8, 9, 1000, 1023, 1025, 65_537, 1 << 20, (1 << 21) + 3, 16 << 20] {
+        // Up to the sort's and the scan's limits (65,535 workgroups of their blocks).
+        for len in [0u32, 1, 7, 8, 9, 1000, 1023, 1025, 65_537, 1 << 20, (1 << 21) + 3, 16 << 20, 65_535 * 1024, 65_535 * 2048] {
             let chunks = chunk_count(len);
             assert_eq!(chunks % CHUNK_WORKGROUP_SIZE, 0);
             // A bounded sort divides any count up to its capacity over the same chunks.

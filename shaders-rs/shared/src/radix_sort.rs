@@ -1,6 +1,8 @@
-//! Stable least-significant-digit radix sort of `u32` keys carrying `u32` values.
+//! Stable least-significant-digit radix sort of `u32` keys carrying `u32` values, in
+//! two variants of the same three steps: blocks (below; the GPU kernels) and chunks
+//! ([`CHUNK_RADIX_BITS`]; for CPU devices).
 //!
-//! Each pass sorts by one [`RADIX_BITS`]-bit digit and is three steps:
+//! In the block variant each pass sorts by one [`RADIX_BITS`]-bit digit and is three steps:
 //! 1. histogram: each workgroup counts the digits of its block of [`SORT_BLOCK_LEN`]
 //!    keys and writes `histogram[digit * block_count + block]` (digit-major, so that
 //!    an exclusive scan of the whole array gives every (digit, block) its first output
@@ -22,7 +24,8 @@
 pub const RADIX_BITS: u32 = 4;
 /// Distinct digit values.
 pub const RADIX_BUCKETS: u32 = 1 << RADIX_BITS;
-/// Invocations per workgroup of the sort kernels (the `threads(..)` of the entry points).
+/// Invocations per workgroup of the block variant's kernels (the `threads(..)` of their
+/// entry points; the chunk kernels' is [`CHUNK_WORKGROUP_SIZE`]).
 pub const SORT_WORKGROUP_SIZE: u32 = 128;
 /// Consecutive keys each invocation owns.
 pub const SORT_ITEMS_PER_THREAD: u32 = 16;
@@ -43,7 +46,8 @@ pub struct SortPassParams {
     /// Mask applied after the shift (narrower than [`RADIX_BUCKETS`] - 1 on a last,
     /// partial digit).
     pub digit_mask: u32,
-    /// Workgroups (blocks) covering `len` keys.
+    /// Blocks: workgroups (blocks) covering `len` keys. Chunks: the chunk count
+    /// ([`chunk_count`] of `len`), dispatched as `chunks / CHUNK_WORKGROUP_SIZE` workgroups.
     pub block_count: u32,
     /// 1: `len` is a capacity and the keys to sort are [`bounded_len`] of it and the
     /// 64-bit count in the kernels' `len_words` (a count the GPU computed, so no host

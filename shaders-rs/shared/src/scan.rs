@@ -11,7 +11,8 @@
 //!
 //! Arithmetic is wrapping, like `u32::wrapping_add`, on both sides.
 
-/// Invocations per workgroup of every scan kernel (the `threads(..)` of the entry points).
+/// Invocations per workgroup of the block variant's scan kernels (the `threads(..)` of
+/// their entry points; the chunk kernels run 8, and 1 for the chunk sums).
 pub const SCAN_WORKGROUP_SIZE: u32 = 256;
 /// Consecutive elements each invocation owns.
 pub const SCAN_ITEMS_PER_THREAD: u32 = 4;
@@ -39,7 +40,7 @@ pub struct ScanParams {
 pub struct ChunkScanParams {
     /// Number of elements.
     pub len: u32,
-    /// Number of chunks ([`crate::chunks::chunk_count`] of the plan's length), a
+    /// Number of chunks ([`crate::chunks::chunk_count`] of `len`), a
     /// multiple of [`crate::chunks::CHUNK_WORKGROUP_SIZE`].
     pub chunks: u32,
     pub _pad: [u32; 2],
