@@ -160,6 +160,14 @@ pub fn scatter(
 const CHUNK_LANES: usize = CHUNK_WORKGROUP_SIZE as usize;
 const _: () = assert!(CHUNK_WORKGROUP_SIZE == 8);
 
+/// Invocation `lid`'s chunk of this pass: its number, its lane (counter column) and
+/// the keys `start..end` it walks.
+fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32) -> (u32, usize, u32, u32) {
+    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
+    let (start, end) = chunk_range(keys_to_sort(params, len_words), params.block_count, chunk);
+    (chunk, lid as usize, start, end)
+}
+
 /// `histogram[digit * chunks + chunk]` = how many keys of chunk `chunk` have `digit`;
 /// `params.block_count` is the chunk count, a multiple of 8, dispatched as
 /// `chunks / 8` workgroups. Each invocation counts its own chunk into its own column.
@@ -173,16 +181,13 @@ pub fn chunk_histogram(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    let len = keys_to_sort(params, len_words);
+    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
     let chunks = params.block_count;
-    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
-    let lane = lid as usize;
     let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
         counters[d * CHUNK_LANES + lane] = 0;
         d += 1;
     }
-    let (start, end) = chunk_range(len, chunks, chunk);
     let mut i = start;
     while i < end {
         let slot = digit(keys[i as usize], params) as usize * CHUNK_LANES + lane;
@@ -213,16 +218,13 @@ pub fn chunk_scatter(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    let len = keys_to_sort(params, len_words);
+    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
     let chunks = params.block_count;
-    let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
-    let lane = lid as usize;
     let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
         counters[d * CHUNK_LANES + lane] = scanned_histogram[d * chunks as usize + chunk as usize];
         d += 1;
     }
-    let (start, end) = chunk_range(len, chunks, chunk);
     let mut i = start;
     while i < end {
         let key = keys_in[i as usize];

@@ -68,14 +68,20 @@ pub const fn block_count(len: u32) -> u32 {
 
 /// The parameters of pass `pass` when sorting `len` keys by their low `key_bits` bits.
 pub const fn pass_params(len: u32, key_bits: u32, pass: u32) -> SortPassParams {
-    let shift = pass * RADIX_BITS;
+    digit_pass(len, key_bits, pass, RADIX_BITS, block_count(len))
+}
+
+/// Pass `pass` of digits `digit_bits` wide (the last one narrower where `key_bits` ends
+/// inside it) over `len` keys in `blocks` blocks or chunks.
+const fn digit_pass(len: u32, key_bits: u32, pass: u32, digit_bits: u32, blocks: u32) -> SortPassParams {
+    let shift = pass * digit_bits;
     let remaining = key_bits - shift;
-    let bits = if remaining < RADIX_BITS { remaining } else { RADIX_BITS };
+    let bits = if remaining < digit_bits { remaining } else { digit_bits };
     SortPassParams {
         len,
         shift,
         digit_mask: (1u32 << bits) - 1,
-        block_count: block_count(len),
+        block_count: blocks,
         bounded: 0,
         _pad: [0; 3],
     }
@@ -148,16 +154,6 @@ pub const fn chunk_pass_count(key_bits: u32) -> u32 {
 /// The parameters of the chunked variant's pass `pass` over up to `capacity` keys by
 /// their low `key_bits` bits; `block_count` is the chunk count.
 pub const fn chunk_pass_params(capacity: u32, key_bits: u32, pass: u32) -> SortPassParams {
-    let shift = pass * CHUNK_RADIX_BITS;
-    let remaining = key_bits - shift;
-    let bits = if remaining < CHUNK_RADIX_BITS { remaining } else { CHUNK_RADIX_BITS };
-    SortPassParams {
-        len: capacity,
-        shift,
-        digit_mask: (1u32 << bits) - 1,
-        block_count: chunk_count(capacity),
-        bounded: 0,
-        _pad: [0; 3],
-    }
+    digit_pass(capacity, key_bits, pass, CHUNK_RADIX_BITS, chunk_count(capacity))
 }
 
