@@ -5,10 +5,15 @@
 //! and the scan op for the histogram.
 //!
 //! One pass per digit (4 bits in blocks, 8 in chunks) of the low `key_bits` bits:
-//! histogram, scan of the digit-major histogram, scatter into the other buffer pair
-//! (the recorder derives the barriers between them). Passes ping-pong between the caller's buffers and the
-//! plan's scratch; an odd number of passes ends with a copy back, so the result is
-//! always in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
+//! histogram, scan of the digit-major histogram, scatter into the other buffers (the
+//! recorder derives the barriers between them). Blocks ping-pong between the caller's
+//! buffers and the plan's scratch, and an odd number of passes ends with a copy back.
+//! Chunks of two passes or more keep the pairs interleaved between the first pass and
+//! the last (`radix_sort::chunk_scatter_zip`, `chunk_scatter_pairs`,
+//! `chunk_scatter_unzip`), which halves the loads and stores per pair on llvmpipe; a
+//! chunked sort of one pass, or of more pairs than one binding of pairs holds, keeps
+//! them apart as blocks do. The result is always
+//! in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
 
 use drape_shared::radix_sort::{
@@ -35,7 +40,9 @@ pub enum SortVariant {
     /// Each invocation walks one long run of the keys alone (64 runs from 64K keys,
     /// more past 2M, 8 or more below; `drape_shared::chunks`), by 8-bit
     /// digits, with no barriers (`drape_shared::radix_sort::CHUNK_RADIX_BITS` says why
-    /// this suits llvmpipe; a GPU would sit mostly idle).
+    /// this suits llvmpipe; a GPU would sit mostly idle). Its scratch is two buffers of
+    /// interleaved pairs, 16 bytes per key of the plan (blocks: 8), where one binding
+    /// holds them.
     Chunks,
 }
 
@@ -50,12 +57,19 @@ impl SortVariant {
     }
 }
 
-/// A planned sort: scratch keys, values and histogram for lengths up to `max_len`.
+/// A planned sort: scratch and histogram for lengths up to `max_len`.
 pub struct RadixSort {
     max_len: u32,
     variant: SortVariant,
-    keys_scratch: Buffer,
-    values_scratch: Buffer,
+    /// The scratch keys and values, or, where `interleaved`, two buffers of
+    /// interleaved (key, value) pairs (`8 * max_len` bytes each) that the chunked
+    /// passes between the first and the last ping-pong through (a sort of one pass
+    /// uses them as keys and values).
+    scratch: [Buffer; 2],
+    /// Whether the chunked passes keep the pairs interleaved: chunks, and pair buffers
+    /// that one binding can hold (lavapipe binds 128 MiB, 16.7M pairs; larger plans
+    /// keep keys and values apart, as the block variant does).
+    interleaved: bool,
     histogram: Buffer,
     histogram_scan: ExclusiveScan,
 }
@@ -80,11 +94,22 @@ impl RadixSort {
             SortVariant::Chunks => CHUNK_BUCKETS * chunk_count(max_len),
             _ => RADIX_BUCKETS * radix_sort::block_count(max_len),
         };
+        let interleaved = variant == SortVariant::Chunks && 2 * bytes <= ctx.info().max_storage_buffer_range;
+        let scratch = match interleaved {
+            true => [
+                ctx.create_buffer("radix_sort pairs scratch a", BufferDesc::gpu_only(2 * bytes))?,
+                ctx.create_buffer("radix_sort pairs scratch b", BufferDesc::gpu_only(2 * bytes))?,
+            ],
+            false => [
+                ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
+                ctx.create_buffer("radix_sort values scratch", BufferDesc::gpu_only(bytes))?,
+            ],
+        };
         Ok(Self {
             max_len,
             variant,
-            keys_scratch: ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
-            values_scratch: ctx.create_buffer("radix_sort values scratch", BufferDesc::gpu_only(bytes))?,
+            scratch,
+            interleaved,
             histogram: ctx.create_buffer("radix_sort histogram", BufferDesc::gpu_only(u64::from(histogram_len) * 4))?,
             // The scan of the same family, so that each variant is the whole of itself.
             histogram_scan: ExclusiveScan::with_variant(
@@ -158,6 +183,9 @@ impl RadixSort {
         }
         let chunked = self.variant == SortVariant::Chunks;
         let passes = if chunked { chunk_pass_count(key_bits) } else { pass_count(key_bits) };
+        if self.interleaved && passes >= 2 {
+            return self.record_chunk_passes(rec, keys, values, len, count_words, key_bits, passes);
+        }
         let (histogram, scatter, buckets, blocks, groups) = if chunked {
             let chunks = chunk_count(len);
             (Kernel::RadixSortChunkHistogram, Kernel::RadixSortChunkScatter, CHUNK_BUCKETS, chunks, chunks / CHUNK_WORKGROUP_SIZE)
@@ -166,7 +194,7 @@ impl RadixSort {
             (Kernel::RadixSortHistogram, Kernel::RadixSortScatter, RADIX_BUCKETS, blocks, blocks)
         };
         let mut src = (keys, values);
-        let mut dst = (&self.keys_scratch, &self.values_scratch);
+        let mut dst = (&self.scratch[0], &self.scratch[1]);
         for pass in 0..passes {
             let params = if chunked { chunk_pass_params(len, key_bits, pass) } else { pass_params(len, key_bits, pass) };
             let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..params };
@@ -193,6 +221,61 @@ impl RadixSort {
         if passes % 2 == 1 {
             rec.copy(src.0, keys, bytes);
             rec.copy(src.1, values, bytes);
+        }
+        Ok(())
+    }
+
+    /// The chunked variant's sorts of two passes or more: the first pass zips the
+    /// caller's keys and values into interleaved pairs, the middle ones move pairs
+    /// between the two scratch buffers, and the last unzips into the caller's buffers
+    /// (so no copy back). On llvmpipe a pair is then one load and one store where it
+    /// was two of each, and the scatter writes one stream per digit instead of two.
+    #[allow(clippy::too_many_arguments)]
+    fn record_chunk_passes<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        keys: &'a Buffer,
+        values: &'a Buffer,
+        len: u32,
+        count_words: Option<&'a Buffer>,
+        key_bits: u32,
+        passes: u32,
+    ) -> Result<()> {
+        let chunks = chunk_count(len);
+        let groups = [chunks / CHUNK_WORKGROUP_SIZE, 1, 1];
+        let mut pairs = (&self.scratch[0], &self.scratch[1]);
+        for pass in 0..passes {
+            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..chunk_pass_params(len, key_bits, pass) };
+            let (first, last) = (pass == 0, pass + 1 == passes);
+            // Unread when unbounded; the pass's input stands in for the binding.
+            let len_words = count_words.unwrap_or(if first { keys } else { pairs.0 });
+            if first {
+                rec.pass("radix_sort.histogram", Kernel::RadixSortChunkHistogram).read("keys", keys)
+            } else {
+                rec.pass("radix_sort.histogram", Kernel::RadixSortChunkHistogramPairs).read("pairs", pairs.0)
+            }
+            .write("histogram", &self.histogram)
+            .read("len_words", len_words)
+            .push(&params)
+            .dispatch(groups)?;
+            self.histogram_scan.record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
+            let scatter = if first {
+                rec.pass("radix_sort.scatter_zip", Kernel::RadixSortChunkScatterZip)
+                    .read("keys_in", keys)
+                    .read("values_in", values)
+                    .write("pairs_out", pairs.0)
+            } else if last {
+                rec.pass("radix_sort.scatter_unzip", Kernel::RadixSortChunkScatterUnzip)
+                    .read("pairs_in", pairs.0)
+                    .write("keys_out", keys)
+                    .write("values_out", values)
+            } else {
+                rec.pass("radix_sort.scatter_pairs", Kernel::RadixSortChunkScatterPairs).read("pairs_in", pairs.0).write("pairs_out", pairs.1)
+            };
+            scatter.read("scanned_histogram", &self.histogram).read("len_words", len_words).push(&params).dispatch(groups)?;
+            if !first {
+                std::mem::swap(&mut pairs.0, &mut pairs.1);
+            }
         }
         Ok(())
     }

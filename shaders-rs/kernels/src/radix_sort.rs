@@ -1,7 +1,8 @@
 //! One pass of the stable LSD radix sort: `radix_sort::histogram` and `radix_sort::scatter`
-//! (the block variant, for GPUs), `radix_sort::chunk_histogram` and
-//! `radix_sort::chunk_scatter` (the chunked variant, for CPU devices; see
-//! `drape_shared::radix_sort::CHUNK_RADIX_BITS`).
+//! (the block variant, for GPUs), `radix_sort::chunk_histogram[_pairs]` and
+//! `radix_sort::chunk_scatter[_zip|_pairs|_unzip]` (the chunked variant, for CPU devices;
+//! see `drape_shared::radix_sort::CHUNK_RADIX_BITS`; the suffix says which side holds
+//! interleaved (key, value) pairs instead of separate buffers, see `PairSource`).
 //!
 //! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
 //! `RADIX_BUCKETS * params.block_count` counters (blocks; chunks: `CHUNK_BUCKETS` per
@@ -17,7 +18,7 @@ use drape_shared::radix_sort::{
     RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
-use spirv_std::glam::UVec3;
+use spirv_std::glam::{UVec2, UVec3};
 use spirv_std::spirv;
 
 use crate::workgroup::exclusive_scan;
@@ -168,6 +169,141 @@ fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32)
     (chunk, lid as usize, start, end)
 }
 
+/// Where a chunk pass reads its pairs: the caller's separate key and value buffers, or
+/// the sort's scratch of interleaved (key, value) pairs. On llvmpipe every load or store
+/// whose address is not uniform is a loop over the lanes, one loop per access however
+/// many components it moves, so a pair costs one loop interleaved and two split; and a
+/// scatter's stores go to one stream of cache lines per digit instead of two.
+trait PairSource {
+    fn key(&self, i: u32) -> u32;
+    fn pair(&self, i: u32) -> UVec2;
+}
+
+/// Where a chunk scatter writes its pairs (see [`PairSource`]).
+trait PairSink {
+    fn put(&mut self, i: u32, pair: UVec2);
+}
+
+/// Separate key and value buffers.
+struct Split<'a> {
+    keys: &'a [u32],
+    values: &'a [u32],
+}
+
+/// Separate key and value buffers, written.
+struct SplitMut<'a> {
+    keys: &'a mut [u32],
+    values: &'a mut [u32],
+}
+
+/// Interleaved pairs.
+struct Pairs<'a>(&'a [UVec2]);
+
+/// Interleaved pairs, written.
+struct PairsMut<'a>(&'a mut [UVec2]);
+
+impl PairSource for Split<'_> {
+    #[inline]
+    fn key(&self, i: u32) -> u32 {
+        self.keys[i as usize]
+    }
+    #[inline]
+    fn pair(&self, i: u32) -> UVec2 {
+        UVec2::new(self.keys[i as usize], self.values[i as usize])
+    }
+}
+
+impl PairSource for Pairs<'_> {
+    #[inline]
+    fn key(&self, i: u32) -> u32 {
+        self.0[i as usize].x
+    }
+    #[inline]
+    fn pair(&self, i: u32) -> UVec2 {
+        self.0[i as usize]
+    }
+}
+
+impl PairSink for SplitMut<'_> {
+    #[inline]
+    fn put(&mut self, i: u32, pair: UVec2) {
+        self.keys[i as usize] = pair.x;
+        self.values[i as usize] = pair.y;
+    }
+}
+
+impl PairSink for PairsMut<'_> {
+    #[inline]
+    fn put(&mut self, i: u32, pair: UVec2) {
+        self.0[i as usize] = pair;
+    }
+}
+
+/// Counts invocation `lid`'s chunk of `src` into its column and writes the column to
+/// `histogram[digit * chunks + chunk]`.
+#[inline]
+fn count_chunk<S: PairSource>(
+    params: &SortPassParams,
+    len_words: &[u32],
+    group: UVec3,
+    lid: u32,
+    src: &S,
+    histogram: &mut [u32],
+    counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
+    let chunks = params.block_count;
+    let mut d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        counters[d * CHUNK_LANES + lane] = 0;
+        d += 1;
+    }
+    let mut i = start;
+    while i < end {
+        let slot = digit(src.key(i), params) as usize * CHUNK_LANES + lane;
+        counters[slot] += 1;
+        i += 1;
+    }
+    d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        histogram[d * chunks as usize + chunk as usize] = counters[d * CHUNK_LANES + lane];
+        d += 1;
+    }
+}
+
+/// Moves every pair of invocation `lid`'s chunk of `src` to its place in `dst` for
+/// this digit, in order: the scanned histogram gives the chunk's first slot per digit,
+/// and the invocation's column counts on from there.
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn scatter_chunk<S: PairSource, D: PairSink>(
+    params: &SortPassParams,
+    len_words: &[u32],
+    group: UVec3,
+    lid: u32,
+    scanned_histogram: &[u32],
+    src: &S,
+    dst: &mut D,
+    counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
+    let chunks = params.block_count;
+    let mut d = 0;
+    while d < CHUNK_BUCKETS as usize {
+        counters[d * CHUNK_LANES + lane] = scanned_histogram[d * chunks as usize + chunk as usize];
+        d += 1;
+    }
+    let mut i = start;
+    while i < end {
+        let pair = src.pair(i);
+        let slot = digit(pair.x, params) as usize * CHUNK_LANES + lane;
+        let at = counters[slot];
+        counters[slot] = at + 1;
+        dst.put(at, pair);
+        i += 1;
+    }
+}
+
 /// `histogram[digit * chunks + chunk]` = how many keys of chunk `chunk` have `digit`;
 /// `params.block_count` is the chunk count, a multiple of 8, dispatched as
 /// `chunks / 8` workgroups. Each invocation counts its own chunk into its own column.
@@ -181,29 +317,24 @@ pub fn chunk_histogram(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
-    let chunks = params.block_count;
-    let mut d = 0;
-    while d < CHUNK_BUCKETS as usize {
-        counters[d * CHUNK_LANES + lane] = 0;
-        d += 1;
-    }
-    let mut i = start;
-    while i < end {
-        let slot = digit(keys[i as usize], params) as usize * CHUNK_LANES + lane;
-        counters[slot] += 1;
-        i += 1;
-    }
-    d = 0;
-    while d < CHUNK_BUCKETS as usize {
-        histogram[d * chunks as usize + chunk as usize] = counters[d * CHUNK_LANES + lane];
-        d += 1;
-    }
+    count_chunk(params, len_words, group, lid, &Split { keys, values: keys }, histogram, counters);
 }
 
-/// Moves every key of each chunk (and its value) to its place for this digit, in
-/// order: the scanned histogram gives the chunk's first slot per digit, and the
-/// invocation's column counts on from there.
+/// [`chunk_histogram`] of interleaved pairs (the passes after the first).
+#[spirv(compute(threads(8)))]
+pub fn chunk_histogram_pairs(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pairs: &[UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    count_chunk(params, len_words, group, lid, &Pairs(pairs), histogram, counters);
+}
+
+/// One pass from separate buffers to separate buffers (a sort of one pass).
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(8)))]
 pub fn chunk_scatter(
@@ -218,21 +349,58 @@ pub fn chunk_scatter(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
     #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
-    let chunks = params.block_count;
-    let mut d = 0;
-    while d < CHUNK_BUCKETS as usize {
-        counters[d * CHUNK_LANES + lane] = scanned_histogram[d * chunks as usize + chunk as usize];
-        d += 1;
-    }
-    let mut i = start;
-    while i < end {
-        let key = keys_in[i as usize];
-        let slot = digit(key, params) as usize * CHUNK_LANES + lane;
-        let dst = counters[slot];
-        counters[slot] = dst + 1;
-        keys_out[dst as usize] = key;
-        values_out[dst as usize] = values_in[i as usize];
-        i += 1;
-    }
+    let src = Split { keys: keys_in, values: values_in };
+    let mut dst = SplitMut { keys: keys_out, values: values_out };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst, counters);
+}
+
+/// The first pass of a longer sort: separate buffers in, interleaved pairs out.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_zip(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] values_in: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let src = Split { keys: keys_in, values: values_in };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out), counters);
+}
+
+/// A middle pass: interleaved pairs in and out.
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_pairs(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pairs_in: &[UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut PairsMut(pairs_out), counters);
+}
+
+/// The last pass of a longer sort: interleaved pairs in, the caller's separate buffers out.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_unzip(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pairs_in: &[UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] keys_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] values_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
+    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
+) {
+    let mut dst = SplitMut { keys: keys_out, values: values_out };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut dst, counters);
 }

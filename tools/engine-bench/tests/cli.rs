@@ -68,7 +68,8 @@ fn sort_json_has_the_documented_fields() {
     assert_eq!(j["n"], 5000);
     assert_eq!(j["key_bits"], 12);
     assert!(j["median_ms"].as_f64().is_some_and(|v| v > 0.0));
-    assert!(j["passes"].get("radix_sort.scatter").is_some(), "{j}");
+    // The chunk variant (CPU devices) names its scatters by layout (scatter_zip, ...).
+    assert!(j["passes"].as_object().is_some_and(|p| p.keys().any(|k| k.starts_with("radix_sort.scatter"))), "{j}");
 }
 
 #[test]
