@@ -49,13 +49,14 @@ fn main() {
             .iter()
             .map(|b| {
                 let binding = b["name"].as_str().expect("manifest.json: binding name");
-                let (read_only, texel) = match b["access"].as_str().expect("manifest.json: binding access") {
-                    "read" => (true, false),
-                    "read_write" => (false, false),
-                    "texel" => (true, true),
+                let (read_only, texel, texel4) = match b["access"].as_str().expect("manifest.json: binding access") {
+                    "read" => (true, false, false),
+                    "read_write" => (false, false, false),
+                    "texel" => (true, true, false),
+                    "texel4" => (true, true, true),
                     other => panic!("manifest.json: {name}: binding '{binding}' has access '{other}'"),
                 };
-                format!("BindingDecl {{ name: {binding:?}, read_only: {read_only}, texel: {texel} }}")
+                format!("BindingDecl {{ name: {binding:?}, read_only: {read_only}, texel: {texel}, texel4: {texel4} }}")
             })
             .collect();
         let needs_atomics = m["requires"]

@@ -79,6 +79,9 @@ pub struct Buffer {
     /// The whole buffer as `R32_SFLOAT` texels, made the first time a texel binding
     /// reads the buffer and destroyed with it.
     texel_view: OnceLock<vk::BufferView>,
+    /// The whole buffer as `R32G32B32A32_SFLOAT` texels (4 floats a texel), made the
+    /// first time a 4-float texel binding reads it.
+    texel4_view: OnceLock<vk::BufferView>,
     name: String,
     device: Arc<Device>,
 }
@@ -94,9 +97,9 @@ impl Buffer {
         self.coherent_mapping().is_some()
     }
 
-    /// Bytes actually bound to `raw` (at least 4).
+    /// Bytes actually bound to `raw`: see [`vk_bytes`].
     pub(crate) fn vk_size(&self) -> u64 {
-        self.size.max(4)
+        vk_bytes(self.size)
     }
 
     /// Whether a texel binding can read this buffer: made with `UNIFORM_TEXEL_BUFFER`
@@ -110,22 +113,31 @@ impl Buffer {
     /// check [`texel_readable`](Self::texel_readable) first (the recorder does, and
     /// names the pass and binding when it does not hold).
     pub(crate) fn texel_view(&self) -> Result<vk::BufferView> {
-        if let Some(&view) = self.texel_view.get() {
+        self.view_of(&self.texel_view, vk::Format::R32_SFLOAT, 4)
+    }
+
+    /// The buffer's `R32G32B32A32_SFLOAT` view (whole texels of 16 bytes), made on first use.
+    pub(crate) fn texel4_view(&self) -> Result<vk::BufferView> {
+        self.view_of(&self.texel4_view, vk::Format::R32G32B32A32_SFLOAT, 16)
+    }
+
+    fn view_of(&self, slot: &OnceLock<vk::BufferView>, format: vk::Format, texel_bytes: u64) -> Result<vk::BufferView> {
+        if let Some(&view) = slot.get() {
             return Ok(view);
         }
         // The callers' check, kept here because the view's validity rests on it.
         assert!(self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER), "texel view of '{}', made without texel usage", self.name);
-        let texels = self.vk_size() / 4;
-        let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(vk::Format::R32_SFLOAT).offset(0).range(texels * 4);
+        let texels = self.vk_size() / texel_bytes;
+        let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(format).offset(0).range(texels * texel_bytes);
         // SAFETY: a buffer of this device made with UNIFORM_TEXEL_BUFFER usage; the range
         // lies inside it and R32_SFLOAT uniform texel buffers are required of every device.
         let view = unsafe { self.device.raw.create_buffer_view(&info, None) }.vk("vkCreateBufferView", &self.name)?;
-        if let Err(ours) = self.texel_view.set(view) {
+        if let Err(ours) = slot.set(view) {
             // Another thread made one first: keep its view.
             // SAFETY: ours was never used.
             unsafe { self.device.raw.destroy_buffer_view(ours, None) };
         }
-        Ok(*self.texel_view.get().expect("set above"))
+        Ok(*slot.get().expect("set above"))
     }
 
     /// The mapped bytes, when the memory is host-visible and coherent (so no flush or
@@ -151,6 +163,9 @@ impl Drop for Buffer {
             if let Some(&view) = self.texel_view.get() {
                 self.device.raw.destroy_buffer_view(view, None);
             }
+            if let Some(&view) = self.texel4_view.get() {
+                self.device.raw.destroy_buffer_view(view, None);
+            }
             self.device.raw.destroy_buffer(self.raw, None)
         };
         if let Some(a) = self.allocation.take() {
@@ -174,7 +189,7 @@ impl Context {
         }
         let dev = &self.device.raw;
         let info = vk::BufferCreateInfo::default()
-            .size(desc.size.max(4))
+            .size(vk_bytes(desc.size))
             .usage(desc.usage)
             .sharing_mode(vk::SharingMode::EXCLUSIVE);
         // SAFETY: valid device and create info.
@@ -219,6 +234,7 @@ impl Context {
                 host_access,
                 usage: desc.usage,
                 texel_view: OnceLock::new(),
+                texel4_view: OnceLock::new(),
                 name: name.to_string(),
                 device: self.device.clone(),
             };
@@ -304,4 +320,11 @@ impl Context {
         bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[..len]);
         Ok(out)
     }
+}
+
+/// The bytes a buffer of `size` requested bytes is made with: at least 4, and whole
+/// 16-byte texels, so a 4-float texel view (`BindingDecl::texel4`) reaches its last
+/// float (the padding is never written or read as data).
+fn vk_bytes(size: u64) -> u64 {
+    size.max(4).next_multiple_of(16)
 }

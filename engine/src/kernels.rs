@@ -29,6 +29,10 @@ pub struct BindingDecl {
     /// of the 8 lanes, where a storage-buffer load whose index the compiler cannot
     /// prove uniform is a loop over the lanes with a branch per lane.
     pub texel: bool,
+    /// A texel buffer whose image declares `Rgba32f` (`Image!(buffer, format=rgba32f,
+    /// sampled)`): bound through the buffer's `R32G32B32A32_SFLOAT` view, so one fetch
+    /// returns 4 consecutive floats.
+    pub texel4: bool,
 }
 
 impl BindingDecl {
@@ -104,6 +108,15 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
                 decl.name,
                 if texel { "a texel buffer" } else { "a storage buffer" },
                 if decl.texel { "a texel buffer" } else { "a storage buffer" }
+            )));
+        }
+        let texel4 = facts.texel4_mask & (1 << b) != 0;
+        if texel4 != decl.texel4 {
+            return Err(mismatch(format!(
+                "binding {b} ('{}') is {} in the module, {} in the manifest",
+                decl.name,
+                if texel4 { "a 4-float texel buffer" } else { "not a 4-float texel buffer" },
+                if decl.texel4 { "a 4-float texel buffer" } else { "not a 4-float texel buffer" }
             )));
         }
         let read_only = texel || facts.read_only_mask & (1 << b) != 0;

@@ -538,7 +538,12 @@ impl<'a> Recording<'a> {
                     };
                     return Err(EngineError::Binding { pass: name.to_string(), kernel: kernel.entry_point(), binding: decl.name.to_string(), problem });
                 }
-                b.buffer.texel_view().map(|v| [v])
+                if decl.texel4 && b.buffer.vk_size() % 16 != 0 {
+                    // A 4-float view covers whole texels: the tail would read as zeros.
+                    let problem = format!("'{}' holds {} bytes, not a whole number of 16-byte texels", b.buffer.name(), b.buffer.vk_size());
+                    return Err(EngineError::Binding { pass: name.to_string(), kernel: kernel.entry_point(), binding: decl.name.to_string(), problem });
+                }
+                if decl.texel4 { b.buffer.texel4_view() } else { b.buffer.texel_view() }.map(|v| [v])
             })
             .collect::<Result<_>>()?;
         let set = self.allocate_set(pipeline.set_layout)?;

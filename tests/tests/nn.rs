@@ -60,10 +60,27 @@ fn normed_desc() -> MlpDesc {
     MlpDesc { weight_norm: vec![1, 3], ..small_desc() }
 }
 
+/// Widths in multiples of 4 and outputs of 16 or more: every GEMM of it fits a 4-float
+/// texel kernel (`GemmVariant::Texel4`: forwards `gemm_texel_k4`, input gradients
+/// `gemm_texel_k4n4`, weight gradients `gemm_texel_b4`), where `small_desc`'s odd
+/// widths take the fallback.
+fn texel4_desc() -> MlpDesc {
+    MlpDesc {
+        input: 8,
+        hidden: vec![(16, Activation::Gelu), (32, Activation::Gelu)],
+        heads: vec![
+            HeadDesc::new("opacity", 1, Activation::Sigmoid),
+            HeadDesc::new("raw", 7, Activation::Identity),
+            HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
+        ],
+        weight_norm: vec![],
+    }
+}
+
 #[test]
 fn mlp_gpu_matches_cpu_reference() {
     let ctx = gpu();
-    for (desc, sizes) in [(small_desc(), &[0usize, 1, 7, 1000, 100_003][..]), (normed_desc(), &[0, 1, 7, 1000][..])] {
+    for (desc, sizes) in [(small_desc(), &[0usize, 1, 7, 1000, 100_003][..]), (texel4_desc(), &[0, 1, 7, 1000, 100_003][..]), (normed_desc(), &[0, 1, 7, 1000][..])] {
         check_against_reference(&ctx, &desc, sizes);
     }
 }
@@ -75,8 +92,9 @@ fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
     if subgroup_gemm_supported(ctx.info()) {
         variants.push(GemmVariant::Subgroup);
         variants.push(GemmVariant::Texel);
+        variants.push(GemmVariant::Texel4);
     } else if report {
-        eprintln!("SKIPPED: nn::gemm_subgroup and nn::gemm_texel (need subgroups of 8 lanes with ballot; {})", ctx.info());
+        eprintln!("SKIPPED: nn::gemm_subgroup, nn::gemm_texel and the 4-float texel GEMMs (need subgroups of 8 lanes with ballot; {})", ctx.info());
     }
     variants
 }

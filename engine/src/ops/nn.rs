@@ -269,7 +269,7 @@ impl MlpDesc {
 /// Which GEMM kernel an [`Mlp`] records.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum GemmVariant {
-    /// On CPU devices (lavapipe): the subgroup-broadcast kernel where subgroups are 8
+    /// On CPU devices (lavapipe): [`Texel4`](Self::Texel4) where subgroups are 8
     /// lanes with ballot operations and `C` has at least 16 columns, else the
     /// register-blocked one (narrow heads waste less of its 8-column blocks); on GPUs
     /// the workgroup-tiled kernel.
@@ -287,6 +287,13 @@ pub enum GemmVariant {
     /// the same order). Same device needs, and both operands within
     /// `maxTexelBufferElements` floats.
     Texel,
+    /// `nn::gemm_texel_k4`, `gemm_texel_k4n4` or `gemm_texel_b4`: [`Texel`](Self::Texel)'s
+    /// tiles reading 4 floats a fetch through 4-float texel views, the operand shared by
+    /// the subgroup fetched by every lane at one address instead of broadcast (on
+    /// llvmpipe a broadcast costs about what a fetch does). Which one follows the
+    /// operands' layout (`texel4_kernel`); `gemm_texel` where none fits. The same sums
+    /// in the same order as `Texel`. Same device needs.
+    Texel4,
 }
 
 /// Whether the device can run `nn::gemm_subgroup` (subgroups of 8 lanes, ballot
@@ -471,23 +478,27 @@ impl Mlp {
         let texels_fit = a.texel_readable(info.max_texel_buffer_elements) && b.texel_readable(info.max_texel_buffer_elements);
         let variant = match self.variant {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
-            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 && texels_fit => GemmVariant::Texel,
+            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 && texels_fit => GemmVariant::Texel4,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
         };
-        if matches!(variant, GemmVariant::Subgroup | GemmVariant::Texel) && !subgroup_gemm_supported(info) {
-            let kernel = if variant == GemmVariant::Texel { "nn::gemm_texel" } else { "nn::gemm_subgroup" };
+        let texel = matches!(variant, GemmVariant::Texel | GemmVariant::Texel4);
+        if (texel || variant == GemmVariant::Subgroup) && !subgroup_gemm_supported(info) {
+            let kernel = if texel { "nn::gemm_texel" } else { "nn::gemm_subgroup" };
             return Err(EngineError::MissingFeature { kernel, feature: "subgroups of 8 lanes with ballot operations" });
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
-            GemmVariant::Subgroup | GemmVariant::Texel => {
+            GemmVariant::Subgroup | GemmVariant::Texel | GemmVariant::Texel4 => {
                 // One workgroup (one subgroup) per tile (32 × 32, or 64 × 32 for the
-                // texel kernel), in rows of at most 65,535 workgroups, the limit every
+                // texel kernels), in rows of at most 65,535 workgroups, the limit every
                 // device has.
-                let (kernel, tile_rows) =
-                    if variant == GemmVariant::Texel { (Kernel::NnGemmTexel, GEMM_TX_ROWS) } else { (Kernel::NnGemmSubgroup, GEMM_SG_ROWS) };
+                let (kernel, tile_rows) = match variant {
+                    GemmVariant::Texel4 => (texel4_kernel(&p, a, b).unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
+                    GemmVariant::Texel => (Kernel::NnGemmTexel, GEMM_TX_ROWS),
+                    _ => (Kernel::NnGemmSubgroup, GEMM_SG_ROWS),
+                };
                 let tiles = p.m.div_ceil(tile_rows) * p.n.div_ceil(GEMM_SG_COLS);
                 let x = tiles.min(65_535);
                 (kernel, [x, tiles.div_ceil(x.max(1)), splits])
@@ -816,5 +827,24 @@ mod capped_tests {
         assert_eq!(a, MlpDesc::hugs_appearance(48, 3), "the appearance decoder is 64 wide already");
         let g = MlpDesc::hugs_geometry(96).capped(200);
         assert_eq!(g, MlpDesc::hugs_geometry(96), "a cap above every width changes nothing");
+    }
+}
+
+/// The 4-float texel GEMM for these operands' layout, if one fits (`Auto` on CPU devices,
+/// where `nn::gemm_texel` would run): `nn::gemm_texel_k4` (both contiguous along `k`:
+/// forwards), `nn::gemm_texel_k4n4` (`A` along `k`, `B` along `n`: input gradients) or
+/// `nn::gemm_texel_b4` (`B` along `n`: weight gradients). A 4-float view covers whole
+/// 16-byte texels, so offsets and strides must be multiples of 4 floats and the
+/// buffers whole texels.
+fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer) -> Option<Kernel> {
+    let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
+    let a_k4 = p.a_sk == 1 && p.a_off % 4 == 0 && p.a_sm % 4 == 0 && p.k % 4 == 0 && p.k_chunk % 4 == 0 && p.flags & GEMM_ONES_ROW == 0 && whole(a);
+    let b_k4 = p.b_sk == 1 && p.b_off % 4 == 0 && p.b_sn % 4 == 0 && whole(b);
+    let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
+    match (a_k4, b_k4, b_n4) {
+        (true, true, _) => Some(Kernel::NnGemmTexelK4),
+        (true, _, true) => Some(Kernel::NnGemmTexelK4n4),
+        (false, _, true) => Some(Kernel::NnGemmTexelB4),
+        _ => None,
     }
 }

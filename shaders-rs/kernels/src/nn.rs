@@ -1241,6 +1241,284 @@ pub fn gemm_texel(
     store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
 }
 
+/// [`gemm_texel`] with `B` read 4 columns a fetch through a 4-float texel view, the
+/// same address in every lane (no broadcasts): needs `b_sn == 1` and `b_off`, `b_sk`
+/// multiples of 4.
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_texel_b4(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    use crate::texel::{fetch, fetch4};
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+        return;
+    };
+    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
+    let a_row = [
+        p.a_off + rows[0].min(m_last) * p.a_sm,
+        p.a_off + rows[1].min(m_last) * p.a_sm,
+        p.a_off + rows[2].min(m_last) * p.a_sm,
+        p.a_off + rows[3].min(m_last) * p.a_sm,
+        p.a_off + rows[4].min(m_last) * p.a_sm,
+        p.a_off + rows[5].min(m_last) * p.a_sm,
+        p.a_off + rows[6].min(m_last) * p.a_sm,
+        p.a_off + rows[7].min(m_last) * p.a_sm,
+    ];
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+    let b_first = (p.b_off + n0) / 4;
+    let b_step = p.b_sk / 4;
+    let mut k = k_begin;
+    while k < k_end {
+        let ka = k * p.a_sk;
+        let av = [
+            if rows[0] == ones_row { 1.0 } else { fetch(a, a_row[0] + ka) },
+            if rows[1] == ones_row { 1.0 } else { fetch(a, a_row[1] + ka) },
+            if rows[2] == ones_row { 1.0 } else { fetch(a, a_row[2] + ka) },
+            if rows[3] == ones_row { 1.0 } else { fetch(a, a_row[3] + ka) },
+            if rows[4] == ones_row { 1.0 } else { fetch(a, a_row[4] + ka) },
+            if rows[5] == ones_row { 1.0 } else { fetch(a, a_row[5] + ka) },
+            if rows[6] == ones_row { 1.0 } else { fetch(a, a_row[6] + ka) },
+            if rows[7] == ones_row { 1.0 } else { fetch(a, a_row[7] + ka) },
+        ];
+        let t = b_first + k * b_step;
+        macro_rules! quad {
+            ($q:literal) => {{
+                let bq = fetch4(b, t + $q);
+                let bs = [bq.x, bq.y, bq.z, bq.w];
+                macro_rules! col {
+                    ($j:literal) => {{
+                        let bj = bs[$j];
+                        acc[0][4 * $q + $j] += av[0] * bj;
+                        acc[1][4 * $q + $j] += av[1] * bj;
+                        acc[2][4 * $q + $j] += av[2] * bj;
+                        acc[3][4 * $q + $j] += av[3] * bj;
+                        acc[4][4 * $q + $j] += av[4] * bj;
+                        acc[5][4 * $q + $j] += av[5] * bj;
+                        acc[6][4 * $q + $j] += av[6] * bj;
+                        acc[7][4 * $q + $j] += av[7] * bj;
+                    }};
+                }
+                col!(0);
+                col!(1);
+                col!(2);
+                col!(3);
+            }};
+        }
+        quad!(0);
+        quad!(1);
+        quad!(2);
+        quad!(3);
+        quad!(4);
+        quad!(5);
+        quad!(6);
+        quad!(7);
+        k += 1;
+    }
+    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
+    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
+    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
+    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
+    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
+    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
+    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
+    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+}
+
+/// [`gemm_texel`] with both operands contiguous along `k` (`a_sk == b_sk == 1`: the
+/// forward `x Wᵀ`), each read 4 steps of `k` a fetch through 4-float texel views: per 4
+/// steps a lane fetches one texel per row of `A` (8) and every lane the same texel per
+/// column of `B` (32, no broadcasts), where [`gemm_texel`] makes 48 fetches and 128
+/// broadcasts. Needs `a_off`, `a_sm`, `b_off`, `b_sn`, `k_chunk` and `k` multiples of 4
+/// and no ones row. Sums in the same order as [`gemm_texel`].
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_texel_k4(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    use crate::texel::fetch4;
+    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+        return;
+    };
+    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
+    let a_row = [
+        (p.a_off + rows[0].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[1].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[2].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[3].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[4].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[5].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[6].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[7].min(m_last) * p.a_sm) / 4,
+    ];
+    let last_col = p.n - 1;
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+    let mut k = k_begin;
+    while k < k_end {
+        let kt = k / 4;
+        let av = [
+            fetch4(a, a_row[0] + kt),
+            fetch4(a, a_row[1] + kt),
+            fetch4(a, a_row[2] + kt),
+            fetch4(a, a_row[3] + kt),
+            fetch4(a, a_row[4] + kt),
+            fetch4(a, a_row[5] + kt),
+            fetch4(a, a_row[6] + kt),
+            fetch4(a, a_row[7] + kt),
+        ];
+        macro_rules! col {
+            ($j:literal) => {{
+                let bq = fetch4(b, (p.b_off + (n0 + $j).min(last_col) * p.b_sn) / 4 + kt);
+                macro_rules! row {
+                    ($r:literal) => {{
+                        let mut v = acc[$r][$j];
+                        v += av[$r].x * bq.x;
+                        v += av[$r].y * bq.y;
+                        v += av[$r].z * bq.z;
+                        v += av[$r].w * bq.w;
+                        acc[$r][$j] = v;
+                    }};
+                }
+                row!(0);
+                row!(1);
+                row!(2);
+                row!(3);
+                row!(4);
+                row!(5);
+                row!(6);
+                row!(7);
+            }};
+        }
+        col!(0); col!(1); col!(2); col!(3); col!(4); col!(5); col!(6); col!(7);
+        col!(8); col!(9); col!(10); col!(11); col!(12); col!(13); col!(14); col!(15);
+        col!(16); col!(17); col!(18); col!(19); col!(20); col!(21); col!(22); col!(23);
+        col!(24); col!(25); col!(26); col!(27); col!(28); col!(29); col!(30); col!(31);
+        k += 4;
+    }
+    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
+    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
+    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
+    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
+    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
+    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
+    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
+    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+}
+
+/// [`gemm_texel`] with `A` contiguous along `k` and `B` along `n` (`a_sk == b_sn == 1`:
+/// the input gradient `dY W`): per 4 steps of `k` a lane fetches one 4-float texel per
+/// row of `A` (8) and, per step, every lane the same 8 texels of `B` (32 columns, no
+/// broadcasts). Needs `a_off`, `a_sm`, `b_off`, `b_sk`, `k_chunk` and `k` multiples of 4
+/// and no ones row. Sums in the same order as [`gemm_texel`].
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_texel_k4n4(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+) {
+    use crate::texel::fetch4;
+    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+        return;
+    };
+    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
+    let a_row = [
+        (p.a_off + rows[0].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[1].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[2].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[3].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[4].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[5].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[6].min(m_last) * p.a_sm) / 4,
+        (p.a_off + rows[7].min(m_last) * p.a_sm) / 4,
+    ];
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+    let b_first = (p.b_off + n0) / 4;
+    let b_step = p.b_sk / 4;
+    let mut k = k_begin;
+    while k < k_end {
+        let kt = k / 4;
+        let av = [
+            fetch4(a, a_row[0] + kt),
+            fetch4(a, a_row[1] + kt),
+            fetch4(a, a_row[2] + kt),
+            fetch4(a, a_row[3] + kt),
+            fetch4(a, a_row[4] + kt),
+            fetch4(a, a_row[5] + kt),
+            fetch4(a, a_row[6] + kt),
+            fetch4(a, a_row[7] + kt),
+        ];
+        // Step `k + kk` of `k`, component `$kk` of each row's texel.
+        macro_rules! step {
+            ($kk:literal, $x:ident) => {{
+                let t = b_first + (k + $kk) * b_step;
+                macro_rules! quad {
+                    ($q:literal) => {{
+                        let bq = fetch4(b, t + $q);
+                        let bs = [bq.x, bq.y, bq.z, bq.w];
+                        macro_rules! col {
+                            ($j:literal) => {{
+                                let bj = bs[$j];
+                                acc[0][4 * $q + $j] += av[0].$x * bj;
+                                acc[1][4 * $q + $j] += av[1].$x * bj;
+                                acc[2][4 * $q + $j] += av[2].$x * bj;
+                                acc[3][4 * $q + $j] += av[3].$x * bj;
+                                acc[4][4 * $q + $j] += av[4].$x * bj;
+                                acc[5][4 * $q + $j] += av[5].$x * bj;
+                                acc[6][4 * $q + $j] += av[6].$x * bj;
+                                acc[7][4 * $q + $j] += av[7].$x * bj;
+                            }};
+                        }
+                        col!(0);
+                        col!(1);
+                        col!(2);
+                        col!(3);
+                    }};
+                }
+                quad!(0);
+                quad!(1);
+                quad!(2);
+                quad!(3);
+                quad!(4);
+                quad!(5);
+                quad!(6);
+                quad!(7);
+            }};
+        }
+        step!(0, x);
+        step!(1, y);
+        step!(2, z);
+        step!(3, w);
+        k += 4;
+    }
+    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
+    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
+    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
+    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
+    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
+    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
+    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
+    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+}
+
 /// Sums the splits of a weight gradient in split order and scatters the weight and
 /// bias parts.
 #[spirv(compute(threads(256)))]

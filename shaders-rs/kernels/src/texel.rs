@@ -21,6 +21,10 @@ use spirv_std::Image;
 /// A read-only buffer of `f32` bound as a uniform texel buffer.
 pub type TexelBuffer = Image!(buffer, type=f32, sampled);
 
+/// The same, read 4 floats a fetch: the image declares `Rgba32f`, which the engine
+/// binds through the buffer's `R32G32B32A32_SFLOAT` view (`BindingDecl::texel4`).
+pub type TexelBuffer4 = Image!(buffer, format = rgba32f, sampled);
+
 /// Element `index` of `buffer` (0 past its end).
 #[inline]
 pub fn fetch(buffer: &TexelBuffer, index: u32) -> f32 {
@@ -40,4 +44,23 @@ pub fn fetch(buffer: &TexelBuffer, index: u32) -> f32 {
         }
     }
     texel.x
+}
+
+/// Texel `index` of `buffer`: its elements `4 index .. 4 index + 4` (zeros past its end).
+#[inline]
+pub fn fetch4(buffer: &TexelBuffer4, index: u32) -> Vec4 {
+    let mut texel = Vec4::ZERO;
+    let coordinate = index as i32;
+    // SAFETY: as in `fetch`.
+    unsafe {
+        asm! {
+            "%image = OpLoad _ {buffer}",
+            "%texel = OpImageFetch typeof*{texel} %image {coordinate}",
+            "OpStore {texel} %texel",
+            buffer = in(reg) buffer,
+            coordinate = in(reg) coordinate,
+            texel = in(reg) &mut texel,
+        }
+    }
+    texel
 }

@@ -21,6 +21,11 @@ pub struct ModuleFacts {
     /// `OpTypeImage` of `Dim Buffer`, sampled, in `UniformConstant`): read-only by nature,
     /// bound through a buffer view (`Image!(buffer, type=f32, sampled)` in rust-gpu).
     pub texel_mask: u64,
+    /// Bit `b` set when that texel buffer's image declares the format `Rgba32f`
+    /// (`Image!(buffer, format=rgba32f, sampled)`): bound through a 4-float view, a
+    /// fetch returning 4 consecutive floats; the others declare no format and are
+    /// bound through an `R32_SFLOAT` view.
+    pub texel4_mask: u64,
 }
 
 /// Why a byte string is not a module we can read.
@@ -59,6 +64,8 @@ const OP_TYPE_IMAGE: u32 = 25;
 const OP_TYPE_POINTER: u32 = 32;
 const OP_VARIABLE: u32 = 59;
 const DIM_BUFFER: u32 = 5;
+/// `ImageFormat Rgba32f`.
+const FORMAT_RGBA32F: u32 = 1;
 const STORAGE_UNIFORM_CONSTANT: u32 = 0;
 
 /// Word `i` of a little-endian byte string.
@@ -76,11 +83,13 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
         return Err(SpirvError::Magic);
     }
     let len = bytes.len() / 4;
-    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0, texel_mask: 0 };
+    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0, texel_mask: 0, texel4_mask: 0 };
     // Types precede the variables that use them, and decorations precede both, so one
     // pass collects buffer images, pointers to them and the variables of those pointers.
     let mut buffer_images: [u32; 8] = [0; 8];
+    let mut rgba32f: [bool; 8] = [false; 8];
     let mut buffer_image_pointers: [u32; 8] = [0; 8];
+    let mut pointer_rgba32f: [bool; 8] = [false; 8];
     let (mut images, mut pointers) = (0usize, 0usize);
     let mut at = 5;
     while at < len {
@@ -107,8 +116,10 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
                 facts.binding_mask |= 1 << binding;
             }
             // OpTypeImage: result, sampled type, Dim, Depth, Arrayed, MS, Sampled (1: with a sampler).
+            // The eighth operand is the image format.
             OP_TYPE_IMAGE if operands >= 7 && operand(2) == DIM_BUFFER && operand(6) == 1 && images < buffer_images.len() => {
                 buffer_images[images] = operand(0);
+                rgba32f[images] = operands >= 8 && operand(7) == FORMAT_RGBA32F;
                 images += 1;
             }
             OP_TYPE_POINTER
@@ -118,12 +129,18 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
                     && pointers < buffer_image_pointers.len() =>
             {
                 buffer_image_pointers[pointers] = operand(0);
+                let image = buffer_images[..images].iter().position(|&i| i == operand(2)).expect("matched above");
+                pointer_rgba32f[pointers] = rgba32f[image];
                 pointers += 1;
             }
             OP_VARIABLE if operands >= 3 && buffer_image_pointers[..pointers].contains(&operand(0)) => {
                 if let Some(binding) = binding_of(bytes, operand(1)) {
                     if binding < 64 {
                         facts.texel_mask |= 1 << binding;
+                        let pointer = buffer_image_pointers[..pointers].iter().position(|&q| q == operand(0)).expect("matched above");
+                        if pointer_rgba32f[pointer] {
+                            facts.texel4_mask |= 1 << binding;
+                        }
                     }
                 }
             }

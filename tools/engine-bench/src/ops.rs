@@ -48,11 +48,13 @@ pub struct OpsArgs {
     /// Points on each side where grid and brute force are timed side by side.
     #[arg(long, value_parser = parse_len, default_value = "32768")]
     pub chamfer_compare: u32,
-    /// GEMM kernel: auto (on CPU devices the subgroup-broadcast kernel reading texel
-    /// buffers where subgroups are 8 lanes, register-blocked for narrow outputs; tiled on
-    /// GPUs), tiled, blocked, subgroup (the same broadcasts reading storage buffers) or
-    /// texel.
-    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked", "subgroup", "texel"])]
+    /// GEMM kernel: auto (on CPU devices texel4 where subgroups are 8 lanes,
+    /// register-blocked for narrow outputs; tiled on GPUs), tiled, blocked, subgroup
+    /// (64 x 32 tiles of a subgroup, B shared by broadcasts, storage-buffer reads), texel
+    /// (the same reading texel buffers) or texel4 (the texel tiles reading 4 floats a
+    /// fetch, B fetched by every lane instead of broadcast, where the operands' layout
+    /// allows).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "tiled", "blocked", "subgroup", "texel", "texel4"])]
     pub gemm: String,
     /// Triplane backward: accumulate the plane gradient deterministically (64-bit
     /// fixed-point integer atomics) instead of with float atomics.
@@ -67,6 +69,7 @@ impl OpsArgs {
             "blocked" => GemmVariant::Blocked,
             "subgroup" => GemmVariant::Subgroup,
             "texel" => GemmVariant::Texel,
+            "texel4" => GemmVariant::Texel4,
             _ => GemmVariant::Auto,
         }
     }

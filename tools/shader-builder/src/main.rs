@@ -194,7 +194,9 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
         for b in 0..count {
             let name = spirv_module::binding_name(bytes, b)
                 .ok_or_else(|| format!("module {entry}: binding {b} has no OpName (built without NameVariables?)"))?;
-            let access = if facts.texel_mask & (1 << b) != 0 {
+            let access = if facts.texel4_mask & (1 << b) != 0 {
+                "texel4"
+            } else if facts.texel_mask & (1 << b) != 0 {
                 "texel"
             } else if facts.read_only_mask & (1 << b) != 0 {
                 "read"
