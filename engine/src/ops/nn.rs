@@ -24,7 +24,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K4_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -495,7 +495,10 @@ impl Mlp {
                 // texel kernels), in rows of at most 65,535 workgroups, the limit every
                 // device has.
                 let (kernel, tile_rows) = match variant {
-                    GemmVariant::Texel4 => (texel4_kernel(&p, a, b).unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
+                    GemmVariant::Texel4 => match texel4_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements) {
+                        Some(k4 @ (Kernel::NnGemmTexelK4 | Kernel::NnGemmTexelK4c4)) => (k4, GEMM_K4_ROWS),
+                        four => (four.unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
+                    },
                     GemmVariant::Texel => (Kernel::NnGemmTexel, GEMM_TX_ROWS),
                     _ => (Kernel::NnGemmSubgroup, GEMM_SG_ROWS),
                 };
@@ -831,18 +834,26 @@ mod capped_tests {
 }
 
 /// The 4-float texel GEMM for these operands' layout, if one fits (`Auto` on CPU devices,
-/// where `nn::gemm_texel` would run): `nn::gemm_texel_k4` (both contiguous along `k`:
-/// forwards), `nn::gemm_texel_k4n4` (`A` along `k`, `B` along `n`: input gradients) or
+/// where `nn::gemm_texel` would run): `nn::gemm_texel_k4c4` or `gemm_texel_k4` (both
+/// contiguous along `k`: forwards; the first where `C` and the bias are read and
+/// written 4 floats at a time), `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (the same
+/// pair of epilogues) (`A` along `k`, `B` along `n`: input gradients) or
 /// `nn::gemm_texel_b4` (`B` along `n`: weight gradients). A 4-float view covers whole
 /// 16-byte texels, so offsets and strides must be multiples of 4 floats and the
 /// buffers whole texels.
-fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer) -> Option<Kernel> {
+fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
+    // `gemm_texel_k4c4` stores 4 columns at a time and reads the bias as 4-float texels.
+    let c_quads = p.n % 4 == 0 && p.ldc % 4 == 0 && p.c_off % 4 == 0 && p.c_split % 4 == 0 && whole(c);
+    // (The bias is bound, as a texel buffer, with or without GEMM_BIAS.)
+    let bias_quads = bias.texel_readable(max_texels) && whole(bias) && (p.flags & GEMM_BIAS == 0 || p.bias_off % 4 == 0);
     let a_k4 = p.a_sk == 1 && p.a_off % 4 == 0 && p.a_sm % 4 == 0 && p.k % 4 == 0 && p.k_chunk % 4 == 0 && p.flags & GEMM_ONES_ROW == 0 && whole(a);
     let b_k4 = p.b_sk == 1 && p.b_off % 4 == 0 && p.b_sn % 4 == 0 && whole(b);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_k4, b_n4) {
+        (true, true, _) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4c4),
         (true, true, _) => Some(Kernel::NnGemmTexelK4),
+        (true, _, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
         (true, _, true) => Some(Kernel::NnGemmTexelK4n4),
         (false, _, true) => Some(Kernel::NnGemmTexelB4),
         _ => None,

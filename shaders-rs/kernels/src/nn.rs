@@ -15,9 +15,11 @@ use drape_shared::nn::{
     GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
 #[cfg(feature = "subgroup-ballot")]
-use drape_shared::nn::{GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
+use drape_shared::nn::{GEMM_K4_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
+#[cfg(feature = "subgroup-ballot")]
+use spirv_std::glam::Vec4;
 use spirv_std::spirv;
 
 const TILE: usize = GEMM_TILE as usize;
@@ -1331,92 +1333,164 @@ pub fn gemm_texel_b4(
     store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
 }
 
-/// [`gemm_texel`] with both operands contiguous along `k` (`a_sk == b_sk == 1`: the
-/// forward `x Wᵀ`), each read 4 steps of `k` a fetch through 4-float texel views: per 4
-/// steps a lane fetches one texel per row of `A` (8) and every lane the same texel per
-/// column of `B` (32, no broadcasts), where [`gemm_texel`] makes 48 fetches and 128
-/// broadcasts. Needs `a_off`, `a_sm`, `b_off`, `b_sn`, `k_chunk` and `k` multiples of 4
-/// and no ones row. Sums in the same order as [`gemm_texel`].
+/// Writes one lane's row of a tile 4 columns a store (`C` viewed as `vec4`s): needs
+/// `n`, `ldc`, `c_off`, `c_split` and, with a bias, `bias_off` multiples of 4, so each
+/// group of 4 columns is all inside `C` or all past its last column. On llvmpipe each
+/// store is a loop over the lanes, so 8 stores a row where [`store_tile_row`] makes 32
+/// (and 32 loads of the bias).
 #[cfg(feature = "subgroup-ballot")]
-#[spirv(compute(threads(8)))]
-pub fn gemm_texel_k4(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(num_workgroups)] groups: UVec3,
-    #[spirv(local_invocation_index)] lane: u32,
-    #[spirv(push_constant)] p: &GemmParams,
-    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
-    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
-) {
-    use crate::texel::fetch4;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+#[inline]
+fn store_tile_row4(p: &GemmParams, c: &mut [Vec4], bias: &[Vec4; 8], vals: [f32; GEMM_SG_COLS as usize], row: u32, n0: u32, z: u32) {
+    if row >= p.m {
         return;
+    }
+    let mut q = 0;
+    while q < GEMM_SG_COLS / 4 {
+        if n0 + 4 * q < p.n {
+            let at = ((p.c_off + z * p.c_split + row * p.ldc + n0) / 4 + q) as usize;
+            let j = 4 * q as usize;
+            let mut v = Vec4::new(vals[j], vals[j + 1], vals[j + 2], vals[j + 3]);
+            if p.flags & GEMM_BIAS != 0 {
+                v += bias[q as usize];
+            }
+            if p.flags & GEMM_ACCUMULATE != 0 {
+                v += c[at];
+            }
+            c[at] = v;
+        }
+        q += 1;
+    }
+}
+
+/// The tile's bias, 4 columns a fetch (zeros without one).
+#[cfg(feature = "subgroup-ballot")]
+#[inline]
+fn tile_bias4(p: &GemmParams, bias: &crate::texel::TexelBuffer4, n0: u32) -> [Vec4; 8] {
+    use crate::texel::fetch4;
+    if p.flags & GEMM_BIAS == 0 {
+        return [Vec4::ZERO; 8];
+    }
+    let t = (p.bias_off + n0) / 4;
+    [fetch4(bias, t), fetch4(bias, t + 1), fetch4(bias, t + 2), fetch4(bias, t + 3), fetch4(bias, t + 4), fetch4(bias, t + 5), fetch4(bias, t + 6), fetch4(bias, t + 7)]
+}
+
+/// `gemm_texel_k4`'s rows and stores: per row of the lane, `$store!(acc, row)`.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! for_k4_rows {
+    ($m:ident $(, $arg:tt)*) => {
+        $m!(0 $(, $arg)*);
+        $m!(1 $(, $arg)*);
+        $m!(2 $(, $arg)*);
+        $m!(3 $(, $arg)*);
+        $m!(4 $(, $arg)*);
+        $m!(5 $(, $arg)*);
+        $m!(6 $(, $arg)*);
+        $m!(7 $(, $arg)*);
+        $m!(8 $(, $arg)*);
+        $m!(9 $(, $arg)*);
+        $m!(10 $(, $arg)*);
+        $m!(11 $(, $arg)*);
+        $m!(12 $(, $arg)*);
+        $m!(13 $(, $arg)*);
+        $m!(14 $(, $arg)*);
+        $m!(15 $(, $arg)*);
     };
-    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
-    let a_row = [
-        (p.a_off + rows[0].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[1].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[2].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[3].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[4].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[5].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[6].min(m_last) * p.a_sm) / 4,
-        (p.a_off + rows[7].min(m_last) * p.a_sm) / 4,
-    ];
-    let last_col = p.n - 1;
-    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
-    let mut k = k_begin;
-    while k < k_end {
-        let kt = k / 4;
-        let av = [
-            fetch4(a, a_row[0] + kt),
-            fetch4(a, a_row[1] + kt),
-            fetch4(a, a_row[2] + kt),
-            fetch4(a, a_row[3] + kt),
-            fetch4(a, a_row[4] + kt),
-            fetch4(a, a_row[5] + kt),
-            fetch4(a, a_row[6] + kt),
-            fetch4(a, a_row[7] + kt),
-        ];
-        macro_rules! col {
-            ($j:literal) => {{
-                let bq = fetch4(b, (p.b_off + (n0 + $j).min(last_col) * p.b_sn) / 4 + kt);
-                macro_rules! row {
-                    ($r:literal) => {{
-                        let mut v = acc[$r][$j];
-                        v += av[$r].x * bq.x;
-                        v += av[$r].y * bq.y;
-                        v += av[$r].z * bq.z;
-                        v += av[$r].w * bq.w;
-                        acc[$r][$j] = v;
+}
+
+/// [`gemm_texel`] with both operands contiguous along `k` (`a_sk == b_sk == 1`: the
+/// forward `x Wᵀ`), each read 4 steps of `k` a fetch through 4-float texel views, in
+/// tiles of 128 × 32 (16 rows a lane): per 4 steps a lane fetches one texel per row of
+/// `A` (16) and every lane the same texel per column of `B` (32, no broadcasts), where
+/// [`gemm_texel`] makes 48 fetches and 128 broadcasts for half the rows. Needs
+/// `a_off`, `a_sm`, `b_off`, `b_sn`, `k_chunk` and `k` multiples of 4 and no ones row.
+/// Sums in the same order as [`gemm_texel`]. Two epilogues: `gemm_texel_k4` stores
+/// floats, `gemm_texel_k4c4` 4 at a time (see [`store_tile_row4`]).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! gemm_texel_k4_entry {
+    ($name:ident, $c_ty:ty, ($($bias_attr:tt)*), $bias_ty:ty, $bias:ident, $store:ident, $doc:literal) => {
+        #[doc = $doc]
+        #[cfg(feature = "subgroup-ballot")]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(num_workgroups)] groups: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(push_constant)] p: &GemmParams,
+            #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
+            #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+            #[spirv($($bias_attr)*)] $bias: $bias_ty,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [$c_ty],
+        ) {
+            use crate::texel::fetch4;
+            let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_K4_ROWS) else {
+                return;
+            };
+            let rows = [m0 + lane + 0, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56, m0 + lane + 64, m0 + lane + 72, m0 + lane + 80, m0 + lane + 88, m0 + lane + 96, m0 + lane + 104, m0 + lane + 112, m0 + lane + 120];
+            let a_row = [(p.a_off + rows[0].min(m_last) * p.a_sm) / 4, (p.a_off + rows[1].min(m_last) * p.a_sm) / 4, (p.a_off + rows[2].min(m_last) * p.a_sm) / 4, (p.a_off + rows[3].min(m_last) * p.a_sm) / 4, (p.a_off + rows[4].min(m_last) * p.a_sm) / 4, (p.a_off + rows[5].min(m_last) * p.a_sm) / 4, (p.a_off + rows[6].min(m_last) * p.a_sm) / 4, (p.a_off + rows[7].min(m_last) * p.a_sm) / 4, (p.a_off + rows[8].min(m_last) * p.a_sm) / 4, (p.a_off + rows[9].min(m_last) * p.a_sm) / 4, (p.a_off + rows[10].min(m_last) * p.a_sm) / 4, (p.a_off + rows[11].min(m_last) * p.a_sm) / 4, (p.a_off + rows[12].min(m_last) * p.a_sm) / 4, (p.a_off + rows[13].min(m_last) * p.a_sm) / 4, (p.a_off + rows[14].min(m_last) * p.a_sm) / 4, (p.a_off + rows[15].min(m_last) * p.a_sm) / 4];
+            let last_col = p.n - 1;
+            let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 16];
+            let mut k = k_begin;
+            while k < k_end {
+                let kt = k / 4;
+                let av = [fetch4(a, a_row[0] + kt), fetch4(a, a_row[1] + kt), fetch4(a, a_row[2] + kt), fetch4(a, a_row[3] + kt), fetch4(a, a_row[4] + kt), fetch4(a, a_row[5] + kt), fetch4(a, a_row[6] + kt), fetch4(a, a_row[7] + kt), fetch4(a, a_row[8] + kt), fetch4(a, a_row[9] + kt), fetch4(a, a_row[10] + kt), fetch4(a, a_row[11] + kt), fetch4(a, a_row[12] + kt), fetch4(a, a_row[13] + kt), fetch4(a, a_row[14] + kt), fetch4(a, a_row[15] + kt)];
+                macro_rules! col {
+                    ($j:literal) => {{
+                        let bq = fetch4(b, (p.b_off + (n0 + $j).min(last_col) * p.b_sn) / 4 + kt);
+                        macro_rules! row {
+                            ($r:literal) => {{
+                                let mut v = acc[$r][$j];
+                                v += av[$r].x * bq.x;
+                                v += av[$r].y * bq.y;
+                                v += av[$r].z * bq.z;
+                                v += av[$r].w * bq.w;
+                                acc[$r][$j] = v;
+                            }};
+                        }
+                        for_k4_rows!(row);
                     }};
                 }
-                row!(0);
-                row!(1);
-                row!(2);
-                row!(3);
-                row!(4);
-                row!(5);
-                row!(6);
-                row!(7);
-            }};
+                col!(0); col!(1); col!(2); col!(3); col!(4); col!(5); col!(6); col!(7);
+                col!(8); col!(9); col!(10); col!(11); col!(12); col!(13); col!(14); col!(15);
+                col!(16); col!(17); col!(18); col!(19); col!(20); col!(21); col!(22); col!(23);
+                col!(24); col!(25); col!(26); col!(27); col!(28); col!(29); col!(30); col!(31);
+                k += 4;
+            }
+            $store!(p, c, $bias, acc, rows, n0, z);
         }
-        col!(0); col!(1); col!(2); col!(3); col!(4); col!(5); col!(6); col!(7);
-        col!(8); col!(9); col!(10); col!(11); col!(12); col!(13); col!(14); col!(15);
-        col!(16); col!(17); col!(18); col!(19); col!(20); col!(21); col!(22); col!(23);
-        col!(24); col!(25); col!(26); col!(27); col!(28); col!(29); col!(30); col!(31);
-        k += 4;
-    }
-    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
-    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
-    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
-    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
-    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
-    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
-    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
-    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+    };
 }
+
+/// Stores the tile a float at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! k4_store_floats {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row($p, $c, $bias, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        for_k4_rows!(one);
+    }};
+}
+
+/// Stores the tile 4 floats at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! k4_store_quads {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        let bias4 = tile_bias4($p, $bias, $n0);
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        for_k4_rows!(one);
+    }};
+}
+
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4, f32, (storage_buffer, descriptor_set = 0, binding = 2), &[f32], bias, k4_store_floats, "The 4-float texel forward GEMM (see the macro), storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4c4, Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, bias, k4_store_quads, "The 4-float texel forward GEMM (see the macro), storing 4 floats at a time and reading the bias as 4-float texels.");
 
 /// [`gemm_texel`] with `A` contiguous along `k` and `B` along `n` (`a_sk == b_sn == 1`:
 /// the input gradient `dY W`): per 4 steps of `k` a lane fetches one 4-float texel per
@@ -1424,16 +1498,19 @@ pub fn gemm_texel_k4(
 /// broadcasts). Needs `a_off`, `a_sm`, `b_off`, `b_sk`, `k_chunk` and `k` multiples of 4
 /// and no ones row. Sums in the same order as [`gemm_texel`].
 #[cfg(feature = "subgroup-ballot")]
+macro_rules! gemm_texel_k4n4_entry {
+    ($name:ident, $c_ty:ty, ($($bias_attr:tt)*), $bias_ty:ty, $store:ident, $doc:literal) => {
+#[doc = $doc]
 #[spirv(compute(threads(8)))]
-pub fn gemm_texel_k4n4(
+pub fn $name(
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(num_workgroups)] groups: UVec3,
     #[spirv(local_invocation_index)] lane: u32,
     #[spirv(push_constant)] p: &GemmParams,
     #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
     #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+    #[spirv($($bias_attr)*)] bias: $bias_ty,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [$c_ty],
 ) {
     use crate::texel::fetch4;
     let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
@@ -1509,15 +1586,42 @@ pub fn gemm_texel_k4n4(
         step!(3, w);
         k += 4;
     }
-    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
-    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
-    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
-    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
-    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
-    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
-    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
-    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+    $store!(p, c, bias, acc, rows, n0, z);
 }
+    };
+}
+
+/// Stores an 8-row tile a float at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rows8_store_floats {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row($p, $c, $bias, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
+    }};
+}
+
+/// Stores an 8-row tile 4 floats at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rows8_store_quads {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        let bias4 = tile_bias4($p, $bias, $n0);
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
+    }};
+}
+
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4n4_entry!(gemm_texel_k4n4, f32, (storage_buffer, descriptor_set = 0, binding = 2), &[f32], rows8_store_floats, "The 4-float texel input-gradient GEMM (see the macro), storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4n4_entry!(gemm_texel_k4n4c4, Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, rows8_store_quads, "The 4-float texel input-gradient GEMM (see the macro), storing 4 floats at a time (see [`store_tile_row4`]).");
 
 /// Sums the splits of a weight gradient in split order and scatters the weight and
 /// bias parts.

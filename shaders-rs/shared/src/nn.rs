@@ -36,6 +36,8 @@ pub const GEMM_SG_COLS: u32 = 32;
 /// Rows of the tile of `nn::gemm_texel` (8 per lane of a subgroup of 8; its columns
 /// are `GEMM_SG_COLS`).
 pub const GEMM_TX_ROWS: u32 = 64;
+/// Rows of the tile of `nn::gemm_texel_k4` (16 per lane; columns `GEMM_SG_COLS`).
+pub const GEMM_K4_ROWS: u32 = 128;
 
 /// Add `bias[bias_off + n]` to every row.
 pub const GEMM_BIAS: u32 = 1;
