@@ -837,8 +837,9 @@ mod capped_tests {
 /// where `nn::gemm_texel` would run): `nn::gemm_texel_k4c4` or `gemm_texel_k4` (both
 /// contiguous along `k`: forwards; the first where `C` and the bias are read and
 /// written 4 floats at a time), `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (the same
-/// pair of epilogues) (`A` along `k`, `B` along `n`: input gradients) or
-/// `nn::gemm_texel_b4` (`B` along `n`: weight gradients). A 4-float view covers whole
+/// pair of epilogues; `A` along `k`, `B` along `n`: input gradients) or
+/// `nn::gemm_texel_m4n4c4` or `gemm_texel_b4` (`B` along `n`: weight gradients; the
+/// first where `A` runs along `m` and `C` takes 4 floats a store). A 4-float view covers whole
 /// 16-byte texels, so offsets and strides must be multiples of 4 floats and the
 /// buffers whole texels.
 fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
@@ -848,6 +849,7 @@ fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buff
     // (The bias is bound, as a texel buffer, with or without GEMM_BIAS.)
     let bias_quads = bias.texel_readable(max_texels) && whole(bias) && (p.flags & GEMM_BIAS == 0 || p.bias_off % 4 == 0);
     let a_k4 = p.a_sk == 1 && p.a_off % 4 == 0 && p.a_sm % 4 == 0 && p.k % 4 == 0 && p.k_chunk % 4 == 0 && p.flags & GEMM_ONES_ROW == 0 && whole(a);
+    let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
     let b_k4 = p.b_sk == 1 && p.b_off % 4 == 0 && p.b_sn % 4 == 0 && whole(b);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_k4, b_n4) {
@@ -855,6 +857,7 @@ fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buff
         (true, true, _) => Some(Kernel::NnGemmTexelK4),
         (true, _, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
         (true, _, true) => Some(Kernel::NnGemmTexelK4n4),
+        (false, _, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnGemmTexelM4n4c4),
         (false, _, true) => Some(Kernel::NnGemmTexelB4),
         _ => None,
     }

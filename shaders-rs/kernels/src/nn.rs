@@ -1623,6 +1623,100 @@ gemm_texel_k4n4_entry!(gemm_texel_k4n4, f32, (storage_buffer, descriptor_set = 0
 #[cfg(feature = "subgroup-ballot")]
 gemm_texel_k4n4_entry!(gemm_texel_k4n4c4, Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, rows8_store_quads, "The 4-float texel input-gradient GEMM (see the macro), storing 4 floats at a time (see [`store_tile_row4`]).");
 
+/// [`gemm_texel`] with `A` contiguous along `m` and `B` along `n` (`a_sm == b_sn == 1`:
+/// the weight gradient `Xᵀ dY`, whose `k` is the rows of the batch), storing 4 floats
+/// at a time: lane `l` owns rows `m0 + 4 l + {0, 1, 2, 3}` and the same 32 further,
+/// so per step of `k` it fetches its 8 values of `A` as two 4-float texels and every
+/// lane the same 8 texels of `B` (32 columns), where [`gemm_texel_b4`] fetches 8 values
+/// of `A` one at a time. The ones row (the bias column of the gradient) reads 1. Needs
+/// `a_off`, `a_sk`, `b_off`, `b_sk` multiples of 4 and `C` as [`store_tile_row4`] does.
+/// Sums in the same order as [`gemm_texel`].
+#[cfg(feature = "subgroup-ballot")]
+#[spirv(compute(threads(8)))]
+pub fn gemm_texel_m4n4c4(
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(local_invocation_index)] lane: u32,
+    #[spirv(push_constant)] p: &GemmParams,
+    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 2)] bias: &crate::texel::TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [Vec4],
+) {
+    use crate::texel::fetch4;
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+        return;
+    };
+    let r0 = m0 + 4 * lane;
+    let rows = [r0, r0 + 1, r0 + 2, r0 + 3, r0 + 32, r0 + 33, r0 + 34, r0 + 35];
+    let ones = [
+        rows[0] == ones_row,
+        rows[1] == ones_row,
+        rows[2] == ones_row,
+        rows[3] == ones_row,
+        rows[4] == ones_row,
+        rows[5] == ones_row,
+        rows[6] == ones_row,
+        rows[7] == ones_row,
+    ];
+    // Rows past the last of `A` read whatever lies there (or zeros past the view) and
+    // are never stored.
+    let a_first = [(p.a_off + r0) / 4, (p.a_off + r0 + 32) / 4];
+    let a_step = p.a_sk / 4;
+    let b_first = (p.b_off + n0) / 4;
+    let b_step = p.b_sk / 4;
+    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+    let mut k = k_begin;
+    while k < k_end {
+        let lo = fetch4(a, a_first[0] + k * a_step);
+        let hi = fetch4(a, a_first[1] + k * a_step);
+        let av = [
+            if ones[0] { 1.0 } else { lo.x },
+            if ones[1] { 1.0 } else { lo.y },
+            if ones[2] { 1.0 } else { lo.z },
+            if ones[3] { 1.0 } else { lo.w },
+            if ones[4] { 1.0 } else { hi.x },
+            if ones[5] { 1.0 } else { hi.y },
+            if ones[6] { 1.0 } else { hi.z },
+            if ones[7] { 1.0 } else { hi.w },
+        ];
+        let t = b_first + k * b_step;
+        macro_rules! quad {
+            ($q:literal) => {{
+                let bq = fetch4(b, t + $q);
+                let bs = [bq.x, bq.y, bq.z, bq.w];
+                macro_rules! col {
+                    ($j:literal) => {{
+                        let bj = bs[$j];
+                        acc[0][4 * $q + $j] += av[0] * bj;
+                        acc[1][4 * $q + $j] += av[1] * bj;
+                        acc[2][4 * $q + $j] += av[2] * bj;
+                        acc[3][4 * $q + $j] += av[3] * bj;
+                        acc[4][4 * $q + $j] += av[4] * bj;
+                        acc[5][4 * $q + $j] += av[5] * bj;
+                        acc[6][4 * $q + $j] += av[6] * bj;
+                        acc[7][4 * $q + $j] += av[7] * bj;
+                    }};
+                }
+                col!(0);
+                col!(1);
+                col!(2);
+                col!(3);
+            }};
+        }
+        quad!(0);
+        quad!(1);
+        quad!(2);
+        quad!(3);
+        quad!(4);
+        quad!(5);
+        quad!(6);
+        quad!(7);
+        k += 1;
+    }
+    rows8_store_quads!(p, c, bias, acc, rows, n0, z);
+}
+
 /// Sums the splits of a weight gradient in split order and scatters the weight and
 /// bias parts.
 #[spirv(compute(threads(256)))]
