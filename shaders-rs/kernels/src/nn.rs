@@ -1243,6 +1243,59 @@ pub fn gemm_texel(
     store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
 }
 
+/// `acc[r][c] += av[r] * B[c]` for a lane's 8 rows and the tile's 32 columns, `B`'s row
+/// of 32 being the 8 four-float texels from `t` (the same address in every lane).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rows8_times_b_row {
+    ($acc:ident, $av:ident, $b:ident, $t:expr) => {{
+        let t = $t;
+        macro_rules! quad {
+            ($q:literal) => {{
+                let bq = crate::texel::fetch4($b, t + $q);
+                let bs = [bq.x, bq.y, bq.z, bq.w];
+                macro_rules! col {
+                    ($j:literal) => {{
+                        let bj = bs[$j];
+                        $acc[0][4 * $q + $j] += $av[0] * bj;
+                        $acc[1][4 * $q + $j] += $av[1] * bj;
+                        $acc[2][4 * $q + $j] += $av[2] * bj;
+                        $acc[3][4 * $q + $j] += $av[3] * bj;
+                        $acc[4][4 * $q + $j] += $av[4] * bj;
+                        $acc[5][4 * $q + $j] += $av[5] * bj;
+                        $acc[6][4 * $q + $j] += $av[6] * bj;
+                        $acc[7][4 * $q + $j] += $av[7] * bj;
+                    }};
+                }
+                col!(0);
+                col!(1);
+                col!(2);
+                col!(3);
+            }};
+        }
+        quad!(0);
+        quad!(1);
+        quad!(2);
+        quad!(3);
+        quad!(4);
+        quad!(5);
+        quad!(6);
+        quad!(7);
+    }};
+}
+
+/// Stores an 8-row tile a float at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rows8_store_floats {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row($p, $c, $bias, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
+    }};
+}
+
 /// [`gemm_texel`] with `B` read 4 columns a fetch through a 4-float texel view, the
 /// same address in every lane (no broadcasts): needs `b_sn == 1` and `b_off`, `b_sk`
 /// multiples of 4.
@@ -1258,7 +1311,7 @@ pub fn gemm_texel_b4(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
-    use crate::texel::{fetch, fetch4};
+    use crate::texel::fetch;
     let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
         return;
     };
@@ -1289,48 +1342,10 @@ pub fn gemm_texel_b4(
             if rows[6] == ones_row { 1.0 } else { fetch(a, a_row[6] + ka) },
             if rows[7] == ones_row { 1.0 } else { fetch(a, a_row[7] + ka) },
         ];
-        let t = b_first + k * b_step;
-        macro_rules! quad {
-            ($q:literal) => {{
-                let bq = fetch4(b, t + $q);
-                let bs = [bq.x, bq.y, bq.z, bq.w];
-                macro_rules! col {
-                    ($j:literal) => {{
-                        let bj = bs[$j];
-                        acc[0][4 * $q + $j] += av[0] * bj;
-                        acc[1][4 * $q + $j] += av[1] * bj;
-                        acc[2][4 * $q + $j] += av[2] * bj;
-                        acc[3][4 * $q + $j] += av[3] * bj;
-                        acc[4][4 * $q + $j] += av[4] * bj;
-                        acc[5][4 * $q + $j] += av[5] * bj;
-                        acc[6][4 * $q + $j] += av[6] * bj;
-                        acc[7][4 * $q + $j] += av[7] * bj;
-                    }};
-                }
-                col!(0);
-                col!(1);
-                col!(2);
-                col!(3);
-            }};
-        }
-        quad!(0);
-        quad!(1);
-        quad!(2);
-        quad!(3);
-        quad!(4);
-        quad!(5);
-        quad!(6);
-        quad!(7);
+        rows8_times_b_row!(acc, av, b, b_first + k * b_step);
         k += 1;
     }
-    store_tile_row(p, c, bias, acc[0], rows[0], n0, z);
-    store_tile_row(p, c, bias, acc[1], rows[1], n0, z);
-    store_tile_row(p, c, bias, acc[2], rows[2], n0, z);
-    store_tile_row(p, c, bias, acc[3], rows[3], n0, z);
-    store_tile_row(p, c, bias, acc[4], rows[4], n0, z);
-    store_tile_row(p, c, bias, acc[5], rows[5], n0, z);
-    store_tile_row(p, c, bias, acc[6], rows[6], n0, z);
-    store_tile_row(p, c, bias, acc[7], rows[7], n0, z);
+    rows8_store_floats!(p, c, bias, acc, rows, n0, z);
 }
 
 /// Writes one lane's row of a tile 4 columns a store (`C` viewed as `vec4`s): needs
@@ -1544,40 +1559,11 @@ pub fn $name(
             fetch4(a, a_row[7] + kt),
         ];
         // Step `k + kk` of `k`, component `$kk` of each row's texel.
+        // Step `k + kk` of `k`: component `kk` of each row's texel.
         macro_rules! step {
             ($kk:literal, $x:ident) => {{
-                let t = b_first + (k + $kk) * b_step;
-                macro_rules! quad {
-                    ($q:literal) => {{
-                        let bq = fetch4(b, t + $q);
-                        let bs = [bq.x, bq.y, bq.z, bq.w];
-                        macro_rules! col {
-                            ($j:literal) => {{
-                                let bj = bs[$j];
-                                acc[0][4 * $q + $j] += av[0].$x * bj;
-                                acc[1][4 * $q + $j] += av[1].$x * bj;
-                                acc[2][4 * $q + $j] += av[2].$x * bj;
-                                acc[3][4 * $q + $j] += av[3].$x * bj;
-                                acc[4][4 * $q + $j] += av[4].$x * bj;
-                                acc[5][4 * $q + $j] += av[5].$x * bj;
-                                acc[6][4 * $q + $j] += av[6].$x * bj;
-                                acc[7][4 * $q + $j] += av[7].$x * bj;
-                            }};
-                        }
-                        col!(0);
-                        col!(1);
-                        col!(2);
-                        col!(3);
-                    }};
-                }
-                quad!(0);
-                quad!(1);
-                quad!(2);
-                quad!(3);
-                quad!(4);
-                quad!(5);
-                quad!(6);
-                quad!(7);
+                let ak = [av[0].$x, av[1].$x, av[2].$x, av[3].$x, av[4].$x, av[5].$x, av[6].$x, av[7].$x];
+                rows8_times_b_row!(acc, ak, b, b_first + (k + $kk) * b_step);
             }};
         }
         step!(0, x);
@@ -1589,19 +1575,6 @@ pub fn $name(
     $store!(p, c, bias, acc, rows, n0, z);
 }
     };
-}
-
-/// Stores an 8-row tile a float at a time.
-#[cfg(feature = "subgroup-ballot")]
-macro_rules! rows8_store_floats {
-    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
-        macro_rules! one {
-            ($r:literal) => {
-                store_tile_row($p, $c, $bias, $acc[$r], $rows[$r], $n0, $z);
-            };
-        }
-        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
-    }};
 }
 
 /// Stores an 8-row tile 4 floats at a time.
@@ -1680,38 +1653,7 @@ pub fn gemm_texel_m4n4c4(
             if ones[6] { 1.0 } else { hi.z },
             if ones[7] { 1.0 } else { hi.w },
         ];
-        let t = b_first + k * b_step;
-        macro_rules! quad {
-            ($q:literal) => {{
-                let bq = fetch4(b, t + $q);
-                let bs = [bq.x, bq.y, bq.z, bq.w];
-                macro_rules! col {
-                    ($j:literal) => {{
-                        let bj = bs[$j];
-                        acc[0][4 * $q + $j] += av[0] * bj;
-                        acc[1][4 * $q + $j] += av[1] * bj;
-                        acc[2][4 * $q + $j] += av[2] * bj;
-                        acc[3][4 * $q + $j] += av[3] * bj;
-                        acc[4][4 * $q + $j] += av[4] * bj;
-                        acc[5][4 * $q + $j] += av[5] * bj;
-                        acc[6][4 * $q + $j] += av[6] * bj;
-                        acc[7][4 * $q + $j] += av[7] * bj;
-                    }};
-                }
-                col!(0);
-                col!(1);
-                col!(2);
-                col!(3);
-            }};
-        }
-        quad!(0);
-        quad!(1);
-        quad!(2);
-        quad!(3);
-        quad!(4);
-        quad!(5);
-        quad!(6);
-        quad!(7);
+        rows8_times_b_row!(acc, av, b, b_first + k * b_step);
         k += 1;
     }
     rows8_store_quads!(p, c, bias, acc, rows, n0, z);
