@@ -60,10 +60,11 @@ fn normed_desc() -> MlpDesc {
     MlpDesc { weight_norm: vec![1, 3], ..small_desc() }
 }
 
-/// Widths in multiples of 4 and outputs of 16 or more: every GEMM of it fits a 4-float
-/// texel kernel (`GemmVariant::Texel4`: forwards `gemm_texel_k4`, input gradients
-/// `gemm_texel_k4n4`, weight gradients `gemm_texel_b4`), where `small_desc`'s odd
-/// widths take the fallback.
+/// Widths in multiples of 4: every forward fits the 4-float texel kernels
+/// (`GemmVariant::Texel4`: `gemm_texel_k4*` at every tile width, 32, 16, 8 and 4, with
+/// both epilogues), and the gradients of the outputs of 16 or more too (input
+/// gradients `gemm_texel_k4n4`, weight gradients `gemm_texel_b4`), where
+/// `small_desc`'s odd widths take the fallback.
 fn texel4_desc() -> MlpDesc {
     MlpDesc {
         input: 8,
@@ -72,6 +73,11 @@ fn texel4_desc() -> MlpDesc {
             HeadDesc::new("opacity", 1, Activation::Sigmoid),
             HeadDesc::new("raw", 7, Activation::Identity),
             HeadDesc::new("weights", 24, Activation::Softmax { temperature: 0.1 }),
+            // 32 + 16 + 1 columns with an odd row stride: the forward's float epilogue
+            // at widths 32, 16 and 4.
+            HeadDesc::new("wide", 49, Activation::Identity),
+            // 8 + 4 columns: the 4-float epilogue at the two narrowest widths.
+            HeadDesc::new("quads", 12, Activation::Identity),
         ],
         weight_norm: vec![],
     }

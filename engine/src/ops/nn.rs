@@ -195,14 +195,22 @@ impl MlpDesc {
         (offsets, at + gs)
     }
 
+    /// Every `W` and `b` starts on a whole 16-byte texel (4 floats; the floats between
+    /// are zero padding, with zero gradients): the forward GEMMs on CPU devices read
+    /// `W` and the bias through 4-float texel views, which address whole texels, so a
+    /// layer after a head of odd width (the 1-wide opacity before the 48 SH) would
+    /// otherwise fall back to a kernel 2 to 40 times slower.
     fn plain_layout(&self) -> (Vec<(usize, usize)>, usize) {
+        let aligned = |at: usize| at.next_multiple_of(4);
         let mut at = 0;
         let mut offsets = Vec::new();
         for (i, o) in self.linears() {
-            offsets.push((at, at + i * o));
-            at += i * o + o;
+            let w = aligned(at);
+            let b = aligned(w + i * o);
+            offsets.push((w, b));
+            at = b + o;
         }
-        (offsets, at)
+        (offsets, aligned(at))
     }
 
     /// Width of the trunk's output (the heads' input).
@@ -245,13 +253,14 @@ impl MlpDesc {
         let (offsets, len) = self.layout();
         let mut params = vec![0.0f32; len];
         let hidden = self.hidden.len();
-        for (l, ((i, o), (w_off, _))) in self.linears().into_iter().zip(offsets).enumerate() {
+        for (l, ((i, o), (w_off, b_off))) in self.linears().into_iter().zip(offsets).enumerate() {
             if l >= hidden && self.heads[l - hidden].zero_init {
                 continue;
             }
             let bound = 1.0 / (i as f32).sqrt();
-            for v in &mut params[w_off..w_off + i * o + o] {
-                *v = rng.random_range(-bound..bound);
+            // W then b, drawn in that order (as when they were one block).
+            for at in (w_off..w_off + i * o).chain(b_off..b_off + o) {
+                params[at] = rng.random_range(-bound..bound);
             }
         }
         // As PyTorch's `weight_norm` when applied to an initialised layer: v = W and
@@ -402,6 +411,10 @@ impl Mlp {
         }
         let mut p = f32_buffer(ctx, &format!("{label} params"), len)?;
         ctx.write_buffer(&mut p, params)?;
+        // The backward writes every gradient but the layout's padding, which stays zero
+        // (the optimizer and the non-finite check read the whole vector).
+        let mut grads = f32_buffer(ctx, &format!("{label} grads"), len)?;
+        ctx.write_buffer(&mut grads, &vec![0.0f32; len])?;
         let desc_has_weight_norm = !desc.weight_norm.is_empty();
         Ok(Self {
             desc,
@@ -409,7 +422,7 @@ impl Mlp {
             max_rows: max_rows_u32,
             offsets,
             params: p,
-            grads: f32_buffer(ctx, &format!("{label} grads"), len)?,
+            grads,
             layers,
             partials: f32_buffer(ctx, &format!("{label} weight-grad partials"), partial_len)?,
             min_rows_per_split,
@@ -478,7 +491,9 @@ impl Mlp {
         let texels_fit = a.texel_readable(info.max_texel_buffer_elements) && b.texel_readable(info.max_texel_buffer_elements);
         let variant = match self.variant {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
-            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 && texels_fit => GemmVariant::Texel4,
+            // Narrow outputs (the 1- to 6-wide heads) only where the forward kernels'
+            // narrow tiles fit; elsewhere a 32-wide tile would be mostly waste.
+            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || k4_fits(&p, a, b, bias, info.max_texel_buffer_elements)) => GemmVariant::Texel4,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
@@ -488,6 +503,9 @@ impl Mlp {
             let kernel = if texel { "nn::gemm_texel" } else { "nn::gemm_subgroup" };
             return Err(EngineError::MissingFeature { kernel, feature: "subgroups of 8 lanes with ballot operations" });
         }
+        if variant == GemmVariant::Texel4 && k4_fits(&p, a, b, bias, info.max_texel_buffer_elements) {
+            return record_k4(rec, name, a, b, bias, c, p);
+        }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
             GemmVariant::Subgroup | GemmVariant::Texel | GemmVariant::Texel4 => {
@@ -495,10 +513,7 @@ impl Mlp {
                 // texel kernels), in rows of at most 65,535 workgroups, the limit every
                 // device has.
                 let (kernel, tile_rows) = match variant {
-                    GemmVariant::Texel4 => match texel4_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements) {
-                        Some(k4 @ (Kernel::NnGemmTexelK4 | Kernel::NnGemmTexelK4c4)) => (k4, GEMM_K4_ROWS),
-                        four => (four.unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
-                    },
+                    GemmVariant::Texel4 => (texel4_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements).unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
                     GemmVariant::Texel => (Kernel::NnGemmTexel, GEMM_TX_ROWS),
                     _ => (Kernel::NnGemmSubgroup, GEMM_SG_ROWS),
                 };
@@ -823,6 +838,28 @@ mod capped_tests {
     use super::*;
 
     #[test]
+    fn k4_column_tiles_cover_every_column_once() {
+        // The HUGS heads and layers, and every width up to 200.
+        assert_eq!(k4_column_tiles(1), vec![(0, 1, 4)]);
+        assert_eq!(k4_column_tiles(3), vec![(0, 3, 4)]);
+        assert_eq!(k4_column_tiles(6), vec![(0, 6, 8)]);
+        assert_eq!(k4_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
+        assert_eq!(k4_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
+        assert_eq!(k4_column_tiles(49), vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]);
+        assert_eq!(k4_column_tiles(128), vec![(0, 128, 32)]);
+        for n in 1..=200 {
+            let tiles = k4_column_tiles(n);
+            let mut next = 0;
+            for &(first, cols, width) in &tiles {
+                assert_eq!(first, next, "n = {n}: {tiles:?}");
+                assert!(cols > 0 && [32, 16, 8, 4].contains(&width), "n = {n}: {tiles:?}");
+                next += cols;
+            }
+            assert_eq!(next, n, "n = {n}: {tiles:?}");
+        }
+    }
+
+    #[test]
     fn capped_narrows_hidden_layers_only() {
         let d = MlpDesc::hugs_deformation(48).capped(64);
         assert_eq!(d.linears(), vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]);
@@ -833,32 +870,130 @@ mod capped_tests {
     }
 }
 
-/// The 4-float texel GEMM for these operands' layout, if one fits (`Auto` on CPU devices,
-/// where `nn::gemm_texel` would run): `nn::gemm_texel_k4c4` or `gemm_texel_k4` (both
-/// contiguous along `k`: forwards; the first where `C` and the bias are read and
-/// written 4 floats at a time), `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (the same
-/// pair of epilogues; `A` along `k`, `B` along `n`: input gradients) or
-/// `nn::gemm_texel_m4n4c4` or `gemm_texel_b4` (`B` along `n`: weight gradients; the
-/// first where `A` runs along `m` and `C` takes 4 floats a store). A 4-float view covers whole
-/// 16-byte texels, so offsets and strides must be multiples of 4 floats and the
-/// buffers whole texels.
+/// Whether the forward 4-float texel GEMMs (`nn::gemm_texel_k4*`) fit these operands:
+/// `A` and `B` both contiguous along `k` (`x Wᵀ`), offsets and strides in whole
+/// 16-byte texels, no ones row, nothing added to `C`, and the bias readable as a texel
+/// buffer (the float epilogue fetches it).
+fn k4_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u64) -> bool {
+    let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
+    p.a_sk == 1
+        && p.b_sk == 1
+        && p.a_off % 4 == 0
+        && p.a_sm % 4 == 0
+        && p.b_off % 4 == 0
+        && p.b_sn % 4 == 0
+        && p.k % 4 == 0
+        && p.k_chunk % 4 == 0
+        && p.flags & (GEMM_ONES_ROW | GEMM_ACCUMULATE) == 0
+        && whole(a)
+        && whole(b)
+        && bias.texel_readable(max_texels)
+}
+
+/// The forward kernels by tile width: (width, float epilogue, 4-float epilogue).
+const K4_WIDTHS: [(u32, Kernel, Kernel); 4] = [
+    (32, Kernel::NnGemmTexelK4, Kernel::NnGemmTexelK4c4),
+    (16, Kernel::NnGemmTexelK4w16, Kernel::NnGemmTexelK4w16c4),
+    (8, Kernel::NnGemmTexelK4w8, Kernel::NnGemmTexelK4w8c4),
+    (4, Kernel::NnGemmTexelK4w4, Kernel::NnGemmTexelK4w4c4),
+];
+
+/// What llvmpipe spends on one tile of `width` columns per 4 steps of `k`, in
+/// instructions of its machine code: a 4-float fetch (about 45: a call, 8 loads and a
+/// transpose) per row of a lane (16) and per column, and about 14 per accumulator
+/// update (4 multiply-adds, its spilled operands, and the masked store every value
+/// written in a loop gets). Only the ratios matter.
+fn k4_tile_cost(width: u32) -> u32 {
+    (16 + width) * 45 + 16 * width * 14
+}
+
+/// How the forward kernels cover `n` columns: `(first column, columns, tile width)`
+/// per dispatch. 32-wide tiles as far as they fill, then the cheapest set of narrower
+/// tiles for the rest (by [`k4_tile_cost`]): llvmpipe runs every column of a tile,
+/// existing or not, so a head of 3 columns in a 32-wide tile costs what 32 do.
+pub fn k4_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
+    // cheapest[r]: (cost, widths) covering r columns.
+    let mut cheapest: Vec<(u32, Vec<u32>)> = vec![(0, Vec::new())];
+    for r in 1..32u32 {
+        let best = K4_WIDTHS
+            .iter()
+            .map(|&(w, ..)| {
+                let (cost, widths) = &cheapest[r.saturating_sub(w) as usize];
+                let mut widths = widths.clone();
+                widths.push(w);
+                (cost + k4_tile_cost(w), widths)
+            })
+            .min_by_key(|(cost, _)| *cost)
+            .expect("widths");
+        cheapest.push(best);
+    }
+    let mut widths = vec![32; (n / 32) as usize];
+    let mut rest = cheapest[(n % 32) as usize].1.clone();
+    rest.sort_unstable_by(|x, y| y.cmp(x));
+    widths.extend(rest);
+    let mut tiles: Vec<(u32, u32, u32)> = Vec::new();
+    let mut first = 0;
+    for w in widths {
+        let cols = w.min(n - first);
+        match tiles.last_mut() {
+            Some(last) if last.2 == w => last.1 += cols,
+            _ => tiles.push((first, cols, w)),
+        }
+        first += cols;
+    }
+    tiles
+}
+
+/// Records a forward GEMM through `nn::gemm_texel_k4*` (see [`k4_fits`]): one dispatch
+/// per run of [`k4_column_tiles`], each shifted to its first column through the
+/// offsets, with the 4-float epilogue where its columns, `C` and the bias allow.
+fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams) -> Result<()> {
+    let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
+    for (first, cols, width) in k4_column_tiles(p.n) {
+        let q = GemmParams { n: cols, b_off: p.b_off + first * p.b_sn, c_off: p.c_off + first, bias_off: p.bias_off + first, ..p };
+        let quads = q.n % 4 == 0
+            && q.ldc % 4 == 0
+            && q.c_off % 4 == 0
+            && q.c_split % 4 == 0
+            && whole(c)
+            && whole(bias)
+            && (q.flags & GEMM_BIAS == 0 || q.bias_off % 4 == 0);
+        let &(_, floats, fours) = K4_WIDTHS.iter().find(|(w, ..)| *w == width).expect("a tile width of K4_WIDTHS");
+        let tiles = q.m.div_ceil(GEMM_K4_ROWS) * cols.div_ceil(width);
+        let x = tiles.min(65_535);
+        rec.pass(name, if quads { fours } else { floats })
+            .read("a", a)
+            .read("b", b)
+            .read("bias", bias)
+            .write("c", c)
+            .push(&q)
+            .dispatch([x, tiles.div_ceil(x.max(1)), 1])?;
+    }
+    Ok(())
+}
+
+/// The 4-float texel GEMM for the backward's operand layouts, if one fits (`Auto` on
+/// CPU devices, where `nn::gemm_texel` would run; forwards go through [`record_k4`]):
+/// `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (`A` along `k`, `B` along `n`: input
+/// gradients; the first where `C` and the bias are read and written 4 floats at a
+/// time) or `nn::gemm_texel_m4n4c4` or `gemm_texel_b4` (`B` along `n`: weight
+/// gradients; the first where `A` runs along `m` and `C` takes 4 floats a store). A
+/// 4-float view covers whole 16-byte texels, so offsets and strides must be multiples
+/// of 4 floats and the buffers whole texels.
 fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
-    // `gemm_texel_k4c4` stores 4 columns at a time and reads the bias as 4-float texels.
+    // The `c4` epilogues store 4 columns at a time and read the bias as 4-float texels.
     let c_quads = p.n % 4 == 0 && p.ldc % 4 == 0 && p.c_off % 4 == 0 && p.c_split % 4 == 0 && whole(c);
     // (The bias is bound, as a texel buffer, with or without GEMM_BIAS.)
     let bias_quads = bias.texel_readable(max_texels) && whole(bias) && (p.flags & GEMM_BIAS == 0 || p.bias_off % 4 == 0);
     let a_k4 = p.a_sk == 1 && p.a_off % 4 == 0 && p.a_sm % 4 == 0 && p.k % 4 == 0 && p.k_chunk % 4 == 0 && p.flags & GEMM_ONES_ROW == 0 && whole(a);
     let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
-    let b_k4 = p.b_sk == 1 && p.b_off % 4 == 0 && p.b_sn % 4 == 0 && whole(b);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
-    match (a_k4, b_k4, b_n4) {
-        (true, true, _) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4c4),
-        (true, true, _) => Some(Kernel::NnGemmTexelK4),
-        (true, _, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
-        (true, _, true) => Some(Kernel::NnGemmTexelK4n4),
-        (false, _, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnGemmTexelM4n4c4),
-        (false, _, true) => Some(Kernel::NnGemmTexelB4),
+    match (a_k4, b_n4) {
+        (true, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
+        (true, true) => Some(Kernel::NnGemmTexelK4n4),
+        (false, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnGemmTexelM4n4c4),
+        (false, true) => Some(Kernel::NnGemmTexelB4),
         _ => None,
     }
 }

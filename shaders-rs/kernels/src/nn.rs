@@ -1071,22 +1071,22 @@ struct SgTile {
     b_col: [u32; 4],
 }
 
-/// The tile of workgroup `group` for tiles of `tile_rows` × `GEMM_SG_COLS` (a workgroup
+/// The tile of workgroup `group` for tiles of `tile_rows` × `tile_cols` (a workgroup
 /// is one subgroup of 8, so the tile never depends on how a device numbers the
 /// subgroups of a workgroup), or `None` past the last tile (the whole subgroup leaves
 /// together, so no broadcast ever reads an inactive lane). Workgroups come in rows of
 /// at most 65,535 (2M rows of 1,024 columns are 2M tiles).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u32) -> Option<SgTile> {
+fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u32, tile_cols: u32) -> Option<SgTile> {
     let row_tiles = (p.m + tile_rows - 1) / tile_rows;
-    let col_tiles = (p.n + GEMM_SG_COLS - 1) / GEMM_SG_COLS;
+    let col_tiles = (p.n + tile_cols - 1) / tile_cols;
     let tile = group.y * groups.x + group.x;
     if p.m == 0 || p.n == 0 || tile >= row_tiles * col_tiles {
         return None;
     }
     let m0 = (tile % row_tiles) * tile_rows;
-    let n0 = (tile / row_tiles) * GEMM_SG_COLS;
+    let n0 = (tile / row_tiles) * tile_cols;
     let z = group.z;
     let k_begin = z * p.k_chunk;
     let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
@@ -1126,7 +1126,7 @@ pub fn gemm_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_SG_ROWS) else {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_SG_ROWS, GEMM_SG_COLS) else {
         return;
     };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24];
@@ -1193,7 +1193,7 @@ pub fn gemm_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
     use crate::texel::fetch;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
         return;
     };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
@@ -1312,7 +1312,7 @@ pub fn gemm_texel_b4(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
     use crate::texel::fetch;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
         return;
     };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
@@ -1352,21 +1352,21 @@ pub fn gemm_texel_b4(
 /// `n`, `ldc`, `c_off`, `c_split` and, with a bias, `bias_off` multiples of 4, so each
 /// group of 4 columns is all inside `C` or all past its last column. On llvmpipe each
 /// store is a loop over the lanes, so 8 stores a row where [`store_tile_row`] makes 32
-/// (and 32 loads of the bias).
+/// (and 32 loads of the bias). `W` columns, `Q = W / 4` texels.
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn store_tile_row4(p: &GemmParams, c: &mut [Vec4], bias: &[Vec4; 8], vals: [f32; GEMM_SG_COLS as usize], row: u32, n0: u32, z: u32) {
+fn store_tile_row4<const W: usize, const Q: usize>(p: &GemmParams, c: &mut [Vec4], bias: &[Vec4; Q], vals: [f32; W], row: u32, n0: u32, z: u32) {
     if row >= p.m {
         return;
     }
     let mut q = 0;
-    while q < GEMM_SG_COLS / 4 {
-        if n0 + 4 * q < p.n {
-            let at = ((p.c_off + z * p.c_split + row * p.ldc + n0) / 4 + q) as usize;
-            let j = 4 * q as usize;
+    while q < Q {
+        if n0 + 4 * (q as u32) < p.n {
+            let at = ((p.c_off + z * p.c_split + row * p.ldc + n0) / 4) as usize + q;
+            let j = 4 * q;
             let mut v = Vec4::new(vals[j], vals[j + 1], vals[j + 2], vals[j + 3]);
             if p.flags & GEMM_BIAS != 0 {
-                v += bias[q as usize];
+                v += bias[q];
             }
             if p.flags & GEMM_ACCUMULATE != 0 {
                 v += c[at];
@@ -1377,16 +1377,42 @@ fn store_tile_row4(p: &GemmParams, c: &mut [Vec4], bias: &[Vec4; 8], vals: [f32;
     }
 }
 
-/// The tile's bias, 4 columns a fetch (zeros without one).
+/// The tile's `Q` texels of bias, 4 columns a fetch (zeros without one).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn tile_bias4(p: &GemmParams, bias: &crate::texel::TexelBuffer4, n0: u32) -> [Vec4; 8] {
+fn tile_bias4<const Q: usize>(p: &GemmParams, bias: &crate::texel::TexelBuffer4, n0: u32) -> [Vec4; Q] {
     use crate::texel::fetch4;
-    if p.flags & GEMM_BIAS == 0 {
-        return [Vec4::ZERO; 8];
+    let mut out = [Vec4::ZERO; Q];
+    if p.flags & GEMM_BIAS != 0 {
+        let t = (p.bias_off + n0) / 4;
+        let mut q = 0;
+        while q < Q {
+            out[q] = fetch4(bias, t + q as u32);
+            q += 1;
+        }
     }
-    let t = (p.bias_off + n0) / 4;
-    [fetch4(bias, t), fetch4(bias, t + 1), fetch4(bias, t + 2), fetch4(bias, t + 3), fetch4(bias, t + 4), fetch4(bias, t + 5), fetch4(bias, t + 6), fetch4(bias, t + 7)]
+    out
+}
+
+/// One lane's row of a forward tile (`gemm_texel_k4*` without `c4`), a float at a
+/// time, adding the tile's bias fetched once per column (`bias`, zeros without
+/// `GEMM_BIAS`). Never adds to `C`: the engine records these kernels only without
+/// `GEMM_ACCUMULATE`, which spares every column a masked-off storage-buffer read (a
+/// loop over the lanes of its own on llvmpipe).
+#[cfg(feature = "subgroup-ballot")]
+#[inline]
+fn store_row_floats<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32; W], vals: [f32; W], row: u32, n0: u32, z: u32) {
+    if row >= p.m {
+        return;
+    }
+    let base = (p.c_off + z * p.c_split + row * p.ldc + n0) as usize;
+    let mut j = 0;
+    while j < W {
+        if n0 + (j as u32) < p.n {
+            c[base + j] = vals[j] + bias[j];
+        }
+        j += 1;
+    }
 }
 
 /// `gemm_texel_k4`'s rows and stores: per row of the lane, `$store!(acc, row)`.
@@ -1414,15 +1440,21 @@ macro_rules! for_k4_rows {
 
 /// [`gemm_texel`] with both operands contiguous along `k` (`a_sk == b_sk == 1`: the
 /// forward `x Wᵀ`), each read 4 steps of `k` a fetch through 4-float texel views, in
-/// tiles of 128 × 32 (16 rows a lane): per 4 steps a lane fetches one texel per row of
-/// `A` (16) and every lane the same texel per column of `B` (32, no broadcasts), where
-/// [`gemm_texel`] makes 48 fetches and 128 broadcasts for half the rows. Needs
-/// `a_off`, `a_sm`, `b_off`, `b_sn`, `k_chunk` and `k` multiples of 4 and no ones row.
-/// Sums in the same order as [`gemm_texel`]. Two epilogues: `gemm_texel_k4` stores
-/// floats, `gemm_texel_k4c4` 4 at a time (see [`store_tile_row4`]).
+/// tiles of 128 rows (16 a lane) × `W` columns: per 4 steps a lane fetches one texel
+/// per row of `A` (16) and every lane the same texel per column of `B` (`W`, no
+/// broadcasts), where [`gemm_texel`] makes 48 fetches and 128 broadcasts for half the
+/// rows. Needs `a_off`, `a_sm`, `b_off`, `b_sn`, `k_chunk` and `k` multiples of 4, no
+/// ones row and no `GEMM_ACCUMULATE`. Sums in the same order as [`gemm_texel`].
+///
+/// Widths 32, 16, 8 and 4: llvmpipe runs every column of a tile whether it exists or
+/// not (a branch on a uniform value is a mask there, not a jump), so the engine covers
+/// `n` with 32-wide tiles and the rest with the narrower ones (a head of 3 columns
+/// runs 4, not 32). Two epilogues: `_c4` stores 4 floats at a time and reads the bias
+/// as 4-float texels (see [`store_tile_row4`]); the other stores floats and fetches
+/// the tile's bias once per column (see [`store_row_floats`]).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! gemm_texel_k4_entry {
-    ($name:ident, $c_ty:ty, ($($bias_attr:tt)*), $bias_ty:ty, $bias:ident, $store:ident, $doc:literal) => {
+    ($name:ident, $w:literal, [$($j:literal)*], $c_ty:ty, ($($bias_attr:tt)*), $bias_ty:ty, $store:ident, $doc:literal) => {
         #[doc = $doc]
         #[cfg(feature = "subgroup-ballot")]
         #[spirv(compute(threads(8)))]
@@ -1433,55 +1465,59 @@ macro_rules! gemm_texel_k4_entry {
             #[spirv(push_constant)] p: &GemmParams,
             #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
             #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
-            #[spirv($($bias_attr)*)] $bias: $bias_ty,
+            #[spirv($($bias_attr)*)] bias: $bias_ty,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [$c_ty],
         ) {
             use crate::texel::fetch4;
-            let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_K4_ROWS) else {
+            let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_K4_ROWS, $w) else {
                 return;
             };
             let rows = [m0 + lane + 0, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56, m0 + lane + 64, m0 + lane + 72, m0 + lane + 80, m0 + lane + 88, m0 + lane + 96, m0 + lane + 104, m0 + lane + 112, m0 + lane + 120];
             let a_row = [(p.a_off + rows[0].min(m_last) * p.a_sm) / 4, (p.a_off + rows[1].min(m_last) * p.a_sm) / 4, (p.a_off + rows[2].min(m_last) * p.a_sm) / 4, (p.a_off + rows[3].min(m_last) * p.a_sm) / 4, (p.a_off + rows[4].min(m_last) * p.a_sm) / 4, (p.a_off + rows[5].min(m_last) * p.a_sm) / 4, (p.a_off + rows[6].min(m_last) * p.a_sm) / 4, (p.a_off + rows[7].min(m_last) * p.a_sm) / 4, (p.a_off + rows[8].min(m_last) * p.a_sm) / 4, (p.a_off + rows[9].min(m_last) * p.a_sm) / 4, (p.a_off + rows[10].min(m_last) * p.a_sm) / 4, (p.a_off + rows[11].min(m_last) * p.a_sm) / 4, (p.a_off + rows[12].min(m_last) * p.a_sm) / 4, (p.a_off + rows[13].min(m_last) * p.a_sm) / 4, (p.a_off + rows[14].min(m_last) * p.a_sm) / 4, (p.a_off + rows[15].min(m_last) * p.a_sm) / 4];
             let last_col = p.n - 1;
-            let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 16];
+            let mut acc = [[0.0f32; $w]; 16];
             let mut k = k_begin;
             while k < k_end {
                 let kt = k / 4;
                 let av = [fetch4(a, a_row[0] + kt), fetch4(a, a_row[1] + kt), fetch4(a, a_row[2] + kt), fetch4(a, a_row[3] + kt), fetch4(a, a_row[4] + kt), fetch4(a, a_row[5] + kt), fetch4(a, a_row[6] + kt), fetch4(a, a_row[7] + kt), fetch4(a, a_row[8] + kt), fetch4(a, a_row[9] + kt), fetch4(a, a_row[10] + kt), fetch4(a, a_row[11] + kt), fetch4(a, a_row[12] + kt), fetch4(a, a_row[13] + kt), fetch4(a, a_row[14] + kt), fetch4(a, a_row[15] + kt)];
                 macro_rules! col {
-                    ($j:literal) => {{
-                        let bq = fetch4(b, (p.b_off + (n0 + $j).min(last_col) * p.b_sn) / 4 + kt);
+                    ($jj:literal) => {{
+                        let bq = fetch4(b, (p.b_off + (n0 + $jj).min(last_col) * p.b_sn) / 4 + kt);
                         macro_rules! row {
                             ($r:literal) => {{
-                                let mut v = acc[$r][$j];
+                                let mut v = acc[$r][$jj];
                                 v += av[$r].x * bq.x;
                                 v += av[$r].y * bq.y;
                                 v += av[$r].z * bq.z;
                                 v += av[$r].w * bq.w;
-                                acc[$r][$j] = v;
+                                acc[$r][$jj] = v;
                             }};
                         }
                         for_k4_rows!(row);
                     }};
                 }
-                col!(0); col!(1); col!(2); col!(3); col!(4); col!(5); col!(6); col!(7);
-                col!(8); col!(9); col!(10); col!(11); col!(12); col!(13); col!(14); col!(15);
-                col!(16); col!(17); col!(18); col!(19); col!(20); col!(21); col!(22); col!(23);
-                col!(24); col!(25); col!(26); col!(27); col!(28); col!(29); col!(30); col!(31);
+                $(col!($j);)*
                 k += 4;
             }
-            $store!(p, c, $bias, acc, rows, n0, z);
+            $store!(p, c, bias, acc, rows, n0, z, [$($j)*]);
         }
     };
 }
 
-/// Stores the tile a float at a time.
+/// Stores the tile a float at a time, with the tile's bias fetched once per column
+/// (where a storage-buffer read per row and column was a loop over the lanes each).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! k4_store_floats {
-    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident, [$($j:literal)*]) => {{
+        let last_col = $p.n - 1;
+        let with_bias = $p.flags & GEMM_BIAS != 0;
+        let bias_row = [$({
+            let v = crate::texel::fetch($bias, $p.bias_off + ($n0 + $j).min(last_col));
+            if with_bias { v } else { 0.0 }
+        }),*];
         macro_rules! one {
             ($r:literal) => {
-                store_tile_row($p, $c, $bias, $acc[$r], $rows[$r], $n0, $z);
+                store_row_floats($p, $c, &bias_row, $acc[$r], $rows[$r], $n0, $z);
             };
         }
         for_k4_rows!(one);
@@ -1491,8 +1527,8 @@ macro_rules! k4_store_floats {
 /// Stores the tile 4 floats at a time.
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! k4_store_quads {
-    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
-        let bias4 = tile_bias4($p, $bias, $n0);
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident, [$($j:literal)*]) => {{
+        let bias4 = tile_bias4::<{ [$($j),*].len() / 4 }>($p, $bias, $n0);
         macro_rules! one {
             ($r:literal) => {
                 store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
@@ -1502,10 +1538,23 @@ macro_rules! k4_store_quads {
     }};
 }
 
+/// The forward GEMMs of [`gemm_texel_k4_entry`]: widths 32, 16, 8 and 4, each with
+/// both epilogues.
 #[cfg(feature = "subgroup-ballot")]
-gemm_texel_k4_entry!(gemm_texel_k4, f32, (storage_buffer, descriptor_set = 0, binding = 2), &[f32], bias, k4_store_floats, "The 4-float texel forward GEMM (see the macro), storing a float at a time.");
+macro_rules! gemm_texel_k4_widths {
+    ($($name:ident, $name_c4:ident, $w:literal, [$($j:literal)*];)*) => {$(
+        gemm_texel_k4_entry!($name, $w, [$($j)*], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), storing a float at a time.");
+        gemm_texel_k4_entry!($name_c4, $w, [$($j)*], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), storing 4 floats at a time and reading the bias as 4-float texels.");
+    )*};
+}
+
 #[cfg(feature = "subgroup-ballot")]
-gemm_texel_k4_entry!(gemm_texel_k4c4, Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, bias, k4_store_quads, "The 4-float texel forward GEMM (see the macro), storing 4 floats at a time and reading the bias as 4-float texels.");
+gemm_texel_k4_widths! {
+    gemm_texel_k4, gemm_texel_k4c4, 32, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23 24 25 26 27 28 29 30 31];
+    gemm_texel_k4w16, gemm_texel_k4w16c4, 16, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15];
+    gemm_texel_k4w8, gemm_texel_k4w8c4, 8, [0 1 2 3 4 5 6 7];
+    gemm_texel_k4w4, gemm_texel_k4w4c4, 4, [0 1 2 3];
+}
 
 /// [`gemm_texel`] with `A` contiguous along `k` and `B` along `n` (`a_sk == b_sn == 1`:
 /// the input gradient `dY W`): per 4 steps of `k` a lane fetches one 4-float texel per
@@ -1528,7 +1577,7 @@ pub fn $name(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [$c_ty],
 ) {
     use crate::texel::fetch4;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
         return;
     };
     let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
@@ -1581,7 +1630,7 @@ pub fn $name(
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! rows8_store_quads {
     ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
-        let bias4 = tile_bias4($p, $bias, $n0);
+        let bias4 = tile_bias4::<8>($p, $bias, $n0);
         macro_rules! one {
             ($r:literal) => {
                 store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
@@ -1617,7 +1666,7 @@ pub fn gemm_texel_m4n4c4(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [Vec4],
 ) {
     use crate::texel::fetch4;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS) else {
+    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
         return;
     };
     let r0 = m0 + 4 * lane;

@@ -60,6 +60,17 @@ pub struct OpsArgs {
     /// fixed-point integer atomics) instead of with float atomics.
     #[arg(long)]
     pub deterministic: bool,
+    /// GEMM layers to time, as IN x OUT (comma-separated, e.g. "128x128,64x49").
+    /// Default: the HUGS decoder shapes.
+    #[arg(long, value_delimiter = ',', value_parser = parse_layer)]
+    pub layers: Vec<(usize, usize)>,
+}
+
+/// `IN x OUT` (e.g. "128x128"), both from 1 to 1,024.
+fn parse_layer(s: &str) -> Result<(usize, usize), String> {
+    let (i, o) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected IN x OUT, e.g. 128x128"))?;
+    let width = |w: &str| w.trim().parse::<usize>().ok().filter(|w| (1..=1024).contains(w)).ok_or_else(|| format!("'{s}': '{w}' is not a width from 1 to 1024"));
+    Ok((width(i)?, width(o)?))
 }
 
 impl OpsArgs {
@@ -99,8 +110,12 @@ fn random(len: usize, seed: u64) -> Vec<f32> {
     (0..len).map(|_| rng.random_range(-1.0..1.0)).collect()
 }
 
-/// The linear layers of HUGS's three decoders on a 96-wide feature: (in, out).
-const SHAPES: [(usize, usize); 6] = [(96, 64), (64, 64), (64, 49), (96, 128), (128, 128), (128, 24)];
+/// The linear layers of HUGS's three decoders on a 96-wide feature, each shape once:
+/// (in, out). Appearance 96-64-64 with heads opacity (1) and SH (48); geometry
+/// 96-128-128 with heads offset (3), 6D rotation (6), log-scale delta (3);
+/// deformation 96-128-128-128-128 with 24 skinning logits. Each head is its own
+/// layer, as `Mlp` runs it (and HUGS does).
+const SHAPES: [(usize, usize); 9] = [(96, 64), (64, 64), (64, 1), (64, 48), (96, 128), (128, 128), (128, 3), (128, 6), (128, 24)];
 
 fn cpu_gemm_ms(args: &OpsArgs, rows: usize, i: usize, o: usize, x: &[f32], w: &[f32]) -> f64 {
     let mut y = vec![0.0f32; rows * o];
@@ -131,7 +146,8 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     let rows = args.rows as usize;
     let mut out = json!({ "job": "ops", "device": ctx.info().name, "rows": rows, "runs": args.runs, "gemm_kernel": args.gemm });
     let mut gemms = Vec::new();
-    for &(i, o) in SHAPES.iter().filter(|_| args.wants("gemm")) {
+    let layers = if args.layers.is_empty() { SHAPES.to_vec() } else { args.layers.clone() };
+    for &(i, o) in layers.iter().filter(|_| args.wants("gemm")) {
         let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)], weight_norm: vec![] };
         let mut mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
         mlp.variant = args.variant();

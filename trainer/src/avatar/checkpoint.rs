@@ -40,7 +40,9 @@ use crate::avatar::scene::{SceneState, SCENE_PARAMS};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
 
 /// Version of the archive layout.
-pub const FORMAT_VERSION: u32 = 1;
+/// 2: decoder parameters laid out with every weight and bias on a 16-byte boundary
+/// (`MlpDesc::layout`).
+pub const FORMAT_VERSION: u32 = 2;
 
 /// One Adam group's state.
 #[derive(Clone, Debug, PartialEq)]
