@@ -69,7 +69,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let norms = desc.weight_norm_params();
     for l in 0..hidden {
         let (i, o) = linears[l];
-        put(&dir, &format!("w{l}"), &[o, i], &params[offsets[l].0..offsets[l].1]);
+        put(&dir, &format!("w{l}"), &[o, i], &params[offsets[l].0..offsets[l].0 + o * i]);
         put(&dir, &format!("b{l}"), &[o], &params[offsets[l].1..offsets[l].1 + o]);
         let mut j = serde_json::json!({ "in": i, "out": o, "act": act_name(desc.hidden[l].1) });
         if let Some(k) = desc.weight_norm.iter().position(|&w| w == l) {
@@ -85,7 +85,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let mut start = 0;
     for (h, d) in desc.heads.iter().enumerate() {
         let l = hidden + h;
-        w.extend_from_slice(&params[offsets[l].0..offsets[l].1]);
+        w.extend_from_slice(&params[offsets[l].0..offsets[l].0 + d.width * trunk]);
         b.extend_from_slice(&params[offsets[l].1..offsets[l].1 + d.width]);
         let mut j = serde_json::json!({ "start": start, "end": start + d.width, "act": act_name(d.activation) });
         if let Activation::Softmax { temperature } = d.activation {
@@ -118,7 +118,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     assert!(e <= 1e-4, "{name}: input gradient differs from PyTorch by {e:e}");
     for l in 0..hidden {
         let (i, o) = linears[l];
-        let e = rel_err(&grads[offsets[l].0..offsets[l].1], &get(&dir, &format!("gw{l}")), 1e-3);
+        let e = rel_err(&grads[offsets[l].0..offsets[l].0 + o * i], &get(&dir, &format!("gw{l}")), 1e-3);
         assert!(e <= 1e-4, "{name}: weight gradient of layer {l} differs from PyTorch by {e:e}");
         let e = rel_err(&grads[offsets[l].1..offsets[l].1 + o], &get(&dir, &format!("gb{l}")), 1e-3);
         assert!(e <= 1e-4, "{name}: bias gradient of layer {l} ({i}->{o}) differs from PyTorch by {e:e}");
@@ -132,7 +132,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let mut row0 = 0;
     for (h, d) in desc.heads.iter().enumerate() {
         let l = hidden + h;
-        let e = rel_err(&grads[offsets[l].0..offsets[l].1], &tgw[row0 * trunk..(row0 + d.width) * trunk], 1e-3);
+        let e = rel_err(&grads[offsets[l].0..offsets[l].0 + d.width * trunk], &tgw[row0 * trunk..(row0 + d.width) * trunk], 1e-3);
         assert!(e <= 1e-4, "{name}: weight gradient of head {} differs from PyTorch by {e:e}", d.name);
         let e = rel_err(&grads[offsets[l].1..offsets[l].1 + d.width], &tgb[row0..row0 + d.width], 1e-3);
         assert!(e <= 1e-4, "{name}: bias gradient of head {} differs from PyTorch by {e:e}", d.name);

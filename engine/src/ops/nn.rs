@@ -24,7 +24,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K4_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K4_ROWS, GEMM_KL_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -188,7 +188,9 @@ impl MlpDesc {
     }
 
     /// Offsets of (W, b) of each linear layer in the flat parameter vector, and its
-    /// length (the weight-normalised layers' `g` come after every `W` and `b`).
+    /// length (the weight-normalised layers' `g` come after every `W` and `b`). `W`
+    /// (out × in, row-major) is `in · out` floats from its offset; padding may follow
+    /// it before `b` (see `plain_layout`).
     pub fn layout(&self) -> (Vec<(usize, usize)>, usize) {
         let (offsets, at) = self.plain_layout();
         let gs: usize = self.weight_norm.iter().map(|&l| self.linears()[l].1).sum();
@@ -493,7 +495,7 @@ impl Mlp {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
             // Narrow outputs (the 1- to 6-wide heads) only where the forward kernels'
             // narrow tiles fit; elsewhere a 32-wide tile would be mostly waste.
-            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || k4_fits(&p, a, b, bias, info.max_texel_buffer_elements)) => GemmVariant::Texel4,
+            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || k4_fits(&p, a, b, bias, info.max_texel_buffer_elements) || klanes_kernel(&p, a).is_some()) => GemmVariant::Texel4,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
@@ -505,6 +507,11 @@ impl Mlp {
         }
         if variant == GemmVariant::Texel4 && k4_fits(&p, a, b, bias, info.max_texel_buffer_elements) {
             return record_k4(rec, name, a, b, bias, c, p);
+        }
+        if let (GemmVariant::Texel4, Some((kernel, width))) = (variant, klanes_kernel(&p, a)) {
+            let tiles = p.m.div_ceil(GEMM_KL_ROWS) * p.n.div_ceil(width);
+            let x = tiles.min(65_535);
+            return rec.pass(name, kernel).read("a", a).read("b", b).read("bias", bias).write("c", c).push(&p).dispatch([x, tiles.div_ceil(x.max(1)), splits]);
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
@@ -972,6 +979,19 @@ fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buff
     Ok(())
 }
 
+/// The narrow GEMM with `k` across the lanes (`nn::gemm_texel_klanes_w4` or `_w8`)
+/// and its tile width, where `C` is at most 8 wide (the weight gradient of a 1- to
+/// 6-wide head, `A = Xᵀ` contiguous along `m` in whole texels): the column-owning
+/// tiles would run 32 columns for 3.
+fn klanes_kernel(p: &GemmParams, a: &Buffer) -> Option<(Kernel, u32)> {
+    let fits = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && a.vk_size() % 16 == 0;
+    match p.n {
+        1..=4 if fits => Some((Kernel::NnGemmTexelKlanesW4, 4)),
+        5..=8 if fits => Some((Kernel::NnGemmTexelKlanesW8, 8)),
+        _ => None,
+    }
+}
+
 /// The 4-float texel GEMM for the backward's operand layouts, if one fits (`Auto` on
 /// CPU devices, where `nn::gemm_texel` would run; forwards go through [`record_k4`]):
 /// `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (`A` along `k`, `B` along `n`: input
@@ -993,6 +1013,7 @@ fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buff
         (true, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
         (true, true) => Some(Kernel::NnGemmTexelK4n4),
         (false, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnGemmTexelM4n4c4),
+        (false, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelB4c4),
         (false, true) => Some(Kernel::NnGemmTexelB4),
         _ => None,
     }

@@ -15,7 +15,7 @@ use drape_shared::nn::{
     GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
 #[cfg(feature = "subgroup-ballot")]
-use drape_shared::nn::{GEMM_K4_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
+use drape_shared::nn::{GEMM_K4_ROWS, GEMM_KL_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 #[cfg(feature = "subgroup-ballot")]
@@ -1033,12 +1033,12 @@ macro_rules! sg_group {
 /// missing at the third row when they were written out).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn store_tile_row(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; GEMM_SG_COLS as usize], row: u32, n0: u32, z: u32) {
+fn store_tile_row<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; W], row: u32, n0: u32, z: u32) {
     if row >= p.m {
         return;
     }
     let mut j = 0;
-    while j < GEMM_SG_COLS {
+    while j < W as u32 {
         let col = n0 + j;
         if col < p.n {
             let at = (p.c_off + z * p.c_split + row * p.ldc + col) as usize;
@@ -1296,57 +1296,169 @@ macro_rules! rows8_store_floats {
     }};
 }
 
+/// Stores an 8-row tile 4 floats at a time.
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! rows8_store_quads {
+    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
+        let bias4 = tile_bias4::<8>($p, $bias, $n0);
+        macro_rules! one {
+            ($r:literal) => {
+                store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
+            };
+        }
+        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
+    }};
+}
+
 /// [`gemm_texel`] with `B` read 4 columns a fetch through a 4-float texel view, the
 /// same address in every lane (no broadcasts): needs `b_sn == 1` and `b_off`, `b_sk`
-/// multiples of 4.
+/// multiples of 4. Two epilogues: `gemm_texel_b4` stores floats, `gemm_texel_b4c4` 4
+/// at a time (see [`store_tile_row4`]; the input gradient of a narrow head, whose `k`
+/// of 1 to 6 leaves the stores most of the work).
 #[cfg(feature = "subgroup-ballot")]
-#[spirv(compute(threads(8)))]
-pub fn gemm_texel_b4(
-    #[spirv(workgroup_id)] group: UVec3,
-    #[spirv(num_workgroups)] groups: UVec3,
-    #[spirv(local_invocation_index)] lane: u32,
-    #[spirv(push_constant)] p: &GemmParams,
-    #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer,
-    #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
-) {
-    use crate::texel::fetch;
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
-        return;
+macro_rules! gemm_texel_b4_entry {
+    ($name:ident, $c_ty:ty, ($($bias_attr:tt)*), $bias_ty:ty, $store:ident, $doc:literal) => {
+        #[doc = $doc]
+        #[cfg(feature = "subgroup-ballot")]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(num_workgroups)] groups: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(push_constant)] p: &GemmParams,
+            #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer,
+            #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer4,
+            #[spirv($($bias_attr)*)] bias: $bias_ty,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [$c_ty],
+        ) {
+            use crate::texel::fetch;
+            let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
+                return;
+            };
+            let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
+            let a_row = [
+                p.a_off + rows[0].min(m_last) * p.a_sm,
+                p.a_off + rows[1].min(m_last) * p.a_sm,
+                p.a_off + rows[2].min(m_last) * p.a_sm,
+                p.a_off + rows[3].min(m_last) * p.a_sm,
+                p.a_off + rows[4].min(m_last) * p.a_sm,
+                p.a_off + rows[5].min(m_last) * p.a_sm,
+                p.a_off + rows[6].min(m_last) * p.a_sm,
+                p.a_off + rows[7].min(m_last) * p.a_sm,
+            ];
+            let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
+            let b_first = (p.b_off + n0) / 4;
+            let b_step = p.b_sk / 4;
+            let mut k = k_begin;
+            while k < k_end {
+                let ka = k * p.a_sk;
+                let av = [
+                    if rows[0] == ones_row { 1.0 } else { fetch(a, a_row[0] + ka) },
+                    if rows[1] == ones_row { 1.0 } else { fetch(a, a_row[1] + ka) },
+                    if rows[2] == ones_row { 1.0 } else { fetch(a, a_row[2] + ka) },
+                    if rows[3] == ones_row { 1.0 } else { fetch(a, a_row[3] + ka) },
+                    if rows[4] == ones_row { 1.0 } else { fetch(a, a_row[4] + ka) },
+                    if rows[5] == ones_row { 1.0 } else { fetch(a, a_row[5] + ka) },
+                    if rows[6] == ones_row { 1.0 } else { fetch(a, a_row[6] + ka) },
+                    if rows[7] == ones_row { 1.0 } else { fetch(a, a_row[7] + ka) },
+                ];
+                rows8_times_b_row!(acc, av, b, b_first + k * b_step);
+                k += 1;
+            }
+            $store!(p, c, bias, acc, rows, n0, z);
+        }
     };
-    let rows = [m0 + lane, m0 + lane + 8, m0 + lane + 16, m0 + lane + 24, m0 + lane + 32, m0 + lane + 40, m0 + lane + 48, m0 + lane + 56];
-    let a_row = [
-        p.a_off + rows[0].min(m_last) * p.a_sm,
-        p.a_off + rows[1].min(m_last) * p.a_sm,
-        p.a_off + rows[2].min(m_last) * p.a_sm,
-        p.a_off + rows[3].min(m_last) * p.a_sm,
-        p.a_off + rows[4].min(m_last) * p.a_sm,
-        p.a_off + rows[5].min(m_last) * p.a_sm,
-        p.a_off + rows[6].min(m_last) * p.a_sm,
-        p.a_off + rows[7].min(m_last) * p.a_sm,
-    ];
-    let mut acc = [[0.0f32; GEMM_SG_COLS as usize]; 8];
-    let b_first = (p.b_off + n0) / 4;
-    let b_step = p.b_sk / 4;
-    let mut k = k_begin;
-    while k < k_end {
-        let ka = k * p.a_sk;
-        let av = [
-            if rows[0] == ones_row { 1.0 } else { fetch(a, a_row[0] + ka) },
-            if rows[1] == ones_row { 1.0 } else { fetch(a, a_row[1] + ka) },
-            if rows[2] == ones_row { 1.0 } else { fetch(a, a_row[2] + ka) },
-            if rows[3] == ones_row { 1.0 } else { fetch(a, a_row[3] + ka) },
-            if rows[4] == ones_row { 1.0 } else { fetch(a, a_row[4] + ka) },
-            if rows[5] == ones_row { 1.0 } else { fetch(a, a_row[5] + ka) },
-            if rows[6] == ones_row { 1.0 } else { fetch(a, a_row[6] + ka) },
-            if rows[7] == ones_row { 1.0 } else { fetch(a, a_row[7] + ka) },
-        ];
-        rows8_times_b_row!(acc, av, b, b_first + k * b_step);
-        k += 1;
-    }
-    rows8_store_floats!(p, c, bias, acc, rows, n0, z);
 }
+
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_b4_entry!(gemm_texel_b4, f32, (storage_buffer, descriptor_set = 0, binding = 2), &[f32], rows8_store_floats, "The texel GEMM with `B` 4 floats a fetch (see the macro), storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_b4_entry!(gemm_texel_b4c4, Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, rows8_store_quads, "The texel GEMM with `B` 4 floats a fetch (see the macro), storing 4 floats at a time.");
+
+/// `C (+)= A B` for a narrow `C` (`n` up to `W`, 4 or 8: the weight gradient `Xᵀ dY`
+/// of the 1- to 6-wide heads, `k` the batch rows) with `k` across the lanes: each
+/// subgroup owns 32 rows of `C` (`A` contiguous along `m`, fetched as 8 four-float
+/// texels per step) × `W` columns, lane `l` sums the steps `k ≡ l (mod 8)` of its
+/// chunk, and the 8 partial sums meet in one subgroup reduce per value of `C` at the
+/// end; lane 0 stores. The tiles that own the columns (`gemm_texel_m4n4c4`) would run
+/// 32 columns for 3 and fetch every step's `B` row at one address in all lanes; here
+/// each lane fetches its own step's `W` values. The ones row (the bias column) reads
+/// 1. Needs `a_sm == 1` and `a_off`, `a_sk` multiples of 4. Sums in a different order
+/// from the other GEMMs (strided by lane, then the reduce's order).
+#[cfg(feature = "subgroup-ballot")]
+macro_rules! gemm_texel_klanes_entry {
+    ($name:ident, $w:literal, [$($j:literal)*], $doc:literal) => {
+        #[doc = $doc]
+        #[cfg(feature = "subgroup-ballot")]
+        #[spirv(compute(threads(8)))]
+        pub fn $name(
+            #[spirv(workgroup_id)] group: UVec3,
+            #[spirv(num_workgroups)] groups: UVec3,
+            #[spirv(local_invocation_index)] lane: u32,
+            #[spirv(push_constant)] p: &GemmParams,
+            #[spirv(descriptor_set = 0, binding = 0)] a: &crate::texel::TexelBuffer4,
+            #[spirv(descriptor_set = 0, binding = 1)] b: &crate::texel::TexelBuffer,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
+        ) {
+            use crate::texel::{fetch, fetch4};
+            let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_KL_ROWS, $w) else {
+                return;
+            };
+            let last_col = p.n - 1;
+            let mut acc = [[0.0f32; $w]; 32];
+            let mut k = k_begin + lane;
+            while k < k_end {
+                let t = (p.a_off + k * p.a_sk + m0) / 4;
+                let x4 = [fetch4(a, t), fetch4(a, t + 1), fetch4(a, t + 2), fetch4(a, t + 3), fetch4(a, t + 4), fetch4(a, t + 5), fetch4(a, t + 6), fetch4(a, t + 7)];
+                let g = [$(fetch(b, p.b_off + k * p.b_sk + (n0 + $j).min(last_col) * p.b_sn)),*];
+                macro_rules! row {
+                    ($r:literal, $q:literal, $f:ident) => {{
+                        // Rows past `A` read what lies there (never stored); the ones row reads 1.
+                        let x = if m0 + $r == ones_row { 1.0 } else { x4[$q].$f };
+                        $(acc[$r][$j] += x * g[$j];)*
+                    }};
+                }
+                row!(0, 0, x); row!(1, 0, y); row!(2, 0, z); row!(3, 0, w);
+                row!(4, 1, x); row!(5, 1, y); row!(6, 1, z); row!(7, 1, w);
+                row!(8, 2, x); row!(9, 2, y); row!(10, 2, z); row!(11, 2, w);
+                row!(12, 3, x); row!(13, 3, y); row!(14, 3, z); row!(15, 3, w);
+                row!(16, 4, x); row!(17, 4, y); row!(18, 4, z); row!(19, 4, w);
+                row!(20, 5, x); row!(21, 5, y); row!(22, 5, z); row!(23, 5, w);
+                row!(24, 6, x); row!(25, 6, y); row!(26, 6, z); row!(27, 6, w);
+                row!(28, 7, x); row!(29, 7, y); row!(30, 7, z); row!(31, 7, w);
+                k += 8;
+            }
+            // Every lane is back here (the loop above is the only divergence), as the
+            // reduces need.
+            macro_rules! reduce {
+                ($r:literal) => {{
+                    $(acc[$r][$j] = crate::subgroup::sum8(acc[$r][$j]);)*
+                }};
+            }
+            reduce!(0); reduce!(1); reduce!(2); reduce!(3); reduce!(4); reduce!(5); reduce!(6); reduce!(7);
+            reduce!(8); reduce!(9); reduce!(10); reduce!(11); reduce!(12); reduce!(13); reduce!(14); reduce!(15);
+            reduce!(16); reduce!(17); reduce!(18); reduce!(19); reduce!(20); reduce!(21); reduce!(22); reduce!(23);
+            reduce!(24); reduce!(25); reduce!(26); reduce!(27); reduce!(28); reduce!(29); reduce!(30); reduce!(31);
+            if lane == 0 {
+                macro_rules! one {
+                    ($r:literal) => {
+                        store_tile_row(p, c, bias, acc[$r], m0 + $r, n0, z);
+                    };
+                }
+                one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
+                one!(8); one!(9); one!(10); one!(11); one!(12); one!(13); one!(14); one!(15);
+                one!(16); one!(17); one!(18); one!(19); one!(20); one!(21); one!(22); one!(23);
+                one!(24); one!(25); one!(26); one!(27); one!(28); one!(29); one!(30); one!(31);
+            }
+        }
+    };
+}
+
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_klanes_entry!(gemm_texel_klanes_w4, 4, [0 1 2 3], "The narrow GEMM with `k` across the lanes (see the macro), up to 4 columns a tile.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_klanes_entry!(gemm_texel_klanes_w8, 8, [0 1 2 3 4 5 6 7], "The narrow GEMM with `k` across the lanes (see the macro), up to 8 columns a tile.");
 
 /// Writes one lane's row of a tile 4 columns a store (`C` viewed as `vec4`s): needs
 /// `n`, `ldc`, `c_off`, `c_split` and, with a bias, `bias_off` multiples of 4, so each
@@ -1626,19 +1738,6 @@ pub fn $name(
     };
 }
 
-/// Stores an 8-row tile 4 floats at a time.
-#[cfg(feature = "subgroup-ballot")]
-macro_rules! rows8_store_quads {
-    ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident) => {{
-        let bias4 = tile_bias4::<8>($p, $bias, $n0);
-        macro_rules! one {
-            ($r:literal) => {
-                store_tile_row4($p, $c, &bias4, $acc[$r], $rows[$r], $n0, $z);
-            };
-        }
-        one!(0); one!(1); one!(2); one!(3); one!(4); one!(5); one!(6); one!(7);
-    }};
-}
 
 #[cfg(feature = "subgroup-ballot")]
 gemm_texel_k4n4_entry!(gemm_texel_k4n4, f32, (storage_buffer, descriptor_set = 0, binding = 2), &[f32], rows8_store_floats, "The 4-float texel input-gradient GEMM (see the macro), storing a float at a time.");

@@ -38,6 +38,9 @@ pub const GEMM_SG_COLS: u32 = 32;
 pub const GEMM_TX_ROWS: u32 = 64;
 /// Rows of the tile of `nn::gemm_texel_k4` (16 per lane; columns `GEMM_SG_COLS`).
 pub const GEMM_K4_ROWS: u32 = 128;
+/// Rows of the tile of `nn::gemm_texel_klanes_w4` / `_w8` (every lane sums all 32,
+/// over its own steps of `k`).
+pub const GEMM_KL_ROWS: u32 = 32;
 
 /// Add `bias[bias_off + n]` to every row.
 pub const GEMM_BIAS: u32 = 1;

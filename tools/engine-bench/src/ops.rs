@@ -164,6 +164,12 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
             mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false)?;
             Ok(rec.submit_and_wait()?)
         })?;
+        // Where the backward's time goes (one more run): dW, dx, the split sums.
+        let bwd_passes = {
+            let mut rec = ctx.record("bench linear bwd")?;
+            mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false)?;
+            rec.submit_and_wait()?.by_name()
+        };
         let w_host = desc.init_params(1);
         let cpu_ms = cpu_gemm_ms(args, rows, i, o, &x_host, &w_host[..i * o]);
         let flops = 2.0 * rows as f64 * i as f64 * o as f64;
@@ -171,6 +177,7 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
             "in": i, "out": o, "rows": rows,
             "forward_ms": fwd_wall, "forward_gpu_ms": fwd_gpu, "forward_gflops": flops / fwd_gpu.max(1e-9) / 1e6,
             "backward_ms": bwd_wall, "backward_gpu_ms": bwd_gpu, "backward_gflops": 2.0 * flops / bwd_gpu.max(1e-9) / 1e6,
+            "backward_passes_gpu_ms": bwd_passes,
             "cpu_forward_ms": cpu_ms, "cpu_gflops": flops / cpu_ms.max(1e-9) / 1e6,
             "gpu_over_cpu_throughput": cpu_ms / fwd_gpu.max(1e-9),
         }));
@@ -325,6 +332,18 @@ pub fn print_table(r: &serde_json::Value) {
             g["in"], g["out"], g["forward_gpu_ms"].as_f64().unwrap_or(0.0), g["forward_gflops"].as_f64().unwrap_or(0.0), g["backward_gpu_ms"].as_f64().unwrap_or(0.0),
             g["backward_gflops"].as_f64().unwrap_or(0.0), g["cpu_gflops"].as_f64().unwrap_or(0.0), g["gpu_over_cpu_throughput"].as_f64().unwrap_or(0.0)
         );
+    }
+    let splits: Vec<String> = r["gemm"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|g| {
+            let passes = g["backward_passes_gpu_ms"].as_object().map(|m| m.iter().map(|(k, v)| format!("{} {:.1}", k.trim_start_matches("mlp."), v.as_f64().unwrap_or(0.0))).collect::<Vec<_>>().join(", ")).unwrap_or_default();
+            format!("{}->{}: {passes}", g["in"], g["out"])
+        })
+        .collect();
+    if !splits.is_empty() {
+        println!("  backward by pass (GPU ms, one run): {}", splits.join("; "));
     }
     if let Some(ms) = r["decoders_fwd_bwd_gpu_ms"].as_f64() {
         println!("  three HUGS decoders, forward + backward: {ms:.1} ms GPU");
