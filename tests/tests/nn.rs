@@ -67,7 +67,8 @@ fn normed_desc() -> MlpDesc {
 /// `small_desc`'s odd widths take the fallback.
 fn texel4_desc() -> MlpDesc {
     MlpDesc {
-        input: 8,
+        // 12 = 8 + 4: the forward's last pass through `k` has only its first 4 steps.
+        input: 12,
         hidden: vec![(16, Activation::Gelu), (32, Activation::Gelu)],
         heads: vec![
             HeadDesc::new("opacity", 1, Activation::Sigmoid),

@@ -1589,19 +1589,34 @@ macro_rules! gemm_texel_k4_entry {
             let last_col = p.n - 1;
             let mut acc = [[0.0f32; $w]; 16];
             let mut k = k_begin;
+            // 8 steps of `k` a pass (two texels per row and column), the second 4
+            // zeroed where `k` ends 4 steps in: every value written in a loop gets a
+            // masked store on llvmpipe, so a pass of 8 halves those per multiply-add.
             while k < k_end {
                 let kt = k / 4;
+                let second = k + 4 < k_end;
                 let av = [fetch4(a, a_row[0] + kt), fetch4(a, a_row[1] + kt), fetch4(a, a_row[2] + kt), fetch4(a, a_row[3] + kt), fetch4(a, a_row[4] + kt), fetch4(a, a_row[5] + kt), fetch4(a, a_row[6] + kt), fetch4(a, a_row[7] + kt), fetch4(a, a_row[8] + kt), fetch4(a, a_row[9] + kt), fetch4(a, a_row[10] + kt), fetch4(a, a_row[11] + kt), fetch4(a, a_row[12] + kt), fetch4(a, a_row[13] + kt), fetch4(a, a_row[14] + kt), fetch4(a, a_row[15] + kt)];
+                let kt2 = kt + 1;
+                let av2 = [fetch4(a, a_row[0] + kt2), fetch4(a, a_row[1] + kt2), fetch4(a, a_row[2] + kt2), fetch4(a, a_row[3] + kt2), fetch4(a, a_row[4] + kt2), fetch4(a, a_row[5] + kt2), fetch4(a, a_row[6] + kt2), fetch4(a, a_row[7] + kt2), fetch4(a, a_row[8] + kt2), fetch4(a, a_row[9] + kt2), fetch4(a, a_row[10] + kt2), fetch4(a, a_row[11] + kt2), fetch4(a, a_row[12] + kt2), fetch4(a, a_row[13] + kt2), fetch4(a, a_row[14] + kt2), fetch4(a, a_row[15] + kt2)];
                 macro_rules! col {
                     ($jj:literal) => {{
-                        let bq = fetch4(b, (p.b_off + (n0 + $jj).min(last_col) * p.b_sn) / 4 + kt);
+                        let b_at = (p.b_off + (n0 + $jj).min(last_col) * p.b_sn) / 4 + kt;
+                        let bq = fetch4(b, b_at);
+                        // Past `k_end` the second texels hold the next row (or zeros past
+                        // the view): a zero `B` and `A` add exact zeros instead.
+                        let bq2 = if second { fetch4(b, b_at + 1) } else { Vec4::ZERO };
                         macro_rules! row {
                             ($r:literal) => {{
+                                let a2 = if second { av2[$r] } else { Vec4::ZERO };
                                 let mut v = acc[$r][$jj];
                                 v += av[$r].x * bq.x;
                                 v += av[$r].y * bq.y;
                                 v += av[$r].z * bq.z;
                                 v += av[$r].w * bq.w;
+                                v += a2.x * bq2.x;
+                                v += a2.y * bq2.y;
+                                v += a2.z * bq2.z;
+                                v += a2.w * bq2.w;
                                 acc[$r][$jj] = v;
                             }};
                         }
@@ -1609,7 +1624,7 @@ macro_rules! gemm_texel_k4_entry {
                     }};
                 }
                 $(col!($j);)*
-                k += 4;
+                k += 8;
             }
             $store!(p, c, bias, acc, rows, n0, z, [$($j)*]);
         }
