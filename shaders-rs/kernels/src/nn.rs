@@ -1665,23 +1665,23 @@ macro_rules! k4_store_quads {
     }};
 }
 
-/// The forward GEMMs of [`gemm_texel_k4_entry`]: widths 32, 16, 8 and 4, each with
-/// both epilogues.
+// The forward GEMMs: widths 32, 16, 8 and 4, each with both epilogues.
 #[cfg(feature = "subgroup-ballot")]
-macro_rules! gemm_texel_k4_widths {
-    ($($name:ident, $name_c4:ident, $w:literal, [$($j:literal)*];)*) => {$(
-        gemm_texel_k4_entry!($name, $w, [$($j)*], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), storing a float at a time.");
-        gemm_texel_k4_entry!($name_c4, $w, [$($j)*], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), storing 4 floats at a time and reading the bias as 4-float texels.");
-    )*};
-}
-
+gemm_texel_k4_entry!(gemm_texel_k4, 32, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23 24 25 26 27 28 29 30 31], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), 32 columns a tile, storing a float at a time.");
 #[cfg(feature = "subgroup-ballot")]
-gemm_texel_k4_widths! {
-    gemm_texel_k4, gemm_texel_k4c4, 32, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23 24 25 26 27 28 29 30 31];
-    gemm_texel_k4w16, gemm_texel_k4w16c4, 16, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15];
-    gemm_texel_k4w8, gemm_texel_k4w8c4, 8, [0 1 2 3 4 5 6 7];
-    gemm_texel_k4w4, gemm_texel_k4w4c4, 4, [0 1 2 3];
-}
+gemm_texel_k4_entry!(gemm_texel_k4c4, 32, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23 24 25 26 27 28 29 30 31], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), 32 columns a tile, storing 4 floats at a time and reading the bias as 4-float texels.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w16, 16, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), 16 columns a tile, storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w16c4, 16, [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), 16 columns a tile, storing 4 floats at a time and reading the bias as 4-float texels.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w8, 8, [0 1 2 3 4 5 6 7], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), 8 columns a tile, storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w8c4, 8, [0 1 2 3 4 5 6 7], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), 8 columns a tile, storing 4 floats at a time and reading the bias as 4-float texels.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w4, 4, [0 1 2 3], f32, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer, k4_store_floats, "A 4-float texel forward GEMM (see the macro), 4 columns a tile, storing a float at a time.");
+#[cfg(feature = "subgroup-ballot")]
+gemm_texel_k4_entry!(gemm_texel_k4w4c4, 4, [0 1 2 3], Vec4, (descriptor_set = 0, binding = 2), &crate::texel::TexelBuffer4, k4_store_quads, "A 4-float texel forward GEMM (see the macro), 4 columns a tile, storing 4 floats at a time and reading the bias as 4-float texels.");
 
 /// [`gemm_texel`] with `A` contiguous along `k` and `B` along `n` (`a_sk == b_sn == 1`:
 /// the input gradient `dY W`): per 4 steps of `k` a lane fetches one 4-float texel per
