@@ -292,11 +292,16 @@ fn scene_layer_trains_on_the_whole_frame() {
     assert_eq!(arrays["scene.means"].shape, vec![560, 3]);
     assert_eq!(arrays["scene.sh"].shape, vec![560, 16, 3]);
     // The cloth's appearance decoder has an SH head of 4 coefficients x 3 (after the
-    // opacity head): its last bias is 12 wide, the body's 3.
-    let width = config.cloth.decoder_width as usize;
+    // opacity head), the body's of 1 x 3: the files hold those layouts.
+    let appearance_len = |layer: &drape_trainer::avatar::layer::LayerConfig| {
+        let features = 3 * layer.triplane_channels as usize;
+        let sh_values = 3 * (layer.sh_degree as usize + 1).pow(2);
+        drape_engine::ops::nn::MlpDesc::hugs_appearance(features, sh_values).capped(layer.decoder_width as usize).layout().1
+    };
     let cloth_appearance = arrays["cloth.appearance"].data.len();
     let body_appearance = arrays["body.appearance"].data.len();
-    assert_eq!(cloth_appearance - body_appearance, (width + 1) * 9, "SH head sizes: cloth {cloth_appearance}, body {body_appearance} floats");
+    assert_eq!((cloth_appearance, body_appearance), (appearance_len(&config.cloth), appearance_len(&config.body)), "appearance decoder sizes (cloth, body) in floats");
+    assert!(cloth_appearance > body_appearance, "the cloth's SH head is wider");
     let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it");
     assert!(err.contains("scene layer"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
