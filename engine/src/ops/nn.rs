@@ -538,6 +538,9 @@ impl Mlp {
         if act.kind() == ACT_SOFTMAX {
             return rec.pass(name, Kernel::NnSoftmaxFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows));
         }
+        if let Some((fwd, _)) = act4_kernels(act, &[pre, post]) {
+            return rec.pass(name, fwd).read("pre", pre).write("post", post).push(&p).dispatch(grid((rows * width).div_ceil(4)));
+        }
         rec.pass(name, Kernel::NnActFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows * width))
     }
 
@@ -620,13 +623,14 @@ impl Mlp {
                         .push(&p)
                         .dispatch(grid(rows))?;
                 } else {
-                    rec.pass("mlp.act_bwd", Kernel::NnActBwd)
+                    let four = act4_kernels(acts[l], &[&layer.pre, &layer.post, &layer.grad_post, &layer.grad_pre]);
+                    rec.pass("mlp.act_bwd", four.map_or(Kernel::NnActBwd, |(_, bwd)| bwd))
                         .read("pre", &layer.pre)
                         .read("post", &layer.post)
                         .read("grad_post", &layer.grad_post)
                         .write("grad_pre", &layer.grad_pre)
                         .push(&p)
-                        .dispatch(grid(rows * o as u32))?;
+                        .dispatch(grid(if four.is_some() { (rows * o as u32).div_ceil(4) } else { rows * o as u32 }))?;
                 }
                 &layer.grad_pre
             };
@@ -875,6 +879,17 @@ mod capped_tests {
         let g = MlpDesc::hugs_geometry(96).capped(200);
         assert_eq!(g, MlpDesc::hugs_geometry(96), "a cap above every width changes nothing");
     }
+}
+
+/// The element-wise activation kernels that take 4 elements an invocation
+/// (`nn::act_fwd4[_gelu]`, `nn::act_bwd4[_gelu]`: a quarter of llvmpipe's loops over
+/// the lanes, 16-byte accesses on a GPU), where every buffer is whole 16-byte texels
+/// (the engine makes its buffers so): they cover `rows · width` rounded up to 4.
+fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(Kernel, Kernel)> {
+    if buffers.iter().any(|b| b.vk_size() % 16 != 0) {
+        return None;
+    }
+    Some(if act.kind() == drape_shared::nn::ACT_GELU { (Kernel::NnActFwd4Gelu, Kernel::NnActBwd4Gelu) } else { (Kernel::NnActFwd4, Kernel::NnActBwd4) })
 }
 
 /// Whether the forward 4-float texel GEMMs (`nn::gemm_texel_k4*`) fit these operands:

@@ -11,14 +11,13 @@
 //! (read), `grad_pre` (written).
 
 use drape_shared::nn::{
-    activate, activate_bwd, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams,
+    activate, activate_bwd, gelu, gelu_grad, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams,
     GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
 };
 #[cfg(feature = "subgroup-ballot")]
 use drape_shared::nn::{GEMM_K4_ROWS, GEMM_KL_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
-#[cfg(feature = "subgroup-ballot")]
 use spirv_std::glam::Vec4;
 use spirv_std::spirv;
 
@@ -1888,6 +1887,68 @@ pub fn act_bwd(
     let i = flat as usize;
     grad_pre[i] = activate_bwd(p.kind, pre[i], post[i], grad_post[i]);
 }
+
+/// [`act_fwd`] 4 elements an invocation, through `vec4` views of the same buffers: on
+/// llvmpipe a storage-buffer access at a per-lane address is one loop over the lanes
+/// whatever its width, so this is a quarter of the loops (on a GPU, 16-byte accesses).
+/// Covers `rows · width` rounded up to 4: buffers are whole 16-byte texels, and the up
+/// to 3 floats past a layer's end are never read as data. `_gelu`: GELU alone (the
+/// hidden layers'; llvmpipe runs every branch of [`activate`], so the generic one
+/// computes every activation for every element).
+macro_rules! act_fwd4_entry {
+    ($name:ident, $f:expr, $doc:literal) => {
+        #[doc = $doc]
+        #[spirv(compute(threads(256)))]
+        pub fn $name(
+            #[spirv(global_invocation_id)] id: UVec3,
+            #[spirv(num_workgroups)] groups: UVec3,
+            #[spirv(push_constant)] p: &ActParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [Vec4],
+        ) {
+            let flat = crate::flat_index(id, groups);
+            if flat >= (p.rows * p.width).div_ceil(4) {
+                return;
+            }
+            let i = flat as usize;
+            let f = $f;
+            let x = pre[i];
+            post[i] = Vec4::new(f(p, x.x), f(p, x.y), f(p, x.z), f(p, x.w));
+        }
+    };
+}
+
+act_fwd4_entry!(act_fwd4, |p: &ActParams, x: f32| activate(p.kind, x), "`post = act(pre)`, 4 elements an invocation (see the macro).");
+act_fwd4_entry!(act_fwd4_gelu, |_: &ActParams, x: f32| gelu(x), "`post = gelu(pre)`, 4 elements an invocation (see the macro).");
+
+/// [`act_bwd`] 4 elements an invocation (as [`act_fwd4_entry`]).
+macro_rules! act_bwd4_entry {
+    ($name:ident, $f:expr, $doc:literal) => {
+        #[doc = $doc]
+        #[spirv(compute(threads(256)))]
+        pub fn $name(
+            #[spirv(global_invocation_id)] id: UVec3,
+            #[spirv(num_workgroups)] groups: UVec3,
+            #[spirv(push_constant)] p: &ActParams,
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &[Vec4],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_post: &[Vec4],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [Vec4],
+        ) {
+            let flat = crate::flat_index(id, groups);
+            if flat >= (p.rows * p.width).div_ceil(4) {
+                return;
+            }
+            let i = flat as usize;
+            let f = $f;
+            let (x, y, g) = (pre[i], post[i], grad_post[i]);
+            grad_pre[i] = Vec4::new(f(p, x.x, y.x, g.x), f(p, x.y, y.y, g.y), f(p, x.z, y.z, g.z), f(p, x.w, y.w, g.w));
+        }
+    };
+}
+
+act_bwd4_entry!(act_bwd4, |p: &ActParams, x: f32, y: f32, g: f32| activate_bwd(p.kind, x, y, g), "`grad_pre` from `grad_post`, 4 elements an invocation (see the macro).");
+act_bwd4_entry!(act_bwd4_gelu, |_: &ActParams, x: f32, _y: f32, g: f32| g * gelu_grad(x), "GELU's `grad_pre` from `grad_post`, 4 elements an invocation (see the macro).");
 
 /// `post = softmax(pre / T)` of each row of `p.width` (at most 32), one invocation per
 /// row. Its own kernel: llvmpipe runs both sides of a branch, so a softmax in
