@@ -115,7 +115,7 @@ impl Kernel {{
     }}
 
     /// Whether the module uses subgroup operations (`GroupNonUniformBallot`, with
-    /// `GroupNonUniformVote` and `GroupNonUniformArithmetic`).
+    /// `GroupNonUniformVote`, `GroupNonUniformArithmetic` and `GroupNonUniformShuffle`).
     pub const fn requires_subgroup_ballot(self) -> bool {{
         match self {{
 {requires_ballot}        }}

@@ -10,8 +10,8 @@
 #![cfg_attr(target_arch = "spirv", no_std)]
 // Inline SPIR-V, for the texel fetches of `texel` (built only with subgroups).
 #![cfg_attr(all(target_arch = "spirv", feature = "subgroup-ballot"), feature(asm_experimental_arch))]
-// Only `atomics`, `subgroup` and `texel` may use unsafe (spirv-std's atomics and
-// broadcasts are unsafe fns; a texel fetch is inline SPIR-V).
+// Only `atomics` and `texel` may use unsafe (spirv-std's atomics are unsafe fns; a
+// texel fetch is inline SPIR-V).
 #![deny(unsafe_code)]
 
 mod atomics;

@@ -86,17 +86,19 @@ const FLAVOURS: &[Flavour] = &[
     Flavour {
         features: &["subgroup-ballot"],
         // SampledBuffer (core Vulkan, no device feature): the texel-buffer reads of
-        // kernels for CPU devices (`kernels/src/texel.rs`); Vote and Arithmetic: the
-        // subgroup reductions of `kernels/src/subgroup.rs`.
+        // kernels for CPU devices (`kernels/src/texel.rs`); Vote, Arithmetic and
+        // Shuffle: the votes, reductions and broadcasts of `kernels/src/subgroup.rs`
+        // (broadcasts and sums by shuffles).
         capabilities: &[
             spirv_builder::Capability::GroupNonUniform,
             spirv_builder::Capability::GroupNonUniformBallot,
             spirv_builder::Capability::GroupNonUniformVote,
             spirv_builder::Capability::GroupNonUniformArithmetic,
+            spirv_builder::Capability::GroupNonUniformShuffle,
             spirv_builder::Capability::SampledBuffer,
         ],
         extension: None,
-        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic"],
+        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic", "GroupNonUniformShuffle"],
     },
     // Kernels that need both (the subgroup rasterizer's float-atomic backward); every
     // other module of this build was already taken from an earlier one.
@@ -107,11 +109,12 @@ const FLAVOURS: &[Flavour] = &[
             spirv_builder::Capability::GroupNonUniformBallot,
             spirv_builder::Capability::GroupNonUniformVote,
             spirv_builder::Capability::GroupNonUniformArithmetic,
+            spirv_builder::Capability::GroupNonUniformShuffle,
             spirv_builder::Capability::SampledBuffer,
             spirv_builder::Capability::AtomicFloat32AddEXT,
         ],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
-        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic", "AtomicFloat32AddEXT"],
+        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic", "GroupNonUniformShuffle", "AtomicFloat32AddEXT"],
     },
 ];
 
