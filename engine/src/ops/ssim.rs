@@ -4,7 +4,7 @@
 //! mean over the map), generic over f32/f64.
 
 use drape_shared::real::Real;
-use drape_shared::ssim::{ssim_pointwise, window_taps, SsimParams, SSIM_MOMENTS, SSIM_WINDOW};
+use drape_shared::ssim::{blur_invocations, ssim_pointwise, window_taps, SsimParams, SSIM_MOMENTS, SSIM_WINDOW};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -61,11 +61,12 @@ impl Ssim {
 
     /// Horizontal pass `src -> tmp`, vertical pass `tmp -> src`.
     fn record_blur<'a>(&'a self, rec: &mut Recording<'a>, planes: u32, src: &'a Buffer, tmp: &'a Buffer) -> Result<()> {
-        let total = self.pixels() * planes;
         let h = self.params(planes, false, 0.0);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", src).write("dst", tmp).push(&h).dispatch(grid(total))?;
+        let across = blur_invocations(self.width, self.height, planes, false);
+        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", src).write("dst", tmp).push(&h).dispatch(grid(across))?;
         let v = self.params(planes, true, 0.0);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", tmp).write("dst", src).push(&v).dispatch(grid(total))?;
+        let down = blur_invocations(self.width, self.height, planes, true);
+        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", tmp).write("dst", src).push(&v).dispatch(grid(down))?;
         Ok(())
     }
 

@@ -25,6 +25,27 @@ pub const SSIM_MOMENTS: u32 = 5;
 /// Derivative images of the backward pass.
 pub const SSIM_PARTIALS: u32 = 3;
 
+/// Outputs of one invocation of the `ssim::blur` kernel: a run of consecutive pixels
+/// along the blur's axis, one channel of one plane. Its 11-tap window over the run is
+/// 26 loads (`SSIM_BLUR_RUN + SSIM_WINDOW - 1`) for 16 outputs, where one output an
+/// invocation took 11; on llvmpipe each load whose address is not uniform is a loop
+/// over the lanes, so this is a quarter of the loops.
+pub const SSIM_BLUR_RUN: u32 = 16;
+
+/// Invocations of one `ssim::blur` pass over `planes` images of `width × height × 3`:
+/// one per run of [`SSIM_BLUR_RUN`] pixels along the axis, per line across it, per
+/// channel and plane.
+///
+/// ```
+/// use drape_shared::ssim::blur_invocations;
+/// assert_eq!(blur_invocations(64, 48, 5, false), 5 * 48 * 3 * 4);
+/// assert_eq!(blur_invocations(61, 45, 1, true), 61 * 3 * 3);
+/// ```
+pub const fn blur_invocations(width: u32, height: u32, planes: u32, vertical: bool) -> u32 {
+    let (along, across) = if vertical { (height, width) } else { (width, height) };
+    planes * across * 3 * along.div_ceil(SSIM_BLUR_RUN)
+}
+
 /// Push constants of the `ssim::*` kernels.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
