@@ -114,8 +114,8 @@ impl Kernel {{
 {requires}        }}
     }}
 
-    /// Whether the module uses subgroup operations (`GroupNonUniformBallot`, with
-    /// `GroupNonUniformVote`, `GroupNonUniformArithmetic` and `GroupNonUniformShuffle`).
+    /// Whether the module uses subgroup operations (`GroupNonUniformBallot` and
+    /// `GroupNonUniformShuffle`).
     pub const fn requires_subgroup_ballot(self) -> bool {{
         match self {{
 {requires_ballot}        }}

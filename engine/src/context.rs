@@ -97,9 +97,9 @@ pub struct DeviceInfo {
     pub timestamp_valid_bits: u32,
     /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float).
     pub float_atomic_add: bool,
-    /// Subgroup ballot, vote, arithmetic (reduce) and shuffle operations in compute
-    /// shaders: what the modules built with subgroups use (their broadcasts and sums are
-    /// shuffles, which llvmpipe compiles to one register permute).
+    /// Subgroup ballot and shuffle operations in compute shaders: what the modules built
+    /// with subgroups use (their broadcasts, sums and votes are shuffles, which llvmpipe
+    /// compiles to one register permute).
     pub subgroup_ballot: bool,
     pub max_compute_workgroup_count: [u32; 3],
     /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
@@ -344,7 +344,7 @@ impl Context {
             return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderBufferFloat32AtomicAdd" });
         }
         if kernel.requires_subgroup_ballot() && !self.device.info.subgroup_ballot {
-            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot, vote, arithmetic and shuffle operations in compute" });
+            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot and shuffle operations in compute" });
         }
         let p = Arc::new(Pipeline::create(&self.device, kernel)?);
         cache.insert(kernel, p.clone());
@@ -530,10 +530,7 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         float_atomic_add,
         subgroup_ballot: subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
             && subgroup.supported_operations.contains(
-                vk::SubgroupFeatureFlags::BALLOT
-                    | vk::SubgroupFeatureFlags::VOTE
-                    | vk::SubgroupFeatureFlags::ARITHMETIC
-                    | vk::SubgroupFeatureFlags::SHUFFLE,
+vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
             ),
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
         max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),

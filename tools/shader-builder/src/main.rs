@@ -86,19 +86,17 @@ const FLAVOURS: &[Flavour] = &[
     Flavour {
         features: &["subgroup-ballot"],
         // SampledBuffer (core Vulkan, no device feature): the texel-buffer reads of
-        // kernels for CPU devices (`kernels/src/texel.rs`); Vote, Arithmetic and
-        // Shuffle: the votes, reductions and broadcasts of `kernels/src/subgroup.rs`
-        // (broadcasts and sums by shuffles).
+        // kernels for CPU devices (`kernels/src/texel.rs`); Ballot and Shuffle: the
+        // ballots, broadcasts, sums and votes of `kernels/src/subgroup.rs` (all but the
+        // ballot by shuffles, so no Vote or Arithmetic).
         capabilities: &[
             spirv_builder::Capability::GroupNonUniform,
             spirv_builder::Capability::GroupNonUniformBallot,
-            spirv_builder::Capability::GroupNonUniformVote,
-            spirv_builder::Capability::GroupNonUniformArithmetic,
             spirv_builder::Capability::GroupNonUniformShuffle,
             spirv_builder::Capability::SampledBuffer,
         ],
         extension: None,
-        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic", "GroupNonUniformShuffle"],
+        requires: &["GroupNonUniformBallot", "GroupNonUniformShuffle"],
     },
     // Kernels that need both (the subgroup rasterizer's float-atomic backward); every
     // other module of this build was already taken from an earlier one.
@@ -107,14 +105,12 @@ const FLAVOURS: &[Flavour] = &[
         capabilities: &[
             spirv_builder::Capability::GroupNonUniform,
             spirv_builder::Capability::GroupNonUniformBallot,
-            spirv_builder::Capability::GroupNonUniformVote,
-            spirv_builder::Capability::GroupNonUniformArithmetic,
             spirv_builder::Capability::GroupNonUniformShuffle,
             spirv_builder::Capability::SampledBuffer,
             spirv_builder::Capability::AtomicFloat32AddEXT,
         ],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
-        requires: &["GroupNonUniformBallot", "GroupNonUniformVote", "GroupNonUniformArithmetic", "GroupNonUniformShuffle", "AtomicFloat32AddEXT"],
+        requires: &["GroupNonUniformBallot", "GroupNonUniformShuffle", "AtomicFloat32AddEXT"],
     },
 ];
 
