@@ -72,6 +72,9 @@ pub struct RadixSort {
     interleaved: bool,
     histogram: Buffer,
     histogram_scan: ExclusiveScan,
+    /// Whether the chunked passes may read through texel views (always, but for tests
+    /// of the storage-buffer kernels that buffers past the texel limits fall back to).
+    texel_reads: bool,
 }
 
 impl RadixSort {
@@ -94,11 +97,13 @@ impl RadixSort {
             SortVariant::Chunks => CHUNK_BUCKETS * chunk_count(max_len),
             _ => RADIX_BUCKETS * radix_sort::block_count(max_len),
         };
-        let interleaved = variant == SortVariant::Chunks && 2 * bytes <= ctx.info().max_storage_buffer_range;
+        // Whole 16-byte texels, so that a 4-float texel view covers every pair.
+        let pair_bytes = (2 * bytes).next_multiple_of(16);
+        let interleaved = variant == SortVariant::Chunks && pair_bytes <= ctx.info().max_storage_buffer_range;
         let scratch = match interleaved {
             true => [
-                ctx.create_buffer("radix_sort pairs scratch a", BufferDesc::gpu_only(2 * bytes))?,
-                ctx.create_buffer("radix_sort pairs scratch b", BufferDesc::gpu_only(2 * bytes))?,
+                ctx.create_buffer("radix_sort pairs scratch a", BufferDesc::gpu_only(pair_bytes))?,
+                ctx.create_buffer("radix_sort pairs scratch b", BufferDesc::gpu_only(pair_bytes))?,
             ],
             false => [
                 ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
@@ -118,7 +123,17 @@ impl RadixSort {
                 histogram_len,
                 if variant == SortVariant::Chunks { ScanVariant::Chunks } else { ScanVariant::Blocks },
             )?,
+            texel_reads: true,
         })
+    }
+
+    /// The same plan reading only through storage buffers: the chunk kernels a sort
+    /// falls back to where its buffers are past the device's texel-buffer limits (for
+    /// tests; the result is the same).
+    #[doc(hidden)]
+    pub fn without_texel_reads(mut self) -> Self {
+        self.texel_reads = false;
+        self
     }
 
     pub fn max_len(&self) -> u32 {
@@ -243,16 +258,28 @@ impl RadixSort {
     ) -> Result<()> {
         let chunks = chunk_count(len);
         let groups = [chunks / CHUNK_WORKGROUP_SIZE, 1, 1];
+        // Texel views where the buffers allow them (see `radix_sort::PairSource` in the
+        // kernels): the caller's keys and values for the first pass, the scratch pairs
+        // for the others.
+        let max_texels = rec.context().info().max_texel_buffer_elements;
+        let texel_inputs = self.texel_reads && keys.texel_readable(max_texels) && values.texel_readable(max_texels);
+        let texel_pairs = self.texel_reads && self.scratch.iter().all(|b| b.texel_readable(max_texels) && b.vk_size() % 16 == 0);
         let mut pairs = (&self.scratch[0], &self.scratch[1]);
         for pass in 0..passes {
             let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..chunk_pass_params(len, key_bits, pass) };
             let (first, last) = (pass == 0, pass + 1 == passes);
             // Unread when unbounded; the pass's input stands in for the binding.
             let len_words = count_words.unwrap_or(if first { keys } else { pairs.0 });
+            let histogram = match (first, texel_inputs, texel_pairs) {
+                (true, true, _) => Kernel::RadixSortChunkHistogramTexel,
+                (true, false, _) => Kernel::RadixSortChunkHistogram,
+                (false, _, true) => Kernel::RadixSortChunkHistogramPairsTexel,
+                (false, _, false) => Kernel::RadixSortChunkHistogramPairs,
+            };
             if first {
-                rec.pass("radix_sort.histogram", Kernel::RadixSortChunkHistogram).read("keys", keys)
+                rec.pass("radix_sort.histogram", histogram).read("keys", keys)
             } else {
-                rec.pass("radix_sort.histogram", Kernel::RadixSortChunkHistogramPairs).read("pairs", pairs.0)
+                rec.pass("radix_sort.histogram", histogram).read("pairs", pairs.0)
             }
             .write("histogram", &self.histogram)
             .read("len_words", len_words)
@@ -260,17 +287,14 @@ impl RadixSort {
             .dispatch(groups)?;
             self.histogram_scan.record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
             let scatter = if first {
-                rec.pass("radix_sort.scatter_zip", Kernel::RadixSortChunkScatterZip)
-                    .read("keys_in", keys)
-                    .read("values_in", values)
-                    .write("pairs_out", pairs.0)
+                let kernel = if texel_inputs { Kernel::RadixSortChunkScatterZipTexel } else { Kernel::RadixSortChunkScatterZip };
+                rec.pass("radix_sort.scatter_zip", kernel).read("keys_in", keys).read("values_in", values).write("pairs_out", pairs.0)
             } else if last {
-                rec.pass("radix_sort.scatter_unzip", Kernel::RadixSortChunkScatterUnzip)
-                    .read("pairs_in", pairs.0)
-                    .write("keys_out", keys)
-                    .write("values_out", values)
+                let kernel = if texel_pairs { Kernel::RadixSortChunkScatterUnzipTexel } else { Kernel::RadixSortChunkScatterUnzip };
+                rec.pass("radix_sort.scatter_unzip", kernel).read("pairs_in", pairs.0).write("keys_out", keys).write("values_out", values)
             } else {
-                rec.pass("radix_sort.scatter_pairs", Kernel::RadixSortChunkScatterPairs).read("pairs_in", pairs.0).write("pairs_out", pairs.1)
+                let kernel = if texel_pairs { Kernel::RadixSortChunkScatterPairsTexel } else { Kernel::RadixSortChunkScatterPairs };
+                rec.pass("radix_sort.scatter_pairs", kernel).read("pairs_in", pairs.0).write("pairs_out", pairs.1)
             };
             scatter.read("scanned_histogram", &self.histogram).read("len_words", len_words).push(&params).dispatch(groups)?;
             if !first {

@@ -8,8 +8,8 @@
 //! code names them; parameters arrive as push constants (`#[repr(C)]` structs from
 //! `drape-shared`); read-only buffers are `&[T]`, written ones `&mut [T]`.
 #![cfg_attr(target_arch = "spirv", no_std)]
-// Inline SPIR-V, for the texel fetches of `texel` (built only with subgroups).
-#![cfg_attr(all(target_arch = "spirv", feature = "subgroup-ballot"), feature(asm_experimental_arch))]
+// Inline SPIR-V, for the texel fetches of `texel`.
+#![cfg_attr(target_arch = "spirv", feature(asm_experimental_arch))]
 // Only `atomics` and `texel` may use unsafe (spirv-std's atomics are unsafe fns; a
 // texel fetch is inline SPIR-V).
 #![deny(unsafe_code)]
@@ -28,7 +28,6 @@ pub mod splat;
 pub mod ssim;
 #[cfg(feature = "subgroup-ballot")]
 mod subgroup;
-#[cfg(feature = "subgroup-ballot")]
 mod texel;
 pub mod train;
 pub mod triplane;

@@ -1,26 +1,28 @@
 //! One pass of the stable LSD radix sort: `radix_sort::histogram` and `radix_sort::scatter`
-//! (the block variant, for GPUs), `radix_sort::chunk_histogram[_pairs]` and
-//! `radix_sort::chunk_scatter[_zip|_pairs|_unzip]` (the chunked variant, for CPU devices;
-//! see `drape_shared::radix_sort::CHUNK_RADIX_BITS`; the suffix says which side holds
-//! interleaved (key, value) pairs instead of separate buffers, see `PairSource`).
+//! (the block variant, for GPUs), `radix_sort::chunk_histogram[_pairs][_texel]` and
+//! `radix_sort::chunk_scatter[_zip|_pairs|_unzip][_texel]` (the chunked variant, for CPU
+//! devices; see `drape_shared::radix_sort::CHUNK_RADIX_BITS`; `_zip`/`_pairs`/`_unzip` say
+//! which side holds interleaved (key, value) pairs instead of separate buffers, and
+//! `_texel` that the kernel reads its input through texel views, see `PairSource`).
 //!
 //! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
 //! `RADIX_BUCKETS * params.block_count` counters (blocks; chunks: `CHUNK_BUCKETS` per
 //! chunk), digit-major (see `drape_shared::radix_sort`); the scatter reads it after the
-//! exclusive scan. Workgroup memory `counters[digit * WG + invocation]` (chunks:
-//! `[digit * 8 + lane]`) gives each invocation its own column, so counting needs no
-//! atomics. `len_words` holds a GPU-computed 64-bit
-//! count when `params.bounded` is 1 (read only then; unbounded sorts bind the keys
-//! there).
+//! exclusive scan. Blocks: workgroup memory `counters[digit * WG + invocation]` gives
+//! each invocation its own column, so counting needs no atomics; chunks: each
+//! invocation keeps its chunk's counters in a local array. `len_words` holds a
+//! GPU-computed 64-bit count when `params.bounded` is 1 (read only then; unbounded
+//! sorts bind the keys there).
 
 use drape_shared::radix_sort::{
-    bounded_len, chunk_range, digit, SortPassParams, CHUNK_BUCKETS, CHUNK_SHARED_COUNTERS, CHUNK_WORKGROUP_SIZE,
+    bounded_len, chunk_range, digit, SortPassParams, CHUNK_BUCKETS, CHUNK_WORKGROUP_SIZE,
     RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::{UVec2, UVec3};
 use spirv_std::spirv;
 
+use crate::texel::{fetch, fetch4, TexelBuffer, TexelBuffer4};
 use crate::workgroup::exclusive_scan;
 
 const WG: usize = SORT_WORKGROUP_SIZE as usize;
@@ -158,22 +160,22 @@ pub fn scatter(
     }
 }
 
-const CHUNK_LANES: usize = CHUNK_WORKGROUP_SIZE as usize;
 const _: () = assert!(CHUNK_WORKGROUP_SIZE == 8);
 
-/// Invocation `lid`'s chunk of this pass: its number, its lane (counter column) and
-/// the keys `start..end` it walks.
-fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32) -> (u32, usize, u32, u32) {
+/// Invocation `lid`'s chunk of this pass: its number and the keys `start..end` it walks.
+fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32) -> (u32, u32, u32) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
     let (start, end) = chunk_range(keys_to_sort(params, len_words), params.block_count, chunk);
-    (chunk, lid as usize, start, end)
+    (chunk, start, end)
 }
 
 /// Where a chunk pass reads its pairs: the caller's separate key and value buffers, or
-/// the sort's scratch of interleaved (key, value) pairs. On llvmpipe every load or store
-/// whose address is not uniform is a loop over the lanes, one loop per access however
-/// many components it moves, so a pair costs one loop interleaved and two split; and a
-/// scatter's stores go to one stream of cache lines per digit instead of two.
+/// the sort's scratch of interleaved (key, value) pairs, each as storage buffers or
+/// through texel views. On llvmpipe every storage-buffer load or store whose address is
+/// not uniform is a loop over the lanes, one loop per 32-bit component, where a texel
+/// fetch is a branch-free gather; so the kernels read through texel views wherever the
+/// engine can bind them, and interleaved pairs make the scatter's stores go to one
+/// stream of cache lines per digit instead of two.
 trait PairSource {
     fn key(&self, i: u32) -> u32;
     fn pair(&self, i: u32) -> UVec2;
@@ -202,6 +204,16 @@ struct Pairs<'a>(&'a [UVec2]);
 /// Interleaved pairs, written.
 struct PairsMut<'a>(&'a mut [UVec2]);
 
+/// Separate key and value buffers read through their `R32_SFLOAT` views, bit for bit
+/// (a fetch moves the 32 bits; nothing does arithmetic on them).
+struct TexelSplit<'a> {
+    keys: &'a TexelBuffer,
+    values: &'a TexelBuffer,
+}
+
+/// Interleaved pairs read through their `R32G32B32A32_SFLOAT` view: two pairs a texel.
+struct TexelPairs<'a>(&'a TexelBuffer4);
+
 impl PairSource for Split<'_> {
     #[inline]
     fn key(&self, i: u32) -> u32 {
@@ -224,6 +236,33 @@ impl PairSource for Pairs<'_> {
     }
 }
 
+impl PairSource for TexelSplit<'_> {
+    #[inline]
+    fn key(&self, i: u32) -> u32 {
+        fetch(self.keys, i).to_bits()
+    }
+    #[inline]
+    fn pair(&self, i: u32) -> UVec2 {
+        UVec2::new(fetch(self.keys, i).to_bits(), fetch(self.values, i).to_bits())
+    }
+}
+
+impl PairSource for TexelPairs<'_> {
+    #[inline]
+    fn key(&self, i: u32) -> u32 {
+        self.pair(i).x
+    }
+    #[inline]
+    fn pair(&self, i: u32) -> UVec2 {
+        let texel = fetch4(self.0, i >> 1);
+        if i & 1 == 0 {
+            UVec2::new(texel.x.to_bits(), texel.y.to_bits())
+        } else {
+            UVec2::new(texel.z.to_bits(), texel.w.to_bits())
+        }
+    }
+}
+
 impl PairSink for SplitMut<'_> {
     #[inline]
     fn put(&mut self, i: u32, pair: UVec2) {
@@ -239,41 +278,33 @@ impl PairSink for PairsMut<'_> {
     }
 }
 
-/// Counts invocation `lid`'s chunk of `src` into its column and writes the column to
-/// `histogram[digit * chunks + chunk]`.
+// The counters of a chunk walk live in a function-local array, not workgroup memory:
+// llvmpipe keeps such an array per lane on the stack and reads and writes it with
+// unrolled per-lane moves, where a workgroup-memory access with a non-uniform index is a
+// loop over the lanes with a branch per lane. Each invocation owns its chunk's counters
+// either way, so nothing is shared and there are no barriers.
+
+/// Counts invocation `lid`'s chunk of `src` and writes `histogram[digit * chunks + chunk]`.
 #[inline]
-fn count_chunk<S: PairSource>(
-    params: &SortPassParams,
-    len_words: &[u32],
-    group: UVec3,
-    lid: u32,
-    src: &S,
-    histogram: &mut [u32],
-    counters: &mut [u32; CHUNK_SHARED_COUNTERS],
-) {
-    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
-    let chunks = params.block_count;
-    let mut d = 0;
-    while d < CHUNK_BUCKETS as usize {
-        counters[d * CHUNK_LANES + lane] = 0;
-        d += 1;
-    }
+fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32, src: &S, histogram: &mut [u32]) {
+    let (chunk, start, end) = own_chunk(params, len_words, group, lid);
+    let chunks = params.block_count as usize;
+    let mut counts = [0u32; CHUNK_BUCKETS as usize];
     let mut i = start;
     while i < end {
-        let slot = digit(src.key(i), params) as usize * CHUNK_LANES + lane;
-        counters[slot] += 1;
+        counts[digit(src.key(i), params) as usize] += 1;
         i += 1;
     }
-    d = 0;
+    let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
-        histogram[d * chunks as usize + chunk as usize] = counters[d * CHUNK_LANES + lane];
+        histogram[d * chunks + chunk as usize] = counts[d];
         d += 1;
     }
 }
 
 /// Moves every pair of invocation `lid`'s chunk of `src` to its place in `dst` for
 /// this digit, in order: the scanned histogram gives the chunk's first slot per digit,
-/// and the invocation's column counts on from there.
+/// and the chunk's own counters count on from there.
 #[inline]
 #[allow(clippy::too_many_arguments)]
 fn scatter_chunk<S: PairSource, D: PairSink>(
@@ -284,21 +315,21 @@ fn scatter_chunk<S: PairSource, D: PairSink>(
     scanned_histogram: &[u32],
     src: &S,
     dst: &mut D,
-    counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    let (chunk, lane, start, end) = own_chunk(params, len_words, group, lid);
-    let chunks = params.block_count;
+    let (chunk, start, end) = own_chunk(params, len_words, group, lid);
+    let chunks = params.block_count as usize;
+    let mut next = [0u32; CHUNK_BUCKETS as usize];
     let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
-        counters[d * CHUNK_LANES + lane] = scanned_histogram[d * chunks as usize + chunk as usize];
+        next[d] = scanned_histogram[d * chunks + chunk as usize];
         d += 1;
     }
     let mut i = start;
     while i < end {
         let pair = src.pair(i);
-        let slot = digit(pair.x, params) as usize * CHUNK_LANES + lane;
-        let at = counters[slot];
-        counters[slot] = at + 1;
+        let d = digit(pair.x, params) as usize;
+        let at = next[d];
+        next[d] = at + 1;
         dst.put(at, pair);
         i += 1;
     }
@@ -306,7 +337,7 @@ fn scatter_chunk<S: PairSource, D: PairSink>(
 
 /// `histogram[digit * chunks + chunk]` = how many keys of chunk `chunk` have `digit`;
 /// `params.block_count` is the chunk count, a multiple of 8, dispatched as
-/// `chunks / 8` workgroups. Each invocation counts its own chunk into its own column.
+/// `chunks / 8` workgroups. Each invocation counts its own chunk.
 #[spirv(compute(threads(8)))]
 pub fn chunk_histogram(
     #[spirv(local_invocation_index)] lid: u32,
@@ -315,9 +346,21 @@ pub fn chunk_histogram(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] keys: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    count_chunk(params, len_words, group, lid, &Split { keys, values: keys }, histogram, counters);
+    count_chunk(params, len_words, group, lid, &Split { keys, values: keys }, histogram);
+}
+
+/// [`chunk_histogram`] reading the keys through a texel view.
+#[spirv(compute(threads(8)))]
+pub fn chunk_histogram_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] keys: &TexelBuffer,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
+) {
+    count_chunk(params, len_words, group, lid, &TexelSplit { keys, values: keys }, histogram);
 }
 
 /// [`chunk_histogram`] of interleaved pairs (the passes after the first).
@@ -329,9 +372,21 @@ pub fn chunk_histogram_pairs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pairs: &[UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    count_chunk(params, len_words, group, lid, &Pairs(pairs), histogram, counters);
+    count_chunk(params, len_words, group, lid, &Pairs(pairs), histogram);
+}
+
+/// [`chunk_histogram_pairs`] reading through a texel view.
+#[spirv(compute(threads(8)))]
+pub fn chunk_histogram_pairs_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] pairs: &TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
+) {
+    count_chunk(params, len_words, group, lid, &TexelPairs(pairs), histogram);
 }
 
 /// One pass from separate buffers to separate buffers (a sort of one pass).
@@ -347,11 +402,10 @@ pub fn chunk_scatter(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] keys_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
     let src = Split { keys: keys_in, values: values_in };
     let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst, counters);
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst);
 }
 
 /// The first pass of a longer sort: separate buffers in, interleaved pairs out.
@@ -366,10 +420,26 @@ pub fn chunk_scatter_zip(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
     let src = Split { keys: keys_in, values: values_in };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out), counters);
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out));
+}
+
+/// [`chunk_scatter_zip`] reading keys and values through texel views.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_zip_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
+) {
+    let src = TexelSplit { keys: keys_in, values: values_in };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out));
 }
 
 /// A middle pass: interleaved pairs in and out.
@@ -382,9 +452,22 @@ pub fn chunk_scatter_pairs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut PairsMut(pairs_out), counters);
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut PairsMut(pairs_out));
+}
+
+/// [`chunk_scatter_pairs`] reading through a texel view.
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_pairs_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] pairs_in: &TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [UVec2],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
+) {
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut PairsMut(pairs_out));
 }
 
 /// The last pass of a longer sort: interleaved pairs in, the caller's separate buffers out.
@@ -399,8 +482,24 @@ pub fn chunk_scatter_unzip(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] keys_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
-    #[spirv(workgroup)] counters: &mut [u32; CHUNK_SHARED_COUNTERS],
 ) {
     let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut dst, counters);
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut dst);
+}
+
+/// [`chunk_scatter_unzip`] reading through a texel view.
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_unzip_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] pairs_in: &TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] keys_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] values_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
+) {
+    let mut dst = SplitMut { keys: keys_out, values: values_out };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut dst);
 }

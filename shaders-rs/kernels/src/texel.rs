@@ -10,8 +10,9 @@
 //! `vpgatherdd`, no branch (read off llvmpipe 22.3's machine code). Out-of-range
 //! fetches return 0 (robust buffer access), so a
 //! fetch never ends the invocation. The engine binds these through a buffer's
-//! `R32_SFLOAT` view (`BindingDecl::texel`). Built only with the `subgroup-ballot`
-//! feature, the only kernels that use it; that build declares `SampledBuffer`.
+//! `R32_SFLOAT` view (`BindingDecl::texel`). Every build declares `SampledBuffer`
+//! (core Vulkan). The sort's chunk kernels read `u32`s through these views with
+//! `f32::to_bits`: a fetch moves the 32 bits and nothing does arithmetic on them.
 #![allow(unsafe_code)]
 
 use core::arch::asm;

@@ -127,25 +127,24 @@ pub use crate::chunks::{chunk_count, chunk_len, chunk_range, CHUNK_MAX_LEN, CHUN
 /// The chunked variant, for CPU devices (`radix_sort::chunk_histogram`,
 /// `radix_sort::chunk_scatter`): the keys are cut into [`chunk_count`] equal runs and
 /// each invocation walks one run alone, in order, counting and then placing its keys
-/// with its own column of [`CHUNK_BUCKETS`] counters in workgroup memory. No invocation
-/// reads another's counters, so there are no barriers; the per-(digit, chunk) histogram
+/// with its own [`CHUNK_BUCKETS`] counters in a local array. No invocation reads
+/// another's counters, so there are no barriers; the per-(digit, chunk) histogram
 /// is digit-major like the block variant's, so the same exclusive scan gives each
 /// (digit, chunk) its first slot and the sort stays stable. Digits of
 /// [`CHUNK_RADIX_BITS`] bits halve the passes of the block variant's; its counters
 /// would not fit workgroup memory at this width (one column per invocation of 128).
 ///
 /// Why for CPUs: llvmpipe runs a workgroup's invocations as SIMD lanes and turns every
-/// load or store whose address is not uniform into a loop over the lanes, and every
-/// barrier into a coroutine switch. The block variant's ranking (a workgroup scan of
-/// every counter, per pass, with barriers) then costs more than the keys' own traffic;
-/// here each key costs its load, one counter update and its store. On a GPU a few long
+/// storage-buffer or workgroup-memory load or store whose address is not uniform into a
+/// loop over the lanes (one per 32-bit component), and every barrier into a coroutine
+/// switch. The block variant's ranking (a workgroup scan of every counter, per pass,
+/// with barriers) then costs more than the keys' own traffic; here each key costs its
+/// load (a texel fetch: a gather), one counter update (a local array: unrolled moves)
+/// and its store (the only loop). On a GPU a few long
 /// serial walks would leave most of the machine idle, so GPUs keep the block variant.
 pub const CHUNK_RADIX_BITS: u32 = 8;
 /// Distinct digit values of the chunked variant.
 pub const CHUNK_BUCKETS: u32 = 1 << CHUNK_RADIX_BITS;
-/// Workgroup-memory counters of the chunked kernels: one column of
-/// [`CHUNK_BUCKETS`] per invocation, `counters[digit * CHUNK_WORKGROUP_SIZE + lane]`.
-pub const CHUNK_SHARED_COUNTERS: usize = (CHUNK_BUCKETS * CHUNK_WORKGROUP_SIZE) as usize;
 /// Number of passes of the chunked variant for `key_bits` significant bits.
 pub const fn chunk_pass_count(key_bits: u32) -> u32 {
     key_bits.div_ceil(CHUNK_RADIX_BITS)

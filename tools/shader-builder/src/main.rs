@@ -75,20 +75,21 @@ struct Flavour {
     requires: &'static [&'static str],
 }
 
+// SampledBuffer (core Vulkan: every device takes it, no feature to enable) in every
+// build: the texel-buffer reads of kernels for CPU devices (`kernels/src/texel.rs`).
 const FLAVOURS: &[Flavour] = &[
-    Flavour { features: &[], capabilities: &[], extension: None, requires: &[] },
+    Flavour { features: &[], capabilities: &[spirv_builder::Capability::SampledBuffer], extension: None, requires: &[] },
     Flavour {
         features: &["float-atomics"],
-        capabilities: &[spirv_builder::Capability::AtomicFloat32AddEXT],
+        capabilities: &[spirv_builder::Capability::SampledBuffer, spirv_builder::Capability::AtomicFloat32AddEXT],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
         requires: &["AtomicFloat32AddEXT"],
     },
     Flavour {
         features: &["subgroup-ballot"],
-        // SampledBuffer (core Vulkan, no device feature): the texel-buffer reads of
-        // kernels for CPU devices (`kernels/src/texel.rs`); Ballot and Shuffle: the
-        // ballots, broadcasts, sums and votes of `kernels/src/subgroup.rs` (all but the
-        // ballot by shuffles, so no Vote or Arithmetic).
+        // Ballot and Shuffle: the ballots, broadcasts, sums and votes of
+        // `kernels/src/subgroup.rs` (all but the ballot by shuffles, so no Vote or
+        // Arithmetic).
         capabilities: &[
             spirv_builder::Capability::GroupNonUniform,
             spirv_builder::Capability::GroupNonUniformBallot,
