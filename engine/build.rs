@@ -34,6 +34,7 @@ fn main() {
     let mut bindings = String::new();
     let mut requires = String::new();
     let mut requires_ballot = String::new();
+    let mut requires_int64 = String::new();
     for m in modules {
         let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
         let file = m["file"].as_str().expect("manifest.json: file");
@@ -67,7 +68,12 @@ fn main() {
             .as_array()
             .map(|r| r.iter().any(|c| c.as_str() == Some("GroupNonUniformBallot")))
             .unwrap_or(false);
+        let needs_int64 = m["requires"]
+            .as_array()
+            .map(|r| r.iter().any(|c| c.as_str() == Some("Int64")))
+            .unwrap_or(false);
         let v = camel(name);
+        writeln!(requires_int64, "            Kernel::{v} => {needs_int64},").unwrap();
         writeln!(requires, "            Kernel::{v} => {needs_atomics},").unwrap();
         writeln!(requires_ballot, "            Kernel::{v} => {needs_ballot},").unwrap();
         let path = spirv_dir.join(file);
@@ -119,6 +125,12 @@ impl Kernel {{
     pub const fn requires_subgroup_ballot(self) -> bool {{
         match self {{
 {requires_ballot}        }}
+    }}
+
+    /// Whether the module uses 64-bit integers (`Int64`: the `shaderInt64` feature).
+    pub const fn requires_int64(self) -> bool {{
+        match self {{
+{requires_int64}        }}
     }}
 
     /// The buffer bindings (numbered 0..n) the manifest records: the kernel parameter's

@@ -101,6 +101,9 @@ pub struct DeviceInfo {
     /// with subgroups use (their broadcasts, sums and votes are shuffles, which llvmpipe
     /// compiles to one register permute).
     pub subgroup_ballot: bool,
+    /// `shaderInt64`: 64-bit integers in shaders (the chunked sort stores its pairs as
+    /// one u64 each where it is there).
+    pub shader_int64: bool,
     pub max_compute_workgroup_count: [u32; 3],
     /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
     pub max_storage_buffer_range: u64,
@@ -343,6 +346,9 @@ impl Context {
         if kernel.requires_float_atomics() && !self.device.info.float_atomic_add {
             return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderBufferFloat32AtomicAdd" });
         }
+        if kernel.requires_int64() && !self.device.info.shader_int64 {
+            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderInt64" });
+        }
         if kernel.requires_subgroup_ballot() && !self.device.info.subgroup_ballot {
             return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot and shuffle operations in compute" });
         }
@@ -510,6 +516,7 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
     }
     // SAFETY: valid chain.
     unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
+    let shader_int64 = f2.features.shader_int64 == vk::TRUE;
     let float_atomic_add = has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
     // SAFETY: query on a physical device of this instance.
     let families = unsafe { instance.get_physical_device_queue_family_properties(c.physical) };
@@ -532,6 +539,7 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
             && subgroup.supported_operations.contains(
 vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
             ),
+        shader_int64,
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
         max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
         max_memory_allocation_size: maintenance3.max_memory_allocation_size,
@@ -553,9 +561,11 @@ vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
     let queue_info = [vk::DeviceQueueCreateInfo::default()
         .queue_family_index(c.queue_family)
         .queue_priorities(&priorities)];
+    let core_features = vk::PhysicalDeviceFeatures::default().shader_int64(info.shader_int64);
     let mut device_info = vk::DeviceCreateInfo::default()
         .queue_create_infos(&queue_info)
         .enabled_extension_names(&ext_names)
+        .enabled_features(&core_features)
         .push_next(&mut f12);
     if float_atomic_add {
         device_info = device_info.push_next(&mut enabled_atomic_float);

@@ -160,8 +160,9 @@ fn sort_with_zero_key_bits_is_identity() {
 
 /// Keys and values whose bits are every kind of `f32` (NaNs quiet and signalling with
 /// payloads, infinities, denormals, -0): the chunk kernels read them through `f32`
-/// texel views and must move the bits untouched. Also through the storage-buffer
-/// kernels those kernels fall back to, and from buffers a texel view cannot read.
+/// texel views and must move the bits untouched. Through each set of chunk kernels:
+/// texel reads with pairs stored as u64s (devices with `shaderInt64`, lavapipe) or as
+/// two u32s (devices without), and storage-buffer reads (buffers past the texel limits).
 #[test]
 fn chunk_sort_moves_float_special_bits_untouched() {
     let gpu = gpu();
@@ -172,9 +173,10 @@ fn chunk_sort_moves_float_special_bits_untouched() {
     let mut expected: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
     expected.sort_by_key(|&(k, _)| k); // stable
     let (ek, ev): (Vec<u32>, Vec<u32>) = expected.into_iter().unzip();
-    for texel_reads in [true, false] {
+    for (texel_reads, int64_stores) in [(true, true), (true, false), (false, false)] {
         let plan = RadixSort::with_variant(&gpu, len as u32, SortVariant::Chunks).expect("plan");
         let plan = if texel_reads { plan } else { plan.without_texel_reads() };
+        let plan = if int64_stores { plan } else { plan.without_int64_stores() };
         let mut key_buf = gpu.upload("keys", &keys).unwrap();
         let mut value_buf = gpu.upload("values", &values).unwrap();
         let mut rec = gpu.record("special bits sort").unwrap();
@@ -182,43 +184,43 @@ fn chunk_sort_moves_float_special_bits_untouched() {
         rec.submit_and_wait().unwrap();
         let gk = gpu.read_buffer::<u32>(&mut key_buf, len).unwrap();
         let gv = gpu.read_buffer::<u32>(&mut value_buf, len).unwrap();
-        assert!(gk == ek, "keys differ (texel reads {texel_reads})");
-        assert!(gv == ev, "values differ (texel reads {texel_reads})");
+        assert!(gk == ek, "keys differ (texel reads {texel_reads}, u64 stores {int64_stores})");
+        assert!(gv == ev, "values differ (texel reads {texel_reads}, u64 stores {int64_stores})");
     }
 }
 
-/// The chunk kernels that read storage buffers (where a sort's buffers are past the
-/// device's texel-buffer limits) against the reference, at lengths that leave chunks
-/// of odd length and chunks with nothing to do, bounded and not.
+/// The chunk kernels other devices run: those that read storage buffers (where a sort's
+/// buffers are past the device's texel-buffer limits) and those that store pairs as two
+/// u32s (devices without `shaderInt64`), against the reference, at lengths that leave
+/// chunks of odd length and chunks with nothing to do, bounded and not.
 #[test]
-fn chunk_sort_without_texel_reads_matches_the_reference() {
+fn chunk_sort_fallback_kernels_match_the_reference() {
     let gpu = gpu();
-    for len in [257usize, 65_537] {
-        for bits in [16u32, 32] {
-            let keys = Pattern::Random.generate(len, bits, 11 + len as u64);
-            let values: Vec<u32> = (0..len as u32).collect();
-            let plan = RadixSort::with_variant(&gpu, len as u32, SortVariant::Chunks).expect("plan").without_texel_reads();
+    for (len, bits, texel_reads) in [257usize, 65_537].into_iter().flat_map(|len| [(len, 16u32, false), (len, 32, false), (len, 32, true)]) {
+        let keys = Pattern::Random.generate(len, bits, 11 + len as u64);
+        let values: Vec<u32> = (0..len as u32).collect();
+        let plan = RadixSort::with_variant(&gpu, len as u32, SortVariant::Chunks).expect("plan").without_int64_stores();
+        let plan = if texel_reads { plan } else { plan.without_texel_reads() };
+        let mut key_buf = gpu.upload("keys", &keys).unwrap();
+        let mut value_buf = gpu.upload("values", &values).unwrap();
+        let count = (len as u32 / 3, 0u32);
+        let count_buf = gpu.upload("count", &[count.0, count.1]).unwrap();
+        let mut rec = gpu.record("storage-read sort").unwrap();
+        plan.record_bounded(&mut rec, &key_buf, &value_buf, len as u32, &count_buf, bits).unwrap();
+        rec.submit_and_wait().unwrap();
+        let gk = gpu.read_buffer::<u32>(&mut key_buf, len).unwrap();
+        let gv = gpu.read_buffer::<u32>(&mut value_buf, len).unwrap();
+        let (ek, ev) = cpu_reference(&keys[..count.0 as usize], bits);
+        assert!(gk[..ek.len()] == ek[..] && gv[..ev.len()] == ev[..], "bounded: len {len}, {bits} bits, texel reads {texel_reads}");
+        let (sk, sv) = {
             let mut key_buf = gpu.upload("keys", &keys).unwrap();
             let mut value_buf = gpu.upload("values", &values).unwrap();
-            let count = (len as u32 / 3, 0u32);
-            let count_buf = gpu.upload("count", &[count.0, count.1]).unwrap();
             let mut rec = gpu.record("storage-read sort").unwrap();
-            plan.record_bounded(&mut rec, &key_buf, &value_buf, len as u32, &count_buf, bits).unwrap();
+            plan.record(&mut rec, &key_buf, &value_buf, len as u32, bits).unwrap();
             rec.submit_and_wait().unwrap();
-            let gk = gpu.read_buffer::<u32>(&mut key_buf, len).unwrap();
-            let gv = gpu.read_buffer::<u32>(&mut value_buf, len).unwrap();
-            let (ek, ev) = cpu_reference(&keys[..count.0 as usize], bits);
-            assert!(gk[..ek.len()] == ek[..] && gv[..ev.len()] == ev[..], "bounded: len {len}, {bits} bits");
-            let (sk, sv) = {
-                let mut key_buf = gpu.upload("keys", &keys).unwrap();
-                let mut value_buf = gpu.upload("values", &values).unwrap();
-                let mut rec = gpu.record("storage-read sort").unwrap();
-                plan.record(&mut rec, &key_buf, &value_buf, len as u32, bits).unwrap();
-                rec.submit_and_wait().unwrap();
-                (gpu.read_buffer::<u32>(&mut key_buf, len).unwrap(), gpu.read_buffer::<u32>(&mut value_buf, len).unwrap())
-            };
-            let (ek, ev) = cpu_reference(&keys, bits);
-            assert!(sk == ek && sv == ev, "len {len}, {bits} bits");
-        }
+            (gpu.read_buffer::<u32>(&mut key_buf, len).unwrap(), gpu.read_buffer::<u32>(&mut value_buf, len).unwrap())
+        };
+        let (ek, ev) = cpu_reference(&keys, bits);
+        assert!(sk == ek && sv == ev, "len {len}, {bits} bits, texel reads {texel_reads}");
     }
 }

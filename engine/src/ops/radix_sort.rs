@@ -75,6 +75,9 @@ pub struct RadixSort {
     /// Whether the chunked passes may read through texel views (always, but for tests
     /// of the storage-buffer kernels that buffers past the texel limits fall back to).
     texel_reads: bool,
+    /// Whether the chunked passes may store pairs as one u64 each (where the device has
+    /// `shaderInt64`; off for tests of the kernels other devices run).
+    int64_stores: bool,
 }
 
 impl RadixSort {
@@ -124,6 +127,7 @@ impl RadixSort {
                 if variant == SortVariant::Chunks { ScanVariant::Chunks } else { ScanVariant::Blocks },
             )?,
             texel_reads: true,
+            int64_stores: ctx.info().shader_int64,
         })
     }
 
@@ -133,6 +137,14 @@ impl RadixSort {
     #[doc(hidden)]
     pub fn without_texel_reads(mut self) -> Self {
         self.texel_reads = false;
+        self
+    }
+
+    /// The same plan storing each pair as two u32s, as on devices without `shaderInt64`
+    /// (for tests; the result is the same).
+    #[doc(hidden)]
+    pub fn without_int64_stores(mut self) -> Self {
+        self.int64_stores = false;
         self
     }
 
@@ -287,13 +299,21 @@ impl RadixSort {
             .dispatch(groups)?;
             self.histogram_scan.record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
             let scatter = if first {
-                let kernel = if texel_inputs { Kernel::RadixSortChunkScatterZipTexel } else { Kernel::RadixSortChunkScatterZip };
+                let kernel = match (texel_inputs, self.int64_stores) {
+                    (true, true) => Kernel::RadixSortChunkScatterZipTexelU64,
+                    (true, false) => Kernel::RadixSortChunkScatterZipTexel,
+                    (false, _) => Kernel::RadixSortChunkScatterZip,
+                };
                 rec.pass("radix_sort.scatter_zip", kernel).read("keys_in", keys).read("values_in", values).write("pairs_out", pairs.0)
             } else if last {
                 let kernel = if texel_pairs { Kernel::RadixSortChunkScatterUnzipTexel } else { Kernel::RadixSortChunkScatterUnzip };
                 rec.pass("radix_sort.scatter_unzip", kernel).read("pairs_in", pairs.0).write("keys_out", keys).write("values_out", values)
             } else {
-                let kernel = if texel_pairs { Kernel::RadixSortChunkScatterPairsTexel } else { Kernel::RadixSortChunkScatterPairs };
+                let kernel = match (texel_pairs, self.int64_stores) {
+                    (true, true) => Kernel::RadixSortChunkScatterPairsTexelU64,
+                    (true, false) => Kernel::RadixSortChunkScatterPairsTexel,
+                    (false, _) => Kernel::RadixSortChunkScatterPairs,
+                };
                 rec.pass("radix_sort.scatter_pairs", kernel).read("pairs_in", pairs.0).write("pairs_out", pairs.1)
             };
             scatter.read("scanned_histogram", &self.histogram).read("len_words", len_words).push(&params).dispatch(groups)?;

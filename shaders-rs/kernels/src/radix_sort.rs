@@ -289,10 +289,13 @@ impl PairSink for PairsMut<'_> {
 fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32, src: &S, histogram: &mut [u32]) {
     let (chunk, start, end) = own_chunk(params, len_words, group, lid);
     let chunks = params.block_count as usize;
+    // The digit's shift and mask as values: read through the push-constant pointer
+    // inside the loop, llvmpipe loads them again for every key.
+    let pass = SortPassParams { ..*params };
     let mut counts = [0u32; CHUNK_BUCKETS as usize];
     let mut i = start;
     while i < end {
-        counts[digit(src.key(i), params) as usize] += 1;
+        counts[digit(src.key(i), &pass) as usize] += 1;
         i += 1;
     }
     let mut d = 0;
@@ -324,10 +327,11 @@ fn scatter_chunk<S: PairSource, D: PairSink>(
         next[d] = scanned_histogram[d * chunks + chunk as usize];
         d += 1;
     }
+    let pass = SortPassParams { ..*params }; // see `count_chunk`
     let mut i = start;
     while i < end {
         let pair = src.pair(i);
-        let d = digit(pair.x, params) as usize;
+        let d = digit(pair.x, &pass) as usize;
         let at = next[d];
         next[d] = at + 1;
         dst.put(at, pair);
@@ -502,4 +506,50 @@ pub fn chunk_scatter_unzip_texel(
 ) {
     let mut dst = SplitMut { keys: keys_out, values: values_out };
     scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut dst);
+}
+
+/// Interleaved pairs written as one `u64` each (key in the low half: the same bytes as
+/// a `UVec2`), so that llvmpipe runs one loop over the lanes per store instead of two.
+#[cfg(feature = "int64")]
+struct Pairs64Mut<'a>(&'a mut [u64]);
+
+#[cfg(feature = "int64")]
+impl PairSink for Pairs64Mut<'_> {
+    #[inline]
+    fn put(&mut self, i: u32, pair: UVec2) {
+        self.0[i as usize] = (u64::from(pair.y) << 32) | u64::from(pair.x);
+    }
+}
+
+/// [`chunk_scatter_zip_texel`] storing each pair as one `u64`.
+#[cfg(feature = "int64")]
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_zip_texel_u64(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [u64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
+) {
+    let src = TexelSplit { keys: keys_in, values: values_in };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut Pairs64Mut(pairs_out));
+}
+
+/// [`chunk_scatter_pairs_texel`] storing each pair as one `u64`.
+#[cfg(feature = "int64")]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_pairs_texel_u64(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] pairs_in: &TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [u64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
+) {
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut Pairs64Mut(pairs_out));
 }

@@ -113,6 +113,14 @@ const FLAVOURS: &[Flavour] = &[
         extension: Some("SPV_EXT_shader_atomic_float_add"),
         requires: &["GroupNonUniformBallot", "GroupNonUniformShuffle", "AtomicFloat32AddEXT"],
     },
+    // Kernels that store u64s (the chunked sort's pairs, one store where two u32s took
+    // two: llvmpipe loops over the lanes once per component).
+    Flavour {
+        features: &["int64"],
+        capabilities: &[spirv_builder::Capability::SampledBuffer, spirv_builder::Capability::Int64],
+        extension: None,
+        requires: &["Int64"],
+    },
 ];
 
 fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<u8>>, String> {
