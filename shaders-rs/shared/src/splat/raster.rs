@@ -386,16 +386,23 @@ impl<F: Real> FusedPixelBwd<F> {
 }
 
 /// Backward state of one pixel, walking its splats from the last blended to the first.
+///
+/// The gradient on a splat's alpha is, per output channel `c` (colour and depth) with
+/// upstream gradient `g_c`, `g_c · (v_c · T - B_c / (1 - α))` plus
+/// `g_alpha · T_final / (1 - α)`, where `B_c` is what lies behind the splat in channel
+/// `c` (background included). Summed over the channels that is
+/// `T · Σ g_c v_c - (Σ g_c B_c - g_alpha · T_final) / (1 - α)`, and the bracket grows by
+/// `w · Σ g_c v_c` at each splat: one running scalar, [`behind`](Self::behind), in place
+/// of the four per-channel sums and the final transmittance. The state is 6 floats
+/// instead of 11, which matters where one lane keeps four pixels (the subgroup
+/// rasterizers on llvmpipe spilled the larger state to the stack).
 #[derive(Clone, Copy, Debug)]
 pub struct PixelBwd<F> {
     /// Transmittance in front of the splat being visited (starts at the final one).
     pub transmittance: F,
-    final_transmittance: F,
-    /// Colour (with background) and depth of everything behind the splat being visited.
-    behind_color: V3<F>,
-    behind_depth: F,
+    /// `Σ_c g_c · B_c - g_alpha · T_final` for everything behind the splat being visited.
+    behind: F,
     grad_color: V3<F>,
-    grad_alpha: F,
     grad_depth: F,
 }
 
@@ -404,15 +411,10 @@ impl<F: Real> PixelBwd<F> {
     /// gradients on colour, alpha and depth.
     pub fn new(final_transmittance: F, background: V3<F>, grad_color: V3<F>, grad_alpha: F, grad_depth: F) -> Self {
         let t = final_transmittance;
-        Self {
-            transmittance: t,
-            final_transmittance: t,
-            behind_color: [t * background[0], t * background[1], t * background[2]],
-            behind_depth: F::zero(),
-            grad_color,
-            grad_alpha,
-            grad_depth,
-        }
+        // Behind the last splat: the background seen through T_final (depth 0 there);
+        // the alpha term enters with the opposite sign (alpha = 1 - T_final rises with α).
+        let behind_background = t * (grad_color[0] * background[0] + grad_color[1] * background[1] + grad_color[2] * background[2]);
+        Self { transmittance: t, behind: behind_background - grad_alpha * t, grad_color, grad_depth }
     }
 
     /// The gradient this pixel sends to splat `s` (None when the forward pass skipped it).
@@ -431,19 +433,12 @@ impl<F: Real> PixelBwd<F> {
         let t = self.transmittance;
         let w = f.alpha * t;
         let mut g = SplatGrad::zero();
-        let mut g_alpha = F::zero();
-        // Written out, not looped (see `PixelFwd::blend`).
+        // The upstream gradient's projection on this splat's colour and depth.
+        let seen = self.grad_color[0] * s.color[0] + self.grad_color[1] * s.color[1] + self.grad_color[2] * s.color[2] + self.grad_depth * s.depth;
         g.color = [w * self.grad_color[0], w * self.grad_color[1], w * self.grad_color[2]];
-        g_alpha += self.grad_color[0] * (s.color[0] * t - self.behind_color[0] / one_minus);
-        g_alpha += self.grad_color[1] * (s.color[1] * t - self.behind_color[1] / one_minus);
-        g_alpha += self.grad_color[2] * (s.color[2] * t - self.behind_color[2] / one_minus);
-        self.behind_color[0] += w * s.color[0];
-        self.behind_color[1] += w * s.color[1];
-        self.behind_color[2] += w * s.color[2];
         g.depth = w * self.grad_depth;
-        g_alpha += self.grad_depth * (s.depth * t - self.behind_depth / one_minus);
-        g_alpha += self.grad_alpha * self.final_transmittance / one_minus;
-        self.behind_depth += w * s.depth;
+        let g_alpha = t * seen - self.behind / one_minus;
+        self.behind += w * seen;
 
         // α = opacity · e^(-σ) unless clamped at alpha_max (then flat).
         if f.raw_alpha < cfg.alpha_max {
