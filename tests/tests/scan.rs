@@ -82,14 +82,40 @@ fn scan_len_16m() {
 #[test]
 fn scan_level_boundaries() {
     let gpu = gpu();
-    // Block boundaries, and chunk ones: 9 elements make 8 chunks of 2 (one of 1, then
-    // three empty); 8,193 make 9 chunks' worth, rounded up to 16 chunks of 513 (the last
-    // shorter); 64K + 3 make 64 chunks of 1,025.
+    // Block boundaries, and chunk ones (chunks are cut in quads of 4 elements): 9
+    // elements (3 quads) make 8 chunks, 3 of one quad (the last of one element) and 5
+    // empty; 8,193 (2,049 quads) make 9 chunks' worth, rounded up to 16 chunks of 129
+    // quads (the last shorter); 64K + 3 make 64 chunks of 257 quads.
     for len in [7, 9, 1023, 1024, 1025, 8 * 1024 + 1, 64 * 1024 + 3, 1024 * 1024, 1024 * 1024 + 1] {
         let data = Pattern::Random.generate(len, 16, len as u64);
         let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
         let mut expected = data.clone();
         exclusive_scan_in_place(&mut expected);
         assert!(got == expected, "scan differs at len {len}");
+    }
+}
+
+/// A scan of the first `len` elements of a longer buffer leaves the rest as it was, in
+/// both variants; the chunk kernels move whole quads of 4, so the lengths put the end
+/// at each place in a quad (and one chunk's run at a quad's end, one inside).
+#[test]
+fn scan_leaves_elements_past_len_unchanged() {
+    use drape_engine::ops::scan::ExclusiveScan;
+    let gpu = gpu();
+    for len in [1u32, 2, 3, 4, 5, 1029, 1030, 1031, 65_538] {
+        let capacity = len as usize + 11;
+        let data = Pattern::Random.generate(capacity, 32, u64::from(len));
+        for variant in [ScanVariant::Blocks, ScanVariant::Chunks] {
+            let mut buf = gpu.upload("scan data", &data).expect("upload");
+            let plan = ExclusiveScan::with_variant(&gpu, "scan", len, variant).expect("plan");
+            let mut rec = gpu.record("scan_prefix").expect("record");
+            plan.record(&mut rec, &buf, len).expect("record scan");
+            rec.submit_and_wait().expect("submit");
+            let got = gpu.read_buffer::<u32>(&mut buf, capacity).expect("read back");
+            let mut expected = data.clone();
+            exclusive_scan_in_place(&mut expected[..len as usize]);
+            assert!(got[..len as usize] == expected[..len as usize], "{variant:?} len {len}: the scan differs");
+            assert!(got[len as usize..] == data[len as usize..], "{variant:?} len {len}: elements past len changed");
+        }
     }
 }

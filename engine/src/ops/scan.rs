@@ -6,9 +6,11 @@
 //! dispatches per level and one for the top.
 //! Chunks (CPU devices; `scan::chunk_reduce`, `scan::chunk_sums`,
 //! `scan::chunk_downsweep`): each invocation sums one of up to 64 long runs (more past
-//! 2M elements)
+//! 2M elements; runs of whole quads of 4 elements, each read and written as one `UVec4`,
+//! which on llvmpipe costs one lane loop where an element cost one)
 //! (`drape_shared::chunks`), one invocation scans those sums, and each run is scanned
-//! from its offset: three dispatches, no barriers.
+//! from its offset: three dispatches, no barriers. The quad holding the last element is
+//! written whole, its elements past `len` as they were (buffers are whole 16-byte texels).
 //! No workgroup waits on another. In place; wrapping arithmetic; any length up to
 //! [`ExclusiveScan::max_len`]. CPU reference: `drape_shared::scan::exclusive_scan_in_place`.
 

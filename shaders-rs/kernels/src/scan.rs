@@ -6,11 +6,12 @@
 //! `block_offsets` one element per block of `SCAN_BLOCK_LEN` (see
 //! `drape_shared::scan` for the level structure). Chunks: `chunk_sums` /
 //! `chunk_offsets` one element per chunk. Out-of-range elements read as 0 and
-//! are never written. Sums wrap, like `u32::wrapping_add`.
+//! are never written, except that the chunk kernels write the last quad of `data` whole,
+//! its elements past `len` as they read them. Sums wrap, like `u32::wrapping_add`.
 
 use drape_shared::chunks::{chunk_range, CHUNK_WORKGROUP_SIZE};
 use drape_shared::scan::{ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SCAN_ITEMS_PER_THREAD, SCAN_WORKGROUP_SIZE};
-use spirv_std::glam::UVec3;
+use spirv_std::glam::{UVec3, UVec4};
 use spirv_std::spirv;
 
 use crate::workgroup::exclusive_scan;
@@ -81,6 +82,31 @@ pub fn downsweep(
     }
 }
 
+// The chunk kernels move four elements a load and a store, as one `UVec4`: on llvmpipe a
+// storage-buffer access whose address is not uniform is one loop over the 8 lanes however
+// many components it moves, so a quad costs the loop one element cost before. Chunks are
+// cut in whole quads (`chunk_range` of `len.div_ceil(4)` quads), so no two invocations
+// touch one quad. Buffers are made in whole 16-byte texels (the engine's `vk_bytes`), so
+// the quad holding the last element is inside the buffer; the downsweep writes its lanes
+// past `len` back as they were read.
+
+/// The chunk's quads: `start..end` of `len.div_ceil(4)`.
+#[inline]
+fn chunk_quads(params: &ChunkScanParams, chunk: u32) -> (u32, u32) {
+    chunk_range(params.len.div_ceil(4), params.chunks, chunk)
+}
+
+/// `quad` with its lanes from `valid` on (elements past the end) replaced by `past`'s.
+#[inline]
+fn keep_valid(quad: UVec4, past: UVec4, valid: u32) -> UVec4 {
+    UVec4::new(
+        quad.x,
+        if valid > 1 { quad.y } else { past.y },
+        if valid > 2 { quad.z } else { past.z },
+        if valid > 3 { quad.w } else { past.w },
+    )
+}
+
 /// `chunk_sums[chunk]` = the (wrapping) sum of chunk `chunk`'s elements; `chunks / 8`
 /// workgroups, one chunk per invocation.
 #[spirv(compute(threads(8)))]
@@ -88,16 +114,19 @@ pub fn chunk_reduce(
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(push_constant)] params: &ChunkScanParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &[UVec4],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] chunk_sums: &mut [u32],
 ) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
-    let (start, end) = chunk_range(params.len, params.chunks, chunk);
+    let (start, end) = chunk_quads(params, chunk);
     let mut sum = 0u32;
-    let mut i = start;
-    while i < end {
-        sum = sum.wrapping_add(data[i as usize]);
-        i += 1;
+    let mut q = start;
+    // The last quad's elements past `len` are summed too: that quad lies in the last
+    // chunk that has elements, whose sum no element's offset includes.
+    while q < end {
+        let v = data[q as usize];
+        sum = sum.wrapping_add(v.x).wrapping_add(v.y).wrapping_add(v.z).wrapping_add(v.w);
+        q += 1;
     }
     chunk_sums[chunk as usize] = sum;
 }
@@ -125,17 +154,26 @@ pub fn chunk_downsweep(
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(push_constant)] params: &ChunkScanParams,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &mut [UVec4],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] chunk_offsets: &[u32],
 ) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
-    let (start, end) = chunk_range(params.len, params.chunks, chunk);
+    let (start, end) = chunk_quads(params, chunk);
     let mut running = chunk_offsets[chunk as usize];
-    let mut i = start;
-    while i < end {
-        let v = data[i as usize];
-        data[i as usize] = running;
-        running = running.wrapping_add(v);
-        i += 1;
+    let mut q = start;
+    while q < end {
+        let v = data[q as usize];
+        let a = running;
+        let b = a.wrapping_add(v.x);
+        let c = b.wrapping_add(v.y);
+        let d = c.wrapping_add(v.z);
+        running = d.wrapping_add(v.w);
+        let mut scanned = UVec4::new(a, b, c, d);
+        let valid = params.len - 4 * q;
+        if valid < 4 {
+            scanned = keep_valid(scanned, v, valid);
+        }
+        data[q as usize] = scanned;
+        q += 1;
     }
 }
