@@ -179,6 +179,16 @@ fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32)
 trait PairSource {
     fn key(&self, i: u32) -> u32;
     fn pair(&self, i: u32) -> UVec2;
+    /// The keys `i` and `i + 1`, `i` even (one fetch where one texel holds both).
+    #[inline]
+    fn two_keys(&self, i: u32) -> (u32, u32) {
+        (self.key(i), self.key(i + 1))
+    }
+    /// The pairs `i` and `i + 1`, `i` even (see [`two_keys`](Self::two_keys)).
+    #[inline]
+    fn two_pairs(&self, i: u32) -> (UVec2, UVec2) {
+        (self.pair(i), self.pair(i + 1))
+    }
 }
 
 /// Where a chunk scatter writes its pairs (see [`PairSource`]).
@@ -261,6 +271,16 @@ impl PairSource for TexelPairs<'_> {
             UVec2::new(texel.z.to_bits(), texel.w.to_bits())
         }
     }
+    #[inline]
+    fn two_keys(&self, i: u32) -> (u32, u32) {
+        let texel = fetch4(self.0, i >> 1);
+        (texel.x.to_bits(), texel.z.to_bits())
+    }
+    #[inline]
+    fn two_pairs(&self, i: u32) -> (UVec2, UVec2) {
+        let texel = fetch4(self.0, i >> 1);
+        (UVec2::new(texel.x.to_bits(), texel.y.to_bits()), UVec2::new(texel.z.to_bits(), texel.w.to_bits()))
+    }
 }
 
 impl PairSink for SplitMut<'_> {
@@ -294,10 +314,21 @@ fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group:
     // time saved was within this machine's noise).
     let pass = SortPassParams { ..*params };
     let mut counts = [0u32; CHUNK_BUCKETS as usize];
+    // Two keys a step from even positions, so that a texel of two pairs is fetched once
+    // (`two_keys`); an odd first key and a last single one go alone.
     let mut i = start;
-    while i < end {
+    if i < end && i & 1 == 1 {
         counts[digit(src.key(i), &pass) as usize] += 1;
         i += 1;
+    }
+    while i + 1 < end {
+        let (a, b) = src.two_keys(i);
+        counts[digit(a, &pass) as usize] += 1;
+        counts[digit(b, &pass) as usize] += 1;
+        i += 2;
+    }
+    if i < end {
+        counts[digit(src.key(i), &pass) as usize] += 1;
     }
     let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
@@ -329,14 +360,29 @@ fn scatter_chunk<S: PairSource, D: PairSink>(
         d += 1;
     }
     let pass = SortPassParams { ..*params }; // see `count_chunk`
+    macro_rules! place {
+        ($pair:expr) => {{
+            let pair = $pair;
+            let d = digit(pair.x, &pass) as usize;
+            let at = next[d];
+            next[d] = at + 1;
+            dst.put(at, pair);
+        }};
+    }
+    // Two pairs a step from even positions, as `count_chunk` walks.
     let mut i = start;
-    while i < end {
-        let pair = src.pair(i);
-        let d = digit(pair.x, &pass) as usize;
-        let at = next[d];
-        next[d] = at + 1;
-        dst.put(at, pair);
+    if i < end && i & 1 == 1 {
+        place!(src.pair(i));
         i += 1;
+    }
+    while i + 1 < end {
+        let (a, b) = src.two_pairs(i);
+        place!(a);
+        place!(b);
+        i += 2;
+    }
+    if i < end {
+        place!(src.pair(i));
     }
 }
 
