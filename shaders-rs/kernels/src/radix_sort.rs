@@ -19,10 +19,10 @@ use drape_shared::radix_sort::{
     RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
-use spirv_std::glam::{UVec2, UVec3};
+use spirv_std::glam::{UVec2, UVec3, UVec4, Vec4};
 use spirv_std::spirv;
 
-use crate::texel::{fetch, fetch4, TexelBuffer, TexelBuffer4};
+use crate::texel::{fetch4, TexelBuffer4};
 use crate::workgroup::exclusive_scan;
 
 const WG: usize = SORT_WORKGROUP_SIZE as usize;
@@ -179,15 +179,18 @@ fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32)
 trait PairSource {
     fn key(&self, i: u32) -> u32;
     fn pair(&self, i: u32) -> UVec2;
-    /// The keys `i` and `i + 1`, `i` even (one fetch where one texel holds both).
+    /// The keys `i .. i + 4`, `i` a multiple of 4 (one or two fetches where texels hold
+    /// them together).
     #[inline]
-    fn two_keys(&self, i: u32) -> (u32, u32) {
-        (self.key(i), self.key(i + 1))
+    fn four_keys(&self, i: u32) -> UVec4 {
+        UVec4::new(self.key(i), self.key(i + 1), self.key(i + 2), self.key(i + 3))
     }
-    /// The pairs `i` and `i + 1`, `i` even (see [`two_keys`](Self::two_keys)).
+    /// The pairs `i .. i + 4`, `i` a multiple of 4: their keys and their values (see
+    /// [`four_keys`](Self::four_keys)).
     #[inline]
-    fn two_pairs(&self, i: u32) -> (UVec2, UVec2) {
-        (self.pair(i), self.pair(i + 1))
+    fn four_pairs(&self, i: u32) -> (UVec4, UVec4) {
+        let (a, b, c, d) = (self.pair(i), self.pair(i + 1), self.pair(i + 2), self.pair(i + 3));
+        (UVec4::new(a.x, b.x, c.x, d.x), UVec4::new(a.y, b.y, c.y, d.y))
     }
 }
 
@@ -214,11 +217,34 @@ struct Pairs<'a>(&'a [UVec2]);
 /// Interleaved pairs, written.
 struct PairsMut<'a>(&'a mut [UVec2]);
 
-/// Separate key and value buffers read through their `R32_SFLOAT` views, bit for bit
-/// (a fetch moves the 32 bits; nothing does arithmetic on them).
+/// Separate key and value buffers read through their `R32G32B32A32_SFLOAT` views, four
+/// elements a fetch, bit for bit (a fetch moves the bits; nothing does arithmetic on
+/// them). The engine makes every buffer in whole 16-byte texels, so the view reaches
+/// the last element.
 struct TexelSplit<'a> {
-    keys: &'a TexelBuffer,
-    values: &'a TexelBuffer,
+    keys: &'a TexelBuffer4,
+    values: &'a TexelBuffer4,
+}
+
+/// Component `k` (0-3) of `texel`'s bits.
+#[inline]
+fn component_bits(texel: Vec4, k: u32) -> u32 {
+    let bits = if k == 0 {
+        texel.x
+    } else if k == 1 {
+        texel.y
+    } else if k == 2 {
+        texel.z
+    } else {
+        texel.w
+    };
+    bits.to_bits()
+}
+
+/// All four components' bits.
+#[inline]
+fn texel_bits(texel: Vec4) -> UVec4 {
+    UVec4::new(texel.x.to_bits(), texel.y.to_bits(), texel.z.to_bits(), texel.w.to_bits())
 }
 
 /// Interleaved pairs read through their `R32G32B32A32_SFLOAT` view: two pairs a texel.
@@ -249,11 +275,19 @@ impl PairSource for Pairs<'_> {
 impl PairSource for TexelSplit<'_> {
     #[inline]
     fn key(&self, i: u32) -> u32 {
-        fetch(self.keys, i).to_bits()
+        component_bits(fetch4(self.keys, i >> 2), i & 3)
     }
     #[inline]
     fn pair(&self, i: u32) -> UVec2 {
-        UVec2::new(fetch(self.keys, i).to_bits(), fetch(self.values, i).to_bits())
+        UVec2::new(self.key(i), component_bits(fetch4(self.values, i >> 2), i & 3))
+    }
+    #[inline]
+    fn four_keys(&self, i: u32) -> UVec4 {
+        texel_bits(fetch4(self.keys, i >> 2))
+    }
+    #[inline]
+    fn four_pairs(&self, i: u32) -> (UVec4, UVec4) {
+        (texel_bits(fetch4(self.keys, i >> 2)), texel_bits(fetch4(self.values, i >> 2)))
     }
 }
 
@@ -272,14 +306,17 @@ impl PairSource for TexelPairs<'_> {
         }
     }
     #[inline]
-    fn two_keys(&self, i: u32) -> (u32, u32) {
-        let texel = fetch4(self.0, i >> 1);
-        (texel.x.to_bits(), texel.z.to_bits())
+    fn four_keys(&self, i: u32) -> UVec4 {
+        let (a, b) = (fetch4(self.0, i >> 1), fetch4(self.0, (i >> 1) + 1));
+        UVec4::new(a.x.to_bits(), a.z.to_bits(), b.x.to_bits(), b.z.to_bits())
     }
     #[inline]
-    fn two_pairs(&self, i: u32) -> (UVec2, UVec2) {
-        let texel = fetch4(self.0, i >> 1);
-        (UVec2::new(texel.x.to_bits(), texel.y.to_bits()), UVec2::new(texel.z.to_bits(), texel.w.to_bits()))
+    fn four_pairs(&self, i: u32) -> (UVec4, UVec4) {
+        let (a, b) = (fetch4(self.0, i >> 1), fetch4(self.0, (i >> 1) + 1));
+        (
+            UVec4::new(a.x.to_bits(), a.z.to_bits(), b.x.to_bits(), b.z.to_bits()),
+            UVec4::new(a.y.to_bits(), a.w.to_bits(), b.y.to_bits(), b.w.to_bits()),
+        )
     }
 }
 
@@ -314,21 +351,25 @@ fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group:
     // time saved was within this machine's noise).
     let pass = SortPassParams { ..*params };
     let mut counts = [0u32; CHUNK_BUCKETS as usize];
-    // Two keys a step from even positions, so that a texel of two pairs is fetched once
-    // (`two_keys`); an odd first key and a last single one go alone.
+    // Four keys a step from positions that are multiples of 4, so that texels are
+    // fetched whole (`four_keys`); the keys before the first such position and after the
+    // last whole four go one at a time.
     let mut i = start;
-    if i < end && i & 1 == 1 {
+    while i < end && i & 3 != 0 {
         counts[digit(src.key(i), &pass) as usize] += 1;
         i += 1;
     }
-    while i + 1 < end {
-        let (a, b) = src.two_keys(i);
-        counts[digit(a, &pass) as usize] += 1;
-        counts[digit(b, &pass) as usize] += 1;
-        i += 2;
+    while i + 3 < end {
+        let k = src.four_keys(i);
+        counts[digit(k.x, &pass) as usize] += 1;
+        counts[digit(k.y, &pass) as usize] += 1;
+        counts[digit(k.z, &pass) as usize] += 1;
+        counts[digit(k.w, &pass) as usize] += 1;
+        i += 4;
     }
-    if i < end {
+    while i < end {
         counts[digit(src.key(i), &pass) as usize] += 1;
+        i += 1;
     }
     let mut d = 0;
     while d < CHUNK_BUCKETS as usize {
@@ -369,20 +410,23 @@ fn scatter_chunk<S: PairSource, D: PairSink>(
             dst.put(at, pair);
         }};
     }
-    // Two pairs a step from even positions, as `count_chunk` walks.
+    // Four pairs a step, as `count_chunk` walks.
     let mut i = start;
-    if i < end && i & 1 == 1 {
+    while i < end && i & 3 != 0 {
         place!(src.pair(i));
         i += 1;
     }
-    while i + 1 < end {
-        let (a, b) = src.two_pairs(i);
-        place!(a);
-        place!(b);
-        i += 2;
+    while i + 3 < end {
+        let (k, v) = src.four_pairs(i);
+        place!(UVec2::new(k.x, v.x));
+        place!(UVec2::new(k.y, v.y));
+        place!(UVec2::new(k.z, v.z));
+        place!(UVec2::new(k.w, v.w));
+        i += 4;
     }
-    if i < end {
+    while i < end {
         place!(src.pair(i));
+        i += 1;
     }
 }
 
@@ -407,7 +451,7 @@ pub fn chunk_histogram_texel(
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(push_constant)] params: &SortPassParams,
-    #[spirv(descriptor_set = 0, binding = 0)] keys: &TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 0)] keys: &TexelBuffer4,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
 ) {
@@ -483,8 +527,8 @@ pub fn chunk_scatter_zip_texel(
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(push_constant)] params: &SortPassParams,
-    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer,
-    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer4,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
@@ -576,8 +620,8 @@ pub fn chunk_scatter_zip_texel_u64(
     #[spirv(local_invocation_index)] lid: u32,
     #[spirv(workgroup_id)] group: UVec3,
     #[spirv(push_constant)] params: &SortPassParams,
-    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer,
-    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer,
+    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer4,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [u64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
