@@ -119,16 +119,19 @@ pub fn chunk_reduce(
 ) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
     let (start, end) = chunk_quads(params, chunk);
-    let mut sum = 0u32;
+    // Four running sums, one per lane of the quad, added as vectors: a quad used whole
+    // stays one `v4uint` load (taken apart lane by lane, the compiler makes it four
+    // scalar loads, four lane loops on llvmpipe). Integer vector adds wrap, as the
+    // scalar `wrapping_add`.
+    let mut sums = UVec4::ZERO;
     let mut q = start;
     // The last quad's elements past `len` are summed too: that quad lies in the last
     // chunk that has elements, whose sum no element's offset includes.
     while q < end {
-        let v = data[q as usize];
-        sum = sum.wrapping_add(v.x).wrapping_add(v.y).wrapping_add(v.z).wrapping_add(v.w);
+        sums += data[q as usize];
         q += 1;
     }
-    chunk_sums[chunk as usize] = sum;
+    chunk_sums[chunk as usize] = sums.x.wrapping_add(sums.y).wrapping_add(sums.z).wrapping_add(sums.w);
 }
 
 /// Scans the `params.chunks` chunk sums in place, exclusively, in one invocation (a
