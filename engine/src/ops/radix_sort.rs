@@ -13,8 +13,9 @@
 //! `chunk_scatter_unzip`), which halves the loads and stores per pair on llvmpipe; a
 //! chunked sort of one pass, or of more pairs than one binding of pairs holds, keeps
 //! them apart as blocks do. Those passes read through texel views where the buffers
-//! allow it (the `_texel` kernels: a gather on llvmpipe, where a storage-buffer load is
-//! a loop over the lanes per component) and, on devices with `shaderInt64`, store
+//! allow it (the `_texel` kernels, through 4-float views: four keys, or two interleaved
+//! pairs, a fetch; a gather on llvmpipe, where a storage-buffer load is a loop over the
+//! lanes per component) and, on devices with `shaderInt64`, store
 //! each pair as one u64 (`_texel_u64`: one store loop instead of two). The result is always
 //! in the caller's buffers. No workgroup waits on another; no subgroup size is assumed.
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
