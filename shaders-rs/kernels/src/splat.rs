@@ -22,6 +22,8 @@ use drape_shared::splat::raster::may_touch_rect;
 use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
+#[cfg(feature = "subgroup-ballot")]
+use spirv_std::glam::Vec4;
 use spirv_std::spirv;
 
 use crate::{atomics, flat_index};
@@ -1004,22 +1006,12 @@ const SG_ROWS: u32 = 4;
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! sg_view_at {
     ($s:ident, $u:expr) => {
-        SplatView {
-            x: crate::subgroup::broadcast_at($s.x, $u),
-            y: crate::subgroup::broadcast_at($s.y, $u),
-            depth: crate::subgroup::broadcast_at($s.depth, $u),
-            conic: [
-                crate::subgroup::broadcast_at($s.conic[0], $u),
-                crate::subgroup::broadcast_at($s.conic[1], $u),
-                crate::subgroup::broadcast_at($s.conic[2], $u),
-            ],
-            opacity: crate::subgroup::broadcast_at($s.opacity, $u),
-            color: [
-                crate::subgroup::broadcast_at($s.color[0], $u),
-                crate::subgroup::broadcast_at($s.color[1], $u),
-                crate::subgroup::broadcast_at($s.color[2], $u),
-            ],
+        SplatRows {
+            a: crate::subgroup::broadcast_vec4_at($s.a, $u),
+            b: crate::subgroup::broadcast_vec4_at($s.b, $u),
+            c: crate::subgroup::broadcast_vec4_at($s.c, $u),
         }
+        .raster_view()
     };
 }
 
@@ -1040,12 +1032,57 @@ macro_rules! sg_half_at {
     };
 }
 
-/// A lane's splat as the f32 subgroup rasterizers keep it: its view.
+/// A [`ProjectedSplat`] as the f32 subgroup rasterizers bind it: its 64 bytes as four
+/// `Vec4`s (`x y depth conic_a`, `conic_b conic_c opacity r`, `g b tile_x0 tile_y0`,
+/// and the tile fields they do not read).
+#[cfg(feature = "subgroup-ballot")]
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct SplatQuads {
+    a: Vec4,
+    b: Vec4,
+    c: Vec4,
+    d: Vec4,
+}
+
+/// The three `Vec4`s of a [`SplatQuads`] that hold the splat's view.
+///
+/// Why not the ten fields: on llvmpipe each storage-buffer load at a per-lane address is
+/// one loop over the 8 lanes, whatever its width, so ten `f32` loads cost ten loops and
+/// three `Vec4` loads three. The compiler keeps a `Vec4` load whole only where the vector
+/// is used whole (taken apart field by field, `spirv-opt` makes it four scalar loads, as
+/// `spirv-dis` showed); here the whole vectors go through the subgroup shuffles
+/// ([`sg_view_at`]), which is what keeps them.
+#[cfg(feature = "subgroup-ballot")]
+#[derive(Clone, Copy)]
+struct SplatRows {
+    a: Vec4,
+    b: Vec4,
+    c: Vec4,
+}
+
+#[cfg(feature = "subgroup-ballot")]
+impl RasterSplat for SplatRows {
+    #[inline]
+    fn raster_view(&self) -> SplatView<f32> {
+        SplatView {
+            x: self.a.x,
+            y: self.a.y,
+            depth: self.a.z,
+            conic: [self.a.w, self.b.x, self.b.y],
+            opacity: self.b.z,
+            color: [self.b.w, self.c.x, self.c.y],
+        }
+    }
+}
+
+/// A lane's splat as the f32 subgroup rasterizers keep it: three `Vec4` loads.
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! sg_load_view {
-    ($e:expr) => {
-        $e.view()
-    };
+    ($e:expr) => {{
+        let quads = &$e;
+        SplatRows { a: quads.a, b: quads.b, c: quads.c }
+    }};
 }
 
 /// A lane's splat as the half-precision subgroup rasterizers keep it: packed.
@@ -1261,7 +1298,7 @@ macro_rules! rasterize_fwd_subgroup_entry {
     };
 }
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
+rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup, SplatQuads, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
 rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
 
@@ -1381,7 +1418,7 @@ macro_rules! rasterize_fused_fwd_subgroup_entry {
     };
 }
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup, ProjectedSplat, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
+rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup, SplatQuads, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
 rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
 
@@ -1432,7 +1469,7 @@ macro_rules! rasterize_bwd_subgroup_entry {
             #[spirv(workgroup_id)] group: UVec3,
             #[spirv(local_invocation_index)] lane: u32,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[SplatQuads],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] contributors: &[u32],
@@ -1493,7 +1530,7 @@ macro_rules! rasterize_bwd_subgroup_entry {
             // first); the others send nothing.
             macro_rules! sparse {
                 ($mine:ident, $top:ident, $len:ident, $sums:ident) => {
-                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine, b.lo, b.hi, &cfg));
+                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine.raster_view(), b.lo, b.hi, &cfg));
                     while todo != 0 {
                         let u = todo.trailing_zeros();
                         todo &= todo - 1;
@@ -1524,7 +1561,7 @@ macro_rules! rasterize_bwd_subgroup_entry {
                         // Lane l: list index top - 1 - l (lanes past the round load its first).
                         let index = if lane < len { top - 1 - lane } else { top - 1 };
                         let id = isect_values[(start + index) as usize];
-                        let mine = splats[id as usize].view();
+                        let mine = sg_load_view!(splats[id as usize]);
                         // The subgroup's sums for this lane's splat.
                         let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
                         $visit!(mine, top, len, sums);
@@ -1613,7 +1650,7 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
             #[spirv(workgroup_id)] group: UVec3,
             #[spirv(local_invocation_index)] lane: u32,
             #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] frame: &FrameParams,
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[ProjectedSplat],
+            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] splats: &[SplatQuads],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] isect_values: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] ranges: &[u32],
             #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] masks: &[u32],
@@ -1674,7 +1711,7 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
             // first); the others send nothing.
             macro_rules! sparse {
                 ($mine:ident, $mine_mask:ident, $top:ident, $len:ident, $sums:ident) => {
-                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine, b.lo, b.hi, &cfg));
+                    let mut todo = crate::subgroup::ballot8(lane < $len && may_touch_rect(&$mine.raster_view(), b.lo, b.hi, &cfg));
                     while todo != 0 {
                         let u = todo.trailing_zeros();
                         todo &= todo - 1;
@@ -1704,7 +1741,7 @@ macro_rules! rasterize_fused_bwd_subgroup_entry {
                         let len = if top < 8 { top } else { 8 };
                         let index = if lane < len { top - 1 - lane } else { top - 1 };
                         let id = isect_values[(start + index) as usize];
-                        let mine = splats[id as usize].view();
+                        let mine = sg_load_view!(splats[id as usize]);
                         let mine_mask = masks[id as usize];
                         // The subgroup's sums for this lane's splat.
                         let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];

@@ -15,6 +15,7 @@
 //! whose subgroup size is 8, in workgroups of 8, and their loops are uniform.
 
 use spirv_std::arch::{subgroup_ballot, subgroup_shuffle, subgroup_shuffle_xor};
+use spirv_std::glam::Vec4;
 
 /// The value `v` of lane `LANE` (< 8) of this subgroup, to every lane.
 #[inline]
@@ -32,6 +33,13 @@ pub fn broadcast_at(v: f32, lane: u32) -> f32 {
 /// [`broadcast_at`] for a `u32`.
 #[inline]
 pub fn broadcast_u32_at(v: u32, lane: u32) -> u32 {
+    subgroup_shuffle(v, lane)
+}
+
+/// [`broadcast_at`] for a `Vec4`: one shuffle of the whole vector (a `Vec4` loaded from
+/// a storage buffer and used whole stays one load; see `splat::SplatRows`).
+#[inline]
+pub fn broadcast_vec4_at(v: Vec4, lane: u32) -> Vec4 {
     subgroup_shuffle(v, lane)
 }
 

@@ -19,7 +19,9 @@ use core::arch::asm;
 use spirv_std::glam::Vec4;
 use spirv_std::Image;
 
-/// A read-only buffer of `f32` bound as a uniform texel buffer.
+/// A read-only buffer of `f32` bound as a uniform texel buffer (only the subgroup GEMMs
+/// read one-float texels now).
+#[cfg(feature = "subgroup-ballot")]
 pub type TexelBuffer = Image!(buffer, type=f32, sampled);
 
 /// The same, read 4 floats a fetch: the image declares `Rgba32f`, which the engine
@@ -27,6 +29,7 @@ pub type TexelBuffer = Image!(buffer, type=f32, sampled);
 pub type TexelBuffer4 = Image!(buffer, format = rgba32f, sampled);
 
 /// Element `index` of `buffer` (0 past its end).
+#[cfg(feature = "subgroup-ballot")]
 #[inline]
 pub fn fetch(buffer: &TexelBuffer, index: u32) -> f32 {
     let mut texel = Vec4::ZERO;
