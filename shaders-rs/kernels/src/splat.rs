@@ -991,7 +991,7 @@ pub fn screen_stats(
 // an 8 × 4 block of a tile (8 workgroups per 16 × 16 tile, 2 per tile of 8, 32 per tile
 // of 32); each lane loads one splat
 // of the next 8 of the tile's list, and every lane gets each of the 8 by broadcasts
-// with constant lane numbers (a register shuffle there): 11 loads per lane feed
+// with constant lane numbers (a register shuffle there): 4 loads per lane feed
 // 8 splats × 4 pixels, and no barrier is needed. The engine records these only where
 // the device is a CPU with subgroups of exactly 8 lanes, so every loop below is uniform
 // (the whole subgroup runs it to the end) and every broadcast reads an active lane.
@@ -1300,7 +1300,7 @@ macro_rules! rasterize_fwd_subgroup_entry {
 #[cfg(feature = "subgroup-ballot")]
 rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup, SplatQuads, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
+rasterize_fwd_subgroup_entry!(rasterize_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 words shuffled a splat where the f32 kernel shuffles 12 (three `Vec4`s)."]);
 
 /// [`rasterize_fused_fwd`] for CPU devices with subgroups of 8 (see the section
 /// header), on `[T/8 · tiles_x, T/4 · tiles_y]` workgroups of 8 (tiles of side T).
@@ -1420,7 +1420,7 @@ macro_rules! rasterize_fused_fwd_subgroup_entry {
 #[cfg(feature = "subgroup-ballot")]
 rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup, SplatQuads, sg_load_view, sg_view_at, #[doc = "The f32 splats' kernel (see the macro)."]);
 #[cfg(feature = "subgroup-ballot")]
-rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 broadcasts a splat where the f32 kernel makes 10."]);
+rasterize_fused_fwd_subgroup_entry!(rasterize_fused_fwd_subgroup_half, HalfSplat, sg_load_raw, sg_half_at, #[doc = "[`rasterize_fused_fwd_subgroup`] reading [`HalfSplat`]s (`RenderSettings::half_splats`): 6 words shuffled a splat where the f32 kernel shuffles 12 (three `Vec4`s)."]);
 
 /// One pixel's backward state for [`rasterize_bwd_subgroup_entry`]: its state, and the
 /// number of its tile's splats it blended up to its last (0 outside the image).
