@@ -243,6 +243,25 @@ pub mod splat {
     /// 2.6% in the 1080p scene of 6,500 large splats, whose `alpha_min` rims cover many
     /// pixels).
     pub fn assert_forward_close(ctx: &Context, image: &RenderedImage, gaussians: &[Gaussian<f32>], frame: &FrameParams, cpu: &ReferenceRender<f32>, step: usize, what: &str) -> ForwardComparison {
+        assert_forward_close_to(ctx, image, gaussians, frame, cpu, reference::render, step, what)
+    }
+
+    /// [`assert_forward_close`] for a reference that `render_reference` makes (the CPU
+    /// reference of a precision knob, say): the nudged renders that find the pixels near
+    /// a threshold must come from the same function as `cpu`, or the knob's own rounding
+    /// reads as nearness (seen on an H200 with half-precision splats against the f32
+    /// reference: half the pixels "near").
+    #[allow(clippy::too_many_arguments)]
+    pub fn assert_forward_close_to(
+        ctx: &Context,
+        image: &RenderedImage,
+        gaussians: &[Gaussian<f32>],
+        frame: &FrameParams,
+        cpu: &ReferenceRender<f32>,
+        render_reference: fn(&[Gaussian<f32>], &FrameParams) -> ReferenceRender<f32>,
+        step: usize,
+        what: &str,
+    ) -> ForwardComparison {
         let pixels = (image.width * image.height) as usize;
         assert_eq!((cpu.width, cpu.height), (image.width, image.height), "{what}: image sizes");
         let on_cpu = ctx.info().kind == DeviceKind::Cpu;
@@ -250,7 +269,7 @@ pub mod splat {
             let mut f = *frame;
             f.alpha_min *= factor;
             f.transmittance_min *= factor;
-            reference::render(gaussians, &f)
+            render_reference(gaussians, &f)
         };
         let (lo, hi) = if on_cpu { (None, None) } else { (Some(nudged(1.0 - THRESHOLD_NUDGE)), Some(nudged(1.0 + THRESHOLD_NUDGE))) };
         let tolerance = if on_cpu { CPU_DEVICE_FORWARD_TOLERANCE } else { GPU_FORWARD_TOLERANCE };

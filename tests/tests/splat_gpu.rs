@@ -7,7 +7,7 @@ use drape_engine::ops::splat::scene::{frame_params, RenderSettings};
 use drape_engine::error::EngineError;
 use drape_shared::half::round_to_f16;
 use drape_shared::splat::layout::{sh_coeffs, DEFAULT_TILE_SIZE, RASTER_BLOCK};
-use drape_tests::splat::{assert_forward_close, camera, gpu_render_with, raster_variants, scene};
+use drape_tests::splat::{assert_forward_close, assert_forward_close_to, camera, gpu_render_with, raster_variants, scene};
 use drape_tests::{gpu, has_feature, Feature};
 use rand::{Rng, SeedableRng};
 
@@ -434,8 +434,11 @@ fn tile_sizes_8_and_32_match_cpu() {
     let variant = *raster_variants(&gpu, test).last().expect("a rasterizer");
     let render = |tile_size| gpu_render_with(&gpu, &cloud, &cam, &RenderSettings { tile_size, ..RenderSettings::default() }, variant);
     let (image16, stats16) = render(16);
+    // Tiles of 8 need the subgroup rasterizer; without it (a GPU) raster_variants has
+    // printed SKIPPED for it, and only 32 is compared with 16.
+    let smaller_tiles = variant == RasterVariant::Subgroup;
     let mut intersections = vec![];
-    for tile_size in [8, 32] {
+    for tile_size in if smaller_tiles { vec![8, 32] } else { vec![32] } {
         let (image, stats) = render(tile_size);
         // The same splats blend in the same order at every pixel; only the entries a
         // pixel skips differ, so the colours agree to the last bits (1e-6: a GPU may
@@ -445,7 +448,11 @@ fn tile_sizes_8_and_32_match_cpu() {
         intersections.push(stats.intersections);
     }
     // A splat's extent covers more small tiles than large ones.
-    assert!(intersections[0] > stats16.intersections && stats16.intersections > intersections[1], "intersections at tiles of 8, 16, 32: {}, {}, {}", intersections[0], stats16.intersections, intersections[1]);
+    let n32 = *intersections.last().expect("tiles of 32");
+    assert!(stats16.intersections > n32, "intersections at tiles of 16, 32: {}, {n32}", stats16.intersections);
+    if smaller_tiles {
+        assert!(intersections[0] > stats16.intersections, "intersections at tiles of 8, 16: {}, {}", intersections[0], stats16.intersections);
+    }
 
     // What the kernels cannot take is refused before anything is recorded.
     let gaussians = GaussianBuffers::upload(&gpu, "params", &cloud).expect("upload");
@@ -533,7 +540,7 @@ fn half_precision_splats_match_cpu() {
             let gaussians = cloud.gaussians::<f32>();
             let what = format!("half-precision splats, {n} Gaussians, {w}x{h}, {variant:?} rasterizer");
             let cpu = reference::render_half_splats(&gaussians, &frame);
-            assert_forward_close(&gpu, &image, &gaussians, &frame, &cpu, 1, &what);
+            assert_forward_close_to(&gpu, &image, &gaussians, &frame, &cpu, reference::render_half_splats, 1, &what);
             let full = reference::render(&gaussians, &frame);
             let d = drape_tests::splat::max_abs_diff(&image.rgb, &full.rgb).max(drape_tests::splat::max_abs_diff(&image.alpha, &full.alpha));
             let mse = image.rgb.iter().zip(&full.rgb).map(|(a, b)| f64::from(a - b).powi(2)).sum::<f64>() / image.rgb.len() as f64;
