@@ -565,9 +565,9 @@ fn half_precision_splats_match_cpu() {
 /// render from half-precision splats. Both pack with the same round-to-nearest-even
 /// integer code, but the GPU packs what it projected, with its own exp and fused
 /// multiply-adds; where a value lies within those last bits of a half rounding boundary,
-/// the two packed halves are one half ulp apart (at most 2^-10 of the value). A colour,
-/// opacity or depth one half ulp off moves a pixel (Σ w v, Σ w = alpha ≤ 1) by at most
-/// 2^-10 (colours and opacities ≤ 1; depth relative); a conic one half ulp off moves a
+/// the two packed halves are one binary16 ulp apart (at most 2^-10 of the value). A colour,
+/// opacity or depth one binary16 ulp off moves a pixel (Σ w v, Σ w = alpha ≤ 1) by at most
+/// 2^-10 (colours and opacities ≤ 1; depth relative); a conic one binary16 ulp off moves a
 /// splat's exponent by 2^-10 of itself, at most σ = max_sigmas² / 2 ≈ 5.5 at the
 /// cut-off, so its alpha by at most 5.5 · 2^-10. On top of the f32 forward's GPU
 /// tolerance. An H200 gave 1.09e-4 (a depth, relative). CPU devices project as the host
