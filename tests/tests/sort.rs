@@ -190,13 +190,14 @@ fn chunk_sort_moves_float_special_bits_untouched() {
 }
 
 /// The chunk kernels other devices run: those that read storage buffers (where a sort's
-/// buffers are past the device's texel-buffer limits) and those that store pairs as two
-/// u32s (devices without `shaderInt64`), against the reference, at lengths that leave
-/// chunks of odd length and chunks with nothing to do, bounded and not.
+/// buffers are past the device's texel-buffer limits; 8 bits: the one-pass kernels) and
+/// those that store pairs as two u32s (devices without `shaderInt64`), against the
+/// reference, at lengths that leave chunks of odd length and chunks with nothing to do,
+/// bounded and not.
 #[test]
 fn chunk_sort_fallback_kernels_match_the_reference() {
     let gpu = gpu();
-    for (len, bits, texel_reads) in [257usize, 65_537].into_iter().flat_map(|len| [(len, 16u32, false), (len, 32, false), (len, 32, true)]) {
+    for (len, bits, texel_reads) in [257usize, 65_537].into_iter().flat_map(|len| [(len, 8u32, false), (len, 16, false), (len, 32, false), (len, 32, true)]) {
         let keys = Pattern::Random.generate(len, bits, 11 + len as u64);
         let values: Vec<u32> = (0..len as u32).collect();
         let plan = RadixSort::with_variant(&gpu, len as u32, SortVariant::Chunks).expect("plan").without_int64_stores();

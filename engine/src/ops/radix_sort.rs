@@ -12,7 +12,7 @@
 //! the last (`radix_sort::chunk_scatter_zip`, `chunk_scatter_pairs`,
 //! `chunk_scatter_unzip`), which halves the loads and stores per pair on llvmpipe; a
 //! chunked sort of one pass, or of more pairs than one binding of pairs holds, keeps
-//! them apart as blocks do. Those passes read through texel views where the buffers
+//! them apart as blocks do. Chunk passes read through texel views where the buffers
 //! allow it (the `_texel` kernels, through 4-float views: four keys, or two interleaved
 //! pairs, a fetch; a gather on llvmpipe, where a storage-buffer load is a loop over the
 //! lanes per component) and, on devices with `shaderInt64`, store
@@ -224,6 +224,7 @@ impl RadixSort {
             let blocks = radix_sort::block_count(len);
             (Kernel::RadixSortHistogram, Kernel::RadixSortScatter, RADIX_BUCKETS, blocks, blocks)
         };
+        let max_texels = rec.context().info().max_texel_buffer_elements;
         let mut src = (keys, values);
         let mut dst = (&self.scratch[0], &self.scratch[1]);
         for pass in 0..passes {
@@ -231,6 +232,13 @@ impl RadixSort {
             let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..params };
             // Unread when unbounded; the keys stand in for the binding.
             let len_words = count_words.unwrap_or(src.0);
+            // The chunk kernels read through texel views where this pass's inputs allow
+            // them (as `record_chunk_passes` does).
+            let texel = chunked && self.texel_reads && src.0.texel_readable(max_texels) && src.1.texel_readable(max_texels);
+            let (histogram, scatter) = match texel {
+                true => (Kernel::RadixSortChunkHistogramTexel, Kernel::RadixSortChunkScatterTexel),
+                false => (histogram, scatter),
+            };
             rec.pass("radix_sort.histogram", histogram)
                 .read("keys", src.0)
                 .write("histogram", &self.histogram)

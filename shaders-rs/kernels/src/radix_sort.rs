@@ -503,6 +503,27 @@ pub fn chunk_scatter(
     scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst);
 }
 
+/// [`chunk_scatter`] reading keys and values through texel views (a sort of one pass:
+/// on llvmpipe two gathers a step of four pairs where storage loads are two loops over
+/// the lanes a pair).
+#[allow(clippy::too_many_arguments)]
+#[spirv(compute(threads(8)))]
+pub fn chunk_scatter_texel(
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(workgroup_id)] group: UVec3,
+    #[spirv(push_constant)] params: &SortPassParams,
+    #[spirv(descriptor_set = 0, binding = 0)] keys_in: &TexelBuffer4,
+    #[spirv(descriptor_set = 0, binding = 1)] values_in: &TexelBuffer4,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] scanned_histogram: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] keys_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
+) {
+    let src = TexelSplit { keys: keys_in, values: values_in };
+    let mut dst = SplitMut { keys: keys_out, values: values_out };
+    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst);
+}
+
 /// The first pass of a longer sort: separate buffers in, interleaved pairs out.
 #[allow(clippy::too_many_arguments)]
 #[spirv(compute(threads(8)))]
