@@ -3,17 +3,34 @@
 //! sides. Both variants run on every device: the block kernels (GPUs) and the chunk
 //! kernels (CPU devices).
 
-use drape_engine::ops::scan::{exclusive_scan_host_with, ScanVariant};
+use drape_engine::ops::scan::{exclusive_scan_host_with, ExclusiveScan, ScanVariant};
 use drape_shared::chunks::{chunk_count, CHUNK_MAX_LEN};
-use drape_shared::scan::exclusive_scan_in_place;
+use drape_shared::scan::{exclusive_scan_in_place, SERIAL_SCAN_MAX_LEN};
 use drape_tests::{gpu, Pattern};
 
-/// Both variants' scans, which must agree.
+/// Both variants' scans, which must agree; and the chunk variant's three-dispatch
+/// kernels where a chunked scan of this length takes the one-invocation kernel
+/// (`scan::chunk_serial`, up to `SERIAL_SCAN_MAX_LEN`).
 fn exclusive_scan_host(gpu: &drape_engine::Context, data: &[u32]) -> drape_engine::Result<Vec<u32>> {
     let blocks = exclusive_scan_host_with(gpu, ScanVariant::Blocks, data)?;
     let chunks = exclusive_scan_host_with(gpu, ScanVariant::Chunks, data)?;
     assert!(blocks == chunks, "the block and chunk variants disagree ({} elements)", data.len());
+    if data.len() as u32 <= SERIAL_SCAN_MAX_LEN {
+        let three = three_dispatch_chunk_scan(gpu, data)?;
+        assert!(three == chunks, "the one-invocation and three-dispatch chunk scans disagree ({} elements)", data.len());
+    }
     Ok(blocks)
+}
+
+/// The chunk variant's scan by `chunk_reduce`, `chunk_sums` and `chunk_downsweep`
+/// whatever the length.
+fn three_dispatch_chunk_scan(gpu: &drape_engine::Context, data: &[u32]) -> drape_engine::Result<Vec<u32>> {
+    let mut buf = gpu.upload("scan data", data)?;
+    let plan = ExclusiveScan::with_variant(gpu, "scan", data.len() as u32, ScanVariant::Chunks)?.without_serial();
+    let mut rec = gpu.record("three-dispatch chunk scan")?;
+    plan.record(&mut rec, &buf, data.len() as u32)?;
+    rec.submit_and_wait()?;
+    gpu.read_buffer(&mut buf, data.len())
 }
 
 fn check_length(len: usize) {
@@ -53,6 +70,12 @@ fn scan_len_256() {
 #[test]
 fn scan_len_257() {
     check_length(257);
+}
+
+/// The longest scan the chunk variant does in one invocation.
+#[test]
+fn scan_len_65536() {
+    check_length(SERIAL_SCAN_MAX_LEN as usize);
 }
 
 #[test]

@@ -9,13 +9,16 @@
 //! 2M elements; runs of whole quads of 4 elements, each read and written as one `UVec4`,
 //! which on llvmpipe costs one lane loop where an element cost one)
 //! (`drape_shared::chunks`), one invocation scans those sums, and each run is scanned
-//! from its offset: three dispatches, no barriers. The quad holding the last element is
+//! from its offset: three dispatches, no barriers. Up to `SERIAL_SCAN_MAX_LEN` elements
+//! (a chunked radix sort's histogram up to 4M keys) one invocation scans them all
+//! instead (`scan::chunk_serial`): on lavapipe each dispatch costs its threads' start and
+//! finish, about 40 µs, more than that walk. The quad holding the last element is
 //! written whole, its elements past `len` as they were (buffers are whole 16-byte texels).
 //! No workgroup waits on another. In place; wrapping arithmetic; any length up to
 //! [`ExclusiveScan::max_len`]. CPU reference: `drape_shared::scan::exclusive_scan_in_place`.
 
 use drape_shared::chunks::{chunk_count, CHUNK_WORKGROUP_SIZE};
-use drape_shared::scan::{block_count, ChunkScanParams, ScanParams, SCAN_BLOCK_LEN};
+use drape_shared::scan::{block_count, ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SERIAL_SCAN_MAX_LEN};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -59,6 +62,10 @@ pub struct ExclusiveScan {
     pass_reduce: String,
     pass_sums: String,
     pass_downsweep: String,
+    pass_serial: String,
+    /// Whether chunked scans of up to `SERIAL_SCAN_MAX_LEN` run in one invocation
+    /// (off for tests of the three-dispatch kernels at those lengths).
+    serial: bool,
 }
 
 impl ExclusiveScan {
@@ -97,11 +104,21 @@ impl ExclusiveScan {
             pass_reduce: format!("{label}.reduce"),
             pass_sums: format!("{label}.chunk_sums"),
             pass_downsweep: format!("{label}.downsweep"),
+            pass_serial: format!("{label}.serial"),
+            serial: true,
         })
     }
 
     pub fn max_len(&self) -> u32 {
         self.max_len
+    }
+
+    /// The same plan scanning every length with the three-dispatch chunk kernels (for
+    /// tests; the result is the same).
+    #[doc(hidden)]
+    pub fn without_serial(mut self) -> Self {
+        self.serial = false;
+        self
     }
 
     /// The kernels this plan records (never `Auto`).
@@ -125,8 +142,11 @@ impl ExclusiveScan {
         if len == 0 {
             return Ok(());
         }
-        let sums = &self.level_sums[0];
         let params = ChunkScanParams { len, chunks: chunk_count(len), _pad: [0; 2] };
+        if len <= SERIAL_SCAN_MAX_LEN && self.serial {
+            return rec.pass(&self.pass_serial, Kernel::ScanChunkSerial).write("data", data).push(&params).dispatch([1, 1, 1]);
+        }
+        let sums = &self.level_sums[0];
         let groups = params.chunks / CHUNK_WORKGROUP_SIZE;
         rec.pass(&self.pass_reduce, Kernel::ScanChunkReduce)
             .read("data", data)

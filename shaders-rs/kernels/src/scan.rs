@@ -1,6 +1,7 @@
 //! Exclusive prefix sum of `u32`: `scan::reduce` and `scan::downsweep` (blocks, for
 //! GPUs), `scan::chunk_reduce`, `scan::chunk_sums` and `scan::chunk_downsweep` (long runs
-//! walked by one invocation each, for CPU devices: `drape_shared::chunks`).
+//! walked by one invocation each, for CPU devices: `drape_shared::chunks`), and
+//! `scan::chunk_serial` (short scans on CPU devices: one invocation, one dispatch).
 //!
 //! Buffers (blocks): `data` holds `params.len` elements at this level; `block_sums` /
 //! `block_offsets` one element per block of `SCAN_BLOCK_LEN` (see
@@ -165,6 +166,36 @@ pub fn chunk_downsweep(
     let mut running = chunk_offsets[chunk as usize];
     let mut q = start;
     while q < end {
+        let v = data[q as usize];
+        let a = running;
+        let b = a.wrapping_add(v.x);
+        let c = b.wrapping_add(v.y);
+        let d = c.wrapping_add(v.z);
+        running = d.wrapping_add(v.w);
+        let mut scanned = UVec4::new(a, b, c, d);
+        let valid = params.len - 4 * q;
+        if valid < 4 {
+            scanned = keep_valid(scanned, v, valid);
+        }
+        data[q as usize] = scanned;
+        q += 1;
+    }
+}
+
+/// The whole scan in one invocation, quad by quad, in place: for scans short enough
+/// (`drape_shared::scan::SERIAL_SCAN_MAX_LEN`) that one walk costs less than the two
+/// extra dispatches of `chunk_reduce` / `chunk_sums` / `chunk_downsweep` (on llvmpipe
+/// each dispatch waits for its threads to start and finish; a radix sort's histogram is
+/// 16K counters for 1M keys). One workgroup of one invocation.
+#[spirv(compute(threads(1)))]
+pub fn chunk_serial(
+    #[spirv(push_constant)] params: &ChunkScanParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &mut [UVec4],
+) {
+    let quads = params.len.div_ceil(4);
+    let mut running = 0u32;
+    let mut q = 0;
+    while q < quads {
         let v = data[q as usize];
         let a = running;
         let b = a.wrapping_add(v.x);

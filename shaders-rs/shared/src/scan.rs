@@ -69,3 +69,8 @@ pub fn exclusive_scan_in_place(data: &mut [u32]) -> u32 {
     }
     running
 }
+
+/// Longest scan the chunked variant does in one invocation (`scan::chunk_serial`, one
+/// dispatch instead of three): 16K quads, well inside llvmpipe's 65,535 loop iterations
+/// an invocation, and the histogram of a chunked radix sort of up to 4M keys.
+pub const SERIAL_SCAN_MAX_LEN: u32 = 65_536;
