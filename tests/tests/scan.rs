@@ -119,7 +119,7 @@ fn scan_level_boundaries() {
 }
 
 /// A scan of the first `len` elements of a longer buffer leaves the rest as it was, in
-/// both variants; the chunk kernels move whole quads of 4, so the lengths put the end
+/// both variants (the chunk variant's one-invocation and three-dispatch kernels); the chunk kernels move whole quads of 4, so the lengths put the end
 /// at each place in a quad (and one chunk's run at a quad's end, one inside).
 #[test]
 fn scan_leaves_elements_past_len_unchanged() {
@@ -128,17 +128,20 @@ fn scan_leaves_elements_past_len_unchanged() {
     for len in [1u32, 2, 3, 4, 5, 1029, 1030, 1031, 65_538] {
         let capacity = len as usize + 11;
         let data = Pattern::Random.generate(capacity, 32, u64::from(len));
-        for variant in [ScanVariant::Blocks, ScanVariant::Chunks] {
+        // The chunk variant twice: by one invocation where the length allows, and by
+        // the three-dispatch kernels.
+        for (variant, serial) in [(ScanVariant::Blocks, true), (ScanVariant::Chunks, true), (ScanVariant::Chunks, false)] {
             let mut buf = gpu.upload("scan data", &data).expect("upload");
             let plan = ExclusiveScan::with_variant(&gpu, "scan", len, variant).expect("plan");
+            let plan = if serial { plan } else { plan.without_serial() };
             let mut rec = gpu.record("scan_prefix").expect("record");
             plan.record(&mut rec, &buf, len).expect("record scan");
             rec.submit_and_wait().expect("submit");
             let got = gpu.read_buffer::<u32>(&mut buf, capacity).expect("read back");
             let mut expected = data.clone();
             exclusive_scan_in_place(&mut expected[..len as usize]);
-            assert!(got[..len as usize] == expected[..len as usize], "{variant:?} len {len}: the scan differs");
-            assert!(got[len as usize..] == data[len as usize..], "{variant:?} len {len}: elements past len changed");
+            assert!(got[..len as usize] == expected[..len as usize], "{variant:?} (serial {serial}) len {len}: the scan differs");
+            assert!(got[len as usize..] == data[len as usize..], "{variant:?} (serial {serial}) len {len}: elements past len changed");
         }
     }
 }

@@ -10,7 +10,7 @@
 //! which on llvmpipe costs one lane loop where an element cost one)
 //! (`drape_shared::chunks`), one invocation scans those sums, and each run is scanned
 //! from its offset: three dispatches, no barriers. Up to `SERIAL_SCAN_MAX_LEN` elements
-//! (a chunked radix sort's histogram up to 4M keys) one invocation scans them all
+//! (a chunked radix sort's histogram up to 8M keys) one invocation scans them all
 //! instead (`scan::chunk_serial`): on lavapipe each dispatch costs its threads' start and
 //! finish, about 40 µs, more than that walk. The quad holding the last element is
 //! written whole, its elements past `len` as they were (buffers are whole 16-byte texels).

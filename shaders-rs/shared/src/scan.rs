@@ -12,7 +12,8 @@
 //! Arithmetic is wrapping, like `u32::wrapping_add`, on both sides.
 
 /// Invocations per workgroup of the block variant's scan kernels (the `threads(..)` of
-/// their entry points; the chunk kernels run 8, and 1 for the chunk sums).
+/// their entry points; the chunk kernels run 8, and 1 for the chunk sums and the
+/// one-invocation scan).
 pub const SCAN_WORKGROUP_SIZE: u32 = 256;
 /// Consecutive elements each invocation owns.
 pub const SCAN_ITEMS_PER_THREAD: u32 = 4;
@@ -33,7 +34,9 @@ pub struct ScanParams {
 
 /// Push constants of the chunked scan kernels (`scan::chunk_*`, for CPU devices: each
 /// invocation sums and then scans one of `chunks` runs of `len` elements, see
-/// [`crate::chunks`]; one invocation scans the chunk sums in between).
+/// [`crate::chunks`]; one invocation scans the chunk sums in between; up to
+/// [`SERIAL_SCAN_MAX_LEN`] one invocation scans all `len` elements, and `chunks` is
+/// unread).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
@@ -72,5 +75,8 @@ pub fn exclusive_scan_in_place(data: &mut [u32]) -> u32 {
 
 /// Longest scan the chunked variant does in one invocation (`scan::chunk_serial`, one
 /// dispatch instead of three): 16K quads, well inside llvmpipe's 65,535 loop iterations
-/// an invocation, and the histogram of a chunked radix sort of up to 4M keys.
+/// an invocation, and the histogram of a chunked radix sort of up to 8M keys (256
+/// chunks of 256 counters).
 pub const SERIAL_SCAN_MAX_LEN: u32 = 65_536;
+// The serial walk is one loop of a quad an iteration.
+const _: () = assert!(SERIAL_SCAN_MAX_LEN.div_ceil(4) <= 65_535);
