@@ -163,7 +163,13 @@ pub fn chunk_downsweep(
 ) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
     let (start, end) = chunk_quads(params, chunk);
-    let mut running = chunk_offsets[chunk as usize];
+    scan_quads(data, params.len, start, end, chunk_offsets[chunk as usize]);
+}
+
+/// Scans quads `start..end` of `data` in place from `running`, the quad holding element
+/// `len - 1` written whole with its elements past `len` as they were read.
+#[inline]
+fn scan_quads(data: &mut [UVec4], len: u32, start: u32, end: u32, mut running: u32) {
     let mut q = start;
     while q < end {
         let v = data[q as usize];
@@ -173,7 +179,7 @@ pub fn chunk_downsweep(
         let d = c.wrapping_add(v.z);
         running = d.wrapping_add(v.w);
         let mut scanned = UVec4::new(a, b, c, d);
-        let valid = params.len - 4 * q;
+        let valid = len - 4 * q;
         if valid < 4 {
             scanned = keep_valid(scanned, v, valid);
         }
@@ -192,22 +198,5 @@ pub fn chunk_serial(
     #[spirv(push_constant)] params: &ChunkScanParams,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] data: &mut [UVec4],
 ) {
-    let quads = params.len.div_ceil(4);
-    let mut running = 0u32;
-    let mut q = 0;
-    while q < quads {
-        let v = data[q as usize];
-        let a = running;
-        let b = a.wrapping_add(v.x);
-        let c = b.wrapping_add(v.y);
-        let d = c.wrapping_add(v.z);
-        running = d.wrapping_add(v.w);
-        let mut scanned = UVec4::new(a, b, c, d);
-        let valid = params.len - 4 * q;
-        if valid < 4 {
-            scanned = keep_valid(scanned, v, valid);
-        }
-        data[q as usize] = scanned;
-        q += 1;
-    }
+    scan_quads(data, params.len, 0, params.len.div_ceil(4), 0);
 }
