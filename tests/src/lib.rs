@@ -346,7 +346,6 @@ pub mod reference_python {
     use std::path::{Path, PathBuf};
     use std::process::Command;
 
-    use drape_trainer::npy::{decode, encode, Array};
 
     /// `DRAPE_TORCH_PYTHON`, else the project's `target/torch-venv`.
     pub fn python() -> PathBuf {
@@ -370,16 +369,38 @@ pub mod reference_python {
         d
     }
 
-    /// Writes `dir/name.npy` (float64).
+    /// Writes `dir/name.npy`: little-endian float64, C order, format 1.0. The exchange
+    /// with Python needs only this one dtype; the trainer's `npy` module (the product's
+    /// reader, tested against numpy itself) is not linked here so that the engine's
+    /// tests do not link the trainer.
     pub fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
-        std::fs::write(dir.join(format!("{name}.npy")), encode(&Array::f64(shape.to_vec(), data.to_vec()))).expect("write npy");
+        assert_eq!(shape.iter().product::<usize>(), data.len(), "{name}: shape {shape:?} does not hold {} values", data.len());
+        let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+        let shape = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+        let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
+        // Data starts at a multiple of 64 bytes; the header ends in '\n'.
+        header.push_str(&" ".repeat((64 - (10 + header.len() + 1) % 64) % 64));
+        header.push('\n');
+        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+        bytes.extend((header.len() as u16).to_le_bytes());
+        bytes.extend(header.as_bytes());
+        bytes.extend(data.iter().flat_map(|v| v.to_le_bytes()));
+        std::fs::write(dir.join(format!("{name}.npy")), bytes).expect("write npy");
     }
 
-    /// Reads `dir/name.npy` as f64.
+    /// Reads `dir/name.npy` as numpy writes it from the reference scripts: float64,
+    /// little-endian, C order (format 1.x, 2.x or 3.x header).
     pub fn get(dir: &Path, name: &str) -> Vec<f64> {
         let path = dir.join(format!("{name}.npy"));
         let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        decode(&bytes, &path.display().to_string(), None).expect("decode npy").data
+        assert!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"), "{}: not a .npy file", path.display());
+        let (header_len, start) = match bytes[6] {
+            1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+            _ => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+        };
+        let header = String::from_utf8_lossy(&bytes[start..start + header_len]);
+        assert!(header.contains("'descr': '<f8'") && header.contains("'fortran_order': False"), "{}: expected C-order float64, header {header}", path.display());
+        bytes[start + header_len..].chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))).collect()
     }
 
     /// Runs `tests/python/<script>` on `dirs` and fails the test, with its stderr, if

@@ -1,6 +1,8 @@
 //! The Cloth-HUGS avatar side of drape: the SMPL-format body (model, loader, the
-//! project's procedural body, posing), NumPy file formats, and (in later issues)
-//! garments, cloth simulation, datasets, training and evaluation.
+//! project's procedural body, posing), garments and their cloth simulation, the dataset
+//! readers (NeuMan, ZJU-MoCap, the synthetic sequences; NumPy, pickle and COLMAP files),
+//! and the layered avatar (`avatar`): training, densification, evaluation, animation
+//! and editing. Every fallible function returns [`TrainerError`].
 #![forbid(unsafe_code)]
 
 pub mod avatar;
@@ -8,9 +10,12 @@ pub mod body;
 pub mod camera;
 pub mod cloth;
 pub mod dataset;
+pub mod error;
 pub mod garment;
 pub mod grid;
 pub mod mesh;
 pub mod motion;
 pub mod npy;
 pub mod pickle;
+
+pub use error::{Result, TrainerError};

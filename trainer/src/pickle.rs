@@ -228,7 +228,7 @@ enum Obj {
     EmptyArray,
 }
 
-fn into_value(o: Obj) -> Result<PyValue, String> {
+fn into_value(o: Obj) -> crate::Result<PyValue> {
     match o {
         Obj::Value(v) => Ok(v),
         Obj::Tuple(items) => Ok(PyValue::Tuple(items.into_iter().map(into_value).collect::<Result<_, _>>()?)),
@@ -263,7 +263,7 @@ pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
     decode_inner(bytes, what).map_err(|m| PickleError::new(what, m))
 }
 
-fn decode_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
+fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
     let mut stack: Vec<Obj> = Vec::new();
     let mut memo: std::collections::HashMap<u32, Obj> = Default::default();
     let mut at = 0usize;
@@ -382,7 +382,7 @@ fn decode_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
                 }
             }
             b'c' => {
-                let mut line = || -> Result<String, String> {
+                let mut line = || -> crate::Result<String> {
                     let end = bytes[at..].iter().position(|&b| b == b'\n').ok_or_else(|| format!("{what}: GLOBAL without newline"))?;
                     let s = String::from_utf8_lossy(&bytes[at..at + end]).into_owned();
                     at += end + 1;
@@ -456,7 +456,7 @@ fn decode_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
 }
 
 /// An ndarray from its state `(version, shape, dtype, fortran, data)`.
-fn build_array(state: Vec<Obj>) -> Result<PyValue, String> {
+fn build_array(state: Vec<Obj>) -> crate::Result<PyValue> {
     let [_, shape, dtype, fortran, data] = <[Obj; 5]>::try_from(state).map_err(|s| format!("array state has {} items, expected 5", s.len()))?;
     let shape: Vec<usize> = match into_value(shape)? {
         PyValue::Tuple(t) => t.iter().map(|d| match d { PyValue::Int(i) if *i >= 0 => Ok(*i as usize), _ => Err("bad shape".to_string()) }).collect::<Result<_, _>>()?,
@@ -500,7 +500,7 @@ pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, PickleErro
     decode_object_npy_inner(bytes, what).map_err(|m| PickleError::new(what, m))
 }
 
-fn decode_object_npy_inner(bytes: &[u8], what: &str) -> Result<PyValue, String> {
+fn decode_object_npy_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(format!("{what}: not a .npy file"));
     }

@@ -15,7 +15,6 @@ use std::time::Instant;
 use drape_engine::ops::splat::scene::RenderSettings;
 
 use crate::avatar::run::OpenRun;
-use crate::avatar::train::gpu;
 use crate::body::kinematics::{rodrigues, Pose, M3};
 use crate::camera::Camera;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
@@ -114,7 +113,7 @@ fn orbit_camera(start: &Camera, anchor_pelvis: V3, up: V3, pelvis: V3, angle: f6
 
 /// Renders `motion` on the run's avatar into `out` (which must exist): `frameNNNN.png`
 /// per frame and, with `options.gif`, `animation.gif` at the motion's frame rate.
-pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, options: &AnimateOptions, out: &Path, progress: &mut dyn FnMut(usize, usize)) -> Result<AnimateReport, String> {
+pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, options: &AnimateOptions, out: &Path, progress: &mut dyn FnMut(usize, usize)) -> crate::Result<AnimateReport> {
     let frames = options.frames.min(motion.len());
     if frames == 0 {
         return Err("the motion has no frames".into());
@@ -135,14 +134,14 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
         let angle = options.orbit_degrees.to_radians() * k as f64 / frames as f64;
         let cam = orbit_camera(&start_camera, anchor_pelvis, up, pelvis, angle);
         let t0 = Instant::now();
-        gpu(run.avatar.set_frame(ctx, &ft))?;
+        run.avatar.set_frame(ctx, &ft)?;
         {
-            let mut rec = gpu(ctx.record("animate forward"))?;
-            gpu(run.avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("animate forward")?;
+            run.avatar.record_forward(&mut rec, ft.log_scale)?;
+            rec.submit_and_wait()?;
         }
-        gpu(run.renderer.forward(ctx, &run.avatar, &cam.to_pinhole(options.background), &settings))?;
-        let rgb = gpu(run.renderer.read_rgb(ctx))?;
+        run.renderer.forward(ctx, &run.avatar, &cam.to_pinhole(options.background), &settings)?;
+        let rgb = run.renderer.read_rgb(ctx)?;
         frame_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         crate::dataset::image::write_rgb(&out.join(format!("frame{k:04}.png")), width, height, &rgb)?;
         if options.gif {
@@ -158,7 +157,7 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
 
 /// An endlessly looping GIF of HWC RGB images in [0, 1] at `fps` (each frame's 256
 /// colours chosen by the `gif` crate's NeuQuant), written to a temporary file and renamed.
-pub fn write_gif(path: &Path, width: u32, height: u32, images: &[Vec<f32>], fps: f64) -> Result<(), String> {
+pub fn write_gif(path: &Path, width: u32, height: u32, images: &[Vec<f32>], fps: f64) -> crate::Result<()> {
     let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
     let (w, h) = (u16::try_from(width).map_err(|e| err(&e))?, u16::try_from(height).map_err(|e| err(&e))?);
     let tmp = path.with_extension("gif.tmp");

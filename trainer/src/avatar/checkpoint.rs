@@ -108,7 +108,7 @@ fn edge_array(edges: &[[u32; 2]]) -> Array {
 }
 
 /// Writes `state` to `path` atomically (temporary file, then rename).
-pub fn write(path: &Path, state: &ModelState) -> Result<(), String> {
+pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
     let mut a = BTreeMap::new();
     a.insert("format_version".to_string(), u32_array(FORMAT_VERSION));
     a.insert("step".to_string(), u32_array(state.step));
@@ -208,10 +208,10 @@ pub struct LayerShape {
 
 /// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's SH
 /// degree (the model it is loaded into).
-pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) -> Result<ModelState, String> {
+pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) -> crate::Result<ModelState> {
     let file = path.display().to_string();
     let a = read_npz(path).map_err(|e| e.to_string())?;
-    let get = |key: &str, dtype: Dtype, len: usize| -> Result<Vec<f32>, String> {
+    let get = |key: &str, dtype: Dtype, len: usize| -> crate::Result<Vec<f32>> {
         let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
         if arr.dtype != dtype {
             return Err(format!("{file}: array '{key}' has dtype {:?}, expected {dtype:?}", arr.dtype));
@@ -228,14 +228,14 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
     let step = get("step", Dtype::U32, 1)?[0] as u32;
     let mut layers = Vec::new();
     // The Gaussian count of a per-Gaussian array of `width` floats each: the file's.
-    let count_of = |key: &str, width: usize| -> Result<usize, String> {
+    let count_of = |key: &str, width: usize| -> crate::Result<usize> {
         let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
         if arr.data.is_empty() || arr.data.len() % width != 0 {
             return Err(format!("{file}: array '{key}' has {} values, not a positive multiple of {width}", arr.data.len()));
         }
         Ok(arr.data.len() / width)
     };
-    let optional = |key: &str, len: usize| -> Result<Option<Vec<f32>>, String> { if a.contains_key(key) { get(key, Dtype::F32, len).map(Some) } else { Ok(None) } };
+    let optional = |key: &str, len: usize| -> crate::Result<Option<Vec<f32>>> { if a.contains_key(key) { get(key, Dtype::F32, len).map(Some) } else { Ok(None) } };
     for s in shapes {
         let name = &s.name;
         let n = count_of(&format!("{name}.means"), 3)?;
@@ -316,7 +316,7 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
                 other => return Err(format!("{file}: array 'poses.frames' has dtype {other:?}, expected U32")),
             };
             let f = frames.len();
-            let rows = |key: &str| -> Result<Vec<[f64; REFINED_PARAMS]>, String> {
+            let rows = |key: &str| -> crate::Result<Vec<[f64; REFINED_PARAMS]>> {
                 let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (poses.frames is there)"))?;
                 if arr.dtype != Dtype::F64 || arr.data.len() != f * REFINED_PARAMS {
                     return Err(format!("{file}: array '{key}' is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape));

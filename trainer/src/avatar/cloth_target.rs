@@ -58,7 +58,7 @@ fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, V3, f64) {
 
 /// Simulates the garments through every frame of `frames` (each frame index once, in
 /// order); `progress(done, total)` as it goes.
-pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> Result<GarmentFrames, String> {
+pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> crate::Result<GarmentFrames> {
     let t0 = std::time::Instant::now();
     let mut bodies: BTreeMap<usize, &BodyParams> = BTreeMap::new();
     for f in frames {
@@ -88,7 +88,7 @@ pub fn ground_truth_dir(sequence_dir: &Path) -> Option<PathBuf> {
 
 /// The ground-truth garment vertices of `frame` (`tshirt_0007.obj` and
 /// `pants_0007.obj`), or None when the frame has none.
-pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> Result<Option<Vec<[f32; 3]>>, String> {
+pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> crate::Result<Option<Vec<[f32; 3]>>> {
     let mut points = Vec::new();
     for name in names {
         let path = dir.join(format!("{name}_{frame:04}.obj"));
@@ -101,7 +101,7 @@ pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> Result<Option<V
 }
 
 /// The vertices of an OBJ file (read with `tobj`, as the garment loader does).
-pub fn obj_vertices(path: &Path) -> Result<Vec<[f32; 3]>, String> {
+pub fn obj_vertices(path: &Path) -> crate::Result<Vec<[f32; 3]>> {
     let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(models.iter().flat_map(|m| m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]])).collect())
 }

@@ -56,7 +56,7 @@ pub enum Compositing {
 impl Compositing {
     /// `three-pass` (the paper's matte), `three-pass-occlusion`, `single-pass`,
     /// `fused` or `fused-occlusion`.
-    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+    pub fn parse(s: &str) -> crate::Result<Self> {
         match s {
             "three-pass" => Ok(Self::ThreePass(Matte::Paper)),
             "three-pass-occlusion" => Ok(Self::ThreePass(Matte::Occlusion)),

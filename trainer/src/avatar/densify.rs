@@ -41,7 +41,6 @@ use rand::{Rng, SeedableRng};
 use crate::avatar::checkpoint::{AdamState, LayerState};
 use crate::avatar::layer::HumanLayer;
 use crate::avatar::scene::SceneLayer;
-use crate::avatar::train::gpu;
 use crate::body::model::NUM_JOINTS;
 
 /// When and how the layers are densified and pruned (HUGS's human schedule and
@@ -98,7 +97,7 @@ impl DensifyConfig {
     }
 
     /// Errors name the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> crate::Result<()> {
         let rates = [("grad_threshold", self.grad_threshold), ("min_opacity", self.min_opacity), ("max_screen_radius", self.max_screen_radius), ("max_world_size", self.max_world_size), ("percent_dense", self.percent_dense)];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
@@ -274,22 +273,22 @@ fn gather_rows(src: &[f32], width: usize, rows: &[Option<u32>]) -> Vec<f32> {
 /// Densifies and prunes a triplane-driven layer: reads its statistics and its last
 /// forward pass's decoded opacity and scales (`log_scale_offset`: the frame's global
 /// scale, taken off), plans, and rebuilds the layer at its new size.
-pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, done: u32, log_scale_offset: f32) -> Result<Summary, String> {
+pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, done: u32, log_scale_offset: f32) -> crate::Result<Summary> {
     let n = layer.count as usize;
-    let stats = gpu(ctx.read_buffer::<f32>(&mut layer.screen_stats, SCREEN_STATS_FLOATS * n))?;
-    let opacity = gpu(ctx.read_buffer::<f32>(&mut layer.posed.opacity_logits, n))?;
-    let decoded: Vec<f32> = gpu(ctx.read_buffer::<f32>(&mut layer.posed.log_scales, 3 * n))?.iter().map(|v| v - log_scale_offset).collect();
-    let state = gpu(layer.state(ctx))?;
+    let stats = ctx.read_buffer::<f32>(&mut layer.screen_stats, SCREEN_STATS_FLOATS * n)?;
+    let opacity = ctx.read_buffer::<f32>(&mut layer.posed.opacity_logits, n)?;
+    let decoded: Vec<f32> = ctx.read_buffer::<f32>(&mut layer.posed.log_scales, 3 * n)?.iter().map(|v| v - log_scale_offset).collect();
+    let state = layer.state(ctx)?;
     let limit = (done > c.size_prune_after).then_some(c.max_world_size);
     let p = plan(&stats, &opacity, &decoded, extent(&state.means), limit, c);
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
         // Nothing changes but the statistics, which start again.
-        gpu(ctx.write_buffer(&mut layer.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n]))?;
+        ctx.write_buffer(&mut layer.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?;
         return Ok(summary);
     }
     let next = resized_state(&state, &p, &decoded);
-    gpu(layer.restore(ctx, &next))?;
+    layer.restore(ctx, &next)?;
     Ok(summary)
 }
 
@@ -335,15 +334,15 @@ fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32]) -> LayerState {
 
 /// Densifies and prunes the scene layer (plain 3DGS: its parameters are its values;
 /// the world-size limit is `max_world_size` of its extent).
-pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, done: u32, seed: u64) -> Result<Summary, String> {
+pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, done: u32, seed: u64) -> crate::Result<Summary> {
     let n = scene.count as usize;
-    let stats = gpu(ctx.read_buffer::<f32>(&mut scene.screen_stats, SCREEN_STATS_FLOATS * n))?;
-    let state = gpu(scene.state(ctx))?;
+    let stats = ctx.read_buffer::<f32>(&mut scene.screen_stats, SCREEN_STATS_FLOATS * n)?;
+    let state = scene.state(ctx)?;
     let limit = (done > c.size_prune_after).then_some(c.max_world_size * scene.extent);
     let p = plan(&stats, &state.params[3], &state.params[1], scene.extent, limit, c);
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
-        gpu(ctx.write_buffer(&mut scene.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n]))?;
+        ctx.write_buffer(&mut scene.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?;
         return Ok(summary);
     }
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
@@ -372,7 +371,7 @@ pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, 
     }
     let adam = state.adam.iter().zip(&widths).map(|(a, &w)| AdamState { m: gather_rows(&a.m, w, &rows), v: gather_rows(&a.v, w, &rows), step: a.step }).collect();
     let next = crate::avatar::scene::SceneState { params, adam, screen_stats: None };
-    gpu(scene.restore(ctx, &next))?;
+    scene.restore(ctx, &next)?;
     Ok(summary)
 }
 

@@ -20,7 +20,7 @@ use drape_engine::Context;
 
 use crate::avatar::checkpoint::{self, ModelState};
 use crate::avatar::run::{OpenRun, RunInfo};
-use crate::avatar::train::{gpu, write_json};
+use crate::avatar::train::{write_json};
 
 /// One edit.
 #[derive(Clone, Debug, PartialEq)]
@@ -61,14 +61,14 @@ pub fn recolour_sh_head(params: &mut [f32], head_weight: usize, head_bias: usize
 /// Applies `edit` to `run` (with `other`: the run whose cloth layer `SwapCloth` takes)
 /// and writes the result into `out` (created; it must not exist or be empty).
 /// Returns a line saying what was done.
-pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut OpenRun>, out: &Path) -> Result<String, String> {
+pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut OpenRun>, out: &Path) -> crate::Result<String> {
     if out.exists() && std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?.next().is_some() {
         return Err(format!("{}: the output directory exists and is not empty", out.display()));
     }
     let Some(cloth_index) = run.avatar.layers.iter().position(|l| l.name == "cloth") else {
         return Err(format!("{}: the model has no cloth layer to edit", run.dir.display()));
     };
-    let mut state: ModelState = gpu(run.avatar.state(ctx, run.step))?;
+    let mut state: ModelState = run.avatar.state(ctx, run.step)?;
     let mut config = run.config.clone();
     let what = match edit {
         Edit::RemoveCloth => {
@@ -89,7 +89,7 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
         }
         Edit::SwapCloth => {
             let other = other.ok_or("swap: no run to take the cloth layer from")?;
-            let theirs: ModelState = gpu(other.avatar.state(ctx, other.step))?;
+            let theirs: ModelState = other.avatar.state(ctx, other.step)?;
             let Some((_, cloth)) = theirs.layers.into_iter().find(|(n, _)| n == "cloth") else {
                 return Err(format!("{}: the model has no cloth layer to swap in", other.dir.display()));
             };

@@ -23,7 +23,7 @@ use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{gpu, masked_target, write_json, Progress};
+use crate::avatar::train::{masked_target, write_json, Progress};
 use crate::dataset::loader::DatasetFrame;
 
 /// How much the error panel of a sheet amplifies `|render - truth|` (mean over RGB).
@@ -111,14 +111,14 @@ pub struct EvalInputs<'a> {
 
 /// Renders every held-out frame (on black without a scene layer, compared with the
 /// masked ground truth; with one, the whole frame) and measures it.
-pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, progress: &mut dyn FnMut(Progress)) -> Result<(EvalMetrics, Vec<FrameMetrics>), String> {
+pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, progress: &mut dyn FnMut(Progress)) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
     evaluate_with_fid(ctx, avatar, renderer, inputs, None, progress)
 }
 
 /// [`evaluate`], and with `fid` the FID of the renders against the ground truths, on
 /// the whole images and on the human crops (the mask's bounding box, unwidened), on the
 /// CPU (four Inception passes per frame, about 5.7 GFLOP each).
-pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, fid: Option<&FidInception>, progress: &mut dyn FnMut(Progress)) -> Result<(EvalMetrics, Vec<FrameMetrics>), String> {
+pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, fid: Option<&FidInception>, progress: &mut dyn FnMut(Progress)) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
     let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
     // Both fits' T-shirts are named `tshirt`: the names do not depend on the fit.
@@ -131,19 +131,19 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         progress(Progress::Eval { done: k, total: inputs.frames.len() });
         let mut m = FrameMetrics { frame: f.frame, view: f.view, ..FrameMetrics::default() };
         let ft = inputs.rig.frame(&f.body);
-        gpu(avatar.set_frame(ctx, &ft))?;
+        avatar.set_frame(ctx, &ft)?;
         {
-            let mut rec = gpu(ctx.record("eval forward"))?;
-            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("eval forward")?;
+            avatar.record_forward(&mut rec, ft.log_scale)?;
+            rec.submit_and_wait()?;
         }
         if let (Some(dir), Some(cloth)) = (inputs.ground_truth, avatar.cloth()) {
             if let Some(points) = cloth_target::ground_truth(dir, &names, f.frame)? {
-                m.cloth_chamfer = Some(gpu(cloth_chamfer(ctx, cloth, &points))?);
+                m.cloth_chamfer = Some(cloth_chamfer(ctx, cloth, &points)?);
             }
         }
-        gpu(renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), &settings))?;
-        let rgb = gpu(renderer.read_rgb(ctx))?;
+        renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), &settings)?;
+        let rgb = renderer.read_rgb(ctx)?;
         let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
         m.psnr_full = psnr(&rgb, &target);
         m.ssim_full = ssim_of(&rgb, &target, f.width, f.height);
@@ -184,7 +184,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         }
         if let Some(dir) = inputs.sheets {
             let mut panels = vec![target.clone(), rgb.clone(), error_panel(&rgb, &target)];
-            if let Some(passes) = gpu(renderer.read_passes())? {
+            if let Some(passes) = renderer.read_passes()? {
                 panels.extend(passes);
             }
             let sheet = side_by_side(&panels, f.width as usize, f.height as usize);
@@ -194,7 +194,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
     }
     let mut mean = mean_metrics(&per_frame);
     // Fewer than two images leave no covariance: n/a, as without weights.
-    let fid_of = |[renders, truths]: &[Vec<Vec<f32>>; 2]| -> Result<Option<f64>, String> {
+    let fid_of = |[renders, truths]: &[Vec<Vec<f32>>; 2]| -> crate::Result<Option<f64>> {
         if renders.len() < 2 {
             return Ok(None);
         }
@@ -244,7 +244,7 @@ fn side_by_side(panels: &[Vec<f32>], width: usize, height: usize) -> Vec<f32> {
 
 /// Writes `eval.json` (means and per-frame values) and `eval.md` (the same as a
 /// Markdown table) into `dir`; `header` is a line saying what was evaluated.
-pub fn write_reports(dir: &Path, header: &str, mean: &EvalMetrics, frames: &[FrameMetrics]) -> Result<(), String> {
+pub fn write_reports(dir: &Path, header: &str, mean: &EvalMetrics, frames: &[FrameMetrics]) -> crate::Result<()> {
     write_json(&dir.join("eval.json"), &serde_json::json!({ "evaluated": header, "mean": mean, "frames": frames }))?;
     std::fs::write(dir.join("eval.md"), markdown_table(header, mean, frames)).map_err(|e| format!("{}: {e}", dir.join("eval.md").display()))
 }
@@ -293,16 +293,16 @@ pub fn markdown_table(header: &str, mean: &EvalMetrics, frames: &[FrameMetrics])
 }
 
 /// LPIPS of two HWC images on the GPU (a network planned for their size).
-fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: u32, height: u32) -> Result<f64, String> {
+fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: u32, height: u32) -> crate::Result<f64> {
     let mut l = Lpips::new(ctx, weights, width, height)?;
-    let pa = gpu(ctx.upload("eval lpips a", a))?;
-    let pb = gpu(ctx.upload("eval lpips b", b))?;
+    let pa = ctx.upload("eval lpips a", a)?;
+    let pb = ctx.upload("eval lpips b", b)?;
     {
-        let mut rec = gpu(ctx.record("eval lpips"))?;
-        gpu(l.record(&mut rec, &pa, &pb, None))?;
-        gpu(rec.submit_and_wait())?;
+        let mut rec = ctx.record("eval lpips")?;
+        l.record(&mut rec, &pa, &pb, None)?;
+        rec.submit_and_wait()?;
     }
-    gpu(l.read_value(ctx))
+    l.read_value(ctx)
 }
 
 /// The plain Chamfer distance between the cloth layer's posed centres (of the last

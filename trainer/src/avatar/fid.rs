@@ -462,7 +462,7 @@ impl FidInception {
     }
 
     /// The 2048 pool3 features of one HWC RGB image in [0, 1] of any size.
-    pub fn features(&self, rgb: &[f32], width: u32, height: u32) -> Result<Vec<f32>, String> {
+    pub fn features(&self, rgb: &[f32], width: u32, height: u32) -> crate::Result<Vec<f32>> {
         let x = network_input(rgb, width as usize, height as usize)?;
         let x = max_pool(&chain(&self.stem, &x), 3, 2, 0);
         let mut x = max_pool(&chain(&self.stem2, &x), 3, 2, 0);
@@ -482,10 +482,10 @@ impl FidInception {
     }
 
     /// [`features`](Self::features) of several images, one per core at a time, in order.
-    pub fn features_of_images(&self, images: &[ImageRef]) -> Result<Vec<Vec<f32>>, String> {
+    pub fn features_of_images(&self, images: &[ImageRef]) -> crate::Result<Vec<Vec<f32>>> {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(images.len()).max(1);
         let next = std::sync::atomic::AtomicUsize::new(0);
-        type Features = Result<Vec<f32>, String>;
+        type Features = crate::Result<Vec<f32>>;
         let mut results: Vec<Option<Features>> = vec![None; images.len()];
         let done: Vec<Vec<(usize, Features)>> = std::thread::scope(|s| {
             let workers: Vec<_> = (0..threads)
@@ -512,7 +512,7 @@ impl FidInception {
 /// An HWC RGB image in [0, 1] as the network's 3 × 299 × 299 input in [-1, 1]:
 /// `F.interpolate(x, (299, 299), mode="bilinear", align_corners=False)` (no
 /// antialiasing), then `2x − 1`, in f32 as PyTorch computes them on the CPU.
-fn network_input(rgb: &[f32], width: usize, height: usize) -> Result<Act, String> {
+fn network_input(rgb: &[f32], width: usize, height: usize) -> crate::Result<Act> {
     if width == 0 || height == 0 || rgb.len() != 3 * width * height {
         return Err(format!("FID input: {} values for a {width} x {height} RGB image", rgb.len()));
     }
@@ -557,7 +557,7 @@ pub struct Statistics {
 
 impl Statistics {
     /// The statistics of at least two feature vectors of one length.
-    pub fn of(features: &[Vec<f32>]) -> Result<Self, String> {
+    pub fn of(features: &[Vec<f32>]) -> crate::Result<Self> {
         let (dim, centred) = centred_rows(features)?;
         let n = features.len();
         let mean = mean_of(features, dim);
@@ -580,7 +580,7 @@ fn mean_of(features: &[Vec<f32>], dim: usize) -> Vec<f64> {
 }
 
 /// (dim, rows − mean scaled by 1/√(n − 1), n × dim row-major): checked features.
-fn centred_rows(features: &[Vec<f32>]) -> Result<(usize, Vec<f64>), String> {
+fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
     let n = features.len();
     if n < 2 {
         return Err(format!("a covariance needs at least 2 feature vectors, got {n}"));
@@ -603,7 +603,7 @@ fn centred_rows(features: &[Vec<f32>]) -> Result<(usize, Vec<f64>), String> {
 /// hundreds of dimensions (measured on 2 cores: 0.09 s at 128, 1.4 s at 256, 29 s at
 /// 512); at 2048, n³ or worse, well over 20 minutes, so FID from features uses
 /// [`frechet_distance_of_features`], which needs it only with 2048 images or more.
-pub fn frechet_distance(a: &Statistics, b: &Statistics) -> Result<f64, String> {
+pub fn frechet_distance(a: &Statistics, b: &Statistics) -> crate::Result<f64> {
     let d = a.dim;
     if b.dim != d || a.mean.len() != d || b.mean.len() != d || a.cov.len() != d * d || b.cov.len() != d * d {
         return Err(format!("statistics of different sizes ({} and {})", a.dim, b.dim));
@@ -636,7 +636,7 @@ pub fn frechet_distance(a: &Statistics, b: &Statistics) -> Result<f64, String> {
 /// `(A1 A2ᵀ)(A2 A1ᵀ) = M Mᵀ`, an n1 × n1 (or, as `Mᵀ M`, n2 × n2) matrix: the same
 /// trace from a small eigenproblem, exact, not an approximation. Otherwise, through
 /// [`Statistics`] and [`frechet_distance`].
-pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> Result<f64, String> {
+pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Result<f64> {
     let (d, a1) = centred_rows(a)?;
     let (d2, a2) = centred_rows(b)?;
     if d != d2 {
@@ -669,7 +669,7 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> Result<f6
 
 /// Eigenvalues with roundoff negatives (above `-NEGATIVE_TOLERANCE` × the largest
 /// magnitude) set to 0; an error names `what` when one is below.
-fn clamped(values: &[f64], what: &str) -> Result<Vec<f64>, String> {
+fn clamped(values: &[f64], what: &str) -> crate::Result<Vec<f64>> {
     let largest = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if let Some(v) = values.iter().find(|&&v| v < -NEGATIVE_TOLERANCE * largest) {
         return Err(format!("{what} is not positive semidefinite: eigenvalue {v:e} (largest {largest:e})"));

@@ -43,7 +43,7 @@ impl LayerChoice {
     /// `auto`, or the layers joined by `+`, body first: `body` (the single-layer
     /// baseline: cloth folded into the body, as HUGS), `body+cloth`, `body+scene`,
     /// `body+cloth+scene`.
-    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+    pub fn parse(s: &str) -> crate::Result<Self> {
         if s == "auto" {
             return Ok(Self { cloth: None, scene: None });
         }

@@ -86,7 +86,7 @@ impl PoseRefiner {
     }
 
     /// Restores saved corrections; the frames must be this run's, in its order.
-    pub fn restore(&mut self, state: PoseState) -> Result<(), String> {
+    pub fn restore(&mut self, state: PoseState) -> crate::Result<()> {
         if state.frames != self.state.frames {
             return Err(format!("the refined poses are of frames {:?}, this run trains on {:?}", state.frames, self.state.frames));
         }

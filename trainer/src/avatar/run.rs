@@ -14,7 +14,7 @@ use crate::avatar::checkpoint;
 use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{betas_of, body_model, build_avatar, gpu, load_sequence, write_json, Layers, Sequence, TrainConfig};
+use crate::avatar::train::{betas_of, body_model, build_avatar, load_sequence, write_json, Layers, Sequence, TrainConfig};
 use crate::dataset::split::Split;
 use crate::npy::read_npz;
 
@@ -41,12 +41,12 @@ impl RunInfo {
         Self { format_version: RUN_INFO_VERSION, data: abs(data), body: body.map(abs), made_by: None }
     }
 
-    pub fn write(&self, run: &Path) -> Result<(), String> {
+    pub fn write(&self, run: &Path) -> crate::Result<()> {
         write_json(&run.join("run.json"), self)
     }
 
     /// Reads `run/run.json`; Ok(None) when the run has none (made before it existed).
-    pub fn read(run: &Path) -> Result<Option<Self>, String> {
+    pub fn read(run: &Path) -> crate::Result<Option<Self>> {
         let path = run.join("run.json");
         if !path.exists() {
             return Ok(None);
@@ -75,7 +75,7 @@ pub struct OpenRun {
 }
 
 /// The layers a model file holds (beyond the body, which every model has).
-pub fn model_layers(path: &Path) -> Result<Layers, String> {
+pub fn model_layers(path: &Path) -> crate::Result<Layers> {
     let a = read_npz(path).map_err(|e| e.to_string())?;
     if !a.contains_key("body.means") {
         return Err(format!("{}: array 'body.means' is missing (not a drape model?)", path.display()));
@@ -86,7 +86,7 @@ pub fn model_layers(path: &Path) -> Result<Layers, String> {
 impl OpenRun {
     /// Opens `dir` (a run directory with `config.json` and `model.npz`). `data` and
     /// `body` override `run.json`'s; a run without `run.json` needs `data`.
-    pub fn open(ctx: &Context, dir: &Path, data: Option<&Path>, body: Option<&Path>) -> Result<Self, String> {
+    pub fn open(ctx: &Context, dir: &Path, data: Option<&Path>, body: Option<&Path>) -> crate::Result<Self> {
         if !dir.is_dir() {
             return Err(format!("{}: no such run directory", dir.display()));
         }
@@ -115,8 +115,8 @@ impl OpenRun {
         }
         let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;
         let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
-        gpu(avatar.restore(ctx, &state))?;
-        let renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+        avatar.restore(ctx, &state)?;
+        let renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
         Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })
     }
 

@@ -227,7 +227,7 @@ impl TrainConfig {
         }
     }
 
-    pub fn preset(name: &str) -> Result<Self, String> {
+    pub fn preset(name: &str) -> crate::Result<Self> {
         match name {
             "quick" => Ok(Self::quick()),
             "paper" => Ok(Self::paper()),
@@ -236,12 +236,12 @@ impl TrainConfig {
     }
 
     /// The T-shirt of [`cloth_fit`](Self::cloth_fit).
-    pub fn garment_fit(&self) -> Result<GarmentFit, String> {
+    pub fn garment_fit(&self) -> crate::Result<GarmentFit> {
         GarmentFit::parse(&self.cloth_fit).ok_or_else(|| format!("cloth_fit must be tight or loose, got '{}'", self.cloth_fit))
     }
 
     /// Checks values a config file could get wrong, naming the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> crate::Result<()> {
         LayerChoice::parse(&self.layers)?;
         self.garment_fit()?;
         if self.cloth.triplane_resolution < 2 || self.cloth.triplane_channels == 0 {
@@ -319,7 +319,7 @@ pub struct Sequence {
 
 /// Loads `dir` in whichever layout and variant it is: NeuMan (`sparse/`), ZJU-MoCap
 /// (`annots.npy`), or the root `drape synth` writes (its `neuman/`).
-pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> Result<Sequence, String> {
+pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Sequence> {
     if !dir.join("sparse").is_dir() && !dir.join("annots.npy").is_file() && dir.join("neuman").join("sparse").is_dir() {
         return load_sequence(&dir.join("neuman"), zju_train_camera);
     }
@@ -337,7 +337,7 @@ pub(crate) fn masked_target(f: &DatasetFrame, background: [f32; 3]) -> Vec<f32> 
 
 impl TrainConfig {
     /// Reads a run's `config.json` (for `--resume`), naming the file on any problem.
-    pub fn read_run(dir: &Path) -> Result<Self, String> {
+    pub fn read_run(dir: &Path) -> crate::Result<Self> {
         let path = dir.join("config.json");
         let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
         let c: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -377,7 +377,7 @@ pub enum Progress {
 }
 
 /// The default body (the project's procedural one) or an SMPL file.
-pub fn body_model(path: Option<&Path>) -> Result<SmplModel, String> {
+pub fn body_model(path: Option<&Path>) -> crate::Result<SmplModel> {
     match path {
         Some(p) => SmplModel::load_npz(p).map_err(|e| e.to_string()),
         None => Ok(default_body(&BodyOptions::default())),
@@ -391,9 +391,6 @@ pub(crate) fn betas_of(f: &DatasetFrame) -> Vec<f64> {
     }
 }
 
-pub(crate) fn gpu<T>(r: drape_engine::Result<T>) -> Result<T, String> {
-    r.map_err(|e| e.to_string())
-}
 
 /// The optional layers a run builds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -403,7 +400,7 @@ pub struct Layers {
 }
 
 /// The sequence's sparse scene points (NeuMan's `sparse/`), if it has any.
-pub fn scene_points(seq: &Sequence) -> Result<Option<ColmapModel>, String> {
+pub fn scene_points(seq: &Sequence) -> crate::Result<Option<ColmapModel>> {
     if seq.layout != Layout::NeuMan {
         return Ok(None);
     }
@@ -414,7 +411,7 @@ pub fn scene_points(seq: &Sequence) -> Result<Option<ColmapModel>, String> {
 /// The layers the run builds, each forced by `config.layers` or else decided from the
 /// data: a cloth layer where it has garment masks, a scene layer where it has scene
 /// points (an unmasked capture; ZJU-MoCap's studio frames are masked and have none).
-pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> Result<Layers, String> {
+pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> crate::Result<Layers> {
     let choice = LayerChoice::parse(&config.layers)?;
     let scene = match choice.scene {
         Some(true) if scene_points(seq)?.is_none() => return Err(format!("--layers {}: {} has no scene points (NeuMan's sparse/points3D.txt) to build a scene layer from", config.layers, seq.dir.display())),
@@ -425,7 +422,7 @@ pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> Result<Layers, Str
 }
 
 /// The avatar the data requires.
-pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> Result<Avatar, String> {
+pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> crate::Result<Avatar> {
     let cloth = layers.cloth;
     let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
     let mut configs = vec![config.body.clone()];
@@ -438,13 +435,13 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
     let scene = match (layers.scene, scene_points(seq)?) {
         (true, Some(colmap)) => {
             let (cloud, extent) = scene_init(&colmap, config.scene.sh_degree, config.scene.max_points);
-            Some(gpu(SceneLayer::new(ctx, &cloud, extent, &config.scene, config.steps))?)
+            Some(SceneLayer::new(ctx, &cloud, extent, &config.scene, config.steps)?)
         }
         _ => None,
     };
-    let mut avatar = gpu(Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed))?;
+    let mut avatar = Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed)?;
     if config.deterministic {
-        gpu(avatar.set_accumulation(ctx, Accumulation::Deterministic))?;
+        avatar.set_accumulation(ctx, Accumulation::Deterministic)?;
     }
     Ok(avatar)
 }
@@ -474,7 +471,7 @@ impl<'c> Lap<'c> {
     }
 }
 
-pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), String> {
+pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> crate::Result<()> {
     let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
     // Written whole to a temporary file, then renamed: never half a file.
     let tmp = path.with_extension("tmp");
@@ -486,7 +483,7 @@ pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(
 /// empty), or with `resume` the run's last checkpoint (`out/checkpoint.npz`), continued
 /// to `config.steps`. The step's frame and background come from `(seed, step)`, so a
 /// resumed run samples what the uninterrupted one would have.
-pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
+pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
     train_until(ctx, seq, model, config, out, resume, config.steps, progress)
 }
 
@@ -494,7 +491,7 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
 /// had been interrupted there: the checkpoint is written, the schedules still run to
 /// `config.steps`, and a later `resume` continues as the uninterrupted run would.
 #[allow(clippy::too_many_arguments)]
-pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> Result<TrainReport, String> {
+pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
     let stop_at = stop_at.min(config.steps);
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
@@ -526,14 +523,14 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // With a scene layer the avatar is trained and judged on the whole image; without
     // one, on the person over a background colour.
     let whole_image = avatar.scene.is_some();
-    let mut renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+    let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
     // The cloth layer's physics targets: the garments simulated through the motion.
     let mut cloth_losses = match avatar.cloth() {
         Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
             let garments = cloth_target::simulate_sequence(&rig, config.garment_fit()?, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
             let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
-            Some(gpu(ClothLosses::new(ctx, cloth, garments, weights, width, height))?)
+            Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?)
         }
         _ => None,
     };
@@ -545,11 +542,11 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
         let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
-        gpu(avatar.restore(ctx, &state))?;
+        avatar.restore(ctx, &state)?;
         // The checkpoint's layers may have been densified to other counts.
-        renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+        renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
         if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
-            gpu(c.resize(ctx, cloth))?;
+            c.resize(ctx, cloth)?;
         }
         if let (Some(r), Some(p)) = (refiner.as_mut(), state.poses) {
             r.restore(p).map_err(|e| format!("{}: {e}", checkpoint_path.display()))?;
@@ -559,7 +556,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         let mut worst = 0.0f64;
         for l in &mut avatar.layers {
             let name = l.name.clone();
-            let mse = gpu(l.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total: total_fit, mse })))?;
+            let mse = l.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total: total_fit, mse }))?;
             worst = worst.max(mse);
         }
         (0, worst)
@@ -583,25 +580,25 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // 2. The main loop.
     let pixels = (width * height) as usize;
     // Rewritten every step: host-written memory (no staging submission).
-    let mut target = gpu(ctx.create_buffer("train target", BufferDesc::host_written(12 * pixels as u64)))?;
-    let grad_rgb = gpu(ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels as u64)))?;
-    let mut abs_error = gpu(ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels as u64)))?;
-    let zeros = gpu(ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels as u64)))?;
+    let mut target = ctx.create_buffer("train target", BufferDesc::host_written(12 * pixels as u64))?;
+    let grad_rgb = ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels as u64))?;
+    let mut abs_error = ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels as u64))?;
+    let zeros = ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels as u64))?;
     let mut cloth_values = ClothLossValues::default();
     {
-        let mut rec = gpu(ctx.record("train zero"))?;
+        let mut rec = ctx.record("train zero")?;
         rec.fill(&zeros, 0);
-        gpu(rec.submit_and_wait())?;
+        rec.submit_and_wait()?;
     }
     let loss = LossParams { len: 3 * pixels as u32, scale: config.lambda_l1 / (3 * pixels) as f32, _pad: [0; 2] };
-    let mut ssim = gpu(Ssim::new(ctx, width, height))?;
+    let mut ssim = Ssim::new(ctx, width, height)?;
     let settings = RenderSettings::default();
     let t_train = Instant::now();
     let mut skipped = 0u32;
     let mut skipped_in_a_row = 0u32;
-    let mut nonfinite = gpu(ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4)))?;
-    let save = |avatar: &mut Avatar, refiner: &Option<PoseRefiner>, step: u32, path: &Path| -> Result<(), String> {
-        let mut state = gpu(avatar.state(ctx, step))?;
+    let mut nonfinite = ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4))?;
+    let save = |avatar: &mut Avatar, refiner: &Option<PoseRefiner>, step: u32, path: &Path| -> crate::Result<()> {
+        let mut state = avatar.state(ctx, step)?;
         state.poses = refiner.as_ref().map(|r| r.state().clone());
         checkpoint::write(path, &state)
     };
@@ -626,55 +623,55 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             None => f.body.clone(),
         };
         let ft = rig.frame(&body);
-        gpu(avatar.set_frame(ctx, &ft))?;
-        gpu(ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) }))?;
+        avatar.set_frame(ctx, &ft)?;
+        ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) })?;
         if let Some(c) = cloth_losses.as_mut() {
-            gpu(c.set_frame(ctx, f))?;
+            c.set_frame(ctx, f)?;
         }
         lap.host("host.frame_setup");
         {
-            let mut rec = gpu(ctx.record("train forward"))?;
-            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("train forward")?;
+            avatar.record_forward(&mut rec, ft.log_scale)?;
+            rec.submit_and_wait()?;
         }
         let cam = f.camera.to_pinhole(background);
-        gpu(renderer.forward(ctx, &avatar, &cam, &settings))?;
+        renderer.forward(ctx, &avatar, &cam, &settings)?;
         {
             let rgb = renderer.rgb();
-            let mut rec = gpu(ctx.record("train loss"))?;
-            gpu(rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read("pred", rgb).read("target", &target).write("grad", &grad_rgb).write("abs_error", &abs_error).push(&loss).dispatch(drape_engine::recorder::flat_grid(loss.len)))?;
+            let mut rec = ctx.record("train loss")?;
+            rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read("pred", rgb).read("target", &target).write("grad", &grad_rgb).write("abs_error", &abs_error).push(&loss).dispatch(drape_engine::recorder::flat_grid(loss.len))?;
             // λ (1 - SSIM): adds -λ ∂SSIM/∂rgb to the L1 gradient.
-            gpu(ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim))))?;
+            ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim)))?;
             if let Some(l) = &lpips {
-                gpu(l.record(&mut rec, rgb, &target, Some((&grad_rgb, config.lambda_lpips))))?;
+                l.record(&mut rec, rgb, &target, Some((&grad_rgb, config.lambda_lpips)))?;
             }
-            gpu(rec.submit_and_wait())?;
+            rec.submit_and_wait()?;
         }
-        gpu(renderer.backward(ctx, &avatar, &grad_rgb, &zeros, cloth_losses.as_mut(), &cam, &settings))?;
+        renderer.backward(ctx, &avatar, &grad_rgb, &zeros, cloth_losses.as_mut(), &cam, &settings)?;
         {
-            let mut rec = gpu(ctx.record("train backward"))?;
+            let mut rec = ctx.record("train backward")?;
             rec.fill(&nonfinite, 0);
-            gpu(renderer.record_scatter(&mut rec, &avatar))?;
+            renderer.record_scatter(&mut rec, &avatar)?;
             if let (Some(c), Some(cloth)) = (cloth_losses.as_ref(), avatar.cloth()) {
-                gpu(c.record(&mut rec, cloth))?;
+                c.record(&mut rec, cloth)?;
             }
-            gpu(avatar.record_layers_backward(&mut rec, refiner.is_some()))?;
-            gpu(avatar.record_count_nonfinite(&mut rec, &nonfinite))?;
+            avatar.record_layers_backward(&mut rec, refiner.is_some())?;
+            avatar.record_count_nonfinite(&mut rec, &nonfinite)?;
             if densifying(step) {
-                gpu(renderer.record_screen_stats(&mut rec, &avatar))?;
+                renderer.record_screen_stats(&mut rec, &avatar)?;
             }
-            gpu(rec.submit_and_wait())?;
+            rec.submit_and_wait()?;
         }
         lap.reset();
         // The guard: a step with a non-finite gradient is never applied.
-        let mut bad = gpu(ctx.read_buffer::<u32>(&mut nonfinite, 1))?[0];
+        let mut bad = ctx.read_buffer::<u32>(&mut nonfinite, 1)?[0];
         lap.host("host.read_guard");
         // The frame's pose gradient: every human layer's share of ∂L/∂A, through the rig.
         let pose_grad = match &refiner {
             Some(_) => {
                 let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
                 for l in &mut avatar.layers {
-                    for (g, v) in grad.iter_mut().zip(gpu(l.read_transform_grad(ctx))?) {
+                    for (g, v) in grad.iter_mut().zip(l.read_transform_grad(ctx)?) {
                         *g += v;
                     }
                 }
@@ -702,25 +699,25 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         }
         skipped_in_a_row = 0;
         {
-            let mut rec = gpu(ctx.record("train adam"))?;
-            gpu(avatar.record_adam(&mut rec))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("train adam")?;
+            avatar.record_adam(&mut rec)?;
+            rec.submit_and_wait()?;
         }
         if let (Some(r), Some(g)) = (refiner.as_mut(), pose_grad) {
             r.step(index, &g);
         }
         lap.reset();
         if step % config.log_every.max(1) == 0 || step + 1 == stop_at {
-            let e = gpu(ctx.read_buffer::<f32>(&mut abs_error, 3 * pixels))?;
+            let e = ctx.read_buffer::<f32>(&mut abs_error, 3 * pixels)?;
             let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / e.len() as f64;
             let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / e.len() as f64;
             let p = -10.0 * mse.max(1e-20).log10();
-            let ssim_value = gpu(ssim.read_mean(ctx))?;
+            let ssim_value = ssim.read_mean(ctx)?;
             if let Some(c) = cloth_losses.as_mut() {
-                cloth_values = gpu(c.read_values(ctx))?;
+                cloth_values = c.read_values(ctx)?;
             }
             let lpips_value = match lpips.as_mut() {
-                Some(l) => Some(gpu(l.read_value(ctx))?),
+                Some(l) => Some(l.read_value(ctx)?),
                 None => None,
             };
             let secs = t_train.elapsed().as_secs_f64();
@@ -758,10 +755,10 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
                 summaries.insert("scene".into(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
             }
             // Everything sized by the layers' counts follows them.
-            gpu(avatar.resize_posed(ctx))?;
-            renderer = gpu(AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?))?;
+            avatar.resize_posed(ctx)?;
+            renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
             if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
-                gpu(c.resize(ctx, cloth))?;
+                c.resize(ctx, cloth)?;
                 c.set_mask_in_composite(renderer.is_three_pass());
             }
             let line = serde_json::json!({ "step": step, "densify": summaries });
@@ -791,13 +788,13 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
         let ft = rig.frame(&f.body);
-        gpu(avatar.set_frame(ctx, &ft))?;
+        avatar.set_frame(ctx, &ft)?;
         {
-            let mut rec = gpu(ctx.record("export forward"))?;
-            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("export forward")?;
+            avatar.record_forward(&mut rec, ft.log_scale)?;
+            rec.submit_and_wait()?;
         }
-        let cloud = gpu(avatar.read_posed(ctx))?;
+        let cloud = avatar.read_posed(ctx)?;
         // One standard 3DGS PLY per layer.
         for layer in [Layer::Body, Layer::Cloth] {
             let mut part = drape_engine::ops::splat::scene::GaussianCloud::new(cloud.sh_degree);
@@ -831,14 +828,14 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             }
         };
         let ft = rig.frame(&body);
-        gpu(avatar.set_frame(ctx, &ft))?;
+        avatar.set_frame(ctx, &ft)?;
         {
-            let mut rec = gpu(ctx.record("novel pose forward"))?;
-            gpu(avatar.record_forward(&mut rec, ft.log_scale))?;
-            gpu(rec.submit_and_wait())?;
+            let mut rec = ctx.record("novel pose forward")?;
+            avatar.record_forward(&mut rec, ft.log_scale)?;
+            rec.submit_and_wait()?;
         }
-        gpu(renderer.forward(ctx, &avatar, &f.camera.to_pinhole([0.0; 3]), &settings))?;
-        let rgb = gpu(renderer.read_rgb(ctx))?;
+        renderer.forward(ctx, &avatar, &f.camera.to_pinhole([0.0; 3]), &settings)?;
+        let rgb = renderer.read_rgb(ctx)?;
         crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &rgb)?;
     }
     let report = TrainReport {

@@ -57,7 +57,7 @@ impl ColmapCamera {
     /// SIMPLE_RADIAL (f cx cy k), RADIAL (f cx cy k1 k2), OPENCV (fx fy cx cy k1 k2 p1
     /// p2) and FULL_OPENCV (fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6) when its rational
     /// terms k4..k6 are zero. The error names `cameras.txt`, the camera and the field.
-    pub fn intrinsics(&self) -> Result<([f64; 4], Distortion), String> {
+    pub fn intrinsics(&self) -> crate::Result<([f64; 4], Distortion)> {
         let id = self.id;
         let (names, simple): (&[&str], bool) = match self.model.as_str() {
             "SIMPLE_PINHOLE" => (&["f", "cx", "cy"], true),
@@ -138,7 +138,7 @@ impl ColmapImage {
     /// [`crate::dataset::distortion::Undistorter`]. An error for a model drape does not
     /// undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE) or a malformed record;
     /// see [`ColmapCamera::intrinsics`].
-    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> Result<(Camera, Distortion), String> {
+    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> crate::Result<(Camera, Distortion)> {
         let ([fx, fy, cx, cy], distortion) = camera.intrinsics()?;
         Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR }, distortion))
     }
@@ -307,7 +307,7 @@ impl ColmapModel {
                 xyz: [parse(w[1], "X").map_err(&perr)?, parse(w[2], "Y").map_err(&perr)?, parse(w[3], "Z").map_err(&perr)?],
                 rgb: [parse(w[4], "R").map_err(&perr)?, parse(w[5], "G").map_err(&perr)?, parse(w[6], "B").map_err(&perr)?],
                 error: parse(w[7], "ERROR").map_err(&perr)?,
-                track: w[8..].chunks_exact(2).map(|c| Ok((parse(c[0], "IMAGE_ID")?, parse(c[1], "POINT2D_IDX")?))).collect::<Result<_, String>>().map_err(&perr)?,
+                track: w[8..].chunks_exact(2).map(|c| Ok((parse(c[0], "IMAGE_ID")?, parse(c[1], "POINT2D_IDX")?))).collect::<crate::Result<_>>().map_err(&perr)?,
             };
             model.points.insert(p.id, p);
         }
@@ -319,6 +319,6 @@ fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
     text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
-fn parse<T: std::str::FromStr>(s: &str, what: &str) -> Result<T, String> {
+fn parse<T: std::str::FromStr>(s: &str, what: &str) -> crate::Result<T> {
     s.parse::<T>().map_err(|_| format!("{what} '{s}' is not a valid number"))
 }

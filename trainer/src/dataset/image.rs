@@ -110,7 +110,7 @@ fn describe(e: &ImageError) -> String {
 /// the cut without decoding: outside the entropy-coded data every segment states its
 /// length, and inside it a 0xFF byte is always followed by a stuffed 0x00, a restart
 /// marker or the next marker. Bytes after the end marker (camera trailers) are allowed.
-fn jpeg_complete(b: &[u8]) -> Result<(), String> {
+fn jpeg_complete(b: &[u8]) -> crate::Result<()> {
     let truncated = || "truncated JPEG (the data ends before its end-of-image marker)".to_string();
     let mut i = 2; // past SOI, which guessing the format checked
     loop {

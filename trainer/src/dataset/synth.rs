@@ -202,7 +202,7 @@ fn masks(frame: &crate::dataset::raster::Frame) -> [Vec<bool>; 3] {
 
 /// Generates the sequence into `out` (`neuman/`, `zju/` and `gt/`); `progress(stage,
 /// done, total)` reports as it goes.
-pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usize, usize)) -> Result<SynthSummary, String> {
+pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usize, usize)) -> crate::Result<SynthSummary> {
     let t0 = std::time::Instant::now();
     if o.width == 0 || o.height == 0 || o.frames == 0 {
         return Err("width, height and frames must be positive".into());

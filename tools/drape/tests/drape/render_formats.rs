@@ -12,7 +12,7 @@ use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
 // The CLI's own reader, compiled into this test, so that pixel values are checked on the
 // very code `drape fit` runs (a binary crate has no library to import it from).
 #[allow(dead_code)]
-#[path = "../src/image_io.rs"]
+#[path = "../../src/image_io.rs"]
 mod image_io;
 
 fn drape(args: &[&str]) -> Output {

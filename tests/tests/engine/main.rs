@@ -1,0 +1,22 @@
+//! The engine's GPU tests, one binary: every op against its CPU reference on the test
+//! device (lavapipe in CI) with validation on, and against independent implementations
+//! (gsplat, PyTorch) where the module says so. Nothing here links the trainer.
+
+mod cloth_loss;
+mod fit;
+mod half_precision;
+mod lpips;
+mod nn;
+mod ply;
+mod recorder;
+mod runtime;
+mod scan;
+mod shared_math;
+mod sizes;
+mod sort;
+mod splat_gpu;
+mod splat_gradients;
+mod splat_gsplat;
+mod splat_robustness;
+mod ssim;
+mod triplane_deform;

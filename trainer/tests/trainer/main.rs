@@ -1,0 +1,22 @@
+//! The trainer's tests, one binary: body, garments, cloth, datasets, the layered avatar's
+//! GPU paths, training, evaluation and the run tools, against CPU references and the
+//! independent Python references (PyTorch, OpenCV, scikit-image, numpy).
+
+mod body;
+mod cloth;
+mod composite;
+mod datasets;
+mod distortion;
+mod eval_metrics;
+mod fid;
+mod garments_motions;
+mod image_formats;
+mod loose_garment;
+mod motion_files;
+mod pickle;
+mod raster;
+mod run_tools;
+mod skinning;
+mod synth;
+mod torch_reference;
+mod train;
