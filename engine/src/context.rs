@@ -160,16 +160,27 @@ pub struct Context {
     pub(crate) device: Arc<Device>,
 }
 
+/// The library `ash::Entry::load` opens on this platform.
+const DEFAULT_LOADER: &str = if cfg!(windows) {
+    "vulkan-1.dll"
+} else if cfg!(any(target_os = "macos", target_os = "ios")) {
+    "libvulkan.dylib"
+} else if cfg!(any(target_os = "android", target_os = "fuchsia")) {
+    "libvulkan.so"
+} else {
+    "libvulkan.so.1"
+};
+
 fn load_entry() -> Result<ash::Entry> {
     // DRAPE_VULKAN_LOADER names a loader library explicitly (tests use it to check the
     // error a machine without a loader gets).
-    let loaded = match std::env::var_os("DRAPE_VULKAN_LOADER") {
+    let (library, loaded) = match std::env::var_os("DRAPE_VULKAN_LOADER") {
         // SAFETY: loading libvulkan runs its initialisers; the loader is designed for it.
-        Some(path) => unsafe { ash::Entry::load_from(path) },
+        Some(path) => (path.to_string_lossy().into_owned(), unsafe { ash::Entry::load_from(&path) }),
         // SAFETY: as above.
-        None => unsafe { ash::Entry::load() },
+        None => (DEFAULT_LOADER.to_string(), unsafe { ash::Entry::load() }),
     };
-    loaded.map_err(|e| EngineError::LoaderMissing { detail: e.to_string() })
+    loaded.map_err(|error| EngineError::LoaderMissing { library, error })
 }
 
 fn cstr_array(raw: &[c_char]) -> String {

@@ -7,9 +7,12 @@ use ash::vk;
 /// Errors of the Vulkan runtime and its ops.
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
-    /// The Vulkan loader (libvulkan.so.1) could not be loaded.
-    #[error("the Vulkan loader could not be loaded ({detail}); install it (Debian: apt-get install libvulkan1 mesa-vulkan-drivers)")]
-    LoaderMissing { detail: String },
+    /// The Vulkan loader could not be loaded: `library` is the name or path it was
+    /// looked up by (`libvulkan.so.1`, or `DRAPE_VULKAN_LOADER`), `error` why (the
+    /// library is not there, or lacks `vkGetInstanceProcAddr`). A failed `dlopen` names
+    /// the library in its own text, so the message shows `error` alone.
+    #[error("the Vulkan loader could not be loaded ({error}); install it (Debian: apt-get install libvulkan1 mesa-vulkan-drivers)")]
+    LoaderMissing { library: String, error: ash::LoadingError },
 
     /// No device supports what the engine needs.
     #[error("no Vulkan device with Vulkan 1.2, a compute queue and vulkanMemoryModel was found{}", list_devices(.rejected))]
@@ -58,6 +61,12 @@ pub enum EngineError {
     /// A render or op setting outside what the kernels take (`what` names it).
     #[error("{what}: {problem}")]
     InvalidSetting { what: &'static str, problem: String },
+
+    /// An image smaller than an op's stack of convolutions and pools allows (every
+    /// stage must keep at least one pixel): the op, the image's size and the smallest
+    /// square side it takes.
+    #[error("{op} needs images of at least {min_side}x{min_side}; got {width}x{height}")]
+    ImageTooSmall { op: &'static str, width: u32, height: u32, min_side: u32 },
 
     /// An op was given an empty input it has no value for.
     #[error("{what} is empty: {why}")]

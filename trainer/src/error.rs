@@ -62,6 +62,17 @@ pub enum TrainerError {
     InvalidInput { what: &'static str, problem: String },
 }
 
+/// A config choice given a value it does not take; what a choice's `TryFrom<String>`
+/// (its serde form) returns, so that the deserialiser names the key around it.
+#[derive(Debug, thiserror::Error)]
+#[error("must be {allowed}, got '{value}'")]
+pub struct BadChoice {
+    /// The value given.
+    pub value: String,
+    /// The values the choice takes, as a phrase ("tight or loose").
+    pub allowed: &'static str,
+}
+
 /// The trainer's result type.
 pub type Result<T, E = TrainerError> = std::result::Result<T, E>;
 

@@ -41,6 +41,12 @@ pub struct Garment {
 /// Why a garment file could not be used; names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum GarmentError {
+    /// The OBJ reader failed: the file is missing or unreadable, or is not OBJ text.
+    // `error`, not `source`: the message carries it; a `source` would make anyhow
+    // print it twice.
+    #[error("{path}: {error}")]
+    Read { path: String, error: tobj::LoadError },
+    /// The OBJ reads but is no garment: what is wrong with it.
     #[error("{path}: {problem}")]
     Invalid { path: String, problem: String },
 }
@@ -302,7 +308,7 @@ pub fn pants(body: &SmplModel) -> Garment {
 /// within 1 cm of the body.
 pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> {
     let err = |problem: String| GarmentError::Invalid { path: path.display().to_string(), problem };
-    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() }).map_err(|e| err(e.to_string()))?;
+    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() }).map_err(|error| GarmentError::Read { path: path.display().to_string(), error })?;
     let mut vertices = Vec::new();
     let mut faces = Vec::new();
     let mut uvs = Vec::new();

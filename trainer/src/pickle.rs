@@ -228,51 +228,104 @@ enum Obj {
     EmptyArray,
 }
 
-fn into_value(o: Obj) -> crate::Result<PyValue> {
+fn into_value(o: Obj) -> Result<PyValue, PickleProblem> {
     match o {
         Obj::Value(v) => Ok(v),
         Obj::Tuple(items) => Ok(PyValue::Tuple(items.into_iter().map(into_value).collect::<Result<_, _>>()?)),
-        other => Err(format!("expected a value, found {other:?}")),
+        other => Err(PickleProblem::NotAValue { found: format!("{other:?}") }),
     }
 }
 
-/// A pickle that cannot be read: the file (or what the bytes are) and the problem.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("{file}: {problem}")]
+/// A pickle that cannot be read: the file (or what the bytes are), the byte offset of
+/// the opcode at fault (or where the bytes ran out; None for the `.npy` wrapper around
+/// the pickle) and the problem.
+#[derive(Debug)]
 pub struct PickleError {
     pub file: String,
-    pub problem: String,
+    pub at: Option<usize>,
+    pub problem: PickleProblem,
 }
 
-impl PickleError {
-    /// The decoder's messages start with `what`; keep the rest as the problem.
-    fn new(what: &str, message: String) -> Self {
-        let problem = message.strip_prefix(what).and_then(|m| m.strip_prefix(": ")).map_or_else(|| message.clone(), str::to_string);
-        Self { file: what.to_string(), problem }
+impl std::fmt::Display for PickleError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let file = &self.file;
+        match (self.at, &self.problem) {
+            (Some(at), PickleProblem::Truncated) => write!(f, "{file}: pickle truncated at byte {at}"),
+            (Some(at), problem) => write!(f, "{file}: pickle at byte {at}: {problem}"),
+            (None, problem) => write!(f, "{file}: {problem}"),
+        }
     }
 }
 
-impl From<PickleError> for String {
-    fn from(e: PickleError) -> Self {
-        e.to_string()
-    }
+impl std::error::Error for PickleError {}
+
+/// What is wrong with a pickle ([`PickleError::problem`]).
+#[derive(Debug, thiserror::Error)]
+pub enum PickleProblem {
+    /// The bytes end inside an opcode or its argument.
+    #[error("pickle truncated")]
+    Truncated,
+    /// STOP with nothing on the stack.
+    #[error("empty pickle")]
+    Empty,
+    /// An opcode this reader does not implement.
+    #[error("unsupported opcode 0x{opcode:02x}")]
+    UnsupportedOpcode { opcode: u8 },
+    /// An opcode (by its name in the pickle protocol) that does not fit what precedes
+    /// it: no MARK, a short or empty stack, a list or dict operation on something else.
+    #[error("{op} {problem}")]
+    Opcode { op: &'static str, problem: &'static str },
+    /// A string whose bytes are not UTF-8.
+    #[error("string is not UTF-8")]
+    NotUtf8,
+    /// A GET of a memo key no PUT or MEMOIZE stored.
+    #[error("unknown memo key {key}")]
+    UnknownMemo { key: u32 },
+    /// A REDUCE of something this reader does not call (it calls NumPy's
+    /// `_reconstruct` and `dtype`, and `_codecs.encode`).
+    #[error("cannot call {callable}")]
+    Call { callable: String },
+    /// Arguments a callable this reader knows cannot take.
+    #[error("{call} {problem}")]
+    Arguments { call: &'static str, problem: &'static str },
+    /// A BUILD of an object that takes no state.
+    #[error("cannot BUILD {target}")]
+    Build { target: String },
+    /// A callable or a half-built object where a value belongs.
+    #[error("expected a value, found {found}")]
+    NotAValue { found: String },
+    /// An ndarray state `(version, shape, dtype, fortran, data)` with `items` entries.
+    #[error("array state has {items} items, expected 5")]
+    ArrayState { items: usize },
+    /// An ndarray state this reader does not take (a bad shape, Fortran order, no dtype,
+    /// data of the wrong kind).
+    #[error("{problem}")]
+    Array { problem: &'static str },
+    /// An array's bytes that do not decode as its dtype and shape.
+    #[error("{error}")]
+    ArrayData { error: npy::NpyError },
+    /// The file does not start with the `.npy` magic.
+    #[error("not a .npy file")]
+    NotNpy,
+    /// The `.npy` header runs past the end of the file.
+    #[error("truncated header")]
+    NpyHeaderTruncated,
+    /// A `.npy` file of another dtype than object (`|O`).
+    #[error("not an object array (header {header})")]
+    NotObjectArray { header: String },
 }
 
 /// Decodes a pickle into a value; `what` names it in errors.
 pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
-    decode_inner(bytes, what).map_err(|m| PickleError::new(what, m))
-}
-
-fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
+    let fail = |at: usize, problem: PickleProblem| PickleError { file: what.to_string(), at: Some(at), problem };
     let mut stack: Vec<Obj> = Vec::new();
     let mut memo: std::collections::HashMap<u32, Obj> = Default::default();
     let mut at = 0usize;
-    let fail = |at: usize, problem: String| format!("{what}: pickle at byte {at}: {problem}");
     macro_rules! take {
         ($n:expr) => {{
             let n: usize = $n;
             if at + n > bytes.len() {
-                return Err(format!("{what}: pickle truncated at byte {at}"));
+                return Err(fail(at, PickleProblem::Truncated));
             }
             let s = &bytes[at..at + n];
             at += n;
@@ -288,7 +341,8 @@ fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
     loop {
         let op_at = at;
         let op = take!(1)[0];
-        let e = |p: String| fail(op_at, p);
+        let e = |p: PickleProblem| fail(op_at, p);
+        let bad = |op: &'static str, problem: &'static str| fail(op_at, PickleProblem::Opcode { op, problem });
         match op {
             0x80 => {
                 take!(1);
@@ -332,7 +386,7 @@ fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
                     0x8d => u64::from_le_bytes(take!(8).try_into().expect("8")) as usize,
                     _ => take!(1)[0] as usize,
                 };
-                let s = std::str::from_utf8(take!(n)).map_err(|_| e("string is not UTF-8".into()))?;
+                let s = std::str::from_utf8(take!(n)).map_err(|_| e(PickleProblem::NotUtf8))?;
                 stack.push(Obj::Value(PyValue::Str(s.to_string())));
             }
             b'B' | b'C' | 0x8e => {
@@ -347,96 +401,97 @@ fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
             b']' => stack.push(Obj::Value(PyValue::List(vec![]))),
             b'}' => stack.push(Obj::Value(PyValue::Dict(vec![]))),
             b't' => {
-                let items = pop_mark(&mut stack).ok_or_else(|| e("TUPLE without MARK".into()))?;
+                let items = pop_mark(&mut stack).ok_or_else(|| bad("TUPLE", "without MARK"))?;
                 stack.push(Obj::Tuple(items));
             }
             0x85..=0x87 => {
                 let n = (op - 0x84) as usize;
                 if stack.len() < n {
-                    return Err(e("TUPLEn on a short stack".into()));
+                    return Err(bad(["TUPLE1", "TUPLE2", "TUPLE3"][n - 1], "on a short stack"));
                 }
                 let items = stack.split_off(stack.len() - n);
                 stack.push(Obj::Tuple(items));
             }
             b'a' | b'e' => {
-                let items = if op == b'a' { vec![stack.pop().ok_or_else(|| e("APPEND on empty stack".into()))?] } else { pop_mark(&mut stack).ok_or_else(|| e("APPENDS without MARK".into()))? };
+                let items = if op == b'a' { vec![stack.pop().ok_or_else(|| bad("APPEND", "on empty stack"))?] } else { pop_mark(&mut stack).ok_or_else(|| bad("APPENDS", "without MARK"))? };
                 let values: Vec<PyValue> = items.into_iter().map(into_value).collect::<Result<_, _>>().map_err(e)?;
                 match stack.last_mut() {
                     Some(Obj::Value(PyValue::List(l))) => l.extend(values),
-                    _ => return Err(fail(op_at, "APPEND to a non-list".into())),
+                    _ => return Err(bad("APPEND", "to a non-list")),
                 }
             }
             b's' | b'u' => {
                 let items = if op == b's' {
                     if stack.len() < 3 {
-                        return Err(e("SETITEM on a short stack".into()));
+                        return Err(bad("SETITEM", "on a short stack"));
                     }
                     stack.split_off(stack.len() - 2)
                 } else {
-                    pop_mark(&mut stack).ok_or_else(|| e("SETITEMS without MARK".into()))?
+                    pop_mark(&mut stack).ok_or_else(|| bad("SETITEMS", "without MARK"))?
                 };
                 let values: Vec<PyValue> = items.into_iter().map(into_value).collect::<Result<_, _>>().map_err(e)?;
                 match stack.last_mut() {
                     Some(Obj::Value(PyValue::Dict(d))) => d.extend(values.chunks_exact(2).map(|kv| (kv[0].clone(), kv[1].clone()))),
-                    _ => return Err(fail(op_at, "SETITEM to a non-dict".into())),
+                    _ => return Err(bad("SETITEM", "to a non-dict")),
                 }
             }
             b'c' => {
-                let mut line = || -> crate::Result<String> {
-                    let end = bytes[at..].iter().position(|&b| b == b'\n').ok_or_else(|| format!("{what}: GLOBAL without newline"))?;
-                    let s = String::from_utf8_lossy(&bytes[at..at + end]).into_owned();
+                // GLOBAL: module and name, each ended by a newline.
+                let mut lines = [String::new(), String::new()];
+                for line in &mut lines {
+                    let end = bytes[at..].iter().position(|&b| b == b'\n').ok_or_else(|| bad("GLOBAL", "without newline"))?;
+                    *line = String::from_utf8_lossy(&bytes[at..at + end]).into_owned();
                     at += end + 1;
-                    Ok(s)
-                };
-                let module = line()?;
-                let name = line()?;
+                }
+                let [module, name] = lines;
                 stack.push(Obj::Global(module, name));
             }
             0x93 => match (stack.pop(), stack.pop()) {
                 (Some(Obj::Value(PyValue::Str(n))), Some(Obj::Value(PyValue::Str(m)))) => stack.push(Obj::Global(m, n)),
-                _ => return Err(e("STACK_GLOBAL needs two strings".into())),
+                _ => return Err(bad("STACK_GLOBAL", "needs two strings")),
             },
             0x94 => {
-                let top = stack.last().cloned().ok_or_else(|| e("MEMOIZE on empty stack".into()))?;
+                let top = stack.last().cloned().ok_or_else(|| bad("MEMOIZE", "on empty stack"))?;
                 memo.insert(memo.len() as u32, top);
             }
             b'q' | b'r' => {
                 let key = if op == b'q' { u32::from(take!(1)[0]) } else { u32::from_le_bytes(take!(4).try_into().expect("4")) };
-                let top = stack.last().cloned().ok_or_else(|| e("PUT on empty stack".into()))?;
+                let top = stack.last().cloned().ok_or_else(|| bad("PUT", "on empty stack"))?;
                 memo.insert(key, top);
             }
             b'h' | b'j' => {
                 let key = if op == b'h' { u32::from(take!(1)[0]) } else { u32::from_le_bytes(take!(4).try_into().expect("4")) };
-                stack.push(memo.get(&key).cloned().ok_or_else(|| e(format!("unknown memo key {key}")))?);
+                stack.push(memo.get(&key).cloned().ok_or_else(|| e(PickleProblem::UnknownMemo { key }))?);
             }
             b'R' => {
-                let args = stack.pop().ok_or_else(|| e("REDUCE without arguments".into()))?;
-                let callable = stack.pop().ok_or_else(|| e("REDUCE without a callable".into()))?;
+                let args = stack.pop().ok_or_else(|| bad("REDUCE", "without arguments"))?;
+                let callable = stack.pop().ok_or_else(|| bad("REDUCE", "without a callable"))?;
+                let arguments = |call: &'static str, problem: &'static str| e(PickleProblem::Arguments { call, problem });
                 match callable {
                     Obj::Global(m, n) if m.ends_with("multiarray") && n == "_reconstruct" => stack.push(Obj::EmptyArray),
                     Obj::Global(m, n) if m == "numpy" && n == "dtype" => {
                         let code = match args {
                             Obj::Tuple(t) => match t.first() {
                                 Some(Obj::Value(PyValue::Str(s))) => s.clone(),
-                                _ => return Err(e("dtype() without a type code".into())),
+                                _ => return Err(arguments("dtype()", "without a type code")),
                             },
-                            _ => return Err(e("dtype() arguments are not a tuple".into())),
+                            _ => return Err(arguments("dtype()", "arguments are not a tuple")),
                         };
                         stack.push(Obj::DtypeCall(code));
                     }
                     Obj::Global(m, n) if m == "_codecs" && n == "encode" => {
                         // Protocol 2 bytes: _codecs.encode(text, 'latin1').
-                        let Obj::Tuple(t) = args else { return Err(e("encode() arguments are not a tuple".into())) };
-                        let Some(Obj::Value(PyValue::Str(text))) = t.first() else { return Err(e("encode() of a non-string".into())) };
+                        let Obj::Tuple(t) = args else { return Err(arguments("encode()", "arguments are not a tuple")) };
+                        let Some(Obj::Value(PyValue::Str(text))) = t.first() else { return Err(arguments("encode()", "of a non-string")) };
                         stack.push(Obj::Value(PyValue::Bytes(text.chars().map(|c| c as u32 as u8).collect())));
                     }
-                    Obj::Global(m, n) => return Err(e(format!("cannot call {m}.{n}"))),
-                    other => return Err(e(format!("cannot call {other:?}"))),
+                    Obj::Global(m, n) => return Err(e(PickleProblem::Call { callable: format!("{m}.{n}") })),
+                    other => return Err(e(PickleProblem::Call { callable: format!("{other:?}") })),
                 }
             }
             b'b' => {
-                let state = stack.pop().ok_or_else(|| e("BUILD on empty stack".into()))?;
-                let target = stack.pop().ok_or_else(|| e("BUILD without an object".into()))?;
+                let state = stack.pop().ok_or_else(|| bad("BUILD", "on empty stack"))?;
+                let target = stack.pop().ok_or_else(|| bad("BUILD", "without an object"))?;
                 match (target, state) {
                     (Obj::DtypeCall(code), Obj::Tuple(t)) => {
                         let order = match t.get(1) {
@@ -446,30 +501,31 @@ fn decode_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
                         stack.push(Obj::Dtype(format!("{order}{code}")));
                     }
                     (Obj::EmptyArray, Obj::Tuple(t)) => stack.push(Obj::Value(build_array(t).map_err(e)?)),
-                    (t, _) => return Err(e(format!("cannot BUILD {t:?}"))),
+                    (t, _) => return Err(e(PickleProblem::Build { target: format!("{t:?}") })),
                 }
             }
-            other => return Err(fail(op_at, format!("unsupported opcode 0x{other:02x}"))),
+            other => return Err(e(PickleProblem::UnsupportedOpcode { opcode: other })),
         }
     }
-    into_value(stack.pop().ok_or_else(|| fail(at, "empty pickle".into()))?).map_err(|p| fail(at, p))
+    into_value(stack.pop().ok_or_else(|| fail(at, PickleProblem::Empty))?).map_err(|p| fail(at, p))
 }
 
 /// An ndarray from its state `(version, shape, dtype, fortran, data)`.
-fn build_array(state: Vec<Obj>) -> crate::Result<PyValue> {
-    let [_, shape, dtype, fortran, data] = <[Obj; 5]>::try_from(state).map_err(|s| format!("array state has {} items, expected 5", s.len()))?;
+fn build_array(state: Vec<Obj>) -> Result<PyValue, PickleProblem> {
+    let array = |problem: &'static str| PickleProblem::Array { problem };
+    let [_, shape, dtype, fortran, data] = <[Obj; 5]>::try_from(state).map_err(|s| PickleProblem::ArrayState { items: s.len() })?;
     let shape: Vec<usize> = match into_value(shape)? {
-        PyValue::Tuple(t) => t.iter().map(|d| match d { PyValue::Int(i) if *i >= 0 => Ok(*i as usize), _ => Err("bad shape".to_string()) }).collect::<Result<_, _>>()?,
-        _ => return Err("array shape is not a tuple".into()),
+        PyValue::Tuple(t) => t.iter().map(|d| match d { PyValue::Int(i) if *i >= 0 => Ok(*i as usize), _ => Err(array("bad shape")) }).collect::<Result<_, _>>()?,
+        _ => return Err(array("array shape is not a tuple")),
     };
     if fortran == Obj::Value(PyValue::Bool(true)) {
-        return Err("Fortran-order arrays are not supported".into());
+        return Err(array("Fortran-order arrays are not supported"));
     }
-    let Obj::Dtype(descr) = dtype else { return Err("array dtype missing".into()) };
+    let Obj::Dtype(descr) = dtype else { return Err(array("array dtype missing")) };
     if descr.ends_with('O') || descr.ends_with("O8") {
         let items = match into_value(data)? {
             PyValue::List(l) => l,
-            _ => return Err("object array data is not a list".into()),
+            _ => return Err(array("object array data is not a list")),
         };
         // A 0-d object array is how numpy.save stores a dict: unwrap it.
         if shape.is_empty() && items.len() == 1 {
@@ -479,7 +535,7 @@ fn build_array(state: Vec<Obj>) -> crate::Result<PyValue> {
     }
     let bytes = match into_value(data)? {
         PyValue::Bytes(b) => b,
-        _ => return Err("array data is not bytes".into()),
+        _ => return Err(array("array data is not bytes")),
     };
     // Reuse the .npy decoder on a synthesized header.
     let shape_text = match shape.len() {
@@ -492,25 +548,25 @@ fn build_array(state: Vec<Obj>) -> crate::Result<PyValue> {
     npy_bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
     npy_bytes.extend_from_slice(header.as_bytes());
     npy_bytes.extend_from_slice(&bytes);
-    npy::decode(&npy_bytes, "pickled array", None).map(PyValue::Array).map_err(|e| e.to_string())
+    npy::decode(&npy_bytes, "pickled array", None).map(PyValue::Array).map_err(|error| PickleProblem::ArrayData { error })
 }
 
 /// Reads a `.npy` holding a pickled object (as `numpy.save` writes a dict).
 pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
-    decode_object_npy_inner(bytes, what).map_err(|m| PickleError::new(what, m))
-}
-
-fn decode_object_npy_inner(bytes: &[u8], what: &str) -> crate::Result<PyValue> {
+    let wrapper = |problem: PickleProblem| PickleError { file: what.to_string(), at: None, problem };
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-        return Err(format!("{what}: not a .npy file"));
+        return Err(wrapper(PickleProblem::NotNpy));
+    }
+    if bytes[6] != 1 && bytes.len() < 12 {
+        return Err(wrapper(PickleProblem::NpyHeaderTruncated));
     }
     let (len, start) = if bytes[6] == 1 { (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10) } else { (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12) };
     if bytes.len() < start + len {
-        return Err(format!("{what}: truncated header"));
+        return Err(wrapper(PickleProblem::NpyHeaderTruncated));
     }
     let header = String::from_utf8_lossy(&bytes[start..start + len]);
     if !header.contains("'|O'") {
-        return Err(format!("{what}: not an object array (header {})", header.trim()));
+        return Err(wrapper(PickleProblem::NotObjectArray { header: header.trim().to_string() }));
     }
-    decode_inner(&bytes[start + len..], what)
+    decode(&bytes[start + len..], what)
 }

@@ -17,23 +17,35 @@ use drape_shared::real::Real;
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
-use crate::error::Result;
+use crate::error::{EngineError, Result};
 use crate::kernels::Kernel;
 use crate::recorder::{flat_grid as grid, Recording};
 
-/// The backbone.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// The backbone; in configuration files `"alex"` or `"vgg"` (`"vgg16"` is read too).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum LpipsNet {
     Alex,
+    #[serde(rename = "vgg", alias = "vgg16")]
     Vgg16,
 }
 
 impl LpipsNet {
-    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+    /// The network by its name ([`Self::name`], or `vgg16`), as a command line gives
+    /// it; [`EngineError::InvalidSetting`] for `lpips_net` names the allowed values.
+    pub fn parse(s: &str) -> Result<Self> {
         match s {
             "alex" => Ok(Self::Alex),
             "vgg" | "vgg16" => Ok(Self::Vgg16),
-            other => Err(format!("LPIPS network must be alex or vgg, got '{other}'")),
+            other => Err(EngineError::InvalidSetting { what: "lpips_net", problem: format!("LPIPS network must be alex or vgg, got '{other}'") }),
+        }
+    }
+
+    /// The name `parse` and configuration files use: `alex` or `vgg`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Alex => "alex",
+            Self::Vgg16 => "vgg",
         }
     }
 
@@ -115,6 +127,13 @@ impl LpipsNet {
     }
 }
 
+/// [`LpipsNet::name`].
+impl std::fmt::Display for LpipsNet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// One stage of the feature stack.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stage {
@@ -160,10 +179,7 @@ impl LpipsWeights {
         }
         let header: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&bytes[8..8 + header_len]).map_err(|e| format(format!("header: {e}")))?;
         let body = &bytes[8 + header_len..];
-        let name = match net {
-            LpipsNet::Alex => "alex",
-            LpipsNet::Vgg16 => "vgg",
-        };
+        let name = net.name();
         let mut tensors = BTreeMap::new();
         for (tensor, shape) in net.tensors() {
             let bad = |detail: String| WeightsError::Bad { path: path.into(), tensor: tensor.clone(), detail };
@@ -244,6 +260,11 @@ fn plan_sizes(net: LpipsNet, width: u32, height: u32) -> Option<Vec<(u32, u32, u
     Some(sizes)
 }
 
+/// [`plan_sizes`], or [`EngineError::ImageTooSmall`] naming the smallest side.
+fn plan_sizes_or_err(net: LpipsNet, width: u32, height: u32) -> Result<Vec<(u32, u32, u32)>> {
+    plan_sizes(net, width, height).ok_or_else(|| EngineError::ImageTooSmall { op: "LPIPS", width, height, min_side: LpipsWeights::min_side(net) })
+}
+
 /// The network on the GPU for images of one size, with the activations of both
 /// images and the gradients of the first.
 pub struct Lpips {
@@ -262,10 +283,10 @@ pub struct Lpips {
 
 impl Lpips {
     /// Uploads the weights for `width × height` images; an image smaller than the
-    /// stack allows is refused (`TooLarge` cannot say it; the message names the size).
-    pub fn new(ctx: &Context, weights: &LpipsWeights, width: u32, height: u32) -> std::result::Result<Self, String> {
-        let sizes = plan_sizes(weights.net, width, height).ok_or_else(|| format!("LPIPS needs images of at least {0}x{0}; got {width}x{height}", LpipsWeights::min_side(weights.net)))?;
-        Self::build(ctx, weights, width, height, sizes).map_err(|e| e.to_string())
+    /// stack allows is [`EngineError::ImageTooSmall`].
+    pub fn new(ctx: &Context, weights: &LpipsWeights, width: u32, height: u32) -> Result<Self> {
+        let sizes = plan_sizes_or_err(weights.net, width, height)?;
+        Self::build(ctx, weights, width, height, sizes)
     }
 
     fn build(ctx: &Context, weights: &LpipsWeights, width: u32, height: u32, sizes: Vec<(u32, u32, u32)>) -> Result<Self> {
@@ -407,8 +428,10 @@ impl Lpips {
 }
 
 /// CPU reference: LPIPS of two `width × height` HWC RGB images in [0, 1].
-pub fn reference<F: Real>(weights: &LpipsWeights, pred: &[F], target: &[F], width: u32, height: u32) -> std::result::Result<F, String> {
-    let sizes = plan_sizes(weights.net, width, height).ok_or_else(|| format!("LPIPS needs images of at least {0}x{0}", LpipsWeights::min_side(weights.net)))?;
+/// An image smaller than the stack allows is [`EngineError::ImageTooSmall`], as for
+/// [`Lpips::new`].
+pub fn reference<F: Real>(weights: &LpipsWeights, pred: &[F], target: &[F], width: u32, height: u32) -> Result<F> {
+    let sizes = plan_sizes_or_err(weights.net, width, height)?;
     let t = |name: &str| -> Vec<F> { weights.tensors[name].iter().map(|&v| F::of(v)).collect() };
     let features = |img: &[F]| -> Vec<Vec<F>> {
         let hw = width * height;

@@ -132,6 +132,8 @@ fn lpips_extremes() {
     assert!(v.is_finite() && g.iter().all(|x| x.is_finite()), "constant images: {v}");
     // Below the stack's minimum (AlexNet: 31 px): an error naming the size.
     let err = Lpips::new(&ctx, &weights, 30, 64).err().expect("too small");
+    assert!(matches!(err, drape_engine::EngineError::ImageTooSmall { .. }), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("31x31") && err.contains("30x64"), "{err}");
 }
 

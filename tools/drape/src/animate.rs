@@ -60,13 +60,13 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
         None => {
             let path = PathBuf::from(&args.motion);
             anyhow::ensure!(path.is_file(), "--motion {}: neither walk, jog, raise-arms, turn nor a motion file", args.motion);
-            let m = Motion::load_npz(&path).map_err(|e| anyhow::anyhow!("{e}"))?;
+            let m = Motion::load_npz(&path)?;
             anyhow::ensure!(!m.is_empty(), "{}: the motion has no frames", path.display());
             (m, path.file_stem().map_or("motion".into(), |s| s.to_string_lossy().into_owned()))
         }
     };
     let ctx = device.open()?;
-    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
     let out = args.out.clone().unwrap_or_else(|| run.dir.join(format!("animate-{name}")));
     std::fs::create_dir_all(&out).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
     let options = AnimateOptions { frames: args.frames, orbit_degrees: args.orbit, background, gif: !args.no_gif };
@@ -74,7 +74,7 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
         eprint!("\rrendering {}/{n}   ", k + 1);
         let _ = std::io::stderr().flush();
     })
-    .map_err(anyhow::Error::msg)?;
+    ?;
     eprintln!();
     device.check_validation(&ctx)?;
     let mut sorted = report.frame_ms.clone();

@@ -33,7 +33,8 @@ use std::time::Instant;
 use anyhow::Context as _;
 use drape_cli_support::DeviceArgs;
 use drape_trainer::avatar::eval::EvalMetrics;
-use drape_trainer::avatar::train::{body_model, load_sequence, train, Progress, TrainConfig};
+use drape_trainer::avatar::model::LayerChoice;
+use drape_trainer::avatar::train::{body_model, load_sequence, train, Preset, Progress, TrainConfig};
 use drape_trainer::dataset::synth::{generate, SynthOptions};
 use drape_trainer::garment::GarmentFit;
 use drape_trainer::motion::MotionKind;
@@ -126,7 +127,7 @@ const ROWS: [Row; 7] = [
             c.lambda_arap = 0.0;
         },
     },
-    Row { key: "single-layer", paper: "Single layer (HUGS)", apply: |c| c.layers = "body+scene".into() },
+    Row { key: "single-layer", paper: "Single layer (HUGS)", apply: |c| c.layers = LayerChoice { cloth: Some(false), scene: Some(true) } },
 ];
 
 fn list<T>(s: &str, what: &str, choices: &str, parse: impl Fn(&str) -> Option<T>) -> anyhow::Result<Vec<T>> {
@@ -155,7 +156,7 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     let fits = list(&args.fits, "fits", "loose, tight", GarmentFit::parse)?;
     let motions = list(&args.motions, "motions", "walk, jog, raise-arms, turn", MotionKind::parse)?;
     let rows = list(&args.rows, "rows", &ROWS.map(|r| r.key).join(", "), |k| ROWS.iter().find(|r| r.key == k).copied())?;
-    let mut base = TrainConfig::preset(&args.preset).map_err(anyhow::Error::msg)?;
+    let mut base = TrainConfig::preset(Preset::parse(&args.preset)?);
     if let Some(s) = args.steps {
         base.steps = s;
     }
@@ -164,7 +165,7 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     }
     base.seed = args.seed;
     base.lpips_weights = args.lpips_weights.clone();
-    base.validate().map_err(anyhow::Error::msg)?;
+    base.validate()?;
     // Runs are never overwritten: a finished benchmark stays as it was measured.
     if args.out.exists() {
         let mut entries = std::fs::read_dir(&args.out).with_context(|| format!("{}: cannot read", args.out.display()))?;
@@ -188,15 +189,15 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
             .map_err(|e| anyhow::anyhow!("{}: {e}", data.display()))?;
             eprintln!();
             println!("[{name}] synthesised {} frames at {}x{} in {:.1} s", args.frames, args.size, args.size, t0.elapsed().as_secs_f64());
-            let seq = load_sequence(&data, 0).map_err(anyhow::Error::msg)?;
+            let seq = load_sequence(&data, 0)?;
             let mut results = Vec::new();
             for row in &rows {
                 done += 1;
                 let mut config = base.clone();
-                config.cloth_fit = fit.name().into();
+                config.cloth_fit = fit;
                 (row.apply)(&mut config);
                 let out = args.out.join("runs").join(&name).join(row.key);
-                let model = body_model(None).map_err(anyhow::Error::msg)?;
+                let model = body_model(None)?;
                 let t0 = Instant::now();
                 let report = train(&ctx, &seq, model, &config, &out, false, &mut |p| {
                     match p {

@@ -45,12 +45,12 @@ pub fn run(device: &DeviceArgs, args: &EditArgs) -> anyhow::Result<()> {
         anyhow::bail!("{}: the output directory exists and is not empty", args.out.display());
     }
     let ctx = device.open()?;
-    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
     let mut other = match &args.swap_cloth {
-        Some(o) => Some(OpenRun::open(&ctx, o, None, None).map_err(anyhow::Error::msg)?),
+        Some(o) => Some(OpenRun::open(&ctx, o, None, None)?),
         None => None,
     };
-    let what = edit(&ctx, &mut run, &which, other.as_mut(), &args.out).map_err(anyhow::Error::msg)?;
+    let what = edit(&ctx, &mut run, &which, other.as_mut(), &args.out)?;
     device.check_validation(&ctx)?;
     println!("{what}; wrote {} (config.json, run.json, model.npz): `drape eval {0}` and `drape animate {0}` open it", args.out.display());
     Ok(())

@@ -11,7 +11,7 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use drape_cli_support::DeviceArgs;
-use drape_engine::ops::lpips::{LpipsNet, LpipsWeights};
+use drape_engine::ops::lpips::LpipsWeights;
 use drape_trainer::avatar::cloth_target::ground_truth_dir;
 use drape_trainer::avatar::eval::{evaluate_with_fid, markdown_table, write_reports, EvalInputs, ERROR_GAIN};
 use drape_trainer::avatar::fid::FidInception;
@@ -44,14 +44,14 @@ pub struct EvalArgs {
 
 pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
     let ctx = device.open()?;
-    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), args.body.as_deref()).map_err(anyhow::Error::msg)?;
+    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), args.body.as_deref())?;
     let lpips_path = args.lpips_weights.clone().or_else(|| run.config.lpips_weights.clone());
     let lpips = match &lpips_path {
-        Some(p) => Some(LpipsWeights::load(p, LpipsNet::parse(&run.config.lpips_net).map_err(anyhow::Error::msg)?).map_err(|e| anyhow::anyhow!("{e}"))?),
+        Some(p) => Some(LpipsWeights::load(p, run.config.lpips_net)?),
         None => None,
     };
     let fid = match &args.fid_weights {
-        Some(p) => Some(FidInception::load(p).map_err(|e| anyhow::anyhow!("{e}"))?),
+        Some(p) => Some(FidInception::load(p)?),
         None => None,
     };
     let ground_truth = ground_truth_dir(&run.seq.dir);
@@ -68,7 +68,7 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
             let _ = std::io::stderr().flush();
         }
     })
-    .map_err(anyhow::Error::msg)?;
+    ?;
     eprintln!();
     device.check_validation(&ctx)?;
     let layers = format!("body{}{}", if run.layers.cloth { " + cloth" } else { "" }, if run.layers.scene { " + scene" } else { "" });
@@ -89,7 +89,7 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
             None => "n/a (no --fid-weights)".into(),
         }
     );
-    write_reports(&out, &header, &mean, &per_frame).map_err(anyhow::Error::msg)?;
+    write_reports(&out, &header, &mean, &per_frame)?;
     println!("{}", markdown_table(&header, &mean, &per_frame));
     println!(
         "wrote {}/eval.json, eval.md and {} sheets (ground truth | render | error x{ERROR_GAIN}{}) in {:.1} s",

@@ -13,7 +13,9 @@ use std::path::PathBuf;
 use anyhow::Context as _;
 use drape_cli_support::DeviceArgs;
 use drape_trainer::avatar::run::RunInfo;
-use drape_trainer::avatar::train::{body_model, load_sequence, train, Layout, Progress, TrainConfig};
+use drape_trainer::avatar::composite::{Compositing, Matte};
+use drape_trainer::avatar::model::LayerChoice;
+use drape_trainer::avatar::train::{body_model, load_sequence, train, Layout, Preset, Progress, TrainConfig};
 
 /// Options of `drape train`.
 #[derive(Clone, Debug, clap::Args)]
@@ -77,14 +79,14 @@ pub struct TrainArgs {
 }
 
 /// Merges the TOML table `over` into `base`, naming the first key `base` lacks.
-fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), String> {
+fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> anyhow::Result<()> {
     match (base, over) {
         (toml::Value::Table(b), toml::Value::Table(o)) => {
             for (k, v) in o {
                 let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
                 match b.get_mut(k) {
                     Some(slot) => merge(slot, v, &key)?,
-                    None => return Err(format!("unknown key '{key}'")),
+                    None => anyhow::bail!("unknown key '{key}'"),
                 }
             }
             Ok(())
@@ -93,7 +95,7 @@ fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), S
             // A leaf keeps its type (an integer may stand for a float).
             let same = std::mem::discriminant(b) == std::mem::discriminant(o) || matches!((&*b, o), (toml::Value::Float(_), toml::Value::Integer(_)));
             if !same {
-                return Err(format!("'{path}' must be {}, got {}", b.type_str(), o.type_str()));
+                anyhow::bail!("'{path}' must be {}, got {}", b.type_str(), o.type_str());
             }
             *b = match (&*b, o) {
                 (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(*i as f64),
@@ -107,29 +109,28 @@ fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> Result<(), S
 fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(run) = &args.resume {
         anyhow::ensure!(args.config.is_none(), "--config cannot change a run being resumed (edit {} instead)", run.join("config.json").display());
-        let mut config = TrainConfig::read_run(run).map_err(anyhow::Error::msg)?;
+        let mut config = TrainConfig::read_run(run)?;
         if let Some(s) = args.steps {
             config.steps = s;
         }
         return Ok(config);
     }
-    let mut config = TrainConfig::preset(&args.preset).map_err(anyhow::Error::msg)?;
+    let mut config = TrainConfig::preset(Preset::parse(&args.preset)?);
     if let Some(path) = &args.config {
         let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
         let over: toml::Value = toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
-        let mut base = toml::Value::try_from(&config).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut base = toml::Value::try_from(&config)?;
         merge(&mut base, &over, "").map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        config = base.try_into().map_err(|e: toml::de::Error| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
-        config.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        config = TrainConfig::from_deserializer(base).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     }
     if let Some(s) = args.steps {
         config.steps = s;
     }
     if let Some(l) = &args.layers {
-        config.layers = l.clone();
+        config.layers = LayerChoice::parse(l).context("--layers")?;
     }
     if let Some(c) = &args.compositing {
-        config.compositing = c.clone();
+        config.compositing = Compositing::parse(c).context("--compositing")?;
     }
     if let Some(w) = &args.lpips_weights {
         config.lpips_weights = Some(w.clone());
@@ -137,7 +138,7 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if args.deterministic {
         config.deterministic = true;
     }
-    config.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+    config.validate()?;
     Ok(config)
 }
 
@@ -154,8 +155,8 @@ fn every_nth_vertex(n: u32) -> String {
 
 pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let config = load_config(args)?;
-    let seq = load_sequence(&args.data, config.zju_train_camera).map_err(anyhow::Error::msg)?;
-    let model = body_model(args.body.as_deref()).map_err(anyhow::Error::msg)?;
+    let seq = load_sequence(&args.data, config.zju_train_camera)?;
+    let model = body_model(args.body.as_deref())?;
     let ctx = device.open()?;
     let (train_n, test_n) = seq.frames.iter().fold((0, 0), |(a, b), f| match f.split {
         drape_trainer::dataset::split::Split::Train => (a + 1, b),
@@ -163,7 +164,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         drape_trainer::dataset::split::Split::Val => (a, b),
     });
     let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
-    let layers = drape_trainer::avatar::train::choose_layers(&seq, &config).map_err(anyhow::Error::msg)?;
+    let layers = drape_trainer::avatar::train::choose_layers(&seq, &config)?;
     let cloth = layers.cloth;
     println!("data: {} ({}: {}), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.variant.name(), seq.variant.describe(), seq.frames[0].width, seq.frames[0].height);
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
@@ -181,19 +182,19 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         (true, _) => println!(
             "  cloth layer: {10} T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}, SH degree {9}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
             config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width),
-            match (config.compositing.as_str(), layers.scene) {
-                ("single-pass", _) => "rendered with the other layers in one depth-sorted pass",
-                ("three-pass-occlusion", true) => "rendered alone and composited over body + scene through a matte in which the scene and the body hide it",
-                ("three-pass-occlusion", false) => "rendered alone and composited over the body through a matte in which the body hides it",
-                ("fused", true) => "composited over body + scene through a matte in which the scene hides it (the paper's three images from one sort and one walk of every layer, forward and backward)",
-                ("fused", false) => "composited over the body (the paper's images from one sort and one walk of every layer, forward and backward; nothing hides the cloth)",
-                ("fused-occlusion", true) => "composited over body + scene through a matte in which the scene and the body hide it (one sort and one walk of every layer, forward and backward)",
-                ("fused-occlusion", false) => "composited over the body through a matte in which the body hides it (one sort and one walk of every layer, forward and backward)",
-                (_, true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
-                (_, false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
+            match (config.compositing, layers.scene) {
+                (Compositing::SinglePass, _) => "rendered with the other layers in one depth-sorted pass",
+                (Compositing::ThreePass(Matte::Occlusion), true) => "rendered alone and composited over body + scene through a matte in which the scene and the body hide it",
+                (Compositing::ThreePass(Matte::Occlusion), false) => "rendered alone and composited over the body through a matte in which the body hides it",
+                (Compositing::Fused(Matte::Paper), true) => "composited over body + scene through a matte in which the scene hides it (the paper's three images from one sort and one walk of every layer, forward and backward)",
+                (Compositing::Fused(Matte::Paper), false) => "composited over the body (the paper's images from one sort and one walk of every layer, forward and backward; nothing hides the cloth)",
+                (Compositing::Fused(Matte::Occlusion), true) => "composited over body + scene through a matte in which the scene and the body hide it (one sort and one walk of every layer, forward and backward)",
+                (Compositing::Fused(Matte::Occlusion), false) => "composited over the body through a matte in which the body hides it (one sort and one walk of every layer, forward and backward)",
+                (Compositing::ThreePass(Matte::Paper), true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
+                (Compositing::ThreePass(Matte::Paper), false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
             },
             config.cloth.sh_degree,
-            config.cloth_fit
+            config.cloth_fit.name()
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
@@ -235,14 +236,14 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         }
         let _ = std::io::stderr().flush();
     })
-    .map_err(anyhow::Error::msg)?;
+    ?;
     eprintln!();
     // Which data and body the run was trained on, for `drape eval` and `drape animate`.
     let body = match (&args.resume, &args.body) {
-        (Some(run), None) => RunInfo::read(run).map_err(anyhow::Error::msg)?.and_then(|i| i.body),
+        (Some(run), None) => RunInfo::read(run)?.and_then(|i| i.body),
         (_, b) => b.clone(),
     };
-    RunInfo::new(&args.data, body.as_deref()).write(&out).map_err(anyhow::Error::msg)?;
+    RunInfo::new(&args.data, body.as_deref()).write(&out)?;
     device.check_validation(&ctx)?;
     println!(
         "{}trained steps {}..{} in {:.1} s ({:.2} it/s); Gaussians: {}",

@@ -17,6 +17,8 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use anyhow::Context as _;
+
 use drape_cli_support::median;
 use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{Context, Profile};
@@ -94,7 +96,7 @@ pub(crate) fn by_stage(profile: &Profile) -> BTreeMap<String, f64> {
 }
 
 fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (u32, u32), variant: &str) -> anyhow::Result<serde_json::Value> {
-    let compositing = Compositing::parse(variant).map_err(|e| anyhow::anyhow!("--compositing: {e}"))?;
+    let compositing = Compositing::parse(variant).context("--compositing")?;
     let frame = *run.test_frames().first().ok_or_else(|| anyhow::anyhow!("{}: the run's data has no held-out frame to pose the avatar in", run.dir.display()))?;
     let (body, mut camera) = (frame.body.clone(), frame.camera.clone());
     // The held-out view at the benchmark's size (each axis scaled on its own).
@@ -157,13 +159,12 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     config.fit_steps = args.fit_steps;
     config.checkpoint_every = 0;
     if let Some(c) = &args.train_compositing {
-        Compositing::parse(c).map_err(|e| anyhow::anyhow!("--train-compositing: {e}"))?;
-        config.compositing = c.clone();
+        config.compositing = Compositing::parse(c).context("--train-compositing")?;
     }
     // A progress event after every step: the clock and the profile start after the
     // warm-up steps and stop after the last step (before the evaluation).
     config.log_every = 1;
-    let model = body_model(run.info.body.as_deref()).map_err(anyhow::Error::msg)?;
+    let model = body_model(run.info.body.as_deref())?;
     let (mut timed_from, mut timed_to, mut profile) = (None, None, None);
     let report = train_until(ctx, &run.seq, model, &config, &out, false, total, &mut |p| {
         if let Progress::Step { step, .. } = p {
@@ -179,7 +180,7 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     });
     let _ = ctx.take_profile();
     let _ = std::fs::remove_dir_all(&out);
-    let report = report.map_err(anyhow::Error::msg)?;
+    let report = report?;
     let (Some(from), Some(to), Some(profile)) = (timed_from, timed_to, profile) else {
         anyhow::bail!("training stopped before its {total} steps");
     };
@@ -219,7 +220,7 @@ fn train_stage(pass: &str) -> &'static str {
 }
 
 pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value> {
-    let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None)?;
     let mut results = Vec::new();
     for &size in &args.sizes {
         for variant in &args.compositing {

@@ -312,7 +312,7 @@ fn images(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow:
         (name, (0..n).map(|_| rng.random_range(-0.05f32..0.05).abs()).collect::<Vec<f32>>())
     });
     let weights = drape_engine::ops::lpips::LpipsWeights { net, tensors: tensors.collect() };
-    let lpips = drape_engine::ops::lpips::Lpips::new(ctx, &weights, side, side).map_err(anyhow::Error::msg)?;
+    let lpips = drape_engine::ops::lpips::Lpips::new(ctx, &weights, side, side)?;
     let lpips_grad = ctx.create_buffer("bench lpips grad", BufferDesc::gpu_only((px * 4) as u64))?;
     let (lpips_wall, lpips_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench lpips")?;

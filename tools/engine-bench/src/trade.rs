@@ -43,7 +43,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use drape_cli_support::median;
-use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
+use drape_engine::ops::lpips::{Lpips, LpipsWeights};
 use drape_engine::ops::splat::render::SplatRenderer;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::Context;
@@ -308,7 +308,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 
 /// The settings of every measured knob; the first is the default.
 fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
-    let default_comp = run.config.compositing.clone();
+    let default_comp = run.config.compositing.name().to_string();
     let parts = part_names(&run.avatar);
     let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false, half_splats: false };
     let mut out = vec![base.clone()];
@@ -486,7 +486,7 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
     let renderer = match renderers.entry(key) {
         std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
         std::collections::btree_map::Entry::Vacant(e) => {
-            let c = Compositing::parse(&s.compositing).map_err(anyhow::Error::msg)?;
+            let c = Compositing::parse(&s.compositing)?;
             e.insert(AvatarRenderer::new(ctx, &run.avatar, cam.width, cam.height, c)?)
         }
     };
@@ -534,7 +534,7 @@ impl LpipsCache<'_> {
         let Some(weights) = self.weights else { return Ok(None) };
         let net = match self.nets.entry((w, h)) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => e.insert(Lpips::new(ctx, weights, w, h).map_err(anyhow::Error::msg)?),
+            std::collections::btree_map::Entry::Vacant(e) => e.insert(Lpips::new(ctx, weights, w, h)?),
         };
         let (pa, pb) = (ctx.upload("trade lpips a", a)?, ctx.upload("trade lpips b", b)?);
         {
@@ -572,7 +572,7 @@ fn target(f: &DatasetFrame, whole_image: bool) -> Vec<f32> {
 }
 
 pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value> {
-    let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None)?;
     let mut frames: Vec<DatasetFrame> = run.test_frames().into_iter().cloned().collect();
     anyhow::ensure!(!frames.is_empty(), "{}: the run's data has no held-out frame to render", run.seq.dir.display());
     if args.max_frames > 0 {
@@ -580,7 +580,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     }
     let lpips_path = args.lpips_weights.clone().or_else(|| run.config.lpips_weights.clone());
     let weights = match &lpips_path {
-        Some(p) => Some(LpipsWeights::load(p, LpipsNet::parse(&run.config.lpips_net).map_err(anyhow::Error::msg)?).map_err(|e| anyhow::anyhow!("{e}"))?),
+        Some(p) => Some(LpipsWeights::load(p, run.config.lpips_net)?),
         None => None,
     };
     let mut lpips = LpipsCache { weights: weights.as_ref(), nets: BTreeMap::new() };

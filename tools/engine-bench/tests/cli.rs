@@ -107,6 +107,7 @@ fn avatar_names_a_missing_run_in_one_line() {
 fn tiny_run() -> std::path::PathBuf {
     use drape_trainer::avatar::run::RunInfo;
     use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
+    use drape_trainer::avatar::model::LayerChoice;
     use drape_trainer::body::procedural::{default_body, BodyOptions};
     use drape_trainer::dataset::synth::{generate, SynthOptions};
     let root = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("engine-bench-trade");
@@ -122,7 +123,7 @@ fn tiny_run() -> std::path::PathBuf {
     }
     (c.fit_steps, c.steps, c.log_every, c.checkpoint_every) = (10, 10, 10, 0);
     c.cloth.pose_offsets = true;
-    c.layers = "body+cloth".into();
+    c.layers = LayerChoice::parse("body+cloth").unwrap();
     let run = root.join("run");
     train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &run, false, &mut |_| {}).expect("training");
     RunInfo::new(&data, None).write(&run).expect("run.json");

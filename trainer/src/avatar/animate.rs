@@ -15,6 +15,7 @@ use std::time::Instant;
 use drape_engine::ops::splat::scene::RenderSettings;
 
 use crate::avatar::run::OpenRun;
+use crate::TrainerError;
 use crate::body::kinematics::{rodrigues, Pose, M3};
 use crate::camera::Camera;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
@@ -116,9 +117,9 @@ fn orbit_camera(start: &Camera, anchor_pelvis: V3, up: V3, pelvis: V3, angle: f6
 pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, options: &AnimateOptions, out: &Path, progress: &mut dyn FnMut(usize, usize)) -> crate::Result<AnimateReport> {
     let frames = options.frames.min(motion.len());
     if frames == 0 {
-        return Err("the motion has no frames".into());
+        return Err(TrainerError::invalid("motion", "the motion has no frames"));
     }
-    let anchor: &DatasetFrame = run.test_frames().first().copied().or_else(|| run.seq.frames.first()).ok_or("the run's sequence has no frames")?;
+    let anchor: &DatasetFrame = run.test_frames().first().copied().or_else(|| run.seq.frames.first()).ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?;
     let (anchor_body, start_camera) = (anchor.body.clone(), anchor.camera);
     let (width, height) = (start_camera.width, start_camera.height);
     let rest_pelvis = run.rig.rest_joints()[0];
@@ -158,21 +159,30 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
 /// An endlessly looping GIF of HWC RGB images in [0, 1] at `fps` (each frame's 256
 /// colours chosen by the `gif` crate's NeuQuant), written to a temporary file and renamed.
 pub fn write_gif(path: &Path, width: u32, height: u32, images: &[Vec<f32>], fps: f64) -> crate::Result<()> {
-    let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
-    let (w, h) = (u16::try_from(width).map_err(|e| err(&e))?, u16::try_from(height).map_err(|e| err(&e))?);
+    let (Ok(w), Ok(h)) = (u16::try_from(width), u16::try_from(height)) else {
+        return Err(TrainerError::invalid("GIF size", format!("{}: {width} x {height}, but a GIF is at most 65535 x 65535", path.display())));
+    };
     let tmp = path.with_extension("gif.tmp");
+    // The gif crate's errors are I/O errors or frames it cannot encode; either way the
+    // temporary file could not be written.
+    let err = |e: gif::EncodingError| match e {
+        gif::EncodingError::Io(e) => TrainerError::io(&tmp, e),
+        gif::EncodingError::Format(e) => TrainerError::io(&tmp, std::io::Error::new(std::io::ErrorKind::InvalidData, e)),
+    };
     {
-        let file = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(|e| err(&e))?);
-        let mut encoder = gif::Encoder::new(file, w, h, &[]).map_err(|e| err(&e))?;
-        encoder.set_repeat(gif::Repeat::Infinite).map_err(|e| err(&e))?;
+        let file = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(|e| TrainerError::io(&tmp, e))?);
+        let mut encoder = gif::Encoder::new(file, w, h, &[]).map_err(err)?;
+        encoder.set_repeat(gif::Repeat::Infinite).map_err(err)?;
         // GIF delays are in hundredths of a second.
         let delay = (100.0 / fps.max(1.0)).round().clamp(2.0, 65535.0) as u16;
         for rgb in images {
             let bytes: Vec<u8> = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
             let mut frame = gif::Frame::from_rgb_speed(w, h, &bytes, 10);
             frame.delay = delay;
-            encoder.write_frame(&frame).map_err(|e| err(&e))?;
+            encoder.write_frame(&frame).map_err(err)?;
         }
+        // The trailer and the buffer's last bytes, written here so that a failure is seen.
+        encoder.into_inner().and_then(|mut file| std::io::Write::flush(&mut file)).map_err(|e| TrainerError::io(&tmp, e))?;
     }
-    std::fs::rename(&tmp, path).map_err(|e| err(&e))
+    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
 }

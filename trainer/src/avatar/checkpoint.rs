@@ -38,6 +38,7 @@ use crate::avatar::pose_refine::PoseState;
 use crate::avatar::rig::REFINED_PARAMS;
 use crate::avatar::scene::{SceneState, SCENE_PARAMS};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
+use crate::TrainerError;
 
 /// Version of the archive layout.
 /// 2: decoder parameters laid out with every weight and bias on a 16-byte boundary
@@ -165,11 +166,11 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
         a.insert("poses.adam.step".into(), Array::new(Dtype::U32, vec![f], p.steps.iter().map(|&v| f64::from(v)).collect()));
     }
     let tmp = path.with_extension("npz.tmp");
-    write_npz(&tmp, &a).map_err(|e| e.to_string())?;
+    write_npz(&tmp, &a)?;
     stall_if_asked(&tmp);
     // The data is on disk before the rename makes it the file.
-    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| format!("{}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| TrainerError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
 }
 
 /// The crash test's hook: with `DRAPE_FAILPOINT=stall-in-checkpoint-write:K`, the
@@ -209,29 +210,30 @@ pub struct LayerShape {
 /// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's SH
 /// degree (the model it is loaded into).
 pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) -> crate::Result<ModelState> {
-    let file = path.display().to_string();
-    let a = read_npz(path).map_err(|e| e.to_string())?;
+    let a = read_npz(path)?;
+    let bad = |key: &str, problem: String| TrainerError::checkpoint(path, key, problem);
+    let missing = |key: &str| bad(key, "array is missing (a checkpoint of another model?)".into());
     let get = |key: &str, dtype: Dtype, len: usize| -> crate::Result<Vec<f32>> {
-        let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
+        let arr = a.get(key).ok_or_else(|| missing(key))?;
         if arr.dtype != dtype {
-            return Err(format!("{file}: array '{key}' has dtype {:?}, expected {dtype:?}", arr.dtype));
+            return Err(bad(key, format!("array has dtype {:?}, expected {dtype:?}", arr.dtype)));
         }
         if arr.data.len() != len {
-            return Err(format!("{file}: array '{key}' has shape {:?} ({} values), but this model needs {len}", arr.shape, arr.data.len()));
+            return Err(bad(key, format!("array has shape {:?} ({} values), but this model needs {len}", arr.shape, arr.data.len())));
         }
         Ok(arr.data.iter().map(|&v| v as f32).collect())
     };
     let version = get("format_version", Dtype::U32, 1)?[0] as u32;
     if version != FORMAT_VERSION {
-        return Err(format!("{file}: format version {version}, this drape reads version {FORMAT_VERSION}"));
+        return Err(bad("format_version", format!("format version {version}, this drape reads version {FORMAT_VERSION}")));
     }
     let step = get("step", Dtype::U32, 1)?[0] as u32;
     let mut layers = Vec::new();
     // The Gaussian count of a per-Gaussian array of `width` floats each: the file's.
     let count_of = |key: &str, width: usize| -> crate::Result<usize> {
-        let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (a checkpoint of another model?)"))?;
+        let arr = a.get(key).ok_or_else(|| missing(key))?;
         if arr.data.is_empty() || arr.data.len() % width != 0 {
-            return Err(format!("{file}: array '{key}' has {} values, not a positive multiple of {width}", arr.data.len()));
+            return Err(bad(key, format!("array has {} values, not a positive multiple of {width}", arr.data.len())));
         }
         Ok(arr.data.len() / width)
     };
@@ -264,7 +266,7 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
                 deformation: get(&format!("{name}.deformation"), Dtype::F32, s.decoders[2])?,
                 adam,
                 weight_targets: match optional(&format!("{name}.weight_targets"), 24 * n)? {
-                    None if n != s.count => return Err(format!("{file}: layer '{name}' has {n} Gaussians but no array '{name}.weight_targets' (this model has {}; a checkpoint of another model?)", s.count)),
+                    None if n != s.count => return Err(bad(&format!("{name}.weight_targets"), format!("array is missing, and layer '{name}' has {n} Gaussians (this model has {}; a checkpoint of another model?)", s.count))),
                     w => w,
                 },
                 screen_stats: optional(&format!("{name}.screen_stats"), 3 * n)?,
@@ -273,10 +275,10 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
                     Some(arr) => {
                         let key = format!("{name}.edges");
                         if arr.dtype != Dtype::U32 || arr.data.len() % 2 != 0 {
-                            return Err(format!("{file}: array '{key}' is {:?} of shape {:?}, expected U32 of shape [E, 2]", arr.dtype, arr.shape));
+                            return Err(bad(&key, format!("array is {:?} of shape {:?}, expected U32 of shape [E, 2]", arr.dtype, arr.shape)));
                         }
-                        if let Some(&bad) = arr.data.iter().find(|&&v| v as usize >= n) {
-                            return Err(format!("{file}: array '{key}' names Gaussian {bad}, but the layer has {n}"));
+                        if let Some(&g) = arr.data.iter().find(|&&v| v as usize >= n) {
+                            return Err(bad(&key, format!("array names Gaussian {g}, but the layer has {n}")));
                         }
                         Some(arr.data.chunks_exact(2).map(|e| [e[0] as u32, e[1] as u32]).collect())
                     }
@@ -287,7 +289,7 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
     let scene = match scene_sh_degree {
         None => {
             if a.contains_key("scene.means") {
-                return Err(format!("{file}: the file has a scene layer, but this model has none (trained with other --layers?)"));
+                return Err(bad("scene.means", "the file has a scene layer, but this model has none (trained with other --layers?)".into()));
             }
             None
         }
@@ -313,13 +315,13 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
         Some(frames) => {
             let frames: Vec<u32> = match frames.dtype {
                 Dtype::U32 => frames.data.iter().map(|&v| v as u32).collect(),
-                other => return Err(format!("{file}: array 'poses.frames' has dtype {other:?}, expected U32")),
+                other => return Err(bad("poses.frames", format!("array has dtype {other:?}, expected U32"))),
             };
             let f = frames.len();
             let rows = |key: &str| -> crate::Result<Vec<[f64; REFINED_PARAMS]>> {
-                let arr = a.get(key).ok_or_else(|| format!("{file}: array '{key}' is missing (poses.frames is there)"))?;
+                let arr = a.get(key).ok_or_else(|| bad(key, "array is missing (poses.frames is there)".into()))?;
                 if arr.dtype != Dtype::F64 || arr.data.len() != f * REFINED_PARAMS {
-                    return Err(format!("{file}: array '{key}' is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape));
+                    return Err(bad(key, format!("array is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape)));
                 }
                 Ok(arr.data.chunks_exact(REFINED_PARAMS).map(|c| std::array::from_fn(|k| c[k])).collect())
             };

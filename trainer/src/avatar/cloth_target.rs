@@ -18,9 +18,10 @@ use crate::body::kinematics::{regress_joints, rodrigues, Pose};
 use crate::body::model::NUM_JOINTS;
 use crate::cloth::{simulate_with_progress, ClothParams};
 use crate::dataset::loader::{BodyParams, DatasetFrame};
-use crate::garment::{pants, Garment, GarmentFit};
+use crate::garment::{pants, Garment, GarmentError, GarmentFit};
 use crate::mesh::V3;
 use crate::motion::Motion;
+use crate::TrainerError;
 
 /// World-space garment vertices per frame (the T-shirt's, then the pants').
 pub struct GarmentFrames {
@@ -69,7 +70,7 @@ pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], pr
     let garments = garments(rig, fit);
     let sim = simulate_with_progress(&rig.model, &garments, &motion, ClothParams::default(), 20, progress);
     if sim.any_nan {
-        return Err("the cloth simulation of the sequence's motion produced non-finite positions".into());
+        return Err(TrainerError::numeric("cloth targets", "the cloth simulation of the sequence's motion produced non-finite positions"));
     }
     let mut by_frame = BTreeMap::new();
     for ((frame, (_, _, scale)), meshes) in order.iter().zip(&sim.frames) {
@@ -102,7 +103,7 @@ pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> crate::Result<O
 
 /// The vertices of an OBJ file (read with `tobj`, as the garment loader does).
 pub fn obj_vertices(path: &Path) -> crate::Result<Vec<[f32; 3]>> {
-    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|error| GarmentError::Read { path: path.display().to_string(), error })?;
     Ok(models.iter().flat_map(|m| m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]])).collect())
 }
 

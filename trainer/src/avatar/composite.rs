@@ -40,8 +40,10 @@ pub enum Matte {
     Occlusion,
 }
 
-/// How the layers become one image.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// How the layers become one image. In a config it is the string
+/// [`Compositing::parse`] reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum Compositing {
     /// Every layer in one depth-sorted pass (no matte): the baseline.
     SinglePass,
@@ -57,16 +59,50 @@ impl Compositing {
     /// `three-pass` (the paper's matte), `three-pass-occlusion`, `single-pass`,
     /// `fused` or `fused-occlusion`.
     pub fn parse(s: &str) -> crate::Result<Self> {
-        match s {
-            "three-pass" => Ok(Self::ThreePass(Matte::Paper)),
-            "three-pass-occlusion" => Ok(Self::ThreePass(Matte::Occlusion)),
-            "single-pass" => Ok(Self::SinglePass),
-            "fused" => Ok(Self::Fused(Matte::Paper)),
-            "fused-occlusion" => Ok(Self::Fused(Matte::Occlusion)),
-            other => Err(format!("must be three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion, got '{other}'")),
-        }
+        Self::try_from(s.to_string()).map_err(|e| crate::TrainerError::config("compositing", e.to_string()))
     }
 
+    /// Every choice, the paper's first.
+    pub const ALL: [Self; 5] = [
+        Self::ThreePass(Matte::Paper),
+        Self::ThreePass(Matte::Occlusion),
+        Self::SinglePass,
+        Self::Fused(Matte::Paper),
+        Self::Fused(Matte::Occlusion),
+    ];
+
+    /// The name [`Compositing::parse`] reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::ThreePass(Matte::Paper) => "three-pass",
+            Self::ThreePass(Matte::Occlusion) => "three-pass-occlusion",
+            Self::SinglePass => "single-pass",
+            Self::Fused(Matte::Paper) => "fused",
+            Self::Fused(Matte::Occlusion) => "fused-occlusion",
+        }
+    }
+}
+
+impl std::fmt::Display for Compositing {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl TryFrom<String> for Compositing {
+    type Error = crate::error::BadChoice;
+    fn try_from(value: String) -> Result<Self, Self::Error> {
+        Self::ALL.into_iter().find(|c| c.name() == value).ok_or(crate::error::BadChoice {
+            value,
+            allowed: "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion",
+        })
+    }
+}
+
+impl From<Compositing> for String {
+    fn from(c: Compositing) -> String {
+        c.name().to_string()
+    }
 }
 
 /// The fused rasterizer's mask of each Gaussian (`drape_shared::splat::raster::FUSED_*`):

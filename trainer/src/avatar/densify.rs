@@ -42,6 +42,7 @@ use crate::avatar::checkpoint::{AdamState, LayerState};
 use crate::avatar::layer::HumanLayer;
 use crate::avatar::scene::SceneLayer;
 use crate::body::model::NUM_JOINTS;
+use crate::TrainerError;
 
 /// When and how the layers are densified and pruned (HUGS's human schedule and
 /// thresholds are the defaults).
@@ -101,14 +102,14 @@ impl DensifyConfig {
         let rates = [("grad_threshold", self.grad_threshold), ("min_opacity", self.min_opacity), ("max_screen_radius", self.max_screen_radius), ("max_world_size", self.max_world_size), ("percent_dense", self.percent_dense)];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("densify.{name} must be a finite number >= 0, got {v}"));
+                return Err(TrainerError::config(format!("densify.{name}"), format!("must be a finite number >= 0, got {v}")));
             }
         }
         if self.max_gaussians == 0 {
-            return Err("densify.max_gaussians must be at least 1".into());
+            return Err(TrainerError::config("densify.max_gaussians", "must be at least 1"));
         }
         if self.every > 0 && self.from > self.until {
-            return Err(format!("densify.from ({}) is after densify.until ({})", self.from, self.until));
+            return Err(TrainerError::config("densify.from", format!("{} is after densify.until ({})", self.from, self.until)));
         }
         Ok(())
     }
@@ -444,6 +445,7 @@ mod tests {
         let due: Vec<u32> = (0..600).filter(|&s| c.due(s)).collect();
         assert_eq!(due, vec![200, 300, 400]);
         assert!((0..10_000).all(|s| !DensifyConfig::off().due(s)));
-        assert!(DensifyConfig { grad_threshold: -1.0, ..c.clone() }.validate().unwrap_err().contains("densify.grad_threshold"));
+        let err = DensifyConfig { grad_threshold: -1.0, ..c.clone() }.validate().unwrap_err();
+        assert!(matches!(&err, TrainerError::Config { key, .. } if key == "densify.grad_threshold"), "{err}");
     }
 }

@@ -19,8 +19,10 @@ use std::path::Path;
 use drape_engine::Context;
 
 use crate::avatar::checkpoint::{self, ModelState};
+use crate::avatar::model::LayerChoice;
 use crate::avatar::run::{OpenRun, RunInfo};
-use crate::avatar::train::{write_json};
+use crate::avatar::train::write_json;
+use crate::TrainerError;
 
 /// One edit.
 #[derive(Clone, Debug, PartialEq)]
@@ -62,18 +64,18 @@ pub fn recolour_sh_head(params: &mut [f32], head_weight: usize, head_bias: usize
 /// and writes the result into `out` (created; it must not exist or be empty).
 /// Returns a line saying what was done.
 pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut OpenRun>, out: &Path) -> crate::Result<String> {
-    if out.exists() && std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?.next().is_some() {
-        return Err(format!("{}: the output directory exists and is not empty", out.display()));
+    if out.exists() && std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_some() {
+        return Err(TrainerError::run(out, "the output directory exists and is not empty"));
     }
     let Some(cloth_index) = run.avatar.layers.iter().position(|l| l.name == "cloth") else {
-        return Err(format!("{}: the model has no cloth layer to edit", run.dir.display()));
+        return Err(TrainerError::run(&run.dir, "the model has no cloth layer to edit"));
     };
     let mut state: ModelState = run.avatar.state(ctx, run.step)?;
     let mut config = run.config.clone();
     let what = match edit {
         Edit::RemoveCloth => {
             state.layers.retain(|(name, _)| name != "cloth");
-            config.layers = if run.layers.scene { "body+scene".into() } else { "body".into() };
+            config.layers = LayerChoice { cloth: Some(false), scene: Some(run.layers.scene) };
             format!("the cloth layer of {} removed", run.dir.display())
         }
         Edit::Recolour { hue_degrees } => {
@@ -88,39 +90,41 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
             format!("the garments of {} recoloured by a hue rotation of {hue_degrees}°", run.dir.display())
         }
         Edit::SwapCloth => {
-            let other = other.ok_or("swap: no run to take the cloth layer from")?;
+            let other = other.ok_or_else(|| TrainerError::invalid("swap", "no run to take the cloth layer from"))?;
             let theirs: ModelState = other.avatar.state(ctx, other.step)?;
             let Some((_, cloth)) = theirs.layers.into_iter().find(|(n, _)| n == "cloth") else {
-                return Err(format!("{}: the model has no cloth layer to swap in", other.dir.display()));
+                return Err(TrainerError::run(&other.dir, "the model has no cloth layer to swap in"));
             };
             let mine = &state.layers[cloth_index].1;
             // The Gaussian counts may differ (densification); the networks may not.
             let shape = |l: &checkpoint::LayerState| (l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
             if shape(mine) != shape(&cloth) {
-                return Err(format!(
-                    "{}: its cloth layer ({} Gaussians, triplane {:?}, decoders {}/{}/{} parameters) differs in shape from {}'s ({} Gaussians, triplane {:?}, decoders {}/{}/{}): swap needs runs made with the same garments and preset",
-                    other.dir.display(),
-                    cloth.means.len() / 3,
-                    cloth.triplane_size,
-                    cloth.appearance.len(),
-                    cloth.geometry.len(),
-                    cloth.deformation.len(),
-                    run.dir.display(),
-                    mine.means.len() / 3,
-                    mine.triplane_size,
-                    mine.appearance.len(),
-                    mine.geometry.len(),
-                    mine.deformation.len()
+                return Err(TrainerError::run(
+                    &other.dir,
+                    format!(
+                        "its cloth layer ({} Gaussians, triplane {:?}, decoders {}/{}/{} parameters) differs in shape from {}'s ({} Gaussians, triplane {:?}, decoders {}/{}/{}): swap needs runs made with the same garments and preset",
+                        cloth.means.len() / 3,
+                        cloth.triplane_size,
+                        cloth.appearance.len(),
+                        cloth.geometry.len(),
+                        cloth.deformation.len(),
+                        run.dir.display(),
+                        mine.means.len() / 3,
+                        mine.triplane_size,
+                        mine.appearance.len(),
+                        mine.geometry.len(),
+                        mine.deformation.len()
+                    ),
                 ));
             }
             if other.rig.betas != run.rig.betas {
-                return Err(format!("{}: trained on a body of other shape (betas) than {}; the garments would not fit", other.dir.display(), run.dir.display()));
+                return Err(TrainerError::run(&other.dir, format!("trained on a body of other shape (betas) than {}; the garments would not fit", run.dir.display())));
             }
             state.layers[cloth_index].1 = cloth;
             format!("the cloth layer of {} put on {}", other.dir.display(), run.dir.display())
         }
     };
-    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    std::fs::create_dir_all(out).map_err(|e| TrainerError::io(out, e))?;
     write_json(&out.join("config.json"), &config)?;
     RunInfo { made_by: Some(format!("drape edit: {what}")), ..run.info.clone() }.write(out)?;
     checkpoint::write(&out.join("model.npz"), &state)?;

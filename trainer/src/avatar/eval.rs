@@ -25,6 +25,7 @@ use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
 use crate::avatar::train::{masked_target, write_json, Progress};
 use crate::dataset::loader::DatasetFrame;
+use crate::TrainerError;
 
 /// How much the error panel of a sheet amplifies `|render - truth|` (mean over RGB).
 pub const ERROR_GAIN: f32 = 4.0;
@@ -157,7 +158,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
             if let Some(net) = fid {
                 let (w, h) = (b.2 - b.0, b.3 - b.1);
                 let pair = net.features_of_images(&[ImageRef { rgb: &cr, width: w, height: h }, ImageRef { rgb: &ct, width: w, height: h }])?;
-                let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).map_err(|_| "FID: two crops in, not two feature vectors out".to_string())?;
+                let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).expect("one feature vector per image");
                 features[1][0].push(fr);
                 features[1][1].push(ft);
             }
@@ -178,7 +179,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         }
         if let Some(net) = fid {
             let pair = net.features_of_images(&[ImageRef { rgb: &rgb, width: f.width, height: f.height }, ImageRef { rgb: &target, width: f.width, height: f.height }])?;
-            let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).map_err(|_| "FID: two images in, not two feature vectors out".to_string())?;
+            let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).expect("one feature vector per image");
             features[0][0].push(fr);
             features[0][1].push(ft);
         }
@@ -198,7 +199,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         if renders.len() < 2 {
             return Ok(None);
         }
-        frechet_distance_of_features(renders, truths).map(Some).map_err(|e| format!("FID: {e}"))
+        frechet_distance_of_features(renders, truths).map(Some)
     };
     mean.fid_full = fid_of(&features[0])?;
     mean.fid_crop = fid_of(&features[1])?;
@@ -246,7 +247,8 @@ fn side_by_side(panels: &[Vec<f32>], width: usize, height: usize) -> Vec<f32> {
 /// Markdown table) into `dir`; `header` is a line saying what was evaluated.
 pub fn write_reports(dir: &Path, header: &str, mean: &EvalMetrics, frames: &[FrameMetrics]) -> crate::Result<()> {
     write_json(&dir.join("eval.json"), &serde_json::json!({ "evaluated": header, "mean": mean, "frames": frames }))?;
-    std::fs::write(dir.join("eval.md"), markdown_table(header, mean, frames)).map_err(|e| format!("{}: {e}", dir.join("eval.md").display()))
+    let path = dir.join("eval.md");
+    std::fs::write(&path, markdown_table(header, mean, frames)).map_err(|e| TrainerError::io(&path, e))
 }
 
 fn fmt(v: Option<f64>, digits: usize, scale: f64) -> String {
@@ -302,7 +304,7 @@ fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: 
         l.record(&mut rec, &pa, &pb, None)?;
         rec.submit_and_wait()?;
     }
-    l.read_value(ctx)
+    Ok(l.read_value(ctx)?)
 }
 
 /// The plain Chamfer distance between the cloth layer's posed centres (of the last

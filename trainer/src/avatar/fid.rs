@@ -40,6 +40,8 @@ use std::path::{Path, PathBuf};
 use ndarray::linalg::general_mat_mul;
 use ndarray::{ArrayView2, ArrayViewMut2};
 
+use crate::TrainerError;
+
 /// Length of a feature vector (pool3).
 pub const FEATURE_DIM: usize = 2048;
 /// The side every image is resized to.
@@ -486,7 +488,6 @@ impl FidInception {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(images.len()).max(1);
         let next = std::sync::atomic::AtomicUsize::new(0);
         type Features = crate::Result<Vec<f32>>;
-        let mut results: Vec<Option<Features>> = vec![None; images.len()];
         let done: Vec<Vec<(usize, Features)>> = std::thread::scope(|s| {
             let workers: Vec<_> = (0..threads)
                 .map(|_| {
@@ -502,10 +503,11 @@ impl FidInception {
                 .collect();
             workers.into_iter().map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
         });
-        for (i, r) in done.into_iter().flatten() {
-            results[i] = Some(r);
-        }
-        results.into_iter().enumerate().map(|(i, r)| r.unwrap_or_else(|| Err(format!("image {i}: no features computed")))).collect()
+        // The workers took every index once between them: sorted, one result per image.
+        let mut results: Vec<(usize, Features)> = done.into_iter().flatten().collect();
+        results.sort_unstable_by_key(|&(i, _)| i);
+        debug_assert!(results.iter().enumerate().all(|(k, &(i, _))| k == i), "an image was skipped or taken twice");
+        results.into_iter().map(|(_, r)| r).collect()
     }
 }
 
@@ -514,10 +516,10 @@ impl FidInception {
 /// antialiasing), then `2x − 1`, in f32 as PyTorch computes them on the CPU.
 fn network_input(rgb: &[f32], width: usize, height: usize) -> crate::Result<Act> {
     if width == 0 || height == 0 || rgb.len() != 3 * width * height {
-        return Err(format!("FID input: {} values for a {width} x {height} RGB image", rgb.len()));
+        return Err(TrainerError::invalid("FID input", format!("{} values for a {width} x {height} RGB image", rgb.len())));
     }
     if rgb.iter().any(|v| !v.is_finite()) {
-        return Err(format!("FID input: a non-finite pixel in a {width} x {height} image"));
+        return Err(TrainerError::numeric("FID input", format!("a non-finite pixel in a {width} x {height} image")));
     }
     // Per output index: (first source index, second source index, weight of the second).
     let taps = |n_in: usize| -> Vec<(usize, usize, f32)> {
@@ -562,9 +564,9 @@ impl Statistics {
         let n = features.len();
         let mean = mean_of(features, dim);
         // Σ = Aᵀ A with A the centred rows scaled by 1/√(n − 1).
-        let a = ArrayView2::from_shape((n, dim), &centred).map_err(|e| e.to_string())?;
+        let a = ArrayView2::from_shape((n, dim), &centred).expect("n x dim by construction");
         let mut cov = vec![0.0f64; dim * dim];
-        general_mat_mul(1.0, &a.t(), &a, 0.0, &mut ArrayViewMut2::from_shape((dim, dim), &mut cov).map_err(|e| e.to_string())?);
+        general_mat_mul(1.0, &a.t(), &a, 0.0, &mut ArrayViewMut2::from_shape((dim, dim), &mut cov).expect("dim x dim by construction"));
         Ok(Self { dim, mean, cov })
     }
 }
@@ -583,14 +585,14 @@ fn mean_of(features: &[Vec<f32>], dim: usize) -> Vec<f64> {
 fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
     let n = features.len();
     if n < 2 {
-        return Err(format!("a covariance needs at least 2 feature vectors, got {n}"));
+        return Err(TrainerError::invalid("FID features", format!("a covariance needs at least 2 feature vectors, got {n}")));
     }
     let dim = features[0].len();
     if dim == 0 || features.iter().any(|f| f.len() != dim) {
-        return Err(format!("feature vectors of different or zero lengths (the first has {dim})"));
+        return Err(TrainerError::invalid("FID features", format!("feature vectors of different or zero lengths (the first has {dim})")));
     }
     if features.iter().flatten().any(|v| !v.is_finite()) {
-        return Err("a non-finite feature".into());
+        return Err(TrainerError::numeric("FID", "a non-finite feature"));
     }
     let mean = mean_of(features, dim);
     let s = 1.0 / ((n - 1) as f64).sqrt();
@@ -606,10 +608,10 @@ fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
 pub fn frechet_distance(a: &Statistics, b: &Statistics) -> crate::Result<f64> {
     let d = a.dim;
     if b.dim != d || a.mean.len() != d || b.mean.len() != d || a.cov.len() != d * d || b.cov.len() != d * d {
-        return Err(format!("statistics of different sizes ({} and {})", a.dim, b.dim));
+        return Err(TrainerError::invalid("FID statistics", format!("statistics of different sizes ({} and {})", a.dim, b.dim)));
     }
     if a.mean.iter().chain(&a.cov).chain(&b.mean).chain(&b.cov).any(|v| !v.is_finite()) {
-        return Err("non-finite statistics".into());
+        return Err(TrainerError::numeric("FID", "non-finite statistics"));
     }
     let (values, vectors) = symmetric_eigen(symmetrised(&a.cov, d), d, true);
     let roots = clamped(&values, "the first covariance")?.iter().map(|v| v.sqrt()).collect::<Vec<_>>();
@@ -640,20 +642,20 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Re
     let (d, a1) = centred_rows(a)?;
     let (d2, a2) = centred_rows(b)?;
     if d != d2 {
-        return Err(format!("feature vectors of lengths {d} and {d2}"));
+        return Err(TrainerError::invalid("FID features", format!("feature vectors of lengths {d} and {d2}")));
     }
     let (n1, n2) = (a.len(), b.len());
     if n1.min(n2) >= d {
         return frechet_distance(&Statistics::of(a)?, &Statistics::of(b)?);
     }
-    let v1 = ArrayView2::from_shape((n1, d), &a1).map_err(|e| e.to_string())?;
-    let v2 = ArrayView2::from_shape((n2, d), &a2).map_err(|e| e.to_string())?;
+    let v1 = ArrayView2::from_shape((n1, d), &a1).expect("n1 x d by construction");
+    let v2 = ArrayView2::from_shape((n2, d), &a2).expect("n2 x d by construction");
     let mut m = vec![0.0f64; n1 * n2];
-    general_mat_mul(1.0, &v1, &v2.t(), 0.0, &mut ArrayViewMut2::from_shape((n1, n2), &mut m).map_err(|e| e.to_string())?);
-    let mv = ArrayView2::from_shape((n1, n2), &m).map_err(|e| e.to_string())?;
+    general_mat_mul(1.0, &v1, &v2.t(), 0.0, &mut ArrayViewMut2::from_shape((n1, n2), &mut m).expect("n1 x n2 by construction"));
+    let mv = ArrayView2::from_shape((n1, n2), &m).expect("n1 x n2 by construction");
     let k = n1.min(n2);
     let mut g = vec![0.0f64; k * k];
-    let mut gv = ArrayViewMut2::from_shape((k, k), &mut g).map_err(|e| e.to_string())?;
+    let mut gv = ArrayViewMut2::from_shape((k, k), &mut g).expect("k x k by construction");
     if n1 <= n2 {
         general_mat_mul(1.0, &mv, &mv.t(), 0.0, &mut gv);
     } else {
@@ -672,7 +674,7 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Re
 fn clamped(values: &[f64], what: &str) -> crate::Result<Vec<f64>> {
     let largest = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if let Some(v) = values.iter().find(|&&v| v < -NEGATIVE_TOLERANCE * largest) {
-        return Err(format!("{what} is not positive semidefinite: eigenvalue {v:e} (largest {largest:e})"));
+        return Err(TrainerError::numeric("FID", format!("{what} is not positive semidefinite: eigenvalue {v:e} (largest {largest:e})")));
     }
     Ok(values.iter().map(|&v| v.max(0.0)).collect())
 }

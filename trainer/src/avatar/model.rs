@@ -32,31 +32,63 @@ use crate::body::kinematics::{forward_kinematics, relative_transforms, skin};
 use crate::avatar::cloth_target::{contracted_edges, garments};
 
 /// Which layers to build: each optional layer forced on or off, or (None) decided
-/// from the data.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// from the data. In a config it is the string [`LayerChoice::parse`] reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub struct LayerChoice {
     pub cloth: Option<bool>,
     pub scene: Option<bool>,
 }
 
 impl LayerChoice {
+    /// Every optional layer decided from the data.
+    pub const AUTO: Self = Self { cloth: None, scene: None };
+
     /// `auto`, or the layers joined by `+`, body first: `body` (the single-layer
     /// baseline: cloth folded into the body, as HUGS), `body+cloth`, `body+scene`,
     /// `body+cloth+scene`.
     pub fn parse(s: &str) -> crate::Result<Self> {
-        if s == "auto" {
-            return Ok(Self { cloth: None, scene: None });
+        Self::try_from(s.to_string()).map_err(|e| crate::TrainerError::config("layers", e.to_string()))
+    }
+}
+
+impl std::fmt::Display for LayerChoice {
+    /// The string [`LayerChoice::parse`] reads back; a layer left to the data (in a
+    /// choice not made by `parse`) is written as absent.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if *self == Self::AUTO {
+            return f.write_str("auto");
         }
-        let parts: Vec<&str> = s.split('+').collect();
-        let bad = || format!("layers must be auto, or body joined with cloth and/or scene by '+' (body, body+cloth, body+scene, body+cloth+scene), got '{s}'");
-        if parts.first() != Some(&"body") || parts[1..].iter().any(|p| !["cloth", "scene"].contains(p)) {
-            return Err(bad());
+        f.write_str("body")?;
+        if self.cloth == Some(true) {
+            f.write_str("+cloth")?;
         }
+        if self.scene == Some(true) {
+            f.write_str("+scene")?;
+        }
+        Ok(())
+    }
+}
+
+impl TryFrom<String> for LayerChoice {
+    type Error = crate::error::BadChoice;
+    fn try_from(value: String) -> Result<Self, Self::Error> {
+        if value == "auto" {
+            return Ok(Self::AUTO);
+        }
+        let parts: Vec<&str> = value.split('+').collect();
         let has = |name: &str| parts.iter().filter(|p| **p == name).count();
-        if has("cloth") > 1 || has("scene") > 1 {
-            return Err(bad());
+        let known = parts.first() == Some(&"body") && parts[1..].iter().all(|p| ["cloth", "scene"].contains(p));
+        if !known || has("cloth") > 1 || has("scene") > 1 {
+            return Err(crate::error::BadChoice { value, allowed: "auto, or body joined with cloth and/or scene by '+' (body, body+cloth, body+scene, body+cloth+scene)" });
         }
         Ok(Self { cloth: Some(has("cloth") == 1), scene: Some(has("scene") == 1) })
+    }
+}
+
+impl From<LayerChoice> for String {
+    fn from(c: LayerChoice) -> String {
+        c.to_string()
     }
 }
 

@@ -15,6 +15,7 @@
 
 use crate::avatar::rig::{refined_body, REFINED_PARAMS};
 use crate::dataset::loader::BodyParams;
+use crate::TrainerError;
 
 /// HUGS's Adam ε (its optimiser's for every group).
 const ADAM_EPS: f64 = 1e-15;
@@ -88,7 +89,7 @@ impl PoseRefiner {
     /// Restores saved corrections; the frames must be this run's, in its order.
     pub fn restore(&mut self, state: PoseState) -> crate::Result<()> {
         if state.frames != self.state.frames {
-            return Err(format!("the refined poses are of frames {:?}, this run trains on {:?}", state.frames, self.state.frames));
+            return Err(TrainerError::invalid("refined poses", format!("of frames {:?}, but this run trains on {:?}", state.frames, self.state.frames)));
         }
         self.state = state;
         Ok(())
@@ -138,6 +139,8 @@ mod tests {
     fn restore_refuses_other_frames() {
         let mut r = PoseRefiner::new(&[1, 2], 1e-4, 1e-4);
         let e = r.restore(PoseState::zeros(&[1, 3])).unwrap_err();
+        assert!(matches!(e, TrainerError::InvalidInput { what: "refined poses", .. }), "{e}");
+        let e = e.to_string();
         assert!(e.contains("[1, 3]") && e.contains("[1, 2]"), "{e}");
     }
 }

@@ -11,12 +11,14 @@ use std::path::{Path, PathBuf};
 use drape_engine::Context;
 
 use crate::avatar::checkpoint;
-use crate::avatar::composite::{AvatarRenderer, Compositing};
+use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
 use crate::avatar::train::{betas_of, body_model, build_avatar, load_sequence, write_json, Layers, Sequence, TrainConfig};
+use crate::dataset::error::DatasetError;
 use crate::dataset::split::Split;
 use crate::npy::read_npz;
+use crate::TrainerError;
 
 /// Version of `run.json`.
 pub const RUN_INFO_VERSION: u32 = 1;
@@ -51,10 +53,10 @@ impl RunInfo {
         if !path.exists() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let info: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let text = std::fs::read_to_string(&path).map_err(|e| TrainerError::io(&path, e))?;
+        let info: Self = serde_json::from_str(&text).map_err(|e| TrainerError::run(&path, e.to_string()))?;
         if info.format_version != RUN_INFO_VERSION {
-            return Err(format!("{}: format_version {}, this drape reads version {RUN_INFO_VERSION}", path.display(), info.format_version));
+            return Err(TrainerError::run(&path, format!("format_version {}, this drape reads version {RUN_INFO_VERSION}", info.format_version)));
         }
         Ok(Some(info))
     }
@@ -76,9 +78,9 @@ pub struct OpenRun {
 
 /// The layers a model file holds (beyond the body, which every model has).
 pub fn model_layers(path: &Path) -> crate::Result<Layers> {
-    let a = read_npz(path).map_err(|e| e.to_string())?;
+    let a = read_npz(path)?;
     if !a.contains_key("body.means") {
-        return Err(format!("{}: array 'body.means' is missing (not a drape model?)", path.display()));
+        return Err(TrainerError::checkpoint(path, "body.means", "array is missing (not a drape model?)"));
     }
     Ok(Layers { cloth: a.contains_key("cloth.means"), scene: a.contains_key("scene.means") })
 }
@@ -88,11 +90,11 @@ impl OpenRun {
     /// `body` override `run.json`'s; a run without `run.json` needs `data`.
     pub fn open(ctx: &Context, dir: &Path, data: Option<&Path>, body: Option<&Path>) -> crate::Result<Self> {
         if !dir.is_dir() {
-            return Err(format!("{}: no such run directory", dir.display()));
+            return Err(TrainerError::run(dir, "no such run directory"));
         }
         let model_path = dir.join("model.npz");
         if !model_path.is_file() {
-            return Err(format!("{}: no model.npz (the run has not finished training?)", dir.display()));
+            return Err(TrainerError::run(dir, "no model.npz (the run has not finished training?)"));
         }
         let config = TrainConfig::read_run(dir)?;
         let info = match (RunInfo::read(dir)?, data) {
@@ -102,21 +104,21 @@ impl OpenRun {
             }
             (Some(i), None) => i,
             (None, Some(d)) => RunInfo::new(d, body),
-            (None, None) => return Err(format!("{}: no run.json saying which data the run was trained on (a run from before drape 0.1's eval); give --data DIR", dir.display())),
+            (None, None) => return Err(TrainerError::run(dir, "no run.json saying which data the run was trained on (a run from before drape 0.1's eval); give --data DIR")),
         };
         let body = body.map(Path::to_path_buf).or_else(|| info.body.clone());
         let seq = load_sequence(&info.data, config.zju_train_camera)?;
-        let first = seq.frames.iter().find(|f| f.split == Split::Train).ok_or_else(|| format!("{}: no training frames", seq.dir.display()))?;
+        let first = seq.frames.iter().find(|f| f.split == Split::Train).ok_or_else(|| DatasetError::layout(&seq.dir, "no training frames"))?;
         let (width, height) = (first.width, first.height);
         let rig = Rig::new(body_model(body.as_deref())?, &betas_of(first));
         let layers = model_layers(&model_path)?;
         if layers.scene && crate::avatar::train::scene_points(&seq)?.is_none() {
-            return Err(format!("{}: the model has a scene layer, but {} has no scene points to build it on (another sequence?)", model_path.display(), seq.dir.display()));
+            return Err(TrainerError::run(&model_path, format!("the model has a scene layer, but {} has no scene points to build it on (another sequence?)", seq.dir.display())));
         }
         let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;
         let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         avatar.restore(ctx, &state)?;
-        let renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
+        let renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
         Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })
     }
 

@@ -2,16 +2,16 @@
 //! skinning weights, then step (sample a training frame → deform → render → losses →
 //! backward → Adam) and evaluate on the held-out frames.
 //!
-//! What is built so far (the rest of the issue is not): the body layer and, where the
-//! data shows garments, the cloth layer (`model`): triplane + decoders + learned
-//! skinning, rendered by the paper's three passes and composite (`composite`), trained with 0.8 L1 + 0.2
-//! (1 - SSIM) against the person masked onto a random background colour each step
-//! (HUGS), and on the cloth layer the paper's cloth-LBS, simulation (Chamfer +
-//! Geman–McClure to the garments simulated through the sequence's motion), ARAP and
-//! cloth-mask losses (`cloth_losses`), LPIPS where weights are given, and where the
-//! data has a scene, the scene layer (`scene`) against the whole frame; by Adam; with
-//! each training frame's pose and translation refined (`pose_refine`). The overlapped
-//! single-submission frame and densification come next.
+//! The layers: the body and, where the data shows garments, the cloth (`model`:
+//! triplane + decoders + learned skinning), rendered and composited as
+//! [`TrainConfig::compositing`] says (`composite`); where the data has a scene, the
+//! scene layer (`scene`) against the whole frame. The losses: 0.8 L1 + 0.2 (1 - SSIM)
+//! against the person masked onto a random background colour each step (HUGS), LPIPS
+//! where weights are given, and on the cloth layer the paper's cloth-LBS, simulation
+//! (Chamfer + Geman–McClure to the garments simulated through the sequence's motion),
+//! ARAP and cloth-mask losses (`cloth_losses`). Adam steps every layer, each training
+//! frame's pose and translation are refined (`pose_refine`), and the layers are
+//! densified and pruned on the schedule of [`TrainConfig::densify`] (`densify`).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -38,19 +38,21 @@ use crate::avatar::composite::{AvatarRenderer, Compositing};
 use crate::avatar::densify::{self, DensifyConfig};
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
+use crate::error::TrainerError;
 use crate::avatar::pose_refine::PoseRefiner;
 use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
 use crate::dataset::layout::{locate, SequenceFiles, Variant};
 use crate::dataset::loader::{load_neuman_files, load_zju_files, BodyParams, DatasetFrame, NeumanSplit};
+use crate::dataset::error::DatasetError;
 use crate::dataset::split::Split;
 
 /// Everything a run is configured by (written to the run directory as `config.json`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrainConfig {
-    pub preset: String,
+    pub preset: Preset,
     /// Optimisation steps after the skinning-weight fit.
     pub steps: u32,
     pub seed: u64,
@@ -60,9 +62,10 @@ pub struct TrainConfig {
     /// surface plane so the body stays covered: for tests and quick looks.
     pub decimate: u32,
     pub body: LayerConfig,
-    /// `auto` (a cloth layer where the data has garment masks), `body` (the
-    /// single-layer baseline: cloth folded into the body, as HUGS) or `body+cloth`.
-    pub layers: String,
+    /// `auto` (a cloth layer where the data has garment masks, a scene layer where it
+    /// has scene points), or `body` joined by `+` with `cloth` and/or `scene`: `body`
+    /// is the single-layer baseline (cloth folded into the body, as HUGS).
+    pub layers: LayerChoice,
     pub cloth: LayerConfig,
     /// The scene layer (plain 3DGS from the sparse points), where there is one.
     pub scene: SceneConfig,
@@ -99,7 +102,7 @@ pub struct TrainConfig {
     /// and reported as n/a.
     pub lpips_weights: Option<PathBuf>,
     /// `alex` (the metric HUGS reports) or `vgg`.
-    pub lpips_net: String,
+    pub lpips_net: LpipsNet,
     /// Weight of LPIPS in the image loss (paper: 1.0).
     pub lambda_lpips: f32,
     /// How the layers become one image where there is a cloth layer: `three-pass` (the
@@ -108,7 +111,7 @@ pub struct TrainConfig {
     /// `fused` / `fused-occlusion` (the same images and gradients from one sort and one
     /// walk of every layer) or `single-pass` (every layer in one depth-sorted pass).
     #[serde(default = "paper_compositing")]
-    pub compositing: String,
+    pub compositing: Compositing,
     /// Per-frame refinement of the training frames' pose and translation
     /// (`pose_refine`); HUGS refines the pose only.
     #[serde(default = "yes")]
@@ -128,8 +131,8 @@ pub struct TrainConfig {
     /// The T-shirt the cloth layer is made of and simulated with: `tight` or `loose`
     /// (`drape synth --fit`); on synthetic data, the one the data was made with.
     /// Missing from a config file: tight, what earlier runs used.
-    #[serde(default = "tight_fit")]
-    pub cloth_fit: String,
+    #[serde(default)]
+    pub cloth_fit: GarmentFit,
     /// Densification and pruning of every layer (`densify`; HUGS's schedule and
     /// thresholds in the paper preset). Missing from a config file: off, what runs made
     /// before the key existed did.
@@ -137,12 +140,8 @@ pub struct TrainConfig {
     pub densify: DensifyConfig,
 }
 
-fn tight_fit() -> String {
-    GarmentFit::Tight.name().into()
-}
-
-fn paper_compositing() -> String {
-    "three-pass".into()
+fn paper_compositing() -> Compositing {
+    Compositing::ThreePass(crate::avatar::composite::Matte::Paper)
 }
 
 fn yes() -> bool {
@@ -165,13 +164,13 @@ impl TrainConfig {
     /// 1.9 s and halving the Gaussians to 1.1 s (`drape train --profile`; README).
     pub fn quick() -> Self {
         Self {
-            preset: "quick".into(),
+            preset: Preset::Quick,
             steps: 400,
             seed: 1,
             subdivision: 0,
             decimate: 6,
             body: LayerConfig { triplane_resolution: 64, triplane_channels: 16, decoder_width: 64, ..LayerConfig::default() },
-            layers: "auto".into(),
+            layers: LayerChoice::AUTO,
             cloth: LayerConfig { triplane_resolution: 64, triplane_channels: 16, decoder_width: 64, ..LayerConfig::default() },
             // SH degree 0 for the scene too: 3DGS raises its scene's degree one step
             // every 1,000 iterations, so within 400 it would still be at 0.
@@ -190,14 +189,14 @@ impl TrainConfig {
             lambda_ssim: 0.2,
             zju_train_camera: 0,
             lpips_weights: None,
-            lpips_net: "alex".into(),
+            lpips_net: LpipsNet::Alex,
             lambda_lpips: 1.0,
             compositing: paper_compositing(),
             refine_pose: true,
             lr_pose: hugs_pose_rate(),
             lr_translation: hugs_pose_rate(),
             deterministic: false,
-            cloth_fit: tight_fit(),
+            cloth_fit: GarmentFit::Tight,
             // HUGS densifies every 600 steps from 15% to 75% of its 20k; here after 100
             // and 200 of 400, at most 4,096 per layer, to stay near 10 minutes (three
             // times, to 8,192, took 860 s); no size prunes within the run (3DGS starts
@@ -211,7 +210,7 @@ impl TrainConfig {
     /// (3DGS; here from the first step, without 3DGS's one-degree-per-1,000 ramp).
     pub fn paper() -> Self {
         Self {
-            preset: "paper".into(),
+            preset: Preset::Paper,
             steps: 20_000,
             subdivision: 2,
             decimate: 1,
@@ -227,25 +226,31 @@ impl TrainConfig {
         }
     }
 
-    pub fn preset(name: &str) -> crate::Result<Self> {
-        match name {
-            "quick" => Ok(Self::quick()),
-            "paper" => Ok(Self::paper()),
-            other => Err(format!("unknown preset '{other}' (quick, paper)")),
+    /// The preset's settings.
+    pub fn preset(preset: Preset) -> Self {
+        match preset {
+            Preset::Quick => Self::quick(),
+            Preset::Paper => Self::paper(),
         }
     }
 
-    /// The T-shirt of [`cloth_fit`](Self::cloth_fit).
-    pub fn garment_fit(&self) -> crate::Result<GarmentFit> {
-        GarmentFit::parse(&self.cloth_fit).ok_or_else(|| format!("cloth_fit must be tight or loose, got '{}'", self.cloth_fit))
+    /// Reads a config from any serde format (a run's `config.json`, the merged TOML of
+    /// `drape train --config`) and validates it. A bad value names its key (`body.
+    /// triplane_resolution`, `compositing`) and, for a choice, the values it takes.
+    pub fn from_deserializer<'de, D: serde::Deserializer<'de>>(d: D) -> crate::Result<Self> {
+        let c: Self = serde_path_to_error::deserialize(d).map_err(|e| {
+            let key = e.path().to_string();
+            TrainerError::config(if key == "." { "(top level)".to_string() } else { key }, e.into_inner().to_string())
+        })?;
+        c.validate()?;
+        Ok(c)
     }
 
     /// Checks values a config file could get wrong, naming the field.
     pub fn validate(&self) -> crate::Result<()> {
-        LayerChoice::parse(&self.layers)?;
-        self.garment_fit()?;
+        let bad = |key: &str, problem: String| Err(TrainerError::config(key, problem));
         if self.cloth.triplane_resolution < 2 || self.cloth.triplane_channels == 0 {
-            return Err("cloth.triplane_resolution must be >= 2 and cloth.triplane_channels >= 1".into());
+            return bad("cloth.triplane_resolution", "must be >= 2, and cloth.triplane_channels >= 1".into());
         }
         let rates = [
             ("cloth.lr_position", self.cloth.lr_position),
@@ -269,35 +274,68 @@ impl TrainConfig {
         ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("{name} must be a finite rate >= 0, got {v}"));
+                return bad(name, format!("must be a finite rate >= 0, got {v}"));
             }
         }
-        LpipsNet::parse(&self.lpips_net).map_err(|e| format!("lpips_net: {e}"))?;
         self.densify.validate()?;
-        Compositing::parse(&self.compositing).map_err(|e| format!("compositing: {e}"))?;
         if !(self.gm_sigma.is_finite() && self.gm_sigma > 0.0) {
-            return Err(format!("gm_sigma must be a finite length > 0, got {}", self.gm_sigma));
+            return bad("gm_sigma", format!("must be a finite length > 0, got {}", self.gm_sigma));
         }
         if self.decimate == 0 {
-            return Err("decimate must be >= 1".into());
+            return bad("decimate", "must be >= 1".into());
         }
         if self.subdivision > 2 {
-            return Err(format!("subdivision must be 0, 1 or 2, got {}", self.subdivision));
+            return bad("subdivision", format!("must be 0, 1 or 2, got {}", self.subdivision));
         }
         for (name, degree) in [("body.sh_degree", self.body.sh_degree), ("cloth.sh_degree", self.cloth.sh_degree), ("scene.sh_degree", self.scene.sh_degree)] {
             if degree > 3 {
-                return Err(format!("{name} must be 0-3, got {degree}"));
+                return bad(name, format!("must be 0-3, got {degree}"));
             }
         }
         if self.body.triplane_resolution < 2 || self.body.triplane_channels == 0 {
-            return Err("body.triplane_resolution must be >= 2 and body.triplane_channels >= 1".into());
+            return bad("body.triplane_resolution", "must be >= 2, and body.triplane_channels >= 1".into());
         }
         for (name, w) in [("body.decoder_width", self.body.decoder_width), ("cloth.decoder_width", self.cloth.decoder_width)] {
             if !(1..=1024).contains(&w) {
-                return Err(format!("{name} must be 1-1024 (HUGS: 128), got {w}"));
+                return bad(name, format!("must be 1-1024 (HUGS: 128), got {w}"));
             }
         }
         Ok(())
+    }
+}
+
+/// A named starting point for a config.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// Small sizes for lavapipe at 128 × 128 ([`TrainConfig::quick`]).
+    Quick,
+    /// The paper's setting, for a GPU ([`TrainConfig::paper`]).
+    Paper,
+}
+
+impl Preset {
+    /// `quick` or `paper`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Quick => "quick",
+            Self::Paper => "paper",
+        }
+    }
+
+    /// The preset named `name`; the error names the presets there are.
+    pub fn parse(name: &str) -> crate::Result<Self> {
+        match name {
+            "quick" => Ok(Self::Quick),
+            "paper" => Ok(Self::Paper),
+            other => Err(TrainerError::config("preset", format!("unknown preset '{other}' (quick, paper)"))),
+        }
+    }
+}
+
+impl std::fmt::Display for Preset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
     }
 }
 
@@ -339,10 +377,12 @@ impl TrainConfig {
     /// Reads a run's `config.json` (for `--resume`), naming the file on any problem.
     pub fn read_run(dir: &Path) -> crate::Result<Self> {
         let path = dir.join("config.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let c: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-        c.validate().map_err(|e| format!("{}: {e}", path.display()))?;
-        Ok(c)
+        let text = std::fs::read_to_string(&path).map_err(|e| TrainerError::io(&path, e))?;
+        let mut json = serde_json::Deserializer::from_str(&text);
+        Self::from_deserializer(&mut json).map_err(|e| match e {
+            TrainerError::Config { key, problem } => TrainerError::Config { key: format!("{}: {key}", path.display()), problem },
+            other => other,
+        })
     }
 }
 
@@ -379,7 +419,7 @@ pub enum Progress {
 /// The default body (the project's procedural one) or an SMPL file.
 pub fn body_model(path: Option<&Path>) -> crate::Result<SmplModel> {
     match path {
-        Some(p) => SmplModel::load_npz(p).map_err(|e| e.to_string()),
+        Some(p) => Ok(SmplModel::load_npz(p)?),
         None => Ok(default_body(&BodyOptions::default())),
     }
 }
@@ -404,7 +444,7 @@ pub fn scene_points(seq: &Sequence) -> crate::Result<Option<ColmapModel>> {
     if seq.layout != Layout::NeuMan {
         return Ok(None);
     }
-    let m = ColmapModel::read_text(&seq.dir.join("sparse")).map_err(|e| e.to_string())?;
+    let m = ColmapModel::read_text(&seq.dir.join("sparse"))?;
     Ok((!m.points.is_empty()).then_some(m))
 }
 
@@ -412,9 +452,11 @@ pub fn scene_points(seq: &Sequence) -> crate::Result<Option<ColmapModel>> {
 /// data: a cloth layer where it has garment masks, a scene layer where it has scene
 /// points (an unmasked capture; ZJU-MoCap's studio frames are masked and have none).
 pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> crate::Result<Layers> {
-    let choice = LayerChoice::parse(&config.layers)?;
+    let choice = config.layers;
     let scene = match choice.scene {
-        Some(true) if scene_points(seq)?.is_none() => return Err(format!("--layers {}: {} has no scene points (NeuMan's sparse/points3D.txt) to build a scene layer from", config.layers, seq.dir.display())),
+        Some(true) if scene_points(seq)?.is_none() => {
+            return Err(TrainerError::config("layers", format!("{choice}: {} has no scene points (NeuMan's sparse/points3D.txt) to build a scene layer from", seq.dir.display())))
+        }
         Some(s) => s,
         None => scene_points(seq)?.is_some(),
     };
@@ -428,7 +470,7 @@ pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &Tr
     let mut configs = vec![config.body.clone()];
     let mut lbs = vec![0.0];
     if cloth {
-        inits.push(cloth_init(rig, config.garment_fit()?, config.decimate, config.cloth.sh_degree));
+        inits.push(cloth_init(rig, config.cloth_fit, config.decimate, config.cloth.sh_degree));
         configs.push(config.cloth.clone());
         lbs.push(config.lambda_cloth_lbs);
     }
@@ -471,12 +513,17 @@ impl<'c> Lap<'c> {
     }
 }
 
+/// A log line's value: plain numbers and names, which always serialise.
+fn json_value(value: &impl serde::Serialize) -> serde_json::Value {
+    serde_json::to_value(value).expect("log values are numbers and names")
+}
+
 pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> crate::Result<()> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+    let text = serde_json::to_string_pretty(value).map_err(|e| TrainerError::io(path, e.into()))?;
     // Written whole to a temporary file, then renamed: never half a file.
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, text + "\n").map_err(|e| format!("{}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+    std::fs::write(&tmp, text + "\n").map_err(|e| TrainerError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
 }
 
 /// Trains on `seq` into the run directory `out`: a new one (it must not exist, or be
@@ -497,38 +544,38 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
     let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
     if train_frames.is_empty() {
-        return Err(format!("{}: no training frames", seq.dir.display()));
+        return Err(DatasetError::layout(&seq.dir, "no training frames").into());
     }
     let (width, height) = (train_frames[0].width, train_frames[0].height);
     if let Some(f) = seq.frames.iter().find(|f| (f.width, f.height) != (width, height)) {
-        return Err(format!("{}: {}x{}, but the sequence's first training image is {width}x{height}", f.image_path.display(), f.width, f.height));
+        return Err(DatasetError::image(&f.image_path, format!("{}x{}, but the sequence's first training image is {width}x{height}", f.width, f.height)).into());
     }
     let checkpoint_path = out.join("checkpoint.npz");
     if resume {
         if !checkpoint_path.is_file() {
-            return Err(format!("{}: no checkpoint to resume from", checkpoint_path.display()));
+            return Err(TrainerError::run(&checkpoint_path, "no checkpoint to resume from"));
         }
     } else {
-        if out.exists() && std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?.next().is_some() {
-            return Err(format!("{}: the run directory exists and is not empty (use --resume to continue it)", out.display()));
+        if out.exists() && std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_some() {
+            return Err(TrainerError::run(out, "the run directory exists and is not empty (use --resume to continue it)"));
         }
-        std::fs::create_dir_all(out.join("eval")).map_err(|e| format!("{}: {e}", out.display()))?;
+        std::fs::create_dir_all(out.join("eval")).map_err(|e| TrainerError::io(out, e))?;
         write_json(&out.join("config.json"), config)?;
     }
     let log_path = out.join("log.jsonl");
-    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| TrainerError::io(&log_path, e))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
     let mut avatar = build_avatar(ctx, &rig, seq, config, choose_layers(seq, config)?)?;
     // With a scene layer the avatar is trained and judged on the whole image; without
     // one, on the person over a background colour.
     let whole_image = avatar.scene.is_some();
-    let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
+    let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
     // The cloth layer's physics targets: the garments simulated through the motion.
     let mut cloth_losses = match avatar.cloth() {
         Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
-            let garments = cloth_target::simulate_sequence(&rig, config.garment_fit()?, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
+            let garments = cloth_target::simulate_sequence(&rig, config.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
             let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
             Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?)
         }
@@ -544,12 +591,12 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         avatar.restore(ctx, &state)?;
         // The checkpoint's layers may have been densified to other counts.
-        renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
+        renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
         if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
             c.resize(ctx, cloth)?;
         }
         if let (Some(r), Some(p)) = (refiner.as_mut(), state.poses) {
-            r.restore(p).map_err(|e| format!("{}: {e}", checkpoint_path.display()))?;
+            r.restore(p).map_err(|e| TrainerError::checkpoint(&checkpoint_path, "poses", e.to_string()))?;
         }
         (state.step, f64::NAN)
     } else {
@@ -564,7 +611,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let fit_seconds = t0.elapsed().as_secs_f64();
     // LPIPS where the run has weights (checked before anything is trained).
     let lpips_weights = match &config.lpips_weights {
-        Some(path) => Some(LpipsWeights::load(path, LpipsNet::parse(&config.lpips_net)?).map_err(|e| e.to_string())?),
+        Some(path) => Some(LpipsWeights::load(path, config.lpips_net)?),
         None => None,
     };
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
@@ -686,14 +733,16 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             skipped += 1;
             skipped_in_a_row += 1;
             let line = serde_json::json!({ "step": step, "frame": f.frame, "skipped": true, "nonfinite_gradients": bad });
-            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
+            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
             if skipped_in_a_row >= config.max_skipped_steps.max(1) {
-                return Err(format!(
+                return Err(TrainerError::numeric(
+                    "training",
+                    format!(
                     "stopped at step {step}: {skipped_in_a_row} steps in a row had non-finite gradients ({bad} values in the last, frame {} of {}); the last checkpoint is {}",
                     f.frame,
                     seq.dir.display(),
                     checkpoint_path.display()
-                ));
+                )));
             }
             continue;
         }
@@ -724,7 +773,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
             let mut line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": secs });
             if cloth_losses.is_some() {
-                line["cloth"] = serde_json::to_value(cloth_values).map_err(|e| e.to_string())?;
+                line["cloth"] = json_value(&cloth_values);
             }
             if let Some(v) = lpips_value {
                 line["lpips"] = v.into();
@@ -736,7 +785,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
                 line["pose_correction_rad"] = rot.into();
                 line["translation_correction"] = tr.into();
             }
-            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
+            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
         }
         lap.host("host.log");
@@ -747,22 +796,22 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             for l in avatar.layers.iter_mut() {
                 let s = densify::apply_to_layer(ctx, l, dc, step + 1, ft.log_scale)?;
                 counts.push((l.name.clone(), s.before, s.after));
-                summaries.insert(l.name.clone(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
+                summaries.insert(l.name.clone(), json_value(&s));
             }
             if let Some(sc) = avatar.scene.as_mut() {
                 let s = densify::apply_to_scene(ctx, sc, dc, step + 1, seed.wrapping_add(1000))?;
                 counts.push(("scene".into(), s.before, s.after));
-                summaries.insert("scene".into(), serde_json::to_value(&s).map_err(|e| e.to_string())?);
+                summaries.insert("scene".into(), json_value(&s));
             }
             // Everything sized by the layers' counts follows them.
             avatar.resize_posed(ctx)?;
-            renderer = AvatarRenderer::new(ctx, &avatar, width, height, Compositing::parse(&config.compositing)?)?;
+            renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
             if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
                 c.resize(ctx, cloth)?;
                 c.set_mask_in_composite(renderer.is_three_pass());
             }
             let line = serde_json::json!({ "step": step, "densify": summaries });
-            writeln!(log, "{line}").map_err(|e| format!("{}: {e}", log_path.display()))?;
+            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
             progress(Progress::Densify { step: step + 1, counts });
             lap.host("host.densify");
         }
@@ -775,7 +824,8 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     if let Some(p) = &profile {
         let steps = u64::from(stop_at.saturating_sub(start_step));
         let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}", 1e3 * loop_seconds / steps.max(1) as f64, p.table(1e3 * loop_seconds, steps, 25));
-        std::fs::write(out.join("profile.txt"), &table).map_err(|e| format!("{}: {e}", out.join("profile.txt").display()))?;
+        let path = out.join("profile.txt");
+        std::fs::write(&path, &table).map_err(|e| TrainerError::io(&path, e))?;
         write_json(&out.join("profile.json"), p)?;
     }
     let last = stop_at.max(start_step);
@@ -804,7 +854,7 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
             if !part.is_empty() {
                 let name = if layer == Layer::Body { "body" } else { "cloth" };
                 let path = out.join(format!("{name}_frame{:04}.ply", f.frame));
-                ply::write(&path, &part).map_err(|e| e.to_string())?;
+                ply::write(&path, &part)?;
             }
         }
     }

@@ -57,8 +57,8 @@ impl ColmapCamera {
     /// SIMPLE_RADIAL (f cx cy k), RADIAL (f cx cy k1 k2), OPENCV (fx fy cx cy k1 k2 p1
     /// p2) and FULL_OPENCV (fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6) when its rational
     /// terms k4..k6 are zero. The error names `cameras.txt`, the camera and the field.
-    pub fn intrinsics(&self) -> crate::Result<([f64; 4], Distortion)> {
-        let id = self.id;
+    pub fn intrinsics(&self) -> Result<([f64; 4], Distortion), ColmapError> {
+        let err = |problem: CameraProblem| ColmapError::Camera { camera: self.id, model: self.model.clone(), problem };
         let (names, simple): (&[&str], bool) = match self.model.as_str() {
             "SIMPLE_PINHOLE" => (&["f", "cx", "cy"], true),
             "PINHOLE" => (&["fx", "fy", "cx", "cy"], false),
@@ -66,18 +66,18 @@ impl ColmapCamera {
             "RADIAL" => (&["f", "cx", "cy", "k1", "k2"], true),
             "OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"], false),
             "FULL_OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"], false),
-            other => return Err(format!("cameras.txt: camera {id} has model {other}, which drape does not undistort (it reads SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV)")),
+            _ => return Err(err(CameraProblem::UnsupportedModel)),
         };
         let p = &self.params;
         if p.len() != names.len() {
-            return Err(format!("cameras.txt: camera {id} ({}) has {} PARAMS, expected {} ({})", self.model, p.len(), names.len(), names.join(" ")));
+            return Err(err(CameraProblem::ParamCount { got: p.len(), expected: names }));
         }
         if let Some(i) = p.iter().position(|v| !v.is_finite()) {
-            return Err(format!("cameras.txt: camera {id} ({}) has {} = {}, which is not finite", self.model, names[i], p[i]));
+            return Err(err(CameraProblem::NotFinite { param: names[i], value: p[i] }));
         }
         let (k, rest) = if simple { ([p[0], p[0], p[1], p[2]], &p[3..]) } else { ([p[0], p[1], p[2], p[3]], &p[4..]) };
         if !(k[0] > 0.0 && k[1] > 0.0) {
-            return Err(format!("cameras.txt: camera {id} ({}) has focal length {} x {}, which is not positive", self.model, k[0], k[1]));
+            return Err(err(CameraProblem::FocalLength { fx: k[0], fy: k[1] }));
         }
         let c = |i: usize| rest.get(i).copied().unwrap_or(0.0);
         let distortion = match self.model.as_str() {
@@ -86,7 +86,7 @@ impl ColmapCamera {
                 // FULL_OPENCV's k4..k6 (rest[5..8]) divide by a second polynomial, which
                 // `Distortion` does not model.
                 if let Some(i) = (5..rest.len()).find(|&i| rest[i] != 0.0) {
-                    return Err(format!("cameras.txt: camera {id} (FULL_OPENCV) has {} = {}: drape does not undistort the rational model (k4, k5, k6 must be 0)", names[i + 4], rest[i]));
+                    return Err(err(CameraProblem::RationalModel { param: names[i + 4], value: rest[i] }));
                 }
                 Distortion { k1: c(0), k2: c(1), p1: c(2), p2: c(3), k3: c(4) }
             }
@@ -138,7 +138,7 @@ impl ColmapImage {
     /// [`crate::dataset::distortion::Undistorter`]. An error for a model drape does not
     /// undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE) or a malformed record;
     /// see [`ColmapCamera::intrinsics`].
-    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> crate::Result<(Camera, Distortion)> {
+    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> Result<(Camera, Distortion), ColmapError> {
         let ([fx, fy, cx, cy], distortion) = camera.intrinsics()?;
         Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR }, distortion))
     }
@@ -176,8 +176,47 @@ pub enum ColmapError {
     // print the OS error twice.
     #[error("{path}: {error}")]
     Io { path: String, error: std::io::Error },
+    /// A data line that is not the record its file holds: the file, the line and what
+    /// is wrong with it.
     #[error("{path}:{line}: {problem}")]
     Parse { path: String, line: usize, problem: String },
+    /// A column of a data line that is not a number of its type: the file, the line,
+    /// the column (as COLMAP's header names it) and its text.
+    #[error("{path}:{line}: {field} '{text}' is not a valid number")]
+    Number { path: String, line: usize, field: &'static str, text: String },
+    /// A camera record that is no pinhole camera and lens drape undistorts: the
+    /// camera's id and model and what is wrong with it.
+    #[error("cameras.txt: camera {camera} {}", problem.describe(model))]
+    Camera { camera: u32, model: String, problem: CameraProblem },
+}
+
+/// What is wrong with a camera record ([`ColmapError::Camera`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum CameraProblem {
+    /// A model drape does not undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE).
+    UnsupportedModel,
+    /// PARAMS has `got` values; the model has `expected` (their names).
+    ParamCount { got: usize, expected: &'static [&'static str] },
+    /// A parameter is NaN or infinite.
+    NotFinite { param: &'static str, value: f64 },
+    /// A focal length is zero or negative.
+    FocalLength { fx: f64, fy: f64 },
+    /// FULL_OPENCV with a non-zero rational term (k4, k5 or k6), which `Distortion`
+    /// does not model.
+    RationalModel { param: &'static str, value: f64 },
+}
+
+impl CameraProblem {
+    /// The message after "camera ID", for a camera of `model`.
+    fn describe(&self, model: &str) -> String {
+        match self {
+            Self::UnsupportedModel => format!("has model {model}, which drape does not undistort (it reads SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV)"),
+            Self::ParamCount { got, expected } => format!("({model}) has {got} PARAMS, expected {} ({})", expected.len(), expected.join(" ")),
+            Self::NotFinite { param, value } => format!("({model}) has {param} = {value}, which is not finite"),
+            Self::FocalLength { fx, fy } => format!("({model}) has focal length {fx} x {fy}, which is not positive"),
+            Self::RationalModel { param, value } => format!("({model}) has {param} = {value}: drape does not undistort the rational model (k4, k5, k6 must be 0)"),
+        }
+    }
 }
 
 /// Formats a float the way Python's `repr` would for round-tripping: shortest exact.
@@ -243,17 +282,17 @@ impl ColmapModel {
 
         let (path, text) = read("cameras.txt")?;
         for (n, line) in data_lines(&text) {
-            let err = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let at = At { path: &path, line: n };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 5 {
-                return Err(err(format!("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got '{line}'")));
+                return Err(at.err(format!("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got '{line}'")));
             }
             let cam = ColmapCamera {
-                id: parse(w[0], "CAMERA_ID").map_err(err)?,
+                id: at.num(w[0], "CAMERA_ID")?,
                 model: w[1].to_string(),
-                width: parse(w[2], "WIDTH").map_err(err)?,
-                height: parse(w[3], "HEIGHT").map_err(err)?,
-                params: w[4..].iter().map(|v| parse::<f64>(v, "PARAMS")).collect::<Result<_, _>>().map_err(err)?,
+                width: at.num(w[2], "WIDTH")?,
+                height: at.num(w[3], "HEIGHT")?,
+                params: w[4..].iter().map(|v| at.num::<f64>(v, "PARAMS")).collect::<Result<_, _>>()?,
             };
             model.cameras.insert(cam.id, cam);
         }
@@ -267,29 +306,29 @@ impl ColmapModel {
                 k += 1;
                 continue;
             }
-            let perr = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let at = At { path: &path, line: n };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 10 {
-                return Err(perr(format!("expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got '{line}'")));
+                return Err(at.err(format!("expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got '{line}'")));
             }
-            let f = |i: usize, what: &str| parse::<f64>(w[i], what).map_err(&perr);
+            let f = |i: usize, field: &'static str| at.num::<f64>(w[i], field);
             let qvec = [f(1, "QW")?, f(2, "QX")?, f(3, "QY")?, f(4, "QZ")?];
             let tvec = [f(5, "TX")?, f(6, "TY")?, f(7, "TZ")?];
-            let id: u32 = parse(w[0], "IMAGE_ID").map_err(&perr)?;
-            let camera_id: u32 = parse(w[8], "CAMERA_ID").map_err(&perr)?;
+            let id: u32 = at.num(w[0], "IMAGE_ID")?;
+            let camera_id: u32 = at.num(w[8], "CAMERA_ID")?;
             if !model.cameras.contains_key(&camera_id) {
-                return Err(perr(format!("image {id} uses camera {camera_id}, which cameras.txt does not list")));
+                return Err(at.err(format!("image {id} uses camera {camera_id}, which cameras.txt does not list")));
             }
             let name = w[9..].join(" ");
             let (n2, points_line) = lines.get(k + 1).copied().unwrap_or((n + 1, ""));
+            let at2 = At { path: &path, line: n2 };
             let v: Vec<&str> = points_line.split_whitespace().collect();
             if v.len() % 3 != 0 {
-                return Err(ColmapError::Parse { path: path.clone(), line: n2, problem: "POINTS2D is not a list of X Y POINT3D_ID triples".into() });
+                return Err(at2.err("POINTS2D is not a list of X Y POINT3D_ID triples".into()));
             }
-            let e2 = |p: String| ColmapError::Parse { path: path.clone(), line: n2, problem: p };
             let mut points2d = Vec::with_capacity(v.len() / 3);
             for c in v.chunks_exact(3) {
-                points2d.push((parse(c[0], "X").map_err(e2)?, parse(c[1], "Y").map_err(e2)?, parse(c[2], "POINT3D_ID").map_err(e2)?));
+                points2d.push((at2.num(c[0], "X")?, at2.num(c[1], "Y")?, at2.num(c[2], "POINT3D_ID")?));
             }
             model.images.insert(id, ColmapImage { id, qvec, tvec, camera_id, name, points2d });
             k += 2;
@@ -297,17 +336,17 @@ impl ColmapModel {
 
         let (path, text) = read("points3D.txt")?;
         for (n, line) in data_lines(&text) {
-            let perr = |problem: String| ColmapError::Parse { path: path.clone(), line: n, problem };
+            let at = At { path: &path, line: n };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 8 || (w.len() - 8) % 2 != 0 {
-                return Err(perr(format!("expected POINT3D_ID X Y Z R G B ERROR TRACK..., got '{line}'")));
+                return Err(at.err(format!("expected POINT3D_ID X Y Z R G B ERROR TRACK..., got '{line}'")));
             }
             let p = ColmapPoint {
-                id: parse(w[0], "POINT3D_ID").map_err(&perr)?,
-                xyz: [parse(w[1], "X").map_err(&perr)?, parse(w[2], "Y").map_err(&perr)?, parse(w[3], "Z").map_err(&perr)?],
-                rgb: [parse(w[4], "R").map_err(&perr)?, parse(w[5], "G").map_err(&perr)?, parse(w[6], "B").map_err(&perr)?],
-                error: parse(w[7], "ERROR").map_err(&perr)?,
-                track: w[8..].chunks_exact(2).map(|c| Ok((parse(c[0], "IMAGE_ID")?, parse(c[1], "POINT2D_IDX")?))).collect::<crate::Result<_>>().map_err(&perr)?,
+                id: at.num(w[0], "POINT3D_ID")?,
+                xyz: [at.num(w[1], "X")?, at.num(w[2], "Y")?, at.num(w[3], "Z")?],
+                rgb: [at.num(w[4], "R")?, at.num(w[5], "G")?, at.num(w[6], "B")?],
+                error: at.num(w[7], "ERROR")?,
+                track: w[8..].chunks_exact(2).map(|c| Ok((at.num(c[0], "IMAGE_ID")?, at.num(c[1], "POINT2D_IDX")?))).collect::<Result<_, ColmapError>>()?,
             };
             model.points.insert(p.id, p);
         }
@@ -319,6 +358,21 @@ fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
     text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
-fn parse<T: std::str::FromStr>(s: &str, what: &str) -> crate::Result<T> {
-    s.parse::<T>().map_err(|_| format!("{what} '{s}' is not a valid number"))
+/// A data line of a file, for its errors.
+#[derive(Clone, Copy)]
+struct At<'a> {
+    path: &'a str,
+    line: usize,
+}
+
+impl At<'_> {
+    /// [`ColmapError::Parse`] at this line.
+    fn err(self, problem: String) -> ColmapError {
+        ColmapError::Parse { path: self.path.to_string(), line: self.line, problem }
+    }
+
+    /// Column `field` of this line as a number, or [`ColmapError::Number`].
+    fn num<T: std::str::FromStr>(self, text: &str, field: &'static str) -> Result<T, ColmapError> {
+        text.parse::<T>().map_err(|_| ColmapError::Number { path: self.path.to_string(), line: self.line, field, text: text.to_string() })
+    }
 }

@@ -3,12 +3,18 @@
 
 use std::path::Path;
 
+use crate::dataset::colmap::ColmapError;
+use crate::npy::NpyError;
+use crate::pickle::PickleError;
+
 /// What went wrong reading or writing a sequence.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
     /// The file could not be opened, read or written.
-    #[error("{file}: {source}")]
-    Io { file: String, source: std::io::Error },
+    // `error`, not `source`: the message carries it; a `source` would make anyhow
+    // print the OS error twice.
+    #[error("{file}: {error}")]
+    Io { file: String, error: std::io::Error },
     /// The file is there but is not an image we can decode (corrupt, truncated, an
     /// unsupported encoding), or its size does not match its camera.
     #[error("{file}: {problem}")]
@@ -22,15 +28,23 @@ pub enum DatasetError {
     /// The directory is no layout we know.
     #[error("{dir}: {problem}")]
     Layout { dir: String, problem: String },
-    /// A message from a format reader that already names its file and field (COLMAP
-    /// text, pickled annotations), carried as it is.
-    #[error("{0}")]
-    Format(String),
+    /// A pickled file (ZJU-MoCap's `annots.npy`, `smpl_params/*.npy`) that cannot be
+    /// read; the error names the file and the byte.
+    #[error(transparent)]
+    Pickle(#[from] PickleError),
+    /// COLMAP text (NeuMan's `sparse/`) that cannot be read, or a camera in it drape
+    /// does not undistort; the error names the file and the line or camera.
+    #[error(transparent)]
+    Colmap(#[from] ColmapError),
+    /// A NumPy `.npy` / `.npz` file (SMPL parameters, vertices) that cannot be read;
+    /// the error names the file and the array.
+    #[error(transparent)]
+    Npy(#[from] NpyError),
 }
 
 impl DatasetError {
-    pub fn io(path: &Path, source: std::io::Error) -> Self {
-        Self::Io { file: path.display().to_string(), source }
+    pub fn io(path: &Path, error: std::io::Error) -> Self {
+        Self::Io { file: path.display().to_string(), error }
     }
 
     pub fn image(path: &Path, problem: impl Into<String>) -> Self {
@@ -43,24 +57,5 @@ impl DatasetError {
 
     pub fn layout(dir: &Path, problem: impl Into<String>) -> Self {
         Self::Layout { dir: dir.display().to_string(), problem: problem.into() }
-    }
-}
-
-impl From<String> for DatasetError {
-    fn from(message: String) -> Self {
-        Self::Format(message)
-    }
-}
-
-impl From<crate::npy::NpyError> for DatasetError {
-    fn from(e: crate::npy::NpyError) -> Self {
-        Self::Format(e.to_string())
-    }
-}
-
-/// The binaries and the older `String`-error callers take the one-line message.
-impl From<DatasetError> for String {
-    fn from(e: DatasetError) -> Self {
-        e.to_string()
     }
 }

@@ -73,7 +73,7 @@ fn reader(path: &Path, bytes: &[u8]) -> Result<ImageReader<Cursor<Vec<u8>>>, Dat
     let reader = ImageReader::new(Cursor::new(bytes.to_vec())).with_guessed_format().map_err(|e| DatasetError::io(path, e))?;
     match reader.format() {
         None => return Err(DatasetError::image(path, "not a PNG or JPEG this program reads (unrecognised contents)")),
-        Some(ImageFormat::Jpeg) => jpeg_complete(bytes).map_err(|problem| DatasetError::image(path, problem))?,
+        Some(ImageFormat::Jpeg) => jpeg_complete(path, bytes)?,
         Some(_) => {}
     }
     Ok(reader)
@@ -110,8 +110,9 @@ fn describe(e: &ImageError) -> String {
 /// the cut without decoding: outside the entropy-coded data every segment states its
 /// length, and inside it a 0xFF byte is always followed by a stuffed 0x00, a restart
 /// marker or the next marker. Bytes after the end marker (camera trailers) are allowed.
-fn jpeg_complete(b: &[u8]) -> crate::Result<()> {
-    let truncated = || "truncated JPEG (the data ends before its end-of-image marker)".to_string();
+/// A cut or corrupt file is [`DatasetError::Image`] for `path`.
+fn jpeg_complete(path: &Path, b: &[u8]) -> Result<(), DatasetError> {
+    let truncated = || DatasetError::image(path, "truncated JPEG (the data ends before its end-of-image marker)");
     let mut i = 2; // past SOI, which guessing the format checked
     loop {
         // Garbage between segments is skipped, as libjpeg does (with a warning).
@@ -132,7 +133,7 @@ fn jpeg_complete(b: &[u8]) -> crate::Result<()> {
         }
         let Some(len) = b.get(i..i + 2).map(|l| usize::from(u16::from_be_bytes([l[0], l[1]]))) else { return Err(truncated()) };
         if len < 2 {
-            return Err(format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2));
+            return Err(DatasetError::image(path, format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2)));
         }
         i += len;
         if i > b.len() {

@@ -182,7 +182,7 @@ pub fn locate(dir: &Path) -> Result<SequenceFiles, DatasetError> {
 fn locate_neuman(dir: &Path) -> Result<NeumanFiles, DatasetError> {
     let sam = dir.join("4d_humans").join("sam_segmentations");
     let variant = if sam.is_dir() { Variant::NeumanHugs } else { Variant::Neuman };
-    let model = ColmapModel::read_text(&dir.join("sparse")).map_err(|e| DatasetError::Format(e.to_string()))?;
+    let model = ColmapModel::read_text(&dir.join("sparse"))?;
     let smpl = exists_or_missing(
         dir.join("4d_humans").join("smpl_optimized_aligned_scale.npz"),
         "HUGS's SMPL fit, which drape reads instead of NeuMan's smpl_output_optimized.pkl",

@@ -20,6 +20,7 @@ use crate::dataset::image::{write_mask, write_mask_values, write_rgb};
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::raster::{render, Drawable};
 use crate::dataset::zju::{write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
+use crate::error::TrainerError;
 use crate::garment::{pants, write_obj, Garment, GarmentFit};
 use crate::mesh::{add, scale, sub, V3};
 use crate::motion::{procedural, MotionKind};
@@ -204,15 +205,17 @@ fn masks(frame: &crate::dataset::raster::Frame) -> [Vec<bool>; 3] {
 /// done, total)` reports as it goes.
 pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usize, usize)) -> crate::Result<SynthSummary> {
     let t0 = std::time::Instant::now();
-    if o.width == 0 || o.height == 0 || o.frames == 0 {
-        return Err("width, height and frames must be positive".into());
+    for (what, value) in [("width", o.width as usize), ("height", o.height as usize), ("frames", o.frames)] {
+        if value == 0 {
+            return Err(TrainerError::invalid(what, "must be positive, got 0"));
+        }
     }
     let model = default_body(&BodyOptions::default());
     let garments: [Garment; 2] = [o.garment.upper(&model), pants(&model)];
     let motion = procedural(o.motion, o.frames, 30.0, 1.0);
     let sim = simulate_with_progress(&model, &garments, &motion, ClothParams::default(), 20, &mut |done, total| progress("simulating cloth", done, total));
     if sim.any_nan {
-        return Err("the cloth simulation produced non-finite positions".into());
+        return Err(TrainerError::numeric("synth", "the cloth simulation produced non-finite positions"));
     }
     let room = room();
     let body_uv = body_uvs(&model);
@@ -256,8 +259,9 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         write_mask(&neuman.join("masks_lower").join(&name), o.width, o.height, &lower)?;
         let depth = Array::new(npy::Dtype::F32, vec![o.height as usize, o.width as usize], frame.depth.iter().map(|&d| f64::from(d)).collect());
         let depth_path = neuman.join("depths").join(format!("{f:05}.npy"));
-        std::fs::create_dir_all(depth_path.parent().expect("has a parent")).map_err(|e| e.to_string())?;
-        std::fs::write(&depth_path, npy::encode(&depth)).map_err(|e| format!("{}: {e}", depth_path.display()))?;
+        let depth_dir = depth_path.parent().expect("has a parent");
+        std::fs::create_dir_all(depth_dir).map_err(|e| TrainerError::io(depth_dir, e))?;
+        std::fs::write(&depth_path, npy::encode(&depth)).map_err(|e| TrainerError::io(&depth_path, e))?;
         // Every handheld frame has the same intrinsics: one COLMAP camera.
         colmap.cameras.entry(1).or_insert_with(|| ColmapCamera::from_camera(1, &cam));
         colmap.images.insert(f as u32 + 1, ColmapImage::from_camera(f as u32 + 1, 1, name.clone(), &cam));
@@ -279,8 +283,9 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         write_vertices(&gt, f, &posed.vertices)?;
         for (g, positions) in garments.iter().zip([shirt, trousers]) {
             let path = gt.join("garments").join(format!("{}_{f:04}.obj", g.name));
-            std::fs::create_dir_all(path.parent().expect("has a parent")).map_err(|e| e.to_string())?;
-            write_obj(&path, positions, &g.faces, Some(&g.uvs)).map_err(|e| format!("{}: {e}", path.display()))?;
+            let dir = path.parent().expect("has a parent");
+            std::fs::create_dir_all(dir).map_err(|e| TrainerError::io(dir, e))?;
+            write_obj(&path, positions, &g.faces, Some(&g.uvs)).map_err(|e| TrainerError::io(&path, e))?;
         }
     }
     // Sparse points on the room's surfaces (as COLMAP would triangulate them).
@@ -298,10 +303,10 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
             id += 1;
         }
     }
-    colmap.write_text(&neuman.join("sparse")).map_err(|e| e.to_string())?;
+    colmap.write_text(&neuman.join("sparse"))?;
     let seq = SmplSequence { poses: motion.poses.clone(), betas: vec![vec![0.0; 10]; o.frames], translations: motion.translations.clone(), scales: vec![1.0; o.frames] };
-    seq.write_npz(&neuman.join("4d_humans").join("smpl_optimized_aligned_scale.npz")).map_err(|e| e.to_string())?;
-    seq.write_npz(&gt.join("smpl.npz")).map_err(|e| e.to_string())?;
+    seq.write_npz(&neuman.join("4d_humans").join("smpl_optimized_aligned_scale.npz"))?;
+    seq.write_npz(&gt.join("smpl.npz"))?;
     let annots = ZjuAnnots {
         cameras: ring.iter().map(ZjuCamera::from_camera).collect(),
         images: zju_images,

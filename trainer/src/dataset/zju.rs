@@ -94,7 +94,7 @@ impl ZjuAnnots {
         let path = dir.join("annots.npy");
         let name = path.display().to_string();
         let bytes = std::fs::read(&path).map_err(|e| DatasetError::io(&path, e))?;
-        let v = decode_object_npy(&bytes, &name).map_err(|e| DatasetError::Format(e.to_string()))?;
+        let v = decode_object_npy(&bytes, &name)?;
         let bad = |field: String, problem: &str| DatasetError::Field { file: name.clone(), field, problem: problem.to_string() };
         let field = |key: &str| -> Result<Vec<Array>, DatasetError> {
             v.get("cams")
@@ -182,7 +182,7 @@ impl ZjuSmpl {
     pub fn read_file(path: &Path) -> Result<Self, DatasetError> {
         let name = path.display().to_string();
         let bytes = std::fs::read(path).map_err(|e| DatasetError::io(path, e))?;
-        let v = decode_object_npy(&bytes, &name).map_err(|e| DatasetError::Format(e.to_string()))?;
+        let v = decode_object_npy(&bytes, &name)?;
         let bad = |key: &str, problem: String| DatasetError::Field { file: name.clone(), field: format!("'{key}'"), problem };
         let get = |key: &str, n: usize| -> Result<Vec<f64>, DatasetError> {
             let a = v.get(key).and_then(PyValue::as_array).ok_or_else(|| bad(key, "missing or not an array".into()))?;

@@ -300,12 +300,12 @@ fn colmap_distorting_models_parse() {
         assert_eq!((cam.width, cam.height), size, "camera {i} size");
         assert_eq!((cam.translation, cam.rotation[0]), ([0.5, -0.25, 3.0], [1.0, 0.0, 0.0]), "camera {i} pose");
     }
-    let fisheye = got(7).expect_err("OPENCV_FISHEYE is not undistorted");
+    let fisheye = got(7).expect_err("OPENCV_FISHEYE is not undistorted").to_string();
     assert!(fisheye.starts_with("cameras.txt: camera 7 has model OPENCV_FISHEYE, which drape does not undistort"), "{fisheye}");
     assert!(!fisheye.contains('\n'), "one line: {fisheye}");
-    let rational = got(8).expect_err("k5 = 0.5 is the rational model");
+    let rational = got(8).expect_err("k5 = 0.5 is the rational model").to_string();
     assert!(rational.contains("camera 8") && rational.contains("k5 = 0.5"), "{rational}");
-    let short = got(9).expect_err("OPENCV with 7 parameters");
+    let short = got(9).expect_err("OPENCV with 7 parameters").to_string();
     assert!(short.contains("camera 9 (OPENCV) has 7 PARAMS, expected 8 (fx fy cx cy k1 k2 p1 p2)"), "{short}");
 
     // The writer: a fixture's camera with a lens reads back as it was written.

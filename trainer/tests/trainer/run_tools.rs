@@ -13,12 +13,14 @@ use drape_tests::gpu;
 use drape_trainer::avatar::animate::{animate, place_pose, AnimateOptions};
 use drape_trainer::avatar::edit::{edit, Edit};
 use drape_trainer::avatar::eval::{evaluate, EvalInputs};
+use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::run::{OpenRun, RunInfo};
 use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::dataset::loader::BodyParams;
 use drape_trainer::dataset::synth::{generate, SynthOptions};
 use drape_trainer::motion::{procedural, MotionKind};
+use drape_trainer::TrainerError;
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
@@ -56,7 +58,7 @@ fn runs() -> &'static [PathBuf; 2] {
             c.steps = 30;
             c.log_every = 10;
             c.seed = seed;
-            c.layers = "body+cloth".into();
+            c.layers = LayerChoice::parse("body+cloth").unwrap();
             // Densified twice and with pose-dependent offsets, so that opening a run
             // (eval, animate, edit) meets layers of counts other than their initial
             // ones and the pose-blend head.
@@ -205,9 +207,11 @@ fn recolour_and_swap_change_only_the_garments_and_removal_uncovers_the_body() {
 
     // An edit into a non-empty directory is refused and writes nothing.
     let err = edit(&ctx, &mut original, &Edit::RemoveCloth, None, a).expect_err("refused");
+    assert!(matches!(err, TrainerError::Run { .. }), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("not empty"), "{err}");
     // Nothing to edit without a cloth layer.
-    let err = edit(&ctx, &mut bare, &Edit::Recolour { hue_degrees: 10.0 }, None, &tmp("run-tools-never")).expect_err("refused");
+    let err = edit(&ctx, &mut bare, &Edit::Recolour { hue_degrees: 10.0 }, None, &tmp("run-tools-never")).expect_err("refused").to_string();
     assert!(err.contains("no cloth layer"), "{err}");
     assert!(!tmp("run-tools-never").exists());
 }
@@ -307,7 +311,7 @@ fn bad_runs_and_motions_are_refused_with_the_file_named() {
     for f in ["config.json", "model.npz"] {
         std::fs::copy(src.join(f), copy.join(f)).expect("copy file");
     }
-    let err = OpenRun::open(&ctx, &copy, None, None).err().expect("no run.json");
+    let err = OpenRun::open(&ctx, &copy, None, None).err().expect("no run.json").to_string();
     assert!(err.contains("run.json") && err.contains("--data"), "{err}");
     assert!(OpenRun::open(&ctx, &copy, Some(data()), None).is_ok(), "with --data it opens");
     // A model file of another format version.
@@ -315,9 +319,11 @@ fn bad_runs_and_motions_are_refused_with_the_file_named() {
     arrays.insert("format_version".into(), drape_trainer::npy::Array::new(drape_trainer::npy::Dtype::U32, vec![1], vec![99.0]));
     drape_trainer::npy::write_npz(&copy.join("model.npz"), &arrays).expect("write");
     let err = OpenRun::open(&ctx, &copy, Some(data()), None).err().expect("old format");
+    assert!(matches!(&err, TrainerError::Checkpoint { key, .. } if key == "format_version"), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("model.npz") && err.contains("format version 99"), "{err}");
     // Not a run at all.
-    let err = OpenRun::open(&ctx, Path::new("/nonexistent/run"), None, None).err().expect("missing");
+    let err = OpenRun::open(&ctx, Path::new("/nonexistent/run"), None, None).err().expect("missing").to_string();
     assert!(err.contains("no such run directory"), "{err}");
     // A motion with 23 joints (69 pose values).
     let path = tmp("run-tools-bad-motion.npz");

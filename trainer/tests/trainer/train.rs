@@ -7,6 +7,8 @@ use std::sync::OnceLock;
 
 use drape_tests::gpu;
 use drape_trainer::avatar::cloth_target::{contracted_edges, ground_truth, ground_truth_dir, simulate_sequence};
+use drape_trainer::avatar::composite::Compositing;
+use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::rig::Rig;
 use drape_trainer::avatar::train::{load_sequence, train, Layout, TrainConfig};
 use drape_trainer::body::kinematics::pose_body;
@@ -14,6 +16,7 @@ use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::SmplModel;
 use drape_trainer::dataset::loader::BodyParams;
 use drape_trainer::dataset::synth::{generate, posed_from_zju, SynthOptions};
+use drape_trainer::TrainerError;
 
 fn model() -> &'static SmplModel {
     static M: OnceLock<SmplModel> = OnceLock::new();
@@ -177,7 +180,7 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     // 80 steps at three times HUGS's triplane and decoder rates (3e-3: a short run's
     // rates; the presets keep HUGS's 1e-3).
     let mut config = tiny_config();
-    config.layers = "body+cloth".into();
+    config.layers = LayerChoice::parse("body+cloth").unwrap();
     config.steps = 80;
     for layer in [&mut config.body, &mut config.cloth] {
         layer.lr_triplane = 3e-3;
@@ -234,6 +237,8 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     }
     // A second run into the same (now full) directory is refused, and leaves it as it was.
     let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).err().expect("non-empty run directory refused");
+    assert!(matches!(err, TrainerError::Run { .. }), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("not empty"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -245,8 +250,8 @@ fn the_layers_follow_the_data() {
     let zju = load_sequence(&data().join("zju"), 0).expect("ZJU");
     let choose = |seq, layers: &str| {
         let mut c = tiny_config();
-        c.layers = layers.into();
-        choose_layers(seq, &c).map(|l| (l.cloth, l.scene))
+        c.layers = LayerChoice::parse(layers).unwrap();
+        choose_layers(seq, &c).map(|l| (l.cloth, l.scene)).map_err(|e| e.to_string())
     };
     // NeuMan: garment masks and an unmasked scene with sparse points; ZJU-MoCap
     // (as `drape synth` writes it): masked studio frames, no garment masks.
@@ -257,7 +262,7 @@ fn the_layers_follow_the_data() {
     let err = choose(&zju, "body+scene").expect_err("no scene points in ZJU-MoCap");
     assert!(err.contains("scene points"), "{err}");
     for bad in ["cloth", "body+cloth+cloth", "body+hair", ""] {
-        assert!(choose(&neuman, bad).is_err(), "--layers {bad} accepted");
+        assert!(LayerChoice::parse(bad).is_err(), "--layers {bad} accepted");
     }
 }
 
@@ -272,7 +277,7 @@ fn scene_layer_trains_on_the_whole_frame() {
     // Every layer: the paper's three passes with a matte in which the scene hides the
     // cloth; each layer at its own SH degree (the scene at 3DGS's 3, the cloth at 1,
     // the body at HUGS's 0), rendered together at the highest.
-    config.layers = "body+cloth+scene".into();
+    config.layers = LayerChoice::parse("body+cloth+scene").unwrap();
     config.scene.sh_degree = 3;
     config.cloth.sh_degree = 1;
     config.decimate = 8;
@@ -302,7 +307,7 @@ fn scene_layer_trains_on_the_whole_frame() {
     let body_appearance = arrays["body.appearance"].data.len();
     assert_eq!((cloth_appearance, body_appearance), (appearance_len(&config.cloth), appearance_len(&config.body)), "appearance decoder sizes (cloth, body) in floats");
     assert!(cloth_appearance > body_appearance, "the cloth's SH head is wider");
-    let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it");
+    let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it").to_string();
     assert!(err.contains("scene layer"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -321,8 +326,8 @@ fn fused_compositing_trains_as_the_three_passes_do() {
         let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("train-test-{compositing}"));
         let _ = std::fs::remove_dir_all(&out);
         let mut config = tiny_config();
-        config.layers = "body+cloth+scene".into();
-        config.compositing = compositing.into();
+        config.layers = LayerChoice::parse("body+cloth+scene").unwrap();
+        config.compositing = Compositing::parse(compositing).unwrap();
         config.deterministic = true;
         config.decimate = 8;
         config.fit_steps = 10;
@@ -383,7 +388,7 @@ fn resume_config(steps: u32) -> TrainConfig {
     // Every layer, in the deterministic mode: without it, the scene layer's Adam turns
     // the float-atomic noise in its near-zero gradients into full-size steps (1e-2
     // apart after 20 steps).
-    c.layers = "body+cloth+scene".into();
+    c.layers = LayerChoice::parse("body+cloth+scene").unwrap();
     c.deterministic = true;
     // Densified and pruned after steps 4, 8, 12 and 16: two events on each side of the
     // checkpoint at 10, the statistics of 9-12 spanning it. The thresholds are set so
@@ -461,13 +466,15 @@ fn resume_continues_from_the_checkpoint() {
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
     std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
-    let err = train(&ctx, &seq, model().clone(), &resume_config(30), &split, true, &mut |_| {}).err().expect("truncated checkpoint refused");
+    let err = train(&ctx, &seq, model().clone(), &resume_config(30), &split, true, &mut |_| {}).err().expect("truncated checkpoint refused").to_string();
     assert!(err.contains("checkpoint.npz"), "{err}");
     // A checkpoint of another model (a different triplane) is refused, naming the array.
     std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
     other.body.triplane_resolution = 16;
     let err = train(&ctx, &seq, model().clone(), &other, &split, true, &mut |_| {}).err().expect("other model refused");
+    assert!(matches!(err, TrainerError::Checkpoint { .. }), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("checkpoint.npz") && err.contains("body."), "{err}");
     let state = checkpoint::read(&whole.join("model.npz"), &[], scene).expect("header-only read");
     assert_eq!(state.step, 20);
@@ -505,7 +512,7 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-pose-refine");
     let _ = std::fs::remove_dir_all(&out);
     let mut c = tiny_config();
-    c.layers = "body".into();
+    c.layers = LayerChoice::parse("body").unwrap();
     c.decimate = 6;
     c.steps = 96;
     c.lr_pose = 2e-2;
@@ -560,6 +567,8 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
     let mut config = resume_config(30);
     config.max_skipped_steps = 3;
     let err = train(&ctx, &seq, model().clone(), &config, &base.join("all"), false, &mut |_| {}).err().expect("the run stops");
+    assert!(matches!(err, TrainerError::Numeric { stage: "training", .. }), "{err:?}");
+    let err = err.to_string();
     assert!(err.contains("3 steps in a row had non-finite gradients"), "{err}");
     let _ = std::fs::remove_dir_all(&base);
 }

@@ -459,7 +459,7 @@ impl SplatRenderer {
         if gaussians.count > self.max_count {
             return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
         }
-        settings.validate().map_err(|problem| EngineError::InvalidSetting { what: "render settings", problem })?;
+        settings.validate()?;
         if settings.tile_size < RASTER_BLOCK && self.raster != RasterVariant::Subgroup {
             return Err(EngineError::MissingFeature {
                 kernel: "splat::rasterize_fwd",

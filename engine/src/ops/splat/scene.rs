@@ -8,6 +8,8 @@ use drape_shared::splat::layout::{
 use drape_shared::splat::project::Gaussian;
 use drape_shared::real::Real;
 
+use crate::error::EngineError;
+
 /// Which layer of the avatar a Gaussian belongs to (used by compositing).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[repr(u32)]
@@ -196,21 +198,28 @@ impl PinholeCamera {
         })
     }
 
-    /// Checks what a camera file could get wrong, naming the field.
-    pub fn validate(&self) -> Result<(), String> {
-        let finite = [self.fx, self.fy, self.cx, self.cy, self.near, self.far].iter().all(|v| v.is_finite())
-            && self.rotation.iter().flatten().chain(&self.translation).chain(&self.background).all(|v| v.is_finite());
-        if !finite {
-            return Err("a camera field is not a finite number".into());
+    /// Checks what a camera file could get wrong: an
+    /// [`EngineError::InvalidSetting`] whose `what` is the field (as the file spells it).
+    pub fn validate(&self) -> Result<(), EngineError> {
+        let invalid = |what: &'static str, problem: String| Err(EngineError::InvalidSetting { what, problem });
+        let scalars = [("fx", self.fx), ("fy", self.fy), ("cx", self.cx), ("cy", self.cy), ("near", self.near), ("far", self.far)];
+        let arrays: [(&'static str, &[f32]); 3] = [("rotation", self.rotation.as_flattened()), ("translation", &self.translation), ("background", &self.background)];
+        for (what, v) in scalars.into_iter().chain(arrays.into_iter().flat_map(|(w, a)| a.iter().map(move |&v| (w, v)))) {
+            if !v.is_finite() {
+                return invalid(what, format!("{v} is not a finite number"));
+            }
         }
         if !(self.fx > 0.0 && self.fy > 0.0) {
-            return Err(format!("fx and fy must be positive (fx {}, fy {})", self.fx, self.fy));
+            let what = if self.fx > 0.0 { "fy" } else { "fx" };
+            return invalid(what, format!("fx and fy must be positive (fx {}, fy {})", self.fx, self.fy));
         }
         if self.width == 0 || self.height == 0 {
-            return Err(format!("width and height must be positive ({}x{})", self.width, self.height));
+            let what = if self.width == 0 { "width" } else { "height" };
+            return invalid(what, format!("width and height must be positive ({}x{})", self.width, self.height));
         }
         if !(self.near > 0.0 && self.far > self.near) {
-            return Err(format!("need 0 < near < far (near {}, far {})", self.near, self.far));
+            let what = if self.near > 0.0 { "far" } else { "near" };
+            return invalid(what, format!("need 0 < near < far (near {}, far {})", self.near, self.far));
         }
         let r = self.rotation;
         for i in 0..3 {
@@ -218,7 +227,7 @@ impl PinholeCamera {
                 let d = r[i][0] * r[j][0] + r[i][1] * r[j][1] + r[i][2] * r[j][2];
                 let expected = if i == j { 1.0 } else { 0.0 };
                 if (d - expected).abs() > 1e-3 {
-                    return Err(format!("rotation is not orthonormal (row {i} . row {j} = {d})"));
+                    return invalid("rotation", format!("not orthonormal (row {i} . row {j} = {d})"));
                 }
             }
         }
@@ -259,10 +268,11 @@ pub struct RenderSettings {
 }
 
 impl RenderSettings {
-    /// Checks the settings a kernel cannot: the tile size.
-    pub fn validate(&self) -> Result<(), String> {
+    /// Checks the settings a kernel cannot: the tile size
+    /// ([`EngineError::InvalidSetting`] for `tile_size`).
+    pub fn validate(&self) -> Result<(), EngineError> {
         if !TILE_SIZES.contains(&self.tile_size) {
-            return Err(format!("tile size {} is not one of {TILE_SIZES:?}", self.tile_size));
+            return Err(EngineError::InvalidSetting { what: "tile_size", problem: format!("tile size {} is not one of {TILE_SIZES:?}", self.tile_size) });
         }
         Ok(())
     }
