@@ -1,4 +1,4 @@
-//! `drape bench-cloth`: the synthetic cloth benchmark (issue 13, item 5). For each
+//! `drape bench-cloth`: the synthetic cloth benchmark. For each
 //! garment fit × motion it synthesises a sequence (`drape synth`, NeuMan layout, ground
 //! truth garments), trains the full model, the paper's ablation rows and the
 //! single-layer baseline on it, evaluates each on the held-out frames (every fifth from

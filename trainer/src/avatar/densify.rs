@@ -24,7 +24,7 @@
 //! kept and those of new Gaussians start at zero; the cloth's ARAP graph keeps the
 //! edges between survivors (new Gaussians join no edge). The statistics start again.
 //!
-//! Where this differs from the code it follows (stated, as the issue asks): the two
+//! Where this differs from the code it follows: the two
 //! children of a split in a triplane-driven layer are not drawn from the Gaussian but
 //! placed a quarter of its largest (decoded) scale either side of its mean along that
 //! axis of its canonical rotation (`split_pair` says why), and their base scale (which

@@ -1,4 +1,4 @@
-//! Lens distortion (`drape_trainer::dataset::distortion`, issue 15) against OpenCV
+//! Lens distortion (`drape_trainer::dataset::distortion`) against OpenCV
 //! 4.12 (`tests/python/opencv_reference.py`, in the environment `scripts/torch-env.sh`
 //! makes): projected points against `cv2.projectPoints`, the undistortion map against
 //! `cv2.initUndistortRectifyMap`, undistorted images and masks against

@@ -113,7 +113,7 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         assert!(e <= 1e-5, "{name}: head {} differs from PyTorch by {e:e} (relative)", d.name);
         start += d.width;
     }
-    // Gradients: f32 sums over the rows; 1e-4 as the issue asks.
+    // Gradients are f32 sums over the rows: 1e-4 relative, ten times the outputs'.
     let e = rel_err(&gpu_gx, &tgx, 1e-3);
     assert!(e <= 1e-4, "{name}: input gradient differs from PyTorch by {e:e}");
     for l in 0..hidden {
