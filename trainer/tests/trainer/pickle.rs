@@ -1,11 +1,17 @@
 //! NumPy object arrays (pickles): what the project writes, NumPy reads; what NumPy
-//! writes, the project reads. The test command installs numpy for Python 3.
+//! writes, the project reads. The test command installs numpy for Python 3. ZJU-MoCap
+//! annotations written by numpy itself (`tests/python/write_annots.py`, the reference
+//! environment's numpy 2.x, np.save and pickle protocols 2 to 5) load through the ZJU
+//! loader with the values numpy wrote; hostile pickles are refused without a panic.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::OnceLock;
 
+use drape_tests::reference_python::{case_dir, get, run};
+use drape_trainer::dataset::zju::{ZjuAnnots, ZjuSmpl};
 use drape_trainer::npy::Array;
-use drape_trainer::pickle::{decode_object_npy, encode_object_npy, PyValue};
+use drape_trainer::pickle::{decode, decode_object_npy, encode_object_npy, PickleProblem, PyValue};
 
 fn temp(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("drape-pickle-tests-{}", std::process::id()));
@@ -70,4 +76,175 @@ np.save({theirs:?}, b)
     assert_eq!(t.shape, vec![3, 1]);
     assert_eq!(v.get("n"), Some(&PyValue::Int(7)));
     assert_eq!(v.get("f"), Some(&PyValue::Float(0.25)));
+}
+
+// ---- what numpy writes (tests/python/write_annots.py) ----
+
+/// The files, written once per test binary.
+fn numpy_files() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = case_dir("pickle", "numpy_annots");
+        run("write_annots.py", std::slice::from_ref(&dir));
+        dir
+    })
+}
+
+/// The cases the script wrote: `<dtype>_<how>`, dtype f64/f32/mixed, how save/p2..p5.
+fn numpy_cases() -> Vec<String> {
+    let text = std::fs::read_to_string(numpy_files().join("cases.txt")).expect("cases.txt");
+    let cases: Vec<String> = text.lines().filter(|l| !l.is_empty()).map(str::to_string).collect();
+    assert_eq!(cases.len(), 15, "three dtypes by five ways of saving: {cases:?}");
+    cases
+}
+
+/// Compares `got` with `expected` exactly, noting the first difference in `failures`.
+fn compare(failures: &mut Vec<String>, what: String, got: &[f64], expected: &[f64]) {
+    if got.len() != expected.len() {
+        failures.push(format!("{what}: {} values, expected {}", got.len(), expected.len()));
+    } else if let Some(i) = (0..got.len()).find(|&i| got[i].to_bits() != expected[i].to_bits()) {
+        failures.push(format!("{what}[{i}]: {} != {}", got[i], expected[i]));
+    }
+}
+
+#[test]
+fn numpy_written_annots_load_with_the_values_numpy_wrote() {
+    let mut failures = Vec::new();
+    for case in numpy_cases() {
+        let dir = numpy_files().join(&case);
+        let expected = dir.join("expected");
+        let annots = match ZjuAnnots::read(&dir) {
+            Ok(a) => a,
+            Err(e) => {
+                failures.push(format!("{case}: {e}"));
+                continue;
+            }
+        };
+        let cams = &annots.cameras;
+        // Stacked per camera, as stored: T in millimetres, which the loader divides by 1000.
+        let t_mm = get(&expected, "T");
+        let t: Vec<f64> = t_mm.iter().map(|v| v / 1000.0).collect();
+        compare(&mut failures, format!("{case} K"), &cams.iter().flat_map(|c| c.k.iter().flatten().copied()).collect::<Vec<_>>(), &get(&expected, "K"));
+        compare(&mut failures, format!("{case} D"), &cams.iter().flat_map(|c| c.d).collect::<Vec<_>>(), &get(&expected, "D"));
+        compare(&mut failures, format!("{case} R"), &cams.iter().flat_map(|c| c.r.iter().flatten().copied()).collect::<Vec<_>>(), &get(&expected, "R"));
+        compare(&mut failures, format!("{case} T"), &cams.iter().flat_map(|c| c.t).collect::<Vec<_>>(), &t);
+        let ims: Vec<Vec<String>> = std::fs::read_to_string(expected.join("ims.txt")).expect("ims.txt").lines().map(|l| l.split('\t').map(str::to_string).collect()).collect();
+        if annots.images != ims {
+            failures.push(format!("{case} ims: {:?}, expected {ims:?}", annots.images));
+        }
+    }
+    assert!(failures.is_empty(), "{} problems:\n{}", failures.len(), failures.join("\n"));
+}
+
+#[test]
+fn numpy_written_smpl_params_load_with_the_values_numpy_wrote() {
+    let mut failures = Vec::new();
+    for case in numpy_cases() {
+        let dir = numpy_files().join(&case);
+        let expected = dir.join("expected");
+        for frame in 0..2 {
+            let p = match ZjuSmpl::read(&dir, frame) {
+                Ok(p) => p,
+                Err(e) => {
+                    failures.push(format!("{case} frame {frame}: {e}"));
+                    continue;
+                }
+            };
+            compare(&mut failures, format!("{case} {frame} poses"), &p.poses, &get(&expected, &format!("smpl{frame}_poses")));
+            compare(&mut failures, format!("{case} {frame} Rh"), &p.rh, &get(&expected, &format!("smpl{frame}_Rh")));
+            compare(&mut failures, format!("{case} {frame} Th"), &p.th, &get(&expected, &format!("smpl{frame}_Th")));
+            compare(&mut failures, format!("{case} {frame} shapes"), &p.shapes, &get(&expected, &format!("smpl{frame}_shapes")));
+        }
+    }
+    assert!(failures.is_empty(), "{} problems:\n{}", failures.len(), failures.join("\n"));
+}
+
+// ---- Python's semantics and hostile input, on hand-made pickles ----
+
+#[test]
+fn memo_entries_are_references() {
+    // pickle.loads gives ([1], [1]): an empty list, memoised, put in a tuple twice, then
+    // fetched by BINGET and appended to; the tuple holds that same list.
+    let bytes = b"\x80\x02(]q\x00h\x00th\x00K\x01a0.";
+    let one = PyValue::List(vec![PyValue::Int(1)]);
+    assert_eq!(decode(bytes, "memo").unwrap(), PyValue::Tuple(vec![one.clone(), one]));
+}
+
+/// Every truncation of `bytes` and every byte of it replaced by a few values: the reader
+/// returns (an error or a value), it does not panic.
+fn mutations_do_not_panic(name: &str, bytes: &[u8]) {
+    for n in 0..bytes.len() {
+        assert!(decode_object_npy(&bytes[..n], name).is_err(), "{name} cut to {n} bytes");
+    }
+    let mut copy = bytes.to_vec();
+    for i in 0..bytes.len() {
+        for v in [0x00, 0xff, 0x80, bytes[i] ^ 0x01] {
+            copy[i] = v;
+            let _ = decode_object_npy(&copy, name);
+        }
+        copy[i] = bytes[i];
+    }
+}
+
+#[test]
+fn numpy_files_cut_or_altered_are_refused_without_panicking() {
+    for case in ["f64_save", "mixed_p2", "f32_p5"] {
+        let bytes = std::fs::read(numpy_files().join(case).join("annots.npy")).expect("annots.npy");
+        mutations_do_not_panic(case, &bytes);
+    }
+    let ours = encode_object_npy(&annots());
+    mutations_do_not_panic("ours", &ours);
+}
+
+fn problem(bytes: &[u8]) -> PickleProblem {
+    decode(bytes, "hostile").expect_err("refused").problem
+}
+
+#[test]
+fn hostile_pickles_are_refused_with_what_is_wrong() {
+    // Lengths past the end, including ones whose sum with the offset overflows.
+    for op in [0x8du8, 0x8e, 0x96] {
+        let mut b = vec![0x80, 5, op];
+        b.extend_from_slice(&u64::MAX.to_le_bytes());
+        assert!(matches!(problem(&b), PickleProblem::Truncated), "opcode 0x{op:02x}");
+    }
+    assert!(matches!(problem(b"\x80\x02X\xff\xff\xff\xffab"), PickleProblem::Truncated));
+    // Lists nested 100 000 deep, and a list that holds itself.
+    let mut deep = vec![0x80, 2];
+    deep.extend(std::iter::repeat_n(b']', 100_000));
+    deep.extend(std::iter::repeat_n(b'a', 99_999));
+    deep.push(b'.');
+    assert!(matches!(problem(&deep), PickleProblem::TooDeep { .. }), "{:?}", problem(&deep));
+    assert!(matches!(problem(b"\x80\x02]q\x00h\x00a."), PickleProblem::TooDeep { .. }));
+    // Each step makes a list of two references to the previous one: 2^40 leaves.
+    let mut wide = b"\x80\x02]q\x00".to_vec();
+    for _ in 0..40 {
+        wide.extend_from_slice(b"](h\x00h\x00eq\x00");
+    }
+    wide.extend_from_slice(b"h\x00.");
+    assert!(matches!(problem(&wide), PickleProblem::TooLarge { .. }), "{:?}", problem(&wide));
+    // An array whose shape's element count overflows, and one whose data is short.
+    let frombuffer = |shape: &[u64], data: &[u8]| {
+        let mut b = b"\x80\x04\x8c\x13numpy._core.numeric\x8c\x0b_frombuffer\x93(".to_vec();
+        b.push(b'B');
+        b.extend_from_slice(&(data.len() as u32).to_le_bytes());
+        b.extend_from_slice(data);
+        b.extend_from_slice(b"\x8c\x05numpy\x8c\x05dtype\x93\x8c\x02f8\x89\x88\x87R(K\x03\x8c\x01<NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb(");
+        for &d in shape {
+            b.extend_from_slice(b"\x8a\x08");
+            b.extend_from_slice(&d.to_le_bytes());
+        }
+        b.extend_from_slice(b"t\x8c\x01CtR.");
+        b
+    };
+    let ok = decode(&frombuffer(&[2], &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f, 0, 0, 0, 0, 0, 0, 0, 0x40]), "frombuffer").unwrap();
+    assert_eq!(ok, PyValue::Array(Array::f64(vec![2], vec![1.0, 2.0])));
+    assert!(matches!(problem(&frombuffer(&[1 << 62, 1 << 62], &[0; 8])), PickleProblem::Array { .. }));
+    assert!(matches!(problem(&frombuffer(&[3], &[0; 16])), PickleProblem::Array { .. }));
+    // Opcodes that reach below a MARK, and a MARK never closed.
+    assert!(matches!(problem(b"\x80\x02K\x01(\x85."), PickleProblem::Opcode { .. }));
+    assert!(matches!(problem(b"\x80\x02](a."), PickleProblem::Opcode { .. }));
+    assert!(matches!(problem(b"\x80\x02(."), PickleProblem::Empty | PickleProblem::Opcode { .. }));
+    // A callable this reader does not call.
+    assert!(matches!(problem(b"\x80\x02cos\nsystem\nX\x02\x00\x00\x00ls\x85R."), PickleProblem::Call { .. }));
 }
