@@ -13,15 +13,31 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Each step's wall time, printed when the next starts and at the end.
+started=$SECONDS
+step_started=$SECONDS
+step() {
+    if [ -n "${step_name:-}" ]; then
+        echo "== took $((SECONDS - step_started)) s: $step_name"
+    fi
+    step_name="$1"
+    step_started=$SECONDS
+    [ -z "$1" ] || echo "== $1"
+}
+
+step "0/4 set-up (Vulkan, lavapipe, validation layers, the shader toolchain, numpy)"
 scripts/setup.sh --shaders
 # A real client of the NumPy files the project writes (pickled annots.npy, .npz).
 if ! python3 -c "import numpy" 2>/dev/null; then
     echo "setup: installing numpy for Python 3"
     python3 -m pip install -q numpy
 fi
-# The independent reference for the neural ops: PyTorch (CPU) in target/torch-venv.
-DRAPE_TORCH_PYTHON="$(scripts/torch-env.sh | tail -1)"
-export DRAPE_TORCH_PYTHON
+# The independent reference for the neural ops: PyTorch (CPU) in target/torch-venv. Its
+# first install (mostly download) runs while steps 1 and 2 compile; step 3 waits for it.
+mkdir -p target
+torch_log=target/torch-env.log
+scripts/torch-env.sh >"$torch_log.out" 2>"$torch_log" &
+torch_pid=$!
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 # Incremental caches would be written once per test binary and never reused on a
 # clean clone: disk CI does not have to spare.
@@ -30,16 +46,25 @@ if [ "$DRAPE_DEVICE" = llvmpipe ]; then
     export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps,subgroup-raster}"
 fi
 
-echo "== 1/4 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
+step "1/4 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
 (cd tools/shader-builder && cargo run --release --locked --quiet -- --check)
 
-echo "== 2/4 shader builder tests"
+step "2/4 shader builder tests"
 (cd tools/shader-builder && cargo test --release --locked)
 
-echo "== 3/4 workspace tests on $DRAPE_DEVICE with validation"
+if ! wait "$torch_pid"; then
+    cat "$torch_log" >&2
+    echo "test: the PyTorch reference environment could not be installed (log above)" >&2
+    exit 1
+fi
+cat "$torch_log" >&2
+DRAPE_TORCH_PYTHON="$(tail -1 "$torch_log.out")"
+export DRAPE_TORCH_PYTHON
+
+step "3/4 workspace tests on $DRAPE_DEVICE with validation"
 cargo test --workspace --locked
 
-echo "== 4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
+step "4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
 # --workspace, not -p: the same feature unification as step 3, so this reuses its
 # build instead of compiling every dependency a second time. The filters pick the
 # modules of the two GPU test binaries (engine: tests/tests/engine, trainer:
@@ -47,3 +72,5 @@ echo "== 4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING
 DRAPE_FORCE_STAGING=1 cargo test --workspace --locked --test engine --test trainer -- \
     runtime:: scan:: sort:: splat_gpu:: splat_robustness:: splat_gradients:: nn:: ssim:: sizes:: \
     composite:: skinning::
+step ""
+echo "== all steps passed in $((SECONDS - started)) s"

@@ -1,5 +1,6 @@
 //! The freshness check on a temporary copy of `shaders-rs`: an untouched copy passes,
-//! and a copy whose kernel source changed without rebuilding fails, naming the module.
+//! and a copy whose kernel source changed without rebuilding fails, naming the module;
+//! `--baseline-only` without `--check` is refused.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -21,9 +22,12 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
+/// `--check --baseline-only`: the scan kernels live in the baseline build, and the
+/// whole check of the repository itself is the test command's first step.
 fn check(shaders: &Path) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_shader-builder"))
         .arg("--check")
+        .arg("--baseline-only")
         .arg("--shaders")
         .arg(shaders)
         .output()
@@ -55,4 +59,11 @@ fn changed_kernel_source_without_rebuild_fails_the_check() {
     assert!(stderr.contains("module scan::reduce"), "the stale module is named: {stderr}");
     assert!(!stderr.contains("module radix_sort::"), "untouched modules are not blamed: {stderr}");
     let _ = std::fs::remove_dir_all(&tmp);
+}
+
+#[test]
+fn baseline_only_is_a_check_not_a_write() {
+    let out = Command::new(env!("CARGO_BIN_EXE_shader-builder")).arg("--baseline-only").output().expect("shader-builder runs");
+    assert_eq!(out.status.code(), Some(2), "a partial write must be refused");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--baseline-only needs --check"));
 }
