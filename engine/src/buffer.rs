@@ -1,5 +1,6 @@
-//! RAII buffers: each is named (debug utils), owns its allocation, frees both in `Drop`,
-//! and holds the device alive. With poisoning on, a new buffer is filled with
+//! RAII buffers: each is named (debug utils), owns its allocation and the texel views
+//! made of it on first use, frees them in `Drop`, and holds the device alive. With
+//! poisoning on, a new buffer is filled with
 //! [`POISON_WORD`](crate::context::POISON_WORD) before anyone sees it.
 
 use std::sync::{Arc, OnceLock};
@@ -130,7 +131,8 @@ impl Buffer {
         let texels = self.vk_size() / texel_bytes;
         let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(format).offset(0).range(texels * texel_bytes);
         // SAFETY: a buffer of this device made with UNIFORM_TEXEL_BUFFER usage; the range
-        // lies inside it and R32_SFLOAT uniform texel buffers are required of every device.
+        // lies inside it; R32_SFLOAT and R32G32B32A32_SFLOAT uniform texel buffers are
+        // required of every device.
         let view = unsafe { self.device.raw.create_buffer_view(&info, None) }.vk("vkCreateBufferView", &self.name)?;
         if let Err(ours) = slot.set(view) {
             // Another thread made one first: keep its view.
@@ -158,7 +160,7 @@ impl Buffer {
 impl Drop for Buffer {
     fn drop(&mut self) {
         // SAFETY: callers submit and wait before dropping what a command buffer uses
-        // (recordings wait in submit and hold no buffer past it); the view goes first.
+        // (recordings wait in submit and hold no buffer past it); the views go first.
         unsafe {
             if let Some(&view) = self.texel_view.get() {
                 self.device.raw.destroy_buffer_view(view, None);

@@ -3,8 +3,8 @@
 //!
 //! [`Context`] is a cheap handle (`Arc`) to the [`Device`] that owns all of it; buffers
 //! and recordings hold the same `Arc`, so the device outlives everything made from it.
-//! Drop order is deliberate: pipelines, then the allocator, then the device, then the
-//! messenger, then the instance.
+//! Drop order is deliberate: recycled command pools and pipelines, then the allocator,
+//! then the device, then the messenger, then the instance.
 
 use std::collections::HashMap;
 use std::ffi::{c_char, CStr, CString};

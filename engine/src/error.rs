@@ -1,6 +1,7 @@
 //! The engine's error type: what a caller cannot foresee. Programmer mistakes (a buffer
-//! too small for the op it is passed to, a binding count that does not match the
-//! kernel) are asserts, not errors.
+//! too small for the op it is passed to, a copy past a buffer's end) are asserts, not
+//! errors. The file formats have their own types (`ops::splat::ply::PlyError`,
+//! `ops::lpips::WeightsError`), each naming the file.
 
 use ash::vk;
 

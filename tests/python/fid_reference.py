@@ -1,4 +1,4 @@
-"""The FID references (tests/tests/fid.rs): pytorch-fid's network and Fréchet distance.
+"""The FID references (trainer/tests/trainer/fid.rs): pytorch-fid's network and Fréchet distance.
 
 Usage: fid_reference.py CASE_DIR. CASE_DIR holds case.json; exit status 0, or 1 with one
 line on stderr. Cases:

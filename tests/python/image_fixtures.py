@@ -1,5 +1,5 @@
 """Image files as other tools write them, for the dataset image reader's test
-(tests/tests/image_formats.rs): Pillow and OpenCV write each file, and NumPy writes
+(trainer/tests/trainer/image_formats.rs): Pillow and OpenCV write each file, and NumPy writes
 what a correct reader must return (RGB in [0, 1] as float64, masks as 0/1).
 
 usage: image_fixtures.py DIR

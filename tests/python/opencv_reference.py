@@ -1,4 +1,4 @@
-"""The OpenCV references of lens distortion (tests/tests/distortion.rs).
+"""The OpenCV references of lens distortion (trainer/tests/trainer/distortion.rs).
 
 Usage: opencv_reference.py CASE_DIR... Each CASE_DIR holds case.json with "kind",
 "K" (3 x 3, rows) and "D" (k1 k2 p1 p2 k3), and:

@@ -1,4 +1,4 @@
-"""The scikit-image references of the evaluation metrics (tests/tests/eval_metrics.rs).
+"""The scikit-image references of the evaluation metrics (trainer/tests/trainer/eval_metrics.rs).
 
 Usage: skimage_metrics.py CASE_DIR. CASE_DIR holds case.json ({"pairs": [name, ...]})
 and, for each name, NAME_a.npy and NAME_b.npy: H x W x 3 float64 images in [0, 1].

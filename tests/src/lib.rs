@@ -1,5 +1,7 @@
-//! Helpers shared by the cross-crate tests: a validated GPU context that fails the
-//! test that caused any validation message, and input patterns.
+//! Helpers every GPU test binary shares (the engine's, `tests/tests/engine`, and the
+//! trainer's): a validated GPU context that fails the test that caused any validation
+//! message, device features a test may skip on, input patterns, the splatter's
+//! comparison helpers, and the runner of the independent Python references.
 #![forbid(unsafe_code)]
 
 use std::ops::Deref;

@@ -1,8 +1,10 @@
 //! The trainer's error type. Every fallible function of the crate returns
-//! [`TrainerError`]: a caller tells a lost device or an exhausted GPU (`Engine`) from a
-//! bad file (`Dataset`, `Npy`, `Pickle`, ...) or a bad setting (`Config`) by matching,
-//! not by reading prose. Each variant's message is one line that names the file, key or
-//! stage; the binaries print it as it is.
+//! [`TrainerError`], or, for a file format's reader or writer, that format's own error
+//! (`NpyError`, `DatasetError`, `PickleError`, `ColmapError`, `GarmentError`,
+//! `FidWeightsError`), which `?` converts into it. A caller tells a lost device or an
+//! exhausted GPU (`Engine`) from a bad file (`Dataset`, `Npy`, `Pickle`, ...) or a bad
+//! setting (`Config`) by matching, not by reading prose. Each variant's message is one
+//! line that names the file, key or stage; the binaries print it as it is.
 
 use std::path::{Path, PathBuf};
 

@@ -215,7 +215,7 @@ pub fn tshirt(body: &SmplModel) -> Garment {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum GarmentFit {
-    /// `tshirt`: 1.5 cm off the skin, hem at the hips (what `drape synth` always made).
+    /// `tshirt`: 1.5 cm off the skin, hem at the hips (the default).
     #[default]
     Tight,
     /// `loose_tshirt`: 4.5 cm of ease around the torso and a hem 10 cm lower.

@@ -2,7 +2,8 @@
 //! project's procedural body, posing), garments and their cloth simulation, the dataset
 //! readers (NeuMan, ZJU-MoCap, the synthetic sequences; NumPy, pickle and COLMAP files),
 //! and the layered avatar (`avatar`): training, densification, evaluation, animation
-//! and editing. Every fallible function returns [`TrainerError`].
+//! and editing. Fallible functions return [`TrainerError`], or a file format's own error
+//! (`npy::NpyError`, `dataset::error::DatasetError`, ...), which converts into it.
 #![forbid(unsafe_code)]
 
 pub mod avatar;

@@ -20,7 +20,7 @@
 //!   beyond each wrist) have no SMPL-H or SMPL-X counterpart, whose hands are 15 finger
 //!   joints each, so they get zero rotation, as the common AMASS-to-SMPL converters do.
 //!   `betas`, `gender`, `dmpls` and the like are not read (a text or pickled `gender`
-//!   no longer stops the file being read, see `npy::Npz`).
+//!   does not stop the file being read, see `npy::Npz`).
 //!
 //!   AMASS is z up. Its motions are brought into our y-up frame by the -90° rotation
 //!   about x that AMASS users apply, (x, y, z) -> (x, z, -y), to the root orientation

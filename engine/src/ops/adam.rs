@@ -1,8 +1,8 @@
 //! Adam over flat parameter buffers with parameter groups (kernel `train::adam_step`,
 //! math in `drape_shared::adam`): each group has its own learning rate (optionally an
 //! exponential decay schedule), ε, bias correction from its own step count, and its
-//! moments; [`AdamGroup::reset_rows`] zeroes the moments of rows that densification
-//! adds.
+//! moments, which checkpoints and densification read and restore
+//! ([`AdamGroup::read_moments`], [`AdamGroup::restore`]).
 
 use std::cell::Cell;
 

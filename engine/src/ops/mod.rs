@@ -1,6 +1,6 @@
 //! GPU ops built on the runtime. Each module owns one op: its plan (scratch buffers),
-//! its recording, and the CPU reference it is tested against lives beside the kernel
-//! math in `drape-shared`.
+//! its recording, and the CPU reference it is tested against, which runs the same
+//! `drape-shared` functions as the kernels.
 
 pub mod accumulate;
 pub mod adam;

@@ -1,7 +1,8 @@
-//! Multi-layer perceptrons on the GPU (kernels `nn::*`): linear layers as a tiled GEMM,
-//! GELU / sigmoid / exp / softmax activations, several output heads on one trunk,
-//! forward and backward, and the CPU reference from the same shared functions
-//! (`drape_shared::nn`), generic over f32/f64.
+//! Multi-layer perceptrons on the GPU (kernels `nn::*`): linear layers as a GEMM
+//! (workgroup-tiled on GPUs; register-blocked, or subgroup and texel-reading kernels on
+//! CPU devices: [`GemmVariant`]), GELU / sigmoid / exp / softmax activations, several
+//! output heads on one trunk, forward and backward, and the CPU reference from the same
+//! shared functions (`drape_shared::nn`), generic over f32/f64.
 //!
 //! An [`Mlp`] is described by an input width, hidden layers (width and activation) and
 //! heads (width, activation, optional zero init): `x → [Linear → act]* → {Linear_h →
@@ -9,7 +10,8 @@
 //! output, which is the same function as one linear layer over the concatenated
 //! heads followed by per-column-range activations. All weights and biases live in
 //! one flat parameter buffer (for each layer: W out × in, row-major as PyTorch's
-//! `nn.Linear.weight`, then b), so one Adam group covers a decoder.
+//! `nn.Linear.weight`, then b, each starting on a 16-byte boundary:
+//! [`MlpDesc::layout`]), so one Adam group covers a decoder.
 //!
 //! Weight normalisation (PyTorch's `weight_norm(dim=0)`, which HUGS puts on its
 //! deformation decoder) is an option per linear layer ([`MlpDesc::weight_norm`]): the
@@ -260,7 +262,7 @@ impl MlpDesc {
                 continue;
             }
             let bound = 1.0 / (i as f32).sqrt();
-            // W then b, drawn in that order (as when they were one block).
+            // W then b, drawn in that order: which values a seed gives depends on it.
             for at in (w_off..w_off + i * o).chain(b_off..b_off + o) {
                 params[at] = rng.random_range(-bound..bound);
             }
@@ -321,9 +323,9 @@ const MAX_SPLITS: u32 = 256;
 const MIN_ROWS_PER_SPLIT_CPU: u32 = 1024;
 /// The same on a GPU: a split and an output tile make one workgroup, so the splits are
 /// what fills the device. A decoder layer's weight gradient has 4-12 output tiles; at
-/// the avatar's few thousand Gaussians per layer, 1,024 rows per split gave 12-36
-/// workgroups on an H100's 132 multiprocessors, each walking 1,024 rows alone
-/// (`mlp.weight_grad` was a third of a quick-preset training step's GPU time there).
+/// the avatar's few thousand Gaussians per layer, 1,024 rows per split would give 12-36
+/// workgroups on an H100's 132 multiprocessors, each walking 1,024 rows alone (measured
+/// there: `mlp.weight_grad` then takes a third of a quick-preset training step's GPU time).
 const MIN_ROWS_PER_SPLIT_GPU: u32 = 128;
 
 /// How many chunks the weight gradient's `rows` are summed in, and the rows per chunk.

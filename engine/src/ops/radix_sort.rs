@@ -269,8 +269,8 @@ impl RadixSort {
     /// The chunked variant's sorts of two passes or more: the first pass zips the
     /// caller's keys and values into interleaved pairs, the middle ones move pairs
     /// between the two scratch buffers, and the last unzips into the caller's buffers
-    /// (so no copy back). On llvmpipe a pair is then one load and one store where it
-    /// was two of each, and the scatter writes one stream per digit instead of two.
+    /// (so no copy back). On llvmpipe a pair is then one load and one store instead of
+    /// two of each, and the scatter writes one stream per digit instead of two.
     #[allow(clippy::too_many_arguments)]
     fn record_chunk_passes<'a>(
         &'a self,

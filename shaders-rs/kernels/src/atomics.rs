@@ -1,8 +1,10 @@
-//! The only `unsafe` of the kernels: SPIR-V atomics, which spirv-std exposes as
-//! `unsafe fn` because they take raw storage pointers. Each call passes a reference
-//! to one element of a storage buffer, which is a valid, aligned location for the
-//! whole dispatch; Relaxed (no) memory semantics suffice because results are only read
-//! after the dispatch, across a pipeline barrier.
+//! SPIR-V atomics, one of the kernels' two `unsafe` modules (with `texel`): spirv-std
+//! exposes them as `unsafe fn` because they take raw pointers. Each call passes a
+//! reference to one element of a storage buffer (a valid, aligned location for the whole
+//! dispatch) or of workgroup memory (for the workgroup's lifetime). Relaxed (no) memory
+//! semantics suffice: a storage-buffer total is read only after the dispatch, across a
+//! pipeline barrier, and a workgroup-memory one only after the caller's workgroup
+//! barrier.
 #![allow(unsafe_code)]
 
 use spirv_std::arch::{atomic_compare_exchange, atomic_i_add, atomic_load, atomic_u_max};

@@ -12,6 +12,9 @@
 //! ceil(n / 1024)×24×12 (written): workgroup (chunk, joint) sums its chunk's share of
 //! `∂L/∂A_joint` in an order fixed by the invocation indices, so the result does not
 //! depend on scheduling.
+//! `pose_blend_fwd`: `basis` n×621, `features` 207, `decoded` n×3 (read); `offsets` n×3
+//! (written: `decoded` plus the pose blend, the offsets `deform_fwd` then reads).
+//! `pose_blend_bwd`: `features`, `grad_offsets` n×3 (read); `grad_basis` n×621 (written).
 
 use drape_shared::deform::{deform_bwd as bwd_math, deform_fwd as fwd_math, transform_grad_add, DeformInput, DeformOutput, DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
 use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};

@@ -1,14 +1,25 @@
 //! Dense layers on the GPU: GEMM (forward and both halves of the backward of
-//! `y = x Wᵀ + b`, chosen by strides: see `drape_shared::nn`) in two variants with the
-//! same bindings and parameters, the deterministic reduction of split weight
-//! gradients, and the activations.
+//! `y = x Wᵀ + b`, chosen by strides: see `drape_shared::nn`), the deterministic
+//! reduction of split weight gradients, the activations, softmax and weight
+//! normalisation.
 //!
-//! `gemm_tiled` / `gemm_blocked` bindings: `a`, `b`, `bias` (read), `c` (written, or
-//! added to). `gemm_tiled` (GPUs) stages slices of `A` and `B` in workgroup memory;
-//! `gemm_blocked` (CPU devices) keeps an 8 × 8 block per invocation in registers.
+//! GEMM kernels, one set of parameters (`GemmParams`): `gemm_tiled` (GPUs) stages slices
+//! of `A` and `B` in workgroup memory; `gemm_blocked` (CPU devices) keeps an 8 × 8 block
+//! per invocation in registers; for CPU devices with subgroups of 8 (`subgroup-ballot`
+//! builds), `gemm_subgroup` shares `B` across the subgroup by broadcasts, and the texel
+//! GEMMs (`gemm_texel`, `gemm_texel_k4*`, `gemm_texel_k4n4*`, `gemm_texel_b4*`,
+//! `gemm_texel_m4n4c4`, `gemm_texel_klanes_*`) read their operands through texel views,
+//! each for the operand layout its doc states. All but `gemm_texel_klanes_*` add the
+//! same terms in the same order of `k`.
+//!
+//! GEMM bindings: `a`, `b`, `bias` (read), `c` (written, or added to); the texel GEMMs
+//! bind some of them as texel buffers, and their `c4` epilogues write `c` as `vec4`s.
 //! `sum_weight_grad` bindings: `partials` (read), `grad` (written).
-//! `act_fwd`: `pre` (read), `post` (written). `act_bwd`: `pre`, `post`, `grad_post`
-//! (read), `grad_pre` (written).
+//! `act_fwd`, `act_fwd4*`, `softmax_fwd`: `pre` (read), `post` (written). `act_bwd`,
+//! `act_bwd4*`: `pre`, `post`, `grad_post` (read), `grad_pre` (written); `softmax_bwd`
+//! the same without `pre`.
+//! `weight_norm_fwd`: `params` (read), `effective` (written); `weight_norm_bwd`:
+//! `params` (read), `grads` (read and written).
 
 use drape_shared::nn::{
     activate, activate_bwd, gelu, gelu_grad, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams,
@@ -79,8 +90,8 @@ macro_rules! store_4x4 {
 /// and `B` in workgroup memory (loaded along whichever of their strides is 1, so the
 /// loads coalesce for all three GEMMs of a layer) and every invocation reads 4 + 4
 /// values per 16 multiply-adds. The sums of `k` run in order, so the result does not
-/// depend on scheduling. (It replaced a kernel of one row and 32 columns per invocation
-/// that read one staged value per multiply-add: 2.4-3.4 TFLOP/s on an H100.)
+/// depend on scheduling. (A kernel of one row and 32 columns per invocation, reading one
+/// staged value per multiply-add, makes 2.4-3.4 TFLOP/s on an H100.)
 #[spirv(compute(threads(256)))]
 pub fn gemm_tiled(
     #[spirv(workgroup_id)] group: UVec3,
@@ -1028,8 +1039,8 @@ macro_rules! sg_group {
 
 /// Writes one lane's row of a tile (bias and accumulation as the flags say). A loop,
 /// not 32 written-out stores: every bounds-checked store nests the rest of the kernel
-/// one level deeper, and llvmpipe stops masking correctly past 80 levels (stores went
-/// missing at the third row when they were written out).
+/// one level deeper, and llvmpipe stops masking correctly past 80 levels (written out,
+/// the stores go missing from the third row on).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 fn store_tile_row<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; W], row: u32, n0: u32, z: u32) {
@@ -1111,8 +1122,8 @@ fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u3
 /// compiles to a register shuffle. So 8 loads feed 128 multiply-adds per lane, where
 /// `gemm_blocked` makes 16 loads for 64: on llvmpipe a load the compiler cannot prove
 /// uniform is a loop over the 8 lanes and costs tens of multiply-adds. A workgroup is
-/// one subgroup; the engine dispatches it only where the subgroup size is 8 (every lane of a subgroup runs the
-/// same `k` loop, so all lanes are active at each broadcast).
+/// one subgroup; the engine dispatches it only where the subgroup size is 8 (every lane
+/// of a subgroup runs the same `k` loop, so all lanes are active at each broadcast).
 #[cfg(feature = "subgroup-ballot")]
 #[spirv(compute(threads(8)))]
 pub fn gemm_subgroup(
@@ -1631,7 +1642,7 @@ macro_rules! gemm_texel_k4_entry {
 }
 
 /// Stores the tile a float at a time, with the tile's bias fetched once per column
-/// (where a storage-buffer read per row and column was a loop over the lanes each).
+/// (a storage-buffer read per row and column would be a loop over the lanes each).
 #[cfg(feature = "subgroup-ballot")]
 macro_rules! k4_store_floats {
     ($p:ident, $c:ident, $bias:ident, $acc:ident, $rows:ident, $n0:ident, $z:ident, [$($j:literal)*]) => {{

@@ -3,7 +3,9 @@
 //! `radix_sort::chunk_scatter[_zip|_pairs|_unzip][_texel]` (the chunked variant, for CPU
 //! devices; see `drape_shared::radix_sort::CHUNK_RADIX_BITS`; `_zip`/`_pairs`/`_unzip` say
 //! which side holds interleaved (key, value) pairs instead of separate buffers, and
-//! `_texel` that the kernel reads its input through texel views, see `PairSource`).
+//! `_texel` that the kernel reads its input through texel views, see `PairSource`;
+//! `chunk_scatter_zip_texel_u64` and `chunk_scatter_pairs_texel_u64` store each pair as
+//! one u64, on devices with `shaderInt64`).
 //!
 //! Buffers: `keys_in`/`values_in` hold `params.len` elements; `histogram` holds
 //! `RADIX_BUCKETS * params.block_count` counters (blocks; chunks: `CHUNK_BUCKETS` per
@@ -347,8 +349,8 @@ fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group:
     let (chunk, start, end) = own_chunk(params, len_words, group, lid);
     let chunks = params.block_count as usize;
     // The digit's shift and mask copied once per walk: read through the push-constant
-    // pointer, llvmpipe's code loaded them for every key (seen in its disassembly; the
-    // time saved was within this machine's noise).
+    // pointer, llvmpipe's code loads them for every key (seen in its disassembly; the
+    // time saved is within this machine's noise).
     let pass = SortPassParams { ..*params };
     let mut counts = [0u32; CHUNK_BUCKETS as usize];
     // Four keys a step from positions that are multiples of 4, so that texels are

@@ -753,7 +753,7 @@ macro_rules! rasterize_bwd_entry {
 #[cfg(feature = "float-atomics")]
 rasterize_bwd_entry!(rasterize_bwd_atomic, f32, atomics::add_f32, doc = "Backward rasterizer with float atomics (needs shaderBufferFloat32AtomicAdd).");
 rasterize_bwd_entry!(rasterize_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward rasterizer with compare-and-swap loops on the bits of f32 (any device).");
-// One line per entry: the kernel list test (`tests/tests/runtime.rs`) reads the name here.
+// One line per entry: the kernel list test (`tests/tests/engine/runtime.rs`) reads the name here.
 rasterize_bwd_entry!(rasterize_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic backward rasterizer: per-splat gradients in 64-bit fixed point (`fixed_point::resolve` turns them into f32).");
 
 /// The fused rasterizer's backward (`ops::splat::fused`): one workgroup per 16 × 16 block, one

@@ -7,8 +7,9 @@
 //! compiles a shuffle of 32-bit values in a subgroup of 8 to one AVX2 `vpermd`, while a
 //! broadcast (constant lane or not) is a loop over the lanes looking for the first
 //! active one before it extracts the lane asked for, and a reduce a loop adding the
-//! lanes one by one. With shuffles the subgroup rasterizers ran 24-31% faster forward
-//! and backward on lavapipe (100k Gaussians, 512 x 512, tiles of 8 and 16).
+//! lanes one by one. With shuffles the subgroup rasterizers run 24-31% faster forward
+//! and backward on lavapipe than with broadcasts (100k Gaussians, 512 x 512, tiles of 8
+//! and 16).
 //!
 //! Every function here needs all 8 lanes of the subgroup active (no lane has returned
 //! or branched away when it runs): the engine dispatches these kernels only on devices
@@ -57,7 +58,7 @@ pub fn ballot8(v: bool) -> u32 {
 /// `l ^ 4`. Float addition is commutative, so a lane and its partner compute the same
 /// bits at every step and all 8 end equal; the order is fixed, so the sum is the same
 /// on every run (the deterministic backward relies on that). Three `vpermd` and three
-/// adds on llvmpipe, where `OpGroupNonUniformFAdd` was a loop over the lanes.
+/// adds on llvmpipe, where `OpGroupNonUniformFAdd` is a loop over the lanes.
 #[inline]
 pub fn sum8(v: f32) -> f32 {
     let v = v + subgroup_shuffle_xor(v, 1);

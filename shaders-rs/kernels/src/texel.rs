@@ -1,16 +1,16 @@
-//! Uniform texel buffers of `f32`, the third `unsafe` of the kernels: a texel fetch is
-//! `OpImageFetch` through inline SPIR-V (spirv-std's `fetch` adds an explicit `Lod`,
-//! which a buffer image may not take, and `NonUniform` decorations that would need
-//! another capability).
+//! Uniform texel buffers of `f32`, the kernels' other `unsafe` module (with `atomics`):
+//! a texel fetch is `OpImageFetch` through inline SPIR-V (spirv-std's `fetch` adds an
+//! explicit `Lod`, which a buffer image may not take, and `NonUniform` decorations that
+//! would need another capability).
 //!
 //! Why kernels read through them at all: on llvmpipe a storage-buffer load whose index
 //! the compiler cannot prove uniform (any index computed from a loop counter or the
 //! workgroup id) becomes a loop over the 8 SIMD lanes with two branches per lane, while
 //! a texel fetch is a call into the sampler code with one bounds compare and one
 //! `vpgatherdd`, no branch (read off llvmpipe 22.3's machine code). Out-of-range
-//! fetches return 0 (robust buffer access), so a
-//! fetch never ends the invocation. The engine binds these through a buffer's
-//! `R32_SFLOAT` view (`BindingDecl::texel`). Every build declares `SampledBuffer`
+//! fetches return 0 (robust buffer access), so a fetch never ends the invocation. The
+//! engine binds these through a buffer's `R32_SFLOAT` or `R32G32B32A32_SFLOAT` view
+//! (`BindingDecl::texel`, `BindingDecl::texel4`). Every build declares `SampledBuffer`
 //! (core Vulkan). The sort's chunk kernels read `u32`s through these views with
 //! `f32::to_bits`: a fetch moves the 32 bits and nothing does arithmetic on them.
 #![allow(unsafe_code)]
@@ -20,7 +20,7 @@ use spirv_std::glam::Vec4;
 use spirv_std::Image;
 
 /// A read-only buffer of `f32` bound as a uniform texel buffer (only the subgroup GEMMs
-/// read one-float texels now).
+/// read one-float texels).
 #[cfg(feature = "subgroup-ballot")]
 pub type TexelBuffer = Image!(buffer, type=f32, sampled);
 

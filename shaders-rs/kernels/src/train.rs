@@ -1,11 +1,15 @@
-//! Per-element training kernels: Adam and the image loss gradients (MSE, L1). All are
-//! dispatched on the engine's `flat_grid` (index `id.y * num_workgroups.x * 256 + id.x`),
-//! so a parameter group may pass 16.7M floats (6M Gaussians' SH is 288M).
+//! Per-element training kernels: Adam, the image loss gradients (MSE, L1), gradient
+//! sums, SH copies between degrees and the non-finite count. All are dispatched on the
+//! engine's `flat_grid` (index `id.y * num_workgroups.x * 256 + id.x`), so a parameter
+//! group may pass 16.7M floats (6M Gaussians' SH is 288M).
 //!
 //! `adam_step`: `params`, `grads`, `m`, `v` of `len` floats; updates params, m, v in place
 //! (`drape_shared::adam::adam_update` is the math). `mse_grad`: `pred`, `target` of
 //! `len` floats; writes `grad = 2 (pred - target) * scale` and the squared error.
+//! `l1_grad`: `pred`, `target` likewise; writes `grad = sign(pred - target) * scale` and
+//! the absolute error. `add_into`: `src` (read), `dst` (added to).
 //! `copy_sh`: `src`, `dst` SH buffers of two degrees (layers rendered together).
+//! `count_nonfinite`: `values` (read), `counter` (added to: one per NaN or infinity).
 
 use drape_shared::adam::{adam_update, AdamParams, LossParams};
 use drape_shared::splat::layout::{sh_copy_indices, ShCopyParams};

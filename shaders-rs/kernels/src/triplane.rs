@@ -130,5 +130,5 @@ macro_rules! sample_bwd_entry {
 #[cfg(feature = "float-atomics")]
 sample_bwd_entry!(sample_bwd_atomic, f32, atomics::add_f32, doc = "Backward with float atomics (needs shaderBufferFloat32AtomicAdd).");
 sample_bwd_entry!(sample_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward with compare-and-swap on the bits of f32 (any device).");
-// One line per entry: the kernel list test (`tests/tests/runtime.rs`) reads the name here.
+// One line per entry: the kernel list test (`tests/tests/engine/runtime.rs`) reads the name here.
 sample_bwd_entry!(sample_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic backward: the plane gradient in 64-bit fixed point (`fixed_point::resolve` turns it into f32).");

@@ -23,6 +23,10 @@
 //! posed mean's gradient, `x̂ = (μ + Δμ, 1)` and `G_B` the blended rotation's. The
 //! backward writes each Gaussian's `TRANSFORM_TERMS` (g, x, G_B) and
 //! [`transform_grad_add`] sums them per joint, in fixed chunks (no atomics).
+//!
+//! Optional pose-dependent offsets ([`pose_blend_offset`], HUGS's per-Gaussian
+//! `posedirs`) are added to Δμ before the deformation, from the frame's
+//! [`POSE_FEATURES`] pose features.
 
 use crate::real::{mat_mul, transpose, Real, M3, V3};
 use crate::skinning::{dot3, rotation_minus_identity_t, transform_delta, SKIN_JOINTS, TRANSFORM_FLOATS};

@@ -13,9 +13,10 @@ const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 /// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 9, 10, 11, 12,
 /// 15, 16, 24, 32): no loop. llvmpipe does not unroll rust-gpu's loops, and a loop's
 /// counter indexing a local array is a dynamic index, which it turns into code that
-/// tries every element; constant indices cost nothing. Not everywhere: the deformation's 24-joint loops written
-/// out this way came out wrong on llvmpipe 22.3 (posed means off by 1e19 against the
-/// CPU reference, `deform_gpu_matches_cpu_reference`), so they stay loops.
+/// tries every element; constant indices cost nothing. Not everywhere: written out this
+/// way, the deformation's 24-joint loops come out wrong on llvmpipe 22.3 (posed means
+/// off by 1e19 against the CPU reference, `deform_gpu_matches_cpu_reference`), so they
+/// stay loops.
 #[macro_export]
 macro_rules! each_index {
     (2, $i:ident => $body:block) => {{

@@ -11,12 +11,14 @@
 //! chunks whose partial sums a second kernel adds in a fixed order (no atomics, so
 //! the result is deterministic).
 //!
-//! Three kernels compute it, the same sums in the same order of `k`: `gemm_tiled` for
+//! Several kernels compute it, the same sums in the same order of `k`: `gemm_tiled` for
 //! GPUs (a 64 × 64 tile per workgroup, slices of `A` and `B` staged in workgroup
 //! memory, a 4 × 4 block of sums per invocation), and for CPU devices `gemm_subgroup`
-//! (lanes of a subgroup of 8 passing values by broadcasts) and `gemm_blocked` (an 8 × 8
+//! (lanes of a subgroup of 8 passing values by broadcasts), the texel GEMMs (subgroup
+//! tiles reading their operands through texel views) and `gemm_blocked` (an 8 × 8
 //! block per invocation, for narrow outputs): on lavapipe, which runs 8 invocations per
-//! SIMD instruction, per-invocation indices into workgroup memory are gathers.
+//! SIMD instruction, per-invocation indices into workgroup memory are gathers. The
+//! narrow-output `gemm_texel_klanes_*` alone sum `k` in another order (strided by lane).
 
 use crate::real::Real;
 
@@ -79,8 +81,8 @@ pub struct GemmParams {
 }
 
 /// Push constants of `nn::sum_weight_grad`: adds `splits` partial `(in + 1) × out`
-/// matrices (`dWᵀ` with the bias row) and writes the weight part to `grad[w_off..]` (out × in) and the last
-/// column to `grad[b_off..]` (out).
+/// matrices (`dWᵀ` with the bias row) and writes the weight part to `grad[w_off..]`
+/// (out × in) and the last column to `grad[b_off..]` (out).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]

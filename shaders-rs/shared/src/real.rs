@@ -1,6 +1,8 @@
 //! The float type kernels are generic over: `f32` on the GPU and in CPU references,
 //! `f64` in the gradient checks. Transcendentals come from `num_traits::Float` with
-//! its `libm` backend, which rust-gpu lowers to GLSL.std.450 instructions.
+//! its `libm` backend, which rust-gpu lowers to GLSL.std.450 instructions, except the
+//! splatting math's `exp` and `ln` in `f32` ([`exp_f32`], [`ln_f32`]): written out so
+//! that GPU and host return the same bits.
 
 pub use num_traits::Float;
 

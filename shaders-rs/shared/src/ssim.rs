@@ -28,7 +28,7 @@ pub const SSIM_PARTIALS: u32 = 3;
 /// Outputs of one invocation of the `ssim::blur` kernel: a run of consecutive pixels
 /// along the blur's axis, one channel of one plane. Its 11-tap window over the run is
 /// 26 loads (`SSIM_BLUR_RUN + SSIM_WINDOW - 1`) for 16 outputs, where one output an
-/// invocation took 11; on llvmpipe each load whose address is not uniform is a loop
+/// invocation takes 11; on llvmpipe each load whose address is not uniform is a loop
 /// over the lanes, so this is a quarter of the loops.
 pub const SSIM_BLUR_RUN: u32 = 16;
 

@@ -119,8 +119,9 @@ fn scan_level_boundaries() {
 }
 
 /// A scan of the first `len` elements of a longer buffer leaves the rest as it was, in
-/// both variants (the chunk variant's one-invocation and three-dispatch kernels); the chunk kernels move whole quads of 4, so the lengths put the end
-/// at each place in a quad (and one chunk's run at a quad's end, one inside).
+/// both variants (the chunk variant's one-invocation and three-dispatch kernels); the
+/// chunk kernels move whole quads of 4, so the lengths put the end at each place in a
+/// quad (and one chunk's run at a quad's end, one inside).
 #[test]
 fn scan_leaves_elements_past_len_unchanged() {
     use drape_engine::ops::scan::ExclusiveScan;

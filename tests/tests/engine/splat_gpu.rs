@@ -503,7 +503,8 @@ fn half_precision_sh_matches_cpu() {
             assert_forward_close(&gpu, &image, &rounded, &frame, &cpu, 1, &what);
             // A pixel's colour is a convex combination of its splats' colours (alpha is
             // untouched by SH): it moves by at most the largest splat's move, plus the
-            // forward tolerance of the comparison (1e-4 covers a GPU's; see splat.rs).
+            // forward tolerance of the comparison (1e-4 covers a GPU's:
+            // `drape_tests::splat::GPU_FORWARD_TOLERANCE`).
             let reference_full = reference::render(&full, &frame);
             let d = drape_tests::splat::max_abs_diff(&image.rgb, &reference_full.rgb);
             assert!(d <= colour_bound + 1e-4, "{what}: {d} from the full-precision reference, bound {colour_bound}");

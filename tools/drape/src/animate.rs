@@ -1,7 +1,8 @@
 //! `drape animate RUN --motion M`: the trained avatar in a motion it was not trained on
-//! (walk, jog, raise-arms, turn, or an `.npz` motion with `poses` F×72, `trans` F×3 and
-//! `fps`), from a camera that orbits it, as `OUT/frameNNNN.png` and `OUT/animation.gif`
-//! at the run's resolution, with the time per frame.
+//! (walk, jog, raise-arms, turn, or an `.npz` motion file as `Motion::load_npz` reads
+//! it: ours, SMPL's first 22 joints, or AMASS), from a camera that orbits it, as
+//! `OUT/frameNNNN.png` and `OUT/animation.gif` at the run's resolution, with the time
+//! per frame.
 
 use std::io::Write;
 use std::path::PathBuf;

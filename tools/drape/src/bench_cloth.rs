@@ -23,8 +23,7 @@
 //!
 //! Every row's cloth layer and simulation target are made from the T-shirt of the
 //! sequence's fit (config `cloth_fit`), as the paper's synthetic setting has the
-//! garment template that was simulated. (Rows measured before this was set used the
-//! tight T-shirt on loose data too.)
+//! garment template that was simulated.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -1,4 +1,5 @@
-//! `drape body` and `drape simulate`.
+//! `drape body`, `drape simulate` and `drape synth`: the default body, garments on a
+//! motion, and the synthetic data.
 
 use std::path::PathBuf;
 

@@ -2,8 +2,9 @@
 //! (NeuMan: every fifth frame from the second; ZJU-MoCap: the cameras not trained on):
 //! PSNR, SSIM and LPIPS (with weights; n/a without) on the whole image and the human
 //! crop, FID over all held-out renders against their ground truths (whole and crop;
-//! with `--fid-weights`, n/a without; computed on the CPU), the cloth Gaussians' Chamfer distance to the ground-truth garments where the
-//! data has them; per frame and as means, printed as a table and written to
+//! with `--fid-weights`, n/a without; computed on the CPU), the cloth Gaussians'
+//! Chamfer distance to the ground-truth garments where the data has them; per frame and
+//! as means, printed as a table and written to
 //! `OUT/eval.json` and `OUT/eval.md`, with a sheet per frame (`OUT/frameNNNN_viewV.png`:
 //! ground truth | render | error ×4 | base pass | cloth pass | matte).
 
@@ -24,7 +25,7 @@ pub struct EvalArgs {
     /// The run directory (`drape train --out`, or `drape edit --out`).
     pub run: PathBuf,
     /// The sequence to evaluate on (default: the one the run was trained on, from its
-    /// run.json; needed for runs made before run.json existed).
+    /// run.json; needed for a run without run.json).
     #[arg(long)]
     pub data: Option<PathBuf>,
     /// An SMPL-format body (default: the run's).

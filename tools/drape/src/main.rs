@@ -1,8 +1,9 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
-//! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image), `body` (the
-//! default body as SMPL .npz), `simulate` (garments on a motion), `synth` (the
-//! synthetic data), `inspect` (a sequence's layout and problems), `train` (the avatar),
-//! `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic cloth benchmark).
+//! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image),
+//! `body` (the default body as SMPL .npz), `simulate` (garments on a motion), `synth`
+//! (the synthetic data), `inspect` (a sequence's layout and problems), `train` (the
+//! avatar), `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic
+//! cloth benchmark).
 #![forbid(unsafe_code)]
 
 use std::process::ExitCode;

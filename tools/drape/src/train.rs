@@ -1,11 +1,12 @@
 //! `drape train`: fits the avatar to a sequence (NeuMan or ZJU-MoCap layout, or the
-//! root `drape synth` writes) and writes a run directory: `config.json`, `log.jsonl`
-//! (one line per logged step), `checkpoint.npz` (every `checkpoint_every` steps,
-//! replaced atomically; `--resume RUN` continues from it), `model.npz` (the trained
-//! model; format in `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/`
-//! (a sheet for every held-out frame, `eval.json`, `eval.md`), `novel_pose.png` and the posed
-//! body of the first held-out frame as PLY; with `--profile`, `profile.txt` and
-//! `profile.json` (where a step's time goes).
+//! root `drape synth` writes) and writes a run directory: `config.json`, `run.json`
+//! (the data and body it was trained on), `log.jsonl` (one line per logged step),
+//! `checkpoint.npz` (every `checkpoint_every` steps, replaced atomically; `--resume RUN`
+//! continues from it), `model.npz` (the trained model; format in
+//! `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/` (a sheet for every
+//! held-out frame, `eval.json`, `eval.md`), `novel_pose.png` and the posed body of the
+//! first held-out frame as PLY; with `--profile`, `profile.txt` and `profile.json`
+//! (where a step's time goes).
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -31,8 +32,8 @@ pub struct TrainArgs {
     /// config.json (`--steps` may raise the step count).
     #[arg(long)]
     pub resume: Option<PathBuf>,
-    /// `quick` (small sizes for lavapipe at 128x128; see the README for its current speed) or `paper`
-    /// (the paper's setting, for a GPU).
+    /// `quick` (small sizes for lavapipe at 128x128; the README gives its speed) or
+    /// `paper` (the paper's setting, for a GPU).
     #[arg(long, default_value = "quick")]
     pub preset: String,
     /// A TOML file overriding any field of the preset (see `config.json` of a run for

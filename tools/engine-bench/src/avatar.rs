@@ -11,7 +11,8 @@
 //! Every three-pass frame is one submission whose renders the recorder interleaves;
 //! `fused` renders the same images from one sort and one rasterization. The training
 //! measurement uses the run's own compositing or `--train-compositing` (`fused` trains
-//! too, through its one-walk backward). Not built yet: a synthetic model of the paper's size when no run is given.
+//! too, through its one-walk backward). It measures a trained run only: there is no
+//! synthetic model of the paper's size to measure without one.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;

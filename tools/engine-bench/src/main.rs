@@ -1,5 +1,7 @@
-//! `engine-bench`: times the engine's GPU ops on the chosen device, with per-pass GPU
-//! times from timestamp queries and the same job on the CPU in the same run.
+//! `engine-bench`: times the engine's GPU work on the chosen device (sort, scan,
+//! splatting, the neural ops, the composite, a trained avatar's frame and training step,
+//! and the avatar's speed/accuracy trade), with per-pass GPU times from timestamp
+//! queries and, where there is one, a CPU baseline of the same job in the same run.
 //!
 //! Every figure is a median over `--runs` timed runs after untimed ones: at least
 //! `--warmup` of them, for at least `--warm-seconds` (1 s on a GPU, whose clocks ramp up
@@ -107,12 +109,13 @@ enum Job {
     /// skinning, projection, sorts, rasterization, composite), and training it/s with
     /// the split of a step.
     Avatar(avatar::AvatarArgs),
-    /// The speed/accuracy trade of a trained avatar: for each knob built today
-    /// (resolution, SH degree per layer, pruning by opacity, compositing, pose-dependent
-    /// offsets off where the run has them) the held-out
-    /// frames rendered and compared with the ground truth and with the default render
-    /// (PSNR, SSIM, LPIPS with weights) beside the GPU ms per frame; writes trade.json,
-    /// trade.md and a Pareto plot trade.png; lists the knobs not built.
+    /// The speed/accuracy trade of a trained avatar: for each knob (resolution, SH degree
+    /// per layer, pruning by opacity or contribution, compositing, tile size,
+    /// half-precision SH and splats, pose-dependent offsets off where the run has them)
+    /// the held-out frames rendered and compared with the ground truth and with the
+    /// default render (PSNR, SSIM, LPIPS with weights) beside the GPU ms per frame; writes
+    /// trade.json, trade.md and a Pareto plot trade.png; lists the knobs a run cannot
+    /// measure.
     Trade(trade::TradeArgs),
 }
 

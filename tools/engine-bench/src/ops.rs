@@ -1,11 +1,11 @@
 //! `engine-bench ops`: the neural ops the avatar runs every step. GEMM throughput of
 //! the HUGS decoder layer shapes at `--rows` rows (forward `y = x Wᵀ + b` and the
-//! backward pair dW, dx), with a CPU GEMM from the `matrixmultiply` crate (through ndarray, all cores)
-//! on the same matrices in the same run; the three decoders' forward + backward;
-//! triplane sampling forward + backward in points per second; SSIM (map and
-//! gradient) at 512 × 512; the cloth Chamfer loss with its gradient through the uniform
-//! grid at `--chamfer-points` per side, and grid against brute force at
-//! `--chamfer-compare`.
+//! backward pair dW, dx), with a CPU GEMM from the `matrixmultiply` crate (through
+//! ndarray, all cores) on the same matrices in the same run; the three decoders'
+//! forward + backward; triplane sampling forward + backward in points per second; SSIM
+//! (map and gradient) and LPIPS (value and gradient, seeded random AlexNet weights) at
+//! 512 × 512; the cloth Chamfer loss with its gradient through the uniform grid at
+//! `--chamfer-points` per side, and grid against brute force at `--chamfer-compare`.
 
 use std::time::Instant;
 

@@ -1,5 +1,5 @@
 //! `engine-bench trade RUN`: the speed/accuracy trade of a trained avatar, measured.
-//! For each knob that the engine has today, every held-out frame of the run is rendered
+//! For each knob the engine has, every held-out frame of the run is rendered
 //! (posed as in that frame, from its camera) and compared with its ground truth and with
 //! the default render (the run's own compositing at the data's size, every SH
 //! coefficient, every Gaussian): PSNR, SSIM and, with weights, LPIPS; beside it the GPU
@@ -35,9 +35,10 @@
 //! The edits are host reads and writes between the decoders and the render, outside the
 //! GPU time. They change what is rendered, not how: the kernels still evaluate every SH
 //! coefficient of the trained degree and project every Gaussian, so SH truncation saves
-//! no time here and pruning (by opacity or contribution) saves binning, sorting and rasterization but not the
-//! decoders or the projection (a compacted model would). Knobs a run cannot measure
-//! (the subdivision level: another trained run) are listed under `not_built`.
+//! no time here and pruning (by opacity or contribution) saves binning, sorting and
+//! rasterization but not the decoders or the projection (a compacted model would). Knobs
+//! a run cannot measure (the subdivision level: another trained run) are listed under
+//! `not_built`.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -692,7 +693,7 @@ fn num(v: &serde_json::Value, digits: usize) -> String {
     v.as_f64().map_or_else(|| "n/a".to_string(), |x| format!("{x:.digits$}"))
 }
 
-/// The table as Markdown, with what was not built and the plot's axis ranges.
+/// The table as Markdown, with the knobs the run cannot measure and the plot's axis ranges.
 pub fn markdown(r: &serde_json::Value) -> String {
     let mut s = format!(
         "`engine-bench trade {}` on {}: {} held-out frame(s) at {}x{}, step {}, Gaussians {}; compared with {}; ms/frame: {}; render ms: {}; LPIPS {}.\n\n",
@@ -863,7 +864,8 @@ mod tests {
     }
 
     /// The GPU and the CPU reference run the same f32 code; only exp/ln may differ in
-    /// their last bits (the splatter's own GPU-vs-CPU tolerance, tests/tests/splat_gpu.rs).
+    /// their last bits (the splatter's own GPU-vs-CPU tolerance,
+    /// tests/tests/engine/splat_gpu.rs).
     const TOLERANCE: f32 = 1e-5;
 
     #[test]

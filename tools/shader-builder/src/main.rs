@@ -1,7 +1,10 @@
 //! The shader builder: compiles `shaders-rs/kernels` to SPIR-V with rust-gpu and writes
 //! one module per entry point plus `manifest.json` into `shaders-rs/spirv/`, where they
 //! are committed. `--check` rebuilds into a temporary directory instead and fails,
-//! naming each module, if any byte differs from what is committed.
+//! naming each module, if any byte differs from what is committed (`--baseline-only`:
+//! the build without extra capabilities alone). Each build declares its own device
+//! capabilities (float atomics, subgroups, `Int64`), and each module records in the
+//! manifest those it needs.
 //!
 //! It runs on the pinned nightly of its own `rust-toolchain.toml`; the product
 //! workspace never needs that toolchain.

@@ -9,14 +9,15 @@
 //! - `L.means`, `L.quats`, `L.log_scales`: the canonical Gaussians (n×3, n×4, n×3);
 //! - `L.triplane` (3×R×R×C, channels-last) and `L.triplane_box` (2×3: min, max);
 //! - `L.appearance`, `L.geometry`, `L.deformation`: each decoder's flat parameters
-//!   (per linear layer W out×in, then b; `ops::nn`);
+//!   (per linear layer W out×in, then b, each from a 16-byte boundary, then any weight
+//!   norms `g`; `ops::nn::MlpDesc::layout`);
 //! - `L.adam.G.m`, `L.adam.G.v` (f32) and `L.adam.G.step` (u32) for each Adam group G
 //!   (`position`, `triplane`, `appearance`, `geometry`, `deformation`);
 //! - `L.weight_targets` (n×24: the skinning targets), `L.screen_stats` (n×3: the
 //!   densification statistics since the last densification, `ops::splat::densify`) and
 //!   `L.edges` (u32, E×2: the ARAP graph between the layer's Gaussians; E may be 0).
-//!   Files written before densification existed lack them; they load into a model of
-//!   the same Gaussian count, keeping its own targets and graph and zero statistics.
+//!   A file without them loads into a model of the same Gaussian count, which keeps
+//!   its own targets and graph, with zero statistics.
 //! - with a scene layer: `scene.means` (n×3), `scene.log_scales` (n×3), `scene.quats`
 //!   (n×4), `scene.opacity_logits` (n), `scene.sh` (n×K×3, K = (degree + 1)²), and
 //!   `scene.adam.P.m`, `scene.adam.P.v`, `scene.adam.P.step` for each of them; and
@@ -68,7 +69,7 @@ pub struct LayerState {
     pub deformation: Vec<f32>,
     /// By group name, in [`ADAM_GROUPS`] order.
     pub adam: Vec<AdamState>,
-    /// The skinning targets (n×24); None from a file written before they were saved.
+    /// The skinning targets (n×24); None when the file lacks them.
     pub weight_targets: Option<Vec<f32>>,
     /// Densification statistics (n×3); None: zero.
     pub screen_stats: Option<Vec<f32>>,

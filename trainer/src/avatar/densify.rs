@@ -87,7 +87,7 @@ impl Default for DensifyConfig {
 }
 
 impl DensifyConfig {
-    /// No densification (what runs made before it existed did).
+    /// No densification (also what a config file without `densify` gets).
     pub fn off() -> Self {
         Self { every: 0, ..Self::default() }
     }

@@ -50,21 +50,20 @@ pub struct LayerConfig {
     pub lr_deformation: f32,
     /// Widest hidden layer of the decoders (HUGS: 128, i.e. appearance 64-64,
     /// geometry 128-128, deformation 4 × 128); narrower is a speed knob: the decoders
-    /// dominate a training step on CPU devices. Runs written before this field existed
-    /// read as 128.
+    /// dominate a training step on CPU devices. A config file without it reads as 128.
     #[serde(default = "hugs_decoder_width")]
     pub decoder_width: u32,
     /// Pose-dependent offsets (the paper's option; HUGS's `posedirs`, off in its
     /// released configs): the deformation decoder gains a zero-initialised head of a
     /// 207 × 3 pose-blend basis per Gaussian, blended by the frame's pose features and
     /// added to the decoded offset before skinning (`ops::deform::record_pose_blend_forward`).
-    /// Off by default, and for runs made before the key existed.
+    /// Off by default, and when a config file lacks the key.
     #[serde(default)]
     pub pose_offsets: bool,
     /// Weight normalisation (PyTorch's `weight_norm`, dim 0) on the deformation
     /// decoder's last hidden layer, before the skinning logits, as HUGS has it. On in
-    /// both presets; off for runs made before the key existed (their decoders have no
-    /// norms to load).
+    /// both presets; off when a config file lacks the key (a model saved without it has
+    /// no norms to load).
     #[serde(default)]
     pub weight_norm: bool,
 }

@@ -1,9 +1,11 @@
 //! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
-//! and optimiser groups (`layer`), the set of layers the data requires (`model`), the model and checkpoint file (`checkpoint`), the cloth
-//! layer's simulated targets and edge graph (`cloth_target`), the scene layer
-//! (`scene`), per-frame pose refinement (`pose_refine`), densification and pruning
-//! (`densify`), training (`train`), held-out evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
+//! and optimiser groups (`layer`), the set of layers the data requires (`model`), its
+//! rendering and the paper's compositing (`composite`), the model and checkpoint file
+//! (`checkpoint`), the cloth layer's simulated targets and edge graph (`cloth_target`)
+//! and its losses (`cloth_losses`), the scene layer (`scene`), per-frame pose refinement
+//! (`pose_refine`), densification and pruning (`densify`), training (`train`), held-out
+//! evaluation (`eval`, with FID's network and distance in `fid`), and a finished run
 //! opened again (`run`) to animate (`animate`) or edit (`edit`).
 
 pub mod animate;

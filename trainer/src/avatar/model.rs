@@ -5,10 +5,11 @@
 //! Layers: the body (Gaussians of the SMPL-format body in the canonical Da-pose);
 //! when the data shows garments, the cloth (the T-shirt and the pants sharing one
 //! triplane and one set of decoders, as the paper says); when it shows a scene (an
-//! unmasked capture with sparse points: NeuMan), the scene (plain 3DGS, `scene`). Each layer deforms and skins
-//! its own Gaussians; their posed Gaussians are copied into one cloud and rendered in
-//! one pass sorted by depth (the "fused" variant of the paper's compositing: the
-//! three-pass compositor is not built yet), and the gradients are copied back.
+//! unmasked capture with sparse points: NeuMan), the scene (plain 3DGS, `scene`). Each
+//! layer deforms and skins its own Gaussians; their posed Gaussians are copied into one
+//! cloud, which `composite::AvatarRenderer` renders as the run's compositing says (the
+//! paper's three passes, their fused walk, or one depth-sorted pass), and the gradients
+//! are copied back.
 //!
 //! Cloth Gaussians come from the garment meshes made in their build pose (A-pose),
 //! brought to the canonical pose by `A(Da) A(build)⁻¹` with the garments' weights;

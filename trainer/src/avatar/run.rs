@@ -47,7 +47,7 @@ impl RunInfo {
         write_json(&run.join("run.json"), self)
     }
 
-    /// Reads `run/run.json`; Ok(None) when the run has none (made before it existed).
+    /// Reads `run/run.json`; Ok(None) when the run has none.
     pub fn read(run: &Path) -> crate::Result<Option<Self>> {
         let path = run.join("run.json");
         if !path.exists() {

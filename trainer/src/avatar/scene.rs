@@ -2,8 +2,9 @@
 //! initialised from the sequence's sparse COLMAP points as 3DGS does (one isotropic
 //! Gaussian per point, scale the root mean squared distance to its three nearest
 //! neighbours, opacity 0.1, colour from the point), optimised directly by Adam with
-//! the paper's rates. It is rendered in the same depth-sorted pass as the avatar's
-//! layers, so it shares their SH degree.
+//! the paper's rates. It is rendered with the avatar's layers (in their depth-sorted
+//! pass, or in the composite's base and matte passes) at its own SH degree
+//! ([`SceneConfig::sh_degree`]; the pass pads the lower degrees to the highest).
 
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::splat::render::GaussianBuffers;
@@ -31,7 +32,7 @@ pub struct SceneConfig {
     /// At most this many COLMAP points become Gaussians (every k-th beyond it).
     pub max_points: u32,
     /// SH degree of the scene's colours (3DGS: 3; the human layers have their own).
-    /// Missing from a config file: 0, what runs made before the key existed used.
+    /// Missing from a config file: 0.
     #[serde(default)]
     pub sh_degree: u32,
 }

@@ -130,12 +130,11 @@ pub struct TrainConfig {
     pub deterministic: bool,
     /// The T-shirt the cloth layer is made of and simulated with: `tight` or `loose`
     /// (`drape synth --fit`); on synthetic data, the one the data was made with.
-    /// Missing from a config file: tight, what earlier runs used.
+    /// Missing from a config file: tight.
     #[serde(default)]
     pub cloth_fit: GarmentFit,
     /// Densification and pruning of every layer (`densify`; HUGS's schedule and
-    /// thresholds in the paper preset). Missing from a config file: off, what runs made
-    /// before the key existed did.
+    /// thresholds in the paper preset). Missing from a config file: off.
     #[serde(default = "DensifyConfig::off")]
     pub densify: DensifyConfig,
 }
@@ -159,9 +158,9 @@ impl TrainConfig {
     /// subdivision (1,567 Gaussians) and of the garments (1,113), each widened to keep
     /// the surface covered, densified after 100 and 200 steps (at most 4,096 per
     /// layer); 64 × 64 × 16 triplanes; decoders at most 64 wide (HUGS: 128);
-    /// 150 fitting and 400 training steps. The decoders dominate a step there (the GEMM
-    /// runs at ~2 GFLOP/s on llvmpipe): halving their width cut a step from 3.3 s to
-    /// 1.9 s and halving the Gaussians to 1.1 s (`drape train --profile`; README).
+    /// 150 fitting and 400 training steps. The decoders dominate a step there (about two
+    /// thirds of its GPU time, `drape train --profile`), hence the narrow decoders and
+    /// the decimated meshes (docs/performance.md has the measurements).
     pub fn quick() -> Self {
         Self {
             preset: Preset::Quick,
@@ -199,7 +198,7 @@ impl TrainConfig {
             cloth_fit: GarmentFit::Tight,
             // HUGS densifies every 600 steps from 15% to 75% of its 20k; here after 100
             // and 200 of 400, at most 4,096 per layer, to stay near 10 minutes (three
-            // times, to 8,192, took 860 s); no size prunes within the run (3DGS starts
+            // times, to 8,192, takes 860 s); no size prunes within the run (3DGS starts
             // them at 3,000 steps).
             densify: DensifyConfig { every: 100, from: 100, until: 200, max_gaussians: 4096, ..DensifyConfig::default() },
         }

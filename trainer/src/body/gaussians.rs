@@ -1,8 +1,9 @@
 //! Gaussians initialized from a skinned mesh, as HUGS does for the body and Cloth-HUGS
-//! for the garments: the mesh subdivided (midpoint, twice by default) with skinning
-//! weights and shape blend shapes averaged onto the new vertices; one Gaussian per
-//! vertex, rotated so its third axis is the surface normal, flat along the normal and
-//! as wide as half the mean incident edge in the tangent plane; opacity 0.1, SH DC 0.5.
+//! for the garments: the mesh subdivided (midpoint, twice in the paper preset) with
+//! skinning weights and shape blend shapes averaged onto the new vertices; one Gaussian
+//! per vertex, rotated so its third axis is the surface normal, flat along the normal
+//! and as wide as half the mean incident edge in the tangent plane; opacity 0.1, SH DC
+//! 0.5.
 
 use std::collections::HashMap;
 

@@ -18,11 +18,9 @@ pub type Affine = [[f64; 4]; 3];
 
 pub const IDENTITY: M3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
-// The public types stay row-major arrays (other modules and the skinning kernel's
+// The public types are row-major arrays (other modules and the skinning kernel's
 // flat layout read them); the arithmetic is glam's, whose matrices are column-major.
-// glam's products sum in the same order as the loops they replace (k = 0, 1, 2), so
-// the results are the same bits, up to the sign of an exact zero (the loops added
-// +0.0 in places, which turns -0.0 into +0.0).
+// glam's products sum in the order k = 0, 1, 2, as a row-by-column loop does.
 
 /// A row-major matrix as glam's.
 fn mat(m: &M3) -> DMat3 {
@@ -43,7 +41,7 @@ fn affine_rows(a: DAffine3) -> Affine {
     std::array::from_fn(|r| [m[r][0], m[r][1], m[r][2], t[r]])
 }
 
-/// `[v]x`, written entry by entry so that its zeros keep the signs they always had.
+/// `[v]x`, written entry by entry so that the sign of each zero entry is fixed.
 fn skew(v: DVec3) -> DMat3 {
     mat(&[[0.0, -v.z, v.y], [v.z, 0.0, -v.x], [-v.y, v.x, 0.0]])
 }
@@ -247,7 +245,7 @@ pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pos
         d_t[p] += d_t[j];
     }
     std::array::from_fn(|j| {
-        // Summed row by row, as it always was (a column-major sum would round differently).
+        // Summed row by row (a column-major sum would round differently).
         let dl = rows(d_local[j]);
         rodrigues_jacobian(pose[j]).map(|d| d.as_flattened().iter().zip(dl.as_flattened()).map(|(a, b)| a * b).sum())
     })

@@ -1,6 +1,6 @@
 //! The body: the SMPL format (model, `.npz` loader and writer), the project's own
-//! procedural body in that format, and posing (forward kinematics and linear blend
-//! skinning).
+//! procedural body in that format, posing (forward kinematics and linear blend
+//! skinning), and Gaussians initialised from a skinned mesh (`gaussians`).
 
 pub mod gaussians;
 pub mod kinematics;

@@ -1,5 +1,7 @@
-//! The error every dataset reader and writer returns: one line that names the file (and
-//! the field, or the layout variant that was assumed), never a panic or a debug dump.
+//! The error the sequence readers and writers return (layouts, images, ZJU-MoCap files,
+//! the loaders), wrapping the errors of the formats below them (pickle, COLMAP, NumPy):
+//! one line that names the file (and the field, or the layout variant that was
+//! assumed), never a panic or a debug dump.
 
 use std::path::Path;
 

@@ -3,8 +3,8 @@
 //! every frame before a pixel is decoded (so a missing file is named at once, and
 //! `drape inspect` can say so without loading the sequence).
 //!
-//! The variants (each has a fixture the tests generate: `synth::write_zju_variant`,
-//! `synth::write_neuman_variant`):
+//! The variants (each has a fixture the tests generate: `variants::write_zju_variant`,
+//! `variants::write_neuman_variant`):
 //! - `neuman`: NeuMan as released: `images/`, `segmentations/` (Detectron2, the person
 //!   black on white), `sparse/` (COLMAP text), optional `depth_maps/` and
 //!   `mono_depth/` (not used), plus HUGS's `4d_humans/smpl_optimized_aligned_scale.npz`,

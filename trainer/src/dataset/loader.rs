@@ -83,9 +83,9 @@ fn undistorted_mask(undistort: &Option<Undistorter>, mask: Vec<bool>) -> Vec<boo
 }
 
 /// NeuMan's Detectron2 masks mark the person black; a mask written the other way round
-/// (the person white, as `drape synth` wrote `segmentations/` before it followed the
-/// release) would train the background as the person. Where the person would cover most
-/// of the frame, refuse, naming the file and the two conventions.
+/// (the person white, as HUGS's SAM masks are) would train the background as the
+/// person. Where the person would cover most of the frame, refuse, naming the file and
+/// the two conventions.
 pub fn check_not_inverted(variant: Variant, path: &Path, mask: &[bool]) -> Result<(), DatasetError> {
     let person = mask.iter().filter(|&&m| m).count() as f64 / mask.len().max(1) as f64;
     if variant == Variant::Neuman && person > 0.6 {

@@ -1,7 +1,10 @@
 //! Datasets: the on-disk formats of NeuMan (COLMAP text model, the HUGS SMPL file)
-//! and ZJU-MoCap (annotations, SMPL parameters, vertices), and the split protocols.
-//! `synth` generates the project's own data in both layouts with the CPU rasterizer
-//! (`raster`); `loader` reads either layout into the dataset type the trainer consumes.
+//! and ZJU-MoCap (annotations, SMPL parameters, vertices), their published layout
+//! variants (`layout`, checked before loading; `inspect` reports them), images and
+//! masks (`image`), lens distortion removed at load (`distortion`), and the split
+//! protocols. `synth` generates the project's own data in both layouts with the CPU
+//! rasterizer (`raster`) and `variants` rewrites it into each published variant;
+//! `loader` reads either layout into the dataset type the trainer consumes.
 
 pub mod colmap;
 pub mod distortion;

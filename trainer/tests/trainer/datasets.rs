@@ -1,4 +1,6 @@
-//! Dataset formats: COLMAP's text model, NeuMan's SMPL file, and the split protocols.
+//! Dataset formats: COLMAP's text model, NeuMan's SMPL file, ZJU-MoCap's annotations and
+//! SMPL parameters (round trips, numpy reading what drape writes, bad values named), and
+//! the split protocols.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;

@@ -1,6 +1,6 @@
 //! The loose T-shirt (`GarmentFit::Loose`, `drape synth --fit loose`): it is the tight
 //! one with more ease and a lower hem, and the cloth simulation stays within the bounds
-//! `tests/cloth.rs` holds the tight garments to (no NaN, no vertex deeper in the body
+//! `cloth.rs` holds the tight garments to (no NaN, no vertex deeper in the body
 //! than the collision margin, no edge longer than 110% of its rest length).
 
 use drape_trainer::body::procedural::{default_body, BodyOptions};

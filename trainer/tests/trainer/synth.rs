@@ -1,4 +1,6 @@
-//! The synthetic generator and the NeuMan / ZJU-MoCap loaders on its output.
+//! The synthetic generator and the NeuMan / ZJU-MoCap loaders on its output and on its
+//! rewrites into each published layout variant (with lens distortion, JPEG frames,
+//! missing and inverted masks), and `drape inspect`'s findings on them.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -299,7 +301,7 @@ fn inspect_names_the_variant_and_the_first_missing_file() {
 
 /// A ZJU-MoCap sequence seen through the release's kind of lens (non-zero D) loads back
 /// to the pinhole frames: the loader undistorts images and masks as `cv2.undistort`
-/// does (the map itself is checked against OpenCV in tests/tests/distortion.rs).
+/// does (the map itself is checked against OpenCV in `distortion.rs`).
 #[test]
 fn distorted_zju_frames_are_undistorted_at_load() {
     let dir = base().parent().unwrap().join("distorted");
@@ -345,9 +347,8 @@ fn distorted_zju_frames_are_undistorted_at_load() {
     assert!(worst_iou > 0.9, "mask IoU {worst_iou}");
 }
 
-/// NeuMan masks written the other way round (the person white in `segmentations/`, as
-/// drape synth wrote them before it followed the release) are refused, not inverted
-/// silently.
+/// NeuMan masks written the other way round (the person white in `segmentations/`) are
+/// refused, not inverted silently.
 #[test]
 fn inverted_neuman_masks_are_refused() {
     let dir = base().parent().unwrap().join("inverted");

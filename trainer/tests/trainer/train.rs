@@ -113,7 +113,7 @@ fn simulated_cloth_targets_match_the_ground_truth_garments_in_both_layouts() {
 
 /// `cloth_fit` reaches the simulation: on a loose sequence (`drape synth --fit loose`)
 /// the trainer's simulated targets are that sequence's ground truth with the loose
-/// T-shirt, and centimetres off with the tight one (the template it used before).
+/// T-shirt, and centimetres off with the tight one (the default template).
 #[test]
 fn the_cloth_fit_of_the_data_gives_its_ground_truth() {
     use drape_trainer::garment::GarmentFit;

@@ -8,6 +8,7 @@
 //! - [`composite`]: depth-aware compositing of three passes (forward, backward);
 //! - [`fused`]: the three passes in one sort, one binning and one rasterization;
 //! - [`densify`]: the screen-space statistics densification reads;
+//! - [`sh_copy`]: SH coefficients copied between layers of different degrees;
 //! - [`ply`]: 3D Gaussian Splatting PLY files;
 //! - [`adam`]: Adam over the Gaussian parameters on the GPU;
 //! - [`fit`]: fitting Gaussians to an image.

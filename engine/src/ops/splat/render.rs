@@ -16,6 +16,10 @@
 //! Backward: zero the per-splat gradients, `rasterize_bwd_atomic` (or `_cas`, or the
 //! deterministic `_fixed` into a fixed-point scratch and `fixed_point::resolve`), then
 //! `project_bwd` into the parameter gradients.
+//! On CPU devices with subgroups of 8 the rasterizers are their subgroup twins
+//! ([`RasterVariant`]). The render-only knobs `RenderSettings::half_sh` and
+//! `half_splats` add a packing pass (`pack_sh_half`, `pack_splats_half`) and read
+//! binary16.
 
 use drape_shared::half::{sh_half_words, ShHalfParams};
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
