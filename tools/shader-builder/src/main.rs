@@ -177,10 +177,17 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
 
 /// Compiles the kernels crate under `shaders` in each of `flavours`: the baseline build,
 /// plus the modules that exist only in a flavour with an extra capability.
+/// The builds run side by side (each is one mostly single-threaded rustc and its own
+/// target directory); their modules are merged in the order of `flavours`, so a module
+/// comes from the first build that has it whatever finishes first.
 fn compile(shaders: &Path, flavours: &[Flavour]) -> Result<BTreeMap<String, Module>, String> {
+    let built: Vec<Result<BTreeMap<String, Vec<u8>>, String>> = std::thread::scope(|scope| {
+        let builds: Vec<_> = flavours.iter().map(|flavour| scope.spawn(move || build_once(shaders, flavour))).collect();
+        builds.into_iter().map(|b| b.join().unwrap_or_else(|_| Err("a rust-gpu build thread panicked".into()))).collect()
+    });
     let mut out: BTreeMap<String, Module> = BTreeMap::new();
-    for flavour in flavours {
-        for (entry, bytes) in build_once(shaders, flavour)? {
+    for (flavour, modules) in flavours.iter().zip(built) {
+        for (entry, bytes) in modules? {
             out.entry(entry).or_insert(Module { bytes, requires: flavour.requires });
         }
     }
