@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job on the embedded default data: generate the synthetic sequence (NeuMan
 # and ZJU-MoCap layouts) into target/demo-data, train the avatar on it with the quick
-# preset (see the README for its speed on lavapipe), and print the held-out metrics. The run
+# preset (docs/results.md has its speed per device), and print the held-out metrics. The run
 # directory target/demo-run holds the held-out sheets and tables (eval/; `drape eval`,
 # `drape animate` and `drape edit` open the run again),
 # a novel pose (novel_pose.png), the log, the metrics and a posed PLY.

@@ -32,7 +32,7 @@ pub struct TrainArgs {
     /// config.json (`--steps` may raise the step count).
     #[arg(long)]
     pub resume: Option<PathBuf>,
-    /// `quick` (small sizes for lavapipe at 128x128; the README gives its speed) or
+    /// `quick` (small sizes for lavapipe at 128x128; docs/results.md gives its speed) or
     /// `paper` (the paper's setting, for a GPU).
     #[arg(long, default_value = "quick")]
     pub preset: String,
