@@ -69,10 +69,33 @@ pub fn parse_args<T: Parser>() -> Result<T, ExitCode> {
     }
 }
 
-/// Runs `body`; an error is printed as one line (`error: ...: cause`) with exit code 1.
+/// An ending that is not a failure but has an exit status of its own, e.g. 75
+/// (`EX_TEMPFAIL`: a training stopped by a signal, checkpointed, to be resumed).
+/// [`run`] prints its message as it is (no `error:`) and exits with `code`.
+#[derive(Debug)]
+pub struct Exit {
+    pub code: u8,
+    pub message: String,
+}
+
+impl std::fmt::Display for Exit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl std::error::Error for Exit {}
+
+/// Runs `body`; an error is printed as one line (`error: ...: cause`) with exit code 1
+/// ([`Exit`]: its message and its code).
 pub fn run(body: impl FnOnce() -> anyhow::Result<()>) -> ExitCode {
     match body() {
         Ok(()) => ExitCode::SUCCESS,
+        Err(e) if e.is::<Exit>() => {
+            let exit = e.downcast::<Exit>().expect("checked");
+            eprintln!("{}", exit.message);
+            ExitCode::from(exit.code)
+        }
         Err(e) => {
             eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
             ExitCode::FAILURE

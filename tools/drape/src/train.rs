@@ -16,7 +16,7 @@ use drape_cli_support::DeviceArgs;
 use drape_trainer::avatar::run::RunInfo;
 use drape_trainer::avatar::composite::{Compositing, Matte};
 use drape_trainer::avatar::model::LayerChoice;
-use drape_trainer::avatar::train::{body_model, load_sequence, train, Layout, Preset, Progress, TrainConfig};
+use drape_trainer::avatar::train::{body_model, load_sequence, train_interruptible, Layout, Outcome, Preset, Progress, TrainConfig};
 
 /// Options of `drape train`.
 #[derive(Clone, Debug, clap::Args)]
@@ -77,34 +77,29 @@ pub struct TrainArgs {
     /// bits. Slower backward passes; gradients rounded to 2^-36 (sets `deterministic`).
     #[arg(long)]
     pub deterministic: bool,
+    /// Train again into a run directory that holds a complete or unfinished run
+    /// (its files are removed first). Without it, a complete run is left as it is (exit
+    /// 0) and an unfinished one is refused with the command that resumes it.
+    #[arg(long, conflicts_with = "resume")]
+    pub force: bool,
 }
 
-/// Merges the TOML table `over` into `base`, naming the first key `base` lacks.
-fn merge(base: &mut toml::Value, over: &toml::Value, path: &str) -> anyhow::Result<()> {
-    match (base, over) {
-        (toml::Value::Table(b), toml::Value::Table(o)) => {
-            for (k, v) in o {
-                let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
-                match b.get_mut(k) {
-                    Some(slot) => merge(slot, v, &key)?,
-                    None => anyhow::bail!("unknown key '{key}'"),
-                }
-            }
-            Ok(())
-        }
-        (b, o) => {
-            // A leaf keeps its type (an integer may stand for a float).
-            let same = std::mem::discriminant(b) == std::mem::discriminant(o) || matches!((&*b, o), (toml::Value::Float(_), toml::Value::Integer(_)));
-            if !same {
-                anyhow::bail!("'{path}' must be {}, got {}", b.type_str(), o.type_str());
-            }
-            *b = match (&*b, o) {
-                (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(*i as f64),
-                _ => o.clone(),
-            };
-            Ok(())
-        }
+/// Exit status of a run stopped by SIGTERM, SIGINT or SIGUSR1 after checkpointing:
+/// `EX_TEMPFAIL`, "try again" (`--resume`), which cluster scripts requeue on.
+pub const EXIT_RESUMABLE: u8 = 75;
+
+/// The flag the signal handlers set. A first SIGTERM, SIGINT or SIGUSR1 only sets it
+/// (the step in flight finishes and is checkpointed); a second one exits at once,
+/// with 128 + the signal's number.
+fn interrupt_flag() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
+    use signal_hook::consts::{SIGINT, SIGTERM, SIGUSR1};
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    for signal in [SIGTERM, SIGINT, SIGUSR1] {
+        // Registered first, so it sees the flag as the previous signal left it.
+        signal_hook::flag::register_conditional_shutdown(signal, 128 + signal, std::sync::Arc::clone(&flag)).context("installing the signal handlers")?;
+        signal_hook::flag::register(signal, std::sync::Arc::clone(&flag)).context("installing the signal handlers")?;
     }
+    Ok(flag)
 }
 
 fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
@@ -119,10 +114,7 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     let mut config = TrainConfig::preset(Preset::parse(&args.preset)?);
     if let Some(path) = &args.config {
         let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        let over: toml::Value = toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
-        let mut base = toml::Value::try_from(&config)?;
-        merge(&mut base, &over, "").map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        config = TrainConfig::from_deserializer(base).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        config = config.with_toml(&text, path)?;
     }
     if let Some(s) = args.steps {
         config.steps = s;
@@ -155,6 +147,20 @@ fn every_nth_vertex(n: u32) -> String {
 }
 
 pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
+    use drape_trainer::avatar::train::{run_state, RunState};
+    let interrupt = interrupt_flag()?;
+    // A complete run is not trained again (a requeued job array reruns its command).
+    let dir = args.resume.as_ref().or(args.out.as_ref()).expect("clap requires --out or --resume");
+    if run_state(dir)? == RunState::Complete && !args.force && (args.resume.is_none() || args.steps.is_none()) {
+        println!("{} is a complete run ('complete' marker); nothing to do (--force trains it again)", dir.display());
+        return Ok(());
+    }
+    if args.force && matches!(run_state(dir)?, RunState::Complete | RunState::Resumable) {
+        std::fs::remove_dir_all(dir).with_context(|| format!("{}: cannot remove the earlier run (--force)", dir.display()))?;
+    }
+    if args.resume.is_none() {
+        drape_trainer::avatar::train::check_fresh(dir)?;
+    }
     let config = load_config(args)?;
     let seq = load_sequence(&args.data, config.zju_train_camera)?;
     let model = body_model(args.body.as_deref())?;
@@ -218,7 +224,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     if args.profile {
         ctx.start_profile();
     }
-    let report = train(&ctx, &seq, model, &config, &out, resume, &mut |p| {
+    let outcome = train_interruptible(&ctx, &seq, model, &config, &out, resume, &interrupt, &mut |p| {
         match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
@@ -239,6 +245,16 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     })
     ?;
     eprintln!();
+    let report = match outcome {
+        Outcome::Finished(report) => report,
+        Outcome::Interrupted { step } => {
+            return Err(drape_cli_support::Exit {
+                code: EXIT_RESUMABLE,
+                message: format!("interrupted by a signal: checkpointed after step {step} of {} in {}; `drape train --resume {}` continues it (exit status {EXIT_RESUMABLE})", config.steps, out.display(), out.display()),
+            }
+            .into())
+        }
+    };
     // Which data and body the run was trained on, for `drape eval` and `drape animate`.
     let body = match (&args.resume, &args.body) {
         (Some(run), None) => RunInfo::read(run)?.and_then(|i| i.body),

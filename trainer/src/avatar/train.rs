@@ -15,6 +15,7 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use drape_engine::ops::splat::ply;
@@ -44,7 +45,7 @@ use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
 use crate::dataset::layout::{locate, SequenceFiles, Variant};
-use crate::dataset::loader::{load_neuman_files, load_zju_files, BodyParams, DatasetFrame, NeumanSplit};
+use crate::dataset::loader::{load_located, BodyParams, DatasetFrame};
 use crate::dataset::error::DatasetError;
 use crate::dataset::split::Split;
 
@@ -245,11 +246,38 @@ impl TrainConfig {
         Ok(c)
     }
 
+    /// This config with the TOML document `text` (from `file`) laid over it: every key
+    /// must be one of the config's (an optional one such as `lpips_weights` included)
+    /// and keep its type (an integer may stand for a float); the result is validated.
+    /// Errors name the file and the key.
+    pub fn with_toml(&self, text: &str, file: &Path) -> crate::Result<Self> {
+        let in_file = |e: TrainerError| match e {
+            TrainerError::Config { key, problem } => TrainerError::Config { key: format!("{}: {key}", file.display()), problem },
+            other => other,
+        };
+        let over: serde_json::Value = toml::from_str(text).map_err(|e| TrainerError::config(file.display().to_string(), e.message().to_string()))?;
+        let mut base = serde_json::to_value(self).map_err(|e| TrainerError::config("(top level)", e.to_string()))?;
+        merge_json(&mut base, &over, "").map_err(in_file)?;
+        Self::from_deserializer(base).map_err(in_file)
+    }
+
     /// Checks values a config file could get wrong, naming the field.
     pub fn validate(&self) -> crate::Result<()> {
         let bad = |key: &str, problem: String| Err(TrainerError::config(key, problem));
-        if self.cloth.triplane_resolution < 2 || self.cloth.triplane_channels == 0 {
-            return bad("cloth.triplane_resolution", "must be >= 2, and cloth.triplane_channels >= 1".into());
+        // Each triplane is 3 x resolution² x channels f32 values, with Adam's two moments
+        // beside it: bounded so that a typo cannot ask for terabytes.
+        for (layer, t) in [("body", &self.body), ("cloth", &self.cloth)] {
+            if !(2..=MAX_TRIPLANE_RESOLUTION).contains(&t.triplane_resolution) {
+                return bad(&format!("{layer}.triplane_resolution"), format!("must be 2-{MAX_TRIPLANE_RESOLUTION} (HUGS: 128), got {}", t.triplane_resolution));
+            }
+            if !(1..=MAX_TRIPLANE_CHANNELS).contains(&t.triplane_channels) {
+                return bad(&format!("{layer}.triplane_channels"), format!("must be 1-{MAX_TRIPLANE_CHANNELS} (HUGS: 32), got {}", t.triplane_channels));
+            }
+        }
+        for (name, v, max) in [("steps", self.steps, MAX_STEPS), ("fit_steps", self.fit_steps, MAX_STEPS)] {
+            if v > max {
+                return bad(name, format!("must be at most {max}, got {v}"));
+            }
         }
         let rates = [
             ("cloth.lr_position", self.cloth.lr_position),
@@ -291,15 +319,57 @@ impl TrainConfig {
                 return bad(name, format!("must be 0-3, got {degree}"));
             }
         }
-        if self.body.triplane_resolution < 2 || self.body.triplane_channels == 0 {
-            return bad("body.triplane_resolution", "must be >= 2, and body.triplane_channels >= 1".into());
-        }
         for (name, w) in [("body.decoder_width", self.body.decoder_width), ("cloth.decoder_width", self.cloth.decoder_width)] {
             if !(1..=1024).contains(&w) {
                 return bad(name, format!("must be 1-1024 (HUGS: 128), got {w}"));
             }
         }
         Ok(())
+    }
+}
+
+/// Largest triplane side and channel count a config may ask for (HUGS: 128 and 32).
+pub const MAX_TRIPLANE_RESOLUTION: u32 = 1024;
+pub const MAX_TRIPLANE_CHANNELS: u32 = 256;
+/// Largest step counts (the paper trains 3,000 steps per sequence).
+pub const MAX_STEPS: u32 = 10_000_000;
+
+/// Lays `over` onto `base` (JSON values), naming the first key `base` lacks or whose
+/// type `over` changes. A `null` in `base` (an unset option) takes any value.
+fn merge_json(base: &mut serde_json::Value, over: &serde_json::Value, path: &str) -> crate::Result<()> {
+    use serde_json::Value;
+    match (base, over) {
+        (Value::Object(b), Value::Object(o)) => {
+            for (k, v) in o {
+                let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                match b.get_mut(k) {
+                    Some(slot) => merge_json(slot, v, &key)?,
+                    None => return Err(TrainerError::config(key, "unknown key (a run's config.json lists every key)")),
+                }
+            }
+            Ok(())
+        }
+        (b @ Value::Null, o) => {
+            *b = o.clone();
+            Ok(())
+        }
+        (b, o) => {
+            let kind = |v: &Value| match v {
+                Value::Null => "nothing",
+                Value::Bool(_) => "a boolean",
+                Value::Number(_) => "a number",
+                Value::String(_) => "a string",
+                Value::Array(_) => "an array",
+                Value::Object(_) => "a table",
+            };
+            // An integer may stand for a float, a float for an integer only if whole
+            // (serde then says whether the number fits the field).
+            if kind(b) != kind(o) {
+                return Err(TrainerError::config(path, format!("must be {}, got {}", kind(b), kind(o))));
+            }
+            *b = o.clone();
+            Ok(())
+        }
     }
 }
 
@@ -360,10 +430,13 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Seque
     if !dir.join("sparse").is_dir() && !dir.join("annots.npy").is_file() && dir.join("neuman").join("sparse").is_dir() {
         return load_sequence(&dir.join("neuman"), zju_train_camera);
     }
-    let (layout, variant, frames) = match locate(dir)? {
-        SequenceFiles::Neuman(files) => (Layout::NeuMan, files.variant, load_neuman_files(&files, NeumanSplit::EveryFifth)?),
-        SequenceFiles::Zju(files) => (Layout::ZjuMocap, files.variant, load_zju_files(&files, zju_train_camera)?),
+    let files = locate(dir)?;
+    let layout = match &files {
+        SequenceFiles::Neuman(_) => Layout::NeuMan,
+        SequenceFiles::Zju(_) => Layout::ZjuMocap,
     };
+    let frames = load_located(&files, zju_train_camera)?;
+    let variant = files.variant();
     Ok(Sequence { dir: dir.into(), layout, variant, frames })
 }
 
@@ -538,10 +611,101 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
 /// `config.steps`, and a later `resume` continues as the uninterrupted run would.
 #[allow(clippy::too_many_arguments)]
 pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
+    let never = AtomicBool::new(false);
+    match run(ctx, seq, model, config, out, resume, stop_at, &never, progress)? {
+        Outcome::Finished(report) => Ok(*report),
+        Outcome::Interrupted { .. } => unreachable!("nothing sets the flag"),
+    }
+}
+
+/// How a run that can be interrupted ended.
+#[derive(Debug)]
+pub enum Outcome {
+    /// Every step ran; the model, metrics and `complete` marker are written.
+    Finished(Box<TrainReport>),
+    /// `interrupt` was set: the step in flight finished and the checkpoint holds the
+    /// state after `step` steps; `--resume` continues it.
+    Interrupted { step: u32 },
+}
+
+/// [`train`] that stops cleanly when `interrupt` becomes true (a signal handler sets
+/// it): the step in flight finishes, the checkpoint is written atomically, and the run
+/// directory stays resumable.
+#[allow(clippy::too_many_arguments)]
+pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
+    run(ctx, seq, model, config, out, resume, config.steps, interrupt, progress)
+}
+
+/// The marker a finished run holds (its command run again has nothing to do).
+pub const COMPLETE_MARKER: &str = "complete";
+/// The note an unfinished run holds (how to continue it).
+pub const INCOMPLETE_MARKER: &str = "incomplete";
+
+/// What is in a run directory before a run starts in it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum RunState {
+    /// Missing or empty: a new run can start.
+    Fresh,
+    /// A finished run ([`COMPLETE_MARKER`]).
+    Complete,
+    /// A run with a checkpoint and no [`COMPLETE_MARKER`]: `--resume` continues it.
+    Resumable,
+    /// Something else (files that are no drape run, or a run without a checkpoint).
+    Occupied,
+}
+
+/// Classifies `out` (see [`RunState`]).
+pub fn run_state(out: &Path) -> crate::Result<RunState> {
+    if !out.exists() {
+        return Ok(RunState::Fresh);
+    }
+    if !out.is_dir() {
+        return Ok(RunState::Occupied);
+    }
+    if std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_none() {
+        return Ok(RunState::Fresh);
+    }
+    Ok(if out.join(COMPLETE_MARKER).is_file() {
+        RunState::Complete
+    } else if out.join("checkpoint.npz").is_file() && out.join("config.json").is_file() {
+        RunState::Resumable
+    } else {
+        RunState::Occupied
+    })
+}
+
+/// The preemption test's hook: with `DRAPE_FAILPOINT=wait-for-signal-before-step:K`,
+/// the run says so on stderr before step K and waits (at most a minute) until a signal
+/// sets `interrupt`, so that a test's SIGTERM lands at a known step. Unset (always,
+/// outside that test), it does nothing.
+fn wait_for_signal_if_asked(step: u32, interrupt: &AtomicBool) {
+    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else { return };
+    if spec.strip_prefix("wait-for-signal-before-step:").and_then(|k| k.parse::<u32>().ok()) != Some(step) {
+        return;
+    }
+    eprintln!("\nfailpoint: waiting for a signal before step {step}");
+    let t0 = Instant::now();
+    while !interrupt.load(Ordering::SeqCst) && t0.elapsed().as_secs() < 60 {
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// Refuses to start a new run in `out` unless it is missing or empty, saying what is
+/// there and what to do instead.
+pub fn check_fresh(out: &Path) -> crate::Result<()> {
+    match run_state(out)? {
+        RunState::Fresh => Ok(()),
+        RunState::Complete => Err(TrainerError::run(out, "holds a complete run (it has the 'complete' marker); --force trains it again")),
+        RunState::Resumable => Err(TrainerError::run(out, format!("holds an unfinished run (see its '{INCOMPLETE_MARKER}'): `drape train --resume {}` continues it; --force starts it again", out.display()))),
+        RunState::Occupied => Err(TrainerError::run(out, "exists and is not empty, and is no drape run to resume; choose another --out")),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
     let stop_at = stop_at.min(config.steps);
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
-    let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
     if train_frames.is_empty() {
         return Err(DatasetError::layout(&seq.dir, "no training frames").into());
     }
@@ -549,18 +713,49 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     if let Some(f) = seq.frames.iter().find(|f| (f.width, f.height) != (width, height)) {
         return Err(DatasetError::image(&f.image_path, format!("{}x{}, but the sequence's first training image is {width}x{height}", f.width, f.height)).into());
     }
+    // LPIPS where the run has weights: read before the run directory is made, so a
+    // wrong path leaves nothing behind.
+    let lpips_weights = match &config.lpips_weights {
+        Some(path) => Some(LpipsWeights::load(path, config.lpips_net)?),
+        None => None,
+    };
     let checkpoint_path = out.join("checkpoint.npz");
     if resume {
         if !checkpoint_path.is_file() {
             return Err(TrainerError::run(&checkpoint_path, "no checkpoint to resume from"));
         }
-    } else {
-        if out.exists() && std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_some() {
-            return Err(TrainerError::run(out, "the run directory exists and is not empty (use --resume to continue it)"));
-        }
+        return train_in(ctx, seq, model, config, out, true, stop_at, interrupt, lpips_weights, progress);
+    }
+    check_fresh(out)?;
+    let created = !out.exists();
+    let made = (|| -> crate::Result<()> {
         std::fs::create_dir_all(out.join("eval")).map_err(|e| TrainerError::io(out, e))?;
         write_json(&out.join("config.json"), config)?;
+        let note = out.join(INCOMPLETE_MARKER);
+        std::fs::write(&note, format!("this run has not finished; `drape train --resume {}` continues it from checkpoint.npz\n", out.display())).map_err(|e| TrainerError::io(&note, e))
+    })();
+    let result = made.and_then(|()| train_in(ctx, seq, model, config, out, false, stop_at, interrupt, lpips_weights, progress));
+    // A run that failed before its first checkpoint leaves nothing (an empty directory
+    // that was there before stays, empty); after it, the run stays resumable.
+    if result.is_err() && !checkpoint_path.exists() {
+        if created {
+            let _ = std::fs::remove_dir_all(out);
+        } else if let Ok(entries) = std::fs::read_dir(out) {
+            for e in entries.flatten() {
+                let p = e.path();
+                let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+            }
+        }
     }
+    result
+}
+
+#[allow(clippy::too_many_arguments)]
+fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, interrupt: &AtomicBool, lpips_weights: Option<LpipsWeights>, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
+    let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
+    let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
+    let (width, height) = (train_frames[0].width, train_frames[0].height);
+    let checkpoint_path = out.join("checkpoint.npz");
     let log_path = out.join("log.jsonl");
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| TrainerError::io(&log_path, e))?;
 
@@ -608,11 +803,6 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         (0, worst)
     };
     let fit_seconds = t0.elapsed().as_secs_f64();
-    // LPIPS where the run has weights (checked before anything is trained).
-    let lpips_weights = match &config.lpips_weights {
-        Some(path) => Some(LpipsWeights::load(path, config.lpips_net)?),
-        None => None,
-    };
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
         c.set_mask_in_composite(true);
     }
@@ -658,6 +848,13 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     let dc = &config.densify;
     let densifying = |step: u32| dc.every > 0 && step < dc.until.min(config.steps.saturating_sub(1));
     for step in start_step..stop_at {
+        wait_for_signal_if_asked(step, interrupt);
+        // A signal arrived during the step before: its state is complete, so it is
+        // checkpointed here and the run stops, resumable.
+        if interrupt.load(Ordering::SeqCst) {
+            save(&mut avatar, &refiner, step, &checkpoint_path)?;
+            return Ok(Outcome::Interrupted { step });
+        }
         lap.reset();
         let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let index = rng.random_range(0..train_frames.len());
@@ -829,6 +1026,9 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
     }
     let last = stop_at.max(start_step);
     save(&mut avatar, &refiner, last, &checkpoint_path)?;
+    if interrupt.load(Ordering::SeqCst) {
+        return Ok(Outcome::Interrupted { step: last });
+    }
     save(&mut avatar, &refiner, last, &out.join("model.npz"))?;
     let train_seconds = t_train.elapsed().as_secs_f64();
     let eval_dir = out.join("eval");
@@ -902,5 +1102,10 @@ pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &Tra
         fin,
     };
     write_json(&out.join("metrics.json"), &report)?;
-    Ok(report)
+    if stop_at == config.steps {
+        let marker = out.join(COMPLETE_MARKER);
+        std::fs::write(&marker, format!("finished {} steps\n", config.steps)).map_err(|e| TrainerError::io(&marker, e))?;
+        let _ = std::fs::remove_file(out.join(INCOMPLETE_MARKER));
+    }
+    Ok(Outcome::Finished(Box::new(report)))
 }

@@ -68,6 +68,9 @@ impl ColmapCamera {
             "FULL_OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"], false),
             _ => return Err(err(CameraProblem::UnsupportedModel)),
         };
+        if self.width == 0 || self.height == 0 {
+            return Err(err(CameraProblem::Size { width: self.width, height: self.height }));
+        }
         let p = &self.params;
         if p.len() != names.len() {
             return Err(err(CameraProblem::ParamCount { got: p.len(), expected: names }));
@@ -201,6 +204,8 @@ pub enum CameraProblem {
     NotFinite { param: &'static str, value: f64 },
     /// A focal length is zero or negative.
     FocalLength { fx: f64, fy: f64 },
+    /// WIDTH or HEIGHT is zero.
+    Size { width: u32, height: u32 },
     /// FULL_OPENCV with a non-zero rational term (k4, k5 or k6), which `Distortion`
     /// does not model.
     RationalModel { param: &'static str, value: f64 },
@@ -214,6 +219,7 @@ impl CameraProblem {
             Self::ParamCount { got, expected } => format!("({model}) has {got} PARAMS, expected {} ({})", expected.len(), expected.join(" ")),
             Self::NotFinite { param, value } => format!("({model}) has {param} = {value}, which is not finite"),
             Self::FocalLength { fx, fy } => format!("({model}) has focal length {fx} x {fy}, which is not positive"),
+            Self::Size { width, height } => format!("({model}) has WIDTH x HEIGHT {width} x {height}; both must be at least 1"),
             Self::RationalModel { param, value } => format!("({model}) has {param} = {value}: drape does not undistort the rational model (k4, k5, k6 must be 0)"),
         }
     }

@@ -2,17 +2,14 @@
 //! the layout and variant, frame and camera counts, the image size, which masks and
 //! parameters were found, the split training would use, and the first problem found.
 //!
-//! Every file is checked for existence and every image header is read (cheap), as are
-//! the parameter files; only the first image and its mask are decoded, so a real
-//! 23-camera capture is inspected in seconds.
+//! The problem is what the loader training uses reports (one code path): every camera,
+//! parameter file, image and mask is read and checked as `drape train` reads them, so
+//! inspecting a real capture takes as long as loading it for training.
 
 use std::path::{Path, PathBuf};
 
-use crate::dataset::error::DatasetError;
-use crate::dataset::image::{dimensions, read_mask, read_rgb};
+use crate::dataset::image::dimensions;
 use crate::dataset::layout::{detect, locate, SequenceFiles, Variant};
-use crate::dataset::neuman::SmplSequence;
-use crate::dataset::zju::ZjuSmpl;
 
 /// What `inspect` found.
 #[derive(Clone, Debug, serde::Serialize)]
@@ -84,7 +81,9 @@ pub fn inspect(dir: &Path) -> Inspection {
         }
     };
     let images = files.images();
-    out.problem = check(&dir, &files, &images).err().map(|e| e.to_string());
+    // The loader itself, as training runs it (camera 0 training), so that inspect and
+    // `drape train` report the same first problem.
+    out.problem = crate::dataset::loader::load_located(&files, 0).err().map(|e| e.to_string());
     match &files {
         SequenceFiles::Neuman(n) => {
             out.frames = n.images.len();
@@ -110,37 +109,4 @@ pub fn inspect(dir: &Path) -> Inspection {
     }
     out.image_size = images.first().and_then(|f| dimensions(&f.image).ok());
     out
-}
-
-/// Reads every header and parameter file and decodes the first image and mask.
-fn check(dir: &Path, files: &SequenceFiles, images: &[&crate::dataset::layout::ImageFiles]) -> Result<(), DatasetError> {
-    let first = images.first().ok_or_else(|| DatasetError::layout(dir, "no images"))?;
-    let size = dimensions(&first.image)?;
-    read_rgb(&first.image)?;
-    for m in &first.masks {
-        let (_, _, mask) = read_mask(m, files.variant().mask_rule())?;
-        crate::dataset::loader::check_not_inverted(files.variant(), m, &mask)?;
-    }
-    for f in images {
-        for p in std::iter::once(&f.image).chain(&f.masks) {
-            let s = dimensions(p)?;
-            if s != size {
-                return Err(DatasetError::image(p, format!("{}x{}, but {} is {}x{}", s.0, s.1, rel(dir, &first.image), size.0, size.1)));
-            }
-        }
-    }
-    match files {
-        SequenceFiles::Neuman(n) => {
-            let smpl = SmplSequence::read_npz(&n.smpl)?;
-            if smpl.len() != n.images.len() {
-                return Err(DatasetError::Field { file: n.smpl.display().to_string(), field: "global_orient".into(), problem: format!("{} frames for {} images", smpl.len(), n.images.len()) });
-            }
-        }
-        SequenceFiles::Zju(z) => {
-            for (p, _) in &z.frames {
-                ZjuSmpl::read_file(p)?;
-            }
-        }
-    }
-    Ok(())
 }

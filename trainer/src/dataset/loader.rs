@@ -110,6 +110,16 @@ fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32) -> Res
     Ok(union)
 }
 
+/// Loads a located sequence of either layout, NeuMan with HUGS's split (every fifth
+/// frame held out) and ZJU-MoCap with `zju_train_camera` training. Training and
+/// `drape inspect` both come through here, so they report the same first problem.
+pub fn load_located(files: &SequenceFiles, zju_train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+    match files {
+        SequenceFiles::Neuman(n) => load_neuman_files(n, NeumanSplit::EveryFifth),
+        SequenceFiles::Zju(z) => load_zju_files(z, zju_train_camera),
+    }
+}
+
 /// Loads a NeuMan-layout sequence (either variant, see [`crate::dataset::layout`]);
 /// images in name order are frames.
 pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, DatasetError> {
@@ -145,12 +155,17 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
         let (camera, distortion) = img.camera_and_distortion(cam)?;
         let undistort = undistorters.entry(cam.id).or_insert_with(|| (!distortion.is_identity()).then(|| Undistorter::new(&camera, distortion)));
         let qn = img.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if !(qn > 1e-9) || img.qvec.iter().chain(&img.tvec).any(|v| !v.is_finite()) {
-            return Err(DatasetError::Field {
-                file: sparse.display().to_string(),
-                field: format!("image {} ('{}')", img.id, img.name),
-                problem: format!("a singular rotation (qvec {:?})", img.qvec),
-            });
+        let pose_problem = if img.qvec.iter().any(|v| !v.is_finite()) {
+            Some(format!("QW QX QY QZ {:?} is not finite", img.qvec))
+        } else if !(qn > 1e-9) {
+            Some(format!("QW QX QY QZ {:?} is zero, no rotation", img.qvec))
+        } else if img.tvec.iter().any(|v| !v.is_finite()) {
+            Some(format!("TX TY TZ {:?} is not finite", img.tvec))
+        } else {
+            None
+        };
+        if let Some(problem) = pose_problem {
+            return Err(DatasetError::Field { file: sparse.display().to_string(), field: format!("image {} ('{}')", img.id, img.name), problem });
         }
         let rgb = undistorted_rgb(undistort, load_rgb(&paths.image, cam.width, cam.height)?);
         let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height)?);
@@ -191,6 +206,13 @@ pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, Da
 /// Loads a located ZJU-MoCap sequence.
 pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
     let annots = &files.annots;
+    if train_camera >= annots.cameras.len() {
+        return Err(DatasetError::Field {
+            file: files.dir.join("annots.npy").display().to_string(),
+            field: "cams".into(),
+            problem: format!("{} cameras, so zju_train_camera = {train_camera} does not exist (0 to {})", annots.cameras.len(), annots.cameras.len().saturating_sub(1)),
+        });
+    }
     let splits = zju_by_camera(annots.cameras.len(), train_camera);
     let rule = files.variant.mask_rule();
     // Undistortion maps per camera and image size (None for a pinhole).

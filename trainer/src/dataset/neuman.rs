@@ -68,6 +68,17 @@ impl SmplSequence {
             })
             .collect();
         let nb = *betas.shape.last().expect("betas has a shape");
+        if nb == 0 {
+            return Err(NpyError::Format { file, key: Some("betas".into()), problem: format!("shape {:?}: no shape coefficients (SMPL has 10)", betas.shape) });
+        }
+        for (key, a) in [("global_orient", go), ("body_pose", bp), ("betas", betas), ("transl", tr), ("scale", scale)] {
+            if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
+                return Err(NpyError::Format { file, key: Some(key.into()), problem: format!("value {i} is {} (not finite)", a.data[i]) });
+            }
+        }
+        if let Some(i) = scale.data.iter().position(|&s| !(s > 0.0)) {
+            return Err(NpyError::Format { file, key: Some("scale".into()), problem: format!("value {i} is {}; the scale of a body must be positive", scale.data[i]) });
+        }
         let betas = if betas.shape.len() == 2 { betas.data.chunks_exact(nb).map(<[f64]>::to_vec).collect() } else { vec![betas.data.clone(); f] };
         Ok(Self {
             poses,

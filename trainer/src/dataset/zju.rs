@@ -124,6 +124,16 @@ impl ZjuAnnots {
             check(&ks[i], "K", 9)?;
             check(&rs[i], "R", 9)?;
             check(&ts[i], "T", 3)?;
+            let (fx, fy) = (ks[i].data[0], ks[i].data[4]);
+            if !(fx > 0.0 && fy > 0.0) {
+                return Err(bad(format!("cams['K'][{i}]"), &format!("focal length {fx} x {fy} (fx = K[0][0], fy = K[1][1]) is not positive")));
+            }
+            if ds[i].data.len() > 8 {
+                return Err(bad(format!("cams['D'][{i}]"), &format!("shape {:?}: at most 5 coefficients (k1 k2 p1 p2 k3) expected", ds[i].shape)));
+            }
+            if let Some(k) = ds[i].data.iter().position(|x| !x.is_finite()) {
+                return Err(bad(format!("cams['D'][{i}]"), &format!("coefficient {k} is {} (not finite)", ds[i].data[k])));
+            }
             let m = |a: &Array| [[a.data[0], a.data[1], a.data[2]], [a.data[3], a.data[4], a.data[5]], [a.data[6], a.data[7], a.data[8]]];
             let r = m(&rs[i]);
             let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0]) + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);

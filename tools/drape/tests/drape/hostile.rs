@@ -53,8 +53,9 @@ const TABLE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/hostile/cases.tx
 /// The training configuration dataset cases train with (they fail before training).
 const TINY: &str = "steps = 2\nfit_steps = 2\ndecimate = 6\ncheckpoint_every = 1\nlog_every = 1\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n";
 
+/// One directory per test process, so that two runs never share fixtures.
 fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("hostile")
+    PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("hostile").join(std::process::id().to_string())
 }
 
 fn drape() -> Command {
@@ -514,6 +515,9 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
         }
     });
     let failures = failures.into_inner().unwrap();
+    if failures.is_empty() {
+        let _ = std::fs::remove_dir_all(root());
+    }
     eprintln!("{} hostile cases run, {} failed", cases.len(), failures.len());
     assert!(failures.is_empty(), "{} of {} hostile cases failed:\n{}", failures.len(), cases.len(), failures.join("\n"));
 }

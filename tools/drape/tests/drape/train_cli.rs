@@ -156,3 +156,80 @@ fn eval_animate_and_edit_name_bad_input() {
     check(&["edit", m, "--out", empty.parent().unwrap().to_str().unwrap(), "--remove-cloth"], &["not empty"]);
     assert!(!out.exists(), "nothing written");
 }
+
+/// Preemption: SIGTERM during a `--deterministic` run finishes the step in flight,
+/// writes the checkpoint, and exits 75; running the command again says how to resume;
+/// `--resume` ends with the same bits as a run that was never interrupted; a complete
+/// run's command run again does nothing. The signal is sent from outside, at a step
+/// drawn from a printed seed and at a step between two densifications.
+#[test]
+fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
+    use std::io::Read;
+    let d = dir("sigterm");
+    let data = d.join("data");
+    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "32", "--frames", "8", "--cameras", "1", "--samples", "1"]);
+    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let config = d.join("tiny.toml");
+    // Densified after steps 6, 12 and 18.
+    std::fs::write(&config, "steps = 20\nfit_steps = 3\ndecimate = 6\ncheckpoint_every = 100\nlog_every = 1\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
+    let train = |out: &Path| -> Vec<String> { ["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--config", config.to_str().unwrap(), "--deterministic"].map(String::from).to_vec() };
+    let whole = d.join("whole");
+    let o = Command::new(env!("CARGO_BIN_EXE_drape")).args(train(&whole)).output().unwrap();
+    assert!(o.status.success(), "uninterrupted run: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(whole.join("complete").is_file() && !whole.join("incomplete").exists(), "a finished run is marked complete");
+    // Its command run again does nothing.
+    let before = std::fs::read(whole.join("model.npz")).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_drape")).args(train(&whole)).output().unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("complete run"), "rerun of a complete run: {}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read(whole.join("model.npz")).unwrap(), before, "a complete run is not retrained");
+    let reference = drape_trainer::npy::read_npz(&whole.join("model.npz")).unwrap();
+
+    let seed = 0x5EED_u64;
+    let seeded_step = 1 + (seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 60) as u32 % 18;
+    eprintln!("SIGTERM before step {seeded_step} (drawn from seed {seed:#x}), then before step 9 (between the densifications after steps 6 and 12)");
+    for (name, step) in [("seeded", seeded_step), ("between-densifications", 9)] {
+        let run = d.join(name);
+        let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
+            .args(train(&run))
+            .env("DRAPE_FAILPOINT", format!("wait-for-signal-before-step:{step}"))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stderr = child.stderr.take().unwrap();
+        let mut seen = Vec::new();
+        let mut buf = [0u8; 4096];
+        while !String::from_utf8_lossy(&seen).contains("failpoint: waiting") {
+            let n = stderr.read(&mut buf).unwrap();
+            assert!(n > 0, "{name}: the run ended before step {step}: {}", String::from_utf8_lossy(&seen));
+            seen.extend_from_slice(&buf[..n]);
+        }
+        let kill = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+        assert!(kill.success());
+        stderr.read_to_end(&mut seen).unwrap();
+        let status = child.wait().unwrap();
+        let text = String::from_utf8_lossy(&seen).to_string();
+        assert_eq!(status.code(), Some(75), "{name}: exit status after SIGTERM: {text}");
+        assert!(!text.contains("panicked") && text.contains("--resume"), "{name}: {text}");
+        let ckpt = drape_trainer::npy::read_npz(&run.join("checkpoint.npz")).expect("a valid checkpoint");
+        assert_eq!(ckpt["step"].data, vec![f64::from(step)], "{name}: the checkpoint holds the steps before the signal");
+        assert!(run.join("incomplete").is_file() && !run.join("complete").exists(), "{name}: the run says it is incomplete");
+        assert!(!run.join("model.npz").exists(), "{name}: no model from an interrupted run");
+        // The same command again says how to resume instead of training over it.
+        let o = Command::new(env!("CARGO_BIN_EXE_drape")).args(train(&run)).output().unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(&format!("--resume {}", run.display())), "{name}: rerun of an unfinished run: {e}");
+        let o = drape(&["train", "--data", data.to_str().unwrap(), "--resume", run.to_str().unwrap()]);
+        assert!(o.status.success(), "{name}: resume: {}", String::from_utf8_lossy(&o.stderr));
+        assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("resumed at step {step}")), "{name}: {}", String::from_utf8_lossy(&o.stdout));
+        assert!(run.join("complete").is_file(), "{name}: the resumed run is complete");
+        let resumed = drape_trainer::npy::read_npz(&run.join("model.npz")).unwrap();
+        assert_eq!(resumed.keys().collect::<Vec<_>>(), reference.keys().collect::<Vec<_>>(), "{name}: the same arrays");
+        for (k, a) in &reference {
+            let b = &resumed[k];
+            assert_eq!(a.shape, b.shape, "{name}: {k}");
+            let differ = a.data.iter().zip(&b.data).filter(|(x, y)| x.to_bits() != y.to_bits()).count();
+            assert_eq!(differ, 0, "{name}: {k}: {differ} of {} values differ from the uninterrupted run's bits", a.data.len());
+        }
+    }
+}
