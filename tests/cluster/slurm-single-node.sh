@@ -16,7 +16,8 @@
 # Environment:
 #   DRAPE            drape binary (default: target/release/drape; it is not built here)
 #   WORK             work directory, wiped and reused on every run (default /tmp/drape-slurm)
-#   STEPS            training steps per subject (default 200: about a minute each on lavapipe)
+#   STEPS            training steps per subject (default 200; pick a count that takes 60-90 s,
+#                    so the interrupts land mid-run)
 #   FRAMES, SIZE     synthetic sequence length and image size (default 12 frames, 64 px)
 #   REQUEUE_AT_STEP  interrupt once log.jsonl shows this step (or a checkpoint; default 25)
 #   INTERRUPT_USR1   1 (default) also sends task 0 the time-limit signal; 0 leaves it alone

@@ -545,17 +545,20 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
     let dt = 1.0 / motion.fps;
     let start_pose: Pose = garments.first().map_or([[0.0; 3]; 24], |g| g.build_pose);
     let first = motion.poses.first().copied().unwrap_or(start_pose);
+    // The garments are dressed where the motion starts and settle into its first pose
+    // there: a body that started elsewhere would drag them across the distance.
+    let origin = motion.translations.first().copied().unwrap_or([0.0; 3]);
     let mut schedule: Vec<(Pose, V3)> = (1..=pre_roll)
         .map(|k| {
             let t = k as f64 / pre_roll as f64;
             let s = t * t * (3.0 - 2.0 * t);
-            (std::array::from_fn(|j| add(scale(start_pose[j], 1.0 - s), scale(first[j], s))), scale(motion.translations.first().copied().unwrap_or([0.0; 3]), s))
+            (std::array::from_fn(|j| add(scale(start_pose[j], 1.0 - s), scale(first[j], s))), origin)
         })
         .collect();
     let recorded_from = schedule.len();
     schedule.extend(motion.poses.iter().copied().zip(motion.translations.iter().copied()));
 
-    let start = pose_body(body, &[], &start_pose, [0.0; 3]);
+    let start = pose_body(body, &[], &start_pose, origin);
     // Per garment, the skinning transforms of its build pose: a garment made in pose B
     // is skinned into pose P with A(P) · A(B)⁻¹.
     let build: Vec<[Affine; 24]> = garments.iter().map(|g| pose_body(body, &[], &g.build_pose, [0.0; 3]).transforms).collect();
@@ -565,8 +568,9 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
         .zip(&build)
         .map(|(g, b)| {
             let mut sim = ClothSim::new(g, params);
-            if g.build_pose != start_pose {
-                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices);
+            if g.build_pose != start_pose || origin != [0.0; 3] {
+                // Skinning transforms leave the translation out; it is added after.
+                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices).into_iter().map(|v| add(v, origin)).collect();
             }
             sim.anchor_to(neighbourhoods.clone());
             sim
@@ -587,7 +591,7 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
         let prev_t = prev.transforms;
         let next_t = next.transforms;
         let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
-        let prev_trans_vec = if f == 0 { [0.0; 3] } else { schedule[f - 1].1 };
+        let prev_trans_vec = if f == 0 { origin } else { schedule[f - 1].1 };
         // Garments do not collide with each other, so each steps on its own thread
         // (each one's result is the same as stepped alone: deterministic).
         let step_garment = |g: &Garment, sim: &mut ClothSim, b: &[Affine; 24]| {

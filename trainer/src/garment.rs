@@ -16,7 +16,7 @@ use std::path::Path;
 use crate::body::kinematics::{a_pose, pose_body, t_pose, Pose};
 use crate::body::model::{SmplModel, NUM_JOINTS};
 use crate::grid::Grid;
-use crate::mesh::{add, norm, normalize, scale, sub, vertex_normals, V3};
+use crate::mesh::{add, cross, norm, normalize, scale, sub, vertex_normals, V3};
 
 /// A garment mesh bound to a body.
 #[derive(Clone, Debug, PartialEq)]
@@ -73,8 +73,11 @@ impl<'a> NearestBody<'a> {
                 return found;
             }
             if ring > 40 {
-                found.truncate(k);
-                return found;
+                // Farther than 2 m: every vertex, by brute force (bounded by the body's size).
+                let mut all: Vec<(u32, f64)> = self.vertices.iter().enumerate().map(|(i, v)| (i as u32, norm(sub(*v, p)))).collect();
+                all.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+                all.truncate(k);
+                return all;
             }
             ring += 1;
         }
@@ -331,6 +334,7 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     if faces.is_empty() {
         return Err(err("no triangles".into()));
     }
+    check_garment(&vertices, &faces, &body.v_template).map_err(err)?;
     let (weights, weights_blend6) = bind_weights(body, &body.v_template, &vertices);
     let near = NearestBody::new(&body.v_template);
     let attached: Vec<bool> = vertices.iter().map(|&v| near.k_nearest(v, 1)[0].1 < 0.01).collect();
@@ -344,6 +348,45 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     let attach_joint = (0..NUM_JOINTS).max_by(|&a, &b| total[a].total_cmp(&total[b])).unwrap_or(0);
     let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "garment".into());
     Ok(Garment { name, vertices, faces, uvs, weights, weights_blend6, attached, attach_joint, build_pose: t_pose() })
+}
+
+/// The farthest a garment vertex may be from the body it is made on (metres): a loose
+/// skirt's hem is a few tens of centimetres from the legs.
+pub const MAX_GARMENT_DISTANCE: f64 = 0.5;
+
+/// A garment drape can simulate on `body` (rest-pose vertices): faces that index its
+/// vertices and have an area, and every vertex within [`MAX_GARMENT_DISTANCE`] of the
+/// body, with a guess at the unit when it is not.
+fn check_garment(vertices: &[V3], faces: &[[u32; 3]], body: &[V3]) -> Result<(), String> {
+    for (i, f) in faces.iter().enumerate() {
+        if let Some(&k) = f.iter().find(|&&k| k as usize >= vertices.len()) {
+            return Err(format!("face {} refers to vertex {} of {}", i + 1, k + 1, vertices.len()));
+        }
+        let [a, b, c] = f.map(|k| vertices[k as usize]);
+        let n = cross(sub(b, a), sub(c, a));
+        let area = 0.5 * norm(n);
+        if !(area > 1e-12) {
+            return Err(format!("face {} (vertices {} {} {}) is degenerate (area {area:.1e} m²): its corners are on one line", i + 1, f[0] + 1, f[1] + 1, f[2] + 1));
+        }
+    }
+    let (lo, hi) = crate::grid::bounds(vertices.iter().copied());
+    let (blo, bhi) = crate::grid::bounds(body.iter().copied());
+    let size = norm(sub(hi, lo));
+    let body_size = norm(sub(bhi, blo));
+    let near = NearestBody::new(body);
+    let (worst, at) = vertices.iter().enumerate().map(|(i, &v)| (near.k_nearest(v, 1).first().map_or(f64::INFINITY, |k| k.1), i)).fold((0.0f64, 0), |a, b| if b.0 > a.0 { b } else { a });
+    if worst > MAX_GARMENT_DISTANCE {
+        let unit = match size / body_size {
+            r if r > 300.0 => " (it is about 1000 times the body's size: millimetres?)",
+            r if r > 30.0 => " (it is about 100 times the body's size: centimetres?)",
+            _ => " (is it made on the body in its rest pose, the T-pose, in metres?)",
+        };
+        return Err(format!(
+            "vertex {} is {worst:.2} m from the body (at most {MAX_GARMENT_DISTANCE} m): the garment spans {size:.2} units, the body {body_size:.2} m{unit}",
+            at + 1
+        ));
+    }
+    Ok(())
 }
 
 /// Writes a mesh as OBJ (positions, optional UVs, triangles).

@@ -176,8 +176,21 @@ impl Motion {
         let rate_key = ["fps", "mocap_framerate", "mocap_frame_rate"].into_iter().find(|k| npz.contains(k));
         let rate_key = rate_key.ok_or_else(|| bad("fps", "missing key (nor is there AMASS's 'mocap_framerate')".into()))?;
         let fps = npz.scalar(rate_key)?;
-        if !(fps > 0.0) {
-            return Err(bad(rate_key, format!("{fps} is not a positive frame rate")));
+        if !(MIN_FPS..=MAX_FPS).contains(&fps) {
+            return Err(bad(rate_key, format!("{fps} frames a second; a motion plays at {MIN_FPS} to {MAX_FPS}")));
+        }
+        for (key, a) in [("poses", poses), ("trans", trans)] {
+            if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
+                return Err(bad(key, format!("value {i} is {} (not finite)", a.data[i])));
+            }
+        }
+        if let Some(i) = poses.data.iter().position(|v| v.abs() > MAX_AXIS_ANGLE) {
+            return Err(bad("poses", format!("value {i} is {} rad; axis-angles are at most {MAX_AXIS_ANGLE} (degrees instead of radians?)", poses.data[i])));
+        }
+        let translations_read: Vec<V3> = trans.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        check_root_speed(&translations_read, fps).map_err(|problem| bad("trans", problem))?;
+        if let Some(i) = trans.data.iter().position(|v| v.abs() > MAX_TRANSLATION) {
+            return Err(bad("trans", format!("value {i} is {} m; drape takes translations within {MAX_TRANSLATION} m of the origin (is the file in millimetres?)", trans.data[i])));
         }
         let amass = width == 156 || width == 165 || npz.contains("mocap_framerate") || npz.contains("mocap_frame_rate");
         let mut poses: Vec<Pose> = poses
@@ -197,6 +210,33 @@ impl Motion {
         }
         Ok(Self { fps, poses, translations })
     }
+}
+
+/// The frame rates a motion file may have.
+pub const MIN_FPS: f64 = 1.0;
+pub const MAX_FPS: f64 = 1000.0;
+/// How far from the origin a motion's root may go (metres): a capture hall is tens of
+/// metres across; millimetres read as metres are thousands.
+pub const MAX_TRANSLATION: f64 = 1000.0;
+
+/// The largest axis-angle component a motion may have (radians; a rotation needs at
+/// most π, a few turns more are tolerated).
+pub const MAX_AXIS_ANGLE: f64 = 4.0 * PI;
+
+/// The fastest a person's root moves (m/s): a sprinter reaches about 12.
+pub const MAX_ROOT_SPEED: f64 = 20.0;
+
+/// Refuses a root that moves faster than [`MAX_ROOT_SPEED`] between two frames at
+/// `fps` (a teleporting body would drag the simulated cloth across the distance).
+pub fn check_root_speed(translations: &[V3], fps: f64) -> Result<(), String> {
+    for (i, w) in translations.windows(2).enumerate() {
+        let d = sub(w[1], w[0]);
+        let step = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        if !(step * fps <= MAX_ROOT_SPEED) {
+            return Err(format!("the root moves {step:.3} m between frames {i} and {} ({:.1} m/s at {fps} fps; people move at most {MAX_ROOT_SPEED} m/s)", i + 1, step * fps));
+        }
+    }
+    Ok(())
 }
 
 /// The -90° rotation about x: AMASS's z-up world to our y-up one.

@@ -189,8 +189,8 @@ fn unsupported_dtype(descr: &str) -> String {
 
 fn decode_body(bytes: &[u8], header: &Header, dtype: Dtype, err: &dyn Fn(String) -> NpyError) -> Result<Array, NpyError> {
     let shape = &header.shape;
-    let count: usize = shape.iter().product();
-    let needed = count * dtype.size();
+    // Checked: a header may declare any shape, and the file's length bounds the data.
+    let needed = shape.iter().try_fold(dtype.size(), |a, &d| a.checked_mul(d)).ok_or_else(|| err(format!("shape {shape:?} of {}-byte values overflows", dtype.size())))?;
     let body = &bytes[header.data_start..];
     if body.len() < needed {
         return Err(err(format!("truncated: shape {shape:?} needs {needed} bytes, found {}", body.len())));
@@ -281,8 +281,14 @@ impl Npz {
             let mut entry = zip.by_index(i).map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
             let name = entry.name().to_string();
             let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
+            // An entry's declared size is only a claim: deflate expands at most about
+            // 1032 times, and a stored entry holds what it occupies.
+            let most = if entry.compression() == zip::CompressionMethod::Stored { entry.compressed_size() } else { entry.compressed_size().saturating_mul(1032).saturating_add(1024) };
+            if entry.size() > most {
+                return Err(fmt_err(&file_name, Some(&key), format!("entry declares {} bytes, more than its {} compressed bytes can hold", entry.size(), entry.compressed_size())));
+            }
             let mut bytes = Vec::with_capacity(entry.size() as usize);
-            entry.read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
+            std::io::Read::take(&mut entry, most.saturating_add(1)).read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
             let err = |p: String| fmt_err(&file_name, Some(&key), p);
             let header = parse_header(&bytes, &err)?;
             match Dtype::parse(&header.descr) {

@@ -4,6 +4,8 @@
 //! stderr and a non-zero exit code, never a panic trace.
 #![forbid(unsafe_code)]
 
+pub mod output;
+
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -119,4 +121,38 @@ pub fn median(values: &[f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     let mid = v.len() / 2;
     if v.len() % 2 == 0 { (v[mid - 1] + v[mid]) / 2.0 } else { v[mid] }
+}
+
+/// A parser for a finite number option in `[min, max]`; the message says the range
+/// (clap puts the option's name before it).
+pub fn number_in<T>(min: f64, max: f64) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync + 'static
+where
+    T: std::str::FromStr + Copy + Into<f64> + Send + Sync + 'static,
+{
+    move |s: &str| {
+        let v: T = s.trim().parse().map_err(|_| format!("'{s}' is not a number"))?;
+        let x: f64 = v.into();
+        if !x.is_finite() || x < min || x > max {
+            return Err(format!("'{s}' is outside [{min}, {max}]"));
+        }
+        Ok(v)
+    }
+}
+
+/// Bytes of memory the machine can still give (Linux's MemAvailable); None where the
+/// system does not say.
+pub fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Refuses work that needs `bytes` of host memory for `what` beyond what the machine
+/// has available, naming the option that asked for it.
+pub fn ensure_memory(bytes: u64, what: &str, option: &str) -> anyhow::Result<()> {
+    if let Some(available) = available_memory() {
+        anyhow::ensure!(bytes <= available, "{option}: {what} needs {:.1} GiB of memory, and {:.1} GiB is available", bytes as f64 / (1u64 << 30) as f64, available as f64 / (1u64 << 30) as f64);
+    }
+    Ok(())
 }

@@ -23,13 +23,13 @@ pub struct AnimateArgs {
     #[arg(long, default_value = "walk")]
     pub motion: String,
     /// Frames to render (a motion file: at most its own).
-    #[arg(long, default_value_t = 60)]
-    pub frames: usize,
+    #[arg(long, allow_negative_numbers = true, default_value_t = 60, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub frames: u32,
     /// Frame rate of the procedural motions and the GIF.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = drape_cli_support::number_in::<f64>(0.1, 1000.0))]
     pub fps: f64,
     /// Degrees the camera circles the person over the animation (0: fixed camera).
-    #[arg(long, default_value_t = 360.0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 360.0, allow_negative_numbers = true, value_parser = drape_cli_support::number_in::<f64>(-36000.0, 36000.0))]
     pub orbit: f64,
     /// Background colour r,g,b in [0, 1] where nothing is rendered.
     #[arg(long, default_value = "1,1,1")]
@@ -52,12 +52,10 @@ fn parse_background(s: &str) -> anyhow::Result<[f32; 3]> {
 }
 
 pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(args.frames > 0, "--frames must be at least 1");
-    anyhow::ensure!(args.fps > 0.0 && args.fps.is_finite(), "--fps must be positive");
     let background = parse_background(&args.background)?;
     // The motion first: a bad file is reported before the GPU is touched.
     let (motion, name): (Motion, String) = match MotionKind::parse(&args.motion) {
-        Some(kind) => (procedural(kind, args.frames, args.fps, 1.0), kind.name().to_string()),
+        Some(kind) => (procedural(kind, args.frames as usize, args.fps, 1.0), kind.name().to_string()),
         None => {
             let path = PathBuf::from(&args.motion);
             anyhow::ensure!(path.is_file(), "--motion {}: neither walk, jog, raise-arms, turn nor a motion file", args.motion);
@@ -68,9 +66,12 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
     };
     let ctx = device.open()?;
     let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
-    let out = args.out.clone().unwrap_or_else(|| run.dir.join(format!("animate-{name}")));
-    std::fs::create_dir_all(&out).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
-    let options = AnimateOptions { frames: args.frames, orbit_degrees: args.orbit, background, gif: !args.no_gif };
+    let staged = match &args.out {
+        Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
+        None => drape_cli_support::output::StagedDir::new(&run.dir.join(format!("animate-{name}")), "the default output RUN/animate-MOTION", true)?,
+    };
+    let out = staged.path().to_path_buf();
+    let options = AnimateOptions { frames: args.frames as usize, orbit_degrees: args.orbit, background, gif: !args.no_gif };
     let report = animate(&ctx, &mut run, &motion, &options, &out, &mut |k, n| {
         eprint!("\rrendering {}/{n}   ", k + 1);
         let _ = std::io::stderr().flush();
@@ -78,6 +79,8 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
     ?;
     eprintln!();
     device.check_validation(&ctx)?;
+    let out = staged.target().to_path_buf();
+    staged.commit()?;
     let mut sorted = report.frame_ms.clone();
     sorted.sort_by(f64::total_cmp);
     println!(

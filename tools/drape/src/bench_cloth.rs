@@ -68,10 +68,10 @@ pub struct BenchClothArgs {
     #[arg(long)]
     pub fit_steps: Option<u32>,
     /// Image width and height of the synthetic sequences in pixels.
-    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(16..=2048))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 128, value_parser = clap::value_parser!(u32).range(16..=2048))]
     pub size: u32,
     /// Frames per sequence at 30 fps (every fifth, from the second, is held out).
-    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(3..=3000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30, value_parser = clap::value_parser!(u32).range(3..=3000))]
     pub frames: u32,
     /// Seed of the sequences' handheld camera and of training.
     #[arg(long, default_value_t = 1)]
@@ -155,7 +155,7 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     let fits = list(&args.fits, "fits", "loose, tight", GarmentFit::parse)?;
     let motions = list(&args.motions, "motions", "walk, jog, raise-arms, turn", MotionKind::parse)?;
     let rows = list(&args.rows, "rows", &ROWS.map(|r| r.key).join(", "), |k| ROWS.iter().find(|r| r.key == k).copied())?;
-    let mut base = TrainConfig::preset(Preset::parse(&args.preset)?);
+    let mut base = TrainConfig::preset(Preset::parse(&args.preset).context("--preset")?);
     if let Some(s) = args.steps {
         base.steps = s;
     }
@@ -167,16 +167,36 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     base.validate()?;
     // Runs are never overwritten: a finished benchmark stays as it was measured.
     if args.out.exists() {
-        let mut entries = std::fs::read_dir(&args.out).with_context(|| format!("{}: cannot read", args.out.display()))?;
-        anyhow::ensure!(entries.next().is_none(), "{}: not empty (bench-cloth writes a new directory)", args.out.display());
+        let mut entries = std::fs::read_dir(&args.out).with_context(|| format!("--out {}: cannot read", args.out.display()))?;
+        anyhow::ensure!(entries.next().is_none(), "--out {}: not empty (bench-cloth writes a new directory)", args.out.display());
     }
+    if let Some(path) = &base.lpips_weights {
+        drape_engine::ops::lpips::LpipsWeights::load(path, base.lpips_net)?;
+    }
+    // All or nothing: a benchmark that fails leaves no directory behind (an empty one
+    // that was there stays, empty).
+    let created = !args.out.exists();
+    let result = measure(device, args, &fits, &motions, &rows, &base);
+    if result.is_err() {
+        if created {
+            let _ = std::fs::remove_dir_all(&args.out);
+        } else if let Ok(entries) = std::fs::read_dir(&args.out) {
+            for e in entries.flatten() {
+                let _ = if e.path().is_dir() { std::fs::remove_dir_all(e.path()) } else { std::fs::remove_file(e.path()) };
+            }
+        }
+    }
+    result
+}
+
+fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], motions: &[MotionKind], rows: &[Row], base: &TrainConfig) -> anyhow::Result<()> {
     let ctx = device.open()?;
     let total = fits.len() * motions.len() * rows.len();
     let mut done = 0;
     let mut sequences = Vec::new();
     let t_all = Instant::now();
-    for &fit in &fits {
-        for &motion in &motions {
+    for &fit in fits {
+        for &motion in motions {
             let name = format!("{}-{}", fit.name(), motion_name(motion));
             let data = args.out.join("data").join(&name);
             let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: 1, motion, seed: args.seed, samples: 2, garment: fit };
@@ -190,7 +210,7 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
             println!("[{name}] synthesised {} frames at {}x{} in {:.1} s", args.frames, args.size, args.size, t0.elapsed().as_secs_f64());
             let seq = load_sequence(&data, 0)?;
             let mut results = Vec::new();
-            for row in &rows {
+            for row in rows {
                 done += 1;
                 let mut config = base.clone();
                 config.cloth_fit = fit;

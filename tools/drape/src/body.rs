@@ -17,14 +17,15 @@ pub struct BodyArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Surface extraction cell size in metres (smaller: more vertices).
-    #[arg(long, default_value_t = 0.028)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.028, value_parser = drape_cli_support::number_in::<f64>(0.01, 0.1))]
     pub cell: f64,
 }
 
 pub fn run_body(args: &BodyArgs) -> anyhow::Result<()> {
-    anyhow::ensure!((0.01..=0.1).contains(&args.cell), "--cell {} is outside 0.01 to 0.1 m", args.cell);
     let body = default_body(&BodyOptions { cell: args.cell, ..BodyOptions::default() });
-    body.write_npz(&args.out)?;
+    let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
+    body.write_npz(out.path())?;
+    out.commit()?;
     // Read back through the loader, as a user's SMPL file would be.
     let back = SmplModel::load_npz(&args.out)?;
     println!("wrote {}: {} vertices, {} faces, 24 joints, {} shape coefficients", args.out.display(), back.num_vertices(), back.faces.len(), back.num_betas);
@@ -40,14 +41,14 @@ pub struct SimulateArgs {
     #[arg(long, default_value = "walk")]
     pub motion: String,
     /// Frames of a procedural motion.
-    #[arg(long, default_value_t = 90)]
-    pub frames: usize,
+    #[arg(long, allow_negative_numbers = true, default_value_t = 90, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub frames: u32,
     /// Playback speed of a procedural motion (2 = twice as fast).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0, value_parser = drape_cli_support::number_in::<f64>(0.01, 100.0))]
     pub speed: f64,
     /// Substeps per frame (below 8, the iterations per substep grow so that a frame
     /// still gets about 16 rounds of collisions and strain limiting).
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub substeps: u32,
     /// Body model .npz (default: the project's body).
     #[arg(long)]
@@ -70,29 +71,37 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
         Some(kind) => {
             anyhow::ensure!(args.frames > 0, "--frames must be positive");
             anyhow::ensure!(args.speed > 0.0 && args.speed.is_finite(), "--speed must be a positive number");
-            procedural(kind, args.frames, 30.0, args.speed)
+            procedural(kind, args.frames as usize, 30.0, args.speed)
         }
         None => Motion::load_npz(std::path::Path::new(&args.motion))
             .with_context(|| format!("--motion '{}' is neither walk, jog, raise-arms, turn nor a readable motion .npz", args.motion))?,
     };
     let mut garments = vec![tshirt(&body), pants(&body)];
     for path in &args.garment {
-        garments.push(load_obj(path, &body)?);
+        let mut g = load_obj(path, &body)?;
+        // A user's garment named like a built-in (or like another) keeps its own files.
+        if garments.iter().any(|o| o.name == g.name) {
+            let base = g.name.clone();
+            g.name = (2..).map(|k| format!("{base}-{k}")).find(|n| garments.iter().all(|o| &o.name != n)).expect("a free name");
+            eprintln!("{}: written as {}_NNNN.obj ('{base}' is taken)", path.display(), g.name);
+        }
+        garments.push(g);
     }
-    std::fs::create_dir_all(&args.out).with_context(|| format!("{}: cannot create", args.out.display()))?;
+    let out = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
     let params = ClothParams::with_substeps(args.substeps);
     eprintln!("simulating {} garments ({} vertices) over {} frames...", garments.len(), garments.iter().map(|g| g.vertices.len()).sum::<usize>(), motion.len());
     let t0 = std::time::Instant::now();
     let result = simulate_with_progress(&body, &garments, &motion, params, 20, &mut |done, total| eprint!("\rframe {done:>5}/{total} (20 settling)   "));
     eprintln!();
     let seconds = t0.elapsed().as_secs_f64();
+    anyhow::ensure!(!result.any_nan, "the simulation produced non-finite positions");
     for (f, frame) in result.frames.iter().enumerate() {
         for (g, positions) in garments.iter().zip(frame) {
-            let path = args.out.join(format!("{}_{f:04}.obj", g.name));
+            let path = out.path().join(format!("{}_{f:04}.obj", g.name));
             write_obj(&path, positions, &g.faces, Some(&g.uvs)).with_context(|| format!("{}: cannot write", path.display()))?;
         }
     }
-    anyhow::ensure!(!result.any_nan, "the simulation produced non-finite positions");
+    out.commit()?;
     println!(
         "simulated {} frames in {seconds:.1} s ({:.2} frames/s, 20 settling frames included): deepest cloth vertex {:.1} mm {} the body (margin {:.1} mm), largest edge stretch {:.1}%; wrote {}",
         result.frames.len(),
@@ -113,13 +122,13 @@ pub struct SynthArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Image width and height in pixels (the full size is 512).
-    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(16..=2048))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 128, value_parser = clap::value_parser!(u32).range(16..=2048))]
     pub size: u32,
     /// Frames at 30 fps.
-    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=3000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=3000))]
     pub frames: u32,
     /// Static cameras of the ring (ZJU-MoCap layout).
-    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub cameras: u32,
     /// Motion: walk, jog, raise-arms, turn.
     #[arg(long, default_value = "walk")]
@@ -128,7 +137,7 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Supersampling per axis (antialiasing).
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
     pub samples: u32,
     /// The T-shirt's fit: tight (1.5 cm off the skin, hem at the hips) or loose (4.5 cm
     /// of ease around the torso, hem 10 cm lower); the pants are the same for both.
@@ -141,10 +150,12 @@ pub fn run_synth(args: &SynthArgs) -> anyhow::Result<()> {
     let motion = MotionKind::parse(&args.motion).ok_or_else(|| anyhow::anyhow!("--motion '{}' is not one of walk, jog, raise-arms, turn", args.motion))?;
     let garment = GarmentFit::parse(&args.fit).ok_or_else(|| anyhow::anyhow!("--fit '{}' is not one of tight, loose", args.fit))?;
     let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: args.cameras as usize, motion, seed: args.seed, samples: args.samples, garment };
-    let summary = generate(&args.out, &options, &mut |stage, done, total| {
+    let out = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
+    let summary = generate(out.path(), &options, &mut |stage, done, total| {
         eprint!("\r{stage:<18} {done:>5}/{total}   ");
     })
     .map_err(|e| anyhow::anyhow!(e))?;
+    out.commit()?;
     eprintln!();
     println!(
         "wrote {} frames ({}x{}): neuman/ (1 moving camera), zju/ ({} static cameras), gt/ in {:.1} s to {}",

@@ -22,7 +22,7 @@ pub struct EditArgs {
     pub remove_cloth: bool,
     /// Rotate the garments' hue by this many degrees (about the grey axis, inside the
     /// cloth layer's appearance decoder).
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_negative_numbers = true, value_parser = drape_cli_support::number_in::<f64>(-3600.0, 3600.0))]
     pub recolour: Option<f64>,
     /// Put this run's cloth layer on RUN's body (runs of the same data and preset).
     #[arg(long)]
@@ -42,16 +42,18 @@ pub fn run(device: &DeviceArgs, args: &EditArgs) -> anyhow::Result<()> {
         (None, None) => Edit::RemoveCloth,
     };
     if args.out.exists() && std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(true) {
-        anyhow::bail!("{}: the output directory exists and is not empty", args.out.display());
+        anyhow::bail!("--out {}: the output directory exists and is not empty", args.out.display());
     }
+    let staged = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
     let ctx = device.open()?;
     let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
     let mut other = match &args.swap_cloth {
         Some(o) => Some(OpenRun::open(&ctx, o, None, None)?),
         None => None,
     };
-    let what = edit(&ctx, &mut run, &which, other.as_mut(), &args.out)?;
+    let what = edit(&ctx, &mut run, &which, other.as_mut(), staged.path())?;
     device.check_validation(&ctx)?;
+    staged.commit()?;
     println!("{what}; wrote {} (config.json, run.json, model.npz): `drape eval {0}` and `drape animate {0}` open it", args.out.display());
     Ok(())
 }

@@ -59,8 +59,11 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
     let frames: Vec<_> = run.test_frames().into_iter().cloned().collect();
     anyhow::ensure!(!frames.is_empty(), "{}: no held-out frames in this sequence's protocol", run.seq.dir.display());
     let frame_refs: Vec<_> = frames.iter().collect();
-    let out = args.out.clone().unwrap_or_else(|| run.dir.join("eval"));
-    std::fs::create_dir_all(&out).map_err(|e| anyhow::anyhow!("{}: {e}", out.display()))?;
+    let staged = match &args.out {
+        Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
+        None => drape_cli_support::output::StagedDir::new(&run.dir.join("eval"), "the default output RUN/eval", true)?,
+    };
+    let out = staged.path().to_path_buf();
     let inputs = EvalInputs { rig: &run.rig, frames: &frame_refs, ground_truth: ground_truth.as_deref(), lpips: lpips.as_ref(), sheets: Some(&out) };
     let t0 = std::time::Instant::now();
     let (mean, per_frame) = evaluate_with_fid(&ctx, &mut run.avatar, &mut run.renderer, &inputs, fid.as_ref(), &mut |p| {
@@ -91,6 +94,8 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
         }
     );
     write_reports(&out, &header, &mean, &per_frame)?;
+    let out = staged.target().to_path_buf();
+    staged.commit()?;
     println!("{}", markdown_table(&header, &mean, &per_frame));
     println!(
         "wrote {}/eval.json, eval.md and {} sheets (ground truth | render | error x{ERROR_GAIN}{}) in {:.1} s",

@@ -18,10 +18,10 @@ pub struct FitArgs {
     #[arg(long)]
     pub target: PathBuf,
     /// Number of Gaussians.
-    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2000, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
     pub n: u32,
     /// Adam iterations.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
     pub iters: u32,
     /// Seed of the initial Gaussians.
     #[arg(long, default_value_t = 1)]
@@ -37,6 +37,9 @@ pub struct FitArgs {
 pub fn run(device: &DeviceArgs, args: &FitArgs) -> anyhow::Result<()> {
     let target = read_rgb(&args.target)?;
     anyhow::ensure!(target.width * target.height <= 4096 * 4096, "{}: {}x{} is larger than 4096x4096", args.target.display(), target.width, target.height);
+    // Staged before the work, so that an unwritable path costs nothing.
+    let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
+    let render_out = args.render.as_deref().map(|p| drape_cli_support::output::StagedFile::new(p, "--render")).transpose()?;
     let ctx = device.open()?;
     let cfg = FitConfig { count: args.n as usize, iterations: args.iters, seed: args.seed, ..FitConfig::default() };
     let t0 = std::time::Instant::now();
@@ -48,10 +51,14 @@ pub fn run(device: &DeviceArgs, args: &FitArgs) -> anyhow::Result<()> {
     })?;
     eprintln!();
     device.check_validation(&ctx)?;
-    ply::write(&args.out, &result.cloud)?;
-    if let Some(path) = &args.render {
+    ply::write(out.path(), &result.cloud)?;
+    if let Some(staged) = &render_out {
         let (image, _) = render_image(&ctx, &result.cloud, &result.camera, &RenderSettings::default())?;
-        write_png(path, image.width, image.height, &image.rgb)?;
+        write_png(staged.path(), image.width, image.height, &image.rgb)?;
+    }
+    out.commit()?;
+    if let Some(staged) = render_out {
+        staged.commit()?;
     }
     println!(
         "fitted {} Gaussians to {} ({}x{}) in {} iterations, {:.1} s: PSNR {:.2} dB; wrote {}",

@@ -81,7 +81,11 @@ enum Command {
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
+    // Keys and values, their sorted copies and the CPU's pairs: about 24 bytes a pair.
+    drape_cli_support::ensure_memory(24 * u64::from(n), &format!("sorting {n} pairs"), "--n")?;
     let ctx = device.open()?;
+    let limit = ctx.info().max_storage_buffer_range / 8;
+    anyhow::ensure!(u64::from(n) <= limit, "--n: {n} pairs do not fit one storage buffer of this device (at most {limit}: maxStorageBufferRange / 8 bytes a pair)");
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let keys: Vec<u32> = (0..n).map(|_| rng.random()).collect();
     let values: Vec<u32> = (0..n).collect();

@@ -31,16 +31,16 @@ pub struct RenderArgs {
     #[arg(long, value_parser = parse_vec3, default_value = "0,-1,0")]
     pub up: [f32; 3],
     /// Vertical field of view in degrees.
-    #[arg(long, default_value_t = 50.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 50.0, value_parser = drape_cli_support::number_in::<f32>(0.01, 179.99))]
     pub fov: f32,
     /// Image width in pixels (at least 1).
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=16384))]
     pub width: u32,
     /// Image height in pixels (at least 1).
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=16384))]
     pub height: u32,
     /// Background colour r,g,b in [0, 1].
-    #[arg(long, value_parser = parse_vec3, default_value = "0,0,0")]
+    #[arg(long, value_parser = parse_colour, default_value = "0,0,0")]
     pub background: [f32; 3],
     /// Antialiased mode (opacity compensated for the low-pass dilation).
     #[arg(long)]
@@ -66,6 +66,15 @@ pub fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
     }
 }
 
+/// Parses "r,g,b" with each channel in [0, 1].
+fn parse_colour(s: &str) -> Result<[f32; 3], String> {
+    let c = parse_vec3(s)?;
+    if c.iter().any(|v| !(0.0..=1.0).contains(v)) {
+        return Err(format!("'{s}': each channel must be in [0, 1]"));
+    }
+    Ok(c)
+}
+
 fn camera(args: &RenderArgs) -> anyhow::Result<PinholeCamera> {
     let mut cam = match &args.camera {
         Some(path) => {
@@ -88,13 +97,24 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let format = RenderFormat::from_path(&args.out)?;
     let cam = camera(args)?;
     let cloud = ply::read(&args.ply)?;
+    let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
+    let depth = crate::image_io::depth_exr_path(&args.out);
+    anyhow::ensure!(format != RenderFormat::Exr || !depth.is_dir(), "--out {}: its depth file {} is a directory", args.out.display(), depth.display());
     let ctx = device.open()?;
     let settings = RenderSettings { antialiased: args.antialiased, ..RenderSettings::default() };
     let t0 = std::time::Instant::now();
     let (image, stats) = render_image(&ctx, &cloud, &cam, &settings)?;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     device.check_validation(&ctx)?;
-    let written = write_render(&args.out, format, &image, cam.background)?;
+    let staged = write_render(out.path(), format, &image, cam.background)?;
+    // The EXR's depth file comes beside it; both are moved into place at the end.
+    let mut written = vec![args.out.clone()];
+    let companion = staged.get(1).map(|p| (p.clone(), crate::image_io::depth_exr_path(&args.out)));
+    out.commit()?;
+    if let Some((from, to)) = companion {
+        std::fs::rename(&from, &to).map_err(|e| anyhow::anyhow!("{}: cannot move into place: {e}", to.display()))?;
+        written.push(to);
+    }
     eprintln!(
         "rendered {} Gaussians (SH degree {}) at {}x{} in {ms:.1} ms: {} tile intersections, {} blend steps, {} dropped; wrote {}",
         cloud.len(),

@@ -111,7 +111,7 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
         }
         return Ok(config);
     }
-    let mut config = TrainConfig::preset(Preset::parse(&args.preset)?);
+    let mut config = TrainConfig::preset(Preset::parse(&args.preset).context("--preset")?);
     if let Some(path) = &args.config {
         let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
         config = config.with_toml(&text, path)?;

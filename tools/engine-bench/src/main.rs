@@ -54,7 +54,7 @@ struct Common {
     #[arg(long, value_parser = parse_len, allow_negative_numbers = true, default_value = "1000000")]
     n: u32,
     /// Timed runs (the median is reported); at least 10.
-    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(10..))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 10, value_parser = clap::value_parser!(u32).range(10..))]
     runs: u32,
     /// Untimed warm-up runs first (at least this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 2)]
@@ -75,7 +75,7 @@ enum Job {
         #[command(flatten)]
         common: Common,
         /// Significant key bits (1-32); keys are random in 0..2^bits.
-        #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=32))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=32))]
         bits: u32,
         /// Sort kernels: auto (chunks on CPU devices, blocks on GPUs), blocks (workgroups
         /// rank blocks of 2,048 keys by 4-bit digits) or chunks (one invocation walks each

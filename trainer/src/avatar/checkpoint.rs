@@ -222,7 +222,11 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
         if arr.data.len() != len {
             return Err(bad(key, format!("array has shape {:?} ({} values), but this model needs {len}", arr.shape, arr.data.len())));
         }
-        Ok(arr.data.iter().map(|&v| v as f32).collect())
+        let values: Vec<f32> = arr.data.iter().map(|&v| v as f32).collect();
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(bad(key, format!("value {i} is {} (a run that diverged, or a damaged file; an earlier checkpoint may be intact)", values[i])));
+        }
+        Ok(values)
     };
     let version = get("format_version", Dtype::U32, 1)?[0] as u32;
     if version != FORMAT_VERSION {
@@ -324,11 +328,28 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
                 if arr.dtype != Dtype::F64 || arr.data.len() != f * REFINED_PARAMS {
                     return Err(bad(key, format!("array is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape)));
                 }
+                if let Some(i) = arr.data.iter().position(|v| !v.is_finite()) {
+                    return Err(bad(key, format!("value {i} is {} (a run that diverged, or a damaged file)", arr.data[i])));
+                }
                 Ok(arr.data.chunks_exact(REFINED_PARAMS).map(|c| std::array::from_fn(|k| c[k])).collect())
             };
             let steps: Vec<u32> = get("poses.adam.step", Dtype::U32, f)?.iter().map(|&v| v as u32).collect();
             Some(PoseState { frames, deltas: rows("poses.delta")?, m: rows("poses.adam.m")?, v: rows("poses.adam.v")?, steps })
         }
     };
+    for (name, l) in &layers {
+        if let Some(g) = l.quats.chunks_exact(4).position(|q| q.iter().all(|&c| c == 0.0)) {
+            return Err(bad(&format!("{name}.quats"), format!("Gaussian {g} has the zero quaternion (no rotation)")));
+        }
+        let [lo, hi] = l.triplane_box;
+        if (0..3).any(|k| !(lo[k] < hi[k])) {
+            return Err(bad(&format!("{name}.triplane_box"), format!("min {lo:?} is not below max {hi:?} on every axis")));
+        }
+    }
+    if let Some(s) = &scene {
+        if let Some(g) = s.params[2].chunks_exact(4).position(|q| q.iter().all(|&c| c == 0.0)) {
+            return Err(bad("scene.quats", format!("Gaussian {g} has the zero quaternion (no rotation)")));
+        }
+    }
     Ok(ModelState { step, layers, scene, poses })
 }

@@ -67,6 +67,16 @@ pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], pr
     }
     let order: Vec<(usize, (Pose, V3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
     let motion = Motion { fps: 30.0, poses: order.iter().map(|(_, p)| p.0).collect(), translations: order.iter().map(|(_, p)| p.1).collect() };
+    // Frames may be subsampled, so the bound is a generous 2 m between consecutive
+    // frames; beyond it the garments would be dragged across the gap (and the collision
+    // grid would grow with it).
+    for (w, pair) in motion.translations.windows(2).zip(order.windows(2)) {
+        let d = crate::mesh::sub(w[1], w[0]);
+        let step = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        if !(step <= 2.0) {
+            return Err(TrainerError::invalid("the sequence's body parameters", format!("the body moves {step:.3} m between frames {} and {} (at most 2 m: is a translation wrong?)", pair[0].0, pair[1].0)));
+        }
+    }
     let garments = garments(rig, fit);
     let sim = simulate_with_progress(&rig.model, &garments, &motion, ClothParams::default(), 20, progress);
     if sim.any_nan {

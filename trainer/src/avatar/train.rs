@@ -298,6 +298,12 @@ impl TrainConfig {
             ("lambda_lpips", self.lambda_lpips),
             ("lr_pose", self.lr_pose),
             ("lr_translation", self.lr_translation),
+            ("scene.lr_position", self.scene.lr_position),
+            ("scene.lr_position_final", self.scene.lr_position_final),
+            ("scene.lr_rotation", self.scene.lr_rotation),
+            ("scene.lr_scale", self.scene.lr_scale),
+            ("scene.lr_opacity", self.scene.lr_opacity),
+            ("scene.lr_sh", self.scene.lr_sh),
         ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
@@ -310,6 +316,15 @@ impl TrainConfig {
         }
         if self.decimate == 0 {
             return bad("decimate", "must be >= 1".into());
+        }
+        if self.log_every == 0 {
+            return bad("log_every", "must be >= 1 (steps between log lines)".into());
+        }
+        if self.scene.max_points == 0 {
+            return bad("scene.max_points", "must be >= 1".into());
+        }
+        if self.lpips_weights.as_ref().is_some_and(|p| p.as_os_str().is_empty()) {
+            return bad("lpips_weights", "is empty; leave the key out to train without LPIPS".into());
         }
         if self.subdivision > 2 {
             return bad("subdivision", format!("must be 0, 1 or 2, got {}", self.subdivision));
@@ -783,6 +798,9 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
         let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
+        if state.step > config.steps {
+            return Err(TrainerError::checkpoint(&checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.steps)));
+        }
         avatar.restore(ctx, &state)?;
         // The checkpoint's layers may have been densified to other counts.
         renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;

@@ -79,7 +79,7 @@ impl ColmapCamera {
             return Err(err(CameraProblem::NotFinite { param: names[i], value: p[i] }));
         }
         let (k, rest) = if simple { ([p[0], p[0], p[1], p[2]], &p[3..]) } else { ([p[0], p[1], p[2], p[3]], &p[4..]) };
-        if !(k[0] > 0.0 && k[1] > 0.0) {
+        if !(k[0] >= MIN_FOCAL && k[1] >= MIN_FOCAL && k[0] <= MAX_FOCAL && k[1] <= MAX_FOCAL) {
             return Err(err(CameraProblem::FocalLength { fx: k[0], fy: k[1] }));
         }
         let c = |i: usize| rest.get(i).copied().unwrap_or(0.0);
@@ -218,12 +218,17 @@ impl CameraProblem {
             Self::UnsupportedModel => format!("has model {model}, which drape does not undistort (it reads SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV)"),
             Self::ParamCount { got, expected } => format!("({model}) has {got} PARAMS, expected {} ({})", expected.len(), expected.join(" ")),
             Self::NotFinite { param, value } => format!("({model}) has {param} = {value}, which is not finite"),
-            Self::FocalLength { fx, fy } => format!("({model}) has focal length {fx} x {fy}, which is not positive"),
+            Self::FocalLength { fx, fy } => format!("({model}) has focal length {fx} x {fy} pixels; drape takes {MIN_FOCAL} to {MAX_FOCAL}"),
             Self::Size { width, height } => format!("({model}) has WIDTH x HEIGHT {width} x {height}; both must be at least 1"),
             Self::RationalModel { param, value } => format!("({model}) has {param} = {value}: drape does not undistort the rational model (k4, k5, k6 must be 0)"),
         }
     }
 }
+
+/// The focal lengths (pixels) a camera may have: below one pixel the field of view is
+/// nearly 180°, above ten million a telescope's.
+pub const MIN_FOCAL: f64 = 1.0;
+pub const MAX_FOCAL: f64 = 1e7;
 
 /// Formats a float the way Python's `repr` would for round-tripping: shortest exact.
 fn num(v: f64) -> String {
@@ -300,6 +305,9 @@ impl ColmapModel {
                 height: at.num(w[3], "HEIGHT")?,
                 params: w[4..].iter().map(|v| at.num::<f64>(v, "PARAMS")).collect::<Result<_, _>>()?,
             };
+            if model.cameras.contains_key(&cam.id) {
+                return Err(at.err(format!("camera {} is listed twice", cam.id)));
+            }
             model.cameras.insert(cam.id, cam);
         }
 
@@ -336,6 +344,12 @@ impl ColmapModel {
             for c in v.chunks_exact(3) {
                 points2d.push((at2.num(c[0], "X")?, at2.num(c[1], "Y")?, at2.num(c[2], "POINT3D_ID")?));
             }
+            if model.images.contains_key(&id) {
+                return Err(at.err(format!("image {id} is listed twice")));
+            }
+            if let Some(other) = model.images.values().find(|i| i.name == name) {
+                return Err(at.err(format!("image {id} is named '{name}', as image {} is", other.id)));
+            }
             model.images.insert(id, ColmapImage { id, qvec, tvec, camera_id, name, points2d });
             k += 2;
         }
@@ -354,7 +368,16 @@ impl ColmapModel {
                 error: at.num(w[7], "ERROR")?,
                 track: w[8..].chunks_exact(2).map(|c| Ok((at.num(c[0], "IMAGE_ID")?, at.num(c[1], "POINT2D_IDX")?))).collect::<Result<_, ColmapError>>()?,
             };
+            if let Some(v) = p.xyz.iter().chain([&p.error]).find(|v| !v.is_finite()) {
+                return Err(at.err(format!("point {} has {v} among X Y Z ERROR", p.id)));
+            }
+            if model.points.contains_key(&p.id) {
+                return Err(at.err(format!("point {} is listed twice", p.id)));
+            }
             model.points.insert(p.id, p);
+        }
+        if model.images.is_empty() {
+            return Err(ColmapError::Parse { path: dir.join("images.txt").display().to_string(), line: 0, problem: "no images: a model needs at least one registered image".into() });
         }
         Ok(model)
     }

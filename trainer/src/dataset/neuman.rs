@@ -76,7 +76,10 @@ impl SmplSequence {
                 return Err(NpyError::Format { file, key: Some(key.into()), problem: format!("value {i} is {} (not finite)", a.data[i]) });
             }
         }
-        if let Some(i) = scale.data.iter().position(|&s| !(s > 0.0)) {
+        if let Some(i) = tr.data.iter().position(|v| v.abs() > crate::motion::MAX_TRANSLATION) {
+            return Err(NpyError::Format { file, key: Some("transl".into()), problem: format!("value {i} is {}; drape takes translations within {} of the origin", tr.data[i], crate::motion::MAX_TRANSLATION) });
+        }
+        if let Some(i) = scale.data.iter().position(|&s| !(s > 0.0 && s < 1e6)) {
             return Err(NpyError::Format { file, key: Some("scale".into()), problem: format!("value {i} is {}; the scale of a body must be positive", scale.data[i]) });
         }
         let betas = if betas.shape.len() == 2 { betas.data.chunks_exact(nb).map(<[f64]>::to_vec).collect() } else { vec![betas.data.clone(); f] };

@@ -125,20 +125,35 @@ impl ZjuAnnots {
             check(&rs[i], "R", 9)?;
             check(&ts[i], "T", 3)?;
             let (fx, fy) = (ks[i].data[0], ks[i].data[4]);
-            if !(fx > 0.0 && fy > 0.0) {
-                return Err(bad(format!("cams['K'][{i}]"), &format!("focal length {fx} x {fy} (fx = K[0][0], fy = K[1][1]) is not positive")));
+            let (lo, hi) = (crate::dataset::colmap::MIN_FOCAL, crate::dataset::colmap::MAX_FOCAL);
+            if !(fx >= lo && fy >= lo && fx <= hi && fy <= hi) {
+                return Err(bad(format!("cams['K'][{i}]"), &format!("focal length {fx} x {fy} pixels (fx = K[0][0], fy = K[1][1]); drape takes {lo} to {hi}")));
             }
-            if ds[i].data.len() > 8 {
-                return Err(bad(format!("cams['D'][{i}]"), &format!("shape {:?}: at most 5 coefficients (k1 k2 p1 p2 k3) expected", ds[i].shape)));
+            if ks[i].data[6..] != [0.0, 0.0, 1.0] {
+                return Err(bad(format!("cams['K'][{i}]"), &format!("last row {:?}, a camera matrix's is [0, 0, 1]", &ks[i].data[6..])));
             }
             if let Some(k) = ds[i].data.iter().position(|x| !x.is_finite()) {
                 return Err(bad(format!("cams['D'][{i}]"), &format!("coefficient {k} is {} (not finite)", ds[i].data[k])));
+            }
+            if let Some(k) = ds[i].data.iter().skip(5).position(|&x| x != 0.0) {
+                return Err(bad(format!("cams['D'][{i}]"), &format!("coefficient {} is {}: drape undistorts OpenCV's k1 k2 p1 p2 k3 (the rational and prism terms must be 0)", k + 5, ds[i].data[k + 5])));
+            }
+            if let Some(k) = ds[i].data.iter().position(|x| x.abs() > 1e3) {
+                return Err(bad(format!("cams['D'][{i}]"), &format!("coefficient {k} is {}, beyond any lens (|D| <= 1000)", ds[i].data[k])));
             }
             let m = |a: &Array| [[a.data[0], a.data[1], a.data[2]], [a.data[3], a.data[4], a.data[5]], [a.data[6], a.data[7], a.data[8]]];
             let r = m(&rs[i]);
             let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0]) + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
             if (det - 1.0).abs() > 1e-3 {
                 return Err(bad(format!("cams['R'][{i}]"), &format!("not a rotation (determinant {det})")));
+            }
+            for a in 0..3 {
+                for b in 0..3 {
+                    let dot: f64 = (0..3).map(|k| r[a][k] * r[b][k]).sum();
+                    if (dot - if a == b { 1.0 } else { 0.0 }).abs() > 1e-3 {
+                        return Err(bad(format!("cams['R'][{i}]"), &format!("not a rotation (row {a} . row {b} = {dot})")));
+                    }
+                }
             }
             let mut d = [0.0; 5];
             for (k, x) in ds[i].data.iter().take(5).enumerate() {

@@ -113,6 +113,9 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
     let rest_index: Vec<usize> = (0..rest)
         .map(|i| index(&format!("f_rest_{i}")).ok_or_else(|| format_error(path, format!("missing property 'f_rest_{i}'"))))
         .collect::<Result<_, _>>()?;
+    if header.vertices == 0 {
+        return Err(format_error(path, "no vertices (element vertex 0): nothing to render"));
+    }
     let stride = header.names.len() * 4;
     let needed = header.vertices.checked_mul(stride).ok_or_else(|| format_error(path, "vertex count overflows"))?;
     let data = &bytes[header.data_start..];
@@ -123,6 +126,18 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
         ));
     }
     let [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3] = REQUIRED.map(|n| index(n).expect("checked above"));
+    // Every value a Gaussian is made of must be a number: one NaN blanks the image.
+    let used: Vec<usize> = [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3].into_iter().chain(rest_index.iter().copied()).collect();
+    for v in 0..header.vertices {
+        let row = &data[v * stride..(v + 1) * stride];
+        let f = |i: usize| f32::from_le_bytes([row[4 * i], row[4 * i + 1], row[4 * i + 2], row[4 * i + 3]]);
+        if let Some(&i) = used.iter().find(|&&i| !f(i).is_finite()) {
+            return Err(format_error(path, format!("vertex {v}: property '{}' is {}", header.names[i], f(i))));
+        }
+        if [r0, r1, r2, r3].iter().all(|&i| f(i) == 0.0) {
+            return Err(format_error(path, format!("vertex {v}: the rotation (rot_0..rot_3) is the zero quaternion")));
+        }
+    }
     let mut cloud = GaussianCloud::new(degree);
     let n = header.vertices;
     cloud.means.reserve(3 * n);

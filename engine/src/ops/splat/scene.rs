@@ -19,6 +19,9 @@ pub enum Layer {
     Scene = 2,
 }
 
+/// The largest image side a camera may have (see [`PinholeCamera::MAX_SIDE`]).
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+
 /// Gaussians as flat arrays (the GPU layout): `means` 3n, `log_scales` 3n, `quats` 4n
 /// (w, x, y, z), `opacity_logits` n, `sh` 3Kn as `[gaussian][k][channel]` with
 /// K = (degree + 1)², `layers` n.
@@ -198,6 +201,10 @@ impl PinholeCamera {
         })
     }
 
+    /// The largest image side a camera may have (the splatter's tile grid and buffers
+    /// are sized from it; 16384 is the common Vulkan image limit).
+    pub const MAX_SIDE: u32 = MAX_IMAGE_SIDE;
+
     /// Checks what a camera file could get wrong: an
     /// [`EngineError::InvalidSetting`] whose `what` is the field (as the file spells it).
     pub fn validate(&self) -> Result<(), EngineError> {
@@ -216,6 +223,13 @@ impl PinholeCamera {
         if self.width == 0 || self.height == 0 {
             let what = if self.width == 0 { "width" } else { "height" };
             return invalid(what, format!("width and height must be positive ({}x{})", self.width, self.height));
+        }
+        if self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
+            let what = if self.width > MAX_IMAGE_SIDE { "width" } else { "height" };
+            return invalid(what, format!("{}x{} is larger than {MAX_IMAGE_SIDE} on a side", self.width, self.height));
+        }
+        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            return invalid("background", format!("{:?}: each channel in [0, 1]", self.background));
         }
         if !(self.near > 0.0 && self.far > self.near) {
             let what = if self.near > 0.0 { "far" } else { "near" };
