@@ -334,7 +334,7 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     if faces.is_empty() {
         return Err(err("no triangles".into()));
     }
-    check_garment(&vertices, &faces, &body.v_template).map_err(err)?;
+    check_garment(&vertices, &faces, body).map_err(err)?;
     let (weights, weights_blend6) = bind_weights(body, &body.v_template, &vertices);
     let near = NearestBody::new(&body.v_template);
     let attached: Vec<bool> = vertices.iter().map(|&v| near.k_nearest(v, 1)[0].1 < 0.01).collect();
@@ -357,7 +357,8 @@ pub const MAX_GARMENT_DISTANCE: f64 = 0.5;
 /// A garment drape can simulate on `body` (rest-pose vertices): faces that index its
 /// vertices and have an area, and every vertex within [`MAX_GARMENT_DISTANCE`] of the
 /// body, with a guess at the unit when it is not.
-fn check_garment(vertices: &[V3], faces: &[[u32; 3]], body: &[V3]) -> Result<(), String> {
+fn check_garment(vertices: &[V3], faces: &[[u32; 3]], model: &SmplModel) -> Result<(), String> {
+    let body = &model.v_template;
     for (i, f) in faces.iter().enumerate() {
         if let Some(&k) = f.iter().find(|&&k| k as usize >= vertices.len()) {
             return Err(format!("face {} refers to vertex {} of {}", i + 1, k + 1, vertices.len()));
@@ -385,6 +386,21 @@ fn check_garment(vertices: &[V3], faces: &[[u32; 3]], body: &[V3]) -> Result<(),
             "vertex {} is {worst:.2} m from the body (at most {MAX_GARMENT_DISTANCE} m): the garment spans {size:.2} units, the body {body_size:.2} m{unit}",
             at + 1
         ));
+    }
+    // Around the body, not in it: a vertex more than 1 cm under the surface (behind
+    // its nearest body vertex, along that vertex's normal) is inside.
+    let normals = vertex_normals(body, &model.faces);
+    let inside = vertices
+        .iter()
+        .filter(|&&v| {
+            near.k_nearest(v, 1).first().is_some_and(|&(i, _)| {
+                let (b, n) = (body[i as usize], normals[i as usize]);
+                (0..3).map(|k| (v[k] - b[k]) * n[k]).sum::<f64>() < -0.01
+            })
+        })
+        .count();
+    if 2 * inside > vertices.len() {
+        return Err(format!("{inside} of its {} vertices are inside the body (over 1 cm under its surface): a garment is made around the body, in its rest pose", vertices.len()));
     }
     Ok(())
 }

@@ -12,6 +12,7 @@ pub mod camera;
 pub mod cloth;
 pub mod dataset;
 pub mod error;
+pub mod fuzzing;
 pub mod garment;
 pub mod grid;
 pub mod mesh;

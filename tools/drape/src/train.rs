@@ -38,7 +38,7 @@ pub struct TrainArgs {
     pub preset: String,
     /// A TOML file overriding any field of the preset (see `config.json` of a run for
     /// the fields); unknown keys are an error.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub config: Option<PathBuf>,
     /// Which layers: auto (a cloth layer where the data has garment masks, a scene
     /// layer where it has sparse scene points: NeuMan), or body joined by '+' with
@@ -60,7 +60,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub compositing: Option<String>,
     /// Training steps (overrides the preset and the config file).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
     pub steps: Option<u32>,
     /// An SMPL-format body (.npz, smplx layout); default: the project's procedural body,
     /// which is also what `drape synth` animates.
@@ -162,6 +162,12 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         drape_trainer::avatar::train::check_fresh(dir)?;
     }
     let config = load_config(args)?;
+    // Which data and body the run is trained on, for `drape eval` and `drape animate`
+    // (read before training, so that a damaged run.json costs nothing).
+    let body = match (&args.resume, &args.body) {
+        (Some(run), None) => RunInfo::read(run)?.and_then(|i| i.body),
+        (_, b) => b.clone(),
+    };
     let seq = load_sequence(&args.data, config.zju_train_camera)?;
     let model = body_model(args.body.as_deref())?;
     let ctx = device.open()?;
@@ -254,11 +260,6 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
             }
             .into())
         }
-    };
-    // Which data and body the run was trained on, for `drape eval` and `drape animate`.
-    let body = match (&args.resume, &args.body) {
-        (Some(run), None) => RunInfo::read(run)?.and_then(|i| i.body),
-        (_, b) => b.clone(),
     };
     RunInfo::new(&args.data, body.as_deref()).write(&out)?;
     device.check_validation(&ctx)?;

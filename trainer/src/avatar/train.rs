@@ -88,7 +88,7 @@ pub struct TrainConfig {
     /// Steps between log lines (loss and training PSNR).
     pub log_every: u32,
     /// Steps between checkpoints (`checkpoint.npz`, replaced atomically); one is also
-    /// written at the end.
+    /// written at the end (0: only that one).
     pub checkpoint_every: u32,
     /// A step with any non-finite gradient is skipped (counted and logged); this many
     /// in a row stop the run.

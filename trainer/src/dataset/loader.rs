@@ -98,12 +98,13 @@ pub fn check_not_inverted(variant: Variant, path: &Path, mask: &[bool]) -> Resul
 }
 
 /// The union of an image's person masks.
-fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32) -> Result<Vec<bool>, DatasetError> {
+/// `of` names what sets the size (the camera, or the image file).
+fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32, of: &str) -> Result<Vec<bool>, DatasetError> {
     let mut union = vec![false; width as usize * height as usize];
     for path in paths {
         let (w, h, m) = read_mask(path, rule)?;
         if (w, h) != (width, height) {
-            return Err(size_mismatch(path, (w, h), (width, height), "image"));
+            return Err(size_mismatch(path, (w, h), (width, height), of));
         }
         union.iter_mut().zip(m).for_each(|(u, m)| *u |= m);
     }
@@ -168,12 +169,12 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
             return Err(DatasetError::Field { file: sparse.display().to_string(), field: format!("image {} ('{}')", img.id, img.name), problem });
         }
         let rgb = undistorted_rgb(undistort, load_rgb(&paths.image, cam.width, cam.height)?);
-        let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height)?);
+        let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height, "camera (cameras.txt)")?);
         check_not_inverted(files.variant, &paths.masks[0], &mask)?;
         let garment_masks = match &paths.garment_masks {
             Some((upper, lower)) => Some((
-                undistorted_mask(undistort, load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height)?),
-                undistorted_mask(undistort, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height)?),
+                undistorted_mask(undistort, load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height, "camera (cameras.txt)")?),
+                undistorted_mask(undistort, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height, "camera (cameras.txt)")?),
             )),
             None => None,
         };
@@ -230,7 +231,7 @@ pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<Datas
                 frame: paths.frame,
                 view: paths.view,
                 rgb: undistorted_rgb(undistort, img.rgb),
-                mask: undistorted_mask(undistort, load_masks(&paths.masks, rule, w, h)?),
+                mask: undistorted_mask(undistort, load_masks(&paths.masks, rule, w, h, &format!("image {}", paths.image.display()))?),
                 image_path: paths.image.clone(),
                 width: w,
                 height: h,

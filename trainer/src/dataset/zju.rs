@@ -223,7 +223,17 @@ impl ZjuSmpl {
             poses: get("poses", 72)?.try_into().expect("72"),
             rh: get("Rh", 3)?.try_into().expect("3"),
             th: get("Th", 3)?.try_into().expect("3"),
-            shapes: get("shapes", 10)?.try_into().expect("10"),
+            shapes: {
+                // SMPL files carry 10 or 300 shape coefficients; the body uses the first 10.
+                let a = v.get("shapes").and_then(PyValue::as_array).ok_or_else(|| bad("shapes", "missing or not an array".into()))?;
+                if !(1..=300).contains(&a.data.len()) {
+                    return Err(bad("shapes", format!("shape {:?}, expected (1, 10) to (1, 300)", a.shape)));
+                }
+                if let Some(i) = a.data.iter().position(|x| !x.is_finite()) {
+                    return Err(bad("shapes", format!("value {i} is {} (not finite)", a.data[i])));
+                }
+                std::array::from_fn(|k| a.data.get(k).copied().unwrap_or(0.0))
+            },
         })
     }
 }
