@@ -38,6 +38,10 @@ mkdir -p target
 torch_log=target/torch-env.log
 scripts/torch-env.sh >"$torch_log.out" 2>"$torch_log" &
 torch_pid=$!
+# numpy 1.x (pickles as it writes them) and kubernetes-validate: target/clients-venv.
+clients_log=target/clients-env.log
+scripts/clients-env.sh >"$clients_log.out" 2>"$clients_log" &
+clients_pid=$!
 export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 # Incremental caches would be written once per test binary and never reused on a
 # clean clone: disk CI does not have to spare.
@@ -60,6 +64,15 @@ fi
 cat "$torch_log" >&2
 DRAPE_TORCH_PYTHON="$(tail -1 "$torch_log.out")"
 export DRAPE_TORCH_PYTHON
+if ! wait "$clients_pid"; then
+    cat "$clients_log" >&2
+    echo "test: the numpy 1.x / kubernetes-validate environment could not be installed (log above)" >&2
+    exit 1
+fi
+DRAPE_CLIENTS_PYTHON="$(tail -1 "$clients_log.out")"
+export DRAPE_CLIENTS_PYTHON
+# The cluster manifest (scripts/cluster/), validated offline against Kubernetes' schemas.
+scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
 step "3/4 workspace tests on $DRAPE_DEVICE with validation"
 cargo test --workspace --locked

@@ -359,6 +359,17 @@ pub mod reference_python {
         venv
     }
 
+    /// `DRAPE_CLIENTS_PYTHON`, else the project's `target/clients-venv` (numpy 1.x and
+    /// kubernetes-validate, from `scripts/clients-env.sh`, which the test command runs).
+    pub fn clients_python() -> PathBuf {
+        if let Ok(p) = std::env::var("DRAPE_CLIENTS_PYTHON") {
+            return p.into();
+        }
+        let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/clients-venv/bin/python");
+        assert!(venv.exists(), "no numpy 1.x environment: run scripts/clients-env.sh (the test command does) or set DRAPE_CLIENTS_PYTHON");
+        venv
+    }
+
     /// A fresh, empty directory for one case: `<target>/tmp/<group>/<name>`, beside the
     /// test binary (`<target>/<profile>/deps/`), where cargo's `CARGO_TARGET_TMPDIR` is
     /// (that variable exists only when integration tests themselves compile).
@@ -408,8 +419,13 @@ pub mod reference_python {
     /// Runs `tests/python/<script>` on `dirs` and fails the test, with its stderr, if
     /// the script fails.
     pub fn run(script: &str, dirs: &[PathBuf]) {
+        run_with(&python(), script, dirs)
+    }
+
+    /// [`run`] with another interpreter (e.g. [`clients_python`]).
+    pub fn run_with(python: &Path, script: &str, dirs: &[PathBuf]) {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("python").join(script);
-        let out = Command::new(python()).arg(&path).args(dirs).output().unwrap_or_else(|e| panic!("running {script}: {e}"));
+        let out = Command::new(python).arg(&path).args(dirs).output().unwrap_or_else(|e| panic!("running {script}: {e}"));
         assert!(out.status.success(), "{script} failed: {}", String::from_utf8_lossy(&out.stderr));
     }
 }

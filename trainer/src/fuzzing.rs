@@ -51,7 +51,7 @@ pub fn ply(data: &[u8]) {
 pub fn obj(data: &[u8]) {
     use std::sync::OnceLock;
     static BODY: OnceLock<crate::body::model::SmplModel> = OnceLock::new();
-    let body = BODY.get_or_init(|| crate::body::procedural::default_body(&crate::body::procedural::BodyOptions { cell: 0.1, ..Default::default() }));
+    let body = BODY.get_or_init(|| crate::body::procedural::default_body(&crate::body::procedural::BodyOptions { cell: 0.05, ..Default::default() }));
     with_file("garment.obj", data, |p| {
         let _ = crate::garment::load_obj(p, body);
     });
@@ -114,12 +114,13 @@ pub fn config_toml(data: &[u8]) {
     let _ = base.with_toml(text, Path::new("fuzz.toml"));
 }
 
-/// A checkpoint or model (`model.npz`) read for a body-only model of the quick preset's
-/// sizes and for one with a scene layer.
+/// A checkpoint or model (`model.npz`) read for a tiny body-only model and for one with a
+/// scene layer.
 pub fn checkpoint(data: &[u8]) {
     use crate::avatar::checkpoint::{read, LayerShape};
     with_file("checkpoint.npz", data, |p| {
-        let shape = LayerShape { name: "body".into(), triplane_size: (8, 2), decoders: [64, 64, 64], count: 4 };
+        // The shapes of the seeds in fuzz/corpus/checkpoint (2x2x1 triplane, 4-parameter decoders).
+        let shape = LayerShape { name: "body".into(), triplane_size: (2, 1), decoders: [4, 4, 4], count: 4 };
         let _ = read(p, std::slice::from_ref(&shape), None);
         let _ = read(p, &[shape], Some(0));
     });

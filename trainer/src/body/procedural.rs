@@ -339,8 +339,15 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
                 .map(|(i, p)| (i, norm(sub(*p, c))))
                 .filter(|&(_, d)| d < 0.3)
                 .collect();
-            let ring: Vec<usize> = candidates.iter().map(|c| c.0).collect();
-            if ring.len() >= 6 {
+            let mut ring: Vec<usize> = candidates.iter().map(|c| c.0).collect();
+            // A coarse surface (a large cell) may have no ring of six near the joint:
+            // then its six nearest vertices, whatever their weights.
+            if ring.len() < 6 && slab > 0.5 {
+                let mut nearest: Vec<(usize, f64)> = v.iter().enumerate().map(|(i, p)| (i, norm(sub(*p, c)))).collect();
+                nearest.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+                ring = nearest.into_iter().take(6).map(|(i, _)| i).collect();
+            }
+            if ring.len() >= 6 || slab > 0.5 {
                 for &i in &ring {
                     row[i] = 1.0 / ring.len() as f64;
                 }

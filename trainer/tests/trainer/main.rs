@@ -10,6 +10,7 @@ mod distortion;
 mod errors;
 mod eval_metrics;
 mod fid;
+mod fuzz_corpus;
 mod garments_motions;
 mod image_formats;
 mod loose_garment;

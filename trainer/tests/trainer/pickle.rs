@@ -1,14 +1,15 @@
 //! NumPy object arrays (pickles): what the project writes, NumPy reads; what NumPy
 //! writes, the project reads. The test command installs numpy for Python 3. ZJU-MoCap
-//! annotations written by numpy itself (`tests/python/write_annots.py`, the reference
-//! environment's numpy 2.x, np.save and pickle protocols 2 to 5) load through the ZJU
+//! annotations written by numpy itself (`tests/python/write_annots.py`, run by numpy
+//! 2.x, the reference environment's, and by numpy 1.x, `scripts/clients-env.sh`'s;
+//! np.save and pickle protocols 2 to 5) load through the ZJU
 //! loader with the values numpy wrote; hostile pickles are refused without a panic.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
-use drape_tests::reference_python::{case_dir, get, run};
+use drape_tests::reference_python::{case_dir, clients_python, get, run, run_with};
 use drape_trainer::dataset::zju::{ZjuAnnots, ZjuSmpl};
 use drape_trainer::npy::Array;
 use drape_trainer::pickle::{decode, decode_object_npy, encode_object_npy, PickleProblem, PyValue};
@@ -80,22 +81,33 @@ np.save({theirs:?}, b)
 
 // ---- what numpy writes (tests/python/write_annots.py) ----
 
-/// The files, written once per test binary.
-fn numpy_files() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = case_dir("pickle", "numpy_annots");
-        run("write_annots.py", std::slice::from_ref(&dir));
-        dir
+/// The files, written once per test binary by numpy 2.x (the reference environment) and
+/// by numpy 1.x (`scripts/clients-env.sh`): (which numpy, its directory).
+fn numpy_files() -> &'static [(String, PathBuf)] {
+    static DIRS: OnceLock<Vec<(String, PathBuf)>> = OnceLock::new();
+    DIRS.get_or_init(|| {
+        let two = case_dir("pickle", "numpy_annots");
+        run("write_annots.py", std::slice::from_ref(&two));
+        let one = case_dir("pickle", "numpy1_annots");
+        run_with(&clients_python(), "write_annots.py", std::slice::from_ref(&one));
+        let version = |py: &Path| String::from_utf8_lossy(&Command::new(py).args(["-c", "import numpy; print(numpy.__version__)"]).output().expect("python runs").stdout).trim().to_string();
+        let (v2, v1) = (version(&drape_tests::reference_python::python()), version(&clients_python()));
+        assert!(v2.starts_with("2.") && v1.starts_with("1."), "numpy {v2} and {v1}: one 2.x and one 1.x expected");
+        vec![(format!("numpy {v2}"), two), (format!("numpy {v1}"), one)]
     })
 }
 
-/// The cases the script wrote: `<dtype>_<how>`, dtype f64/f32/mixed, how save/p2..p5.
-fn numpy_cases() -> Vec<String> {
-    let text = std::fs::read_to_string(numpy_files().join("cases.txt")).expect("cases.txt");
-    let cases: Vec<String> = text.lines().filter(|l| !l.is_empty()).map(str::to_string).collect();
-    assert_eq!(cases.len(), 15, "three dtypes by five ways of saving: {cases:?}");
-    cases
+/// The cases a script wrote, with their directories: `<numpy> <dtype>_<how>`, dtype
+/// f64/f32/mixed, how save/p2..p5.
+fn numpy_cases() -> Vec<(String, PathBuf)> {
+    let mut out = Vec::new();
+    for (numpy, dir) in numpy_files() {
+        let text = std::fs::read_to_string(dir.join("cases.txt")).expect("cases.txt");
+        let cases: Vec<&str> = text.lines().filter(|l| !l.is_empty()).collect();
+        assert_eq!(cases.len(), 15, "{numpy}: three dtypes by five ways of saving: {cases:?}");
+        out.extend(cases.into_iter().map(|c| (format!("{numpy} {c}"), dir.join(c))));
+    }
+    out
 }
 
 /// Compares `got` with `expected` exactly, noting the first difference in `failures`.
@@ -110,8 +122,7 @@ fn compare(failures: &mut Vec<String>, what: String, got: &[f64], expected: &[f6
 #[test]
 fn numpy_written_annots_load_with_the_values_numpy_wrote() {
     let mut failures = Vec::new();
-    for case in numpy_cases() {
-        let dir = numpy_files().join(&case);
+    for (case, dir) in numpy_cases() {
         let expected = dir.join("expected");
         let annots = match ZjuAnnots::read(&dir) {
             Ok(a) => a,
@@ -139,8 +150,7 @@ fn numpy_written_annots_load_with_the_values_numpy_wrote() {
 #[test]
 fn numpy_written_smpl_params_load_with_the_values_numpy_wrote() {
     let mut failures = Vec::new();
-    for case in numpy_cases() {
-        let dir = numpy_files().join(&case);
+    for (case, dir) in numpy_cases() {
         let expected = dir.join("expected");
         for frame in 0..2 {
             let p = match ZjuSmpl::read(&dir, frame) {
@@ -188,9 +198,11 @@ fn mutations_do_not_panic(name: &str, bytes: &[u8]) {
 
 #[test]
 fn numpy_files_cut_or_altered_are_refused_without_panicking() {
-    for case in ["f64_save", "mixed_p2", "f32_p5"] {
-        let bytes = std::fs::read(numpy_files().join(case).join("annots.npy")).expect("annots.npy");
-        mutations_do_not_panic(case, &bytes);
+    for (_, dir) in numpy_files() {
+        for case in ["f64_save", "mixed_p2", "f32_p5"] {
+            let bytes = std::fs::read(dir.join(case).join("annots.npy")).expect("annots.npy");
+            mutations_do_not_panic(case, &bytes);
+        }
     }
     let ours = encode_object_npy(&annots());
     mutations_do_not_panic("ours", &ours);
