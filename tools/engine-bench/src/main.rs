@@ -306,6 +306,10 @@ fn main() -> ExitCode {
         Err(code) => return code,
     };
     drape_cli_support::run(|| {
+        // Input files first: a bad one is reported before the device is opened.
+        if let Job::Splat(splat::SplatArgs { ply: Some(path), .. }) = &cli.job {
+            drape_engine::ops::splat::ply::read(path)?;
+        }
         let ctx = cli.device.open()?;
         let on_gpu = ctx.info().kind != drape_engine::DeviceKind::Cpu;
         schedule::set_warm_seconds(cli.warm_seconds.unwrap_or(if on_gpu { 1.0 } else { 0.0 }));

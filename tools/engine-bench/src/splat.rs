@@ -22,7 +22,7 @@ pub struct SplatArgs {
     #[arg(long, value_delimiter = ',', default_value = "512x512,1920x1080", value_parser = parse_size)]
     pub sizes: Vec<(u32, u32)>,
     /// Random scenes of these many Gaussians (SH degree 3), comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "10000,100000,1000000")]
+    #[arg(long, value_delimiter = ',', default_value = "10000,100000,1000000", allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=100_000_000))]
     pub counts: Vec<u32>,
     /// Benchmark this PLY file instead of random scenes (camera looks at its centroid).
     #[arg(long)]
@@ -141,6 +141,8 @@ fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
     }
     for &(w, h) in &args.sizes {
         for &n in &args.counts {
+            // 59 floats a Gaussian at SH degree 3, held by the cloud, its copy and the device.
+            drape_cli_support::ensure_memory(3 * 236 * u64::from(n), &format!("a scene of {n} Gaussians"), "--counts")?;
             // Splat size falls with the count so that coverage stays comparable.
             let scale = 2.0 / (n as f32).sqrt();
             let cloud = GaussianCloud::random(n as usize, 3, 1.6, (-1.0, 1.0), scale, u64::from(n));

@@ -252,3 +252,25 @@ fn composite_times_the_three_passes_serialised_in_one_submission_and_fused() {
     assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_fused_bwd"].as_f64().is_some(), "{r}");
     assert!(r["fused"]["passes_gpu_ms"]["splat.rasterize_bwd"].is_null(), "{r}");
 }
+
+/// Counts near 2^32 are refused by name before anything is allocated (they aborted on
+/// allocation), and a PLY whose Gaussians are not finite is refused naming the file and
+/// the property (it panicked in the camera set-up).
+#[test]
+fn huge_counts_and_non_finite_plys_are_refused_in_one_line() {
+    assert_one_line_error(&bench(&["splat", "--counts", "4294967295"], &[]), "--counts");
+    assert_one_line_error(&bench(&["splat", "--counts", "0"], &[]), "--counts");
+    let dir = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("engine-bench-cli");
+    std::fs::create_dir_all(&dir).unwrap();
+    let ply = dir.join("nan.ply");
+    let props = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"];
+    let mut bytes = format!("ply\nformat binary_little_endian 1.0\nelement vertex 2\n{}end_header\n", props.iter().map(|p| format!("property float {p}\n")).collect::<String>()).into_bytes();
+    for v in 0..2 {
+        for (i, _) in props.iter().enumerate() {
+            let value: f32 = if v == 1 && i == 0 { f32::NAN } else if i == 10 { 1.0 } else { 0.0 };
+            bytes.extend(value.to_le_bytes());
+        }
+    }
+    std::fs::write(&ply, bytes).unwrap();
+    assert_one_line_error(&bench(&["splat", "--ply", ply.to_str().unwrap(), "--sizes", "32x32"], &[]), "nan.ply");
+}
