@@ -101,6 +101,13 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let depth = crate::image_io::depth_exr_path(&args.out);
     anyhow::ensure!(format != RenderFormat::Exr || !depth.is_dir(), "--out {}: its depth file {} is a directory", args.out.display(), depth.display());
     let ctx = device.open()?;
+    // The colour buffer (12 bytes a pixel) is one storage buffer: named by the option.
+    let colour_bytes = 12 * u64::from(cam.width) * u64::from(cam.height);
+    let limit = ctx.info().max_storage_buffer_range;
+    if colour_bytes > limit {
+        let option = args.camera.as_ref().map_or("--width/--height".to_string(), |p| format!("--camera {}", p.display()));
+        anyhow::bail!("{option}: a {}x{} image needs {colour_bytes} bytes in one storage buffer; this device's maxStorageBufferRange is {limit}", cam.width, cam.height);
+    }
     let settings = RenderSettings { antialiased: args.antialiased, ..RenderSettings::default() };
     let t0 = std::time::Instant::now();
     let (image, stats) = render_image(&ctx, &cloud, &cam, &settings)?;

@@ -185,6 +185,8 @@ pub enum ColmapError {
     Parse { path: String, line: usize, problem: String },
     /// A column of a data line that is not a number of its type: the file, the line,
     /// the column (as COLMAP's header names it) and its text.
+    #[error("{path}: {problem}")]
+    Model { path: String, problem: String },
     #[error("{path}:{line}: {field} '{text}' is not a valid number")]
     Number { path: String, line: usize, field: &'static str, text: String },
     /// A camera record that is no pinhole camera and lens drape undistorts: the
@@ -377,7 +379,7 @@ impl ColmapModel {
             model.points.insert(p.id, p);
         }
         if model.images.is_empty() {
-            return Err(ColmapError::Parse { path: dir.join("images.txt").display().to_string(), line: 0, problem: "no images: a model needs at least one registered image".into() });
+            return Err(ColmapError::Model { path: dir.join("images.txt").display().to_string(), problem: "no images: a model needs at least one registered image".into() });
         }
         Ok(model)
     }

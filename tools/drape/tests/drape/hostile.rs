@@ -16,8 +16,9 @@
 //! - `neuman` / `zju` / `synth`: copy the base sequence's `neuman/`, `zju/` (to `data/`)
 //!   or the whole `drape synth` output (to `data/`); `run`: copy the tiny trained run to
 //!   `run/`; `ply`: the run's body PLY as `scene.ply`; `obj`: a garment OBJ as
-//!   `garment.obj`; `motion F`: a motion file `motion.npz` of F frames at 30 fps.
-//! - `text P TEXT` (escapes `\n`, `\t`, `\\`), `hex P HEX`, `rm P`, `mkdir P`, `trunc P N`,
+//!   `garment.obj`; `motion F [D]`: a motion file `motion.npz` of F frames at 30 fps (its
+//!   root walking D metres along x).
+//! - `text P TEXT` (escapes `\n`, `\t`, `\\`), `hex P HEX`, `cp P Q`, `rm P`, `mkdir P`, `trunc P N`,
 //!   `repeat P N TEXT` (TEXT N times).
 //! - `field P LINE COL VALUE`: the LINE-th line of a text file that is not a `#` comment,
 //!   its COL-th space-separated field, set to VALUE; `line P LINE TEXT`: that line
@@ -32,7 +33,8 @@
 //!
 //! Expectations: `error NEEDLE` (the error line contains NEEDLE), `same NEEDLE` (the
 //! arguments are ignored; `inspect data` and `train --data data` both fail with the same
-//! message, containing NEEDLE), `ok` (the case is accepted: exit 0).
+//! message, containing NEEDLE), `ok` (the case is accepted: exit 0), `ok P,Q` (accepted,
+//! and the files P and Q exist afterwards).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -222,9 +224,12 @@ fn apply(d: &Path, op: &str) {
         }
         "motion" => {
             let frames: usize = words[1].parse().unwrap();
+            // `motion F D`: the root walks D metres along x over the F frames.
+            let distance: f64 = words.get(2).map_or(0.0, |w| number(w));
+            let trans: Vec<f64> = (0..frames).flat_map(|f| [distance * f as f64 / (frames.max(2) - 1) as f64, 0.0, 0.0]).collect();
             let mut a = BTreeMap::new();
             a.insert("poses".to_string(), Array::f64(vec![frames, 72], vec![0.0; frames * 72]));
-            a.insert("trans".to_string(), Array::f64(vec![frames, 3], vec![0.0; frames * 3]));
+            a.insert("trans".to_string(), Array::f64(vec![frames, 3], trans));
             a.insert("fps".to_string(), Array::f64(vec![], vec![30.0]));
             npy::write_npz(&d.join("motion.npz"), &a).unwrap();
         }
@@ -242,6 +247,9 @@ fn apply(d: &Path, op: &str) {
         "repeat" => {
             let n: usize = words[2].parse().unwrap();
             std::fs::write(p(1), unescape(&rest(3)).repeat(n)).unwrap()
+        }
+        "cp" => {
+            std::fs::copy(p(1), p(2)).unwrap();
         }
         "rm" => {
             let path = p(1);
@@ -449,7 +457,10 @@ fn run_case(case: &Case) -> Result<(), String> {
             if r.0 != Some(0) || r.2.contains("panicked") {
                 return Err(format!("accepted case failed (exit {:?}): {}", r.0, r.2));
             }
-            Ok(())
+            match needle.split(',').map(str::trim).find(|f| !f.is_empty() && !d.join(f).exists()) {
+                Some(missing) => Err(format!("accepted, but {missing} was not written")),
+                None => Ok(()),
+            }
         }
         "error" => {
             let r = run_drape(&split_args(&d, &case.args))?;

@@ -41,8 +41,8 @@ fn bad_data_directories_are_named() {
     // A NeuMan layout whose SMPL file is missing.
     let neuman = d.join("neuman");
     std::fs::create_dir_all(neuman.join("sparse")).unwrap();
-    for f in ["cameras.txt", "images.txt", "points3D.txt"] {
-        std::fs::write(neuman.join("sparse").join(f), "# empty\n").unwrap();
+    for (f, text) in [("cameras.txt", "1 PINHOLE 32 32 40 40 16 16\n"), ("images.txt", "1 1 0 0 0 0 0 3 1 00000.png\n\n"), ("points3D.txt", "# empty\n")] {
+        std::fs::write(neuman.join("sparse").join(f), text).unwrap();
     }
     let e = fails(&neuman, &[], &out);
     assert!(e.contains("smpl_optimized_aligned_scale.npz"), "{e}");
