@@ -51,7 +51,9 @@ def amass_expected(poses, trans):
 
 # (a) numpy users' own format: a 0-d int64 fps, as np.savez(fps=30) writes it.
 poses = small_poses(72)
-trans = rng.uniform(-1.0, 1.0, size=(F, 3))
+# A root that moves as people do (a few centimetres a frame): drape refuses a root
+# faster than 20 m/s.
+trans = np.array([0.3, 0.9, -0.5]) + 0.03 * np.cumsum(rng.uniform(-1.0, 1.0, size=(F, 3)), axis=0)
 np.savez(os.path.join(out, "smpl_0d_fps.npz"), poses=poses, trans=trans, fps=30)
 expect("smpl_0d_fps", poses, trans, 30)
 

@@ -177,7 +177,7 @@ impl Motion {
         let rate_key = rate_key.ok_or_else(|| bad("fps", "missing key (nor is there AMASS's 'mocap_framerate')".into()))?;
         let fps = npz.scalar(rate_key)?;
         if !(MIN_FPS..=MAX_FPS).contains(&fps) {
-            return Err(bad(rate_key, format!("{fps} frames a second; a motion plays at {MIN_FPS} to {MAX_FPS}")));
+            return Err(bad(rate_key, format!("{fps} is not a positive frame rate of {MIN_FPS} to {MAX_FPS} frames a second")));
         }
         for (key, a) in [("poses", poses), ("trans", trans)] {
             if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {

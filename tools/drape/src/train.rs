@@ -22,9 +22,10 @@ use drape_trainer::avatar::train::{body_model, load_sequence, train_interruptibl
 #[derive(Clone, Debug, clap::Args)]
 pub struct TrainArgs {
     /// The sequence: a NeuMan directory (sparse/), a ZJU-MoCap one (annots.npy), or the
-    /// output root of `drape synth` (its neuman/ is used).
-    #[arg(long)]
-    pub data: PathBuf,
+    /// output root of `drape synth` (its neuman/ is used). With `--resume`, default: the
+    /// run's (its run.json).
+    #[arg(long, required_unless_present = "resume")]
+    pub data: Option<PathBuf>,
     /// The run directory to create (must not exist, or be empty).
     #[arg(long, required_unless_present = "resume", conflicts_with = "resume")]
     pub out: Option<PathBuf>,
@@ -164,11 +165,21 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let config = load_config(args)?;
     // Which data and body the run is trained on, for `drape eval` and `drape animate`
     // (read before training, so that a damaged run.json costs nothing).
-    let body = match (&args.resume, &args.body) {
-        (Some(run), None) => RunInfo::read(run)?.and_then(|i| i.body),
+    let earlier = match &args.resume {
+        Some(run) => RunInfo::read(run)?,
+        None => None,
+    };
+    let body = match (&earlier, &args.body) {
+        (Some(info), None) => info.body.clone(),
         (_, b) => b.clone(),
     };
-    let seq = load_sequence(&args.data, config.zju_train_camera)?;
+    let data = match (&args.data, &earlier) {
+        (Some(d), _) => d.clone(),
+        (None, Some(info)) => info.data.clone(),
+        (None, None) => anyhow::bail!("--data: the run {} has no run.json saying what it was trained on", dir.display()),
+    };
+    let info = RunInfo::new(&data, body.as_deref());
+    let seq = load_sequence(&data, config.zju_train_camera)?;
     let model = body_model(args.body.as_deref())?;
     let ctx = device.open()?;
     let (train_n, test_n) = seq.frames.iter().fold((0, 0), |(a, b), f| match f.split {
@@ -230,7 +241,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     if args.profile {
         ctx.start_profile();
     }
-    let outcome = train_interruptible(&ctx, &seq, model, &config, &out, resume, &interrupt, &mut |p| {
+    let outcome = train_interruptible(&ctx, &seq, model, &config, &out, resume, Some(&info), &interrupt, &mut |p| {
         match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
@@ -261,7 +272,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
             .into())
         }
     };
-    RunInfo::new(&args.data, body.as_deref()).write(&out)?;
+    info.write(&out)?;
     device.check_validation(&ctx)?;
     println!(
         "{}trained steps {}..{} in {:.1} s ({:.2} it/s); Gaussians: {}",

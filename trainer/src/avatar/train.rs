@@ -627,7 +627,7 @@ pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConf
 #[allow(clippy::too_many_arguments)]
 pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
     let never = AtomicBool::new(false);
-    match run(ctx, seq, model, config, out, resume, stop_at, &never, progress)? {
+    match run(ctx, seq, model, config, out, resume, stop_at, None, &never, progress)? {
         Outcome::Finished(report) => Ok(*report),
         Outcome::Interrupted { .. } => unreachable!("nothing sets the flag"),
     }
@@ -647,8 +647,11 @@ pub enum Outcome {
 /// it): the step in flight finishes, the checkpoint is written atomically, and the run
 /// directory stays resumable.
 #[allow(clippy::too_many_arguments)]
-pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
-    run(ctx, seq, model, config, out, resume, config.steps, interrupt, progress)
+/// `info` (the data and body) is written as `run.json` when the run directory is made,
+/// so that `--resume` and the other commands find the data of an unfinished run.
+#[allow(clippy::too_many_arguments)]
+pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
+    run(ctx, seq, model, config, out, resume, config.steps, info, interrupt, progress)
 }
 
 /// The marker a finished run holds (its command run again has nothing to do).
@@ -717,7 +720,7 @@ pub fn check_fresh(out: &Path) -> crate::Result<()> {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
+fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
     let stop_at = stop_at.min(config.steps);
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
@@ -746,6 +749,9 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
     let made = (|| -> crate::Result<()> {
         std::fs::create_dir_all(out.join("eval")).map_err(|e| TrainerError::io(out, e))?;
         write_json(&out.join("config.json"), config)?;
+        if let Some(info) = info {
+            info.write(out)?;
+        }
         let note = out.join(INCOMPLETE_MARKER);
         std::fs::write(&note, format!("this run has not finished; `drape train --resume {}` continues it from checkpoint.npz\n", out.display())).map_err(|e| TrainerError::io(&note, e))
     })();

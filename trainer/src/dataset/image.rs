@@ -85,10 +85,23 @@ fn decode(path: &Path) -> Result<DynamicImage, DatasetError> {
     let bytes = std::fs::read(path).map_err(|e| DatasetError::io(path, e))?;
     let named = |e: ImageError| DatasetError::image(path, describe(&e));
     let mut decoder = reader(path, &bytes)?.into_decoder().map_err(named)?;
+    check_size(path, decoder.dimensions(), decoder.total_bytes())?;
     let orientation = decoder.orientation().map_err(named)?;
     let mut image = DynamicImage::from_decoder(decoder).map_err(named)?;
     image.apply_orientation(orientation);
     Ok(image)
+}
+
+/// The largest image drape decodes: 16384 on a side and 1 GiB decoded (a 16-bit RGBA
+/// 8192 x 8192). The header's claim is checked before the decoder allocates for it.
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+pub const MAX_IMAGE_BYTES: u64 = 1 << 30;
+
+fn check_size(path: &Path, (w, h): (u32, u32), bytes: u64) -> Result<(), DatasetError> {
+    if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE || bytes > MAX_IMAGE_BYTES {
+        return Err(DatasetError::image(path, format!("too large or empty: {w}x{h} ({bytes} bytes decoded); drape reads images of 1 to {MAX_IMAGE_SIDE} pixels a side and at most {MAX_IMAGE_BYTES} bytes")));
+    }
+    Ok(())
 }
 
 /// One line for an `ImageError`, saying which kind of trouble it is.
@@ -159,6 +172,7 @@ pub fn dimensions(path: &Path) -> Result<(u32, u32), DatasetError> {
     let named = |e: ImageError| DatasetError::image(path, describe(&e));
     let mut decoder = reader(path, &bytes)?.into_decoder().map_err(named)?;
     let (w, h) = decoder.dimensions();
+    check_size(path, (w, h), decoder.total_bytes())?;
     let turned = matches!(decoder.orientation().map_err(named)?, Orientation::Rotate90 | Orientation::Rotate270 | Orientation::Rotate90FlipH | Orientation::Rotate270FlipH);
     Ok(if turned { (h, w) } else { (w, h) })
 }

@@ -202,7 +202,7 @@ fn bad_input_is_named() {
         .map(|l| if l.starts_with("2 ") { let w: Vec<&str> = l.split(' ').collect(); format!("2 0 0 0 0 {}", w[5..].join(" ")) } else { l.to_string() })
         .collect();
     std::fs::write(&images, broken.join("\n") + "\n").unwrap();
-    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images.txt", "singular rotation"]);
+    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images.txt", "is zero, no rotation"]);
 }
 
 /// Every published variant, written from the generated sequence (files copied byte

@@ -235,11 +235,12 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     for f in ["config.json", "metrics.json", "body_frame0002.ply", "cloth_frame0002.ply", "model.npz", "checkpoint.npz", "novel_pose.png"] {
         assert!(out.join(f).is_file(), "{f} missing from the run directory");
     }
-    // A second run into the same (now full) directory is refused, and leaves it as it was.
-    let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).err().expect("non-empty run directory refused");
+    // A second run into the same (now complete) directory is refused, and leaves it as it was.
+    assert!(out.join("complete").is_file() && !out.join("incomplete").exists(), "a finished run is marked complete");
+    let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).err().expect("a complete run directory refused");
     assert!(matches!(err, TrainerError::Run { .. }), "{err:?}");
     let err = err.to_string();
-    assert!(err.contains("not empty"), "{err}");
+    assert!(err.contains("complete run") && err.contains("--force"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -34,7 +34,7 @@
 //! Expectations: `error NEEDLE` (the error line contains NEEDLE), `same NEEDLE` (the
 //! arguments are ignored; `inspect data` and `train --data data` both fail with the same
 //! message, containing NEEDLE), `ok` (the case is accepted: exit 0), `ok P,Q` (accepted,
-//! and the files P and Q exist afterwards).
+//! and the files P and Q exist afterwards; `!P`: P does not).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -457,10 +457,14 @@ fn run_case(case: &Case) -> Result<(), String> {
             if r.0 != Some(0) || r.2.contains("panicked") {
                 return Err(format!("accepted case failed (exit {:?}): {}", r.0, r.2));
             }
-            match needle.split(',').map(str::trim).find(|f| !f.is_empty() && !d.join(f).exists()) {
-                Some(missing) => Err(format!("accepted, but {missing} was not written")),
-                None => Ok(()),
+            for f in needle.split(',').map(str::trim).filter(|f| !f.is_empty()) {
+                match f.strip_prefix('!') {
+                    Some(stale) if d.join(stale).exists() => return Err(format!("accepted, but {stale} of an earlier output is still there")),
+                    None if !d.join(f).exists() => return Err(format!("accepted, but {f} was not written")),
+                    _ => {}
+                }
             }
+            Ok(())
         }
         "error" => {
             let r = run_drape(&split_args(&d, &case.args))?;
