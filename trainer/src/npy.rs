@@ -275,6 +275,7 @@ impl Npz {
     pub fn read(path: &Path) -> Result<Self, NpyError> {
         let file_name = path.display().to_string();
         let file = std::fs::File::open(path).map_err(|error| NpyError::Io { file: file_name.clone(), error })?;
+        let file_len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
         let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
         let mut out = Npz { file: file_name.clone(), ..Npz::default() };
         for i in 0..zip.len() {
@@ -283,11 +284,15 @@ impl Npz {
             let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
             // An entry's declared size is only a claim: deflate expands at most about
             // 1032 times, and a stored entry holds what it occupies.
-            let most = if entry.compression() == zip::CompressionMethod::Stored { entry.compressed_size() } else { entry.compressed_size().saturating_mul(1032).saturating_add(1024) };
+            // Its compressed size is a claim too: the file's length bounds it.
+            let packed = entry.compressed_size().min(file_len);
+            let most = if entry.compression() == zip::CompressionMethod::Stored { packed } else { packed.saturating_mul(1032).saturating_add(1024) };
             if entry.size() > most {
                 return Err(fmt_err(&file_name, Some(&key), format!("entry declares {} bytes, more than its {} compressed bytes can hold", entry.size(), entry.compressed_size())));
             }
-            let mut bytes = Vec::with_capacity(entry.size() as usize);
+            // Reserved up to 64 MiB; a larger entry grows as it is read (and so cannot
+            // reserve memory its data does not fill).
+            let mut bytes = Vec::with_capacity(entry.size().min(1 << 26) as usize);
             std::io::Read::take(&mut entry, most.saturating_add(1)).read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
             let err = |p: String| fmt_err(&file_name, Some(&key), p);
             let header = parse_header(&bytes, &err)?;
