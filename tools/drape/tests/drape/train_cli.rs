@@ -233,3 +233,41 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
         }
     }
 }
+
+/// A second signal does not wait for the step: the process exits at once with 128 +
+/// the signal's number. The first SIGTERM lands while the skinning weights are fitted
+/// (long here), before any step, so the flag is set and nothing has reacted to it yet.
+#[test]
+fn a_second_sigterm_exits_at_once() {
+    use std::io::Read;
+    let d = dir("second-signal");
+    let data = d.join("data");
+    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "32", "--frames", "5", "--cameras", "1", "--samples", "1"]);
+    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let config = d.join("slow-fit.toml");
+    std::fs::write(&config, "steps = 5\nfit_steps = 100000\ndecimate = 6\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
+    let run = d.join("run");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
+        .args(["train", "--data", data.to_str().unwrap(), "--out", run.to_str().unwrap(), "--config", config.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = child.stderr.take().unwrap();
+    let mut seen = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&seen).contains("fitting") {
+        let n = stderr.read(&mut buf).unwrap();
+        assert!(n > 0, "the run ended before fitting: {}", String::from_utf8_lossy(&seen));
+        seen.extend_from_slice(&buf[..n]);
+    }
+    let term = || assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
+    term();
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    term();
+    let started = std::time::Instant::now();
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(128 + 15), "a second SIGTERM exits at once with 143");
+    assert!(started.elapsed().as_secs() < 10, "the second signal did not wait for the fit");
+    assert!(!run.join("checkpoint.npz").exists(), "no step ran, so no checkpoint");
+}
