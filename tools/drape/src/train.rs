@@ -6,7 +6,10 @@
 //! `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/` (a sheet for every
 //! held-out frame, `eval.json`, `eval.md`), `novel_pose.png` and the posed body of the
 //! first held-out frame as PLY; with `--profile`, `profile.txt` and `profile.json`
-//! (where a step's time goes).
+//! (where a step's time goes); `incomplete` while it trains and `complete` once done.
+//!
+//! SIGTERM, SIGINT or SIGUSR1 stop it after the step in flight, with the checkpoint
+//! written: exit status 75 ([`EXIT_RESUMABLE`]), and `--resume RUN` continues.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -30,7 +33,7 @@ pub struct TrainArgs {
     #[arg(long, required_unless_present = "resume", conflicts_with = "resume")]
     pub out: Option<PathBuf>,
     /// Continue the run in this directory from its last checkpoint, with its
-    /// config.json (`--steps` may raise the step count).
+    /// config.json and data (run.json; `--steps` may raise the step count).
     #[arg(long)]
     pub resume: Option<PathBuf>,
     /// `quick` (small sizes for lavapipe at 128x128; docs/results.md gives its speed) or
