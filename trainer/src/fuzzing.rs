@@ -9,9 +9,12 @@
 
 use std::path::{Path, PathBuf};
 
+/// A fuzz entry point: any bytes in, no panic out.
+pub type Target = fn(&[u8]);
+
 /// The loaders, by target name (the `fuzz/fuzz_targets/<name>.rs` files and the
 /// corpus folders `fuzz/corpus/<name>/`).
-pub const TARGETS: [(&str, fn(&[u8])); 12] = [
+pub const TARGETS: [(&str, Target); 12] = [
     ("ply", ply),
     ("obj", obj),
     ("npy", npy),
