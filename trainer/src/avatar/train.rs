@@ -645,8 +645,9 @@ pub enum Outcome {
 
 /// [`train`] that stops cleanly when `interrupt` becomes true (a signal handler sets
 /// it): the step in flight finishes, the checkpoint is written atomically, and the run
-/// directory stays resumable. `info` (the data and body) is written as `run.json` when the run directory is made,
-/// so that `--resume` and the other commands find the data of an unfinished run.
+/// directory stays resumable. `info` (the data and body) is written as `run.json` when
+/// the run directory is made, so that `--resume` and the other commands find the data
+/// of an unfinished run.
 #[allow(clippy::too_many_arguments)]
 pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
     run(ctx, seq, model, config, out, resume, config.steps, info, interrupt, progress)
