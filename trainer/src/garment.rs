@@ -378,11 +378,18 @@ fn check_garment(vertices: &[V3], faces: &[[u32; 3]], model: &SmplModel) -> Resu
     // Beyond the body's box by more than the limit, a vertex is too far without a
     // search (a far point would walk many empty rings of the grid).
     let to_box = |v: V3| (0..3).map(|k| (blo[k] - v[k]).max(v[k] - bhi[k]).max(0.0).powi(2)).sum::<f64>().sqrt();
-    let distance = |v: V3| {
-        let b = to_box(v);
-        if b > MAX_GARMENT_DISTANCE { b } else { near.k_nearest(v, 1).first().map_or(f64::INFINITY, |k| k.1) }
-    };
-    let (worst, at) = vertices.iter().enumerate().map(|(i, &v)| (distance(v), i)).fold((0.0f64, 0), |a, b| if b.0 > a.0 { b } else { a });
+    // Each vertex's nearest body vertex (None beyond the box) and its distance.
+    let nearest: Vec<(Option<u32>, f64)> = vertices
+        .iter()
+        .map(|&v| {
+            let b = to_box(v);
+            if b > MAX_GARMENT_DISTANCE {
+                return (None, b);
+            }
+            near.k_nearest(v, 1).first().map_or((None, f64::INFINITY), |&(i, d)| (Some(i), d))
+        })
+        .collect();
+    let (worst, at) = nearest.iter().enumerate().map(|(i, &(_, d))| (d, i)).fold((0.0f64, 0), |a, b| if b.0 > a.0 { b } else { a });
     if worst > MAX_GARMENT_DISTANCE {
         let unit = match size / body_size {
             r if r > 300.0 => " (it is about 1000 times the body's size: millimetres?)",
@@ -399,8 +406,9 @@ fn check_garment(vertices: &[V3], faces: &[[u32; 3]], model: &SmplModel) -> Resu
     let normals = vertex_normals(body, &model.faces);
     let inside = vertices
         .iter()
-        .filter(|&&v| {
-            near.k_nearest(v, 1).first().is_some_and(|&(i, _)| {
+        .zip(&nearest)
+        .filter(|(v, (i, _))| {
+            i.is_some_and(|i| {
                 let (b, n) = (body[i as usize], normals[i as usize]);
                 (0..3).map(|k| (v[k] - b[k]) * n[k]).sum::<f64>() < -0.01
             })

@@ -306,10 +306,11 @@ fn main() -> ExitCode {
         Err(code) => return code,
     };
     drape_cli_support::run(|| {
-        // Input files first: a bad one is reported before the device is opened.
-        if let Job::Splat(splat::SplatArgs { ply: Some(path), .. }) = &cli.job {
-            drape_engine::ops::splat::ply::read(path)?;
-        }
+        // The splat scenes first: a bad PLY is reported before the device is opened.
+        let mut splat_configs = match &cli.job {
+            Job::Splat(args) => Some(splat::configs(args)?),
+            _ => None,
+        };
         let ctx = cli.device.open()?;
         let on_gpu = ctx.info().kind != drape_engine::DeviceKind::Cpu;
         schedule::set_warm_seconds(cli.warm_seconds.unwrap_or(if on_gpu { 1.0 } else { 0.0 }));
@@ -320,7 +321,7 @@ fn main() -> ExitCode {
             Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
             Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
             Job::Composite(args) => (composite::run(&ctx, args)?, args.json, composite::print_table),
-            Job::Splat(args) => (splat::run(&ctx, args)?, args.json, splat::print_table),
+            Job::Splat(args) => (splat::run(&ctx, args, splat_configs.take().expect("made above"))?, args.json, splat::print_table),
             Job::Trade(args) => (trade::run(&ctx, args)?, args.json, |r| print!("{}", trade::markdown(r))),
         };
         cli.device.check_validation(&ctx)?;

@@ -112,13 +112,13 @@ fn bench_camera(width: u32, height: u32, target: [f32; 3], distance: f32) -> Pin
     PinholeCamera::look_at(eye, target, [0.0, -1.0, 0.0], 45.0, width, height).expect("valid camera")
 }
 
-struct Config {
+pub(crate) struct Config {
     label: String,
     cloud: GaussianCloud,
     camera: PinholeCamera,
 }
 
-fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
+pub(crate) fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
     let mut out = Vec::new();
     if let Some(path) = &args.ply {
         let cloud = ply::read(path)?;
@@ -232,9 +232,11 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
     }))
 }
 
-pub fn run(ctx: &Context, args: &SplatArgs) -> anyhow::Result<serde_json::Value> {
+/// `configs` come from [`configs`], made before the device is opened (a bad PLY costs
+/// nothing).
+pub(crate) fn run(ctx: &Context, args: &SplatArgs, configs: Vec<Config>) -> anyhow::Result<serde_json::Value> {
     let mut results = Vec::new();
-    for cfg in configs(args)? {
+    for cfg in configs {
         for &raster in &args.raster {
             for &tile in &args.tile_sizes {
                 eprintln!("splat: {} ({raster:?} rasterizer, tiles of {tile}) ...", cfg.label);

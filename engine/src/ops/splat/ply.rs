@@ -128,7 +128,10 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
     let [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3] = REQUIRED.map(|n| index(n).expect("checked above"));
     // Every value a Gaussian is made of must be a number: one NaN blanks the image.
     let used: Vec<usize> = [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3].into_iter().chain(rest_index.iter().copied()).collect();
-    for v in 0..header.vertices {
+    let mut cloud = GaussianCloud::new(degree);
+    let n = header.vertices;
+    cloud.means.reserve(3 * n);
+    for v in 0..n {
         let row = &data[v * stride..(v + 1) * stride];
         let f = |i: usize| f32::from_le_bytes([row[4 * i], row[4 * i + 1], row[4 * i + 2], row[4 * i + 3]]);
         if let Some(&i) = used.iter().find(|&&i| !f(i).is_finite()) {
@@ -137,13 +140,6 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
         if [r0, r1, r2, r3].iter().all(|&i| f(i) == 0.0) {
             return Err(format_error(path, format!("vertex {v}: the rotation (rot_0..rot_3) is the zero quaternion")));
         }
-    }
-    let mut cloud = GaussianCloud::new(degree);
-    let n = header.vertices;
-    cloud.means.reserve(3 * n);
-    for v in 0..n {
-        let row = &data[v * stride..(v + 1) * stride];
-        let f = |i: usize| f32::from_le_bytes([row[4 * i], row[4 * i + 1], row[4 * i + 2], row[4 * i + 3]]);
         cloud.means.extend([f(x), f(y), f(z)]);
         cloud.log_scales.extend([f(s0), f(s1), f(s2)]);
         cloud.quats.extend([f(r0), f(r1), f(r2), f(r3)]);

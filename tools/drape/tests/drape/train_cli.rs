@@ -15,6 +15,26 @@ fn dir(name: &str) -> PathBuf {
     d
 }
 
+/// A small synthetic sequence (`drape synth`, one moving camera) in `d/data`.
+fn synth_sequence(d: &Path, size: &str, frames: &str) -> PathBuf {
+    let data = d.join("data");
+    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", size, "--frames", frames, "--cameras", "1", "--samples", "1"]);
+    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    data
+}
+
+/// Reads `stderr` until it has printed `needle`; returns what it printed.
+fn read_until(stderr: &mut impl std::io::Read, needle: &str) -> Vec<u8> {
+    let mut seen = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&seen).contains(needle) {
+        let n = stderr.read(&mut buf).unwrap();
+        assert!(n > 0, "the run ended before printing '{needle}': {}", String::from_utf8_lossy(&seen));
+        seen.extend_from_slice(&buf[..n]);
+    }
+    seen
+}
+
 /// Runs `drape train` expecting failure; returns stderr after checking that the run
 /// directory was not created.
 fn fails(data: &Path, extra: &[&str], out: &Path) -> String {
@@ -83,9 +103,7 @@ fn bad_configs_name_the_file_and_field() {
 fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     use std::io::{BufRead, BufReader};
     let d = dir("sigkill");
-    let data = d.join("data");
-    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "64", "--frames", "8", "--cameras", "1", "--samples", "1"]);
-    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let data = synth_sequence(&d, "64", "8");
     let config = d.join("tiny.toml");
     std::fs::write(&config, "steps = 12\nfit_steps = 10\ndecimate = 6\ncheckpoint_every = 4\nlog_every = 4\nlayers = \"body\"\n[body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
     let run = d.join("run");
@@ -166,9 +184,7 @@ fn eval_animate_and_edit_name_bad_input() {
 fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
     use std::io::Read;
     let d = dir("sigterm");
-    let data = d.join("data");
-    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "32", "--frames", "8", "--cameras", "1", "--samples", "1"]);
-    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let data = synth_sequence(&d, "32", "8");
     let config = d.join("tiny.toml");
     // Densified after steps 6, 12 and 18.
     std::fs::write(&config, "steps = 20\nfit_steps = 3\ndecimate = 6\ncheckpoint_every = 100\nlog_every = 1\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
@@ -197,13 +213,7 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
             .spawn()
             .unwrap();
         let mut stderr = child.stderr.take().unwrap();
-        let mut seen = Vec::new();
-        let mut buf = [0u8; 4096];
-        while !String::from_utf8_lossy(&seen).contains("failpoint: waiting") {
-            let n = stderr.read(&mut buf).unwrap();
-            assert!(n > 0, "{name}: the run ended before step {step}: {}", String::from_utf8_lossy(&seen));
-            seen.extend_from_slice(&buf[..n]);
-        }
+        let mut seen = read_until(&mut stderr, "failpoint: waiting");
         let kill = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
         assert!(kill.success());
         stderr.read_to_end(&mut seen).unwrap();
@@ -239,11 +249,8 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
 /// (long here), before any step, so the flag is set and nothing has reacted to it yet.
 #[test]
 fn a_second_sigterm_exits_at_once() {
-    use std::io::Read;
     let d = dir("second-signal");
-    let data = d.join("data");
-    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "32", "--frames", "5", "--cameras", "1", "--samples", "1"]);
-    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let data = synth_sequence(&d, "32", "5");
     let config = d.join("slow-fit.toml");
     std::fs::write(&config, "steps = 5\nfit_steps = 100000\ndecimate = 6\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
     let run = d.join("run");
@@ -254,13 +261,7 @@ fn a_second_sigterm_exits_at_once() {
         .spawn()
         .unwrap();
     let mut stderr = child.stderr.take().unwrap();
-    let mut seen = Vec::new();
-    let mut buf = [0u8; 4096];
-    while !String::from_utf8_lossy(&seen).contains("fitting") {
-        let n = stderr.read(&mut buf).unwrap();
-        assert!(n > 0, "the run ended before fitting: {}", String::from_utf8_lossy(&seen));
-        seen.extend_from_slice(&buf[..n]);
-    }
+    read_until(&mut stderr, "fitting");
     let term = || assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
     term();
     std::thread::sleep(std::time::Duration::from_millis(300));
