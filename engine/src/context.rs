@@ -72,7 +72,7 @@ pub enum DeviceKind {
 }
 
 impl DeviceKind {
-    fn from_vk(t: vk::PhysicalDeviceType) -> Self {
+    pub(crate) fn from_vk(t: vk::PhysicalDeviceType) -> Self {
         match t {
             vk::PhysicalDeviceType::DISCRETE_GPU => Self::DiscreteGpu,
             vk::PhysicalDeviceType::INTEGRATED_GPU => Self::IntegratedGpu,
@@ -104,6 +104,9 @@ pub struct DeviceInfo {
     /// `shaderInt64`: 64-bit integers in shaders (the chunked sort stores its pairs as
     /// one u64 each where it is there).
     pub shader_int64: bool,
+    /// `timelineSemaphore` (Vulkan 1.2 core, optional): what
+    /// [`crate::SubmitSync`]'s timeline waits and signals need.
+    pub timeline_semaphore: bool,
     pub max_compute_workgroup_count: [u32; 3],
     /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
     pub max_storage_buffer_range: u64,
@@ -132,16 +135,16 @@ pub struct Device {
     pub(crate) raw: ash::Device,
     pub(crate) instance: ash::Instance,
     pub(crate) queue_family: u32,
-    queue: Mutex<vk::Queue>,
+    pub(crate) queue: Mutex<vk::Queue>,
     pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
     pub(crate) debug_utils: Option<ash::ext::debug_utils::Device>,
-    pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
+    pub(crate) pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
     pub(crate) info: DeviceInfo,
     pub(crate) poison: bool,
     /// See [`ContextDesc::force_staging`].
     pub(crate) force_staging: bool,
-    debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
-    validation: Option<Arc<ValidationSink>>,
+    pub(crate) debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    pub(crate) validation: Option<Arc<ValidationSink>>,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
     /// Command, descriptor and query pools of finished recordings, for the next ones.
@@ -149,9 +152,14 @@ pub struct Device {
     /// Command pools created so far (see [`Context::command_pools_created`]).
     pub(crate) command_pools_created: std::sync::atomic::AtomicU64,
     /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
-    submissions: std::sync::atomic::AtomicU64,
+    pub(crate) submissions: std::sync::atomic::AtomicU64,
+    /// Fence waits so far (see [`Context::fence_waits`]).
+    pub(crate) fence_waits: std::sync::atomic::AtomicU64,
+    /// False for a context over the host's handles ([`Context::from_raw`]): the engine
+    /// destroys only what it created, never the device or the instance.
+    pub(crate) owns_device: bool,
     // Keeps libvulkan loaded for as long as any handle exists.
-    _entry: ash::Entry,
+    pub(crate) _entry: ash::Entry,
 }
 
 /// A cheap, clonable handle to an open device.
@@ -183,16 +191,16 @@ fn load_entry() -> Result<ash::Entry> {
     loaded.map_err(|error| EngineError::LoaderMissing { library, error })
 }
 
-fn cstr_array(raw: &[c_char]) -> String {
+pub(crate) fn cstr_array(raw: &[c_char]) -> String {
     // SAFETY: Vulkan property strings are nul-terminated within their fixed arrays.
     unsafe { CStr::from_ptr(raw.as_ptr()) }.to_string_lossy().into_owned()
 }
 
-struct Candidate {
-    physical: vk::PhysicalDevice,
-    name: String,
-    kind: DeviceKind,
-    queue_family: u32,
+pub(crate) struct Candidate {
+    pub(crate) physical: vk::PhysicalDevice,
+    pub(crate) name: String,
+    pub(crate) kind: DeviceKind,
+    pub(crate) queue_family: u32,
 }
 
 impl Context {
@@ -282,6 +290,8 @@ impl Context {
             validation: sink,
             profile: Mutex::new(None),
             submissions: std::sync::atomic::AtomicU64::new(0),
+            fence_waits: std::sync::atomic::AtomicU64::new(0),
+            owns_device: true,
             recycled_pools: Mutex::new(Vec::new()),
             command_pools_created: std::sync::atomic::AtomicU64::new(0),
             _entry: entry,
@@ -368,31 +378,34 @@ impl Context {
         Ok(p)
     }
 
-    /// Submits one command buffer and waits for it (the caller holds no other lock).
-    pub(crate) fn submit_and_wait(&self, cmd: vk::CommandBuffer, what: &str) -> Result<()> {
-        let dev = &self.device.raw;
-        // SAFETY: a fence on a valid device.
-        let fence = unsafe { dev.create_fence(&vk::FenceCreateInfo::default(), None) }
-            .vk("vkCreateFence", what)?;
-        let cmds = [cmd];
-        let submit = vk::SubmitInfo::default().command_buffers(&cmds);
-        self.device.submissions.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let result = {
-            let queue = self.device.queue.lock().unwrap_or_else(|p| p.into_inner());
-            // SAFETY: the queue is externally synchronised by the mutex; cmd is executable.
-            unsafe { dev.queue_submit(*queue, &[submit], fence) }
-        };
-        // SAFETY: the fence belongs to this device.
-        let result = result.and_then(|()| unsafe { dev.wait_for_fences(&[fence], true, u64::MAX) });
-        // SAFETY: the fence is signalled or the submit failed; either way it is unused now.
-        unsafe { dev.destroy_fence(fence, None) };
-        result.vk("vkQueueSubmit/vkWaitForFences", what)
-    }
-
     /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
     /// tests and profiles: a rendered frame should cost one.
     pub fn submission_count(&self) -> u64 {
         self.device.submissions.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many times the host has waited on a fence for this device's work (every
+    /// `submit_and_wait`, staging copy and [`crate::Submission::wait`] that had to wait):
+    /// a frame loop with k frames in flight waits N - k times over N frames.
+    pub fn fence_waits(&self) -> u64 {
+        self.device.fence_waits.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether the engine created the device ([`Context::new`]) or borrows the host's
+    /// ([`Context::from_raw`]).
+    pub fn owns_device(&self) -> bool {
+        self.device.owns_device
+    }
+
+    /// The raw handles, for an application that records the engine's work into its own
+    /// command buffers or builds its own objects beside the engine's.
+    pub fn raw_device(&self) -> &ash::Device {
+        &self.device.raw
+    }
+
+    /// The queue family the engine submits to (and records for).
+    pub fn queue_family(&self) -> u32 {
+        self.device.queue_family
     }
 
     /// How many command pools recordings have created: a frame loop reuses the pools
@@ -504,21 +517,13 @@ struct DeviceParts {
 }
 
 fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) -> Result<DeviceParts> {
-    // SAFETY: queries on a physical device of this instance.
-    let props = unsafe { instance.get_physical_device_properties(c.physical) };
-    // SAFETY: as above.
+    // SAFETY: a query on a physical device of this instance.
     let device_exts = unsafe { instance.enumerate_device_extension_properties(c.physical) }
         .vk("vkEnumerateDeviceExtensionProperties", &c.name)?;
     let has_float_atomics = device_exts
         .iter()
         .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
 
-    let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
-    let mut driver = vk::PhysicalDeviceDriverProperties::default();
-    let mut maintenance3 = vk::PhysicalDeviceMaintenance3Properties::default();
-    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver).push_next(&mut maintenance3);
-    // SAFETY: valid chain of Vulkan 1.1/1.2 property structs.
-    unsafe { instance.get_physical_device_properties2(c.physical, &mut p2) };
     let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
     let mut f12_query = vk::PhysicalDeviceVulkan12Features::default();
     let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12_query);
@@ -529,39 +534,14 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
     unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
     let shader_int64 = f2.features.shader_int64 == vk::TRUE;
     let float_atomic_add = has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
-    // SAFETY: query on a physical device of this instance.
-    let families = unsafe { instance.get_physical_device_queue_family_properties(c.physical) };
-    let timestamp_valid_bits = families[c.queue_family as usize].timestamp_valid_bits;
-
-    let info = DeviceInfo {
-        name: c.name.clone(),
-        kind: c.kind,
-        api_version: (
-            vk::api_version_major(props.api_version),
-            vk::api_version_minor(props.api_version),
-            vk::api_version_patch(props.api_version),
-        ),
-        driver: format!("{} {}", cstr_array(&driver.driver_name), cstr_array(&driver.driver_info)),
-        subgroup_size: subgroup.subgroup_size,
-        timestamp_period_ns: f64::from(props.limits.timestamp_period),
-        timestamp_valid_bits,
-        float_atomic_add,
-        subgroup_ballot: subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
-            && subgroup.supported_operations.contains(
-vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
-            ),
-        shader_int64,
-        max_compute_workgroup_count: props.limits.max_compute_work_group_count,
-        max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
-        max_memory_allocation_size: maintenance3.max_memory_allocation_size,
-        min_storage_buffer_offset_alignment: props.limits.min_storage_buffer_offset_alignment,
-        max_texel_buffer_elements: u64::from(props.limits.max_texel_buffer_elements),
-    };
+    let timeline_semaphore = f12_query.timeline_semaphore == vk::TRUE;
+    let info = describe(instance, &c, Enabled { float_atomic_add, shader_int64, timeline_semaphore });
 
     // The rust-gpu modules declare the VulkanMemoryModel capability.
     let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
         .vulkan_memory_model(true)
-        .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE);
+        .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE)
+        .timeline_semaphore(timeline_semaphore);
     let mut enabled_atomic_float =
         vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default().shader_buffer_float32_atomic_add(float_atomic_add);
     let mut ext_names: Vec<*const c_char> = Vec::new();
@@ -611,12 +591,69 @@ vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
     Ok(DeviceParts { raw, queue_family: c.queue_family, queue, allocator, debug_utils, info })
 }
 
+/// The optional features a logical device has enabled.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Enabled {
+    pub(crate) float_atomic_add: bool,
+    pub(crate) shader_int64: bool,
+    pub(crate) timeline_semaphore: bool,
+}
+
+/// What device `c` is and can do, with the optional features as enabled on the
+/// logical device.
+pub(crate) fn describe(instance: &ash::Instance, c: &Candidate, enabled: Enabled) -> DeviceInfo {
+    let Enabled { float_atomic_add, shader_int64, timeline_semaphore } = enabled;
+    // SAFETY: a query on a physical device of this instance.
+    let props = unsafe { instance.get_physical_device_properties(c.physical) };
+    let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
+    let mut driver = vk::PhysicalDeviceDriverProperties::default();
+    let mut maintenance3 = vk::PhysicalDeviceMaintenance3Properties::default();
+    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver).push_next(&mut maintenance3);
+    // SAFETY: valid chain of Vulkan 1.1/1.2 property structs.
+    unsafe { instance.get_physical_device_properties2(c.physical, &mut p2) };
+    // SAFETY: query on a physical device of this instance.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(c.physical) };
+    let timestamp_valid_bits = families[c.queue_family as usize].timestamp_valid_bits;
+
+    DeviceInfo {
+        name: c.name.clone(),
+        kind: c.kind,
+        api_version: (
+            vk::api_version_major(props.api_version),
+            vk::api_version_minor(props.api_version),
+            vk::api_version_patch(props.api_version),
+        ),
+        driver: format!("{} {}", cstr_array(&driver.driver_name), cstr_array(&driver.driver_info)),
+        subgroup_size: subgroup.subgroup_size,
+        timestamp_period_ns: f64::from(props.limits.timestamp_period),
+        timestamp_valid_bits,
+        float_atomic_add,
+        subgroup_ballot: subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
+            && subgroup.supported_operations.contains(
+vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
+            ),
+        shader_int64,
+        timeline_semaphore,
+        max_compute_workgroup_count: props.limits.max_compute_work_group_count,
+        max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
+        max_memory_allocation_size: maintenance3.max_memory_allocation_size,
+        min_storage_buffer_offset_alignment: props.limits.min_storage_buffer_offset_alignment,
+        max_texel_buffer_elements: u64::from(props.limits.max_texel_buffer_elements),
+    }
+}
+
 impl Drop for Device {
     fn drop(&mut self) {
-        // SAFETY: the device is valid; nothing else uses it (we are its last owner).
-        unsafe {
-            let _ = self.raw.device_wait_idle();
+        if self.owns_device {
+            // SAFETY: the device is valid; nothing else uses it (we are its last owner).
+            unsafe {
+                let _ = self.raw.device_wait_idle();
+            }
         }
+        // A borrowed device is not waited on (the host's other queues may be busy, and
+        // vkDeviceWaitIdle would need them all externally synchronised): every engine
+        // submission holds an Arc<Device> until its fence was waited, so none of the
+        // objects below is in use when the last Arc goes.
         for pools in std::mem::take(&mut *self.recycled_pools.lock().unwrap_or_else(|p| p.into_inner())) {
             pools.destroy(&self.raw);
         }
@@ -628,6 +665,9 @@ impl Drop for Device {
         }
         // SAFETY: dropped exactly once, here, before the device it allocates from.
         unsafe { ManuallyDrop::drop(&mut self.allocator) };
+        if !self.owns_device {
+            return; // the host's device and instance: the host destroys them
+        }
         // SAFETY: all objects of the device are gone: buffers and recordings hold an
         // Arc<Device>, so none outlives this drop.
         unsafe { self.raw.destroy_device(None) };

@@ -23,6 +23,11 @@ pub enum EngineError {
     #[error("no Vulkan device matches '{requested}'; available: {}", if .available.is_empty() { "none".to_string() } else { .available.join(", ") })]
     DeviceNotFound { requested: String, available: Vec<String> },
 
+    /// The host's device, handed over with [`crate::Context::from_raw`], lacks what the
+    /// engine needs: `what` names the feature, extension or version.
+    #[error("the application's Vulkan device cannot run the engine: {what} is not enabled ({hint})")]
+    HostDeviceMissing { what: &'static str, hint: &'static str },
+
     /// Validation was requested but the layer is not installed.
     #[error("validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: apt-get install vulkan-validationlayers)")]
     ValidationLayerMissing,

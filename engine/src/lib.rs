@@ -15,18 +15,25 @@
 //! # Ok(()) }
 //! ```
 
+/// The `ash` the engine is built on, for the raw handles its embedding API takes.
+pub use ash;
+
 pub mod buffer;
 pub mod context;
 pub mod error;
+pub mod external;
 pub mod kernels;
 pub mod ops;
 pub mod profile;
 pub mod recorder;
+pub mod submit;
 pub mod validation;
 
 pub use buffer::{Buffer, BufferDesc};
 pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
 pub use error::{EngineError, Result};
+pub use external::{device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan};
 pub use kernels::Kernel;
 pub use profile::{Profile, ProfileEntry};
-pub use recorder::{PassBuilder, PassTimings, Recording};
+pub use recorder::{ImageTarget, PassBuilder, PassTimings, Recording};
+pub use submit::{FramesInFlight, HostCommandBuffer, HostRecorded, SubmitSync, Submission};

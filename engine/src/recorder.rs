@@ -247,6 +247,40 @@ impl Context {
     }
 }
 
+/// An image the host owns that a recording copies into ([`Recording::copy_to_image`]).
+///
+/// Barriers on the host's side (the engine orders only its own buffers): before the
+/// engine's work, the image must be in `layout` (`TRANSFER_DST_OPTIMAL` or `GENERAL`)
+/// with its earlier accesses made available to `VK_PIPELINE_STAGE_TRANSFER_BIT` /
+/// `VK_ACCESS_TRANSFER_WRITE_BIT`; after it, the host's reads need a barrier from
+/// `TRANSFER` / `TRANSFER_WRITE` (for an engine submission, a semaphore it signals and
+/// the host waits on at `TRANSFER` or later does that).
+#[derive(Clone, Copy, Debug)]
+pub struct ImageTarget {
+    image: vk::Image,
+    layout: vk::ImageLayout,
+    width: u32,
+    height: u32,
+    texel_bytes: u32,
+}
+
+impl ImageTarget {
+    /// Names the host's image.
+    ///
+    /// # Safety
+    /// `image` is a live image of the context's device, made with `TRANSFER_DST` usage,
+    /// at least `width` x `height`, with texels of `texel_bytes` bytes, in `layout` when
+    /// the work that copies into it runs, and alive until that work completed.
+    pub unsafe fn new(image: vk::Image, layout: vk::ImageLayout, width: u32, height: u32, texel_bytes: u32) -> Self {
+        Self { image, layout, width, height, texel_bytes }
+    }
+
+    /// Width and height in texels.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+}
+
 /// One binding of a pass: a buffer, or a byte range of one.
 #[derive(Clone, Copy)]
 struct Binding<'a> {
@@ -399,6 +433,7 @@ enum Command {
     Copy { src: vk::Buffer, dst: vk::Buffer, region: vk::BufferCopy },
     Update { buffer: vk::Buffer, data: Vec<u8> },
     Fill { buffer: vk::Buffer, word: u32 },
+    CopyToImage { src: vk::Buffer, image: vk::Image, layout: vk::ImageLayout, region: vk::BufferImageCopy },
 }
 
 impl<'a> Recording<'a> {
@@ -519,6 +554,17 @@ impl<'a> Recording<'a> {
         self.schedule(&[(buffer.raw, true)], Command::Fill { buffer: buffer.raw, word });
     }
 
+    /// Copies `src` (tightly packed texels, row-major from the top row, in the image's
+    /// format: 16 bytes a pixel for `R32G32B32A32_SFLOAT`) into mip 0, layer 0 of the
+    /// host's image (see [`ImageTarget`] for the barriers the host places around it).
+    pub fn copy_to_image(&mut self, src: &'a Buffer, target: &ImageTarget) {
+        assert!(src.size >= u64::from(target.width) * u64::from(target.height) * u64::from(target.texel_bytes), "copy of '{}' ({} bytes) into a {}x{} image of {}-byte texels", src.name(), src.size, target.width, target.height, target.texel_bytes);
+        let region = vk::BufferImageCopy::default()
+            .image_subresource(vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1))
+            .image_extent(vk::Extent3D { width: target.width, height: target.height, depth: 1 });
+        self.schedule(&[(src.raw, false)], Command::CopyToImage { src: src.raw, image: target.image, layout: target.layout, region });
+    }
+
     fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
         let pipeline = self.ctx.pipeline(kernel)?;
         let max_texels = self.ctx.info().max_texel_buffer_elements;
@@ -623,6 +669,9 @@ impl<'a> Recording<'a> {
                 Command::Copy { src, dst, region } => unsafe { dev.cmd_copy_buffer(self.cmd, src, dst, &[region]) },
                 Command::Update { buffer, data } => unsafe { dev.cmd_update_buffer(self.cmd, buffer, 0, &data) },
                 Command::Fill { buffer, word } => unsafe { dev.cmd_fill_buffer(self.cmd, buffer, 0, vk::WHOLE_SIZE, word) },
+                // SAFETY: as above for the buffer; the image is the host's, valid and in
+                // `layout` by the contract of `copy_to_image`.
+                Command::CopyToImage { src, image, layout, region } => unsafe { dev.cmd_copy_buffer_to_image(self.cmd, src, image, layout, &[region]) },
             }
         }
         Ok(())
@@ -696,14 +745,20 @@ impl<'a> Recording<'a> {
     }
 
     /// Ends recording, submits, waits, and returns the GPU time of every pass.
-    pub fn submit_and_wait(mut self) -> Result<PassTimings> {
+    pub fn submit_and_wait(self) -> Result<PassTimings> {
+        self.submit(&crate::submit::SubmitSync::default())?.wait()
+    }
+
+    /// Records the scheduled commands and the final barrier that makes the results
+    /// visible to the host, and ends the command buffer.
+    pub(crate) fn end(&mut self) -> Result<()> {
         self.emit()?;
         let dev = self.ctx.device.raw.clone();
         // Results are read on the host (mapped buffers): make the writes visible there.
         let to_host = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(vk::AccessFlags::HOST_READ);
-        // SAFETY: recording command buffer, ended once below.
+        // SAFETY: recording command buffer, ended once here.
         unsafe {
             dev.cmd_pipeline_barrier(
                 self.cmd,
@@ -716,17 +771,27 @@ impl<'a> Recording<'a> {
             );
             dev.end_command_buffer(self.cmd)
         }
-        .vk("vkEndCommandBuffer", &self.label)?;
-        let started = std::time::Instant::now();
-        self.reusable = false;
-        if let Err(e) = self.ctx.submit_and_wait(self.cmd, &self.label) {
-            return Err(match e {
-                EngineError::DeviceLost { .. } => EngineError::DeviceLost { pass: self.last_pass() },
-                e => e,
-            });
-        }
+        .vk("vkEndCommandBuffer", &self.label)
+    }
+
+    /// The command buffer (for the submission code).
+    pub(crate) fn command_buffer(&self) -> vk::CommandBuffer {
+        self.cmd
+    }
+
+    /// The label the recording was started with.
+    pub fn label(&self) -> &str {
+        &self.label
+    }
+
+    /// Marks the pools busy (a submission is pending) or reusable (it completed).
+    pub(crate) fn set_reusable(&mut self, reusable: bool) {
+        self.reusable = reusable;
+    }
+
+    /// After the submission completed: the passes' GPU times, added to the profile.
+    pub(crate) fn completed(&mut self, wall_ms: f64) -> Result<PassTimings> {
         self.reusable = true;
-        let wall_ms = started.elapsed().as_secs_f64() * 1e3;
         let timings = self.read_timings()?;
         if let Some(p) = self.ctx.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
             p.add_submission(&self.label, wall_ms);
@@ -740,9 +805,18 @@ impl<'a> Recording<'a> {
         Ok(timings)
     }
 
+    /// Emits the scheduled commands into the host's `cmd` instead of the recording's
+    /// own command buffer (see [`crate::submit`]).
+    pub(crate) fn emit_into(&mut self, cmd: vk::CommandBuffer) -> Result<()> {
+        let own = std::mem::replace(&mut self.cmd, cmd);
+        let result = self.emit();
+        self.cmd = own;
+        result
+    }
+
     /// The last pass in recording order whose breadcrumb was written (read after a
     /// failure): the one running, or the last of those running side by side.
-    fn last_pass(&mut self) -> String {
+    pub(crate) fn last_pass(&mut self) -> String {
         let label = self.label.clone();
         let mut started = None;
         for (chunk, b) in self.breadcrumbs.iter_mut().enumerate() {

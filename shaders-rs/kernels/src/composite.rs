@@ -9,8 +9,9 @@
 //! zero: the matte pass's colour is V in every channel, and only one carries it).
 //! With `matte_is_alpha` the matte is the over alpha: read from there, its gradient
 //! joined to the alpha's, and the matte buffers neither read nor written.
+//! `to_rgba` bindings: rgb, alpha a, alpha b (unread when `b_stride` is 0), out rgba.
 
-use drape_shared::splat::composite::{composite, composite_grad, CompositeParams, SliceParams};
+use drape_shared::splat::composite::{composite, composite_grad, coverage, CompositeParams, RgbaParams, SliceParams};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -40,6 +41,32 @@ pub fn fwd(
     out[3 * i] = c[0];
     out[3 * i + 1] = c[1];
     out[3 * i + 2] = c[2];
+}
+
+/// A rendered image and its coverage as premultiplied RGBA (see [`RgbaParams`]).
+#[spirv(compute(threads(256)))]
+pub fn to_rgba(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &RgbaParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] rgb_in: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] alpha_a: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] alpha_b: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] rgba: &mut [f32],
+) {
+    let i = crate::flat_index(id, groups);
+    if i >= p.pixels {
+        return;
+    }
+    let i = i as usize;
+    let a_raw = alpha_a[p.a_stride as usize * i];
+    let a = if p.a_is_transmittance != 0 { 1.0 - a_raw } else { a_raw };
+    let b = if p.b_stride != 0 { alpha_b[p.b_stride as usize * i] } else { 0.0 };
+    let c = rgb(rgb_in, i);
+    rgba[4 * i] = c[0];
+    rgba[4 * i + 1] = c[1];
+    rgba[4 * i + 2] = c[2];
+    rgba[4 * i + 3] = coverage(a, b);
 }
 
 #[spirv(compute(threads(256)))]

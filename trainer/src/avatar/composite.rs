@@ -21,7 +21,7 @@
 //! walk too (its densification statistics then include the matte's gradients).
 
 use drape_engine::ops::splat::densify::record_screen_stats;
-use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, CompositeGrads, CompositeInputs, Coverage};
 use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SavedForward, SplatRenderer};
 use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
@@ -301,45 +301,64 @@ impl AvatarRenderer {
 
     /// Renders the avatar's posed Gaussians (of the last `Avatar::record_forward`).
     pub fn forward(&mut self, ctx: &Context, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
-        let t = match &mut self.inner {
-            Inner::Single(r) => {
-                self.saved = vec![r.forward(&avatar.posed, camera, settings)?.saved];
+        // One submission per frame: for three passes the gather, the three renders
+        // (which share only what they read, so the recorder interleaves them) and the
+        // composite. A render whose tile intersections outgrew its buffers grows them,
+        // and the frame is recorded again.
+        loop {
+            self.prepare_frame(avatar, camera, settings)?;
+            {
+                let mut rec = ctx.record(self.frame_label())?;
+                self.record_frame(&mut rec, avatar)?;
+                rec.submit_and_wait()?;
+            }
+            if !self.finish_frame()? {
                 return Ok(());
             }
-            Inner::Fused(f) => {
-                f.renderer.prepare_forward(&avatar.posed, camera, settings)?;
-                loop {
-                    {
-                        let mut rec = ctx.record("fused frame")?;
-                        rec.set_scope("render.fused");
-                        f.renderer.record_forward(&mut rec, &avatar.posed)?;
-                        record_composite(&mut rec, f.renderer.outputs(), &f.image, f.pixels)?;
-                        rec.submit_and_wait()?;
-                    }
-                    let stats = f.renderer.finish_forward()?;
-                    if !stats.rerendered {
-                        self.saved = vec![stats.saved];
-                        return Ok(());
-                    }
-                }
-            }
-            Inner::ThreePass(t) => t,
-        };
-        let black = PinholeCamera { background: [0.0; 3], ..*camera };
-        t.base_renderer.prepare_forward(&t.base, camera, settings)?;
-        t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].posed, &black, settings)?;
-        if let Some(m) = &mut t.matte {
-            m.renderer.prepare_forward(&m.gaussians, &black, settings)?;
         }
-        // One submission per frame: the gather, the three renders (which share only
-        // what they read, so the recorder interleaves them) and the composite. A
-        // render whose tile intersections outgrew its buffers grows them, and the
-        // frame is recorded again.
-        loop {
-            {
-                let mut rec = ctx.record("composite frame")?;
+    }
+
+    fn frame_label(&self) -> &'static str {
+        match self.inner {
+            Inner::Single(_) => "splat forward",
+            Inner::ThreePass(_) => "composite frame",
+            Inner::Fused(_) => "fused frame",
+        }
+    }
+
+    /// Sets the next frame's camera and settings (host-side only): then
+    /// [`record_frame`](Self::record_frame), the submission, and
+    /// [`finish_frame`](Self::finish_frame).
+    pub fn prepare_frame(&mut self, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        match &mut self.inner {
+            Inner::Single(r) => r.prepare_forward(&avatar.posed, camera, settings),
+            Inner::Fused(f) => f.renderer.prepare_forward(&avatar.posed, camera, settings),
+            Inner::ThreePass(t) => {
+                let black = PinholeCamera { background: [0.0; 3], ..*camera };
+                t.base_renderer.prepare_forward(&t.base, camera, settings)?;
+                t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].posed, &black, settings)?;
+                if let Some(m) = &mut t.matte {
+                    m.renderer.prepare_forward(&m.gaussians, &black, settings)?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Records the frame [`prepare_frame`](Self::prepare_frame) set into `rec`, with no
+    /// host read or wait inside: the image lands in [`rgb`](Self::rgb).
+    pub fn record_frame<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
+        match &self.inner {
+            Inner::Single(r) => r.record_forward(rec, &avatar.posed),
+            Inner::Fused(f) => {
+                rec.set_scope("render.fused");
+                f.renderer.record_forward(rec, &avatar.posed)?;
+                rec.set_scope("");
+                record_composite(rec, f.renderer.outputs(), &f.image, f.pixels)
+            }
+            Inner::ThreePass(t) => {
                 for p in &t.base_parts {
-                    Avatar::record_move(&mut rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
+                    Avatar::record_move(rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
                 }
                 for p in t.matte.iter().flat_map(|m| &m.parts) {
                     let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
@@ -351,26 +370,64 @@ impl AvatarRenderer {
                 }
                 // Each render timed under its pass (interleaved passes counted once each).
                 rec.set_scope("render.base");
-                t.base_renderer.record_forward(&mut rec, &t.base)?;
+                t.base_renderer.record_forward(rec, &t.base)?;
                 rec.set_scope("render.cloth");
-                t.cloth_renderer.record_forward(&mut rec, &avatar.layers[t.cloth].posed)?;
+                t.cloth_renderer.record_forward(rec, &avatar.layers[t.cloth].posed)?;
                 if let Some(m) = &t.matte {
                     rec.set_scope("render.matte");
-                    m.renderer.record_forward(&mut rec, &m.gaussians)?;
+                    m.renderer.record_forward(rec, &m.gaussians)?;
                 }
                 rec.set_scope("");
-                record_composite(&mut rec, t.inputs(), &t.image, t.pixels)?;
-                rec.submit_and_wait()?;
-            }
-            let mut stats = vec![t.base_renderer.finish_forward()?, t.cloth_renderer.finish_forward()?];
-            if let Some(m) = &mut t.matte {
-                stats.push(m.renderer.finish_forward()?);
-            }
-            if !stats.iter().any(|s| s.rerendered) {
-                self.saved = stats.into_iter().map(|s| s.saved).collect();
-                return Ok(());
+                record_composite(rec, t.inputs(), &t.image, t.pixels)
             }
         }
+    }
+
+    /// Records the last recorded frame's image as premultiplied RGBA into `out` (4
+    /// floats per pixel, row-major from the top row). The frame must have been rendered
+    /// over a black background (its colour is then premultiplied); the alpha is the
+    /// render's coverage (for a composite, `1 − (1 − A_base)(1 − V)`).
+    pub fn record_rgba<'a>(&'a self, rec: &mut Recording<'a>, out: &'a Buffer) -> Result<()> {
+        let (rgb, coverage, pixels) = match &self.inner {
+            Inner::Single(r) => {
+                let (rgb, alpha, _) = r.outputs();
+                (rgb, Coverage::Alpha(alpha), r.width() * r.height())
+            }
+            Inner::Fused(f) => {
+                let layer = f.renderer.outputs().matte_rgb.expect("the fused renderer always renders its matte");
+                (&f.image, Coverage::Two { base: (f.renderer.transmittances(), 3, true), layer: (layer, 3) }, f.pixels)
+            }
+            Inner::ThreePass(t) => {
+                let layer = match &t.matte {
+                    Some(m) => (m.renderer.outputs().0, 3),
+                    None => (t.cloth_renderer.outputs().1, 1),
+                };
+                (&t.image, Coverage::Two { base: (t.base_renderer.outputs().1, 1, false), layer }, t.pixels)
+            }
+        };
+        record_to_rgba(rec, rgb, coverage, out, pixels)
+    }
+
+    /// After the submission of a [`record_frame`](Self::record_frame) completed: reads
+    /// each render's intersection total. True when one outgrew its buffers: they have
+    /// grown, and that frame's image is not valid (record it again).
+    pub fn finish_frame(&mut self) -> Result<bool> {
+        let stats = match &mut self.inner {
+            Inner::Single(r) => vec![r.finish_forward()?],
+            Inner::Fused(f) => vec![f.renderer.finish_forward()?],
+            Inner::ThreePass(t) => {
+                let mut stats = vec![t.base_renderer.finish_forward()?, t.cloth_renderer.finish_forward()?];
+                if let Some(m) = &mut t.matte {
+                    stats.push(m.renderer.finish_forward()?);
+                }
+                stats
+            }
+        };
+        let overflowed = stats.iter().any(|s| s.rerendered);
+        if !overflowed {
+            self.saved = stats.into_iter().map(|s| s.saved).collect();
+        }
+        Ok(overflowed)
     }
 
     /// Whether the cloth is rendered apart, in its own pass or the fused frame's cloth

@@ -19,6 +19,7 @@ pub mod eval;
 pub mod fid;
 pub mod layer;
 pub mod model;
+pub mod player;
 pub mod pose_refine;
 pub mod rig;
 pub mod run;

@@ -326,6 +326,16 @@ impl Avatar {
         Ok(())
     }
 
+    /// Records the writes of the frame's transforms and pose features into every layer
+    /// (`vkCmdUpdateBuffer`: no host write while an earlier frame may still read them,
+    /// and no submission of their own).
+    pub fn record_set_frame<'a>(&'a self, rec: &mut Recording<'a>, frame: &FrameTransforms) {
+        for l in &self.layers {
+            rec.update(&l.transforms, &frame.transforms);
+            rec.update(&l.pose_features, &frame.pose_features);
+        }
+    }
+
     /// Writes the frame's transforms and pose features into every layer.
     pub fn set_frame(&mut self, ctx: &Context, frame: &FrameTransforms) -> Result<()> {
         for l in &mut self.layers {

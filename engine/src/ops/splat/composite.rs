@@ -201,3 +201,39 @@ mod tests {
         assert!(go == [0.0; 3] && ga == 0.0 && COMPOSITE_MIN_ALPHA > 0.0);
     }
 }
+
+/// Where a frame's coverage comes from, for [`record_to_rgba`].
+#[derive(Clone, Copy)]
+pub enum Coverage<'a> {
+    /// One alpha per pixel (a single render's).
+    Alpha(&'a Buffer),
+    /// A base alpha and a layer's visibility over it: each (buffer, floats per pixel,
+    /// whether it holds the final transmittance `T` rather than the alpha `1 − T`).
+    Two { base: (&'a Buffer, u32, bool), layer: (&'a Buffer, u32) },
+}
+
+/// Records `rgb` (3 floats per pixel, rendered over black) and its coverage as
+/// premultiplied RGBA into `out` (4 floats per pixel, row-major from the top row: what
+/// an `R32G32B32A32_SFLOAT` image takes by `Recording::copy_to_image`). The coverage of
+/// a composite is `1 − (1 − A_base)(1 − V)` (`drape_shared::splat::composite::coverage`).
+pub fn record_to_rgba<'a>(rec: &mut Recording<'a>, rgb: &'a Buffer, coverage: Coverage<'a>, out: &'a Buffer, pixels: u32) -> Result<()> {
+    use drape_shared::splat::composite::RgbaParams;
+    let (a, b, p) = match coverage {
+        Coverage::Alpha(alpha) => (alpha, alpha, RgbaParams { pixels, a_stride: 1, a_is_transmittance: 0, b_stride: 0 }),
+        Coverage::Two { base: (a, a_stride, t), layer: (b, b_stride) } => (a, b, RgbaParams { pixels, a_stride, a_is_transmittance: u32::from(t), b_stride }),
+    };
+    rec.pass("composite.to_rgba", Kernel::CompositeToRgba).read("rgb_in", rgb).read("alpha_a", a).read("alpha_b", b).write("rgba", out).push(&p).dispatch(flat_grid(pixels))
+}
+
+/// CPU reference of [`record_to_rgba`] (same shared function).
+pub fn to_rgba_reference(rgb: &[f32], a: &[f32], a_stride: usize, a_is_transmittance: bool, b: Option<(&[f32], usize)>) -> Vec<f32> {
+    let pixels = rgb.len() / 3;
+    let mut out = Vec::with_capacity(4 * pixels);
+    for i in 0..pixels {
+        let a = if a_is_transmittance { 1.0 - a[a_stride * i] } else { a[a_stride * i] };
+        let b = b.map_or(0.0, |(b, s)| b[s * i]);
+        out.extend_from_slice(&rgb[3 * i..3 * i + 3]);
+        out.push(drape_shared::splat::composite::coverage(a, b));
+    }
+    out
+}

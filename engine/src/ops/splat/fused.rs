@@ -205,6 +205,11 @@ impl FusedRenderer {
         CompositeInputs { base_rgb: &self.base_rgb, over_rgb: &self.over_rgb, over_alpha: &self.over_alpha, matte_rgb: Some(&self.matte_rgb) }
     }
 
+    /// Per pixel, each state's final transmittance (base, over, matte: 3 floats).
+    pub fn transmittances(&self) -> &Buffer {
+        &self.transmittances
+    }
+
     /// Pixels of one image.
     pub fn pixels(&self) -> u32 {
         self.pixels

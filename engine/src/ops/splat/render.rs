@@ -391,6 +391,16 @@ impl SplatRenderer {
         (&self.pixels.rgb, &self.pixels.alpha, &self.pixels.depth)
     }
 
+    /// The image's width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// The image's height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
     /// Most intersections this device can take: one sort, and one buffer binding of keys.
     pub fn max_intersections(&self) -> u64 {
         u64::from(Self::MAX_INTERSECTIONS).min(self.ctx.info().max_storage_buffer_range / 4)

@@ -42,6 +42,31 @@ pub struct SliceParams {
     pub _pad: [u32; 2],
 }
 
+/// Push constants of `composite::to_rgba`: a rendered image (3 floats per pixel,
+/// rendered over black, so its colour is premultiplied) and its coverage from one or two
+/// alpha sources become premultiplied RGBA (4 floats per pixel, row-major from the top
+/// row), the layout an embedder copies into an `R32G32B32A32_SFLOAT` image.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct RgbaParams {
+    pub pixels: u32,
+    /// Floats per pixel of the first alpha source (its value is the pixel's first float).
+    pub a_stride: u32,
+    /// 1: the first source holds a final transmittance `T`, so its alpha is `1 − T`.
+    pub a_is_transmittance: u32,
+    /// Floats per pixel of the second alpha source; 0: there is none.
+    pub b_stride: u32,
+}
+
+/// The coverage of two layers over each other, alphas `a` and `b`: `1 − (1 − a)(1 − b)`.
+/// For the composite `I = (C / A) · V + I_base · (1 − V)` over black it is the alpha that
+/// makes `I` premultiplied: the layer covers `V`, the base `A_base` of the rest.
+#[inline]
+pub fn coverage<F: Real>(a: F, b: F) -> F {
+    F::one() - (F::one() - a) * (F::one() - b)
+}
+
 /// `V / max(A, floor)` clamped to [0, 1], and whether the clamp left it free (its
 /// derivative is zero otherwise).
 #[inline]

@@ -1,0 +1,228 @@
+//! A context over the host application's Vulkan objects ([`Context::from_raw`]), and what
+//! the host must enable on its device before it creates it ([`device_requirements`]).
+//!
+//! Ownership: the host creates and destroys the instance, the physical-device choice, the
+//! device and the queue. The engine borrows them and never destroys them; it creates and
+//! destroys only its own objects on that device (buffers and their memory through its own
+//! `gpu-allocator`, pipelines, descriptor and command pools, fences). The context must be
+//! dropped before the host destroys the device, and only when none of its submissions is
+//! pending (every [`crate::Submission`] waits for itself when dropped; a
+//! [`crate::HostRecorded`] must outlive the host's submission of its command buffer).
+//!
+//! Queue access: Vulkan requires `vkQueueSubmit` on one queue to be externally
+//! synchronised. The engine serialises its own submissions with a mutex; the host must
+//! not submit to the same queue from another thread while an engine call that submits
+//! (`submit`, `submit_and_wait`, uploads and read-backs through staging) runs.
+
+use std::ffi::{CStr, CString};
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex};
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use crate::context::{cstr_array, describe, Candidate, Context, Device, DeviceKind, Enabled};
+use crate::error::{EngineError, Result, VkResultExt};
+
+/// The device features the engine reads, as the host enabled them (or, from
+/// [`device_requirements`], as it should).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DeviceFeatures {
+    /// `vulkanMemoryModel` (Vulkan 1.2): required; every kernel declares the capability.
+    pub vulkan_memory_model: bool,
+    /// `vulkanMemoryModelDeviceScope` (Vulkan 1.2): used where present.
+    pub vulkan_memory_model_device_scope: bool,
+    /// `timelineSemaphore` (Vulkan 1.2): needed by timeline waits and signals in
+    /// [`crate::SubmitSync`]; binary semaphores work without it.
+    pub timeline_semaphore: bool,
+    /// `shaderInt64`: the chunked sort's 64-bit pairs; without it the 32-bit sort.
+    pub shader_int64: bool,
+    /// `shaderBufferFloat32AtomicAdd` of `VK_EXT_shader_atomic_float`: gradient
+    /// accumulation by float atomics; without it the compare-and-swap kernels.
+    pub shader_buffer_float32_atomic_add: bool,
+}
+
+/// The host's Vulkan objects, borrowed by [`Context::from_raw`].
+#[derive(Clone)]
+pub struct ExternalVulkan {
+    /// The loader the host's instance came from.
+    pub entry: ash::Entry,
+    pub instance: ash::Instance,
+    pub physical_device: vk::PhysicalDevice,
+    pub device: ash::Device,
+    /// The family of the queue the engine submits to; it must support compute.
+    pub queue_family: u32,
+    pub queue_index: u32,
+    /// `VkApplicationInfo::apiVersion` the instance was created with (at least 1.2).
+    pub api_version: u32,
+    /// The device extensions the host enabled (names as in `VkDeviceCreateInfo`).
+    pub enabled_extensions: Vec<CString>,
+    /// The features the host enabled.
+    pub enabled_features: DeviceFeatures,
+    /// Whether the instance has `VK_EXT_debug_utils` enabled: the engine then names its
+    /// objects for validation messages and captures.
+    pub debug_utils: bool,
+}
+
+impl std::fmt::Debug for ExternalVulkan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ExternalVulkan")
+            .field("physical_device", &self.physical_device)
+            .field("device", &self.device.handle())
+            .field("queue_family", &self.queue_family)
+            .field("queue_index", &self.queue_index)
+            .field("enabled_extensions", &self.enabled_extensions)
+            .field("enabled_features", &self.enabled_features)
+            .finish()
+    }
+}
+
+/// Options of a context over the host's device (the rest of [`crate::ContextDesc`] is
+/// the host's: device choice and validation layers belong to its instance).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ExternalOptions {
+    /// See [`crate::ContextDesc::poison_new_buffers`].
+    pub poison_new_buffers: bool,
+    /// See [`crate::ContextDesc::force_staging`].
+    pub force_staging: bool,
+}
+
+/// What a host must enable on `physical_device` for the engine, and what it may.
+#[derive(Clone, Debug)]
+pub struct DeviceRequirements {
+    /// The lowest `apiVersion` of the instance and device: Vulkan 1.2.
+    pub api_version: u32,
+    /// A queue family with compute (the first), to create a queue in.
+    pub queue_family: u32,
+    /// Features the engine needs (`vulkan_memory_model`) and those it uses where the
+    /// device has them: enable every one set here.
+    pub features: DeviceFeatures,
+    /// Device extensions to enable with them (`VK_EXT_shader_atomic_float` where the
+    /// device has float atomics).
+    pub extensions: Vec<&'static CStr>,
+}
+
+/// What to enable on `physical_device` before creating the device the engine will use
+/// ([`Context::from_raw`]). An error names what the device lacks.
+pub fn device_requirements(instance: &ash::Instance, physical_device: vk::PhysicalDevice) -> Result<DeviceRequirements> {
+    // SAFETY (this block's queries): the caller's instance and one of its physical devices.
+    let props = unsafe { instance.get_physical_device_properties(physical_device) };
+    if props.api_version < vk::API_VERSION_1_2 {
+        return Err(EngineError::HostDeviceMissing { what: "Vulkan 1.2", hint: "the physical device reports an older API version" });
+    }
+    // SAFETY: as above.
+    let extensions = unsafe { instance.enumerate_device_extension_properties(physical_device) }.vk("vkEnumerateDeviceExtensionProperties", "host device")?;
+    let has_float_ext = extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
+    let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+    let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+    let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12);
+    if has_float_ext {
+        f2 = f2.push_next(&mut atomic_float);
+    }
+    // SAFETY: as above, with a valid chain.
+    unsafe { instance.get_physical_device_features2(physical_device, &mut f2) };
+    let shader_int64 = f2.features.shader_int64 == vk::TRUE;
+    if f12.vulkan_memory_model != vk::TRUE {
+        return Err(EngineError::HostDeviceMissing { what: "vulkanMemoryModel", hint: "the physical device does not support it" });
+    }
+    // SAFETY: as above.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(physical_device) };
+    let queue_family = families
+        .iter()
+        .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+        .ok_or(EngineError::HostDeviceMissing { what: "a compute queue", hint: "no queue family of the physical device has VK_QUEUE_COMPUTE_BIT" })? as u32;
+    let float_atomics = has_float_ext && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
+    Ok(DeviceRequirements {
+        api_version: vk::API_VERSION_1_2,
+        queue_family,
+        features: DeviceFeatures {
+            vulkan_memory_model: true,
+            vulkan_memory_model_device_scope: f12.vulkan_memory_model_device_scope == vk::TRUE,
+            timeline_semaphore: f12.timeline_semaphore == vk::TRUE,
+            shader_int64,
+            shader_buffer_float32_atomic_add: float_atomics,
+        },
+        extensions: if float_atomics { vec![ash::ext::shader_atomic_float::NAME] } else { vec![] },
+    })
+}
+
+impl Context {
+    /// A context over the host's instance, device and queue (see the module header for
+    /// who owns what and who synchronises the queue). Float atomics and 64-bit integers
+    /// are used where the host enabled them; a device without them gets the
+    /// compare-and-swap and 32-bit kernels. A missing required feature is
+    /// [`EngineError::HostDeviceMissing`] naming it.
+    ///
+    /// # Safety
+    /// Every handle in `external` is valid and stays valid until the returned context and
+    /// everything made from it are dropped; `enabled_extensions` and `enabled_features`
+    /// say what the device was really created with; the queue exists.
+    pub unsafe fn from_raw(external: ExternalVulkan, options: ExternalOptions) -> Result<Self> {
+        let ExternalVulkan { entry, instance, physical_device, device, queue_family, queue_index, api_version, enabled_extensions, enabled_features, debug_utils } = external;
+        let f = enabled_features;
+        if api_version < vk::API_VERSION_1_2 {
+            return Err(EngineError::HostDeviceMissing { what: "Vulkan 1.2", hint: "create the instance with apiVersion VK_API_VERSION_1_2 or later" });
+        }
+        if !f.vulkan_memory_model {
+            return Err(EngineError::HostDeviceMissing { what: "vulkanMemoryModel", hint: "set VkPhysicalDeviceVulkan12Features::vulkanMemoryModel when creating the device (drape_engine::external::device_requirements lists what to enable)" });
+        }
+        let has = |name: &CStr| enabled_extensions.iter().any(|e| e.as_c_str() == name);
+        if f.shader_buffer_float32_atomic_add && !has(ash::ext::shader_atomic_float::NAME) {
+            return Err(EngineError::HostDeviceMissing { what: "VK_EXT_shader_atomic_float", hint: "shaderBufferFloat32AtomicAdd was said enabled without its extension" });
+        }
+        // SAFETY: the caller's instance and physical device.
+        let props = unsafe { instance.get_physical_device_properties(physical_device) };
+        // SAFETY: as above.
+        let families = unsafe { instance.get_physical_device_queue_family_properties(physical_device) };
+        match families.get(queue_family as usize) {
+            Some(fam) if fam.queue_flags.contains(vk::QueueFlags::COMPUTE) && queue_index < fam.queue_count => {}
+            _ => return Err(EngineError::HostDeviceMissing { what: "a compute queue", hint: "queue_family must name a family with VK_QUEUE_COMPUTE_BIT, and queue_index one of its queues" }),
+        }
+        let candidate = Candidate { physical: physical_device, name: cstr_array(&props.device_name), kind: DeviceKind::from_vk(props.device_type), queue_family };
+        let info = describe(&instance, &candidate, Enabled {
+            float_atomic_add: f.shader_buffer_float32_atomic_add,
+            shader_int64: f.shader_int64,
+            timeline_semaphore: f.timeline_semaphore,
+        });
+        // SAFETY: the caller guarantees the queue exists (checked against the family above).
+        let queue = unsafe { device.get_device_queue(queue_family, queue_index) };
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.clone(),
+            device: device.clone(),
+            physical_device,
+            debug_settings: {
+                let mut d = gpu_allocator::AllocatorDebugSettings::default();
+                d.log_leaks_on_shutdown = true;
+                d
+            },
+            buffer_device_address: false,
+            allocation_sizes: gpu_allocator::AllocationSizes::default(),
+        })
+        .map_err(|e| EngineError::Allocation { what: "allocator".into(), detail: e.to_string() })?;
+        let debug_utils = debug_utils.then(|| ash::ext::debug_utils::Device::new(&instance, &device));
+        let dev = Device {
+            raw: device,
+            instance,
+            queue_family,
+            queue: Mutex::new(queue),
+            allocator: ManuallyDrop::new(Mutex::new(allocator)),
+            debug_utils,
+            pipelines: Mutex::new(Default::default()),
+            info,
+            poison: options.poison_new_buffers,
+            force_staging: options.force_staging,
+            debug_instance: None,
+            validation: None,
+            profile: Mutex::new(None),
+            recycled_pools: Mutex::new(Vec::new()),
+            command_pools_created: Default::default(),
+            submissions: Default::default(),
+            fence_waits: Default::default(),
+            owns_device: false,
+            _entry: entry,
+        };
+        let ctx = Context { device: Arc::new(dev) };
+        crate::kernels::check_manifest()?;
+        Ok(ctx)
+    }
+}
