@@ -25,9 +25,12 @@ impl ValidationSink {
     }
 }
 
+/// A messenger create-info that collects into `sink` (the host application's instance
+/// can use it too; keep `sink` alive until the messenger is destroyed).
+///
 /// The messenger's severities and types. GENERAL is left out on purpose: the loader
 /// reports there, e.g. that a GPU driver found no GPU, which is not a validation error.
-pub(crate) fn messenger_info(sink: &Arc<ValidationSink>) -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
+pub fn messenger_info(sink: &Arc<ValidationSink>) -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
     vk::DebugUtilsMessengerCreateInfoEXT::default()
         .message_severity(
             vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,

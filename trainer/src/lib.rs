@@ -6,6 +6,7 @@
 //! (`npy::NpyError`, `dataset::error::DatasetError`, ...), which converts into it.
 #![forbid(unsafe_code)]
 
+pub mod testing;
 pub mod avatar;
 pub mod body;
 pub mod camera;

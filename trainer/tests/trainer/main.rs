@@ -7,6 +7,7 @@ mod cloth;
 mod composite;
 mod datasets;
 mod distortion;
+mod embedding;
 mod errors;
 mod eval_metrics;
 mod fid;

@@ -1,0 +1,48 @@
+//! The one small trained run that tests share (`tests/fixtures/tiny-run.toml` on a
+//! 32-pixel synthetic sequence): `DRAPE_TEST_RUN` names it when the test command made it
+//! once; otherwise the first caller in a process trains it (seconds on lavapipe).
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use drape_engine::Context;
+
+use crate::avatar::run::RunInfo;
+use crate::avatar::train::{load_sequence, train, TrainConfig};
+use crate::body::procedural::{default_body, BodyOptions};
+use crate::dataset::synth::{generate, SynthOptions};
+
+/// The tiny run's configuration (the committed fixture).
+pub const TINY_RUN_TOML: &str = include_str!("../../tests/fixtures/tiny-run.toml");
+
+/// The synthetic sequence the tiny run is trained on.
+pub fn tiny_synth_options() -> SynthOptions {
+    SynthOptions { width: 32, height: 32, frames: 4, cameras: 2, ..SynthOptions::default() }
+}
+
+/// Trains the tiny run into `dir/run` on a sequence made in `dir/synth`.
+pub fn train_tiny_run(ctx: &Context, dir: &Path) -> crate::Result<PathBuf> {
+    let data = dir.join("synth");
+    generate(&data, &tiny_synth_options(), &mut |_, _, _| {})?;
+    let seq = load_sequence(&data, 0)?;
+    let config = TrainConfig::quick().with_toml(TINY_RUN_TOML, Path::new("tests/fixtures/tiny-run.toml"))?;
+    let run = dir.join("run");
+    train(ctx, &seq, default_body(&BodyOptions::default()), &config, &run, false, &mut |_| {})?;
+    RunInfo::new(&data, None).write(&run)?;
+    Ok(run)
+}
+
+/// The shared tiny run: `DRAPE_TEST_RUN` if set (it must hold `model.npz`), else one
+/// trained once per process under the system's temporary directory.
+pub fn tiny_run(ctx: &Context) -> &'static Path {
+    static RUN: OnceLock<PathBuf> = OnceLock::new();
+    RUN.get_or_init(|| {
+        if let Some(dir) = std::env::var_os("DRAPE_TEST_RUN").map(PathBuf::from) {
+            assert!(dir.join("model.npz").is_file(), "DRAPE_TEST_RUN={} holds no model.npz", dir.display());
+            return dir;
+        }
+        let dir = std::env::temp_dir().join(format!("drape-tiny-run-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        train_tiny_run(ctx, &dir).unwrap_or_else(|e| panic!("training the tiny test run: {e}"))
+    })
+}
