@@ -74,7 +74,18 @@ export DRAPE_CLIENTS_PYTHON
 # The cluster manifest (scripts/cluster/), validated offline against Kubernetes' schemas.
 scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
+# The one small trained run the embedding, C ABI and viewer tests share
+# (tests/fixtures/tiny-run.toml on a 32-px synthetic sequence), trained once here.
+cargo build --locked -p drape --quiet
+test_run=target/test-run
+rm -rf "$test_run"
+target/debug/drape synth --out "$test_run/synth" --size 32 --frames 4 --cameras 2 >/dev/null
+target/debug/drape train --data "$test_run/synth" --out "$test_run/run" --config tests/fixtures/tiny-run.toml >/dev/null
+DRAPE_TEST_RUN="$PWD/$test_run/run"
+export DRAPE_TEST_RUN
+
 step "3/4 workspace tests on $DRAPE_DEVICE with validation"
+# Also builds capi's libdrape.so, which its tests compile examples/c against with cc.
 cargo test --workspace --locked
 
 step "4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"

@@ -16,7 +16,6 @@
 //! table holds for each; inside its part the engine orders its own commands (see
 //! [`crate::recorder`]).
 
-use std::marker::PhantomData;
 use std::time::Instant;
 
 use ash::vk;
@@ -219,7 +218,6 @@ impl Drop for HostRecorded<'_> {
 pub struct FramesInFlight<T> {
     slots: Vec<Slot<T>>,
     next: usize,
-    _not_sync: PhantomData<*const ()>,
 }
 
 struct Slot<T> {
@@ -251,7 +249,7 @@ impl<T> FramesInFlight<T> {
     pub fn new(resources: Vec<T>) -> Self {
         assert!(!resources.is_empty(), "frames in flight need at least one slot");
         let slots = resources.into_iter().map(|r| Slot { resources: Box::new(r), pending: None, last_timings: None }).collect();
-        Self { slots, next: 0, _not_sync: PhantomData }
+        Self { slots, next: 0 }
     }
 
     /// Frames in flight at most.
