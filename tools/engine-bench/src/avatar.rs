@@ -8,6 +8,9 @@
 //! steps in a temporary directory (the run itself is not touched; the decoders' initial
 //! fit is shortened to `--fit-steps`, which changes nothing about a step's cost).
 //!
+//! Then the library path (`drape_trainer::avatar::player`) with 1, 2 and 3 frames in
+//! flight side by side (`--in-flight`): FPS and the host's fence waits.
+//!
 //! Every three-pass frame is one submission whose renders the recorder interleaves;
 //! `fused` renders the same images from one sort and one rasterization. The training
 //! measurement uses the run's own compositing or `--train-compositing` (`fused` trains
@@ -63,6 +66,13 @@ pub struct AvatarArgs {
     /// Steps of the decoders' initial fit before the timed training steps.
     #[arg(long, default_value_t = 20)]
     pub fit_steps: u32,
+    /// Frames in flight to compare (the library path, `drape_trainer::avatar::player`:
+    /// one submission a frame, frame i waiting only for frame i - k), at the first size.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3", value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub in_flight: Vec<u32>,
+    /// Timed frames per frames-in-flight setting (after `--warmup` untimed ones).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..))]
+    pub flight_frames: u32,
     /// Print one JSON object on stdout instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -147,6 +157,44 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
     }))
 }
 
+/// Frames in flight side by side: for each k, the player with k slots renders
+/// `args.flight_frames` frames (the held-out frame's pose, its camera scaled to `size`)
+/// without reading them back; FPS from the first submission to the last frame's
+/// completion, and the host's fence waits (N - k).
+fn frames_in_flight(ctx: &Context, args: &AvatarArgs, (w, h): (u32, u32)) -> anyhow::Result<serde_json::Value> {
+    use drape_engine::SubmitSync;
+    use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
+    let mut rows = Vec::new();
+    for &k in &args.in_flight {
+        let mut player = AvatarPlayer::load(ctx, &args.run, k as usize)?;
+        let c = player.default_camera();
+        let (sx, sy) = (f64::from(w) / f64::from(c.width), f64::from(h) / f64::from(c.height));
+        let mut cam = ViewCamera::from_camera(c);
+        (cam.fx, cam.cx, cam.fy, cam.cy) = (cam.fx * sx as f32, cam.cx * sx as f32, cam.fy * sy as f32, cam.cy * sy as f32);
+        // Warm-up: pipelines, and the renderers' intersection buffers grown to the frame.
+        for _ in 0..args.warmup.max(1) + k {
+            player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
+        }
+        player.wait_idle()?;
+        let (waits, t0) = (ctx.fence_waits(), Instant::now());
+        for _ in 0..args.flight_frames {
+            player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
+        }
+        let waits_in_loop = ctx.fence_waits() - waits;
+        player.wait_idle()?;
+        let seconds = t0.elapsed().as_secs_f64();
+        rows.push(json!({
+            "frames_in_flight": k,
+            "frames": args.flight_frames,
+            "fps": f64::from(args.flight_frames) / seconds.max(1e-9),
+            "ms_per_frame": 1e3 * seconds / f64::from(args.flight_frames),
+            "fence_waits_while_submitting": waits_in_loop,
+            "overflowed_frames": player.overflowed_frames(),
+        }));
+    }
+    Ok(json!({ "width": w, "height": h, "settings": rows }))
+}
+
 /// Trains a fresh model from the run's configuration for `args.train_warmup +
 /// args.train_steps` steps in a temporary directory, profiling the last
 /// `args.train_steps`: it/s and the GPU split of one step.
@@ -229,6 +277,13 @@ pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value
             results.push(render_variant(ctx, &mut run, args, size, variant)?);
         }
     }
+    let in_flight = match args.sizes.first() {
+        Some(&size) if !args.in_flight.is_empty() => {
+            eprintln!("avatar: frames in flight {:?} at {}x{} ...", args.in_flight, size.0, size.1);
+            frames_in_flight(ctx, args, size)?
+        }
+        _ => json!("skipped (no --in-flight or --sizes)"),
+    };
     let training = if args.train_steps > 0 {
         eprintln!("avatar: training {} steps (fresh model, temporary directory) ...", args.train_steps);
         train_steps(ctx, &run, args)?
@@ -244,6 +299,7 @@ pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value
         "runs": args.runs,
         "warmup": args.warmup,
         "render": results,
+        "frames_in_flight": in_flight,
         "training": training,
         "not_built": ["a synthetic paper-size model without a run"],
     }))
@@ -262,6 +318,11 @@ pub fn print_table(r: &serde_json::Value) {
             c["fps"].as_f64().unwrap_or(0.0),
             stages.join(", ")
         );
+    }
+    let f = &r["frames_in_flight"];
+    let flight: Vec<String> = f["settings"].as_array().into_iter().flatten().map(|s| format!("{} in flight {:.2} FPS ({} waits)", s["frames_in_flight"], s["fps"].as_f64().unwrap_or(0.0), s["fence_waits_while_submitting"])).collect();
+    if !flight.is_empty() {
+        println!("  {}x{} library frames: {}", f["width"], f["height"], flight.join(" | "));
     }
     let t = &r["training"];
     if let Some(its) = t["iterations_per_second"].as_f64() {

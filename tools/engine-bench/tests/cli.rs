@@ -274,3 +274,20 @@ fn huge_counts_and_non_finite_plys_are_refused_in_one_line() {
     std::fs::write(&ply, bytes).unwrap();
     assert_one_line_error(&bench(&["splat", "--ply", ply.to_str().unwrap(), "--sizes", "32x32"], &[]), "nan.ply");
 }
+
+#[test]
+fn avatar_compares_one_two_and_three_frames_in_flight_in_one_run() {
+    let ctx = drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
+    let run = drape_trainer::testing::tiny_run(&ctx).to_path_buf();
+    drop(ctx);
+    let frames = 6u64;
+    let j = json_of(&["--validation", "avatar", run.to_str().unwrap(), "--sizes", "32x32", "--compositing", "three-pass", "--runs", "1", "--warmup", "0", "--train-steps", "0", "--flight-frames", &frames.to_string(), "--json"]);
+    let settings = j["frames_in_flight"]["settings"].as_array().expect("frames_in_flight settings");
+    assert_eq!(settings.len(), 3, "{j}");
+    for (s, k) in settings.iter().zip(1u64..) {
+        assert_eq!(s["frames_in_flight"].as_u64(), Some(k), "{s}");
+        assert!(s["fps"].as_f64().is_some_and(|f| f > 0.0), "{s}");
+        // Frame i waits for frame i - k only: N - k waits while submitting N frames.
+        assert_eq!(s["fence_waits_while_submitting"].as_u64(), Some(frames - k), "{s}");
+    }
+}
