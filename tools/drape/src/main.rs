@@ -3,8 +3,10 @@
 //! `body` (the default body as SMPL .npz), `simulate` (garments on a motion), `synth`
 //! (the synthetic data), `inspect` (a sequence's layout and problems), `train` (the
 //! avatar), `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic
-//! cloth benchmark).
-#![forbid(unsafe_code)]
+//! cloth benchmark), `view` (a real-time viewer of a trained run).
+// `deny`, not `forbid`: `view` is Vulkan host code and allows it for itself (with a
+// SAFETY comment on every block); every other module stays free of unsafe.
+#![deny(unsafe_code)]
 
 use std::process::ExitCode;
 use std::time::Instant;
@@ -24,6 +26,7 @@ mod image_io;
 mod inspect;
 mod render;
 mod train;
+mod view;
 
 /// Cloth-aware human Gaussian-splat avatars on Vulkan.
 #[derive(Parser, Debug)]
@@ -78,6 +81,9 @@ enum Command {
     /// the full model, the paper's ablation rows and the single-layer baseline on each,
     /// and write bench.json, bench.md (with the paper's claim checked) and bench.png.
     BenchCloth(bench_cloth::BenchClothArgs),
+    /// Show a trained run in a window in real time (winit + a Vulkan swapchain, the
+    /// engine on the viewer's own device): space plays/pauses, arrows step, drag orbits.
+    View(view::ViewArgs),
 }
 
 fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
@@ -125,5 +131,6 @@ fn main() -> ExitCode {
         Command::Animate(args) => animate::run(&cli.device, &args),
         Command::Edit(args) => edit::run(&cli.device, &args),
         Command::BenchCloth(args) => bench_cloth::run(&cli.device, &args),
+        Command::View(args) => view::run(&cli.device, &args),
     })
 }

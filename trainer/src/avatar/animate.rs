@@ -90,7 +90,7 @@ pub fn place_pose(anchor: &BodyParams, pose: &Pose, trans: V3) -> BodyParams {
 }
 
 /// The pelvis in the world and the body's up axis for a frame's transforms (24 × 3x4).
-fn pelvis_and_up(transforms: &[f32], rest_pelvis: V3) -> (V3, V3) {
+pub fn pelvis_and_up(transforms: &[f32], rest_pelvis: V3) -> (V3, V3) {
     let t = |r: usize, c: usize| f64::from(transforms[4 * r + c]);
     let pelvis = std::array::from_fn(|r| t(r, 0) * rest_pelvis[0] + t(r, 1) * rest_pelvis[1] + t(r, 2) * rest_pelvis[2] + t(r, 3));
     (pelvis, normalize([t(0, 1), t(1, 1), t(2, 1)]))

@@ -9,3 +9,4 @@ mod motion_cli;
 mod render_fit;
 mod render_formats;
 mod train_cli;
+mod view_cli;
