@@ -4,7 +4,7 @@
 //! the composite and the three passes against f64 central differences, for both
 //! mattes; and the scene the paper's matte gets wrong (an arm in front of the shirt).
 
-use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, to_rgba_reference, CompositeGrads, CompositeInputs, Coverage};
 use drape_engine::ops::splat::reference::{backward, render};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
@@ -121,6 +121,48 @@ fn composite_kernels_match_the_cpu_reference() {
     close("add_slice", &ctx.read_buffer::<f32>(&mut sum, 1000).expect("read"), &want_sum);
     // Where the layer is absent the base shows unchanged.
     assert_eq!(&want[..3], &base[..3]);
+}
+
+#[test]
+fn to_rgba_kernel_matches_the_cpu_reference_for_each_coverage_source() {
+    let ctx = gpu();
+    let pixels = 3000usize;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    let rgb: Vec<f32> = (0..3 * pixels).map(|_| rng.random()).collect();
+    let alpha: Vec<f32> = (0..pixels).map(|_| rng.random()).collect();
+    // Three floats a pixel: the fused renderer's transmittances and a matte's rgb.
+    let triples: Vec<f32> = (0..3 * pixels).map(|_| rng.random()).collect();
+    let up = |name: &str, v: &[f32]| ctx.upload(name, v).expect("upload");
+    let (b_rgb, b_alpha, b_triples) = (up("rgb", &rgb), up("alpha", &alpha), up("triples", &triples));
+    let cases: [(&str, Coverage, Vec<f32>); 3] = [
+        ("one alpha", Coverage::Alpha(&b_alpha), to_rgba_reference(&rgb, &alpha, 1, false, None)),
+        ("alpha and matte", Coverage::Two { base: (&b_alpha, 1, false), layer: (&b_triples, 3) }, to_rgba_reference(&rgb, &alpha, 1, false, Some((&triples, 3)))),
+        ("transmittance and alpha", Coverage::Two { base: (&b_triples, 3, true), layer: (&b_alpha, 1) }, to_rgba_reference(&rgb, &triples, 3, true, Some((&alpha, 1)))),
+    ];
+    for (what, coverage, want) in cases {
+        let mut out = ctx.create_buffer("rgba", BufferDesc::gpu_only(16 * pixels as u64)).expect("buffer");
+        {
+            let mut rec = ctx.record("to_rgba test").expect("record");
+            record_to_rgba(&mut rec, &b_rgb, coverage, &out, pixels as u32).expect("to_rgba");
+            rec.submit_and_wait().expect("submit");
+        }
+        let got = ctx.read_buffer::<f32>(&mut out, 4 * pixels).expect("read");
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            // The same shared f32 function; llvmpipe may fuse the multiply-add.
+            assert!((g - w).abs() <= 2e-7, "{what}[{i}]: GPU {g}, CPU {w}");
+        }
+        // Written out independently of the shared function: colour passes through, and
+        // alpha is a + b - ab (two layers' coverage over each other).
+        for i in (0..pixels).step_by(101) {
+            assert_eq!(&got[4 * i..4 * i + 3], &rgb[3 * i..3 * i + 3], "{what}: pixel {i}'s colour");
+            let (a, b) = match what {
+                "one alpha" => (alpha[i], 0.0),
+                "alpha and matte" => (alpha[i], triples[3 * i]),
+                _ => (1.0 - triples[3 * i], alpha[i]),
+            };
+            assert!((got[4 * i + 3] - (a + b - a * b)).abs() < 1e-6, "{what}: pixel {i}'s alpha {} vs {}", got[4 * i + 3], a + b - a * b);
+        }
+    }
 }
 
 /// The three passes' last forward images (base, over, matte) composited on the GPU

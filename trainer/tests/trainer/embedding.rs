@@ -10,6 +10,7 @@ use std::sync::Arc;
 
 use drape_engine::ash::{self, vk};
 use drape_engine::validation::{messenger_info, ValidationSink};
+use drape_engine::ops::accumulate::{Accumulation, Method};
 use drape_engine::{device_requirements, Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer, ImageTarget, SubmitSync};
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
 use drape_trainer::testing::tiny_run;
@@ -281,21 +282,25 @@ fn from_raw_renders_into_the_hosts_image_and_signals_its_timeline_semaphore() {
 /// Records the avatar into the host's command buffer between the host's clear of the
 /// image and its read-back, the image in `GENERAL` throughout; `documented_after_barrier`
 /// says whether the host places the barrier the engine documents after a copy into its
-/// image (`TRANSFER` / `TRANSFER_WRITE` to the host's read). Returns the pixels and the
-/// validation messages.
-fn record_into_host(documented_after_barrier: bool) -> (Vec<f32>, Vec<String>) {
+/// image (`TRANSFER` / `TRANSFER_WRITE` to the host's read). The engine writes a
+/// timestamp before and after its part into the host's query pool. Returns the pixels,
+/// the two timestamps and the validation messages.
+fn record_into_host(documented_after_barrier: bool) -> (Vec<f32>, [u64; 2], Vec<String>) {
     let ctx0 = drape_tests::gpu();
     let run = tiny_run(&ctx0).to_path_buf();
     drop(ctx0);
     let host = Host::new(false);
     let (pixels, messages);
+    let mut stamps = [0u64; 2];
     {
         let ctx = host.context();
         let mut player = AvatarPlayer::load(&ctx, &run, 1).expect("player");
         let cam = ViewCamera::from_camera(player.default_camera());
         let (w, h) = (player.default_camera().width, player.default_camera().height);
         let t = host.image_and_readback(w, h);
+        let queries = unsafe { host.device.create_query_pool(&vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(2), None) }.expect("query pool");
         let cmd = host.begin();
+        unsafe { host.device.cmd_reset_query_pool(cmd, queries, 0, 2) };
         let general = vk::ImageLayout::GENERAL;
         let write = (general, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE);
         host.image_barrier(cmd, t.image, (vk::ImageLayout::UNDEFINED, vk::PipelineStageFlags::TOP_OF_PIPE, vk::AccessFlags::empty()), write);
@@ -303,7 +308,7 @@ fn record_into_host(documented_after_barrier: bool) -> (Vec<f32>, Vec<String>) {
         unsafe { host.device.cmd_clear_color_image(cmd, t.image, general, &vk::ClearColorValue { float32: [0.5; 4] }, &[range]) };
         // The documented "before" barrier: the host's clear, then the engine's copy.
         host.image_barrier(cmd, t.image, write, write);
-        let hcb = unsafe { HostCommandBuffer::new(cmd, None) };
+        let hcb = unsafe { HostCommandBuffer::new(cmd, Some((queries, 0))) };
         let target = unsafe { ImageTarget::new(t.image, general, w, h, 16) };
         player.record_frame_into(&cam, w, h, &hcb, Some(&target)).expect("record");
         if documented_after_barrier {
@@ -315,27 +320,31 @@ fn record_into_host(documented_after_barrier: bool) -> (Vec<f32>, Vec<String>) {
         unsafe { host.device.cmd_copy_image_to_buffer(cmd, t.image, general, t.buffer, &[region]) };
         host.submit(cmd, None);
         pixels = host.read(&t);
+        unsafe { host.device.get_query_pool_results(queries, 0, &mut stamps, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }.expect("timestamps");
         player.wait_idle().expect("idle");
         drop(player);
         drop(ctx);
+        unsafe { host.device.destroy_query_pool(queries, None) };
         host.destroy_target(t);
     }
     messages = host.finish();
-    (pixels, messages)
+    (pixels, stamps, messages)
 }
 
 #[test]
 fn recorded_into_the_hosts_command_buffer_with_the_documented_barriers_has_no_hazard() {
     let (expected, ..) = owned_render();
-    let (pixels, messages) = record_into_host(true);
+    let (pixels, stamps, messages) = record_into_host(true);
     assert!(messages.is_empty(), "synchronization validation:\n{}", messages.join("\n"));
+    // lavapipe has timestamps (DRAPE_EXPECT_FEATURES): the frame took some time.
+    assert!(stamps[1] > stamps[0] && stamps[0] > 0, "the engine's timestamps in the host's pool: {stamps:?}");
     let d = max_difference(&pixels, &expected);
     assert!(d <= SAME_DEVICE_TOLERANCE, "host-recorded render differs from the owned context's by {d}");
 }
 
 #[test]
 fn leaving_out_the_documented_barrier_after_the_copy_is_a_reported_hazard() {
-    let (_, messages) = record_into_host(false);
+    let (_, _, messages) = record_into_host(false);
     assert!(messages.iter().any(|m| m.contains("SYNC-HAZARD-READ-AFTER-WRITE")), "expected a read-after-write hazard, got:\n{}", messages.join("\n"));
 }
 
@@ -353,7 +362,8 @@ fn a_host_device_without_float_atomics_gets_the_cas_kernels_and_one_without_the_
         ext.enabled_features.shader_buffer_float32_atomic_add = true;
         let err = unsafe { Context::from_raw(ext, ExternalOptions::default()) }.expect_err("refused");
         assert!(err.to_string().contains("VK_EXT_shader_atomic_float"), "{err}");
-        // The CAS fallback runs: a scatter-add backward through the accumulate op.
+        assert_eq!(Accumulation::Auto.method(&ctx), Method::CompareAndSwap);
+        cas_backward_matches_the_reference(&ctx);
         let mut player = AvatarPlayer::load(&ctx, tiny_run(&ctx), 1).expect("player");
         let cam = ViewCamera::from_camera(player.default_camera());
         let (w, h) = (player.default_camera().width, player.default_camera().height);
@@ -362,6 +372,44 @@ fn a_host_device_without_float_atomics_gets_the_cas_kernels_and_one_without_the_
     }
     let messages = host.finish();
     assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
+
+/// The splatter's backward with `Accumulation::Auto` on `ctx` against the CPU reference.
+fn cas_backward_matches_the_reference(ctx: &Context) {
+    use drape_engine::ops::splat::reference;
+    use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
+    use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
+    let n = 300;
+    let cloud = GaussianCloud::random(n, 1, 1.6, (-1.0, 1.0), 0.05, 7);
+    let cam = PinholeCamera { fx: 40.0, fy: 40.0, cx: 24.0, cy: 16.0, width: 48, height: 32, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: [0.0, 0.0, 4.0], near: 0.01, far: 100.0, background: [0.0; 3] };
+    let settings = RenderSettings::default();
+    let gaussians = GaussianBuffers::upload(ctx, "gaussians", &cloud).expect("upload");
+    let mut renderer = SplatRenderer::new(ctx, 48, 32, n).expect("renderer");
+    let saved = renderer.forward(&gaussians, &cam, &settings).expect("forward").saved;
+    let pixels = 48 * 32;
+    let (g_rgb, g_alpha, g_depth) = (vec![1.0f32; 3 * pixels], vec![0.5f32; pixels], vec![0.0f32; pixels]);
+    let b_rgb = ctx.upload("grad rgb", &g_rgb).expect("upload");
+    let b_alpha = ctx.upload("grad alpha", &g_alpha).expect("upload");
+    let b_depth = ctx.upload("grad depth", &g_depth).expect("upload");
+    let mut grads = GaussianBuffers::new(ctx, "grads", n, 1).expect("grads");
+    renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, Accumulation::Auto).expect("backward through compare-and-swap");
+    let got = grads.download(ctx, &cloud.layers).expect("download");
+    let gs = cloud.gaussians::<f32>();
+    let frame = frame_params(&cam, &settings, 1, n);
+    let cpu = reference::render(&gs, &frame);
+    let (want, _) = reference::backward(&gs, &frame, &cpu, &g_rgb, &g_alpha, &g_depth);
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for i in 0..n {
+        for k in 0..4 {
+            for c in 0..3 {
+                let (a, b) = (got.sh[(i * 4 + k) * 3 + c], want[i].sh[k][c]);
+                num += f64::from(a - b).powi(2);
+                den += f64::from(b).powi(2);
+            }
+        }
+    }
+    // The splatter's backward tolerance: CAS adds in another order than the CPU.
+    assert!(den > 0.0 && (num / den).sqrt() <= 1e-4, "SH gradients through CAS: relative error {:e}", (num / den).sqrt());
 }
 
 #[test]
