@@ -15,6 +15,38 @@
 //! Every op records compute dispatches, buffer copies, fills and updates only, so the
 //! table holds for each; inside its part the engine orders its own commands (see
 //! [`crate::recorder`]).
+//!
+//! ```no_run
+//! use drape_engine::ash::vk;
+//! use drape_engine::ops::radix_sort::RadixSort;
+//! use drape_engine::{Context, HostCommandBuffer, SubmitSync};
+//! # fn f(ctx: &Context, timeline: vk::Semaphore, frame: u64, cmd: vk::CommandBuffer) -> drape_engine::Result<()> {
+//! let keys = ctx.upload("keys", &[3u32, 1, 2])?;
+//! let values = ctx.upload("values", &[0u32, 1, 2])?;
+//! let sort = RadixSort::new(ctx, 3)?;
+//!
+//! // Submitted by the engine: wait for the host's work, signal the host's timeline.
+//! let mut rec = ctx.record("sort")?;
+//! sort.record(&mut rec, &keys, &values, 3, 32)?;
+//! let sync = SubmitSync {
+//!     wait: vec![(timeline, frame, vk::PipelineStageFlags::COMPUTE_SHADER)],
+//!     signal: vec![(timeline, frame + 1)],
+//! };
+//! let submission = rec.submit(&sync)?; // returns at once
+//! // ... the host's own work ...
+//! let timings = submission.wait()?; // or poll submission.is_complete()
+//!
+//! // Recorded into the host's command buffer: the host submits it.
+//! let mut rec = ctx.record("sort")?;
+//! sort.record(&mut rec, &keys, &values, 3, 32)?;
+//! // SAFETY: cmd is recording, of the context's queue family, and completes before
+//! // `recorded` is dropped.
+//! let host = unsafe { HostCommandBuffer::new(cmd, None) };
+//! let recorded = rec.record_into(&host)?;
+//! // ... the host ends, submits and waits for cmd ...
+//! drop(recorded);
+//! # Ok(()) }
+//! ```
 
 use std::time::Instant;
 

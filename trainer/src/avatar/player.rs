@@ -15,6 +15,26 @@
 //! A frame whose tile intersections outgrew the renderer's buffers is found when its
 //! slot comes round again: the buffers have grown by then, the frame is counted in
 //! [`AvatarPlayer::overflowed_frames`], and [`AvatarPlayer::render`] renders again.
+//!
+//! ```no_run
+//! use std::path::Path;
+//! use drape_engine::{Context, ContextDesc, SubmitSync};
+//! use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
+//! # fn f() -> drape_trainer::Result<()> {
+//! let ctx = Context::new(&ContextDesc::default())?;
+//! let mut player = AvatarPlayer::load(&ctx, Path::new("runs/me"), 2)?; // 2 frames in flight
+//! let camera = ViewCamera::from_camera(player.default_camera());
+//! let (w, h) = (player.default_camera().width, player.default_camera().height);
+//! let pose = [0.0f32; 72]; // SMPL axis-angles, joint 0 the global orientation
+//! player.set_pose(&pose, &[0.0, 0.0, 0.0])?;
+//! // Pixels for callers that want them (waits):
+//! let rgba = player.render(&camera, w, h)?; // premultiplied RGBA, top row first
+//! // A frame loop: one submission a frame, waiting only for the frame two before.
+//! for _ in 0..100 {
+//!     player.submit_frame(&camera, w, h, &SubmitSync::default(), None)?;
+//! }
+//! # Ok(()) }
+//! ```
 
 use std::path::Path;
 
