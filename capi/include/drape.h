@@ -122,7 +122,8 @@ enum drape_status drape_avatar_default_view(struct drape_avatar *avatar,
 
 // Renders the current pose through `camera` into host memory: `rgba_out` has room for
 // width x height x 4 floats, premultiplied RGBA, row-major from the top row. Waits for
-// the GPU.
+// the GPU, and for every frame in flight (frames recorded with `drape_avatar_record`
+// must have completed before this call).
 enum drape_status drape_avatar_render(struct drape_avatar *avatar,
                                       const struct drape_camera *camera,
                                       uint32_t width,
@@ -131,7 +132,9 @@ enum drape_status drape_avatar_render(struct drape_avatar *avatar,
 
 // Records the frame (decoders, skinning, renders, composite, the copy into `target`)
 // into the application's `cmd` (a `VkCommandBuffer` in the recording state, from a
-// pool of the context's compute queue family); nothing is submitted and nothing waits.
+// pool of the context's compute queue family); nothing is submitted and nothing waits
+// (except at a new image size, when the frame's renderer is made once). On an error,
+// `cmd` holds part of the frame: reset or free it instead of submitting it.
 // `target` is a `VkImage` (as a 64-bit integer) of format `R32G32B32A32_SFLOAT`, width
 // x height, with `TRANSFER_DST` usage, in `target_layout` (`TRANSFER_DST_OPTIMAL` or
 // `GENERAL`) when the work runs. Barriers: before, the image's earlier accesses made

@@ -7,6 +7,13 @@
 //! panics (`DRAPE_ERROR_PANIC`) and sets a thread-local last-error string
 //! ([`drape_last_error`]) on failure; `DRAPE_OK` is 0. Functions are safe to call from
 //! any thread; calls on one table are serialised.
+//!
+//! Queue access over the application's device (`drape_context_from_vulkan`):
+//! `drape_avatar_load`, `drape_avatar_render`, and `drape_avatar_record` at a new image
+//! size submit to the application's queue (and wait for that work); the application must
+//! not submit to that queue from another thread during those calls.
+//!
+//! 64-bit targets only: a handle carries a 32-bit generation beside its slot.
 #![allow(non_camel_case_types)]
 // The FFI boundary: raw pointers from C callers are read only after null checks, and
 // each unsafe block says what the caller guarantees.
@@ -21,6 +28,9 @@ use std::sync::Mutex;
 use drape_engine::ash::vk::{self, Handle};
 use drape_engine::{Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer, ImageTarget};
 use drape_trainer::avatar::player::{smpl_pose_of, AvatarPlayer, ViewCamera};
+
+#[cfg(not(target_pointer_width = "64"))]
+compile_error!("the drape C ABI encodes a generation and a slot in each handle: 64-bit targets only");
 
 /// What a call returned.
 #[repr(C)]
@@ -391,7 +401,8 @@ pub unsafe extern "C" fn drape_avatar_default_view(avatar: *mut drape_avatar, ca
 
 /// Renders the current pose through `camera` into host memory: `rgba_out` has room for
 /// width x height x 4 floats, premultiplied RGBA, row-major from the top row. Waits for
-/// the GPU.
+/// the GPU, and for every frame in flight (frames recorded with `drape_avatar_record`
+/// must have completed before this call).
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_render(avatar: *mut drape_avatar, camera: *const drape_camera, width: u32, height: u32, rgba_out: *mut f32) -> drape_status {
     status("drape_avatar_render", || {
@@ -410,7 +421,9 @@ pub unsafe extern "C" fn drape_avatar_render(avatar: *mut drape_avatar, camera: 
 
 /// Records the frame (decoders, skinning, renders, composite, the copy into `target`)
 /// into the application's `cmd` (a `VkCommandBuffer` in the recording state, from a
-/// pool of the context's compute queue family); nothing is submitted and nothing waits.
+/// pool of the context's compute queue family); nothing is submitted and nothing waits
+/// (except at a new image size, when the frame's renderer is made once). On an error,
+/// `cmd` holds part of the frame: reset or free it instead of submitting it.
 /// `target` is a `VkImage` (as a 64-bit integer) of format `R32G32B32A32_SFLOAT`, width
 /// x height, with `TRANSFER_DST` usage, in `target_layout` (`TRANSFER_DST_OPTIMAL` or
 /// `GENERAL`) when the work runs. Barriers: before, the image's earlier accesses made
@@ -425,10 +438,14 @@ pub unsafe extern "C" fn drape_avatar_record(avatar: *mut drape_avatar, camera: 
         if cmd.is_null() || target == 0 {
             return Err(Failure::argument("cmd and target must not be NULL"));
         }
+        let layout = vk::ImageLayout::from_raw(target_layout);
+        if layout != vk::ImageLayout::TRANSFER_DST_OPTIMAL && layout != vk::ImageLayout::GENERAL {
+            return Err(Failure::argument(format!("target_layout {target_layout}: the copy needs VK_IMAGE_LAYOUT_TRANSFER_DST_OPTIMAL (7) or VK_IMAGE_LAYOUT_GENERAL (1)")));
+        }
         // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
         let host = unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
         // SAFETY: as above.
-        let image = unsafe { ImageTarget::new(vk::Image::from_raw(target), vk::ImageLayout::from_raw(target_layout), width, height, 16) };
+        let image = unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
         with_avatar(avatar, |a| Ok(a.record_frame_into(&cam, width, height, &host, Some(&image)).map(|_| ())?))
     })
 }

@@ -84,6 +84,9 @@ pub struct Buffer {
     /// first time a 4-float texel binding reads it.
     texel4_view: OnceLock<vk::BufferView>,
     name: String,
+    /// Used by one recording only (its breadcrumbs), dropped after it completed: no
+    /// other submission can use it, so its drop need not wait for any.
+    pub(crate) private_to_recording: bool,
     device: Arc<Device>,
 }
 
@@ -159,8 +162,14 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
-        // SAFETY: callers submit and wait before dropping what a command buffer uses
-        // (recordings wait in submit and hold no buffer past it); the views go first.
+        // A submission that was leaked (`mem::forget`) instead of waited may still read
+        // this buffer: its fence is still registered with the device.
+        if !self.private_to_recording {
+            self.device.wait_for_pending();
+        }
+        // SAFETY: no submission of the engine's that may use the buffer is pending (just
+        // waited for); work in the host's command buffers is the host's to finish first
+        // (`HostCommandBuffer::new`'s contract). The views go first.
         unsafe {
             if let Some(&view) = self.texel_view.get() {
                 self.device.raw.destroy_buffer_view(view, None);
@@ -238,6 +247,7 @@ impl Context {
                 texel_view: OnceLock::new(),
                 texel4_view: OnceLock::new(),
                 name: name.to_string(),
+                private_to_recording: false,
                 device: self.device.clone(),
             };
         let a = buffer.allocation.as_ref().expect("just allocated");

@@ -155,6 +155,10 @@ pub struct Device {
     pub(crate) submissions: std::sync::atomic::AtomicU64,
     /// Fence waits so far (see [`Context::fence_waits`]).
     pub(crate) fence_waits: std::sync::atomic::AtomicU64,
+    /// Fences of submissions not yet waited for ([`crate::Submission`] registers its
+    /// fence at submission and removes it when it waits): a buffer waits for them before
+    /// it is freed, so a leaked submission cannot have its buffers freed under it.
+    pub(crate) pending_fences: Mutex<Vec<vk::Fence>>,
     /// False for a context over the host's handles ([`Context::from_raw`]): the engine
     /// destroys only what it created, never the device or the instance.
     pub(crate) owns_device: bool,
@@ -291,6 +295,7 @@ impl Context {
             profile: Mutex::new(None),
             submissions: std::sync::atomic::AtomicU64::new(0),
             fence_waits: std::sync::atomic::AtomicU64::new(0),
+            pending_fences: Mutex::new(Vec::new()),
             owns_device: true,
             recycled_pools: Mutex::new(Vec::new()),
             command_pools_created: std::sync::atomic::AtomicU64::new(0),
@@ -385,8 +390,9 @@ impl Context {
     }
 
     /// How many times the host has waited on a fence for this device's work (every
-    /// `submit_and_wait`, staging copy and [`crate::Submission::wait`] that had to wait):
-    /// a frame loop with k frames in flight waits N - k times over N frames.
+    /// `submit_and_wait`, staging copy and [`crate::Submission::wait`], whether or not
+    /// the work had finished by then): a frame loop with k frames in flight waits N - k
+    /// times over N frames.
     pub fn fence_waits(&self) -> u64 {
         self.device.fence_waits.load(std::sync::atomic::Ordering::Relaxed)
     }
@@ -642,8 +648,35 @@ vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
     }
 }
 
+impl Device {
+    /// Waits for every registered submission fence (none, unless submissions are in
+    /// flight or were leaked); counted as one fence wait when there are any.
+    pub(crate) fn wait_for_pending(&self) {
+        // Held while waiting: a submission removes its fence under this lock before it
+        // destroys it, so none is destroyed while waited on here.
+        let fences = self.pending_fences.lock().unwrap_or_else(|p| p.into_inner());
+        if fences.is_empty() {
+            return;
+        }
+        self.fence_waits.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // SAFETY: registered fences are live fences of this device (see above).
+        let _ = unsafe { self.raw.wait_for_fences(&fences, true, u64::MAX) };
+    }
+}
+
 impl Drop for Device {
     fn drop(&mut self) {
+        // Fences of leaked submissions: wait for their work, then destroy them.
+        let leaked = std::mem::take(&mut *self.pending_fences.lock().unwrap_or_else(|p| p.into_inner()));
+        if !leaked.is_empty() {
+            // SAFETY: live fences of this device, destroyed once after their work ended.
+            unsafe {
+                let _ = self.raw.wait_for_fences(&leaked, true, u64::MAX);
+                for f in leaked {
+                    self.raw.destroy_fence(f, None);
+                }
+            }
+        }
         if self.owns_device {
             // SAFETY: the device is valid; nothing else uses it (we are its last owner).
             unsafe {

@@ -218,6 +218,7 @@ impl Context {
             command_pools_created: Default::default(),
             submissions: Default::default(),
             fence_waits: Default::default(),
+            pending_fences: Mutex::new(Vec::new()),
             owns_device: false,
             _entry: entry,
         };

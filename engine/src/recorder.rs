@@ -173,6 +173,8 @@ pub struct Recording<'a> {
     /// False from submission until its wait succeeded: a failed submission's pools
     /// are destroyed, not reused.
     reusable: bool,
+    /// The pools were forgotten ([`Recording::leak_pools`]): nothing to return.
+    leaked: bool,
     passes: Vec<String>,
     /// Each emitted pass's scope, in the order of `passes`.
     pass_scopes: Vec<String>,
@@ -184,9 +186,10 @@ pub struct Recording<'a> {
     /// Commands in program order with the wave each was scheduled into (see
     /// [`Recording::schedule`]); emitted wave by wave at submission.
     commands: Vec<(u32, Command)>,
-    /// Per buffer, the last wave that wrote it and the last wave that read it.
-    last_write: HashMap<vk::Buffer, u32>,
-    last_read: HashMap<vk::Buffer, u32>,
+    /// Per buffer (and host image), the last wave that wrote it and the last wave that
+    /// read it.
+    last_write: HashMap<Resource, u32>,
+    last_read: HashMap<Resource, u32>,
     _buffers: PhantomData<&'a Buffer>,
 }
 
@@ -230,6 +233,7 @@ impl Context {
             sets_left: 0,
             query_pools_used: 0,
             reusable: true,
+            leaked: false,
             passes: Vec::new(),
             pass_scopes: Vec::new(),
             scope: String::new(),
@@ -279,6 +283,13 @@ impl ImageTarget {
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
+}
+
+/// What the wave scheduler tracks: a buffer, or a host image a copy writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum Resource {
+    Buffer(vk::Buffer),
+    Image(vk::Image),
 }
 
 /// One binding of a pass: a buffer, or a byte range of one.
@@ -468,7 +479,7 @@ impl<'a> Recording<'a> {
     /// therefore independent, and a barrier between waves orders every dependency; a
     /// chain of passes that shares only read-only data with another chain runs beside
     /// it, wave for wave, instead of after it.
-    fn schedule(&mut self, accesses: &[(vk::Buffer, bool)], command: Command) {
+    fn schedule(&mut self, accesses: &[(Resource, bool)], command: Command) {
         let mut wave = 0;
         for &(buffer, writes) in accesses {
             if let Some(&w) = self.last_write.get(&buffer) {
@@ -528,7 +539,7 @@ impl<'a> Recording<'a> {
             return;
         }
         let region = vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes);
-        self.schedule(&[(src.raw, false), (dst.raw, true)], Command::Copy { src: src.raw, dst: dst.raw, region });
+        self.schedule(&[(Resource::Buffer(src.raw), false), (Resource::Buffer(dst.raw), true)], Command::Copy { src: src.raw, dst: dst.raw, region });
     }
 
     /// Writes `data` (at most 65,536 bytes, a multiple of 4) to the start of `buffer`
@@ -546,12 +557,12 @@ impl<'a> Recording<'a> {
         if bytes.is_empty() {
             return;
         }
-        self.schedule(&[(buffer.raw, true)], Command::Update { buffer: buffer.raw, data: bytes.to_vec() });
+        self.schedule(&[(Resource::Buffer(buffer.raw), true)], Command::Update { buffer: buffer.raw, data: bytes.to_vec() });
     }
 
     /// Fills the whole of `buffer` with the 32-bit `word`.
     pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
-        self.schedule(&[(buffer.raw, true)], Command::Fill { buffer: buffer.raw, word });
+        self.schedule(&[(Resource::Buffer(buffer.raw), true)], Command::Fill { buffer: buffer.raw, word });
     }
 
     /// Copies `src` (tightly packed texels, row-major from the top row, in the image's
@@ -562,7 +573,7 @@ impl<'a> Recording<'a> {
         let region = vk::BufferImageCopy::default()
             .image_subresource(vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1))
             .image_extent(vk::Extent3D { width: target.width, height: target.height, depth: 1 });
-        self.schedule(&[(src.raw, false)], Command::CopyToImage { src: src.raw, image: target.image, layout: target.layout, region });
+        self.schedule(&[(Resource::Buffer(src.raw), false), (Resource::Image(target.image), true)], Command::CopyToImage { src: src.raw, image: target.image, layout: target.layout, region });
     }
 
     fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
@@ -613,8 +624,8 @@ impl<'a> Recording<'a> {
             .collect();
         // SAFETY: the set is freshly allocated and not in use by any command buffer.
         unsafe { self.ctx.device.raw.update_descriptor_sets(&writes, &[]) };
-        let accesses: Vec<(vk::Buffer, bool)> =
-            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (b.buffer.raw, !decl.read_only)).collect();
+        let accesses: Vec<(Resource, bool)> =
+            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (Resource::Buffer(b.buffer.raw), !decl.read_only)).collect();
         let command = Command::Dispatch { name: name.to_string(), scope: self.scope.clone(), pipeline: pipeline.raw, layout: pipeline.layout, set, push: push.to_vec(), groups };
         self.schedule(&accesses, command);
         Ok(())
@@ -709,6 +720,7 @@ impl<'a> Recording<'a> {
         if chunk == self.breadcrumbs.len() {
             let name = format!("{} breadcrumbs {chunk}", self.label);
             let mut b = self.ctx.create_buffer(&name, BufferDesc::readback(u64::from(BREADCRUMB_SLOTS) * 4))?;
+            b.private_to_recording = true;
             // Zeroed by the host, not by a fill that the slots' fills would race with;
             // where the memory is not host-coherent the breadcrumbs cannot be read anyway.
             if let Some(m) = b.coherent_mapping() {
@@ -753,25 +765,10 @@ impl<'a> Recording<'a> {
     /// visible to the host, and ends the command buffer.
     pub(crate) fn end(&mut self) -> Result<()> {
         self.emit()?;
-        let dev = self.ctx.device.raw.clone();
         // Results are read on the host (mapped buffers): make the writes visible there.
-        let to_host = vk::MemoryBarrier::default()
-            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
-            .dst_access_mask(vk::AccessFlags::HOST_READ);
+        self.emit_host_barrier();
         // SAFETY: recording command buffer, ended once here.
-        unsafe {
-            dev.cmd_pipeline_barrier(
-                self.cmd,
-                vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER,
-                vk::PipelineStageFlags::HOST,
-                vk::DependencyFlags::empty(),
-                &[to_host],
-                &[],
-                &[],
-            );
-            dev.end_command_buffer(self.cmd)
-        }
-        .vk("vkEndCommandBuffer", &self.label)
+        unsafe { self.ctx.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer", &self.label)
     }
 
     /// The command buffer (for the submission code).
@@ -806,12 +803,48 @@ impl<'a> Recording<'a> {
     }
 
     /// Emits the scheduled commands into the host's `cmd` instead of the recording's
-    /// own command buffer (see [`crate::submit`]).
+    /// own command buffer (see [`crate::submit`]), ending with the barrier that makes
+    /// their writes visible to the host's reads of mapped buffers (as `end` does).
     pub(crate) fn emit_into(&mut self, cmd: vk::CommandBuffer) -> Result<()> {
         let own = std::mem::replace(&mut self.cmd, cmd);
         let result = self.emit();
+        if result.is_ok() {
+            self.emit_host_barrier();
+        }
         self.cmd = own;
         result
+    }
+
+    /// Forgets the recording's pools instead of reusing or destroying them: for a
+    /// submission whose completion could not be established.
+    pub(crate) fn leak_pools(&mut self) {
+        self.reusable = false;
+        // The breadcrumbs may still be written by the pending work: forgotten too.
+        std::mem::forget(std::mem::take(&mut self.breadcrumbs));
+        let _ = std::mem::replace(
+            &mut self.pools,
+            RecordingPools { command_pool: vk::CommandPool::null(), cmd: vk::CommandBuffer::null(), descriptor_pools: Vec::new(), query_pools: Vec::new() },
+        );
+        self.leaked = true;
+    }
+
+    fn emit_host_barrier(&self) {
+        let to_host = vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(vk::AccessFlags::HOST_READ);
+        // SAFETY: a command buffer in the recording state (ours, or the host's by
+        // HostCommandBuffer::new's contract); a global barrier names no handle.
+        unsafe {
+            self.ctx.device.raw.cmd_pipeline_barrier(
+                self.cmd,
+                vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::HOST,
+                vk::DependencyFlags::empty(),
+                &[to_host],
+                &[],
+                &[],
+            )
+        };
     }
 
     /// The last pass in recording order whose breadcrumb was written (read after a
@@ -868,6 +901,9 @@ impl<'a> Recording<'a> {
 
 impl Drop for Recording<'_> {
     fn drop(&mut self) {
+        if self.leaked {
+            return;
+        }
         let dev = &self.ctx.device.raw;
         let pools = std::mem::replace(
             &mut self.pools,

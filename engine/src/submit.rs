@@ -69,7 +69,8 @@ pub struct SubmitSync {
 /// A submitted recording: [`wait`](Submission::wait) for it (one fence wait, counted by
 /// [`crate::Context::fence_waits`]) or poll it with [`is_complete`](Submission::is_complete).
 /// The buffers the recording bound stay borrowed until it is waited or dropped; dropping
-/// it without a wait waits.
+/// it without a wait waits. Leaking it (`mem::forget`) leaks its pools and fence, and
+/// every buffer of the context then waits for the work before it is freed.
 #[must_use = "dropping a submission waits for it"]
 pub struct Submission<'a> {
     rec: Option<Recording<'a>>,
@@ -115,14 +116,22 @@ impl<'a> Recording<'a> {
             unsafe { dev.destroy_fence(fence, None) };
             return Err(crate::error::vk_error("vkQueueSubmit", &label, e));
         }
+        // Registered with the device, so that a leaked Submission's buffers still wait
+        // for it before they are freed (Buffer's Drop).
+        ctx.device.pending_fences.lock().unwrap_or_else(|p| p.into_inner()).push(fence);
         Ok(Submission { rec: Some(self), fence, started: Instant::now() })
     }
 
     /// Emits the recording into the host's command buffer instead of submitting it; the
     /// host submits (and synchronises) it. See the module header for the barriers the
-    /// host places around it.
+    /// host places around it. On an error the host's command buffer holds part of the
+    /// recording: the host must reset or free it, not submit it.
     pub fn record_into(mut self, host: &HostCommandBuffer) -> Result<HostRecorded<'a>> {
         let HostCommandBuffer { cmd, timestamps } = *host;
+        // From the first command emitted the host's buffer refers to our descriptor sets:
+        // on an error below, the pools are destroyed (the host discards its buffer), not
+        // reset for reuse.
+        self.set_reusable(false);
         let dev = self.context().device.raw.clone();
         if let Some((pool, first)) = timestamps {
             // SAFETY: by HostCommandBuffer::new's contract, cmd is recording and the
@@ -134,9 +143,8 @@ impl<'a> Recording<'a> {
             // SAFETY: as above.
             unsafe { dev.cmd_write_timestamp(cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, first + 1) };
         }
-        // The host's command buffer may hold our descriptor sets and query pools until it
-        // completes: keep the pools until the HostRecorded is dropped.
-        self.set_reusable(false);
+        // The host's command buffer holds our descriptor sets and query pools until it
+        // completes: the pools stay out of reuse until the HostRecorded is dropped.
         Ok(HostRecorded { rec: Some(self) })
     }
 }
@@ -157,12 +165,13 @@ impl HostCommandBuffer {
     /// # Safety
     /// `cmd` is a primary command buffer of the context's device in the recording
     /// state, from a pool of the context's queue family
-    /// ([`crate::Context::queue_family`]); the work the engine records into it completes
-    /// (or `cmd` is reset or freed unsubmitted) before the [`HostRecorded`] is dropped,
-    /// or, through [`FramesInFlight::record_into`], before the ring records into the same
-    /// slot again ([`FramesInFlight::len`] frames later), waits for all, or is dropped;
-    /// the query pool, if given, is a timestamp pool of the device with room for two
-    /// queries from `first`.
+    /// ([`crate::Context::queue_family`]); the host submits it, and the work completes
+    /// before the [`HostRecorded`] is dropped or its timings read, before any buffer the
+    /// work uses is dropped, and, through [`FramesInFlight::record_into`], before the
+    /// ring records into the same slot again ([`FramesInFlight::len`] frames later),
+    /// waits for all, or is dropped (if a recording into it fails, the host resets or
+    /// frees `cmd` instead of submitting it); the query pool, if given, is a timestamp
+    /// pool of the device with room for two queries from `first`, reset before.
     pub unsafe fn new(cmd: vk::CommandBuffer, timestamps: Option<(vk::QueryPool, u32)>) -> Self {
         Self { cmd, timestamps }
     }
@@ -186,10 +195,22 @@ impl<'a> Submission<'a> {
         let ctx = rec.context().clone();
         let dev = &ctx.device.raw;
         ctx.device.fence_waits.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        // SAFETY: the fence belongs to this device and was submitted with the recording.
+        // SAFETY: the fence belongs to this device and was submitted with the recording;
+        // only this submission destroys it.
         let waited = unsafe { dev.wait_for_fences(&[self.fence], true, u64::MAX) };
-        // SAFETY: signalled, or the device is lost; either way it is unused now.
-        unsafe { dev.destroy_fence(self.fence, None) };
+        if !matches!(waited, Ok(()) | Err(vk::Result::ERROR_DEVICE_LOST)) {
+            // Completion unknown: the fence stays registered (buffers keep waiting for
+            // it) and the pools are forgotten rather than reset under pending work.
+            rec.leak_pools();
+            return Err(crate::error::vk_error("vkWaitForFences", rec.label(), waited.err().unwrap_or(vk::Result::ERROR_UNKNOWN)));
+        }
+        {
+            let mut pending = ctx.device.pending_fences.lock().unwrap_or_else(|p| p.into_inner());
+            pending.retain(|&f| f != self.fence);
+            // SAFETY: signalled, or the device is lost; either way it is unused now, and
+            // no longer registered (removed under the lock wait_for_pending holds).
+            unsafe { dev.destroy_fence(self.fence, None) };
+        }
         self.fence = vk::Fence::null();
         match waited {
             Ok(()) => rec.completed(self.started.elapsed().as_secs_f64() * 1e3),
@@ -244,18 +265,19 @@ impl Drop for HostRecorded<'_> {
 /// A ring of per-frame resources for frames in flight: frame `i` records into slot
 /// `i mod k`, after waiting for the frame that last used the slot (if it is still in
 /// flight), so over N frames the host waits N − k times and never for the device to go
-/// idle. The recording of a frame may bind only its slot's resources (the closure's
-/// signature makes any other borrow a compile error), which is what lets a slot's
-/// submission stay pending after the call returns.
-pub struct FramesInFlight<T> {
+/// idle. The recording of a frame may bind only its slot's resources or `'static` data
+/// (the closure is generic over the slot's lifetime, and `T: 'static`), which is what
+/// lets a slot's submission stay pending after the call returns.
+pub struct FramesInFlight<T: 'static> {
     slots: Vec<Slot<T>>,
     next: usize,
 }
 
 struct Slot<T> {
+    // Declared (so dropped) before the resources it borrows.
+    pending: Option<Pending>,
     // Boxed: pending submissions borrow into it, so it must not move with the Vec.
     resources: Box<T>,
-    pending: Option<Pending>,
     last_timings: Option<PassTimings>,
 }
 
@@ -276,11 +298,11 @@ impl Pending {
     }
 }
 
-impl<T> FramesInFlight<T> {
+impl<T: 'static> FramesInFlight<T> {
     /// A ring of `resources.len()` frames in flight (at least 1).
     pub fn new(resources: Vec<T>) -> Self {
         assert!(!resources.is_empty(), "frames in flight need at least one slot");
-        let slots = resources.into_iter().map(|r| Slot { resources: Box::new(r), pending: None, last_timings: None }).collect();
+        let slots = resources.into_iter().map(|r| Slot { pending: None, resources: Box::new(r), last_timings: None }).collect();
         Self { slots, next: 0 }
     }
 
@@ -360,13 +382,20 @@ impl<T> FramesInFlight<T> {
         Ok(self.slots.iter_mut().map(|s| &mut *s.resources))
     }
 
+    /// Makes slot `i` the one the next frame records into (after waiting for it, as
+    /// always): to render a frame again in the slot whose buffers just grew.
+    pub fn set_next(&mut self, i: usize) {
+        assert!(i < self.slots.len(), "slot {i} of {}", self.slots.len());
+        self.next = i;
+    }
+
     /// Whether slot `i` has a frame in flight.
     pub fn is_pending(&self, i: usize) -> bool {
         self.slots[i].pending.is_some()
     }
 }
 
-impl<T> Drop for FramesInFlight<T> {
+impl<T: 'static> Drop for FramesInFlight<T> {
     fn drop(&mut self) {
         // Pending submissions borrow the resources: wait for them before either goes.
         for slot in &mut self.slots {

@@ -343,3 +343,45 @@ fn a_texel_binding_the_module_does_not_declare_is_named() {
     let text = check_module(Kernel::NnGemmTexel, &patched).expect_err("no texel buffer").to_string();
     assert!(text.contains("binding 0") && text.contains("'a'") && text.contains("a storage buffer in the module, a texel buffer in the manifest"), "{text}");
 }
+
+/// A submission leaked with `mem::forget` (safe code) still finishes before the buffers
+/// it reads are freed: their drop waits for every registered submission fence, so the
+/// validation layer (on in every test context) sees no buffer destroyed in use.
+#[test]
+fn a_leaked_submission_finishes_before_its_buffers_are_freed() {
+    use drape_engine::ops::radix_sort::RadixSort;
+    use drape_engine::SubmitSync;
+    let gpu = gpu();
+    let n: u32 = 1 << 18;
+    let keys: Vec<u32> = (0..n).map(|i| i.wrapping_mul(2_654_435_761)).collect();
+    let values: Vec<u32> = (0..n).collect();
+    let k = gpu.upload("keys", &keys).expect("upload");
+    let v = gpu.upload("values", &values).expect("upload");
+    let sort = RadixSort::new(&gpu, n).expect("sort");
+    let mut rec = gpu.record("leaked sort").expect("record");
+    sort.record(&mut rec, &k, &v, n, 32).expect("record sort");
+    let submission = rec.submit(&SubmitSync::default()).expect("submit");
+    std::mem::forget(submission);
+    let waits = gpu.fence_waits();
+    drop(k);
+    assert_eq!(gpu.fence_waits(), waits + 1, "the first buffer freed waits for the leaked submission");
+    drop(v);
+    drop(sort);
+}
+
+/// `Recording::submit` returns at once; `Submission::wait` returns the passes' times.
+#[test]
+fn submit_returns_a_submission_to_poll_and_wait() {
+    use drape_engine::SubmitSync;
+    let gpu = gpu();
+    let a = gpu.upload("a", &[1.0f32; LEN as usize]).expect("upload");
+    let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
+    let mut rec = gpu.record("submit").expect("record");
+    rec.pass("add", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&params()).dispatch(groups()).expect("pass");
+    let submissions = gpu.submission_count();
+    let s = rec.submit(&SubmitSync::default()).expect("submit");
+    assert_eq!(gpu.submission_count(), submissions + 1);
+    let _ = s.is_complete().expect("poll");
+    let timings = s.wait().expect("wait");
+    assert_eq!(timings.passes.len(), 1);
+}

@@ -353,8 +353,9 @@ impl AvatarRenderer {
             Inner::Fused(f) => {
                 rec.set_scope("render.fused");
                 f.renderer.record_forward(rec, &avatar.posed)?;
+                record_composite(rec, f.renderer.outputs(), &f.image, f.pixels)?;
                 rec.set_scope("");
-                record_composite(rec, f.renderer.outputs(), &f.image, f.pixels)
+                Ok(())
             }
             Inner::ThreePass(t) => {
                 for p in &t.base_parts {

@@ -61,8 +61,6 @@ pub struct PlayerFrame {
     width: u32,
     height: u32,
     compositing: crate::avatar::composite::Compositing,
-    /// Whether a frame was recorded here whose overflow check is still to be read.
-    unfinished: bool,
 }
 
 /// A camera for the player: OpenCV axes (x right, y down, z forward), pinhole
@@ -144,6 +142,8 @@ pub struct AvatarPlayer {
     default_body: BodyParams,
     overflowed: u64,
     rendered: u64,
+    /// Per slot: a frame was submitted there whose overflow check is still to be read.
+    unfinished: Vec<bool>,
 }
 
 impl AvatarPlayer {
@@ -165,10 +165,10 @@ impl AvatarPlayer {
             a.restore(ctx, &state)?;
             let r = AvatarRenderer::new(ctx, &a, width, height, config.compositing)?;
             let rgba = ctx.create_buffer(&format!("player rgba {k}"), BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-            slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.compositing, unfinished: false });
+            slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.compositing });
         }
         let rgba = ctx.create_buffer("player rgba 0", BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-        slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.compositing, unfinished: false });
+        slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.compositing });
         let betas = crate::avatar::train::betas_of(&anchor);
         let transforms = rig.frame(&anchor.body);
         Ok(Self {
@@ -183,6 +183,7 @@ impl AvatarPlayer {
             default_body: anchor.body.clone(),
             overflowed: 0,
             rendered: 0,
+            unfinished: vec![false; frames_in_flight],
         })
     }
 
@@ -250,11 +251,8 @@ impl AvatarPlayer {
         let ctx = self.ctx.clone();
         let (i, frame, timings) = self.frames.next_slot()?;
         let timings = timings.cloned();
-        if frame.unfinished {
-            frame.unfinished = false;
-            if frame.renderer.finish_frame()? {
-                self.overflowed += 1;
-            }
+        if std::mem::take(&mut self.unfinished[i]) && frame.renderer.finish_frame()? {
+            self.overflowed += 1;
         }
         if (frame.width, frame.height) != (width, height) {
             frame.renderer = AvatarRenderer::new(&ctx, &frame.avatar, width, height, frame.compositing)?;
@@ -267,7 +265,6 @@ impl AvatarPlayer {
     /// The recording of one frame into the slot's resources.
     fn record<'r>(ctx: &Context, frame: &'r mut PlayerFrame, transforms: &FrameTransforms, camera: &PinholeCamera, settings: &RenderSettings, target: Option<&ImageTarget>) -> drape_engine::Result<Recording<'r>> {
         frame.renderer.prepare_frame(&frame.avatar, camera, settings)?;
-        frame.unfinished = true;
         let frame: &'r PlayerFrame = frame;
         let mut rec = ctx.record("avatar frame")?;
         frame.avatar.record_set_frame(&mut rec, transforms);
@@ -293,6 +290,7 @@ impl AvatarPlayer {
         let (_, timings) = self.prepare_slot(width, height)?;
         let (ctx, transforms, settings) = (self.ctx.clone(), &self.transforms, self.settings);
         let slot = self.frames.submit(sync, |frame| Self::record(&ctx, frame, transforms, &pinhole, &settings, target))?;
+        self.unfinished[slot] = true;
         self.rendered += 1;
         Ok((slot, timings))
     }
@@ -309,23 +307,25 @@ impl AvatarPlayer {
         self.prepare_slot(width, height)?;
         let (ctx, transforms, settings) = (self.ctx.clone(), &self.transforms, self.settings);
         let slot = self.frames.record_into(host, |frame| Self::record(&ctx, frame, transforms, &pinhole, &settings, target))?;
+        self.unfinished[slot] = true;
         self.rendered += 1;
         Ok(slot)
     }
 
     /// Renders the current pose through `camera` and reads it back: `width` x `height` x
     /// 4 floats, premultiplied RGBA, row-major from the top row. Waits for every frame in
-    /// flight (a convenience for callers that want pixels, not a frame loop).
+    /// flight (a convenience for callers that want pixels, not a frame loop; frames
+    /// recorded into the host's command buffers must have completed). A frame that
+    /// outgrew its renderer's buffers is rendered again in the same slot, whose buffers
+    /// have grown.
     pub fn render(&mut self, camera: &ViewCamera, width: u32, height: u32) -> crate::Result<Vec<f32>> {
         loop {
             let (slot, _) = self.submit_frame(camera, width, height, &SubmitSync::default(), None)?;
-            self.frames.wait_all()?;
-            let overflowed_before = self.overflowed;
-            let mut frames = self.frames.all_mut()?;
-            let frame = frames.nth(slot).expect("the slot exists");
-            frame.unfinished = false;
+            self.unfinished[slot] = false;
+            let frame = self.frames.all_mut()?.nth(slot).expect("the slot exists");
             if frame.renderer.finish_frame()? {
-                self.overflowed = overflowed_before + 1;
+                self.overflowed += 1;
+                self.frames.set_next(slot);
                 continue;
             }
             let pixels = 4 * width as usize * height as usize;
