@@ -149,3 +149,75 @@ fn a_panic_inside_a_call_is_an_error_status_with_a_message() {
     assert_eq!(drape::testing_panic_probe(), drape_status::DRAPE_ERROR_PANIC);
     assert!(last_error().contains("a deliberate panic"), "{}", last_error());
 }
+
+/// `drape_context_from_vulkan` over the test's own device and `drape_avatar_record` into
+/// its command buffer and image: the library's pixels, and validation (synchronization
+/// included) silent on the test's instance; a device said to lack `vulkanMemoryModel`
+/// is refused with the feature named.
+#[test]
+fn from_vulkan_and_record_into_the_applications_command_buffer() {
+    use drape_engine::ash::vk::{self, Handle};
+    use drape_tests::host::Host;
+    use std::ffi::{c_char, c_void};
+    let run = the_run();
+    let expected = library_render(&run);
+    let host = Host::new(false);
+    let extensions: Vec<*const c_char> = host.extensions.iter().map(|e| e.as_ptr()).collect();
+    let f = host.features;
+    let mut desc = drape_vulkan_desc {
+        // SAFETY: vkGetInstanceProcAddr, as the header's pointer type (same ABI).
+        get_instance_proc_addr: Some(unsafe { std::mem::transmute::<vk::PFN_vkGetInstanceProcAddr, unsafe extern "system" fn(*mut c_void, *const c_char) -> Option<unsafe extern "system" fn()>>(host.entry.static_fn().get_instance_proc_addr) }),
+        instance: host.instance.handle().as_raw() as *mut c_void,
+        physical_device: host.physical.as_raw() as *mut c_void,
+        device: host.device.handle().as_raw() as *mut c_void,
+        queue_family: host.family,
+        queue_index: 0,
+        api_version: vk::API_VERSION_1_2,
+        enabled_extensions: extensions.as_ptr(),
+        enabled_extension_count: extensions.len() as u32,
+        vulkan_memory_model: 0,
+        vulkan_memory_model_device_scope: u32::from(f.vulkan_memory_model_device_scope),
+        timeline_semaphore: u32::from(f.timeline_semaphore),
+        shader_int64: u32::from(f.shader_int64),
+        shader_buffer_float32_atomic_add: u32::from(f.shader_buffer_float32_atomic_add),
+    };
+    // SAFETY: the descriptor holds the test's live handles.
+    assert!(unsafe { drape_context_from_vulkan(&desc) }.is_null(), "a device without vulkanMemoryModel");
+    assert!(last_error().contains("vulkanMemoryModel"), "{}", last_error());
+    desc.vulkan_memory_model = 1;
+    // SAFETY: as above.
+    let ctx = unsafe { drape_context_from_vulkan(&desc) };
+    assert!(!ctx.is_null(), "{}", last_error());
+    let dir = CString::new(run.to_str().unwrap()).unwrap();
+    // SAFETY: a live context and a string.
+    let avatar = unsafe { drape_avatar_load(ctx, dir.as_ptr()) };
+    assert!(!avatar.is_null(), "{}", last_error());
+    let mut camera = drape_camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, world_to_camera: [0.0; 16], near: 0.0, far: 0.0 };
+    let (mut w, mut h) = (0u32, 0u32);
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: room for each output.
+    let status = unsafe { drape_avatar_default_view(avatar, &mut camera, &mut w, &mut h, pose.as_mut_ptr(), trans.as_mut_ptr()) };
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    // SAFETY: 72 and 3 floats.
+    assert_eq!(unsafe { drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr()) }, drape_status::DRAPE_OK);
+    let t = host.image_and_readback(w, h);
+    let cmd = host.begin();
+    let dst = (vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE);
+    host.image_barrier(cmd, t.image, (vk::ImageLayout::UNDEFINED, vk::PipelineStageFlags::TOP_OF_PIPE, vk::AccessFlags::empty()), dst);
+    // SAFETY: a recording command buffer of the context's queue family and an image of
+    // the frame's size in TRANSFER_DST_OPTIMAL; the test waits for the work below.
+    let status = unsafe { drape_avatar_record(avatar, &camera, w, h, cmd.as_raw() as *mut c_void, t.image.as_raw(), vk::ImageLayout::TRANSFER_DST_OPTIMAL.as_raw()) };
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    // A layout the copy cannot take is refused before anything is recorded.
+    // SAFETY: as above.
+    let bad = unsafe { drape_avatar_record(avatar, &camera, w, h, cmd.as_raw() as *mut c_void, t.image.as_raw(), vk::ImageLayout::PRESENT_SRC_KHR.as_raw()) };
+    assert_eq!(bad, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+    host.record_readback(cmd, &t);
+    host.submit(cmd, None);
+    compare("drape_avatar_record's image", &host.read(&t), &expected);
+    assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    host.destroy_target(t);
+    let messages = host.finish();
+    assert!(messages.is_empty(), "validation on the application's instance:\n{}", messages.join("\n"));
+}
