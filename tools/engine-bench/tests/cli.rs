@@ -101,39 +101,18 @@ fn avatar_names_a_missing_run_in_one_line() {
     assert!(lines[0].contains("/nonexistent/run") && lines[0].contains("no such run directory"), "{stderr}");
 }
 
-/// A tiny run (body + cloth at SH degree 1, 64 x 64, a few steps, the cloth with
-/// pose-dependent offsets) trained in-process:
-/// enough for `engine-bench trade` to have every knob, small enough for seconds.
+/// The shared tiny run (body + cloth at SH degree 1, the cloth with pose-dependent
+/// offsets: `tests/fixtures/tiny-run.toml`), made once by the test command
+/// (`DRAPE_TEST_RUN`) or trained here: enough for `engine-bench trade` to have every knob.
 fn tiny_run() -> std::path::PathBuf {
-    use drape_trainer::avatar::run::RunInfo;
-    use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
-    use drape_trainer::avatar::model::LayerChoice;
-    use drape_trainer::body::procedural::{default_body, BodyOptions};
-    use drape_trainer::dataset::synth::{generate, SynthOptions};
-    let root = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("engine-bench-trade");
-    let _ = std::fs::remove_dir_all(&root);
-    let data = root.join("data");
-    let o = SynthOptions { width: 64, height: 64, frames: 10, cameras: 2, ..SynthOptions::default() };
-    generate(&data, &o, &mut |_, _, _| {}).expect("synthetic data");
     let ctx = drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
-    let seq = load_sequence(&data, 0).expect("sequence");
-    let mut c = TrainConfig::quick();
-    for l in [&mut c.body, &mut c.cloth] {
-        (l.triplane_resolution, l.triplane_channels, l.decoder_width, l.sh_degree) = (16, 8, 32, 1);
-    }
-    (c.fit_steps, c.steps, c.log_every, c.checkpoint_every) = (10, 10, 10, 0);
-    c.cloth.pose_offsets = true;
-    c.layers = LayerChoice::parse("body+cloth").unwrap();
-    let run = root.join("run");
-    train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &run, false, &mut |_| {}).expect("training");
-    RunInfo::new(&data, None).write(&run).expect("run.json");
-    run
+    drape_trainer::testing::tiny_run(&ctx).to_path_buf()
 }
 
 #[test]
 fn trade_measures_every_knob_and_the_default_matches_itself() {
     let run = tiny_run();
-    let out = run.join("trade-out");
+    let out = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("trade-out-{}", std::process::id()));
     let j = json_of(&["--validation", "trade", run.to_str().unwrap(), "--runs", "1", "--warmup", "0", "--max-frames", "2", "--json", "--out", out.to_str().unwrap()]);
     let settings = j["settings"].as_array().expect("settings");
     let of = |knob: &str| settings.iter().filter(|s| s["knob"] == knob).collect::<Vec<_>>();
@@ -277,9 +256,7 @@ fn huge_counts_and_non_finite_plys_are_refused_in_one_line() {
 
 #[test]
 fn avatar_compares_one_two_and_three_frames_in_flight_in_one_run() {
-    let ctx = drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
-    let run = drape_trainer::testing::tiny_run(&ctx).to_path_buf();
-    drop(ctx);
+    let run = tiny_run();
     let frames = 6u64;
     let j = json_of(&["--validation", "avatar", run.to_str().unwrap(), "--sizes", "32x32", "--compositing", "three-pass", "--runs", "1", "--warmup", "0", "--train-steps", "0", "--flight-frames", &frames.to_string(), "--json"]);
     let settings = j["frames_in_flight"]["settings"].as_array().expect("frames_in_flight settings");
