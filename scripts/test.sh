@@ -77,6 +77,8 @@ scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 # The one small trained run the embedding, C ABI and viewer tests share
 # (tests/fixtures/tiny-run.toml on a 32-px synthetic sequence), trained once here.
 cargo build --locked -p drape --quiet
+# libdrape.so for the C and Python examples (the capi tests build it the same way if absent).
+cargo build --locked -p drape-capi --lib --quiet
 test_run=target/test-run
 rm -rf "$test_run"
 target/debug/drape synth --out "$test_run/synth" --size 32 --frames 4 --cameras 2 >/dev/null

@@ -19,9 +19,27 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
-/// Where cargo put libdrape.so (the test binary is in target/<profile>/deps).
+/// Where libdrape.so is (the test binary is in target/<profile>/deps): `cargo test`
+/// builds the crate's rlib for its tests, not the cdylib, so the first caller builds it
+/// with the same cargo, profile and target directory (the test run holds no build lock).
 fn lib_dir() -> PathBuf {
-    std::env::current_exe().unwrap().parent().unwrap().parent().unwrap().to_path_buf()
+    static BUILT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    BUILT
+        .get_or_init(|| {
+            let exe = std::env::current_exe().unwrap();
+            let profile_dir = exe.parent().unwrap().parent().unwrap().to_path_buf();
+            let target_dir = profile_dir.parent().unwrap();
+            let mut cargo = Command::new(env!("CARGO"));
+            cargo.args(["build", "--quiet", "-p", "drape-capi", "--lib", "--target-dir"]).arg(target_dir).current_dir(root());
+            if profile_dir.file_name().is_some_and(|n| n == "release") {
+                cargo.arg("--release");
+            }
+            let o = cargo.output().expect("cargo");
+            assert!(o.status.success(), "building libdrape: {}", String::from_utf8_lossy(&o.stderr));
+            assert!(profile_dir.join("libdrape.so").is_file(), "no libdrape.so in {}", profile_dir.display());
+            profile_dir
+        })
+        .clone()
 }
 
 fn tmp(name: &str) -> PathBuf {
