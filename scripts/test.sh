@@ -74,29 +74,38 @@ export DRAPE_CLIENTS_PYTHON
 # The cluster manifest (scripts/cluster/), validated offline against Kubernetes' schemas.
 scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
-# The one small trained run the embedding, C ABI and viewer tests share
-# (tests/fixtures/tiny-run.toml on a 32-px synthetic sequence), trained once here.
-cargo build --locked -p drape --quiet
-# libdrape.so for the C and Python examples (the capi tests build it the same way if absent).
-cargo build --locked -p drape-capi --lib --quiet
+step "3/4 workspace tests on $DRAPE_DEVICE with validation"
+# Build first: the shared run below is trained with this build's drape binary (a separate
+# `cargo build` would compile every dependency again under the dev profile's name).
+cargo test --workspace --locked --no-run
+# The one small trained run the tests share (tests/fixtures/tiny-run.toml on a 32-px
+# synthetic sequence), trained once here for the embedding, C ABI, viewer and
+# engine-bench tests.
 test_run=target/test-run
 rm -rf "$test_run"
 target/debug/drape synth --out "$test_run/synth" --size 32 --frames 4 --cameras 2 >/dev/null
 target/debug/drape train --data "$test_run/synth" --out "$test_run/run" --config tests/fixtures/tiny-run.toml >/dev/null
 DRAPE_TEST_RUN="$PWD/$test_run/run"
 export DRAPE_TEST_RUN
-
-step "3/4 workspace tests on $DRAPE_DEVICE with validation"
-# Also builds capi's libdrape.so, which its tests compile examples/c against with cc.
 cargo test --workspace --locked
 
 step "4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
-# --workspace, not -p: the same feature unification as step 3, so this reuses its
-# build instead of compiling every dependency a second time. The filters pick the
-# modules of the two GPU test binaries (engine: tests/tests/engine, trainer:
-# trainer/tests/trainer) that move buffers between host and device.
-DRAPE_FORCE_STAGING=1 cargo test --workspace --locked --test engine --test trainer -- \
-    runtime:: scan:: sort:: splat_gpu:: splat_robustness:: splat_gradients:: nn:: ssim:: sizes:: \
-    composite:: skinning::
+# The filters pick the modules of the two GPU test binaries (engine: tests/tests/engine,
+# trainer: trainer/tests/trainer) that move buffers between host and device.
+# The two binaries step 3 built, run directly: `cargo test --test engine --test trainer`
+# would resolve features for those targets alone and recompile the trainer (45 s).
+binaries=$(cargo test --workspace --locked --no-run --message-format=json 2>/dev/null | python3 -c '
+import json, os, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"] and m["target"]["name"] in ("engine", "trainer"):
+        print(os.path.dirname(m["manifest_path"]) + "\t" + m["executable"])
+')
+[ "$(echo "$binaries" | wc -l)" = 2 ] || { echo "test: expected the engine and trainer test binaries, got: $binaries" >&2; exit 1; }
+while IFS=$'\t' read -r dir exe; do
+    (cd "$dir" && DRAPE_FORCE_STAGING=1 "$exe" \
+        runtime:: scan:: sort:: splat_gpu:: splat_robustness:: splat_gradients:: nn:: ssim:: sizes:: \
+        composite:: skinning::)
+done <<<"$binaries"
 step ""
 echo "== all steps passed in $((SECONDS - started)) s"

@@ -21,7 +21,8 @@ fn root() -> PathBuf {
 
 /// Where libdrape.so is (the test binary is in target/<profile>/deps): `cargo test`
 /// builds the crate's rlib for its tests, not the cdylib, so the first caller builds it
-/// with the same cargo, profile and target directory (the test run holds no build lock).
+/// with the same cargo, target directory and profile (`test`, whose dependencies the
+/// test build already compiled; the test run holds no build lock).
 fn lib_dir() -> PathBuf {
     static BUILT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
     BUILT
@@ -31,9 +32,7 @@ fn lib_dir() -> PathBuf {
             let target_dir = profile_dir.parent().unwrap();
             let mut cargo = Command::new(env!("CARGO"));
             cargo.args(["build", "--quiet", "-p", "drape-capi", "--lib", "--target-dir"]).arg(target_dir).current_dir(root());
-            if profile_dir.file_name().is_some_and(|n| n == "release") {
-                cargo.arg("--release");
-            }
+            cargo.args(["--profile", if profile_dir.file_name().is_some_and(|n| n == "release") { "release" } else { "test" }]);
             let o = cargo.output().expect("cargo");
             assert!(o.status.success(), "building libdrape: {}", String::from_utf8_lossy(&o.stderr));
             assert!(profile_dir.join("libdrape.so").is_file(), "no libdrape.so in {}", profile_dir.display());
