@@ -75,9 +75,11 @@ export DRAPE_CLIENTS_PYTHON
 scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
 step "3/4 workspace tests on $DRAPE_DEVICE with validation"
-# Build first: the shared run below is trained with this build's drape binary (a separate
-# `cargo build` would compile every dependency again under the dev profile's name).
-cargo test --workspace --locked --no-run
+# Build first, every target under the test profile with the tests' feature resolution, so
+# that `cargo test` below finds it all built: the shared run is trained with this build's
+# drape binary, and the C ABI tests link libdrape.so from it (`cargo test` builds rlibs
+# only; a separate `cargo build` would compile every dependency again).
+cargo build --workspace --all-targets --profile test --locked
 # The one small trained run the tests share (tests/fixtures/tiny-run.toml on a 32-px
 # synthetic sequence), trained once here for the embedding, C ABI, viewer and
 # engine-bench tests.

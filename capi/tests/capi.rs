@@ -19,26 +19,43 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
-/// Where libdrape.so is (the test binary is in target/<profile>/deps): `cargo test`
-/// builds the crate's rlib for its tests, not the cdylib, so the first caller builds it
-/// with the same cargo, target directory and profile (`test`, whose dependencies the
-/// test build already compiled; the test run holds no build lock).
+/// Where libdrape.so is (the test binary is in target/<profile>/deps). `cargo test`
+/// builds the crate's rlib for its tests, not the cdylib: the test command builds it with
+/// the tests (`cargo build --workspace --all-targets --profile test`); a library missing
+/// or older than the sources it is built from is built here with the same cargo, target
+/// directory and profile (the test run holds no build lock).
 fn lib_dir() -> PathBuf {
     static BUILT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
     BUILT
         .get_or_init(|| {
             let exe = std::env::current_exe().unwrap();
             let profile_dir = exe.parent().unwrap().parent().unwrap().to_path_buf();
+            let lib = profile_dir.join("libdrape.so");
+            let built = std::fs::metadata(&lib).and_then(|m| m.modified()).ok();
+            let sources = ["capi/src", "engine/src", "trainer/src", "shaders-rs/spirv", "shaders-rs/shared/src"].iter().filter_map(|d| newest(&root().join(d))).max();
+            if built.is_some() && built >= sources {
+                return profile_dir;
+            }
             let target_dir = profile_dir.parent().unwrap();
             let mut cargo = Command::new(env!("CARGO"));
             cargo.args(["build", "--quiet", "-p", "drape-capi", "--lib", "--target-dir"]).arg(target_dir).current_dir(root());
             cargo.args(["--profile", if profile_dir.file_name().is_some_and(|n| n == "release") { "release" } else { "test" }]);
             let o = cargo.output().expect("cargo");
             assert!(o.status.success(), "building libdrape: {}", String::from_utf8_lossy(&o.stderr));
-            assert!(profile_dir.join("libdrape.so").is_file(), "no libdrape.so in {}", profile_dir.display());
+            assert!(lib.is_file(), "no libdrape.so in {}", profile_dir.display());
             profile_dir
         })
         .clone()
+}
+
+/// The newest modification time of any file under `dir`.
+fn newest(dir: &Path) -> Option<std::time::SystemTime> {
+    let mut out = None;
+    for e in std::fs::read_dir(dir).ok()?.flatten() {
+        let t = if e.file_type().ok()?.is_dir() { newest(&e.path()) } else { e.metadata().ok()?.modified().ok() };
+        out = out.max(t);
+    }
+    out
 }
 
 fn tmp(name: &str) -> PathBuf {
