@@ -72,7 +72,8 @@ pub enum DeviceKind {
 }
 
 impl DeviceKind {
-    pub(crate) fn from_vk(t: vk::PhysicalDeviceType) -> Self {
+    /// The kind of a Vulkan device type (its `Ord` is the automatic choice's preference).
+    pub fn from_vk(t: vk::PhysicalDeviceType) -> Self {
         match t {
             vk::PhysicalDeviceType::DISCRETE_GPU => Self::DiscreteGpu,
             vk::PhysicalDeviceType::INTEGRATED_GPU => Self::IntegratedGpu,

@@ -334,16 +334,7 @@ impl<T: 'static> FramesInFlight<T> {
     where
         F: for<'r> FnOnce(&'r mut T) -> Result<Recording<'r>>,
     {
-        let (i, _, _) = self.next_slot()?;
-        let slot = &mut self.slots[i];
-        let rec = record(&mut slot.resources)?;
-        let submission = rec.submit(sync)?;
-        // The submission borrows the slot's boxed resources (nothing else: `record` is
-        // generic over their lifetime), which are lent out again only after
-        // `next_slot` waited for it, and dropped only after Drop waited for it.
-        slot.pending = Some(Pending::Engine(submission.into_static()));
-        self.next = (i + 1) % self.slots.len();
-        Ok(i)
+        self.record_next(record, |rec| Ok(Pending::Engine(rec.submit(sync)?.into_static())))
     }
 
     /// Records the next frame with `record` into the host's command buffer (see
@@ -353,15 +344,27 @@ impl<T: 'static> FramesInFlight<T> {
     where
         F: for<'r> FnOnce(&'r mut T) -> Result<Recording<'r>>,
     {
+        self.record_next(record, |rec| {
+            let recorded = rec.record_into(host)?;
+            // HostCommandBuffer::new's contract has the frame complete before the slot is
+            // lent again or dropped.
+            // SAFETY: the types differ only in the lifetime of the recording's borrows.
+            Ok(Pending::Host(unsafe { std::mem::transmute::<HostRecorded<'_>, HostRecorded<'static>>(recorded) }))
+        })
+    }
+
+    /// Records the next slot's frame with `record` and hands the recording to `pending`
+    /// (which submits it or emits it into the host's buffer and keeps what stays in
+    /// flight); then moves on. The pending work borrows the slot's boxed resources only
+    /// (`record` is generic over their lifetime), which are lent out again only after
+    /// `next_slot` finished it, and dropped only after Drop did.
+    fn record_next<F>(&mut self, record: F, pending: impl for<'r> FnOnce(Recording<'r>) -> Result<Pending>) -> Result<usize>
+    where
+        F: for<'r> FnOnce(&'r mut T) -> Result<Recording<'r>>,
+    {
         let (i, _, _) = self.next_slot()?;
         let slot = &mut self.slots[i];
-        let rec = record(&mut slot.resources)?;
-        let recorded = rec.record_into(host)?;
-        // As in `submit`: only the boxed slot is borrowed, and HostCommandBuffer::new's
-        // contract has the frame complete before the slot is lent again or dropped.
-        // SAFETY: the types differ only in the lifetime of the recording's borrows.
-        let recorded = unsafe { std::mem::transmute::<HostRecorded<'_>, HostRecorded<'static>>(recorded) };
-        slot.pending = Some(Pending::Host(recorded));
+        slot.pending = Some(pending(record(&mut slot.resources)?)?);
         self.next = (i + 1) % self.slots.len();
         Ok(i)
     }

@@ -55,14 +55,15 @@
 //! can capture the X window and compare the two.
 #![allow(unsafe_code)]
 
-use std::ffi::{c_void, CStr, CString};
+use std::ffi::{CStr, CString};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context as _};
 use drape_engine::ash::{self, vk};
-use drape_engine::{Context, ExternalOptions, ExternalVulkan, ImageTarget, PassTimings, SubmitSync};
+use drape_engine::validation::ValidationSink;
+use drape_engine::{Context, DeviceKind, ExternalOptions, ExternalVulkan, ImageTarget, PassTimings, SubmitSync};
 use drape_trainer::avatar::animate::{pelvis_and_up, place_pose};
 use drape_trainer::mesh::{add, cross, dot, normalize, scale, sub};
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
@@ -142,7 +143,7 @@ pub fn run(device: &drape_cli_support::DeviceArgs, args: &ViewArgs) -> anyhow::R
         return Err(e);
     }
     result.map_err(|e| anyhow!("event loop: {e}"))?;
-    let messages = VALIDATION_MESSAGES.load(Ordering::SeqCst);
+    let messages = VALIDATION.drain().len();
     anyhow::ensure!(messages == 0, "{messages} validation message(s) (printed above as validation: ...)");
     if let Some(s) = summary {
         println!("{s}");
@@ -216,36 +217,13 @@ impl ApplicationHandler for App {
 }
 
 // ---------------------------------------------------------------------------------
-// Validation messages of the viewer's own messenger.
+// Validation messages of the viewer's own messenger: the engine's collector (it prints
+// each as `vulkan validation: ...`), in a static that outlives the messenger.
 
-static VALIDATION_MESSAGES: AtomicUsize = AtomicUsize::new(0);
-
-/// # Safety
-/// Called by the Vulkan loader with a valid callback-data pointer for the call's duration.
-unsafe extern "system" fn on_validation_message(
-    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
-    kind: vk::DebugUtilsMessageTypeFlagsEXT,
-    data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
-    _user: *mut c_void,
-) -> vk::Bool32 {
-    // SAFETY: the loader passes a valid pointer (or null) for the duration of the call.
-    let text = unsafe { data.as_ref() }
-        .and_then(|d| (!d.p_message.is_null()).then_some(d.p_message))
-        // SAFETY: p_message is a nul-terminated string valid during the call.
-        .map(|p| unsafe { CStr::from_ptr(p) }.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    VALIDATION_MESSAGES.fetch_add(1, Ordering::SeqCst);
-    eprintln!("validation: [{severity:?} {kind:?}] {text}");
-    vk::FALSE
-}
+static VALIDATION: std::sync::LazyLock<Arc<ValidationSink>> = std::sync::LazyLock::new(Default::default);
 
 fn messenger_info() -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
-    // GENERAL is left out, as in the engine: the loader reports there (e.g. an ICD that
-    // found no GPU), which is not a validation error.
-    vk::DebugUtilsMessengerCreateInfoEXT::default()
-        .message_severity(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR)
-        .message_type(vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE)
-        .pfn_user_callback(Some(on_validation_message))
+    drape_engine::validation::messenger_info(&VALIDATION)
 }
 
 // ---------------------------------------------------------------------------------
@@ -326,17 +304,6 @@ struct Viewer {
     busy_count: u64,
     first_frame_at: Option<Instant>,
     last_frame_at: Instant,
-}
-
-/// A physical device's rank for the automatic choice (lower is better), as the engine's.
-fn device_rank(t: vk::PhysicalDeviceType) -> u32 {
-    match t {
-        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
-        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
-        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
-        vk::PhysicalDeviceType::CPU => 3,
-        _ => 4,
-    }
 }
 
 impl Viewer {
@@ -451,7 +418,7 @@ impl Viewer {
                 f.queue_flags.contains(flags) && unsafe { surface_fn.get_physical_device_surface_support(p, i as u32, surface) }.unwrap_or(false)
             });
             if let Some(family) = family {
-                candidates.push((device_rank(props.device_type), p, family as u32, name));
+                candidates.push((DeviceKind::from_vk(props.device_type), p, family as u32, name));
             }
         }
         candidates.sort_by_key(|c| c.0);

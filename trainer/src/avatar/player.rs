@@ -41,7 +41,6 @@ use std::path::Path;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, FramesInFlight, HostCommandBuffer, ImageTarget, PassTimings, Recording, SubmitSync};
 
-use crate::avatar::checkpoint;
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::{FrameTransforms, Rig};
@@ -156,13 +155,13 @@ impl AvatarPlayer {
         let run = OpenRun::open(ctx, dir, None, None)?;
         let anchor = run.test_frames().first().copied().or_else(|| run.seq.frames.first()).ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?.clone();
         let (width, height) = (anchor.camera.width, anchor.camera.height);
-        let model_path = dir.join("model.npz");
         let mut slots = Vec::with_capacity(frames_in_flight);
-        let OpenRun { avatar, renderer, rig, seq, config, layers, .. } = run;
+        let OpenRun { mut avatar, renderer, rig, seq, config, layers, step, .. } = run;
+        // The other slots' avatars restored from the first's state (not read from disk again).
+        let state = if frames_in_flight > 1 { Some(avatar.state(ctx, step)?) } else { None };
         for k in 1..frames_in_flight {
             let mut a = build_avatar(ctx, &rig, &seq, &config, layers)?;
-            let state = checkpoint::read(&model_path, &a.shapes(), a.scene_sh_degree())?;
-            a.restore(ctx, &state)?;
+            a.restore(ctx, state.as_ref().expect("made for more than one slot"))?;
             let r = AvatarRenderer::new(ctx, &a, width, height, config.compositing)?;
             let rgba = ctx.create_buffer(&format!("player rgba {k}"), BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
             slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.compositing });
