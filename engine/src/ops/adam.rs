@@ -103,6 +103,30 @@ impl AdamGroup {
             .dispatch(flat_grid(pc.len))
     }
 
+    /// Records one step like [`record_step`](Self::record_step) that the GPU applies
+    /// only while `guard`'s first word is 0 (`train::adam_step_guarded`). The step
+    /// count does not advance: after the submission, call [`advance`](Self::advance)
+    /// if the guard stayed down (the next step's bias correction and learning rate
+    /// then follow the steps applied, as with a step the host skipped).
+    pub fn record_guarded_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer, guard: &'a Buffer) -> Result<()> {
+        assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
+        let pc = step_params(self.len as u32, self.lr(), self.beta1, self.beta2, self.eps, self.step.get() + 1);
+        rec.pass("adam.step", Kernel::TrainAdamStepGuarded)
+            .write("params", params)
+            .read("grads", grads)
+            .write("m", &self.m)
+            .write("v", &self.v)
+            .read("guard", guard)
+            .push(&pc)
+            .dispatch(flat_grid(pc.len))
+    }
+
+    /// Counts a step of [`record_guarded_step`](Self::record_guarded_step) the GPU
+    /// applied.
+    pub fn advance(&self) {
+        self.step.set(self.step.get() + 1);
+    }
+
     /// The moments, for checkpoints: (m, v).
     pub fn read_moments(&mut self, ctx: &Context) -> Result<(Vec<f32>, Vec<f32>)> {
         Ok((ctx.read_buffer(&mut self.m, self.len)?, ctx.read_buffer(&mut self.v, self.len)?))

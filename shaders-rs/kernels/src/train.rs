@@ -10,8 +10,12 @@
 //! the absolute error. `add_into`: `src` (read), `dst` (added to).
 //! `copy_sh`: `src`, `dst` SH buffers of two degrees (layers rendered together).
 //! `count_nonfinite`: `values` (read), `counter` (added to: one per NaN or infinity).
+//! `adam_step_guarded`: `adam_step` that does nothing while `guard[0]` is not 0 (the
+//! step's guard: the non-finite count plus the renders' overflow flags).
+//! `flag_exceeds`: `counter[0] += 1` when the 64-bit count in `value` is past the limit
+//! (a render's intersection total past its capacity: that step's image is truncated).
 
-use drape_shared::adam::{adam_update, AdamParams, LossParams};
+use drape_shared::adam::{adam_update, exceeds, AdamParams, ExceedsParams, LossParams};
 use drape_shared::splat::layout::{sh_copy_indices, ShCopyParams};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
@@ -26,7 +30,30 @@ pub fn adam_step(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] m: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] v: &mut [f32],
 ) {
-    let index = crate::flat_index(id, groups);
+    adam_element(crate::flat_index(id, groups), p, params, grads, m, v);
+}
+
+/// [`adam_step`] unless the step's guard is raised (`guard[0] != 0`): a step with a
+/// non-finite gradient or a truncated render is not applied, and the host learns of it
+/// after the step's one wait instead of waiting for the count before Adam.
+#[spirv(compute(threads(256)))]
+pub fn adam_step_guarded(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &AdamParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] grads: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] m: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] v: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] guard: &[u32],
+) {
+    if guard[0] != 0 {
+        return;
+    }
+    adam_element(crate::flat_index(id, groups), p, params, grads, m, v);
+}
+
+fn adam_element(index: u32, p: &AdamParams, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
     if index >= p.len {
         return;
     }
@@ -132,6 +159,19 @@ pub fn count_nonfinite(
         return;
     }
     if !values[i as usize].is_finite() {
+        crate::atomics::add_u32(&mut counter[0], 1);
+    }
+}
+
+/// `counter[0] += 1` when the 64-bit count `value` (low word, high word) is past the
+/// limit: one invocation, recorded after the count is final.
+#[spirv(compute(threads(1)))]
+pub fn flag_exceeds(
+    #[spirv(push_constant)] p: &ExceedsParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] value: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] counter: &mut [u32],
+) {
+    if exceeds(value[0], value[1], p) {
         crate::atomics::add_u32(&mut counter[0], 1);
     }
 }

@@ -16,6 +16,30 @@ pub struct AdamParams {
     pub _pad: u32,
 }
 
+/// Push constants of `flag_exceeds`: the limit a 64-bit count (two words, low
+/// first) may reach before the training step's guard is raised.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(not(target_arch = "spirv"), derive(bytemuck::Pod, bytemuck::Zeroable))]
+pub struct ExceedsParams {
+    pub limit_low: u32,
+    pub limit_high: u32,
+    pub _pad: [u32; 2],
+}
+
+impl ExceedsParams {
+    /// The parameters for `limit`.
+    pub fn new(limit: u64) -> Self {
+        Self { limit_low: limit as u32, limit_high: (limit >> 32) as u32, _pad: [0; 2] }
+    }
+}
+
+/// Whether the 64-bit count `(low, high)` is past `p`'s limit.
+#[inline]
+pub fn exceeds(low: u32, high: u32, p: &ExceedsParams) -> bool {
+    high > p.limit_high || (high == p.limit_high && low > p.limit_low)
+}
+
 /// Push constants of `mse_grad`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

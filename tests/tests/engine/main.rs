@@ -19,4 +19,5 @@ mod splat_gradients;
 mod splat_gsplat;
 mod splat_robustness;
 mod ssim;
+mod step_guard;
 mod triplane_deform;

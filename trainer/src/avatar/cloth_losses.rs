@@ -163,6 +163,36 @@ impl ClothLosses {
         Ok(())
     }
 
+    /// Whether the mask loss needs a render of the cloth alone (no compositor renders
+    /// it: single-pass compositing) in this frame.
+    pub fn needs_mask_pass(&self) -> bool {
+        self.has_mask && !self.mask_in_composite
+    }
+
+    /// Prepares [`record_mask_pass`](Self::record_mask_pass) (host-side).
+    pub fn prepare_mask_pass(&mut self, cloth: &HumanLayer, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+        self.renderer.prepare_forward(&cloth.posed, camera, settings)?;
+        self.renderer.prepare_backward(cloth.accumulation())
+    }
+
+    /// Records [`mask_pass`](Self::mask_pass) into `rec` (after the avatar's forward,
+    /// with no host wait); its overflow flag goes to `guard`. After the submission,
+    /// [`finish_mask_pass`](Self::finish_mask_pass).
+    pub fn record_mask_pass<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer, guard: &'a Buffer) -> Result<()> {
+        self.renderer.record_forward(rec, &cloth.posed)?;
+        self.renderer.record_overflow_flag(rec, guard)?;
+        let (_, alpha, _) = self.renderer.outputs();
+        let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
+        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        self.renderer.record_backward(rec, &self.renderer.recorded_forward(), &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())
+    }
+
+    /// After the submission of [`record_mask_pass`](Self::record_mask_pass): true when
+    /// the render outgrew its buffers (they have grown; the step is to be done again).
+    pub fn finish_mask_pass(&mut self) -> Result<bool> {
+        Ok(self.renderer.finish_forward()?.rerendered)
+    }
+
     /// Records the three losses' gradients into the cloth layer's posed gradients
     /// (after `Avatar::record_scatter_grads`).
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer) -> Result<()> {

@@ -489,45 +489,88 @@ impl AvatarRenderer {
         if self.saved.is_empty() {
             return Err(EngineError::StaleForward { op: "avatar backward", problem: "no forward pass to back-propagate through".into() });
         }
-        match &mut self.inner {
-            Inner::Fused(f) => {
-                let accumulation = avatar.accumulation();
-                f.renderer.prepare_backward(accumulation)?;
-                let mut rec = ctx.record("fused backward")?;
-                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: Some(&f.grad_matte) };
-                record_composite_backward(&mut rec, grad_rgb, f.renderer.outputs(), grads, f.pixels)?;
-                if let Some(c) = cloth_losses.as_ref() {
-                    c.record_mask_grad(&mut rec, f.renderer.outputs().over_alpha, &f.grad_over_alpha)?;
-                }
-                let upstream = FusedGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: &f.grad_matte };
-                f.renderer.record_backward(&mut rec, &self.saved[0], &avatar.posed, upstream, &avatar.posed_grads, accumulation)?;
-                rec.submit_and_wait()?;
-            }
-            Inner::Single(r) => {
-                r.backward(&self.saved[0], &avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, avatar.accumulation())?;
-                if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
-                    c.mask_pass(ctx, cloth, camera, settings)?;
-                }
-            }
-            Inner::ThreePass(t) => {
-                {
-                    let mut rec = ctx.record("composite backward")?;
-                    let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_over, over_alpha: &t.grad_over_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
-                    record_composite_backward(&mut rec, grad_rgb, t.inputs(), grads, t.pixels)?;
-                    if let Some(c) = cloth_losses.as_ref() {
-                        c.record_mask_grad(&mut rec, t.cloth_renderer.outputs().1, &t.grad_over_alpha)?;
-                    }
-                    rec.submit_and_wait()?;
-                }
-                t.base_renderer.backward(&self.saved[0], &t.base, &t.grad_base, zeros, zeros, &t.base_grads, avatar.accumulation())?;
-                let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.backward(&self.saved[1], &cloth.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.posed_grads, avatar.accumulation())?;
-                if let Some(m) = &mut t.matte {
-                    m.renderer.backward(&self.saved[2], &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, avatar.accumulation())?;
-                }
-            }
+        self.prepare_backward(avatar)?;
+        {
+            let mut rec = ctx.record("avatar backward")?;
+            self.record_backward(&mut rec, avatar, grad_rgb, zeros, cloth_losses.as_deref())?;
+            rec.submit_and_wait()?;
+        }
+        if let (Inner::Single(_), Some(c), Some(cloth)) = (&self.inner, cloth_losses, avatar.cloth()) {
+            c.mask_pass(ctx, cloth, camera, settings)?;
         }
         Ok(())
+    }
+
+    /// Makes what [`record_backward`](Self::record_backward) needs for the avatar's
+    /// accumulation (host-side; before the recording).
+    pub fn prepare_backward(&mut self, avatar: &Avatar) -> Result<()> {
+        let accumulation = avatar.accumulation();
+        match &mut self.inner {
+            Inner::Single(r) => r.prepare_backward(accumulation),
+            Inner::Fused(f) => f.renderer.prepare_backward(accumulation),
+            Inner::ThreePass(t) => {
+                t.base_renderer.prepare_backward(accumulation)?;
+                t.cloth_renderer.prepare_backward(accumulation)?;
+                if let Some(m) = &mut t.matte {
+                    m.renderer.prepare_backward(accumulation)?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Records the backward of the frame recorded last (finished or still in the same
+    /// recording), with no host wait: the composite's backward, the cloth mask loss
+    /// where the compositor renders the cloth alone, and every render's backward.
+    /// Without compositing the mask loss needs a render of its own
+    /// (`ClothLosses::record_mask_pass`).
+    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar, grad_rgb: &'a Buffer, zeros: &'a Buffer, cloth_losses: Option<&'a ClothLosses>) -> Result<()> {
+        let accumulation = avatar.accumulation();
+        match &self.inner {
+            Inner::Fused(f) => {
+                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: Some(&f.grad_matte) };
+                record_composite_backward(rec, grad_rgb, f.renderer.outputs(), grads, f.pixels)?;
+                if let Some(c) = cloth_losses {
+                    c.record_mask_grad(rec, f.renderer.outputs().over_alpha, &f.grad_over_alpha)?;
+                }
+                let upstream = FusedGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: &f.grad_matte };
+                let saved = f.renderer.splat_renderer().recorded_forward();
+                f.renderer.record_backward(rec, &saved, &avatar.posed, upstream, &avatar.posed_grads, accumulation)
+            }
+            Inner::Single(r) => r.record_backward(rec, &r.recorded_forward(), &avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, accumulation),
+            Inner::ThreePass(t) => {
+                let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_over, over_alpha: &t.grad_over_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
+                record_composite_backward(rec, grad_rgb, t.inputs(), grads, t.pixels)?;
+                if let Some(c) = cloth_losses {
+                    c.record_mask_grad(rec, t.cloth_renderer.outputs().1, &t.grad_over_alpha)?;
+                }
+                t.base_renderer.record_backward(rec, &t.base_renderer.recorded_forward(), &t.base, &t.grad_base, zeros, zeros, &t.base_grads, accumulation)?;
+                let cloth = &avatar.layers[t.cloth];
+                t.cloth_renderer.record_backward(rec, &t.cloth_renderer.recorded_forward(), &cloth.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.posed_grads, accumulation)?;
+                if let Some(m) = &t.matte {
+                    m.renderer.record_backward(rec, &m.renderer.recorded_forward(), &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, accumulation)?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Records `counter[0] += 1` for each render of the frame recorded last whose
+    /// intersections outgrew its buffers (in the same recording, after the frame): a
+    /// guard for the work recorded after it (Adam skips the step).
+    pub fn record_overflow_flags<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+        match &self.inner {
+            Inner::Single(r) => r.record_overflow_flag(rec, counter),
+            Inner::Fused(f) => f.renderer.splat_renderer().record_overflow_flag(rec, counter),
+            Inner::ThreePass(t) => {
+                t.base_renderer.record_overflow_flag(rec, counter)?;
+                t.cloth_renderer.record_overflow_flag(rec, counter)?;
+                if let Some(m) = &t.matte {
+                    m.renderer.record_overflow_flag(rec, counter)?;
+                }
+                Ok(())
+            }
+        }
     }
 
     /// Records the addition of the last step into every layer's densification

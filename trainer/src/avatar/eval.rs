@@ -23,7 +23,7 @@ use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{masked_target, write_json, Progress};
+use crate::avatar::train::{write_json, Progress};
 use crate::dataset::loader::DatasetFrame;
 use crate::TrainerError;
 
@@ -145,7 +145,7 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         }
         renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), &settings)?;
         let rgb = renderer.read_rgb(ctx)?;
-        let target = if whole_image { f.rgb.clone() } else { masked_target(f, [0.0; 3]) };
+        let target = if whole_image { f.rgb.clone() } else { f.masked_rgb([0.0; 3]) };
         m.psnr_full = psnr(&rgb, &target);
         m.ssim_full = ssim_of(&rgb, &target, f.width, f.height);
         if let Some(w) = inputs.lpips {

@@ -386,7 +386,9 @@ impl HumanLayer {
 
     /// Records a count of the non-finite values among every gradient the Adam step
     /// would apply into `counter[0]` (which the caller zeroes first).
-    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+    /// Records the count of non-finite gradient values into `counter`, with
+    /// `pose_gradient` also the pose refiner's partial sums of `∂L/∂A`.
+    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer, pose_gradient: bool) -> Result<()> {
         let g = &self.groups;
         let buffers: [(&Buffer, usize); 5] = [
             (&self.grad_means, g.position.len),
@@ -396,26 +398,37 @@ impl HumanLayer {
             (&self.deformation.grads, g.deformation.len),
         ];
         record_count_nonfinite(rec, buffers, counter)?;
+        if pose_gradient {
+            record_count_nonfinite(rec, [(&self.transform_partials, deform::transform_partials_len(self.count))], counter)?;
+        }
         Ok(())
     }
 
-    /// Records one Adam step of every group (after the backward pass).
-    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, include_position: bool) -> Result<()> {
+    /// Records one Adam step of every group (after the backward pass); with `guard`,
+    /// a step the GPU applies only while the guard's first word is 0 (then call
+    /// [`advance_adam`](Self::advance_adam) once the host has seen it stay down).
+    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, include_position: bool, guard: Option<&'a Buffer>) -> Result<()> {
         let g = &self.groups;
         if include_position {
-            g.position.record_step(rec, &self.means, &self.grad_means)?;
+            record_adam_step(rec, &g.position, &self.means, &self.grad_means, guard)?;
         }
-        g.triplane.record_step(rec, &self.triplane.planes, &self.triplane.grads)?;
-        g.appearance.record_step(rec, &self.appearance.params, &self.appearance.grads)?;
-        g.geometry.record_step(rec, &self.geometry.params, &self.geometry.grads)?;
-        g.deformation.record_step(rec, &self.deformation.params, &self.deformation.grads)?;
-        Ok(())
+        record_adam_step(rec, &g.triplane, &self.triplane.planes, &self.triplane.grads, guard)?;
+        record_adam_step(rec, &g.appearance, &self.appearance.params, &self.appearance.grads, guard)?;
+        record_adam_step(rec, &g.geometry, &self.geometry.params, &self.geometry.grads, guard)?;
+        record_adam_step(rec, &g.deformation, &self.deformation.params, &self.deformation.grads, guard)
     }
 
-    /// Fits the deformation decoder (and the triplane) to the skinning targets by the
-    /// mean squared error of the weights, for `steps` Adam steps at `lr` with their
-    /// own moments; returns the mean squared error after each reported step
-    /// (`report(step, mse)` every `report_every`).
+    /// Counts a guarded step of [`record_adam`](Self::record_adam) that was applied.
+    pub fn advance_adam(&self, include_position: bool) {
+        let g = &self.groups;
+        if include_position {
+            g.position.advance();
+        }
+        for group in [&g.triplane, &g.appearance, &g.geometry, &g.deformation] {
+            group.advance();
+        }
+    }
+
     pub fn fit_skinning_weights(&mut self, ctx: &Context, steps: u32, lr: f32, report_every: u32, mut report: impl FnMut(u32, f64)) -> Result<f64> {
         let n = self.count;
         let len = NUM_JOINTS * n as usize;
@@ -553,4 +566,12 @@ pub fn record_count_nonfinite<'a>(rec: &mut Recording<'a>, buffers: impl IntoIte
         rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read("values", b).write("counter", counter).push(&p).dispatch(flat_grid(p.len))?;
     }
     Ok(())
+}
+
+/// One Adam step of `group`, guarded by `guard`'s first word where there is one.
+pub(crate) fn record_adam_step<'a>(rec: &mut Recording<'a>, group: &'a AdamGroup, params: &'a Buffer, grads: &'a Buffer, guard: Option<&'a Buffer>) -> Result<()> {
+    match guard {
+        Some(guard) => group.record_guarded_step(rec, params, grads, guard),
+        None => group.record_step(rec, params, grads),
+    }
 }

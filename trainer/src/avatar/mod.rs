@@ -24,4 +24,5 @@ pub mod pose_refine;
 pub mod rig;
 pub mod run;
 pub mod scene;
+pub mod step;
 pub mod train;

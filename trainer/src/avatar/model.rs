@@ -303,9 +303,11 @@ impl Avatar {
         Ok(())
     }
 
-    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+    /// Records the count of non-finite gradient values of every layer into `counter`
+    /// (with `pose_gradient`, also the layers' partial sums of `∂L/∂A`).
+    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer, pose_gradient: bool) -> Result<()> {
         for l in &self.layers {
-            l.record_count_nonfinite(rec, counter)?;
+            l.record_count_nonfinite(rec, counter, pose_gradient)?;
         }
         if let Some(s) = &self.scene {
             crate::avatar::layer::record_count_nonfinite(rec, s.grads.all().into_iter().zip(s.lens()), counter)?;
@@ -313,17 +315,30 @@ impl Avatar {
         Ok(())
     }
 
-    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
+    /// Records one Adam step of every layer; with `guard`, applied on the GPU only
+    /// while the guard's first word is 0 (then [`advance_adam`](Self::advance_adam)
+    /// once the host has seen it stay down).
+    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, guard: Option<&'a Buffer>) -> Result<()> {
         for l in &self.layers {
             rec.set_scope(&l.name);
-            l.record_adam(rec, true)?;
+            l.record_adam(rec, true, guard)?;
         }
         if let Some(s) = &self.scene {
             rec.set_scope("scene");
-            s.record_adam(rec)?;
+            s.record_adam(rec, guard)?;
         }
         rec.set_scope("");
         Ok(())
+    }
+
+    /// Counts a guarded Adam step that the GPU applied.
+    pub fn advance_adam(&self) {
+        for l in &self.layers {
+            l.advance_adam(true);
+        }
+        if let Some(s) = &self.scene {
+            s.advance_adam();
+        }
     }
 
     /// Records the writes of the frame's transforms and pose features into every layer

@@ -125,11 +125,17 @@ impl SceneLayer {
     }
 
     /// Records one Adam step of every group (independent passes).
-    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
+    /// (With `guard`: see `HumanLayer::record_adam`.)
+    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, guard: Option<&'a Buffer>) -> Result<()> {
         for ((g, p), d) in self.groups.iter().zip(self.params.all()).zip(self.grads.all()) {
-            g.record_step(rec, p, d)?;
+            crate::avatar::layer::record_adam_step(rec, g, p, d, guard)?;
         }
         Ok(())
+    }
+
+    /// Counts a guarded step of [`record_adam`](Self::record_adam) that was applied.
+    pub fn advance_adam(&self) {
+        self.groups.iter().for_each(AdamGroup::advance);
     }
 
     /// Floats of each parameter buffer.

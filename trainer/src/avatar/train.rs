@@ -21,16 +21,14 @@ use std::time::Instant;
 use drape_engine::ops::splat::ply;
 use drape_engine::ops::ssim::Ssim;
 use drape_engine::ops::splat::scene::{Layer, RenderSettings};
-use drape_engine::{BufferDesc, Context, Kernel};
-use drape_shared::adam::LossParams;
-use rand::{Rng, SeedableRng};
+use drape_engine::Context;
 
 use crate::avatar::checkpoint;
 use crate::avatar::eval::{evaluate, write_reports, EvalInputs};
 pub use crate::avatar::eval::{mask_bbox, psnr, EvalMetrics};
 use crate::avatar::scene::{scene_init, SceneConfig, SceneLayer};
 use crate::dataset::colmap::ColmapModel;
-use crate::avatar::cloth_losses::{ClothLossValues, ClothLossWeights, ClothLosses};
+use crate::avatar::cloth_losses::{ClothLossWeights, ClothLosses};
 use crate::avatar::cloth_target;
 use crate::garment::GarmentFit;
 use drape_engine::ops::accumulate::Accumulation;
@@ -41,6 +39,7 @@ use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::error::TrainerError;
 use crate::avatar::pose_refine::PoseRefiner;
+use crate::avatar::step::{self, HostWaits, ImageLossWeights, Sample, Stages, StepBuffers, StepOutcome};
 use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
@@ -455,11 +454,6 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Seque
     Ok(Sequence { dir: dir.into(), layout, variant, frames })
 }
 
-/// The frame's person on a constant background.
-pub(crate) fn masked_target(f: &DatasetFrame, background: [f32; 3]) -> Vec<f32> {
-    f.mask.iter().enumerate().flat_map(|(i, &m)| if m { [f.rgb[3 * i], f.rgb[3 * i + 1], f.rgb[3 * i + 2]] } else { background }).collect()
-}
-
 impl TrainConfig {
     /// Reads a run's `config.json` (for `--resume`), naming the file on any problem.
     pub fn read_run(dir: &Path) -> crate::Result<Self> {
@@ -719,6 +713,114 @@ pub fn check_fresh(out: &Path) -> crate::Result<()> {
 }
 
 #[allow(clippy::too_many_arguments)]
+/// The guard's bookkeeping: steps skipped for non-finite gradients, and the stop after
+/// too many in a row.
+struct SkipGuard {
+    total: u32,
+    in_a_row: u32,
+    limit: u32,
+}
+
+impl SkipGuard {
+    fn new(limit: u32) -> Self {
+        Self { total: 0, in_a_row: 0, limit: limit.max(1) }
+    }
+
+    fn applied(&mut self) {
+        self.in_a_row = 0;
+    }
+
+    /// Counts a skipped step; an error once `limit` steps in a row were skipped.
+    fn skipped(&mut self, step: u32, nonfinite: u32, frame: usize, data: &Path, checkpoint: &Path) -> crate::Result<()> {
+        self.total += 1;
+        self.in_a_row += 1;
+        if self.in_a_row < self.limit {
+            return Ok(());
+        }
+        Err(TrainerError::numeric(
+            "training",
+            format!(
+                "stopped at step {step}: {} steps in a row had non-finite gradients ({nonfinite} values in the last, frame {frame} of {}); the last checkpoint is {}",
+                self.in_a_row,
+                data.display(),
+                checkpoint.display()
+            ),
+        ))
+    }
+}
+
+/// The pose refiner's step on the frame of `s` from every human layer's share of
+/// `∂L/∂A` (mapped memory: read after the step's wait with no other). A gradient
+/// that the rig's chain rule makes non-finite is not applied: the log line says so.
+fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut PoseRefiner, s: &Sample<'_>, step: u32) -> crate::Result<Option<serde_json::Value>> {
+    let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
+    for l in &mut avatar.layers {
+        for (g, v) in grad.iter_mut().zip(l.read_transform_grad(ctx)?) {
+            *g += v;
+        }
+    }
+    let g = rig.frame_gradient(&s.body, &grad);
+    let bad = g.iter().filter(|v| !v.is_finite()).count();
+    if bad > 0 {
+        return Ok(Some(serde_json::json!({ "step": step, "frame": s.frame.frame, "pose_refinement_skipped": true, "nonfinite_pose_gradients": bad })));
+    }
+    refiner.step(s.index, &g);
+    Ok(None)
+}
+
+/// What a logging step reads back.
+struct StepLosses<'s> {
+    buffers: &'s mut StepBuffers,
+    ssim: &'s mut Ssim,
+    cloth: Option<&'s mut ClothLosses>,
+    lpips: Option<&'s mut Lpips>,
+}
+
+/// A logging step's line (losses read back) with its L1 and PSNR.
+fn log_line(ctx: &Context, losses: &mut StepLosses<'_>, avatar: &Avatar, refiner: Option<&PoseRefiner>, config: &TrainConfig, step: u32, frame: usize) -> crate::Result<(serde_json::Value, f64, f64)> {
+    let (l1, mse) = losses.buffers.read_image_errors(ctx)?;
+    let psnr = -10.0 * mse.max(1e-20).log10();
+    let ssim_value = losses.ssim.read_mean(ctx)?;
+    let loss = f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value);
+    let mut line = serde_json::json!({ "step": step, "frame": frame, "l1": l1, "ssim": ssim_value, "loss": loss, "psnr_train": psnr, "lr_position": avatar.layers[0].groups.position.lr() });
+    if let Some(c) = losses.cloth.as_deref_mut() {
+        line["cloth"] = json_value(&c.read_values(ctx)?);
+    }
+    if let Some(l) = losses.lpips.as_deref_mut() {
+        line["lpips"] = l.read_value(ctx)?.into();
+    }
+    if let Some(r) = refiner {
+        // Mean over training frames of the largest joint correction and of the
+        // translation's.
+        let (rot, tr) = r.summary();
+        line["pose_correction_rad"] = rot.into();
+        line["translation_correction"] = tr.into();
+    }
+    Ok((line, l1, psnr))
+}
+
+/// Densifies and prunes every layer after `step + 1` steps; everything sized by the
+/// layers' counts follows them. Returns the log's summaries and (layer, before, after).
+type DensifyCounts = Vec<(String, usize, usize)>;
+fn densify_layers(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, step: u32, log_scale: f32) -> crate::Result<(serde_json::Map<String, serde_json::Value>, DensifyCounts)> {
+    let dc = &config.densify;
+    let mut counts = Vec::new();
+    let mut summaries = serde_json::Map::new();
+    let seed = config.seed ^ u64::from(step + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
+    for l in avatar.layers.iter_mut() {
+        let s = densify::apply_to_layer(ctx, l, dc, step + 1, log_scale)?;
+        counts.push((l.name.clone(), s.before, s.after));
+        summaries.insert(l.name.clone(), json_value(&s));
+    }
+    if let Some(sc) = avatar.scene.as_mut() {
+        let s = densify::apply_to_scene(ctx, sc, dc, step + 1, seed.wrapping_add(1000))?;
+        counts.push(("scene".into(), s.before, s.after));
+        summaries.insert("scene".into(), json_value(&s));
+    }
+    avatar.resize_posed(ctx)?;
+    Ok((summaries, counts))
+}
+
 fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
     let stop_at = stop_at.min(config.steps);
     config.validate()?;
@@ -836,26 +938,14 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let eval_inputs = |sheets| EvalInputs { rig: &rig, frames: &test_frames, ground_truth: ground_truth.as_deref(), lpips: lpips_weights.as_ref(), sheets };
     let (initial, _) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(None), progress)?;
 
-    // 2. The main loop.
-    let pixels = (width * height) as usize;
-    // Rewritten every step: host-written memory (no staging submission).
-    let mut target = ctx.create_buffer("train target", BufferDesc::host_written(12 * pixels as u64))?;
-    let grad_rgb = ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels as u64))?;
-    let mut abs_error = ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels as u64))?;
-    let zeros = ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels as u64))?;
-    let mut cloth_values = ClothLossValues::default();
-    {
-        let mut rec = ctx.record("train zero")?;
-        rec.fill(&zeros, 0);
-        rec.submit_and_wait()?;
-    }
-    let loss = LossParams { len: 3 * pixels as u32, scale: config.lambda_l1 / (3 * pixels) as f32, _pad: [0; 2] };
+    // 2. The main loop: a step is one submission and one host wait (`step`).
+    let mut buffers = StepBuffers::new(ctx, width, height, config.lambda_l1)?;
     let mut ssim = Ssim::new(ctx, width, height)?;
     let settings = RenderSettings::default();
+    let weights = ImageLossWeights { ssim: config.lambda_ssim, lpips: config.lambda_lpips };
     let t_train = Instant::now();
-    let mut skipped = 0u32;
-    let mut skipped_in_a_row = 0u32;
-    let mut nonfinite = ctx.create_buffer("train non-finite count", BufferDesc::gpu_only(4))?;
+    let mut skips = SkipGuard::new(config.max_skipped_steps);
+    let mut waits = HostWaits::default();
     let save = |avatar: &mut Avatar, refiner: &Option<PoseRefiner>, step: u32, path: &Path| -> crate::Result<()> {
         let mut state = avatar.state(ctx, step)?;
         state.poses = refiner.as_ref().map(|r| r.state().clone());
@@ -878,152 +968,44 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
             save(&mut avatar, &refiner, step, &checkpoint_path)?;
             return Ok(Outcome::Interrupted { step });
         }
+        let waits_before = ctx.fence_waits();
         lap.reset();
-        let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        let index = rng.random_range(0..train_frames.len());
-        let f = train_frames[index];
-        let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
-        let background = if whole_image { [0.0; 3] } else { background };
-        let body = match &refiner {
-            Some(r) => r.body(index, &f.body),
-            None => f.body.clone(),
-        };
-        let ft = rig.frame(&body);
-        avatar.set_frame(ctx, &ft)?;
-        ctx.write_buffer(&mut target, &if whole_image { f.rgb.clone() } else { masked_target(f, background) })?;
-        if let Some(c) = cloth_losses.as_mut() {
-            c.set_frame(ctx, f)?;
-        }
+        let s = step::sample(&train_frames, &rig, refiner.as_ref(), config.seed, step, whole_image);
         lap.host("host.frame_setup");
-        {
-            let mut rec = ctx.record("train forward")?;
-            avatar.record_forward(&mut rec, ft.log_scale)?;
-            rec.submit_and_wait()?;
-        }
-        let cam = f.camera.to_pinhole(background);
-        renderer.forward(ctx, &avatar, &cam, &settings)?;
-        {
-            let rgb = renderer.rgb();
-            let mut rec = ctx.record("train loss")?;
-            rec.pass("loss.l1_grad", Kernel::TrainL1Grad).read("pred", rgb).read("target", &target).write("grad", &grad_rgb).write("abs_error", &abs_error).push(&loss).dispatch(drape_engine::recorder::flat_grid(loss.len))?;
-            // λ (1 - SSIM): adds -λ ∂SSIM/∂rgb to the L1 gradient.
-            ssim.record(&mut rec, rgb, &target, Some((&grad_rgb, -config.lambda_ssim)))?;
-            if let Some(l) = &lpips {
-                l.record(&mut rec, rgb, &target, Some((&grad_rgb, config.lambda_lpips)))?;
+        let outcome = loop {
+            let mut st = Stages { avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), ssim: &ssim, lpips: lpips.as_ref(), settings: &settings, weights, pose_gradient: refiner.is_some(), screen_stats: densifying(step), masked: !whole_image };
+            match step::run(ctx, &mut st, &mut buffers, &s)? {
+                StepOutcome::Overflowed => continue,
+                done => break done,
             }
-            rec.submit_and_wait()?;
-        }
-        renderer.backward(ctx, &avatar, &grad_rgb, &zeros, cloth_losses.as_mut(), &cam, &settings)?;
-        {
-            let mut rec = ctx.record("train backward")?;
-            rec.fill(&nonfinite, 0);
-            renderer.record_scatter(&mut rec, &avatar)?;
-            if let (Some(c), Some(cloth)) = (cloth_losses.as_ref(), avatar.cloth()) {
-                c.record(&mut rec, cloth)?;
-            }
-            avatar.record_layers_backward(&mut rec, refiner.is_some())?;
-            avatar.record_count_nonfinite(&mut rec, &nonfinite)?;
-            if densifying(step) {
-                renderer.record_screen_stats(&mut rec, &avatar)?;
-            }
-            rec.submit_and_wait()?;
-        }
-        lap.reset();
-        // The guard: a step with a non-finite gradient is never applied.
-        let mut bad = ctx.read_buffer::<u32>(&mut nonfinite, 1)?[0];
-        lap.host("host.read_guard");
-        // The frame's pose gradient: every human layer's share of ∂L/∂A, through the rig.
-        let pose_grad = match &refiner {
-            Some(_) => {
-                let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
-                for l in &mut avatar.layers {
-                    for (g, v) in grad.iter_mut().zip(l.read_transform_grad(ctx)?) {
-                        *g += v;
-                    }
-                }
-                let g = rig.frame_gradient(&body, &grad);
-                bad += g.iter().filter(|v| !v.is_finite()).count() as u32;
-                Some(g)
-            }
-            None => None,
         };
-        lap.host("host.pose_gradient");
-        if bad > 0 {
-            skipped += 1;
-            skipped_in_a_row += 1;
-            let line = serde_json::json!({ "step": step, "frame": f.frame, "skipped": true, "nonfinite_gradients": bad });
+        lap.reset();
+        if let StepOutcome::Skipped { nonfinite } = outcome {
+            let line = serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite });
             writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            if skipped_in_a_row >= config.max_skipped_steps.max(1) {
-                return Err(TrainerError::numeric(
-                    "training",
-                    format!(
-                    "stopped at step {step}: {skipped_in_a_row} steps in a row had non-finite gradients ({bad} values in the last, frame {} of {}); the last checkpoint is {}",
-                    f.frame,
-                    seq.dir.display(),
-                    checkpoint_path.display()
-                )));
-            }
+            skips.skipped(step, nonfinite, s.frame.frame, &seq.dir, &checkpoint_path)?;
+            waits.add(ctx.fence_waits() - waits_before, false);
             continue;
         }
-        skipped_in_a_row = 0;
-        {
-            let mut rec = ctx.record("train adam")?;
-            avatar.record_adam(&mut rec)?;
-            rec.submit_and_wait()?;
+        skips.applied();
+        if let Some(r) = refiner.as_mut() {
+            if let Some(line) = refine_pose(ctx, &mut avatar, &rig, r, &s, step)? {
+                writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
+            }
         }
-        if let (Some(r), Some(g)) = (refiner.as_mut(), pose_grad) {
-            r.step(index, &g);
-        }
-        lap.reset();
-        if step % config.log_every.max(1) == 0 || step + 1 == stop_at {
-            let e = ctx.read_buffer::<f32>(&mut abs_error, 3 * pixels)?;
-            let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / e.len() as f64;
-            let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / e.len() as f64;
-            let p = -10.0 * mse.max(1e-20).log10();
-            let ssim_value = ssim.read_mean(ctx)?;
-            if let Some(c) = cloth_losses.as_mut() {
-                cloth_values = c.read_values(ctx)?;
-            }
-            let lpips_value = match lpips.as_mut() {
-                Some(l) => Some(l.read_value(ctx)?),
-                None => None,
-            };
-            let secs = t_train.elapsed().as_secs_f64();
-            let it_per_s = f64::from(step + 1 - start_step) / secs.max(1e-9);
-            let mut line = serde_json::json!({ "step": step, "frame": f.frame, "l1": l1, "ssim": ssim_value, "loss": f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value), "psnr_train": p, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": secs });
-            if cloth_losses.is_some() {
-                line["cloth"] = json_value(&cloth_values);
-            }
-            if let Some(v) = lpips_value {
-                line["lpips"] = v.into();
-            }
-            if let Some(r) = &refiner {
-                // Mean over training frames of the largest joint correction and of the
-                // translation's.
-                let (rot, tr) = r.summary();
-                line["pose_correction_rad"] = rot.into();
-                line["translation_correction"] = tr.into();
-            }
+        lap.host("host.pose_gradient");
+        let logging = step % config.log_every.max(1) == 0 || step + 1 == stop_at;
+        if logging {
+            let mut losses = StepLosses { buffers: &mut buffers, ssim: &mut ssim, cloth: cloth_losses.as_mut(), lpips: lpips.as_mut() };
+            let (line, l1, psnr) = log_line(ctx, &mut losses, &avatar, refiner.as_ref(), config, step, s.frame.frame)?;
             writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr: p, it_per_s });
+            let it_per_s = f64::from(step + 1 - start_step) / t_train.elapsed().as_secs_f64().max(1e-9);
+            progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr, it_per_s });
         }
         lap.host("host.log");
-        if dc.due(step + 1) && step + 1 < config.steps {
-            let mut counts = Vec::new();
-            let mut summaries = serde_json::Map::new();
-            let seed = config.seed ^ u64::from(step + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
-            for l in avatar.layers.iter_mut() {
-                let s = densify::apply_to_layer(ctx, l, dc, step + 1, ft.log_scale)?;
-                counts.push((l.name.clone(), s.before, s.after));
-                summaries.insert(l.name.clone(), json_value(&s));
-            }
-            if let Some(sc) = avatar.scene.as_mut() {
-                let s = densify::apply_to_scene(ctx, sc, dc, step + 1, seed.wrapping_add(1000))?;
-                counts.push(("scene".into(), s.before, s.after));
-                summaries.insert("scene".into(), json_value(&s));
-            }
-            // Everything sized by the layers' counts follows them.
-            avatar.resize_posed(ctx)?;
+        let densified = dc.due(step + 1) && step + 1 < config.steps;
+        if densified {
+            let (summaries, counts) = densify_layers(ctx, &mut avatar, config, step, s.transforms.log_scale)?;
             renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
             if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
                 c.resize(ctx, cloth)?;
@@ -1034,15 +1016,17 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
             progress(Progress::Densify { step: step + 1, counts });
             lap.host("host.densify");
         }
-        if config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at {
+        let checkpointing = config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at;
+        if checkpointing {
             save(&mut avatar, &refiner, step + 1, &checkpoint_path)?;
         }
+        waits.add(ctx.fence_waits() - waits_before, !(logging || densified || checkpointing));
     }
     let loop_seconds = t_train.elapsed().as_secs_f64();
     let profile = if profiling { ctx.take_profile() } else { None };
     if let Some(p) = &profile {
         let steps = u64::from(stop_at.saturating_sub(start_step));
-        let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}", 1e3 * loop_seconds / steps.max(1) as f64, p.table(1e3 * loop_seconds, steps, 25));
+        let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}\n{}", 1e3 * loop_seconds / steps.max(1) as f64, waits.summary(), p.table(1e3 * loop_seconds, steps, 25));
         let path = out.join("profile.txt");
         std::fs::write(&path, &table).map_err(|e| TrainerError::io(&path, e))?;
         write_json(&out.join("profile.json"), p)?;
@@ -1120,7 +1104,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         steps: stop_at,
         train_seconds,
         iterations_per_second: f64::from(stop_at.saturating_sub(start_step)) / train_seconds.max(1e-9),
-        skipped_steps: skipped,
+        skipped_steps: skips.total,
         initial,
         fin,
     };

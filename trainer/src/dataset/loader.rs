@@ -44,6 +44,13 @@ pub struct DatasetFrame {
     pub split: Split,
 }
 
+impl DatasetFrame {
+    /// The person on a constant `background` colour (RGB, 3 floats per pixel).
+    pub fn masked_rgb(&self, background: [f32; 3]) -> Vec<f32> {
+        self.mask.iter().enumerate().flat_map(|(i, &m)| if m { [self.rgb[3 * i], self.rgb[3 * i + 1], self.rgb[3 * i + 2]] } else { background }).collect()
+    }
+}
+
 /// NeuMan's split protocols.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NeumanSplit {

@@ -21,6 +21,7 @@
 //! `half_splats` add a packing pass (`pack_sh_half`, `pack_splats_half`) and read
 //! binary16.
 
+use drape_shared::adam::ExceedsParams;
 use drape_shared::half::{sh_half_words, ShHalfParams};
 use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
 
@@ -251,6 +252,8 @@ pub struct SplatRenderer {
     /// This renderer's identity and its forward passes so far (see [`SavedForward`]).
     id: u64,
     frames: u64,
+    /// A forward pass was prepared (and perhaps recorded) but not yet finished.
+    pending: bool,
 }
 
 impl SplatRenderer {
@@ -329,6 +332,7 @@ impl SplatRenderer {
             half_splats: false,
             id: NEXT_RENDERER.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             frames: 0,
+            pending: false,
         })
     }
 
@@ -493,6 +497,7 @@ impl SplatRenderer {
         self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
         // The saved state is about to be overwritten: no earlier forward's stands.
         self.frames += 1;
+        self.pending = true;
         Ok(())
     }
 
@@ -512,9 +517,57 @@ impl SplatRenderer {
         let dropped = ctx.read_buffer::<u32>(&mut self.dropped, 1)?[0];
         self.intersections = total64 as u32;
         self.frames += 1;
+        self.pending = false;
         // An overflowed frame is rendered again: its state stands for nothing.
         let saved = if overflowed { SavedForward::default() } else { SavedForward { renderer: self.id, frame: self.frames, count: self.frame_params.count } };
         Ok(ForwardStats { saved, intersections: total64 as u32, dropped, rerendered: overflowed, timings: PassTimings::default() })
+    }
+
+    /// The saved state of the forward pass prepared last, before
+    /// [`finish_forward`](Self::finish_forward): for a backward recorded into the same
+    /// recording as its forward, with no host wait between them. The recording's
+    /// results stand only if `finish_forward` then reports no overflow
+    /// ([`record_overflow_flag`](Self::record_overflow_flag) raises a guard on the GPU
+    /// for what comes after it in the recording).
+    pub fn recorded_forward(&self) -> SavedForward {
+        SavedForward { renderer: self.id, frame: if self.pending { self.frames + 1 } else { self.frames }, count: self.frame_params.count }
+    }
+
+    /// Records `counter[0] += 1` if the recorded forward pass's intersections outgrew
+    /// the capacity (after [`record_forward`](Self::record_forward) in the same
+    /// recording): a guard that work recorded later in the recording reads on the GPU.
+    pub fn record_overflow_flag<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+        let p = ExceedsParams::new(u64::from(self.intersection_capacity()));
+        rec.pass("guard.intersections", Kernel::TrainFlagExceeds).read("value", &self.total).write("counter", counter).push(&p).dispatch([1, 1, 1])
+    }
+
+    /// Makes what a backward pass with `accumulation` needs (before
+    /// [`record_backward`](Self::record_backward)).
+    pub fn prepare_backward(&mut self, accumulation: Accumulation) -> Result<()> {
+        let method = accumulation.method(&self.ctx);
+        self.make_scratch(method)
+    }
+
+    /// Records [`backward`](Self::backward) into `rec` (after
+    /// [`prepare_backward`](Self::prepare_backward)), with no host wait.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        saved: &SavedForward,
+        gaussians: &'a GaussianBuffers,
+        grad_rgb: &'a Buffer,
+        grad_alpha: &'a Buffer,
+        grad_depth: &'a Buffer,
+        out: &'a GaussianBuffers,
+        accumulation: Accumulation,
+    ) -> Result<()> {
+        assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
+        assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+        self.check_saved("splat backward", saved, gaussians.count)?;
+        let method = accumulation.method(&self.ctx);
+        self.record_raster_backward(rec, gaussians.count, grad_rgb, grad_alpha, grad_depth, method)?;
+        self.record_project_backward(rec, gaussians, out)
     }
 
     /// Checks that `saved` names this renderer's last forward pass, of `count` Gaussians.
@@ -523,7 +576,7 @@ impl SplatRenderer {
             "the saved state of no complete forward pass (an overflowed frame's, or a default value)".to_string()
         } else if saved.renderer != self.id {
             "another renderer's forward pass".to_string()
-        } else if saved.frame != self.frames {
+        } else if saved.frame != self.frames && !(self.pending && saved.frame == self.frames + 1) {
             "the saved state of an earlier forward pass, overwritten since by another".to_string()
         } else if saved.count != count {
             format!("a forward pass of {} Gaussians, but {count} to back-propagate into", saved.count)
@@ -723,12 +776,10 @@ impl SplatRenderer {
         assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
         self.check_saved("splat backward", saved, gaussians.count)?;
-        let method = accumulation.method(&self.ctx);
-        self.make_scratch(method)?;
+        self.prepare_backward(accumulation)?;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
-        self.record_raster_backward(&mut rec, gaussians.count, grad_rgb, grad_alpha, grad_depth, method)?;
-        self.record_project_backward(&mut rec, gaussians, out)?;
+        self.record_backward(&mut rec, saved, gaussians, grad_rgb, grad_alpha, grad_depth, out, accumulation)?;
         rec.submit_and_wait()
     }
 
