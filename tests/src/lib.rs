@@ -23,7 +23,13 @@ pub struct TestGpu {
 
 /// Opens the test device (lavapipe in CI; `DRAPE_DEVICE` overrides).
 pub fn gpu() -> TestGpu {
-    let ctx = Context::new(&ContextDesc::for_tests()).unwrap_or_else(|e| panic!("opening the test device: {e}"));
+    gpu_with(&ContextDesc::for_tests())
+}
+
+/// [`gpu`] opened with `desc` (which must keep validation on), e.g. with
+/// `force_staging` to count host waits as a discrete GPU would have them.
+pub fn gpu_with(desc: &ContextDesc) -> TestGpu {
+    let ctx = Context::new(desc).unwrap_or_else(|e| panic!("opening the test device: {e}"));
     let sink = ctx.validation_sink().expect("tests always run with validation");
     TestGpu { ctx: Some(ctx), sink }
 }

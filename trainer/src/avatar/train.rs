@@ -481,6 +481,8 @@ pub struct TrainReport {
     pub train_seconds: f64,
     pub iterations_per_second: f64,
     pub skipped_steps: u32,
+    /// Host waits (fence waits) of the training steps.
+    pub host_waits: HostWaits,
     pub initial: EvalMetrics,
     pub fin: EvalMetrics,
 }
@@ -972,7 +974,9 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         lap.reset();
         let s = step::sample(&train_frames, &rig, refiner.as_ref(), config.seed, step, whole_image);
         lap.host("host.frame_setup");
+        let mut attempts = 0;
         let outcome = loop {
+            attempts += 1;
             let mut st = Stages { avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), ssim: &ssim, lpips: lpips.as_ref(), settings: &settings, weights, pose_gradient: refiner.is_some(), screen_stats: densifying(step), masked: !whole_image };
             match step::run(ctx, &mut st, &mut buffers, &s)? {
                 StepOutcome::Overflowed => continue,
@@ -984,7 +988,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
             let line = serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite });
             writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
             skips.skipped(step, nonfinite, s.frame.frame, &seq.dir, &checkpoint_path)?;
-            waits.add(ctx.fence_waits() - waits_before, false);
+            waits.add(ctx.fence_waits() - waits_before, attempts, false);
             continue;
         }
         skips.applied();
@@ -1020,7 +1024,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         if checkpointing {
             save(&mut avatar, &refiner, step + 1, &checkpoint_path)?;
         }
-        waits.add(ctx.fence_waits() - waits_before, !(logging || densified || checkpointing));
+        waits.add(ctx.fence_waits() - waits_before, attempts, !(logging || densified || checkpointing));
     }
     let loop_seconds = t_train.elapsed().as_secs_f64();
     let profile = if profiling { ctx.take_profile() } else { None };
@@ -1105,6 +1109,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         train_seconds,
         iterations_per_second: f64::from(stop_at.saturating_sub(start_step)) / train_seconds.max(1e-9),
         skipped_steps: skips.total,
+        host_waits: waits,
         initial,
         fin,
     };

@@ -573,3 +573,34 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
     assert!(err.contains("3 steps in a row had non-finite gradients"), "{err}");
     let _ = std::fs::remove_dir_all(&base);
 }
+
+/// A training step is one submission and one host wait, with every layer, the cloth
+/// losses and the pose refiner on, for each way of compositing (single-pass renders
+/// the cloth alone for its mask loss inside the same submission). Counted with
+/// device-local buffers unmapped (`force_staging`), as on a discrete GPU where each
+/// read of one would be a wait of its own; steps that log, densify or checkpoint are
+/// counted apart (they read back more).
+#[test]
+fn a_training_step_waits_on_the_host_once() {
+    // Without the tests' poisoning of new buffers, which is a submission of its own
+    // per buffer made where the host cannot map it (the scratch a backward makes on its
+    // first use after densification); a run outside the tests makes them for free.
+    let desc = drape_engine::ContextDesc { force_staging: true, poison_new_buffers: false, ..drape_engine::ContextDesc::for_tests() };
+    let ctx = drape_tests::gpu_with(&desc);
+    let seq = load_sequence(data(), 0).expect("data");
+    let base = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-waits");
+    let _ = std::fs::remove_dir_all(&base);
+    for compositing in ["three-pass", "fused", "single-pass"] {
+        let mut config = resume_config(10);
+        config.checkpoint_every = 0;
+        config.densify.until = 4;
+        config.compositing = Compositing::parse(compositing).unwrap();
+        assert!(config.refine_pose && config.lambda_mask > 0.0, "the quick preset's pose refiner and mask loss are on");
+        let report = train(&ctx, &seq, model().clone(), &config, &base.join(compositing), false, &mut |_| {}).expect("train");
+        let w = report.host_waits;
+        assert!(w.plain_steps >= 4, "{compositing}: {w:?}");
+        assert_eq!(w.plain_max, 1, "{compositing}: the most host waits of a training-only step ({w:?})");
+        assert_eq!(w.plain_steps + w.other_steps, 10, "{compositing}: every step counted");
+    }
+    let _ = std::fs::remove_dir_all(&base);
+}
