@@ -1,7 +1,7 @@
 //! The engine's error type: what a caller cannot foresee. Programmer mistakes (a buffer
 //! too small for the op it is passed to, a copy past a buffer's end) are asserts, not
-//! errors. The file formats have their own types (`ops::splat::ply::PlyError`,
-//! `ops::lpips::WeightsError`), each naming the file.
+//! errors. The one file format the engine reads, LPIPS weights, has its own type
+//! (`ops::lpips::WeightsError`), naming the file.
 
 use ash::vk;
 

@@ -380,7 +380,6 @@ fn below(l: usize, hidden: usize) -> Option<usize> {
     }
 }
 
-
 impl Mlp {
     /// An MLP for up to `max_rows` rows with parameters from [`MlpDesc::init_params`].
     pub fn new(ctx: &Context, label: &str, desc: MlpDesc, max_rows: usize, seed: u64) -> Result<Self> {
@@ -697,21 +696,6 @@ impl Mlp {
     }
 }
 
-/// What the CPU reference's forward pass saves: each linear layer's output before and
-/// after its activation (rows × width).
-#[derive(Clone, Debug)]
-pub struct ReferenceActivations<F> {
-    pub pre: Vec<Vec<F>>,
-    pub post: Vec<Vec<F>>,
-}
-
-impl<F: Real> ReferenceActivations<F> {
-    /// Head `h`'s output.
-    pub fn head(&self, desc: &MlpDesc, h: usize) -> &[F] {
-        &self.post[desc.hidden.len() + h]
-    }
-}
-
 fn apply<F: Real>(act: Activation, pre: &[F], width: usize) -> Vec<F> {
     if let Activation::Softmax { temperature } = act {
         let mut out = Vec::with_capacity(pre.len());
@@ -758,92 +742,112 @@ fn linear<F: Real>(x: &[F], w: &[F], b: &[F], rows: usize, i: usize, o: usize) -
     y
 }
 
-/// The parameters with every weight-normalised layer's `W` slot holding `g v / ‖v‖`
-/// (what the GPU's GEMMs read); the parameters themselves without weight normalisation.
-pub fn reference_effective_params<F: Real>(desc: &MlpDesc, params: &[F]) -> Vec<F> {
-    let mut out = params.to_vec();
-    for p in desc.weight_norm_params() {
-        for o in 0..p.out_features as usize {
-            let norm = weight_norm_row_norm(params, &p, o);
-            for i in 0..p.in_features as usize {
-                out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
-            }
+/// CPU references of the MLP forward and backward, generic over f32/f64.
+pub mod reference {
+    use super::*;
+
+    /// What the CPU reference's forward pass saves: each linear layer's output before and
+    /// after its activation (rows × width).
+    #[derive(Clone, Debug)]
+    pub struct Activations<F> {
+        pub pre: Vec<Vec<F>>,
+        pub post: Vec<Vec<F>>,
+    }
+
+    impl<F: Real> Activations<F> {
+        /// Head `h`'s output.
+        pub fn head(&self, desc: &MlpDesc, h: usize) -> &[F] {
+            &self.post[desc.hidden.len() + h]
         }
     }
-    out
-}
 
-/// CPU reference of the forward pass.
-pub fn reference_forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> ReferenceActivations<F> {
-    let params = &reference_effective_params(desc, params)[..];
-    let (offsets, _) = desc.layout();
-    let acts = desc.activations();
-    let hidden = desc.hidden.len();
-    let mut pre = Vec::new();
-    let mut post: Vec<Vec<F>> = Vec::new();
-    for (l, (i, o)) in desc.linears().into_iter().enumerate() {
-        let x: &[F] = match below(l, hidden) {
-            Some(k) => &post[k],
-            None => input,
-        };
-        let (w_off, b_off) = offsets[l];
-        let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
-        let a = apply(acts[l], &y, o);
-        pre.push(y);
-        post.push(a);
-    }
-    ReferenceActivations { pre, post }
-}
-
-/// CPU reference of the backward pass from the gradients on each head's output:
-/// (parameter gradients, input gradient).
-pub fn reference_backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &ReferenceActivations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
-    let effective = reference_effective_params(desc, raw_params);
-    let params = &effective[..];
-    let (offsets, len) = desc.layout();
-    let acts = desc.activations();
-    let linears = desc.linears();
-    let hidden = desc.hidden.len();
-    let mut grads = vec![F::zero(); len];
-    let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
-    for (h, g) in head_grads.iter().enumerate() {
-        grad_out[hidden + h] = g.clone();
-    }
-    let mut grad_input = vec![F::zero(); rows * desc.input];
-    let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
-    for l in order {
-        let (i, o) = linears[l];
-        let g = apply_bwd(acts[l], &saved.pre[l], &saved.post[l], &grad_out[l], o);
-        let x: &[F] = match below(l, hidden) {
-            Some(k) => &saved.post[k],
-            None => input,
-        };
-        let (w_off, b_off) = offsets[l];
-        let mut gx = vec![F::zero(); rows * i];
-        for r in 0..rows {
-            for c in 0..o {
-                let gc = g[r * o + c];
-                grads[b_off + c] += gc;
-                for k in 0..i {
-                    grads[w_off + c * i + k] += gc * x[r * i + k];
-                    gx[r * i + k] += gc * params[w_off + c * i + k];
+    /// The parameters with every weight-normalised layer's `W` slot holding `g v / ‖v‖`
+    /// (what the GPU's GEMMs read); the parameters themselves without weight normalisation.
+    pub fn effective_params<F: Real>(desc: &MlpDesc, params: &[F]) -> Vec<F> {
+        let mut out = params.to_vec();
+        for p in desc.weight_norm_params() {
+            for o in 0..p.out_features as usize {
+                let norm = weight_norm_row_norm(params, &p, o);
+                for i in 0..p.in_features as usize {
+                    out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
                 }
             }
         }
-        let target = match below(l, hidden) {
-            Some(k) => &mut grad_out[k],
-            None => &mut grad_input,
-        };
-        for (d, v) in target.iter_mut().zip(gx) {
-            *d += v;
-        }
+        out
     }
-    for p in desc.weight_norm_params() {
-        for o in 0..p.out_features as usize {
-            weight_norm_row_bwd(raw_params, &mut grads, &p, o);
+
+    /// CPU reference of the forward pass.
+    pub fn forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> Activations<F> {
+        let params = &effective_params(desc, params)[..];
+        let (offsets, _) = desc.layout();
+        let acts = desc.activations();
+        let hidden = desc.hidden.len();
+        let mut pre = Vec::new();
+        let mut post: Vec<Vec<F>> = Vec::new();
+        for (l, (i, o)) in desc.linears().into_iter().enumerate() {
+            let x: &[F] = match below(l, hidden) {
+                Some(k) => &post[k],
+                None => input,
+            };
+            let (w_off, b_off) = offsets[l];
+            let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
+            let a = apply(acts[l], &y, o);
+            pre.push(y);
+            post.push(a);
         }
+        Activations { pre, post }
     }
-    (grads, grad_input)
+
+    /// CPU reference of the backward pass from the gradients on each head's output:
+    /// (parameter gradients, input gradient).
+    pub fn backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &Activations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+        let effective = effective_params(desc, raw_params);
+        let params = &effective[..];
+        let (offsets, len) = desc.layout();
+        let acts = desc.activations();
+        let linears = desc.linears();
+        let hidden = desc.hidden.len();
+        let mut grads = vec![F::zero(); len];
+        let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
+        for (h, g) in head_grads.iter().enumerate() {
+            grad_out[hidden + h] = g.clone();
+        }
+        let mut grad_input = vec![F::zero(); rows * desc.input];
+        let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
+        for l in order {
+            let (i, o) = linears[l];
+            let g = apply_bwd(acts[l], &saved.pre[l], &saved.post[l], &grad_out[l], o);
+            let x: &[F] = match below(l, hidden) {
+                Some(k) => &saved.post[k],
+                None => input,
+            };
+            let (w_off, b_off) = offsets[l];
+            let mut gx = vec![F::zero(); rows * i];
+            for r in 0..rows {
+                for c in 0..o {
+                    let gc = g[r * o + c];
+                    grads[b_off + c] += gc;
+                    for k in 0..i {
+                        grads[w_off + c * i + k] += gc * x[r * i + k];
+                        gx[r * i + k] += gc * params[w_off + c * i + k];
+                    }
+                }
+            }
+            let target = match below(l, hidden) {
+                Some(k) => &mut grad_out[k],
+                None => &mut grad_input,
+            };
+            for (d, v) in target.iter_mut().zip(gx) {
+                *d += v;
+            }
+        }
+        for p in desc.weight_norm_params() {
+            for o in 0..p.out_features as usize {
+                weight_norm_row_bwd(raw_params, &mut grads, &p, o);
+            }
+        }
+        (grads, grad_input)
+    }
 }
 
 #[cfg(test)]

@@ -176,62 +176,67 @@ impl Triplane {
     }
 }
 
-/// CPU reference of the forward pass: count × 3C features.
-pub fn reference_forward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F]) -> Vec<F> {
-    let p = desc.params((points.len() / 3) as u32);
-    let ch = desc.channels as usize;
-    let mut out = vec![F::zero(); points.len() / 3 * 3 * ch];
-    for (i, pt) in points.chunks_exact(3).enumerate() {
-        if !pt.iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        let u = normalise([pt[0], pt[1], pt[2]], &p);
-        for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-            let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
-            for (row, col, w, _, _) in cs {
-                if inside(row, p.resolution) && inside(col, p.resolution) {
-                    let t = texel_index(plane, row, col, &p);
-                    for c in 0..ch {
-                        out[i * 3 * ch + plane * ch + c] += w * planes[t + c];
-                    }
-                }
-            }
-        }
-    }
-    out
-}
+/// CPU references of the triplane lookup, forward and backward, generic over f32/f64.
+pub mod reference {
+    use super::*;
 
-/// CPU reference of the backward pass: (plane gradient, points' gradient).
-pub fn reference_backward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F], grad_features: &[F]) -> (Vec<F>, Vec<F>) {
-    let p = desc.params((points.len() / 3) as u32);
-    let ch = desc.channels as usize;
-    let mut gplanes = vec![F::zero(); planes.len()];
-    let mut gpoints = vec![F::zero(); points.len()];
-    for (i, pt) in points.chunks_exact(3).enumerate() {
-        if !pt.iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        let u = normalise([pt[0], pt[1], pt[2]], &p);
-        let mut gu = [F::zero(); 3];
-        for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-            let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
-            for (row, col, w, dwx, dwy) in cs {
-                if inside(row, p.resolution) && inside(col, p.resolution) {
-                    let t = texel_index(plane, row, col, &p);
-                    let mut dot = F::zero();
-                    for c in 0..ch {
-                        let g = grad_features[i * 3 * ch + plane * ch + c];
-                        dot += g * planes[t + c];
-                        gplanes[t + c] += w * g;
+    /// CPU reference of the forward pass: count × 3C features.
+    pub fn forward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F]) -> Vec<F> {
+        let p = desc.params((points.len() / 3) as u32);
+        let ch = desc.channels as usize;
+        let mut out = vec![F::zero(); points.len() / 3 * 3 * ch];
+        for (i, pt) in points.chunks_exact(3).enumerate() {
+            if !pt.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            let u = normalise([pt[0], pt[1], pt[2]], &p);
+            for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
+                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                for (row, col, w, _, _) in cs {
+                    if inside(row, p.resolution) && inside(col, p.resolution) {
+                        let t = texel_index(plane, row, col, &p);
+                        for c in 0..ch {
+                            out[i * 3 * ch + plane * ch + c] += w * planes[t + c];
+                        }
                     }
-                    gu[ax] += dwx * dot;
-                    gu[ay] += dwy * dot;
                 }
             }
         }
-        for a in 0..3 {
-            gpoints[3 * i + a] = gu[a] * F::of(p.box_scale[a]);
-        }
+        out
     }
-    (gplanes, gpoints)
+
+    /// CPU reference of the backward pass: (plane gradient, points' gradient).
+    pub fn backward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F], grad_features: &[F]) -> (Vec<F>, Vec<F>) {
+        let p = desc.params((points.len() / 3) as u32);
+        let ch = desc.channels as usize;
+        let mut gplanes = vec![F::zero(); planes.len()];
+        let mut gpoints = vec![F::zero(); points.len()];
+        for (i, pt) in points.chunks_exact(3).enumerate() {
+            if !pt.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            let u = normalise([pt[0], pt[1], pt[2]], &p);
+            let mut gu = [F::zero(); 3];
+            for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
+                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                for (row, col, w, dwx, dwy) in cs {
+                    if inside(row, p.resolution) && inside(col, p.resolution) {
+                        let t = texel_index(plane, row, col, &p);
+                        let mut dot = F::zero();
+                        for c in 0..ch {
+                            let g = grad_features[i * 3 * ch + plane * ch + c];
+                            dot += g * planes[t + c];
+                            gplanes[t + c] += w * g;
+                        }
+                        gu[ax] += dwx * dot;
+                        gu[ay] += dwy * dot;
+                    }
+                }
+            }
+            for a in 0..3 {
+                gpoints[3 * i + a] = gu[a] * F::of(p.box_scale[a]);
+            }
+        }
+        (gplanes, gpoints)
+    }
 }

@@ -124,8 +124,8 @@ impl GaussianBuffers {
         Ok(b)
     }
 
-    /// Copies back to the host (layers are not stored on the GPU; `layers` fills them).
-    pub fn download(&mut self, ctx: &Context, layers: &[crate::ops::splat::scene::Layer]) -> Result<GaussianCloud> {
+    /// Copies back to the host (groups are not stored on the GPU; `groups` fills them).
+    pub fn download<G: Copy + Into<u32>>(&mut self, ctx: &Context, groups: &[G]) -> Result<GaussianCloud> {
         let n = self.count as usize;
         let k = sh_coeffs(self.sh_degree);
         Ok(GaussianCloud {
@@ -135,7 +135,7 @@ impl GaussianBuffers {
             quats: ctx.read_buffer(&mut self.quats, 4 * n)?,
             opacity_logits: ctx.read_buffer(&mut self.opacity_logits, n)?,
             sh: ctx.read_buffer(&mut self.sh, 3 * k * n)?,
-            layers: layers.to_vec(),
+            groups: groups.iter().map(|&g| g.into()).collect(),
         })
     }
 
