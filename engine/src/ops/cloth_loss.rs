@@ -33,7 +33,9 @@ pub enum NearestSearch {
     /// The grid when `n · m` exceeds [`AUTO_GRID_PAIRS`], else brute force.
     #[default]
     Auto,
+    /// Every pair: O(n · m), best for small sets.
     BruteForce,
+    /// A uniform grid: cell keys sorted by the radix sort, then the cells near each query.
     Grid,
 }
 
@@ -128,11 +130,14 @@ pub struct Chamfer {
 /// `½ (mean d(p, Q) + mean d(q, P))` of one evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ChamferValue {
+    /// The robust Chamfer loss.
     pub robust: f64,
+    /// The plain Chamfer distance.
     pub distance: f64,
 }
 
 impl Chamfer {
+    /// Scratch for up to `max_pred` predicted and `max_target` target points ([`NearestSearch::Auto`]).
     pub fn new(ctx: &Context, max_pred: u32, max_target: u32) -> Result<Self> {
         Self::with_search(ctx, max_pred, max_target, NearestSearch::Auto)
     }
@@ -252,7 +257,9 @@ fn chamfer_value(pred_d2: &[f32], target_d2: &[f32], sigma2: f64) -> ChamferValu
 
 /// The edge graph of a point set and scratch for its ARAP term.
 pub struct Arap {
+    /// Points in the graph.
     pub vertices: u32,
+    /// Undirected edges in the graph.
     pub edges: u32,
     edge_list: Buffer,
     offsets: Buffer,

@@ -69,10 +69,15 @@ pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, po
 
 /// The gradients [`record_backward`] writes (n rows each).
 pub struct DeformGrads<'a> {
+    /// n × 3: the canonical means' gradient.
     pub means: &'a Buffer,
+    /// n × 3: the offsets' gradient.
     pub offsets: &'a Buffer,
+    /// n × 6: the 6D rotations' gradient.
     pub rot6d: &'a Buffer,
+    /// n × 3: the log-scale deltas' gradient.
     pub log_scale_deltas: &'a Buffer,
+    /// n × 24: the skinning weights' gradient.
     pub weights: &'a Buffer,
     /// n × 15: the terms [`record_transform_grad`] sums.
     pub transform_terms: &'a Buffer,
@@ -148,21 +153,31 @@ pub fn record_backward<'a>(
 /// Host copies of the inputs (flat, the GPU layout), for the CPU reference.
 #[derive(Clone, Debug, Default)]
 pub struct HostInputs<F> {
+    /// 24 joint transforms, 12 floats each (row-major 3 × 4).
     pub transforms: Vec<F>,
+    /// n × 3 canonical means.
     pub means: Vec<F>,
+    /// n × 4 canonical rotations (w, x, y, z).
     pub quats: Vec<F>,
+    /// n × 3 canonical log scales.
     pub log_scales: Vec<F>,
+    /// n × 3 offsets added to the means.
     pub offsets: Vec<F>,
+    /// n × 6 rotation corrections in the 6D representation.
     pub rot6d: Vec<F>,
+    /// n × 3 deltas added to the log scales.
     pub log_scale_deltas: Vec<F>,
+    /// n × 24 skinning weights.
     pub weights: Vec<F>,
 }
 
 impl<F: Real> HostInputs<F> {
+    /// Gaussians in the inputs.
     pub fn len(&self) -> usize {
         self.means.len() / 3
     }
 
+    /// Whether there are no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }

@@ -40,13 +40,19 @@ use crate::recorder::{flat_grid as grid, Recording};
 /// An activation after a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Activation {
+    /// `x`.
     Identity,
     /// `x Φ(x)` (PyTorch's default, erf form).
     Gelu,
+    /// `1 / (1 + e^-x)`.
     Sigmoid,
+    /// `e^x`.
     Exp,
     /// `softmax(x / temperature)` over the layer's whole output (at most 32 wide).
-    Softmax { temperature: f32 },
+    Softmax {
+        /// Divides the inputs before the softmax.
+        temperature: f32,
+    },
 }
 
 impl Activation {
@@ -71,18 +77,23 @@ impl Activation {
 /// One output head.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HeadDesc {
+    /// Names the head in checkpoints and buffer names.
     pub name: String,
+    /// Outputs per row.
     pub width: usize,
+    /// The activation on its outputs.
     pub activation: Activation,
     /// Start with zero weights and bias (so the head first outputs `act(0)`).
     pub zero_init: bool,
 }
 
 impl HeadDesc {
+    /// A head with random initial weights.
     pub fn new(name: &str, width: usize, activation: Activation) -> Self {
         Self { name: name.to_string(), width, activation, zero_init: false }
     }
 
+    /// The head with zero initial weights and bias.
     pub fn zero_init(mut self) -> Self {
         self.zero_init = true;
         self
@@ -92,9 +103,11 @@ impl HeadDesc {
 /// The shape of an MLP.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct MlpDesc {
+    /// Inputs per row.
     pub input: usize,
     /// (width, activation) of each hidden layer.
     pub hidden: Vec<(usize, Activation)>,
+    /// The output heads, each a linear layer on the last hidden layer.
     pub heads: Vec<HeadDesc>,
     /// Linear layers (hidden layers, then heads, counted from 0) under weight
     /// normalisation, in increasing order.
@@ -352,6 +365,7 @@ struct LayerBuffers {
 
 /// An MLP's parameters, gradients and saved activations on the GPU.
 pub struct Mlp {
+    /// The shape it was built for.
     pub desc: MlpDesc,
     /// The GEMM kernel to record (both give the same sums in the same order).
     pub variant: GemmVariant,
@@ -438,10 +452,12 @@ impl Mlp {
         self.effective.as_ref().unwrap_or(&self.params)
     }
 
+    /// Floats in the parameter vector (every `W`, `b` and weight-norm `g`).
     pub fn param_count(&self) -> usize {
         self.desc.layout().1
     }
 
+    /// The most rows one forward or backward may have.
     pub fn max_rows(&self) -> u32 {
         self.max_rows
     }
@@ -750,7 +766,9 @@ pub mod reference {
     /// after its activation (rows × width).
     #[derive(Clone, Debug)]
     pub struct Activations<F> {
+        /// Each linear layer's output before its activation.
         pub pre: Vec<Vec<F>>,
+        /// Each linear layer's output after its activation.
         pub post: Vec<Vec<F>>,
     }
 
@@ -937,7 +955,7 @@ fn k4_tile_cost(width: u32) -> u32 {
 
 /// How the forward kernels cover `n` columns: `(first column, columns, tile width)`
 /// per dispatch. 32-wide tiles as far as they fill, then the cheapest set of narrower
-/// tiles for the rest (by [`k4_tile_cost`]): llvmpipe runs every column of a tile,
+/// tiles for the rest (by `k4_tile_cost`): llvmpipe runs every column of a tile,
 /// existing or not, so a head of 3 columns in a 32-wide tile costs what 32 do.
 pub fn k4_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
     // cheapest[r]: (cost, widths) covering r columns.

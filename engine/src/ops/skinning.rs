@@ -25,6 +25,7 @@ pub struct Skinning {
 }
 
 impl Skinning {
+    /// Scratch for up to `max_count` points.
     pub fn new(ctx: &Context, max_count: usize) -> Result<Self> {
         // Beyond 65,535 workgroups of 256 the 1-D dispatches would not fit; say so now.
         let limit = 65_535u64 * 256;

@@ -20,16 +20,24 @@ use crate::recorder::Recording;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum TriplaneInit {
     /// Every value drawn from N(0, 1) (HUGS), reproducible from the seed.
-    Normal { seed: u64 },
+    Normal {
+        /// The random seed.
+        seed: u64,
+    },
+    /// Every value 0.
     Zeros,
 }
 
 /// Size and placement of a triplane.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TriplaneDesc {
+    /// Texels per side of each plane.
     pub resolution: u32,
+    /// Features per texel.
     pub channels: u32,
+    /// The box's low corner: the planes span the box, mapped to [-1, 1] per axis.
     pub box_min: [f32; 3],
+    /// The box's high corner.
     pub box_max: [f32; 3],
 }
 
@@ -39,6 +47,7 @@ impl TriplaneDesc {
         3 * (self.resolution as usize).pow(2) * self.channels as usize
     }
 
+    /// Whether the planes have no floats.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -94,7 +103,9 @@ impl TriplaneDesc {
 
 /// A triplane's planes and gradient on the GPU.
 pub struct Triplane {
+    /// Its size and placement.
     pub desc: TriplaneDesc,
+    /// The three planes, `3 × resolution² × channels` floats.
     pub planes: Buffer,
     /// Gradient on the planes, accumulated by [`Triplane::record_backward`].
     pub grads: Buffer,
@@ -103,10 +114,12 @@ pub struct Triplane {
 }
 
 impl Triplane {
+    /// Planes initialised by `init`.
     pub fn new(ctx: &Context, label: &str, desc: TriplaneDesc, init: TriplaneInit) -> Result<Self> {
         Self::with_planes(ctx, label, desc, &desc.init(init))
     }
 
+    /// Planes with the given values.
     pub fn with_planes(ctx: &Context, label: &str, desc: TriplaneDesc, planes: &[f32]) -> Result<Self> {
         desc.check();
         assert_eq!(planes.len(), desc.len(), "{label}: plane data has the wrong length");

@@ -26,9 +26,13 @@ use crate::recorder::{flat_grid, Recording};
 /// need not be rendered).
 #[derive(Clone, Copy)]
 pub struct CompositeInputs<'a> {
+    /// The base pass's rgb.
     pub base_rgb: &'a Buffer,
+    /// The over pass's rgb.
     pub over_rgb: &'a Buffer,
+    /// The over pass's alpha.
     pub over_alpha: &'a Buffer,
+    /// The matte pass's rgb, if rendered.
     pub matte_rgb: Option<&'a Buffer>,
 }
 
@@ -37,9 +41,13 @@ pub struct CompositeInputs<'a> {
 /// without a matte, that gradient joins `over_alpha`'s).
 #[derive(Clone, Copy)]
 pub struct CompositeGrads<'a> {
+    /// Gradient on the base pass's rgb.
     pub base_rgb: &'a Buffer,
+    /// Gradient on the over pass's rgb.
     pub over_rgb: &'a Buffer,
+    /// Gradient on the over pass's alpha.
     pub over_alpha: &'a Buffer,
+    /// Gradient on the matte pass's rgb, with a matte.
     pub matte_rgb: Option<&'a Buffer>,
 }
 
@@ -227,7 +235,12 @@ pub enum Coverage<'a> {
     Alpha(&'a Buffer),
     /// A base alpha and a layer's visibility over it: each (buffer, floats per pixel,
     /// whether it holds the final transmittance `T` rather than the alpha `1 − T`).
-    Two { base: (&'a Buffer, u32, bool), layer: (&'a Buffer, u32) },
+    Two {
+        /// The base: (buffer, floats per pixel, whether it holds `T`).
+        base: (&'a Buffer, u32, bool),
+        /// The layer's visibility: (buffer, floats per pixel).
+        layer: (&'a Buffer, u32),
+    },
 }
 
 /// Records `rgb` (3 floats per pixel, rendered over black) and its coverage as

@@ -2,7 +2,7 @@
 //! `drape_shared::splat` and is shared by both. The optimizer is `ops::adam`.
 //!
 //! - [`scene`]: Gaussians on the host, cameras, render settings;
-//! - [`reference`]: the CPU renderer, forward and backward, generic over f32/f64;
+//! - [`mod@reference`]: the CPU renderer, forward and backward, generic over f32/f64;
 //! - [`render`]: the GPU renderer (project, depth sort, tile binning, tile sort,
 //!   rasterize; and the backward passes);
 //! - [`composite`]: depth-aware compositing of three passes (forward, backward);

@@ -18,11 +18,17 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// K = (degree + 1)², `groups` n.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GaussianCloud {
+    /// Spherical-harmonics degree (0-3).
     pub sh_degree: u32,
+    /// 3 per Gaussian.
     pub means: Vec<f32>,
+    /// 3 per Gaussian: the natural logarithms of the scales.
     pub log_scales: Vec<f32>,
+    /// 4 per Gaussian (w, x, y, z), not necessarily normalised.
     pub quats: Vec<f32>,
+    /// 1 per Gaussian: opacity before the sigmoid.
     pub opacity_logits: Vec<f32>,
+    /// 3 (degree + 1)² per Gaussian, `[gaussian][k][channel]`.
     pub sh: Vec<f32>,
     /// Which of the caller's N groups of Gaussians each one belongs to (an index the
     /// engine only carries; compositing and the fused renderer take per-Gaussian masks
@@ -31,15 +37,18 @@ pub struct GaussianCloud {
 }
 
 impl GaussianCloud {
+    /// An empty cloud of SH degree `sh_degree`.
     pub fn new(sh_degree: u32) -> Self {
         assert!(sh_degree <= MAX_SH_DEGREE, "SH degree {sh_degree} is above {MAX_SH_DEGREE}");
         Self { sh_degree, ..Default::default() }
     }
 
+    /// Gaussians in the cloud.
     pub fn len(&self) -> usize {
         self.opacity_logits.len()
     }
 
+    /// Whether the cloud has no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -262,11 +271,17 @@ impl PinholeCamera {
 pub struct RenderSettings {
     /// Antialiased mode: opacity compensated for the dilation (Mip-Splatting).
     pub antialiased: bool,
+    /// Added to the 2D covariance's diagonal (pixels²).
     pub dilation: f32,
+    /// Alpha below which a splat is skipped at a pixel.
     pub alpha_min: f32,
+    /// Alpha clamp per splat.
     pub alpha_max: f32,
+    /// Transmittance below which a pixel stops blending.
     pub transmittance_min: f32,
+    /// Standard deviations a splat's extent covers at most.
     pub max_sigmas: f32,
+    /// The Jacobian's clamp, as a multiple of the field of view.
     pub fov_clamp: f32,
     /// Tile side in pixels: 8, 16 or 32 ([`TILE_SIZES`]). The image does not depend on
     /// it; the time does (smaller tiles: more intersections to sort, shorter lists to

@@ -15,8 +15,11 @@ use crate::recorder::{flat_grid, Recording};
 /// Where a copy reads and writes: a buffer, its SH degree, and the first Gaussian.
 #[derive(Clone, Copy)]
 pub struct ShSlice<'a> {
+    /// The SH buffer.
     pub buffer: &'a Buffer,
+    /// Its SH degree.
     pub degree: u32,
+    /// The first Gaussian of the slice.
     pub first: u32,
 }
 
