@@ -1,7 +1,7 @@
 //! RAII buffers: each is named (debug utils), owns its allocation and the texel views
 //! made of it on first use, frees them in `Drop`, and holds the device alive. With
 //! poisoning on, a new buffer is filled with
-//! [`POISON_WORD`](crate::context::POISON_WORD) before anyone sees it.
+//! [`crate::context::POISON_WORD`] before anyone sees it.
 
 use std::sync::{Arc, OnceLock};
 
@@ -18,7 +18,9 @@ pub struct BufferDesc {
     /// Bytes the caller will use (a zero-length buffer still gets 4 bytes: Vulkan
     /// forbids empty buffers, and ops bind them even when there is nothing to do).
     pub size: u64,
+    /// Vulkan usage flags.
     pub usage: vk::BufferUsageFlags,
+    /// Where the memory lives: device-local, or host-visible for uploads and read-backs.
     pub location: MemoryLocation,
 }
 
@@ -70,6 +72,7 @@ impl BufferDesc {
 
 /// A Vulkan buffer with its memory.
 pub struct Buffer {
+    /// The Vulkan handle, for hosts that record their own commands on it.
     pub raw: vk::Buffer,
     /// Bytes the caller asked for.
     pub size: u64,
@@ -91,6 +94,7 @@ pub struct Buffer {
 }
 
 impl Buffer {
+    /// The buffer's debug name (as `VK_EXT_debug_utils` shows it).
     pub fn name(&self) -> &str {
         &self.name
     }

@@ -64,10 +64,15 @@ pub const POISON_WORD: u32 = 0xDEAD_BEEF;
 /// Kind of physical device, in order of preference.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum DeviceKind {
+    /// A discrete GPU.
     DiscreteGpu,
+    /// A GPU integrated with the CPU.
     IntegratedGpu,
+    /// A GPU in a virtual machine.
     VirtualGpu,
+    /// A CPU implementation (lavapipe).
     Cpu,
+    /// Anything else.
     Other,
 }
 
@@ -87,10 +92,15 @@ impl DeviceKind {
 /// What the chosen device is and can do.
 #[derive(Clone, Debug)]
 pub struct DeviceInfo {
+    /// The device name the driver reports.
     pub name: String,
+    /// What kind of device it is.
     pub kind: DeviceKind,
+    /// The device's Vulkan version (major, minor, patch).
     pub api_version: (u32, u32, u32),
+    /// The driver's name and version.
     pub driver: String,
+    /// Lanes per subgroup in compute shaders.
     pub subgroup_size: u32,
     /// Nanoseconds per timestamp tick.
     pub timestamp_period_ns: f64,
@@ -108,6 +118,7 @@ pub struct DeviceInfo {
     /// `timelineSemaphore` (Vulkan 1.2 core, optional): what
     /// [`crate::SubmitSync`]'s timeline waits and signals need.
     pub timeline_semaphore: bool,
+    /// `maxComputeWorkGroupCount`: the most workgroups one dispatch may have per axis.
     pub max_compute_workgroup_count: [u32; 3],
     /// `maxStorageBufferRange`: the most bytes one storage-buffer binding may cover.
     pub max_storage_buffer_range: u64,

@@ -47,11 +47,15 @@ pub struct DeviceFeatures {
 pub struct ExternalVulkan {
     /// The loader the host's instance came from.
     pub entry: ash::Entry,
+    /// The host's instance.
     pub instance: ash::Instance,
+    /// The physical device the host's device was created on.
     pub physical_device: vk::PhysicalDevice,
+    /// The host's logical device.
     pub device: ash::Device,
     /// The family of the queue the engine submits to; it must support compute.
     pub queue_family: u32,
+    /// The index of that queue in its family.
     pub queue_index: u32,
     /// `VkApplicationInfo::apiVersion` the instance was created with (at least 1.2).
     pub api_version: u32,

@@ -134,9 +134,13 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
 
 /// A compute pipeline with its layouts. Destroyed by the [`Device`] that owns it.
 pub struct Pipeline {
+    /// The pipeline handle.
     pub raw: vk::Pipeline,
+    /// Its layout (one descriptor set, push constants).
     pub layout: vk::PipelineLayout,
+    /// The layout of its one descriptor set.
     pub set_layout: vk::DescriptorSetLayout,
+    /// The kernel it runs.
     pub kernel: Kernel,
 }
 

@@ -15,6 +15,8 @@
 //! # Ok(()) }
 //! ```
 
+#![warn(missing_docs)]
+
 /// The `ash` the engine is built on, for the raw handles its embedding API takes.
 pub use ash;
 

@@ -11,7 +11,9 @@ use std::collections::BTreeMap;
 /// Sum and count of one named entry.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct ProfileEntry {
+    /// Times the entry was recorded.
     pub calls: u64,
+    /// Milliseconds summed over them.
     pub ms: f64,
 }
 

@@ -323,9 +323,20 @@ pub mod splat {
     }
 }
 
+/// An RGB picture, 3 floats per pixel in [0, 1], row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Picture {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// The pixels, row-major from the top row.
+    pub rgb: Vec<f32>,
+}
+
 /// A procedural 64x64-style test picture: a smooth two-colour gradient, three soft
 /// disks of different colours and sizes, and a ring; values in [0, 1].
-pub fn test_picture(width: u32, height: u32) -> drape_engine::ops::splat::fit::Image {
+pub fn test_picture(width: u32, height: u32) -> Picture {
     let mut rgb = Vec::with_capacity((3 * width * height) as usize);
     for y in 0..height {
         for x in 0..width {
@@ -347,7 +358,7 @@ pub fn test_picture(width: u32, height: u32) -> drape_engine::ops::splat::fit::I
             rgb.extend(c);
         }
     }
-    drape_engine::ops::splat::fit::Image { width, height, rgb }
+    Picture { width, height, rgb }
 }
 
 pub mod reference_python {

@@ -1,6 +1,6 @@
 //! The trainer's error type. Every fallible function of the crate returns
 //! [`TrainerError`], or, for a file format's reader or writer, that format's own error
-//! (`NpyError`, `DatasetError`, `PickleError`, `ColmapError`, `GarmentError`,
+//! (`NpyError`, `DatasetError`, `PickleError`, `ColmapError`, `GarmentError`, `PlyError`,
 //! `FidWeightsError`), which `?` converts into it. A caller tells a lost device or an
 //! exhausted GPU (`Engine`) from a bad file (`Dataset`, `Npy`, `Pickle`, ...) or a bad
 //! setting (`Config`) by matching, not by reading prose. Each variant's message is one
@@ -34,7 +34,7 @@ pub enum TrainerError {
     Garment(#[from] crate::garment::GarmentError),
     /// A Gaussian PLY file.
     #[error(transparent)]
-    Ply(#[from] drape_engine::ops::splat::ply::PlyError),
+    Ply(#[from] crate::ply::PlyError),
     /// An LPIPS weights file.
     #[error(transparent)]
     LpipsWeights(#[from] drape_engine::ops::lpips::WeightsError),

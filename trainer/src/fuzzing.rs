@@ -46,7 +46,7 @@ fn with_file(name: &str, data: &[u8], f: impl FnOnce(&Path)) {
 /// A 3DGS PLY (`drape render --ply`).
 pub fn ply(data: &[u8]) {
     with_file("scene.ply", data, |p| {
-        let _ = drape_engine::ops::splat::ply::read(p);
+        let _ = crate::ply::read(p);
     });
 }
 
@@ -105,7 +105,7 @@ pub fn colmap(data: &[u8]) {
 /// A camera file of `drape render --camera`.
 pub fn camera_json(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else { return };
-    if let Ok(cam) = serde_json::from_str::<drape_engine::ops::splat::scene::PinholeCamera>(text) {
+    if let Ok(cam) = crate::camera_file::parse(text) {
         let _ = cam.validate();
     }
 }

@@ -1,6 +1,7 @@
 //! The Cloth-HUGS avatar side of drape: the SMPL-format body (model, loader, the
 //! project's procedural body, posing), garments and their cloth simulation, the dataset
 //! readers (NeuMan, ZJU-MoCap, the synthetic sequences; NumPy, pickle and COLMAP files),
+//! Gaussian PLY files (`ply`) and camera files (`camera_file`),
 //! and the layered avatar (`avatar`): training, densification, evaluation, animation
 //! and editing. Fallible functions return [`TrainerError`], or a file format's own error
 //! (`npy::NpyError`, `dataset::error::DatasetError`, ...), which converts into it.
@@ -10,6 +11,7 @@ pub mod testing;
 pub mod avatar;
 pub mod body;
 pub mod camera;
+pub mod camera_file;
 pub mod cloth;
 pub mod dataset;
 pub mod error;
@@ -20,5 +22,6 @@ pub mod mesh;
 pub mod motion;
 pub mod npy;
 pub mod pickle;
+pub mod ply;
 
 pub use error::{Result, TrainerError};

@@ -22,7 +22,9 @@ pub enum Accumulation {
     /// Float atomics when the device has them, else compare-and-swap.
     #[default]
     Auto,
+    /// Float atomic adds (`shaderBufferFloat32AtomicAdd`).
     FloatAtomics,
+    /// Compare-and-swap loops on the float's bits: every device, slower under contention.
     CompareAndSwap,
     /// 64-bit fixed-point integer atomics: bit-identical from run to run; two atomics
     /// per value, and a resolution of 2^-36 (see `drape_shared::fixed_point`).
@@ -32,12 +34,16 @@ pub enum Accumulation {
 /// The kernel family an [`Accumulation`] comes to on a device.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Method {
+    /// Float atomic adds.
     FloatAtomics,
+    /// Compare-and-swap loops.
     CompareAndSwap,
+    /// 64-bit fixed-point integer atomics, resolved to floats after the pass.
     FixedPoint,
 }
 
 impl Accumulation {
+    /// The kernel family this choice comes to on `ctx`'s device.
     pub fn method(self, ctx: &Context) -> Method {
         match self {
             Accumulation::Auto if ctx.info().float_atomic_add => Method::FloatAtomics,
@@ -65,6 +71,7 @@ pub struct FixedPointScratch {
 }
 
 impl FixedPointScratch {
+    /// Scratch for up to `capacity` values; refused beyond the device's storage-buffer range.
     pub fn new(ctx: &Context, label: &str, capacity: u32) -> Result<Self> {
         let bytes = 4 * scratch_words(capacity);
         let binding = ctx.info().max_storage_buffer_range;
@@ -74,6 +81,7 @@ impl FixedPointScratch {
         Ok(Self { buffer: ctx.create_buffer(&format!("{label} fixed-point scratch"), BufferDesc::gpu_only(bytes))?, capacity })
     }
 
+    /// The most values it holds.
     pub fn capacity(&self) -> u32 {
         self.capacity
     }

@@ -1,8 +1,10 @@
-//! Adam over flat parameter buffers with parameter groups (kernel `train::adam_step`,
-//! math in `drape_shared::adam`): each group has its own learning rate (optionally an
-//! exponential decay schedule), ε, bias correction from its own step count, and its
-//! moments, which checkpoints and densification read and restore
-//! ([`AdamGroup::read_moments`], [`AdamGroup::restore`]).
+//! Adam, the engine's one optimizer (kernel `train::adam_step`, math in
+//! `drape_shared::adam`), over flat parameter buffers with parameter groups: each
+//! [`AdamGroup`] has its own learning rate (optionally an exponential decay schedule),
+//! ε, bias correction from its own step count, and its moments, which checkpoints and
+//! densification read and restore ([`AdamGroup::read_moments`], [`AdamGroup::restore`]).
+//! [`GaussianAdam`] is the five groups of one cloud's [`GaussianBuffers`], stepped
+//! together.
 
 use std::cell::Cell;
 
@@ -12,6 +14,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels::Kernel;
+use crate::ops::splat::render::GaussianBuffers;
 use crate::recorder::{flat_grid, Recording};
 
 /// A learning rate, constant or decaying exponentially from `initial` to `final_lr`
@@ -19,16 +22,21 @@ use crate::recorder::{flat_grid, Recording};
 /// held.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LrSchedule {
+    /// The rate at step 0.
     pub initial: f32,
+    /// The rate from step `steps` on.
     pub final_lr: f32,
+    /// Steps from `initial` to `final_lr`.
     pub steps: u32,
 }
 
 impl LrSchedule {
+    /// The same rate at every step.
     pub fn constant(lr: f32) -> Self {
         Self { initial: lr, final_lr: lr, steps: 1 }
     }
 
+    /// From `initial` to `final_lr` over `steps` steps (at least 1).
     pub fn exponential(initial: f32, final_lr: f32, steps: u32) -> Self {
         Self { initial, final_lr, steps: steps.max(1) }
     }
@@ -52,11 +60,17 @@ pub fn step_params(len: u32, lr: f32, beta1: f32, beta2: f32, eps: f32, t: u32) 
 
 /// One parameter group: `len` floats of some parameter buffer.
 pub struct AdamGroup {
+    /// Names the moments' buffers and the group in assertion messages.
     pub name: String,
+    /// Floats the group steps.
     pub len: usize,
+    /// The learning rate by step.
     pub schedule: LrSchedule,
+    /// Decay of the first moment.
     pub beta1: f32,
+    /// Decay of the second moment.
     pub beta2: f32,
+    /// Added to the second moment's square root.
     pub eps: f32,
     /// Steps recorded so far (a `Cell` so that a step borrows the group immutably for
     /// the recording's lifetime, like every other buffer it records).
@@ -138,6 +152,64 @@ impl AdamGroup {
         ctx.write_buffer(&mut self.m, m)?;
         ctx.write_buffer(&mut self.v, v)?;
         self.step.set(step);
+        Ok(())
+    }
+}
+
+/// Learning rate of each of a cloud's parameter groups.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LearningRates {
+    /// Of the means.
+    pub means: f32,
+    /// Of the log scales.
+    pub log_scales: f32,
+    /// Of the rotations (quaternions).
+    pub quats: f32,
+    /// Of the opacity logits.
+    pub opacity_logits: f32,
+    /// Of the SH coefficients.
+    pub sh: f32,
+}
+
+impl LearningRates {
+    fn in_binding_order(&self) -> [f32; 5] {
+        [self.means, self.log_scales, self.quats, self.opacity_logits, self.sh]
+    }
+}
+
+/// Adam over one cloud's [`GaussianBuffers`]: one [`AdamGroup`] per buffer, each at a
+/// constant rate, stepped together.
+pub struct GaussianAdam {
+    count: u32,
+    groups: [AdamGroup; 5],
+}
+
+impl GaussianAdam {
+    /// Zeroed moments for `count` Gaussians of SH degree `sh_degree`; β = (0.9, 0.999),
+    /// ε = 1e-15 (as HUGS uses).
+    pub fn new(ctx: &Context, count: usize, sh_degree: u32, lrs: LearningRates) -> Result<Self> {
+        let n = count;
+        let lens = [3 * n, 3 * n, 4 * n, n, 3 * drape_shared::splat::layout::sh_coeffs(sh_degree) * n];
+        let names = ["means", "log_scales", "quats", "opacity_logits", "sh"];
+        let lrs = lrs.in_binding_order();
+        let group = |i: usize| AdamGroup::new(ctx, names[i], lens[i], LrSchedule::constant(lrs[i]));
+        let groups = [group(0)?, group(1)?, group(2)?, group(3)?, group(4)?];
+        let count = u32::try_from(count).map_err(|_| crate::error::EngineError::too_large("Gaussians", count as u64, u64::from(u32::MAX), "u32 indices"))?;
+        Ok(Self { count, groups })
+    }
+
+    /// Steps taken so far.
+    pub fn steps(&self) -> u32 {
+        self.groups[0].steps()
+    }
+
+    /// Records one step of every group (independent passes: no barriers between them).
+    pub fn record_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a GaussianBuffers, grads: &'a GaussianBuffers) -> Result<()> {
+        assert_eq!(params.count, grads.count, "gradients are for another cloud");
+        assert_eq!(params.count, self.count, "Adam state is for another cloud");
+        for ((group, p), g) in self.groups.iter().zip(params.all()).zip(grads.all()) {
+            group.record_step(rec, p, g)?;
+        }
         Ok(())
     }
 }

@@ -33,7 +33,9 @@ pub enum NearestSearch {
     /// The grid when `n · m` exceeds [`AUTO_GRID_PAIRS`], else brute force.
     #[default]
     Auto,
+    /// Every pair: O(n · m), best for small sets.
     BruteForce,
+    /// A uniform grid: cell keys sorted by the radix sort, then the cells near each query.
     Grid,
 }
 
@@ -128,11 +130,14 @@ pub struct Chamfer {
 /// `½ (mean d(p, Q) + mean d(q, P))` of one evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ChamferValue {
+    /// The robust Chamfer loss.
     pub robust: f64,
+    /// The plain Chamfer distance.
     pub distance: f64,
 }
 
 impl Chamfer {
+    /// Scratch for up to `max_pred` predicted and `max_target` target points ([`NearestSearch::Auto`]).
     pub fn new(ctx: &Context, max_pred: u32, max_target: u32) -> Result<Self> {
         Self::with_search(ctx, max_pred, max_target, NearestSearch::Auto)
     }
@@ -250,50 +255,11 @@ fn chamfer_value(pred_d2: &[f32], target_d2: &[f32], sigma2: f64) -> ChamferValu
     ChamferValue { robust: 0.5 * (mean(pred_d2, &rho) + mean(target_d2, &rho)), distance: 0.5 * (mean(pred_d2, &f64::sqrt) + mean(target_d2, &f64::sqrt)) }
 }
 
-/// Nearest point of `points` to each of `queries` (lower index on ties) and its
-/// squared distance: the CPU reference of `cloth_loss::nearest`.
-pub fn nearest_reference<F: Real>(queries: &[[F; 3]], points: &[[F; 3]]) -> Vec<(usize, F)> {
-    queries
-        .iter()
-        .map(|&q| {
-            let mut best = (usize::MAX, F::infinity());
-            for (j, &p) in points.iter().enumerate() {
-                let d = distance2(q, p);
-                if d < best.1 {
-                    best = (j, d);
-                }
-            }
-            best
-        })
-        .collect()
-}
-
-/// CPU reference: (`L_sim` without λ, `∂L_sim/∂pred`) for non-empty sets.
-pub fn chamfer_reference<F: Real>(pred: &[[F; 3]], target: &[[F; 3]], sigma: F) -> (F, Vec<[F; 3]>) {
-    let sigma2 = sigma * sigma;
-    let half = F::of(0.5);
-    let (n, m) = (F::of(pred.len() as f32), F::of(target.len() as f32));
-    let fwd = nearest_reference(pred, target);
-    let bwd = nearest_reference(target, pred);
-    let mut loss = F::zero();
-    let mut grad = vec![[F::zero(); 3]; pred.len()];
-    for (i, &(j, d2)) in fwd.iter().enumerate() {
-        loss += half * geman_mcclure(d2, sigma2).0 / n;
-        grad[i] = chamfer_pair_grad(pred[i], target[j], sigma2, half / n);
-    }
-    for (j, &(i, d2)) in bwd.iter().enumerate() {
-        loss += half * geman_mcclure(d2, sigma2).0 / m;
-        let g = chamfer_pair_grad(pred[i], target[j], sigma2, half / m);
-        for c in 0..3 {
-            grad[i][c] += g[c];
-        }
-    }
-    (loss, grad)
-}
-
 /// The edge graph of a point set and scratch for its ARAP term.
 pub struct Arap {
+    /// Points in the graph.
     pub vertices: u32,
+    /// Undirected edges in the graph.
     pub edges: u32,
     edge_list: Buffer,
     offsets: Buffer,
@@ -364,24 +330,70 @@ pub fn csr(vertices: usize, edges: &[[u32; 2]]) -> (Vec<u32>, Vec<u32>) {
     (offsets, neighbours)
 }
 
-/// CPU reference: (variance of the edge lengths, its gradient to the positions).
-pub fn arap_reference<F: Real>(positions: &[[F; 3]], edges: &[[u32; 2]]) -> (F, Vec<[F; 3]>) {
-    let mut grad = vec![[F::zero(); 3]; positions.len()];
-    if edges.is_empty() {
-        return (F::zero(), grad);
+/// CPU references of the nearest-point search, the Chamfer loss and the ARAP loss, generic over f32/f64.
+pub mod reference {
+    use super::*;
+
+    /// Nearest point of `points` to each of `queries` (lower index on ties) and its
+    /// squared distance: the CPU reference of `cloth_loss::nearest`.
+    pub fn nearest<F: Real>(queries: &[[F; 3]], points: &[[F; 3]]) -> Vec<(usize, F)> {
+        queries
+            .iter()
+            .map(|&q| {
+                let mut best = (usize::MAX, F::infinity());
+                for (j, &p) in points.iter().enumerate() {
+                    let d = distance2(q, p);
+                    if d < best.1 {
+                        best = (j, d);
+                    }
+                }
+                best
+            })
+            .collect()
     }
-    let e = F::of(edges.len() as f32);
-    let lengths: Vec<F> = edges.iter().map(|&[a, b]| distance2(positions[a as usize], positions[b as usize]).sqrt()).collect();
-    let mean = lengths.iter().fold(F::zero(), |s, &l| s + l) / e;
-    let var = lengths.iter().fold(F::zero(), |s, &l| s + (l - mean) * (l - mean)) / e;
-    for &[a, b] in edges {
-        let (pa, pb) = (positions[a as usize], positions[b as usize]);
-        let ga = arap_edge_grad(pa, pb, mean, e, F::one());
-        let gb = arap_edge_grad(pb, pa, mean, e, F::one());
-        for c in 0..3 {
-            grad[a as usize][c] += ga[c];
-            grad[b as usize][c] += gb[c];
+
+    /// CPU reference: (`L_sim` without λ, `∂L_sim/∂pred`) for non-empty sets.
+    pub fn chamfer<F: Real>(pred: &[[F; 3]], target: &[[F; 3]], sigma: F) -> (F, Vec<[F; 3]>) {
+        let sigma2 = sigma * sigma;
+        let half = F::of(0.5);
+        let (n, m) = (F::of(pred.len() as f32), F::of(target.len() as f32));
+        let fwd = nearest(pred, target);
+        let bwd = nearest(target, pred);
+        let mut loss = F::zero();
+        let mut grad = vec![[F::zero(); 3]; pred.len()];
+        for (i, &(j, d2)) in fwd.iter().enumerate() {
+            loss += half * geman_mcclure(d2, sigma2).0 / n;
+            grad[i] = chamfer_pair_grad(pred[i], target[j], sigma2, half / n);
         }
+        for (j, &(i, d2)) in bwd.iter().enumerate() {
+            loss += half * geman_mcclure(d2, sigma2).0 / m;
+            let g = chamfer_pair_grad(pred[i], target[j], sigma2, half / m);
+            for c in 0..3 {
+                grad[i][c] += g[c];
+            }
+        }
+        (loss, grad)
     }
-    (var, grad)
+
+    /// CPU reference: (variance of the edge lengths, its gradient to the positions).
+    pub fn arap<F: Real>(positions: &[[F; 3]], edges: &[[u32; 2]]) -> (F, Vec<[F; 3]>) {
+        let mut grad = vec![[F::zero(); 3]; positions.len()];
+        if edges.is_empty() {
+            return (F::zero(), grad);
+        }
+        let e = F::of(edges.len() as f32);
+        let lengths: Vec<F> = edges.iter().map(|&[a, b]| distance2(positions[a as usize], positions[b as usize]).sqrt()).collect();
+        let mean = lengths.iter().fold(F::zero(), |s, &l| s + l) / e;
+        let var = lengths.iter().fold(F::zero(), |s, &l| s + (l - mean) * (l - mean)) / e;
+        for &[a, b] in edges {
+            let (pa, pb) = (positions[a as usize], positions[b as usize]);
+            let ga = arap_edge_grad(pa, pb, mean, e, F::one());
+            let gb = arap_edge_grad(pb, pa, mean, e, F::one());
+            for c in 0..3 {
+                grad[a as usize][c] += ga[c];
+                grad[b as usize][c] += gb[c];
+            }
+        }
+        (var, grad)
+    }
 }

@@ -44,7 +44,6 @@ pub struct DeformInputs<'a> {
     pub weights: &'a Buffer,
 }
 
-
 /// Records the posed means (n × 3), quaternions (n × 4, not normalised) and
 /// log-scales (n × 3).
 /// `log_scale_offset` (`ln` of the frame's global scale) is added to every posed
@@ -70,10 +69,15 @@ pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, po
 
 /// The gradients [`record_backward`] writes (n rows each).
 pub struct DeformGrads<'a> {
+    /// n × 3: the canonical means' gradient.
     pub means: &'a Buffer,
+    /// n × 3: the offsets' gradient.
     pub offsets: &'a Buffer,
+    /// n × 6: the 6D rotations' gradient.
     pub rot6d: &'a Buffer,
+    /// n × 3: the log-scale deltas' gradient.
     pub log_scale_deltas: &'a Buffer,
+    /// n × 24: the skinning weights' gradient.
     pub weights: &'a Buffer,
     /// n × 15: the terms [`record_transform_grad`] sums.
     pub transform_terms: &'a Buffer,
@@ -113,22 +117,6 @@ pub fn sum_transform_partials(partials: &[f32]) -> Vec<f64> {
     sum
 }
 
-/// CPU reference of `∂L/∂A` (24 × 12): every Gaussian's terms from the reference
-/// backward, summed over the Gaussians.
-pub fn reference_transform_grad<F: Real>(inputs: &HostInputs<F>, grads: &[DeformGrad<F>]) -> Vec<F> {
-    let mut out = vec![F::zero(); TRANSFORM_GRAD_FLOATS];
-    for (i, g) in grads.iter().enumerate() {
-        for j in 0..SKIN_JOINTS {
-            let mut a = [F::zero(); TRANSFORM_FLOATS];
-            transform_grad_add(&g.transform_terms, inputs.weights[i * SKIN_JOINTS + j], &mut a);
-            for (o, v) in out[j * TRANSFORM_FLOATS..(j + 1) * TRANSFORM_FLOATS].iter_mut().zip(a) {
-                *o += v;
-            }
-        }
-    }
-    out
-}
-
 /// Records the backward pass from the gradients on the posed means, quaternions and
 /// log-scales.
 #[allow(clippy::too_many_arguments)]
@@ -165,21 +153,31 @@ pub fn record_backward<'a>(
 /// Host copies of the inputs (flat, the GPU layout), for the CPU reference.
 #[derive(Clone, Debug, Default)]
 pub struct HostInputs<F> {
+    /// 24 joint transforms, 12 floats each (row-major 3 × 4).
     pub transforms: Vec<F>,
+    /// n × 3 canonical means.
     pub means: Vec<F>,
+    /// n × 4 canonical rotations (w, x, y, z).
     pub quats: Vec<F>,
+    /// n × 3 canonical log scales.
     pub log_scales: Vec<F>,
+    /// n × 3 offsets added to the means.
     pub offsets: Vec<F>,
+    /// n × 6 rotation corrections in the 6D representation.
     pub rot6d: Vec<F>,
+    /// n × 3 deltas added to the log scales.
     pub log_scale_deltas: Vec<F>,
+    /// n × 24 skinning weights.
     pub weights: Vec<F>,
 }
 
 impl<F: Real> HostInputs<F> {
+    /// Gaussians in the inputs.
     pub fn len(&self) -> usize {
         self.means.len() / 3
     }
 
+    /// Whether there are no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -201,16 +199,6 @@ impl<F: Real> HostInputs<F> {
             weights,
         }
     }
-}
-
-/// CPU reference of the forward pass.
-pub fn reference_forward<F: Real>(inputs: &HostInputs<F>) -> Vec<DeformOutput<F>> {
-    (0..inputs.len()).map(|i| deform_fwd(&inputs.gaussian(i), &inputs.transforms)).collect()
-}
-
-/// CPU reference of the backward pass.
-pub fn reference_backward<F: Real>(inputs: &HostInputs<F>, upstream: &[DeformOutput<F>]) -> Vec<DeformGrad<F>> {
-    (0..inputs.len()).map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i])).collect()
 }
 
 /// Records the pose-dependent offsets (kernel `deform::pose_blend_fwd`, an option of a
@@ -239,16 +227,47 @@ pub fn record_pose_blend_backward<'a>(rec: &mut Recording<'a>, features: &'a Buf
     rec.pass("deform.pose_blend_bwd", Kernel::DeformPoseBlendBwd).read("features", features).read("grad_offsets", grad_offsets).write("grad_basis", grad_basis).push(&p).dispatch(flat_grid(count * POSE_BLEND_FLOATS as u32))
 }
 
-/// CPU reference of [`record_pose_blend_forward`].
-pub fn reference_pose_blend_forward<F: Real>(basis: &[F], features: &[F], decoded: &[F]) -> Vec<F> {
-    let n = decoded.len() / 3;
-    (0..n).flat_map(|i| {
-        let o = pose_blend_offset(basis, i, features);
-        [decoded[3 * i] + o[0], decoded[3 * i + 1] + o[1], decoded[3 * i + 2] + o[2]]
-    }).collect()
-}
+/// CPU references of the deformation and pose-blend kernels, generic over f32/f64.
+pub mod reference {
+    use super::*;
 
-/// CPU reference of [`record_pose_blend_backward`].
-pub fn reference_pose_blend_backward<F: Real>(features: &[F], grad_offsets: &[F]) -> Vec<F> {
-    (0..grad_offsets.len() / 3 * POSE_BLEND_FLOATS).map(|j| pose_blend_basis_grad(j, features, grad_offsets)).collect()
+    /// CPU reference of `∂L/∂A` (24 × 12): every Gaussian's terms from the reference
+    /// backward, summed over the Gaussians.
+    pub fn transform_grad<F: Real>(inputs: &HostInputs<F>, grads: &[DeformGrad<F>]) -> Vec<F> {
+        let mut out = vec![F::zero(); TRANSFORM_GRAD_FLOATS];
+        for (i, g) in grads.iter().enumerate() {
+            for j in 0..SKIN_JOINTS {
+                let mut a = [F::zero(); TRANSFORM_FLOATS];
+                transform_grad_add(&g.transform_terms, inputs.weights[i * SKIN_JOINTS + j], &mut a);
+                for (o, v) in out[j * TRANSFORM_FLOATS..(j + 1) * TRANSFORM_FLOATS].iter_mut().zip(a) {
+                    *o += v;
+                }
+            }
+        }
+        out
+    }
+
+    /// CPU reference of the forward pass.
+    pub fn forward<F: Real>(inputs: &HostInputs<F>) -> Vec<DeformOutput<F>> {
+        (0..inputs.len()).map(|i| deform_fwd(&inputs.gaussian(i), &inputs.transforms)).collect()
+    }
+
+    /// CPU reference of the backward pass.
+    pub fn backward<F: Real>(inputs: &HostInputs<F>, upstream: &[DeformOutput<F>]) -> Vec<DeformGrad<F>> {
+        (0..inputs.len()).map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i])).collect()
+    }
+
+    /// CPU reference of [`record_pose_blend_forward`].
+    pub fn pose_blend_forward<F: Real>(basis: &[F], features: &[F], decoded: &[F]) -> Vec<F> {
+        let n = decoded.len() / 3;
+        (0..n).flat_map(|i| {
+            let o = pose_blend_offset(basis, i, features);
+            [decoded[3 * i] + o[0], decoded[3 * i + 1] + o[1], decoded[3 * i + 2] + o[2]]
+        }).collect()
+    }
+
+    /// CPU reference of [`record_pose_blend_backward`].
+    pub fn pose_blend_backward<F: Real>(features: &[F], grad_offsets: &[F]) -> Vec<F> {
+        (0..grad_offsets.len() / 3 * POSE_BLEND_FLOATS).map(|j| pose_blend_basis_grad(j, features, grad_offsets)).collect()
+    }
 }

@@ -25,7 +25,9 @@ use crate::recorder::{flat_grid as grid, Recording};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LpipsNet {
+    /// AlexNet's five convolutions (LPIPS's default).
     Alex,
+    /// VGG-16's thirteen convolutions.
     #[serde(rename = "vgg", alias = "vgg16")]
     Vgg16,
 }
@@ -137,8 +139,29 @@ impl std::fmt::Display for LpipsNet {
 /// One stage of the feature stack.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stage {
-    Conv { key: &'static str, in_c: u32, out_c: u32, kernel: u32, stride: u32, pad: u32 },
-    Pool { kernel: u32, stride: u32 },
+    /// A convolution followed by ReLU.
+    Conv {
+        /// The weights' tensor key prefix.
+        key: &'static str,
+        /// Input channels.
+        in_c: u32,
+        /// Output channels.
+        out_c: u32,
+        /// Kernel side.
+        kernel: u32,
+        /// Stride.
+        stride: u32,
+        /// Zero padding on each side.
+        pad: u32,
+    },
+    /// Max pooling.
+    Pool {
+        /// Window side.
+        kernel: u32,
+        /// Stride.
+        stride: u32,
+    },
+    /// A layer whose activations the distance compares.
     Tap,
 }
 
@@ -147,20 +170,50 @@ pub enum Stage {
 pub enum WeightsError {
     // `error`, not `source`: the message already carries it, and a `source` would make
     // anyhow print the OS error twice.
+    /// The file could not be read or written.
     #[error("{path}: {error}")]
-    Io { path: PathBuf, error: std::io::Error },
+    Io {
+        /// The weights file.
+        path: PathBuf,
+        /// The OS error.
+        error: std::io::Error,
+    },
+    /// The file is not safetensors.
     #[error("{path}: not a safetensors file: {detail}")]
-    Format { path: PathBuf, detail: String },
+    Format {
+        /// The weights file.
+        path: PathBuf,
+        /// What is malformed.
+        detail: String,
+    },
+    /// A tensor the network needs is absent.
     #[error("{path}: tensor '{tensor}' is missing (is this an LPIPS {net} file?)")]
-    Missing { path: PathBuf, tensor: String, net: &'static str },
+    Missing {
+        /// The weights file.
+        path: PathBuf,
+        /// The tensor's name.
+        tensor: String,
+        /// The network that needs it.
+        net: &'static str,
+    },
+    /// A tensor has the wrong shape or non-finite values.
     #[error("{path}: tensor '{tensor}' has {detail}")]
-    Bad { path: PathBuf, tensor: String, detail: String },
+    Bad {
+        /// The weights file.
+        path: PathBuf,
+        /// The tensor's name.
+        tensor: String,
+        /// What is wrong with its shape or values.
+        detail: String,
+    },
 }
 
 /// The weights of one network, by tensor name.
 #[derive(Clone, Debug)]
 pub struct LpipsWeights {
+    /// The backbone the weights are for.
     pub net: LpipsNet,
+    /// Every tensor by its safetensors name, flattened.
     pub tensors: BTreeMap<String, Vec<f32>>,
 }
 
@@ -268,8 +321,11 @@ fn plan_sizes_or_err(net: LpipsNet, width: u32, height: u32) -> Result<Vec<(u32,
 /// The network on the GPU for images of one size, with the activations of both
 /// images and the gradients of the first.
 pub struct Lpips {
+    /// The backbone.
     pub net: LpipsNet,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     sizes: Vec<(u32, u32, u32)>,
     /// Per conv stage: (weights, bias).

@@ -40,13 +40,19 @@ use crate::recorder::{flat_grid as grid, Recording};
 /// An activation after a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Activation {
+    /// `x`.
     Identity,
     /// `x Φ(x)` (PyTorch's default, erf form).
     Gelu,
+    /// `1 / (1 + e^-x)`.
     Sigmoid,
+    /// `e^x`.
     Exp,
     /// `softmax(x / temperature)` over the layer's whole output (at most 32 wide).
-    Softmax { temperature: f32 },
+    Softmax {
+        /// Divides the inputs before the softmax.
+        temperature: f32,
+    },
 }
 
 impl Activation {
@@ -71,18 +77,23 @@ impl Activation {
 /// One output head.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HeadDesc {
+    /// Names the head in checkpoints and buffer names.
     pub name: String,
+    /// Outputs per row.
     pub width: usize,
+    /// The activation on its outputs.
     pub activation: Activation,
     /// Start with zero weights and bias (so the head first outputs `act(0)`).
     pub zero_init: bool,
 }
 
 impl HeadDesc {
+    /// A head with random initial weights.
     pub fn new(name: &str, width: usize, activation: Activation) -> Self {
         Self { name: name.to_string(), width, activation, zero_init: false }
     }
 
+    /// The head with zero initial weights and bias.
     pub fn zero_init(mut self) -> Self {
         self.zero_init = true;
         self
@@ -92,9 +103,11 @@ impl HeadDesc {
 /// The shape of an MLP.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct MlpDesc {
+    /// Inputs per row.
     pub input: usize,
     /// (width, activation) of each hidden layer.
     pub hidden: Vec<(usize, Activation)>,
+    /// The output heads, each a linear layer on the last hidden layer.
     pub heads: Vec<HeadDesc>,
     /// Linear layers (hidden layers, then heads, counted from 0) under weight
     /// normalisation, in increasing order.
@@ -352,6 +365,7 @@ struct LayerBuffers {
 
 /// An MLP's parameters, gradients and saved activations on the GPU.
 pub struct Mlp {
+    /// The shape it was built for.
     pub desc: MlpDesc,
     /// The GEMM kernel to record (both give the same sums in the same order).
     pub variant: GemmVariant,
@@ -379,7 +393,6 @@ fn below(l: usize, hidden: usize) -> Option<usize> {
         hidden.checked_sub(1)
     }
 }
-
 
 impl Mlp {
     /// An MLP for up to `max_rows` rows with parameters from [`MlpDesc::init_params`].
@@ -439,10 +452,12 @@ impl Mlp {
         self.effective.as_ref().unwrap_or(&self.params)
     }
 
+    /// Floats in the parameter vector (every `W`, `b` and weight-norm `g`).
     pub fn param_count(&self) -> usize {
         self.desc.layout().1
     }
 
+    /// The most rows one forward or backward may have.
     pub fn max_rows(&self) -> u32 {
         self.max_rows
     }
@@ -697,21 +712,6 @@ impl Mlp {
     }
 }
 
-/// What the CPU reference's forward pass saves: each linear layer's output before and
-/// after its activation (rows × width).
-#[derive(Clone, Debug)]
-pub struct ReferenceActivations<F> {
-    pub pre: Vec<Vec<F>>,
-    pub post: Vec<Vec<F>>,
-}
-
-impl<F: Real> ReferenceActivations<F> {
-    /// Head `h`'s output.
-    pub fn head(&self, desc: &MlpDesc, h: usize) -> &[F] {
-        &self.post[desc.hidden.len() + h]
-    }
-}
-
 fn apply<F: Real>(act: Activation, pre: &[F], width: usize) -> Vec<F> {
     if let Activation::Softmax { temperature } = act {
         let mut out = Vec::with_capacity(pre.len());
@@ -758,92 +758,114 @@ fn linear<F: Real>(x: &[F], w: &[F], b: &[F], rows: usize, i: usize, o: usize) -
     y
 }
 
-/// The parameters with every weight-normalised layer's `W` slot holding `g v / ‖v‖`
-/// (what the GPU's GEMMs read); the parameters themselves without weight normalisation.
-pub fn reference_effective_params<F: Real>(desc: &MlpDesc, params: &[F]) -> Vec<F> {
-    let mut out = params.to_vec();
-    for p in desc.weight_norm_params() {
-        for o in 0..p.out_features as usize {
-            let norm = weight_norm_row_norm(params, &p, o);
-            for i in 0..p.in_features as usize {
-                out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
-            }
+/// CPU references of the MLP forward and backward, generic over f32/f64.
+pub mod reference {
+    use super::*;
+
+    /// What the CPU reference's forward pass saves: each linear layer's output before and
+    /// after its activation (rows × width).
+    #[derive(Clone, Debug)]
+    pub struct Activations<F> {
+        /// Each linear layer's output before its activation.
+        pub pre: Vec<Vec<F>>,
+        /// Each linear layer's output after its activation.
+        pub post: Vec<Vec<F>>,
+    }
+
+    impl<F: Real> Activations<F> {
+        /// Head `h`'s output.
+        pub fn head(&self, desc: &MlpDesc, h: usize) -> &[F] {
+            &self.post[desc.hidden.len() + h]
         }
     }
-    out
-}
 
-/// CPU reference of the forward pass.
-pub fn reference_forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> ReferenceActivations<F> {
-    let params = &reference_effective_params(desc, params)[..];
-    let (offsets, _) = desc.layout();
-    let acts = desc.activations();
-    let hidden = desc.hidden.len();
-    let mut pre = Vec::new();
-    let mut post: Vec<Vec<F>> = Vec::new();
-    for (l, (i, o)) in desc.linears().into_iter().enumerate() {
-        let x: &[F] = match below(l, hidden) {
-            Some(k) => &post[k],
-            None => input,
-        };
-        let (w_off, b_off) = offsets[l];
-        let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
-        let a = apply(acts[l], &y, o);
-        pre.push(y);
-        post.push(a);
-    }
-    ReferenceActivations { pre, post }
-}
-
-/// CPU reference of the backward pass from the gradients on each head's output:
-/// (parameter gradients, input gradient).
-pub fn reference_backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &ReferenceActivations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
-    let effective = reference_effective_params(desc, raw_params);
-    let params = &effective[..];
-    let (offsets, len) = desc.layout();
-    let acts = desc.activations();
-    let linears = desc.linears();
-    let hidden = desc.hidden.len();
-    let mut grads = vec![F::zero(); len];
-    let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
-    for (h, g) in head_grads.iter().enumerate() {
-        grad_out[hidden + h] = g.clone();
-    }
-    let mut grad_input = vec![F::zero(); rows * desc.input];
-    let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
-    for l in order {
-        let (i, o) = linears[l];
-        let g = apply_bwd(acts[l], &saved.pre[l], &saved.post[l], &grad_out[l], o);
-        let x: &[F] = match below(l, hidden) {
-            Some(k) => &saved.post[k],
-            None => input,
-        };
-        let (w_off, b_off) = offsets[l];
-        let mut gx = vec![F::zero(); rows * i];
-        for r in 0..rows {
-            for c in 0..o {
-                let gc = g[r * o + c];
-                grads[b_off + c] += gc;
-                for k in 0..i {
-                    grads[w_off + c * i + k] += gc * x[r * i + k];
-                    gx[r * i + k] += gc * params[w_off + c * i + k];
+    /// The parameters with every weight-normalised layer's `W` slot holding `g v / ‖v‖`
+    /// (what the GPU's GEMMs read); the parameters themselves without weight normalisation.
+    pub fn effective_params<F: Real>(desc: &MlpDesc, params: &[F]) -> Vec<F> {
+        let mut out = params.to_vec();
+        for p in desc.weight_norm_params() {
+            for o in 0..p.out_features as usize {
+                let norm = weight_norm_row_norm(params, &p, o);
+                for i in 0..p.in_features as usize {
+                    out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
                 }
             }
         }
-        let target = match below(l, hidden) {
-            Some(k) => &mut grad_out[k],
-            None => &mut grad_input,
-        };
-        for (d, v) in target.iter_mut().zip(gx) {
-            *d += v;
-        }
+        out
     }
-    for p in desc.weight_norm_params() {
-        for o in 0..p.out_features as usize {
-            weight_norm_row_bwd(raw_params, &mut grads, &p, o);
+
+    /// CPU reference of the forward pass.
+    pub fn forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> Activations<F> {
+        let params = &effective_params(desc, params)[..];
+        let (offsets, _) = desc.layout();
+        let acts = desc.activations();
+        let hidden = desc.hidden.len();
+        let mut pre = Vec::new();
+        let mut post: Vec<Vec<F>> = Vec::new();
+        for (l, (i, o)) in desc.linears().into_iter().enumerate() {
+            let x: &[F] = match below(l, hidden) {
+                Some(k) => &post[k],
+                None => input,
+            };
+            let (w_off, b_off) = offsets[l];
+            let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
+            let a = apply(acts[l], &y, o);
+            pre.push(y);
+            post.push(a);
         }
+        Activations { pre, post }
     }
-    (grads, grad_input)
+
+    /// CPU reference of the backward pass from the gradients on each head's output:
+    /// (parameter gradients, input gradient).
+    pub fn backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &Activations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+        let effective = effective_params(desc, raw_params);
+        let params = &effective[..];
+        let (offsets, len) = desc.layout();
+        let acts = desc.activations();
+        let linears = desc.linears();
+        let hidden = desc.hidden.len();
+        let mut grads = vec![F::zero(); len];
+        let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
+        for (h, g) in head_grads.iter().enumerate() {
+            grad_out[hidden + h] = g.clone();
+        }
+        let mut grad_input = vec![F::zero(); rows * desc.input];
+        let order: Vec<usize> = (hidden..linears.len()).chain((0..hidden).rev()).collect();
+        for l in order {
+            let (i, o) = linears[l];
+            let g = apply_bwd(acts[l], &saved.pre[l], &saved.post[l], &grad_out[l], o);
+            let x: &[F] = match below(l, hidden) {
+                Some(k) => &saved.post[k],
+                None => input,
+            };
+            let (w_off, b_off) = offsets[l];
+            let mut gx = vec![F::zero(); rows * i];
+            for r in 0..rows {
+                for c in 0..o {
+                    let gc = g[r * o + c];
+                    grads[b_off + c] += gc;
+                    for k in 0..i {
+                        grads[w_off + c * i + k] += gc * x[r * i + k];
+                        gx[r * i + k] += gc * params[w_off + c * i + k];
+                    }
+                }
+            }
+            let target = match below(l, hidden) {
+                Some(k) => &mut grad_out[k],
+                None => &mut grad_input,
+            };
+            for (d, v) in target.iter_mut().zip(gx) {
+                *d += v;
+            }
+        }
+        for p in desc.weight_norm_params() {
+            for o in 0..p.out_features as usize {
+                weight_norm_row_bwd(raw_params, &mut grads, &p, o);
+            }
+        }
+        (grads, grad_input)
+    }
 }
 
 #[cfg(test)]
@@ -933,7 +955,7 @@ fn k4_tile_cost(width: u32) -> u32 {
 
 /// How the forward kernels cover `n` columns: `(first column, columns, tile width)`
 /// per dispatch. 32-wide tiles as far as they fill, then the cheapest set of narrower
-/// tiles for the rest (by [`k4_tile_cost`]): llvmpipe runs every column of a tile,
+/// tiles for the rest (by `k4_tile_cost`): llvmpipe runs every column of a tile,
 /// existing or not, so a head of 3 columns in a 32-wide tile costs what 32 do.
 pub fn k4_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
     // cheapest[r]: (cost, widths) covering r columns.

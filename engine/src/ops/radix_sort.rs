@@ -152,6 +152,7 @@ impl RadixSort {
         self
     }
 
+    /// The most pairs one sort may have.
     pub fn max_len(&self) -> u32 {
         self.max_len
     }

@@ -109,6 +109,7 @@ impl ExclusiveScan {
         })
     }
 
+    /// The most elements one scan may have.
     pub fn max_len(&self) -> u32 {
         self.max_len
     }

@@ -25,6 +25,7 @@ pub struct Skinning {
 }
 
 impl Skinning {
+    /// Scratch for up to `max_count` points.
     pub fn new(ctx: &Context, max_count: usize) -> Result<Self> {
         // Beyond 65,535 workgroups of 256 the 1-D dispatches would not fit; say so now.
         let limit = 65_535u64 * 256;
@@ -108,48 +109,53 @@ fn transform_of<F: Real>(transforms: &[F], j: usize) -> [F; TRANSFORM_FLOATS] {
     a
 }
 
-/// CPU reference of the forward pass: `transforms` 288, `weights` V×24, `points` V×3.
-pub fn reference_fwd<F: Real>(transforms: &[F], weights: &[F], points: &[F]) -> Vec<F> {
-    let mut out = points.to_vec();
-    for (i, x) in points.chunks_exact(3).enumerate() {
-        let x = [x[0], x[1], x[2]];
-        for j in 0..SKIN_JOINTS {
-            let w = weights[i * SKIN_JOINTS + j];
-            if w != F::zero() {
-                let d = transform_delta(&transform_of(transforms, j), x);
-                for k in 0..3 {
-                    out[3 * i + k] += w * d[k];
-                }
-            }
-        }
-    }
-    out
-}
+/// CPU references of the skinning kernels: the same `drape_shared` math, generic over f32/f64.
+pub mod reference {
+    use super::*;
 
-/// CPU reference of the backward pass: (grad points, grad weights, grad transforms).
-pub fn reference_bwd<F: Real>(transforms: &[F], weights: &[F], points: &[F], grad_skinned: &[F]) -> (Vec<F>, Vec<F>, Vec<F>) {
-    let n = points.len() / 3;
-    let mut gp = grad_skinned.to_vec();
-    let mut gw = vec![F::zero(); n * SKIN_JOINTS];
-    let mut ga = vec![F::zero(); TRANSFORMS_LEN];
-    for i in 0..n {
-        let x = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
-        let g = [grad_skinned[3 * i], grad_skinned[3 * i + 1], grad_skinned[3 * i + 2]];
-        for j in 0..SKIN_JOINTS {
-            let a = transform_of(transforms, j);
-            let w = weights[i * SKIN_JOINTS + j];
-            gw[i * SKIN_JOINTS + j] = dot3(g, transform_delta(&a, x));
-            let r = rotation_minus_identity_t(&a, g);
-            for k in 0..3 {
-                gp[3 * i + k] += w * r[k];
-            }
-            for r in 0..3 {
-                for c in 0..4 {
-                    let xc = if c == 3 { F::one() } else { x[c] };
-                    ga[j * TRANSFORM_FLOATS + 4 * r + c] += w * g[r] * xc;
+    /// CPU reference of the forward pass: `transforms` 288, `weights` V×24, `points` V×3.
+    pub fn forward<F: Real>(transforms: &[F], weights: &[F], points: &[F]) -> Vec<F> {
+        let mut out = points.to_vec();
+        for (i, x) in points.chunks_exact(3).enumerate() {
+            let x = [x[0], x[1], x[2]];
+            for j in 0..SKIN_JOINTS {
+                let w = weights[i * SKIN_JOINTS + j];
+                if w != F::zero() {
+                    let d = transform_delta(&transform_of(transforms, j), x);
+                    for k in 0..3 {
+                        out[3 * i + k] += w * d[k];
+                    }
                 }
             }
         }
+        out
     }
-    (gp, gw, ga)
+
+    /// CPU reference of the backward pass: (grad points, grad weights, grad transforms).
+    pub fn backward<F: Real>(transforms: &[F], weights: &[F], points: &[F], grad_skinned: &[F]) -> (Vec<F>, Vec<F>, Vec<F>) {
+        let n = points.len() / 3;
+        let mut gp = grad_skinned.to_vec();
+        let mut gw = vec![F::zero(); n * SKIN_JOINTS];
+        let mut ga = vec![F::zero(); TRANSFORMS_LEN];
+        for i in 0..n {
+            let x = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
+            let g = [grad_skinned[3 * i], grad_skinned[3 * i + 1], grad_skinned[3 * i + 2]];
+            for j in 0..SKIN_JOINTS {
+                let a = transform_of(transforms, j);
+                let w = weights[i * SKIN_JOINTS + j];
+                gw[i * SKIN_JOINTS + j] = dot3(g, transform_delta(&a, x));
+                let r = rotation_minus_identity_t(&a, g);
+                for k in 0..3 {
+                    gp[3 * i + k] += w * r[k];
+                }
+                for r in 0..3 {
+                    for c in 0..4 {
+                        let xc = if c == 3 { F::one() } else { x[c] };
+                        ga[j * TRANSFORM_FLOATS + 4 * r + c] += w * g[r] * xc;
+                    }
+                }
+            }
+        }
+        (gp, gw, ga)
+    }
 }

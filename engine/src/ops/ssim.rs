@@ -14,7 +14,9 @@ use crate::recorder::{flat_grid as grid, Recording};
 
 /// Scratch for the SSIM of `width × height × 3` images.
 pub struct Ssim {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     a: Buffer,
     b: Buffer,
@@ -22,6 +24,7 @@ pub struct Ssim {
 }
 
 impl Ssim {
+    /// Scratch for `width × height` RGB images.
     pub fn new(ctx: &Context, width: u32, height: u32) -> Result<Self> {
         let n = u64::from(width) * u64::from(height) * 3;
         Ok(Self {

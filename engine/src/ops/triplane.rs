@@ -20,16 +20,24 @@ use crate::recorder::Recording;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum TriplaneInit {
     /// Every value drawn from N(0, 1) (HUGS), reproducible from the seed.
-    Normal { seed: u64 },
+    Normal {
+        /// The random seed.
+        seed: u64,
+    },
+    /// Every value 0.
     Zeros,
 }
 
 /// Size and placement of a triplane.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TriplaneDesc {
+    /// Texels per side of each plane.
     pub resolution: u32,
+    /// Features per texel.
     pub channels: u32,
+    /// The box's low corner: the planes span the box, mapped to [-1, 1] per axis.
     pub box_min: [f32; 3],
+    /// The box's high corner.
     pub box_max: [f32; 3],
 }
 
@@ -39,6 +47,7 @@ impl TriplaneDesc {
         3 * (self.resolution as usize).pow(2) * self.channels as usize
     }
 
+    /// Whether the planes have no floats.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -94,7 +103,9 @@ impl TriplaneDesc {
 
 /// A triplane's planes and gradient on the GPU.
 pub struct Triplane {
+    /// Its size and placement.
     pub desc: TriplaneDesc,
+    /// The three planes, `3 × resolution² × channels` floats.
     pub planes: Buffer,
     /// Gradient on the planes, accumulated by [`Triplane::record_backward`].
     pub grads: Buffer,
@@ -103,10 +114,12 @@ pub struct Triplane {
 }
 
 impl Triplane {
+    /// Planes initialised by `init`.
     pub fn new(ctx: &Context, label: &str, desc: TriplaneDesc, init: TriplaneInit) -> Result<Self> {
         Self::with_planes(ctx, label, desc, &desc.init(init))
     }
 
+    /// Planes with the given values.
     pub fn with_planes(ctx: &Context, label: &str, desc: TriplaneDesc, planes: &[f32]) -> Result<Self> {
         desc.check();
         assert_eq!(planes.len(), desc.len(), "{label}: plane data has the wrong length");
@@ -176,62 +189,67 @@ impl Triplane {
     }
 }
 
-/// CPU reference of the forward pass: count × 3C features.
-pub fn reference_forward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F]) -> Vec<F> {
-    let p = desc.params((points.len() / 3) as u32);
-    let ch = desc.channels as usize;
-    let mut out = vec![F::zero(); points.len() / 3 * 3 * ch];
-    for (i, pt) in points.chunks_exact(3).enumerate() {
-        if !pt.iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        let u = normalise([pt[0], pt[1], pt[2]], &p);
-        for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-            let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
-            for (row, col, w, _, _) in cs {
-                if inside(row, p.resolution) && inside(col, p.resolution) {
-                    let t = texel_index(plane, row, col, &p);
-                    for c in 0..ch {
-                        out[i * 3 * ch + plane * ch + c] += w * planes[t + c];
-                    }
-                }
-            }
-        }
-    }
-    out
-}
+/// CPU references of the triplane lookup, forward and backward, generic over f32/f64.
+pub mod reference {
+    use super::*;
 
-/// CPU reference of the backward pass: (plane gradient, points' gradient).
-pub fn reference_backward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F], grad_features: &[F]) -> (Vec<F>, Vec<F>) {
-    let p = desc.params((points.len() / 3) as u32);
-    let ch = desc.channels as usize;
-    let mut gplanes = vec![F::zero(); planes.len()];
-    let mut gpoints = vec![F::zero(); points.len()];
-    for (i, pt) in points.chunks_exact(3).enumerate() {
-        if !pt.iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        let u = normalise([pt[0], pt[1], pt[2]], &p);
-        let mut gu = [F::zero(); 3];
-        for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-            let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
-            for (row, col, w, dwx, dwy) in cs {
-                if inside(row, p.resolution) && inside(col, p.resolution) {
-                    let t = texel_index(plane, row, col, &p);
-                    let mut dot = F::zero();
-                    for c in 0..ch {
-                        let g = grad_features[i * 3 * ch + plane * ch + c];
-                        dot += g * planes[t + c];
-                        gplanes[t + c] += w * g;
+    /// CPU reference of the forward pass: count × 3C features.
+    pub fn forward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F]) -> Vec<F> {
+        let p = desc.params((points.len() / 3) as u32);
+        let ch = desc.channels as usize;
+        let mut out = vec![F::zero(); points.len() / 3 * 3 * ch];
+        for (i, pt) in points.chunks_exact(3).enumerate() {
+            if !pt.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            let u = normalise([pt[0], pt[1], pt[2]], &p);
+            for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
+                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                for (row, col, w, _, _) in cs {
+                    if inside(row, p.resolution) && inside(col, p.resolution) {
+                        let t = texel_index(plane, row, col, &p);
+                        for c in 0..ch {
+                            out[i * 3 * ch + plane * ch + c] += w * planes[t + c];
+                        }
                     }
-                    gu[ax] += dwx * dot;
-                    gu[ay] += dwy * dot;
                 }
             }
         }
-        for a in 0..3 {
-            gpoints[3 * i + a] = gu[a] * F::of(p.box_scale[a]);
-        }
+        out
     }
-    (gplanes, gpoints)
+
+    /// CPU reference of the backward pass: (plane gradient, points' gradient).
+    pub fn backward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F], grad_features: &[F]) -> (Vec<F>, Vec<F>) {
+        let p = desc.params((points.len() / 3) as u32);
+        let ch = desc.channels as usize;
+        let mut gplanes = vec![F::zero(); planes.len()];
+        let mut gpoints = vec![F::zero(); points.len()];
+        for (i, pt) in points.chunks_exact(3).enumerate() {
+            if !pt.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            let u = normalise([pt[0], pt[1], pt[2]], &p);
+            let mut gu = [F::zero(); 3];
+            for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
+                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                for (row, col, w, dwx, dwy) in cs {
+                    if inside(row, p.resolution) && inside(col, p.resolution) {
+                        let t = texel_index(plane, row, col, &p);
+                        let mut dot = F::zero();
+                        for c in 0..ch {
+                            let g = grad_features[i * 3 * ch + plane * ch + c];
+                            dot += g * planes[t + c];
+                            gplanes[t + c] += w * g;
+                        }
+                        gu[ax] += dwx * dot;
+                        gu[ay] += dwy * dot;
+                    }
+                }
+            }
+            for a in 0..3 {
+                gpoints[3 * i + a] = gu[a] * F::of(p.box_scale[a]);
+            }
+        }
+        (gplanes, gpoints)
+    }
 }

@@ -2,7 +2,7 @@
 //! against their CPU references (f64), the references' gradients against central
 //! differences, and the extremes (coincident points, empty sets, zero-length edges).
 
-use drape_engine::ops::cloth_loss::{arap_reference, chamfer_reference, csr, nearest_reference, Arap, Chamfer, NearestSearch};
+use drape_engine::ops::cloth_loss::{reference, csr, Arap, Chamfer, NearestSearch};
 use drape_engine::{BufferDesc, Context, EngineError};
 use drape_tests::gpu;
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
@@ -46,7 +46,7 @@ fn chamfer_gpu_matches_cpu_reference() {
     for (n, m) in [(1usize, 1usize), (7, 1000), (1000, 7), (1000, 1000), (100_003, 7), (7, 100_003)] {
         let pred = points(n, 1 + n as u64);
         let target = points(m, 2 + m as u64);
-        let (loss, grad) = chamfer_reference(&pred, &target, f64::from(sigma));
+        let (loss, grad) = reference::chamfer(&pred, &target, f64::from(sigma));
         let (gl, gg, near) = gpu_chamfer(&ctx, &pred, &target, sigma);
         // f32 squared distances of O(0.1) points: ~1e-7 absolute; the mean of ρ ≤ 1 keeps that.
         assert!((gl - loss).abs() <= 1e-5 * loss.abs().max(1e-3), "{n}x{m}: loss {gl} vs {loss}");
@@ -54,7 +54,7 @@ fn chamfer_gpu_matches_cpu_reference() {
         let e = rel_err(&gg, &flat(&grad), 1e-12);
         assert!(e < 1e-4, "{n}x{m}: gradient relative error {e:e}");
         // Nearest indices agree except where two candidates are within f32 rounding.
-        let cpu = nearest_reference(&pred, &target);
+        let cpu = reference::nearest(&pred, &target);
         for (i, (&g, &(c, d))) in near.iter().zip(&cpu).enumerate() {
             if g as usize != c {
                 let dg = drape_shared::cloth_loss::distance2(pred[i], target[g as usize]);
@@ -69,7 +69,7 @@ fn chamfer_gradient_matches_central_differences() {
     let pred = points(40, 11);
     let target = points(60, 12);
     let sigma = 0.07;
-    let (_, grad) = chamfer_reference(&pred, &target, sigma);
+    let (_, grad) = reference::chamfer(&pred, &target, sigma);
     let h = 1e-6;
     let mut worst = 0.0f64;
     for i in 0..pred.len() {
@@ -78,7 +78,7 @@ fn chamfer_gradient_matches_central_differences() {
             a[i][c] += h;
             let mut b = pred.clone();
             b[i][c] -= h;
-            let fd = (chamfer_reference(&a, &target, sigma).0 - chamfer_reference(&b, &target, sigma).0) / (2.0 * h);
+            let fd = (reference::chamfer(&a, &target, sigma).0 - reference::chamfer(&b, &target, sigma).0) / (2.0 * h);
             worst = worst.max((fd - grad[i][c]).abs());
         }
     }
@@ -160,7 +160,7 @@ fn arap_gpu_matches_cpu_reference() {
         let edges = grid_mesh(w, h);
         let jitter = uniform(3 * n, -0.004, 0.004, u64::from(w));
         let positions: Vec<[f64; 3]> = (0..n).map(|i| [0.01 * (i as u32 % w) as f64 + jitter[3 * i], 0.01 * (i as u32 / w) as f64 + jitter[3 * i + 1], jitter[3 * i + 2]]).collect();
-        let (var, grad) = arap_reference(&positions, &edges);
+        let (var, grad) = reference::arap(&positions, &edges);
         let (gv, gg) = gpu_arap(&ctx, &positions, &edges);
         // The variance subtracts a mean of f32 lengths from each: ~1e-4 relative at 300k edges.
         assert!((gv - var).abs() <= 2e-4 * var, "{w}x{h}: variance {gv} vs {var}");
@@ -173,7 +173,7 @@ fn arap_gpu_matches_cpu_reference() {
 fn arap_gradient_matches_central_differences_and_degenerate_edges() {
     let edges = grid_mesh(5, 4);
     let positions = points(20, 9);
-    let (_, grad) = arap_reference(&positions, &edges);
+    let (_, grad) = reference::arap(&positions, &edges);
     let h = 1e-6;
     let mut worst = 0.0f64;
     for i in 0..positions.len() {
@@ -182,7 +182,7 @@ fn arap_gradient_matches_central_differences_and_degenerate_edges() {
             a[i][c] += h;
             let mut b = positions.clone();
             b[i][c] -= h;
-            let fd = (arap_reference(&a, &edges).0 - arap_reference(&b, &edges).0) / (2.0 * h);
+            let fd = (reference::arap(&a, &edges).0 - reference::arap(&b, &edges).0) / (2.0 * h);
             worst = worst.max((fd - grad[i][c]).abs());
         }
     }
@@ -263,7 +263,7 @@ fn grid_search_finds_what_brute_force_finds() {
         // And against the f64 reference, as the brute-force test states it, on the
         // points as uploaded (f32) so that both see the same sets.
         let f32_points = |v: &[[f64; 3]]| -> Vec<[f64; 3]> { v.iter().map(|p| p.map(|c| f64::from(c as f32))).collect() };
-        let (loss, grad) = chamfer_reference(&f32_points(&pred), &f32_points(&target), f64::from(sigma));
+        let (loss, grad) = reference::chamfer(&f32_points(&pred), &f32_points(&target), f64::from(sigma));
         assert!((gl - loss).abs() <= 1e-5 * loss.abs().max(1e-3), "{name}: loss {gl} vs {loss}");
         let e = rel_err(&gg, &flat(&grad), 1e-12);
         assert!(e < 1e-4, "{name}: gradient relative error {e:e} against the f64 reference");

@@ -3,11 +3,9 @@
 //! (gsplat, PyTorch) where the module says so. Nothing here links the trainer.
 
 mod cloth_loss;
-mod fit;
 mod half_precision;
 mod lpips;
 mod nn;
-mod ply;
 mod recorder;
 mod runtime;
 mod scan;

@@ -1,7 +1,7 @@
 //! MLPs on the GPU against the CPU reference (f64), and the reference's gradients
 //! against central differences in f64.
 
-use drape_engine::ops::nn::{reference_backward, reference_forward, subgroup_gemm_supported, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{reference, subgroup_gemm_supported, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
 use drape_engine::{Buffer, Context};
 use drape_tests::gpu;
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
@@ -113,8 +113,8 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
     for &rows in sizes {
         let input = uniform(rows * desc.input, -2.0, 2.0, rows as u64);
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
-        let saved = reference_forward(&desc, &params, &input, rows);
-        let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let saved = reference::forward(&desc, &params, &input, rows);
+        let (ref_grads, ref_gx) = reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
         for variant in gemm_variants(&ctx, rows == sizes[0]) {
             let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
             for h in 0..desc.heads.len() {
@@ -141,8 +141,8 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
         let params = to_f64(&desc.init_params(11));
         let input = uniform(rows * desc.input, -1.0, 1.0, 5);
         let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64)).collect();
-        let saved = reference_forward(&desc, &params, &input, rows);
-        let (ref_grads, ref_gx) = reference_backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let saved = reference::forward(&desc, &params, &input, rows);
+        let (ref_grads, ref_gx) = reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
         // Every GEMM kernel, whichever the device would pick: the decoders' widths (up to
         // 128) reach every row and column block of the GPU's 64 x 64 tiles.
         for variant in gemm_variants(&ctx, false) {
@@ -162,7 +162,7 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
 
 /// Loss `Σ_h Σ head_h ⊙ c_h` in f64.
 fn loss(desc: &MlpDesc, params: &[f64], input: &[f64], rows: usize, coeffs: &[Vec<f64>]) -> f64 {
-    let saved = reference_forward(desc, params, input, rows);
+    let saved = reference::forward(desc, params, input, rows);
     (0..desc.heads.len()).map(|h| saved.head(desc, h).iter().zip(&coeffs[h]).map(|(a, b)| a * b).sum::<f64>()).sum()
 }
 
@@ -179,8 +179,8 @@ fn check_central_differences(desc: &MlpDesc) {
     let params = to_f64(&desc.init_params(7));
     let input = uniform(rows * desc.input, -2.0, 2.0, 9);
     let coeffs: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 20 + h as u64)).collect();
-    let saved = reference_forward(&desc, &params, &input, rows);
-    let (grads, gx) = reference_backward(&desc, &params, &input, rows, &saved, &coeffs);
+    let saved = reference::forward(&desc, &params, &input, rows);
+    let (grads, gx) = reference::backward(&desc, &params, &input, rows, &saved, &coeffs);
     let h = 1e-6;
     let check = |analytic: &[f64], values: &[f64], set: &dyn Fn(usize, f64) -> f64, what: &str| {
         let numeric: Vec<f64> = (0..values.len()).map(|i| (set(i, values[i] + h) - set(i, values[i] - h)) / (2.0 * h)).collect();
@@ -224,7 +224,7 @@ fn activations_stay_finite_at_the_extremes() {
     let rows = 2;
     let head_grads = vec![vec![1.0; 8], vec![0.5; 8]];
     let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
-    let saved = reference_forward(&desc, &params, &input, rows);
+    let saved = reference::forward(&desc, &params, &input, rows);
     for v in run.heads.iter().flatten().chain(&run.grads).chain(&run.grad_input) {
         assert!(v.is_finite(), "non-finite value {v} at extreme logits");
     }
@@ -254,7 +254,7 @@ fn auto_gemm_reads_buffers_without_texel_usage_through_storage_bindings() {
     let mut rec = ctx.record("mlp from a readback buffer").expect("record");
     mlp.record_forward(&mut rec, &plain, rows as u32).expect("the forward records");
     rec.submit_and_wait().expect("submit");
-    let saved = reference_forward(&desc, &params, &input, rows);
+    let saved = reference::forward(&desc, &params, &input, rows);
     for h in 0..desc.heads.len() {
         let got = mlp.read_head(&ctx, h, rows).expect("read");
         // f32 against f64, sums of at most 16 products.

@@ -8,7 +8,7 @@ use drape_engine::ops::radix_sort::RadixSort;
 use drape_engine::ops::scan::ExclusiveScan;
 use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
-use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, RenderSettings};
+use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, RenderSettings};
 use drape_engine::{EngineError, Kernel};
 use drape_shared::adam::{adam_update, LossParams};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
@@ -45,7 +45,7 @@ fn twenty_million_intersections_render_as_the_reference_does() {
     for _ in 0..6_500 {
         let mean = [rng.random_range(-1.5..1.5), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
         let colour = [rng.random_range(0.0..1.0), rng.random_range(0.0..1.0), rng.random_range(0.0..1.0)];
-        cloud.push(&gaussian(mean, rng.random_range(0.35..0.75), rng.random_range(2.0..5.0), colour), Layer::Scene);
+        cloud.push(&gaussian(mean, rng.random_range(0.35..0.75), rng.random_range(2.0..5.0), colour), 0u32);
     }
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(&gpu, "gaussians", &cloud).expect("upload");
@@ -86,7 +86,7 @@ fn an_intersection_total_past_u32_is_refused_with_its_exact_size() {
     let mut cloud = GaussianCloud::new(0);
     let big = gaussian([0.0, 0.0, 0.0], 1e3, 3.0, [0.5, 0.5, 0.5]);
     for _ in 0..n {
-        cloud.push(&big, Layer::Scene);
+        cloud.push(&big, 0u32);
     }
     let gaussians = GaussianBuffers::upload(&gpu, "gaussians", &cloud).expect("upload");
     let mut renderer = SplatRenderer::new(&gpu, w, h, n).expect("renderer");
@@ -138,7 +138,7 @@ fn plans_and_buffers_past_the_limits_are_too_large() {
     let mut renderer = SplatRenderer::new(&gpu, 64, 64, 10).expect("renderer");
     let mut cloud = GaussianCloud::new(0);
     for i in 0..11 {
-        cloud.push(&gaussian([0.1 * i as f32, 0.0, 0.0], 0.1, 1.0, [0.5; 3]), Layer::Scene);
+        cloud.push(&gaussian([0.1 * i as f32, 0.0, 0.0], 0.1, 1.0, [0.5; 3]), 0u32);
     }
     let g = GaussianBuffers::upload(&gpu, "g", &cloud).expect("upload");
     let text = expect_too_large(renderer.forward(&g, &camera(64, 64), &RenderSettings::default()), "capacity");
@@ -178,7 +178,7 @@ fn sh_past_one_binding_is_projected_in_chunks() {
     let b_depth = gpu.upload("grad depth", &g_depth).expect("upload");
     let mut grads = GaussianBuffers::new(&gpu, "grads", n, 3).expect("grads");
     renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, drape_engine::ops::splat::render::Accumulation::Auto).expect("backward");
-    let got = grads.download(&gpu, &cloud.layers).expect("download");
+    let got = grads.download(&gpu, &cloud.groups).expect("download");
     let (want, _) = reference::backward(&gs, &frame, &cpu, &g_rgb, &g_alpha, &g_depth);
     // The last chunk starts at the largest multiple of 256 that one binding covers.
     let first_of_last = (gpu.info().max_storage_buffer_range / per_gaussian / 256 * 256) as usize;

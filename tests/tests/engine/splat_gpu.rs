@@ -106,7 +106,7 @@ fn check_backward_tiles(degree: u32, antialiased: bool, accumulation: Accumulati
     let b_alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let b_depth = gpu.upload("grad depth", &g_depth).expect("upload");
     renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, accumulation).expect("backward");
-    let gpu_grads = grads.download(&gpu, &cloud.layers).expect("download");
+    let gpu_grads = grads.download(&gpu, &cloud.groups).expect("download");
 
     let frame = frame_params(&cam, &settings, degree, cloud.len());
     let gs = cloud.gaussians::<f32>();
@@ -257,7 +257,7 @@ fn a_backward_refuses_the_saved_state_of_another_forward() {
 /// one pixel that a last-bit `sqrt` difference can move a `ceil`.
 #[test]
 fn screen_stats_match_the_reference() {
-    use drape_engine::ops::splat::densify::{record_screen_stats, reference_screen_stats, ScreenStatsParams, SCREEN_STATS_FLOATS};
+    use drape_engine::ops::splat::densify::{record_screen_stats, reference, ScreenStatsParams, SCREEN_STATS_FLOATS};
     let ctx = gpu();
     let (w, h) = (64, 48);
     let cloud = scene(300, 0, 21);
@@ -286,8 +286,8 @@ fn screen_stats_match_the_reference() {
     let splat_grads = renderer.read_splat_grads(cloud.len()).expect("splat grads");
     let mut want = vec![0.0f32; len];
     let p = ScreenStatsParams { first, count, out_first, width: w, height: h, _pad: [0; 3] };
-    reference_screen_stats(&splats, &splat_grads, p, &mut want);
-    reference_screen_stats(&splats, &splat_grads, p, &mut want);
+    reference::screen_stats(&splats, &splat_grads, p, &mut want);
+    reference::screen_stats(&splats, &splat_grads, p, &mut want);
     let visible = want.chunks_exact(3).filter(|s| s[1] > 0.0).count();
     assert!(visible > 50, "{visible} of {count} visible: too few for the check to mean much");
     for (k, (g, c)) in got.chunks_exact(3).zip(want.chunks_exact(3)).enumerate() {
@@ -313,7 +313,7 @@ fn screen_stats_match_the_reference() {
 #[test]
 fn screen_stats_are_in_3dgs_units() {
     use drape_engine::ops::splat::densify::{record_screen_stats, SCREEN_STATS_FLOATS};
-    use drape_engine::ops::splat::scene::{GaussianCloud, Layer, PinholeCamera};
+    use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera};
     use drape_shared::splat::project::Gaussian;
     let ctx = gpu();
     let (w, h) = (64u32, 48u32);
@@ -324,7 +324,7 @@ fn screen_stats_are_in_3dgs_units() {
         let mut c = GaussianCloud::new(0);
         let mut sh = [[0.0f32; 3]; drape_shared::splat::layout::MAX_SH_COEFFS];
         sh[0] = [1.0, 0.5, -0.5];
-        c.push(&Gaussian { mean: [dx, dy, z], log_scale: [s.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit: 1.0, sh }, Layer::Body);
+        c.push(&Gaussian { mean: [dx, dy, z], log_scale: [s.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit: 1.0, sh }, 0u32);
         c
     };
     let pixels = (w * h) as usize;

@@ -175,7 +175,7 @@ fn render_ours(ctx: &drape_engine::Context, c: &Case) -> Ours {
     let b_alpha = ctx.upload("grad alpha", &c.w_alpha).expect("upload");
     let b_depth = ctx.upload("grad depth", &c.w_depth).expect("upload");
     renderer.backward(&stats.saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, Accumulation::Auto).expect("backward");
-    let grads = grads.download(ctx, &c.cloud.layers).expect("download");
+    let grads = grads.download(ctx, &c.cloud.groups).expect("download");
     // Radii from the kernel's own function on the CPU; the GPU binned with the same ones.
     let frame = frame_params(&c.cam, &c.settings, c.cloud.sh_degree, c.cloud.len());
     let cpu = reference::render(&c.cloud.gaussians::<f32>(), &frame);

@@ -5,7 +5,7 @@
 
 use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
-use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
+use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 use drape_tests::splat::{assert_forward_close, camera, gpu_render, scene};
@@ -58,11 +58,11 @@ fn hidden_gaussians_leave_the_image_bit_identical() {
     let eye = [0.3, -0.4, -5.0];
     let mut more = base.clone();
     // Behind the camera (the camera looks towards +z from z = -5).
-    more.push(&gaussian([eye[0], eye[1], eye[2] - 2.0], -1.0, 3.0, [1.0, 0.0, 0.0]), Layer::Scene);
+    more.push(&gaussian([eye[0], eye[1], eye[2] - 2.0], -1.0, 3.0, [1.0, 0.0, 0.0]), 0u32);
     // Far outside the frustum, to the side.
-    more.push(&gaussian([40.0, 0.0, 0.0], -2.0, 3.0, [0.0, 1.0, 0.0]), Layer::Scene);
+    more.push(&gaussian([40.0, 0.0, 0.0], -2.0, 3.0, [0.0, 1.0, 0.0]), 0u32);
     // In plain view but with (numerically) zero opacity.
-    more.push(&gaussian([0.0, 0.0, 0.0], -1.0, -30.0, [0.0, 0.0, 1.0]), Layer::Scene);
+    more.push(&gaussian([0.0, 0.0, 0.0], -1.0, -30.0, [0.0, 0.0, 1.0]), 0u32);
     let (after, stats) = gpu_render(&gpu, &more, &cam, &settings);
     assert_eq!(stats.dropped, 0);
     assert_eq!(bits(&before.rgb), bits(&after.rgb));
@@ -108,7 +108,7 @@ fn backward_matches_reference_with(gpu: &TestGpu, cloud: &GaussianCloud, cam: &P
     let alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let depth = gpu.upload("grad depth", &g_depth).expect("upload");
     renderer.backward(&saved, &gaussians, &ones, &alpha, &depth, &grads, accumulation).expect("backward");
-    let g = grads.download(gpu, &cloud.layers).expect("download");
+    let g = grads.download(gpu, &cloud.groups).expect("download");
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
     let gs = cloud.gaussians::<f64>();
     let fwd = reference::render(&gs, &frame);
@@ -140,7 +140,7 @@ fn extreme_scales_from_1e_minus_7_to_1e7() {
     let mut cloud = GaussianCloud::new(0);
     for (i, s) in [1e-7f32, 1e-4, 1e-2, 1.0, 1e3, 1e7].iter().enumerate() {
         let x = -0.8 + 0.3 * i as f32;
-        cloud.push(&gaussian([x, 0.0, 0.0], s.ln(), 1.0, [0.9, 0.5, 0.1]), Layer::Scene);
+        cloud.push(&gaussian([x, 0.0, 0.0], s.ln(), 1.0, [0.9, 0.5, 0.1]), 0u32);
     }
     let image = compare_with_cpu(&gpu, &cloud, &cam, "extreme scales");
     // The 1e7 Gaussian covers the whole view: no pixel shows only the background.
@@ -153,7 +153,7 @@ fn tiny_splat_still_shows_as_a_dot() {
     let gpu = gpu();
     let cam = camera(64, 64);
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([0.0, 0.0, 0.0], (1e-7f32).ln(), 5.0, [1.0, 1.0, 1.0]), Layer::Scene);
+    cloud.push(&gaussian([0.0, 0.0, 0.0], (1e-7f32).ln(), 5.0, [1.0, 1.0, 1.0]), 0u32);
     let image = compare_with_cpu(&gpu, &cloud, &cam, "tiny splat");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
     assert!(peak > 0.3, "the dilation keeps a 1e-7 splat visible (peak alpha {peak})");
@@ -169,8 +169,8 @@ fn gaussian_straddling_the_near_plane() {
     // is just in front of the near plane, and one just behind it.
     let eye = [0.3f32, -0.4, -5.0];
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.51], (0.8f32).ln(), 1.0, [0.2, 0.9, 0.2]), Layer::Scene);
-    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.49], (0.8f32).ln(), 1.0, [0.9, 0.2, 0.2]), Layer::Scene);
+    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.51], (0.8f32).ln(), 1.0, [0.2, 0.9, 0.2]), 0u32);
+    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.49], (0.8f32).ln(), 1.0, [0.9, 0.2, 0.2]), 0u32);
     let image = compare_with_cpu(&gpu, &cloud, &cam, "near plane");
     assert!(image.alpha.iter().any(|&a| a > 0.5), "the splat in front of the near plane is drawn");
     backward_matches_reference(&gpu, &cloud, &cam, "near plane");
@@ -184,7 +184,7 @@ fn hundred_thousand_gaussians_over_one_pixel() {
     // Project the image centre back to z = 0: the camera looks at the origin.
     for i in 0..100_000 {
         let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.01 * (i % 100) as f32], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+        cloud.push(&gaussian([jitter, 0.0, 0.01 * (i % 100) as f32], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), 0u32);
     }
     let image = compare_with_cpu(&gpu, &cloud, &cam, "100k on one pixel");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
@@ -200,9 +200,9 @@ fn stack_ahead_of_a_large_splat(n: usize) -> GaussianCloud {
     let mut cloud = GaussianCloud::new(0);
     for i in 0..n {
         let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), Layer::Scene);
+        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), 0u32);
     }
-    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), Layer::Scene);
+    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), 0u32);
     cloud
 }
 
@@ -241,15 +241,15 @@ fn opacity_logits_of_plus_and_minus_50() {
     let gpu = gpu();
     let cam = camera(64, 64);
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([-0.5, 0.0, 0.0], (0.2f32).ln(), 50.0, [1.0, 0.0, 0.0]), Layer::Scene);
-    cloud.push(&gaussian([0.5, 0.0, 0.0], (0.2f32).ln(), -50.0, [0.0, 1.0, 0.0]), Layer::Scene);
+    cloud.push(&gaussian([-0.5, 0.0, 0.0], (0.2f32).ln(), 50.0, [1.0, 0.0, 0.0]), 0u32);
+    cloud.push(&gaussian([0.5, 0.0, 0.0], (0.2f32).ln(), -50.0, [0.0, 1.0, 0.0]), 0u32);
     let image = compare_with_cpu(&gpu, &cloud, &cam, "opacity +-50");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
     // Opacity 1 (sigmoid(50) rounds to 1): alpha reaches the 0.99 clamp near the centre.
     assert!((0.95..=0.99).contains(&peak), "peak alpha {peak}");
     // Opacity sigmoid(-50) ~ 2e-22 is culled: the image is that of the first alone.
     let mut first = GaussianCloud::new(0);
-    first.push(&cloud.gaussian(0), Layer::Scene);
+    first.push(&cloud.gaussian(0), 0u32);
     let (alone, _) = gpu_render(&gpu, &first, &cam, &RenderSettings::default());
     assert_eq!(bits(&alone.rgb), bits(&image.rgb));
     backward_matches_reference(&gpu, &cloud, &cam, "opacity +-50");
@@ -263,9 +263,9 @@ fn zero_quaternion_renders_as_identity() {
     let mut g = gaussian([0.1, 0.0, 0.0], (0.3f32).ln(), 1.0, [0.5, 0.7, 0.2]);
     g.log_scale = [(0.3f32).ln(), (0.05f32).ln(), (0.1f32).ln()];
     let mut identity = with_zero.clone();
-    identity.push(&g, Layer::Scene);
+    identity.push(&g, 0u32);
     g.quat = [0.0; 4];
-    with_zero.push(&g, Layer::Scene);
+    with_zero.push(&g, 0u32);
     let a = compare_with_cpu(&gpu, &with_zero, &cam, "zero quaternion");
     let (b, _) = gpu_render(&gpu, &identity, &cam, &RenderSettings::default());
     assert_eq!(bits(&a.rgb), bits(&b.rgb), "a zero quaternion means no rotation");
@@ -282,10 +282,10 @@ fn nan_gaussian_is_dropped_and_counted() {
     let mut with_nan = base.clone();
     let mut bad = base.gaussian::<f32>(0);
     bad.mean[1] = f32::NAN;
-    with_nan.push(&bad, Layer::Scene);
+    with_nan.push(&bad, 0u32);
     let mut bad_sh = base.gaussian::<f32>(1);
     bad_sh.sh[2][1] = f32::INFINITY;
-    with_nan.push(&bad_sh, Layer::Scene);
+    with_nan.push(&bad_sh, 0u32);
     let (after, stats) = gpu_render(&gpu, &with_nan, &cam, &RenderSettings::default());
     assert_eq!(stats.dropped, 2, "both non-finite Gaussians are counted");
     assert_eq!(bits(&before.rgb), bits(&after.rgb), "and the rest of the image is unchanged");

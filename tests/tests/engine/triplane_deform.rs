@@ -85,8 +85,8 @@ fn triplane_gpu_matches_cpu_reference() {
     for n in [0usize, 1, 7, 1000, 100_003] {
         let pts = points(n, n as u64);
         let gfeat = uniform(n * d.feature_width(), -1.0, 1.0, 7);
-        let f_ref = triplane::reference_forward(&d, &planes, &pts);
-        let (gpl_ref, gpt_ref) = triplane::reference_backward(&d, &planes, &pts, &gfeat);
+        let f_ref = triplane::reference::forward(&d, &planes, &pts);
+        let (gpl_ref, gpt_ref) = triplane::reference::backward(&d, &planes, &pts, &gfeat);
         for &mode in modes {
             let run = run_triplane(&ctx, &planes, &pts, &gfeat, mode);
             // Four products per feature in f32.
@@ -142,7 +142,7 @@ fn triplane_padding_at_and_beyond_the_box() {
     let texel = |p: usize, row: usize, col: usize, c: usize| planes[((p * r + row) * r + col) * ch + c];
     // The box's max corner samples the last texel of every plane exactly.
     let corner = d.box_max.map(f64::from);
-    let f = triplane::reference_forward(&d, &planes, &corner);
+    let f = triplane::reference::forward(&d, &planes, &corner);
     for p in 0..3 {
         for c in 0..ch {
             assert!((f[p * ch + c] - texel(p, r - 1, r - 1, c)).abs() < 1e-12, "max corner, plane {p}");
@@ -153,14 +153,14 @@ fn triplane_padding_at_and_beyond_the_box() {
     let half_texel = 0.5 * f64::from(d.box_max[0] - d.box_min[0]) / (r - 1) as f64;
     let mut p = corner;
     p[0] += half_texel;
-    let f = triplane::reference_forward(&d, &planes, &p);
+    let f = triplane::reference::forward(&d, &planes, &p);
     for c in 0..ch {
         assert!((f[c] - 0.5 * texel(0, r - 1, r - 1, c)).abs() < 1e-12, "half a texel out, channel {c}");
     }
     // Further out than one texel: zero features and zero gradients.
     let far = [10.0, 10.0, 10.0];
-    assert!(triplane::reference_forward(&d, &planes, &far).iter().all(|&v| v == 0.0));
-    let (gpl, gpt) = triplane::reference_backward(&d, &planes, &far, &vec![1.0; d.feature_width()]);
+    assert!(triplane::reference::forward(&d, &planes, &far).iter().all(|&v| v == 0.0));
+    let (gpl, gpt) = triplane::reference::backward(&d, &planes, &far, &vec![1.0; d.feature_width()]);
     assert!(gpl.iter().chain(&gpt).all(|&v| v == 0.0));
 }
 
@@ -174,8 +174,8 @@ fn triplane_gradients_match_central_differences() {
         lo + (hi - lo) * (0.13 + 0.137 * i as f64 + 0.05 * a as f64)
     })).collect();
     let gfeat = uniform(6 * d.feature_width(), -1.0, 1.0, 4);
-    let (gpl, gpt) = triplane::reference_backward(&d, &planes, &pts, &gfeat);
-    let loss = |pl: &[f64], pt: &[f64]| triplane::reference_forward(&d, pl, pt).iter().zip(&gfeat).map(|(a, b)| a * b).sum::<f64>();
+    let (gpl, gpt) = triplane::reference::backward(&d, &planes, &pts, &gfeat);
+    let loss = |pl: &[f64], pt: &[f64]| triplane::reference::forward(&d, pl, pt).iter().zip(&gfeat).map(|(a, b)| a * b).sum::<f64>();
     let h = 1e-6;
     let num_pl: Vec<f64> = (0..planes.len()).map(|i| {
         let (mut a, mut b) = (planes.clone(), planes.clone());
@@ -253,8 +253,8 @@ fn deform_gpu_matches_cpu_reference() {
     for n in [0usize, 1, 7, 1000, 100_003] {
         let host = deform_inputs(n, n as u64);
         let up = random_upstream(n, 99);
-        let fwd = deform::reference_forward(&host);
-        let bwd = deform::reference_backward(&host, &up);
+        let fwd = deform::reference::forward(&host);
+        let bwd = deform::reference::backward(&host, &up);
         let b = |name: &str, v: &[f64]| ctx.upload(name, &to_f32(v)).expect("upload");
         let (t, m, q, s, o, r6, ds, w) = (b("t", &host.transforms), b("m", &host.means), b("q", &host.quats), b("s", &host.log_scales), b("o", &host.offsets), b("r6", &host.rot6d), b("ds", &host.log_scale_deltas), b("w", &host.weights));
         let (um, uq, us) = flat_outputs(&up);
@@ -299,7 +299,7 @@ fn deform_gpu_matches_cpu_reference() {
         // either sign, each rounded in f32 (chunks of 256 summed in f32, then in f64):
         // 1e-4 of the largest entry.
         let gpu_t = deform::sum_transform_partials(&ctx.read_buffer::<f32>(&mut partials, partials_len).expect("read"));
-        let cpu_t = deform::reference_transform_grad(&host, &bwd);
+        let cpu_t = deform::reference::transform_grad(&host, &bwd);
         let e = rel_err(&gpu_t, &cpu_t, 1e-3);
         assert!(e <= 1e-4, "n {n}: gradient on the transforms: relative error {e:e}");
         if n == 0 {
@@ -314,9 +314,9 @@ fn transform_gradient_matches_central_differences() {
     let host = deform_inputs(n, 77);
     let up = random_upstream(n, 78);
     let loss = |h: &HostInputs<f64>| -> f64 {
-        deform::reference_forward(h).iter().zip(&up).map(|(o, u)| (0..3).map(|k| o.mean[k] * u.mean[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()).sum()
+        deform::reference::forward(h).iter().zip(&up).map(|(o, u)| (0..3).map(|k| o.mean[k] * u.mean[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()).sum()
     };
-    let analytic = deform::reference_transform_grad(&host, &deform::reference_backward(&host, &up));
+    let analytic = deform::reference::transform_grad(&host, &deform::reference::backward(&host, &up));
     let h = 1e-6;
     let numeric: Vec<f64> = (0..host.transforms.len()).map(|i| {
         let (mut a, mut b) = (host.clone(), host.clone());
@@ -336,11 +336,11 @@ fn deform_gradients_match_central_differences() {
     let host = deform_inputs(n, 42);
     let up = random_upstream(n, 43);
     let loss = |h: &HostInputs<f64>| -> f64 {
-        deform::reference_forward(h).iter().zip(&up).map(|(o, u)| {
+        deform::reference::forward(h).iter().zip(&up).map(|(o, u)| {
             (0..3).map(|k| o.mean[k] * u.mean[k] + o.log_scale[k] * u.log_scale[k]).sum::<f64>() + (0..4).map(|k| o.quat[k] * u.quat[k]).sum::<f64>()
         }).sum()
     };
-    let bwd = deform::reference_backward(&host, &up);
+    let bwd = deform::reference::backward(&host, &up);
     let h = 1e-6;
     type Field = fn(&mut HostInputs<f64>) -> &mut Vec<f64>;
     let fields: [(&str, Field, Vec<f64>); 5] = [
@@ -415,8 +415,8 @@ fn pose_blend_gpu_matches_cpu_reference() {
         let got_o = to_f64(&ctx.read_buffer::<f32>(&mut offsets, 3 * n).expect("read"));
         let got_g = to_f64(&ctx.read_buffer::<f32>(&mut gbasis, n * POSE_BLEND_FLOATS).expect("read"));
         let (f32s, f32f, f32d, f32g) = (to_f32(&basis), to_f32(&features), to_f32(&decoded), to_f32(&g));
-        let want_o = to_f64(&deform::reference_pose_blend_forward(&f32s, &f32f, &f32d));
-        let want_g = to_f64(&deform::reference_pose_blend_backward(&f32f, &f32g));
+        let want_o = to_f64(&deform::reference::pose_blend_forward(&f32s, &f32f, &f32d));
+        let want_g = to_f64(&deform::reference::pose_blend_backward(&f32f, &f32g));
         assert_eq!((got_o.len(), got_g.len()), (want_o.len(), want_g.len()));
         if n > 0 {
             assert!(rel_err(&got_o, &want_o, 1e-6) <= 1e-5, "n = {n}: offsets {}", rel_err(&got_o, &want_o, 1e-6));
@@ -436,8 +436,8 @@ fn pose_blend_gradient_matches_central_differences() {
     let features = uniform(POSE_FEATURES, -1.0, 1.0, 51);
     let decoded = uniform(3 * n, -0.05, 0.05, 52);
     let g = uniform(3 * n, -1.0, 1.0, 53);
-    let analytic = deform::reference_pose_blend_backward(&features, &g);
-    let loss = |b: &[f64]| deform::reference_pose_blend_forward(b, &features, &decoded).iter().zip(&g).map(|(o, w)| o * w).sum::<f64>();
+    let analytic = deform::reference::pose_blend_backward(&features, &g);
+    let loss = |b: &[f64]| deform::reference::pose_blend_forward(b, &features, &decoded).iter().zip(&g).map(|(o, w)| o * w).sum::<f64>();
     let h = 1e-6;
     let mut worst = 0.0f64;
     for j in (0..basis.len()).step_by(7) {

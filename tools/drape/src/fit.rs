@@ -3,11 +3,11 @@
 use std::path::PathBuf;
 
 use drape_cli_support::DeviceArgs;
-use drape_engine::ops::splat::fit::{fit_image, FitConfig};
-use drape_engine::ops::splat::ply;
+use drape_trainer::ply;
 use drape_engine::ops::splat::render::render_image;
 use drape_engine::ops::splat::scene::RenderSettings;
 
+use crate::fitting::{fit_image, FitConfig};
 use crate::image_io::{read_rgb, write_png};
 
 /// Options of `drape fit`.

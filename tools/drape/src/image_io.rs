@@ -5,10 +5,17 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::anyhow;
-use drape_engine::ops::splat::fit::Image;
 use drape_engine::ops::splat::render::RenderedImage;
 use drape_trainer::npy;
 use image::ImageFormat;
+
+/// An RGB image, 3 floats per pixel in [0, 1], row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<f32>,
+}
 
 /// Reads a PNG (8 or 16 bit; grey, grey + alpha, RGB or RGBA) or a JPEG (grey, RGB or
 /// CMYK) as RGB floats in [0, 1], through the datasets' reader (`drape_trainer::dataset::

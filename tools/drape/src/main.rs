@@ -22,6 +22,7 @@ mod body;
 mod edit;
 mod eval;
 mod fit;
+mod fitting;
 mod image_io;
 mod inspect;
 mod render;

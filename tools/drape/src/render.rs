@@ -4,9 +4,9 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context as _};
 use drape_cli_support::DeviceArgs;
-use drape_engine::ops::splat::ply;
 use drape_engine::ops::splat::render::render_image;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
+use drape_trainer::{camera_file, ply};
 
 use crate::image_io::{write_render, RenderFormat};
 
@@ -79,7 +79,7 @@ fn camera(args: &RenderArgs) -> anyhow::Result<PinholeCamera> {
     let mut cam = match &args.camera {
         Some(path) => {
             let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-            let cam: PinholeCamera = serde_json::from_str(&text).with_context(|| format!("{}: not a camera file", path.display()))?;
+            let cam = camera_file::parse(&text).with_context(|| format!("{}: not a camera file", path.display()))?;
             cam.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             return Ok(cam);
         }

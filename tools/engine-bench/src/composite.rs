@@ -19,7 +19,8 @@ use drape_engine::ops::splat::composite::{matte_cloud, record_composite, record_
 use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
 use drape_trainer::avatar::composite::layer_masks;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer, PinholeCamera, RenderSettings};
+use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
+use drape_trainer::avatar::groups::Layer;
 use drape_engine::{Buffer, BufferDesc, Context, PassTimings};
 use serde_json::json;
 
@@ -50,7 +51,7 @@ pub struct CompositeArgs {
 }
 
 fn with_layer(mut c: GaussianCloud, layer: Layer) -> GaussianCloud {
-    c.layers = vec![layer; c.len()];
+    c.groups = vec![layer.group(); c.len()];
     c
 }
 

@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use drape_cli_support::median;
-use drape_engine::ops::splat::ply;
+use drape_trainer::ply;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
 use drape_engine::Context;

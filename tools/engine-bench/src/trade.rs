@@ -901,7 +901,7 @@ mod tests {
             assert_eq!(keep.len(), kept);
             let mut removed = GaussianCloud::new(cloud.sh_degree);
             for &i in &keep {
-                removed.push(&cloud.gaussian::<f32>(i), cloud.layers[i]);
+                removed.push(&cloud.gaussian::<f32>(i), cloud.groups[i]);
             }
             let (gpu, _) = render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
             let e = max_abs_diff(&gpu.rgb, &cpu_render(&removed, &cam));
@@ -939,7 +939,7 @@ mod tests {
             assert_eq!(prune_masked(&mut pruned.opacity_logits, &mask), cloud.len() - culled);
             let mut removed = GaussianCloud::new(cloud.sh_degree);
             for i in (0..cloud.len()).filter(|&i| !mask[i]) {
-                removed.push(&cloud.gaussian::<f32>(i), cloud.layers[i]);
+                removed.push(&cloud.gaussian::<f32>(i), cloud.groups[i]);
             }
             let (gpu, _) = render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
             let e = max_abs_diff(&gpu.rgb, &cpu_render(&removed, &cam));

@@ -24,7 +24,8 @@ use drape_engine::ops::splat::densify::record_screen_stats;
 use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, CompositeGrads, CompositeInputs, Coverage};
 use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SavedForward, SplatRenderer};
-use drape_engine::ops::splat::scene::{Layer, PinholeCamera, RenderSettings};
+use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
+use crate::avatar::groups::Layer;
 use drape_shared::splat::raster::{FUSED_BASE, FUSED_MATTE_ONE, FUSED_MATTE_ZERO, FUSED_OVER};
 use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
 

@@ -20,7 +20,8 @@ use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
 use drape_engine::ops::splat::render::GaussianBuffers;
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+use crate::avatar::groups::Layer;
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::recorder::flat_grid;
 use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
@@ -519,7 +520,7 @@ impl HumanLayer {
         let n = s.count();
         if n != self.count as usize {
             let k = sh_coeffs(self.config.sh_degree);
-            let cloud = GaussianCloud { sh_degree: self.config.sh_degree, means: s.means.clone(), log_scales: s.log_scales.clone(), quats: s.quats.clone(), opacity_logits: vec![0.0; n], sh: vec![0.0; 3 * k * n], layers: vec![Layer::Body; n] };
+            let cloud = GaussianCloud { sh_degree: self.config.sh_degree, means: s.means.clone(), log_scales: s.log_scales.clone(), quats: s.quats.clone(), opacity_logits: vec![0.0; n], sh: vec![0.0; 3 * k * n], groups: vec![Layer::Body.group(); n] };
             let weights = s.weight_targets.as_deref().expect("checkpoint::read requires the skinning targets of a layer of another count");
             let mut fresh = Self::new(ctx, &self.name, &cloud, weights, &self.config, self.steps, self.seed)?;
             fresh.set_accumulation(ctx, self.accumulation)?;
@@ -553,7 +554,7 @@ impl HumanLayer {
 
     /// The posed Gaussians of the last forward pass, read back.
     pub fn read_posed(&mut self, ctx: &Context) -> Result<GaussianCloud> {
-        let layers = vec![drape_engine::ops::splat::scene::Layer::Body; self.count as usize];
+        let layers = vec![Layer::Body; self.count as usize];
         self.posed.download(ctx, &layers)
     }
 }

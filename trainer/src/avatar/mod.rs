@@ -1,4 +1,5 @@
-//! The layered avatar (DESIGN.md, "Where the avatar lives"): the body rig and its
+//! The layered avatar (DESIGN.md, "Where the avatar lives"): its layers as the engine's
+//! groups of Gaussians (`groups`), the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
 //! and optimiser groups (`layer`), the set of layers the data requires (`model`), its
 //! rendering and the paper's compositing (`composite`), the model and checkpoint file
@@ -17,6 +18,7 @@ pub mod densify;
 pub mod edit;
 pub mod eval;
 pub mod fid;
+pub mod groups;
 pub mod layer;
 pub mod model;
 pub mod player;

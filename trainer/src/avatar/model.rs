@@ -19,7 +19,8 @@
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::sh_copy::{record_copy_sh, ShSlice};
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+use crate::avatar::groups::Layer;
 use drape_engine::{Buffer, Context, Recording, Result};
 
 use crate::avatar::checkpoint::{LayerShape, ModelState};

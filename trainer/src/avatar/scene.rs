@@ -8,7 +8,8 @@
 
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::splat::render::GaussianBuffers;
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+use crate::avatar::groups::Layer;
 use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
 use drape_engine::{Buffer, Context, Recording, Result};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
@@ -101,7 +102,7 @@ pub struct SceneLayer {
 /// The scene's parameters of `s` as a cloud (to rebuild the layer at its size).
 fn cloud_of(s: &SceneState, sh_degree: u32) -> GaussianCloud {
     let n = s.params[3].len();
-    GaussianCloud { sh_degree, means: s.params[0].clone(), log_scales: s.params[1].clone(), quats: s.params[2].clone(), opacity_logits: s.params[3].clone(), sh: s.params[4].clone(), layers: vec![Layer::Scene; n] }
+    GaussianCloud { sh_degree, means: s.params[0].clone(), log_scales: s.params[1].clone(), quats: s.params[2].clone(), opacity_logits: s.params[3].clone(), sh: s.params[4].clone(), groups: vec![Layer::Scene.group(); n] }
 }
 
 impl SceneLayer {

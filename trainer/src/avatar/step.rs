@@ -258,24 +258,31 @@ fn finish(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers) -> Resu
     Ok(StepOutcome::Applied)
 }
 
-/// Host waits (fence waits) per step, apart for the steps that also log, densify or
-/// checkpoint (those read back more).
+/// Host waits (fence waits) per step, apart for the steps that also logged,
+/// densified or checkpointed (those read back more) or were done again after a render
+/// outgrew its buffers (growing makes buffers, and the step is submitted twice).
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct HostWaits {
-    /// Steps that only trained.
+    /// Steps that only trained, once.
     pub plain_steps: u64,
     pub plain_waits: u64,
     /// The most waits one of them took.
     pub plain_max: u64,
-    /// Steps that also logged, densified or checkpointed.
+    /// The other steps.
     pub other_steps: u64,
     pub other_waits: u64,
+    /// Steps done again after an overflow (counted among the other steps).
+    pub redone_steps: u64,
 }
 
 impl HostWaits {
-    /// Counts a step that took `waits` fence waits.
-    pub fn add(&mut self, waits: u64, plain: bool) {
-        if plain {
+    /// Counts a step that took `waits` fence waits over `attempts` submissions; `plain`
+    /// when it did nothing but train.
+    pub fn add(&mut self, waits: u64, attempts: u32, plain: bool) {
+        if attempts > 1 {
+            self.redone_steps += 1;
+        }
+        if plain && attempts == 1 {
             self.plain_steps += 1;
             self.plain_waits += waits;
             self.plain_max = self.plain_max.max(waits);
@@ -289,12 +296,13 @@ impl HostWaits {
     pub fn summary(&self) -> String {
         let mean = |w: u64, n: u64| w as f64 / n.max(1) as f64;
         format!(
-            "host waits (fence waits) per step: {:.2} mean, {} max over {} training-only steps; {:.2} mean over {} steps that also logged, densified or checkpointed",
+            "host waits (fence waits) per step: {:.2} mean, {} max over {} training-only steps; {:.2} mean over {} steps that also logged, densified, checkpointed or were done again after a render outgrew its buffers ({} such)",
             mean(self.plain_waits, self.plain_steps),
             self.plain_max,
             self.plain_steps,
             mean(self.other_waits, self.other_steps),
-            self.other_steps
+            self.other_steps,
+            self.redone_steps
         )
     }
 }

@@ -18,9 +18,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use drape_engine::ops::splat::ply;
+use crate::ply;
 use drape_engine::ops::ssim::Ssim;
-use drape_engine::ops::splat::scene::{Layer, RenderSettings};
+use drape_engine::ops::splat::scene::RenderSettings;
+use crate::avatar::groups::Layer;
 use drape_engine::Context;
 
 use crate::avatar::checkpoint;
@@ -1058,7 +1059,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         // One standard 3DGS PLY per layer.
         for layer in [Layer::Body, Layer::Cloth] {
             let mut part = drape_engine::ops::splat::scene::GaussianCloud::new(cloud.sh_degree);
-            for i in (0..cloud.len()).filter(|&i| cloud.layers[i] == layer) {
+            for i in (0..cloud.len()).filter(|&i| cloud.groups[i] == layer.group()) {
                 part.push(&cloud.gaussian::<f32>(i), layer);
             }
             if !part.is_empty() {

@@ -7,7 +7,8 @@
 
 use std::collections::HashMap;
 
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+use crate::avatar::groups::Layer;
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 

@@ -186,7 +186,7 @@ pub fn skin(weights: &[[f64; NUM_JOINTS]], transforms: &[Affine; NUM_JOINTS], po
     let flat_t: Vec<f64> = transforms.iter().flatten().flatten().copied().collect();
     let flat_w: Vec<f64> = weights.iter().flatten().copied().collect();
     let flat_p: Vec<f64> = points.iter().flatten().copied().collect();
-    drape_engine::ops::skinning::reference_fwd(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+    drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
 }
 
 /// A posed body.

@@ -4,10 +4,11 @@
 //! the composite and the three passes against f64 central differences, for both
 //! mattes; and the scene the paper's matte gets wrong (an arm in front of the shirt).
 
-use drape_engine::ops::splat::composite::{composite_backward_cpu, composite_cpu, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, to_rgba_reference, CompositeGrads, CompositeInputs, Coverage};
+use drape_engine::ops::splat::composite::{reference, matte_cloud, matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, CompositeGrads, CompositeInputs, Coverage};
 use drape_engine::ops::splat::reference::{backward, render};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
-use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, Layer, PinholeCamera, RenderSettings};
+use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
+use drape_trainer::avatar::groups::Layer;
 use drape_engine::BufferDesc;
 use drape_shared::splat::composite::composite_grad;
 use drape_shared::splat::layout::{sh_coeffs, MAX_SH_COEFFS};
@@ -92,8 +93,8 @@ fn composite_kernels_match_the_cpu_reference() {
         }
         let read = |b: &mut drape_engine::Buffer, n: usize| ctx.read_buffer::<f32>(b, n).expect("read");
         let m = with_matte.then_some(matte.as_slice());
-        want = composite_cpu(&base, &over, &alpha, m);
-        let want_grads = composite_backward_cpu(&grad, &base, &over, &alpha, m);
+        want = reference::forward(&base, &over, &alpha, m);
+        let want_grads = reference::backward(&grad, &base, &over, &alpha, m);
         close("composite", &read(&mut out, 3 * pixels), &want);
         close("grad base", &read(&mut g_base, 3 * pixels), &want_grads[0]);
         close("grad over", &read(&mut g_over, 3 * pixels), &want_grads[1]);
@@ -135,9 +136,9 @@ fn to_rgba_kernel_matches_the_cpu_reference_for_each_coverage_source() {
     let up = |name: &str, v: &[f32]| ctx.upload(name, v).expect("upload");
     let (b_rgb, b_alpha, b_triples) = (up("rgb", &rgb), up("alpha", &alpha), up("triples", &triples));
     let cases: [(&str, Coverage, Vec<f32>); 3] = [
-        ("one alpha", Coverage::Alpha(&b_alpha), to_rgba_reference(&rgb, &alpha, 1, false, None)),
-        ("alpha and matte", Coverage::Two { base: (&b_alpha, 1, false), layer: (&b_triples, 3) }, to_rgba_reference(&rgb, &alpha, 1, false, Some((&triples, 3)))),
-        ("transmittance and alpha", Coverage::Two { base: (&b_triples, 3, true), layer: (&b_alpha, 1) }, to_rgba_reference(&rgb, &triples, 3, true, Some((&alpha, 1)))),
+        ("one alpha", Coverage::Alpha(&b_alpha), reference::to_rgba(&rgb, &alpha, 1, false, None)),
+        ("alpha and matte", Coverage::Two { base: (&b_alpha, 1, false), layer: (&b_triples, 3) }, reference::to_rgba(&rgb, &alpha, 1, false, Some((&triples, 3)))),
+        ("transmittance and alpha", Coverage::Two { base: (&b_triples, 3, true), layer: (&b_alpha, 1) }, reference::to_rgba(&rgb, &triples, 3, true, Some((&alpha, 1)))),
     ];
     for (what, coverage, want) in cases {
         let mut out = ctx.create_buffer("rgba", BufferDesc::gpu_only(16 * pixels as u64)).expect("buffer");
@@ -201,7 +202,7 @@ fn three_gpu_passes_composite_as_the_cpu_splatter_does() {
             buffers.push(b);
         }
         let got = composite_passes(&ctx, &renderers, cam.width * cam.height);
-        let want = composite_cpu(&outputs[0].rgb, &outputs[1].rgb, &outputs[1].alpha, Some(&outputs[2].rgb));
+        let want = reference::forward(&outputs[0].rgb, &outputs[1].rgb, &outputs[1].alpha, Some(&outputs[2].rgb));
         let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         // The acceptance bound of the compositing issue: the GPU splatter matches its
         // CPU reference to ~1e-6 per pass, and the composite cannot amplify that (V/A ≤ 1).
@@ -471,7 +472,7 @@ fn fused_backward_on_the_gpu_matches_the_cpu_reference() {
             let saved = fused.forward(&ctx, &params, &cam, &settings).expect("fused forward").saved;
             for &accumulation in &accumulations {
                 fused.backward(&saved, &params, upstream, &grads, accumulation).expect("fused backward");
-                let got = grads.download(&ctx, &cloud.layers).expect("download");
+                let got = grads.download(&ctx, &cloud.groups).expect("download");
                 let got_groups = [&got.means, &got.log_scales, &got.quats, &got.opacity_logits, &got.sh];
                 for ((name, c), g) in want_groups.iter().zip(got_groups) {
                     assert!(c.iter().any(|v| *v != 0.0), "{name}: the CPU gradient is all zero; the check would be vacuous");
@@ -571,7 +572,7 @@ fn the_papers_matte_draws_the_shirt_over_an_arm_in_front_of_it() {
 /// independently of the shared index math, coefficient by coefficient.
 #[test]
 fn sh_copy_pads_and_truncates_between_degrees() {
-    use drape_engine::ops::splat::sh_copy::{record_copy_sh, reference_copy_sh, ShSlice};
+    use drape_engine::ops::splat::sh_copy::{record_copy_sh, reference, ShSlice};
     let ctx = gpu();
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
     let (count, src_first, dst_first) = (37u32, 5u32, 11u32);
@@ -589,7 +590,7 @@ fn sh_copy_pads_and_truncates_between_degrees() {
         }
         let got = ctx.read_buffer::<f32>(&mut dst_buf, dst_len).expect("read");
         let mut want = vec![7.0f32; dst_len];
-        reference_copy_sh(&src, (src_degree, src_first), &mut want, (dst_degree, dst_first), count);
+        reference::copy_sh(&src, (src_degree, src_first), &mut want, (dst_degree, dst_first), count);
         assert_eq!(got, want, "degree {src_degree} -> {dst_degree}: GPU and reference differ");
         for g in 0..(count + dst_first + 2) as usize {
             for k in 0..kd {

@@ -186,7 +186,7 @@ fn cas_backward_matches_the_reference(ctx: &Context) {
     let b_depth = ctx.upload("grad depth", &g_depth).expect("upload");
     let mut grads = GaussianBuffers::new(ctx, "grads", n, 1).expect("grads");
     renderer.backward(&saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, Accumulation::Auto).expect("backward through compare-and-swap");
-    let got = grads.download(ctx, &cloud.layers).expect("download");
+    let got = grads.download(ctx, &cloud.groups).expect("download");
     let gs = cloud.gaussians::<f32>();
     let frame = frame_params(&cam, &settings, 1, n);
     let cpu = reference::render(&gs, &frame);

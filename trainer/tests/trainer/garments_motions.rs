@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use drape_engine::ops::splat::scene::Layer;
+use drape_trainer::avatar::groups::Layer;
 use drape_trainer::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::garment::{load_obj, pants, tshirt, write_obj};

@@ -17,6 +17,7 @@ mod image_formats;
 mod loose_garment;
 mod motion_files;
 mod pickle;
+mod ply;
 mod raster;
 mod run_tools;
 mod skinning;

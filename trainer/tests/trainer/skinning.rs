@@ -2,7 +2,7 @@
 //! functions), finite differences in f64 for every gradient, and the pose gradient
 //! through the whole body.
 
-use drape_engine::ops::skinning::{reference_bwd, reference_fwd, Skinning, TRANSFORMS_LEN};
+use drape_engine::ops::skinning::{reference, Skinning, TRANSFORMS_LEN};
 use drape_engine::BufferDesc;
 use drape_tests::gpu;
 use drape_trainer::body::kinematics::{forward_kinematics, pose_body, pose_gradient, regress_joints, Pose};
@@ -47,7 +47,7 @@ fn gpu_skinning_matches_cpu_on_10_random_poses() {
         plan.record_fwd(&mut rec, &b_t, &b_weights, &b_points, &out, n as u32).unwrap();
         rec.submit_and_wait().unwrap();
         let got = gpu.read_buffer::<f32>(&mut out, 3 * n).unwrap();
-        let want = reference_fwd(&t, &weights, &points);
+        let want = reference::forward(&t, &weights, &points);
         let err = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
         // 1e-5 m: the same f32 operations on both sides, up to fused multiply-adds.
         assert!(err <= 1e-5, "pose {seed}: max error {err:e}");
@@ -72,7 +72,7 @@ fn gpu_skinning_backward_matches_cpu() {
     let mut rec = gpu.record("skin bwd").unwrap();
     plan.record_bwd(&mut rec, &bt, &bw, &bp, &bg, &gp, &gw, &gt, n as u32).unwrap();
     rec.submit_and_wait().unwrap();
-    let (cp, cw, ct) = reference_bwd(&t, &weights, &points, &g);
+    let (cp, cw, ct) = reference::backward(&t, &weights, &points, &g);
     let rel = |a: &[f32], b: &[f32]| {
         let num: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum();
         let den: f64 = b.iter().map(|y| f64::from(*y).powi(2)).sum();
@@ -99,8 +99,8 @@ fn skinning_gradients_match_finite_differences() {
     let model = default_body(&BodyOptions::default());
     let transforms = flat_transforms(&random_pose(5), &model);
     let g: Vec<f64> = (0..3 * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-    let loss = |t: &[f64], w: &[f64], p: &[f64]| reference_fwd(t, w, p).iter().zip(&g).map(|(a, b)| a * b).sum::<f64>();
-    let (gp, gw, gt) = reference_bwd(&transforms, &weights, &points, &g);
+    let loss = |t: &[f64], w: &[f64], p: &[f64]| reference::forward(t, w, p).iter().zip(&g).map(|(a, b)| a * b).sum::<f64>();
+    let (gp, gw, gt) = reference::backward(&transforms, &weights, &points, &g);
     let h = 1e-6;
     let check = |name: &str, analytic: &[f64], perturb: &dyn Fn(usize, f64) -> f64| {
         for (i, a) in analytic.iter().enumerate() {
@@ -137,7 +137,7 @@ fn pose_gradient_through_skinning_matches_finite_differences() {
     let loss = |p: &Pose| pose_body(&model, &[], p, [0.0; 3]).vertices.iter().flatten().zip(&g).map(|(a, b)| a * b).sum::<f64>();
     let points: Vec<f64> = model.v_template.iter().flatten().copied().collect();
     let weights: Vec<f64> = model.weights.iter().flatten().copied().collect();
-    let (_, _, gt) = reference_bwd(&flat_transforms(&pose, &model), &weights, &points, &g);
+    let (_, _, gt) = reference::backward(&flat_transforms(&pose, &model), &weights, &points, &g);
     let mut grad_a = [[[0.0; 4]; 3]; NUM_JOINTS];
     for (k, v) in gt.iter().enumerate() {
         grad_a[k / 12][(k % 12) / 4][k % 4] = *v;

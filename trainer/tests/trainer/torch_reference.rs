@@ -11,7 +11,7 @@
 use std::path::Path;
 
 use drape_engine::ops::deform::{self, HostInputs};
-use drape_engine::ops::nn::{reference_backward, Activation, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{reference, Activation, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc};
 use drape_engine::{BufferDesc, Context};
 use drape_shared::deform::rot6d_to_matrix;
@@ -139,8 +139,8 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         row0 += d.width;
     }
     // The CPU reference agrees too (it is what the other tests trust).
-    let saved = drape_engine::ops::nn::reference_forward(desc, &params, &input, rows);
-    let (ref_grads, _) = reference_backward(desc, &params, &input, rows, &saved, &head_grads);
+    let saved = drape_engine::ops::nn::reference::forward(desc, &params, &input, rows);
+    let (ref_grads, _) = reference::backward(desc, &params, &input, rows, &saved, &head_grads);
     assert!(rel_err(&ref_grads, &grads, 1e-3) <= 1e-4, "{name}: CPU reference and GPU disagree");
 }
 
@@ -259,7 +259,7 @@ fn rotation_6d_matches_pytorch() {
     host.rot6d = r6[..6].to_vec();
     host.log_scale_deltas = vec![0.0; 3];
     host.weights = vec![1.0 / 24.0; 24];
-    let out = deform::reference_forward(&host);
+    let out = deform::reference::forward(&host);
     let q = out[0].quat;
     let back = drape_shared::splat::project::quat_to_mat(drape_shared::splat::project::normalize_quat(q).0);
     let flat: Vec<f64> = back.iter().flatten().copied().collect();
@@ -409,7 +409,7 @@ fn lpips_matches_the_lpips_package() {
 /// gradient, the f64 reference the GPU is checked against) against `torch.einsum`.
 #[test]
 fn pose_blend_matches_pytorch() {
-    use drape_engine::ops::deform::{reference_pose_blend_backward, reference_pose_blend_forward, POSE_BLEND_FLOATS};
+    use drape_engine::ops::deform::{reference, POSE_BLEND_FLOATS};
     use drape_trainer::avatar::rig::Rig;
     use drape_trainer::body::procedural::{default_body, BodyOptions};
     use drape_trainer::dataset::loader::BodyParams;
@@ -434,15 +434,15 @@ fn pose_blend_matches_pytorch() {
     // f32 features from f64 matrices: rounding only.
     assert!(rel_err(&to_f64(&ft.pose_features), &tf, 1e-6) <= 1e-6, "pose features differ from SMPL's: {}", rel_err(&to_f64(&ft.pose_features), &tf, 1e-6));
     // Both in float64: agreement to rounding.
-    let ours = reference_pose_blend_forward(&basis, &tf, &decoded);
+    let ours = reference::pose_blend_forward(&basis, &tf, &decoded);
     assert!(rel_err(&ours, &to, 1e-6) <= 1e-12, "offsets differ from PyTorch");
-    let ours_g = reference_pose_blend_backward(&tf, &g);
+    let ours_g = reference::pose_blend_backward(&tf, &g);
     assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-12, "basis gradient differs from PyTorch");
 }
 
 #[test]
 fn skinning_and_its_transform_gradient_match_pytorch() {
-    use drape_engine::ops::deform::{reference_backward as deform_backward, reference_forward as deform_forward, reference_transform_grad};
+    use drape_engine::ops::deform::{reference::backward as deform_backward, reference::forward as deform_forward, reference};
     use drape_shared::deform::DeformOutput;
     use drape_trainer::avatar::rig::Rig;
     use drape_trainer::body::procedural::{default_body, BodyOptions};
@@ -502,7 +502,7 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
     let checks: [(&str, Vec<f64>, f64); 8] = [
         ("mean", gather(&|i| out[i].mean.to_vec()), 1e-12),
         ("quat", gather(&|i| out[i].quat.to_vec()), 1e-12),
-        ("gtransforms", reference_transform_grad(&host, &grads), 1e-10),
+        ("gtransforms", reference::transform_grad(&host, &grads), 1e-10),
         ("gmeans", gather(&|i| grads[i].mean.to_vec()), 1e-10),
         ("goffsets", gather(&|i| grads[i].offset.to_vec()), 1e-10),
         ("grot6d", gather(&|i| grads[i].rot6d.to_vec()), 1e-10),

@@ -26,9 +26,13 @@ use crate::recorder::{flat_grid, Recording};
 /// need not be rendered).
 #[derive(Clone, Copy)]
 pub struct CompositeInputs<'a> {
+    /// The base pass's rgb.
     pub base_rgb: &'a Buffer,
+    /// The over pass's rgb.
     pub over_rgb: &'a Buffer,
+    /// The over pass's alpha.
     pub over_alpha: &'a Buffer,
+    /// The matte pass's rgb, if rendered.
     pub matte_rgb: Option<&'a Buffer>,
 }
 
@@ -37,9 +41,13 @@ pub struct CompositeInputs<'a> {
 /// without a matte, that gradient joins `over_alpha`'s).
 #[derive(Clone, Copy)]
 pub struct CompositeGrads<'a> {
+    /// Gradient on the base pass's rgb.
     pub base_rgb: &'a Buffer,
+    /// Gradient on the over pass's rgb.
     pub over_rgb: &'a Buffer,
+    /// Gradient on the over pass's alpha.
     pub over_alpha: &'a Buffer,
+    /// Gradient on the matte pass's rgb, with a matte.
     pub matte_rgb: Option<&'a Buffer>,
 }
 
@@ -111,7 +119,7 @@ pub fn matte_cloud(parts: &[(&GaussianCloud, bool)]) -> GaussianCloud {
             let mut g = cloud.gaussian::<f32>(i);
             g.sh = [[0.0; 3]; MAX_SH_COEFFS];
             g.sh[0] = [matte_sh_dc(*composited); 3];
-            out.push(&g, cloud.layers[i]);
+            out.push(&g, cloud.groups[i]);
         }
     }
     out
@@ -125,28 +133,46 @@ fn visibility(over_alpha: &[f32], matte_rgb: Option<&[f32]>, i: usize) -> f32 {
     matte_rgb.map_or(over_alpha[i], |m| m[3 * i])
 }
 
-/// CPU reference of [`record_composite`] (host slices in the same layout).
-pub fn composite_cpu(base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> Vec<f32> {
-    (0..over_alpha.len()).flat_map(|i| composite(rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i))).collect()
-}
+/// CPU references of the composite kernels, on the same shared functions.
+pub mod reference {
+    use super::*;
 
-/// CPU reference of [`record_composite_backward`]: (base rgb, over rgb, over alpha,
-/// matte rgb) gradients (the last empty without a matte).
-pub fn composite_backward_cpu(grad: &[f32], base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> [Vec<f32>; 4] {
-    let n = over_alpha.len();
-    let mut out = [vec![0.0; 3 * n], vec![0.0; 3 * n], vec![0.0; n], vec![0.0; if matte_rgb.is_some() { 3 * n } else { 0 }]];
-    for i in 0..n {
-        let (gb, go, ga, gm) = composite_grad(rgb(grad, i), rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i));
-        out[0][3 * i..3 * i + 3].copy_from_slice(&gb);
-        out[1][3 * i..3 * i + 3].copy_from_slice(&go);
-        if matte_rgb.is_some() {
-            out[2][i] = ga;
-            out[3][3 * i] = gm;
-        } else {
-            out[2][i] = ga + gm;
-        }
+    /// CPU reference of [`record_composite`] (host slices in the same layout).
+    pub fn forward(base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> Vec<f32> {
+        (0..over_alpha.len()).flat_map(|i| composite(rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i))).collect()
     }
-    out
+
+    /// CPU reference of [`record_composite_backward`]: (base rgb, over rgb, over alpha,
+    /// matte rgb) gradients (the last empty without a matte).
+    pub fn backward(grad: &[f32], base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> [Vec<f32>; 4] {
+        let n = over_alpha.len();
+        let mut out = [vec![0.0; 3 * n], vec![0.0; 3 * n], vec![0.0; n], vec![0.0; if matte_rgb.is_some() { 3 * n } else { 0 }]];
+        for i in 0..n {
+            let (gb, go, ga, gm) = composite_grad(rgb(grad, i), rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i));
+            out[0][3 * i..3 * i + 3].copy_from_slice(&gb);
+            out[1][3 * i..3 * i + 3].copy_from_slice(&go);
+            if matte_rgb.is_some() {
+                out[2][i] = ga;
+                out[3][3 * i] = gm;
+            } else {
+                out[2][i] = ga + gm;
+            }
+        }
+        out
+    }
+
+    /// CPU reference of [`record_to_rgba`] (same shared function).
+    pub fn to_rgba(rgb: &[f32], a: &[f32], a_stride: usize, a_is_transmittance: bool, b: Option<(&[f32], usize)>) -> Vec<f32> {
+        let pixels = rgb.len() / 3;
+        let mut out = Vec::with_capacity(4 * pixels);
+        for i in 0..pixels {
+            let a = if a_is_transmittance { 1.0 - a[a_stride * i] } else { a[a_stride * i] };
+            let b = b.map_or(0.0, |(b, s)| b[s * i]);
+            out.extend_from_slice(&rgb[3 * i..3 * i + 3]);
+            out.push(drape_shared::splat::composite::coverage(a, b));
+        }
+        out
+    }
 }
 
 #[cfg(test)]
@@ -209,7 +235,12 @@ pub enum Coverage<'a> {
     Alpha(&'a Buffer),
     /// A base alpha and a layer's visibility over it: each (buffer, floats per pixel,
     /// whether it holds the final transmittance `T` rather than the alpha `1 − T`).
-    Two { base: (&'a Buffer, u32, bool), layer: (&'a Buffer, u32) },
+    Two {
+        /// The base: (buffer, floats per pixel, whether it holds `T`).
+        base: (&'a Buffer, u32, bool),
+        /// The layer's visibility: (buffer, floats per pixel).
+        layer: (&'a Buffer, u32),
+    },
 }
 
 /// Records `rgb` (3 floats per pixel, rendered over black) and its coverage as
@@ -225,15 +256,3 @@ pub fn record_to_rgba<'a>(rec: &mut Recording<'a>, rgb: &'a Buffer, coverage: Co
     rec.pass("composite.to_rgba", Kernel::CompositeToRgba).read("rgb_in", rgb).read("alpha_a", a).read("alpha_b", b).write("rgba", out).push(&p).dispatch(flat_grid(pixels))
 }
 
-/// CPU reference of [`record_to_rgba`] (same shared function).
-pub fn to_rgba_reference(rgb: &[f32], a: &[f32], a_stride: usize, a_is_transmittance: bool, b: Option<(&[f32], usize)>) -> Vec<f32> {
-    let pixels = rgb.len() / 3;
-    let mut out = Vec::with_capacity(4 * pixels);
-    for i in 0..pixels {
-        let a = if a_is_transmittance { 1.0 - a[a_stride * i] } else { a[a_stride * i] };
-        let b = b.map_or(0.0, |(b, s)| b[s * i]);
-        out.extend_from_slice(&rgb[3 * i..3 * i + 3]);
-        out.push(drape_shared::splat::composite::coverage(a, b));
-    }
-    out
-}

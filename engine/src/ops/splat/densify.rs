@@ -29,14 +29,19 @@ pub fn record_screen_stats<'a>(rec: &mut Recording<'a>, renderer: &'a SplatRende
     rec.pass("splat.screen_stats", Kernel::SplatScreenStats).read("splats", splats).read("splat_grads", grads).write("stats", stats).push(&p).dispatch(flat_grid(count))
 }
 
-/// The CPU reference of [`record_screen_stats`] on read-back splats and per-splat
-/// gradients.
-pub fn reference_screen_stats(splats: &[ProjectedSplat], splat_grads: &[f32], p: ScreenStatsParams, stats: &mut [f32]) {
-    for local in 0..p.count as usize {
-        let i = p.first as usize + local;
-        let o = SCREEN_STATS_FLOATS * (p.out_first as usize + local);
-        let g = i * SPLAT_GRAD_FLOATS;
-        let s = accumulate([stats[o], stats[o + 1], stats[o + 2]], &splats[i], splat_grads[g], splat_grads[g + 1], p.width, p.height);
-        stats[o..o + 3].copy_from_slice(&s);
+/// CPU reference of the screen-space statistics.
+pub mod reference {
+    use super::*;
+
+    /// The CPU reference of [`record_screen_stats`] on read-back splats and per-splat
+    /// gradients.
+    pub fn screen_stats(splats: &[ProjectedSplat], splat_grads: &[f32], p: ScreenStatsParams, stats: &mut [f32]) {
+        for local in 0..p.count as usize {
+            let i = p.first as usize + local;
+            let o = SCREEN_STATS_FLOATS * (p.out_first as usize + local);
+            let g = i * SPLAT_GRAD_FLOATS;
+            let s = accumulate([stats[o], stats[o + 1], stats[o + 2]], &splats[i], splat_grads[g], splat_grads[g + 1], p.width, p.height);
+            stats[o..o + 3].copy_from_slice(&s);
+        }
     }
 }

@@ -52,13 +52,18 @@ pub struct FusedRenderer {
 /// read: the composite's backward writes the visibility's gradient there).
 #[derive(Clone, Copy)]
 pub struct FusedGrads<'a> {
+    /// Gradient on the base rgb.
     pub base_rgb: &'a Buffer,
+    /// Gradient on the over rgb.
     pub over_rgb: &'a Buffer,
+    /// Gradient on the over alpha.
     pub over_alpha: &'a Buffer,
+    /// Gradient on the matte rgb (channel 0 read).
     pub matte_rgb: &'a Buffer,
 }
 
 impl FusedRenderer {
+    /// A renderer for `width × height` images of up to `max_count` Gaussians.
     pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
         let renderer = SplatRenderer::new(ctx, width, height, max_count)?;
         let pixels = width * height;

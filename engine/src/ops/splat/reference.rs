@@ -13,14 +13,19 @@ use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, Pixe
 /// A forward render and what the backward pass needs of it.
 #[derive(Clone, Debug)]
 pub struct ReferenceRender<F> {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// 3 per pixel, row-major.
     pub rgb: Vec<F>,
+    /// 1 per pixel: `1 − T`.
     pub alpha: Vec<F>,
     /// `Σ wᵢ zᵢ` per pixel.
     pub depth: Vec<F>,
+    /// Per pixel, how many splats of its tile list it blended.
     pub contributors: Vec<u32>,
+    /// Per pixel, the transmittance left after the last splat.
     pub transmittance: Vec<F>,
     /// Gaussian-pixel blend steps.
     pub blend_steps: u64,
@@ -28,6 +33,7 @@ pub struct ReferenceRender<F> {
     pub dropped: u32,
     /// Tile intersections.
     pub intersections: u64,
+    /// Each Gaussian's projection (its splat in screen space).
     pub projections: Vec<Projection<F>>,
     /// Per tile, the Gaussians in blending order.
     pub tile_lists: Vec<Vec<u32>>,
@@ -181,11 +187,15 @@ pub struct FusedReference<F> {
     /// 3 per pixel: the base over the frame's background, the over pass over black, the
     /// matte (all three channels equal).
     pub base_rgb: Vec<F>,
+    /// 3 per pixel: the over pass over black.
     pub over_rgb: Vec<F>,
+    /// 1 per pixel: the over pass's alpha.
     pub over_alpha: Vec<F>,
+    /// 3 per pixel: the matte.
     pub matte_rgb: Vec<F>,
     /// 3 per pixel (base, over, matte).
     pub transmittances: Vec<F>,
+    /// 3 per pixel (base, over, matte): where each state stopped in the tile's list.
     pub ends: Vec<u32>,
 }
 

@@ -90,12 +90,19 @@ pub fn subgroup_raster_supported(info: &crate::DeviceInfo) -> bool {
 /// Gaussian parameters (or their gradients) on the GPU, in the layout of
 /// [`GaussianCloud`].
 pub struct GaussianBuffers {
+    /// Gaussians.
     pub count: u32,
+    /// SH degree of `sh`.
     pub sh_degree: u32,
+    /// 3 per Gaussian.
     pub means: Buffer,
+    /// 3 per Gaussian.
     pub log_scales: Buffer,
+    /// 4 per Gaussian (w, x, y, z).
     pub quats: Buffer,
+    /// 1 per Gaussian.
     pub opacity_logits: Buffer,
+    /// 3 (SH degree + 1)² per Gaussian, `[gaussian][k][channel]`.
     pub sh: Buffer,
 }
 
@@ -125,8 +132,8 @@ impl GaussianBuffers {
         Ok(b)
     }
 
-    /// Copies back to the host (layers are not stored on the GPU; `layers` fills them).
-    pub fn download(&mut self, ctx: &Context, layers: &[crate::ops::splat::scene::Layer]) -> Result<GaussianCloud> {
+    /// Copies back to the host (groups are not stored on the GPU; `groups` fills them).
+    pub fn download<G: Copy + Into<u32>>(&mut self, ctx: &Context, groups: &[G]) -> Result<GaussianCloud> {
         let n = self.count as usize;
         let k = sh_coeffs(self.sh_degree);
         Ok(GaussianCloud {
@@ -136,7 +143,7 @@ impl GaussianBuffers {
             quats: ctx.read_buffer(&mut self.quats, 4 * n)?,
             opacity_logits: ctx.read_buffer(&mut self.opacity_logits, n)?,
             sh: ctx.read_buffer(&mut self.sh, 3 * k * n)?,
-            layers: layers.to_vec(),
+            groups: groups.iter().map(|&g| g.into()).collect(),
         })
     }
 
@@ -179,22 +186,27 @@ static NEXT_RENDERER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU6
 pub struct ForwardStats {
     /// What the backward of this forward takes.
     pub saved: SavedForward,
+    /// Tile intersections emitted.
     pub intersections: u32,
     /// Gaussians dropped for a non-finite parameter.
     pub dropped: u32,
     /// The intersections overflowed the capacity the frame was recorded with: the
     /// buffers grew and the frame was rendered again (two submissions, not one).
     pub rerendered: bool,
+    /// GPU time per pass.
     pub timings: PassTimings,
 }
 
 /// Images read back from a forward pass.
 #[derive(Clone, Debug)]
 pub struct RenderedImage {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// 3 per pixel, row-major.
     pub rgb: Vec<f32>,
+    /// 1 per pixel: `1 − T`.
     pub alpha: Vec<f32>,
     /// `Σ wᵢ zᵢ` per pixel (divide by alpha for the expected depth of what is hit).
     pub depth: Vec<f32>,
@@ -260,6 +272,7 @@ impl SplatRenderer {
     /// Largest number of tile intersections one frame may have.
     pub const MAX_INTERSECTIONS: u32 = RadixSort::LIMIT;
 
+    /// A renderer for `width × height` images of up to `max_count` Gaussians (buffers grow with the intersections).
     pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
         if width == 0 || height == 0 {
             return Err(EngineError::Empty { what: "the image", why: "width and height must be at least 1 pixel" });
@@ -386,6 +399,7 @@ impl SplatRenderer {
         raster_grid(self.raster, fp.tile_size, fp.width, fp.height)
     }
 
+    /// The image size (width, height).
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }

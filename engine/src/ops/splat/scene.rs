@@ -10,42 +10,45 @@ use drape_shared::real::Real;
 
 use crate::error::EngineError;
 
-/// Which layer of the avatar a Gaussian belongs to (used by compositing).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-#[repr(u32)]
-pub enum Layer {
-    Body = 0,
-    Cloth = 1,
-    Scene = 2,
-}
-
 /// The largest image side a camera may have (see [`PinholeCamera::MAX_SIDE`]).
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 
 /// Gaussians as flat arrays (the GPU layout): `means` 3n, `log_scales` 3n, `quats` 4n
 /// (w, x, y, z), `opacity_logits` n, `sh` 3Kn as `[gaussian][k][channel]` with
-/// K = (degree + 1)², `layers` n.
+/// K = (degree + 1)², `groups` n.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GaussianCloud {
+    /// Spherical-harmonics degree (0-3).
     pub sh_degree: u32,
+    /// 3 per Gaussian.
     pub means: Vec<f32>,
+    /// 3 per Gaussian: the natural logarithms of the scales.
     pub log_scales: Vec<f32>,
+    /// 4 per Gaussian (w, x, y, z), not necessarily normalised.
     pub quats: Vec<f32>,
+    /// 1 per Gaussian: opacity before the sigmoid.
     pub opacity_logits: Vec<f32>,
+    /// 3 (degree + 1)² per Gaussian, `[gaussian][k][channel]`.
     pub sh: Vec<f32>,
-    pub layers: Vec<Layer>,
+    /// Which of the caller's N groups of Gaussians each one belongs to (an index the
+    /// engine only carries; compositing and the fused renderer take per-Gaussian masks
+    /// that callers build from it).
+    pub groups: Vec<u32>,
 }
 
 impl GaussianCloud {
+    /// An empty cloud of SH degree `sh_degree`.
     pub fn new(sh_degree: u32) -> Self {
         assert!(sh_degree <= MAX_SH_DEGREE, "SH degree {sh_degree} is above {MAX_SH_DEGREE}");
         Self { sh_degree, ..Default::default() }
     }
 
+    /// Gaussians in the cloud.
     pub fn len(&self) -> usize {
         self.opacity_logits.len()
     }
 
+    /// Whether the cloud has no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -55,8 +58,9 @@ impl GaussianCloud {
         sh_coeffs(self.sh_degree)
     }
 
-    /// Appends one Gaussian (its SH coefficients past the cloud's degree are ignored).
-    pub fn push(&mut self, g: &Gaussian<f32>, layer: Layer) {
+    /// Appends one Gaussian to group `group` (its SH coefficients past the cloud's
+    /// degree are ignored).
+    pub fn push(&mut self, g: &Gaussian<f32>, group: impl Into<u32>) {
         self.means.extend_from_slice(&g.mean);
         self.log_scales.extend_from_slice(&g.log_scale);
         self.quats.extend_from_slice(&g.quat);
@@ -64,7 +68,7 @@ impl GaussianCloud {
         for k in 0..self.sh_coeffs() {
             self.sh.extend_from_slice(&g.sh[k]);
         }
-        self.layers.push(layer);
+        self.groups.push(group.into());
     }
 
     /// Gaussian `i` in the float type `F`.
@@ -98,11 +102,12 @@ impl GaussianCloud {
         self.quats.extend_from_slice(&other.quats);
         self.opacity_logits.extend_from_slice(&other.opacity_logits);
         self.sh.extend_from_slice(&other.sh);
-        self.layers.extend_from_slice(&other.layers);
+        self.groups.extend_from_slice(&other.groups);
     }
 
-    /// `n` random Gaussians in the box `[-extent, extent]^2 x [z_min, z_max]`, with
-    /// scales around `scale`, reproducible from `seed` (for tests and benchmarks).
+    /// `n` random Gaussians of group 0 in the box
+    /// `[-extent, extent]^2 x [z_min, z_max]`, with scales around `scale`, reproducible
+    /// from `seed` (for tests and benchmarks).
     pub fn random(n: usize, sh_degree: u32, extent: f32, z_range: (f32, f32), scale: f32, seed: u64) -> Self {
         use rand::{Rng, SeedableRng};
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
@@ -120,7 +125,7 @@ impl GaussianCloud {
                 opacity_logit: rng.random_range(-2.0..3.0),
                 sh,
             };
-            cloud.push(&g, Layer::Scene);
+            cloud.push(&g, 0u32);
         }
         cloud
     }
@@ -128,31 +133,30 @@ impl GaussianCloud {
 
 /// A pinhole camera: intrinsics in pixels, world-to-camera `p_c = R p_w + t` (x right,
 /// y down, z forward), image size, clipping range and background colour.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PinholeCamera {
+    /// Focal length along x, in pixels.
     pub fx: f32,
+    /// Focal length along y, in pixels.
     pub fy: f32,
+    /// Principal point x, in pixels from the left edge.
     pub cx: f32,
+    /// Principal point y, in pixels from the top edge.
     pub cy: f32,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// World-to-camera rotation, rows.
     pub rotation: [[f32; 3]; 3],
+    /// World-to-camera translation.
     pub translation: [f32; 3],
-    #[serde(default = "default_near")]
+    /// Near clipping depth: splats closer than this are culled.
     pub near: f32,
-    #[serde(default = "default_far")]
+    /// Far clipping depth: splats farther than this are culled.
     pub far: f32,
-    #[serde(default)]
+    /// Background colour behind the splats, each channel in [0, 1].
     pub background: [f32; 3],
-}
-
-fn default_near() -> f32 {
-    0.01
-}
-
-fn default_far() -> f32 {
-    1e4
 }
 
 fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
@@ -195,18 +199,26 @@ impl PinholeCamera {
             height,
             rotation,
             translation,
-            near: default_near(),
-            far: default_far(),
+            near: Self::DEFAULT_NEAR,
+            far: Self::DEFAULT_FAR,
             background: [0.0; 3],
         })
     }
+
+    /// The near clipping depth of [`look_at`](Self::look_at) cameras.
+    pub const DEFAULT_NEAR: f32 = 0.01;
+
+    /// The far clipping depth of [`look_at`](Self::look_at) cameras.
+    pub const DEFAULT_FAR: f32 = 1e4;
 
     /// The largest image side a camera may have (the splatter's tile grid and buffers
     /// are sized from it; 16384 is the common Vulkan image limit).
     pub const MAX_SIDE: u32 = MAX_IMAGE_SIDE;
 
-    /// Checks what a camera file could get wrong: an
-    /// [`EngineError::InvalidSetting`] whose `what` is the field (as the file spells it).
+    /// Checks what a camera built from outside data could get wrong (non-finite values,
+    /// non-positive focal lengths, an empty or oversized image, a background outside
+    /// [0, 1], a bad clipping range, a rotation that is not orthonormal): an
+    /// [`EngineError::InvalidSetting`] whose `what` is the field's name.
     pub fn validate(&self) -> Result<(), EngineError> {
         let invalid = |what: &'static str, problem: String| Err(EngineError::InvalidSetting { what, problem });
         let scalars = [("fx", self.fx), ("fy", self.fy), ("cx", self.cx), ("cy", self.cy), ("near", self.near), ("far", self.far)];
@@ -259,11 +271,17 @@ impl PinholeCamera {
 pub struct RenderSettings {
     /// Antialiased mode: opacity compensated for the dilation (Mip-Splatting).
     pub antialiased: bool,
+    /// Added to the 2D covariance's diagonal (pixels²).
     pub dilation: f32,
+    /// Alpha below which a splat is skipped at a pixel.
     pub alpha_min: f32,
+    /// Alpha clamp per splat.
     pub alpha_max: f32,
+    /// Transmittance below which a pixel stops blending.
     pub transmittance_min: f32,
+    /// Standard deviations a splat's extent covers at most.
     pub max_sigmas: f32,
+    /// The Jacobian's clamp, as a multiple of the field of view.
     pub fov_clamp: f32,
     /// Tile side in pixels: 8, 16 or 32 ([`TILE_SIZES`]). The image does not depend on
     /// it; the time does (smaller tiles: more intersections to sort, shorter lists to

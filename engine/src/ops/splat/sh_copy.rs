@@ -15,8 +15,11 @@ use crate::recorder::{flat_grid, Recording};
 /// Where a copy reads and writes: a buffer, its SH degree, and the first Gaussian.
 #[derive(Clone, Copy)]
 pub struct ShSlice<'a> {
+    /// The SH buffer.
     pub buffer: &'a Buffer,
+    /// Its SH degree.
     pub degree: u32,
+    /// The first Gaussian of the slice.
     pub first: u32,
 }
 
@@ -38,11 +41,16 @@ pub fn record_copy_sh<'a>(rec: &mut Recording<'a>, src: ShSlice<'a>, dst: ShSlic
     rec.pass("train.copy_sh", Kernel::TrainCopySh).read("src", src.buffer).write("dst", dst.buffer).push(&p).dispatch(flat_grid(p.floats()))
 }
 
-/// CPU reference: `dst` after the same copy.
-pub fn reference_copy_sh(src: &[f32], src_degree_first: (u32, u32), dst: &mut [f32], dst_degree_first: (u32, u32), count: u32) {
-    let p = params(src_degree_first, dst_degree_first, count);
-    for i in 0..p.floats() {
-        let (d, s) = sh_copy_indices(i, &p);
-        dst[d] = s.map_or(0.0, |s| src[s]);
+/// CPU reference of the SH copy.
+pub mod reference {
+    use super::*;
+
+    /// CPU reference: `dst` after the same copy.
+    pub fn copy_sh(src: &[f32], src_degree_first: (u32, u32), dst: &mut [f32], dst_degree_first: (u32, u32), count: u32) {
+        let p = params(src_degree_first, dst_degree_first, count);
+        for i in 0..p.floats() {
+            let (d, s) = sh_copy_indices(i, &p);
+            dst[d] = s.map_or(0.0, |s| src[s]);
+        }
     }
 }

@@ -332,7 +332,7 @@ fn apply(d: &Path, op: &str) {
             annots.write(&dir).unwrap()
         }
         "ply-set" => {
-            use drape_engine::ops::splat::ply;
+            use drape_trainer::ply;
             let path = d.join("scene.ply");
             let mut cloud = ply::read(&path).unwrap();
             let v = number(words[3]) as f32;

@@ -6,8 +6,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use drape_engine::ops::splat::ply;
-use drape_engine::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+use drape_trainer::avatar::groups::Layer;
+use drape_trainer::ply;
 
 // The CLI's own reader, compiled into this test, so that pixel values are checked on the
 // very code `drape fit` runs (a binary crate has no library to import it from).
@@ -76,7 +77,7 @@ fn write_scene(path: &Path) {
         cloud.quats.extend([1.0, 0.0, 0.0, 0.0]);
         cloud.opacity_logits.push(2.0);
         cloud.sh.extend(sh);
-        cloud.layers.push(Layer::Scene);
+        cloud.groups.push(Layer::Scene.group());
     }
     ply::write(path, &cloud).unwrap();
 }

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use drape_engine::ops::splat::ply::{read, write};
+use drape_trainer::ply::{read, write};
 use drape_engine::ops::splat::scene::GaussianCloud;
 
 fn temp(name: &str) -> PathBuf {

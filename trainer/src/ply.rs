@@ -4,14 +4,17 @@
 //! channel c), as the reference implementation writes it; its count gives the SH
 //! degree (0, 9, 24 or 45 for degrees 0-3). Opacity is a logit and scales are
 //! logarithms, as in the cloud. Properties may come in any order; unknown `float`
-//! properties are ignored.
+//! properties are ignored. A file read holds the avatar's scene group (the format has
+//! no groups).
 
 use std::io::Write;
 use std::path::Path;
 
 use drape_shared::splat::layout::sh_coeffs;
 
-use crate::ops::splat::scene::{GaussianCloud, Layer};
+use drape_engine::ops::splat::scene::GaussianCloud;
+
+use crate::avatar::groups::Layer;
 
 /// Why a PLY file could not be read or written; every message names the file.
 #[derive(Debug, thiserror::Error)]
@@ -150,7 +153,7 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
                 cloud.sh.push(f(rest_index[ch * (k - 1) + coeff - 1]));
             }
         }
-        cloud.layers.push(Layer::Scene);
+        cloud.groups.push(Layer::Scene.into());
     }
     Ok(cloud)
 }
