@@ -20,6 +20,7 @@ pub mod eval;
 pub mod fid;
 pub mod groups;
 pub mod layer;
+pub mod losses;
 pub mod model;
 pub mod player;
 pub mod pose_refine;

@@ -9,19 +9,16 @@
 //! is done again with the grown buffers, a step with non-finite gradients is counted
 //! as skipped, and only an applied step advances Adam's step count. The pose
 //! refiner's gradient is read from mapped memory too. Loss values are read back on
-//! logging steps only (`StepBuffers::read_image_errors`), densification runs between
-//! steps (`densify`).
+//! logging steps only (`ImageLosses::read_values`), densification runs between steps
+//! (`densify`).
 
-use drape_engine::ops::lpips::Lpips;
 use drape_engine::ops::splat::scene::RenderSettings;
-use drape_engine::ops::ssim::Ssim;
-use drape_engine::recorder::flat_grid;
-use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
-use drape_shared::adam::LossParams;
+use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
 use rand::{Rng, SeedableRng};
 
 use crate::avatar::cloth_losses::ClothLosses;
 use crate::avatar::composite::AvatarRenderer;
+use crate::avatar::losses::ImageLosses;
 use crate::avatar::model::Avatar;
 use crate::avatar::pose_refine::PoseRefiner;
 use crate::avatar::rig::{FrameTransforms, Rig};
@@ -56,51 +53,21 @@ pub(crate) fn sample<'f>(frames: &[&'f DatasetFrame], rig: &Rig, refiner: Option
     Sample { index, frame, background, body, transforms }
 }
 
-/// The image loss's weights beside L1 (whose weight is in [`StepBuffers`]).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct ImageLossWeights {
-    pub ssim: f32,
-    pub lpips: f32,
-}
-
-/// The step's own buffers: the target image (host-written), the loss's gradient on the
-/// rendered image, the per-element error, zeros for the renders' unused gradient
-/// inputs, and the guard (read back after the wait from mapped memory).
+/// The step's own buffers: zeros for the renders' unused gradient inputs, and the
+/// guard (read back after the wait from mapped memory).
 pub(crate) struct StepBuffers {
-    target: Buffer,
-    grad_rgb: Buffer,
-    abs_error: Buffer,
     zeros: Buffer,
     guard: Buffer,
-    l1: LossParams,
 }
 
 impl StepBuffers {
-    /// Buffers for `width` × `height` images; L1 weighted by `lambda_l1`.
-    pub fn new(ctx: &Context, width: u32, height: u32, lambda_l1: f32) -> Result<Self> {
-        let pixels = u64::from(width) * u64::from(height);
-        let zeros = ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * pixels))?;
+    /// Buffers for `width` × `height` images.
+    pub fn new(ctx: &Context, width: u32, height: u32) -> Result<Self> {
+        let zeros = ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * u64::from(width) * u64::from(height)))?;
         let mut rec = ctx.record("train zero")?;
         rec.fill(&zeros, 0);
         rec.submit_and_wait()?;
-        Ok(Self {
-            target: ctx.create_buffer("train target", BufferDesc::host_written(12 * pixels))?,
-            grad_rgb: ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(12 * pixels))?,
-            abs_error: ctx.create_buffer("train abs error", BufferDesc::gpu_only(12 * pixels))?,
-            zeros,
-            guard: ctx.create_buffer("train guard", BufferDesc::readback(4))?,
-            l1: LossParams { len: 3 * pixels as u32, scale: lambda_l1 / (3 * pixels) as f32, _pad: [0; 2] },
-        })
-    }
-
-    /// The last step's mean absolute and mean squared error per channel (a read-back:
-    /// for logging steps).
-    pub fn read_image_errors(&mut self, ctx: &Context) -> Result<(f64, f64)> {
-        let e = ctx.read_buffer::<f32>(&mut self.abs_error, self.l1.len as usize)?;
-        let n = e.len().max(1) as f64;
-        let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
-        let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / n;
-        Ok((l1, mse))
+        Ok(Self { zeros, guard: ctx.create_buffer("train guard", BufferDesc::readback(4))? })
     }
 }
 
@@ -109,10 +76,8 @@ pub(crate) struct Stages<'s> {
     pub avatar: &'s mut Avatar,
     pub renderer: &'s mut AvatarRenderer,
     pub cloth_losses: Option<&'s mut ClothLosses>,
-    pub ssim: &'s Ssim,
-    pub lpips: Option<&'s Lpips>,
+    pub image_losses: &'s mut ImageLosses,
     pub settings: &'s RenderSettings,
-    pub weights: ImageLossWeights,
     /// Whether the backward computes `∂L/∂A` for the pose refiner.
     pub pose_gradient: bool,
     /// Whether the step adds to the densification statistics.
@@ -136,7 +101,7 @@ pub(crate) enum StepOutcome {
 /// One step on `s`: the host's writes, the recording of every stage, one submission
 /// and one wait, then the guard.
 pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers, s: &Sample<'_>) -> Result<StepOutcome> {
-    upload(ctx, st, buffers, s)?;
+    upload(ctx, st, s)?;
     prepare(st, s)?;
     {
         let st = &*st;
@@ -144,7 +109,7 @@ pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers,
         rec.fill(&buffers.guard, 0);
         record_deform(&mut rec, st.avatar, &s.transforms)?;
         record_render(&mut rec, st, buffers)?;
-        record_losses(&mut rec, st, buffers)?;
+        st.image_losses.record(&mut rec, st.renderer.rgb())?;
         record_backward(&mut rec, st, buffers)?;
         record_guard(&mut rec, st, buffers)?;
         st.avatar.record_adam(&mut rec, Some(&buffers.guard))?;
@@ -155,9 +120,9 @@ pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers,
 
 /// The frame's host-written inputs: the target image and the cloth losses' targets
 /// (host-visible memory: the last step's submission has completed).
-fn upload(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers, s: &Sample<'_>) -> Result<()> {
+fn upload(ctx: &Context, st: &mut Stages<'_>, s: &Sample<'_>) -> Result<()> {
     let target = if st.masked { s.frame.masked_rgb(s.background) } else { s.frame.rgb.clone() };
-    ctx.write_buffer(&mut buffers.target, &target)?;
+    st.image_losses.set_target(ctx, &target)?;
     if let Some(c) = st.cloth_losses.as_deref_mut() {
         c.set_frame(ctx, s.frame)?;
     }
@@ -185,29 +150,10 @@ fn record_deform<'a>(rec: &mut Recording<'a>, avatar: &'a Avatar, transforms: &F
 }
 
 /// Stage 3, render: the avatar's frame, and the renders' overflow flags into the guard.
+/// (Stage 4, the image losses, is `ImageLosses::record`.)
 fn record_render<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
     st.renderer.record_frame(rec, st.avatar)?;
     st.renderer.record_overflow_flags(rec, &buffers.guard)
-}
-
-/// Stage 4, losses: L1, `λ (1 − SSIM)` and LPIPS on the image, their gradients summed
-/// into one gradient on the rendered image.
-fn record_losses<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
-    let rgb = st.renderer.rgb();
-    let l1 = &buffers.l1;
-    rec.pass("loss.l1_grad", Kernel::TrainL1Grad)
-        .read("pred", rgb)
-        .read("target", &buffers.target)
-        .write("grad", &buffers.grad_rgb)
-        .write("abs_error", &buffers.abs_error)
-        .push(l1)
-        .dispatch(flat_grid(l1.len))?;
-    // λ (1 − SSIM) adds −λ ∂SSIM/∂rgb to the L1 gradient.
-    st.ssim.record(rec, rgb, &buffers.target, Some((&buffers.grad_rgb, -st.weights.ssim)))?;
-    if let Some(l) = st.lpips {
-        l.record(rec, rgb, &buffers.target, Some((&buffers.grad_rgb, st.weights.lpips)))?;
-    }
-    Ok(())
 }
 
 /// Stage 5, backward: through the renders and the composite into every layer's posed
@@ -215,7 +161,7 @@ fn record_losses<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a S
 /// the densification statistics where they are gathered.
 fn record_backward<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
     let cloth_losses = st.cloth_losses.as_deref();
-    st.renderer.record_backward(rec, st.avatar, &buffers.grad_rgb, &buffers.zeros, cloth_losses)?;
+    st.renderer.record_backward(rec, st.avatar, st.image_losses.grad_rgb(), &buffers.zeros, cloth_losses)?;
     if let (Some(c), Some(cloth)) = (cloth_losses, st.avatar.cloth()) {
         if c.needs_mask_pass() {
             c.record_mask_pass(rec, cloth, &buffers.guard)?;

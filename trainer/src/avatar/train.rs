@@ -19,7 +19,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use crate::ply;
-use drape_engine::ops::ssim::Ssim;
 use drape_engine::ops::splat::scene::RenderSettings;
 use crate::avatar::groups::Layer;
 use drape_engine::Context;
@@ -40,7 +39,8 @@ use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::{body_init, cloth_init, Avatar, LayerChoice};
 use crate::error::TrainerError;
 use crate::avatar::pose_refine::PoseRefiner;
-use crate::avatar::step::{self, HostWaits, ImageLossWeights, Sample, Stages, StepBuffers, StepOutcome};
+use crate::avatar::losses::{ImageLossWeights, ImageLosses};
+use crate::avatar::step::{self, HostWaits, Sample, Stages, StepBuffers, StepOutcome};
 use crate::avatar::rig::Rig;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
@@ -771,26 +771,17 @@ fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut Pose
     Ok(None)
 }
 
-/// What a logging step reads back.
-struct StepLosses<'s> {
-    buffers: &'s mut StepBuffers,
-    ssim: &'s mut Ssim,
-    cloth: Option<&'s mut ClothLosses>,
-    lpips: Option<&'s mut Lpips>,
-}
-
 /// A logging step's line (losses read back) with its L1 and PSNR.
-fn log_line(ctx: &Context, losses: &mut StepLosses<'_>, avatar: &Avatar, refiner: Option<&PoseRefiner>, config: &TrainConfig, step: u32, frame: usize) -> crate::Result<(serde_json::Value, f64, f64)> {
-    let (l1, mse) = losses.buffers.read_image_errors(ctx)?;
-    let psnr = -10.0 * mse.max(1e-20).log10();
-    let ssim_value = losses.ssim.read_mean(ctx)?;
-    let loss = f64::from(config.lambda_l1) * l1 + f64::from(config.lambda_ssim) * (1.0 - ssim_value);
-    let mut line = serde_json::json!({ "step": step, "frame": frame, "l1": l1, "ssim": ssim_value, "loss": loss, "psnr_train": psnr, "lr_position": avatar.layers[0].groups.position.lr() });
-    if let Some(c) = losses.cloth.as_deref_mut() {
+/// `seconds`: since training started.
+#[allow(clippy::too_many_arguments)]
+fn log_line(ctx: &Context, image: &mut ImageLosses, cloth: Option<&mut ClothLosses>, avatar: &Avatar, refiner: Option<&PoseRefiner>, step: u32, frame: usize, seconds: f64) -> crate::Result<(serde_json::Value, f64, f64)> {
+    let v = image.read_values(ctx)?;
+    let mut line = serde_json::json!({ "step": step, "frame": frame, "l1": v.l1, "ssim": v.ssim, "loss": v.loss, "psnr_train": v.psnr, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": seconds });
+    if let Some(c) = cloth {
         line["cloth"] = json_value(&c.read_values(ctx)?);
     }
-    if let Some(l) = losses.lpips.as_deref_mut() {
-        line["lpips"] = l.read_value(ctx)?.into();
+    if let Some(l) = v.lpips {
+        line["lpips"] = l.into();
     }
     if let Some(r) = refiner {
         // Mean over training frames of the largest joint correction and of the
@@ -799,7 +790,7 @@ fn log_line(ctx: &Context, losses: &mut StepLosses<'_>, avatar: &Avatar, refiner
         line["pose_correction_rad"] = rot.into();
         line["translation_correction"] = tr.into();
     }
-    Ok((line, l1, psnr))
+    Ok((line, v.l1, v.psnr))
 }
 
 /// Densifies and prunes every layer after `step + 1` steps; everything sized by the
@@ -934,7 +925,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
         c.set_mask_in_composite(true);
     }
-    let mut lpips = match &lpips_weights {
+    let lpips = match &lpips_weights {
         Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
         _ => None,
     };
@@ -942,10 +933,10 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let (initial, _) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(None), progress)?;
 
     // 2. The main loop: a step is one submission and one host wait (`step`).
-    let mut buffers = StepBuffers::new(ctx, width, height, config.lambda_l1)?;
-    let mut ssim = Ssim::new(ctx, width, height)?;
+    let mut buffers = StepBuffers::new(ctx, width, height)?;
+    let weights = ImageLossWeights { l1: config.lambda_l1, ssim: config.lambda_ssim, lpips: config.lambda_lpips };
+    let mut image_losses = ImageLosses::new(ctx, width, height, weights, lpips)?;
     let settings = RenderSettings::default();
-    let weights = ImageLossWeights { ssim: config.lambda_ssim, lpips: config.lambda_lpips };
     let t_train = Instant::now();
     let mut skips = SkipGuard::new(config.max_skipped_steps);
     let mut waits = HostWaits::default();
@@ -978,7 +969,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         let mut attempts = 0;
         let outcome = loop {
             attempts += 1;
-            let mut st = Stages { avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), ssim: &ssim, lpips: lpips.as_ref(), settings: &settings, weights, pose_gradient: refiner.is_some(), screen_stats: densifying(step), masked: !whole_image };
+            let mut st = Stages { avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), image_losses: &mut image_losses, settings: &settings, pose_gradient: refiner.is_some(), screen_stats: densifying(step), masked: !whole_image };
             match step::run(ctx, &mut st, &mut buffers, &s)? {
                 StepOutcome::Overflowed => continue,
                 done => break done,
@@ -1001,10 +992,10 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         lap.host("host.pose_gradient");
         let logging = step % config.log_every.max(1) == 0 || step + 1 == stop_at;
         if logging {
-            let mut losses = StepLosses { buffers: &mut buffers, ssim: &mut ssim, cloth: cloth_losses.as_mut(), lpips: lpips.as_mut() };
-            let (line, l1, psnr) = log_line(ctx, &mut losses, &avatar, refiner.as_ref(), config, step, s.frame.frame)?;
+            let seconds = t_train.elapsed().as_secs_f64();
+            let (line, l1, psnr) = log_line(ctx, &mut image_losses, cloth_losses.as_mut(), &avatar, refiner.as_ref(), step, s.frame.frame, seconds)?;
             writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            let it_per_s = f64::from(step + 1 - start_step) / t_train.elapsed().as_secs_f64().max(1e-9);
+            let it_per_s = f64::from(step + 1 - start_step) / seconds.max(1e-9);
             progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr, it_per_s });
         }
         lap.host("host.log");
