@@ -16,7 +16,7 @@ use drape_engine::ops::lpips::Lpips;
 use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::ops::ssim::Ssim;
 use drape_engine::recorder::flat_grid;
-use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
 use drape_shared::adam::LossParams;
 use rand::{Rng, SeedableRng};
 
@@ -195,13 +195,17 @@ fn record_render<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a S
 fn record_losses<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
     let rgb = st.renderer.rgb();
     let l1 = &buffers.l1;
-    rec.pass("loss.l1_grad", Kernel::TrainL1Grad)
-        .read("pred", rgb)
-        .read("target", &buffers.target)
-        .write("grad", &buffers.grad_rgb)
-        .write("abs_error", &buffers.abs_error)
-        .push(l1)
-        .dispatch(flat_grid(l1.len))?;
+    rec.dispatch(
+        "loss.l1_grad",
+        kernels::train::L1Grad {
+            pred: rgb.read(),
+            target: buffers.target.read(),
+            grad: buffers.grad_rgb.write(),
+            abs_error: buffers.abs_error.write(),
+        },
+        l1,
+        flat_grid(l1.len),
+    )?;
     // λ (1 − SSIM) adds −λ ∂SSIM/∂rgb to the L1 gradient.
     st.ssim.record(rec, rgb, &buffers.target, Some((&buffers.grad_rgb, -st.weights.ssim)))?;
     if let Some(l) = st.lpips {
