@@ -25,10 +25,12 @@
 //! }, &params, [groups, 1, 1])?;
 //! ```
 //!
-//! The structs have no `Default` and private-free fields, so a binding left out, a
-//! binding the kernel lacks, a read-only buffer passed where the kernel writes (or the
-//! reverse) and push constants of the wrong type each fail to compile. Barriers are
-//! still derived from the kernel's declared accesses.
+//! The structs have no `Default`, so a binding left out, a binding the kernel lacks, a
+//! read-only buffer passed where the kernel writes (or the reverse) and push constants
+//! of another type each fail to compile (the examples below). What is left to run time
+//! are the device's limits: a range's offset alignment, `maxStorageBufferRange`, the
+//! workgroup counts, a texel buffer's usage and size. Barriers are still derived from
+//! the kernel's declared accesses (see [`crate::recorder`]).
 //!
 //! A kernel chosen at run time among variants with the same bindings and push
 //! constants (the atomic, compare-and-swap and fixed-point accumulations, the texel
@@ -75,6 +77,21 @@
 //!         values_in: b.read(),
 //!         scanned_histogram: b.read(),
 //!         keys_out: b.read(),
+//!         values_out: b.write(),
+//!         len_words: b.read(),
+//!     }, p, [1, 1, 1]).unwrap();
+//! }
+//! ```
+//!
+//! ```compile_fail,E0308
+//! // Push constants of another type than the kernel's do not compile.
+//! use drape_engine::{kernels, Buffer, Recording};
+//! fn pass<'a>(rec: &mut Recording<'a>, b: &'a Buffer, p: &drape_shared::scan::ScanParams) {
+//!     rec.dispatch("scatter", kernels::radix_sort::Scatter {
+//!         keys_in: b.read(),
+//!         values_in: b.read(),
+//!         scanned_histogram: b.read(),
+//!         keys_out: b.write(),
 //!         values_out: b.write(),
 //!         len_words: b.read(),
 //!     }, p, [1, 1, 1]).unwrap();

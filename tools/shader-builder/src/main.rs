@@ -154,7 +154,7 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     builder.multimodule = true;
     builder.release = true;
     // Keep the `OpName` of interface variables: the manifest names each binding after
-    // the kernel parameter, and the engine binds by those names.
+    // the kernel parameter, and the engine names its bindings structs' fields after them.
     builder.spirv_metadata = spirv_builder::SpirvMetadata::NameVariables;
     builder.target_dir_path = Some(target_dir);
     builder.build_script.defaults = false;

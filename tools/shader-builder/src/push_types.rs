@@ -171,3 +171,68 @@ fn scan(tokens: &[TokenTree], compute: &mut bool, push: &mut Option<String>) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(src: &str) -> Vec<(String, Option<String>)> {
+        file_push_types(&syn::parse_file(src).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn plain_entry_points_resolve_their_imports() {
+        let found = parse(
+            "use drape_shared::adam::{AdamParams, LossParams as Loss};
+             #[spirv(compute(threads(256)))]
+             pub fn step(#[spirv(push_constant)] p: &AdamParams, #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] x: &mut [f32]) {}
+             #[spirv(compute(threads(256)))]
+             pub fn loss(#[spirv(push_constant)] p: &Loss) {}
+             #[spirv(compute(threads(256)))]
+             pub fn full(#[spirv(push_constant)] p: &drape_shared::nn::GemmParams) {}
+             #[spirv(compute(threads(256)))]
+             pub fn none(#[spirv(storage_buffer, descriptor_set = 0, binding = 0)] x: &mut [f32]) {}
+             pub fn helper(p: &AdamParams) {}",
+        );
+        assert_eq!(
+            found,
+            vec![
+                ("step".to_string(), Some("drape_shared::adam::AdamParams".to_string())),
+                ("loss".to_string(), Some("drape_shared::adam::LossParams".to_string())),
+                ("full".to_string(), Some("drape_shared::nn::GemmParams".to_string())),
+                ("none".to_string(), None),
+            ]
+        );
+    }
+
+    #[test]
+    fn entry_points_of_a_macro_are_named_by_its_invocations() {
+        let found = parse(
+            "use drape_shared::triplane::TriplaneParams;
+             macro_rules! helper { ($x:expr) => { $x + 1 }; }
+             macro_rules! bwd_entry {
+                 ($name:ident, $t:ty) => {
+                     #[spirv(compute(threads(256)))]
+                     pub fn $name(#[spirv(push_constant)] p: &TriplaneParams, #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] x: &mut [$t]) {}
+                 };
+             }
+             macro_rules! raster_entry {
+                 ($name:ident) => {
+                     #[spirv(compute(threads(16, 16)))]
+                     pub fn $name(#[spirv(storage_buffer, descriptor_set = 0, binding = 0)] x: &mut [f32]) {}
+                 };
+             }
+             bwd_entry!(bwd_atomic, f32);
+             bwd_entry!(bwd_cas, u32);
+             raster_entry!(raster);",
+        );
+        assert_eq!(
+            found,
+            vec![
+                ("bwd_atomic".to_string(), Some("drape_shared::triplane::TriplaneParams".to_string())),
+                ("bwd_cas".to_string(), Some("drape_shared::triplane::TriplaneParams".to_string())),
+                ("raster".to_string(), None),
+            ]
+        );
+    }
+}
