@@ -17,7 +17,7 @@
 //! type (the one the kernel's source declares, recorded in the manifest by the shader
 //! builder), and [`Recording::dispatch`](crate::Recording::dispatch) records it:
 //!
-//! ```ignore
+//! ```text
 //! rec.dispatch("sort.scatter", kernels::radix_sort::Scatter {
 //!     keys_in: keys.read(),
 //!     keys_out: out.write(),
