@@ -36,19 +36,54 @@ fn a_kernel_chosen_at_run_time_must_fit_the_bindings() {
     let _ = rec.dispatch_as("test.add", Kernel::NnActFwd, kernels::train::AddInto { src: a.read(), dst: b.write() }, &params(), groups());
 }
 
-/// The variants of one kernel share one struct: each fits the others' bindings.
+/// Every kernel the ops choose at run time fits the struct they record it with (the
+/// same binding names and accesses, the same push constants), whichever variant the
+/// device gets: the atomic, compare-and-swap and fixed-point accumulations, the
+/// subgroup and half-precision rasterizers, the texel and storage reads.
 #[test]
-fn variants_with_the_same_bindings_share_a_struct() {
+fn variants_chosen_at_run_time_fit_the_struct_they_share() {
     use drape_engine::Bindings;
-    for k in [Kernel::SplatRasterizeFwdHalf, Kernel::SplatRasterizeFwdSubgroup, Kernel::SplatRasterizeFwdSubgroupHalf] {
-        assert!(kernels::splat::RasterizeFwd::fits(k), "{k:?}");
+    fn all_fit<'a, B: Bindings<'a>>(variants: &[Kernel]) {
+        for &k in variants {
+            assert!(B::fits(k), "{k:?} does not fit {:?}", B::KERNEL);
+        }
     }
-    for k in [Kernel::TriplaneSampleBwdCas, Kernel::TriplaneSampleBwdFixed] {
-        assert!(kernels::triplane::SampleBwdAtomic::fits(k), "{k:?}");
-    }
-    assert!(!kernels::train::AddInto::fits(Kernel::NnActFwd));
-    assert!(!kernels::splat::RasterizeFwd::fits(Kernel::SplatRasterizeBwdAtomic));
-    assert_eq!(Kernel::TrainAddInto.push_constant(), "drape_shared::adam::LossParams");
+    use Kernel as K;
+    all_fit::<kernels::radix_sort::Histogram>(&[K::RadixSortChunkHistogram, K::RadixSortChunkHistogramTexel]);
+    all_fit::<kernels::radix_sort::Scatter>(&[K::RadixSortChunkScatter, K::RadixSortChunkScatterTexel]);
+    all_fit::<kernels::radix_sort::ChunkHistogram>(&[K::RadixSortChunkHistogramTexel]);
+    all_fit::<kernels::radix_sort::ChunkHistogramPairs>(&[K::RadixSortChunkHistogramPairsTexel]);
+    all_fit::<kernels::radix_sort::ChunkScatterZip>(&[K::RadixSortChunkScatterZipTexel, K::RadixSortChunkScatterZipTexelU64]);
+    all_fit::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
+    all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[K::RadixSortChunkScatterPairsTexel, K::RadixSortChunkScatterPairsTexelU64]);
+    let gemms: Vec<Kernel> = Kernel::ALL.iter().copied().filter(|k| k.entry_point().starts_with("nn::gemm")).collect();
+    assert!(gemms.len() > 10, "{gemms:?}");
+    all_fit::<kernels::nn::GemmBlocked>(&gemms);
+    all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
+    all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
+    all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatRasterizeFwdSubgroup, K::SplatRasterizeFwdSubgroupHalf]);
+    all_fit::<kernels::splat::RasterizeFusedFwd>(&[K::SplatRasterizeFusedFwdHalf, K::SplatRasterizeFusedFwdSubgroup, K::SplatRasterizeFusedFwdSubgroupHalf]);
+    all_fit::<kernels::splat::RasterizeBwdAtomic>(&[
+        K::SplatRasterizeBwdCas,
+        K::SplatRasterizeBwdFixed,
+        K::SplatRasterizeBwdSubgroupAtomic,
+        K::SplatRasterizeBwdSubgroupCas,
+        K::SplatRasterizeBwdSubgroupFixed,
+    ]);
+    all_fit::<kernels::splat::RasterizeFusedBwdAtomic>(&[
+        K::SplatRasterizeFusedBwdCas,
+        K::SplatRasterizeFusedBwdFixed,
+        K::SplatRasterizeFusedBwdSubgroupAtomic,
+        K::SplatRasterizeFusedBwdSubgroupCas,
+        K::SplatRasterizeFusedBwdSubgroupFixed,
+    ]);
+    all_fit::<kernels::triplane::SampleBwdAtomic>(&[K::TriplaneSampleBwdCas, K::TriplaneSampleBwdFixed]);
+    // Other bindings or other push constants do not fit.
+    assert!(!kernels::train::AddInto::fits(K::NnActFwd));
+    assert!(!kernels::splat::RasterizeFwd::fits(K::SplatRasterizeBwdAtomic));
+    assert!(!kernels::radix_sort::Scatter::fits(K::RadixSortChunkScatterPairs));
+    assert_eq!(K::TrainAddInto.push_constant(), "drape_shared::adam::LossParams");
+    assert_eq!(K::SplatRasterizeFwd.push_constant(), "");
 }
 
 /// `err` is a binding error of `(pass, kernel)` naming `binding`, and its message holds
