@@ -1,6 +1,10 @@
 //! Generates the typed kernel handles (`enum Kernel`) from the committed manifest
 //! `shaders-rs/spirv/manifest.json`, embedding each module with `include_bytes!`.
 //! A kernel that is not in the manifest therefore does not compile.
+//!
+//! It also generates each kernel's bindings struct (`kernels::<module>::<Entry>`, see
+//! `src/bindings.rs`): one field per binding, typed by the access the SPIR-V declares,
+//! and the push-constant type the manifest records.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -35,6 +39,9 @@ fn main() {
     let mut requires = String::new();
     let mut requires_ballot = String::new();
     let mut requires_int64 = String::new();
+    let mut push_constant = String::new();
+    // Rust module -> its kernels' bindings structs.
+    let mut structs: std::collections::BTreeMap<String, String> = Default::default();
     for m in modules {
         let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
         let file = m["file"].as_str().expect("manifest.json: file");
@@ -73,6 +80,58 @@ fn main() {
             .map(|r| r.iter().any(|c| c.as_str() == Some("Int64")))
             .unwrap_or(false);
         let v = camel(name);
+        let params = match m.get("push_constant") {
+            Some(serde_json::Value::Null) => None,
+            Some(serde_json::Value::String(t)) => Some(t.clone()),
+            _ => panic!("manifest.json: {name}: 'push_constant' is not a type path or null (rebuild the shaders with tools/shader-builder)"),
+        };
+        writeln!(push_constant, "            Kernel::{v} => {:?},", params.as_deref().unwrap_or("")).unwrap();
+        let (module, function) = name.split_once("::").unwrap_or_else(|| panic!("manifest.json: entry point {name} is not module::function"));
+        let ty = camel(function);
+        let code = structs.entry(module.to_string()).or_default();
+        let mut fields = String::new();
+        let mut list = Vec::new();
+        for b in m["bindings"].as_array().unwrap() {
+            let binding = b["name"].as_str().unwrap();
+            let (access, what) = match b["access"].as_str().unwrap() {
+                "read" => ("Read", "read-only storage buffer: [`Buffer::read`](crate::Buffer::read) or [`read_range`](crate::Buffer::read_range)"),
+                "read_write" => ("Write", "written storage buffer: [`Buffer::write`](crate::Buffer::write) or [`write_range`](crate::Buffer::write_range)"),
+                "texel" => ("Texel", "uniform texel buffer of `f32`: [`Buffer::texel`](crate::Buffer::texel)"),
+                _ => ("Texel", "uniform texel buffer of 4 floats a texel: [`Buffer::texel`](crate::Buffer::texel)"),
+            };
+            writeln!(fields, "        /// Binding {} `{binding}`, a {what}.\n        pub {binding}: crate::bindings::{access}<'a>,", list.len()).unwrap();
+            list.push(format!("self.{binding}.0"));
+        }
+        let params_ty = params.clone().unwrap_or_else(|| "()".to_string());
+        let params_doc = match &params {
+            Some(t) => format!("push constants `{t}`"),
+            None => "no push constants".to_string(),
+        };
+        write!(
+            code,
+            "    /// The bindings of kernel `{name}` ([`Kernel::{v}`](crate::Kernel::{v})), {params_doc}.
+    pub struct {ty}<'a> {{
+{fields}    }}
+
+    impl<'a> crate::bindings::Bindings<'a> for {ty}<'a> {{
+        const KERNEL: crate::Kernel = crate::Kernel::{v};
+        type Params = {params_ty};
+        type List = [crate::bindings::Bound<'a>; {n}];
+        fn into_list(self) -> Self::List {{
+            [{items}]
+        }}
+    }}
+
+    const _: () = assert!(
+        core::mem::size_of::<{params_ty}>() <= crate::kernels::PUSH_CONSTANT_BYTES as usize,
+        \"the push constants of {name} are larger than the pipeline layout's range\"
+    );
+
+",
+            n = list.len(),
+            items = list.join(", "),
+        )
+        .unwrap();
         writeln!(requires_int64, "            Kernel::{v} => {needs_int64},").unwrap();
         writeln!(requires, "            Kernel::{v} => {needs_atomics},").unwrap();
         writeln!(requires_ballot, "            Kernel::{v} => {needs_ballot},").unwrap();
@@ -141,6 +200,13 @@ impl Kernel {{
 {bindings}        }}
     }}
 
+    /// The path of the push-constant type the kernel's source declares (\"\" for none),
+    /// as the manifest records it.
+    pub const fn push_constant(self) -> &'static str {{
+        match self {{
+{push_constant}        }}
+    }}
+
     /// Number of buffer bindings (numbered 0..n).
     pub const fn binding_count(self) -> u32 {{
         self.bindings().len() as u32
@@ -148,6 +214,19 @@ impl Kernel {{
 }}
 "
     );
+    let mut code = code;
+    for (module, items) in &structs {
+        write!(
+            code,
+            "/// Bindings structs of the kernels of the kernels crate's module `{module}` (see
+/// [`crate::bindings`]).
+pub mod {module} {{
+{items}}}
+
+"
+        )
+        .unwrap();
+    }
     let out = PathBuf::from(std::env::var("OUT_DIR").unwrap()).join("kernels_generated.rs");
     std::fs::write(out, code).unwrap();
 }

@@ -75,9 +75,10 @@ pub enum EngineError {
         detail: String,
     },
 
-    /// A pass binds its buffers against what the kernel's SPIR-V declares: a name the
-    /// kernel lacks, a binding left unbound or bound twice, or an access that disagrees
-    /// with the declaration (writing through a `NonWritable` binding).
+    /// A binding the device cannot take as the kernel declares it: a range bound where
+    /// the kernel reads a texel buffer, or a texel binding's buffer made without texel
+    /// usage or past `maxTexelBufferElements`. (Missing, unknown and wrongly accessed
+    /// bindings do not compile: see [`crate::bindings`].)
     #[error("pass '{pass}': kernel '{kernel}', binding '{binding}': {problem}")]
     Binding {
         /// The pass being recorded.

@@ -20,6 +20,7 @@
 /// The `ash` the engine is built on, for the raw handles its embedding API takes.
 pub use ash;
 
+pub mod bindings;
 pub mod buffer;
 pub mod context;
 pub mod error;
@@ -31,11 +32,12 @@ pub mod recorder;
 pub mod submit;
 pub mod validation;
 
+pub use bindings::{Bindings, Read, Texel, Write};
 pub use buffer::{Buffer, BufferDesc};
 pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
 pub use error::{EngineError, Result};
 pub use external::{device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan};
 pub use kernels::Kernel;
 pub use profile::{Profile, ProfileEntry};
-pub use recorder::{ImageTarget, PassBuilder, PassTimings, Recording};
+pub use recorder::{ImageTarget, PassTimings, Recording};
 pub use submit::{FramesInFlight, HostCommandBuffer, HostRecorded, SubmitSync, Submission};

@@ -1,15 +1,14 @@
-//! Command recording: named compute passes bound by name, barriers derived from the
-//! kernels' declared accesses, copies and fills, per-pass GPU timestamps, and a
-//! breadcrumb written as each pass starts so that a lost device reports the pass that
-//! was running.
+//! Command recording: named compute passes bound through typed bindings, barriers
+//! derived from the kernels' declared accesses, copies and fills, per-pass GPU
+//! timestamps, and a breadcrumb written as each pass starts so that a lost device
+//! reports the pass that was running.
 //!
-//! A pass reads like a sentence:
-//! `rec.pass("sort.scatter", Kernel::RadixSortScatter).read("keys_in", &keys).write("keys_out", &out).push(&params).dispatch([groups, 1, 1])?`.
-//! Each buffer is bound to the kernel parameter of that name (the manifest records the
-//! names and which bindings the SPIR-V declares `NonWritable`); `read` is for those,
-//! `write` for the rest. A name the kernel lacks, a binding left unbound or bound twice,
-//! or a verb that disagrees with the declaration is an [`EngineError::Binding`] naming
-//! the pass, the kernel and the binding.
+//! A pass names its kernel's bindings struct (generated from the manifest, see
+//! [`crate::bindings`]), its push constants and its grid:
+//! `rec.dispatch("sort.scatter", kernels::radix_sort::Scatter { keys_in: keys.read(), keys_out: out.write(), .. }, &params, [groups, 1, 1])?`.
+//! A binding left out, one the kernel lacks, a read-only buffer where the kernel writes
+//! and push constants of another type do not compile; a kernel chosen at run time among
+//! variants with the same bindings goes through [`Recording::dispatch_as`].
 //!
 //! Barriers are not placed by hand. Commands (dispatches, copies, fills, updates) are
 //! collected with the buffers they read and write, and each is scheduled into the first
@@ -28,6 +27,7 @@ use std::marker::PhantomData;
 
 use ash::vk;
 
+use crate::bindings::{Bindings, Bound};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result, VkResultExt};
@@ -292,151 +292,6 @@ enum Resource {
     Image(vk::Image),
 }
 
-/// One binding of a pass: a buffer, or a byte range of one.
-#[derive(Clone, Copy)]
-struct Binding<'a> {
-    buffer: &'a Buffer,
-    offset: u64,
-    range: u64,
-}
-
-/// How the caller says a pass uses a binding; checked against the SPIR-V.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Access {
-    Read,
-    Write,
-}
-
-/// A compute pass being described; recorded by [`PassBuilder::dispatch`].
-///
-/// Buffers are bound by the kernel parameter's name. `read` is for a binding the
-/// SPIR-V declares `NonWritable` and `write` for one it does not, so a binding bound
-/// with the wrong verb (or two names swapped between a read and a write) is an error
-/// at [`PassBuilder::dispatch`], as is a name the kernel lacks or one left unbound.
-pub struct PassBuilder<'r, 'a> {
-    rec: &'r mut Recording<'a>,
-    name: String,
-    kernel: Kernel,
-    buffers: Vec<Option<Binding<'a>>>,
-    push: Vec<u8>,
-    error: Option<EngineError>,
-}
-
-impl<'a> PassBuilder<'_, 'a> {
-    /// Binds the kernel's read-only binding `binding` to the whole of `buffer`.
-    pub fn read(self, binding: &str, buffer: &'a Buffer) -> Self {
-        self.bind(binding, Access::Read, Binding { buffer, offset: 0, range: buffer.vk_size() })
-    }
-
-    /// Binds the kernel's writable binding `binding` to the whole of `buffer` (the
-    /// kernel may read it too).
-    pub fn write(self, binding: &str, buffer: &'a Buffer) -> Self {
-        self.bind(binding, Access::Write, Binding { buffer, offset: 0, range: buffer.vk_size() })
-    }
-
-    /// Binds read-only `binding` to `bytes` bytes of `buffer` from `offset` (a multiple
-    /// of the device's `minStorageBufferOffsetAlignment`): for a buffer larger than one
-    /// binding may cover, processed in chunks.
-    pub fn read_range(self, binding: &str, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
-        let b = self.checked_range(buffer, offset, bytes);
-        self.bind(binding, Access::Read, b)
-    }
-
-    /// Binds writable `binding` to `bytes` bytes of `buffer` from `offset`.
-    pub fn write_range(self, binding: &str, buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
-        let b = self.checked_range(buffer, offset, bytes);
-        self.bind(binding, Access::Write, b)
-    }
-
-    fn checked_range(&self, buffer: &'a Buffer, offset: u64, bytes: u64) -> Binding<'a> {
-        let align = self.rec.ctx.info().min_storage_buffer_offset_alignment;
-        assert!(offset % align == 0, "pass '{}': offset {offset} into '{}' is not a multiple of {align}", self.name, buffer.name());
-        assert!(offset + bytes <= buffer.vk_size() && bytes > 0, "pass '{}': bytes {offset}..{} of '{}' ({} bytes)", self.name, offset + bytes, buffer.name(), buffer.size);
-        Binding { buffer, offset, range: bytes }
-    }
-
-    fn bind(mut self, binding: &str, access: Access, b: Binding<'a>) -> Self {
-        if self.error.is_some() {
-            return self;
-        }
-        let problem = match self.kernel.binding_index(binding) {
-            None => Some(format!(
-                "the kernel has no binding of that name (it has {})",
-                self.kernel.bindings().iter().map(|d| d.name).collect::<Vec<_>>().join(", ")
-            )),
-            Some(i) if self.buffers[i].is_some() => Some("bound twice".to_string()),
-            Some(i) if self.kernel.bindings()[i].texel && (b.offset != 0 || b.range != b.buffer.vk_size()) => Some(format!(
-                "a texel binding reads the whole buffer through its view; bind '{}' with read(), not a range",
-                b.buffer.name()
-            )),
-            Some(i) => {
-                let read_only = self.kernel.bindings()[i].read_only;
-                match (access, read_only) {
-                    (Access::Write, true) => Some(format!(
-                        "bound with write() but the SPIR-V declares it read-only (NonWritable); bind '{}' with read()",
-                        b.buffer.name()
-                    )),
-                    (Access::Read, false) => Some(format!(
-                        "bound with read() but the SPIR-V declares it writable; bind '{}' with write()",
-                        b.buffer.name()
-                    )),
-                    _ => {
-                        self.buffers[i] = Some(b);
-                        None
-                    }
-                }
-            }
-        };
-        if let Some(problem) = problem {
-            self.error = Some(self.binding_error(binding, problem));
-        }
-        self
-    }
-
-    fn binding_error(&self, binding: &str, problem: String) -> EngineError {
-        EngineError::Binding { pass: self.name.clone(), kernel: self.kernel.entry_point(), binding: binding.to_string(), problem }
-    }
-
-    /// The push constants (a `#[repr(C)]` struct from `drape-shared`).
-    pub fn push<T: bytemuck::Pod>(mut self, params: &T) -> Self {
-        self.push = bytemuck::bytes_of(params).to_vec();
-        self
-    }
-
-    /// Records the dispatch of `groups` workgroups (nothing for an empty grid), after a
-    /// barrier when one is needed (see [`Recording`]).
-    pub fn dispatch(self, groups: [u32; 3]) -> Result<()> {
-        if let Some(e) = self.error {
-            return Err(e);
-        }
-        if let Some(i) = self.buffers.iter().position(Option::is_none) {
-            let decl = self.kernel.bindings()[i];
-            return Err(self.binding_error(decl.name, "left unbound".to_string()));
-        }
-        let PassBuilder { rec, name, kernel, buffers, push, .. } = self;
-        let buffers: Vec<Binding<'_>> = buffers.into_iter().flatten().collect();
-        assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
-        assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
-        // A grid past the device's limit is a size the caller could not foresee (an op
-        // sized by its input), so it is an error naming the pass, not a panic.
-        let max = rec.ctx.info().max_compute_workgroup_count;
-        // Likewise a binding past what one storage-buffer descriptor may cover.
-        // (A texel binding's limit, maxTexelBufferElements, is checked with its view.)
-        let range_limit = rec.ctx.info().max_storage_buffer_range;
-        if let Some((b, _)) = buffers.iter().zip(kernel.bindings()).find(|(b, decl)| !decl.texel && b.range > range_limit) {
-            let what = format!("bytes bound of buffer '{}' in pass '{name}'", b.buffer.name());
-            return Err(EngineError::too_large(what, b.range, range_limit, "the device's maxStorageBufferRange"));
-        }
-        if let Some(axis) = (0..3).find(|&a| groups[a] > max[a]) {
-            let what = format!("workgroups along {} in pass '{name}' (grid {groups:?})", ["x", "y", "z"][axis]);
-            return Err(EngineError::too_large(what, u64::from(groups[axis]), u64::from(max[axis]), "the device's maxComputeWorkGroupCount"));
-        }
-        if groups.contains(&0) {
-            return Ok(());
-        }
-        rec.record_dispatch(&name, kernel, &buffers, &push, groups)
-    }
-}
 
 /// A command waiting in a recording for its wave.
 enum Command {
@@ -461,10 +316,69 @@ impl<'a> Recording<'a> {
         self.scope = scope.to_string();
     }
 
-    /// Describes a compute pass named `name` running `kernel`.
-    pub fn pass<'r>(&'r mut self, name: &str, kernel: Kernel) -> PassBuilder<'r, 'a> {
-        let buffers = vec![None; kernel.bindings().len()];
-        PassBuilder { rec: self, name: name.to_string(), kernel, buffers, push: Vec::new(), error: None }
+    /// Records the compute pass `name`: `bindings`' kernel (see [`crate::bindings`])
+    /// dispatched as `groups` workgroups with push constants `params` (nothing for an
+    /// empty grid), after a barrier when one is needed (see [`Recording`]).
+    ///
+    /// The bindings are checked by the compiler; left to run time are the device's
+    /// limits (a range's offset alignment, `maxStorageBufferRange`,
+    /// `maxComputeWorkGroupCount`, a texel buffer's usage and size), each an error or a
+    /// panic naming the pass.
+    pub fn dispatch<B: Bindings<'a>>(&mut self, name: &str, bindings: B, params: &B::Params, groups: [u32; 3]) -> Result<()> {
+        let list = bindings.into_list();
+        self.checked_dispatch(name, B::KERNEL, list.as_ref(), bytemuck::bytes_of(params), groups)
+    }
+
+    /// [`dispatch`](Self::dispatch) for a kernel chosen at run time among variants
+    /// that share `bindings`' struct: panics unless `kernel` fits it
+    /// ([`Bindings::fits`]: the same binding names, accesses and push constants).
+    pub fn dispatch_as<B: Bindings<'a>>(&mut self, name: &str, kernel: Kernel, bindings: B, params: &B::Params, groups: [u32; 3]) -> Result<()> {
+        assert!(
+            B::fits(kernel),
+            "pass '{name}': kernel {} does not fit the bindings of {}",
+            kernel.entry_point(),
+            B::KERNEL.entry_point()
+        );
+        let list = bindings.into_list();
+        self.checked_dispatch(name, kernel, list.as_ref(), bytemuck::bytes_of(params), groups)
+    }
+
+    /// The run-time checks of a pass whose bindings are complete and of the declared
+    /// accesses, then its recording.
+    fn checked_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Bound<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
+        let rec = self;
+        assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
+        assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
+        let align = rec.ctx.info().min_storage_buffer_offset_alignment;
+        for (b, decl) in buffers.iter().zip(kernel.bindings()) {
+            assert!(b.offset % align == 0, "pass '{name}': offset {} into '{}' is not a multiple of {align}", b.offset, b.buffer.name());
+            if decl.texel && !b.is_whole() {
+                return Err(EngineError::Binding {
+                    pass: name.to_string(),
+                    kernel: kernel.entry_point(),
+                    binding: decl.name.to_string(),
+                    problem: format!("a texel binding reads the whole buffer through its view; bind '{}' whole, not a range", b.buffer.name()),
+                });
+            }
+        }
+        // A grid past the device's limit is a size the caller could not foresee (an op
+        // sized by its input), so it is an error naming the pass, not a panic.
+        let max = rec.ctx.info().max_compute_workgroup_count;
+        // Likewise a binding past what one storage-buffer descriptor may cover.
+        // (A texel binding's limit, maxTexelBufferElements, is checked with its view.)
+        let range_limit = rec.ctx.info().max_storage_buffer_range;
+        if let Some((b, _)) = buffers.iter().zip(kernel.bindings()).find(|(b, decl)| !decl.texel && b.range > range_limit) {
+            let what = format!("bytes bound of buffer '{}' in pass '{name}'", b.buffer.name());
+            return Err(EngineError::too_large(what, b.range, range_limit, "the device's maxStorageBufferRange"));
+        }
+        if let Some(axis) = (0..3).find(|&a| groups[a] > max[a]) {
+            let what = format!("workgroups along {} in pass '{name}' (grid {groups:?})", ["x", "y", "z"][axis]);
+            return Err(EngineError::too_large(what, u64::from(groups[axis]), u64::from(max[axis]), "the device's maxComputeWorkGroupCount"));
+        }
+        if groups.contains(&0) {
+            return Ok(());
+        }
+        rec.record_dispatch(name, kernel, buffers, push, groups)
     }
 
     /// Number of pipeline barriers the recording will have: one between consecutive
@@ -576,7 +490,7 @@ impl<'a> Recording<'a> {
         self.schedule(&[(Resource::Buffer(src.raw), false), (Resource::Image(target.image), true)], Command::CopyToImage { src: src.raw, image: target.image, layout: target.layout, region });
     }
 
-    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Binding<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
+    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Bound<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
         let pipeline = self.ctx.pipeline(kernel)?;
         let max_texels = self.ctx.info().max_texel_buffer_elements;
         let views: Vec<[vk::BufferView; 1]> = buffers

@@ -13,7 +13,7 @@ use drape_shared::fixed_point::{scratch_words, ResolveParams};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid, Recording};
 
 /// How a backward kernel accumulates its scatter-added gradients.
@@ -100,10 +100,14 @@ impl FixedPointScratch {
     /// NaN everywhere if a non-finite value was added.
     pub fn record_resolve<'a>(&'a self, rec: &mut Recording<'a>, out: &'a Buffer, count: u32) -> Result<()> {
         assert!(count <= self.capacity, "resolving {count} values from a scratch of {}", self.capacity);
-        rec.pass("fixed_point.resolve", Kernel::FixedPointResolve)
-            .read("scratch", &self.buffer)
-            .write("out", out)
-            .push(&ResolveParams { count, _pad: [0; 3] })
-            .dispatch(flat_grid(count))
+        rec.dispatch(
+            "fixed_point.resolve",
+            kernels::fixed_point::Resolve {
+                scratch: self.buffer.read(),
+                out: out.write(),
+            },
+            &ResolveParams { count, _pad: [0; 3] },
+            flat_grid(count),
+        )
     }
 }

@@ -13,7 +13,7 @@ use drape_shared::adam::AdamParams;
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::ops::splat::render::GaussianBuffers;
 use crate::recorder::{flat_grid, Recording};
 
@@ -108,13 +108,17 @@ impl AdamGroup {
         let lr = self.lr();
         self.step.set(self.step.get() + 1);
         let pc = step_params(self.len as u32, lr, self.beta1, self.beta2, self.eps, self.step.get());
-        rec.pass("adam.step", Kernel::TrainAdamStep)
-            .write("params", params)
-            .read("grads", grads)
-            .write("m", &self.m)
-            .write("v", &self.v)
-            .push(&pc)
-            .dispatch(flat_grid(pc.len))
+        rec.dispatch(
+            "adam.step",
+            kernels::train::AdamStep {
+                params: params.write(),
+                grads: grads.read(),
+                m: self.m.write(),
+                v: self.v.write(),
+            },
+            &pc,
+            flat_grid(pc.len),
+        )
     }
 
     /// Records one step like [`record_step`](Self::record_step) that the GPU applies
@@ -125,14 +129,18 @@ impl AdamGroup {
     pub fn record_guarded_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer, guard: &'a Buffer) -> Result<()> {
         assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
         let pc = step_params(self.len as u32, self.lr(), self.beta1, self.beta2, self.eps, self.step.get() + 1);
-        rec.pass("adam.step", Kernel::TrainAdamStepGuarded)
-            .write("params", params)
-            .read("grads", grads)
-            .write("m", &self.m)
-            .write("v", &self.v)
-            .read("guard", guard)
-            .push(&pc)
-            .dispatch(flat_grid(pc.len))
+        rec.dispatch(
+            "adam.step",
+            kernels::train::AdamStepGuarded {
+                params: params.write(),
+                grads: grads.read(),
+                m: self.m.write(),
+                v: self.v.write(),
+                guard: guard.read(),
+            },
+            &pc,
+            flat_grid(pc.len),
+        )
     }
 
     /// Counts a step of [`record_guarded_step`](Self::record_guarded_step) the GPU

@@ -22,7 +22,7 @@ use drape_shared::real::Real;
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::ops::accumulate::FixedPointScratch;
 use crate::ops::radix_sort::RadixSort;
 use crate::recorder::{flat_grid as grid, Recording};
@@ -82,29 +82,33 @@ impl GridScratch {
         rec.fill(&self.bounds, 0);
         rec.fill(&self.start, 0);
         rec.fill(&self.end, 0);
-        rec.pass("chamfer.grid_bounds", Kernel::ClothLossBounds).read("points", points).write("bounds", &self.bounds).push(&p).dispatch(grid(np))?;
-        rec.pass("chamfer.grid_keys", Kernel::ClothLossCellKeys).read("points", points).read("bounds", &self.bounds).write("keys", &self.keys).write("values", &self.order).push(&p).dispatch(grid(np))?;
+        rec.dispatch("chamfer.grid_bounds", kernels::cloth_loss::Bounds { points: points.read(), bounds: self.bounds.write() }, &p, grid(np))?;
+        rec.dispatch("chamfer.grid_keys", kernels::cloth_loss::CellKeys { points: points.read(), bounds: self.bounds.read(), keys: self.keys.write(), values: self.order.write() }, &p, grid(np))?;
         self.sort.record(rec, &self.keys, &self.order, np, GRID_CELL_BITS)?;
-        rec.pass("chamfer.grid_ranges", Kernel::ClothLossCellRanges).read("keys", &self.keys).write("start", &self.start).write("end", &self.end).push(&p).dispatch(grid(np))?;
+        rec.dispatch("chamfer.grid_ranges", kernels::cloth_loss::CellRanges { keys: self.keys.read(), start: self.start.write(), end: self.end.write() }, &p, grid(np))?;
         let q = GridParams { queries: nq, points: np, _pad: [0; 2] };
-        rec.pass("chamfer.grid_search", Kernel::ClothLossNearestGrid)
-            .read("queries", queries)
-            .read("points", points)
-            .read("bounds", &self.bounds)
-            .read("start", &self.start)
-            .read("end", &self.end)
-            .read("order", &self.order)
-            .write("index_out", index_out)
-            .write("d2_out", d2_out)
-            .push(&q)
-            .dispatch(grid(nq))?;
+        rec.dispatch(
+            "chamfer.grid_search",
+            kernels::cloth_loss::NearestGrid {
+                queries: queries.read(),
+                points: points.read(),
+                bounds: self.bounds.read(),
+                start: self.start.read(),
+                end: self.end.read(),
+                order: self.order.read(),
+                index_out: index_out.write(),
+                d2_out: d2_out.write(),
+            },
+            &q,
+            grid(nq),
+        )?;
         // Queries the grid left unfinished (over the step budget) by brute force; a
         // workgroup with none returns at once.
         let chunks = np.div_ceil(CHAMFER_CHUNK);
         for (k, offset) in (0..np).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let last = if k + 1 == chunks as usize { CHAMFER_LAST } else { 0 };
             let f = ChamferParams { queries: nq, points: np, offset, flags: CHAMFER_FINISH | last, ..Default::default() };
-            rec.pass("chamfer.grid_finish", Kernel::ClothLossNearest).read("queries", queries).read("points", points).write("index_out", index_out).write("d2_out", d2_out).push(&f).dispatch(grid(nq))?;
+            rec.dispatch("chamfer.grid_finish", kernels::cloth_loss::Nearest { queries: queries.read(), points: points.read(), index_out: index_out.write(), d2_out: d2_out.write() }, &f, grid(nq))?;
         }
         Ok(())
     }
@@ -195,22 +199,30 @@ impl Chamfer {
             if let Some((g, lambda)) = grad {
                 let p = ChamferParams { queries: m, points: n, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, ..Default::default() };
                 gs.target_terms.record_clear(rec);
-                rec.pass("chamfer.grad_scatter", Kernel::ClothLossChamferGradScatter)
-                    .read("pred", pred)
-                    .read("target", target)
-                    .read("target_nearest", &this.target_nearest)
-                    .write("scratch", gs.target_terms.buffer())
-                    .push(&p)
-                    .dispatch(grid(m))?;
+                rec.dispatch(
+                    "chamfer.grad_scatter",
+                    kernels::cloth_loss::ChamferGradScatter {
+                        pred: pred.read(),
+                        target: target.read(),
+                        target_nearest: this.target_nearest.read(),
+                        scratch: gs.target_terms.buffer().write(),
+                    },
+                    &p,
+                    grid(m),
+                )?;
                 let q = ChamferParams { queries: n, points: m, ..p };
-                rec.pass("chamfer.grad_gather", Kernel::ClothLossChamferGradGather)
-                    .read("pred", pred)
-                    .read("target", target)
-                    .read("pred_nearest", &this.pred_nearest)
-                    .read("scratch", gs.target_terms.buffer())
-                    .write("grad", g)
-                    .push(&q)
-                    .dispatch(grid(n))?;
+                rec.dispatch(
+                    "chamfer.grad_gather",
+                    kernels::cloth_loss::ChamferGradGather {
+                        pred: pred.read(),
+                        target: target.read(),
+                        pred_nearest: this.pred_nearest.read(),
+                        scratch: gs.target_terms.buffer().read(),
+                        grad: g.write(),
+                    },
+                    &q,
+                    grid(n),
+                )?;
             }
             return Ok(());
         }
@@ -219,16 +231,16 @@ impl Chamfer {
         // barriers, the two directions are independent.
         for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let p = ChamferParams { queries: n, points: m, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.pass("chamfer.nearest_pred", Kernel::ClothLossNearest).read("queries", pred).read("points", target).write("index_out", &this.pred_nearest).write("d2_out", &this.pred_d2).push(&p).dispatch(grid(n))?;
+            rec.dispatch("chamfer.nearest_pred", kernels::cloth_loss::Nearest { queries: pred.read(), points: target.read(), index_out: this.pred_nearest.write(), d2_out: this.pred_d2.write() }, &p, grid(n))?;
         }
         for (k, offset) in (0..n).step_by(CHAMFER_CHUNK as usize).enumerate() {
             let p = ChamferParams { queries: m, points: n, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.pass("chamfer.nearest_target", Kernel::ClothLossNearest).read("queries", target).read("points", pred).write("index_out", &this.target_nearest).write("d2_out", &this.target_d2).push(&p).dispatch(grid(m))?;
+            rec.dispatch("chamfer.nearest_target", kernels::cloth_loss::Nearest { queries: target.read(), points: pred.read(), index_out: this.target_nearest.write(), d2_out: this.target_d2.write() }, &p, grid(m))?;
         }
         if let Some((g, lambda)) = grad {
             for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
                 let p = ChamferParams { queries: n, points: m, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, offset, flags: if k == 0 { CHAMFER_OWN_TERM } else { 0 }, _pad: 0 };
-                rec.pass("chamfer.grad", Kernel::ClothLossChamferGrad).read("pred", pred).read("target", target).read("pred_nearest", &this.pred_nearest).read("target_nearest", &this.target_nearest).write("grad", g).push(&p).dispatch(grid(n))?;
+                rec.dispatch("chamfer.grad", kernels::cloth_loss::ChamferGrad { pred: pred.read(), target: target.read(), pred_nearest: this.pred_nearest.read(), target_nearest: this.target_nearest.read(), grad: g.write() }, &p, grid(n))?;
             }
         }
         Ok(())
@@ -292,10 +304,10 @@ impl Arap {
     /// and, with `grad = Some((buffer, λ))`, adds `λ ∂var/∂positions` to it.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, positions: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let p = ArapParams { edges: self.edges, vertices: self.vertices, scale: grad.map_or(0.0, |g| g.1), _pad: 0 };
-        rec.pass("arap.lengths", Kernel::ClothLossArapLengths).read("positions", positions).read("edges", &self.edge_list).write("lengths", &self.lengths).push(&p).dispatch(grid(self.edges))?;
-        rec.pass("arap.stats", Kernel::ClothLossArapStats).read("lengths", &self.lengths).write("stats", &self.stats).push(&p).dispatch([1, 1, 1])?;
+        rec.dispatch("arap.lengths", kernels::cloth_loss::ArapLengths { positions: positions.read(), edges: self.edge_list.read(), lengths: self.lengths.write() }, &p, grid(self.edges))?;
+        rec.dispatch("arap.stats", kernels::cloth_loss::ArapStats { lengths: self.lengths.read(), stats: self.stats.write() }, &p, [1, 1, 1])?;
         if let Some((g, _)) = grad {
-            rec.pass("arap.grad", Kernel::ClothLossArapGrad).read("positions", positions).read("offsets", &self.offsets).read("neighbours", &self.neighbours).read("stats", &self.stats).write("grad", g).push(&p).dispatch(grid(self.vertices))?;
+            rec.dispatch("arap.grad", kernels::cloth_loss::ArapGrad { positions: positions.read(), offsets: self.offsets.read(), neighbours: self.neighbours.read(), stats: self.stats.read(), grad: g.write() }, &p, grid(self.vertices))?;
         }
         Ok(())
     }

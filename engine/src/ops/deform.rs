@@ -21,7 +21,7 @@ use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 
 use crate::buffer::Buffer;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid, Recording};
 
 /// The per-Gaussian inputs of a deformation, on the GPU (n Gaussians).
@@ -51,20 +51,24 @@ pub struct DeformInputs<'a> {
 #[allow(clippy::too_many_arguments)]
 pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32, log_scale_offset: f32) -> Result<()> {
     let p = DeformParams { count, log_scale_offset, _pad: [0; 2] };
-    rec.pass("deform.fwd", Kernel::DeformDeformFwd)
-        .read("transforms", inputs.transforms)
-        .read("means", inputs.means)
-        .read("quats", inputs.quats)
-        .read("log_scales", inputs.log_scales)
-        .read("offsets", inputs.offsets)
-        .read("rot6d", inputs.rot6d)
-        .read("deltas", inputs.log_scale_deltas)
-        .read("weights", inputs.weights)
-        .write("posed_means", posed_means)
-        .write("posed_quats", posed_quats)
-        .write("posed_log_scales", posed_log_scales)
-        .push(&p)
-        .dispatch([count.div_ceil(256), 1, 1])
+    rec.dispatch(
+        "deform.fwd",
+        kernels::deform::DeformFwd {
+            transforms: inputs.transforms.read(),
+            means: inputs.means.read(),
+            quats: inputs.quats.read(),
+            log_scales: inputs.log_scales.read(),
+            offsets: inputs.offsets.read(),
+            rot6d: inputs.rot6d.read(),
+            deltas: inputs.log_scale_deltas.read(),
+            weights: inputs.weights.read(),
+            posed_means: posed_means.write(),
+            posed_quats: posed_quats.write(),
+            posed_log_scales: posed_log_scales.write(),
+        },
+        &p,
+        [count.div_ceil(256), 1, 1],
+    )
 }
 
 /// The gradients [`record_backward`] writes (n rows each).
@@ -102,7 +106,7 @@ pub fn transform_partials_len(count: u32) -> usize {
 pub fn record_transform_grad<'a>(rec: &mut Recording<'a>, weights: &'a Buffer, terms: &'a Buffer, partials: &'a Buffer, count: u32) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
     // One workgroup per (chunk, joint); 65,535 chunks are 67M Gaussians.
-    rec.pass("deform.transform_grad", Kernel::DeformDeformTransformGrad).read("weights", weights).read("terms", terms).write("partials", partials).push(&p).dispatch([count.div_ceil(TRANSFORM_GRAD_CHUNK), SKIN_JOINTS as u32, 1])
+    rec.dispatch("deform.transform_grad", kernels::deform::DeformTransformGrad { weights: weights.read(), terms: terms.read(), partials: partials.write() }, &p, [count.div_ceil(TRANSFORM_GRAD_CHUNK), SKIN_JOINTS as u32, 1])
 }
 
 /// `∂L/∂A` (24 × 12, row-major 3x4 per joint) from the partial sums, chunks added in
@@ -130,24 +134,28 @@ pub fn record_backward<'a>(
     count: u32,
 ) -> Result<()> {
     let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
-    rec.pass("deform.bwd", Kernel::DeformDeformBwd)
-        .read("transforms", inputs.transforms)
-        .read("means", inputs.means)
-        .read("quats", inputs.quats)
-        .read("offsets", inputs.offsets)
-        .read("rot6d", inputs.rot6d)
-        .read("weights", inputs.weights)
-        .read("grad_posed_means", grad_posed_means)
-        .read("grad_posed_quats", grad_posed_quats)
-        .read("grad_posed_log_scales", grad_posed_log_scales)
-        .write("grad_means", out.means)
-        .write("grad_offsets", out.offsets)
-        .write("grad_rot6d", out.rot6d)
-        .write("grad_deltas", out.log_scale_deltas)
-        .write("grad_weights", out.weights)
-        .write("grad_transform_terms", out.transform_terms)
-        .push(&p)
-        .dispatch([count.div_ceil(256), 1, 1])
+    rec.dispatch(
+        "deform.bwd",
+        kernels::deform::DeformBwd {
+            transforms: inputs.transforms.read(),
+            means: inputs.means.read(),
+            quats: inputs.quats.read(),
+            offsets: inputs.offsets.read(),
+            rot6d: inputs.rot6d.read(),
+            weights: inputs.weights.read(),
+            grad_posed_means: grad_posed_means.read(),
+            grad_posed_quats: grad_posed_quats.read(),
+            grad_posed_log_scales: grad_posed_log_scales.read(),
+            grad_means: out.means.write(),
+            grad_offsets: out.offsets.write(),
+            grad_rot6d: out.rot6d.write(),
+            grad_deltas: out.log_scale_deltas.write(),
+            grad_weights: out.weights.write(),
+            grad_transform_terms: out.transform_terms.write(),
+        },
+        &p,
+        [count.div_ceil(256), 1, 1],
+    )
 }
 
 /// Host copies of the inputs (flat, the GPU layout), for the CPU reference.
@@ -211,7 +219,7 @@ pub fn record_pose_blend_forward<'a>(rec: &mut Recording<'a>, basis: &'a Buffer,
         return Ok(());
     }
     let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.pass("deform.pose_blend_fwd", Kernel::DeformPoseBlendFwd).read("basis", basis).read("features", features).read("decoded", decoded).write("offsets", offsets).push(&p).dispatch(flat_grid(count))
+    rec.dispatch("deform.pose_blend_fwd", kernels::deform::PoseBlendFwd { basis: basis.read(), features: features.read(), decoded: decoded.read(), offsets: offsets.write() }, &p, flat_grid(count))
 }
 
 /// Records the basis's gradient from the offsets' (kernel `deform::pose_blend_bwd`).
@@ -224,7 +232,7 @@ pub fn record_pose_blend_backward<'a>(rec: &mut Recording<'a>, features: &'a Buf
         return Ok(());
     }
     let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.pass("deform.pose_blend_bwd", Kernel::DeformPoseBlendBwd).read("features", features).read("grad_offsets", grad_offsets).write("grad_basis", grad_basis).push(&p).dispatch(flat_grid(count * POSE_BLEND_FLOATS as u32))
+    rec.dispatch("deform.pose_blend_bwd", kernels::deform::PoseBlendBwd { features: features.read(), grad_offsets: grad_offsets.read(), grad_basis: grad_basis.write() }, &p, flat_grid(count * POSE_BLEND_FLOATS as u32))
 }
 
 /// CPU references of the deformation and pose-blend kernels, generic over f32/f64.

@@ -18,7 +18,7 @@ use drape_shared::real::Real;
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// The backbone; in configuration files `"alex"` or `"vgg"` (`"vgg16"` is read too).
@@ -388,7 +388,7 @@ impl Lpips {
         let (w, h) = (self.width, self.height);
         let scale = PoolParams { c: 3, in_h: h, in_w: w, ..Default::default() };
         for (k, img) in [pred, target].into_iter().enumerate() {
-            rec.pass("lpips.scale_input", Kernel::LpipsScaleInput).read("rgb", img).write("out", &self.acts[k][0]).push(&scale).dispatch(grid(3 * w * h))?;
+            rec.dispatch("lpips.scale_input", kernels::lpips::ScaleInput { rgb: img.read(), out: self.acts[k][0].write() }, &scale, grid(3 * w * h))?;
         }
         // Forward, both images side by side (no barrier between them).
         let stack = self.net.stack();
@@ -399,7 +399,7 @@ impl Lpips {
                     let p = self.conv_params(at, kernel, stride, pad);
                     for k in 0..2 {
                         let (wt, bias) = &self.conv[conv_i];
-                        rec.pass("lpips.conv_fwd", Kernel::LpipsConvFwd).read("input", &self.acts[k][at]).read("weights", wt).read("bias", bias).write("output", &self.acts[k][at + 1]).push(&p).dispatch(grid(p.out_c * p.out_h * p.out_w))?;
+                        rec.dispatch("lpips.conv_fwd", kernels::lpips::ConvFwd { input: self.acts[k][at].read(), weights: wt.read(), bias: bias.read(), output: self.acts[k][at + 1].write() }, &p, grid(p.out_c * p.out_h * p.out_w))?;
                     }
                     at += 1;
                     conv_i += 1;
@@ -407,14 +407,14 @@ impl Lpips {
                 Stage::Pool { kernel, stride } => {
                     let p = self.pool_params(at, kernel, stride);
                     for k in 0..2 {
-                        rec.pass("lpips.pool_fwd", Kernel::LpipsPoolFwd).read("input", &self.acts[k][at]).write("output", &self.acts[k][at + 1]).write("argmax", &self.argmax[k][at + 1]).push(&p).dispatch(grid(p.c * p.out_h * p.out_w))?;
+                        rec.dispatch("lpips.pool_fwd", kernels::lpips::PoolFwd { input: self.acts[k][at].read(), output: self.acts[k][at + 1].write(), argmax: self.argmax[k][at + 1].write() }, &p, grid(p.c * p.out_h * p.out_w))?;
                     }
                     at += 1;
                 }
                 Stage::Tap => {
                     let (c, th, tw) = self.sizes[at];
                     let p = PoolParams { c, in_h: th, in_w: tw, ..Default::default() };
-                    rec.pass("lpips.distance", Kernel::LpipsDistance).read("f0", &self.acts[0][at]).read("f1", &self.acts[1][at]).read("lin", &self.lin[tap]).write("out", &self.distances[tap]).push(&p).dispatch(grid(th * tw))?;
+                    rec.dispatch("lpips.distance", kernels::lpips::Distance { f0: self.acts[0][at].read(), f1: self.acts[1][at].read(), lin: self.lin[tap].read(), out: self.distances[tap].write() }, &p, grid(th * tw))?;
                     tap += 1;
                 }
             }
@@ -429,26 +429,26 @@ impl Lpips {
                     tap -= 1;
                     let (c, th, tw) = self.sizes[at];
                     let p = PoolParams { c, in_h: th, in_w: tw, kernel: u32::from(written[at]), scale: 1.0 / (th * tw) as f32, ..Default::default() };
-                    rec.pass("lpips.distance_grad", Kernel::LpipsDistanceGrad).read("f0", &self.acts[0][at]).read("f1", &self.acts[1][at]).read("lin", &self.lin[tap]).write("grad", &self.grads[at]).push(&p).dispatch(grid(c * th * tw))?;
+                    rec.dispatch("lpips.distance_grad", kernels::lpips::DistanceGrad { f0: self.acts[0][at].read(), f1: self.acts[1][at].read(), lin: self.lin[tap].read(), grad: self.grads[at].write() }, &p, grid(c * th * tw))?;
                     written[at] = true;
                 }
                 Stage::Conv { kernel, stride, pad, .. } => {
                     conv_i -= 1;
                     at -= 1;
                     let p = self.conv_params(at, kernel, stride, pad);
-                    rec.pass("lpips.conv_bwd_input", Kernel::LpipsConvBwdInput).read("output", &self.acts[0][at + 1]).read("grad_out", &self.grads[at + 1]).read("weights", &self.conv[conv_i].0).write("grad_in", &self.grads[at]).push(&p).dispatch(grid(p.in_c * p.in_h * p.in_w))?;
+                    rec.dispatch("lpips.conv_bwd_input", kernels::lpips::ConvBwdInput { output: self.acts[0][at + 1].read(), grad_out: self.grads[at + 1].read(), weights: self.conv[conv_i].0.read(), grad_in: self.grads[at].write() }, &p, grid(p.in_c * p.in_h * p.in_w))?;
                     written[at] = true;
                 }
                 Stage::Pool { kernel, stride } => {
                     at -= 1;
                     let p = self.pool_params(at, kernel, stride);
-                    rec.pass("lpips.pool_bwd", Kernel::LpipsPoolBwd).read("argmax", &self.argmax[0][at + 1]).read("grad_out", &self.grads[at + 1]).write("grad_in", &self.grads[at]).push(&p).dispatch(grid(p.c * p.in_h * p.in_w))?;
+                    rec.dispatch("lpips.pool_bwd", kernels::lpips::PoolBwd { argmax: self.argmax[0][at + 1].read(), grad_out: self.grads[at + 1].read(), grad_in: self.grads[at].write() }, &p, grid(p.c * p.in_h * p.in_w))?;
                     written[at] = true;
                 }
             }
         }
         let p = PoolParams { c: 3, in_h: h, in_w: w, scale: lambda, ..Default::default() };
-        rec.pass("lpips.scale_input_bwd", Kernel::LpipsScaleInputBwd).read("grad", &self.grads[0]).write("grad_rgb", grad_rgb).push(&p).dispatch(grid(3 * w * h))?;
+        rec.dispatch("lpips.scale_input_bwd", kernels::lpips::ScaleInputBwd { grad: self.grads[0].read(), grad_rgb: grad_rgb.write() }, &p, grid(3 * w * h))?;
         Ok(())
     }
 

@@ -34,7 +34,7 @@ use rand::{Rng, SeedableRng};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::{Context, DeviceKind};
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels::{self, Kernel};
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// An activation after a linear layer.
@@ -528,7 +528,7 @@ impl Mlp {
         if let (GemmVariant::Texel4, Some((kernel, width))) = (variant, klanes_kernel(&p, a)) {
             let tiles = p.m.div_ceil(GEMM_KL_ROWS) * p.n.div_ceil(width);
             let x = tiles.min(65_535);
-            return rec.pass(name, kernel).read("a", a).read("b", b).read("bias", bias).write("c", c).push(&p).dispatch([x, tiles.div_ceil(x.max(1)), splits]);
+            return rec.dispatch_as(name, kernel, kernels::nn::GemmBlocked { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }, &p, [x, tiles.div_ceil(x.max(1)), splits]);
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
@@ -547,18 +547,18 @@ impl Mlp {
             }
             _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits]),
         };
-        rec.pass(name, kernel).read("a", a).read("b", b).read("bias", bias).write("c", c).push(&p).dispatch(groups)
+        rec.dispatch_as(name, kernel, kernels::nn::GemmBlocked { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }, &p, groups)
     }
 
     fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
         let p = ActParams { rows, width, kind: act.kind(), temperature: act.temperature() };
         if act.kind() == ACT_SOFTMAX {
-            return rec.pass(name, Kernel::NnSoftmaxFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows));
+            return rec.dispatch(name, kernels::nn::SoftmaxFwd { pre: pre.read(), post: post.write() }, &p, grid(rows));
         }
         if let Some((fwd, _)) = act4_kernels(act, &[pre, post]) {
-            return rec.pass(name, fwd).read("pre", pre).write("post", post).push(&p).dispatch(grid((rows * width).div_ceil(4)));
+            return rec.dispatch_as(name, fwd, kernels::nn::ActFwd { pre: pre.read(), post: post.write() }, &p, grid((rows * width).div_ceil(4)));
         }
-        rec.pass(name, Kernel::NnActFwd).read("pre", pre).write("post", post).push(&p).dispatch(grid(rows * width))
+        rec.dispatch(name, kernels::nn::ActFwd { pre: pre.read(), post: post.write() }, &p, grid(rows * width))
     }
 
     /// Records the forward pass over `rows` rows of `input` (rows × `desc.input`).
@@ -570,7 +570,7 @@ impl Mlp {
         if let Some(effective) = &self.effective {
             rec.copy(&self.params, effective, self.params.size);
             for p in self.desc.weight_norm_params() {
-                rec.pass("mlp.weight_norm_fwd", Kernel::NnWeightNormFwd).read("params", &self.params).write("effective", effective).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
+                rec.dispatch("mlp.weight_norm_fwd", kernels::nn::WeightNormFwd { params: self.params.read(), effective: effective.write() }, &p, [p.out_features.div_ceil(64), 1, 1])?;
             }
         }
         for (l, &(i, o)) in linears.iter().enumerate() {
@@ -633,21 +633,30 @@ impl Mlp {
             } else {
                 let p = ActParams { rows, width: o as u32, kind: acts[l].kind(), temperature: acts[l].temperature() };
                 if acts[l].kind() == ACT_SOFTMAX {
-                    rec.pass("mlp.act_bwd", Kernel::NnSoftmaxBwd)
-                        .read("post", &layer.post)
-                        .read("grad_post", &layer.grad_post)
-                        .write("grad_pre", &layer.grad_pre)
-                        .push(&p)
-                        .dispatch(grid(rows))?;
+                    rec.dispatch(
+                        "mlp.act_bwd",
+                        kernels::nn::SoftmaxBwd {
+                            post: layer.post.read(),
+                            grad_post: layer.grad_post.read(),
+                            grad_pre: layer.grad_pre.write(),
+                        },
+                        &p,
+                        grid(rows),
+                    )?;
                 } else {
                     let four = act4_kernels(acts[l], &[&layer.pre, &layer.post, &layer.grad_post, &layer.grad_pre]);
-                    rec.pass("mlp.act_bwd", four.map_or(Kernel::NnActBwd, |(_, bwd)| bwd))
-                        .read("pre", &layer.pre)
-                        .read("post", &layer.post)
-                        .read("grad_post", &layer.grad_post)
-                        .write("grad_pre", &layer.grad_pre)
-                        .push(&p)
-                        .dispatch(grid(if four.is_some() { (rows * o as u32).div_ceil(4) } else { rows * o as u32 }))?;
+                    rec.dispatch_as(
+                        "mlp.act_bwd",
+                        four.map_or(Kernel::NnActBwd, |(_, bwd)| bwd),
+                        kernels::nn::ActBwd {
+                            pre: layer.pre.read(),
+                            post: layer.post.read(),
+                            grad_post: layer.grad_post.read(),
+                            grad_pre: layer.grad_pre.write(),
+                        },
+                        &p,
+                        grid(if four.is_some() { (rows * o as u32).div_ceil(4) } else { rows * o as u32 }),
+                    )?;
                 }
                 &layer.grad_pre
             };
@@ -694,18 +703,22 @@ impl Mlp {
                 self.record_gemm(rec, "mlp.input_grad", g, self.weights(), self.weights(), target, p, 1)?;
             }
             let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };
-            rec.pass("mlp.sum_weight_grad", Kernel::NnSumWeightGrad)
-                .read("partials", &self.partials)
-                .write("grad", &self.grads)
-                .push(&wp)
-                .dispatch(grid(wp.out_features * (wp.in_features + 1)))?;
+            rec.dispatch(
+                "mlp.sum_weight_grad",
+                kernels::nn::SumWeightGrad {
+                    partials: self.partials.read(),
+                    grad: self.grads.write(),
+                },
+                &wp,
+                grid(wp.out_features * (wp.in_features + 1)),
+            )?;
             // The next layer's dW reuses the partials, and reads the dX just written.
             if step + 1 < order.len() {
             }
         }
         if self.effective.is_some() {
             for p in self.desc.weight_norm_params() {
-                rec.pass("mlp.weight_norm_bwd", Kernel::NnWeightNormBwd).read("params", &self.params).write("grads", &self.grads).push(&p).dispatch([p.out_features.div_ceil(64), 1, 1])?;
+                rec.dispatch("mlp.weight_norm_bwd", kernels::nn::WeightNormBwd { params: self.params.read(), grads: self.grads.write() }, &p, [p.out_features.div_ceil(64), 1, 1])?;
             }
         }
         Ok(())
@@ -1007,13 +1020,18 @@ fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buff
         let &(_, floats, fours) = K4_WIDTHS.iter().find(|(w, ..)| *w == width).expect("a tile width of K4_WIDTHS");
         let tiles = q.m.div_ceil(GEMM_K4_ROWS) * cols.div_ceil(width);
         let x = tiles.min(65_535);
-        rec.pass(name, if quads { fours } else { floats })
-            .read("a", a)
-            .read("b", b)
-            .read("bias", bias)
-            .write("c", c)
-            .push(&q)
-            .dispatch([x, tiles.div_ceil(x.max(1)), 1])?;
+        rec.dispatch_as(
+            name,
+            if quads { fours } else { floats },
+            kernels::nn::GemmBlocked {
+                a: a.read(),
+                b: b.read(),
+                bias: bias.read(),
+                c: c.write(),
+            },
+            &q,
+            [x, tiles.div_ceil(x.max(1)), 1],
+        )?;
     }
     Ok(())
 }

@@ -28,7 +28,7 @@ use drape_shared::radix_sort::{
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels::{self, Kernel};
 use crate::ops::scan::{ExclusiveScan, ScanVariant};
 use crate::recorder::Recording;
 
@@ -242,22 +242,32 @@ impl RadixSort {
                 true => (Kernel::RadixSortChunkHistogramTexel, Kernel::RadixSortChunkScatterTexel),
                 false => (histogram, scatter),
             };
-            rec.pass("radix_sort.histogram", histogram)
-                .read("keys", src.0)
-                .write("histogram", &self.histogram)
-                .read("len_words", len_words)
-                .push(&params)
-                .dispatch([groups, 1, 1])?;
+            rec.dispatch_as(
+                "radix_sort.histogram",
+                histogram,
+                kernels::radix_sort::Histogram {
+                    keys: src.0.read(),
+                    histogram: self.histogram.write(),
+                    len_words: len_words.read(),
+                },
+                &params,
+                [groups, 1, 1],
+            )?;
             self.histogram_scan.record(rec, &self.histogram, buckets * blocks)?;
-            rec.pass("radix_sort.scatter", scatter)
-                .read("keys_in", src.0)
-                .read("values_in", src.1)
-                .read("scanned_histogram", &self.histogram)
-                .write("keys_out", dst.0)
-                .write("values_out", dst.1)
-                .read("len_words", len_words)
-                .push(&params)
-                .dispatch([groups, 1, 1])?;
+            rec.dispatch_as(
+                "radix_sort.scatter",
+                scatter,
+                kernels::radix_sort::Scatter {
+                    keys_in: src.0.read(),
+                    values_in: src.1.read(),
+                    scanned_histogram: self.histogram.read(),
+                    keys_out: dst.0.write(),
+                    values_out: dst.1.write(),
+                    len_words: len_words.read(),
+                },
+                &params,
+                [groups, 1, 1],
+            )?;
             std::mem::swap(&mut src, &mut dst);
         }
         if passes % 2 == 1 {
@@ -304,34 +314,35 @@ impl RadixSort {
                 (false, _, false) => Kernel::RadixSortChunkHistogramPairs,
             };
             if first {
-                rec.pass("radix_sort.histogram", histogram).read("keys", keys)
+                let b = kernels::radix_sort::ChunkHistogram { keys: keys.read(), histogram: self.histogram.write(), len_words: len_words.read() };
+                rec.dispatch_as("radix_sort.histogram", histogram, b, &params, groups)?;
             } else {
-                rec.pass("radix_sort.histogram", histogram).read("pairs", pairs.0)
+                let b = kernels::radix_sort::ChunkHistogramPairs { pairs: pairs.0.read(), histogram: self.histogram.write(), len_words: len_words.read() };
+                rec.dispatch_as("radix_sort.histogram", histogram, b, &params, groups)?;
             }
-            .write("histogram", &self.histogram)
-            .read("len_words", len_words)
-            .push(&params)
-            .dispatch(groups)?;
             self.histogram_scan.record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
-            let scatter = if first {
+            let scanned_histogram = self.histogram.read();
+            if first {
                 let kernel = match (texel_inputs, self.int64_stores) {
                     (true, true) => Kernel::RadixSortChunkScatterZipTexelU64,
                     (true, false) => Kernel::RadixSortChunkScatterZipTexel,
                     (false, _) => Kernel::RadixSortChunkScatterZip,
                 };
-                rec.pass("radix_sort.scatter_zip", kernel).read("keys_in", keys).read("values_in", values).write("pairs_out", pairs.0)
+                let b = kernels::radix_sort::ChunkScatterZip { keys_in: keys.read(), values_in: values.read(), pairs_out: pairs.0.write(), scanned_histogram, len_words: len_words.read() };
+                rec.dispatch_as("radix_sort.scatter_zip", kernel, b, &params, groups)?;
             } else if last {
                 let kernel = if texel_pairs { Kernel::RadixSortChunkScatterUnzipTexel } else { Kernel::RadixSortChunkScatterUnzip };
-                rec.pass("radix_sort.scatter_unzip", kernel).read("pairs_in", pairs.0).write("keys_out", keys).write("values_out", values)
+                let b = kernels::radix_sort::ChunkScatterUnzip { pairs_in: pairs.0.read(), keys_out: keys.write(), values_out: values.write(), scanned_histogram, len_words: len_words.read() };
+                rec.dispatch_as("radix_sort.scatter_unzip", kernel, b, &params, groups)?;
             } else {
                 let kernel = match (texel_pairs, self.int64_stores) {
                     (true, true) => Kernel::RadixSortChunkScatterPairsTexelU64,
                     (true, false) => Kernel::RadixSortChunkScatterPairsTexel,
                     (false, _) => Kernel::RadixSortChunkScatterPairs,
                 };
-                rec.pass("radix_sort.scatter_pairs", kernel).read("pairs_in", pairs.0).write("pairs_out", pairs.1)
-            };
-            scatter.read("scanned_histogram", &self.histogram).read("len_words", len_words).push(&params).dispatch(groups)?;
+                let b = kernels::radix_sort::ChunkScatterPairs { pairs_in: pairs.0.read(), pairs_out: pairs.1.write(), scanned_histogram, len_words: len_words.read() };
+                rec.dispatch_as("radix_sort.scatter_pairs", kernel, b, &params, groups)?;
+            }
             if !first {
                 std::mem::swap(&mut pairs.0, &mut pairs.1);
             }

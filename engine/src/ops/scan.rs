@@ -23,7 +23,7 @@ use drape_shared::scan::{block_count, ChunkScanParams, ScanParams, SCAN_BLOCK_LE
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::Recording;
 
 /// Which kernels a scan records; both give the same (exact) result.
@@ -145,21 +145,29 @@ impl ExclusiveScan {
         }
         let params = ChunkScanParams { len, chunks: chunk_count(len), _pad: [0; 2] };
         if len <= SERIAL_SCAN_MAX_LEN && self.serial {
-            return rec.pass(&self.pass_serial, Kernel::ScanChunkSerial).write("data", data).push(&params).dispatch([1, 1, 1]);
+            return rec.dispatch(&self.pass_serial, kernels::scan::ChunkSerial { data: data.write() }, &params, [1, 1, 1]);
         }
         let sums = &self.level_sums[0];
         let groups = params.chunks / CHUNK_WORKGROUP_SIZE;
-        rec.pass(&self.pass_reduce, Kernel::ScanChunkReduce)
-            .read("data", data)
-            .write("chunk_sums", sums)
-            .push(&params)
-            .dispatch([groups, 1, 1])?;
-        rec.pass(&self.pass_sums, Kernel::ScanChunkSums).write("chunk_sums", sums).push(&params).dispatch([1, 1, 1])?;
-        rec.pass(&self.pass_downsweep, Kernel::ScanChunkDownsweep)
-            .write("data", data)
-            .read("chunk_offsets", sums)
-            .push(&params)
-            .dispatch([groups, 1, 1])
+        rec.dispatch(
+            &self.pass_reduce,
+            kernels::scan::ChunkReduce {
+                data: data.read(),
+                chunk_sums: sums.write(),
+            },
+            &params,
+            [groups, 1, 1],
+        )?;
+        rec.dispatch(&self.pass_sums, kernels::scan::ChunkSums { chunk_sums: sums.write() }, &params, [1, 1, 1])?;
+        rec.dispatch(
+            &self.pass_downsweep,
+            kernels::scan::ChunkDownsweep {
+                data: data.write(),
+                chunk_offsets: sums.read(),
+            },
+            &params,
+            [groups, 1, 1],
+        )
     }
 
     fn record_level<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32, level: usize) -> Result<()> {
@@ -170,26 +178,38 @@ impl ExclusiveScan {
             let params = ScanParams { len, add_block_offsets: 0, _pad: [0; 2] };
             // Single block: `block_offsets` is unread; bind `data` to satisfy the layout.
             return rec
-                .pass(&self.pass_downsweep, Kernel::ScanDownsweep)
-                .write("data", data)
-                .read("block_offsets", data)
-                .push(&params)
-                .dispatch([1, 1, 1]);
+                .dispatch(
+                    &self.pass_downsweep,
+                    kernels::scan::Downsweep {
+                        data: data.write(),
+                        block_offsets: data.read(),
+                    },
+                    &params,
+                    [1, 1, 1],
+                );
         }
         let blocks = block_count(len);
         let sums = &self.level_sums[level];
         let params = ScanParams { len, add_block_offsets: 1, _pad: [0; 2] };
-        rec.pass(&self.pass_reduce, Kernel::ScanReduce)
-            .read("data", data)
-            .write("block_sums", sums)
-            .push(&params)
-            .dispatch([blocks, 1, 1])?;
+        rec.dispatch(
+            &self.pass_reduce,
+            kernels::scan::Reduce {
+                data: data.read(),
+                block_sums: sums.write(),
+            },
+            &params,
+            [blocks, 1, 1],
+        )?;
         self.record_level(rec, sums, blocks, level + 1)?;
-        rec.pass(&self.pass_downsweep, Kernel::ScanDownsweep)
-            .write("data", data)
-            .read("block_offsets", sums)
-            .push(&params)
-            .dispatch([blocks, 1, 1])
+        rec.dispatch(
+            &self.pass_downsweep,
+            kernels::scan::Downsweep {
+                data: data.write(),
+                block_offsets: sums.read(),
+            },
+            &params,
+            [blocks, 1, 1],
+        )
     }
 }
 

@@ -12,7 +12,7 @@ use drape_shared::skinning::{dot3, rotation_minus_identity_t, transform_delta, S
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::Recording;
 
 /// Floats of all 24 transforms.
@@ -46,13 +46,17 @@ impl Skinning {
             return Err(EngineError::too_large("points to skin", count.into(), self.max_count.into(), "the skinning plan"));
         }
         let p = SkinParams { count, groups: 0, _pad: [0; 2] };
-        rec.pass("skinning.fwd", Kernel::SkinningSkinFwd)
-            .read("transforms", transforms)
-            .read("weights", weights)
-            .read("points", points)
-            .write("skinned", skinned)
-            .push(&p)
-            .dispatch([count.div_ceil(256), 1, 1])
+        rec.dispatch(
+            "skinning.fwd",
+            kernels::skinning::SkinFwd {
+                transforms: transforms.read(),
+                weights: weights.read(),
+                points: points.read(),
+                skinned: skinned.write(),
+            },
+            &p,
+            [count.div_ceil(256), 1, 1],
+        )
     }
 
     /// Records the backward pass for an upstream gradient on the skinned points.
@@ -75,31 +79,43 @@ impl Skinning {
         let groups = count.div_ceil(TRANSFORM_GRAD_CHUNK);
         let p = SkinParams { count, groups, _pad: [0; 2] };
         // The two passes read the same inputs and write different buffers: no barrier.
-        rec.pass("skinning.bwd_points", Kernel::SkinningSkinBwdPoints)
-            .read("transforms", transforms)
-            .read("weights", weights)
-            .read("points", points)
-            .read("grad_skinned", grad_skinned)
-            .write("grad_points", grad_points)
-            .write("grad_weights", grad_weights)
-            .push(&p)
-            .dispatch([count.div_ceil(256), 1, 1])?;
-        rec.pass("skinning.bwd_transforms", Kernel::SkinningSkinBwdTransforms)
-            .read("weights", weights)
-            .read("points", points)
-            .read("grad_skinned", grad_skinned)
-            .write("partials", &self.partials)
-            .push(&p)
-            .dispatch([groups, 1, 1])?;
+        rec.dispatch(
+            "skinning.bwd_points",
+            kernels::skinning::SkinBwdPoints {
+                transforms: transforms.read(),
+                weights: weights.read(),
+                points: points.read(),
+                grad_skinned: grad_skinned.read(),
+                grad_points: grad_points.write(),
+                grad_weights: grad_weights.write(),
+            },
+            &p,
+            [count.div_ceil(256), 1, 1],
+        )?;
+        rec.dispatch(
+            "skinning.bwd_transforms",
+            kernels::skinning::SkinBwdTransforms {
+                weights: weights.read(),
+                points: points.read(),
+                grad_skinned: grad_skinned.read(),
+                partials: self.partials.write(),
+            },
+            &p,
+            [groups, 1, 1],
+        )?;
         if groups == 0 {
             rec.fill(grad_transforms, 0);
             return Ok(());
         }
-        rec.pass("skinning.sum_partials", Kernel::SkinningSumPartials)
-            .read("partials", &self.partials)
-            .write("grad_transforms", grad_transforms)
-            .push(&p)
-            .dispatch([(TRANSFORMS_LEN as u32).div_ceil(256), 1, 1])
+        rec.dispatch(
+            "skinning.sum_partials",
+            kernels::skinning::SumPartials {
+                partials: self.partials.read(),
+                grad_transforms: grad_transforms.write(),
+            },
+            &p,
+            [(TRANSFORMS_LEN as u32).div_ceil(256), 1, 1],
+        )
     }
 }
 

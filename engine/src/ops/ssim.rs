@@ -9,7 +9,7 @@ use drape_shared::ssim::{blur_invocations, ssim_pointwise, window_taps, SsimPara
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// Scratch for the SSIM of `width × height × 3` images.
@@ -50,14 +50,14 @@ impl Ssim {
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let n = self.pixels();
         let p = self.params(SSIM_MOMENTS, false, 0.0);
-        rec.pass("ssim.moments", Kernel::SsimMoments).read("x", pred).read("y", target).write("planes", &self.a).push(&p).dispatch(grid(n))?;
+        rec.dispatch("ssim.moments", kernels::ssim::Moments { x: pred.read(), y: target.read(), planes: self.a.write() }, &p, grid(n))?;
         self.record_blur(rec, SSIM_MOMENTS, &self.a, &self.b)?;
-        rec.pass("ssim.map", Kernel::SsimMap).read("moments", &self.a).write("smap", &self.smap).write("partials", &self.b).push(&p).dispatch(grid(n))?;
+        rec.dispatch("ssim.map", kernels::ssim::Map { moments: self.a.read(), smap: self.smap.write(), partials: self.b.write() }, &p, grid(n))?;
         if let Some((g, scale)) = grad {
             // The blurred partials end in b (b -> a -> b).
             self.record_blur(rec, 3, &self.b, &self.a)?;
             let p = self.params(3, false, scale / n.max(1) as f32);
-            rec.pass("ssim.grad", Kernel::SsimGrad).read("x", pred).read("y", target).read("partials", &self.b).write("grad", g).push(&p).dispatch(grid(n))?;
+            rec.dispatch("ssim.grad", kernels::ssim::Grad { x: pred.read(), y: target.read(), partials: self.b.read(), grad: g.write() }, &p, grid(n))?;
         }
         Ok(())
     }
@@ -66,10 +66,10 @@ impl Ssim {
     fn record_blur<'a>(&'a self, rec: &mut Recording<'a>, planes: u32, src: &'a Buffer, tmp: &'a Buffer) -> Result<()> {
         let h = self.params(planes, false, 0.0);
         let across = blur_invocations(self.width, self.height, planes, false);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", src).write("dst", tmp).push(&h).dispatch(grid(across))?;
+        rec.dispatch("ssim.blur", kernels::ssim::Blur { src: src.read(), dst: tmp.write() }, &h, grid(across))?;
         let v = self.params(planes, true, 0.0);
         let down = blur_invocations(self.width, self.height, planes, true);
-        rec.pass("ssim.blur", Kernel::SsimBlur).read("src", tmp).write("dst", src).push(&v).dispatch(grid(down))?;
+        rec.dispatch("ssim.blur", kernels::ssim::Blur { src: tmp.read(), dst: src.write() }, &v, grid(down))?;
         Ok(())
     }
 

@@ -12,7 +12,7 @@ use rand::{Rng, SeedableRng};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels::{self, Kernel};
 use crate::ops::accumulate::{Accumulation, FixedPointScratch, Method};
 use crate::recorder::Recording;
 
@@ -141,12 +141,16 @@ impl Triplane {
     /// Records `features = sample(points)` for `count` points (features count × 3C).
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, points: &'a Buffer, features: &'a Buffer, count: u32) -> Result<()> {
         let p = self.desc.params(count);
-        rec.pass("triplane.sample_fwd", Kernel::TriplaneSampleFwd)
-            .read("planes", &self.planes)
-            .read("points", points)
-            .write("features", features)
-            .push(&p)
-            .dispatch([count.div_ceil(256), 1, 1])
+        rec.dispatch(
+            "triplane.sample_fwd",
+            kernels::triplane::SampleFwd {
+                planes: self.planes.read(),
+                points: points.read(),
+                features: features.write(),
+            },
+            &p,
+            [count.div_ceil(256), 1, 1],
+        )
     }
 
     /// Records the backward pass: the plane gradient (overwritten) and the points'
@@ -174,14 +178,19 @@ impl Triplane {
             }
         };
         rec.fill(target, 0);
-        rec.pass("triplane.sample_bwd", kernel)
-            .read("planes", &self.planes)
-            .read("points", points)
-            .read("grad_features", grad_features)
-            .write("grad_planes", target)
-            .write("grad_points", grad_points)
-            .push(&p)
-            .dispatch([count.div_ceil(256), 1, 1])?;
+        rec.dispatch_as(
+            "triplane.sample_bwd",
+            kernel,
+            kernels::triplane::SampleBwdAtomic {
+                planes: self.planes.read(),
+                points: points.read(),
+                grad_features: grad_features.read(),
+                grad_planes: target.write(),
+                grad_points: grad_points.write(),
+            },
+            &p,
+            [count.div_ceil(256), 1, 1],
+        )?;
         if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
             fixed.record_resolve(rec, &self.grads, self.desc.len() as u32)?;
         }

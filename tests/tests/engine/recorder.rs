@@ -1,12 +1,12 @@
-//! The recorder binds buffers by the kernel parameter's name, checks each binding's
-//! access against the SPIR-V's `NonWritable` declarations, and places barriers from
-//! those declared accesses: one only where a command reads or writes what an earlier
+//! The recorder binds buffers through each kernel's generated bindings struct (whose
+//! fields' types follow the SPIR-V's `NonWritable` declarations), and places barriers
+//! from those declared accesses: one only where a command reads or writes what an earlier
 //! one wrote since the last barrier, or writes what one read. Synchronization
 //! validation is on in every test context, so a derived barrier that is missing shows
 //! up as a validation message (and fails the test that caused it).
 
-use drape_engine::kernels::{check_module, Kernel};
-use drape_engine::{Buffer, BufferDesc, EngineError, PassBuilder, PassTimings};
+use drape_engine::kernels::{self, check_module, Kernel};
+use drape_engine::{Buffer, BufferDesc, EngineError, PassTimings};
 use drape_shared::adam::LossParams;
 use drape_shared::nn::GemmParams;
 use drape_tests::gpu;
@@ -21,21 +21,69 @@ fn groups() -> [u32; 3] {
     [LEN.div_ceil(256), 1, 1]
 }
 
-/// The error a pass of `train::add_into` (bindings `src` read-only, `dst` writable)
-/// gives when bound by `bind`.
-fn binding_error(bind: impl for<'r, 'a> FnOnce(PassBuilder<'r, 'a>, &'a Buffer, &'a Buffer) -> PassBuilder<'r, 'a>) -> EngineError {
+/// `train::add_into` as a struct of its bindings (`src` read-only, `dst` writable):
+/// a missing, unknown or wrongly accessed binding does not compile (see the
+/// `compile_fail` examples of `drape_engine::bindings`); a kernel chosen at run time
+/// that does not fit the struct is refused before anything is recorded.
+#[test]
+#[should_panic(expected = "does not fit the bindings of train::add_into")]
+fn a_kernel_chosen_at_run_time_must_fit_the_bindings() {
     let gpu = gpu();
     let a = gpu.upload("a", &[1.0f32; LEN as usize]).expect("upload");
     let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
     let mut rec = gpu.record("binding errors").expect("record");
-    let pass = rec.pass("test.add", Kernel::TrainAddInto);
-    let err = bind(pass, &a, &b).push(&params()).dispatch(groups()).expect_err("a wrong binding must be refused");
-    assert_eq!(rec.barrier_count(), 0);
-    err
+    // `nn::act_fwd` has bindings `pre`, `post` and other push constants.
+    let _ = rec.dispatch_as("test.add", Kernel::NnActFwd, kernels::train::AddInto { src: a.read(), dst: b.write() }, &params(), groups());
 }
 
-fn assert_binding_error(err: &EngineError, binding: &str, words: &[&str]) {
-    assert_binding_error_of(err, ("test.add", "train::add_into"), binding, words);
+/// Every kernel the ops choose at run time fits the struct they record it with (the
+/// same binding names and accesses, the same push constants), whichever variant the
+/// device gets: the atomic, compare-and-swap and fixed-point accumulations, the
+/// subgroup and half-precision rasterizers, the texel and storage reads.
+#[test]
+fn variants_chosen_at_run_time_fit_the_struct_they_share() {
+    use drape_engine::Bindings;
+    fn all_fit<'a, B: Bindings<'a>>(variants: &[Kernel]) {
+        for &k in variants {
+            assert!(B::fits(k), "{k:?} does not fit {:?}", B::KERNEL);
+        }
+    }
+    use Kernel as K;
+    all_fit::<kernels::radix_sort::Histogram>(&[K::RadixSortChunkHistogram, K::RadixSortChunkHistogramTexel]);
+    all_fit::<kernels::radix_sort::Scatter>(&[K::RadixSortChunkScatter, K::RadixSortChunkScatterTexel]);
+    all_fit::<kernels::radix_sort::ChunkHistogram>(&[K::RadixSortChunkHistogramTexel]);
+    all_fit::<kernels::radix_sort::ChunkHistogramPairs>(&[K::RadixSortChunkHistogramPairsTexel]);
+    all_fit::<kernels::radix_sort::ChunkScatterZip>(&[K::RadixSortChunkScatterZipTexel, K::RadixSortChunkScatterZipTexelU64]);
+    all_fit::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
+    all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[K::RadixSortChunkScatterPairsTexel, K::RadixSortChunkScatterPairsTexelU64]);
+    let gemms: Vec<Kernel> = Kernel::ALL.iter().copied().filter(|k| k.entry_point().starts_with("nn::gemm")).collect();
+    assert!(gemms.len() > 10, "{gemms:?}");
+    all_fit::<kernels::nn::GemmBlocked>(&gemms);
+    all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
+    all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
+    all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatRasterizeFwdSubgroup, K::SplatRasterizeFwdSubgroupHalf]);
+    all_fit::<kernels::splat::RasterizeFusedFwd>(&[K::SplatRasterizeFusedFwdHalf, K::SplatRasterizeFusedFwdSubgroup, K::SplatRasterizeFusedFwdSubgroupHalf]);
+    all_fit::<kernels::splat::RasterizeBwdAtomic>(&[
+        K::SplatRasterizeBwdCas,
+        K::SplatRasterizeBwdFixed,
+        K::SplatRasterizeBwdSubgroupAtomic,
+        K::SplatRasterizeBwdSubgroupCas,
+        K::SplatRasterizeBwdSubgroupFixed,
+    ]);
+    all_fit::<kernels::splat::RasterizeFusedBwdAtomic>(&[
+        K::SplatRasterizeFusedBwdCas,
+        K::SplatRasterizeFusedBwdFixed,
+        K::SplatRasterizeFusedBwdSubgroupAtomic,
+        K::SplatRasterizeFusedBwdSubgroupCas,
+        K::SplatRasterizeFusedBwdSubgroupFixed,
+    ]);
+    all_fit::<kernels::triplane::SampleBwdAtomic>(&[K::TriplaneSampleBwdCas, K::TriplaneSampleBwdFixed]);
+    // Other bindings or other push constants do not fit.
+    assert!(!kernels::train::AddInto::fits(K::NnActFwd));
+    assert!(!kernels::splat::RasterizeFwd::fits(K::SplatRasterizeBwdAtomic));
+    assert!(!kernels::radix_sort::Scatter::fits(K::RadixSortChunkScatterPairs));
+    assert_eq!(K::TrainAddInto.push_constant(), "drape_shared::adam::LossParams");
+    assert_eq!(K::SplatRasterizeFwd.push_constant(), "");
 }
 
 /// `err` is a binding error of `(pass, kernel)` naming `binding`, and its message holds
@@ -55,32 +103,6 @@ fn assert_binding_error_of(err: &EngineError, (pass, kernel): (&str, &str), bind
     }
 }
 
-#[test]
-fn a_name_the_kernel_lacks_is_an_error_naming_the_kernel_and_the_binding() {
-    let err = binding_error(|p, a, b| p.read("source", a).write("dst", b));
-    assert_binding_error(&err, "source", &["train::add_into", "no binding of that name", "src, dst"]);
-}
-
-#[test]
-fn a_binding_left_unbound_is_an_error() {
-    let err = binding_error(|p, a, _| p.read("src", a));
-    assert_binding_error(&err, "dst", &["left unbound"]);
-}
-
-#[test]
-fn writing_through_a_read_only_binding_is_an_error() {
-    let err = binding_error(|p, a, b| p.write("src", a).write("dst", b));
-    assert_binding_error(&err, "src", &["read-only", "NonWritable", "'a'"]);
-}
-
-#[test]
-fn reading_through_a_writable_binding_and_binding_twice_are_errors() {
-    let err = binding_error(|p, a, b| p.read("src", a).read("dst", b));
-    assert_binding_error(&err, "dst", &["writable", "write()"]);
-    let err = binding_error(|p, a, b| p.read("src", a).read("src", b).write("dst", b));
-    assert_binding_error(&err, "src", &["bound twice"]);
-}
-
 /// Commands that share only read-only data get no barrier between them; a read of
 /// what was written (RAW), a write of what was read (WAR) and a copy of what was
 /// written each get one. The sums prove the order held.
@@ -96,14 +118,14 @@ fn barriers_are_derived_from_declared_access() {
     let p = params();
     let mut rec = gpu.record("derived barriers").expect("record");
     // y += x and z += x: both only read x, write different buffers.
-    rec.pass("add.y", Kernel::TrainAddInto).read("src", &x).write("dst", &y).push(&p).dispatch(groups()).expect("y");
-    rec.pass("add.z", Kernel::TrainAddInto).read("src", &x).write("dst", &z).push(&p).dispatch(groups()).expect("z");
+    rec.dispatch("add.y", kernels::train::AddInto { src: x.read(), dst: y.write() }, &p, groups()).expect("y");
+    rec.dispatch("add.z", kernels::train::AddInto { src: x.read(), dst: z.write() }, &p, groups()).expect("z");
     assert_eq!(rec.barrier_count(), 0, "independent passes must not be ordered");
     // w += y reads what add.y wrote: a barrier.
-    rec.pass("add.w", Kernel::TrainAddInto).read("src", &y).write("dst", &w).push(&p).dispatch(groups()).expect("w");
+    rec.dispatch("add.w", kernels::train::AddInto { src: y.read(), dst: w.write() }, &p, groups()).expect("w");
     assert_eq!(rec.barrier_count(), 1, "read after write");
     // y += z writes y, which add.w read since the barrier (and reads z, written before it).
-    rec.pass("add.y2", Kernel::TrainAddInto).read("src", &z).write("dst", &y).push(&p).dispatch(groups()).expect("y2");
+    rec.dispatch("add.y2", kernels::train::AddInto { src: z.read(), dst: y.write() }, &p, groups()).expect("y2");
     assert_eq!(rec.barrier_count(), 2, "write after read");
     // A copy of what add.y2 wrote.
     rec.copy(&y, &copy, u64::from(LEN) * 4);
@@ -186,11 +208,11 @@ fn scoped_passes_are_timed_per_scope() {
     gpu.start_profile();
     let mut rec = gpu.record("scopes").expect("record");
     rec.set_scope("body");
-    rec.pass("add.body", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&p).dispatch(groups()).expect("pass");
+    rec.dispatch("add.body", kernels::train::AddInto { src: a.read(), dst: b.write() }, &p, groups()).expect("pass");
     rec.set_scope("cloth");
-    rec.pass("add.cloth", Kernel::TrainAddInto).read("src", &a).write("dst", &c).push(&p).dispatch(groups()).expect("pass");
+    rec.dispatch("add.cloth", kernels::train::AddInto { src: a.read(), dst: c.write() }, &p, groups()).expect("pass");
     rec.set_scope("");
-    rec.pass("add.none", Kernel::TrainAddInto).read("src", &b).write("dst", &c).push(&p).dispatch(groups()).expect("pass");
+    rec.dispatch("add.none", kernels::train::AddInto { src: b.read(), dst: c.write() }, &p, groups()).expect("pass");
     let timings = rec.submit_and_wait().expect("submit");
     let profile = gpu.take_profile().expect("profile");
     assert_eq!(timings.scopes, ["body", "cloth", ""]);
@@ -226,9 +248,9 @@ fn independent_chains_interleave_wave_by_wave() {
     let mut rec = gpu.record("two chains").expect("record");
     for bufs in &chains {
         // b0 += 1; b1 += b0; b2 += b1: each reads what the one before wrote.
-        rec.pass("chain.0", Kernel::TrainAddInto).read("src", &one).write("dst", &bufs[0]).push(&p).dispatch(groups()).expect("0");
-        rec.pass("chain.1", Kernel::TrainAddInto).read("src", &bufs[0]).write("dst", &bufs[1]).push(&p).dispatch(groups()).expect("1");
-        rec.pass("chain.2", Kernel::TrainAddInto).read("src", &bufs[1]).write("dst", &bufs[2]).push(&p).dispatch(groups()).expect("2");
+        rec.dispatch("chain.0", kernels::train::AddInto { src: one.read(), dst: bufs[0].write() }, &p, groups()).expect("0");
+        rec.dispatch("chain.1", kernels::train::AddInto { src: bufs[0].read(), dst: bufs[1].write() }, &p, groups()).expect("1");
+        rec.dispatch("chain.2", kernels::train::AddInto { src: bufs[1].read(), dst: bufs[2].write() }, &p, groups()).expect("2");
     }
     assert_eq!(rec.barrier_count(), 2, "the second chain runs beside the first");
     let timings = rec.submit_and_wait().expect("submit");
@@ -257,7 +279,7 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     let frame = |expect_passes: bool| {
         let mut rec = gpu.record("frame").expect("record");
         for _ in 0..3 {
-            rec.pass("add", Kernel::TrainAddInto).read("src", &x).write("dst", &y).push(&p).dispatch(groups()).expect("add");
+            rec.dispatch("add", kernels::train::AddInto { src: x.read(), dst: y.write() }, &p, groups()).expect("add");
         }
         let t = rec.submit_and_wait().expect("submit");
         if expect_passes {
@@ -285,16 +307,17 @@ fn recordings_reuse_the_pools_of_finished_ones() {
 }
 
 /// A pass of `nn::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
-/// written) over 8 × 8 matrices, bound by `bind`; its dispatch's result.
-fn texel_pass(bind: impl for<'r, 'a> FnOnce(PassBuilder<'r, 'a>, &'a Buffer, &'a Buffer, &'a Buffer) -> PassBuilder<'r, 'a>) -> drape_engine::Result<()> {
+/// written) over 8 × 8 matrices with the bindings `bind` makes of `a`, `c` and a
+/// readback buffer, recorded as the storage GEMM's struct with the kernel chosen at
+/// run time; its dispatch's result.
+fn texel_pass(bind: impl for<'a> FnOnce(&'a Buffer, &'a Buffer, &'a Buffer) -> kernels::nn::GemmBlocked<'a>) -> drape_engine::Result<()> {
     let gpu = gpu();
     let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
     let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
     let readback = gpu.create_buffer("readback", BufferDesc::readback(256)).expect("buffer");
     let mut rec = gpu.record("texel bindings").expect("record");
     let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
-    let pass = rec.pass("test.gemm", Kernel::NnGemmTexel);
-    bind(pass, &a, &c, &readback).push(&p).dispatch([1, 1, 1])
+    rec.dispatch_as("test.gemm", Kernel::NnGemmTexel, bind(&a, &c, &readback), &p, [1, 1, 1])
 }
 
 fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[&str]) {
@@ -303,20 +326,28 @@ fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[
 }
 
 /// Texel bindings read a whole buffer through its `R32_SFLOAT` view: a correct pass
-/// runs; a range, a write, or a buffer not made for texel reads (a readback buffer) is
-/// an error naming the pass, the kernel and the binding.
+/// runs (its own struct, or a storage variant's struct with the kernel chosen at run
+/// time); a range, or a buffer not made for texel reads (a readback buffer), is an
+/// error naming the pass, the kernel and the binding. (Texel fields take only
+/// [`Buffer::texel`], whole buffers: a range or a writable buffer does not compile.)
 #[test]
 fn texel_bindings_read_whole_buffers_through_their_views() {
     if !drape_engine::ops::nn::subgroup_gemm_supported(gpu().info()) {
         eprintln!("SKIPPED: nn::gemm_texel needs subgroups of 8 lanes with ballot ({})", gpu().info());
         return;
     }
-    texel_pass(|p, a, c, _| p.read("a", a).read("b", a).read("bias", a).write("c", c)).expect("whole buffers bind");
-    let err = texel_pass(|p, a, c, _| p.read_range("a", a, 0, 128).read("b", a).read("bias", a).write("c", c));
+    {
+        let gpu = gpu();
+        let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
+        let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
+        let mut rec = gpu.record("texel bindings").expect("record");
+        let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
+        rec.dispatch("test.gemm", kernels::nn::GemmTexel { a: a.texel(), b: a.texel(), bias: a.read(), c: c.write() }, &p, [1, 1, 1]).expect("whole buffers bind");
+    }
+    texel_pass(|a, c, _| kernels::nn::GemmBlocked { a: a.read(), b: a.read(), bias: a.read(), c: c.write() }).expect("whole buffers bind");
+    let err = texel_pass(|a, c, _| kernels::nn::GemmBlocked { a: a.read_range(0, 128), b: a.read(), bias: a.read(), c: c.write() });
     assert_texel_error(err, "a", &["texel binding", "whole buffer", "'a'"]);
-    let err = texel_pass(|p, a, c, _| p.read("a", a).write("b", c).read("bias", a).write("c", c));
-    assert_texel_error(err, "b", &["read-only"]);
-    let err = texel_pass(|p, a, c, r| p.read("a", a).read("b", r).read("bias", a).write("c", c));
+    let err = texel_pass(|a, c, r| kernels::nn::GemmBlocked { a: a.read(), b: r.read(), bias: a.read(), c: c.write() });
     assert_texel_error(err, "b", &["'readback'", "texel reads", "UNIFORM_TEXEL_BUFFER"]);
 }
 
@@ -377,7 +408,7 @@ fn submit_returns_a_submission_to_poll_and_wait() {
     let a = gpu.upload("a", &[1.0f32; LEN as usize]).expect("upload");
     let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
     let mut rec = gpu.record("submit").expect("record");
-    rec.pass("add", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&params()).dispatch(groups()).expect("pass");
+    rec.dispatch("add", kernels::train::AddInto { src: a.read(), dst: b.write() }, &params(), groups()).expect("pass");
     let submissions = gpu.submission_count();
     let s = rec.submit(&SubmitSync::default()).expect("submit");
     assert_eq!(gpu.submission_count(), submissions + 1);

@@ -9,7 +9,7 @@ use drape_engine::ops::scan::ExclusiveScan;
 use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, RenderSettings};
-use drape_engine::{EngineError, Kernel};
+use drape_engine::{kernels, EngineError};
 use drape_shared::adam::{adam_update, LossParams};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
@@ -121,7 +121,7 @@ fn plans_and_buffers_past_the_limits_are_too_large() {
         let small = gpu.upload("small", &[0.0f32; 4]).expect("upload");
         let mut rec = gpu.record("too wide a binding").expect("record");
         let p = LossParams { len: 4, scale: 1.0, _pad: [0; 2] };
-        let text = expect_too_large(rec.pass("test.add_into", Kernel::TrainAddInto).read("src", &huge).write("dst", &small).push(&p).dispatch([1, 1, 1]), "binding");
+        let text = expect_too_large(rec.dispatch("test.add_into", kernels::train::AddInto { src: huge.read(), dst: small.write() }, &p, [1, 1, 1]), "binding");
         assert!(text.contains("'huge'") && text.contains("test.add_into") && text.contains("maxStorageBufferRange"), "{text}");
         drop(rec);
     } else {
@@ -206,7 +206,7 @@ fn a_grid_past_the_workgroup_limit_is_an_error_naming_the_pass() {
     let limit = gpu.info().max_compute_workgroup_count[0];
     let mut rec = gpu.record("too many groups").expect("record");
     let p = LossParams { len: 4, scale: 1.0, _pad: [0; 2] };
-    let err = rec.pass("test.add_into", Kernel::TrainAddInto).read("src", &a).write("dst", &b).push(&p).dispatch([limit + 1, 1, 1]).err().expect("refused");
+    let err = rec.dispatch("test.add_into", kernels::train::AddInto { src: a.read(), dst: b.write() }, &p, [limit + 1, 1, 1]).err().expect("refused");
     let text = err.to_string();
     assert!(matches!(err, EngineError::TooLarge { .. }) && text.contains("test.add_into") && text.contains("maxComputeWorkGroupCount"), "{text}");
     drop(rec);

@@ -15,7 +15,7 @@ use drape_engine::ops::adam::{GaussianAdam, LearningRates};
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
 use drape_engine::recorder::flat_grid;
-use drape_engine::{BufferDesc, Context, Kernel, Result};
+use drape_engine::{BufferDesc, Context, kernels, Result};
 
 use crate::image_io::Image;
 
@@ -131,13 +131,17 @@ pub fn fit_image(ctx: &Context, target: &Image, cfg: &FitConfig, report_every: u
         {
             let (rgb, _, _) = renderer.outputs();
             let mut rec = ctx.record("fit loss")?;
-            rec.pass("loss.mse_grad", Kernel::TrainMseGrad)
-                .read("pred", rgb)
-                .read("target", &target_buf)
-                .write("grad", &grad_rgb)
-                .write("squared_error", &squared_error)
-                .push(&loss)
-                .dispatch(flat_grid(loss.len))?;
+            rec.dispatch(
+                "loss.mse_grad",
+                kernels::train::MseGrad {
+                    pred: rgb.read(),
+                    target: target_buf.read(),
+                    grad: grad_rgb.write(),
+                    squared_error: squared_error.write(),
+                },
+                &loss,
+                flat_grid(loss.len),
+            )?;
             rec.submit_and_wait()?;
         }
         if it == 1 || it % report_every.max(1) == 0 || it == cfg.iterations {

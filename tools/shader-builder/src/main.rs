@@ -4,7 +4,8 @@
 //! naming each module, if any byte differs from what is committed (`--baseline-only`:
 //! the build without extra capabilities alone). Each build declares its own device
 //! capabilities (float atomics, subgroups, `Int64`), and each module records in the
-//! manifest those it needs.
+//! manifest those it needs, and its push-constant type (read from the kernels' source,
+//! see `push_types`), from which the engine generates each kernel's typed bindings.
 //!
 //! It runs on the pinned nightly of its own `rust-toolchain.toml`; the product
 //! workspace never needs that toolchain.
@@ -17,13 +18,15 @@ use spirv_builder::{ModuleResult, SpirvBuilder};
 
 use drape_shared::spirv_module;
 
+mod push_types;
+
 const TARGET: &str = "spirv-unknown-vulkan1.2";
 /// Must match `rust-toolchain.toml` beside this crate: rust-gpu 0.11 links against it.
 const TOOLCHAIN: &str = "nightly-2026-08-15";
 const USAGE: &str = "\
 shader-builder: compile shaders-rs/kernels to SPIR-V with rust-gpu
 
-USAGE: shader-builder [--check [--baseline-only]] [--shaders DIR] [--out DIR]
+USAGE: shader-builder [--check [--baseline-only] | --push-types] [--shaders DIR] [--out DIR]
 
   (no flag)        rebuild and write DIR/spirv/*.spv and manifest.json
   --check          rebuild into a temporary directory and compare byte for byte with the
@@ -31,12 +34,15 @@ USAGE: shader-builder [--check [--baseline-only]] [--shaders DIR] [--out DIR]
   --baseline-only  with --check: build only the baseline (no extra capability) and
                    compare its modules alone, in a fifth of the time; the other builds'
                    modules and the manifest are not checked
+  --push-types     print each entry point's push-constant type as the manifest records
+                   it (read from the kernels' source, no build) and exit
   --shaders DIR    the shaders-rs directory to compile (default: this repository's)
   --out DIR        where the committed modules live (default: <shaders>/spirv)";
 
 struct Args {
     check: bool,
     baseline_only: bool,
+    push_types: bool,
     shaders: PathBuf,
     out: Option<PathBuf>,
 }
@@ -45,6 +51,7 @@ fn parse_args() -> Result<Args, String> {
     let mut args = Args {
         check: false,
         baseline_only: false,
+        push_types: false,
         shaders: Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders-rs"),
         out: None,
     };
@@ -53,6 +60,7 @@ fn parse_args() -> Result<Args, String> {
         match a.as_str() {
             "--check" => args.check = true,
             "--baseline-only" => args.baseline_only = true,
+            "--push-types" => args.push_types = true,
             "--shaders" => args.shaders = it.next().ok_or("--shaders needs a directory")?.into(),
             "--out" => args.out = Some(it.next().ok_or("--out needs a directory")?.into()),
             "-h" | "--help" => {
@@ -146,7 +154,7 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     builder.multimodule = true;
     builder.release = true;
     // Keep the `OpName` of interface variables: the manifest names each binding after
-    // the kernel parameter, and the engine binds by those names.
+    // the kernel parameter, and the engine names its bindings structs' fields after them.
     builder.spirv_metadata = spirv_builder::SpirvMetadata::NameVariables;
     builder.target_dir_path = Some(target_dir);
     builder.build_script.defaults = false;
@@ -199,7 +207,7 @@ fn module_file(entry: &str) -> String {
     format!("{}.spv", entry.replace("::", "-"))
 }
 
-fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
+fn manifest_json(modules: &BTreeMap<String, Module>, push: &push_types::PushTypes) -> Result<String, String> {
     let mut list = Vec::new();
     for (entry, module) in modules {
         let bytes = &module.bytes;
@@ -232,8 +240,12 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
             };
             bindings.push(serde_json::json!({ "name": String::from_utf8_lossy(name), "access": access }));
         }
+        let push_constant = push
+            .get(entry)
+            .ok_or_else(|| format!("module {entry}: no `#[spirv(compute(..))]` function of that name in the kernels' source"))?;
         list.push(serde_json::json!({
             "entry_point": entry,
+            "push_constant": push_constant,
             "file": module_file(entry),
             "workgroup_size": workgroup_size,
             "bindings": bindings,
@@ -251,7 +263,7 @@ fn manifest_json(modules: &BTreeMap<String, Module>) -> Result<String, String> {
         .map_err(|e| e.to_string())
 }
 
-fn write(out: &Path, modules: &BTreeMap<String, Module>) -> Result<(), String> {
+fn write(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::PushTypes) -> Result<(), String> {
     std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
     // Remove modules of entry points that no longer exist.
     for entry in std::fs::read_dir(out).map_err(|e| e.to_string())? {
@@ -264,7 +276,7 @@ fn write(out: &Path, modules: &BTreeMap<String, Module>) -> Result<(), String> {
         let path = out.join(module_file(entry));
         std::fs::write(&path, &module.bytes).map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
-    let manifest = manifest_json(modules)?;
+    let manifest = manifest_json(modules, push)?;
     std::fs::write(out.join("manifest.json"), manifest).map_err(|e| e.to_string())?;
     println!("wrote {} modules and manifest.json to {}", modules.len(), out.display());
     Ok(())
@@ -273,7 +285,7 @@ fn write(out: &Path, modules: &BTreeMap<String, Module>) -> Result<(), String> {
 /// Every difference between a fresh build and the committed files, one line each. A
 /// build of some flavours only (`complete` false) checks its own modules alone: the
 /// committed modules it did not build and the manifest are left unchecked.
-fn compare(out: &Path, modules: &BTreeMap<String, Module>, complete: bool) -> Result<Vec<String>, String> {
+fn compare(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::PushTypes, complete: bool) -> Result<Vec<String>, String> {
     let mut problems = Vec::new();
     for (entry, module) in modules {
         let bytes = &module.bytes;
@@ -305,7 +317,7 @@ fn compare(out: &Path, modules: &BTreeMap<String, Module>, complete: bool) -> Re
             }
         }
     }
-    let manifest = manifest_json(modules)?;
+    let manifest = manifest_json(modules, push)?;
     let manifest_path = out.join("manifest.json");
     match std::fs::read_to_string(&manifest_path) {
         Ok(committed) if committed == manifest => {}
@@ -318,12 +330,20 @@ fn run() -> Result<ExitCode, String> {
     let args = parse_args()?;
     let out = args.out.clone().unwrap_or_else(|| args.shaders.join("spirv"));
     let flavours = if args.baseline_only { &FLAVOURS[..1] } else { FLAVOURS };
-    let modules = compile(&args.shaders, flavours)?;
-    if !args.check {
-        write(&out, &modules)?;
+    if args.push_types {
+        for (entry, ty) in push_types::read(&args.shaders.join("kernels").join("src"))? {
+            println!("{entry}: {}", ty.as_deref().unwrap_or("-"));
+        }
         return Ok(ExitCode::SUCCESS);
     }
-    let problems = compare(&out, &modules, !args.baseline_only)?;
+    // Read before the (long) builds, so that a kernel source it cannot read fails at once.
+    let push = push_types::read(&args.shaders.join("kernels").join("src"))?;
+    let modules = compile(&args.shaders, flavours)?;
+    if !args.check {
+        write(&out, &modules, &push)?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    let problems = compare(&out, &modules, &push, !args.baseline_only)?;
     if problems.is_empty() {
         println!("SPIR-V is fresh: {} modules match {}", modules.len(), out.display());
         Ok(ExitCode::SUCCESS)

@@ -13,7 +13,7 @@
 use drape_engine::ops::cloth_loss::{Arap, Chamfer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
 use drape_shared::adam::LossParams;
 
 use crate::avatar::cloth_target::GarmentFrames;
@@ -139,9 +139,9 @@ impl ClothLosses {
             return Ok(());
         }
         let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
-        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
         let p = LossParams { len: self.pixels, scale: 1.0, _pad: [0; 2] };
-        rec.pass("cloth.mask_add", Kernel::TrainAddInto).read("src", &self.grad_alpha).write("dst", grad_alpha).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        rec.dispatch("cloth.mask_add", kernels::train::AddInto { src: self.grad_alpha.read(), dst: grad_alpha.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
         Ok(())
     }
 
@@ -156,7 +156,7 @@ impl ClothLosses {
             let (_, alpha, _) = self.renderer.outputs();
             let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
             let mut rec = ctx.record("cloth mask loss")?;
-            rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+            rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
             rec.submit_and_wait()?;
         }
         self.renderer.backward(&saved, &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
@@ -183,7 +183,7 @@ impl ClothLosses {
         self.renderer.record_overflow_flag(rec, guard)?;
         let (_, alpha, _) = self.renderer.outputs();
         let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
-        rec.pass("cloth.mask_grad", Kernel::TrainMseGrad).read("pred", alpha).read("target", &self.mask_target).write("grad", &self.grad_alpha).write("squared_error", &self.mask_sq_error).push(&p).dispatch(drape_engine::recorder::flat_grid(self.pixels))?;
+        rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
         self.renderer.record_backward(rec, &self.renderer.recorded_forward(), &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())
     }
 
@@ -205,7 +205,7 @@ impl ClothLosses {
             for k in 0..4 {
                 let len = per[k] * this.count;
                 let p = LossParams { len, scale: 1.0, _pad: [0; 2] };
-                rec.pass("cloth.mask_add", Kernel::TrainAddInto).read("src", src[k]).write("dst", dst[k]).push(&p).dispatch(drape_engine::recorder::flat_grid(len))?;
+                rec.dispatch("cloth.mask_add", kernels::train::AddInto { src: src[k].read(), dst: dst[k].write() }, &p, drape_engine::recorder::flat_grid(len))?;
             }
         }
         let grad = &cloth.posed_grads.means;

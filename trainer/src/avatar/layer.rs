@@ -24,7 +24,7 @@ use drape_engine::ops::splat::scene::GaussianCloud;
 use crate::avatar::groups::Layer;
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::recorder::flat_grid;
-use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
 
@@ -349,14 +349,18 @@ impl HumanLayer {
         if lbs_weight > 0.0 {
             let len = NUM_JOINTS as u32 * n;
             let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
-            rec.pass("loss.cloth_lbs", Kernel::TrainMseGrad)
-                .read("pred", self.deformation.head_output(0))
-                .read("target", &self.weight_targets)
-                .write("grad", &self.lbs_grad)
-                .write("squared_error", &self.weight_sq_error)
-                .push(&p)
-                .dispatch(flat_grid(len))?;
-            rec.pass("loss.cloth_lbs_add", Kernel::TrainAddInto).read("src", &self.lbs_grad).write("dst", self.deformation.head_grad(0)).push(&p).dispatch(flat_grid(len))?;
+            rec.dispatch(
+                "loss.cloth_lbs",
+                kernels::train::MseGrad {
+                    pred: self.deformation.head_output(0).read(),
+                    target: self.weight_targets.read(),
+                    grad: self.lbs_grad.write(),
+                    squared_error: self.weight_sq_error.write(),
+                },
+                &p,
+                flat_grid(len),
+            )?;
+            rec.dispatch("loss.cloth_lbs_add", kernels::train::AddInto { src: self.lbs_grad.read(), dst: self.deformation.head_grad(0).write() }, &p, flat_grid(len))?;
         }
         self.record_decoder_backward(rec, true)
     }
@@ -380,7 +384,7 @@ impl HumanLayer {
         self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
         if to_means {
             let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
-            rec.pass("layer.sum_mean_grads", Kernel::TrainAddInto).read("src", &self.grad_points).write("dst", &self.grad_means).push(&p).dispatch(flat_grid(p.len))?;
+            rec.dispatch("layer.sum_mean_grads", kernels::train::AddInto { src: self.grad_points.read(), dst: self.grad_means.write() }, &p, flat_grid(p.len))?;
         }
         Ok(())
     }
@@ -446,13 +450,17 @@ impl HumanLayer {
                 }
                 self.triplane.record_forward(&mut rec, &self.means, &self.features, n)?;
                 self.deformation.record_forward(&mut rec, &self.features, n)?;
-                rec.pass("fit.weight_mse", Kernel::TrainMseGrad)
-                    .read("pred", self.deformation.head_output(0))
-                    .read("target", &self.weight_targets)
-                    .write("grad", self.deformation.head_grad(0))
-                    .write("squared_error", &self.weight_sq_error)
-                    .push(&p)
-                    .dispatch(flat_grid(p.len))?;
+                rec.dispatch(
+                    "fit.weight_mse",
+                    kernels::train::MseGrad {
+                        pred: self.deformation.head_output(0).read(),
+                        target: self.weight_targets.read(),
+                        grad: self.deformation.head_grad(0).write(),
+                        squared_error: self.weight_sq_error.write(),
+                    },
+                    &p,
+                    flat_grid(p.len),
+                )?;
                 if step < steps {
                     self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;
                     self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
@@ -564,7 +572,7 @@ impl HumanLayer {
 pub fn record_count_nonfinite<'a>(rec: &mut Recording<'a>, buffers: impl IntoIterator<Item = (&'a Buffer, usize)>, counter: &'a Buffer) -> Result<()> {
     for (b, len) in buffers {
         let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
-        rec.pass("guard.count_nonfinite", Kernel::TrainCountNonfinite).read("values", b).write("counter", counter).push(&p).dispatch(flat_grid(p.len))?;
+        rec.dispatch("guard.count_nonfinite", kernels::train::CountNonfinite { values: b.read(), counter: counter.write() }, &p, flat_grid(p.len))?;
     }
     Ok(())
 }

@@ -6,7 +6,7 @@
 use drape_engine::ops::lpips::Lpips;
 use drape_engine::ops::ssim::Ssim;
 use drape_engine::recorder::flat_grid;
-use drape_engine::{Buffer, BufferDesc, Context, Kernel, Recording, Result};
+use drape_engine::{kernels, Buffer, BufferDesc, Context, Recording, Result};
 use drape_shared::adam::LossParams;
 
 /// The losses' weights.
@@ -69,13 +69,12 @@ impl ImageLosses {
     /// [`grad_rgb`](Self::grad_rgb).
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, rgb: &'a Buffer) -> Result<()> {
         let l1 = &self.l1;
-        rec.pass("loss.l1_grad", Kernel::TrainL1Grad)
-            .read("pred", rgb)
-            .read("target", &self.target)
-            .write("grad", &self.grad_rgb)
-            .write("abs_error", &self.abs_error)
-            .push(l1)
-            .dispatch(flat_grid(l1.len))?;
+        rec.dispatch(
+            "loss.l1_grad",
+            kernels::train::L1Grad { pred: rgb.read(), target: self.target.read(), grad: self.grad_rgb.write(), abs_error: self.abs_error.write() },
+            l1,
+            flat_grid(l1.len),
+        )?;
         // λ (1 − SSIM) adds −λ ∂SSIM/∂rgb to the L1 gradient.
         self.ssim.record(rec, rgb, &self.target, Some((&self.grad_rgb, -self.weights.ssim)))?;
         if let Some(l) = &self.lpips {

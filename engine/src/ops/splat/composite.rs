@@ -17,7 +17,7 @@ use drape_shared::splat::sh::C0;
 use crate::buffer::Buffer;
 use crate::ops::splat::scene::GaussianCloud;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid, Recording};
 
 /// The inputs of one composite: each pass's rgb (3 floats per pixel), the over pass's
@@ -59,14 +59,18 @@ fn params(pixels: u32, matte: Option<&Buffer>) -> CompositeParams {
 pub fn record_composite<'a>(rec: &mut Recording<'a>, inputs: CompositeInputs<'a>, out: &'a Buffer, pixels: u32) -> Result<()> {
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte the kernel reads V from the alpha; the binding still needs a buffer.
-    rec.pass("composite.fwd", Kernel::CompositeFwd)
-        .read("base", inputs.base_rgb)
-        .read("over", inputs.over_rgb)
-        .read("over_alpha", inputs.over_alpha)
-        .read("matte", inputs.matte_rgb.unwrap_or(inputs.over_alpha))
-        .write("out", out)
-        .push(&p)
-        .dispatch(flat_grid(pixels))
+    rec.dispatch(
+        "composite.fwd",
+        kernels::composite::Fwd {
+            base: inputs.base_rgb.read(),
+            over: inputs.over_rgb.read(),
+            over_alpha: inputs.over_alpha.read(),
+            matte: inputs.matte_rgb.unwrap_or(inputs.over_alpha).read(),
+            out: out.write(),
+        },
+        &p,
+        flat_grid(pixels),
+    )
 }
 
 /// Records the composite's backward from `grad` (the loss's gradient on the
@@ -75,18 +79,22 @@ pub fn record_composite_backward<'a>(rec: &mut Recording<'a>, grad: &'a Buffer, 
     assert_eq!(inputs.matte_rgb.is_some(), grads.matte_rgb.is_some(), "a matte's gradient goes with a matte");
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte neither matte binding is touched; they still need buffers.
-    rec.pass("composite.bwd", Kernel::CompositeBwd)
-        .read("grad", grad)
-        .read("base", inputs.base_rgb)
-        .read("over", inputs.over_rgb)
-        .read("over_alpha", inputs.over_alpha)
-        .read("matte", inputs.matte_rgb.unwrap_or(inputs.over_alpha))
-        .write("grad_base", grads.base_rgb)
-        .write("grad_over", grads.over_rgb)
-        .write("grad_over_alpha", grads.over_alpha)
-        .write("grad_matte", grads.matte_rgb.unwrap_or(grads.over_rgb))
-        .push(&p)
-        .dispatch(flat_grid(pixels))
+    rec.dispatch(
+        "composite.bwd",
+        kernels::composite::Bwd {
+            grad: grad.read(),
+            base: inputs.base_rgb.read(),
+            over: inputs.over_rgb.read(),
+            over_alpha: inputs.over_alpha.read(),
+            matte: inputs.matte_rgb.unwrap_or(inputs.over_alpha).read(),
+            grad_base: grads.base_rgb.write(),
+            grad_over: grads.over_rgb.write(),
+            grad_over_alpha: grads.over_alpha.write(),
+            grad_matte: grads.matte_rgb.unwrap_or(grads.over_rgb).write(),
+        },
+        &p,
+        flat_grid(pixels),
+    )
 }
 
 /// Records `dst[i] += src[src_offset + i]` for `i < len` (floats): one cloud's slice of
@@ -96,7 +104,7 @@ pub fn record_add_slice<'a>(rec: &mut Recording<'a>, src: &'a Buffer, src_offset
         return Ok(());
     }
     let p = SliceParams { len, src_offset, _pad: [0; 2] };
-    rec.pass("composite.add_slice", Kernel::CompositeAddSlice).read("src", src).write("dst", dst).push(&p).dispatch(flat_grid(len))
+    rec.dispatch("composite.add_slice", kernels::composite::AddSlice { src: src.read(), dst: dst.write() }, &p, flat_grid(len))
 }
 
 /// The degree-0 SH coefficient (all three channels) of a Gaussian in the matte pass:
@@ -253,6 +261,6 @@ pub fn record_to_rgba<'a>(rec: &mut Recording<'a>, rgb: &'a Buffer, coverage: Co
         Coverage::Alpha(alpha) => (alpha, alpha, RgbaParams { pixels, a_stride: 1, a_is_transmittance: 0, b_stride: 0 }),
         Coverage::Two { base: (a, a_stride, t), layer: (b, b_stride) } => (a, b, RgbaParams { pixels, a_stride, a_is_transmittance: u32::from(t), b_stride }),
     };
-    rec.pass("composite.to_rgba", Kernel::CompositeToRgba).read("rgb_in", rgb).read("alpha_a", a).read("alpha_b", b).write("rgba", out).push(&p).dispatch(flat_grid(pixels))
+    rec.dispatch("composite.to_rgba", kernels::composite::ToRgba { rgb_in: rgb.read(), alpha_a: a.read(), alpha_b: b.read(), rgba: out.write() }, &p, flat_grid(pixels))
 }
 

@@ -11,7 +11,7 @@ use drape_shared::splat::layout::{ProjectedSplat, SPLAT_GRAD_FLOATS};
 
 use crate::buffer::Buffer;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::ops::splat::render::SplatRenderer;
 use crate::recorder::{flat_grid, Recording};
 
@@ -26,7 +26,7 @@ pub fn record_screen_stats<'a>(rec: &mut Recording<'a>, renderer: &'a SplatRende
     let (width, height) = renderer.size();
     let (splats, grads) = renderer.splat_buffers();
     let p = ScreenStatsParams { first, count, out_first, width, height, _pad: [0; 3] };
-    rec.pass("splat.screen_stats", Kernel::SplatScreenStats).read("splats", splats).read("splat_grads", grads).write("stats", stats).push(&p).dispatch(flat_grid(count))
+    rec.dispatch("splat.screen_stats", kernels::splat::ScreenStats { splats: splats.read(), splat_grads: grads.read(), stats: stats.write() }, &p, flat_grid(count))
 }
 
 /// CPU reference of the screen-space statistics.

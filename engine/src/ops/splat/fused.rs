@@ -24,7 +24,7 @@
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels::{self, Kernel};
 use crate::ops::accumulate::{Accumulation, Method};
 use crate::ops::splat::composite::CompositeInputs;
 use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SavedForward, SplatRenderer};
@@ -107,19 +107,25 @@ impl FusedRenderer {
         } else {
             self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatRasterizeFusedFwdSubgroup)
         };
-        rec.pass("splat.rasterize_fused_fwd", kernel)
-            .read("frame", frame)
-            .read("splats", splats)
-            .read("isect_values", isect_values)
-            .read("ranges", ranges)
-            .read("masks", &self.masks)
-            .write("base_rgb", &self.base_rgb)
-            .write("over_rgb", &self.over_rgb)
-            .write("over_alpha", &self.over_alpha)
-            .write("matte_rgb", &self.matte_rgb)
-            .write("transmittances", &self.transmittances)
-            .write("ends", &self.ends)
-            .dispatch(grid)
+        rec.dispatch_as(
+            "splat.rasterize_fused_fwd",
+            kernel,
+            kernels::splat::RasterizeFusedFwd {
+                frame: frame.read(),
+                splats: splats.read(),
+                isect_values: isect_values.read(),
+                ranges: ranges.read(),
+                masks: self.masks.read(),
+                base_rgb: self.base_rgb.write(),
+                over_rgb: self.over_rgb.write(),
+                over_alpha: self.over_alpha.write(),
+                matte_rgb: self.matte_rgb.write(),
+                transmittances: self.transmittances.write(),
+                ends: self.ends.write(),
+            },
+            &(),
+            grid,
+        )
     }
 
     /// Records the backward of the last forward into the per-splat gradients and then
@@ -138,20 +144,26 @@ impl FusedRenderer {
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let target = self.renderer.grad_target(method);
         rec.fill(target, 0);
-        rec.pass("splat.rasterize_fused_bwd", kernel)
-            .read("frame", frame)
-            .read("splats", splats)
-            .read("isect_values", isect_values)
-            .read("ranges", ranges)
-            .read("masks", &self.masks)
-            .read("transmittances", &self.transmittances)
-            .read("ends", &self.ends)
-            .read("grad_base", grads.base_rgb)
-            .read("grad_over", grads.over_rgb)
-            .read("grad_over_alpha", grads.over_alpha)
-            .read("grad_matte", grads.matte_rgb)
-            .write("splat_grads", target)
-            .dispatch(grid)?;
+        rec.dispatch_as(
+            "splat.rasterize_fused_bwd",
+            kernel,
+            kernels::splat::RasterizeFusedBwdAtomic {
+                frame: frame.read(),
+                splats: splats.read(),
+                isect_values: isect_values.read(),
+                ranges: ranges.read(),
+                masks: self.masks.read(),
+                transmittances: self.transmittances.read(),
+                ends: self.ends.read(),
+                grad_base: grads.base_rgb.read(),
+                grad_over: grads.over_rgb.read(),
+                grad_over_alpha: grads.over_alpha.read(),
+                grad_matte: grads.matte_rgb.read(),
+                splat_grads: target.write(),
+            },
+            &(),
+            grid,
+        )?;
         self.renderer.record_grad_resolve(rec, gaussians.count, method)?;
         self.renderer.record_project_backward(rec, gaussians, out)
     }

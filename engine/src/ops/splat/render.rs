@@ -28,7 +28,7 @@ use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChun
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::Kernel;
+use crate::kernels::{self, Kernel};
 use crate::ops::accumulate::{FixedPointScratch, Method};
 use crate::ops::radix_sort::RadixSort;
 use crate::ops::scan::ExclusiveScan;
@@ -552,7 +552,7 @@ impl SplatRenderer {
     /// recording): a guard that work recorded later in the recording reads on the GPU.
     pub fn record_overflow_flag<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
         let p = ExceedsParams::new(u64::from(self.intersection_capacity()));
-        rec.pass("guard.intersections", Kernel::TrainFlagExceeds).read("value", &self.total).write("counter", counter).push(&p).dispatch([1, 1, 1])
+        rec.dispatch("guard.intersections", kernels::train::FlagExceeds { value: self.total.read(), counter: counter.write() }, &p, [1, 1, 1])
     }
 
     /// Makes what a backward pass with `accumulation` needs (before
@@ -621,18 +621,24 @@ impl SplatRenderer {
         };
         let p = &self.pixels;
         let (_, splats, _, _) = self.binned();
-        rec.pass("splat.rasterize_fwd", kernel)
-            .read("frame", &self.frame)
-            .read("splats", splats)
-            .read("isect_values", &self.isect_values)
-            .read("ranges", &self.ranges)
-            .write("rgb", &p.rgb)
-            .write("alpha", &p.alpha)
-            .write("depth", &p.depth)
-            .write("contributors", &p.contributors)
-            .write("transmittance", &p.transmittance)
-            .write("blended", &p.blended)
-            .dispatch(grid)
+        rec.dispatch_as(
+            "splat.rasterize_fwd",
+            kernel,
+            kernels::splat::RasterizeFwd {
+                frame: self.frame.read(),
+                splats: splats.read(),
+                isect_values: self.isect_values.read(),
+                ranges: self.ranges.read(),
+                rgb: p.rgb.write(),
+                alpha: p.alpha.write(),
+                depth: p.depth.write(),
+                contributors: p.contributors.write(),
+                transmittance: p.transmittance.write(),
+                blended: p.blended.write(),
+            },
+            &(),
+            grid,
+        )
     }
 
     /// The buffers a rasterizer reads after [`record_binning`](Self::record_binning):
@@ -679,54 +685,74 @@ impl SplatRenderer {
                 self.record_project_sh_half(rec, gaussians, &chunk, (offset, bytes))?;
                 continue;
             }
-            rec.pass("splat.project_fwd", Kernel::SplatProjectFwd)
-                .read("frame", &self.frame)
-                .read("means", &gaussians.means)
-                .read("log_scales", &gaussians.log_scales)
-                .read("quats", &gaussians.quats)
-                .read("opacity_logits", &gaussians.opacity_logits)
-                .read_range("sh", &gaussians.sh, offset, bytes)
-                .write("splats", &self.splats)
-                .write("depth_keys", &self.depth_keys)
-                .write("order", &self.order)
-                .write("dropped", &self.dropped)
-                .push(&chunk)
-                .dispatch(groups(chunk.len))?;
+            rec.dispatch(
+                "splat.project_fwd",
+                kernels::splat::ProjectFwd {
+                    frame: self.frame.read(),
+                    means: gaussians.means.read(),
+                    log_scales: gaussians.log_scales.read(),
+                    quats: gaussians.quats.read(),
+                    opacity_logits: gaussians.opacity_logits.read(),
+                    sh: gaussians.sh.read_range(offset, bytes),
+                    splats: self.splats.write(),
+                    depth_keys: self.depth_keys.write(),
+                    order: self.order.write(),
+                    dropped: self.dropped.write(),
+                },
+                &chunk,
+                groups(chunk.len),
+            )?;
         }
         self.depth_sort.record(rec, &self.depth_keys, &self.order, n, 32)?;
-        rec.pass("splat.gather_counts", Kernel::SplatGatherCounts)
-            .read("order", &self.order)
-            .read("splats", &self.splats)
-            .write("counts", &self.counts)
-            .write("total", &self.total)
-            .push(&counts_pc)
-            .dispatch(groups(n + 1))?;
+        rec.dispatch(
+            "splat.gather_counts",
+            kernels::splat::GatherCounts {
+                order: self.order.read(),
+                splats: self.splats.read(),
+                counts: self.counts.write(),
+                total: self.total.write(),
+            },
+            &counts_pc,
+            groups(n + 1),
+        )?;
         // The scan wraps past 2^32 - 1; the total from gather_counts does not, and the
         // kernels below read nothing through offsets a wrapped scan made.
         self.count_scan.record(rec, &self.counts, n + 1)?;
-        rec.pass("splat.emit_intersections", Kernel::SplatEmitIntersections)
-            .read("frame", &self.frame)
-            .read("order", &self.order)
-            .read("splats", &self.splats)
-            .read("offsets", &self.counts)
-            .read("total", &self.total)
-            .write("isect_keys", &self.isect_keys)
-            .write("isect_values", &self.isect_values)
-            .push(&counts_pc)
-            .dispatch(groups(n))?;
+        rec.dispatch(
+            "splat.emit_intersections",
+            kernels::splat::EmitIntersections {
+                frame: self.frame.read(),
+                order: self.order.read(),
+                splats: self.splats.read(),
+                offsets: self.counts.read(),
+                total: self.total.read(),
+                isect_keys: self.isect_keys.write(),
+                isect_values: self.isect_values.write(),
+            },
+            &counts_pc,
+            groups(n),
+        )?;
         self.isect_sort.record_bounded(rec, &self.isect_keys, &self.isect_values, capacity, &self.total, tile_bits)?;
-        rec.pass("splat.tile_ranges", Kernel::SplatTileRanges)
-            .read("isect_keys", &self.isect_keys)
-            .read("total", &self.total)
-            .write("ranges", &self.ranges)
-            .push(&counts_pc)
-            .dispatch(groups(capacity))?;
+        rec.dispatch(
+            "splat.tile_ranges",
+            kernels::splat::TileRanges {
+                isect_keys: self.isect_keys.read(),
+                total: self.total.read(),
+                ranges: self.ranges.write(),
+            },
+            &counts_pc,
+            groups(capacity),
+        )?;
         if let (true, Some(half)) = (self.half_splats, &self.splats_half) {
-            rec.pass("splat.pack_splats_half", Kernel::SplatPackSplatsHalf)
-                .read("splats", &self.splats)
-                .write("half_splats", half)
-                .push(&counts_pc)
-                .dispatch(groups(n))?;
+            rec.dispatch(
+                "splat.pack_splats_half",
+                kernels::splat::PackSplatsHalf {
+                    splats: self.splats.read(),
+                    half_splats: half.write(),
+                },
+                &counts_pc,
+                groups(n),
+            )?;
         }
         Ok(())
     }
@@ -739,24 +765,32 @@ impl SplatRenderer {
         let words = sh_half_words(coeffs) as u64 * u64::from(chunk.len);
         let half_offset = 4 * sh_half_words(coeffs) as u64 * u64::from(chunk.first);
         let params = ShHalfParams { count: chunk.len, coeffs: coeffs as u32, _pad: [0; 2] };
-        rec.pass("splat.pack_sh_half", Kernel::SplatPackShHalf)
-            .read_range("sh", &gaussians.sh, offset, bytes)
-            .write_range("sh_half", sh_half, half_offset, 4 * words)
-            .push(&params)
-            .dispatch(groups(words as u32))?;
-        rec.pass("splat.project_fwd", Kernel::SplatProjectFwdShHalf)
-            .read("frame", &self.frame)
-            .read("means", &gaussians.means)
-            .read("log_scales", &gaussians.log_scales)
-            .read("quats", &gaussians.quats)
-            .read("opacity_logits", &gaussians.opacity_logits)
-            .read_range("sh_half", sh_half, half_offset, 4 * words)
-            .write("splats", &self.splats)
-            .write("depth_keys", &self.depth_keys)
-            .write("order", &self.order)
-            .write("dropped", &self.dropped)
-            .push(chunk)
-            .dispatch(groups(chunk.len))?;
+        rec.dispatch(
+            "splat.pack_sh_half",
+            kernels::splat::PackShHalf {
+                sh: gaussians.sh.read_range(offset, bytes),
+                sh_half: sh_half.write_range(half_offset, 4 * words),
+            },
+            &params,
+            groups(words as u32),
+        )?;
+        rec.dispatch(
+            "splat.project_fwd",
+            kernels::splat::ProjectFwdShHalf {
+                frame: self.frame.read(),
+                means: gaussians.means.read(),
+                log_scales: gaussians.log_scales.read(),
+                quats: gaussians.quats.read(),
+                opacity_logits: gaussians.opacity_logits.read(),
+                sh_half: sh_half.read_range(half_offset, 4 * words),
+                splats: self.splats.write(),
+                depth_keys: self.depth_keys.write(),
+                order: self.order.write(),
+                dropped: self.dropped.write(),
+            },
+            chunk,
+            groups(chunk.len),
+        )?;
         Ok(())
     }
 
@@ -815,18 +849,24 @@ impl SplatRenderer {
         let target = self.grad_target(method);
         rec.fill(target, 0);
         let p = &self.pixels;
-        rec.pass("splat.rasterize_bwd", kernel)
-            .read("frame", &self.frame)
-            .read("splats", &self.splats)
-            .read("isect_values", &self.isect_values)
-            .read("ranges", &self.ranges)
-            .read("contributors", &p.contributors)
-            .read("transmittance", &p.transmittance)
-            .read("grad_rgb", grad_rgb)
-            .read("grad_alpha", grad_alpha)
-            .read("grad_depth", grad_depth)
-            .write("splat_grads", target)
-            .dispatch(self.raster_grid())?;
+        rec.dispatch_as(
+            "splat.rasterize_bwd",
+            kernel,
+            kernels::splat::RasterizeBwdAtomic {
+                frame: self.frame.read(),
+                splats: self.splats.read(),
+                isect_values: self.isect_values.read(),
+                ranges: self.ranges.read(),
+                contributors: p.contributors.read(),
+                transmittance: p.transmittance.read(),
+                grad_rgb: grad_rgb.read(),
+                grad_alpha: grad_alpha.read(),
+                grad_depth: grad_depth.read(),
+                splat_grads: target.write(),
+            },
+            &(),
+            self.raster_grid(),
+        )?;
         self.record_grad_resolve(rec, count, method)
     }
 
@@ -837,22 +877,26 @@ impl SplatRenderer {
         assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
         for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
-            rec.pass("splat.project_bwd", Kernel::SplatProjectBwd)
-                .read("frame", &self.frame)
-                .read("means", &gaussians.means)
-                .read("log_scales", &gaussians.log_scales)
-                .read("quats", &gaussians.quats)
-                .read("opacity_logits", &gaussians.opacity_logits)
-                .read_range("sh", &gaussians.sh, offset, bytes)
-                .read("splats", &self.splats)
-                .read("splat_grads", &self.splat_grads)
-                .write("grad_means", &out.means)
-                .write("grad_log_scales", &out.log_scales)
-                .write("grad_quats", &out.quats)
-                .write("grad_opacity_logits", &out.opacity_logits)
-                .write_range("grad_sh", &out.sh, offset, bytes)
-                .push(&chunk)
-                .dispatch(groups(chunk.len))?;
+            rec.dispatch(
+                "splat.project_bwd",
+                kernels::splat::ProjectBwd {
+                    frame: self.frame.read(),
+                    means: gaussians.means.read(),
+                    log_scales: gaussians.log_scales.read(),
+                    quats: gaussians.quats.read(),
+                    opacity_logits: gaussians.opacity_logits.read(),
+                    sh: gaussians.sh.read_range(offset, bytes),
+                    splats: self.splats.read(),
+                    splat_grads: self.splat_grads.read(),
+                    grad_means: out.means.write(),
+                    grad_log_scales: out.log_scales.write(),
+                    grad_quats: out.quats.write(),
+                    grad_opacity_logits: out.opacity_logits.write(),
+                    grad_sh: out.sh.write_range(offset, bytes),
+                },
+                &chunk,
+                groups(chunk.len),
+            )?;
         }
         Ok(())
     }

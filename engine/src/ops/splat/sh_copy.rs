@@ -9,7 +9,7 @@ use drape_shared::splat::layout::{sh_coeffs, sh_copy_indices, ShCopyParams};
 
 use crate::buffer::Buffer;
 use crate::error::Result;
-use crate::kernels::Kernel;
+use crate::kernels;
 use crate::recorder::{flat_grid, Recording};
 
 /// Where a copy reads and writes: a buffer, its SH degree, and the first Gaussian.
@@ -38,7 +38,7 @@ pub fn record_copy_sh<'a>(rec: &mut Recording<'a>, src: ShSlice<'a>, dst: ShSlic
         return Ok(());
     }
     let p = params((src.degree, src.first), (dst.degree, dst.first), count);
-    rec.pass("train.copy_sh", Kernel::TrainCopySh).read("src", src.buffer).write("dst", dst.buffer).push(&p).dispatch(flat_grid(p.floats()))
+    rec.dispatch("train.copy_sh", kernels::train::CopySh { src: src.buffer.read(), dst: dst.buffer.write() }, &p, flat_grid(p.floats()))
 }
 
 /// CPU reference of the SH copy.
