@@ -3,7 +3,8 @@
 //! `strain_probe [SPEED] [SUBSTEPS] [ITERATIONS] > frames.txt`
 use drape_trainer::body::kinematics::pose_body;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
-use drape_trainer::cloth::{simulate, BodyCollider, ClothParams};
+use drape_trainer::cloth::{simulate, ClothParams};
+use drape_trainer::collider::BodyCollider;
 use drape_trainer::garment::{pants, tshirt};
 use drape_trainer::mesh::{norm, sub};
 use drape_trainer::motion::{procedural, MotionKind};

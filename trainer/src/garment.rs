@@ -153,7 +153,7 @@ fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(V
 /// each followed by pushing every vertex back to at least `clearance` off the body.
 /// Offsetting along normals alone folds the surface where facing normals converge.
 fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body_vertices: &[V3], body_faces: &[[u32; 3]], clearance: &[f64], iterations: usize) {
-    let collider = crate::cloth::BodyCollider::new(body_vertices.to_vec(), body_faces);
+    let collider = crate::collider::BodyCollider::new(body_vertices.to_vec(), body_faces);
     let adj = crate::mesh::adjacency(vertices.len(), faces);
     let boundary: Vec<bool> = {
         let counts = crate::mesh::edge_face_counts(faces);

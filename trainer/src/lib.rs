@@ -13,6 +13,7 @@ pub mod body;
 pub mod camera;
 pub mod camera_file;
 pub mod cloth;
+pub mod collider;
 pub mod dataset;
 pub mod error;
 pub mod fuzzing;

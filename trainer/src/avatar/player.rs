@@ -45,7 +45,7 @@ use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::{FrameTransforms, Rig};
 use crate::avatar::run::OpenRun;
-use crate::avatar::train::build_avatar;
+use crate::avatar::assemble::build_avatar;
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
 use crate::dataset::loader::BodyParams;
@@ -168,7 +168,7 @@ impl AvatarPlayer {
         }
         let rgba = ctx.create_buffer("player rgba 0", BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
         slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.compositing });
-        let betas = crate::avatar::train::betas_of(&anchor);
+        let betas = crate::avatar::inputs::betas_of(&anchor);
         let transforms = rig.frame(&anchor.body);
         Ok(Self {
             ctx: ctx.clone(),

@@ -3,7 +3,8 @@
 //! deterministic (also at 3x speed and with one substep).
 
 use drape_trainer::body::procedural::{default_body, BodyOptions};
-use drape_trainer::cloth::{simulate, BodyCollider, ClothParams, ClothSim};
+use drape_trainer::cloth::{simulate, ClothParams, ClothSim};
+use drape_trainer::collider::BodyCollider;
 use drape_trainer::garment::{pants, tshirt, Garment};
 use drape_trainer::motion::{procedural, MotionKind};
 

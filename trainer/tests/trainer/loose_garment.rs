@@ -4,7 +4,8 @@
 //! than the collision margin, no edge longer than 110% of its rest length).
 
 use drape_trainer::body::procedural::{default_body, BodyOptions};
-use drape_trainer::cloth::{simulate, BodyCollider, ClothParams};
+use drape_trainer::cloth::{simulate, ClothParams};
+use drape_trainer::collider::BodyCollider;
 use drape_trainer::garment::{pants, tshirt, GarmentFit};
 use drape_trainer::motion::{procedural, MotionKind};
 
