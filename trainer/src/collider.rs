@@ -6,18 +6,17 @@
 use glam::DVec3;
 
 use crate::grid::{bounds, Grid};
-use crate::mesh::{add, norm, scale, sub, V3};
 
 /// Points moving linearly from `a` to `b`, at fraction `s`.
-pub(crate) fn lerp_points(a: &[V3], b: &[V3], s: f64) -> Vec<V3> {
-    a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect()
+pub(crate) fn lerp_points(a: &[DVec3], b: &[DVec3], s: f64) -> Vec<DVec3> {
+    a.iter().zip(b).map(|(x, y)| *x * (1.0 - s) + *y * s).collect()
 }
 
 /// The posed body over one frame as a collider: its vertices at the frame's start and
 /// end (queried at any fraction between), triangles in a uniform grid covering both.
 pub struct BodyCollider {
-    start: Vec<V3>,
-    end: Vec<V3>,
+    start: Vec<DVec3>,
+    end: Vec<DVec3>,
     faces: Vec<[u32; 3]>,
     /// Each triangle filed by its bounds over the frame, grown by `COLLIDER_REACH`.
     grid: Grid,
@@ -66,27 +65,27 @@ pub(crate) const COLLIDER_REACH: f64 = 0.02;
 
 impl BodyCollider {
     /// A body that does not move.
-    pub fn new(vertices: Vec<V3>, faces: &[[u32; 3]]) -> Self {
+    pub fn new(vertices: Vec<DVec3>, faces: &[[u32; 3]]) -> Self {
         Self::moving(vertices.clone(), vertices, faces)
     }
 
     /// A body moving linearly from `start` to `end` over the frame.
-    pub fn moving(start: Vec<V3>, end: Vec<V3>, faces: &[[u32; 3]]) -> Self {
+    pub fn moving(start: Vec<DVec3>, end: Vec<DVec3>, faces: &[[u32; 3]]) -> Self {
         let boxes = faces.iter().map(|f| bounds(f.map(|k| start[k as usize]).into_iter().chain(f.map(|k| end[k as usize]))));
         let grid = Grid::of_boxes(boxes, COLLIDER_CELL, COLLIDER_REACH);
-        let travel = start.iter().zip(&end).map(|(a, b)| norm(sub(*a, *b))).fold(0.0, f64::max);
+        let travel = start.iter().zip(&end).map(|(a, b)| (*a - *b).length()).fold(0.0, f64::max);
         Self { start, end, faces: faces.to_vec(), grid, travel }
     }
 
     /// Signed distance to the body (negative inside) and the closest surface point and
     /// normal, exact for points within `COLLIDER_REACH` of the surface; None when
     /// nothing is that near.
-    pub fn query(&self, p: V3) -> Option<(f64, V3, V3)> {
+    pub fn query(&self, p: DVec3) -> Option<(f64, DVec3, DVec3)> {
         self.query_at(p, 1.0)
     }
 
     /// [`query`](Self::query) against the body at fraction `s` of the frame.
-    pub fn query_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3)> {
+    pub fn query_at(&self, p: DVec3, s: f64) -> Option<(f64, DVec3, DVec3)> {
         self.query_face_at(p, s).map(|(d, q, n, _)| (d, q, n))
     }
 
@@ -96,23 +95,22 @@ impl BodyCollider {
     }
 
     /// The body's vertices at fraction `s` of the frame.
-    pub fn vertices_at(&self, s: f64) -> Vec<V3> {
+    pub fn vertices_at(&self, s: f64) -> Vec<DVec3> {
         lerp_points(&self.start, &self.end, s)
     }
 
     /// [`query_at`](Self::query_at), also naming the closest triangle.
-    pub(crate) fn query_face_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3, u32)> {
-        let vertex = |k: u32| add(scale(self.start[k as usize], 1.0 - s), scale(self.end[k as usize], s));
+    pub(crate) fn query_face_at(&self, p: DVec3, s: f64) -> Option<(f64, DVec3, DVec3, u32)> {
+        let vertex = |k: u32| self.start[k as usize] * (1.0 - s) + self.end[k as usize] * s;
         self.closest_among(p, vertex, self.grid.at(p).iter().copied())
     }
 
     /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:
     /// (signed distance, point, normal, face).
-    pub(crate) fn closest_among(&self, p: V3, vertex: impl Fn(u32) -> V3, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
-        let p = DVec3::from(p);
+    pub(crate) fn closest_among(&self, p: DVec3, vertex: impl Fn(u32) -> DVec3, faces: impl Iterator<Item = u32>) -> Option<(f64, DVec3, DVec3, u32)> {
         let mut best: Option<(f64, DVec3, [DVec3; 3], u32)> = None;
         for t in faces {
-            let [a, b, c] = self.faces[t as usize].map(|k| DVec3::from(vertex(k)));
+            let [a, b, c] = self.faces[t as usize].map(&vertex);
             let q = closest_point_on_triangle(p, a, b, c);
             let d2 = (p - q).length_squared();
             // Squared distances; ties go to the first triangle (a fixed order).
@@ -123,7 +121,7 @@ impl BodyCollider {
         best.map(|(d2, q, [a, b, c], t)| {
             let n = (b - a).cross(c - a).normalize_or(DVec3::Z);
             let d = d2.sqrt();
-            (if (p - q).dot(n) < 0.0 { -d } else { d }, q.to_array(), n.to_array(), t)
+            (if (p - q).dot(n) < 0.0 { -d } else { d }, q, n, t)
         })
     }
 }

@@ -574,7 +574,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
             BodyParams::Zju(z) => {
                 let mut z = z.clone();
                 for j in 1..24 {
-                    z.poses[3 * j..3 * j + 3].copy_from_slice(&novel[j]);
+                    z.poses[3 * j..3 * j + 3].copy_from_slice(&novel[j].to_array());
                 }
                 BodyParams::Zju(z)
             }
