@@ -382,15 +382,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let whole_image = avatar.scene.is_some();
     let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
-    // The cloth layer's physics targets: the garments simulated through the motion.
-    let mut cloth_losses = match avatar.cloth() {
-        Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
-            let garments = cloth_target::simulate_sequence(&rig, config.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
-            let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
-            Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?)
-        }
-        _ => None,
-    };
+    let mut cloth_losses = cloth_losses_of(ctx, &avatar, &rig, seq, config, (width, height), progress)?;
 
     // 1. The deformation decoder learns the body's skinning weights (or the run's
     //    checkpoint is loaded: its decoders have been fitted already).
@@ -398,28 +390,15 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let total_fit = config.fit_steps;
     let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
-        let state = checkpoint::read(&checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
-        if state.step > config.steps {
-            return Err(TrainerError::checkpoint(&checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.steps)));
-        }
-        avatar.restore(ctx, &state)?;
+        let step = resume_from(ctx, &checkpoint_path, config, &mut avatar, refiner.as_mut())?;
         // The checkpoint's layers may have been densified to other counts.
         renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
         if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
             c.resize(ctx, cloth)?;
         }
-        if let (Some(r), Some(p)) = (refiner.as_mut(), state.poses) {
-            r.restore(p).map_err(|e| TrainerError::checkpoint(&checkpoint_path, "poses", e.to_string()))?;
-        }
-        (state.step, f64::NAN)
+        (step, f64::NAN)
     } else {
-        let mut worst = 0.0f64;
-        for l in &mut avatar.layers {
-            let name = l.name.clone();
-            let mse = l.fit_skinning_weights(ctx, total_fit, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total: total_fit, mse }))?;
-            worst = worst.max(mse);
-        }
-        (0, worst)
+        (0, fit_skinning_weights(ctx, &mut avatar, config, progress)?)
     };
     let fit_seconds = t0.elapsed().as_secs_f64();
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
@@ -521,11 +500,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let loop_seconds = t_train.elapsed().as_secs_f64();
     let profile = if profiling { ctx.take_profile() } else { None };
     if let Some(p) = &profile {
-        let steps = u64::from(stop_at.saturating_sub(start_step));
-        let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}\n{}", 1e3 * loop_seconds / steps.max(1) as f64, waits.summary(), p.table(1e3 * loop_seconds, steps, 25));
-        let path = out.join("profile.txt");
-        std::fs::write(&path, &table).map_err(|e| TrainerError::io(&path, e))?;
-        write_json(&out.join("profile.json"), p)?;
+        write_profile(out, p, &waits, u64::from(stop_at.saturating_sub(start_step)), loop_seconds)?;
     }
     let last = stop_at.max(start_step);
     save(&mut avatar, &refiner, last, &checkpoint_path)?;
@@ -537,58 +512,9 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let eval_dir = out.join("eval");
     let (fin, per_frame) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(Some(&eval_dir)), progress)?;
     write_reports(&eval_dir, &format!("{} after {last} steps, {} held-out images of {}", out.display(), per_frame.len(), seq.dir.display()), &fin, &per_frame)?;
-    // The posed body of the first held-out frame as a standard 3DGS PLY.
     if let Some(f) = test_frames.first() {
-        let ft = rig.frame(&f.body);
-        avatar.set_frame(ctx, &ft)?;
-        {
-            let mut rec = ctx.record("export forward")?;
-            avatar.record_forward(&mut rec, ft.log_scale)?;
-            rec.submit_and_wait()?;
-        }
-        let cloud = avatar.read_posed(ctx)?;
-        // One standard 3DGS PLY per layer.
-        for layer in [Layer::Body, Layer::Cloth] {
-            let mut part = drape_engine::ops::splat::scene::GaussianCloud::new(cloud.sh_degree);
-            for i in (0..cloud.len()).filter(|&i| cloud.groups[i] == layer.group()) {
-                part.push(&cloud.gaussian::<f32>(i), layer);
-            }
-            if !part.is_empty() {
-                let name = if layer == Layer::Body { "body" } else { "cloth" };
-                let path = out.join(format!("{name}_frame{:04}.ply", f.frame));
-                ply::write(&path, &part)?;
-            }
-        }
-    }
-    // A novel pose (the procedural raise-arms motion, halfway) on the first held-out
-    // frame's root, translation and camera.
-    if let Some(f) = test_frames.first() {
-        let motion = crate::motion::procedural(crate::motion::MotionKind::RaiseArms, 30, 30.0, 1.0);
-        let novel = &motion.poses[15];
-        let body = match &f.body {
-            BodyParams::Smpl { pose, betas, translation, scale } => {
-                let mut p = *pose;
-                p[1..].copy_from_slice(&novel[1..]);
-                BodyParams::Smpl { pose: p, betas: betas.clone(), translation: *translation, scale: *scale }
-            }
-            BodyParams::Zju(z) => {
-                let mut z = z.clone();
-                for j in 1..24 {
-                    z.poses[3 * j..3 * j + 3].copy_from_slice(&novel[j].to_array());
-                }
-                BodyParams::Zju(z)
-            }
-        };
-        let ft = rig.frame(&body);
-        avatar.set_frame(ctx, &ft)?;
-        {
-            let mut rec = ctx.record("novel pose forward")?;
-            avatar.record_forward(&mut rec, ft.log_scale)?;
-            rec.submit_and_wait()?;
-        }
-        renderer.forward(ctx, &avatar, &f.camera.to_pinhole([0.0; 3]), &settings)?;
-        let rgb = renderer.read_rgb(ctx)?;
-        crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &rgb)?;
+        export_posed_layers(ctx, &mut avatar, &rig, f, out)?;
+        render_novel_pose(ctx, &mut avatar, &mut renderer, &rig, f, &settings, out, (width, height))?;
     }
     let report = TrainReport {
         layout: seq.layout,
@@ -607,9 +533,122 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     };
     write_json(&out.join("metrics.json"), &report)?;
     if stop_at == config.steps {
-        let marker = out.join(COMPLETE_MARKER);
-        std::fs::write(&marker, format!("finished {} steps\n", config.steps)).map_err(|e| TrainerError::io(&marker, e))?;
-        let _ = std::fs::remove_file(out.join(INCOMPLETE_MARKER));
+        mark_complete(out, config.steps)?;
     }
     Ok(Outcome::Finished(Box::new(report)))
+}
+
+/// The cloth layer's losses, where the avatar has a cloth layer and the config weighs
+/// them: their physics targets are the garments simulated through the sequence's motion.
+fn cloth_losses_of(ctx: &Context, avatar: &Avatar, rig: &Rig, seq: &Sequence, config: &TrainConfig, (width, height): (u32, u32), progress: &mut dyn FnMut(Progress)) -> crate::Result<Option<ClothLosses>> {
+    match avatar.cloth() {
+        Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
+            let garments = cloth_target::simulate_sequence(rig, config.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
+            let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
+            Ok(Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Loads the run's checkpoint into `avatar` (and the pose corrections into `refiner`);
+/// the step it was taken at.
+fn resume_from(ctx: &Context, checkpoint_path: &Path, config: &TrainConfig, avatar: &mut Avatar, refiner: Option<&mut PoseRefiner>) -> crate::Result<u32> {
+    let state = checkpoint::read(checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
+    if state.step > config.steps {
+        return Err(TrainerError::checkpoint(checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.steps)));
+    }
+    avatar.restore(ctx, &state)?;
+    if let (Some(r), Some(p)) = (refiner, state.poses) {
+        r.restore(p).map_err(|e| TrainerError::checkpoint(checkpoint_path, "poses", e.to_string()))?;
+    }
+    Ok(state.step)
+}
+
+/// Fits every layer's deformation decoder to the body's skinning weights; the worst
+/// layer's final mean squared error.
+fn fit_skinning_weights(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, progress: &mut dyn FnMut(Progress)) -> crate::Result<f64> {
+    let total = config.fit_steps;
+    let mut worst = 0.0f64;
+    for l in &mut avatar.layers {
+        let name = l.name.clone();
+        let mse = l.fit_skinning_weights(ctx, total, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total, mse }))?;
+        worst = worst.max(mse);
+    }
+    Ok(worst)
+}
+
+/// Writes the training steps' profile (`drape train --profile`): `profile.txt`, a table
+/// whose shares are of the loop's wall time, and `profile.json`.
+fn write_profile(out: &Path, profile: &drape_engine::Profile, waits: &HostWaits, steps: u64, loop_seconds: f64) -> crate::Result<()> {
+    let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}\n{}", 1e3 * loop_seconds / steps.max(1) as f64, waits.summary(), profile.table(1e3 * loop_seconds, steps, 25));
+    let path = out.join("profile.txt");
+    std::fs::write(&path, &table).map_err(|e| TrainerError::io(&path, e))?;
+    write_json(&out.join("profile.json"), profile)
+}
+
+/// Marks the run finished: the complete marker written, the incomplete one removed.
+fn mark_complete(out: &Path, steps: u32) -> crate::Result<()> {
+    let marker = out.join(COMPLETE_MARKER);
+    std::fs::write(&marker, format!("finished {steps} steps\n")).map_err(|e| TrainerError::io(&marker, e))?;
+    let _ = std::fs::remove_file(out.join(INCOMPLETE_MARKER));
+    Ok(())
+}
+
+/// Exports the avatar posed as held-out frame `f`: one standard 3DGS PLY per layer
+/// (`body_frameNNNN.ply`, `cloth_frameNNNN.ply`).
+fn export_posed_layers(ctx: &Context, avatar: &mut Avatar, rig: &Rig, f: &DatasetFrame, out: &Path) -> crate::Result<()> {
+    let ft = rig.frame(&f.body);
+    avatar.set_frame(ctx, &ft)?;
+    {
+        let mut rec = ctx.record("export forward")?;
+        avatar.record_forward(&mut rec, ft.log_scale)?;
+        rec.submit_and_wait()?;
+    }
+    let cloud = avatar.read_posed(ctx)?;
+    // One standard 3DGS PLY per layer.
+    for layer in [Layer::Body, Layer::Cloth] {
+        let mut part = drape_engine::ops::splat::scene::GaussianCloud::new(cloud.sh_degree);
+        for i in (0..cloud.len()).filter(|&i| cloud.groups[i] == layer.group()) {
+            part.push(&cloud.gaussian::<f32>(i), layer);
+        }
+        if !part.is_empty() {
+            let name = if layer == Layer::Body { "body" } else { "cloth" };
+            let path = out.join(format!("{name}_frame{:04}.ply", f.frame));
+            ply::write(&path, &part)?;
+        }
+    }
+    Ok(())
+}
+
+/// Renders `novel_pose.png`: the procedural raise-arms motion, halfway, on held-out
+/// frame `f`'s root, translation and camera.
+fn render_novel_pose(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, rig: &Rig, f: &DatasetFrame, settings: &RenderSettings, out: &Path, (width, height): (u32, u32)) -> crate::Result<()> {
+    let motion = crate::motion::procedural(crate::motion::MotionKind::RaiseArms, 30, 30.0, 1.0);
+    let novel = &motion.poses[15];
+    let body = match &f.body {
+        BodyParams::Smpl { pose, betas, translation, scale } => {
+            let mut p = *pose;
+            p[1..].copy_from_slice(&novel[1..]);
+            BodyParams::Smpl { pose: p, betas: betas.clone(), translation: *translation, scale: *scale }
+        }
+        BodyParams::Zju(z) => {
+            let mut z = z.clone();
+            for j in 1..24 {
+                z.poses[3 * j..3 * j + 3].copy_from_slice(&novel[j].to_array());
+            }
+            BodyParams::Zju(z)
+        }
+    };
+    let ft = rig.frame(&body);
+    avatar.set_frame(ctx, &ft)?;
+    {
+        let mut rec = ctx.record("novel pose forward")?;
+        avatar.record_forward(&mut rec, ft.log_scale)?;
+        rec.submit_and_wait()?;
+    }
+    renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), settings)?;
+    let rgb = renderer.read_rgb(ctx)?;
+    crate::dataset::image::write_rgb(&out.join("novel_pose.png"), width, height, &rgb)?;
+    Ok(())
 }
