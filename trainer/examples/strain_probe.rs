@@ -3,9 +3,9 @@
 //! `strain_probe [SPEED] [SUBSTEPS] [ITERATIONS] > frames.txt`
 use drape_trainer::body::kinematics::pose_body;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
-use drape_trainer::cloth::{simulate, BodyCollider, ClothParams};
+use drape_trainer::cloth::{simulate, ClothParams};
+use drape_trainer::collider::BodyCollider;
 use drape_trainer::garment::{pants, tshirt};
-use drape_trainer::mesh::{norm, sub};
 use drape_trainer::motion::{procedural, MotionKind};
 
 fn main() {
@@ -28,7 +28,7 @@ fn main() {
             let mut e: Vec<(u32, u32)> = g.faces.iter().flat_map(|f| [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])]).map(|(a, b)| (a.min(b), a.max(b))).collect();
             e.sort();
             e.dedup();
-            e.into_iter().map(|(a, b)| (a, b, norm(sub(g.vertices[a as usize], g.vertices[b as usize])))).collect()
+            e.into_iter().map(|(a, b)| (a, b, (g.vertices[a as usize] - g.vertices[b as usize]).length())).collect()
         })
         .collect();
     for (f, frame) in r.frames.iter().enumerate() {
@@ -39,7 +39,7 @@ fn main() {
             let mut over = 0;
             let mut worst = (0.0, 0, 0);
             for &(a, b, rest) in &edges[gi] {
-                let s = norm(sub(pos[a as usize], pos[b as usize])) / rest;
+                let s = (pos[a as usize] - pos[b as usize]).length() / rest;
                 if s > 1.1 {
                     over += 1;
                 }

@@ -17,7 +17,6 @@ use drape_engine::ops::splat::scene::PinholeCamera;
 
 use glam::{DMat3, DVec3};
 
-use crate::mesh::V3;
 
 /// A pinhole camera in f64: intrinsics in pixels, world-to-camera pose, image size and
 /// the near clipping distance.
@@ -31,19 +30,18 @@ pub struct Camera {
     pub height: u32,
     /// World-to-camera rotation, rows.
     pub rotation: [[f64; 3]; 3],
-    pub translation: V3,
+    pub translation: DVec3,
     pub near: f64,
 }
 
 /// The world-to-camera pose of a camera at `eye` looking at `target` with world up
 /// `up`: rows right, down, forward.
-fn pose_looking_at(eye: V3, target: V3, up: V3) -> ([[f64; 3]; 3], V3) {
-    let eye = DVec3::from(eye);
-    // A zero direction gives +z, as `mesh::normalize` does.
-    let forward = (DVec3::from(target) - eye).normalize_or(DVec3::Z);
-    let right = forward.cross(up.into()).normalize_or(DVec3::Z);
+fn pose_looking_at(eye: DVec3, target: DVec3, up: DVec3) -> ([[f64; 3]; 3], DVec3) {
+    // A zero direction gives +z rather than NaN.
+    let forward = (target - eye).normalize_or(DVec3::Z);
+    let right = forward.cross(up).normalize_or(DVec3::Z);
     let down = forward.cross(right);
-    ([right, down, forward].map(Into::into), [-right.dot(eye), -down.dot(eye), -forward.dot(eye)])
+    ([right, down, forward].map(|v| v.to_array()), DVec3::new(-right.dot(eye), -down.dot(eye), -forward.dot(eye)))
 }
 
 impl Camera {
@@ -56,14 +54,14 @@ impl Camera {
 
     /// A camera at `eye` looking at `target`, world up `up`, focal length `f` pixels,
     /// principal point at the image centre.
-    pub fn look_at(eye: V3, target: V3, up: V3, f: f64, width: u32, height: u32) -> Self {
+    pub fn look_at(eye: DVec3, target: DVec3, up: DVec3, f: f64, width: u32, height: u32) -> Self {
         let (rotation, translation) = pose_looking_at(eye, target, up);
         Self { fx: f, fy: f, cx: f64::from(width) / 2.0, cy: f64::from(height) / 2.0, width, height, rotation, translation, near: Self::NEAR }
     }
 
     /// This camera (its intrinsics, image size and near plane) moved to `eye` and
     /// turned to look at `target`, world up `up`.
-    pub fn moved_to(&self, eye: V3, target: V3, up: V3) -> Self {
+    pub fn moved_to(&self, eye: DVec3, target: DVec3, up: DVec3) -> Self {
         let (rotation, translation) = pose_looking_at(eye, target, up);
         Self { rotation, translation, ..*self }
     }
@@ -74,23 +72,23 @@ impl Camera {
     }
 
     /// The camera centre in the world, `-Rᵀ t`.
-    pub fn centre(&self) -> V3 {
-        (-(self.rotation_matrix().transpose() * DVec3::from(self.translation))).to_array()
+    pub fn centre(&self) -> DVec3 {
+        -(self.rotation_matrix().transpose() * self.translation)
     }
 
     /// Pixel coordinates of a world point (None behind the camera).
-    pub fn project(&self, p: V3) -> Option<[f64; 2]> {
+    pub fn project(&self, p: DVec3) -> Option<[f64; 2]> {
         let c = self.to_camera(p);
         (c[2] > 0.0).then(|| self.project_camera(c))
     }
 
     /// A world point in camera space.
-    pub fn to_camera(&self, p: V3) -> V3 {
-        (self.rotation_matrix() * DVec3::from(p) + DVec3::from(self.translation)).to_array()
+    pub fn to_camera(&self, p: DVec3) -> DVec3 {
+        self.rotation_matrix() * p + self.translation
     }
 
     /// Pixel coordinates (not rounded) of a camera-space point in front of the camera.
-    pub fn project_camera(&self, c: V3) -> [f64; 2] {
+    pub fn project_camera(&self, c: DVec3) -> [f64; 2] {
         [self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy]
     }
 
@@ -104,7 +102,7 @@ impl Camera {
             width: self.width,
             height: self.height,
             rotation: self.rotation.map(|r| r.map(|v| v as f32)),
-            translation: self.translation.map(|v| v as f32),
+            translation: self.translation.as_vec3().to_array(),
             near: self.near as f32,
             far: Self::FAR,
             background,
@@ -123,17 +121,17 @@ mod tests {
     /// A camera off every axis, with unequal focal lengths and an off-centre
     /// principal point, so that a swapped or transposed field shows.
     fn camera() -> Camera {
-        let mut c = Camera::look_at([1.3, 1.7, 3.1], [0.1, 0.9, -0.2], [0.0, 1.0, 0.0], 90.0, 80, 60);
+        let mut c = Camera::look_at(DVec3::new(1.3, 1.7, 3.1), DVec3::new(0.1, 0.9, -0.2), DVec3::Y, 90.0, 80, 60);
         (c.fy, c.cx, c.cy) = (84.0, 37.5, 33.0);
         c
     }
 
     /// The engine's projection of a point: the CPU reference of the projection kernel
     /// (in f64) for a small opaque Gaussian there, through `frame_params`.
-    fn engine_projection(cam: &Camera, p: V3) -> Option<[f64; 3]> {
+    fn engine_projection(cam: &Camera, p: DVec3) -> Option<[f64; 3]> {
         let frame = frame_params(&cam.to_pinhole([0.0; 3]), &RenderSettings::default(), 0, 1);
         let kernel = KernelCamera::<f64>::from_frame(&frame);
-        let g = Gaussian { mean: p, log_scale: [0.01f64.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit: 5.0, sh: [[0.0; 3]; MAX_SH_COEFFS] };
+        let g = Gaussian { mean: p.to_array(), log_scale: [0.01f64.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit: 5.0, sh: [[0.0; 3]; MAX_SH_COEFFS] };
         let s = project_fwd(&g, &kernel);
         s.visible.then_some([s.x, s.y, s.depth])
     }
@@ -144,7 +142,7 @@ mod tests {
         for i in 0..7 {
             for j in 0..5 {
                 for k in 0..4 {
-                    let p = [-0.9 + 0.3 * f64::from(i), 0.3 + 0.3 * f64::from(j), -0.8 + 0.4 * f64::from(k)];
+                    let p = DVec3::new(-0.9 + 0.3 * f64::from(i), 0.3 + 0.3 * f64::from(j), -0.8 + 0.4 * f64::from(k));
                     let ours = cam.project(p).expect("every point is in front of the camera");
                     assert!((0.0..80.0).contains(&ours[0]) && (0.0..60.0).contains(&ours[1]), "{p:?} projects to {ours:?}, outside the image");
                     let depth = cam.to_camera(p)[2];
@@ -157,24 +155,24 @@ mod tests {
             }
         }
         // Behind the camera: neither projects.
-        let behind = [2.0, 2.0, 5.0];
+        let behind = DVec3::new(2.0, 2.0, 5.0);
         assert!(cam.to_camera(behind)[2] < 0.0);
         assert!(cam.project(behind).is_none() && engine_projection(&cam, behind).is_none());
     }
 
     #[test]
     fn look_at_puts_the_target_at_the_principal_point_and_the_eye_at_the_centre() {
-        let (eye, target) = ([1.3, 1.7, 3.1], [0.1, 0.9, -0.2]);
-        let cam = Camera::look_at(eye, target, [0.0, 1.0, 0.0], 90.0, 80, 60);
+        let (eye, target) = (DVec3::new(1.3, 1.7, 3.1), DVec3::new(0.1, 0.9, -0.2));
+        let cam = Camera::look_at(eye, target, DVec3::Y, 90.0, 80, 60);
         let t = cam.project(target).expect("in front");
         assert!((t[0] - 40.0).abs() < 1e-9 && (t[1] - 30.0).abs() < 1e-9, "{t:?}");
         let c = cam.centre();
         assert!((0..3).all(|k| (c[k] - eye[k]).abs() < 1e-12), "{c:?}");
         // World up is image up (y down): a point above the target projects higher.
-        assert!(cam.project([0.1, 1.2, -0.2]).expect("in front")[1] < t[1]);
+        assert!(cam.project(DVec3::new(0.1, 1.2, -0.2)).expect("in front")[1] < t[1]);
         // Moved, it keeps its intrinsics and is a look-at from the new eye.
-        let moved = camera().moved_to([-2.0, 1.0, 1.0], target, [0.0, 1.0, 0.0]);
-        let fresh = Camera::look_at([-2.0, 1.0, 1.0], target, [0.0, 1.0, 0.0], 90.0, 80, 60);
+        let moved = camera().moved_to(DVec3::new(-2.0, 1.0, 1.0), target, DVec3::Y);
+        let fresh = Camera::look_at(DVec3::new(-2.0, 1.0, 1.0), target, DVec3::Y, 90.0, 80, 60);
         assert_eq!((moved.rotation, moved.translation), (fresh.rotation, fresh.translation));
         assert_eq!((moved.fx, moved.fy, moved.cx, moved.cy, moved.near), (90.0, 84.0, 37.5, 33.0, Camera::NEAR));
     }

@@ -21,8 +21,7 @@ use glam::DVec3;
 use crate::body::kinematics::{pose_body, relative_transforms, skin, Affine, Pose};
 use crate::body::model::SmplModel;
 use crate::garment::Garment;
-use crate::grid::{bounds, Grid};
-use crate::mesh::{add, norm, scale, sub, V3};
+use crate::collider::{face_neighbourhoods, lerp_points, BodyCollider, COLLIDER_REACH};
 use crate::motion::Motion;
 
 /// Simulation settings.
@@ -73,146 +72,6 @@ impl ClothParams {
     }
 }
 
-/// Points moving linearly from `a` to `b`, at fraction `s`.
-fn lerp_points(a: &[V3], b: &[V3], s: f64) -> Vec<V3> {
-    a.iter().zip(b).map(|(x, y)| add(scale(*x, 1.0 - s), scale(*y, s))).collect()
-}
-
-/// The posed body over one frame as a collider: its vertices at the frame's start and
-/// end (queried at any fraction between), triangles in a uniform grid covering both.
-pub struct BodyCollider {
-    start: Vec<V3>,
-    end: Vec<V3>,
-    faces: Vec<[u32; 3]>,
-    /// Each triangle filed by its bounds over the frame, grown by `COLLIDER_REACH`.
-    grid: Grid,
-    /// The farthest any vertex moves over the frame.
-    travel: f64,
-}
-
-fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
-    // Ericson, Real-Time Collision Detection, 5.1.5.
-    let (ab, ac, ap) = (b - a, c - a, p - a);
-    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return a;
-    }
-    let bp = p - b;
-    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
-    if d3 >= 0.0 && d4 <= d3 {
-        return b;
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        return a + ab * (d1 / (d1 - d3));
-    }
-    let cp = p - c;
-    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
-    if d6 >= 0.0 && d5 <= d6 {
-        return c;
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        return a + ac * (d2 / (d2 - d6));
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
-    }
-    let denom = 1.0 / (va + vb + vc);
-    a + (ab * (vb * denom) + ac * (vc * denom))
-}
-
-/// Grid cell of the collider (metres).
-const COLLIDER_CELL: f64 = 0.03;
-/// Triangles are filed in every cell within this distance, so that a query of one
-/// cell sees every triangle that close to the point.
-const COLLIDER_REACH: f64 = 0.02;
-
-impl BodyCollider {
-    /// A body that does not move.
-    pub fn new(vertices: Vec<V3>, faces: &[[u32; 3]]) -> Self {
-        Self::moving(vertices.clone(), vertices, faces)
-    }
-
-    /// A body moving linearly from `start` to `end` over the frame.
-    pub fn moving(start: Vec<V3>, end: Vec<V3>, faces: &[[u32; 3]]) -> Self {
-        let boxes = faces.iter().map(|f| bounds(f.map(|k| start[k as usize]).into_iter().chain(f.map(|k| end[k as usize]))));
-        let grid = Grid::of_boxes(boxes, COLLIDER_CELL, COLLIDER_REACH);
-        let travel = start.iter().zip(&end).map(|(a, b)| norm(sub(*a, *b))).fold(0.0, f64::max);
-        Self { start, end, faces: faces.to_vec(), grid, travel }
-    }
-
-    /// Signed distance to the body (negative inside) and the closest surface point and
-    /// normal, exact for points within `COLLIDER_REACH` of the surface; None when
-    /// nothing is that near.
-    pub fn query(&self, p: V3) -> Option<(f64, V3, V3)> {
-        self.query_at(p, 1.0)
-    }
-
-    /// [`query`](Self::query) against the body at fraction `s` of the frame.
-    pub fn query_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3)> {
-        self.query_face_at(p, s).map(|(d, q, n, _)| (d, q, n))
-    }
-
-    /// The farthest any body vertex moves over the frame.
-    pub fn max_travel(&self) -> f64 {
-        self.travel
-    }
-
-    /// The body's vertices at fraction `s` of the frame.
-    pub fn vertices_at(&self, s: f64) -> Vec<V3> {
-        lerp_points(&self.start, &self.end, s)
-    }
-
-    /// [`query_at`](Self::query_at), also naming the closest triangle.
-    fn query_face_at(&self, p: V3, s: f64) -> Option<(f64, V3, V3, u32)> {
-        let vertex = |k: u32| add(scale(self.start[k as usize], 1.0 - s), scale(self.end[k as usize], s));
-        self.closest_among(p, vertex, self.grid.at(p).iter().copied())
-    }
-
-    /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:
-    /// (signed distance, point, normal, face).
-    fn closest_among(&self, p: V3, vertex: impl Fn(u32) -> V3, faces: impl Iterator<Item = u32>) -> Option<(f64, V3, V3, u32)> {
-        let p = DVec3::from(p);
-        let mut best: Option<(f64, DVec3, [DVec3; 3], u32)> = None;
-        for t in faces {
-            let [a, b, c] = self.faces[t as usize].map(|k| DVec3::from(vertex(k)));
-            let q = closest_point_on_triangle(p, a, b, c);
-            let d2 = (p - q).length_squared();
-            // Squared distances; ties go to the first triangle (a fixed order).
-            if best.is_none_or(|(bd2, ..)| d2 < bd2 - 1e-24) {
-                best = Some((d2, q, [a, b, c], t));
-            }
-        }
-        best.map(|(d2, q, [a, b, c], t)| {
-            let n = (b - a).cross(c - a).normalize_or(DVec3::Z);
-            let d = d2.sqrt();
-            (if (p - q).dot(n) < 0.0 { -d } else { d }, q.to_array(), n.to_array(), t)
-        })
-    }
-}
-
-/// For every body triangle, the triangles sharing a vertex with it (itself included):
-/// the neighbourhood an anchored cloth vertex collides with.
-pub fn face_neighbourhoods(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
-    let mut by_vertex = vec![Vec::new(); num_vertices];
-    for (i, f) in faces.iter().enumerate() {
-        for &v in f {
-            by_vertex[v as usize].push(i as u32);
-        }
-    }
-    faces
-        .iter()
-        .map(|f| {
-            let mut n: Vec<u32> = f.iter().flat_map(|&v| by_vertex[v as usize].iter().copied()).collect();
-            n.sort_unstable();
-            n.dedup();
-            n
-        })
-        .collect()
-}
-
 /// How far (m) an anchored vertex may be from its anchor's neighbourhood before it is
 /// re-anchored by a search of the whole body.
 const ANCHOR_REACH: f64 = 0.02;
@@ -222,29 +81,29 @@ const PLANE_REACH: f64 = 0.01;
 
 /// One XPBD step of the distance constraint `|x_a - x_b| = target` with compliance
 /// `alpha` (already divided by the substep squared), moving each end by its inverse mass.
-fn project_distance(positions: &mut [V3], [wa, wb]: [f64; 2], a: u32, b: u32, target: f64, alpha: f64) {
+fn project_distance(positions: &mut [DVec3], [wa, wb]: [f64; 2], a: u32, b: u32, target: f64, alpha: f64) {
     let (ia, ib) = (a as usize, b as usize);
     if wa + wb == 0.0 {
         return;
     }
-    let (pa, pb) = (DVec3::from(positions[ia]), DVec3::from(positions[ib]));
+    let (pa, pb) = (positions[ia], positions[ib]);
     let l = (pa - pb).length();
     if l < 1e-12 {
         return;
     }
     let dl = -(l - target) / (wa + wb + alpha);
     let n = (pa - pb) * (1.0 / l);
-    positions[ia] = (pa + n * (wa * dl)).to_array();
-    positions[ib] = (pb - n * (wb * dl)).to_array();
+    positions[ia] = pa + n * (wa * dl);
+    positions[ib] = pb - n * (wb * dl);
 }
 
 /// Puts vertex `i` back `margin` outside its contact plane, if it has one.
-fn keep_outside(positions: &mut [V3], planes: &[Option<(DVec3, DVec3)>], margin: f64, i: u32) {
+fn keep_outside(positions: &mut [DVec3], planes: &[Option<(DVec3, DVec3)>], margin: f64, i: u32) {
     if let Some((q, n)) = planes[i as usize] {
-        let p = DVec3::from(positions[i as usize]);
+        let p = positions[i as usize];
         let depth = margin - (p - q).dot(n);
         if depth > 0.0 {
-            positions[i as usize] = (p + n * depth).to_array();
+            positions[i as usize] = p + n * depth;
         }
     }
 }
@@ -257,7 +116,7 @@ const STRAIN_TOLERANCE: f64 = 0.02;
 
 /// One garment being simulated.
 pub struct ClothSim {
-    pub positions: Vec<V3>,
+    pub positions: Vec<DVec3>,
     velocities: Vec<DVec3>,
     inv_mass: Vec<f64>,
     stretch: Vec<(u32, u32, f64)>,
@@ -275,7 +134,7 @@ pub struct ClothSim {
     planes: Vec<Option<(DVec3, DVec3)>>,
     /// Per vertex, where it was at its last global collision query, how far from the
     /// body it was then (a lower bound), and `body_travel` then.
-    clearance: Vec<(V3, f64, f64)>,
+    clearance: Vec<(DVec3, f64, f64)>,
     /// Sum over the substeps so far of the farthest any body vertex moved: how far
     /// any point of the body surface can have moved since a given time.
     body_travel: f64,
@@ -293,7 +152,7 @@ impl ClothSim {
         let mut keys: Vec<&(u32, u32)> = edges.keys().collect();
         keys.sort();
         let v = &garment.vertices;
-        let length = |a: u32, b: u32| norm(sub(v[a as usize], v[b as usize]));
+        let length = |a: u32, b: u32| (v[a as usize] - v[b as usize]).length();
         // Strain limiting sweeps the edges outward from the attached vertices (by hop
         // count), so that one Gauss-Seidel sweep carries a correction across the cloth.
         let mut hops = vec![u32::MAX; v.len()];
@@ -334,7 +193,7 @@ impl ClothSim {
             anchors: vec![u32::MAX; v.len()],
             neighbourhoods: None,
             planes: vec![None; v.len()],
-            clearance: vec![([0.0; 3], 0.0, 0.0); v.len()],
+            clearance: vec![(DVec3::ZERO, 0.0, 0.0); v.len()],
             body_travel: 0.0,
         }
     }
@@ -364,7 +223,7 @@ impl ClothSim {
             if !(moved_before[ia] || moved_before[ib] || moved[ia] || moved[ib]) {
                 continue;
             }
-            let l = norm(sub(self.positions[ia], self.positions[ib]));
+            let l = (self.positions[ia] - self.positions[ib]).length();
             worst = worst.max(l / rest);
             if l > max * rest {
                 project_distance(&mut self.positions, [self.inv_mass[ia], self.inv_mass[ib]], a, b, max * rest, 0.0);
@@ -385,7 +244,7 @@ impl ClothSim {
 
     /// Pushes every free vertex `margin` outside the body at fraction `s` of the frame,
     /// whose vertices are `body_now`, and records the contact planes.
-    fn collide(&mut self, body: &BodyCollider, body_now: &[V3], s: f64) {
+    fn collide(&mut self, body: &BodyCollider, body_now: &[DVec3], s: f64) {
         let margin = self.params.margin;
         for i in 0..self.positions.len() {
             if self.attached[i] {
@@ -395,7 +254,7 @@ impl ClothSim {
             // Far from the body at the last global query, and not moved (with the body)
             // enough since to come within PLANE_REACH: nothing to do.
             let (at, clear, travel) = self.clearance[i];
-            if norm(sub(p, at)) + (self.body_travel - travel) < clear - PLANE_REACH {
+            if (p - at).length() + (self.body_travel - travel) < clear - PLANE_REACH {
                 self.planes[i] = None;
                 // Coming back, it searches the whole body again, as it would have.
                 self.anchors[i] = u32::MAX;
@@ -415,15 +274,14 @@ impl ClothSim {
                 global
             });
             if let Some((d, q, n, face)) = hit {
-                let (q, n) = (DVec3::from(q), DVec3::from(n));
                 self.anchors[i] = face;
                 if d < margin {
-                    self.positions[i] = (q + n * margin).to_array();
+                    self.positions[i] = q + n * margin;
                 }
                 if d < PLANE_REACH {
                     // The plane through the closest point, facing the vertex: the
                     // triangle's own normal misleads at edges and corners.
-                    let out = if d < margin { n } else { (DVec3::from(self.positions[i]) - q).normalize_or(DVec3::Z) };
+                    let out = if d < margin { n } else { (self.positions[i] - q).normalize_or(DVec3::Z) };
                     self.planes[i] = Some((q, out));
                 }
             }
@@ -432,7 +290,7 @@ impl ClothSim {
 
     /// Advances one frame of `dt` seconds against `collider` (the body moving over the
     /// frame); `targets(s)` gives the attached vertices' positions at fraction s of it.
-    pub fn step_frame(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<V3>) {
+    pub fn step_frame(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<DVec3>) {
         self.step_frame_carried(dt, collider, targets, &|_| None);
     }
 
@@ -442,7 +300,7 @@ impl ClothSim {
     /// skinned position, and the dynamics add what differs from skinning (gravity,
     /// inertia, collisions); so a fast limb does not leave its sleeve behind, even
     /// with one substep.
-    pub fn step_frame_carried(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<V3>, carried: &dyn Fn(f64) -> Option<Vec<V3>>) {
+    pub fn step_frame_carried(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<DVec3>, carried: &dyn Fn(f64) -> Option<Vec<DVec3>>) {
         let n = self.params.substeps.max(1);
         let h = dt / f64::from(n);
         let keep = (1.0 - self.params.damping * h).clamp(0.0, 1.0);
@@ -454,7 +312,7 @@ impl ClothSim {
             if let (Some(a), Some(b)) = (&carried_before, &carried_now) {
                 for i in 0..self.positions.len() {
                     if !self.attached[i] {
-                        self.positions[i] = add(self.positions[i], sub(b[i], a[i]));
+                        self.positions[i] = self.positions[i] + (b[i] - a[i]);
                     }
                 }
             }
@@ -468,7 +326,7 @@ impl ClothSim {
                 let v = &mut self.velocities[i];
                 v.y += self.params.gravity * h;
                 *v *= keep;
-                self.positions[i] = (DVec3::from(self.positions[i]) + *v * h).to_array();
+                self.positions[i] += *v * h;
             }
             let body_now = collider.vertices_at(frac);
             self.body_travel += collider.max_travel() / f64::from(n);
@@ -492,7 +350,7 @@ impl ClothSim {
                 }
             }
             for i in 0..self.positions.len() {
-                self.velocities[i] = (DVec3::from(self.positions[i]) - DVec3::from(previous[i])) * (1.0 / h);
+                self.velocities[i] = (self.positions[i] - previous[i]) * (1.0 / h);
             }
         }
     }
@@ -501,7 +359,7 @@ impl ClothSim {
     pub fn max_strain_edge(&self) -> (f64, u32, u32) {
         self.stretch
             .iter()
-            .map(|&(a, b, rest)| (norm(sub(self.positions[a as usize], self.positions[b as usize])) / rest, a, b))
+            .map(|&(a, b, rest)| ((self.positions[a as usize] - self.positions[b as usize]).length() / rest, a, b))
             .fold((0.0, 0, 0), |m, e| if e.0 > m.0 { e } else { m })
     }
 
@@ -520,7 +378,7 @@ impl ClothSim {
 #[derive(Clone, Debug)]
 pub struct SimulationResult {
     /// `frames[f][g]` = positions of garment g after frame f.
-    pub frames: Vec<Vec<Vec<V3>>>,
+    pub frames: Vec<Vec<Vec<DVec3>>>,
     /// Deepest penetration into the body over all frames (metres, positive = inside).
     pub max_penetration: f64,
     /// Largest edge strain (length / rest length) over all frames.
@@ -543,16 +401,16 @@ pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params:
 /// settling frames included in both).
 pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize, progress: &mut dyn FnMut(usize, usize)) -> SimulationResult {
     let dt = 1.0 / motion.fps;
-    let start_pose: Pose = garments.first().map_or([[0.0; 3]; 24], |g| g.build_pose);
+    let start_pose: Pose = garments.first().map_or([DVec3::ZERO; 24], |g| g.build_pose);
     let first = motion.poses.first().copied().unwrap_or(start_pose);
     // The garments are dressed where the motion starts and settle into its first pose
     // there: a body that started elsewhere would drag them across the distance.
-    let origin = motion.translations.first().copied().unwrap_or([0.0; 3]);
-    let mut schedule: Vec<(Pose, V3)> = (1..=pre_roll)
+    let origin = motion.translations.first().copied().unwrap_or(DVec3::ZERO);
+    let mut schedule: Vec<(Pose, DVec3)> = (1..=pre_roll)
         .map(|k| {
             let t = k as f64 / pre_roll as f64;
             let s = t * t * (3.0 - 2.0 * t);
-            (std::array::from_fn(|j| add(scale(start_pose[j], 1.0 - s), scale(first[j], s))), origin)
+            (std::array::from_fn(|j| start_pose[j] * (1.0 - s) + first[j] * s), origin)
         })
         .collect();
     let recorded_from = schedule.len();
@@ -561,16 +419,16 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
     let start = pose_body(body, &[], &start_pose, origin);
     // Per garment, the skinning transforms of its build pose: a garment made in pose B
     // is skinned into pose P with A(P) · A(B)⁻¹.
-    let build: Vec<[Affine; 24]> = garments.iter().map(|g| pose_body(body, &[], &g.build_pose, [0.0; 3]).transforms).collect();
+    let build: Vec<[Affine; 24]> = garments.iter().map(|g| pose_body(body, &[], &g.build_pose, DVec3::ZERO).transforms).collect();
     let neighbourhoods = std::sync::Arc::new(face_neighbourhoods(body.num_vertices(), &body.faces));
     let mut sims: Vec<ClothSim> = garments
         .iter()
         .zip(&build)
         .map(|(g, b)| {
             let mut sim = ClothSim::new(g, params);
-            if g.build_pose != start_pose || origin != [0.0; 3] {
+            if g.build_pose != start_pose || origin != DVec3::ZERO {
                 // Skinning transforms leave the translation out; it is added after.
-                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices).into_iter().map(|v| add(v, origin)).collect();
+                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices).into_iter().map(|v| v + origin).collect();
             }
             sim.anchor_to(neighbourhoods.clone());
             sim
@@ -600,11 +458,11 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
             let mut rigid = [0.0; 24];
             rigid[g.attach_joint] = 1.0;
             let rigid = vec![rigid; g.vertices.len()];
-            let a0: Vec<V3> = skin(&rigid, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
-            let a1: Vec<V3> = skin(&rigid, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
+            let a0: Vec<DVec3> = skin(&rigid, &prev_t, &g.vertices).into_iter().map(|v| v + prev_trans_vec).collect();
+            let a1: Vec<DVec3> = skin(&rigid, &next_t, &g.vertices).into_iter().map(|v| v + *trans).collect();
             let targets = |s: f64| lerp_points(&a0, &a1, s);
-            let c0: Vec<V3> = skin(&g.weights_blend6, &prev_t, &g.vertices).into_iter().map(|v| add(v, prev_trans_vec)).collect();
-            let c1: Vec<V3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| add(v, *trans)).collect();
+            let c0: Vec<DVec3> = skin(&g.weights_blend6, &prev_t, &g.vertices).into_iter().map(|v| v + prev_trans_vec).collect();
+            let c1: Vec<DVec3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| v + *trans).collect();
             let carried = |s: f64| Some(lerp_points(&c0, &c1, s));
             sim.step_frame_carried(dt, &collider, &targets, &carried);
         };
@@ -618,7 +476,7 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
             let index = f - recorded_from;
             for (gi, sim) in sims.iter().enumerate() {
                 for (vi, p) in sim.positions.iter().enumerate() {
-                    if p.iter().any(|v| !v.is_finite()) {
+                    if !p.is_finite() {
                         result.any_nan = true;
                     }
                     if let Some((s, _, _)) = collider.query(*p) {

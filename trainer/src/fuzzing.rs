@@ -113,14 +113,15 @@ pub fn camera_json(data: &[u8]) {
 /// A `drape train --config` file laid over the quick preset.
 pub fn config_toml(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else { return };
-    let base = crate::avatar::train::TrainConfig::quick();
+    let base = crate::avatar::config::TrainConfig::quick();
     let _ = base.with_toml(text, Path::new("fuzz.toml"));
 }
 
 /// A checkpoint or model (`model.npz`) read for a tiny body-only model and for one with a
 /// scene layer.
 pub fn checkpoint(data: &[u8]) {
-    use crate::avatar::checkpoint::{read, LayerShape};
+    use crate::avatar::checkpoint::read;
+    use crate::avatar::state::LayerShape;
     with_file("checkpoint.npz", data, |p| {
         // The shapes of the seeds in fuzz/corpus/checkpoint (2x2x1 triplane, 4-parameter decoders).
         let shape = LayerShape { name: "body".into(), triplane_size: (2, 1), decoders: [4, 4, 4], count: 4 };

@@ -13,17 +13,19 @@
 
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::body::kinematics::{a_pose, pose_body, t_pose, Pose};
 use crate::body::model::{SmplModel, NUM_JOINTS};
 use crate::grid::Grid;
-use crate::mesh::{add, cross, norm, normalize, scale, sub, vertex_normals, V3};
+use crate::mesh::vertex_normals;
 
 /// A garment mesh bound to a body.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Garment {
     pub name: String,
     /// Rest positions, on the body posed in `build_pose`.
-    pub vertices: Vec<V3>,
+    pub vertices: Vec<DVec3>,
     pub faces: Vec<[u32; 3]>,
     pub uvs: Vec<[f64; 2]>,
     /// Weights of the nearest body vertex.
@@ -53,19 +55,19 @@ pub enum GarmentError {
 
 /// Indices of the k nearest body vertices (brute force over a coarse grid).
 struct NearestBody<'a> {
-    vertices: &'a [V3],
+    vertices: &'a [DVec3],
     grid: Grid,
 }
 
 impl<'a> NearestBody<'a> {
-    fn new(vertices: &'a [V3]) -> Self {
+    fn new(vertices: &'a [DVec3]) -> Self {
         Self { vertices, grid: Grid::of_points(vertices, 0.05) }
     }
 
-    fn k_nearest(&self, p: V3, k: usize) -> Vec<(u32, f64)> {
+    fn k_nearest(&self, p: DVec3, k: usize) -> Vec<(u32, f64)> {
         let mut ring = 1;
         loop {
-            let mut found: Vec<(u32, f64)> = self.grid.around(p, ring).map(|i| (i, norm(sub(self.vertices[i as usize], p)))).collect();
+            let mut found: Vec<(u32, f64)> = self.grid.around(p, ring).map(|i| (i, (self.vertices[i as usize] - p).length())).collect();
             // Everything within `ring` cells is exact; beyond needs a larger ring.
             found.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
             if found.len() >= k && found[k - 1].1 <= ring as f64 * self.grid.cell_size() {
@@ -74,7 +76,7 @@ impl<'a> NearestBody<'a> {
             }
             if ring > 40 {
                 // Farther than 2 m: every vertex, by brute force (bounded by the body's size).
-                let mut all: Vec<(u32, f64)> = self.vertices.iter().enumerate().map(|(i, v)| (i as u32, norm(sub(*v, p)))).collect();
+                let mut all: Vec<(u32, f64)> = self.vertices.iter().enumerate().map(|(i, v)| (i as u32, (*v - p).length())).collect();
                 all.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
                 all.truncate(k);
                 return all;
@@ -86,7 +88,7 @@ impl<'a> NearestBody<'a> {
 
 /// Binds garment vertices to a body whose vertices are at `body_vertices` (the body
 /// posed as the garment is): nearest-vertex weights and the 6-nearest blend.
-pub fn bind_weights(body: &SmplModel, body_vertices: &[V3], vertices: &[V3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
+pub fn bind_weights(body: &SmplModel, body_vertices: &[DVec3], vertices: &[DVec3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
     let near = NearestBody::new(body_vertices);
     let mut nearest = Vec::with_capacity(vertices.len());
     let mut blend = Vec::with_capacity(vertices.len());
@@ -114,8 +116,8 @@ pub fn bind_weights(body: &SmplModel, body_vertices: &[V3], vertices: &[V3]) -> 
 /// posed in `build_pose` and lifted by `offset` along its vertex normals; `attach`
 /// marks the attached vertices. `region`, `attach` and the UVs see the T-pose
 /// position of the body vertex a garment vertex comes from.
-fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(V3) -> bool, offset: impl Fn(V3) -> f64, attach: impl Fn(V3) -> bool, attach_joint: usize) -> Garment {
-    let posed = pose_body(body, &[], &build_pose, [0.0; 3]).vertices;
+fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(DVec3) -> bool, offset: impl Fn(DVec3) -> f64, attach: impl Fn(DVec3) -> bool, attach_joint: usize) -> Garment {
+    let posed = pose_body(body, &[], &build_pose, DVec3::ZERO).vertices;
     let normals = vertex_normals(&posed, &body.faces);
     let mut map = vec![u32::MAX; body.num_vertices()];
     let mut source = Vec::new();
@@ -134,7 +136,7 @@ fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(V
         }
     }
     let clearance: Vec<f64> = source.iter().map(|&i| offset(body.v_template[i])).collect();
-    let mut vertices: Vec<V3> = source.iter().zip(&clearance).map(|(&i, &c)| add(posed[i], scale(normals[i], c))).collect();
+    let mut vertices: Vec<DVec3> = source.iter().zip(&clearance).map(|(&i, &c)| posed[i] + normals[i] * c).collect();
     relax_off_body(&mut vertices, &faces, &posed, &body.faces, &clearance, 30);
     let uvs = source
         .iter()
@@ -152,8 +154,8 @@ fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(V
 /// concave places (the crotch, the armpits) instead of following the skin into them,
 /// each followed by pushing every vertex back to at least `clearance` off the body.
 /// Offsetting along normals alone folds the surface where facing normals converge.
-fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body_vertices: &[V3], body_faces: &[[u32; 3]], clearance: &[f64], iterations: usize) {
-    let collider = crate::cloth::BodyCollider::new(body_vertices.to_vec(), body_faces);
+fn relax_off_body(vertices: &mut [DVec3], faces: &[[u32; 3]], body_vertices: &[DVec3], body_faces: &[[u32; 3]], clearance: &[f64], iterations: usize) {
+    let collider = crate::collider::BodyCollider::new(body_vertices.to_vec(), body_faces);
     let adj = crate::mesh::adjacency(vertices.len(), faces);
     let boundary: Vec<bool> = {
         let counts = crate::mesh::edge_face_counts(faces);
@@ -173,15 +175,15 @@ fn relax_off_body(vertices: &mut [V3], faces: &[[u32; 3]], body_vertices: &[V3],
             if boundary[i] || adj[i].is_empty() {
                 continue;
             }
-            let c = adj[i].iter().fold([0.0; 3], |acc, &k| add(acc, scale(prev[k as usize], 1.0 / adj[i].len() as f64)));
-            *v = add(scale(prev[i], 0.5), scale(c, 0.5));
+            let c = adj[i].iter().fold(DVec3::ZERO, |acc, &k| acc + prev[k as usize] * (1.0 / adj[i].len() as f64));
+            *v = prev[i] * 0.5 + c * 0.5;
             if let Some((d, q, n)) = collider.query(*v) {
                 if d < clearance[i] {
                     // Away from the closest point rather than along its triangle's
                     // normal: in a crease (an armpit) many vertices share one closest
                     // point, and the normal would put them all in one place.
-                    let out = if d > 1e-6 { normalize(sub(*v, q)) } else { n };
-                    *v = add(q, scale(out, clearance[i]));
+                    let out = if d > 1e-6 { (*v - q).normalize_or(DVec3::Z) } else { n };
+                    *v = q + out * clearance[i];
                 }
             }
         }
@@ -257,7 +259,7 @@ pub const LOOSE_TSHIRT_OFFSET: f64 = 0.045;
 /// the shoulders, where it is attached and hangs from, growing smoothly to
 /// `LOOSE_TSHIRT_OFFSET` from the chest down; the sleeves get half the extra ease (a
 /// sleeve as wide as the torso's ease would swallow the upper arm).
-fn loose_tshirt_offset(v: V3) -> f64 {
+fn loose_tshirt_offset(v: DVec3) -> f64 {
     let smooth = |t: f64| {
         let t = t.clamp(0.0, 1.0);
         t * t * (3.0 - 2.0 * t)
@@ -294,7 +296,7 @@ pub const PANTS_LEG_EASE: f64 = 0.01;
 /// The pants' lift off the skin at a T-pose body point: `PANTS_OFFSET` from the waist
 /// to the upper thigh, growing smoothly to `PANTS_LEG_EASE` more from above the knee
 /// down: trouser legs are looser than the seat, and a knee bends inside them.
-fn pants_offset(v: V3) -> f64 {
+fn pants_offset(v: DVec3) -> f64 {
     let (top, bottom) = (0.75, 0.55);
     let t = ((top - v[1]) / (top - bottom)).clamp(0.0, 1.0);
     PANTS_OFFSET + PANTS_LEG_EASE * t * t * (3.0 - 2.0 * t)
@@ -321,7 +323,7 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
         if mesh.positions.iter().any(|v| !v.is_finite()) {
             return Err(err(format!("object '{}' has a non-finite vertex coordinate", m.name)));
         }
-        vertices.extend(mesh.positions.chunks_exact(3).map(|c| [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])]));
+        vertices.extend(mesh.positions.chunks_exact(3).map(|c| DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]))));
         if mesh.texcoords.len() / 2 == mesh.positions.len() / 3 {
             uvs.extend(mesh.texcoords.chunks_exact(2).map(|c| [f64::from(c[0]), f64::from(c[1])]));
         } else {
@@ -357,27 +359,27 @@ pub const MAX_GARMENT_DISTANCE: f64 = 0.5;
 /// A garment drape can simulate on `body` (rest-pose vertices): faces that index its
 /// vertices and have an area, and every vertex within [`MAX_GARMENT_DISTANCE`] of the
 /// body, with a guess at the unit when it is not.
-fn check_garment(vertices: &[V3], faces: &[[u32; 3]], model: &SmplModel) -> Result<(), String> {
+fn check_garment(vertices: &[DVec3], faces: &[[u32; 3]], model: &SmplModel) -> Result<(), String> {
     let body = &model.v_template;
     for (i, f) in faces.iter().enumerate() {
         if let Some(&k) = f.iter().find(|&&k| k as usize >= vertices.len()) {
             return Err(format!("face {} refers to vertex {} of {}", i + 1, k + 1, vertices.len()));
         }
         let [a, b, c] = f.map(|k| vertices[k as usize]);
-        let n = cross(sub(b, a), sub(c, a));
-        let area = 0.5 * norm(n);
+        let n = (b - a).cross(c - a);
+        let area = 0.5 * n.length();
         if !(area > 1e-12) {
             return Err(format!("face {} (vertices {} {} {}) is degenerate (area {area:.1e} m²): its corners are on one line", i + 1, f[0] + 1, f[1] + 1, f[2] + 1));
         }
     }
     let (lo, hi) = crate::grid::bounds(vertices.iter().copied());
     let (blo, bhi) = crate::grid::bounds(body.iter().copied());
-    let size = norm(sub(hi, lo));
-    let body_size = norm(sub(bhi, blo));
+    let size = (hi - lo).length();
+    let body_size = (bhi - blo).length();
     let near = NearestBody::new(body);
     // Beyond the body's box by more than the limit, a vertex is too far without a
     // search (a far point would walk many empty rings of the grid).
-    let to_box = |v: V3| (0..3).map(|k| (blo[k] - v[k]).max(v[k] - bhi[k]).max(0.0).powi(2)).sum::<f64>().sqrt();
+    let to_box = |v: DVec3| (0..3).map(|k| (blo[k] - v[k]).max(v[k] - bhi[k]).max(0.0).powi(2)).sum::<f64>().sqrt();
     // Each vertex's nearest body vertex (None beyond the box) and its distance.
     let nearest: Vec<(Option<u32>, f64)> = vertices
         .iter()
@@ -421,7 +423,7 @@ fn check_garment(vertices: &[V3], faces: &[[u32; 3]], model: &SmplModel) -> Resu
 }
 
 /// Writes a mesh as OBJ (positions, optional UVs, triangles).
-pub fn write_obj(path: &Path, vertices: &[V3], faces: &[[u32; 3]], uvs: Option<&[[f64; 2]]>) -> std::io::Result<()> {
+pub fn write_obj(path: &Path, vertices: &[DVec3], faces: &[[u32; 3]], uvs: Option<&[[f64; 2]]>) -> std::io::Result<()> {
     use std::io::Write;
     let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
     for v in vertices {

@@ -13,7 +13,8 @@
 
 use std::collections::HashMap;
 
-use crate::mesh::V3;
+use glam::DVec3;
+
 
 /// Integer cell coordinates.
 pub type Cell = [i64; 3];
@@ -25,14 +26,14 @@ pub struct Grid {
     cells: HashMap<Cell, Vec<u32>>,
 }
 
-/// The axis-aligned bounds (min, max) of `points`; ([f64::MAX; 3], [f64::MIN; 3]) for none.
-pub fn bounds(points: impl IntoIterator<Item = V3>) -> (V3, V3) {
-    points.into_iter().fold(([f64::MAX; 3], [f64::MIN; 3]), |(lo, hi), p| (std::array::from_fn(|k| lo[k].min(p[k])), std::array::from_fn(|k| hi[k].max(p[k]))))
+/// The axis-aligned bounds (min, max) of `points`; (`DVec3::MAX`, `DVec3::MIN`) for none.
+pub fn bounds(points: impl IntoIterator<Item = DVec3>) -> (DVec3, DVec3) {
+    points.into_iter().fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| (lo.min(p), hi.max(p)))
 }
 
 impl Grid {
     /// Point `i` filed in the cell that contains it.
-    pub fn of_points(points: &[V3], cell: f64) -> Self {
+    pub fn of_points(points: &[DVec3], cell: f64) -> Self {
         let mut grid = Self { cell, cells: HashMap::new() };
         for (i, &p) in points.iter().enumerate() {
             grid.cells.entry(grid.cell_of(p)).or_default().push(i as u32);
@@ -42,11 +43,11 @@ impl Grid {
 
     /// Box `i` (min, max) grown by `reach` on every side, filed in every cell it
     /// overlaps: a point within `reach` of the box finds it in the point's own cell.
-    pub fn of_boxes(boxes: impl IntoIterator<Item = (V3, V3)>, cell: f64, reach: f64) -> Self {
+    pub fn of_boxes(boxes: impl IntoIterator<Item = (DVec3, DVec3)>, cell: f64, reach: f64) -> Self {
         let mut grid = Self { cell, cells: HashMap::new() };
         for (i, (lo, hi)) in boxes.into_iter().enumerate() {
-            let a = grid.cell_of(lo.map(|x| x - reach));
-            let b = grid.cell_of(hi.map(|x| x + reach));
+            let a = grid.cell_of(lo - reach);
+            let b = grid.cell_of(hi + reach);
             for x in a[0]..=b[0] {
                 for y in a[1]..=b[1] {
                     for z in a[2]..=b[2] {
@@ -64,19 +65,20 @@ impl Grid {
     }
 
     /// The cell that contains `p`.
-    pub fn cell_of(&self, p: V3) -> Cell {
-        p.map(|x| (x / self.cell).floor() as i64)
+    pub fn cell_of(&self, p: DVec3) -> Cell {
+        let c = (p / self.cell).floor();
+        [c.x as i64, c.y as i64, c.z as i64]
     }
 
     /// The items filed in `p`'s cell.
-    pub fn at(&self, p: V3) -> &[u32] {
+    pub fn at(&self, p: DVec3) -> &[u32] {
         self.cells.get(&self.cell_of(p)).map_or(&[], Vec::as_slice)
     }
 
     /// The items filed in the cells within `ring` cells of `p`'s (a cube of
     /// `2 ring + 1` cells a side), cell by cell; they include every point within
     /// `ring * cell` of `p`. A box filed in several of these cells comes once per cell.
-    pub fn around(&self, p: V3, ring: i64) -> impl Iterator<Item = u32> + '_ {
+    pub fn around(&self, p: DVec3, ring: i64) -> impl Iterator<Item = u32> + '_ {
         let c = self.cell_of(p);
         (-ring..=ring)
             .flat_map(move |dx| (-ring..=ring).flat_map(move |dy| (-ring..=ring).map(move |dz| [c[0] + dx, c[1] + dy, c[2] + dz])))
@@ -99,17 +101,16 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     use super::*;
-    use crate::mesh::{norm, sub};
-
-    fn random_points(n: usize, seed: u64) -> Vec<V3> {
+    
+    fn random_points(n: usize, seed: u64) -> Vec<DVec3> {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         // Both signs: the cells either side of 0 are where a truncating cell goes wrong.
-        (0..n).map(|_| [0, 1, 2].map(|_| rng.random_range(-1.0..1.0))).collect()
+        (0..n).map(|_| DVec3::from_array([0, 1, 2].map(|_| rng.random_range(-1.0..1.0)))).collect()
     }
 
     /// The distance from `p` to the box (0 inside).
-    fn box_distance(p: V3, (lo, hi): (V3, V3)) -> f64 {
-        norm(std::array::from_fn(|k| (lo[k] - p[k]).max(p[k] - hi[k]).max(0.0)))
+    fn box_distance(p: DVec3, (lo, hi): (DVec3, DVec3)) -> f64 {
+        (lo - p).max(p - hi).max(DVec3::ZERO).length()
     }
 
     #[test]
@@ -125,8 +126,8 @@ mod tests {
                 found.sort_unstable();
                 found.dedup();
                 assert_eq!(found.len(), n, "a point filed twice");
-                let within: Vec<u32> = found.into_iter().filter(|&i| norm(sub(points[i as usize], q)) <= reach).collect();
-                let brute: Vec<u32> = (0..points.len() as u32).filter(|&i| norm(sub(points[i as usize], q)) <= reach).collect();
+                let within: Vec<u32> = found.into_iter().filter(|&i| (points[i as usize] - q).length() <= reach).collect();
+                let brute: Vec<u32> = (0..points.len() as u32).filter(|&i| (points[i as usize] - q).length() <= reach).collect();
                 assert_eq!(within, brute, "query {q:?}, cell {cell}, ring {ring}");
             }
         }
@@ -136,17 +137,17 @@ mod tests {
     fn at_finds_every_box_within_reach() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(9);
         // Triangle-sized boxes, some wider than a cell.
-        let boxes: Vec<(V3, V3)> = random_points(500, 10)
+        let boxes: Vec<(DVec3, DVec3)> = random_points(500, 10)
             .into_iter()
             .map(|lo| {
-                let size: V3 = [0, 1, 2].map(|_| rng.random_range(0.0..0.12));
-                (lo, std::array::from_fn(|k| lo[k] + size[k]))
+                let size = DVec3::from_array([0, 1, 2].map(|_| rng.random_range(0.0..0.12)));
+                (lo, lo + size)
             })
             .collect();
         let (cell, reach) = (0.03, 0.02);
         let grid = Grid::of_boxes(boxes.iter().copied(), cell, reach);
         // Half the queries in or just around a box, so that many are within reach.
-        let queries = boxes.iter().map(|&(lo, hi)| std::array::from_fn(|k| rng.random_range(lo[k] - reach..hi[k] + reach))).chain(random_points(500, 11));
+        let queries = boxes.iter().map(|&(lo, hi)| DVec3::from_array(std::array::from_fn(|k| rng.random_range(lo[k] - reach..hi[k] + reach)))).chain(random_points(500, 11));
         let mut near = 0;
         for q in queries {
             let found = grid.at(q);
@@ -164,12 +165,12 @@ mod tests {
 
     #[test]
     fn bounds_and_cells() {
-        let (lo, hi) = bounds([[0.5, -1.0, 2.0], [-0.5, 3.0, 2.5], [0.0, 0.0, -4.0]]);
-        assert_eq!((lo, hi), ([-0.5, -1.0, -4.0], [0.5, 3.0, 2.5]));
-        let grid = Grid::of_points(&[[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0]], 0.1);
+        let (lo, hi) = bounds([DVec3::new(0.5, -1.0, 2.0), DVec3::new(-0.5, 3.0, 2.5), DVec3::new(0.0, 0.0, -4.0)]);
+        assert_eq!((lo, hi), (DVec3::new(-0.5, -1.0, -4.0), DVec3::new(0.5, 3.0, 2.5)));
+        let grid = Grid::of_points(&[DVec3::new(-0.05, 0.05, 0.0), DVec3::new(0.05, 0.05, 0.0)], 0.1);
         // -0.05 is in cell -1 (floor, not truncation).
-        assert_eq!(grid.cell_of([-0.05, 0.05, 0.0]), [-1, 0, 0]);
-        assert_eq!(grid.at([-0.01, 0.09, 0.09]), &[0]);
+        assert_eq!(grid.cell_of(DVec3::new(-0.05, 0.05, 0.0)), [-1, 0, 0]);
+        assert_eq!(grid.at(DVec3::new(-0.01, 0.09, 0.09)), &[0]);
         let cells: Vec<&[u32]> = grid.cells().collect();
         assert_eq!(cells, [&[0u32][..], &[1][..]]);
     }

@@ -1,5 +1,6 @@
 //! The Cloth-HUGS avatar side of drape: the SMPL-format body (model, loader, the
-//! project's procedural body, posing), garments and their cloth simulation, the dataset
+//! project's procedural body, posing), garments and their cloth simulation (against the
+//! body as a collider, `collider`), the dataset
 //! readers (NeuMan, ZJU-MoCap, the synthetic sequences; NumPy, pickle and COLMAP files),
 //! Gaussian PLY files (`ply`) and camera files (`camera_file`),
 //! and the layered avatar (`avatar`): training, densification, evaluation, animation
@@ -13,6 +14,7 @@ pub mod body;
 pub mod camera;
 pub mod camera_file;
 pub mod cloth;
+pub mod collider;
 pub mod dataset;
 pub mod error;
 pub mod fuzzing;

@@ -8,37 +8,6 @@ use glam::DVec3;
 
 use crate::grid::{bounds, Grid};
 
-pub type V3 = [f64; 3];
-
-pub fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-pub fn scale(a: V3, s: f64) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-pub fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub fn cross(a: V3, b: V3) -> V3 {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-pub fn norm(a: V3) -> f64 {
-    dot(a, a).sqrt()
-}
-
-/// `a / |a|`, or +z where that is not finite (a zero vector).
-pub fn normalize(a: V3) -> V3 {
-    DVec3::from(a).normalize_or(DVec3::Z).to_array()
-}
-
 /// Unit quaternion (w, x, y, z) of a rotation matrix (rows).
 ///
 /// Not glam's `DQuat::from_mat3`: that one picks its branch differently and rounds
@@ -83,16 +52,16 @@ pub fn is_watertight(faces: &[[u32; 3]]) -> bool {
 }
 
 /// Area-weighted vertex normals.
-pub fn vertex_normals(vertices: &[V3], faces: &[[u32; 3]]) -> Vec<V3> {
-    let mut n = vec![[0.0; 3]; vertices.len()];
+pub fn vertex_normals(vertices: &[DVec3], faces: &[[u32; 3]]) -> Vec<DVec3> {
+    let mut n = vec![DVec3::ZERO; vertices.len()];
     for f in faces {
         let [a, b, c] = f.map(|i| vertices[i as usize]);
-        let fn_ = cross(sub(b, a), sub(c, a));
+        let fn_ = (b - a).cross(c - a);
         for &i in f {
-            n[i as usize] = add(n[i as usize], fn_);
+            n[i as usize] += fn_;
         }
     }
-    n.into_iter().map(normalize).collect()
+    n.into_iter().map(|v| v.normalize_or(DVec3::Z)).collect()
 }
 
 /// Neighbours of every vertex.
@@ -113,14 +82,13 @@ pub fn adjacency(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
 }
 
 /// Signed volume (positive for outward-facing triangles of a closed mesh).
-pub fn signed_volume(vertices: &[V3], faces: &[[u32; 3]]) -> f64 {
-    faces.iter().map(|f| dot(vertices[f[0] as usize], cross(vertices[f[1] as usize], vertices[f[2] as usize])) / 6.0).sum()
+pub fn signed_volume(vertices: &[DVec3], faces: &[[u32; 3]]) -> f64 {
+    faces.iter().map(|f| vertices[f[0] as usize].dot(vertices[f[1] as usize].cross(vertices[f[2] as usize])) / 6.0).sum()
 }
 
-fn segment_hits_triangle(p: V3, q: V3, t: [V3; 3]) -> bool {
+fn segment_hits_triangle(p: DVec3, q: DVec3, t: [DVec3; 3]) -> bool {
     // Möller-Trumbore on the segment p->q, strict inside tests.
-    let (p, t) = (DVec3::from(p), t.map(DVec3::from));
-    let (e1, e2, d) = (t[1] - t[0], t[2] - t[0], DVec3::from(q) - p);
+    let (e1, e2, d) = (t[1] - t[0], t[2] - t[0], q - p);
     let h = d.cross(e2);
     let a = e1.dot(h);
     if a.abs() < 1e-14 {
@@ -143,7 +111,7 @@ fn segment_hits_triangle(p: V3, q: V3, t: [V3; 3]) -> bool {
 
 /// Whether two triangles that share no vertex intersect (an edge of one crosses the
 /// interior of the other).
-pub fn triangles_intersect(a: [V3; 3], b: [V3; 3]) -> bool {
+pub fn triangles_intersect(a: [DVec3; 3], b: [DVec3; 3]) -> bool {
     (0..3).any(|k| segment_hits_triangle(a[k], a[(k + 1) % 3], b)) || (0..3).any(|k| segment_hits_triangle(b[k], b[(k + 1) % 3], a))
 }
 
@@ -151,11 +119,11 @@ pub fn triangles_intersect(a: [V3; 3], b: [V3; 3]) -> bool {
 /// same ones every run). Candidates are the pairs filed in a common cell of a grid of
 /// the faces' bounds: two triangles that meet have overlapping bounds, hence a cell in
 /// common.
-pub fn self_intersections(vertices: &[V3], faces: &[[u32; 3]], limit: usize) -> Vec<(usize, usize)> {
+pub fn self_intersections(vertices: &[DVec3], faces: &[[u32; 3]], limit: usize) -> Vec<(usize, usize)> {
     // Cells about two edges long: a face spans few cells and a cell holds few faces.
     let cell = faces
         .iter()
-        .map(|f| norm(sub(vertices[f[0] as usize], vertices[f[1] as usize])))
+        .map(|f| (vertices[f[0] as usize] - vertices[f[1] as usize]).length())
         .sum::<f64>()
         / faces.len().max(1) as f64
         * 2.0;

@@ -36,8 +36,9 @@ use std::collections::BTreeMap;
 use std::f64::consts::PI;
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::body::kinematics::Pose;
-use crate::mesh::{sub, V3};
 use crate::npy::{self, Array, NpyError};
 
 /// A sequence of poses.
@@ -45,7 +46,7 @@ use crate::npy::{self, Array, NpyError};
 pub struct Motion {
     pub fps: f64,
     pub poses: Vec<Pose>,
-    pub translations: Vec<V3>,
+    pub translations: Vec<DVec3>,
 }
 
 /// The procedural motions.
@@ -91,7 +92,7 @@ pub fn procedural(kind: MotionKind, frames: usize, fps: f64, speed: f64) -> Moti
         let e = ease_in(t, 0.6);
         // Every motion starts from the A-pose.
         let mut p: Pose = crate::body::kinematics::a_pose();
-        let mut trans = [0.0; 3];
+        let mut trans = DVec3::ZERO;
         match kind {
             MotionKind::Walk | MotionKind::Jog => {
                 let (freq, swing, knee, lift, arm) = if kind == MotionKind::Walk { (0.9, 0.25, 0.5, 0.0, 0.3) } else { (1.4, 0.7, 1.2, 0.03, 0.6) };
@@ -109,7 +110,7 @@ pub fn procedural(kind: MotionKind, frames: usize, fps: f64, speed: f64) -> Moti
                 p[18][1] = 0.3 * e;
                 p[19][1] = -0.3 * e;
                 p[3][1] = 0.08 * s;
-                trans = [0.0, lift * (2.0 * phase).sin().abs() * e, (if kind == MotionKind::Walk { 1.2 } else { 2.4 }) * t * e];
+                trans = DVec3::new(0.0, lift * (2.0 * phase).sin().abs() * e, (if kind == MotionKind::Walk { 1.2 } else { 2.4 }) * t * e);
             }
             MotionKind::RaiseArms => {
                 let up = (0.5 - 0.5 * (2.0 * PI * 0.4 * t).cos()) * e;
@@ -142,8 +143,8 @@ impl Motion {
 
     pub fn save_npz(&self, path: &Path) -> Result<(), NpyError> {
         let mut a = BTreeMap::new();
-        a.insert("poses".to_string(), Array::f64(vec![self.len(), 72], self.poses.iter().flatten().flatten().copied().collect()));
-        a.insert("trans".to_string(), Array::f64(vec![self.len(), 3], self.translations.iter().flatten().copied().collect()));
+        a.insert("poses".to_string(), Array::f64(vec![self.len(), 72], self.poses.iter().flatten().flat_map(|r| r.to_array()).collect()));
+        a.insert("trans".to_string(), Array::f64(vec![self.len(), 3], self.translations.iter().flat_map(|t| t.to_array()).collect()));
         a.insert("fps".to_string(), Array::f64(vec![1], vec![self.fps]));
         npy::write_npz(path, &a)
     }
@@ -187,7 +188,7 @@ impl Motion {
         if let Some(i) = poses.data.iter().position(|v| v.abs() > MAX_AXIS_ANGLE) {
             return Err(bad("poses", format!("value {i} is {} rad; axis-angles are at most {MAX_AXIS_ANGLE} (degrees instead of radians?)", poses.data[i])));
         }
-        let translations_read: Vec<V3> = trans.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let translations_read: Vec<DVec3> = trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
         check_root_speed(&translations_read, fps).map_err(|problem| bad("trans", problem))?;
         if let Some(i) = trans.data.iter().position(|v| v.abs() > MAX_TRANSLATION) {
             return Err(bad("trans", format!("value {i} is {} m; drape takes translations within {MAX_TRANSLATION} m of the origin (is the file in millimetres?)", trans.data[i])));
@@ -196,13 +197,13 @@ impl Motion {
         let mut poses: Vec<Pose> = poses
             .data
             .chunks_exact(width)
-            .map(|c| std::array::from_fn(|j| if j < joints { [c[3 * j], c[3 * j + 1], c[3 * j + 2]] } else { [0.0; 3] }))
+            .map(|c| std::array::from_fn(|j| if j < joints { DVec3::from_slice(&c[3 * j..3 * j + 3]) } else { DVec3::ZERO }))
             .collect();
-        let mut translations: Vec<V3> = trans.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let mut translations: Vec<DVec3> = trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
         if amass {
             let first = z_up_to_y_up(translations[0]);
             for t in &mut translations {
-                *t = sub(z_up_to_y_up(*t), first);
+                *t = z_up_to_y_up(*t) - first;
             }
             for p in &mut poses {
                 p[0] = z_up_to_y_up_orientation(p[0]);
@@ -228,9 +229,9 @@ pub const MAX_ROOT_SPEED: f64 = 20.0;
 
 /// Refuses a root that moves faster than [`MAX_ROOT_SPEED`] between two frames at
 /// `fps` (a teleporting body would drag the simulated cloth across the distance).
-pub fn check_root_speed(translations: &[V3], fps: f64) -> Result<(), String> {
+pub fn check_root_speed(translations: &[DVec3], fps: f64) -> Result<(), String> {
     for (i, w) in translations.windows(2).enumerate() {
-        let d = sub(w[1], w[0]);
+        let d = w[1] - w[0];
         let step = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if !(step * fps <= MAX_ROOT_SPEED) {
             return Err(format!("the root moves {step:.3} m between frames {i} and {} ({:.1} m/s at {fps} fps; people move at most {MAX_ROOT_SPEED} m/s)", i + 1, step * fps));
@@ -240,19 +241,19 @@ pub fn check_root_speed(translations: &[V3], fps: f64) -> Result<(), String> {
 }
 
 /// The -90° rotation about x: AMASS's z-up world to our y-up one.
-fn z_up_to_y_up(v: V3) -> V3 {
-    [v[0], v[2], -v[1]]
+fn z_up_to_y_up(v: DVec3) -> DVec3 {
+    DVec3::new(v[0], v[2], -v[1])
 }
 
 /// An axis-angle root orientation in AMASS's world, in ours: the -90° rotation about x
 /// composed on the left. Through quaternions, which stay accurate near 180°.
-fn z_up_to_y_up_orientation(r: V3) -> V3 {
+fn z_up_to_y_up_orientation(r: DVec3) -> DVec3 {
     let h = std::f64::consts::FRAC_1_SQRT_2;
     quaternion_to_axis_angle(quaternion_mul([h, -h, 0.0, 0.0], axis_angle_to_quaternion(r)))
 }
 
 /// `[w, x, y, z]` of the rotation by |r| about r.
-fn axis_angle_to_quaternion(r: V3) -> [f64; 4] {
+fn axis_angle_to_quaternion(r: DVec3) -> [f64; 4] {
     let angle = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
     // sin(a/2)/a, by its series where the division loses accuracy.
     let k = if angle < 1e-6 { 0.5 - angle * angle / 48.0 } else { (angle / 2.0).sin() / angle };
@@ -269,11 +270,11 @@ fn quaternion_mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
 }
 
 /// The axis-angle of a unit quaternion, angle in [0, π].
-fn quaternion_to_axis_angle(q: [f64; 4]) -> V3 {
+fn quaternion_to_axis_angle(q: [f64; 4]) -> DVec3 {
     let q = if q[0] < 0.0 { q.map(|c| -c) } else { q };
     let s = (q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
     let angle = 2.0 * s.atan2(q[0]);
     // angle / sin(angle/2), which tends to 2/w for a small angle.
     let k = if s < 1e-12 { 2.0 / q[0] } else { angle / s };
-    [k * q[1], k * q[2], k * q[3]]
+    DVec3::new(k * q[1], k * q[2], k * q[3])
 }

@@ -8,7 +8,9 @@ use std::sync::OnceLock;
 use drape_engine::Context;
 
 use crate::avatar::run::RunInfo;
-use crate::avatar::train::{load_sequence, train, TrainConfig};
+use crate::avatar::config::TrainConfig;
+use crate::avatar::inputs::load_sequence;
+use crate::avatar::train::train;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::dataset::synth::{generate, SynthOptions};
 

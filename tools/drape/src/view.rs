@@ -65,10 +65,10 @@ use drape_engine::ash::{self, vk};
 use drape_engine::validation::ValidationSink;
 use drape_engine::{Context, DeviceKind, ExternalOptions, ExternalVulkan, ImageTarget, PassTimings, SubmitSync};
 use drape_trainer::avatar::animate::{pelvis_and_up, place_pose};
-use drape_trainer::mesh::{add, cross, dot, normalize, scale, sub};
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
 use drape_trainer::dataset::loader::BodyParams;
 use drape_trainer::motion::{procedural, Motion, MotionKind};
+use glam::DVec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle, RawDisplayHandle, RawWindowHandle};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
@@ -281,8 +281,8 @@ struct Viewer {
     height: u32,
     motion: Motion,
     anchor_body: BodyParams,
-    anchor_pelvis: [f64; 3],
-    up: [f64; 3],
+    anchor_pelvis: DVec3,
+    up: DVec3,
     frames_limit: Option<u32>,
     screenshot: Option<PathBuf>,
     phase: Phase,
@@ -673,17 +673,17 @@ impl Viewer {
             let rest_pelvis = player.rig().rest_joints()[0];
             let (pelvis, _) = pelvis_and_up(&player.rig().frame(body).transforms, rest_pelvis);
             let up = self.up;
-            let offset = sub(start.centre(), self.anchor_pelvis);
-            let dist = dot(offset, offset).sqrt();
-            let h = dot(offset, up);
-            let radial = sub(offset, scale(up, h));
-            let radial_len = dot(radial, radial).sqrt();
+            let offset = start.centre() - self.anchor_pelvis;
+            let dist = offset.dot(offset).sqrt();
+            let h = offset.dot(up);
+            let radial = offset - up * h;
+            let radial_len = radial.dot(radial).sqrt();
             let elevation = (h.atan2(radial_len) + self.pitch).clamp(-1.4, 1.4);
-            let dir = normalize(radial);
+            let dir = radial.normalize_or(DVec3::Z);
             // Turn `dir` by yaw about `up` (Rodrigues; dir ⟂ up).
             let (s, c) = self.yaw.sin_cos();
-            let dir = add(scale(dir, c), scale(cross(up, dir), s));
-            let eye = add(pelvis, add(scale(up, dist * elevation.sin()), scale(dir, dist * elevation.cos())));
+            let dir = dir * c + up.cross(dir) * s;
+            let eye = pelvis + (up * (dist * elevation.sin()) + dir * (dist * elevation.cos()));
             start.moved_to(eye, pelvis, up)
         };
         let mut v = ViewCamera::from_camera(&cam);

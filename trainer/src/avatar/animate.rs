@@ -12,6 +12,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use glam::DVec3;
 use drape_engine::ops::splat::scene::RenderSettings;
 
 use crate::avatar::run::OpenRun;
@@ -19,7 +20,7 @@ use crate::TrainerError;
 use crate::body::kinematics::{rodrigues, Pose, M3};
 use crate::camera::Camera;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
-use crate::mesh::{add, cross, dot, normalize, rotation_to_quaternion, scale, sub, V3};
+use crate::mesh::rotation_to_quaternion;
 use crate::motion::Motion;
 
 /// How the animation is made.
@@ -51,64 +52,64 @@ fn matmul(a: &M3, b: &M3) -> M3 {
     std::array::from_fn(|r| std::array::from_fn(|c| (0..3).map(|k| a[r][k] * b[k][c]).sum()))
 }
 
-fn mat_vec(a: &M3, v: V3) -> V3 {
-    [dot(a[0], v), dot(a[1], v), dot(a[2], v)]
+fn mat_vec(a: &M3, v: DVec3) -> DVec3 {
+    DVec3::from_array(a.map(|row| DVec3::from_array(row).dot(v)))
 }
 
 /// The axis-angle vector of a rotation matrix (the inverse of `rodrigues`).
-pub fn axis_angle(m: &M3) -> V3 {
+pub fn axis_angle(m: &M3) -> DVec3 {
     let q = rotation_to_quaternion(m);
-    let v = [q[1], q[2], q[3]];
-    let s = dot(v, v).sqrt();
+    let v = DVec3::new(q[1], q[2], q[3]);
+    let s = v.length();
     if s < 1e-12 {
-        return [0.0; 3];
+        return DVec3::ZERO;
     }
-    scale(v, 2.0 * s.atan2(q[0]) / s)
+    v * (2.0 * s.atan2(q[0]) / s)
 }
 
 /// The body of `anchor` in the motion's pose `pose` moved by `trans` (see the module
 /// header).
-pub fn place_pose(anchor: &BodyParams, pose: &Pose, trans: V3) -> BodyParams {
+pub fn place_pose(anchor: &BodyParams, pose: &Pose, trans: DVec3) -> BodyParams {
     match anchor {
         BodyParams::Smpl { pose: p0, betas, translation, scale: s } => {
             let r0 = rodrigues(p0[0]);
             let mut p = *pose;
             p[0] = axis_angle(&matmul(&r0, &rodrigues(pose[0])));
-            BodyParams::Smpl { pose: p, betas: betas.clone(), translation: add(*translation, scale(mat_vec(&r0, trans), *s)), scale: *s }
+            BodyParams::Smpl { pose: p, betas: betas.clone(), translation: *translation + mat_vec(&r0, trans) * *s, scale: *s }
         }
         BodyParams::Zju(z) => {
-            let r0 = rodrigues(z.rh);
+            let r0 = rodrigues(DVec3::from_array(z.rh));
             let mut z = z.clone();
             for (j, q) in pose.iter().enumerate().skip(1) {
-                z.poses[3 * j..3 * j + 3].copy_from_slice(q);
+                z.poses[3 * j..3 * j + 3].copy_from_slice(&q.to_array());
             }
-            z.rh = axis_angle(&matmul(&r0, &rodrigues(pose[0])));
-            z.th = add(z.th, mat_vec(&r0, trans));
+            z.rh = axis_angle(&matmul(&r0, &rodrigues(pose[0]))).to_array();
+            z.th = (DVec3::from_array(z.th) + mat_vec(&r0, trans)).to_array();
             BodyParams::Zju(z)
         }
     }
 }
 
 /// The pelvis in the world and the body's up axis for a frame's transforms (24 × 3x4).
-pub fn pelvis_and_up(transforms: &[f32], rest_pelvis: V3) -> (V3, V3) {
+pub fn pelvis_and_up(transforms: &[f32], rest_pelvis: DVec3) -> (DVec3, DVec3) {
     let t = |r: usize, c: usize| f64::from(transforms[4 * r + c]);
-    let pelvis = std::array::from_fn(|r| t(r, 0) * rest_pelvis[0] + t(r, 1) * rest_pelvis[1] + t(r, 2) * rest_pelvis[2] + t(r, 3));
-    (pelvis, normalize([t(0, 1), t(1, 1), t(2, 1)]))
+    let pelvis = DVec3::from_array(std::array::from_fn(|r| t(r, 0) * rest_pelvis[0] + t(r, 1) * rest_pelvis[1] + t(r, 2) * rest_pelvis[2] + t(r, 3)));
+    (pelvis, DVec3::new(t(0, 1), t(1, 1), t(2, 1)).normalize_or(DVec3::Z))
 }
 
 /// `v` turned by `angle` (radians) about the unit axis `k` (Rodrigues' formula).
-fn rotate_about(v: V3, k: V3, angle: f64) -> V3 {
+fn rotate_about(v: DVec3, k: DVec3, angle: f64) -> DVec3 {
     let (s, c) = angle.sin_cos();
-    add(add(scale(v, c), scale(cross(k, v), s)), scale(k, dot(k, v) * (1.0 - c)))
+    v * c + k.cross(v) * s + k * (k.dot(v) * (1.0 - c))
 }
 
 /// The orbit's camera for a frame: `start`'s height and distance from the anchor's
 /// pelvis, turned by `angle` about `up`, looking at `pelvis`.
-fn orbit_camera(start: &Camera, anchor_pelvis: V3, up: V3, pelvis: V3, angle: f64) -> Camera {
-    let offset = sub(start.centre(), anchor_pelvis);
-    let h = dot(offset, up);
-    let radial = sub(offset, scale(up, h));
-    let eye = add(add(pelvis, scale(up, h)), rotate_about(radial, up, angle));
+fn orbit_camera(start: &Camera, anchor_pelvis: DVec3, up: DVec3, pelvis: DVec3, angle: f64) -> Camera {
+    let offset = start.centre() - anchor_pelvis;
+    let h = offset.dot(up);
+    let radial = offset - up * h;
+    let eye = pelvis + up * h + rotate_about(radial, up, angle);
     start.moved_to(eye, pelvis, up)
 }
 

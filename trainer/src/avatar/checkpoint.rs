@@ -37,7 +37,7 @@ use std::path::Path;
 
 use crate::avatar::pose_refine::PoseState;
 use crate::avatar::rig::REFINED_PARAMS;
-use crate::avatar::scene::{SceneState, SCENE_PARAMS};
+use crate::avatar::state::{AdamState, LayerShape, LayerState, ModelState, SceneState, ADAM_GROUPS, SCENE_PARAMS};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
 use crate::TrainerError;
 
@@ -45,57 +45,6 @@ use crate::TrainerError;
 /// 2: decoder parameters laid out with every weight and bias on a 16-byte boundary
 /// (`MlpDesc::layout`).
 pub const FORMAT_VERSION: u32 = 2;
-
-/// One Adam group's state.
-#[derive(Clone, Debug, PartialEq)]
-pub struct AdamState {
-    pub m: Vec<f32>,
-    pub v: Vec<f32>,
-    pub step: u32,
-}
-
-/// One layer's state on the host.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LayerState {
-    pub means: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub triplane: Vec<f32>,
-    /// (resolution, channels).
-    pub triplane_size: (u32, u32),
-    pub triplane_box: [[f32; 3]; 2],
-    pub appearance: Vec<f32>,
-    pub geometry: Vec<f32>,
-    pub deformation: Vec<f32>,
-    /// By group name, in [`ADAM_GROUPS`] order.
-    pub adam: Vec<AdamState>,
-    /// The skinning targets (n×24); None when the file lacks them.
-    pub weight_targets: Option<Vec<f32>>,
-    /// Densification statistics (n×3); None: zero.
-    pub screen_stats: Option<Vec<f32>>,
-    /// The ARAP graph between the layer's Gaussians; None: the model's own.
-    pub edges: Option<Vec<[u32; 2]>>,
-}
-
-impl LayerState {
-    /// Gaussians in the state.
-    pub fn count(&self) -> usize {
-        self.means.len() / 3
-    }
-}
-
-/// The Adam groups of a layer, in file order.
-pub const ADAM_GROUPS: [&str; 5] = ["position", "triplane", "appearance", "geometry", "deformation"];
-
-/// A whole model.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ModelState {
-    pub step: u32,
-    pub layers: Vec<(String, LayerState)>,
-    pub scene: Option<SceneState>,
-    /// The training frames' pose corrections, where the run refines them.
-    pub poses: Option<PoseState>,
-}
 
 fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
     Array::new(Dtype::F32, shape, data.iter().map(|&v| f64::from(v)).collect())
@@ -194,18 +143,6 @@ fn stall_if_asked(tmp: &Path) {
     loop {
         std::thread::sleep(std::time::Duration::from_secs(1));
     }
-}
-
-/// What a layer of the model being loaded into expects: its name, triplane resolution
-/// and channels, and decoder parameter counts. Its Gaussian count is the file's;
-/// `count` (the model's own) only decides whether the file must carry the layer's
-/// skinning targets (a file of another count, made by densification, must).
-#[derive(Clone, Debug, PartialEq)]
-pub struct LayerShape {
-    pub name: String,
-    pub count: usize,
-    pub triplane_size: (u32, u32),
-    pub decoders: [usize; 3],
 }
 
 /// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's SH

@@ -13,13 +13,14 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
+
 use crate::avatar::rig::Rig;
 use crate::body::kinematics::{regress_joints, rodrigues, Pose};
 use crate::body::model::NUM_JOINTS;
 use crate::cloth::{simulate_with_progress, ClothParams};
 use crate::dataset::loader::{BodyParams, DatasetFrame};
 use crate::garment::{pants, Garment, GarmentError, GarmentFit};
-use crate::mesh::V3;
 use crate::motion::Motion;
 use crate::TrainerError;
 
@@ -38,21 +39,21 @@ pub fn garments(rig: &Rig, fit: GarmentFit) -> [Garment; 2] {
 
 /// A frame's body in the simulator's convention: (pose with root, translation) in
 /// model space, then `world = scale · x`.
-fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, V3, f64) {
+fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, DVec3, f64) {
     match body {
-        BodyParams::Smpl { pose, translation, scale, .. } => (*pose, translation.map(|t| t / scale), *scale),
+        BodyParams::Smpl { pose, translation, scale, .. } => (*pose, *translation / *scale, *scale),
         BodyParams::Zju(p) => {
             // ZJU: world = R(Rh) x₀ + Th with x₀ posed about a zero root; SMPL turns about
             // the pelvis j, so the same pose is root Rh with translation Th + R j - j.
-            let mut pose: Pose = [[0.0; 3]; NUM_JOINTS];
-            pose[0] = p.rh;
+            let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
+            pose[0] = DVec3::from_array(p.rh);
             for (j, q) in pose.iter_mut().enumerate().skip(1) {
-                *q = [p.poses[3 * j], p.poses[3 * j + 1], p.poses[3 * j + 2]];
+                *q = DVec3::from_slice(&p.poses[3 * j..3 * j + 3]);
             }
             let pelvis = regress_joints(&rig.model, &rig.model.v_template)[0];
-            let r = rodrigues(p.rh);
-            let rj: V3 = std::array::from_fn(|k| (0..3).map(|c| r[k][c] * pelvis[c]).sum::<f64>());
-            (pose, std::array::from_fn(|k| p.th[k] + rj[k] - pelvis[k]), 1.0)
+            let r = rodrigues(DVec3::from_array(p.rh));
+            let rj = DVec3::from_array(std::array::from_fn(|k| (0..3).map(|c| r[k][c] * pelvis[c]).sum::<f64>()));
+            (pose, DVec3::from_array(p.th) + rj - pelvis, 1.0)
         }
     }
 }
@@ -65,13 +66,13 @@ pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], pr
     for f in frames {
         bodies.entry(f.frame).or_insert(&f.body);
     }
-    let order: Vec<(usize, (Pose, V3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
+    let order: Vec<(usize, (Pose, DVec3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
     let motion = Motion { fps: 30.0, poses: order.iter().map(|(_, p)| p.0).collect(), translations: order.iter().map(|(_, p)| p.1).collect() };
     // Frames may be subsampled, so the bound is a generous 2 m between consecutive
     // frames; beyond it the garments would be dragged across the gap (and the collision
     // grid would grow with it).
     for (w, pair) in motion.translations.windows(2).zip(order.windows(2)) {
-        let d = crate::mesh::sub(w[1], w[0]);
+        let d = w[1] - w[0];
         let step = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if !(step <= 2.0) {
             return Err(TrainerError::invalid("the sequence's body parameters", format!("the body moves {step:.3} m between frames {} and {} (at most 2 m: is a translation wrong?)", pair[0].0, pair[1].0)));
@@ -84,7 +85,7 @@ pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], pr
     }
     let mut by_frame = BTreeMap::new();
     for ((frame, (_, _, scale)), meshes) in order.iter().zip(&sim.frames) {
-        let points: Vec<[f32; 3]> = meshes.iter().flatten().map(|v| v.map(|x| (x * scale) as f32)).collect();
+        let points: Vec<[f32; 3]> = meshes.iter().flatten().map(|v| (*v * *scale).as_vec3().to_array()).collect();
         by_frame.insert(*frame, points);
     }
     let vertices = garments.iter().map(|g| g.vertices.len()).sum();

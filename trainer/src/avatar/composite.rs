@@ -30,6 +30,7 @@ use drape_shared::splat::raster::{FUSED_BASE, FUSED_MATTE_ONE, FUSED_MATTE_ZERO,
 use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
 
 use crate::avatar::cloth_losses::ClothLosses;
+use crate::avatar::gaussian_layout::GEOMETRY_FLOATS;
 use crate::avatar::model::Avatar;
 
 /// Which Gaussians may hide the cloth in the matte.
@@ -172,9 +173,6 @@ fn parts(avatar: &Avatar, sources: &[(Source, bool)]) -> (Vec<Part>, u32) {
     }
     (out, first)
 }
-
-/// Floats per Gaussian of means, log-scales, quaternions, opacity.
-pub(crate) const GEOMETRY_FLOATS: [u32; 4] = [3, 3, 4, 1];
 
 /// The matte pass, where something can hide the cloth.
 struct MattePass {

@@ -38,7 +38,7 @@ use drape_engine::Context;
 use drape_shared::splat::project::{normalize_quat, quat_to_mat};
 use rand::{Rng, SeedableRng};
 
-use crate::avatar::checkpoint::{AdamState, LayerState};
+use crate::avatar::state::{AdamState, LayerState, SceneState};
 use crate::avatar::layer::HumanLayer;
 use crate::avatar::scene::SceneLayer;
 use crate::body::model::NUM_JOINTS;
@@ -371,7 +371,7 @@ pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, 
         }
     }
     let adam = state.adam.iter().zip(&widths).map(|(a, &w)| AdamState { m: gather_rows(&a.m, w, &rows), v: gather_rows(&a.v, w, &rows), step: a.step }).collect();
-    let next = crate::avatar::scene::SceneState { params, adam, screen_stats: None };
+    let next = SceneState { params, adam, screen_stats: None };
     scene.restore(ctx, &next)?;
     Ok(summary)
 }

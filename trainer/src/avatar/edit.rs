@@ -18,10 +18,11 @@ use std::path::Path;
 
 use drape_engine::Context;
 
-use crate::avatar::checkpoint::{self, ModelState};
+use crate::avatar::checkpoint;
+use crate::avatar::state::{LayerState, ModelState};
 use crate::avatar::model::LayerChoice;
 use crate::avatar::run::{OpenRun, RunInfo};
-use crate::avatar::train::write_json;
+use crate::avatar::report::write_json;
 use crate::TrainerError;
 
 /// One edit.
@@ -97,7 +98,7 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
             };
             let mine = &state.layers[cloth_index].1;
             // The Gaussian counts may differ (densification); the networks may not.
-            let shape = |l: &checkpoint::LayerState| (l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
+            let shape = |l: &LayerState| (l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
             if shape(mine) != shape(&cloth) {
                 return Err(TrainerError::run(
                     &other.dir,

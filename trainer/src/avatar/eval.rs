@@ -23,7 +23,7 @@ use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{write_json, Progress};
+use crate::avatar::report::{write_json, Progress};
 use crate::dataset::loader::DatasetFrame;
 use crate::TrainerError;
 

@@ -35,11 +35,13 @@
 //! statistics).
 
 use std::borrow::Cow;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use ndarray::linalg::general_mat_mul;
 use ndarray::{ArrayView2, ArrayViewMut2};
 
+pub use crate::avatar::fid_weights::FidWeightsError;
+use crate::avatar::fid_weights::SafeTensors;
 use crate::TrainerError;
 
 /// Length of a feature vector (pool3).
@@ -51,91 +53,26 @@ pub const BN_EPS: f64 = 0.001;
 /// Eigenvalues below `-NEGATIVE_TOLERANCE * largest` mean the matrix is not PSD.
 const NEGATIVE_TOLERANCE: f64 = 1e-9;
 
-/// A problem with a weights file, naming the file and the tensor.
-#[derive(Debug, thiserror::Error)]
-pub enum FidWeightsError {
-    // `error`, not `source`: the message already carries it (anyhow would print it twice).
-    #[error("{path}: {error}")]
-    Io { path: PathBuf, error: std::io::Error },
-    #[error("{path}: not a safetensors file: {detail}")]
-    Format { path: PathBuf, detail: String },
-    #[error("{path}: tensor '{tensor}' is missing (is this pytorch-fid's FID Inception, from scripts/fid-to-safetensors.py?)")]
-    Missing { path: PathBuf, tensor: String },
-    #[error("{path}: tensor '{tensor}' has {detail}")]
-    Bad { path: PathBuf, tensor: String, detail: String },
-}
-
-/// A parsed safetensors file: its header and data.
-struct SafeTensors<'a> {
-    path: &'a Path,
-    header: serde_json::Map<String, serde_json::Value>,
-    body: &'a [u8],
-}
-
-impl<'a> SafeTensors<'a> {
-    fn parse(path: &'a Path, bytes: &'a [u8]) -> Result<Self, FidWeightsError> {
-        let format = |detail: String| FidWeightsError::Format { path: path.into(), detail };
-        if bytes.len() < 8 {
-            return Err(format(format!("{} bytes, shorter than the 8-byte header length", bytes.len())));
-        }
-        let header_len = u64::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3], bytes[4], bytes[5], bytes[6], bytes[7]]);
-        let header_len = usize::try_from(header_len).unwrap_or(usize::MAX);
-        if header_len > bytes.len() - 8 {
-            return Err(format(format!("header of {header_len} bytes, but the file has {} after the length", bytes.len() - 8)));
-        }
-        let header = serde_json::from_slice(&bytes[8..8 + header_len]).map_err(|e| format(format!("header: {e}")))?;
-        Ok(Self { path, header, body: &bytes[8 + header_len..] })
+/// The BasicConv2d `name` with its batchnorm folded in.
+fn basic_conv(f: &SafeTensors, name: &str, in_c: usize, out_c: usize, kernel: (usize, usize), stride: usize, pad: (usize, usize)) -> Result<Conv, FidWeightsError> {
+    let w = f.tensor(&format!("{name}.conv.weight"), &[out_c, in_c, kernel.0, kernel.1])?;
+    let gamma = f.tensor(&format!("{name}.bn.weight"), &[out_c])?;
+    let beta = f.tensor(&format!("{name}.bn.bias"), &[out_c])?;
+    let mean = f.tensor(&format!("{name}.bn.running_mean"), &[out_c])?;
+    let var = f.tensor(&format!("{name}.bn.running_var"), &[out_c])?;
+    if let Some(v) = var.iter().find(|&&v| f64::from(v) + BN_EPS <= 0.0) {
+        return Err(FidWeightsError::Bad { path: f.path.into(), tensor: format!("{name}.bn.running_var"), detail: format!("a variance {v} at or below -eps") });
     }
-
-    /// The float32 tensor `name`, which must have `shape` and finite values.
-    fn tensor(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, FidWeightsError> {
-        let bad = |detail: String| FidWeightsError::Bad { path: self.path.into(), tensor: name.into(), detail };
-        let entry = self.header.get(name).ok_or_else(|| FidWeightsError::Missing { path: self.path.into(), tensor: name.into() })?;
-        let dtype = entry.get("dtype").and_then(|d| d.as_str()).unwrap_or("?");
-        if dtype != "F32" {
-            return Err(bad(format!("dtype {dtype}, expected F32")));
-        }
-        let numbers = |key: &str| -> Vec<usize> { entry.get(key).and_then(|s| s.as_array()).map(|a| a.iter().filter_map(|v| v.as_u64().map(|v| v as usize)).collect()).unwrap_or_default() };
-        let got = numbers("shape");
-        if got != shape {
-            return Err(bad(format!("shape {got:?}, expected {shape:?}")));
-        }
-        let offsets = numbers("data_offsets");
-        let n: usize = shape.iter().product();
-        if offsets.len() != 2 || offsets[1] < offsets[0] || offsets[1] - offsets[0] != 4 * n {
-            return Err(bad(format!("data offsets {offsets:?}, expected a range of {} bytes", 4 * n)));
-        }
-        if offsets[1] > self.body.len() {
-            return Err(bad(format!("bytes {}..{}, but the file's data ends at {} (truncated?)", offsets[0], offsets[1], self.body.len())));
-        }
-        let data: Vec<f32> = self.body[offsets[0]..offsets[1]].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        if data.iter().any(|v| !v.is_finite()) {
-            return Err(bad("a non-finite value".into()));
-        }
-        Ok(data)
+    let k = in_c * kernel.0 * kernel.1;
+    let mut weight = Vec::with_capacity(w.len());
+    let mut bias = Vec::with_capacity(out_c);
+    // y = γ (conv(x) − μ) / √(σ² + ε) + β, with the scale taken into the weights.
+    for o in 0..out_c {
+        let scale = f64::from(gamma[o]) / (f64::from(var[o]) + BN_EPS).sqrt();
+        weight.extend(w[o * k..(o + 1) * k].iter().map(|&v| (f64::from(v) * scale) as f32));
+        bias.push((f64::from(beta[o]) - f64::from(mean[o]) * scale) as f32);
     }
-
-    /// The BasicConv2d `name` with its batchnorm folded in.
-    fn conv(&self, name: &str, in_c: usize, out_c: usize, kernel: (usize, usize), stride: usize, pad: (usize, usize)) -> Result<Conv, FidWeightsError> {
-        let w = self.tensor(&format!("{name}.conv.weight"), &[out_c, in_c, kernel.0, kernel.1])?;
-        let gamma = self.tensor(&format!("{name}.bn.weight"), &[out_c])?;
-        let beta = self.tensor(&format!("{name}.bn.bias"), &[out_c])?;
-        let mean = self.tensor(&format!("{name}.bn.running_mean"), &[out_c])?;
-        let var = self.tensor(&format!("{name}.bn.running_var"), &[out_c])?;
-        if let Some(v) = var.iter().find(|&&v| f64::from(v) + BN_EPS <= 0.0) {
-            return Err(FidWeightsError::Bad { path: self.path.into(), tensor: format!("{name}.bn.running_var"), detail: format!("a variance {v} at or below -eps") });
-        }
-        let k = in_c * kernel.0 * kernel.1;
-        let mut weight = Vec::with_capacity(w.len());
-        let mut bias = Vec::with_capacity(out_c);
-        // y = γ (conv(x) − μ) / √(σ² + ε) + β, with the scale taken into the weights.
-        for o in 0..out_c {
-            let scale = f64::from(gamma[o]) / (f64::from(var[o]) + BN_EPS).sqrt();
-            weight.extend(w[o * k..(o + 1) * k].iter().map(|&v| (f64::from(v) * scale) as f32));
-            bias.push((f64::from(beta[o]) - f64::from(mean[o]) * scale) as f32);
-        }
-        Ok(Conv { in_c, out_c, kernel, stride, pad, weight, bias })
-    }
+    Ok(Conv { in_c, out_c, kernel, stride, pad, weight, bias })
 }
 
 /// A CHW activation.
@@ -270,7 +207,7 @@ struct BlockA {
 
 impl BlockA {
     fn load(f: &SafeTensors, name: &str, in_c: usize, pool_features: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| f.conv(&format!("{name}.{branch}"), i, o, k, 1, p);
+        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         Ok(Self {
             b1x1: c("branch1x1", in_c, 64, (1, 1), (0, 0))?,
             b5x5: [c("branch5x5_1", in_c, 48, (1, 1), (0, 0))?, c("branch5x5_2", 48, 64, (5, 5), (2, 2))?],
@@ -292,7 +229,7 @@ struct BlockB {
 
 impl BlockB {
     fn load(f: &SafeTensors, name: &str, in_c: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, s, p| f.conv(&format!("{name}.{branch}"), i, o, k, s, p);
+        let c = |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
         Ok(Self {
             b3x3: c("branch3x3", in_c, 384, (3, 3), 2, (0, 0))?,
             b3x3dbl: [c("branch3x3dbl_1", in_c, 64, (1, 1), 1, (0, 0))?, c("branch3x3dbl_2", 64, 96, (3, 3), 1, (1, 1))?, c("branch3x3dbl_3", 96, 96, (3, 3), 2, (0, 0))?],
@@ -314,7 +251,7 @@ struct BlockC {
 
 impl BlockC {
     fn load(f: &SafeTensors, name: &str, in_c: usize, c7: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| f.conv(&format!("{name}.{branch}"), i, o, k, 1, p);
+        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         let (row, col) = (((1, 7), (0, 3)), ((7, 1), (3, 0)));
         Ok(Self {
             b1x1: c("branch1x1", in_c, 192, (1, 1), (0, 0))?,
@@ -343,7 +280,7 @@ struct BlockD {
 
 impl BlockD {
     fn load(f: &SafeTensors, name: &str, in_c: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, s, p| f.conv(&format!("{name}.{branch}"), i, o, k, s, p);
+        let c = |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
         Ok(Self {
             b3x3: [c("branch3x3_1", in_c, 192, (1, 1), 1, (0, 0))?, c("branch3x3_2", 192, 320, (3, 3), 2, (0, 0))?],
             b7x7x3: [
@@ -382,7 +319,7 @@ struct BlockE {
 
 impl BlockE {
     fn load(f: &SafeTensors, name: &str, in_c: usize, pool_kind: EPool) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| f.conv(&format!("{name}.{branch}"), i, o, k, 1, p);
+        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         Ok(Self {
             b1x1: c("branch1x1", in_c, 320, (1, 1), (0, 0))?,
             b3x3_1: c("branch3x3_1", in_c, 384, (1, 1), (0, 0))?,
@@ -453,8 +390,8 @@ impl FidInception {
         let bytes = std::fs::read(path).map_err(|error| FidWeightsError::Io { path: path.into(), error })?;
         let f = SafeTensors::parse(path, &bytes)?;
         Ok(Self {
-            stem: [f.conv("Conv2d_1a_3x3", 3, 32, (3, 3), 2, (0, 0))?, f.conv("Conv2d_2a_3x3", 32, 32, (3, 3), 1, (0, 0))?, f.conv("Conv2d_2b_3x3", 32, 64, (3, 3), 1, (1, 1))?],
-            stem2: [f.conv("Conv2d_3b_1x1", 64, 80, (1, 1), 1, (0, 0))?, f.conv("Conv2d_4a_3x3", 80, 192, (3, 3), 1, (0, 0))?],
+            stem: [basic_conv(&f, "Conv2d_1a_3x3", 3, 32, (3, 3), 2, (0, 0))?, basic_conv(&f, "Conv2d_2a_3x3", 32, 32, (3, 3), 1, (0, 0))?, basic_conv(&f, "Conv2d_2b_3x3", 32, 64, (3, 3), 1, (1, 1))?],
+            stem2: [basic_conv(&f, "Conv2d_3b_1x1", 64, 80, (1, 1), 1, (0, 0))?, basic_conv(&f, "Conv2d_4a_3x3", 80, 192, (3, 3), 1, (0, 0))?],
             a: [BlockA::load(&f, "Mixed_5b", 192, 32)?, BlockA::load(&f, "Mixed_5c", 256, 64)?, BlockA::load(&f, "Mixed_5d", 288, 64)?],
             b: BlockB::load(&f, "Mixed_6a", 288)?,
             c: [BlockC::load(&f, "Mixed_6b", 768, 128)?, BlockC::load(&f, "Mixed_6c", 768, 160)?, BlockC::load(&f, "Mixed_6d", 768, 160)?, BlockC::load(&f, "Mixed_6e", 768, 192)?],

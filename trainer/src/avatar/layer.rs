@@ -28,7 +28,7 @@ use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
 
-use crate::avatar::checkpoint::{AdamState, LayerShape, LayerState};
+use crate::avatar::state::{AdamState, LayerShape, LayerState};
 use crate::body::model::NUM_JOINTS;
 
 /// Sizes and rates of one layer.

@@ -23,8 +23,8 @@ use drape_engine::ops::splat::scene::GaussianCloud;
 use crate::avatar::groups::Layer;
 use drape_engine::{Buffer, Context, Recording, Result};
 
-use crate::avatar::checkpoint::{LayerShape, ModelState};
-use crate::avatar::composite::GEOMETRY_FLOATS;
+use crate::avatar::state::{LayerShape, ModelState};
+use crate::avatar::gaussian_layout::GEOMETRY_FLOATS;
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::{FrameTransforms, Rig};
 use crate::garment::GarmentFit;

@@ -40,12 +40,13 @@ use std::path::Path;
 
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::{Buffer, BufferDesc, Context, FramesInFlight, HostCommandBuffer, ImageTarget, PassTimings, Recording, SubmitSync};
+use glam::DVec3;
 
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::{FrameTransforms, Rig};
 use crate::avatar::run::OpenRun;
-use crate::avatar::train::build_avatar;
+use crate::avatar::assemble::build_avatar;
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
 use crate::dataset::loader::BodyParams;
@@ -168,7 +169,7 @@ impl AvatarPlayer {
         }
         let rgba = ctx.create_buffer("player rgba 0", BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
         slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.compositing });
-        let betas = crate::avatar::train::betas_of(&anchor);
+        let betas = crate::avatar::inputs::betas_of(&anchor);
         let transforms = rig.frame(&anchor.body);
         Ok(Self {
             ctx: ctx.clone(),
@@ -216,8 +217,8 @@ impl AvatarPlayer {
         if let Some(i) = translation.iter().position(|v| !v.is_finite() || v.abs() > 1000.0) {
             return Err(TrainerError::invalid("translation", format!("value {i} is {} (metres, at most 1 km)", translation[i])));
         }
-        let p: Pose = std::array::from_fn(|j| std::array::from_fn(|c| f64::from(pose[3 * j + c])));
-        self.set_body(BodyParams::Smpl { pose: p, betas: self.betas.clone(), translation: translation.map(f64::from), scale: 1.0 });
+        let p: Pose = std::array::from_fn(|j| DVec3::from_array(std::array::from_fn(|c| f64::from(pose[3 * j + c]))));
+        self.set_body(BodyParams::Smpl { pose: p, betas: self.betas.clone(), translation: DVec3::from_array(translation.map(f64::from)), scale: 1.0 });
         Ok(())
     }
 
@@ -356,7 +357,7 @@ pub fn smpl_pose_of(body: &BodyParams) -> Option<([f32; 72], [f32; 3])> {
                     p[3 * j + c] = a[c] as f32;
                 }
             }
-            Some((p, translation.map(|v| v as f32)))
+            Some((p, translation.as_vec3().to_array()))
         }
         BodyParams::Zju(_) => None,
     }

@@ -5,10 +5,11 @@
 //! NeuMan/HUGS parameters: `world = s · (A(P) A(Da)⁻¹ x) + T`. ZJU-MoCap: the body is
 //! posed with a zero root, then `world = R(Rh) · (A(P) A(Da)⁻¹ x) + Th`.
 
+use glam::DVec3;
+
 use crate::body::kinematics::{da_pose, forward_kinematics, pose_gradient, regress_joints, relative_transforms, rigid_inverse, rodrigues, rodrigues_jacobian, shaped_vertices, skin, Affine, Pose, M3};
 use crate::body::model::{SmplModel, NUM_JOINTS};
 use crate::dataset::loader::BodyParams;
-use crate::mesh::V3;
 
 /// Floats of one frame's transforms (24 × 3x4, row-major), the layout the GPU ops read.
 pub const TRANSFORM_FLOATS: usize = NUM_JOINTS * 12;
@@ -17,7 +18,7 @@ pub const TRANSFORM_FLOATS: usize = NUM_JOINTS * 12;
 pub struct Rig {
     pub model: SmplModel,
     pub betas: Vec<f64>,
-    rest_joints: [V3; NUM_JOINTS],
+    rest_joints: [DVec3; NUM_JOINTS],
     canonical: [Affine; NUM_JOINTS],
 }
 
@@ -46,12 +47,12 @@ impl Rig {
     }
 
     /// Rest joint positions of the shaped body.
-    pub fn rest_joints(&self) -> [V3; NUM_JOINTS] {
+    pub fn rest_joints(&self) -> [DVec3; NUM_JOINTS] {
         self.rest_joints
     }
 
     /// The body's vertices in the canonical pose.
-    pub fn canonical_vertices(&self) -> Vec<V3> {
+    pub fn canonical_vertices(&self) -> Vec<DVec3> {
         skin(&self.model.weights, &self.canonical, &shaped_vertices(&self.model, &self.betas))
     }
 
@@ -92,11 +93,11 @@ impl Rig {
         match body {
             BodyParams::Smpl { pose, translation, scale, .. } => Decomposed { pose: *pose, rel: self.relative(pose), rot: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], scale: *scale, translation: *translation, zju_rh: None },
             BodyParams::Zju(p) => {
-                let mut pose: Pose = [[0.0; 3]; NUM_JOINTS];
+                let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
                 for (j, q) in pose.iter_mut().enumerate().skip(1) {
-                    *q = [p.poses[3 * j], p.poses[3 * j + 1], p.poses[3 * j + 2]];
+                    *q = DVec3::from_slice(&p.poses[3 * j..3 * j + 3]);
                 }
-                Decomposed { pose, rel: self.relative(&pose), rot: rodrigues(p.rh), scale: 1.0, translation: p.th, zju_rh: Some(p.rh) }
+                Decomposed { pose, rel: self.relative(&pose), rot: rodrigues(DVec3::from_array(p.rh)), scale: 1.0, translation: DVec3::from_array(p.th), zju_rh: Some(DVec3::from_array(p.rh)) }
             }
         }
     }
@@ -134,11 +135,11 @@ impl Rig {
         let grad_pose = pose_gradient(&self.model.parents, &self.rest_joints, &f.pose, &grad_a);
         let mut out = [0.0; REFINED_PARAMS];
         out[0..3].copy_from_slice(&match f.zju_rh {
-            None => grad_pose[0],
+            None => grad_pose[0].to_array(),
             Some(rh) => rodrigues_jacobian(rh).map(|d| (0..3).flat_map(|r| (0..3).map(move |k| (r, k))).map(|(r, k)| d[r][k] * grad_rot[r][k]).sum()),
         });
         for j in 1..NUM_JOINTS {
-            out[3 * j..3 * j + 3].copy_from_slice(&grad_pose[j]);
+            out[3 * j..3 * j + 3].copy_from_slice(&grad_pose[j].to_array());
         }
         out[REFINED_PARAMS - 3..].copy_from_slice(&grad_t);
         out
@@ -152,9 +153,9 @@ struct Decomposed {
     rel: [Affine; NUM_JOINTS],
     rot: M3,
     scale: f64,
-    translation: V3,
+    translation: DVec3,
     /// ZJU-MoCap's `Rh` (the root rotation outside the kinematics).
-    zju_rh: Option<V3>,
+    zju_rh: Option<DVec3>,
 }
 
 /// `body` with `delta` ([`REFINED_PARAMS`], the order [`Rig::frame_gradient`]
@@ -200,12 +201,12 @@ mod tests {
     fn frame_gradient_matches_central_differences() {
         let rig = Rig::new(default_body(&BodyOptions::default()), &[0.5, -0.3]);
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
-        let mut pose: Pose = [[0.0; 3]; NUM_JOINTS];
-        pose.iter_mut().flatten().for_each(|v| *v = rng.random_range(-0.6..0.6));
+        let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
+        pose.iter_mut().flat_map(|r| AsMut::<[f64; 3]>::as_mut(r)).for_each(|v| *v = rng.random_range(-0.6..0.6));
         let mut poses = [0.0; 72];
         poses.iter_mut().for_each(|v| *v = rng.random_range(-0.6..0.6));
         let bodies = [
-            BodyParams::Smpl { pose, betas: vec![0.5, -0.3], translation: [0.3, -1.2, 4.0], scale: 1.3 },
+            BodyParams::Smpl { pose, betas: vec![0.5, -0.3], translation: DVec3::new(0.3, -1.2, 4.0), scale: 1.3 },
             BodyParams::Zju(ZjuSmpl { poses, rh: [0.4, -1.1, 0.2], th: [0.1, 0.2, -0.3], shapes: [0.0; 10] }),
         ];
         let grad: Vec<f64> = (0..TRANSFORM_FLOATS).map(|_| rng.random_range(-1.0..1.0)).collect();

@@ -14,7 +14,10 @@ use crate::avatar::checkpoint;
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
-use crate::avatar::train::{betas_of, body_model, build_avatar, load_sequence, write_json, Layers, Sequence, TrainConfig};
+use crate::avatar::assemble::{build_avatar, Layers};
+use crate::avatar::config::TrainConfig;
+use crate::avatar::inputs::{betas_of, body_model, load_sequence, scene_points, Sequence};
+use crate::avatar::report::write_json;
 use crate::dataset::error::DatasetError;
 use crate::dataset::split::Split;
 use crate::npy::read_npz;
@@ -112,7 +115,7 @@ impl OpenRun {
         let (width, height) = (first.width, first.height);
         let rig = Rig::new(body_model(body.as_deref())?, &betas_of(first));
         let layers = model_layers(&model_path)?;
-        if layers.scene && crate::avatar::train::scene_points(&seq)?.is_none() {
+        if layers.scene && scene_points(&seq)?.is_none() {
             return Err(TrainerError::run(&model_path, format!("the model has a scene layer, but {} has no scene points to build it on (another sequence?)", seq.dir.display())));
         }
         let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;

@@ -15,7 +15,7 @@ use drape_engine::{Buffer, Context, Recording, Result};
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 
-use crate::avatar::checkpoint::AdamState;
+use crate::avatar::state::{AdamState, SceneState, SCENE_PARAMS};
 use crate::dataset::colmap::ColmapModel;
 
 /// The scene layer's learning rates (paper: position 1.6e-4 → 1.6e-6 over the run,
@@ -43,9 +43,6 @@ impl Default for SceneConfig {
         Self { lr_position: 1.6e-4, lr_position_final: 1.6e-6, lr_rotation: 1e-3, lr_scale: 5e-3, lr_opacity: 5e-2, lr_sh: 2.5e-3, max_points: 100_000, sh_degree: 3 }
     }
 }
-
-/// Names of the scene's parameter buffers and Adam groups, in `GaussianBuffers::all` order.
-pub const SCENE_PARAMS: [&str; 5] = ["means", "log_scales", "quats", "opacity_logits", "sh"];
 
 /// The initial scene Gaussians from COLMAP points, and the scene's extent (the
 /// largest distance of a point from their centroid, for the position rate).
@@ -179,14 +176,4 @@ impl SceneLayer {
         }
         Ok(())
     }
-}
-
-/// The scene layer's state on the host: the five parameter arrays in
-/// [`SCENE_PARAMS`] order and their Adam states.
-#[derive(Clone, Debug, PartialEq)]
-pub struct SceneState {
-    pub params: Vec<Vec<f32>>,
-    pub adam: Vec<AdamState>,
-    /// Densification statistics (n×3); None: zero.
-    pub screen_stats: Option<Vec<f32>>,
 }

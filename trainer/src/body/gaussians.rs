@@ -7,18 +7,19 @@
 
 use std::collections::HashMap;
 
+use glam::DVec3;
 use drape_engine::ops::splat::scene::GaussianCloud;
 use crate::avatar::groups::Layer;
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
 
 use crate::body::model::NUM_JOINTS;
-use crate::mesh::{add, cross, norm, normalize, rotation_to_quaternion, scale, sub, vertex_normals, V3};
+use crate::mesh::{rotation_to_quaternion, vertex_normals};
 
 /// A triangle mesh with per-vertex skinning weights and shape blend shapes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SkinnedMesh {
-    pub vertices: Vec<V3>,
+    pub vertices: Vec<DVec3>,
     pub faces: Vec<[u32; 3]>,
     pub weights: Vec<[f64; NUM_JOINTS]>,
     /// `shapedirs[v][axis][b]` (may have zero betas).
@@ -35,7 +36,7 @@ impl SkinnedMesh {
         let mut mid = |a: u32, b: u32, out: &mut SkinnedMesh| -> u32 {
             *midpoint.entry((a.min(b), a.max(b))).or_insert_with(|| {
                 let (ia, ib) = (a as usize, b as usize);
-                out.vertices.push(scale(add(self.vertices[ia], self.vertices[ib]), 0.5));
+                out.vertices.push((self.vertices[ia] + self.vertices[ib]) * 0.5);
                 let mut w = [0.0; NUM_JOINTS];
                 for j in 0..NUM_JOINTS {
                     w[j] = 0.5 * (self.weights[ia][j] + self.weights[ib][j]);
@@ -71,7 +72,7 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
     for f in &m.faces {
         for k in 0..3 {
             let (a, b) = (f[k] as usize, f[(k + 1) % 3] as usize);
-            let l = norm(sub(m.vertices[a], m.vertices[b]));
+            let l = (m.vertices[a] - m.vertices[b]).length();
             // Each interior edge is seen from two faces, so both ends count it twice.
             edge_sum[a] += l;
             edge_sum[b] += l;
@@ -83,9 +84,9 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
     let opacity_logit = (0.1f64 / 0.9).ln() as f32;
     for (i, v) in m.vertices.iter().enumerate() {
         let n = normals[i];
-        let helper = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
-        let t1 = normalize(cross(helper, n));
-        let t2 = cross(n, t1);
+        let helper = if n[0].abs() < 0.9 { DVec3::X } else { DVec3::Y };
+        let t1 = helper.cross(n).normalize_or(DVec3::Z);
+        let t2 = n.cross(t1);
         // The rotation whose columns are the tangents and the normal.
         let q = rotation_to_quaternion(&[[t1[0], t2[0], n[0]], [t1[1], t2[1], n[1]], [t1[2], t2[2], n[2]]]);
         let mean_edge = edge_sum[i] / f64::from(edge_count[i].max(1));
@@ -94,7 +95,7 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
         sh[0] = [0.5; 3];
         cloud.push(
             &Gaussian {
-                mean: v.map(|x| x as f32),
+                mean: v.as_vec3().to_array(),
                 log_scale: [tangent.ln() as f32, tangent.ln() as f32, (0.1 * tangent).ln() as f32],
                 quat: q.map(|x| x as f32),
                 opacity_logit,

@@ -10,7 +10,6 @@
 use glam::{DAffine3, DMat3, DVec3};
 
 use crate::body::model::{SmplModel, NUM_JOINTS, NUM_POSE_FEATURES};
-use crate::mesh::{add, scale, V3};
 
 pub type M3 = [[f64; 3]; 3];
 /// `[R | t]`, row-major 3x4.
@@ -60,14 +59,13 @@ fn rotation(r: DVec3) -> DMat3 {
 }
 
 /// Rotation of an axis-angle vector (Rodrigues).
-pub fn rodrigues(r: V3) -> M3 {
-    rows(rotation(r.into()))
+pub fn rodrigues(r: DVec3) -> M3 {
+    rows(rotation(r))
 }
 
 /// dR/dr_i for each axis i (Gallego and Yezzi's formula; first order near 0):
 /// `(r_i [r]x + [r × (I - R) e_i]x) R / |r|²`.
-pub fn rodrigues_jacobian(r: V3) -> [M3; 3] {
-    let r = DVec3::from(r);
+pub fn rodrigues_jacobian(r: DVec3) -> [M3; 3] {
     let theta2 = r.length_squared();
     let axes = [DVec3::X, DVec3::Y, DVec3::Z];
     if theta2 < 1e-16 {
@@ -79,12 +77,12 @@ pub fn rodrigues_jacobian(r: V3) -> [M3; 3] {
 }
 
 /// Pose parameters: 24 axis-angle vectors, root first (SMPL's 72 numbers).
-pub type Pose = [V3; NUM_JOINTS];
+pub type Pose = [DVec3; NUM_JOINTS];
 
 /// The canonical "Da-pose" HUGS uses: left and right hip rotated by +1 and -1 rad
 /// about z.
 pub fn da_pose() -> Pose {
-    let mut p = [[0.0; 3]; NUM_JOINTS];
+    let mut p = [DVec3::ZERO; NUM_JOINTS];
     p[1][2] = 1.0;
     p[2][2] = -1.0;
     p
@@ -92,7 +90,7 @@ pub fn da_pose() -> Pose {
 
 /// The T-pose: all zero.
 pub fn t_pose() -> Pose {
-    [[0.0; 3]; NUM_JOINTS]
+    [DVec3::ZERO; NUM_JOINTS]
 }
 
 /// How far the A-pose lowers the arms from the T-pose (radians, about 43 degrees: the
@@ -128,23 +126,23 @@ pub fn relative_transforms(to: &[Affine; NUM_JOINTS], from: &[Affine; NUM_JOINTS
 }
 
 /// Template plus shape blend shapes (missing betas count as 0, extra ones are ignored).
-pub fn shaped_vertices(model: &SmplModel, betas: &[f64]) -> Vec<V3> {
+pub fn shaped_vertices(model: &SmplModel, betas: &[f64]) -> Vec<DVec3> {
     let b = betas.len().min(model.num_betas);
     model
         .v_template
         .iter()
         .zip(&model.shapedirs)
-        .map(|(v, d)| [0, 1, 2].map(|k| v[k] + (0..b).map(|i| d[k][i] * betas[i]).sum::<f64>()))
+        .map(|(v, d)| DVec3::from_array([0, 1, 2].map(|k| v[k] + (0..b).map(|i| d[k][i] * betas[i]).sum::<f64>())))
         .collect()
 }
 
 /// Joint positions from the regressor.
-pub fn regress_joints(model: &SmplModel, vertices: &[V3]) -> [V3; NUM_JOINTS] {
-    let mut j = [[0.0; 3]; NUM_JOINTS];
+pub fn regress_joints(model: &SmplModel, vertices: &[DVec3]) -> [DVec3; NUM_JOINTS] {
+    let mut j = [DVec3::ZERO; NUM_JOINTS];
     for (row, out) in model.j_regressor.iter().zip(j.iter_mut()) {
         for (w, v) in row.iter().zip(vertices) {
             if *w != 0.0 {
-                *out = add(*out, scale(*v, *w));
+                *out += *v * *w;
             }
         }
     }
@@ -156,15 +154,15 @@ pub fn regress_joints(model: &SmplModel, vertices: &[V3]) -> [V3; NUM_JOINTS] {
 /// Computed as `A_j = A_parent · [R_j | J_j - R_j J_j]` (equal to `G_j · [I | -J_j]`):
 /// at rest every factor is exactly the identity, so the rest pose reproduces the
 /// template bit for bit.
-pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pose: &Pose) -> ([Affine; NUM_JOINTS], [Affine; NUM_JOINTS]) {
+pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[DVec3; NUM_JOINTS], pose: &Pose) -> ([Affine; NUM_JOINTS], [Affine; NUM_JOINTS]) {
     let mut a = [DAffine3::IDENTITY; NUM_JOINTS];
     for j in 0..NUM_JOINTS {
-        let (r, joint) = (rotation(pose[j].into()), DVec3::from(joints[j]));
+        let (r, joint) = (rotation(pose[j]), joints[j]);
         let local = DAffine3::from_mat3_translation(r, joint - r * joint);
         a[j] = if parents[j] < 0 { local } else { a[parents[j] as usize] * local };
     }
     // G_j = A_j · [I | J_j].
-    let g = std::array::from_fn(|j| affine_rows(DAffine3 { translation: a[j].translation + a[j].matrix3 * DVec3::from(joints[j]), ..a[j] }));
+    let g = std::array::from_fn(|j| affine_rows(DAffine3 { translation: a[j].translation + a[j].matrix3 * joints[j], ..a[j] }));
     (a.map(affine_rows), g)
 }
 
@@ -172,7 +170,7 @@ pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS]
 pub fn pose_features(pose: &Pose) -> [f64; NUM_POSE_FEATURES] {
     let mut f = [0.0; NUM_POSE_FEATURES];
     for (j, out) in f.chunks_exact_mut(9).enumerate() {
-        out.copy_from_slice(rows(rotation(pose[j + 1].into()) - DMat3::IDENTITY).as_flattened());
+        out.copy_from_slice(rows(rotation(pose[j + 1]) - DMat3::IDENTITY).as_flattened());
     }
     f
 }
@@ -182,49 +180,48 @@ pub fn pose_features(pose: &Pose) -> [f64; NUM_POSE_FEATURES] {
 /// exactly `p` when every transform is the identity).
 /// The GPU kernel's CPU reference (`drape_engine::ops::skinning`) runs the very same
 /// shared functions.
-pub fn skin(weights: &[[f64; NUM_JOINTS]], transforms: &[Affine; NUM_JOINTS], points: &[V3]) -> Vec<V3> {
+pub fn skin(weights: &[[f64; NUM_JOINTS]], transforms: &[Affine; NUM_JOINTS], points: &[DVec3]) -> Vec<DVec3> {
     let flat_t: Vec<f64> = transforms.iter().flatten().flatten().copied().collect();
     let flat_w: Vec<f64> = weights.iter().flatten().copied().collect();
-    let flat_p: Vec<f64> = points.iter().flatten().copied().collect();
-    drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+    let flat_p: Vec<f64> = points.iter().flat_map(|p| p.to_array()).collect();
+    drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])).collect()
 }
 
 /// A posed body.
 #[derive(Clone, Debug)]
 pub struct Posed {
-    pub vertices: Vec<V3>,
+    pub vertices: Vec<DVec3>,
     /// Joint positions after posing (world space).
-    pub joints: [V3; NUM_JOINTS],
+    pub joints: [DVec3; NUM_JOINTS],
     /// Rest joint positions (after shaping).
-    pub rest_joints: [V3; NUM_JOINTS],
+    pub rest_joints: [DVec3; NUM_JOINTS],
     pub transforms: [Affine; NUM_JOINTS],
 }
 
 /// SMPL's forward function: shape, pose blend shapes, kinematics, skinning, translation.
-pub fn pose_body(model: &SmplModel, betas: &[f64], pose: &Pose, translation: V3) -> Posed {
+pub fn pose_body(model: &SmplModel, betas: &[f64], pose: &Pose, translation: DVec3) -> Posed {
     let shaped = shaped_vertices(model, betas);
     let rest_joints = regress_joints(model, &shaped);
     let features = pose_features(pose);
-    let blended: Vec<V3> = if features.iter().all(|&f| f == 0.0) || model.posedirs.iter().all(|d| d.iter().all(|a| a.iter().all(|&x| x == 0.0))) {
+    let blended: Vec<DVec3> = if features.iter().all(|&f| f == 0.0) || model.posedirs.iter().all(|d| d.iter().all(|a| a.iter().all(|&x| x == 0.0))) {
         shaped
     } else {
         shaped
             .iter()
             .zip(&model.posedirs)
-            .map(|(v, d)| [0, 1, 2].map(|k| v[k] + d[k].iter().zip(&features).map(|(a, b)| a * b).sum::<f64>()))
+            .map(|(v, d)| DVec3::from_array([0, 1, 2].map(|k| v[k] + d[k].iter().zip(&features).map(|(a, b)| a * b).sum::<f64>())))
             .collect()
     };
     let (transforms, g) = forward_kinematics(&model.parents, &rest_joints, pose);
-    let vertices = skin(&model.weights, &transforms, &blended).into_iter().map(|v| add(v, translation)).collect();
-    let joints = g.map(|m| add([m[0][3], m[1][3], m[2][3]], translation));
+    let vertices = skin(&model.weights, &transforms, &blended).into_iter().map(|v| v + translation).collect();
+    let joints = g.map(|m| DVec3::new(m[0][3], m[1][3], m[2][3]) + translation);
     Posed { vertices, joints, rest_joints, transforms }
 }
 
 /// The gradient of a loss with respect to the pose, given its gradient with respect to
 /// the skinning transforms `A_j` (pose blend shapes not included).
-pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pose: &Pose, grad_a: &[Affine; NUM_JOINTS]) -> Pose {
+pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[DVec3; NUM_JOINTS], pose: &Pose, grad_a: &[Affine; NUM_JOINTS]) -> Pose {
     let (_, g) = forward_kinematics(parents, joints, pose);
-    let joints = joints.map(DVec3::from);
     // `x yᵀ`.
     let outer = |x: DVec3, y: DVec3| DMat3::from_cols(x * y.x, x * y.y, x * y.z);
     // A = [G_R | G_t - G_R J]: dG_R = dA_R - dA_t Jᵀ, dG_t = dA_t.
@@ -240,14 +237,14 @@ pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[V3; NUM_JOINTS], pos
         let p = parents[j] as usize;
         // G_R,j = G_R,p R_j ; G_t,j = G_R,p (J_j - J_p) + G_t,p
         d_local[j] = affine(&g[p]).matrix3.transpose() * d_rot[j];
-        let d_prot = d_rot[j] * rotation(pose[j].into()).transpose() + outer(d_t[j], joints[j] - joints[p]);
+        let d_prot = d_rot[j] * rotation(pose[j]).transpose() + outer(d_t[j], joints[j] - joints[p]);
         d_rot[p] += d_prot;
         d_t[p] += d_t[j];
     }
     std::array::from_fn(|j| {
         // Summed row by row (a column-major sum would round differently).
         let dl = rows(d_local[j]);
-        rodrigues_jacobian(pose[j]).map(|d| d.as_flattened().iter().zip(dl.as_flattened()).map(|(a, b)| a * b).sum())
+        DVec3::from_array(rodrigues_jacobian(pose[j]).map(|d| d.as_flattened().iter().zip(dl.as_flattened()).map(|(a, b)| a * b).sum()))
     })
 }
 

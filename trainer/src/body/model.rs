@@ -6,6 +6,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::npy::{self, Array, Dtype, NpyError};
 
 /// Joints of the SMPL skeleton.
@@ -27,7 +29,7 @@ pub const PARENTS: [i32; NUM_JOINTS] = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 
 #[derive(Clone, Debug, PartialEq)]
 pub struct SmplModel {
     /// V×3.
-    pub v_template: Vec<[f64; 3]>,
+    pub v_template: Vec<DVec3>,
     /// `shapedirs[v][axis][b]`.
     pub shapedirs: Vec<[Vec<f64>; 3]>,
     /// Shape coefficients B.
@@ -99,7 +101,7 @@ impl SmplModel {
                 .collect()
         };
         Ok(Self {
-            v_template: vt.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            v_template: vt.data.chunks_exact(3).map(DVec3::from_slice).collect(),
             shapedirs: per_vertex(sd, b),
             num_betas: b,
             posedirs: per_vertex(pd, NUM_POSE_FEATURES),
@@ -121,7 +123,7 @@ impl SmplModel {
             kintree[NUM_JOINTS + j] = j as f64;
         }
         let mut out = BTreeMap::new();
-        out.insert("v_template".into(), Array::f64(vec![v, 3], self.v_template.iter().flatten().copied().collect()));
+        out.insert("v_template".into(), Array::f64(vec![v, 3], self.v_template.iter().flat_map(|v| v.to_array()).collect()));
         out.insert("shapedirs".into(), Array::f64(vec![v, 3, self.num_betas], flat3(&self.shapedirs)));
         out.insert("posedirs".into(), Array::f64(vec![v, 3, NUM_POSE_FEATURES], flat3(&self.posedirs)));
         out.insert("J_regressor".into(), Array::f64(vec![NUM_JOINTS, v], self.j_regressor.iter().flatten().copied().collect()));

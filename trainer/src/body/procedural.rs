@@ -10,50 +10,52 @@
 
 use std::collections::HashMap;
 
+use glam::DVec3;
+
 use crate::body::model::{SmplModel, NUM_JOINTS, NUM_POSE_FEATURES, PARENTS};
-use crate::mesh::{adjacency, add, dot, norm, scale, sub, V3};
+use crate::mesh::adjacency;
 
 /// Rest positions of SMPL's joints for the default body, in T-pose (metres).
-pub const JOINTS: [V3; NUM_JOINTS] = [
-    [0.0, 0.93, 0.0],     // pelvis
-    [0.085, 0.86, 0.0],   // left hip
-    [-0.085, 0.86, 0.0],  // right hip
-    [0.0, 1.04, -0.01],   // spine1
-    [0.095, 0.49, 0.01],  // left knee
-    [-0.095, 0.49, 0.01], // right knee
-    [0.0, 1.16, -0.01],   // spine2
-    [0.095, 0.08, -0.02], // left ankle
-    [-0.095, 0.08, -0.02],// right ankle
-    [0.0, 1.28, 0.0],     // spine3
-    [0.10, 0.025, 0.11],  // left foot
-    [-0.10, 0.025, 0.11], // right foot
-    [0.0, 1.46, 0.0],     // neck
-    [0.07, 1.40, 0.0],    // left collar
-    [-0.07, 1.40, 0.0],   // right collar
-    [0.0, 1.56, 0.02],    // head
-    [0.18, 1.41, 0.0],    // left shoulder
-    [-0.18, 1.41, 0.0],   // right shoulder
-    [0.44, 1.41, 0.0],    // left elbow
-    [-0.44, 1.41, 0.0],   // right elbow
-    [0.68, 1.41, 0.0],    // left wrist
-    [-0.68, 1.41, 0.0],   // right wrist
-    [0.76, 1.41, 0.0],    // left hand
-    [-0.76, 1.41, 0.0],   // right hand
+pub const JOINTS: [DVec3; NUM_JOINTS] = [
+    DVec3::new(0.0, 0.93, 0.0),     // pelvis
+    DVec3::new(0.085, 0.86, 0.0),   // left hip
+    DVec3::new(-0.085, 0.86, 0.0),  // right hip
+    DVec3::new(0.0, 1.04, -0.01),   // spine1
+    DVec3::new(0.095, 0.49, 0.01),  // left knee
+    DVec3::new(-0.095, 0.49, 0.01), // right knee
+    DVec3::new(0.0, 1.16, -0.01),   // spine2
+    DVec3::new(0.095, 0.08, -0.02), // left ankle
+    DVec3::new(-0.095, 0.08, -0.02),// right ankle
+    DVec3::new(0.0, 1.28, 0.0),     // spine3
+    DVec3::new(0.10, 0.025, 0.11),  // left foot
+    DVec3::new(-0.10, 0.025, 0.11), // right foot
+    DVec3::new(0.0, 1.46, 0.0),     // neck
+    DVec3::new(0.07, 1.40, 0.0),    // left collar
+    DVec3::new(-0.07, 1.40, 0.0),   // right collar
+    DVec3::new(0.0, 1.56, 0.02),    // head
+    DVec3::new(0.18, 1.41, 0.0),    // left shoulder
+    DVec3::new(-0.18, 1.41, 0.0),   // right shoulder
+    DVec3::new(0.44, 1.41, 0.0),    // left elbow
+    DVec3::new(-0.44, 1.41, 0.0),   // right elbow
+    DVec3::new(0.68, 1.41, 0.0),    // left wrist
+    DVec3::new(-0.68, 1.41, 0.0),   // right wrist
+    DVec3::new(0.76, 1.41, 0.0),    // left hand
+    DVec3::new(-0.76, 1.41, 0.0),   // right hand
 ];
 
 /// A piece of the body: a tapered capsule from `a` to `b`, owned by joint `joint`
 /// (whose rotation moves it), with space squashed along z by `z_squash`.
 #[derive(Clone, Copy, Debug)]
 struct Part {
-    a: V3,
-    b: V3,
+    a: DVec3,
+    b: DVec3,
     ra: f64,
     rb: f64,
     z_squash: f64,
     joint: usize,
 }
 
-const fn part(a: V3, b: V3, ra: f64, rb: f64, z_squash: f64, joint: usize) -> Part {
+const fn part(a: DVec3, b: DVec3, ra: f64, rb: f64, z_squash: f64, joint: usize) -> Part {
     Part { a, b, ra, rb, z_squash, joint }
 }
 
@@ -61,51 +63,51 @@ fn parts() -> Vec<Part> {
     let j = JOINTS;
     let mut p = vec![
         // Pelvis and torso, wider than deep.
-        part([0.055, 0.86, 0.0], [0.07, 1.02, 0.0], 0.115, 0.11, 0.72, 0),
-        part([-0.055, 0.86, 0.0], [-0.07, 1.02, 0.0], 0.115, 0.11, 0.72, 0),
-        part([0.065, 1.02, 0.0], [0.07, 1.14, 0.0], 0.105, 0.11, 0.7, 3),
-        part([-0.065, 1.02, 0.0], [-0.07, 1.14, 0.0], 0.105, 0.11, 0.7, 3),
-        part([0.07, 1.14, 0.0], [0.075, 1.26, 0.0], 0.11, 0.115, 0.72, 6),
-        part([-0.07, 1.14, 0.0], [-0.075, 1.26, 0.0], 0.11, 0.115, 0.72, 6),
-        part([0.075, 1.26, 0.0], [0.08, 1.36, 0.0], 0.115, 0.1, 0.72, 9),
-        part([-0.075, 1.26, 0.0], [-0.08, 1.36, 0.0], 0.115, 0.1, 0.72, 9),
+        part(DVec3::new(0.055, 0.86, 0.0), DVec3::new(0.07, 1.02, 0.0), 0.115, 0.11, 0.72, 0),
+        part(DVec3::new(-0.055, 0.86, 0.0), DVec3::new(-0.07, 1.02, 0.0), 0.115, 0.11, 0.72, 0),
+        part(DVec3::new(0.065, 1.02, 0.0), DVec3::new(0.07, 1.14, 0.0), 0.105, 0.11, 0.7, 3),
+        part(DVec3::new(-0.065, 1.02, 0.0), DVec3::new(-0.07, 1.14, 0.0), 0.105, 0.11, 0.7, 3),
+        part(DVec3::new(0.07, 1.14, 0.0), DVec3::new(0.075, 1.26, 0.0), 0.11, 0.115, 0.72, 6),
+        part(DVec3::new(-0.07, 1.14, 0.0), DVec3::new(-0.075, 1.26, 0.0), 0.11, 0.115, 0.72, 6),
+        part(DVec3::new(0.075, 1.26, 0.0), DVec3::new(0.08, 1.36, 0.0), 0.115, 0.1, 0.72, 9),
+        part(DVec3::new(-0.075, 1.26, 0.0), DVec3::new(-0.08, 1.36, 0.0), 0.115, 0.1, 0.72, 9),
         // Neck and head.
-        part([0.0, 1.38, 0.0], [0.0, 1.50, 0.01], 0.06, 0.055, 1.0, 12),
-        part([0.0, 1.55, 0.025], [0.0, 1.64, 0.02], 0.09, 0.085, 0.95, 15),
+        part(DVec3::new(0.0, 1.38, 0.0), DVec3::new(0.0, 1.50, 0.01), 0.06, 0.055, 1.0, 12),
+        part(DVec3::new(0.0, 1.55, 0.025), DVec3::new(0.0, 1.64, 0.02), 0.09, 0.085, 0.95, 15),
     ];
     for side in [1.0, -1.0] {
         let (l, s) = (if side > 0.0 { 0 } else { 1 }, side);
-        let m = |v: V3| [v[0] * s, v[1], v[2]];
+        let m = |v: DVec3| DVec3::new(v[0] * s, v[1], v[2]);
         p.extend([
             // Collar to shoulder, upper arm, forearm, hand.
-            part(m([0.06, 1.38, 0.0]), m(j[16 + l]), 0.06, 0.058, 0.85, 13 + l),
+            part(m(DVec3::new(0.06, 1.38, 0.0)), m(j[16 + l]), 0.06, 0.058, 0.85, 13 + l),
             part(j[16 + l], j[18 + l], 0.052, 0.042, 1.0, 16 + l),
             part(j[18 + l], j[20 + l], 0.042, 0.032, 1.0, 18 + l),
             part(j[20 + l], j[22 + l], 0.035, 0.034, 0.6, 20 + l),
-            part(j[22 + l], m([0.83, 1.41, 0.0]), 0.034, 0.03, 0.6, 22 + l),
+            part(j[22 + l], m(DVec3::new(0.83, 1.41, 0.0)), 0.034, 0.03, 0.6, 22 + l),
             // Thigh, shin, foot, toes.
             part(j[1 + l], j[4 + l], 0.085, 0.055, 1.0, 1 + l),
             part(j[4 + l], j[7 + l], 0.053, 0.04, 1.0, 4 + l),
             part(j[7 + l], j[10 + l], 0.045, 0.038, 0.75, 7 + l),
-            part(j[10 + l], m([0.105, 0.025, 0.16]), 0.035, 0.03, 0.75, 10 + l),
+            part(j[10 + l], m(DVec3::new(0.105, 0.025, 0.16)), 0.035, 0.03, 0.75, 10 + l),
         ]);
     }
     p
 }
 
 /// Distance from p to the segment a-b and the parameter of the closest point.
-fn segment_distance(p: V3, a: V3, b: V3) -> (f64, f64) {
-    let ab = sub(b, a);
-    let t = (dot(sub(p, a), ab) / dot(ab, ab).max(1e-12)).clamp(0.0, 1.0);
-    (norm(sub(p, add(a, scale(ab, t)))), t)
+fn segment_distance(p: DVec3, a: DVec3, b: DVec3) -> (f64, f64) {
+    let ab = b - a;
+    let t = ((p - a).dot(ab) / ab.dot(ab).max(1e-12)).clamp(0.0, 1.0);
+    ((p - (a + ab * t)).length(), t)
 }
 
-fn part_sdf(p: V3, q: &Part) -> f64 {
+fn part_sdf(p: DVec3, q: &Part) -> f64 {
     // Squash space along z around the part's axis, then a tapered capsule (linear
     // radius along the closest point: not an exact distance, which the level set
     // does not need).
     let centre_z = 0.5 * (q.a[2] + q.b[2]);
-    let ps = [p[0], p[1], centre_z + (p[2] - centre_z) / q.z_squash];
+    let ps = DVec3::new(p[0], p[1], centre_z + (p[2] - centre_z) / q.z_squash);
     let (d, t) = segment_distance(ps, q.a, q.b);
     (d - (q.ra + (q.rb - q.ra) * t)) * q.z_squash.min(1.0)
 }
@@ -116,7 +118,7 @@ fn smin(a: f64, b: f64, k: f64) -> f64 {
     b + (a - b) * h - k * h * (1.0 - h)
 }
 
-fn body_sdf(p: V3, parts: &[Part]) -> f64 {
+fn body_sdf(p: DVec3, parts: &[Part]) -> f64 {
     parts.iter().fold(f64::MAX, |acc, q| {
         let d = part_sdf(p, q);
         if acc == f64::MAX { d } else { smin(acc, d, 0.025) }
@@ -125,10 +127,10 @@ fn body_sdf(p: V3, parts: &[Part]) -> f64 {
 
 /// Marching tetrahedra of `f` over the box [lo, hi] with cell size h: a closed mesh
 /// with outward-facing triangles, vertices welded on grid edges.
-fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3>, Vec<[u32; 3]>) {
+fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let n = [0, 1, 2].map(|k| ((hi[k] - lo[k]) / h).ceil() as usize + 1);
     let idx = |x: usize, y: usize, z: usize| (x * n[1] + y) * n[2] + z;
-    let pos = |x: usize, y: usize, z: usize| [lo[0] + x as f64 * h, lo[1] + y as f64 * h, lo[2] + z as f64 * h];
+    let pos = |x: usize, y: usize, z: usize| DVec3::new(lo[0] + x as f64 * h, lo[1] + y as f64 * h, lo[2] + z as f64 * h);
     let mut values = vec![0.0; n[0] * n[1] * n[2]];
     for x in 0..n[0] {
         for y in 0..n[1] {
@@ -146,14 +148,14 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
     // faces of neighbouring cubes are split the same way.
     const CORNERS: [[usize; 3]; 8] = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
     const TETS: [[usize; 4]; 6] = [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]];
-    let mut vertices: Vec<V3> = Vec::new();
+    let mut vertices: Vec<DVec3> = Vec::new();
     let mut on_edge: HashMap<(usize, usize), u32> = HashMap::new();
     let mut faces = Vec::new();
-    let mut vertex_on = |a: usize, pa: V3, va: f64, b: usize, pb: V3, vb: f64, vertices: &mut Vec<V3>| -> u32 {
+    let mut vertex_on = |a: usize, pa: DVec3, va: f64, b: usize, pb: DVec3, vb: f64, vertices: &mut Vec<DVec3>| -> u32 {
         let key = (a.min(b), a.max(b));
         *on_edge.entry(key).or_insert_with(|| {
             let t = va / (va - vb);
-            vertices.push(add(pa, scale(sub(pb, pa), t)));
+            vertices.push(pa + (pb - pa) * t);
             (vertices.len() - 1) as u32
         })
     };
@@ -170,7 +172,7 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
                     let vals = pts.map(|(i, _)| values[i]);
                     let inside: Vec<usize> = (0..4).filter(|&k| vals[k] < 0.0).collect();
                     let outside: Vec<usize> = (0..4).filter(|&k| vals[k] >= 0.0).collect();
-                    let mut cut = |i: usize, o: usize, vertices: &mut Vec<V3>| {
+                    let mut cut = |i: usize, o: usize, vertices: &mut Vec<DVec3>| {
                         vertex_on(pts[i].0, pts[i].1, vals[i], pts[o].0, pts[o].1, vals[o], vertices)
                     };
                     let mut tris: Vec<[u32; 3]> = Vec::new();
@@ -195,12 +197,12 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
                         _ => {}
                     }
                     // Orient outward: the normal points from the inside corners to the outside ones.
-                    let centre = |ks: &[usize]| ks.iter().fold([0.0; 3], |acc, &k| add(acc, scale(pts[k].1, 1.0 / ks.len() as f64)));
+                    let centre = |ks: &[usize]| ks.iter().fold(DVec3::ZERO, |acc, &k| acc + pts[k].1 * (1.0 / ks.len() as f64));
                     if !tris.is_empty() {
-                        let out_dir = sub(centre(&outside), centre(&inside));
+                        let out_dir = centre(&outside) - centre(&inside);
                         for t in &mut tris {
                             let [p0, p1, p2] = t.map(|v| vertices[v as usize]);
-                            if dot(crate::mesh::cross(sub(p1, p0), sub(p2, p0)), out_dir) < 0.0 {
+                            if (p1 - p0).cross(p2 - p0).dot(out_dir) < 0.0 {
                                 t.swap(1, 2);
                             }
                         }
@@ -218,7 +220,7 @@ fn marching_tetrahedra(f: &dyn Fn(V3) -> f64, lo: V3, hi: V3, h: f64) -> (Vec<V3
 /// Evens out the triangles: each vertex moves halfway to its neighbours' centroid,
 /// then back onto the zero level along the field's gradient. Connectivity is
 /// unchanged, so the mesh stays closed.
-fn relax_on_surface(v: &mut [V3], faces: &[[u32; 3]], f: &dyn Fn(V3) -> f64, iterations: usize) {
+fn relax_on_surface(v: &mut [DVec3], faces: &[[u32; 3]], f: &dyn Fn(DVec3) -> f64, iterations: usize) {
     let adj = adjacency(v.len(), faces);
     let h = 1e-4;
     for _ in 0..iterations {
@@ -228,19 +230,19 @@ fn relax_on_surface(v: &mut [V3], faces: &[[u32; 3]], f: &dyn Fn(V3) -> f64, ite
             if nb.is_empty() {
                 continue;
             }
-            let c = nb.iter().fold([0.0; 3], |acc, &k| add(acc, scale(prev[k as usize], 1.0 / nb.len() as f64)));
-            let mut q = add(scale(prev[i], 0.5), scale(c, 0.5));
+            let c = nb.iter().fold(DVec3::ZERO, |acc, &k| acc + prev[k as usize] * (1.0 / nb.len() as f64));
+            let mut q = prev[i] * 0.5 + c * 0.5;
             for _ in 0..3 {
                 let d = f(q);
-                let g = [0, 1, 2].map(|k| {
+                let g = DVec3::from_array([0, 1, 2].map(|k| {
                     let mut a = q;
                     let mut b = q;
                     a[k] += h;
                     b[k] -= h;
                     (f(a) - f(b)) / (2.0 * h)
-                });
-                let g2 = dot(g, g).max(1e-12);
-                q = sub(q, scale(g, d / g2));
+                }));
+                let g2 = g.dot(g).max(1e-12);
+                q = q - g * (d / g2);
             }
             *p = q;
         }
@@ -265,8 +267,8 @@ impl Default for BodyOptions {
 /// Builds the default body.
 pub fn default_body(options: &BodyOptions) -> SmplModel {
     let parts = parts();
-    let sdf = |p: V3| body_sdf(p, &parts);
-    let (mut v, faces) = marching_tetrahedra(&sdf, [-0.95, -0.06, -0.25], [0.95, 1.80, 0.30], options.cell);
+    let sdf = |p: DVec3| body_sdf(p, &parts);
+    let (mut v, faces) = marching_tetrahedra(&sdf, DVec3::new(-0.95, -0.06, -0.25), DVec3::new(0.95, 1.80, 0.30), options.cell);
     let nv = v.len();
     relax_on_surface(&mut v, &faces, &sdf, 6);
 
@@ -283,9 +285,9 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
             let dists: Vec<(usize, f64)> = parts
                 .iter()
                 .map(|q| {
-                    let ab = sub(q.b, q.a);
-                    let t_raw = dot(sub(p, q.a), ab) / dot(ab, ab).max(1e-12);
-                    (q.joint, part_sdf(p, q) + 3.0 * (-t_raw).max(0.0) * norm(ab))
+                    let ab = q.b - q.a;
+                    let t_raw = (p - q.a).dot(ab) / ab.dot(ab).max(1e-12);
+                    (q.joint, part_sdf(p, q) + 3.0 * (-t_raw).max(0.0) * ab.length())
                 })
                 .collect();
             let best = dists.iter().map(|d| d.1).fold(f64::MAX, f64::min);
@@ -327,23 +329,23 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
             .filter(|&k| PARENTS[k] == j as i32)
             .min_by(|&a, &b| (JOINTS[a][0] - c[0]).abs().total_cmp(&(JOINTS[b][0] - c[0]).abs()));
         let axis = match child {
-            Some(k) => crate::mesh::normalize(sub(JOINTS[k], c)),
-            None => crate::mesh::normalize(sub(c, JOINTS[PARENTS[j] as usize])),
+            Some(k) => (JOINTS[k] - c).normalize_or(DVec3::Z),
+            None => (c - JOINTS[PARENTS[j] as usize]).normalize_or(DVec3::Z),
         };
         let mut slab = 0.012;
         loop {
             let candidates: Vec<(usize, f64)> = v
                 .iter()
                 .enumerate()
-                .filter(|(i, p)| dot(sub(**p, c), axis).abs() < slab && weights[*i][j] >= 0.2)
-                .map(|(i, p)| (i, norm(sub(*p, c))))
+                .filter(|(i, p)| (**p - c).dot(axis).abs() < slab && weights[*i][j] >= 0.2)
+                .map(|(i, p)| (i, (*p - c).length()))
                 .filter(|&(_, d)| d < 0.3)
                 .collect();
             let mut ring: Vec<usize> = candidates.iter().map(|c| c.0).collect();
             // A coarse surface (a large cell) may have no ring of six near the joint:
             // then its six nearest vertices, whatever their weights.
             if ring.len() < 6 && slab > 0.5 {
-                let mut nearest: Vec<(usize, f64)> = v.iter().enumerate().map(|(i, p)| (i, norm(sub(*p, c)))).collect();
+                let mut nearest: Vec<(usize, f64)> = v.iter().enumerate().map(|(i, p)| (i, (*p - c).length())).collect();
                 nearest.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
                 ring = nearest.into_iter().take(6).map(|(i, _)| i).collect();
             }
@@ -370,8 +372,8 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
                 .min_by(|x, y| part_sdf(p, x).total_cmp(&part_sdf(p, y)))
                 .expect("the body has parts");
             let (_, t) = segment_distance(p, nearest.a, nearest.b);
-            let axis = add(nearest.a, scale(sub(nearest.b, nearest.a), t));
-            let radial = sub(p, axis);
+            let axis = nearest.a + (nearest.b - nearest.a) * t;
+            let radial = p - axis;
             for k in 0..3 {
                 d[k][1] = 0.08 * radial[k];
             }

@@ -10,6 +10,8 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::camera::Camera;
 use crate::dataset::distortion::Distortion;
 
@@ -125,7 +127,7 @@ pub struct ColmapImage {
 impl ColmapImage {
     /// The record of an image `name` taken by `camera` (COLMAP camera `camera_id`).
     pub fn from_camera(id: u32, camera_id: u32, name: String, camera: &Camera) -> Self {
-        Self { id, qvec: rotation_to_quaternion(&camera.rotation), tvec: camera.translation, camera_id, name, points2d: vec![] }
+        Self { id, qvec: rotation_to_quaternion(&camera.rotation), tvec: camera.translation.to_array(), camera_id, name, points2d: vec![] }
     }
 
     /// The camera that took this image with intrinsics from `camera` (its record in
@@ -133,7 +135,7 @@ impl ColmapImage {
     /// [`Self::camera_and_distortion`] keeps it, for loaders that undistort.
     pub fn camera(&self, camera: &ColmapCamera) -> Option<Camera> {
         let (fx, fy, cx, cy) = camera.pinhole()?;
-        Some(Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR })
+        Some(Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: DVec3::from_array(self.tvec), near: Camera::NEAR })
     }
 
     /// The pinhole camera that took this image, with intrinsics from `camera` (its
@@ -143,7 +145,7 @@ impl ColmapImage {
     /// see [`ColmapCamera::intrinsics`].
     pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> Result<(Camera, Distortion), ColmapError> {
         let ([fx, fy, cx, cy], distortion) = camera.intrinsics()?;
-        Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: self.tvec, near: Camera::NEAR }, distortion))
+        Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: DVec3::from_array(self.tvec), near: Camera::NEAR }, distortion))
     }
 
     /// World-to-camera rotation (rows), from the normalized quaternion.

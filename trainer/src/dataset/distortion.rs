@@ -25,8 +25,9 @@
 //!
 //! [`undistort_normalized`]: Distortion::undistort_normalized
 
+use glam::DVec3;
+
 use crate::camera::Camera;
-use crate::mesh::V3;
 
 /// OpenCV's distortion coefficients (k1 k2 p1 p2 k3): radial k1, k2, k3 on r², r⁴, r⁶
 /// and tangential p1, p2.
@@ -106,7 +107,7 @@ impl Distortion {
 /// `cv2.projectPoints` computes them (pinhole division, [`Distortion::distort`], then
 /// K). Like OpenCV it does not test the depth: a point behind the camera gives a
 /// meaningless position; [`Camera::to_camera`] says which side a point is on.
-pub fn project(camera: &Camera, d: &Distortion, point_world: V3) -> [f64; 2] {
+pub fn project(camera: &Camera, d: &Distortion, point_world: DVec3) -> [f64; 2] {
     let c = camera.to_camera(point_world);
     let [xd, yd] = d.distort(c[0] / c[2], c[1] / c[2]);
     [camera.fx * xd + camera.cx, camera.fy * yd + camera.cy]
@@ -260,7 +261,7 @@ mod tests {
 
     #[test]
     fn no_distortion_is_the_identity() {
-        let camera = Camera::look_at([0.0, 0.0, -3.0], [0.0; 3], [0.0, -1.0, 0.0], 40.0, 7, 5);
+        let camera = Camera::look_at(DVec3::new(0.0, 0.0, -3.0), DVec3::ZERO, DVec3::NEG_Y, 40.0, 7, 5);
         let rgb: Vec<f32> = (0..7 * 5 * 3).map(|i| (i % 11) as f32 / 10.0).collect();
         let mask: Vec<bool> = (0..7 * 5).map(|i| i % 3 == 0).collect();
         let u = Undistorter::new(&camera, Distortion::NONE);
@@ -279,7 +280,7 @@ mod tests {
 
     #[test]
     fn a_nan_source_samples_as_outside() {
-        let camera = Camera::look_at([0.0, 0.0, -3.0], [0.0; 3], [0.0, -1.0, 0.0], 40.0, 4, 4);
+        let camera = Camera::look_at(DVec3::new(0.0, 0.0, -3.0), DVec3::ZERO, DVec3::NEG_Y, 40.0, 4, 4);
         let map = SourceMap::build(&camera, |_, _| [f64::NAN, 0.0]);
         assert!(map.rgb(&[1.0; 48]).iter().all(|&v| v == 0.0));
         assert!(map.mask(&[true; 16]).iter().all(|&m| !m));

@@ -4,6 +4,8 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
+
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
 use crate::dataset::distortion::Undistorter;
@@ -13,13 +15,12 @@ use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, Variant, ZjuFil
 use crate::dataset::neuman::SmplSequence;
 use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, zju_by_camera, Split};
 use crate::dataset::zju::ZjuSmpl;
-use crate::mesh::V3;
 
 /// The body's parameters in a frame, in the convention of the layout it came from.
 #[derive(Clone, Debug, PartialEq)]
 pub enum BodyParams {
     /// NeuMan/HUGS: SMPL with root rotation, then `scale` and `translation`.
-    Smpl { pose: Pose, betas: Vec<f64>, translation: V3, scale: f64 },
+    Smpl { pose: Pose, betas: Vec<f64>, translation: DVec3, scale: f64 },
     /// ZJU-MoCap: root-free SMPL, then `R(Rh)` and `Th`.
     Zju(ZjuSmpl),
 }

@@ -5,9 +5,10 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::body::kinematics::Pose;
 use crate::body::NUM_JOINTS;
-use crate::mesh::V3;
 use crate::npy::{self, Array, NpyError};
 
 /// Per-frame SMPL parameters of one sequence.
@@ -15,7 +16,7 @@ use crate::npy::{self, Array, NpyError};
 pub struct SmplSequence {
     pub poses: Vec<Pose>,
     pub betas: Vec<Vec<f64>>,
-    pub translations: Vec<V3>,
+    pub translations: Vec<DVec3>,
     pub scales: Vec<f64>,
 }
 
@@ -32,10 +33,10 @@ impl SmplSequence {
         let f = self.len();
         let nb = self.betas.first().map_or(10, Vec::len);
         let mut a = BTreeMap::new();
-        a.insert("global_orient".into(), Array::f64(vec![f, 3], self.poses.iter().flat_map(|p| p[0]).collect()));
-        a.insert("body_pose".into(), Array::f64(vec![f, 69], self.poses.iter().flat_map(|p| p[1..].iter().flatten().copied().collect::<Vec<_>>()).collect()));
+        a.insert("global_orient".into(), Array::f64(vec![f, 3], self.poses.iter().flat_map(|p| p[0].to_array()).collect()));
+        a.insert("body_pose".into(), Array::f64(vec![f, 69], self.poses.iter().flat_map(|p| p[1..].iter().flat_map(|r| r.to_array()).collect::<Vec<_>>()).collect()));
         a.insert("betas".into(), Array::f64(vec![f, nb], self.betas.iter().flatten().copied().collect()));
-        a.insert("transl".into(), Array::f64(vec![f, 3], self.translations.iter().flatten().copied().collect()));
+        a.insert("transl".into(), Array::f64(vec![f, 3], self.translations.iter().flat_map(|t| t.to_array()).collect()));
         a.insert("scale".into(), Array::f64(vec![f], self.scales.clone()));
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(|error| NpyError::Io { file: parent.display().to_string(), error })?;
@@ -58,11 +59,11 @@ impl SmplSequence {
         }
         let poses = (0..f)
             .map(|i| {
-                let mut p: Pose = [[0.0; 3]; NUM_JOINTS];
-                p[0] = [go.data[3 * i], go.data[3 * i + 1], go.data[3 * i + 2]];
+                let mut p: Pose = [DVec3::ZERO; NUM_JOINTS];
+                p[0] = DVec3::from_slice(&go.data[3 * i..3 * i + 3]);
                 for j in 1..NUM_JOINTS {
                     let b = i * 69 + 3 * (j - 1);
-                    p[j] = [bp.data[b], bp.data[b + 1], bp.data[b + 2]];
+                    p[j] = DVec3::from_slice(&bp.data[b..b + 3]);
                 }
                 p
             })
@@ -86,7 +87,7 @@ impl SmplSequence {
         Ok(Self {
             poses,
             betas,
-            translations: tr.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            translations: tr.data.chunks_exact(3).map(DVec3::from_slice).collect(),
             scales: if scale.data.len() == 1 { vec![scale.data[0]; f] } else { scale.data.clone() },
         })
     }

@@ -6,12 +6,13 @@
 //! It draws through the trainer's one camera type, [`Camera`] (x right, y down,
 //! z forward, pixel centres at +0.5).
 
+use glam::DVec3;
+
 use crate::camera::Camera;
-use crate::mesh::{cross, dot, normalize, sub, V3};
 
 /// Something to draw: triangles with UVs, an object id for masks, and a texture.
 pub struct Drawable<'a> {
-    pub vertices: &'a [V3],
+    pub vertices: &'a [DVec3],
     pub faces: &'a [[u32; 3]],
     pub uvs: &'a [[f64; 2]],
     /// Reported in the id image (0 is the background).
@@ -37,7 +38,7 @@ pub struct Frame {
 
 struct Vertex {
     /// Camera space.
-    c: V3,
+    c: DVec3,
     uv: [f64; 2],
 }
 
@@ -54,7 +55,7 @@ fn clip_near(tri: [Vertex; 3], near: f64) -> Vec<[Vertex; 3]> {
     let lerp = |a: &Vertex, b: &Vertex| {
         let t = (near - a.c[2]) / (b.c[2] - a.c[2]);
         Vertex {
-            c: [0, 1, 2].map(|k| a.c[k] + t * (b.c[k] - a.c[k])),
+            c: a.c + (b.c - a.c) * t,
             uv: [a.uv[0] + t * (b.uv[0] - a.uv[0]), a.uv[1] + t * (b.uv[1] - a.uv[1])],
         }
     };
@@ -76,26 +77,26 @@ fn clip_near(tri: [Vertex; 3], near: f64) -> Vec<[Vertex; 3]> {
 
 /// Renders `drawables` with `samples` x `samples` supersampling; `light` is the
 /// direction towards the light in world space; `ambient` the unlit share.
-pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, background: [f64; 3], light: V3, ambient: f64) -> Frame {
+pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, background: [f64; 3], light: DVec3, ambient: f64) -> Frame {
     let s = samples.max(1);
     let (w, h) = (camera.width * s, camera.height * s);
     let mut zbuf = vec![f64::INFINITY; (w * h) as usize];
     let mut color = vec![background; (w * h) as usize];
     let mut ids = vec![0u16; (w * h) as usize];
-    let light = normalize(light);
+    let light = light.normalize_or(DVec3::Z);
     let max_id = drawables.iter().map(|d| d.object).max().unwrap_or(0) as usize;
     for d in drawables {
         for f in d.faces {
             let [p0, p1, p2] = f.map(|i| d.vertices[i as usize]);
-            let n = normalize(cross(sub(p1, p0), sub(p2, p0)));
+            let n = (p1 - p0).cross(p2 - p0).normalize_or(DVec3::Z);
             let tri = [0, 1, 2].map(|k| Vertex { c: camera.to_camera(d.vertices[f[k] as usize]), uv: d.uvs.get(f[k] as usize).copied().unwrap_or([0.0, 0.0]) });
             // Back-face test in camera space: the view ray to the triangle against its normal.
-            let cn = cross(sub(tri[1].c, tri[0].c), sub(tri[2].c, tri[0].c));
-            let facing = dot(cn, tri[0].c) < 0.0;
+            let cn = (tri[1].c - tri[0].c).cross(tri[2].c - tri[0].c);
+            let facing = cn.dot(tri[0].c) < 0.0;
             if !facing && !d.two_sided {
                 continue;
             }
-            let shade = ambient + (1.0 - ambient) * dot(n, light).abs().max(0.0);
+            let shade = ambient + (1.0 - ambient) * n.dot(light).abs().max(0.0);
             for t in clip_near(tri, camera.near) {
                 // Screen positions at the supersampled resolution.
                 let sp: Vec<[f64; 2]> = t.iter().map(|v| {

@@ -10,6 +10,8 @@
 use std::f64::consts::{PI, TAU};
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::body::kinematics::{pose_body, Pose};
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
@@ -22,7 +24,6 @@ use crate::dataset::raster::{render, Drawable};
 use crate::dataset::zju::{write_vertices, ZjuAnnots, ZjuCamera, ZjuSmpl};
 use crate::error::TrainerError;
 use crate::garment::{pants, write_obj, Garment, GarmentFit};
-use crate::mesh::{add, scale, sub, V3};
 use crate::motion::{procedural, MotionKind};
 use crate::npy::{self, Array};
 
@@ -57,12 +58,12 @@ const LOWER: u16 = 4;
 
 /// The static room: floor, three walls and two boxes, with UVs in metres.
 struct Room {
-    vertices: Vec<V3>,
+    vertices: Vec<DVec3>,
     faces: Vec<[u32; 3]>,
     uvs: Vec<[f64; 2]>,
 }
 
-fn quad(room: &mut Room, corners: [V3; 4], uv_size: [f64; 2]) {
+fn quad(room: &mut Room, corners: [DVec3; 4], uv_size: [f64; 2]) {
     let b = room.vertices.len() as u32;
     room.vertices.extend(corners);
     room.uvs.extend([[0.0, 0.0], [uv_size[0], 0.0], [uv_size[0], uv_size[1]], [0.0, uv_size[1]]]);
@@ -72,14 +73,13 @@ fn quad(room: &mut Room, corners: [V3; 4], uv_size: [f64; 2]) {
 fn room() -> Room {
     let mut r = Room { vertices: vec![], faces: vec![], uvs: vec![] };
     // Floor, back wall (z = -4), side walls (x = +-4).
-    quad(&mut r, [[-4.0, 0.0, -4.0], [4.0, 0.0, -4.0], [4.0, 0.0, 9.0], [-4.0, 0.0, 9.0]], [8.0, 13.0]);
-    quad(&mut r, [[-4.0, 0.0, -4.0], [-4.0, 3.0, -4.0], [4.0, 3.0, -4.0], [4.0, 0.0, -4.0]], [3.0, 8.0]);
-    quad(&mut r, [[-4.0, 0.0, -4.0], [-4.0, 0.0, 9.0], [-4.0, 3.0, 9.0], [-4.0, 3.0, -4.0]], [13.0, 3.0]);
-    quad(&mut r, [[4.0, 0.0, -4.0], [4.0, 3.0, -4.0], [4.0, 3.0, 9.0], [4.0, 0.0, 9.0]], [3.0, 13.0]);
+    quad(&mut r, [DVec3::new(-4.0, 0.0, -4.0), DVec3::new(4.0, 0.0, -4.0), DVec3::new(4.0, 0.0, 9.0), DVec3::new(-4.0, 0.0, 9.0)], [8.0, 13.0]);
+    quad(&mut r, [DVec3::new(-4.0, 0.0, -4.0), DVec3::new(-4.0, 3.0, -4.0), DVec3::new(4.0, 3.0, -4.0), DVec3::new(4.0, 0.0, -4.0)], [3.0, 8.0]);
+    quad(&mut r, [DVec3::new(-4.0, 0.0, -4.0), DVec3::new(-4.0, 0.0, 9.0), DVec3::new(-4.0, 3.0, 9.0), DVec3::new(-4.0, 3.0, -4.0)], [13.0, 3.0]);
+    quad(&mut r, [DVec3::new(4.0, 0.0, -4.0), DVec3::new(4.0, 3.0, -4.0), DVec3::new(4.0, 3.0, 9.0), DVec3::new(4.0, 0.0, 9.0)], [3.0, 13.0]);
     // Two boxes.
-    for (c, s) in [([-1.8, 0.4, -2.5], 0.4), ([2.0, 0.3, 0.5], 0.3)] {
-        let [x, y, z] = c;
-        let p = |dx: f64, dy: f64, dz: f64| [x + dx * s, y + dy * s, z + dz * s];
+    for (c, s) in [(DVec3::new(-1.8, 0.4, -2.5), 0.4), (DVec3::new(2.0, 0.3, 0.5), 0.3)] {
+        let p = |dx: f64, dy: f64, dz: f64| DVec3::new(c.x + dx * s, c.y + dy * s, c.z + dz * s);
         quad(&mut r, [p(-1.0, -1.0, 1.0), p(1.0, -1.0, 1.0), p(1.0, 1.0, 1.0), p(-1.0, 1.0, 1.0)], [1.0, 1.0]);
         quad(&mut r, [p(1.0, -1.0, -1.0), p(-1.0, -1.0, -1.0), p(-1.0, 1.0, -1.0), p(1.0, 1.0, -1.0)], [1.0, 1.0]);
         quad(&mut r, [p(-1.0, -1.0, -1.0), p(-1.0, -1.0, 1.0), p(-1.0, 1.0, 1.0), p(-1.0, 1.0, -1.0)], [1.0, 1.0]);
@@ -140,47 +140,53 @@ fn pants_texture(uv: [f64; 2]) -> [f64; 3] {
 
 /// The handheld camera of frame i: a slow arc in front of the person with a little
 /// shake, looking at the chest.
-pub fn handheld_camera(i: usize, frames: usize, centre: V3, seed: u64, width: u32, height: u32) -> Camera {
+pub fn handheld_camera(i: usize, frames: usize, centre: DVec3, seed: u64, width: u32, height: u32) -> Camera {
     let s = seed as f64;
     let t = i as f64 / frames.max(1) as f64;
     let angle = -0.5 + 0.8 * t + 0.1 * (s * 1.7).sin();
-    let shake = [0.02 * (2.3 * i as f64 + s).sin(), 0.015 * (3.1 * i as f64 + 2.0 * s).sin(), 0.0];
-    let eye = add(add(centre, [3.2 * angle.sin(), 0.5, 3.2 * angle.cos()]), shake);
-    Camera::look_at(eye, add(centre, [0.0, 0.0, 0.0]), [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
+    let shake = DVec3::new(0.02 * (2.3 * i as f64 + s).sin(), 0.015 * (3.1 * i as f64 + 2.0 * s).sin(), 0.0);
+    let eye = centre + DVec3::new(3.2 * angle.sin(), 0.5, 3.2 * angle.cos()) + shake;
+    Camera::look_at(eye, centre, DVec3::Y, 1.2 * f64::from(width), width, height)
 }
 
 /// Camera c of the static ring around `centre`.
-pub fn ring_camera(c: usize, cameras: usize, centre: V3, width: u32, height: u32) -> Camera {
+pub fn ring_camera(c: usize, cameras: usize, centre: DVec3, width: u32, height: u32) -> Camera {
     let angle = TAU * c as f64 / cameras.max(1) as f64;
-    let eye = add(centre, [3.6 * angle.sin(), 0.4, 3.6 * angle.cos()]);
-    Camera::look_at(eye, centre, [0.0, 1.0, 0.0], 1.2 * f64::from(width), width, height)
+    let eye = centre + DVec3::new(3.6 * angle.sin(), 0.4, 3.6 * angle.cos());
+    Camera::look_at(eye, centre, DVec3::Y, 1.2 * f64::from(width), width, height)
 }
 
 /// Rotates a vector by an axis-angle.
-fn rotate(r: V3, v: V3) -> V3 {
+fn rotate(r: DVec3, v: DVec3) -> DVec3 {
     let m = crate::body::kinematics::rodrigues(r);
-    [0, 1, 2].map(|k| m[k][0] * v[0] + m[k][1] * v[1] + m[k][2] * v[2])
+    DVec3::from_array(m.map(|row| row[0] * v[0] + row[1] * v[1] + row[2] * v[2]))
 }
 
 /// ZJU-MoCap's parameters of a pose: the root rotation moves to `Rh` and the body is
 /// posed with a zero root, so that `posed = R(Rh) · SMPL(poses) + Th`; then
 /// `Th = translation + J0 - R(Rh) J0` with `J0` the rest pelvis.
-pub fn to_zju(pose: &Pose, translation: V3, pelvis: V3) -> ZjuSmpl {
+pub fn to_zju(pose: &Pose, translation: DVec3, pelvis: DVec3) -> ZjuSmpl {
     let mut poses = [0.0; 72];
     for j in 1..24 {
-        poses[3 * j..3 * j + 3].copy_from_slice(&pose[j]);
+        poses[3 * j..3 * j + 3].copy_from_slice(&pose[j].to_array());
     }
-    let th = add(translation, sub(pelvis, rotate(pose[0], pelvis)));
-    ZjuSmpl { poses, rh: pose[0], th, shapes: [0.0; 10] }
+    let th = translation + (pelvis - rotate(pose[0], pelvis));
+    ZjuSmpl { poses, rh: pose[0].to_array(), th: th.to_array(), shapes: [0.0; 10] }
 }
 
 /// Posed vertices from ZJU-MoCap parameters.
-pub fn posed_from_zju(model: &SmplModel, p: &ZjuSmpl) -> Vec<V3> {
-    let mut pose: Pose = [[0.0; 3]; 24];
+pub fn posed_from_zju(model: &SmplModel, p: &ZjuSmpl) -> Vec<DVec3> {
+    let mut pose: Pose = [DVec3::ZERO; 24];
     for j in 1..24 {
-        pose[j] = [p.poses[3 * j], p.poses[3 * j + 1], p.poses[3 * j + 2]];
+        pose[j] = DVec3::from_slice(&p.poses[3 * j..3 * j + 3]);
     }
-    pose_body(model, &p.shapes, &pose, [0.0; 3]).vertices.into_iter().map(|v| add(rotate(p.rh, v), p.th)).collect()
+    let (rh, th) = (DVec3::from_array(p.rh), DVec3::from_array(p.th));
+    pose_body(model, &p.shapes, &pose, DVec3::ZERO).vertices.into_iter().map(|v| rotate(rh, v) + th).collect()
+}
+
+/// Vertices as the arrays a vertex file holds.
+fn vertex_arrays(vertices: &[DVec3]) -> Vec<[f64; 3]> {
+    vertices.iter().map(|v| v.to_array()).collect()
 }
 
 /// What was generated.
@@ -219,14 +225,14 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
     }
     let room = room();
     let body_uv = body_uvs(&model);
-    let light = [0.3, 1.0, 0.5];
+    let light = DVec3::new(0.3, 1.0, 0.5);
     let background = [0.75, 0.8, 0.85];
     let pelvis = crate::body::kinematics::regress_joints(&model, &model.v_template)[0];
     let neuman = out.join("neuman");
     let zju = out.join("zju");
     let gt = out.join("gt");
-    let mean_translation = scale(motion.translations.iter().fold([0.0; 3], |a, t| add(a, *t)), 1.0 / o.frames as f64);
-    let ring_centre = add(mean_translation, [0.0, 1.0, 0.0]);
+    let mean_translation = motion.translations.iter().fold(DVec3::ZERO, |a, t| a + *t) * (1.0 / o.frames as f64);
+    let ring_centre = mean_translation + DVec3::Y;
     let ring: Vec<Camera> = (0..o.cameras).map(|c| ring_camera(c, o.cameras, ring_centre, o.width, o.height)).collect();
     let mut colmap = ColmapModel::default();
     let mut zju_images = Vec::with_capacity(o.frames);
@@ -246,7 +252,7 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
             render(cam, &items, o.samples, background, light, 0.35)
         };
         // NeuMan: the handheld camera.
-        let cam = handheld_camera(f, o.frames, add(motion.translations[f], [0.0, 1.0, 0.0]), o.seed, o.width, o.height);
+        let cam = handheld_camera(f, o.frames, motion.translations[f] + DVec3::Y, o.seed, o.width, o.height);
         let frame = draw(&cam);
         let name = format!("{f:05}.png");
         write_rgb(&neuman.join("images").join(&name), o.width, o.height, &frame.rgb)?;
@@ -278,9 +284,9 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         }
         zju_images.push(paths);
         to_zju(&motion.poses[f], motion.translations[f], pelvis).write(&zju, f)?;
-        write_vertices(&zju, f, &posed.vertices)?;
+        write_vertices(&zju, f, &vertex_arrays(&posed.vertices))?;
         // Ground truth.
-        write_vertices(&gt, f, &posed.vertices)?;
+        write_vertices(&gt, f, &vertex_arrays(&posed.vertices))?;
         for (g, positions) in garments.iter().zip([shirt, trousers]) {
             let path = gt.join("garments").join(format!("{}_{f:04}.obj", g.name));
             let dir = path.parent().expect("has a parent");
@@ -296,10 +302,10 @@ pub fn generate(out: &Path, o: &SynthOptions, progress: &mut dyn FnMut(&str, usi
         for k in 0..40 {
             let (s, t) = ((k as f64 * 0.618_034).fract(), (k as f64 * 0.414_213 + 0.5).fract());
             let (s, t) = if s + t > 1.0 { (1.0 - s, 1.0 - t) } else { (s, t) };
-            let p = add(a, add(scale(sub(b, a), s), scale(sub(c, a), t)));
+            let p = a + ((b - a) * s + (c - a) * t);
             let uv = [ua[0] + s * (ub[0] - ua[0]) + t * (uc[0] - ua[0]), ua[1] + s * (ub[1] - ua[1]) + t * (uc[1] - ua[1])];
             let rgb = room_texture(uv).map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
-            colmap.points.insert(id, ColmapPoint { id, xyz: p, rgb, error: 0.0, track: vec![] });
+            colmap.points.insert(id, ColmapPoint { id, xyz: p.to_array(), rgb, error: 0.0, track: vec![] });
             id += 1;
         }
     }

@@ -8,6 +8,8 @@
 
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
+
 use crate::camera::Camera;
 use crate::dataset::distortion::Distortion;
 use crate::dataset::error::DatasetError;
@@ -33,7 +35,7 @@ impl ZjuCamera {
     /// +0.5): the principal point moves by half a pixel.
     pub fn from_camera(camera: &Camera) -> Self {
         let c = camera;
-        Self { k: [[c.fx, 0.0, c.cx - 0.5], [0.0, c.fy, c.cy - 0.5], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation }
+        Self { k: [[c.fx, 0.0, c.cx - 0.5], [0.0, c.fy, c.cy - 0.5], [0.0, 0.0, 1.0]], d: [0.0; 5], r: c.rotation, t: c.translation.to_array() }
     }
 
     /// The pinhole camera for images of `width` x `height` (the annotations do not say),
@@ -41,7 +43,7 @@ impl ZjuCamera {
     /// distortion is [`Self::distortion`], which the loader undoes on the images.
     pub fn camera(&self, width: u32, height: u32) -> Camera {
         let k = &self.k;
-        Camera { fx: k[0][0], fy: k[1][1], cx: k[0][2] + 0.5, cy: k[1][2] + 0.5, width, height, rotation: self.r, translation: self.t, near: Camera::NEAR }
+        Camera { fx: k[0][0], fy: k[1][1], cx: k[0][2] + 0.5, cy: k[1][2] + 0.5, width, height, rotation: self.r, translation: DVec3::from_array(self.t), near: Camera::NEAR }
     }
 
     /// The lens distortion `D` (k1 k2 p1 p2 k3, OpenCV's model).

@@ -8,6 +8,7 @@ use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::{SmplModel, NUM_JOINTS};
 use drape_trainer::mesh::{is_watertight, self_intersections, signed_volume};
 use drape_trainer::npy::{self, Array};
+use glam::DVec3;
 
 fn temp(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("drape-body-tests-{}", std::process::id()));
@@ -59,25 +60,25 @@ fn default_body_weights_and_regressor() {
 #[test]
 fn shape_directions_change_height_and_girth() {
     let b = body();
-    let height = |v: &[[f64; 3]]| v.iter().map(|p| p[1]).fold(f64::MIN, f64::max);
+    let height = |v: &[DVec3]| v.iter().map(|p| p[1]).fold(f64::MIN, f64::max);
     let tall = shaped_vertices(&b, &[2.0]);
     assert!(height(&tall) > height(&b.v_template) * 1.05);
     let wide = shaped_vertices(&b, &[0.0, 2.0]);
-    let waist = |v: &[[f64; 3]]| v.iter().filter(|p| (p[1] - 1.1).abs() < 0.02 && p[0].abs() < 0.3).map(|p| p[0].abs()).fold(0.0, f64::max);
+    let waist = |v: &[DVec3]| v.iter().filter(|p| (p[1] - 1.1).abs() < 0.02 && p[0].abs() < 0.3).map(|p| p[0].abs()).fold(0.0, f64::max);
     assert!(waist(&wide) > waist(&b.v_template) * 1.1);
 }
 
 #[test]
 fn rest_pose_reproduces_the_template_exactly() {
     let b = body();
-    let posed = pose_body(&b, &[], &t_pose(), [0.0; 3]);
+    let posed = pose_body(&b, &[], &t_pose(), DVec3::ZERO);
     assert!(posed.vertices == b.v_template, "bit-identical");
 }
 
 #[test]
 fn da_pose_spreads_the_legs() {
     let b = body();
-    let posed = pose_body(&b, &[], &da_pose(), [0.0; 3]);
+    let posed = pose_body(&b, &[], &da_pose(), DVec3::ZERO);
     // Left ankle (joint 7) moves outward (+x) and up.
     assert!(posed.joints[7][0] > 0.3 && posed.joints[7][1] > 0.25, "{:?}", posed.joints[7]);
     assert!(posed.joints[8][0] < -0.3);
@@ -87,9 +88,9 @@ fn da_pose_spreads_the_legs() {
 fn pose_gradient_matches_finite_differences() {
     let b = body();
     let joints = regress_joints(&b, &b.v_template);
-    let mut pose: Pose = [[0.0; 3]; NUM_JOINTS];
+    let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
     for (j, p) in pose.iter_mut().enumerate() {
-        *p = [0.3 * ((j * 7 % 5) as f64 - 2.0) / 2.0, 0.2 * ((j * 3 % 4) as f64 - 1.5), 0.25 * ((j % 3) as f64 - 1.0)];
+        *p = DVec3::new(0.3 * ((j * 7 % 5) as f64 - 2.0) / 2.0, 0.2 * ((j * 3 % 4) as f64 - 1.5), 0.25 * ((j % 3) as f64 - 1.0));
     }
     // A linear loss on the transforms with fixed random-ish weights.
     let weight = |j: usize, r: usize, c: usize| ((j * 31 + r * 7 + c * 3) % 11) as f64 / 11.0 - 0.5;

@@ -3,9 +3,11 @@
 //! deterministic (also at 3x speed and with one substep).
 
 use drape_trainer::body::procedural::{default_body, BodyOptions};
-use drape_trainer::cloth::{simulate, BodyCollider, ClothParams, ClothSim};
+use drape_trainer::cloth::{simulate, ClothParams, ClothSim};
+use drape_trainer::collider::BodyCollider;
 use drape_trainer::garment::{pants, tshirt, Garment};
 use drape_trainer::motion::{procedural, MotionKind};
+use glam::DVec3;
 
 /// A 21x21 grid of 1 m, pinned at two corners, with no body to hit.
 fn square() -> Garment {
@@ -13,7 +15,7 @@ fn square() -> Garment {
     let mut vertices = Vec::new();
     for i in 0..n {
         for j in 0..n {
-            vertices.push([i as f64 / (n - 1) as f64, 1.5, j as f64 / (n - 1) as f64]);
+            vertices.push(DVec3::new(i as f64 / (n - 1) as f64, 1.5, j as f64 / (n - 1) as f64));
         }
     }
     let mut faces = Vec::new();
@@ -28,7 +30,7 @@ fn square() -> Garment {
     attached[0] = true;
     attached[n - 1] = true;
     let count = vertices.len();
-    Garment { name: "square".into(), uvs: vec![[0.0; 2]; count], weights: vec![[0.0; 24]; count], weights_blend6: vec![[0.0; 24]; count], vertices, faces, attached, attach_joint: 0, build_pose: [[0.0; 3]; 24] }
+    Garment { name: "square".into(), uvs: vec![[0.0; 2]; count], weights: vec![[0.0; 24]; count], weights_blend6: vec![[0.0; 24]; count], vertices, faces, attached, attach_joint: 0, build_pose: [DVec3::ZERO; 24] }
 }
 
 const FRAMES: usize = 450;
@@ -41,7 +43,7 @@ fn pinned_square_settles_under_its_pins() {
     // pendulum for tens of seconds.
     let mut sim = ClothSim::new(&cloth, ClothParams { damping: 2.0, ..ClothParams::default() });
     // A collider far away: nothing to hit.
-    let far = BodyCollider::new(vec![[100.0, 100.0, 100.0], [101.0, 100.0, 100.0], [100.0, 101.0, 100.0]], &[[0, 1, 2]]);
+    let far = BodyCollider::new(vec![DVec3::new(100.0, 100.0, 100.0), DVec3::new(101.0, 100.0, 100.0), DVec3::new(100.0, 101.0, 100.0)], &[[0, 1, 2]]);
     let targets = |_s: f64| cloth.vertices.clone();
     let dt = 1.0 / 30.0;
     let mut kinetic = Vec::new();
@@ -105,8 +107,8 @@ fn garments_made_in_different_poses_simulate_together() {
     use drape_trainer::body::kinematics::{pose_body, relative_transforms, skin, t_pose};
     let body = default_body(&BodyOptions::default());
     let shirt = tshirt(&body);
-    let a = pose_body(&body, &[], &shirt.build_pose, [0.0; 3]).transforms;
-    let t = pose_body(&body, &[], &t_pose(), [0.0; 3]).transforms;
+    let a = pose_body(&body, &[], &shirt.build_pose, DVec3::ZERO).transforms;
+    let t = pose_body(&body, &[], &t_pose(), DVec3::ZERO).transforms;
     // The shirt taken into the T-pose by skinning, and declared made there.
     let shirt_t = Garment { vertices: skin(&shirt.weights_blend6, &relative_transforms(&t, &a), &shirt.vertices), build_pose: t_pose(), ..shirt.clone() };
     let motion = procedural(MotionKind::Walk, 10, 30.0, 1.0);

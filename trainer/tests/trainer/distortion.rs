@@ -29,6 +29,7 @@ use drape_tests::reference_python::{case_dir, get, put, run};
 use drape_trainer::camera::Camera;
 use drape_trainer::dataset::colmap::{ColmapCamera, ColmapImage, ColmapModel};
 use drape_trainer::dataset::distortion::{distort_mask, distort_rgb, project, Distortion, Undistorter};
+use glam::DVec3;
 
 const ZJU_LIKE: Distortion = Distortion { k1: -0.3, k2: 0.1, p1: 1e-3, p2: -5e-4, k3: 0.0 };
 const WITH_K3: Distortion = Distortion { k1: -0.28, k2: 0.14, p1: -7e-4, p2: 9e-4, k3: -0.05 };
@@ -38,7 +39,7 @@ const LENSES: [(&str, Distortion); 3] = [("zju_like", ZJU_LIKE), ("with_k3", WIT
 /// A small camera with unequal focal lengths and an off-centre principal point (so a
 /// swapped axis shows), corners at r ≈ 0.7 like ZJU's. The pose does not matter here.
 fn small_camera() -> Camera {
-    Camera { fx: 90.0, fy: 86.0, cx: 47.3, cy: 41.1, width: 96, height: 80, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: [0.0; 3], near: Camera::NEAR }
+    Camera { fx: 90.0, fy: 86.0, cx: 47.3, cy: 41.1, width: 96, height: 80, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: DVec3::ZERO, near: Camera::NEAR }
 }
 
 /// OpenCV's K for `camera`'s images: principal point moved by -0.5 (see the header).
@@ -115,7 +116,7 @@ fn write_case(dir: &Path, case: serde_json::Value) {
 #[test]
 fn projected_points_match_opencv() {
     // ZJU-like: 1024², f ≈ 1000, the principal point off centre.
-    let mut cam = Camera::look_at([0.7, -1.4, 3.3], [0.1, -0.9, -0.2], [0.0, -1.0, 0.0], 1000.0, 1024, 1024);
+    let mut cam = Camera::look_at(DVec3::new(0.7, -1.4, 3.3), DVec3::new(0.1, -0.9, -0.2), DVec3::NEG_Y, 1000.0, 1024, 1024);
     (cam.fy, cam.cx, cam.cy) = (1004.0, 511.2, 515.7);
     // Points spread over the image (normalized |x|, |y| < 0.55, r < 0.78) at depths 1.5
     // to 6, placed in camera space and taken to the world.
@@ -133,11 +134,12 @@ fn projected_points_match_opencv() {
         let dir = case_dir("opencv-distortion", &format!("project_{name}"));
         put(&dir, "points", &[n, 3], &world.iter().flatten().copied().collect::<Vec<_>>());
         let k = [[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]];
-        write_case(&dir, serde_json::json!({ "kind": "project", "K": k, "D": d.to_opencv(), "R": cam.rotation, "t": cam.translation }));
+        write_case(&dir, serde_json::json!({ "kind": "project", "K": k, "D": d.to_opencv(), "R": cam.rotation, "t": cam.translation.to_array() }));
         run("opencv_reference.py", std::slice::from_ref(&dir));
         let (theirs, their_inverse) = (get(&dir, "projected"), get(&dir, "undistorted"));
         let (mut worst, mut worst_inverse, mut worst_truth, mut shift) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for (i, &p) in world.iter().enumerate() {
+            let p = DVec3::from_array(p);
             let ours = project(&cam, &d, p);
             worst = worse(worse(worst, (ours[0] - theirs[2 * i]).abs()), (ours[1] - theirs[2 * i + 1]).abs());
             let pinhole = cam.project(p).expect("in front");
@@ -298,7 +300,7 @@ fn colmap_distorting_models_parse() {
         assert_eq!([cam.fx, cam.fy, cam.cx, cam.cy], k, "camera {i} ({}) intrinsics", model.cameras[&i].model);
         assert_eq!(dist, d, "camera {i} ({}) distortion", model.cameras[&i].model);
         assert_eq!((cam.width, cam.height), size, "camera {i} size");
-        assert_eq!((cam.translation, cam.rotation[0]), ([0.5, -0.25, 3.0], [1.0, 0.0, 0.0]), "camera {i} pose");
+        assert_eq!((cam.translation, cam.rotation[0]), (DVec3::new(0.5, -0.25, 3.0), [1.0, 0.0, 0.0]), "camera {i} pose");
     }
     let fisheye = got(7).expect_err("OPENCV_FISHEYE is not undistorted").to_string();
     assert!(fisheye.starts_with("cameras.txt: camera 7 has model OPENCV_FISHEYE, which drape does not undistort"), "{fisheye}");

@@ -15,6 +15,7 @@ mod fuzz_corpus;
 mod garments_motions;
 mod image_formats;
 mod loose_garment;
+mod module_graph;
 mod motion_files;
 mod pickle;
 mod ply;

@@ -9,6 +9,7 @@ use std::sync::OnceLock;
 use drape_tests::reference_python::{case_dir, run};
 use drape_trainer::motion::Motion;
 use drape_trainer::npy::Npz;
+use glam::DVec3;
 
 /// The files, written once per test binary.
 fn files() -> &'static Path {
@@ -39,8 +40,8 @@ fn worst_difference(case: &str, m: &Motion) -> (f64, f64) {
     assert_eq!(m.len() * 72, poses.len(), "{case}: frames");
     assert_eq!(m.translations.len() * 3, trans.len(), "{case}: translation frames");
     assert_eq!(m.fps, text_numbers(&expected.join("fps.txt"))[0], "{case}: fps");
-    let got_poses: Vec<f64> = m.poses.iter().flatten().flatten().copied().collect();
-    let got_trans: Vec<f64> = m.translations.iter().flatten().copied().collect();
+    let got_poses: Vec<f64> = m.poses.iter().flatten().flat_map(|r| r.to_array()).collect();
+    let got_trans: Vec<f64> = m.translations.iter().flat_map(|t| t.to_array()).collect();
     (max_abs_diff(&got_poses, &poses), max_abs_diff(&got_trans, &trans))
 }
 
@@ -56,7 +57,7 @@ fn numpy_motions_load_exactly_as_written() {
         assert_eq!(worst_difference(case, &m), (0.0, 0.0), "{case}");
     }
     let m = load("body22");
-    assert!(m.poses.iter().all(|p| p[22] == [0.0; 3] && p[23] == [0.0; 3]), "22-joint file: hands at rest");
+    assert!(m.poses.iter().all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO), "22-joint file: hands at rest");
 }
 
 #[test]
@@ -70,13 +71,13 @@ fn amass_files_load_as_a_y_up_smpl_motion() {
         assert!(poses <= 1e-14, "{case}: poses differ from the AMASS conversion by {poses:e}");
         // A permutation, a sign and one subtraction, as numpy does them: exact.
         assert_eq!(trans, 0.0, "{case}: translation");
-        assert!(m.poses.iter().all(|p| p[22] == [0.0; 3] && p[23] == [0.0; 3]), "{case}: SMPL's hand joints must be at rest");
-        assert_eq!(m.translations[0], [0.0; 3], "{case}: the motion starts where the body stands");
+        assert!(m.poses.iter().all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO), "{case}: SMPL's hand joints must be at rest");
+        assert_eq!(m.translations[0], DVec3::ZERO, "{case}: the motion starts where the body stands");
     }
     // A subject standing upright in AMASS's z-up world stands upright here: the file's
     // roots are +90° about x composed with turns of at most 0.4 rad per axis.
     for p in &load("amass").poses {
-        let angle = p[0].iter().map(|v| v * v).sum::<f64>().sqrt();
+        let angle = p[0].length();
         assert!(angle < 0.7, "root {:?} is not near upright", p[0]);
     }
 }
@@ -89,7 +90,7 @@ fn amass_body_joints_are_the_first_66_columns() {
     let raw = npz.require("poses", &[None, Some(156)]).expect("poses");
     for (f, p) in load("amass").poses.iter().enumerate() {
         for (j, joint) in p.iter().enumerate().take(22).skip(1) {
-            assert_eq!(joint.as_slice(), &raw.data[156 * f + 3 * j..156 * f + 3 * j + 3], "frame {f} joint {j}");
+            assert_eq!(&joint.to_array()[..], &raw.data[156 * f + 3 * j..156 * f + 3 * j + 3], "frame {f} joint {j}");
         }
     }
 }

@@ -21,6 +21,7 @@ use drape_trainer::dataset::loader::BodyParams;
 use drape_trainer::dataset::synth::{generate, SynthOptions};
 use drape_trainer::motion::{procedural, MotionKind};
 use drape_trainer::TrainerError;
+use glam::DVec3;
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
@@ -294,8 +295,8 @@ fn placing_the_anchor_pose_reproduces_the_anchor() {
     let BodyParams::Smpl { pose, .. } = &anchor else { panic!("NeuMan layout: SMPL parameters") };
     // The anchor's own joints with a zero root and no translation: the anchor itself.
     let mut own = *pose;
-    own[0] = [0.0; 3];
-    let placed = place_pose(&anchor, &own, [0.0; 3]);
+    own[0] = DVec3::ZERO;
+    let placed = place_pose(&anchor, &own, DVec3::ZERO);
     let (x, y) = (run.rig.frame(&anchor).transforms, run.rig.frame(&placed).transforms);
     // f32 transforms; the root goes through matrix → axis-angle → matrix in f64.
     assert!(x.iter().zip(&y).all(|(p, q)| (p - q).abs() < 1e-5), "placed transforms differ");

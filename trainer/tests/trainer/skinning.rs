@@ -8,13 +8,14 @@ use drape_tests::gpu;
 use drape_trainer::body::kinematics::{forward_kinematics, pose_body, pose_gradient, regress_joints, Pose};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::NUM_JOINTS;
+use glam::DVec3;
 use rand::{Rng, SeedableRng};
 
 fn random_pose(seed: u64) -> Pose {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut p = [[0.0; 3]; NUM_JOINTS];
+    let mut p = [DVec3::ZERO; NUM_JOINTS];
     for a in p.iter_mut() {
-        *a = [0, 1, 2].map(|_| rng.random_range(-0.6..0.6));
+        *a = DVec3::from_array([0, 1, 2].map(|_| rng.random_range(-0.6..0.6)));
     }
     p
 }
@@ -34,7 +35,7 @@ fn gpu_skinning_matches_cpu_on_10_random_poses() {
     let gpu = gpu();
     let model = default_body(&BodyOptions::default());
     let n = model.num_vertices();
-    let points: Vec<f32> = to_f32(&model.v_template.iter().flatten().copied().collect::<Vec<_>>());
+    let points: Vec<f32> = to_f32(&model.v_template.iter().flat_map(|v| v.to_array()).collect::<Vec<_>>());
     let weights: Vec<f32> = to_f32(&model.weights.iter().flatten().copied().collect::<Vec<_>>());
     let b_points = gpu.upload("points", &points).unwrap();
     let b_weights = gpu.upload("weights", &weights).unwrap();
@@ -59,7 +60,7 @@ fn gpu_skinning_backward_matches_cpu() {
     let gpu = gpu();
     let model = default_body(&BodyOptions::default());
     let n = model.num_vertices();
-    let points: Vec<f32> = to_f32(&model.v_template.iter().flatten().copied().collect::<Vec<_>>());
+    let points: Vec<f32> = to_f32(&model.v_template.iter().flat_map(|v| v.to_array()).collect::<Vec<_>>());
     let weights: Vec<f32> = to_f32(&model.weights.iter().flatten().copied().collect::<Vec<_>>());
     let t = to_f32(&flat_transforms(&random_pose(3), &model));
     let mut rng = rand::rngs::StdRng::seed_from_u64(9);
@@ -134,8 +135,8 @@ fn pose_gradient_through_skinning_matches_finite_differences() {
     let pose = random_pose(6);
     let mut rng = rand::rngs::StdRng::seed_from_u64(8);
     let g: Vec<f64> = (0..3 * model.num_vertices()).map(|_| rng.random_range(-1.0..1.0)).collect();
-    let loss = |p: &Pose| pose_body(&model, &[], p, [0.0; 3]).vertices.iter().flatten().zip(&g).map(|(a, b)| a * b).sum::<f64>();
-    let points: Vec<f64> = model.v_template.iter().flatten().copied().collect();
+    let loss = |p: &Pose| pose_body(&model, &[], p, DVec3::ZERO).vertices.iter().flat_map(|v| v.to_array()).zip(&g).map(|(a, b)| a * b).sum::<f64>();
+    let points: Vec<f64> = model.v_template.iter().flat_map(|v| v.to_array()).collect();
     let weights: Vec<f64> = model.weights.iter().flatten().copied().collect();
     let (_, _, gt) = reference::backward(&flat_transforms(&pose, &model), &weights, &points, &g);
     let mut grad_a = [[[0.0; 4]; 3]; NUM_JOINTS];

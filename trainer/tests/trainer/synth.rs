@@ -18,6 +18,7 @@ use drape_trainer::dataset::split::Split;
 use drape_trainer::dataset::synth::{generate, handheld_camera, posed_from_zju, ring_camera, SynthOptions};
 use drape_trainer::garment::load_obj;
 use drape_trainer::motion::{procedural, MotionKind};
+use glam::DVec3;
 
 const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1, garment: drape_trainer::garment::GarmentFit::Tight };
 
@@ -65,11 +66,11 @@ fn loaders_read_every_frame_and_split() {
 #[test]
 fn loaded_cameras_project_like_the_generator() {
     let motion = procedural(OPTIONS.motion, OPTIONS.frames, 30.0, 1.0);
-    let points: Vec<[f64; 3]> = model().v_template.iter().step_by(500).map(|v| [v[0], v[1], v[2] + 0.3]).collect();
+    let points: Vec<DVec3> = model().v_template.iter().step_by(500).map(|v| DVec3::new(v[0], v[1], v[2] + 0.3)).collect();
     let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).abs().max((a[1] - b[1]).abs());
     for f in load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap() {
         let t = motion.translations[f.frame];
-        let truth = handheld_camera(f.frame, OPTIONS.frames, [t[0], t[1] + 1.0, t[2]], OPTIONS.seed, 64, 64);
+        let truth = handheld_camera(f.frame, OPTIONS.frames, DVec3::new(t[0], t[1] + 1.0, t[2]), OPTIONS.seed, 64, 64);
         for p in &points {
             let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
             // 1e-3 px: the COLMAP text keeps every digit of the quaternion and translation.
@@ -78,7 +79,7 @@ fn loaded_cameras_project_like_the_generator() {
     }
     let mean = motion.translations.iter().fold([0.0; 3], |a, t| [a[0] + t[0], a[1] + t[1], a[2] + t[2]]).map(|v| v / OPTIONS.frames as f64);
     for f in load_zju(&base().join("zju"), 0).unwrap() {
-        let truth = ring_camera(f.view, OPTIONS.cameras, [mean[0], mean[1] + 1.0, mean[2]], 64, 64);
+        let truth = ring_camera(f.view, OPTIONS.cameras, DVec3::new(mean[0], mean[1] + 1.0, mean[2]), 64, 64);
         for p in &points {
             let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
             // 1e-3 px: T goes through millimetres and back.
@@ -87,7 +88,7 @@ fn loaded_cameras_project_like_the_generator() {
     }
 }
 
-fn posed(frame: &DatasetFrame) -> Vec<[f64; 3]> {
+fn posed(frame: &DatasetFrame) -> Vec<DVec3> {
     match &frame.body {
         BodyParams::Smpl { pose, betas, translation, .. } => pose_body(model(), betas, pose, *translation).vertices,
         BodyParams::Zju(p) => posed_from_zju(model(), p),
@@ -107,7 +108,7 @@ fn iou_with_reprojected_person(frame: &DatasetFrame) -> f64 {
     let uvs = vec![[0.0; 2]; v.len()];
     let mut items = vec![Drawable { vertices: &v, faces: &model().faces, uvs: &uvs, object: 1, texture: &white, two_sided: true }];
     items.extend(garments.iter().map(|g| Drawable { vertices: &g.vertices, faces: &g.faces, uvs: &g.uvs, object: 1, texture: &white, two_sided: true }));
-    let r = render(&frame.camera, &items, OPTIONS.samples, [0.0; 3], [0.0, 1.0, 0.0], 1.0);
+    let r = render(&frame.camera, &items, OPTIONS.samples, [0.0; 3], DVec3::Y, 1.0);
     let person: Vec<bool> = r.coverage[1].iter().map(|&c| c >= 0.5).collect();
     let inter = person.iter().zip(&frame.mask).filter(|(a, b)| **a && **b).count();
     let union = person.iter().zip(&frame.mask).filter(|(a, b)| **a || **b).count();

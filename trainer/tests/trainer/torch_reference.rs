@@ -425,12 +425,12 @@ fn pose_blend_matches_pytorch() {
     put(&dir, "g", &[n, 3], &g);
     run_torch(&dir, serde_json::json!({ "op": "pose_blend" }));
     let (tf, to, tg) = (get(&dir, "features"), get(&dir, "offsets"), get(&dir, "gbasis"));
-    let mut pose = [[0.0f64; 3]; 24];
+    let mut pose = [glam::DVec3::ZERO; 24];
     for (j, p) in pose.iter_mut().enumerate() {
-        *p = [pose_flat[3 * j], pose_flat[3 * j + 1], pose_flat[3 * j + 2]];
+        *p = glam::DVec3::from_slice(&pose_flat[3 * j..3 * j + 3]);
     }
     let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
-    let ft = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: [0.0; 3], scale: 1.0 });
+    let ft = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: glam::DVec3::ZERO, scale: 1.0 });
     // f32 features from f64 matrices: rounding only.
     assert!(rel_err(&to_f64(&ft.pose_features), &tf, 1e-6) <= 1e-6, "pose features differ from SMPL's: {}", rel_err(&to_f64(&ft.pose_features), &tf, 1e-6));
     // Both in float64: agreement to rounding.
@@ -450,12 +450,12 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
     let n = 60;
     // A posed, translated and scaled body's 24 skinning transforms (3 x 4 each).
     let pose_flat = uniform(72, -0.6, 0.6, 70);
-    let mut pose = [[0.0f64; 3]; 24];
+    let mut pose = [glam::DVec3::ZERO; 24];
     for (j, p) in pose.iter_mut().enumerate() {
-        *p = [pose_flat[3 * j], pose_flat[3 * j + 1], pose_flat[3 * j + 2]];
+        *p = glam::DVec3::from_slice(&pose_flat[3 * j..3 * j + 3]);
     }
     let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
-    let frame = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: [0.1, -0.2, 2.5], scale: 1.0 });
+    let frame = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: glam::DVec3::new(0.1, -0.2, 2.5), scale: 1.0 });
     let mut rng = rand::rngs::StdRng::seed_from_u64(71);
     let mut host = HostInputs::<f64> { transforms: to_f64(&frame.transforms), ..Default::default() };
     host.means = uniform(3 * n, -0.8, 0.8, 72);

@@ -65,7 +65,7 @@ fn rig_poses_the_canonical_body_as_the_dataset_parameters_do() {
         let t = rig.frame(&f.body);
         let flat_t: Vec<f64> = t.transforms.iter().map(|&v| f64::from(v)).collect();
         let flat_w: Vec<f64> = model().weights.iter().flatten().copied().collect();
-        let flat_p: Vec<f64> = canonical.iter().flatten().copied().collect();
+        let flat_p: Vec<f64> = canonical.iter().flat_map(|v| v.to_array()).collect();
         let posed = drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p);
         // Re-skinning the canonical (Da-pose) body is exact only where one joint owns a
         // vertex: a blend of `A(P) A(Da)⁻¹` applied to a blend of `A(Da)` is not the
