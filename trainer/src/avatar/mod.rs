@@ -1,4 +1,4 @@
-//! The layered avatar (DESIGN.md, "Where the avatar lives"): its layers as the engine's
+//! The layered avatar (docs/design.md, `trainer/src/avatar`): its layers as the engine's
 //! groups of Gaussians (`groups`), the body rig and its
 //! per-frame transforms (`rig`), a triplane-driven Gaussian layer with its decoders
 //! and optimiser groups (`layer`), the set of layers the data requires (`model`), its
