@@ -378,15 +378,11 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     // 1. The deformation decoder learns the body's skinning weights (or the run's
     //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
-    let total_fit = config.fit_steps;
     let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
     let (start_step, fit_mse) = if resume {
         let step = resume_from(ctx, &checkpoint_path, config, &mut avatar, refiner.as_mut())?;
         // The checkpoint's layers may have been densified to other counts.
-        renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
-        if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
-            c.resize(ctx, cloth)?;
-        }
+        renderer = renderer_for(ctx, &avatar, cloth_losses.as_mut(), config, (width, height))?;
         (step, f64::NAN)
     } else {
         (0, fit_skinning_weights(ctx, &mut avatar, config, progress)?)
@@ -395,111 +391,38 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
         c.set_mask_in_composite(true);
     }
-    let lpips = match &lpips_weights {
-        Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
-        _ => None,
-    };
     let eval_inputs = |sheets| EvalInputs { rig: &rig, frames: &test_frames, ground_truth: ground_truth.as_deref(), lpips: lpips_weights.as_ref(), sheets };
     let (initial, _) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(None), progress)?;
 
     // 2. The main loop: a step is one submission and one host wait (`step`).
-    let mut buffers = StepBuffers::new(ctx, width, height)?;
-    let weights = ImageLossWeights { l1: config.lambda_l1, ssim: config.lambda_ssim, lpips: config.lambda_lpips };
-    let mut image_losses = ImageLosses::new(ctx, width, height, weights, lpips)?;
     let settings = RenderSettings::default();
-    let t_train = Instant::now();
-    let mut skips = SkipGuard::new(config.max_skipped_steps);
-    let mut waits = HostWaits::default();
-    let save = |avatar: &mut Avatar, refiner: &Option<PoseRefiner>, step: u32, path: &Path| -> crate::Result<()> {
-        let mut state = avatar.state(ctx, step)?;
-        state.poses = refiner.as_ref().map(|r| r.state().clone());
-        checkpoint::write(path, &state)
-    };
     // With a profile running (`drape train --profile`), it covers the steps alone.
     let profiling = ctx.profiling();
     if profiling {
         ctx.start_profile();
     }
-    let mut lap = Lap::new(ctx, profiling);
-    // Statistics are gathered from the step after one densification up to the next.
-    let dc = &config.densify;
-    let densifying = |step: u32| dc.every > 0 && step < dc.until.min(config.steps.saturating_sub(1));
-    for step in start_step..stop_at {
-        wait_for_signal_if_asked(step, interrupt);
-        // A signal arrived during the step before: its state is complete, so it is
-        // checkpointed here and the run stops, resumable.
-        if interrupt.load(Ordering::SeqCst) {
-            save(&mut avatar, &refiner, step, &checkpoint_path)?;
-            return Ok(Outcome::Interrupted { step });
-        }
-        let waits_before = ctx.fence_waits();
-        lap.reset();
-        let s = step::sample(&train_frames, &rig, refiner.as_ref(), config.seed, step, whole_image);
-        lap.host("host.frame_setup");
-        let mut attempts = 0;
-        let outcome = loop {
-            attempts += 1;
-            let mut st = Stages { avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), image_losses: &mut image_losses, settings: &settings, pose_gradient: refiner.is_some(), screen_stats: densifying(step), masked: !whole_image };
-            match step::run(ctx, &mut st, &mut buffers, &s)? {
-                StepOutcome::Overflowed => continue,
-                done => break done,
-            }
-        };
-        lap.reset();
-        if let StepOutcome::Skipped { nonfinite } = outcome {
-            let line = serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite });
-            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            skips.skipped(step, nonfinite, s.frame.frame, &seq.dir, &checkpoint_path)?;
-            waits.add(ctx.fence_waits() - waits_before, attempts, false);
-            continue;
-        }
-        skips.applied();
-        if let Some(r) = refiner.as_mut() {
-            if let Some(line) = refine_pose(ctx, &mut avatar, &rig, r, &s, step)? {
-                writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            }
-        }
-        lap.host("host.pose_gradient");
-        let logging = step % config.log_every.max(1) == 0 || step + 1 == stop_at;
-        if logging {
-            let seconds = t_train.elapsed().as_secs_f64();
-            let (line, l1, psnr) = log_line(ctx, &mut image_losses, cloth_losses.as_mut(), &avatar, refiner.as_ref(), step, s.frame.frame, seconds)?;
-            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            let it_per_s = f64::from(step + 1 - start_step) / seconds.max(1e-9);
-            progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr, it_per_s });
-        }
-        lap.host("host.log");
-        let densified = dc.due(step + 1) && step + 1 < config.steps;
-        if densified {
-            let (summaries, counts) = densify_layers(ctx, &mut avatar, config, step, s.transforms.log_scale)?;
-            renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
-            if let (Some(c), Some(cloth)) = (cloth_losses.as_mut(), avatar.cloth()) {
-                c.resize(ctx, cloth)?;
-                c.set_mask_in_composite(renderer.is_three_pass());
-            }
-            let line = serde_json::json!({ "step": step, "densify": summaries });
-            writeln!(log, "{line}").map_err(|e| TrainerError::io(&log_path, e))?;
-            progress(Progress::Densify { step: step + 1, counts });
-            lap.host("host.densify");
-        }
-        let checkpointing = config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < stop_at;
-        if checkpointing {
-            save(&mut avatar, &refiner, step + 1, &checkpoint_path)?;
-        }
-        waits.add(ctx.fence_waits() - waits_before, attempts, !(logging || densified || checkpointing));
+    let mut run = StepLoop {
+        ctx, config, seq, rig: &rig, train_frames: &train_frames, whole_image, size: (width, height), settings: &settings,
+        checkpoint_path: &checkpoint_path, log_path: &log_path, log: &mut log,
+        avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), refiner: refiner.as_mut(),
+        image_losses: image_losses_of(ctx, config, lpips_weights.as_ref(), (width, height))?, buffers: StepBuffers::new(ctx, width, height)?,
+        skips: SkipGuard::new(config.max_skipped_steps), waits: HostWaits::default(), lap: Lap::new(ctx, profiling),
+        t_train: Instant::now(), start_step, stop_at,
+    };
+    if let Some(step) = run.steps(interrupt, progress)? {
+        return Ok(Outcome::Interrupted { step });
     }
-    let loop_seconds = t_train.elapsed().as_secs_f64();
-    let profile = if profiling { ctx.take_profile() } else { None };
-    if let Some(p) = &profile {
-        write_profile(out, p, &waits, u64::from(stop_at.saturating_sub(start_step)), loop_seconds)?;
+    if let Some(p) = if profiling { ctx.take_profile() } else { None } {
+        write_profile(out, &p, &run.waits, u64::from(stop_at.saturating_sub(start_step)), run.t_train.elapsed().as_secs_f64())?;
     }
     let last = stop_at.max(start_step);
-    save(&mut avatar, &refiner, last, &checkpoint_path)?;
+    run.save(last, &checkpoint_path)?;
     if interrupt.load(Ordering::SeqCst) {
         return Ok(Outcome::Interrupted { step: last });
     }
-    save(&mut avatar, &refiner, last, &out.join("model.npz"))?;
-    let train_seconds = t_train.elapsed().as_secs_f64();
+    run.save(last, &out.join("model.npz"))?;
+    let loop_ = LoopSummary { start_step, stop_at, train_seconds: run.t_train.elapsed().as_secs_f64(), skipped_steps: run.skips.total, host_waits: run.waits };
+    // 3. Held-out evaluation and the run's exports.
     let eval_dir = out.join("eval");
     let (fin, per_frame) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(Some(&eval_dir)), progress)?;
     write_reports(&eval_dir, &format!("{} after {last} steps, {} held-out images of {}", out.display(), per_frame.len(), seq.dir.display()), &fin, &per_frame)?;
@@ -507,26 +430,216 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         export_posed_layers(ctx, &mut avatar, &rig, f, out)?;
         render_novel_pose(ctx, &mut avatar, &mut renderer, &rig, f, &settings, out, (width, height))?;
     }
-    let report = TrainReport {
-        layout: seq.layout,
-        gaussians: avatar.counts(),
-        fit_steps: total_fit,
-        fit_mse,
-        fit_seconds,
-        start_step,
-        steps: stop_at,
-        train_seconds,
-        iterations_per_second: f64::from(stop_at.saturating_sub(start_step)) / train_seconds.max(1e-9),
-        skipped_steps: skips.total,
-        host_waits: waits,
-        initial,
-        fin,
-    };
+    let fit = FitSummary { fit_steps: config.fit_steps, fit_mse, fit_seconds };
+    let report = TrainReport::new(seq.layout, avatar.counts(), fit, loop_, initial, fin);
     write_json(&out.join("metrics.json"), &report)?;
     if stop_at == config.steps {
         mark_complete(out, config.steps)?;
     }
     Ok(Outcome::Finished(Box::new(report)))
+}
+
+/// The loop over steps and what it works on: each step (`step::run`), then the pose
+/// refinement, the log line, densification and the checkpoint that fall on it.
+struct StepLoop<'r> {
+    ctx: &'r Context,
+    config: &'r TrainConfig,
+    seq: &'r Sequence,
+    rig: &'r Rig,
+    train_frames: &'r [&'r DatasetFrame],
+    /// With a scene layer the avatar is trained on the whole image; without one, on the
+    /// person over a background colour.
+    whole_image: bool,
+    size: (u32, u32),
+    settings: &'r RenderSettings,
+    checkpoint_path: &'r Path,
+    log_path: &'r Path,
+    log: &'r mut std::fs::File,
+    avatar: &'r mut Avatar,
+    renderer: &'r mut AvatarRenderer,
+    cloth_losses: Option<&'r mut ClothLosses>,
+    image_losses: ImageLosses,
+    buffers: StepBuffers,
+    refiner: Option<&'r mut PoseRefiner>,
+    skips: SkipGuard,
+    waits: HostWaits,
+    lap: Lap<'r>,
+    t_train: Instant,
+    start_step: u32,
+    stop_at: u32,
+}
+
+impl StepLoop<'_> {
+    /// Steps from `start_step` to `stop_at`; `Some(step)` when `interrupt` stopped the
+    /// run with its checkpoint written after `step` steps.
+    fn steps(&mut self, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Option<u32>> {
+        for step in self.start_step..self.stop_at {
+            wait_for_signal_if_asked(step, interrupt);
+            // A signal arrived during the step before: its state is complete, so it is
+            // checkpointed here and the run stops, resumable.
+            if interrupt.load(Ordering::SeqCst) {
+                self.save(step, self.checkpoint_path)?;
+                return Ok(Some(step));
+            }
+            let waits_before = self.ctx.fence_waits();
+            self.lap.reset();
+            let refiner = self.refiner.as_deref();
+            let s = step::sample(self.train_frames, self.rig, refiner, self.config.seed, step, self.whole_image);
+            self.lap.host("host.frame_setup");
+            let (outcome, attempts) = self.train_step(step, &s)?;
+            self.lap.reset();
+            let plain = match outcome {
+                StepOutcome::Skipped { nonfinite } => {
+                    self.log_line(&serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite }))?;
+                    self.skips.skipped(step, nonfinite, s.frame.frame, &self.seq.dir, self.checkpoint_path)?;
+                    false
+                }
+                _ => {
+                    self.skips.applied();
+                    self.after_step(step, &s, progress)?
+                }
+            };
+            self.waits.add(self.ctx.fence_waits() - waits_before, attempts, plain);
+        }
+        Ok(None)
+    }
+
+    /// One step on `s`, done again while a render outgrows its buffers; with the
+    /// submissions it took.
+    fn train_step(&mut self, step: u32, s: &Sample<'_>) -> crate::Result<(StepOutcome, u32)> {
+        let dc = &self.config.densify;
+        // Statistics are gathered from the step after one densification up to the next.
+        let screen_stats = dc.every > 0 && step < dc.until.min(self.config.steps.saturating_sub(1));
+        let mut attempts = 0;
+        loop {
+            attempts += 1;
+            let mut st = Stages {
+                avatar: self.avatar,
+                renderer: self.renderer,
+                cloth_losses: self.cloth_losses.as_deref_mut(),
+                image_losses: &mut self.image_losses,
+                settings: self.settings,
+                pose_gradient: self.refiner.is_some(),
+                screen_stats,
+                masked: !self.whole_image,
+            };
+            match step::run(self.ctx, &mut st, &mut self.buffers, s)? {
+                StepOutcome::Overflowed => continue,
+                done => return Ok((done, attempts)),
+            }
+        }
+    }
+
+    /// After an applied step: the pose refinement, then the log line, densification and
+    /// checkpoint that fall on it. True when none did (a training-only step).
+    fn after_step(&mut self, step: u32, s: &Sample<'_>, progress: &mut dyn FnMut(Progress)) -> crate::Result<bool> {
+        if let Some(r) = self.refiner.as_deref_mut() {
+            if let Some(line) = refine_pose(self.ctx, self.avatar, self.rig, r, s, step)? {
+                self.log_line(&line)?;
+            }
+        }
+        self.lap.host("host.pose_gradient");
+        let config = self.config;
+        let logging = step % config.log_every.max(1) == 0 || step + 1 == self.stop_at;
+        if logging {
+            let seconds = self.t_train.elapsed().as_secs_f64();
+            let (line, l1, psnr) = log_line(self.ctx, &mut self.image_losses, self.cloth_losses.as_deref_mut(), self.avatar, self.refiner.as_deref(), step, s.frame.frame, seconds)?;
+            self.log_line(&line)?;
+            let it_per_s = f64::from(step + 1 - self.start_step) / seconds.max(1e-9);
+            progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr, it_per_s });
+        }
+        self.lap.host("host.log");
+        let densified = config.densify.due(step + 1) && step + 1 < config.steps;
+        if densified {
+            self.densify(step, s.transforms.log_scale, progress)?;
+            self.lap.host("host.densify");
+        }
+        let checkpointing = config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < self.stop_at;
+        if checkpointing {
+            self.save(step + 1, self.checkpoint_path)?;
+        }
+        Ok(!(logging || densified || checkpointing))
+    }
+
+    /// Densifies after `step + 1` steps; the renderer and the cloth losses follow the
+    /// layers' new counts.
+    fn densify(&mut self, step: u32, log_scale: f32, progress: &mut dyn FnMut(Progress)) -> crate::Result<()> {
+        let (summaries, counts) = densify_layers(self.ctx, self.avatar, self.config, step, log_scale)?;
+        *self.renderer = renderer_for(self.ctx, self.avatar, self.cloth_losses.as_deref_mut(), self.config, self.size)?;
+        self.log_line(&serde_json::json!({ "step": step, "densify": summaries }))?;
+        progress(Progress::Densify { step: step + 1, counts });
+        Ok(())
+    }
+
+    fn log_line(&mut self, line: &serde_json::Value) -> crate::Result<()> {
+        writeln!(self.log, "{line}").map_err(|e| TrainerError::io(self.log_path, e))
+    }
+
+    /// The model and the optimisers' state after `step` steps, with the refined poses.
+    fn save(&mut self, step: u32, path: &Path) -> crate::Result<()> {
+        let mut state = self.avatar.state(self.ctx, step)?;
+        state.poses = self.refiner.as_deref().map(|r| r.state().clone());
+        checkpoint::write(path, &state)
+    }
+}
+
+/// The image losses with the config's weights; LPIPS joins where there are weights and
+/// `lambda_lpips` is not 0.
+fn image_losses_of(ctx: &Context, config: &TrainConfig, lpips_weights: Option<&LpipsWeights>, (width, height): (u32, u32)) -> crate::Result<ImageLosses> {
+    let lpips = match lpips_weights {
+        Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
+        _ => None,
+    };
+    let weights = ImageLossWeights { l1: config.lambda_l1, ssim: config.lambda_ssim, lpips: config.lambda_lpips };
+    Ok(ImageLosses::new(ctx, width, height, weights, lpips)?)
+}
+
+/// The renderer for the avatar's current counts, and the cloth losses resized to them
+/// (after a checkpoint or a densification changed the counts).
+fn renderer_for(ctx: &Context, avatar: &Avatar, cloth_losses: Option<&mut ClothLosses>, config: &TrainConfig, (width, height): (u32, u32)) -> crate::Result<AvatarRenderer> {
+    let renderer = AvatarRenderer::new(ctx, avatar, width, height, config.compositing)?;
+    if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
+        c.resize(ctx, cloth)?;
+        c.set_mask_in_composite(renderer.is_three_pass());
+    }
+    Ok(renderer)
+}
+
+/// The skinning-weight fit's part of the report.
+struct FitSummary {
+    fit_steps: u32,
+    fit_mse: f64,
+    fit_seconds: f64,
+}
+
+/// The loop's part of the report.
+struct LoopSummary {
+    start_step: u32,
+    stop_at: u32,
+    train_seconds: f64,
+    skipped_steps: u32,
+    host_waits: HostWaits,
+}
+
+impl TrainReport {
+    fn new(layout: Layout, gaussians: Vec<(String, u32)>, fit: FitSummary, run: LoopSummary, initial: EvalMetrics, fin: EvalMetrics) -> Self {
+        let steps_run = run.stop_at.saturating_sub(run.start_step);
+        Self {
+            layout,
+            gaussians,
+            fit_steps: fit.fit_steps,
+            fit_mse: fit.fit_mse,
+            fit_seconds: fit.fit_seconds,
+            start_step: run.start_step,
+            steps: run.stop_at,
+            train_seconds: run.train_seconds,
+            iterations_per_second: f64::from(steps_run) / run.train_seconds.max(1e-9),
+            skipped_steps: run.skipped_steps,
+            host_waits: run.host_waits,
+            initial,
+            fin,
+        }
+    }
 }
 
 /// The cloth layer's losses, where the avatar has a cloth layer and the config weighs
