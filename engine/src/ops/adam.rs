@@ -104,10 +104,8 @@ impl AdamGroup {
     /// Records one step on `params` from `grads` (both at least `len` floats). A
     /// non-finite gradient element leaves its parameter and moments unchanged.
     pub fn record_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer) -> Result<()> {
-        assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
-        let lr = self.lr();
-        self.step.set(self.step.get() + 1);
-        let pc = step_params(self.len as u32, lr, self.beta1, self.beta2, self.eps, self.step.get());
+        let pc = self.next_step_params(params, grads);
+        self.advance();
         rec.dispatch(
             "adam.step",
             kernels::train::AdamStep {
@@ -127,8 +125,7 @@ impl AdamGroup {
     /// if the guard stayed down (the next step's bias correction and learning rate
     /// then follow the steps applied, as with a step the host skipped).
     pub fn record_guarded_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer, guard: &'a Buffer) -> Result<()> {
-        assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
-        let pc = step_params(self.len as u32, self.lr(), self.beta1, self.beta2, self.eps, self.step.get() + 1);
+        let pc = self.next_step_params(params, grads);
         rec.dispatch(
             "adam.step",
             kernels::train::AdamStepGuarded {
@@ -141,6 +138,13 @@ impl AdamGroup {
             &pc,
             flat_grid(pc.len),
         )
+    }
+
+    /// The push constants of the next step on `params` from `grads`: the learning rate
+    /// of the steps taken so far, the bias corrections of step `steps() + 1`.
+    fn next_step_params(&self, params: &Buffer, grads: &Buffer) -> AdamParams {
+        assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
+        step_params(self.len as u32, self.lr(), self.beta1, self.beta2, self.eps, self.step.get() + 1)
     }
 
     /// Counts a step of [`record_guarded_step`](Self::record_guarded_step) the GPU

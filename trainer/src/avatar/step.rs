@@ -121,8 +121,11 @@ pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers,
 /// The frame's host-written inputs: the target image and the cloth losses' targets
 /// (host-visible memory: the last step's submission has completed).
 fn upload(ctx: &Context, st: &mut Stages<'_>, s: &Sample<'_>) -> Result<()> {
-    let target = if st.masked { s.frame.masked_rgb(s.background) } else { s.frame.rgb.clone() };
-    st.image_losses.set_target(ctx, &target)?;
+    if st.masked {
+        st.image_losses.set_target(ctx, &s.frame.masked_rgb(s.background))?;
+    } else {
+        st.image_losses.set_target(ctx, &s.frame.rgb)?;
+    }
     if let Some(c) = st.cloth_losses.as_deref_mut() {
         c.set_frame(ctx, s.frame)?;
     }
