@@ -108,3 +108,59 @@ pub fn add_f32_cas(grads: &mut [u32], index: usize, value: f32) {
         old = seen;
     }
 }
+
+/// How a backward kernel adds into a gradient buffer of [`Word`](GradAdd::Word)s: the
+/// kernels are generic over it, and each entry point names one. Zero-sized.
+pub trait GradAdd {
+    /// The gradient buffer's element: `f32` for float atomics, `u32` for f32 bits or
+    /// fixed-point words.
+    type Word;
+    /// `grads[index] += value` (the buffer's `index`-th gradient, whatever its words).
+    fn add(grads: &mut [Self::Word], index: usize, value: f32);
+}
+
+/// Float atomics ([`add_f32`]; needs shaderBufferFloat32AtomicAdd).
+#[cfg(feature = "float-atomics")]
+pub struct FloatAtomics;
+
+#[cfg(feature = "float-atomics")]
+impl GradAdd for FloatAtomics {
+    type Word = f32;
+    #[inline]
+    fn add(grads: &mut [f32], index: usize, value: f32) {
+        add_f32(grads, index, value);
+    }
+}
+
+/// Compare-and-swap on f32 bits ([`add_f32_cas`]; any device).
+pub struct CompareAndSwap;
+
+impl GradAdd for CompareAndSwap {
+    type Word = u32;
+    #[inline]
+    fn add(grads: &mut [u32], index: usize, value: f32) {
+        add_f32_cas(grads, index, value);
+    }
+}
+
+/// 64-bit fixed point ([`add_fixed`]; bit-identical sums whatever the order).
+pub struct FixedPoint;
+
+impl GradAdd for FixedPoint {
+    type Word = u32;
+    #[inline]
+    fn add(grads: &mut [u32], index: usize, value: f32) {
+        add_fixed(grads, index, value);
+    }
+}
+
+/// Adds one splat's 10-float gradient `g` at `grads[10 splat ..]`, written out (no
+/// loop: on llvmpipe a loop here would spend 10 of an invocation's 65,535 loop
+/// iterations per splat).
+#[inline]
+pub fn add_splat_grad<A: GradAdd>(grads: &mut [A::Word], splat: usize, g: &[f32; drape_shared::splat::layout::SPLAT_GRAD_FLOATS]) {
+    let base = splat * drape_shared::splat::layout::SPLAT_GRAD_FLOATS;
+    drape_shared::each_index!(10, c => {
+        A::add(grads, base + c, g[c]);
+    });
+}

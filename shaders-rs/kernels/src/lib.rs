@@ -25,6 +25,8 @@ pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
+#[cfg(feature = "subgroup-ballot")]
+pub mod splat_cpu;
 pub mod ssim;
 #[cfg(feature = "subgroup-ballot")]
 mod subgroup;

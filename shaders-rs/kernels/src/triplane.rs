@@ -12,8 +12,9 @@ use drape_shared::triplane::{corners, footprint, inside, normalise, texel_index,
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
-#[allow(unused_imports)]
-use crate::atomics;
+#[cfg(feature = "float-atomics")]
+use crate::atomics::FloatAtomics;
+use crate::atomics::{CompareAndSwap, FixedPoint, GradAdd};
 
 fn load_point(points: &[f32], i: usize) -> [f32; 3] {
     [points[3 * i], points[3 * i + 1], points[3 * i + 2]]
@@ -70,65 +71,92 @@ pub fn sample_fwd(
     }
 }
 
-macro_rules! sample_bwd_entry {
-    ($name:ident, $grad_ty:ty, $accumulate:path, $doc:meta) => {
-        #[$doc]
-        #[spirv(compute(threads(256)))]
-        pub fn $name(
-            #[spirv(global_invocation_id)] id: UVec3,
-            #[spirv(push_constant)] p: &TriplaneParams,
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] planes: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] points: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_features: &[f32],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [$grad_ty],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
-        ) {
-            let i = id.x as usize;
-            if id.x >= p.count {
-                return;
-            }
-            let ch = p.channels as usize;
-            let pt = load_point(points, i);
-            let mut gu = [0.0f32; 3];
-            if finite3(pt) {
-                let u = normalise(pt, p);
-                let mut plane = 0;
-                while plane < 3 {
-                    let (ax, ay) = PLANE_AXES[plane];
-                    let fx = footprint(u[ax], p.resolution);
-                    let fy = footprint(u[ay], p.resolution);
-                    let cs = corners(&fx, &fy);
-                    let g = i * 3 * ch + plane * ch;
-                    let mut k = 0;
-                    while k < 4 {
-                        let (row, col, w, dwx, dwy) = cs[k];
-                        if inside(row, p.resolution) && inside(col, p.resolution) {
-                            let t = texel_index(plane, row, col, p);
-                            let mut dot = 0.0f32;
-                            let mut c = 0;
-                            while c < ch {
-                                let gc = grad_features[g + c];
-                                dot += gc * planes[t + c];
-                                $accumulate(grad_planes, t + c, w * gc);
-                                c += 1;
-                            }
-                            gu[ax] += dwx * dot;
-                            gu[ay] += dwy * dot;
-                        }
-                        k += 1;
+/// The backward of [`sample_fwd`]: the plane gradient added by `A` (float atomics,
+/// compare-and-swap or fixed point), the point gradient written. Entry points:
+/// [`sample_bwd_atomic`], [`sample_bwd_cas`], [`sample_bwd_fixed`].
+#[inline]
+fn sample_bwd_in<A: GradAdd>(id: UVec3, p: &TriplaneParams, planes: &[f32], points: &[f32], grad_features: &[f32], grad_planes: &mut [A::Word], grad_points: &mut [f32]) {
+    let i = id.x as usize;
+    if id.x >= p.count {
+        return;
+    }
+    let ch = p.channels as usize;
+    let pt = load_point(points, i);
+    let mut gu = [0.0f32; 3];
+    if finite3(pt) {
+        let u = normalise(pt, p);
+        let mut plane = 0;
+        while plane < 3 {
+            let (ax, ay) = PLANE_AXES[plane];
+            let fx = footprint(u[ax], p.resolution);
+            let fy = footprint(u[ay], p.resolution);
+            let cs = corners(&fx, &fy);
+            let g = i * 3 * ch + plane * ch;
+            let mut k = 0;
+            while k < 4 {
+                let (row, col, w, dwx, dwy) = cs[k];
+                if inside(row, p.resolution) && inside(col, p.resolution) {
+                    let t = texel_index(plane, row, col, p);
+                    let mut dot = 0.0f32;
+                    let mut c = 0;
+                    while c < ch {
+                        let gc = grad_features[g + c];
+                        dot += gc * planes[t + c];
+                        A::add(grad_planes, t + c, w * gc);
+                        c += 1;
                     }
-                    plane += 1;
+                    gu[ax] += dwx * dot;
+                    gu[ay] += dwy * dot;
                 }
+                k += 1;
             }
-            grad_points[3 * i] = gu[0] * p.box_scale[0];
-            grad_points[3 * i + 1] = gu[1] * p.box_scale[1];
-            grad_points[3 * i + 2] = gu[2] * p.box_scale[2];
+            plane += 1;
         }
-    };
+    }
+    grad_points[3 * i] = gu[0] * p.box_scale[0];
+    grad_points[3 * i + 1] = gu[1] * p.box_scale[1];
+    grad_points[3 * i + 2] = gu[2] * p.box_scale[2];
 }
 
+/// [`sample_bwd_in`] with float atomics (needs shaderBufferFloat32AtomicAdd).
 #[cfg(feature = "float-atomics")]
-sample_bwd_entry!(sample_bwd_atomic, f32, atomics::add_f32, doc = "Backward with float atomics (needs shaderBufferFloat32AtomicAdd).");
-sample_bwd_entry!(sample_bwd_cas, u32, atomics::add_f32_cas, doc = "Backward with compare-and-swap on the bits of f32 (any device).");
-// One line per entry: the kernel list test (`tests/tests/engine/runtime.rs`) reads the name here.
-sample_bwd_entry!(sample_bwd_fixed, u32, atomics::add_fixed, doc = "Deterministic backward: the plane gradient in 64-bit fixed point (`fixed_point::resolve` turns it into f32).");
+#[spirv(compute(threads(256)))]
+pub fn sample_bwd_atomic(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &TriplaneParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] planes: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_features: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
+) {
+    sample_bwd_in::<FloatAtomics>(id, p, planes, points, grad_features, grad_planes, grad_points);
+}
+
+/// [`sample_bwd_in`] with compare-and-swap on the bits of f32 (any device).
+#[spirv(compute(threads(256)))]
+pub fn sample_bwd_cas(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &TriplaneParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] planes: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_features: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
+) {
+    sample_bwd_in::<CompareAndSwap>(id, p, planes, points, grad_features, grad_planes, grad_points);
+}
+
+/// [`sample_bwd_in`], deterministic: the plane gradient in 64-bit fixed point (`fixed_point::resolve` turns it into f32).
+#[spirv(compute(threads(256)))]
+pub fn sample_bwd_fixed(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] p: &TriplaneParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] planes: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_features: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
+) {
+    sample_bwd_in::<FixedPoint>(id, p, planes, points, grad_features, grad_planes, grad_points);
+}

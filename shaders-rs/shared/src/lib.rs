@@ -10,7 +10,7 @@
 // The SH loops write `each_index!(16, ..)` for the 16 coefficients of degree 3.
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
-/// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 9, 10, 11, 12,
+/// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 8, 9, 10, 11, 12,
 /// 15, 16, 24, 32): no loop. llvmpipe does not unroll rust-gpu's loops, and a loop's
 /// counter indexing a local array is a dynamic index, which it turns into code that
 /// tries every element; constant indices cost nothing. Not everywhere: written out this
@@ -31,6 +31,10 @@ macro_rules! each_index {
     (6, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
         { let $i: usize = 4; $body } { let $i: usize = 5; $body }
+    }};
+    (8, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
     }};
     (9, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }

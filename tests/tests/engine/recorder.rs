@@ -61,21 +61,21 @@ fn variants_chosen_at_run_time_fit_the_struct_they_share() {
     all_fit::<kernels::nn::GemmBlocked>(&gemms);
     all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
     all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
-    all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatRasterizeFwdSubgroup, K::SplatRasterizeFwdSubgroupHalf]);
-    all_fit::<kernels::splat::RasterizeFusedFwd>(&[K::SplatRasterizeFusedFwdHalf, K::SplatRasterizeFusedFwdSubgroup, K::SplatRasterizeFusedFwdSubgroupHalf]);
+    all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatCpuRasterizeFwd, K::SplatCpuRasterizeFwdHalf]);
+    all_fit::<kernels::splat::RasterizeFusedFwd>(&[K::SplatRasterizeFusedFwdHalf, K::SplatCpuRasterizeFusedFwd, K::SplatCpuRasterizeFusedFwdHalf]);
     all_fit::<kernels::splat::RasterizeBwdAtomic>(&[
         K::SplatRasterizeBwdCas,
         K::SplatRasterizeBwdFixed,
-        K::SplatRasterizeBwdSubgroupAtomic,
-        K::SplatRasterizeBwdSubgroupCas,
-        K::SplatRasterizeBwdSubgroupFixed,
+        K::SplatCpuRasterizeBwdAtomic,
+        K::SplatCpuRasterizeBwdCas,
+        K::SplatCpuRasterizeBwdFixed,
     ]);
     all_fit::<kernels::splat::RasterizeFusedBwdAtomic>(&[
         K::SplatRasterizeFusedBwdCas,
         K::SplatRasterizeFusedBwdFixed,
-        K::SplatRasterizeFusedBwdSubgroupAtomic,
-        K::SplatRasterizeFusedBwdSubgroupCas,
-        K::SplatRasterizeFusedBwdSubgroupFixed,
+        K::SplatCpuRasterizeFusedBwdAtomic,
+        K::SplatCpuRasterizeFusedBwdCas,
+        K::SplatCpuRasterizeFusedBwdFixed,
     ]);
     all_fit::<kernels::triplane::SampleBwdAtomic>(&[K::TriplaneSampleBwdCas, K::TriplaneSampleBwdFixed]);
     // Other bindings or other push constants do not fit.

@@ -103,9 +103,9 @@ impl FusedRenderer {
         self.renderer.record_binning(rec, gaussians)?;
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let (kernel, grid) = if self.renderer.half_splats() {
-            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwdHalf, Kernel::SplatRasterizeFusedFwdSubgroupHalf)
+            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwdHalf, Kernel::SplatCpuRasterizeFusedFwdHalf)
         } else {
-            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatRasterizeFusedFwdSubgroup)
+            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatCpuRasterizeFusedFwd)
         };
         rec.dispatch_as(
             "splat.rasterize_fused_fwd",
@@ -137,9 +137,9 @@ impl FusedRenderer {
         self.renderer.check_saved("fused backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
         let (kernel, grid) = match method {
-            Method::FloatAtomics => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdAtomic, Kernel::SplatRasterizeFusedBwdSubgroupAtomic),
-            Method::CompareAndSwap => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdCas, Kernel::SplatRasterizeFusedBwdSubgroupCas),
-            Method::FixedPoint => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdFixed, Kernel::SplatRasterizeFusedBwdSubgroupFixed),
+            Method::FloatAtomics => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdAtomic, Kernel::SplatCpuRasterizeFusedBwdAtomic),
+            Method::CompareAndSwap => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdCas, Kernel::SplatCpuRasterizeFusedBwdCas),
+            Method::FixedPoint => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdFixed, Kernel::SplatCpuRasterizeFusedBwdFixed),
         };
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let target = self.renderer.grad_target(method);

@@ -361,7 +361,7 @@ impl SplatRenderer {
             RasterVariant::Auto if subgroup_raster_supported(info) && fits => Ok(RasterVariant::Subgroup),
             RasterVariant::Auto | RasterVariant::Workgroup => Ok(RasterVariant::Workgroup),
             RasterVariant::Subgroup if !subgroup_raster_supported(info) => Err(EngineError::MissingFeature {
-                kernel: "splat::rasterize_fwd_subgroup",
+                kernel: "splat_cpu::rasterize_fwd",
                 feature: "a CPU device with subgroups of 8 lanes with ballot operations",
             }),
             RasterVariant::Subgroup if !fits => Err(EngineError::too_large(
@@ -614,9 +614,9 @@ impl SplatRenderer {
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
         self.record_binning(rec, gaussians)?;
         let (kernel, grid) = if self.half_splats {
-            self.raster_dispatch(Kernel::SplatRasterizeFwdHalf, Kernel::SplatRasterizeFwdSubgroupHalf)
+            self.raster_dispatch(Kernel::SplatRasterizeFwdHalf, Kernel::SplatCpuRasterizeFwdHalf)
         } else {
-            self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatRasterizeFwdSubgroup)
+            self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatCpuRasterizeFwd)
         };
         let p = &self.pixels;
         let (_, splats, _, _) = self.binned();
@@ -837,9 +837,9 @@ impl SplatRenderer {
         self.refuse_render_only()?;
         let subgroup = self.raster == RasterVariant::Subgroup;
         let kernel = match method {
-            Method::FloatAtomics if subgroup => Kernel::SplatRasterizeBwdSubgroupAtomic,
-            Method::CompareAndSwap if subgroup => Kernel::SplatRasterizeBwdSubgroupCas,
-            Method::FixedPoint if subgroup => Kernel::SplatRasterizeBwdSubgroupFixed,
+            Method::FloatAtomics if subgroup => Kernel::SplatCpuRasterizeBwdAtomic,
+            Method::CompareAndSwap if subgroup => Kernel::SplatCpuRasterizeBwdCas,
+            Method::FixedPoint if subgroup => Kernel::SplatCpuRasterizeBwdFixed,
             Method::FloatAtomics => Kernel::SplatRasterizeBwdAtomic,
             Method::CompareAndSwap => Kernel::SplatRasterizeBwdCas,
             Method::FixedPoint => Kernel::SplatRasterizeBwdFixed,
