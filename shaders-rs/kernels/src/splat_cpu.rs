@@ -31,6 +31,7 @@
 #![allow(clippy::too_many_arguments)]
 
 use drape_shared::splat::layout::{FrameParams, HalfSplat, SPLAT_GRAD_FLOATS};
+use drape_shared::splat::project::SplatGrad;
 use drape_shared::splat::raster::{may_touch_rect, BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
 use spirv_std::glam::{UVec3, Vec4};
 use spirv_std::spirv;
@@ -521,63 +522,65 @@ fn add_into(g: &mut [f32; SPLAT_GRAD_FLOATS], grad: &[f32; SPLAT_GRAD_FLOATS]) {
     });
 }
 
-/// A lane's 4 pixels' backward states and how many of the tile's splats each blended
-/// up to its last (0 outside the image).
-struct QuadBwd {
-    p0: PixelBwd<f32>,
-    p1: PixelBwd<f32>,
-    p2: PixelBwd<f32>,
-    p3: PixelBwd<f32>,
-    ends: [u32; 4],
+/// A pixel's backward state as the walks step it: plain ([`PixelBwd`]) or fused
+/// ([`FusedPixelBwd`], which also reads the splat's layer mask and list index).
+trait BwdPixel {
+    fn grad(&mut self, v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>>;
 }
 
-impl QuadBwd {
-    /// Row `r`'s state and end.
+impl BwdPixel for PixelBwd<f32> {
     #[inline]
-    fn pixel(b: &Block, r: u32, frame: &FrameParams, contributors: &[u32], transmittance: &[f32], grad_rgb: &[f32], grad_alpha: &[f32], grad_depth: &[f32]) -> (PixelBwd<f32>, u32) {
-        if !b.inside[r as usize] {
-            return (PixelBwd::new(1.0, frame.background, [0.0; 3], 0.0, 0.0), 0);
-        }
-        let p = b.pixel(r, frame);
-        let state = PixelBwd::new(transmittance[p], frame.background, [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]], grad_alpha[p], grad_depth[p]);
-        (state, contributors[p])
+    fn grad(&mut self, v: &SplatView<f32>, _mask: u32, _at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>> {
+        self.step(v, fx, fy, cfg)
     }
+}
 
+impl BwdPixel for FusedPixelBwd<f32> {
     #[inline]
-    fn load(b: &Block, frame: &FrameParams, contributors: &[u32], transmittance: &[f32], grad_rgb: &[f32], grad_alpha: &[f32], grad_depth: &[f32]) -> Self {
-        let (p0, e0) = Self::pixel(b, 0, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-        let (p1, e1) = Self::pixel(b, 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-        let (p2, e2) = Self::pixel(b, 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-        let (p3, e3) = Self::pixel(b, 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-        QuadBwd { p0, p1, p2, p3, ends: [e0, e1, e2, e3] }
+    fn grad(&mut self, v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>> {
+        self.step(v, mask, at, fx, fy, cfg)
     }
+}
 
-    /// Splat `v`'s gradient from the lane's pixels that blended it (the list's `at`-th).
-    #[inline]
-    fn splat_grad(&mut self, v: &SplatView<f32>, at: u32, b: &Block, cfg: &BlendSettings<f32>) -> [f32; SPLAT_GRAD_FLOATS] {
-        let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
-        if at < self.ends[0] {
-            if let Some(grad) = self.p0.step(v, b.fx, b.fy[0], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
+/// Splat `v`'s (layer mask `mask`, the list's `at`-th) gradient from those of a lane's
+/// 4 pixels that blended it (`at` before their ends `e`), summed over the subgroup
+/// ([`block_sums`]). Four variables, not a struct of four, as [`blend_quad`].
+#[inline]
+fn quad_grad<P: BwdPixel>(p0: &mut P, p1: &mut P, p2: &mut P, p3: &mut P, e: [u32; 4], v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: &[f32; 4], cfg: &BlendSettings<f32>) -> [f32; SPLAT_GRAD_FLOATS] {
+    let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
+    if at < e[0] {
+        if let Some(grad) = p0.grad(v, mask, at, fx, fy[0], cfg) {
+            add_into(&mut g, &grad.to_array());
         }
-        if at < self.ends[1] {
-            if let Some(grad) = self.p1.step(v, b.fx, b.fy[1], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        if at < self.ends[2] {
-            if let Some(grad) = self.p2.step(v, b.fx, b.fy[2], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        if at < self.ends[3] {
-            if let Some(grad) = self.p3.step(v, b.fx, b.fy[3], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        g
     }
+    if at < e[1] {
+        if let Some(grad) = p1.grad(v, mask, at, fx, fy[1], cfg) {
+            add_into(&mut g, &grad.to_array());
+        }
+    }
+    if at < e[2] {
+        if let Some(grad) = p2.grad(v, mask, at, fx, fy[2], cfg) {
+            add_into(&mut g, &grad.to_array());
+        }
+    }
+    if at < e[3] {
+        if let Some(grad) = p3.grad(v, mask, at, fx, fy[3], cfg) {
+            add_into(&mut g, &grad.to_array());
+        }
+    }
+    block_sums(&g)
+}
+
+/// Row `r`'s backward state and how many of the tile's splats it blended up to its
+/// last (0 outside the image).
+#[inline]
+fn pixel_bwd(b: &Block, r: u32, frame: &FrameParams, contributors: &[u32], transmittance: &[f32], grad_rgb: &[f32], grad_alpha: &[f32], grad_depth: &[f32]) -> (PixelBwd<f32>, u32) {
+    if !b.inside[r as usize] {
+        return (PixelBwd::new(1.0, frame.background, [0.0; 3], 0.0, 0.0), 0);
+    }
+    let p = b.pixel(r, frame);
+    let state = PixelBwd::new(transmittance[p], frame.background, [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]], grad_alpha[p], grad_depth[p]);
+    (state, contributors[p])
 }
 
 /// The backward walk: the tile's list from its `last`-th splat back to its first, 8 a
@@ -586,8 +589,21 @@ impl QuadBwd {
 /// once, so a splat costs 10 adds per block instead of 10 per pixel. `SPARSE` as in
 /// [`walk_fwd`].
 #[inline]
-fn walk_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadBwd, b: &Block, cfg: &BlendSettings<f32>, start: u32, last: u32, splats: &[SplatQuads], isect_values: &[u32], splat_grads: &mut [A::Word]) {
-    let lane = b.lane;
+fn walk_bwd<A: GradAdd, const SPARSE: bool>(
+    p0: &mut PixelBwd<f32>,
+    p1: &mut PixelBwd<f32>,
+    p2: &mut PixelBwd<f32>,
+    p3: &mut PixelBwd<f32>,
+    e: [u32; 4],
+    b: &Block,
+    cfg: &BlendSettings<f32>,
+    start: u32,
+    last: u32,
+    splats: &[SplatQuads],
+    isect_values: &[u32],
+    splat_grads: &mut [A::Word],
+) {
+    let (lane, fx, fy) = (b.lane, b.fx, b.fy);
     let mut top = last;
     // Uniform loop: `top` is the number of the tile's splats still to visit.
     while top > 0 {
@@ -603,7 +619,7 @@ fn walk_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadBwd, b: &Block, cfg: &Bl
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
-                let total = block_sums(&q.splat_grad(&SplatQuads::lane_view(mine, u), top - 1 - u, b, cfg));
+                let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), 0, top - 1 - u, fx, &fy, cfg);
                 if lane == u {
                     sums = total;
                 }
@@ -612,7 +628,7 @@ fn walk_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadBwd, b: &Block, cfg: &Bl
             drape_shared::each_index!(8, u => {
                 let u = u as u32;
                 if u < len {
-                    let total = block_sums(&q.splat_grad(&SplatQuads::lane_view(mine, u), top - 1 - u, b, cfg));
+                    let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), 0, top - 1 - u, fx, &fy, cfg);
                     if lane == u {
                         sums = total;
                     }
@@ -646,13 +662,16 @@ fn rasterize_bwd_in<A: GradAdd>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let start = ranges[2 * b.tile];
-    let mut q = QuadBwd::load(b, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-    let e = q.ends;
-    let last = max8_u32(e[0].max(e[1]).max(e[2].max(e[3])));
+    let (mut p0, e0) = pixel_bwd(b, 0, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+    let (mut p1, e1) = pixel_bwd(b, 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+    let (mut p2, e2) = pixel_bwd(b, 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+    let (mut p3, e3) = pixel_bwd(b, 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+    let e = [e0, e1, e2, e3];
+    let last = max8_u32(e0.max(e1).max(e2.max(e3)));
     if last <= sparse_max {
-        walk_bwd::<A, true>(&mut q, b, &cfg, start, last, splats, isect_values, splat_grads);
+        walk_bwd::<A, true>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, splat_grads);
     } else {
-        walk_bwd::<A, false>(&mut q, b, &cfg, start, last, splats, isect_values, splat_grads);
+        walk_bwd::<A, false>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, splat_grads);
     }
 }
 
@@ -714,77 +733,43 @@ pub fn rasterize_bwd_fixed(
     rasterize_bwd_in::<FixedPoint>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, SPARSE_MAX_WALK);
 }
 
-/// A lane's 4 pixels' fused backward states (each pixel's three backward walks) and
-/// where each pixel's furthest walk starts (0 outside the image).
-struct QuadFusedBwd {
-    p0: FusedPixelBwd<f32>,
-    p1: FusedPixelBwd<f32>,
-    p2: FusedPixelBwd<f32>,
-    p3: FusedPixelBwd<f32>,
-    ends: [u32; 4],
-}
-
-impl QuadFusedBwd {
-    /// Row `r`'s state.
-    #[inline]
-    fn pixel(b: &Block, r: u32, frame: &FrameParams, transmittances: &[f32], ends: &[u32], grad_base: &[f32], grad_over: &[f32], grad_over_alpha: &[f32], grad_matte: &[f32]) -> FusedPixelBwd<f32> {
-        if !b.inside[r as usize] {
-            return FusedPixelBwd::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0);
-        }
-        let p = b.pixel(r, frame);
-        FusedPixelBwd::new(
-            [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
-            [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
-            frame.background,
-            [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
-            [grad_over[3 * p], grad_over[3 * p + 1], grad_over[3 * p + 2]],
-            grad_over_alpha[p],
-            grad_matte[3 * p],
-        )
+/// Row `r`'s fused backward state (its three backward walks; saturated from the start
+/// outside the image, where its end is 0).
+#[inline]
+fn pixel_fused_bwd(b: &Block, r: u32, frame: &FrameParams, transmittances: &[f32], ends: &[u32], grad_base: &[f32], grad_over: &[f32], grad_over_alpha: &[f32], grad_matte: &[f32]) -> FusedPixelBwd<f32> {
+    if !b.inside[r as usize] {
+        return FusedPixelBwd::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0);
     }
-
-    #[inline]
-    fn load(b: &Block, frame: &FrameParams, transmittances: &[f32], ends: &[u32], grad_base: &[f32], grad_over: &[f32], grad_over_alpha: &[f32], grad_matte: &[f32]) -> Self {
-        let p0 = Self::pixel(b, 0, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-        let p1 = Self::pixel(b, 1, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-        let p2 = Self::pixel(b, 2, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-        let p3 = Self::pixel(b, 3, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-        let ends = [p0.end(), p1.end(), p2.end(), p3.end()];
-        QuadFusedBwd { p0, p1, p2, p3, ends }
-    }
-
-    /// Splat `v`'s (layer mask `mask`, the list's `at`-th) gradient from the lane's pixels.
-    #[inline]
-    fn splat_grad(&mut self, v: &SplatView<f32>, mask: u32, at: u32, b: &Block, cfg: &BlendSettings<f32>) -> [f32; SPLAT_GRAD_FLOATS] {
-        let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
-        if at < self.ends[0] {
-            if let Some(grad) = self.p0.step(v, mask, at, b.fx, b.fy[0], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        if at < self.ends[1] {
-            if let Some(grad) = self.p1.step(v, mask, at, b.fx, b.fy[1], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        if at < self.ends[2] {
-            if let Some(grad) = self.p2.step(v, mask, at, b.fx, b.fy[2], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        if at < self.ends[3] {
-            if let Some(grad) = self.p3.step(v, mask, at, b.fx, b.fy[3], cfg) {
-                add_into(&mut g, &grad.to_array());
-            }
-        }
-        g
-    }
+    let p = b.pixel(r, frame);
+    FusedPixelBwd::new(
+        [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
+        [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
+        frame.background,
+        [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
+        [grad_over[3 * p], grad_over[3 * p + 1], grad_over[3 * p + 2]],
+        grad_over_alpha[p],
+        grad_matte[3 * p],
+    )
 }
 
 /// [`walk_bwd`] for the fused backward: each splat's layer mask shuffled beside it.
 #[inline]
-fn walk_fused_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadFusedBwd, b: &Block, cfg: &BlendSettings<f32>, start: u32, last: u32, splats: &[SplatQuads], isect_values: &[u32], masks: &[u32], splat_grads: &mut [A::Word]) {
-    let lane = b.lane;
+fn walk_fused_bwd<A: GradAdd, const SPARSE: bool>(
+    p0: &mut FusedPixelBwd<f32>,
+    p1: &mut FusedPixelBwd<f32>,
+    p2: &mut FusedPixelBwd<f32>,
+    p3: &mut FusedPixelBwd<f32>,
+    e: [u32; 4],
+    b: &Block,
+    cfg: &BlendSettings<f32>,
+    start: u32,
+    last: u32,
+    splats: &[SplatQuads],
+    isect_values: &[u32],
+    masks: &[u32],
+    splat_grads: &mut [A::Word],
+) {
+    let (lane, fx, fy) = (b.lane, b.fx, b.fy);
     let mut top = last;
     while top > 0 {
         let len = if top < 8 { top } else { 8 };
@@ -797,8 +782,8 @@ fn walk_fused_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadFusedBwd, b: &Bloc
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
-                let g = q.splat_grad(&SplatQuads::lane_view(mine, u), broadcast_u32_at(mine_mask, u), top - 1 - u, b, cfg);
-                let total = block_sums(&g);
+                let mask = broadcast_u32_at(mine_mask, u);
+                let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), mask, top - 1 - u, fx, &fy, cfg);
                 if lane == u {
                     sums = total;
                 }
@@ -807,8 +792,8 @@ fn walk_fused_bwd<A: GradAdd, const SPARSE: bool>(q: &mut QuadFusedBwd, b: &Bloc
             drape_shared::each_index!(8, u => {
                 let u = u as u32;
                 if u < len {
-                    let g = q.splat_grad(&SplatQuads::lane_view(mine, u), broadcast_u32_at(mine_mask, u), top - 1 - u, b, cfg);
-                    let total = block_sums(&g);
+                    let mask = broadcast_u32_at(mine_mask, u);
+                    let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), mask, top - 1 - u, fx, &fy, cfg);
                     if lane == u {
                         sums = total;
                     }
@@ -843,13 +828,16 @@ fn rasterize_fused_bwd_in<A: GradAdd>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let start = ranges[2 * b.tile];
-    let mut q = QuadFusedBwd::load(b, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-    let e = q.ends;
+    let mut p0 = pixel_fused_bwd(b, 0, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+    let mut p1 = pixel_fused_bwd(b, 1, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+    let mut p2 = pixel_fused_bwd(b, 2, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+    let mut p3 = pixel_fused_bwd(b, 3, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+    let e = [p0.end(), p1.end(), p2.end(), p3.end()];
     let last = max8_u32(e[0].max(e[1]).max(e[2].max(e[3])));
     if last <= sparse_max {
-        walk_fused_bwd::<A, true>(&mut q, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
+        walk_fused_bwd::<A, true>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
     } else {
-        walk_fused_bwd::<A, false>(&mut q, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
+        walk_fused_bwd::<A, false>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
     }
 }
 
