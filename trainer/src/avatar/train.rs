@@ -249,7 +249,7 @@ impl SkipGuard {
 fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut PoseRefiner, s: &Sample<'_>, step: u32) -> crate::Result<Option<serde_json::Value>> {
     let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
     for l in &mut avatar.layers {
-        for (g, v) in grad.iter_mut().zip(l.read_transform_grad(ctx)?) {
+        for (g, v) in grad.iter_mut().zip(l.deformer.read_transform_grad(ctx)?) {
             *g += v;
         }
     }
