@@ -15,7 +15,7 @@ use drape_cli_support::DeviceArgs;
 use drape_engine::ops::lpips::LpipsWeights;
 use drape_trainer::avatar::cloth_target::ground_truth_dir;
 use drape_trainer::avatar::eval::{evaluate_with_fid, markdown_table, write_reports, EvalInputs, ERROR_GAIN};
-use drape_trainer::avatar::fid::FidInception;
+use drape_trainer::metrics::fid::FidInception;
 use drape_trainer::avatar::run::OpenRun;
 use drape_trainer::avatar::train::Progress;
 

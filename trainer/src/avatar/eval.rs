@@ -20,7 +20,7 @@ use drape_engine::{BufferDesc, Context};
 use crate::avatar::cloth_target;
 use crate::garment::GarmentFit;
 use crate::avatar::composite::AvatarRenderer;
-use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
+use crate::metrics::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
 use crate::avatar::report::{write_json, Progress};

@@ -9,9 +9,8 @@
 //! pose refinement (`pose_refine`), densification and pruning (`densify`), training
 //! (`train`: its config in `config`, its inputs in `inputs`, the avatar it builds in
 //! `assemble`, its progress and JSON files in `report`, the step itself in `step`),
-//! held-out evaluation (`eval`, with FID's network and distance in `fid` and its weights
-//! file in `fid_weights`), and a finished run opened again (`run`) to animate
-//! (`animate`) or edit (`edit`).
+//! held-out evaluation (`eval`, with FID from `crate::metrics`), and a finished run
+//! opened again (`run`) to animate (`animate`) or edit (`edit`).
 
 pub mod animate;
 pub mod assemble;
@@ -24,8 +23,6 @@ pub mod deform;
 pub mod densify;
 pub mod edit;
 pub mod eval;
-pub mod fid;
-pub mod fid_weights;
 pub mod gaussian_layout;
 pub mod groups;
 pub mod inputs;
