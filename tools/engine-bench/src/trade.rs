@@ -82,7 +82,7 @@ pub struct TradeArgs {
     /// this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
-    /// LPIPS weights (safetensors, the run's `lpips_net`; default: the run's config).
+    /// LPIPS weights (safetensors, the run's `losses.lpips_net`; default: the run's config).
     /// Without any, the LPIPS columns are n/a.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
@@ -309,7 +309,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 
 /// The settings of every measured knob; the first is the default.
 fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
-    let default_comp = run.config.compositing.name().to_string();
+    let default_comp = run.config.layers.compositing.name().to_string();
     let parts = part_names(&run.avatar);
     let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false, half_splats: false };
     let mut out = vec![base.clone()];
@@ -379,7 +379,7 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
 /// Knobs this run cannot measure (each needs another trained run): no numbers.
 fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
     vec![
-        json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
+        json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.layers.subdivision, run.config.layers.decimate)}),
     ]
 }
 
@@ -579,9 +579,9 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     if args.max_frames > 0 {
         frames.truncate(args.max_frames);
     }
-    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.lpips_weights.clone());
+    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.losses.lpips_weights.clone());
     let weights = match &lpips_path {
-        Some(p) => Some(LpipsWeights::load(p, run.config.lpips_net)?),
+        Some(p) => Some(LpipsWeights::load(p, run.config.losses.lpips_net)?),
         None => None,
     };
     let mut lpips = LpipsCache { weights: weights.as_ref(), nets: BTreeMap::new() };
