@@ -40,7 +40,7 @@ pub enum TrainerError {
     LpipsWeights(#[from] drape_engine::ops::lpips::WeightsError),
     /// An FID Inception weights file.
     #[error(transparent)]
-    FidWeights(#[from] crate::avatar::fid_weights::FidWeightsError),
+    FidWeights(#[from] crate::metrics::fid_weights::FidWeightsError),
     /// A file or directory could not be read, written, created or renamed.
     #[error("{}: {error}", path.display())]
     Io { path: PathBuf, error: std::io::Error },

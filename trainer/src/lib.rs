@@ -3,8 +3,8 @@
 //! body as a collider, `collider`), the dataset
 //! readers (NeuMan, ZJU-MoCap, the synthetic sequences; NumPy, pickle and COLMAP files),
 //! Gaussian PLY files (`ply`) and camera files (`camera_file`),
-//! and the layered avatar (`avatar`): training, densification, evaluation, animation
-//! and editing. Fallible functions return [`TrainerError`], or a file format's own error
+//! the layered avatar (`avatar`): training, densification, evaluation, animation and
+//! editing, and the set-level metrics its evaluation reports (`metrics`: FID). Fallible functions return [`TrainerError`], or a file format's own error
 //! (`npy::NpyError`, `dataset::error::DatasetError`, ...), which converts into it.
 #![forbid(unsafe_code)]
 
@@ -21,6 +21,7 @@ pub mod fuzzing;
 pub mod garment;
 pub mod grid;
 pub mod mesh;
+pub mod metrics;
 pub mod motion;
 pub mod npy;
 pub mod pickle;

@@ -22,7 +22,7 @@
 //!   no cloth Gaussians, so its cloth Chamfer is n/a.
 //!
 //! Every row's cloth layer and simulation target are made from the T-shirt of the
-//! sequence's fit (config `cloth_fit`), as the paper's synthetic setting has the
+//! sequence's fit (config `layers.cloth_fit`), as the paper's synthetic setting has the
 //! garment template that was simulated.
 
 use std::io::Write;
@@ -96,37 +96,37 @@ const ROWS: [Row; 7] = [
         key: "no-physics",
         paper: "w/o Phys. losses",
         apply: |c| {
-            c.lambda_sim = 0.0;
-            c.lambda_arap = 0.0;
-            c.lambda_mask = 0.0;
+            c.losses.lambda_sim = 0.0;
+            c.losses.lambda_arap = 0.0;
+            c.losses.lambda_mask = 0.0;
         },
     },
-    Row { key: "no-lbs", paper: "w/o Cloth LBS Reg.", apply: |c| c.lambda_cloth_lbs = 0.0 },
+    Row { key: "no-lbs", paper: "w/o Cloth LBS Reg.", apply: |c| c.losses.lambda_cloth_lbs = 0.0 },
     Row {
         key: "arap-only",
         paper: "ARAP loss only",
         apply: |c| {
-            c.lambda_sim = 0.0;
-            c.lambda_mask = 0.0;
+            c.losses.lambda_sim = 0.0;
+            c.losses.lambda_mask = 0.0;
         },
     },
     Row {
         key: "sim-only",
         paper: "Simulation loss only",
         apply: |c| {
-            c.lambda_arap = 0.0;
-            c.lambda_mask = 0.0;
+            c.losses.lambda_arap = 0.0;
+            c.losses.lambda_mask = 0.0;
         },
     },
     Row {
         key: "mask-only",
         paper: "Mask loss only",
         apply: |c| {
-            c.lambda_sim = 0.0;
-            c.lambda_arap = 0.0;
+            c.losses.lambda_sim = 0.0;
+            c.losses.lambda_arap = 0.0;
         },
     },
-    Row { key: "single-layer", paper: "Single layer (HUGS)", apply: |c| c.layers = LayerChoice { cloth: Some(false), scene: Some(true) } },
+    Row { key: "single-layer", paper: "Single layer (HUGS)", apply: |c| c.layers.choice = LayerChoice { cloth: Some(false), scene: Some(true) } },
 ];
 
 fn list<T>(s: &str, what: &str, choices: &str, parse: impl Fn(&str) -> Option<T>) -> anyhow::Result<Vec<T>> {
@@ -157,21 +157,21 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     let rows = list(&args.rows, "rows", &ROWS.map(|r| r.key).join(", "), |k| ROWS.iter().find(|r| r.key == k).copied())?;
     let mut base = TrainConfig::preset(Preset::parse(&args.preset).context("--preset")?);
     if let Some(s) = args.steps {
-        base.steps = s;
+        base.schedule.steps = s;
     }
     if let Some(s) = args.fit_steps {
-        base.fit_steps = s;
+        base.schedule.fit_steps = s;
     }
     base.seed = args.seed;
-    base.lpips_weights = args.lpips_weights.clone();
+    base.losses.lpips_weights = args.lpips_weights.clone();
     base.validate()?;
     // Runs are never overwritten: a finished benchmark stays as it was measured.
     if args.out.exists() {
         let mut entries = std::fs::read_dir(&args.out).with_context(|| format!("--out {}: cannot read", args.out.display()))?;
         anyhow::ensure!(entries.next().is_none(), "--out {}: not empty (bench-cloth writes a new directory)", args.out.display());
     }
-    if let Some(path) = &base.lpips_weights {
-        drape_engine::ops::lpips::LpipsWeights::load(path, base.lpips_net)?;
+    if let Some(path) = &base.losses.lpips_weights {
+        drape_engine::ops::lpips::LpipsWeights::load(path, base.losses.lpips_net)?;
     }
     // All or nothing: a benchmark that fails leaves no directory behind (an empty one
     // that was there stays, empty).
@@ -213,7 +213,7 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
             for row in rows {
                 done += 1;
                 let mut config = base.clone();
-                config.cloth_fit = fit;
+                config.layers.cloth_fit = fit;
                 (row.apply)(&mut config);
                 let out = args.out.join("runs").join(&name).join(row.key);
                 let model = body_model(None)?;
@@ -239,7 +239,7 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
                 );
                 results.push(json!({
                     "row": row.key, "paper": row.paper, "run": out.display().to_string(),
-                    "lambda_cloth_lbs": config.lambda_cloth_lbs, "lambda_sim": config.lambda_sim, "lambda_arap": config.lambda_arap, "lambda_mask": config.lambda_mask, "layers": config.layers,
+                    "lambda_cloth_lbs": config.losses.lambda_cloth_lbs, "lambda_sim": config.losses.lambda_sim, "lambda_arap": config.losses.lambda_arap, "lambda_mask": config.losses.lambda_mask, "layers": config.layers.choice,
                     "metrics": metrics_json(m),
                     "wall_s": wall, "train_s": report.train_seconds, "it_per_s": num(report.iterations_per_second), "steps": report.steps,
                 }));
@@ -250,7 +250,7 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
     let command = std::env::args().collect::<Vec<_>>().join(" ");
     let mut report = json!({
         "command": command,
-        "preset": args.preset, "steps": base.steps, "fit_steps": base.fit_steps, "size": args.size, "frames": args.frames, "seed": args.seed,
+        "preset": args.preset, "steps": base.schedule.steps, "fit_steps": base.schedule.fit_steps, "size": args.size, "frames": args.frames, "seed": args.seed,
         "device": ctx.info().name,
         "lpips": args.lpips_weights.is_some(),
         "seconds": t_all.elapsed().as_secs_f64(),

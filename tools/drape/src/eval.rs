@@ -15,7 +15,7 @@ use drape_cli_support::DeviceArgs;
 use drape_engine::ops::lpips::LpipsWeights;
 use drape_trainer::avatar::cloth_target::ground_truth_dir;
 use drape_trainer::avatar::eval::{evaluate_with_fid, markdown_table, write_reports, EvalInputs, ERROR_GAIN};
-use drape_trainer::avatar::fid::FidInception;
+use drape_trainer::metrics::fid::FidInception;
 use drape_trainer::avatar::run::OpenRun;
 use drape_trainer::avatar::train::Progress;
 
@@ -46,9 +46,9 @@ pub struct EvalArgs {
 pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
     let ctx = device.open()?;
     let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), args.body.as_deref())?;
-    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.lpips_weights.clone());
+    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.losses.lpips_weights.clone());
     let lpips = match &lpips_path {
-        Some(p) => Some(LpipsWeights::load(p, run.config.lpips_net)?),
+        Some(p) => Some(LpipsWeights::load(p, run.config.losses.lpips_net)?),
         None => None,
     };
     let fid = match &args.fid_weights {
@@ -84,7 +84,7 @@ pub fn run(device: &DeviceArgs, args: &EvalArgs) -> anyhow::Result<()> {
         per_frame.len(),
         if run.layers.scene { "whole frame" } else { "person on black" },
         match &lpips_path {
-            Some(p) => format!("{} from {}", run.config.lpips_net, p.display()),
+            Some(p) => format!("{} from {}", run.config.losses.lpips_net, p.display()),
             None => "n/a (no --lpips-weights)".into(),
         },
         match &args.fid_weights {

@@ -1,7 +1,7 @@
 //! `drape train`: fits the avatar to a sequence (NeuMan or ZJU-MoCap layout, or the
 //! root `drape synth` writes) and writes a run directory: `config.json`, `run.json`
 //! (the data and body it was trained on), `log.jsonl` (one line per logged step),
-//! `checkpoint.npz` (every `checkpoint_every` steps, replaced atomically; `--resume RUN`
+//! `checkpoint.npz` (every `schedule.checkpoint_every` steps, replaced atomically; `--resume RUN`
 //! continues from it), `model.npz` (the trained model; format in
 //! `drape_trainer::avatar::checkpoint`), `metrics.json`, `eval/` (a sheet for every
 //! held-out frame, `eval.json`, `eval.md`), `novel_pose.png` and the posed body of the
@@ -40,18 +40,20 @@ pub struct TrainArgs {
     /// `paper` (the paper's setting, for a GPU).
     #[arg(long, default_value = "quick")]
     pub preset: String,
-    /// A TOML file overriding any field of the preset (see `config.json` of a run for
-    /// the fields); unknown keys are an error.
+    /// A TOML file overriding any field of the preset, in its groups ([schedule] steps,
+    /// [layers] choice, [layers.body] triplane_resolution, [losses] lambda_sim, [densify]
+    /// every; see `config.json` of a run for the fields); unknown keys are an error. The
+    /// flat keys of configs before the groups (steps, [body]) still name theirs.
     #[arg(long, conflicts_with = "resume")]
     pub config: Option<PathBuf>,
     /// Which layers: auto (a cloth layer where the data has garment masks, a scene
     /// layer where it has sparse scene points: NeuMan), or body joined by '+' with
     /// cloth and/or scene: body (the single-layer baseline, as HUGS), body+cloth,
-    /// body+scene, body+cloth+scene (overrides the config).
+    /// body+scene, body+cloth+scene (overrides the config's layers.choice).
     #[arg(long)]
     pub layers: Option<String>,
     /// LPIPS weights (safetensors, from scripts/lpips-to-safetensors.py): LPIPS joins
-    /// the loss (weight lambda_lpips) and the metrics; without it, LPIPS is n/a.
+    /// the loss (weight losses.lambda_lpips) and the metrics; without it, LPIPS is n/a.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
     /// How the layers become one image where there is a cloth layer: three-pass (the
@@ -78,7 +80,7 @@ pub struct TrainArgs {
     /// Bit-identical runs: the splat and triplane backward passes add their gradients
     /// in 64-bit fixed point instead of float atomics, so two runs with the same seed
     /// (or a run resumed from a checkpoint and one that was not) end with the same
-    /// bits. Slower backward passes; gradients rounded to 2^-36 (sets `deterministic`).
+    /// bits. Slower backward passes; gradients rounded to 2^-36 (sets the config's `deterministic`).
     #[arg(long)]
     pub deterministic: bool,
     /// Train again into a run directory that holds a complete or unfinished run
@@ -111,7 +113,7 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
         anyhow::ensure!(args.config.is_none(), "--config cannot change a run being resumed (edit {} instead)", run.join("config.json").display());
         let mut config = TrainConfig::read_run(run)?;
         if let Some(s) = args.steps {
-            config.steps = s;
+            config.schedule.steps = s;
         }
         return Ok(config);
     }
@@ -121,16 +123,16 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
         config = config.with_toml(&text, path)?;
     }
     if let Some(s) = args.steps {
-        config.steps = s;
+        config.schedule.steps = s;
     }
     if let Some(l) = &args.layers {
-        config.layers = LayerChoice::parse(l).context("--layers")?;
+        config.layers.choice = LayerChoice::parse(l).context("--layers")?;
     }
     if let Some(c) = &args.compositing {
-        config.compositing = Compositing::parse(c).context("--compositing")?;
+        config.layers.compositing = Compositing::parse(c).context("--compositing")?;
     }
     if let Some(w) = &args.lpips_weights {
-        config.lpips_weights = Some(w.clone());
+        config.losses.lpips_weights = Some(w.clone());
     }
     if args.deterministic {
         config.deterministic = true;
@@ -198,18 +200,18 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let decoders = |w: u32| if w >= 128 { "HUGS decoders".to_string() } else { format!("HUGS decoders at most {w} wide (HUGS: 128)") };
     println!(
         "  body layer: triplane {0}x{0}x{1}, {2}, SH degree {3}, subdivision {4}, {5}",
-        config.body.triplane_resolution,
-        config.body.triplane_channels,
-        decoders(config.body.decoder_width),
-        config.body.sh_degree,
-        config.subdivision,
-        every_nth_vertex(config.decimate)
+        config.layers.body.triplane_resolution,
+        config.layers.body.triplane_channels,
+        decoders(config.layers.body.decoder_width),
+        config.layers.body.sh_degree,
+        config.layers.subdivision,
+        every_nth_vertex(config.layers.decimate)
     );
     match (cloth, garments) {
         (true, _) => println!(
             "  cloth layer: {10} T-shirt + pants made on the body, one triplane {0}x{0}x{1}, {7}, SH degree {9}; losses cloth-LBS {2}, simulation {3} (Geman–McClure σ {4} m), ARAP {5}, mask {6}; {8}",
-            config.cloth.triplane_resolution, config.cloth.triplane_channels, config.lambda_cloth_lbs, config.lambda_sim, config.gm_sigma, config.lambda_arap, config.lambda_mask, decoders(config.cloth.decoder_width),
-            match (config.compositing, layers.scene) {
+            config.layers.cloth.triplane_resolution, config.layers.cloth.triplane_channels, config.losses.lambda_cloth_lbs, config.losses.lambda_sim, config.losses.gm_sigma, config.losses.lambda_arap, config.losses.lambda_mask, decoders(config.layers.cloth.decoder_width),
+            match (config.layers.compositing, layers.scene) {
                 (Compositing::SinglePass, _) => "rendered with the other layers in one depth-sorted pass",
                 (Compositing::ThreePass(Matte::Occlusion), true) => "rendered alone and composited over body + scene through a matte in which the scene and the body hide it",
                 (Compositing::ThreePass(Matte::Occlusion), false) => "rendered alone and composited over the body through a matte in which the body hides it",
@@ -220,14 +222,14 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
                 (Compositing::ThreePass(Matte::Paper), true) => "rendered alone and composited over body + scene through a matte in which the scene hides it (the paper's three passes)",
                 (Compositing::ThreePass(Matte::Paper), false) => "rendered alone and composited over the body (the paper's passes; with no scene nothing hides the cloth, so the matte is its alpha and is not rendered)",
             },
-            config.cloth.sh_degree,
-            config.cloth_fit.name()
+            config.layers.cloth.sh_degree,
+            config.layers.cloth_fit.name()
         ),
         (false, true) => println!("  cloth layer: none (--layers body: the cloth is folded into the body, as HUGS)"),
         (false, false) => println!("  cloth layer: none (no garment masks in the data: the model is HUGS)"),
     }
     match (layers.scene, seq.layout) {
-        (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.scene.sh_degree, config.scene.lr_position, config.scene.lr_position_final),
+        (true, _) => println!("  scene layer: plain 3DGS from the sparse points, SH degree {} (position rate {:.1e} -> {:.1e} x the scene extent); trained and judged on the whole frame", config.layers.scene.sh_degree, config.layers.scene.lr_position, config.layers.scene.lr_position_final),
         (false, Layout::NeuMan) => println!("  scene layer: none (--layers without scene: the person is trained on a random background colour)"),
         (false, Layout::ZjuMocap) => println!("  scene layer: none (masked studio data: the person is trained on a random background colour)"),
     }
@@ -270,7 +272,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         Outcome::Interrupted { step } => {
             return Err(drape_cli_support::Exit {
                 code: EXIT_RESUMABLE,
-                message: format!("interrupted by a signal: checkpointed after step {step} of {} in {}; `drape train --resume {}` continues it (exit status {EXIT_RESUMABLE})", config.steps, out.display(), out.display()),
+                message: format!("interrupted by a signal: checkpointed after step {step} of {} in {}; `drape train --resume {}` continues it (exit status {EXIT_RESUMABLE})", config.schedule.steps, out.display(), out.display()),
             }
             .into())
         }
@@ -296,7 +298,7 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         if layers.scene { "whole frame" } else { "person on black" }, report.fin.psnr_full, report.fin.psnr_crop, report.fin.ssim_full, report.fin.ssim_crop, report.initial.psnr_full, report.initial.psnr_crop, report.initial.ssim_full, report.initial.ssim_crop
     );
     let na = |v: Option<f64>| v.map_or("n/a (no --lpips-weights)".to_string(), |v| format!("{v:.4}"));
-    println!("held-out LPIPS ({}): {} full, {} crop", config.lpips_net, na(report.fin.lpips_full), na(report.fin.lpips_crop));
+    println!("held-out LPIPS ({}): {} full, {} crop", config.losses.lpips_net, na(report.fin.lpips_full), na(report.fin.lpips_crop));
     if let (Some(before), Some(after)) = (report.initial.cloth_chamfer, report.fin.cloth_chamfer) {
         println!("cloth Gaussians to the ground-truth garments (held-out frames): Chamfer {:.2} mm (before training: {:.2} mm)", 1e3 * after, 1e3 * before);
     }

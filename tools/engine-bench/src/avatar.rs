@@ -204,15 +204,15 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     std::fs::create_dir_all(&out)?;
     let mut config = run.config.clone();
     let total = args.train_warmup + args.train_steps;
-    config.steps = total;
-    config.fit_steps = args.fit_steps;
-    config.checkpoint_every = 0;
+    config.schedule.steps = total;
+    config.schedule.fit_steps = args.fit_steps;
+    config.schedule.checkpoint_every = 0;
     if let Some(c) = &args.train_compositing {
-        config.compositing = Compositing::parse(c).context("--train-compositing")?;
+        config.layers.compositing = Compositing::parse(c).context("--train-compositing")?;
     }
     // A progress event after every step: the clock and the profile start after the
     // warm-up steps and stop after the last step (before the evaluation).
-    config.log_every = 1;
+    config.schedule.log_every = 1;
     let model = body_model(run.info.body.as_deref())?;
     let (mut timed_from, mut timed_to, mut profile) = (None, None, None);
     let report = train_until(ctx, &run.seq, model, &config, &out, false, total, &mut |p| {
@@ -246,7 +246,7 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     passes.sort_by(|a, b| b.1.total_cmp(&a.1));
     let scopes: BTreeMap<String, f64> = profile["gpu_scopes"].as_object().into_iter().flatten().map(|(k, e)| (k.clone(), e["ms"].as_f64().unwrap_or(0.0) / steps)).collect();
     Ok(json!({
-        "compositing": config.compositing,
+        "compositing": config.layers.compositing,
         "steps": args.train_steps,
         "warmup_steps": args.train_warmup,
         "iterations_per_second": steps / seconds.max(1e-9),

@@ -82,7 +82,7 @@ pub struct TradeArgs {
     /// this many, and for at least --warm-seconds).
     #[arg(long, default_value_t = 1)]
     pub warmup: u32,
-    /// LPIPS weights (safetensors, the run's `lpips_net`; default: the run's config).
+    /// LPIPS weights (safetensors, the run's `losses.lpips_net`; default: the run's config).
     /// Without any, the LPIPS columns are n/a.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
@@ -234,7 +234,7 @@ fn contributions(ctx: &Context, run: &mut OpenRun, max_frames: usize) -> anyhow:
         let transforms = run.rig.frame(&f.body);
         run.avatar.set_frame(ctx, &transforms)?;
         for l in &mut run.avatar.layers {
-            l.set_pose_blend(true);
+            l.deformer.set_pose_blend(true);
         }
         {
             let mut rec = ctx.record("trade contributions decode and skin")?;
@@ -309,7 +309,7 @@ pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
 
 /// The settings of every measured knob; the first is the default.
 fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
-    let default_comp = run.config.compositing.name().to_string();
+    let default_comp = run.config.layers.compositing.name().to_string();
     let parts = part_names(&run.avatar);
     let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false, half_splats: false };
     let mut out = vec![base.clone()];
@@ -355,7 +355,7 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
         out.push(Setting { knob: "compositing", label: c.to_string(), compositing: c.to_string(), ..base.clone() });
     }
     knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass, fused (the paper's matte from one sort and one walk of every layer)"));
-    let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.has_pose_blend()).map(|l| l.name.as_str()).collect();
+    let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.deformer.has_pose_blend()).map(|l| l.name.as_str()).collect();
     if blended.is_empty() {
         knobs.insert("pose_offsets", json!("not applicable: no layer of this run was trained with pose-dependent offsets (config body.pose_offsets / cloth.pose_offsets)"));
     } else {
@@ -379,7 +379,7 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
 /// Knobs this run cannot measure (each needs another trained run): no numbers.
 fn not_built(run: &OpenRun) -> Vec<serde_json::Value> {
     vec![
-        json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.subdivision, run.config.decimate)}),
+        json!({"knob": "subdivision level", "why": format!("fixed at training (this run: subdivision {}, decimate {}); another level needs another trained run", run.config.layers.subdivision, run.config.layers.decimate)}),
     ]
 }
 
@@ -390,7 +390,7 @@ fn part_names(avatar: &Avatar) -> Vec<String> {
 
 /// The SH degree of each part (the human layers in order, then the scene).
 fn part_degrees(avatar: &Avatar) -> Vec<u32> {
-    avatar.layers.iter().map(|l| l.posed.sh_degree).chain(avatar.scene.iter().map(|s| s.params.sh_degree)).collect()
+    avatar.layers.iter().map(|l| l.deformer.posed.sh_degree).chain(avatar.scene.iter().map(|s| s.params.sh_degree)).collect()
 }
 
 /// Applies a setting's SH truncation and pruning to the decoded Gaussians (each layer's
@@ -416,12 +416,12 @@ fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Resul
     let (mut part, mut first) = (0, 0);
     for l in &mut avatar.layers {
         let n = l.count as usize;
-        let degree = l.posed.sh_degree;
-        let mut op = ctx.read_buffer::<f32>(&mut l.posed.opacity_logits, n)?;
-        let mut sh = ctx.read_buffer::<f32>(&mut l.posed.sh, 3 * sh_coeffs(degree) * n)?;
+        let degree = l.deformer.posed.sh_degree;
+        let mut op = ctx.read_buffer::<f32>(&mut l.deformer.posed.opacity_logits, n)?;
+        let mut sh = ctx.read_buffer::<f32>(&mut l.deformer.posed.sh, 3 * sh_coeffs(degree) * n)?;
         kept.push(edit(&mut op, &mut sh, degree, s.sh_keep[part], first));
-        ctx.write_buffer(&mut l.posed.opacity_logits, &op)?;
-        ctx.write_buffer(&mut l.posed.sh, &sh)?;
+        ctx.write_buffer(&mut l.deformer.posed.opacity_logits, &op)?;
+        ctx.write_buffer(&mut l.deformer.posed.sh, &sh)?;
         part += 1;
         first += n;
     }
@@ -496,7 +496,7 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
     let result = (|| -> anyhow::Result<Vec<usize>> {
         run.avatar.set_frame(ctx, &transforms)?;
         for l in &mut run.avatar.layers {
-            l.set_pose_blend(s.pose_offsets);
+            l.deformer.set_pose_blend(s.pose_offsets);
         }
         {
             let mut rec = ctx.record("trade decode and skin")?;
@@ -579,9 +579,9 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     if args.max_frames > 0 {
         frames.truncate(args.max_frames);
     }
-    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.lpips_weights.clone());
+    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.losses.lpips_weights.clone());
     let weights = match &lpips_path {
-        Some(p) => Some(LpipsWeights::load(p, run.config.lpips_net)?),
+        Some(p) => Some(LpipsWeights::load(p, run.config.losses.lpips_net)?),
         None => None,
     };
     let mut lpips = LpipsCache { weights: weights.as_ref(), nets: BTreeMap::new() };

@@ -18,11 +18,11 @@ pub struct Layers {
     pub scene: bool,
 }
 
-/// The layers the run builds, each forced by `config.layers` or else decided from the
+/// The layers the run builds, each forced by `config.layers.choice` or else decided from the
 /// data: a cloth layer where it has garment masks, a scene layer where it has scene
 /// points (an unmasked capture; ZJU-MoCap's studio frames are masked and have none).
 pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> crate::Result<Layers> {
-    let choice = config.layers;
+    let choice = config.layers.choice;
     let scene = match choice.scene {
         Some(true) if scene_points(seq)?.is_none() => {
             return Err(TrainerError::config("layers", format!("{choice}: {} has no scene points (NeuMan's sparse/points3D.txt) to build a scene layer from", seq.dir.display())))
@@ -36,22 +36,22 @@ pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> crate::Result<Laye
 /// The avatar the data requires.
 pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> crate::Result<Avatar> {
     let cloth = layers.cloth;
-    let mut inits = vec![body_init(rig, config.subdivision, config.decimate, config.body.sh_degree)];
-    let mut configs = vec![config.body.clone()];
+    let mut inits = vec![body_init(rig, config.layers.subdivision, config.layers.decimate, config.layers.body.sh_degree)];
+    let mut configs = vec![config.layers.body.clone()];
     let mut lbs = vec![0.0];
     if cloth {
-        inits.push(cloth_init(rig, config.cloth_fit, config.decimate, config.cloth.sh_degree));
-        configs.push(config.cloth.clone());
-        lbs.push(config.lambda_cloth_lbs);
+        inits.push(cloth_init(rig, config.layers.cloth_fit, config.layers.decimate, config.layers.cloth.sh_degree));
+        configs.push(config.layers.cloth.clone());
+        lbs.push(config.losses.lambda_cloth_lbs);
     }
     let scene = match (layers.scene, scene_points(seq)?) {
         (true, Some(colmap)) => {
-            let (cloud, extent) = scene_init(&colmap, config.scene.sh_degree, config.scene.max_points);
-            Some(SceneLayer::new(ctx, &cloud, extent, &config.scene, config.steps)?)
+            let (cloud, extent) = scene_init(&colmap, config.layers.scene.sh_degree, config.layers.scene.max_points);
+            Some(SceneLayer::new(ctx, &cloud, extent, &config.layers.scene, config.schedule.steps)?)
         }
         _ => None,
     };
-    let mut avatar = Avatar::new(ctx, &inits, &configs, &lbs, scene, config.steps, config.seed)?;
+    let mut avatar = Avatar::new(ctx, &inits, &configs, &lbs, scene, config.schedule.steps, config.seed)?;
     if config.deterministic {
         avatar.set_accumulation(ctx, Accumulation::Deterministic)?;
     }

@@ -91,7 +91,7 @@ impl ClothLosses {
             grad_alpha: b("cloth mask grad alpha", pixels)?,
             mask_sq_error: b("cloth mask squared error", pixels)?,
             zeros,
-            mask_grads: GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.posed.sh_degree)?,
+            mask_grads: GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?,
             garments,
             pixels,
             has_mask: false,
@@ -108,7 +108,7 @@ impl ClothLosses {
         self.chamfer = Chamfer::new(ctx, cloth.count, self.garments.vertices.div_ceil(self.weights.target_stride.max(1) as usize) as u32)?;
         self.arap = Arap::new(ctx, cloth.count, &cloth.edges)?;
         self.renderer = SplatRenderer::new(ctx, width, height, cloth.count as usize)?;
-        self.mask_grads = GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.posed.sh_degree)?;
+        self.mask_grads = GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?;
         Ok(())
     }
 
@@ -151,7 +151,7 @@ impl ClothLosses {
         if !self.has_mask {
             return Ok(());
         }
-        let saved = self.renderer.forward(&cloth.posed, camera, settings)?.saved;
+        let saved = self.renderer.forward(&cloth.deformer.posed, camera, settings)?.saved;
         {
             let (_, alpha, _) = self.renderer.outputs();
             let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
@@ -159,7 +159,7 @@ impl ClothLosses {
             rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
             rec.submit_and_wait()?;
         }
-        self.renderer.backward(&saved, &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
+        self.renderer.backward(&saved, &cloth.deformer.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
         Ok(())
     }
 
@@ -171,7 +171,7 @@ impl ClothLosses {
 
     /// Prepares [`record_mask_pass`](Self::record_mask_pass) (host-side).
     pub fn prepare_mask_pass(&mut self, cloth: &HumanLayer, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
-        self.renderer.prepare_forward(&cloth.posed, camera, settings)?;
+        self.renderer.prepare_forward(&cloth.deformer.posed, camera, settings)?;
         self.renderer.prepare_backward(cloth.accumulation())
     }
 
@@ -179,12 +179,12 @@ impl ClothLosses {
     /// with no host wait); its overflow flag goes to `guard`. After the submission,
     /// [`finish_mask_pass`](Self::finish_mask_pass).
     pub fn record_mask_pass<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer, guard: &'a Buffer) -> Result<()> {
-        self.renderer.record_forward(rec, &cloth.posed)?;
+        self.renderer.record_forward(rec, &cloth.deformer.posed)?;
         self.renderer.record_overflow_flag(rec, guard)?;
         let (_, alpha, _) = self.renderer.outputs();
         let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
         rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
-        self.renderer.record_backward(rec, &self.renderer.recorded_forward(), &cloth.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())
+        self.renderer.record_backward(rec, &self.renderer.recorded_forward(), &cloth.deformer.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())
     }
 
     /// After the submission of [`record_mask_pass`](Self::record_mask_pass): true when
@@ -201,19 +201,19 @@ impl ClothLosses {
         if this.has_mask && !this.mask_in_composite {
             let per = [3u32, 3, 4, 1];
             let src = [&this.mask_grads.means, &this.mask_grads.log_scales, &this.mask_grads.quats, &this.mask_grads.opacity_logits];
-            let dst = [&cloth.posed_grads.means, &cloth.posed_grads.log_scales, &cloth.posed_grads.quats, &cloth.posed_grads.opacity_logits];
+            let dst = [&cloth.deformer.posed_grads.means, &cloth.deformer.posed_grads.log_scales, &cloth.deformer.posed_grads.quats, &cloth.deformer.posed_grads.opacity_logits];
             for k in 0..4 {
                 let len = per[k] * this.count;
                 let p = LossParams { len, scale: 1.0, _pad: [0; 2] };
                 rec.dispatch("cloth.mask_add", kernels::train::AddInto { src: src[k].read(), dst: dst[k].write() }, &p, drape_engine::recorder::flat_grid(len))?;
             }
         }
-        let grad = &cloth.posed_grads.means;
+        let grad = &cloth.deformer.posed_grads.means;
         if w.sim > 0.0 {
-            this.chamfer.record(rec, &cloth.posed.means, this.count, &this.target_points, this.target_count, w.gm_sigma, Some((grad, w.sim)))?;
+            this.chamfer.record(rec, &cloth.deformer.posed.means, this.count, &this.target_points, this.target_count, w.gm_sigma, Some((grad, w.sim)))?;
         }
         if w.arap > 0.0 {
-            this.arap.record(rec, &cloth.posed.means, Some((grad, w.arap)))?;
+            this.arap.record(rec, &cloth.deformer.posed.means, Some((grad, w.arap)))?;
         }
         Ok(())
     }

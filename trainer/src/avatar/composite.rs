@@ -141,7 +141,7 @@ struct Part {
 
 fn params(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
-        Source::Layer(k) => &avatar.layers[k].posed,
+        Source::Layer(k) => &avatar.layers[k].deformer.posed,
         Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").params,
     }
 }
@@ -155,7 +155,7 @@ fn screen_stats(avatar: &Avatar, s: Source) -> &Buffer {
 
 fn grads(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
-        Source::Layer(k) => &avatar.layers[k].posed_grads,
+        Source::Layer(k) => &avatar.layers[k].deformer.posed_grads,
         Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").grads,
     }
 }
@@ -335,7 +335,7 @@ impl AvatarRenderer {
             Inner::ThreePass(t) => {
                 let black = PinholeCamera { background: [0.0; 3], ..*camera };
                 t.base_renderer.prepare_forward(&t.base, camera, settings)?;
-                t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].posed, &black, settings)?;
+                t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].deformer.posed, &black, settings)?;
                 if let Some(m) = &mut t.matte {
                     m.renderer.prepare_forward(&m.gaussians, &black, settings)?;
                 }
@@ -372,7 +372,7 @@ impl AvatarRenderer {
                 rec.set_scope("render.base");
                 t.base_renderer.record_forward(rec, &t.base)?;
                 rec.set_scope("render.cloth");
-                t.cloth_renderer.record_forward(rec, &avatar.layers[t.cloth].posed)?;
+                t.cloth_renderer.record_forward(rec, &avatar.layers[t.cloth].deformer.posed)?;
                 if let Some(m) = &t.matte {
                     rec.set_scope("render.matte");
                     m.renderer.record_forward(rec, &m.gaussians)?;
@@ -545,7 +545,7 @@ impl AvatarRenderer {
                 }
                 t.base_renderer.record_backward(rec, &t.base_renderer.recorded_forward(), &t.base, &t.grad_base, zeros, zeros, &t.base_grads, accumulation)?;
                 let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.record_backward(rec, &t.cloth_renderer.recorded_forward(), &cloth.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.posed_grads, accumulation)?;
+                t.cloth_renderer.record_backward(rec, &t.cloth_renderer.recorded_forward(), &cloth.deformer.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.deformer.posed_grads, accumulation)?;
                 if let Some(m) = &t.matte {
                     m.renderer.record_backward(rec, &m.renderer.recorded_forward(), &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, accumulation)?;
                 }

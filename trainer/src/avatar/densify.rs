@@ -277,8 +277,8 @@ fn gather_rows(src: &[f32], width: usize, rows: &[Option<u32>]) -> Vec<f32> {
 pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, done: u32, log_scale_offset: f32) -> crate::Result<Summary> {
     let n = layer.count as usize;
     let stats = ctx.read_buffer::<f32>(&mut layer.screen_stats, SCREEN_STATS_FLOATS * n)?;
-    let opacity = ctx.read_buffer::<f32>(&mut layer.posed.opacity_logits, n)?;
-    let decoded: Vec<f32> = ctx.read_buffer::<f32>(&mut layer.posed.log_scales, 3 * n)?.iter().map(|v| v - log_scale_offset).collect();
+    let opacity = ctx.read_buffer::<f32>(&mut layer.deformer.posed.opacity_logits, n)?;
+    let decoded: Vec<f32> = ctx.read_buffer::<f32>(&mut layer.deformer.posed.log_scales, 3 * n)?.iter().map(|v| v - log_scale_offset).collect();
     let state = layer.state(ctx)?;
     let limit = (done > c.size_prune_after).then_some(c.max_world_size);
     let p = plan(&stats, &opacity, &decoded, extent(&state.means), limit, c);

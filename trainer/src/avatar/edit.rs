@@ -76,7 +76,7 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
     let what = match edit {
         Edit::RemoveCloth => {
             state.layers.retain(|(name, _)| name != "cloth");
-            config.layers = LayerChoice { cloth: Some(false), scene: Some(run.layers.scene) };
+            config.layers.choice = LayerChoice { cloth: Some(false), scene: Some(run.layers.scene) };
             format!("the cloth layer of {} removed", run.dir.display())
         }
         Edit::Recolour { hue_degrees } => {

@@ -20,7 +20,7 @@ use drape_engine::{BufferDesc, Context};
 use crate::avatar::cloth_target;
 use crate::garment::GarmentFit;
 use crate::avatar::composite::AvatarRenderer;
-use crate::avatar::fid::{frechet_distance_of_features, FidInception, ImageRef};
+use crate::metrics::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
 use crate::avatar::report::{write_json, Progress};
@@ -316,7 +316,7 @@ fn cloth_chamfer(ctx: &Context, cloth: &crate::avatar::layer::HumanLayer, points
     ctx.write_buffer(&mut target, &points.iter().flatten().copied().collect::<Vec<f32>>())?;
     {
         let mut rec = ctx.record("eval cloth chamfer")?;
-        chamfer.record(&mut rec, &cloth.posed.means, cloth.count, &target, m, 1.0, None)?;
+        chamfer.record(&mut rec, &cloth.deformer.posed.means, cloth.count, &target, m, 1.0, None)?;
         rec.submit_and_wait()?;
     }
     let mut chamfer = chamfer;

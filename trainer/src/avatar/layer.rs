@@ -1,11 +1,8 @@
-//! A triplane-driven Gaussian layer of the avatar (body or cloth): its canonical
-//! Gaussians, triplane, the three decoders, the posed Gaussians the renderer reads,
-//! and its optimiser groups. Every per-Gaussian step runs on the GPU:
-//!
-//! forward: triplane(μ) → appearance / geometry / deformation decoders → deform and
-//! skin (`ops::deform`) → posed Gaussians;
-//! backward: posed gradients (from the splatter) → deform backward → decoder
-//! backwards (their input gradients summed) → triplane backward → Adam.
+//! A triplane-driven Gaussian layer of the avatar (body or cloth): what it learns (its
+//! canonical Gaussians, triplane and three decoders), its optimiser groups, its state on
+//! the host and back, and the fit of its skinning weights. What a frame computes from
+//! them, the posed Gaussians and the backward pass to every parameter's gradient, is the
+//! layer's [`Deformer`] (`deform`).
 //!
 //! Decoder heads start at the initial values rather than being fitted to them (HUGS
 //! fits for 7,000 steps): the opacity, SH, offset, rotation and log-scale heads have
@@ -15,11 +12,10 @@
 //! of a per-Gaussian function, need a fit ([`HumanLayer::fit_skinning_weights`]).
 
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
-use drape_engine::ops::deform::{self, DeformGrads, DeformInputs};
+use drape_engine::ops::deform::POSE_BLEND_FLOATS;
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
-use drape_engine::ops::splat::render::GaussianBuffers;
 use drape_engine::ops::splat::scene::GaussianCloud;
 use crate::avatar::groups::Layer;
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
@@ -28,6 +24,7 @@ use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
 
+use crate::avatar::deform::{Deformer, LayerParams};
 use crate::avatar::state::{AdamState, LayerShape, LayerState};
 use crate::body::model::NUM_JOINTS;
 
@@ -92,28 +89,17 @@ pub struct HumanLayer {
     quats: Buffer,
     log_scales: Buffer,
     pub triplane: Triplane,
-    features: Buffer,
-    grad_features: Buffer,
     pub appearance: Mlp,
     pub geometry: Mlp,
     pub deformation: Mlp,
-    /// The frame's 24 transforms (written before each forward pass).
-    pub transforms: Buffer,
-    /// Posed Gaussians, as the splatter reads them.
-    pub posed: GaussianBuffers,
-    /// Their gradients, as the splatter's backward writes them.
-    pub posed_grads: GaussianBuffers,
+    /// The canonical means' gradient (what the position group's Adam applies).
     grad_means: Buffer,
-    grad_points: Buffer,
-    /// Target skinning weights (count × 24).
+    /// Target skinning weights (count × 24), and the squared errors of the fit and of
+    /// the cloth-LBS term.
     pub weight_targets: Buffer,
     weight_sq_error: Buffer,
-    /// The cloth-LBS term's gradient on the weights, added to the deformation head's.
-    lbs_grad: Buffer,
-    /// Per-Gaussian terms of the transforms' gradient, and their per-chunk sums
-    /// (`ops::deform`): what pose refinement reads.
-    transform_terms: Buffer,
-    transform_partials: Buffer,
+    /// The frame's deformation: its transforms in, its posed Gaussians out.
+    pub deformer: Deformer,
     pub groups: LayerGroups,
     /// How the triplane's backward accumulates ([`set_accumulation`](Self::set_accumulation)).
     accumulation: Accumulation,
@@ -125,15 +111,6 @@ pub struct HumanLayer {
     /// The run's steps and the layer's seed (to rebuild it at another size).
     steps: u32,
     seed: u64,
-    /// The frame's pose features (`FrameTransforms::pose_features`; read with
-    /// `pose_offsets` only).
-    pub pose_features: Buffer,
-    /// With `pose_offsets`: the decoded offsets plus the pose blend (n × 3), which the
-    /// deformation reads instead of the geometry decoder's offsets.
-    blended_offsets: Option<Buffer>,
-    /// Whether the forward adds the pose blend (with `pose_offsets`); off only for
-    /// renders that measure what it is worth (`engine-bench trade`).
-    pose_blend_on: bool,
 }
 
 /// The layer's Adam groups.
@@ -200,7 +177,7 @@ impl HumanLayer {
         }
         if config.pose_offsets {
             // Zero weights and bias: no offsets until training moves them (HUGS).
-            deformation_desc.heads.push(HeadDesc::new("pose_blend", deform::POSE_BLEND_FLOATS, Activation::Identity).zero_init());
+            deformation_desc.heads.push(HeadDesc::new("pose_blend", POSE_BLEND_FLOATS, Activation::Identity).zero_init());
         }
         let appearance = Mlp::with_params(ctx, &format!("{name} appearance"), appearance_desc, n, &appearance_params)?;
         let geometry = Mlp::with_params(ctx, &format!("{name} geometry"), geometry_desc, n, &geometry_params)?;
@@ -230,33 +207,19 @@ impl HumanLayer {
             quats,
             log_scales,
             triplane,
-            features: f32_buffer(ctx, &format!("{name} features"), width * n)?,
-            grad_features: f32_buffer(ctx, &format!("{name} feature grads"), width * n)?,
             appearance,
             geometry,
             deformation,
-            // Rewritten every frame (`AvatarModel::set_frame`): host-written memory.
-            transforms: ctx.create_buffer(&format!("{name} transforms"), BufferDesc::host_written(NUM_JOINTS as u64 * 12 * 4))?,
-            posed: GaussianBuffers::new(ctx, &format!("{name} posed"), n, config.sh_degree)?,
-            posed_grads: GaussianBuffers::new(ctx, &format!("{name} posed grads"), n, config.sh_degree)?,
             grad_means: f32_buffer(ctx, &format!("{name} canonical mean grads"), 3 * n)?,
-            grad_points: f32_buffer(ctx, &format!("{name} triplane point grads"), 3 * n)?,
             weight_targets,
             weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
-            lbs_grad: f32_buffer(ctx, &format!("{name} cloth-LBS gradient"), NUM_JOINTS * n)?,
-            transform_terms: f32_buffer(ctx, &format!("{name} transform gradient terms"), deform::transform_terms_len(n as u32))?,
-            // Read by the host every step (the pose gradient): the kernel writes it into
-            // host-visible memory, so reading it needs no copy submission.
-            transform_partials: ctx.create_buffer(&format!("{name} transform gradient partials"), BufferDesc::readback(4 * deform::transform_partials_len(n as u32).max(1) as u64))?,
+            deformer: Deformer::new(ctx, name, n, width, config.sh_degree, config.pose_offsets)?,
             groups,
             accumulation: Accumulation::Auto,
             screen_stats: ctx.upload(&format!("{name} screen stats"), &vec![0.0f32; SCREEN_STATS_FLOATS * n.max(1)])?,
             edges: Vec::new(),
             steps,
             seed,
-            pose_features: ctx.create_buffer(&format!("{name} pose features"), BufferDesc::host_written(deform::POSE_FEATURES as u64 * 4))?,
-            blended_offsets: if config.pose_offsets { Some(f32_buffer(ctx, &format!("{name} pose-blended offsets"), 3 * n)?) } else { None },
-            pose_blend_on: true,
         })
     }
 
@@ -272,121 +235,34 @@ impl HumanLayer {
         self.accumulation
     }
 
-    /// Whether the layer was built with pose-dependent offsets.
-    pub fn has_pose_blend(&self) -> bool {
-        self.blended_offsets.is_some()
-    }
-
-    /// Renders with (`true`, the default) or without the pose blend: without it the
-    /// deformation reads the decoded offsets alone. For measuring the blend's worth in
-    /// renders; the backward needs it on (asserted).
-    pub fn set_pose_blend(&mut self, on: bool) {
-        self.pose_blend_on = on;
-    }
-
-    fn pose_blended(&self) -> Option<&Buffer> {
-        self.blended_offsets.as_ref().filter(|_| self.pose_blend_on)
-    }
-
-    fn deform_inputs(&self) -> DeformInputs<'_> {
-        DeformInputs {
-            transforms: &self.transforms,
+    /// What the deformation reads of the layer (`deform::LayerParams`).
+    pub fn params(&self) -> LayerParams<'_> {
+        LayerParams {
             means: &self.means,
             quats: &self.quats,
             log_scales: &self.log_scales,
-            offsets: self.pose_blended().unwrap_or(self.geometry.head_output(0)),
-            rot6d: self.geometry.head_output(1),
-            log_scale_deltas: self.geometry.head_output(2),
-            weights: self.deformation.head_output(0),
+            grad_means: &self.grad_means,
+            triplane: &self.triplane,
+            appearance: &self.appearance,
+            geometry: &self.geometry,
+            deformation: &self.deformation,
+            weight_targets: &self.weight_targets,
+            weight_sq_error: &self.weight_sq_error,
+            accumulation: self.accumulation,
         }
     }
 
-    /// Records the forward pass into `posed` (the transforms must be written).
+    /// Records the forward pass into `deformer.posed` (the transforms must be written;
+    /// [`Deformer::record_forward`]).
     pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
-        let n = self.count;
-        self.triplane.record_forward(rec, &self.means, &self.features, n)?;
-        self.appearance.record_forward(rec, &self.features, n)?;
-        self.geometry.record_forward(rec, &self.features, n)?;
-        self.deformation.record_forward(rec, &self.features, n)?;
-        if let Some(blended) = self.pose_blended() {
-            deform::record_pose_blend_forward(rec, self.deformation.head_output(1), &self.pose_features, self.geometry.head_output(0), blended, n)?;
-        }
-        let inputs = self.deform_inputs();
-        deform::record_forward(rec, &inputs, &self.posed.means, &self.posed.quats, &self.posed.log_scales, n, log_scale_offset)?;
-        rec.copy(self.appearance.head_output(0), &self.posed.opacity_logits, u64::from(n) * 4);
-        rec.copy(self.appearance.head_output(1), &self.posed.sh, self.posed.sh.size.min(self.appearance.head_output(1).size));
-        Ok(())
+        self.deformer.record_forward(rec, self.params(), log_scale_offset)
     }
 
-    /// Records the backward pass from `posed_grads` into every parameter's gradient,
-    /// with the skinning-weight term `lbs_weight · mean((W - W_gt)²)` (the paper's
-    /// cloth-LBS loss; 0 leaves it out); with `pose_gradient`, also the chunk sums of
-    /// the gradient on the frame's transforms that [`read_transform_grad`](Self::read_transform_grad)
-    /// reads (pose refinement; left out otherwise).
+    /// Records the backward pass from `deformer.posed_grads` into every parameter's
+    /// gradient, with the cloth-LBS term and, with `pose_gradient`, the transforms'
+    /// gradient ([`Deformer::record_backward`]).
     pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, lbs_weight: f32, pose_gradient: bool) -> Result<()> {
-        assert!(self.pose_blend_on, "the backward of a layer rendered without its pose blend");
-        let n = self.count;
-        rec.copy(&self.posed_grads.opacity_logits, self.appearance.head_grad(0), u64::from(n) * 4);
-        rec.copy(&self.posed_grads.sh, self.appearance.head_grad(1), self.posed_grads.sh.size.min(self.appearance.head_grad(1).size));
-        let inputs = self.deform_inputs();
-        let grads = DeformGrads {
-            means: &self.grad_means,
-            offsets: self.geometry.head_grad(0),
-            rot6d: self.geometry.head_grad(1),
-            log_scale_deltas: self.geometry.head_grad(2),
-            weights: self.deformation.head_grad(0),
-            transform_terms: &self.transform_terms,
-        };
-        deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
-        if self.blended_offsets.is_some() {
-            // The offsets' gradient (in the geometry head: the blend adds to it) drives
-            // the basis's.
-            deform::record_pose_blend_backward(rec, &self.pose_features, self.geometry.head_grad(0), self.deformation.head_grad(1), n)?;
-        }
-        if pose_gradient {
-            deform::record_transform_grad(rec, self.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
-        }
-        if lbs_weight > 0.0 {
-            let len = NUM_JOINTS as u32 * n;
-            let p = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
-            rec.dispatch(
-                "loss.cloth_lbs",
-                kernels::train::MseGrad {
-                    pred: self.deformation.head_output(0).read(),
-                    target: self.weight_targets.read(),
-                    grad: self.lbs_grad.write(),
-                    squared_error: self.weight_sq_error.write(),
-                },
-                &p,
-                flat_grid(len),
-            )?;
-            rec.dispatch("loss.cloth_lbs_add", kernels::train::AddInto { src: self.lbs_grad.read(), dst: self.deformation.head_grad(0).write() }, &p, flat_grid(len))?;
-        }
-        self.record_decoder_backward(rec, true)
-    }
-
-    /// `∂L/∂A` on the frame's 24 transforms (24 × 12, row-major 3x4) from the last
-    /// backward pass.
-    pub fn read_transform_grad(&mut self, ctx: &Context) -> Result<Vec<f64>> {
-        let partials = ctx.read_buffer::<f32>(&mut self.transform_partials, deform::transform_partials_len(self.count))?;
-        Ok(deform::sum_transform_partials(&partials))
-    }
-
-    /// Decoders' and triplane's backward from the gradients in the decoders' heads;
-    /// with `to_means`, the canonical means' gradient (deformation path + triplane
-    /// path) ends in `grad_means`.
-    fn record_decoder_backward<'a>(&'a self, rec: &mut Recording<'a>, to_means: bool) -> Result<()> {
-        let n = self.count;
-        // The decoders add their input gradients into one buffer: one after another.
-        self.appearance.record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
-        self.geometry.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        self.deformation.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        self.triplane.record_backward(rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
-        if to_means {
-            let p = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
-            rec.dispatch("layer.sum_mean_grads", kernels::train::AddInto { src: self.grad_points.read(), dst: self.grad_means.write() }, &p, flat_grid(p.len))?;
-        }
-        Ok(())
+        self.deformer.record_backward(rec, self.params(), lbs_weight, pose_gradient)
     }
 
     /// Records a count of the non-finite values among every gradient the Adam step
@@ -404,7 +280,7 @@ impl HumanLayer {
         ];
         record_count_nonfinite(rec, buffers, counter)?;
         if pose_gradient {
-            record_count_nonfinite(rec, [(&self.transform_partials, deform::transform_partials_len(self.count))], counter)?;
+            record_count_nonfinite(rec, [self.deformer.transform_partials()], counter)?;
         }
         Ok(())
     }
@@ -444,12 +320,11 @@ impl HumanLayer {
         for step in 0..=steps {
             {
                 let mut rec = ctx.record("fit skinning weights")?;
-                if self.blended_offsets.is_some() {
+                if self.deformer.has_pose_blend() {
                     // Only the weights are fitted: the pose-blend head gets no gradient.
                     rec.fill(self.deformation.head_grad(1), 0);
                 }
-                self.triplane.record_forward(&mut rec, &self.means, &self.features, n)?;
-                self.deformation.record_forward(&mut rec, &self.features, n)?;
+                self.deformer.record_weights_forward(&mut rec, self.params())?;
                 rec.dispatch(
                     "fit.weight_mse",
                     kernels::train::MseGrad {
@@ -462,8 +337,7 @@ impl HumanLayer {
                     flat_grid(p.len),
                 )?;
                 if step < steps {
-                    self.deformation.record_backward(&mut rec, &self.features, n, Some(&self.grad_features), false)?;
-                    self.triplane.record_backward(&mut rec, &self.means, &self.grad_features, &self.grad_points, n, self.accumulation)?;
+                    self.deformer.record_weights_backward(&mut rec, self.params())?;
                     deformation_adam.record_step(&mut rec, &self.deformation.params, &self.deformation.grads)?;
                     triplane_adam.record_step(&mut rec, &self.triplane.planes, &self.triplane.grads)?;
                 }
@@ -558,12 +432,6 @@ impl HumanLayer {
             g.restore(ctx, &a.m, &a.v, a.step)?;
         }
         Ok(())
-    }
-
-    /// The posed Gaussians of the last forward pass, read back.
-    pub fn read_posed(&mut self, ctx: &Context) -> Result<GaussianCloud> {
-        let layers = vec![Layer::Body; self.count as usize];
-        self.posed.download(ctx, &layers)
     }
 }
 

@@ -262,7 +262,7 @@ impl Avatar {
         let mut first = 0;
         for l in &self.layers {
             // Each buffer's slice of this layer starts at `first` Gaussians.
-            Self::record_move(rec, &l.posed, &self.posed, first, l.count, false)?;
+            Self::record_move(rec, &l.deformer.posed, &self.posed, first, l.count, false)?;
             first += l.count;
         }
         if let Some(s) = &self.scene {
@@ -284,7 +284,7 @@ impl Avatar {
     pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         let mut first = 0;
         for l in &self.layers {
-            Self::record_move(rec, &l.posed_grads, &self.posed_grads, first, l.count, true)?;
+            Self::record_move(rec, &l.deformer.posed_grads, &self.posed_grads, first, l.count, true)?;
             first += l.count;
         }
         if let Some(s) = &self.scene {
@@ -347,16 +347,16 @@ impl Avatar {
     /// and no submission of their own).
     pub fn record_set_frame<'a>(&'a self, rec: &mut Recording<'a>, frame: &FrameTransforms) {
         for l in &self.layers {
-            rec.update(&l.transforms, &frame.transforms);
-            rec.update(&l.pose_features, &frame.pose_features);
+            rec.update(&l.deformer.transforms, &frame.transforms);
+            rec.update(&l.deformer.pose_features, &frame.pose_features);
         }
     }
 
     /// Writes the frame's transforms and pose features into every layer.
     pub fn set_frame(&mut self, ctx: &Context, frame: &FrameTransforms) -> Result<()> {
         for l in &mut self.layers {
-            ctx.write_buffer(&mut l.transforms, &frame.transforms)?;
-            ctx.write_buffer(&mut l.pose_features, &frame.pose_features)?;
+            ctx.write_buffer(&mut l.deformer.transforms, &frame.transforms)?;
+            ctx.write_buffer(&mut l.deformer.pose_features, &frame.pose_features)?;
         }
         Ok(())
     }

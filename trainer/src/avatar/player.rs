@@ -163,12 +163,12 @@ impl AvatarPlayer {
         for k in 1..frames_in_flight {
             let mut a = build_avatar(ctx, &rig, &seq, &config, layers)?;
             a.restore(ctx, state.as_ref().expect("made for more than one slot"))?;
-            let r = AvatarRenderer::new(ctx, &a, width, height, config.compositing)?;
+            let r = AvatarRenderer::new(ctx, &a, width, height, config.layers.compositing)?;
             let rgba = ctx.create_buffer(&format!("player rgba {k}"), BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-            slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.compositing });
+            slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.layers.compositing });
         }
         let rgba = ctx.create_buffer("player rgba 0", BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-        slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.compositing });
+        slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.layers.compositing });
         let betas = crate::avatar::inputs::betas_of(&anchor);
         let transforms = rig.frame(&anchor.body);
         Ok(Self {

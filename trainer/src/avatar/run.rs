@@ -121,7 +121,7 @@ impl OpenRun {
         let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;
         let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         avatar.restore(ctx, &state)?;
-        let renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
+        let renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.layers.compositing)?;
         Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })
     }
 

@@ -4,8 +4,9 @@
 //!
 //! The layers: the body and, where the data shows garments, the cloth (`model`:
 //! triplane + decoders + learned skinning), rendered and composited as
-//! [`TrainConfig::compositing`] says (`composite`); where the data has a scene, the
-//! scene layer (`scene`) against the whole frame. The losses: 0.8 L1 + 0.2 (1 - SSIM)
+//! [`LayersConfig::compositing`](crate::avatar::config::LayersConfig::compositing) says
+//! (`composite`); where the data has a scene, the scene layer (`scene`) against the
+//! whole frame. The losses: 0.8 L1 + 0.2 (1 - SSIM)
 //! against the person masked onto a random background colour each step (HUGS), LPIPS
 //! where weights are given, and on the cloth layer the paper's cloth-LBS, simulation
 //! (Chamfer + Geman–McClure to the garments simulated through the sequence's motion),
@@ -103,15 +104,15 @@ fn json_value(value: &impl serde::Serialize) -> serde_json::Value {
 
 /// Trains on `seq` into the run directory `out`: a new one (it must not exist, or be
 /// empty), or with `resume` the run's last checkpoint (`out/checkpoint.npz`), continued
-/// to `config.steps`. The step's frame and background come from `(seed, step)`, so a
+/// to `config.schedule.steps`. The step's frame and background come from `(seed, step)`, so a
 /// resumed run samples what the uninterrupted one would have.
 pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
-    train_until(ctx, seq, model, config, out, resume, config.steps, progress)
+    train_until(ctx, seq, model, config, out, resume, config.schedule.steps, progress)
 }
 
-/// [`train`], stopping after step `stop_at` (at most `config.steps`) as if the run
+/// [`train`], stopping after step `stop_at` (at most `config.schedule.steps`) as if the run
 /// had been interrupted there: the checkpoint is written, the schedules still run to
-/// `config.steps`, and a later `resume` continues as the uninterrupted run would.
+/// `config.schedule.steps`, and a later `resume` continues as the uninterrupted run would.
 #[allow(clippy::too_many_arguments)]
 pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
     let never = AtomicBool::new(false);
@@ -138,7 +139,7 @@ pub enum Outcome {
 /// of an unfinished run.
 #[allow(clippy::too_many_arguments)]
 pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
-    run(ctx, seq, model, config, out, resume, config.steps, info, interrupt, progress)
+    run(ctx, seq, model, config, out, resume, config.schedule.steps, info, interrupt, progress)
 }
 
 /// The marker a finished run holds (its command run again has nothing to do).
@@ -249,7 +250,7 @@ impl SkipGuard {
 fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut PoseRefiner, s: &Sample<'_>, step: u32) -> crate::Result<Option<serde_json::Value>> {
     let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
     for l in &mut avatar.layers {
-        for (g, v) in grad.iter_mut().zip(l.read_transform_grad(ctx)?) {
+        for (g, v) in grad.iter_mut().zip(l.deformer.read_transform_grad(ctx)?) {
             *g += v;
         }
     }
@@ -307,7 +308,7 @@ fn densify_layers(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, step
 }
 
 fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
-    let stop_at = stop_at.min(config.steps);
+    let stop_at = stop_at.min(config.schedule.steps);
     config.validate()?;
     let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
     if train_frames.is_empty() {
@@ -319,8 +320,8 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
     }
     // LPIPS where the run has weights: read before the run directory is made, so a
     // wrong path leaves nothing behind.
-    let lpips_weights = match &config.lpips_weights {
-        Some(path) => Some(LpipsWeights::load(path, config.lpips_net)?),
+    let lpips_weights = match &config.losses.lpips_weights {
+        Some(path) => Some(LpipsWeights::load(path, config.losses.lpips_net)?),
         None => None,
     };
     let checkpoint_path = out.join("checkpoint.npz");
@@ -371,14 +372,14 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     // With a scene layer the avatar is trained and judged on the whole image; without
     // one, on the person over a background colour.
     let whole_image = avatar.scene.is_some();
-    let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.compositing)?;
+    let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.layers.compositing)?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
     let mut cloth_losses = cloth_losses_of(ctx, &avatar, &rig, seq, config, (width, height), progress)?;
 
     // 1. The deformation decoder learns the body's skinning weights (or the run's
     //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
-    let mut refiner = config.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.lr_pose), f64::from(config.lr_translation)));
+    let mut refiner = config.schedule.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.schedule.lr_pose), f64::from(config.schedule.lr_translation)));
     let (start_step, fit_mse) = if resume {
         let step = resume_from(ctx, &checkpoint_path, config, &mut avatar, refiner.as_mut())?;
         // The checkpoint's layers may have been densified to other counts.
@@ -406,7 +407,7 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         checkpoint_path: &checkpoint_path, log_path: &log_path, log: &mut log,
         avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), refiner: refiner.as_mut(),
         image_losses: image_losses_of(ctx, config, lpips_weights.as_ref(), (width, height))?, buffers: StepBuffers::new(ctx, width, height)?,
-        skips: SkipGuard::new(config.max_skipped_steps), waits: HostWaits::default(), lap: Lap::new(ctx, profiling),
+        skips: SkipGuard::new(config.schedule.max_skipped_steps), waits: HostWaits::default(), lap: Lap::new(ctx, profiling),
         t_train: Instant::now(), start_step, stop_at,
     };
     if let Some(step) = run.steps(interrupt, progress)? {
@@ -430,11 +431,11 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         export_posed_layers(ctx, &mut avatar, &rig, f, out)?;
         render_novel_pose(ctx, &mut avatar, &mut renderer, &rig, f, &settings, out, (width, height))?;
     }
-    let fit = FitSummary { fit_steps: config.fit_steps, fit_mse, fit_seconds };
+    let fit = FitSummary { fit_steps: config.schedule.fit_steps, fit_mse, fit_seconds };
     let report = TrainReport::new(seq.layout, avatar.counts(), fit, loop_, initial, fin);
     write_json(&out.join("metrics.json"), &report)?;
-    if stop_at == config.steps {
-        mark_complete(out, config.steps)?;
+    if stop_at == config.schedule.steps {
+        mark_complete(out, config.schedule.steps)?;
     }
     Ok(Outcome::Finished(Box::new(report)))
 }
@@ -509,7 +510,7 @@ impl StepLoop<'_> {
     fn train_step(&mut self, step: u32, s: &Sample<'_>) -> crate::Result<(StepOutcome, u32)> {
         let dc = &self.config.densify;
         // Statistics are gathered from the step after one densification up to the next.
-        let screen_stats = dc.every > 0 && step < dc.until.min(self.config.steps.saturating_sub(1));
+        let screen_stats = dc.every > 0 && step < dc.until.min(self.config.schedule.steps.saturating_sub(1));
         let mut attempts = 0;
         loop {
             attempts += 1;
@@ -540,21 +541,21 @@ impl StepLoop<'_> {
         }
         self.lap.host("host.pose_gradient");
         let config = self.config;
-        let logging = step % config.log_every.max(1) == 0 || step + 1 == self.stop_at;
+        let logging = step % config.schedule.log_every.max(1) == 0 || step + 1 == self.stop_at;
         if logging {
             let seconds = self.t_train.elapsed().as_secs_f64();
             let (line, l1, psnr) = log_line(self.ctx, &mut self.image_losses, self.cloth_losses.as_deref_mut(), self.avatar, self.refiner.as_deref(), step, s.frame.frame, seconds)?;
             self.log_line(&line)?;
             let it_per_s = f64::from(step + 1 - self.start_step) / seconds.max(1e-9);
-            progress(Progress::Step { step: step + 1, total: config.steps, l1, psnr, it_per_s });
+            progress(Progress::Step { step: step + 1, total: config.schedule.steps, l1, psnr, it_per_s });
         }
         self.lap.host("host.log");
-        let densified = config.densify.due(step + 1) && step + 1 < config.steps;
+        let densified = config.densify.due(step + 1) && step + 1 < config.schedule.steps;
         if densified {
             self.densify(step, s.transforms.log_scale, progress)?;
             self.lap.host("host.densify");
         }
-        let checkpointing = config.checkpoint_every > 0 && (step + 1) % config.checkpoint_every == 0 && step + 1 < self.stop_at;
+        let checkpointing = config.schedule.checkpoint_every > 0 && (step + 1) % config.schedule.checkpoint_every == 0 && step + 1 < self.stop_at;
         if checkpointing {
             self.save(step + 1, self.checkpoint_path)?;
         }
@@ -584,20 +585,20 @@ impl StepLoop<'_> {
 }
 
 /// The image losses with the config's weights; LPIPS joins where there are weights and
-/// `lambda_lpips` is not 0.
+/// `losses.lambda_lpips` is not 0.
 fn image_losses_of(ctx: &Context, config: &TrainConfig, lpips_weights: Option<&LpipsWeights>, (width, height): (u32, u32)) -> crate::Result<ImageLosses> {
     let lpips = match lpips_weights {
-        Some(w) if config.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
+        Some(w) if config.losses.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
         _ => None,
     };
-    let weights = ImageLossWeights { l1: config.lambda_l1, ssim: config.lambda_ssim, lpips: config.lambda_lpips };
+    let weights = ImageLossWeights { l1: config.losses.lambda_l1, ssim: config.losses.lambda_ssim, lpips: config.losses.lambda_lpips };
     Ok(ImageLosses::new(ctx, width, height, weights, lpips)?)
 }
 
 /// The renderer for the avatar's current counts, and the cloth losses resized to them
 /// (after a checkpoint or a densification changed the counts).
 fn renderer_for(ctx: &Context, avatar: &Avatar, cloth_losses: Option<&mut ClothLosses>, config: &TrainConfig, (width, height): (u32, u32)) -> crate::Result<AvatarRenderer> {
-    let renderer = AvatarRenderer::new(ctx, avatar, width, height, config.compositing)?;
+    let renderer = AvatarRenderer::new(ctx, avatar, width, height, config.layers.compositing)?;
     if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
         c.resize(ctx, cloth)?;
         c.set_mask_in_composite(renderer.is_three_pass());
@@ -646,9 +647,9 @@ impl TrainReport {
 /// them: their physics targets are the garments simulated through the sequence's motion.
 fn cloth_losses_of(ctx: &Context, avatar: &Avatar, rig: &Rig, seq: &Sequence, config: &TrainConfig, (width, height): (u32, u32), progress: &mut dyn FnMut(Progress)) -> crate::Result<Option<ClothLosses>> {
     match avatar.cloth() {
-        Some(cloth) if config.lambda_sim > 0.0 || config.lambda_arap > 0.0 || config.lambda_mask > 0.0 => {
-            let garments = cloth_target::simulate_sequence(rig, config.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
-            let weights = ClothLossWeights { sim: config.lambda_sim, gm_sigma: config.gm_sigma, arap: config.lambda_arap, mask: config.lambda_mask, target_stride: config.decimate };
+        Some(cloth) if config.losses.lambda_sim > 0.0 || config.losses.lambda_arap > 0.0 || config.losses.lambda_mask > 0.0 => {
+            let garments = cloth_target::simulate_sequence(rig, config.layers.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
+            let weights = ClothLossWeights { sim: config.losses.lambda_sim, gm_sigma: config.losses.gm_sigma, arap: config.losses.lambda_arap, mask: config.losses.lambda_mask, target_stride: config.layers.decimate };
             Ok(Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?))
         }
         _ => Ok(None),
@@ -659,8 +660,8 @@ fn cloth_losses_of(ctx: &Context, avatar: &Avatar, rig: &Rig, seq: &Sequence, co
 /// the step it was taken at.
 fn resume_from(ctx: &Context, checkpoint_path: &Path, config: &TrainConfig, avatar: &mut Avatar, refiner: Option<&mut PoseRefiner>) -> crate::Result<u32> {
     let state = checkpoint::read(checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
-    if state.step > config.steps {
-        return Err(TrainerError::checkpoint(checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.steps)));
+    if state.step > config.schedule.steps {
+        return Err(TrainerError::checkpoint(checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.schedule.steps)));
     }
     avatar.restore(ctx, &state)?;
     if let (Some(r), Some(p)) = (refiner, state.poses) {
@@ -672,11 +673,11 @@ fn resume_from(ctx: &Context, checkpoint_path: &Path, config: &TrainConfig, avat
 /// Fits every layer's deformation decoder to the body's skinning weights; the worst
 /// layer's final mean squared error.
 fn fit_skinning_weights(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, progress: &mut dyn FnMut(Progress)) -> crate::Result<f64> {
-    let total = config.fit_steps;
+    let total = config.schedule.fit_steps;
     let mut worst = 0.0f64;
     for l in &mut avatar.layers {
         let name = l.name.clone();
-        let mse = l.fit_skinning_weights(ctx, total, config.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total, mse }))?;
+        let mse = l.fit_skinning_weights(ctx, total, config.schedule.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total, mse }))?;
         worst = worst.max(mse);
     }
     Ok(worst)

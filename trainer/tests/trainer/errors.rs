@@ -25,19 +25,22 @@ fn action(e: &TrainerError) -> &'static str {
     }
 }
 
+/// The quick preset with the value at `key` (dotted: `layers.compositing`) replaced.
 fn config_with(key: &str, value: serde_json::Value) -> drape_trainer::Result<TrainConfig> {
     let mut json = serde_json::to_value(TrainConfig::quick()).expect("a config serialises");
-    json[key] = value;
+    let slot = key.split('.').fold(&mut json, |v, k| &mut v[k]);
+    assert!(!slot.is_null(), "{key} is a key of the config");
+    *slot = value;
     TrainConfig::from_deserializer(json)
 }
 
 #[test]
 fn a_config_choice_error_names_the_key_and_the_values_it_takes() {
     for (key, value, allowed) in [
-        ("compositing", "blended", "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion"),
-        ("layers", "cloth+body", "body+cloth+scene"),
-        ("cloth_fit", "baggy", "`tight`"),
-        ("lpips_net", "squeeze", "`alex`"),
+        ("layers.compositing", "blended", "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion"),
+        ("layers.choice", "cloth+body", "body+cloth+scene"),
+        ("layers.cloth_fit", "baggy", "`tight`"),
+        ("losses.lpips_net", "squeeze", "`alex`"),
         ("preset", "fast", "`quick`"),
     ] {
         let e = config_with(key, value.into()).expect_err(key);
@@ -51,12 +54,12 @@ fn a_config_choice_error_names_the_key_and_the_values_it_takes() {
         assert_eq!(action(&e), "fix the setting");
     }
     // A range checked after deserialising names its key too.
-    let e = config_with("decimate", 0.into()).expect_err("decimate 0");
-    assert!(matches!(&e, TrainerError::Config { key, .. } if key == "decimate"), "{e:?}");
+    let e = config_with("layers.decimate", 0.into()).expect_err("decimate 0");
+    assert!(matches!(&e, TrainerError::Config { key, .. } if key == "layers.decimate"), "{e:?}");
     // Each choice round-trips through its serde form.
     for c in Compositing::ALL {
-        let back = config_with("compositing", c.name().into()).expect("a named compositing");
-        assert_eq!(back.compositing, c);
+        let back = config_with("layers.compositing", c.name().into()).expect("a named compositing");
+        assert_eq!(back.layers.compositing, c);
     }
 }
 
@@ -88,7 +91,7 @@ fn a_gpu_failure_is_told_apart_from_a_config_error() {
         assert_eq!(action(e), "retry on another device", "{e:?}");
     }
     assert!(matches!(lost.engine(), Some(EngineError::DeviceLost { pass }) if pass == "splat.raster_fwd"));
-    let config = config_with("compositing", "blended".into()).unwrap_err();
+    let config = config_with("layers.compositing", "blended".into()).unwrap_err();
     assert!(config.engine().is_none());
     assert_ne!(action(&config), action(&lost));
 }

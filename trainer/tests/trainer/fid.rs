@@ -1,4 +1,4 @@
-//! FID (`drape_trainer::avatar::fid`) against pytorch-fid's definitions, through
+//! FID (`drape_trainer::metrics::fid`) against pytorch-fid's definitions, through
 //! `tests/python/fid_reference.py` in the environment `scripts/torch-env.sh` makes:
 //! the FID Inception's pool3 features against the same network in PyTorch (torchvision's
 //! Inception-v3 with pytorch-fid's FID blocks, built by `scripts/fid-to-safetensors.py`,
@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use drape_tests::num::{to_f32, uniform};
 use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::test_picture;
-use drape_trainer::avatar::fid::{frechet_distance, frechet_distance_of_features, FidInception, ImageRef, Statistics, FEATURE_DIM};
+use drape_trainer::metrics::fid::{frechet_distance, frechet_distance_of_features, FidInception, ImageRef, Statistics, FEATURE_DIM};
 
 fn converter() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/fid-to-safetensors.py")

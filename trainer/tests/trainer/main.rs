@@ -5,6 +5,7 @@
 mod body;
 mod cloth;
 mod composite;
+mod config_layout;
 mod datasets;
 mod distortion;
 mod embedding;

@@ -681,3 +681,17 @@ fn comments_strings_and_inline_test_modules_make_no_edge() {
     assert!(has_edge(&graph, &["a"], &["b"]));
     assert!(graph.cycles().is_empty(), "{:?}", graph.edges);
 }
+
+#[test]
+fn the_metrics_name_no_module_of_the_avatar() {
+    let graph = ModuleGraph::build(&trainer_sources());
+    let metrics: Vec<&ModPath> = graph.edges.keys().filter(|m| m.first().is_some_and(|s| s == "metrics")).collect();
+    assert_eq!(metrics.len(), 3, "metrics, metrics::fid, metrics::fid_weights: {metrics:?}");
+    // The reader sees the metrics' known edges, so an empty graph cannot pass.
+    assert!(has_edge(&graph, &["metrics", "fid"], &["metrics", "fid_weights"]));
+    for m in metrics {
+        for (to, site) in &graph.edges[m] {
+            assert!(to.first().is_none_or(|s| s != "avatar"), "{} names {} ({}:{}): a metric knows no avatar", join(m), join(to), site.file, site.line);
+        }
+    }
+}

@@ -48,24 +48,24 @@ fn runs() -> &'static [PathBuf; 2] {
         let seq = load_sequence(data(), 0).expect("sequence");
         [1u64, 2].map(|seed| {
             let mut c = TrainConfig::quick();
-            c.decimate = 6;
-            c.body.triplane_resolution = 16;
-            c.body.triplane_channels = 8;
-            c.cloth.triplane_resolution = 16;
-            c.cloth.triplane_channels = 8;
-            c.body.decoder_width = 32;
-            c.cloth.decoder_width = 32;
-            c.fit_steps = 20;
-            c.steps = 30;
-            c.log_every = 10;
+            c.layers.decimate = 6;
+            c.layers.body.triplane_resolution = 16;
+            c.layers.body.triplane_channels = 8;
+            c.layers.cloth.triplane_resolution = 16;
+            c.layers.cloth.triplane_channels = 8;
+            c.layers.body.decoder_width = 32;
+            c.layers.cloth.decoder_width = 32;
+            c.schedule.fit_steps = 20;
+            c.schedule.steps = 30;
+            c.schedule.log_every = 10;
             c.seed = seed;
-            c.layers = LayerChoice::parse("body+cloth").unwrap();
+            c.layers.choice = LayerChoice::parse("body+cloth").unwrap();
             // Densified twice and with pose-dependent offsets, so that opening a run
             // (eval, animate, edit) meets layers of counts other than their initial
             // ones and the pose-blend head.
             c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 10, from: 10, until: 20, grad_threshold: 2e-5, ..c.densify.clone() };
-            c.body.pose_offsets = true;
-            c.cloth.pose_offsets = true;
+            c.layers.body.pose_offsets = true;
+            c.layers.cloth.pose_offsets = true;
             let out = tmp(&format!("run-tools-run{seed}"));
             train(&ctx, &seq, default_body(&BodyOptions::default()), &c, &out, false, &mut |_| {}).expect("training");
             RunInfo::new(data(), None).write(&out).expect("run.json");

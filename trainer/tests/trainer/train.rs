@@ -39,15 +39,15 @@ fn data() -> &'static PathBuf {
 /// Gaussians, 32 × 32 × 8 triplanes, 60 fitting and 60 training steps.
 fn tiny_config() -> TrainConfig {
     let mut c = TrainConfig::quick();
-    c.decimate = 4;
-    c.body.triplane_resolution = 32;
-    c.body.triplane_channels = 8;
-    c.cloth.triplane_resolution = 32;
-    c.cloth.triplane_channels = 8;
-    c.fit_steps = 60;
-    c.fit_lr = 3e-3;
-    c.steps = 60;
-    c.log_every = 10;
+    c.layers.decimate = 4;
+    c.layers.body.triplane_resolution = 32;
+    c.layers.body.triplane_channels = 8;
+    c.layers.cloth.triplane_resolution = 32;
+    c.layers.cloth.triplane_channels = 8;
+    c.schedule.fit_steps = 60;
+    c.schedule.fit_lr = 3e-3;
+    c.schedule.steps = 60;
+    c.schedule.log_every = 10;
     c
 }
 
@@ -180,9 +180,9 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
     // 80 steps at three times HUGS's triplane and decoder rates (3e-3: a short run's
     // rates; the presets keep HUGS's 1e-3).
     let mut config = tiny_config();
-    config.layers = LayerChoice::parse("body+cloth").unwrap();
-    config.steps = 80;
-    for layer in [&mut config.body, &mut config.cloth] {
+    config.layers.choice = LayerChoice::parse("body+cloth").unwrap();
+    config.schedule.steps = 80;
+    for layer in [&mut config.layers.body, &mut config.layers.cloth] {
         layer.lr_triplane = 3e-3;
         layer.lr_decoders = 3e-3;
     }
@@ -251,7 +251,7 @@ fn the_layers_follow_the_data() {
     let zju = load_sequence(&data().join("zju"), 0).expect("ZJU");
     let choose = |seq, layers: &str| {
         let mut c = tiny_config();
-        c.layers = LayerChoice::parse(layers).unwrap();
+        c.layers.choice = LayerChoice::parse(layers).unwrap();
         choose_layers(seq, &c).map(|l| (l.cloth, l.scene)).map_err(|e| e.to_string())
     };
     // NeuMan: garment masks and an unmasked scene with sparse points; ZJU-MoCap
@@ -278,12 +278,12 @@ fn scene_layer_trains_on_the_whole_frame() {
     // Every layer: the paper's three passes with a matte in which the scene hides the
     // cloth; each layer at its own SH degree (the scene at 3DGS's 3, the cloth at 1,
     // the body at HUGS's 0), rendered together at the highest.
-    config.layers = LayerChoice::parse("body+cloth+scene").unwrap();
-    config.scene.sh_degree = 3;
-    config.cloth.sh_degree = 1;
-    config.decimate = 8;
-    config.fit_steps = 10;
-    config.steps = 30;
+    config.layers.choice = LayerChoice::parse("body+cloth+scene").unwrap();
+    config.layers.scene.sh_degree = 3;
+    config.layers.cloth.sh_degree = 1;
+    config.layers.decimate = 8;
+    config.schedule.fit_steps = 10;
+    config.schedule.steps = 30;
     let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
     eprintln!("scene run: held-out whole-frame PSNR {:.2} -> {:.2} dB, crop {:.2} -> {:.2} dB; {:?}", report.initial.psnr_full, report.fin.psnr_full, report.initial.psnr_crop, report.fin.psnr_crop, report.gaussians);
     let names: Vec<&str> = report.gaussians.iter().map(|(n, _)| n.as_str()).collect();
@@ -306,7 +306,7 @@ fn scene_layer_trains_on_the_whole_frame() {
     };
     let cloth_appearance = arrays["cloth.appearance"].data.len();
     let body_appearance = arrays["body.appearance"].data.len();
-    assert_eq!((cloth_appearance, body_appearance), (appearance_len(&config.cloth), appearance_len(&config.body)), "appearance decoder sizes (cloth, body) in floats");
+    assert_eq!((cloth_appearance, body_appearance), (appearance_len(&config.layers.cloth), appearance_len(&config.layers.body)), "appearance decoder sizes (cloth, body) in floats");
     assert!(cloth_appearance > body_appearance, "the cloth's SH head is wider");
     let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it").to_string();
     assert!(err.contains("scene layer"), "{err}");
@@ -327,13 +327,13 @@ fn fused_compositing_trains_as_the_three_passes_do() {
         let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("train-test-{compositing}"));
         let _ = std::fs::remove_dir_all(&out);
         let mut config = tiny_config();
-        config.layers = LayerChoice::parse("body+cloth+scene").unwrap();
-        config.compositing = Compositing::parse(compositing).unwrap();
+        config.layers.choice = LayerChoice::parse("body+cloth+scene").unwrap();
+        config.layers.compositing = Compositing::parse(compositing).unwrap();
         config.deterministic = true;
-        config.decimate = 8;
-        config.fit_steps = 10;
-        config.steps = 6;
-        config.log_every = 1;
+        config.layers.decimate = 8;
+        config.schedule.fit_steps = 10;
+        config.schedule.steps = 6;
+        config.schedule.log_every = 1;
         let mut l1 = Vec::new();
         train(&ctx, &seq, model().clone(), &config, &out, false, &mut |p| {
             if let Progress::Step { l1: v, .. } = p {
@@ -368,7 +368,7 @@ fn body_layer_trains_on_the_zju_layout() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-zju-run");
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
-    config.steps = 20;
+    config.schedule.steps = 20;
     let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
     eprintln!("ZJU held-out PSNR {:.2} -> {:.2} dB", report.initial.psnr_full, report.fin.psnr_full);
     assert_eq!(report.fin.frames, 10, "one held-out camera of two, ten frames");
@@ -381,15 +381,15 @@ fn body_layer_trains_on_the_zju_layout() {
 /// Fast settings for the checkpoint tests (quality is not the point).
 fn resume_config(steps: u32) -> TrainConfig {
     let mut c = tiny_config();
-    c.decimate = 8;
-    c.fit_steps = 5;
-    c.steps = steps;
-    c.log_every = 5;
-    c.checkpoint_every = 10;
+    c.layers.decimate = 8;
+    c.schedule.fit_steps = 5;
+    c.schedule.steps = steps;
+    c.schedule.log_every = 5;
+    c.schedule.checkpoint_every = 10;
     // Every layer, in the deterministic mode: without it, the scene layer's Adam turns
     // the float-atomic noise in its near-zero gradients into full-size steps (1e-2
     // apart after 20 steps).
-    c.layers = LayerChoice::parse("body+cloth+scene").unwrap();
+    c.layers.choice = LayerChoice::parse("body+cloth+scene").unwrap();
     c.deterministic = true;
     // Densified and pruned after steps 4, 8, 12 and 16: two events on each side of the
     // checkpoint at 10, the statistics of 9-12 spanning it. The thresholds are set so
@@ -472,7 +472,7 @@ fn resume_continues_from_the_checkpoint() {
     // A checkpoint of another model (a different triplane) is refused, naming the array.
     std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
-    other.body.triplane_resolution = 16;
+    other.layers.body.triplane_resolution = 16;
     let err = train(&ctx, &seq, model().clone(), &other, &split, true, &mut |_| {}).err().expect("other model refused");
     assert!(matches!(err, TrainerError::Checkpoint { .. }), "{err:?}");
     let err = err.to_string();
@@ -513,11 +513,11 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-pose-refine");
     let _ = std::fs::remove_dir_all(&out);
     let mut c = tiny_config();
-    c.layers = LayerChoice::parse("body").unwrap();
-    c.decimate = 6;
-    c.steps = 96;
-    c.lr_pose = 2e-2;
-    c.lr_translation = 1e-2;
+    c.layers.choice = LayerChoice::parse("body").unwrap();
+    c.layers.decimate = 6;
+    c.schedule.steps = 96;
+    c.schedule.lr_pose = 2e-2;
+    c.schedule.lr_translation = 1e-2;
     train(&ctx, &seq, model().clone(), &c, &out, false, &mut |_| {}).expect("training");
     let poses = checkpoint::read(&out.join("model.npz"), &[], None).expect("model").poses.expect("refined poses saved");
     assert_eq!(poses.deltas.len(), 8, "one correction per training frame");
@@ -566,7 +566,7 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
         poison(f);
     }
     let mut config = resume_config(30);
-    config.max_skipped_steps = 3;
+    config.schedule.max_skipped_steps = 3;
     let err = train(&ctx, &seq, model().clone(), &config, &base.join("all"), false, &mut |_| {}).err().expect("the run stops");
     assert!(matches!(err, TrainerError::Numeric { stage: "training", .. }), "{err:?}");
     let err = err.to_string();
@@ -592,10 +592,10 @@ fn a_training_step_waits_on_the_host_once() {
     let _ = std::fs::remove_dir_all(&base);
     for compositing in ["three-pass", "fused", "single-pass"] {
         let mut config = resume_config(10);
-        config.checkpoint_every = 0;
+        config.schedule.checkpoint_every = 0;
         config.densify.until = 4;
-        config.compositing = Compositing::parse(compositing).unwrap();
-        assert!(config.refine_pose && config.lambda_mask > 0.0, "the quick preset's pose refiner and mask loss are on");
+        config.layers.compositing = Compositing::parse(compositing).unwrap();
+        assert!(config.schedule.refine_pose && config.losses.lambda_mask > 0.0, "the quick preset's pose refiner and mask loss are on");
         let report = train(&ctx, &seq, model().clone(), &config, &base.join(compositing), false, &mut |_| {}).expect("train");
         let w = report.host_waits;
         assert!(w.plain_steps >= 4, "{compositing}: {w:?}");

@@ -53,7 +53,7 @@ const HANG_SECONDS: u64 = 60;
 const TABLE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/hostile/cases.txt");
 
 /// The training configuration dataset cases train with (they fail before training).
-const TINY: &str = "steps = 2\nfit_steps = 2\ndecimate = 6\ncheckpoint_every = 1\nlog_every = 1\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n";
+const TINY: &str = "[schedule]\nsteps = 2\nfit_steps = 2\ncheckpoint_every = 1\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n";
 
 /// One directory per test process, so that two runs never share fixtures.
 fn root() -> PathBuf {

@@ -75,14 +75,21 @@ fn bad_configs_name_the_file_and_field() {
     let data = d.join("data");
     let out = d.join("run");
     let cases = [
-        ("typo.toml", "steps = 10\n[body]\nlr_positon = 1e-4\n", "body.lr_positon"),
-        ("negative.toml", "[body]\nlr_triplane = -1e-3\n", "body.lr_triplane"),
-        ("wrong-type.toml", "steps = \"many\"\n", "steps"),
-        ("zero-width.toml", "[cloth]\ndecoder_width = 0\n", "cloth.decoder_width"),
-        ("compositing.toml", "compositing = \"blended\"\n", "compositing"),
-        ("sh.toml", "[scene]\nsh_degree = 4\n", "scene.sh_degree"),
-        ("fit.toml", "cloth_fit = \"baggy\"\n", "cloth_fit"),
-        ("broken.toml", "steps = \n", "broken.toml"),
+        ("typo.toml", "[schedule]\nsteps = 10\n[layers.body]\nlr_positon = 1e-4\n", "layers.body.lr_positon"),
+        ("negative.toml", "[layers.body]\nlr_triplane = -1e-3\n", "layers.body.lr_triplane"),
+        ("wrong-type.toml", "[schedule]\nsteps = \"many\"\n", "schedule.steps"),
+        ("zero-width.toml", "[layers.cloth]\ndecoder_width = 0\n", "layers.cloth.decoder_width"),
+        ("compositing.toml", "[layers]\ncompositing = \"blended\"\n", "layers.compositing"),
+        ("sh.toml", "[layers.scene]\nsh_degree = 4\n", "layers.scene.sh_degree"),
+        ("fit.toml", "[layers]\ncloth_fit = \"baggy\"\n", "layers.cloth_fit"),
+        ("broken.toml", "[schedule]\nsteps = \n", "broken.toml"),
+        ("group.toml", "[loss]\nlambda_l1 = 1\n", "loss"),
+        // A file of the flat layout (before the groups) still reads; its errors name the
+        // grouped key, and a key given in both layouts is refused.
+        ("flat-typo.toml", "steps = 10\n[body]\nlr_positon = 1e-4\n", "layers.body.lr_positon"),
+        ("flat-wrong-type.toml", "steps = \"many\"\n", "schedule.steps"),
+        ("flat-compositing.toml", "compositing = \"blended\"\n", "layers.compositing"),
+        ("twice.toml", "decimate = 2\n[layers]\ndecimate = 3\n", "layers.decimate"),
     ];
     for (name, text, field) in cases {
         let path = d.join(name);
@@ -97,6 +104,45 @@ fn bad_configs_name_the_file_and_field() {
     assert!(e.contains("missing.toml"), "{e}");
 }
 
+/// A run directory whose `config.json` is of the flat layout before the config's groups
+/// (`trainer/tests/fixtures/flat-config-tiny`, written by `drape train` at 860a1e7 with
+/// the `train.toml` beside it) resumes with the same bits as the same run with its
+/// grouped `config.json`, and `drape eval` opens it.
+#[test]
+fn a_run_whose_config_json_is_of_the_flat_layout_resumes_and_evaluates_as_a_grouped_one() {
+    let d = dir("flat-config");
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../trainer/tests/fixtures/flat-config-tiny");
+    let data = d.join("data");
+    let o = drape(&["synth", "--out", data.to_str().unwrap(), "--size", "32", "--frames", "4", "--cameras", "1", "--samples", "1", "--fit", "loose"]);
+    assert!(o.status.success(), "synth: {}", String::from_utf8_lossy(&o.stderr));
+    let grouped = d.join("grouped");
+    let o = drape(&["train", "--data", data.to_str().unwrap(), "--out", grouped.to_str().unwrap(), "--config", fixture.join("train.toml").to_str().unwrap(), "--deterministic"]);
+    assert!(o.status.success(), "train: {}", String::from_utf8_lossy(&o.stderr));
+    let written: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(grouped.join("config.json")).unwrap()).unwrap();
+    assert!(written.get("steps").is_none() && written["schedule"]["steps"] == 4, "a run writes the grouped layout: {written}");
+    // The same run, its config.json replaced by the one the flat layout's code wrote.
+    let flat = d.join("flat");
+    std::fs::create_dir_all(&flat).unwrap();
+    for entry in std::fs::read_dir(&grouped).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, flat.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    std::fs::copy(fixture.join("config.json"), flat.join("config.json")).unwrap();
+    for run in [&grouped, &flat] {
+        let o = drape(&["train", "--data", data.to_str().unwrap(), "--resume", run.to_str().unwrap(), "--steps", "6"]);
+        assert!(o.status.success(), "resume {}: {}", run.display(), String::from_utf8_lossy(&o.stderr));
+        assert!(String::from_utf8_lossy(&o.stdout).contains("resumed at step 4"), "{}", String::from_utf8_lossy(&o.stdout));
+    }
+    let (a, b) = (std::fs::read(grouped.join("model.npz")).unwrap(), std::fs::read(flat.join("model.npz")).unwrap());
+    assert!(a == b, "the run resumed from the flat config.json differs from the grouped one's");
+    assert_eq!(drape_trainer::npy::read_npz(&flat.join("model.npz")).unwrap()["step"].data, vec![6.0]);
+    let o = drape(&["eval", flat.to_str().unwrap(), "--out", d.join("eval").to_str().unwrap()]);
+    assert!(o.status.success(), "eval of the flat run: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(d.join("eval/eval.json").is_file());
+}
+
 /// A run SIGKILLed in the middle of writing a checkpoint resumes from the one before:
 /// the half-written temporary file never replaces it.
 #[test]
@@ -105,7 +151,7 @@ fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     let d = dir("sigkill");
     let data = synth_sequence(&d, "64", "8");
     let config = d.join("tiny.toml");
-    std::fs::write(&config, "steps = 12\nfit_steps = 10\ndecimate = 6\ncheckpoint_every = 4\nlog_every = 4\nlayers = \"body\"\n[body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
+    std::fs::write(&config, "[schedule]\nsteps = 12\nfit_steps = 10\ncheckpoint_every = 4\nlog_every = 4\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args(["train", "--data", data.to_str().unwrap(), "--out", run.to_str().unwrap(), "--config", config.to_str().unwrap()])
@@ -187,7 +233,7 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
     let data = synth_sequence(&d, "32", "8");
     let config = d.join("tiny.toml");
     // Densified after steps 6, 12 and 18.
-    std::fs::write(&config, "steps = 20\nfit_steps = 3\ndecimate = 6\ncheckpoint_every = 100\nlog_every = 1\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
+    std::fs::write(&config, "[schedule]\nsteps = 20\nfit_steps = 3\ncheckpoint_every = 100\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
     let train = |out: &Path| -> Vec<String> { ["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--config", config.to_str().unwrap(), "--deterministic"].map(String::from).to_vec() };
     let whole = d.join("whole");
     let o = Command::new(env!("CARGO_BIN_EXE_drape")).args(train(&whole)).output().unwrap();
@@ -252,7 +298,7 @@ fn a_second_sigterm_exits_at_once() {
     let d = dir("second-signal");
     let data = synth_sequence(&d, "32", "5");
     let config = d.join("slow-fit.toml");
-    std::fs::write(&config, "steps = 5\nfit_steps = 100000\ndecimate = 6\nlayers = \"body\"\n[body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
+    std::fs::write(&config, "[schedule]\nsteps = 5\nfit_steps = 100000\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args(["train", "--data", data.to_str().unwrap(), "--out", run.to_str().unwrap(), "--config", config.to_str().unwrap()])

@@ -40,8 +40,8 @@ use std::path::Path;
 use ndarray::linalg::general_mat_mul;
 use ndarray::{ArrayView2, ArrayViewMut2};
 
-pub use crate::avatar::fid_weights::FidWeightsError;
-use crate::avatar::fid_weights::SafeTensors;
+pub use crate::metrics::fid_weights::FidWeightsError;
+use crate::metrics::fid_weights::SafeTensors;
 use crate::TrainerError;
 
 /// Length of a feature vector (pool3).
