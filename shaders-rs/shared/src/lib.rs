@@ -10,15 +10,33 @@
 // The SH loops write `each_index!(16, ..)` for the 16 coefficients of degree 3.
 const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 
-/// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 9, 10, 11, 12,
+/// Runs `$body` for `$i` = 0..N, each a constant (N one of 2, 3, 4, 6, 8, 9, 10, 11, 12,
 /// 15, 16, 24, 32): no loop. llvmpipe does not unroll rust-gpu's loops, and a loop's
 /// counter indexing a local array is a dynamic index, which it turns into code that
 /// tries every element; constant indices cost nothing. Not everywhere: written out this
 /// way, the deformation's 24-joint loops come out wrong on llvmpipe 22.3 (posed means
 /// off by 1e19 against the CPU reference, `deform_gpu_matches_cpu_reference`), so they
 /// stay loops.
+///
+/// N may also be a const generic parameter of the enclosing function (an identifier,
+/// `each_index!(W, j => ..)`) whose value is 4, 8, 16 or 32: the body is then written
+/// once per count, and code is generated only for the count an instance of the function
+/// has (rustc drops the arms of a `match` on a constant after monomorphization; no
+/// branch reaches the SPIR-V). Inside, an index of an array of `W` elements is two
+/// constants, so no bounds check reaches the SPIR-V either: the kernels' generic tiles
+/// (`nn_cpu`) come out as their hand-unrolled forms did.
 #[macro_export]
 macro_rules! each_index {
+    ($n:ident, $i:ident => $body:block) => {{
+        const { assert!(matches!($n, 4 | 8 | 16 | 32), "each_index!: a const generic count must be 4, 8, 16 or 32") };
+        match $n {
+            4 => $crate::each_index!(4, $i => $body),
+            8 => $crate::each_index!(8, $i => $body),
+            16 => $crate::each_index!(16, $i => $body),
+            32 => $crate::each_index!(32, $i => $body),
+            _ => unreachable!(),
+        }
+    }};
     (2, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body }
     }};
@@ -31,6 +49,10 @@ macro_rules! each_index {
     (6, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
         { let $i: usize = 4; $body } { let $i: usize = 5; $body }
+    }};
+    (8, $i:ident => $body:block) => {{
+        { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
+        { let $i: usize = 4; $body } { let $i: usize = 5; $body } { let $i: usize = 6; $body } { let $i: usize = 7; $body }
     }};
     (9, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body } { let $i: usize = 2; $body } { let $i: usize = 3; $body }
