@@ -21,6 +21,7 @@
 //! `weight_norm_fwd`: `params` (read), `effective` (written); `weight_norm_bwd`:
 //! `params` (read), `grads` (read and written).
 
+use drape_shared::each_index;
 use drape_shared::nn::{
     activate, activate_bwd, gelu, gelu_grad, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams,
     GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
@@ -41,47 +42,39 @@ const PITCH: usize = TILE + 1;
 /// Side of the grid of invocations in a workgroup of `gemm_tiled` (16 × 16).
 const SIDE: u32 = GEMM_TILE / 4;
 
-/// The 4 × 4 multiply-adds of one step of `k`: rows `a0..a3` (the invocation's rows
-/// `ty + 16 i`) times columns `b0..b3` (`tx + 16 j`) into `acc[4 i + j]`, every index a
+/// The 4 × 4 multiply-adds of one step of `k`: rows `a[i]` (the invocation's rows
+/// `ty + 16 i`) times columns `b[j]` (`tx + 16 j`) into `acc[4 i + j]`, every index a
 /// constant so that the sums stay in registers.
-macro_rules! fma_4x4 {
-    ($acc:ident, $a:ident, $b:ident) => {{
-        $acc[0] += $a[0] * $b[0];
-        $acc[1] += $a[0] * $b[1];
-        $acc[2] += $a[0] * $b[2];
-        $acc[3] += $a[0] * $b[3];
-        $acc[4] += $a[1] * $b[0];
-        $acc[5] += $a[1] * $b[1];
-        $acc[6] += $a[1] * $b[2];
-        $acc[7] += $a[1] * $b[3];
-        $acc[8] += $a[2] * $b[0];
-        $acc[9] += $a[2] * $b[1];
-        $acc[10] += $a[2] * $b[2];
-        $acc[11] += $a[2] * $b[3];
-        $acc[12] += $a[3] * $b[0];
-        $acc[13] += $a[3] * $b[1];
-        $acc[14] += $a[3] * $b[2];
-        $acc[15] += $a[3] * $b[3];
-    }};
+#[inline]
+fn fma_4x4(mut acc: [f32; 16], a: [f32; 4], b: [f32; 4]) -> [f32; 16] {
+    each_index!(4, i => {
+        each_index!(4, j => {
+            acc[4 * i + j] += a[i] * b[j];
+        });
+    });
+    acc
 }
 
-/// Stores `acc[4 i + j]` at (row `m0 + 16 i`, column `n0 + 16 j`) where it lies inside
-/// `C`, adding the bias or what `C` holds as the flags say.
-macro_rules! store_4x4 {
-    ($acc:ident, $p:ident, $c:ident, $bias:ident, $base:expr, $m0:expr, $n0:expr, $i:expr, $j:expr) => {{
-        let (m, n) = ($m0 + 16 * $i, $n0 + 16 * $j);
-        if m < $p.m && n < $p.n {
-            let at = ($base + m * $p.ldc + n) as usize;
-            let mut v = $acc[4 * $i + $j];
-            if $p.flags & GEMM_BIAS != 0 {
-                v += $bias[($p.bias_off + n) as usize];
+/// Stores `acc[4 i + j]` at (row `m0 + 16 i`, column `n0 + 16 j`) of split `base` where
+/// it lies inside `C`, adding the bias or what `C` holds as the flags say.
+#[inline]
+fn store_4x4(acc: [f32; 16], p: &GemmParams, c: &mut [f32], bias: &[f32], base: u32, m0: u32, n0: u32) {
+    each_index!(4, i => {
+        each_index!(4, j => {
+            let (m, n) = (m0 + 16 * i as u32, n0 + 16 * j as u32);
+            if m < p.m && n < p.n {
+                let at = (base + m * p.ldc + n) as usize;
+                let mut v = acc[4 * i + j];
+                if p.flags & GEMM_BIAS != 0 {
+                    v += bias[(p.bias_off + n) as usize];
+                }
+                if p.flags & GEMM_ACCUMULATE != 0 {
+                    v += c[at];
+                }
+                c[at] = v;
             }
-            if $p.flags & GEMM_ACCUMULATE != 0 {
-                v += $c[at];
-            }
-            $c[at] = v;
-        }
-    }};
+        });
+    });
 }
 
 /// `C (+)= A B (+ bias)` for a 64 × 64 tile of one split of `k` (the GPU kernel): 256
@@ -145,7 +138,7 @@ pub fn gemm_tiled(
             let row = kk * PITCH;
             let av = [a_tile[row + ty as usize], a_tile[row + ty as usize + 16], a_tile[row + ty as usize + 32], a_tile[row + ty as usize + 48]];
             let bv = [b_tile[row + tx as usize], b_tile[row + tx as usize + 16], b_tile[row + tx as usize + 32], b_tile[row + tx as usize + 48]];
-            fma_4x4!(acc, av, bv);
+            acc = fma_4x4(acc, av, bv);
             kk += 1;
         }
         // Everyone is done with the slices before they are overwritten.
@@ -153,23 +146,7 @@ pub fn gemm_tiled(
         k0 += GEMM_K_STEP;
     }
     let base = p.c_off + group.z * p.c_split;
-    let (m0, n0) = (m_tile + ty, n_tile + tx);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 0, 0);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 0, 1);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 0, 2);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 0, 3);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 1, 0);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 1, 1);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 1, 2);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 1, 3);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 2, 0);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 2, 1);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 2, 2);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 2, 3);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 3, 0);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 3, 1);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 3, 2);
-    store_4x4!(acc, p, c, bias, base, m0, n0, 3, 3);
+    store_4x4(acc, p, c, bias, base, m_tile + ty, n_tile + tx);
 }
 
 /// One step of `k` of the register-blocked GEMM: 8 values of `A` (a column of the
@@ -1899,67 +1876,125 @@ pub fn act_bwd(
     grad_pre[i] = activate_bwd(p.kind, pre[i], post[i], grad_post[i]);
 }
 
+/// An element-wise activation of the 4-wide kernels, chosen at compile time: llvmpipe
+/// runs every branch of [`activate`], so a kernel for one activation alone does not
+/// compute the others for every element.
+trait Activation4 {
+    /// `post` from `pre`.
+    fn fwd(p: &ActParams, x: f32) -> f32;
+    /// `grad_pre` from `pre`, `post` and `grad_post`.
+    fn bwd(p: &ActParams, x: f32, y: f32, g: f32) -> f32;
+}
+
+/// The activation `p.kind` names ([`activate`], [`activate_bwd`]).
+struct AnyActivation;
+
+impl Activation4 for AnyActivation {
+    #[inline]
+    fn fwd(p: &ActParams, x: f32) -> f32 {
+        activate(p.kind, x)
+    }
+
+    #[inline]
+    fn bwd(p: &ActParams, x: f32, y: f32, g: f32) -> f32 {
+        activate_bwd(p.kind, x, y, g)
+    }
+}
+
+/// GELU alone (the decoders' hidden layers).
+struct Gelu;
+
+impl Activation4 for Gelu {
+    #[inline]
+    fn fwd(_: &ActParams, x: f32) -> f32 {
+        gelu(x)
+    }
+
+    #[inline]
+    fn bwd(_: &ActParams, x: f32, _y: f32, g: f32) -> f32 {
+        g * gelu_grad(x)
+    }
+}
+
 /// [`act_fwd`] 4 elements an invocation, through `vec4` views of the same buffers: on
 /// llvmpipe a storage-buffer access at a per-lane address is one loop over the lanes
 /// whatever its width, so this is a quarter of the loops (on a GPU, 16-byte accesses).
 /// Covers `rows · width` rounded up to 4: buffers are whole 16-byte texels, and the up
-/// to 3 floats past a layer's end are never read as data. `_gelu`: GELU alone (the
-/// hidden layers'; llvmpipe runs every branch of [`activate`], so the generic one
-/// computes every activation for every element).
-macro_rules! act_fwd4_entry {
-    ($name:ident, $f:expr, $doc:literal) => {
-        #[doc = $doc]
-        #[spirv(compute(threads(256)))]
-        pub fn $name(
-            #[spirv(global_invocation_id)] id: UVec3,
-            #[spirv(num_workgroups)] groups: UVec3,
-            #[spirv(push_constant)] p: &ActParams,
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [Vec4],
-        ) {
-            let flat = crate::flat_index(id, groups);
-            if flat >= (p.rows * p.width).div_ceil(4) {
-                return;
-            }
-            let i = flat as usize;
-            let f = $f;
-            let x = pre[i];
-            post[i] = Vec4::new(f(p, x.x), f(p, x.y), f(p, x.z), f(p, x.w));
-        }
-    };
+/// to 3 floats past a layer's end are never read as data.
+#[inline]
+fn act_fwd4_with<A: Activation4>(id: UVec3, groups: UVec3, p: &ActParams, pre: &[Vec4], post: &mut [Vec4]) {
+    let flat = crate::flat_index(id, groups);
+    if flat >= (p.rows * p.width).div_ceil(4) {
+        return;
+    }
+    let i = flat as usize;
+    let x = pre[i];
+    post[i] = Vec4::new(A::fwd(p, x.x), A::fwd(p, x.y), A::fwd(p, x.z), A::fwd(p, x.w));
 }
 
-act_fwd4_entry!(act_fwd4, |p: &ActParams, x: f32| activate(p.kind, x), "`post = act(pre)`, 4 elements an invocation (see the macro).");
-act_fwd4_entry!(act_fwd4_gelu, |_: &ActParams, x: f32| gelu(x), "`post = gelu(pre)`, 4 elements an invocation (see the macro).");
-
-/// [`act_bwd`] 4 elements an invocation (as [`act_fwd4_entry`]).
-macro_rules! act_bwd4_entry {
-    ($name:ident, $f:expr, $doc:literal) => {
-        #[doc = $doc]
-        #[spirv(compute(threads(256)))]
-        pub fn $name(
-            #[spirv(global_invocation_id)] id: UVec3,
-            #[spirv(num_workgroups)] groups: UVec3,
-            #[spirv(push_constant)] p: &ActParams,
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &[Vec4],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_post: &[Vec4],
-            #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [Vec4],
-        ) {
-            let flat = crate::flat_index(id, groups);
-            if flat >= (p.rows * p.width).div_ceil(4) {
-                return;
-            }
-            let i = flat as usize;
-            let f = $f;
-            let (x, y, g) = (pre[i], post[i], grad_post[i]);
-            grad_pre[i] = Vec4::new(f(p, x.x, y.x, g.x), f(p, x.y, y.y, g.y), f(p, x.z, y.z, g.z), f(p, x.w, y.w, g.w));
-        }
-    };
+/// [`act_bwd`] 4 elements an invocation (as [`act_fwd4_with`]).
+#[inline]
+fn act_bwd4_with<A: Activation4>(id: UVec3, groups: UVec3, p: &ActParams, pre: &[Vec4], post: &[Vec4], grad_post: &[Vec4], grad_pre: &mut [Vec4]) {
+    let flat = crate::flat_index(id, groups);
+    if flat >= (p.rows * p.width).div_ceil(4) {
+        return;
+    }
+    let i = flat as usize;
+    let (x, y, g) = (pre[i], post[i], grad_post[i]);
+    grad_pre[i] = Vec4::new(A::bwd(p, x.x, y.x, g.x), A::bwd(p, x.y, y.y, g.y), A::bwd(p, x.z, y.z, g.z), A::bwd(p, x.w, y.w, g.w));
 }
 
-act_bwd4_entry!(act_bwd4, |p: &ActParams, x: f32, y: f32, g: f32| activate_bwd(p.kind, x, y, g), "`grad_pre` from `grad_post`, 4 elements an invocation (see the macro).");
-act_bwd4_entry!(act_bwd4_gelu, |_: &ActParams, x: f32, _y: f32, g: f32| g * gelu_grad(x), "GELU's `grad_pre` from `grad_post`, 4 elements an invocation (see the macro).");
+/// `post = act(pre)`, 4 elements an invocation (see [`act_fwd4_with`]).
+#[spirv(compute(threads(256)))]
+pub fn act_fwd4(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [Vec4],
+) {
+    act_fwd4_with::<AnyActivation>(id, groups, p, pre, post);
+}
+
+/// `post = gelu(pre)`, 4 elements an invocation (see [`act_fwd4_with`]).
+#[spirv(compute(threads(256)))]
+pub fn act_fwd4_gelu(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &mut [Vec4],
+) {
+    act_fwd4_with::<Gelu>(id, groups, p, pre, post);
+}
+
+/// `grad_pre` from `grad_post`, 4 elements an invocation (see [`act_bwd4_with`]).
+#[spirv(compute(threads(256)))]
+pub fn act_bwd4(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_post: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [Vec4],
+) {
+    act_bwd4_with::<AnyActivation>(id, groups, p, pre, post, grad_post, grad_pre);
+}
+
+/// GELU's `grad_pre` from `grad_post`, 4 elements an invocation (see [`act_bwd4_with`]).
+#[spirv(compute(threads(256)))]
+pub fn act_bwd4_gelu(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(num_workgroups)] groups: UVec3,
+    #[spirv(push_constant)] p: &ActParams,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] pre: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] post: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] grad_post: &[Vec4],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_pre: &mut [Vec4],
+) {
+    act_bwd4_with::<Gelu>(id, groups, p, pre, post, grad_post, grad_pre);
+}
 
 /// `post = softmax(pre / T)` of each row of `p.width` (at most 32), one invocation per
 /// row. Its own kernel: llvmpipe runs both sides of a branch, so a softmax in
