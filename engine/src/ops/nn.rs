@@ -1,6 +1,6 @@
-//! Multi-layer perceptrons on the GPU (kernels `nn::*`): linear layers as a GEMM
-//! (workgroup-tiled on GPUs; register-blocked, or subgroup and texel-reading kernels on
-//! CPU devices: [`GemmVariant`]), GELU / sigmoid / exp / softmax activations, several
+//! Multi-layer perceptrons on the GPU (kernels `nn::*` and, on CPU devices,
+//! `nn_cpu::*`): linear layers as a GEMM (workgroup-tiled on GPUs; register-blocked, or
+//! subgroup and texel-reading kernels on CPU devices: [`GemmVariant`]), GELU / sigmoid / exp / softmax activations, several
 //! output heads on one trunk, forward and backward, and the CPU reference from the same
 //! shared functions (`drape_shared::nn`), generic over f32/f64.
 //!
@@ -26,7 +26,7 @@
 
 use drape_shared::nn::{
     activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_K4_ROWS, GEMM_KL_ROWS, SOFTMAX_MAX_WIDTH,
+    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_FWD_ROWS, GEMM_NARROW_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -296,33 +296,36 @@ impl MlpDesc {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum GemmVariant {
     /// On CPU devices (lavapipe): [`Texel4`](Self::Texel4) where subgroups are 8
-    /// lanes with ballot operations and `C` has at least 16 columns, else the
-    /// register-blocked one (narrow heads waste less of its 8-column blocks); on GPUs
-    /// the workgroup-tiled kernel.
+    /// lanes with ballot operations, the operands can be texel views and `C` has at
+    /// least 16 columns or a narrow kernel fits, else [`Subgroup`](Self::Subgroup) for
+    /// 16 columns or more, else the register-blocked one (narrow heads waste less of its
+    /// 8-column blocks); on GPUs the workgroup-tiled kernel.
     #[default]
     Auto,
     /// `nn::gemm_tiled`: slices of `B` staged in workgroup memory.
     Tiled,
-    /// `nn::gemm_blocked`: 8 × 8 blocks in registers.
+    /// `nn_cpu::gemm_blocked`: 8 × 8 blocks in registers.
     Blocked,
-    /// `nn::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by broadcasts.
-    /// Needs subgroups of exactly 8 lanes with ballot operations.
+    /// `nn_cpu::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by
+    /// broadcasts. Needs subgroups of exactly 8 lanes with ballot operations.
     Subgroup,
-    /// `nn::gemm_texel`: `gemm_subgroup` reading `A` and `B` as uniform texel buffers
-    /// (on llvmpipe a gather per read instead of a loop over the lanes; the same sums in
-    /// the same order). Same device needs, and both operands within
+    /// `nn_cpu::gemm_texel`: `gemm_subgroup` reading `A` and `B` as uniform texel
+    /// buffers (on llvmpipe a gather per read instead of a loop over the lanes; the same
+    /// sums in the same order). Same device needs, and both operands within
     /// `maxTexelBufferElements` floats.
     Texel,
-    /// `nn::gemm_texel_k4`, `gemm_texel_k4n4` or `gemm_texel_b4`: [`Texel`](Self::Texel)'s
-    /// tiles reading 4 floats a fetch through 4-float texel views, the operand shared by
-    /// the subgroup fetched by every lane at one address instead of broadcast (on
-    /// llvmpipe a broadcast costs about what a fetch does). Which one follows the
-    /// operands' layout (`texel4_kernel`); `gemm_texel` where none fits. The same sums
-    /// in the same order as `Texel`. Same device needs.
+    /// The 4-float texel kernels of `nn_cpu`, chosen by the operands' layout:
+    /// `gemm_fwd_cols*` for forwards (`record_fwd`), `gemm_input_grad*`,
+    /// `gemm_weight_grad_*` or `gemm_b_along_n*` for the backward
+    /// (`narrow_weight_grad_kernel`, `texel4_grad_kernel`); `gemm_texel` where none
+    /// fits. [`Texel`](Self::Texel)'s tiles reading 4 floats a fetch, the operand shared
+    /// by the subgroup fetched by every lane at one address instead of broadcast (on
+    /// llvmpipe a broadcast costs about what a fetch does). The same sums in the same
+    /// order as `Texel` (but the narrow weight gradients'). Same device needs.
     Texel4,
 }
 
-/// Whether the device can run `nn::gemm_subgroup` (subgroups of 8 lanes, ballot
+/// Whether the device can run `nn_cpu::gemm_subgroup` (subgroups of 8 lanes, ballot
 /// operations in compute).
 pub fn subgroup_gemm_supported(info: &crate::DeviceInfo) -> bool {
     info.subgroup_size == 8 && info.subgroup_ballot
@@ -512,34 +515,34 @@ impl Mlp {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
             // Narrow outputs (the 1- to 6-wide heads) only where the forward kernels'
             // narrow tiles fit; elsewhere a 32-wide tile would be mostly waste.
-            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || k4_fits(&p, a, b, bias, info.max_texel_buffer_elements) || klanes_kernel(&p, a).is_some()) => GemmVariant::Texel4,
+            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements) || narrow_weight_grad_kernel(&p, a).is_some()) => GemmVariant::Texel4,
             GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
         };
         let texel = matches!(variant, GemmVariant::Texel | GemmVariant::Texel4);
         if (texel || variant == GemmVariant::Subgroup) && !subgroup_gemm_supported(info) {
-            let kernel = if texel { "nn::gemm_texel" } else { "nn::gemm_subgroup" };
+            let kernel = if texel { "nn_cpu::gemm_texel" } else { "nn_cpu::gemm_subgroup" };
             return Err(EngineError::MissingFeature { kernel, feature: "subgroups of 8 lanes with ballot operations" });
         }
-        if variant == GemmVariant::Texel4 && k4_fits(&p, a, b, bias, info.max_texel_buffer_elements) {
-            return record_k4(rec, name, a, b, bias, c, p);
+        if variant == GemmVariant::Texel4 && fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements) {
+            return record_fwd(rec, name, a, b, bias, c, p);
         }
-        if let (GemmVariant::Texel4, Some((kernel, width))) = (variant, klanes_kernel(&p, a)) {
-            let tiles = p.m.div_ceil(GEMM_KL_ROWS) * p.n.div_ceil(width);
+        if let (GemmVariant::Texel4, Some((kernel, width))) = (variant, narrow_weight_grad_kernel(&p, a)) {
+            let tiles = p.m.div_ceil(GEMM_NARROW_ROWS) * p.n.div_ceil(width);
             let x = tiles.min(65_535);
-            return rec.dispatch_as(name, kernel, kernels::nn::GemmBlocked { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }, &p, [x, tiles.div_ceil(x.max(1)), splits]);
+            return rec.dispatch_as(name, kernel, gemm_bindings(a, b, bias, c), &p, [x, tiles.div_ceil(x.max(1)), splits]);
         }
         let (kernel, groups) = match variant {
-            GemmVariant::Blocked => (Kernel::NnGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
+            GemmVariant::Blocked => (Kernel::NnCpuGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
             GemmVariant::Subgroup | GemmVariant::Texel | GemmVariant::Texel4 => {
                 // One workgroup (one subgroup) per tile (32 × 32, or 64 × 32 for the
                 // texel kernels), in rows of at most 65,535 workgroups, the limit every
                 // device has.
                 let (kernel, tile_rows) = match variant {
-                    GemmVariant::Texel4 => (texel4_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements).unwrap_or(Kernel::NnGemmTexel), GEMM_TX_ROWS),
-                    GemmVariant::Texel => (Kernel::NnGemmTexel, GEMM_TX_ROWS),
-                    _ => (Kernel::NnGemmSubgroup, GEMM_SG_ROWS),
+                    GemmVariant::Texel4 => (texel4_grad_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements).unwrap_or(Kernel::NnCpuGemmTexel), GEMM_TX_ROWS),
+                    GemmVariant::Texel => (Kernel::NnCpuGemmTexel, GEMM_TX_ROWS),
+                    _ => (Kernel::NnCpuGemmSubgroup, GEMM_SG_ROWS),
                 };
                 let tiles = p.m.div_ceil(tile_rows) * p.n.div_ceil(GEMM_SG_COLS);
                 let x = tiles.min(65_535);
@@ -547,7 +550,7 @@ impl Mlp {
             }
             _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits]),
         };
-        rec.dispatch_as(name, kernel, kernels::nn::GemmBlocked { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }, &p, groups)
+        rec.dispatch_as(name, kernel, gemm_bindings(a, b, bias, c), &p, groups)
     }
 
     fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
@@ -886,17 +889,17 @@ mod capped_tests {
     use super::*;
 
     #[test]
-    fn k4_column_tiles_cover_every_column_once() {
+    fn fwd_column_tiles_cover_every_column_once() {
         // The HUGS heads and layers, and every width up to 200.
-        assert_eq!(k4_column_tiles(1), vec![(0, 1, 4)]);
-        assert_eq!(k4_column_tiles(3), vec![(0, 3, 4)]);
-        assert_eq!(k4_column_tiles(6), vec![(0, 6, 8)]);
-        assert_eq!(k4_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
-        assert_eq!(k4_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
-        assert_eq!(k4_column_tiles(49), vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]);
-        assert_eq!(k4_column_tiles(128), vec![(0, 128, 32)]);
+        assert_eq!(fwd_column_tiles(1), vec![(0, 1, 4)]);
+        assert_eq!(fwd_column_tiles(3), vec![(0, 3, 4)]);
+        assert_eq!(fwd_column_tiles(6), vec![(0, 6, 8)]);
+        assert_eq!(fwd_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
+        assert_eq!(fwd_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
+        assert_eq!(fwd_column_tiles(49), vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]);
+        assert_eq!(fwd_column_tiles(128), vec![(0, 128, 32)]);
         for n in 1..=200 {
-            let tiles = k4_column_tiles(n);
+            let tiles = fwd_column_tiles(n);
             let mut next = 0;
             for &(first, cols, width) in &tiles {
                 assert_eq!(first, next, "n = {n}: {tiles:?}");
@@ -929,11 +932,18 @@ fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(Kernel, Kernel)
     Some(if act.kind() == drape_shared::nn::ACT_GELU { (Kernel::NnActFwd4Gelu, Kernel::NnActBwd4Gelu) } else { (Kernel::NnActFwd4, Kernel::NnActBwd4) })
 }
 
-/// Whether the forward 4-float texel GEMMs (`nn::gemm_texel_k4*`) fit these operands:
+/// The bindings every GEMM kernel has (`nn::gemm_tiled`'s struct; the kernels of
+/// `nn_cpu` bind the same names, some of them as texel views of the same buffers), for
+/// the kernels chosen at run time (`Recording::dispatch_as`).
+fn gemm_bindings<'a>(a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer) -> kernels::nn::GemmTiled<'a> {
+    kernels::nn::GemmTiled { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }
+}
+
+/// Whether the forward 4-float texel GEMMs (`nn_cpu::gemm_fwd_cols*`) fit these operands:
 /// `A` and `B` both contiguous along `k` (`x Wᵀ`), offsets and strides in whole
 /// 16-byte texels, no ones row, nothing added to `C`, and the bias readable as a texel
 /// buffer (the float epilogue fetches it).
-fn k4_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u64) -> bool {
+fn fwd_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u64) -> bool {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
     p.a_sk == 1
         && p.b_sk == 1
@@ -950,11 +960,11 @@ fn k4_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u6
 }
 
 /// The forward kernels by tile width: (width, float epilogue, 4-float epilogue).
-const K4_WIDTHS: [(u32, Kernel, Kernel); 4] = [
-    (32, Kernel::NnGemmTexelK4, Kernel::NnGemmTexelK4c4),
-    (16, Kernel::NnGemmTexelK4w16, Kernel::NnGemmTexelK4w16c4),
-    (8, Kernel::NnGemmTexelK4w8, Kernel::NnGemmTexelK4w8c4),
-    (4, Kernel::NnGemmTexelK4w4, Kernel::NnGemmTexelK4w4c4),
+const FWD_WIDTHS: [(u32, Kernel, Kernel); 4] = [
+    (32, Kernel::NnCpuGemmFwdCols32, Kernel::NnCpuGemmFwdCols32Vec4),
+    (16, Kernel::NnCpuGemmFwdCols16, Kernel::NnCpuGemmFwdCols16Vec4),
+    (8, Kernel::NnCpuGemmFwdCols8, Kernel::NnCpuGemmFwdCols8Vec4),
+    (4, Kernel::NnCpuGemmFwdCols4, Kernel::NnCpuGemmFwdCols4Vec4),
 ];
 
 /// What llvmpipe spends on one tile of `width` columns per 4 steps of `k`, in
@@ -962,25 +972,25 @@ const K4_WIDTHS: [(u32, Kernel, Kernel); 4] = [
 /// transpose) per row of a lane (16) and per column, and about 14 per accumulator
 /// update (4 multiply-adds, its spilled operands, and the masked store every value
 /// written in a loop gets). Only the ratios matter.
-fn k4_tile_cost(width: u32) -> u32 {
+fn fwd_tile_cost(width: u32) -> u32 {
     (16 + width) * 45 + 16 * width * 14
 }
 
 /// How the forward kernels cover `n` columns: `(first column, columns, tile width)`
 /// per dispatch. 32-wide tiles as far as they fill, then the cheapest set of narrower
-/// tiles for the rest (by `k4_tile_cost`): llvmpipe runs every column of a tile,
+/// tiles for the rest (by `fwd_tile_cost`): llvmpipe runs every column of a tile,
 /// existing or not, so a head of 3 columns in a 32-wide tile costs what 32 do.
-pub fn k4_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
+pub fn fwd_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
     // cheapest[r]: (cost, widths) covering r columns.
     let mut cheapest: Vec<(u32, Vec<u32>)> = vec![(0, Vec::new())];
     for r in 1..32u32 {
-        let best = K4_WIDTHS
+        let best = FWD_WIDTHS
             .iter()
             .map(|&(w, ..)| {
                 let (cost, widths) = &cheapest[r.saturating_sub(w) as usize];
                 let mut widths = widths.clone();
                 widths.push(w);
-                (cost + k4_tile_cost(w), widths)
+                (cost + fwd_tile_cost(w), widths)
             })
             .min_by_key(|(cost, _)| *cost)
             .expect("widths");
@@ -1003,12 +1013,12 @@ pub fn k4_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
     tiles
 }
 
-/// Records a forward GEMM through `nn::gemm_texel_k4*` (see [`k4_fits`]): one dispatch
-/// per run of [`k4_column_tiles`], each shifted to its first column through the
+/// Records a forward GEMM through `nn_cpu::gemm_fwd_cols*` (see [`fwd_fits`]): one dispatch
+/// per run of [`fwd_column_tiles`], each shifted to its first column through the
 /// offsets, with the 4-float epilogue where its columns, `C` and the bias allow.
-fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams) -> Result<()> {
+fn record_fwd<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams) -> Result<()> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
-    for (first, cols, width) in k4_column_tiles(p.n) {
+    for (first, cols, width) in fwd_column_tiles(p.n) {
         let q = GemmParams { n: cols, b_off: p.b_off + first * p.b_sn, c_off: p.c_off + first, bias_off: p.bias_off + first, ..p };
         let quads = q.n % 4 == 0
             && q.ldc % 4 == 0
@@ -1017,18 +1027,13 @@ fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buff
             && whole(c)
             && whole(bias)
             && (q.flags & GEMM_BIAS == 0 || q.bias_off % 4 == 0);
-        let &(_, floats, fours) = K4_WIDTHS.iter().find(|(w, ..)| *w == width).expect("a tile width of K4_WIDTHS");
-        let tiles = q.m.div_ceil(GEMM_K4_ROWS) * cols.div_ceil(width);
+        let &(_, floats, fours) = FWD_WIDTHS.iter().find(|(w, ..)| *w == width).expect("a tile width of FWD_WIDTHS");
+        let tiles = q.m.div_ceil(GEMM_FWD_ROWS) * cols.div_ceil(width);
         let x = tiles.min(65_535);
         rec.dispatch_as(
             name,
             if quads { fours } else { floats },
-            kernels::nn::GemmBlocked {
-                a: a.read(),
-                b: b.read(),
-                bias: bias.read(),
-                c: c.write(),
-            },
+            gemm_bindings(a, b, bias, c),
             &q,
             [x, tiles.div_ceil(x.max(1)), 1],
         )?;
@@ -1036,28 +1041,30 @@ fn record_k4<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buff
     Ok(())
 }
 
-/// The narrow GEMM with `k` across the lanes (`nn::gemm_texel_klanes_w4` or `_w8`)
-/// and its tile width, where `C` is at most 8 wide (the weight gradient of a 1- to
-/// 6-wide head, `A = Xᵀ` contiguous along `m` in whole texels): the column-owning
-/// tiles would run 32 columns for 3.
-fn klanes_kernel(p: &GemmParams, a: &Buffer) -> Option<(Kernel, u32)> {
+/// The narrow weight gradient with `k` across the lanes
+/// (`nn_cpu::gemm_weight_grad_cols4` or `_cols8`) and its tile width, where `C` is at
+/// most 8 wide (the weight gradient of a 1- to 6-wide head, `A = Xᵀ` contiguous along
+/// `m` in whole texels): the column-owning tiles would run 32 columns for 3.
+fn narrow_weight_grad_kernel(p: &GemmParams, a: &Buffer) -> Option<(Kernel, u32)> {
     let fits = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && a.vk_size() % 16 == 0;
     match p.n {
-        1..=4 if fits => Some((Kernel::NnGemmTexelKlanesW4, 4)),
-        5..=8 if fits => Some((Kernel::NnGemmTexelKlanesW8, 8)),
+        1..=4 if fits => Some((Kernel::NnCpuGemmWeightGradCols4, 4)),
+        5..=8 if fits => Some((Kernel::NnCpuGemmWeightGradCols8, 8)),
         _ => None,
     }
 }
 
 /// The 4-float texel GEMM for the backward's operand layouts, if one fits (`Auto` on
-/// CPU devices, where `nn::gemm_texel` would run; forwards go through [`record_k4`]):
-/// `nn::gemm_texel_k4n4c4` or `gemm_texel_k4n4` (`A` along `k`, `B` along `n`: input
-/// gradients; the first where `C` and the bias are read and written 4 floats at a
-/// time) or `nn::gemm_texel_m4n4c4` or `gemm_texel_b4` (`B` along `n`: weight
-/// gradients; the first where `A` runs along `m` and `C` takes 4 floats a store). A
-/// 4-float view covers whole 16-byte texels, so offsets and strides must be multiples
-/// of 4 floats and the buffers whole texels.
-fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
+/// CPU devices, where `nn_cpu::gemm_texel` would run; forwards go through
+/// [`record_fwd`]): `nn_cpu::gemm_input_grad_vec4` or `gemm_input_grad` (`A` along `k`,
+/// `B` along `n`: input gradients; the first where `C` and the bias are read and
+/// written 4 floats at a time), `nn_cpu::gemm_weight_grad_vec4` (`A` along `m`, `B`
+/// along `n`: weight gradients where `C` takes 4 floats a store), else
+/// `gemm_b_along_n_vec4` or `gemm_b_along_n` (`B` along `n`, `A` in any layout: a
+/// narrow head's input gradient, a weight gradient of odd width). A 4-float view covers
+/// whole 16-byte texels, so offsets and strides must be multiples of 4 floats and the
+/// buffers whole texels.
+fn texel4_grad_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
     // The `c4` epilogues store 4 columns at a time and read the bias as 4-float texels.
     let c_quads = p.n % 4 == 0 && p.ldc % 4 == 0 && p.c_off % 4 == 0 && p.c_split % 4 == 0 && whole(c);
@@ -1067,11 +1074,11 @@ fn texel4_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buff
     let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_n4) {
-        (true, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelK4n4c4),
-        (true, true) => Some(Kernel::NnGemmTexelK4n4),
-        (false, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnGemmTexelM4n4c4),
-        (false, true) if c_quads && bias_quads => Some(Kernel::NnGemmTexelB4c4),
-        (false, true) => Some(Kernel::NnGemmTexelB4),
+        (true, true) if c_quads && bias_quads => Some(Kernel::NnCpuGemmInputGradVec4),
+        (true, true) => Some(Kernel::NnCpuGemmInputGrad),
+        (false, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnCpuGemmWeightGradVec4),
+        (false, true) if c_quads && bias_quads => Some(Kernel::NnCpuGemmBAlongNVec4),
+        (false, true) => Some(Kernel::NnCpuGemmBAlongN),
         _ => None,
     }
 }

@@ -21,6 +21,7 @@ pub mod deform;
 pub mod fixed_point;
 pub mod lpips;
 pub mod nn;
+pub mod nn_cpu;
 pub mod radix_sort;
 pub mod scan;
 pub mod skinning;

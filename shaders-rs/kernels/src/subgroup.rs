@@ -18,14 +18,9 @@
 use spirv_std::arch::{subgroup_ballot, subgroup_shuffle, subgroup_shuffle_xor};
 use spirv_std::glam::Vec4;
 
-/// The value `v` of lane `LANE` (< 8) of this subgroup, to every lane.
-#[inline]
-pub fn broadcast<const LANE: u32>(v: f32) -> f32 {
-    subgroup_shuffle(v, LANE)
-}
-
 /// The value `v` of lane `lane` (< 8) of this subgroup, to every lane: `lane` may differ
-/// between lanes (a shuffle), though the rasterizers pass a uniform one.
+/// between lanes (a shuffle), though the rasterizers pass a uniform one and the GEMMs
+/// a constant.
 #[inline]
 pub fn broadcast_at(v: f32, lane: u32) -> f32 {
     subgroup_shuffle(v, lane)

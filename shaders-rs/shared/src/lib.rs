@@ -17,8 +17,26 @@ const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 /// way, the deformation's 24-joint loops come out wrong on llvmpipe 22.3 (posed means
 /// off by 1e19 against the CPU reference, `deform_gpu_matches_cpu_reference`), so they
 /// stay loops.
+///
+/// N may also be a const generic parameter of the enclosing function (an identifier,
+/// `each_index!(W, j => ..)`) whose value is 4, 8, 16 or 32: the body is then written
+/// once per count, and code is generated only for the count an instance of the function
+/// has (rustc drops the arms of a `match` on a constant after monomorphization; no
+/// branch reaches the SPIR-V). Inside, an index of an array of `W` elements is two
+/// constants, so no bounds check reaches the SPIR-V either: the kernels' generic tiles
+/// (`nn_cpu`) come out as their hand-unrolled forms did.
 #[macro_export]
 macro_rules! each_index {
+    ($n:ident, $i:ident => $body:block) => {{
+        const { assert!(matches!($n, 4 | 8 | 16 | 32), "each_index!: a const generic count must be 4, 8, 16 or 32") };
+        match $n {
+            4 => $crate::each_index!(4, $i => $body),
+            8 => $crate::each_index!(8, $i => $body),
+            16 => $crate::each_index!(16, $i => $body),
+            32 => $crate::each_index!(32, $i => $body),
+            _ => unreachable!(),
+        }
+    }};
     (2, $i:ident => $body:block) => {{
         { let $i: usize = 0; $body } { let $i: usize = 1; $body }
     }};

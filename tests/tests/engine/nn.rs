@@ -61,9 +61,10 @@ fn normed_desc() -> MlpDesc {
 }
 
 /// Widths in multiples of 4: every forward fits the 4-float texel kernels
-/// (`GemmVariant::Texel4`: `gemm_texel_k4*` at every tile width, 32, 16, 8 and 4, with
-/// both epilogues), and the gradients of the outputs of 16 or more too (input
-/// gradients `gemm_texel_k4n4`, weight gradients `gemm_texel_b4`), where
+/// (`GemmVariant::Texel4`: `nn_cpu::gemm_fwd_cols*` at every tile width, 32, 16, 8 and
+/// 4, with both epilogues), and the gradients of the outputs of 16 or more too (input
+/// gradients `gemm_input_grad*`, weight gradients `gemm_weight_grad_vec4` or
+/// `gemm_b_along_n*`), where
 /// `small_desc`'s odd widths take the fallback.
 fn texel4_desc() -> MlpDesc {
     MlpDesc {
@@ -101,7 +102,7 @@ fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
         variants.push(GemmVariant::Texel);
         variants.push(GemmVariant::Texel4);
     } else if report {
-        eprintln!("SKIPPED: nn::gemm_subgroup, nn::gemm_texel and the 4-float texel GEMMs (need subgroups of 8 lanes with ballot; {})", ctx.info());
+        eprintln!("SKIPPED: nn_cpu::gemm_subgroup, nn_cpu::gemm_texel and the 4-float texel GEMMs (need subgroups of 8 lanes with ballot; {})", ctx.info());
     }
     variants
 }

@@ -56,9 +56,9 @@ fn variants_chosen_at_run_time_fit_the_struct_they_share() {
     all_fit::<kernels::radix_sort::ChunkScatterZip>(&[K::RadixSortChunkScatterZipTexel, K::RadixSortChunkScatterZipTexelU64]);
     all_fit::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
     all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[K::RadixSortChunkScatterPairsTexel, K::RadixSortChunkScatterPairsTexelU64]);
-    let gemms: Vec<Kernel> = Kernel::ALL.iter().copied().filter(|k| k.entry_point().starts_with("nn::gemm")).collect();
+    let gemms: Vec<Kernel> = Kernel::ALL.iter().copied().filter(|k| k.entry_point().starts_with("nn::gemm") || k.entry_point().starts_with("nn_cpu::gemm")).collect();
     assert!(gemms.len() > 10, "{gemms:?}");
-    all_fit::<kernels::nn::GemmBlocked>(&gemms);
+    all_fit::<kernels::nn::GemmTiled>(&gemms);
     all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
     all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
     all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatCpuRasterizeFwd, K::SplatCpuRasterizeFwdHalf]);
@@ -306,23 +306,23 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     assert!(sums.iter().all(|&v| v == 66.0), "22 frames of 3 adds: {}", sums[0]);
 }
 
-/// A pass of `nn::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
+/// A pass of `nn_cpu::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
 /// written) over 8 × 8 matrices with the bindings `bind` makes of `a`, `c` and a
 /// readback buffer, recorded as the storage GEMM's struct with the kernel chosen at
 /// run time; its dispatch's result.
-fn texel_pass(bind: impl for<'a> FnOnce(&'a Buffer, &'a Buffer, &'a Buffer) -> kernels::nn::GemmBlocked<'a>) -> drape_engine::Result<()> {
+fn texel_pass(bind: impl for<'a> FnOnce(&'a Buffer, &'a Buffer, &'a Buffer) -> kernels::nn::GemmTiled<'a>) -> drape_engine::Result<()> {
     let gpu = gpu();
     let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
     let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
     let readback = gpu.create_buffer("readback", BufferDesc::readback(256)).expect("buffer");
     let mut rec = gpu.record("texel bindings").expect("record");
     let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
-    rec.dispatch_as("test.gemm", Kernel::NnGemmTexel, bind(&a, &c, &readback), &p, [1, 1, 1])
+    rec.dispatch_as("test.gemm", Kernel::NnCpuGemmTexel, bind(&a, &c, &readback), &p, [1, 1, 1])
 }
 
 fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[&str]) {
     let err = result.expect_err("a wrong texel binding must be refused");
-    assert_binding_error_of(&err, ("test.gemm", "nn::gemm_texel"), binding, words);
+    assert_binding_error_of(&err, ("test.gemm", "nn_cpu::gemm_texel"), binding, words);
 }
 
 /// Texel bindings read a whole buffer through its `R32_SFLOAT` view: a correct pass
@@ -333,7 +333,7 @@ fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[
 #[test]
 fn texel_bindings_read_whole_buffers_through_their_views() {
     if !drape_engine::ops::nn::subgroup_gemm_supported(gpu().info()) {
-        eprintln!("SKIPPED: nn::gemm_texel needs subgroups of 8 lanes with ballot ({})", gpu().info());
+        eprintln!("SKIPPED: nn_cpu::gemm_texel needs subgroups of 8 lanes with ballot ({})", gpu().info());
         return;
     }
     {
@@ -342,12 +342,12 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
         let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
         let mut rec = gpu.record("texel bindings").expect("record");
         let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
-        rec.dispatch("test.gemm", kernels::nn::GemmTexel { a: a.texel(), b: a.texel(), bias: a.read(), c: c.write() }, &p, [1, 1, 1]).expect("whole buffers bind");
+        rec.dispatch("test.gemm", kernels::nn_cpu::GemmTexel { a: a.texel(), b: a.texel(), bias: a.read(), c: c.write() }, &p, [1, 1, 1]).expect("whole buffers bind");
     }
-    texel_pass(|a, c, _| kernels::nn::GemmBlocked { a: a.read(), b: a.read(), bias: a.read(), c: c.write() }).expect("whole buffers bind");
-    let err = texel_pass(|a, c, _| kernels::nn::GemmBlocked { a: a.read_range(0, 128), b: a.read(), bias: a.read(), c: c.write() });
+    texel_pass(|a, c, _| kernels::nn::GemmTiled { a: a.read(), b: a.read(), bias: a.read(), c: c.write() }).expect("whole buffers bind");
+    let err = texel_pass(|a, c, _| kernels::nn::GemmTiled { a: a.read_range(0, 128), b: a.read(), bias: a.read(), c: c.write() });
     assert_texel_error(err, "a", &["texel binding", "whole buffer", "'a'"]);
-    let err = texel_pass(|a, c, r| kernels::nn::GemmBlocked { a: a.read(), b: r.read(), bias: a.read(), c: c.write() });
+    let err = texel_pass(|a, c, r| kernels::nn::GemmTiled { a: a.read(), b: r.read(), bias: a.read(), c: c.write() });
     assert_texel_error(err, "b", &["'readback'", "texel reads", "UNIFORM_TEXEL_BUFFER"]);
 }
 
@@ -356,8 +356,8 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
 /// declares texel buffers, and the check names the binding.
 #[test]
 fn a_texel_binding_the_module_does_not_declare_is_named() {
-    let original = Kernel::NnGemmTexel.spirv();
-    check_module(Kernel::NnGemmTexel, original).expect("the committed module matches");
+    let original = Kernel::NnCpuGemmTexel.spirv();
+    check_module(Kernel::NnCpuGemmTexel, original).expect("the committed module matches");
     let words: Vec<u32> = original.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
     let mut patched = original.to_vec();
     let (mut at, mut found) = (5, false);
@@ -371,7 +371,7 @@ fn a_texel_binding_the_module_does_not_declare_is_named() {
         at += count;
     }
     assert!(found, "gemm_texel declares a buffer image");
-    let text = check_module(Kernel::NnGemmTexel, &patched).expect_err("no texel buffer").to_string();
+    let text = check_module(Kernel::NnCpuGemmTexel, &patched).expect_err("no texel buffer").to_string();
     assert!(text.contains("binding 0") && text.contains("'a'") && text.contains("a storage buffer in the module, a texel buffer in the manifest"), "{text}");
 }
 

@@ -109,10 +109,13 @@ fn entry_points_in_sources() -> std::collections::BTreeSet<String> {
                 }
                 after_compute = false;
             }
-            // `rasterize_bwd_entry!(rasterize_bwd_cas, ...)` and the like.
+            // `rasterize_bwd_entry!(rasterize_bwd_cas, ...)` and the like (not a macro's
+            // own rules calling each other, `..._entry!(@entry $name, ...)`).
             if let Some((mac, rest)) = line.split_once("_entry!(") {
-                if !mac.contains("macro_rules") && !line.starts_with("//") {
-                    found.insert(format!("{module}::{}", rest.split(',').next().expect("name").trim()));
+                let name = rest.split(',').next().expect("name").trim();
+                let is_name = name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+                if !mac.contains("macro_rules") && !line.starts_with("//") && is_name {
+                    found.insert(format!("{module}::{name}"));
                 }
             }
         }
