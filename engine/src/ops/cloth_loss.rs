@@ -23,6 +23,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
 use crate::kernels;
+use crate::mirror::{read_through, Mirror};
 use crate::ops::accumulate::FixedPointScratch;
 use crate::ops::radix_sort::RadixSort;
 use crate::recorder::{flat_grid as grid, Recording};
@@ -128,6 +129,9 @@ pub struct Chamfer {
     grid: Option<GridScratch>,
     /// (n, m, σ²) of the last recording, for reading its values back.
     last: std::cell::Cell<(u32, u32, f32)>,
+    /// `pred_d2` and `target_d2` in host memory, where [`Chamfer::keep_host_mirror`]
+    /// asked for them.
+    d2_mirrors: Option<[Mirror; 2]>,
 }
 
 /// `½ (mean ρ(d(p, Q)) + mean ρ(d(q, P)))` and the plain Chamfer distance
@@ -164,7 +168,26 @@ impl Chamfer {
             target_nearest: b("chamfer target nearest", max_target)?,
             target_d2: b("chamfer target d2", max_target)?,
             last: std::cell::Cell::new((0, 0, 0.0)),
+            d2_mirrors: None,
         })
+    }
+
+    /// Keeps a host copy of both sides' squared distances: after
+    /// [`Chamfer::record_readback`] in the recording that computed them,
+    /// [`Chamfer::read_value`] reads them without a submission or a wait of its own.
+    pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
+        self.d2_mirrors = Some([Mirror::new(ctx, &self.pred_d2)?, Mirror::new(ctx, &self.target_d2)?]);
+        Ok(())
+    }
+
+    /// Records the copy of the distances just recorded into the host mirrors (nothing
+    /// without them).
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        if let Some([p, t]) = &self.d2_mirrors {
+            let (n, m, _) = self.last.get();
+            p.record_copy(rec, &self.pred_d2, 4 * u64::from(n));
+            t.record_copy(rec, &self.target_d2, 4 * u64::from(m));
+        }
     }
 
     /// Records the nearest neighbours of `pred` (`n` points, xyz) in `target` (`m`)
@@ -187,6 +210,7 @@ impl Chamfer {
         }
         let sigma2 = sigma * sigma;
         self.last.set((n, m, sigma2));
+        self.d2_mirrors.iter().flatten().for_each(Mirror::mark_stale);
         let this = self;
         let use_grid = match self.search {
             NearestSearch::BruteForce => false,
@@ -246,11 +270,17 @@ impl Chamfer {
         Ok(())
     }
 
-    /// The values of the last recorded evaluation (reads the distances back).
+    /// The values of the last recorded evaluation (the distances from the host mirrors
+    /// where the recording that computed them copied them there, otherwise read back
+    /// from the device).
     pub fn read_value(&mut self, ctx: &Context) -> Result<ChamferValue> {
         let (n, m, sigma2) = self.last.get();
-        let a = ctx.read_buffer::<f32>(&mut self.pred_d2, n as usize)?;
-        let b = ctx.read_buffer::<f32>(&mut self.target_d2, m as usize)?;
+        let (pm, tm) = match self.d2_mirrors.as_mut() {
+            Some([p, t]) => (Some(p), Some(t)),
+            None => (None, None),
+        };
+        let a = read_through::<f32>(ctx, pm, &mut self.pred_d2, n as usize)?;
+        let b = read_through::<f32>(ctx, tm, &mut self.target_d2, m as usize)?;
         Ok(chamfer_value(&a, &b, f64::from(sigma2)))
     }
 
@@ -278,6 +308,8 @@ pub struct Arap {
     neighbours: Buffer,
     lengths: Buffer,
     stats: Buffer,
+    /// `stats` in host memory, where [`Arap::keep_host_mirror`] asked for it.
+    stats_mirror: Option<Mirror>,
 }
 
 impl Arap {
@@ -297,12 +329,31 @@ impl Arap {
             ctx.write_buffer(&mut nb, &neighbours)?;
         }
         ctx.write_buffer(&mut off, &offsets)?;
-        Ok(Self { vertices, edges: edges.len() as u32, edge_list, offsets: off, neighbours: nb, lengths: b("arap lengths", edges.len())?, stats: b("arap stats", 2)? })
+        Ok(Self { vertices, edges: edges.len() as u32, edge_list, offsets: off, neighbours: nb, lengths: b("arap lengths", edges.len())?, stats: b("arap stats", 2)?, stats_mirror: None })
+    }
+
+    /// Keeps a host copy of the statistics: after [`Arap::record_readback`] in the
+    /// recording that computed them, [`Arap::read_stats`] reads them without a
+    /// submission or a wait of its own.
+    pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
+        self.stats_mirror = Some(Mirror::new(ctx, &self.stats)?);
+        Ok(())
+    }
+
+    /// Records the copy of the statistics just recorded into the host mirror (nothing
+    /// without one).
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        if let Some(m) = &self.stats_mirror {
+            m.record_copy(rec, &self.stats, 8);
+        }
     }
 
     /// Records the edge-length variance of `positions` (this graph's vertices, xyz)
     /// and, with `grad = Some((buffer, λ))`, adds `λ ∂var/∂positions` to it.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, positions: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+        if let Some(m) = &self.stats_mirror {
+            m.mark_stale();
+        }
         let p = ArapParams { edges: self.edges, vertices: self.vertices, scale: grad.map_or(0.0, |g| g.1), _pad: 0 };
         rec.dispatch("arap.lengths", kernels::cloth_loss::ArapLengths { positions: positions.read(), edges: self.edge_list.read(), lengths: self.lengths.write() }, &p, grid(self.edges))?;
         rec.dispatch("arap.stats", kernels::cloth_loss::ArapStats { lengths: self.lengths.read(), stats: self.stats.write() }, &p, [1, 1, 1])?;
@@ -312,9 +363,10 @@ impl Arap {
         Ok(())
     }
 
-    /// `[mean edge length, variance]` of the last recorded evaluation.
+    /// `[mean edge length, variance]` of the last recorded evaluation (from the host
+    /// mirror where the recording that computed them copied them there).
     pub fn read_stats(&mut self, ctx: &Context) -> Result<[f32; 2]> {
-        let v = ctx.read_buffer::<f32>(&mut self.stats, 2)?;
+        let v = read_through::<f32>(ctx, self.stats_mirror.as_mut(), &mut self.stats, 2)?;
         Ok([v[0], v[1]])
     }
 }

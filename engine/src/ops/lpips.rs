@@ -19,6 +19,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
 use crate::kernels;
+use crate::mirror::{read_through, Mirror};
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// The backbone; in configuration files `"alex"` or `"vgg"` (`"vgg16"` is read too).
@@ -335,6 +336,9 @@ pub struct Lpips {
     argmax: [Vec<Buffer>; 2],
     grads: Vec<Buffer>,
     distances: Vec<Buffer>,
+    /// The distance maps in host memory, one per tap, where
+    /// [`Lpips::keep_host_mirror`] asked for them (empty otherwise).
+    distance_mirrors: Vec<Mirror>,
 }
 
 impl Lpips {
@@ -379,13 +383,30 @@ impl Lpips {
                 _ => at += 1,
             }
         }
-        Ok(Self { net: weights.net, width, height, sizes, conv, lin, acts, argmax, grads, distances })
+        Ok(Self { net: weights.net, width, height, sizes, conv, lin, acts, argmax, grads, distances, distance_mirrors: Vec::new() })
+    }
+
+    /// Keeps a host copy of each tap's distance map: after [`Lpips::record_readback`]
+    /// in the recording that computed them, [`Lpips::read_value`] reads them without a
+    /// submission or a wait of its own.
+    pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
+        self.distance_mirrors = self.distances.iter().map(|d| Mirror::new(ctx, d)).collect::<Result<_>>()?;
+        Ok(())
+    }
+
+    /// Records the copy of the distance maps just recorded into the host mirrors
+    /// (nothing without them).
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        for (m, d) in self.distance_mirrors.iter().zip(&self.distances) {
+            m.record_copy(rec, d, d.size);
+        }
     }
 
     /// Records LPIPS(pred, target) for HWC RGB images in [0, 1] and, with `grad =
     /// Some((buffer, λ))`, adds `λ ∂LPIPS/∂pred` to the buffer.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let (w, h) = (self.width, self.height);
+        self.distance_mirrors.iter().for_each(Mirror::mark_stale);
         let scale = PoolParams { c: 3, in_h: h, in_w: w, ..Default::default() };
         for (k, img) in [pred, target].into_iter().enumerate() {
             rec.dispatch("lpips.scale_input", kernels::lpips::ScaleInput { rgb: img.read(), out: self.acts[k][0].write() }, &scale, grid(3 * w * h))?;
@@ -463,7 +484,8 @@ impl Lpips {
     }
 
     /// The value of the last recorded evaluation: Σ over tapped layers of the mean
-    /// distance (reads it back).
+    /// distance (from the host mirrors where the recording that computed it copied the
+    /// maps there, otherwise read back from the device).
     pub fn read_value(&mut self, ctx: &Context) -> Result<f64> {
         let mut total = 0.0;
         let mut at = 0;
@@ -472,7 +494,7 @@ impl Lpips {
             match s {
                 Stage::Tap => {
                     let (_, h, w) = self.sizes[at];
-                    let d = ctx.read_buffer::<f32>(&mut self.distances[tap], (h * w) as usize)?;
+                    let d = read_through::<f32>(ctx, self.distance_mirrors.get_mut(tap), &mut self.distances[tap], (h * w) as usize)?;
                     total += d.iter().map(|&v| f64::from(v)).sum::<f64>() / f64::from(h * w);
                     tap += 1;
                 }

@@ -10,6 +10,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
 use crate::kernels;
+use crate::mirror::{read_through, Mirror};
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// Scratch for the SSIM of `width × height × 3` images.
@@ -21,6 +22,8 @@ pub struct Ssim {
     a: Buffer,
     b: Buffer,
     smap: Buffer,
+    /// The map in host memory, where [`Ssim::keep_host_mirror`] asked for one.
+    smap_mirror: Option<Mirror>,
 }
 
 impl Ssim {
@@ -33,7 +36,24 @@ impl Ssim {
             a: ctx.create_buffer("ssim moments a", BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)))?,
             b: ctx.create_buffer("ssim moments b", BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)))?,
             smap: ctx.create_buffer("ssim map", BufferDesc::gpu_only(4 * n))?,
+            smap_mirror: None,
         })
+    }
+
+    /// Keeps a host copy of the map (H·W·3 floats of host-visible memory): after
+    /// [`Ssim::record_readback`] in the recording that computed it, [`Ssim::read_mean`]
+    /// and [`Ssim::read_map`] read it without a submission or a wait of their own.
+    pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
+        self.smap_mirror = Some(Mirror::new(ctx, &self.smap)?);
+        Ok(())
+    }
+
+    /// Records the copy of the map just recorded into the host mirror (nothing without
+    /// one).
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        if let Some(m) = &self.smap_mirror {
+            m.record_copy(rec, &self.smap, 4 * u64::from(self.pixels()));
+        }
     }
 
     fn params(&self, planes: u32, vertical: bool, scale: f32) -> SsimParams {
@@ -49,6 +69,9 @@ impl Ssim {
     /// `λ (1 - SSIM)` passes `-λ`).
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
         let n = self.pixels();
+        if let Some(m) = &self.smap_mirror {
+            m.mark_stale();
+        }
         let p = self.params(SSIM_MOMENTS, false, 0.0);
         rec.dispatch("ssim.moments", kernels::ssim::Moments { x: pred.read(), y: target.read(), planes: self.a.write() }, &p, grid(n))?;
         self.record_blur(rec, SSIM_MOMENTS, &self.a, &self.b)?;
@@ -76,14 +99,15 @@ impl Ssim {
     /// The mean of the last recorded map (reads it back).
     pub fn read_mean(&mut self, ctx: &Context) -> Result<f64> {
         let n = self.pixels() as usize;
-        let map = ctx.read_buffer::<f32>(&mut self.smap, n)?;
+        let map = self.read_map(ctx)?;
         Ok(map.iter().map(|&v| f64::from(v)).sum::<f64>() / n.max(1) as f64)
     }
 
-    /// The last recorded map (H·W·3).
+    /// The last recorded map (H·W·3): from the host mirror where the recording that
+    /// computed it copied it there, otherwise read back from the device.
     pub fn read_map(&mut self, ctx: &Context) -> Result<Vec<f32>> {
         let n = self.pixels() as usize;
-        ctx.read_buffer(&mut self.smap, n)
+        read_through(ctx, self.smap_mirror.as_mut(), &mut self.smap, n)
     }
 }
 

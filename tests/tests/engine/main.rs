@@ -5,6 +5,7 @@
 mod cloth_loss;
 mod half_precision;
 mod lpips;
+mod mirror;
 mod nn;
 mod recorder;
 mod runtime;

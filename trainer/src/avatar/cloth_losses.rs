@@ -10,6 +10,7 @@
 //! splatter's backward and the layer's own (`Avatar::record_scatter_grads` /
 //! `record_layers_backward`).
 
+use drape_engine::mirror::Mirror;
 use drape_engine::ops::cloth_loss::{Arap, Chamfer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
@@ -58,6 +59,7 @@ pub struct ClothLosses {
     mask_target: Buffer,
     grad_alpha: Buffer,
     mask_sq_error: Buffer,
+    mask_sq_error_mirror: Mirror,
     zeros: Buffer,
     mask_grads: GaussianBuffers,
     pixels: u32,
@@ -78,18 +80,21 @@ impl ClothLosses {
             rec.fill(&zeros, 0);
             rec.submit_and_wait()?;
         }
+        let (chamfer, arap) = mirrored_scratch(ctx, cloth, &garments, &weights)?;
+        let mask_sq_error = b("cloth mask squared error", pixels)?;
         Ok(Self {
             weights,
             count: cloth.count,
-            chamfer: Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?,
-            arap: Arap::new(ctx, cloth.count, &cloth.edges)?,
+            chamfer,
+            arap,
             // The frame's targets are rewritten every step (`set_frame`): host-written memory.
             target_points: ctx.create_buffer("cloth target points", BufferDesc::host_written(4 * u64::from((3 * garments.vertices as u32).max(1))))?,
             target_count: 0,
             renderer: SplatRenderer::new(ctx, width, height, cloth.count as usize)?,
             mask_target: ctx.create_buffer("cloth mask target", BufferDesc::host_written(4 * u64::from(pixels.max(1))))?,
             grad_alpha: b("cloth mask grad alpha", pixels)?,
-            mask_sq_error: b("cloth mask squared error", pixels)?,
+            mask_sq_error_mirror: Mirror::new(ctx, &mask_sq_error)?,
+            mask_sq_error,
             zeros,
             mask_grads: GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?,
             garments,
@@ -105,8 +110,7 @@ impl ClothLosses {
     pub fn resize(&mut self, ctx: &Context, cloth: &HumanLayer) -> Result<()> {
         let (width, height) = self.renderer.size();
         self.count = cloth.count;
-        self.chamfer = Chamfer::new(ctx, cloth.count, self.garments.vertices.div_ceil(self.weights.target_stride.max(1) as usize) as u32)?;
-        self.arap = Arap::new(ctx, cloth.count, &cloth.edges)?;
+        (self.chamfer, self.arap) = mirrored_scratch(ctx, cloth, &self.garments, &self.weights)?;
         self.renderer = SplatRenderer::new(ctx, width, height, cloth.count as usize)?;
         self.mask_grads = GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?;
         Ok(())
@@ -117,6 +121,8 @@ impl ClothLosses {
         let points = self.garments.by_frame.get(&f.frame).expect("every frame of the sequence was simulated");
         let kept: Vec<f32> = points.iter().step_by(self.weights.target_stride.max(1) as usize).flatten().copied().collect();
         self.target_count = (kept.len() / 3) as u32;
+        // This frame's mask error is not in the mirror until a step copies it there.
+        self.mask_sq_error_mirror.mark_stale();
         ctx.write_buffer(&mut self.target_points, &kept)?;
         self.has_mask = self.weights.mask > 0.0 && f.garment_masks.is_some();
         if let Some((upper, lower)) = &f.garment_masks {
@@ -218,7 +224,24 @@ impl ClothLosses {
         Ok(())
     }
 
-    /// The last step's loss values (reads them back).
+    /// Records, after [`ClothLosses::record`], the copy of the values the step
+    /// computed into host memory, for [`ClothLosses::read_values`] to read without a
+    /// wait.
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        if self.weights.sim > 0.0 {
+            self.chamfer.record_readback(rec);
+        }
+        if self.weights.arap > 0.0 {
+            self.arap.record_readback(rec);
+        }
+        if self.has_mask {
+            self.mask_sq_error_mirror.record_copy(rec, &self.mask_sq_error, 4 * u64::from(self.pixels));
+        }
+    }
+
+    /// The last recorded step's loss values: out of host memory (no wait) where that
+    /// step recorded [`ClothLosses::record_readback`], otherwise read back from the
+    /// device.
     pub fn read_values(&mut self, ctx: &Context) -> Result<ClothLossValues> {
         let mut v = ClothLossValues::default();
         if self.weights.sim > 0.0 {
@@ -230,9 +253,19 @@ impl ClothLosses {
             v.arap = f64::from(self.arap.read_stats(ctx)?[1]);
         }
         if self.has_mask {
-            let e = ctx.read_buffer::<f32>(&mut self.mask_sq_error, self.pixels as usize)?;
+            let e = self.mask_sq_error_mirror.read::<f32>(ctx, &mut self.mask_sq_error, self.pixels as usize)?;
             v.mask = e.iter().map(|&x| f64::from(x)).sum::<f64>() / f64::from(self.pixels.max(1));
         }
         Ok(v)
     }
+}
+
+/// The Chamfer and ARAP scratch for the layer `cloth`, each keeping a host copy of its
+/// values for logging steps (`record_readback`).
+fn mirrored_scratch(ctx: &Context, cloth: &HumanLayer, garments: &GarmentFrames, weights: &ClothLossWeights) -> Result<(Chamfer, Arap)> {
+    let mut chamfer = Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?;
+    chamfer.keep_host_mirror(ctx)?;
+    let mut arap = Arap::new(ctx, cloth.count, &cloth.edges)?;
+    arap.keep_host_mirror(ctx)?;
+    Ok((chamfer, arap))
 }

@@ -1,11 +1,14 @@
 //! The image losses of a training step: `λ_L1 L1 + λ_SSIM (1 − SSIM) + λ_LPIPS LPIPS`
 //! of the render against the frame's target, their gradients summed into one gradient
-//! on the rendered image. Recorded with no host wait; their values are read back only
-//! on logging steps. (The cloth layer's losses are `cloth_losses`.)
+//! on the rendered image. Recorded with no host wait. Their values are wanted on
+//! logging steps only: such a step also records [`ImageLosses::record_readback`],
+//! which copies them into host mirrors, so reading them after the step's one wait
+//! waits no more. (The cloth layer's losses are `cloth_losses`.)
 
 use drape_engine::ops::lpips::Lpips;
 use drape_engine::ops::ssim::Ssim;
 use drape_engine::recorder::flat_grid;
+use drape_engine::mirror::Mirror;
 use drape_engine::{kernels, Buffer, BufferDesc, Context, Recording, Result};
 use drape_shared::adam::LossParams;
 
@@ -37,6 +40,7 @@ pub struct ImageLosses {
     target: Buffer,
     grad_rgb: Buffer,
     abs_error: Buffer,
+    abs_error_mirror: Mirror,
     l1: LossParams,
     ssim: Ssim,
     lpips: Option<Lpips>,
@@ -45,15 +49,22 @@ pub struct ImageLosses {
 
 impl ImageLosses {
     /// The losses of `width` × `height` renders; LPIPS joins where `lpips` is given.
-    pub fn new(ctx: &Context, width: u32, height: u32, weights: ImageLossWeights, lpips: Option<Lpips>) -> Result<Self> {
+    pub fn new(ctx: &Context, width: u32, height: u32, weights: ImageLossWeights, mut lpips: Option<Lpips>) -> Result<Self> {
         let floats = 3 * u64::from(width) * u64::from(height);
+        let abs_error = ctx.create_buffer("train abs error", BufferDesc::gpu_only(4 * floats))?;
+        let mut ssim = Ssim::new(ctx, width, height)?;
+        ssim.keep_host_mirror(ctx)?;
+        if let Some(l) = lpips.as_mut() {
+            l.keep_host_mirror(ctx)?;
+        }
         Ok(Self {
             // Rewritten every step by the host: host-visible memory, no staging copy.
             target: ctx.create_buffer("train target", BufferDesc::host_written(4 * floats))?,
             grad_rgb: ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(4 * floats))?,
-            abs_error: ctx.create_buffer("train abs error", BufferDesc::gpu_only(4 * floats))?,
+            abs_error_mirror: Mirror::new(ctx, &abs_error)?,
+            abs_error,
             l1: LossParams { len: floats as u32, scale: weights.l1 / floats as f32, _pad: [0; 2] },
-            ssim: Ssim::new(ctx, width, height)?,
+            ssim,
             lpips,
             weights,
         })
@@ -69,6 +80,7 @@ impl ImageLosses {
     /// [`grad_rgb`](Self::grad_rgb).
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, rgb: &'a Buffer) -> Result<()> {
         let l1 = &self.l1;
+        self.abs_error_mirror.mark_stale();
         rec.dispatch(
             "loss.l1_grad",
             kernels::train::L1Grad { pred: rgb.read(), target: self.target.read(), grad: self.grad_rgb.write(), abs_error: self.abs_error.write() },
@@ -88,9 +100,20 @@ impl ImageLosses {
         &self.grad_rgb
     }
 
-    /// The last step's values (read-backs: for logging steps).
+    /// Records, after [`ImageLosses::record`], the copy of the values it computed into
+    /// host memory, for [`ImageLosses::read_values`] to read without a wait.
+    pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
+        self.abs_error_mirror.record_copy(rec, &self.abs_error, 4 * u64::from(self.l1.len));
+        self.ssim.record_readback(rec);
+        if let Some(l) = &self.lpips {
+            l.record_readback(rec);
+        }
+    }
+
+    /// The last recorded step's values: out of host memory (no wait) where that step
+    /// recorded [`ImageLosses::record_readback`], otherwise read back from the device.
     pub fn read_values(&mut self, ctx: &Context) -> Result<ImageLossValues> {
-        let e = ctx.read_buffer::<f32>(&mut self.abs_error, self.l1.len as usize)?;
+        let e = self.abs_error_mirror.read::<f32>(ctx, &mut self.abs_error, self.l1.len as usize)?;
         let n = e.len().max(1) as f64;
         let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
         let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / n;

@@ -8,9 +8,10 @@
 //! reads the guard and the renders' totals from mapped memory: a step that overflowed
 //! is done again with the grown buffers, a step with non-finite gradients is counted
 //! as skipped, and only an applied step advances Adam's step count. The pose
-//! refiner's gradient is read from mapped memory too. Loss values are read back on
-//! logging steps only (`ImageLosses::read_values`), densification runs between steps
-//! (`densify`).
+//! refiner's gradient is read from mapped memory too. A logging step also copies the
+//! losses' values into host mirrors inside the same submission (`record_loss_readback`),
+//! so the log line reads them after the one wait with no wait of its own.
+//! Densification runs between steps (`densify`).
 
 use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{Buffer, BufferDesc, Context, Recording, Result};
@@ -84,6 +85,9 @@ pub(crate) struct Stages<'s> {
     pub screen_stats: bool,
     /// The person over the background colour (false: the whole frame, with a scene).
     pub masked: bool,
+    /// A logging step: the losses' values are copied to the host in the step's
+    /// submission.
+    pub read_losses: bool,
 }
 
 /// What became of a step.
@@ -112,6 +116,9 @@ pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers,
         st.image_losses.record(&mut rec, st.renderer.rgb())?;
         record_backward(&mut rec, st, buffers)?;
         record_guard(&mut rec, st, buffers)?;
+        if st.read_losses {
+            record_loss_readback(&mut rec, st);
+        }
         st.avatar.record_adam(&mut rec, Some(&buffers.guard))?;
         rec.submit_and_wait()?;
     }
@@ -187,6 +194,15 @@ fn record_guard<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a St
     st.avatar.record_count_nonfinite(rec, &buffers.guard, st.pose_gradient)
 }
 
+/// Stage 7 on logging steps, read-back: the losses' values into host memory, read
+/// after the step's one wait (`ImageLosses::read_values`, `ClothLosses::read_values`).
+fn record_loss_readback<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>) {
+    st.image_losses.record_readback(rec);
+    if let Some(c) = st.cloth_losses.as_deref() {
+        c.record_readback(rec);
+    }
+}
+
 /// After the wait: the renders' totals (an overflow grows their buffers), then the
 /// guard; an applied step advances Adam's step count.
 fn finish(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers) -> Result<StepOutcome> {
@@ -207,9 +223,22 @@ fn finish(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers) -> Resu
     Ok(StepOutcome::Applied)
 }
 
-/// Host waits (fence waits) per step, apart for the steps that also logged,
-/// densified or checkpointed (those read back more) or were done again after a render
-/// outgrew its buffers (growing makes buffers, and the step is submitted twice).
+/// What a step did besides training, for counting its host waits apart.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum StepKind {
+    /// It only trained.
+    TrainingOnly,
+    /// It trained and wrote a log line (the losses come from host mirrors filled in
+    /// the step's own submission).
+    Logged,
+    /// It densified or checkpointed (those read the model back), or was skipped.
+    Other,
+}
+
+/// Host waits (fence waits) per step: the steps that only trained, those that also
+/// logged, and the rest: steps that densified or checkpointed (those read the model
+/// back) or were done again after a render outgrew its buffers (growing makes
+/// buffers, and the step is submitted twice).
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct HostWaits {
     /// Steps that only trained, once.
@@ -217,6 +246,11 @@ pub struct HostWaits {
     pub plain_waits: u64,
     /// The most waits one of them took.
     pub plain_max: u64,
+    /// Steps that trained and logged, once.
+    pub logged_steps: u64,
+    pub logged_waits: u64,
+    /// The most waits one of them took.
+    pub logged_max: u64,
     /// The other steps.
     pub other_steps: u64,
     pub other_waits: u64,
@@ -225,19 +259,21 @@ pub struct HostWaits {
 }
 
 impl HostWaits {
-    /// Counts a step that took `waits` fence waits over `attempts` submissions; `plain`
-    /// when it did nothing but train.
-    pub fn add(&mut self, waits: u64, attempts: u32, plain: bool) {
+    /// Counts a step of `kind` that took `waits` fence waits over `attempts`
+    /// submissions.
+    pub(crate) fn add(&mut self, waits: u64, attempts: u32, kind: StepKind) {
         if attempts > 1 {
             self.redone_steps += 1;
         }
-        if plain && attempts == 1 {
-            self.plain_steps += 1;
-            self.plain_waits += waits;
-            self.plain_max = self.plain_max.max(waits);
-        } else {
-            self.other_steps += 1;
-            self.other_waits += waits;
+        let (steps, total, max) = match (kind, attempts) {
+            (StepKind::TrainingOnly, 1) => (&mut self.plain_steps, &mut self.plain_waits, Some(&mut self.plain_max)),
+            (StepKind::Logged, 1) => (&mut self.logged_steps, &mut self.logged_waits, Some(&mut self.logged_max)),
+            _ => (&mut self.other_steps, &mut self.other_waits, None),
+        };
+        *steps += 1;
+        *total += waits;
+        if let Some(m) = max {
+            *m = (*m).max(waits);
         }
     }
 
@@ -245,10 +281,13 @@ impl HostWaits {
     pub fn summary(&self) -> String {
         let mean = |w: u64, n: u64| w as f64 / n.max(1) as f64;
         format!(
-            "host waits (fence waits) per step: {:.2} mean, {} max over {} training-only steps; {:.2} mean over {} steps that also logged, densified, checkpointed or were done again after a render outgrew its buffers ({} such)",
+            "host waits (fence waits) per step: {:.2} mean, {} max over {} training-only steps; {:.2} mean, {} max over {} steps that also logged; {:.2} mean over {} steps that densified, checkpointed, were skipped or were done again after a render outgrew its buffers ({} such)",
             mean(self.plain_waits, self.plain_steps),
             self.plain_max,
             self.plain_steps,
+            mean(self.logged_waits, self.logged_steps),
+            self.logged_max,
+            self.logged_steps,
             mean(self.other_waits, self.other_steps),
             self.other_steps,
             self.redone_steps

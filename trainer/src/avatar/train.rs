@@ -38,7 +38,7 @@ use crate::avatar::model::Avatar;
 use crate::error::TrainerError;
 use crate::avatar::pose_refine::PoseRefiner;
 use crate::avatar::losses::{ImageLossWeights, ImageLosses};
-use crate::avatar::step::{self, HostWaits, Sample, Stages, StepBuffers, StepOutcome};
+use crate::avatar::step::{self, HostWaits, Sample, Stages, StepBuffers, StepKind, StepOutcome};
 use crate::avatar::rig::Rig;
 use crate::body::SmplModel;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
@@ -489,18 +489,18 @@ impl StepLoop<'_> {
             self.lap.host("host.frame_setup");
             let (outcome, attempts) = self.train_step(step, &s)?;
             self.lap.reset();
-            let plain = match outcome {
+            let kind = match outcome {
                 StepOutcome::Skipped { nonfinite } => {
                     self.log_line(&serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite }))?;
                     self.skips.skipped(step, nonfinite, s.frame.frame, &self.seq.dir, self.checkpoint_path)?;
-                    false
+                    StepKind::Other
                 }
                 _ => {
                     self.skips.applied();
                     self.after_step(step, &s, progress)?
                 }
             };
-            self.waits.add(self.ctx.fence_waits() - waits_before, attempts, plain);
+            self.waits.add(self.ctx.fence_waits() - waits_before, attempts, kind);
         }
         Ok(None)
     }
@@ -511,6 +511,7 @@ impl StepLoop<'_> {
         let dc = &self.config.densify;
         // Statistics are gathered from the step after one densification up to the next.
         let screen_stats = dc.every > 0 && step < dc.until.min(self.config.schedule.steps.saturating_sub(1));
+        let read_losses = self.logs(step);
         let mut attempts = 0;
         loop {
             attempts += 1;
@@ -523,6 +524,7 @@ impl StepLoop<'_> {
                 pose_gradient: self.refiner.is_some(),
                 screen_stats,
                 masked: !self.whole_image,
+                read_losses,
             };
             match step::run(self.ctx, &mut st, &mut self.buffers, s)? {
                 StepOutcome::Overflowed => continue,
@@ -531,9 +533,15 @@ impl StepLoop<'_> {
         }
     }
 
+    /// Whether `step` writes a log line (its losses are copied to the host in its
+    /// submission).
+    fn logs(&self, step: u32) -> bool {
+        step % self.config.schedule.log_every.max(1) == 0 || step + 1 == self.stop_at
+    }
+
     /// After an applied step: the pose refinement, then the log line, densification and
-    /// checkpoint that fall on it. True when none did (a training-only step).
-    fn after_step(&mut self, step: u32, s: &Sample<'_>, progress: &mut dyn FnMut(Progress)) -> crate::Result<bool> {
+    /// checkpoint that fall on it; which of those it did.
+    fn after_step(&mut self, step: u32, s: &Sample<'_>, progress: &mut dyn FnMut(Progress)) -> crate::Result<StepKind> {
         if let Some(r) = self.refiner.as_deref_mut() {
             if let Some(line) = refine_pose(self.ctx, self.avatar, self.rig, r, s, step)? {
                 self.log_line(&line)?;
@@ -541,7 +549,7 @@ impl StepLoop<'_> {
         }
         self.lap.host("host.pose_gradient");
         let config = self.config;
-        let logging = step % config.schedule.log_every.max(1) == 0 || step + 1 == self.stop_at;
+        let logging = self.logs(step);
         if logging {
             let seconds = self.t_train.elapsed().as_secs_f64();
             let (line, l1, psnr) = log_line(self.ctx, &mut self.image_losses, self.cloth_losses.as_deref_mut(), self.avatar, self.refiner.as_deref(), step, s.frame.frame, seconds)?;
@@ -559,7 +567,11 @@ impl StepLoop<'_> {
         if checkpointing {
             self.save(step + 1, self.checkpoint_path)?;
         }
-        Ok(!(logging || densified || checkpointing))
+        Ok(match (densified || checkpointing, logging) {
+            (true, _) => StepKind::Other,
+            (false, true) => StepKind::Logged,
+            (false, false) => StepKind::TrainingOnly,
+        })
     }
 
     /// Densifies after `step + 1` steps; the renderer and the cloth losses follow the
