@@ -13,7 +13,7 @@ use drape_tests::gpu;
 use drape_tests::num::{to_f32, to_f64, uniform};
 use rand::{Rng, SeedableRng};
 
-fn random_tensors(net: LpipsNet, seed: u64) -> BTreeMap<String, (Vec<usize>, Vec<f32>)> {
+pub(crate) fn random_tensors(net: LpipsNet, seed: u64) -> BTreeMap<String, (Vec<usize>, Vec<f32>)> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     net.tensors()
         .into_iter()
@@ -34,7 +34,7 @@ fn random_tensors(net: LpipsNet, seed: u64) -> BTreeMap<String, (Vec<usize>, Vec
         .collect()
 }
 
-fn weights_file(name: &str, tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> PathBuf {
+pub(crate) fn weights_file(name: &str, tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> PathBuf {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("lpips");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(name);
