@@ -8,7 +8,7 @@
 use drape_engine::ops::cloth_loss::{Arap, Chamfer};
 use drape_engine::ops::lpips::{Lpips, LpipsNet, LpipsWeights};
 use drape_engine::ops::ssim::Ssim;
-use drape_engine::{Buffer, Context, ContextDesc, Recording};
+use drape_engine::{Context, ContextDesc, Recording};
 use drape_tests::{gpu_with, TestGpu};
 
 use crate::lpips::{random_tensors, weights_file};
@@ -35,16 +35,28 @@ fn counted<T>(ctx: &Context, read: impl FnOnce() -> T) -> (T, u64) {
     (value, ctx.fence_waits() - before)
 }
 
-/// The checks every op's mirror must pass: `fresh` (read after a recording that
-/// copied to the mirror) equals the device's value and took no wait; `stale` (read
-/// after a recording that recomputed without copying) equals the device's new value
-/// and took a wait at least.
-fn check<T: PartialEq + std::fmt::Debug>(what: &str, fresh: (T, u64), device: T, stale: (T, u64), device_after: T) {
+/// The checks every op's mirror must pass. `make(true)` makes the op with its host
+/// mirror, `eval(op, k, copy)` evaluates it on input `k` (0 or 1, which must give
+/// different values), copying to the mirror where `copy`, and `read` reads its value.
+/// A read after a recording that copied equals the device's value and takes no wait;
+/// a read after one that recomputed without copying equals the device's new value and
+/// takes a wait at least.
+fn check<O, T: PartialEq + std::fmt::Debug>(ctx: &Context, what: &str, make: impl Fn(bool) -> O, eval: impl Fn(&O, usize, bool), read: impl Fn(&mut O) -> T) {
+    let mut plain = make(false);
+    eval(&plain, 0, false);
+    let device = read(&mut plain);
+    eval(&plain, 1, false);
+    let device_after = read(&mut plain);
     assert_ne!(device, device_after, "{what}: the two evaluations must differ for a stale read to show");
-    assert_eq!(fresh.1, 0, "{what}: a mirrored read waits on nothing");
-    assert_eq!(fresh.0, device, "{what}: the mirror holds the device's bits");
-    assert!(stale.1 >= 1, "{what}: a stale mirror falls back to a read through staging ({} waits)", stale.1);
-    assert_eq!(stale.0, device_after, "{what}: the stale mirror's old value is not returned");
+    let mut mirrored = make(true);
+    eval(&mirrored, 0, true);
+    let (fresh, waits) = counted(ctx, || read(&mut mirrored));
+    assert_eq!(waits, 0, "{what}: a mirrored read waits on nothing");
+    assert_eq!(fresh, device, "{what}: the mirror holds the device's bits");
+    eval(&mirrored, 1, false);
+    let (stale, waits) = counted(ctx, || read(&mut mirrored));
+    assert!(waits >= 1, "{what}: a stale mirror falls back to a read through staging ({waits} waits)");
+    assert_eq!(stale, device_after, "{what}: the stale mirror's old value is not returned");
 }
 
 #[test]
@@ -53,26 +65,22 @@ fn ssim_reads_its_mirror_without_a_wait_and_not_when_stale() {
     let (w, h) = (16, 12);
     let n = (w * h * 3) as usize;
     let [a, b, c] = [0.0, 0.9, 2.1].map(|phase| ctx.upload("image", &ramp(n, phase)).expect("upload"));
-    let eval = |s: &Ssim, x: &Buffer, copy: bool| {
+    let make = |mirror: bool| {
+        let mut s = Ssim::new(&ctx, w, h).expect("ssim");
+        if mirror {
+            s.keep_host_mirror(&ctx).expect("mirror");
+        }
+        s
+    };
+    let eval = |s: &Ssim, k: usize, copy: bool| {
         submit(&ctx, |rec| {
-            s.record(rec, &a, x, None).expect("record");
+            s.record(rec, &a, [&b, &c][k], None).expect("record");
             if copy {
                 s.record_readback(rec);
             }
         })
     };
-    let mut plain = Ssim::new(&ctx, w, h).expect("ssim");
-    eval(&plain, &b, false);
-    let ab = plain.read_mean(&ctx).expect("read");
-    eval(&plain, &c, false);
-    let ac = plain.read_mean(&ctx).expect("read");
-    let mut mirrored = Ssim::new(&ctx, w, h).expect("ssim");
-    mirrored.keep_host_mirror(&ctx).expect("mirror");
-    eval(&mirrored, &b, true);
-    let fresh = counted(&ctx, || mirrored.read_mean(&ctx).expect("read"));
-    eval(&mirrored, &c, false);
-    let stale = counted(&ctx, || mirrored.read_mean(&ctx).expect("read"));
-    check("ssim", fresh, ab, stale, ac);
+    check(&ctx, "ssim", make, eval, |s| s.read_mean(&ctx).expect("read"));
 }
 
 #[test]
@@ -83,26 +91,22 @@ fn lpips_reads_its_mirrors_without_a_wait_and_not_when_stale() {
     let (w, h) = (32, 32);
     let n = (w * h * 3) as usize;
     let [a, b, c] = [0.0, 0.9, 2.1].map(|phase| ctx.upload("image", &ramp(n, phase)).expect("upload"));
-    let eval = |l: &Lpips, x: &Buffer, copy: bool| {
+    let make = |mirror: bool| {
+        let mut l = Lpips::new(&ctx, &weights, w, h).expect("lpips");
+        if mirror {
+            l.keep_host_mirror(&ctx).expect("mirror");
+        }
+        l
+    };
+    let eval = |l: &Lpips, k: usize, copy: bool| {
         submit(&ctx, |rec| {
-            l.record(rec, &a, x, None).expect("record");
+            l.record(rec, &a, [&b, &c][k], None).expect("record");
             if copy {
                 l.record_readback(rec);
             }
         })
     };
-    let mut plain = Lpips::new(&ctx, &weights, w, h).expect("lpips");
-    eval(&plain, &b, false);
-    let ab = plain.read_value(&ctx).expect("read");
-    eval(&plain, &c, false);
-    let ac = plain.read_value(&ctx).expect("read");
-    let mut mirrored = Lpips::new(&ctx, &weights, w, h).expect("lpips");
-    mirrored.keep_host_mirror(&ctx).expect("mirror");
-    eval(&mirrored, &b, true);
-    let fresh = counted(&ctx, || mirrored.read_value(&ctx).expect("read"));
-    eval(&mirrored, &c, false);
-    let stale = counted(&ctx, || mirrored.read_value(&ctx).expect("read"));
-    check("lpips", fresh, ab, stale, ac);
+    check(&ctx, "lpips", make, eval, |l| l.read_value(&ctx).expect("read"));
 }
 
 #[test]
@@ -110,49 +114,41 @@ fn chamfer_and_arap_read_their_mirrors_without_a_wait_and_not_when_stale() {
     let ctx = staged_gpu();
     let (n, m) = (40u32, 30u32);
     let pred = ctx.upload("pred", &ramp(3 * n as usize, 0.0)).expect("upload");
-    let [t1, t2] = [0.9, 2.1].map(|phase| ctx.upload("target", &ramp(3 * m as usize, phase)).expect("upload"));
-    let eval = |c: &Chamfer, target: &Buffer, copy: bool| {
+    let targets = [0.9, 2.1].map(|phase| ctx.upload("target", &ramp(3 * m as usize, phase)).expect("upload"));
+    let make = |mirror: bool| {
+        let mut c = Chamfer::new(&ctx, n, m).expect("chamfer");
+        if mirror {
+            c.keep_host_mirror(&ctx).expect("mirror");
+        }
+        c
+    };
+    let eval = |c: &Chamfer, k: usize, copy: bool| {
         submit(&ctx, |rec| {
-            c.record(rec, &pred, n, target, m, 0.1, None).expect("record");
+            c.record(rec, &pred, n, &targets[k], m, 0.1, None).expect("record");
             if copy {
                 c.record_readback(rec);
             }
         })
     };
-    let mut plain = Chamfer::new(&ctx, n, m).expect("chamfer");
-    eval(&plain, &t1, false);
-    let first = plain.read_value(&ctx).expect("read");
-    eval(&plain, &t2, false);
-    let second = plain.read_value(&ctx).expect("read");
-    let mut mirrored = Chamfer::new(&ctx, n, m).expect("chamfer");
-    mirrored.keep_host_mirror(&ctx).expect("mirror");
-    eval(&mirrored, &t1, true);
-    let fresh = counted(&ctx, || mirrored.read_value(&ctx).expect("read"));
-    eval(&mirrored, &t2, false);
-    let stale = counted(&ctx, || mirrored.read_value(&ctx).expect("read"));
-    check("chamfer", fresh, first, stale, second);
+    check(&ctx, "chamfer", make, eval, |c| c.read_value(&ctx).expect("read"));
 
     // ARAP over a chain of the 40 points, on two different point sets.
     let edges: Vec<[u32; 2]> = (0..n - 1).map(|i| [i, i + 1]).collect();
-    let other = ctx.upload("other", &ramp(3 * n as usize, 1.3)).expect("upload");
-    let eval = |a: &Arap, positions: &Buffer, copy: bool| {
+    let positions = [0.0, 1.3].map(|phase| ctx.upload("positions", &ramp(3 * n as usize, phase)).expect("upload"));
+    let make = |mirror: bool| {
+        let mut a = Arap::new(&ctx, n, &edges).expect("arap");
+        if mirror {
+            a.keep_host_mirror(&ctx).expect("mirror");
+        }
+        a
+    };
+    let eval = |a: &Arap, k: usize, copy: bool| {
         submit(&ctx, |rec| {
-            a.record(rec, positions, None).expect("record");
+            a.record(rec, &positions[k], None).expect("record");
             if copy {
                 a.record_readback(rec);
             }
         })
     };
-    let mut plain = Arap::new(&ctx, n, &edges).expect("arap");
-    eval(&plain, &pred, false);
-    let first = plain.read_stats(&ctx).expect("read");
-    eval(&plain, &other, false);
-    let second = plain.read_stats(&ctx).expect("read");
-    let mut mirrored = Arap::new(&ctx, n, &edges).expect("arap");
-    mirrored.keep_host_mirror(&ctx).expect("mirror");
-    eval(&mirrored, &pred, true);
-    let fresh = counted(&ctx, || mirrored.read_stats(&ctx).expect("read"));
-    eval(&mirrored, &other, false);
-    let stale = counted(&ctx, || mirrored.read_stats(&ctx).expect("read"));
-    check("arap", fresh, first, stale, second);
+    check(&ctx, "arap", make, eval, |a| a.read_stats(&ctx).expect("read"));
 }
