@@ -15,20 +15,25 @@ fn camel(entry: &str) -> String {
         .filter(|s| !s.is_empty())
         .map(|s| {
             let mut c = s.chars();
-            c.next().map(|f| f.to_ascii_uppercase().to_string() + c.as_str()).unwrap_or_default()
+            c.next()
+                .map(|f| f.to_ascii_uppercase().to_string() + c.as_str())
+                .unwrap_or_default()
         })
         .collect()
 }
 
 fn main() {
-    let spirv_dir = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").unwrap()).join("../shaders-rs/spirv");
+    let spirv_dir =
+        PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").unwrap()).join("../shaders-rs/spirv");
     let manifest_path = spirv_dir.join("manifest.json");
     println!("cargo:rerun-if-changed={}", manifest_path.display());
     let text = std::fs::read_to_string(&manifest_path)
         .unwrap_or_else(|e| panic!("reading {}: {e}", manifest_path.display()));
     let manifest: serde_json::Value = serde_json::from_str(&text)
         .unwrap_or_else(|e| panic!("parsing {}: {e}", manifest_path.display()));
-    let modules = manifest["modules"].as_array().expect("manifest.json: 'modules' is not an array");
+    let modules = manifest["modules"]
+        .as_array()
+        .expect("manifest.json: 'modules' is not an array");
 
     let mut variants = String::new();
     let mut all = String::new();
@@ -43,7 +48,9 @@ fn main() {
     // Rust module -> its kernels' bindings structs.
     let mut structs: std::collections::BTreeMap<String, String> = Default::default();
     for m in modules {
-        let name = m["entry_point"].as_str().expect("manifest.json: entry_point");
+        let name = m["entry_point"]
+            .as_str()
+            .expect("manifest.json: entry_point");
         let file = m["file"].as_str().expect("manifest.json: file");
         let size: Vec<u64> = m["workgroup_size"]
             .as_array()
@@ -73,7 +80,10 @@ fn main() {
             .unwrap_or(false);
         let needs_ballot = m["requires"]
             .as_array()
-            .map(|r| r.iter().any(|c| c.as_str() == Some("GroupNonUniformBallot")))
+            .map(|r| {
+                r.iter()
+                    .any(|c| c.as_str() == Some("GroupNonUniformBallot"))
+            })
             .unwrap_or(false);
         let needs_int64 = m["requires"]
             .as_array()
@@ -85,8 +95,15 @@ fn main() {
             Some(serde_json::Value::String(t)) => Some(t.clone()),
             _ => panic!("manifest.json: {name}: 'push_constant' is not a type path or null (rebuild the shaders with tools/shader-builder)"),
         };
-        writeln!(push_constant, "            Kernel::{v} => {:?},", params.as_deref().unwrap_or("")).unwrap();
-        let (module, function) = name.split_once("::").unwrap_or_else(|| panic!("manifest.json: entry point {name} is not module::function"));
+        writeln!(
+            push_constant,
+            "            Kernel::{v} => {:?},",
+            params.as_deref().unwrap_or("")
+        )
+        .unwrap();
+        let (module, function) = name
+            .split_once("::")
+            .unwrap_or_else(|| panic!("manifest.json: entry point {name} is not module::function"));
         let ty = camel(function);
         let code = structs.entry(module.to_string()).or_default();
         let mut fields = String::new();
@@ -134,15 +151,34 @@ fn main() {
         .unwrap();
         writeln!(requires_int64, "            Kernel::{v} => {needs_int64},").unwrap();
         writeln!(requires, "            Kernel::{v} => {needs_atomics},").unwrap();
-        writeln!(requires_ballot, "            Kernel::{v} => {needs_ballot},").unwrap();
+        writeln!(
+            requires_ballot,
+            "            Kernel::{v} => {needs_ballot},"
+        )
+        .unwrap();
         let path = spirv_dir.join(file);
         println!("cargo:rerun-if-changed={}", path.display());
         writeln!(variants, "    /// Entry point `{name}` ({file}).\n    {v},").unwrap();
         writeln!(all, "        Kernel::{v},").unwrap();
         writeln!(entry, "            Kernel::{v} => {name:?},").unwrap();
-        writeln!(spirv, "            Kernel::{v} => include_bytes!({:?}),", path.display().to_string()).unwrap();
-        writeln!(wg, "            Kernel::{v} => [{}, {}, {}],", size[0], size[1], size[2]).unwrap();
-        writeln!(bindings, "            Kernel::{v} => &[{}],", decls.join(", ")).unwrap();
+        writeln!(
+            spirv,
+            "            Kernel::{v} => include_bytes!({:?}),",
+            path.display().to_string()
+        )
+        .unwrap();
+        writeln!(
+            wg,
+            "            Kernel::{v} => [{}, {}, {}],",
+            size[0], size[1], size[2]
+        )
+        .unwrap();
+        writeln!(
+            bindings,
+            "            Kernel::{v} => &[{}],",
+            decls.join(", ")
+        )
+        .unwrap();
     }
     let code = format!(
         "/// Every kernel of the committed manifest, as a typed handle.

@@ -26,11 +26,16 @@ use std::path::Path;
 use std::sync::Mutex;
 
 use drape_engine::ash::vk::{self, Handle};
-use drape_engine::{Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer, ImageTarget};
+use drape_engine::{
+    Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer,
+    ImageTarget,
+};
 use drape_trainer::avatar::player::{smpl_pose_of, AvatarPlayer, ViewCamera};
 
 #[cfg(not(target_pointer_width = "64"))]
-compile_error!("the drape C ABI encodes a generation and a slot in each handle: 64-bit targets only");
+compile_error!(
+    "the drape C ABI encodes a generation and a slot in each handle: 64-bit targets only"
+);
 
 /// What a call returned.
 #[repr(C)]
@@ -73,7 +78,12 @@ pub struct drape_context_desc {
 #[repr(C)]
 pub struct drape_vulkan_desc {
     /// `vkGetInstanceProcAddr` of the loader the instance came from.
-    pub get_instance_proc_addr: Option<unsafe extern "system" fn(*mut c_void, *const c_char) -> Option<unsafe extern "system" fn()>>,
+    pub get_instance_proc_addr: Option<
+        unsafe extern "system" fn(
+            *mut c_void,
+            *const c_char,
+        ) -> Option<unsafe extern "system" fn()>,
+    >,
     /// `VkInstance`.
     pub instance: *mut c_void,
     /// `VkPhysicalDevice`.
@@ -115,7 +125,15 @@ pub struct drape_camera {
 
 impl drape_camera {
     fn view(&self) -> ViewCamera {
-        ViewCamera { fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy, world_to_camera: self.world_to_camera, near: self.near, far: self.far }
+        ViewCamera {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            world_to_camera: self.world_to_camera,
+            near: self.near,
+            far: self.far,
+        }
     }
 }
 
@@ -176,14 +194,19 @@ impl Failure {
         Self(drape_status::DRAPE_ERROR_INVALID_ARGUMENT, message.into())
     }
     fn handle(what: &str) -> Self {
-        Self(drape_status::DRAPE_ERROR_INVALID_HANDLE, format!("{what}: a null, destroyed or forged handle"))
+        Self(
+            drape_status::DRAPE_ERROR_INVALID_HANDLE,
+            format!("{what}: a null, destroyed or forged handle"),
+        )
     }
 }
 
 impl From<drape_trainer::TrainerError> for Failure {
     fn from(e: drape_trainer::TrainerError) -> Self {
         match e {
-            drape_trainer::TrainerError::Engine(e) => Self(drape_status::DRAPE_ERROR_ENGINE, e.to_string()),
+            drape_trainer::TrainerError::Engine(e) => {
+                Self(drape_status::DRAPE_ERROR_ENGINE, e.to_string())
+            }
             e => Self::argument(e.to_string()),
         }
     }
@@ -201,10 +224,12 @@ fn set_error(message: &str) {
 }
 
 /// Runs `body` with panics caught; on failure records the message and returns the status.
-fn guard<T>(what: &str, on_error: T, body: impl FnOnce() -> Result<T, Failure>) -> (T, drape_status) {
-    let result = catch_unwind(AssertUnwindSafe(|| {
-        body()
-    }));
+fn guard<T>(
+    what: &str,
+    on_error: T,
+    body: impl FnOnce() -> Result<T, Failure>,
+) -> (T, drape_status) {
+    let result = catch_unwind(AssertUnwindSafe(|| body()));
     match result {
         Ok(Ok(v)) => (v, drape_status::DRAPE_OK),
         Ok(Err(Failure(status, message))) => {
@@ -212,7 +237,11 @@ fn guard<T>(what: &str, on_error: T, body: impl FnOnce() -> Result<T, Failure>) 
             (on_error, status)
         }
         Err(panic) => {
-            let text = panic.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| panic.downcast_ref::<String>().cloned()).unwrap_or_else(|| "unknown panic".into());
+            let text = panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
             set_error(&format!("{what}: internal error (a panic, caught): {text}"));
             (on_error, drape_status::DRAPE_ERROR_PANIC)
         }
@@ -228,12 +257,20 @@ fn lock<T>(m: &'static Mutex<T>) -> std::sync::MutexGuard<'static, T> {
 }
 
 fn context_of(handle: *const drape_context) -> Result<Context, Failure> {
-    lock(&CONTEXTS).get_mut(handle as u64).cloned().ok_or_else(|| Failure::handle("context"))
+    lock(&CONTEXTS)
+        .get_mut(handle as u64)
+        .cloned()
+        .ok_or_else(|| Failure::handle("context"))
 }
 
-fn with_avatar<T>(handle: *mut drape_avatar, f: impl FnOnce(&mut AvatarPlayer) -> Result<T, Failure>) -> Result<T, Failure> {
+fn with_avatar<T>(
+    handle: *mut drape_avatar,
+    f: impl FnOnce(&mut AvatarPlayer) -> Result<T, Failure>,
+) -> Result<T, Failure> {
     let mut avatars = lock(&AVATARS);
-    let player = avatars.get_mut(handle as u64).ok_or_else(|| Failure::handle("avatar"))?;
+    let player = avatars
+        .get_mut(handle as u64)
+        .ok_or_else(|| Failure::handle("avatar"))?;
     f(player)
 }
 
@@ -247,7 +284,9 @@ pub extern "C" fn drape_last_error() -> *const c_char {
 /// Opens a context on a device the engine creates (`desc` NULL: the automatic choice,
 /// no validation). NULL on failure (see `drape_last_error`).
 #[no_mangle]
-pub unsafe extern "C" fn drape_context_create(desc: *const drape_context_desc) -> *mut drape_context {
+pub unsafe extern "C" fn drape_context_create(
+    desc: *const drape_context_desc,
+) -> *mut drape_context {
     guard("drape_context_create", std::ptr::null_mut(), || {
         let mut d = ContextDesc::default();
         // SAFETY: the caller passes NULL or a valid descriptor.
@@ -255,7 +294,11 @@ pub unsafe extern "C" fn drape_context_create(desc: *const drape_context_desc) -
             d.validation = desc.validation != 0;
             if !desc.device_name.is_null() {
                 // SAFETY: a non-null device_name is a nul-terminated string.
-                d.device_name = Some(unsafe { CStr::from_ptr(desc.device_name) }.to_string_lossy().into_owned());
+                d.device_name = Some(
+                    unsafe { CStr::from_ptr(desc.device_name) }
+                        .to_string_lossy()
+                        .into_owned(),
+                );
             }
         }
         let ctx = Context::new(&d)?;
@@ -267,27 +310,45 @@ pub unsafe extern "C" fn drape_context_create(desc: *const drape_context_desc) -
 /// Opens a context over the application's Vulkan device (see `drape_vulkan_desc`).
 /// NULL on failure, with the last error naming what the device lacks.
 #[no_mangle]
-pub unsafe extern "C" fn drape_context_from_vulkan(desc: *const drape_vulkan_desc) -> *mut drape_context {
+pub unsafe extern "C" fn drape_context_from_vulkan(
+    desc: *const drape_vulkan_desc,
+) -> *mut drape_context {
     guard("drape_context_from_vulkan", std::ptr::null_mut(), || {
         // SAFETY: the caller passes NULL or a valid descriptor.
         let d = unsafe { desc.as_ref() }.ok_or_else(|| Failure::argument("desc is NULL"))?;
-        let gipa = d.get_instance_proc_addr.ok_or_else(|| Failure::argument("get_instance_proc_addr is NULL"))?;
+        let gipa = d
+            .get_instance_proc_addr
+            .ok_or_else(|| Failure::argument("get_instance_proc_addr is NULL"))?;
         if d.instance.is_null() || d.physical_device.is_null() || d.device.is_null() {
-            return Err(Failure::argument("instance, physical_device and device must not be NULL"));
+            return Err(Failure::argument(
+                "instance, physical_device and device must not be NULL",
+            ));
         }
         // SAFETY: the signature is vkGetInstanceProcAddr's (the caller passes that function).
         let gipa: vk::PFN_vkGetInstanceProcAddr = unsafe { std::mem::transmute(gipa) };
-        let entry = unsafe { drape_engine::ash::Entry::from_static_fn(drape_engine::ash::StaticFn { get_instance_proc_addr: gipa }) };
+        let entry = unsafe {
+            drape_engine::ash::Entry::from_static_fn(drape_engine::ash::StaticFn {
+                get_instance_proc_addr: gipa,
+            })
+        };
         let instance_handle = vk::Instance::from_raw(d.instance as u64);
         // SAFETY: the caller's handles are valid (the documented contract).
-        let instance = unsafe { drape_engine::ash::Instance::load(entry.static_fn(), instance_handle) };
-        let device = unsafe { drape_engine::ash::Device::load(instance.fp_v1_0(), vk::Device::from_raw(d.device as u64)) };
+        let instance =
+            unsafe { drape_engine::ash::Instance::load(entry.static_fn(), instance_handle) };
+        let device = unsafe {
+            drape_engine::ash::Device::load(
+                instance.fp_v1_0(),
+                vk::Device::from_raw(d.device as u64),
+            )
+        };
         let mut extensions = Vec::new();
         for i in 0..d.enabled_extension_count as usize {
             // SAFETY: enabled_extensions holds enabled_extension_count valid strings.
             let p = unsafe { *d.enabled_extensions.add(i) };
             if p.is_null() {
-                return Err(Failure::argument(format!("enabled_extensions[{i}] is NULL")));
+                return Err(Failure::argument(format!(
+                    "enabled_extensions[{i}] is NULL"
+                )));
             }
             // SAFETY: as above.
             extensions.push(unsafe { CStr::from_ptr(p) }.to_owned());
@@ -322,7 +383,9 @@ pub unsafe extern "C" fn drape_context_from_vulkan(desc: *const drape_vulkan_des
 #[no_mangle]
 pub extern "C" fn drape_context_destroy(ctx: *mut drape_context) -> drape_status {
     status("drape_context_destroy", || {
-        let removed = lock(&CONTEXTS).remove(ctx as u64).ok_or_else(|| Failure::handle("context"))?;
+        let removed = lock(&CONTEXTS)
+            .remove(ctx as u64)
+            .ok_or_else(|| Failure::handle("context"))?;
         drop(removed);
         Ok(())
     })
@@ -331,15 +394,21 @@ pub extern "C" fn drape_context_destroy(ctx: *mut drape_context) -> drape_status
 /// Loads the trained run at `run_dir` (its `run.json` names its data), posed as its
 /// first held-out frame. NULL on failure, with the last error naming the path.
 #[no_mangle]
-pub unsafe extern "C" fn drape_avatar_load(ctx: *mut drape_context, run_dir: *const c_char) -> *mut drape_avatar {
+pub unsafe extern "C" fn drape_avatar_load(
+    ctx: *mut drape_context,
+    run_dir: *const c_char,
+) -> *mut drape_avatar {
     guard("drape_avatar_load", std::ptr::null_mut(), || {
         let ctx = context_of(ctx)?;
         if run_dir.is_null() {
             return Err(Failure::argument("run_dir is NULL"));
         }
         // SAFETY: a non-null run_dir is a nul-terminated string.
-        let dir = unsafe { CStr::from_ptr(run_dir) }.to_string_lossy().into_owned();
-        let player = AvatarPlayer::load(&ctx, Path::new(&dir), 2).map_err(|e| Failure::argument(format!("{dir}: {e}")))?;
+        let dir = unsafe { CStr::from_ptr(run_dir) }
+            .to_string_lossy()
+            .into_owned();
+        let player = AvatarPlayer::load(&ctx, Path::new(&dir), 2)
+            .map_err(|e| Failure::argument(format!("{dir}: {e}")))?;
         Ok(lock(&AVATARS).insert(player) as *mut drape_avatar)
     })
     .0
@@ -348,13 +417,22 @@ pub unsafe extern "C" fn drape_avatar_load(ctx: *mut drape_context, run_dir: *co
 /// Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72
 /// floats, radians, joint 0 the global orientation), `translation` the root in metres.
 #[no_mangle]
-pub unsafe extern "C" fn drape_avatar_set_pose(avatar: *mut drape_avatar, pose: *const f32, translation: *const f32) -> drape_status {
+pub unsafe extern "C" fn drape_avatar_set_pose(
+    avatar: *mut drape_avatar,
+    pose: *const f32,
+    translation: *const f32,
+) -> drape_status {
     status("drape_avatar_set_pose", || {
         if pose.is_null() || translation.is_null() {
             return Err(Failure::argument("pose and translation must not be NULL"));
         }
         // SAFETY: the caller passes 72 and 3 floats.
-        let (p, t) = unsafe { (&*(pose as *const [f32; 72]), &*(translation as *const [f32; 3])) };
+        let (p, t) = unsafe {
+            (
+                &*(pose as *const [f32; 72]),
+                &*(translation as *const [f32; 3]),
+            )
+        };
         with_avatar(avatar, |a| Ok(a.set_pose(p, t)?))
     })
 }
@@ -364,7 +442,14 @@ pub unsafe extern "C" fn drape_avatar_set_pose(avatar: *mut drape_avatar, pose: 
 /// return: `pose` and `translation` are then left unchanged and the status is
 /// `DRAPE_ERROR_INVALID_ARGUMENT`.
 #[no_mangle]
-pub unsafe extern "C" fn drape_avatar_default_view(avatar: *mut drape_avatar, camera: *mut drape_camera, width: *mut u32, height: *mut u32, pose: *mut f32, translation: *mut f32) -> drape_status {
+pub unsafe extern "C" fn drape_avatar_default_view(
+    avatar: *mut drape_avatar,
+    camera: *mut drape_camera,
+    width: *mut u32,
+    height: *mut u32,
+    pose: *mut f32,
+    translation: *mut f32,
+) -> drape_status {
     status("drape_avatar_default_view", || {
         with_avatar(avatar, |a| {
             let c = a.default_camera();
@@ -372,7 +457,15 @@ pub unsafe extern "C" fn drape_avatar_default_view(avatar: *mut drape_avatar, ca
             // SAFETY (these writes): each pointer is NULL or points at room for its value.
             unsafe {
                 if let Some(out) = camera.as_mut() {
-                    *out = drape_camera { fx: v.fx, fy: v.fy, cx: v.cx, cy: v.cy, world_to_camera: v.world_to_camera, near: v.near, far: v.far };
+                    *out = drape_camera {
+                        fx: v.fx,
+                        fy: v.fy,
+                        cx: v.cx,
+                        cy: v.cy,
+                        world_to_camera: v.world_to_camera,
+                        near: v.near,
+                        far: v.far,
+                    };
                 }
                 if let Some(w) = width.as_mut() {
                     *w = c.width;
@@ -384,7 +477,8 @@ pub unsafe extern "C" fn drape_avatar_default_view(avatar: *mut drape_avatar, ca
             if pose.is_null() && translation.is_null() {
                 return Ok(());
             }
-            let (p, t) = smpl_pose_of(a.default_body()).ok_or_else(|| Failure::argument("the run's body is ZJU-MoCap's (no SMPL pose)"))?;
+            let (p, t) = smpl_pose_of(a.default_body())
+                .ok_or_else(|| Failure::argument("the run's body is ZJU-MoCap's (no SMPL pose)"))?;
             // SAFETY: as above: 72 and 3 floats.
             unsafe {
                 if !pose.is_null() {
@@ -404,10 +498,18 @@ pub unsafe extern "C" fn drape_avatar_default_view(avatar: *mut drape_avatar, ca
 /// the GPU, and for every frame in flight (frames recorded with `drape_avatar_record`
 /// must have completed before this call).
 #[no_mangle]
-pub unsafe extern "C" fn drape_avatar_render(avatar: *mut drape_avatar, camera: *const drape_camera, width: u32, height: u32, rgba_out: *mut f32) -> drape_status {
+pub unsafe extern "C" fn drape_avatar_render(
+    avatar: *mut drape_avatar,
+    camera: *const drape_camera,
+    width: u32,
+    height: u32,
+    rgba_out: *mut f32,
+) -> drape_status {
     status("drape_avatar_render", || {
         // SAFETY: the caller passes NULL or a valid camera.
-        let cam = unsafe { camera.as_ref() }.ok_or_else(|| Failure::argument("camera is NULL"))?.view();
+        let cam = unsafe { camera.as_ref() }
+            .ok_or_else(|| Failure::argument("camera is NULL"))?
+            .view();
         if rgba_out.is_null() {
             return Err(Failure::argument("rgba_out is NULL"));
         }
@@ -431,10 +533,20 @@ pub unsafe extern "C" fn drape_avatar_render(avatar: *mut drape_avatar, camera: 
 /// to the application's reads. The work must complete before the avatar records its
 /// second frame after this one (two frames in flight) and before it is destroyed.
 #[no_mangle]
-pub unsafe extern "C" fn drape_avatar_record(avatar: *mut drape_avatar, camera: *const drape_camera, width: u32, height: u32, cmd: *mut c_void, target: u64, target_layout: i32) -> drape_status {
+pub unsafe extern "C" fn drape_avatar_record(
+    avatar: *mut drape_avatar,
+    camera: *const drape_camera,
+    width: u32,
+    height: u32,
+    cmd: *mut c_void,
+    target: u64,
+    target_layout: i32,
+) -> drape_status {
     status("drape_avatar_record", || {
         // SAFETY: the caller passes NULL or a valid camera.
-        let cam = unsafe { camera.as_ref() }.ok_or_else(|| Failure::argument("camera is NULL"))?.view();
+        let cam = unsafe { camera.as_ref() }
+            .ok_or_else(|| Failure::argument("camera is NULL"))?
+            .view();
         if cmd.is_null() || target == 0 {
             return Err(Failure::argument("cmd and target must not be NULL"));
         }
@@ -445,8 +557,14 @@ pub unsafe extern "C" fn drape_avatar_record(avatar: *mut drape_avatar, camera: 
         // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
         let host = unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
         // SAFETY: as above.
-        let image = unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
-        with_avatar(avatar, |a| Ok(a.record_frame_into(&cam, width, height, &host, Some(&image)).map(|_| ())?))
+        let image =
+            unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
+        with_avatar(avatar, |a| {
+            Ok(
+                a.record_frame_into(&cam, width, height, &host, Some(&image))
+                    .map(|_| ())?,
+            )
+        })
     })
 }
 
@@ -461,7 +579,9 @@ pub fn testing_panic_probe() -> drape_status {
 #[no_mangle]
 pub extern "C" fn drape_avatar_destroy(avatar: *mut drape_avatar) -> drape_status {
     status("drape_avatar_destroy", || {
-        let removed = lock(&AVATARS).remove(avatar as u64).ok_or_else(|| Failure::handle("avatar"))?;
+        let removed = lock(&AVATARS)
+            .remove(avatar as u64)
+            .ok_or_else(|| Failure::handle("avatar"))?;
         drop(removed);
         Ok(())
     })

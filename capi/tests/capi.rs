@@ -32,16 +32,46 @@ fn lib_dir() -> PathBuf {
             let profile_dir = exe.parent().unwrap().parent().unwrap().to_path_buf();
             let lib = profile_dir.join("libdrape.so");
             let built = std::fs::metadata(&lib).and_then(|m| m.modified()).ok();
-            let sources = ["capi/src", "engine/src", "trainer/src", "shaders-rs/spirv", "shaders-rs/shared/src"].iter().filter_map(|d| newest(&root().join(d))).max();
+            let sources = [
+                "capi/src",
+                "engine/src",
+                "trainer/src",
+                "shaders-rs/spirv",
+                "shaders-rs/shared/src",
+            ]
+            .iter()
+            .filter_map(|d| newest(&root().join(d)))
+            .max();
             if built.is_some() && built >= sources {
                 return profile_dir;
             }
             let target_dir = profile_dir.parent().unwrap();
             let mut cargo = Command::new(env!("CARGO"));
-            cargo.args(["build", "--quiet", "-p", "drape-capi", "--lib", "--target-dir"]).arg(target_dir).current_dir(root());
-            cargo.args(["--profile", if profile_dir.file_name().is_some_and(|n| n == "release") { "release" } else { "test" }]);
+            cargo
+                .args([
+                    "build",
+                    "--quiet",
+                    "-p",
+                    "drape-capi",
+                    "--lib",
+                    "--target-dir",
+                ])
+                .arg(target_dir)
+                .current_dir(root());
+            cargo.args([
+                "--profile",
+                if profile_dir.file_name().is_some_and(|n| n == "release") {
+                    "release"
+                } else {
+                    "test"
+                },
+            ]);
             let o = cargo.output().expect("cargo");
-            assert!(o.status.success(), "building libdrape: {}", String::from_utf8_lossy(&o.stderr));
+            assert!(
+                o.status.success(),
+                "building libdrape: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
             assert!(lib.is_file(), "no libdrape.so in {}", profile_dir.display());
             profile_dir
         })
@@ -52,7 +82,11 @@ fn lib_dir() -> PathBuf {
 fn newest(dir: &Path) -> Option<std::time::SystemTime> {
     let mut out = None;
     for e in std::fs::read_dir(dir).ok()?.flatten() {
-        let t = if e.file_type().ok()?.is_dir() { newest(&e.path()) } else { e.metadata().ok()?.modified().ok() };
+        let t = if e.file_type().ok()?.is_dir() {
+            newest(&e.path())
+        } else {
+            e.metadata().ok()?.modified().ok()
+        };
         out = out.max(t);
     }
     out
@@ -66,9 +100,15 @@ fn tmp(name: &str) -> PathBuf {
 
 fn generated_header() -> String {
     let crate_dir = env!("CARGO_MANIFEST_DIR");
-    let config = cbindgen::Config::from_file(Path::new(crate_dir).join("cbindgen.toml")).expect("cbindgen.toml");
+    let config = cbindgen::Config::from_file(Path::new(crate_dir).join("cbindgen.toml"))
+        .expect("cbindgen.toml");
     let mut out = Vec::new();
-    cbindgen::Builder::new().with_crate(crate_dir).with_config(config).generate().expect("cbindgen").write(&mut out);
+    cbindgen::Builder::new()
+        .with_crate(crate_dir)
+        .with_config(config)
+        .generate()
+        .expect("cbindgen")
+        .write(&mut out);
     String::from_utf8(out).unwrap()
 }
 
@@ -88,8 +128,12 @@ fn library_render(run: &Path) -> Vec<f32> {
     let ctx = drape_tests::gpu();
     let mut player = AvatarPlayer::load(&ctx, run, 1).expect("player");
     let cam = ViewCamera::from_camera(player.default_camera());
-    let (w, h) = (player.default_camera().width, player.default_camera().height);
-    let (pose, trans) = smpl_pose_of(player.default_body()).expect("the synthetic run has SMPL bodies");
+    let (w, h) = (
+        player.default_camera().width,
+        player.default_camera().height,
+    );
+    let (pose, trans) =
+        smpl_pose_of(player.default_body()).expect("the synthetic run has SMPL bodies");
     player.set_pose(&pose, &trans).expect("pose");
     player.render(&cam, w, h).expect("render")
 }
@@ -97,14 +141,27 @@ fn library_render(run: &Path) -> Vec<f32> {
 fn read_rgba(path: &Path) -> Vec<f32> {
     let bytes = std::fs::read(path).unwrap();
     let newline = bytes.iter().position(|&b| b == b'\n').unwrap();
-    bytes[newline + 1..].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect()
+    bytes[newline + 1..]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect()
 }
 
 fn compare(what: &str, got: &[f32], expected: &[f32]) {
     assert_eq!(got.len(), expected.len(), "{what}: pixel count");
-    let d = got.iter().zip(expected).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
-    assert!(d <= SAME_DEVICE_TOLERANCE, "{what} differs from the library's render by {d}");
-    assert!(expected.chunks(4).any(|p| p[3] > 0.5), "the avatar covers some pixels");
+    let d = got
+        .iter()
+        .zip(expected)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        d <= SAME_DEVICE_TOLERANCE,
+        "{what} differs from the library's render by {d}"
+    );
+    assert!(
+        expected.chunks(4).any(|p| p[3] > 0.5),
+        "the avatar covers some pixels"
+    );
 }
 
 fn the_run() -> PathBuf {
@@ -133,34 +190,73 @@ fn the_c_example_compiles_against_the_header_and_renders_the_librarys_pixels() {
         .arg(&exe)
         .output()
         .expect("cc");
-    assert!(o.status.success(), "cc: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "cc: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let out = dir.join("c.rgba32f");
     let o = Command::new(&exe).arg(&run).arg(&out).output().unwrap();
-    assert!(o.status.success(), "render_avatar: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-    compare("the C example's render", &read_rgba(&out), &library_render(&run));
+    assert!(
+        o.status.success(),
+        "render_avatar: {}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    compare(
+        "the C example's render",
+        &read_rgba(&out),
+        &library_render(&run),
+    );
 }
 
 #[test]
 fn the_python_ctypes_example_renders_the_librarys_pixels() {
     let run = the_run();
     let out = tmp("python-example").join("py.rgba32f");
-    let o = Command::new("python3").arg(root().join("examples/python/render_avatar.py")).arg(lib_dir().join("libdrape.so")).arg(&run).arg(&out).output().expect("python3");
-    assert!(o.status.success(), "render_avatar.py: {}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-    compare("the Python example's render", &read_rgba(&out), &library_render(&run));
+    let o = Command::new("python3")
+        .arg(root().join("examples/python/render_avatar.py"))
+        .arg(lib_dir().join("libdrape.so"))
+        .arg(&run)
+        .arg(&out)
+        .output()
+        .expect("python3");
+    assert!(
+        o.status.success(),
+        "render_avatar.py: {}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    compare(
+        "the Python example's render",
+        &read_rgba(&out),
+        &library_render(&run),
+    );
 }
 
 fn last_error() -> String {
     // SAFETY: drape_last_error returns a valid nul-terminated string.
-    unsafe { CStr::from_ptr(drape_last_error()) }.to_string_lossy().into_owned()
+    unsafe { CStr::from_ptr(drape_last_error()) }
+        .to_string_lossy()
+        .into_owned()
 }
 
 #[test]
 fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path() {
-    assert_eq!(drape_avatar_destroy(std::ptr::null_mut()), drape_status::DRAPE_ERROR_INVALID_HANDLE);
+    assert_eq!(
+        drape_avatar_destroy(std::ptr::null_mut()),
+        drape_status::DRAPE_ERROR_INVALID_HANDLE
+    );
     assert!(last_error().contains("handle"), "{}", last_error());
-    assert_eq!(drape_context_destroy(0xdead_beef_0000_0007usize as *mut drape_context), drape_status::DRAPE_ERROR_INVALID_HANDLE);
+    assert_eq!(
+        drape_context_destroy(0xdead_beef_0000_0007usize as *mut drape_context),
+        drape_status::DRAPE_ERROR_INVALID_HANDLE
+    );
     let name = CString::new(std::env::var("DRAPE_DEVICE").unwrap_or_default()).unwrap();
-    let desc = drape_context_desc { device_name: name.as_ptr(), validation: 1 };
+    let desc = drape_context_desc {
+        device_name: name.as_ptr(),
+        validation: 1,
+    };
     // SAFETY: a valid descriptor.
     let ctx = unsafe { drape_context_create(&desc) };
     assert!(!ctx.is_null(), "{}", last_error());
@@ -168,20 +264,51 @@ fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path
     // SAFETY: a valid context handle and string.
     let avatar = unsafe { drape_avatar_load(ctx, missing.as_ptr()) };
     assert!(avatar.is_null());
-    assert!(last_error().contains("/nonexistent/run-dir"), "{}", last_error());
-    let camera = drape_camera { fx: 10.0, fy: 10.0, cx: 8.0, cy: 8.0, world_to_camera: [0.0; 16], near: 0.01, far: 100.0 };
+    assert!(
+        last_error().contains("/nonexistent/run-dir"),
+        "{}",
+        last_error()
+    );
+    let camera = drape_camera {
+        fx: 10.0,
+        fy: 10.0,
+        cx: 8.0,
+        cy: 8.0,
+        world_to_camera: [0.0; 16],
+        near: 0.01,
+        far: 100.0,
+    };
     let mut pixels = vec![0f32; 16 * 16 * 4];
     // SAFETY: a forged avatar handle (never dereferenced) and valid buffers.
-    let status = unsafe { drape_avatar_render(0x1_0000_0001usize as *mut drape_avatar, &camera, 16, 16, pixels.as_mut_ptr()) };
+    let status = unsafe {
+        drape_avatar_render(
+            0x1_0000_0001usize as *mut drape_avatar,
+            &camera,
+            16,
+            16,
+            pixels.as_mut_ptr(),
+        )
+    };
     assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_HANDLE);
     assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
-    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_ERROR_INVALID_HANDLE, "destroyed twice");
+    assert_eq!(
+        drape_context_destroy(ctx),
+        drape_status::DRAPE_ERROR_INVALID_HANDLE,
+        "destroyed twice"
+    );
 }
 
 #[test]
 fn a_panic_inside_a_call_is_an_error_status_with_a_message() {
-    assert_eq!(drape::testing_panic_probe(), drape_status::DRAPE_ERROR_PANIC);
-    assert!(last_error().contains("a deliberate panic"), "{}", last_error());
+    assert_eq!(
+        drape::testing_panic_probe(),
+        drape_status::DRAPE_ERROR_PANIC
+    );
+    assert!(
+        last_error().contains("a deliberate panic"),
+        "{}",
+        last_error()
+    );
 }
 
 /// `drape_context_from_vulkan` over the test's own device and `drape_avatar_record` into
@@ -200,7 +327,15 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
     let f = host.features;
     let mut desc = drape_vulkan_desc {
         // SAFETY: vkGetInstanceProcAddr, as the header's pointer type (same ABI).
-        get_instance_proc_addr: Some(unsafe { std::mem::transmute::<vk::PFN_vkGetInstanceProcAddr, unsafe extern "system" fn(*mut c_void, *const c_char) -> Option<unsafe extern "system" fn()>>(host.entry.static_fn().get_instance_proc_addr) }),
+        get_instance_proc_addr: Some(unsafe {
+            std::mem::transmute::<
+                vk::PFN_vkGetInstanceProcAddr,
+                unsafe extern "system" fn(
+                    *mut c_void,
+                    *const c_char,
+                ) -> Option<unsafe extern "system" fn()>,
+            >(host.entry.static_fn().get_instance_proc_addr)
+        }),
         instance: host.instance.handle().as_raw() as *mut c_void,
         physical_device: host.physical.as_raw() as *mut c_void,
         device: host.device.handle().as_raw() as *mut c_void,
@@ -216,8 +351,15 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
         shader_buffer_float32_atomic_add: u32::from(f.shader_buffer_float32_atomic_add),
     };
     // SAFETY: the descriptor holds the test's live handles.
-    assert!(unsafe { drape_context_from_vulkan(&desc) }.is_null(), "a device without vulkanMemoryModel");
-    assert!(last_error().contains("vulkanMemoryModel"), "{}", last_error());
+    assert!(
+        unsafe { drape_context_from_vulkan(&desc) }.is_null(),
+        "a device without vulkanMemoryModel"
+    );
+    assert!(
+        last_error().contains("vulkanMemoryModel"),
+        "{}",
+        last_error()
+    );
     desc.vulkan_memory_model = 1;
     // SAFETY: as above.
     let ctx = unsafe { drape_context_from_vulkan(&desc) };
@@ -226,25 +368,78 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
     // SAFETY: a live context and a string.
     let avatar = unsafe { drape_avatar_load(ctx, dir.as_ptr()) };
     assert!(!avatar.is_null(), "{}", last_error());
-    let mut camera = drape_camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, world_to_camera: [0.0; 16], near: 0.0, far: 0.0 };
+    let mut camera = drape_camera {
+        fx: 0.0,
+        fy: 0.0,
+        cx: 0.0,
+        cy: 0.0,
+        world_to_camera: [0.0; 16],
+        near: 0.0,
+        far: 0.0,
+    };
     let (mut w, mut h) = (0u32, 0u32);
     let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
     // SAFETY: room for each output.
-    let status = unsafe { drape_avatar_default_view(avatar, &mut camera, &mut w, &mut h, pose.as_mut_ptr(), trans.as_mut_ptr()) };
+    let status = unsafe {
+        drape_avatar_default_view(
+            avatar,
+            &mut camera,
+            &mut w,
+            &mut h,
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        )
+    };
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
     // SAFETY: 72 and 3 floats.
-    assert_eq!(unsafe { drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr()) }, drape_status::DRAPE_OK);
+    assert_eq!(
+        unsafe { drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr()) },
+        drape_status::DRAPE_OK
+    );
     let t = host.image_and_readback(w, h);
     let cmd = host.begin();
-    let dst = (vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE);
-    host.image_barrier(cmd, t.image, (vk::ImageLayout::UNDEFINED, vk::PipelineStageFlags::TOP_OF_PIPE, vk::AccessFlags::empty()), dst);
+    let dst = (
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::PipelineStageFlags::TRANSFER,
+        vk::AccessFlags::TRANSFER_WRITE,
+    );
+    host.image_barrier(
+        cmd,
+        t.image,
+        (
+            vk::ImageLayout::UNDEFINED,
+            vk::PipelineStageFlags::TOP_OF_PIPE,
+            vk::AccessFlags::empty(),
+        ),
+        dst,
+    );
     // SAFETY: a recording command buffer of the context's queue family and an image of
     // the frame's size in TRANSFER_DST_OPTIMAL; the test waits for the work below.
-    let status = unsafe { drape_avatar_record(avatar, &camera, w, h, cmd.as_raw() as *mut c_void, t.image.as_raw(), vk::ImageLayout::TRANSFER_DST_OPTIMAL.as_raw()) };
+    let status = unsafe {
+        drape_avatar_record(
+            avatar,
+            &camera,
+            w,
+            h,
+            cmd.as_raw() as *mut c_void,
+            t.image.as_raw(),
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL.as_raw(),
+        )
+    };
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
     // A layout the copy cannot take is refused before anything is recorded.
     // SAFETY: as above.
-    let bad = unsafe { drape_avatar_record(avatar, &camera, w, h, cmd.as_raw() as *mut c_void, t.image.as_raw(), vk::ImageLayout::PRESENT_SRC_KHR.as_raw()) };
+    let bad = unsafe {
+        drape_avatar_record(
+            avatar,
+            &camera,
+            w,
+            h,
+            cmd.as_raw() as *mut c_void,
+            t.image.as_raw(),
+            vk::ImageLayout::PRESENT_SRC_KHR.as_raw(),
+        )
+    };
     assert_eq!(bad, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
     host.record_readback(cmd, &t);
     host.submit(cmd, None);
@@ -253,5 +448,9 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
     assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
     host.destroy_target(t);
     let messages = host.finish();
-    assert!(messages.is_empty(), "validation on the application's instance:\n{}", messages.join("\n"));
+    assert!(
+        messages.is_empty(),
+        "validation on the application's instance:\n{}",
+        messages.join("\n")
+    );
 }

@@ -126,19 +126,30 @@ pub struct Bound<'a> {
 
 impl<'a> Bound<'a> {
     fn whole(buffer: &'a Buffer) -> Self {
-        Bound { buffer, offset: 0, range: buffer.vk_size() }
+        Bound {
+            buffer,
+            offset: 0,
+            range: buffer.vk_size(),
+        }
     }
 
     fn range(buffer: &'a Buffer, offset: u64, bytes: u64) -> Self {
         // The offset's alignment (a device limit) is checked when the pass is recorded.
         assert!(
-            offset.checked_add(bytes).is_some_and(|end| end <= buffer.vk_size()) && bytes > 0,
+            offset
+                .checked_add(bytes)
+                .is_some_and(|end| end <= buffer.vk_size())
+                && bytes > 0,
             "binding bytes {offset}..{} of '{}' ({} bytes)",
             offset.saturating_add(bytes),
             buffer.name(),
             buffer.size
         );
-        Bound { buffer, offset, range: bytes }
+        Bound {
+            buffer,
+            offset,
+            range: bytes,
+        }
     }
 
     /// Whether the binding covers the whole buffer.
@@ -213,6 +224,9 @@ pub trait Bindings<'a> {
         kernel == Self::KERNEL
             || (Self::KERNEL.push_constant() == kernel.push_constant()
                 && ours.len() == theirs.len()
-                && ours.iter().zip(theirs).all(|(a, b)| a.name == b.name && a.read_only == b.read_only))
+                && ours
+                    .iter()
+                    .zip(theirs)
+                    .all(|(a, b)| a.name == b.name && a.read_only == b.read_only))
     }
 }

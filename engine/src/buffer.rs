@@ -57,7 +57,11 @@ impl BufferDesc {
 
     /// A host-visible buffer to copy data into the device.
     pub fn upload(size: u64) -> Self {
-        Self { size, usage: vk::BufferUsageFlags::TRANSFER_SRC, location: MemoryLocation::CpuToGpu }
+        Self {
+            size,
+            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+            location: MemoryLocation::CpuToGpu,
+        }
     }
 
     /// A host-visible buffer to copy results back (also the breadcrumb).
@@ -114,7 +118,9 @@ impl Buffer {
     /// usage and holding at most `max_texels` `f32`s (ops choose a texel kernel only
     /// then).
     pub fn texel_readable(&self, max_texels: u64) -> bool {
-        self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER) && self.vk_size() / 4 <= max_texels
+        self.usage
+            .contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER)
+            && self.vk_size() / 4 <= max_texels
     }
 
     /// The buffer's `R32_SFLOAT` view for texel bindings, made on first use. Callers
@@ -129,18 +135,33 @@ impl Buffer {
         self.view_of(&self.texel4_view, vk::Format::R32G32B32A32_SFLOAT, 16)
     }
 
-    fn view_of(&self, slot: &OnceLock<vk::BufferView>, format: vk::Format, texel_bytes: u64) -> Result<vk::BufferView> {
+    fn view_of(
+        &self,
+        slot: &OnceLock<vk::BufferView>,
+        format: vk::Format,
+        texel_bytes: u64,
+    ) -> Result<vk::BufferView> {
         if let Some(&view) = slot.get() {
             return Ok(view);
         }
         // The callers' check, kept here because the view's validity rests on it.
-        assert!(self.usage.contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER), "texel view of '{}', made without texel usage", self.name);
+        assert!(
+            self.usage
+                .contains(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER),
+            "texel view of '{}', made without texel usage",
+            self.name
+        );
         let texels = self.vk_size() / texel_bytes;
-        let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(format).offset(0).range(texels * texel_bytes);
+        let info = vk::BufferViewCreateInfo::default()
+            .buffer(self.raw)
+            .format(format)
+            .offset(0)
+            .range(texels * texel_bytes);
         // SAFETY: a buffer of this device made with UNIFORM_TEXEL_BUFFER usage; the range
         // lies inside it; R32_SFLOAT and R32G32B32A32_SFLOAT uniform texel buffers are
         // required of every device.
-        let view = unsafe { self.device.raw.create_buffer_view(&info, None) }.vk("vkCreateBufferView", &self.name)?;
+        let view = unsafe { self.device.raw.create_buffer_view(&info, None) }
+            .vk("vkCreateBufferView", &self.name)?;
         if let Err(ours) = slot.set(view) {
             // Another thread made one first: keep its view.
             // SAFETY: ours was never used.
@@ -156,7 +177,10 @@ impl Buffer {
             return None;
         }
         let a = self.allocation.as_mut()?;
-        if !a.memory_properties().contains(vk::MemoryPropertyFlags::HOST_COHERENT) {
+        if !a
+            .memory_properties()
+            .contains(vk::MemoryPropertyFlags::HOST_COHERENT)
+        {
             return None;
         }
         let size = self.size as usize;
@@ -184,7 +208,11 @@ impl Drop for Buffer {
             self.device.raw.destroy_buffer(self.raw, None)
         };
         if let Some(a) = self.allocation.take() {
-            let mut alloc = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner());
+            let mut alloc = self
+                .device
+                .allocator
+                .lock()
+                .unwrap_or_else(|p| p.into_inner());
             if let Err(e) = alloc.free(a) {
                 log::error!("freeing buffer '{}': {e}", self.name);
             }
@@ -200,7 +228,12 @@ impl Context {
         // (maxStorageBufferRange limits a binding, not a buffer: the recorder checks it.)
         let limits = self.info();
         if desc.size > limits.max_memory_allocation_size {
-            return Err(EngineError::too_large(format!("bytes of buffer '{name}'"), desc.size, limits.max_memory_allocation_size, "the device's maxMemoryAllocationSize"));
+            return Err(EngineError::too_large(
+                format!("bytes of buffer '{name}'"),
+                desc.size,
+                limits.max_memory_allocation_size,
+                "the device's maxMemoryAllocationSize",
+            ));
         }
         let dev = &self.device.raw;
         let info = vk::BufferCreateInfo::default()
@@ -210,53 +243,63 @@ impl Context {
         // SAFETY: valid device and create info.
         let raw = unsafe { dev.create_buffer(&info, None) }.map_err(|r| match r {
             vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
-                EngineError::OutOfDeviceMemory { what: name.to_string(), bytes: desc.size }
+                EngineError::OutOfDeviceMemory {
+                    what: name.to_string(),
+                    bytes: desc.size,
+                }
             }
             r => crate::error::vk_error("vkCreateBuffer", name, r),
         })?;
         // SAFETY: raw is a buffer of this device.
         let requirements = unsafe { dev.get_buffer_memory_requirements(raw) };
-        let allocated = self.device.allocator.lock().unwrap_or_else(|p| p.into_inner()).allocate(
-            &AllocationCreateDesc {
+        let allocated = self
+            .device
+            .allocator
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .allocate(&AllocationCreateDesc {
                 name,
                 requirements,
                 location: desc.location,
                 linear: true,
                 allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-            },
-        );
+            });
         let allocation = match allocated {
             Ok(a) => a,
             Err(e) => {
                 // SAFETY: unbound, unused buffer.
                 unsafe { dev.destroy_buffer(raw, None) };
                 return Err(match e {
-                    gpu_allocator::AllocationError::OutOfMemory => {
-                        EngineError::OutOfDeviceMemory { what: name.to_string(), bytes: desc.size }
-                    }
-                    e => EngineError::Allocation { what: name.to_string(), detail: e.to_string() },
+                    gpu_allocator::AllocationError::OutOfMemory => EngineError::OutOfDeviceMemory {
+                        what: name.to_string(),
+                        bytes: desc.size,
+                    },
+                    e => EngineError::Allocation {
+                        what: name.to_string(),
+                        detail: e.to_string(),
+                    },
                 });
             }
         };
         // Staging and readback buffers are always mapped; forcing staging only stops
         // the host from reaching into device buffers.
         let host_access = !(self.device.force_staging && desc.location == MemoryLocation::GpuOnly);
-        let mut buffer =
-            Buffer {
-                raw,
-                size: desc.size,
-                allocation: Some(allocation),
-                host_access,
-                usage: desc.usage,
-                texel_view: OnceLock::new(),
-                texel4_view: OnceLock::new(),
-                name: name.to_string(),
-                private_to_recording: false,
-                device: self.device.clone(),
-            };
+        let mut buffer = Buffer {
+            raw,
+            size: desc.size,
+            allocation: Some(allocation),
+            host_access,
+            usage: desc.usage,
+            texel_view: OnceLock::new(),
+            texel4_view: OnceLock::new(),
+            name: name.to_string(),
+            private_to_recording: false,
+            device: self.device.clone(),
+        };
         let a = buffer.allocation.as_ref().expect("just allocated");
         // SAFETY: memory and offset come from an allocation made for these requirements.
-        unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }.vk("vkBindBufferMemory", name)?;
+        unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }
+            .vk("vkBindBufferMemory", name)?;
         self.set_name(raw, name);
         if self.device.poison {
             self.poison(&mut buffer)?;
@@ -287,7 +330,13 @@ impl Context {
     /// Copies `data` to the start of `buffer` (which must be large enough).
     pub fn write_buffer<T: bytemuck::Pod>(&self, buffer: &mut Buffer, data: &[T]) -> Result<()> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
-        assert!(bytes.len() as u64 <= buffer.size, "writing {} bytes into '{}' of {} bytes", bytes.len(), buffer.name, buffer.size);
+        assert!(
+            bytes.len() as u64 <= buffer.size,
+            "writing {} bytes into '{}' of {} bytes",
+            bytes.len(),
+            buffer.name,
+            buffer.size
+        );
         if bytes.is_empty() {
             return Ok(());
         }
@@ -295,11 +344,17 @@ impl Context {
             mapped[..bytes.len()].copy_from_slice(bytes);
             return Ok(());
         }
-        let mut staging = self.create_buffer(&format!("{} (upload)", buffer.name), BufferDesc::upload(bytes.len() as u64))?;
+        let mut staging = self.create_buffer(
+            &format!("{} (upload)", buffer.name),
+            BufferDesc::upload(bytes.len() as u64),
+        )?;
         let staging_name = staging.name.clone();
         staging
             .coherent_mapping()
-            .ok_or(EngineError::Allocation { what: staging_name, detail: "upload memory is not host-coherent".into() })?
+            .ok_or(EngineError::Allocation {
+                what: staging_name,
+                detail: "upload memory is not host-coherent".into(),
+            })?
             .copy_from_slice(bytes);
         let mut rec = self.record("upload")?;
         rec.copy(&staging, buffer, bytes.len() as u64);
@@ -307,16 +362,30 @@ impl Context {
     }
 
     /// Reads the first `count` elements of `buffer`.
-    pub fn read_buffer<T: bytemuck::Pod>(&self, buffer: &mut Buffer, count: usize) -> Result<Vec<T>> {
+    pub fn read_buffer<T: bytemuck::Pod>(
+        &self,
+        buffer: &mut Buffer,
+        count: usize,
+    ) -> Result<Vec<T>> {
         self.read_buffer_at(buffer, 0, count)
     }
 
     /// Reads `count` elements of `buffer` starting at element `first` (only those
     /// bytes cross to the host).
-    pub fn read_buffer_at<T: bytemuck::Pod>(&self, buffer: &mut Buffer, first: usize, count: usize) -> Result<Vec<T>> {
+    pub fn read_buffer_at<T: bytemuck::Pod>(
+        &self,
+        buffer: &mut Buffer,
+        first: usize,
+        count: usize,
+    ) -> Result<Vec<T>> {
         let size = std::mem::size_of::<T>();
         let (start, len) = (first * size, count * size);
-        assert!((start + len) as u64 <= buffer.size, "reading {len} bytes at {start} from '{}' of {} bytes", buffer.name, buffer.size);
+        assert!(
+            (start + len) as u64 <= buffer.size,
+            "reading {len} bytes at {start} from '{}' of {} bytes",
+            buffer.name,
+            buffer.size
+        );
         let mut out = vec![T::zeroed(); count];
         if len == 0 {
             return Ok(out);
@@ -325,14 +394,18 @@ impl Context {
             bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[start..start + len]);
             return Ok(out);
         }
-        let mut staging = self.create_buffer(&format!("{} (readback)", buffer.name), BufferDesc::readback(len as u64))?;
+        let mut staging = self.create_buffer(
+            &format!("{} (readback)", buffer.name),
+            BufferDesc::readback(len as u64),
+        )?;
         let mut rec = self.record("readback")?;
         rec.copy_from(buffer, start as u64, &staging, len as u64);
         rec.submit_and_wait()?;
         let staging_name = staging.name.clone();
-        let mapped = staging
-            .coherent_mapping()
-            .ok_or(EngineError::Allocation { what: staging_name, detail: "readback memory is not host-coherent".into() })?;
+        let mapped = staging.coherent_mapping().ok_or(EngineError::Allocation {
+            what: staging_name,
+            detail: "readback memory is not host-coherent".into(),
+        })?;
         bytemuck::cast_slice_mut(&mut out).copy_from_slice(&mapped[..len]);
         Ok(out)
     }

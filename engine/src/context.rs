@@ -155,7 +155,8 @@ pub struct Device {
     pub(crate) poison: bool,
     /// See [`ContextDesc::force_staging`].
     pub(crate) force_staging: bool,
-    pub(crate) debug_instance: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    pub(crate) debug_instance:
+        Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
     pub(crate) validation: Option<Arc<ValidationSink>>,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
@@ -200,7 +201,9 @@ fn load_entry() -> Result<ash::Entry> {
     // error a machine without a loader gets).
     let (library, loaded) = match std::env::var_os("DRAPE_VULKAN_LOADER") {
         // SAFETY: loading libvulkan runs its initialisers; the loader is designed for it.
-        Some(path) => (path.to_string_lossy().into_owned(), unsafe { ash::Entry::load_from(&path) }),
+        Some(path) => (path.to_string_lossy().into_owned(), unsafe {
+            ash::Entry::load_from(&path)
+        }),
         // SAFETY: as above.
         None => (DEFAULT_LOADER.to_string(), unsafe { ash::Entry::load() }),
     };
@@ -209,7 +212,9 @@ fn load_entry() -> Result<ash::Entry> {
 
 pub(crate) fn cstr_array(raw: &[c_char]) -> String {
     // SAFETY: Vulkan property strings are nul-terminated within their fixed arrays.
-    unsafe { CStr::from_ptr(raw.as_ptr()) }.to_string_lossy().into_owned()
+    unsafe { CStr::from_ptr(raw.as_ptr()) }
+        .to_string_lossy()
+        .into_owned()
 }
 
 pub(crate) struct Candidate {
@@ -230,9 +235,12 @@ impl Context {
         // SAFETY: as above.
         let extensions = unsafe { entry.enumerate_instance_extension_properties(None) }
             .vk("vkEnumerateInstanceExtensionProperties", "instance")?;
-        let has_layer = layers.iter().any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER));
-        let has_debug_utils =
-            extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::debug_utils::NAME));
+        let has_layer = layers
+            .iter()
+            .any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER));
+        let has_debug_utils = extensions
+            .iter()
+            .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::debug_utils::NAME));
         if desc.validation && !has_layer {
             return Err(EngineError::ValidationLayerMissing);
         }
@@ -242,22 +250,33 @@ impl Context {
             .application_name(c"drape")
             .engine_name(c"drape-engine")
             .api_version(vk::API_VERSION_1_2);
-        let layer_names: Vec<*const c_char> =
-            if desc.validation { vec![VALIDATION_LAYER.as_ptr()] } else { vec![] };
-        let mut ext_names: Vec<*const c_char> =
-            if has_debug_utils { vec![ash::ext::debug_utils::NAME.as_ptr()] } else { vec![] };
+        let layer_names: Vec<*const c_char> = if desc.validation {
+            vec![VALIDATION_LAYER.as_ptr()]
+        } else {
+            vec![]
+        };
+        let mut ext_names: Vec<*const c_char> = if has_debug_utils {
+            vec![ash::ext::debug_utils::NAME.as_ptr()]
+        } else {
+            vec![]
+        };
         let sync_validation = desc.validation && desc.synchronization_validation;
         if sync_validation {
             // SAFETY: a plain query of the layer's own extensions.
-            let layer_extensions = unsafe { entry.enumerate_instance_extension_properties(Some(VALIDATION_LAYER)) }
-                .vk("vkEnumerateInstanceExtensionProperties", "validation layer")?;
-            if !layer_extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::validation_features::NAME)) {
+            let layer_extensions =
+                unsafe { entry.enumerate_instance_extension_properties(Some(VALIDATION_LAYER)) }
+                    .vk("vkEnumerateInstanceExtensionProperties", "validation layer")?;
+            if !layer_extensions
+                .iter()
+                .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::validation_features::NAME))
+            {
                 return Err(EngineError::ValidationLayerMissing);
             }
             ext_names.push(ash::ext::validation_features::NAME.as_ptr());
         }
         let enabled_features = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
-        let mut validation_features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enabled_features);
+        let mut validation_features =
+            vk::ValidationFeaturesEXT::default().enabled_validation_features(&enabled_features);
         let mut instance_info = vk::InstanceCreateInfo::default()
             .application_info(&app)
             .enabled_layer_names(&layer_names)
@@ -275,9 +294,15 @@ impl Context {
             .vk("vkCreateInstance", "instance")?;
 
         // From here on, a failure must destroy the instance: wrap it in a guard.
-        let guard = InstanceGuard { instance: Some(instance), messenger: None };
+        let guard = InstanceGuard {
+            instance: Some(instance),
+            messenger: None,
+        };
         let mut guard = guard;
-        let instance_ref = guard.instance.as_ref().expect("instance present until disarmed");
+        let instance_ref = guard
+            .instance
+            .as_ref()
+            .expect("instance present until disarmed");
         if let Some(sink) = &sink {
             let loader = ash::ext::debug_utils::Instance::new(&entry, instance_ref);
             let info = validation::messenger_info(sink);
@@ -287,7 +312,10 @@ impl Context {
             guard.messenger = Some((loader, messenger));
         }
 
-        let instance_ref = guard.instance.as_ref().expect("instance present until disarmed");
+        let instance_ref = guard
+            .instance
+            .as_ref()
+            .expect("instance present until disarmed");
         let chosen = choose_device(instance_ref, desc.device_name.as_deref())?;
         let parts = create_device(instance_ref, chosen, has_debug_utils)?;
         let (instance, debug_instance) = guard.disarm();
@@ -313,7 +341,9 @@ impl Context {
             command_pools_created: std::sync::atomic::AtomicU64::new(0),
             _entry: entry,
         };
-        let ctx = Context { device: Arc::new(device) };
+        let ctx = Context {
+            device: Arc::new(device),
+        };
         kernels::check_manifest()?;
         Ok(ctx)
     }
@@ -326,29 +356,51 @@ impl Context {
     /// Starts (or restarts, discarding what was gathered) the context-wide profile:
     /// from now on every submission adds its passes' GPU time and its host wall time.
     pub fn start_profile(&self) {
-        *self.device.profile.lock().unwrap_or_else(|p| p.into_inner()) = Some(Profile::default());
+        *self
+            .device
+            .profile
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = Some(Profile::default());
     }
 
     /// Stops the profile and returns what it gathered (None when none was started).
     pub fn take_profile(&self) -> Option<Profile> {
-        self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).take()
+        self.device
+            .profile
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take()
     }
 
     /// Adds a host phase the caller timed (`ms`) to the running profile, if any.
     pub fn profile_host(&self, name: &str, ms: f64) {
-        if let Some(p) = self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+        if let Some(p) = self
+            .device
+            .profile
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_mut()
+        {
             p.add_host(name, ms);
         }
     }
 
     /// Whether a profile is running (callers skip their own timing otherwise).
     pub fn profiling(&self) -> bool {
-        self.device.profile.lock().unwrap_or_else(|p| p.into_inner()).is_some()
+        self.device
+            .profile
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .is_some()
     }
 
     /// Takes the validation messages collected so far (empty without validation).
     pub fn take_validation_messages(&self) -> Vec<String> {
-        self.device.validation.as_ref().map(|s| s.drain()).unwrap_or_default()
+        self.device
+            .validation
+            .as_ref()
+            .map(|s| s.drain())
+            .unwrap_or_default()
     }
 
     /// The validation sink, to read messages after the context is dropped.
@@ -377,18 +429,31 @@ impl Context {
 
     /// The pipeline of `kernel`, created on first use.
     pub(crate) fn pipeline(&self, kernel: Kernel) -> Result<Arc<Pipeline>> {
-        let mut cache = self.device.pipelines.lock().unwrap_or_else(|p| p.into_inner());
+        let mut cache = self
+            .device
+            .pipelines
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
         if let Some(p) = cache.get(&kernel) {
             return Ok(p.clone());
         }
         if kernel.requires_float_atomics() && !self.device.info.float_atomic_add {
-            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderBufferFloat32AtomicAdd" });
+            return Err(EngineError::MissingFeature {
+                kernel: kernel.entry_point(),
+                feature: "shaderBufferFloat32AtomicAdd",
+            });
         }
         if kernel.requires_int64() && !self.device.info.shader_int64 {
-            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "shaderInt64" });
+            return Err(EngineError::MissingFeature {
+                kernel: kernel.entry_point(),
+                feature: "shaderInt64",
+            });
         }
         if kernel.requires_subgroup_ballot() && !self.device.info.subgroup_ballot {
-            return Err(EngineError::MissingFeature { kernel: kernel.entry_point(), feature: "subgroup ballot and shuffle operations in compute" });
+            return Err(EngineError::MissingFeature {
+                kernel: kernel.entry_point(),
+                feature: "subgroup ballot and shuffle operations in compute",
+            });
         }
         let p = Arc::new(Pipeline::create(&self.device, kernel)?);
         cache.insert(kernel, p.clone());
@@ -398,7 +463,9 @@ impl Context {
     /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
     /// tests and profiles: a rendered frame should cost one.
     pub fn submission_count(&self) -> u64 {
-        self.device.submissions.load(std::sync::atomic::Ordering::Relaxed)
+        self.device
+            .submissions
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// How many times the host has waited on a fence for this device's work (every
@@ -406,7 +473,9 @@ impl Context {
     /// the work had finished by then): a frame loop with k frames in flight waits N - k
     /// times over N frames.
     pub fn fence_waits(&self) -> u64 {
-        self.device.fence_waits.load(std::sync::atomic::Ordering::Relaxed)
+        self.device
+            .fence_waits
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Whether the engine created the device ([`Context::new`]) or borrows the host's
@@ -429,14 +498,20 @@ impl Context {
     /// How many command pools recordings have created: a frame loop reuses the pools
     /// of finished recordings, so this stays flat (for tests).
     pub fn command_pools_created(&self) -> u64 {
-        self.device.command_pools_created.load(std::sync::atomic::Ordering::Relaxed)
+        self.device
+            .command_pools_created
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Names a Vulkan object for validation messages and captures.
     pub(crate) fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
         if let Some(du) = &self.device.debug_utils {
-            let Ok(name) = CString::new(name.replace('\0', " ")) else { return };
-            let info = vk::DebugUtilsObjectNameInfoEXT::default().object_handle(handle).object_name(&name);
+            let Ok(name) = CString::new(name.replace('\0', " ")) else {
+                return;
+            };
+            let info = vk::DebugUtilsObjectNameInfoEXT::default()
+                .object_handle(handle)
+                .object_name(&name);
             // SAFETY: the handle is a live object of this device.
             let _ = unsafe { du.set_debug_utils_object_name(&info) };
         }
@@ -445,7 +520,9 @@ impl Context {
 
 impl fmt::Debug for Context {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("Context").field("device", &self.device.info.name).finish()
+        f.debug_struct("Context")
+            .field("device", &self.device.info.name)
+            .finish()
     }
 }
 
@@ -457,8 +534,16 @@ struct InstanceGuard {
 
 impl InstanceGuard {
     #[allow(clippy::type_complexity)]
-    fn disarm(mut self) -> (ash::Instance, Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>) {
-        (self.instance.take().expect("disarmed once"), self.messenger.take())
+    fn disarm(
+        mut self,
+    ) -> (
+        ash::Instance,
+        Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    ) {
+        (
+            self.instance.take().expect("disarmed once"),
+            self.messenger.take(),
+        )
     }
 }
 
@@ -493,8 +578,12 @@ fn choose_device(instance: &ash::Instance, requested: Option<&str>) -> Result<Ca
         unsafe { instance.get_physical_device_features2(physical, &mut f2) };
         // SAFETY: as above.
         let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
-        let queue_family = families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE));
-        let reason = if vk::api_version_major(props.api_version) == 1 && vk::api_version_minor(props.api_version) < 2 {
+        let queue_family = families
+            .iter()
+            .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE));
+        let reason = if vk::api_version_major(props.api_version) == 1
+            && vk::api_version_minor(props.api_version) < 2
+        {
             Some("Vulkan < 1.2")
         } else if f12.vulkan_memory_model == vk::FALSE {
             Some("no vulkanMemoryModel")
@@ -518,10 +607,16 @@ fn choose_device(instance: &ash::Instance, requested: Option<&str>) -> Result<Ca
         return eligible
             .into_iter()
             .find(|c| c.name.to_lowercase().contains(&lower))
-            .ok_or(EngineError::DeviceNotFound { requested: wanted.to_string(), available: all_names });
+            .ok_or(EngineError::DeviceNotFound {
+                requested: wanted.to_string(),
+                available: all_names,
+            });
     }
     eligible.sort_by_key(|c| c.kind);
-    eligible.into_iter().next().ok_or(EngineError::NoDevice { rejected })
+    eligible
+        .into_iter()
+        .next()
+        .ok_or(EngineError::NoDevice { rejected })
 }
 
 /// A created logical device, before it is owned by a [`Device`].
@@ -534,7 +629,11 @@ struct DeviceParts {
     info: DeviceInfo,
 }
 
-fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) -> Result<DeviceParts> {
+fn create_device(
+    instance: &ash::Instance,
+    c: Candidate,
+    has_debug_utils: bool,
+) -> Result<DeviceParts> {
     // SAFETY: a query on a physical device of this instance.
     let device_exts = unsafe { instance.enumerate_device_extension_properties(c.physical) }
         .vk("vkEnumerateDeviceExtensionProperties", &c.name)?;
@@ -551,17 +650,26 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
     // SAFETY: valid chain.
     unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
     let shader_int64 = f2.features.shader_int64 == vk::TRUE;
-    let float_atomic_add = has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
+    let float_atomic_add =
+        has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
     let timeline_semaphore = f12_query.timeline_semaphore == vk::TRUE;
-    let info = describe(instance, &c, Enabled { float_atomic_add, shader_int64, timeline_semaphore });
+    let info = describe(
+        instance,
+        &c,
+        Enabled {
+            float_atomic_add,
+            shader_int64,
+            timeline_semaphore,
+        },
+    );
 
     // The rust-gpu modules declare the VulkanMemoryModel capability.
     let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
         .vulkan_memory_model(true)
         .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE)
         .timeline_semaphore(timeline_semaphore);
-    let mut enabled_atomic_float =
-        vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default().shader_buffer_float32_atomic_add(float_atomic_add);
+    let mut enabled_atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
+        .shader_buffer_float32_atomic_add(float_atomic_add);
     let mut ext_names: Vec<*const c_char> = Vec::new();
     if float_atomic_add {
         ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
@@ -602,11 +710,21 @@ fn create_device(instance: &ash::Instance, c: Candidate, has_debug_utils: bool) 
         Err(e) => {
             // SAFETY: nothing was created from the device yet.
             unsafe { raw.destroy_device(None) };
-            return Err(EngineError::Allocation { what: "allocator".into(), detail: e.to_string() });
+            return Err(EngineError::Allocation {
+                what: "allocator".into(),
+                detail: e.to_string(),
+            });
         }
     };
     let debug_utils = has_debug_utils.then(|| ash::ext::debug_utils::Device::new(instance, &raw));
-    Ok(DeviceParts { raw, queue_family: c.queue_family, queue, allocator, debug_utils, info })
+    Ok(DeviceParts {
+        raw,
+        queue_family: c.queue_family,
+        queue,
+        allocator,
+        debug_utils,
+        info,
+    })
 }
 
 /// The optional features a logical device has enabled.
@@ -620,13 +738,20 @@ pub(crate) struct Enabled {
 /// What device `c` is and can do, with the optional features as enabled on the
 /// logical device.
 pub(crate) fn describe(instance: &ash::Instance, c: &Candidate, enabled: Enabled) -> DeviceInfo {
-    let Enabled { float_atomic_add, shader_int64, timeline_semaphore } = enabled;
+    let Enabled {
+        float_atomic_add,
+        shader_int64,
+        timeline_semaphore,
+    } = enabled;
     // SAFETY: a query on a physical device of this instance.
     let props = unsafe { instance.get_physical_device_properties(c.physical) };
     let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
     let mut driver = vk::PhysicalDeviceDriverProperties::default();
     let mut maintenance3 = vk::PhysicalDeviceMaintenance3Properties::default();
-    let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup).push_next(&mut driver).push_next(&mut maintenance3);
+    let mut p2 = vk::PhysicalDeviceProperties2::default()
+        .push_next(&mut subgroup)
+        .push_next(&mut driver)
+        .push_next(&mut maintenance3);
     // SAFETY: valid chain of Vulkan 1.1/1.2 property structs.
     unsafe { instance.get_physical_device_properties2(c.physical, &mut p2) };
     // SAFETY: query on a physical device of this instance.
@@ -641,15 +766,21 @@ pub(crate) fn describe(instance: &ash::Instance, c: &Candidate, enabled: Enabled
             vk::api_version_minor(props.api_version),
             vk::api_version_patch(props.api_version),
         ),
-        driver: format!("{} {}", cstr_array(&driver.driver_name), cstr_array(&driver.driver_info)),
+        driver: format!(
+            "{} {}",
+            cstr_array(&driver.driver_name),
+            cstr_array(&driver.driver_info)
+        ),
         subgroup_size: subgroup.subgroup_size,
         timestamp_period_ns: f64::from(props.limits.timestamp_period),
         timestamp_valid_bits,
         float_atomic_add,
-        subgroup_ballot: subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
-            && subgroup.supported_operations.contains(
-vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE,
-            ),
+        subgroup_ballot: subgroup
+            .supported_stages
+            .contains(vk::ShaderStageFlags::COMPUTE)
+            && subgroup
+                .supported_operations
+                .contains(vk::SubgroupFeatureFlags::BALLOT | vk::SubgroupFeatureFlags::SHUFFLE),
         shader_int64,
         timeline_semaphore,
         max_compute_workgroup_count: props.limits.max_compute_work_group_count,
@@ -666,11 +797,15 @@ impl Device {
     pub(crate) fn wait_for_pending(&self) {
         // Held while waiting: a submission removes its fence under this lock before it
         // destroys it, so none is destroyed while waited on here.
-        let fences = self.pending_fences.lock().unwrap_or_else(|p| p.into_inner());
+        let fences = self
+            .pending_fences
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
         if fences.is_empty() {
             return;
         }
-        self.fence_waits.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.fence_waits
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         // SAFETY: registered fences are live fences of this device (see above).
         let _ = unsafe { self.raw.wait_for_fences(&fences, true, u64::MAX) };
     }
@@ -679,7 +814,12 @@ impl Device {
 impl Drop for Device {
     fn drop(&mut self) {
         // Fences of leaked submissions: wait for their work, then destroy them.
-        let leaked = std::mem::take(&mut *self.pending_fences.lock().unwrap_or_else(|p| p.into_inner()));
+        let leaked = std::mem::take(
+            &mut *self
+                .pending_fences
+                .lock()
+                .unwrap_or_else(|p| p.into_inner()),
+        );
         if !leaked.is_empty() {
             // SAFETY: live fences of this device, destroyed once after their work ended.
             unsafe {
@@ -699,10 +839,16 @@ impl Drop for Device {
         // vkDeviceWaitIdle would need them all externally synchronised): every engine
         // submission holds an Arc<Device> until its fence was waited, so none of the
         // objects below is in use when the last Arc goes.
-        for pools in std::mem::take(&mut *self.recycled_pools.lock().unwrap_or_else(|p| p.into_inner())) {
+        for pools in std::mem::take(
+            &mut *self
+                .recycled_pools
+                .lock()
+                .unwrap_or_else(|p| p.into_inner()),
+        ) {
             pools.destroy(&self.raw);
         }
-        let pipelines = std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
+        let pipelines =
+            std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
         for (_, p) in pipelines {
             if let Ok(p) = Arc::try_unwrap(p) {
                 p.destroy(&self.raw);

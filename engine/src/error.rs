@@ -38,7 +38,9 @@ pub enum EngineError {
 
     /// The host's device, handed over with [`crate::Context::from_raw`], lacks what the
     /// engine needs: `what` names the feature, extension or version.
-    #[error("the application's Vulkan device cannot run the engine: {what} is not enabled ({hint})")]
+    #[error(
+        "the application's Vulkan device cannot run the engine: {what} is not enabled ({hint})"
+    )]
     HostDeviceMissing {
         /// The feature, extension or version missing.
         what: &'static str,
@@ -178,8 +180,18 @@ pub enum EngineError {
 
 impl EngineError {
     /// [`EngineError::TooLarge`] for `what` (a count or a size, named with its unit).
-    pub fn too_large(what: impl Into<String>, requested: u64, limit: u64, limit_name: &'static str) -> Self {
-        Self::TooLarge { what: what.into(), requested, limit, limit_name }
+    pub fn too_large(
+        what: impl Into<String>,
+        requested: u64,
+        limit: u64,
+        limit_name: &'static str,
+    ) -> Self {
+        Self::TooLarge {
+            what: what.into(),
+            requested,
+            limit,
+            limit_name,
+        }
     }
 }
 
@@ -198,9 +210,14 @@ pub type Result<T, E = EngineError> = std::result::Result<T, E>;
 pub(crate) fn vk_error(call: &'static str, what: &str, result: vk::Result) -> EngineError {
     match result {
         vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
-            EngineError::OutOfDeviceMemory { what: what.to_string(), bytes: 0 }
+            EngineError::OutOfDeviceMemory {
+                what: what.to_string(),
+                bytes: 0,
+            }
         }
-        vk::Result::ERROR_DEVICE_LOST => EngineError::DeviceLost { pass: what.to_string() },
+        vk::Result::ERROR_DEVICE_LOST => EngineError::DeviceLost {
+            pass: what.to_string(),
+        },
         result => EngineError::Vulkan { call, result },
     }
 }

@@ -108,15 +108,24 @@ pub struct DeviceRequirements {
 
 /// What to enable on `physical_device` before creating the device the engine will use
 /// ([`Context::from_raw`]). An error names what the device lacks.
-pub fn device_requirements(instance: &ash::Instance, physical_device: vk::PhysicalDevice) -> Result<DeviceRequirements> {
+pub fn device_requirements(
+    instance: &ash::Instance,
+    physical_device: vk::PhysicalDevice,
+) -> Result<DeviceRequirements> {
     // SAFETY (this block's queries): the caller's instance and one of its physical devices.
     let props = unsafe { instance.get_physical_device_properties(physical_device) };
     if props.api_version < vk::API_VERSION_1_2 {
-        return Err(EngineError::HostDeviceMissing { what: "Vulkan 1.2", hint: "the physical device reports an older API version" });
+        return Err(EngineError::HostDeviceMissing {
+            what: "Vulkan 1.2",
+            hint: "the physical device reports an older API version",
+        });
     }
     // SAFETY: as above.
-    let extensions = unsafe { instance.enumerate_device_extension_properties(physical_device) }.vk("vkEnumerateDeviceExtensionProperties", "host device")?;
-    let has_float_ext = extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
+    let extensions = unsafe { instance.enumerate_device_extension_properties(physical_device) }
+        .vk("vkEnumerateDeviceExtensionProperties", "host device")?;
+    let has_float_ext = extensions
+        .iter()
+        .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
     let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
     let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
     let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12);
@@ -127,14 +136,20 @@ pub fn device_requirements(instance: &ash::Instance, physical_device: vk::Physic
     unsafe { instance.get_physical_device_features2(physical_device, &mut f2) };
     let shader_int64 = f2.features.shader_int64 == vk::TRUE;
     if f12.vulkan_memory_model != vk::TRUE {
-        return Err(EngineError::HostDeviceMissing { what: "vulkanMemoryModel", hint: "the physical device does not support it" });
+        return Err(EngineError::HostDeviceMissing {
+            what: "vulkanMemoryModel",
+            hint: "the physical device does not support it",
+        });
     }
     // SAFETY: as above.
     let families = unsafe { instance.get_physical_device_queue_family_properties(physical_device) };
     let queue_family = families
         .iter()
         .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
-        .ok_or(EngineError::HostDeviceMissing { what: "a compute queue", hint: "no queue family of the physical device has VK_QUEUE_COMPUTE_BIT" })? as u32;
+        .ok_or(EngineError::HostDeviceMissing {
+            what: "a compute queue",
+            hint: "no queue family of the physical device has VK_QUEUE_COMPUTE_BIT",
+        })? as u32;
     let float_atomics = has_float_ext && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
     Ok(DeviceRequirements {
         api_version: vk::API_VERSION_1_2,
@@ -146,7 +161,11 @@ pub fn device_requirements(instance: &ash::Instance, physical_device: vk::Physic
             shader_int64,
             shader_buffer_float32_atomic_add: float_atomics,
         },
-        extensions: if float_atomics { vec![ash::ext::shader_atomic_float::NAME] } else { vec![] },
+        extensions: if float_atomics {
+            vec![ash::ext::shader_atomic_float::NAME]
+        } else {
+            vec![]
+        },
     })
 }
 
@@ -162,32 +181,59 @@ impl Context {
     /// everything made from it are dropped; `enabled_extensions` and `enabled_features`
     /// say what the device was really created with; the queue exists.
     pub unsafe fn from_raw(external: ExternalVulkan, options: ExternalOptions) -> Result<Self> {
-        let ExternalVulkan { entry, instance, physical_device, device, queue_family, queue_index, api_version, enabled_extensions, enabled_features, debug_utils } = external;
+        let ExternalVulkan {
+            entry,
+            instance,
+            physical_device,
+            device,
+            queue_family,
+            queue_index,
+            api_version,
+            enabled_extensions,
+            enabled_features,
+            debug_utils,
+        } = external;
         let f = enabled_features;
         if api_version < vk::API_VERSION_1_2 {
-            return Err(EngineError::HostDeviceMissing { what: "Vulkan 1.2", hint: "create the instance with apiVersion VK_API_VERSION_1_2 or later" });
+            return Err(EngineError::HostDeviceMissing {
+                what: "Vulkan 1.2",
+                hint: "create the instance with apiVersion VK_API_VERSION_1_2 or later",
+            });
         }
         if !f.vulkan_memory_model {
             return Err(EngineError::HostDeviceMissing { what: "vulkanMemoryModel", hint: "set VkPhysicalDeviceVulkan12Features::vulkanMemoryModel when creating the device (drape_engine::external::device_requirements lists what to enable)" });
         }
         let has = |name: &CStr| enabled_extensions.iter().any(|e| e.as_c_str() == name);
         if f.shader_buffer_float32_atomic_add && !has(ash::ext::shader_atomic_float::NAME) {
-            return Err(EngineError::HostDeviceMissing { what: "VK_EXT_shader_atomic_float", hint: "shaderBufferFloat32AtomicAdd was said enabled without its extension" });
+            return Err(EngineError::HostDeviceMissing {
+                what: "VK_EXT_shader_atomic_float",
+                hint: "shaderBufferFloat32AtomicAdd was said enabled without its extension",
+            });
         }
         // SAFETY: the caller's instance and physical device.
         let props = unsafe { instance.get_physical_device_properties(physical_device) };
         // SAFETY: as above.
-        let families = unsafe { instance.get_physical_device_queue_family_properties(physical_device) };
+        let families =
+            unsafe { instance.get_physical_device_queue_family_properties(physical_device) };
         match families.get(queue_family as usize) {
             Some(fam) if fam.queue_flags.contains(vk::QueueFlags::COMPUTE) && queue_index < fam.queue_count => {}
             _ => return Err(EngineError::HostDeviceMissing { what: "a compute queue", hint: "queue_family must name a family with VK_QUEUE_COMPUTE_BIT, and queue_index one of its queues" }),
         }
-        let candidate = Candidate { physical: physical_device, name: cstr_array(&props.device_name), kind: DeviceKind::from_vk(props.device_type), queue_family };
-        let info = describe(&instance, &candidate, Enabled {
-            float_atomic_add: f.shader_buffer_float32_atomic_add,
-            shader_int64: f.shader_int64,
-            timeline_semaphore: f.timeline_semaphore,
-        });
+        let candidate = Candidate {
+            physical: physical_device,
+            name: cstr_array(&props.device_name),
+            kind: DeviceKind::from_vk(props.device_type),
+            queue_family,
+        };
+        let info = describe(
+            &instance,
+            &candidate,
+            Enabled {
+                float_atomic_add: f.shader_buffer_float32_atomic_add,
+                shader_int64: f.shader_int64,
+                timeline_semaphore: f.timeline_semaphore,
+            },
+        );
         // SAFETY: the caller guarantees the queue exists (checked against the family above).
         let queue = unsafe { device.get_device_queue(queue_family, queue_index) };
         let allocator = Allocator::new(&AllocatorCreateDesc {
@@ -202,8 +248,12 @@ impl Context {
             buffer_device_address: false,
             allocation_sizes: gpu_allocator::AllocationSizes::default(),
         })
-        .map_err(|e| EngineError::Allocation { what: "allocator".into(), detail: e.to_string() })?;
-        let debug_utils = debug_utils.then(|| ash::ext::debug_utils::Device::new(&instance, &device));
+        .map_err(|e| EngineError::Allocation {
+            what: "allocator".into(),
+            detail: e.to_string(),
+        })?;
+        let debug_utils =
+            debug_utils.then(|| ash::ext::debug_utils::Device::new(&instance, &device));
         let dev = Device {
             raw: device,
             instance,
@@ -226,7 +276,9 @@ impl Context {
             owns_device: false,
             _entry: entry,
         };
-        let ctx = Context { device: Arc::new(dev) };
+        let ctx = Context {
+            device: Arc::new(dev),
+        };
         crate::kernels::check_manifest()?;
         Ok(ctx)
     }

@@ -69,7 +69,10 @@ pub fn check_manifest() -> Result<()> {
 
 /// Checks one module's bytes against `kernel`'s manifest entry.
 pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
-    let mismatch = |detail: String| EngineError::ShaderManifestMismatch { kernel: kernel.entry_point(), detail };
+    let mismatch = |detail: String| EngineError::ShaderManifestMismatch {
+        kernel: kernel.entry_point(),
+        detail,
+    };
     let facts = spirv_module::inspect(bytes).map_err(|e| mismatch(e.to_string()))?;
     let name = facts.entry_point_name(bytes);
     if facts.entry_points != 1 || name != kernel.entry_point().as_bytes() {
@@ -108,8 +111,16 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
             return Err(mismatch(format!(
                 "binding {b} ('{}') is {} in the module, {} in the manifest",
                 decl.name,
-                if texel { "a texel buffer" } else { "a storage buffer" },
-                if decl.texel { "a texel buffer" } else { "a storage buffer" }
+                if texel {
+                    "a texel buffer"
+                } else {
+                    "a storage buffer"
+                },
+                if decl.texel {
+                    "a texel buffer"
+                } else {
+                    "a storage buffer"
+                }
             )));
         }
         let texel4 = facts.texel4_mask & (1 << b) != 0;
@@ -117,8 +128,16 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
             return Err(mismatch(format!(
                 "binding {b} ('{}') is {} in the module, {} in the manifest",
                 decl.name,
-                if texel4 { "a 4-float texel buffer" } else { "not a 4-float texel buffer" },
-                if decl.texel4 { "a 4-float texel buffer" } else { "not a 4-float texel buffer" }
+                if texel4 {
+                    "a 4-float texel buffer"
+                } else {
+                    "not a 4-float texel buffer"
+                },
+                if decl.texel4 {
+                    "a 4-float texel buffer"
+                } else {
+                    "not a 4-float texel buffer"
+                }
             )));
         }
         let read_only = texel || facts.read_only_mask & (1 << b) != 0;
@@ -127,7 +146,11 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
                 "binding {b} ('{}') is {} in the module, {} in the manifest",
                 decl.name,
                 if read_only { "read-only" } else { "writable" },
-                if decl.read_only { "read-only" } else { "writable" }
+                if decl.read_only {
+                    "read-only"
+                } else {
+                    "writable"
+                }
             )));
         }
     }
@@ -179,12 +202,20 @@ impl Pipeline {
                 return Err(crate::error::vk_error("vkCreatePipelineLayout", what, e));
             }
         };
-        let partial = Pipeline { raw: vk::Pipeline::null(), layout, set_layout, kernel };
+        let partial = Pipeline {
+            raw: vk::Pipeline::null(),
+            layout,
+            set_layout,
+            kernel,
+        };
         let words = match ash::util::read_spv(&mut std::io::Cursor::new(kernel.spirv())) {
             Ok(w) => w,
             Err(e) => {
                 partial.destroy(dev);
-                return Err(EngineError::ShaderManifestMismatch { kernel: what, detail: e.to_string() });
+                return Err(EngineError::ShaderManifestMismatch {
+                    kernel: what,
+                    detail: e.to_string(),
+                });
             }
         };
         let module_info = vk::ShaderModuleCreateInfo::default().code(&words);
@@ -201,14 +232,20 @@ impl Pipeline {
             .stage(vk::ShaderStageFlags::COMPUTE)
             .module(module)
             .name(&entry);
-        let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
+        let info = [vk::ComputePipelineCreateInfo::default()
+            .stage(stage)
+            .layout(layout)];
         // SAFETY: valid device, module and layout.
-        let created = unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
+        let created =
+            unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
         // SAFETY: the module is no longer needed once the pipeline exists (or failed).
         unsafe { dev.destroy_shader_module(module, None) };
         match created {
             Ok(p) => {
-                let pipeline = Pipeline { raw: p[0], ..partial };
+                let pipeline = Pipeline {
+                    raw: p[0],
+                    ..partial
+                };
                 Ok(pipeline)
             }
             Err((_, e)) => {

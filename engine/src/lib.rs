@@ -37,9 +37,11 @@ pub use bindings::{Bindings, Read, Texel, Write};
 pub use buffer::{Buffer, BufferDesc};
 pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
 pub use error::{EngineError, Result};
-pub use external::{device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan};
+pub use external::{
+    device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan,
+};
 pub use kernels::Kernel;
 pub use mirror::Mirror;
 pub use profile::{Profile, ProfileEntry};
 pub use recorder::{ImageTarget, PassTimings, Recording};
-pub use submit::{FramesInFlight, HostCommandBuffer, HostRecorded, SubmitSync, Submission};
+pub use submit::{FramesInFlight, HostCommandBuffer, HostRecorded, Submission, SubmitSync};

@@ -27,8 +27,14 @@ pub struct Mirror {
 impl Mirror {
     /// A mirror of `source`, named after it.
     pub fn new(ctx: &Context, source: &Buffer) -> Result<Self> {
-        let host = ctx.create_buffer(&format!("{} (mirror)", source.name()), BufferDesc::readback(source.size))?;
-        Ok(Self { host, fresh: AtomicBool::new(false) })
+        let host = ctx.create_buffer(
+            &format!("{} (mirror)", source.name()),
+            BufferDesc::readback(source.size),
+        )?;
+        Ok(Self {
+            host,
+            fresh: AtomicBool::new(false),
+        })
     }
 
     /// Records the copy of `source`'s first `bytes` into the mirror, after whatever the
@@ -53,7 +59,12 @@ impl Mirror {
     /// The first `count` elements of `source`: out of the mirror's mapped memory where
     /// it is fresh (no submission, no wait), otherwise read from `source` itself.
     /// Call it after the submission that recorded the copy has completed.
-    pub fn read<T: bytemuck::Pod>(&mut self, ctx: &Context, source: &mut Buffer, count: usize) -> Result<Vec<T>> {
+    pub fn read<T: bytemuck::Pod>(
+        &mut self,
+        ctx: &Context,
+        source: &mut Buffer,
+        count: usize,
+    ) -> Result<Vec<T>> {
         if self.is_fresh() {
             ctx.read_buffer(&mut self.host, count)
         } else {
@@ -64,7 +75,12 @@ impl Mirror {
 
 /// Reads `count` elements of `source` through `mirror` where there is one (see
 /// [`Mirror::read`]), otherwise straight from `source`.
-pub fn read_through<T: bytemuck::Pod>(ctx: &Context, mirror: Option<&mut Mirror>, source: &mut Buffer, count: usize) -> Result<Vec<T>> {
+pub fn read_through<T: bytemuck::Pod>(
+    ctx: &Context,
+    mirror: Option<&mut Mirror>,
+    source: &mut Buffer,
+    count: usize,
+) -> Result<Vec<T>> {
     match mirror {
         Some(m) => m.read(ctx, source, count),
         None => ctx.read_buffer(source, count),

@@ -45,11 +45,17 @@ impl Profile {
     }
 
     pub(crate) fn add_scope(&mut self, scope: &str, ms: f64) {
-        self.gpu_scopes.entry(scope.to_string()).or_default().add(ms);
+        self.gpu_scopes
+            .entry(scope.to_string())
+            .or_default()
+            .add(ms);
     }
 
     pub(crate) fn add_submission(&mut self, label: &str, ms: f64) {
-        self.submissions.entry(label.to_string()).or_default().add(ms);
+        self.submissions
+            .entry(label.to_string())
+            .or_default()
+            .add(ms);
     }
 
     pub(crate) fn add_host(&mut self, name: &str, ms: f64) {
@@ -85,16 +91,33 @@ impl Profile {
             if rows.is_empty() {
                 return;
             }
-            let _ = writeln!(s, "{title:<44} {:>10} {:>12} {:>7} {:>8}", "calls", "ms/step", "share", "total s");
+            let _ = writeln!(
+                s,
+                "{title:<44} {:>10} {:>12} {:>7} {:>8}",
+                "calls", "ms/step", "share", "total s"
+            );
             for (name, e) in rows {
-                let _ = writeln!(s, "  {name:<42} {:>10} {:>12.2} {:>6.1}% {:>8.2}", e.calls, e.ms / per, 100.0 * e.ms / total_ms.max(1e-9), e.ms / 1e3);
+                let _ = writeln!(
+                    s,
+                    "  {name:<42} {:>10} {:>12.2} {:>6.1}% {:>8.2}",
+                    e.calls,
+                    e.ms / per,
+                    100.0 * e.ms / total_ms.max(1e-9),
+                    e.ms / 1e3
+                );
             }
         };
         section("submission (host wall)", sorted(self.submissions.clone()));
         section("host phase", sorted(self.host.clone()));
         section("GPU stage", self.gpu_by_stage());
-        section("GPU scope (layer or render)", sorted(self.gpu_scopes.clone()));
-        section(&format!("GPU pass (top {top})"), self.passes_by_time().into_iter().take(top).collect());
+        section(
+            "GPU scope (layer or render)",
+            sorted(self.gpu_scopes.clone()),
+        );
+        section(
+            &format!("GPU pass (top {top})"),
+            self.passes_by_time().into_iter().take(top).collect(),
+        );
         s
     }
 }
@@ -124,6 +147,9 @@ mod tests {
         assert_eq!(stages[1].1, ProfileEntry { calls: 2, ms: 6.0 });
         let table = p.table(20.0, 2, 2);
         assert!(table.contains("nn.gemm"), "{table}");
-        assert!(!table.contains("splat.project"), "top 2 passes only: {table}");
+        assert!(
+            !table.contains("splat.project"),
+            "top 2 passes only: {table}"
+        );
     }
 }

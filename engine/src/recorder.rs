@@ -92,7 +92,10 @@ impl PassTimings {
                 spans.entry(scope.as_str()).or_default().push(interval);
             }
         }
-        spans.into_iter().map(|(scope, s)| (scope.to_string(), union_ms(s))).collect()
+        spans
+            .into_iter()
+            .map(|(scope, s)| (scope.to_string(), union_ms(s)))
+            .collect()
     }
 
     /// Sum over all passes (counts time twice where passes overlapped).
@@ -111,7 +114,12 @@ impl PassTimings {
         let offset = self.intervals.iter().map(|i| i.1).fold(0.0, f64::max);
         self.passes.extend(other.passes);
         self.scopes.extend(other.scopes);
-        self.intervals.extend(other.intervals.into_iter().map(|(s, e)| (s + offset, e + offset)));
+        self.intervals.extend(
+            other
+                .intervals
+                .into_iter()
+                .map(|(s, e)| (s + offset, e + offset)),
+        );
     }
 }
 
@@ -197,7 +205,12 @@ impl Context {
     /// Starts a command buffer; `label` names it in errors.
     pub fn record<'a>(&self, label: &str) -> Result<Recording<'a>> {
         let dev = &self.device.raw;
-        let recycled = self.device.recycled_pools.lock().unwrap_or_else(|p| p.into_inner()).pop();
+        let recycled = self
+            .device
+            .recycled_pools
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .pop();
         let pools = match recycled {
             Some(p) => p,
             None => {
@@ -205,8 +218,11 @@ impl Context {
                     .queue_family_index(self.device.queue_family)
                     .flags(vk::CommandPoolCreateFlags::TRANSIENT);
                 // SAFETY: valid device and create info.
-                let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool", label)?;
-                self.device.command_pools_created.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }
+                    .vk("vkCreateCommandPool", label)?;
+                self.device
+                    .command_pools_created
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let alloc = vk::CommandBufferAllocateInfo::default()
                     .command_pool(command_pool)
                     .level(vk::CommandBufferLevel::PRIMARY)
@@ -220,7 +236,12 @@ impl Context {
                         return Err(crate::error::vk_error("vkAllocateCommandBuffers", label, e));
                     }
                 };
-                RecordingPools { command_pool, cmd, descriptor_pools: Vec::new(), query_pools: Vec::new() }
+                RecordingPools {
+                    command_pool,
+                    cmd,
+                    descriptor_pools: Vec::new(),
+                    query_pools: Vec::new(),
+                }
             }
         };
         let cmd = pools.cmd;
@@ -243,7 +264,8 @@ impl Context {
             last_read: HashMap::new(),
             _buffers: PhantomData,
         };
-        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        let begin = vk::CommandBufferBeginInfo::default()
+            .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a fresh primary command buffer, or one whose pool was reset.
         unsafe { dev.begin_command_buffer(rec.cmd, &begin) }.vk("vkBeginCommandBuffer", label)?;
         self.set_name(rec.cmd, label);
@@ -275,8 +297,20 @@ impl ImageTarget {
     /// `image` is a live image of the context's device, made with `TRANSFER_DST` usage,
     /// at least `width` x `height`, with texels of `texel_bytes` bytes, in `layout` when
     /// the work that copies into it runs, and alive until that work completed.
-    pub unsafe fn new(image: vk::Image, layout: vk::ImageLayout, width: u32, height: u32, texel_bytes: u32) -> Self {
-        Self { image, layout, width, height, texel_bytes }
+    pub unsafe fn new(
+        image: vk::Image,
+        layout: vk::ImageLayout,
+        width: u32,
+        height: u32,
+        texel_bytes: u32,
+    ) -> Self {
+        Self {
+            image,
+            layout,
+            width,
+            height,
+            texel_bytes,
+        }
     }
 
     /// Width and height in texels.
@@ -292,14 +326,36 @@ enum Resource {
     Image(vk::Image),
 }
 
-
 /// A command waiting in a recording for its wave.
 enum Command {
-    Dispatch { name: String, scope: String, pipeline: vk::Pipeline, layout: vk::PipelineLayout, set: vk::DescriptorSet, push: Vec<u8>, groups: [u32; 3] },
-    Copy { src: vk::Buffer, dst: vk::Buffer, region: vk::BufferCopy },
-    Update { buffer: vk::Buffer, data: Vec<u8> },
-    Fill { buffer: vk::Buffer, word: u32 },
-    CopyToImage { src: vk::Buffer, image: vk::Image, layout: vk::ImageLayout, region: vk::BufferImageCopy },
+    Dispatch {
+        name: String,
+        scope: String,
+        pipeline: vk::Pipeline,
+        layout: vk::PipelineLayout,
+        set: vk::DescriptorSet,
+        push: Vec<u8>,
+        groups: [u32; 3],
+    },
+    Copy {
+        src: vk::Buffer,
+        dst: vk::Buffer,
+        region: vk::BufferCopy,
+    },
+    Update {
+        buffer: vk::Buffer,
+        data: Vec<u8>,
+    },
+    Fill {
+        buffer: vk::Buffer,
+        word: u32,
+    },
+    CopyToImage {
+        src: vk::Buffer,
+        image: vk::Image,
+        layout: vk::ImageLayout,
+        region: vk::BufferImageCopy,
+    },
 }
 
 impl<'a> Recording<'a> {
@@ -324,15 +380,34 @@ impl<'a> Recording<'a> {
     /// limits (a range's offset alignment, `maxStorageBufferRange`,
     /// `maxComputeWorkGroupCount`, a texel buffer's usage and size), each an error or a
     /// panic naming the pass.
-    pub fn dispatch<B: Bindings<'a>>(&mut self, name: &str, bindings: B, params: &B::Params, groups: [u32; 3]) -> Result<()> {
+    pub fn dispatch<B: Bindings<'a>>(
+        &mut self,
+        name: &str,
+        bindings: B,
+        params: &B::Params,
+        groups: [u32; 3],
+    ) -> Result<()> {
         let list = bindings.into_list();
-        self.checked_dispatch(name, B::KERNEL, list.as_ref(), bytemuck::bytes_of(params), groups)
+        self.checked_dispatch(
+            name,
+            B::KERNEL,
+            list.as_ref(),
+            bytemuck::bytes_of(params),
+            groups,
+        )
     }
 
     /// [`dispatch`](Self::dispatch) for a kernel chosen at run time among variants
     /// that share `bindings`' struct: panics unless `kernel` fits it
     /// ([`Bindings::fits`]: the same binding names, accesses and push constants).
-    pub fn dispatch_as<B: Bindings<'a>>(&mut self, name: &str, kernel: Kernel, bindings: B, params: &B::Params, groups: [u32; 3]) -> Result<()> {
+    pub fn dispatch_as<B: Bindings<'a>>(
+        &mut self,
+        name: &str,
+        kernel: Kernel,
+        bindings: B,
+        params: &B::Params,
+        groups: [u32; 3],
+    ) -> Result<()> {
         assert!(
             B::fits(kernel),
             "pass '{name}': kernel {} does not fit the bindings of {}",
@@ -340,18 +415,42 @@ impl<'a> Recording<'a> {
             B::KERNEL.entry_point()
         );
         let list = bindings.into_list();
-        self.checked_dispatch(name, kernel, list.as_ref(), bytemuck::bytes_of(params), groups)
+        self.checked_dispatch(
+            name,
+            kernel,
+            list.as_ref(),
+            bytemuck::bytes_of(params),
+            groups,
+        )
     }
 
     /// The run-time checks of a pass whose bindings are complete and of the declared
     /// accesses, then its recording.
-    fn checked_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Bound<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
+    fn checked_dispatch(
+        &mut self,
+        name: &str,
+        kernel: Kernel,
+        buffers: &[Bound<'_>],
+        push: &[u8],
+        groups: [u32; 3],
+    ) -> Result<()> {
         let rec = self;
-        assert!(buffers.len() as u32 <= MAX_BINDINGS, "pass '{name}': more than {MAX_BINDINGS} bindings");
-        assert!(push.len() as u32 <= PUSH_CONSTANT_BYTES, "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes");
+        assert!(
+            buffers.len() as u32 <= MAX_BINDINGS,
+            "pass '{name}': more than {MAX_BINDINGS} bindings"
+        );
+        assert!(
+            push.len() as u32 <= PUSH_CONSTANT_BYTES,
+            "pass '{name}': push constants over {PUSH_CONSTANT_BYTES} bytes"
+        );
         let align = rec.ctx.info().min_storage_buffer_offset_alignment;
         for (b, decl) in buffers.iter().zip(kernel.bindings()) {
-            assert!(b.offset % align == 0, "pass '{name}': offset {} into '{}' is not a multiple of {align}", b.offset, b.buffer.name());
+            assert!(
+                b.offset % align == 0,
+                "pass '{name}': offset {} into '{}' is not a multiple of {align}",
+                b.offset,
+                b.buffer.name()
+            );
             if decl.texel && !b.is_whole() {
                 return Err(EngineError::Binding {
                     pass: name.to_string(),
@@ -367,13 +466,33 @@ impl<'a> Recording<'a> {
         // Likewise a binding past what one storage-buffer descriptor may cover.
         // (A texel binding's limit, maxTexelBufferElements, is checked with its view.)
         let range_limit = rec.ctx.info().max_storage_buffer_range;
-        if let Some((b, _)) = buffers.iter().zip(kernel.bindings()).find(|(b, decl)| !decl.texel && b.range > range_limit) {
-            let what = format!("bytes bound of buffer '{}' in pass '{name}'", b.buffer.name());
-            return Err(EngineError::too_large(what, b.range, range_limit, "the device's maxStorageBufferRange"));
+        if let Some((b, _)) = buffers
+            .iter()
+            .zip(kernel.bindings())
+            .find(|(b, decl)| !decl.texel && b.range > range_limit)
+        {
+            let what = format!(
+                "bytes bound of buffer '{}' in pass '{name}'",
+                b.buffer.name()
+            );
+            return Err(EngineError::too_large(
+                what,
+                b.range,
+                range_limit,
+                "the device's maxStorageBufferRange",
+            ));
         }
         if let Some(axis) = (0..3).find(|&a| groups[a] > max[a]) {
-            let what = format!("workgroups along {} in pass '{name}' (grid {groups:?})", ["x", "y", "z"][axis]);
-            return Err(EngineError::too_large(what, u64::from(groups[axis]), u64::from(max[axis]), "the device's maxComputeWorkGroupCount"));
+            let what = format!(
+                "workgroups along {} in pass '{name}' (grid {groups:?})",
+                ["x", "y", "z"][axis]
+            );
+            return Err(EngineError::too_large(
+                what,
+                u64::from(groups[axis]),
+                u64::from(max[axis]),
+                "the device's maxComputeWorkGroupCount",
+            ));
         }
         if groups.contains(&0) {
             return Ok(());
@@ -406,7 +525,11 @@ impl<'a> Recording<'a> {
             }
         }
         for &(buffer, writes) in accesses {
-            let last = if writes { &mut self.last_write } else { &mut self.last_read };
+            let last = if writes {
+                &mut self.last_write
+            } else {
+                &mut self.last_read
+            };
             let w = last.entry(buffer).or_insert(wave);
             *w = (*w).max(wave);
         }
@@ -427,7 +550,15 @@ impl<'a> Recording<'a> {
             );
         // SAFETY: recording command buffer; a global memory barrier has no handles.
         unsafe {
-            self.ctx.device.raw.cmd_pipeline_barrier(self.cmd, stages, stages, vk::DependencyFlags::empty(), &[barrier], &[], &[])
+            self.ctx.device.raw.cmd_pipeline_barrier(
+                self.cmd,
+                stages,
+                stages,
+                vk::DependencyFlags::empty(),
+                &[barrier],
+                &[],
+                &[],
+            )
         };
     }
 
@@ -442,7 +573,14 @@ impl<'a> Recording<'a> {
     }
 
     /// Copies `bytes` bytes of `src` at `src_offset` to `dst` at `dst_offset`.
-    pub fn copy_region(&mut self, src: &'a Buffer, src_offset: u64, dst: &'a Buffer, dst_offset: u64, bytes: u64) {
+    pub fn copy_region(
+        &mut self,
+        src: &'a Buffer,
+        src_offset: u64,
+        dst: &'a Buffer,
+        dst_offset: u64,
+        bytes: u64,
+    ) {
         assert!(
             src_offset + bytes <= src.size && dst_offset + bytes <= dst.size,
             "copy of {bytes} bytes at {src_offset} from '{}' to '{}' at {dst_offset}",
@@ -452,8 +590,21 @@ impl<'a> Recording<'a> {
         if bytes == 0 {
             return;
         }
-        let region = vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes);
-        self.schedule(&[(Resource::Buffer(src.raw), false), (Resource::Buffer(dst.raw), true)], Command::Copy { src: src.raw, dst: dst.raw, region });
+        let region = vk::BufferCopy::default()
+            .src_offset(src_offset)
+            .dst_offset(dst_offset)
+            .size(bytes);
+        self.schedule(
+            &[
+                (Resource::Buffer(src.raw), false),
+                (Resource::Buffer(dst.raw), true),
+            ],
+            Command::Copy {
+                src: src.raw,
+                dst: dst.raw,
+                region,
+            },
+        );
     }
 
     /// Writes `data` (at most 65,536 bytes, a multiple of 4) to the start of `buffer`
@@ -471,26 +622,75 @@ impl<'a> Recording<'a> {
         if bytes.is_empty() {
             return;
         }
-        self.schedule(&[(Resource::Buffer(buffer.raw), true)], Command::Update { buffer: buffer.raw, data: bytes.to_vec() });
+        self.schedule(
+            &[(Resource::Buffer(buffer.raw), true)],
+            Command::Update {
+                buffer: buffer.raw,
+                data: bytes.to_vec(),
+            },
+        );
     }
 
     /// Fills the whole of `buffer` with the 32-bit `word`.
     pub fn fill(&mut self, buffer: &'a Buffer, word: u32) {
-        self.schedule(&[(Resource::Buffer(buffer.raw), true)], Command::Fill { buffer: buffer.raw, word });
+        self.schedule(
+            &[(Resource::Buffer(buffer.raw), true)],
+            Command::Fill {
+                buffer: buffer.raw,
+                word,
+            },
+        );
     }
 
     /// Copies `src` (tightly packed texels, row-major from the top row, in the image's
     /// format: 16 bytes a pixel for `R32G32B32A32_SFLOAT`) into mip 0, layer 0 of the
     /// host's image (see [`ImageTarget`] for the barriers the host places around it).
     pub fn copy_to_image(&mut self, src: &'a Buffer, target: &ImageTarget) {
-        assert!(src.size >= u64::from(target.width) * u64::from(target.height) * u64::from(target.texel_bytes), "copy of '{}' ({} bytes) into a {}x{} image of {}-byte texels", src.name(), src.size, target.width, target.height, target.texel_bytes);
+        assert!(
+            src.size
+                >= u64::from(target.width)
+                    * u64::from(target.height)
+                    * u64::from(target.texel_bytes),
+            "copy of '{}' ({} bytes) into a {}x{} image of {}-byte texels",
+            src.name(),
+            src.size,
+            target.width,
+            target.height,
+            target.texel_bytes
+        );
         let region = vk::BufferImageCopy::default()
-            .image_subresource(vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1))
-            .image_extent(vk::Extent3D { width: target.width, height: target.height, depth: 1 });
-        self.schedule(&[(Resource::Buffer(src.raw), false), (Resource::Image(target.image), true)], Command::CopyToImage { src: src.raw, image: target.image, layout: target.layout, region });
+            .image_subresource(
+                vk::ImageSubresourceLayers::default()
+                    .aspect_mask(vk::ImageAspectFlags::COLOR)
+                    .layer_count(1),
+            )
+            .image_extent(vk::Extent3D {
+                width: target.width,
+                height: target.height,
+                depth: 1,
+            });
+        self.schedule(
+            &[
+                (Resource::Buffer(src.raw), false),
+                (Resource::Image(target.image), true),
+            ],
+            Command::CopyToImage {
+                src: src.raw,
+                image: target.image,
+                layout: target.layout,
+                region,
+            },
+        );
     }
 
-    fn record_dispatch(&mut self, name: &str, kernel: Kernel, buffers: &[Bound<'_>], push: &[u8], groups: [u32; 3]) -> Result<()> {
+    fn record_dispatch(
+        &mut self,
+        name: &str,
+        kernel: Kernel,
+        buffers: &[Bound<'_>],
+        push: &[u8],
+        groups: [u32; 3],
+    ) -> Result<()> {
         let pipeline = self.ctx.pipeline(kernel)?;
         let max_texels = self.ctx.info().max_texel_buffer_elements;
         let views: Vec<[vk::BufferView; 1]> = buffers
@@ -520,7 +720,12 @@ impl<'a> Recording<'a> {
         let set = self.allocate_set(pipeline.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
             .iter()
-            .map(|b| [vk::DescriptorBufferInfo::default().buffer(b.buffer.raw).offset(b.offset).range(b.range)])
+            .map(|b| {
+                [vk::DescriptorBufferInfo::default()
+                    .buffer(b.buffer.raw)
+                    .offset(b.offset)
+                    .range(b.range)]
+            })
             .collect();
         let writes: Vec<vk::WriteDescriptorSet> = infos
             .iter()
@@ -528,7 +733,10 @@ impl<'a> Recording<'a> {
             .zip(kernel.bindings())
             .enumerate()
             .map(|(i, ((info, view), decl))| {
-                let write = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(decl.descriptor_type());
+                let write = vk::WriteDescriptorSet::default()
+                    .dst_set(set)
+                    .dst_binding(i as u32)
+                    .descriptor_type(decl.descriptor_type());
                 if decl.texel {
                     write.texel_buffer_view(view)
                 } else {
@@ -538,9 +746,20 @@ impl<'a> Recording<'a> {
             .collect();
         // SAFETY: the set is freshly allocated and not in use by any command buffer.
         unsafe { self.ctx.device.raw.update_descriptor_sets(&writes, &[]) };
-        let accesses: Vec<(Resource, bool)> =
-            buffers.iter().zip(kernel.bindings()).map(|(b, decl)| (Resource::Buffer(b.buffer.raw), !decl.read_only)).collect();
-        let command = Command::Dispatch { name: name.to_string(), scope: self.scope.clone(), pipeline: pipeline.raw, layout: pipeline.layout, set, push: push.to_vec(), groups };
+        let accesses: Vec<(Resource, bool)> = buffers
+            .iter()
+            .zip(kernel.bindings())
+            .map(|(b, decl)| (Resource::Buffer(b.buffer.raw), !decl.read_only))
+            .collect();
+        let command = Command::Dispatch {
+            name: name.to_string(),
+            scope: self.scope.clone(),
+            pipeline: pipeline.raw,
+            layout: pipeline.layout,
+            set,
+            push: push.to_vec(),
+            groups,
+        };
         self.schedule(&accesses, command);
         Ok(())
     }
@@ -552,7 +771,10 @@ impl<'a> Recording<'a> {
         let mut commands = std::mem::take(&mut self.commands);
         // Stable: commands of one wave keep their program order.
         commands.sort_by_key(|c| c.0);
-        let dispatches = commands.iter().filter(|c| matches!(c.1, Command::Dispatch { .. })).count() as u32;
+        let dispatches = commands
+            .iter()
+            .filter(|c| matches!(c.1, Command::Dispatch { .. }))
+            .count() as u32;
         for index in 0..dispatches {
             self.timestamp_slot(index)?;
         }
@@ -564,7 +786,15 @@ impl<'a> Recording<'a> {
             }
             let dev = self.ctx.device.raw.clone();
             match command {
-                Command::Dispatch { name, scope, pipeline, layout, set, push, groups } => {
+                Command::Dispatch {
+                    name,
+                    scope,
+                    pipeline,
+                    layout,
+                    set,
+                    push,
+                    groups,
+                } => {
                     let index = self.passes.len() as u32;
                     self.write_breadcrumb(index)?;
                     let query = self.timestamp_slot(index)?;
@@ -573,16 +803,39 @@ impl<'a> Recording<'a> {
                     // pools), and every buffer the set names is borrowed for 'a.
                     unsafe {
                         if let Some((pool, q)) = query {
-                            dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, q);
+                            dev.cmd_write_timestamp(
+                                self.cmd,
+                                vk::PipelineStageFlags::TOP_OF_PIPE,
+                                pool,
+                                q,
+                            );
                         }
                         dev.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
-                        dev.cmd_bind_descriptor_sets(self.cmd, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
+                        dev.cmd_bind_descriptor_sets(
+                            self.cmd,
+                            vk::PipelineBindPoint::COMPUTE,
+                            layout,
+                            0,
+                            &[set],
+                            &[],
+                        );
                         if !push.is_empty() {
-                            dev.cmd_push_constants(self.cmd, layout, vk::ShaderStageFlags::COMPUTE, 0, &push);
+                            dev.cmd_push_constants(
+                                self.cmd,
+                                layout,
+                                vk::ShaderStageFlags::COMPUTE,
+                                0,
+                                &push,
+                            );
                         }
                         dev.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
                         if let Some((pool, q)) = query {
-                            dev.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, q + 1);
+                            dev.cmd_write_timestamp(
+                                self.cmd,
+                                vk::PipelineStageFlags::BOTTOM_OF_PIPE,
+                                pool,
+                                q + 1,
+                            );
                         }
                     }
                     self.passes.push(name);
@@ -591,12 +844,25 @@ impl<'a> Recording<'a> {
                 // SAFETY (the three below): recording command buffer; the buffers are
                 // borrowed for 'a, were created with transfer usage, and the ranges
                 // were checked when the command was scheduled.
-                Command::Copy { src, dst, region } => unsafe { dev.cmd_copy_buffer(self.cmd, src, dst, &[region]) },
-                Command::Update { buffer, data } => unsafe { dev.cmd_update_buffer(self.cmd, buffer, 0, &data) },
-                Command::Fill { buffer, word } => unsafe { dev.cmd_fill_buffer(self.cmd, buffer, 0, vk::WHOLE_SIZE, word) },
+                Command::Copy { src, dst, region } => unsafe {
+                    dev.cmd_copy_buffer(self.cmd, src, dst, &[region])
+                },
+                Command::Update { buffer, data } => unsafe {
+                    dev.cmd_update_buffer(self.cmd, buffer, 0, &data)
+                },
+                Command::Fill { buffer, word } => unsafe {
+                    dev.cmd_fill_buffer(self.cmd, buffer, 0, vk::WHOLE_SIZE, word)
+                },
                 // SAFETY: as above for the buffer; the image is the host's, valid and in
                 // `layout` by the contract of `copy_to_image`.
-                Command::CopyToImage { src, image, layout, region } => unsafe { dev.cmd_copy_buffer_to_image(self.cmd, src, image, layout, &[region]) },
+                Command::CopyToImage {
+                    src,
+                    image,
+                    layout,
+                    region,
+                } => unsafe {
+                    dev.cmd_copy_buffer_to_image(self.cmd, src, image, layout, &[region])
+                },
             }
         }
         Ok(())
@@ -607,12 +873,19 @@ impl<'a> Recording<'a> {
         if self.sets_left == 0 {
             if self.descriptor_pools_used == self.pools.descriptor_pools.len() {
                 let sizes = [
-                    vk::DescriptorPoolSize::default().ty(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(BUFFERS_PER_POOL),
-                    vk::DescriptorPoolSize::default().ty(vk::DescriptorType::UNIFORM_TEXEL_BUFFER).descriptor_count(BUFFERS_PER_POOL),
+                    vk::DescriptorPoolSize::default()
+                        .ty(vk::DescriptorType::STORAGE_BUFFER)
+                        .descriptor_count(BUFFERS_PER_POOL),
+                    vk::DescriptorPoolSize::default()
+                        .ty(vk::DescriptorType::UNIFORM_TEXEL_BUFFER)
+                        .descriptor_count(BUFFERS_PER_POOL),
                 ];
-                let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
+                let info = vk::DescriptorPoolCreateInfo::default()
+                    .max_sets(SETS_PER_POOL)
+                    .pool_sizes(&sizes);
                 // SAFETY: valid device and create info.
-                let pool = unsafe { dev.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool", &self.label)?;
+                let pool = unsafe { dev.create_descriptor_pool(&info, None) }
+                    .vk("vkCreateDescriptorPool", &self.label)?;
                 self.pools.descriptor_pools.push(pool);
             }
             // A reused pool was reset when its last recording ended.
@@ -624,7 +897,8 @@ impl<'a> Recording<'a> {
             .descriptor_pool(self.pools.descriptor_pools[self.descriptor_pools_used - 1])
             .set_layouts(&layouts);
         // SAFETY: the pool has room (sets_left > 0, at most MAX_BINDINGS per set).
-        let set = unsafe { dev.allocate_descriptor_sets(&info) }.vk("vkAllocateDescriptorSets", &self.label)?[0];
+        let set = unsafe { dev.allocate_descriptor_sets(&info) }
+            .vk("vkAllocateDescriptorSets", &self.label)?[0];
         self.sets_left -= 1;
         Ok(set)
     }
@@ -633,7 +907,9 @@ impl<'a> Recording<'a> {
         let chunk = (index / BREADCRUMB_SLOTS) as usize;
         if chunk == self.breadcrumbs.len() {
             let name = format!("{} breadcrumbs {chunk}", self.label);
-            let mut b = self.ctx.create_buffer(&name, BufferDesc::readback(u64::from(BREADCRUMB_SLOTS) * 4))?;
+            let mut b = self
+                .ctx
+                .create_buffer(&name, BufferDesc::readback(u64::from(BREADCRUMB_SLOTS) * 4))?;
             b.private_to_recording = true;
             // Zeroed by the host, not by a fill that the slots' fills would race with;
             // where the memory is not host-coherent the breadcrumbs cannot be read anyway.
@@ -645,7 +921,12 @@ impl<'a> Recording<'a> {
         let b = &self.breadcrumbs[chunk];
         let offset = u64::from(index % BREADCRUMB_SLOTS) * 4;
         // SAFETY: recording command buffer; the breadcrumb lives as long as the recording.
-        unsafe { self.ctx.device.raw.cmd_fill_buffer(self.cmd, b.raw, offset, 4, 1) };
+        unsafe {
+            self.ctx
+                .device
+                .raw
+                .cmd_fill_buffer(self.cmd, b.raw, offset, 4, 1)
+        };
         Ok(())
     }
 
@@ -658,16 +939,29 @@ impl<'a> Recording<'a> {
         let pool_index = (index / per_pool) as usize;
         if pool_index == self.query_pools_used {
             if pool_index == self.pools.query_pools.len() {
-                let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(QUERIES_PER_POOL);
+                let info = vk::QueryPoolCreateInfo::default()
+                    .query_type(vk::QueryType::TIMESTAMP)
+                    .query_count(QUERIES_PER_POOL);
                 // SAFETY: valid device and create info.
-                let pool = unsafe { self.ctx.device.raw.create_query_pool(&info, None) }.vk("vkCreateQueryPool", &self.label)?;
+                let pool = unsafe { self.ctx.device.raw.create_query_pool(&info, None) }
+                    .vk("vkCreateQueryPool", &self.label)?;
                 self.pools.query_pools.push(pool);
             }
             // SAFETY: recording command buffer; queries must be reset before each use.
-            unsafe { self.ctx.device.raw.cmd_reset_query_pool(self.cmd, self.pools.query_pools[pool_index], 0, QUERIES_PER_POOL) };
+            unsafe {
+                self.ctx.device.raw.cmd_reset_query_pool(
+                    self.cmd,
+                    self.pools.query_pools[pool_index],
+                    0,
+                    QUERIES_PER_POOL,
+                )
+            };
             self.query_pools_used += 1;
         }
-        Ok(Some((self.pools.query_pools[pool_index], (index % per_pool) * 2)))
+        Ok(Some((
+            self.pools.query_pools[pool_index],
+            (index % per_pool) * 2,
+        )))
     }
 
     /// Ends recording, submits, waits, and returns the GPU time of every pass.
@@ -682,7 +976,8 @@ impl<'a> Recording<'a> {
         // Results are read on the host (mapped buffers): make the writes visible there.
         self.emit_host_barrier();
         // SAFETY: recording command buffer, ended once here.
-        unsafe { self.ctx.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer", &self.label)
+        unsafe { self.ctx.device.raw.end_command_buffer(self.cmd) }
+            .vk("vkEndCommandBuffer", &self.label)
     }
 
     /// The command buffer (for the submission code).
@@ -704,7 +999,14 @@ impl<'a> Recording<'a> {
     pub(crate) fn completed(&mut self, wall_ms: f64) -> Result<PassTimings> {
         self.reusable = true;
         let timings = self.read_timings()?;
-        if let Some(p) = self.ctx.device.profile.lock().unwrap_or_else(|p| p.into_inner()).as_mut() {
+        if let Some(p) = self
+            .ctx
+            .device
+            .profile
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_mut()
+        {
             p.add_submission(&self.label, wall_ms);
             for (name, ms) in &timings.passes {
                 p.add_pass(name, *ms);
@@ -737,7 +1039,12 @@ impl<'a> Recording<'a> {
         std::mem::forget(std::mem::take(&mut self.breadcrumbs));
         let _ = std::mem::replace(
             &mut self.pools,
-            RecordingPools { command_pool: vk::CommandPool::null(), cmd: vk::CommandBuffer::null(), descriptor_pools: Vec::new(), query_pools: Vec::new() },
+            RecordingPools {
+                command_pool: vk::CommandPool::null(),
+                cmd: vk::CommandBuffer::null(),
+                descriptor_pools: Vec::new(),
+                query_pools: Vec::new(),
+            },
         );
         self.leaked = true;
     }
@@ -787,21 +1094,37 @@ impl<'a> Recording<'a> {
             return Ok(timings);
         }
         let info = self.ctx.info();
-        let valid_mask = if info.timestamp_valid_bits >= 64 { u64::MAX } else { (1u64 << info.timestamp_valid_bits) - 1 };
+        let valid_mask = if info.timestamp_valid_bits >= 64 {
+            u64::MAX
+        } else {
+            (1u64 << info.timestamp_valid_bits) - 1
+        };
         let per_pool = QUERIES_PER_POOL / 2;
         let dev = &self.ctx.device.raw;
         let mut ticks = Vec::with_capacity(self.passes.len() * 2);
-        for (p, &pool) in self.pools.query_pools[..self.query_pools_used].iter().enumerate() {
+        for (p, &pool) in self.pools.query_pools[..self.query_pools_used]
+            .iter()
+            .enumerate()
+        {
             let first = p * per_pool as usize;
             let count = (self.passes.len() - first).min(per_pool as usize);
             let mut pool_ticks = vec![0u64; count * 2];
             // SAFETY: these queries were written by the submission we waited for.
-            unsafe { dev.get_query_pool_results(pool, 0, &mut pool_ticks, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
-                .vk("vkGetQueryPoolResults", &self.label)?;
+            unsafe {
+                dev.get_query_pool_results(
+                    pool,
+                    0,
+                    &mut pool_ticks,
+                    vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+                )
+            }
+            .vk("vkGetQueryPoolResults", &self.label)?;
             ticks.extend(pool_ticks.into_iter().map(|t| t & valid_mask));
         }
         let origin = ticks.iter().step_by(2).copied().min().unwrap_or(0);
-        let ms = |from: u64, to: u64| (to.wrapping_sub(from) & valid_mask) as f64 * info.timestamp_period_ns / 1e6;
+        let ms = |from: u64, to: u64| {
+            (to.wrapping_sub(from) & valid_mask) as f64 * info.timestamp_period_ns / 1e6
+        };
         for (i, name) in self.passes.iter().enumerate() {
             let (start, end) = (ticks[2 * i], ticks[2 * i + 1]);
             timings.passes.push((name.clone(), ms(start, end)));
@@ -821,7 +1144,12 @@ impl Drop for Recording<'_> {
         let dev = &self.ctx.device.raw;
         let pools = std::mem::replace(
             &mut self.pools,
-            RecordingPools { command_pool: vk::CommandPool::null(), cmd: vk::CommandBuffer::null(), descriptor_pools: Vec::new(), query_pools: Vec::new() },
+            RecordingPools {
+                command_pool: vk::CommandPool::null(),
+                cmd: vk::CommandBuffer::null(),
+                descriptor_pools: Vec::new(),
+                query_pools: Vec::new(),
+            },
         );
         if self.reusable {
             // SAFETY: the command buffer was never submitted or its submission was
@@ -829,9 +1157,18 @@ impl Drop for Recording<'_> {
             // command buffer to its initial state and frees every set.
             let reset = unsafe {
                 dev.reset_command_pool(pools.command_pool, vk::CommandPoolResetFlags::empty())
-                    .and_then(|()| pools.descriptor_pools.iter().try_for_each(|&p| dev.reset_descriptor_pool(p, vk::DescriptorPoolResetFlags::empty())))
+                    .and_then(|()| {
+                        pools.descriptor_pools.iter().try_for_each(|&p| {
+                            dev.reset_descriptor_pool(p, vk::DescriptorPoolResetFlags::empty())
+                        })
+                    })
             };
-            let mut recycled = self.ctx.device.recycled_pools.lock().unwrap_or_else(|p| p.into_inner());
+            let mut recycled = self
+                .ctx
+                .device
+                .recycled_pools
+                .lock()
+                .unwrap_or_else(|p| p.into_inner());
             if reset.is_ok() && recycled.len() < RECYCLED_POOLS {
                 recycled.push(pools);
                 return;

@@ -86,14 +86,17 @@ impl<'a> Recording<'a> {
         let dev = &ctx.device.raw;
         let label = self.label().to_string();
         // SAFETY: a fence on a valid device.
-        let fence = unsafe { dev.create_fence(&vk::FenceCreateInfo::default(), None) }.vk("vkCreateFence", &label)?;
+        let fence = unsafe { dev.create_fence(&vk::FenceCreateInfo::default(), None) }
+            .vk("vkCreateFence", &label)?;
         let cmds = [self.command_buffer()];
         let wait_semaphores: Vec<vk::Semaphore> = sync.wait.iter().map(|w| w.0).collect();
         let wait_values: Vec<u64> = sync.wait.iter().map(|w| w.1).collect();
         let wait_stages: Vec<vk::PipelineStageFlags> = sync.wait.iter().map(|w| w.2).collect();
         let signal_semaphores: Vec<vk::Semaphore> = sync.signal.iter().map(|s| s.0).collect();
         let signal_values: Vec<u64> = sync.signal.iter().map(|s| s.1).collect();
-        let mut timeline = vk::TimelineSemaphoreSubmitInfo::default().wait_semaphore_values(&wait_values).signal_semaphore_values(&signal_values);
+        let mut timeline = vk::TimelineSemaphoreSubmitInfo::default()
+            .wait_semaphore_values(&wait_values)
+            .signal_semaphore_values(&signal_values);
         let mut submit = vk::SubmitInfo::default()
             .command_buffers(&cmds)
             .wait_semaphores(&wait_semaphores)
@@ -102,7 +105,9 @@ impl<'a> Recording<'a> {
         if !sync.wait.is_empty() || !sync.signal.is_empty() {
             submit = submit.push_next(&mut timeline);
         }
-        ctx.device.submissions.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ctx.device
+            .submissions
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.set_reusable(false);
         let result = {
             let queue = ctx.device.queue.lock().unwrap_or_else(|p| p.into_inner());
@@ -118,8 +123,16 @@ impl<'a> Recording<'a> {
         }
         // Registered with the device, so that a leaked Submission's buffers still wait
         // for it before they are freed (Buffer's Drop).
-        ctx.device.pending_fences.lock().unwrap_or_else(|p| p.into_inner()).push(fence);
-        Ok(Submission { rec: Some(self), fence, started: Instant::now() })
+        ctx.device
+            .pending_fences
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(fence);
+        Ok(Submission {
+            rec: Some(self),
+            fence,
+            started: Instant::now(),
+        })
     }
 
     /// Emits the recording into the host's command buffer instead of submitting it; the
@@ -136,12 +149,21 @@ impl<'a> Recording<'a> {
         if let Some((pool, first)) = timestamps {
             // SAFETY: by HostCommandBuffer::new's contract, cmd is recording and the
             // pool has room.
-            unsafe { dev.cmd_write_timestamp(cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, first) };
+            unsafe {
+                dev.cmd_write_timestamp(cmd, vk::PipelineStageFlags::TOP_OF_PIPE, pool, first)
+            };
         }
         self.emit_into(cmd)?;
         if let Some((pool, first)) = timestamps {
             // SAFETY: as above.
-            unsafe { dev.cmd_write_timestamp(cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, pool, first + 1) };
+            unsafe {
+                dev.cmd_write_timestamp(
+                    cmd,
+                    vk::PipelineStageFlags::BOTTOM_OF_PIPE,
+                    pool,
+                    first + 1,
+                )
+            };
         }
         // The host's command buffer holds our descriptor sets and query pools until it
         // completes: the pools stay out of reuse until the HostRecorded is dropped.
@@ -187,14 +209,17 @@ impl<'a> Submission<'a> {
     pub fn is_complete(&self) -> Result<bool> {
         let rec = self.rec.as_ref().expect("present until waited");
         // SAFETY: the fence belongs to the device.
-        unsafe { rec.context().device.raw.get_fence_status(self.fence) }.vk("vkGetFenceStatus", rec.label())
+        unsafe { rec.context().device.raw.get_fence_status(self.fence) }
+            .vk("vkGetFenceStatus", rec.label())
     }
 
     fn wait_inner(&mut self) -> Result<PassTimings> {
         let mut rec = self.rec.take().expect("waited once");
         let ctx = rec.context().clone();
         let dev = &ctx.device.raw;
-        ctx.device.fence_waits.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ctx.device
+            .fence_waits
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         // SAFETY: the fence belongs to this device and was submitted with the recording;
         // only this submission destroys it.
         let waited = unsafe { dev.wait_for_fences(&[self.fence], true, u64::MAX) };
@@ -202,10 +227,18 @@ impl<'a> Submission<'a> {
             // Completion unknown: the fence stays registered (buffers keep waiting for
             // it) and the pools are forgotten rather than reset under pending work.
             rec.leak_pools();
-            return Err(crate::error::vk_error("vkWaitForFences", rec.label(), waited.err().unwrap_or(vk::Result::ERROR_UNKNOWN)));
+            return Err(crate::error::vk_error(
+                "vkWaitForFences",
+                rec.label(),
+                waited.err().unwrap_or(vk::Result::ERROR_UNKNOWN),
+            ));
         }
         {
-            let mut pending = ctx.device.pending_fences.lock().unwrap_or_else(|p| p.into_inner());
+            let mut pending = ctx
+                .device
+                .pending_fences
+                .lock()
+                .unwrap_or_else(|p| p.into_inner());
             pending.retain(|&f| f != self.fence);
             // SAFETY: signalled, or the device is lost; either way it is unused now, and
             // no longer registered (removed under the lock wait_for_pending holds).
@@ -214,7 +247,9 @@ impl<'a> Submission<'a> {
         self.fence = vk::Fence::null();
         match waited {
             Ok(()) => rec.completed(self.started.elapsed().as_secs_f64() * 1e3),
-            Err(vk::Result::ERROR_DEVICE_LOST) => Err(EngineError::DeviceLost { pass: rec.last_pass() }),
+            Err(vk::Result::ERROR_DEVICE_LOST) => Err(EngineError::DeviceLost {
+                pass: rec.last_pass(),
+            }),
             Err(e) => Err(crate::error::vk_error("vkWaitForFences", rec.label(), e)),
         }
     }
@@ -301,8 +336,18 @@ impl Pending {
 impl<T: 'static> FramesInFlight<T> {
     /// A ring of `resources.len()` frames in flight (at least 1).
     pub fn new(resources: Vec<T>) -> Self {
-        assert!(!resources.is_empty(), "frames in flight need at least one slot");
-        let slots = resources.into_iter().map(|r| Slot { pending: None, resources: Box::new(r), last_timings: None }).collect();
+        assert!(
+            !resources.is_empty(),
+            "frames in flight need at least one slot"
+        );
+        let slots = resources
+            .into_iter()
+            .map(|r| Slot {
+                pending: None,
+                resources: Box::new(r),
+                last_timings: None,
+            })
+            .collect();
         Self { slots, next: 0 }
     }
 
@@ -334,7 +379,9 @@ impl<T: 'static> FramesInFlight<T> {
     where
         F: for<'r> FnOnce(&'r mut T) -> Result<Recording<'r>>,
     {
-        self.record_next(record, |rec| Ok(Pending::Engine(rec.submit(sync)?.into_static())))
+        self.record_next(record, |rec| {
+            Ok(Pending::Engine(rec.submit(sync)?.into_static()))
+        })
     }
 
     /// Records the next frame with `record` into the host's command buffer (see
@@ -349,7 +396,9 @@ impl<T: 'static> FramesInFlight<T> {
             // HostCommandBuffer::new's contract has the frame complete before the slot is
             // lent again or dropped.
             // SAFETY: the types differ only in the lifetime of the recording's borrows.
-            Ok(Pending::Host(unsafe { std::mem::transmute::<HostRecorded<'_>, HostRecorded<'static>>(recorded) }))
+            Ok(Pending::Host(unsafe {
+                std::mem::transmute::<HostRecorded<'_>, HostRecorded<'static>>(recorded)
+            }))
         })
     }
 
@@ -358,7 +407,11 @@ impl<T: 'static> FramesInFlight<T> {
     /// flight); then moves on. The pending work borrows the slot's boxed resources only
     /// (`record` is generic over their lifetime), which are lent out again only after
     /// `next_slot` finished it, and dropped only after Drop did.
-    fn record_next<F>(&mut self, record: F, pending: impl for<'r> FnOnce(Recording<'r>) -> Result<Pending>) -> Result<usize>
+    fn record_next<F>(
+        &mut self,
+        record: F,
+        pending: impl for<'r> FnOnce(Recording<'r>) -> Result<Pending>,
+    ) -> Result<usize>
     where
         F: for<'r> FnOnce(&'r mut T) -> Result<Recording<'r>>,
     {

@@ -30,8 +30,13 @@ pub fn gpu() -> TestGpu {
 /// `force_staging` to count host waits as a discrete GPU would have them.
 pub fn gpu_with(desc: &ContextDesc) -> TestGpu {
     let ctx = Context::new(desc).unwrap_or_else(|e| panic!("opening the test device: {e}"));
-    let sink = ctx.validation_sink().expect("tests always run with validation");
-    TestGpu { ctx: Some(ctx), sink }
+    let sink = ctx
+        .validation_sink()
+        .expect("tests always run with validation");
+    TestGpu {
+        ctx: Some(ctx),
+        sink,
+    }
 }
 
 impl Deref for TestGpu {
@@ -46,7 +51,11 @@ impl Drop for TestGpu {
         drop(self.ctx.take());
         let messages = self.sink.drain();
         if !messages.is_empty() && !std::thread::panicking() {
-            panic!("{} validation message(s):\n{}", messages.len(), messages.join("\n"));
+            panic!(
+                "{} validation message(s):\n{}",
+                messages.len(),
+                messages.join("\n")
+            );
         }
     }
 }
@@ -76,7 +85,9 @@ impl Feature {
         match self {
             Feature::FloatAtomics => ctx.info().float_atomic_add,
             Feature::Timestamps => ctx.info().timestamp_valid_bits > 0,
-            Feature::SubgroupRaster => drape_engine::ops::splat::render::subgroup_raster_supported(ctx.info()),
+            Feature::SubgroupRaster => {
+                drape_engine::ops::splat::render::subgroup_raster_supported(ctx.info())
+            }
         }
     }
 }
@@ -91,9 +102,17 @@ pub fn has_feature(ctx: &Context, feature: Feature, test: &str) -> bool {
     }
     let expected = std::env::var("DRAPE_EXPECT_FEATURES").unwrap_or_default();
     if expected.split(',').any(|f| f.trim() == feature.name()) {
-        panic!("{test}: the device '{}' lacks {}, which DRAPE_EXPECT_FEATURES says it has", ctx.info().name, feature.name());
+        panic!(
+            "{test}: the device '{}' lacks {}, which DRAPE_EXPECT_FEATURES says it has",
+            ctx.info().name,
+            feature.name()
+        );
     }
-    eprintln!("SKIPPED: {test}: the device '{}' lacks {}", ctx.info().name, feature.name());
+    eprintln!(
+        "SKIPPED: {test}: the device '{}' lacks {}",
+        ctx.info().name,
+        feature.name()
+    );
     false
 }
 
@@ -107,12 +126,21 @@ pub enum Pattern {
 }
 
 impl Pattern {
-    pub const ALL: [Pattern; 4] = [Pattern::Random, Pattern::AllEqual, Pattern::Sorted, Pattern::ReverseSorted];
+    pub const ALL: [Pattern; 4] = [
+        Pattern::Random,
+        Pattern::AllEqual,
+        Pattern::Sorted,
+        Pattern::ReverseSorted,
+    ];
 
     /// `len` values below 2^bits (all 32 bits for 32) in this pattern, reproducible
     /// from `seed`.
     pub fn generate(self, len: usize, bits: u32, seed: u64) -> Vec<u32> {
-        let mask = if bits >= 32 { u32::MAX } else { (1u32 << bits) - 1 };
+        let mask = if bits >= 32 {
+            u32::MAX
+        } else {
+            (1u32 << bits) - 1
+        };
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let mut v: Vec<u32> = match self {
             Pattern::AllEqual => vec![0x5A5A_5A5A & mask; len],
@@ -153,7 +181,10 @@ pub mod num {
     pub fn rel_err(a: &[f64], b: &[f64], floor: f64) -> f64 {
         assert_eq!(a.len(), b.len(), "lengths differ");
         let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
-        a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+        a.iter()
+            .zip(b)
+            .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+            / scale
     }
 }
 
@@ -161,7 +192,9 @@ pub mod splat {
     //! Scenes and helpers for the splatting tests.
     use drape_engine::context::DeviceKind;
     use drape_engine::ops::splat::reference::{self, ReferenceRender};
-    use drape_engine::ops::splat::render::{ForwardStats, GaussianBuffers, RasterVariant, RenderedImage, SplatRenderer};
+    use drape_engine::ops::splat::render::{
+        ForwardStats, GaussianBuffers, RasterVariant, RenderedImage, SplatRenderer,
+    };
     use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
     use drape_engine::Context;
     use drape_shared::splat::layout::FrameParams;
@@ -169,8 +202,15 @@ pub mod splat {
 
     /// A camera 5 units from the origin looking at it, with a coloured background.
     pub fn camera(width: u32, height: u32) -> PinholeCamera {
-        let mut cam = PinholeCamera::look_at([0.3, -0.4, -5.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 45.0, width, height)
-            .expect("valid camera");
+        let mut cam = PinholeCamera::look_at(
+            [0.3, -0.4, -5.0],
+            [0.0, 0.0, 0.0],
+            [0.0, -1.0, 0.0],
+            45.0,
+            width,
+            height,
+        )
+        .expect("valid camera");
         cam.background = [0.1, 0.2, 0.3];
         cam
     }
@@ -182,16 +222,32 @@ pub mod splat {
     }
 
     /// Renders on the GPU and reads the image back.
-    pub fn gpu_render(ctx: &Context, cloud: &GaussianCloud, cam: &PinholeCamera, settings: &RenderSettings) -> (RenderedImage, ForwardStats) {
+    pub fn gpu_render(
+        ctx: &Context,
+        cloud: &GaussianCloud,
+        cam: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> (RenderedImage, ForwardStats) {
         gpu_render_with(ctx, cloud, cam, settings, RasterVariant::Auto)
     }
 
     /// [`gpu_render`] through the given rasterizer kernels.
-    pub fn gpu_render_with(ctx: &Context, cloud: &GaussianCloud, cam: &PinholeCamera, settings: &RenderSettings, variant: RasterVariant) -> (RenderedImage, ForwardStats) {
+    pub fn gpu_render_with(
+        ctx: &Context,
+        cloud: &GaussianCloud,
+        cam: &PinholeCamera,
+        settings: &RenderSettings,
+        variant: RasterVariant,
+    ) -> (RenderedImage, ForwardStats) {
         let gaussians = GaussianBuffers::upload(ctx, "test gaussians", cloud).expect("upload");
-        let mut renderer = SplatRenderer::new(ctx, cam.width, cam.height, cloud.len()).expect("renderer");
-        renderer.set_raster_variant(variant).expect("raster variant");
-        let stats = renderer.forward(&gaussians, cam, settings).expect("forward");
+        let mut renderer =
+            SplatRenderer::new(ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+        renderer
+            .set_raster_variant(variant)
+            .expect("raster variant");
+        let stats = renderer
+            .forward(&gaussians, cam, settings)
+            .expect("forward");
         (renderer.read_image().expect("read"), stats)
     }
 
@@ -200,7 +256,11 @@ pub mod splat {
     /// or fails where `DRAPE_EXPECT_FEATURES` names `subgroup-raster`).
     pub fn raster_variants(ctx: &Context, test: &str) -> Vec<RasterVariant> {
         let mut v = vec![RasterVariant::Workgroup];
-        if crate::has_feature(ctx, crate::Feature::SubgroupRaster, &format!("{test} (subgroup rasterizer)")) {
+        if crate::has_feature(
+            ctx,
+            crate::Feature::SubgroupRaster,
+            &format!("{test} (subgroup rasterizer)"),
+        ) {
             v.push(RasterVariant::Subgroup);
         }
         v
@@ -209,7 +269,10 @@ pub mod splat {
     /// Largest absolute difference.
     pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
-        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
     }
 
     /// Forward tolerance on a CPU device (lavapipe): RGB and alpha absolute, depth
@@ -254,8 +317,26 @@ pub mod splat {
     /// the allowance cannot swallow the comparison (an H100: 0.25-0.36% at 64x64 to 128x128,
     /// 2.6% in the 1080p scene of 6,500 large splats, whose `alpha_min` rims cover many
     /// pixels).
-    pub fn assert_forward_close(ctx: &Context, image: &RenderedImage, gaussians: &[Gaussian<f32>], frame: &FrameParams, cpu: &ReferenceRender<f32>, step: usize, what: &str) -> ForwardComparison {
-        assert_forward_close_to(ctx, image, gaussians, frame, cpu, reference::render, GPU_FORWARD_TOLERANCE, step, what)
+    pub fn assert_forward_close(
+        ctx: &Context,
+        image: &RenderedImage,
+        gaussians: &[Gaussian<f32>],
+        frame: &FrameParams,
+        cpu: &ReferenceRender<f32>,
+        step: usize,
+        what: &str,
+    ) -> ForwardComparison {
+        assert_forward_close_to(
+            ctx,
+            image,
+            gaussians,
+            frame,
+            cpu,
+            reference::render,
+            GPU_FORWARD_TOLERANCE,
+            step,
+            what,
+        )
     }
 
     /// [`assert_forward_close`] for a reference that `render_reference` makes (the CPU
@@ -277,7 +358,11 @@ pub mod splat {
         what: &str,
     ) -> ForwardComparison {
         let pixels = (image.width * image.height) as usize;
-        assert_eq!((cpu.width, cpu.height), (image.width, image.height), "{what}: image sizes");
+        assert_eq!(
+            (cpu.width, cpu.height),
+            (image.width, image.height),
+            "{what}: image sizes"
+        );
         let on_cpu = ctx.info().kind == DeviceKind::Cpu;
         let nudged = |factor: f32| {
             let mut f = *frame;
@@ -285,25 +370,52 @@ pub mod splat {
             f.transmittance_min *= factor;
             render_reference(gaussians, &f)
         };
-        let (lo, hi) = if on_cpu { (None, None) } else { (Some(nudged(1.0 - THRESHOLD_NUDGE)), Some(nudged(1.0 + THRESHOLD_NUDGE))) };
-        let tolerance = if on_cpu { CPU_DEVICE_FORWARD_TOLERANCE } else { gpu_tolerance };
-        let mut seen = ForwardComparison { max_error: 0.0, pixels: 0, near_threshold: 0 };
+        let (lo, hi) = if on_cpu {
+            (None, None)
+        } else {
+            (
+                Some(nudged(1.0 - THRESHOLD_NUDGE)),
+                Some(nudged(1.0 + THRESHOLD_NUDGE)),
+            )
+        };
+        let tolerance = if on_cpu {
+            CPU_DEVICE_FORWARD_TOLERANCE
+        } else {
+            gpu_tolerance
+        };
+        let mut seen = ForwardComparison {
+            max_error: 0.0,
+            pixels: 0,
+            near_threshold: 0,
+        };
         for p in (0..pixels).step_by(step.max(1)) {
             // (value, GPU, CPU, lower, upper, scale): colour and alpha absolute, depth
             // relative to the depth (Σ w z with z near 5).
-            let get = |r: &Option<ReferenceRender<f32>>, v: fn(&ReferenceRender<f32>, usize) -> f32| r.as_ref().map(|r| v(r, p));
+            let get = |r: &Option<ReferenceRender<f32>>,
+                       v: fn(&ReferenceRender<f32>, usize) -> f32| {
+                r.as_ref().map(|r| v(r, p))
+            };
             let values: [(&str, f32, fn(&ReferenceRender<f32>, usize) -> f32, f32); 5] = [
                 ("red", image.rgb[3 * p], |r, p| r.rgb[3 * p], 1.0),
                 ("green", image.rgb[3 * p + 1], |r, p| r.rgb[3 * p + 1], 1.0),
                 ("blue", image.rgb[3 * p + 2], |r, p| r.rgb[3 * p + 2], 1.0),
                 ("alpha", image.alpha[p], |r, p| r.alpha[p], 1.0),
-                ("depth", image.depth[p], |r, p| r.depth[p], cpu.depth[p].abs().max(1.0)),
+                (
+                    "depth",
+                    image.depth[p],
+                    |r, p| r.depth[p],
+                    cpu.depth[p].abs().max(1.0),
+                ),
             ];
             let mut near = false;
             let mut checks = Vec::with_capacity(5);
             for (name, g, v, scale) in values {
                 let c = v(cpu, p);
-                let slack = [get(&lo, v), get(&hi, v)].into_iter().flatten().map(|x| (x - c).abs() / scale).sum::<f32>();
+                let slack = [get(&lo, v), get(&hi, v)]
+                    .into_iter()
+                    .flatten()
+                    .map(|x| (x - c).abs() / scale)
+                    .sum::<f32>();
                 near |= slack > tolerance;
                 checks.push((name, g, c, scale, slack));
             }
@@ -318,7 +430,12 @@ pub mod splat {
             seen.pixels += 1;
             seen.near_threshold += usize::from(near);
         }
-        assert!(seen.near_threshold * 20 <= seen.pixels, "{what}: {} of {} pixels near a threshold: the comparison would be too loose", seen.near_threshold, seen.pixels);
+        assert!(
+            seen.near_threshold * 20 <= seen.pixels,
+            "{what}: {} of {} pixels near a threshold: the comparison would be too loose",
+            seen.near_threshold,
+            seen.pixels
+        );
         seen
     }
 }
@@ -340,9 +457,16 @@ pub fn test_picture(width: u32, height: u32) -> Picture {
     let mut rgb = Vec::with_capacity((3 * width * height) as usize);
     for y in 0..height {
         for x in 0..width {
-            let (u, v) = ((x as f32 + 0.5) / width as f32, (y as f32 + 0.5) / height as f32);
+            let (u, v) = (
+                (x as f32 + 0.5) / width as f32,
+                (y as f32 + 0.5) / height as f32,
+            );
             let mut c = [0.15 + 0.6 * u, 0.2 + 0.5 * v, 0.55 - 0.3 * u * v];
-            let disks = [([0.3, 0.35], 0.18, [0.95, 0.3, 0.2]), ([0.7, 0.6], 0.22, [0.2, 0.8, 0.35]), ([0.45, 0.8], 0.1, [0.95, 0.9, 0.2])];
+            let disks = [
+                ([0.3, 0.35], 0.18, [0.95, 0.3, 0.2]),
+                ([0.7, 0.6], 0.22, [0.2, 0.8, 0.35]),
+                ([0.45, 0.8], 0.1, [0.95, 0.9, 0.2]),
+            ];
             for (centre, radius, colour) in disks {
                 let d = ((u - centre[0]).powi(2) + (v - centre[1]).powi(2)).sqrt();
                 let w = (1.0 - ((d - radius) / 0.02).clamp(-1.0, 1.0)) * 0.5;
@@ -368,7 +492,6 @@ pub mod reference_python {
     //! skipped.
     use std::path::{Path, PathBuf};
     use std::process::Command;
-
 
     /// `DRAPE_TORCH_PYTHON`, else the project's `target/torch-venv`.
     pub fn python() -> PathBuf {
@@ -396,7 +519,10 @@ pub mod reference_python {
     /// (that variable exists only when integration tests themselves compile).
     pub fn case_dir(group: &str, name: &str) -> PathBuf {
         let exe = std::env::current_exe().expect("test executable");
-        let target = exe.ancestors().nth(3).expect("<target>/<profile>/deps/<test>");
+        let target = exe
+            .ancestors()
+            .nth(3)
+            .expect("<target>/<profile>/deps/<test>");
         let d = target.join("tmp").join(group).join(name);
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).expect("case directory");
@@ -408,9 +534,18 @@ pub mod reference_python {
     /// reader, tested against numpy itself) is not linked here so that the engine's
     /// tests do not link the trainer.
     pub fn put(dir: &Path, name: &str, shape: &[usize], data: &[f64]) {
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "{name}: shape {shape:?} does not hold {} values", data.len());
+        assert_eq!(
+            shape.iter().product::<usize>(),
+            data.len(),
+            "{name}: shape {shape:?} does not hold {} values",
+            data.len()
+        );
         let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-        let shape = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+        let shape = if dims.len() == 1 {
+            format!("({},)", dims[0])
+        } else {
+            format!("({})", dims.join(", "))
+        };
         let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
         // Data starts at a multiple of 64 bytes; the header ends in '\n'.
         header.push_str(&" ".repeat((64 - (10 + header.len() + 1) % 64) % 64));
@@ -427,14 +562,28 @@ pub mod reference_python {
     pub fn get(dir: &Path, name: &str) -> Vec<f64> {
         let path = dir.join(format!("{name}.npy"));
         let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        assert!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"), "{}: not a .npy file", path.display());
+        assert!(
+            bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"),
+            "{}: not a .npy file",
+            path.display()
+        );
         let (header_len, start) = match bytes[6] {
             1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-            _ => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+            _ => (
+                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+                12,
+            ),
         };
         let header = String::from_utf8_lossy(&bytes[start..start + header_len]);
-        assert!(header.contains("'descr': '<f8'") && header.contains("'fortran_order': False"), "{}: expected C-order float64, header {header}", path.display());
-        bytes[start + header_len..].chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))).collect()
+        assert!(
+            header.contains("'descr': '<f8'") && header.contains("'fortran_order': False"),
+            "{}: expected C-order float64, header {header}",
+            path.display()
+        );
+        bytes[start + header_len..]
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+            .collect()
     }
 
     /// Runs `tests/python/<script>` on `dirs` and fails the test, with its stderr, if
@@ -445,8 +594,18 @@ pub mod reference_python {
 
     /// [`run`] with another interpreter (e.g. [`clients_python`]).
     pub fn run_with(python: &Path, script: &str, dirs: &[PathBuf]) {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("python").join(script);
-        let out = Command::new(python).arg(&path).args(dirs).output().unwrap_or_else(|e| panic!("running {script}: {e}"));
-        assert!(out.status.success(), "{script} failed: {}", String::from_utf8_lossy(&out.stderr));
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("python")
+            .join(script);
+        let out = Command::new(python)
+            .arg(&path)
+            .args(dirs)
+            .output()
+            .unwrap_or_else(|e| panic!("running {script}: {e}"));
+        assert!(
+            out.status.success(),
+            "{script} failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
     }
 }

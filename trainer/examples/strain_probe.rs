@@ -21,14 +21,33 @@ fn main() {
     let motion = procedural(MotionKind::Walk, 90, 30.0, speed);
     let t0 = std::time::Instant::now();
     let r = simulate(&body, &garments, &motion, params, 20);
-    eprintln!("sim {:.1}s max strain {:.3} at {:?} pen {:.4}", t0.elapsed().as_secs_f64(), r.max_strain, r.max_strain_at, r.max_penetration);
+    eprintln!(
+        "sim {:.1}s max strain {:.3} at {:?} pen {:.4}",
+        t0.elapsed().as_secs_f64(),
+        r.max_strain,
+        r.max_strain_at,
+        r.max_penetration
+    );
     let edges: Vec<Vec<(u32, u32, f64)>> = garments
         .iter()
         .map(|g| {
-            let mut e: Vec<(u32, u32)> = g.faces.iter().flat_map(|f| [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])]).map(|(a, b)| (a.min(b), a.max(b))).collect();
+            let mut e: Vec<(u32, u32)> = g
+                .faces
+                .iter()
+                .flat_map(|f| [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])])
+                .map(|(a, b)| (a.min(b), a.max(b)))
+                .collect();
             e.sort();
             e.dedup();
-            e.into_iter().map(|(a, b)| (a, b, (g.vertices[a as usize] - g.vertices[b as usize]).length())).collect()
+            e.into_iter()
+                .map(|(a, b)| {
+                    (
+                        a,
+                        b,
+                        (g.vertices[a as usize] - g.vertices[b as usize]).length(),
+                    )
+                })
+                .collect()
         })
         .collect();
     for (f, frame) in r.frames.iter().enumerate() {
@@ -50,7 +69,16 @@ fn main() {
             let da = col.query(pos[worst.1 as usize]).map(|q| q.0).unwrap_or(9.0);
             let db = col.query(pos[worst.2 as usize]).map(|q| q.0).unwrap_or(9.0);
             let rv = garments[gi].vertices[worst.1 as usize];
-            line += &format!(" | {} {:.3} over={over} rest=({:.2},{:.2},{:.2}) d=({:.1},{:.1})mm", garments[gi].name, worst.0, rv[0], rv[1], rv[2], da * 1e3, db * 1e3);
+            line += &format!(
+                " | {} {:.3} over={over} rest=({:.2},{:.2},{:.2}) d=({:.1},{:.1})mm",
+                garments[gi].name,
+                worst.0,
+                rv[0],
+                rv[1],
+                rv[2],
+                da * 1e3,
+                db * 1e3
+            );
         }
         println!("{line}");
     }

@@ -17,7 +17,6 @@ use drape_engine::ops::splat::scene::PinholeCamera;
 
 use glam::{DMat3, DVec3};
 
-
 /// A pinhole camera in f64: intrinsics in pixels, world-to-camera pose, image size and
 /// the near clipping distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -41,7 +40,10 @@ fn pose_looking_at(eye: DVec3, target: DVec3, up: DVec3) -> ([[f64; 3]; 3], DVec
     let forward = (target - eye).normalize_or(DVec3::Z);
     let right = forward.cross(up).normalize_or(DVec3::Z);
     let down = forward.cross(right);
-    ([right, down, forward].map(|v| v.to_array()), DVec3::new(-right.dot(eye), -down.dot(eye), -forward.dot(eye)))
+    (
+        [right, down, forward].map(|v| v.to_array()),
+        DVec3::new(-right.dot(eye), -down.dot(eye), -forward.dot(eye)),
+    )
 }
 
 impl Camera {
@@ -56,14 +58,28 @@ impl Camera {
     /// principal point at the image centre.
     pub fn look_at(eye: DVec3, target: DVec3, up: DVec3, f: f64, width: u32, height: u32) -> Self {
         let (rotation, translation) = pose_looking_at(eye, target, up);
-        Self { fx: f, fy: f, cx: f64::from(width) / 2.0, cy: f64::from(height) / 2.0, width, height, rotation, translation, near: Self::NEAR }
+        Self {
+            fx: f,
+            fy: f,
+            cx: f64::from(width) / 2.0,
+            cy: f64::from(height) / 2.0,
+            width,
+            height,
+            rotation,
+            translation,
+            near: Self::NEAR,
+        }
     }
 
     /// This camera (its intrinsics, image size and near plane) moved to `eye` and
     /// turned to look at `target`, world up `up`.
     pub fn moved_to(&self, eye: DVec3, target: DVec3, up: DVec3) -> Self {
         let (rotation, translation) = pose_looking_at(eye, target, up);
-        Self { rotation, translation, ..*self }
+        Self {
+            rotation,
+            translation,
+            ..*self
+        }
     }
 
     /// The rotation as glam's (column-major) matrix.
@@ -89,7 +105,10 @@ impl Camera {
 
     /// Pixel coordinates (not rounded) of a camera-space point in front of the camera.
     pub fn project_camera(&self, c: DVec3) -> [f64; 2] {
-        [self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy]
+        [
+            self.fx * c[0] / c[2] + self.cx,
+            self.fy * c[1] / c[2] + self.cy,
+        ]
     }
 
     /// The splatter's camera: this one in f32 over `background`, far plane [`Self::FAR`].
@@ -121,7 +140,14 @@ mod tests {
     /// A camera off every axis, with unequal focal lengths and an off-centre
     /// principal point, so that a swapped or transposed field shows.
     fn camera() -> Camera {
-        let mut c = Camera::look_at(DVec3::new(1.3, 1.7, 3.1), DVec3::new(0.1, 0.9, -0.2), DVec3::Y, 90.0, 80, 60);
+        let mut c = Camera::look_at(
+            DVec3::new(1.3, 1.7, 3.1),
+            DVec3::new(0.1, 0.9, -0.2),
+            DVec3::Y,
+            90.0,
+            80,
+            60,
+        );
         (c.fy, c.cx, c.cy) = (84.0, 37.5, 33.0);
         c
     }
@@ -131,7 +157,13 @@ mod tests {
     fn engine_projection(cam: &Camera, p: DVec3) -> Option<[f64; 3]> {
         let frame = frame_params(&cam.to_pinhole([0.0; 3]), &RenderSettings::default(), 0, 1);
         let kernel = KernelCamera::<f64>::from_frame(&frame);
-        let g = Gaussian { mean: p.to_array(), log_scale: [0.01f64.ln(); 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit: 5.0, sh: [[0.0; 3]; MAX_SH_COEFFS] };
+        let g = Gaussian {
+            mean: p.to_array(),
+            log_scale: [0.01f64.ln(); 3],
+            quat: [1.0, 0.0, 0.0, 0.0],
+            opacity_logit: 5.0,
+            sh: [[0.0; 3]; MAX_SH_COEFFS],
+        };
         let s = project_fwd(&g, &kernel);
         s.visible.then_some([s.x, s.y, s.depth])
     }
@@ -142,15 +174,32 @@ mod tests {
         for i in 0..7 {
             for j in 0..5 {
                 for k in 0..4 {
-                    let p = DVec3::new(-0.9 + 0.3 * f64::from(i), 0.3 + 0.3 * f64::from(j), -0.8 + 0.4 * f64::from(k));
-                    let ours = cam.project(p).expect("every point is in front of the camera");
-                    assert!((0.0..80.0).contains(&ours[0]) && (0.0..60.0).contains(&ours[1]), "{p:?} projects to {ours:?}, outside the image");
+                    let p = DVec3::new(
+                        -0.9 + 0.3 * f64::from(i),
+                        0.3 + 0.3 * f64::from(j),
+                        -0.8 + 0.4 * f64::from(k),
+                    );
+                    let ours = cam
+                        .project(p)
+                        .expect("every point is in front of the camera");
+                    assert!(
+                        (0.0..80.0).contains(&ours[0]) && (0.0..60.0).contains(&ours[1]),
+                        "{p:?} projects to {ours:?}, outside the image"
+                    );
                     let depth = cam.to_camera(p)[2];
-                    let [x, y, z] = engine_projection(&cam, p).unwrap_or_else(|| panic!("the engine culls {p:?}, which projects to {ours:?}"));
+                    let [x, y, z] = engine_projection(&cam, p).unwrap_or_else(|| {
+                        panic!("the engine culls {p:?}, which projects to {ours:?}")
+                    });
                     // The engine's camera is this one rounded to f32 (relative 6e-8 per
                     // field): pixel coordinates under 100 px agree to well under 1e-3 px.
-                    assert!((x - ours[0]).abs() < 1e-3 && (y - ours[1]).abs() < 1e-3, "{p:?}: ours {ours:?}, engine ({x}, {y})");
-                    assert!((z - depth).abs() < 1e-5 * depth, "{p:?}: depth {depth} against the engine's {z}");
+                    assert!(
+                        (x - ours[0]).abs() < 1e-3 && (y - ours[1]).abs() < 1e-3,
+                        "{p:?}: ours {ours:?}, engine ({x}, {y})"
+                    );
+                    assert!(
+                        (z - depth).abs() < 1e-5 * depth,
+                        "{p:?}: depth {depth} against the engine's {z}"
+                    );
                 }
             }
         }
@@ -165,7 +214,10 @@ mod tests {
         let (eye, target) = (DVec3::new(1.3, 1.7, 3.1), DVec3::new(0.1, 0.9, -0.2));
         let cam = Camera::look_at(eye, target, DVec3::Y, 90.0, 80, 60);
         let t = cam.project(target).expect("in front");
-        assert!((t[0] - 40.0).abs() < 1e-9 && (t[1] - 30.0).abs() < 1e-9, "{t:?}");
+        assert!(
+            (t[0] - 40.0).abs() < 1e-9 && (t[1] - 30.0).abs() < 1e-9,
+            "{t:?}"
+        );
         let c = cam.centre();
         assert!((0..3).all(|k| (c[k] - eye[k]).abs() < 1e-12), "{c:?}");
         // World up is image up (y down): a point above the target projects higher.
@@ -173,7 +225,13 @@ mod tests {
         // Moved, it keeps its intrinsics and is a look-at from the new eye.
         let moved = camera().moved_to(DVec3::new(-2.0, 1.0, 1.0), target, DVec3::Y);
         let fresh = Camera::look_at(DVec3::new(-2.0, 1.0, 1.0), target, DVec3::Y, 90.0, 80, 60);
-        assert_eq!((moved.rotation, moved.translation), (fresh.rotation, fresh.translation));
-        assert_eq!((moved.fx, moved.fy, moved.cx, moved.cy, moved.near), (90.0, 84.0, 37.5, 33.0, Camera::NEAR));
+        assert_eq!(
+            (moved.rotation, moved.translation),
+            (fresh.rotation, fresh.translation)
+        );
+        assert_eq!(
+            (moved.fx, moved.fy, moved.cx, moved.cy, moved.near),
+            (90.0, 84.0, 37.5, 33.0, Camera::NEAR)
+        );
     }
 }

@@ -34,12 +34,36 @@ fn default_far() -> f32 {
 /// Parses a camera file's text (the values unchecked: see [`PinholeCamera::validate`]).
 pub fn parse(text: &str) -> serde_json::Result<PinholeCamera> {
     let f: CameraFile = serde_json::from_str(text)?;
-    Ok(PinholeCamera { fx: f.fx, fy: f.fy, cx: f.cx, cy: f.cy, width: f.width, height: f.height, rotation: f.rotation, translation: f.translation, near: f.near, far: f.far, background: f.background })
+    Ok(PinholeCamera {
+        fx: f.fx,
+        fy: f.fy,
+        cx: f.cx,
+        cy: f.cy,
+        width: f.width,
+        height: f.height,
+        rotation: f.rotation,
+        translation: f.translation,
+        near: f.near,
+        far: f.far,
+        background: f.background,
+    })
 }
 
 /// The camera as a camera file's JSON (every field written).
 pub fn to_json(cam: &PinholeCamera) -> String {
-    let f = CameraFile { fx: cam.fx, fy: cam.fy, cx: cam.cx, cy: cam.cy, width: cam.width, height: cam.height, rotation: cam.rotation, translation: cam.translation, near: cam.near, far: cam.far, background: cam.background };
+    let f = CameraFile {
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+        width: cam.width,
+        height: cam.height,
+        rotation: cam.rotation,
+        translation: cam.translation,
+        near: cam.near,
+        far: cam.far,
+        background: cam.background,
+    };
     serde_json::to_string(&f).expect("a camera serialises")
 }
 
@@ -49,12 +73,21 @@ mod tests {
 
     #[test]
     fn round_trip_and_defaults() {
-        let cam = PinholeCamera::look_at([0.0, 0.0, -3.0], [0.0; 3], [0.0, -1.0, 0.0], 50.0, 64, 48).unwrap();
+        let cam =
+            PinholeCamera::look_at([0.0, 0.0, -3.0], [0.0; 3], [0.0, -1.0, 0.0], 50.0, 64, 48)
+                .unwrap();
         assert_eq!(super::parse(&super::to_json(&cam)).unwrap(), cam);
         let minimal = r#"{"fx": 50, "fy": 50, "cx": 32, "cy": 24, "width": 64, "height": 48,
             "rotation": [[1,0,0],[0,1,0],[0,0,1]], "translation": [0,0,0]}"#;
         let c = super::parse(minimal).unwrap();
-        assert_eq!((c.near, c.far, c.background), (PinholeCamera::DEFAULT_NEAR, PinholeCamera::DEFAULT_FAR, [0.0; 3]));
+        assert_eq!(
+            (c.near, c.far, c.background),
+            (
+                PinholeCamera::DEFAULT_NEAR,
+                PinholeCamera::DEFAULT_FAR,
+                [0.0; 3]
+            )
+        );
         assert!(super::parse("{}").is_err());
     }
 }

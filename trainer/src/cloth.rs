@@ -20,8 +20,8 @@ use glam::DVec3;
 
 use crate::body::kinematics::{pose_body, relative_transforms, skin, Affine, Pose};
 use crate::body::model::SmplModel;
-use crate::garment::Garment;
 use crate::collider::{face_neighbourhoods, lerp_points, BodyCollider, COLLIDER_REACH};
+use crate::garment::Garment;
 use crate::motion::Motion;
 
 /// Simulation settings.
@@ -63,7 +63,11 @@ impl ClothParams {
     /// and then the strain limit): about 16 per frame below 8 substeps.
     pub fn with_substeps(substeps: u32) -> Self {
         let substeps = substeps.max(1);
-        Self { substeps, iterations: if substeps >= 8 { 1 } else { 16 / substeps }, ..Self::default() }
+        Self {
+            substeps,
+            iterations: if substeps >= 8 { 1 } else { 16 / substeps },
+            ..Self::default()
+        }
     }
 
     /// One substep per frame (16 iterations).
@@ -81,7 +85,14 @@ const PLANE_REACH: f64 = 0.01;
 
 /// One XPBD step of the distance constraint `|x_a - x_b| = target` with compliance
 /// `alpha` (already divided by the substep squared), moving each end by its inverse mass.
-fn project_distance(positions: &mut [DVec3], [wa, wb]: [f64; 2], a: u32, b: u32, target: f64, alpha: f64) {
+fn project_distance(
+    positions: &mut [DVec3],
+    [wa, wb]: [f64; 2],
+    a: u32,
+    b: u32,
+    target: f64,
+    alpha: f64,
+) {
     let (ia, ib) = (a as usize, b as usize);
     if wa + wb == 0.0 {
         return;
@@ -146,7 +157,10 @@ impl ClothSim {
         for f in &garment.faces {
             for k in 0..3 {
                 let (a, b, opposite) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
-                edges.entry((a.min(b), a.max(b))).or_default().push(opposite);
+                edges
+                    .entry((a.min(b), a.max(b)))
+                    .or_default()
+                    .push(opposite);
             }
         }
         let mut keys: Vec<&(u32, u32)> = edges.keys().collect();
@@ -156,7 +170,9 @@ impl ClothSim {
         // Strain limiting sweeps the edges outward from the attached vertices (by hop
         // count), so that one Gauss-Seidel sweep carries a correction across the cloth.
         let mut hops = vec![u32::MAX; v.len()];
-        let mut queue: std::collections::VecDeque<u32> = (0..v.len() as u32).filter(|&i| garment.attached[i as usize]).collect();
+        let mut queue: std::collections::VecDeque<u32> = (0..v.len() as u32)
+            .filter(|&i| garment.attached[i as usize])
+            .collect();
         for &i in &queue {
             hops[i as usize] = 0;
         }
@@ -173,7 +189,8 @@ impl ClothSim {
                 }
             }
         }
-        let mut stretch: Vec<(u32, u32, f64)> = keys.iter().map(|&&(a, b)| (a, b, length(a, b))).collect();
+        let mut stretch: Vec<(u32, u32, f64)> =
+            keys.iter().map(|&&(a, b)| (a, b, length(a, b))).collect();
         stretch.sort_by_key(|&(a, b, _)| (hops[a as usize].min(hops[b as usize]), a, b));
         let bend = keys
             .iter()
@@ -185,7 +202,11 @@ impl ClothSim {
         Self {
             positions: v.clone(),
             velocities: vec![DVec3::ZERO; v.len()],
-            inv_mass: garment.attached.iter().map(|&a| if a { 0.0 } else { 1.0 }).collect(),
+            inv_mass: garment
+                .attached
+                .iter()
+                .map(|&a| if a { 0.0 } else { 1.0 })
+                .collect(),
             stretch,
             bend,
             attached: garment.attached.clone(),
@@ -199,10 +220,21 @@ impl ClothSim {
     }
 
     fn solve_distance(&mut self, constraints_bend: bool, h: f64) {
-        let (list, compliance) = if constraints_bend { (&self.bend, self.params.bend_compliance) } else { (&self.stretch, self.params.stretch_compliance) };
+        let (list, compliance) = if constraints_bend {
+            (&self.bend, self.params.bend_compliance)
+        } else {
+            (&self.stretch, self.params.stretch_compliance)
+        };
         let alpha = compliance / (h * h);
         for &(a, b, rest) in list {
-            project_distance(&mut self.positions, [self.inv_mass[a as usize], self.inv_mass[b as usize]], a, b, rest, alpha);
+            project_distance(
+                &mut self.positions,
+                [self.inv_mass[a as usize], self.inv_mass[b as usize]],
+                a,
+                b,
+                rest,
+                alpha,
+            );
             keep_outside(&mut self.positions, &self.planes, self.params.margin, a);
             keep_outside(&mut self.positions, &self.planes, self.params.margin, b);
         }
@@ -226,7 +258,14 @@ impl ClothSim {
             let l = (self.positions[ia] - self.positions[ib]).length();
             worst = worst.max(l / rest);
             if l > max * rest {
-                project_distance(&mut self.positions, [self.inv_mass[ia], self.inv_mass[ib]], a, b, max * rest, 0.0);
+                project_distance(
+                    &mut self.positions,
+                    [self.inv_mass[ia], self.inv_mass[ib]],
+                    a,
+                    b,
+                    max * rest,
+                    0.0,
+                );
                 keep_outside(&mut self.positions, &self.planes, margin, a);
                 keep_outside(&mut self.positions, &self.planes, margin, b);
                 moved[ia] = true;
@@ -262,7 +301,9 @@ impl ClothSim {
             }
             self.clearance[i] = (p, 0.0, self.body_travel);
             let local = match (&self.neighbourhoods, self.anchors[i]) {
-                (Some(nb), a) if a != u32::MAX => body.closest_among(p, |k| body_now[k as usize], nb[a as usize].iter().copied()).filter(|h| h.0.abs() < ANCHOR_REACH),
+                (Some(nb), a) if a != u32::MAX => body
+                    .closest_among(p, |k| body_now[k as usize], nb[a as usize].iter().copied())
+                    .filter(|h| h.0.abs() < ANCHOR_REACH),
                 _ => None,
             };
             self.planes[i] = None;
@@ -281,7 +322,11 @@ impl ClothSim {
                 if d < PLANE_REACH {
                     // The plane through the closest point, facing the vertex: the
                     // triangle's own normal misleads at edges and corners.
-                    let out = if d < margin { n } else { (self.positions[i] - q).normalize_or(DVec3::Z) };
+                    let out = if d < margin {
+                        n
+                    } else {
+                        (self.positions[i] - q).normalize_or(DVec3::Z)
+                    };
                     self.planes[i] = Some((q, out));
                 }
             }
@@ -290,7 +335,12 @@ impl ClothSim {
 
     /// Advances one frame of `dt` seconds against `collider` (the body moving over the
     /// frame); `targets(s)` gives the attached vertices' positions at fraction s of it.
-    pub fn step_frame(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<DVec3>) {
+    pub fn step_frame(
+        &mut self,
+        dt: f64,
+        collider: &BodyCollider,
+        targets: &dyn Fn(f64) -> Vec<DVec3>,
+    ) {
         self.step_frame_carried(dt, collider, targets, &|_| None);
     }
 
@@ -300,7 +350,13 @@ impl ClothSim {
     /// skinned position, and the dynamics add what differs from skinning (gravity,
     /// inertia, collisions); so a fast limb does not leave its sleeve behind, even
     /// with one substep.
-    pub fn step_frame_carried(&mut self, dt: f64, collider: &BodyCollider, targets: &dyn Fn(f64) -> Vec<DVec3>, carried: &dyn Fn(f64) -> Option<Vec<DVec3>>) {
+    pub fn step_frame_carried(
+        &mut self,
+        dt: f64,
+        collider: &BodyCollider,
+        targets: &dyn Fn(f64) -> Vec<DVec3>,
+        carried: &dyn Fn(f64) -> Option<Vec<DVec3>>,
+    ) {
         let n = self.params.substeps.max(1);
         let h = dt / f64::from(n);
         let keep = (1.0 - self.params.damping * h).clamp(0.0, 1.0);
@@ -343,7 +399,9 @@ impl ClothSim {
                 let mut moved_before = vec![true; self.positions.len()];
                 let mut moved = vec![false; self.positions.len()];
                 for _ in 0..MAX_STRAIN_SWEEPS {
-                    if self.limit_strain(&moved_before, &mut moved) <= self.params.max_stretch + STRAIN_TOLERANCE {
+                    if self.limit_strain(&moved_before, &mut moved)
+                        <= self.params.max_stretch + STRAIN_TOLERANCE
+                    {
                         break;
                     }
                     std::mem::swap(&mut moved_before, &mut moved);
@@ -359,7 +417,13 @@ impl ClothSim {
     pub fn max_strain_edge(&self) -> (f64, u32, u32) {
         self.stretch
             .iter()
-            .map(|&(a, b, rest)| ((self.positions[a as usize] - self.positions[b as usize]).length() / rest, a, b))
+            .map(|&(a, b, rest)| {
+                (
+                    (self.positions[a as usize] - self.positions[b as usize]).length() / rest,
+                    a,
+                    b,
+                )
+            })
             .fold((0.0, 0, 0), |m, e| if e.0 > m.0 { e } else { m })
     }
 
@@ -393,13 +457,26 @@ pub struct SimulationResult {
 /// Simulates `garments` on `body` through `motion`, after `pre_roll` frames that blend
 /// from the first garment's build pose (the pose the clothes were made in) into the
 /// motion's first frame.
-pub fn simulate(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize) -> SimulationResult {
+pub fn simulate(
+    body: &SmplModel,
+    garments: &[Garment],
+    motion: &Motion,
+    params: ClothParams,
+    pre_roll: usize,
+) -> SimulationResult {
     simulate_with_progress(body, garments, motion, params, pre_roll, &mut |_, _| {})
 }
 
 /// [`simulate`], calling `progress(frame, total)` as it starts each frame (1-based;
 /// settling frames included in both).
-pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &Motion, params: ClothParams, pre_roll: usize, progress: &mut dyn FnMut(usize, usize)) -> SimulationResult {
+pub fn simulate_with_progress(
+    body: &SmplModel,
+    garments: &[Garment],
+    motion: &Motion,
+    params: ClothParams,
+    pre_roll: usize,
+    progress: &mut dyn FnMut(usize, usize),
+) -> SimulationResult {
     let dt = 1.0 / motion.fps;
     let start_pose: Pose = garments.first().map_or([DVec3::ZERO; 24], |g| g.build_pose);
     let first = motion.poses.first().copied().unwrap_or(start_pose);
@@ -410,16 +487,28 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
         .map(|k| {
             let t = k as f64 / pre_roll as f64;
             let s = t * t * (3.0 - 2.0 * t);
-            (std::array::from_fn(|j| start_pose[j] * (1.0 - s) + first[j] * s), origin)
+            (
+                std::array::from_fn(|j| start_pose[j] * (1.0 - s) + first[j] * s),
+                origin,
+            )
         })
         .collect();
     let recorded_from = schedule.len();
-    schedule.extend(motion.poses.iter().copied().zip(motion.translations.iter().copied()));
+    schedule.extend(
+        motion
+            .poses
+            .iter()
+            .copied()
+            .zip(motion.translations.iter().copied()),
+    );
 
     let start = pose_body(body, &[], &start_pose, origin);
     // Per garment, the skinning transforms of its build pose: a garment made in pose B
     // is skinned into pose P with A(P) · A(B)⁻¹.
-    let build: Vec<[Affine; 24]> = garments.iter().map(|g| pose_body(body, &[], &g.build_pose, DVec3::ZERO).transforms).collect();
+    let build: Vec<[Affine; 24]> = garments
+        .iter()
+        .map(|g| pose_body(body, &[], &g.build_pose, DVec3::ZERO).transforms)
+        .collect();
     let neighbourhoods = std::sync::Arc::new(face_neighbourhoods(body.num_vertices(), &body.faces));
     let mut sims: Vec<ClothSim> = garments
         .iter()
@@ -428,7 +517,14 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
             let mut sim = ClothSim::new(g, params);
             if g.build_pose != start_pose || origin != DVec3::ZERO {
                 // Skinning transforms leave the translation out; it is added after.
-                sim.positions = skin(&g.weights_blend6, &relative_transforms(&start.transforms, b), &g.vertices).into_iter().map(|v| v + origin).collect();
+                sim.positions = skin(
+                    &g.weights_blend6,
+                    &relative_transforms(&start.transforms, b),
+                    &g.vertices,
+                )
+                .into_iter()
+                .map(|v| v + origin)
+                .collect();
             }
             sim.anchor_to(neighbourhoods.clone());
             sim
@@ -448,21 +544,37 @@ pub fn simulate_with_progress(body: &SmplModel, garments: &[Garment], motion: &M
         let next = pose_body(body, &[], pose, *trans);
         let prev_t = prev.transforms;
         let next_t = next.transforms;
-        let collider = BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
+        let collider =
+            BodyCollider::moving(prev.vertices.clone(), next.vertices.clone(), &body.faces);
         let prev_trans_vec = if f == 0 { origin } else { schedule[f - 1].1 };
         // Garments do not collide with each other, so each steps on its own thread
         // (each one's result is the same as stepped alone: deterministic).
         let step_garment = |g: &Garment, sim: &mut ClothSim, b: &[Affine; 24]| {
-            let (prev_t, next_t) = (relative_transforms(&prev_t, b), relative_transforms(&next_t, b));
+            let (prev_t, next_t) = (
+                relative_transforms(&prev_t, b),
+                relative_transforms(&next_t, b),
+            );
             // Attached vertices move rigidly with the garment's attachment joint.
             let mut rigid = [0.0; 24];
             rigid[g.attach_joint] = 1.0;
             let rigid = vec![rigid; g.vertices.len()];
-            let a0: Vec<DVec3> = skin(&rigid, &prev_t, &g.vertices).into_iter().map(|v| v + prev_trans_vec).collect();
-            let a1: Vec<DVec3> = skin(&rigid, &next_t, &g.vertices).into_iter().map(|v| v + *trans).collect();
+            let a0: Vec<DVec3> = skin(&rigid, &prev_t, &g.vertices)
+                .into_iter()
+                .map(|v| v + prev_trans_vec)
+                .collect();
+            let a1: Vec<DVec3> = skin(&rigid, &next_t, &g.vertices)
+                .into_iter()
+                .map(|v| v + *trans)
+                .collect();
             let targets = |s: f64| lerp_points(&a0, &a1, s);
-            let c0: Vec<DVec3> = skin(&g.weights_blend6, &prev_t, &g.vertices).into_iter().map(|v| v + prev_trans_vec).collect();
-            let c1: Vec<DVec3> = skin(&g.weights_blend6, &next_t, &g.vertices).into_iter().map(|v| v + *trans).collect();
+            let c0: Vec<DVec3> = skin(&g.weights_blend6, &prev_t, &g.vertices)
+                .into_iter()
+                .map(|v| v + prev_trans_vec)
+                .collect();
+            let c1: Vec<DVec3> = skin(&g.weights_blend6, &next_t, &g.vertices)
+                .into_iter()
+                .map(|v| v + *trans)
+                .collect();
             let carried = |s: f64| Some(lerp_points(&c0, &c1, s));
             sim.step_frame_carried(dt, &collider, &targets, &carried);
         };

@@ -9,7 +9,10 @@ use crate::grid::{bounds, Grid};
 
 /// Points moving linearly from `a` to `b`, at fraction `s`.
 pub(crate) fn lerp_points(a: &[DVec3], b: &[DVec3], s: f64) -> Vec<DVec3> {
-    a.iter().zip(b).map(|(x, y)| *x * (1.0 - s) + *y * s).collect()
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| *x * (1.0 - s) + *y * s)
+        .collect()
 }
 
 /// The posed body over one frame as a collider: its vertices at the frame's start and
@@ -71,10 +74,26 @@ impl BodyCollider {
 
     /// A body moving linearly from `start` to `end` over the frame.
     pub fn moving(start: Vec<DVec3>, end: Vec<DVec3>, faces: &[[u32; 3]]) -> Self {
-        let boxes = faces.iter().map(|f| bounds(f.map(|k| start[k as usize]).into_iter().chain(f.map(|k| end[k as usize]))));
+        let boxes = faces.iter().map(|f| {
+            bounds(
+                f.map(|k| start[k as usize])
+                    .into_iter()
+                    .chain(f.map(|k| end[k as usize])),
+            )
+        });
         let grid = Grid::of_boxes(boxes, COLLIDER_CELL, COLLIDER_REACH);
-        let travel = start.iter().zip(&end).map(|(a, b)| (*a - *b).length()).fold(0.0, f64::max);
-        Self { start, end, faces: faces.to_vec(), grid, travel }
+        let travel = start
+            .iter()
+            .zip(&end)
+            .map(|(a, b)| (*a - *b).length())
+            .fold(0.0, f64::max);
+        Self {
+            start,
+            end,
+            faces: faces.to_vec(),
+            grid,
+            travel,
+        }
     }
 
     /// Signed distance to the body (negative inside) and the closest surface point and
@@ -107,7 +126,12 @@ impl BodyCollider {
 
     /// The closest of `faces` to `p`, with the body's vertices given by `vertex`:
     /// (signed distance, point, normal, face).
-    pub(crate) fn closest_among(&self, p: DVec3, vertex: impl Fn(u32) -> DVec3, faces: impl Iterator<Item = u32>) -> Option<(f64, DVec3, DVec3, u32)> {
+    pub(crate) fn closest_among(
+        &self,
+        p: DVec3,
+        vertex: impl Fn(u32) -> DVec3,
+        faces: impl Iterator<Item = u32>,
+    ) -> Option<(f64, DVec3, DVec3, u32)> {
         let mut best: Option<(f64, DVec3, [DVec3; 3], u32)> = None;
         for t in faces {
             let [a, b, c] = self.faces[t as usize].map(&vertex);
@@ -138,7 +162,10 @@ pub fn face_neighbourhoods(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u
     faces
         .iter()
         .map(|f| {
-            let mut n: Vec<u32> = f.iter().flat_map(|&v| by_vertex[v as usize].iter().copied()).collect();
+            let mut n: Vec<u32> = f
+                .iter()
+                .flat_map(|&v| by_vertex[v as usize].iter().copied())
+                .collect();
             n.sort_unstable();
             n.dedup();
             n

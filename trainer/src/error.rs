@@ -43,21 +43,31 @@ pub enum TrainerError {
     FidWeights(#[from] crate::metrics::fid_weights::FidWeightsError),
     /// A file or directory could not be read, written, created or renamed.
     #[error("{}: {error}", path.display())]
-    Io { path: PathBuf, error: std::io::Error },
+    Io {
+        path: PathBuf,
+        error: std::io::Error,
+    },
     /// A configuration value out of range or of the wrong kind: the key (as in
     /// `config.json`) and what is wrong with it.
     #[error("config: {key}: {problem}")]
     Config { key: String, problem: String },
     /// A checkpoint that cannot be loaded into the model: the file, the array and why.
     #[error("{}: '{key}': {problem}", path.display())]
-    Checkpoint { path: PathBuf, key: String, problem: String },
+    Checkpoint {
+        path: PathBuf,
+        key: String,
+        problem: String,
+    },
     /// A run directory that cannot be used as asked: the directory and why.
     #[error("{}: {problem}", dir.display())]
     Run { dir: PathBuf, problem: String },
     /// Values became non-finite or left their range (a simulation, a training run, a
     /// metric): the stage and what was seen.
     #[error("{stage}: {problem}")]
-    Numeric { stage: &'static str, problem: String },
+    Numeric {
+        stage: &'static str,
+        problem: String,
+    },
     /// Arguments an operation cannot use (sizes that disagree, an empty set): the
     /// argument and why.
     #[error("{what}: {problem}")]
@@ -81,32 +91,51 @@ pub type Result<T, E = TrainerError> = std::result::Result<T, E>;
 impl TrainerError {
     /// [`TrainerError::Io`] for `path`.
     pub fn io(path: &Path, error: std::io::Error) -> Self {
-        Self::Io { path: path.to_path_buf(), error }
+        Self::Io {
+            path: path.to_path_buf(),
+            error,
+        }
     }
 
     /// [`TrainerError::Config`] for `key`.
     pub fn config(key: impl Into<String>, problem: impl Into<String>) -> Self {
-        Self::Config { key: key.into(), problem: problem.into() }
+        Self::Config {
+            key: key.into(),
+            problem: problem.into(),
+        }
     }
 
     /// [`TrainerError::Checkpoint`] for `key` of the checkpoint at `path`.
     pub fn checkpoint(path: &Path, key: impl Into<String>, problem: impl Into<String>) -> Self {
-        Self::Checkpoint { path: path.to_path_buf(), key: key.into(), problem: problem.into() }
+        Self::Checkpoint {
+            path: path.to_path_buf(),
+            key: key.into(),
+            problem: problem.into(),
+        }
     }
 
     /// [`TrainerError::Run`] for the run directory `dir`.
     pub fn run(dir: &Path, problem: impl Into<String>) -> Self {
-        Self::Run { dir: dir.to_path_buf(), problem: problem.into() }
+        Self::Run {
+            dir: dir.to_path_buf(),
+            problem: problem.into(),
+        }
     }
 
     /// [`TrainerError::Numeric`] at `stage`.
     pub fn numeric(stage: &'static str, problem: impl Into<String>) -> Self {
-        Self::Numeric { stage, problem: problem.into() }
+        Self::Numeric {
+            stage,
+            problem: problem.into(),
+        }
     }
 
     /// [`TrainerError::InvalidInput`] for the argument `what`.
     pub fn invalid(what: &'static str, problem: impl Into<String>) -> Self {
-        Self::InvalidInput { what, problem: problem.into() }
+        Self::InvalidInput {
+            what,
+            problem: problem.into(),
+        }
     }
 
     /// The engine's error, where this is one: a caller that retries on another device

@@ -31,8 +31,13 @@ pub const TARGETS: [(&str, Target); 12] = [
 
 /// A scratch file for this process and thread, with `name`'s extension.
 fn scratch(name: &str) -> PathBuf {
-    let thread = format!("{:?}", std::thread::current().id()).chars().filter(char::is_ascii_digit).collect::<String>();
-    std::env::temp_dir().join(format!("drape-fuzz-{}-{thread}", std::process::id())).join(name)
+    let thread = format!("{:?}", std::thread::current().id())
+        .chars()
+        .filter(char::is_ascii_digit)
+        .collect::<String>();
+    std::env::temp_dir()
+        .join(format!("drape-fuzz-{}-{thread}", std::process::id()))
+        .join(name)
 }
 
 fn with_file(name: &str, data: &[u8], f: impl FnOnce(&Path)) {
@@ -54,7 +59,12 @@ pub fn ply(data: &[u8]) {
 pub fn obj(data: &[u8]) {
     use std::sync::OnceLock;
     static BODY: OnceLock<crate::body::model::SmplModel> = OnceLock::new();
-    let body = BODY.get_or_init(|| crate::body::procedural::default_body(&crate::body::procedural::BodyOptions { cell: 0.05, ..Default::default() }));
+    let body = BODY.get_or_init(|| {
+        crate::body::procedural::default_body(&crate::body::procedural::BodyOptions {
+            cell: 0.05,
+            ..Default::default()
+        })
+    });
     with_file("garment.obj", data, |p| {
         let _ = crate::garment::load_obj(p, body);
     });
@@ -85,10 +95,17 @@ pub fn pickle(data: &[u8]) {
 /// its first two `\0` bytes.
 pub fn colmap(data: &[u8]) {
     let mut parts = data.splitn(3, |&b| b == 0);
-    let files = [parts.next().unwrap_or(&[]), parts.next().unwrap_or(&[]), parts.next().unwrap_or(&[])];
+    let files = [
+        parts.next().unwrap_or(&[]),
+        parts.next().unwrap_or(&[]),
+        parts.next().unwrap_or(&[]),
+    ];
     let dir = scratch("sparse");
     let _ = std::fs::create_dir_all(&dir);
-    for (name, bytes) in ["cameras.txt", "images.txt", "points3D.txt"].iter().zip(files) {
+    for (name, bytes) in ["cameras.txt", "images.txt", "points3D.txt"]
+        .iter()
+        .zip(files)
+    {
         if std::fs::write(dir.join(name), bytes).is_err() {
             return;
         }
@@ -104,7 +121,9 @@ pub fn colmap(data: &[u8]) {
 
 /// A camera file of `drape render --camera`.
 pub fn camera_json(data: &[u8]) {
-    let Ok(text) = std::str::from_utf8(data) else { return };
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
     if let Ok(cam) = crate::camera_file::parse(text) {
         let _ = cam.validate();
     }
@@ -112,7 +131,9 @@ pub fn camera_json(data: &[u8]) {
 
 /// A `drape train --config` file laid over the quick preset.
 pub fn config_toml(data: &[u8]) {
-    let Ok(text) = std::str::from_utf8(data) else { return };
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
     let base = crate::avatar::config::TrainConfig::quick();
     let _ = base.with_toml(text, Path::new("fuzz.toml"));
 }
@@ -124,7 +145,12 @@ pub fn checkpoint(data: &[u8]) {
     use crate::avatar::state::LayerShape;
     with_file("checkpoint.npz", data, |p| {
         // The shapes of the seeds in fuzz/corpus/checkpoint (2x2x1 triplane, 4-parameter decoders).
-        let shape = LayerShape { name: "body".into(), triplane_size: (2, 1), decoders: [4, 4, 4], count: 4 };
+        let shape = LayerShape {
+            name: "body".into(),
+            triplane_size: (2, 1),
+            decoders: [4, 4, 4],
+            count: 4,
+        };
         let _ = read(p, std::slice::from_ref(&shape), None);
         let _ = read(p, &[shape], Some(0));
     });
@@ -132,7 +158,11 @@ pub fn checkpoint(data: &[u8]) {
 
 /// An image (PNG or JPEG, by its bytes), read as a frame and as a mask.
 pub fn image(data: &[u8]) {
-    let ext = if data.starts_with(&[0xFF, 0xD8]) { "jpg" } else { "png" };
+    let ext = if data.starts_with(&[0xFF, 0xD8]) {
+        "jpg"
+    } else {
+        "png"
+    };
     with_file(&format!("frame.{ext}"), data, |p| {
         let _ = crate::dataset::image::dimensions(p);
         let _ = crate::dataset::image::read_rgb(p);

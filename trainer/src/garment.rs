@@ -47,7 +47,10 @@ pub enum GarmentError {
     // `error`, not `source`: the message carries it; a `source` would make anyhow
     // print it twice.
     #[error("{path}: {error}")]
-    Read { path: String, error: tobj::LoadError },
+    Read {
+        path: String,
+        error: tobj::LoadError,
+    },
     /// The OBJ reads but is no garment: what is wrong with it.
     #[error("{path}: {problem}")]
     Invalid { path: String, problem: String },
@@ -61,13 +64,20 @@ struct NearestBody<'a> {
 
 impl<'a> NearestBody<'a> {
     fn new(vertices: &'a [DVec3]) -> Self {
-        Self { vertices, grid: Grid::of_points(vertices, 0.05) }
+        Self {
+            vertices,
+            grid: Grid::of_points(vertices, 0.05),
+        }
     }
 
     fn k_nearest(&self, p: DVec3, k: usize) -> Vec<(u32, f64)> {
         let mut ring = 1;
         loop {
-            let mut found: Vec<(u32, f64)> = self.grid.around(p, ring).map(|i| (i, (self.vertices[i as usize] - p).length())).collect();
+            let mut found: Vec<(u32, f64)> = self
+                .grid
+                .around(p, ring)
+                .map(|i| (i, (self.vertices[i as usize] - p).length()))
+                .collect();
             // Everything within `ring` cells is exact; beyond needs a larger ring.
             found.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
             if found.len() >= k && found[k - 1].1 <= ring as f64 * self.grid.cell_size() {
@@ -76,7 +86,12 @@ impl<'a> NearestBody<'a> {
             }
             if ring > 40 {
                 // Farther than 2 m: every vertex, by brute force (bounded by the body's size).
-                let mut all: Vec<(u32, f64)> = self.vertices.iter().enumerate().map(|(i, v)| (i as u32, (*v - p).length())).collect();
+                let mut all: Vec<(u32, f64)> = self
+                    .vertices
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| (i as u32, (*v - p).length()))
+                    .collect();
                 all.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
                 all.truncate(k);
                 return all;
@@ -88,7 +103,11 @@ impl<'a> NearestBody<'a> {
 
 /// Binds garment vertices to a body whose vertices are at `body_vertices` (the body
 /// posed as the garment is): nearest-vertex weights and the 6-nearest blend.
-pub fn bind_weights(body: &SmplModel, body_vertices: &[DVec3], vertices: &[DVec3]) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
+pub fn bind_weights(
+    body: &SmplModel,
+    body_vertices: &[DVec3],
+    vertices: &[DVec3],
+) -> (Vec<[f64; NUM_JOINTS]>, Vec<[f64; NUM_JOINTS]>) {
     let near = NearestBody::new(body_vertices);
     let mut nearest = Vec::with_capacity(vertices.len());
     let mut blend = Vec::with_capacity(vertices.len());
@@ -116,7 +135,15 @@ pub fn bind_weights(body: &SmplModel, body_vertices: &[DVec3], vertices: &[DVec3
 /// posed in `build_pose` and lifted by `offset` along its vertex normals; `attach`
 /// marks the attached vertices. `region`, `attach` and the UVs see the T-pose
 /// position of the body vertex a garment vertex comes from.
-fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(DVec3) -> bool, offset: impl Fn(DVec3) -> f64, attach: impl Fn(DVec3) -> bool, attach_joint: usize) -> Garment {
+fn from_region(
+    body: &SmplModel,
+    build_pose: Pose,
+    name: &str,
+    region: impl Fn(DVec3) -> bool,
+    offset: impl Fn(DVec3) -> f64,
+    attach: impl Fn(DVec3) -> bool,
+    attach_joint: usize,
+) -> Garment {
     let posed = pose_body(body, &[], &build_pose, DVec3::ZERO).vertices;
     let normals = vertex_normals(&posed, &body.faces);
     let mut map = vec![u32::MAX; body.num_vertices()];
@@ -136,7 +163,11 @@ fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(D
         }
     }
     let clearance: Vec<f64> = source.iter().map(|&i| offset(body.v_template[i])).collect();
-    let mut vertices: Vec<DVec3> = source.iter().zip(&clearance).map(|(&i, &c)| posed[i] + normals[i] * c).collect();
+    let mut vertices: Vec<DVec3> = source
+        .iter()
+        .zip(&clearance)
+        .map(|(&i, &c)| posed[i] + normals[i] * c)
+        .collect();
     relax_off_body(&mut vertices, &faces, &posed, &body.faces, &clearance, 30);
     let uvs = source
         .iter()
@@ -147,14 +178,31 @@ fn from_region(body: &SmplModel, build_pose: Pose, name: &str, region: impl Fn(D
         .collect();
     let (weights, weights_blend6) = bind_weights(body, &posed, &vertices);
     let attached = source.iter().map(|&i| attach(body.v_template[i])).collect();
-    Garment { name: name.to_string(), vertices, faces, uvs, weights, weights_blend6, attached, attach_joint, build_pose }
+    Garment {
+        name: name.to_string(),
+        vertices,
+        faces,
+        uvs,
+        weights,
+        weights_blend6,
+        attached,
+        attach_joint,
+        build_pose,
+    }
 }
 
 /// Smooths a garment's rest shape the way cloth hangs: Laplacian steps that bridge
 /// concave places (the crotch, the armpits) instead of following the skin into them,
 /// each followed by pushing every vertex back to at least `clearance` off the body.
 /// Offsetting along normals alone folds the surface where facing normals converge.
-fn relax_off_body(vertices: &mut [DVec3], faces: &[[u32; 3]], body_vertices: &[DVec3], body_faces: &[[u32; 3]], clearance: &[f64], iterations: usize) {
+fn relax_off_body(
+    vertices: &mut [DVec3],
+    faces: &[[u32; 3]],
+    body_vertices: &[DVec3],
+    body_faces: &[[u32; 3]],
+    clearance: &[f64],
+    iterations: usize,
+) {
     let collider = crate::collider::BodyCollider::new(body_vertices.to_vec(), body_faces);
     let adj = crate::mesh::adjacency(vertices.len(), faces);
     let boundary: Vec<bool> = {
@@ -175,14 +223,20 @@ fn relax_off_body(vertices: &mut [DVec3], faces: &[[u32; 3]], body_vertices: &[D
             if boundary[i] || adj[i].is_empty() {
                 continue;
             }
-            let c = adj[i].iter().fold(DVec3::ZERO, |acc, &k| acc + prev[k as usize] * (1.0 / adj[i].len() as f64));
+            let c = adj[i].iter().fold(DVec3::ZERO, |acc, &k| {
+                acc + prev[k as usize] * (1.0 / adj[i].len() as f64)
+            });
             *v = prev[i] * 0.5 + c * 0.5;
             if let Some((d, q, n)) = collider.query(*v) {
                 if d < clearance[i] {
                     // Away from the closest point rather than along its triangle's
                     // normal: in a crease (an armpit) many vertices share one closest
                     // point, and the normal would put them all in one place.
-                    let out = if d > 1e-6 { (*v - q).normalize_or(DVec3::Z) } else { n };
+                    let out = if d > 1e-6 {
+                        (*v - q).normalize_or(DVec3::Z)
+                    } else {
+                        n
+                    };
                     *v = q + out * clearance[i];
                 }
             }
@@ -305,15 +359,37 @@ fn pants_offset(v: DVec3) -> f64 {
 /// Long pants around the default body: from the waist to above the ankles; attached
 /// at the waistband.
 pub fn pants(body: &SmplModel) -> Garment {
-    from_region(body, a_pose(), "pants", |v| v[1] > 0.14 && v[1] < 1.0 && v[0].abs() < 0.25, pants_offset, |v| v[1] > 0.95, 0)
+    from_region(
+        body,
+        a_pose(),
+        "pants",
+        |v| v[1] > 0.14 && v[1] < 1.0 && v[0].abs() < 0.25,
+        pants_offset,
+        |v| v[1] > 0.95,
+        0,
+    )
 }
 
 /// Reads an OBJ garment (triangulated; UVs kept when present) made on `body` in its
 /// rest pose (the T-pose) and binds it to the body; attached vertices are those
 /// within 1 cm of the body.
 pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> {
-    let err = |problem: String| GarmentError::Invalid { path: path.display().to_string(), problem };
-    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() }).map_err(|error| GarmentError::Read { path: path.display().to_string(), error })?;
+    let err = |problem: String| GarmentError::Invalid {
+        path: path.display().to_string(),
+        problem,
+    };
+    let (models, _) = tobj::load_obj(
+        path,
+        &tobj::LoadOptions {
+            triangulate: true,
+            single_index: true,
+            ..Default::default()
+        },
+    )
+    .map_err(|error| GarmentError::Read {
+        path: path.display().to_string(),
+        error,
+    })?;
     let mut vertices = Vec::new();
     let mut faces = Vec::new();
     let mut uvs = Vec::new();
@@ -321,11 +397,22 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
         let base = vertices.len() as u32;
         let mesh = &m.mesh;
         if mesh.positions.iter().any(|v| !v.is_finite()) {
-            return Err(err(format!("object '{}' has a non-finite vertex coordinate", m.name)));
+            return Err(err(format!(
+                "object '{}' has a non-finite vertex coordinate",
+                m.name
+            )));
         }
-        vertices.extend(mesh.positions.chunks_exact(3).map(|c| DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]))));
+        vertices.extend(
+            mesh.positions
+                .chunks_exact(3)
+                .map(|c| DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]))),
+        );
         if mesh.texcoords.len() / 2 == mesh.positions.len() / 3 {
-            uvs.extend(mesh.texcoords.chunks_exact(2).map(|c| [f64::from(c[0]), f64::from(c[1])]));
+            uvs.extend(
+                mesh.texcoords
+                    .chunks_exact(2)
+                    .map(|c| [f64::from(c[0]), f64::from(c[1])]),
+            );
         } else {
             uvs.extend(std::iter::repeat_n([0.0, 0.0], mesh.positions.len() / 3));
         }
@@ -339,7 +426,10 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
     check_garment(&vertices, &faces, body).map_err(err)?;
     let (weights, weights_blend6) = bind_weights(body, &body.v_template, &vertices);
     let near = NearestBody::new(&body.v_template);
-    let attached: Vec<bool> = vertices.iter().map(|&v| near.k_nearest(v, 1)[0].1 < 0.01).collect();
+    let attached: Vec<bool> = vertices
+        .iter()
+        .map(|&v| near.k_nearest(v, 1)[0].1 < 0.01)
+        .collect();
     // The joint that moves the attached vertices most, on average.
     let mut total = [0.0; NUM_JOINTS];
     for (w, _) in weights.iter().zip(&attached).filter(|(_, a)| **a) {
@@ -347,9 +437,24 @@ pub fn load_obj(path: &Path, body: &SmplModel) -> Result<Garment, GarmentError> 
             total[j] += w[j];
         }
     }
-    let attach_joint = (0..NUM_JOINTS).max_by(|&a, &b| total[a].total_cmp(&total[b])).unwrap_or(0);
-    let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "garment".into());
-    Ok(Garment { name, vertices, faces, uvs, weights, weights_blend6, attached, attach_joint, build_pose: t_pose() })
+    let attach_joint = (0..NUM_JOINTS)
+        .max_by(|&a, &b| total[a].total_cmp(&total[b]))
+        .unwrap_or(0);
+    let name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "garment".into());
+    Ok(Garment {
+        name,
+        vertices,
+        faces,
+        uvs,
+        weights,
+        weights_blend6,
+        attached,
+        attach_joint,
+        build_pose: t_pose(),
+    })
 }
 
 /// The farthest a garment vertex may be from the body it is made on (metres): a loose
@@ -363,7 +468,12 @@ fn check_garment(vertices: &[DVec3], faces: &[[u32; 3]], model: &SmplModel) -> R
     let body = &model.v_template;
     for (i, f) in faces.iter().enumerate() {
         if let Some(&k) = f.iter().find(|&&k| k as usize >= vertices.len()) {
-            return Err(format!("face {} refers to vertex {} of {}", i + 1, k + 1, vertices.len()));
+            return Err(format!(
+                "face {} refers to vertex {} of {}",
+                i + 1,
+                k + 1,
+                vertices.len()
+            ));
         }
         let [a, b, c] = f.map(|k| vertices[k as usize]);
         let n = (b - a).cross(c - a);
@@ -379,7 +489,12 @@ fn check_garment(vertices: &[DVec3], faces: &[[u32; 3]], model: &SmplModel) -> R
     let near = NearestBody::new(body);
     // Beyond the body's box by more than the limit, a vertex is too far without a
     // search (a far point would walk many empty rings of the grid).
-    let to_box = |v: DVec3| (0..3).map(|k| (blo[k] - v[k]).max(v[k] - bhi[k]).max(0.0).powi(2)).sum::<f64>().sqrt();
+    let to_box = |v: DVec3| {
+        (0..3)
+            .map(|k| (blo[k] - v[k]).max(v[k] - bhi[k]).max(0.0).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
     // Each vertex's nearest body vertex (None beyond the box) and its distance.
     let nearest: Vec<(Option<u32>, f64)> = vertices
         .iter()
@@ -388,10 +503,16 @@ fn check_garment(vertices: &[DVec3], faces: &[[u32; 3]], model: &SmplModel) -> R
             if b > MAX_GARMENT_DISTANCE {
                 return (None, b);
             }
-            near.k_nearest(v, 1).first().map_or((None, f64::INFINITY), |&(i, d)| (Some(i), d))
+            near.k_nearest(v, 1)
+                .first()
+                .map_or((None, f64::INFINITY), |&(i, d)| (Some(i), d))
         })
         .collect();
-    let (worst, at) = nearest.iter().enumerate().map(|(i, &(_, d))| (d, i)).fold((0.0f64, 0), |a, b| if b.0 > a.0 { b } else { a });
+    let (worst, at) = nearest
+        .iter()
+        .enumerate()
+        .map(|(i, &(_, d))| (d, i))
+        .fold((0.0f64, 0), |a, b| if b.0 > a.0 { b } else { a });
     if worst > MAX_GARMENT_DISTANCE {
         let unit = match size / body_size {
             r if r > 300.0 => " (it is about 1000 times the body's size: millimetres?)",
@@ -423,7 +544,12 @@ fn check_garment(vertices: &[DVec3], faces: &[[u32; 3]], model: &SmplModel) -> R
 }
 
 /// Writes a mesh as OBJ (positions, optional UVs, triangles).
-pub fn write_obj(path: &Path, vertices: &[DVec3], faces: &[[u32; 3]], uvs: Option<&[[f64; 2]]>) -> std::io::Result<()> {
+pub fn write_obj(
+    path: &Path,
+    vertices: &[DVec3],
+    faces: &[[u32; 3]],
+    uvs: Option<&[[f64; 2]]>,
+) -> std::io::Result<()> {
     use std::io::Write;
     let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
     for v in vertices {

@@ -15,7 +15,6 @@ use std::collections::HashMap;
 
 use glam::DVec3;
 
-
 /// Integer cell coordinates.
 pub type Cell = [i64; 3];
 
@@ -28,23 +27,40 @@ pub struct Grid {
 
 /// The axis-aligned bounds (min, max) of `points`; (`DVec3::MAX`, `DVec3::MIN`) for none.
 pub fn bounds(points: impl IntoIterator<Item = DVec3>) -> (DVec3, DVec3) {
-    points.into_iter().fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| (lo.min(p), hi.max(p)))
+    points
+        .into_iter()
+        .fold((DVec3::MAX, DVec3::MIN), |(lo, hi), p| {
+            (lo.min(p), hi.max(p))
+        })
 }
 
 impl Grid {
     /// Point `i` filed in the cell that contains it.
     pub fn of_points(points: &[DVec3], cell: f64) -> Self {
-        let mut grid = Self { cell, cells: HashMap::new() };
+        let mut grid = Self {
+            cell,
+            cells: HashMap::new(),
+        };
         for (i, &p) in points.iter().enumerate() {
-            grid.cells.entry(grid.cell_of(p)).or_default().push(i as u32);
+            grid.cells
+                .entry(grid.cell_of(p))
+                .or_default()
+                .push(i as u32);
         }
         grid
     }
 
     /// Box `i` (min, max) grown by `reach` on every side, filed in every cell it
     /// overlaps: a point within `reach` of the box finds it in the point's own cell.
-    pub fn of_boxes(boxes: impl IntoIterator<Item = (DVec3, DVec3)>, cell: f64, reach: f64) -> Self {
-        let mut grid = Self { cell, cells: HashMap::new() };
+    pub fn of_boxes(
+        boxes: impl IntoIterator<Item = (DVec3, DVec3)>,
+        cell: f64,
+        reach: f64,
+    ) -> Self {
+        let mut grid = Self {
+            cell,
+            cells: HashMap::new(),
+        };
         for (i, (lo, hi)) in boxes.into_iter().enumerate() {
             let a = grid.cell_of(lo - reach);
             let b = grid.cell_of(hi + reach);
@@ -81,7 +97,11 @@ impl Grid {
     pub fn around(&self, p: DVec3, ring: i64) -> impl Iterator<Item = u32> + '_ {
         let c = self.cell_of(p);
         (-ring..=ring)
-            .flat_map(move |dx| (-ring..=ring).flat_map(move |dy| (-ring..=ring).map(move |dz| [c[0] + dx, c[1] + dy, c[2] + dz])))
+            .flat_map(move |dx| {
+                (-ring..=ring).flat_map(move |dy| {
+                    (-ring..=ring).map(move |dz| [c[0] + dx, c[1] + dy, c[2] + dz])
+                })
+            })
             .filter_map(|k| self.cells.get(&k))
             .flatten()
             .copied()
@@ -101,11 +121,13 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     use super::*;
-    
+
     fn random_points(n: usize, seed: u64) -> Vec<DVec3> {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         // Both signs: the cells either side of 0 are where a truncating cell goes wrong.
-        (0..n).map(|_| DVec3::from_array([0, 1, 2].map(|_| rng.random_range(-1.0..1.0)))).collect()
+        (0..n)
+            .map(|_| DVec3::from_array([0, 1, 2].map(|_| rng.random_range(-1.0..1.0))))
+            .collect()
     }
 
     /// The distance from `p` to the box (0 inside).
@@ -126,8 +148,13 @@ mod tests {
                 found.sort_unstable();
                 found.dedup();
                 assert_eq!(found.len(), n, "a point filed twice");
-                let within: Vec<u32> = found.into_iter().filter(|&i| (points[i as usize] - q).length() <= reach).collect();
-                let brute: Vec<u32> = (0..points.len() as u32).filter(|&i| (points[i as usize] - q).length() <= reach).collect();
+                let within: Vec<u32> = found
+                    .into_iter()
+                    .filter(|&i| (points[i as usize] - q).length() <= reach)
+                    .collect();
+                let brute: Vec<u32> = (0..points.len() as u32)
+                    .filter(|&i| (points[i as usize] - q).length() <= reach)
+                    .collect();
                 assert_eq!(within, brute, "query {q:?}, cell {cell}, ring {ring}");
             }
         }
@@ -147,27 +174,50 @@ mod tests {
         let (cell, reach) = (0.03, 0.02);
         let grid = Grid::of_boxes(boxes.iter().copied(), cell, reach);
         // Half the queries in or just around a box, so that many are within reach.
-        let queries = boxes.iter().map(|&(lo, hi)| DVec3::from_array(std::array::from_fn(|k| rng.random_range(lo[k] - reach..hi[k] + reach)))).chain(random_points(500, 11));
+        let queries = boxes
+            .iter()
+            .map(|&(lo, hi)| {
+                DVec3::from_array(std::array::from_fn(|k| {
+                    rng.random_range(lo[k] - reach..hi[k] + reach)
+                }))
+            })
+            .chain(random_points(500, 11));
         let mut near = 0;
         for q in queries {
             let found = grid.at(q);
             for (i, &b) in boxes.iter().enumerate() {
                 if box_distance(q, b) <= reach {
                     near += 1;
-                    assert!(found.contains(&(i as u32)), "box {i} {b:?} is within {reach} of {q:?} but not in its cell");
+                    assert!(
+                        found.contains(&(i as u32)),
+                        "box {i} {b:?} is within {reach} of {q:?} but not in its cell"
+                    );
                 }
             }
             // Filed in order, once per cell.
             assert!(found.windows(2).all(|w| w[0] < w[1]), "{found:?}");
         }
-        assert!(near > 300, "only {near} query-box pairs within reach: the test checks little");
+        assert!(
+            near > 300,
+            "only {near} query-box pairs within reach: the test checks little"
+        );
     }
 
     #[test]
     fn bounds_and_cells() {
-        let (lo, hi) = bounds([DVec3::new(0.5, -1.0, 2.0), DVec3::new(-0.5, 3.0, 2.5), DVec3::new(0.0, 0.0, -4.0)]);
-        assert_eq!((lo, hi), (DVec3::new(-0.5, -1.0, -4.0), DVec3::new(0.5, 3.0, 2.5)));
-        let grid = Grid::of_points(&[DVec3::new(-0.05, 0.05, 0.0), DVec3::new(0.05, 0.05, 0.0)], 0.1);
+        let (lo, hi) = bounds([
+            DVec3::new(0.5, -1.0, 2.0),
+            DVec3::new(-0.5, 3.0, 2.5),
+            DVec3::new(0.0, 0.0, -4.0),
+        ]);
+        assert_eq!(
+            (lo, hi),
+            (DVec3::new(-0.5, -1.0, -4.0), DVec3::new(0.5, 3.0, 2.5))
+        );
+        let grid = Grid::of_points(
+            &[DVec3::new(-0.05, 0.05, 0.0), DVec3::new(0.05, 0.05, 0.0)],
+            0.1,
+        );
         // -0.05 is in cell -1 (floor, not truncation).
         assert_eq!(grid.cell_of(DVec3::new(-0.05, 0.05, 0.0)), [-1, 0, 0]);
         assert_eq!(grid.at(DVec3::new(-0.01, 0.09, 0.09)), &[0]);

@@ -8,7 +8,6 @@
 //! (`npy::NpyError`, `dataset::error::DatasetError`, ...), which converts into it.
 #![forbid(unsafe_code)]
 
-pub mod testing;
 pub mod avatar;
 pub mod body;
 pub mod camera;
@@ -26,5 +25,6 @@ pub mod motion;
 pub mod npy;
 pub mod pickle;
 pub mod ply;
+pub mod testing;
 
 pub use error::{Result, TrainerError};

@@ -17,16 +17,36 @@ pub fn rotation_to_quaternion(m: &[[f64; 3]; 3]) -> [f64; 4] {
     let trace = m[0][0] + m[1][1] + m[2][2];
     let q = if trace > 0.0 {
         let s = (trace + 1.0).sqrt() * 2.0;
-        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
+        [
+            0.25 * s,
+            (m[2][1] - m[1][2]) / s,
+            (m[0][2] - m[2][0]) / s,
+            (m[1][0] - m[0][1]) / s,
+        ]
     } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
         let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
-        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
+        [
+            (m[2][1] - m[1][2]) / s,
+            0.25 * s,
+            (m[0][1] + m[1][0]) / s,
+            (m[0][2] + m[2][0]) / s,
+        ]
     } else if m[1][1] > m[2][2] {
         let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
-        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
+        [
+            (m[0][2] - m[2][0]) / s,
+            (m[0][1] + m[1][0]) / s,
+            0.25 * s,
+            (m[1][2] + m[2][1]) / s,
+        ]
     } else {
         let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
-        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
+        [
+            (m[1][0] - m[0][1]) / s,
+            (m[0][2] + m[2][0]) / s,
+            (m[1][2] + m[2][1]) / s,
+            0.25 * s,
+        ]
     };
     // w >= 0, as COLMAP writes them (q and -q are the same rotation).
     let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
@@ -83,7 +103,13 @@ pub fn adjacency(num_vertices: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
 
 /// Signed volume (positive for outward-facing triangles of a closed mesh).
 pub fn signed_volume(vertices: &[DVec3], faces: &[[u32; 3]]) -> f64 {
-    faces.iter().map(|f| vertices[f[0] as usize].dot(vertices[f[1] as usize].cross(vertices[f[2] as usize])) / 6.0).sum()
+    faces
+        .iter()
+        .map(|f| {
+            vertices[f[0] as usize].dot(vertices[f[1] as usize].cross(vertices[f[2] as usize]))
+                / 6.0
+        })
+        .sum()
 }
 
 fn segment_hits_triangle(p: DVec3, q: DVec3, t: [DVec3; 3]) -> bool {
@@ -112,14 +138,19 @@ fn segment_hits_triangle(p: DVec3, q: DVec3, t: [DVec3; 3]) -> bool {
 /// Whether two triangles that share no vertex intersect (an edge of one crosses the
 /// interior of the other).
 pub fn triangles_intersect(a: [DVec3; 3], b: [DVec3; 3]) -> bool {
-    (0..3).any(|k| segment_hits_triangle(a[k], a[(k + 1) % 3], b)) || (0..3).any(|k| segment_hits_triangle(b[k], b[(k + 1) % 3], a))
+    (0..3).any(|k| segment_hits_triangle(a[k], a[(k + 1) % 3], b))
+        || (0..3).any(|k| segment_hits_triangle(b[k], b[(k + 1) % 3], a))
 }
 
 /// Pairs of faces, sharing no vertex, that intersect, at most `limit` of them (the
 /// same ones every run). Candidates are the pairs filed in a common cell of a grid of
 /// the faces' bounds: two triangles that meet have overlapping bounds, hence a cell in
 /// common.
-pub fn self_intersections(vertices: &[DVec3], faces: &[[u32; 3]], limit: usize) -> Vec<(usize, usize)> {
+pub fn self_intersections(
+    vertices: &[DVec3],
+    faces: &[[u32; 3]],
+    limit: usize,
+) -> Vec<(usize, usize)> {
     // Cells about two edges long: a face spans few cells and a cell holds few faces.
     let cell = faces
         .iter()
@@ -128,7 +159,13 @@ pub fn self_intersections(vertices: &[DVec3], faces: &[[u32; 3]], limit: usize) 
         / faces.len().max(1) as f64
         * 2.0;
     let cell = cell.max(1e-6);
-    let grid = Grid::of_boxes(faces.iter().map(|f| bounds(f.map(|v| vertices[v as usize]))), cell, 0.0);
+    let grid = Grid::of_boxes(
+        faces
+            .iter()
+            .map(|f| bounds(f.map(|v| vertices[v as usize]))),
+        cell,
+        0.0,
+    );
     let mut found = std::collections::BTreeSet::new();
     for list in grid.cells() {
         for (ii, &i) in list.iter().enumerate() {
@@ -137,7 +174,10 @@ pub fn self_intersections(vertices: &[DVec3], faces: &[[u32; 3]], limit: usize) 
                 if fi.iter().any(|v| fj.contains(v)) {
                     continue;
                 }
-                if triangles_intersect(fi.map(|v| vertices[v as usize]), fj.map(|v| vertices[v as usize])) {
+                if triangles_intersect(
+                    fi.map(|v| vertices[v as usize]),
+                    fj.map(|v| vertices[v as usize]),
+                ) {
                     found.insert((i.min(j) as usize, i.max(j) as usize));
                     if found.len() >= limit {
                         return found.into_iter().collect();

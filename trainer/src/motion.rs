@@ -59,7 +59,12 @@ pub enum MotionKind {
 }
 
 impl MotionKind {
-    pub const ALL: [MotionKind; 4] = [MotionKind::Walk, MotionKind::Jog, MotionKind::RaiseArms, MotionKind::Turn];
+    pub const ALL: [MotionKind; 4] = [
+        MotionKind::Walk,
+        MotionKind::Jog,
+        MotionKind::RaiseArms,
+        MotionKind::Turn,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -95,22 +100,36 @@ pub fn procedural(kind: MotionKind, frames: usize, fps: f64, speed: f64) -> Moti
         let mut trans = DVec3::ZERO;
         match kind {
             MotionKind::Walk | MotionKind::Jog => {
-                let (freq, swing, knee, lift, arm) = if kind == MotionKind::Walk { (0.9, 0.25, 0.5, 0.0, 0.3) } else { (1.4, 0.7, 1.2, 0.03, 0.6) };
+                let (freq, swing, knee, lift, arm) = if kind == MotionKind::Walk {
+                    (0.9, 0.25, 0.5, 0.0, 0.3)
+                } else {
+                    (1.4, 0.7, 1.2, 0.03, 0.6)
+                };
                 let phase = 2.0 * PI * freq * t;
                 let s = phase.sin() * e;
                 // Hips swing about x (forward is -x rotation for the +z-facing body).
                 p[1][0] = -swing * s;
                 p[2][0] = swing * s;
                 // Knees bend on the back swing only.
-                p[4][0] = knee * (0.5 - 0.5 * (phase + 0.8).cos()).max(0.0) * e * (0.5 + 0.5 * phase.sin()).min(1.0);
-                p[5][0] = knee * (0.5 - 0.5 * (phase + 0.8 + PI).cos()).max(0.0) * e * (0.5 - 0.5 * phase.sin()).min(1.0);
+                p[4][0] = knee
+                    * (0.5 - 0.5 * (phase + 0.8).cos()).max(0.0)
+                    * e
+                    * (0.5 + 0.5 * phase.sin()).min(1.0);
+                p[5][0] = knee
+                    * (0.5 - 0.5 * (phase + 0.8 + PI).cos()).max(0.0)
+                    * e
+                    * (0.5 - 0.5 * phase.sin()).min(1.0);
                 // Arms swing opposite to the legs, about the shoulder's x axis.
                 p[16][0] = arm * s;
                 p[17][0] = -arm * s;
                 p[18][1] = 0.3 * e;
                 p[19][1] = -0.3 * e;
                 p[3][1] = 0.08 * s;
-                trans = DVec3::new(0.0, lift * (2.0 * phase).sin().abs() * e, (if kind == MotionKind::Walk { 1.2 } else { 2.4 }) * t * e);
+                trans = DVec3::new(
+                    0.0,
+                    lift * (2.0 * phase).sin().abs() * e,
+                    (if kind == MotionKind::Walk { 1.2 } else { 2.4 }) * t * e,
+                );
             }
             MotionKind::RaiseArms => {
                 let up = (0.5 - 0.5 * (2.0 * PI * 0.4 * t).cos()) * e;
@@ -129,7 +148,11 @@ pub fn procedural(kind: MotionKind, frames: usize, fps: f64, speed: f64) -> Moti
         poses.push(p);
         translations.push(trans);
     }
-    Motion { fps, poses, translations }
+    Motion {
+        fps,
+        poses,
+        translations,
+    }
 }
 
 impl Motion {
@@ -143,8 +166,27 @@ impl Motion {
 
     pub fn save_npz(&self, path: &Path) -> Result<(), NpyError> {
         let mut a = BTreeMap::new();
-        a.insert("poses".to_string(), Array::f64(vec![self.len(), 72], self.poses.iter().flatten().flat_map(|r| r.to_array()).collect()));
-        a.insert("trans".to_string(), Array::f64(vec![self.len(), 3], self.translations.iter().flat_map(|t| t.to_array()).collect()));
+        a.insert(
+            "poses".to_string(),
+            Array::f64(
+                vec![self.len(), 72],
+                self.poses
+                    .iter()
+                    .flatten()
+                    .flat_map(|r| r.to_array())
+                    .collect(),
+            ),
+        );
+        a.insert(
+            "trans".to_string(),
+            Array::f64(
+                vec![self.len(), 3],
+                self.translations
+                    .iter()
+                    .flat_map(|t| t.to_array())
+                    .collect(),
+            ),
+        );
         a.insert("fps".to_string(), Array::f64(vec![1], vec![self.fps]));
         npy::write_npz(path, &a)
     }
@@ -153,7 +195,11 @@ impl Motion {
     /// naming the file and the field.
     pub fn load_npz(path: &Path) -> Result<Self, NpyError> {
         let npz = npy::Npz::read(path)?;
-        let bad = |key: &str, problem: String| NpyError::Format { file: npz.file.clone(), key: Some(key.to_string()), problem };
+        let bad = |key: &str, problem: String| NpyError::Format {
+            file: npz.file.clone(),
+            key: Some(key.to_string()),
+            problem,
+        };
         let poses = npz.require("poses", &[None, None])?;
         let (frames, width) = (poses.shape[0], poses.shape[1]);
         // Joints read from the file; SMPL's others (the hands) stay at zero.
@@ -172,13 +218,28 @@ impl Motion {
         }
         let trans = npz.require("trans", &[None, Some(3)])?;
         if trans.shape[0] != frames {
-            return Err(bad("trans", format!("{} frames, but 'poses' has {frames}", trans.shape[0])));
+            return Err(bad(
+                "trans",
+                format!("{} frames, but 'poses' has {frames}", trans.shape[0]),
+            ));
         }
-        let rate_key = ["fps", "mocap_framerate", "mocap_frame_rate"].into_iter().find(|k| npz.contains(k));
-        let rate_key = rate_key.ok_or_else(|| bad("fps", "missing key (nor is there AMASS's 'mocap_framerate')".into()))?;
+        let rate_key = ["fps", "mocap_framerate", "mocap_frame_rate"]
+            .into_iter()
+            .find(|k| npz.contains(k));
+        let rate_key = rate_key.ok_or_else(|| {
+            bad(
+                "fps",
+                "missing key (nor is there AMASS's 'mocap_framerate')".into(),
+            )
+        })?;
         let fps = npz.scalar(rate_key)?;
         if !(MIN_FPS..=MAX_FPS).contains(&fps) {
-            return Err(bad(rate_key, format!("{fps} is not a positive frame rate of {MIN_FPS} to {MAX_FPS} frames a second")));
+            return Err(bad(
+                rate_key,
+                format!(
+                    "{fps} is not a positive frame rate of {MIN_FPS} to {MAX_FPS} frames a second"
+                ),
+            ));
         }
         for (key, a) in [("poses", poses), ("trans", trans)] {
             if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
@@ -188,18 +249,31 @@ impl Motion {
         if let Some(i) = poses.data.iter().position(|v| v.abs() > MAX_AXIS_ANGLE) {
             return Err(bad("poses", format!("value {i} is {} rad; axis-angles are at most {MAX_AXIS_ANGLE} (degrees instead of radians?)", poses.data[i])));
         }
-        let translations_read: Vec<DVec3> = trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
+        let translations_read: Vec<DVec3> =
+            trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
         check_root_speed(&translations_read, fps).map_err(|problem| bad("trans", problem))?;
         if let Some(i) = trans.data.iter().position(|v| v.abs() > MAX_TRANSLATION) {
             return Err(bad("trans", format!("value {i} is {} m; drape takes translations within {MAX_TRANSLATION} m of the origin (is the file in millimetres?)", trans.data[i])));
         }
-        let amass = width == 156 || width == 165 || npz.contains("mocap_framerate") || npz.contains("mocap_frame_rate");
+        let amass = width == 156
+            || width == 165
+            || npz.contains("mocap_framerate")
+            || npz.contains("mocap_frame_rate");
         let mut poses: Vec<Pose> = poses
             .data
             .chunks_exact(width)
-            .map(|c| std::array::from_fn(|j| if j < joints { DVec3::from_slice(&c[3 * j..3 * j + 3]) } else { DVec3::ZERO }))
+            .map(|c| {
+                std::array::from_fn(|j| {
+                    if j < joints {
+                        DVec3::from_slice(&c[3 * j..3 * j + 3])
+                    } else {
+                        DVec3::ZERO
+                    }
+                })
+            })
             .collect();
-        let mut translations: Vec<DVec3> = trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
+        let mut translations: Vec<DVec3> =
+            trans.data.chunks_exact(3).map(DVec3::from_slice).collect();
         if amass {
             let first = z_up_to_y_up(translations[0]);
             for t in &mut translations {
@@ -209,7 +283,11 @@ impl Motion {
                 p[0] = z_up_to_y_up_orientation(p[0]);
             }
         }
-        Ok(Self { fps, poses, translations })
+        Ok(Self {
+            fps,
+            poses,
+            translations,
+        })
     }
 }
 
@@ -249,14 +327,21 @@ fn z_up_to_y_up(v: DVec3) -> DVec3 {
 /// composed on the left. Through quaternions, which stay accurate near 180°.
 fn z_up_to_y_up_orientation(r: DVec3) -> DVec3 {
     let h = std::f64::consts::FRAC_1_SQRT_2;
-    quaternion_to_axis_angle(quaternion_mul([h, -h, 0.0, 0.0], axis_angle_to_quaternion(r)))
+    quaternion_to_axis_angle(quaternion_mul(
+        [h, -h, 0.0, 0.0],
+        axis_angle_to_quaternion(r),
+    ))
 }
 
 /// `[w, x, y, z]` of the rotation by |r| about r.
 fn axis_angle_to_quaternion(r: DVec3) -> [f64; 4] {
     let angle = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
     // sin(a/2)/a, by its series where the division loses accuracy.
-    let k = if angle < 1e-6 { 0.5 - angle * angle / 48.0 } else { (angle / 2.0).sin() / angle };
+    let k = if angle < 1e-6 {
+        0.5 - angle * angle / 48.0
+    } else {
+        (angle / 2.0).sin() / angle
+    };
     [(angle / 2.0).cos(), k * r[0], k * r[1], k * r[2]]
 }
 

@@ -73,7 +73,12 @@ pub struct Array {
 
 impl Array {
     pub fn new(dtype: Dtype, shape: Vec<usize>, data: Vec<f64>) -> Self {
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "shape {shape:?} does not hold {} values", data.len());
+        assert_eq!(
+            shape.iter().product::<usize>(),
+            data.len(),
+            "shape {shape:?} does not hold {} values",
+            data.len()
+        );
         Self { dtype, shape, data }
     }
 
@@ -90,20 +95,38 @@ pub enum NpyError {
     #[error("{file}: {error}")]
     Io { file: String, error: std::io::Error },
     #[error("{file}{}: {problem}", key.as_ref().map(|k| format!(" ['{k}']")).unwrap_or_default())]
-    Format { file: String, key: Option<String>, problem: String },
+    Format {
+        file: String,
+        key: Option<String>,
+        problem: String,
+    },
 }
 
 fn fmt_err(file: &str, key: Option<&str>, problem: impl Into<String>) -> NpyError {
-    NpyError::Format { file: file.to_string(), key: key.map(str::to_string), problem: problem.into() }
+    NpyError::Format {
+        file: file.to_string(),
+        key: key.map(str::to_string),
+        problem: problem.into(),
+    }
 }
 
 /// Encodes one array as `.npy` bytes (format 1.0).
 pub fn encode(a: &Array) -> Vec<u8> {
     let shape = match a.shape.len() {
         1 => format!("({},)", a.shape[0]),
-        _ => format!("({})", a.shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")),
+        _ => format!(
+            "({})",
+            a.shape
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
-    let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}", a.dtype.descr());
+    let mut header = format!(
+        "{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}",
+        a.dtype.descr()
+    );
     // Pad so that the data starts at a multiple of 64 bytes, ending in '\n'.
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
@@ -155,7 +178,10 @@ fn parse_header(bytes: &[u8], err: &dyn Fn(String) -> NpyError) -> Result<Header
             if bytes.len() < 12 {
                 return Err(err("truncated header".into()));
             }
-            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+            (
+                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+                12,
+            )
         }
         v => return Err(err(format!("unsupported .npy version {v}"))),
     };
@@ -163,16 +189,26 @@ fn parse_header(bytes: &[u8], err: &dyn Fn(String) -> NpyError) -> Result<Header
     if bytes.len() < header_end {
         return Err(err("truncated header".into()));
     }
-    let header = std::str::from_utf8(&bytes[start..header_end]).map_err(|_| err("header is not text".into()))?;
+    let header = std::str::from_utf8(&bytes[start..header_end])
+        .map_err(|_| err("header is not text".into()))?;
     let descr = header_value(header, "descr").ok_or_else(|| err("header has no 'descr'".into()))?;
-    let shape_text = header_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
+    let shape_text =
+        header_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
     let shape: Vec<usize> = shape_text
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| err(format!("shape '({shape_text})' is not a tuple of sizes"))))
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| err(format!("shape '({shape_text})' is not a tuple of sizes")))
+        })
         .collect::<Result<_, _>>()?;
-    Ok(Header { descr: descr.to_string(), fortran_order: header_value(header, "fortran_order") == Some("True"), shape, data_start: header_end })
+    Ok(Header {
+        descr: descr.to_string(),
+        fortran_order: header_value(header, "fortran_order") == Some("True"),
+        shape,
+        data_start: header_end,
+    })
 }
 
 /// Decodes `.npy` bytes; `file`/`key` name them in errors.
@@ -187,13 +223,29 @@ fn unsupported_dtype(descr: &str) -> String {
     format!("dtype '{descr}' is not supported (need little-endian f8, f4, i8, i4, u4, u1 or b1; pickled objects are read by the ZJU loader)")
 }
 
-fn decode_body(bytes: &[u8], header: &Header, dtype: Dtype, err: &dyn Fn(String) -> NpyError) -> Result<Array, NpyError> {
+fn decode_body(
+    bytes: &[u8],
+    header: &Header,
+    dtype: Dtype,
+    err: &dyn Fn(String) -> NpyError,
+) -> Result<Array, NpyError> {
     let shape = &header.shape;
     // Checked: a header may declare any shape, and the file's length bounds the data.
-    let needed = shape.iter().try_fold(dtype.size(), |a, &d| a.checked_mul(d)).ok_or_else(|| err(format!("shape {shape:?} of {}-byte values overflows", dtype.size())))?;
+    let needed = shape
+        .iter()
+        .try_fold(dtype.size(), |a, &d| a.checked_mul(d))
+        .ok_or_else(|| {
+            err(format!(
+                "shape {shape:?} of {}-byte values overflows",
+                dtype.size()
+            ))
+        })?;
     let body = &bytes[header.data_start..];
     if body.len() < needed {
-        return Err(err(format!("truncated: shape {shape:?} needs {needed} bytes, found {}", body.len())));
+        return Err(err(format!(
+            "truncated: shape {shape:?} needs {needed} bytes, found {}",
+            body.len()
+        )));
     }
     let data: Vec<f64> = body[..needed]
         .chunks_exact(dtype.size())
@@ -208,8 +260,16 @@ fn decode_body(bytes: &[u8], header: &Header, dtype: Dtype, err: &dyn Fn(String)
         .collect();
     // numpy saves an array that is Fortran- but not C-contiguous (a transpose, say) in
     // Fortran order; callers index in C order, so reorder.
-    let data = if header.fortran_order && shape.len() > 1 { fortran_to_c(&data, shape) } else { data };
-    Ok(Array { dtype, shape: shape.clone(), data })
+    let data = if header.fortran_order && shape.len() > 1 {
+        fortran_to_c(&data, shape)
+    } else {
+        data
+    };
+    Ok(Array {
+        dtype,
+        shape: shape.clone(),
+        data,
+    })
 }
 
 /// `data` laid out with the first index fastest, rewritten with the last fastest.
@@ -239,15 +299,21 @@ fn fortran_to_c(data: &[f64], shape: &[usize]) -> Vec<f64> {
 /// Writes arrays as an uncompressed `.npz` (what `numpy.savez` writes).
 pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), NpyError> {
     let file_name = path.display().to_string();
-    let io = |error| NpyError::Io { file: file_name.clone(), error };
+    let io = |error| NpyError::Io {
+        file: file_name.clone(),
+        error,
+    };
     let file = std::fs::File::create(path).map_err(io)?;
     let mut zip = zip::ZipWriter::new(file);
-    let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    let options =
+        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
     for (key, array) in arrays {
-        zip.start_file(format!("{key}.npy"), options).map_err(|e| fmt_err(&file_name, Some(key), e.to_string()))?;
+        zip.start_file(format!("{key}.npy"), options)
+            .map_err(|e| fmt_err(&file_name, Some(key), e.to_string()))?;
         zip.write_all(&encode(array)).map_err(io)?;
     }
-    zip.finish().map_err(|e| fmt_err(&file_name, None, e.to_string()))?;
+    zip.finish()
+        .map_err(|e| fmt_err(&file_name, None, e.to_string()))?;
     Ok(())
 }
 
@@ -274,34 +340,75 @@ impl Npz {
     /// archive or entry, not on an entry's dtype.
     pub fn read(path: &Path) -> Result<Self, NpyError> {
         let file_name = path.display().to_string();
-        let file = std::fs::File::open(path).map_err(|error| NpyError::Io { file: file_name.clone(), error })?;
+        let file = std::fs::File::open(path).map_err(|error| NpyError::Io {
+            file: file_name.clone(),
+            error,
+        })?;
         let file_len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
-        let mut zip = zip::ZipArchive::new(file).map_err(|e| fmt_err(&file_name, None, format!("not a readable .npz archive (truncated or corrupt?): {e}")))?;
-        let mut out = Npz { file: file_name.clone(), ..Npz::default() };
+        let mut zip = zip::ZipArchive::new(file).map_err(|e| {
+            fmt_err(
+                &file_name,
+                None,
+                format!("not a readable .npz archive (truncated or corrupt?): {e}"),
+            )
+        })?;
+        let mut out = Npz {
+            file: file_name.clone(),
+            ..Npz::default()
+        };
         for i in 0..zip.len() {
-            let mut entry = zip.by_index(i).map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
+            let mut entry = zip
+                .by_index(i)
+                .map_err(|e| fmt_err(&file_name, None, format!("entry {i}: {e}")))?;
             let name = entry.name().to_string();
             let key = name.strip_suffix(".npy").unwrap_or(&name).to_string();
             // An entry's declared size is only a claim: deflate expands at most about
             // 1032 times, and a stored entry holds what it occupies.
             // Its compressed size is a claim too: the file's length bounds it.
             let packed = entry.compressed_size().min(file_len);
-            let most = if entry.compression() == zip::CompressionMethod::Stored { packed } else { packed.saturating_mul(1032).saturating_add(1024) };
+            let most = if entry.compression() == zip::CompressionMethod::Stored {
+                packed
+            } else {
+                packed.saturating_mul(1032).saturating_add(1024)
+            };
             if entry.size() > most {
-                return Err(fmt_err(&file_name, Some(&key), format!("entry declares {} bytes, more than its {} compressed bytes can hold", entry.size(), entry.compressed_size())));
+                return Err(fmt_err(
+                    &file_name,
+                    Some(&key),
+                    format!(
+                        "entry declares {} bytes, more than its {} compressed bytes can hold",
+                        entry.size(),
+                        entry.compressed_size()
+                    ),
+                ));
             }
             // Reserved up to 64 MiB; a larger entry grows as it is read (and so cannot
             // reserve memory its data does not fill).
             let mut bytes = Vec::with_capacity(entry.size().min(1 << 26) as usize);
-            std::io::Read::take(&mut entry, most.saturating_add(1)).read_to_end(&mut bytes).map_err(|e| fmt_err(&file_name, Some(&key), format!("truncated or corrupt entry: {e}")))?;
+            std::io::Read::take(&mut entry, most.saturating_add(1))
+                .read_to_end(&mut bytes)
+                .map_err(|e| {
+                    fmt_err(
+                        &file_name,
+                        Some(&key),
+                        format!("truncated or corrupt entry: {e}"),
+                    )
+                })?;
             let err = |p: String| fmt_err(&file_name, Some(&key), p);
             let header = parse_header(&bytes, &err)?;
             match Dtype::parse(&header.descr) {
                 Some(dtype) => {
-                    out.arrays.insert(key.clone(), decode_body(&bytes, &header, dtype, &err)?);
+                    out.arrays
+                        .insert(key.clone(), decode_body(&bytes, &header, dtype, &err)?);
                 }
                 None => {
-                    out.undecoded.insert(key.clone(), Undecoded { descr: header.descr, shape: header.shape });
+                    out.undecoded.insert(
+                        key.clone(),
+                        Undecoded {
+                            descr: header.descr,
+                            shape: header.shape,
+                        },
+                    );
                 }
             }
         }
@@ -327,7 +434,11 @@ impl Npz {
 
     fn check_decoded(&self, key: &str) -> Result<(), NpyError> {
         match self.undecoded.get(key) {
-            Some(u) => Err(fmt_err(&self.file, Some(key), format!("{} (shape {:?})", unsupported_dtype(&u.descr), u.shape))),
+            Some(u) => Err(fmt_err(
+                &self.file,
+                Some(key),
+                format!("{} (shape {:?})", unsupported_dtype(&u.descr), u.shape),
+            )),
             None => Ok(()),
         }
     }
@@ -341,15 +452,37 @@ pub fn read_npz(path: &Path) -> Result<BTreeMap<String, Array>, NpyError> {
 
 /// Looks up `key` and checks its shape (`None` in `shape` matches any size) and that
 /// every value is finite.
-pub fn require<'a>(arrays: &'a BTreeMap<String, Array>, file: &str, key: &str, shape: &[Option<usize>]) -> Result<&'a Array, NpyError> {
-    let a = arrays.get(key).ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
-    let matches = a.shape.len() == shape.len() && a.shape.iter().zip(shape).all(|(&d, s)| s.is_none_or(|s| s == d));
+pub fn require<'a>(
+    arrays: &'a BTreeMap<String, Array>,
+    file: &str,
+    key: &str,
+    shape: &[Option<usize>],
+) -> Result<&'a Array, NpyError> {
+    let a = arrays
+        .get(key)
+        .ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
+    let matches = a.shape.len() == shape.len()
+        && a.shape
+            .iter()
+            .zip(shape)
+            .all(|(&d, s)| s.is_none_or(|s| s == d));
     if !matches {
-        let want: Vec<String> = shape.iter().map(|s| s.map(|d| d.to_string()).unwrap_or("*".into())).collect();
-        return Err(fmt_err(file, Some(key), format!("shape {:?}, expected ({})", a.shape, want.join(", "))));
+        let want: Vec<String> = shape
+            .iter()
+            .map(|s| s.map(|d| d.to_string()).unwrap_or("*".into()))
+            .collect();
+        return Err(fmt_err(
+            file,
+            Some(key),
+            format!("shape {:?}, expected ({})", a.shape, want.join(", ")),
+        ));
     }
     if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
-        return Err(fmt_err(file, Some(key), format!("value {i} is {} (not finite)", a.data[i])));
+        return Err(fmt_err(
+            file,
+            Some(key),
+            format!("value {i} is {} (not finite)", a.data[i]),
+        ));
     }
     Ok(a)
 }
@@ -357,9 +490,15 @@ pub fn require<'a>(arrays: &'a BTreeMap<String, Array>, file: &str, key: &str, s
 /// A finite scalar under `key`: a 0-d array (what `np.savez(f, fps=30)` writes) or a
 /// 1-element one (shape `[1]`, what this module's writers use).
 pub fn scalar(arrays: &BTreeMap<String, Array>, file: &str, key: &str) -> Result<f64, NpyError> {
-    let a = arrays.get(key).ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
+    let a = arrays
+        .get(key)
+        .ok_or_else(|| fmt_err(file, Some(key), "missing key"))?;
     if !(a.shape.is_empty() || a.shape == [1]) {
-        return Err(fmt_err(file, Some(key), format!("shape {:?}, expected a scalar (shape () or (1))", a.shape)));
+        return Err(fmt_err(
+            file,
+            Some(key),
+            format!("shape {:?}, expected a scalar (shape () or (1))", a.shape),
+        ));
     }
     let v = a.data[0];
     if !v.is_finite() {

@@ -28,7 +28,10 @@ impl PyValue {
     /// `dict[key]` for a string key.
     pub fn get(&self, key: &str) -> Option<&PyValue> {
         match self {
-            PyValue::Dict(items) => items.iter().find(|(k, _)| matches!(k, PyValue::Str(s) if s == key)).map(|(_, v)| v),
+            PyValue::Dict(items) => items
+                .iter()
+                .find(|(k, _)| matches!(k, PyValue::Str(s) if s == key))
+                .map(|(_, v)| v),
             _ => None,
         }
     }
@@ -56,7 +59,12 @@ impl PyValue {
 
     /// A dict with string keys.
     pub fn dict(items: Vec<(&str, PyValue)>) -> Self {
-        PyValue::Dict(items.into_iter().map(|(k, v)| (PyValue::Str(k.to_string()), v)).collect())
+        PyValue::Dict(
+            items
+                .into_iter()
+                .map(|(k, v)| (PyValue::Str(k.to_string()), v))
+                .collect(),
+        )
     }
 }
 
@@ -247,12 +255,18 @@ enum Node {
     Array(Array),
     /// An object ndarray's items; a 0-d one (`zero_d`) holds one, which is what
     /// `numpy.save` of a dict stores.
-    ObjectArray { zero_d: bool, items: Vec<usize> },
+    ObjectArray {
+        zero_d: bool,
+        items: Vec<usize>,
+    },
     /// A GLOBAL or STACK_GLOBAL: module and name.
     Global(String, String),
     /// `numpy.dtype(code, ...)`: its byte order ("" until its BUILD sets "<", ">" or
     /// "|") and type code ("f8", "O8").
-    Dtype { order: String, code: String },
+    Dtype {
+        order: String,
+        code: String,
+    },
     /// `_reconstruct(ndarray, ...)`, before its BUILD.
     EmptyArray,
 }
@@ -291,7 +305,9 @@ impl std::fmt::Display for PickleError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let file = &self.file;
         match (self.at, &self.problem) {
-            (Some(at), PickleProblem::Truncated) => write!(f, "{file}: pickle truncated at byte {at}"),
+            (Some(at), PickleProblem::Truncated) => {
+                write!(f, "{file}: pickle truncated at byte {at}")
+            }
             (Some(at), problem) => write!(f, "{file}: pickle at byte {at}: {problem}"),
             (None, problem) => write!(f, "{file}: {problem}"),
         }
@@ -316,7 +332,10 @@ pub enum PickleProblem {
     /// it: no MARK, a short or empty stack (nothing pops below a MARK), a list or dict
     /// operation on something else, an integer wider than 64 bits.
     #[error("{op} {problem}")]
-    Opcode { op: &'static str, problem: &'static str },
+    Opcode {
+        op: &'static str,
+        problem: &'static str,
+    },
     /// A string whose bytes are not UTF-8.
     #[error("string is not UTF-8")]
     NotUtf8,
@@ -330,7 +349,10 @@ pub enum PickleProblem {
     Call { callable: String },
     /// Arguments a callable this reader knows cannot take.
     #[error("{call} {problem}")]
-    Arguments { call: &'static str, problem: &'static str },
+    Arguments {
+        call: &'static str,
+        problem: &'static str,
+    },
     /// A BUILD of an object that takes no state.
     #[error("cannot BUILD {target}")]
     Build { target: String },
@@ -373,7 +395,10 @@ struct Budget {
 
 impl Budget {
     fn charge(&mut self, units: usize) -> Result<(), PickleProblem> {
-        self.left = self.left.checked_sub(units).ok_or(PickleProblem::TooLarge { limit: self.limit })?;
+        self.left = self
+            .left
+            .checked_sub(units)
+            .ok_or(PickleProblem::TooLarge { limit: self.limit })?;
         Ok(())
     }
 }
@@ -381,7 +406,9 @@ impl Budget {
 /// Latin-1 text as bytes (how pickles of Python 3 bytes at protocol 2, and Python 2
 /// strings, carry binary data); None for a character above U+00FF.
 fn latin1_bytes(text: &str) -> Option<Vec<u8>> {
-    text.chars().map(|c| u8::try_from(u32::from(c)).ok()).collect()
+    text.chars()
+        .map(|c| u8::try_from(u32::from(c)).ok())
+        .collect()
 }
 
 /// A little-endian two's-complement integer of at most 8 bytes (LONG1, LONG4).
@@ -389,25 +416,40 @@ fn long_le(b: &[u8]) -> Option<i64> {
     if b.len() > 8 {
         return None;
     }
-    let mut full = if b.last().is_some_and(|x| x & 0x80 != 0) { [0xff; 8] } else { [0; 8] };
+    let mut full = if b.last().is_some_and(|x| x & 0x80 != 0) {
+        [0xff; 8]
+    } else {
+        [0; 8]
+    };
     full[..b.len()].copy_from_slice(b);
     Some(i64::from_le_bytes(full))
 }
 
 /// `numpy.core.<sub>` (numpy 1.x) or `numpy._core.<sub>` (numpy 2.x).
 fn numpy_core(module: &str, sub: &str) -> bool {
-    module.strip_prefix("numpy.core.").or_else(|| module.strip_prefix("numpy._core.")) == Some(sub)
+    module
+        .strip_prefix("numpy.core.")
+        .or_else(|| module.strip_prefix("numpy._core."))
+        == Some(sub)
 }
 
 /// A numeric array of dtype `descr` ("<f8") and `shape` from its bytes, in C order or
 /// (`fortran`) with the first index fastest. The bytes must be exactly what the shape
 /// and dtype take.
-fn make_array(descr: &str, shape: &[usize], fortran: bool, data: &[u8]) -> Result<Array, PickleProblem> {
+fn make_array(
+    descr: &str,
+    shape: &[usize],
+    fortran: bool,
+    data: &[u8],
+) -> Result<Array, PickleProblem> {
     let array = |problem: &'static str| PickleProblem::Array { problem };
     if shape.len() > MAX_DIMS {
         return Err(array("array has more than 64 dimensions"));
     }
-    let count = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).ok_or(array("array shape is too large"))?;
+    let count = shape
+        .iter()
+        .try_fold(1usize, |n, &d| n.checked_mul(d))
+        .ok_or(array("array shape is too large"))?;
     // The item size is the type code's number ("f8", "u1"); npy refuses other codes.
     let digits = descr.trim_start_matches(|c: char| !c.is_ascii_digit());
     if let Ok(size) = digits.parse::<usize>() {
@@ -419,16 +461,25 @@ fn make_array(descr: &str, shape: &[usize], fortran: bool, data: &[u8]) -> Resul
     let shape_text = match shape.len() {
         0 => "()".to_string(),
         1 => format!("({},)", shape[0]),
-        _ => format!("({})", shape.iter().map(usize::to_string).collect::<Vec<_>>().join(", ")),
+        _ => format!(
+            "({})",
+            shape
+                .iter()
+                .map(usize::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
     let order = if fortran { "True" } else { "False" };
-    let header = format!("{{'descr': '{descr}', 'fortran_order': {order}, 'shape': {shape_text}, }}\n");
+    let header =
+        format!("{{'descr': '{descr}', 'fortran_order': {order}, 'shape': {shape_text}, }}\n");
     let header_len = u16::try_from(header.len()).map_err(|_| array("array dtype is too long"))?;
     let mut npy_bytes = b"\x93NUMPY\x01\x00".to_vec();
     npy_bytes.extend_from_slice(&header_len.to_le_bytes());
     npy_bytes.extend_from_slice(header.as_bytes());
     npy_bytes.extend_from_slice(data);
-    npy::decode(&npy_bytes, "pickled array", None).map_err(|error| PickleProblem::ArrayData { error })
+    npy::decode(&npy_bytes, "pickled array", None)
+        .map_err(|error| PickleProblem::ArrayData { error })
 }
 
 /// The pickle machine: its input, arena, stack, MARKs and memo.
@@ -448,7 +499,15 @@ struct Reader<'a> {
 impl<'a> Reader<'a> {
     fn new(bytes: &'a [u8]) -> Self {
         let limit = BUDGET_BASE.saturating_add(bytes.len().saturating_mul(BUDGET_PER_BYTE));
-        Self { bytes, at: 0, arena: Vec::new(), stack: Vec::new(), marks: Vec::new(), memo: Default::default(), budget: Budget { left: limit, limit } }
+        Self {
+            bytes,
+            at: 0,
+            arena: Vec::new(),
+            stack: Vec::new(),
+            marks: Vec::new(),
+            memo: Default::default(),
+            budget: Budget { left: limit, limit },
+        }
     }
 
     fn take(&mut self, n: usize) -> Result<&'a [u8], PickleProblem> {
@@ -466,19 +525,30 @@ impl<'a> Reader<'a> {
     }
 
     fn u32(&mut self) -> Result<u32, PickleProblem> {
-        Ok(u32::from_le_bytes(self.take(4)?.try_into().expect("4 bytes")))
+        Ok(u32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
     }
 
     /// An 8-byte length; one past what this machine can address is past the end.
     fn u64_len(&mut self) -> Result<usize, PickleProblem> {
-        usize::try_from(u64::from_le_bytes(self.take(8)?.try_into().expect("8 bytes"))).map_err(|_| PickleProblem::Truncated)
+        usize::try_from(u64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+        .map_err(|_| PickleProblem::Truncated)
     }
 
     /// A GLOBAL argument: text up to a newline.
     fn line(&mut self) -> Result<String, PickleProblem> {
         let bytes: &'a [u8] = self.bytes;
         let rest = &bytes[self.at..];
-        let end = rest.iter().position(|&b| b == b'\n').ok_or(PickleProblem::Opcode { op: "GLOBAL", problem: "without newline" })?;
+        let end = rest
+            .iter()
+            .position(|&b| b == b'\n')
+            .ok_or(PickleProblem::Opcode {
+                op: "GLOBAL",
+                problem: "without newline",
+            })?;
         self.at += end + 1;
         Ok(String::from_utf8_lossy(&rest[..end]).into_owned())
     }
@@ -498,28 +568,40 @@ impl<'a> Reader<'a> {
 
     fn pop(&mut self, op: &'static str) -> Result<usize, PickleProblem> {
         if self.stack.len() <= self.fence() {
-            return Err(PickleProblem::Opcode { op, problem: "on an empty stack" });
+            return Err(PickleProblem::Opcode {
+                op,
+                problem: "on an empty stack",
+            });
         }
         Ok(self.stack.pop().expect("above the fence"))
     }
 
     fn top(&self, op: &'static str) -> Result<usize, PickleProblem> {
         if self.stack.len() <= self.fence() {
-            return Err(PickleProblem::Opcode { op, problem: "on an empty stack" });
+            return Err(PickleProblem::Opcode {
+                op,
+                problem: "on an empty stack",
+            });
         }
         Ok(*self.stack.last().expect("above the fence"))
     }
 
     fn pop_n(&mut self, n: usize, op: &'static str) -> Result<Vec<usize>, PickleProblem> {
         if self.stack.len() - self.fence() < n {
-            return Err(PickleProblem::Opcode { op, problem: "on a short stack" });
+            return Err(PickleProblem::Opcode {
+                op,
+                problem: "on a short stack",
+            });
         }
         Ok(self.stack.split_off(self.stack.len() - n))
     }
 
     /// What was pushed since the last MARK, and that MARK gone.
     fn pop_mark(&mut self, op: &'static str) -> Result<Vec<usize>, PickleProblem> {
-        let mark = self.marks.pop().ok_or(PickleProblem::Opcode { op, problem: "without MARK" })?;
+        let mark = self.marks.pop().ok_or(PickleProblem::Opcode {
+            op,
+            problem: "without MARK",
+        })?;
         Ok(self.stack.split_off(mark))
     }
 
@@ -558,10 +640,14 @@ impl<'a> Reader<'a> {
     /// A shape: a tuple of sizes.
     fn shape_at(&self, i: usize) -> Result<Vec<usize>, PickleProblem> {
         let array = |problem: &'static str| PickleProblem::Array { problem };
-        let t = self.tuple_at(i).ok_or(array("array shape is not a tuple"))?;
+        let t = self
+            .tuple_at(i)
+            .ok_or(array("array shape is not a tuple"))?;
         t.iter()
             .map(|&d| match &self.arena[d] {
-                Node::Scalar(PyValue::Int(n)) => usize::try_from(*n).map_err(|_| array("bad shape")),
+                Node::Scalar(PyValue::Int(n)) => {
+                    usize::try_from(*n).map_err(|_| array("bad shape"))
+                }
                 _ => Err(array("bad shape")),
             })
             .collect()
@@ -575,7 +661,9 @@ impl<'a> Reader<'a> {
     /// BUILD of an `_reconstruct`ed ndarray: `([version,] shape, dtype, fortran, data)`.
     fn array_from_state(&mut self, state: usize) -> Result<Node, PickleProblem> {
         let array = |problem: &'static str| PickleProblem::Array { problem };
-        let t = self.tuple_at(state).ok_or(array("array state is not a tuple"))?;
+        let t = self
+            .tuple_at(state)
+            .ok_or(array("array state is not a tuple"))?;
         let (shape, dtype, fortran, data) = match t {
             [_, s, d, f, x] | [s, d, f, x] => (*s, *d, *f, *x),
             _ => return Err(PickleProblem::ArrayState { items: t.len() }),
@@ -583,61 +671,121 @@ impl<'a> Reader<'a> {
         let shape = self.shape_at(shape)?;
         let fortran = matches!(self.arena[fortran], Node::Scalar(PyValue::Bool(true)));
         let descr = self.descr_at(dtype).ok_or(array("array dtype missing"))?;
-        if descr.trim_start_matches(['<', '>', '|', '=']).starts_with('O') {
-            let Node::List(items) = &self.arena[data] else { return Err(array("object array data is not a list")) };
+        if descr
+            .trim_start_matches(['<', '>', '|', '='])
+            .starts_with('O')
+        {
+            let Node::List(items) = &self.arena[data] else {
+                return Err(array("object array data is not a list"));
+            };
             let items = items.clone();
             self.budget.charge(items.len())?;
-            return Ok(Node::ObjectArray { zero_d: shape.is_empty(), items });
+            return Ok(Node::ObjectArray {
+                zero_d: shape.is_empty(),
+                items,
+            });
         }
-        let a = make_array(&descr, &shape, fortran, &self.data_at(data).ok_or(array("array data is not bytes"))?)?;
+        let a = make_array(
+            &descr,
+            &shape,
+            fortran,
+            &self.data_at(data).ok_or(array("array data is not bytes"))?,
+        )?;
         self.add_array(a)
     }
 
     /// REDUCE: `callable(*args)` for the callables NumPy's pickles use.
     fn call(&mut self, callable: usize, args: usize) -> Result<Node, PickleProblem> {
-        let Node::Global(module, name) = &self.arena[callable] else { return Err(PickleProblem::Call { callable: describe(&self.arena[callable]) }) };
+        let Node::Global(module, name) = &self.arena[callable] else {
+            return Err(PickleProblem::Call {
+                callable: describe(&self.arena[callable]),
+            });
+        };
         let (module, name) = (module.clone(), name.clone());
-        let arguments = |call: &'static str, problem: &'static str| PickleProblem::Arguments { call, problem };
-        let args = self.tuple_at(args).ok_or(arguments("REDUCE", "arguments are not a tuple"))?.to_vec();
+        let arguments =
+            |call: &'static str, problem: &'static str| PickleProblem::Arguments { call, problem };
+        let args = self
+            .tuple_at(args)
+            .ok_or(arguments("REDUCE", "arguments are not a tuple"))?
+            .to_vec();
         match (module.as_str(), name.as_str()) {
             (m, "_reconstruct") if numpy_core(m, "multiarray") => Ok(Node::EmptyArray),
             ("numpy", "dtype") => {
-                let code = args.first().and_then(|&i| self.str_at(i)).ok_or(arguments("dtype()", "without a type code"))?;
-                Ok(Node::Dtype { order: String::new(), code: code.to_string() })
+                let code = args
+                    .first()
+                    .and_then(|&i| self.str_at(i))
+                    .ok_or(arguments("dtype()", "without a type code"))?;
+                Ok(Node::Dtype {
+                    order: String::new(),
+                    code: code.to_string(),
+                })
             }
             ("_codecs", "encode") => {
                 // Protocol 2 bytes: _codecs.encode(text, 'latin1').
-                let text = args.first().and_then(|&i| self.str_at(i)).ok_or(arguments("encode()", "of a non-string"))?;
-                if !matches!(args.get(1).and_then(|&i| self.str_at(i)), Some("latin1" | "latin-1")) {
+                let text = args
+                    .first()
+                    .and_then(|&i| self.str_at(i))
+                    .ok_or(arguments("encode()", "of a non-string"))?;
+                if !matches!(
+                    args.get(1).and_then(|&i| self.str_at(i)),
+                    Some("latin1" | "latin-1")
+                ) {
                     return Err(arguments("encode()", "to another encoding than latin1"));
                 }
-                let bytes = latin1_bytes(text).ok_or(arguments("encode()", "of text that is not latin-1"))?;
+                let bytes = latin1_bytes(text)
+                    .ok_or(arguments("encode()", "of text that is not latin-1"))?;
                 self.budget.charge(bytes.len() / 8)?;
                 Ok(Node::Scalar(PyValue::Bytes(bytes)))
             }
             // Protocol 2 empty bytes: bytes().
-            ("__builtin__" | "builtins", "bytes") if args.is_empty() => Ok(Node::Scalar(PyValue::Bytes(Vec::new()))),
+            ("__builtin__" | "builtins", "bytes") if args.is_empty() => {
+                Ok(Node::Scalar(PyValue::Bytes(Vec::new())))
+            }
             (m, "_frombuffer") if numpy_core(m, "numeric") => {
                 // Protocol 5 arrays: _frombuffer(buffer, dtype, shape, order).
-                let [buffer, dtype, shape, order] = args[..] else { return Err(arguments("_frombuffer()", "takes 4 arguments")) };
-                let descr = self.descr_at(dtype).ok_or(arguments("_frombuffer()", "without a dtype"))?;
+                let [buffer, dtype, shape, order] = args[..] else {
+                    return Err(arguments("_frombuffer()", "takes 4 arguments"));
+                };
+                let descr = self
+                    .descr_at(dtype)
+                    .ok_or(arguments("_frombuffer()", "without a dtype"))?;
                 let shape = self.shape_at(shape)?;
                 let fortran = match self.str_at(order) {
                     Some("C") => false,
                     Some("F") => true,
                     _ => return Err(arguments("_frombuffer()", "order is not 'C' or 'F'")),
                 };
-                let a = make_array(&descr, &shape, fortran, &self.data_at(buffer).ok_or(arguments("_frombuffer()", "buffer is not bytes"))?)?;
+                let a = make_array(
+                    &descr,
+                    &shape,
+                    fortran,
+                    &self
+                        .data_at(buffer)
+                        .ok_or(arguments("_frombuffer()", "buffer is not bytes"))?,
+                )?;
                 self.add_array(a)
             }
             (m, "scalar") if numpy_core(m, "multiarray") => {
                 // A numpy scalar (np.float64(x)): scalar(dtype, bytes), read as a 0-d array.
-                let [dtype, data] = args[..] else { return Err(arguments("scalar()", "takes 2 arguments")) };
-                let descr = self.descr_at(dtype).ok_or(arguments("scalar()", "without a dtype"))?;
-                let a = make_array(&descr, &[], false, &self.data_at(data).ok_or(arguments("scalar()", "data is not bytes"))?)?;
+                let [dtype, data] = args[..] else {
+                    return Err(arguments("scalar()", "takes 2 arguments"));
+                };
+                let descr = self
+                    .descr_at(dtype)
+                    .ok_or(arguments("scalar()", "without a dtype"))?;
+                let a = make_array(
+                    &descr,
+                    &[],
+                    false,
+                    &self
+                        .data_at(data)
+                        .ok_or(arguments("scalar()", "data is not bytes"))?,
+                )?;
                 self.add_array(a)
             }
-            (m, n) => Err(PickleProblem::Call { callable: format!("{m}.{n}") }),
+            (m, n) => Err(PickleProblem::Call {
+                callable: format!("{m}.{n}"),
+            }),
         }
     }
 
@@ -648,8 +796,14 @@ impl<'a> Reader<'a> {
         match &self.arena[target] {
             Node::Dtype { .. } => {
                 // (version, byte order, subarray, names, fields, elsize, alignment, flags)
-                let order = self.tuple_at(state).and_then(|t| t.get(1)).and_then(|&i| self.str_at(i)).map(str::to_string);
-                if let (Some(order), Node::Dtype { order: o, .. }) = (order, &mut self.arena[target]) {
+                let order = self
+                    .tuple_at(state)
+                    .and_then(|t| t.get(1))
+                    .and_then(|&i| self.str_at(i))
+                    .map(str::to_string);
+                if let (Some(order), Node::Dtype { order: o, .. }) =
+                    (order, &mut self.arena[target])
+                {
                     *o = order;
                 }
                 Ok(())
@@ -658,7 +812,9 @@ impl<'a> Reader<'a> {
                 self.arena[target] = self.array_from_state(state)?;
                 Ok(())
             }
-            other => Err(PickleProblem::Build { target: describe(other) }),
+            other => Err(PickleProblem::Build {
+                target: describe(other),
+            }),
         }
     }
 
@@ -719,14 +875,23 @@ impl<'a> Reader<'a> {
                 self.push_value(PyValue::Int(i64::from(v)));
             }
             0x8a | 0x8b => {
-                let n = if op == 0x8a { usize::from(self.byte()?) } else { self.u32()? as usize };
+                let n = if op == 0x8a {
+                    usize::from(self.byte()?)
+                } else {
+                    self.u32()? as usize
+                };
                 let b = self.take(n)?;
-                let v = long_le(b).ok_or(bad(if op == 0x8a { "LONG1" } else { "LONG4" }, "wider than 64 bits"))?;
+                let v = long_le(b).ok_or(bad(
+                    if op == 0x8a { "LONG1" } else { "LONG4" },
+                    "wider than 64 bits",
+                ))?;
                 self.push_value(PyValue::Int(v));
             }
             b'G' => {
                 let b = self.take(8)?;
-                self.push_value(PyValue::Float(f64::from_be_bytes(b.try_into().expect("8 bytes"))));
+                self.push_value(PyValue::Float(f64::from_be_bytes(
+                    b.try_into().expect("8 bytes"),
+                )));
             }
             b'X' | 0x8c | 0x8d => {
                 let n = match op {
@@ -739,7 +904,11 @@ impl<'a> Reader<'a> {
             }
             b'U' | b'T' => {
                 // Python 2 strings (SHORT_BINSTRING, BINSTRING), as latin-1 text.
-                let n = if op == b'U' { usize::from(self.byte()?) } else { self.u32()? as usize };
+                let n = if op == b'U' {
+                    usize::from(self.byte()?)
+                } else {
+                    self.u32()? as usize
+                };
                 let s = self.take(n)?.iter().map(|&b| char::from(b)).collect();
                 self.push_value(PyValue::Str(s));
             }
@@ -769,7 +938,11 @@ impl<'a> Reader<'a> {
                 self.push(Node::List(items));
             }
             b'a' | b'e' => {
-                let (name, items) = if op == b'a' { ("APPEND", vec![self.pop("APPEND")?]) } else { ("APPENDS", self.pop_mark("APPENDS")?) };
+                let (name, items) = if op == b'a' {
+                    ("APPEND", vec![self.pop("APPEND")?])
+                } else {
+                    ("APPENDS", self.pop_mark("APPENDS")?)
+                };
                 let list = self.top(name)?;
                 match &mut self.arena[list] {
                     Node::List(l) => l.extend(items),
@@ -815,7 +988,8 @@ impl<'a> Reader<'a> {
             }
             0x94 => {
                 let top = self.top("MEMOIZE")?;
-                let key = u32::try_from(self.memo.len()).map_err(|_| bad("MEMOIZE", "with a full memo"))?;
+                let key = u32::try_from(self.memo.len())
+                    .map_err(|_| bad("MEMOIZE", "with a full memo"))?;
                 self.memo.insert(key, top);
             }
             b'q' | b'r' => {
@@ -825,7 +999,10 @@ impl<'a> Reader<'a> {
             }
             b'h' | b'j' => {
                 let key = self.memo_key(op == b'j')?;
-                let i = *self.memo.get(&key).ok_or(PickleProblem::UnknownMemo { key })?;
+                let i = *self
+                    .memo
+                    .get(&key)
+                    .ok_or(PickleProblem::UnknownMemo { key })?;
                 self.stack.push(i);
             }
             b'R' => {
@@ -842,12 +1019,22 @@ impl<'a> Reader<'a> {
 }
 
 /// The value of arena node `i`, `depth` containers down, charged to `budget`.
-fn to_value(arena: &[Node], i: usize, depth: usize, budget: &mut Budget) -> Result<PyValue, PickleProblem> {
+fn to_value(
+    arena: &[Node],
+    i: usize,
+    depth: usize,
+    budget: &mut Budget,
+) -> Result<PyValue, PickleProblem> {
     if depth > MAX_DEPTH {
         return Err(PickleProblem::TooDeep { limit: MAX_DEPTH });
     }
     budget.charge(1)?;
-    let all = |items: &[usize], budget: &mut Budget| items.iter().map(|&x| to_value(arena, x, depth + 1, budget)).collect::<Result<Vec<_>, _>>();
+    let all = |items: &[usize], budget: &mut Budget| {
+        items
+            .iter()
+            .map(|&x| to_value(arena, x, depth + 1, budget))
+            .collect::<Result<Vec<_>, _>>()
+    };
     Ok(match &arena[i] {
         Node::Scalar(v) => {
             if let PyValue::Str(s) = v {
@@ -860,16 +1047,31 @@ fn to_value(arena: &[Node], i: usize, depth: usize, budget: &mut Budget) -> Resu
         Node::List(items) => PyValue::List(all(items, budget)?),
         Node::Tuple(items) => PyValue::Tuple(all(items, budget)?),
         Node::Dict(pairs) => PyValue::Dict(
-            pairs.iter().map(|&(k, v)| Ok((to_value(arena, k, depth + 1, budget)?, to_value(arena, v, depth + 1, budget)?))).collect::<Result<_, PickleProblem>>()?,
+            pairs
+                .iter()
+                .map(|&(k, v)| {
+                    Ok((
+                        to_value(arena, k, depth + 1, budget)?,
+                        to_value(arena, v, depth + 1, budget)?,
+                    ))
+                })
+                .collect::<Result<_, PickleProblem>>()?,
         ),
         Node::Array(a) => {
             budget.charge(a.data.len())?;
             PyValue::Array(a.clone())
         }
         // A 0-d object array is how numpy.save stores a dict: unwrap it.
-        Node::ObjectArray { zero_d: true, items } if items.len() == 1 => to_value(arena, items[0], depth + 1, budget)?,
+        Node::ObjectArray {
+            zero_d: true,
+            items,
+        } if items.len() == 1 => to_value(arena, items[0], depth + 1, budget)?,
         Node::ObjectArray { items, .. } => PyValue::List(all(items, budget)?),
-        other => return Err(PickleProblem::NotAValue { found: describe(other) }),
+        other => {
+            return Err(PickleProblem::NotAValue {
+                found: describe(other),
+            })
+        }
     })
 }
 
@@ -877,14 +1079,20 @@ fn to_value(arena: &[Node], i: usize, depth: usize, budget: &mut Budget) -> Resu
 /// references: what is done to an object after it is memoised is seen through every
 /// GET of it); `what` names it in errors.
 pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
-    let fail = |at: usize, problem: PickleProblem| PickleError { file: what.to_string(), at: Some(at), problem };
+    let fail = |at: usize, problem: PickleProblem| PickleError {
+        file: what.to_string(),
+        at: Some(at),
+        problem,
+    };
     let mut reader = Reader::new(bytes);
     loop {
         let op_at = reader.at;
         match reader.step() {
             Ok(None) => {}
             Ok(Some(result)) => {
-                let Reader { arena, budget, at, .. } = &mut reader;
+                let Reader {
+                    arena, budget, at, ..
+                } = &mut reader;
                 return to_value(arena, result, 0, budget).map_err(|p| fail(*at, p));
             }
             // Where the bytes ran out.
@@ -896,20 +1104,33 @@ pub fn decode(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
 
 /// Reads a `.npy` holding a pickled object (as `numpy.save` writes a dict).
 pub fn decode_object_npy(bytes: &[u8], what: &str) -> Result<PyValue, PickleError> {
-    let wrapper = |problem: PickleProblem| PickleError { file: what.to_string(), at: None, problem };
+    let wrapper = |problem: PickleProblem| PickleError {
+        file: what.to_string(),
+        at: None,
+        problem,
+    };
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(wrapper(PickleProblem::NotNpy));
     }
     if bytes[6] != 1 && bytes.len() < 12 {
         return Err(wrapper(PickleProblem::NpyHeaderTruncated));
     }
-    let (len, start) = if bytes[6] == 1 { (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10) } else { (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12) };
+    let (len, start) = if bytes[6] == 1 {
+        (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10)
+    } else {
+        (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        )
+    };
     if bytes.len() - start < len {
         return Err(wrapper(PickleProblem::NpyHeaderTruncated));
     }
     let header = String::from_utf8_lossy(&bytes[start..start + len]);
     if !header.contains("'|O'") {
-        return Err(wrapper(PickleProblem::NotObjectArray { header: header.trim().to_string() }));
+        return Err(wrapper(PickleProblem::NotObjectArray {
+            header: header.trim().to_string(),
+        }));
     }
     decode(&bytes[start + len..], what)
 }

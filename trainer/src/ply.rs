@@ -28,11 +28,15 @@ pub enum PlyError {
 }
 
 fn format_error(path: &Path, problem: impl Into<String>) -> PlyError {
-    PlyError::Format { path: path.display().to_string(), problem: problem.into() }
+    PlyError::Format {
+        path: path.display().to_string(),
+        problem: problem.into(),
+    }
 }
 
 const REQUIRED: [&str; 14] = [
-    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+    "rot_0", "rot_1", "rot_2", "rot_3",
 ];
 
 /// Property layout of the vertex element.
@@ -46,8 +50,14 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, PlyError> {
     let end = bytes
         .windows(11)
         .position(|w| w == b"end_header\n")
-        .ok_or_else(|| format_error(path, "no 'end_header' line: not a PLY file, or the header is truncated"))?;
-    let text = std::str::from_utf8(&bytes[..end]).map_err(|_| format_error(path, "the header is not text"))?;
+        .ok_or_else(|| {
+            format_error(
+                path,
+                "no 'end_header' line: not a PLY file, or the header is truncated",
+            )
+        })?;
+    let text = std::str::from_utf8(&bytes[..end])
+        .map_err(|_| format_error(path, "the header is not text"))?;
     let mut lines = text.lines();
     if lines.next().map(str::trim) != Some("ply") {
         return Err(format_error(path, "the first line is not 'ply'"));
@@ -63,40 +73,70 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, PlyError> {
             ["comment", ..] | ["obj_info", ..] => {}
             ["format", f, _] => {
                 if *f != "binary_little_endian" {
-                    return Err(format_error(path, format!("format '{f}' is not supported (binary_little_endian only)")));
+                    return Err(format_error(
+                        path,
+                        format!("format '{f}' is not supported (binary_little_endian only)"),
+                    ));
                 }
                 format_seen = true;
             }
             ["element", "vertex", n] => {
-                vertices = Some(n.parse::<usize>().map_err(|_| format_error(path, format!("vertex count '{n}' is not a number")))?);
+                vertices = Some(n.parse::<usize>().map_err(|_| {
+                    format_error(path, format!("vertex count '{n}' is not a number"))
+                })?);
                 in_vertex = true;
             }
             ["element", other, _] => {
                 if vertices.is_some() {
-                    return Err(format_error(path, format!("element '{other}' after 'vertex' is not supported")));
+                    return Err(format_error(
+                        path,
+                        format!("element '{other}' after 'vertex' is not supported"),
+                    ));
                 }
-                return Err(format_error(path, format!("element '{other}' before 'vertex' is not supported")));
+                return Err(format_error(
+                    path,
+                    format!("element '{other}' before 'vertex' is not supported"),
+                ));
             }
             ["property", ty, name] if in_vertex => {
                 if *ty != "float" && *ty != "float32" {
-                    return Err(format_error(path, format!("property '{name}' has type '{ty}'; every property must be 'float'")));
+                    return Err(format_error(
+                        path,
+                        format!(
+                            "property '{name}' has type '{ty}'; every property must be 'float'"
+                        ),
+                    ));
                 }
                 names.push(name.to_string());
             }
-            ["property", "list", ..] => return Err(format_error(path, "list properties are not supported")),
-            _ => return Err(format_error(path, format!("unexpected header line '{line}'"))),
+            ["property", "list", ..] => {
+                return Err(format_error(path, "list properties are not supported"))
+            }
+            _ => {
+                return Err(format_error(
+                    path,
+                    format!("unexpected header line '{line}'"),
+                ))
+            }
         }
     }
     if !format_seen {
         return Err(format_error(path, "no 'format' line"));
     }
     let vertices = vertices.ok_or_else(|| format_error(path, "no 'element vertex' line"))?;
-    Ok(Header { vertices, names, data_start: end + 11 })
+    Ok(Header {
+        vertices,
+        names,
+        data_start: end + 11,
+    })
 }
 
 /// Reads a 3DGS PLY file.
 pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
-    let bytes = std::fs::read(path).map_err(|error| PlyError::Io { path: path.display().to_string(), error })?;
+    let bytes = std::fs::read(path).map_err(|error| PlyError::Io {
+        path: path.display().to_string(),
+        error,
+    })?;
     let header = parse_header(path, &bytes)?;
     let index = |name: &str| header.names.iter().position(|n| n == name);
     for name in REQUIRED {
@@ -104,23 +144,41 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
             return Err(format_error(path, format!("missing property '{name}'")));
         }
     }
-    let rest = header.names.iter().filter(|n| n.starts_with("f_rest_")).count();
+    let rest = header
+        .names
+        .iter()
+        .filter(|n| n.starts_with("f_rest_"))
+        .count();
     let degree = match rest {
         0 => 0,
         9 => 1,
         24 => 2,
         45 => 3,
-        n => return Err(format_error(path, format!("{n} f_rest properties: not an SH degree (0, 9, 24 or 45 expected)"))),
+        n => {
+            return Err(format_error(
+                path,
+                format!("{n} f_rest properties: not an SH degree (0, 9, 24 or 45 expected)"),
+            ))
+        }
     };
     let k = sh_coeffs(degree);
     let rest_index: Vec<usize> = (0..rest)
-        .map(|i| index(&format!("f_rest_{i}")).ok_or_else(|| format_error(path, format!("missing property 'f_rest_{i}'"))))
+        .map(|i| {
+            index(&format!("f_rest_{i}"))
+                .ok_or_else(|| format_error(path, format!("missing property 'f_rest_{i}'")))
+        })
         .collect::<Result<_, _>>()?;
     if header.vertices == 0 {
-        return Err(format_error(path, "no vertices (element vertex 0): nothing to render"));
+        return Err(format_error(
+            path,
+            "no vertices (element vertex 0): nothing to render",
+        ));
     }
     let stride = header.names.len() * 4;
-    let needed = header.vertices.checked_mul(stride).ok_or_else(|| format_error(path, "vertex count overflows"))?;
+    let needed = header
+        .vertices
+        .checked_mul(stride)
+        .ok_or_else(|| format_error(path, "vertex count overflows"))?;
     let data = &bytes[header.data_start..];
     if data.len() < needed {
         return Err(format_error(
@@ -128,20 +186,32 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
             format!("{} vertices of {stride} bytes need {needed} bytes of data, the file has {} (truncated, or the vertex count is too large)", header.vertices, data.len()),
         ));
     }
-    let [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3] = REQUIRED.map(|n| index(n).expect("checked above"));
+    let [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3] =
+        REQUIRED.map(|n| index(n).expect("checked above"));
     // Every value a Gaussian is made of must be a number: one NaN blanks the image.
-    let used: Vec<usize> = [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3].into_iter().chain(rest_index.iter().copied()).collect();
+    let used: Vec<usize> = [x, y, z, dc0, dc1, dc2, op, s0, s1, s2, r0, r1, r2, r3]
+        .into_iter()
+        .chain(rest_index.iter().copied())
+        .collect();
     let mut cloud = GaussianCloud::new(degree);
     let n = header.vertices;
     cloud.means.reserve(3 * n);
     for v in 0..n {
         let row = &data[v * stride..(v + 1) * stride];
-        let f = |i: usize| f32::from_le_bytes([row[4 * i], row[4 * i + 1], row[4 * i + 2], row[4 * i + 3]]);
+        let f = |i: usize| {
+            f32::from_le_bytes([row[4 * i], row[4 * i + 1], row[4 * i + 2], row[4 * i + 3]])
+        };
         if let Some(&i) = used.iter().find(|&&i| !f(i).is_finite()) {
-            return Err(format_error(path, format!("vertex {v}: property '{}' is {}", header.names[i], f(i))));
+            return Err(format_error(
+                path,
+                format!("vertex {v}: property '{}' is {}", header.names[i], f(i)),
+            ));
         }
         if [r0, r1, r2, r3].iter().all(|&i| f(i) == 0.0) {
-            return Err(format_error(path, format!("vertex {v}: the rotation (rot_0..rot_3) is the zero quaternion")));
+            return Err(format_error(
+                path,
+                format!("vertex {v}: the rotation (rot_0..rot_3) is the zero quaternion"),
+            ));
         }
         cloud.means.extend([f(x), f(y), f(z)]);
         cloud.log_scales.extend([f(s0), f(s1), f(s2)]);
@@ -160,17 +230,24 @@ pub fn read(path: &Path) -> Result<GaussianCloud, PlyError> {
 
 /// Writes a 3DGS PLY file (normals written as 0, as the reference implementation does).
 pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<(), PlyError> {
-    let io = |error| PlyError::Io { path: path.display().to_string(), error };
+    let io = |error| PlyError::Io {
+        path: path.display().to_string(),
+        error,
+    };
     let k = cloud.sh_coeffs();
     let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
     header += &format!("element vertex {}\n", cloud.len());
-    for name in ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] {
+    for name in [
+        "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+    ] {
         header += &format!("property float {name}\n");
     }
     for i in 0..3 * (k - 1) {
         header += &format!("property float f_rest_{i}\n");
     }
-    for name in ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"] {
+    for name in [
+        "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+    ] {
         header += &format!("property float {name}\n");
     }
     header += "end_header\n";

@@ -7,9 +7,9 @@ use std::sync::OnceLock;
 
 use drape_engine::Context;
 
-use crate::avatar::run::RunInfo;
 use crate::avatar::config::TrainConfig;
 use crate::avatar::inputs::load_sequence;
+use crate::avatar::run::RunInfo;
 use crate::avatar::train::train;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::dataset::synth::{generate, SynthOptions};
@@ -19,7 +19,13 @@ pub const TINY_RUN_TOML: &str = include_str!("../../tests/fixtures/tiny-run.toml
 
 /// The synthetic sequence the tiny run is trained on.
 pub fn tiny_synth_options() -> SynthOptions {
-    SynthOptions { width: 32, height: 32, frames: 4, cameras: 2, ..SynthOptions::default() }
+    SynthOptions {
+        width: 32,
+        height: 32,
+        frames: 4,
+        cameras: 2,
+        ..SynthOptions::default()
+    }
 }
 
 /// Trains the tiny run into `dir/run` on a sequence made in `dir/synth`.
@@ -27,9 +33,18 @@ pub fn train_tiny_run(ctx: &Context, dir: &Path) -> crate::Result<PathBuf> {
     let data = dir.join("synth");
     generate(&data, &tiny_synth_options(), &mut |_, _, _| {})?;
     let seq = load_sequence(&data, 0)?;
-    let config = TrainConfig::quick().with_toml(TINY_RUN_TOML, Path::new("tests/fixtures/tiny-run.toml"))?;
+    let config =
+        TrainConfig::quick().with_toml(TINY_RUN_TOML, Path::new("tests/fixtures/tiny-run.toml"))?;
     let run = dir.join("run");
-    train(ctx, &seq, default_body(&BodyOptions::default()), &config, &run, false, &mut |_| {})?;
+    train(
+        ctx,
+        &seq,
+        default_body(&BodyOptions::default()),
+        &config,
+        &run,
+        false,
+        &mut |_| {},
+    )?;
     RunInfo::new(&data, None).write(&run)?;
     Ok(run)
 }
@@ -40,7 +55,11 @@ pub fn tiny_run(ctx: &Context) -> &'static Path {
     static RUN: OnceLock<PathBuf> = OnceLock::new();
     RUN.get_or_init(|| {
         if let Some(dir) = std::env::var_os("DRAPE_TEST_RUN").map(PathBuf::from) {
-            assert!(dir.join("model.npz").is_file(), "DRAPE_TEST_RUN={} holds no model.npz", dir.display());
+            assert!(
+                dir.join("model.npz").is_file(),
+                "DRAPE_TEST_RUN={} holds no model.npz",
+                dir.display()
+            );
             return dir;
         }
         let dir = std::env::temp_dir().join(format!("drape-tiny-run-{}", std::process::id()));

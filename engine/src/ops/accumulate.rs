@@ -76,9 +76,20 @@ impl FixedPointScratch {
         let bytes = 4 * scratch_words(capacity);
         let binding = ctx.info().max_storage_buffer_range;
         if bytes > binding {
-            return Err(EngineError::too_large(format!("bytes of the fixed-point scratch of {label}"), bytes, binding, "the device's maxStorageBufferRange"));
+            return Err(EngineError::too_large(
+                format!("bytes of the fixed-point scratch of {label}"),
+                bytes,
+                binding,
+                "the device's maxStorageBufferRange",
+            ));
         }
-        Ok(Self { buffer: ctx.create_buffer(&format!("{label} fixed-point scratch"), BufferDesc::gpu_only(bytes))?, capacity })
+        Ok(Self {
+            buffer: ctx.create_buffer(
+                &format!("{label} fixed-point scratch"),
+                BufferDesc::gpu_only(bytes),
+            )?,
+            capacity,
+        })
     }
 
     /// The most values it holds.
@@ -98,15 +109,27 @@ impl FixedPointScratch {
 
     /// Records `out[i] = value i` for the first `count` values (overwriting `out`), or
     /// NaN everywhere if a non-finite value was added.
-    pub fn record_resolve<'a>(&'a self, rec: &mut Recording<'a>, out: &'a Buffer, count: u32) -> Result<()> {
-        assert!(count <= self.capacity, "resolving {count} values from a scratch of {}", self.capacity);
+    pub fn record_resolve<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        out: &'a Buffer,
+        count: u32,
+    ) -> Result<()> {
+        assert!(
+            count <= self.capacity,
+            "resolving {count} values from a scratch of {}",
+            self.capacity
+        );
         rec.dispatch(
             "fixed_point.resolve",
             kernels::fixed_point::Resolve {
                 scratch: self.buffer.read(),
                 out: out.write(),
             },
-            &ResolveParams { count, _pad: [0; 3] },
+            &ResolveParams {
+                count,
+                _pad: [0; 3],
+            },
             flat_grid(count),
         )
     }

@@ -33,12 +33,20 @@ pub struct LrSchedule {
 impl LrSchedule {
     /// The same rate at every step.
     pub fn constant(lr: f32) -> Self {
-        Self { initial: lr, final_lr: lr, steps: 1 }
+        Self {
+            initial: lr,
+            final_lr: lr,
+            steps: 1,
+        }
     }
 
     /// From `initial` to `final_lr` over `steps` steps (at least 1).
     pub fn exponential(initial: f32, final_lr: f32, steps: u32) -> Self {
-        Self { initial, final_lr, steps: steps.max(1) }
+        Self {
+            initial,
+            final_lr,
+            steps: steps.max(1),
+        }
     }
 
     /// The rate at `step` (0-based).
@@ -55,7 +63,16 @@ impl LrSchedule {
 /// corrections `1 - β^t`.
 pub fn step_params(len: u32, lr: f32, beta1: f32, beta2: f32, eps: f32, t: u32) -> AdamParams {
     let t = t as i32;
-    AdamParams { len, lr, beta1, beta2, eps, bias1: 1.0 - beta1.powi(t), bias2: 1.0 - beta2.powi(t), _pad: 0 }
+    AdamParams {
+        len,
+        lr,
+        beta1,
+        beta2,
+        eps,
+        bias1: 1.0 - beta1.powi(t),
+        bias2: 1.0 - beta2.powi(t),
+        _pad: 0,
+    }
 }
 
 /// One parameter group: `len` floats of some parameter buffer.
@@ -82,13 +99,29 @@ pub struct AdamGroup {
 impl AdamGroup {
     /// Zeroed moments for `len` floats; β = (0.9, 0.999), ε = 1e-15 (HUGS).
     pub fn new(ctx: &Context, name: &str, len: usize, schedule: LrSchedule) -> Result<Self> {
-        let m = ctx.create_buffer(&format!("adam {name} m"), BufferDesc::gpu_only(len as u64 * 4))?;
-        let v = ctx.create_buffer(&format!("adam {name} v"), BufferDesc::gpu_only(len as u64 * 4))?;
+        let m = ctx.create_buffer(
+            &format!("adam {name} m"),
+            BufferDesc::gpu_only(len as u64 * 4),
+        )?;
+        let v = ctx.create_buffer(
+            &format!("adam {name} v"),
+            BufferDesc::gpu_only(len as u64 * 4),
+        )?;
         let mut rec = ctx.record("adam zero moments")?;
         rec.fill(&m, 0);
         rec.fill(&v, 0);
         rec.submit_and_wait()?;
-        Ok(Self { name: name.to_string(), len, schedule, beta1: 0.9, beta2: 0.999, eps: 1e-15, step: Cell::new(0), m, v })
+        Ok(Self {
+            name: name.to_string(),
+            len,
+            schedule,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-15,
+            step: Cell::new(0),
+            m,
+            v,
+        })
     }
 
     /// Steps taken so far.
@@ -103,7 +136,12 @@ impl AdamGroup {
 
     /// Records one step on `params` from `grads` (both at least `len` floats). A
     /// non-finite gradient element leaves its parameter and moments unchanged.
-    pub fn record_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer) -> Result<()> {
+    pub fn record_step<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        params: &'a Buffer,
+        grads: &'a Buffer,
+    ) -> Result<()> {
         let pc = self.next_step_params(params, grads);
         self.advance();
         rec.dispatch(
@@ -124,7 +162,13 @@ impl AdamGroup {
     /// count does not advance: after the submission, call [`advance`](Self::advance)
     /// if the guard stayed down (the next step's bias correction and learning rate
     /// then follow the steps applied, as with a step the host skipped).
-    pub fn record_guarded_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a Buffer, grads: &'a Buffer, guard: &'a Buffer) -> Result<()> {
+    pub fn record_guarded_step<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        params: &'a Buffer,
+        grads: &'a Buffer,
+        guard: &'a Buffer,
+    ) -> Result<()> {
         let pc = self.next_step_params(params, grads);
         rec.dispatch(
             "adam.step",
@@ -143,8 +187,20 @@ impl AdamGroup {
     /// The push constants of the next step on `params` from `grads`: the learning rate
     /// of the steps taken so far, the bias corrections of step `steps() + 1`.
     fn next_step_params(&self, params: &Buffer, grads: &Buffer) -> AdamParams {
-        assert!(params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4, "Adam group '{}': buffers shorter than {} floats", self.name, self.len);
-        step_params(self.len as u32, self.lr(), self.beta1, self.beta2, self.eps, self.step.get() + 1)
+        assert!(
+            params.size >= self.len as u64 * 4 && grads.size >= self.len as u64 * 4,
+            "Adam group '{}': buffers shorter than {} floats",
+            self.name,
+            self.len
+        );
+        step_params(
+            self.len as u32,
+            self.lr(),
+            self.beta1,
+            self.beta2,
+            self.eps,
+            self.step.get() + 1,
+        )
     }
 
     /// Counts a step of [`record_guarded_step`](Self::record_guarded_step) the GPU
@@ -155,12 +211,19 @@ impl AdamGroup {
 
     /// The moments, for checkpoints: (m, v).
     pub fn read_moments(&mut self, ctx: &Context) -> Result<(Vec<f32>, Vec<f32>)> {
-        Ok((ctx.read_buffer(&mut self.m, self.len)?, ctx.read_buffer(&mut self.v, self.len)?))
+        Ok((
+            ctx.read_buffer(&mut self.m, self.len)?,
+            ctx.read_buffer(&mut self.v, self.len)?,
+        ))
     }
 
     /// Restores moments and the step count from a checkpoint.
     pub fn restore(&mut self, ctx: &Context, m: &[f32], v: &[f32], step: u32) -> Result<()> {
-        assert!(m.len() == self.len && v.len() == self.len, "Adam group '{}': moments of the wrong length", self.name);
+        assert!(
+            m.len() == self.len && v.len() == self.len,
+            "Adam group '{}': moments of the wrong length",
+            self.name
+        );
         ctx.write_buffer(&mut self.m, m)?;
         ctx.write_buffer(&mut self.v, v)?;
         self.step.set(step);
@@ -185,7 +248,13 @@ pub struct LearningRates {
 
 impl LearningRates {
     fn in_binding_order(&self) -> [f32; 5] {
-        [self.means, self.log_scales, self.quats, self.opacity_logits, self.sh]
+        [
+            self.means,
+            self.log_scales,
+            self.quats,
+            self.opacity_logits,
+            self.sh,
+        ]
     }
 }
 
@@ -201,12 +270,25 @@ impl GaussianAdam {
     /// ε = 1e-15 (as HUGS uses).
     pub fn new(ctx: &Context, count: usize, sh_degree: u32, lrs: LearningRates) -> Result<Self> {
         let n = count;
-        let lens = [3 * n, 3 * n, 4 * n, n, 3 * drape_shared::splat::layout::sh_coeffs(sh_degree) * n];
+        let lens = [
+            3 * n,
+            3 * n,
+            4 * n,
+            n,
+            3 * drape_shared::splat::layout::sh_coeffs(sh_degree) * n,
+        ];
         let names = ["means", "log_scales", "quats", "opacity_logits", "sh"];
         let lrs = lrs.in_binding_order();
         let group = |i: usize| AdamGroup::new(ctx, names[i], lens[i], LrSchedule::constant(lrs[i]));
         let groups = [group(0)?, group(1)?, group(2)?, group(3)?, group(4)?];
-        let count = u32::try_from(count).map_err(|_| crate::error::EngineError::too_large("Gaussians", count as u64, u64::from(u32::MAX), "u32 indices"))?;
+        let count = u32::try_from(count).map_err(|_| {
+            crate::error::EngineError::too_large(
+                "Gaussians",
+                count as u64,
+                u64::from(u32::MAX),
+                "u32 indices",
+            )
+        })?;
         Ok(Self { count, groups })
     }
 
@@ -216,7 +298,12 @@ impl GaussianAdam {
     }
 
     /// Records one step of every group (independent passes: no barriers between them).
-    pub fn record_step<'a>(&'a self, rec: &mut Recording<'a>, params: &'a GaussianBuffers, grads: &'a GaussianBuffers) -> Result<()> {
+    pub fn record_step<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        params: &'a GaussianBuffers,
+        grads: &'a GaussianBuffers,
+    ) -> Result<()> {
         assert_eq!(params.count, grads.count, "gradients are for another cloud");
         assert_eq!(params.count, self.count, "Adam state is for another cloud");
         for ((group, p), g) in self.groups.iter().zip(params.all()).zip(grads.all()) {

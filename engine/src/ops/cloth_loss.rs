@@ -14,7 +14,8 @@
 //! grid above [`AUTO_GRID_PAIRS`] point pairs.
 
 use drape_shared::cloth_loss::{
-    arap_edge_grad, chamfer_pair_grad, distance2, geman_mcclure, ArapParams, ChamferParams, GridParams, CHAMFER_CHUNK, CHAMFER_FINISH, CHAMFER_LAST, CHAMFER_MERGE, CHAMFER_OWN_TERM,
+    arap_edge_grad, chamfer_pair_grad, distance2, geman_mcclure, ArapParams, ChamferParams,
+    GridParams, CHAMFER_CHUNK, CHAMFER_FINISH, CHAMFER_LAST, CHAMFER_MERGE, CHAMFER_OWN_TERM,
     GRID_BOUNDS_WORDS, GRID_CELL_BITS, GRID_MAX_CELLS,
 };
 use drape_shared::real::Real;
@@ -78,16 +79,61 @@ impl GridScratch {
     /// Records the nearest of `points` (`np`) to each of `queries` (`nq`) into
     /// `index_out` and `d2_out`.
     #[allow(clippy::too_many_arguments)]
-    fn record_nearest<'a>(&'a self, rec: &mut Recording<'a>, queries: &'a Buffer, nq: u32, points: &'a Buffer, np: u32, index_out: &'a Buffer, d2_out: &'a Buffer) -> Result<()> {
-        let p = GridParams { queries: np, points: np, _pad: [0; 2] };
+    fn record_nearest<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        queries: &'a Buffer,
+        nq: u32,
+        points: &'a Buffer,
+        np: u32,
+        index_out: &'a Buffer,
+        d2_out: &'a Buffer,
+    ) -> Result<()> {
+        let p = GridParams {
+            queries: np,
+            points: np,
+            _pad: [0; 2],
+        };
         rec.fill(&self.bounds, 0);
         rec.fill(&self.start, 0);
         rec.fill(&self.end, 0);
-        rec.dispatch("chamfer.grid_bounds", kernels::cloth_loss::Bounds { points: points.read(), bounds: self.bounds.write() }, &p, grid(np))?;
-        rec.dispatch("chamfer.grid_keys", kernels::cloth_loss::CellKeys { points: points.read(), bounds: self.bounds.read(), keys: self.keys.write(), values: self.order.write() }, &p, grid(np))?;
-        self.sort.record(rec, &self.keys, &self.order, np, GRID_CELL_BITS)?;
-        rec.dispatch("chamfer.grid_ranges", kernels::cloth_loss::CellRanges { keys: self.keys.read(), start: self.start.write(), end: self.end.write() }, &p, grid(np))?;
-        let q = GridParams { queries: nq, points: np, _pad: [0; 2] };
+        rec.dispatch(
+            "chamfer.grid_bounds",
+            kernels::cloth_loss::Bounds {
+                points: points.read(),
+                bounds: self.bounds.write(),
+            },
+            &p,
+            grid(np),
+        )?;
+        rec.dispatch(
+            "chamfer.grid_keys",
+            kernels::cloth_loss::CellKeys {
+                points: points.read(),
+                bounds: self.bounds.read(),
+                keys: self.keys.write(),
+                values: self.order.write(),
+            },
+            &p,
+            grid(np),
+        )?;
+        self.sort
+            .record(rec, &self.keys, &self.order, np, GRID_CELL_BITS)?;
+        rec.dispatch(
+            "chamfer.grid_ranges",
+            kernels::cloth_loss::CellRanges {
+                keys: self.keys.read(),
+                start: self.start.write(),
+                end: self.end.write(),
+            },
+            &p,
+            grid(np),
+        )?;
+        let q = GridParams {
+            queries: nq,
+            points: np,
+            _pad: [0; 2],
+        };
         rec.dispatch(
             "chamfer.grid_search",
             kernels::cloth_loss::NearestGrid {
@@ -107,9 +153,29 @@ impl GridScratch {
         // workgroup with none returns at once.
         let chunks = np.div_ceil(CHAMFER_CHUNK);
         for (k, offset) in (0..np).step_by(CHAMFER_CHUNK as usize).enumerate() {
-            let last = if k + 1 == chunks as usize { CHAMFER_LAST } else { 0 };
-            let f = ChamferParams { queries: nq, points: np, offset, flags: CHAMFER_FINISH | last, ..Default::default() };
-            rec.dispatch("chamfer.grid_finish", kernels::cloth_loss::Nearest { queries: queries.read(), points: points.read(), index_out: index_out.write(), d2_out: d2_out.write() }, &f, grid(nq))?;
+            let last = if k + 1 == chunks as usize {
+                CHAMFER_LAST
+            } else {
+                0
+            };
+            let f = ChamferParams {
+                queries: nq,
+                points: np,
+                offset,
+                flags: CHAMFER_FINISH | last,
+                ..Default::default()
+            };
+            rec.dispatch(
+                "chamfer.grid_finish",
+                kernels::cloth_loss::Nearest {
+                    queries: queries.read(),
+                    points: points.read(),
+                    index_out: index_out.write(),
+                    d2_out: d2_out.write(),
+                },
+                &f,
+                grid(nq),
+            )?;
         }
         Ok(())
     }
@@ -151,8 +217,15 @@ impl Chamfer {
     }
 
     /// A plan that finds nearest neighbours as `search` says.
-    pub fn with_search(ctx: &Context, max_pred: u32, max_target: u32, search: NearestSearch) -> Result<Self> {
-        let b = |name: &str, n: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(n.max(1))));
+    pub fn with_search(
+        ctx: &Context,
+        max_pred: u32,
+        max_target: u32,
+        search: NearestSearch,
+    ) -> Result<Self> {
+        let b = |name: &str, n: u32| {
+            ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(n.max(1))))
+        };
         let may_grid = match search {
             NearestSearch::BruteForce => false,
             NearestSearch::Grid => true,
@@ -160,7 +233,11 @@ impl Chamfer {
         };
         Ok(Self {
             search,
-            grid: if may_grid { Some(GridScratch::new(ctx, max_pred, max_target)?) } else { None },
+            grid: if may_grid {
+                Some(GridScratch::new(ctx, max_pred, max_target)?)
+            } else {
+                None
+            },
             max_pred,
             max_target,
             pred_nearest: b("chamfer pred nearest", max_pred)?,
@@ -176,7 +253,10 @@ impl Chamfer {
     /// [`Chamfer::record_readback`] in the recording that computed them,
     /// [`Chamfer::read_value`] reads them without a submission or a wait of its own.
     pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
-        self.d2_mirrors = Some([Mirror::new(ctx, &self.pred_d2)?, Mirror::new(ctx, &self.target_d2)?]);
+        self.d2_mirrors = Some([
+            Mirror::new(ctx, &self.pred_d2)?,
+            Mirror::new(ctx, &self.target_d2)?,
+        ]);
         Ok(())
     }
 
@@ -195,22 +275,50 @@ impl Chamfer {
     /// An empty set is an error (the distance has no value), as is one larger than
     /// this scratch was made for.
     #[allow(clippy::too_many_arguments)]
-    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, n: u32, target: &'a Buffer, m: u32, sigma: f32, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        pred: &'a Buffer,
+        n: u32,
+        target: &'a Buffer,
+        m: u32,
+        sigma: f32,
+        grad: Option<(&'a Buffer, f32)>,
+    ) -> Result<()> {
         if n == 0 {
-            return Err(EngineError::Empty { what: "the predicted point set", why: "the Chamfer distance needs a point on each side" });
+            return Err(EngineError::Empty {
+                what: "the predicted point set",
+                why: "the Chamfer distance needs a point on each side",
+            });
         }
         if m == 0 {
-            return Err(EngineError::Empty { what: "the target point set", why: "the Chamfer distance needs a point on each side" });
+            return Err(EngineError::Empty {
+                what: "the target point set",
+                why: "the Chamfer distance needs a point on each side",
+            });
         }
         if n > self.max_pred {
-            return Err(EngineError::too_large("predicted Chamfer points", n.into(), self.max_pred.into(), "the Chamfer plan"));
+            return Err(EngineError::too_large(
+                "predicted Chamfer points",
+                n.into(),
+                self.max_pred.into(),
+                "the Chamfer plan",
+            ));
         }
         if m > self.max_target {
-            return Err(EngineError::too_large("target Chamfer points", m.into(), self.max_target.into(), "the Chamfer plan"));
+            return Err(EngineError::too_large(
+                "target Chamfer points",
+                m.into(),
+                self.max_target.into(),
+                "the Chamfer plan",
+            ));
         }
         let sigma2 = sigma * sigma;
         self.last.set((n, m, sigma2));
-        self.d2_mirrors.iter().flatten().for_each(Mirror::mark_stale);
+        self.d2_mirrors
+            .iter()
+            .flatten()
+            .for_each(Mirror::mark_stale);
         let this = self;
         let use_grid = match self.search {
             NearestSearch::BruteForce => false,
@@ -219,9 +327,24 @@ impl Chamfer {
         };
         if let (true, Some(gs)) = (use_grid, &this.grid) {
             gs.record_nearest(rec, pred, n, target, m, &this.pred_nearest, &this.pred_d2)?;
-            gs.record_nearest(rec, target, m, pred, n, &this.target_nearest, &this.target_d2)?;
+            gs.record_nearest(
+                rec,
+                target,
+                m,
+                pred,
+                n,
+                &this.target_nearest,
+                &this.target_d2,
+            )?;
             if let Some((g, lambda)) = grad {
-                let p = ChamferParams { queries: m, points: n, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, ..Default::default() };
+                let p = ChamferParams {
+                    queries: m,
+                    points: n,
+                    sigma2,
+                    scale_pred: 0.5 * lambda / n as f32,
+                    scale_target: 0.5 * lambda / m as f32,
+                    ..Default::default()
+                };
                 gs.target_terms.record_clear(rec);
                 rec.dispatch(
                     "chamfer.grad_scatter",
@@ -234,7 +357,11 @@ impl Chamfer {
                     &p,
                     grid(m),
                 )?;
-                let q = ChamferParams { queries: n, points: m, ..p };
+                let q = ChamferParams {
+                    queries: n,
+                    points: m,
+                    ..p
+                };
                 rec.dispatch(
                     "chamfer.grad_gather",
                     kernels::cloth_loss::ChamferGradGather {
@@ -254,17 +381,71 @@ impl Chamfer {
         // merging with the chunks before; the chunks of one search are ordered by
         // barriers, the two directions are independent.
         for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
-            let p = ChamferParams { queries: n, points: m, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.dispatch("chamfer.nearest_pred", kernels::cloth_loss::Nearest { queries: pred.read(), points: target.read(), index_out: this.pred_nearest.write(), d2_out: this.pred_d2.write() }, &p, grid(n))?;
+            let p = ChamferParams {
+                queries: n,
+                points: m,
+                sigma2,
+                offset,
+                flags: if k > 0 { CHAMFER_MERGE } else { 0 },
+                ..Default::default()
+            };
+            rec.dispatch(
+                "chamfer.nearest_pred",
+                kernels::cloth_loss::Nearest {
+                    queries: pred.read(),
+                    points: target.read(),
+                    index_out: this.pred_nearest.write(),
+                    d2_out: this.pred_d2.write(),
+                },
+                &p,
+                grid(n),
+            )?;
         }
         for (k, offset) in (0..n).step_by(CHAMFER_CHUNK as usize).enumerate() {
-            let p = ChamferParams { queries: m, points: n, sigma2, offset, flags: if k > 0 { CHAMFER_MERGE } else { 0 }, ..Default::default() };
-            rec.dispatch("chamfer.nearest_target", kernels::cloth_loss::Nearest { queries: target.read(), points: pred.read(), index_out: this.target_nearest.write(), d2_out: this.target_d2.write() }, &p, grid(m))?;
+            let p = ChamferParams {
+                queries: m,
+                points: n,
+                sigma2,
+                offset,
+                flags: if k > 0 { CHAMFER_MERGE } else { 0 },
+                ..Default::default()
+            };
+            rec.dispatch(
+                "chamfer.nearest_target",
+                kernels::cloth_loss::Nearest {
+                    queries: target.read(),
+                    points: pred.read(),
+                    index_out: this.target_nearest.write(),
+                    d2_out: this.target_d2.write(),
+                },
+                &p,
+                grid(m),
+            )?;
         }
         if let Some((g, lambda)) = grad {
             for (k, offset) in (0..m).step_by(CHAMFER_CHUNK as usize).enumerate() {
-                let p = ChamferParams { queries: n, points: m, sigma2, scale_pred: 0.5 * lambda / n as f32, scale_target: 0.5 * lambda / m as f32, offset, flags: if k == 0 { CHAMFER_OWN_TERM } else { 0 }, _pad: 0 };
-                rec.dispatch("chamfer.grad", kernels::cloth_loss::ChamferGrad { pred: pred.read(), target: target.read(), pred_nearest: this.pred_nearest.read(), target_nearest: this.target_nearest.read(), grad: g.write() }, &p, grid(n))?;
+                let p = ChamferParams {
+                    queries: n,
+                    points: m,
+                    sigma2,
+                    scale_pred: 0.5 * lambda / n as f32,
+                    scale_target: 0.5 * lambda / m as f32,
+                    offset,
+                    flags: if k == 0 { CHAMFER_OWN_TERM } else { 0 },
+                    _pad: 0,
+                };
+                rec.dispatch(
+                    "chamfer.grad",
+                    kernels::cloth_loss::ChamferGrad {
+                        pred: pred.read(),
+                        target: target.read(),
+                        pred_nearest: this.pred_nearest.read(),
+                        target_nearest: this.target_nearest.read(),
+                        grad: g.write(),
+                    },
+                    &p,
+                    grid(n),
+                )?;
             }
         }
         Ok(())
@@ -287,14 +468,22 @@ impl Chamfer {
     /// The nearest-neighbour indices of the last evaluation: (pred → target, target → pred).
     pub fn read_nearest(&mut self, ctx: &Context) -> Result<(Vec<u32>, Vec<u32>)> {
         let (n, m, _) = self.last.get();
-        Ok((ctx.read_buffer(&mut self.pred_nearest, n as usize)?, ctx.read_buffer(&mut self.target_nearest, m as usize)?))
+        Ok((
+            ctx.read_buffer(&mut self.pred_nearest, n as usize)?,
+            ctx.read_buffer(&mut self.target_nearest, m as usize)?,
+        ))
     }
 }
 
 fn chamfer_value(pred_d2: &[f32], target_d2: &[f32], sigma2: f64) -> ChamferValue {
-    let mean = |v: &[f32], f: &dyn Fn(f64) -> f64| v.iter().map(|&d| f(f64::from(d))).sum::<f64>() / v.len().max(1) as f64;
+    let mean = |v: &[f32], f: &dyn Fn(f64) -> f64| {
+        v.iter().map(|&d| f(f64::from(d))).sum::<f64>() / v.len().max(1) as f64
+    };
     let rho = |d2: f64| geman_mcclure(d2, sigma2).0;
-    ChamferValue { robust: 0.5 * (mean(pred_d2, &rho) + mean(target_d2, &rho)), distance: 0.5 * (mean(pred_d2, &f64::sqrt) + mean(target_d2, &f64::sqrt)) }
+    ChamferValue {
+        robust: 0.5 * (mean(pred_d2, &rho) + mean(target_d2, &rho)),
+        distance: 0.5 * (mean(pred_d2, &f64::sqrt) + mean(target_d2, &f64::sqrt)),
+    }
 }
 
 /// The edge graph of a point set and scratch for its ARAP term.
@@ -317,19 +506,36 @@ impl Arap {
     /// checked) in both the edge-list and the per-vertex (CSR) form.
     pub fn new(ctx: &Context, vertices: u32, edges: &[[u32; 2]]) -> Result<Self> {
         for (k, e) in edges.iter().enumerate() {
-            assert!(e[0] < vertices && e[1] < vertices && e[0] != e[1], "ARAP edge {k} {e:?} is not a pair of distinct vertices below {vertices}");
+            assert!(
+                e[0] < vertices && e[1] < vertices && e[0] != e[1],
+                "ARAP edge {k} {e:?} is not a pair of distinct vertices below {vertices}"
+            );
         }
         let (offsets, neighbours) = csr(vertices as usize, edges);
-        let b = |name: &str, words: usize| ctx.create_buffer(name, BufferDesc::gpu_only(4 * words.max(1) as u64));
+        let b = |name: &str, words: usize| {
+            ctx.create_buffer(name, BufferDesc::gpu_only(4 * words.max(1) as u64))
+        };
         let mut edge_list = b("arap edges", 2 * edges.len())?;
         let mut off = b("arap offsets", offsets.len())?;
         let mut nb = b("arap neighbours", neighbours.len())?;
         if !edges.is_empty() {
-            ctx.write_buffer(&mut edge_list, &edges.iter().flatten().copied().collect::<Vec<u32>>())?;
+            ctx.write_buffer(
+                &mut edge_list,
+                &edges.iter().flatten().copied().collect::<Vec<u32>>(),
+            )?;
             ctx.write_buffer(&mut nb, &neighbours)?;
         }
         ctx.write_buffer(&mut off, &offsets)?;
-        Ok(Self { vertices, edges: edges.len() as u32, edge_list, offsets: off, neighbours: nb, lengths: b("arap lengths", edges.len())?, stats: b("arap stats", 2)?, stats_mirror: None })
+        Ok(Self {
+            vertices,
+            edges: edges.len() as u32,
+            edge_list,
+            offsets: off,
+            neighbours: nb,
+            lengths: b("arap lengths", edges.len())?,
+            stats: b("arap stats", 2)?,
+            stats_mirror: None,
+        })
     }
 
     /// Keeps a host copy of the statistics: after [`Arap::record_readback`] in the
@@ -350,15 +556,53 @@ impl Arap {
 
     /// Records the edge-length variance of `positions` (this graph's vertices, xyz)
     /// and, with `grad = Some((buffer, λ))`, adds `λ ∂var/∂positions` to it.
-    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, positions: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        positions: &'a Buffer,
+        grad: Option<(&'a Buffer, f32)>,
+    ) -> Result<()> {
         if let Some(m) = &self.stats_mirror {
             m.mark_stale();
         }
-        let p = ArapParams { edges: self.edges, vertices: self.vertices, scale: grad.map_or(0.0, |g| g.1), _pad: 0 };
-        rec.dispatch("arap.lengths", kernels::cloth_loss::ArapLengths { positions: positions.read(), edges: self.edge_list.read(), lengths: self.lengths.write() }, &p, grid(self.edges))?;
-        rec.dispatch("arap.stats", kernels::cloth_loss::ArapStats { lengths: self.lengths.read(), stats: self.stats.write() }, &p, [1, 1, 1])?;
+        let p = ArapParams {
+            edges: self.edges,
+            vertices: self.vertices,
+            scale: grad.map_or(0.0, |g| g.1),
+            _pad: 0,
+        };
+        rec.dispatch(
+            "arap.lengths",
+            kernels::cloth_loss::ArapLengths {
+                positions: positions.read(),
+                edges: self.edge_list.read(),
+                lengths: self.lengths.write(),
+            },
+            &p,
+            grid(self.edges),
+        )?;
+        rec.dispatch(
+            "arap.stats",
+            kernels::cloth_loss::ArapStats {
+                lengths: self.lengths.read(),
+                stats: self.stats.write(),
+            },
+            &p,
+            [1, 1, 1],
+        )?;
         if let Some((g, _)) = grad {
-            rec.dispatch("arap.grad", kernels::cloth_loss::ArapGrad { positions: positions.read(), offsets: self.offsets.read(), neighbours: self.neighbours.read(), stats: self.stats.read(), grad: g.write() }, &p, grid(self.vertices))?;
+            rec.dispatch(
+                "arap.grad",
+                kernels::cloth_loss::ArapGrad {
+                    positions: positions.read(),
+                    offsets: self.offsets.read(),
+                    neighbours: self.neighbours.read(),
+                    stats: self.stats.read(),
+                    grad: g.write(),
+                },
+                &p,
+                grid(self.vertices),
+            )?;
         }
         Ok(())
     }
@@ -446,9 +690,15 @@ pub mod reference {
             return (F::zero(), grad);
         }
         let e = F::of(edges.len() as f32);
-        let lengths: Vec<F> = edges.iter().map(|&[a, b]| distance2(positions[a as usize], positions[b as usize]).sqrt()).collect();
+        let lengths: Vec<F> = edges
+            .iter()
+            .map(|&[a, b]| distance2(positions[a as usize], positions[b as usize]).sqrt())
+            .collect();
         let mean = lengths.iter().fold(F::zero(), |s, &l| s + l) / e;
-        let var = lengths.iter().fold(F::zero(), |s, &l| s + (l - mean) * (l - mean)) / e;
+        let var = lengths
+            .iter()
+            .fold(F::zero(), |s, &l| s + (l - mean) * (l - mean))
+            / e;
         for &[a, b] in edges {
             let (pa, pb) = (positions[a as usize], positions[b as usize]);
             let ga = arap_edge_grad(pa, pb, mean, e, F::one());

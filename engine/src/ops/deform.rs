@@ -14,8 +14,12 @@
 //! (a workgroup each, in a fixed order),
 //! and [`sum_transform_partials`] adds the chunks in order in f64 on the host.
 
+use drape_shared::deform::{
+    deform_bwd, deform_fwd, pose_blend_basis_grad, pose_blend_offset, transform_grad_add,
+    DeformGrad, DeformInput, DeformOutput, DeformParams, PoseBlendParams, TRANSFORM_GRAD_CHUNK,
+    TRANSFORM_TERMS,
+};
 pub use drape_shared::deform::{POSE_BLEND_FLOATS, POSE_FEATURES};
-use drape_shared::deform::{deform_bwd, deform_fwd, pose_blend_basis_grad, pose_blend_offset, transform_grad_add, DeformGrad, DeformInput, DeformOutput, DeformParams, PoseBlendParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
 use drape_shared::real::Real;
 use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 
@@ -49,8 +53,20 @@ pub struct DeformInputs<'a> {
 /// `log_scale_offset` (`ln` of the frame's global scale) is added to every posed
 /// log-scale; the transforms carry the same scale for the means.
 #[allow(clippy::too_many_arguments)]
-pub fn record_forward<'a>(rec: &mut Recording<'a>, inputs: &DeformInputs<'a>, posed_means: &'a Buffer, posed_quats: &'a Buffer, posed_log_scales: &'a Buffer, count: u32, log_scale_offset: f32) -> Result<()> {
-    let p = DeformParams { count, log_scale_offset, _pad: [0; 2] };
+pub fn record_forward<'a>(
+    rec: &mut Recording<'a>,
+    inputs: &DeformInputs<'a>,
+    posed_means: &'a Buffer,
+    posed_quats: &'a Buffer,
+    posed_log_scales: &'a Buffer,
+    count: u32,
+    log_scale_offset: f32,
+) -> Result<()> {
+    let p = DeformParams {
+        count,
+        log_scale_offset,
+        _pad: [0; 2],
+    };
     rec.dispatch(
         "deform.fwd",
         kernels::deform::DeformFwd {
@@ -103,10 +119,29 @@ pub fn transform_partials_len(count: u32) -> usize {
 /// Records the per-chunk sums of `∂L/∂A_j` from the backward's terms (`weights`:
 /// the decoded skinning weights, n × 24) into `partials`
 /// ([`transform_partials_len`] floats).
-pub fn record_transform_grad<'a>(rec: &mut Recording<'a>, weights: &'a Buffer, terms: &'a Buffer, partials: &'a Buffer, count: u32) -> Result<()> {
-    let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
+pub fn record_transform_grad<'a>(
+    rec: &mut Recording<'a>,
+    weights: &'a Buffer,
+    terms: &'a Buffer,
+    partials: &'a Buffer,
+    count: u32,
+) -> Result<()> {
+    let p = DeformParams {
+        count,
+        log_scale_offset: 0.0,
+        _pad: [0; 2],
+    };
     // One workgroup per (chunk, joint); 65,535 chunks are 67M Gaussians.
-    rec.dispatch("deform.transform_grad", kernels::deform::DeformTransformGrad { weights: weights.read(), terms: terms.read(), partials: partials.write() }, &p, [count.div_ceil(TRANSFORM_GRAD_CHUNK), SKIN_JOINTS as u32, 1])
+    rec.dispatch(
+        "deform.transform_grad",
+        kernels::deform::DeformTransformGrad {
+            weights: weights.read(),
+            terms: terms.read(),
+            partials: partials.write(),
+        },
+        &p,
+        [count.div_ceil(TRANSFORM_GRAD_CHUNK), SKIN_JOINTS as u32, 1],
+    )
 }
 
 /// `∂L/∂A` (24 × 12, row-major 3x4 per joint) from the partial sums, chunks added in
@@ -133,7 +168,11 @@ pub fn record_backward<'a>(
     out: &DeformGrads<'a>,
     count: u32,
 ) -> Result<()> {
-    let p = DeformParams { count, log_scale_offset: 0.0, _pad: [0; 2] };
+    let p = DeformParams {
+        count,
+        log_scale_offset: 0.0,
+        _pad: [0; 2],
+    };
     rec.dispatch(
         "deform.bwd",
         kernels::deform::DeformBwd {
@@ -199,7 +238,12 @@ impl<F: Real> HostInputs<F> {
         rot6d.copy_from_slice(&self.rot6d[6 * i..6 * i + 6]);
         DeformInput {
             mean: v3(&self.means),
-            quat: [self.quats[4 * i], self.quats[4 * i + 1], self.quats[4 * i + 2], self.quats[4 * i + 3]],
+            quat: [
+                self.quats[4 * i],
+                self.quats[4 * i + 1],
+                self.quats[4 * i + 2],
+                self.quats[4 * i + 3],
+            ],
             log_scale: v3(&self.log_scales),
             offset: v3(&self.offsets),
             rot6d,
@@ -214,12 +258,32 @@ impl<F: Real> HostInputs<F> {
 /// of each Gaussian's basis (n × [`POSE_BLEND_FLOATS`], the deformation decoder's
 /// pose-blend head) by the frame's pose `features` ([`POSE_FEATURES`]: `R_j − I` of
 /// joints 1-23). The deformation then reads `offsets`.
-pub fn record_pose_blend_forward<'a>(rec: &mut Recording<'a>, basis: &'a Buffer, features: &'a Buffer, decoded: &'a Buffer, offsets: &'a Buffer, count: u32) -> Result<()> {
+pub fn record_pose_blend_forward<'a>(
+    rec: &mut Recording<'a>,
+    basis: &'a Buffer,
+    features: &'a Buffer,
+    decoded: &'a Buffer,
+    offsets: &'a Buffer,
+    count: u32,
+) -> Result<()> {
     if count == 0 {
         return Ok(());
     }
-    let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.dispatch("deform.pose_blend_fwd", kernels::deform::PoseBlendFwd { basis: basis.read(), features: features.read(), decoded: decoded.read(), offsets: offsets.write() }, &p, flat_grid(count))
+    let p = PoseBlendParams {
+        count,
+        _pad: [0; 3],
+    };
+    rec.dispatch(
+        "deform.pose_blend_fwd",
+        kernels::deform::PoseBlendFwd {
+            basis: basis.read(),
+            features: features.read(),
+            decoded: decoded.read(),
+            offsets: offsets.write(),
+        },
+        &p,
+        flat_grid(count),
+    )
 }
 
 /// Records the basis's gradient from the offsets' (kernel `deform::pose_blend_bwd`).
@@ -227,12 +291,30 @@ pub fn record_pose_blend_forward<'a>(rec: &mut Recording<'a>, basis: &'a Buffer,
 /// deformation's backward writes it straight into the geometry decoder's head. The
 /// pose features' own dependence on the pose is not differentiated (pose refinement
 /// sees the skinning transforms only).
-pub fn record_pose_blend_backward<'a>(rec: &mut Recording<'a>, features: &'a Buffer, grad_offsets: &'a Buffer, grad_basis: &'a Buffer, count: u32) -> Result<()> {
+pub fn record_pose_blend_backward<'a>(
+    rec: &mut Recording<'a>,
+    features: &'a Buffer,
+    grad_offsets: &'a Buffer,
+    grad_basis: &'a Buffer,
+    count: u32,
+) -> Result<()> {
     if count == 0 {
         return Ok(());
     }
-    let p = PoseBlendParams { count, _pad: [0; 3] };
-    rec.dispatch("deform.pose_blend_bwd", kernels::deform::PoseBlendBwd { features: features.read(), grad_offsets: grad_offsets.read(), grad_basis: grad_basis.write() }, &p, flat_grid(count * POSE_BLEND_FLOATS as u32))
+    let p = PoseBlendParams {
+        count,
+        _pad: [0; 3],
+    };
+    rec.dispatch(
+        "deform.pose_blend_bwd",
+        kernels::deform::PoseBlendBwd {
+            features: features.read(),
+            grad_offsets: grad_offsets.read(),
+            grad_basis: grad_basis.write(),
+        },
+        &p,
+        flat_grid(count * POSE_BLEND_FLOATS as u32),
+    )
 }
 
 /// CPU references of the deformation and pose-blend kernels, generic over f32/f64.
@@ -246,8 +328,15 @@ pub mod reference {
         for (i, g) in grads.iter().enumerate() {
             for j in 0..SKIN_JOINTS {
                 let mut a = [F::zero(); TRANSFORM_FLOATS];
-                transform_grad_add(&g.transform_terms, inputs.weights[i * SKIN_JOINTS + j], &mut a);
-                for (o, v) in out[j * TRANSFORM_FLOATS..(j + 1) * TRANSFORM_FLOATS].iter_mut().zip(a) {
+                transform_grad_add(
+                    &g.transform_terms,
+                    inputs.weights[i * SKIN_JOINTS + j],
+                    &mut a,
+                );
+                for (o, v) in out[j * TRANSFORM_FLOATS..(j + 1) * TRANSFORM_FLOATS]
+                    .iter_mut()
+                    .zip(a)
+                {
                     *o += v;
                 }
             }
@@ -257,25 +346,40 @@ pub mod reference {
 
     /// CPU reference of the forward pass.
     pub fn forward<F: Real>(inputs: &HostInputs<F>) -> Vec<DeformOutput<F>> {
-        (0..inputs.len()).map(|i| deform_fwd(&inputs.gaussian(i), &inputs.transforms)).collect()
+        (0..inputs.len())
+            .map(|i| deform_fwd(&inputs.gaussian(i), &inputs.transforms))
+            .collect()
     }
 
     /// CPU reference of the backward pass.
-    pub fn backward<F: Real>(inputs: &HostInputs<F>, upstream: &[DeformOutput<F>]) -> Vec<DeformGrad<F>> {
-        (0..inputs.len()).map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i])).collect()
+    pub fn backward<F: Real>(
+        inputs: &HostInputs<F>,
+        upstream: &[DeformOutput<F>],
+    ) -> Vec<DeformGrad<F>> {
+        (0..inputs.len())
+            .map(|i| deform_bwd(&inputs.gaussian(i), &inputs.transforms, &upstream[i]))
+            .collect()
     }
 
     /// CPU reference of [`record_pose_blend_forward`].
     pub fn pose_blend_forward<F: Real>(basis: &[F], features: &[F], decoded: &[F]) -> Vec<F> {
         let n = decoded.len() / 3;
-        (0..n).flat_map(|i| {
-            let o = pose_blend_offset(basis, i, features);
-            [decoded[3 * i] + o[0], decoded[3 * i + 1] + o[1], decoded[3 * i + 2] + o[2]]
-        }).collect()
+        (0..n)
+            .flat_map(|i| {
+                let o = pose_blend_offset(basis, i, features);
+                [
+                    decoded[3 * i] + o[0],
+                    decoded[3 * i + 1] + o[1],
+                    decoded[3 * i + 2] + o[2],
+                ]
+            })
+            .collect()
     }
 
     /// CPU reference of [`record_pose_blend_backward`].
     pub fn pose_blend_backward<F: Real>(features: &[F], grad_offsets: &[F]) -> Vec<F> {
-        (0..grad_offsets.len() / 3 * POSE_BLEND_FLOATS).map(|j| pose_blend_basis_grad(j, features, grad_offsets)).collect()
+        (0..grad_offsets.len() / 3 * POSE_BLEND_FLOATS)
+            .map(|j| pose_blend_basis_grad(j, features, grad_offsets))
+            .collect()
     }
 }

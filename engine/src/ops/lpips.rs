@@ -12,7 +12,9 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use drape_shared::lpips::{conv_at, layer_distance_at, out_size, pool_at, ConvParams, PoolParams, LPIPS_SCALE, LPIPS_SHIFT};
+use drape_shared::lpips::{
+    conv_at, layer_distance_at, out_size, pool_at, ConvParams, PoolParams, LPIPS_SCALE, LPIPS_SHIFT,
+};
 use drape_shared::real::Real;
 
 use crate::buffer::{Buffer, BufferDesc};
@@ -40,7 +42,10 @@ impl LpipsNet {
         match s {
             "alex" => Ok(Self::Alex),
             "vgg" | "vgg16" => Ok(Self::Vgg16),
-            other => Err(EngineError::InvalidSetting { what: "lpips_net", problem: format!("LPIPS network must be alex or vgg, got '{other}'") }),
+            other => Err(EngineError::InvalidSetting {
+                what: "lpips_net",
+                problem: format!("LPIPS network must be alex or vgg, got '{other}'"),
+            }),
         }
     }
 
@@ -56,15 +61,28 @@ impl LpipsNet {
     /// followed by ReLU), max-pools (kernel, stride) and taps.
     pub fn stack(self) -> Vec<Stage> {
         use Stage::{Conv, Pool, Tap};
-        let c = |key: &'static str, i, o, k, s, p| Conv { key, in_c: i, out_c: o, kernel: k, stride: s, pad: p };
+        let c = |key: &'static str, i, o, k, s, p| Conv {
+            key,
+            in_c: i,
+            out_c: o,
+            kernel: k,
+            stride: s,
+            pad: p,
+        };
         match self {
             Self::Alex => vec![
                 c("net.slice1.0", 3, 64, 11, 4, 2),
                 Tap,
-                Pool { kernel: 3, stride: 2 },
+                Pool {
+                    kernel: 3,
+                    stride: 2,
+                },
                 c("net.slice2.3", 64, 192, 5, 1, 2),
                 Tap,
-                Pool { kernel: 3, stride: 2 },
+                Pool {
+                    kernel: 3,
+                    stride: 2,
+                },
                 c("net.slice3.6", 192, 384, 3, 1, 1),
                 Tap,
                 c("net.slice4.8", 384, 256, 3, 1, 1),
@@ -76,21 +94,33 @@ impl LpipsNet {
                 c("net.slice1.0", 3, 64, 3, 1, 1),
                 c("net.slice1.2", 64, 64, 3, 1, 1),
                 Tap,
-                Pool { kernel: 2, stride: 2 },
+                Pool {
+                    kernel: 2,
+                    stride: 2,
+                },
                 c("net.slice2.5", 64, 128, 3, 1, 1),
                 c("net.slice2.7", 128, 128, 3, 1, 1),
                 Tap,
-                Pool { kernel: 2, stride: 2 },
+                Pool {
+                    kernel: 2,
+                    stride: 2,
+                },
                 c("net.slice3.10", 128, 256, 3, 1, 1),
                 c("net.slice3.12", 256, 256, 3, 1, 1),
                 c("net.slice3.14", 256, 256, 3, 1, 1),
                 Tap,
-                Pool { kernel: 2, stride: 2 },
+                Pool {
+                    kernel: 2,
+                    stride: 2,
+                },
                 c("net.slice4.17", 256, 512, 3, 1, 1),
                 c("net.slice4.19", 512, 512, 3, 1, 1),
                 c("net.slice4.21", 512, 512, 3, 1, 1),
                 Tap,
-                Pool { kernel: 2, stride: 2 },
+                Pool {
+                    kernel: 2,
+                    stride: 2,
+                },
                 c("net.slice5.24", 512, 512, 3, 1, 1),
                 c("net.slice5.26", 512, 512, 3, 1, 1),
                 c("net.slice5.28", 512, 512, 3, 1, 1),
@@ -117,7 +147,14 @@ impl LpipsNet {
     pub fn tensors(self) -> Vec<(String, Vec<usize>)> {
         let mut out = Vec::new();
         for s in self.stack() {
-            if let Stage::Conv { key, in_c, out_c, kernel, .. } = s {
+            if let Stage::Conv {
+                key,
+                in_c,
+                out_c,
+                kernel,
+                ..
+            } = s
+            {
                 let (i, o, k) = (in_c as usize, out_c as usize, kernel as usize);
                 out.push((format!("{key}.weight"), vec![o, i, k, k]));
                 out.push((format!("{key}.bias"), vec![o]));
@@ -222,39 +259,88 @@ impl LpipsWeights {
     /// Reads and checks a safetensors file: every tensor the network needs present,
     /// float32, of the right shape, and inside the file.
     pub fn load(path: &Path, net: LpipsNet) -> std::result::Result<Self, WeightsError> {
-        let bytes = std::fs::read(path).map_err(|error| WeightsError::Io { path: path.into(), error })?;
-        let format = |detail: String| WeightsError::Format { path: path.into(), detail };
+        let bytes = std::fs::read(path).map_err(|error| WeightsError::Io {
+            path: path.into(),
+            error,
+        })?;
+        let format = |detail: String| WeightsError::Format {
+            path: path.into(),
+            detail,
+        };
         if bytes.len() < 8 {
-            return Err(format(format!("{} bytes, shorter than the 8-byte header length", bytes.len())));
+            return Err(format(format!(
+                "{} bytes, shorter than the 8-byte header length",
+                bytes.len()
+            )));
         }
         let header_len = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
         if header_len > bytes.len() - 8 {
-            return Err(format(format!("header of {header_len} bytes, but the file has {} after the length", bytes.len() - 8)));
+            return Err(format(format!(
+                "header of {header_len} bytes, but the file has {} after the length",
+                bytes.len() - 8
+            )));
         }
-        let header: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&bytes[8..8 + header_len]).map_err(|e| format(format!("header: {e}")))?;
+        let header: serde_json::Map<String, serde_json::Value> =
+            serde_json::from_slice(&bytes[8..8 + header_len])
+                .map_err(|e| format(format!("header: {e}")))?;
         let body = &bytes[8 + header_len..];
         let name = net.name();
         let mut tensors = BTreeMap::new();
         for (tensor, shape) in net.tensors() {
-            let bad = |detail: String| WeightsError::Bad { path: path.into(), tensor: tensor.clone(), detail };
-            let entry = header.get(&tensor).ok_or_else(|| WeightsError::Missing { path: path.into(), tensor: tensor.clone(), net: name })?;
+            let bad = |detail: String| WeightsError::Bad {
+                path: path.into(),
+                tensor: tensor.clone(),
+                detail,
+            };
+            let entry = header.get(&tensor).ok_or_else(|| WeightsError::Missing {
+                path: path.into(),
+                tensor: tensor.clone(),
+                net: name,
+            })?;
             let dtype = entry.get("dtype").and_then(|d| d.as_str()).unwrap_or("?");
             if dtype != "F32" {
                 return Err(bad(format!("dtype {dtype}, expected F32")));
             }
-            let got: Vec<usize> = entry.get("shape").and_then(|s| s.as_array()).map(|a| a.iter().filter_map(|v| v.as_u64().map(|v| v as usize)).collect()).unwrap_or_default();
+            let got: Vec<usize> = entry
+                .get("shape")
+                .and_then(|s| s.as_array())
+                .map(|a| {
+                    a.iter()
+                        .filter_map(|v| v.as_u64().map(|v| v as usize))
+                        .collect()
+                })
+                .unwrap_or_default();
             if got != shape {
                 return Err(bad(format!("shape {got:?}, expected {shape:?}")));
             }
-            let offsets: Vec<usize> = entry.get("data_offsets").and_then(|s| s.as_array()).map(|a| a.iter().filter_map(|v| v.as_u64().map(|v| v as usize)).collect()).unwrap_or_default();
+            let offsets: Vec<usize> = entry
+                .get("data_offsets")
+                .and_then(|s| s.as_array())
+                .map(|a| {
+                    a.iter()
+                        .filter_map(|v| v.as_u64().map(|v| v as usize))
+                        .collect()
+                })
+                .unwrap_or_default();
             let n: usize = shape.iter().product();
             if offsets.len() != 2 || offsets[1] < offsets[0] || offsets[1] - offsets[0] != 4 * n {
-                return Err(bad(format!("data offsets {offsets:?}, expected a range of {} bytes", 4 * n)));
+                return Err(bad(format!(
+                    "data offsets {offsets:?}, expected a range of {} bytes",
+                    4 * n
+                )));
             }
             if offsets[1] > body.len() {
-                return Err(bad(format!("bytes {}..{}, but the file's data ends at {} (truncated?)", offsets[0], offsets[1], body.len())));
+                return Err(bad(format!(
+                    "bytes {}..{}, but the file's data ends at {} (truncated?)",
+                    offsets[0],
+                    offsets[1],
+                    body.len()
+                )));
             }
-            let data: Vec<f32> = body[offsets[0]..offsets[1]].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))).collect();
+            let data: Vec<f32> = body[offsets[0]..offsets[1]]
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+                .collect();
             if data.iter().any(|v| !v.is_finite()) {
                 return Err(bad("a non-finite value".into()));
             }
@@ -264,7 +350,10 @@ impl LpipsWeights {
     }
 
     /// Writes `tensors` (name → (shape, data)) as a safetensors file (tests, tools).
-    pub fn write_safetensors(path: &Path, tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> std::io::Result<()> {
+    pub fn write_safetensors(
+        path: &Path,
+        tensors: &BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    ) -> std::io::Result<()> {
         let mut header = serde_json::Map::new();
         let mut body = Vec::new();
         for (name, (shape, data)) in tensors {
@@ -285,7 +374,9 @@ impl LpipsWeights {
     /// The smallest image side the stack accepts (every stage keeps at least one
     /// pixel).
     pub fn min_side(net: LpipsNet) -> u32 {
-        (1..4096).find(|&s| plan_sizes(net, s, s).is_some()).unwrap_or(u32::MAX)
+        (1..4096)
+            .find(|&s| plan_sizes(net, s, s).is_some())
+            .unwrap_or(u32::MAX)
     }
 }
 
@@ -296,17 +387,31 @@ fn plan_sizes(net: LpipsNet, width: u32, height: u32) -> Option<Vec<(u32, u32, u
     for s in net.stack() {
         let (c, h, w) = *sizes.last().expect("input");
         match s {
-            Stage::Conv { out_c, kernel, stride, pad, .. } => {
+            Stage::Conv {
+                out_c,
+                kernel,
+                stride,
+                pad,
+                ..
+            } => {
                 if h + 2 * pad < kernel || w + 2 * pad < kernel {
                     return None;
                 }
-                sizes.push((out_c, out_size(h, kernel, stride, pad), out_size(w, kernel, stride, pad)));
+                sizes.push((
+                    out_c,
+                    out_size(h, kernel, stride, pad),
+                    out_size(w, kernel, stride, pad),
+                ));
             }
             Stage::Pool { kernel, stride } => {
                 if h < kernel || w < kernel {
                     return None;
                 }
-                sizes.push((c, out_size(h, kernel, stride, 0), out_size(w, kernel, stride, 0)));
+                sizes.push((
+                    c,
+                    out_size(h, kernel, stride, 0),
+                    out_size(w, kernel, stride, 0),
+                ));
             }
             Stage::Tap => {}
         }
@@ -316,7 +421,12 @@ fn plan_sizes(net: LpipsNet, width: u32, height: u32) -> Option<Vec<(u32, u32, u
 
 /// [`plan_sizes`], or [`EngineError::ImageTooSmall`] naming the smallest side.
 fn plan_sizes_or_err(net: LpipsNet, width: u32, height: u32) -> Result<Vec<(u32, u32, u32)>> {
-    plan_sizes(net, width, height).ok_or_else(|| EngineError::ImageTooSmall { op: "LPIPS", width, height, min_side: LpipsWeights::min_side(net) })
+    plan_sizes(net, width, height).ok_or_else(|| EngineError::ImageTooSmall {
+        op: "LPIPS",
+        width,
+        height,
+        min_side: LpipsWeights::min_side(net),
+    })
 }
 
 /// The network on the GPU for images of one size, with the activations of both
@@ -349,19 +459,39 @@ impl Lpips {
         Self::build(ctx, weights, width, height, sizes)
     }
 
-    fn build(ctx: &Context, weights: &LpipsWeights, width: u32, height: u32, sizes: Vec<(u32, u32, u32)>) -> Result<Self> {
+    fn build(
+        ctx: &Context,
+        weights: &LpipsWeights,
+        width: u32,
+        height: u32,
+        sizes: Vec<(u32, u32, u32)>,
+    ) -> Result<Self> {
         let up = |name: &str, data: &[f32]| ctx.upload(name, data);
         let mut conv = Vec::new();
         for s in weights.net.stack() {
             if let Stage::Conv { key, .. } = s {
-                conv.push((up(&format!("lpips {key}.weight"), &weights.tensors[&format!("{key}.weight")])?, up(&format!("lpips {key}.bias"), &weights.tensors[&format!("{key}.bias")])?));
+                conv.push((
+                    up(
+                        &format!("lpips {key}.weight"),
+                        &weights.tensors[&format!("{key}.weight")],
+                    )?,
+                    up(
+                        &format!("lpips {key}.bias"),
+                        &weights.tensors[&format!("{key}.bias")],
+                    )?,
+                ));
             }
         }
         let mut lin = Vec::new();
         for l in 0..weights.net.tap_channels().len() {
-            lin.push(up(&format!("lpips lin{l}"), &weights.tensors[&format!("lin{l}.model.1.weight")])?);
+            lin.push(up(
+                &format!("lpips lin{l}"),
+                &weights.tensors[&format!("lin{l}.model.1.weight")],
+            )?);
         }
-        let b = |name: String, floats: u32| ctx.create_buffer(&name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))));
+        let b = |name: String, floats: u32| {
+            ctx.create_buffer(&name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))))
+        };
         let mut acts = [Vec::new(), Vec::new()];
         let mut argmax = [Vec::new(), Vec::new()];
         let mut grads = Vec::new();
@@ -383,14 +513,30 @@ impl Lpips {
                 _ => at += 1,
             }
         }
-        Ok(Self { net: weights.net, width, height, sizes, conv, lin, acts, argmax, grads, distances, distance_mirrors: Vec::new() })
+        Ok(Self {
+            net: weights.net,
+            width,
+            height,
+            sizes,
+            conv,
+            lin,
+            acts,
+            argmax,
+            grads,
+            distances,
+            distance_mirrors: Vec::new(),
+        })
     }
 
     /// Keeps a host copy of each tap's distance map: after [`Lpips::record_readback`]
     /// in the recording that computed them, [`Lpips::read_value`] reads them without a
     /// submission or a wait of its own.
     pub fn keep_host_mirror(&mut self, ctx: &Context) -> Result<()> {
-        self.distance_mirrors = self.distances.iter().map(|d| Mirror::new(ctx, d)).collect::<Result<_>>()?;
+        self.distance_mirrors = self
+            .distances
+            .iter()
+            .map(|d| Mirror::new(ctx, d))
+            .collect::<Result<_>>()?;
         Ok(())
     }
 
@@ -404,23 +550,57 @@ impl Lpips {
 
     /// Records LPIPS(pred, target) for HWC RGB images in [0, 1] and, with `grad =
     /// Some((buffer, λ))`, adds `λ ∂LPIPS/∂pred` to the buffer.
-    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        pred: &'a Buffer,
+        target: &'a Buffer,
+        grad: Option<(&'a Buffer, f32)>,
+    ) -> Result<()> {
         let (w, h) = (self.width, self.height);
         self.distance_mirrors.iter().for_each(Mirror::mark_stale);
-        let scale = PoolParams { c: 3, in_h: h, in_w: w, ..Default::default() };
+        let scale = PoolParams {
+            c: 3,
+            in_h: h,
+            in_w: w,
+            ..Default::default()
+        };
         for (k, img) in [pred, target].into_iter().enumerate() {
-            rec.dispatch("lpips.scale_input", kernels::lpips::ScaleInput { rgb: img.read(), out: self.acts[k][0].write() }, &scale, grid(3 * w * h))?;
+            rec.dispatch(
+                "lpips.scale_input",
+                kernels::lpips::ScaleInput {
+                    rgb: img.read(),
+                    out: self.acts[k][0].write(),
+                },
+                &scale,
+                grid(3 * w * h),
+            )?;
         }
         // Forward, both images side by side (no barrier between them).
         let stack = self.net.stack();
         let (mut at, mut conv_i, mut tap) = (0usize, 0usize, 0usize);
         for s in &stack {
             match *s {
-                Stage::Conv { kernel, stride, pad, .. } => {
+                Stage::Conv {
+                    kernel,
+                    stride,
+                    pad,
+                    ..
+                } => {
                     let p = self.conv_params(at, kernel, stride, pad);
                     for k in 0..2 {
                         let (wt, bias) = &self.conv[conv_i];
-                        rec.dispatch("lpips.conv_fwd", kernels::lpips::ConvFwd { input: self.acts[k][at].read(), weights: wt.read(), bias: bias.read(), output: self.acts[k][at + 1].write() }, &p, grid(p.out_c * p.out_h * p.out_w))?;
+                        rec.dispatch(
+                            "lpips.conv_fwd",
+                            kernels::lpips::ConvFwd {
+                                input: self.acts[k][at].read(),
+                                weights: wt.read(),
+                                bias: bias.read(),
+                                output: self.acts[k][at + 1].write(),
+                            },
+                            &p,
+                            grid(p.out_c * p.out_h * p.out_w),
+                        )?;
                     }
                     at += 1;
                     conv_i += 1;
@@ -428,19 +608,45 @@ impl Lpips {
                 Stage::Pool { kernel, stride } => {
                     let p = self.pool_params(at, kernel, stride);
                     for k in 0..2 {
-                        rec.dispatch("lpips.pool_fwd", kernels::lpips::PoolFwd { input: self.acts[k][at].read(), output: self.acts[k][at + 1].write(), argmax: self.argmax[k][at + 1].write() }, &p, grid(p.c * p.out_h * p.out_w))?;
+                        rec.dispatch(
+                            "lpips.pool_fwd",
+                            kernels::lpips::PoolFwd {
+                                input: self.acts[k][at].read(),
+                                output: self.acts[k][at + 1].write(),
+                                argmax: self.argmax[k][at + 1].write(),
+                            },
+                            &p,
+                            grid(p.c * p.out_h * p.out_w),
+                        )?;
                     }
                     at += 1;
                 }
                 Stage::Tap => {
                     let (c, th, tw) = self.sizes[at];
-                    let p = PoolParams { c, in_h: th, in_w: tw, ..Default::default() };
-                    rec.dispatch("lpips.distance", kernels::lpips::Distance { f0: self.acts[0][at].read(), f1: self.acts[1][at].read(), lin: self.lin[tap].read(), out: self.distances[tap].write() }, &p, grid(th * tw))?;
+                    let p = PoolParams {
+                        c,
+                        in_h: th,
+                        in_w: tw,
+                        ..Default::default()
+                    };
+                    rec.dispatch(
+                        "lpips.distance",
+                        kernels::lpips::Distance {
+                            f0: self.acts[0][at].read(),
+                            f1: self.acts[1][at].read(),
+                            lin: self.lin[tap].read(),
+                            out: self.distances[tap].write(),
+                        },
+                        &p,
+                        grid(th * tw),
+                    )?;
                     tap += 1;
                 }
             }
         }
-        let Some((grad_rgb, lambda)) = grad else { return Ok(()) };
+        let Some((grad_rgb, lambda)) = grad else {
+            return Ok(());
+        };
         // Backward from the deepest stage: a tap writes (the deepest) or adds its
         // gradient to its activation's; a conv or pool writes its input's.
         let mut written = vec![false; self.sizes.len()];
@@ -449,38 +655,114 @@ impl Lpips {
                 Stage::Tap => {
                     tap -= 1;
                     let (c, th, tw) = self.sizes[at];
-                    let p = PoolParams { c, in_h: th, in_w: tw, kernel: u32::from(written[at]), scale: 1.0 / (th * tw) as f32, ..Default::default() };
-                    rec.dispatch("lpips.distance_grad", kernels::lpips::DistanceGrad { f0: self.acts[0][at].read(), f1: self.acts[1][at].read(), lin: self.lin[tap].read(), grad: self.grads[at].write() }, &p, grid(c * th * tw))?;
+                    let p = PoolParams {
+                        c,
+                        in_h: th,
+                        in_w: tw,
+                        kernel: u32::from(written[at]),
+                        scale: 1.0 / (th * tw) as f32,
+                        ..Default::default()
+                    };
+                    rec.dispatch(
+                        "lpips.distance_grad",
+                        kernels::lpips::DistanceGrad {
+                            f0: self.acts[0][at].read(),
+                            f1: self.acts[1][at].read(),
+                            lin: self.lin[tap].read(),
+                            grad: self.grads[at].write(),
+                        },
+                        &p,
+                        grid(c * th * tw),
+                    )?;
                     written[at] = true;
                 }
-                Stage::Conv { kernel, stride, pad, .. } => {
+                Stage::Conv {
+                    kernel,
+                    stride,
+                    pad,
+                    ..
+                } => {
                     conv_i -= 1;
                     at -= 1;
                     let p = self.conv_params(at, kernel, stride, pad);
-                    rec.dispatch("lpips.conv_bwd_input", kernels::lpips::ConvBwdInput { output: self.acts[0][at + 1].read(), grad_out: self.grads[at + 1].read(), weights: self.conv[conv_i].0.read(), grad_in: self.grads[at].write() }, &p, grid(p.in_c * p.in_h * p.in_w))?;
+                    rec.dispatch(
+                        "lpips.conv_bwd_input",
+                        kernels::lpips::ConvBwdInput {
+                            output: self.acts[0][at + 1].read(),
+                            grad_out: self.grads[at + 1].read(),
+                            weights: self.conv[conv_i].0.read(),
+                            grad_in: self.grads[at].write(),
+                        },
+                        &p,
+                        grid(p.in_c * p.in_h * p.in_w),
+                    )?;
                     written[at] = true;
                 }
                 Stage::Pool { kernel, stride } => {
                     at -= 1;
                     let p = self.pool_params(at, kernel, stride);
-                    rec.dispatch("lpips.pool_bwd", kernels::lpips::PoolBwd { argmax: self.argmax[0][at + 1].read(), grad_out: self.grads[at + 1].read(), grad_in: self.grads[at].write() }, &p, grid(p.c * p.in_h * p.in_w))?;
+                    rec.dispatch(
+                        "lpips.pool_bwd",
+                        kernels::lpips::PoolBwd {
+                            argmax: self.argmax[0][at + 1].read(),
+                            grad_out: self.grads[at + 1].read(),
+                            grad_in: self.grads[at].write(),
+                        },
+                        &p,
+                        grid(p.c * p.in_h * p.in_w),
+                    )?;
                     written[at] = true;
                 }
             }
         }
-        let p = PoolParams { c: 3, in_h: h, in_w: w, scale: lambda, ..Default::default() };
-        rec.dispatch("lpips.scale_input_bwd", kernels::lpips::ScaleInputBwd { grad: self.grads[0].read(), grad_rgb: grad_rgb.write() }, &p, grid(3 * w * h))?;
+        let p = PoolParams {
+            c: 3,
+            in_h: h,
+            in_w: w,
+            scale: lambda,
+            ..Default::default()
+        };
+        rec.dispatch(
+            "lpips.scale_input_bwd",
+            kernels::lpips::ScaleInputBwd {
+                grad: self.grads[0].read(),
+                grad_rgb: grad_rgb.write(),
+            },
+            &p,
+            grid(3 * w * h),
+        )?;
         Ok(())
     }
 
     fn conv_params(&self, at: usize, kernel: u32, stride: u32, pad: u32) -> ConvParams {
         let ((ic, ih, iw), (oc, oh, ow)) = (self.sizes[at], self.sizes[at + 1]);
-        ConvParams { in_c: ic, in_h: ih, in_w: iw, out_c: oc, out_h: oh, out_w: ow, kernel, stride, pad, relu: 1, _pad: [0; 2] }
+        ConvParams {
+            in_c: ic,
+            in_h: ih,
+            in_w: iw,
+            out_c: oc,
+            out_h: oh,
+            out_w: ow,
+            kernel,
+            stride,
+            pad,
+            relu: 1,
+            _pad: [0; 2],
+        }
     }
 
     fn pool_params(&self, at: usize, kernel: u32, stride: u32) -> PoolParams {
         let ((c, ih, iw), (_, oh, ow)) = (self.sizes[at], self.sizes[at + 1]);
-        PoolParams { c, in_h: ih, in_w: iw, out_h: oh, out_w: ow, kernel, stride, scale: 0.0 }
+        PoolParams {
+            c,
+            in_h: ih,
+            in_w: iw,
+            out_h: oh,
+            out_w: ow,
+            kernel,
+            stride,
+            scale: 0.0,
+        }
     }
 
     /// The value of the last recorded evaluation: Σ over tapped layers of the mean
@@ -494,7 +776,12 @@ impl Lpips {
             match s {
                 Stage::Tap => {
                     let (_, h, w) = self.sizes[at];
-                    let d = read_through::<f32>(ctx, self.distance_mirrors.get_mut(tap), &mut self.distances[tap], (h * w) as usize)?;
+                    let d = read_through::<f32>(
+                        ctx,
+                        self.distance_mirrors.get_mut(tap),
+                        &mut self.distances[tap],
+                        (h * w) as usize,
+                    )?;
                     total += d.iter().map(|&v| f64::from(v)).sum::<f64>() / f64::from(h * w);
                     tap += 1;
                 }
@@ -508,30 +795,72 @@ impl Lpips {
 /// CPU reference: LPIPS of two `width × height` HWC RGB images in [0, 1].
 /// An image smaller than the stack allows is [`EngineError::ImageTooSmall`], as for
 /// [`Lpips::new`].
-pub fn reference<F: Real>(weights: &LpipsWeights, pred: &[F], target: &[F], width: u32, height: u32) -> Result<F> {
+pub fn reference<F: Real>(
+    weights: &LpipsWeights,
+    pred: &[F],
+    target: &[F],
+    width: u32,
+    height: u32,
+) -> Result<F> {
     let sizes = plan_sizes_or_err(weights.net, width, height)?;
     let t = |name: &str| -> Vec<F> { weights.tensors[name].iter().map(|&v| F::of(v)).collect() };
     let features = |img: &[F]| -> Vec<Vec<F>> {
         let hw = width * height;
-        let mut x: Vec<F> = (0..3 * hw).map(|i| {
-            let (c, p) = (i / hw, i % hw);
-            (F::of(2.0) * img[(3 * p + c) as usize] - F::one() - F::of(LPIPS_SHIFT[c as usize])) / F::of(LPIPS_SCALE[c as usize])
-        }).collect();
+        let mut x: Vec<F> = (0..3 * hw)
+            .map(|i| {
+                let (c, p) = (i / hw, i % hw);
+                (F::of(2.0) * img[(3 * p + c) as usize] - F::one() - F::of(LPIPS_SHIFT[c as usize]))
+                    / F::of(LPIPS_SCALE[c as usize])
+            })
+            .collect();
         let mut taps = Vec::new();
         let mut at = 0;
         for s in weights.net.stack() {
             match s {
-                Stage::Conv { key, kernel, stride, pad, .. } => {
+                Stage::Conv {
+                    key,
+                    kernel,
+                    stride,
+                    pad,
+                    ..
+                } => {
                     let ((ic, ih, iw), (oc, oh, ow)) = (sizes[at], sizes[at + 1]);
-                    let p = ConvParams { in_c: ic, in_h: ih, in_w: iw, out_c: oc, out_h: oh, out_w: ow, kernel, stride, pad, relu: 1, _pad: [0; 2] };
+                    let p = ConvParams {
+                        in_c: ic,
+                        in_h: ih,
+                        in_w: iw,
+                        out_c: oc,
+                        out_h: oh,
+                        out_w: ow,
+                        kernel,
+                        stride,
+                        pad,
+                        relu: 1,
+                        _pad: [0; 2],
+                    };
                     let (wt, b) = (t(&format!("{key}.weight")), t(&format!("{key}.bias")));
-                    x = (0..oc * oh * ow).map(|i| conv_at(&p, &x, &wt, &b, i / (oh * ow), (i % (oh * ow)) / ow, i % ow)).collect();
+                    x = (0..oc * oh * ow)
+                        .map(|i| {
+                            conv_at(&p, &x, &wt, &b, i / (oh * ow), (i % (oh * ow)) / ow, i % ow)
+                        })
+                        .collect();
                     at += 1;
                 }
                 Stage::Pool { kernel, stride } => {
                     let ((c, ih, iw), (_, oh, ow)) = (sizes[at], sizes[at + 1]);
-                    let p = PoolParams { c, in_h: ih, in_w: iw, out_h: oh, out_w: ow, kernel, stride, scale: 0.0 };
-                    x = (0..c * oh * ow).map(|i| pool_at(&p, &x, i / (oh * ow), (i % (oh * ow)) / ow, i % ow).0).collect();
+                    let p = PoolParams {
+                        c,
+                        in_h: ih,
+                        in_w: iw,
+                        out_h: oh,
+                        out_w: ow,
+                        kernel,
+                        stride,
+                        scale: 0.0,
+                    };
+                    x = (0..c * oh * ow)
+                        .map(|i| pool_at(&p, &x, i / (oh * ow), (i % (oh * ow)) / ow, i % ow).0)
+                        .collect();
                     at += 1;
                 }
                 Stage::Tap => taps.push(x.clone()),

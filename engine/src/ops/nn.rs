@@ -25,8 +25,11 @@
 //! the chunks in order (`nn::sum_weight_grad`), with no atomics.
 
 use drape_shared::nn::{
-    activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd, weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams, WeightNormParams, ACT_EXP, ACT_GELU,
-    ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW, GEMM_SG_COLS, GEMM_TILE, GEMM_SG_ROWS, GEMM_TX_ROWS, GEMM_FWD_ROWS, GEMM_NARROW_ROWS, SOFTMAX_MAX_WIDTH,
+    activate, activate_bwd, softmax_row, softmax_row_bwd, weight_norm_row_bwd,
+    weight_norm_row_norm, weight_norm_value, ActParams, GemmParams, WeightGradParams,
+    WeightNormParams, ACT_EXP, ACT_GELU, ACT_IDENTITY, ACT_SIGMOID, ACT_SOFTMAX, GEMM_ACCUMULATE,
+    GEMM_BIAS, GEMM_BLOCK, GEMM_FWD_ROWS, GEMM_NARROW_ROWS, GEMM_ONES_ROW, GEMM_SG_COLS,
+    GEMM_SG_ROWS, GEMM_TILE, GEMM_TX_ROWS, SOFTMAX_MAX_WIDTH,
 };
 use drape_shared::real::Real;
 use rand::{Rng, SeedableRng};
@@ -90,7 +93,12 @@ pub struct HeadDesc {
 impl HeadDesc {
     /// A head with random initial weights.
     pub fn new(name: &str, width: usize, activation: Activation) -> Self {
-        Self { name: name.to_string(), width, activation, zero_init: false }
+        Self {
+            name: name.to_string(),
+            width,
+            activation,
+            zero_init: false,
+        }
     }
 
     /// The head with zero initial weights and bias.
@@ -122,7 +130,10 @@ impl MlpDesc {
         Self {
             input,
             hidden: vec![(64, Activation::Gelu), (64, Activation::Gelu)],
-            heads: vec![HeadDesc::new("opacity", 1, Activation::Identity), HeadDesc::new("sh", sh_values, Activation::Identity)],
+            heads: vec![
+                HeadDesc::new("opacity", 1, Activation::Identity),
+                HeadDesc::new("sh", sh_values, Activation::Identity),
+            ],
             weight_norm: Vec::new(),
         }
     }
@@ -148,7 +159,11 @@ impl MlpDesc {
         Self {
             input,
             hidden: vec![(128, Activation::Gelu); 4],
-            heads: vec![HeadDesc::new("skinning_weights", 24, Activation::Softmax { temperature: 0.1 })],
+            heads: vec![HeadDesc::new(
+                "skinning_weights",
+                24,
+                Activation::Softmax { temperature: 0.1 },
+            )],
             weight_norm: Vec::new(),
         }
     }
@@ -171,7 +186,12 @@ impl MlpDesc {
             .iter()
             .map(|&l| {
                 let (i, o) = linears[l];
-                let p = WeightNormParams { out_features: o as u32, in_features: i as u32, w_off: offsets[l].0 as u32, g_off: at as u32 };
+                let p = WeightNormParams {
+                    out_features: o as u32,
+                    in_features: i as u32,
+                    w_off: offsets[l].0 as u32,
+                    g_off: at as u32,
+                };
                 at += o;
                 p
             })
@@ -236,15 +256,28 @@ impl MlpDesc {
     }
 
     fn activations(&self) -> Vec<Activation> {
-        self.hidden.iter().map(|h| h.1).chain(self.heads.iter().map(|h| h.activation)).collect()
+        self.hidden
+            .iter()
+            .map(|h| h.1)
+            .chain(self.heads.iter().map(|h| h.activation))
+            .collect()
     }
 
     fn check(&self) {
         assert!(!self.heads.is_empty(), "an MLP needs at least one head");
-        assert!(self.weight_norm.windows(2).all(|w| w[0] < w[1]), "weight_norm layers must be increasing");
-        assert!(self.weight_norm.iter().all(|&l| l < self.linears().len()), "weight_norm names a layer the MLP does not have");
+        assert!(
+            self.weight_norm.windows(2).all(|w| w[0] < w[1]),
+            "weight_norm layers must be increasing"
+        );
+        assert!(
+            self.weight_norm.iter().all(|&l| l < self.linears().len()),
+            "weight_norm names a layer the MLP does not have"
+        );
         for (i, o) in self.linears() {
-            assert!(i > 0 && o > 0 && i <= 1024 && o <= 1024, "layer widths must be 1..=1024, got {i} -> {o}");
+            assert!(
+                i > 0 && o > 0 && i <= 1024 && o <= 1024,
+                "layer widths must be 1..=1024, got {i} -> {o}"
+            );
         }
         for a in self.activations() {
             if let Activation::Softmax { temperature } = a {
@@ -253,12 +286,18 @@ impl MlpDesc {
         }
         for h in &self.heads {
             if matches!(h.activation, Activation::Softmax { .. }) {
-                assert!(h.width <= SOFTMAX_MAX_WIDTH, "softmax heads are at most {SOFTMAX_MAX_WIDTH} wide");
+                assert!(
+                    h.width <= SOFTMAX_MAX_WIDTH,
+                    "softmax heads are at most {SOFTMAX_MAX_WIDTH} wide"
+                );
             }
         }
         for &(w, a) in &self.hidden {
             if matches!(a, Activation::Softmax { .. }) {
-                assert!(w <= SOFTMAX_MAX_WIDTH, "softmax layers are at most {SOFTMAX_MAX_WIDTH} wide");
+                assert!(
+                    w <= SOFTMAX_MAX_WIDTH,
+                    "softmax layers are at most {SOFTMAX_MAX_WIDTH} wide"
+                );
             }
         }
     }
@@ -399,22 +438,48 @@ fn below(l: usize, hidden: usize) -> Option<usize> {
 
 impl Mlp {
     /// An MLP for up to `max_rows` rows with parameters from [`MlpDesc::init_params`].
-    pub fn new(ctx: &Context, label: &str, desc: MlpDesc, max_rows: usize, seed: u64) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        label: &str,
+        desc: MlpDesc,
+        max_rows: usize,
+        seed: u64,
+    ) -> Result<Self> {
         let params = desc.init_params(seed);
         Self::with_params(ctx, label, desc, max_rows, &params)
     }
 
     /// An MLP with the given flat parameters.
-    pub fn with_params(ctx: &Context, label: &str, desc: MlpDesc, max_rows: usize, params: &[f32]) -> Result<Self> {
+    pub fn with_params(
+        ctx: &Context,
+        label: &str,
+        desc: MlpDesc,
+        max_rows: usize,
+        params: &[f32],
+    ) -> Result<Self> {
         desc.check();
         let (offsets, len) = desc.layout();
-        assert_eq!(params.len(), len, "{label}: {} parameters for a layout of {len}", params.len());
+        assert_eq!(
+            params.len(),
+            len,
+            "{label}: {} parameters for a layout of {len}",
+            params.len()
+        );
         let max_rows_u32 = u32::try_from(max_rows)
             .ok()
             .filter(|&r| u64::from(r) * 1024 <= u64::from(u32::MAX))
-            .ok_or(EngineError::too_large("MLP rows", max_rows as u64, u64::from(u32::MAX) / 1024, "the MLP (u32 indices over 1,024 columns)"))?;
+            .ok_or(EngineError::too_large(
+                "MLP rows",
+                max_rows as u64,
+                u64::from(u32::MAX) / 1024,
+                "the MLP (u32 indices over 1,024 columns)",
+            ))?;
         let acts = desc.activations();
-        let min_rows_per_split = if ctx.info().kind == DeviceKind::Cpu { MIN_ROWS_PER_SPLIT_CPU } else { MIN_ROWS_PER_SPLIT_GPU };
+        let min_rows_per_split = if ctx.info().kind == DeviceKind::Cpu {
+            MIN_ROWS_PER_SPLIT_CPU
+        } else {
+            MIN_ROWS_PER_SPLIT_GPU
+        };
         let mut layers = Vec::new();
         let mut partial_len = 0usize;
         for (l, (i, o)) in desc.linears().into_iter().enumerate() {
@@ -427,7 +492,8 @@ impl Mlp {
                 grad_post: f32_buffer(ctx, &format!("{label} layer {l} grad post"), n)?,
                 grad_pre: f32_buffer(ctx, &format!("{label} layer {l} grad pre"), post_len)?,
             });
-            partial_len = partial_len.max(splits_for(max_rows_u32, min_rows_per_split).0 as usize * o * (i + 1));
+            partial_len = partial_len
+                .max(splits_for(max_rows_u32, min_rows_per_split).0 as usize * o * (i + 1));
         }
         let mut p = f32_buffer(ctx, &format!("{label} params"), len)?;
         ctx.write_buffer(&mut p, params)?;
@@ -446,7 +512,15 @@ impl Mlp {
             layers,
             partials: f32_buffer(ctx, &format!("{label} weight-grad partials"), partial_len)?,
             min_rows_per_split,
-            effective: if desc_has_weight_norm { Some(f32_buffer(ctx, &format!("{label} weight-normalised params"), len)?) } else { None },
+            effective: if desc_has_weight_norm {
+                Some(f32_buffer(
+                    ctx,
+                    &format!("{label} weight-normalised params"),
+                    len,
+                )?)
+            } else {
+                None
+            },
         })
     }
 
@@ -496,51 +570,108 @@ impl Mlp {
         let l = self.desc.hidden.len() + h;
         let len = rows * self.desc.heads[h].width;
         let layer = &mut self.layers[l];
-        let buffer = if self.desc.heads[h].activation == Activation::Identity { &mut layer.pre } else { &mut layer.post };
+        let buffer = if self.desc.heads[h].activation == Activation::Identity {
+            &mut layer.pre
+        } else {
+            &mut layer.post
+        };
         ctx.read_buffer(buffer, len)
     }
 
     /// Index of the head named `name`.
     pub fn head(&self, name: &str) -> usize {
-        self.desc.heads.iter().position(|h| h.name == name).unwrap_or_else(|| panic!("no head named '{name}'"))
+        self.desc
+            .heads
+            .iter()
+            .position(|h| h.name == name)
+            .unwrap_or_else(|| panic!("no head named '{name}'"))
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn record_gemm<'a>(&self, rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams, splits: u32) -> Result<()> {
+    fn record_gemm<'a>(
+        &self,
+        rec: &mut Recording<'a>,
+        name: &str,
+        a: &'a Buffer,
+        b: &'a Buffer,
+        bias: &'a Buffer,
+        c: &'a Buffer,
+        p: GemmParams,
+        splits: u32,
+    ) -> Result<()> {
         let info = rec.context().info();
         // Texel views cover a whole buffer, so both must be within the device's limit
         // (and made for texel reads: a caller's buffer may not be).
-        let texels_fit = a.texel_readable(info.max_texel_buffer_elements) && b.texel_readable(info.max_texel_buffer_elements);
+        let texels_fit = a.texel_readable(info.max_texel_buffer_elements)
+            && b.texel_readable(info.max_texel_buffer_elements);
         let variant = match self.variant {
             GemmVariant::Auto if info.kind != DeviceKind::Cpu => GemmVariant::Tiled,
             // Narrow outputs (the 1- to 6-wide heads) only where the forward kernels'
             // narrow tiles fit; elsewhere a 32-wide tile would be mostly waste.
-            GemmVariant::Auto if subgroup_gemm_supported(info) && texels_fit && (p.n >= 16 || fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements) || narrow_weight_grad_kernel(&p, a).is_some()) => GemmVariant::Texel4,
-            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => GemmVariant::Subgroup,
+            GemmVariant::Auto
+                if subgroup_gemm_supported(info)
+                    && texels_fit
+                    && (p.n >= 16
+                        || fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements)
+                        || narrow_weight_grad_kernel(&p, a).is_some()) =>
+            {
+                GemmVariant::Texel4
+            }
+            GemmVariant::Auto if subgroup_gemm_supported(info) && p.n >= 16 => {
+                GemmVariant::Subgroup
+            }
             GemmVariant::Auto => GemmVariant::Blocked,
             v => v,
         };
         let texel = matches!(variant, GemmVariant::Texel | GemmVariant::Texel4);
         if (texel || variant == GemmVariant::Subgroup) && !subgroup_gemm_supported(info) {
-            let kernel = if texel { "nn_cpu::gemm_texel" } else { "nn_cpu::gemm_subgroup" };
-            return Err(EngineError::MissingFeature { kernel, feature: "subgroups of 8 lanes with ballot operations" });
+            let kernel = if texel {
+                "nn_cpu::gemm_texel"
+            } else {
+                "nn_cpu::gemm_subgroup"
+            };
+            return Err(EngineError::MissingFeature {
+                kernel,
+                feature: "subgroups of 8 lanes with ballot operations",
+            });
         }
-        if variant == GemmVariant::Texel4 && fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements) {
+        if variant == GemmVariant::Texel4
+            && fwd_fits(&p, a, b, bias, info.max_texel_buffer_elements)
+        {
             return record_fwd(rec, name, a, b, bias, c, p);
         }
-        if let (GemmVariant::Texel4, Some((kernel, width))) = (variant, narrow_weight_grad_kernel(&p, a)) {
+        if let (GemmVariant::Texel4, Some((kernel, width))) =
+            (variant, narrow_weight_grad_kernel(&p, a))
+        {
             let tiles = p.m.div_ceil(GEMM_NARROW_ROWS) * p.n.div_ceil(width);
             let x = tiles.min(65_535);
-            return rec.dispatch_as(name, kernel, gemm_bindings(a, b, bias, c), &p, [x, tiles.div_ceil(x.max(1)), splits]);
+            return rec.dispatch_as(
+                name,
+                kernel,
+                gemm_bindings(a, b, bias, c),
+                &p,
+                [x, tiles.div_ceil(x.max(1)), splits],
+            );
         }
         let (kernel, groups) = match variant {
-            GemmVariant::Blocked => (Kernel::NnCpuGemmBlocked, [p.n.div_ceil(8 * GEMM_BLOCK), p.m.div_ceil(8 * GEMM_BLOCK), splits]),
+            GemmVariant::Blocked => (
+                Kernel::NnCpuGemmBlocked,
+                [
+                    p.n.div_ceil(8 * GEMM_BLOCK),
+                    p.m.div_ceil(8 * GEMM_BLOCK),
+                    splits,
+                ],
+            ),
             GemmVariant::Subgroup | GemmVariant::Texel | GemmVariant::Texel4 => {
                 // One workgroup (one subgroup) per tile (32 × 32, or 64 × 32 for the
                 // texel kernels), in rows of at most 65,535 workgroups, the limit every
                 // device has.
                 let (kernel, tile_rows) = match variant {
-                    GemmVariant::Texel4 => (texel4_grad_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements).unwrap_or(Kernel::NnCpuGemmTexel), GEMM_TX_ROWS),
+                    GemmVariant::Texel4 => (
+                        texel4_grad_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements)
+                            .unwrap_or(Kernel::NnCpuGemmTexel),
+                        GEMM_TX_ROWS,
+                    ),
                     GemmVariant::Texel => (Kernel::NnCpuGemmTexel, GEMM_TX_ROWS),
                     _ => (Kernel::NnCpuGemmSubgroup, GEMM_SG_ROWS),
                 };
@@ -548,32 +679,90 @@ impl Mlp {
                 let x = tiles.min(65_535);
                 (kernel, [x, tiles.div_ceil(x.max(1)), splits])
             }
-            _ => (Kernel::NnGemmTiled, [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits]),
+            _ => (
+                Kernel::NnGemmTiled,
+                [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits],
+            ),
         };
         rec.dispatch_as(name, kernel, gemm_bindings(a, b, bias, c), &p, groups)
     }
 
-    fn record_act<'a>(rec: &mut Recording<'a>, name: &str, act: Activation, pre: &'a Buffer, post: &'a Buffer, rows: u32, width: u32) -> Result<()> {
-        let p = ActParams { rows, width, kind: act.kind(), temperature: act.temperature() };
+    fn record_act<'a>(
+        rec: &mut Recording<'a>,
+        name: &str,
+        act: Activation,
+        pre: &'a Buffer,
+        post: &'a Buffer,
+        rows: u32,
+        width: u32,
+    ) -> Result<()> {
+        let p = ActParams {
+            rows,
+            width,
+            kind: act.kind(),
+            temperature: act.temperature(),
+        };
         if act.kind() == ACT_SOFTMAX {
-            return rec.dispatch(name, kernels::nn::SoftmaxFwd { pre: pre.read(), post: post.write() }, &p, grid(rows));
+            return rec.dispatch(
+                name,
+                kernels::nn::SoftmaxFwd {
+                    pre: pre.read(),
+                    post: post.write(),
+                },
+                &p,
+                grid(rows),
+            );
         }
         if let Some((fwd, _)) = act4_kernels(act, &[pre, post]) {
-            return rec.dispatch_as(name, fwd, kernels::nn::ActFwd { pre: pre.read(), post: post.write() }, &p, grid((rows * width).div_ceil(4)));
+            return rec.dispatch_as(
+                name,
+                fwd,
+                kernels::nn::ActFwd {
+                    pre: pre.read(),
+                    post: post.write(),
+                },
+                &p,
+                grid((rows * width).div_ceil(4)),
+            );
         }
-        rec.dispatch(name, kernels::nn::ActFwd { pre: pre.read(), post: post.write() }, &p, grid(rows * width))
+        rec.dispatch(
+            name,
+            kernels::nn::ActFwd {
+                pre: pre.read(),
+                post: post.write(),
+            },
+            &p,
+            grid(rows * width),
+        )
     }
 
     /// Records the forward pass over `rows` rows of `input` (rows × `desc.input`).
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32) -> Result<()> {
-        assert!(rows <= self.max_rows, "{rows} rows for an MLP of {}", self.max_rows);
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        input: &'a Buffer,
+        rows: u32,
+    ) -> Result<()> {
+        assert!(
+            rows <= self.max_rows,
+            "{rows} rows for an MLP of {}",
+            self.max_rows
+        );
         let acts = self.desc.activations();
         let linears = self.desc.linears();
         let hidden = self.desc.hidden.len();
         if let Some(effective) = &self.effective {
             rec.copy(&self.params, effective, self.params.size);
             for p in self.desc.weight_norm_params() {
-                rec.dispatch("mlp.weight_norm_fwd", kernels::nn::WeightNormFwd { params: self.params.read(), effective: effective.write() }, &p, [p.out_features.div_ceil(64), 1, 1])?;
+                rec.dispatch(
+                    "mlp.weight_norm_fwd",
+                    kernels::nn::WeightNormFwd {
+                        params: self.params.read(),
+                        effective: effective.write(),
+                    },
+                    &p,
+                    [p.out_features.div_ceil(64), 1, 1],
+                )?;
             }
         }
         for (l, &(i, o)) in linears.iter().enumerate() {
@@ -598,13 +787,29 @@ impl Mlp {
                 ..Default::default()
             };
             let layer = &self.layers[l];
-            self.record_gemm(rec, "mlp.linear_fwd", x, self.weights(), self.weights(), &layer.pre, p, 1)?;
+            self.record_gemm(
+                rec,
+                "mlp.linear_fwd",
+                x,
+                self.weights(),
+                self.weights(),
+                &layer.pre,
+                p,
+                1,
+            )?;
             if acts[l] != Activation::Identity {
-                Self::record_act(rec, "mlp.act_fwd", acts[l], &layer.pre, &layer.post, rows, o as u32)?;
+                Self::record_act(
+                    rec,
+                    "mlp.act_fwd",
+                    acts[l],
+                    &layer.pre,
+                    &layer.post,
+                    rows,
+                    o as u32,
+                )?;
             }
             // Heads read the trunk only; they need no barrier between each other.
-            if l < hidden || l == linears.len() - 1 {
-            }
+            if l < hidden || l == linears.len() - 1 {}
         }
         Ok(())
     }
@@ -615,8 +820,19 @@ impl Mlp {
     /// `input` and `rows` must be those of the last forward pass. With `add_to_grad_input`
     /// the input's gradient is added to what `grad_input` holds (several MLPs reading
     /// one input).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, input: &'a Buffer, rows: u32, grad_input: Option<&'a Buffer>, add_to_grad_input: bool) -> Result<()> {
-        assert!(rows <= self.max_rows, "{rows} rows for an MLP of {}", self.max_rows);
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        input: &'a Buffer,
+        rows: u32,
+        grad_input: Option<&'a Buffer>,
+        add_to_grad_input: bool,
+    ) -> Result<()> {
+        assert!(
+            rows <= self.max_rows,
+            "{rows} rows for an MLP of {}",
+            self.max_rows
+        );
         let acts = self.desc.activations();
         let linears = self.desc.linears();
         let hidden = self.desc.hidden.len();
@@ -634,7 +850,12 @@ impl Mlp {
             let g = if acts[l] == Activation::Identity {
                 &layer.grad_post
             } else {
-                let p = ActParams { rows, width: o as u32, kind: acts[l].kind(), temperature: acts[l].temperature() };
+                let p = ActParams {
+                    rows,
+                    width: o as u32,
+                    kind: acts[l].kind(),
+                    temperature: acts[l].temperature(),
+                };
                 if acts[l].kind() == ACT_SOFTMAX {
                     rec.dispatch(
                         "mlp.act_bwd",
@@ -647,7 +868,10 @@ impl Mlp {
                         grid(rows),
                     )?;
                 } else {
-                    let four = act4_kernels(acts[l], &[&layer.pre, &layer.post, &layer.grad_post, &layer.grad_pre]);
+                    let four = act4_kernels(
+                        acts[l],
+                        &[&layer.pre, &layer.post, &layer.grad_post, &layer.grad_pre],
+                    );
                     rec.dispatch_as(
                         "mlp.act_bwd",
                         four.map_or(Kernel::NnActBwd, |(_, bwd)| bwd),
@@ -658,7 +882,11 @@ impl Mlp {
                             grad_pre: layer.grad_pre.write(),
                         },
                         &p,
-                        grid(if four.is_some() { (rows * o as u32).div_ceil(4) } else { rows * o as u32 }),
+                        grid(if four.is_some() {
+                            (rows * o as u32).div_ceil(4)
+                        } else {
+                            rows * o as u32
+                        }),
                     )?;
                 }
                 &layer.grad_pre
@@ -679,7 +907,16 @@ impl Mlp {
                 c_split: (o * (i + 1)) as u32,
                 ..Default::default()
             };
-            self.record_gemm(rec, "mlp.weight_grad", x, g, &self.params, &self.partials, p, splits)?;
+            self.record_gemm(
+                rec,
+                "mlp.weight_grad",
+                x,
+                g,
+                &self.params,
+                &self.partials,
+                p,
+                splits,
+            )?;
             // dX = g W, into the layer below's grad_post (heads: the trunk's; the first
             // head overwrites, the others add).
             let target = match below(l, hidden) {
@@ -703,9 +940,25 @@ impl Mlp {
                     k_chunk: o as u32,
                     ..Default::default()
                 };
-                self.record_gemm(rec, "mlp.input_grad", g, self.weights(), self.weights(), target, p, 1)?;
+                self.record_gemm(
+                    rec,
+                    "mlp.input_grad",
+                    g,
+                    self.weights(),
+                    self.weights(),
+                    target,
+                    p,
+                    1,
+                )?;
             }
-            let wp = WeightGradParams { out_features: o as u32, in_features: i as u32, splits, w_off: w_off as u32, b_off: b_off as u32, _pad: [0; 3] };
+            let wp = WeightGradParams {
+                out_features: o as u32,
+                in_features: i as u32,
+                splits,
+                w_off: w_off as u32,
+                b_off: b_off as u32,
+                _pad: [0; 3],
+            };
             rec.dispatch(
                 "mlp.sum_weight_grad",
                 kernels::nn::SumWeightGrad {
@@ -716,12 +969,19 @@ impl Mlp {
                 grid(wp.out_features * (wp.in_features + 1)),
             )?;
             // The next layer's dW reuses the partials, and reads the dX just written.
-            if step + 1 < order.len() {
-            }
+            if step + 1 < order.len() {}
         }
         if self.effective.is_some() {
             for p in self.desc.weight_norm_params() {
-                rec.dispatch("mlp.weight_norm_bwd", kernels::nn::WeightNormBwd { params: self.params.read(), grads: self.grads.write() }, &p, [p.out_features.div_ceil(64), 1, 1])?;
+                rec.dispatch(
+                    "mlp.weight_norm_bwd",
+                    kernels::nn::WeightNormBwd {
+                        params: self.params.read(),
+                        grads: self.grads.write(),
+                    },
+                    &p,
+                    [p.out_features.div_ceil(64), 1, 1],
+                )?;
             }
         }
         Ok(())
@@ -756,7 +1016,11 @@ fn apply_bwd<F: Real>(act: Activation, pre: &[F], post: &[F], grad: &[F], width:
         }
         out
     } else {
-        pre.iter().zip(post).zip(grad).map(|((&x, &y), &g)| activate_bwd(act.kind(), x, y, g)).collect()
+        pre.iter()
+            .zip(post)
+            .zip(grad)
+            .map(|((&x, &y), &g)| activate_bwd(act.kind(), x, y, g))
+            .collect()
     }
 }
 
@@ -803,7 +1067,8 @@ pub mod reference {
             for o in 0..p.out_features as usize {
                 let norm = weight_norm_row_norm(params, &p, o);
                 for i in 0..p.in_features as usize {
-                    out[p.w_off as usize + o * p.in_features as usize + i] = weight_norm_value(params, &p, o, i, norm);
+                    out[p.w_off as usize + o * p.in_features as usize + i] =
+                        weight_norm_value(params, &p, o, i, norm);
                 }
             }
         }
@@ -811,7 +1076,12 @@ pub mod reference {
     }
 
     /// CPU reference of the forward pass.
-    pub fn forward<F: Real>(desc: &MlpDesc, params: &[F], input: &[F], rows: usize) -> Activations<F> {
+    pub fn forward<F: Real>(
+        desc: &MlpDesc,
+        params: &[F],
+        input: &[F],
+        rows: usize,
+    ) -> Activations<F> {
         let params = &effective_params(desc, params)[..];
         let (offsets, _) = desc.layout();
         let acts = desc.activations();
@@ -824,7 +1094,14 @@ pub mod reference {
                 None => input,
             };
             let (w_off, b_off) = offsets[l];
-            let y = linear(x, &params[w_off..b_off], &params[b_off..b_off + o], rows, i, o);
+            let y = linear(
+                x,
+                &params[w_off..b_off],
+                &params[b_off..b_off + o],
+                rows,
+                i,
+                o,
+            );
             let a = apply(acts[l], &y, o);
             pre.push(y);
             post.push(a);
@@ -834,7 +1111,14 @@ pub mod reference {
 
     /// CPU reference of the backward pass from the gradients on each head's output:
     /// (parameter gradients, input gradient).
-    pub fn backward<F: Real>(desc: &MlpDesc, raw_params: &[F], input: &[F], rows: usize, saved: &Activations<F>, head_grads: &[Vec<F>]) -> (Vec<F>, Vec<F>) {
+    pub fn backward<F: Real>(
+        desc: &MlpDesc,
+        raw_params: &[F],
+        input: &[F],
+        rows: usize,
+        saved: &Activations<F>,
+        head_grads: &[Vec<F>],
+    ) -> (Vec<F>, Vec<F>) {
         let effective = effective_params(desc, raw_params);
         let params = &effective[..];
         let (offsets, len) = desc.layout();
@@ -842,7 +1126,10 @@ pub mod reference {
         let linears = desc.linears();
         let hidden = desc.hidden.len();
         let mut grads = vec![F::zero(); len];
-        let mut grad_out: Vec<Vec<F>> = linears.iter().map(|&(_, o)| vec![F::zero(); rows * o]).collect();
+        let mut grad_out: Vec<Vec<F>> = linears
+            .iter()
+            .map(|&(_, o)| vec![F::zero(); rows * o])
+            .collect();
         for (h, g) in head_grads.iter().enumerate() {
             grad_out[hidden + h] = g.clone();
         }
@@ -896,14 +1183,20 @@ mod capped_tests {
         assert_eq!(fwd_column_tiles(6), vec![(0, 6, 8)]);
         assert_eq!(fwd_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
         assert_eq!(fwd_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
-        assert_eq!(fwd_column_tiles(49), vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]);
+        assert_eq!(
+            fwd_column_tiles(49),
+            vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]
+        );
         assert_eq!(fwd_column_tiles(128), vec![(0, 128, 32)]);
         for n in 1..=200 {
             let tiles = fwd_column_tiles(n);
             let mut next = 0;
             for &(first, cols, width) in &tiles {
                 assert_eq!(first, next, "n = {n}: {tiles:?}");
-                assert!(cols > 0 && [32, 16, 8, 4].contains(&width), "n = {n}: {tiles:?}");
+                assert!(
+                    cols > 0 && [32, 16, 8, 4].contains(&width),
+                    "n = {n}: {tiles:?}"
+                );
                 next += cols;
             }
             assert_eq!(next, n, "n = {n}: {tiles:?}");
@@ -913,11 +1206,22 @@ mod capped_tests {
     #[test]
     fn capped_narrows_hidden_layers_only() {
         let d = MlpDesc::hugs_deformation(48).capped(64);
-        assert_eq!(d.linears(), vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]);
+        assert_eq!(
+            d.linears(),
+            vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]
+        );
         let a = MlpDesc::hugs_appearance(48, 3).capped(64);
-        assert_eq!(a, MlpDesc::hugs_appearance(48, 3), "the appearance decoder is 64 wide already");
+        assert_eq!(
+            a,
+            MlpDesc::hugs_appearance(48, 3),
+            "the appearance decoder is 64 wide already"
+        );
         let g = MlpDesc::hugs_geometry(96).capped(200);
-        assert_eq!(g, MlpDesc::hugs_geometry(96), "a cap above every width changes nothing");
+        assert_eq!(
+            g,
+            MlpDesc::hugs_geometry(96),
+            "a cap above every width changes nothing"
+        );
     }
 }
 
@@ -929,14 +1233,28 @@ fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(Kernel, Kernel)
     if buffers.iter().any(|b| b.vk_size() % 16 != 0) {
         return None;
     }
-    Some(if act.kind() == drape_shared::nn::ACT_GELU { (Kernel::NnActFwd4Gelu, Kernel::NnActBwd4Gelu) } else { (Kernel::NnActFwd4, Kernel::NnActBwd4) })
+    Some(if act.kind() == drape_shared::nn::ACT_GELU {
+        (Kernel::NnActFwd4Gelu, Kernel::NnActBwd4Gelu)
+    } else {
+        (Kernel::NnActFwd4, Kernel::NnActBwd4)
+    })
 }
 
 /// The bindings every GEMM kernel has (`nn::gemm_tiled`'s struct; the kernels of
 /// `nn_cpu` bind the same names, some of them as texel views of the same buffers), for
 /// the kernels chosen at run time (`Recording::dispatch_as`).
-fn gemm_bindings<'a>(a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer) -> kernels::nn::GemmTiled<'a> {
-    kernels::nn::GemmTiled { a: a.read(), b: b.read(), bias: bias.read(), c: c.write() }
+fn gemm_bindings<'a>(
+    a: &'a Buffer,
+    b: &'a Buffer,
+    bias: &'a Buffer,
+    c: &'a Buffer,
+) -> kernels::nn::GemmTiled<'a> {
+    kernels::nn::GemmTiled {
+        a: a.read(),
+        b: b.read(),
+        bias: bias.read(),
+        c: c.write(),
+    }
 }
 
 /// Whether the forward 4-float texel GEMMs (`nn_cpu::gemm_fwd_cols*`) fit these operands:
@@ -961,8 +1279,16 @@ fn fwd_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u
 
 /// The forward kernels by tile width: (width, float epilogue, 4-float epilogue).
 const FWD_WIDTHS: [(u32, Kernel, Kernel); 4] = [
-    (32, Kernel::NnCpuGemmFwdCols32, Kernel::NnCpuGemmFwdCols32Vec4),
-    (16, Kernel::NnCpuGemmFwdCols16, Kernel::NnCpuGemmFwdCols16Vec4),
+    (
+        32,
+        Kernel::NnCpuGemmFwdCols32,
+        Kernel::NnCpuGemmFwdCols32Vec4,
+    ),
+    (
+        16,
+        Kernel::NnCpuGemmFwdCols16,
+        Kernel::NnCpuGemmFwdCols16Vec4,
+    ),
     (8, Kernel::NnCpuGemmFwdCols8, Kernel::NnCpuGemmFwdCols8Vec4),
     (4, Kernel::NnCpuGemmFwdCols4, Kernel::NnCpuGemmFwdCols4Vec4),
 ];
@@ -1016,10 +1342,24 @@ pub fn fwd_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
 /// Records a forward GEMM through `nn_cpu::gemm_fwd_cols*` (see [`fwd_fits`]): one dispatch
 /// per run of [`fwd_column_tiles`], each shifted to its first column through the
 /// offsets, with the 4-float epilogue where its columns, `C` and the bias allow.
-fn record_fwd<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buffer, bias: &'a Buffer, c: &'a Buffer, p: GemmParams) -> Result<()> {
+fn record_fwd<'a>(
+    rec: &mut Recording<'a>,
+    name: &str,
+    a: &'a Buffer,
+    b: &'a Buffer,
+    bias: &'a Buffer,
+    c: &'a Buffer,
+    p: GemmParams,
+) -> Result<()> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
     for (first, cols, width) in fwd_column_tiles(p.n) {
-        let q = GemmParams { n: cols, b_off: p.b_off + first * p.b_sn, c_off: p.c_off + first, bias_off: p.bias_off + first, ..p };
+        let q = GemmParams {
+            n: cols,
+            b_off: p.b_off + first * p.b_sn,
+            c_off: p.c_off + first,
+            bias_off: p.bias_off + first,
+            ..p
+        };
         let quads = q.n % 4 == 0
             && q.ldc % 4 == 0
             && q.c_off % 4 == 0
@@ -1027,7 +1367,10 @@ fn record_fwd<'a>(rec: &mut Recording<'a>, name: &str, a: &'a Buffer, b: &'a Buf
             && whole(c)
             && whole(bias)
             && (q.flags & GEMM_BIAS == 0 || q.bias_off % 4 == 0);
-        let &(_, floats, fours) = FWD_WIDTHS.iter().find(|(w, ..)| *w == width).expect("a tile width of FWD_WIDTHS");
+        let &(_, floats, fours) = FWD_WIDTHS
+            .iter()
+            .find(|(w, ..)| *w == width)
+            .expect("a tile width of FWD_WIDTHS");
         let tiles = q.m.div_ceil(GEMM_FWD_ROWS) * cols.div_ceil(width);
         let x = tiles.min(65_535);
         rec.dispatch_as(
@@ -1064,13 +1407,29 @@ fn narrow_weight_grad_kernel(p: &GemmParams, a: &Buffer) -> Option<(Kernel, u32)
 /// narrow head's input gradient, a weight gradient of odd width). A 4-float view covers
 /// whole 16-byte texels, so offsets and strides must be multiples of 4 floats and the
 /// buffers whole texels.
-fn texel4_grad_kernel(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, c: &Buffer, max_texels: u64) -> Option<Kernel> {
+fn texel4_grad_kernel(
+    p: &GemmParams,
+    a: &Buffer,
+    b: &Buffer,
+    bias: &Buffer,
+    c: &Buffer,
+    max_texels: u64,
+) -> Option<Kernel> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
     // The `c4` epilogues store 4 columns at a time and read the bias as 4-float texels.
-    let c_quads = p.n % 4 == 0 && p.ldc % 4 == 0 && p.c_off % 4 == 0 && p.c_split % 4 == 0 && whole(c);
+    let c_quads =
+        p.n % 4 == 0 && p.ldc % 4 == 0 && p.c_off % 4 == 0 && p.c_split % 4 == 0 && whole(c);
     // (The bias is bound, as a texel buffer, with or without GEMM_BIAS.)
-    let bias_quads = bias.texel_readable(max_texels) && whole(bias) && (p.flags & GEMM_BIAS == 0 || p.bias_off % 4 == 0);
-    let a_k4 = p.a_sk == 1 && p.a_off % 4 == 0 && p.a_sm % 4 == 0 && p.k % 4 == 0 && p.k_chunk % 4 == 0 && p.flags & GEMM_ONES_ROW == 0 && whole(a);
+    let bias_quads = bias.texel_readable(max_texels)
+        && whole(bias)
+        && (p.flags & GEMM_BIAS == 0 || p.bias_off % 4 == 0);
+    let a_k4 = p.a_sk == 1
+        && p.a_off % 4 == 0
+        && p.a_sm % 4 == 0
+        && p.k % 4 == 0
+        && p.k_chunk % 4 == 0
+        && p.flags & GEMM_ONES_ROW == 0
+        && whole(a);
     let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_n4) {

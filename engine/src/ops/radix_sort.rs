@@ -21,8 +21,8 @@
 //! CPU reference: a stable sort by `drape_shared::radix_sort::significant_bits`.
 
 use drape_shared::radix_sort::{
-    self, chunk_count, chunk_pass_count, chunk_pass_params, pass_count, pass_params, SortPassParams, CHUNK_BUCKETS, CHUNK_WORKGROUP_SIZE,
-    RADIX_BUCKETS, SORT_BLOCK_LEN,
+    self, chunk_count, chunk_pass_count, chunk_pass_params, pass_count, pass_params,
+    SortPassParams, CHUNK_BUCKETS, CHUNK_WORKGROUP_SIZE, RADIX_BUCKETS, SORT_BLOCK_LEN,
 };
 
 use crate::buffer::{Buffer, BufferDesc};
@@ -96,7 +96,12 @@ impl RadixSort {
     /// Plans sorts of up to `max_len` pairs with the given kernels.
     pub fn with_variant(ctx: &Context, max_len: u32, variant: SortVariant) -> Result<Self> {
         if max_len > Self::LIMIT {
-            return Err(EngineError::too_large("keys to sort", max_len.into(), Self::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"));
+            return Err(EngineError::too_large(
+                "keys to sort",
+                max_len.into(),
+                Self::LIMIT.into(),
+                "the radix sort (65,535 workgroups of its block)",
+            ));
         }
         let variant = variant.resolve(ctx);
         let bytes = u64::from(max_len) * 4;
@@ -106,11 +111,18 @@ impl RadixSort {
         };
         // Whole 16-byte texels, so that a 4-float texel view covers every pair.
         let pair_bytes = (2 * bytes).next_multiple_of(16);
-        let interleaved = variant == SortVariant::Chunks && pair_bytes <= ctx.info().max_storage_buffer_range;
+        let interleaved =
+            variant == SortVariant::Chunks && pair_bytes <= ctx.info().max_storage_buffer_range;
         let scratch = match interleaved {
             true => [
-                ctx.create_buffer("radix_sort pairs scratch a", BufferDesc::gpu_only(pair_bytes))?,
-                ctx.create_buffer("radix_sort pairs scratch b", BufferDesc::gpu_only(pair_bytes))?,
+                ctx.create_buffer(
+                    "radix_sort pairs scratch a",
+                    BufferDesc::gpu_only(pair_bytes),
+                )?,
+                ctx.create_buffer(
+                    "radix_sort pairs scratch b",
+                    BufferDesc::gpu_only(pair_bytes),
+                )?,
             ],
             false => [
                 ctx.create_buffer("radix_sort keys scratch", BufferDesc::gpu_only(bytes))?,
@@ -122,13 +134,20 @@ impl RadixSort {
             variant,
             scratch,
             interleaved,
-            histogram: ctx.create_buffer("radix_sort histogram", BufferDesc::gpu_only(u64::from(histogram_len) * 4))?,
+            histogram: ctx.create_buffer(
+                "radix_sort histogram",
+                BufferDesc::gpu_only(u64::from(histogram_len) * 4),
+            )?,
             // The scan of the same family, so that each variant is the whole of itself.
             histogram_scan: ExclusiveScan::with_variant(
                 ctx,
                 "radix_sort.scan",
                 histogram_len,
-                if variant == SortVariant::Chunks { ScanVariant::Chunks } else { ScanVariant::Blocks },
+                if variant == SortVariant::Chunks {
+                    ScanVariant::Chunks
+                } else {
+                    ScanVariant::Blocks
+                },
             )?,
             texel_reads: true,
             int64_stores: ctx.info().shader_int64,
@@ -191,7 +210,12 @@ impl RadixSort {
         count_words: &'a Buffer,
         key_bits: u32,
     ) -> Result<()> {
-        assert!(count_words.size >= 8, "the count of a bounded sort is two u32 words ('{}' has {} bytes)", count_words.name(), count_words.size);
+        assert!(
+            count_words.size >= 8,
+            "the count of a bounded sort is two u32 words ('{}' has {} bytes)",
+            count_words.name(),
+            count_words.size
+        );
         self.record_sort(rec, keys, values, capacity, Some(count_words), key_bits)
     }
 
@@ -204,42 +228,85 @@ impl RadixSort {
         count_words: Option<&'a Buffer>,
         key_bits: u32,
     ) -> Result<()> {
-        assert!(key_bits <= 32, "key_bits must be at most 32, got {key_bits}");
+        assert!(
+            key_bits <= 32,
+            "key_bits must be at most 32, got {key_bits}"
+        );
         if len > self.max_len {
-            return Err(EngineError::too_large("keys to sort", len.into(), self.max_len.into(), "the sort's plan"));
+            return Err(EngineError::too_large(
+                "keys to sort",
+                len.into(),
+                self.max_len.into(),
+                "the sort's plan",
+            ));
         }
         let bytes = u64::from(len) * 4;
-        assert!(bytes <= keys.size && bytes <= values.size, "sort of {len} pairs in buffers of {} and {} bytes", keys.size, values.size);
+        assert!(
+            bytes <= keys.size && bytes <= values.size,
+            "sort of {len} pairs in buffers of {} and {} bytes",
+            keys.size,
+            values.size
+        );
         if len <= 1 {
             return Ok(());
         }
         let chunked = self.variant == SortVariant::Chunks;
-        let passes = if chunked { chunk_pass_count(key_bits) } else { pass_count(key_bits) };
+        let passes = if chunked {
+            chunk_pass_count(key_bits)
+        } else {
+            pass_count(key_bits)
+        };
         if self.interleaved && passes >= 2 {
             return self.record_chunk_passes(rec, keys, values, len, count_words, key_bits, passes);
         }
         let (histogram, scatter, buckets, blocks, groups) = if chunked {
             let chunks = chunk_count(len);
-            (Kernel::RadixSortChunkHistogram, Kernel::RadixSortChunkScatter, CHUNK_BUCKETS, chunks, chunks / CHUNK_WORKGROUP_SIZE)
+            (
+                Kernel::RadixSortChunkHistogram,
+                Kernel::RadixSortChunkScatter,
+                CHUNK_BUCKETS,
+                chunks,
+                chunks / CHUNK_WORKGROUP_SIZE,
+            )
         } else {
             let blocks = radix_sort::block_count(len);
-            (Kernel::RadixSortHistogram, Kernel::RadixSortScatter, RADIX_BUCKETS, blocks, blocks)
+            (
+                Kernel::RadixSortHistogram,
+                Kernel::RadixSortScatter,
+                RADIX_BUCKETS,
+                blocks,
+                blocks,
+            )
         };
         let max_texels = rec.context().info().max_texel_buffer_elements;
         let mut src = (keys, values);
         let mut dst = (&self.scratch[0], &self.scratch[1]);
         for pass in 0..passes {
-            let params = if chunked { chunk_pass_params(len, key_bits, pass) } else { pass_params(len, key_bits, pass) };
-            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..params };
+            let params = if chunked {
+                chunk_pass_params(len, key_bits, pass)
+            } else {
+                pass_params(len, key_bits, pass)
+            };
+            let params = SortPassParams {
+                bounded: u32::from(count_words.is_some()),
+                ..params
+            };
             // Unread when unbounded; the keys stand in for the binding.
             let len_words = count_words.unwrap_or(src.0);
             // A chunked sort of one pass reads through texel views where its inputs
             // allow them (as `record_chunk_passes` does); chunked sorts of several
             // passes land here only past one binding of pairs (16.7M on lavapipe), too
             // large for the tests, so they keep the storage kernels they were tested with.
-            let texel = chunked && passes == 1 && self.texel_reads && src.0.texel_readable(max_texels) && src.1.texel_readable(max_texels);
+            let texel = chunked
+                && passes == 1
+                && self.texel_reads
+                && src.0.texel_readable(max_texels)
+                && src.1.texel_readable(max_texels);
             let (histogram, scatter) = match texel {
-                true => (Kernel::RadixSortChunkHistogramTexel, Kernel::RadixSortChunkScatterTexel),
+                true => (
+                    Kernel::RadixSortChunkHistogramTexel,
+                    Kernel::RadixSortChunkScatterTexel,
+                ),
                 false => (histogram, scatter),
             };
             rec.dispatch_as(
@@ -253,7 +320,8 @@ impl RadixSort {
                 &params,
                 [groups, 1, 1],
             )?;
-            self.histogram_scan.record(rec, &self.histogram, buckets * blocks)?;
+            self.histogram_scan
+                .record(rec, &self.histogram, buckets * blocks)?;
             rec.dispatch_as(
                 "radix_sort.scatter",
                 scatter,
@@ -299,11 +367,20 @@ impl RadixSort {
         // kernels): the caller's keys and values for the first pass, the scratch pairs
         // for the others.
         let max_texels = rec.context().info().max_texel_buffer_elements;
-        let texel_inputs = self.texel_reads && keys.texel_readable(max_texels) && values.texel_readable(max_texels);
-        let texel_pairs = self.texel_reads && self.scratch.iter().all(|b| b.texel_readable(max_texels) && b.vk_size() % 16 == 0);
+        let texel_inputs = self.texel_reads
+            && keys.texel_readable(max_texels)
+            && values.texel_readable(max_texels);
+        let texel_pairs = self.texel_reads
+            && self
+                .scratch
+                .iter()
+                .all(|b| b.texel_readable(max_texels) && b.vk_size() % 16 == 0);
         let mut pairs = (&self.scratch[0], &self.scratch[1]);
         for pass in 0..passes {
-            let params = SortPassParams { bounded: u32::from(count_words.is_some()), ..chunk_pass_params(len, key_bits, pass) };
+            let params = SortPassParams {
+                bounded: u32::from(count_words.is_some()),
+                ..chunk_pass_params(len, key_bits, pass)
+            };
             let (first, last) = (pass == 0, pass + 1 == passes);
             // Unread when unbounded; the pass's input stands in for the binding.
             let len_words = count_words.unwrap_or(if first { keys } else { pairs.0 });
@@ -314,13 +391,22 @@ impl RadixSort {
                 (false, _, false) => Kernel::RadixSortChunkHistogramPairs,
             };
             if first {
-                let b = kernels::radix_sort::ChunkHistogram { keys: keys.read(), histogram: self.histogram.write(), len_words: len_words.read() };
+                let b = kernels::radix_sort::ChunkHistogram {
+                    keys: keys.read(),
+                    histogram: self.histogram.write(),
+                    len_words: len_words.read(),
+                };
                 rec.dispatch_as("radix_sort.histogram", histogram, b, &params, groups)?;
             } else {
-                let b = kernels::radix_sort::ChunkHistogramPairs { pairs: pairs.0.read(), histogram: self.histogram.write(), len_words: len_words.read() };
+                let b = kernels::radix_sort::ChunkHistogramPairs {
+                    pairs: pairs.0.read(),
+                    histogram: self.histogram.write(),
+                    len_words: len_words.read(),
+                };
                 rec.dispatch_as("radix_sort.histogram", histogram, b, &params, groups)?;
             }
-            self.histogram_scan.record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
+            self.histogram_scan
+                .record(rec, &self.histogram, CHUNK_BUCKETS * chunks)?;
             let scanned_histogram = self.histogram.read();
             if first {
                 let kernel = match (texel_inputs, self.int64_stores) {
@@ -328,11 +414,27 @@ impl RadixSort {
                     (true, false) => Kernel::RadixSortChunkScatterZipTexel,
                     (false, _) => Kernel::RadixSortChunkScatterZip,
                 };
-                let b = kernels::radix_sort::ChunkScatterZip { keys_in: keys.read(), values_in: values.read(), pairs_out: pairs.0.write(), scanned_histogram, len_words: len_words.read() };
+                let b = kernels::radix_sort::ChunkScatterZip {
+                    keys_in: keys.read(),
+                    values_in: values.read(),
+                    pairs_out: pairs.0.write(),
+                    scanned_histogram,
+                    len_words: len_words.read(),
+                };
                 rec.dispatch_as("radix_sort.scatter_zip", kernel, b, &params, groups)?;
             } else if last {
-                let kernel = if texel_pairs { Kernel::RadixSortChunkScatterUnzipTexel } else { Kernel::RadixSortChunkScatterUnzip };
-                let b = kernels::radix_sort::ChunkScatterUnzip { pairs_in: pairs.0.read(), keys_out: keys.write(), values_out: values.write(), scanned_histogram, len_words: len_words.read() };
+                let kernel = if texel_pairs {
+                    Kernel::RadixSortChunkScatterUnzipTexel
+                } else {
+                    Kernel::RadixSortChunkScatterUnzip
+                };
+                let b = kernels::radix_sort::ChunkScatterUnzip {
+                    pairs_in: pairs.0.read(),
+                    keys_out: keys.write(),
+                    values_out: values.write(),
+                    scanned_histogram,
+                    len_words: len_words.read(),
+                };
                 rec.dispatch_as("radix_sort.scatter_unzip", kernel, b, &params, groups)?;
             } else {
                 let kernel = match (texel_pairs, self.int64_stores) {
@@ -340,7 +442,12 @@ impl RadixSort {
                     (true, false) => Kernel::RadixSortChunkScatterPairsTexel,
                     (false, _) => Kernel::RadixSortChunkScatterPairs,
                 };
-                let b = kernels::radix_sort::ChunkScatterPairs { pairs_in: pairs.0.read(), pairs_out: pairs.1.write(), scanned_histogram, len_words: len_words.read() };
+                let b = kernels::radix_sort::ChunkScatterPairs {
+                    pairs_in: pairs.0.read(),
+                    pairs_out: pairs.1.write(),
+                    scanned_histogram,
+                    len_words: len_words.read(),
+                };
                 rec.dispatch_as("radix_sort.scatter_pairs", kernel, b, &params, groups)?;
             }
             if !first {
@@ -353,19 +460,40 @@ impl RadixSort {
 
 /// Sorts host data on the GPU in one submission: upload, sort, read back.
 /// For embedding applications and tests; a frame loop keeps a plan and records.
-pub fn sort_pairs_host(ctx: &Context, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
+pub fn sort_pairs_host(
+    ctx: &Context,
+    keys: &[u32],
+    values: &[u32],
+    key_bits: u32,
+) -> Result<(Vec<u32>, Vec<u32>)> {
     sort_pairs_host_with(ctx, SortVariant::Auto, keys, values, key_bits)
 }
 
 /// [`sort_pairs_host`] with the given kernels.
-pub fn sort_pairs_host_with(ctx: &Context, variant: SortVariant, keys: &[u32], values: &[u32], key_bits: u32) -> Result<(Vec<u32>, Vec<u32>)> {
+pub fn sort_pairs_host_with(
+    ctx: &Context,
+    variant: SortVariant,
+    keys: &[u32],
+    values: &[u32],
+    key_bits: u32,
+) -> Result<(Vec<u32>, Vec<u32>)> {
     assert_eq!(keys.len(), values.len(), "keys and values differ in length");
-    let len = u32::try_from(keys.len()).map_err(|_| EngineError::too_large("keys to sort", keys.len() as u64, RadixSort::LIMIT.into(), "the radix sort (65,535 workgroups of its block)"))?;
+    let len = u32::try_from(keys.len()).map_err(|_| {
+        EngineError::too_large(
+            "keys to sort",
+            keys.len() as u64,
+            RadixSort::LIMIT.into(),
+            "the radix sort (65,535 workgroups of its block)",
+        )
+    })?;
     let mut key_buf = ctx.upload("sort keys", keys)?;
     let mut value_buf = ctx.upload("sort values", values)?;
     let plan = RadixSort::with_variant(ctx, len, variant)?;
     let mut rec = ctx.record("sort_pairs_host")?;
     plan.record(&mut rec, &key_buf, &value_buf, len, key_bits)?;
     rec.submit_and_wait()?;
-    Ok((ctx.read_buffer(&mut key_buf, keys.len())?, ctx.read_buffer(&mut value_buf, values.len())?))
+    Ok((
+        ctx.read_buffer(&mut key_buf, keys.len())?,
+        ctx.read_buffer(&mut value_buf, values.len())?,
+    ))
 }

@@ -18,7 +18,9 @@
 //! [`ExclusiveScan::max_len`]. CPU reference: `drape_shared::scan::exclusive_scan_in_place`.
 
 use drape_shared::chunks::{chunk_count, CHUNK_WORKGROUP_SIZE};
-use drape_shared::scan::{block_count, ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SERIAL_SCAN_MAX_LEN};
+use drape_shared::scan::{
+    block_count, ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SERIAL_SCAN_MAX_LEN,
+};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -80,21 +82,35 @@ impl ExclusiveScan {
     }
 
     /// Plans scans of up to `max_len` elements with the given kernels.
-    pub fn with_variant(ctx: &Context, label: &str, max_len: u32, variant: ScanVariant) -> Result<Self> {
+    pub fn with_variant(
+        ctx: &Context,
+        label: &str,
+        max_len: u32,
+        variant: ScanVariant,
+    ) -> Result<Self> {
         if max_len > Self::LIMIT {
-            return Err(EngineError::too_large("elements to scan", max_len.into(), Self::LIMIT.into(), "the scan (65,535 workgroups of its block)"));
+            return Err(EngineError::too_large(
+                "elements to scan",
+                max_len.into(),
+                Self::LIMIT.into(),
+                "the scan (65,535 workgroups of its block)",
+            ));
         }
         let variant = variant.resolve(ctx);
         let mut level_sums = Vec::new();
         if variant == ScanVariant::Chunks {
             let chunks = chunk_count(max_len);
-            level_sums.push(ctx.create_buffer(&format!("{label} chunk sums"), BufferDesc::gpu_only(u64::from(chunks) * 4))?);
+            level_sums.push(ctx.create_buffer(
+                &format!("{label} chunk sums"),
+                BufferDesc::gpu_only(u64::from(chunks) * 4),
+            )?);
         } else {
             let mut len = max_len;
             while len > SCAN_BLOCK_LEN {
                 len = block_count(len);
                 let name = format!("{label} level {} sums", level_sums.len() + 1);
-                level_sums.push(ctx.create_buffer(&name, BufferDesc::gpu_only(u64::from(len) * 4))?);
+                level_sums
+                    .push(ctx.create_buffer(&name, BufferDesc::gpu_only(u64::from(len) * 4))?);
             }
         }
         Ok(Self {
@@ -130,22 +146,46 @@ impl ExclusiveScan {
     /// Records an in-place exclusive scan of the first `len` elements of `data`.
     pub fn record<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32) -> Result<()> {
         if len > self.max_len {
-            return Err(EngineError::too_large("elements to scan", len.into(), self.max_len.into(), "the scan's plan"));
+            return Err(EngineError::too_large(
+                "elements to scan",
+                len.into(),
+                self.max_len.into(),
+                "the scan's plan",
+            ));
         }
-        assert!(u64::from(len) * 4 <= data.size, "scan of {len} elements in '{}' of {} bytes", data.name(), data.size);
+        assert!(
+            u64::from(len) * 4 <= data.size,
+            "scan of {len} elements in '{}' of {} bytes",
+            data.name(),
+            data.size
+        );
         if self.variant == ScanVariant::Chunks {
             return self.record_chunks(rec, data, len);
         }
         self.record_level(rec, data, len, 0)
     }
 
-    fn record_chunks<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32) -> Result<()> {
+    fn record_chunks<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        data: &'a Buffer,
+        len: u32,
+    ) -> Result<()> {
         if len == 0 {
             return Ok(());
         }
-        let params = ChunkScanParams { len, chunks: chunk_count(len), _pad: [0; 2] };
+        let params = ChunkScanParams {
+            len,
+            chunks: chunk_count(len),
+            _pad: [0; 2],
+        };
         if len <= SERIAL_SCAN_MAX_LEN && self.serial {
-            return rec.dispatch(&self.pass_serial, kernels::scan::ChunkSerial { data: data.write() }, &params, [1, 1, 1]);
+            return rec.dispatch(
+                &self.pass_serial,
+                kernels::scan::ChunkSerial { data: data.write() },
+                &params,
+                [1, 1, 1],
+            );
         }
         let sums = &self.level_sums[0];
         let groups = params.chunks / CHUNK_WORKGROUP_SIZE;
@@ -158,7 +198,14 @@ impl ExclusiveScan {
             &params,
             [groups, 1, 1],
         )?;
-        rec.dispatch(&self.pass_sums, kernels::scan::ChunkSums { chunk_sums: sums.write() }, &params, [1, 1, 1])?;
+        rec.dispatch(
+            &self.pass_sums,
+            kernels::scan::ChunkSums {
+                chunk_sums: sums.write(),
+            },
+            &params,
+            [1, 1, 1],
+        )?;
         rec.dispatch(
             &self.pass_downsweep,
             kernels::scan::ChunkDownsweep {
@@ -170,27 +217,40 @@ impl ExclusiveScan {
         )
     }
 
-    fn record_level<'a>(&'a self, rec: &mut Recording<'a>, data: &'a Buffer, len: u32, level: usize) -> Result<()> {
+    fn record_level<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        data: &'a Buffer,
+        len: u32,
+        level: usize,
+    ) -> Result<()> {
         if len == 0 {
             return Ok(());
         }
         if len <= SCAN_BLOCK_LEN {
-            let params = ScanParams { len, add_block_offsets: 0, _pad: [0; 2] };
+            let params = ScanParams {
+                len,
+                add_block_offsets: 0,
+                _pad: [0; 2],
+            };
             // Single block: `block_offsets` is unread; bind `data` to satisfy the layout.
-            return rec
-                .dispatch(
-                    &self.pass_downsweep,
-                    kernels::scan::Downsweep {
-                        data: data.write(),
-                        block_offsets: data.read(),
-                    },
-                    &params,
-                    [1, 1, 1],
-                );
+            return rec.dispatch(
+                &self.pass_downsweep,
+                kernels::scan::Downsweep {
+                    data: data.write(),
+                    block_offsets: data.read(),
+                },
+                &params,
+                [1, 1, 1],
+            );
         }
         let blocks = block_count(len);
         let sums = &self.level_sums[level];
-        let params = ScanParams { len, add_block_offsets: 1, _pad: [0; 2] };
+        let params = ScanParams {
+            len,
+            add_block_offsets: 1,
+            _pad: [0; 2],
+        };
         rec.dispatch(
             &self.pass_reduce,
             kernels::scan::Reduce {
@@ -220,8 +280,19 @@ pub fn exclusive_scan_host(ctx: &Context, data: &[u32]) -> Result<Vec<u32>> {
 }
 
 /// [`exclusive_scan_host`] with the given kernels.
-pub fn exclusive_scan_host_with(ctx: &Context, variant: ScanVariant, data: &[u32]) -> Result<Vec<u32>> {
-    let len = u32::try_from(data.len()).map_err(|_| EngineError::too_large("elements to scan", data.len() as u64, ExclusiveScan::LIMIT.into(), "the scan (65,535 workgroups of its block)"))?;
+pub fn exclusive_scan_host_with(
+    ctx: &Context,
+    variant: ScanVariant,
+    data: &[u32],
+) -> Result<Vec<u32>> {
+    let len = u32::try_from(data.len()).map_err(|_| {
+        EngineError::too_large(
+            "elements to scan",
+            data.len() as u64,
+            ExclusiveScan::LIMIT.into(),
+            "the scan (65,535 workgroups of its block)",
+        )
+    })?;
     let mut buf = ctx.upload("scan data", data)?;
     let plan = ExclusiveScan::with_variant(ctx, "scan", len, variant)?;
     let mut rec = ctx.record("exclusive_scan_host")?;

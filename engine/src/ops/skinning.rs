@@ -7,7 +7,10 @@
 //! (`drape_trainer::body::kinematics::pose_gradient`).
 
 use drape_shared::real::Real;
-use drape_shared::skinning::{dot3, rotation_minus_identity_t, transform_delta, SkinParams, SKIN_JOINTS, TRANSFORM_FLOATS, TRANSFORM_GRAD_CHUNK};
+use drape_shared::skinning::{
+    dot3, rotation_minus_identity_t, transform_delta, SkinParams, SKIN_JOINTS, TRANSFORM_FLOATS,
+    TRANSFORM_GRAD_CHUNK,
+};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -30,22 +33,47 @@ impl Skinning {
         // Beyond 65,535 workgroups of 256 the 1-D dispatches would not fit; say so now.
         let limit = 65_535u64 * 256;
         if max_count as u64 > limit {
-            return Err(EngineError::too_large("points to skin", max_count as u64, limit, "skinning (65,535 workgroups of 256)"));
+            return Err(EngineError::too_large(
+                "points to skin",
+                max_count as u64,
+                limit,
+                "skinning (65,535 workgroups of 256)",
+            ));
         }
         let max_count = max_count as u32;
         let groups = max_count.div_ceil(TRANSFORM_GRAD_CHUNK).max(1);
         Ok(Self {
             max_count,
-            partials: ctx.create_buffer("skinning partial transform gradients", BufferDesc::gpu_only(u64::from(groups) * TRANSFORMS_LEN as u64 * 4))?,
+            partials: ctx.create_buffer(
+                "skinning partial transform gradients",
+                BufferDesc::gpu_only(u64::from(groups) * TRANSFORMS_LEN as u64 * 4),
+            )?,
         })
     }
 
     /// Records `skinned = skin(points)`.
-    pub fn record_fwd<'a>(&'a self, rec: &mut Recording<'a>, transforms: &'a Buffer, weights: &'a Buffer, points: &'a Buffer, skinned: &'a Buffer, count: u32) -> Result<()> {
+    pub fn record_fwd<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        transforms: &'a Buffer,
+        weights: &'a Buffer,
+        points: &'a Buffer,
+        skinned: &'a Buffer,
+        count: u32,
+    ) -> Result<()> {
         if count > self.max_count {
-            return Err(EngineError::too_large("points to skin", count.into(), self.max_count.into(), "the skinning plan"));
+            return Err(EngineError::too_large(
+                "points to skin",
+                count.into(),
+                self.max_count.into(),
+                "the skinning plan",
+            ));
         }
-        let p = SkinParams { count, groups: 0, _pad: [0; 2] };
+        let p = SkinParams {
+            count,
+            groups: 0,
+            _pad: [0; 2],
+        };
         rec.dispatch(
             "skinning.fwd",
             kernels::skinning::SkinFwd {
@@ -74,10 +102,19 @@ impl Skinning {
         count: u32,
     ) -> Result<()> {
         if count > self.max_count {
-            return Err(EngineError::too_large("points to skin", count.into(), self.max_count.into(), "the skinning plan"));
+            return Err(EngineError::too_large(
+                "points to skin",
+                count.into(),
+                self.max_count.into(),
+                "the skinning plan",
+            ));
         }
         let groups = count.div_ceil(TRANSFORM_GRAD_CHUNK);
-        let p = SkinParams { count, groups, _pad: [0; 2] };
+        let p = SkinParams {
+            count,
+            groups,
+            _pad: [0; 2],
+        };
         // The two passes read the same inputs and write different buffers: no barrier.
         rec.dispatch(
             "skinning.bwd_points",
@@ -148,14 +185,23 @@ pub mod reference {
     }
 
     /// CPU reference of the backward pass: (grad points, grad weights, grad transforms).
-    pub fn backward<F: Real>(transforms: &[F], weights: &[F], points: &[F], grad_skinned: &[F]) -> (Vec<F>, Vec<F>, Vec<F>) {
+    pub fn backward<F: Real>(
+        transforms: &[F],
+        weights: &[F],
+        points: &[F],
+        grad_skinned: &[F],
+    ) -> (Vec<F>, Vec<F>, Vec<F>) {
         let n = points.len() / 3;
         let mut gp = grad_skinned.to_vec();
         let mut gw = vec![F::zero(); n * SKIN_JOINTS];
         let mut ga = vec![F::zero(); TRANSFORMS_LEN];
         for i in 0..n {
             let x = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
-            let g = [grad_skinned[3 * i], grad_skinned[3 * i + 1], grad_skinned[3 * i + 2]];
+            let g = [
+                grad_skinned[3 * i],
+                grad_skinned[3 * i + 1],
+                grad_skinned[3 * i + 2],
+            ];
             for j in 0..SKIN_JOINTS {
                 let a = transform_of(transforms, j);
                 let w = weights[i * SKIN_JOINTS + j];

@@ -4,7 +4,9 @@
 //! mean over the map), generic over f32/f64.
 
 use drape_shared::real::Real;
-use drape_shared::ssim::{blur_invocations, ssim_pointwise, window_taps, SsimParams, SSIM_MOMENTS, SSIM_WINDOW};
+use drape_shared::ssim::{
+    blur_invocations, ssim_pointwise, window_taps, SsimParams, SSIM_MOMENTS, SSIM_WINDOW,
+};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -33,8 +35,14 @@ impl Ssim {
         Ok(Self {
             width,
             height,
-            a: ctx.create_buffer("ssim moments a", BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)))?,
-            b: ctx.create_buffer("ssim moments b", BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)))?,
+            a: ctx.create_buffer(
+                "ssim moments a",
+                BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)),
+            )?,
+            b: ctx.create_buffer(
+                "ssim moments b",
+                BufferDesc::gpu_only(4 * n * u64::from(SSIM_MOMENTS)),
+            )?,
             smap: ctx.create_buffer("ssim map", BufferDesc::gpu_only(4 * n))?,
             smap_mirror: None,
         })
@@ -57,7 +65,16 @@ impl Ssim {
     }
 
     fn params(&self, planes: u32, vertical: bool, scale: f32) -> SsimParams {
-        SsimParams { width: self.width, height: self.height, planes, vertical: u32::from(vertical), scale, _pad: [0; 3], taps: window_taps::<f32>(), _pad2: 0 }
+        SsimParams {
+            width: self.width,
+            height: self.height,
+            planes,
+            vertical: u32::from(vertical),
+            scale,
+            _pad: [0; 3],
+            taps: window_taps::<f32>(),
+            _pad2: 0,
+        }
     }
 
     fn pixels(&self) -> u32 {
@@ -67,32 +84,88 @@ impl Ssim {
     /// Records the SSIM map of `pred` against `target` and, with `grad = Some((buffer,
     /// scale))`, adds `scale · ∂ mean(SSIM) / ∂ pred` to `buffer` (a loss
     /// `λ (1 - SSIM)` passes `-λ`).
-    pub fn record<'a>(&'a self, rec: &mut Recording<'a>, pred: &'a Buffer, target: &'a Buffer, grad: Option<(&'a Buffer, f32)>) -> Result<()> {
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        pred: &'a Buffer,
+        target: &'a Buffer,
+        grad: Option<(&'a Buffer, f32)>,
+    ) -> Result<()> {
         let n = self.pixels();
         if let Some(m) = &self.smap_mirror {
             m.mark_stale();
         }
         let p = self.params(SSIM_MOMENTS, false, 0.0);
-        rec.dispatch("ssim.moments", kernels::ssim::Moments { x: pred.read(), y: target.read(), planes: self.a.write() }, &p, grid(n))?;
+        rec.dispatch(
+            "ssim.moments",
+            kernels::ssim::Moments {
+                x: pred.read(),
+                y: target.read(),
+                planes: self.a.write(),
+            },
+            &p,
+            grid(n),
+        )?;
         self.record_blur(rec, SSIM_MOMENTS, &self.a, &self.b)?;
-        rec.dispatch("ssim.map", kernels::ssim::Map { moments: self.a.read(), smap: self.smap.write(), partials: self.b.write() }, &p, grid(n))?;
+        rec.dispatch(
+            "ssim.map",
+            kernels::ssim::Map {
+                moments: self.a.read(),
+                smap: self.smap.write(),
+                partials: self.b.write(),
+            },
+            &p,
+            grid(n),
+        )?;
         if let Some((g, scale)) = grad {
             // The blurred partials end in b (b -> a -> b).
             self.record_blur(rec, 3, &self.b, &self.a)?;
             let p = self.params(3, false, scale / n.max(1) as f32);
-            rec.dispatch("ssim.grad", kernels::ssim::Grad { x: pred.read(), y: target.read(), partials: self.b.read(), grad: g.write() }, &p, grid(n))?;
+            rec.dispatch(
+                "ssim.grad",
+                kernels::ssim::Grad {
+                    x: pred.read(),
+                    y: target.read(),
+                    partials: self.b.read(),
+                    grad: g.write(),
+                },
+                &p,
+                grid(n),
+            )?;
         }
         Ok(())
     }
 
     /// Horizontal pass `src -> tmp`, vertical pass `tmp -> src`.
-    fn record_blur<'a>(&'a self, rec: &mut Recording<'a>, planes: u32, src: &'a Buffer, tmp: &'a Buffer) -> Result<()> {
+    fn record_blur<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        planes: u32,
+        src: &'a Buffer,
+        tmp: &'a Buffer,
+    ) -> Result<()> {
         let h = self.params(planes, false, 0.0);
         let across = blur_invocations(self.width, self.height, planes, false);
-        rec.dispatch("ssim.blur", kernels::ssim::Blur { src: src.read(), dst: tmp.write() }, &h, grid(across))?;
+        rec.dispatch(
+            "ssim.blur",
+            kernels::ssim::Blur {
+                src: src.read(),
+                dst: tmp.write(),
+            },
+            &h,
+            grid(across),
+        )?;
         let v = self.params(planes, true, 0.0);
         let down = blur_invocations(self.width, self.height, planes, true);
-        rec.dispatch("ssim.blur", kernels::ssim::Blur { src: tmp.read(), dst: src.write() }, &v, grid(down))?;
+        rec.dispatch(
+            "ssim.blur",
+            kernels::ssim::Blur {
+                src: tmp.read(),
+                dst: src.write(),
+            },
+            &v,
+            grid(down),
+        )?;
         Ok(())
     }
 
@@ -138,11 +211,20 @@ fn blur2<F: Real>(img: &[F], width: usize, height: usize) -> Vec<F> {
 }
 
 /// CPU reference: (map, mean, ∂ mean / ∂ pred).
-pub fn reference<F: Real>(pred: &[F], target: &[F], width: usize, height: usize) -> (Vec<F>, F, Vec<F>) {
+pub fn reference<F: Real>(
+    pred: &[F],
+    target: &[F],
+    width: usize,
+    height: usize,
+) -> (Vec<F>, F, Vec<F>) {
     let n = pred.len();
     let m = |f: &dyn Fn(usize) -> F| blur2(&(0..n).map(f).collect::<Vec<F>>(), width, height);
     let (mx, my) = (m(&|i| pred[i]), m(&|i| target[i]));
-    let (exx, eyy, exy) = (m(&|i| pred[i] * pred[i]), m(&|i| target[i] * target[i]), m(&|i| pred[i] * target[i]));
+    let (exx, eyy, exy) = (
+        m(&|i| pred[i] * pred[i]),
+        m(&|i| target[i] * target[i]),
+        m(&|i| pred[i] * target[i]),
+    );
     let mut map = vec![F::zero(); n];
     let (mut pm, mut pxx, mut pxy) = (vec![F::zero(); n], vec![F::zero(); n], vec![F::zero(); n]);
     let mut sum = F::zero();
@@ -154,8 +236,14 @@ pub fn reference<F: Real>(pred: &[F], target: &[F], width: usize, height: usize)
         pxx[i] = b;
         pxy[i] = c;
     }
-    let (bm, bxx, bxy) = (blur2(&pm, width, height), blur2(&pxx, width, height), blur2(&pxy, width, height));
+    let (bm, bxx, bxy) = (
+        blur2(&pm, width, height),
+        blur2(&pxx, width, height),
+        blur2(&pxy, width, height),
+    );
     let inv = F::one() / F::of(n.max(1) as f32);
-    let grad = (0..n).map(|i| (bm[i] + F::of(2.0) * pred[i] * bxx[i] + target[i] * bxy[i]) * inv).collect();
+    let grad = (0..n)
+        .map(|i| (bm[i] + F::of(2.0) * pred[i] * bxx[i] + target[i] * bxy[i]) * inv)
+        .collect();
     (map, sum * inv, grad)
 }

@@ -6,7 +6,9 @@
 //! the layer's box that maps canonical points into `[-1, 1]³`.
 
 use drape_shared::real::Real;
-use drape_shared::triplane::{corners, footprint, inside, normalise, texel_index, TriplaneParams, PLANE_AXES};
+use drape_shared::triplane::{
+    corners, footprint, inside, normalise, texel_index, TriplaneParams, PLANE_AXES,
+};
 use rand::{Rng, SeedableRng};
 
 use crate::buffer::{Buffer, BufferDesc};
@@ -93,10 +95,16 @@ impl TriplaneDesc {
     }
 
     fn check(&self) {
-        assert!(self.resolution >= 2, "a triplane needs at least 2 texels per side");
+        assert!(
+            self.resolution >= 2,
+            "a triplane needs at least 2 texels per side"
+        );
         assert!(self.channels >= 1, "a triplane needs at least one channel");
         for a in 0..3 {
-            assert!(self.box_max[a] > self.box_min[a], "the triplane's box is empty along axis {a}");
+            assert!(
+                self.box_max[a] > self.box_min[a],
+                "the triplane's box is empty along axis {a}"
+            );
         }
     }
 }
@@ -120,26 +128,51 @@ impl Triplane {
     }
 
     /// Planes with the given values.
-    pub fn with_planes(ctx: &Context, label: &str, desc: TriplaneDesc, planes: &[f32]) -> Result<Self> {
+    pub fn with_planes(
+        ctx: &Context,
+        label: &str,
+        desc: TriplaneDesc,
+        planes: &[f32],
+    ) -> Result<Self> {
         desc.check();
-        assert_eq!(planes.len(), desc.len(), "{label}: plane data has the wrong length");
+        assert_eq!(
+            planes.len(),
+            desc.len(),
+            "{label}: plane data has the wrong length"
+        );
         let bytes = desc.len() as u64 * 4;
         let mut p = ctx.create_buffer(&format!("{label} planes"), BufferDesc::gpu_only(bytes))?;
         ctx.write_buffer(&mut p, planes)?;
-        Ok(Self { desc, planes: p, grads: ctx.create_buffer(&format!("{label} plane grads"), BufferDesc::gpu_only(bytes))?, fixed: None })
+        Ok(Self {
+            desc,
+            planes: p,
+            grads: ctx
+                .create_buffer(&format!("{label} plane grads"), BufferDesc::gpu_only(bytes))?,
+            fixed: None,
+        })
     }
 
     /// Allocates what `accumulation` needs in [`record_backward`](Self::record_backward)
     /// (for the deterministic way, a fixed-point scratch twice the planes' size).
     pub fn prepare(&mut self, ctx: &Context, accumulation: Accumulation) -> Result<()> {
         if accumulation == Accumulation::Deterministic && self.fixed.is_none() {
-            self.fixed = Some(FixedPointScratch::new(ctx, "triplane plane grads", self.desc.len() as u32)?);
+            self.fixed = Some(FixedPointScratch::new(
+                ctx,
+                "triplane plane grads",
+                self.desc.len() as u32,
+            )?);
         }
         Ok(())
     }
 
     /// Records `features = sample(points)` for `count` points (features count × 3C).
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, points: &'a Buffer, features: &'a Buffer, count: u32) -> Result<()> {
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        points: &'a Buffer,
+        features: &'a Buffer,
+        count: u32,
+    ) -> Result<()> {
         let p = self.desc.params(count);
         rec.dispatch(
             "triplane.sample_fwd",
@@ -213,7 +246,10 @@ pub mod reference {
             }
             let u = normalise([pt[0], pt[1], pt[2]], &p);
             for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                let cs = corners(
+                    &footprint(u[ax], p.resolution),
+                    &footprint(u[ay], p.resolution),
+                );
                 for (row, col, w, _, _) in cs {
                     if inside(row, p.resolution) && inside(col, p.resolution) {
                         let t = texel_index(plane, row, col, &p);
@@ -228,7 +264,12 @@ pub mod reference {
     }
 
     /// CPU reference of the backward pass: (plane gradient, points' gradient).
-    pub fn backward<F: Real>(desc: &TriplaneDesc, planes: &[F], points: &[F], grad_features: &[F]) -> (Vec<F>, Vec<F>) {
+    pub fn backward<F: Real>(
+        desc: &TriplaneDesc,
+        planes: &[F],
+        points: &[F],
+        grad_features: &[F],
+    ) -> (Vec<F>, Vec<F>) {
         let p = desc.params((points.len() / 3) as u32);
         let ch = desc.channels as usize;
         let mut gplanes = vec![F::zero(); planes.len()];
@@ -240,7 +281,10 @@ pub mod reference {
             let u = normalise([pt[0], pt[1], pt[2]], &p);
             let mut gu = [F::zero(); 3];
             for (plane, &(ax, ay)) in PLANE_AXES.iter().enumerate() {
-                let cs = corners(&footprint(u[ax], p.resolution), &footprint(u[ay], p.resolution));
+                let cs = corners(
+                    &footprint(u[ax], p.resolution),
+                    &footprint(u[ay], p.resolution),
+                );
                 for (row, col, w, dwx, dwy) in cs {
                     if inside(row, p.resolution) && inside(col, p.resolution) {
                         let t = texel_index(plane, row, col, &p);

@@ -69,7 +69,11 @@ pub fn add_fixed(grads: &mut [u32], index: usize, value: f32) {
     let [lo, hi] = drape_shared::fixed_point::encode(value);
     let before = fetch_add_u32(&mut grads[2 * index], lo);
     // The low word wrapped: carry one into the high word.
-    let carry = if before.wrapping_add(lo) < before { 1 } else { 0 };
+    let carry = if before.wrapping_add(lo) < before {
+        1
+    } else {
+        0
+    };
     let high = hi.wrapping_add(carry);
     if high != 0 {
         fetch_add_u32(&mut grads[2 * index + 1], high);
@@ -101,7 +105,8 @@ pub fn add_f32_cas(grads: &mut [u32], index: usize, value: f32) {
     loop {
         let new = (f32::from_bits(old) + value).to_bits();
         // SAFETY: see the module header.
-        let seen = unsafe { atomic_compare_exchange::<u32, DEVICE, RELAXED, RELAXED>(slot, new, old) };
+        let seen =
+            unsafe { atomic_compare_exchange::<u32, DEVICE, RELAXED, RELAXED>(slot, new, old) };
         if seen == old {
             break;
         }
@@ -158,7 +163,11 @@ impl GradAdd for FixedPoint {
 /// loop: on llvmpipe a loop here would spend 10 of an invocation's 65,535 loop
 /// iterations per splat).
 #[inline]
-pub fn add_splat_grad<A: GradAdd>(grads: &mut [A::Word], splat: usize, g: &[f32; drape_shared::splat::layout::SPLAT_GRAD_FLOATS]) {
+pub fn add_splat_grad<A: GradAdd>(
+    grads: &mut [A::Word],
+    splat: usize,
+    g: &[f32; drape_shared::splat::layout::SPLAT_GRAD_FLOATS],
+) {
     let base = splat * drape_shared::splat::layout::SPLAT_GRAD_FLOATS;
     drape_shared::each_index!(10, c => {
         A::add(grads, base + c, g[c]);

@@ -11,8 +11,9 @@
 //! barrier, and the ones past the end only help stage tiles.
 
 use drape_shared::cloth_loss::{
-    arap_edge_grad, chamfer_pair_grad, distance2, ordered_key, ArapParams, ChamferParams, GridParams, GridSpec, CHAMFER_CHUNK, CHAMFER_FINISH, CHAMFER_LAST, CHAMFER_MERGE, CHAMFER_OWN_TERM,
-    CLOTH_LOSS_GROUP, GRID_STEP_BUDGET, NEAREST_UNFINISHED,
+    arap_edge_grad, chamfer_pair_grad, distance2, ordered_key, ArapParams, ChamferParams,
+    GridParams, GridSpec, CHAMFER_CHUNK, CHAMFER_FINISH, CHAMFER_LAST, CHAMFER_MERGE,
+    CHAMFER_OWN_TERM, CLOTH_LOSS_GROUP, GRID_STEP_BUDGET, NEAREST_UNFINISHED,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 
@@ -81,7 +82,11 @@ pub fn nearest(
         best_i = index_out[q as usize];
     }
     let me = if active { point(queries, q) } else { [0.0; 3] };
-    let end = if p.points - p.offset < CHAMFER_CHUNK { p.points } else { p.offset + CHAMFER_CHUNK };
+    let end = if p.points - p.offset < CHAMFER_CHUNK {
+        p.points
+    } else {
+        p.offset + CHAMFER_CHUNK
+    };
     let mut t0 = p.offset;
     while t0 < end {
         let j = t0 + lid;
@@ -93,7 +98,11 @@ pub fn nearest(
             tile[l + 2] = s[2];
         }
         barrier();
-        let count = if end - t0 < CLOTH_LOSS_GROUP { end - t0 } else { CLOTH_LOSS_GROUP };
+        let count = if end - t0 < CLOTH_LOSS_GROUP {
+            end - t0
+        } else {
+            CLOTH_LOSS_GROUP
+        };
         let mut k = 0u32;
         while k < count {
             let l = 3 * k as usize;
@@ -111,7 +120,11 @@ pub fn nearest(
         t0 += CLOTH_LOSS_GROUP;
     }
     if active {
-        index_out[q as usize] = if finish && p.flags & CHAMFER_LAST == 0 { best_i | NEAREST_UNFINISHED } else { best_i };
+        index_out[q as usize] = if finish && p.flags & CHAMFER_LAST == 0 {
+            best_i | NEAREST_UNFINISHED
+        } else {
+            best_i
+        };
         d2_out[q as usize] = best;
     }
 }
@@ -143,7 +156,11 @@ pub fn chamfer_grad(
         let n = if n < p.points { n } else { 0 };
         g = chamfer_pair_grad(me, point(target, n), p.sigma2, p.scale_pred);
     }
-    let end = if p.points - p.offset < CHAMFER_CHUNK { p.points } else { p.offset + CHAMFER_CHUNK };
+    let end = if p.points - p.offset < CHAMFER_CHUNK {
+        p.points
+    } else {
+        p.offset + CHAMFER_CHUNK
+    };
     let mut t0 = p.offset;
     while t0 < end {
         let j = t0 + lid;
@@ -156,12 +173,21 @@ pub fn chamfer_grad(
             tile_nearest[lid as usize] = target_nearest[j as usize];
         }
         barrier();
-        let count = if end - t0 < CLOTH_LOSS_GROUP { end - t0 } else { CLOTH_LOSS_GROUP };
+        let count = if end - t0 < CLOTH_LOSS_GROUP {
+            end - t0
+        } else {
+            CLOTH_LOSS_GROUP
+        };
         let mut k = 0u32;
         while k < count {
             if tile_nearest[k as usize] == i {
                 let l = 3 * k as usize;
-                let d = chamfer_pair_grad(me, [tile[l], tile[l + 1], tile[l + 2]], p.sigma2, p.scale_target);
+                let d = chamfer_pair_grad(
+                    me,
+                    [tile[l], tile[l + 1], tile[l + 2]],
+                    p.sigma2,
+                    p.scale_target,
+                );
                 g[0] += d[0];
                 g[1] += d[1];
                 g[2] += d[2];
@@ -195,7 +221,8 @@ pub fn arap_lengths(
         return;
     }
     let (a, b) = (edges[2 * e as usize], edges[2 * e as usize + 1]);
-    lengths[e as usize] = drape_shared::real::Float::sqrt(distance2(point(positions, a), point(positions, b)));
+    lengths[e as usize] =
+        drape_shared::real::Float::sqrt(distance2(point(positions, a), point(positions, b)));
 }
 
 /// One workgroup: `stats = [mean, variance]` of `lengths[..edges]` (a fixed
@@ -208,7 +235,11 @@ pub fn arap_stats(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] stats: &mut [f32],
     #[spirv(workgroup)] sums: &mut [f32; GROUP],
 ) {
-    let inv = if p.edges > 0 { 1.0 / p.edges as f32 } else { 0.0 };
+    let inv = if p.edges > 0 {
+        1.0 / p.edges as f32
+    } else {
+        0.0
+    };
     let mean = tree_sum(sums, lid, p.edges, lengths, 0.0, false) * inv;
     let var = tree_sum(sums, lid, p.edges, lengths, mean, true) * inv;
     if lid == 0 {
@@ -219,7 +250,14 @@ pub fn arap_stats(
 
 /// Σ v (or Σ (v - mean)² with `squared`) over `values[..len]`, by all 256
 /// invocations; every invocation gets the total.
-fn tree_sum(sums: &mut [f32; GROUP], lid: u32, len: u32, values: &[f32], mean: f32, squared: bool) -> f32 {
+fn tree_sum(
+    sums: &mut [f32; GROUP],
+    lid: u32,
+    len: u32,
+    values: &[f32],
+    mean: f32,
+    squared: bool,
+) -> f32 {
     let mut s = 0.0f32;
     let mut k = lid;
     while k < len {
@@ -267,7 +305,13 @@ pub fn arap_grad(
     let mut k = offsets[v as usize];
     let end = offsets[v as usize + 1];
     while k < end {
-        let d = arap_edge_grad(me, point(positions, neighbours[k as usize]), mean, edges, p.scale);
+        let d = arap_edge_grad(
+            me,
+            point(positions, neighbours[k as usize]),
+            mean,
+            edges,
+            p.scale,
+        );
         g[0] += d[0];
         g[1] += d[1];
         g[2] += d[2];
@@ -315,7 +359,12 @@ pub fn bounds(
 }
 
 fn grid_of(bounds: &[u32], points: u32) -> GridSpec {
-    GridSpec::from_bounds([bounds[0], bounds[1], bounds[2], bounds[3], bounds[4], bounds[5]], points)
+    GridSpec::from_bounds(
+        [
+            bounds[0], bounds[1], bounds[2], bounds[3], bounds[4], bounds[5],
+        ],
+        points,
+    )
 }
 
 /// `keys[j]` = the grid cell of point `j`, `values[j] = j`: the pairs the radix sort
@@ -374,7 +423,14 @@ struct Search {
 }
 
 /// Visits the points of cell `cell` (their indices are `order[start[cell]..end[cell]]`).
-fn visit_cell(s: &mut Search, cell: u32, points: &[f32], start: &[u32], end: &[u32], order: &[u32]) {
+fn visit_cell(
+    s: &mut Search,
+    cell: u32,
+    points: &[f32],
+    start: &[u32],
+    end: &[u32],
+    order: &[u32],
+) {
     let mut k = start[cell as usize];
     let stop = end[cell as usize];
     while k < stop && s.steps < GRID_STEP_BUDGET {
@@ -416,7 +472,12 @@ pub fn nearest_grid(
     let me = point(queries, q);
     let c = g.cell_of(me);
     let last = [g.dims[0] - 1, g.dims[1] - 1, g.dims[2] - 1];
-    let mut s = Search { me, best: f32::INFINITY, best_i: u32::MAX, steps: 0 };
+    let mut s = Search {
+        me,
+        best: f32::INFINITY,
+        best_i: u32::MAX,
+        steps: 0,
+    };
     let mut r = 0u32;
     let mut done = false;
     let mut finished = false;
@@ -424,11 +485,23 @@ pub fn nearest_grid(
         // The shell of Chebyshev radius r: every cell with max |offset| == r, clipped
         // to the grid.
         let zl = if c[2] >= r { c[2] - r } else { 0 };
-        let zh = if c[2] + r < last[2] { c[2] + r } else { last[2] };
+        let zh = if c[2] + r < last[2] {
+            c[2] + r
+        } else {
+            last[2]
+        };
         let yl = if c[1] >= r { c[1] - r } else { 0 };
-        let yh = if c[1] + r < last[1] { c[1] + r } else { last[1] };
+        let yh = if c[1] + r < last[1] {
+            c[1] + r
+        } else {
+            last[1]
+        };
         let xl = if c[0] >= r { c[0] - r } else { 0 };
-        let xh = if c[0] + r < last[0] { c[0] + r } else { last[0] };
+        let xh = if c[0] + r < last[0] {
+            c[0] + r
+        } else {
+            last[0]
+        };
         let mut z = zl;
         while z <= zh && s.steps < GRID_STEP_BUDGET {
             let z_face = z + r == c[2] || z == c[2] + r;
@@ -461,7 +534,8 @@ pub fn nearest_grid(
         if s.steps >= GRID_STEP_BUDGET {
             done = true;
         } else {
-            let covered = xl == 0 && yl == 0 && zl == 0 && xh == last[0] && yh == last[1] && zh == last[2];
+            let covered =
+                xl == 0 && yl == 0 && zl == 0 && xh == last[0] && yh == last[1] && zh == last[2];
             let bound = r as f32 * g.h - g.slack;
             if covered || (bound > 0.0 && s.best < bound * bound) {
                 done = true;
@@ -470,7 +544,11 @@ pub fn nearest_grid(
             r += 1;
         }
     }
-    index_out[q as usize] = if finished { s.best_i } else { s.best_i | NEAREST_UNFINISHED };
+    index_out[q as usize] = if finished {
+        s.best_i
+    } else {
+        s.best_i | NEAREST_UNFINISHED
+    };
     d2_out[q as usize] = s.best;
 }
 

@@ -11,7 +11,9 @@
 //! joined to the alpha's, and the matte buffers neither read nor written.
 //! `to_rgba` bindings: rgb, alpha a, alpha b (unread when `b_stride` is 0), out rgba.
 
-use drape_shared::splat::composite::{composite, composite_grad, coverage, CompositeParams, RgbaParams, SliceParams};
+use drape_shared::splat::composite::{
+    composite, composite_grad, coverage, CompositeParams, RgbaParams, SliceParams,
+};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -36,7 +38,11 @@ pub fn fwd(
         return;
     }
     let i = i as usize;
-    let v = if p.matte_is_alpha != 0 { over_alpha[i] } else { matte[3 * i] };
+    let v = if p.matte_is_alpha != 0 {
+        over_alpha[i]
+    } else {
+        matte[3 * i]
+    };
     let c = composite(rgb(base, i), rgb(over, i), over_alpha[i], v);
     out[3 * i] = c[0];
     out[3 * i + 1] = c[1];
@@ -60,8 +66,16 @@ pub fn to_rgba(
     }
     let i = i as usize;
     let a_raw = alpha_a[p.a_stride as usize * i];
-    let a = if p.a_is_transmittance != 0 { 1.0 - a_raw } else { a_raw };
-    let b = if p.b_stride != 0 { alpha_b[p.b_stride as usize * i] } else { 0.0 };
+    let a = if p.a_is_transmittance != 0 {
+        1.0 - a_raw
+    } else {
+        a_raw
+    };
+    let b = if p.b_stride != 0 {
+        alpha_b[p.b_stride as usize * i]
+    } else {
+        0.0
+    };
     let c = rgb(rgb_in, i);
     rgba[4 * i] = c[0];
     rgba[4 * i + 1] = c[1];
@@ -89,8 +103,13 @@ pub fn bwd(
         return;
     }
     let i = i as usize;
-    let v = if p.matte_is_alpha != 0 { over_alpha[i] } else { matte[3 * i] };
-    let (gb, go, ga, gm) = composite_grad(rgb(grad, i), rgb(base, i), rgb(over, i), over_alpha[i], v);
+    let v = if p.matte_is_alpha != 0 {
+        over_alpha[i]
+    } else {
+        matte[3 * i]
+    };
+    let (gb, go, ga, gm) =
+        composite_grad(rgb(grad, i), rgb(base, i), rgb(over, i), over_alpha[i], v);
     drape_shared::each_index!(3, ch => {
         grad_base[3 * i + ch] = gb[ch];
         grad_over[3 * i + ch] = go[ch];

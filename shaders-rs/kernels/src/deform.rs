@@ -16,7 +16,10 @@
 //! (written: `decoded` plus the pose blend, the offsets `deform_fwd` then reads).
 //! `pose_blend_bwd`: `features`, `grad_offsets` n×3 (read); `grad_basis` n×621 (written).
 
-use drape_shared::deform::{deform_bwd as bwd_math, deform_fwd as fwd_math, transform_grad_add, DeformInput, DeformOutput, DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS};
+use drape_shared::deform::{
+    deform_bwd as bwd_math, deform_fwd as fwd_math, transform_grad_add, DeformInput, DeformOutput,
+    DeformParams, TRANSFORM_GRAD_CHUNK, TRANSFORM_TERMS,
+};
 use drape_shared::skinning::{SKIN_JOINTS, TRANSFORM_FLOATS};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -28,7 +31,14 @@ fn v3(b: &[f32], i: usize) -> [f32; 3] {
 
 /// Gaussian `i`'s inputs, the log-scales left at zero (the backward does not read
 /// them; the forward fills them in).
-fn load(i: usize, means: &[f32], quats: &[f32], offsets: &[f32], rot6d: &[f32], weights: &[f32]) -> DeformInput<f32> {
+fn load(
+    i: usize,
+    means: &[f32],
+    quats: &[f32],
+    offsets: &[f32],
+    rot6d: &[f32],
+    weights: &[f32],
+) -> DeformInput<f32> {
     let mut w = [0.0f32; SKIN_JOINTS];
     let mut j = 0;
     while j < SKIN_JOINTS {
@@ -37,10 +47,22 @@ fn load(i: usize, means: &[f32], quats: &[f32], offsets: &[f32], rot6d: &[f32], 
     }
     DeformInput {
         mean: v3(means, i),
-        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        quat: [
+            quats[4 * i],
+            quats[4 * i + 1],
+            quats[4 * i + 2],
+            quats[4 * i + 3],
+        ],
         log_scale: [0.0; 3],
         offset: v3(offsets, i),
-        rot6d: [rot6d[6 * i], rot6d[6 * i + 1], rot6d[6 * i + 2], rot6d[6 * i + 3], rot6d[6 * i + 4], rot6d[6 * i + 5]],
+        rot6d: [
+            rot6d[6 * i],
+            rot6d[6 * i + 1],
+            rot6d[6 * i + 2],
+            rot6d[6 * i + 3],
+            rot6d[6 * i + 4],
+            rot6d[6 * i + 5],
+        ],
         log_scale_delta: [0.0; 3],
         weights: w,
     }
@@ -82,7 +104,15 @@ pub fn deform_fwd(
         posed_quats[4 * i + k] = out.quat[k];
     });
     let o = p.log_scale_offset;
-    store3(posed_log_scales, i, [out.log_scale[0] + o, out.log_scale[1] + o, out.log_scale[2] + o]);
+    store3(
+        posed_log_scales,
+        i,
+        [
+            out.log_scale[0] + o,
+            out.log_scale[1] + o,
+            out.log_scale[2] + o,
+        ],
+    );
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -113,7 +143,12 @@ pub fn deform_bwd(
     let g = load(i, means, quats, offsets, rot6d, weights);
     let up = DeformOutput {
         mean: v3(grad_posed_means, i),
-        quat: [grad_posed_quats[4 * i], grad_posed_quats[4 * i + 1], grad_posed_quats[4 * i + 2], grad_posed_quats[4 * i + 3]],
+        quat: [
+            grad_posed_quats[4 * i],
+            grad_posed_quats[4 * i + 1],
+            grad_posed_quats[4 * i + 2],
+            grad_posed_quats[4 * i + 3],
+        ],
         log_scale: v3(grad_posed_log_scales, i),
     };
     let out = bwd_math(&g, transforms, &up);
@@ -161,7 +196,11 @@ pub fn deform_transform_grad(
     let chunk = group.x;
     let joint = group.y as usize;
     let start = chunk * TRANSFORM_GRAD_CHUNK;
-    let end = if start + TRANSFORM_GRAD_CHUNK < p.count { start + TRANSFORM_GRAD_CHUNK } else { p.count };
+    let end = if start + TRANSFORM_GRAD_CHUNK < p.count {
+        start + TRANSFORM_GRAD_CHUNK
+    } else {
+        p.count
+    };
     let mut sum = [0.0f32; TRANSFORM_FLOATS];
     let mut i = (start + lid) as usize;
     while i < end as usize {
@@ -233,5 +272,6 @@ pub fn pose_blend_bwd(
     if j >= p.count * drape_shared::deform::POSE_BLEND_FLOATS as u32 {
         return;
     }
-    grad_basis[j as usize] = drape_shared::deform::pose_blend_basis_grad(j as usize, features, grad_offsets);
+    grad_basis[j as usize] =
+        drape_shared::deform::pose_blend_basis_grad(j as usize, features, grad_offsets);
 }

@@ -25,5 +25,9 @@ pub fn resolve(
         return;
     }
     let i = index as usize;
-    out[i] = if scratch[scratch.len() - 1] != 0 { f32::NAN } else { decode([scratch[2 * i], scratch[2 * i + 1]]) };
+    out[i] = if scratch[scratch.len() - 1] != 0 {
+        f32::NAN
+    } else {
+        decode([scratch[2 * i], scratch[2 * i + 1]])
+    };
 }

@@ -4,7 +4,10 @@
 //! computes one output element per invocation (a gather: deterministic, no atomics),
 //! 256 per workgroup on the engine's `flat_grid`.
 
-use drape_shared::lpips::{conv_at, conv_input_grad_at, layer_distance_at, layer_distance_grad_at, pool_at, pool_input_grad_at, ConvParams, PoolParams, LPIPS_SCALE, LPIPS_SHIFT};
+use drape_shared::lpips::{
+    conv_at, conv_input_grad_at, layer_distance_at, layer_distance_grad_at, pool_at,
+    pool_input_grad_at, ConvParams, PoolParams, LPIPS_SCALE, LPIPS_SHIFT,
+};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -26,7 +29,8 @@ pub fn scale_input(
         return;
     }
     let (c, pixel) = (i / hw, i % hw);
-    out[i as usize] = (2.0 * rgb[(3 * pixel + c) as usize] - 1.0 - LPIPS_SHIFT[c as usize]) / LPIPS_SCALE[c as usize];
+    out[i as usize] = (2.0 * rgb[(3 * pixel + c) as usize] - 1.0 - LPIPS_SHIFT[c as usize])
+        / LPIPS_SCALE[c as usize];
 }
 
 /// `grad_rgb[y][x][c] += p.scale · 2 / scale_c · grad[c][y][x]`.
@@ -44,7 +48,8 @@ pub fn scale_input_bwd(
         return;
     }
     let (pixel, c) = (i / 3, i % 3);
-    grad_rgb[i as usize] += p.scale * 2.0 / LPIPS_SCALE[c as usize] * grad[(c * hw + pixel) as usize];
+    grad_rgb[i as usize] +=
+        p.scale * 2.0 / LPIPS_SCALE[c as usize] * grad[(c * hw + pixel) as usize];
 }
 
 #[spirv(compute(threads(256)))]
@@ -63,7 +68,15 @@ pub fn conv_fwd(
         return;
     }
     let (co, pixel) = (i / hw, i % hw);
-    output[i as usize] = conv_at(p, input, weights, bias, co, pixel / p.out_w, pixel % p.out_w);
+    output[i as usize] = conv_at(
+        p,
+        input,
+        weights,
+        bias,
+        co,
+        pixel / p.out_w,
+        pixel % p.out_w,
+    );
 }
 
 /// `grad_in = ∂ / ∂ input` of the convolution (through its ReLU), written.
@@ -83,7 +96,15 @@ pub fn conv_bwd_input(
         return;
     }
     let (ci, pixel) = (i / hw, i % hw);
-    grad_in[i as usize] = conv_input_grad_at(p, output, grad_out, weights, ci, pixel / p.in_w, pixel % p.in_w);
+    grad_in[i as usize] = conv_input_grad_at(
+        p,
+        output,
+        grad_out,
+        weights,
+        ci,
+        pixel / p.in_w,
+        pixel % p.in_w,
+    );
 }
 
 #[spirv(compute(threads(256)))]
@@ -121,7 +142,8 @@ pub fn pool_bwd(
         return;
     }
     let (c, pixel) = (i / hw, i % hw);
-    grad_in[i as usize] = pool_input_grad_at(p, argmax, grad_out, c, pixel / p.in_w, pixel % p.in_w);
+    grad_in[i as usize] =
+        pool_input_grad_at(p, argmax, grad_out, c, pixel / p.in_w, pixel % p.in_w);
 }
 
 /// Per pixel of a tapped layer (`p.c` channels of `p.in_h × p.in_w`): the weighted

@@ -24,8 +24,9 @@
 
 use drape_shared::each_index;
 use drape_shared::nn::{
-    activate, activate_bwd, gelu, gelu_grad, softmax_row, softmax_row_bwd, ActParams, GemmParams, WeightGradParams, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_K_STEP,
-    GEMM_ONES_ROW, GEMM_TILE, SOFTMAX_MAX_WIDTH,
+    activate, activate_bwd, gelu, gelu_grad, softmax_row, softmax_row_bwd, ActParams, GemmParams,
+    WeightGradParams, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_K_STEP, GEMM_ONES_ROW, GEMM_TILE,
+    SOFTMAX_MAX_WIDTH,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
@@ -57,7 +58,15 @@ fn fma_4x4(mut acc: [f32; 16], a: [f32; 4], b: [f32; 4]) -> [f32; 16] {
 /// Stores `acc[4 i + j]` at (row `m0 + 16 i`, column `n0 + 16 j`) of split `base` where
 /// it lies inside `C`, adding the bias or what `C` holds as the flags say.
 #[inline]
-fn store_4x4(acc: [f32; 16], p: &GemmParams, c: &mut [f32], bias: &[f32], base: u32, m0: u32, n0: u32) {
+fn store_4x4(
+    acc: [f32; 16],
+    p: &GemmParams,
+    c: &mut [f32],
+    bias: &[f32],
+    base: u32,
+    m0: u32,
+    n0: u32,
+) {
     each_index!(4, i => {
         each_index!(4, j => {
             let (m, n) = (m0 + 16 * i as u32, n0 + 16 * j as u32);
@@ -100,10 +109,22 @@ pub fn gemm_tiled(
     let m_tile = group.y * GEMM_TILE;
     let n_tile = group.x * GEMM_TILE;
     let k_begin = group.z * p.k_chunk;
-    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    let k_end = if k_begin + p.k_chunk < p.k {
+        k_begin + p.k_chunk
+    } else {
+        p.k
+    };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 {
+        p.m - 1
+    } else {
+        u32::MAX
+    };
     // The rows of the matrices as stored (the ones row past the end of `a`).
-    let a_rows = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { p.m };
+    let a_rows = if p.flags & GEMM_ONES_ROW != 0 {
+        p.m - 1
+    } else {
+        p.m
+    };
     let mut acc = [0.0f32; 16];
     let mut k0 = k_begin;
     while k0 < k_end {
@@ -113,7 +134,11 @@ pub fn gemm_tiled(
         let mut l = 0;
         while l < (KS * TILE) as u32 / (SIDE * SIDE) {
             let idx = lid + SIDE * SIDE * l;
-            let (mm, kk) = if p.a_sk == 1 { (idx / KS as u32, idx % KS as u32) } else { (idx % GEMM_TILE, idx / GEMM_TILE) };
+            let (mm, kk) = if p.a_sk == 1 {
+                (idx / KS as u32, idx % KS as u32)
+            } else {
+                (idx % GEMM_TILE, idx / GEMM_TILE)
+            };
             let (m, k) = (m_tile + mm, k0 + kk);
             a_tile[kk as usize * PITCH + mm as usize] = if k >= k_end || m >= p.m {
                 0.0
@@ -124,9 +149,17 @@ pub fn gemm_tiled(
             } else {
                 0.0
             };
-            let (nn, kk) = if p.b_sn == 1 { (idx % GEMM_TILE, idx / GEMM_TILE) } else { (idx / KS as u32, idx % KS as u32) };
+            let (nn, kk) = if p.b_sn == 1 {
+                (idx % GEMM_TILE, idx / GEMM_TILE)
+            } else {
+                (idx / KS as u32, idx % KS as u32)
+            };
             let (n, k) = (n_tile + nn, k0 + kk);
-            b_tile[kk as usize * PITCH + nn as usize] = if k < k_end && n < p.n { b[(p.b_off + k * p.b_sk + n * p.b_sn) as usize] } else { 0.0 };
+            b_tile[kk as usize * PITCH + nn as usize] = if k < k_end && n < p.n {
+                b[(p.b_off + k * p.b_sk + n * p.b_sn) as usize]
+            } else {
+                0.0
+            };
             l += 1;
         }
         barrier();
@@ -135,8 +168,18 @@ pub fn gemm_tiled(
         let mut kk = 0;
         while kk < KS {
             let row = kk * PITCH;
-            let av = [a_tile[row + ty as usize], a_tile[row + ty as usize + 16], a_tile[row + ty as usize + 32], a_tile[row + ty as usize + 48]];
-            let bv = [b_tile[row + tx as usize], b_tile[row + tx as usize + 16], b_tile[row + tx as usize + 32], b_tile[row + tx as usize + 48]];
+            let av = [
+                a_tile[row + ty as usize],
+                a_tile[row + ty as usize + 16],
+                a_tile[row + ty as usize + 32],
+                a_tile[row + ty as usize + 48],
+            ];
+            let bv = [
+                b_tile[row + tx as usize],
+                b_tile[row + tx as usize + 16],
+                b_tile[row + tx as usize + 32],
+                b_tile[row + tx as usize + 48],
+            ];
             acc = fma_4x4(acc, av, bv);
             kk += 1;
         }
@@ -261,26 +304,50 @@ impl Activation4 for Gelu {
 /// Covers `rows · width` rounded up to 4: buffers are whole 16-byte texels, and the up
 /// to 3 floats past a layer's end are never read as data.
 #[inline]
-fn act_fwd4_with<A: Activation4>(id: UVec3, groups: UVec3, p: &ActParams, pre: &[Vec4], post: &mut [Vec4]) {
+fn act_fwd4_with<A: Activation4>(
+    id: UVec3,
+    groups: UVec3,
+    p: &ActParams,
+    pre: &[Vec4],
+    post: &mut [Vec4],
+) {
     let flat = crate::flat_index(id, groups);
     if flat >= (p.rows * p.width).div_ceil(4) {
         return;
     }
     let i = flat as usize;
     let x = pre[i];
-    post[i] = Vec4::new(A::fwd(p, x.x), A::fwd(p, x.y), A::fwd(p, x.z), A::fwd(p, x.w));
+    post[i] = Vec4::new(
+        A::fwd(p, x.x),
+        A::fwd(p, x.y),
+        A::fwd(p, x.z),
+        A::fwd(p, x.w),
+    );
 }
 
 /// [`act_bwd`] 4 elements an invocation (as [`act_fwd4_with`]).
 #[inline]
-fn act_bwd4_with<A: Activation4>(id: UVec3, groups: UVec3, p: &ActParams, pre: &[Vec4], post: &[Vec4], grad_post: &[Vec4], grad_pre: &mut [Vec4]) {
+fn act_bwd4_with<A: Activation4>(
+    id: UVec3,
+    groups: UVec3,
+    p: &ActParams,
+    pre: &[Vec4],
+    post: &[Vec4],
+    grad_post: &[Vec4],
+    grad_pre: &mut [Vec4],
+) {
     let flat = crate::flat_index(id, groups);
     if flat >= (p.rows * p.width).div_ceil(4) {
         return;
     }
     let i = flat as usize;
     let (x, y, g) = (pre[i], post[i], grad_post[i]);
-    grad_pre[i] = Vec4::new(A::bwd(p, x.x, y.x, g.x), A::bwd(p, x.y, y.y, g.y), A::bwd(p, x.z, y.z, g.z), A::bwd(p, x.w, y.w, g.w));
+    grad_pre[i] = Vec4::new(
+        A::bwd(p, x.x, y.x, g.x),
+        A::bwd(p, x.y, y.y, g.y),
+        A::bwd(p, x.z, y.z, g.z),
+        A::bwd(p, x.w, y.w, g.w),
+    );
 }
 
 /// `post = act(pre)`, 4 elements an invocation (see [`act_fwd4_with`]).

@@ -40,12 +40,12 @@
 //! the subgroup-tile entry points (rust-gpu cannot make a generic function an entry
 //! point, and their 16 signatures written out are the same 12 lines each).
 
+#[cfg(feature = "subgroup-ballot")]
+use crate::texel::{fetch, fetch4, TexelBuffer, TexelBuffer4};
 use drape_shared::each_index;
 use drape_shared::nn::{GemmParams, GEMM_ACCUMULATE, GEMM_BIAS, GEMM_BLOCK, GEMM_ONES_ROW};
 #[cfg(feature = "subgroup-ballot")]
 use drape_shared::nn::{GEMM_FWD_ROWS, GEMM_NARROW_ROWS, GEMM_SG_COLS, GEMM_SG_ROWS, GEMM_TX_ROWS};
-#[cfg(feature = "subgroup-ballot")]
-use crate::texel::{fetch, fetch4, TexelBuffer, TexelBuffer4};
 use spirv_std::glam::UVec3;
 #[cfg(feature = "subgroup-ballot")]
 use spirv_std::glam::Vec4;
@@ -57,7 +57,17 @@ use spirv_std::spirv;
 /// valid element (their results are never stored).
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn block_step(acc: &mut [f32; 64], a: &[f32], b: &[f32], p: &GemmParams, m0: u32, n0: u32, k: u32, ones_row: u32, m_last: u32) {
+fn block_step(
+    acc: &mut [f32; 64],
+    a: &[f32],
+    b: &[f32],
+    p: &GemmParams,
+    m0: u32,
+    n0: u32,
+    k: u32,
+    ones_row: u32,
+    m_last: u32,
+) {
     let mut av = [0.0f32; 8];
     each_index!(8, r => {
         let m = m0 + r as u32;
@@ -77,7 +87,15 @@ fn block_step(acc: &mut [f32; 64], a: &[f32], b: &[f32], p: &GemmParams, m0: u32
 /// Stores the invocation's 8 × 8 block (bias added or accumulated as flagged), each
 /// value where it lies inside `C`.
 #[inline]
-fn block_store(acc: &[f32; 64], p: &GemmParams, c: &mut [f32], bias: &[f32], m0: u32, n0: u32, z: u32) {
+fn block_store(
+    acc: &[f32; 64],
+    p: &GemmParams,
+    c: &mut [f32],
+    bias: &[f32],
+    m0: u32,
+    n0: u32,
+    z: u32,
+) {
     each_index!(8, r => {
         each_index!(8, j => {
             if m0 + (r as u32) < p.m && n0 + (j as u32) < p.n {
@@ -118,12 +136,24 @@ pub fn gemm_blocked(
         return;
     }
     let k_begin = z * p.k_chunk;
-    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    let k_end = if k_begin + p.k_chunk < p.k {
+        k_begin + p.k_chunk
+    } else {
+        p.k
+    };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 {
+        p.m - 1
+    } else {
+        u32::MAX
+    };
     // The last row of A that exists (the ones row is not stored). Every load uses an
     // in-range index: the ones row's load may be evaluated and then discarded, and an
     // out-of-range index would end the invocation (slice bounds check).
-    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 {
+        p.m - 2
+    } else {
+        p.m - 1
+    };
     let mut acc = [0.0f32; 64];
     let mut k = k_begin;
     while k < k_end {
@@ -156,7 +186,14 @@ struct SgTile {
 /// rows of at most 65,535 (2M rows of 1,024 columns are 2M tiles).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u32, tile_cols: u32) -> Option<SgTile> {
+fn sg_tile(
+    p: &GemmParams,
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    tile_rows: u32,
+    tile_cols: u32,
+) -> Option<SgTile> {
     let row_tiles = (p.m + tile_rows - 1) / tile_rows;
     let col_tiles = (p.n + tile_cols - 1) / tile_cols;
     let tile = group.y * groups.x + group.x;
@@ -167,11 +204,23 @@ fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u3
     let n0 = (tile / row_tiles) * tile_cols;
     let z = group.z;
     let k_begin = z * p.k_chunk;
-    let k_end = if k_begin + p.k_chunk < p.k { k_begin + p.k_chunk } else { p.k };
-    let ones_row = if p.flags & GEMM_ONES_ROW != 0 { p.m - 1 } else { u32::MAX };
+    let k_end = if k_begin + p.k_chunk < p.k {
+        k_begin + p.k_chunk
+    } else {
+        p.k
+    };
+    let ones_row = if p.flags & GEMM_ONES_ROW != 0 {
+        p.m - 1
+    } else {
+        u32::MAX
+    };
     // The last row of A that exists (the ones row is not stored): rows past it read
     // that row (in range) and are never stored.
-    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 { p.m - 2 } else { p.m - 1 };
+    let m_last = if p.flags & GEMM_ONES_ROW != 0 && p.m >= 2 {
+        p.m - 2
+    } else {
+        p.m - 1
+    };
     let last_col = p.n - 1;
     let b_col = [
         p.b_off + (n0 + lane).min(last_col) * p.b_sn,
@@ -179,7 +228,16 @@ fn sg_tile(p: &GemmParams, group: UVec3, groups: UVec3, lane: u32, tile_rows: u3
         p.b_off + (n0 + 16 + lane).min(last_col) * p.b_sn,
         p.b_off + (n0 + 24 + lane).min(last_col) * p.b_sn,
     ];
-    Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col })
+    Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        m_last,
+        b_col,
+    })
 }
 
 /// The `R` rows of a tile lane `lane` owns: `m0 + lane + 8 r`.
@@ -220,7 +278,13 @@ fn a_row_texels<const R: usize>(p: &GemmParams, rows: &[u32; R], m_last: u32) ->
 /// the ones row (the bias column of a weight gradient, not stored in `A`) reads 1.
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn fetch_rows<const R: usize>(a: &TexelBuffer, rows: &[u32; R], a_row: &[u32; R], ones_row: u32, ka: u32) -> [f32; R] {
+fn fetch_rows<const R: usize>(
+    a: &TexelBuffer,
+    rows: &[u32; R],
+    a_row: &[u32; R],
+    ones_row: u32,
+    ka: u32,
+) -> [f32; R] {
     let mut av = [0.0f32; R];
     each_index!(R, r => {
         av[r] = if rows[r] == ones_row { 1.0 } else { fetch(a, a_row[r] + ka) };
@@ -268,7 +332,15 @@ fn fma_b_row<const R: usize>(acc: &mut [[f32; 32]; R], av: &[f32; R], b: &TexelB
 /// the stores go missing from the third row on).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn store_tile_row<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32], vals: [f32; W], row: u32, n0: u32, z: u32) {
+fn store_tile_row<const W: usize>(
+    p: &GemmParams,
+    c: &mut [f32],
+    bias: &[f32],
+    vals: [f32; W],
+    row: u32,
+    n0: u32,
+    z: u32,
+) {
     if row >= p.m {
         return;
     }
@@ -297,7 +369,15 @@ fn store_tile_row<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32], v
 /// (and 32 loads of the bias). `W` columns, `Q = W / 4` texels.
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn store_tile_row4<const W: usize, const Q: usize>(p: &GemmParams, c: &mut [Vec4], bias: &[Vec4; Q], vals: [f32; W], row: u32, n0: u32, z: u32) {
+fn store_tile_row4<const W: usize, const Q: usize>(
+    p: &GemmParams,
+    c: &mut [Vec4],
+    bias: &[Vec4; Q],
+    vals: [f32; W],
+    row: u32,
+    n0: u32,
+    z: u32,
+) {
     if row >= p.m {
         return;
     }
@@ -341,7 +421,15 @@ fn tile_bias4<const Q: usize>(p: &GemmParams, bias: &TexelBuffer4, n0: u32) -> [
 /// masked-off storage-buffer read (a loop over the lanes of its own on llvmpipe).
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
-fn store_row_floats<const W: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32; W], vals: [f32; W], row: u32, n0: u32, z: u32) {
+fn store_row_floats<const W: usize>(
+    p: &GemmParams,
+    c: &mut [f32],
+    bias: &[f32; W],
+    vals: [f32; W],
+    row: u32,
+    n0: u32,
+    z: u32,
+) {
     if row >= p.m {
         return;
     }
@@ -365,7 +453,15 @@ trait Epilogue {
     type Bias: ?Sized;
     /// Stores a lane's sums `acc[r]` (a row of `W` columns from `n0`) as row `rows[r]`
     /// of split `z`, for each of its `R` rows.
-    fn store<const W: usize, const R: usize>(p: &GemmParams, c: &mut [Self::C], bias: &Self::Bias, acc: &[[f32; W]; R], rows: &[u32; R], n0: u32, z: u32);
+    fn store<const W: usize, const R: usize>(
+        p: &GemmParams,
+        c: &mut [Self::C],
+        bias: &Self::Bias,
+        acc: &[[f32; W]; R],
+        rows: &[u32; R],
+        n0: u32,
+        z: u32,
+    );
 }
 
 /// A float at a time, the bias a storage buffer, bias and accumulation as flagged
@@ -379,7 +475,15 @@ impl Epilogue for Floats {
     type Bias = [f32];
 
     #[inline]
-    fn store<const W: usize, const R: usize>(p: &GemmParams, c: &mut [f32], bias: &[f32], acc: &[[f32; W]; R], rows: &[u32; R], n0: u32, z: u32) {
+    fn store<const W: usize, const R: usize>(
+        p: &GemmParams,
+        c: &mut [f32],
+        bias: &[f32],
+        acc: &[[f32; W]; R],
+        rows: &[u32; R],
+        n0: u32,
+        z: u32,
+    ) {
         each_index!(R, r => {
             store_tile_row(p, c, bias, acc[r], rows[r], n0, z);
         });
@@ -398,7 +502,15 @@ impl Epilogue for FloatsTexelBias {
     type Bias = TexelBuffer;
 
     #[inline]
-    fn store<const W: usize, const R: usize>(p: &GemmParams, c: &mut [f32], bias: &TexelBuffer, acc: &[[f32; W]; R], rows: &[u32; R], n0: u32, z: u32) {
+    fn store<const W: usize, const R: usize>(
+        p: &GemmParams,
+        c: &mut [f32],
+        bias: &TexelBuffer,
+        acc: &[[f32; W]; R],
+        rows: &[u32; R],
+        n0: u32,
+        z: u32,
+    ) {
         let last_col = p.n - 1;
         let with_bias = p.flags & GEMM_BIAS != 0;
         let mut bias_row = [0.0f32; W];
@@ -423,7 +535,15 @@ impl<const Q: usize> Epilogue for Quads<Q> {
     type Bias = TexelBuffer4;
 
     #[inline]
-    fn store<const W: usize, const R: usize>(p: &GemmParams, c: &mut [Vec4], bias: &TexelBuffer4, acc: &[[f32; W]; R], rows: &[u32; R], n0: u32, z: u32) {
+    fn store<const W: usize, const R: usize>(
+        p: &GemmParams,
+        c: &mut [Vec4],
+        bias: &TexelBuffer4,
+        acc: &[[f32; W]; R],
+        rows: &[u32; R],
+        n0: u32,
+        z: u32,
+    ) {
         const { assert!(W == 4 * Q, "Quads<Q> stores rows of 4 Q columns") };
         let bias4 = tile_bias4::<Q>(p, bias, n0);
         each_index!(R, r => {
@@ -454,12 +574,27 @@ pub fn gemm_subgroup(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] bias: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] c: &mut [f32],
 ) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_SG_ROWS, GEMM_SG_COLS) else {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        m_last,
+        b_col,
+    }) = sg_tile(p, group, groups, lane, GEMM_SG_ROWS, GEMM_SG_COLS)
+    else {
         return;
     };
     let rows = lane_rows::<4>(m0, lane);
     let a_row = a_row_starts(p, &rows, m_last);
-    let ones = [rows[0] == ones_row, rows[1] == ones_row, rows[2] == ones_row, rows[3] == ones_row];
+    let ones = [
+        rows[0] == ones_row,
+        rows[1] == ones_row,
+        rows[2] == ones_row,
+        rows[3] == ones_row,
+    ];
     let mut acc = [[0.0f32; 32]; 4];
     let mut k = k_begin;
     while k < k_end {
@@ -499,8 +634,27 @@ pub fn gemm_subgroup(
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn texel_body(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer, b: &TexelBuffer, bias: &[f32], c: &mut [f32]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, b_col }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
+fn texel_body(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer,
+    b: &TexelBuffer,
+    bias: &[f32],
+    c: &mut [f32],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        m_last,
+        b_col,
+    }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS)
+    else {
         return;
     };
     let rows = lane_rows::<8>(m0, lane);
@@ -528,8 +682,27 @@ fn texel_body(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelB
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn b_along_n_body<S: Epilogue>(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer, b: &TexelBuffer4, bias: &S::Bias, c: &mut [S::C]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
+fn b_along_n_body<S: Epilogue>(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer,
+    b: &TexelBuffer4,
+    bias: &S::Bias,
+    c: &mut [S::C],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        m_last,
+        ..
+    }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS)
+    else {
         return;
     };
     let rows = lane_rows::<8>(m0, lane);
@@ -559,8 +732,26 @@ fn b_along_n_body<S: Epilogue>(group: UVec3, groups: UVec3, lane: u32, p: &GemmP
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn narrow_weight_grad_body<const W: usize>(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer4, b: &TexelBuffer, bias: &[f32], c: &mut [f32]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_NARROW_ROWS, W as u32) else {
+fn narrow_weight_grad_body<const W: usize>(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer4,
+    b: &TexelBuffer,
+    bias: &[f32],
+    c: &mut [f32],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        ..
+    }) = sg_tile(p, group, groups, lane, GEMM_NARROW_ROWS, W as u32)
+    else {
         return;
     };
     let last_col = p.n - 1;
@@ -614,8 +805,26 @@ fn narrow_weight_grad_body<const W: usize>(group: UVec3, groups: UVec3, lane: u3
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn fwd_body<const W: usize, S: Epilogue>(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer4, b: &TexelBuffer4, bias: &S::Bias, c: &mut [S::C]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_FWD_ROWS, W as u32) else {
+fn fwd_body<const W: usize, S: Epilogue>(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer4,
+    b: &TexelBuffer4,
+    bias: &S::Bias,
+    c: &mut [S::C],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        m_last,
+        ..
+    }) = sg_tile(p, group, groups, lane, GEMM_FWD_ROWS, W as u32)
+    else {
         return;
     };
     let rows = lane_rows::<16>(m0, lane);
@@ -671,8 +880,26 @@ fn fwd_body<const W: usize, S: Epilogue>(group: UVec3, groups: UVec3, lane: u32,
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn input_grad_body<S: Epilogue>(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer4, b: &TexelBuffer4, bias: &S::Bias, c: &mut [S::C]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, m_last, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
+fn input_grad_body<S: Epilogue>(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer4,
+    b: &TexelBuffer4,
+    bias: &S::Bias,
+    c: &mut [S::C],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        m_last,
+        ..
+    }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS)
+    else {
         return;
     };
     let rows = lane_rows::<8>(m0, lane);
@@ -711,12 +938,39 @@ fn input_grad_body<S: Epilogue>(group: UVec3, groups: UVec3, lane: u32, p: &Gemm
 #[cfg(feature = "subgroup-ballot")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn weight_grad_vec4_body(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams, a: &TexelBuffer4, b: &TexelBuffer4, bias: &TexelBuffer4, c: &mut [Vec4]) {
-    let Some(SgTile { m0, n0, z, k_begin, k_end, ones_row, .. }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS) else {
+fn weight_grad_vec4_body(
+    group: UVec3,
+    groups: UVec3,
+    lane: u32,
+    p: &GemmParams,
+    a: &TexelBuffer4,
+    b: &TexelBuffer4,
+    bias: &TexelBuffer4,
+    c: &mut [Vec4],
+) {
+    let Some(SgTile {
+        m0,
+        n0,
+        z,
+        k_begin,
+        k_end,
+        ones_row,
+        ..
+    }) = sg_tile(p, group, groups, lane, GEMM_TX_ROWS, GEMM_SG_COLS)
+    else {
         return;
     };
     let r0 = m0 + 4 * lane;
-    let rows = [r0, r0 + 1, r0 + 2, r0 + 3, r0 + 32, r0 + 33, r0 + 34, r0 + 35];
+    let rows = [
+        r0,
+        r0 + 1,
+        r0 + 2,
+        r0 + 3,
+        r0 + 32,
+        r0 + 33,
+        r0 + 34,
+        r0 + 35,
+    ];
     let ones = [
         rows[0] == ones_row,
         rows[1] == ones_row,
@@ -736,7 +990,10 @@ fn weight_grad_vec4_body(group: UVec3, groups: UVec3, lane: u32, p: &GemmParams,
     let mut acc = [[0.0f32; 32]; 8];
     let mut k = k_begin;
     while k < k_end {
-        let lo_hi = [fetch4(a, a_first[0] + k * a_step), fetch4(a, a_first[1] + k * a_step)];
+        let lo_hi = [
+            fetch4(a, a_first[0] + k * a_step),
+            fetch4(a, a_first[1] + k * a_step),
+        ];
         let mut av = [0.0f32; 8];
         each_index!(8, r => {
             av[r] = if ones[r] { 1.0 } else { lo_hi[r / 4].to_array()[r % 4] };

@@ -18,7 +18,8 @@
 
 use drape_shared::radix_sort::{
     bounded_len, chunk_range, digit, SortPassParams, CHUNK_BUCKETS, CHUNK_WORKGROUP_SIZE,
-    RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS, SORT_WORKGROUP_SIZE,
+    RADIX_BUCKETS, SORT_BLOCK_LEN, SORT_ITEMS_PER_THREAD, SORT_SHARED_COUNTERS,
+    SORT_WORKGROUP_SIZE,
 };
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::{UVec2, UVec3, UVec4, Vec4};
@@ -165,7 +166,12 @@ pub fn scatter(
 const _: () = assert!(CHUNK_WORKGROUP_SIZE == 8);
 
 /// Invocation `lid`'s chunk of this pass: its number and the keys `start..end` it walks.
-fn own_chunk(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32) -> (u32, u32, u32) {
+fn own_chunk(
+    params: &SortPassParams,
+    len_words: &[u32],
+    group: UVec3,
+    lid: u32,
+) -> (u32, u32, u32) {
     let chunk = group.x * CHUNK_WORKGROUP_SIZE + lid;
     let (start, end) = chunk_range(keys_to_sort(params, len_words), params.block_count, chunk);
     (chunk, start, end)
@@ -185,14 +191,27 @@ trait PairSource {
     /// them together).
     #[inline]
     fn four_keys(&self, i: u32) -> UVec4 {
-        UVec4::new(self.key(i), self.key(i + 1), self.key(i + 2), self.key(i + 3))
+        UVec4::new(
+            self.key(i),
+            self.key(i + 1),
+            self.key(i + 2),
+            self.key(i + 3),
+        )
     }
     /// The pairs `i .. i + 4`, `i` a multiple of 4: their keys and their values (see
     /// [`four_keys`](Self::four_keys)).
     #[inline]
     fn four_pairs(&self, i: u32) -> (UVec4, UVec4) {
-        let (a, b, c, d) = (self.pair(i), self.pair(i + 1), self.pair(i + 2), self.pair(i + 3));
-        (UVec4::new(a.x, b.x, c.x, d.x), UVec4::new(a.y, b.y, c.y, d.y))
+        let (a, b, c, d) = (
+            self.pair(i),
+            self.pair(i + 1),
+            self.pair(i + 2),
+            self.pair(i + 3),
+        );
+        (
+            UVec4::new(a.x, b.x, c.x, d.x),
+            UVec4::new(a.y, b.y, c.y, d.y),
+        )
     }
 }
 
@@ -246,7 +265,12 @@ fn component_bits(texel: Vec4, k: u32) -> u32 {
 /// All four components' bits.
 #[inline]
 fn texel_bits(texel: Vec4) -> UVec4 {
-    UVec4::new(texel.x.to_bits(), texel.y.to_bits(), texel.z.to_bits(), texel.w.to_bits())
+    UVec4::new(
+        texel.x.to_bits(),
+        texel.y.to_bits(),
+        texel.z.to_bits(),
+        texel.w.to_bits(),
+    )
 }
 
 /// Interleaved pairs read through their `R32G32B32A32_SFLOAT` view: two pairs a texel.
@@ -281,7 +305,10 @@ impl PairSource for TexelSplit<'_> {
     }
     #[inline]
     fn pair(&self, i: u32) -> UVec2 {
-        UVec2::new(self.key(i), component_bits(fetch4(self.values, i >> 2), i & 3))
+        UVec2::new(
+            self.key(i),
+            component_bits(fetch4(self.values, i >> 2), i & 3),
+        )
     }
     #[inline]
     fn four_keys(&self, i: u32) -> UVec4 {
@@ -289,7 +316,10 @@ impl PairSource for TexelSplit<'_> {
     }
     #[inline]
     fn four_pairs(&self, i: u32) -> (UVec4, UVec4) {
-        (texel_bits(fetch4(self.keys, i >> 2)), texel_bits(fetch4(self.values, i >> 2)))
+        (
+            texel_bits(fetch4(self.keys, i >> 2)),
+            texel_bits(fetch4(self.values, i >> 2)),
+        )
     }
 }
 
@@ -345,7 +375,14 @@ impl PairSink for PairsMut<'_> {
 
 /// Counts invocation `lid`'s chunk of `src` and writes `histogram[digit * chunks + chunk]`.
 #[inline]
-fn count_chunk<S: PairSource>(params: &SortPassParams, len_words: &[u32], group: UVec3, lid: u32, src: &S, histogram: &mut [u32]) {
+fn count_chunk<S: PairSource>(
+    params: &SortPassParams,
+    len_words: &[u32],
+    group: UVec3,
+    lid: u32,
+    src: &S,
+    histogram: &mut [u32],
+) {
     let (chunk, start, end) = own_chunk(params, len_words, group, lid);
     let chunks = params.block_count as usize;
     // The digit's shift and mask copied once per walk: read through the push-constant
@@ -444,7 +481,14 @@ pub fn chunk_histogram(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
 ) {
-    count_chunk(params, len_words, group, lid, &Split { keys, values: keys }, histogram);
+    count_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        &Split { keys, values: keys },
+        histogram,
+    );
 }
 
 /// [`chunk_histogram`] reading the keys through a texel view.
@@ -457,7 +501,14 @@ pub fn chunk_histogram_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] histogram: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] len_words: &[u32],
 ) {
-    count_chunk(params, len_words, group, lid, &TexelSplit { keys, values: keys }, histogram);
+    count_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        &TexelSplit { keys, values: keys },
+        histogram,
+    );
 }
 
 /// [`chunk_histogram`] of interleaved pairs (the passes after the first).
@@ -500,9 +551,23 @@ pub fn chunk_scatter(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
 ) {
-    let src = Split { keys: keys_in, values: values_in };
-    let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst);
+    let src = Split {
+        keys: keys_in,
+        values: values_in,
+    };
+    let mut dst = SplitMut {
+        keys: keys_out,
+        values: values_out,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &src,
+        &mut dst,
+    );
 }
 
 /// [`chunk_scatter`] reading keys and values through texel views (a sort of one pass:
@@ -521,9 +586,23 @@ pub fn chunk_scatter_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] len_words: &[u32],
 ) {
-    let src = TexelSplit { keys: keys_in, values: values_in };
-    let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut dst);
+    let src = TexelSplit {
+        keys: keys_in,
+        values: values_in,
+    };
+    let mut dst = SplitMut {
+        keys: keys_out,
+        values: values_out,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &src,
+        &mut dst,
+    );
 }
 
 /// The first pass of a longer sort: separate buffers in, interleaved pairs out.
@@ -539,8 +618,19 @@ pub fn chunk_scatter_zip(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
 ) {
-    let src = Split { keys: keys_in, values: values_in };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out));
+    let src = Split {
+        keys: keys_in,
+        values: values_in,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &src,
+        &mut PairsMut(pairs_out),
+    );
 }
 
 /// [`chunk_scatter_zip`] reading keys and values through texel views.
@@ -556,8 +646,19 @@ pub fn chunk_scatter_zip_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
 ) {
-    let src = TexelSplit { keys: keys_in, values: values_in };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut PairsMut(pairs_out));
+    let src = TexelSplit {
+        keys: keys_in,
+        values: values_in,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &src,
+        &mut PairsMut(pairs_out),
+    );
 }
 
 /// A middle pass: interleaved pairs in and out.
@@ -571,7 +672,15 @@ pub fn chunk_scatter_pairs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
 ) {
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut PairsMut(pairs_out));
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &Pairs(pairs_in),
+        &mut PairsMut(pairs_out),
+    );
 }
 
 /// [`chunk_scatter_pairs`] reading through a texel view.
@@ -585,7 +694,15 @@ pub fn chunk_scatter_pairs_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [UVec2],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
 ) {
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut PairsMut(pairs_out));
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &TexelPairs(pairs_in),
+        &mut PairsMut(pairs_out),
+    );
 }
 
 /// The last pass of a longer sort: interleaved pairs in, the caller's separate buffers out.
@@ -601,8 +718,19 @@ pub fn chunk_scatter_unzip(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
 ) {
-    let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &Pairs(pairs_in), &mut dst);
+    let mut dst = SplitMut {
+        keys: keys_out,
+        values: values_out,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &Pairs(pairs_in),
+        &mut dst,
+    );
 }
 
 /// [`chunk_scatter_unzip`] reading through a texel view.
@@ -618,8 +746,19 @@ pub fn chunk_scatter_unzip_texel(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] values_out: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
 ) {
-    let mut dst = SplitMut { keys: keys_out, values: values_out };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut dst);
+    let mut dst = SplitMut {
+        keys: keys_out,
+        values: values_out,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &TexelPairs(pairs_in),
+        &mut dst,
+    );
 }
 
 /// Interleaved pairs written as one `u64` each (key in the low half: the same bytes as
@@ -649,8 +788,19 @@ pub fn chunk_scatter_zip_texel_u64(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] pairs_out: &mut [u64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] len_words: &[u32],
 ) {
-    let src = TexelSplit { keys: keys_in, values: values_in };
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &src, &mut Pairs64Mut(pairs_out));
+    let src = TexelSplit {
+        keys: keys_in,
+        values: values_in,
+    };
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &src,
+        &mut Pairs64Mut(pairs_out),
+    );
 }
 
 /// [`chunk_scatter_pairs_texel`] storing each pair as one `u64`.
@@ -665,5 +815,13 @@ pub fn chunk_scatter_pairs_texel_u64(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] pairs_out: &mut [u64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] len_words: &[u32],
 ) {
-    scatter_chunk(params, len_words, group, lid, scanned_histogram, &TexelPairs(pairs_in), &mut Pairs64Mut(pairs_out));
+    scatter_chunk(
+        params,
+        len_words,
+        group,
+        lid,
+        scanned_histogram,
+        &TexelPairs(pairs_in),
+        &mut Pairs64Mut(pairs_out),
+    );
 }

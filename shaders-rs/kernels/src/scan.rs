@@ -11,7 +11,9 @@
 //! its elements past `len` as they read them. Sums wrap, like `u32::wrapping_add`.
 
 use drape_shared::chunks::{chunk_range, CHUNK_WORKGROUP_SIZE};
-use drape_shared::scan::{ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SCAN_ITEMS_PER_THREAD, SCAN_WORKGROUP_SIZE};
+use drape_shared::scan::{
+    ChunkScanParams, ScanParams, SCAN_BLOCK_LEN, SCAN_ITEMS_PER_THREAD, SCAN_WORKGROUP_SIZE,
+};
 use spirv_std::glam::{UVec3, UVec4};
 use spirv_std::spirv;
 
@@ -132,7 +134,11 @@ pub fn chunk_reduce(
         sums += data[q as usize];
         q += 1;
     }
-    chunk_sums[chunk as usize] = sums.x.wrapping_add(sums.y).wrapping_add(sums.z).wrapping_add(sums.w);
+    chunk_sums[chunk as usize] = sums
+        .x
+        .wrapping_add(sums.y)
+        .wrapping_add(sums.z)
+        .wrapping_add(sums.w);
 }
 
 /// Scans the `params.chunks` chunk sums in place, exclusively, in one invocation (a

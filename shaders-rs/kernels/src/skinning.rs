@@ -7,7 +7,10 @@
 //! `grad_transforms` 288. The transform gradient is summed in two deterministic
 //! steps (chunks, then chunks of chunks) instead of with atomics.
 
-use drape_shared::skinning::{dot3, rotation_minus_identity_t, transform_delta, SkinParams, SKIN_JOINTS, TRANSFORM_FLOATS, TRANSFORM_GRAD_CHUNK};
+use drape_shared::skinning::{
+    dot3, rotation_minus_identity_t, transform_delta, SkinParams, SKIN_JOINTS, TRANSFORM_FLOATS,
+    TRANSFORM_GRAD_CHUNK,
+};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -16,8 +19,18 @@ const SLOTS: usize = SKIN_JOINTS * TRANSFORM_FLOATS;
 fn transform(transforms: &[f32], j: usize) -> [f32; TRANSFORM_FLOATS] {
     let b = j * TRANSFORM_FLOATS;
     [
-        transforms[b], transforms[b + 1], transforms[b + 2], transforms[b + 3], transforms[b + 4], transforms[b + 5],
-        transforms[b + 6], transforms[b + 7], transforms[b + 8], transforms[b + 9], transforms[b + 10], transforms[b + 11],
+        transforms[b],
+        transforms[b + 1],
+        transforms[b + 2],
+        transforms[b + 3],
+        transforms[b + 4],
+        transforms[b + 5],
+        transforms[b + 6],
+        transforms[b + 7],
+        transforms[b + 8],
+        transforms[b + 9],
+        transforms[b + 10],
+        transforms[b + 11],
     ]
 }
 
@@ -70,7 +83,11 @@ pub fn skin_bwd_points(
         return;
     }
     let x = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
-    let g = [grad_skinned[3 * i], grad_skinned[3 * i + 1], grad_skinned[3 * i + 2]];
+    let g = [
+        grad_skinned[3 * i],
+        grad_skinned[3 * i + 1],
+        grad_skinned[3 * i + 2],
+    ];
     let mut gx = g;
     let mut j = 0;
     while j < SKIN_JOINTS {
@@ -100,7 +117,11 @@ pub fn skin_bwd_transforms(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] partials: &mut [f32],
 ) {
     let begin = group.x * TRANSFORM_GRAD_CHUNK;
-    let end = if begin + TRANSFORM_GRAD_CHUNK < p.count { begin + TRANSFORM_GRAD_CHUNK } else { p.count };
+    let end = if begin + TRANSFORM_GRAD_CHUNK < p.count {
+        begin + TRANSFORM_GRAD_CHUNK
+    } else {
+        p.count
+    };
     let mut slot = lid as usize;
     while slot < SLOTS {
         let j = slot / TRANSFORM_FLOATS;

@@ -20,11 +20,19 @@
 //! (`atomics::GradAdd`: `_atomic`, `_cas`, `_fixed`).
 #![allow(clippy::too_many_arguments)]
 
-use drape_shared::radix_sort::bounded_len;
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, SPLAT_DROPPED, SPLAT_GRAD_FLOATS, RASTER_BLOCK};
-use drape_shared::splat::project::{project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian, SplatGrad};
 use drape_shared::half::{pack2, sh_half_sources, sh_half_words, ShHalfParams};
-use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
+use drape_shared::radix_sort::bounded_len;
+use drape_shared::splat::layout::{
+    sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS,
+    RASTER_BLOCK, SPLAT_DROPPED, SPLAT_GRAD_FLOATS,
+};
+use drape_shared::splat::project::{
+    project_bwd as project_bwd_math, project_fwd as project_fwd_math, tile_rect, Camera, Gaussian,
+    SplatGrad,
+};
+use drape_shared::splat::raster::{
+    BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView,
+};
 use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
@@ -33,7 +41,6 @@ use spirv_std::spirv;
 use crate::atomics::FloatAtomics;
 use crate::atomics::{self, CompareAndSwap, FixedPoint, GradAdd};
 use crate::flat_index;
-
 
 /// Gaussian `i`, whose SH starts at Gaussian `sh_i` of the `sh` binding (see
 /// `ProjectChunk`).
@@ -58,8 +65,17 @@ fn load_gaussian(
     });
     Gaussian {
         mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
-        log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
-        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        log_scale: [
+            log_scales[3 * i],
+            log_scales[3 * i + 1],
+            log_scales[3 * i + 2],
+        ],
+        quat: [
+            quats[4 * i],
+            quats[4 * i + 1],
+            quats[4 * i + 2],
+            quats[4 * i + 3],
+        ],
         opacity_logit: opacity_logits[i],
         sh: coeffs,
     }
@@ -87,7 +103,16 @@ pub fn project_fwd(
     if local >= chunk.len || index >= frame.count {
         return;
     }
-    let g = load_gaussian(index as usize, local as usize, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+    let g = load_gaussian(
+        index as usize,
+        local as usize,
+        frame.sh_degree,
+        means,
+        log_scales,
+        quats,
+        opacity_logits,
+        sh,
+    );
     project_store(index, &g, frame, splats, depth_keys, order, dropped);
 }
 
@@ -140,8 +165,17 @@ pub fn project_fwd_sh_half(
     });
     let g = Gaussian {
         mean: [means[3 * i], means[3 * i + 1], means[3 * i + 2]],
-        log_scale: [log_scales[3 * i], log_scales[3 * i + 1], log_scales[3 * i + 2]],
-        quat: [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]],
+        log_scale: [
+            log_scales[3 * i],
+            log_scales[3 * i + 1],
+            log_scales[3 * i + 2],
+        ],
+        quat: [
+            quats[4 * i],
+            quats[4 * i + 1],
+            quats[4 * i + 2],
+            quats[4 * i + 3],
+        ],
         opacity_logit: opacity_logits[i],
         sh: coeffs,
     };
@@ -187,7 +221,14 @@ fn project_store(
     let p = project_fwd_math(g, &cam);
     let mut out = ProjectedSplat::default();
     if p.visible {
-        let r = tile_rect(p.x, p.y, p.radius, frame.tile_size, frame.tiles_x, frame.tiles_y);
+        let r = tile_rect(
+            p.x,
+            p.y,
+            p.radius,
+            frame.tile_size,
+            frame.tiles_x,
+            frame.tiles_y,
+        );
         out = ProjectedSplat {
             x: p.x,
             y: p.y,
@@ -213,7 +254,11 @@ fn project_store(
     }
     splats[i] = out;
     // Culled splats sort last; they emit no intersections either way.
-    depth_keys[i] = if out.tiles > 0 { p.depth.to_bits() } else { u32::MAX };
+    depth_keys[i] = if out.tiles > 0 {
+        p.depth.to_bits()
+    } else {
+        u32::MAX
+    };
     order[i] = index;
 }
 
@@ -372,7 +417,14 @@ impl RasterSplat for HalfSplat {
         let co = f16x2_to_vec2(self.conic_c_opacity);
         let rg = f16x2_to_vec2(self.rg);
         let bd = f16x2_to_vec2(self.b_depth);
-        SplatView { x: self.x, y: self.y, depth: bd.y, conic: [ab.x, ab.y, co.x], opacity: co.y, color: [rg.x, rg.y, bd.x] }
+        SplatView {
+            x: self.x,
+            y: self.y,
+            depth: bd.y,
+            conic: [ab.x, ab.y, co.x],
+            opacity: co.y,
+            color: [rg.x, rg.y, bd.x],
+        }
     }
 }
 
@@ -406,7 +458,14 @@ impl Batch {
     fn view(&self, slot: usize) -> SplatView<f32> {
         let xy = self.xy[slot];
         let od = self.opacity_depth[slot];
-        SplatView { x: xy[0], y: xy[1], depth: od[1], conic: self.conic[slot], opacity: od[0], color: self.color[slot] }
+        SplatView {
+            x: xy[0],
+            y: xy[1],
+            depth: od[1],
+            conic: self.conic[slot],
+            opacity: od[0],
+            color: self.color[slot],
+        }
     }
 }
 
@@ -540,13 +599,20 @@ fn rasterize_fwd_in<S: RasterSplat>(
     while base < end {
         let k = base + lid;
         if k < end {
-            batch.store(lid as usize, &splats[isect_values[k as usize] as usize].raster_view());
+            batch.store(
+                lid as usize,
+                &splats[isect_values[k as usize] as usize].raster_view(),
+            );
         }
         if lid == 0 {
             batch.counter = 0;
         }
         barrier();
-        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+        let count = if end - base < BATCH as u32 {
+            end - base
+        } else {
+            BATCH as u32
+        };
         let mut j = 0u32;
         while j < count && !state.done {
             // UNROLL splats per iteration: llvmpipe caps the loop iterations of an
@@ -572,7 +638,17 @@ fn rasterize_fwd_in<S: RasterSplat>(
         base += count;
     }
     if at.inside {
-        store_pixel_fwd(at.pixel(frame), &state, frame, rgb, alpha, depth, contributors, transmittance, blended);
+        store_pixel_fwd(
+            at.pixel(frame),
+            &state,
+            frame,
+            rgb,
+            alpha,
+            depth,
+            contributors,
+            transmittance,
+            blended,
+        );
     }
 }
 
@@ -592,7 +668,20 @@ pub fn rasterize_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fwd_in(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, rgb, alpha, depth, contributors, transmittance, blended, batch);
+    rasterize_fwd_in(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        rgb,
+        alpha,
+        depth,
+        contributors,
+        transmittance,
+        blended,
+        batch,
+    );
 }
 
 /// [`rasterize_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`).
@@ -611,7 +700,20 @@ pub fn rasterize_fwd_half(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fwd_in(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, rgb, alpha, depth, contributors, transmittance, blended, batch);
+    rasterize_fwd_in(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        rgb,
+        alpha,
+        depth,
+        contributors,
+        transmittance,
+        blended,
+        batch,
+    );
 }
 
 /// The fused rasterizer (`ops::splat::fused`): one walk of each tile's depth-sorted
@@ -657,7 +759,11 @@ fn rasterize_fused_fwd_in<S: RasterSplat>(
             batch.counter = 0;
         }
         barrier();
-        let count = if end - base < BATCH as u32 { end - base } else { BATCH as u32 };
+        let count = if end - base < BATCH as u32 {
+            end - base
+        } else {
+            BATCH as u32
+        };
         let mut j = 0u32;
         while j < count && !done {
             drape_shared::each_index!(8, u => {
@@ -682,7 +788,17 @@ fn rasterize_fused_fwd_in<S: RasterSplat>(
         base += count;
     }
     if at.inside {
-        store_pixel_fused(at.pixel(frame), &state, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(
+            at.pixel(frame),
+            &state,
+            frame,
+            base_rgb,
+            over_rgb,
+            over_alpha,
+            matte_rgb,
+            transmittances,
+            ends,
+        );
     }
 }
 
@@ -703,7 +819,21 @@ pub fn rasterize_fused_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fused_fwd_in(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, masks, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends, batch);
+    rasterize_fused_fwd_in(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        base_rgb,
+        over_rgb,
+        over_alpha,
+        matte_rgb,
+        transmittances,
+        ends,
+        batch,
+    );
 }
 
 /// [`rasterize_fused_fwd`] reading [`HalfSplat`]s (`RenderSettings::half_splats`).
@@ -723,7 +853,21 @@ pub fn rasterize_fused_fwd_half(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fused_fwd_in(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, masks, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends, batch);
+    rasterize_fused_fwd_in(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        base_rgb,
+        over_rgb,
+        over_alpha,
+        matte_rgb,
+        transmittances,
+        ends,
+        batch,
+    );
 }
 
 /// The backward rasterizer: one workgroup per 16 × 16 block, one invocation per pixel,
@@ -756,7 +900,11 @@ fn rasterize_bwd_in<A: GradAdd>(
     let mut state = PixelBwd::<f32>::new(
         if inside { transmittance[p] } else { 1.0 },
         frame.background,
-        if inside { [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]] } else { [0.0; 3] },
+        if inside {
+            [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]]
+        } else {
+            [0.0; 3]
+        },
         if inside { grad_alpha[p] } else { 0.0 },
         if inside { grad_depth[p] } else { 0.0 },
     );
@@ -769,7 +917,11 @@ fn rasterize_bwd_in<A: GradAdd>(
     let mut batch_end = start + batch.counter;
     // Uniform loop: the bounds are the same for the whole workgroup.
     while batch_end > start {
-        let batch_start = if batch_end - start > BATCH as u32 { batch_end - BATCH as u32 } else { start };
+        let batch_start = if batch_end - start > BATCH as u32 {
+            batch_end - BATCH as u32
+        } else {
+            start
+        };
         let k = batch_start + lid;
         if k < batch_end {
             let id = isect_values[k as usize];
@@ -816,7 +968,20 @@ pub fn rasterize_bwd_atomic(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [f32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_bwd_in::<FloatAtomics>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, batch);
+    rasterize_bwd_in::<FloatAtomics>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        batch,
+    );
 }
 
 /// [`rasterize_bwd_in`] with compare-and-swap loops on the bits of f32 (any device).
@@ -835,7 +1000,20 @@ pub fn rasterize_bwd_cas(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_bwd_in::<CompareAndSwap>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, batch);
+    rasterize_bwd_in::<CompareAndSwap>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        batch,
+    );
 }
 
 /// Deterministic [`rasterize_bwd_in`]: per-splat gradients in 64-bit fixed point
@@ -855,7 +1033,20 @@ pub fn rasterize_bwd_fixed(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_bwd_in::<FixedPoint>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, batch);
+    rasterize_bwd_in::<FixedPoint>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        batch,
+    );
 }
 
 /// The fused rasterizer's backward (`ops::splat::fused`): one workgroup per 16 × 16
@@ -890,7 +1081,11 @@ fn rasterize_fused_bwd_in<A: GradAdd>(
     let mut state = if at.inside {
         let p = at.pixel(frame);
         FusedPixelBwd::<f32>::new(
-            [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
+            [
+                transmittances[3 * p],
+                transmittances[3 * p + 1],
+                transmittances[3 * p + 2],
+            ],
             [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
             frame.background,
             [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
@@ -899,7 +1094,15 @@ fn rasterize_fused_bwd_in<A: GradAdd>(
             grad_matte[3 * p],
         )
     } else {
-        FusedPixelBwd::<f32>::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0)
+        FusedPixelBwd::<f32>::new(
+            [1.0; 3],
+            [0; 3],
+            frame.background,
+            [0.0; 3],
+            [0.0; 3],
+            0.0,
+            0.0,
+        )
     };
     let mine = state.end();
     if lid == 0 {
@@ -911,7 +1114,11 @@ fn rasterize_fused_bwd_in<A: GradAdd>(
     let mut batch_end = start + batch.counter;
     // Uniform loop: the bounds are the same for the whole workgroup.
     while batch_end > start {
-        let batch_start = if batch_end - start > BATCH as u32 { batch_end - BATCH as u32 } else { start };
+        let batch_start = if batch_end - start > BATCH as u32 {
+            batch_end - BATCH as u32
+        } else {
+            start
+        };
         let k = batch_start + lid;
         if k < batch_end {
             let id = isect_values[k as usize];
@@ -962,7 +1169,22 @@ pub fn rasterize_fused_bwd_atomic(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [f32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fused_bwd_in::<FloatAtomics>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, batch);
+    rasterize_fused_bwd_in::<FloatAtomics>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        batch,
+    );
 }
 
 /// [`rasterize_fused_bwd_in`] with compare-and-swap loops on the bits of f32 (any device).
@@ -983,7 +1205,22 @@ pub fn rasterize_fused_bwd_cas(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fused_bwd_in::<CompareAndSwap>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, batch);
+    rasterize_fused_bwd_in::<CompareAndSwap>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        batch,
+    );
 }
 
 /// [`rasterize_fused_bwd_in`], deterministic: per-splat gradients in 64-bit fixed point.
@@ -1004,11 +1241,28 @@ pub fn rasterize_fused_bwd_fixed(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [u32],
     #[spirv(workgroup)] batch: &mut Batch,
 ) {
-    rasterize_fused_bwd_in::<FixedPoint>(&BlockPixel::new(id, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, batch);
+    rasterize_fused_bwd_in::<FixedPoint>(
+        &BlockPixel::new(id, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        batch,
+    );
 }
 
-
-const _: () = assert!(SPLAT_GRAD_FLOATS == 10, "project_bwd unrolls the splat gradient's 10 floats");
+const _: () = assert!(
+    SPLAT_GRAD_FLOATS == 10,
+    "project_bwd unrolls the splat gradient's 10 floats"
+);
 
 /// Gradients of Gaussian `i`'s parameters from its splat's gradient. Culled Gaussians
 /// get zeros.
@@ -1042,7 +1296,16 @@ pub fn project_bwd(
     let mut out = drape_shared::splat::project::GaussianGrad::<f32>::zero();
     if splats[i].tiles > 0 {
         let cam = Camera::<f32>::from_frame(frame);
-        let g = load_gaussian(i, sh_i, frame.sh_degree, means, log_scales, quats, opacity_logits, sh);
+        let g = load_gaussian(
+            i,
+            sh_i,
+            frame.sh_degree,
+            means,
+            log_scales,
+            quats,
+            opacity_logits,
+            sh,
+        );
         let base = i * SPLAT_GRAD_FLOATS;
         let mut up = [0.0f32; SPLAT_GRAD_FLOATS];
         drape_shared::each_index!(10, c => {
@@ -1106,7 +1369,14 @@ pub fn screen_stats(
     let i = (p.first + local) as usize;
     let o = 3 * (p.out_first + local) as usize;
     let g = i * SPLAT_GRAD_FLOATS;
-    let s = drape_shared::splat::densify::accumulate([stats[o], stats[o + 1], stats[o + 2]], &splats[i], splat_grads[g], splat_grads[g + 1], p.width, p.height);
+    let s = drape_shared::splat::densify::accumulate(
+        [stats[o], stats[o + 1], stats[o + 2]],
+        &splats[i],
+        splat_grads[g],
+        splat_grads[g + 1],
+        p.width,
+        p.height,
+    );
     stats[o] = s[0];
     stats[o + 1] = s[1];
     stats[o + 2] = s[2];

@@ -32,7 +32,9 @@
 
 use drape_shared::splat::layout::{FrameParams, HalfSplat, SPLAT_GRAD_FLOATS};
 use drape_shared::splat::project::SplatGrad;
-use drape_shared::splat::raster::{may_touch_rect, BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
+use drape_shared::splat::raster::{
+    may_touch_rect, BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView,
+};
 use spirv_std::glam::{UVec3, Vec4};
 use spirv_std::spirv;
 
@@ -40,7 +42,9 @@ use spirv_std::spirv;
 use crate::atomics::FloatAtomics;
 use crate::atomics::{add_splat_grad, CompareAndSwap, FixedPoint, GradAdd};
 use crate::splat::{store_pixel_fused, store_pixel_fwd, RasterSplat};
-use crate::subgroup::{all8, ballot8, broadcast_at, broadcast_u32_at, broadcast_vec4_at, max8_u32, sum8};
+use crate::subgroup::{
+    all8, ballot8, broadcast_at, broadcast_u32_at, broadcast_vec4_at, max8_u32, sum8,
+};
 
 /// Pixel rows per lane (an 8 × 4 block per workgroup).
 const ROWS: u32 = 4;
@@ -118,13 +122,22 @@ impl LaneSplat for SplatQuads {
     /// Three `Vec4` loads.
     #[inline]
     fn hold(&self) -> SplatRows {
-        SplatRows { a: self.a, b: self.b, c: self.c }
+        SplatRows {
+            a: self.a,
+            b: self.b,
+            c: self.c,
+        }
     }
 
     /// Three `Vec4` shuffles.
     #[inline]
     fn lane_view(held: SplatRows, u: u32) -> SplatView<f32> {
-        SplatRows { a: broadcast_vec4_at(held.a, u), b: broadcast_vec4_at(held.b, u), c: broadcast_vec4_at(held.c, u) }.raster_view()
+        SplatRows {
+            a: broadcast_vec4_at(held.a, u),
+            b: broadcast_vec4_at(held.b, u),
+            c: broadcast_vec4_at(held.c, u),
+        }
+        .raster_view()
     }
 }
 
@@ -176,13 +189,24 @@ impl Block {
         let py = group.y * ROWS;
         let x_in = px < frame.width;
         Block {
-            tile: ((group.y / (frame.tile_size / ROWS)) * frame.tiles_x + group.x / (frame.tile_size / 8)) as usize,
+            tile: ((group.y / (frame.tile_size / ROWS)) * frame.tiles_x
+                + group.x / (frame.tile_size / 8)) as usize,
             lane,
             px,
             py,
             fx: px as f32 + 0.5,
-            fy: [py as f32 + 0.5, py as f32 + 1.5, py as f32 + 2.5, py as f32 + 3.5],
-            inside: [x_in && py < frame.height, x_in && py + 1 < frame.height, x_in && py + 2 < frame.height, x_in && py + 3 < frame.height],
+            fy: [
+                py as f32 + 0.5,
+                py as f32 + 1.5,
+                py as f32 + 2.5,
+                py as f32 + 3.5,
+            ],
+            inside: [
+                x_in && py < frame.height,
+                x_in && py + 1 < frame.height,
+                x_in && py + 2 < frame.height,
+                x_in && py + 3 < frame.height,
+            ],
             lo: [(group.x * 8) as f32 + 0.5, py as f32 + 0.5],
             hi: [(group.x * 8) as f32 + 7.5, py as f32 + 3.5],
         }
@@ -213,7 +237,17 @@ impl Block {
 /// a struct only partly, and llvmpipe then carries whole-struct copies through the
 /// walk's loops (12% slower forward on lavapipe, `engine-bench splat`).
 #[inline]
-fn blend_quad(p0: &mut PixelFwd<f32>, p1: &mut PixelFwd<f32>, p2: &mut PixelFwd<f32>, p3: &mut PixelFwd<f32>, v: &SplatView<f32>, index: u32, fx: f32, fy: &[f32; 4], cfg: &BlendSettings<f32>) {
+fn blend_quad(
+    p0: &mut PixelFwd<f32>,
+    p1: &mut PixelFwd<f32>,
+    p2: &mut PixelFwd<f32>,
+    p3: &mut PixelFwd<f32>,
+    v: &SplatView<f32>,
+    index: u32,
+    fx: f32,
+    fy: &[f32; 4],
+    cfg: &BlendSettings<f32>,
+) {
     if !p0.done {
         p0.blend(v, index, fx, fy[0], cfg);
     }
@@ -230,7 +264,18 @@ fn blend_quad(p0: &mut PixelFwd<f32>, p1: &mut PixelFwd<f32>, p2: &mut PixelFwd<
 
 /// [`blend_quad`] for the fused states, with the splat's layer mask.
 #[inline]
-fn blend_fused_quad(p0: &mut FusedPixel<f32>, p1: &mut FusedPixel<f32>, p2: &mut FusedPixel<f32>, p3: &mut FusedPixel<f32>, v: &SplatView<f32>, mask: u32, index: u32, fx: f32, fy: &[f32; 4], cfg: &BlendSettings<f32>) {
+fn blend_fused_quad(
+    p0: &mut FusedPixel<f32>,
+    p1: &mut FusedPixel<f32>,
+    p2: &mut FusedPixel<f32>,
+    p3: &mut FusedPixel<f32>,
+    v: &SplatView<f32>,
+    mask: u32,
+    index: u32,
+    fx: f32,
+    fy: &[f32; 4],
+    cfg: &BlendSettings<f32>,
+) {
     if !p0.done() {
         p0.blend(v, mask, index, fx, fy[0], cfg);
     }
@@ -280,11 +325,22 @@ fn walk_fwd<S: LaneSplat, const SPARSE: bool>(
         let k = if base + lane < end { base + lane } else { base };
         let mine = splats[isect_values[k as usize] as usize].hold();
         if SPARSE {
-            let mut todo = ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
+            let mut todo =
+                ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
-                blend_quad(p0, p1, p2, p3, &S::lane_view(mine, u), base - start + u, fx, &fy, cfg);
+                blend_quad(
+                    p0,
+                    p1,
+                    p2,
+                    p3,
+                    &S::lane_view(mine, u),
+                    base - start + u,
+                    fx,
+                    &fy,
+                    cfg,
+                );
             }
         } else {
             drape_shared::each_index!(8, u => {
@@ -324,11 +380,23 @@ fn walk_fused<S: LaneSplat, const SPARSE: bool>(
         let mine = splats[g].hold();
         let mine_mask = masks[g];
         if SPARSE {
-            let mut todo = ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
+            let mut todo =
+                ballot8(base + lane < end && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
-                blend_fused_quad(p0, p1, p2, p3, &S::lane_view(mine, u), broadcast_u32_at(mine_mask, u), base - start + u, fx, &fy, cfg);
+                blend_fused_quad(
+                    p0,
+                    p1,
+                    p2,
+                    p3,
+                    &S::lane_view(mine, u),
+                    broadcast_u32_at(mine_mask, u),
+                    base - start + u,
+                    fx,
+                    &fy,
+                    cfg,
+                );
             }
         } else {
             drape_shared::each_index!(8, u => {
@@ -362,27 +430,94 @@ fn rasterize_fwd_in<S: LaneSplat>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let (start, end) = (ranges[2 * b.tile], ranges[2 * b.tile + 1]);
-    let (mut p0, mut p1, mut p2, mut p3) = (PixelFwd::new(), PixelFwd::new(), PixelFwd::new(), PixelFwd::new());
+    let (mut p0, mut p1, mut p2, mut p3) = (
+        PixelFwd::new(),
+        PixelFwd::new(),
+        PixelFwd::new(),
+        PixelFwd::new(),
+    );
     p0.done = !b.inside[0];
     p1.done = !b.inside[1];
     p2.done = !b.inside[2];
     p3.done = !b.inside[3];
     if end - start <= SPARSE_MAX_WALK {
-        walk_fwd::<S, true>(&mut p0, &mut p1, &mut p2, &mut p3, b, &cfg, start, end, splats, isect_values);
+        walk_fwd::<S, true>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            b,
+            &cfg,
+            start,
+            end,
+            splats,
+            isect_values,
+        );
     } else {
-        walk_fwd::<S, false>(&mut p0, &mut p1, &mut p2, &mut p3, b, &cfg, start, end, splats, isect_values);
+        walk_fwd::<S, false>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            b,
+            &cfg,
+            start,
+            end,
+            splats,
+            isect_values,
+        );
     }
     if b.inside[0] {
-        store_pixel_fwd(b.pixel(0, frame), &p0, frame, rgb, alpha, depth, contributors, transmittance, blended);
+        store_pixel_fwd(
+            b.pixel(0, frame),
+            &p0,
+            frame,
+            rgb,
+            alpha,
+            depth,
+            contributors,
+            transmittance,
+            blended,
+        );
     }
     if b.inside[1] {
-        store_pixel_fwd(b.pixel(1, frame), &p1, frame, rgb, alpha, depth, contributors, transmittance, blended);
+        store_pixel_fwd(
+            b.pixel(1, frame),
+            &p1,
+            frame,
+            rgb,
+            alpha,
+            depth,
+            contributors,
+            transmittance,
+            blended,
+        );
     }
     if b.inside[2] {
-        store_pixel_fwd(b.pixel(2, frame), &p2, frame, rgb, alpha, depth, contributors, transmittance, blended);
+        store_pixel_fwd(
+            b.pixel(2, frame),
+            &p2,
+            frame,
+            rgb,
+            alpha,
+            depth,
+            contributors,
+            transmittance,
+            blended,
+        );
     }
     if b.inside[3] {
-        store_pixel_fwd(b.pixel(3, frame), &p3, frame, rgb, alpha, depth, contributors, transmittance, blended);
+        store_pixel_fwd(
+            b.pixel(3, frame),
+            &p3,
+            frame,
+            rgb,
+            alpha,
+            depth,
+            contributors,
+            transmittance,
+            blended,
+        );
     }
 }
 
@@ -402,7 +537,19 @@ pub fn rasterize_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
 ) {
-    rasterize_fwd_in(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, rgb, alpha, depth, contributors, transmittance, blended);
+    rasterize_fwd_in(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        rgb,
+        alpha,
+        depth,
+        contributors,
+        transmittance,
+        blended,
+    );
 }
 
 /// `splat::rasterize_fwd_half` for CPU devices with subgroups of 8.
@@ -421,7 +568,19 @@ pub fn rasterize_fwd_half(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] transmittance: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] blended: &mut [u32],
 ) {
-    rasterize_fwd_in(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, rgb, alpha, depth, contributors, transmittance, blended);
+    rasterize_fwd_in(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        rgb,
+        alpha,
+        depth,
+        contributors,
+        transmittance,
+        blended,
+    );
 }
 
 /// The fused forward rasterizer ([`rasterize_fused_fwd`], [`rasterize_fused_fwd_half`]).
@@ -442,23 +601,92 @@ fn rasterize_fused_fwd_in<S: LaneSplat>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let (start, end) = (ranges[2 * b.tile], ranges[2 * b.tile + 1]);
-    let (mut p0, mut p1, mut p2, mut p3) = (fused_pixel(b.inside[0]), fused_pixel(b.inside[1]), fused_pixel(b.inside[2]), fused_pixel(b.inside[3]));
+    let (mut p0, mut p1, mut p2, mut p3) = (
+        fused_pixel(b.inside[0]),
+        fused_pixel(b.inside[1]),
+        fused_pixel(b.inside[2]),
+        fused_pixel(b.inside[3]),
+    );
     if end - start <= SPARSE_MAX_WALK {
-        walk_fused::<S, true>(&mut p0, &mut p1, &mut p2, &mut p3, b, &cfg, start, end, splats, isect_values, masks);
+        walk_fused::<S, true>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            b,
+            &cfg,
+            start,
+            end,
+            splats,
+            isect_values,
+            masks,
+        );
     } else {
-        walk_fused::<S, false>(&mut p0, &mut p1, &mut p2, &mut p3, b, &cfg, start, end, splats, isect_values, masks);
+        walk_fused::<S, false>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            b,
+            &cfg,
+            start,
+            end,
+            splats,
+            isect_values,
+            masks,
+        );
     }
     if b.inside[0] {
-        store_pixel_fused(b.pixel(0, frame), &p0, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(
+            b.pixel(0, frame),
+            &p0,
+            frame,
+            base_rgb,
+            over_rgb,
+            over_alpha,
+            matte_rgb,
+            transmittances,
+            ends,
+        );
     }
     if b.inside[1] {
-        store_pixel_fused(b.pixel(1, frame), &p1, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(
+            b.pixel(1, frame),
+            &p1,
+            frame,
+            base_rgb,
+            over_rgb,
+            over_alpha,
+            matte_rgb,
+            transmittances,
+            ends,
+        );
     }
     if b.inside[2] {
-        store_pixel_fused(b.pixel(2, frame), &p2, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(
+            b.pixel(2, frame),
+            &p2,
+            frame,
+            base_rgb,
+            over_rgb,
+            over_alpha,
+            matte_rgb,
+            transmittances,
+            ends,
+        );
     }
     if b.inside[3] {
-        store_pixel_fused(b.pixel(3, frame), &p3, frame, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+        store_pixel_fused(
+            b.pixel(3, frame),
+            &p3,
+            frame,
+            base_rgb,
+            over_rgb,
+            over_alpha,
+            matte_rgb,
+            transmittances,
+            ends,
+        );
     }
 }
 
@@ -479,7 +707,20 @@ pub fn rasterize_fused_fwd(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
 ) {
-    rasterize_fused_fwd_in(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, masks, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+    rasterize_fused_fwd_in(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        base_rgb,
+        over_rgb,
+        over_alpha,
+        matte_rgb,
+        transmittances,
+        ends,
+    );
 }
 
 /// `splat::rasterize_fused_fwd_half` for CPU devices with subgroups of 8.
@@ -499,7 +740,20 @@ pub fn rasterize_fused_fwd_half(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] transmittances: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] ends: &mut [u32],
 ) {
-    rasterize_fused_fwd_in(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, masks, base_rgb, over_rgb, over_alpha, matte_rgb, transmittances, ends);
+    rasterize_fused_fwd_in(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        base_rgb,
+        over_rgb,
+        over_alpha,
+        matte_rgb,
+        transmittances,
+        ends,
+    );
 }
 
 /// The sum over the subgroup's 8 lanes of each of a splat's 10 gradient floats, in
@@ -525,19 +779,43 @@ fn add_into(g: &mut [f32; SPLAT_GRAD_FLOATS], grad: &[f32; SPLAT_GRAD_FLOATS]) {
 /// A pixel's backward state as the walks step it: plain ([`PixelBwd`]) or fused
 /// ([`FusedPixelBwd`], which also reads the splat's layer mask and list index).
 trait BwdPixel {
-    fn grad(&mut self, v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>>;
+    fn grad(
+        &mut self,
+        v: &SplatView<f32>,
+        mask: u32,
+        at: u32,
+        fx: f32,
+        fy: f32,
+        cfg: &BlendSettings<f32>,
+    ) -> Option<SplatGrad<f32>>;
 }
 
 impl BwdPixel for PixelBwd<f32> {
     #[inline]
-    fn grad(&mut self, v: &SplatView<f32>, _mask: u32, _at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>> {
+    fn grad(
+        &mut self,
+        v: &SplatView<f32>,
+        _mask: u32,
+        _at: u32,
+        fx: f32,
+        fy: f32,
+        cfg: &BlendSettings<f32>,
+    ) -> Option<SplatGrad<f32>> {
         self.step(v, fx, fy, cfg)
     }
 }
 
 impl BwdPixel for FusedPixelBwd<f32> {
     #[inline]
-    fn grad(&mut self, v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: f32, cfg: &BlendSettings<f32>) -> Option<SplatGrad<f32>> {
+    fn grad(
+        &mut self,
+        v: &SplatView<f32>,
+        mask: u32,
+        at: u32,
+        fx: f32,
+        fy: f32,
+        cfg: &BlendSettings<f32>,
+    ) -> Option<SplatGrad<f32>> {
         self.step(v, mask, at, fx, fy, cfg)
     }
 }
@@ -546,7 +824,19 @@ impl BwdPixel for FusedPixelBwd<f32> {
 /// 4 pixels that blended it (`at` before their ends `e`), summed over the subgroup
 /// ([`block_sums`]). Four variables, not a struct of four, as [`blend_quad`].
 #[inline]
-fn quad_grad<P: BwdPixel>(p0: &mut P, p1: &mut P, p2: &mut P, p3: &mut P, e: [u32; 4], v: &SplatView<f32>, mask: u32, at: u32, fx: f32, fy: &[f32; 4], cfg: &BlendSettings<f32>) -> [f32; SPLAT_GRAD_FLOATS] {
+fn quad_grad<P: BwdPixel>(
+    p0: &mut P,
+    p1: &mut P,
+    p2: &mut P,
+    p3: &mut P,
+    e: [u32; 4],
+    v: &SplatView<f32>,
+    mask: u32,
+    at: u32,
+    fx: f32,
+    fy: &[f32; 4],
+    cfg: &BlendSettings<f32>,
+) -> [f32; SPLAT_GRAD_FLOATS] {
     let mut g = [0.0f32; SPLAT_GRAD_FLOATS];
     if at < e[0] {
         if let Some(grad) = p0.grad(v, mask, at, fx, fy[0], cfg) {
@@ -574,12 +864,27 @@ fn quad_grad<P: BwdPixel>(p0: &mut P, p1: &mut P, p2: &mut P, p3: &mut P, e: [u3
 /// Row `r`'s backward state and how many of the tile's splats it blended up to its
 /// last (0 outside the image).
 #[inline]
-fn pixel_bwd(b: &Block, r: u32, frame: &FrameParams, contributors: &[u32], transmittance: &[f32], grad_rgb: &[f32], grad_alpha: &[f32], grad_depth: &[f32]) -> (PixelBwd<f32>, u32) {
+fn pixel_bwd(
+    b: &Block,
+    r: u32,
+    frame: &FrameParams,
+    contributors: &[u32],
+    transmittance: &[f32],
+    grad_rgb: &[f32],
+    grad_alpha: &[f32],
+    grad_depth: &[f32],
+) -> (PixelBwd<f32>, u32) {
     if !b.inside[r as usize] {
         return (PixelBwd::new(1.0, frame.background, [0.0; 3], 0.0, 0.0), 0);
     }
     let p = b.pixel(r, frame);
-    let state = PixelBwd::new(transmittance[p], frame.background, [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]], grad_alpha[p], grad_depth[p]);
+    let state = PixelBwd::new(
+        transmittance[p],
+        frame.background,
+        [grad_rgb[3 * p], grad_rgb[3 * p + 1], grad_rgb[3 * p + 2]],
+        grad_alpha[p],
+        grad_depth[p],
+    );
     (state, contributors[p])
 }
 
@@ -615,11 +920,24 @@ fn walk_bwd<A: GradAdd, const SPARSE: bool>(
         if SPARSE {
             // The round's splats that may reach the block, back to front (lowest lane
             // first); the others send nothing.
-            let mut todo = ballot8(lane < len && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
+            let mut todo =
+                ballot8(lane < len && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
-                let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), 0, top - 1 - u, fx, &fy, cfg);
+                let total = quad_grad(
+                    p0,
+                    p1,
+                    p2,
+                    p3,
+                    e,
+                    &SplatQuads::lane_view(mine, u),
+                    0,
+                    top - 1 - u,
+                    fx,
+                    &fy,
+                    cfg,
+                );
                 if lane == u {
                     sums = total;
                 }
@@ -662,16 +980,78 @@ fn rasterize_bwd_in<A: GradAdd>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let start = ranges[2 * b.tile];
-    let (mut p0, e0) = pixel_bwd(b, 0, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-    let (mut p1, e1) = pixel_bwd(b, 1, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-    let (mut p2, e2) = pixel_bwd(b, 2, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
-    let (mut p3, e3) = pixel_bwd(b, 3, frame, contributors, transmittance, grad_rgb, grad_alpha, grad_depth);
+    let (mut p0, e0) = pixel_bwd(
+        b,
+        0,
+        frame,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+    );
+    let (mut p1, e1) = pixel_bwd(
+        b,
+        1,
+        frame,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+    );
+    let (mut p2, e2) = pixel_bwd(
+        b,
+        2,
+        frame,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+    );
+    let (mut p3, e3) = pixel_bwd(
+        b,
+        3,
+        frame,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+    );
     let e = [e0, e1, e2, e3];
     let last = max8_u32(e0.max(e1).max(e2.max(e3)));
     if last <= sparse_max {
-        walk_bwd::<A, true>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, splat_grads);
+        walk_bwd::<A, true>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            e,
+            b,
+            &cfg,
+            start,
+            last,
+            splats,
+            isect_values,
+            splat_grads,
+        );
     } else {
-        walk_bwd::<A, false>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, splat_grads);
+        walk_bwd::<A, false>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            e,
+            b,
+            &cfg,
+            start,
+            last,
+            splats,
+            isect_values,
+            splat_grads,
+        );
     }
 }
 
@@ -692,7 +1072,20 @@ pub fn rasterize_bwd_atomic(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [f32],
 ) {
-    rasterize_bwd_in::<FloatAtomics>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, SPARSE_MAX_WALK);
+    rasterize_bwd_in::<FloatAtomics>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        SPARSE_MAX_WALK,
+    );
 }
 
 /// `splat::rasterize_bwd_cas` for CPU devices with subgroups of 8: compare-and-swap on the bits of f32.
@@ -711,7 +1104,20 @@ pub fn rasterize_bwd_cas(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
 ) {
-    rasterize_bwd_in::<CompareAndSwap>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, SPARSE_MAX_WALK_CAS);
+    rasterize_bwd_in::<CompareAndSwap>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        SPARSE_MAX_WALK_CAS,
+    );
 }
 
 /// `splat::rasterize_bwd_fixed` for CPU devices with subgroups of 8: 64-bit fixed point (deterministic).
@@ -730,19 +1136,54 @@ pub fn rasterize_bwd_fixed(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] grad_depth: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] splat_grads: &mut [u32],
 ) {
-    rasterize_bwd_in::<FixedPoint>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, contributors, transmittance, grad_rgb, grad_alpha, grad_depth, splat_grads, SPARSE_MAX_WALK);
+    rasterize_bwd_in::<FixedPoint>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        contributors,
+        transmittance,
+        grad_rgb,
+        grad_alpha,
+        grad_depth,
+        splat_grads,
+        SPARSE_MAX_WALK,
+    );
 }
 
 /// Row `r`'s fused backward state (its three backward walks; saturated from the start
 /// outside the image, where its end is 0).
 #[inline]
-fn pixel_fused_bwd(b: &Block, r: u32, frame: &FrameParams, transmittances: &[f32], ends: &[u32], grad_base: &[f32], grad_over: &[f32], grad_over_alpha: &[f32], grad_matte: &[f32]) -> FusedPixelBwd<f32> {
+fn pixel_fused_bwd(
+    b: &Block,
+    r: u32,
+    frame: &FrameParams,
+    transmittances: &[f32],
+    ends: &[u32],
+    grad_base: &[f32],
+    grad_over: &[f32],
+    grad_over_alpha: &[f32],
+    grad_matte: &[f32],
+) -> FusedPixelBwd<f32> {
     if !b.inside[r as usize] {
-        return FusedPixelBwd::new([1.0; 3], [0; 3], frame.background, [0.0; 3], [0.0; 3], 0.0, 0.0);
+        return FusedPixelBwd::new(
+            [1.0; 3],
+            [0; 3],
+            frame.background,
+            [0.0; 3],
+            [0.0; 3],
+            0.0,
+            0.0,
+        );
     }
     let p = b.pixel(r, frame);
     FusedPixelBwd::new(
-        [transmittances[3 * p], transmittances[3 * p + 1], transmittances[3 * p + 2]],
+        [
+            transmittances[3 * p],
+            transmittances[3 * p + 1],
+            transmittances[3 * p + 2],
+        ],
         [ends[3 * p], ends[3 * p + 1], ends[3 * p + 2]],
         frame.background,
         [grad_base[3 * p], grad_base[3 * p + 1], grad_base[3 * p + 2]],
@@ -778,12 +1219,25 @@ fn walk_fused_bwd<A: GradAdd, const SPARSE: bool>(
         let mine_mask = masks[id as usize];
         let mut sums = [0.0f32; SPLAT_GRAD_FLOATS];
         if SPARSE {
-            let mut todo = ballot8(lane < len && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
+            let mut todo =
+                ballot8(lane < len && may_touch_rect(&mine.raster_view(), b.lo, b.hi, cfg));
             while todo != 0 {
                 let u = todo.trailing_zeros();
                 todo &= todo - 1;
                 let mask = broadcast_u32_at(mine_mask, u);
-                let total = quad_grad(p0, p1, p2, p3, e, &SplatQuads::lane_view(mine, u), mask, top - 1 - u, fx, &fy, cfg);
+                let total = quad_grad(
+                    p0,
+                    p1,
+                    p2,
+                    p3,
+                    e,
+                    &SplatQuads::lane_view(mine, u),
+                    mask,
+                    top - 1 - u,
+                    fx,
+                    &fy,
+                    cfg,
+                );
                 if lane == u {
                     sums = total;
                 }
@@ -828,16 +1282,84 @@ fn rasterize_fused_bwd_in<A: GradAdd>(
 ) {
     let cfg = BlendSettings::<f32>::from_frame(frame);
     let start = ranges[2 * b.tile];
-    let mut p0 = pixel_fused_bwd(b, 0, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-    let mut p1 = pixel_fused_bwd(b, 1, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-    let mut p2 = pixel_fused_bwd(b, 2, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
-    let mut p3 = pixel_fused_bwd(b, 3, frame, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte);
+    let mut p0 = pixel_fused_bwd(
+        b,
+        0,
+        frame,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+    );
+    let mut p1 = pixel_fused_bwd(
+        b,
+        1,
+        frame,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+    );
+    let mut p2 = pixel_fused_bwd(
+        b,
+        2,
+        frame,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+    );
+    let mut p3 = pixel_fused_bwd(
+        b,
+        3,
+        frame,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+    );
     let e = [p0.end(), p1.end(), p2.end(), p3.end()];
     let last = max8_u32(e[0].max(e[1]).max(e[2].max(e[3])));
     if last <= sparse_max {
-        walk_fused_bwd::<A, true>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
+        walk_fused_bwd::<A, true>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            e,
+            b,
+            &cfg,
+            start,
+            last,
+            splats,
+            isect_values,
+            masks,
+            splat_grads,
+        );
     } else {
-        walk_fused_bwd::<A, false>(&mut p0, &mut p1, &mut p2, &mut p3, e, b, &cfg, start, last, splats, isect_values, masks, splat_grads);
+        walk_fused_bwd::<A, false>(
+            &mut p0,
+            &mut p1,
+            &mut p2,
+            &mut p3,
+            e,
+            b,
+            &cfg,
+            start,
+            last,
+            splats,
+            isect_values,
+            masks,
+            splat_grads,
+        );
     }
 }
 
@@ -860,7 +1382,22 @@ pub fn rasterize_fused_bwd_atomic(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [f32],
 ) {
-    rasterize_fused_bwd_in::<FloatAtomics>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, SPARSE_MAX_WALK);
+    rasterize_fused_bwd_in::<FloatAtomics>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        SPARSE_MAX_WALK,
+    );
 }
 
 /// `splat::rasterize_fused_bwd_cas` for CPU devices with subgroups of 8: compare-and-swap on the bits of f32.
@@ -881,7 +1418,22 @@ pub fn rasterize_fused_bwd_cas(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [u32],
 ) {
-    rasterize_fused_bwd_in::<CompareAndSwap>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, SPARSE_MAX_WALK_CAS);
+    rasterize_fused_bwd_in::<CompareAndSwap>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        SPARSE_MAX_WALK_CAS,
+    );
 }
 
 /// `splat::rasterize_fused_bwd_fixed` for CPU devices with subgroups of 8: 64-bit fixed point (deterministic).
@@ -902,5 +1454,20 @@ pub fn rasterize_fused_bwd_fixed(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] grad_matte: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] splat_grads: &mut [u32],
 ) {
-    rasterize_fused_bwd_in::<FixedPoint>(&Block::new(group, lane, frame), frame, splats, isect_values, ranges, masks, transmittances, ends, grad_base, grad_over, grad_over_alpha, grad_matte, splat_grads, SPARSE_MAX_WALK);
+    rasterize_fused_bwd_in::<FixedPoint>(
+        &Block::new(group, lane, frame),
+        frame,
+        splats,
+        isect_values,
+        ranges,
+        masks,
+        transmittances,
+        ends,
+        grad_base,
+        grad_over,
+        grad_over_alpha,
+        grad_matte,
+        splat_grads,
+        SPARSE_MAX_WALK,
+    );
 }

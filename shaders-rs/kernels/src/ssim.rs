@@ -9,8 +9,13 @@
 //! One invocation per element (per run in `blur`) on a two-dimensional grid (1080p
 //! moments are 31M).
 
-use drape_shared::ssim::{blur_invocations, ssim_pointwise, SsimParams, SSIM_BLUR_RUN, SSIM_WINDOW};
-const _: () = assert!(SSIM_WINDOW == 11 && SSIM_BLUR_RUN == 16, "blur unrolls 11 taps over runs of 16");
+use drape_shared::ssim::{
+    blur_invocations, ssim_pointwise, SsimParams, SSIM_BLUR_RUN, SSIM_WINDOW,
+};
+const _: () = assert!(
+    SSIM_WINDOW == 11 && SSIM_BLUR_RUN == 16,
+    "blur unrolls 11 taps over runs of 16"
+);
 /// Window values over one run of `blur`.
 const WINDOW_OVER_RUN: usize = SSIM_BLUR_RUN as usize + SSIM_WINDOW - 1;
 const _: () = assert!(WINDOW_OVER_RUN == 26, "blur loads 24 + 2 window values");
@@ -62,7 +67,11 @@ pub fn blur(
     if e >= blur_invocations(p.width, p.height, p.planes, vertical) {
         return;
     }
-    let (along, across) = if vertical { (p.height, p.width) } else { (p.width, p.height) };
+    let (along, across) = if vertical {
+        (p.height, p.width)
+    } else {
+        (p.width, p.height)
+    };
     let runs = along.div_ceil(SSIM_BLUR_RUN);
     let run = e % runs;
     let line = e / runs;
@@ -117,7 +126,13 @@ pub fn map(
     if i >= n {
         return;
     }
-    let (s, pm, pxx, pxy) = ssim_pointwise(moments[i], moments[n + i], moments[2 * n + i], moments[3 * n + i], moments[4 * n + i]);
+    let (s, pm, pxx, pxy) = ssim_pointwise(
+        moments[i],
+        moments[n + i],
+        moments[2 * n + i],
+        moments[3 * n + i],
+        moments[4 * n + i],
+    );
     smap[i] = s;
     partials[i] = pm;
     partials[n + i] = pxx;

@@ -53,7 +53,14 @@ pub fn adam_step_guarded(
     adam_element(crate::flat_index(id, groups), p, params, grads, m, v);
 }
 
-fn adam_element(index: u32, p: &AdamParams, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+fn adam_element(
+    index: u32,
+    p: &AdamParams,
+    params: &mut [f32],
+    grads: &[f32],
+    m: &mut [f32],
+    v: &mut [f32],
+) {
     if index >= p.len {
         return;
     }
@@ -102,7 +109,13 @@ pub fn l1_grad(
     }
     let i = index as usize;
     let d = pred[i] - target[i];
-    grad[i] = if d > 0.0 { p.scale } else if d < 0.0 { -p.scale } else { 0.0 };
+    grad[i] = if d > 0.0 {
+        p.scale
+    } else if d < 0.0 {
+        -p.scale
+    } else {
+        0.0
+    };
     abs_error[i] = d.abs();
 }
 

@@ -8,7 +8,9 @@
 //! weights per channel per plane, with float atomics, the compare-and-swap fallback,
 //! or (deterministic) fixed-point integer atomics into a scratch buffer.
 
-use drape_shared::triplane::{corners, footprint, inside, normalise, texel_index, TriplaneParams, PLANE_AXES};
+use drape_shared::triplane::{
+    corners, footprint, inside, normalise, texel_index, TriplaneParams, PLANE_AXES,
+};
 use spirv_std::glam::UVec3;
 use spirv_std::spirv;
 
@@ -75,7 +77,15 @@ pub fn sample_fwd(
 /// compare-and-swap or fixed point), the point gradient written. Entry points:
 /// [`sample_bwd_atomic`], [`sample_bwd_cas`], [`sample_bwd_fixed`].
 #[inline]
-fn sample_bwd_in<A: GradAdd>(id: UVec3, p: &TriplaneParams, planes: &[f32], points: &[f32], grad_features: &[f32], grad_planes: &mut [A::Word], grad_points: &mut [f32]) {
+fn sample_bwd_in<A: GradAdd>(
+    id: UVec3,
+    p: &TriplaneParams,
+    planes: &[f32],
+    points: &[f32],
+    grad_features: &[f32],
+    grad_planes: &mut [A::Word],
+    grad_points: &mut [f32],
+) {
     let i = id.x as usize;
     if id.x >= p.count {
         return;
@@ -130,7 +140,15 @@ pub fn sample_bwd_atomic(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
 ) {
-    sample_bwd_in::<FloatAtomics>(id, p, planes, points, grad_features, grad_planes, grad_points);
+    sample_bwd_in::<FloatAtomics>(
+        id,
+        p,
+        planes,
+        points,
+        grad_features,
+        grad_planes,
+        grad_points,
+    );
 }
 
 /// [`sample_bwd_in`] with compare-and-swap on the bits of f32 (any device).
@@ -144,7 +162,15 @@ pub fn sample_bwd_cas(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
 ) {
-    sample_bwd_in::<CompareAndSwap>(id, p, planes, points, grad_features, grad_planes, grad_points);
+    sample_bwd_in::<CompareAndSwap>(
+        id,
+        p,
+        planes,
+        points,
+        grad_features,
+        grad_planes,
+        grad_points,
+    );
 }
 
 /// [`sample_bwd_in`], deterministic: the plane gradient in 64-bit fixed point (`fixed_point::resolve` turns it into f32).
@@ -158,5 +184,13 @@ pub fn sample_bwd_fixed(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad_planes: &mut [u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] grad_points: &mut [f32],
 ) {
-    sample_bwd_in::<FixedPoint>(id, p, planes, points, grad_features, grad_planes, grad_points);
+    sample_bwd_in::<FixedPoint>(
+        id,
+        p,
+        planes,
+        points,
+        grad_features,
+        grad_planes,
+        grad_points,
+    );
 }

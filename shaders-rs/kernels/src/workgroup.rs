@@ -8,12 +8,20 @@ use spirv_std::arch::workgroup_memory_barrier_with_group_sync as barrier;
 /// Exclusive prefix sum (wrapping) of one value per invocation across a workgroup of
 /// `N` invocations (Hillis-Steele over `scratch`). Returns (exclusive prefix, total).
 /// `N` must be a power of two equal to the workgroup size.
-pub fn exclusive_scan<const N: usize>(scratch: &mut [u32; N], lid: usize, value: u32) -> (u32, u32) {
+pub fn exclusive_scan<const N: usize>(
+    scratch: &mut [u32; N],
+    lid: usize,
+    value: u32,
+) -> (u32, u32) {
     scratch[lid] = value;
     barrier();
     let mut offset = 1usize;
     while offset < N {
-        let left = if lid >= offset { scratch[lid - offset] } else { 0 };
+        let left = if lid >= offset {
+            scratch[lid - offset]
+        } else {
+            0
+        };
         barrier();
         scratch[lid] = scratch[lid].wrapping_add(left);
         barrier();

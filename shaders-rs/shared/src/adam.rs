@@ -30,7 +30,11 @@ pub struct ExceedsParams {
 impl ExceedsParams {
     /// The parameters for `limit`.
     pub fn new(limit: u64) -> Self {
-        Self { limit_low: limit as u32, limit_high: (limit >> 32) as u32, _pad: [0; 2] }
+        Self {
+            limit_low: limit as u32,
+            limit_high: (limit >> 32) as u32,
+            _pad: [0; 2],
+        }
     }
 }
 
@@ -69,5 +73,9 @@ pub fn adam_update(param: f32, grad: f32, m: f32, v: f32, p: &AdamParams) -> (f3
     let v = p.beta2 * v + (1.0 - p.beta2) * grad * grad;
     let m_hat = m / p.bias1;
     let v_hat = v / p.bias2;
-    (param - p.lr * m_hat / (num_traits::Float::sqrt(v_hat) + p.eps), m, v)
+    (
+        param - p.lr * m_hat / (num_traits::Float::sqrt(v_hat) + p.eps),
+        m,
+        v,
+    )
 }

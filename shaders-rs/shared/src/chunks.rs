@@ -39,7 +39,11 @@ const _: () = assert!(CHUNK_MAX_LEN + 2 * 256 <= 65_535);
 /// ```
 pub const fn chunk_count(capacity: u32) -> u32 {
     let by_min_len = capacity.div_ceil(CHUNK_MIN_LEN);
-    let wanted = if by_min_len < CHUNK_TARGET_COUNT { by_min_len } else { CHUNK_TARGET_COUNT };
+    let wanted = if by_min_len < CHUNK_TARGET_COUNT {
+        by_min_len
+    } else {
+        CHUNK_TARGET_COUNT
+    };
     let needed = capacity.div_ceil(CHUNK_MAX_LEN);
     let chunks = if wanted > needed { wanted } else { needed };
     let rounded = chunks.div_ceil(CHUNK_WORKGROUP_SIZE) * CHUNK_WORKGROUP_SIZE;
@@ -75,7 +79,22 @@ mod tests {
     #[test]
     fn chunks_cover_every_key_once_in_order() {
         // Up to the sort's and the scan's limits (65,535 workgroups of their blocks).
-        for len in [0u32, 1, 7, 8, 9, 1000, 1023, 1025, 65_537, 1 << 20, (1 << 21) + 3, 16 << 20, 65_535 * 1024, 65_535 * 2048] {
+        for len in [
+            0u32,
+            1,
+            7,
+            8,
+            9,
+            1000,
+            1023,
+            1025,
+            65_537,
+            1 << 20,
+            (1 << 21) + 3,
+            16 << 20,
+            65_535 * 1024,
+            65_535 * 2048,
+        ] {
             let chunks = chunk_count(len);
             assert_eq!(chunks % CHUNK_WORKGROUP_SIZE, 0);
             // A bounded sort divides any count up to its capacity over the same chunks.
@@ -83,7 +102,10 @@ mod tests {
                 let mut next = 0;
                 for c in 0..chunks {
                     let (start, end) = chunk_range(count, chunks, c);
-                    assert!(start <= end && end - start <= CHUNK_MAX_LEN, "len {len} count {count} chunk {c}: {start}..{end}");
+                    assert!(
+                        start <= end && end - start <= CHUNK_MAX_LEN,
+                        "len {len} count {count} chunk {c}: {start}..{end}"
+                    );
                     assert_eq!(start, next.min(count), "len {len} count {count} chunk {c}");
                     next = end.max(next);
                 }

@@ -203,7 +203,11 @@ impl GridSpec {
         let mut magnitude = 0.0f32;
         for a in 0..3 {
             extent[a] = if hi[a] > lo[a] { hi[a] - lo[a] } else { 0.0 };
-            widest = if extent[a] > widest { extent[a] } else { widest };
+            widest = if extent[a] > widest {
+                extent[a]
+            } else {
+                widest
+            };
             let m = if lo[a] < 0.0 { -lo[a] } else { lo[a] };
             magnitude = if m > magnitude { m } else { magnitude };
         }
@@ -211,7 +215,12 @@ impl GridSpec {
         // all-non-finite set gets here) and coincident points: one cell.
         if !(widest > 0.0) || !(widest < f32::MAX) || !(magnitude < f32::MAX) {
             let o = if magnitude < f32::MAX { lo } else { [0.0; 3] };
-            return Self { origin: o, h: 1.0, dims: [1, 1, 1], slack: 0.0 };
+            return Self {
+                origin: o,
+                h: 1.0,
+                dims: [1, 1, 1],
+                slack: 0.0,
+            };
         }
         // A flat or thin set still gets cells across its thin axes: each extent is
         // at least a thousandth of the widest.
@@ -243,7 +252,13 @@ impl GridSpec {
             let mut cells = 1.0f32;
             for a in 0..3 {
                 let d = num_traits::Float::ceil(extent[a] / h);
-                dims[a] = if d < 1.0 { 1 } else if d > 65_536.0 { 65_536 } else { d as u32 };
+                dims[a] = if d < 1.0 {
+                    1
+                } else if d > 65_536.0 {
+                    65_536
+                } else {
+                    d as u32
+                };
                 cells *= dims[a] as f32;
             }
             if cells <= GRID_MAX_CELLS as f32 {
@@ -254,13 +269,26 @@ impl GridSpec {
         }
         // Rounding of (p - origin) / h is relative to the coordinates' size.
         let slack = (magnitude + widest) * 4e-6;
-        Self { origin: lo, h, dims, slack }
+        Self {
+            origin: lo,
+            h,
+            dims,
+            slack,
+        }
     }
 
     /// The box from the bounds buffer's ordered keys (see [`GRID_BOUNDS_WORDS`]).
     pub fn from_bounds(bounds: [u32; 6], points: u32) -> Self {
-        let hi = [from_ordered_key(bounds[0]), from_ordered_key(bounds[1]), from_ordered_key(bounds[2])];
-        let lo = [-from_ordered_key(bounds[3]), -from_ordered_key(bounds[4]), -from_ordered_key(bounds[5])];
+        let hi = [
+            from_ordered_key(bounds[0]),
+            from_ordered_key(bounds[1]),
+            from_ordered_key(bounds[2]),
+        ];
+        let lo = [
+            -from_ordered_key(bounds[3]),
+            -from_ordered_key(bounds[4]),
+            -from_ordered_key(bounds[5]),
+        ];
         Self::new(lo, hi, points)
     }
 
@@ -271,7 +299,13 @@ impl GridSpec {
         for a in 0..3 {
             let t = (p[a] - self.origin[a]) / self.h;
             let last = (self.dims[a] - 1) as f32;
-            c[a] = if t >= last { self.dims[a] - 1 } else if t > 0.0 { t as u32 } else { 0 };
+            c[a] = if t >= last {
+                self.dims[a] - 1
+            } else if t > 0.0 {
+                t as u32
+            } else {
+                0
+            };
         }
         c
     }
@@ -293,9 +327,25 @@ mod tests {
 
     #[test]
     fn ordered_keys_sort_like_the_floats() {
-        let v = [f32::NEG_INFINITY, -1e30, -2.5, -1e-30, -0.0, 0.0, 1e-30, 3.0, 1e30, f32::INFINITY];
+        let v = [
+            f32::NEG_INFINITY,
+            -1e30,
+            -2.5,
+            -1e-30,
+            -0.0,
+            0.0,
+            1e-30,
+            3.0,
+            1e30,
+            f32::INFINITY,
+        ];
         for w in v.windows(2) {
-            assert!(ordered_key(w[0]) <= ordered_key(w[1]), "{} vs {}", w[0], w[1]);
+            assert!(
+                ordered_key(w[0]) <= ordered_key(w[1]),
+                "{} vs {}",
+                w[0],
+                w[1]
+            );
             assert!(ordered_key(w[0]) > 0, "0 must stay below every key");
         }
         for x in v {
@@ -316,15 +366,30 @@ mod tests {
         for (lo, hi, n) in cases {
             let g = GridSpec::new(lo, hi, n);
             assert!(g.h > 0.0 && g.h.is_finite(), "{lo:?}..{hi:?}: h {}", g.h);
-            assert!(g.cells() <= GRID_MAX_CELLS && g.cells() >= 1, "{lo:?}..{hi:?}: {} cells", g.cells());
+            assert!(
+                g.cells() <= GRID_MAX_CELLS && g.cells() >= 1,
+                "{lo:?}..{hi:?}: {} cells",
+                g.cells()
+            );
             for a in 0..3 {
                 // The box's far corner lands in the last cell, not past it.
-                assert!(g.origin[a] + g.dims[a] as f32 * g.h >= hi[a] - g.slack, "{lo:?}..{hi:?}: axis {a} not covered");
+                assert!(
+                    g.origin[a] + g.dims[a] as f32 * g.h >= hi[a] - g.slack,
+                    "{lo:?}..{hi:?}: axis {a} not covered"
+                );
             }
             let c = g.cell_of(hi);
-            assert!((0..3).all(|a| c[a] < g.dims[a]), "{lo:?}..{hi:?}: the far corner's cell {c:?} is outside {:?}", g.dims);
+            assert!(
+                (0..3).all(|a| c[a] < g.dims[a]),
+                "{lo:?}..{hi:?}: the far corner's cell {c:?} is outside {:?}",
+                g.dims
+            );
             assert_eq!(g.cell_of(lo), [0; 3]);
-            assert_eq!(g.cell_of([1e30; 3]), [g.dims[0] - 1, g.dims[1] - 1, g.dims[2] - 1], "far points clamp to the last cell");
+            assert_eq!(
+                g.cell_of([1e30; 3]),
+                [g.dims[0] - 1, g.dims[1] - 1, g.dims[2] - 1],
+                "far points clamp to the last cell"
+            );
             assert_eq!(g.cell_of([f32::NAN; 3]), [0; 3]);
         }
     }

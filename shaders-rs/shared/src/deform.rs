@@ -29,10 +29,12 @@
 //! [`POSE_FEATURES`] pose features.
 
 use crate::real::{mat_mul, transpose, Real, M3, V3};
-use crate::skinning::{dot3, rotation_minus_identity_t, transform_delta, SKIN_JOINTS, TRANSFORM_FLOATS};
 /// Gaussians one invocation of the transforms' gradient sums (one chunk), as the
 /// body skinning's: the partial sums are `ceil(n / CHUNK) × 24 × 12` floats.
 pub use crate::skinning::TRANSFORM_GRAD_CHUNK;
+use crate::skinning::{
+    dot3, rotation_minus_identity_t, transform_delta, SKIN_JOINTS, TRANSFORM_FLOATS,
+};
 use crate::splat::project::quat_to_mat;
 
 /// Below this norm a 6D column is divided by it instead (PyTorch's `F.normalize` eps).
@@ -57,7 +59,11 @@ pub struct DeformParams {
 /// `a × b`.
 #[inline]
 pub fn cross<F: Real>(a: V3<F>, b: V3<F>) -> V3<F> {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 
 #[inline]
@@ -147,10 +153,30 @@ fn quat_branch<F: Real>(m: &M3<F>) -> u32 {
 pub fn matrix_to_quat<F: Real>(m: &M3<F>) -> [F; 4] {
     let one = F::one();
     match quat_branch(m) {
-        0 => [one + m[0][0] + m[1][1] + m[2][2], m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1]],
-        1 => [m[2][1] - m[1][2], one + m[0][0] - m[1][1] - m[2][2], m[0][1] + m[1][0], m[0][2] + m[2][0]],
-        2 => [m[0][2] - m[2][0], m[0][1] + m[1][0], one - m[0][0] + m[1][1] - m[2][2], m[1][2] + m[2][1]],
-        _ => [m[1][0] - m[0][1], m[0][2] + m[2][0], m[1][2] + m[2][1], one - m[0][0] - m[1][1] + m[2][2]],
+        0 => [
+            one + m[0][0] + m[1][1] + m[2][2],
+            m[2][1] - m[1][2],
+            m[0][2] - m[2][0],
+            m[1][0] - m[0][1],
+        ],
+        1 => [
+            m[2][1] - m[1][2],
+            one + m[0][0] - m[1][1] - m[2][2],
+            m[0][1] + m[1][0],
+            m[0][2] + m[2][0],
+        ],
+        2 => [
+            m[0][2] - m[2][0],
+            m[0][1] + m[1][0],
+            one - m[0][0] + m[1][1] - m[2][2],
+            m[1][2] + m[2][1],
+        ],
+        _ => [
+            m[1][0] - m[0][1],
+            m[0][2] + m[2][0],
+            m[1][2] + m[2][1],
+            one - m[0][0] - m[1][1] + m[2][2],
+        ],
     }
 }
 
@@ -248,7 +274,11 @@ pub struct DeformGrad<F> {
 /// joint `j`, from its [`TRANSFORM_TERMS`] (the posed mean is `x + Σ w_j (A_j x̂ - x)`
 /// and the blended rotation `Σ w_j R_j`).
 #[inline]
-pub fn transform_grad_add<F: Real>(terms: &[F; TRANSFORM_TERMS], w: F, out: &mut [F; TRANSFORM_FLOATS]) {
+pub fn transform_grad_add<F: Real>(
+    terms: &[F; TRANSFORM_TERMS],
+    w: F,
+    out: &mut [F; TRANSFORM_FLOATS],
+) {
     crate::each_index!(3, r => {
         let g = terms[r];
         crate::each_index!(3, c => {
@@ -311,12 +341,20 @@ pub fn deform_fwd<F: Real>(g: &DeformInput<F>, transforms: &[F]) -> DeformOutput
     }
     let canonical = mat_mul(&quat_to_mat(g.quat), &rot6d_to_matrix(g.rot6d));
     let m = mat_mul(&blended_rotation(transforms, &g.weights), &canonical);
-    DeformOutput { mean, quat: matrix_to_quat(&m), log_scale: add3(g.log_scale, g.log_scale_delta) }
+    DeformOutput {
+        mean,
+        quat: matrix_to_quat(&m),
+        log_scale: add3(g.log_scale, g.log_scale_delta),
+    }
 }
 
 /// Backward: gradients from those on the posed mean, quaternion and log-scales.
 #[inline]
-pub fn deform_bwd<F: Real>(g: &DeformInput<F>, transforms: &[F], up: &DeformOutput<F>) -> DeformGrad<F> {
+pub fn deform_bwd<F: Real>(
+    g: &DeformInput<F>,
+    transforms: &[F],
+    up: &DeformOutput<F>,
+) -> DeformGrad<F> {
     let z = F::zero();
     let x = add3(g.mean, g.offset);
     let rq = quat_to_mat(g.quat);
@@ -342,13 +380,24 @@ pub fn deform_bwd<F: Real>(g: &DeformInput<F>, transforms: &[F], up: &DeformOutp
             i += 1;
         }
         weights[j] = gw;
-        gx = add3(gx, scale3(rotation_minus_identity_t(&a, up.mean), g.weights[j]));
+        gx = add3(
+            gx,
+            scale3(rotation_minus_identity_t(&a, up.mean), g.weights[j]),
+        );
         j += 1;
     }
     let transform_terms = [
-        up.mean[0], up.mean[1], up.mean[2], x[0], x[1], x[2], gb[0][0], gb[0][1], gb[0][2], gb[1][0], gb[1][1], gb[1][2], gb[2][0], gb[2][1], gb[2][2],
+        up.mean[0], up.mean[1], up.mean[2], x[0], x[1], x[2], gb[0][0], gb[0][1], gb[0][2],
+        gb[1][0], gb[1][1], gb[1][2], gb[2][0], gb[2][1], gb[2][2],
     ];
-    DeformGrad { mean: gx, offset: gx, rot6d: rot6d_to_matrix_bwd(g.rot6d, &g6), log_scale_delta: up.log_scale, weights, transform_terms }
+    DeformGrad {
+        mean: gx,
+        offset: gx,
+        rot6d: rot6d_to_matrix_bwd(g.rot6d, &g6),
+        log_scale_delta: up.log_scale,
+        weights,
+        transform_terms,
+    }
 }
 
 /// Pose features of the pose-dependent offsets: `R_j − I` of joints 1-23, each 3x3

@@ -113,7 +113,10 @@ mod tests {
     #[test]
     fn encoding_round_trips_to_the_resolution() {
         let step = 1.0 / SCALE as f64;
-        for v in [0.0f32, 1.0, -1.0, 0.5, -0.5, 3.7e-11, -3.7e-11, 1.0e-3, -2.5e4, 1.0e8, -1.0e8, 123.456, -7.0e-6] {
+        for v in [
+            0.0f32, 1.0, -1.0, 0.5, -0.5, 3.7e-11, -3.7e-11, 1.0e-3, -2.5e4, 1.0e8, -1.0e8,
+            123.456, -7.0e-6,
+        ] {
             let d = decode(encode(v)) as f64;
             // One rounding to the grid (≤ half a step) and one f32 rounding of the result.
             let tol = 0.5 * step + f64::from(v.abs()) * f64::from(f32::EPSILON);
@@ -124,19 +127,33 @@ mod tests {
     #[test]
     fn sums_are_exact_and_order_free() {
         // Values that cancel across the word boundary and across signs.
-        let values = [1.0e6f32, -3.0e-9, 2.5, -1.0e6, 7.0e-4, -2.5, 4.0e-11, 12.0, -0.125];
-        let exact: i128 = values.iter().map(|&v| {
-            let [lo, hi] = encode(v);
-            i128::from(((u64::from(hi) << 32) | u64::from(lo)) as i64)
-        }).sum();
-        let forward = values.iter().fold([0u32; 2], |s, &v| wrapping_add(s, encode(v)));
-        let backward = values.iter().rev().fold([0u32; 2], |s, &v| wrapping_add(s, encode(v)));
+        let values = [
+            1.0e6f32, -3.0e-9, 2.5, -1.0e6, 7.0e-4, -2.5, 4.0e-11, 12.0, -0.125,
+        ];
+        let exact: i128 = values
+            .iter()
+            .map(|&v| {
+                let [lo, hi] = encode(v);
+                i128::from(((u64::from(hi) << 32) | u64::from(lo)) as i64)
+            })
+            .sum();
+        let forward = values
+            .iter()
+            .fold([0u32; 2], |s, &v| wrapping_add(s, encode(v)));
+        let backward = values
+            .iter()
+            .rev()
+            .fold([0u32; 2], |s, &v| wrapping_add(s, encode(v)));
         assert_eq!(forward, backward);
         let got = ((u64::from(forward[1]) << 32) | u64::from(forward[0])) as i64;
         assert_eq!(i128::from(got), exact);
         let want: f64 = values.iter().map(|&v| f64::from(v)).sum();
         // The inputs' own grid rounding (9 × half a step) and one f32 rounding of 12.
-        assert!((f64::from(decode(forward)) - want).abs() < 1e-6, "{} vs {want}", decode(forward));
+        assert!(
+            (f64::from(decode(forward)) - want).abs() < 1e-6,
+            "{} vs {want}",
+            decode(forward)
+        );
     }
 
     #[test]

@@ -106,6 +106,10 @@ pub fn sh_half_sources(w: u32, coeffs: u32) -> (usize, Option<usize>) {
     let g = w / words;
     let j = 2 * (w % words);
     let base = (g * floats) as usize;
-    let hi = if j + 1 < floats { Some(base + j as usize + 1) } else { None };
+    let hi = if j + 1 < floats {
+        Some(base + j as usize + 1)
+    } else {
+        None
+    };
     (base + j as usize, hi)
 }

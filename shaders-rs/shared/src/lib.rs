@@ -118,8 +118,8 @@ pub mod radix_sort;
 pub mod real;
 pub mod scan;
 pub mod skinning;
+#[cfg(not(target_arch = "spirv"))]
+pub mod spirv_module;
 pub mod splat;
 pub mod ssim;
 pub mod triplane;
-#[cfg(not(target_arch = "spirv"))]
-pub mod spirv_module;

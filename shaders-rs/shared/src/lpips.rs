@@ -63,7 +63,15 @@ pub const fn out_size(input: u32, kernel: u32, stride: u32, pad: u32) -> u32 {
 /// One output value of a convolution: `b + Σ w · x` over the window (weights
 /// `out_c × in_c × k × k`), with ReLU when asked.
 #[inline]
-pub fn conv_at<F: Real>(p: &ConvParams, input: &[F], weights: &[F], bias: &[F], co: u32, oy: u32, ox: u32) -> F {
+pub fn conv_at<F: Real>(
+    p: &ConvParams,
+    input: &[F],
+    weights: &[F],
+    bias: &[F],
+    co: u32,
+    oy: u32,
+    ox: u32,
+) -> F {
     let mut s = bias[co as usize];
     let k = p.kernel;
     let mut ci = 0;
@@ -98,7 +106,15 @@ pub fn conv_at<F: Real>(p: &ConvParams, input: &[F], weights: &[F], bias: &[F], 
 /// forward's output, read for the ReLU's mask): a gather over every output whose
 /// window holds the input.
 #[inline]
-pub fn conv_input_grad_at<F: Real>(p: &ConvParams, output: &[F], grad_out: &[F], weights: &[F], ci: u32, iy: u32, ix: u32) -> F {
+pub fn conv_input_grad_at<F: Real>(
+    p: &ConvParams,
+    output: &[F],
+    grad_out: &[F],
+    weights: &[F],
+    ci: u32,
+    iy: u32,
+    ix: u32,
+) -> F {
     let k = p.kernel;
     let mut s = F::zero();
     let mut ky = 0;
@@ -116,7 +132,8 @@ pub fn conv_input_grad_at<F: Real>(p: &ConvParams, output: &[F], grad_out: &[F],
                     while co < p.out_c {
                         let o = ((co * p.out_h + oy) * p.out_w + ox) as usize;
                         if p.relu == 0 || output[o] > F::zero() {
-                            s += weights[(((co * p.in_c + ci) * k + ky) * k + kx) as usize] * grad_out[o];
+                            s += weights[(((co * p.in_c + ci) * k + ky) * k + kx) as usize]
+                                * grad_out[o];
                         }
                         co += 1;
                     }
@@ -154,12 +171,27 @@ pub fn pool_at<F: Real>(p: &PoolParams, input: &[F], c: u32, oy: u32, ox: u32) -
 /// The gradient of one pooling input: the sum of the output gradients of the windows
 /// whose maximum it is.
 #[inline]
-pub fn pool_input_grad_at<F: Real>(p: &PoolParams, argmax: &[u32], grad_out: &[F], c: u32, iy: u32, ix: u32) -> F {
+pub fn pool_input_grad_at<F: Real>(
+    p: &PoolParams,
+    argmax: &[u32],
+    grad_out: &[F],
+    c: u32,
+    iy: u32,
+    ix: u32,
+) -> F {
     let me = (c * p.in_h + iy) * p.in_w + ix;
     let mut s = F::zero();
     // Windows oy with oy·s ≤ iy < oy·s + k.
-    let oy_lo = if iy + 1 > p.kernel { (iy + 1 - p.kernel).div_ceil(p.stride) } else { 0 };
-    let ox_lo = if ix + 1 > p.kernel { (ix + 1 - p.kernel).div_ceil(p.stride) } else { 0 };
+    let oy_lo = if iy + 1 > p.kernel {
+        (iy + 1 - p.kernel).div_ceil(p.stride)
+    } else {
+        0
+    };
+    let ox_lo = if ix + 1 > p.kernel {
+        (ix + 1 - p.kernel).div_ceil(p.stride)
+    } else {
+        0
+    };
     let mut oy = oy_lo;
     while oy <= iy / p.stride && oy < p.out_h {
         let mut ox = ox_lo;
@@ -178,7 +210,10 @@ pub fn pool_input_grad_at<F: Real>(p: &PoolParams, argmax: &[u32], grad_out: &[F
 /// Σ_c w_c (f0_c/(|f0|+ε) - f1_c/(|f1|+ε))² at one pixel of a tapped layer.
 #[inline]
 pub fn layer_distance_at<F: Real>(c: u32, hw: u32, f0: &[F], f1: &[F], lin: &[F], pixel: u32) -> F {
-    let (n0, n1) = (channel_norm(c, hw, f0, pixel), channel_norm(c, hw, f1, pixel));
+    let (n0, n1) = (
+        channel_norm(c, hw, f0, pixel),
+        channel_norm(c, hw, f1, pixel),
+    );
     let eps = F::of(LPIPS_EPS);
     let mut s = F::zero();
     let mut k = 0;
@@ -208,8 +243,19 @@ pub fn channel_norm<F: Real>(c: u32, hw: u32, f: &[F], pixel: u32) -> F {
 /// `g_c = 2 w_c d_c`: `g_j/(n+ε) - f0_j (Σ_c g_c f0_c) / ((n+ε)² n)` (the second term
 /// 0 where n = 0).
 #[inline]
-pub fn layer_distance_grad_at<F: Real>(c: u32, hw: u32, f0: &[F], f1: &[F], lin: &[F], pixel: u32, j: u32) -> F {
-    let (n0, n1) = (channel_norm(c, hw, f0, pixel), channel_norm(c, hw, f1, pixel));
+pub fn layer_distance_grad_at<F: Real>(
+    c: u32,
+    hw: u32,
+    f0: &[F],
+    f1: &[F],
+    lin: &[F],
+    pixel: u32,
+    j: u32,
+) -> F {
+    let (n0, n1) = (
+        channel_norm(c, hw, f0, pixel),
+        channel_norm(c, hw, f1, pixel),
+    );
     let eps = F::of(LPIPS_EPS);
     let (a, b) = (n0 + eps, n1 + eps);
     let mut dot = F::zero();
@@ -225,6 +271,10 @@ pub fn layer_distance_grad_at<F: Real>(c: u32, hw: u32, f0: &[F], f1: &[F], lin:
         k += 1;
     }
     let fj = f0[(j * hw + pixel) as usize];
-    let second = if n0 > F::zero() { fj * dot / (a * a * n0) } else { F::zero() };
+    let second = if n0 > F::zero() {
+        fj * dot / (a * a * n0)
+    } else {
+        F::zero()
+    };
     gj / a - second
 }

@@ -135,7 +135,10 @@ pub fn erfc<F: Real>(x: F) -> F {
             + t * (c(0.374_091_96)
                 + t * (c(0.096_784_18)
                     + t * (c(-0.186_288_06)
-                        + t * (c(0.278_868_07) + t * (c(-1.135_203_98) + t * (c(1.488_515_87) + t * (c(-0.822_152_23) + t * c(0.170_872_77)))))))));
+                        + t * (c(0.278_868_07)
+                            + t * (c(-1.135_203_98)
+                                + t * (c(1.488_515_87)
+                                    + t * (c(-0.822_152_23) + t * c(0.170_872_77)))))))));
     let ans = t * (poly - z * z).exp_k();
     if x >= F::zero() {
         ans
@@ -232,7 +235,12 @@ pub fn softmax_row<F: Real>(row: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F
 /// Gradient on the logits of `y = softmax(x / t)`: `(y ⊙ (g - Σ g y)) / t`, in place
 /// over `g`.
 #[inline]
-pub fn softmax_row_bwd<F: Real>(y: &[F; SOFTMAX_MAX_WIDTH], g: &mut [F; SOFTMAX_MAX_WIDTH], width: usize, t: F) {
+pub fn softmax_row_bwd<F: Real>(
+    y: &[F; SOFTMAX_MAX_WIDTH],
+    g: &mut [F; SOFTMAX_MAX_WIDTH],
+    width: usize,
+    t: F,
+) {
     let mut dot = F::zero();
     crate::each_index!(32, j => {
         if j < width {
@@ -279,7 +287,13 @@ pub fn weight_norm_row_norm<F: Real>(params: &[F], p: &WeightNormParams, o: usiz
 
 /// PyTorch's `weight_norm(dim=0)`: element `(o, i)` of `W = g_o v_o / ‖v_o‖`, given the
 /// row's norm.
-pub fn weight_norm_value<F: Real>(params: &[F], p: &WeightNormParams, o: usize, i: usize, norm: F) -> F {
+pub fn weight_norm_value<F: Real>(
+    params: &[F],
+    p: &WeightNormParams,
+    o: usize,
+    i: usize,
+    norm: F,
+) -> F {
     params[p.g_off as usize + o] * params[p.w_off as usize + o * p.in_features as usize + i] / norm
 }
 

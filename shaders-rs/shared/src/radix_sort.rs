@@ -73,10 +73,20 @@ pub const fn pass_params(len: u32, key_bits: u32, pass: u32) -> SortPassParams {
 
 /// Pass `pass` of digits `digit_bits` wide (the last one narrower where `key_bits` ends
 /// inside it) over `len` keys in `blocks` blocks or chunks.
-const fn digit_pass(len: u32, key_bits: u32, pass: u32, digit_bits: u32, blocks: u32) -> SortPassParams {
+const fn digit_pass(
+    len: u32,
+    key_bits: u32,
+    pass: u32,
+    digit_bits: u32,
+    blocks: u32,
+) -> SortPassParams {
     let shift = pass * digit_bits;
     let remaining = key_bits - shift;
-    let bits = if remaining < digit_bits { remaining } else { digit_bits };
+    let bits = if remaining < digit_bits {
+        remaining
+    } else {
+        digit_bits
+    };
     SortPassParams {
         len,
         shift,
@@ -153,6 +163,11 @@ pub const fn chunk_pass_count(key_bits: u32) -> u32 {
 /// The parameters of the chunked variant's pass `pass` over up to `capacity` keys by
 /// their low `key_bits` bits; `block_count` is the chunk count.
 pub const fn chunk_pass_params(capacity: u32, key_bits: u32, pass: u32) -> SortPassParams {
-    digit_pass(capacity, key_bits, pass, CHUNK_RADIX_BITS, chunk_count(capacity))
+    digit_pass(
+        capacity,
+        key_bits,
+        pass,
+        CHUNK_RADIX_BITS,
+        chunk_count(capacity),
+    )
 }
-

@@ -8,7 +8,12 @@ pub use num_traits::Float;
 
 /// A float the shared math runs on.
 pub trait Real:
-    Float + core::ops::AddAssign + core::ops::SubAssign + core::ops::MulAssign + core::ops::DivAssign + Default
+    Float
+    + core::ops::AddAssign
+    + core::ops::SubAssign
+    + core::ops::MulAssign
+    + core::ops::DivAssign
+    + Default
 {
     /// Converts an `f32` constant or input.
     fn of(v: f32) -> Self;
@@ -87,7 +92,12 @@ pub fn exp_f32(x: f32) -> f32 {
     let n = num_traits::Float::floor(x * LOG2E + 0.5);
     let r = (x - n * LN2_HI) - n * LN2_LO;
     // Taylor series of e^r on |r| <= 0.35 to degree 7 (error < 1e-8 relative).
-    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0 + r * (1.0 / 5040.0)))))));
+    let p = 1.0
+        + r * (1.0
+            + r * (0.5
+                + r * (1.0 / 6.0
+                    + r * (1.0 / 24.0
+                        + r * (1.0 / 120.0 + r * (1.0 / 720.0 + r * (1.0 / 5040.0)))))));
     // 2^n by building the exponent; n in [-126, 128) after the range checks, split in
     // two factors so that neither over- nor underflows.
     let ni = n as i32;
@@ -180,7 +190,11 @@ pub fn mat_mul<F: Real>(a: &M3<F>, b: &M3<F>) -> M3<F> {
 }
 
 pub fn transpose<F: Real>(a: &M3<F>) -> M3<F> {
-    [[a[0][0], a[1][0], a[2][0]], [a[0][1], a[1][1], a[2][1]], [a[0][2], a[1][2], a[2][2]]]
+    [
+        [a[0][0], a[1][0], a[2][0]],
+        [a[0][1], a[1][1], a[2][1]],
+        [a[0][2], a[1][2], a[2][2]],
+    ]
 }
 
 /// True when every value is finite (NaN fails it).

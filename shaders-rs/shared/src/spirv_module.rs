@@ -44,10 +44,15 @@ pub enum SpirvError {
 impl core::fmt::Display for SpirvError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
-            Self::Length => write!(f, "not a SPIR-V module: its length is not 5 or more whole words"),
+            Self::Length => write!(
+                f,
+                "not a SPIR-V module: its length is not 5 or more whole words"
+            ),
             Self::Magic => write!(f, "not a SPIR-V module: wrong magic number"),
             Self::Malformed { word } => write!(f, "malformed SPIR-V instruction at word {word}"),
-            Self::BindingOutOfRange { binding } => write!(f, "binding {binding} is out of range (at most 63)"),
+            Self::BindingOutOfRange { binding } => {
+                write!(f, "binding {binding} is out of range (at most 63)")
+            }
         }
     }
 }
@@ -83,7 +88,15 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
         return Err(SpirvError::Magic);
     }
     let len = bytes.len() / 4;
-    let mut facts = ModuleFacts { name_at: 0, entry_points: 0, workgroup_size: None, binding_mask: 0, read_only_mask: 0, texel_mask: 0, texel4_mask: 0 };
+    let mut facts = ModuleFacts {
+        name_at: 0,
+        entry_points: 0,
+        workgroup_size: None,
+        binding_mask: 0,
+        read_only_mask: 0,
+        texel_mask: 0,
+        texel4_mask: 0,
+    };
     // Types precede the variables that use them, and decorations precede both, so one
     // pass collects buffer images, pointers to them and the variables of those pointers.
     let mut buffer_images: [u32; 8] = [0; 8];
@@ -117,7 +130,12 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
             }
             // OpTypeImage: result, sampled type, Dim, Depth, Arrayed, MS, Sampled (1: with a sampler).
             // The eighth operand is the image format.
-            OP_TYPE_IMAGE if operands >= 7 && operand(2) == DIM_BUFFER && operand(6) == 1 && images < buffer_images.len() => {
+            OP_TYPE_IMAGE
+                if operands >= 7
+                    && operand(2) == DIM_BUFFER
+                    && operand(6) == 1
+                    && images < buffer_images.len() =>
+            {
                 buffer_images[images] = operand(0);
                 rgba32f[images] = operands >= 8 && operand(7) == FORMAT_RGBA32F;
                 images += 1;
@@ -129,15 +147,23 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
                     && pointers < buffer_image_pointers.len() =>
             {
                 buffer_image_pointers[pointers] = operand(0);
-                let image = buffer_images[..images].iter().position(|&i| i == operand(2)).expect("matched above");
+                let image = buffer_images[..images]
+                    .iter()
+                    .position(|&i| i == operand(2))
+                    .expect("matched above");
                 pointer_rgba32f[pointers] = rgba32f[image];
                 pointers += 1;
             }
-            OP_VARIABLE if operands >= 3 && buffer_image_pointers[..pointers].contains(&operand(0)) => {
+            OP_VARIABLE
+                if operands >= 3 && buffer_image_pointers[..pointers].contains(&operand(0)) =>
+            {
                 if let Some(binding) = binding_of(bytes, operand(1)) {
                     if binding < 64 {
                         facts.texel_mask |= 1 << binding;
-                        let pointer = buffer_image_pointers[..pointers].iter().position(|&q| q == operand(0)).expect("matched above");
+                        let pointer = buffer_image_pointers[..pointers]
+                            .iter()
+                            .position(|&q| q == operand(0))
+                            .expect("matched above");
                         if pointer_rgba32f[pointer] {
                             facts.texel4_mask |= 1 << binding;
                         }
@@ -160,7 +186,10 @@ pub fn inspect(bytes: &[u8]) -> Result<ModuleFacts, SpirvError> {
 
 /// Calls `f(opcode, first operand word index, operand count)` for every instruction of
 /// a module `inspect` has accepted; stops early when `f` returns `Some`.
-fn find_instruction<T>(bytes: &[u8], mut f: impl FnMut(u32, usize, usize) -> Option<T>) -> Option<T> {
+fn find_instruction<T>(
+    bytes: &[u8],
+    mut f: impl FnMut(u32, usize, usize) -> Option<T>,
+) -> Option<T> {
     let len = bytes.len() / 4;
     let mut at = 5;
     while at < len {
@@ -180,7 +209,10 @@ fn find_instruction<T>(bytes: &[u8], mut f: impl FnMut(u32, usize, usize) -> Opt
 /// The binding number the variable `id` is decorated with, if any.
 fn binding_of(bytes: &[u8], id: u32) -> Option<u32> {
     find_instruction(bytes, |op, first, operands| {
-        (op == OP_DECORATE && operands >= 3 && word(bytes, first) == id && word(bytes, first + 1) == DECORATION_BINDING)
+        (op == OP_DECORATE
+            && operands >= 3
+            && word(bytes, first) == id
+            && word(bytes, first + 1) == DECORATION_BINDING)
             .then(|| word(bytes, first + 2))
     })
 }
@@ -190,7 +222,10 @@ fn binding_of(bytes: &[u8], id: u32) -> Option<u32> {
 /// its terminating nul; `None` when the binding or its name is absent.
 pub fn binding_name(bytes: &[u8], binding: u32) -> Option<&[u8]> {
     let id = find_instruction(bytes, |op, first, operands| {
-        (op == OP_DECORATE && operands >= 3 && word(bytes, first + 1) == DECORATION_BINDING && word(bytes, first + 2) == binding)
+        (op == OP_DECORATE
+            && operands >= 3
+            && word(bytes, first + 1) == DECORATION_BINDING
+            && word(bytes, first + 2) == binding)
             .then(|| word(bytes, first))
     })?;
     find_instruction(bytes, |op, first, operands| {

@@ -42,7 +42,11 @@ pub const SSIM_BLUR_RUN: u32 = 16;
 /// assert_eq!(blur_invocations(61, 45, 1, true), 61 * 3 * 3);
 /// ```
 pub const fn blur_invocations(width: u32, height: u32, planes: u32, vertical: bool) -> u32 {
-    let (along, across) = if vertical { (height, width) } else { (width, height) };
+    let (along, across) = if vertical {
+        (height, width)
+    } else {
+        (width, height)
+    };
     planes * across * 3 * along.div_ceil(SSIM_BLUR_RUN)
 }
 

@@ -54,8 +54,19 @@ pub fn footprint<F: Real>(g: F, size: u32) -> Footprint<F> {
     // Far outside (or huge): clamp the index so the cast stays defined; every corner
     // is then out of range and contributes nothing.
     let limit = F::of(1.0e6);
-    let i0 = if x0 < -limit { -1_000_000 } else if x0 > limit { 1_000_000 } else { x0.to_f32() as i32 };
-    Footprint { i0, w0: F::one() - w1, w1, dw1_dg: half }
+    let i0 = if x0 < -limit {
+        -1_000_000
+    } else if x0 > limit {
+        1_000_000
+    } else {
+        x0.to_f32() as i32
+    };
+    Footprint {
+        i0,
+        w0: F::one() - w1,
+        w1,
+        dw1_dg: half,
+    }
 }
 
 /// Whether texel index `i` lies in a plane of side `size`.
@@ -86,9 +97,33 @@ pub fn texel_index(plane: usize, row: i32, col: i32, params: &TriplaneParams) ->
 #[inline]
 pub fn corners<F: Real>(fx: &Footprint<F>, fy: &Footprint<F>) -> [(i32, i32, F, F, F); 4] {
     [
-        (fy.i0, fx.i0, fy.w0 * fx.w0, -fx.dw1_dg * fy.w0, -fy.dw1_dg * fx.w0),
-        (fy.i0, fx.i0 + 1, fy.w0 * fx.w1, fx.dw1_dg * fy.w0, -fy.dw1_dg * fx.w1),
-        (fy.i0 + 1, fx.i0, fy.w1 * fx.w0, -fx.dw1_dg * fy.w1, fy.dw1_dg * fx.w0),
-        (fy.i0 + 1, fx.i0 + 1, fy.w1 * fx.w1, fx.dw1_dg * fy.w1, fy.dw1_dg * fx.w1),
+        (
+            fy.i0,
+            fx.i0,
+            fy.w0 * fx.w0,
+            -fx.dw1_dg * fy.w0,
+            -fy.dw1_dg * fx.w0,
+        ),
+        (
+            fy.i0,
+            fx.i0 + 1,
+            fy.w0 * fx.w1,
+            fx.dw1_dg * fy.w0,
+            -fy.dw1_dg * fx.w1,
+        ),
+        (
+            fy.i0 + 1,
+            fx.i0,
+            fy.w1 * fx.w0,
+            -fx.dw1_dg * fy.w1,
+            fy.dw1_dg * fx.w0,
+        ),
+        (
+            fy.i0 + 1,
+            fx.i0 + 1,
+            fy.w1 * fx.w1,
+            fx.dw1_dg * fy.w1,
+            fy.dw1_dg * fx.w1,
+        ),
     ]
 }

@@ -1,7 +1,9 @@
 //! `drape_shared::half` (the conversions of the half-precision storage knobs) against
 //! the `half` crate, an independent implementation of IEEE 754 binary16.
 
-use drape_shared::half::{f16_bits_to_f32, f32_to_f16_bits, pack2, sh_half_sources, sh_half_words, unpack2};
+use drape_shared::half::{
+    f16_bits_to_f32, f32_to_f16_bits, pack2, sh_half_sources, sh_half_words, unpack2,
+};
 
 /// Two NaNs agree when both are NaN (payloads may legitimately differ); everything else
 /// bit for bit.
@@ -18,7 +20,10 @@ fn every_half_unpacks_exactly() {
     for h in 0..=u16::MAX {
         let ours = f16_bits_to_f32(u32::from(h));
         let theirs = half::f16::from_bits(h).to_f32();
-        assert!(ours.to_bits() == theirs.to_bits() || (ours.is_nan() && theirs.is_nan()), "half {h:#06x}: {ours:e} vs {theirs:e}");
+        assert!(
+            ours.to_bits() == theirs.to_bits() || (ours.is_nan() && theirs.is_nan()),
+            "half {h:#06x}: {ours:e} vs {theirs:e}"
+        );
     }
 }
 
@@ -29,11 +34,21 @@ fn packing_rounds_to_nearest_even_like_the_half_crate() {
     let mut checked = 0u64;
     let mut bits = 0u32;
     loop {
-        for b in [bits, bits.wrapping_add(1), bits.wrapping_sub(1), bits | 0x1000, (bits | 0x1000) + 1, (bits | 0x1000) - 1] {
+        for b in [
+            bits,
+            bits.wrapping_add(1),
+            bits.wrapping_sub(1),
+            bits | 0x1000,
+            (bits | 0x1000) + 1,
+            (bits | 0x1000) - 1,
+        ] {
             let x = f32::from_bits(b);
             let ours = f32_to_f16_bits(x);
             let theirs = half::f16::from_f32(x).to_bits();
-            assert!(same_half(ours, theirs), "f32 {b:#010x} ({x:e}): ours {ours:#06x}, half crate {theirs:#06x}");
+            assert!(
+                same_half(ours, theirs),
+                "f32 {b:#010x} ({x:e}): ours {ours:#06x}, half crate {theirs:#06x}"
+            );
             checked += 1;
         }
         match bits.checked_add(4093) {
@@ -45,16 +60,41 @@ fn packing_rounds_to_nearest_even_like_the_half_crate() {
     // which has 13 more significand bits), normal and subnormal, and its neighbours.
     for h in 0..0x7bffu16 {
         let mid = (half::f16::from_bits(h).to_f32() + half::f16::from_bits(h + 1).to_f32()) / 2.0;
-        for x in [mid, -mid, f32::from_bits(mid.to_bits() + 1), f32::from_bits(mid.to_bits() - 1)] {
+        for x in [
+            mid,
+            -mid,
+            f32::from_bits(mid.to_bits() + 1),
+            f32::from_bits(mid.to_bits() - 1),
+        ] {
             let ours = f32_to_f16_bits(x);
             let theirs = half::f16::from_f32(x).to_bits();
             assert!(same_half(ours, theirs), "{x:e} (between halves {h:#06x} and the next): ours {ours:#06x}, half crate {theirs:#06x}");
         }
     }
-    for x in [0.0f32, -0.0, 1.0, -1.0, 65504.0, 65519.99, 65520.0, 6.1035156e-5, 5.9604645e-8, 2.9802322e-8, 2.9802326e-8, f32::MAX, f32::MIN_POSITIVE, f32::INFINITY, f32::NEG_INFINITY, f32::NAN] {
+    for x in [
+        0.0f32,
+        -0.0,
+        1.0,
+        -1.0,
+        65504.0,
+        65519.99,
+        65520.0,
+        6.1035156e-5,
+        5.9604645e-8,
+        2.9802322e-8,
+        2.9802326e-8,
+        f32::MAX,
+        f32::MIN_POSITIVE,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::NAN,
+    ] {
         let ours = f32_to_f16_bits(x);
         let theirs = half::f16::from_f32(x).to_bits();
-        assert!(same_half(ours, theirs), "{x:e}: ours {ours:#06x}, half crate {theirs:#06x}");
+        assert!(
+            same_half(ours, theirs),
+            "{x:e}: ours {ours:#06x}, half crate {theirs:#06x}"
+        );
     }
     assert!(checked > 6_000_000, "{checked} values checked");
     let [lo, hi] = unpack2(pack2(0.1, -3.0));
@@ -81,7 +121,14 @@ fn sh_half_layout_covers_every_float_once() {
                 None => pads += 1,
             }
         }
-        assert!(seen.iter().all(|&c| c == 1), "coefficients {coeffs}: {seen:?}");
-        assert_eq!(pads, if floats % 2 == 1 { 3 } else { 0 }, "coefficients {coeffs}");
+        assert!(
+            seen.iter().all(|&c| c == 1),
+            "coefficients {coeffs}: {seen:?}"
+        );
+        assert_eq!(
+            pads,
+            if floats % 2 == 1 { 3 } else { 0 },
+            "coefficients {coeffs}"
+        );
     }
 }

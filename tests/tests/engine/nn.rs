@@ -1,7 +1,9 @@
 //! MLPs on the GPU against the CPU reference (f64), and the reference's gradients
 //! against central differences in f64.
 
-use drape_engine::ops::nn::{reference, subgroup_gemm_supported, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc};
+use drape_engine::ops::nn::{
+    reference, subgroup_gemm_supported, Activation, GemmVariant, HeadDesc, Mlp, MlpDesc,
+};
 use drape_engine::{Buffer, Context};
 use drape_tests::gpu;
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
@@ -27,22 +29,53 @@ struct GpuRun {
     grad_input: Vec<f64>,
 }
 
-fn run_gpu(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_grads: &[Vec<f64>], rows: usize) -> GpuRun {
-    run_gpu_with(ctx, desc, params, input, head_grads, rows, GemmVariant::Auto)
+fn run_gpu(
+    ctx: &Context,
+    desc: &MlpDesc,
+    params: &[f64],
+    input: &[f64],
+    head_grads: &[Vec<f64>],
+    rows: usize,
+) -> GpuRun {
+    run_gpu_with(
+        ctx,
+        desc,
+        params,
+        input,
+        head_grads,
+        rows,
+        GemmVariant::Auto,
+    )
 }
 
-fn run_gpu_with(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], head_grads: &[Vec<f64>], rows: usize, variant: GemmVariant) -> GpuRun {
-    let mut mlp = Mlp::with_params(ctx, "test mlp", desc.clone(), rows, &to_f32(params)).expect("mlp");
+fn run_gpu_with(
+    ctx: &Context,
+    desc: &MlpDesc,
+    params: &[f64],
+    input: &[f64],
+    head_grads: &[Vec<f64>],
+    rows: usize,
+    variant: GemmVariant,
+) -> GpuRun {
+    let mut mlp =
+        Mlp::with_params(ctx, "test mlp", desc.clone(), rows, &to_f32(params)).expect("mlp");
     mlp.variant = variant;
     let x = ctx.upload("test input", &to_f32(input)).expect("upload");
-    let mut gx: Buffer = ctx.create_buffer("test grad input", drape_engine::BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
+    let mut gx: Buffer = ctx
+        .create_buffer(
+            "test grad input",
+            drape_engine::BufferDesc::gpu_only((input.len().max(1) * 4) as u64),
+        )
+        .expect("buffer");
     for (h, g) in head_grads.iter().enumerate() {
-        mlp.write_head_grad(ctx, h, &to_f32(g)).expect("write head grad");
+        mlp.write_head_grad(ctx, h, &to_f32(g))
+            .expect("write head grad");
     }
     {
         let mut rec = ctx.record("mlp test").expect("record");
         mlp.record_forward(&mut rec, &x, rows as u32).expect("fwd");
-        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false).expect("bwd");
+        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false)
+            .expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
     let mut heads = Vec::new();
@@ -50,14 +83,27 @@ fn run_gpu_with(ctx: &Context, desc: &MlpDesc, params: &[f64], input: &[f64], he
         heads.push(to_f64(&mlp.read_head(ctx, h, rows).expect("read head")));
     }
     let n = mlp.param_count();
-    let grads = to_f64(&ctx.read_buffer::<f32>(&mut mlp.grads, n).expect("read grads"));
-    let grad_input = to_f64(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read gx"));
-    GpuRun { heads, grads, grad_input }
+    let grads = to_f64(
+        &ctx.read_buffer::<f32>(&mut mlp.grads, n)
+            .expect("read grads"),
+    );
+    let grad_input = to_f64(
+        &ctx.read_buffer::<f32>(&mut gx, input.len())
+            .expect("read gx"),
+    );
+    GpuRun {
+        heads,
+        grads,
+        grad_input,
+    }
 }
 
 /// `small_desc` with weight normalisation on its second hidden layer and on a head.
 fn normed_desc() -> MlpDesc {
-    MlpDesc { weight_norm: vec![1, 3], ..small_desc() }
+    MlpDesc {
+        weight_norm: vec![1, 3],
+        ..small_desc()
+    }
 }
 
 /// Widths in multiples of 4: every forward fits the 4-float texel kernels
@@ -88,7 +134,11 @@ fn texel4_desc() -> MlpDesc {
 #[test]
 fn mlp_gpu_matches_cpu_reference() {
     let ctx = gpu();
-    for (desc, sizes) in [(small_desc(), &[0usize, 1, 7, 1000, 100_003][..]), (texel4_desc(), &[0, 1, 7, 1000, 100_003][..]), (normed_desc(), &[0, 1, 7, 1000][..])] {
+    for (desc, sizes) in [
+        (small_desc(), &[0usize, 1, 7, 1000, 100_003][..]),
+        (texel4_desc(), &[0, 1, 7, 1000, 100_003][..]),
+        (normed_desc(), &[0, 1, 7, 1000][..]),
+    ] {
         check_against_reference(&ctx, &desc, sizes);
     }
 }
@@ -113,23 +163,39 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
     let params = to_f64(&desc.init_params(3));
     for &rows in sizes {
         let input = uniform(rows * desc.input, -2.0, 2.0, rows as u64);
-        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64)).collect();
+        let head_grads: Vec<Vec<f64>> = desc
+            .heads
+            .iter()
+            .enumerate()
+            .map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 100 + h as u64))
+            .collect();
         let saved = reference::forward(&desc, &params, &input, rows);
-        let (ref_grads, ref_gx) = reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let (ref_grads, ref_gx) =
+            reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
         for variant in gemm_variants(&ctx, rows == sizes[0]) {
             let run = run_gpu_with(&ctx, &desc, &params, &input, &head_grads, rows, variant);
             for h in 0..desc.heads.len() {
                 // f32 against f64: sums of at most 16 products, rounding ~1e-7 each.
                 let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
-                assert!(e <= 1e-5, "{variant:?}, rows {rows} head {}: forward relative error {e:e}", desc.heads[h].name);
+                assert!(
+                    e <= 1e-5,
+                    "{variant:?}, rows {rows} head {}: forward relative error {e:e}",
+                    desc.heads[h].name
+                );
             }
             // Weight gradients sum up to 100k rows in f32 (chunks of >= 1024 rows on CPU
             // devices, >= 128 on GPUs, then in
             // order): relative rounding ~1e-6 · sqrt(chunks); 1e-4 leaves a margin.
             let e = rel_err(&run.grads, &ref_grads, 1e-3);
-            assert!(e <= 1e-4, "{variant:?}, rows {rows}: parameter gradient relative error {e:e}");
+            assert!(
+                e <= 1e-4,
+                "{variant:?}, rows {rows}: parameter gradient relative error {e:e}"
+            );
             let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
-            assert!(e <= 1e-4, "{variant:?}, rows {rows}: input gradient relative error {e:e}");
+            assert!(
+                e <= 1e-4,
+                "{variant:?}, rows {rows}: input gradient relative error {e:e}"
+            );
         }
     }
 }
@@ -138,12 +204,23 @@ fn check_against_reference(ctx: &Context, desc: &MlpDesc, sizes: &[usize]) {
 fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
     let ctx = gpu();
     let rows = 300;
-    for desc in [MlpDesc::hugs_appearance(96, 48), MlpDesc::hugs_geometry(96), MlpDesc::hugs_deformation(96), MlpDesc::hugs_deformation(96).with_weight_norm(3)] {
+    for desc in [
+        MlpDesc::hugs_appearance(96, 48),
+        MlpDesc::hugs_geometry(96),
+        MlpDesc::hugs_deformation(96),
+        MlpDesc::hugs_deformation(96).with_weight_norm(3),
+    ] {
         let params = to_f64(&desc.init_params(11));
         let input = uniform(rows * desc.input, -1.0, 1.0, 5);
-        let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64)).collect();
+        let head_grads: Vec<Vec<f64>> = desc
+            .heads
+            .iter()
+            .enumerate()
+            .map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 50 + h as u64))
+            .collect();
         let saved = reference::forward(&desc, &params, &input, rows);
-        let (ref_grads, ref_gx) = reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
+        let (ref_grads, ref_gx) =
+            reference::backward(&desc, &params, &input, rows, &saved, &head_grads);
         // Every GEMM kernel, whichever the device would pick: the decoders' widths (up to
         // 128) reach every row and column block of the GPU's 64 x 64 tiles.
         for variant in gemm_variants(&ctx, false) {
@@ -151,12 +228,22 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
             for h in 0..desc.heads.len() {
                 // Sums of up to 128 products in f32.
                 let e = rel_err(&run.heads[h], saved.head(&desc, h), 1e-3);
-                assert!(e <= 1e-5, "{variant:?}, {}: forward relative error {e:e}", desc.heads[h].name);
+                assert!(
+                    e <= 1e-5,
+                    "{variant:?}, {}: forward relative error {e:e}",
+                    desc.heads[h].name
+                );
             }
             let e = rel_err(&run.grads, &ref_grads, 1e-3);
-            assert!(e <= 1e-4, "{variant:?}: parameter gradient relative error {e:e}");
+            assert!(
+                e <= 1e-4,
+                "{variant:?}: parameter gradient relative error {e:e}"
+            );
             let e = rel_err(&run.grad_input, &ref_gx, 1e-3);
-            assert!(e <= 1e-4, "{variant:?}: input gradient relative error {e:e}");
+            assert!(
+                e <= 1e-4,
+                "{variant:?}: input gradient relative error {e:e}"
+            );
         }
     }
 }
@@ -164,7 +251,16 @@ fn hugs_decoders_run_on_the_gpu_as_on_the_cpu() {
 /// Loss `Σ_h Σ head_h ⊙ c_h` in f64.
 fn loss(desc: &MlpDesc, params: &[f64], input: &[f64], rows: usize, coeffs: &[Vec<f64>]) -> f64 {
     let saved = reference::forward(desc, params, input, rows);
-    (0..desc.heads.len()).map(|h| saved.head(desc, h).iter().zip(&coeffs[h]).map(|(a, b)| a * b).sum::<f64>()).sum()
+    (0..desc.heads.len())
+        .map(|h| {
+            saved
+                .head(desc, h)
+                .iter()
+                .zip(&coeffs[h])
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+        })
+        .sum()
 }
 
 #[test]
@@ -179,27 +275,47 @@ fn check_central_differences(desc: &MlpDesc) {
     let rows = 3;
     let params = to_f64(&desc.init_params(7));
     let input = uniform(rows * desc.input, -2.0, 2.0, 9);
-    let coeffs: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 20 + h as u64)).collect();
+    let coeffs: Vec<Vec<f64>> = desc
+        .heads
+        .iter()
+        .enumerate()
+        .map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 20 + h as u64))
+        .collect();
     let saved = reference::forward(&desc, &params, &input, rows);
     let (grads, gx) = reference::backward(&desc, &params, &input, rows, &saved, &coeffs);
     let h = 1e-6;
     let check = |analytic: &[f64], values: &[f64], set: &dyn Fn(usize, f64) -> f64, what: &str| {
-        let numeric: Vec<f64> = (0..values.len()).map(|i| (set(i, values[i] + h) - set(i, values[i] - h)) / (2.0 * h)).collect();
+        let numeric: Vec<f64> = (0..values.len())
+            .map(|i| (set(i, values[i] + h) - set(i, values[i] - h)) / (2.0 * h))
+            .collect();
         // Central differences at h = 1e-6 in f64: truncation ~h² · f''' and rounding
         // ~1e-16 / h ≈ 1e-10; 1e-6 of the largest gradient bounds both.
         let e = rel_err(analytic, &numeric, 1e-6);
-        assert!(e <= 1e-6, "{what}: relative error {e:e} against central differences");
+        assert!(
+            e <= 1e-6,
+            "{what}: relative error {e:e} against central differences"
+        );
     };
-    check(&grads, &params, &|i, v| {
-        let mut p = params.clone();
-        p[i] = v;
-        loss(&desc, &p, &input, rows, &coeffs)
-    }, "parameters");
-    check(&gx, &input, &|i, v| {
-        let mut x = input.clone();
-        x[i] = v;
-        loss(&desc, &params, &x, rows, &coeffs)
-    }, "input");
+    check(
+        &grads,
+        &params,
+        &|i, v| {
+            let mut p = params.clone();
+            p[i] = v;
+            loss(&desc, &p, &input, rows, &coeffs)
+        },
+        "parameters",
+    );
+    check(
+        &gx,
+        &input,
+        &|i, v| {
+            let mut x = input.clone();
+            x[i] = v;
+            loss(&desc, &params, &x, rows, &coeffs)
+        },
+        "input",
+    );
 }
 
 #[test]
@@ -210,7 +326,10 @@ fn activations_stay_finite_at_the_extremes() {
     let desc = MlpDesc {
         input: 4,
         hidden: vec![(4, Activation::Gelu)],
-        heads: vec![HeadDesc::new("sigmoid", 4, Activation::Sigmoid), HeadDesc::new("softmax", 4, Activation::Softmax { temperature: 0.1 })],
+        heads: vec![
+            HeadDesc::new("sigmoid", 4, Activation::Sigmoid),
+            HeadDesc::new("softmax", 4, Activation::Softmax { temperature: 0.1 }),
+        ],
         weight_norm: vec![],
     };
     let (offsets, len) = desc.layout();
@@ -226,7 +345,13 @@ fn activations_stay_finite_at_the_extremes() {
     let head_grads = vec![vec![1.0; 8], vec![0.5; 8]];
     let run = run_gpu(&ctx, &desc, &params, &input, &head_grads, rows);
     let saved = reference::forward(&desc, &params, &input, rows);
-    for v in run.heads.iter().flatten().chain(&run.grads).chain(&run.grad_input) {
+    for v in run
+        .heads
+        .iter()
+        .flatten()
+        .chain(&run.grads)
+        .chain(&run.grad_input)
+    {
         assert!(v.is_finite(), "non-finite value {v} at extreme logits");
     }
     // sigmoid(1e4) = 1, sigmoid(gelu(-1e4) = 0) = 0.5, sigmoid(80) = 1, sigmoid(gelu(-80)) = 0.5.
@@ -248,12 +373,23 @@ fn auto_gemm_reads_buffers_without_texel_usage_through_storage_bindings() {
     let rows = 37;
     let params = to_f64(&desc.init_params(5));
     let input = uniform(rows * desc.input, -1.0, 1.0, 9);
-    let mut mlp = Mlp::with_params(&ctx, "test mlp", desc.clone(), rows, &to_f32(&params)).expect("mlp");
-    let mut plain = ctx.create_buffer("input (readback memory)", drape_engine::BufferDesc::readback((rows * desc.input * 4) as u64)).expect("buffer");
-    ctx.write_buffer(&mut plain, &to_f32(&input)).expect("write");
-    assert!(!plain.texel_readable(u64::MAX), "a readback buffer is not made for texel reads");
+    let mut mlp =
+        Mlp::with_params(&ctx, "test mlp", desc.clone(), rows, &to_f32(&params)).expect("mlp");
+    let mut plain = ctx
+        .create_buffer(
+            "input (readback memory)",
+            drape_engine::BufferDesc::readback((rows * desc.input * 4) as u64),
+        )
+        .expect("buffer");
+    ctx.write_buffer(&mut plain, &to_f32(&input))
+        .expect("write");
+    assert!(
+        !plain.texel_readable(u64::MAX),
+        "a readback buffer is not made for texel reads"
+    );
     let mut rec = ctx.record("mlp from a readback buffer").expect("record");
-    mlp.record_forward(&mut rec, &plain, rows as u32).expect("the forward records");
+    mlp.record_forward(&mut rec, &plain, rows as u32)
+        .expect("the forward records");
     rec.submit_and_wait().expect("submit");
     let saved = reference::forward(&desc, &params, &input, rows);
     for h in 0..desc.heads.len() {

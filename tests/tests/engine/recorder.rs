@@ -14,7 +14,11 @@ use drape_tests::gpu;
 const LEN: u32 = 1000;
 
 fn params() -> LossParams {
-    LossParams { len: LEN, scale: 1.0, _pad: [0; 2] }
+    LossParams {
+        len: LEN,
+        scale: 1.0,
+        _pad: [0; 2],
+    }
 }
 
 fn groups() -> [u32; 3] {
@@ -33,7 +37,16 @@ fn a_kernel_chosen_at_run_time_must_fit_the_bindings() {
     let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
     let mut rec = gpu.record("binding errors").expect("record");
     // `nn::act_fwd` has bindings `pre`, `post` and other push constants.
-    let _ = rec.dispatch_as("test.add", Kernel::NnActFwd, kernels::train::AddInto { src: a.read(), dst: b.write() }, &params(), groups());
+    let _ = rec.dispatch_as(
+        "test.add",
+        Kernel::NnActFwd,
+        kernels::train::AddInto {
+            src: a.read(),
+            dst: b.write(),
+        },
+        &params(),
+        groups(),
+    );
 }
 
 /// Every kernel the ops choose at run time fits the struct they record it with (the
@@ -49,20 +62,46 @@ fn variants_chosen_at_run_time_fit_the_struct_they_share() {
         }
     }
     use Kernel as K;
-    all_fit::<kernels::radix_sort::Histogram>(&[K::RadixSortChunkHistogram, K::RadixSortChunkHistogramTexel]);
-    all_fit::<kernels::radix_sort::Scatter>(&[K::RadixSortChunkScatter, K::RadixSortChunkScatterTexel]);
+    all_fit::<kernels::radix_sort::Histogram>(&[
+        K::RadixSortChunkHistogram,
+        K::RadixSortChunkHistogramTexel,
+    ]);
+    all_fit::<kernels::radix_sort::Scatter>(&[
+        K::RadixSortChunkScatter,
+        K::RadixSortChunkScatterTexel,
+    ]);
     all_fit::<kernels::radix_sort::ChunkHistogram>(&[K::RadixSortChunkHistogramTexel]);
     all_fit::<kernels::radix_sort::ChunkHistogramPairs>(&[K::RadixSortChunkHistogramPairsTexel]);
-    all_fit::<kernels::radix_sort::ChunkScatterZip>(&[K::RadixSortChunkScatterZipTexel, K::RadixSortChunkScatterZipTexelU64]);
+    all_fit::<kernels::radix_sort::ChunkScatterZip>(&[
+        K::RadixSortChunkScatterZipTexel,
+        K::RadixSortChunkScatterZipTexelU64,
+    ]);
     all_fit::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
-    all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[K::RadixSortChunkScatterPairsTexel, K::RadixSortChunkScatterPairsTexelU64]);
-    let gemms: Vec<Kernel> = Kernel::ALL.iter().copied().filter(|k| k.entry_point().starts_with("nn::gemm") || k.entry_point().starts_with("nn_cpu::gemm")).collect();
+    all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[
+        K::RadixSortChunkScatterPairsTexel,
+        K::RadixSortChunkScatterPairsTexelU64,
+    ]);
+    let gemms: Vec<Kernel> = Kernel::ALL
+        .iter()
+        .copied()
+        .filter(|k| {
+            k.entry_point().starts_with("nn::gemm") || k.entry_point().starts_with("nn_cpu::gemm")
+        })
+        .collect();
     assert!(gemms.len() > 10, "{gemms:?}");
     all_fit::<kernels::nn::GemmTiled>(&gemms);
     all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
     all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
-    all_fit::<kernels::splat::RasterizeFwd>(&[K::SplatRasterizeFwdHalf, K::SplatCpuRasterizeFwd, K::SplatCpuRasterizeFwdHalf]);
-    all_fit::<kernels::splat::RasterizeFusedFwd>(&[K::SplatRasterizeFusedFwdHalf, K::SplatCpuRasterizeFusedFwd, K::SplatCpuRasterizeFusedFwdHalf]);
+    all_fit::<kernels::splat::RasterizeFwd>(&[
+        K::SplatRasterizeFwdHalf,
+        K::SplatCpuRasterizeFwd,
+        K::SplatCpuRasterizeFwdHalf,
+    ]);
+    all_fit::<kernels::splat::RasterizeFusedFwd>(&[
+        K::SplatRasterizeFusedFwdHalf,
+        K::SplatCpuRasterizeFusedFwd,
+        K::SplatCpuRasterizeFusedFwdHalf,
+    ]);
     all_fit::<kernels::splat::RasterizeBwdAtomic>(&[
         K::SplatRasterizeBwdCas,
         K::SplatRasterizeBwdFixed,
@@ -77,21 +116,41 @@ fn variants_chosen_at_run_time_fit_the_struct_they_share() {
         K::SplatCpuRasterizeFusedBwdCas,
         K::SplatCpuRasterizeFusedBwdFixed,
     ]);
-    all_fit::<kernels::triplane::SampleBwdAtomic>(&[K::TriplaneSampleBwdCas, K::TriplaneSampleBwdFixed]);
+    all_fit::<kernels::triplane::SampleBwdAtomic>(&[
+        K::TriplaneSampleBwdCas,
+        K::TriplaneSampleBwdFixed,
+    ]);
     // Other bindings or other push constants do not fit.
     assert!(!kernels::train::AddInto::fits(K::NnActFwd));
-    assert!(!kernels::splat::RasterizeFwd::fits(K::SplatRasterizeBwdAtomic));
-    assert!(!kernels::radix_sort::Scatter::fits(K::RadixSortChunkScatterPairs));
-    assert_eq!(K::TrainAddInto.push_constant(), "drape_shared::adam::LossParams");
+    assert!(!kernels::splat::RasterizeFwd::fits(
+        K::SplatRasterizeBwdAtomic
+    ));
+    assert!(!kernels::radix_sort::Scatter::fits(
+        K::RadixSortChunkScatterPairs
+    ));
+    assert_eq!(
+        K::TrainAddInto.push_constant(),
+        "drape_shared::adam::LossParams"
+    );
     assert_eq!(K::SplatRasterizeFwd.push_constant(), "");
 }
 
 /// `err` is a binding error of `(pass, kernel)` naming `binding`, and its message holds
 /// every one of `words`.
-fn assert_binding_error_of(err: &EngineError, (pass, kernel): (&str, &str), binding: &str, words: &[&str]) {
+fn assert_binding_error_of(
+    err: &EngineError,
+    (pass, kernel): (&str, &str),
+    binding: &str,
+    words: &[&str],
+) {
     let text = err.to_string();
     match err {
-        EngineError::Binding { kernel: k, binding: b, pass: p, .. } => {
+        EngineError::Binding {
+            kernel: k,
+            binding: b,
+            pass: p,
+            ..
+        } => {
             assert_eq!(*k, kernel, "{text}");
             assert_eq!(b, binding, "{text}");
             assert_eq!(p, pass, "{text}");
@@ -118,14 +177,54 @@ fn barriers_are_derived_from_declared_access() {
     let p = params();
     let mut rec = gpu.record("derived barriers").expect("record");
     // y += x and z += x: both only read x, write different buffers.
-    rec.dispatch("add.y", kernels::train::AddInto { src: x.read(), dst: y.write() }, &p, groups()).expect("y");
-    rec.dispatch("add.z", kernels::train::AddInto { src: x.read(), dst: z.write() }, &p, groups()).expect("z");
-    assert_eq!(rec.barrier_count(), 0, "independent passes must not be ordered");
+    rec.dispatch(
+        "add.y",
+        kernels::train::AddInto {
+            src: x.read(),
+            dst: y.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("y");
+    rec.dispatch(
+        "add.z",
+        kernels::train::AddInto {
+            src: x.read(),
+            dst: z.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("z");
+    assert_eq!(
+        rec.barrier_count(),
+        0,
+        "independent passes must not be ordered"
+    );
     // w += y reads what add.y wrote: a barrier.
-    rec.dispatch("add.w", kernels::train::AddInto { src: y.read(), dst: w.write() }, &p, groups()).expect("w");
+    rec.dispatch(
+        "add.w",
+        kernels::train::AddInto {
+            src: y.read(),
+            dst: w.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("w");
     assert_eq!(rec.barrier_count(), 1, "read after write");
     // y += z writes y, which add.w read since the barrier (and reads z, written before it).
-    rec.dispatch("add.y2", kernels::train::AddInto { src: z.read(), dst: y.write() }, &p, groups()).expect("y2");
+    rec.dispatch(
+        "add.y2",
+        kernels::train::AddInto {
+            src: z.read(),
+            dst: y.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("y2");
     assert_eq!(rec.barrier_count(), 2, "write after read");
     // A copy of what add.y2 wrote.
     rec.copy(&y, &copy, u64::from(LEN) * 4);
@@ -134,8 +233,14 @@ fn barriers_are_derived_from_declared_access() {
     let read = |b: &mut Buffer| gpu.read_buffer::<f32>(b, n).expect("read");
     // y = 10 + 1 = 11; z = 100 + 1 = 101; w = 1000 + 11 = 1011; y = 11 + 101 = 112.
     assert!(read(&mut z).iter().all(|&v| v == 101.0));
-    assert!(read(&mut w).iter().all(|&v| v == 1011.0), "add.w ran before add.y finished");
-    assert!(read(&mut y).iter().all(|&v| v == 112.0), "add.y2 ran before add.w read y");
+    assert!(
+        read(&mut w).iter().all(|&v| v == 1011.0),
+        "add.w ran before add.y finished"
+    );
+    assert!(
+        read(&mut y).iter().all(|&v| v == 112.0),
+        "add.y2 ran before add.w read y"
+    );
     assert!(read(&mut copy).iter().all(|&v| v == 112.0));
 }
 
@@ -148,13 +253,24 @@ fn a_module_whose_bindings_disagree_with_the_manifest_is_named() {
 
     // Rename `src` (an OpName literal "src\0") to `srx`.
     let mut renamed = original.to_vec();
-    let at = renamed.windows(4).position(|w| w == b"src\0").expect("OpName of src");
+    let at = renamed
+        .windows(4)
+        .position(|w| w == b"src\0")
+        .expect("OpName of src");
     renamed[at + 2] = b'x';
-    let text = check_module(Kernel::TrainAddInto, &renamed).expect_err("renamed").to_string();
-    assert!(text.contains("binding 0") && text.contains("'srx'") && text.contains("'src'"), "{text}");
+    let text = check_module(Kernel::TrainAddInto, &renamed)
+        .expect_err("renamed")
+        .to_string();
+    assert!(
+        text.contains("binding 0") && text.contains("'srx'") && text.contains("'src'"),
+        "{text}"
+    );
 
     // Turn the NonWritable decoration (OpDecorate %id 24) into Restrict (19).
-    let words: Vec<u32> = original.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let words: Vec<u32> = original
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
     let mut at = 5;
     let mut patched = original.to_vec();
     let mut found = false;
@@ -167,15 +283,25 @@ fn a_module_whose_bindings_disagree_with_the_manifest_is_named() {
         at += count;
     }
     assert!(found, "add_into declares src NonWritable");
-    let text = check_module(Kernel::TrainAddInto, &patched).expect_err("writable").to_string();
-    assert!(text.contains("'src'") && text.contains("writable in the module"), "{text}");
+    let text = check_module(Kernel::TrainAddInto, &patched)
+        .expect_err("writable")
+        .to_string();
+    assert!(
+        text.contains("'src'") && text.contains("writable in the module"),
+        "{text}"
+    );
 }
 
 /// Passes free to overlap are not counted twice in a submission's GPU time.
 #[test]
 fn busy_time_counts_overlapping_passes_once() {
     let timings = PassTimings {
-        passes: vec![("a".into(), 2.0), ("b".into(), 2.0), ("c".into(), 1.0), ("d".into(), 1.0)],
+        passes: vec![
+            ("a".into(), 2.0),
+            ("b".into(), 2.0),
+            ("c".into(), 1.0),
+            ("d".into(), 1.0),
+        ],
         // a and b overlap by 1 ms; c starts after a gap; d runs beside c.
         intervals: vec![(0.0, 2.0), (1.0, 3.0), (5.0, 6.0), (5.0, 6.0)],
         // a and b are the body's, c the cloth's, d has no scope.
@@ -185,10 +311,17 @@ fn busy_time_counts_overlapping_passes_once() {
     assert_eq!(timings.busy_ms(), 4.0);
     // Per scope: the body's two passes overlap and count 3 ms, not 4; unscoped left out.
     let scopes = timings.by_scope();
-    assert_eq!(scopes.into_iter().collect::<Vec<_>>(), [("body".to_string(), 3.0), ("cloth".to_string(), 1.0)]);
+    assert_eq!(
+        scopes.into_iter().collect::<Vec<_>>(),
+        [("body".to_string(), 3.0), ("cloth".to_string(), 1.0)]
+    );
     let mut two = timings.clone();
     two.extend(timings);
-    assert_eq!(two.busy_ms(), 8.0, "a second submission's passes follow the first's");
+    assert_eq!(
+        two.busy_ms(),
+        8.0,
+        "a second submission's passes follow the first's"
+    );
     assert_eq!(two.by_scope()["body"], 6.0, "and their scopes with them");
 }
 
@@ -197,7 +330,11 @@ fn busy_time_counts_overlapping_passes_once() {
 #[test]
 fn scoped_passes_are_timed_per_scope() {
     let gpu = gpu();
-    if !drape_tests::has_feature(&gpu, drape_tests::Feature::Timestamps, "scoped_passes_are_timed_per_scope") {
+    if !drape_tests::has_feature(
+        &gpu,
+        drape_tests::Feature::Timestamps,
+        "scoped_passes_are_timed_per_scope",
+    ) {
         return;
     }
     let n = LEN as usize;
@@ -208,11 +345,38 @@ fn scoped_passes_are_timed_per_scope() {
     gpu.start_profile();
     let mut rec = gpu.record("scopes").expect("record");
     rec.set_scope("body");
-    rec.dispatch("add.body", kernels::train::AddInto { src: a.read(), dst: b.write() }, &p, groups()).expect("pass");
+    rec.dispatch(
+        "add.body",
+        kernels::train::AddInto {
+            src: a.read(),
+            dst: b.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("pass");
     rec.set_scope("cloth");
-    rec.dispatch("add.cloth", kernels::train::AddInto { src: a.read(), dst: c.write() }, &p, groups()).expect("pass");
+    rec.dispatch(
+        "add.cloth",
+        kernels::train::AddInto {
+            src: a.read(),
+            dst: c.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("pass");
     rec.set_scope("");
-    rec.dispatch("add.none", kernels::train::AddInto { src: b.read(), dst: c.write() }, &p, groups()).expect("pass");
+    rec.dispatch(
+        "add.none",
+        kernels::train::AddInto {
+            src: b.read(),
+            dst: c.write(),
+        },
+        &p,
+        groups(),
+    )
+    .expect("pass");
     let timings = rec.submit_and_wait().expect("submit");
     let profile = gpu.take_profile().expect("profile");
     assert_eq!(timings.scopes, ["body", "cloth", ""]);
@@ -225,8 +389,16 @@ fn scoped_passes_are_timed_per_scope() {
         // interval, start + ms - start, in f64).
         let ms = timings.passes[pass].1;
         assert!(ms > 0.0, "{scope}: a timed pass");
-        assert!((by_scope[scope] - ms).abs() <= 1e-9 * ms, "{scope}: {} vs {ms}", by_scope[scope]);
-        assert!((profile.gpu_scopes[scope].ms - ms).abs() <= 1e-9 * ms, "{scope}: profile {} vs {ms}", profile.gpu_scopes[scope].ms);
+        assert!(
+            (by_scope[scope] - ms).abs() <= 1e-9 * ms,
+            "{scope}: {} vs {ms}",
+            by_scope[scope]
+        );
+        assert!(
+            (profile.gpu_scopes[scope].ms - ms).abs() <= 1e-9 * ms,
+            "{scope}: profile {} vs {ms}",
+            profile.gpu_scopes[scope].ms
+        );
         assert_eq!(profile.gpu_scopes[scope].calls, 1);
     }
 }
@@ -241,28 +413,72 @@ fn independent_chains_interleave_wave_by_wave() {
     let one = gpu.upload("one", &vec![1.0f32; n]).expect("upload");
     let mut chains = Vec::new();
     for c in 0..2 {
-        let bufs: Vec<Buffer> = (0..3).map(|k| gpu.upload(&format!("chain {c} buffer {k}"), &vec![(10 * k) as f32; n]).expect("upload")).collect();
+        let bufs: Vec<Buffer> = (0..3)
+            .map(|k| {
+                gpu.upload(&format!("chain {c} buffer {k}"), &vec![(10 * k) as f32; n])
+                    .expect("upload")
+            })
+            .collect();
         chains.push(bufs);
     }
     let p = params();
     let mut rec = gpu.record("two chains").expect("record");
     for bufs in &chains {
         // b0 += 1; b1 += b0; b2 += b1: each reads what the one before wrote.
-        rec.dispatch("chain.0", kernels::train::AddInto { src: one.read(), dst: bufs[0].write() }, &p, groups()).expect("0");
-        rec.dispatch("chain.1", kernels::train::AddInto { src: bufs[0].read(), dst: bufs[1].write() }, &p, groups()).expect("1");
-        rec.dispatch("chain.2", kernels::train::AddInto { src: bufs[1].read(), dst: bufs[2].write() }, &p, groups()).expect("2");
+        rec.dispatch(
+            "chain.0",
+            kernels::train::AddInto {
+                src: one.read(),
+                dst: bufs[0].write(),
+            },
+            &p,
+            groups(),
+        )
+        .expect("0");
+        rec.dispatch(
+            "chain.1",
+            kernels::train::AddInto {
+                src: bufs[0].read(),
+                dst: bufs[1].write(),
+            },
+            &p,
+            groups(),
+        )
+        .expect("1");
+        rec.dispatch(
+            "chain.2",
+            kernels::train::AddInto {
+                src: bufs[1].read(),
+                dst: bufs[2].write(),
+            },
+            &p,
+            groups(),
+        )
+        .expect("2");
     }
-    assert_eq!(rec.barrier_count(), 2, "the second chain runs beside the first");
+    assert_eq!(
+        rec.barrier_count(),
+        2,
+        "the second chain runs beside the first"
+    );
     let timings = rec.submit_and_wait().expect("submit");
     let names: Vec<&str> = timings.passes.iter().map(|(n, _)| n.as_str()).collect();
     if !names.is_empty() {
-        assert_eq!(names, ["chain.0", "chain.0", "chain.1", "chain.1", "chain.2", "chain.2"], "emitted wave by wave");
+        assert_eq!(
+            names,
+            ["chain.0", "chain.0", "chain.1", "chain.1", "chain.2", "chain.2"],
+            "emitted wave by wave"
+        );
     }
     for mut bufs in chains {
         // b0 = 0 + 1; b1 = 10 + 1; b2 = 20 + 11.
         for (k, want) in [1.0f32, 11.0, 31.0].into_iter().enumerate() {
             let got = gpu.read_buffer::<f32>(&mut bufs[k], n).expect("read");
-            assert!(got.iter().all(|&v| v == want), "buffer {k}: {} instead of {want}", got[0]);
+            assert!(
+                got.iter().all(|&v| v == want),
+                "buffer {k}: {} instead of {want}",
+                got[0]
+            );
         }
     }
 }
@@ -279,12 +495,25 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     let frame = |expect_passes: bool| {
         let mut rec = gpu.record("frame").expect("record");
         for _ in 0..3 {
-            rec.dispatch("add", kernels::train::AddInto { src: x.read(), dst: y.write() }, &p, groups()).expect("add");
+            rec.dispatch(
+                "add",
+                kernels::train::AddInto {
+                    src: x.read(),
+                    dst: y.write(),
+                },
+                &p,
+                groups(),
+            )
+            .expect("add");
         }
         let t = rec.submit_and_wait().expect("submit");
         if expect_passes {
             assert!(t.passes.is_empty() || t.passes.len() == 3, "{:?}", t.passes);
-            assert!(t.passes.iter().all(|(_, ms)| ms.is_finite() && *ms >= 0.0), "{:?}", t.passes);
+            assert!(
+                t.passes.iter().all(|(_, ms)| ms.is_finite() && *ms >= 0.0),
+                "{:?}",
+                t.passes
+            );
         }
     };
     frame(true);
@@ -292,7 +521,11 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     for _ in 0..20 {
         frame(true);
     }
-    assert_eq!(gpu.command_pools_created(), created, "20 more frames created pools");
+    assert_eq!(
+        gpu.command_pools_created(),
+        created,
+        "20 more frames created pools"
+    );
     // A recording dropped unsubmitted gives its pools back too.
     drop(gpu.record("abandoned").expect("record"));
     frame(true);
@@ -303,21 +536,46 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     assert_eq!(gpu.command_pools_created(), created + 1);
     drop((a, b));
     let sums = gpu.read_buffer::<f32>(&mut y, n).expect("read");
-    assert!(sums.iter().all(|&v| v == 66.0), "22 frames of 3 adds: {}", sums[0]);
+    assert!(
+        sums.iter().all(|&v| v == 66.0),
+        "22 frames of 3 adds: {}",
+        sums[0]
+    );
 }
 
 /// A pass of `nn_cpu::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
 /// written) over 8 × 8 matrices with the bindings `bind` makes of `a`, `c` and a
 /// readback buffer, recorded as the storage GEMM's struct with the kernel chosen at
 /// run time; its dispatch's result.
-fn texel_pass(bind: impl for<'a> FnOnce(&'a Buffer, &'a Buffer, &'a Buffer) -> kernels::nn::GemmTiled<'a>) -> drape_engine::Result<()> {
+fn texel_pass(
+    bind: impl for<'a> FnOnce(&'a Buffer, &'a Buffer, &'a Buffer) -> kernels::nn::GemmTiled<'a>,
+) -> drape_engine::Result<()> {
     let gpu = gpu();
     let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
     let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
-    let readback = gpu.create_buffer("readback", BufferDesc::readback(256)).expect("buffer");
+    let readback = gpu
+        .create_buffer("readback", BufferDesc::readback(256))
+        .expect("buffer");
     let mut rec = gpu.record("texel bindings").expect("record");
-    let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
-    rec.dispatch_as("test.gemm", Kernel::NnCpuGemmTexel, bind(&a, &c, &readback), &p, [1, 1, 1])
+    let p = GemmParams {
+        m: 8,
+        n: 8,
+        k: 8,
+        a_sm: 8,
+        a_sk: 1,
+        b_sk: 1,
+        b_sn: 8,
+        ldc: 8,
+        k_chunk: 8,
+        ..Default::default()
+    };
+    rec.dispatch_as(
+        "test.gemm",
+        Kernel::NnCpuGemmTexel,
+        bind(&a, &c, &readback),
+        &p,
+        [1, 1, 1],
+    )
 }
 
 fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[&str]) {
@@ -333,7 +591,10 @@ fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[
 #[test]
 fn texel_bindings_read_whole_buffers_through_their_views() {
     if !drape_engine::ops::nn::subgroup_gemm_supported(gpu().info()) {
-        eprintln!("SKIPPED: nn_cpu::gemm_texel needs subgroups of 8 lanes with ballot ({})", gpu().info());
+        eprintln!(
+            "SKIPPED: nn_cpu::gemm_texel needs subgroups of 8 lanes with ballot ({})",
+            gpu().info()
+        );
         return;
     }
     {
@@ -341,14 +602,56 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
         let a = gpu.upload("a", &[1.0f32; 64]).expect("upload");
         let c = gpu.upload("c", &[0.0f32; 64]).expect("upload");
         let mut rec = gpu.record("texel bindings").expect("record");
-        let p = GemmParams { m: 8, n: 8, k: 8, a_sm: 8, a_sk: 1, b_sk: 1, b_sn: 8, ldc: 8, k_chunk: 8, ..Default::default() };
-        rec.dispatch("test.gemm", kernels::nn_cpu::GemmTexel { a: a.texel(), b: a.texel(), bias: a.read(), c: c.write() }, &p, [1, 1, 1]).expect("whole buffers bind");
+        let p = GemmParams {
+            m: 8,
+            n: 8,
+            k: 8,
+            a_sm: 8,
+            a_sk: 1,
+            b_sk: 1,
+            b_sn: 8,
+            ldc: 8,
+            k_chunk: 8,
+            ..Default::default()
+        };
+        rec.dispatch(
+            "test.gemm",
+            kernels::nn_cpu::GemmTexel {
+                a: a.texel(),
+                b: a.texel(),
+                bias: a.read(),
+                c: c.write(),
+            },
+            &p,
+            [1, 1, 1],
+        )
+        .expect("whole buffers bind");
     }
-    texel_pass(|a, c, _| kernels::nn::GemmTiled { a: a.read(), b: a.read(), bias: a.read(), c: c.write() }).expect("whole buffers bind");
-    let err = texel_pass(|a, c, _| kernels::nn::GemmTiled { a: a.read_range(0, 128), b: a.read(), bias: a.read(), c: c.write() });
+    texel_pass(|a, c, _| kernels::nn::GemmTiled {
+        a: a.read(),
+        b: a.read(),
+        bias: a.read(),
+        c: c.write(),
+    })
+    .expect("whole buffers bind");
+    let err = texel_pass(|a, c, _| kernels::nn::GemmTiled {
+        a: a.read_range(0, 128),
+        b: a.read(),
+        bias: a.read(),
+        c: c.write(),
+    });
     assert_texel_error(err, "a", &["texel binding", "whole buffer", "'a'"]);
-    let err = texel_pass(|a, c, r| kernels::nn::GemmTiled { a: a.read(), b: r.read(), bias: a.read(), c: c.write() });
-    assert_texel_error(err, "b", &["'readback'", "texel reads", "UNIFORM_TEXEL_BUFFER"]);
+    let err = texel_pass(|a, c, r| kernels::nn::GemmTiled {
+        a: a.read(),
+        b: r.read(),
+        bias: a.read(),
+        c: c.write(),
+    });
+    assert_texel_error(
+        err,
+        "b",
+        &["'readback'", "texel reads", "UNIFORM_TEXEL_BUFFER"],
+    );
 }
 
 /// The start-up check tells a texel binding from a storage buffer by the module's
@@ -358,7 +661,10 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
 fn a_texel_binding_the_module_does_not_declare_is_named() {
     let original = Kernel::NnCpuGemmTexel.spirv();
     check_module(Kernel::NnCpuGemmTexel, original).expect("the committed module matches");
-    let words: Vec<u32> = original.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let words: Vec<u32> = original
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
     let mut patched = original.to_vec();
     let (mut at, mut found) = (5, false);
     while at < words.len() {
@@ -371,8 +677,15 @@ fn a_texel_binding_the_module_does_not_declare_is_named() {
         at += count;
     }
     assert!(found, "gemm_texel declares a buffer image");
-    let text = check_module(Kernel::NnCpuGemmTexel, &patched).expect_err("no texel buffer").to_string();
-    assert!(text.contains("binding 0") && text.contains("'a'") && text.contains("a storage buffer in the module, a texel buffer in the manifest"), "{text}");
+    let text = check_module(Kernel::NnCpuGemmTexel, &patched)
+        .expect_err("no texel buffer")
+        .to_string();
+    assert!(
+        text.contains("binding 0")
+            && text.contains("'a'")
+            && text.contains("a storage buffer in the module, a texel buffer in the manifest"),
+        "{text}"
+    );
 }
 
 /// A submission leaked with `mem::forget` (safe code) still finishes before the buffers
@@ -395,7 +708,11 @@ fn a_leaked_submission_finishes_before_its_buffers_are_freed() {
     std::mem::forget(submission);
     let waits = gpu.fence_waits();
     drop(k);
-    assert_eq!(gpu.fence_waits(), waits + 1, "the first buffer freed waits for the leaked submission");
+    assert_eq!(
+        gpu.fence_waits(),
+        waits + 1,
+        "the first buffer freed waits for the leaked submission"
+    );
     drop(v);
     drop(sort);
 }
@@ -408,7 +725,16 @@ fn submit_returns_a_submission_to_poll_and_wait() {
     let a = gpu.upload("a", &[1.0f32; LEN as usize]).expect("upload");
     let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
     let mut rec = gpu.record("submit").expect("record");
-    rec.dispatch("add", kernels::train::AddInto { src: a.read(), dst: b.write() }, &params(), groups()).expect("pass");
+    rec.dispatch(
+        "add",
+        kernels::train::AddInto {
+            src: a.read(),
+            dst: b.write(),
+        },
+        &params(),
+        groups(),
+    )
+    .expect("pass");
     let submissions = gpu.submission_count();
     let s = rec.submit(&SubmitSync::default()).expect("submit");
     assert_eq!(gpu.submission_count(), submissions + 1);

@@ -11,22 +11,37 @@ use drape_tests::{gpu, Pattern};
 /// Both variants' scans, which must agree; and the chunk variant's three-dispatch
 /// kernels where a chunked scan of this length takes the one-invocation kernel
 /// (`scan::chunk_serial`, up to `SERIAL_SCAN_MAX_LEN`).
-fn exclusive_scan_host(gpu: &drape_engine::Context, data: &[u32]) -> drape_engine::Result<Vec<u32>> {
+fn exclusive_scan_host(
+    gpu: &drape_engine::Context,
+    data: &[u32],
+) -> drape_engine::Result<Vec<u32>> {
     let blocks = exclusive_scan_host_with(gpu, ScanVariant::Blocks, data)?;
     let chunks = exclusive_scan_host_with(gpu, ScanVariant::Chunks, data)?;
-    assert!(blocks == chunks, "the block and chunk variants disagree ({} elements)", data.len());
+    assert!(
+        blocks == chunks,
+        "the block and chunk variants disagree ({} elements)",
+        data.len()
+    );
     if data.len() as u32 <= SERIAL_SCAN_MAX_LEN {
         let three = three_dispatch_chunk_scan(gpu, data)?;
-        assert!(three == chunks, "the one-invocation and three-dispatch chunk scans disagree ({} elements)", data.len());
+        assert!(
+            three == chunks,
+            "the one-invocation and three-dispatch chunk scans disagree ({} elements)",
+            data.len()
+        );
     }
     Ok(blocks)
 }
 
 /// The chunk variant's scan by `chunk_reduce`, `chunk_sums` and `chunk_downsweep`
 /// whatever the length.
-fn three_dispatch_chunk_scan(gpu: &drape_engine::Context, data: &[u32]) -> drape_engine::Result<Vec<u32>> {
+fn three_dispatch_chunk_scan(
+    gpu: &drape_engine::Context,
+    data: &[u32],
+) -> drape_engine::Result<Vec<u32>> {
     let mut buf = gpu.upload("scan data", data)?;
-    let plan = ExclusiveScan::with_variant(gpu, "scan", data.len() as u32, ScanVariant::Chunks)?.without_serial();
+    let plan = ExclusiveScan::with_variant(gpu, "scan", data.len() as u32, ScanVariant::Chunks)?
+        .without_serial();
     let mut rec = gpu.record("three-dispatch chunk scan")?;
     plan.record(&mut rec, &buf, data.len() as u32)?;
     rec.submit_and_wait()?;
@@ -42,7 +57,10 @@ fn check_length(len: usize) {
             let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
             let mut expected = data.clone();
             exclusive_scan_in_place(&mut expected);
-            assert!(got == expected, "scan differs: len {len}, {pattern:?}, {bits}-bit values");
+            assert!(
+                got == expected,
+                "scan differs: len {len}, {pattern:?}, {bits}-bit values"
+            );
         }
     }
 }
@@ -109,7 +127,17 @@ fn scan_level_boundaries() {
     // elements (3 quads) make 8 chunks, 3 of one quad (the last of one element) and 5
     // empty; 8,193 (2,049 quads) make 9 chunks' worth, rounded up to 16 chunks of 129
     // quads (the last shorter); 64K + 3 make 64 chunks of 257 quads.
-    for len in [7, 9, 1023, 1024, 1025, 8 * 1024 + 1, 64 * 1024 + 3, 1024 * 1024, 1024 * 1024 + 1] {
+    for len in [
+        7,
+        9,
+        1023,
+        1024,
+        1025,
+        8 * 1024 + 1,
+        64 * 1024 + 3,
+        1024 * 1024,
+        1024 * 1024 + 1,
+    ] {
         let data = Pattern::Random.generate(len, 16, len as u64);
         let got = exclusive_scan_host(&gpu, &data).expect("GPU scan");
         let mut expected = data.clone();
@@ -131,18 +159,30 @@ fn scan_leaves_elements_past_len_unchanged() {
         let data = Pattern::Random.generate(capacity, 32, u64::from(len));
         // The chunk variant twice: by one invocation where the length allows, and by
         // the three-dispatch kernels.
-        for (variant, serial) in [(ScanVariant::Blocks, true), (ScanVariant::Chunks, true), (ScanVariant::Chunks, false)] {
+        for (variant, serial) in [
+            (ScanVariant::Blocks, true),
+            (ScanVariant::Chunks, true),
+            (ScanVariant::Chunks, false),
+        ] {
             let mut buf = gpu.upload("scan data", &data).expect("upload");
             let plan = ExclusiveScan::with_variant(&gpu, "scan", len, variant).expect("plan");
             let plan = if serial { plan } else { plan.without_serial() };
             let mut rec = gpu.record("scan_prefix").expect("record");
             plan.record(&mut rec, &buf, len).expect("record scan");
             rec.submit_and_wait().expect("submit");
-            let got = gpu.read_buffer::<u32>(&mut buf, capacity).expect("read back");
+            let got = gpu
+                .read_buffer::<u32>(&mut buf, capacity)
+                .expect("read back");
             let mut expected = data.clone();
             exclusive_scan_in_place(&mut expected[..len as usize]);
-            assert!(got[..len as usize] == expected[..len as usize], "{variant:?} (serial {serial}) len {len}: the scan differs");
-            assert!(got[len as usize..] == data[len as usize..], "{variant:?} (serial {serial}) len {len}: elements past len changed");
+            assert!(
+                got[..len as usize] == expected[..len as usize],
+                "{variant:?} (serial {serial}) len {len}: the scan differs"
+            );
+            assert!(
+                got[len as usize..] == data[len as usize..],
+                "{variant:?} (serial {serial}) len {len}: elements past len changed"
+            );
         }
     }
 }

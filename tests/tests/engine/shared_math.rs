@@ -48,7 +48,11 @@ fn ln_f32_is_accurate_over_its_range() {
 fn the_block_cull_drops_only_splats_that_miss_every_pixel() {
     use drape_shared::splat::raster::{footprint, may_touch_rect, BlendSettings, SplatView};
     use rand::{Rng, SeedableRng};
-    let cfg = BlendSettings { alpha_min: 1.0 / 255.0, alpha_max: 0.99, transmittance_min: 1e-4 };
+    let cfg = BlendSettings {
+        alpha_min: 1.0 / 255.0,
+        alpha_max: 0.99,
+        transmittance_min: 1e-4,
+    };
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let (mut culled, mut kept) = (0u32, 0u32);
     for case in 0..200_000 {
@@ -57,10 +61,18 @@ fn the_block_cull_drops_only_splats_that_miss_every_pixel() {
         let l2 = 0.3 + 10f32.powf(rng.random_range(-2.0..4.0));
         let th: f32 = rng.random_range(0.0..std::f32::consts::PI);
         let (cs, sn) = (th.cos(), th.sin());
-        let (sxx, syy, sxy) = (l1 * cs * cs + l2 * sn * sn, l1 * sn * sn + l2 * cs * cs, (l1 - l2) * cs * sn);
+        let (sxx, syy, sxy) = (
+            l1 * cs * cs + l2 * sn * sn,
+            l1 * sn * sn + l2 * cs * cs,
+            (l1 - l2) * cs * sn,
+        );
         let det = sxx * syy - sxy * sxy;
         let conic = [syy / det, -sxy / det, sxx / det];
-        let opacity: f32 = if case % 4 == 0 { cfg.alpha_min * rng.random_range(0.9..1.2) } else { rng.random_range(0.0..1.0) };
+        let opacity: f32 = if case % 4 == 0 {
+            cfg.alpha_min * rng.random_range(0.9..1.2)
+        } else {
+            rng.random_range(0.0..1.0)
+        };
         // The block: 8 x 4 pixels somewhere in a 2,000-pixel image.
         let bx = rng.random_range(0..250) as f32 * 8.0;
         let by = rng.random_range(0..500) as f32 * 4.0;
@@ -70,11 +82,25 @@ fn the_block_cull_drops_only_splats_that_miss_every_pixel() {
         let (hx, hy) = ((2.0 * t * sxx).sqrt(), (2.0 * t * syy).sqrt());
         let (x, y) = if case % 2 == 0 {
             let f = rng.random_range(0.97..1.08);
-            if rng.random_bool(0.5) { (hi[0] + hx * f, rng.random_range(lo[1]..=hi[1])) } else { (rng.random_range(lo[0]..=hi[0]), lo[1] - hy * f) }
+            if rng.random_bool(0.5) {
+                (hi[0] + hx * f, rng.random_range(lo[1]..=hi[1]))
+            } else {
+                (rng.random_range(lo[0]..=hi[0]), lo[1] - hy * f)
+            }
         } else {
-            (bx + rng.random_range(-200.0f32..200.0), by + rng.random_range(-200.0f32..200.0))
+            (
+                bx + rng.random_range(-200.0f32..200.0),
+                by + rng.random_range(-200.0f32..200.0),
+            )
         };
-        let s = SplatView { x, y, depth: 1.0, conic, opacity, color: [1.0; 3] };
+        let s = SplatView {
+            x,
+            y,
+            depth: 1.0,
+            conic,
+            opacity,
+            color: [1.0; 3],
+        };
         if may_touch_rect(&s, lo, hi, &cfg) {
             kept += 1;
             continue;
@@ -83,11 +109,17 @@ fn the_block_cull_drops_only_splats_that_miss_every_pixel() {
         for py in 0..4 {
             for px in 0..8 {
                 let (cx, cy) = (lo[0] + px as f32, lo[1] + py as f32);
-                assert!(footprint(&s, cx, cy, &cfg).is_none(), "case {case}: culled {s:?} blends at ({cx}, {cy}) of the block at ({bx}, {by})");
+                assert!(
+                    footprint(&s, cx, cy, &cfg).is_none(),
+                    "case {case}: culled {s:?} blends at ({cx}, {cy}) of the block at ({bx}, {by})"
+                );
             }
         }
     }
     // The cull has to cull (the near misses alone are a quarter of the cases).
-    assert!(culled > 50_000 && kept > 50_000, "culled {culled}, kept {kept}");
+    assert!(
+        culled > 50_000 && kept > 50_000,
+        "culled {culled}, kept {kept}"
+    );
     println!("culled {culled}, kept {kept}");
 }

@@ -26,10 +26,23 @@ struct Case {
 }
 
 fn case(sh_degree: u32, antialiased: bool, seed: u64) -> Case {
-    let cam = PinholeCamera::look_at([0.4, -0.3, -4.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 40.0, 40, 24).expect("camera");
+    let cam = PinholeCamera::look_at(
+        [0.4, -0.3, -4.0],
+        [0.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0],
+        40.0,
+        40,
+        24,
+    )
+    .expect("camera");
     let mut cam = cam;
     cam.background = [0.2, 0.4, 0.6];
-    let settings = RenderSettings { antialiased, alpha_min: 0.0, max_sigmas: 8.0, ..RenderSettings::default() };
+    let settings = RenderSettings {
+        antialiased,
+        alpha_min: 0.0,
+        max_sigmas: 8.0,
+        ..RenderSettings::default()
+    };
     let mut cloud = GaussianCloud::random(6, sh_degree, 0.9, (-0.5, 0.5), 0.25, seed);
     for l in &mut cloud.opacity_logits {
         *l = l.clamp(-1.5, 1.5);
@@ -40,7 +53,9 @@ fn case(sh_degree: u32, antialiased: bool, seed: u64) -> Case {
     Case {
         gaussians: cloud.gaussians::<f64>(),
         frame,
-        w_rgb: (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        w_rgb: (0..3 * pixels)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect(),
         w_alpha: (0..pixels).map(|_| rng.random_range(-1.0..1.0)).collect(),
         w_depth: (0..pixels).map(|_| rng.random_range(-0.2..0.2)).collect(),
     }
@@ -62,19 +77,49 @@ fn loss(c: &Case, gaussians: &[Gaussian<f64>]) -> f64 {
 }
 
 /// Every parameter as (group, accessor) so one loop perturbs them all.
-fn parameters(k_count: usize) -> Vec<(&'static str, Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>, Box<dyn Fn(&GaussianGrad<f64>) -> f64>)> {
-    let mut out: Vec<(&'static str, Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>, Box<dyn Fn(&GaussianGrad<f64>) -> f64>)> = Vec::new();
+fn parameters(
+    k_count: usize,
+) -> Vec<(
+    &'static str,
+    Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>,
+    Box<dyn Fn(&GaussianGrad<f64>) -> f64>,
+)> {
+    let mut out: Vec<(
+        &'static str,
+        Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>,
+        Box<dyn Fn(&GaussianGrad<f64>) -> f64>,
+    )> = Vec::new();
     for a in 0..3 {
-        out.push(("means", Box::new(move |g| &mut g.mean[a]), Box::new(move |d| d.mean[a])));
-        out.push(("log_scales", Box::new(move |g| &mut g.log_scale[a]), Box::new(move |d| d.log_scale[a])));
+        out.push((
+            "means",
+            Box::new(move |g| &mut g.mean[a]),
+            Box::new(move |d| d.mean[a]),
+        ));
+        out.push((
+            "log_scales",
+            Box::new(move |g| &mut g.log_scale[a]),
+            Box::new(move |d| d.log_scale[a]),
+        ));
     }
     for a in 0..4 {
-        out.push(("quats", Box::new(move |g| &mut g.quat[a]), Box::new(move |d| d.quat[a])));
+        out.push((
+            "quats",
+            Box::new(move |g| &mut g.quat[a]),
+            Box::new(move |d| d.quat[a]),
+        ));
     }
-    out.push(("opacity_logits", Box::new(|g| &mut g.opacity_logit), Box::new(|d| d.opacity_logit)));
+    out.push((
+        "opacity_logits",
+        Box::new(|g| &mut g.opacity_logit),
+        Box::new(|d| d.opacity_logit),
+    ));
     for k in 0..k_count {
         for ch in 0..3 {
-            out.push(("sh", Box::new(move |g| &mut g.sh[k][ch]), Box::new(move |d| d.sh[k][ch])));
+            out.push((
+                "sh",
+                Box::new(move |g| &mut g.sh[k][ch]),
+                Box::new(move |d| d.sh[k][ch]),
+            ));
         }
     }
     out
@@ -83,8 +128,18 @@ fn parameters(k_count: usize) -> Vec<(&'static str, Box<dyn Fn(&mut Gaussian<f64
 fn check(sh_degree: u32, antialiased: bool, seed: u64) {
     let c = case(sh_degree, antialiased, seed);
     let fwd = render(&c.gaussians, &c.frame);
-    assert!(fwd.projections.iter().filter(|p| p.visible).count() >= 4, "the scene must show most splats");
-    let (grads, _) = backward(&c.gaussians, &c.frame, &fwd, &c.w_rgb, &c.w_alpha, &c.w_depth);
+    assert!(
+        fwd.projections.iter().filter(|p| p.visible).count() >= 4,
+        "the scene must show most splats"
+    );
+    let (grads, _) = backward(
+        &c.gaussians,
+        &c.frame,
+        &fwd,
+        &c.w_rgb,
+        &c.w_alpha,
+        &c.w_depth,
+    );
     let mut worst: std::collections::BTreeMap<&str, (f64, f64)> = Default::default();
     for (i, _) in c.gaussians.iter().enumerate() {
         for (group, param, analytic) in parameters(sh_coeffs(sh_degree)) {
@@ -100,7 +155,10 @@ fn check(sh_degree: u32, antialiased: bool, seed: u64) {
         }
     }
     for (group, (err, scale)) in worst {
-        assert!(scale > 0.0, "{group}: all gradients are zero; the check would be vacuous");
+        assert!(
+            scale > 0.0,
+            "{group}: all gradients are zero; the check would be vacuous"
+        );
         let rel = err / scale;
         assert!(rel <= TOLERANCE, "{group}: max |analytic - numeric| = {err:e}, relative {rel:e} (degree {sh_degree}, antialiased {antialiased})");
     }

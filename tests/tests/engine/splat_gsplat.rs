@@ -70,8 +70,8 @@ use drape_engine::ops::splat::reference;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{frame_params, GaussianCloud, PinholeCamera, RenderSettings};
 use drape_tests::gpu;
-use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{rel_err, to_f64};
+use drape_tests::reference_python::{case_dir, get, put};
 use rand::{Rng, SeedableRng};
 
 const GAUSSIANS: usize = 300;
@@ -92,7 +92,15 @@ fn run_gsplat(dirs: &[PathBuf]) {
 
 /// A camera 5 units from the origin, off-centre principal point and fx ≠ fy.
 fn camera(width: u32, height: u32) -> PinholeCamera {
-    let mut cam = PinholeCamera::look_at([0.3, -0.4, -5.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 45.0, width, height).expect("camera");
+    let mut cam = PinholeCamera::look_at(
+        [0.3, -0.4, -5.0],
+        [0.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0],
+        45.0,
+        width,
+        height,
+    )
+    .expect("camera");
     cam.cx += 2.7;
     cam.cy -= 1.9;
     cam.fy *= 1.07;
@@ -146,16 +154,33 @@ fn cases() -> Vec<Case> {
     let mut out = Vec::new();
     for degree in 0..=3u32 {
         for antialiased in [false, true] {
-            let (w, h) = if (degree + u32::from(antialiased)) % 2 == 0 { (64, 48) } else { (96, 64) };
+            let (w, h) = if (degree + u32::from(antialiased)) % 2 == 0 {
+                (64, 48)
+            } else {
+                (96, 64)
+            };
             let seed = 40 + 2 * u64::from(degree) + u64::from(antialiased);
             let pixels = (w * h) as usize;
             let mut rng = rand::rngs::StdRng::seed_from_u64(seed + 1000);
             out.push(Case {
-                name: format!("degree{degree}-{}-{w}x{h}", if antialiased { "antialiased" } else { "classic" }),
+                name: format!(
+                    "degree{degree}-{}-{w}x{h}",
+                    if antialiased {
+                        "antialiased"
+                    } else {
+                        "classic"
+                    }
+                ),
                 cloud: scene(degree, seed),
                 cam: camera(w, h),
-                settings: RenderSettings { antialiased, alpha_max: GSPLAT_ALPHA_MAX, ..RenderSettings::default() },
-                w_rgb: (0..3 * pixels).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                settings: RenderSettings {
+                    antialiased,
+                    alpha_max: GSPLAT_ALPHA_MAX,
+                    ..RenderSettings::default()
+                },
+                w_rgb: (0..3 * pixels)
+                    .map(|_| rng.random_range(-1.0..1.0))
+                    .collect(),
                 w_alpha: (0..pixels).map(|_| rng.random_range(-1.0..1.0)).collect(),
                 w_depth: (0..pixels).map(|_| rng.random_range(-0.1..0.1)).collect(),
             });
@@ -167,20 +192,44 @@ fn cases() -> Vec<Case> {
 fn render_ours(ctx: &drape_engine::Context, c: &Case) -> Ours {
     let (w, h) = (c.cam.width, c.cam.height);
     let gaussians = GaussianBuffers::upload(ctx, "gsplat params", &c.cloud).expect("upload");
-    let mut grads = GaussianBuffers::new(ctx, "gsplat grads", c.cloud.len(), c.cloud.sh_degree).expect("grads");
+    let mut grads =
+        GaussianBuffers::new(ctx, "gsplat grads", c.cloud.len(), c.cloud.sh_degree).expect("grads");
     let mut renderer = SplatRenderer::new(ctx, w, h, c.cloud.len()).expect("renderer");
-    let stats = renderer.forward(&gaussians, &c.cam, &c.settings).expect("forward");
+    let stats = renderer
+        .forward(&gaussians, &c.cam, &c.settings)
+        .expect("forward");
     let image = renderer.read_image().expect("read");
     let b_rgb = ctx.upload("grad rgb", &c.w_rgb).expect("upload");
     let b_alpha = ctx.upload("grad alpha", &c.w_alpha).expect("upload");
     let b_depth = ctx.upload("grad depth", &c.w_depth).expect("upload");
-    renderer.backward(&stats.saved, &gaussians, &b_rgb, &b_alpha, &b_depth, &grads, Accumulation::Auto).expect("backward");
+    renderer
+        .backward(
+            &stats.saved,
+            &gaussians,
+            &b_rgb,
+            &b_alpha,
+            &b_depth,
+            &grads,
+            Accumulation::Auto,
+        )
+        .expect("backward");
     let grads = grads.download(ctx, &c.cloud.groups).expect("download");
     // Radii from the kernel's own function on the CPU; the GPU binned with the same ones.
     let frame = frame_params(&c.cam, &c.settings, c.cloud.sh_degree, c.cloud.len());
     let cpu = reference::render(&c.cloud.gaussians::<f32>(), &frame);
-    assert_eq!(u64::from(stats.intersections), cpu.intersections, "{}: GPU and CPU radii bin differently", c.name);
-    Ours { rgb: to_f64(&image.rgb), alpha: to_f64(&image.alpha), depth: to_f64(&image.depth), grads, projections: cpu.projections }
+    assert_eq!(
+        u64::from(stats.intersections),
+        cpu.intersections,
+        "{}: GPU and CPU radii bin differently",
+        c.name
+    );
+    Ours {
+        rgb: to_f64(&image.rgb),
+        alpha: to_f64(&image.alpha),
+        depth: to_f64(&image.depth),
+        grads,
+        projections: cpu.projections,
+    }
 }
 
 fn write_case(dir: &Path, c: &Case) {
@@ -190,7 +239,12 @@ fn write_case(dir: &Path, c: &Case) {
     put(dir, "means", &[n, 3], &to_f64(&c.cloud.means));
     put(dir, "quats", &[n, 4], &to_f64(&c.cloud.quats));
     put(dir, "log_scales", &[n, 3], &to_f64(&c.cloud.log_scales));
-    put(dir, "opacity_logits", &[n], &to_f64(&c.cloud.opacity_logits));
+    put(
+        dir,
+        "opacity_logits",
+        &[n],
+        &to_f64(&c.cloud.opacity_logits),
+    );
     put(dir, "sh", &[n, k, 3], &to_f64(&c.cloud.sh));
     let (r, t) = (c.cam.rotation, c.cam.translation);
     let mut viewmat = Vec::new();
@@ -199,7 +253,10 @@ fn write_case(dir: &Path, c: &Case) {
     }
     viewmat.extend([0.0, 0.0, 0.0, 1.0]);
     put(dir, "viewmat", &[4, 4], &viewmat);
-    let intrinsics = [c.cam.fx, 0.0, c.cam.cx, 0.0, c.cam.fy, c.cam.cy, 0.0, 0.0, 1.0].map(f64::from);
+    let intrinsics = [
+        c.cam.fx, 0.0, c.cam.cx, 0.0, c.cam.fy, c.cam.cy, 0.0, 0.0, 1.0,
+    ]
+    .map(f64::from);
     put(dir, "K", &[3, 3], &intrinsics);
     put(dir, "background", &[3], &to_f64(&c.cam.background));
     put(dir, "w_rgb", &[h, w, 3], &to_f64(&c.w_rgb));
@@ -235,9 +292,16 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
     let mut line = format!("{name:28}");
 
     // Image.
-    for (what, mine, theirs) in [("rgb", &ours.rgb, get(dir, "rgb")), ("alpha", &ours.alpha, get(dir, "alpha")), ("depth", &ours.depth, get(dir, "depth"))] {
+    for (what, mine, theirs) in [
+        ("rgb", &ours.rgb, get(dir, "rgb")),
+        ("alpha", &ours.alpha, get(dir, "alpha")),
+        ("depth", &ours.depth, get(dir, "depth")),
+    ] {
         let (ratio, max_abs) = image_err(mine, &theirs, IMAGE_ABS, IMAGE_REL);
-        assert!(ratio <= 1.0, "{name}: {what} differs from gsplat by up to {max_abs:e} ({ratio:.2} of the tolerance)");
+        assert!(
+            ratio <= 1.0,
+            "{name}: {what} differs from gsplat by up to {max_abs:e} ({ratio:.2} of the tolerance)"
+        );
         line += &format!(" {what} {max_abs:.1e}");
     }
     // What the scene exercises, by gsplat's count.
@@ -245,7 +309,11 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
     let covered = alpha.iter().filter(|&&a| a > 0.5).count();
     let done = get(dir, "done").iter().filter(|&&d| d > 0.0).count();
     let clamped: f64 = get(dir, "clamped").iter().sum();
-    assert!(covered * 2 > alpha.len(), "{name}: the scene must cover most of the image ({covered} of {} pixels)", alpha.len());
+    assert!(
+        covered * 2 > alpha.len(),
+        "{name}: the scene must cover most of the image ({covered} of {} pixels)",
+        alpha.len()
+    );
     assert!(done > 0, "{name}: no pixel reaches the transmittance stop");
     assert!(clamped > 0.0, "{name}: no alpha reaches the 0.999 clamp");
     line += &format!(" (stop {done} px, clamp {clamped})");
@@ -254,7 +322,13 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
     let radii_torch = get(dir, "radii");
     let radii_cuda = get(dir, "radii_cuda");
     let radius_arg = get(dir, "radius_arg");
-    let (means2d, depths, conics, opac, colors) = (get(dir, "means2d"), get(dir, "depths"), get(dir, "conics"), get(dir, "opacities"), get(dir, "colors"));
+    let (means2d, depths, conics, opac, colors) = (
+        get(dir, "means2d"),
+        get(dir, "depths"),
+        get(dir, "conics"),
+        get(dir, "opacities"),
+        get(dir, "colors"),
+    );
     let conic_scale = conics.iter().fold(1e-3f64, |m, v| m.max(v.abs()));
     let (mut excluded, mut compared, mut proj_err) = (0, 0, 0.0f64);
     for (i, p) in ours.projections.iter().enumerate() {
@@ -267,25 +341,52 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
             continue;
         }
         let theirs = [radii_cuda[2 * i], radii_cuda[2 * i + 1]];
-        let mine = if p.visible { [f64::from(p.radius[0]), f64::from(p.radius[1])] } else { [0.0; 2] };
+        let mine = if p.visible {
+            [f64::from(p.radius[0]), f64::from(p.radius[1])]
+        } else {
+            [0.0; 2]
+        };
         assert_eq!(mine, theirs, "{name}: Gaussian {i}: radii {mine:?}, gsplat's CUDA rule {theirs:?} (before the ceil {:?})", &radius_arg[2 * i..2 * i + 2]);
         if !p.visible {
             continue;
         }
         let torch_r = [radii_torch[2 * i], radii_torch[2 * i + 1]];
-        assert!(mine[0] <= torch_r[0] && mine[1] <= torch_r[1], "{name}: Gaussian {i}: radii {mine:?} above gsplat's 3.33-sigma {torch_r:?}");
+        assert!(
+            mine[0] <= torch_r[0] && mine[1] <= torch_r[1],
+            "{name}: Gaussian {i}: radii {mine:?} above gsplat's 3.33-sigma {torch_r:?}"
+        );
         compared += 1;
         let pairs = [
-            (f64::from(p.x), means2d[2 * i], 1.0f64.max(means2d[2 * i].abs())),
-            (f64::from(p.y), means2d[2 * i + 1], 1.0f64.max(means2d[2 * i + 1].abs())),
+            (
+                f64::from(p.x),
+                means2d[2 * i],
+                1.0f64.max(means2d[2 * i].abs()),
+            ),
+            (
+                f64::from(p.y),
+                means2d[2 * i + 1],
+                1.0f64.max(means2d[2 * i + 1].abs()),
+            ),
             (f64::from(p.depth), depths[i], depths[i].abs()),
             (f64::from(p.conic[0]), conics[3 * i], conic_scale),
             (f64::from(p.conic[1]), conics[3 * i + 1], conic_scale),
             (f64::from(p.conic[2]), conics[3 * i + 2], conic_scale),
             (f64::from(p.opacity), opac[i], 1.0),
-            (f64::from(p.color[0]), colors[3 * i], 1.0f64.max(colors[3 * i].abs())),
-            (f64::from(p.color[1]), colors[3 * i + 1], 1.0f64.max(colors[3 * i + 1].abs())),
-            (f64::from(p.color[2]), colors[3 * i + 2], 1.0f64.max(colors[3 * i + 2].abs())),
+            (
+                f64::from(p.color[0]),
+                colors[3 * i],
+                1.0f64.max(colors[3 * i].abs()),
+            ),
+            (
+                f64::from(p.color[1]),
+                colors[3 * i + 1],
+                1.0f64.max(colors[3 * i + 1].abs()),
+            ),
+            (
+                f64::from(p.color[2]),
+                colors[3 * i + 2],
+                1.0f64.max(colors[3 * i + 2].abs()),
+            ),
         ];
         for (k, (a, b, scale)) in pairs.into_iter().enumerate() {
             let e = (a - b).abs() / scale;
@@ -293,8 +394,14 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
             proj_err = proj_err.max(e);
         }
     }
-    assert!(excluded * 100 <= n, "{name}: {excluded} of {n} radii lie at a ceil cutoff (at most 1 % may be excluded)");
-    assert!(compared * 2 > n, "{name}: only {compared} of {n} Gaussians visible and compared");
+    assert!(
+        excluded * 100 <= n,
+        "{name}: {excluded} of {n} radii lie at a ceil cutoff (at most 1 % may be excluded)"
+    );
+    assert!(
+        compared * 2 > n,
+        "{name}: only {compared} of {n} Gaussians visible and compared"
+    );
     line += &format!(" | proj {proj_err:.1e} radii {compared}={}x", excluded);
 
     // Gradients.
@@ -306,9 +413,15 @@ fn compare(c: &Case, ours: &Ours, dir: &Path) -> String {
         ("opacity", &g.opacity_logits, get(dir, "gopacity_logits")),
         ("sh", &g.sh, get(dir, "gsh")),
     ] {
-        assert!(theirs.iter().any(|v| *v != 0.0), "{name}: gsplat's {what} gradient is all zero; the check would be vacuous");
+        assert!(
+            theirs.iter().any(|v| *v != 0.0),
+            "{name}: gsplat's {what} gradient is all zero; the check would be vacuous"
+        );
         let e = rel_err(&to_f64(mine), &theirs, 1e-6);
-        assert!(e <= GRADIENT_REL, "{name}: {what} gradient differs from gsplat's by {e:e} of its largest entry");
+        assert!(
+            e <= GRADIENT_REL,
+            "{name}: {what} gradient differs from gsplat's by {e:e} of its largest entry"
+        );
         line += &format!(" {what} {e:.1e}");
     }
     line
@@ -331,7 +444,9 @@ fn splatter_matches_gsplat() {
         .collect();
     run_gsplat(&dirs);
     let torch_s = start.elapsed().as_secs_f64() - gpu_s;
-    println!("case (image max |diff|; projection max rel, radii compared=excluded; gradient rel_err)");
+    println!(
+        "case (image max |diff|; projection max rel, radii compared=excluded; gradient rel_err)"
+    );
     for ((c, o), d) in cases.iter().zip(&ours).zip(&dirs) {
         println!("{}", compare(c, o, d));
     }

@@ -15,7 +15,13 @@ fn gaussian(mean: [f32; 3], log_scale: f32, opacity_logit: f32, rgb: [f32; 3]) -
     let mut sh = [[0.0; 3]; MAX_SH_COEFFS];
     // DC coefficient giving `rgb` (colour = 0.5 + C0 * dc).
     sh[0] = rgb.map(|c| (c - 0.5) / 0.282_094_8);
-    Gaussian { mean, log_scale: [log_scale; 3], quat: [1.0, 0.0, 0.0, 0.0], opacity_logit, sh }
+    Gaussian {
+        mean,
+        log_scale: [log_scale; 3],
+        quat: [1.0, 0.0, 0.0, 0.0],
+        opacity_logit,
+        sh,
+    }
 }
 
 fn assert_finite(what: &str, values: &[f32]) {
@@ -36,9 +42,13 @@ fn renders_are_bit_identical_run_to_run() {
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(&gpu, "g", &cloud).expect("upload");
     let mut renderer = SplatRenderer::new(&gpu, 96, 80, cloud.len()).expect("renderer");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    renderer
+        .forward(&gaussians, &cam, &settings)
+        .expect("forward");
     let first = renderer.read_image().expect("read");
-    renderer.forward(&gaussians, &cam, &settings).expect("forward");
+    renderer
+        .forward(&gaussians, &cam, &settings)
+        .expect("forward");
     let second = renderer.read_image().expect("read");
     let (third, _) = gpu_render(&gpu, &cloud, &cam, &settings);
     for other in [&second, &third] {
@@ -58,11 +68,20 @@ fn hidden_gaussians_leave_the_image_bit_identical() {
     let eye = [0.3, -0.4, -5.0];
     let mut more = base.clone();
     // Behind the camera (the camera looks towards +z from z = -5).
-    more.push(&gaussian([eye[0], eye[1], eye[2] - 2.0], -1.0, 3.0, [1.0, 0.0, 0.0]), 0u32);
+    more.push(
+        &gaussian([eye[0], eye[1], eye[2] - 2.0], -1.0, 3.0, [1.0, 0.0, 0.0]),
+        0u32,
+    );
     // Far outside the frustum, to the side.
-    more.push(&gaussian([40.0, 0.0, 0.0], -2.0, 3.0, [0.0, 1.0, 0.0]), 0u32);
+    more.push(
+        &gaussian([40.0, 0.0, 0.0], -2.0, 3.0, [0.0, 1.0, 0.0]),
+        0u32,
+    );
     // In plain view but with (numerically) zero opacity.
-    more.push(&gaussian([0.0, 0.0, 0.0], -1.0, -30.0, [0.0, 0.0, 1.0]), 0u32);
+    more.push(
+        &gaussian([0.0, 0.0, 0.0], -1.0, -30.0, [0.0, 0.0, 1.0]),
+        0u32,
+    );
     let (after, stats) = gpu_render(&gpu, &more, &cam, &settings);
     assert_eq!(stats.dropped, 0);
     assert_eq!(bits(&before.rgb), bits(&after.rgb));
@@ -70,13 +89,21 @@ fn hidden_gaussians_leave_the_image_bit_identical() {
     assert_eq!(bits(&before.depth), bits(&after.depth));
 }
 
-fn compare_with_cpu(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str) -> drape_engine::ops::splat::render::RenderedImage {
+fn compare_with_cpu(
+    gpu: &TestGpu,
+    cloud: &GaussianCloud,
+    cam: &PinholeCamera,
+    what: &str,
+) -> drape_engine::ops::splat::render::RenderedImage {
     let settings = RenderSettings::default();
     let (image, _) = gpu_render(gpu, cloud, cam, &settings);
     assert_finite(&format!("{what}: rgb"), &image.rgb);
     assert_finite(&format!("{what}: alpha"), &image.alpha);
     assert_finite(&format!("{what}: depth"), &image.depth);
-    assert!(image.alpha.iter().all(|a| (0.0..=1.0).contains(a)), "{what}: alpha outside [0, 1]");
+    assert!(
+        image.alpha.iter().all(|a| (0.0..=1.0).contains(a)),
+        "{what}: alpha outside [0, 1]"
+    );
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
     let gaussians = cloud.gaussians::<f32>();
     let cpu = reference::render(&gaussians, &frame);
@@ -90,46 +117,114 @@ fn compare_with_cpu(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, w
 /// group, ||gpu - f64|| <= 1e-3 ||f64|| + 1e-5 √len: f32 against f64 through exp, the
 /// 0.3 px² dilation and sums of up to 100k splats per pixel; the absolute floor covers
 /// groups whose f64 gradient is ~0.
-fn backward_matches_reference(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str) {
+fn backward_matches_reference(
+    gpu: &TestGpu,
+    cloud: &GaussianCloud,
+    cam: &PinholeCamera,
+    what: &str,
+) {
     backward_matches_reference_with(gpu, cloud, cam, what, Accumulation::Auto);
 }
 
 /// [`backward_matches_reference`] with the backward accumulating its gradients by
 /// `accumulation`.
-fn backward_matches_reference_with(gpu: &TestGpu, cloud: &GaussianCloud, cam: &PinholeCamera, what: &str, accumulation: Accumulation) {
+fn backward_matches_reference_with(
+    gpu: &TestGpu,
+    cloud: &GaussianCloud,
+    cam: &PinholeCamera,
+    what: &str,
+    accumulation: Accumulation,
+) {
     let settings = RenderSettings::default();
     let gaussians = GaussianBuffers::upload(gpu, "g", cloud).expect("upload");
-    let mut grads = GaussianBuffers::new(gpu, "grads", cloud.len(), cloud.sh_degree).expect("grads");
-    let mut renderer = SplatRenderer::new(gpu, cam.width, cam.height, cloud.len()).expect("renderer");
-    let saved = renderer.forward(&gaussians, cam, &settings).expect("forward").saved;
+    let mut grads =
+        GaussianBuffers::new(gpu, "grads", cloud.len(), cloud.sh_degree).expect("grads");
+    let mut renderer =
+        SplatRenderer::new(gpu, cam.width, cam.height, cloud.len()).expect("renderer");
+    let saved = renderer
+        .forward(&gaussians, cam, &settings)
+        .expect("forward")
+        .saved;
     let pixels = (cam.width * cam.height) as usize;
-    let (g_rgb, g_alpha, g_depth) = (vec![1.0f32; 3 * pixels], vec![1.0f32; pixels], vec![0.01f32; pixels]);
+    let (g_rgb, g_alpha, g_depth) = (
+        vec![1.0f32; 3 * pixels],
+        vec![1.0f32; pixels],
+        vec![0.01f32; pixels],
+    );
     let ones = gpu.upload("grad rgb", &g_rgb).expect("upload");
     let alpha = gpu.upload("grad alpha", &g_alpha).expect("upload");
     let depth = gpu.upload("grad depth", &g_depth).expect("upload");
-    renderer.backward(&saved, &gaussians, &ones, &alpha, &depth, &grads, accumulation).expect("backward");
+    renderer
+        .backward(
+            &saved,
+            &gaussians,
+            &ones,
+            &alpha,
+            &depth,
+            &grads,
+            accumulation,
+        )
+        .expect("backward");
     let g = grads.download(gpu, &cloud.groups).expect("download");
     let frame = frame_params(cam, &settings, cloud.sh_degree, cloud.len());
     let gs = cloud.gaussians::<f64>();
     let fwd = reference::render(&gs, &frame);
     let to64 = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
-    let (cpu, _) = reference::backward(&gs, &frame, &fwd, &to64(&g_rgb), &to64(&g_alpha), &to64(&g_depth));
+    let (cpu, _) = reference::backward(
+        &gs,
+        &frame,
+        &fwd,
+        &to64(&g_rgb),
+        &to64(&g_alpha),
+        &to64(&g_depth),
+    );
     let k = drape_shared::splat::layout::sh_coeffs(cloud.sh_degree);
     let groups: [(&str, &Vec<f32>, Vec<f64>); 5] = [
         ("means", &g.means, cpu.iter().flat_map(|c| c.mean).collect()),
-        ("log_scales", &g.log_scales, cpu.iter().flat_map(|c| c.log_scale).collect()),
+        (
+            "log_scales",
+            &g.log_scales,
+            cpu.iter().flat_map(|c| c.log_scale).collect(),
+        ),
         ("quats", &g.quats, cpu.iter().flat_map(|c| c.quat).collect()),
-        ("opacity_logits", &g.opacity_logits, cpu.iter().map(|c| c.opacity_logit).collect()),
-        ("sh", &g.sh, cpu.iter().flat_map(|c| c.sh[..k].iter().flatten().copied().collect::<Vec<_>>()).collect()),
+        (
+            "opacity_logits",
+            &g.opacity_logits,
+            cpu.iter().map(|c| c.opacity_logit).collect(),
+        ),
+        (
+            "sh",
+            &g.sh,
+            cpu.iter()
+                .flat_map(|c| c.sh[..k].iter().flatten().copied().collect::<Vec<_>>())
+                .collect(),
+        ),
     ];
     for (name, gpu_values, reference) in groups {
         assert_finite(&format!("{what}: gradient of {name}"), gpu_values);
-        let finite: Vec<usize> = (0..reference.len()).filter(|&i| reference[i].is_finite()).collect();
-        let num: f64 = finite.iter().map(|&i| (f64::from(gpu_values[i]) - reference[i]).powi(2)).sum::<f64>().sqrt();
-        let den: f64 = finite.iter().map(|&i| reference[i].powi(2)).sum::<f64>().sqrt();
+        let finite: Vec<usize> = (0..reference.len())
+            .filter(|&i| reference[i].is_finite())
+            .collect();
+        let num: f64 = finite
+            .iter()
+            .map(|&i| (f64::from(gpu_values[i]) - reference[i]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let den: f64 = finite
+            .iter()
+            .map(|&i| reference[i].powi(2))
+            .sum::<f64>()
+            .sqrt();
         let bound = 1e-3 * den + 1e-5 * (finite.len() as f64).sqrt();
-        eprintln!("{what}: {name}: |gpu - f64| {num:.3e}, |f64| {den:.3e} over {} of {} finite", finite.len(), reference.len());
-        assert!(num <= bound, "{what}: gradient of {name}: |gpu - f64| = {num:e} > {bound:e} (|f64| = {den:e})");
+        eprintln!(
+            "{what}: {name}: |gpu - f64| {num:.3e}, |f64| {den:.3e} over {} of {} finite",
+            finite.len(),
+            reference.len()
+        );
+        assert!(
+            num <= bound,
+            "{what}: gradient of {name}: |gpu - f64| = {num:e} > {bound:e} (|f64| = {den:e})"
+        );
     }
 }
 
@@ -144,7 +239,10 @@ fn extreme_scales_from_1e_minus_7_to_1e7() {
     }
     let image = compare_with_cpu(&gpu, &cloud, &cam, "extreme scales");
     // The 1e7 Gaussian covers the whole view: no pixel shows only the background.
-    assert!(image.alpha.iter().all(|&a| a > 0.5), "a 1e7-scale splat must cover every pixel");
+    assert!(
+        image.alpha.iter().all(|&a| a > 0.5),
+        "a 1e7-scale splat must cover every pixel"
+    );
     backward_matches_reference(&gpu, &cloud, &cam, "extreme scales");
 }
 
@@ -153,11 +251,20 @@ fn tiny_splat_still_shows_as_a_dot() {
     let gpu = gpu();
     let cam = camera(64, 64);
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([0.0, 0.0, 0.0], (1e-7f32).ln(), 5.0, [1.0, 1.0, 1.0]), 0u32);
+    cloud.push(
+        &gaussian([0.0, 0.0, 0.0], (1e-7f32).ln(), 5.0, [1.0, 1.0, 1.0]),
+        0u32,
+    );
     let image = compare_with_cpu(&gpu, &cloud, &cam, "tiny splat");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
-    assert!(peak > 0.3, "the dilation keeps a 1e-7 splat visible (peak alpha {peak})");
-    assert!(image.alpha.iter().filter(|&&a| a > 0.0).count() < 40, "and small");
+    assert!(
+        peak > 0.3,
+        "the dilation keeps a 1e-7 splat visible (peak alpha {peak})"
+    );
+    assert!(
+        image.alpha.iter().filter(|&&a| a > 0.0).count() < 40,
+        "and small"
+    );
 }
 
 #[test]
@@ -169,10 +276,29 @@ fn gaussian_straddling_the_near_plane() {
     // is just in front of the near plane, and one just behind it.
     let eye = [0.3f32, -0.4, -5.0];
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.51], (0.8f32).ln(), 1.0, [0.2, 0.9, 0.2]), 0u32);
-    cloud.push(&gaussian([eye[0], eye[1], eye[2] + 0.49], (0.8f32).ln(), 1.0, [0.9, 0.2, 0.2]), 0u32);
+    cloud.push(
+        &gaussian(
+            [eye[0], eye[1], eye[2] + 0.51],
+            (0.8f32).ln(),
+            1.0,
+            [0.2, 0.9, 0.2],
+        ),
+        0u32,
+    );
+    cloud.push(
+        &gaussian(
+            [eye[0], eye[1], eye[2] + 0.49],
+            (0.8f32).ln(),
+            1.0,
+            [0.9, 0.2, 0.2],
+        ),
+        0u32,
+    );
     let image = compare_with_cpu(&gpu, &cloud, &cam, "near plane");
-    assert!(image.alpha.iter().any(|&a| a > 0.5), "the splat in front of the near plane is drawn");
+    assert!(
+        image.alpha.iter().any(|&a| a > 0.5),
+        "the splat in front of the near plane is drawn"
+    );
     backward_matches_reference(&gpu, &cloud, &cam, "near plane");
 }
 
@@ -184,7 +310,15 @@ fn hundred_thousand_gaussians_over_one_pixel() {
     // Project the image centre back to z = 0: the camera looks at the origin.
     for i in 0..100_000 {
         let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.01 * (i % 100) as f32], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), 0u32);
+        cloud.push(
+            &gaussian(
+                [jitter, 0.0, 0.01 * (i % 100) as f32],
+                (0.004f32).ln(),
+                2.0,
+                [0.3, 0.6, 0.9],
+            ),
+            0u32,
+        );
     }
     let image = compare_with_cpu(&gpu, &cloud, &cam, "100k on one pixel");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
@@ -200,9 +334,20 @@ fn stack_ahead_of_a_large_splat(n: usize) -> GaussianCloud {
     let mut cloud = GaussianCloud::new(0);
     for i in 0..n {
         let jitter = (i % 7) as f32 * 1e-4;
-        cloud.push(&gaussian([jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0], (0.004f32).ln(), 2.0, [0.3, 0.6, 0.9]), 0u32);
+        cloud.push(
+            &gaussian(
+                [jitter, 0.0, 0.99 * (i % 100) as f32 / 100.0],
+                (0.004f32).ln(),
+                2.0,
+                [0.3, 0.6, 0.9],
+            ),
+            0u32,
+        );
     }
-    cloud.push(&gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]), 0u32);
+    cloud.push(
+        &gaussian([0.0, 0.0, 1.5], (0.6f32).ln(), 1.0, [0.9, 0.4, 0.1]),
+        0u32,
+    );
     cloud
 }
 
@@ -218,7 +363,10 @@ fn sixty_thousand_splats_ahead_of_the_one_a_pixel_blends() {
     let cloud = stack_ahead_of_a_large_splat(60_000);
     let image = compare_with_cpu(&gpu, &cloud, &cam, "60k ahead");
     // The large splat shows around the stack.
-    assert!(image.alpha.iter().filter(|&&a| a > 0.5).count() > 100, "the splat behind is blended");
+    assert!(
+        image.alpha.iter().filter(|&&a| a > 0.5).count() > 100,
+        "the splat behind is blended"
+    );
     backward_matches_reference(&gpu, &cloud, &cam, "60k ahead");
 }
 
@@ -232,8 +380,20 @@ fn forty_thousand_splats_ahead_through_the_compare_and_swap_backward() {
     let gpu = gpu();
     let cam = camera(64, 64);
     let cloud = stack_ahead_of_a_large_splat(40_000);
-    backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, compare-and-swap", Accumulation::CompareAndSwap);
-    backward_matches_reference_with(&gpu, &cloud, &cam, "40k ahead, float atomics", Accumulation::Auto);
+    backward_matches_reference_with(
+        &gpu,
+        &cloud,
+        &cam,
+        "40k ahead, compare-and-swap",
+        Accumulation::CompareAndSwap,
+    );
+    backward_matches_reference_with(
+        &gpu,
+        &cloud,
+        &cam,
+        "40k ahead, float atomics",
+        Accumulation::Auto,
+    );
 }
 
 #[test]
@@ -241,8 +401,14 @@ fn opacity_logits_of_plus_and_minus_50() {
     let gpu = gpu();
     let cam = camera(64, 64);
     let mut cloud = GaussianCloud::new(0);
-    cloud.push(&gaussian([-0.5, 0.0, 0.0], (0.2f32).ln(), 50.0, [1.0, 0.0, 0.0]), 0u32);
-    cloud.push(&gaussian([0.5, 0.0, 0.0], (0.2f32).ln(), -50.0, [0.0, 1.0, 0.0]), 0u32);
+    cloud.push(
+        &gaussian([-0.5, 0.0, 0.0], (0.2f32).ln(), 50.0, [1.0, 0.0, 0.0]),
+        0u32,
+    );
+    cloud.push(
+        &gaussian([0.5, 0.0, 0.0], (0.2f32).ln(), -50.0, [0.0, 1.0, 0.0]),
+        0u32,
+    );
     let image = compare_with_cpu(&gpu, &cloud, &cam, "opacity +-50");
     let peak = image.alpha.iter().copied().fold(0.0, f32::max);
     // Opacity 1 (sigmoid(50) rounds to 1): alpha reaches the 0.99 clamp near the centre.
@@ -268,7 +434,11 @@ fn zero_quaternion_renders_as_identity() {
     with_zero.push(&g, 0u32);
     let a = compare_with_cpu(&gpu, &with_zero, &cam, "zero quaternion");
     let (b, _) = gpu_render(&gpu, &identity, &cam, &RenderSettings::default());
-    assert_eq!(bits(&a.rgb), bits(&b.rgb), "a zero quaternion means no rotation");
+    assert_eq!(
+        bits(&a.rgb),
+        bits(&b.rgb),
+        "a zero quaternion means no rotation"
+    );
     backward_matches_reference(&gpu, &with_zero, &cam, "zero quaternion");
 }
 
@@ -288,7 +458,11 @@ fn nan_gaussian_is_dropped_and_counted() {
     with_nan.push(&bad_sh, 0u32);
     let (after, stats) = gpu_render(&gpu, &with_nan, &cam, &RenderSettings::default());
     assert_eq!(stats.dropped, 2, "both non-finite Gaussians are counted");
-    assert_eq!(bits(&before.rgb), bits(&after.rgb), "and the rest of the image is unchanged");
+    assert_eq!(
+        bits(&before.rgb),
+        bits(&after.rgb),
+        "and the rest of the image is unchanged"
+    );
     backward_matches_reference(&gpu, &with_nan, &cam, "NaN Gaussian");
 }
 
@@ -305,5 +479,8 @@ fn image_of_2048_by_2048() {
     let gpu = gpu();
     let cam = camera(2048, 2048);
     let image = compare_with_cpu(&gpu, &scene(3000, 0, 25), &cam, "2048x2048");
-    assert!(image.alpha.iter().filter(|&&a| a > 0.1).count() > 10_000, "the splats cover a good part of the image");
+    assert!(
+        image.alpha.iter().filter(|&&a| a > 0.1).count() > 10_000,
+        "the splats cover a good part of the image"
+    );
 }

@@ -44,7 +44,12 @@ impl DeviceArgs {
     /// With `--validation`, turns collected messages into an error.
     pub fn check_validation(&self, ctx: &Context) -> anyhow::Result<()> {
         let messages = ctx.take_validation_messages();
-        anyhow::ensure!(messages.is_empty(), "{} validation message(s); first: {}", messages.len(), messages[0]);
+        anyhow::ensure!(
+            messages.is_empty(),
+            "{} validation message(s); first: {}",
+            messages.len(),
+            messages[0]
+        );
         Ok(())
     }
 }
@@ -56,15 +61,34 @@ pub fn parse_args<T: Parser>() -> Result<T, ExitCode> {
         Ok(args) => Ok(args),
         Err(e) => {
             use clap::error::ErrorKind;
-            if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand) {
+            if matches!(
+                e.kind(),
+                ErrorKind::DisplayHelp
+                    | ErrorKind::DisplayVersion
+                    | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            ) {
                 let _ = e.print();
-                return Err(if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand { ExitCode::from(2) } else { ExitCode::SUCCESS });
+                return Err(
+                    if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand {
+                        ExitCode::from(2)
+                    } else {
+                        ExitCode::SUCCESS
+                    },
+                );
             }
             let rendered = e.render().to_string();
             // The message up to the usage block, on one line (clap puts the missing
             // arguments on the lines after the first).
-            let message: Vec<&str> = rendered.lines().take_while(|l| !l.trim().is_empty()).map(str::trim).collect();
-            let first = if message.is_empty() { "error: bad arguments".to_string() } else { message.join(" ") };
+            let message: Vec<&str> = rendered
+                .lines()
+                .take_while(|l| !l.trim().is_empty())
+                .map(str::trim)
+                .collect();
+            let first = if message.is_empty() {
+                "error: bad arguments".to_string()
+            } else {
+                message.join(" ")
+            };
             eprintln!("{first} (see --help)");
             Err(ExitCode::from(2))
         }
@@ -109,9 +133,13 @@ pub fn run(body: impl FnOnce() -> anyhow::Result<()>) -> ExitCode {
 pub fn parse_len(s: &str) -> Result<u32, String> {
     let cleaned = s.replace('_', "");
     if cleaned.starts_with('-') {
-        return Err(format!("'{s}' is negative; a length is a non-negative integer"));
+        return Err(format!(
+            "'{s}' is negative; a length is a non-negative integer"
+        ));
     }
-    cleaned.parse::<u32>().map_err(|_| format!("'{s}' is not a non-negative integer below 2^32"))
+    cleaned
+        .parse::<u32>()
+        .map_err(|_| format!("'{s}' is not a non-negative integer below 2^32"))
 }
 
 /// Median of a non-empty list (the mean of the middle two for an even count).
@@ -120,17 +148,27 @@ pub fn median(values: &[f64]) -> f64 {
     let mut v = values.to_vec();
     v.sort_by(f64::total_cmp);
     let mid = v.len() / 2;
-    if v.len() % 2 == 0 { (v[mid - 1] + v[mid]) / 2.0 } else { v[mid] }
+    if v.len() % 2 == 0 {
+        (v[mid - 1] + v[mid]) / 2.0
+    } else {
+        v[mid]
+    }
 }
 
 /// A parser for a finite number option in `[min, max]`; the message says the range
 /// (clap puts the option's name before it).
-pub fn number_in<T>(min: f64, max: f64) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync + 'static
+pub fn number_in<T>(
+    min: f64,
+    max: f64,
+) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync + 'static
 where
     T: std::str::FromStr + Copy + Into<f64> + Send + Sync + 'static,
 {
     move |s: &str| {
-        let v: T = s.trim().parse().map_err(|_| format!("'{s}' is not a number"))?;
+        let v: T = s
+            .trim()
+            .parse()
+            .map_err(|_| format!("'{s}' is not a number"))?;
         let x: f64 = v.into();
         if !x.is_finite() || x < min || x > max {
             return Err(format!("'{s}' is outside [{min}, {max}]"));
@@ -152,7 +190,12 @@ pub fn available_memory() -> Option<u64> {
 /// has available, naming the option that asked for it.
 pub fn ensure_memory(bytes: u64, what: &str, option: &str) -> anyhow::Result<()> {
     if let Some(available) = available_memory() {
-        anyhow::ensure!(bytes <= available, "{option}: {what} needs {:.1} GiB of memory, and {:.1} GiB is available", bytes as f64 / (1u64 << 30) as f64, available as f64 / (1u64 << 30) as f64);
+        anyhow::ensure!(
+            bytes <= available,
+            "{option}: {what} needs {:.1} GiB of memory, and {:.1} GiB is available",
+            bytes as f64 / (1u64 << 30) as f64,
+            available as f64 / (1u64 << 30) as f64
+        );
     }
     Ok(())
 }

@@ -14,12 +14,19 @@ use anyhow::Context as _;
 pub const MARKER: &str = ".drape-output";
 
 fn sibling(target: &Path, tag: &str) -> anyhow::Result<PathBuf> {
-    let name = target.file_name().with_context(|| format!("{}: not a file or directory name", target.display()))?;
-    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let name = target
+        .file_name()
+        .with_context(|| format!("{}: not a file or directory name", target.display()))?;
+    let parent = target
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
     let name = name.to_string_lossy();
     // The extension stays last: writers choose the format by it.
     Ok(match name.rsplit_once('.') {
-        Some((stem, ext)) if !stem.is_empty() && tag == "partial" => parent.join(format!(".{stem}.{tag}-{}.{ext}", std::process::id())),
+        Some((stem, ext)) if !stem.is_empty() && tag == "partial" => {
+            parent.join(format!(".{stem}.{tag}-{}.{ext}", std::process::id()))
+        }
         _ => parent.join(format!(".{name}.{tag}-{}", std::process::id())),
     })
 }
@@ -27,7 +34,9 @@ fn sibling(target: &Path, tag: &str) -> anyhow::Result<PathBuf> {
 /// Creates the missing ancestors of `path`, returning the topmost it created (to be
 /// removed again if the output is abandoned).
 fn create_parents(path: &Path) -> anyhow::Result<Option<PathBuf>> {
-    let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) else { return Ok(None) };
+    let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) else {
+        return Ok(None);
+    };
     let mut top = None;
     let mut p = parent;
     while !p.exists() {
@@ -40,7 +49,8 @@ fn create_parents(path: &Path) -> anyhow::Result<Option<PathBuf>> {
     if !parent.is_dir() && parent.exists() {
         anyhow::bail!("{}: is not a directory", parent.display());
     }
-    std::fs::create_dir_all(parent).with_context(|| format!("{}: cannot create", parent.display()))?;
+    std::fs::create_dir_all(parent)
+        .with_context(|| format!("{}: cannot create", parent.display()))?;
     Ok(top)
 }
 
@@ -59,8 +69,15 @@ impl StagedDir {
     /// chose inside a run.
     pub fn new(target: &Path, option: &str, owned: bool) -> anyhow::Result<Self> {
         if target.exists() {
-            anyhow::ensure!(target.is_dir(), "{option} {}: exists and is not a directory", target.display());
-            let empty = std::fs::read_dir(target).with_context(|| format!("{option} {}: cannot read", target.display()))?.next().is_none();
+            anyhow::ensure!(
+                target.is_dir(),
+                "{option} {}: exists and is not a directory",
+                target.display()
+            );
+            let empty = std::fs::read_dir(target)
+                .with_context(|| format!("{option} {}: cannot read", target.display()))?
+                .next()
+                .is_none();
             anyhow::ensure!(
                 empty || owned || target.join(MARKER).is_file(),
                 "{option} {}: exists, is not empty and is no earlier drape output (it has no {MARKER}); choose another directory",
@@ -70,8 +87,19 @@ impl StagedDir {
         let created_parent = create_parents(target).with_context(|| option.to_string())?;
         let staging = sibling(target, "partial")?;
         let _ = std::fs::remove_dir_all(&staging);
-        std::fs::create_dir(&staging).with_context(|| format!("{option} {}: cannot create {}", target.display(), staging.display()))?;
-        Ok(Self { target: target.to_path_buf(), staging, created_parent, committed: false })
+        std::fs::create_dir(&staging).with_context(|| {
+            format!(
+                "{option} {}: cannot create {}",
+                target.display(),
+                staging.display()
+            )
+        })?;
+        Ok(Self {
+            target: target.to_path_buf(),
+            staging,
+            created_parent,
+            committed: false,
+        })
     }
 
     /// Where to write.
@@ -86,17 +114,31 @@ impl StagedDir {
 
     /// Moves the finished output into place, replacing an earlier one whole.
     pub fn commit(mut self) -> anyhow::Result<()> {
-        std::fs::write(self.staging.join(MARKER), "written by drape; a rerun of the command may replace this directory\n").with_context(|| format!("{}: cannot write", self.staging.display()))?;
+        std::fs::write(
+            self.staging.join(MARKER),
+            "written by drape; a rerun of the command may replace this directory\n",
+        )
+        .with_context(|| format!("{}: cannot write", self.staging.display()))?;
         let old = sibling(&self.target, "replaced")?;
         let had = self.target.exists();
         if had {
-            std::fs::rename(&self.target, &old).with_context(|| format!("{}: cannot move the earlier output aside", self.target.display()))?;
+            std::fs::rename(&self.target, &old).with_context(|| {
+                format!(
+                    "{}: cannot move the earlier output aside",
+                    self.target.display()
+                )
+            })?;
         }
         if let Err(e) = std::fs::rename(&self.staging, &self.target) {
             if had {
                 let _ = std::fs::rename(&old, &self.target);
             }
-            return Err(e).with_context(|| format!("{}: cannot move the new output into place", self.target.display()));
+            return Err(e).with_context(|| {
+                format!(
+                    "{}: cannot move the new output into place",
+                    self.target.display()
+                )
+            });
         }
         self.committed = true;
         if had {
@@ -130,10 +172,19 @@ pub struct StagedFile {
 impl StagedFile {
     /// Starts the output file `target`, given by `option`; a directory there is refused.
     pub fn new(target: &Path, option: &str) -> anyhow::Result<Self> {
-        anyhow::ensure!(!target.is_dir(), "{option} {}: is a directory", target.display());
+        anyhow::ensure!(
+            !target.is_dir(),
+            "{option} {}: is a directory",
+            target.display()
+        );
         let created_parent = create_parents(target).with_context(|| option.to_string())?;
         let staging = sibling(target, "partial")?;
-        Ok(Self { target: target.to_path_buf(), staging, created_parent, committed: false })
+        Ok(Self {
+            target: target.to_path_buf(),
+            staging,
+            created_parent,
+            committed: false,
+        })
     }
 
     /// Where to write.
@@ -145,8 +196,15 @@ impl StagedFile {
     /// `x.exr`), committed with it: returns (staged, final).
     pub fn companion(&self, suffix_before_ext: &str) -> (PathBuf, PathBuf) {
         let with = |p: &Path| {
-            let stem = p.file_stem().unwrap_or_default().to_string_lossy().into_owned();
-            let ext = p.extension().map(|e| format!(".{}", e.to_string_lossy())).unwrap_or_default();
+            let stem = p
+                .file_stem()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned();
+            let ext = p
+                .extension()
+                .map(|e| format!(".{}", e.to_string_lossy()))
+                .unwrap_or_default();
             p.with_file_name(format!("{stem}{suffix_before_ext}{ext}"))
         };
         (with(&self.staging), with(&self.target))
@@ -154,7 +212,12 @@ impl StagedFile {
 
     /// Renames the finished file over the target.
     pub fn commit(mut self) -> anyhow::Result<()> {
-        std::fs::rename(&self.staging, &self.target).with_context(|| format!("{}: cannot move the new file into place", self.target.display()))?;
+        std::fs::rename(&self.staging, &self.target).with_context(|| {
+            format!(
+                "{}: cannot move the new file into place",
+                self.target.display()
+            )
+        })?;
         self.committed = true;
         Ok(())
     }

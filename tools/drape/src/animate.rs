@@ -46,8 +46,15 @@ pub struct AnimateArgs {
 }
 
 fn parse_background(s: &str) -> anyhow::Result<[f32; 3]> {
-    let v: Vec<f32> = s.split(',').map(|p| p.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|e| anyhow::anyhow!("--background {s}: {e}"))?;
-    anyhow::ensure!(v.len() == 3 && v.iter().all(|c| (0.0..=1.0).contains(c)), "--background {s}: three values in [0, 1] expected, as r,g,b");
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--background {s}: {e}"))?;
+    anyhow::ensure!(
+        v.len() == 3 && v.iter().all(|c| (0.0..=1.0).contains(c)),
+        "--background {s}: three values in [0, 1] expected, as r,g,b"
+    );
     Ok([v[0], v[1], v[2]])
 }
 
@@ -55,28 +62,51 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
     let background = parse_background(&args.background)?;
     // The motion first: a bad file is reported before the GPU is touched.
     let (motion, name): (Motion, String) = match MotionKind::parse(&args.motion) {
-        Some(kind) => (procedural(kind, args.frames as usize, args.fps, 1.0), kind.name().to_string()),
+        Some(kind) => (
+            procedural(kind, args.frames as usize, args.fps, 1.0),
+            kind.name().to_string(),
+        ),
         None => {
             let path = PathBuf::from(&args.motion);
-            anyhow::ensure!(path.is_file(), "--motion {}: neither walk, jog, raise-arms, turn nor a motion file", args.motion);
+            anyhow::ensure!(
+                path.is_file(),
+                "--motion {}: neither walk, jog, raise-arms, turn nor a motion file",
+                args.motion
+            );
             let m = Motion::load_npz(&path)?;
-            anyhow::ensure!(!m.is_empty(), "{}: the motion has no frames", path.display());
-            (m, path.file_stem().map_or("motion".into(), |s| s.to_string_lossy().into_owned()))
+            anyhow::ensure!(
+                !m.is_empty(),
+                "{}: the motion has no frames",
+                path.display()
+            );
+            (
+                m,
+                path.file_stem()
+                    .map_or("motion".into(), |s| s.to_string_lossy().into_owned()),
+            )
         }
     };
     let ctx = device.open()?;
     let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
     let staged = match &args.out {
         Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
-        None => drape_cli_support::output::StagedDir::new(&run.dir.join(format!("animate-{name}")), "the default output RUN/animate-MOTION", true)?,
+        None => drape_cli_support::output::StagedDir::new(
+            &run.dir.join(format!("animate-{name}")),
+            "the default output RUN/animate-MOTION",
+            true,
+        )?,
     };
     let out = staged.path().to_path_buf();
-    let options = AnimateOptions { frames: args.frames as usize, orbit_degrees: args.orbit, background, gif: !args.no_gif };
+    let options = AnimateOptions {
+        frames: args.frames as usize,
+        orbit_degrees: args.orbit,
+        background,
+        gif: !args.no_gif,
+    };
     let report = animate(&ctx, &mut run, &motion, &options, &out, &mut |k, n| {
         eprint!("\rrendering {}/{n}   ", k + 1);
         let _ = std::io::stderr().flush();
-    })
-    ?;
+    })?;
     eprintln!();
     device.check_validation(&ctx)?;
     let out = staged.target().to_path_buf();
@@ -94,6 +124,14 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
         sorted[sorted.len() - 1],
         report.fps
     );
-    println!("wrote {}/frame0000.png ..{}", out.display(), if options.gif { " and animation.gif" } else { "" });
+    println!(
+        "wrote {}/frame0000.png ..{}",
+        out.display(),
+        if options.gif {
+            " and animation.gif"
+        } else {
+            ""
+        }
+    );
     Ok(())
 }

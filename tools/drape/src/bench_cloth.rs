@@ -33,7 +33,9 @@ use anyhow::Context as _;
 use drape_cli_support::DeviceArgs;
 use drape_trainer::avatar::eval::EvalMetrics;
 use drape_trainer::avatar::model::LayerChoice;
-use drape_trainer::avatar::train::{body_model, load_sequence, train, Preset, Progress, TrainConfig};
+use drape_trainer::avatar::train::{
+    body_model, load_sequence, train, Preset, Progress, TrainConfig,
+};
 use drape_trainer::dataset::synth::{generate, SynthOptions};
 use drape_trainer::garment::GarmentFit;
 use drape_trainer::motion::MotionKind;
@@ -55,7 +57,10 @@ pub struct BenchClothArgs {
     /// Rows to train, comma-separated: full (every loss), no-physics (simulation, ARAP
     /// and mask losses off), no-lbs (cloth-LBS off), arap-only, sim-only, mask-only (one
     /// cloth loss kept), single-layer (HUGS: --layers body+scene, no cloth layer).
-    #[arg(long, default_value = "full,no-physics,no-lbs,arap-only,sim-only,mask-only,single-layer")]
+    #[arg(
+        long,
+        default_value = "full,no-physics,no-lbs,arap-only,sim-only,mask-only,single-layer"
+    )]
     pub rows: String,
     /// Training preset of every row (quick: sized for lavapipe; paper: for a GPU).
     #[arg(long, default_value = "quick")]
@@ -91,7 +96,11 @@ struct Row {
 }
 
 const ROWS: [Row; 7] = [
-    Row { key: "full", paper: "Ours (full)", apply: |_| {} },
+    Row {
+        key: "full",
+        paper: "Ours (full)",
+        apply: |_| {},
+    },
     Row {
         key: "no-physics",
         paper: "w/o Phys. losses",
@@ -101,7 +110,11 @@ const ROWS: [Row; 7] = [
             c.losses.lambda_mask = 0.0;
         },
     },
-    Row { key: "no-lbs", paper: "w/o Cloth LBS Reg.", apply: |c| c.losses.lambda_cloth_lbs = 0.0 },
+    Row {
+        key: "no-lbs",
+        paper: "w/o Cloth LBS Reg.",
+        apply: |c| c.losses.lambda_cloth_lbs = 0.0,
+    },
     Row {
         key: "arap-only",
         paper: "ARAP loss only",
@@ -126,18 +139,41 @@ const ROWS: [Row; 7] = [
             c.losses.lambda_arap = 0.0;
         },
     },
-    Row { key: "single-layer", paper: "Single layer (HUGS)", apply: |c| c.layers.choice = LayerChoice { cloth: Some(false), scene: Some(true) } },
+    Row {
+        key: "single-layer",
+        paper: "Single layer (HUGS)",
+        apply: |c| {
+            c.layers.choice = LayerChoice {
+                cloth: Some(false),
+                scene: Some(true),
+            }
+        },
+    },
 ];
 
-fn list<T>(s: &str, what: &str, choices: &str, parse: impl Fn(&str) -> Option<T>) -> anyhow::Result<Vec<T>> {
-    let items: Vec<T> = s.split(',').map(str::trim).filter(|x| !x.is_empty()).map(|x| parse(x).ok_or_else(|| anyhow::anyhow!("--{what}: '{x}' is not one of {choices}"))).collect::<anyhow::Result<_>>()?;
+fn list<T>(
+    s: &str,
+    what: &str,
+    choices: &str,
+    parse: impl Fn(&str) -> Option<T>,
+) -> anyhow::Result<Vec<T>> {
+    let items: Vec<T> = s
+        .split(',')
+        .map(str::trim)
+        .filter(|x| !x.is_empty())
+        .map(|x| parse(x).ok_or_else(|| anyhow::anyhow!("--{what}: '{x}' is not one of {choices}")))
+        .collect::<anyhow::Result<_>>()?;
     anyhow::ensure!(!items.is_empty(), "--{what} is empty");
     Ok(items)
 }
 
 /// A finite number as JSON, anything else as null (JSON has no NaN or infinity).
 fn num(v: f64) -> serde_json::Value {
-    if v.is_finite() { json!(v) } else { serde_json::Value::Null }
+    if v.is_finite() {
+        json!(v)
+    } else {
+        serde_json::Value::Null
+    }
 }
 
 fn metrics_json(m: &EvalMetrics) -> serde_json::Value {
@@ -153,8 +189,15 @@ fn metrics_json(m: &EvalMetrics) -> serde_json::Value {
 
 pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     let fits = list(&args.fits, "fits", "loose, tight", GarmentFit::parse)?;
-    let motions = list(&args.motions, "motions", "walk, jog, raise-arms, turn", MotionKind::parse)?;
-    let rows = list(&args.rows, "rows", &ROWS.map(|r| r.key).join(", "), |k| ROWS.iter().find(|r| r.key == k).copied())?;
+    let motions = list(
+        &args.motions,
+        "motions",
+        "walk, jog, raise-arms, turn",
+        MotionKind::parse,
+    )?;
+    let rows = list(&args.rows, "rows", &ROWS.map(|r| r.key).join(", "), |k| {
+        ROWS.iter().find(|r| r.key == k).copied()
+    })?;
     let mut base = TrainConfig::preset(Preset::parse(&args.preset).context("--preset")?);
     if let Some(s) = args.steps {
         base.schedule.steps = s;
@@ -167,8 +210,13 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
     base.validate()?;
     // Runs are never overwritten: a finished benchmark stays as it was measured.
     if args.out.exists() {
-        let mut entries = std::fs::read_dir(&args.out).with_context(|| format!("--out {}: cannot read", args.out.display()))?;
-        anyhow::ensure!(entries.next().is_none(), "--out {}: not empty (bench-cloth writes a new directory)", args.out.display());
+        let mut entries = std::fs::read_dir(&args.out)
+            .with_context(|| format!("--out {}: cannot read", args.out.display()))?;
+        anyhow::ensure!(
+            entries.next().is_none(),
+            "--out {}: not empty (bench-cloth writes a new directory)",
+            args.out.display()
+        );
     }
     if let Some(path) = &base.losses.lpips_weights {
         drape_engine::ops::lpips::LpipsWeights::load(path, base.losses.lpips_net)?;
@@ -182,14 +230,25 @@ pub fn run(device: &DeviceArgs, args: &BenchClothArgs) -> anyhow::Result<()> {
             let _ = std::fs::remove_dir_all(&args.out);
         } else if let Ok(entries) = std::fs::read_dir(&args.out) {
             for e in entries.flatten() {
-                let _ = if e.path().is_dir() { std::fs::remove_dir_all(e.path()) } else { std::fs::remove_file(e.path()) };
+                let _ = if e.path().is_dir() {
+                    std::fs::remove_dir_all(e.path())
+                } else {
+                    std::fs::remove_file(e.path())
+                };
             }
         }
     }
     result
 }
 
-fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], motions: &[MotionKind], rows: &[Row], base: &TrainConfig) -> anyhow::Result<()> {
+fn measure(
+    device: &DeviceArgs,
+    args: &BenchClothArgs,
+    fits: &[GarmentFit],
+    motions: &[MotionKind],
+    rows: &[Row],
+    base: &TrainConfig,
+) -> anyhow::Result<()> {
     let ctx = device.open()?;
     let total = fits.len() * motions.len() * rows.len();
     let mut done = 0;
@@ -199,7 +258,16 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
         for &motion in motions {
             let name = format!("{}-{}", fit.name(), motion_name(motion));
             let data = args.out.join("data").join(&name);
-            let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: 1, motion, seed: args.seed, samples: 2, garment: fit };
+            let options = SynthOptions {
+                width: args.size,
+                height: args.size,
+                frames: args.frames as usize,
+                cameras: 1,
+                motion,
+                seed: args.seed,
+                samples: 2,
+                garment: fit,
+            };
             let t0 = Instant::now();
             generate(&data, &options, &mut |stage, d, n| {
                 eprint!("\r[{name}] synth: {stage:<18} {d:>4}/{n}   ");
@@ -207,7 +275,13 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
             })
             .map_err(|e| anyhow::anyhow!("{}: {e}", data.display()))?;
             eprintln!();
-            println!("[{name}] synthesised {} frames at {}x{} in {:.1} s", args.frames, args.size, args.size, t0.elapsed().as_secs_f64());
+            println!(
+                "[{name}] synthesised {} frames at {}x{} in {:.1} s",
+                args.frames,
+                args.size,
+                args.size,
+                t0.elapsed().as_secs_f64()
+            );
             let seq = load_sequence(&data, 0)?;
             let mut results = Vec::new();
             for row in rows {
@@ -220,11 +294,25 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
                 let t0 = Instant::now();
                 let report = train(&ctx, &seq, model, &config, &out, false, &mut |p| {
                     match p {
-                        Progress::Fit { layer, step, total, .. } => eprint!("\r  fitting {layer} skinning weights {step:>5}/{total}   "),
-                        Progress::Step { step, total, psnr, it_per_s, .. } => eprint!("\r  step {step:>6}/{total}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
-                        Progress::Simulate { done, total } => eprint!("\r  simulating the garments {done:>4}/{total}   "),
+                        Progress::Fit {
+                            layer, step, total, ..
+                        } => eprint!("\r  fitting {layer} skinning weights {step:>5}/{total}   "),
+                        Progress::Step {
+                            step,
+                            total,
+                            psnr,
+                            it_per_s,
+                            ..
+                        } => eprint!(
+                            "\r  step {step:>6}/{total}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "
+                        ),
+                        Progress::Simulate { done, total } => {
+                            eprint!("\r  simulating the garments {done:>4}/{total}   ")
+                        }
                         Progress::Densify { .. } => {}
-                        Progress::Eval { done, total } => eprint!("\r  evaluating {}/{total}   ", done + 1),
+                        Progress::Eval { done, total } => {
+                            eprint!("\r  evaluating {}/{total}   ", done + 1)
+                        }
                     }
                     let _ = std::io::stderr().flush();
                 })
@@ -232,7 +320,9 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
                 eprint!("\r{:80}\r", "");
                 let wall = t0.elapsed().as_secs_f64();
                 let m = &report.fin;
-                let chamfer = m.cloth_chamfer.map_or("n/a".to_string(), |c| format!("{:.2} mm", 1e3 * c));
+                let chamfer = m
+                    .cloth_chamfer
+                    .map_or("n/a".to_string(), |c| format!("{:.2} mm", 1e3 * c));
                 println!(
                     "[{done}/{total}] {name} {:<12} crop PSNR {:.2} dB, SSIM {:.4}; full PSNR {:.2} dB; cloth Chamfer {chamfer}; {:.1} s ({:.2} it/s)",
                     row.key, m.psnr_crop, m.ssim_crop, m.psnr_full, wall, report.iterations_per_second
@@ -256,19 +346,34 @@ fn measure(device: &DeviceArgs, args: &BenchClothArgs, fits: &[GarmentFit], moti
         "seconds": t_all.elapsed().as_secs_f64(),
         "sequences": sequences,
     });
-    let claims: Vec<serde_json::Value> = report["sequences"].as_array().map(|s| s.iter().map(claim).collect()).unwrap_or_default();
+    let claims: Vec<serde_json::Value> = report["sequences"]
+        .as_array()
+        .map(|s| s.iter().map(claim).collect())
+        .unwrap_or_default();
     report["claim"] = claims.into();
     device.check_validation(&ctx)?;
-    write(&args.out.join("bench.json"), &serde_json::to_string_pretty(&report)?)?;
+    write(
+        &args.out.join("bench.json"),
+        &serde_json::to_string_pretty(&report)?,
+    )?;
     write(&args.out.join("bench.md"), &markdown(&report))?;
     let png = args.out.join("bench.png");
-    plot(&report).save(&png).with_context(|| format!("{}: cannot write", png.display()))?;
-    println!("wrote {} (bench.json, bench.md, bench.png) in {:.1} s", args.out.display(), t_all.elapsed().as_secs_f64());
+    plot(&report)
+        .save(&png)
+        .with_context(|| format!("{}: cannot write", png.display()))?;
+    println!(
+        "wrote {} (bench.json, bench.md, bench.png) in {:.1} s",
+        args.out.display(),
+        t_all.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 
 fn motion_name(m: MotionKind) -> &'static str {
-    ["walk", "jog", "raise-arms", "turn"].into_iter().find(|n| MotionKind::parse(n) == Some(m)).unwrap_or("motion")
+    ["walk", "jog", "raise-arms", "turn"]
+        .into_iter()
+        .find(|n| MotionKind::parse(n) == Some(m))
+        .unwrap_or("motion")
 }
 
 fn write(path: &Path, text: &str) -> anyhow::Result<()> {
@@ -277,9 +382,16 @@ fn write(path: &Path, text: &str) -> anyhow::Result<()> {
 
 /// One comparison of the full model with a row: which is better on a metric, or why it
 /// cannot be said.
-fn compare(full: &serde_json::Value, other: &serde_json::Value, key: &str, higher_is_better: bool) -> serde_json::Value {
+fn compare(
+    full: &serde_json::Value,
+    other: &serde_json::Value,
+    key: &str,
+    higher_is_better: bool,
+) -> serde_json::Value {
     match (full[key].as_f64(), other[key].as_f64()) {
-        (Some(f), Some(o)) => json!({ "full": f, "row": o, "full_better": if higher_is_better { f > o } else { f < o } }),
+        (Some(f), Some(o)) => {
+            json!({ "full": f, "row": o, "full_better": if higher_is_better { f > o } else { f < o } })
+        }
         _ => json!({ "full_better": null, "why": "not measured for one of the two" }),
     }
 }
@@ -308,48 +420,78 @@ fn claim(seq: &serde_json::Value) -> serde_json::Value {
             json!({ "row": r["row"], "holds": !measured.is_empty() && measured.iter().all(|&b| b), "comparisons": c })
         })
         .collect();
-    let holds = if per_row.is_empty() { serde_json::Value::Null } else { per_row.iter().all(|r| r["holds"] == true).into() };
+    let holds = if per_row.is_empty() {
+        serde_json::Value::Null
+    } else {
+        per_row.iter().all(|r| r["holds"] == true).into()
+    };
     json!({ "sequence": seq["sequence"], "holds": holds, "rows": per_row })
 }
 
 fn fmt(v: &serde_json::Value, digits: usize, scale: f64) -> String {
-    v.as_f64().map_or("n/a".into(), |x| format!("{:.*}", digits, x * scale))
+    v.as_f64()
+        .map_or("n/a".into(), |x| format!("{:.*}", digits, x * scale))
 }
 
 pub fn markdown(r: &serde_json::Value) -> String {
     let mut s = String::new();
     s.push_str("# Synthetic cloth benchmark (`drape bench-cloth`)\n\n");
-    s.push_str(&format!("Command: `{}`\n\n", r["command"].as_str().unwrap_or("")));
+    s.push_str(&format!(
+        "Command: `{}`\n\n",
+        r["command"].as_str().unwrap_or("")
+    ));
     s.push_str(&format!(
         "Preset {}, {} training steps ({} skinning-weight fit steps), {}x{} px, {} frames per sequence (every fifth from the second held out), seed {}, on {}; {:.0} s in all. LPIPS: {}.\n\n",
         r["preset"].as_str().unwrap_or(""), r["steps"], r["fit_steps"], r["size"], r["size"], r["frames"], r["seed"], r["device"].as_str().unwrap_or(""), r["seconds"].as_f64().unwrap_or(0.0),
         if r["lpips"] == true { "AlexNet weights given" } else { "n/a (no --lpips-weights)" }
     ));
     s.push_str("Metrics on the held-out frames: PSNR (dB) and SSIM on the whole frame and on the human crop (the person mask's bounding box); cloth Chamfer (mm) between the cloth Gaussians and the ground-truth garments; wall time of the whole run (fit, simulation, training, evaluation) and training iterations per second.\n\n");
-    for (seq, claim) in r["sequences"].as_array().into_iter().flatten().zip(r["claim"].as_array().into_iter().flatten()) {
-        s.push_str(&format!("## {}\n\n", seq["sequence"].as_str().unwrap_or("")));
+    for (seq, claim) in r["sequences"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .zip(r["claim"].as_array().into_iter().flatten())
+    {
+        s.push_str(&format!(
+            "## {}\n\n",
+            seq["sequence"].as_str().unwrap_or("")
+        ));
         s.push_str("| row | paper | PSNR full | SSIM full | LPIPS full | PSNR crop | SSIM crop | LPIPS crop | cloth Chamfer (mm) | wall (s) | it/s |\n");
         s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
         for row in seq["rows"].as_array().into_iter().flatten() {
             let m = &row["metrics"];
             s.push_str(&format!(
                 "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
-                row["row"].as_str().unwrap_or(""), row["paper"].as_str().unwrap_or(""),
-                fmt(&m["psnr_full"], 2, 1.0), fmt(&m["ssim_full"], 4, 1.0), fmt(&m["lpips_full"], 4, 1.0),
-                fmt(&m["psnr_crop"], 2, 1.0), fmt(&m["ssim_crop"], 4, 1.0), fmt(&m["lpips_crop"], 4, 1.0),
-                fmt(&m["cloth_chamfer_m"], 2, 1e3), fmt(&row["wall_s"], 1, 1.0), fmt(&row["it_per_s"], 2, 1.0)
+                row["row"].as_str().unwrap_or(""),
+                row["paper"].as_str().unwrap_or(""),
+                fmt(&m["psnr_full"], 2, 1.0),
+                fmt(&m["ssim_full"], 4, 1.0),
+                fmt(&m["lpips_full"], 4, 1.0),
+                fmt(&m["psnr_crop"], 2, 1.0),
+                fmt(&m["ssim_crop"], 4, 1.0),
+                fmt(&m["lpips_crop"], 4, 1.0),
+                fmt(&m["cloth_chamfer_m"], 2, 1e3),
+                fmt(&row["wall_s"], 1, 1.0),
+                fmt(&row["it_per_s"], 2, 1.0)
             ));
         }
         s.push_str("\nThe paper's claim (the full model beats the single layer and every ablation on the human crop and on cloth geometry), as measured here (one digit more than the table, so that a tie shows; a row holds when the full model is strictly better on every metric measured for both):\n\n");
         let rows = claim["rows"].as_array().cloned().unwrap_or_default();
         if rows.is_empty() {
-            s.push_str("- not testable: the benchmark needs the full row and at least one other.\n");
+            s.push_str(
+                "- not testable: the benchmark needs the full row and at least one other.\n",
+            );
         }
         for c in &rows {
             let part = |key: &str, label: &str, digits: usize, scale: f64| {
                 let x = &c["comparisons"][key];
                 match x["full_better"].as_bool() {
-                    Some(b) => format!("{label} {} ({} vs {})", if b { "better" } else { "not better" }, fmt(&x["full"], digits, scale), fmt(&x["row"], digits, scale)),
+                    Some(b) => format!(
+                        "{label} {} ({} vs {})",
+                        if b { "better" } else { "not better" },
+                        fmt(&x["full"], digits, scale),
+                        fmt(&x["row"], digits, scale)
+                    ),
                     None => format!("{label} n/a"),
                 }
             };
@@ -360,7 +502,11 @@ pub fn markdown(r: &serde_json::Value) -> String {
                 part("ssim_crop", "crop SSIM", 5, 1.0),
                 part("lpips_crop", "crop LPIPS", 5, 1.0),
                 part("cloth_chamfer_m", "cloth Chamfer (mm)", 3, 1e3),
-                if c["holds"] == true { "holds" } else { "does not hold" }
+                if c["holds"] == true {
+                    "holds"
+                } else {
+                    "does not hold"
+                }
             ));
         }
         match claim["holds"].as_bool() {
@@ -377,25 +523,71 @@ pub fn markdown(r: &serde_json::Value) -> String {
 /// Grouped bars: human-crop PSNR per row (colour) per sequence (group), on an axis from
 /// just below the lowest value, with a tick every dB; drawn with `image` alone.
 fn plot(r: &serde_json::Value) -> image::RgbImage {
-    const PALETTE: [[u8; 3]; 7] = [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [140, 86, 75], [127, 127, 127]];
-    let seqs: Vec<&serde_json::Value> = r["sequences"].as_array().map(|v| v.iter().collect()).unwrap_or_default();
-    let keys: Vec<&str> = ROWS.iter().map(|r| r.key).filter(|k| seqs.iter().any(|s| s["rows"].as_array().is_some_and(|rows| rows.iter().any(|x| x["row"] == *k)))).collect();
-    let value = |s: &serde_json::Value, k: &str| s["rows"].as_array().and_then(|rows| rows.iter().find(|x| x["row"] == k)).and_then(|x| x["metrics"]["psnr_crop"].as_f64());
-    let values: Vec<f64> = seqs.iter().flat_map(|s| keys.iter().filter_map(|k| value(s, k))).collect();
+    const PALETTE: [[u8; 3]; 7] = [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [127, 127, 127],
+    ];
+    let seqs: Vec<&serde_json::Value> = r["sequences"]
+        .as_array()
+        .map(|v| v.iter().collect())
+        .unwrap_or_default();
+    let keys: Vec<&str> = ROWS
+        .iter()
+        .map(|r| r.key)
+        .filter(|k| {
+            seqs.iter().any(|s| {
+                s["rows"]
+                    .as_array()
+                    .is_some_and(|rows| rows.iter().any(|x| x["row"] == *k))
+            })
+        })
+        .collect();
+    let value = |s: &serde_json::Value, k: &str| {
+        s["rows"]
+            .as_array()
+            .and_then(|rows| rows.iter().find(|x| x["row"] == k))
+            .and_then(|x| x["metrics"]["psnr_crop"].as_f64())
+    };
+    let values: Vec<f64> = seqs
+        .iter()
+        .flat_map(|s| keys.iter().filter_map(|k| value(s, k)))
+        .collect();
     let lo = values.iter().cloned().fold(f64::INFINITY, f64::min).floor() - 1.0;
-    let hi = values.iter().cloned().fold(f64::NEG_INFINITY, f64::max).ceil() + 0.5;
-    let (lo, hi) = if lo.is_finite() && hi > lo { (lo, hi) } else { (0.0, 1.0) };
+    let hi = values
+        .iter()
+        .cloned()
+        .fold(f64::NEG_INFINITY, f64::max)
+        .ceil()
+        + 0.5;
+    let (lo, hi) = if lo.is_finite() && hi > lo {
+        (lo, hi)
+    } else {
+        (0.0, 1.0)
+    };
     let (bar, gap, margin, height) = (14u32, 20u32, 40u32, 300u32);
     let group = bar * keys.len().max(1) as u32 + gap;
     let width = 2 * margin + group * seqs.len().max(1) as u32 + 20 + 16 * 2;
-    let mut img = image::RgbImage::from_pixel(width, height + 2 * margin, image::Rgb([255, 255, 255]));
-    let y_of = |v: f64| margin + height - ((v - lo) / (hi - lo) * f64::from(height)).clamp(0.0, f64::from(height)) as u32;
+    let mut img =
+        image::RgbImage::from_pixel(width, height + 2 * margin, image::Rgb([255, 255, 255]));
+    let y_of = |v: f64| {
+        margin + height
+            - ((v - lo) / (hi - lo) * f64::from(height)).clamp(0.0, f64::from(height)) as u32
+    };
     // Axis and a grey tick line every dB.
     let mut t = lo.ceil();
     while t <= hi {
         let y = y_of(t);
         for x in margin - 6..width - margin {
-            let c = if x < margin { [0, 0, 0] } else { [225, 225, 225] };
+            let c = if x < margin {
+                [0, 0, 0]
+            } else {
+                [225, 225, 225]
+            };
             img.put_pixel(x, y, image::Rgb(c));
         }
         t += 1.0;

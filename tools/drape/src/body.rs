@@ -22,13 +22,22 @@ pub struct BodyArgs {
 }
 
 pub fn run_body(args: &BodyArgs) -> anyhow::Result<()> {
-    let body = default_body(&BodyOptions { cell: args.cell, ..BodyOptions::default() });
+    let body = default_body(&BodyOptions {
+        cell: args.cell,
+        ..BodyOptions::default()
+    });
     let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
     body.write_npz(out.path())?;
     out.commit()?;
     // Read back through the loader, as a user's SMPL file would be.
     let back = SmplModel::load_npz(&args.out)?;
-    println!("wrote {}: {} vertices, {} faces, 24 joints, {} shape coefficients", args.out.display(), back.num_vertices(), back.faces.len(), back.num_betas);
+    println!(
+        "wrote {}: {} vertices, {} faces, 24 joints, {} shape coefficients",
+        args.out.display(),
+        back.num_vertices(),
+        back.faces.len(),
+        back.num_betas
+    );
     Ok(())
 }
 
@@ -70,11 +79,18 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
     let motion = match MotionKind::parse(&args.motion) {
         Some(kind) => {
             anyhow::ensure!(args.frames > 0, "--frames must be positive");
-            anyhow::ensure!(args.speed > 0.0 && args.speed.is_finite(), "--speed must be a positive number");
+            anyhow::ensure!(
+                args.speed > 0.0 && args.speed.is_finite(),
+                "--speed must be a positive number"
+            );
             procedural(kind, args.frames as usize, 30.0, args.speed)
         }
-        None => Motion::load_npz(std::path::Path::new(&args.motion))
-            .with_context(|| format!("--motion '{}' is neither walk, jog, raise-arms, turn nor a readable motion .npz", args.motion))?,
+        None => Motion::load_npz(std::path::Path::new(&args.motion)).with_context(|| {
+            format!(
+                "--motion '{}' is neither walk, jog, raise-arms, turn nor a readable motion .npz",
+                args.motion
+            )
+        })?,
     };
     let mut garments = vec![tshirt(&body), pants(&body)];
     for path in &args.garment {
@@ -82,23 +98,42 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
         // A user's garment named like a built-in (or like another) keeps its own files.
         if garments.iter().any(|o| o.name == g.name) {
             let base = g.name.clone();
-            g.name = (2..).map(|k| format!("{base}-{k}")).find(|n| garments.iter().all(|o| &o.name != n)).expect("a free name");
-            eprintln!("{}: written as {}_NNNN.obj ('{base}' is taken)", path.display(), g.name);
+            g.name = (2..)
+                .map(|k| format!("{base}-{k}"))
+                .find(|n| garments.iter().all(|o| &o.name != n))
+                .expect("a free name");
+            eprintln!(
+                "{}: written as {}_NNNN.obj ('{base}' is taken)",
+                path.display(),
+                g.name
+            );
         }
         garments.push(g);
     }
     let out = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
     let params = ClothParams::with_substeps(args.substeps);
-    eprintln!("simulating {} garments ({} vertices) over {} frames...", garments.len(), garments.iter().map(|g| g.vertices.len()).sum::<usize>(), motion.len());
+    eprintln!(
+        "simulating {} garments ({} vertices) over {} frames...",
+        garments.len(),
+        garments.iter().map(|g| g.vertices.len()).sum::<usize>(),
+        motion.len()
+    );
     let t0 = std::time::Instant::now();
-    let result = simulate_with_progress(&body, &garments, &motion, params, 20, &mut |done, total| eprint!("\rframe {done:>5}/{total} (20 settling)   "));
+    let result =
+        simulate_with_progress(&body, &garments, &motion, params, 20, &mut |done, total| {
+            eprint!("\rframe {done:>5}/{total} (20 settling)   ")
+        });
     eprintln!();
     let seconds = t0.elapsed().as_secs_f64();
-    anyhow::ensure!(!result.any_nan, "the simulation produced non-finite positions");
+    anyhow::ensure!(
+        !result.any_nan,
+        "the simulation produced non-finite positions"
+    );
     for (f, frame) in result.frames.iter().enumerate() {
         for (g, positions) in garments.iter().zip(frame) {
             let path = out.path().join(format!("{}_{f:04}.obj", g.name));
-            write_obj(&path, positions, &g.faces, Some(&g.uvs)).with_context(|| format!("{}: cannot write", path.display()))?;
+            write_obj(&path, positions, &g.faces, Some(&g.uvs))
+                .with_context(|| format!("{}: cannot write", path.display()))?;
         }
     }
     out.commit()?;
@@ -147,9 +182,24 @@ pub struct SynthArgs {
 
 pub fn run_synth(args: &SynthArgs) -> anyhow::Result<()> {
     use drape_trainer::dataset::synth::{generate, SynthOptions};
-    let motion = MotionKind::parse(&args.motion).ok_or_else(|| anyhow::anyhow!("--motion '{}' is not one of walk, jog, raise-arms, turn", args.motion))?;
-    let garment = GarmentFit::parse(&args.fit).ok_or_else(|| anyhow::anyhow!("--fit '{}' is not one of tight, loose", args.fit))?;
-    let options = SynthOptions { width: args.size, height: args.size, frames: args.frames as usize, cameras: args.cameras as usize, motion, seed: args.seed, samples: args.samples, garment };
+    let motion = MotionKind::parse(&args.motion).ok_or_else(|| {
+        anyhow::anyhow!(
+            "--motion '{}' is not one of walk, jog, raise-arms, turn",
+            args.motion
+        )
+    })?;
+    let garment = GarmentFit::parse(&args.fit)
+        .ok_or_else(|| anyhow::anyhow!("--fit '{}' is not one of tight, loose", args.fit))?;
+    let options = SynthOptions {
+        width: args.size,
+        height: args.size,
+        frames: args.frames as usize,
+        cameras: args.cameras as usize,
+        motion,
+        seed: args.seed,
+        samples: args.samples,
+        garment,
+    };
     let out = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
     let summary = generate(out.path(), &options, &mut |stage, done, total| {
         eprint!("\r{stage:<18} {done:>5}/{total}   ");

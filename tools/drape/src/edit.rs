@@ -41,8 +41,15 @@ pub fn run(device: &DeviceArgs, args: &EditArgs) -> anyhow::Result<()> {
         (None, Some(_)) => Edit::SwapCloth,
         (None, None) => Edit::RemoveCloth,
     };
-    if args.out.exists() && std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(true) {
-        anyhow::bail!("--out {}: the output directory exists and is not empty", args.out.display());
+    if args.out.exists()
+        && std::fs::read_dir(&args.out)
+            .map(|mut d| d.next().is_some())
+            .unwrap_or(true)
+    {
+        anyhow::bail!(
+            "--out {}: the output directory exists and is not empty",
+            args.out.display()
+        );
     }
     let staged = drape_cli_support::output::StagedDir::new(&args.out, "--out", false)?;
     let ctx = device.open()?;

@@ -3,9 +3,9 @@
 use std::path::PathBuf;
 
 use drape_cli_support::DeviceArgs;
-use drape_trainer::ply;
 use drape_engine::ops::splat::render::render_image;
 use drape_engine::ops::splat::scene::RenderSettings;
+use drape_trainer::ply;
 
 use crate::fitting::{fit_image, FitConfig};
 use crate::image_io::{read_rgb, write_png};
@@ -36,24 +36,47 @@ pub struct FitArgs {
 
 pub fn run(device: &DeviceArgs, args: &FitArgs) -> anyhow::Result<()> {
     let target = read_rgb(&args.target)?;
-    anyhow::ensure!(target.width * target.height <= 4096 * 4096, "{}: {}x{} is larger than 4096x4096", args.target.display(), target.width, target.height);
+    anyhow::ensure!(
+        target.width * target.height <= 4096 * 4096,
+        "{}: {}x{} is larger than 4096x4096",
+        args.target.display(),
+        target.width,
+        target.height
+    );
     // Staged before the work, so that an unwritable path costs nothing.
     let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
-    let render_out = args.render.as_deref().map(|p| drape_cli_support::output::StagedFile::new(p, "--render")).transpose()?;
+    let render_out = args
+        .render
+        .as_deref()
+        .map(|p| drape_cli_support::output::StagedFile::new(p, "--render"))
+        .transpose()?;
     let ctx = device.open()?;
-    let cfg = FitConfig { count: args.n as usize, iterations: args.iters, seed: args.seed, ..FitConfig::default() };
+    let cfg = FitConfig {
+        count: args.n as usize,
+        iterations: args.iters,
+        seed: args.seed,
+        ..FitConfig::default()
+    };
     let t0 = std::time::Instant::now();
     let every = (args.iters / 20).max(1);
     let result = fit_image(&ctx, &target, &cfg, every, |it, psnr| {
         let done = it as f64 / args.iters.max(1) as f64;
         let bar = "#".repeat((done * 30.0) as usize);
-        eprint!("\r[{bar:<30}] iteration {it:>6}/{}  PSNR {psnr:6.2} dB", args.iters);
+        eprint!(
+            "\r[{bar:<30}] iteration {it:>6}/{}  PSNR {psnr:6.2} dB",
+            args.iters
+        );
     })?;
     eprintln!();
     device.check_validation(&ctx)?;
     ply::write(out.path(), &result.cloud)?;
     if let Some(staged) = &render_out {
-        let (image, _) = render_image(&ctx, &result.cloud, &result.camera, &RenderSettings::default())?;
+        let (image, _) = render_image(
+            &ctx,
+            &result.cloud,
+            &result.camera,
+            &RenderSettings::default(),
+        )?;
         write_png(staged.path(), image.width, image.height, &image.rgb)?;
     }
     out.commit()?;

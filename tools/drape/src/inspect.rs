@@ -23,10 +23,21 @@ pub fn run(args: &InspectArgs) -> anyhow::Result<()> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&found)?);
     } else {
-        let size = found.image_size.map_or("-".to_string(), |(w, h)| format!("{w}x{h}"));
+        let size = found
+            .image_size
+            .map_or("-".to_string(), |(w, h)| format!("{w}x{h}"));
         println!("{}", found.dir.display());
-        println!("  layout:  {}", found.variant.map_or("unknown".to_string(), |v| format!("{v}: {}", found.description.unwrap_or(""))));
-        println!("  images:  {} frames x {} cameras, {size}", found.frames, found.cameras);
+        println!(
+            "  layout:  {}",
+            found.variant.map_or("unknown".to_string(), |v| format!(
+                "{v}: {}",
+                found.description.unwrap_or("")
+            ))
+        );
+        println!(
+            "  images:  {} frames x {} cameras, {size}",
+            found.frames, found.cameras
+        );
         println!("  masks:   {}", found.masks);
         println!("  params:  {}", found.params);
         println!("  split:   {}", found.split);
@@ -36,7 +47,10 @@ pub fn run(args: &InspectArgs) -> anyhow::Result<()> {
         println!("  problem: {}", found.problem.as_deref().unwrap_or("none"));
     }
     match found.problem {
-        Some(_) => Err(anyhow::anyhow!("{}: not loadable as it is (the problem is above)", found.dir.display())),
+        Some(_) => Err(anyhow::anyhow!(
+            "{}: not loadable as it is (the problem is above)",
+            found.dir.display()
+        )),
         None => Ok(()),
     }
 }

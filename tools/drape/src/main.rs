@@ -103,14 +103,27 @@ fn demo(device: &DeviceArgs, n: u32, seed: u64) -> anyhow::Result<()> {
     let t0 = Instant::now();
     expected.sort_by_key(|&(k, _)| k);
     let cpu_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let matches = expected.iter().zip(gpu_keys.iter().zip(&gpu_values)).all(|(&(k, v), (&gk, &gv))| k == gk && v == gv);
+    let matches = expected
+        .iter()
+        .zip(gpu_keys.iter().zip(&gpu_values))
+        .all(|(&(k, v), (&gk, &gv))| k == gk && v == gv);
     anyhow::ensure!(matches, "the GPU sort differs from the CPU's stable sort");
     device.check_validation(&ctx)?;
-    println!("sorted {n} random u32 keys with their indices on {}", ctx.info().name);
+    println!(
+        "sorted {n} random u32 keys with their indices on {}",
+        ctx.info().name
+    );
     println!("  GPU (upload + sort + readback): {gpu_ms:.1} ms; CPU stable sort: {cpu_ms:.1} ms");
     println!("  identical to the CPU's stable sort: yes");
     let show = gpu_keys.len().min(5);
-    println!("  first {show} (key, original index): {:?}", gpu_keys.iter().zip(&gpu_values).take(show).collect::<Vec<_>>());
+    println!(
+        "  first {show} (key, original index): {:?}",
+        gpu_keys
+            .iter()
+            .zip(&gpu_values)
+            .take(show)
+            .collect::<Vec<_>>()
+    );
     Ok(())
 }
 

@@ -62,7 +62,9 @@ pub fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
     let values: Result<Vec<f32>, _> = parts.iter().map(|p| p.parse::<f32>()).collect();
     match values {
         Ok(v) if v.len() == 3 && v.iter().all(|x| x.is_finite()) => Ok([v[0], v[1], v[2]]),
-        _ => Err(format!("'{s}' is not three finite numbers separated by commas")),
+        _ => Err(format!(
+            "'{s}' is not three finite numbers separated by commas"
+        )),
     }
 }
 
@@ -78,12 +80,22 @@ fn parse_colour(s: &str) -> Result<[f32; 3], String> {
 fn camera(args: &RenderArgs) -> anyhow::Result<PinholeCamera> {
     let mut cam = match &args.camera {
         Some(path) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-            let cam = camera_file::parse(&text).with_context(|| format!("{}: not a camera file", path.display()))?;
-            cam.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("{}: cannot read", path.display()))?;
+            let cam = camera_file::parse(&text)
+                .with_context(|| format!("{}: not a camera file", path.display()))?;
+            cam.validate()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             return Ok(cam);
         }
-        None => PinholeCamera::look_at(args.eye, args.look_at, args.up, args.fov, args.width, args.height),
+        None => PinholeCamera::look_at(
+            args.eye,
+            args.look_at,
+            args.up,
+            args.fov,
+            args.width,
+            args.height,
+        ),
     };
     match cam.as_mut() {
         Some(c) => c.background = args.background,
@@ -99,16 +111,29 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let cloud = ply::read(&args.ply)?;
     let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
     let depth = crate::image_io::depth_exr_path(&args.out);
-    anyhow::ensure!(format != RenderFormat::Exr || !depth.is_dir(), "--out {}: its depth file {} is a directory", args.out.display(), depth.display());
+    anyhow::ensure!(
+        format != RenderFormat::Exr || !depth.is_dir(),
+        "--out {}: its depth file {} is a directory",
+        args.out.display(),
+        depth.display()
+    );
     let ctx = device.open()?;
     // The colour buffer (12 bytes a pixel) is one storage buffer: named by the option.
     let colour_bytes = 12 * u64::from(cam.width) * u64::from(cam.height);
     let limit = ctx.info().max_storage_buffer_range;
     if colour_bytes > limit {
-        let option = args.camera.as_ref().map_or("--width/--height".to_string(), |p| format!("--camera {}", p.display()));
+        let option = args
+            .camera
+            .as_ref()
+            .map_or("--width/--height".to_string(), |p| {
+                format!("--camera {}", p.display())
+            });
         anyhow::bail!("{option}: a {}x{} image needs {colour_bytes} bytes in one storage buffer; this device's maxStorageBufferRange is {limit}", cam.width, cam.height);
     }
-    let settings = RenderSettings { antialiased: args.antialiased, ..RenderSettings::default() };
+    let settings = RenderSettings {
+        antialiased: args.antialiased,
+        ..RenderSettings::default()
+    };
     let t0 = std::time::Instant::now();
     let (image, stats) = render_image(&ctx, &cloud, &cam, &settings)?;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -116,10 +141,13 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let staged = write_render(out.path(), format, &image, cam.background)?;
     // The EXR's depth file comes beside it; both are moved into place at the end.
     let mut written = vec![args.out.clone()];
-    let companion = staged.get(1).map(|p| (p.clone(), crate::image_io::depth_exr_path(&args.out)));
+    let companion = staged
+        .get(1)
+        .map(|p| (p.clone(), crate::image_io::depth_exr_path(&args.out)));
     out.commit()?;
     if let Some((from, to)) = companion {
-        std::fs::rename(&from, &to).map_err(|e| anyhow::anyhow!("{}: cannot move into place: {e}", to.display()))?;
+        std::fs::rename(&from, &to)
+            .map_err(|e| anyhow::anyhow!("{}: cannot move into place: {e}", to.display()))?;
         written.push(to);
     }
     eprintln!(

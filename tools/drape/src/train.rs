@@ -16,10 +16,12 @@ use std::path::PathBuf;
 
 use anyhow::Context as _;
 use drape_cli_support::DeviceArgs;
-use drape_trainer::avatar::run::RunInfo;
 use drape_trainer::avatar::composite::{Compositing, Matte};
 use drape_trainer::avatar::model::LayerChoice;
-use drape_trainer::avatar::train::{body_model, load_sequence, train_interruptible, Layout, Outcome, Preset, Progress, TrainConfig};
+use drape_trainer::avatar::run::RunInfo;
+use drape_trainer::avatar::train::{
+    body_model, load_sequence, train_interruptible, Layout, Outcome, Preset, Progress, TrainConfig,
+};
 
 /// Options of `drape train`.
 #[derive(Clone, Debug, clap::Args)]
@@ -102,15 +104,25 @@ fn interrupt_flag() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBo
     let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     for signal in [SIGTERM, SIGINT, SIGUSR1] {
         // Registered first, so it sees the flag as the previous signal left it.
-        signal_hook::flag::register_conditional_shutdown(signal, 128 + signal, std::sync::Arc::clone(&flag)).context("installing the signal handlers")?;
-        signal_hook::flag::register(signal, std::sync::Arc::clone(&flag)).context("installing the signal handlers")?;
+        signal_hook::flag::register_conditional_shutdown(
+            signal,
+            128 + signal,
+            std::sync::Arc::clone(&flag),
+        )
+        .context("installing the signal handlers")?;
+        signal_hook::flag::register(signal, std::sync::Arc::clone(&flag))
+            .context("installing the signal handlers")?;
     }
     Ok(flag)
 }
 
 fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     if let Some(run) = &args.resume {
-        anyhow::ensure!(args.config.is_none(), "--config cannot change a run being resumed (edit {} instead)", run.join("config.json").display());
+        anyhow::ensure!(
+            args.config.is_none(),
+            "--config cannot change a run being resumed (edit {} instead)",
+            run.join("config.json").display()
+        );
         let mut config = TrainConfig::read_run(run)?;
         if let Some(s) = args.steps {
             config.schedule.steps = s;
@@ -119,7 +131,8 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     }
     let mut config = TrainConfig::preset(Preset::parse(&args.preset).context("--preset")?);
     if let Some(path) = &args.config {
-        let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
         config = config.with_toml(&text, path)?;
     }
     if let Some(s) = args.steps {
@@ -149,20 +162,36 @@ fn every_nth_vertex(n: u32) -> String {
         (3, r) if r != 13 => "rd",
         _ => "th",
     };
-    if n <= 1 { "every vertex".into() } else { format!("every {n}{suffix} vertex") }
+    if n <= 1 {
+        "every vertex".into()
+    } else {
+        format!("every {n}{suffix} vertex")
+    }
 }
 
 pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     use drape_trainer::avatar::train::{run_state, RunState};
     let interrupt = interrupt_flag()?;
     // A complete run is not trained again (a requeued job array reruns its command).
-    let dir = args.resume.as_ref().or(args.out.as_ref()).expect("clap requires --out or --resume");
-    if run_state(dir)? == RunState::Complete && !args.force && (args.resume.is_none() || args.steps.is_none()) {
-        println!("{} is a complete run ('complete' marker); nothing to do (--force trains it again)", dir.display());
+    let dir = args
+        .resume
+        .as_ref()
+        .or(args.out.as_ref())
+        .expect("clap requires --out or --resume");
+    if run_state(dir)? == RunState::Complete
+        && !args.force
+        && (args.resume.is_none() || args.steps.is_none())
+    {
+        println!(
+            "{} is a complete run ('complete' marker); nothing to do (--force trains it again)",
+            dir.display()
+        );
         return Ok(());
     }
     if args.force && matches!(run_state(dir)?, RunState::Complete | RunState::Resumable) {
-        std::fs::remove_dir_all(dir).with_context(|| format!("{}: cannot remove the earlier run (--force)", dir.display()))?;
+        std::fs::remove_dir_all(dir).with_context(|| {
+            format!("{}: cannot remove the earlier run (--force)", dir.display())
+        })?;
     }
     if args.resume.is_none() {
         drape_trainer::avatar::train::check_fresh(dir)?;
@@ -181,7 +210,10 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let data = match (&args.data, &earlier) {
         (Some(d), _) => d.clone(),
         (None, Some(info)) => info.data.clone(),
-        (None, None) => anyhow::bail!("--data: the run {} has no run.json saying what it was trained on", dir.display()),
+        (None, None) => anyhow::bail!(
+            "--data: the run {} has no run.json saying what it was trained on",
+            dir.display()
+        ),
     };
     let info = RunInfo::new(&data, body.as_deref());
     let seq = load_sequence(&data, config.zju_train_camera)?;
@@ -195,9 +227,22 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     let garments = seq.frames.iter().any(|f| f.garment_masks.is_some());
     let layers = drape_trainer::avatar::train::choose_layers(&seq, &config)?;
     let cloth = layers.cloth;
-    println!("data: {} ({}: {}), {train_n} training and {test_n} held-out images at {}x{}", seq.dir.display(), seq.variant.name(), seq.variant.describe(), seq.frames[0].width, seq.frames[0].height);
+    println!(
+        "data: {} ({}: {}), {train_n} training and {test_n} held-out images at {}x{}",
+        seq.dir.display(),
+        seq.variant.name(),
+        seq.variant.describe(),
+        seq.frames[0].width,
+        seq.frames[0].height
+    );
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
-    let decoders = |w: u32| if w >= 128 { "HUGS decoders".to_string() } else { format!("HUGS decoders at most {w} wide (HUGS: 128)") };
+    let decoders = |w: u32| {
+        if w >= 128 {
+            "HUGS decoders".to_string()
+        } else {
+            format!("HUGS decoders at most {w} wide (HUGS: 128)")
+        }
+    };
     println!(
         "  body layer: triplane {0}x{0}x{1}, {2}, SH degree {3}, subdivision {4}, {5}",
         config.layers.body.triplane_resolution,
@@ -246,8 +291,17 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     if args.profile {
         ctx.start_profile();
     }
-    let outcome = train_interruptible(&ctx, &seq, model, &config, &out, resume, Some(&info), &interrupt, &mut |p| {
-        match p {
+    let outcome = train_interruptible(
+        &ctx,
+        &seq,
+        model,
+        &config,
+        &out,
+        resume,
+        Some(&info),
+        &interrupt,
+        &mut |p| {
+            match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
             Progress::Simulate { done, total } => eprint!("\rsimulating the garments through the motion {done:>4}/{total}   "),
@@ -263,9 +317,9 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
                 eprint!("\revaluating {}/{total}   ", done + 1)
             }
         }
-        let _ = std::io::stderr().flush();
-    })
-    ?;
+            let _ = std::io::stderr().flush();
+        },
+    )?;
     eprintln!();
     let report = match outcome {
         Outcome::Finished(report) => report,
@@ -281,24 +335,56 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     device.check_validation(&ctx)?;
     println!(
         "{}trained steps {}..{} in {:.1} s ({:.2} it/s); Gaussians: {}",
-        if report.start_step == 0 { format!("fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ", report.fit_steps, report.fit_seconds, report.fit_mse) } else { format!("resumed at step {}; ", report.start_step) },
-        report.start_step, report.steps, report.train_seconds, report.iterations_per_second, report.gaussians.iter().map(|(n, c)| format!("{c} {n}")).collect::<Vec<_>>().join(", ")
+        if report.start_step == 0 {
+            format!(
+                "fitted skinning weights in {} steps ({:.1} s, mse {:.2e}); ",
+                report.fit_steps, report.fit_seconds, report.fit_mse
+            )
+        } else {
+            format!("resumed at step {}; ", report.start_step)
+        },
+        report.start_step,
+        report.steps,
+        report.train_seconds,
+        report.iterations_per_second,
+        report
+            .gaussians
+            .iter()
+            .map(|(n, c)| format!("{c} {n}"))
+            .collect::<Vec<_>>()
+            .join(", ")
     );
     if args.profile {
         let path = out.join("profile.txt");
-        let table = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-        println!("profile of the training steps ({}):\n{table}", path.display());
+        let table = std::fs::read_to_string(&path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        println!(
+            "profile of the training steps ({}):\n{table}",
+            path.display()
+        );
     }
     if report.skipped_steps > 0 {
-        println!("skipped {} steps with non-finite gradients (logged in log.jsonl)", report.skipped_steps);
+        println!(
+            "skipped {} steps with non-finite gradients (logged in log.jsonl)",
+            report.skipped_steps
+        );
     }
     println!(
         "held-out ({} images, {}): PSNR {:.2} dB full, {:.2} dB human crop; SSIM {:.4} full, {:.4} crop (before training: PSNR {:.2} / {:.2}, SSIM {:.4} / {:.4})",
         report.fin.frames,
         if layers.scene { "whole frame" } else { "person on black" }, report.fin.psnr_full, report.fin.psnr_crop, report.fin.ssim_full, report.fin.ssim_crop, report.initial.psnr_full, report.initial.psnr_crop, report.initial.ssim_full, report.initial.ssim_crop
     );
-    let na = |v: Option<f64>| v.map_or("n/a (no --lpips-weights)".to_string(), |v| format!("{v:.4}"));
-    println!("held-out LPIPS ({}): {} full, {} crop", config.losses.lpips_net, na(report.fin.lpips_full), na(report.fin.lpips_crop));
+    let na = |v: Option<f64>| {
+        v.map_or("n/a (no --lpips-weights)".to_string(), |v| {
+            format!("{v:.4}")
+        })
+    };
+    println!(
+        "held-out LPIPS ({}): {} full, {} crop",
+        config.losses.lpips_net,
+        na(report.fin.lpips_full),
+        na(report.fin.lpips_crop)
+    );
     if let (Some(before), Some(after)) = (report.initial.cloth_chamfer, report.fin.cloth_chamfer) {
         println!("cloth Gaussians to the ground-truth garments (held-out frames): Chamfer {:.2} mm (before training: {:.2} mm)", 1e3 * after, 1e3 * before);
     }

@@ -63,7 +63,9 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Context as _};
 use drape_engine::ash::{self, vk};
 use drape_engine::validation::ValidationSink;
-use drape_engine::{Context, DeviceKind, ExternalOptions, ExternalVulkan, ImageTarget, PassTimings, SubmitSync};
+use drape_engine::{
+    Context, DeviceKind, ExternalOptions, ExternalVulkan, ImageTarget, PassTimings, SubmitSync,
+};
 use drape_trainer::avatar::animate::{pelvis_and_up, place_pose};
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
 use drape_trainer::dataset::loader::BodyParams;
@@ -105,8 +107,15 @@ pub struct ViewArgs {
 }
 
 fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| anyhow!("--size {s}: expected WxH, e.g. 640x480"))?;
-    let parse = |v: &str| v.trim().parse::<u32>().ok().filter(|&n| (1..=8192).contains(&n));
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| anyhow!("--size {s}: expected WxH, e.g. 640x480"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&n| (1..=8192).contains(&n))
+    };
     match (parse(w), parse(h)) {
         (Some(w), Some(h)) => Ok((w, h)),
         _ => bail!("--size {s}: width and height from 1 to 8192 expected, as WxH"),
@@ -114,14 +123,25 @@ fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
 }
 
 fn load_motion(spec: &str, min_frames: usize) -> anyhow::Result<Motion> {
-    let kind = if spec == "run" { Some(MotionKind::Jog) } else { MotionKind::parse(spec) };
+    let kind = if spec == "run" {
+        Some(MotionKind::Jog)
+    } else {
+        MotionKind::parse(spec)
+    };
     match kind {
         Some(kind) => Ok(procedural(kind, min_frames.max(120), 30.0, 1.0)),
         None => {
             let path = PathBuf::from(spec);
-            anyhow::ensure!(path.is_file(), "--motion {spec}: neither walk, run, jog, raise-arms, turn nor a motion file");
+            anyhow::ensure!(
+                path.is_file(),
+                "--motion {spec}: neither walk, run, jog, raise-arms, turn nor a motion file"
+            );
             let m = Motion::load_npz(&path)?;
-            anyhow::ensure!(!m.is_empty(), "{}: the motion has no frames", path.display());
+            anyhow::ensure!(
+                !m.is_empty(),
+                "{}: the motion has no frames",
+                path.display()
+            );
             Ok(m)
         }
     }
@@ -130,12 +150,29 @@ fn load_motion(spec: &str, min_frames: usize) -> anyhow::Result<Motion> {
 pub fn run(device: &drape_cli_support::DeviceArgs, args: &ViewArgs) -> anyhow::Result<()> {
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let motion = load_motion(&args.motion, args.frames.unwrap_or(0) as usize)?;
-    anyhow::ensure!(args.run.join("run.json").is_file(), "{}: not a run directory (no run.json)", args.run.display());
+    anyhow::ensure!(
+        args.run.join("run.json").is_file(),
+        "{}: not a run directory (no run.json)",
+        args.run.display()
+    );
     let validation = device.validation || std::env::var("DRAPE_VALIDATION").is_ok_and(|v| v == "1");
-    let device_name = device.device.clone().or_else(|| std::env::var("DRAPE_DEVICE").ok().filter(|s| !s.is_empty()));
-    let event_loop = EventLoop::new().map_err(|e| anyhow!("cannot open the window system (is DISPLAY set to a running X server?): {e}"))?;
+    let device_name = device
+        .device
+        .clone()
+        .or_else(|| std::env::var("DRAPE_DEVICE").ok().filter(|s| !s.is_empty()));
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow!("cannot open the window system (is DISPLAY set to a running X server?): {e}")
+    })?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    let mut app = App { args: args.clone(), size, motion: Some(motion), validation, device_name, viewer: None, error: None };
+    let mut app = App {
+        args: args.clone(),
+        size,
+        motion: Some(motion),
+        validation,
+        device_name,
+        viewer: None,
+        error: None,
+    };
     let result = event_loop.run_app(&mut app);
     // Engine objects first, then the viewer's device and instance (Viewer's Drop).
     let summary = app.viewer.take().map(|v| v.summary());
@@ -144,7 +181,10 @@ pub fn run(device: &drape_cli_support::DeviceArgs, args: &ViewArgs) -> anyhow::R
     }
     result.map_err(|e| anyhow!("event loop: {e}"))?;
     let messages = VALIDATION.drain().len();
-    anyhow::ensure!(messages == 0, "{messages} validation message(s) (printed above as validation: ...)");
+    anyhow::ensure!(
+        messages == 0,
+        "{messages} validation message(s) (printed above as validation: ...)"
+    );
     if let Some(s) = summary {
         println!("{s}");
     }
@@ -175,25 +215,42 @@ impl ApplicationHandler for App {
         if self.viewer.is_some() || self.error.is_some() {
             return;
         }
-        let Some(motion) = self.motion.take() else { return };
-        match Viewer::new(el, &self.args, self.size, motion, self.validation, self.device_name.as_deref()) {
+        let Some(motion) = self.motion.take() else {
+            return;
+        };
+        match Viewer::new(
+            el,
+            &self.args,
+            self.size,
+            motion,
+            self.validation,
+            self.device_name.as_deref(),
+        ) {
             Ok(v) => self.viewer = Some(v),
             Err(e) => self.fail(el, e),
         }
     }
 
     fn window_event(&mut self, el: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
-        let Some(v) = self.viewer.as_mut() else { return };
+        let Some(v) = self.viewer.as_mut() else {
+            return;
+        };
         match event {
             WindowEvent::CloseRequested => el.exit(),
-            WindowEvent::KeyboardInput { event, .. } if event.state == ElementState::Pressed => match event.logical_key {
-                Key::Named(NamedKey::Escape) => el.exit(),
-                Key::Named(NamedKey::Space) if !event.repeat => v.playing = !v.playing,
-                Key::Named(NamedKey::ArrowRight) => v.step(1),
-                Key::Named(NamedKey::ArrowLeft) => v.step(-1),
-                _ => {}
-            },
-            WindowEvent::MouseInput { state, button: MouseButton::Left, .. } => v.dragging = state == ElementState::Pressed,
+            WindowEvent::KeyboardInput { event, .. } if event.state == ElementState::Pressed => {
+                match event.logical_key {
+                    Key::Named(NamedKey::Escape) => el.exit(),
+                    Key::Named(NamedKey::Space) if !event.repeat => v.playing = !v.playing,
+                    Key::Named(NamedKey::ArrowRight) => v.step(1),
+                    Key::Named(NamedKey::ArrowLeft) => v.step(-1),
+                    _ => {}
+                }
+            }
+            WindowEvent::MouseInput {
+                state,
+                button: MouseButton::Left,
+                ..
+            } => v.dragging = state == ElementState::Pressed,
             WindowEvent::CursorMoved { position, .. } => {
                 if let (true, Some((x, y))) = (v.dragging, v.cursor) {
                     v.yaw -= (position.x - x) * 0.01;
@@ -207,7 +264,9 @@ impl ApplicationHandler for App {
     }
 
     fn about_to_wait(&mut self, el: &ActiveEventLoop) {
-        let Some(v) = self.viewer.as_mut() else { return };
+        let Some(v) = self.viewer.as_mut() else {
+            return;
+        };
         match v.tick() {
             Ok(true) => {}
             Ok(false) => el.exit(),
@@ -220,7 +279,8 @@ impl ApplicationHandler for App {
 // Validation messages of the viewer's own messenger: the engine's collector (it prints
 // each as `vulkan validation: ...`), in a static that outlives the messenger.
 
-static VALIDATION: std::sync::LazyLock<Arc<ValidationSink>> = std::sync::LazyLock::new(Default::default);
+static VALIDATION: std::sync::LazyLock<Arc<ValidationSink>> =
+    std::sync::LazyLock::new(Default::default);
 
 fn messenger_info() -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
     drape_engine::validation::messenger_info(&VALIDATION)
@@ -307,7 +367,14 @@ struct Viewer {
 }
 
 impl Viewer {
-    fn new(el: &ActiveEventLoop, args: &ViewArgs, size: Option<(u32, u32)>, motion: Motion, validation: bool, device_name: Option<&str>) -> anyhow::Result<Self> {
+    fn new(
+        el: &ActiveEventLoop,
+        args: &ViewArgs,
+        size: Option<(u32, u32)>,
+        motion: Motion,
+        validation: bool,
+        device_name: Option<&str>,
+    ) -> anyhow::Result<Self> {
         // The window first (the surface extension depends on its handle), at the run's
         // size; the run's size is only known from the player, so a provisional size here
         // when --size is absent, set once the player is loaded.
@@ -317,9 +384,17 @@ impl Viewer {
             .with_inner_size(PhysicalSize::new(provisional.0, provisional.1))
             .with_resizable(false)
             .with_decorations(false);
-        let window = el.create_window(attrs).map_err(|e| anyhow!("cannot create the window: {e}"))?;
-        let display_handle = window.display_handle().map_err(|e| anyhow!("window display handle: {e}"))?.as_raw();
-        let window_handle = window.window_handle().map_err(|e| anyhow!("window handle: {e}"))?.as_raw();
+        let window = el
+            .create_window(attrs)
+            .map_err(|e| anyhow!("cannot create the window: {e}"))?;
+        let display_handle = window
+            .display_handle()
+            .map_err(|e| anyhow!("window display handle: {e}"))?
+            .as_raw();
+        let window_handle = window
+            .window_handle()
+            .map_err(|e| anyhow!("window handle: {e}"))?
+            .as_raw();
         let (surface_ext, window_id): (&CStr, u64) = match (display_handle, window_handle) {
             (RawDisplayHandle::Xlib(_), RawWindowHandle::Xlib(w)) => (ash::khr::xlib_surface::NAME, w.window as u64),
             (RawDisplayHandle::Xcb(_), RawWindowHandle::Xcb(w)) => (ash::khr::xcb_surface::NAME, u64::from(w.window.get())),
@@ -327,10 +402,15 @@ impl Viewer {
         };
 
         // SAFETY: loads the system's Vulkan loader; nothing else is running Vulkan yet.
-        let entry = unsafe { ash::Entry::load() }.map_err(|e| anyhow!("cannot load the Vulkan loader (libvulkan.so.1): {e}"))?;
+        let entry = unsafe { ash::Entry::load() }
+            .map_err(|e| anyhow!("cannot load the Vulkan loader (libvulkan.so.1): {e}"))?;
         // SAFETY: an instance-level query with no layer.
         let available = unsafe { entry.enumerate_instance_extension_properties(None) }?;
-        let has_ext = |n: &CStr| available.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
+        let has_ext = |n: &CStr| {
+            available
+                .iter()
+                .any(|e| e.extension_name_as_c_str() == Ok(n))
+        };
         for n in [ash::khr::surface::NAME, surface_ext] {
             anyhow::ensure!(has_ext(n), "the Vulkan instance lacks {} (no X11 presentation support in the installed drivers)", n.to_string_lossy());
         }
@@ -345,16 +425,26 @@ impl Viewer {
             // SAFETY: an instance-level query.
             let props = unsafe { entry.enumerate_instance_layer_properties() }?;
             anyhow::ensure!(props.iter().any(|l| l.layer_name_as_c_str() == Ok(layer)), "DRAPE_VALIDATION=1 but VK_LAYER_KHRONOS_validation is not installed (package vulkan-validationlayers)");
-            anyhow::ensure!(debug_utils, "DRAPE_VALIDATION=1 but VK_EXT_debug_utils is unavailable");
+            anyhow::ensure!(
+                debug_utils,
+                "DRAPE_VALIDATION=1 but VK_EXT_debug_utils is unavailable"
+            );
             layers.push(layer.as_ptr());
             extensions.push(ash::ext::validation_features::NAME.as_ptr());
         }
         let app_name = c"drape view";
-        let app = vk::ApplicationInfo::default().application_name(app_name).engine_name(c"drape").api_version(vk::API_VERSION_1_2);
+        let app = vk::ApplicationInfo::default()
+            .application_name(app_name)
+            .engine_name(c"drape")
+            .api_version(vk::API_VERSION_1_2);
         let sync_validation = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
-        let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&sync_validation);
+        let mut features =
+            vk::ValidationFeaturesEXT::default().enabled_validation_features(&sync_validation);
         let mut chained = messenger_info();
-        let mut info = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers).enabled_extension_names(&extensions);
+        let mut info = vk::InstanceCreateInfo::default()
+            .application_info(&app)
+            .enabled_layer_names(&layers)
+            .enabled_extension_names(&extensions);
         if validation {
             // Chained so messages of instance creation and destruction are caught too.
             info = info.push_next(&mut features).push_next(&mut chained);
@@ -368,7 +458,8 @@ impl Viewer {
         let messenger = if debug_utils && validation {
             let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
             // SAFETY: the instance has VK_EXT_debug_utils enabled; the callback is a static fn.
-            let m = unsafe { du.create_debug_utils_messenger(&messenger_info(), None) }.context("vkCreateDebugUtilsMessengerEXT")?;
+            let m = unsafe { du.create_debug_utils_messenger(&messenger_info(), None) }
+                .context("vkCreateDebugUtilsMessengerEXT")?;
             partial.messenger = Some((du.clone(), m));
             Some((du, m))
         } else {
@@ -377,16 +468,24 @@ impl Viewer {
         let surface_fn = ash::khr::surface::Instance::new(&entry, &instance);
         let surface = match (display_handle, window_handle) {
             (RawDisplayHandle::Xlib(d), RawWindowHandle::Xlib(w)) => {
-                let dpy = d.display.ok_or_else(|| anyhow!("the Xlib display handle has no Display pointer"))?;
+                let dpy = d
+                    .display
+                    .ok_or_else(|| anyhow!("the Xlib display handle has no Display pointer"))?;
                 let f = ash::khr::xlib_surface::Instance::new(&entry, &instance);
-                let ci = vk::XlibSurfaceCreateInfoKHR::default().dpy(dpy.as_ptr().cast()).window(w.window);
+                let ci = vk::XlibSurfaceCreateInfoKHR::default()
+                    .dpy(dpy.as_ptr().cast())
+                    .window(w.window);
                 // SAFETY: the display and window are live (the window is owned by this Viewer and outlives the surface).
                 unsafe { f.create_xlib_surface(&ci, None) }.context("vkCreateXlibSurfaceKHR")?
             }
             (RawDisplayHandle::Xcb(d), RawWindowHandle::Xcb(w)) => {
-                let conn = d.connection.ok_or_else(|| anyhow!("the XCB display handle has no connection"))?;
+                let conn = d
+                    .connection
+                    .ok_or_else(|| anyhow!("the XCB display handle has no connection"))?;
                 let f = ash::khr::xcb_surface::Instance::new(&entry, &instance);
-                let ci = vk::XcbSurfaceCreateInfoKHR::default().connection(conn.as_ptr()).window(w.window.get());
+                let ci = vk::XcbSurfaceCreateInfoKHR::default()
+                    .connection(conn.as_ptr())
+                    .window(w.window.get());
                 // SAFETY: as above, for the XCB connection and window.
                 unsafe { f.create_xcb_surface(&ci, None) }.context("vkCreateXcbSurfaceKHR")?
             }
@@ -397,13 +496,17 @@ impl Viewer {
         // The physical device: DRAPE_DEVICE / --device substring, else the best kind;
         // it needs a family with graphics, compute and present.
         // SAFETY: a query of the live instance.
-        let physicals = unsafe { instance.enumerate_physical_devices() }.context("vkEnumeratePhysicalDevices")?;
+        let physicals = unsafe { instance.enumerate_physical_devices() }
+            .context("vkEnumeratePhysicalDevices")?;
         let mut candidates = Vec::new();
         let mut names = Vec::new();
         for &p in &physicals {
             // SAFETY: p is a physical device of this instance.
             let props = unsafe { instance.get_physical_device_properties(p) };
-            let name = props.device_name_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = props
+                .device_name_as_c_str()
+                .map(|c| c.to_string_lossy().into_owned())
+                .unwrap_or_default();
             names.push(name.clone());
             if let Some(want) = device_name {
                 if !name.to_lowercase().contains(&want.to_lowercase()) {
@@ -415,10 +518,19 @@ impl Viewer {
             let family = families.iter().enumerate().position(|(i, f)| {
                 let flags = vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE;
                 // SAFETY: the surface and physical device belong to this instance.
-                f.queue_flags.contains(flags) && unsafe { surface_fn.get_physical_device_surface_support(p, i as u32, surface) }.unwrap_or(false)
+                f.queue_flags.contains(flags)
+                    && unsafe {
+                        surface_fn.get_physical_device_surface_support(p, i as u32, surface)
+                    }
+                    .unwrap_or(false)
             });
             if let Some(family) = family {
-                candidates.push((DeviceKind::from_vk(props.device_type), p, family as u32, name));
+                candidates.push((
+                    DeviceKind::from_vk(props.device_type),
+                    p,
+                    family as u32,
+                    name,
+                ));
             }
         }
         candidates.sort_by_key(|c| c.0);
@@ -436,16 +548,24 @@ impl Viewer {
             .vulkan_memory_model(f.vulkan_memory_model)
             .vulkan_memory_model_device_scope(f.vulkan_memory_model_device_scope)
             .timeline_semaphore(f.timeline_semaphore);
-        let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default().shader_buffer_float32_atomic_add(f.shader_buffer_float32_atomic_add);
+        let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
+            .shader_buffer_float32_atomic_add(f.shader_buffer_float32_atomic_add);
         let core = vk::PhysicalDeviceFeatures::default().shader_int64(f.shader_int64);
         let priorities = [1.0f32];
-        let queue_info = [vk::DeviceQueueCreateInfo::default().queue_family_index(queue_family).queue_priorities(&priorities)];
-        let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&queue_info).enabled_extension_names(&device_ext_ptrs).enabled_features(&core).push_next(&mut f12);
+        let queue_info = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(queue_family)
+            .queue_priorities(&priorities)];
+        let mut dci = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queue_info)
+            .enabled_extension_names(&device_ext_ptrs)
+            .enabled_features(&core)
+            .push_next(&mut f12);
         if f.shader_buffer_float32_atomic_add {
             dci = dci.push_next(&mut atomic_float);
         }
         // SAFETY: every pointer in `dci` refers to locals alive for the call.
-        let device = unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice")?;
+        let device =
+            unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice")?;
         partial.device = Some(device.clone());
         // SAFETY: family `queue_family`, index 0 was requested above.
         let queue = unsafe { device.get_device_queue(queue_family, 0) };
@@ -460,7 +580,12 @@ impl Viewer {
             queue_family,
             queue_index: 0,
             api_version: vk::API_VERSION_1_2,
-            enabled_extensions: req.extensions.iter().map(|e| CString::from(*e)).chain([CString::from(ash::khr::swapchain::NAME)]).collect(),
+            enabled_extensions: req
+                .extensions
+                .iter()
+                .map(|e| CString::from(*e))
+                .chain([CString::from(ash::khr::swapchain::NAME)])
+                .collect(),
             enabled_features: f,
             debug_utils,
         };
@@ -474,7 +599,10 @@ impl Viewer {
         partial.engine = Some((player, ctx));
         let (width, height) = {
             let (player, _) = partial.engine.as_ref().expect("just set");
-            size.unwrap_or((player.default_camera().width, player.default_camera().height))
+            size.unwrap_or((
+                player.default_camera().width,
+                player.default_camera().height,
+            ))
         };
         if (width, height) != provisional {
             let _ = window.request_inner_size(PhysicalSize::new(width, height));
@@ -482,33 +610,65 @@ impl Viewer {
 
         // The blit's formats.
         // SAFETY: a query on the chosen physical device.
-        let rgba_props = unsafe { instance.get_physical_device_format_properties(physical, vk::Format::R32G32B32A32_SFLOAT) };
-        anyhow::ensure!(rgba_props.optimal_tiling_features.contains(vk::FormatFeatureFlags::BLIT_SRC | vk::FormatFeatureFlags::TRANSFER_DST), "{device_label}: R32G32B32A32_SFLOAT images cannot be blitted from");
+        let rgba_props = unsafe {
+            instance
+                .get_physical_device_format_properties(physical, vk::Format::R32G32B32A32_SFLOAT)
+        };
+        anyhow::ensure!(
+            rgba_props
+                .optimal_tiling_features
+                .contains(vk::FormatFeatureFlags::BLIT_SRC | vk::FormatFeatureFlags::TRANSFER_DST),
+            "{device_label}: R32G32B32A32_SFLOAT images cannot be blitted from"
+        );
         // SAFETY: surface queries on the chosen device and the viewer's surface.
-        let formats = unsafe { surface_fn.get_physical_device_surface_formats(physical, surface) }.context("vkGetPhysicalDeviceSurfaceFormatsKHR")?;
+        let formats = unsafe { surface_fn.get_physical_device_surface_formats(physical, surface) }
+            .context("vkGetPhysicalDeviceSurfaceFormatsKHR")?;
         let blit_dst = |fmt: vk::Format| {
             // SAFETY: as above.
-            unsafe { instance.get_physical_device_format_properties(physical, fmt) }.optimal_tiling_features.contains(vk::FormatFeatureFlags::BLIT_DST)
+            unsafe { instance.get_physical_device_format_properties(physical, fmt) }
+                .optimal_tiling_features
+                .contains(vk::FormatFeatureFlags::BLIT_DST)
         };
         // UNORM first: the window then shows the render's values as they are (the test
         // compares them with the library's render at 8 bits).
-        let swap_format = [vk::Format::B8G8R8A8_UNORM, vk::Format::R8G8B8A8_UNORM, vk::Format::A8B8G8R8_UNORM_PACK32]
-            .iter()
-            .find_map(|want| formats.iter().find(|f| f.format == *want && blit_dst(f.format)).copied())
-            .or_else(|| formats.iter().find(|f| blit_dst(f.format)).copied())
-            .ok_or_else(|| anyhow!("{device_label}: no swapchain format the blit can write"))?;
+        let swap_format = [
+            vk::Format::B8G8R8A8_UNORM,
+            vk::Format::R8G8B8A8_UNORM,
+            vk::Format::A8B8G8R8_UNORM_PACK32,
+        ]
+        .iter()
+        .find_map(|want| {
+            formats
+                .iter()
+                .find(|f| f.format == *want && blit_dst(f.format))
+                .copied()
+        })
+        .or_else(|| formats.iter().find(|f| blit_dst(f.format)).copied())
+        .ok_or_else(|| anyhow!("{device_label}: no swapchain format the blit can write"))?;
         // SAFETY: as above.
-        let modes = unsafe { surface_fn.get_physical_device_surface_present_modes(physical, surface) }.context("vkGetPhysicalDeviceSurfacePresentModesKHR")?;
-        let present_mode = [vk::PresentModeKHR::MAILBOX, vk::PresentModeKHR::IMMEDIATE].into_iter().find(|m| modes.contains(m)).unwrap_or(vk::PresentModeKHR::FIFO);
+        let modes =
+            unsafe { surface_fn.get_physical_device_surface_present_modes(physical, surface) }
+                .context("vkGetPhysicalDeviceSurfacePresentModesKHR")?;
+        let present_mode = [vk::PresentModeKHR::MAILBOX, vk::PresentModeKHR::IMMEDIATE]
+            .into_iter()
+            .find(|m| modes.contains(m))
+            .unwrap_or(vk::PresentModeKHR::FIFO);
 
         // Per frame in flight.
-        let pool_info = vk::CommandPoolCreateInfo::default().queue_family_index(queue_family).flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(queue_family)
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
         // SAFETY: a pool on the live device.
-        let pool = unsafe { device.create_command_pool(&pool_info, None) }.context("vkCreateCommandPool")?;
+        let pool = unsafe { device.create_command_pool(&pool_info, None) }
+            .context("vkCreateCommandPool")?;
         partial.pool = pool;
-        let alloc = vk::CommandBufferAllocateInfo::default().command_pool(pool).level(vk::CommandBufferLevel::PRIMARY).command_buffer_count(k as u32 + 1);
+        let alloc = vk::CommandBufferAllocateInfo::default()
+            .command_pool(pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(k as u32 + 1);
         // SAFETY: the pool is live; the buffers are freed with it.
-        let cmds = unsafe { device.allocate_command_buffers(&alloc) }.context("vkAllocateCommandBuffers")?;
+        let cmds = unsafe { device.allocate_command_buffers(&alloc) }
+            .context("vkAllocateCommandBuffers")?;
         // SAFETY: a query on the chosen physical device.
         let mem_props = unsafe { instance.get_physical_device_memory_properties(physical) };
         for i in 0..k {
@@ -521,9 +681,33 @@ impl Viewer {
         // SAFETY: a fresh primary command buffer of the pool; the barriers name the
         // slots' live images; the submission is waited for before anything else uses them.
         unsafe {
-            device.begin_command_buffer(init, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))?;
-            let barriers: Vec<_> = partial.slots.iter().map(|s| image_barrier(s.image, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::AccessFlags::empty(), vk::AccessFlags::TRANSFER_WRITE)).collect();
-            device.cmd_pipeline_barrier(init, vk::PipelineStageFlags::TOP_OF_PIPE, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &[], &[], &barriers);
+            device.begin_command_buffer(
+                init,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )?;
+            let barriers: Vec<_> = partial
+                .slots
+                .iter()
+                .map(|s| {
+                    image_barrier(
+                        s.image,
+                        vk::ImageLayout::UNDEFINED,
+                        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                        vk::AccessFlags::empty(),
+                        vk::AccessFlags::TRANSFER_WRITE,
+                    )
+                })
+                .collect();
+            device.cmd_pipeline_barrier(
+                init,
+                vk::PipelineStageFlags::TOP_OF_PIPE,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::DependencyFlags::empty(),
+                &[],
+                &[],
+                &barriers,
+            );
             device.end_command_buffer(init)?;
             let cb = [init];
             let submit = vk::SubmitInfo::default().command_buffers(&cb);
@@ -534,7 +718,8 @@ impl Viewer {
         let (player, ctx) = partial.engine.take().expect("set above");
         let anchor_body = player.default_body().clone();
         let rest_pelvis = player.rig().rest_joints()[0];
-        let (anchor_pelvis, up) = pelvis_and_up(&player.rig().frame(&anchor_body).transforms, rest_pelvis);
+        let (anchor_pelvis, up) =
+            pelvis_and_up(&player.rig().frame(&anchor_body).transforms, rest_pelvis);
         let slots = std::mem::take(&mut partial.slots);
         partial.disarm();
         println!("window 0x{window_id:x}");
@@ -587,7 +772,10 @@ impl Viewer {
             last_frame_at: now,
         };
         viewer.recreate_swapchain()?;
-        eprintln!("view: {}x{} render, swapchain {:?} {:?}, {} frames in flight", width, height, swap_format.format, present_mode, k);
+        eprintln!(
+            "view: {}x{} render, swapchain {:?} {:?}, {} frames in flight",
+            width, height, swap_format.format, present_mode, k
+        );
         Ok(viewer)
     }
 
@@ -597,10 +785,22 @@ impl Viewer {
         // to finish before the old swapchain and its semaphores go.
         unsafe { self.device.device_wait_idle() }.context("vkDeviceWaitIdle")?;
         // SAFETY: a query on the viewer's surface.
-        let caps = unsafe { self.surface_fn.get_physical_device_surface_capabilities(self.physical, self.surface) }.context("vkGetPhysicalDeviceSurfaceCapabilitiesKHR")?;
-        anyhow::ensure!(caps.supported_usage_flags.contains(vk::ImageUsageFlags::TRANSFER_DST), "{}: swapchain images cannot be transfer destinations (needed by the blit)", self.device_label);
+        let caps = unsafe {
+            self.surface_fn
+                .get_physical_device_surface_capabilities(self.physical, self.surface)
+        }
+        .context("vkGetPhysicalDeviceSurfaceCapabilitiesKHR")?;
+        anyhow::ensure!(
+            caps.supported_usage_flags
+                .contains(vk::ImageUsageFlags::TRANSFER_DST),
+            "{}: swapchain images cannot be transfer destinations (needed by the blit)",
+            self.device_label
+        );
         let extent = if caps.current_extent.width == u32::MAX {
-            vk::Extent2D { width: self.width, height: self.height }
+            vk::Extent2D {
+                width: self.width,
+                height: self.height,
+            }
         } else {
             caps.current_extent
         };
@@ -612,11 +812,19 @@ impl Viewer {
         if caps.max_image_count > 0 {
             count = count.min(caps.max_image_count);
         }
-        let alpha = [vk::CompositeAlphaFlagsKHR::OPAQUE, vk::CompositeAlphaFlagsKHR::INHERIT, vk::CompositeAlphaFlagsKHR::PRE_MULTIPLIED, vk::CompositeAlphaFlagsKHR::POST_MULTIPLIED]
-            .into_iter()
-            .find(|a| caps.supported_composite_alpha.contains(*a))
-            .unwrap_or(vk::CompositeAlphaFlagsKHR::OPAQUE);
-        let old = self.swapchain.as_ref().map_or(vk::SwapchainKHR::null(), |s| s.raw);
+        let alpha = [
+            vk::CompositeAlphaFlagsKHR::OPAQUE,
+            vk::CompositeAlphaFlagsKHR::INHERIT,
+            vk::CompositeAlphaFlagsKHR::PRE_MULTIPLIED,
+            vk::CompositeAlphaFlagsKHR::POST_MULTIPLIED,
+        ]
+        .into_iter()
+        .find(|a| caps.supported_composite_alpha.contains(*a))
+        .unwrap_or(vk::CompositeAlphaFlagsKHR::OPAQUE);
+        let old = self
+            .swapchain
+            .as_ref()
+            .map_or(vk::SwapchainKHR::null(), |s| s.raw);
         let info = vk::SwapchainCreateInfoKHR::default()
             .surface(self.surface)
             .min_image_count(count)
@@ -632,16 +840,29 @@ impl Viewer {
             .clipped(true)
             .old_swapchain(old);
         // SAFETY: the surface is live; the old swapchain (if any) is idle (waited above).
-        let raw = unsafe { self.swapchain_fn.create_swapchain(&info, None) }.context("vkCreateSwapchainKHR")?;
+        let raw = unsafe { self.swapchain_fn.create_swapchain(&info, None) }
+            .context("vkCreateSwapchainKHR")?;
         self.destroy_swapchain();
         // SAFETY: the swapchain was just created.
-        let images = unsafe { self.swapchain_fn.get_swapchain_images(raw) }.context("vkGetSwapchainImagesKHR")?;
+        let images = unsafe { self.swapchain_fn.get_swapchain_images(raw) }
+            .context("vkGetSwapchainImagesKHR")?;
         let mut present_ready = Vec::with_capacity(images.len());
         for _ in &images {
             // SAFETY: a binary semaphore on the live device.
-            present_ready.push(unsafe { self.device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None) }.context("vkCreateSemaphore")?);
+            present_ready.push(
+                unsafe {
+                    self.device
+                        .create_semaphore(&vk::SemaphoreCreateInfo::default(), None)
+                }
+                .context("vkCreateSemaphore")?,
+            );
         }
-        self.swapchain = Some(Swapchain { raw, images, present_ready, extent });
+        self.swapchain = Some(Swapchain {
+            raw,
+            images,
+            present_ready,
+            extent,
+        });
         Ok(())
     }
 
@@ -688,7 +909,10 @@ impl Viewer {
         };
         let mut v = ViewCamera::from_camera(&cam);
         if (self.width, self.height) != (start.width, start.height) {
-            let (sx, sy) = (self.width as f32 / start.width as f32, self.height as f32 / start.height as f32);
+            let (sx, sy) = (
+                self.width as f32 / start.width as f32,
+                self.height as f32 / start.height as f32,
+            );
             v.fx *= sx;
             v.cx *= sx;
             v.fy *= sy;
@@ -703,12 +927,19 @@ impl Viewer {
         let dt = now.duration_since(self.last_tick).as_secs_f64();
         self.last_tick = now;
         if let Phase::Holding(since) = self.phase {
-            let shot = self.screenshot.as_ref().expect("holding only with --screenshot");
+            let shot = self
+                .screenshot
+                .as_ref()
+                .expect("holding only with --screenshot");
             if marker(shot, "done").exists() {
                 return Ok(false);
             }
             if since.elapsed() > HOLD_TIMEOUT {
-                eprintln!("view: {} did not appear within {} s; exiting", marker(shot, "done").display(), HOLD_TIMEOUT.as_secs());
+                eprintln!(
+                    "view: {} did not appear within {} s; exiting",
+                    marker(shot, "done").display(),
+                    HOLD_TIMEOUT.as_secs()
+                );
                 return Ok(false);
             }
             self.present(self.last_slot)?;
@@ -751,9 +982,16 @@ impl Viewer {
         let slot_fence = self.slots[s].fence;
         // SAFETY: the fence is the slot's, submitted with its previous command buffer
         // (or created signalled).
-        unsafe { self.device.wait_for_fences(&[slot_fence], true, u64::MAX) }.context("vkWaitForFences")?;
-        let Some(image_index) = self.acquire(s)? else { return Ok(false) };
-        let body = place_pose(&self.anchor_body, &self.motion.poses[k], self.motion.translations[k]);
+        unsafe { self.device.wait_for_fences(&[slot_fence], true, u64::MAX) }
+            .context("vkWaitForFences")?;
+        let Some(image_index) = self.acquire(s)? else {
+            return Ok(false);
+        };
+        let body = place_pose(
+            &self.anchor_body,
+            &self.motion.poses[k],
+            self.motion.translations[k],
+        );
         let mut player = self.player.take().expect("present until Drop");
         let result = (|| -> anyhow::Result<()> {
             player.set_body(body.clone());
@@ -763,9 +1001,21 @@ impl Viewer {
             // TRANSFER_DST_OPTIMAL (kept there between frames; the fence wait above
             // ordered the last blit out of it and its transition back before this
             // submission); it lives until Drop, after the player.
-            let target = unsafe { ImageTarget::new(self.slots[s].image, vk::ImageLayout::TRANSFER_DST_OPTIMAL, self.width, self.height, 16) };
-            let sync = SubmitSync { wait: vec![], signal: vec![(self.slots[s].render_done, 0)] };
-            let (_, timings) = player.submit_frame(&cam, self.width, self.height, &sync, Some(&target))?;
+            let target = unsafe {
+                ImageTarget::new(
+                    self.slots[s].image,
+                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                    self.width,
+                    self.height,
+                    16,
+                )
+            };
+            let sync = SubmitSync {
+                wait: vec![],
+                signal: vec![(self.slots[s].render_done, 0)],
+            };
+            let (_, timings) =
+                player.submit_frame(&cam, self.width, self.height, &sync, Some(&target))?;
             if let Some(t) = timings {
                 self.busy_ms_sum += t.busy_ms();
                 self.busy_count += 1;
@@ -792,14 +1042,22 @@ impl Viewer {
         let sc = self.swapchain.as_ref().expect("created before a frame");
         // SAFETY: the semaphore is unsignalled with no pending operation: the slot's
         // fence (waited by the caller) covers the submission that waited on it.
-        let r = unsafe { self.swapchain_fn.acquire_next_image(sc.raw, u64::MAX, self.slots[s].acquired, vk::Fence::null()) };
+        let r = unsafe {
+            self.swapchain_fn.acquire_next_image(
+                sc.raw,
+                u64::MAX,
+                self.slots[s].acquired,
+                vk::Fence::null(),
+            )
+        };
         match r {
             Ok((i, suboptimal)) => {
                 if suboptimal {
                     self.swapchain_stale = true;
                 }
                 // SAFETY: the fence was waited for by the caller and is not in use.
-                unsafe { self.device.reset_fences(&[self.slots[s].fence]) }.context("vkResetFences")?;
+                unsafe { self.device.reset_fences(&[self.slots[s].fence]) }
+                    .context("vkResetFences")?;
                 Ok(Some(i))
             }
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
@@ -813,7 +1071,13 @@ impl Viewer {
     /// Records and submits slot `s`'s command buffer that blits `src_slot`'s image into
     /// swapchain image `image_index` and presents it; waits on the slot's `acquired`
     /// semaphore and, with `wait_render`, on its `render_done` (see the module header).
-    fn blit_and_present(&mut self, s: usize, src_slot: usize, image_index: u32, wait_render: bool) -> anyhow::Result<()> {
+    fn blit_and_present(
+        &mut self,
+        s: usize,
+        src_slot: usize,
+        image_index: u32,
+        wait_render: bool,
+    ) -> anyhow::Result<()> {
         let sc = self.swapchain.as_ref().expect("created before a frame");
         let dev = &self.device;
         let slot = &self.slots[s];
@@ -824,24 +1088,88 @@ impl Viewer {
         // SAFETY: the slot's command buffer is not pending (its fence was waited for);
         // every image named is live; the layouts are those the module header describes.
         unsafe {
-            dev.begin_command_buffer(slot.cmd, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT)).context("vkBeginCommandBuffer")?;
+            dev.begin_command_buffer(
+                slot.cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .context("vkBeginCommandBuffer")?;
             let before = [
-                image_barrier(src, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::AccessFlags::TRANSFER_WRITE, vk::AccessFlags::TRANSFER_READ),
-                image_barrier(dst, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::AccessFlags::empty(), vk::AccessFlags::TRANSFER_WRITE),
+                image_barrier(
+                    src,
+                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                    vk::AccessFlags::TRANSFER_WRITE,
+                    vk::AccessFlags::TRANSFER_READ,
+                ),
+                image_barrier(
+                    dst,
+                    vk::ImageLayout::UNDEFINED,
+                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                    vk::AccessFlags::empty(),
+                    vk::AccessFlags::TRANSFER_WRITE,
+                ),
             ];
-            dev.cmd_pipeline_barrier(slot.cmd, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &[], &[], &before);
-            let layers = vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1);
+            dev.cmd_pipeline_barrier(
+                slot.cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::DependencyFlags::empty(),
+                &[],
+                &[],
+                &before,
+            );
+            let layers = vk::ImageSubresourceLayers::default()
+                .aspect_mask(vk::ImageAspectFlags::COLOR)
+                .layer_count(1);
             let blit = vk::ImageBlit::default()
                 .src_subresource(layers)
                 .src_offsets([vk::Offset3D::default(), vk::Offset3D { x: w, y: h, z: 1 }])
                 .dst_subresource(layers)
                 .dst_offsets([vk::Offset3D::default(), vk::Offset3D { x: dw, y: dh, z: 1 }]);
-            dev.cmd_blit_image(slot.cmd, src, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, dst, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[blit], vk::Filter::NEAREST);
-            let to_present = [image_barrier(dst, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::ImageLayout::PRESENT_SRC_KHR, vk::AccessFlags::TRANSFER_WRITE, vk::AccessFlags::empty())];
-            dev.cmd_pipeline_barrier(slot.cmd, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::BOTTOM_OF_PIPE, vk::DependencyFlags::empty(), &[], &[], &to_present);
-            let back = [image_barrier(src, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::AccessFlags::TRANSFER_READ, vk::AccessFlags::TRANSFER_WRITE)];
-            dev.cmd_pipeline_barrier(slot.cmd, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &[], &[], &back);
-            dev.end_command_buffer(slot.cmd).context("vkEndCommandBuffer")?;
+            dev.cmd_blit_image(
+                slot.cmd,
+                src,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                dst,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                &[blit],
+                vk::Filter::NEAREST,
+            );
+            let to_present = [image_barrier(
+                dst,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                vk::ImageLayout::PRESENT_SRC_KHR,
+                vk::AccessFlags::TRANSFER_WRITE,
+                vk::AccessFlags::empty(),
+            )];
+            dev.cmd_pipeline_barrier(
+                slot.cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::BOTTOM_OF_PIPE,
+                vk::DependencyFlags::empty(),
+                &[],
+                &[],
+                &to_present,
+            );
+            let back = [image_barrier(
+                src,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                vk::AccessFlags::TRANSFER_READ,
+                vk::AccessFlags::TRANSFER_WRITE,
+            )];
+            dev.cmd_pipeline_barrier(
+                slot.cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::DependencyFlags::empty(),
+                &[],
+                &[],
+                &back,
+            );
+            dev.end_command_buffer(slot.cmd)
+                .context("vkEndCommandBuffer")?;
         }
         let mut waits = vec![slot.acquired];
         if wait_render {
@@ -850,13 +1178,21 @@ impl Viewer {
         let stages = vec![vk::PipelineStageFlags::TRANSFER; waits.len()];
         let cmds = [slot.cmd];
         let signal = [sc.present_ready[image_index as usize]];
-        let submit = vk::SubmitInfo::default().wait_semaphores(&waits).wait_dst_stage_mask(&stages).command_buffers(&cmds).signal_semaphores(&signal);
+        let submit = vk::SubmitInfo::default()
+            .wait_semaphores(&waits)
+            .wait_dst_stage_mask(&stages)
+            .command_buffers(&cmds)
+            .signal_semaphores(&signal);
         // SAFETY: the queue is used from this thread only (the engine submits from the
         // same thread, inside player calls); the fence was reset in `acquire`.
-        unsafe { dev.queue_submit(self.queue, &[submit], slot.fence) }.context("vkQueueSubmit (blit)")?;
+        unsafe { dev.queue_submit(self.queue, &[submit], slot.fence) }
+            .context("vkQueueSubmit (blit)")?;
         let swapchains = [sc.raw];
         let indices = [image_index];
-        let present = vk::PresentInfoKHR::default().wait_semaphores(&signal).swapchains(&swapchains).image_indices(&indices);
+        let present = vk::PresentInfoKHR::default()
+            .wait_semaphores(&signal)
+            .swapchains(&swapchains)
+            .image_indices(&indices);
         // SAFETY: the image was acquired and its blit submitted, signalling `signal`.
         match unsafe { self.swapchain_fn.queue_present(self.queue, &present) } {
             Ok(false) => {}
@@ -871,12 +1207,15 @@ impl Viewer {
     fn present(&mut self, src_slot: usize) -> anyhow::Result<()> {
         let fences: Vec<_> = self.slots.iter().map(|s| s.fence).collect();
         // SAFETY: the slots' fences, each submitted or created signalled.
-        unsafe { self.device.wait_for_fences(&fences, true, u64::MAX) }.context("vkWaitForFences")?;
+        unsafe { self.device.wait_for_fences(&fences, true, u64::MAX) }
+            .context("vkWaitForFences")?;
         if self.swapchain_stale {
             self.recreate_swapchain()?;
         }
         let s = (self.frame % self.slots.len() as u64) as usize;
-        let Some(i) = self.acquire(s)? else { return Ok(()) };
+        let Some(i) = self.acquire(s)? else {
+            return Ok(());
+        };
         self.blit_and_present(s, src_slot, i, false)?;
         self.frame += 1;
         Ok(())
@@ -892,19 +1231,33 @@ impl Viewer {
         self.title_frames = 0;
         let gpu = match &self.timings {
             Some(t) => {
-                let scopes: Vec<String> = t.by_scope().iter().map(|(s, ms)| format!("{s} {ms:.1}")).collect();
+                let scopes: Vec<String> = t
+                    .by_scope()
+                    .iter()
+                    .map(|(s, ms)| format!("{s} {ms:.1}"))
+                    .collect();
                 format!("GPU {:.1} ms ({})", t.busy_ms(), scopes.join(", "))
             }
             None => "GPU -".into(),
         };
-        let paused = if self.playing || self.frames_limit.is_some() { "" } else { " [paused]" };
-        self.window.set_title(&format!("drape view | {fps:.1} FPS | {gpu} | frame {}/{}{paused}", k + 1, self.motion.len()));
+        let paused = if self.playing || self.frames_limit.is_some() {
+            ""
+        } else {
+            " [paused]"
+        };
+        self.window.set_title(&format!(
+            "drape view | {fps:.1} FPS | {gpu} | frame {}/{}{paused}",
+            k + 1,
+            self.motion.len()
+        ));
     }
 
     /// After `--frames N`: prints the rate; with `--screenshot` writes the library's
     /// render and the `.ready` marker and starts holding the last frame.
     fn finish_frames(&mut self) -> anyhow::Result<bool> {
-        let Some(shot) = self.screenshot.clone() else { return Ok(false) };
+        let Some(shot) = self.screenshot.clone() else {
+            return Ok(false);
+        };
         let mut player = self.player.take().expect("present until Drop");
         let result = (|| -> anyhow::Result<()> {
             let body = player.body().clone();
@@ -914,21 +1267,41 @@ impl Viewer {
         })();
         self.player = Some(player);
         result?;
-        std::fs::write(marker(&shot, "ready"), b"").with_context(|| format!("{}", marker(&shot, "ready").display()))?;
-        eprintln!("view: wrote {}; presenting the last frame until {} exists", shot.display(), marker(&shot, "done").display());
+        std::fs::write(marker(&shot, "ready"), b"")
+            .with_context(|| format!("{}", marker(&shot, "ready").display()))?;
+        eprintln!(
+            "view: wrote {}; presenting the last frame until {} exists",
+            shot.display(),
+            marker(&shot, "done").display()
+        );
         self.phase = Phase::Holding(Instant::now());
         Ok(true)
     }
 
     fn summary(&self) -> String {
-        let frames = self.frames_limit.map_or(self.frame, |n| u64::from(n).min(self.frame));
+        let frames = self
+            .frames_limit
+            .map_or(self.frame, |n| u64::from(n).min(self.frame));
         // Up to the last rendered frame (not the --screenshot hold).
-        let secs = self.last_frame_at.duration_since(self.started).as_secs_f64();
+        let secs = self
+            .last_frame_at
+            .duration_since(self.started)
+            .as_secs_f64();
         let steady = match self.first_frame_at {
-            Some(t) if frames > 1 => format!(", {:.2} FPS after the first", (frames - 1) as f64 / self.last_frame_at.duration_since(t).as_secs_f64().max(1e-9)),
+            Some(t) if frames > 1 => format!(
+                ", {:.2} FPS after the first",
+                (frames - 1) as f64 / self.last_frame_at.duration_since(t).as_secs_f64().max(1e-9)
+            ),
             _ => String::new(),
         };
-        let gpu = if self.busy_count > 0 { format!(", GPU busy {:.1} ms per frame", self.busy_ms_sum / self.busy_count as f64) } else { String::new() };
+        let gpu = if self.busy_count > 0 {
+            format!(
+                ", GPU busy {:.1} ms per frame",
+                self.busy_ms_sum / self.busy_count as f64
+            )
+        } else {
+            String::new()
+        };
         format!("view: {frames} frames at {}x{} on {} ({} frames in flight): {:.2} FPS over {:.1} s from the first frame's start{steady}{gpu}", self.width, self.height, self.device_label, self.slots.len(), frames as f64 / secs.max(1e-9), secs)
     }
 }
@@ -947,12 +1320,20 @@ fn write_png16(path: &Path, w: u32, h: u32, rgba: &[f32]) -> anyhow::Result<()> 
             data.push((c.clamp(0.0, 1.0) * 65535.0).round() as u16);
         }
     }
-    let img = image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(w, h, data).ok_or_else(|| anyhow!("screenshot: {} floats for {w}x{h}", rgba.len()))?;
-    img.save(path).with_context(|| format!("writing {}", path.display()))?;
+    let img = image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(w, h, data)
+        .ok_or_else(|| anyhow!("screenshot: {} floats for {w}x{h}", rgba.len()))?;
+    img.save(path)
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }
 
-fn image_barrier(image: vk::Image, old: vk::ImageLayout, new: vk::ImageLayout, src: vk::AccessFlags, dst: vk::AccessFlags) -> vk::ImageMemoryBarrier<'static> {
+fn image_barrier(
+    image: vk::Image,
+    old: vk::ImageLayout,
+    new: vk::ImageLayout,
+    src: vk::AccessFlags,
+    dst: vk::AccessFlags,
+) -> vk::ImageMemoryBarrier<'static> {
     vk::ImageMemoryBarrier::default()
         .src_access_mask(src)
         .dst_access_mask(dst)
@@ -961,14 +1342,29 @@ fn image_barrier(image: vk::Image, old: vk::ImageLayout, new: vk::ImageLayout, s
         .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
         .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
         .image(image)
-        .subresource_range(vk::ImageSubresourceRange::default().aspect_mask(vk::ImageAspectFlags::COLOR).level_count(1).layer_count(1))
+        .subresource_range(
+            vk::ImageSubresourceRange::default()
+                .aspect_mask(vk::ImageAspectFlags::COLOR)
+                .level_count(1)
+                .layer_count(1),
+        )
 }
 
-fn create_slot(device: &ash::Device, mem_props: &vk::PhysicalDeviceMemoryProperties, width: u32, height: u32, cmd: vk::CommandBuffer) -> anyhow::Result<Slot> {
+fn create_slot(
+    device: &ash::Device,
+    mem_props: &vk::PhysicalDeviceMemoryProperties,
+    width: u32,
+    height: u32,
+    cmd: vk::CommandBuffer,
+) -> anyhow::Result<Slot> {
     let info = vk::ImageCreateInfo::default()
         .image_type(vk::ImageType::TYPE_2D)
         .format(vk::Format::R32G32B32A32_SFLOAT)
-        .extent(vk::Extent3D { width, height, depth: 1 })
+        .extent(vk::Extent3D {
+            width,
+            height,
+            depth: 1,
+        })
         .mip_levels(1)
         .array_layers(1)
         .samples(vk::SampleCountFlags::TYPE_1)
@@ -981,13 +1377,23 @@ fn create_slot(device: &ash::Device, mem_props: &vk::PhysicalDeviceMemoryPropert
     unsafe {
         let image = device.create_image(&info, None).context("vkCreateImage")?;
         let req = device.get_image_memory_requirements(image);
-        let types = (0..mem_props.memory_type_count).filter(|&i| req.memory_type_bits & (1 << i) != 0);
-        let local = types.clone().find(|&i| mem_props.memory_types[i as usize].property_flags.contains(vk::MemoryPropertyFlags::DEVICE_LOCAL));
+        let types =
+            (0..mem_props.memory_type_count).filter(|&i| req.memory_type_bits & (1 << i) != 0);
+        let local = types.clone().find(|&i| {
+            mem_props.memory_types[i as usize]
+                .property_flags
+                .contains(vk::MemoryPropertyFlags::DEVICE_LOCAL)
+        });
         let Some(type_index) = local.or_else(|| types.clone().next()) else {
             device.destroy_image(image, None);
             bail!("no memory type for the render image");
         };
-        let memory = match device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(req.size).memory_type_index(type_index), None) {
+        let memory = match device.allocate_memory(
+            &vk::MemoryAllocateInfo::default()
+                .allocation_size(req.size)
+                .memory_type_index(type_index),
+            None,
+        ) {
             Ok(m) => m,
             Err(e) => {
                 device.destroy_image(image, None);
@@ -1005,8 +1411,12 @@ fn create_slot(device: &ash::Device, mem_props: &vk::PhysicalDeviceMemoryPropert
         let mut slot = slot;
         let made = (|| -> Result<(), vk::Result> {
             device.bind_image_memory(image, memory, 0)?;
-            slot.fence = device.create_fence(&vk::FenceCreateInfo::default().flags(vk::FenceCreateFlags::SIGNALED), None)?;
-            slot.render_done = device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None)?;
+            slot.fence = device.create_fence(
+                &vk::FenceCreateInfo::default().flags(vk::FenceCreateFlags::SIGNALED),
+                None,
+            )?;
+            slot.render_done =
+                device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None)?;
             slot.acquired = device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None)?;
             Ok(())
         })();

@@ -45,7 +45,11 @@ pub struct AvatarArgs {
     /// Compositing variants: three-pass (the paper's), three-pass-occlusion, single-pass,
     /// fused (the paper's three images from one sort and one rasterization),
     /// fused-occlusion.
-    #[arg(long, value_delimiter = ',', default_value = "three-pass,three-pass-occlusion,fused,single-pass")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "three-pass,three-pass-occlusion,fused,single-pass"
+    )]
     pub compositing: Vec<String>,
     /// Timed frames per configuration (the median is reported).
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
@@ -87,7 +91,12 @@ fn stage(pass: &str) -> &'static str {
         "skinning"
     } else if starts("splat.project") || starts("splat.pack_sh_half") {
         "projection"
-    } else if starts("radix_sort.") || starts("splat.scan") || starts("splat.gather_counts") || starts("splat.emit_intersections") || starts("splat.tile_ranges") {
+    } else if starts("radix_sort.")
+        || starts("splat.scan")
+        || starts("splat.gather_counts")
+        || starts("splat.emit_intersections")
+        || starts("splat.tile_ranges")
+    {
         "binning and sorts"
     } else if starts("splat.rasterize") || starts("splat.pack_splats_half") {
         "rasterization"
@@ -106,18 +115,50 @@ pub(crate) fn by_stage(profile: &Profile) -> BTreeMap<String, f64> {
     stages
 }
 
-fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (u32, u32), variant: &str) -> anyhow::Result<serde_json::Value> {
+fn render_variant(
+    ctx: &Context,
+    run: &mut OpenRun,
+    args: &AvatarArgs,
+    (w, h): (u32, u32),
+    variant: &str,
+) -> anyhow::Result<serde_json::Value> {
     let compositing = Compositing::parse(variant).context("--compositing")?;
-    let frame = *run.test_frames().first().ok_or_else(|| anyhow::anyhow!("{}: the run's data has no held-out frame to pose the avatar in", run.dir.display()))?;
+    let frame = *run.test_frames().first().ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: the run's data has no held-out frame to pose the avatar in",
+            run.dir.display()
+        )
+    })?;
     let (body, mut camera) = (frame.body.clone(), frame.camera.clone());
     // The held-out view at the benchmark's size (each axis scaled on its own).
-    let (sx, sy) = (f64::from(w) / f64::from(camera.width), f64::from(h) / f64::from(camera.height));
-    (camera.fx, camera.cx, camera.fy, camera.cy, camera.width, camera.height) = (camera.fx * sx, camera.cx * sx, camera.fy * sy, camera.cy * sy, w, h);
+    let (sx, sy) = (
+        f64::from(w) / f64::from(camera.width),
+        f64::from(h) / f64::from(camera.height),
+    );
+    (
+        camera.fx,
+        camera.cx,
+        camera.fy,
+        camera.cy,
+        camera.width,
+        camera.height,
+    ) = (
+        camera.fx * sx,
+        camera.cx * sx,
+        camera.fy * sy,
+        camera.cy * sy,
+        w,
+        h,
+    );
     let pinhole = camera.to_pinhole([0.5; 3]);
     let transforms = run.rig.frame(&body);
     let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
     let settings = RenderSettings::default();
-    let (mut totals, mut stages, mut scopes): (Vec<f64>, BTreeMap<String, Vec<f64>>, BTreeMap<String, Vec<f64>>) = (Vec::new(), BTreeMap::new(), BTreeMap::new());
+    let (mut totals, mut stages, mut scopes): (
+        Vec<f64>,
+        BTreeMap<String, Vec<f64>>,
+        BTreeMap<String, Vec<f64>>,
+    ) = (Vec::new(), BTreeMap::new(), BTreeMap::new());
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         ctx.start_profile();
         let t0 = Instant::now();
@@ -161,16 +202,28 @@ fn render_variant(ctx: &Context, run: &mut OpenRun, args: &AvatarArgs, (w, h): (
 /// `args.flight_frames` frames (the held-out frame's pose, its camera scaled to `size`)
 /// without reading them back; FPS from the first submission to the last frame's
 /// completion, and the host's fence waits (N - k).
-fn frames_in_flight(ctx: &Context, args: &AvatarArgs, (w, h): (u32, u32)) -> anyhow::Result<serde_json::Value> {
+fn frames_in_flight(
+    ctx: &Context,
+    args: &AvatarArgs,
+    (w, h): (u32, u32),
+) -> anyhow::Result<serde_json::Value> {
     use drape_engine::SubmitSync;
     use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
     let mut rows = Vec::new();
     for &k in &args.in_flight {
         let mut player = AvatarPlayer::load(ctx, &args.run, k as usize)?;
         let c = player.default_camera();
-        let (sx, sy) = (f64::from(w) / f64::from(c.width), f64::from(h) / f64::from(c.height));
+        let (sx, sy) = (
+            f64::from(w) / f64::from(c.width),
+            f64::from(h) / f64::from(c.height),
+        );
         let mut cam = ViewCamera::from_camera(c);
-        (cam.fx, cam.cx, cam.fy, cam.cy) = (cam.fx * sx as f32, cam.cx * sx as f32, cam.fy * sy as f32, cam.cy * sy as f32);
+        (cam.fx, cam.cx, cam.fy, cam.cy) = (
+            cam.fx * sx as f32,
+            cam.cx * sx as f32,
+            cam.fy * sy as f32,
+            cam.cy * sy as f32,
+        );
         // Warm-up: pipelines, and the renderers' intersection buffers grown to the frame.
         for _ in 0..args.warmup.max(1) + k {
             player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
@@ -198,7 +251,11 @@ fn frames_in_flight(ctx: &Context, args: &AvatarArgs, (w, h): (u32, u32)) -> any
 /// Trains a fresh model from the run's configuration for `args.train_warmup +
 /// args.train_steps` steps in a temporary directory, profiling the last
 /// `args.train_steps`: it/s and the GPU split of one step.
-fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Result<serde_json::Value> {
+fn train_steps(
+    ctx: &Context,
+    run: &OpenRun,
+    args: &AvatarArgs,
+) -> anyhow::Result<serde_json::Value> {
     let out = std::env::temp_dir().join(format!("engine-bench-avatar-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     std::fs::create_dir_all(&out)?;
@@ -215,18 +272,27 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
     config.schedule.log_every = 1;
     let model = body_model(run.info.body.as_deref())?;
     let (mut timed_from, mut timed_to, mut profile) = (None, None, None);
-    let report = train_until(ctx, &run.seq, model, &config, &out, false, total, &mut |p| {
-        if let Progress::Step { step, .. } = p {
-            if step == args.train_warmup {
-                ctx.start_profile();
-                timed_from = Some(Instant::now());
+    let report = train_until(
+        ctx,
+        &run.seq,
+        model,
+        &config,
+        &out,
+        false,
+        total,
+        &mut |p| {
+            if let Progress::Step { step, .. } = p {
+                if step == args.train_warmup {
+                    ctx.start_profile();
+                    timed_from = Some(Instant::now());
+                }
+                if step == total {
+                    timed_to = Some(Instant::now());
+                    profile = ctx.take_profile();
+                }
             }
-            if step == total {
-                timed_to = Some(Instant::now());
-                profile = ctx.take_profile();
-            }
-        }
-    });
+        },
+    );
     let _ = ctx.take_profile();
     let _ = std::fs::remove_dir_all(&out);
     let report = report?;
@@ -244,7 +310,12 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
         passes.push((name.clone(), ms));
     }
     passes.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let scopes: BTreeMap<String, f64> = profile["gpu_scopes"].as_object().into_iter().flatten().map(|(k, e)| (k.clone(), e["ms"].as_f64().unwrap_or(0.0) / steps)).collect();
+    let scopes: BTreeMap<String, f64> = profile["gpu_scopes"]
+        .as_object()
+        .into_iter()
+        .flatten()
+        .map(|(k, e)| (k.clone(), e["ms"].as_f64().unwrap_or(0.0) / steps))
+        .collect();
     Ok(json!({
         "compositing": config.layers.compositing,
         "steps": args.train_steps,
@@ -262,8 +333,20 @@ fn train_steps(ctx: &Context, run: &OpenRun, args: &AvatarArgs) -> anyhow::Resul
 fn train_stage(pass: &str) -> &'static str {
     match stage(pass) {
         "other" if pass.starts_with("adam") => "adam",
-        "other" if pass.starts_with("ssim.") || pass.starts_with("loss.") || pass.starts_with("lpips.") => "image losses",
-        "other" if pass.starts_with("chamfer.") || pass.starts_with("arap.") || pass.starts_with("cloth.") => "cloth losses",
+        "other"
+            if pass.starts_with("ssim.")
+                || pass.starts_with("loss.")
+                || pass.starts_with("lpips.") =>
+        {
+            "image losses"
+        }
+        "other"
+            if pass.starts_with("chamfer.")
+                || pass.starts_with("arap.")
+                || pass.starts_with("cloth.") =>
+        {
+            "cloth losses"
+        }
         s => s,
     }
 }
@@ -279,13 +362,19 @@ pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value
     }
     let in_flight = match args.sizes.first() {
         Some(&size) if !args.in_flight.is_empty() => {
-            eprintln!("avatar: frames in flight {:?} at {}x{} ...", args.in_flight, size.0, size.1);
+            eprintln!(
+                "avatar: frames in flight {:?} at {}x{} ...",
+                args.in_flight, size.0, size.1
+            );
             frames_in_flight(ctx, args, size)?
         }
         _ => json!("skipped (no --in-flight or --sizes)"),
     };
     let training = if args.train_steps > 0 {
-        eprintln!("avatar: training {} steps (fresh model, temporary directory) ...", args.train_steps);
+        eprintln!(
+            "avatar: training {} steps (fresh model, temporary directory) ...",
+            args.train_steps
+        );
         train_steps(ctx, &run, args)?
     } else {
         json!("skipped (--train-steps 0)")
@@ -306,9 +395,20 @@ pub fn run(ctx: &Context, args: &AvatarArgs) -> anyhow::Result<serde_json::Value
 }
 
 pub fn print_table(r: &serde_json::Value) {
-    println!("avatar {} on {} ({} frames, median); Gaussians {}", r["run"].as_str().unwrap_or("?"), r["device"].as_str().unwrap_or("?"), r["runs"], r["gaussians"]);
+    println!(
+        "avatar {} on {} ({} frames, median); Gaussians {}",
+        r["run"].as_str().unwrap_or("?"),
+        r["device"].as_str().unwrap_or("?"),
+        r["runs"],
+        r["gaussians"]
+    );
     for c in r["render"].as_array().into_iter().flatten() {
-        let stages: Vec<String> = c["stages_gpu_ms"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0))).collect();
+        let stages: Vec<String> = c["stages_gpu_ms"]
+            .as_object()
+            .into_iter()
+            .flatten()
+            .map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0)))
+            .collect();
         println!(
             "  {}x{} {:<22} {:>9.1} ms {:>6.2} FPS | GPU ms: {}",
             c["width"],
@@ -320,14 +420,41 @@ pub fn print_table(r: &serde_json::Value) {
         );
     }
     let f = &r["frames_in_flight"];
-    let flight: Vec<String> = f["settings"].as_array().into_iter().flatten().map(|s| format!("{} in flight {:.2} FPS ({} waits)", s["frames_in_flight"], s["fps"].as_f64().unwrap_or(0.0), s["fence_waits_while_submitting"])).collect();
+    let flight: Vec<String> = f["settings"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|s| {
+            format!(
+                "{} in flight {:.2} FPS ({} waits)",
+                s["frames_in_flight"],
+                s["fps"].as_f64().unwrap_or(0.0),
+                s["fence_waits_while_submitting"]
+            )
+        })
+        .collect();
     if !flight.is_empty() {
-        println!("  {}x{} library frames: {}", f["width"], f["height"], flight.join(" | "));
+        println!(
+            "  {}x{} library frames: {}",
+            f["width"],
+            f["height"],
+            flight.join(" | ")
+        );
     }
     let t = &r["training"];
     if let Some(its) = t["iterations_per_second"].as_f64() {
-        let stages: Vec<String> = t["stages_gpu_ms_per_step"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0))).collect();
-        println!("  training: {its:.2} it/s ({:.0} ms/step over {} steps) | GPU ms/step: {}", t["ms_per_step"].as_f64().unwrap_or(0.0), t["steps"], stages.join(", "));
+        let stages: Vec<String> = t["stages_gpu_ms_per_step"]
+            .as_object()
+            .into_iter()
+            .flatten()
+            .map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0)))
+            .collect();
+        println!(
+            "  training: {its:.2} it/s ({:.0} ms/step over {} steps) | GPU ms/step: {}",
+            t["ms_per_step"].as_f64().unwrap_or(0.0),
+            t["steps"],
+            stages.join(", ")
+        );
     } else {
         println!("  training: {}", t.as_str().unwrap_or("?"));
     }

@@ -15,13 +15,15 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use drape_cli_support::median;
-use drape_engine::ops::splat::composite::{matte_cloud, record_composite, record_composite_backward, CompositeGrads, CompositeInputs};
+use drape_engine::ops::splat::composite::{
+    matte_cloud, record_composite, record_composite_backward, CompositeGrads, CompositeInputs,
+};
 use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
-use drape_trainer::avatar::composite::layer_masks;
 use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
-use drape_trainer::avatar::groups::Layer;
 use drape_engine::{Buffer, BufferDesc, Context, PassTimings};
+use drape_trainer::avatar::composite::layer_masks;
+use drape_trainer::avatar::groups::Layer;
 use serde_json::json;
 
 /// Options of `engine-bench composite`.
@@ -59,9 +61,39 @@ fn with_layer(mut c: GaussianCloud, layer: Layer) -> GaussianCloud {
 fn layered(args: &CompositeArgs) -> [GaussianCloud; 3] {
     let small = |n: u32| 0.8 / (n.max(1) as f32).sqrt();
     [
-        with_layer(GaussianCloud::random(args.body as usize, 3, 0.5, (-0.25, 0.25), small(args.body), 1), Layer::Body),
-        with_layer(GaussianCloud::random(args.cloth as usize, 3, 0.45, (-0.3, 0.3), small(args.cloth), 2), Layer::Cloth),
-        with_layer(GaussianCloud::random(args.scene as usize, 3, 3.0, (0.5, 4.0), 4.0 / (args.scene.max(1) as f32).sqrt(), 3), Layer::Scene),
+        with_layer(
+            GaussianCloud::random(
+                args.body as usize,
+                3,
+                0.5,
+                (-0.25, 0.25),
+                small(args.body),
+                1,
+            ),
+            Layer::Body,
+        ),
+        with_layer(
+            GaussianCloud::random(
+                args.cloth as usize,
+                3,
+                0.45,
+                (-0.3, 0.3),
+                small(args.cloth),
+                2,
+            ),
+            Layer::Cloth,
+        ),
+        with_layer(
+            GaussianCloud::random(
+                args.scene as usize,
+                3,
+                3.0,
+                (0.5, 4.0),
+                4.0 / (args.scene.max(1) as f32).sqrt(),
+                3,
+            ),
+            Layer::Scene,
+        ),
     ]
 }
 
@@ -72,7 +104,13 @@ struct Pass {
 }
 
 impl Pass {
-    fn new(ctx: &Context, name: &str, cloud: &GaussianCloud, w: u32, h: u32) -> anyhow::Result<Self> {
+    fn new(
+        ctx: &Context,
+        name: &str,
+        cloud: &GaussianCloud,
+        w: u32,
+        h: u32,
+    ) -> anyhow::Result<Self> {
         Ok(Self {
             gaussians: GaussianBuffers::upload(ctx, name, cloud)?,
             grads: GaussianBuffers::new(ctx, name, cloud.len(), cloud.sh_degree)?,
@@ -88,7 +126,10 @@ fn add(into: &mut BTreeMap<String, f64>, t: &PassTimings) {
 }
 
 /// Medians of (forward ms, forward + backward ms) and per-pass GPU ms of `frame`.
-fn time(args: &CompositeArgs, mut frame: impl FnMut(&mut BTreeMap<String, f64>) -> anyhow::Result<f64>) -> anyhow::Result<(f64, f64, BTreeMap<String, f64>)> {
+fn time(
+    args: &CompositeArgs,
+    mut frame: impl FnMut(&mut BTreeMap<String, f64>) -> anyhow::Result<f64>,
+) -> anyhow::Result<(f64, f64, BTreeMap<String, f64>)> {
     let (mut fwd, mut both) = (Vec::new(), Vec::new());
     let mut passes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
@@ -105,17 +146,40 @@ fn time(args: &CompositeArgs, mut frame: impl FnMut(&mut BTreeMap<String, f64>) 
             passes.entry(k).or_default().push(v);
         }
     }
-    Ok((median(&fwd), median(&both), passes.into_iter().map(|(k, v)| (k, median(&v))).collect()))
+    Ok((
+        median(&fwd),
+        median(&both),
+        passes.into_iter().map(|(k, v)| (k, median(&v))).collect(),
+    ))
 }
 
-fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], w: u32, h: u32) -> anyhow::Result<serde_json::Value> {
+fn bench_size(
+    ctx: &Context,
+    args: &CompositeArgs,
+    clouds: &[GaussianCloud; 3],
+    w: u32,
+    h: u32,
+) -> anyhow::Result<serde_json::Value> {
     let [body, cloth, scene] = clouds;
     let settings = RenderSettings::default();
-    let mut camera = PinholeCamera::look_at([0.3, -0.4, -3.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 45.0, w, h).expect("valid camera");
+    let mut camera = PinholeCamera::look_at(
+        [0.3, -0.4, -3.0],
+        [0.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0],
+        45.0,
+        w,
+        h,
+    )
+    .expect("valid camera");
     camera.background = [0.5; 3];
-    let black = PinholeCamera { background: [0.0; 3], ..camera };
+    let black = PinholeCamera {
+        background: [0.0; 3],
+        ..camera
+    };
     let pixels = (w * h) as usize;
-    let image = |name: &str, floats: usize| ctx.create_buffer(name, BufferDesc::gpu_only(4 * floats as u64));
+    let image = |name: &str, floats: usize| {
+        ctx.create_buffer(name, BufferDesc::gpu_only(4 * floats as u64))
+    };
     let grad_rgb = ctx.upload("bench grad rgb", &vec![1e-3f32; 3 * pixels])?;
     let zeros = ctx.upload("bench zeros", &vec![0.0f32; pixels])?;
 
@@ -124,18 +188,38 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     base_cloud.extend(scene);
     let mut base = Pass::new(ctx, "bench base", &base_cloud, w, h)?;
     let mut over = Pass::new(ctx, "bench cloth", cloth, w, h)?;
-    let mut matte = Pass::new(ctx, "bench matte", &matte_cloud(&[(scene, false), (cloth, true)]), w, h)?;
+    let mut matte = Pass::new(
+        ctx,
+        "bench matte",
+        &matte_cloud(&[(scene, false), (cloth, true)]),
+        w,
+        h,
+    )?;
     let out: Buffer = image("bench composite", 3 * pixels)?;
-    let (g_base, g_over, g_alpha, g_matte) = (image("bench g base", 3 * pixels)?, image("bench g cloth", 3 * pixels)?, image("bench g alpha", pixels)?, image("bench g matte", 3 * pixels)?);
+    let (g_base, g_over, g_alpha, g_matte) = (
+        image("bench g base", 3 * pixels)?,
+        image("bench g cloth", 3 * pixels)?,
+        image("bench g alpha", pixels)?,
+        image("bench g matte", 3 * pixels)?,
+    );
     let three = time(args, |p| {
         let t0 = Instant::now();
         let mut saved = Vec::new();
-        for (pass, cam) in [(&mut base, &camera), (&mut over, &black), (&mut matte, &black)] {
+        for (pass, cam) in [
+            (&mut base, &camera),
+            (&mut over, &black),
+            (&mut matte, &black),
+        ] {
             let stats = pass.renderer.forward(&pass.gaussians, cam, &settings)?;
             add(p, &stats.timings);
             saved.push(stats.saved);
         }
-        let inputs = CompositeInputs { base_rgb: base.renderer.outputs().0, over_rgb: over.renderer.outputs().0, over_alpha: over.renderer.outputs().1, matte_rgb: Some(matte.renderer.outputs().0) };
+        let inputs = CompositeInputs {
+            base_rgb: base.renderer.outputs().0,
+            over_rgb: over.renderer.outputs().0,
+            over_alpha: over.renderer.outputs().1,
+            matte_rgb: Some(matte.renderer.outputs().0),
+        };
         {
             let mut rec = ctx.record("composite")?;
             record_composite(&mut rec, inputs, &out, pixels as u32)?;
@@ -143,14 +227,52 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         }
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
         {
-            let grads = CompositeGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: Some(&g_matte) };
+            let grads = CompositeGrads {
+                base_rgb: &g_base,
+                over_rgb: &g_over,
+                over_alpha: &g_alpha,
+                matte_rgb: Some(&g_matte),
+            };
             let mut rec = ctx.record("composite backward")?;
             record_composite_backward(&mut rec, &grad_rgb, inputs, grads, pixels as u32)?;
             add(p, &rec.submit_and_wait()?);
         }
-        add(p, &base.renderer.backward(&saved[0], &base.gaussians, &g_base, &zeros, &zeros, &base.grads, Accumulation::Auto)?);
-        add(p, &over.renderer.backward(&saved[1], &over.gaussians, &g_over, &g_alpha, &zeros, &over.grads, Accumulation::Auto)?);
-        add(p, &matte.renderer.backward(&saved[2], &matte.gaussians, &g_matte, &zeros, &zeros, &matte.grads, Accumulation::Auto)?);
+        add(
+            p,
+            &base.renderer.backward(
+                &saved[0],
+                &base.gaussians,
+                &g_base,
+                &zeros,
+                &zeros,
+                &base.grads,
+                Accumulation::Auto,
+            )?,
+        );
+        add(
+            p,
+            &over.renderer.backward(
+                &saved[1],
+                &over.gaussians,
+                &g_over,
+                &g_alpha,
+                &zeros,
+                &over.grads,
+                Accumulation::Auto,
+            )?,
+        );
+        add(
+            p,
+            &matte.renderer.backward(
+                &saved[2],
+                &matte.gaussians,
+                &g_matte,
+                &zeros,
+                &zeros,
+                &matte.grads,
+                Accumulation::Auto,
+            )?,
+        );
         Ok(t_fwd)
     })?;
     // The same three passes and composite recorded into one submission.
@@ -158,12 +280,21 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     let overlapped = time(args, |p| {
         let t0 = Instant::now();
         let before = ctx.submission_count();
-        base.renderer.prepare_forward(&base.gaussians, &camera, &settings)?;
-        over.renderer.prepare_forward(&over.gaussians, &black, &settings)?;
-        matte.renderer.prepare_forward(&matte.gaussians, &black, &settings)?;
+        base.renderer
+            .prepare_forward(&base.gaussians, &camera, &settings)?;
+        over.renderer
+            .prepare_forward(&over.gaussians, &black, &settings)?;
+        matte
+            .renderer
+            .prepare_forward(&matte.gaussians, &black, &settings)?;
         loop {
             {
-                let inputs = CompositeInputs { base_rgb: base.renderer.outputs().0, over_rgb: over.renderer.outputs().0, over_alpha: over.renderer.outputs().1, matte_rgb: Some(matte.renderer.outputs().0) };
+                let inputs = CompositeInputs {
+                    base_rgb: base.renderer.outputs().0,
+                    over_rgb: over.renderer.outputs().0,
+                    over_alpha: over.renderer.outputs().1,
+                    matte_rgb: Some(matte.renderer.outputs().0),
+                };
                 let mut rec = ctx.record("composite frame")?;
                 base.renderer.record_forward(&mut rec, &base.gaussians)?;
                 over.renderer.record_forward(&mut rec, &over.gaussians)?;
@@ -171,7 +302,13 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
                 record_composite(&mut rec, inputs, &out, pixels as u32)?;
                 add(p, &rec.submit_and_wait()?);
             }
-            let again = [base.renderer.finish_forward()?, over.renderer.finish_forward()?, matte.renderer.finish_forward()?].iter().any(|s| s.rerendered);
+            let again = [
+                base.renderer.finish_forward()?,
+                over.renderer.finish_forward()?,
+                matte.renderer.finish_forward()?,
+            ]
+            .iter()
+            .any(|s| s.rerendered);
             if !again {
                 break;
             }
@@ -185,9 +322,21 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
     // per pixel, and the composite, in one submission (the paper's matte).
     let mut all_cloud = base_cloud;
     all_cloud.extend(cloth);
-    let layers: Vec<Layer> = [(Layer::Body, body.len()), (Layer::Scene, scene.len()), (Layer::Cloth, cloth.len())].iter().flat_map(|&(l, n)| std::iter::repeat_n(l, n)).collect();
+    let layers: Vec<Layer> = [
+        (Layer::Body, body.len()),
+        (Layer::Scene, scene.len()),
+        (Layer::Cloth, cloth.len()),
+    ]
+    .iter()
+    .flat_map(|&(l, n)| std::iter::repeat_n(l, n))
+    .collect();
     let fused_gaussians = GaussianBuffers::upload(ctx, "bench fused", &all_cloud)?;
-    let fused_grads = GaussianBuffers::new(ctx, "bench fused grads", all_cloud.len(), all_cloud.sh_degree)?;
+    let fused_grads = GaussianBuffers::new(
+        ctx,
+        "bench fused grads",
+        all_cloud.len(),
+        all_cloud.sh_degree,
+    )?;
     let mut fused = FusedRenderer::new(ctx, w, h, all_cloud.len())?;
     fused.set_masks(ctx, &layer_masks(&layers, false))?;
     let fused_time = time(args, |p| {
@@ -208,11 +357,28 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
         // The composite's backward and the one-walk backward, in one submission.
         fused.prepare_backward(Accumulation::Auto)?;
-        let grads = CompositeGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: Some(&g_matte) };
-        let upstream = FusedGrads { base_rgb: &g_base, over_rgb: &g_over, over_alpha: &g_alpha, matte_rgb: &g_matte };
+        let grads = CompositeGrads {
+            base_rgb: &g_base,
+            over_rgb: &g_over,
+            over_alpha: &g_alpha,
+            matte_rgb: Some(&g_matte),
+        };
+        let upstream = FusedGrads {
+            base_rgb: &g_base,
+            over_rgb: &g_over,
+            over_alpha: &g_alpha,
+            matte_rgb: &g_matte,
+        };
         let mut rec = ctx.record("fused backward")?;
         record_composite_backward(&mut rec, &grad_rgb, fused.outputs(), grads, pixels as u32)?;
-        fused.record_backward(&mut rec, &saved, &fused_gaussians, upstream, &fused_grads, Accumulation::Auto)?;
+        fused.record_backward(
+            &mut rec,
+            &saved,
+            &fused_gaussians,
+            upstream,
+            &fused_grads,
+            Accumulation::Auto,
+        )?;
         add(p, &rec.submit_and_wait()?);
         Ok(t_fwd)
     })?;
@@ -225,7 +391,18 @@ fn bench_size(ctx: &Context, args: &CompositeArgs, clouds: &[GaussianCloud; 3], 
         let stats = all.renderer.forward(&all.gaussians, &camera, &settings)?;
         add(p, &stats.timings);
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
-        add(p, &all.renderer.backward(&stats.saved, &all.gaussians, &grad_rgb, &zeros, &zeros, &all.grads, Accumulation::Auto)?);
+        add(
+            p,
+            &all.renderer.backward(
+                &stats.saved,
+                &all.gaussians,
+                &grad_rgb,
+                &zeros,
+                &zeros,
+                &all.grads,
+                Accumulation::Auto,
+            )?,
+        );
         Ok(t_fwd)
     })?;
     let three_fwd = three.0;
@@ -273,9 +450,21 @@ pub fn run(ctx: &Context, args: &CompositeArgs) -> anyhow::Result<serde_json::Va
 
 pub fn print_table(r: &serde_json::Value) {
     let g = &r["gaussians"];
-    println!("composite on {} ({} body + {} cloth + {} scene Gaussians; {} runs, median)", r["device"].as_str().unwrap_or("?"), g["body"], g["cloth"], g["scene"], r["runs"]);
+    println!(
+        "composite on {} ({} body + {} cloth + {} scene Gaussians; {} runs, median)",
+        r["device"].as_str().unwrap_or("?"),
+        g["body"],
+        g["cloth"],
+        g["scene"],
+        r["runs"]
+    );
     for c in r["results"].as_array().into_iter().flatten() {
-        for (key, label) in [("three_pass_serialised", "three passes, serialised"), ("three_pass_overlapped", "three passes, overlapped"), ("fused", "fused (one sort, one walk)"), ("one_pass", "one depth-sorted pass")] {
+        for (key, label) in [
+            ("three_pass_serialised", "three passes, serialised"),
+            ("three_pass_overlapped", "three passes, overlapped"),
+            ("fused", "fused (one sort, one walk)"),
+            ("one_pass", "one depth-sorted pass"),
+        ] {
             let v = &c[key];
             let both = match v["forward_backward_median_ms"].as_f64() {
                 Some(ms) => format!("{ms:>9.1} ms"),
@@ -290,9 +479,16 @@ pub fn print_table(r: &serde_json::Value) {
                 v["forward_fps"].as_f64().unwrap_or(0.0),
             );
             if let Some(passes) = v["passes_gpu_ms"].as_object() {
-                let mut top: Vec<(&String, f64)> = passes.iter().map(|(k, v)| (k, v.as_f64().unwrap_or(0.0))).collect();
+                let mut top: Vec<(&String, f64)> = passes
+                    .iter()
+                    .map(|(k, v)| (k, v.as_f64().unwrap_or(0.0)))
+                    .collect();
                 top.sort_by(|a, b| b.1.total_cmp(&a.1));
-                let line: Vec<String> = top.iter().take(6).map(|(k, v)| format!("{k} {v:.1}")).collect();
+                let line: Vec<String> = top
+                    .iter()
+                    .take(6)
+                    .map(|(k, v)| format!("{k} {v:.1}"))
+                    .collect();
                 println!("      GPU ms: {}", line.join(", "));
             }
         }

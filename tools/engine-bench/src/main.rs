@@ -126,7 +126,11 @@ struct Measured {
     passes: BTreeMap<String, f64>,
 }
 
-fn measure(ctx: &Context, common: &Common, mut run_once: impl FnMut() -> anyhow::Result<(f64, PassTimings)>) -> anyhow::Result<Measured> {
+fn measure(
+    ctx: &Context,
+    common: &Common,
+    mut run_once: impl FnMut() -> anyhow::Result<(f64, PassTimings)>,
+) -> anyhow::Result<Measured> {
     let _ = ctx;
     let mut walls = Vec::new();
     let mut gpus = Vec::new();
@@ -163,11 +167,22 @@ enum SortKernels {
     Chunks,
 }
 
-fn bench_sort(ctx: &Context, common: &Common, bits: u32, variant: SortKernels) -> anyhow::Result<serde_json::Value> {
+fn bench_sort(
+    ctx: &Context,
+    common: &Common,
+    bits: u32,
+    variant: SortKernels,
+) -> anyhow::Result<serde_json::Value> {
     let n = common.n;
-    anyhow::ensure!(n <= RadixSort::LIMIT, "--n {n} exceeds the sort's limit of {}", RadixSort::LIMIT);
+    anyhow::ensure!(
+        n <= RadixSort::LIMIT,
+        "--n {n} exceeds the sort's limit of {}",
+        RadixSort::LIMIT
+    );
     let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
-    let keys: Vec<u32> = (0..n).map(|_| significant_bits(rng.random(), bits)).collect();
+    let keys: Vec<u32> = (0..n)
+        .map(|_| significant_bits(rng.random(), bits))
+        .collect();
     let values: Vec<u32> = (0..n).collect();
     let pristine_keys = ctx.upload("bench pristine keys", &keys)?;
     let pristine_values = ctx.upload("bench pristine values", &values)?;
@@ -193,7 +208,10 @@ fn bench_sort(ctx: &Context, common: &Common, bits: u32, variant: SortKernels) -
         Ok((t0.elapsed().as_secs_f64() * 1e3, timings))
     })?;
     let sorted = ctx.read_buffer::<u32>(&mut key_buf, n as usize)?;
-    anyhow::ensure!(sorted.windows(2).all(|w| w[0] <= w[1]), "the GPU sort's output is not sorted");
+    anyhow::ensure!(
+        sorted.windows(2).all(|w| w[0] <= w[1]),
+        "the GPU sort's output is not sorted"
+    );
 
     let pairs: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
     let cpu_ms = cpu_median(common.runs, || {
@@ -204,12 +222,28 @@ fn bench_sort(ctx: &Context, common: &Common, bits: u32, variant: SortKernels) -
         std::hint::black_box(&p);
         ms
     });
-    Ok(report(ctx, "sort", common, &measured, cpu_ms, "keys_per_s", json!({ "key_bits": bits, "variant": format!("{:?}", plan.variant()).to_lowercase() })))
+    Ok(report(
+        ctx,
+        "sort",
+        common,
+        &measured,
+        cpu_ms,
+        "keys_per_s",
+        json!({ "key_bits": bits, "variant": format!("{:?}", plan.variant()).to_lowercase() }),
+    ))
 }
 
-fn bench_scan(ctx: &Context, common: &Common, variant: SortKernels) -> anyhow::Result<serde_json::Value> {
+fn bench_scan(
+    ctx: &Context,
+    common: &Common,
+    variant: SortKernels,
+) -> anyhow::Result<serde_json::Value> {
     let n = common.n;
-    anyhow::ensure!(n <= ExclusiveScan::LIMIT, "--n {n} exceeds the scan's limit of {}", ExclusiveScan::LIMIT);
+    anyhow::ensure!(
+        n <= ExclusiveScan::LIMIT,
+        "--n {n} exceeds the scan's limit of {}",
+        ExclusiveScan::LIMIT
+    );
     let mut rng = rand::rngs::StdRng::seed_from_u64(common.seed);
     let data: Vec<u32> = (0..n).map(|_| rng.random_range(0..1024)).collect();
     let pristine = ctx.upload("bench pristine data", &data)?;
@@ -234,7 +268,10 @@ fn bench_scan(ctx: &Context, common: &Common, variant: SortKernels) -> anyhow::R
     let gpu = ctx.read_buffer::<u32>(&mut buf, n as usize)?;
     let mut expected = data.clone();
     drape_shared::scan::exclusive_scan_in_place(&mut expected);
-    anyhow::ensure!(gpu == expected, "the GPU scan's output differs from the CPU scan");
+    anyhow::ensure!(
+        gpu == expected,
+        "the GPU scan's output differs from the CPU scan"
+    );
     let cpu_ms = cpu_median(common.runs, || {
         let mut d = data.clone();
         let t0 = Instant::now();
@@ -243,7 +280,15 @@ fn bench_scan(ctx: &Context, common: &Common, variant: SortKernels) -> anyhow::R
         std::hint::black_box(&d);
         ms
     });
-    Ok(report(ctx, "scan", common, &measured, cpu_ms, "elems_per_s", json!({ "variant": format!("{:?}", plan.variant()).to_lowercase() })))
+    Ok(report(
+        ctx,
+        "scan",
+        common,
+        &measured,
+        cpu_ms,
+        "elems_per_s",
+        json!({ "variant": format!("{:?}", plan.variant()).to_lowercase() }),
+    ))
 }
 
 fn report(
@@ -278,18 +323,45 @@ fn report(
 }
 
 fn print_table(r: &serde_json::Value) {
-    let rate_key = if r.get("keys_per_s").is_some() { "keys_per_s" } else { "elems_per_s" };
-    let kernels = r["variant"].as_str().map(|v| format!(", {v} kernels")).unwrap_or_default();
-    println!("{} of {} elements on {} ({} runs, median{kernels})", r["job"].as_str().unwrap_or("?"), r["n"], r["device"].as_str().unwrap_or("?"), r["runs"]);
-    println!("  wall (submit to fence)  {:>10.3} ms   {:>8.2} M/s", r["median_ms"].as_f64().unwrap_or(0.0), r[rate_key].as_f64().unwrap_or(0.0) / 1e6);
-    println!("  GPU (timestamps)        {:>10.3} ms", r["gpu_median_ms"].as_f64().unwrap_or(0.0));
+    let rate_key = if r.get("keys_per_s").is_some() {
+        "keys_per_s"
+    } else {
+        "elems_per_s"
+    };
+    let kernels = r["variant"]
+        .as_str()
+        .map(|v| format!(", {v} kernels"))
+        .unwrap_or_default();
+    println!(
+        "{} of {} elements on {} ({} runs, median{kernels})",
+        r["job"].as_str().unwrap_or("?"),
+        r["n"],
+        r["device"].as_str().unwrap_or("?"),
+        r["runs"]
+    );
+    println!(
+        "  wall (submit to fence)  {:>10.3} ms   {:>8.2} M/s",
+        r["median_ms"].as_f64().unwrap_or(0.0),
+        r[rate_key].as_f64().unwrap_or(0.0) / 1e6
+    );
+    println!(
+        "  GPU (timestamps)        {:>10.3} ms",
+        r["gpu_median_ms"].as_f64().unwrap_or(0.0)
+    );
     if let Some(passes) = r["passes"].as_object() {
         for (name, ms) in passes {
             println!("    {name:<28}{:>10.3} ms", ms.as_f64().unwrap_or(0.0));
         }
     }
-    println!("  CPU baseline            {:>10.3} ms   {:>8.2} M/s", r["cpu_median_ms"].as_f64().unwrap_or(0.0), r[format!("cpu_{rate_key}")].as_f64().unwrap_or(0.0) / 1e6);
-    println!("  CPU time / GPU time     {:>10.2}x", r["cpu_over_gpu"].as_f64().unwrap_or(0.0));
+    println!(
+        "  CPU baseline            {:>10.3} ms   {:>8.2} M/s",
+        r["cpu_median_ms"].as_f64().unwrap_or(0.0),
+        r[format!("cpu_{rate_key}")].as_f64().unwrap_or(0.0) / 1e6
+    );
+    println!(
+        "  CPU time / GPU time     {:>10.2}x",
+        r["cpu_over_gpu"].as_f64().unwrap_or(0.0)
+    );
 }
 
 /// A number of seconds, at least 0.
@@ -315,15 +387,38 @@ fn main() -> ExitCode {
         let on_gpu = ctx.info().kind != drape_engine::DeviceKind::Cpu;
         schedule::set_warm_seconds(cli.warm_seconds.unwrap_or(if on_gpu { 1.0 } else { 0.0 }));
         // Each job gives its JSON, whether to print it as JSON, and its table printer.
-        let (mut result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) = match &cli.job {
-            Job::Sort { common, bits, variant } => (bench_sort(&ctx, common, *bits, *variant).context("sort benchmark")?, common.json, print_table),
-            Job::Scan { common, variant } => (bench_scan(&ctx, common, *variant).context("scan benchmark")?, common.json, print_table),
-            Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
-            Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
-            Job::Composite(args) => (composite::run(&ctx, args)?, args.json, composite::print_table),
-            Job::Splat(args) => (splat::run(&ctx, args, splat_configs.take().expect("made above"))?, args.json, splat::print_table),
-            Job::Trade(args) => (trade::run(&ctx, args)?, args.json, |r| print!("{}", trade::markdown(r))),
-        };
+        let (mut result, json_out, table): (serde_json::Value, bool, fn(&serde_json::Value)) =
+            match &cli.job {
+                Job::Sort {
+                    common,
+                    bits,
+                    variant,
+                } => (
+                    bench_sort(&ctx, common, *bits, *variant).context("sort benchmark")?,
+                    common.json,
+                    print_table,
+                ),
+                Job::Scan { common, variant } => (
+                    bench_scan(&ctx, common, *variant).context("scan benchmark")?,
+                    common.json,
+                    print_table,
+                ),
+                Job::Ops(args) => (ops::run(&ctx, args)?, args.json, ops::print_table),
+                Job::Avatar(args) => (avatar::run(&ctx, args)?, args.json, avatar::print_table),
+                Job::Composite(args) => (
+                    composite::run(&ctx, args)?,
+                    args.json,
+                    composite::print_table,
+                ),
+                Job::Splat(args) => (
+                    splat::run(&ctx, args, splat_configs.take().expect("made above"))?,
+                    args.json,
+                    splat::print_table,
+                ),
+                Job::Trade(args) => (trade::run(&ctx, args)?, args.json, |r| {
+                    print!("{}", trade::markdown(r))
+                }),
+            };
         cli.device.check_validation(&ctx)?;
         if let Some(object) = result.as_object_mut() {
             object.insert("warm_seconds".into(), json!(schedule::warm_seconds()));

@@ -68,8 +68,16 @@ pub struct OpsArgs {
 
 /// `IN x OUT` (e.g. "128x128"), both from 1 to 1,024.
 fn parse_layer(s: &str) -> Result<(usize, usize), String> {
-    let (i, o) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected IN x OUT, e.g. 128x128"))?;
-    let width = |w: &str| w.trim().parse::<usize>().ok().filter(|w| (1..=1024).contains(w)).ok_or_else(|| format!("'{s}': '{w}' is not a width from 1 to 1024"));
+    let (i, o) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{s}': expected IN x OUT, e.g. 128x128"))?;
+    let width = |w: &str| {
+        w.trim()
+            .parse::<usize>()
+            .ok()
+            .filter(|w| (1..=1024).contains(w))
+            .ok_or_else(|| format!("'{s}': '{w}' is not a width from 1 to 1024"))
+    };
     Ok((width(i)?, width(o)?))
 }
 
@@ -90,7 +98,11 @@ impl OpsArgs {
     }
 }
 
-fn timed(ctx: &Context, args: &OpsArgs, mut record: impl FnMut() -> anyhow::Result<PassTimings>) -> anyhow::Result<(f64, f64)> {
+fn timed(
+    ctx: &Context,
+    args: &OpsArgs,
+    mut record: impl FnMut() -> anyhow::Result<PassTimings>,
+) -> anyhow::Result<(f64, f64)> {
     let _ = ctx;
     let mut walls = Vec::new();
     let mut gpus = Vec::new();
@@ -115,7 +127,17 @@ fn random(len: usize, seed: u64) -> Vec<f32> {
 /// 96-128-128 with heads offset (3), 6D rotation (6), log-scale delta (3);
 /// deformation 96-128-128-128-128 with 24 skinning logits. Each head is its own
 /// layer, as `Mlp` runs it (and HUGS does).
-const SHAPES: [(usize, usize); 9] = [(96, 64), (64, 64), (64, 1), (64, 48), (96, 128), (128, 128), (128, 3), (128, 6), (128, 24)];
+const SHAPES: [(usize, usize); 9] = [
+    (96, 64),
+    (64, 64),
+    (64, 1),
+    (64, 48),
+    (96, 128),
+    (128, 128),
+    (128, 3),
+    (128, 6),
+    (128, 24),
+];
 
 fn cpu_gemm_ms(args: &OpsArgs, rows: usize, i: usize, o: usize, x: &[f32], w: &[f32]) -> f64 {
     let mut y = vec![0.0f32; rows * o];
@@ -146,9 +168,18 @@ pub fn run(ctx: &Context, args: &OpsArgs) -> anyhow::Result<serde_json::Value> {
     let rows = args.rows as usize;
     let mut out = json!({ "job": "ops", "device": ctx.info().name, "rows": rows, "runs": args.runs, "gemm_kernel": args.gemm });
     let mut gemms = Vec::new();
-    let layers = if args.layers.is_empty() { SHAPES.to_vec() } else { args.layers.clone() };
+    let layers = if args.layers.is_empty() {
+        SHAPES.to_vec()
+    } else {
+        args.layers.clone()
+    };
     for &(i, o) in layers.iter().filter(|_| args.wants("gemm")) {
-        let desc = MlpDesc { input: i, hidden: vec![], heads: vec![HeadDesc::new("y", o, Activation::Identity)], weight_norm: vec![] };
+        let desc = MlpDesc {
+            input: i,
+            hidden: vec![],
+            heads: vec![HeadDesc::new("y", o, Activation::Identity)],
+            weight_norm: vec![],
+        };
         let mut mlp = Mlp::new(ctx, "bench linear", desc.clone(), rows, 1)?;
         mlp.variant = args.variant();
         let x_host = random(rows * i, 2);
@@ -208,7 +239,11 @@ fn garment_like(n: usize, seed: u64, jitter: f64) -> Vec<f32> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let mut v = Vec::with_capacity(3 * n);
     for _ in 0..n {
-        let (a, h, j): (f64, f64, f64) = (rng.random_range(0.0..std::f64::consts::TAU), rng.random_range(0.0..0.6), rng.random_range(-0.5..0.5) * jitter);
+        let (a, h, j): (f64, f64, f64) = (
+            rng.random_range(0.0..std::f64::consts::TAU),
+            rng.random_range(0.0..0.6),
+            rng.random_range(-0.5..0.5) * jitter,
+        );
         let r = 0.15 + 0.01 * (5.0 * a).sin() * (10.0 * h).cos() + j;
         v.extend([(r * a.cos()) as f32, h as f32, (r * a.sin()) as f32]);
     }
@@ -222,10 +257,17 @@ fn chamfer(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow
     use drape_engine::ops::cloth_loss::{Chamfer, NearestSearch};
     let mut rows = Vec::new();
     let k = args.chamfer_compare;
-    for (label, n, search) in [("grid", args.chamfer_points, NearestSearch::Grid), ("grid", k, NearestSearch::Grid), ("brute force", k, NearestSearch::BruteForce)] {
+    for (label, n, search) in [
+        ("grid", args.chamfer_points, NearestSearch::Grid),
+        ("grid", k, NearestSearch::Grid),
+        ("brute force", k, NearestSearch::BruteForce),
+    ] {
         let pred = ctx.upload("bench chamfer pred", &garment_like(n as usize, 9, 0.006))?;
         let target = ctx.upload("bench chamfer target", &garment_like(n as usize, 10, 0.0))?;
-        let grad = ctx.create_buffer("bench chamfer grad", BufferDesc::gpu_only(12 * u64::from(n.max(1))))?;
+        let grad = ctx.create_buffer(
+            "bench chamfer grad",
+            BufferDesc::gpu_only(12 * u64::from(n.max(1))),
+        )?;
         let c = Chamfer::with_search(ctx, n, n, search)?;
         let (wall, gpu) = timed(ctx, args, || {
             let mut rec = ctx.record("bench chamfer")?;
@@ -233,21 +275,40 @@ fn chamfer(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow
             c.record(&mut rec, &pred, n, &target, n, 0.02, Some((&grad, 1.0)))?;
             Ok(rec.submit_and_wait()?)
         })?;
-        rows.push(json!({ "search": label, "points": n, "fwd_bwd_ms": wall, "fwd_bwd_gpu_ms": gpu }));
+        rows.push(
+            json!({ "search": label, "points": n, "fwd_bwd_ms": wall, "fwd_bwd_gpu_ms": gpu }),
+        );
     }
     out["chamfer"] = rows.into();
     Ok(())
 }
 
 /// The three decoders together, forward and backward.
-fn decoders(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &drape_engine::Buffer, width: usize) -> anyhow::Result<()> {
+fn decoders(
+    ctx: &Context,
+    args: &OpsArgs,
+    out: &mut serde_json::Value,
+    feats: &drape_engine::Buffer,
+    width: usize,
+) -> anyhow::Result<()> {
     let rows = args.rows as usize;
-    let decoders = [MlpDesc::hugs_appearance(width, 3), MlpDesc::hugs_geometry(width), MlpDesc::hugs_deformation(width)];
-    let mut mlps: Vec<Mlp> = decoders.iter().enumerate().map(|(k, d)| Mlp::new(ctx, "bench decoder", d.clone(), rows, k as u64)).collect::<Result<_, _>>()?;
+    let decoders = [
+        MlpDesc::hugs_appearance(width, 3),
+        MlpDesc::hugs_geometry(width),
+        MlpDesc::hugs_deformation(width),
+    ];
+    let mut mlps: Vec<Mlp> = decoders
+        .iter()
+        .enumerate()
+        .map(|(k, d)| Mlp::new(ctx, "bench decoder", d.clone(), rows, k as u64))
+        .collect::<Result<_, _>>()?;
     for m in &mut mlps {
         m.variant = args.variant();
     }
-    let gfeats = ctx.create_buffer("bench feature grads", BufferDesc::gpu_only((rows * width * 4) as u64))?;
+    let gfeats = ctx.create_buffer(
+        "bench feature grads",
+        BufferDesc::gpu_only((rows * width * 4) as u64),
+    )?;
     let (dec_wall, dec_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench decoders")?;
         for m in &mlps {
@@ -264,20 +325,49 @@ fn decoders(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &
 }
 
 /// Triplane sample + backward.
-fn triplane(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &drape_engine::Buffer) -> anyhow::Result<()> {
+fn triplane(
+    ctx: &Context,
+    args: &OpsArgs,
+    out: &mut serde_json::Value,
+    feats: &drape_engine::Buffer,
+) -> anyhow::Result<()> {
     let rows = args.rows as usize;
     let mut rng = rand::rngs::StdRng::seed_from_u64(4);
     let pts: Vec<f32> = (0..3 * rows).map(|_| rng.random_range(-0.9..0.9)).collect();
-    let tdesc = TriplaneDesc { resolution: args.triplane_resolution, channels: args.triplane_channels, box_min: [-1.0; 3], box_max: [1.0; 3] };
-    let mut tp = Triplane::new(ctx, "bench triplane", tdesc, TriplaneInit::Normal { seed: 5 })?;
-    let accumulation = if args.deterministic { Accumulation::Deterministic } else { Accumulation::Auto };
+    let tdesc = TriplaneDesc {
+        resolution: args.triplane_resolution,
+        channels: args.triplane_channels,
+        box_min: [-1.0; 3],
+        box_max: [1.0; 3],
+    };
+    let mut tp = Triplane::new(
+        ctx,
+        "bench triplane",
+        tdesc,
+        TriplaneInit::Normal { seed: 5 },
+    )?;
+    let accumulation = if args.deterministic {
+        Accumulation::Deterministic
+    } else {
+        Accumulation::Auto
+    };
     tp.prepare(ctx, accumulation)?;
     let points = ctx.upload("bench points", &pts)?;
-    let gpoints = ctx.create_buffer("bench point grads", BufferDesc::gpu_only((rows * 12) as u64))?;
+    let gpoints = ctx.create_buffer(
+        "bench point grads",
+        BufferDesc::gpu_only((rows * 12) as u64),
+    )?;
     let (tp_wall, tp_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench triplane")?;
         tp.record_forward(&mut rec, &points, feats, rows as u32)?;
-        tp.record_backward(&mut rec, &points, feats, &gpoints, rows as u32, accumulation)?;
+        tp.record_backward(
+            &mut rec,
+            &points,
+            feats,
+            &gpoints,
+            rows as u32,
+            accumulation,
+        )?;
         Ok(rec.submit_and_wait()?)
     })?;
     out["triplane"] = json!({ "resolution": args.triplane_resolution, "channels": args.triplane_channels, "fwd_bwd_ms": tp_wall, "fwd_bwd_gpu_ms": tp_gpu, "points_per_s": rows as f64 / (tp_gpu.max(1e-9) / 1e3), "accumulation": accumulation.describe(ctx) });
@@ -288,10 +378,23 @@ fn triplane(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value, feats: &
 fn images(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow::Result<()> {
     let side = 512u32;
     let px = (side * side * 3) as usize;
-    let img_a = ctx.upload("bench ssim a", &random(px, 6).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
-    let img_b = ctx.upload("bench ssim b", &random(px, 7).iter().map(|v| 0.5 + 0.5 * v).collect::<Vec<f32>>())?;
+    let img_a = ctx.upload(
+        "bench ssim a",
+        &random(px, 6)
+            .iter()
+            .map(|v| 0.5 + 0.5 * v)
+            .collect::<Vec<f32>>(),
+    )?;
+    let img_b = ctx.upload(
+        "bench ssim b",
+        &random(px, 7)
+            .iter()
+            .map(|v| 0.5 + 0.5 * v)
+            .collect::<Vec<f32>>(),
+    )?;
     if args.wants("ssim") {
-        let ssim_grad = ctx.create_buffer("bench ssim grad", BufferDesc::gpu_only((px * 4) as u64))?;
+        let ssim_grad =
+            ctx.create_buffer("bench ssim grad", BufferDesc::gpu_only((px * 4) as u64))?;
         let ssim = drape_engine::ops::ssim::Ssim::new(ctx, side, side)?;
         let (ssim_wall, ssim_gpu) = timed(ctx, args, || {
             let mut rec = ctx.record("bench ssim")?;
@@ -309,11 +412,20 @@ fn images(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow:
     let mut rng = rand::rngs::StdRng::seed_from_u64(8);
     let tensors = net.tensors().into_iter().map(|(name, shape)| {
         let n: usize = shape.iter().product();
-        (name, (0..n).map(|_| rng.random_range(-0.05f32..0.05).abs()).collect::<Vec<f32>>())
+        (
+            name,
+            (0..n)
+                .map(|_| rng.random_range(-0.05f32..0.05).abs())
+                .collect::<Vec<f32>>(),
+        )
     });
-    let weights = drape_engine::ops::lpips::LpipsWeights { net, tensors: tensors.collect() };
+    let weights = drape_engine::ops::lpips::LpipsWeights {
+        net,
+        tensors: tensors.collect(),
+    };
     let lpips = drape_engine::ops::lpips::Lpips::new(ctx, &weights, side, side)?;
-    let lpips_grad = ctx.create_buffer("bench lpips grad", BufferDesc::gpu_only((px * 4) as u64))?;
+    let lpips_grad =
+        ctx.create_buffer("bench lpips grad", BufferDesc::gpu_only((px * 4) as u64))?;
     let (lpips_wall, lpips_gpu) = timed(ctx, args, || {
         let mut rec = ctx.record("bench lpips")?;
         lpips.record(&mut rec, &img_a, &img_b, Some((&lpips_grad, 1.0)))?;
@@ -324,13 +436,27 @@ fn images(ctx: &Context, args: &OpsArgs, out: &mut serde_json::Value) -> anyhow:
 }
 
 pub fn print_table(r: &serde_json::Value) {
-    println!("neural ops at {} rows on {} (median of {} runs)", r["rows"], r["device"].as_str().unwrap_or("?"), r["runs"]);
-    println!("  {:>9} {:>11} {:>10} {:>11} {:>10} {:>11} {:>8}", "layer", "fwd GPU ms", "GFLOP/s", "bwd GPU ms", "GFLOP/s", "CPU GFLOP/s", "GPU/CPU");
+    println!(
+        "neural ops at {} rows on {} (median of {} runs)",
+        r["rows"],
+        r["device"].as_str().unwrap_or("?"),
+        r["runs"]
+    );
+    println!(
+        "  {:>9} {:>11} {:>10} {:>11} {:>10} {:>11} {:>8}",
+        "layer", "fwd GPU ms", "GFLOP/s", "bwd GPU ms", "GFLOP/s", "CPU GFLOP/s", "GPU/CPU"
+    );
     for g in r["gemm"].as_array().into_iter().flatten() {
         println!(
             "  {:>4}->{:<4} {:>11.2} {:>10.2} {:>11.2} {:>10.2} {:>11.2} {:>8.2}",
-            g["in"], g["out"], g["forward_gpu_ms"].as_f64().unwrap_or(0.0), g["forward_gflops"].as_f64().unwrap_or(0.0), g["backward_gpu_ms"].as_f64().unwrap_or(0.0),
-            g["backward_gflops"].as_f64().unwrap_or(0.0), g["cpu_gflops"].as_f64().unwrap_or(0.0), g["gpu_over_cpu_throughput"].as_f64().unwrap_or(0.0)
+            g["in"],
+            g["out"],
+            g["forward_gpu_ms"].as_f64().unwrap_or(0.0),
+            g["forward_gflops"].as_f64().unwrap_or(0.0),
+            g["backward_gpu_ms"].as_f64().unwrap_or(0.0),
+            g["backward_gflops"].as_f64().unwrap_or(0.0),
+            g["cpu_gflops"].as_f64().unwrap_or(0.0),
+            g["gpu_over_cpu_throughput"].as_f64().unwrap_or(0.0)
         );
     }
     let splits: Vec<String> = r["gemm"]
@@ -338,12 +464,29 @@ pub fn print_table(r: &serde_json::Value) {
         .into_iter()
         .flatten()
         .map(|g| {
-            let passes = g["backward_passes_gpu_ms"].as_object().map(|m| m.iter().map(|(k, v)| format!("{} {:.1}", k.trim_start_matches("mlp."), v.as_f64().unwrap_or(0.0))).collect::<Vec<_>>().join(", ")).unwrap_or_default();
+            let passes = g["backward_passes_gpu_ms"]
+                .as_object()
+                .map(|m| {
+                    m.iter()
+                        .map(|(k, v)| {
+                            format!(
+                                "{} {:.1}",
+                                k.trim_start_matches("mlp."),
+                                v.as_f64().unwrap_or(0.0)
+                            )
+                        })
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                })
+                .unwrap_or_default();
             format!("{}->{}: {passes}", g["in"], g["out"])
         })
         .collect();
     if !splits.is_empty() {
-        println!("  backward by pass (GPU ms, one run): {}", splits.join("; "));
+        println!(
+            "  backward by pass (GPU ms, one run): {}",
+            splits.join("; ")
+        );
     }
     if let Some(ms) = r["decoders_fwd_bwd_gpu_ms"].as_f64() {
         println!("  three HUGS decoders, forward + backward: {ms:.1} ms GPU");
@@ -355,11 +498,24 @@ pub fn print_table(r: &serde_json::Value) {
         println!("  LPIPS (AlexNet) 512x512, value + gradient: {ms:.1} ms GPU");
     }
     for c in r["chamfer"].as_array().into_iter().flatten() {
-        println!("  Chamfer {} x {} points ({}), both directions + gradient: {:.1} ms GPU", c["points"], c["points"], c["search"].as_str().unwrap_or("?"), c["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0));
+        println!(
+            "  Chamfer {} x {} points ({}), both directions + gradient: {:.1} ms GPU",
+            c["points"],
+            c["points"],
+            c["search"].as_str().unwrap_or("?"),
+            c["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0)
+        );
     }
     let t = &r["triplane"];
     if t.is_null() {
         return;
     }
-    println!("  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)", t["resolution"], t["resolution"], t["channels"], t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0), t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6);
+    println!(
+        "  triplane {}x{}x{} sample + backward: {:.1} ms GPU ({:.2} M points/s)",
+        t["resolution"],
+        t["resolution"],
+        t["channels"],
+        t["fwd_bwd_gpu_ms"].as_f64().unwrap_or(0.0),
+        t["points_per_s"].as_f64().unwrap_or(0.0) / 1e6
+    );
 }

@@ -32,7 +32,14 @@ pub struct Runs {
 
 impl Runs {
     pub fn new(warmup: u32, runs: u32) -> Self {
-        Self { warmup, runs, warm_for: WARM_FOR.get().copied().unwrap_or_default(), start: None, warmed: 0, timed: 0 }
+        Self {
+            warmup,
+            runs,
+            warm_for: WARM_FOR.get().copied().unwrap_or_default(),
+            start: None,
+            warmed: 0,
+            timed: 0,
+        }
     }
 }
 
@@ -59,20 +66,39 @@ mod tests {
 
     #[test]
     fn warm_ups_then_the_timed_runs() {
-        let runs: Vec<bool> = Runs { warmup: 2, runs: 3, warm_for: Duration::ZERO, start: None, warmed: 0, timed: 0 }.collect();
+        let runs: Vec<bool> = Runs {
+            warmup: 2,
+            runs: 3,
+            warm_for: Duration::ZERO,
+            start: None,
+            warmed: 0,
+            timed: 0,
+        }
+        .collect();
         assert_eq!(runs, [false, false, true, true, true]);
     }
 
     #[test]
     fn warm_ups_last_at_least_the_warm_time() {
-        let mut runs = Runs { warmup: 1, runs: 2, warm_for: Duration::from_millis(30), start: None, warmed: 0, timed: 0 };
+        let mut runs = Runs {
+            warmup: 1,
+            runs: 2,
+            warm_for: Duration::from_millis(30),
+            start: None,
+            warmed: 0,
+            timed: 0,
+        };
         let t0 = Instant::now();
         let mut warm = 0;
         while runs.next() == Some(false) {
             warm += 1;
             std::thread::sleep(Duration::from_millis(5));
         }
-        assert!(t0.elapsed() >= Duration::from_millis(30), "warmed for {:?}", t0.elapsed());
+        assert!(
+            t0.elapsed() >= Duration::from_millis(30),
+            "warmed for {:?}",
+            t0.elapsed()
+        );
         assert!(warm >= 6, "{warm} warm-up runs of 5 ms in 30 ms");
         // The loop's last call took the first timed run.
         assert_eq!((runs.next(), runs.next()), (Some(true), None));

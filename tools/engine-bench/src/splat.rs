@@ -8,12 +8,14 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use drape_cli_support::median;
-use drape_trainer::ply;
-use drape_engine::ops::splat::render::{Accumulation, GaussianBuffers, RasterVariant, SplatRenderer};
+use drape_engine::ops::splat::render::{
+    Accumulation, GaussianBuffers, RasterVariant, SplatRenderer,
+};
 use drape_engine::ops::splat::scene::{GaussianCloud, PinholeCamera, RenderSettings};
 use drape_engine::Context;
-use serde_json::json;
 use drape_shared::splat::layout::TILE_SIZES;
+use drape_trainer::ply;
+use serde_json::json;
 
 /// Options of `engine-bench splat`.
 #[derive(Clone, Debug, clap::Args)]
@@ -98,18 +100,28 @@ fn parse_tile_size(s: &str) -> Result<u32, String> {
 }
 
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once('x').ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT"))?;
-    let parse = |v: &str| v.trim().parse::<u32>().ok().filter(|&v| v > 0 && v <= 16384);
+    let (w, h) = s
+        .split_once('x')
+        .ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&v| v > 0 && v <= 16384)
+    };
     match (parse(w), parse(h)) {
         (Some(w), Some(h)) => Ok((w, h)),
-        _ => Err(format!("'{s}' is not WIDTHxHEIGHT with sides from 1 to 16384")),
+        _ => Err(format!(
+            "'{s}' is not WIDTHxHEIGHT with sides from 1 to 16384"
+        )),
     }
 }
 
 /// The camera of the random scenes: 5 units from the origin, 45 degrees vertical.
 fn bench_camera(width: u32, height: u32, target: [f32; 3], distance: f32) -> PinholeCamera {
     let eye = [target[0] + 0.3, target[1] - 0.4, target[2] - distance];
-    PinholeCamera::look_at(eye, target, [0.0, -1.0, 0.0], 45.0, width, height).expect("valid camera")
+    PinholeCamera::look_at(eye, target, [0.0, -1.0, 0.0], 45.0, width, height)
+        .expect("valid camera")
 }
 
 pub(crate) struct Config {
@@ -131,31 +143,57 @@ pub(crate) fn configs(args: &SplatArgs) -> anyhow::Result<Vec<Config>> {
             }
         }
         let radius = (0..cloud.len())
-            .map(|i| (0..3).map(|a| (cloud.means[3 * i + a] - c[a]).powi(2)).sum::<f32>().sqrt())
+            .map(|i| {
+                (0..3)
+                    .map(|a| (cloud.means[3 * i + a] - c[a]).powi(2))
+                    .sum::<f32>()
+                    .sqrt()
+            })
             .fold(0.0f32, f32::max)
             .max(1e-3);
         for &(w, h) in &args.sizes {
-            out.push(Config { label: format!("{} {w}x{h}", path.display()), cloud: cloud.clone(), camera: bench_camera(w, h, c, 2.5 * radius) });
+            out.push(Config {
+                label: format!("{} {w}x{h}", path.display()),
+                cloud: cloud.clone(),
+                camera: bench_camera(w, h, c, 2.5 * radius),
+            });
         }
         return Ok(out);
     }
     for &(w, h) in &args.sizes {
         for &n in &args.counts {
             // 59 floats a Gaussian at SH degree 3, held by the cloud, its copy and the device.
-            drape_cli_support::ensure_memory(3 * 236 * u64::from(n), &format!("a scene of {n} Gaussians"), "--counts")?;
+            drape_cli_support::ensure_memory(
+                3 * 236 * u64::from(n),
+                &format!("a scene of {n} Gaussians"),
+                "--counts",
+            )?;
             // Splat size falls with the count so that coverage stays comparable.
             let scale = 2.0 / (n as f32).sqrt();
             let cloud = GaussianCloud::random(n as usize, 3, 1.6, (-1.0, 1.0), scale, u64::from(n));
-            out.push(Config { label: format!("{n} random {w}x{h}"), cloud, camera: bench_camera(w, h, [0.0; 3], 5.0) });
+            out.push(Config {
+                label: format!("{n} random {w}x{h}"),
+                cloud,
+                camera: bench_camera(w, h, [0.0; 3], 5.0),
+            });
         }
     }
     Ok(out)
 }
 
-fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice, tile_size: u32) -> anyhow::Result<serde_json::Value> {
+fn bench_one(
+    ctx: &Context,
+    cfg: &Config,
+    args: &SplatArgs,
+    raster: RasterChoice,
+    tile_size: u32,
+) -> anyhow::Result<serde_json::Value> {
     let (w, h) = (cfg.camera.width, cfg.camera.height);
     let n = cfg.cloud.len();
-    let settings = RenderSettings { tile_size, ..RenderSettings::default() };
+    let settings = RenderSettings {
+        tile_size,
+        ..RenderSettings::default()
+    };
     let gaussians = GaussianBuffers::upload(ctx, "bench params", &cfg.cloud)?;
     let grads = GaussianBuffers::new(ctx, "bench grads", n, cfg.cloud.sh_degree)?;
     let mut renderer = SplatRenderer::new(ctx, w, h, n)?;
@@ -174,7 +212,15 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
         let t0 = Instant::now();
         let stats = renderer.forward(&gaussians, &cfg.camera, &settings)?;
         let t_fwd = t0.elapsed().as_secs_f64() * 1e3;
-        let bwd = renderer.backward(&stats.saved, &gaussians, &grad_rgb, &grad_alpha, &grad_depth, &grads, accumulation)?;
+        let bwd = renderer.backward(
+            &stats.saved,
+            &gaussians,
+            &grad_rgb,
+            &grad_alpha,
+            &grad_depth,
+            &grads,
+            accumulation,
+        )?;
         let t_both = t0.elapsed().as_secs_f64() * 1e3;
         if !timed {
             continue;
@@ -193,7 +239,22 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
     // Forward-only times of the render-only knobs (they have no backward).
     let mut half = serde_json::Map::new();
     if args.half {
-        for (name, knob) in [("half_sh", RenderSettings { half_sh: true, ..settings }), ("half_splats", RenderSettings { half_splats: true, ..settings })] {
+        for (name, knob) in [
+            (
+                "half_sh",
+                RenderSettings {
+                    half_sh: true,
+                    ..settings
+                },
+            ),
+            (
+                "half_splats",
+                RenderSettings {
+                    half_splats: true,
+                    ..settings
+                },
+            ),
+        ] {
             let mut ms = Vec::new();
             let mut knob_passes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
             for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
@@ -234,13 +295,25 @@ fn bench_one(ctx: &Context, cfg: &Config, args: &SplatArgs, raster: RasterChoice
 
 /// `configs` come from [`configs`], made before the device is opened (a bad PLY costs
 /// nothing).
-pub(crate) fn run(ctx: &Context, args: &SplatArgs, configs: Vec<Config>) -> anyhow::Result<serde_json::Value> {
+pub(crate) fn run(
+    ctx: &Context,
+    args: &SplatArgs,
+    configs: Vec<Config>,
+) -> anyhow::Result<serde_json::Value> {
     let mut results = Vec::new();
     for cfg in configs {
         for &raster in &args.raster {
             for &tile in &args.tile_sizes {
-                eprintln!("splat: {} ({raster:?} rasterizer, tiles of {tile}) ...", cfg.label);
-                results.push(bench_one(ctx, &cfg, args, raster, tile).with_context(|| format!("splat benchmark '{}' ({raster:?} rasterizer, tiles of {tile})", cfg.label))?);
+                eprintln!(
+                    "splat: {} ({raster:?} rasterizer, tiles of {tile}) ...",
+                    cfg.label
+                );
+                results.push(bench_one(ctx, &cfg, args, raster, tile).with_context(|| {
+                    format!(
+                        "splat benchmark '{}' ({raster:?} rasterizer, tiles of {tile})",
+                        cfg.label
+                    )
+                })?);
             }
         }
     }
@@ -256,7 +329,11 @@ pub(crate) fn run(ctx: &Context, args: &SplatArgs, configs: Vec<Config>) -> anyh
 }
 
 pub fn print_table(r: &serde_json::Value) {
-    println!("splat on {} ({} runs, median)", r["device"].as_str().unwrap_or("?"), r["runs"]);
+    println!(
+        "splat on {} ({} runs, median)",
+        r["device"].as_str().unwrap_or("?"),
+        r["runs"]
+    );
     for c in r["results"].as_array().into_iter().flatten() {
         println!(
             "  {:<28} {:<9} {:>2}px fwd {:>9.2} ms {:>7.2} FPS | fwd+bwd {:>9.2} ms {:>7.2} FPS | {:>10} isect | {:>7.1} M blend/s",
@@ -271,12 +348,24 @@ pub fn print_table(r: &serde_json::Value) {
             c["blend_steps_per_s"].as_f64().unwrap_or(0.0) / 1e6,
         );
         if let Some(passes) = c["passes"].as_object() {
-            let line: Vec<String> = passes.iter().map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0))).collect();
+            let line: Vec<String> = passes
+                .iter()
+                .map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0)))
+                .collect();
             println!("      GPU ms: {}", line.join(", "));
         }
         for (k, v) in c["half"].as_object().into_iter().flatten() {
-            let line: Vec<String> = v["passes"].as_object().into_iter().flatten().map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0))).collect();
-            println!("      {k}: fwd {:.2} ms; GPU ms: {}", v["forward_median_ms"].as_f64().unwrap_or(0.0), line.join(", "));
+            let line: Vec<String> = v["passes"]
+                .as_object()
+                .into_iter()
+                .flatten()
+                .map(|(k, v)| format!("{k} {:.2}", v.as_f64().unwrap_or(0.0)))
+                .collect();
+            println!(
+                "      {k}: fwd {:.2} ms; GPU ms: {}",
+                v["forward_median_ms"].as_f64().unwrap_or(0.0),
+                line.join(", ")
+            );
         }
     }
 }

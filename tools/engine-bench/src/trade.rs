@@ -45,10 +45,10 @@ use std::path::{Path, PathBuf};
 
 use drape_cli_support::median;
 use drape_engine::ops::lpips::{Lpips, LpipsWeights};
+use drape_engine::ops::splat::render::subgroup_raster_supported;
 use drape_engine::ops::splat::render::SplatRenderer;
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
 use drape_engine::Context;
-use drape_engine::ops::splat::render::subgroup_raster_supported;
 use drape_shared::splat::layout::{sh_coeffs, DEFAULT_TILE_SIZE, RASTER_BLOCK, TILE_SIZES};
 use drape_trainer::avatar::composite::{AvatarRenderer, Compositing};
 use drape_trainer::avatar::eval::psnr;
@@ -128,7 +128,9 @@ fn parse_threshold(s: &str) -> Result<f32, String> {
 fn parse_fraction(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
         Ok(v) if v > 0.0 && v < 1.0 => Ok(v),
-        _ => Err(format!("'{s}' is not a fraction of the Gaussians in (0, 1)")),
+        _ => Err(format!(
+            "'{s}' is not a fraction of the Gaussians in (0, 1)"
+        )),
     }
 }
 
@@ -157,7 +159,9 @@ struct Setting {
 
 impl Setting {
     fn edits(&self) -> bool {
-        self.prune.is_some() || self.prune_mask.is_some() || self.sh_keep.iter().any(Option::is_some)
+        self.prune.is_some()
+            || self.prune_mask.is_some()
+            || self.sh_keep.iter().any(Option::is_some)
     }
 }
 
@@ -204,7 +208,11 @@ pub fn prune_masked(opacity_logits: &mut [f32], pruned: &[bool]) -> usize {
 /// so the choice is the same on every run): true for each culled one.
 pub fn least_contributing(contributions: &[f64], fraction: f64) -> Vec<bool> {
     let mut order: Vec<usize> = (0..contributions.len()).collect();
-    order.sort_by(|&a, &b| contributions[a].total_cmp(&contributions[b]).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        contributions[a]
+            .total_cmp(&contributions[b])
+            .then(a.cmp(&b))
+    });
     let cut = (fraction * contributions.len() as f64).floor() as usize;
     let mut pruned = vec![false; contributions.len()];
     for &i in &order[..cut.min(order.len())] {
@@ -218,13 +226,29 @@ pub fn least_contributing(contributions: &[f64], fraction: f64) -> Vec<bool> {
 /// training split (0: all): its blend weights `α · T` over the pixels of one
 /// depth-sorted render of every layer, posed as in the frame, from its camera
 /// (`SplatRenderer::contributions`). Returns the sums and the frames used.
-fn contributions(ctx: &Context, run: &mut OpenRun, max_frames: usize) -> anyhow::Result<(Vec<f64>, usize)> {
-    let train: Vec<DatasetFrame> = run.seq.frames.iter().filter(|f| f.split == Split::Train).cloned().collect();
-    anyhow::ensure!(!train.is_empty(), "{}: the run's data has no training frame to measure contributions on", run.seq.dir.display());
+fn contributions(
+    ctx: &Context,
+    run: &mut OpenRun,
+    max_frames: usize,
+) -> anyhow::Result<(Vec<f64>, usize)> {
+    let train: Vec<DatasetFrame> = run
+        .seq
+        .frames
+        .iter()
+        .filter(|f| f.split == Split::Train)
+        .cloned()
+        .collect();
+    anyhow::ensure!(
+        !train.is_empty(),
+        "{}: the run's data has no training frame to measure contributions on",
+        run.seq.dir.display()
+    );
     let picked: Vec<&DatasetFrame> = if max_frames == 0 || train.len() <= max_frames {
         train.iter().collect()
     } else {
-        (0..max_frames).map(|k| &train[k * train.len() / max_frames]).collect()
+        (0..max_frames)
+            .map(|k| &train[k * train.len() / max_frames])
+            .collect()
     };
     let total = run.avatar.posed.count;
     let mut sums = vec![0.0f64; total as usize];
@@ -243,9 +267,16 @@ fn contributions(ctx: &Context, run: &mut OpenRun, max_frames: usize) -> anyhow:
         }
         let renderer = match renderers.entry((cam.width, cam.height)) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => e.insert(SplatRenderer::new(ctx, cam.width, cam.height, total as usize)?),
+            std::collections::btree_map::Entry::Vacant(e) => e.insert(SplatRenderer::new(
+                ctx,
+                cam.width,
+                cam.height,
+                total as usize,
+            )?),
         };
-        let saved = renderer.forward(&run.avatar.posed, &cam, &RenderSettings::default())?.saved;
+        let saved = renderer
+            .forward(&run.avatar.posed, &cam, &RenderSettings::default())?
+            .saved;
         for (s, c) in sums.iter_mut().zip(renderer.contributions(&saved)?) {
             *s += f64::from(c);
         }
@@ -303,41 +334,94 @@ pub fn resample(rgb: &[f32], (sw, sh): (u32, u32), (dw, dh): (u32, u32)) -> Vec<
 pub fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
     points
         .iter()
-        .map(|&(ms, q)| !points.iter().any(|&(m2, q2)| m2 <= ms && q2 >= q && (m2 < ms || q2 > q)))
+        .map(|&(ms, q)| {
+            !points
+                .iter()
+                .any(|&(m2, q2)| m2 <= ms && q2 >= q && (m2 < ms || q2 > q))
+        })
         .collect()
 }
 
 /// The settings of every measured knob; the first is the default.
-fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
+fn settings(
+    ctx: &Context,
+    args: &TradeArgs,
+    run: &mut OpenRun,
+) -> anyhow::Result<(Vec<Setting>, BTreeMap<&'static str, serde_json::Value>)> {
     let default_comp = run.config.layers.compositing.name().to_string();
     let parts = part_names(&run.avatar);
-    let base = Setting { knob: "default", label: format!("{default_comp}, 1x, full SH, all Gaussians"), scale: 1.0, compositing: default_comp.clone(), sh_keep: vec![None; parts.len()], prune: None, prune_mask: None, pose_offsets: true, tile_size: DEFAULT_TILE_SIZE, half_sh: false, half_splats: false };
+    let base = Setting {
+        knob: "default",
+        label: format!("{default_comp}, 1x, full SH, all Gaussians"),
+        scale: 1.0,
+        compositing: default_comp.clone(),
+        sh_keep: vec![None; parts.len()],
+        prune: None,
+        prune_mask: None,
+        pose_offsets: true,
+        tile_size: DEFAULT_TILE_SIZE,
+        half_sh: false,
+        half_splats: false,
+    };
     let mut out = vec![base.clone()];
     let mut knobs = BTreeMap::new();
     for &s in args.scales.iter().filter(|&&s| s != 1.0) {
-        out.push(Setting { knob: "resolution", label: format!("{s}x"), scale: s, ..base.clone() });
+        out.push(Setting {
+            knob: "resolution",
+            label: format!("{s}x"),
+            scale: s,
+            ..base.clone()
+        });
     }
-    knobs.insert("resolution", json!(format!("measured: scales {:?} of the data's size, resampled to it for the metrics", args.scales)));
+    knobs.insert(
+        "resolution",
+        json!(format!(
+            "measured: scales {:?} of the data's size, resampled to it for the metrics",
+            args.scales
+        )),
+    );
     let degrees = part_degrees(&run.avatar);
     let degree = run.avatar.sh_degree();
     if degree == 0 {
-        knobs.insert("sh_degree", json!("not applicable: the run was trained at SH degree 0 (nothing to truncate)"));
+        knobs.insert(
+            "sh_degree",
+            json!("not applicable: the run was trained at SH degree 0 (nothing to truncate)"),
+        );
     } else {
         for keep in 0..degree {
             for (k, name) in parts.iter().enumerate().filter(|&(k, _)| keep < degrees[k]) {
                 let mut sh_keep = vec![None; parts.len()];
                 sh_keep[k] = Some(keep);
-                out.push(Setting { knob: "sh_degree", label: format!("{name} at degree {keep} (trained at {})", degrees[k]), sh_keep, ..base.clone() });
+                out.push(Setting {
+                    knob: "sh_degree",
+                    label: format!("{name} at degree {keep} (trained at {})", degrees[k]),
+                    sh_keep,
+                    ..base.clone()
+                });
             }
             if parts.len() > 1 {
-                out.push(Setting { knob: "sh_degree", label: format!("every layer at degree {keep} at most"), sh_keep: vec![Some(keep); parts.len()], ..base.clone() });
+                out.push(Setting {
+                    knob: "sh_degree",
+                    label: format!("every layer at degree {keep} at most"),
+                    sh_keep: vec![Some(keep); parts.len()],
+                    ..base.clone()
+                });
             }
         }
-        let trained: Vec<String> = parts.iter().zip(&degrees).map(|(p, d)| format!("{p} {d}")).collect();
+        let trained: Vec<String> = parts
+            .iter()
+            .zip(&degrees)
+            .map(|(p, d)| format!("{p} {d}"))
+            .collect();
         knobs.insert("sh_degree", json!(format!("measured: each layer below the degree it was trained at ({}), and every layer; time is the full degree's (the kernels evaluate every coefficient of the highest degree)", trained.join(", "))));
     }
     for &t in &args.prune {
-        out.push(Setting { knob: "pruning", label: format!("opacity < {t}"), prune: Some(t), ..base.clone() });
+        out.push(Setting {
+            knob: "pruning",
+            label: format!("opacity < {t}"),
+            prune: Some(t),
+            ..base.clone()
+        });
     }
     knobs.insert("pruning", json!(format!("measured: opacity thresholds {:?}; pruned Gaussians are culled at projection (decoders and projection still run on all)", args.prune)));
     if !args.prune_contribution.is_empty() {
@@ -345,33 +429,94 @@ fn settings(ctx: &Context, args: &TradeArgs, run: &mut OpenRun) -> anyhow::Resul
         for &q in &args.prune_contribution {
             let mask = least_contributing(&sums, q);
             // The least contribution kept, as pixels of weight per frame.
-            let floor = sums.iter().zip(&mask).filter(|(_, &p)| !p).map(|(&c, _)| c).fold(f64::INFINITY, f64::min) / frames as f64;
-            out.push(Setting { knob: "contribution pruning", label: format!("least-contributing {:.0}% (kept: at least {floor:.3} px of weight per frame)", 100.0 * q), prune_mask: Some(std::rc::Rc::new(mask)), ..base.clone() });
+            let floor = sums
+                .iter()
+                .zip(&mask)
+                .filter(|(_, &p)| !p)
+                .map(|(&c, _)| c)
+                .fold(f64::INFINITY, f64::min)
+                / frames as f64;
+            out.push(Setting {
+                knob: "contribution pruning",
+                label: format!(
+                    "least-contributing {:.0}% (kept: at least {floor:.3} px of weight per frame)",
+                    100.0 * q
+                ),
+                prune_mask: Some(std::rc::Rc::new(mask)),
+                ..base.clone()
+            });
         }
         let zero = sums.iter().filter(|&&c| c == 0.0).count();
         knobs.insert("contribution pruning", json!(format!("measured: the fractions {:?} of the Gaussians with the least contribution (blend weight summed over the pixels of {frames} training frames, a depth-sorted render of every layer each; {zero} of {} Gaussians contribute nothing) culled at projection", args.prune_contribution, sums.len())));
     }
-    for c in ["three-pass", "three-pass-occlusion", "single-pass", "fused"].into_iter().filter(|&c| c != default_comp) {
-        out.push(Setting { knob: "compositing", label: c.to_string(), compositing: c.to_string(), ..base.clone() });
+    for c in ["three-pass", "three-pass-occlusion", "single-pass", "fused"]
+        .into_iter()
+        .filter(|&c| c != default_comp)
+    {
+        out.push(Setting {
+            knob: "compositing",
+            label: c.to_string(),
+            compositing: c.to_string(),
+            ..base.clone()
+        });
     }
     knobs.insert("compositing", json!("measured: three-pass, three-pass-occlusion, single-pass, fused (the paper's matte from one sort and one walk of every layer)"));
-    let blended: Vec<&str> = run.avatar.layers.iter().filter(|l| l.deformer.has_pose_blend()).map(|l| l.name.as_str()).collect();
+    let blended: Vec<&str> = run
+        .avatar
+        .layers
+        .iter()
+        .filter(|l| l.deformer.has_pose_blend())
+        .map(|l| l.name.as_str())
+        .collect();
     if blended.is_empty() {
         knobs.insert("pose_offsets", json!("not applicable: no layer of this run was trained with pose-dependent offsets (config body.pose_offsets / cloth.pose_offsets)"));
     } else {
-        out.push(Setting { knob: "pose_offsets", label: format!("off ({} without the pose blend)", blended.join(", ")), pose_offsets: false, ..base.clone() });
-        knobs.insert("pose_offsets", json!(format!("measured: {} rendered without the pose blend (the decoded offsets alone)", blended.join(", "))));
+        out.push(Setting {
+            knob: "pose_offsets",
+            label: format!("off ({} without the pose blend)", blended.join(", ")),
+            pose_offsets: false,
+            ..base.clone()
+        });
+        knobs.insert(
+            "pose_offsets",
+            json!(format!(
+                "measured: {} rendered without the pose blend (the decoded offsets alone)",
+                blended.join(", ")
+            )),
+        );
     }
     let subgroup = subgroup_raster_supported(ctx.info());
-    let tiles: Vec<u32> = TILE_SIZES.into_iter().filter(|&t| t != DEFAULT_TILE_SIZE && (t >= RASTER_BLOCK || subgroup)).collect();
+    let tiles: Vec<u32> = TILE_SIZES
+        .into_iter()
+        .filter(|&t| t != DEFAULT_TILE_SIZE && (t >= RASTER_BLOCK || subgroup))
+        .collect();
     for &t in &tiles {
-        out.push(Setting { knob: "tile size", label: format!("{t} x {t} tiles"), tile_size: t, ..base.clone() });
+        out.push(Setting {
+            knob: "tile size",
+            label: format!("{t} x {t} tiles"),
+            tile_size: t,
+            ..base.clone()
+        });
     }
-    let why8 = if subgroup { "" } else { "; 8 needs the subgroup rasterizers of CPU devices, not this device's" };
+    let why8 = if subgroup {
+        ""
+    } else {
+        "; 8 needs the subgroup rasterizers of CPU devices, not this device's"
+    };
     knobs.insert("tile_size", json!(format!("measured: tiles of {tiles:?} against the default {DEFAULT_TILE_SIZE} (the same image: a tile only groups the splats that pixels walk){why8}")));
-    out.push(Setting { knob: "half-precision SH", label: "SH packed to binary16 each frame".into(), half_sh: true, ..base.clone() });
+    out.push(Setting {
+        knob: "half-precision SH",
+        label: "SH packed to binary16 each frame".into(),
+        half_sh: true,
+        ..base.clone()
+    });
     knobs.insert("half_sh", json!("measured: the SH the decoders wrote packed to binary16 (round to nearest even) every frame (splat.pack_sh_half, in the time) and the projection reading the halves"));
-    out.push(Setting { knob: "half-precision splats", label: "projected splats packed to binary16 (centre f32)".into(), half_splats: true, ..base.clone() });
+    out.push(Setting {
+        knob: "half-precision splats",
+        label: "projected splats packed to binary16 (centre f32)".into(),
+        half_splats: true,
+        ..base.clone()
+    });
     knobs.insert("half_splats", json!("measured: the projected splats packed after binning (splat.pack_splats_half, in the time: centre f32, conic, opacity, colour and depth binary16) and the forward rasterizers reading 6 words a splat instead of 10"));
     Ok((out, knobs))
 }
@@ -390,7 +535,12 @@ fn part_names(avatar: &Avatar) -> Vec<String> {
 
 /// The SH degree of each part (the human layers in order, then the scene).
 fn part_degrees(avatar: &Avatar) -> Vec<u32> {
-    avatar.layers.iter().map(|l| l.deformer.posed.sh_degree).chain(avatar.scene.iter().map(|s| s.params.sh_degree)).collect()
+    avatar
+        .layers
+        .iter()
+        .map(|l| l.deformer.posed.sh_degree)
+        .chain(avatar.scene.iter().map(|s| s.params.sh_degree))
+        .collect()
 }
 
 /// Applies a setting's SH truncation and pruning to the decoded Gaussians (each layer's
@@ -400,7 +550,12 @@ fn part_degrees(avatar: &Avatar) -> Vec<u32> {
 fn apply_edits(ctx: &Context, avatar: &mut Avatar, s: &Setting) -> anyhow::Result<Vec<usize>> {
     let mut kept = Vec::new();
     // `first`: the part's first Gaussian in the gathered order.
-    let edit = |op: &mut Vec<f32>, sh: &mut Vec<f32>, degree: u32, keep: Option<u32>, first: usize| -> usize {
+    let edit = |op: &mut Vec<f32>,
+                sh: &mut Vec<f32>,
+                degree: u32,
+                keep: Option<u32>,
+                first: usize|
+     -> usize {
         if let Some(d) = keep {
             truncate_sh(sh, degree, d);
         }
@@ -449,13 +604,20 @@ fn read_scene(ctx: &Context, avatar: &mut Avatar) -> anyhow::Result<SceneOrigina
         Some(s) => {
             let n = s.count as usize;
             let k = 3 * sh_coeffs(s.params.sh_degree);
-            Ok(Some((ctx.read_buffer(&mut s.params.opacity_logits, n)?, ctx.read_buffer(&mut s.params.sh, k * n)?)))
+            Ok(Some((
+                ctx.read_buffer(&mut s.params.opacity_logits, n)?,
+                ctx.read_buffer(&mut s.params.sh, k * n)?,
+            )))
         }
         None => Ok(None),
     }
 }
 
-fn restore_scene(ctx: &Context, avatar: &mut Avatar, original: &SceneOriginal) -> anyhow::Result<()> {
+fn restore_scene(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    original: &SceneOriginal,
+) -> anyhow::Result<()> {
     if let (Some(s), Some((op, sh))) = (&mut avatar.scene, original) {
         ctx.write_buffer(&mut s.params.opacity_logits, op)?;
         ctx.write_buffer(&mut s.params.sh, sh)?;
@@ -467,8 +629,19 @@ fn restore_scene(ctx: &Context, avatar: &mut Avatar, original: &SceneOriginal) -
 fn scaled_camera(cam: &PinholeCamera, scale: f64) -> PinholeCamera {
     let w = ((f64::from(cam.width) * scale).round() as u32).max(1);
     let h = ((f64::from(cam.height) * scale).round() as u32).max(1);
-    let (sx, sy) = ((f64::from(w) / f64::from(cam.width)) as f32, (f64::from(h) / f64::from(cam.height)) as f32);
-    PinholeCamera { fx: cam.fx * sx, cx: cam.cx * sx, fy: cam.fy * sy, cy: cam.cy * sy, width: w, height: h, ..*cam }
+    let (sx, sy) = (
+        (f64::from(w) / f64::from(cam.width)) as f32,
+        (f64::from(h) / f64::from(cam.height)) as f32,
+    );
+    PinholeCamera {
+        fx: cam.fx * sx,
+        cx: cam.cx * sx,
+        fy: cam.fy * sy,
+        cy: cam.cy * sy,
+        width: w,
+        height: h,
+        ..*cam
+    }
 }
 
 /// One rendered frame: the image at the render's size and the GPU ms by stage.
@@ -481,14 +654,26 @@ struct Rendered {
 }
 
 /// Poses, decodes, edits and renders one frame with the profile on.
-fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32, u32, String), AvatarRenderer>, f: &DatasetFrame, s: &Setting) -> anyhow::Result<Rendered> {
+fn render_frame(
+    ctx: &Context,
+    run: &mut OpenRun,
+    renderers: &mut BTreeMap<(u32, u32, String), AvatarRenderer>,
+    f: &DatasetFrame,
+    s: &Setting,
+) -> anyhow::Result<Rendered> {
     let cam = scaled_camera(&f.camera.to_pinhole([0.0; 3]), s.scale);
     let key = (cam.width, cam.height, s.compositing.clone());
     let renderer = match renderers.entry(key) {
         std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
         std::collections::btree_map::Entry::Vacant(e) => {
             let c = Compositing::parse(&s.compositing)?;
-            e.insert(AvatarRenderer::new(ctx, &run.avatar, cam.width, cam.height, c)?)
+            e.insert(AvatarRenderer::new(
+                ctx,
+                &run.avatar,
+                cam.width,
+                cam.height,
+                c,
+            )?)
         }
     };
     let transforms = run.rig.frame(&f.body);
@@ -503,8 +688,22 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
             run.avatar.record_forward(&mut rec, transforms.log_scale)?;
             rec.submit_and_wait()?;
         }
-        let kept = if s.edits() { apply_edits(ctx, &mut run.avatar, s)? } else { run.avatar.counts().iter().map(|c| c.1 as usize).collect() };
-        renderer.forward(ctx, &run.avatar, &cam, &RenderSettings { tile_size: s.tile_size, half_sh: s.half_sh, half_splats: s.half_splats, ..RenderSettings::default() })?;
+        let kept = if s.edits() {
+            apply_edits(ctx, &mut run.avatar, s)?
+        } else {
+            run.avatar.counts().iter().map(|c| c.1 as usize).collect()
+        };
+        renderer.forward(
+            ctx,
+            &run.avatar,
+            &cam,
+            &RenderSettings {
+                tile_size: s.tile_size,
+                half_sh: s.half_sh,
+                half_splats: s.half_splats,
+                ..RenderSettings::default()
+            },
+        )?;
         Ok(kept)
     })();
     let profile = ctx.take_profile().unwrap_or_default();
@@ -512,8 +711,18 @@ fn render_frame(ctx: &Context, run: &mut OpenRun, renderers: &mut BTreeMap<(u32,
     let stages = crate::avatar::by_stage(&profile);
     // Host work between passes is not GPU time; "other" (none expected) is reported but
     // not counted.
-    let gpu_ms = stages.iter().filter(|(k, _)| k.as_str() != "other").map(|(_, v)| v).sum();
-    Ok(Rendered { rgb: renderer.read_rgb(ctx)?, size: (cam.width, cam.height), gpu_ms, stages, kept })
+    let gpu_ms = stages
+        .iter()
+        .filter(|(k, _)| k.as_str() != "other")
+        .map(|(_, v)| v)
+        .sum();
+    Ok(Rendered {
+        rgb: renderer.read_rgb(ctx)?,
+        size: (cam.width, cam.height),
+        gpu_ms,
+        stages,
+        kept,
+    })
 }
 
 /// Image metrics against one reference.
@@ -531,13 +740,26 @@ struct LpipsCache<'w> {
 }
 
 impl LpipsCache<'_> {
-    fn measure(&mut self, ctx: &Context, a: &[f32], b: &[f32], (w, h): (u32, u32)) -> anyhow::Result<Option<f64>> {
-        let Some(weights) = self.weights else { return Ok(None) };
+    fn measure(
+        &mut self,
+        ctx: &Context,
+        a: &[f32],
+        b: &[f32],
+        (w, h): (u32, u32),
+    ) -> anyhow::Result<Option<f64>> {
+        let Some(weights) = self.weights else {
+            return Ok(None);
+        };
         let net = match self.nets.entry((w, h)) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => e.insert(Lpips::new(ctx, weights, w, h)?),
+            std::collections::btree_map::Entry::Vacant(e) => {
+                e.insert(Lpips::new(ctx, weights, w, h)?)
+            }
         };
-        let (pa, pb) = (ctx.upload("trade lpips a", a)?, ctx.upload("trade lpips b", b)?);
+        let (pa, pb) = (
+            ctx.upload("trade lpips a", a)?,
+            ctx.upload("trade lpips b", b)?,
+        );
         {
             let mut rec = ctx.record("trade lpips")?;
             net.record(&mut rec, &pa, &pb, None)?;
@@ -547,10 +769,23 @@ impl LpipsCache<'_> {
     }
 }
 
-fn metrics(ctx: &Context, lpips: &mut LpipsCache, a: &[f32], b: &[f32], size: (u32, u32)) -> anyhow::Result<Metrics> {
-    let (fa, fb): (Vec<f64>, Vec<f64>) = (a.iter().map(|&v| f64::from(v)).collect(), b.iter().map(|&v| f64::from(v)).collect());
+fn metrics(
+    ctx: &Context,
+    lpips: &mut LpipsCache,
+    a: &[f32],
+    b: &[f32],
+    size: (u32, u32),
+) -> anyhow::Result<Metrics> {
+    let (fa, fb): (Vec<f64>, Vec<f64>) = (
+        a.iter().map(|&v| f64::from(v)).collect(),
+        b.iter().map(|&v| f64::from(v)).collect(),
+    );
     let ssim = drape_engine::ops::ssim::reference(&fa, &fb, size.0 as usize, size.1 as usize).1;
-    Ok(Metrics { psnr: psnr(a, b), ssim, lpips: lpips.measure(ctx, a, b, size)? })
+    Ok(Metrics {
+        psnr: psnr(a, b),
+        ssim,
+        lpips: lpips.measure(ctx, a, b, size)?,
+    })
 }
 
 fn mean_metrics(v: &[Metrics]) -> serde_json::Value {
@@ -569,22 +804,42 @@ fn target(f: &DatasetFrame, whole_image: bool) -> Vec<f32> {
     if whole_image {
         return f.rgb.clone();
     }
-    f.mask.iter().enumerate().flat_map(|(i, &m)| if m { [f.rgb[3 * i], f.rgb[3 * i + 1], f.rgb[3 * i + 2]] } else { [0.0; 3] }).collect()
+    f.mask
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &m)| {
+            if m {
+                [f.rgb[3 * i], f.rgb[3 * i + 1], f.rgb[3 * i + 2]]
+            } else {
+                [0.0; 3]
+            }
+        })
+        .collect()
 }
 
 pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value> {
     let mut run = OpenRun::open(ctx, &args.run, args.data.as_deref(), None)?;
     let mut frames: Vec<DatasetFrame> = run.test_frames().into_iter().cloned().collect();
-    anyhow::ensure!(!frames.is_empty(), "{}: the run's data has no held-out frame to render", run.seq.dir.display());
+    anyhow::ensure!(
+        !frames.is_empty(),
+        "{}: the run's data has no held-out frame to render",
+        run.seq.dir.display()
+    );
     if args.max_frames > 0 {
         frames.truncate(args.max_frames);
     }
-    let lpips_path = args.lpips_weights.clone().or_else(|| run.config.losses.lpips_weights.clone());
+    let lpips_path = args
+        .lpips_weights
+        .clone()
+        .or_else(|| run.config.losses.lpips_weights.clone());
     let weights = match &lpips_path {
         Some(p) => Some(LpipsWeights::load(p, run.config.losses.lpips_net)?),
         None => None,
     };
-    let mut lpips = LpipsCache { weights: weights.as_ref(), nets: BTreeMap::new() };
+    let mut lpips = LpipsCache {
+        weights: weights.as_ref(),
+        nets: BTreeMap::new(),
+    };
     let whole_image = run.avatar.scene.is_some();
     let targets: Vec<Vec<f32>> = frames.iter().map(|f| target(f, whole_image)).collect();
     let scene_original = read_scene(ctx, &mut run.avatar)?;
@@ -599,7 +854,13 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
         for _ in crate::schedule::Runs::new(args.warmup, 0) {
             render_frame(ctx, &mut run, &mut renderers, &frames[0], s)?;
         }
-        let (mut times, mut render_times, mut stages, mut vs_gt, mut vs_default) = (Vec::new(), Vec::new(), BTreeMap::<String, Vec<f64>>::new(), Vec::new(), Vec::new());
+        let (mut times, mut render_times, mut stages, mut vs_gt, mut vs_default) = (
+            Vec::new(),
+            Vec::new(),
+            BTreeMap::<String, Vec<f64>>::new(),
+            Vec::new(),
+            Vec::new(),
+        );
         let (mut kept, mut size) = (Vec::new(), (0, 0));
         for r in 0..args.runs {
             for (i, f) in frames.iter().enumerate() {
@@ -607,7 +868,13 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
                 times.push(out.gpu_ms);
                 // What the knobs act on: the frame without the decoders and skinning
                 // (the same work in every setting, and the noisiest on a busy CPU).
-                render_times.push(out.stages.iter().filter(|(k, _)| !matches!(k.as_str(), "decoders" | "skinning" | "other")).map(|(_, v)| v).sum::<f64>());
+                render_times.push(
+                    out.stages
+                        .iter()
+                        .filter(|(k, _)| !matches!(k.as_str(), "decoders" | "skinning" | "other"))
+                        .map(|(_, v)| v)
+                        .sum::<f64>(),
+                );
                 for (k, v) in out.stages {
                     stages.entry(k).or_default().push(v);
                 }
@@ -619,8 +886,20 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
                 if defaults.len() < frames.len() {
                     defaults.push(rgb.clone());
                 }
-                vs_gt.push(metrics(ctx, &mut lpips, &rgb, &targets[i], (f.width, f.height))?);
-                vs_default.push(metrics(ctx, &mut lpips, &rgb, &defaults[i], (f.width, f.height))?);
+                vs_gt.push(metrics(
+                    ctx,
+                    &mut lpips,
+                    &rgb,
+                    &targets[i],
+                    (f.width, f.height),
+                )?);
+                vs_default.push(metrics(
+                    ctx,
+                    &mut lpips,
+                    &rgb,
+                    &defaults[i],
+                    (f.width, f.height),
+                )?);
                 if i == 0 {
                     (kept, size) = (out.kept, out.size);
                 }
@@ -647,7 +926,15 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
             "vs_default": mean_metrics(&vs_default),
         }));
     }
-    let points: Vec<(f64, f64)> = rows.iter().map(|r| (r["ms_per_frame"].as_f64().unwrap_or(0.0), r["vs_ground_truth"]["psnr"].as_f64().unwrap_or(0.0))).collect();
+    let points: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| {
+            (
+                r["ms_per_frame"].as_f64().unwrap_or(0.0),
+                r["vs_ground_truth"]["psnr"].as_f64().unwrap_or(0.0),
+            )
+        })
+        .collect();
     for (r, on) in rows.iter_mut().zip(pareto(&points)) {
         r["pareto"] = json!(on);
     }
@@ -677,9 +964,13 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
     });
     std::fs::create_dir_all(&out_dir).map_err(|e| anyhow::anyhow!("{}: {e}", out_dir.display()))?;
     let (ranges, png) = plot(&result);
-    png.save(out_dir.join("trade.png")).map_err(|e| anyhow::anyhow!("{}: {e}", out_dir.join("trade.png").display()))?;
+    png.save(out_dir.join("trade.png"))
+        .map_err(|e| anyhow::anyhow!("{}: {e}", out_dir.join("trade.png").display()))?;
     result["plot"] = ranges;
-    write(&out_dir.join("trade.json"), &serde_json::to_string_pretty(&result)?)?;
+    write(
+        &out_dir.join("trade.json"),
+        &serde_json::to_string_pretty(&result)?,
+    )?;
     write(&out_dir.join("trade.md"), &markdown(&result))?;
     result["written"] = json!(out_dir.display().to_string());
     Ok(result)
@@ -690,7 +981,8 @@ fn write(path: &Path, text: &str) -> anyhow::Result<()> {
 }
 
 fn num(v: &serde_json::Value, digits: usize) -> String {
-    v.as_f64().map_or_else(|| "n/a".to_string(), |x| format!("{x:.digits$}"))
+    v.as_f64()
+        .map_or_else(|| "n/a".to_string(), |x| format!("{x:.digits$}"))
 }
 
 /// The table as Markdown, with the knobs the run cannot measure and the plot's axis ranges.
@@ -729,7 +1021,11 @@ pub fn markdown(r: &serde_json::Value) -> String {
             num(&d["psnr"], 2),
             num(&d["ssim"], 4),
             num(&d["lpips"], 4),
-            if row["pareto"].as_bool() == Some(true) { "yes" } else { "" }
+            if row["pareto"].as_bool() == Some(true) {
+                "yes"
+            } else {
+                ""
+            }
         );
     }
     s += &format!("\nPSNR {IDENTICAL_PSNR_DB} dB: identical images. At scales other than 1 the render is resampled to the data's size (box average for integer downsampling, else bilinear) before it is compared.\n\nKnobs:\n");
@@ -738,7 +1034,11 @@ pub fn markdown(r: &serde_json::Value) -> String {
     }
     s += "\nNot built (no numbers):\n";
     for n in r["not_built"].as_array().into_iter().flatten() {
-        s += &format!("- {}: {}\n", n["knob"].as_str().unwrap_or("?"), n["why"].as_str().unwrap_or("?"));
+        s += &format!(
+            "- {}: {}\n",
+            n["knob"].as_str().unwrap_or("?"),
+            n["why"].as_str().unwrap_or("?")
+        );
     }
     let p = &r["plot"];
     s += &format!(
@@ -775,7 +1075,12 @@ fn put(img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]) {
 fn line(img: &mut image::RgbImage, (ax, ay): (i64, i64), (bx, by): (i64, i64), c: [u8; 3]) {
     let steps = (bx - ax).abs().max((by - ay).abs()).max(1);
     for i in 0..=steps {
-        put(img, ax + (bx - ax) * i / steps, ay + (by - ay) * i / steps, c);
+        put(
+            img,
+            ax + (bx - ax) * i / steps,
+            ay + (by - ay) * i / steps,
+            c,
+        );
     }
 }
 
@@ -790,11 +1095,24 @@ fn plot(r: &serde_json::Value) -> (serde_json::Value, image::RgbImage) {
     let pts: Vec<(f64, f64, [u8; 3], bool)> = rows
         .iter()
         .map(|row| {
-            let colour = KNOB_COLOURS.iter().find(|(k, _, _)| row["knob"].as_str() == Some(k)).map_or([0; 3], |c| c.2);
-            (row["ms_per_frame"].as_f64().unwrap_or(0.0), row["vs_ground_truth"]["psnr"].as_f64().unwrap_or(0.0), colour, row["pareto"].as_bool() == Some(true))
+            let colour = KNOB_COLOURS
+                .iter()
+                .find(|(k, _, _)| row["knob"].as_str() == Some(k))
+                .map_or([0; 3], |c| c.2);
+            (
+                row["ms_per_frame"].as_f64().unwrap_or(0.0),
+                row["vs_ground_truth"]["psnr"].as_f64().unwrap_or(0.0),
+                colour,
+                row["pareto"].as_bool() == Some(true),
+            )
         })
         .collect();
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    let (mut x0, mut x1, mut y0, mut y1) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
     for &(x, y, _, _) in &pts {
         (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
     }
@@ -803,7 +1121,11 @@ fn plot(r: &serde_json::Value) -> (serde_json::Value, image::RgbImage) {
     }
     // 5% headroom; a degenerate range is widened so every point lands inside.
     let pad = |lo: f64, hi: f64| {
-        let d = if hi - lo > 1e-9 { 0.05 * (hi - lo) } else { 0.5f64.max(0.05 * hi.abs()) };
+        let d = if hi - lo > 1e-9 {
+            0.05 * (hi - lo)
+        } else {
+            0.5f64.max(0.05 * hi.abs())
+        };
         (lo - d, hi + d)
     };
     let ((x0, x1), (y0, y1)) = (pad(x0, x1), pad(y0, y1));
@@ -814,12 +1136,22 @@ fn plot(r: &serde_json::Value) -> (serde_json::Value, image::RgbImage) {
         (px.round() as i64, py.round() as i64)
     };
     // Axes: x along the bottom, y along the left.
-    line(&mut img, (M, i64::from(H) - M), (i64::from(W) - M, i64::from(H) - M), [0; 3]);
+    line(
+        &mut img,
+        (M, i64::from(H) - M),
+        (i64::from(W) - M, i64::from(H) - M),
+        [0; 3],
+    );
     line(&mut img, (M, M), (M, i64::from(H) - M), [0; 3]);
     let mut frontier: Vec<(f64, f64)> = pts.iter().filter(|p| p.3).map(|p| (p.0, p.1)).collect();
     frontier.sort_by(|a, b| a.0.total_cmp(&b.0));
     for w in frontier.windows(2) {
-        line(&mut img, to_px(w[0].0, w[0].1), to_px(w[1].0, w[1].1), [220, 20, 20]);
+        line(
+            &mut img,
+            to_px(w[0].0, w[0].1),
+            to_px(w[1].0, w[1].1),
+            [220, 20, 20],
+        );
     }
     for &(x, y, c, on) in &pts {
         let (px, py) = to_px(x, y);
@@ -827,11 +1159,19 @@ fn plot(r: &serde_json::Value) -> (serde_json::Value, image::RgbImage) {
             for dx in -3..=3 {
                 // Frontier points get a red ring.
                 let edge = dx == -3 || dx == 3 || dy == -3 || dy == 3;
-                put(&mut img, px + dx, py + dy, if on && edge { [220, 20, 20] } else { c });
+                put(
+                    &mut img,
+                    px + dx,
+                    py + dy,
+                    if on && edge { [220, 20, 20] } else { c },
+                );
             }
         }
     }
-    (json!({"x_min_ms": x0, "x_max_ms": x1, "y_min_db": y0, "y_max_db": y1}), img)
+    (
+        json!({"x_min_ms": x0, "x_max_ms": x1, "y_min_db": y0, "y_max_db": y1}),
+        img,
+    )
 }
 
 #[cfg(test)]
@@ -843,24 +1183,41 @@ mod tests {
     use drape_engine::ContextDesc;
 
     fn camera(w: u32, h: u32) -> PinholeCamera {
-        PinholeCamera::look_at([0.3, -0.4, -5.0], [0.0; 3], [0.0, -1.0, 0.0], 45.0, w, h).expect("valid camera")
+        PinholeCamera::look_at([0.3, -0.4, -5.0], [0.0; 3], [0.0, -1.0, 0.0], 45.0, w, h)
+            .expect("valid camera")
     }
 
     fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
-        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
     }
 
     /// The CPU reference render of `cloud` at its own SH degree.
     fn cpu_render(cloud: &GaussianCloud, cam: &PinholeCamera) -> Vec<f32> {
-        let frame = frame_params(cam, &RenderSettings::default(), cloud.sh_degree, cloud.len());
+        let frame = frame_params(
+            cam,
+            &RenderSettings::default(),
+            cloud.sh_degree,
+            cloud.len(),
+        );
         reference::render(&cloud.gaussians::<f32>(), &frame).rgb
     }
 
     /// `cloud` at degree `d`: its first (d + 1)² coefficients per channel.
     fn at_degree(cloud: &GaussianCloud, d: u32) -> GaussianCloud {
         let (k, kept) = (3 * cloud.sh_coeffs(), 3 * sh_coeffs(d));
-        GaussianCloud { sh_degree: d, sh: cloud.sh.chunks_exact(k).flat_map(|g| g[..kept].to_vec()).collect(), ..cloud.clone() }
+        GaussianCloud {
+            sh_degree: d,
+            sh: cloud
+                .sh
+                .chunks_exact(k)
+                .flat_map(|g| g[..kept].to_vec())
+                .collect(),
+            ..cloud.clone()
+        }
     }
 
     /// The GPU and the CPU reference run the same f32 code; only exp/ln may differ in
@@ -879,11 +1236,15 @@ mod tests {
             truncate_sh(&mut t.sh, 3, keep);
             // Rendered at degree 3 on the GPU (what the trade does) against the CPU
             // reference of the same Gaussians stored at the lower degree.
-            let (gpu, _) = render_image(&ctx, &t, &cam, &RenderSettings::default()).expect("render");
+            let (gpu, _) =
+                render_image(&ctx, &t, &cam, &RenderSettings::default()).expect("render");
             let cpu = cpu_render(&at_degree(&cloud, keep), &cam);
             let e = max_abs_diff(&gpu.rgb, &cpu);
             assert!(e <= TOLERANCE, "degree {keep}: GPU vs CPU reference {e:e}");
-            assert!(max_abs_diff(&cpu, &full) > 1e-2, "degree {keep}: truncation must change the image");
+            assert!(
+                max_abs_diff(&cpu, &full) > 1e-2,
+                "degree {keep}: truncation must change the image"
+            );
         }
     }
 
@@ -895,24 +1256,38 @@ mod tests {
         for threshold in [0.3f32, 0.6, 0.9] {
             let mut pruned = cloud.clone();
             let kept = prune_by_opacity(&mut pruned.opacity_logits, threshold);
-            assert!(kept > 0 && kept < cloud.len(), "threshold {threshold}: {kept} of {} kept", cloud.len());
+            assert!(
+                kept > 0 && kept < cloud.len(),
+                "threshold {threshold}: {kept} of {} kept",
+                cloud.len()
+            );
             // The same cloud without the pruned Gaussians, on the CPU reference.
-            let keep: Vec<usize> = (0..cloud.len()).filter(|&i| 1.0 / (1.0 + (-cloud.opacity_logits[i]).exp()) >= threshold).collect();
+            let keep: Vec<usize> = (0..cloud.len())
+                .filter(|&i| 1.0 / (1.0 + (-cloud.opacity_logits[i]).exp()) >= threshold)
+                .collect();
             assert_eq!(keep.len(), kept);
             let mut removed = GaussianCloud::new(cloud.sh_degree);
             for &i in &keep {
                 removed.push(&cloud.gaussian::<f32>(i), cloud.groups[i]);
             }
-            let (gpu, _) = render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
+            let (gpu, _) =
+                render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
             let e = max_abs_diff(&gpu.rgb, &cpu_render(&removed, &cam));
-            assert!(e <= TOLERANCE, "threshold {threshold}: GPU vs CPU reference without the pruned {e:e}");
+            assert!(
+                e <= TOLERANCE,
+                "threshold {threshold}: GPU vs CPU reference without the pruned {e:e}"
+            );
         }
         // Idempotent: pruning twice keeps the same.
         let mut twice = cloud.opacity_logits.clone();
         let a = prune_by_opacity(&mut twice, 0.3);
         assert_eq!(prune_by_opacity(&mut twice, 0.3), a);
         let mut nan = vec![f32::NAN, 3.0];
-        assert_eq!(prune_by_opacity(&mut nan, 0.01), 1, "a NaN opacity is pruned");
+        assert_eq!(
+            prune_by_opacity(&mut nan, 0.01),
+            1,
+            "a NaN opacity is pruned"
+        );
     }
 
     /// The knob's GPU-vs-CPU test: contributions measured on the GPU, the least
@@ -925,31 +1300,66 @@ mod tests {
         let cam = camera(64, 48);
         let cloud = GaussianCloud::random(400, 1, 1.5, (3.0, 7.0), 0.15, 13);
         let buffers = GaussianBuffers::upload(&ctx, "contribution cloud", &cloud).expect("upload");
-        let mut renderer = SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
-        let saved = renderer.forward(&buffers, &cam, &RenderSettings::default()).expect("forward").saved;
-        let sums: Vec<f64> = renderer.contributions(&saved).expect("contributions").into_iter().map(f64::from).collect();
+        let mut renderer =
+            SplatRenderer::new(&ctx, cam.width, cam.height, cloud.len()).expect("renderer");
+        let saved = renderer
+            .forward(&buffers, &cam, &RenderSettings::default())
+            .expect("forward")
+            .saved;
+        let sums: Vec<f64> = renderer
+            .contributions(&saved)
+            .expect("contributions")
+            .into_iter()
+            .map(f64::from)
+            .collect();
         for fraction in [0.1, 0.3, 0.6] {
             let mask = least_contributing(&sums, fraction);
             let culled = mask.iter().filter(|&&m| m).count();
             assert_eq!(culled, (fraction * cloud.len() as f64).floor() as usize);
-            let most_culled = sums.iter().zip(&mask).filter(|(_, &m)| m).map(|(&c, _)| c).fold(0.0, f64::max);
-            let least_kept = sums.iter().zip(&mask).filter(|(_, &m)| !m).map(|(&c, _)| c).fold(f64::INFINITY, f64::min);
-            assert!(most_culled <= least_kept, "fraction {fraction}: culled {most_culled} > kept {least_kept}");
+            let most_culled = sums
+                .iter()
+                .zip(&mask)
+                .filter(|(_, &m)| m)
+                .map(|(&c, _)| c)
+                .fold(0.0, f64::max);
+            let least_kept = sums
+                .iter()
+                .zip(&mask)
+                .filter(|(_, &m)| !m)
+                .map(|(&c, _)| c)
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                most_culled <= least_kept,
+                "fraction {fraction}: culled {most_culled} > kept {least_kept}"
+            );
             let mut pruned = cloud.clone();
-            assert_eq!(prune_masked(&mut pruned.opacity_logits, &mask), cloud.len() - culled);
+            assert_eq!(
+                prune_masked(&mut pruned.opacity_logits, &mask),
+                cloud.len() - culled
+            );
             let mut removed = GaussianCloud::new(cloud.sh_degree);
             for i in (0..cloud.len()).filter(|&i| !mask[i]) {
                 removed.push(&cloud.gaussian::<f32>(i), cloud.groups[i]);
             }
-            let (gpu, _) = render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
+            let (gpu, _) =
+                render_image(&ctx, &pruned, &cam, &RenderSettings::default()).expect("render");
             let e = max_abs_diff(&gpu.rgb, &cpu_render(&removed, &cam));
-            assert!(e <= TOLERANCE, "fraction {fraction}: GPU vs CPU reference without the culled {e:e}");
+            assert!(
+                e <= TOLERANCE,
+                "fraction {fraction}: GPU vs CPU reference without the culled {e:e}"
+            );
             if fraction > 0.5 {
-                assert!(max_abs_diff(&gpu.rgb, &cpu_render(&cloud, &cam)) > 1e-3, "culling {culled} Gaussians must change the image");
+                assert!(
+                    max_abs_diff(&gpu.rgb, &cpu_render(&cloud, &cam)) > 1e-3,
+                    "culling {culled} Gaussians must change the image"
+                );
             }
         }
         // Ties go by index: the same choice on every run.
-        assert_eq!(least_contributing(&[1.0, 0.0, 0.0, 2.0], 0.25), [false, true, false, false]);
+        assert_eq!(
+            least_contributing(&[1.0, 0.0, 0.0, 2.0], 0.25),
+            [false, true, false, false]
+        );
     }
 
     #[test]
@@ -962,7 +1372,8 @@ mod tests {
         for y in 0..2 * h as usize {
             for x in 0..2 * w as usize {
                 for c in 0..3 {
-                    up[3 * (y * 2 * w as usize + x) + c] = img[3 * ((y / 2) * w as usize + x / 2) + c];
+                    up[3 * (y * 2 * w as usize + x) + c] =
+                        img[3 * ((y / 2) * w as usize + x / 2) + c];
                 }
             }
         }
@@ -972,14 +1383,25 @@ mod tests {
         let big = resample(&ramp, (8, 4), (16, 8));
         for x in 1..15 {
             let want = ((x as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, 7.0);
-            assert!((big[3 * (3 * 16 + x)] - want).abs() < 1e-6, "x {x}: {} vs {want}", big[3 * (3 * 16 + x)]);
+            assert!(
+                (big[3 * (3 * 16 + x)] - want).abs() < 1e-6,
+                "x {x}: {} vs {want}",
+                big[3 * (3 * 16 + x)]
+            );
         }
         assert_eq!(resample(&img, (w, h), (w, h)), img);
     }
 
     #[test]
     fn the_frontier_is_the_undominated_points() {
-        let pts = [(10.0, 30.0), (20.0, 32.0), (15.0, 29.0), (20.0, 31.0), (5.0, 20.0), (30.0, 32.0)];
+        let pts = [
+            (10.0, 30.0),
+            (20.0, 32.0),
+            (15.0, 29.0),
+            (20.0, 31.0),
+            (5.0, 20.0),
+            (30.0, 32.0),
+        ];
         assert_eq!(pareto(&pts), [true, true, false, false, true, false]);
     }
 
@@ -988,7 +1410,13 @@ mod tests {
         let mut sh: Vec<f32> = (0..2 * 3 * 16).map(|i| i as f32 + 1.0).collect();
         truncate_sh(&mut sh, 3, 1);
         for (g, chunk) in sh.chunks_exact(48).enumerate() {
-            assert!(chunk[..12].iter().enumerate().all(|(i, &v)| v == (48 * g + i) as f32 + 1.0), "{chunk:?}");
+            assert!(
+                chunk[..12]
+                    .iter()
+                    .enumerate()
+                    .all(|(i, &v)| v == (48 * g + i) as f32 + 1.0),
+                "{chunk:?}"
+            );
             assert!(chunk[12..].iter().all(|&v| v == 0.0), "{chunk:?}");
         }
     }

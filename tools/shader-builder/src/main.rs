@@ -71,7 +71,10 @@ fn parse_args() -> Result<Args, String> {
         }
     }
     if args.baseline_only && !args.check {
-        return Err("--baseline-only needs --check: writing one build's modules would drop the others'".into());
+        return Err(
+            "--baseline-only needs --check: writing one build's modules would drop the others'"
+                .into(),
+        );
     }
     Ok(args)
 }
@@ -98,10 +101,18 @@ struct Flavour {
 // SampledBuffer (core Vulkan: every device takes it, no feature to enable) in every
 // build: the texel-buffer reads of kernels for CPU devices (`kernels/src/texel.rs`).
 const FLAVOURS: &[Flavour] = &[
-    Flavour { features: &[], capabilities: &[spirv_builder::Capability::SampledBuffer], extension: None, requires: &[] },
+    Flavour {
+        features: &[],
+        capabilities: &[spirv_builder::Capability::SampledBuffer],
+        extension: None,
+        requires: &[],
+    },
     Flavour {
         features: &["float-atomics"],
-        capabilities: &[spirv_builder::Capability::SampledBuffer, spirv_builder::Capability::AtomicFloat32AddEXT],
+        capabilities: &[
+            spirv_builder::Capability::SampledBuffer,
+            spirv_builder::Capability::AtomicFloat32AddEXT,
+        ],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
         requires: &["AtomicFloat32AddEXT"],
     },
@@ -131,13 +142,20 @@ const FLAVOURS: &[Flavour] = &[
             spirv_builder::Capability::AtomicFloat32AddEXT,
         ],
         extension: Some("SPV_EXT_shader_atomic_float_add"),
-        requires: &["GroupNonUniformBallot", "GroupNonUniformShuffle", "AtomicFloat32AddEXT"],
+        requires: &[
+            "GroupNonUniformBallot",
+            "GroupNonUniformShuffle",
+            "AtomicFloat32AddEXT",
+        ],
     },
     // Kernels that store u64s (the chunked sort's pairs, one store where two u32s took
     // two: llvmpipe loops over the lanes once per component).
     Flavour {
         features: &["int64"],
-        capabilities: &[spirv_builder::Capability::SampledBuffer, spirv_builder::Capability::Int64],
+        capabilities: &[
+            spirv_builder::Capability::SampledBuffer,
+            spirv_builder::Capability::Int64,
+        ],
         extension: None,
         requires: &["Int64"],
     },
@@ -148,8 +166,14 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     // One target directory per configuration, shared by every build (also of temporary
     // copies) so that spirv-std and friends are compiled once; separate per
     // configuration because cargo does not tell the two apart by their flags alone.
-    let dir = if flavour.features.is_empty() { "spirv-kernels".to_string() } else { format!("spirv-kernels-{}", flavour.features.join("-")) };
-    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target").join(dir);
+    let dir = if flavour.features.is_empty() {
+        "spirv-kernels".to_string()
+    } else {
+        format!("spirv-kernels-{}", flavour.features.join("-"))
+    };
+    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("target")
+        .join(dir);
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
     builder.release = true;
@@ -167,7 +191,8 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
         builder = builder.extension(e);
     }
     if !flavour.features.is_empty() {
-        builder.shader_crate_features.features = flavour.features.iter().map(|f| f.to_string()).collect();
+        builder.shader_crate_features.features =
+            flavour.features.iter().map(|f| f.to_string()).collect();
     }
     let result = builder
         .build()
@@ -190,13 +215,25 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
 /// comes from the first build that has it whatever finishes first.
 fn compile(shaders: &Path, flavours: &[Flavour]) -> Result<BTreeMap<String, Module>, String> {
     let built: Vec<Result<BTreeMap<String, Vec<u8>>, String>> = std::thread::scope(|scope| {
-        let builds: Vec<_> = flavours.iter().map(|flavour| scope.spawn(move || build_once(shaders, flavour))).collect();
-        builds.into_iter().map(|b| b.join().unwrap_or_else(|_| Err("a rust-gpu build thread panicked".into()))).collect()
+        let builds: Vec<_> = flavours
+            .iter()
+            .map(|flavour| scope.spawn(move || build_once(shaders, flavour)))
+            .collect();
+        builds
+            .into_iter()
+            .map(|b| {
+                b.join()
+                    .unwrap_or_else(|_| Err("a rust-gpu build thread panicked".into()))
+            })
+            .collect()
     });
     let mut out: BTreeMap<String, Module> = BTreeMap::new();
     for (flavour, modules) in flavours.iter().zip(built) {
         for (entry, bytes) in modules? {
-            out.entry(entry).or_insert(Module { bytes, requires: flavour.requires });
+            out.entry(entry).or_insert(Module {
+                bytes,
+                requires: flavour.requires,
+            });
         }
     }
     Ok(out)
@@ -207,7 +244,10 @@ fn module_file(entry: &str) -> String {
     format!("{}.spv", entry.replace("::", "-"))
 }
 
-fn manifest_json(modules: &BTreeMap<String, Module>, push: &push_types::PushTypes) -> Result<String, String> {
+fn manifest_json(
+    modules: &BTreeMap<String, Module>,
+    push: &push_types::PushTypes,
+) -> Result<String, String> {
     let mut list = Vec::new();
     for (entry, module) in modules {
         let bytes = &module.bytes;
@@ -227,8 +267,9 @@ fn manifest_json(modules: &BTreeMap<String, Module>, push: &push_types::PushType
             .ok_or_else(|| format!("module {entry}: bindings are not numbered 0..n"))?;
         let mut bindings = Vec::new();
         for b in 0..count {
-            let name = spirv_module::binding_name(bytes, b)
-                .ok_or_else(|| format!("module {entry}: binding {b} has no OpName (built without NameVariables?)"))?;
+            let name = spirv_module::binding_name(bytes, b).ok_or_else(|| {
+                format!("module {entry}: binding {b} has no OpName (built without NameVariables?)")
+            })?;
             let access = if facts.texel4_mask & (1 << b) != 0 {
                 "texel4"
             } else if facts.texel_mask & (1 << b) != 0 {
@@ -238,7 +279,9 @@ fn manifest_json(modules: &BTreeMap<String, Module>, push: &push_types::PushType
             } else {
                 "read_write"
             };
-            bindings.push(serde_json::json!({ "name": String::from_utf8_lossy(name), "access": access }));
+            bindings.push(
+                serde_json::json!({ "name": String::from_utf8_lossy(name), "access": access }),
+            );
         }
         let push_constant = push
             .get(entry)
@@ -263,7 +306,11 @@ fn manifest_json(modules: &BTreeMap<String, Module>, push: &push_types::PushType
         .map_err(|e| e.to_string())
 }
 
-fn write(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::PushTypes) -> Result<(), String> {
+fn write(
+    out: &Path,
+    modules: &BTreeMap<String, Module>,
+    push: &push_types::PushTypes,
+) -> Result<(), String> {
     std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
     // Remove modules of entry points that no longer exist.
     for entry in std::fs::read_dir(out).map_err(|e| e.to_string())? {
@@ -274,18 +321,28 @@ fn write(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::Push
     }
     for (entry, module) in modules {
         let path = out.join(module_file(entry));
-        std::fs::write(&path, &module.bytes).map_err(|e| format!("writing {}: {e}", path.display()))?;
+        std::fs::write(&path, &module.bytes)
+            .map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
     let manifest = manifest_json(modules, push)?;
     std::fs::write(out.join("manifest.json"), manifest).map_err(|e| e.to_string())?;
-    println!("wrote {} modules and manifest.json to {}", modules.len(), out.display());
+    println!(
+        "wrote {} modules and manifest.json to {}",
+        modules.len(),
+        out.display()
+    );
     Ok(())
 }
 
 /// Every difference between a fresh build and the committed files, one line each. A
 /// build of some flavours only (`complete` false) checks its own modules alone: the
 /// committed modules it did not build and the manifest are left unchecked.
-fn compare(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::PushTypes, complete: bool) -> Result<Vec<String>, String> {
+fn compare(
+    out: &Path,
+    modules: &BTreeMap<String, Module>,
+    push: &push_types::PushTypes,
+    complete: bool,
+) -> Result<Vec<String>, String> {
     let mut problems = Vec::new();
     for (entry, module) in modules {
         let bytes = &module.bytes;
@@ -302,7 +359,10 @@ fn compare(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::Pu
                     first.unwrap_or(committed.len().min(bytes.len()))
                 ));
             }
-            Err(_) => problems.push(format!("module {entry}: {} is not committed", path.display())),
+            Err(_) => problems.push(format!(
+                "module {entry}: {} is not committed",
+                path.display()
+            )),
         }
     }
     if !complete {
@@ -311,9 +371,16 @@ fn compare(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::Pu
     for entry in std::fs::read_dir(out).map_err(|e| format!("reading {}: {e}", out.display()))? {
         let path = entry.map_err(|e| e.to_string())?.path();
         if path.extension().is_some_and(|x| x == "spv") {
-            let name = path.file_stem().unwrap_or_default().to_string_lossy().replace('-', "::");
+            let name = path
+                .file_stem()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .replace('-', "::");
             if !modules.contains_key(&name) {
-                problems.push(format!("module {name}: {} is committed but no longer built", path.display()));
+                problems.push(format!(
+                    "module {name}: {} is committed but no longer built",
+                    path.display()
+                ));
             }
         }
     }
@@ -321,15 +388,25 @@ fn compare(out: &Path, modules: &BTreeMap<String, Module>, push: &push_types::Pu
     let manifest_path = out.join("manifest.json");
     match std::fs::read_to_string(&manifest_path) {
         Ok(committed) if committed == manifest => {}
-        _ => problems.push(format!("{} differs from a fresh build", manifest_path.display())),
+        _ => problems.push(format!(
+            "{} differs from a fresh build",
+            manifest_path.display()
+        )),
     }
     Ok(problems)
 }
 
 fn run() -> Result<ExitCode, String> {
     let args = parse_args()?;
-    let out = args.out.clone().unwrap_or_else(|| args.shaders.join("spirv"));
-    let flavours = if args.baseline_only { &FLAVOURS[..1] } else { FLAVOURS };
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| args.shaders.join("spirv"));
+    let flavours = if args.baseline_only {
+        &FLAVOURS[..1]
+    } else {
+        FLAVOURS
+    };
     if args.push_types {
         for (entry, ty) in push_types::read(&args.shaders.join("kernels").join("src"))? {
             println!("{entry}: {}", ty.as_deref().unwrap_or("-"));
@@ -345,7 +422,11 @@ fn run() -> Result<ExitCode, String> {
     }
     let problems = compare(&out, &modules, &push, !args.baseline_only)?;
     if problems.is_empty() {
-        println!("SPIR-V is fresh: {} modules match {}", modules.len(), out.display());
+        println!(
+            "SPIR-V is fresh: {} modules match {}",
+            modules.len(),
+            out.display()
+        );
         Ok(ExitCode::SUCCESS)
     } else {
         for p in &problems {

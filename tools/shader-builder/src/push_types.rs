@@ -28,9 +28,15 @@ pub fn read(src: &Path) -> Result<PushTypes, String> {
     files.sort();
     let mut out = PushTypes::new();
     for path in files {
-        let module = path.file_stem().unwrap_or_default().to_string_lossy().to_string();
-        let text = std::fs::read_to_string(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
-        let file = syn::parse_file(&text).map_err(|e| format!("parsing {}: {e}", path.display()))?;
+        let module = path
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .to_string();
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| format!("reading {}: {e}", path.display()))?;
+        let file =
+            syn::parse_file(&text).map_err(|e| format!("parsing {}: {e}", path.display()))?;
         for (entry, ty) in file_push_types(&file).map_err(|e| format!("{}: {e}", path.display()))? {
             out.insert(format!("{module}::{entry}"), ty);
         }
@@ -63,7 +69,10 @@ fn file_push_types(file: &syn::File) -> Result<Vec<(String, Option<String>)>, St
                     if let syn::FnArg::Typed(t) = input {
                         if t.attrs.iter().any(|a| is_spirv(a, "push_constant")) {
                             let syn::Type::Reference(r) = &*t.ty else {
-                                return Err(format!("{}: the push constant is not a reference", f.sig.ident));
+                                return Err(format!(
+                                    "{}: the push constant is not a reference",
+                                    f.sig.ident
+                                ));
                             };
                             ty = Some(compact(r.elem.to_token_stream()));
                         }
@@ -83,10 +92,14 @@ fn file_push_types(file: &syn::File) -> Result<Vec<(String, Option<String>)>, St
     }
     for item in &file.items {
         if let syn::Item::Macro(m) = item {
-            let Some(name) = m.mac.path.get_ident().map(|i| i.to_string()) else { continue };
+            let Some(name) = m.mac.path.get_ident().map(|i| i.to_string()) else {
+                continue;
+            };
             if let Some(ty) = entry_macros.get(&name) {
                 let Some(TokenTree::Ident(entry)) = m.mac.tokens.clone().into_iter().next() else {
-                    return Err(format!("an invocation of {name}! does not start with the entry point's name"));
+                    return Err(format!(
+                        "an invocation of {name}! does not start with the entry point's name"
+                    ));
                 };
                 found.push((entry.to_string(), ty.clone()));
             }
@@ -97,7 +110,13 @@ fn file_push_types(file: &syn::File) -> Result<Vec<(String, Option<String>)>, St
 
 /// `use` tree to (imported name -> full path).
 fn flatten_use(tree: &syn::UseTree, prefix: String, out: &mut BTreeMap<String, String>) {
-    let join = |p: &str, s: &str| if p.is_empty() { s.to_string() } else { format!("{p}::{s}") };
+    let join = |p: &str, s: &str| {
+        if p.is_empty() {
+            s.to_string()
+        } else {
+            format!("{p}::{s}")
+        }
+    };
     match tree {
         syn::UseTree::Path(p) => flatten_use(&p.tree, join(&prefix, &p.ident.to_string()), out),
         syn::UseTree::Name(n) => {
@@ -106,14 +125,19 @@ fn flatten_use(tree: &syn::UseTree, prefix: String, out: &mut BTreeMap<String, S
         syn::UseTree::Rename(r) => {
             out.insert(r.rename.to_string(), join(&prefix, &r.ident.to_string()));
         }
-        syn::UseTree::Group(g) => g.items.iter().for_each(|t| flatten_use(t, prefix.clone(), out)),
+        syn::UseTree::Group(g) => g
+            .items
+            .iter()
+            .for_each(|t| flatten_use(t, prefix.clone(), out)),
         syn::UseTree::Glob(_) => {}
     }
 }
 
 /// Whether `attr` is `#[spirv(word ..)]`.
 fn is_spirv(attr: &syn::Attribute, word: &str) -> bool {
-    let syn::Meta::List(list) = &attr.meta else { return false };
+    let syn::Meta::List(list) = &attr.meta else {
+        return false;
+    };
     list.path.is_ident("spirv")
         && matches!(list.tokens.clone().into_iter().next(), Some(TokenTree::Ident(i)) if i == word)
 }
@@ -150,11 +174,15 @@ fn scan(tokens: &[TokenTree], compute: &mut bool, push: &mut Option<String>) {
                     Some("push_constant") => {
                         // `name : & Type ,`
                         let rest = &tokens[i + 1..];
-                        if let [TokenTree::Ident(_), TokenTree::Punct(colon), TokenTree::Punct(amp), ty @ ..] = rest {
+                        if let [TokenTree::Ident(_), TokenTree::Punct(colon), TokenTree::Punct(amp), ty @ ..] =
+                            rest
+                        {
                             if colon.as_char() == ':' && amp.as_char() == '&' {
                                 let end = ty
                                     .iter()
-                                    .position(|t| matches!(t, TokenTree::Punct(p) if p.as_char() == ','))
+                                    .position(
+                                        |t| matches!(t, TokenTree::Punct(p) if p.as_char() == ','),
+                                    )
                                     .unwrap_or(ty.len());
                                 *push = Some(compact(ty[..end].iter().cloned().collect()));
                             }
@@ -197,9 +225,18 @@ mod tests {
         assert_eq!(
             found,
             vec![
-                ("step".to_string(), Some("drape_shared::adam::AdamParams".to_string())),
-                ("loss".to_string(), Some("drape_shared::adam::LossParams".to_string())),
-                ("full".to_string(), Some("drape_shared::nn::GemmParams".to_string())),
+                (
+                    "step".to_string(),
+                    Some("drape_shared::adam::AdamParams".to_string())
+                ),
+                (
+                    "loss".to_string(),
+                    Some("drape_shared::adam::LossParams".to_string())
+                ),
+                (
+                    "full".to_string(),
+                    Some("drape_shared::nn::GemmParams".to_string())
+                ),
                 ("none".to_string(), None),
             ]
         );
@@ -229,8 +266,14 @@ mod tests {
         assert_eq!(
             found,
             vec![
-                ("bwd_atomic".to_string(), Some("drape_shared::triplane::TriplaneParams".to_string())),
-                ("bwd_cas".to_string(), Some("drape_shared::triplane::TriplaneParams".to_string())),
+                (
+                    "bwd_atomic".to_string(),
+                    Some("drape_shared::triplane::TriplaneParams".to_string())
+                ),
+                (
+                    "bwd_cas".to_string(),
+                    Some("drape_shared::triplane::TriplaneParams".to_string())
+                ),
                 ("raster".to_string(), None),
             ]
         );

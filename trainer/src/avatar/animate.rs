@@ -12,16 +12,16 @@
 use std::path::Path;
 use std::time::Instant;
 
-use glam::DVec3;
 use drape_engine::ops::splat::scene::RenderSettings;
+use glam::DVec3;
 
 use crate::avatar::run::OpenRun;
-use crate::TrainerError;
 use crate::body::kinematics::{rodrigues, Pose, M3};
 use crate::camera::Camera;
 use crate::dataset::loader::{BodyParams, DatasetFrame};
 use crate::mesh::rotation_to_quaternion;
 use crate::motion::Motion;
+use crate::TrainerError;
 
 /// How the animation is made.
 #[derive(Clone, Debug)]
@@ -71,11 +71,21 @@ pub fn axis_angle(m: &M3) -> DVec3 {
 /// header).
 pub fn place_pose(anchor: &BodyParams, pose: &Pose, trans: DVec3) -> BodyParams {
     match anchor {
-        BodyParams::Smpl { pose: p0, betas, translation, scale: s } => {
+        BodyParams::Smpl {
+            pose: p0,
+            betas,
+            translation,
+            scale: s,
+        } => {
             let r0 = rodrigues(p0[0]);
             let mut p = *pose;
             p[0] = axis_angle(&matmul(&r0, &rodrigues(pose[0])));
-            BodyParams::Smpl { pose: p, betas: betas.clone(), translation: *translation + mat_vec(&r0, trans) * *s, scale: *s }
+            BodyParams::Smpl {
+                pose: p,
+                betas: betas.clone(),
+                translation: *translation + mat_vec(&r0, trans) * *s,
+                scale: *s,
+            }
         }
         BodyParams::Zju(z) => {
             let r0 = rodrigues(DVec3::from_array(z.rh));
@@ -93,8 +103,13 @@ pub fn place_pose(anchor: &BodyParams, pose: &Pose, trans: DVec3) -> BodyParams 
 /// The pelvis in the world and the body's up axis for a frame's transforms (24 × 3x4).
 pub fn pelvis_and_up(transforms: &[f32], rest_pelvis: DVec3) -> (DVec3, DVec3) {
     let t = |r: usize, c: usize| f64::from(transforms[4 * r + c]);
-    let pelvis = DVec3::from_array(std::array::from_fn(|r| t(r, 0) * rest_pelvis[0] + t(r, 1) * rest_pelvis[1] + t(r, 2) * rest_pelvis[2] + t(r, 3)));
-    (pelvis, DVec3::new(t(0, 1), t(1, 1), t(2, 1)).normalize_or(DVec3::Z))
+    let pelvis = DVec3::from_array(std::array::from_fn(|r| {
+        t(r, 0) * rest_pelvis[0] + t(r, 1) * rest_pelvis[1] + t(r, 2) * rest_pelvis[2] + t(r, 3)
+    }));
+    (
+        pelvis,
+        DVec3::new(t(0, 1), t(1, 1), t(2, 1)).normalize_or(DVec3::Z),
+    )
 }
 
 /// `v` turned by `angle` (radians) about the unit axis `k` (Rodrigues' formula).
@@ -105,7 +120,13 @@ fn rotate_about(v: DVec3, k: DVec3, angle: f64) -> DVec3 {
 
 /// The orbit's camera for a frame: `start`'s height and distance from the anchor's
 /// pelvis, turned by `angle` about `up`, looking at `pelvis`.
-fn orbit_camera(start: &Camera, anchor_pelvis: DVec3, up: DVec3, pelvis: DVec3, angle: f64) -> Camera {
+fn orbit_camera(
+    start: &Camera,
+    anchor_pelvis: DVec3,
+    up: DVec3,
+    pelvis: DVec3,
+    angle: f64,
+) -> Camera {
     let offset = start.centre() - anchor_pelvis;
     let h = offset.dot(up);
     let radial = offset - up * h;
@@ -115,12 +136,24 @@ fn orbit_camera(start: &Camera, anchor_pelvis: DVec3, up: DVec3, pelvis: DVec3, 
 
 /// Renders `motion` on the run's avatar into `out` (which must exist): `frameNNNN.png`
 /// per frame and, with `options.gif`, `animation.gif` at the motion's frame rate.
-pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, options: &AnimateOptions, out: &Path, progress: &mut dyn FnMut(usize, usize)) -> crate::Result<AnimateReport> {
+pub fn animate(
+    ctx: &drape_engine::Context,
+    run: &mut OpenRun,
+    motion: &Motion,
+    options: &AnimateOptions,
+    out: &Path,
+    progress: &mut dyn FnMut(usize, usize),
+) -> crate::Result<AnimateReport> {
     let frames = options.frames.min(motion.len());
     if frames == 0 {
         return Err(TrainerError::invalid("motion", "the motion has no frames"));
     }
-    let anchor: &DatasetFrame = run.test_frames().first().copied().or_else(|| run.seq.frames.first()).ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?;
+    let anchor: &DatasetFrame = run
+        .test_frames()
+        .first()
+        .copied()
+        .or_else(|| run.seq.frames.first())
+        .ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?;
     let (anchor_body, start_camera) = (anchor.body.clone(), anchor.camera);
     let (width, height) = (start_camera.width, start_camera.height);
     let rest_pelvis = run.rig.rest_joints()[0];
@@ -142,48 +175,94 @@ pub fn animate(ctx: &drape_engine::Context, run: &mut OpenRun, motion: &Motion, 
             run.avatar.record_forward(&mut rec, ft.log_scale)?;
             rec.submit_and_wait()?;
         }
-        run.renderer.forward(ctx, &run.avatar, &cam.to_pinhole(options.background), &settings)?;
+        run.renderer.forward(
+            ctx,
+            &run.avatar,
+            &cam.to_pinhole(options.background),
+            &settings,
+        )?;
         let rgb = run.renderer.read_rgb(ctx)?;
         frame_ms.push(t0.elapsed().as_secs_f64() * 1e3);
-        crate::dataset::image::write_rgb(&out.join(format!("frame{k:04}.png")), width, height, &rgb)?;
+        crate::dataset::image::write_rgb(
+            &out.join(format!("frame{k:04}.png")),
+            width,
+            height,
+            &rgb,
+        )?;
         if options.gif {
             images.push(rgb);
         }
     }
     if options.gif {
-        write_gif(&out.join("animation.gif"), width, height, &images, motion.fps)?;
+        write_gif(
+            &out.join("animation.gif"),
+            width,
+            height,
+            &images,
+            motion.fps,
+        )?;
     }
     let mean_ms = frame_ms.iter().sum::<f64>() / frames as f64;
-    Ok(AnimateReport { frames, width, height, frame_ms, mean_ms, fps: 1e3 / mean_ms.max(1e-9) })
+    Ok(AnimateReport {
+        frames,
+        width,
+        height,
+        frame_ms,
+        mean_ms,
+        fps: 1e3 / mean_ms.max(1e-9),
+    })
 }
 
 /// An endlessly looping GIF of HWC RGB images in [0, 1] at `fps` (each frame's 256
 /// colours chosen by the `gif` crate's NeuQuant), written to a temporary file and renamed.
-pub fn write_gif(path: &Path, width: u32, height: u32, images: &[Vec<f32>], fps: f64) -> crate::Result<()> {
+pub fn write_gif(
+    path: &Path,
+    width: u32,
+    height: u32,
+    images: &[Vec<f32>],
+    fps: f64,
+) -> crate::Result<()> {
     let (Ok(w), Ok(h)) = (u16::try_from(width), u16::try_from(height)) else {
-        return Err(TrainerError::invalid("GIF size", format!("{}: {width} x {height}, but a GIF is at most 65535 x 65535", path.display())));
+        return Err(TrainerError::invalid(
+            "GIF size",
+            format!(
+                "{}: {width} x {height}, but a GIF is at most 65535 x 65535",
+                path.display()
+            ),
+        ));
     };
     let tmp = path.with_extension("gif.tmp");
     // The gif crate's errors are I/O errors or frames it cannot encode; either way the
     // temporary file could not be written.
     let err = |e: gif::EncodingError| match e {
         gif::EncodingError::Io(e) => TrainerError::io(&tmp, e),
-        gif::EncodingError::Format(e) => TrainerError::io(&tmp, std::io::Error::new(std::io::ErrorKind::InvalidData, e)),
+        gif::EncodingError::Format(e) => TrainerError::io(
+            &tmp,
+            std::io::Error::new(std::io::ErrorKind::InvalidData, e),
+        ),
     };
     {
-        let file = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(|e| TrainerError::io(&tmp, e))?);
+        let file = std::io::BufWriter::new(
+            std::fs::File::create(&tmp).map_err(|e| TrainerError::io(&tmp, e))?,
+        );
         let mut encoder = gif::Encoder::new(file, w, h, &[]).map_err(err)?;
         encoder.set_repeat(gif::Repeat::Infinite).map_err(err)?;
         // GIF delays are in hundredths of a second.
         let delay = (100.0 / fps.max(1.0)).round().clamp(2.0, 65535.0) as u16;
         for rgb in images {
-            let bytes: Vec<u8> = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+            let bytes: Vec<u8> = rgb
+                .iter()
+                .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                .collect();
             let mut frame = gif::Frame::from_rgb_speed(w, h, &bytes, 10);
             frame.delay = delay;
             encoder.write_frame(&frame).map_err(err)?;
         }
         // The trailer and the buffer's last bytes, written here so that a failure is seen.
-        encoder.into_inner().and_then(|mut file| std::io::Write::flush(&mut file)).map_err(|e| TrainerError::io(&tmp, e))?;
+        encoder
+            .into_inner()
+            .and_then(|mut file| std::io::Write::flush(&mut file))
+            .map_err(|e| TrainerError::io(&tmp, e))?;
     }
     std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
 }

@@ -30,28 +30,67 @@ pub fn choose_layers(seq: &Sequence, config: &TrainConfig) -> crate::Result<Laye
         Some(s) => s,
         None => scene_points(seq)?.is_some(),
     };
-    Ok(Layers { cloth: choice.cloth.unwrap_or_else(|| seq.frames.iter().any(|f| f.garment_masks.is_some())), scene })
+    Ok(Layers {
+        cloth: choice
+            .cloth
+            .unwrap_or_else(|| seq.frames.iter().any(|f| f.garment_masks.is_some())),
+        scene,
+    })
 }
 
 /// The avatar the data requires.
-pub(crate) fn build_avatar(ctx: &Context, rig: &Rig, seq: &Sequence, config: &TrainConfig, layers: Layers) -> crate::Result<Avatar> {
+pub(crate) fn build_avatar(
+    ctx: &Context,
+    rig: &Rig,
+    seq: &Sequence,
+    config: &TrainConfig,
+    layers: Layers,
+) -> crate::Result<Avatar> {
     let cloth = layers.cloth;
-    let mut inits = vec![body_init(rig, config.layers.subdivision, config.layers.decimate, config.layers.body.sh_degree)];
+    let mut inits = vec![body_init(
+        rig,
+        config.layers.subdivision,
+        config.layers.decimate,
+        config.layers.body.sh_degree,
+    )];
     let mut configs = vec![config.layers.body.clone()];
     let mut lbs = vec![0.0];
     if cloth {
-        inits.push(cloth_init(rig, config.layers.cloth_fit, config.layers.decimate, config.layers.cloth.sh_degree));
+        inits.push(cloth_init(
+            rig,
+            config.layers.cloth_fit,
+            config.layers.decimate,
+            config.layers.cloth.sh_degree,
+        ));
         configs.push(config.layers.cloth.clone());
         lbs.push(config.losses.lambda_cloth_lbs);
     }
     let scene = match (layers.scene, scene_points(seq)?) {
         (true, Some(colmap)) => {
-            let (cloud, extent) = scene_init(&colmap, config.layers.scene.sh_degree, config.layers.scene.max_points);
-            Some(SceneLayer::new(ctx, &cloud, extent, &config.layers.scene, config.schedule.steps)?)
+            let (cloud, extent) = scene_init(
+                &colmap,
+                config.layers.scene.sh_degree,
+                config.layers.scene.max_points,
+            );
+            Some(SceneLayer::new(
+                ctx,
+                &cloud,
+                extent,
+                &config.layers.scene,
+                config.schedule.steps,
+            )?)
         }
         _ => None,
     };
-    let mut avatar = Avatar::new(ctx, &inits, &configs, &lbs, scene, config.schedule.steps, config.seed)?;
+    let mut avatar = Avatar::new(
+        ctx,
+        &inits,
+        &configs,
+        &lbs,
+        scene,
+        config.schedule.steps,
+        config.seed,
+    )?;
     if config.deterministic {
         avatar.set_accumulation(ctx, Accumulation::Deterministic)?;
     }

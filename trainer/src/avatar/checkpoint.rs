@@ -37,7 +37,9 @@ use std::path::Path;
 
 use crate::avatar::pose_refine::PoseState;
 use crate::avatar::rig::REFINED_PARAMS;
-use crate::avatar::state::{AdamState, LayerShape, LayerState, ModelState, SceneState, ADAM_GROUPS, SCENE_PARAMS};
+use crate::avatar::state::{
+    AdamState, LayerShape, LayerState, ModelState, SceneState, ADAM_GROUPS, SCENE_PARAMS,
+};
 use crate::npy::{read_npz, write_npz, Array, Dtype};
 use crate::TrainerError;
 
@@ -47,7 +49,11 @@ use crate::TrainerError;
 pub const FORMAT_VERSION: u32 = 2;
 
 fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
-    Array::new(Dtype::F32, shape, data.iter().map(|&v| f64::from(v)).collect())
+    Array::new(
+        Dtype::F32,
+        shape,
+        data.iter().map(|&v| f64::from(v)).collect(),
+    )
 }
 
 fn u32_array(v: u32) -> Array {
@@ -55,7 +61,11 @@ fn u32_array(v: u32) -> Array {
 }
 
 fn edge_array(edges: &[[u32; 2]]) -> Array {
-    Array::new(Dtype::U32, vec![edges.len(), 2], edges.iter().flatten().map(|&v| f64::from(v)).collect())
+    Array::new(
+        Dtype::U32,
+        vec![edges.len(), 2],
+        edges.iter().flatten().map(|&v| f64::from(v)).collect(),
+    )
 }
 
 /// Writes `state` to `path` atomically (temporary file, then rename).
@@ -68,15 +78,39 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
         let (r, c) = (l.triplane_size.0 as usize, l.triplane_size.1 as usize);
         a.insert(format!("{name}.means"), f32_array(vec![n, 3], &l.means));
         a.insert(format!("{name}.quats"), f32_array(vec![n, 4], &l.quats));
-        a.insert(format!("{name}.log_scales"), f32_array(vec![n, 3], &l.log_scales));
-        a.insert(format!("{name}.triplane"), f32_array(vec![3, r, r, c], &l.triplane));
-        a.insert(format!("{name}.triplane_box"), f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()));
-        a.insert(format!("{name}.appearance"), f32_array(vec![l.appearance.len()], &l.appearance));
-        a.insert(format!("{name}.geometry"), f32_array(vec![l.geometry.len()], &l.geometry));
-        a.insert(format!("{name}.deformation"), f32_array(vec![l.deformation.len()], &l.deformation));
+        a.insert(
+            format!("{name}.log_scales"),
+            f32_array(vec![n, 3], &l.log_scales),
+        );
+        a.insert(
+            format!("{name}.triplane"),
+            f32_array(vec![3, r, r, c], &l.triplane),
+        );
+        a.insert(
+            format!("{name}.triplane_box"),
+            f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()),
+        );
+        a.insert(
+            format!("{name}.appearance"),
+            f32_array(vec![l.appearance.len()], &l.appearance),
+        );
+        a.insert(
+            format!("{name}.geometry"),
+            f32_array(vec![l.geometry.len()], &l.geometry),
+        );
+        a.insert(
+            format!("{name}.deformation"),
+            f32_array(vec![l.deformation.len()], &l.deformation),
+        );
         for (g, s) in ADAM_GROUPS.iter().zip(&l.adam) {
-            a.insert(format!("{name}.adam.{g}.m"), f32_array(vec![s.m.len()], &s.m));
-            a.insert(format!("{name}.adam.{g}.v"), f32_array(vec![s.v.len()], &s.v));
+            a.insert(
+                format!("{name}.adam.{g}.m"),
+                f32_array(vec![s.m.len()], &s.m),
+            );
+            a.insert(
+                format!("{name}.adam.{g}.v"),
+                f32_array(vec![s.v.len()], &s.v),
+            );
             a.insert(format!("{name}.adam.{g}.step"), u32_array(s.step));
         }
         if let Some(w) = &l.weight_targets {
@@ -98,8 +132,14 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
                 _ => vec![n, p.len() / n.max(1)],
             };
             a.insert(format!("scene.{name}"), f32_array(shape, p));
-            a.insert(format!("scene.adam.{name}.m"), f32_array(vec![ad.m.len()], &ad.m));
-            a.insert(format!("scene.adam.{name}.v"), f32_array(vec![ad.v.len()], &ad.v));
+            a.insert(
+                format!("scene.adam.{name}.m"),
+                f32_array(vec![ad.m.len()], &ad.m),
+            );
+            a.insert(
+                format!("scene.adam.{name}.v"),
+                f32_array(vec![ad.v.len()], &ad.v),
+            );
             a.insert(format!("scene.adam.{name}.step"), u32_array(ad.step));
         }
         if let Some(st) = &sc.screen_stats {
@@ -108,18 +148,40 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
     }
     if let Some(p) = &state.poses {
         let f = p.frames.len();
-        let rows = |v: &[[f64; REFINED_PARAMS]]| Array::new(Dtype::F64, vec![f, REFINED_PARAMS], v.iter().flatten().copied().collect());
-        a.insert("poses.frames".into(), Array::new(Dtype::U32, vec![f], p.frames.iter().map(|&v| f64::from(v)).collect()));
+        let rows = |v: &[[f64; REFINED_PARAMS]]| {
+            Array::new(
+                Dtype::F64,
+                vec![f, REFINED_PARAMS],
+                v.iter().flatten().copied().collect(),
+            )
+        };
+        a.insert(
+            "poses.frames".into(),
+            Array::new(
+                Dtype::U32,
+                vec![f],
+                p.frames.iter().map(|&v| f64::from(v)).collect(),
+            ),
+        );
         a.insert("poses.delta".into(), rows(&p.deltas));
         a.insert("poses.adam.m".into(), rows(&p.m));
         a.insert("poses.adam.v".into(), rows(&p.v));
-        a.insert("poses.adam.step".into(), Array::new(Dtype::U32, vec![f], p.steps.iter().map(|&v| f64::from(v)).collect()));
+        a.insert(
+            "poses.adam.step".into(),
+            Array::new(
+                Dtype::U32,
+                vec![f],
+                p.steps.iter().map(|&v| f64::from(v)).collect(),
+            ),
+        );
     }
     let tmp = path.with_extension("npz.tmp");
     write_npz(&tmp, &a)?;
     stall_if_asked(&tmp);
     // The data is on disk before the rename makes it the file.
-    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| TrainerError::io(&tmp, e))?;
+    std::fs::File::open(&tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| TrainerError::io(&tmp, e))?;
     std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
 }
 
@@ -129,8 +191,15 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
 /// middle of a write. Unset (always, outside that test), it does nothing.
 fn stall_if_asked(tmp: &Path) {
     static WRITES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
-    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else { return };
-    let Some(k) = spec.strip_prefix("stall-in-checkpoint-write:").and_then(|k| k.parse::<u32>().ok()) else { return };
+    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else {
+        return;
+    };
+    let Some(k) = spec
+        .strip_prefix("stall-in-checkpoint-write:")
+        .and_then(|k| k.parse::<u32>().ok())
+    else {
+        return;
+    };
     if WRITES.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 != k {
         return;
     }
@@ -147,17 +216,36 @@ fn stall_if_asked(tmp: &Path) {
 
 /// Reads `path`, checking it against `shapes` and, with a scene layer, the scene's SH
 /// degree (the model it is loaded into).
-pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) -> crate::Result<ModelState> {
+pub fn read(
+    path: &Path,
+    shapes: &[LayerShape],
+    scene_sh_degree: Option<u32>,
+) -> crate::Result<ModelState> {
     let a = read_npz(path)?;
     let bad = |key: &str, problem: String| TrainerError::checkpoint(path, key, problem);
-    let missing = |key: &str| bad(key, "array is missing (a checkpoint of another model?)".into());
+    let missing = |key: &str| {
+        bad(
+            key,
+            "array is missing (a checkpoint of another model?)".into(),
+        )
+    };
     let get = |key: &str, dtype: Dtype, len: usize| -> crate::Result<Vec<f32>> {
         let arr = a.get(key).ok_or_else(|| missing(key))?;
         if arr.dtype != dtype {
-            return Err(bad(key, format!("array has dtype {:?}, expected {dtype:?}", arr.dtype)));
+            return Err(bad(
+                key,
+                format!("array has dtype {:?}, expected {dtype:?}", arr.dtype),
+            ));
         }
         if arr.data.len() != len {
-            return Err(bad(key, format!("array has shape {:?} ({} values), but this model needs {len}", arr.shape, arr.data.len())));
+            return Err(bad(
+                key,
+                format!(
+                    "array has shape {:?} ({} values), but this model needs {len}",
+                    arr.shape,
+                    arr.data.len()
+                ),
+            ));
         }
         let values: Vec<f32> = arr.data.iter().map(|&v| v as f32).collect();
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
@@ -167,7 +255,10 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
     };
     let version = get("format_version", Dtype::U32, 1)?[0] as u32;
     if version != FORMAT_VERSION {
-        return Err(bad("format_version", format!("format version {version}, this drape reads version {FORMAT_VERSION}")));
+        return Err(bad(
+            "format_version",
+            format!("format version {version}, this drape reads version {FORMAT_VERSION}"),
+        ));
     }
     let step = get("step", Dtype::U32, 1)?[0] as u32;
     let mut layers = Vec::new();
@@ -175,17 +266,35 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
     let count_of = |key: &str, width: usize| -> crate::Result<usize> {
         let arr = a.get(key).ok_or_else(|| missing(key))?;
         if arr.data.is_empty() || arr.data.len() % width != 0 {
-            return Err(bad(key, format!("array has {} values, not a positive multiple of {width}", arr.data.len())));
+            return Err(bad(
+                key,
+                format!(
+                    "array has {} values, not a positive multiple of {width}",
+                    arr.data.len()
+                ),
+            ));
         }
         Ok(arr.data.len() / width)
     };
-    let optional = |key: &str, len: usize| -> crate::Result<Option<Vec<f32>>> { if a.contains_key(key) { get(key, Dtype::F32, len).map(Some) } else { Ok(None) } };
+    let optional = |key: &str, len: usize| -> crate::Result<Option<Vec<f32>>> {
+        if a.contains_key(key) {
+            get(key, Dtype::F32, len).map(Some)
+        } else {
+            Ok(None)
+        }
+    };
     for s in shapes {
         let name = &s.name;
         let n = count_of(&format!("{name}.means"), 3)?;
         let (r, c) = (s.triplane_size.0 as usize, s.triplane_size.1 as usize);
         let bx = get(&format!("{name}.triplane_box"), Dtype::F32, 6)?;
-        let adam_lens = [3 * n, 3 * r * r * c, s.decoders[0], s.decoders[1], s.decoders[2]];
+        let adam_lens = [
+            3 * n,
+            3 * r * r * c,
+            s.decoders[0],
+            s.decoders[1],
+            s.decoders[2],
+        ];
         let mut adam = Vec::new();
         for (g, &len) in ADAM_GROUPS.iter().zip(&adam_lens) {
             adam.push(AdamState {
@@ -249,7 +358,11 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
                     step: get(&format!("scene.adam.{name}.step"), Dtype::U32, 1)?[0] as u32,
                 });
             }
-            Some(SceneState { params, adam, screen_stats: optional("scene.screen_stats", 3 * n)? })
+            Some(SceneState {
+                params,
+                adam,
+                screen_stats: optional("scene.screen_stats", 3 * n)?,
+            })
         }
     };
     let poses = match a.get("poses.frames") {
@@ -257,36 +370,83 @@ pub fn read(path: &Path, shapes: &[LayerShape], scene_sh_degree: Option<u32>) ->
         Some(frames) => {
             let frames: Vec<u32> = match frames.dtype {
                 Dtype::U32 => frames.data.iter().map(|&v| v as u32).collect(),
-                other => return Err(bad("poses.frames", format!("array has dtype {other:?}, expected U32"))),
+                other => {
+                    return Err(bad(
+                        "poses.frames",
+                        format!("array has dtype {other:?}, expected U32"),
+                    ))
+                }
             };
             let f = frames.len();
             let rows = |key: &str| -> crate::Result<Vec<[f64; REFINED_PARAMS]>> {
-                let arr = a.get(key).ok_or_else(|| bad(key, "array is missing (poses.frames is there)".into()))?;
+                let arr = a
+                    .get(key)
+                    .ok_or_else(|| bad(key, "array is missing (poses.frames is there)".into()))?;
                 if arr.dtype != Dtype::F64 || arr.data.len() != f * REFINED_PARAMS {
                     return Err(bad(key, format!("array is {:?} of shape {:?}, expected F64 of shape [{f}, {REFINED_PARAMS}]", arr.dtype, arr.shape)));
                 }
                 if let Some(i) = arr.data.iter().position(|v| !v.is_finite()) {
-                    return Err(bad(key, format!("value {i} is {} (a run that diverged, or a damaged file)", arr.data[i])));
+                    return Err(bad(
+                        key,
+                        format!(
+                            "value {i} is {} (a run that diverged, or a damaged file)",
+                            arr.data[i]
+                        ),
+                    ));
                 }
-                Ok(arr.data.chunks_exact(REFINED_PARAMS).map(|c| std::array::from_fn(|k| c[k])).collect())
+                Ok(arr
+                    .data
+                    .chunks_exact(REFINED_PARAMS)
+                    .map(|c| std::array::from_fn(|k| c[k]))
+                    .collect())
             };
-            let steps: Vec<u32> = get("poses.adam.step", Dtype::U32, f)?.iter().map(|&v| v as u32).collect();
-            Some(PoseState { frames, deltas: rows("poses.delta")?, m: rows("poses.adam.m")?, v: rows("poses.adam.v")?, steps })
+            let steps: Vec<u32> = get("poses.adam.step", Dtype::U32, f)?
+                .iter()
+                .map(|&v| v as u32)
+                .collect();
+            Some(PoseState {
+                frames,
+                deltas: rows("poses.delta")?,
+                m: rows("poses.adam.m")?,
+                v: rows("poses.adam.v")?,
+                steps,
+            })
         }
     };
     for (name, l) in &layers {
-        if let Some(g) = l.quats.chunks_exact(4).position(|q| q.iter().all(|&c| c == 0.0)) {
-            return Err(bad(&format!("{name}.quats"), format!("Gaussian {g} has the zero quaternion (no rotation)")));
+        if let Some(g) = l
+            .quats
+            .chunks_exact(4)
+            .position(|q| q.iter().all(|&c| c == 0.0))
+        {
+            return Err(bad(
+                &format!("{name}.quats"),
+                format!("Gaussian {g} has the zero quaternion (no rotation)"),
+            ));
         }
         let [lo, hi] = l.triplane_box;
         if (0..3).any(|k| !(lo[k] < hi[k])) {
-            return Err(bad(&format!("{name}.triplane_box"), format!("min {lo:?} is not below max {hi:?} on every axis")));
+            return Err(bad(
+                &format!("{name}.triplane_box"),
+                format!("min {lo:?} is not below max {hi:?} on every axis"),
+            ));
         }
     }
     if let Some(s) = &scene {
-        if let Some(g) = s.params[2].chunks_exact(4).position(|q| q.iter().all(|&c| c == 0.0)) {
-            return Err(bad("scene.quats", format!("Gaussian {g} has the zero quaternion (no rotation)")));
+        if let Some(g) = s.params[2]
+            .chunks_exact(4)
+            .position(|q| q.iter().all(|&c| c == 0.0))
+        {
+            return Err(bad(
+                "scene.quats",
+                format!("Gaussian {g} has the zero quaternion (no rotation)"),
+            ));
         }
     }
-    Ok(ModelState { step, layers, scene, poses })
+    Ok(ModelState {
+        step,
+        layers,
+        scene,
+        poses,
+    })
 }

@@ -14,7 +14,7 @@ use drape_engine::mirror::Mirror;
 use drape_engine::ops::cloth_loss::{Arap, Chamfer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
+use drape_engine::{kernels, Buffer, BufferDesc, Context, Recording, Result};
 use drape_shared::adam::LossParams;
 
 use crate::avatar::cloth_target::GarmentFrames;
@@ -71,9 +71,18 @@ pub struct ClothLosses {
 
 impl ClothLosses {
     /// The losses of the layer `cloth` (its ARAP graph is `cloth.edges`).
-    pub fn new(ctx: &Context, cloth: &HumanLayer, garments: GarmentFrames, weights: ClothLossWeights, width: u32, height: u32) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        cloth: &HumanLayer,
+        garments: GarmentFrames,
+        weights: ClothLossWeights,
+        width: u32,
+        height: u32,
+    ) -> Result<Self> {
         let pixels = width * height;
-        let b = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))));
+        let b = |name: &str, floats: u32| {
+            ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats.max(1))))
+        };
         let zeros = b("cloth mask zeros", 3 * pixels)?;
         {
             let mut rec = ctx.record("cloth mask zero")?;
@@ -88,15 +97,26 @@ impl ClothLosses {
             chamfer,
             arap,
             // The frame's targets are rewritten every step (`set_frame`): host-written memory.
-            target_points: ctx.create_buffer("cloth target points", BufferDesc::host_written(4 * u64::from((3 * garments.vertices as u32).max(1))))?,
+            target_points: ctx.create_buffer(
+                "cloth target points",
+                BufferDesc::host_written(4 * u64::from((3 * garments.vertices as u32).max(1))),
+            )?,
             target_count: 0,
             renderer: SplatRenderer::new(ctx, width, height, cloth.count as usize)?,
-            mask_target: ctx.create_buffer("cloth mask target", BufferDesc::host_written(4 * u64::from(pixels.max(1))))?,
+            mask_target: ctx.create_buffer(
+                "cloth mask target",
+                BufferDesc::host_written(4 * u64::from(pixels.max(1))),
+            )?,
             grad_alpha: b("cloth mask grad alpha", pixels)?,
             mask_sq_error_mirror: Mirror::new(ctx, &mask_sq_error)?,
             mask_sq_error,
             zeros,
-            mask_grads: GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?,
+            mask_grads: GaussianBuffers::new(
+                ctx,
+                "cloth mask grads",
+                cloth.count as usize,
+                cloth.deformer.posed.sh_degree,
+            )?,
             garments,
             pixels,
             has_mask: false,
@@ -112,21 +132,39 @@ impl ClothLosses {
         self.count = cloth.count;
         (self.chamfer, self.arap) = mirrored_scratch(ctx, cloth, &self.garments, &self.weights)?;
         self.renderer = SplatRenderer::new(ctx, width, height, cloth.count as usize)?;
-        self.mask_grads = GaussianBuffers::new(ctx, "cloth mask grads", cloth.count as usize, cloth.deformer.posed.sh_degree)?;
+        self.mask_grads = GaussianBuffers::new(
+            ctx,
+            "cloth mask grads",
+            cloth.count as usize,
+            cloth.deformer.posed.sh_degree,
+        )?;
         Ok(())
     }
 
     /// Uploads the frame's targets: its simulated garments and its garment mask.
     pub fn set_frame(&mut self, ctx: &Context, f: &DatasetFrame) -> Result<()> {
-        let points = self.garments.by_frame.get(&f.frame).expect("every frame of the sequence was simulated");
-        let kept: Vec<f32> = points.iter().step_by(self.weights.target_stride.max(1) as usize).flatten().copied().collect();
+        let points = self
+            .garments
+            .by_frame
+            .get(&f.frame)
+            .expect("every frame of the sequence was simulated");
+        let kept: Vec<f32> = points
+            .iter()
+            .step_by(self.weights.target_stride.max(1) as usize)
+            .flatten()
+            .copied()
+            .collect();
         self.target_count = (kept.len() / 3) as u32;
         // This frame's mask error is not in the mirror until a step copies it there.
         self.mask_sq_error_mirror.mark_stale();
         ctx.write_buffer(&mut self.target_points, &kept)?;
         self.has_mask = self.weights.mask > 0.0 && f.garment_masks.is_some();
         if let Some((upper, lower)) = &f.garment_masks {
-            let m: Vec<f32> = upper.iter().zip(lower).map(|(&a, &b)| if a || b { 1.0 } else { 0.0 }).collect();
+            let m: Vec<f32> = upper
+                .iter()
+                .zip(lower)
+                .map(|(&a, &b)| if a || b { 1.0 } else { 0.0 })
+                .collect();
             ctx.write_buffer(&mut self.mask_target, &m)?;
         }
         Ok(())
@@ -140,32 +178,94 @@ impl ClothLosses {
 
     /// Records the mask loss on `alpha` (the cloth rendered alone, by the compositor)
     /// and adds its gradient into `grad_alpha` (that pass's alpha gradient).
-    pub fn record_mask_grad<'a>(&'a self, rec: &mut Recording<'a>, alpha: &'a Buffer, grad_alpha: &'a Buffer) -> Result<()> {
+    pub fn record_mask_grad<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        alpha: &'a Buffer,
+        grad_alpha: &'a Buffer,
+    ) -> Result<()> {
         if !self.has_mask {
             return Ok(());
         }
-        let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
-        rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
-        let p = LossParams { len: self.pixels, scale: 1.0, _pad: [0; 2] };
-        rec.dispatch("cloth.mask_add", kernels::train::AddInto { src: self.grad_alpha.read(), dst: grad_alpha.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
+        let p = LossParams {
+            len: self.pixels,
+            scale: self.weights.mask / self.pixels as f32,
+            _pad: [0; 2],
+        };
+        rec.dispatch(
+            "cloth.mask_grad",
+            kernels::train::MseGrad {
+                pred: alpha.read(),
+                target: self.mask_target.read(),
+                grad: self.grad_alpha.write(),
+                squared_error: self.mask_sq_error.write(),
+            },
+            &p,
+            drape_engine::recorder::flat_grid(self.pixels),
+        )?;
+        let p = LossParams {
+            len: self.pixels,
+            scale: 1.0,
+            _pad: [0; 2],
+        };
+        rec.dispatch(
+            "cloth.mask_add",
+            kernels::train::AddInto {
+                src: self.grad_alpha.read(),
+                dst: grad_alpha.write(),
+            },
+            &p,
+            drape_engine::recorder::flat_grid(self.pixels),
+        )?;
         Ok(())
     }
 
     /// Renders the cloth layer alone (after the avatar's forward pass) and back-
     /// propagates the mask loss into `mask_grads`: two submissions of the renderer.
-    pub fn mask_pass(&mut self, ctx: &Context, cloth: &HumanLayer, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+    pub fn mask_pass(
+        &mut self,
+        ctx: &Context,
+        cloth: &HumanLayer,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
         if !self.has_mask {
             return Ok(());
         }
-        let saved = self.renderer.forward(&cloth.deformer.posed, camera, settings)?.saved;
+        let saved = self
+            .renderer
+            .forward(&cloth.deformer.posed, camera, settings)?
+            .saved;
         {
             let (_, alpha, _) = self.renderer.outputs();
-            let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
+            let p = LossParams {
+                len: self.pixels,
+                scale: self.weights.mask / self.pixels as f32,
+                _pad: [0; 2],
+            };
             let mut rec = ctx.record("cloth mask loss")?;
-            rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
+            rec.dispatch(
+                "cloth.mask_grad",
+                kernels::train::MseGrad {
+                    pred: alpha.read(),
+                    target: self.mask_target.read(),
+                    grad: self.grad_alpha.write(),
+                    squared_error: self.mask_sq_error.write(),
+                },
+                &p,
+                drape_engine::recorder::flat_grid(self.pixels),
+            )?;
             rec.submit_and_wait()?;
         }
-        self.renderer.backward(&saved, &cloth.deformer.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())?;
+        self.renderer.backward(
+            &saved,
+            &cloth.deformer.posed,
+            &self.zeros,
+            &self.grad_alpha,
+            &self.zeros,
+            &self.mask_grads,
+            cloth.accumulation(),
+        )?;
         Ok(())
     }
 
@@ -176,21 +276,55 @@ impl ClothLosses {
     }
 
     /// Prepares [`record_mask_pass`](Self::record_mask_pass) (host-side).
-    pub fn prepare_mask_pass(&mut self, cloth: &HumanLayer, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
-        self.renderer.prepare_forward(&cloth.deformer.posed, camera, settings)?;
+    pub fn prepare_mask_pass(
+        &mut self,
+        cloth: &HumanLayer,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
+        self.renderer
+            .prepare_forward(&cloth.deformer.posed, camera, settings)?;
         self.renderer.prepare_backward(cloth.accumulation())
     }
 
     /// Records [`mask_pass`](Self::mask_pass) into `rec` (after the avatar's forward,
     /// with no host wait); its overflow flag goes to `guard`. After the submission,
     /// [`finish_mask_pass`](Self::finish_mask_pass).
-    pub fn record_mask_pass<'a>(&'a self, rec: &mut Recording<'a>, cloth: &'a HumanLayer, guard: &'a Buffer) -> Result<()> {
+    pub fn record_mask_pass<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        cloth: &'a HumanLayer,
+        guard: &'a Buffer,
+    ) -> Result<()> {
         self.renderer.record_forward(rec, &cloth.deformer.posed)?;
         self.renderer.record_overflow_flag(rec, guard)?;
         let (_, alpha, _) = self.renderer.outputs();
-        let p = LossParams { len: self.pixels, scale: self.weights.mask / self.pixels as f32, _pad: [0; 2] };
-        rec.dispatch("cloth.mask_grad", kernels::train::MseGrad { pred: alpha.read(), target: self.mask_target.read(), grad: self.grad_alpha.write(), squared_error: self.mask_sq_error.write() }, &p, drape_engine::recorder::flat_grid(self.pixels))?;
-        self.renderer.record_backward(rec, &self.renderer.recorded_forward(), &cloth.deformer.posed, &self.zeros, &self.grad_alpha, &self.zeros, &self.mask_grads, cloth.accumulation())
+        let p = LossParams {
+            len: self.pixels,
+            scale: self.weights.mask / self.pixels as f32,
+            _pad: [0; 2],
+        };
+        rec.dispatch(
+            "cloth.mask_grad",
+            kernels::train::MseGrad {
+                pred: alpha.read(),
+                target: self.mask_target.read(),
+                grad: self.grad_alpha.write(),
+                squared_error: self.mask_sq_error.write(),
+            },
+            &p,
+            drape_engine::recorder::flat_grid(self.pixels),
+        )?;
+        self.renderer.record_backward(
+            rec,
+            &self.renderer.recorded_forward(),
+            &cloth.deformer.posed,
+            &self.zeros,
+            &self.grad_alpha,
+            &self.zeros,
+            &self.mask_grads,
+            cloth.accumulation(),
+        )
     }
 
     /// After the submission of [`record_mask_pass`](Self::record_mask_pass): true when
@@ -206,20 +340,51 @@ impl ClothLosses {
         let this = self;
         if this.has_mask && !this.mask_in_composite {
             let per = [3u32, 3, 4, 1];
-            let src = [&this.mask_grads.means, &this.mask_grads.log_scales, &this.mask_grads.quats, &this.mask_grads.opacity_logits];
-            let dst = [&cloth.deformer.posed_grads.means, &cloth.deformer.posed_grads.log_scales, &cloth.deformer.posed_grads.quats, &cloth.deformer.posed_grads.opacity_logits];
+            let src = [
+                &this.mask_grads.means,
+                &this.mask_grads.log_scales,
+                &this.mask_grads.quats,
+                &this.mask_grads.opacity_logits,
+            ];
+            let dst = [
+                &cloth.deformer.posed_grads.means,
+                &cloth.deformer.posed_grads.log_scales,
+                &cloth.deformer.posed_grads.quats,
+                &cloth.deformer.posed_grads.opacity_logits,
+            ];
             for k in 0..4 {
                 let len = per[k] * this.count;
-                let p = LossParams { len, scale: 1.0, _pad: [0; 2] };
-                rec.dispatch("cloth.mask_add", kernels::train::AddInto { src: src[k].read(), dst: dst[k].write() }, &p, drape_engine::recorder::flat_grid(len))?;
+                let p = LossParams {
+                    len,
+                    scale: 1.0,
+                    _pad: [0; 2],
+                };
+                rec.dispatch(
+                    "cloth.mask_add",
+                    kernels::train::AddInto {
+                        src: src[k].read(),
+                        dst: dst[k].write(),
+                    },
+                    &p,
+                    drape_engine::recorder::flat_grid(len),
+                )?;
             }
         }
         let grad = &cloth.deformer.posed_grads.means;
         if w.sim > 0.0 {
-            this.chamfer.record(rec, &cloth.deformer.posed.means, this.count, &this.target_points, this.target_count, w.gm_sigma, Some((grad, w.sim)))?;
+            this.chamfer.record(
+                rec,
+                &cloth.deformer.posed.means,
+                this.count,
+                &this.target_points,
+                this.target_count,
+                w.gm_sigma,
+                Some((grad, w.sim)),
+            )?;
         }
         if w.arap > 0.0 {
-            this.arap.record(rec, &cloth.deformer.posed.means, Some((grad, w.arap)))?;
+            this.arap
+                .record(rec, &cloth.deformer.posed.means, Some((grad, w.arap)))?;
         }
         Ok(())
     }
@@ -235,7 +400,11 @@ impl ClothLosses {
             self.arap.record_readback(rec);
         }
         if self.has_mask {
-            self.mask_sq_error_mirror.record_copy(rec, &self.mask_sq_error, 4 * u64::from(self.pixels));
+            self.mask_sq_error_mirror.record_copy(
+                rec,
+                &self.mask_sq_error,
+                4 * u64::from(self.pixels),
+            );
         }
     }
 
@@ -253,7 +422,11 @@ impl ClothLosses {
             v.arap = f64::from(self.arap.read_stats(ctx)?[1]);
         }
         if self.has_mask {
-            let e = self.mask_sq_error_mirror.read::<f32>(ctx, &mut self.mask_sq_error, self.pixels as usize)?;
+            let e = self.mask_sq_error_mirror.read::<f32>(
+                ctx,
+                &mut self.mask_sq_error,
+                self.pixels as usize,
+            )?;
             v.mask = e.iter().map(|&x| f64::from(x)).sum::<f64>() / f64::from(self.pixels.max(1));
         }
         Ok(v)
@@ -262,8 +435,19 @@ impl ClothLosses {
 
 /// The Chamfer and ARAP scratch for the layer `cloth`, each keeping a host copy of its
 /// values for logging steps (`record_readback`).
-fn mirrored_scratch(ctx: &Context, cloth: &HumanLayer, garments: &GarmentFrames, weights: &ClothLossWeights) -> Result<(Chamfer, Arap)> {
-    let mut chamfer = Chamfer::new(ctx, cloth.count, garments.vertices.div_ceil(weights.target_stride.max(1) as usize) as u32)?;
+fn mirrored_scratch(
+    ctx: &Context,
+    cloth: &HumanLayer,
+    garments: &GarmentFrames,
+    weights: &ClothLossWeights,
+) -> Result<(Chamfer, Arap)> {
+    let mut chamfer = Chamfer::new(
+        ctx,
+        cloth.count,
+        garments
+            .vertices
+            .div_ceil(weights.target_stride.max(1) as usize) as u32,
+    )?;
     chamfer.keep_host_mirror(ctx)?;
     let mut arap = Arap::new(ctx, cloth.count, &cloth.edges)?;
     arap.keep_host_mirror(ctx)?;

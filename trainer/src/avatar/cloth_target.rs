@@ -41,7 +41,12 @@ pub fn garments(rig: &Rig, fit: GarmentFit) -> [Garment; 2] {
 /// model space, then `world = scale · x`.
 fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, DVec3, f64) {
     match body {
-        BodyParams::Smpl { pose, translation, scale, .. } => (*pose, *translation / *scale, *scale),
+        BodyParams::Smpl {
+            pose,
+            translation,
+            scale,
+            ..
+        } => (*pose, *translation / *scale, *scale),
         BodyParams::Zju(p) => {
             // ZJU: world = R(Rh) x₀ + Th with x₀ posed about a zero root; SMPL turns about
             // the pelvis j, so the same pose is root Rh with translation Th + R j - j.
@@ -52,7 +57,9 @@ fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, DVec3, f64) {
             }
             let pelvis = regress_joints(&rig.model, &rig.model.v_template)[0];
             let r = rodrigues(DVec3::from_array(p.rh));
-            let rj = DVec3::from_array(std::array::from_fn(|k| (0..3).map(|c| r[k][c] * pelvis[c]).sum::<f64>()));
+            let rj = DVec3::from_array(std::array::from_fn(|k| {
+                (0..3).map(|c| r[k][c] * pelvis[c]).sum::<f64>()
+            }));
             (pose, DVec3::from_array(p.th) + rj - pelvis, 1.0)
         }
     }
@@ -60,14 +67,24 @@ fn sim_pose(rig: &Rig, body: &BodyParams) -> (Pose, DVec3, f64) {
 
 /// Simulates the garments through every frame of `frames` (each frame index once, in
 /// order); `progress(done, total)` as it goes.
-pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], progress: &mut dyn FnMut(usize, usize)) -> crate::Result<GarmentFrames> {
+pub fn simulate_sequence(
+    rig: &Rig,
+    fit: GarmentFit,
+    frames: &[DatasetFrame],
+    progress: &mut dyn FnMut(usize, usize),
+) -> crate::Result<GarmentFrames> {
     let t0 = std::time::Instant::now();
     let mut bodies: BTreeMap<usize, &BodyParams> = BTreeMap::new();
     for f in frames {
         bodies.entry(f.frame).or_insert(&f.body);
     }
-    let order: Vec<(usize, (Pose, DVec3, f64))> = bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
-    let motion = Motion { fps: 30.0, poses: order.iter().map(|(_, p)| p.0).collect(), translations: order.iter().map(|(_, p)| p.1).collect() };
+    let order: Vec<(usize, (Pose, DVec3, f64))> =
+        bodies.iter().map(|(&k, b)| (k, sim_pose(rig, b))).collect();
+    let motion = Motion {
+        fps: 30.0,
+        poses: order.iter().map(|(_, p)| p.0).collect(),
+        translations: order.iter().map(|(_, p)| p.1).collect(),
+    };
     // Frames may be subsampled, so the bound is a generous 2 m between consecutive
     // frames; beyond it the garments would be dragged across the gap (and the collision
     // grid would grow with it).
@@ -79,28 +96,59 @@ pub fn simulate_sequence(rig: &Rig, fit: GarmentFit, frames: &[DatasetFrame], pr
         }
     }
     let garments = garments(rig, fit);
-    let sim = simulate_with_progress(&rig.model, &garments, &motion, ClothParams::default(), 20, progress);
+    let sim = simulate_with_progress(
+        &rig.model,
+        &garments,
+        &motion,
+        ClothParams::default(),
+        20,
+        progress,
+    );
     if sim.any_nan {
-        return Err(TrainerError::numeric("cloth targets", "the cloth simulation of the sequence's motion produced non-finite positions"));
+        return Err(TrainerError::numeric(
+            "cloth targets",
+            "the cloth simulation of the sequence's motion produced non-finite positions",
+        ));
     }
     let mut by_frame = BTreeMap::new();
     for ((frame, (_, _, scale)), meshes) in order.iter().zip(&sim.frames) {
-        let points: Vec<[f32; 3]> = meshes.iter().flatten().map(|v| (*v * *scale).as_vec3().to_array()).collect();
+        let points: Vec<[f32; 3]> = meshes
+            .iter()
+            .flatten()
+            .map(|v| (*v * *scale).as_vec3().to_array())
+            .collect();
         by_frame.insert(*frame, points);
     }
     let vertices = garments.iter().map(|g| g.vertices.len()).sum();
-    Ok(GarmentFrames { by_frame, vertices, seconds: t0.elapsed().as_secs_f64() })
+    Ok(GarmentFrames {
+        by_frame,
+        vertices,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
 }
 
 /// The directory of ground-truth garments of a `drape synth` sequence
 /// (`<root>/gt/garments`, beside the layout directory), if there is one.
 pub fn ground_truth_dir(sequence_dir: &Path) -> Option<PathBuf> {
-    [sequence_dir.join("gt"), sequence_dir.parent().map(|p| p.join("gt")).unwrap_or_default()].into_iter().map(|d| d.join("garments")).find(|d| d.is_dir())
+    [
+        sequence_dir.join("gt"),
+        sequence_dir
+            .parent()
+            .map(|p| p.join("gt"))
+            .unwrap_or_default(),
+    ]
+    .into_iter()
+    .map(|d| d.join("garments"))
+    .find(|d| d.is_dir())
 }
 
 /// The ground-truth garment vertices of `frame` (`tshirt_0007.obj` and
 /// `pants_0007.obj`), or None when the frame has none.
-pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> crate::Result<Option<Vec<[f32; 3]>>> {
+pub fn ground_truth(
+    dir: &Path,
+    names: &[&str],
+    frame: usize,
+) -> crate::Result<Option<Vec<[f32; 3]>>> {
     let mut points = Vec::new();
     for name in names {
         let path = dir.join(format!("{name}_{frame:04}.obj"));
@@ -114,8 +162,16 @@ pub fn ground_truth(dir: &Path, names: &[&str], frame: usize) -> crate::Result<O
 
 /// The vertices of an OBJ file (read with `tobj`, as the garment loader does).
 pub fn obj_vertices(path: &Path) -> crate::Result<Vec<[f32; 3]>> {
-    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|error| GarmentError::Read { path: path.display().to_string(), error })?;
-    Ok(models.iter().flat_map(|m| m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]])).collect())
+    let (models, _) = tobj::load_obj(path, &tobj::LoadOptions::default()).map_err(|error| {
+        GarmentError::Read {
+            path: path.display().to_string(),
+            error,
+        }
+    })?;
+    Ok(models
+        .iter()
+        .flat_map(|m| m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]))
+        .collect())
 }
 
 /// The garment mesh's edges contracted onto the kept vertices (every `keep`-th): each

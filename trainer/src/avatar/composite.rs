@@ -20,14 +20,17 @@
 //! from one sort and one walk of every layer's Gaussians, and back-propagates in one
 //! walk too (its densification statistics then include the matte's gradients).
 
+use crate::avatar::groups::Layer;
+use drape_engine::ops::splat::composite::{
+    matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba,
+    CompositeGrads, CompositeInputs, Coverage,
+};
 use drape_engine::ops::splat::densify::record_screen_stats;
-use drape_engine::ops::splat::composite::{matte_sh_dc, record_add_slice, record_composite, record_composite_backward, record_to_rgba, CompositeGrads, CompositeInputs, Coverage};
 use drape_engine::ops::splat::fused::{FusedGrads, FusedRenderer};
 use drape_engine::ops::splat::render::{GaussianBuffers, SavedForward, SplatRenderer};
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
-use crate::avatar::groups::Layer;
-use drape_shared::splat::raster::{FUSED_BASE, FUSED_MATTE_ONE, FUSED_MATTE_ZERO, FUSED_OVER};
 use drape_engine::{Buffer, BufferDesc, Context, EngineError, Recording, Result};
+use drape_shared::splat::raster::{FUSED_BASE, FUSED_MATTE_ONE, FUSED_MATTE_ZERO, FUSED_OVER};
 
 use crate::avatar::cloth_losses::ClothLosses;
 use crate::avatar::gaussian_layout::GEOMETRY_FLOATS;
@@ -61,7 +64,8 @@ impl Compositing {
     /// `three-pass` (the paper's matte), `three-pass-occlusion`, `single-pass`,
     /// `fused` or `fused-occlusion`.
     pub fn parse(s: &str) -> crate::Result<Self> {
-        Self::try_from(s.to_string()).map_err(|e| crate::TrainerError::config("compositing", e.to_string()))
+        Self::try_from(s.to_string())
+            .map_err(|e| crate::TrainerError::config("compositing", e.to_string()))
     }
 
     /// Every choice, the paper's first.
@@ -94,10 +98,13 @@ impl std::fmt::Display for Compositing {
 impl TryFrom<String> for Compositing {
     type Error = crate::error::BadChoice;
     fn try_from(value: String) -> Result<Self, Self::Error> {
-        Self::ALL.into_iter().find(|c| c.name() == value).ok_or(crate::error::BadChoice {
-            value,
-            allowed: "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion",
-        })
+        Self::ALL
+            .into_iter()
+            .find(|c| c.name() == value)
+            .ok_or(crate::error::BadChoice {
+                value,
+                allowed: "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion",
+            })
     }
 }
 
@@ -142,21 +149,39 @@ struct Part {
 fn params(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
         Source::Layer(k) => &avatar.layers[k].deformer.posed,
-        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").params,
+        Source::Scene => {
+            &avatar
+                .scene
+                .as_ref()
+                .expect("a pass names the scene only when there is one")
+                .params
+        }
     }
 }
 
 fn screen_stats(avatar: &Avatar, s: Source) -> &Buffer {
     match s {
         Source::Layer(k) => &avatar.layers[k].screen_stats,
-        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").screen_stats,
+        Source::Scene => {
+            &avatar
+                .scene
+                .as_ref()
+                .expect("a pass names the scene only when there is one")
+                .screen_stats
+        }
     }
 }
 
 fn grads(avatar: &Avatar, s: Source) -> &GaussianBuffers {
     match s {
         Source::Layer(k) => &avatar.layers[k].deformer.posed_grads,
-        Source::Scene => &avatar.scene.as_ref().expect("a pass names the scene only when there is one").grads,
+        Source::Scene => {
+            &avatar
+                .scene
+                .as_ref()
+                .expect("a pass names the scene only when there is one")
+                .grads
+        }
     }
 }
 
@@ -168,7 +193,12 @@ fn parts(avatar: &Avatar, sources: &[(Source, bool)]) -> (Vec<Part>, u32) {
             Source::Layer(k) => avatar.layers[k].count,
             Source::Scene => avatar.scene.as_ref().map_or(0, |s| s.count),
         };
-        out.push(Part { source, first, count, matte });
+        out.push(Part {
+            source,
+            first,
+            count,
+            matte,
+        });
         first += count;
     }
     (out, first)
@@ -225,20 +255,35 @@ pub struct AvatarRenderer {
 }
 
 impl AvatarRenderer {
-    pub fn new(ctx: &Context, avatar: &Avatar, width: u32, height: u32, compositing: Compositing) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        avatar: &Avatar,
+        width: u32,
+        height: u32,
+        compositing: Compositing,
+    ) -> Result<Self> {
         let cloth = avatar.layers.iter().position(|l| l.name == "cloth");
         if let (Compositing::Fused(matte), Some(_)) = (compositing, cloth) {
             // The avatar's posed buffer holds every layer, then the scene.
             let mut layers = Vec::new();
             for l in &avatar.layers {
-                let kind = if l.name == "cloth" { Layer::Cloth } else { Layer::Body };
+                let kind = if l.name == "cloth" {
+                    Layer::Cloth
+                } else {
+                    Layer::Body
+                };
                 layers.extend(std::iter::repeat_n(kind, l.count as usize));
             }
-            layers.extend(std::iter::repeat_n(Layer::Scene, avatar.scene.as_ref().map_or(0, |s| s.count as usize)));
+            layers.extend(std::iter::repeat_n(
+                Layer::Scene,
+                avatar.scene.as_ref().map_or(0, |s| s.count as usize),
+            ));
             let mut renderer = FusedRenderer::new(ctx, width, height, avatar.posed.count as usize)?;
             renderer.set_masks(ctx, &layer_masks(&layers, matte == Matte::Occlusion))?;
             let pixels = width * height;
-            let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
+            let image = |name: &str, floats: u32| {
+                ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)))
+            };
             let fused = Fused {
                 renderer,
                 image: image("composite image", 3 * pixels)?,
@@ -248,14 +293,29 @@ impl AvatarRenderer {
                 grad_matte: image("fused grad matte", 3 * pixels)?,
                 pixels,
             };
-            return Ok(Self { inner: Inner::Fused(Box::new(fused)), saved: Vec::new() });
+            return Ok(Self {
+                inner: Inner::Fused(Box::new(fused)),
+                saved: Vec::new(),
+            });
         }
         let (Compositing::ThreePass(matte), Some(cloth)) = (compositing, cloth) else {
-            return Ok(Self { inner: Inner::Single(Box::new(SplatRenderer::new(ctx, width, height, avatar.posed.count as usize)?)), saved: Vec::new() });
+            return Ok(Self {
+                inner: Inner::Single(Box::new(SplatRenderer::new(
+                    ctx,
+                    width,
+                    height,
+                    avatar.posed.count as usize,
+                )?)),
+                saved: Vec::new(),
+            });
         };
-        let humans: Vec<Source> = (0..avatar.layers.len()).filter(|&k| k != cloth).map(Source::Layer).collect();
+        let humans: Vec<Source> = (0..avatar.layers.len())
+            .filter(|&k| k != cloth)
+            .map(Source::Layer)
+            .collect();
         let scene: Vec<Source> = avatar.scene.iter().map(|_| Source::Scene).collect();
-        let base_sources: Vec<(Source, bool)> = humans.iter().chain(&scene).map(|&s| (s, false)).collect();
+        let base_sources: Vec<(Source, bool)> =
+            humans.iter().chain(&scene).map(|&s| (s, false)).collect();
         let mut matte_sources: Vec<(Source, bool)> = scene.iter().map(|&s| (s, false)).collect();
         if matte == Matte::Occlusion {
             matte_sources.extend(humans.iter().map(|&s| (s, false)));
@@ -265,13 +325,19 @@ impl AvatarRenderer {
         let (matte_parts, matte_count) = parts(avatar, &matte_sources);
         let sh = avatar.posed.sh_degree;
         let pixels = width * height;
-        let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
+        let image = |name: &str, floats: u32| {
+            ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)))
+        };
         // Without occluders the matte is the cloth pass's alpha: no pass for it.
         let matte = if !matte_parts.iter().any(|p| !p.matte && p.count > 0) {
             None
         } else {
-            let mut gaussians = GaussianBuffers::new(ctx, "composite matte", matte_count as usize, 0)?;
-            let colours: Vec<f32> = matte_parts.iter().flat_map(|p| std::iter::repeat_n(matte_sh_dc(p.matte), 3 * p.count as usize)).collect();
+            let mut gaussians =
+                GaussianBuffers::new(ctx, "composite matte", matte_count as usize, 0)?;
+            let colours: Vec<f32> = matte_parts
+                .iter()
+                .flat_map(|p| std::iter::repeat_n(matte_sh_dc(p.matte), 3 * p.count as usize))
+                .collect();
             ctx.write_buffer(&mut gaussians.sh, &colours)?;
             Some(MattePass {
                 grads: GaussianBuffers::new(ctx, "composite matte grads", matte_count as usize, 0)?,
@@ -286,7 +352,12 @@ impl AvatarRenderer {
             base: GaussianBuffers::new(ctx, "composite base", base_count as usize, sh)?,
             base_grads: GaussianBuffers::new(ctx, "composite base grads", base_count as usize, sh)?,
             base_renderer: SplatRenderer::new(ctx, width, height, base_count as usize)?,
-            cloth_renderer: SplatRenderer::new(ctx, width, height, avatar.layers[cloth].count as usize)?,
+            cloth_renderer: SplatRenderer::new(
+                ctx,
+                width,
+                height,
+                avatar.layers[cloth].count as usize,
+            )?,
             matte,
             image: image("composite image", 3 * pixels)?,
             grad_base: image("composite grad base", 3 * pixels)?,
@@ -295,11 +366,20 @@ impl AvatarRenderer {
             base_parts,
             pixels,
         };
-        Ok(Self { inner: Inner::ThreePass(Box::new(pass)), saved: Vec::new() })
+        Ok(Self {
+            inner: Inner::ThreePass(Box::new(pass)),
+            saved: Vec::new(),
+        })
     }
 
     /// Renders the avatar's posed Gaussians (of the last `Avatar::record_forward`).
-    pub fn forward(&mut self, ctx: &Context, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+    pub fn forward(
+        &mut self,
+        ctx: &Context,
+        avatar: &Avatar,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
         // One submission per frame: for three passes the gather, the three renders
         // (which share only what they read, so the recorder interleaves them) and the
         // composite. A render whose tile intersections outgrew its buffers grows them,
@@ -328,14 +408,26 @@ impl AvatarRenderer {
     /// Sets the next frame's camera and settings (host-side only): then
     /// [`record_frame`](Self::record_frame), the submission, and
     /// [`finish_frame`](Self::finish_frame).
-    pub fn prepare_frame(&mut self, avatar: &Avatar, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+    pub fn prepare_frame(
+        &mut self,
+        avatar: &Avatar,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
         match &mut self.inner {
             Inner::Single(r) => r.prepare_forward(&avatar.posed, camera, settings),
             Inner::Fused(f) => f.renderer.prepare_forward(&avatar.posed, camera, settings),
             Inner::ThreePass(t) => {
-                let black = PinholeCamera { background: [0.0; 3], ..*camera };
+                let black = PinholeCamera {
+                    background: [0.0; 3],
+                    ..*camera
+                };
                 t.base_renderer.prepare_forward(&t.base, camera, settings)?;
-                t.cloth_renderer.prepare_forward(&avatar.layers[t.cloth].deformer.posed, &black, settings)?;
+                t.cloth_renderer.prepare_forward(
+                    &avatar.layers[t.cloth].deformer.posed,
+                    &black,
+                    settings,
+                )?;
                 if let Some(m) = &mut t.matte {
                     m.renderer.prepare_forward(&m.gaussians, &black, settings)?;
                 }
@@ -358,21 +450,40 @@ impl AvatarRenderer {
             }
             Inner::ThreePass(t) => {
                 for p in &t.base_parts {
-                    Avatar::record_move(rec, params(avatar, p.source), &t.base, p.first, p.count, false)?;
+                    Avatar::record_move(
+                        rec,
+                        params(avatar, p.source),
+                        &t.base,
+                        p.first,
+                        p.count,
+                        false,
+                    )?;
                 }
                 for p in t.matte.iter().flat_map(|m| &m.parts) {
-                    let dst = t.matte.as_ref().expect("parts come from the matte").gaussians.all();
+                    let dst = t
+                        .matte
+                        .as_ref()
+                        .expect("parts come from the matte")
+                        .gaussians
+                        .all();
                     let src = params(avatar, p.source).all();
                     for k in 0..4 {
                         let per = u64::from(GEOMETRY_FLOATS[k]);
-                        rec.copy_region(src[k], 0, dst[k], 4 * per * u64::from(p.first), 4 * per * u64::from(p.count));
+                        rec.copy_region(
+                            src[k],
+                            0,
+                            dst[k],
+                            4 * per * u64::from(p.first),
+                            4 * per * u64::from(p.count),
+                        );
                     }
                 }
                 // Each render timed under its pass (interleaved passes counted once each).
                 rec.set_scope("render.base");
                 t.base_renderer.record_forward(rec, &t.base)?;
                 rec.set_scope("render.cloth");
-                t.cloth_renderer.record_forward(rec, &avatar.layers[t.cloth].deformer.posed)?;
+                t.cloth_renderer
+                    .record_forward(rec, &avatar.layers[t.cloth].deformer.posed)?;
                 if let Some(m) = &t.matte {
                     rec.set_scope("render.matte");
                     m.renderer.record_forward(rec, &m.gaussians)?;
@@ -394,15 +505,33 @@ impl AvatarRenderer {
                 (rgb, Coverage::Alpha(alpha), r.width() * r.height())
             }
             Inner::Fused(f) => {
-                let layer = f.renderer.outputs().matte_rgb.expect("the fused renderer always renders its matte");
-                (&f.image, Coverage::Two { base: (f.renderer.transmittances(), 3, true), layer: (layer, 3) }, f.pixels)
+                let layer = f
+                    .renderer
+                    .outputs()
+                    .matte_rgb
+                    .expect("the fused renderer always renders its matte");
+                (
+                    &f.image,
+                    Coverage::Two {
+                        base: (f.renderer.transmittances(), 3, true),
+                        layer: (layer, 3),
+                    },
+                    f.pixels,
+                )
             }
             Inner::ThreePass(t) => {
                 let layer = match &t.matte {
                     Some(m) => (m.renderer.outputs().0, 3),
                     None => (t.cloth_renderer.outputs().1, 1),
                 };
-                (&t.image, Coverage::Two { base: (t.base_renderer.outputs().1, 1, false), layer }, t.pixels)
+                (
+                    &t.image,
+                    Coverage::Two {
+                        base: (t.base_renderer.outputs().1, 1, false),
+                        layer,
+                    },
+                    t.pixels,
+                )
             }
         };
         record_to_rgba(rec, rgb, coverage, out, pixels)
@@ -416,7 +545,10 @@ impl AvatarRenderer {
             Inner::Single(r) => vec![r.finish_forward()?],
             Inner::Fused(f) => vec![f.renderer.finish_forward()?],
             Inner::ThreePass(t) => {
-                let mut stats = vec![t.base_renderer.finish_forward()?, t.cloth_renderer.finish_forward()?];
+                let mut stats = vec![
+                    t.base_renderer.finish_forward()?,
+                    t.cloth_renderer.finish_forward()?,
+                ];
                 if let Some(m) = &mut t.matte {
                     stats.push(m.renderer.finish_forward()?);
                 }
@@ -484,9 +616,21 @@ impl AvatarRenderer {
     /// [`record_scatter`](Self::record_scatter) moves the gradients into every layer.
     /// `zeros` holds at least one zero float per pixel.
     #[allow(clippy::too_many_arguments)]
-    pub fn backward(&mut self, ctx: &Context, avatar: &Avatar, grad_rgb: &Buffer, zeros: &Buffer, cloth_losses: Option<&mut ClothLosses>, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+    pub fn backward(
+        &mut self,
+        ctx: &Context,
+        avatar: &Avatar,
+        grad_rgb: &Buffer,
+        zeros: &Buffer,
+        cloth_losses: Option<&mut ClothLosses>,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
         if self.saved.is_empty() {
-            return Err(EngineError::StaleForward { op: "avatar backward", problem: "no forward pass to back-propagate through".into() });
+            return Err(EngineError::StaleForward {
+                op: "avatar backward",
+                problem: "no forward pass to back-propagate through".into(),
+            });
         }
         self.prepare_backward(avatar)?;
         {
@@ -494,7 +638,9 @@ impl AvatarRenderer {
             self.record_backward(&mut rec, avatar, grad_rgb, zeros, cloth_losses.as_deref())?;
             rec.submit_and_wait()?;
         }
-        if let (Inner::Single(_), Some(c), Some(cloth)) = (&self.inner, cloth_losses, avatar.cloth()) {
+        if let (Inner::Single(_), Some(c), Some(cloth)) =
+            (&self.inner, cloth_losses, avatar.cloth())
+        {
             c.mask_pass(ctx, cloth, camera, settings)?;
         }
         Ok(())
@@ -523,31 +669,96 @@ impl AvatarRenderer {
     /// where the compositor renders the cloth alone, and every render's backward.
     /// Without compositing the mask loss needs a render of its own
     /// (`ClothLosses::record_mask_pass`).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar, grad_rgb: &'a Buffer, zeros: &'a Buffer, cloth_losses: Option<&'a ClothLosses>) -> Result<()> {
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        avatar: &'a Avatar,
+        grad_rgb: &'a Buffer,
+        zeros: &'a Buffer,
+        cloth_losses: Option<&'a ClothLosses>,
+    ) -> Result<()> {
         let accumulation = avatar.accumulation();
         match &self.inner {
             Inner::Fused(f) => {
-                let grads = CompositeGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: Some(&f.grad_matte) };
+                let grads = CompositeGrads {
+                    base_rgb: &f.grad_base,
+                    over_rgb: &f.grad_over,
+                    over_alpha: &f.grad_over_alpha,
+                    matte_rgb: Some(&f.grad_matte),
+                };
                 record_composite_backward(rec, grad_rgb, f.renderer.outputs(), grads, f.pixels)?;
                 if let Some(c) = cloth_losses {
                     c.record_mask_grad(rec, f.renderer.outputs().over_alpha, &f.grad_over_alpha)?;
                 }
-                let upstream = FusedGrads { base_rgb: &f.grad_base, over_rgb: &f.grad_over, over_alpha: &f.grad_over_alpha, matte_rgb: &f.grad_matte };
+                let upstream = FusedGrads {
+                    base_rgb: &f.grad_base,
+                    over_rgb: &f.grad_over,
+                    over_alpha: &f.grad_over_alpha,
+                    matte_rgb: &f.grad_matte,
+                };
                 let saved = f.renderer.splat_renderer().recorded_forward();
-                f.renderer.record_backward(rec, &saved, &avatar.posed, upstream, &avatar.posed_grads, accumulation)
+                f.renderer.record_backward(
+                    rec,
+                    &saved,
+                    &avatar.posed,
+                    upstream,
+                    &avatar.posed_grads,
+                    accumulation,
+                )
             }
-            Inner::Single(r) => r.record_backward(rec, &r.recorded_forward(), &avatar.posed, grad_rgb, zeros, zeros, &avatar.posed_grads, accumulation),
+            Inner::Single(r) => r.record_backward(
+                rec,
+                &r.recorded_forward(),
+                &avatar.posed,
+                grad_rgb,
+                zeros,
+                zeros,
+                &avatar.posed_grads,
+                accumulation,
+            ),
             Inner::ThreePass(t) => {
-                let grads = CompositeGrads { base_rgb: &t.grad_base, over_rgb: &t.grad_over, over_alpha: &t.grad_over_alpha, matte_rgb: t.matte.as_ref().map(|m| &m.grad_image) };
+                let grads = CompositeGrads {
+                    base_rgb: &t.grad_base,
+                    over_rgb: &t.grad_over,
+                    over_alpha: &t.grad_over_alpha,
+                    matte_rgb: t.matte.as_ref().map(|m| &m.grad_image),
+                };
                 record_composite_backward(rec, grad_rgb, t.inputs(), grads, t.pixels)?;
                 if let Some(c) = cloth_losses {
                     c.record_mask_grad(rec, t.cloth_renderer.outputs().1, &t.grad_over_alpha)?;
                 }
-                t.base_renderer.record_backward(rec, &t.base_renderer.recorded_forward(), &t.base, &t.grad_base, zeros, zeros, &t.base_grads, accumulation)?;
+                t.base_renderer.record_backward(
+                    rec,
+                    &t.base_renderer.recorded_forward(),
+                    &t.base,
+                    &t.grad_base,
+                    zeros,
+                    zeros,
+                    &t.base_grads,
+                    accumulation,
+                )?;
                 let cloth = &avatar.layers[t.cloth];
-                t.cloth_renderer.record_backward(rec, &t.cloth_renderer.recorded_forward(), &cloth.deformer.posed, &t.grad_over, &t.grad_over_alpha, zeros, &cloth.deformer.posed_grads, accumulation)?;
+                t.cloth_renderer.record_backward(
+                    rec,
+                    &t.cloth_renderer.recorded_forward(),
+                    &cloth.deformer.posed,
+                    &t.grad_over,
+                    &t.grad_over_alpha,
+                    zeros,
+                    &cloth.deformer.posed_grads,
+                    accumulation,
+                )?;
                 if let Some(m) = &t.matte {
-                    m.renderer.record_backward(rec, &m.renderer.recorded_forward(), &m.gaussians, &m.grad_image, zeros, zeros, &m.grads, accumulation)?;
+                    m.renderer.record_backward(
+                        rec,
+                        &m.renderer.recorded_forward(),
+                        &m.gaussians,
+                        &m.grad_image,
+                        zeros,
+                        zeros,
+                        &m.grads,
+                        accumulation,
+                    )?;
                 }
                 Ok(())
             }
@@ -557,10 +768,17 @@ impl AvatarRenderer {
     /// Records `counter[0] += 1` for each render of the frame recorded last whose
     /// intersections outgrew its buffers (in the same recording, after the frame): a
     /// guard for the work recorded after it (Adam skips the step).
-    pub fn record_overflow_flags<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+    pub fn record_overflow_flags<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        counter: &'a Buffer,
+    ) -> Result<()> {
         match &self.inner {
             Inner::Single(r) => r.record_overflow_flag(rec, counter),
-            Inner::Fused(f) => f.renderer.splat_renderer().record_overflow_flag(rec, counter),
+            Inner::Fused(f) => f
+                .renderer
+                .splat_renderer()
+                .record_overflow_flag(rec, counter),
             Inner::ThreePass(t) => {
                 t.base_renderer.record_overflow_flag(rec, counter)?;
                 t.cloth_renderer.record_overflow_flag(rec, counter)?;
@@ -578,16 +796,34 @@ impl AvatarRenderer {
     /// matte's gradients are left out); one pass for everything without compositing;
     /// the fused walk's per-splat gradients (there the matte's are summed in: its walk
     /// does not keep them apart).
-    pub fn record_screen_stats<'a>(&'a self, rec: &mut Recording<'a>, avatar: &'a Avatar) -> Result<()> {
+    pub fn record_screen_stats<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        avatar: &'a Avatar,
+    ) -> Result<()> {
         let r = match &self.inner {
             Inner::Single(r) => &**r,
             Inner::Fused(f) => f.renderer.splat_renderer(),
             Inner::ThreePass(t) => {
                 for p in &t.base_parts {
-                    record_screen_stats(rec, &t.base_renderer, p.first, p.count, screen_stats(avatar, p.source), 0)?;
+                    record_screen_stats(
+                        rec,
+                        &t.base_renderer,
+                        p.first,
+                        p.count,
+                        screen_stats(avatar, p.source),
+                        0,
+                    )?;
                 }
                 let cloth = &avatar.layers[t.cloth];
-                return record_screen_stats(rec, &t.cloth_renderer, 0, cloth.count, &cloth.screen_stats, 0);
+                return record_screen_stats(
+                    rec,
+                    &t.cloth_renderer,
+                    0,
+                    cloth.count,
+                    &cloth.screen_stats,
+                    0,
+                );
             }
         };
         let mut first = 0;
@@ -612,9 +848,20 @@ impl AvatarRenderer {
             Inner::ThreePass(t) => t,
         };
         for p in &t.base_parts {
-            Avatar::record_move(rec, grads(avatar, p.source), &t.base_grads, p.first, p.count, true)?;
+            Avatar::record_move(
+                rec,
+                grads(avatar, p.source),
+                &t.base_grads,
+                p.first,
+                p.count,
+                true,
+            )?;
         }
-        for (m, p) in t.matte.iter().flat_map(|m| m.parts.iter().map(move |p| (m, p))) {
+        for (m, p) in t
+            .matte
+            .iter()
+            .flat_map(|m| m.parts.iter().map(move |p| (m, p)))
+        {
             let (src, dst) = (m.grads.all(), grads(avatar, p.source).all());
             for k in 0..4 {
                 let per = GEOMETRY_FLOATS[k];
@@ -627,6 +874,11 @@ impl AvatarRenderer {
 
 impl ThreePass {
     fn inputs(&self) -> CompositeInputs<'_> {
-        CompositeInputs { base_rgb: self.base_renderer.outputs().0, over_rgb: self.cloth_renderer.outputs().0, over_alpha: self.cloth_renderer.outputs().1, matte_rgb: self.matte.as_ref().map(|m| m.renderer.outputs().0) }
+        CompositeInputs {
+            base_rgb: self.base_renderer.outputs().0,
+            over_rgb: self.cloth_renderer.outputs().0,
+            over_alpha: self.cloth_renderer.outputs().1,
+            matte_rgb: self.matte.as_ref().map(|m| m.renderer.outputs().0),
+        }
     }
 }

@@ -161,7 +161,12 @@ impl TrainConfig {
     /// thirds of its GPU time, `drape train --profile`), hence the narrow decoders and
     /// the decimated meshes (docs/performance.md has the measurements).
     pub fn quick() -> Self {
-        let human = LayerConfig { triplane_resolution: 64, triplane_channels: 16, decoder_width: 64, ..LayerConfig::default() };
+        let human = LayerConfig {
+            triplane_resolution: 64,
+            triplane_channels: 16,
+            decoder_width: 64,
+            ..LayerConfig::default()
+        };
         Self {
             preset: Preset::Quick,
             seed: 1,
@@ -176,7 +181,10 @@ impl TrainConfig {
                 cloth_fit: GarmentFit::Tight,
                 // SH degree 0 for the scene too: 3DGS raises its scene's degree one step
                 // every 1,000 iterations, so within 400 it would still be at 0.
-                scene: SceneConfig { sh_degree: 0, ..SceneConfig::default() },
+                scene: SceneConfig {
+                    sh_degree: 0,
+                    ..SceneConfig::default()
+                },
                 compositing: paper_compositing(),
             },
             losses: LossesConfig {
@@ -206,7 +214,13 @@ impl TrainConfig {
             // and 200 of 400, at most 4,096 per layer, to stay near 10 minutes (three
             // times, to 8,192, takes 860 s); no size prunes within the run (3DGS starts
             // them at 3,000 steps).
-            densify: DensifyConfig { every: 100, from: 100, until: 200, max_gaussians: 4096, ..DensifyConfig::default() },
+            densify: DensifyConfig {
+                every: 100,
+                from: 100,
+                until: 200,
+                max_gaussians: 4096,
+                ..DensifyConfig::default()
+            },
         }
     }
 
@@ -217,8 +231,22 @@ impl TrainConfig {
         let quick = Self::quick();
         Self {
             preset: Preset::Paper,
-            layers: LayersConfig { subdivision: 2, decimate: 1, body: LayerConfig::default(), cloth: LayerConfig::default(), scene: SceneConfig::default(), ..quick.layers },
-            schedule: ScheduleConfig { steps: 20_000, fit_steps: 3000, fit_lr: 1e-3, log_every: 100, checkpoint_every: 1000, ..quick.schedule },
+            layers: LayersConfig {
+                subdivision: 2,
+                decimate: 1,
+                body: LayerConfig::default(),
+                cloth: LayerConfig::default(),
+                scene: SceneConfig::default(),
+                ..quick.layers
+            },
+            schedule: ScheduleConfig {
+                steps: 20_000,
+                fit_steps: 3000,
+                fit_lr: 1e-3,
+                log_every: 100,
+                checkpoint_every: 1000,
+                ..quick.schedule
+            },
             densify: DensifyConfig::default(),
             ..quick
         }
@@ -238,10 +266,21 @@ impl TrainConfig {
     /// grouped layout (`layers.body.triplane_resolution`, `layers.compositing`) and, for
     /// a choice, the values it takes; a key given twice in one table is refused.
     pub fn from_deserializer<'de, D: serde::Deserializer<'de>>(d: D) -> crate::Result<Self> {
-        let keyed = |key: String, problem: String| TrainerError::config(if key == "." { "(top level)".to_string() } else { key }, problem);
-        let StrictValue(mut json) = serde_path_to_error::deserialize(d).map_err(|e| keyed(e.path().to_string(), e.into_inner().to_string()))?;
+        let keyed = |key: String, problem: String| {
+            TrainerError::config(
+                if key == "." {
+                    "(top level)".to_string()
+                } else {
+                    key
+                },
+                problem,
+            )
+        };
+        let StrictValue(mut json) = serde_path_to_error::deserialize(d)
+            .map_err(|e| keyed(e.path().to_string(), e.into_inner().to_string()))?;
         migrate_flat_layout(&mut json)?;
-        let c: Self = serde_path_to_error::deserialize(json).map_err(|e| keyed(e.path().to_string(), e.into_inner().to_string()))?;
+        let c: Self = serde_path_to_error::deserialize(json)
+            .map_err(|e| keyed(e.path().to_string(), e.into_inner().to_string()))?;
         c.validate()?;
         Ok(c)
     }
@@ -254,12 +293,18 @@ impl TrainConfig {
     /// name the file and the key in the grouped layout.
     pub fn with_toml(&self, text: &str, file: &Path) -> crate::Result<Self> {
         let in_file = |e: TrainerError| match e {
-            TrainerError::Config { key, problem } => TrainerError::Config { key: format!("{}: {key}", file.display()), problem },
+            TrainerError::Config { key, problem } => TrainerError::Config {
+                key: format!("{}: {key}", file.display()),
+                problem,
+            },
             other => other,
         };
-        let mut over: serde_json::Value = toml::from_str(text).map_err(|e| TrainerError::config(file.display().to_string(), e.message().to_string()))?;
+        let mut over: serde_json::Value = toml::from_str(text).map_err(|e| {
+            TrainerError::config(file.display().to_string(), e.message().to_string())
+        })?;
         migrate_flat_layout(&mut over).map_err(in_file)?;
-        let mut base = serde_json::to_value(self).map_err(|e| TrainerError::config("(top level)", e.to_string()))?;
+        let mut base = serde_json::to_value(self)
+            .map_err(|e| TrainerError::config("(top level)", e.to_string()))?;
         merge_json(&mut base, &over, "").map_err(in_file)?;
         Self::from_deserializer(base).map_err(in_file)
     }
@@ -270,15 +315,33 @@ impl TrainConfig {
         let (layers, losses, schedule) = (&self.layers, &self.losses, &self.schedule);
         // Each triplane is 3 x resolution² x channels f32 values, with Adam's two moments
         // beside it: bounded so that a typo cannot ask for terabytes.
-        for (layer, t) in [("layers.body", &layers.body), ("layers.cloth", &layers.cloth)] {
+        for (layer, t) in [
+            ("layers.body", &layers.body),
+            ("layers.cloth", &layers.cloth),
+        ] {
             if !(2..=MAX_TRIPLANE_RESOLUTION).contains(&t.triplane_resolution) {
-                return bad(&format!("{layer}.triplane_resolution"), format!("must be 2-{MAX_TRIPLANE_RESOLUTION} (HUGS: 128), got {}", t.triplane_resolution));
+                return bad(
+                    &format!("{layer}.triplane_resolution"),
+                    format!(
+                        "must be 2-{MAX_TRIPLANE_RESOLUTION} (HUGS: 128), got {}",
+                        t.triplane_resolution
+                    ),
+                );
             }
             if !(1..=MAX_TRIPLANE_CHANNELS).contains(&t.triplane_channels) {
-                return bad(&format!("{layer}.triplane_channels"), format!("must be 1-{MAX_TRIPLANE_CHANNELS} (HUGS: 32), got {}", t.triplane_channels));
+                return bad(
+                    &format!("{layer}.triplane_channels"),
+                    format!(
+                        "must be 1-{MAX_TRIPLANE_CHANNELS} (HUGS: 32), got {}",
+                        t.triplane_channels
+                    ),
+                );
             }
         }
-        for (name, v, max) in [("schedule.steps", schedule.steps, MAX_STEPS), ("schedule.fit_steps", schedule.fit_steps, MAX_STEPS)] {
+        for (name, v, max) in [
+            ("schedule.steps", schedule.steps, MAX_STEPS),
+            ("schedule.fit_steps", schedule.fit_steps, MAX_STEPS),
+        ] {
             if v > max {
                 return bad(name, format!("must be at most {max}, got {v}"));
             }
@@ -303,7 +366,10 @@ impl TrainConfig {
             ("schedule.lr_pose", schedule.lr_pose),
             ("schedule.lr_translation", schedule.lr_translation),
             ("layers.scene.lr_position", layers.scene.lr_position),
-            ("layers.scene.lr_position_final", layers.scene.lr_position_final),
+            (
+                "layers.scene.lr_position_final",
+                layers.scene.lr_position_final,
+            ),
             ("layers.scene.lr_rotation", layers.scene.lr_rotation),
             ("layers.scene.lr_scale", layers.scene.lr_scale),
             ("layers.scene.lr_opacity", layers.scene.lr_opacity),
@@ -316,29 +382,52 @@ impl TrainConfig {
         }
         self.densify.validate()?;
         if !(losses.gm_sigma.is_finite() && losses.gm_sigma > 0.0) {
-            return bad("losses.gm_sigma", format!("must be a finite length > 0, got {}", losses.gm_sigma));
+            return bad(
+                "losses.gm_sigma",
+                format!("must be a finite length > 0, got {}", losses.gm_sigma),
+            );
         }
         if layers.decimate == 0 {
             return bad("layers.decimate", "must be >= 1".into());
         }
         if schedule.log_every == 0 {
-            return bad("schedule.log_every", "must be >= 1 (steps between log lines)".into());
+            return bad(
+                "schedule.log_every",
+                "must be >= 1 (steps between log lines)".into(),
+            );
         }
         if layers.scene.max_points == 0 {
             return bad("layers.scene.max_points", "must be >= 1".into());
         }
-        if losses.lpips_weights.as_ref().is_some_and(|p| p.as_os_str().is_empty()) {
-            return bad("losses.lpips_weights", "is empty; leave the key out to train without LPIPS".into());
+        if losses
+            .lpips_weights
+            .as_ref()
+            .is_some_and(|p| p.as_os_str().is_empty())
+        {
+            return bad(
+                "losses.lpips_weights",
+                "is empty; leave the key out to train without LPIPS".into(),
+            );
         }
         if layers.subdivision > 2 {
-            return bad("layers.subdivision", format!("must be 0, 1 or 2, got {}", layers.subdivision));
+            return bad(
+                "layers.subdivision",
+                format!("must be 0, 1 or 2, got {}", layers.subdivision),
+            );
         }
-        for (name, degree) in [("layers.body.sh_degree", layers.body.sh_degree), ("layers.cloth.sh_degree", layers.cloth.sh_degree), ("layers.scene.sh_degree", layers.scene.sh_degree)] {
+        for (name, degree) in [
+            ("layers.body.sh_degree", layers.body.sh_degree),
+            ("layers.cloth.sh_degree", layers.cloth.sh_degree),
+            ("layers.scene.sh_degree", layers.scene.sh_degree),
+        ] {
             if degree > 3 {
                 return bad(name, format!("must be 0-3, got {degree}"));
             }
         }
-        for (name, w) in [("layers.body.decoder_width", layers.body.decoder_width), ("layers.cloth.decoder_width", layers.cloth.decoder_width)] {
+        for (name, w) in [
+            ("layers.body.decoder_width", layers.body.decoder_width),
+            ("layers.cloth.decoder_width", layers.cloth.decoder_width),
+        ] {
             if !(1..=1024).contains(&w) {
                 return bad(name, format!("must be 1-1024 (HUGS: 128), got {w}"));
             }
@@ -391,7 +480,9 @@ pub const FLAT_KEYS: [(&str, &str, &str); 27] = [
 pub fn migrate_flat_layout(config: &mut serde_json::Value) -> crate::Result<()> {
     use serde_json::Value;
     // Not a table: deserialising it names the problem.
-    let Some(top) = config.as_object_mut() else { return Ok(()) };
+    let Some(top) = config.as_object_mut() else {
+        return Ok(());
+    };
     for (flat, group, key) in FLAT_KEYS {
         match top.get(flat) {
             None => continue,
@@ -400,9 +491,14 @@ pub fn migrate_flat_layout(config: &mut serde_json::Value) -> crate::Result<()> 
             Some(_) => {}
         }
         let value = top.remove(flat).expect("the key is there");
-        let slot = top.entry(group).or_insert_with(|| Value::Object(serde_json::Map::new()));
+        let slot = top
+            .entry(group)
+            .or_insert_with(|| Value::Object(serde_json::Map::new()));
         let Some(table) = slot.as_object_mut() else {
-            return Err(TrainerError::config(group, format!("must be a table (it holds `{key}`, given as `{flat}` in the flat layout)")));
+            return Err(TrainerError::config(
+                group,
+                format!("must be a table (it holds `{key}`, given as `{flat}` in the flat layout)"),
+            ));
         };
         if table.contains_key(key) {
             return Err(TrainerError::config(format!("{group}.{key}"), format!("is given twice: as `{group}.{key}` and as `{flat}` (the flat layout before the groups)")));
@@ -446,7 +542,9 @@ impl<'de> serde::de::Visitor<'de> for StrictVisitor {
     }
 
     fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Self::Value, E> {
-        serde_json::Number::from_f64(v).map(serde_json::Value::Number).ok_or_else(|| E::custom(format!("{v} is not a finite number")))
+        serde_json::Number::from_f64(v)
+            .map(serde_json::Value::Number)
+            .ok_or_else(|| E::custom(format!("{v} is not a finite number")))
     }
 
     fn visit_str<E>(self, v: &str) -> Result<Self::Value, E> {
@@ -494,15 +592,28 @@ pub const MAX_STEPS: u32 = 10_000_000;
 
 /// Lays `over` onto `base` (JSON values), naming the first key `base` lacks or whose
 /// type `over` changes. A `null` in `base` (an unset option) takes any value.
-fn merge_json(base: &mut serde_json::Value, over: &serde_json::Value, path: &str) -> crate::Result<()> {
+fn merge_json(
+    base: &mut serde_json::Value,
+    over: &serde_json::Value,
+    path: &str,
+) -> crate::Result<()> {
     use serde_json::Value;
     match (base, over) {
         (Value::Object(b), Value::Object(o)) => {
             for (k, v) in o {
-                let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                let key = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
                 match b.get_mut(k) {
                     Some(slot) => merge_json(slot, v, &key)?,
-                    None => return Err(TrainerError::config(key, "unknown key (a run's config.json lists every key)")),
+                    None => {
+                        return Err(TrainerError::config(
+                            key,
+                            "unknown key (a run's config.json lists every key)",
+                        ))
+                    }
                 }
             }
             Ok(())
@@ -523,7 +634,10 @@ fn merge_json(base: &mut serde_json::Value, over: &serde_json::Value, path: &str
             // An integer may stand for a float, a float for an integer only if whole
             // (serde then says whether the number fits the field).
             if kind(b) != kind(o) {
-                return Err(TrainerError::config(path, format!("must be {}, got {}", kind(b), kind(o))));
+                return Err(TrainerError::config(
+                    path,
+                    format!("must be {}, got {}", kind(b), kind(o)),
+                ));
             }
             *b = o.clone();
             Ok(())
@@ -555,7 +669,10 @@ impl Preset {
         match name {
             "quick" => Ok(Self::Quick),
             "paper" => Ok(Self::Paper),
-            other => Err(TrainerError::config("preset", format!("unknown preset '{other}' (quick, paper)"))),
+            other => Err(TrainerError::config(
+                "preset",
+                format!("unknown preset '{other}' (quick, paper)"),
+            )),
         }
     }
 }
@@ -573,7 +690,10 @@ impl TrainConfig {
         let text = std::fs::read_to_string(&path).map_err(|e| TrainerError::io(&path, e))?;
         let mut json = serde_json::Deserializer::from_str(&text);
         Self::from_deserializer(&mut json).map_err(|e| match e {
-            TrainerError::Config { key, problem } => TrainerError::Config { key: format!("{}: {key}", path.display()), problem },
+            TrainerError::Config { key, problem } => TrainerError::Config {
+                key: format!("{}: {key}", path.display()),
+                problem,
+            },
             other => other,
         })
     }

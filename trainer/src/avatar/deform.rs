@@ -93,24 +93,52 @@ impl Deformer {
     /// The buffers of the layer `name` of `count` Gaussians whose triplane feature is
     /// `feature_width` floats, posed at SH degree `sh_degree`; with `pose_offsets`, the
     /// pose blend's offsets too.
-    pub fn new(ctx: &Context, name: &str, count: usize, feature_width: usize, sh_degree: u32, pose_offsets: bool) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        name: &str,
+        count: usize,
+        feature_width: usize,
+        sh_degree: u32,
+        pose_offsets: bool,
+    ) -> Result<Self> {
         let n = count;
         Ok(Self {
             count: n as u32,
             // Rewritten every frame (`Avatar::set_frame`): host-written memory.
-            transforms: ctx.create_buffer(&format!("{name} transforms"), BufferDesc::host_written(NUM_JOINTS as u64 * 12 * 4))?,
-            pose_features: ctx.create_buffer(&format!("{name} pose features"), BufferDesc::host_written(deform::POSE_FEATURES as u64 * 4))?,
+            transforms: ctx.create_buffer(
+                &format!("{name} transforms"),
+                BufferDesc::host_written(NUM_JOINTS as u64 * 12 * 4),
+            )?,
+            pose_features: ctx.create_buffer(
+                &format!("{name} pose features"),
+                BufferDesc::host_written(deform::POSE_FEATURES as u64 * 4),
+            )?,
             posed: GaussianBuffers::new(ctx, &format!("{name} posed"), n, sh_degree)?,
             posed_grads: GaussianBuffers::new(ctx, &format!("{name} posed grads"), n, sh_degree)?,
             features: f32_buffer(ctx, &format!("{name} features"), feature_width * n)?,
             grad_features: f32_buffer(ctx, &format!("{name} feature grads"), feature_width * n)?,
             grad_points: f32_buffer(ctx, &format!("{name} triplane point grads"), 3 * n)?,
             lbs_grad: f32_buffer(ctx, &format!("{name} cloth-LBS gradient"), NUM_JOINTS * n)?,
-            transform_terms: f32_buffer(ctx, &format!("{name} transform gradient terms"), deform::transform_terms_len(n as u32))?,
+            transform_terms: f32_buffer(
+                ctx,
+                &format!("{name} transform gradient terms"),
+                deform::transform_terms_len(n as u32),
+            )?,
             // Read by the host every step (the pose gradient): the kernel writes it into
             // host-visible memory, so reading it needs no copy submission.
-            transform_partials: ctx.create_buffer(&format!("{name} transform gradient partials"), BufferDesc::readback(4 * deform::transform_partials_len(n as u32).max(1) as u64))?,
-            blended_offsets: if pose_offsets { Some(f32_buffer(ctx, &format!("{name} pose-blended offsets"), 3 * n)?) } else { None },
+            transform_partials: ctx.create_buffer(
+                &format!("{name} transform gradient partials"),
+                BufferDesc::readback(4 * deform::transform_partials_len(n as u32).max(1) as u64),
+            )?,
+            blended_offsets: if pose_offsets {
+                Some(f32_buffer(
+                    ctx,
+                    &format!("{name} pose-blended offsets"),
+                    3 * n,
+                )?)
+            } else {
+                None
+            },
             pose_blend_on: true,
         })
     }
@@ -145,19 +173,47 @@ impl Deformer {
     }
 
     /// Records the forward pass into `posed` (the transforms must be written).
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, p: LayerParams<'a>, log_scale_offset: f32) -> Result<()> {
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: LayerParams<'a>,
+        log_scale_offset: f32,
+    ) -> Result<()> {
         let n = self.count;
         p.triplane.record_forward(rec, p.means, &self.features, n)?;
         p.appearance.record_forward(rec, &self.features, n)?;
         p.geometry.record_forward(rec, &self.features, n)?;
         p.deformation.record_forward(rec, &self.features, n)?;
         if let Some(blended) = self.pose_blended() {
-            deform::record_pose_blend_forward(rec, p.deformation.head_output(1), &self.pose_features, p.geometry.head_output(0), blended, n)?;
+            deform::record_pose_blend_forward(
+                rec,
+                p.deformation.head_output(1),
+                &self.pose_features,
+                p.geometry.head_output(0),
+                blended,
+                n,
+            )?;
         }
         let inputs = self.deform_inputs(&p);
-        deform::record_forward(rec, &inputs, &self.posed.means, &self.posed.quats, &self.posed.log_scales, n, log_scale_offset)?;
-        rec.copy(p.appearance.head_output(0), &self.posed.opacity_logits, u64::from(n) * 4);
-        rec.copy(p.appearance.head_output(1), &self.posed.sh, self.posed.sh.size.min(p.appearance.head_output(1).size));
+        deform::record_forward(
+            rec,
+            &inputs,
+            &self.posed.means,
+            &self.posed.quats,
+            &self.posed.log_scales,
+            n,
+            log_scale_offset,
+        )?;
+        rec.copy(
+            p.appearance.head_output(0),
+            &self.posed.opacity_logits,
+            u64::from(n) * 4,
+        );
+        rec.copy(
+            p.appearance.head_output(1),
+            &self.posed.sh,
+            self.posed.sh.size.min(p.appearance.head_output(1).size),
+        );
         Ok(())
     }
 
@@ -166,11 +222,28 @@ impl Deformer {
     /// cloth-LBS loss; 0 leaves it out); with `pose_gradient`, also the chunk sums of
     /// the gradient on the frame's transforms that [`read_transform_grad`](Self::read_transform_grad)
     /// reads (pose refinement; left out otherwise).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, p: LayerParams<'a>, lbs_weight: f32, pose_gradient: bool) -> Result<()> {
-        assert!(self.pose_blend_on, "the backward of a layer rendered without its pose blend");
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: LayerParams<'a>,
+        lbs_weight: f32,
+        pose_gradient: bool,
+    ) -> Result<()> {
+        assert!(
+            self.pose_blend_on,
+            "the backward of a layer rendered without its pose blend"
+        );
         let n = self.count;
-        rec.copy(&self.posed_grads.opacity_logits, p.appearance.head_grad(0), u64::from(n) * 4);
-        rec.copy(&self.posed_grads.sh, p.appearance.head_grad(1), self.posed_grads.sh.size.min(p.appearance.head_grad(1).size));
+        rec.copy(
+            &self.posed_grads.opacity_logits,
+            p.appearance.head_grad(0),
+            u64::from(n) * 4,
+        );
+        rec.copy(
+            &self.posed_grads.sh,
+            p.appearance.head_grad(1),
+            self.posed_grads.sh.size.min(p.appearance.head_grad(1).size),
+        );
         let inputs = self.deform_inputs(&p);
         let grads = DeformGrads {
             means: p.grad_means,
@@ -180,14 +253,34 @@ impl Deformer {
             weights: p.deformation.head_grad(0),
             transform_terms: &self.transform_terms,
         };
-        deform::record_backward(rec, &inputs, &self.posed_grads.means, &self.posed_grads.quats, &self.posed_grads.log_scales, &grads, n)?;
+        deform::record_backward(
+            rec,
+            &inputs,
+            &self.posed_grads.means,
+            &self.posed_grads.quats,
+            &self.posed_grads.log_scales,
+            &grads,
+            n,
+        )?;
         if self.blended_offsets.is_some() {
             // The offsets' gradient (in the geometry head: the blend adds to it) drives
             // the basis's.
-            deform::record_pose_blend_backward(rec, &self.pose_features, p.geometry.head_grad(0), p.deformation.head_grad(1), n)?;
+            deform::record_pose_blend_backward(
+                rec,
+                &self.pose_features,
+                p.geometry.head_grad(0),
+                p.deformation.head_grad(1),
+                n,
+            )?;
         }
         if pose_gradient {
-            deform::record_transform_grad(rec, p.deformation.head_output(0), &self.transform_terms, &self.transform_partials, n)?;
+            deform::record_transform_grad(
+                rec,
+                p.deformation.head_output(0),
+                &self.transform_terms,
+                &self.transform_partials,
+                n,
+            )?;
         }
         if lbs_weight > 0.0 {
             self.record_lbs_term(rec, &p, lbs_weight)?;
@@ -197,9 +290,18 @@ impl Deformer {
 
     /// The cloth-LBS term `lbs_weight · mean((W - W_gt)²)`: its gradient added to the
     /// deformation head's, its squared errors into `weight_sq_error`.
-    fn record_lbs_term<'a>(&'a self, rec: &mut Recording<'a>, p: &LayerParams<'a>, lbs_weight: f32) -> Result<()> {
+    fn record_lbs_term<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: &LayerParams<'a>,
+        lbs_weight: f32,
+    ) -> Result<()> {
         let len = NUM_JOINTS as u32 * self.count;
-        let lp = LossParams { len, scale: lbs_weight / len.max(1) as f32, _pad: [0; 2] };
+        let lp = LossParams {
+            len,
+            scale: lbs_weight / len.max(1) as f32,
+            _pad: [0; 2],
+        };
         rec.dispatch(
             "loss.cloth_lbs",
             kernels::train::MseGrad {
@@ -211,46 +313,109 @@ impl Deformer {
             &lp,
             flat_grid(len),
         )?;
-        rec.dispatch("loss.cloth_lbs_add", kernels::train::AddInto { src: self.lbs_grad.read(), dst: p.deformation.head_grad(0).write() }, &lp, flat_grid(len))
+        rec.dispatch(
+            "loss.cloth_lbs_add",
+            kernels::train::AddInto {
+                src: self.lbs_grad.read(),
+                dst: p.deformation.head_grad(0).write(),
+            },
+            &lp,
+            flat_grid(len),
+        )
     }
 
     /// Decoders' and triplane's backward from the gradients in the decoders' heads;
     /// the canonical means' gradient (deformation path + triplane path) ends in
     /// `grad_means`.
-    fn record_decoder_backward<'a>(&'a self, rec: &mut Recording<'a>, p: &LayerParams<'a>) -> Result<()> {
+    fn record_decoder_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: &LayerParams<'a>,
+    ) -> Result<()> {
         let n = self.count;
         // The decoders add their input gradients into one buffer: one after another.
-        p.appearance.record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
-        p.geometry.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        p.deformation.record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
-        p.triplane.record_backward(rec, p.means, &self.grad_features, &self.grad_points, n, p.accumulation)?;
-        let lp = LossParams { len: 3 * n, scale: 1.0, _pad: [0; 2] };
-        rec.dispatch("layer.sum_mean_grads", kernels::train::AddInto { src: self.grad_points.read(), dst: p.grad_means.write() }, &lp, flat_grid(lp.len))
+        p.appearance
+            .record_backward(rec, &self.features, n, Some(&self.grad_features), false)?;
+        p.geometry
+            .record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
+        p.deformation
+            .record_backward(rec, &self.features, n, Some(&self.grad_features), true)?;
+        p.triplane.record_backward(
+            rec,
+            p.means,
+            &self.grad_features,
+            &self.grad_points,
+            n,
+            p.accumulation,
+        )?;
+        let lp = LossParams {
+            len: 3 * n,
+            scale: 1.0,
+            _pad: [0; 2],
+        };
+        rec.dispatch(
+            "layer.sum_mean_grads",
+            kernels::train::AddInto {
+                src: self.grad_points.read(),
+                dst: p.grad_means.write(),
+            },
+            &lp,
+            flat_grid(lp.len),
+        )
     }
 
     /// The skinning-weight fit's forward (`HumanLayer::fit_skinning_weights`): the
     /// triplane and the deformation decoder alone, into the deformation head.
-    pub fn record_weights_forward<'a>(&'a self, rec: &mut Recording<'a>, p: LayerParams<'a>) -> Result<()> {
-        p.triplane.record_forward(rec, p.means, &self.features, self.count)?;
-        p.deformation.record_forward(rec, &self.features, self.count)
+    pub fn record_weights_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: LayerParams<'a>,
+    ) -> Result<()> {
+        p.triplane
+            .record_forward(rec, p.means, &self.features, self.count)?;
+        p.deformation
+            .record_forward(rec, &self.features, self.count)
     }
 
     /// The fit's backward, from the gradient in the deformation head into the
     /// deformation decoder's and the triplane's parameters (the means stay).
-    pub fn record_weights_backward<'a>(&'a self, rec: &mut Recording<'a>, p: LayerParams<'a>) -> Result<()> {
-        p.deformation.record_backward(rec, &self.features, self.count, Some(&self.grad_features), false)?;
-        p.triplane.record_backward(rec, p.means, &self.grad_features, &self.grad_points, self.count, p.accumulation)
+    pub fn record_weights_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        p: LayerParams<'a>,
+    ) -> Result<()> {
+        p.deformation.record_backward(
+            rec,
+            &self.features,
+            self.count,
+            Some(&self.grad_features),
+            false,
+        )?;
+        p.triplane.record_backward(
+            rec,
+            p.means,
+            &self.grad_features,
+            &self.grad_points,
+            self.count,
+            p.accumulation,
+        )
     }
 
     /// The partial sums of `∂L/∂A` (the pose refiner's), for the non-finite guard.
     pub fn transform_partials(&self) -> (&Buffer, usize) {
-        (&self.transform_partials, deform::transform_partials_len(self.count))
+        (
+            &self.transform_partials,
+            deform::transform_partials_len(self.count),
+        )
     }
 
     /// `∂L/∂A` on the frame's 24 transforms (24 × 12, row-major 3x4) from the last
     /// backward pass.
     pub fn read_transform_grad(&mut self, ctx: &Context) -> Result<Vec<f64>> {
-        let partials = ctx.read_buffer::<f32>(&mut self.transform_partials, deform::transform_partials_len(self.count))?;
+        let partials = ctx.read_buffer::<f32>(
+            &mut self.transform_partials,
+            deform::transform_partials_len(self.count),
+        )?;
         Ok(deform::sum_transform_partials(&partials))
     }
 

@@ -38,9 +38,9 @@ use drape_engine::Context;
 use drape_shared::splat::project::{normalize_quat, quat_to_mat};
 use rand::{Rng, SeedableRng};
 
-use crate::avatar::state::{AdamState, LayerState, SceneState};
 use crate::avatar::layer::HumanLayer;
 use crate::avatar::scene::SceneLayer;
+use crate::avatar::state::{AdamState, LayerState, SceneState};
 use crate::body::model::NUM_JOINTS;
 use crate::TrainerError;
 
@@ -82,14 +82,28 @@ fn first_opacity_reset() -> u32 {
 
 impl Default for DensifyConfig {
     fn default() -> Self {
-        Self { every: 600, from: 3000, until: 15000, grad_threshold: 2e-4, min_opacity: 0.005, max_screen_radius: 20.0, size_prune_after: first_opacity_reset(), max_world_size: 0.1, percent_dense: 0.01, max_gaussians: 524_288 }
+        Self {
+            every: 600,
+            from: 3000,
+            until: 15000,
+            grad_threshold: 2e-4,
+            min_opacity: 0.005,
+            max_screen_radius: 20.0,
+            size_prune_after: first_opacity_reset(),
+            max_world_size: 0.1,
+            percent_dense: 0.01,
+            max_gaussians: 524_288,
+        }
     }
 }
 
 impl DensifyConfig {
     /// No densification (also what a config file without `densify` gets).
     pub fn off() -> Self {
-        Self { every: 0, ..Self::default() }
+        Self {
+            every: 0,
+            ..Self::default()
+        }
     }
 
     /// Whether the layers are densified once `done` steps are done.
@@ -99,17 +113,32 @@ impl DensifyConfig {
 
     /// Errors name the field.
     pub fn validate(&self) -> crate::Result<()> {
-        let rates = [("grad_threshold", self.grad_threshold), ("min_opacity", self.min_opacity), ("max_screen_radius", self.max_screen_radius), ("max_world_size", self.max_world_size), ("percent_dense", self.percent_dense)];
+        let rates = [
+            ("grad_threshold", self.grad_threshold),
+            ("min_opacity", self.min_opacity),
+            ("max_screen_radius", self.max_screen_radius),
+            ("max_world_size", self.max_world_size),
+            ("percent_dense", self.percent_dense),
+        ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(TrainerError::config(format!("densify.{name}"), format!("must be a finite number >= 0, got {v}")));
+                return Err(TrainerError::config(
+                    format!("densify.{name}"),
+                    format!("must be a finite number >= 0, got {v}"),
+                ));
             }
         }
         if self.max_gaussians == 0 {
-            return Err(TrainerError::config("densify.max_gaussians", "must be at least 1"));
+            return Err(TrainerError::config(
+                "densify.max_gaussians",
+                "must be at least 1",
+            ));
         }
         if self.every > 0 && self.from > self.until {
-            return Err(TrainerError::config("densify.from", format!("{} is after densify.until ({})", self.from, self.until)));
+            return Err(TrainerError::config(
+                "densify.from",
+                format!("{} is after densify.until ({})", self.from, self.until),
+            ));
         }
         Ok(())
     }
@@ -150,7 +179,13 @@ pub struct Summary {
 
 impl Summary {
     fn of(plan: &Plan, before: usize) -> Self {
-        Self { before, pruned: plan.pruned, cloned: plan.clone.len(), split: plan.split.len(), after: plan.count() }
+        Self {
+            before,
+            pruned: plan.pruned,
+            cloned: plan.clone.len(),
+            split: plan.split.len(),
+            after: plan.count(),
+        }
     }
 }
 
@@ -163,16 +198,35 @@ pub fn extent(means: &[f32]) -> f32 {
             c[a] += f64::from(p[a]) / n;
         }
     }
-    means.chunks_exact(3).map(|p| (0..3).map(|a| (f64::from(p[a]) - c[a]).powi(2)).sum::<f64>().sqrt()).fold(0.0, f64::max) as f32
+    means
+        .chunks_exact(3)
+        .map(|p| {
+            (0..3)
+                .map(|a| (f64::from(p[a]) - c[a]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .fold(0.0, f64::max) as f32
 }
 
 /// Decides what to do with each of a layer's Gaussians from its statistics
 /// (`SCREEN_STATS_FLOATS` per Gaussian), opacity logits and log-scales (the decoded
 /// ones for a triplane-driven layer, without the frame's global scale), the layer's
 /// extent (for `percent_dense`) and its world-size limit (None: no size prunes yet).
-pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f32, world_limit: Option<f32>, c: &DensifyConfig) -> Plan {
+pub fn plan(
+    stats: &[f32],
+    opacity_logits: &[f32],
+    log_scales: &[f32],
+    extent: f32,
+    world_limit: Option<f32>,
+    c: &DensifyConfig,
+) -> Plan {
     let n = opacity_logits.len();
-    assert_eq!(stats.len(), SCREEN_STATS_FLOATS * n, "statistics of another layer");
+    assert_eq!(
+        stats.len(),
+        SCREEN_STATS_FLOATS * n,
+        "statistics of another layer"
+    );
     assert_eq!(log_scales.len(), 3 * n, "scales of another layer");
     let mut p = Plan::default();
     // (mean gradient, index, split?) of every growing Gaussian.
@@ -180,10 +234,15 @@ pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f
     let mut keep = vec![false; n];
     for i in 0..n {
         let opacity = 1.0 / (1.0 + (-opacity_logits[i]).exp());
-        let max_scale = log_scales[3 * i..3 * i + 3].iter().copied().fold(f32::NEG_INFINITY, f32::max).exp();
+        let max_scale = log_scales[3 * i..3 * i + 3]
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max)
+            .exp();
         let s = &stats[SCREEN_STATS_FLOATS * i..SCREEN_STATS_FLOATS * (i + 1)];
         // NaN opacity or scale fails the keep test: such a Gaussian is pruned.
-        let small = world_limit.is_none_or(|limit| s[2] <= c.max_screen_radius && max_scale <= limit);
+        let small =
+            world_limit.is_none_or(|limit| s[2] <= c.max_screen_radius && max_scale <= limit);
         let fine = opacity >= c.min_opacity && small;
         if !fine {
             p.pruned += 1;
@@ -217,7 +276,10 @@ pub fn plan(stats: &[f32], opacity_logits: &[f32], log_scales: &[f32], extent: f
     if p.count() == 0 && n > 0 {
         // Never empty a layer: keep its most opaque Gaussian.
         // (A NaN opacity is not a candidate: total_cmp would rank it above all.)
-        let best = (0..n).filter(|&i| opacity_logits[i].is_finite()).max_by(|&a, &b| opacity_logits[a].total_cmp(&opacity_logits[b])).unwrap_or(0);
+        let best = (0..n)
+            .filter(|&i| opacity_logits[i].is_finite())
+            .max_by(|&a, &b| opacity_logits[a].total_cmp(&opacity_logits[b]))
+            .unwrap_or(0);
         p.keep.push(best as u32);
         p.pruned -= 1;
     }
@@ -242,7 +304,9 @@ fn normal(rng: &mut impl Rng) -> f32 {
 fn split_pair(mean: &[f32], quat: &[f32], log_scale: &[f32]) -> [[f32; 3]; 2] {
     let (q, _) = normalize_quat([quat[0], quat[1], quat[2], quat[3]]);
     let r = quat_to_mat(q);
-    let axis = (0..3).max_by(|&a, &b| log_scale[a].total_cmp(&log_scale[b])).unwrap_or(0);
+    let axis = (0..3)
+        .max_by(|&a, &b| log_scale[a].total_cmp(&log_scale[b]))
+        .unwrap_or(0);
     let d = 0.25 * log_scale[axis].exp();
     [1.0f32, -1.0].map(|sign| std::array::from_fn(|a| mean[a] + sign * d * r[a][axis]))
 }
@@ -274,18 +338,31 @@ fn gather_rows(src: &[f32], width: usize, rows: &[Option<u32>]) -> Vec<f32> {
 /// Densifies and prunes a triplane-driven layer: reads its statistics and its last
 /// forward pass's decoded opacity and scales (`log_scale_offset`: the frame's global
 /// scale, taken off), plans, and rebuilds the layer at its new size.
-pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, done: u32, log_scale_offset: f32) -> crate::Result<Summary> {
+pub fn apply_to_layer(
+    ctx: &Context,
+    layer: &mut HumanLayer,
+    c: &DensifyConfig,
+    done: u32,
+    log_scale_offset: f32,
+) -> crate::Result<Summary> {
     let n = layer.count as usize;
     let stats = ctx.read_buffer::<f32>(&mut layer.screen_stats, SCREEN_STATS_FLOATS * n)?;
     let opacity = ctx.read_buffer::<f32>(&mut layer.deformer.posed.opacity_logits, n)?;
-    let decoded: Vec<f32> = ctx.read_buffer::<f32>(&mut layer.deformer.posed.log_scales, 3 * n)?.iter().map(|v| v - log_scale_offset).collect();
+    let decoded: Vec<f32> = ctx
+        .read_buffer::<f32>(&mut layer.deformer.posed.log_scales, 3 * n)?
+        .iter()
+        .map(|v| v - log_scale_offset)
+        .collect();
     let state = layer.state(ctx)?;
     let limit = (done > c.size_prune_after).then_some(c.max_world_size);
     let p = plan(&stats, &opacity, &decoded, extent(&state.means), limit, c);
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
         // Nothing changes but the statistics, which start again.
-        ctx.write_buffer(&mut layer.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?;
+        ctx.write_buffer(
+            &mut layer.screen_stats,
+            &vec![0.0f32; SCREEN_STATS_FLOATS * n],
+        )?;
         return Ok(summary);
     }
     let next = resized_state(&state, &p, &decoded);
@@ -296,13 +373,21 @@ pub fn apply_to_layer(ctx: &Context, layer: &mut HumanLayer, c: &DensifyConfig, 
 /// The layer state after `p`: canonical Gaussians, skinning targets, position moments,
 /// the edge graph; zero statistics. `decoded` (log-scales) sizes the split samples.
 fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32]) -> LayerState {
-    let targets = s.weight_targets.as_deref().expect("a layer's state read from the GPU has its targets");
-    let (mut means, mut quats, mut log_scales, mut weights) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let targets = s
+        .weight_targets
+        .as_deref()
+        .expect("a layer's state read from the GPU has its targets");
+    let (mut means, mut quats, mut log_scales, mut weights) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut rows: Vec<Option<u32>> = Vec::new();
     let mut push = |i: usize, mean: &[f32], log_shrink: f32, moments: bool| {
         means.extend_from_slice(mean);
         quats.extend_from_slice(&s.quats[4 * i..4 * i + 4]);
-        log_scales.extend(s.log_scales[3 * i..3 * i + 3].iter().map(|v| v - log_shrink));
+        log_scales.extend(
+            s.log_scales[3 * i..3 * i + 3]
+                .iter()
+                .map(|v| v - log_shrink),
+        );
         weights.extend_from_slice(&targets[NUM_JOINTS * i..NUM_JOINTS * (i + 1)]);
         rows.push(moments.then_some(i as u32));
     };
@@ -316,7 +401,11 @@ fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32]) -> LayerState {
     }
     for &i in &p.split {
         let i = i as usize;
-        for m in split_pair(&s.means[3 * i..3 * i + 3], &s.quats[4 * i..4 * i + 4], &decoded[3 * i..3 * i + 3]) {
+        for m in split_pair(
+            &s.means[3 * i..3 * i + 3],
+            &s.quats[4 * i..4 * i + 4],
+            &decoded[3 * i..3 * i + 3],
+        ) {
             push(i, &m, SPLIT_LOG_SHRINK, false);
         }
     }
@@ -325,25 +414,61 @@ fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32]) -> LayerState {
     for (k, &i) in p.keep.iter().enumerate() {
         new_index[i as usize] = k as u32;
     }
-    let edges = s.edges.as_ref().map(|e| e.iter().filter_map(|&[a, b]| (new_index[a as usize] != u32::MAX && new_index[b as usize] != u32::MAX).then(|| [new_index[a as usize], new_index[b as usize]])).collect());
+    let edges = s.edges.as_ref().map(|e| {
+        e.iter()
+            .filter_map(|&[a, b]| {
+                (new_index[a as usize] != u32::MAX && new_index[b as usize] != u32::MAX)
+                    .then(|| [new_index[a as usize], new_index[b as usize]])
+            })
+            .collect()
+    });
     let mut adam = s.adam.clone();
     let pos = &s.adam[0];
-    adam[0] = AdamState { m: gather_rows(&pos.m, 3, &rows), v: gather_rows(&pos.v, 3, &rows), step: pos.step };
+    adam[0] = AdamState {
+        m: gather_rows(&pos.m, 3, &rows),
+        v: gather_rows(&pos.v, 3, &rows),
+        step: pos.step,
+    };
     let n = rows.len();
-    LayerState { means, quats, log_scales, adam, weight_targets: Some(weights), screen_stats: Some(vec![0.0; SCREEN_STATS_FLOATS * n]), edges, ..s.clone() }
+    LayerState {
+        means,
+        quats,
+        log_scales,
+        adam,
+        weight_targets: Some(weights),
+        screen_stats: Some(vec![0.0; SCREEN_STATS_FLOATS * n]),
+        edges,
+        ..s.clone()
+    }
 }
 
 /// Densifies and prunes the scene layer (plain 3DGS: its parameters are its values;
 /// the world-size limit is `max_world_size` of its extent).
-pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, done: u32, seed: u64) -> crate::Result<Summary> {
+pub fn apply_to_scene(
+    ctx: &Context,
+    scene: &mut SceneLayer,
+    c: &DensifyConfig,
+    done: u32,
+    seed: u64,
+) -> crate::Result<Summary> {
     let n = scene.count as usize;
     let stats = ctx.read_buffer::<f32>(&mut scene.screen_stats, SCREEN_STATS_FLOATS * n)?;
     let state = scene.state(ctx)?;
     let limit = (done > c.size_prune_after).then_some(c.max_world_size * scene.extent);
-    let p = plan(&stats, &state.params[3], &state.params[1], scene.extent, limit, c);
+    let p = plan(
+        &stats,
+        &state.params[3],
+        &state.params[1],
+        scene.extent,
+        limit,
+        c,
+    );
     let summary = Summary::of(&p, n);
     if p.is_identity(n) {
-        ctx.write_buffer(&mut scene.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?;
+        ctx.write_buffer(
+            &mut scene.screen_stats,
+            &vec![0.0f32; SCREEN_STATS_FLOATS * n],
+        )?;
         return Ok(summary);
     }
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
@@ -353,7 +478,9 @@ pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, 
     for (list, fresh) in [(&p.keep, false), (&p.clone, true)] {
         for &i in list {
             for (k, out) in params.iter_mut().enumerate() {
-                out.extend_from_slice(&state.params[k][widths[k] * i as usize..widths[k] * (i as usize + 1)]);
+                out.extend_from_slice(
+                    &state.params[k][widths[k] * i as usize..widths[k] * (i as usize + 1)],
+                );
             }
             rows.push((!fresh).then_some(i));
         }
@@ -361,17 +488,39 @@ pub fn apply_to_scene(ctx: &Context, scene: &mut SceneLayer, c: &DensifyConfig, 
     for &i in &p.split {
         let i = i as usize;
         for _ in 0..2 {
-            let m = sample(&mut rng, &state.params[0][3 * i..3 * i + 3], &state.params[2][4 * i..4 * i + 4], &state.params[1][3 * i..3 * i + 3]);
+            let m = sample(
+                &mut rng,
+                &state.params[0][3 * i..3 * i + 3],
+                &state.params[2][4 * i..4 * i + 4],
+                &state.params[1][3 * i..3 * i + 3],
+            );
             params[0].extend_from_slice(&m);
-            params[1].extend(state.params[1][3 * i..3 * i + 3].iter().map(|v| v - SPLIT_LOG_SHRINK));
+            params[1].extend(
+                state.params[1][3 * i..3 * i + 3]
+                    .iter()
+                    .map(|v| v - SPLIT_LOG_SHRINK),
+            );
             for k in 2..params.len() {
                 params[k].extend_from_slice(&state.params[k][widths[k] * i..widths[k] * (i + 1)]);
             }
             rows.push(None);
         }
     }
-    let adam = state.adam.iter().zip(&widths).map(|(a, &w)| AdamState { m: gather_rows(&a.m, w, &rows), v: gather_rows(&a.v, w, &rows), step: a.step }).collect();
-    let next = SceneState { params, adam, screen_stats: None };
+    let adam = state
+        .adam
+        .iter()
+        .zip(&widths)
+        .map(|(a, &w)| AdamState {
+            m: gather_rows(&a.m, w, &rows),
+            v: gather_rows(&a.v, w, &rows),
+            step: a.step,
+        })
+        .collect();
+    let next = SceneState {
+        params,
+        adam,
+        screen_stats: None,
+    };
     scene.restore(ctx, &next)?;
     Ok(summary)
 }
@@ -403,9 +552,26 @@ mod tests {
             (1e-5, 25.0), // 4: too big on screen: pruned
             (1e-5, 5.0),  // 5: too big in the world: pruned
         ];
-        let opacity = [logit(0.5), logit(0.5), logit(0.5), logit(0.001), logit(0.5), logit(0.5)];
-        let scales: Vec<f32> = [small, large, small, small, small, (0.2f32).ln()].iter().flat_map(|&s| [s, s - 1.0, s - 2.0]).collect();
-        let p = plan(&stats(&rows), &opacity, &scales, 1.0, Some(c.max_world_size), &c);
+        let opacity = [
+            logit(0.5),
+            logit(0.5),
+            logit(0.5),
+            logit(0.001),
+            logit(0.5),
+            logit(0.5),
+        ];
+        let scales: Vec<f32> = [small, large, small, small, small, (0.2f32).ln()]
+            .iter()
+            .flat_map(|&s| [s, s - 1.0, s - 2.0])
+            .collect();
+        let p = plan(
+            &stats(&rows),
+            &opacity,
+            &scales,
+            1.0,
+            Some(c.max_world_size),
+            &c,
+        );
         assert_eq!(p.keep, vec![0, 2]);
         assert_eq!(p.clone, vec![0]);
         assert_eq!(p.split, vec![1]);
@@ -419,7 +585,10 @@ mod tests {
 
     #[test]
     fn plan_keeps_the_cap_dropping_the_smallest_gradients_first() {
-        let c = DensifyConfig { max_gaussians: 5, ..DensifyConfig::default() };
+        let c = DensifyConfig {
+            max_gaussians: 5,
+            ..DensifyConfig::default()
+        };
         let rows: Vec<(f32, f32)> = [1e-3, 5e-3, 2e-3, 4e-3].iter().map(|&g| (g, 1.0)).collect();
         let opacity = [0.0; 4];
         let scales = vec![(0.001f32).ln(); 12];
@@ -434,18 +603,38 @@ mod tests {
         let c = DensifyConfig::default();
         let opacity = [logit(0.001), f32::NAN, logit(0.002)];
         let scales = vec![(0.001f32).ln(); 9];
-        let p = plan(&stats(&[(0.0, 1.0); 3]), &opacity, &scales, 1.0, Some(0.1), &c);
+        let p = plan(
+            &stats(&[(0.0, 1.0); 3]),
+            &opacity,
+            &scales,
+            1.0,
+            Some(0.1),
+            &c,
+        );
         assert_eq!(p.keep, vec![2], "the most opaque stays");
         assert_eq!(p.pruned, 2);
     }
 
     #[test]
     fn the_schedule_runs_from_to_until_every_steps() {
-        let c = DensifyConfig { every: 100, from: 200, until: 400, ..DensifyConfig::default() };
+        let c = DensifyConfig {
+            every: 100,
+            from: 200,
+            until: 400,
+            ..DensifyConfig::default()
+        };
         let due: Vec<u32> = (0..600).filter(|&s| c.due(s)).collect();
         assert_eq!(due, vec![200, 300, 400]);
         assert!((0..10_000).all(|s| !DensifyConfig::off().due(s)));
-        let err = DensifyConfig { grad_threshold: -1.0, ..c.clone() }.validate().unwrap_err();
-        assert!(matches!(&err, TrainerError::Config { key, .. } if key == "densify.grad_threshold"), "{err}");
+        let err = DensifyConfig {
+            grad_threshold: -1.0,
+            ..c.clone()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(
+            matches!(&err, TrainerError::Config { key, .. } if key == "densify.grad_threshold"),
+            "{err}"
+        );
     }
 }

@@ -19,10 +19,10 @@ use std::path::Path;
 use drape_engine::Context;
 
 use crate::avatar::checkpoint;
-use crate::avatar::state::{LayerState, ModelState};
 use crate::avatar::model::LayerChoice;
-use crate::avatar::run::{OpenRun, RunInfo};
 use crate::avatar::report::write_json;
+use crate::avatar::run::{OpenRun, RunInfo};
+use crate::avatar::state::{LayerState, ModelState};
 use crate::TrainerError;
 
 /// One edit.
@@ -30,7 +30,9 @@ use crate::TrainerError;
 pub enum Edit {
     RemoveCloth,
     /// Hue rotation in degrees.
-    Recolour { hue_degrees: f64 },
+    Recolour {
+        hue_degrees: f64,
+    },
     /// The cloth layer of another (opened) run.
     SwapCloth,
 }
@@ -48,11 +50,24 @@ pub fn hue_rotation(degrees: f64) -> [[f32; 3]; 3] {
 
 /// Multiplies every RGB triple of the SH head (output rows 3k, 3k+1, 3k+2 of its
 /// weight matrix and bias) of the decoder parameters `params` by `m`.
-pub fn recolour_sh_head(params: &mut [f32], head_weight: usize, head_bias: usize, inputs: usize, outputs: usize, m: &[[f32; 3]; 3]) {
+pub fn recolour_sh_head(
+    params: &mut [f32],
+    head_weight: usize,
+    head_bias: usize,
+    inputs: usize,
+    outputs: usize,
+    m: &[[f32; 3]; 3],
+) {
     for k in 0..outputs / 3 {
         for col in 0..=inputs {
             // Column `inputs` stands for the bias.
-            let at = |c: usize| if col == inputs { head_bias + 3 * k + c } else { head_weight + (3 * k + c) * inputs + col };
+            let at = |c: usize| {
+                if col == inputs {
+                    head_bias + 3 * k + c
+                } else {
+                    head_weight + (3 * k + c) * inputs + col
+                }
+            };
             let v = [params[at(0)], params[at(1)], params[at(2)]];
             for (c, row) in m.iter().enumerate() {
                 params[at(c)] = row[0] * v[0] + row[1] * v[1] + row[2] * v[2];
@@ -64,19 +79,39 @@ pub fn recolour_sh_head(params: &mut [f32], head_weight: usize, head_bias: usize
 /// Applies `edit` to `run` (with `other`: the run whose cloth layer `SwapCloth` takes)
 /// and writes the result into `out` (created; it must not exist or be empty).
 /// Returns a line saying what was done.
-pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut OpenRun>, out: &Path) -> crate::Result<String> {
-    if out.exists() && std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_some() {
-        return Err(TrainerError::run(out, "the output directory exists and is not empty"));
+pub fn edit(
+    ctx: &Context,
+    run: &mut OpenRun,
+    edit: &Edit,
+    other: Option<&mut OpenRun>,
+    out: &Path,
+) -> crate::Result<String> {
+    if out.exists()
+        && std::fs::read_dir(out)
+            .map_err(|e| TrainerError::io(out, e))?
+            .next()
+            .is_some()
+    {
+        return Err(TrainerError::run(
+            out,
+            "the output directory exists and is not empty",
+        ));
     }
     let Some(cloth_index) = run.avatar.layers.iter().position(|l| l.name == "cloth") else {
-        return Err(TrainerError::run(&run.dir, "the model has no cloth layer to edit"));
+        return Err(TrainerError::run(
+            &run.dir,
+            "the model has no cloth layer to edit",
+        ));
     };
     let mut state: ModelState = run.avatar.state(ctx, run.step)?;
     let mut config = run.config.clone();
     let what = match edit {
         Edit::RemoveCloth => {
             state.layers.retain(|(name, _)| name != "cloth");
-            config.layers.choice = LayerChoice { cloth: Some(false), scene: Some(run.layers.scene) };
+            config.layers.choice = LayerChoice {
+                cloth: Some(false),
+                scene: Some(run.layers.scene),
+            };
             format!("the cloth layer of {} removed", run.dir.display())
         }
         Edit::Recolour { hue_degrees } => {
@@ -87,18 +122,40 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
             let (w, b) = offsets[head];
             let inputs = desc.hidden.last().map_or(desc.input, |h| h.0);
             let outputs = desc.heads[1].width;
-            recolour_sh_head(&mut state.layers[cloth_index].1.appearance, w, b, inputs, outputs, &hue_rotation(*hue_degrees));
-            format!("the garments of {} recoloured by a hue rotation of {hue_degrees}°", run.dir.display())
+            recolour_sh_head(
+                &mut state.layers[cloth_index].1.appearance,
+                w,
+                b,
+                inputs,
+                outputs,
+                &hue_rotation(*hue_degrees),
+            );
+            format!(
+                "the garments of {} recoloured by a hue rotation of {hue_degrees}°",
+                run.dir.display()
+            )
         }
         Edit::SwapCloth => {
-            let other = other.ok_or_else(|| TrainerError::invalid("swap", "no run to take the cloth layer from"))?;
+            let other = other.ok_or_else(|| {
+                TrainerError::invalid("swap", "no run to take the cloth layer from")
+            })?;
             let theirs: ModelState = other.avatar.state(ctx, other.step)?;
             let Some((_, cloth)) = theirs.layers.into_iter().find(|(n, _)| n == "cloth") else {
-                return Err(TrainerError::run(&other.dir, "the model has no cloth layer to swap in"));
+                return Err(TrainerError::run(
+                    &other.dir,
+                    "the model has no cloth layer to swap in",
+                ));
             };
             let mine = &state.layers[cloth_index].1;
             // The Gaussian counts may differ (densification); the networks may not.
-            let shape = |l: &LayerState| (l.triplane_size, l.appearance.len(), l.geometry.len(), l.deformation.len());
+            let shape = |l: &LayerState| {
+                (
+                    l.triplane_size,
+                    l.appearance.len(),
+                    l.geometry.len(),
+                    l.deformation.len(),
+                )
+            };
             if shape(mine) != shape(&cloth) {
                 return Err(TrainerError::run(
                     &other.dir,
@@ -122,12 +179,20 @@ pub fn edit(ctx: &Context, run: &mut OpenRun, edit: &Edit, other: Option<&mut Op
                 return Err(TrainerError::run(&other.dir, format!("trained on a body of other shape (betas) than {}; the garments would not fit", run.dir.display())));
             }
             state.layers[cloth_index].1 = cloth;
-            format!("the cloth layer of {} put on {}", other.dir.display(), run.dir.display())
+            format!(
+                "the cloth layer of {} put on {}",
+                other.dir.display(),
+                run.dir.display()
+            )
         }
     };
     std::fs::create_dir_all(out).map_err(|e| TrainerError::io(out, e))?;
     write_json(&out.join("config.json"), &config)?;
-    RunInfo { made_by: Some(format!("drape edit: {what}")), ..run.info.clone() }.write(out)?;
+    RunInfo {
+        made_by: Some(format!("drape edit: {what}")),
+        ..run.info.clone()
+    }
+    .write(out)?;
     checkpoint::write(&out.join("model.npz"), &state)?;
     Ok(what)
 }
@@ -144,25 +209,39 @@ mod tests {
         let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-6);
         assert!(close(apply([0.5; 3]), [0.5; 3]), "{:?}", apply([0.5; 3]));
         // 120° about the grey axis permutes the primaries: red → green.
-        assert!(close(apply([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0]), "{:?}", apply([1.0, 0.0, 0.0]));
+        assert!(
+            close(apply([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0]),
+            "{:?}",
+            apply([1.0, 0.0, 0.0])
+        );
     }
 
     #[test]
     fn recolouring_the_head_recolours_its_output() {
         // A head of 2 inputs and 6 outputs (two SH coefficients), weights then bias.
         let (inputs, outputs) = (2, 6);
-        let mut params: Vec<f32> = (0..inputs * outputs + outputs).map(|i| (i as f32 * 0.37).sin()).collect();
+        let mut params: Vec<f32> = (0..inputs * outputs + outputs)
+            .map(|i| (i as f32 * 0.37).sin())
+            .collect();
         let before = params.clone();
         let m = hue_rotation(50.0);
         recolour_sh_head(&mut params, 0, inputs * outputs, inputs, outputs, &m);
         let x = [0.3f32, -1.2];
-        let eval = |p: &[f32]| -> Vec<f32> { (0..outputs).map(|o| p[o * inputs] * x[0] + p[o * inputs + 1] * x[1] + p[inputs * outputs + o]).collect() };
+        let eval = |p: &[f32]| -> Vec<f32> {
+            (0..outputs)
+                .map(|o| p[o * inputs] * x[0] + p[o * inputs + 1] * x[1] + p[inputs * outputs + o])
+                .collect()
+        };
         let (y0, y1) = (eval(&before), eval(&params));
         for k in 0..2 {
             for c in 0..3 {
                 let want: f32 = (0..3).map(|d| m[c][d] * y0[3 * k + d]).sum();
                 // A few f32 roundings of values of order 1.
-                assert!((y1[3 * k + c] - want).abs() < 1e-5, "coefficient {k} channel {c}: {} vs {want}", y1[3 * k + c]);
+                assert!(
+                    (y1[3 * k + c] - want).abs() < 1e-5,
+                    "coefficient {k} channel {c}: {} vs {want}",
+                    y1[3 * k + c]
+                );
             }
         }
     }

@@ -18,13 +18,13 @@ use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{BufferDesc, Context};
 
 use crate::avatar::cloth_target;
-use crate::garment::GarmentFit;
 use crate::avatar::composite::AvatarRenderer;
-use crate::metrics::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::avatar::model::Avatar;
-use crate::avatar::rig::Rig;
 use crate::avatar::report::{write_json, Progress};
+use crate::avatar::rig::Rig;
 use crate::dataset::loader::DatasetFrame;
+use crate::garment::GarmentFit;
+use crate::metrics::fid::{frechet_distance_of_features, FidInception, ImageRef};
 use crate::TrainerError;
 
 /// How much the error panel of a sheet amplifies `|render - truth|` (mean over RGB).
@@ -32,7 +32,12 @@ pub const ERROR_GAIN: f32 = 4.0;
 
 /// Peak signal-to-noise ratio (dB) of images in [0, 1].
 pub fn psnr(a: &[f32], b: &[f32]) -> f64 {
-    let mse = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64;
+    let mse = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| f64::from(x - y).powi(2))
+        .sum::<f64>()
+        / a.len().max(1) as f64;
     -10.0 * mse.max(1e-20).log10()
 }
 
@@ -112,25 +117,48 @@ pub struct EvalInputs<'a> {
 
 /// Renders every held-out frame (on black without a scene layer, compared with the
 /// masked ground truth; with one, the whole frame) and measures it.
-pub fn evaluate(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, progress: &mut dyn FnMut(Progress)) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
+pub fn evaluate(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    renderer: &mut AvatarRenderer,
+    inputs: &EvalInputs,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
     evaluate_with_fid(ctx, avatar, renderer, inputs, None, progress)
 }
 
 /// [`evaluate`], and with `fid` the FID of the renders against the ground truths, on
 /// the whole images and on the human crops (the mask's bounding box, unwidened), on the
 /// CPU (four Inception passes per frame, about 5.7 GFLOP each).
-pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, inputs: &EvalInputs, fid: Option<&FidInception>, progress: &mut dyn FnMut(Progress)) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
+pub fn evaluate_with_fid(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    renderer: &mut AvatarRenderer,
+    inputs: &EvalInputs,
+    fid: Option<&FidInception>,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<(EvalMetrics, Vec<FrameMetrics>)> {
     let whole_image = avatar.scene.is_some();
     let settings = RenderSettings::default();
     // Both fits' T-shirts are named `tshirt`: the names do not depend on the fit.
-    let names: Vec<String> = cloth_target::garments(inputs.rig, GarmentFit::Tight).iter().map(|g| g.name.clone()).collect();
+    let names: Vec<String> = cloth_target::garments(inputs.rig, GarmentFit::Tight)
+        .iter()
+        .map(|g| g.name.clone())
+        .collect();
     let names: Vec<&str> = names.iter().map(String::as_str).collect();
     let mut per_frame = Vec::with_capacity(inputs.frames.len());
     // Features of (render, truth) on the whole image and on the crop, frame by frame.
     let mut features: [[Vec<Vec<f32>>; 2]; 2] = Default::default();
     for (k, f) in inputs.frames.iter().enumerate() {
-        progress(Progress::Eval { done: k, total: inputs.frames.len() });
-        let mut m = FrameMetrics { frame: f.frame, view: f.view, ..FrameMetrics::default() };
+        progress(Progress::Eval {
+            done: k,
+            total: inputs.frames.len(),
+        });
+        let mut m = FrameMetrics {
+            frame: f.frame,
+            view: f.view,
+            ..FrameMetrics::default()
+        };
         let ft = inputs.rig.frame(&f.body);
         avatar.set_frame(ctx, &ft)?;
         {
@@ -145,7 +173,11 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
         }
         renderer.forward(ctx, avatar, &f.camera.to_pinhole([0.0; 3]), &settings)?;
         let rgb = renderer.read_rgb(ctx)?;
-        let target = if whole_image { f.rgb.clone() } else { f.masked_rgb([0.0; 3]) };
+        let target = if whole_image {
+            f.rgb.clone()
+        } else {
+            f.masked_rgb([0.0; 3])
+        };
         m.psnr_full = psnr(&rgb, &target);
         m.ssim_full = ssim_of(&rgb, &target, f.width, f.height);
         if let Some(w) = inputs.lpips {
@@ -157,8 +189,20 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
             m.ssim_crop = Some(ssim_of(&cr, &ct, b.2 - b.0, b.3 - b.1));
             if let Some(net) = fid {
                 let (w, h) = (b.2 - b.0, b.3 - b.1);
-                let pair = net.features_of_images(&[ImageRef { rgb: &cr, width: w, height: h }, ImageRef { rgb: &ct, width: w, height: h }])?;
-                let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).expect("one feature vector per image");
+                let pair = net.features_of_images(&[
+                    ImageRef {
+                        rgb: &cr,
+                        width: w,
+                        height: h,
+                    },
+                    ImageRef {
+                        rgb: &ct,
+                        width: w,
+                        height: h,
+                    },
+                ])?;
+                let [fr, ft] =
+                    <[Vec<f32>; 2]>::try_from(pair).expect("one feature vector per image");
                 features[1][0].push(fr);
                 features[1][1].push(ft);
             }
@@ -174,11 +218,29 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
                 let (x0, x1) = grow(b.0, b.2, f.width);
                 let (y0, y1) = grow(b.1, b.3, f.height);
                 let bb = (x0, y0, x1, y1);
-                m.lpips_crop = Some(lpips_of(ctx, w, &crop(&rgb, f.width, bb), &crop(&target, f.width, bb), x1 - x0, y1 - y0)?);
+                m.lpips_crop = Some(lpips_of(
+                    ctx,
+                    w,
+                    &crop(&rgb, f.width, bb),
+                    &crop(&target, f.width, bb),
+                    x1 - x0,
+                    y1 - y0,
+                )?);
             }
         }
         if let Some(net) = fid {
-            let pair = net.features_of_images(&[ImageRef { rgb: &rgb, width: f.width, height: f.height }, ImageRef { rgb: &target, width: f.width, height: f.height }])?;
+            let pair = net.features_of_images(&[
+                ImageRef {
+                    rgb: &rgb,
+                    width: f.width,
+                    height: f.height,
+                },
+                ImageRef {
+                    rgb: &target,
+                    width: f.width,
+                    height: f.height,
+                },
+            ])?;
             let [fr, ft] = <[Vec<f32>; 2]>::try_from(pair).expect("one feature vector per image");
             features[0][0].push(fr);
             features[0][1].push(ft);
@@ -189,7 +251,12 @@ pub fn evaluate_with_fid(ctx: &Context, avatar: &mut Avatar, renderer: &mut Avat
                 panels.extend(passes);
             }
             let sheet = side_by_side(&panels, f.width as usize, f.height as usize);
-            crate::dataset::image::write_rgb(&dir.join(format!("frame{:04}_view{}.png", f.frame, f.view)), panels.len() as u32 * f.width, f.height, &sheet)?;
+            crate::dataset::image::write_rgb(
+                &dir.join(format!("frame{:04}_view{}.png", f.frame, f.view)),
+                panels.len() as u32 * f.width,
+                f.height,
+                &sheet,
+            )?;
         }
         per_frame.push(m);
     }
@@ -229,7 +296,13 @@ pub fn mean_metrics(frames: &[FrameMetrics]) -> EvalMetrics {
 
 /// `|a - b|` averaged over RGB, times [`ERROR_GAIN`], as grey.
 fn error_panel(a: &[f32], b: &[f32]) -> Vec<f32> {
-    a.chunks_exact(3).zip(b.chunks_exact(3)).flat_map(|(p, q)| [ERROR_GAIN * ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0; 3]).collect()
+    a.chunks_exact(3)
+        .zip(b.chunks_exact(3))
+        .flat_map(|(p, q)| {
+            [ERROR_GAIN * ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0;
+                3]
+        })
+        .collect()
 }
 
 /// HWC images of one size placed left to right.
@@ -245,14 +318,26 @@ fn side_by_side(panels: &[Vec<f32>], width: usize, height: usize) -> Vec<f32> {
 
 /// Writes `eval.json` (means and per-frame values) and `eval.md` (the same as a
 /// Markdown table) into `dir`; `header` is a line saying what was evaluated.
-pub fn write_reports(dir: &Path, header: &str, mean: &EvalMetrics, frames: &[FrameMetrics]) -> crate::Result<()> {
-    write_json(&dir.join("eval.json"), &serde_json::json!({ "evaluated": header, "mean": mean, "frames": frames }))?;
+pub fn write_reports(
+    dir: &Path,
+    header: &str,
+    mean: &EvalMetrics,
+    frames: &[FrameMetrics],
+) -> crate::Result<()> {
+    write_json(
+        &dir.join("eval.json"),
+        &serde_json::json!({ "evaluated": header, "mean": mean, "frames": frames }),
+    )?;
     let path = dir.join("eval.md");
-    std::fs::write(&path, markdown_table(header, mean, frames)).map_err(|e| TrainerError::io(&path, e))
+    std::fs::write(&path, markdown_table(header, mean, frames))
+        .map_err(|e| TrainerError::io(&path, e))
 }
 
 fn fmt(v: Option<f64>, digits: usize, scale: f64) -> String {
-    v.map_or_else(|| "n/a".to_string(), |v| format!("{:.*}", digits, v * scale))
+    v.map_or_else(
+        || "n/a".to_string(),
+        |v| format!("{:.*}", digits, v * scale),
+    )
 }
 
 /// The metrics as a Markdown table: one row per frame, then the mean.
@@ -295,7 +380,14 @@ pub fn markdown_table(header: &str, mean: &EvalMetrics, frames: &[FrameMetrics])
 }
 
 /// LPIPS of two HWC images on the GPU (a network planned for their size).
-fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: u32, height: u32) -> crate::Result<f64> {
+fn lpips_of(
+    ctx: &Context,
+    weights: &LpipsWeights,
+    a: &[f32],
+    b: &[f32],
+    width: u32,
+    height: u32,
+) -> crate::Result<f64> {
     let mut l = Lpips::new(ctx, weights, width, height)?;
     let pa = ctx.upload("eval lpips a", a)?;
     let pb = ctx.upload("eval lpips b", b)?;
@@ -309,14 +401,32 @@ fn lpips_of(ctx: &Context, weights: &LpipsWeights, a: &[f32], b: &[f32], width: 
 
 /// The plain Chamfer distance between the cloth layer's posed centres (of the last
 /// forward pass) and `points`, on the GPU.
-fn cloth_chamfer(ctx: &Context, cloth: &crate::avatar::layer::HumanLayer, points: &[[f32; 3]]) -> drape_engine::Result<f64> {
+fn cloth_chamfer(
+    ctx: &Context,
+    cloth: &crate::avatar::layer::HumanLayer,
+    points: &[[f32; 3]],
+) -> drape_engine::Result<f64> {
     let m = points.len() as u32;
     let chamfer = Chamfer::new(ctx, cloth.count, m)?;
-    let mut target = ctx.create_buffer("eval garment points", BufferDesc::gpu_only(12 * u64::from(m.max(1))))?;
-    ctx.write_buffer(&mut target, &points.iter().flatten().copied().collect::<Vec<f32>>())?;
+    let mut target = ctx.create_buffer(
+        "eval garment points",
+        BufferDesc::gpu_only(12 * u64::from(m.max(1))),
+    )?;
+    ctx.write_buffer(
+        &mut target,
+        &points.iter().flatten().copied().collect::<Vec<f32>>(),
+    )?;
     {
         let mut rec = ctx.record("eval cloth chamfer")?;
-        chamfer.record(&mut rec, &cloth.deformer.posed.means, cloth.count, &target, m, 1.0, None)?;
+        chamfer.record(
+            &mut rec,
+            &cloth.deformer.posed.means,
+            cloth.count,
+            &target,
+            m,
+            1.0,
+            None,
+        )?;
         rec.submit_and_wait()?;
     }
     let mut chamfer = chamfer;
@@ -325,6 +435,9 @@ fn cloth_chamfer(ctx: &Context, cloth: &crate::avatar::layer::HumanLayer, points
 
 /// Mean SSIM (the training loss's form, `ops::ssim`) computed on the CPU in f64.
 fn ssim_of(a: &[f32], b: &[f32], width: u32, height: u32) -> f64 {
-    let (a, b): (Vec<f64>, Vec<f64>) = (a.iter().map(|&v| f64::from(v)).collect(), b.iter().map(|&v| f64::from(v)).collect());
+    let (a, b): (Vec<f64>, Vec<f64>) = (
+        a.iter().map(|&v| f64::from(v)).collect(),
+        b.iter().map(|&v| f64::from(v)).collect(),
+    );
     drape_engine::ops::ssim::reference(&a, &b, width as usize, height as usize).1
 }

@@ -25,7 +25,9 @@ impl Layer {
 
     /// The layer of an engine group index, if it is one of the avatar's.
     pub fn from_group(group: u32) -> Option<Self> {
-        [Self::Body, Self::Cloth, Self::Scene].into_iter().find(|l| l.group() == group)
+        [Self::Body, Self::Cloth, Self::Scene]
+            .into_iter()
+            .find(|l| l.group() == group)
     }
 }
 
@@ -44,7 +46,10 @@ mod tests {
         for l in [Layer::Body, Layer::Cloth, Layer::Scene] {
             assert_eq!(Layer::from_group(l.group()), Some(l));
         }
-        assert_eq!([Layer::Body, Layer::Cloth, Layer::Scene].map(u32::from), [0, 1, 2]);
+        assert_eq!(
+            [Layer::Body, Layer::Cloth, Layer::Scene].map(u32::from),
+            [0, 1, 2]
+        );
         assert_eq!(Layer::from_group(3), None);
     }
 }

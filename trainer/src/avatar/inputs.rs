@@ -28,7 +28,10 @@ pub struct Sequence {
 /// Loads `dir` in whichever layout and variant it is: NeuMan (`sparse/`), ZJU-MoCap
 /// (`annots.npy`), or the root `drape synth` writes (its `neuman/`).
 pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Sequence> {
-    if !dir.join("sparse").is_dir() && !dir.join("annots.npy").is_file() && dir.join("neuman").join("sparse").is_dir() {
+    if !dir.join("sparse").is_dir()
+        && !dir.join("annots.npy").is_file()
+        && dir.join("neuman").join("sparse").is_dir()
+    {
         return load_sequence(&dir.join("neuman"), zju_train_camera);
     }
     let files = locate(dir)?;
@@ -38,7 +41,12 @@ pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Seque
     };
     let frames = load_located(&files, zju_train_camera)?;
     let variant = files.variant();
-    Ok(Sequence { dir: dir.into(), layout, variant, frames })
+    Ok(Sequence {
+        dir: dir.into(),
+        layout,
+        variant,
+        frames,
+    })
 }
 
 /// The default body (the project's procedural one) or an SMPL file.

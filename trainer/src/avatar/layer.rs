@@ -11,16 +11,16 @@
 //! pass reproduces the initial Gaussians exactly. Only the skinning weights, a softmax
 //! of a per-Gaussian function, need a fit ([`HumanLayer::fit_skinning_weights`]).
 
+use crate::avatar::groups::Layer;
+use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::adam::{AdamGroup, LrSchedule};
 use drape_engine::ops::deform::POSE_BLEND_FLOATS;
-use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::nn::{Activation, HeadDesc, Mlp, MlpDesc};
 use drape_engine::ops::splat::densify::SCREEN_STATS_FLOATS;
 use drape_engine::ops::splat::scene::GaussianCloud;
-use crate::avatar::groups::Layer;
 use drape_engine::ops::triplane::{Triplane, TriplaneDesc, TriplaneInit};
 use drape_engine::recorder::flat_grid;
-use drape_engine::{Buffer, BufferDesc, Context, kernels, Recording, Result};
+use drape_engine::{kernels, Buffer, BufferDesc, Context, Recording, Result};
 use drape_shared::adam::LossParams;
 use drape_shared::splat::layout::sh_coeffs;
 
@@ -72,7 +72,18 @@ fn hugs_decoder_width() -> u32 {
 
 impl Default for LayerConfig {
     fn default() -> Self {
-        Self { triplane_resolution: 256, triplane_channels: 32, sh_degree: 0, lr_position: 1.6e-4, lr_triplane: 1e-3, lr_decoders: 1e-3, lr_deformation: 1e-4, decoder_width: hugs_decoder_width(), pose_offsets: false, weight_norm: true }
+        Self {
+            triplane_resolution: 256,
+            triplane_channels: 32,
+            sh_degree: 0,
+            lr_position: 1.6e-4,
+            lr_triplane: 1e-3,
+            lr_decoders: 1e-3,
+            lr_deformation: 1e-4,
+            decoder_width: hugs_decoder_width(),
+            pose_offsets: false,
+            weight_norm: true,
+        }
     }
 }
 
@@ -136,9 +147,21 @@ fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
 impl HumanLayer {
     /// A layer of the Gaussians of `cloud` (canonical space) with `weights` (count × 24)
     /// as the skinning targets; `steps` sizes the position schedule.
-    pub fn new(ctx: &Context, name: &str, cloud: &GaussianCloud, weights: &[f32], config: &LayerConfig, steps: u32, seed: u64) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        name: &str,
+        cloud: &GaussianCloud,
+        weights: &[f32],
+        config: &LayerConfig,
+        steps: u32,
+        seed: u64,
+    ) -> Result<Self> {
         let n = cloud.len();
-        assert_eq!(weights.len(), n * NUM_JOINTS, "{name}: skinning targets for another cloud");
+        assert_eq!(
+            weights.len(),
+            n * NUM_JOINTS,
+            "{name}: skinning targets for another cloud"
+        );
         // The triplane's box: the canonical bounds, 10% larger on every side.
         let mut lo = [f32::INFINITY; 3];
         let mut hi = [f32::NEG_INFINITY; 3];
@@ -153,8 +176,18 @@ impl HumanLayer {
             lo[a] -= pad;
             hi[a] += pad;
         }
-        let tdesc = TriplaneDesc { resolution: config.triplane_resolution, channels: config.triplane_channels, box_min: lo, box_max: hi };
-        let triplane = Triplane::new(ctx, &format!("{name} triplane"), tdesc, TriplaneInit::Normal { seed })?;
+        let tdesc = TriplaneDesc {
+            resolution: config.triplane_resolution,
+            channels: config.triplane_channels,
+            box_min: lo,
+            box_max: hi,
+        };
+        let triplane = Triplane::new(
+            ctx,
+            &format!("{name} triplane"),
+            tdesc,
+            TriplaneInit::Normal { seed },
+        )?;
         let width = tdesc.feature_width();
         let sh_values = 3 * sh_coeffs(config.sh_degree);
 
@@ -162,9 +195,19 @@ impl HumanLayer {
         let appearance_desc = MlpDesc::hugs_appearance(width, sh_values).capped(cap);
         let mut appearance_params = appearance_desc.init_params(seed + 1);
         let opacity_logit = (0.1f32 / 0.9).ln();
-        set_head_bias(&appearance_desc, &mut appearance_params, 0, &[opacity_logit]);
+        set_head_bias(
+            &appearance_desc,
+            &mut appearance_params,
+            0,
+            &[opacity_logit],
+        );
         // SH 0 is colour 0.5 (the splatter adds 0.5), HUGS's initial colour.
-        set_head_bias(&appearance_desc, &mut appearance_params, 1, &vec![0.0; sh_values]);
+        set_head_bias(
+            &appearance_desc,
+            &mut appearance_params,
+            1,
+            &vec![0.0; sh_values],
+        );
         let geometry_desc = MlpDesc::hugs_geometry(width).capped(cap);
         let mut geometry_params = geometry_desc.init_params(seed + 2);
         set_head_bias(&geometry_desc, &mut geometry_params, 0, &[0.0; 3]);
@@ -177,11 +220,31 @@ impl HumanLayer {
         }
         if config.pose_offsets {
             // Zero weights and bias: no offsets until training moves them (HUGS).
-            deformation_desc.heads.push(HeadDesc::new("pose_blend", POSE_BLEND_FLOATS, Activation::Identity).zero_init());
+            deformation_desc.heads.push(
+                HeadDesc::new("pose_blend", POSE_BLEND_FLOATS, Activation::Identity).zero_init(),
+            );
         }
-        let appearance = Mlp::with_params(ctx, &format!("{name} appearance"), appearance_desc, n, &appearance_params)?;
-        let geometry = Mlp::with_params(ctx, &format!("{name} geometry"), geometry_desc, n, &geometry_params)?;
-        let deformation = Mlp::new(ctx, &format!("{name} deformation"), deformation_desc, n, seed + 3)?;
+        let appearance = Mlp::with_params(
+            ctx,
+            &format!("{name} appearance"),
+            appearance_desc,
+            n,
+            &appearance_params,
+        )?;
+        let geometry = Mlp::with_params(
+            ctx,
+            &format!("{name} geometry"),
+            geometry_desc,
+            n,
+            &geometry_params,
+        )?;
+        let deformation = Mlp::new(
+            ctx,
+            &format!("{name} deformation"),
+            deformation_desc,
+            n,
+            seed + 3,
+        )?;
 
         let mut means = f32_buffer(ctx, &format!("{name} canonical means"), 3 * n)?;
         ctx.write_buffer(&mut means, &cloud.means)?;
@@ -189,15 +252,41 @@ impl HumanLayer {
         ctx.write_buffer(&mut quats, &cloud.quats)?;
         let mut log_scales = f32_buffer(ctx, &format!("{name} canonical log-scales"), 3 * n)?;
         ctx.write_buffer(&mut log_scales, &cloud.log_scales)?;
-        let mut weight_targets = f32_buffer(ctx, &format!("{name} skinning targets"), NUM_JOINTS * n)?;
+        let mut weight_targets =
+            f32_buffer(ctx, &format!("{name} skinning targets"), NUM_JOINTS * n)?;
         ctx.write_buffer(&mut weight_targets, weights)?;
 
         let groups = LayerGroups {
-            position: AdamGroup::new(ctx, &format!("{name} position"), 3 * n, LrSchedule::exponential(config.lr_position, 0.01 * config.lr_position, steps))?,
-            triplane: AdamGroup::new(ctx, &format!("{name} triplane"), tdesc.len(), LrSchedule::constant(config.lr_triplane))?,
-            appearance: AdamGroup::new(ctx, &format!("{name} appearance"), appearance.param_count(), LrSchedule::constant(config.lr_decoders))?,
-            geometry: AdamGroup::new(ctx, &format!("{name} geometry"), geometry.param_count(), LrSchedule::constant(config.lr_decoders))?,
-            deformation: AdamGroup::new(ctx, &format!("{name} deformation"), deformation.param_count(), LrSchedule::constant(config.lr_deformation))?,
+            position: AdamGroup::new(
+                ctx,
+                &format!("{name} position"),
+                3 * n,
+                LrSchedule::exponential(config.lr_position, 0.01 * config.lr_position, steps),
+            )?,
+            triplane: AdamGroup::new(
+                ctx,
+                &format!("{name} triplane"),
+                tdesc.len(),
+                LrSchedule::constant(config.lr_triplane),
+            )?,
+            appearance: AdamGroup::new(
+                ctx,
+                &format!("{name} appearance"),
+                appearance.param_count(),
+                LrSchedule::constant(config.lr_decoders),
+            )?,
+            geometry: AdamGroup::new(
+                ctx,
+                &format!("{name} geometry"),
+                geometry.param_count(),
+                LrSchedule::constant(config.lr_decoders),
+            )?,
+            deformation: AdamGroup::new(
+                ctx,
+                &format!("{name} deformation"),
+                deformation.param_count(),
+                LrSchedule::constant(config.lr_deformation),
+            )?,
         };
         Ok(Self {
             name: name.to_string(),
@@ -212,11 +301,18 @@ impl HumanLayer {
             deformation,
             grad_means: f32_buffer(ctx, &format!("{name} canonical mean grads"), 3 * n)?,
             weight_targets,
-            weight_sq_error: f32_buffer(ctx, &format!("{name} skinning weight errors"), NUM_JOINTS * n)?,
+            weight_sq_error: f32_buffer(
+                ctx,
+                &format!("{name} skinning weight errors"),
+                NUM_JOINTS * n,
+            )?,
             deformer: Deformer::new(ctx, name, n, width, config.sh_degree, config.pose_offsets)?,
             groups,
             accumulation: Accumulation::Auto,
-            screen_stats: ctx.upload(&format!("{name} screen stats"), &vec![0.0f32; SCREEN_STATS_FLOATS * n.max(1)])?,
+            screen_stats: ctx.upload(
+                &format!("{name} screen stats"),
+                &vec![0.0f32; SCREEN_STATS_FLOATS * n.max(1)],
+            )?,
             edges: Vec::new(),
             steps,
             seed,
@@ -254,22 +350,38 @@ impl HumanLayer {
 
     /// Records the forward pass into `deformer.posed` (the transforms must be written;
     /// [`Deformer::record_forward`]).
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
-        self.deformer.record_forward(rec, self.params(), log_scale_offset)
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        log_scale_offset: f32,
+    ) -> Result<()> {
+        self.deformer
+            .record_forward(rec, self.params(), log_scale_offset)
     }
 
     /// Records the backward pass from `deformer.posed_grads` into every parameter's
     /// gradient, with the cloth-LBS term and, with `pose_gradient`, the transforms'
     /// gradient ([`Deformer::record_backward`]).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, lbs_weight: f32, pose_gradient: bool) -> Result<()> {
-        self.deformer.record_backward(rec, self.params(), lbs_weight, pose_gradient)
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        lbs_weight: f32,
+        pose_gradient: bool,
+    ) -> Result<()> {
+        self.deformer
+            .record_backward(rec, self.params(), lbs_weight, pose_gradient)
     }
 
     /// Records a count of the non-finite values among every gradient the Adam step
     /// would apply into `counter[0]` (which the caller zeroes first).
     /// Records the count of non-finite gradient values into `counter`, with
     /// `pose_gradient` also the pose refiner's partial sums of `∂L/∂A`.
-    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer, pose_gradient: bool) -> Result<()> {
+    pub fn record_count_nonfinite<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        counter: &'a Buffer,
+        pose_gradient: bool,
+    ) -> Result<()> {
         let g = &self.groups;
         let buffers: [(&Buffer, usize); 5] = [
             (&self.grad_means, g.position.len),
@@ -288,15 +400,44 @@ impl HumanLayer {
     /// Records one Adam step of every group (after the backward pass); with `guard`,
     /// a step the GPU applies only while the guard's first word is 0 (then call
     /// [`advance_adam`](Self::advance_adam) once the host has seen it stay down).
-    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, include_position: bool, guard: Option<&'a Buffer>) -> Result<()> {
+    pub fn record_adam<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        include_position: bool,
+        guard: Option<&'a Buffer>,
+    ) -> Result<()> {
         let g = &self.groups;
         if include_position {
             record_adam_step(rec, &g.position, &self.means, &self.grad_means, guard)?;
         }
-        record_adam_step(rec, &g.triplane, &self.triplane.planes, &self.triplane.grads, guard)?;
-        record_adam_step(rec, &g.appearance, &self.appearance.params, &self.appearance.grads, guard)?;
-        record_adam_step(rec, &g.geometry, &self.geometry.params, &self.geometry.grads, guard)?;
-        record_adam_step(rec, &g.deformation, &self.deformation.params, &self.deformation.grads, guard)
+        record_adam_step(
+            rec,
+            &g.triplane,
+            &self.triplane.planes,
+            &self.triplane.grads,
+            guard,
+        )?;
+        record_adam_step(
+            rec,
+            &g.appearance,
+            &self.appearance.params,
+            &self.appearance.grads,
+            guard,
+        )?;
+        record_adam_step(
+            rec,
+            &g.geometry,
+            &self.geometry.params,
+            &self.geometry.grads,
+            guard,
+        )?;
+        record_adam_step(
+            rec,
+            &g.deformation,
+            &self.deformation.params,
+            &self.deformation.grads,
+            guard,
+        )
     }
 
     /// Counts a guarded step of [`record_adam`](Self::record_adam) that was applied.
@@ -310,12 +451,33 @@ impl HumanLayer {
         }
     }
 
-    pub fn fit_skinning_weights(&mut self, ctx: &Context, steps: u32, lr: f32, report_every: u32, mut report: impl FnMut(u32, f64)) -> Result<f64> {
+    pub fn fit_skinning_weights(
+        &mut self,
+        ctx: &Context,
+        steps: u32,
+        lr: f32,
+        report_every: u32,
+        mut report: impl FnMut(u32, f64),
+    ) -> Result<f64> {
         let n = self.count;
         let len = NUM_JOINTS * n as usize;
-        let deformation_adam = AdamGroup::new(ctx, "fit deformation", self.deformation.param_count(), LrSchedule::constant(lr))?;
-        let triplane_adam = AdamGroup::new(ctx, "fit triplane", self.triplane.desc.len(), LrSchedule::constant(lr))?;
-        let p = LossParams { len: len as u32, scale: 1.0 / len.max(1) as f32, _pad: [0; 2] };
+        let deformation_adam = AdamGroup::new(
+            ctx,
+            "fit deformation",
+            self.deformation.param_count(),
+            LrSchedule::constant(lr),
+        )?;
+        let triplane_adam = AdamGroup::new(
+            ctx,
+            "fit triplane",
+            self.triplane.desc.len(),
+            LrSchedule::constant(lr),
+        )?;
+        let p = LossParams {
+            len: len as u32,
+            scale: 1.0 / len.max(1) as f32,
+            _pad: [0; 2],
+        };
         let mut mse = f64::NAN;
         for step in 0..=steps {
             {
@@ -324,7 +486,8 @@ impl HumanLayer {
                     // Only the weights are fitted: the pose-blend head gets no gradient.
                     rec.fill(self.deformation.head_grad(1), 0);
                 }
-                self.deformer.record_weights_forward(&mut rec, self.params())?;
+                self.deformer
+                    .record_weights_forward(&mut rec, self.params())?;
                 rec.dispatch(
                     "fit.weight_mse",
                     kernels::train::MseGrad {
@@ -337,9 +500,18 @@ impl HumanLayer {
                     flat_grid(p.len),
                 )?;
                 if step < steps {
-                    self.deformer.record_weights_backward(&mut rec, self.params())?;
-                    deformation_adam.record_step(&mut rec, &self.deformation.params, &self.deformation.grads)?;
-                    triplane_adam.record_step(&mut rec, &self.triplane.planes, &self.triplane.grads)?;
+                    self.deformer
+                        .record_weights_backward(&mut rec, self.params())?;
+                    deformation_adam.record_step(
+                        &mut rec,
+                        &self.deformation.params,
+                        &self.deformation.grads,
+                    )?;
+                    triplane_adam.record_step(
+                        &mut rec,
+                        &self.triplane.planes,
+                        &self.triplane.grads,
+                    )?;
                 }
                 rec.submit_and_wait()?;
             }
@@ -358,20 +530,34 @@ impl HumanLayer {
             name: self.name.clone(),
             count: self.count as usize,
             triplane_size: (self.triplane.desc.resolution, self.triplane.desc.channels),
-            decoders: [self.appearance.param_count(), self.geometry.param_count(), self.deformation.param_count()],
+            decoders: [
+                self.appearance.param_count(),
+                self.geometry.param_count(),
+                self.deformation.param_count(),
+            ],
         }
     }
 
     fn groups_mut(&mut self) -> [&mut AdamGroup; 5] {
         let g = &mut self.groups;
-        [&mut g.position, &mut g.triplane, &mut g.appearance, &mut g.geometry, &mut g.deformation]
+        [
+            &mut g.position,
+            &mut g.triplane,
+            &mut g.appearance,
+            &mut g.geometry,
+            &mut g.deformation,
+        ]
     }
 
     /// Everything learned, and the optimiser's state, read back to the host.
     pub fn state(&mut self, ctx: &Context) -> Result<LayerState> {
         let n = self.count as usize;
         let d = self.triplane.desc;
-        let sizes = [self.appearance.param_count(), self.geometry.param_count(), self.deformation.param_count()];
+        let sizes = [
+            self.appearance.param_count(),
+            self.geometry.param_count(),
+            self.deformation.param_count(),
+        ];
         let mut adam = Vec::new();
         for g in self.groups_mut() {
             let step = g.steps();
@@ -402,9 +588,27 @@ impl HumanLayer {
         let n = s.count();
         if n != self.count as usize {
             let k = sh_coeffs(self.config.sh_degree);
-            let cloud = GaussianCloud { sh_degree: self.config.sh_degree, means: s.means.clone(), log_scales: s.log_scales.clone(), quats: s.quats.clone(), opacity_logits: vec![0.0; n], sh: vec![0.0; 3 * k * n], groups: vec![Layer::Body.group(); n] };
-            let weights = s.weight_targets.as_deref().expect("checkpoint::read requires the skinning targets of a layer of another count");
-            let mut fresh = Self::new(ctx, &self.name, &cloud, weights, &self.config, self.steps, self.seed)?;
+            let cloud = GaussianCloud {
+                sh_degree: self.config.sh_degree,
+                means: s.means.clone(),
+                log_scales: s.log_scales.clone(),
+                quats: s.quats.clone(),
+                opacity_logits: vec![0.0; n],
+                sh: vec![0.0; 3 * k * n],
+                groups: vec![Layer::Body.group(); n],
+            };
+            let weights = s.weight_targets.as_deref().expect(
+                "checkpoint::read requires the skinning targets of a layer of another count",
+            );
+            let mut fresh = Self::new(
+                ctx,
+                &self.name,
+                &cloud,
+                weights,
+                &self.config,
+                self.steps,
+                self.seed,
+            )?;
             fresh.set_accumulation(ctx, self.accumulation)?;
             fresh.edges = std::mem::take(&mut self.edges);
             *self = fresh;
@@ -414,7 +618,10 @@ impl HumanLayer {
         }
         match &s.screen_stats {
             Some(st) => ctx.write_buffer(&mut self.screen_stats, st)?,
-            None => ctx.write_buffer(&mut self.screen_stats, &vec![0.0f32; SCREEN_STATS_FLOATS * n])?,
+            None => ctx.write_buffer(
+                &mut self.screen_stats,
+                &vec![0.0f32; SCREEN_STATS_FLOATS * n],
+            )?,
         }
         if let Some(e) = &s.edges {
             self.edges = e.clone();
@@ -437,16 +644,38 @@ impl HumanLayer {
 
 /// Records `counter[0] += ` the number of non-finite values in each `(buffer, floats)`
 /// (the training guard's count; independent passes, no barrier).
-pub fn record_count_nonfinite<'a>(rec: &mut Recording<'a>, buffers: impl IntoIterator<Item = (&'a Buffer, usize)>, counter: &'a Buffer) -> Result<()> {
+pub fn record_count_nonfinite<'a>(
+    rec: &mut Recording<'a>,
+    buffers: impl IntoIterator<Item = (&'a Buffer, usize)>,
+    counter: &'a Buffer,
+) -> Result<()> {
     for (b, len) in buffers {
-        let p = LossParams { len: len as u32, scale: 1.0, _pad: [0; 2] };
-        rec.dispatch("guard.count_nonfinite", kernels::train::CountNonfinite { values: b.read(), counter: counter.write() }, &p, flat_grid(p.len))?;
+        let p = LossParams {
+            len: len as u32,
+            scale: 1.0,
+            _pad: [0; 2],
+        };
+        rec.dispatch(
+            "guard.count_nonfinite",
+            kernels::train::CountNonfinite {
+                values: b.read(),
+                counter: counter.write(),
+            },
+            &p,
+            flat_grid(p.len),
+        )?;
     }
     Ok(())
 }
 
 /// One Adam step of `group`, guarded by `guard`'s first word where there is one.
-pub(crate) fn record_adam_step<'a>(rec: &mut Recording<'a>, group: &'a AdamGroup, params: &'a Buffer, grads: &'a Buffer, guard: Option<&'a Buffer>) -> Result<()> {
+pub(crate) fn record_adam_step<'a>(
+    rec: &mut Recording<'a>,
+    group: &'a AdamGroup,
+    params: &'a Buffer,
+    grads: &'a Buffer,
+    guard: Option<&'a Buffer>,
+) -> Result<()> {
     match guard {
         Some(guard) => group.record_guarded_step(rec, params, grads, guard),
         None => group.record_step(rec, params, grads),

@@ -5,10 +5,10 @@
 //! which copies them into host mirrors, so reading them after the step's one wait
 //! waits no more. (The cloth layer's losses are `cloth_losses`.)
 
+use drape_engine::mirror::Mirror;
 use drape_engine::ops::lpips::Lpips;
 use drape_engine::ops::ssim::Ssim;
 use drape_engine::recorder::flat_grid;
-use drape_engine::mirror::Mirror;
 use drape_engine::{kernels, Buffer, BufferDesc, Context, Recording, Result};
 use drape_shared::adam::LossParams;
 
@@ -49,7 +49,13 @@ pub struct ImageLosses {
 
 impl ImageLosses {
     /// The losses of `width` × `height` renders; LPIPS joins where `lpips` is given.
-    pub fn new(ctx: &Context, width: u32, height: u32, weights: ImageLossWeights, mut lpips: Option<Lpips>) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        width: u32,
+        height: u32,
+        weights: ImageLossWeights,
+        mut lpips: Option<Lpips>,
+    ) -> Result<Self> {
         let floats = 3 * u64::from(width) * u64::from(height);
         let abs_error = ctx.create_buffer("train abs error", BufferDesc::gpu_only(4 * floats))?;
         let mut ssim = Ssim::new(ctx, width, height)?;
@@ -63,7 +69,11 @@ impl ImageLosses {
             grad_rgb: ctx.create_buffer("train grad rgb", BufferDesc::gpu_only(4 * floats))?,
             abs_error_mirror: Mirror::new(ctx, &abs_error)?,
             abs_error,
-            l1: LossParams { len: floats as u32, scale: weights.l1 / floats as f32, _pad: [0; 2] },
+            l1: LossParams {
+                len: floats as u32,
+                scale: weights.l1 / floats as f32,
+                _pad: [0; 2],
+            },
             ssim,
             lpips,
             weights,
@@ -83,14 +93,29 @@ impl ImageLosses {
         self.abs_error_mirror.mark_stale();
         rec.dispatch(
             "loss.l1_grad",
-            kernels::train::L1Grad { pred: rgb.read(), target: self.target.read(), grad: self.grad_rgb.write(), abs_error: self.abs_error.write() },
+            kernels::train::L1Grad {
+                pred: rgb.read(),
+                target: self.target.read(),
+                grad: self.grad_rgb.write(),
+                abs_error: self.abs_error.write(),
+            },
             l1,
             flat_grid(l1.len),
         )?;
         // λ (1 − SSIM) adds −λ ∂SSIM/∂rgb to the L1 gradient.
-        self.ssim.record(rec, rgb, &self.target, Some((&self.grad_rgb, -self.weights.ssim)))?;
+        self.ssim.record(
+            rec,
+            rgb,
+            &self.target,
+            Some((&self.grad_rgb, -self.weights.ssim)),
+        )?;
         if let Some(l) = &self.lpips {
-            l.record(rec, rgb, &self.target, Some((&self.grad_rgb, self.weights.lpips)))?;
+            l.record(
+                rec,
+                rgb,
+                &self.target,
+                Some((&self.grad_rgb, self.weights.lpips)),
+            )?;
         }
         Ok(())
     }
@@ -103,7 +128,8 @@ impl ImageLosses {
     /// Records, after [`ImageLosses::record`], the copy of the values it computed into
     /// host memory, for [`ImageLosses::read_values`] to read without a wait.
     pub fn record_readback<'a>(&'a self, rec: &mut Recording<'a>) {
-        self.abs_error_mirror.record_copy(rec, &self.abs_error, 4 * u64::from(self.l1.len));
+        self.abs_error_mirror
+            .record_copy(rec, &self.abs_error, 4 * u64::from(self.l1.len));
         self.ssim.record_readback(rec);
         if let Some(l) = &self.lpips {
             l.record_readback(rec);
@@ -113,7 +139,9 @@ impl ImageLosses {
     /// The last recorded step's values: out of host memory (no wait) where that step
     /// recorded [`ImageLosses::record_readback`], otherwise read back from the device.
     pub fn read_values(&mut self, ctx: &Context) -> Result<ImageLossValues> {
-        let e = self.abs_error_mirror.read::<f32>(ctx, &mut self.abs_error, self.l1.len as usize)?;
+        let e =
+            self.abs_error_mirror
+                .read::<f32>(ctx, &mut self.abs_error, self.l1.len as usize)?;
         let n = e.len().max(1) as f64;
         let l1 = e.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
         let mse = e.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() / n;
@@ -123,6 +151,12 @@ impl ImageLosses {
             None => None,
         };
         let loss = f64::from(self.weights.l1) * l1 + f64::from(self.weights.ssim) * (1.0 - ssim);
-        Ok(ImageLossValues { l1, psnr: -10.0 * mse.max(1e-20).log10(), ssim, lpips, loss })
+        Ok(ImageLossValues {
+            l1,
+            psnr: -10.0 * mse.max(1e-20).log10(),
+            ssim,
+            lpips,
+            loss,
+        })
     }
 }

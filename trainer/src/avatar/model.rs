@@ -16,22 +16,22 @@
 //! their skinning targets are the nearest body vertex's weights (the paper's W_gt),
 //! and the cloth-LBS loss `λ ‖W - W_gt‖²` keeps the predicted weights near them.
 
+use crate::avatar::groups::Layer;
 use drape_engine::ops::accumulate::Accumulation;
 use drape_engine::ops::splat::render::GaussianBuffers;
-use drape_engine::ops::splat::sh_copy::{record_copy_sh, ShSlice};
 use drape_engine::ops::splat::scene::GaussianCloud;
-use crate::avatar::groups::Layer;
+use drape_engine::ops::splat::sh_copy::{record_copy_sh, ShSlice};
 use drape_engine::{Buffer, Context, Recording, Result};
 
-use crate::avatar::state::{LayerShape, ModelState};
+use crate::avatar::cloth_target::{contracted_edges, garments};
 use crate::avatar::gaussian_layout::GEOMETRY_FLOATS;
 use crate::avatar::layer::{HumanLayer, LayerConfig};
 use crate::avatar::rig::{FrameTransforms, Rig};
-use crate::garment::GarmentFit;
 use crate::avatar::scene::SceneLayer;
+use crate::avatar::state::{LayerShape, ModelState};
 use crate::body::gaussians::{gaussians_from_mesh, SkinnedMesh};
 use crate::body::kinematics::{forward_kinematics, relative_transforms, skin};
-use crate::avatar::cloth_target::{contracted_edges, garments};
+use crate::garment::GarmentFit;
 
 /// Which layers to build: each optional layer forced on or off, or (None) decided
 /// from the data. In a config it is the string [`LayerChoice::parse`] reads.
@@ -44,13 +44,17 @@ pub struct LayerChoice {
 
 impl LayerChoice {
     /// Every optional layer decided from the data.
-    pub const AUTO: Self = Self { cloth: None, scene: None };
+    pub const AUTO: Self = Self {
+        cloth: None,
+        scene: None,
+    };
 
     /// `auto`, or the layers joined by `+`, body first: `body` (the single-layer
     /// baseline: cloth folded into the body, as HUGS), `body+cloth`, `body+scene`,
     /// `body+cloth+scene`.
     pub fn parse(s: &str) -> crate::Result<Self> {
-        Self::try_from(s.to_string()).map_err(|e| crate::TrainerError::config("layers", e.to_string()))
+        Self::try_from(s.to_string())
+            .map_err(|e| crate::TrainerError::config("layers", e.to_string()))
     }
 }
 
@@ -80,11 +84,15 @@ impl TryFrom<String> for LayerChoice {
         }
         let parts: Vec<&str> = value.split('+').collect();
         let has = |name: &str| parts.iter().filter(|p| **p == name).count();
-        let known = parts.first() == Some(&"body") && parts[1..].iter().all(|p| ["cloth", "scene"].contains(p));
+        let known = parts.first() == Some(&"body")
+            && parts[1..].iter().all(|p| ["cloth", "scene"].contains(p));
         if !known || has("cloth") > 1 || has("scene") > 1 {
             return Err(crate::error::BadChoice { value, allowed: "auto, or body joined with cloth and/or scene by '+' (body, body+cloth, body+scene, body+cloth+scene)" });
         }
-        Ok(Self { cloth: Some(has("cloth") == 1), scene: Some(has("scene") == 1) })
+        Ok(Self {
+            cloth: Some(has("cloth") == 1),
+            scene: Some(has("scene") == 1),
+        })
     }
 }
 
@@ -106,7 +114,13 @@ pub struct LayerInit {
 
 /// Every `keep`-th Gaussian of `full`, widened by √keep in the surface plane, with
 /// its row of `weights`.
-fn decimated(name: &str, full: &GaussianCloud, weights: &[[f64; 24]], keep: usize, layer: Layer) -> LayerInit {
+fn decimated(
+    name: &str,
+    full: &GaussianCloud,
+    weights: &[[f64; 24]],
+    keep: usize,
+    layer: Layer,
+) -> LayerInit {
     let keep = keep.max(1);
     let widen = 0.5 * (keep as f32).ln();
     let mut cloud = GaussianCloud::new(full.sh_degree);
@@ -119,7 +133,12 @@ fn decimated(name: &str, full: &GaussianCloud, weights: &[[f64; 24]], keep: usiz
         cloud.push(&g, layer);
         w.extend(weights[i].iter().map(|&v| v as f32));
     }
-    LayerInit { name: name.to_string(), cloud, weights: w, edges: Vec::new() }
+    LayerInit {
+        name: name.to_string(),
+        cloud,
+        weights: w,
+        edges: Vec::new(),
+    }
 }
 
 /// The body layer's canonical Gaussians.
@@ -137,7 +156,11 @@ pub fn body_init(rig: &Rig, subdivision: u32, decimate: u32, sh_degree: u32) -> 
 /// The cloth layer's canonical Gaussians: the project's T-shirt of `fit` and pants made
 /// on the rig's body (the garments `drape synth` dresses it in).
 pub fn cloth_init(rig: &Rig, fit: GarmentFit, decimate: u32, sh_degree: u32) -> LayerInit {
-    let (canonical, _) = forward_kinematics(&rig.model.parents, &rig.rest_joints(), &crate::body::kinematics::da_pose());
+    let (canonical, _) = forward_kinematics(
+        &rig.model.parents,
+        &rig.rest_joints(),
+        &crate::body::kinematics::da_pose(),
+    );
     let mut vertices = Vec::new();
     let mut faces = Vec::new();
     let mut weights = Vec::new();
@@ -150,9 +173,20 @@ pub fn cloth_init(rig: &Rig, fit: GarmentFit, decimate: u32, sh_degree: u32) -> 
         weights.extend(g.weights.iter().copied());
     }
     let n = vertices.len();
-    let mesh = SkinnedMesh { vertices, faces, weights, shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; n] };
+    let mesh = SkinnedMesh {
+        vertices,
+        faces,
+        weights,
+        shapedirs: vec![[Vec::new(), Vec::new(), Vec::new()]; n],
+    };
     let (full, sub) = gaussians_from_mesh(&mesh, 0, sh_degree, Layer::Cloth);
-    let mut init = decimated("cloth", &full, &sub.weights, decimate as usize, Layer::Cloth);
+    let mut init = decimated(
+        "cloth",
+        &full,
+        &sub.weights,
+        decimate as usize,
+        Layer::Cloth,
+    );
     init.edges = contracted_edges(sub.vertices.len(), &sub.faces, decimate as usize);
     init
 }
@@ -174,17 +208,39 @@ pub struct Avatar {
 impl Avatar {
     /// Builds the layers from their initial Gaussians (configs and LBS weights in the
     /// same order).
-    pub fn new(ctx: &Context, inits: &[LayerInit], configs: &[LayerConfig], lbs_weights: &[f32], scene: Option<SceneLayer>, steps: u32, seed: u64) -> Result<Self> {
+    pub fn new(
+        ctx: &Context,
+        inits: &[LayerInit],
+        configs: &[LayerConfig],
+        lbs_weights: &[f32],
+        scene: Option<SceneLayer>,
+        steps: u32,
+        seed: u64,
+    ) -> Result<Self> {
         let mut layers = Vec::new();
         for (k, (init, config)) in inits.iter().zip(configs).enumerate() {
-            let mut layer = HumanLayer::new(ctx, &init.name, &init.cloud, &init.weights, config, steps, seed + 100 * k as u64)?;
+            let mut layer = HumanLayer::new(
+                ctx,
+                &init.name,
+                &init.cloud,
+                &init.weights,
+                config,
+                steps,
+                seed + 100 * k as u64,
+            )?;
             layer.edges = init.edges.clone();
             layers.push(layer);
         }
-        let total: usize = layers.iter().map(|l| l.count as usize).sum::<usize>() + scene.as_ref().map_or(0, |s| s.count as usize);
+        let total: usize = layers.iter().map(|l| l.count as usize).sum::<usize>()
+            + scene.as_ref().map_or(0, |s| s.count as usize);
         // Each layer keeps its own SH degree; the posed cloud that the layers are
         // rendered from together has the highest (`ops::splat::sh_copy` pads the rest).
-        let sh = configs.iter().map(|c| c.sh_degree).chain(scene.iter().map(|s| s.params.sh_degree)).max().unwrap_or(0);
+        let sh = configs
+            .iter()
+            .map(|c| c.sh_degree)
+            .chain(scene.iter().map(|s| s.params.sh_degree))
+            .max()
+            .unwrap_or(0);
         Ok(Self {
             layers,
             scene,
@@ -217,7 +273,11 @@ impl Avatar {
 
     /// Gaussians per layer.
     pub fn counts(&self) -> Vec<(String, u32)> {
-        let mut c: Vec<(String, u32)> = self.layers.iter().map(|l| (l.name.clone(), l.count)).collect();
+        let mut c: Vec<(String, u32)> = self
+            .layers
+            .iter()
+            .map(|l| (l.name.clone(), l.count))
+            .collect();
         if let Some(s) = &self.scene {
             c.push(("scene".into(), s.count));
         }
@@ -233,21 +293,55 @@ impl Avatar {
     /// into the slice of `dst` that starts at Gaussian `first`, or back with
     /// `to_layer`: geometry and opacity as they are, SH padded or truncated to the
     /// receiving buffer's degree.
-    pub(crate) fn record_move<'a>(rec: &mut Recording<'a>, layer: &'a GaussianBuffers, shared: &'a GaussianBuffers, first: u32, count: u32, to_layer: bool) -> Result<()> {
-        let (src, dst) = if to_layer { (shared, layer) } else { (layer, shared) };
+    pub(crate) fn record_move<'a>(
+        rec: &mut Recording<'a>,
+        layer: &'a GaussianBuffers,
+        shared: &'a GaussianBuffers,
+        first: u32,
+        count: u32,
+        to_layer: bool,
+    ) -> Result<()> {
+        let (src, dst) = if to_layer {
+            (shared, layer)
+        } else {
+            (layer, shared)
+        };
         let (src_first, dst_first) = if to_layer { (first, 0) } else { (0, first) };
         let (s, d) = (src.all(), dst.all());
         for k in 0..4 {
             let per = 4 * u64::from(GEOMETRY_FLOATS[k]);
-            rec.copy_region(s[k], per * u64::from(src_first), d[k], per * u64::from(dst_first), per * u64::from(count));
+            rec.copy_region(
+                s[k],
+                per * u64::from(src_first),
+                d[k],
+                per * u64::from(dst_first),
+                per * u64::from(count),
+            );
         }
-        record_copy_sh(rec, ShSlice { buffer: &src.sh, degree: src.sh_degree, first: src_first }, ShSlice { buffer: &dst.sh, degree: dst.sh_degree, first: dst_first }, count)
+        record_copy_sh(
+            rec,
+            ShSlice {
+                buffer: &src.sh,
+                degree: src.sh_degree,
+                first: src_first,
+            },
+            ShSlice {
+                buffer: &dst.sh,
+                degree: dst.sh_degree,
+                first: dst_first,
+            },
+            count,
+        )
     }
 
     /// Records every layer's forward pass for the frame's transforms (written into
     /// each layer's `transforms` before) and gathers the posed cloud. Each layer's
     /// passes are timed under its name (`Recording::set_scope`).
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, log_scale_offset: f32) -> Result<()> {
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        log_scale_offset: f32,
+    ) -> Result<()> {
         for l in &self.layers {
             rec.set_scope(&l.name);
             l.record_forward(rec, log_scale_offset)?;
@@ -274,7 +368,11 @@ impl Avatar {
     /// Records the backward pass from `posed_grads` (the splatter's), through every
     /// layer, with each layer's cloth-LBS term (and, with `pose_gradient`, the
     /// transforms' gradient for pose refinement).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        pose_gradient: bool,
+    ) -> Result<()> {
         self.record_scatter_grads(rec)?;
         self.record_layers_backward(rec, pose_gradient)
     }
@@ -284,7 +382,14 @@ impl Avatar {
     pub fn record_scatter_grads<'a>(&'a self, rec: &mut Recording<'a>) -> Result<()> {
         let mut first = 0;
         for l in &self.layers {
-            Self::record_move(rec, &l.deformer.posed_grads, &self.posed_grads, first, l.count, true)?;
+            Self::record_move(
+                rec,
+                &l.deformer.posed_grads,
+                &self.posed_grads,
+                first,
+                l.count,
+                true,
+            )?;
             first += l.count;
         }
         if let Some(s) = &self.scene {
@@ -295,7 +400,11 @@ impl Avatar {
 
     /// Records every layer's backward pass from its own `posed_grads`, with each
     /// layer's cloth-LBS term (and, with `pose_gradient`, the transforms' gradient).
-    pub fn record_layers_backward<'a>(&'a self, rec: &mut Recording<'a>, pose_gradient: bool) -> Result<()> {
+    pub fn record_layers_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        pose_gradient: bool,
+    ) -> Result<()> {
         for (l, &lbs) in self.layers.iter().zip(&self.lbs_weights) {
             rec.set_scope(&l.name);
             l.record_backward(rec, lbs, pose_gradient)?;
@@ -306,12 +415,21 @@ impl Avatar {
 
     /// Records the count of non-finite gradient values of every layer into `counter`
     /// (with `pose_gradient`, also the layers' partial sums of `∂L/∂A`).
-    pub fn record_count_nonfinite<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer, pose_gradient: bool) -> Result<()> {
+    pub fn record_count_nonfinite<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        counter: &'a Buffer,
+        pose_gradient: bool,
+    ) -> Result<()> {
         for l in &self.layers {
             l.record_count_nonfinite(rec, counter, pose_gradient)?;
         }
         if let Some(s) = &self.scene {
-            crate::avatar::layer::record_count_nonfinite(rec, s.grads.all().into_iter().zip(s.lens()), counter)?;
+            crate::avatar::layer::record_count_nonfinite(
+                rec,
+                s.grads.all().into_iter().zip(s.lens()),
+                counter,
+            )?;
         }
         Ok(())
     }
@@ -319,7 +437,11 @@ impl Avatar {
     /// Records one Adam step of every layer; with `guard`, applied on the GPU only
     /// while the guard's first word is 0 (then [`advance_adam`](Self::advance_adam)
     /// once the host has seen it stay down).
-    pub fn record_adam<'a>(&'a self, rec: &mut Recording<'a>, guard: Option<&'a Buffer>) -> Result<()> {
+    pub fn record_adam<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        guard: Option<&'a Buffer>,
+    ) -> Result<()> {
         for l in &self.layers {
             rec.set_scope(&l.name);
             l.record_adam(rec, true, guard)?;
@@ -372,7 +494,8 @@ impl Avatar {
 
     /// Gaussians of every layer together.
     pub fn total_count(&self) -> u32 {
-        self.layers.iter().map(|l| l.count).sum::<u32>() + self.scene.as_ref().map_or(0, |s| s.count)
+        self.layers.iter().map(|l| l.count).sum::<u32>()
+            + self.scene.as_ref().map_or(0, |s| s.count)
     }
 
     /// Re-allocates the posed cloud after a layer changed its count (densification).
@@ -395,7 +518,12 @@ impl Avatar {
             Some(s) => Some(s.state(ctx)?),
             None => None,
         };
-        Ok(ModelState { step, layers, scene, poses: None })
+        Ok(ModelState {
+            step,
+            layers,
+            scene,
+            poses: None,
+        })
     }
 
     pub fn restore(&mut self, ctx: &Context, state: &ModelState) -> Result<()> {
@@ -412,7 +540,11 @@ impl Avatar {
     pub fn read_posed(&mut self, ctx: &Context) -> Result<GaussianCloud> {
         let mut kinds = Vec::new();
         for l in &self.layers {
-            let kind = if l.name == "cloth" { Layer::Cloth } else { Layer::Body };
+            let kind = if l.name == "cloth" {
+                Layer::Cloth
+            } else {
+                Layer::Body
+            };
             kinds.extend(std::iter::repeat_n(kind, l.count as usize));
         }
         if let Some(s) = &self.scene {

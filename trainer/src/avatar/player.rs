@@ -39,14 +39,17 @@
 use std::path::Path;
 
 use drape_engine::ops::splat::scene::{PinholeCamera, RenderSettings};
-use drape_engine::{Buffer, BufferDesc, Context, FramesInFlight, HostCommandBuffer, ImageTarget, PassTimings, Recording, SubmitSync};
+use drape_engine::{
+    Buffer, BufferDesc, Context, FramesInFlight, HostCommandBuffer, ImageTarget, PassTimings,
+    Recording, SubmitSync,
+};
 use glam::DVec3;
 
+use crate::avatar::assemble::build_avatar;
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::{FrameTransforms, Rig};
 use crate::avatar::run::OpenRun;
-use crate::avatar::assemble::build_avatar;
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
 use crate::dataset::loader::BodyParams;
@@ -83,21 +86,35 @@ impl ViewCamera {
     /// Non-finite or non-positive intrinsics and planes, or a matrix whose last row is
     /// not `0 0 0 1`, are an error naming the field.
     pub fn to_pinhole(&self, width: u32, height: u32) -> crate::Result<PinholeCamera> {
-        let bad = |field: &str, why: &str| TrainerError::invalid("camera", format!("{field}: {why}"));
+        let bad =
+            |field: &str, why: &str| TrainerError::invalid("camera", format!("{field}: {why}"));
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(bad(name, &format!("{v} (a focal length in pixels, positive)")));
+                return Err(bad(
+                    name,
+                    &format!("{v} (a focal length in pixels, positive)"),
+                ));
             }
         }
         if !(self.cx.is_finite() && self.cy.is_finite()) {
             return Err(bad("cx, cy", "not finite"));
         }
-        if !(self.near.is_finite() && self.far.is_finite() && self.near > 0.0 && self.far > self.near) {
-            return Err(bad("near, far", &format!("{} and {} (0 < near < far)", self.near, self.far)));
+        if !(self.near.is_finite()
+            && self.far.is_finite()
+            && self.near > 0.0
+            && self.far > self.near)
+        {
+            return Err(bad(
+                "near, far",
+                &format!("{} and {} (0 < near < far)", self.near, self.far),
+            ));
         }
         let m = &self.world_to_camera;
         if m.iter().any(|v| !v.is_finite()) || m[12..] != [0.0, 0.0, 0.0, 1.0] {
-            return Err(bad("world_to_camera", "not finite, or its last row is not 0 0 0 1"));
+            return Err(bad(
+                "world_to_camera",
+                "not finite, or its last row is not 0 0 0 1",
+            ));
         }
         if width == 0 || height == 0 {
             return Err(bad("width, height", "at least 1 pixel"));
@@ -122,9 +139,18 @@ impl ViewCamera {
         let r = c.rotation;
         let t = c.translation;
         let w2c = [
-            r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1], r[2][2], t[2], 0.0, 0.0, 0.0, 1.0,
+            r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1],
+            r[2][2], t[2], 0.0, 0.0, 0.0, 1.0,
         ];
-        Self { fx: c.fx as f32, fy: c.fy as f32, cx: c.cx as f32, cy: c.cy as f32, world_to_camera: w2c.map(|v| v as f32), near: c.near as f32, far: Camera::FAR }
+        Self {
+            fx: c.fx as f32,
+            fy: c.fy as f32,
+            cx: c.cx as f32,
+            cy: c.cy as f32,
+            world_to_camera: w2c.map(|v| v as f32),
+            near: c.near as f32,
+            far: Camera::FAR,
+        }
     }
 }
 
@@ -151,24 +177,69 @@ impl AvatarPlayer {
     /// `frames_in_flight` frames in flight (1 to 8), each with its own avatar.
     pub fn load(ctx: &Context, dir: &Path, frames_in_flight: usize) -> crate::Result<Self> {
         if !(1..=8).contains(&frames_in_flight) {
-            return Err(TrainerError::invalid("frames in flight", format!("{frames_in_flight} (1 to 8)")));
+            return Err(TrainerError::invalid(
+                "frames in flight",
+                format!("{frames_in_flight} (1 to 8)"),
+            ));
         }
         let run = OpenRun::open(ctx, dir, None, None)?;
-        let anchor = run.test_frames().first().copied().or_else(|| run.seq.frames.first()).ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?.clone();
+        let anchor = run
+            .test_frames()
+            .first()
+            .copied()
+            .or_else(|| run.seq.frames.first())
+            .ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?
+            .clone();
         let (width, height) = (anchor.camera.width, anchor.camera.height);
         let mut slots = Vec::with_capacity(frames_in_flight);
-        let OpenRun { mut avatar, renderer, rig, seq, config, layers, step, .. } = run;
+        let OpenRun {
+            mut avatar,
+            renderer,
+            rig,
+            seq,
+            config,
+            layers,
+            step,
+            ..
+        } = run;
         // The other slots' avatars restored from the first's state (not read from disk again).
-        let state = if frames_in_flight > 1 { Some(avatar.state(ctx, step)?) } else { None };
+        let state = if frames_in_flight > 1 {
+            Some(avatar.state(ctx, step)?)
+        } else {
+            None
+        };
         for k in 1..frames_in_flight {
             let mut a = build_avatar(ctx, &rig, &seq, &config, layers)?;
             a.restore(ctx, state.as_ref().expect("made for more than one slot"))?;
             let r = AvatarRenderer::new(ctx, &a, width, height, config.layers.compositing)?;
-            let rgba = ctx.create_buffer(&format!("player rgba {k}"), BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-            slots.push(PlayerFrame { avatar: a, renderer: r, rgba, width, height, compositing: config.layers.compositing });
+            let rgba = ctx.create_buffer(
+                &format!("player rgba {k}"),
+                BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)),
+            )?;
+            slots.push(PlayerFrame {
+                avatar: a,
+                renderer: r,
+                rgba,
+                width,
+                height,
+                compositing: config.layers.compositing,
+            });
         }
-        let rgba = ctx.create_buffer("player rgba 0", BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
-        slots.insert(0, PlayerFrame { avatar, renderer, rgba, width, height, compositing: config.layers.compositing });
+        let rgba = ctx.create_buffer(
+            "player rgba 0",
+            BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)),
+        )?;
+        slots.insert(
+            0,
+            PlayerFrame {
+                avatar,
+                renderer,
+                rgba,
+                width,
+                height,
+                compositing: config.layers.compositing,
+            },
+        );
         let betas = crate::avatar::inputs::betas_of(&anchor);
         let transforms = rig.frame(&anchor.body);
         Ok(Self {
@@ -211,14 +282,36 @@ impl AvatarPlayer {
     /// 0 the root's global orientation) and the root translation in metres, with the
     /// run's body shape and scale 1.
     pub fn set_pose(&mut self, pose: &[f32; 72], translation: &[f32; 3]) -> crate::Result<()> {
-        if let Some(i) = pose.iter().position(|v| !v.is_finite() || v.abs() > 4.0 * std::f32::consts::PI) {
-            return Err(TrainerError::invalid("pose", format!("value {i} is {} (axis-angles in radians, at most 4π)", pose[i])));
+        if let Some(i) = pose
+            .iter()
+            .position(|v| !v.is_finite() || v.abs() > 4.0 * std::f32::consts::PI)
+        {
+            return Err(TrainerError::invalid(
+                "pose",
+                format!(
+                    "value {i} is {} (axis-angles in radians, at most 4π)",
+                    pose[i]
+                ),
+            ));
         }
-        if let Some(i) = translation.iter().position(|v| !v.is_finite() || v.abs() > 1000.0) {
-            return Err(TrainerError::invalid("translation", format!("value {i} is {} (metres, at most 1 km)", translation[i])));
+        if let Some(i) = translation
+            .iter()
+            .position(|v| !v.is_finite() || v.abs() > 1000.0)
+        {
+            return Err(TrainerError::invalid(
+                "translation",
+                format!("value {i} is {} (metres, at most 1 km)", translation[i]),
+            ));
         }
-        let p: Pose = std::array::from_fn(|j| DVec3::from_array(std::array::from_fn(|c| f64::from(pose[3 * j + c]))));
-        self.set_body(BodyParams::Smpl { pose: p, betas: self.betas.clone(), translation: DVec3::from_array(translation.map(f64::from)), scale: 1.0 });
+        let p: Pose = std::array::from_fn(|j| {
+            DVec3::from_array(std::array::from_fn(|c| f64::from(pose[3 * j + c])))
+        });
+        self.set_body(BodyParams::Smpl {
+            pose: p,
+            betas: self.betas.clone(),
+            translation: DVec3::from_array(translation.map(f64::from)),
+            scale: 1.0,
+        });
         Ok(())
     }
 
@@ -247,7 +340,11 @@ impl AvatarPlayer {
 
     /// Waits for the slot the next frame records into, reads its last frame's overflow
     /// check, and sizes it for `width` x `height` (recreating its renderer on a change).
-    fn prepare_slot(&mut self, width: u32, height: u32) -> crate::Result<(usize, Option<PassTimings>)> {
+    fn prepare_slot(
+        &mut self,
+        width: u32,
+        height: u32,
+    ) -> crate::Result<(usize, Option<PassTimings>)> {
         let ctx = self.ctx.clone();
         let (i, frame, timings) = self.frames.next_slot()?;
         let timings = timings.cloned();
@@ -255,20 +352,35 @@ impl AvatarPlayer {
             self.overflowed += 1;
         }
         if (frame.width, frame.height) != (width, height) {
-            frame.renderer = AvatarRenderer::new(&ctx, &frame.avatar, width, height, frame.compositing)?;
-            frame.rgba = ctx.create_buffer(&format!("player rgba {i}"), BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)))?;
+            frame.renderer =
+                AvatarRenderer::new(&ctx, &frame.avatar, width, height, frame.compositing)?;
+            frame.rgba = ctx.create_buffer(
+                &format!("player rgba {i}"),
+                BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)),
+            )?;
             (frame.width, frame.height) = (width, height);
         }
         Ok((i, timings))
     }
 
     /// The recording of one frame into the slot's resources.
-    fn record<'r>(ctx: &Context, frame: &'r mut PlayerFrame, transforms: &FrameTransforms, camera: &PinholeCamera, settings: &RenderSettings, target: Option<&ImageTarget>) -> drape_engine::Result<Recording<'r>> {
-        frame.renderer.prepare_frame(&frame.avatar, camera, settings)?;
+    fn record<'r>(
+        ctx: &Context,
+        frame: &'r mut PlayerFrame,
+        transforms: &FrameTransforms,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+        target: Option<&ImageTarget>,
+    ) -> drape_engine::Result<Recording<'r>> {
+        frame
+            .renderer
+            .prepare_frame(&frame.avatar, camera, settings)?;
         let frame: &'r PlayerFrame = frame;
         let mut rec = ctx.record("avatar frame")?;
         frame.avatar.record_set_frame(&mut rec, transforms);
-        frame.avatar.record_forward(&mut rec, transforms.log_scale)?;
+        frame
+            .avatar
+            .record_forward(&mut rec, transforms.log_scale)?;
         frame.renderer.record_frame(&mut rec, &frame.avatar)?;
         frame.renderer.record_rgba(&mut rec, &frame.rgba)?;
         if let Some(t) = target {
@@ -282,14 +394,23 @@ impl AvatarPlayer {
     /// (an `R32G32B32A32_SFLOAT` image of the camera's size) if given. Waits only for
     /// the frame that last used the slot. Returns the slot and that earlier frame's GPU
     /// times.
-    pub fn submit_frame(&mut self, camera: &ViewCamera, width: u32, height: u32, sync: &SubmitSync, target: Option<&ImageTarget>) -> crate::Result<(usize, Option<PassTimings>)> {
+    pub fn submit_frame(
+        &mut self,
+        camera: &ViewCamera,
+        width: u32,
+        height: u32,
+        sync: &SubmitSync,
+        target: Option<&ImageTarget>,
+    ) -> crate::Result<(usize, Option<PassTimings>)> {
         let pinhole = camera.to_pinhole(width, height)?;
         if let Some(t) = target {
             check_target(t, width, height)?;
         }
         let (_, timings) = self.prepare_slot(width, height)?;
         let (ctx, transforms, settings) = (self.ctx.clone(), &self.transforms, self.settings);
-        let slot = self.frames.submit(sync, |frame| Self::record(&ctx, frame, transforms, &pinhole, &settings, target))?;
+        let slot = self.frames.submit(sync, |frame| {
+            Self::record(&ctx, frame, transforms, &pinhole, &settings, target)
+        })?;
         self.unfinished[slot] = true;
         self.rendered += 1;
         Ok((slot, timings))
@@ -299,14 +420,23 @@ impl AvatarPlayer {
     /// buffer, which the host submits (its work must complete before this player records
     /// [`frames_in_flight`](Self::frames_in_flight) frames more, and before the player is
     /// dropped: [`HostCommandBuffer::new`]'s contract).
-    pub fn record_frame_into(&mut self, camera: &ViewCamera, width: u32, height: u32, host: &HostCommandBuffer, target: Option<&ImageTarget>) -> crate::Result<usize> {
+    pub fn record_frame_into(
+        &mut self,
+        camera: &ViewCamera,
+        width: u32,
+        height: u32,
+        host: &HostCommandBuffer,
+        target: Option<&ImageTarget>,
+    ) -> crate::Result<usize> {
         let pinhole = camera.to_pinhole(width, height)?;
         if let Some(t) = target {
             check_target(t, width, height)?;
         }
         self.prepare_slot(width, height)?;
         let (ctx, transforms, settings) = (self.ctx.clone(), &self.transforms, self.settings);
-        let slot = self.frames.record_into(host, |frame| Self::record(&ctx, frame, transforms, &pinhole, &settings, target))?;
+        let slot = self.frames.record_into(host, |frame| {
+            Self::record(&ctx, frame, transforms, &pinhole, &settings, target)
+        })?;
         self.unfinished[slot] = true;
         self.rendered += 1;
         Ok(slot)
@@ -318,9 +448,15 @@ impl AvatarPlayer {
     /// recorded into the host's command buffers must have completed). A frame that
     /// outgrew its renderer's buffers is rendered again in the same slot, whose buffers
     /// have grown.
-    pub fn render(&mut self, camera: &ViewCamera, width: u32, height: u32) -> crate::Result<Vec<f32>> {
+    pub fn render(
+        &mut self,
+        camera: &ViewCamera,
+        width: u32,
+        height: u32,
+    ) -> crate::Result<Vec<f32>> {
         loop {
-            let (slot, _) = self.submit_frame(camera, width, height, &SubmitSync::default(), None)?;
+            let (slot, _) =
+                self.submit_frame(camera, width, height, &SubmitSync::default(), None)?;
             self.unfinished[slot] = false;
             let frame = self.frames.all_mut()?.nth(slot).expect("the slot exists");
             if frame.renderer.finish_frame()? {
@@ -341,7 +477,14 @@ impl AvatarPlayer {
 
 fn check_target(t: &ImageTarget, width: u32, height: u32) -> crate::Result<()> {
     if t.size() != (width, height) {
-        return Err(TrainerError::invalid("target image", format!("{}x{}, but the frame is {width}x{height}", t.size().0, t.size().1)));
+        return Err(TrainerError::invalid(
+            "target image",
+            format!(
+                "{}x{}, but the frame is {width}x{height}",
+                t.size().0,
+                t.size().1
+            ),
+        ));
     }
     Ok(())
 }
@@ -350,7 +493,9 @@ fn check_target(t: &ImageTarget, width: u32, height: u32) -> crate::Result<()> {
 /// 72 floats [`AvatarPlayer::set_pose`] takes, and the translation, of an SMPL body.
 pub fn smpl_pose_of(body: &BodyParams) -> Option<([f32; 72], [f32; 3])> {
     match body {
-        BodyParams::Smpl { pose, translation, .. } => {
+        BodyParams::Smpl {
+            pose, translation, ..
+        } => {
             let mut p = [0f32; 72];
             for (j, a) in pose.iter().enumerate() {
                 for c in 0..3 {

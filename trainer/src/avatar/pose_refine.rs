@@ -37,7 +37,13 @@ impl PoseState {
     /// No frame refined yet.
     pub fn zeros(frames: &[u32]) -> Self {
         let z = vec![[0.0; REFINED_PARAMS]; frames.len()];
-        Self { frames: frames.to_vec(), deltas: z.clone(), m: z.clone(), v: z, steps: vec![0; frames.len()] }
+        Self {
+            frames: frames.to_vec(),
+            deltas: z.clone(),
+            m: z.clone(),
+            v: z,
+            steps: vec![0; frames.len()],
+        }
     }
 }
 
@@ -53,7 +59,11 @@ impl PoseRefiner {
     /// Corrections (all zero) for the training frames `frames` (dataset frame numbers,
     /// in the order the trainer indexes them).
     pub fn new(frames: &[u32], lr_pose: f64, lr_translation: f64) -> Self {
-        Self { state: PoseState::zeros(frames), lr_pose, lr_translation }
+        Self {
+            state: PoseState::zeros(frames),
+            lr_pose,
+            lr_translation,
+        }
     }
 
     /// The body parameters training frame `index` is rendered with.
@@ -69,11 +79,16 @@ impl PoseRefiner {
         let t = s.steps[index] as i32;
         let (c1, c2) = (1.0 - BETA1.powi(t), 1.0 - BETA2.powi(t));
         for k in 0..REFINED_PARAMS {
-            let lr = if k >= REFINED_PARAMS - 3 { self.lr_translation } else { self.lr_pose };
+            let lr = if k >= REFINED_PARAMS - 3 {
+                self.lr_translation
+            } else {
+                self.lr_pose
+            };
             let g = grad[k];
             s.m[index][k] = BETA1 * s.m[index][k] + (1.0 - BETA1) * g;
             s.v[index][k] = BETA2 * s.v[index][k] + (1.0 - BETA2) * g * g;
-            s.deltas[index][k] -= lr * (s.m[index][k] / c1) / ((s.v[index][k] / c2).sqrt() + ADAM_EPS);
+            s.deltas[index][k] -=
+                lr * (s.m[index][k] / c1) / ((s.v[index][k] / c2).sqrt() + ADAM_EPS);
         }
     }
 
@@ -89,7 +104,13 @@ impl PoseRefiner {
     /// Restores saved corrections; the frames must be this run's, in its order.
     pub fn restore(&mut self, state: PoseState) -> crate::Result<()> {
         if state.frames != self.state.frames {
-            return Err(TrainerError::invalid("refined poses", format!("of frames {:?}, but this run trains on {:?}", state.frames, self.state.frames)));
+            return Err(TrainerError::invalid(
+                "refined poses",
+                format!(
+                    "of frames {:?}, but this run trains on {:?}",
+                    state.frames, self.state.frames
+                ),
+            ));
         }
         self.state = state;
         Ok(())
@@ -100,8 +121,25 @@ impl PoseRefiner {
     pub fn summary(&self) -> (f64, f64) {
         let n = self.state.deltas.len().max(1) as f64;
         let t = REFINED_PARAMS - 3;
-        let rot = self.state.deltas.iter().map(|d| d[..t].chunks_exact(3).map(|r| (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt()).fold(0.0, f64::max)).sum::<f64>() / n;
-        let tr = self.state.deltas.iter().map(|d| (d[t] * d[t] + d[t + 1] * d[t + 1] + d[t + 2] * d[t + 2]).sqrt()).sum::<f64>() / n;
+        let rot = self
+            .state
+            .deltas
+            .iter()
+            .map(|d| {
+                d[..t]
+                    .chunks_exact(3)
+                    .map(|r| (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt())
+                    .fold(0.0, f64::max)
+            })
+            .sum::<f64>()
+            / n;
+        let tr = self
+            .state
+            .deltas
+            .iter()
+            .map(|d| (d[t] * d[t] + d[t + 1] * d[t + 1] + d[t + 2] * d[t + 2]).sqrt())
+            .sum::<f64>()
+            / n;
         (rot, tr)
     }
 }
@@ -116,22 +154,44 @@ mod tests {
     fn adam_steps_toward_the_minimum() {
         let mut r = PoseRefiner::new(&[4, 9], 1e-2, 1e-3);
         let target: [f64; REFINED_PARAMS] = std::array::from_fn(|k| 0.05 * ((k % 7) as f64 - 3.0));
-        let grad = |d: &[f64; REFINED_PARAMS]| -> [f64; REFINED_PARAMS] { std::array::from_fn(|k| d[k] - target[k]) };
+        let grad = |d: &[f64; REFINED_PARAMS]| -> [f64; REFINED_PARAMS] {
+            std::array::from_fn(|k| d[k] - target[k])
+        };
         let g = grad(r.delta(1));
         r.step(1, &g);
         for k in 0..REFINED_PARAMS {
             let lr = if k >= REFINED_PARAMS - 3 { 1e-3 } else { 1e-2 };
-            let expected = if target[k] == 0.0 { 0.0 } else { lr * target[k].signum() };
-            assert!((r.delta(1)[k] - expected).abs() < 1e-12, "parameter {k}: {} vs {expected}", r.delta(1)[k]);
+            let expected = if target[k] == 0.0 {
+                0.0
+            } else {
+                lr * target[k].signum()
+            };
+            assert!(
+                (r.delta(1)[k] - expected).abs() < 1e-12,
+                "parameter {k}: {} vs {expected}",
+                r.delta(1)[k]
+            );
         }
-        assert_eq!(r.delta(0), &[0.0; REFINED_PARAMS], "another frame is untouched");
+        assert_eq!(
+            r.delta(0),
+            &[0.0; REFINED_PARAMS],
+            "another frame is untouched"
+        );
         let start: f64 = target.iter().map(|t| t * t).sum();
         for _ in 0..200 {
             let g = grad(r.delta(1));
             r.step(1, &g);
         }
-        let end: f64 = r.delta(1).iter().zip(&target).map(|(d, t)| (d - t) * (d - t)).sum();
-        assert!(end < 0.05 * start, "200 steps: squared error {end} from {start}");
+        let end: f64 = r
+            .delta(1)
+            .iter()
+            .zip(&target)
+            .map(|(d, t)| (d - t) * (d - t))
+            .sum();
+        assert!(
+            end < 0.05 * start,
+            "200 steps: squared error {end} from {start}"
+        );
         assert_eq!(r.state().steps, vec![0, 201]);
     }
 
@@ -139,7 +199,16 @@ mod tests {
     fn restore_refuses_other_frames() {
         let mut r = PoseRefiner::new(&[1, 2], 1e-4, 1e-4);
         let e = r.restore(PoseState::zeros(&[1, 3])).unwrap_err();
-        assert!(matches!(e, TrainerError::InvalidInput { what: "refined poses", .. }), "{e}");
+        assert!(
+            matches!(
+                e,
+                TrainerError::InvalidInput {
+                    what: "refined poses",
+                    ..
+                }
+            ),
+            "{e}"
+        );
         let e = e.to_string();
         assert!(e.contains("[1, 3]") && e.contains("[1, 2]"), "{e}");
     }

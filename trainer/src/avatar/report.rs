@@ -8,13 +8,33 @@ use crate::error::TrainerError;
 /// Progress of a run, for a progress line.
 #[derive(Clone, Debug)]
 pub enum Progress {
-    Fit { layer: String, step: u32, total: u32, mse: f64 },
-    Step { step: u32, total: u32, l1: f64, psnr: f64, it_per_s: f64 },
-    Eval { done: usize, total: usize },
+    Fit {
+        layer: String,
+        step: u32,
+        total: u32,
+        mse: f64,
+    },
+    Step {
+        step: u32,
+        total: u32,
+        l1: f64,
+        psnr: f64,
+        it_per_s: f64,
+    },
+    Eval {
+        done: usize,
+        total: usize,
+    },
     /// Simulating the garments through the sequence (frames, settling ones included).
-    Simulate { done: usize, total: usize },
+    Simulate {
+        done: usize,
+        total: usize,
+    },
     /// The layers were densified and pruned after `step` steps: (layer, before, after).
-    Densify { step: u32, counts: Vec<(String, usize, usize)> },
+    Densify {
+        step: u32,
+        counts: Vec<(String, usize, usize)>,
+    },
 }
 
 /// Writes `value` as pretty JSON to `path`.

@@ -7,7 +7,10 @@
 
 use glam::DVec3;
 
-use crate::body::kinematics::{da_pose, forward_kinematics, pose_gradient, regress_joints, relative_transforms, rigid_inverse, rodrigues, rodrigues_jacobian, shaped_vertices, skin, Affine, Pose, M3};
+use crate::body::kinematics::{
+    da_pose, forward_kinematics, pose_gradient, regress_joints, relative_transforms, rigid_inverse,
+    rodrigues, rodrigues_jacobian, shaped_vertices, skin, Affine, Pose, M3,
+};
 use crate::body::model::{SmplModel, NUM_JOINTS};
 use crate::dataset::loader::BodyParams;
 
@@ -43,7 +46,12 @@ impl Rig {
         let shaped = shaped_vertices(&model, betas);
         let rest_joints = regress_joints(&model, &shaped);
         let (canonical, _) = forward_kinematics(&model.parents, &rest_joints, &da_pose());
-        Self { model, betas: betas.to_vec(), rest_joints, canonical }
+        Self {
+            model,
+            betas: betas.to_vec(),
+            rest_joints,
+            canonical,
+        }
     }
 
     /// Rest joint positions of the shaped body.
@@ -53,7 +61,11 @@ impl Rig {
 
     /// The body's vertices in the canonical pose.
     pub fn canonical_vertices(&self) -> Vec<DVec3> {
-        skin(&self.model.weights, &self.canonical, &shaped_vertices(&self.model, &self.betas))
+        skin(
+            &self.model.weights,
+            &self.canonical,
+            &shaped_vertices(&self.model, &self.betas),
+        )
     }
 
     /// `A(P) A(Da)⁻¹` for a body pose.
@@ -66,11 +78,19 @@ impl Rig {
     pub fn frame(&self, body: &BodyParams) -> FrameTransforms {
         let (transforms, scale) = self.frame_f64(body);
         let pose = self.decompose(body).pose;
-        let pose_features = pose[1..].iter().flat_map(|&r| {
-            let m = rodrigues(r);
-            (0..9).map(move |k| (m[k / 3][k % 3] - if k / 3 == k % 3 { 1.0 } else { 0.0 }) as f32)
-        }).collect();
-        FrameTransforms { transforms: transforms.iter().map(|&v| v as f32).collect(), log_scale: scale.ln() as f32, pose_features }
+        let pose_features = pose[1..]
+            .iter()
+            .flat_map(|&r| {
+                let m = rodrigues(r);
+                (0..9)
+                    .map(move |k| (m[k / 3][k % 3] - if k / 3 == k % 3 { 1.0 } else { 0.0 }) as f32)
+            })
+            .collect();
+        FrameTransforms {
+            transforms: transforms.iter().map(|&v| v as f32).collect(),
+            log_scale: scale.ln() as f32,
+            pose_features,
+        }
     }
 
     /// The frame's transforms (24 × 3x4, row-major) in f64, and its global scale.
@@ -81,7 +101,8 @@ impl Rig {
             for r in 0..3 {
                 for c in 0..4 {
                     // world = scale · rot · (a x̂) + translation.
-                    let v: f64 = (0..3).map(|k| f.rot[r][k] * a[k][c]).sum::<f64>() * f.scale + if c == 3 { f.translation[r] } else { 0.0 };
+                    let v: f64 = (0..3).map(|k| f.rot[r][k] * a[k][c]).sum::<f64>() * f.scale
+                        + if c == 3 { f.translation[r] } else { 0.0 };
                     transforms.push(v);
                 }
             }
@@ -91,13 +112,32 @@ impl Rig {
 
     fn decompose(&self, body: &BodyParams) -> Decomposed {
         match body {
-            BodyParams::Smpl { pose, translation, scale, .. } => Decomposed { pose: *pose, rel: self.relative(pose), rot: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], scale: *scale, translation: *translation, zju_rh: None },
+            BodyParams::Smpl {
+                pose,
+                translation,
+                scale,
+                ..
+            } => Decomposed {
+                pose: *pose,
+                rel: self.relative(pose),
+                rot: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                scale: *scale,
+                translation: *translation,
+                zju_rh: None,
+            },
             BodyParams::Zju(p) => {
                 let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
                 for (j, q) in pose.iter_mut().enumerate().skip(1) {
                     *q = DVec3::from_slice(&p.poses[3 * j..3 * j + 3]);
                 }
-                Decomposed { pose, rel: self.relative(&pose), rot: rodrigues(DVec3::from_array(p.rh)), scale: 1.0, translation: DVec3::from_array(p.th), zju_rh: Some(DVec3::from_array(p.rh)) }
+                Decomposed {
+                    pose,
+                    rel: self.relative(&pose),
+                    rot: rodrigues(DVec3::from_array(p.rh)),
+                    scale: 1.0,
+                    translation: DVec3::from_array(p.th),
+                    zju_rh: Some(DVec3::from_array(p.rh)),
+                }
             }
         }
     }
@@ -118,17 +158,30 @@ impl Rig {
             for r in 0..3 {
                 grad_t[r] += g(j, r, 3);
                 for c in 0..4 {
-                    grad_rel[r][c] = f.scale * (0..3).map(|k| f.rot[k][r] * g(j, k, c)).sum::<f64>();
+                    grad_rel[r][c] =
+                        f.scale * (0..3).map(|k| f.rot[k][r] * g(j, k, c)).sum::<f64>();
                 }
                 for k in 0..3 {
-                    grad_rot[r][k] += f.scale * (0..4).map(|c| g(j, r, c) * f.rel[j][k][c]).sum::<f64>();
+                    grad_rot[r][k] +=
+                        f.scale * (0..4).map(|c| g(j, r, c) * f.rel[j][k][c]).sum::<f64>();
                 }
             }
             // rel_j = A_j C_j⁻¹ (homogeneous): ∂A_j = ∂rel_j (C_j⁻¹)ᵀ.
             let inv = rigid_inverse(&self.canonical[j]);
             for r in 0..3 {
                 for c in 0..4 {
-                    grad_a[j][r][c] = (0..4).map(|k| grad_rel[r][k] * if c < 3 { inv[c][k] } else if k == 3 { 1.0 } else { 0.0 }).sum();
+                    grad_a[j][r][c] = (0..4)
+                        .map(|k| {
+                            grad_rel[r][k]
+                                * if c < 3 {
+                                    inv[c][k]
+                                } else if k == 3 {
+                                    1.0
+                                } else {
+                                    0.0
+                                }
+                        })
+                        .sum();
                 }
             }
         }
@@ -136,7 +189,12 @@ impl Rig {
         let mut out = [0.0; REFINED_PARAMS];
         out[0..3].copy_from_slice(&match f.zju_rh {
             None => grad_pose[0].to_array(),
-            Some(rh) => rodrigues_jacobian(rh).map(|d| (0..3).flat_map(|r| (0..3).map(move |k| (r, k))).map(|(r, k)| d[r][k] * grad_rot[r][k]).sum()),
+            Some(rh) => rodrigues_jacobian(rh).map(|d| {
+                (0..3)
+                    .flat_map(|r| (0..3).map(move |k| (r, k)))
+                    .map(|(r, k)| d[r][k] * grad_rot[r][k])
+                    .sum()
+            }),
         });
         for j in 1..NUM_JOINTS {
             out[3 * j..3 * j + 3].copy_from_slice(&grad_pose[j].to_array());
@@ -164,7 +222,9 @@ pub fn refined_body(body: &BodyParams, delta: &[f64; REFINED_PARAMS]) -> BodyPar
     let mut b = body.clone();
     let t = REFINED_PARAMS - 3;
     match &mut b {
-        BodyParams::Smpl { pose, translation, .. } => {
+        BodyParams::Smpl {
+            pose, translation, ..
+        } => {
             for (j, q) in pose.iter_mut().enumerate() {
                 for k in 0..3 {
                     q[k] += delta[3 * j + k];
@@ -202,16 +262,39 @@ mod tests {
         let rig = Rig::new(default_body(&BodyOptions::default()), &[0.5, -0.3]);
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
-        pose.iter_mut().flat_map(|r| AsMut::<[f64; 3]>::as_mut(r)).for_each(|v| *v = rng.random_range(-0.6..0.6));
+        pose.iter_mut()
+            .flat_map(|r| AsMut::<[f64; 3]>::as_mut(r))
+            .for_each(|v| *v = rng.random_range(-0.6..0.6));
         let mut poses = [0.0; 72];
-        poses.iter_mut().for_each(|v| *v = rng.random_range(-0.6..0.6));
+        poses
+            .iter_mut()
+            .for_each(|v| *v = rng.random_range(-0.6..0.6));
         let bodies = [
-            BodyParams::Smpl { pose, betas: vec![0.5, -0.3], translation: DVec3::new(0.3, -1.2, 4.0), scale: 1.3 },
-            BodyParams::Zju(ZjuSmpl { poses, rh: [0.4, -1.1, 0.2], th: [0.1, 0.2, -0.3], shapes: [0.0; 10] }),
+            BodyParams::Smpl {
+                pose,
+                betas: vec![0.5, -0.3],
+                translation: DVec3::new(0.3, -1.2, 4.0),
+                scale: 1.3,
+            },
+            BodyParams::Zju(ZjuSmpl {
+                poses,
+                rh: [0.4, -1.1, 0.2],
+                th: [0.1, 0.2, -0.3],
+                shapes: [0.0; 10],
+            }),
         ];
-        let grad: Vec<f64> = (0..TRANSFORM_FLOATS).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let grad: Vec<f64> = (0..TRANSFORM_FLOATS)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
         for (layout, body) in ["NeuMan", "ZJU-MoCap"].iter().zip(&bodies) {
-            let loss = |delta: &[f64; REFINED_PARAMS]| -> f64 { rig.frame_f64(&refined_body(body, delta)).0.iter().zip(&grad).map(|(a, b)| a * b).sum() };
+            let loss = |delta: &[f64; REFINED_PARAMS]| -> f64 {
+                rig.frame_f64(&refined_body(body, delta))
+                    .0
+                    .iter()
+                    .zip(&grad)
+                    .map(|(a, b)| a * b)
+                    .sum()
+            };
             let analytic = rig.frame_gradient(body, &grad);
             let h = 1e-6;
             for i in 0..REFINED_PARAMS {
@@ -220,7 +303,11 @@ mod tests {
                 b[i] = -h;
                 let numeric = (loss(&a) - loss(&b)) / (2.0 * h);
                 // Smooth in every parameter; f64 central differences at 1e-6 agree to ~1e-8.
-                assert!((numeric - analytic[i]).abs() <= 1e-6 * (1.0 + numeric.abs()), "{layout}: parameter {i}: analytic {} vs numeric {numeric}", analytic[i]);
+                assert!(
+                    (numeric - analytic[i]).abs() <= 1e-6 * (1.0 + numeric.abs()),
+                    "{layout}: parameter {i}: analytic {} vs numeric {numeric}",
+                    analytic[i]
+                );
             }
         }
     }

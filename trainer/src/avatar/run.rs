@@ -10,14 +10,14 @@ use std::path::{Path, PathBuf};
 
 use drape_engine::Context;
 
+use crate::avatar::assemble::{build_avatar, Layers};
 use crate::avatar::checkpoint;
 use crate::avatar::composite::AvatarRenderer;
-use crate::avatar::model::Avatar;
-use crate::avatar::rig::Rig;
-use crate::avatar::assemble::{build_avatar, Layers};
 use crate::avatar::config::TrainConfig;
 use crate::avatar::inputs::{betas_of, body_model, load_sequence, scene_points, Sequence};
+use crate::avatar::model::Avatar;
 use crate::avatar::report::write_json;
+use crate::avatar::rig::Rig;
 use crate::dataset::error::DatasetError;
 use crate::dataset::split::Split;
 use crate::npy::read_npz;
@@ -43,7 +43,12 @@ pub struct RunInfo {
 impl RunInfo {
     pub fn new(data: &Path, body: Option<&Path>) -> Self {
         let abs = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
-        Self { format_version: RUN_INFO_VERSION, data: abs(data), body: body.map(abs), made_by: None }
+        Self {
+            format_version: RUN_INFO_VERSION,
+            data: abs(data),
+            body: body.map(abs),
+            made_by: None,
+        }
     }
 
     pub fn write(&self, run: &Path) -> crate::Result<()> {
@@ -57,9 +62,16 @@ impl RunInfo {
             return Ok(None);
         }
         let text = std::fs::read_to_string(&path).map_err(|e| TrainerError::io(&path, e))?;
-        let info: Self = serde_json::from_str(&text).map_err(|e| TrainerError::run(&path, e.to_string()))?;
+        let info: Self =
+            serde_json::from_str(&text).map_err(|e| TrainerError::run(&path, e.to_string()))?;
         if info.format_version != RUN_INFO_VERSION {
-            return Err(TrainerError::run(&path, format!("format_version {}, this drape reads version {RUN_INFO_VERSION}", info.format_version)));
+            return Err(TrainerError::run(
+                &path,
+                format!(
+                    "format_version {}, this drape reads version {RUN_INFO_VERSION}",
+                    info.format_version
+                ),
+            ));
         }
         Ok(Some(info))
     }
@@ -83,21 +95,36 @@ pub struct OpenRun {
 pub fn model_layers(path: &Path) -> crate::Result<Layers> {
     let a = read_npz(path)?;
     if !a.contains_key("body.means") {
-        return Err(TrainerError::checkpoint(path, "body.means", "array is missing (not a drape model?)"));
+        return Err(TrainerError::checkpoint(
+            path,
+            "body.means",
+            "array is missing (not a drape model?)",
+        ));
     }
-    Ok(Layers { cloth: a.contains_key("cloth.means"), scene: a.contains_key("scene.means") })
+    Ok(Layers {
+        cloth: a.contains_key("cloth.means"),
+        scene: a.contains_key("scene.means"),
+    })
 }
 
 impl OpenRun {
     /// Opens `dir` (a run directory with `config.json` and `model.npz`). `data` and
     /// `body` override `run.json`'s; a run without `run.json` needs `data`.
-    pub fn open(ctx: &Context, dir: &Path, data: Option<&Path>, body: Option<&Path>) -> crate::Result<Self> {
+    pub fn open(
+        ctx: &Context,
+        dir: &Path,
+        data: Option<&Path>,
+        body: Option<&Path>,
+    ) -> crate::Result<Self> {
         if !dir.is_dir() {
             return Err(TrainerError::run(dir, "no such run directory"));
         }
         let model_path = dir.join("model.npz");
         if !model_path.is_file() {
-            return Err(TrainerError::run(dir, "no model.npz (the run has not finished training?)"));
+            return Err(TrainerError::run(
+                dir,
+                "no model.npz (the run has not finished training?)",
+            ));
         }
         let config = TrainConfig::read_run(dir)?;
         let info = match (RunInfo::read(dir)?, data) {
@@ -111,7 +138,11 @@ impl OpenRun {
         };
         let body = body.map(Path::to_path_buf).or_else(|| info.body.clone());
         let seq = load_sequence(&info.data, config.zju_train_camera)?;
-        let first = seq.frames.iter().find(|f| f.split == Split::Train).ok_or_else(|| DatasetError::layout(&seq.dir, "no training frames"))?;
+        let first = seq
+            .frames
+            .iter()
+            .find(|f| f.split == Split::Train)
+            .ok_or_else(|| DatasetError::layout(&seq.dir, "no training frames"))?;
         let (width, height) = (first.width, first.height);
         let rig = Rig::new(body_model(body.as_deref())?, &betas_of(first));
         let layers = model_layers(&model_path)?;
@@ -122,11 +153,25 @@ impl OpenRun {
         let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         avatar.restore(ctx, &state)?;
         let renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.layers.compositing)?;
-        Ok(Self { dir: dir.to_path_buf(), config, info, seq, rig, avatar, renderer, layers, step: state.step })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            config,
+            info,
+            seq,
+            rig,
+            avatar,
+            renderer,
+            layers,
+            step: state.step,
+        })
     }
 
     /// The held-out frames of the run's protocol.
     pub fn test_frames(&self) -> Vec<&crate::dataset::loader::DatasetFrame> {
-        self.seq.frames.iter().filter(|f| f.split == Split::Test).collect()
+        self.seq
+            .frames
+            .iter()
+            .filter(|f| f.split == Split::Test)
+            .collect()
     }
 }

@@ -44,7 +44,13 @@ impl LayerState {
 }
 
 /// The Adam groups of a layer, in file order.
-pub const ADAM_GROUPS: [&str; 5] = ["position", "triplane", "appearance", "geometry", "deformation"];
+pub const ADAM_GROUPS: [&str; 5] = [
+    "position",
+    "triplane",
+    "appearance",
+    "geometry",
+    "deformation",
+];
 
 /// What a layer of the model being loaded into expects: its name, triplane resolution
 /// and channels, and decoder parameter counts. Its Gaussian count is the file's;

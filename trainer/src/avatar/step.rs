@@ -40,8 +40,17 @@ pub(crate) struct Sample<'f> {
 
 /// Stage 1, sample: the frame and background colour of `step`, drawn from a generator
 /// seeded by the step alone, so a resumed run draws what an uninterrupted one would.
-pub(crate) fn sample<'f>(frames: &[&'f DatasetFrame], rig: &Rig, refiner: Option<&PoseRefiner>, seed: u64, step: u32, whole_image: bool) -> Sample<'f> {
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+pub(crate) fn sample<'f>(
+    frames: &[&'f DatasetFrame],
+    rig: &Rig,
+    refiner: Option<&PoseRefiner>,
+    seed: u64,
+    step: u32,
+    whole_image: bool,
+) -> Sample<'f> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(
+        seed ^ u64::from(step).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+    );
     let index = rng.random_range(0..frames.len());
     let frame = frames[index];
     let background: [f32; 3] = [rng.random(), rng.random(), rng.random()];
@@ -51,7 +60,13 @@ pub(crate) fn sample<'f>(frames: &[&'f DatasetFrame], rig: &Rig, refiner: Option
         None => frame.body.clone(),
     };
     let transforms = rig.frame(&body);
-    Sample { index, frame, background, body, transforms }
+    Sample {
+        index,
+        frame,
+        background,
+        body,
+        transforms,
+    }
 }
 
 /// The step's own buffers: zeros for the renders' unused gradient inputs, and the
@@ -64,11 +79,17 @@ pub(crate) struct StepBuffers {
 impl StepBuffers {
     /// Buffers for `width` × `height` images.
     pub fn new(ctx: &Context, width: u32, height: u32) -> Result<Self> {
-        let zeros = ctx.create_buffer("train zero grads", BufferDesc::gpu_only(4 * u64::from(width) * u64::from(height)))?;
+        let zeros = ctx.create_buffer(
+            "train zero grads",
+            BufferDesc::gpu_only(4 * u64::from(width) * u64::from(height)),
+        )?;
         let mut rec = ctx.record("train zero")?;
         rec.fill(&zeros, 0);
         rec.submit_and_wait()?;
-        Ok(Self { zeros, guard: ctx.create_buffer("train guard", BufferDesc::readback(4))? })
+        Ok(Self {
+            zeros,
+            guard: ctx.create_buffer("train guard", BufferDesc::readback(4))?,
+        })
     }
 }
 
@@ -104,7 +125,12 @@ pub(crate) enum StepOutcome {
 
 /// One step on `s`: the host's writes, the recording of every stage, one submission
 /// and one wait, then the guard.
-pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers, s: &Sample<'_>) -> Result<StepOutcome> {
+pub(crate) fn run(
+    ctx: &Context,
+    st: &mut Stages<'_>,
+    buffers: &mut StepBuffers,
+    s: &Sample<'_>,
+) -> Result<StepOutcome> {
     upload(ctx, st, s)?;
     prepare(st, s)?;
     {
@@ -129,7 +155,8 @@ pub(crate) fn run(ctx: &Context, st: &mut Stages<'_>, buffers: &mut StepBuffers,
 /// (host-visible memory: the last step's submission has completed).
 fn upload(ctx: &Context, st: &mut Stages<'_>, s: &Sample<'_>) -> Result<()> {
     if st.masked {
-        st.image_losses.set_target(ctx, &s.frame.masked_rgb(s.background))?;
+        st.image_losses
+            .set_target(ctx, &s.frame.masked_rgb(s.background))?;
     } else {
         st.image_losses.set_target(ctx, &s.frame.rgb)?;
     }
@@ -154,14 +181,22 @@ fn prepare(st: &mut Stages<'_>, s: &Sample<'_>) -> Result<()> {
 
 /// Stage 2, deform: the frame's transforms (written by the command buffer), each
 /// layer's decoders and skinning, and the gather into the avatar's posed cloud.
-fn record_deform<'a>(rec: &mut Recording<'a>, avatar: &'a Avatar, transforms: &FrameTransforms) -> Result<()> {
+fn record_deform<'a>(
+    rec: &mut Recording<'a>,
+    avatar: &'a Avatar,
+    transforms: &FrameTransforms,
+) -> Result<()> {
     avatar.record_set_frame(rec, transforms);
     avatar.record_forward(rec, transforms.log_scale)
 }
 
 /// Stage 3, render: the avatar's frame, and the renders' overflow flags into the guard.
 /// (Stage 4, the image losses, is `ImageLosses::record`.)
-fn record_render<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
+fn record_render<'a>(
+    rec: &mut Recording<'a>,
+    st: &'a Stages<'_>,
+    buffers: &'a StepBuffers,
+) -> Result<()> {
     st.renderer.record_frame(rec, st.avatar)?;
     st.renderer.record_overflow_flags(rec, &buffers.guard)
 }
@@ -169,9 +204,19 @@ fn record_render<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a S
 /// Stage 5, backward: through the renders and the composite into every layer's posed
 /// Gaussians, the cloth losses, then each layer's skinning, decoders and triplane;
 /// the densification statistics where they are gathered.
-fn record_backward<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
+fn record_backward<'a>(
+    rec: &mut Recording<'a>,
+    st: &'a Stages<'_>,
+    buffers: &'a StepBuffers,
+) -> Result<()> {
     let cloth_losses = st.cloth_losses.as_deref();
-    st.renderer.record_backward(rec, st.avatar, st.image_losses.grad_rgb(), &buffers.zeros, cloth_losses)?;
+    st.renderer.record_backward(
+        rec,
+        st.avatar,
+        st.image_losses.grad_rgb(),
+        &buffers.zeros,
+        cloth_losses,
+    )?;
     if let (Some(c), Some(cloth)) = (cloth_losses, st.avatar.cloth()) {
         if c.needs_mask_pass() {
             c.record_mask_pass(rec, cloth, &buffers.guard)?;
@@ -190,8 +235,13 @@ fn record_backward<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a
 
 /// Stage 6, guard: adds every non-finite gradient value (and the pose refiner's
 /// partial sums) to the guard Adam reads.
-fn record_guard<'a>(rec: &mut Recording<'a>, st: &'a Stages<'_>, buffers: &'a StepBuffers) -> Result<()> {
-    st.avatar.record_count_nonfinite(rec, &buffers.guard, st.pose_gradient)
+fn record_guard<'a>(
+    rec: &mut Recording<'a>,
+    st: &'a Stages<'_>,
+    buffers: &'a StepBuffers,
+) -> Result<()> {
+    st.avatar
+        .record_count_nonfinite(rec, &buffers.guard, st.pose_gradient)
 }
 
 /// Stage 7 on logging steps, read-back: the losses' values into host memory, read
@@ -266,8 +316,16 @@ impl HostWaits {
             self.redone_steps += 1;
         }
         let (steps, total, max) = match (kind, attempts) {
-            (StepKind::TrainingOnly, 1) => (&mut self.plain_steps, &mut self.plain_waits, Some(&mut self.plain_max)),
-            (StepKind::Logged, 1) => (&mut self.logged_steps, &mut self.logged_waits, Some(&mut self.logged_max)),
+            (StepKind::TrainingOnly, 1) => (
+                &mut self.plain_steps,
+                &mut self.plain_waits,
+                Some(&mut self.plain_max),
+            ),
+            (StepKind::Logged, 1) => (
+                &mut self.logged_steps,
+                &mut self.logged_waits,
+                Some(&mut self.logged_max),
+            ),
             _ => (&mut self.other_steps, &mut self.other_waits, None),
         };
         *steps += 1;

@@ -19,31 +19,31 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use crate::avatar::groups::Layer;
 use crate::ply;
 use drape_engine::ops::splat::scene::RenderSettings;
-use crate::avatar::groups::Layer;
 use drape_engine::Context;
 
-use crate::avatar::checkpoint;
 use crate::avatar::assemble::build_avatar;
-use crate::avatar::inputs::betas_of;
-use crate::avatar::report::write_json;
-use crate::avatar::eval::{evaluate, write_reports, EvalInputs};
+use crate::avatar::checkpoint;
 use crate::avatar::cloth_losses::{ClothLossWeights, ClothLosses};
 use crate::avatar::cloth_target;
-use drape_engine::ops::lpips::{Lpips, LpipsWeights};
 use crate::avatar::composite::AvatarRenderer;
 use crate::avatar::densify::{self};
-use crate::avatar::model::Avatar;
-use crate::error::TrainerError;
-use crate::avatar::pose_refine::PoseRefiner;
+use crate::avatar::eval::{evaluate, write_reports, EvalInputs};
+use crate::avatar::inputs::betas_of;
 use crate::avatar::losses::{ImageLossWeights, ImageLosses};
-use crate::avatar::step::{self, HostWaits, Sample, Stages, StepBuffers, StepKind, StepOutcome};
+use crate::avatar::model::Avatar;
+use crate::avatar::pose_refine::PoseRefiner;
+use crate::avatar::report::write_json;
 use crate::avatar::rig::Rig;
+use crate::avatar::step::{self, HostWaits, Sample, Stages, StepBuffers, StepKind, StepOutcome};
 use crate::body::SmplModel;
-use crate::dataset::loader::{BodyParams, DatasetFrame};
 use crate::dataset::error::DatasetError;
+use crate::dataset::loader::{BodyParams, DatasetFrame};
 use crate::dataset::split::Split;
+use crate::error::TrainerError;
+use drape_engine::ops::lpips::{Lpips, LpipsWeights};
 
 // The paths the tools and tests know a run's parts by.
 pub use crate::avatar::assemble::{choose_layers, Layers};
@@ -81,7 +81,11 @@ struct Lap<'c> {
 
 impl<'c> Lap<'c> {
     fn new(ctx: &'c Context, on: bool) -> Self {
-        Self { ctx, on, since: Instant::now() }
+        Self {
+            ctx,
+            on,
+            since: Instant::now(),
+        }
     }
 
     fn reset(&mut self) {
@@ -91,7 +95,8 @@ impl<'c> Lap<'c> {
     /// Adds the time since the last reset or phase under `name`.
     fn host(&mut self, name: &str) {
         if self.on {
-            self.ctx.profile_host(name, self.since.elapsed().as_secs_f64() * 1e3);
+            self.ctx
+                .profile_host(name, self.since.elapsed().as_secs_f64() * 1e3);
             self.since = Instant::now();
         }
     }
@@ -106,17 +111,45 @@ fn json_value(value: &impl serde::Serialize) -> serde_json::Value {
 /// empty), or with `resume` the run's last checkpoint (`out/checkpoint.npz`), continued
 /// to `config.schedule.steps`. The step's frame and background come from `(seed, step)`, so a
 /// resumed run samples what the uninterrupted one would have.
-pub fn train(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
-    train_until(ctx, seq, model, config, out, resume, config.schedule.steps, progress)
+pub fn train(
+    ctx: &Context,
+    seq: &Sequence,
+    model: SmplModel,
+    config: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<TrainReport> {
+    train_until(
+        ctx,
+        seq,
+        model,
+        config,
+        out,
+        resume,
+        config.schedule.steps,
+        progress,
+    )
 }
 
 /// [`train`], stopping after step `stop_at` (at most `config.schedule.steps`) as if the run
 /// had been interrupted there: the checkpoint is written, the schedules still run to
 /// `config.schedule.steps`, and a later `resume` continues as the uninterrupted run would.
 #[allow(clippy::too_many_arguments)]
-pub fn train_until(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, progress: &mut dyn FnMut(Progress)) -> crate::Result<TrainReport> {
+pub fn train_until(
+    ctx: &Context,
+    seq: &Sequence,
+    model: SmplModel,
+    config: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    stop_at: u32,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<TrainReport> {
     let never = AtomicBool::new(false);
-    match run(ctx, seq, model, config, out, resume, stop_at, None, &never, progress)? {
+    match run(
+        ctx, seq, model, config, out, resume, stop_at, None, &never, progress,
+    )? {
         Outcome::Finished(report) => Ok(*report),
         Outcome::Interrupted { .. } => unreachable!("nothing sets the flag"),
     }
@@ -138,8 +171,29 @@ pub enum Outcome {
 /// the run directory is made, so that `--resume` and the other commands find the data
 /// of an unfinished run.
 #[allow(clippy::too_many_arguments)]
-pub fn train_interruptible(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
-    run(ctx, seq, model, config, out, resume, config.schedule.steps, info, interrupt, progress)
+pub fn train_interruptible(
+    ctx: &Context,
+    seq: &Sequence,
+    model: SmplModel,
+    config: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    info: Option<&crate::avatar::run::RunInfo>,
+    interrupt: &AtomicBool,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<Outcome> {
+    run(
+        ctx,
+        seq,
+        model,
+        config,
+        out,
+        resume,
+        config.schedule.steps,
+        info,
+        interrupt,
+        progress,
+    )
 }
 
 /// The marker a finished run holds (its command run again has nothing to do).
@@ -168,7 +222,11 @@ pub fn run_state(out: &Path) -> crate::Result<RunState> {
     if !out.is_dir() {
         return Ok(RunState::Occupied);
     }
-    if std::fs::read_dir(out).map_err(|e| TrainerError::io(out, e))?.next().is_none() {
+    if std::fs::read_dir(out)
+        .map_err(|e| TrainerError::io(out, e))?
+        .next()
+        .is_none()
+    {
         return Ok(RunState::Fresh);
     }
     Ok(if out.join(COMPLETE_MARKER).is_file() {
@@ -185,8 +243,14 @@ pub fn run_state(out: &Path) -> crate::Result<RunState> {
 /// sets `interrupt`, so that a test's SIGTERM lands at a known step. Unset (always,
 /// outside that test), it does nothing.
 fn wait_for_signal_if_asked(step: u32, interrupt: &AtomicBool) {
-    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else { return };
-    if spec.strip_prefix("wait-for-signal-before-step:").and_then(|k| k.parse::<u32>().ok()) != Some(step) {
+    let Ok(spec) = std::env::var("DRAPE_FAILPOINT") else {
+        return;
+    };
+    if spec
+        .strip_prefix("wait-for-signal-before-step:")
+        .and_then(|k| k.parse::<u32>().ok())
+        != Some(step)
+    {
         return;
     }
     eprintln!("\nfailpoint: waiting for a signal before step {step}");
@@ -218,7 +282,11 @@ struct SkipGuard {
 
 impl SkipGuard {
     fn new(limit: u32) -> Self {
-        Self { total: 0, in_a_row: 0, limit: limit.max(1) }
+        Self {
+            total: 0,
+            in_a_row: 0,
+            limit: limit.max(1),
+        }
     }
 
     fn applied(&mut self) {
@@ -226,7 +294,14 @@ impl SkipGuard {
     }
 
     /// Counts a skipped step; an error once `limit` steps in a row were skipped.
-    fn skipped(&mut self, step: u32, nonfinite: u32, frame: usize, data: &Path, checkpoint: &Path) -> crate::Result<()> {
+    fn skipped(
+        &mut self,
+        step: u32,
+        nonfinite: u32,
+        frame: usize,
+        data: &Path,
+        checkpoint: &Path,
+    ) -> crate::Result<()> {
         self.total += 1;
         self.in_a_row += 1;
         if self.in_a_row < self.limit {
@@ -247,7 +322,14 @@ impl SkipGuard {
 /// The pose refiner's step on the frame of `s` from every human layer's share of
 /// `∂L/∂A` (mapped memory: read after the step's wait with no other). A gradient
 /// that the rig's chain rule makes non-finite is not applied: the log line says so.
-fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut PoseRefiner, s: &Sample<'_>, step: u32) -> crate::Result<Option<serde_json::Value>> {
+fn refine_pose(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    rig: &Rig,
+    refiner: &mut PoseRefiner,
+    s: &Sample<'_>,
+    step: u32,
+) -> crate::Result<Option<serde_json::Value>> {
     let mut grad = vec![0.0f64; crate::avatar::rig::TRANSFORM_FLOATS];
     for l in &mut avatar.layers {
         for (g, v) in grad.iter_mut().zip(l.deformer.read_transform_grad(ctx)?) {
@@ -257,7 +339,9 @@ fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut Pose
     let g = rig.frame_gradient(&s.body, &grad);
     let bad = g.iter().filter(|v| !v.is_finite()).count();
     if bad > 0 {
-        return Ok(Some(serde_json::json!({ "step": step, "frame": s.frame.frame, "pose_refinement_skipped": true, "nonfinite_pose_gradients": bad })));
+        return Ok(Some(
+            serde_json::json!({ "step": step, "frame": s.frame.frame, "pose_refinement_skipped": true, "nonfinite_pose_gradients": bad }),
+        ));
     }
     refiner.step(s.index, &g);
     Ok(None)
@@ -266,7 +350,16 @@ fn refine_pose(ctx: &Context, avatar: &mut Avatar, rig: &Rig, refiner: &mut Pose
 /// A logging step's line (losses read back) with its L1 and PSNR.
 /// `seconds`: since training started.
 #[allow(clippy::too_many_arguments)]
-fn log_line(ctx: &Context, image: &mut ImageLosses, cloth: Option<&mut ClothLosses>, avatar: &Avatar, refiner: Option<&PoseRefiner>, step: u32, frame: usize, seconds: f64) -> crate::Result<(serde_json::Value, f64, f64)> {
+fn log_line(
+    ctx: &Context,
+    image: &mut ImageLosses,
+    cloth: Option<&mut ClothLosses>,
+    avatar: &Avatar,
+    refiner: Option<&PoseRefiner>,
+    step: u32,
+    frame: usize,
+    seconds: f64,
+) -> crate::Result<(serde_json::Value, f64, f64)> {
     let v = image.read_values(ctx)?;
     let mut line = serde_json::json!({ "step": step, "frame": frame, "l1": v.l1, "ssim": v.ssim, "loss": v.loss, "psnr_train": v.psnr, "lr_position": avatar.layers[0].groups.position.lr(), "seconds": seconds });
     if let Some(c) = cloth {
@@ -288,7 +381,13 @@ fn log_line(ctx: &Context, image: &mut ImageLosses, cloth: Option<&mut ClothLoss
 /// Densifies and prunes every layer after `step + 1` steps; everything sized by the
 /// layers' counts follows them. Returns the log's summaries and (layer, before, after).
 type DensifyCounts = Vec<(String, usize, usize)>;
-fn densify_layers(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, step: u32, log_scale: f32) -> crate::Result<(serde_json::Map<String, serde_json::Value>, DensifyCounts)> {
+fn densify_layers(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    config: &TrainConfig,
+    step: u32,
+    log_scale: f32,
+) -> crate::Result<(serde_json::Map<String, serde_json::Value>, DensifyCounts)> {
     let dc = &config.densify;
     let mut counts = Vec::new();
     let mut summaries = serde_json::Map::new();
@@ -307,16 +406,42 @@ fn densify_layers(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, step
     Ok((summaries, counts))
 }
 
-fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, info: Option<&crate::avatar::run::RunInfo>, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
+fn run(
+    ctx: &Context,
+    seq: &Sequence,
+    model: SmplModel,
+    config: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    stop_at: u32,
+    info: Option<&crate::avatar::run::RunInfo>,
+    interrupt: &AtomicBool,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<Outcome> {
     let stop_at = stop_at.min(config.schedule.steps);
     config.validate()?;
-    let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
+    let train_frames: Vec<&DatasetFrame> = seq
+        .frames
+        .iter()
+        .filter(|f| f.split == Split::Train)
+        .collect();
     if train_frames.is_empty() {
         return Err(DatasetError::layout(&seq.dir, "no training frames").into());
     }
     let (width, height) = (train_frames[0].width, train_frames[0].height);
-    if let Some(f) = seq.frames.iter().find(|f| (f.width, f.height) != (width, height)) {
-        return Err(DatasetError::image(&f.image_path, format!("{}x{}, but the sequence's first training image is {width}x{height}", f.width, f.height)).into());
+    if let Some(f) = seq
+        .frames
+        .iter()
+        .find(|f| (f.width, f.height) != (width, height))
+    {
+        return Err(DatasetError::image(
+            &f.image_path,
+            format!(
+                "{}x{}, but the sequence's first training image is {width}x{height}",
+                f.width, f.height
+            ),
+        )
+        .into());
     }
     // LPIPS where the run has weights: read before the run directory is made, so a
     // wrong path leaves nothing behind.
@@ -327,9 +452,23 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
     let checkpoint_path = out.join("checkpoint.npz");
     if resume {
         if !checkpoint_path.is_file() {
-            return Err(TrainerError::run(&checkpoint_path, "no checkpoint to resume from"));
+            return Err(TrainerError::run(
+                &checkpoint_path,
+                "no checkpoint to resume from",
+            ));
         }
-        return train_in(ctx, seq, model, config, out, true, stop_at, interrupt, lpips_weights, progress);
+        return train_in(
+            ctx,
+            seq,
+            model,
+            config,
+            out,
+            true,
+            stop_at,
+            interrupt,
+            lpips_weights,
+            progress,
+        );
     }
     check_fresh(out)?;
     let created = !out.exists();
@@ -342,7 +481,20 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
         let note = out.join(INCOMPLETE_MARKER);
         std::fs::write(&note, format!("this run has not finished; `drape train --resume {}` continues it from checkpoint.npz\n", out.display())).map_err(|e| TrainerError::io(&note, e))
     })();
-    let result = made.and_then(|()| train_in(ctx, seq, model, config, out, false, stop_at, interrupt, lpips_weights, progress));
+    let result = made.and_then(|()| {
+        train_in(
+            ctx,
+            seq,
+            model,
+            config,
+            out,
+            false,
+            stop_at,
+            interrupt,
+            lpips_weights,
+            progress,
+        )
+    });
     // A run that failed before its first checkpoint leaves nothing (an empty directory
     // that was there before stays, empty); after it, the run stays resumable.
     if result.is_err() && !checkpoint_path.exists() {
@@ -351,7 +503,11 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
         } else if let Ok(entries) = std::fs::read_dir(out) {
             for e in entries.flatten() {
                 let p = e.path();
-                let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+                let _ = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else {
+                    std::fs::remove_file(&p)
+                };
             }
         }
     }
@@ -359,13 +515,36 @@ fn run(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, ou
 }
 
 #[allow(clippy::too_many_arguments)]
-fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfig, out: &Path, resume: bool, stop_at: u32, interrupt: &AtomicBool, lpips_weights: Option<LpipsWeights>, progress: &mut dyn FnMut(Progress)) -> crate::Result<Outcome> {
-    let train_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Train).collect();
-    let test_frames: Vec<&DatasetFrame> = seq.frames.iter().filter(|f| f.split == Split::Test).collect();
+fn train_in(
+    ctx: &Context,
+    seq: &Sequence,
+    model: SmplModel,
+    config: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    stop_at: u32,
+    interrupt: &AtomicBool,
+    lpips_weights: Option<LpipsWeights>,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<Outcome> {
+    let train_frames: Vec<&DatasetFrame> = seq
+        .frames
+        .iter()
+        .filter(|f| f.split == Split::Train)
+        .collect();
+    let test_frames: Vec<&DatasetFrame> = seq
+        .frames
+        .iter()
+        .filter(|f| f.split == Split::Test)
+        .collect();
     let (width, height) = (train_frames[0].width, train_frames[0].height);
     let checkpoint_path = out.join("checkpoint.npz");
     let log_path = out.join("log.jsonl");
-    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| TrainerError::io(&log_path, e))?;
+    let mut log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .map_err(|e| TrainerError::io(&log_path, e))?;
 
     let rig = Rig::new(model, &betas_of(train_frames[0]));
     let mut avatar = build_avatar(ctx, &rig, seq, config, choose_layers(seq, config)?)?;
@@ -374,12 +553,22 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     let whole_image = avatar.scene.is_some();
     let mut renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.layers.compositing)?;
     let ground_truth = cloth_target::ground_truth_dir(&seq.dir);
-    let mut cloth_losses = cloth_losses_of(ctx, &avatar, &rig, seq, config, (width, height), progress)?;
+    let mut cloth_losses =
+        cloth_losses_of(ctx, &avatar, &rig, seq, config, (width, height), progress)?;
 
     // 1. The deformation decoder learns the body's skinning weights (or the run's
     //    checkpoint is loaded: its decoders have been fitted already).
     let t0 = Instant::now();
-    let mut refiner = config.schedule.refine_pose.then(|| PoseRefiner::new(&train_frames.iter().map(|f| f.frame as u32).collect::<Vec<_>>(), f64::from(config.schedule.lr_pose), f64::from(config.schedule.lr_translation)));
+    let mut refiner = config.schedule.refine_pose.then(|| {
+        PoseRefiner::new(
+            &train_frames
+                .iter()
+                .map(|f| f.frame as u32)
+                .collect::<Vec<_>>(),
+            f64::from(config.schedule.lr_pose),
+            f64::from(config.schedule.lr_translation),
+        )
+    });
     let (start_step, fit_mse) = if resume {
         let step = resume_from(ctx, &checkpoint_path, config, &mut avatar, refiner.as_mut())?;
         // The checkpoint's layers may have been densified to other counts.
@@ -392,8 +581,20 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
     if let (Some(c), true) = (cloth_losses.as_mut(), renderer.is_three_pass()) {
         c.set_mask_in_composite(true);
     }
-    let eval_inputs = |sheets| EvalInputs { rig: &rig, frames: &test_frames, ground_truth: ground_truth.as_deref(), lpips: lpips_weights.as_ref(), sheets };
-    let (initial, _) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(None), progress)?;
+    let eval_inputs = |sheets| EvalInputs {
+        rig: &rig,
+        frames: &test_frames,
+        ground_truth: ground_truth.as_deref(),
+        lpips: lpips_weights.as_ref(),
+        sheets,
+    };
+    let (initial, _) = evaluate(
+        ctx,
+        &mut avatar,
+        &mut renderer,
+        &eval_inputs(None),
+        progress,
+    )?;
 
     // 2. The main loop: a step is one submission and one host wait (`step`).
     let settings = RenderSettings::default();
@@ -403,18 +604,41 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         ctx.start_profile();
     }
     let mut run = StepLoop {
-        ctx, config, seq, rig: &rig, train_frames: &train_frames, whole_image, size: (width, height), settings: &settings,
-        checkpoint_path: &checkpoint_path, log_path: &log_path, log: &mut log,
-        avatar: &mut avatar, renderer: &mut renderer, cloth_losses: cloth_losses.as_mut(), refiner: refiner.as_mut(),
-        image_losses: image_losses_of(ctx, config, lpips_weights.as_ref(), (width, height))?, buffers: StepBuffers::new(ctx, width, height)?,
-        skips: SkipGuard::new(config.schedule.max_skipped_steps), waits: HostWaits::default(), lap: Lap::new(ctx, profiling),
-        t_train: Instant::now(), start_step, stop_at,
+        ctx,
+        config,
+        seq,
+        rig: &rig,
+        train_frames: &train_frames,
+        whole_image,
+        size: (width, height),
+        settings: &settings,
+        checkpoint_path: &checkpoint_path,
+        log_path: &log_path,
+        log: &mut log,
+        avatar: &mut avatar,
+        renderer: &mut renderer,
+        cloth_losses: cloth_losses.as_mut(),
+        refiner: refiner.as_mut(),
+        image_losses: image_losses_of(ctx, config, lpips_weights.as_ref(), (width, height))?,
+        buffers: StepBuffers::new(ctx, width, height)?,
+        skips: SkipGuard::new(config.schedule.max_skipped_steps),
+        waits: HostWaits::default(),
+        lap: Lap::new(ctx, profiling),
+        t_train: Instant::now(),
+        start_step,
+        stop_at,
     };
     if let Some(step) = run.steps(interrupt, progress)? {
         return Ok(Outcome::Interrupted { step });
     }
     if let Some(p) = if profiling { ctx.take_profile() } else { None } {
-        write_profile(out, &p, &run.waits, u64::from(stop_at.saturating_sub(start_step)), run.t_train.elapsed().as_secs_f64())?;
+        write_profile(
+            out,
+            &p,
+            &run.waits,
+            u64::from(stop_at.saturating_sub(start_step)),
+            run.t_train.elapsed().as_secs_f64(),
+        )?;
     }
     let last = stop_at.max(start_step);
     run.save(last, &checkpoint_path)?;
@@ -422,16 +646,51 @@ fn train_in(ctx: &Context, seq: &Sequence, model: SmplModel, config: &TrainConfi
         return Ok(Outcome::Interrupted { step: last });
     }
     run.save(last, &out.join("model.npz"))?;
-    let loop_ = LoopSummary { start_step, stop_at, train_seconds: run.t_train.elapsed().as_secs_f64(), skipped_steps: run.skips.total, host_waits: run.waits };
+    let loop_ = LoopSummary {
+        start_step,
+        stop_at,
+        train_seconds: run.t_train.elapsed().as_secs_f64(),
+        skipped_steps: run.skips.total,
+        host_waits: run.waits,
+    };
     // 3. Held-out evaluation and the run's exports.
     let eval_dir = out.join("eval");
-    let (fin, per_frame) = evaluate(ctx, &mut avatar, &mut renderer, &eval_inputs(Some(&eval_dir)), progress)?;
-    write_reports(&eval_dir, &format!("{} after {last} steps, {} held-out images of {}", out.display(), per_frame.len(), seq.dir.display()), &fin, &per_frame)?;
+    let (fin, per_frame) = evaluate(
+        ctx,
+        &mut avatar,
+        &mut renderer,
+        &eval_inputs(Some(&eval_dir)),
+        progress,
+    )?;
+    write_reports(
+        &eval_dir,
+        &format!(
+            "{} after {last} steps, {} held-out images of {}",
+            out.display(),
+            per_frame.len(),
+            seq.dir.display()
+        ),
+        &fin,
+        &per_frame,
+    )?;
     if let Some(f) = test_frames.first() {
         export_posed_layers(ctx, &mut avatar, &rig, f, out)?;
-        render_novel_pose(ctx, &mut avatar, &mut renderer, &rig, f, &settings, out, (width, height))?;
+        render_novel_pose(
+            ctx,
+            &mut avatar,
+            &mut renderer,
+            &rig,
+            f,
+            &settings,
+            out,
+            (width, height),
+        )?;
     }
-    let fit = FitSummary { fit_steps: config.schedule.fit_steps, fit_mse, fit_seconds };
+    let fit = FitSummary {
+        fit_steps: config.schedule.fit_steps,
+        fit_mse,
+        fit_seconds,
+    };
     let report = TrainReport::new(seq.layout, avatar.counts(), fit, loop_, initial, fin);
     write_json(&out.join("metrics.json"), &report)?;
     if stop_at == config.schedule.steps {
@@ -473,7 +732,11 @@ struct StepLoop<'r> {
 impl StepLoop<'_> {
     /// Steps from `start_step` to `stop_at`; `Some(step)` when `interrupt` stopped the
     /// run with its checkpoint written after `step` steps.
-    fn steps(&mut self, interrupt: &AtomicBool, progress: &mut dyn FnMut(Progress)) -> crate::Result<Option<u32>> {
+    fn steps(
+        &mut self,
+        interrupt: &AtomicBool,
+        progress: &mut dyn FnMut(Progress),
+    ) -> crate::Result<Option<u32>> {
         for step in self.start_step..self.stop_at {
             wait_for_signal_if_asked(step, interrupt);
             // A signal arrived during the step before: its state is complete, so it is
@@ -485,14 +748,27 @@ impl StepLoop<'_> {
             let waits_before = self.ctx.fence_waits();
             self.lap.reset();
             let refiner = self.refiner.as_deref();
-            let s = step::sample(self.train_frames, self.rig, refiner, self.config.seed, step, self.whole_image);
+            let s = step::sample(
+                self.train_frames,
+                self.rig,
+                refiner,
+                self.config.seed,
+                step,
+                self.whole_image,
+            );
             self.lap.host("host.frame_setup");
             let (outcome, attempts) = self.train_step(step, &s)?;
             self.lap.reset();
             let kind = match outcome {
                 StepOutcome::Skipped { nonfinite } => {
                     self.log_line(&serde_json::json!({ "step": step, "frame": s.frame.frame, "skipped": true, "nonfinite_gradients": nonfinite }))?;
-                    self.skips.skipped(step, nonfinite, s.frame.frame, &self.seq.dir, self.checkpoint_path)?;
+                    self.skips.skipped(
+                        step,
+                        nonfinite,
+                        s.frame.frame,
+                        &self.seq.dir,
+                        self.checkpoint_path,
+                    )?;
                     StepKind::Other
                 }
                 _ => {
@@ -500,7 +776,8 @@ impl StepLoop<'_> {
                     self.after_step(step, &s, progress)?
                 }
             };
-            self.waits.add(self.ctx.fence_waits() - waits_before, attempts, kind);
+            self.waits
+                .add(self.ctx.fence_waits() - waits_before, attempts, kind);
         }
         Ok(None)
     }
@@ -510,7 +787,8 @@ impl StepLoop<'_> {
     fn train_step(&mut self, step: u32, s: &Sample<'_>) -> crate::Result<(StepOutcome, u32)> {
         let dc = &self.config.densify;
         // Statistics are gathered from the step after one densification up to the next.
-        let screen_stats = dc.every > 0 && step < dc.until.min(self.config.schedule.steps.saturating_sub(1));
+        let screen_stats =
+            dc.every > 0 && step < dc.until.min(self.config.schedule.steps.saturating_sub(1));
         let read_losses = self.logs(step);
         let mut attempts = 0;
         loop {
@@ -541,7 +819,12 @@ impl StepLoop<'_> {
 
     /// After an applied step: the pose refinement, then the log line, densification and
     /// checkpoint that fall on it; which of those it did.
-    fn after_step(&mut self, step: u32, s: &Sample<'_>, progress: &mut dyn FnMut(Progress)) -> crate::Result<StepKind> {
+    fn after_step(
+        &mut self,
+        step: u32,
+        s: &Sample<'_>,
+        progress: &mut dyn FnMut(Progress),
+    ) -> crate::Result<StepKind> {
         if let Some(r) = self.refiner.as_deref_mut() {
             if let Some(line) = refine_pose(self.ctx, self.avatar, self.rig, r, s, step)? {
                 self.log_line(&line)?;
@@ -552,10 +835,25 @@ impl StepLoop<'_> {
         let logging = self.logs(step);
         if logging {
             let seconds = self.t_train.elapsed().as_secs_f64();
-            let (line, l1, psnr) = log_line(self.ctx, &mut self.image_losses, self.cloth_losses.as_deref_mut(), self.avatar, self.refiner.as_deref(), step, s.frame.frame, seconds)?;
+            let (line, l1, psnr) = log_line(
+                self.ctx,
+                &mut self.image_losses,
+                self.cloth_losses.as_deref_mut(),
+                self.avatar,
+                self.refiner.as_deref(),
+                step,
+                s.frame.frame,
+                seconds,
+            )?;
             self.log_line(&line)?;
             let it_per_s = f64::from(step + 1 - self.start_step) / seconds.max(1e-9);
-            progress(Progress::Step { step: step + 1, total: config.schedule.steps, l1, psnr, it_per_s });
+            progress(Progress::Step {
+                step: step + 1,
+                total: config.schedule.steps,
+                l1,
+                psnr,
+                it_per_s,
+            });
         }
         self.lap.host("host.log");
         let densified = config.densify.due(step + 1) && step + 1 < config.schedule.steps;
@@ -563,7 +861,9 @@ impl StepLoop<'_> {
             self.densify(step, s.transforms.log_scale, progress)?;
             self.lap.host("host.densify");
         }
-        let checkpointing = config.schedule.checkpoint_every > 0 && (step + 1) % config.schedule.checkpoint_every == 0 && step + 1 < self.stop_at;
+        let checkpointing = config.schedule.checkpoint_every > 0
+            && (step + 1) % config.schedule.checkpoint_every == 0
+            && step + 1 < self.stop_at;
         if checkpointing {
             self.save(step + 1, self.checkpoint_path)?;
         }
@@ -576,11 +876,26 @@ impl StepLoop<'_> {
 
     /// Densifies after `step + 1` steps; the renderer and the cloth losses follow the
     /// layers' new counts.
-    fn densify(&mut self, step: u32, log_scale: f32, progress: &mut dyn FnMut(Progress)) -> crate::Result<()> {
-        let (summaries, counts) = densify_layers(self.ctx, self.avatar, self.config, step, log_scale)?;
-        *self.renderer = renderer_for(self.ctx, self.avatar, self.cloth_losses.as_deref_mut(), self.config, self.size)?;
+    fn densify(
+        &mut self,
+        step: u32,
+        log_scale: f32,
+        progress: &mut dyn FnMut(Progress),
+    ) -> crate::Result<()> {
+        let (summaries, counts) =
+            densify_layers(self.ctx, self.avatar, self.config, step, log_scale)?;
+        *self.renderer = renderer_for(
+            self.ctx,
+            self.avatar,
+            self.cloth_losses.as_deref_mut(),
+            self.config,
+            self.size,
+        )?;
         self.log_line(&serde_json::json!({ "step": step, "densify": summaries }))?;
-        progress(Progress::Densify { step: step + 1, counts });
+        progress(Progress::Densify {
+            step: step + 1,
+            counts,
+        });
         Ok(())
     }
 
@@ -598,18 +913,33 @@ impl StepLoop<'_> {
 
 /// The image losses with the config's weights; LPIPS joins where there are weights and
 /// `losses.lambda_lpips` is not 0.
-fn image_losses_of(ctx: &Context, config: &TrainConfig, lpips_weights: Option<&LpipsWeights>, (width, height): (u32, u32)) -> crate::Result<ImageLosses> {
+fn image_losses_of(
+    ctx: &Context,
+    config: &TrainConfig,
+    lpips_weights: Option<&LpipsWeights>,
+    (width, height): (u32, u32),
+) -> crate::Result<ImageLosses> {
     let lpips = match lpips_weights {
         Some(w) if config.losses.lambda_lpips > 0.0 => Some(Lpips::new(ctx, w, width, height)?),
         _ => None,
     };
-    let weights = ImageLossWeights { l1: config.losses.lambda_l1, ssim: config.losses.lambda_ssim, lpips: config.losses.lambda_lpips };
+    let weights = ImageLossWeights {
+        l1: config.losses.lambda_l1,
+        ssim: config.losses.lambda_ssim,
+        lpips: config.losses.lambda_lpips,
+    };
     Ok(ImageLosses::new(ctx, width, height, weights, lpips)?)
 }
 
 /// The renderer for the avatar's current counts, and the cloth losses resized to them
 /// (after a checkpoint or a densification changed the counts).
-fn renderer_for(ctx: &Context, avatar: &Avatar, cloth_losses: Option<&mut ClothLosses>, config: &TrainConfig, (width, height): (u32, u32)) -> crate::Result<AvatarRenderer> {
+fn renderer_for(
+    ctx: &Context,
+    avatar: &Avatar,
+    cloth_losses: Option<&mut ClothLosses>,
+    config: &TrainConfig,
+    (width, height): (u32, u32),
+) -> crate::Result<AvatarRenderer> {
     let renderer = AvatarRenderer::new(ctx, avatar, width, height, config.layers.compositing)?;
     if let (Some(c), Some(cloth)) = (cloth_losses, avatar.cloth()) {
         c.resize(ctx, cloth)?;
@@ -635,7 +965,14 @@ struct LoopSummary {
 }
 
 impl TrainReport {
-    fn new(layout: Layout, gaussians: Vec<(String, u32)>, fit: FitSummary, run: LoopSummary, initial: EvalMetrics, fin: EvalMetrics) -> Self {
+    fn new(
+        layout: Layout,
+        gaussians: Vec<(String, u32)>,
+        fit: FitSummary,
+        run: LoopSummary,
+        initial: EvalMetrics,
+        fin: EvalMetrics,
+    ) -> Self {
         let steps_run = run.stop_at.saturating_sub(run.start_step);
         Self {
             layout,
@@ -657,12 +994,37 @@ impl TrainReport {
 
 /// The cloth layer's losses, where the avatar has a cloth layer and the config weighs
 /// them: their physics targets are the garments simulated through the sequence's motion.
-fn cloth_losses_of(ctx: &Context, avatar: &Avatar, rig: &Rig, seq: &Sequence, config: &TrainConfig, (width, height): (u32, u32), progress: &mut dyn FnMut(Progress)) -> crate::Result<Option<ClothLosses>> {
+fn cloth_losses_of(
+    ctx: &Context,
+    avatar: &Avatar,
+    rig: &Rig,
+    seq: &Sequence,
+    config: &TrainConfig,
+    (width, height): (u32, u32),
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<Option<ClothLosses>> {
     match avatar.cloth() {
-        Some(cloth) if config.losses.lambda_sim > 0.0 || config.losses.lambda_arap > 0.0 || config.losses.lambda_mask > 0.0 => {
-            let garments = cloth_target::simulate_sequence(rig, config.layers.cloth_fit, &seq.frames, &mut |done, total| progress(Progress::Simulate { done, total }))?;
-            let weights = ClothLossWeights { sim: config.losses.lambda_sim, gm_sigma: config.losses.gm_sigma, arap: config.losses.lambda_arap, mask: config.losses.lambda_mask, target_stride: config.layers.decimate };
-            Ok(Some(ClothLosses::new(ctx, cloth, garments, weights, width, height)?))
+        Some(cloth)
+            if config.losses.lambda_sim > 0.0
+                || config.losses.lambda_arap > 0.0
+                || config.losses.lambda_mask > 0.0 =>
+        {
+            let garments = cloth_target::simulate_sequence(
+                rig,
+                config.layers.cloth_fit,
+                &seq.frames,
+                &mut |done, total| progress(Progress::Simulate { done, total }),
+            )?;
+            let weights = ClothLossWeights {
+                sim: config.losses.lambda_sim,
+                gm_sigma: config.losses.gm_sigma,
+                arap: config.losses.lambda_arap,
+                mask: config.losses.lambda_mask,
+                target_stride: config.layers.decimate,
+            };
+            Ok(Some(ClothLosses::new(
+                ctx, cloth, garments, weights, width, height,
+            )?))
         }
         _ => Ok(None),
     }
@@ -670,26 +1032,52 @@ fn cloth_losses_of(ctx: &Context, avatar: &Avatar, rig: &Rig, seq: &Sequence, co
 
 /// Loads the run's checkpoint into `avatar` (and the pose corrections into `refiner`);
 /// the step it was taken at.
-fn resume_from(ctx: &Context, checkpoint_path: &Path, config: &TrainConfig, avatar: &mut Avatar, refiner: Option<&mut PoseRefiner>) -> crate::Result<u32> {
+fn resume_from(
+    ctx: &Context,
+    checkpoint_path: &Path,
+    config: &TrainConfig,
+    avatar: &mut Avatar,
+    refiner: Option<&mut PoseRefiner>,
+) -> crate::Result<u32> {
     let state = checkpoint::read(checkpoint_path, &avatar.shapes(), avatar.scene_sh_degree())?;
     if state.step > config.schedule.steps {
-        return Err(TrainerError::checkpoint(checkpoint_path, "step", format!("the checkpoint is at step {}, past the run's {} steps (raise --steps)", state.step, config.schedule.steps)));
+        return Err(TrainerError::checkpoint(
+            checkpoint_path,
+            "step",
+            format!(
+                "the checkpoint is at step {}, past the run's {} steps (raise --steps)",
+                state.step, config.schedule.steps
+            ),
+        ));
     }
     avatar.restore(ctx, &state)?;
     if let (Some(r), Some(p)) = (refiner, state.poses) {
-        r.restore(p).map_err(|e| TrainerError::checkpoint(checkpoint_path, "poses", e.to_string()))?;
+        r.restore(p)
+            .map_err(|e| TrainerError::checkpoint(checkpoint_path, "poses", e.to_string()))?;
     }
     Ok(state.step)
 }
 
 /// Fits every layer's deformation decoder to the body's skinning weights; the worst
 /// layer's final mean squared error.
-fn fit_skinning_weights(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig, progress: &mut dyn FnMut(Progress)) -> crate::Result<f64> {
+fn fit_skinning_weights(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    config: &TrainConfig,
+    progress: &mut dyn FnMut(Progress),
+) -> crate::Result<f64> {
     let total = config.schedule.fit_steps;
     let mut worst = 0.0f64;
     for l in &mut avatar.layers {
         let name = l.name.clone();
-        let mse = l.fit_skinning_weights(ctx, total, config.schedule.fit_lr, 25, |step, mse| progress(Progress::Fit { layer: name.clone(), step, total, mse }))?;
+        let mse = l.fit_skinning_weights(ctx, total, config.schedule.fit_lr, 25, |step, mse| {
+            progress(Progress::Fit {
+                layer: name.clone(),
+                step,
+                total,
+                mse,
+            })
+        })?;
         worst = worst.max(mse);
     }
     Ok(worst)
@@ -697,7 +1085,13 @@ fn fit_skinning_weights(ctx: &Context, avatar: &mut Avatar, config: &TrainConfig
 
 /// Writes the training steps' profile (`drape train --profile`): `profile.txt`, a table
 /// whose shares are of the loop's wall time, and `profile.json`.
-fn write_profile(out: &Path, profile: &drape_engine::Profile, waits: &HostWaits, steps: u64, loop_seconds: f64) -> crate::Result<()> {
+fn write_profile(
+    out: &Path,
+    profile: &drape_engine::Profile,
+    waits: &HostWaits,
+    steps: u64,
+    loop_seconds: f64,
+) -> crate::Result<()> {
     let table = format!("{steps} steps in {loop_seconds:.2} s ({:.1} ms/step); shares are of that wall time\n{}\n{}", 1e3 * loop_seconds / steps.max(1) as f64, waits.summary(), profile.table(1e3 * loop_seconds, steps, 25));
     let path = out.join("profile.txt");
     std::fs::write(&path, &table).map_err(|e| TrainerError::io(&path, e))?;
@@ -707,14 +1101,21 @@ fn write_profile(out: &Path, profile: &drape_engine::Profile, waits: &HostWaits,
 /// Marks the run finished: the complete marker written, the incomplete one removed.
 fn mark_complete(out: &Path, steps: u32) -> crate::Result<()> {
     let marker = out.join(COMPLETE_MARKER);
-    std::fs::write(&marker, format!("finished {steps} steps\n")).map_err(|e| TrainerError::io(&marker, e))?;
+    std::fs::write(&marker, format!("finished {steps} steps\n"))
+        .map_err(|e| TrainerError::io(&marker, e))?;
     let _ = std::fs::remove_file(out.join(INCOMPLETE_MARKER));
     Ok(())
 }
 
 /// Exports the avatar posed as held-out frame `f`: one standard 3DGS PLY per layer
 /// (`body_frameNNNN.ply`, `cloth_frameNNNN.ply`).
-fn export_posed_layers(ctx: &Context, avatar: &mut Avatar, rig: &Rig, f: &DatasetFrame, out: &Path) -> crate::Result<()> {
+fn export_posed_layers(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    rig: &Rig,
+    f: &DatasetFrame,
+    out: &Path,
+) -> crate::Result<()> {
     let ft = rig.frame(&f.body);
     avatar.set_frame(ctx, &ft)?;
     {
@@ -730,7 +1131,11 @@ fn export_posed_layers(ctx: &Context, avatar: &mut Avatar, rig: &Rig, f: &Datase
             part.push(&cloud.gaussian::<f32>(i), layer);
         }
         if !part.is_empty() {
-            let name = if layer == Layer::Body { "body" } else { "cloth" };
+            let name = if layer == Layer::Body {
+                "body"
+            } else {
+                "cloth"
+            };
             let path = out.join(format!("{name}_frame{:04}.ply", f.frame));
             ply::write(&path, &part)?;
         }
@@ -740,14 +1145,33 @@ fn export_posed_layers(ctx: &Context, avatar: &mut Avatar, rig: &Rig, f: &Datase
 
 /// Renders `novel_pose.png`: the procedural raise-arms motion, halfway, on held-out
 /// frame `f`'s root, translation and camera.
-fn render_novel_pose(ctx: &Context, avatar: &mut Avatar, renderer: &mut AvatarRenderer, rig: &Rig, f: &DatasetFrame, settings: &RenderSettings, out: &Path, (width, height): (u32, u32)) -> crate::Result<()> {
+fn render_novel_pose(
+    ctx: &Context,
+    avatar: &mut Avatar,
+    renderer: &mut AvatarRenderer,
+    rig: &Rig,
+    f: &DatasetFrame,
+    settings: &RenderSettings,
+    out: &Path,
+    (width, height): (u32, u32),
+) -> crate::Result<()> {
     let motion = crate::motion::procedural(crate::motion::MotionKind::RaiseArms, 30, 30.0, 1.0);
     let novel = &motion.poses[15];
     let body = match &f.body {
-        BodyParams::Smpl { pose, betas, translation, scale } => {
+        BodyParams::Smpl {
+            pose,
+            betas,
+            translation,
+            scale,
+        } => {
             let mut p = *pose;
             p[1..].copy_from_slice(&novel[1..]);
-            BodyParams::Smpl { pose: p, betas: betas.clone(), translation: *translation, scale: *scale }
+            BodyParams::Smpl {
+                pose: p,
+                betas: betas.clone(),
+                translation: *translation,
+                scale: *scale,
+            }
         }
         BodyParams::Zju(z) => {
             let mut z = z.clone();

@@ -7,11 +7,11 @@
 
 use std::collections::HashMap;
 
-use glam::DVec3;
-use drape_engine::ops::splat::scene::GaussianCloud;
 use crate::avatar::groups::Layer;
+use drape_engine::ops::splat::scene::GaussianCloud;
 use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::project::Gaussian;
+use glam::DVec3;
 
 use crate::body::model::NUM_JOINTS;
 use crate::mesh::{rotation_to_quaternion, vertex_normals};
@@ -36,13 +36,20 @@ impl SkinnedMesh {
         let mut mid = |a: u32, b: u32, out: &mut SkinnedMesh| -> u32 {
             *midpoint.entry((a.min(b), a.max(b))).or_insert_with(|| {
                 let (ia, ib) = (a as usize, b as usize);
-                out.vertices.push((self.vertices[ia] + self.vertices[ib]) * 0.5);
+                out.vertices
+                    .push((self.vertices[ia] + self.vertices[ib]) * 0.5);
                 let mut w = [0.0; NUM_JOINTS];
                 for j in 0..NUM_JOINTS {
                     w[j] = 0.5 * (self.weights[ia][j] + self.weights[ib][j]);
                 }
                 out.weights.push(w);
-                let d = [0, 1, 2].map(|k| self.shapedirs[ia][k].iter().zip(&self.shapedirs[ib][k]).map(|(x, y)| 0.5 * (x + y)).collect());
+                let d = [0, 1, 2].map(|k| {
+                    self.shapedirs[ia][k]
+                        .iter()
+                        .zip(&self.shapedirs[ib][k])
+                        .map(|(x, y)| 0.5 * (x + y))
+                        .collect()
+                });
                 out.shapedirs.push(d);
                 (out.vertices.len() - 1) as u32
             })
@@ -61,7 +68,12 @@ impl SkinnedMesh {
 
 /// Gaussians at the vertices of `mesh` after `levels` subdivisions, with their
 /// skinning weights (the subdivided mesh is returned too).
-pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, layer: Layer) -> (GaussianCloud, SkinnedMesh) {
+pub fn gaussians_from_mesh(
+    mesh: &SkinnedMesh,
+    levels: u32,
+    sh_degree: u32,
+    layer: Layer,
+) -> (GaussianCloud, SkinnedMesh) {
     let mut m = mesh.clone();
     for _ in 0..levels {
         m = m.subdivide();
@@ -88,7 +100,11 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
         let t1 = helper.cross(n).normalize_or(DVec3::Z);
         let t2 = n.cross(t1);
         // The rotation whose columns are the tangents and the normal.
-        let q = rotation_to_quaternion(&[[t1[0], t2[0], n[0]], [t1[1], t2[1], n[1]], [t1[2], t2[2], n[2]]]);
+        let q = rotation_to_quaternion(&[
+            [t1[0], t2[0], n[0]],
+            [t1[1], t2[1], n[1]],
+            [t1[2], t2[2], n[2]],
+        ]);
         let mean_edge = edge_sum[i] / f64::from(edge_count[i].max(1));
         let tangent = (0.5 * mean_edge).max(1e-5);
         let mut sh = [[0.0f32; 3]; MAX_SH_COEFFS];
@@ -96,7 +112,11 @@ pub fn gaussians_from_mesh(mesh: &SkinnedMesh, levels: u32, sh_degree: u32, laye
         cloud.push(
             &Gaussian {
                 mean: v.as_vec3().to_array(),
-                log_scale: [tangent.ln() as f32, tangent.ln() as f32, (0.1 * tangent).ln() as f32],
+                log_scale: [
+                    tangent.ln() as f32,
+                    tangent.ln() as f32,
+                    (0.1 * tangent).ln() as f32,
+                ],
                 quat: q.map(|x| x as f32),
                 opacity_logit,
                 sh,

@@ -32,7 +32,10 @@ fn rows(m: DMat3) -> M3 {
 }
 
 fn affine(a: &Affine) -> DAffine3 {
-    DAffine3::from_mat3_translation(mat(&a.map(|r| [r[0], r[1], r[2]])), DVec3::new(a[0][3], a[1][3], a[2][3]))
+    DAffine3::from_mat3_translation(
+        mat(&a.map(|r| [r[0], r[1], r[2]])),
+        DVec3::new(a[0][3], a[1][3], a[2][3]),
+    )
 }
 
 fn affine_rows(a: DAffine3) -> Affine {
@@ -51,7 +54,11 @@ fn rotation(r: DVec3) -> DMat3 {
     if theta < 1e-12 {
         // First order: I + [r]x (the diagonal set, not added, so the zeros keep their signs).
         let k = skew(r);
-        return DMat3::from_cols(k.x_axis.with_x(1.0), k.y_axis.with_y(1.0), k.z_axis.with_z(1.0));
+        return DMat3::from_cols(
+            k.x_axis.with_x(1.0),
+            k.y_axis.with_y(1.0),
+            k.z_axis.with_z(1.0),
+        );
     }
     let k = skew(r * (1.0 / theta));
     let (s, c) = theta.sin_cos();
@@ -121,7 +128,10 @@ pub fn rigid_inverse(a: &Affine) -> Affine {
 
 /// Skinning transforms that take points from the body in pose `from` to pose `to`:
 /// `A_j(to) · A_j(from)⁻¹` per joint (what a mesh made on the posed body is skinned with).
-pub fn relative_transforms(to: &[Affine; NUM_JOINTS], from: &[Affine; NUM_JOINTS]) -> [Affine; NUM_JOINTS] {
+pub fn relative_transforms(
+    to: &[Affine; NUM_JOINTS],
+    from: &[Affine; NUM_JOINTS],
+) -> [Affine; NUM_JOINTS] {
     std::array::from_fn(|j| compose(&to[j], &rigid_inverse(&from[j])))
 }
 
@@ -132,7 +142,11 @@ pub fn shaped_vertices(model: &SmplModel, betas: &[f64]) -> Vec<DVec3> {
         .v_template
         .iter()
         .zip(&model.shapedirs)
-        .map(|(v, d)| DVec3::from_array([0, 1, 2].map(|k| v[k] + (0..b).map(|i| d[k][i] * betas[i]).sum::<f64>())))
+        .map(|(v, d)| {
+            DVec3::from_array(
+                [0, 1, 2].map(|k| v[k] + (0..b).map(|i| d[k][i] * betas[i]).sum::<f64>()),
+            )
+        })
         .collect()
 }
 
@@ -154,15 +168,28 @@ pub fn regress_joints(model: &SmplModel, vertices: &[DVec3]) -> [DVec3; NUM_JOIN
 /// Computed as `A_j = A_parent · [R_j | J_j - R_j J_j]` (equal to `G_j · [I | -J_j]`):
 /// at rest every factor is exactly the identity, so the rest pose reproduces the
 /// template bit for bit.
-pub fn forward_kinematics(parents: &[i32; NUM_JOINTS], joints: &[DVec3; NUM_JOINTS], pose: &Pose) -> ([Affine; NUM_JOINTS], [Affine; NUM_JOINTS]) {
+pub fn forward_kinematics(
+    parents: &[i32; NUM_JOINTS],
+    joints: &[DVec3; NUM_JOINTS],
+    pose: &Pose,
+) -> ([Affine; NUM_JOINTS], [Affine; NUM_JOINTS]) {
     let mut a = [DAffine3::IDENTITY; NUM_JOINTS];
     for j in 0..NUM_JOINTS {
         let (r, joint) = (rotation(pose[j]), joints[j]);
         let local = DAffine3::from_mat3_translation(r, joint - r * joint);
-        a[j] = if parents[j] < 0 { local } else { a[parents[j] as usize] * local };
+        a[j] = if parents[j] < 0 {
+            local
+        } else {
+            a[parents[j] as usize] * local
+        };
     }
     // G_j = A_j · [I | J_j].
-    let g = std::array::from_fn(|j| affine_rows(DAffine3 { translation: a[j].translation + a[j].matrix3 * joints[j], ..a[j] }));
+    let g = std::array::from_fn(|j| {
+        affine_rows(DAffine3 {
+            translation: a[j].translation + a[j].matrix3 * joints[j],
+            ..a[j]
+        })
+    });
     (a.map(affine_rows), g)
 }
 
@@ -180,11 +207,18 @@ pub fn pose_features(pose: &Pose) -> [f64; NUM_POSE_FEATURES] {
 /// exactly `p` when every transform is the identity).
 /// The GPU kernel's CPU reference (`drape_engine::ops::skinning`) runs the very same
 /// shared functions.
-pub fn skin(weights: &[[f64; NUM_JOINTS]], transforms: &[Affine; NUM_JOINTS], points: &[DVec3]) -> Vec<DVec3> {
+pub fn skin(
+    weights: &[[f64; NUM_JOINTS]],
+    transforms: &[Affine; NUM_JOINTS],
+    points: &[DVec3],
+) -> Vec<DVec3> {
     let flat_t: Vec<f64> = transforms.iter().flatten().flatten().copied().collect();
     let flat_w: Vec<f64> = weights.iter().flatten().copied().collect();
     let flat_p: Vec<f64> = points.iter().flat_map(|p| p.to_array()).collect();
-    drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p).chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])).collect()
+    drape_engine::ops::skinning::reference::forward(&flat_t, &flat_w, &flat_p)
+        .chunks_exact(3)
+        .map(|c| DVec3::new(c[0], c[1], c[2]))
+        .collect()
 }
 
 /// A posed body.
@@ -203,31 +237,55 @@ pub fn pose_body(model: &SmplModel, betas: &[f64], pose: &Pose, translation: DVe
     let shaped = shaped_vertices(model, betas);
     let rest_joints = regress_joints(model, &shaped);
     let features = pose_features(pose);
-    let blended: Vec<DVec3> = if features.iter().all(|&f| f == 0.0) || model.posedirs.iter().all(|d| d.iter().all(|a| a.iter().all(|&x| x == 0.0))) {
-        shaped
-    } else {
-        shaped
-            .iter()
-            .zip(&model.posedirs)
-            .map(|(v, d)| DVec3::from_array([0, 1, 2].map(|k| v[k] + d[k].iter().zip(&features).map(|(a, b)| a * b).sum::<f64>())))
-            .collect()
-    };
+    let blended: Vec<DVec3> =
+        if features.iter().all(|&f| f == 0.0)
+            || model
+                .posedirs
+                .iter()
+                .all(|d| d.iter().all(|a| a.iter().all(|&x| x == 0.0)))
+        {
+            shaped
+        } else {
+            shaped
+                .iter()
+                .zip(&model.posedirs)
+                .map(|(v, d)| {
+                    DVec3::from_array([0, 1, 2].map(|k| {
+                        v[k] + d[k].iter().zip(&features).map(|(a, b)| a * b).sum::<f64>()
+                    }))
+                })
+                .collect()
+        };
     let (transforms, g) = forward_kinematics(&model.parents, &rest_joints, pose);
-    let vertices = skin(&model.weights, &transforms, &blended).into_iter().map(|v| v + translation).collect();
+    let vertices = skin(&model.weights, &transforms, &blended)
+        .into_iter()
+        .map(|v| v + translation)
+        .collect();
     let joints = g.map(|m| DVec3::new(m[0][3], m[1][3], m[2][3]) + translation);
-    Posed { vertices, joints, rest_joints, transforms }
+    Posed {
+        vertices,
+        joints,
+        rest_joints,
+        transforms,
+    }
 }
 
 /// The gradient of a loss with respect to the pose, given its gradient with respect to
 /// the skinning transforms `A_j` (pose blend shapes not included).
-pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[DVec3; NUM_JOINTS], pose: &Pose, grad_a: &[Affine; NUM_JOINTS]) -> Pose {
+pub fn pose_gradient(
+    parents: &[i32; NUM_JOINTS],
+    joints: &[DVec3; NUM_JOINTS],
+    pose: &Pose,
+    grad_a: &[Affine; NUM_JOINTS],
+) -> Pose {
     let (_, g) = forward_kinematics(parents, joints, pose);
     // `x yᵀ`.
     let outer = |x: DVec3, y: DVec3| DMat3::from_cols(x * y.x, x * y.y, x * y.z);
     // A = [G_R | G_t - G_R J]: dG_R = dA_R - dA_t Jᵀ, dG_t = dA_t.
     let grad_a = grad_a.map(|m| affine(&m));
     let mut d_t = grad_a.map(|m| m.translation);
-    let mut d_rot: [DMat3; NUM_JOINTS] = std::array::from_fn(|j| grad_a[j].matrix3 - outer(d_t[j], joints[j]));
+    let mut d_rot: [DMat3; NUM_JOINTS] =
+        std::array::from_fn(|j| grad_a[j].matrix3 - outer(d_t[j], joints[j]));
     let mut d_local = [DMat3::ZERO; NUM_JOINTS];
     for j in (0..NUM_JOINTS).rev() {
         if parents[j] < 0 {
@@ -237,14 +295,21 @@ pub fn pose_gradient(parents: &[i32; NUM_JOINTS], joints: &[DVec3; NUM_JOINTS], 
         let p = parents[j] as usize;
         // G_R,j = G_R,p R_j ; G_t,j = G_R,p (J_j - J_p) + G_t,p
         d_local[j] = affine(&g[p]).matrix3.transpose() * d_rot[j];
-        let d_prot = d_rot[j] * rotation(pose[j]).transpose() + outer(d_t[j], joints[j] - joints[p]);
+        let d_prot =
+            d_rot[j] * rotation(pose[j]).transpose() + outer(d_t[j], joints[j] - joints[p]);
         d_rot[p] += d_prot;
         d_t[p] += d_t[j];
     }
     std::array::from_fn(|j| {
         // Summed row by row (a column-major sum would round differently).
         let dl = rows(d_local[j]);
-        DVec3::from_array(rodrigues_jacobian(pose[j]).map(|d| d.as_flattened().iter().zip(dl.as_flattened()).map(|(a, b)| a * b).sum()))
+        DVec3::from_array(rodrigues_jacobian(pose[j]).map(|d| {
+            d.as_flattened()
+                .iter()
+                .zip(dl.as_flattened())
+                .map(|(a, b)| a * b)
+                .sum()
+        }))
     })
 }
 
@@ -258,9 +323,19 @@ mod tests {
     fn glam_conversions_keep_rows() {
         let m = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 10.0]];
         assert_eq!(rows(mat(&m)), m);
-        assert_eq!(mat(&m) * DVec3::new(1.0, 10.0, 100.0), DVec3::new(321.0, 654.0, 1087.0));
-        let a: Affine = [[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0], [9.0, 10.0, 11.0, 12.0]];
+        assert_eq!(
+            mat(&m) * DVec3::new(1.0, 10.0, 100.0),
+            DVec3::new(321.0, 654.0, 1087.0)
+        );
+        let a: Affine = [
+            [1.0, 2.0, 3.0, 4.0],
+            [5.0, 6.0, 7.0, 8.0],
+            [9.0, 10.0, 11.0, 12.0],
+        ];
         assert_eq!(affine_rows(affine(&a)), a);
-        assert_eq!(affine(&a).transform_point3(DVec3::X), DVec3::new(5.0, 13.0, 21.0));
+        assert_eq!(
+            affine(&a).transform_point3(DVec3::X),
+            DVec3::new(5.0, 13.0, 21.0)
+        );
     }
 }

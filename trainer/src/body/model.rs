@@ -17,13 +17,36 @@ pub const NUM_POSE_FEATURES: usize = 9 * (NUM_JOINTS - 1);
 
 /// SMPL's joint names, in its order.
 pub const JOINT_NAMES: [&str; NUM_JOINTS] = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle", "right_ankle", "spine3",
-    "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow",
-    "right_elbow", "left_wrist", "right_wrist", "left_hand", "right_hand",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
 ];
 
 /// SMPL's kinematic tree: parent of each joint (-1 for the root).
-pub const PARENTS: [i32; NUM_JOINTS] = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21];
+pub const PARENTS: [i32; NUM_JOINTS] = [
+    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
+];
 
 /// A body model in the SMPL format, in f64.
 #[derive(Clone, Debug, PartialEq)]
@@ -57,7 +80,11 @@ impl SmplModel {
 
     /// Builds a model from arrays, validating every shape and value.
     pub fn from_arrays(arrays: &BTreeMap<String, Array>, file: &str) -> Result<Self, NpyError> {
-        let bad = |key: &str, problem: String| NpyError::Format { file: file.to_string(), key: Some(key.to_string()), problem };
+        let bad = |key: &str, problem: String| NpyError::Format {
+            file: file.to_string(),
+            key: Some(key.to_string()),
+            problem,
+        };
         let vt = npy::require(arrays, file, "v_template", &[None, Some(3)])?;
         let v = vt.shape[0];
         if v == 0 {
@@ -65,27 +92,56 @@ impl SmplModel {
         }
         let sd = npy::require(arrays, file, "shapedirs", &[Some(v), Some(3), None])?;
         let b = sd.shape[2];
-        let pd = npy::require(arrays, file, "posedirs", &[Some(v), Some(3), Some(NUM_POSE_FEATURES)])?;
+        let pd = npy::require(
+            arrays,
+            file,
+            "posedirs",
+            &[Some(v), Some(3), Some(NUM_POSE_FEATURES)],
+        )?;
         let jr = npy::require(arrays, file, "J_regressor", &[Some(NUM_JOINTS), Some(v)])?;
         let w = npy::require(arrays, file, "weights", &[Some(v), Some(NUM_JOINTS)])?;
         let kt = npy::require(arrays, file, "kintree_table", &[Some(2), Some(NUM_JOINTS)])?;
         let f = npy::require(arrays, file, "f", &[None, Some(3)])?;
         if !matches!(f.dtype, Dtype::U32 | Dtype::I32 | Dtype::I64 | Dtype::U8) {
-            return Err(bad("f", format!("dtype {:?}: face indices must be integers", f.dtype)));
+            return Err(bad(
+                "f",
+                format!("dtype {:?}: face indices must be integers", f.dtype),
+            ));
         }
         let mut parents = [-1i32; NUM_JOINTS];
         for (j, p) in parents.iter_mut().enumerate().skip(1) {
             let value = kt.data[j];
             if !(value >= 0.0 && value < j as f64) || value.fract() != 0.0 {
-                return Err(bad("kintree_table", format!("parent of joint {j} is {value}; parents must precede their children")));
+                return Err(bad(
+                    "kintree_table",
+                    format!("parent of joint {j} is {value}; parents must precede their children"),
+                ));
             }
             *p = value as i32;
         }
-        let faces: Vec<[u32; 3]> = f.data.chunks_exact(3).map(|c| [c[0] as u32, c[1] as u32, c[2] as u32]).collect();
-        if let Some(i) = f.data.iter().position(|&x| x < 0.0 || x >= v as f64 || x.fract() != 0.0) {
-            return Err(bad("f", format!("index {} at position {i} is not a vertex (V = {v})", f.data[i])));
+        let faces: Vec<[u32; 3]> = f
+            .data
+            .chunks_exact(3)
+            .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+            .collect();
+        if let Some(i) = f
+            .data
+            .iter()
+            .position(|&x| x < 0.0 || x >= v as f64 || x.fract() != 0.0)
+        {
+            return Err(bad(
+                "f",
+                format!(
+                    "index {} at position {i} is not a vertex (V = {v})",
+                    f.data[i]
+                ),
+            ));
         }
-        let weights: Vec<[f64; NUM_JOINTS]> = w.data.chunks_exact(NUM_JOINTS).map(|c| c.try_into().expect("24")).collect();
+        let weights: Vec<[f64; NUM_JOINTS]> = w
+            .data
+            .chunks_exact(NUM_JOINTS)
+            .map(|c| c.try_into().expect("24"))
+            .collect();
         for (i, row) in weights.iter().enumerate() {
             let s: f64 = row.iter().sum();
             if (s - 1.0).abs() > 1e-3 || row.iter().any(|&x| x < -1e-6) {
@@ -96,7 +152,11 @@ impl SmplModel {
             (0..v)
                 .map(|i| {
                     let base = i * 3 * k;
-                    [a.data[base..base + k].to_vec(), a.data[base + k..base + 2 * k].to_vec(), a.data[base + 2 * k..base + 3 * k].to_vec()]
+                    [
+                        a.data[base..base + k].to_vec(),
+                        a.data[base + k..base + 2 * k].to_vec(),
+                        a.data[base + 2 * k..base + 3 * k].to_vec(),
+                    ]
                 })
                 .collect()
         };
@@ -115,21 +175,63 @@ impl SmplModel {
     /// The arrays of the smplx layout (what `write_npz` saves).
     pub fn to_arrays(&self) -> BTreeMap<String, Array> {
         let v = self.num_vertices();
-        let flat3 = |rows: &[[Vec<f64>; 3]]| rows.iter().flat_map(|r| r.iter().flat_map(|c| c.iter().copied()).collect::<Vec<_>>()).collect::<Vec<_>>();
+        let flat3 = |rows: &[[Vec<f64>; 3]]| {
+            rows.iter()
+                .flat_map(|r| r.iter().flat_map(|c| c.iter().copied()).collect::<Vec<_>>())
+                .collect::<Vec<_>>()
+        };
         let mut kintree = vec![0.0; 2 * NUM_JOINTS];
         for j in 0..NUM_JOINTS {
             // SMPL files store the root's parent as uint32 -1.
-            kintree[j] = if self.parents[j] < 0 { 4_294_967_295.0 } else { f64::from(self.parents[j]) };
+            kintree[j] = if self.parents[j] < 0 {
+                4_294_967_295.0
+            } else {
+                f64::from(self.parents[j])
+            };
             kintree[NUM_JOINTS + j] = j as f64;
         }
         let mut out = BTreeMap::new();
-        out.insert("v_template".into(), Array::f64(vec![v, 3], self.v_template.iter().flat_map(|v| v.to_array()).collect()));
-        out.insert("shapedirs".into(), Array::f64(vec![v, 3, self.num_betas], flat3(&self.shapedirs)));
-        out.insert("posedirs".into(), Array::f64(vec![v, 3, NUM_POSE_FEATURES], flat3(&self.posedirs)));
-        out.insert("J_regressor".into(), Array::f64(vec![NUM_JOINTS, v], self.j_regressor.iter().flatten().copied().collect()));
-        out.insert("weights".into(), Array::f64(vec![v, NUM_JOINTS], self.weights.iter().flatten().copied().collect()));
-        out.insert("kintree_table".into(), Array::new(Dtype::I64, vec![2, NUM_JOINTS], kintree));
-        out.insert("f".into(), Array::new(Dtype::U32, vec![self.faces.len(), 3], self.faces.iter().flatten().map(|&i| f64::from(i)).collect()));
+        out.insert(
+            "v_template".into(),
+            Array::f64(
+                vec![v, 3],
+                self.v_template.iter().flat_map(|v| v.to_array()).collect(),
+            ),
+        );
+        out.insert(
+            "shapedirs".into(),
+            Array::f64(vec![v, 3, self.num_betas], flat3(&self.shapedirs)),
+        );
+        out.insert(
+            "posedirs".into(),
+            Array::f64(vec![v, 3, NUM_POSE_FEATURES], flat3(&self.posedirs)),
+        );
+        out.insert(
+            "J_regressor".into(),
+            Array::f64(
+                vec![NUM_JOINTS, v],
+                self.j_regressor.iter().flatten().copied().collect(),
+            ),
+        );
+        out.insert(
+            "weights".into(),
+            Array::f64(
+                vec![v, NUM_JOINTS],
+                self.weights.iter().flatten().copied().collect(),
+            ),
+        );
+        out.insert(
+            "kintree_table".into(),
+            Array::new(Dtype::I64, vec![2, NUM_JOINTS], kintree),
+        );
+        out.insert(
+            "f".into(),
+            Array::new(
+                Dtype::U32,
+                vec![self.faces.len(), 3],
+                self.faces.iter().flatten().map(|&i| f64::from(i)).collect(),
+            ),
+        );
         out
     }
 

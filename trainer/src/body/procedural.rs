@@ -17,30 +17,30 @@ use crate::mesh::adjacency;
 
 /// Rest positions of SMPL's joints for the default body, in T-pose (metres).
 pub const JOINTS: [DVec3; NUM_JOINTS] = [
-    DVec3::new(0.0, 0.93, 0.0),     // pelvis
-    DVec3::new(0.085, 0.86, 0.0),   // left hip
-    DVec3::new(-0.085, 0.86, 0.0),  // right hip
-    DVec3::new(0.0, 1.04, -0.01),   // spine1
-    DVec3::new(0.095, 0.49, 0.01),  // left knee
-    DVec3::new(-0.095, 0.49, 0.01), // right knee
-    DVec3::new(0.0, 1.16, -0.01),   // spine2
-    DVec3::new(0.095, 0.08, -0.02), // left ankle
-    DVec3::new(-0.095, 0.08, -0.02),// right ankle
-    DVec3::new(0.0, 1.28, 0.0),     // spine3
-    DVec3::new(0.10, 0.025, 0.11),  // left foot
-    DVec3::new(-0.10, 0.025, 0.11), // right foot
-    DVec3::new(0.0, 1.46, 0.0),     // neck
-    DVec3::new(0.07, 1.40, 0.0),    // left collar
-    DVec3::new(-0.07, 1.40, 0.0),   // right collar
-    DVec3::new(0.0, 1.56, 0.02),    // head
-    DVec3::new(0.18, 1.41, 0.0),    // left shoulder
-    DVec3::new(-0.18, 1.41, 0.0),   // right shoulder
-    DVec3::new(0.44, 1.41, 0.0),    // left elbow
-    DVec3::new(-0.44, 1.41, 0.0),   // right elbow
-    DVec3::new(0.68, 1.41, 0.0),    // left wrist
-    DVec3::new(-0.68, 1.41, 0.0),   // right wrist
-    DVec3::new(0.76, 1.41, 0.0),    // left hand
-    DVec3::new(-0.76, 1.41, 0.0),   // right hand
+    DVec3::new(0.0, 0.93, 0.0),      // pelvis
+    DVec3::new(0.085, 0.86, 0.0),    // left hip
+    DVec3::new(-0.085, 0.86, 0.0),   // right hip
+    DVec3::new(0.0, 1.04, -0.01),    // spine1
+    DVec3::new(0.095, 0.49, 0.01),   // left knee
+    DVec3::new(-0.095, 0.49, 0.01),  // right knee
+    DVec3::new(0.0, 1.16, -0.01),    // spine2
+    DVec3::new(0.095, 0.08, -0.02),  // left ankle
+    DVec3::new(-0.095, 0.08, -0.02), // right ankle
+    DVec3::new(0.0, 1.28, 0.0),      // spine3
+    DVec3::new(0.10, 0.025, 0.11),   // left foot
+    DVec3::new(-0.10, 0.025, 0.11),  // right foot
+    DVec3::new(0.0, 1.46, 0.0),      // neck
+    DVec3::new(0.07, 1.40, 0.0),     // left collar
+    DVec3::new(-0.07, 1.40, 0.0),    // right collar
+    DVec3::new(0.0, 1.56, 0.02),     // head
+    DVec3::new(0.18, 1.41, 0.0),     // left shoulder
+    DVec3::new(-0.18, 1.41, 0.0),    // right shoulder
+    DVec3::new(0.44, 1.41, 0.0),     // left elbow
+    DVec3::new(-0.44, 1.41, 0.0),    // right elbow
+    DVec3::new(0.68, 1.41, 0.0),     // left wrist
+    DVec3::new(-0.68, 1.41, 0.0),    // right wrist
+    DVec3::new(0.76, 1.41, 0.0),     // left hand
+    DVec3::new(-0.76, 1.41, 0.0),    // right hand
 ];
 
 /// A piece of the body: a tapered capsule from `a` to `b`, owned by joint `joint`
@@ -56,40 +56,138 @@ struct Part {
 }
 
 const fn part(a: DVec3, b: DVec3, ra: f64, rb: f64, z_squash: f64, joint: usize) -> Part {
-    Part { a, b, ra, rb, z_squash, joint }
+    Part {
+        a,
+        b,
+        ra,
+        rb,
+        z_squash,
+        joint,
+    }
 }
 
 fn parts() -> Vec<Part> {
     let j = JOINTS;
     let mut p = vec![
         // Pelvis and torso, wider than deep.
-        part(DVec3::new(0.055, 0.86, 0.0), DVec3::new(0.07, 1.02, 0.0), 0.115, 0.11, 0.72, 0),
-        part(DVec3::new(-0.055, 0.86, 0.0), DVec3::new(-0.07, 1.02, 0.0), 0.115, 0.11, 0.72, 0),
-        part(DVec3::new(0.065, 1.02, 0.0), DVec3::new(0.07, 1.14, 0.0), 0.105, 0.11, 0.7, 3),
-        part(DVec3::new(-0.065, 1.02, 0.0), DVec3::new(-0.07, 1.14, 0.0), 0.105, 0.11, 0.7, 3),
-        part(DVec3::new(0.07, 1.14, 0.0), DVec3::new(0.075, 1.26, 0.0), 0.11, 0.115, 0.72, 6),
-        part(DVec3::new(-0.07, 1.14, 0.0), DVec3::new(-0.075, 1.26, 0.0), 0.11, 0.115, 0.72, 6),
-        part(DVec3::new(0.075, 1.26, 0.0), DVec3::new(0.08, 1.36, 0.0), 0.115, 0.1, 0.72, 9),
-        part(DVec3::new(-0.075, 1.26, 0.0), DVec3::new(-0.08, 1.36, 0.0), 0.115, 0.1, 0.72, 9),
+        part(
+            DVec3::new(0.055, 0.86, 0.0),
+            DVec3::new(0.07, 1.02, 0.0),
+            0.115,
+            0.11,
+            0.72,
+            0,
+        ),
+        part(
+            DVec3::new(-0.055, 0.86, 0.0),
+            DVec3::new(-0.07, 1.02, 0.0),
+            0.115,
+            0.11,
+            0.72,
+            0,
+        ),
+        part(
+            DVec3::new(0.065, 1.02, 0.0),
+            DVec3::new(0.07, 1.14, 0.0),
+            0.105,
+            0.11,
+            0.7,
+            3,
+        ),
+        part(
+            DVec3::new(-0.065, 1.02, 0.0),
+            DVec3::new(-0.07, 1.14, 0.0),
+            0.105,
+            0.11,
+            0.7,
+            3,
+        ),
+        part(
+            DVec3::new(0.07, 1.14, 0.0),
+            DVec3::new(0.075, 1.26, 0.0),
+            0.11,
+            0.115,
+            0.72,
+            6,
+        ),
+        part(
+            DVec3::new(-0.07, 1.14, 0.0),
+            DVec3::new(-0.075, 1.26, 0.0),
+            0.11,
+            0.115,
+            0.72,
+            6,
+        ),
+        part(
+            DVec3::new(0.075, 1.26, 0.0),
+            DVec3::new(0.08, 1.36, 0.0),
+            0.115,
+            0.1,
+            0.72,
+            9,
+        ),
+        part(
+            DVec3::new(-0.075, 1.26, 0.0),
+            DVec3::new(-0.08, 1.36, 0.0),
+            0.115,
+            0.1,
+            0.72,
+            9,
+        ),
         // Neck and head.
-        part(DVec3::new(0.0, 1.38, 0.0), DVec3::new(0.0, 1.50, 0.01), 0.06, 0.055, 1.0, 12),
-        part(DVec3::new(0.0, 1.55, 0.025), DVec3::new(0.0, 1.64, 0.02), 0.09, 0.085, 0.95, 15),
+        part(
+            DVec3::new(0.0, 1.38, 0.0),
+            DVec3::new(0.0, 1.50, 0.01),
+            0.06,
+            0.055,
+            1.0,
+            12,
+        ),
+        part(
+            DVec3::new(0.0, 1.55, 0.025),
+            DVec3::new(0.0, 1.64, 0.02),
+            0.09,
+            0.085,
+            0.95,
+            15,
+        ),
     ];
     for side in [1.0, -1.0] {
         let (l, s) = (if side > 0.0 { 0 } else { 1 }, side);
         let m = |v: DVec3| DVec3::new(v[0] * s, v[1], v[2]);
         p.extend([
             // Collar to shoulder, upper arm, forearm, hand.
-            part(m(DVec3::new(0.06, 1.38, 0.0)), m(j[16 + l]), 0.06, 0.058, 0.85, 13 + l),
+            part(
+                m(DVec3::new(0.06, 1.38, 0.0)),
+                m(j[16 + l]),
+                0.06,
+                0.058,
+                0.85,
+                13 + l,
+            ),
             part(j[16 + l], j[18 + l], 0.052, 0.042, 1.0, 16 + l),
             part(j[18 + l], j[20 + l], 0.042, 0.032, 1.0, 18 + l),
             part(j[20 + l], j[22 + l], 0.035, 0.034, 0.6, 20 + l),
-            part(j[22 + l], m(DVec3::new(0.83, 1.41, 0.0)), 0.034, 0.03, 0.6, 22 + l),
+            part(
+                j[22 + l],
+                m(DVec3::new(0.83, 1.41, 0.0)),
+                0.034,
+                0.03,
+                0.6,
+                22 + l,
+            ),
             // Thigh, shin, foot, toes.
             part(j[1 + l], j[4 + l], 0.085, 0.055, 1.0, 1 + l),
             part(j[4 + l], j[7 + l], 0.053, 0.04, 1.0, 4 + l),
             part(j[7 + l], j[10 + l], 0.045, 0.038, 0.75, 7 + l),
-            part(j[10 + l], m(DVec3::new(0.105, 0.025, 0.16)), 0.035, 0.03, 0.75, 10 + l),
+            part(
+                j[10 + l],
+                m(DVec3::new(0.105, 0.025, 0.16)),
+                0.035,
+                0.03,
+                0.75,
+                10 + l,
+            ),
         ]);
     }
     p
@@ -121,16 +219,31 @@ fn smin(a: f64, b: f64, k: f64) -> f64 {
 fn body_sdf(p: DVec3, parts: &[Part]) -> f64 {
     parts.iter().fold(f64::MAX, |acc, q| {
         let d = part_sdf(p, q);
-        if acc == f64::MAX { d } else { smin(acc, d, 0.025) }
+        if acc == f64::MAX {
+            d
+        } else {
+            smin(acc, d, 0.025)
+        }
     })
 }
 
 /// Marching tetrahedra of `f` over the box [lo, hi] with cell size h: a closed mesh
 /// with outward-facing triangles, vertices welded on grid edges.
-fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+fn marching_tetrahedra(
+    f: &dyn Fn(DVec3) -> f64,
+    lo: DVec3,
+    hi: DVec3,
+    h: f64,
+) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let n = [0, 1, 2].map(|k| ((hi[k] - lo[k]) / h).ceil() as usize + 1);
     let idx = |x: usize, y: usize, z: usize| (x * n[1] + y) * n[2] + z;
-    let pos = |x: usize, y: usize, z: usize| DVec3::new(lo[0] + x as f64 * h, lo[1] + y as f64 * h, lo[2] + z as f64 * h);
+    let pos = |x: usize, y: usize, z: usize| {
+        DVec3::new(
+            lo[0] + x as f64 * h,
+            lo[1] + y as f64 * h,
+            lo[2] + z as f64 * h,
+        )
+    };
     let mut values = vec![0.0; n[0] * n[1] * n[2]];
     for x in 0..n[0] {
         for y in 0..n[1] {
@@ -140,18 +253,49 @@ fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -
                 // ~8% of a grid point, which would make slivers and near-duplicate
                 // vertices (any nonzero values still give a closed surface).
                 let eps = 0.15 * h;
-                values[idx(x, y, z)] = if v.abs() < eps { if v < 0.0 { -eps } else { eps } } else { v };
+                values[idx(x, y, z)] = if v.abs() < eps {
+                    if v < 0.0 {
+                        -eps
+                    } else {
+                        eps
+                    }
+                } else {
+                    v
+                };
             }
         }
     }
     // Kuhn subdivision of the cube into 6 tetrahedra along the 0-7 diagonal: shared
     // faces of neighbouring cubes are split the same way.
-    const CORNERS: [[usize; 3]; 8] = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
-    const TETS: [[usize; 4]; 6] = [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]];
+    const CORNERS: [[usize; 3]; 8] = [
+        [0, 0, 0],
+        [1, 0, 0],
+        [0, 1, 0],
+        [1, 1, 0],
+        [0, 0, 1],
+        [1, 0, 1],
+        [0, 1, 1],
+        [1, 1, 1],
+    ];
+    const TETS: [[usize; 4]; 6] = [
+        [0, 1, 3, 7],
+        [0, 3, 2, 7],
+        [0, 2, 6, 7],
+        [0, 6, 4, 7],
+        [0, 4, 5, 7],
+        [0, 5, 1, 7],
+    ];
     let mut vertices: Vec<DVec3> = Vec::new();
     let mut on_edge: HashMap<(usize, usize), u32> = HashMap::new();
     let mut faces = Vec::new();
-    let mut vertex_on = |a: usize, pa: DVec3, va: f64, b: usize, pb: DVec3, vb: f64, vertices: &mut Vec<DVec3>| -> u32 {
+    let mut vertex_on = |a: usize,
+                         pa: DVec3,
+                         va: f64,
+                         b: usize,
+                         pb: DVec3,
+                         vb: f64,
+                         vertices: &mut Vec<DVec3>|
+     -> u32 {
         let key = (a.min(b), a.max(b));
         *on_edge.entry(key).or_insert_with(|| {
             let t = va / (va - vb);
@@ -173,17 +317,27 @@ fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -
                     let inside: Vec<usize> = (0..4).filter(|&k| vals[k] < 0.0).collect();
                     let outside: Vec<usize> = (0..4).filter(|&k| vals[k] >= 0.0).collect();
                     let mut cut = |i: usize, o: usize, vertices: &mut Vec<DVec3>| {
-                        vertex_on(pts[i].0, pts[i].1, vals[i], pts[o].0, pts[o].1, vals[o], vertices)
+                        vertex_on(
+                            pts[i].0, pts[i].1, vals[i], pts[o].0, pts[o].1, vals[o], vertices,
+                        )
                     };
                     let mut tris: Vec<[u32; 3]> = Vec::new();
                     match inside.len() {
                         1 => {
                             let i = inside[0];
-                            tris.push([cut(i, outside[0], &mut vertices), cut(i, outside[1], &mut vertices), cut(i, outside[2], &mut vertices)]);
+                            tris.push([
+                                cut(i, outside[0], &mut vertices),
+                                cut(i, outside[1], &mut vertices),
+                                cut(i, outside[2], &mut vertices),
+                            ]);
                         }
                         3 => {
                             let o = outside[0];
-                            tris.push([cut(inside[0], o, &mut vertices), cut(inside[1], o, &mut vertices), cut(inside[2], o, &mut vertices)]);
+                            tris.push([
+                                cut(inside[0], o, &mut vertices),
+                                cut(inside[1], o, &mut vertices),
+                                cut(inside[2], o, &mut vertices),
+                            ]);
                         }
                         2 => {
                             let (i0, i1, o0, o1) = (inside[0], inside[1], outside[0], outside[1]);
@@ -197,7 +351,11 @@ fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -
                         _ => {}
                     }
                     // Orient outward: the normal points from the inside corners to the outside ones.
-                    let centre = |ks: &[usize]| ks.iter().fold(DVec3::ZERO, |acc, &k| acc + pts[k].1 * (1.0 / ks.len() as f64));
+                    let centre = |ks: &[usize]| {
+                        ks.iter().fold(DVec3::ZERO, |acc, &k| {
+                            acc + pts[k].1 * (1.0 / ks.len() as f64)
+                        })
+                    };
                     if !tris.is_empty() {
                         let out_dir = centre(&outside) - centre(&inside);
                         for t in &mut tris {
@@ -220,7 +378,12 @@ fn marching_tetrahedra(f: &dyn Fn(DVec3) -> f64, lo: DVec3, hi: DVec3, h: f64) -
 /// Evens out the triangles: each vertex moves halfway to its neighbours' centroid,
 /// then back onto the zero level along the field's gradient. Connectivity is
 /// unchanged, so the mesh stays closed.
-fn relax_on_surface(v: &mut [DVec3], faces: &[[u32; 3]], f: &dyn Fn(DVec3) -> f64, iterations: usize) {
+fn relax_on_surface(
+    v: &mut [DVec3],
+    faces: &[[u32; 3]],
+    f: &dyn Fn(DVec3) -> f64,
+    iterations: usize,
+) {
     let adj = adjacency(v.len(), faces);
     let h = 1e-4;
     for _ in 0..iterations {
@@ -230,7 +393,9 @@ fn relax_on_surface(v: &mut [DVec3], faces: &[[u32; 3]], f: &dyn Fn(DVec3) -> f6
             if nb.is_empty() {
                 continue;
             }
-            let c = nb.iter().fold(DVec3::ZERO, |acc, &k| acc + prev[k as usize] * (1.0 / nb.len() as f64));
+            let c = nb.iter().fold(DVec3::ZERO, |acc, &k| {
+                acc + prev[k as usize] * (1.0 / nb.len() as f64)
+            });
             let mut q = prev[i] * 0.5 + c * 0.5;
             for _ in 0..3 {
                 let d = f(q);
@@ -260,7 +425,10 @@ pub struct BodyOptions {
 
 impl Default for BodyOptions {
     fn default() -> Self {
-        Self { cell: 0.028, num_betas: 10 }
+        Self {
+            cell: 0.028,
+            num_betas: 10,
+        }
     }
 }
 
@@ -268,7 +436,12 @@ impl Default for BodyOptions {
 pub fn default_body(options: &BodyOptions) -> SmplModel {
     let parts = parts();
     let sdf = |p: DVec3| body_sdf(p, &parts);
-    let (mut v, faces) = marching_tetrahedra(&sdf, DVec3::new(-0.95, -0.06, -0.25), DVec3::new(0.95, 1.80, 0.30), options.cell);
+    let (mut v, faces) = marching_tetrahedra(
+        &sdf,
+        DVec3::new(-0.95, -0.06, -0.25),
+        DVec3::new(0.95, 1.80, 0.30),
+        options.cell,
+    );
     let nv = v.len();
     relax_on_surface(&mut v, &faces, &sdf, 6);
 
@@ -287,7 +460,10 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
                 .map(|q| {
                     let ab = q.b - q.a;
                     let t_raw = (p - q.a).dot(ab) / ab.dot(ab).max(1e-12);
-                    (q.joint, part_sdf(p, q) + 3.0 * (-t_raw).max(0.0) * ab.length())
+                    (
+                        q.joint,
+                        part_sdf(p, q) + 3.0 * (-t_raw).max(0.0) * ab.length(),
+                    )
                 })
                 .collect();
             let best = dists.iter().map(|d| d.1).fold(f64::MAX, f64::min);
@@ -304,7 +480,8 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
         for (i, w) in weights.iter_mut().enumerate() {
             let nb = &adj[i];
             for j in 0..NUM_JOINTS {
-                let mean = nb.iter().map(|&k| prev[k as usize][j]).sum::<f64>() / nb.len().max(1) as f64;
+                let mean =
+                    nb.iter().map(|&k| prev[k as usize][j]).sum::<f64>() / nb.len().max(1) as f64;
                 w[j] = 0.5 * prev[i][j] + 0.5 * mean;
             }
         }
@@ -327,7 +504,11 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
         // most central child).
         let child = (0..NUM_JOINTS)
             .filter(|&k| PARENTS[k] == j as i32)
-            .min_by(|&a, &b| (JOINTS[a][0] - c[0]).abs().total_cmp(&(JOINTS[b][0] - c[0]).abs()));
+            .min_by(|&a, &b| {
+                (JOINTS[a][0] - c[0])
+                    .abs()
+                    .total_cmp(&(JOINTS[b][0] - c[0]).abs())
+            });
         let axis = match child {
             Some(k) => (JOINTS[k] - c).normalize_or(DVec3::Z),
             None => (c - JOINTS[PARENTS[j] as usize]).normalize_or(DVec3::Z),
@@ -345,7 +526,11 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
             // A coarse surface (a large cell) may have no ring of six near the joint:
             // then its six nearest vertices, whatever their weights.
             if ring.len() < 6 && slab > 0.5 {
-                let mut nearest: Vec<(usize, f64)> = v.iter().enumerate().map(|(i, p)| (i, (*p - c).length())).collect();
+                let mut nearest: Vec<(usize, f64)> = v
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| (i, (*p - c).length()))
+                    .collect();
                 nearest.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
                 ring = nearest.into_iter().take(6).map(|(i, _)| i).collect();
             }
@@ -385,7 +570,14 @@ pub fn default_body(options: &BodyOptions) -> SmplModel {
         v_template: v,
         shapedirs,
         num_betas: b,
-        posedirs: vec![[vec![0.0; NUM_POSE_FEATURES], vec![0.0; NUM_POSE_FEATURES], vec![0.0; NUM_POSE_FEATURES]]; nv],
+        posedirs: vec![
+            [
+                vec![0.0; NUM_POSE_FEATURES],
+                vec![0.0; NUM_POSE_FEATURES],
+                vec![0.0; NUM_POSE_FEATURES]
+            ];
+            nv
+        ],
         j_regressor,
         weights,
         parents: PARENTS,

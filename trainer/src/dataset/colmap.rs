@@ -33,7 +33,13 @@ pub struct ColmapCamera {
 impl ColmapCamera {
     /// A PINHOLE record of `camera`'s intrinsics and image size.
     pub fn from_camera(id: u32, camera: &Camera) -> Self {
-        Self { id, model: "PINHOLE".into(), width: camera.width, height: camera.height, params: vec![camera.fx, camera.fy, camera.cx, camera.cy] }
+        Self {
+            id,
+            model: "PINHOLE".into(),
+            width: camera.width,
+            height: camera.height,
+            params: vec![camera.fx, camera.fy, camera.cx, camera.cy],
+        }
     }
 
     /// A record of `camera`'s intrinsics and image size with lens `distortion`: PINHOLE
@@ -44,14 +50,22 @@ impl ColmapCamera {
         if d.is_identity() {
             return Self::from_camera(id, camera);
         }
-        let mut params = vec![camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2];
+        let mut params = vec![
+            camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2,
+        ];
         let model = if d.k3 == 0.0 {
             "OPENCV"
         } else {
             params.extend([d.k3, 0.0, 0.0, 0.0]);
             "FULL_OPENCV"
         };
-        Self { id, model: model.into(), width: camera.width, height: camera.height, params }
+        Self {
+            id,
+            model: model.into(),
+            width: camera.width,
+            height: camera.height,
+            params,
+        }
     }
 
     /// The pinhole intrinsics `[fx, fy, cx, cy]` and the lens of this record, for the
@@ -60,40 +74,75 @@ impl ColmapCamera {
     /// p2) and FULL_OPENCV (fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6) when its rational
     /// terms k4..k6 are zero. The error names `cameras.txt`, the camera and the field.
     pub fn intrinsics(&self) -> Result<([f64; 4], Distortion), ColmapError> {
-        let err = |problem: CameraProblem| ColmapError::Camera { camera: self.id, model: self.model.clone(), problem };
+        let err = |problem: CameraProblem| ColmapError::Camera {
+            camera: self.id,
+            model: self.model.clone(),
+            problem,
+        };
         let (names, simple): (&[&str], bool) = match self.model.as_str() {
             "SIMPLE_PINHOLE" => (&["f", "cx", "cy"], true),
             "PINHOLE" => (&["fx", "fy", "cx", "cy"], false),
             "SIMPLE_RADIAL" => (&["f", "cx", "cy", "k"], true),
             "RADIAL" => (&["f", "cx", "cy", "k1", "k2"], true),
             "OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"], false),
-            "FULL_OPENCV" => (&["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"], false),
+            "FULL_OPENCV" => (
+                &[
+                    "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
+                ],
+                false,
+            ),
             _ => return Err(err(CameraProblem::UnsupportedModel)),
         };
         if self.width == 0 || self.height == 0 {
-            return Err(err(CameraProblem::Size { width: self.width, height: self.height }));
+            return Err(err(CameraProblem::Size {
+                width: self.width,
+                height: self.height,
+            }));
         }
         let p = &self.params;
         if p.len() != names.len() {
-            return Err(err(CameraProblem::ParamCount { got: p.len(), expected: names }));
+            return Err(err(CameraProblem::ParamCount {
+                got: p.len(),
+                expected: names,
+            }));
         }
         if let Some(i) = p.iter().position(|v| !v.is_finite()) {
-            return Err(err(CameraProblem::NotFinite { param: names[i], value: p[i] }));
+            return Err(err(CameraProblem::NotFinite {
+                param: names[i],
+                value: p[i],
+            }));
         }
-        let (k, rest) = if simple { ([p[0], p[0], p[1], p[2]], &p[3..]) } else { ([p[0], p[1], p[2], p[3]], &p[4..]) };
+        let (k, rest) = if simple {
+            ([p[0], p[0], p[1], p[2]], &p[3..])
+        } else {
+            ([p[0], p[1], p[2], p[3]], &p[4..])
+        };
         if !(k[0] >= MIN_FOCAL && k[1] >= MIN_FOCAL && k[0] <= MAX_FOCAL && k[1] <= MAX_FOCAL) {
             return Err(err(CameraProblem::FocalLength { fx: k[0], fy: k[1] }));
         }
         let c = |i: usize| rest.get(i).copied().unwrap_or(0.0);
         let distortion = match self.model.as_str() {
-            "SIMPLE_RADIAL" | "RADIAL" => Distortion { k1: c(0), k2: c(1), ..Distortion::NONE },
+            "SIMPLE_RADIAL" | "RADIAL" => Distortion {
+                k1: c(0),
+                k2: c(1),
+                ..Distortion::NONE
+            },
             "OPENCV" | "FULL_OPENCV" => {
                 // FULL_OPENCV's k4..k6 (rest[5..8]) divide by a second polynomial, which
                 // `Distortion` does not model.
                 if let Some(i) = (5..rest.len()).find(|&i| rest[i] != 0.0) {
-                    return Err(err(CameraProblem::RationalModel { param: names[i + 4], value: rest[i] }));
+                    return Err(err(CameraProblem::RationalModel {
+                        param: names[i + 4],
+                        value: rest[i],
+                    }));
                 }
-                Distortion { k1: c(0), k2: c(1), p1: c(2), p2: c(3), k3: c(4) }
+                Distortion {
+                    k1: c(0),
+                    k2: c(1),
+                    p1: c(2),
+                    p2: c(3),
+                    k3: c(4),
+                }
             }
             _ => Distortion::NONE,
         };
@@ -105,7 +154,9 @@ impl ColmapCamera {
         let p = &self.params;
         match self.model.as_str() {
             "PINHOLE" | "OPENCV" | "FULL_OPENCV" if p.len() >= 4 => Some((p[0], p[1], p[2], p[3])),
-            "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" if p.len() >= 3 => Some((p[0], p[0], p[1], p[2])),
+            "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" if p.len() >= 3 => {
+                Some((p[0], p[0], p[1], p[2]))
+            }
             _ => None,
         }
     }
@@ -127,7 +178,14 @@ pub struct ColmapImage {
 impl ColmapImage {
     /// The record of an image `name` taken by `camera` (COLMAP camera `camera_id`).
     pub fn from_camera(id: u32, camera_id: u32, name: String, camera: &Camera) -> Self {
-        Self { id, qvec: rotation_to_quaternion(&camera.rotation), tvec: camera.translation.to_array(), camera_id, name, points2d: vec![] }
+        Self {
+            id,
+            qvec: rotation_to_quaternion(&camera.rotation),
+            tvec: camera.translation.to_array(),
+            camera_id,
+            name,
+            points2d: vec![],
+        }
     }
 
     /// The camera that took this image with intrinsics from `camera` (its record in
@@ -135,7 +193,17 @@ impl ColmapImage {
     /// [`Self::camera_and_distortion`] keeps it, for loaders that undistort.
     pub fn camera(&self, camera: &ColmapCamera) -> Option<Camera> {
         let (fx, fy, cx, cy) = camera.pinhole()?;
-        Some(Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: DVec3::from_array(self.tvec), near: Camera::NEAR })
+        Some(Camera {
+            fx,
+            fy,
+            cx,
+            cy,
+            width: camera.width,
+            height: camera.height,
+            rotation: self.rotation(),
+            translation: DVec3::from_array(self.tvec),
+            near: Camera::NEAR,
+        })
     }
 
     /// The pinhole camera that took this image, with intrinsics from `camera` (its
@@ -143,9 +211,25 @@ impl ColmapImage {
     /// [`crate::dataset::distortion::Undistorter`]. An error for a model drape does not
     /// undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE) or a malformed record;
     /// see [`ColmapCamera::intrinsics`].
-    pub fn camera_and_distortion(&self, camera: &ColmapCamera) -> Result<(Camera, Distortion), ColmapError> {
+    pub fn camera_and_distortion(
+        &self,
+        camera: &ColmapCamera,
+    ) -> Result<(Camera, Distortion), ColmapError> {
         let ([fx, fy, cx, cy], distortion) = camera.intrinsics()?;
-        Ok((Camera { fx, fy, cx, cy, width: camera.width, height: camera.height, rotation: self.rotation(), translation: DVec3::from_array(self.tvec), near: Camera::NEAR }, distortion))
+        Ok((
+            Camera {
+                fx,
+                fy,
+                cx,
+                cy,
+                width: camera.width,
+                height: camera.height,
+                rotation: self.rotation(),
+                translation: DVec3::from_array(self.tvec),
+                near: Camera::NEAR,
+            },
+            distortion,
+        ))
     }
 
     /// World-to-camera rotation (rows), from the normalized quaternion.
@@ -184,17 +268,30 @@ pub enum ColmapError {
     /// A data line that is not the record its file holds: the file, the line and what
     /// is wrong with it.
     #[error("{path}:{line}: {problem}")]
-    Parse { path: String, line: usize, problem: String },
+    Parse {
+        path: String,
+        line: usize,
+        problem: String,
+    },
     /// A column of a data line that is not a number of its type: the file, the line,
     /// the column (as COLMAP's header names it) and its text.
     #[error("{path}: {problem}")]
     Model { path: String, problem: String },
     #[error("{path}:{line}: {field} '{text}' is not a valid number")]
-    Number { path: String, line: usize, field: &'static str, text: String },
+    Number {
+        path: String,
+        line: usize,
+        field: &'static str,
+        text: String,
+    },
     /// A camera record that is no pinhole camera and lens drape undistorts: the
     /// camera's id and model and what is wrong with it.
     #[error("cameras.txt: camera {camera} {}", problem.describe(model))]
-    Camera { camera: u32, model: String, problem: CameraProblem },
+    Camera {
+        camera: u32,
+        model: String,
+        problem: CameraProblem,
+    },
 }
 
 /// What is wrong with a camera record ([`ColmapError::Camera`]).
@@ -203,7 +300,10 @@ pub enum CameraProblem {
     /// A model drape does not undistort (the fisheye models, FOV, THIN_PRISM_FISHEYE).
     UnsupportedModel,
     /// PARAMS has `got` values; the model has `expected` (their names).
-    ParamCount { got: usize, expected: &'static [&'static str] },
+    ParamCount {
+        got: usize,
+        expected: &'static [&'static str],
+    },
     /// A parameter is NaN or infinite.
     NotFinite { param: &'static str, value: f64 },
     /// A focal length is zero or negative.
@@ -237,7 +337,11 @@ pub const MAX_FOCAL: f64 = 1e7;
 /// Formats a float the way Python's `repr` would for round-tripping: shortest exact.
 fn num(v: f64) -> String {
     let s = format!("{v}");
-    if s.contains('.') || s.contains('e') || s.contains("inf") || s.contains("NaN") { s } else { format!("{s}.0") }
+    if s.contains('.') || s.contains('e') || s.contains("inf") || s.contains("NaN") {
+        s
+    } else {
+        format!("{s}.0")
+    }
 }
 
 impl ColmapModel {
@@ -245,21 +349,36 @@ impl ColmapModel {
     pub fn write_text(&self, dir: &Path) -> Result<(), ColmapError> {
         let io = |path: &Path| {
             let p = path.display().to_string();
-            move |error| ColmapError::Io { path: p.clone(), error }
+            move |error| ColmapError::Io {
+                path: p.clone(),
+                error,
+            }
         };
         std::fs::create_dir_all(dir).map_err(io(dir))?;
         let mut cams = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
         let _ = writeln!(cams, "# Number of cameras: {}", self.cameras.len());
         for c in self.cameras.values() {
             let params: Vec<String> = c.params.iter().map(|&p| num(p)).collect();
-            let _ = writeln!(cams, "{} {} {} {} {}", c.id, c.model, c.width, c.height, params.join(" "));
+            let _ = writeln!(
+                cams,
+                "{} {} {} {} {}",
+                c.id,
+                c.model,
+                c.width,
+                c.height,
+                params.join(" ")
+            );
         }
         let mut imgs = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
         let _ = writeln!(imgs, "# Number of images: {}", self.images.len());
         for i in self.images.values() {
             let q: Vec<String> = i.qvec.iter().chain(&i.tvec).map(|&v| num(v)).collect();
             let _ = writeln!(imgs, "{} {} {} {}", i.id, q.join(" "), i.camera_id, i.name);
-            let pts: Vec<String> = i.points2d.iter().map(|(x, y, id)| format!("{} {} {id}", num(*x), num(*y))).collect();
+            let pts: Vec<String> = i
+                .points2d
+                .iter()
+                .map(|(x, y, id)| format!("{} {} {id}", num(*x), num(*y)))
+                .collect();
             let _ = writeln!(imgs, "{}", pts.join(" "));
         }
         let mut pts = String::from("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
@@ -280,7 +399,11 @@ impl ColmapModel {
                 track.join(" ")
             );
         }
-        for (name, text) in [("cameras.txt", cams), ("images.txt", imgs), ("points3D.txt", pts)] {
+        for (name, text) in [
+            ("cameras.txt", cams),
+            ("images.txt", imgs),
+            ("points3D.txt", pts),
+        ] {
             let path = dir.join(name);
             std::fs::write(&path, text).map_err(io(&path))?;
         }
@@ -291,23 +414,36 @@ impl ColmapModel {
     pub fn read_text(dir: &Path) -> Result<Self, ColmapError> {
         let read = |name: &str| {
             let path = dir.join(name);
-            std::fs::read_to_string(&path).map(|t| (path.display().to_string(), t)).map_err(|error| ColmapError::Io { path: path.display().to_string(), error })
+            std::fs::read_to_string(&path)
+                .map(|t| (path.display().to_string(), t))
+                .map_err(|error| ColmapError::Io {
+                    path: path.display().to_string(),
+                    error,
+                })
         };
         let mut model = ColmapModel::default();
 
         let (path, text) = read("cameras.txt")?;
         for (n, line) in data_lines(&text) {
-            let at = At { path: &path, line: n };
+            let at = At {
+                path: &path,
+                line: n,
+            };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 5 {
-                return Err(at.err(format!("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got '{line}'")));
+                return Err(at.err(format!(
+                    "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got '{line}'"
+                )));
             }
             let cam = ColmapCamera {
                 id: at.num(w[0], "CAMERA_ID")?,
                 model: w[1].to_string(),
                 width: at.num(w[2], "WIDTH")?,
                 height: at.num(w[3], "HEIGHT")?,
-                params: w[4..].iter().map(|v| at.num::<f64>(v, "PARAMS")).collect::<Result<_, _>>()?,
+                params: w[4..]
+                    .iter()
+                    .map(|v| at.num::<f64>(v, "PARAMS"))
+                    .collect::<Result<_, _>>()?,
             };
             if model.cameras.contains_key(&cam.id) {
                 return Err(at.err(format!("camera {} is listed twice", cam.id)));
@@ -316,7 +452,12 @@ impl ColmapModel {
         }
 
         let (path, text) = read("images.txt")?;
-        let lines: Vec<(usize, &str)> = text.lines().enumerate().map(|(i, l)| (i + 1, l)).filter(|(_, l)| !l.starts_with('#')).collect();
+        let lines: Vec<(usize, &str)> = text
+            .lines()
+            .enumerate()
+            .map(|(i, l)| (i + 1, l))
+            .filter(|(_, l)| !l.starts_with('#'))
+            .collect();
         let mut k = 0;
         while k < lines.len() {
             let (n, line) = lines[k];
@@ -324,10 +465,15 @@ impl ColmapModel {
                 k += 1;
                 continue;
             }
-            let at = At { path: &path, line: n };
+            let at = At {
+                path: &path,
+                line: n,
+            };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 10 {
-                return Err(at.err(format!("expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got '{line}'")));
+                return Err(at.err(format!(
+                    "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got '{line}'"
+                )));
             }
             let f = |i: usize, field: &'static str| at.num::<f64>(w[i], field);
             let qvec = [f(1, "QW")?, f(2, "QX")?, f(3, "QY")?, f(4, "QZ")?];
@@ -335,42 +481,72 @@ impl ColmapModel {
             let id: u32 = at.num(w[0], "IMAGE_ID")?;
             let camera_id: u32 = at.num(w[8], "CAMERA_ID")?;
             if !model.cameras.contains_key(&camera_id) {
-                return Err(at.err(format!("image {id} uses camera {camera_id}, which cameras.txt does not list")));
+                return Err(at.err(format!(
+                    "image {id} uses camera {camera_id}, which cameras.txt does not list"
+                )));
             }
             let name = w[9..].join(" ");
             let (n2, points_line) = lines.get(k + 1).copied().unwrap_or((n + 1, ""));
-            let at2 = At { path: &path, line: n2 };
+            let at2 = At {
+                path: &path,
+                line: n2,
+            };
             let v: Vec<&str> = points_line.split_whitespace().collect();
             if v.len() % 3 != 0 {
                 return Err(at2.err("POINTS2D is not a list of X Y POINT3D_ID triples".into()));
             }
             let mut points2d = Vec::with_capacity(v.len() / 3);
             for c in v.chunks_exact(3) {
-                points2d.push((at2.num(c[0], "X")?, at2.num(c[1], "Y")?, at2.num(c[2], "POINT3D_ID")?));
+                points2d.push((
+                    at2.num(c[0], "X")?,
+                    at2.num(c[1], "Y")?,
+                    at2.num(c[2], "POINT3D_ID")?,
+                ));
             }
             if model.images.contains_key(&id) {
                 return Err(at.err(format!("image {id} is listed twice")));
             }
             if let Some(other) = model.images.values().find(|i| i.name == name) {
-                return Err(at.err(format!("image {id} is named '{name}', as image {} is", other.id)));
+                return Err(at.err(format!(
+                    "image {id} is named '{name}', as image {} is",
+                    other.id
+                )));
             }
-            model.images.insert(id, ColmapImage { id, qvec, tvec, camera_id, name, points2d });
+            model.images.insert(
+                id,
+                ColmapImage {
+                    id,
+                    qvec,
+                    tvec,
+                    camera_id,
+                    name,
+                    points2d,
+                },
+            );
             k += 2;
         }
 
         let (path, text) = read("points3D.txt")?;
         for (n, line) in data_lines(&text) {
-            let at = At { path: &path, line: n };
+            let at = At {
+                path: &path,
+                line: n,
+            };
             let w: Vec<&str> = line.split_whitespace().collect();
             if w.len() < 8 || (w.len() - 8) % 2 != 0 {
-                return Err(at.err(format!("expected POINT3D_ID X Y Z R G B ERROR TRACK..., got '{line}'")));
+                return Err(at.err(format!(
+                    "expected POINT3D_ID X Y Z R G B ERROR TRACK..., got '{line}'"
+                )));
             }
             let p = ColmapPoint {
                 id: at.num(w[0], "POINT3D_ID")?,
                 xyz: [at.num(w[1], "X")?, at.num(w[2], "Y")?, at.num(w[3], "Z")?],
                 rgb: [at.num(w[4], "R")?, at.num(w[5], "G")?, at.num(w[6], "B")?],
                 error: at.num(w[7], "ERROR")?,
-                track: w[8..].chunks_exact(2).map(|c| Ok((at.num(c[0], "IMAGE_ID")?, at.num(c[1], "POINT2D_IDX")?))).collect::<Result<_, ColmapError>>()?,
+                track: w[8..]
+                    .chunks_exact(2)
+                    .map(|c| Ok((at.num(c[0], "IMAGE_ID")?, at.num(c[1], "POINT2D_IDX")?)))
+                    .collect::<Result<_, ColmapError>>()?,
             };
             if let Some(v) = p.xyz.iter().chain([&p.error]).find(|v| !v.is_finite()) {
                 return Err(at.err(format!("point {} has {v} among X Y Z ERROR", p.id)));
@@ -381,14 +557,20 @@ impl ColmapModel {
             model.points.insert(p.id, p);
         }
         if model.images.is_empty() {
-            return Err(ColmapError::Model { path: dir.join("images.txt").display().to_string(), problem: "no images: a model needs at least one registered image".into() });
+            return Err(ColmapError::Model {
+                path: dir.join("images.txt").display().to_string(),
+                problem: "no images: a model needs at least one registered image".into(),
+            });
         }
         Ok(model)
     }
 }
 
 fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
-    text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+    text.lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
 /// A data line of a file, for its errors.
@@ -401,11 +583,20 @@ struct At<'a> {
 impl At<'_> {
     /// [`ColmapError::Parse`] at this line.
     fn err(self, problem: String) -> ColmapError {
-        ColmapError::Parse { path: self.path.to_string(), line: self.line, problem }
+        ColmapError::Parse {
+            path: self.path.to_string(),
+            line: self.line,
+            problem,
+        }
     }
 
     /// Column `field` of this line as a number, or [`ColmapError::Number`].
     fn num<T: std::str::FromStr>(self, text: &str, field: &'static str) -> Result<T, ColmapError> {
-        text.parse::<T>().map_err(|_| ColmapError::Number { path: self.path.to_string(), line: self.line, field, text: text.to_string() })
+        text.parse::<T>().map_err(|_| ColmapError::Number {
+            path: self.path.to_string(),
+            line: self.line,
+            field,
+            text: text.to_string(),
+        })
     }
 }

@@ -42,11 +42,23 @@ pub struct Distortion {
 
 impl Distortion {
     /// No distortion: a pinhole.
-    pub const NONE: Self = Self { k1: 0.0, k2: 0.0, p1: 0.0, p2: 0.0, k3: 0.0 };
+    pub const NONE: Self = Self {
+        k1: 0.0,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
+        k3: 0.0,
+    };
 
     /// From OpenCV's `distCoeffs` order (k1, k2, p1, p2, k3), as ZJU-MoCap's `D` holds it.
     pub fn from_opencv(d: &[f64; 5]) -> Self {
-        Self { k1: d[0], k2: d[1], p1: d[2], p2: d[3], k3: d[4] }
+        Self {
+            k1: d[0],
+            k2: d[1],
+            p1: d[2],
+            p2: d[3],
+            k3: d[4],
+        }
     }
 
     /// OpenCV's `distCoeffs` order (k1, k2, p1, p2, k3).
@@ -66,7 +78,10 @@ impl Distortion {
         let r2 = x * x + y * y;
         let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
         let xy2 = 2.0 * x * y;
-        [x * radial + self.p1 * xy2 + self.p2 * (r2 + 2.0 * x * x), y * radial + self.p1 * (r2 + 2.0 * y * y) + self.p2 * xy2]
+        [
+            x * radial + self.p1 * xy2 + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + self.p2 * xy2,
+        ]
     }
 
     /// The undistorted normalized coordinates whose [`distort`](Self::distort) is
@@ -133,7 +148,10 @@ impl SourceMap {
             for x in 0..width {
                 let nx = (x as f64 + 0.5 - camera.cx) / camera.fx;
                 let [sx, sy] = source(nx, ny);
-                map.push([(camera.fx * sx + camera.cx - 0.5) as f32, (camera.fy * sy + camera.cy - 0.5) as f32]);
+                map.push([
+                    (camera.fx * sx + camera.cx - 0.5) as f32,
+                    (camera.fy * sy + camera.cy - 0.5) as f32,
+                ]);
             }
         }
         Self { width, height, map }
@@ -164,8 +182,18 @@ impl SourceMap {
     }
 
     fn rgb(&self, rgb: &[f32]) -> Vec<f32> {
-        assert_eq!(rgb.len(), self.width * self.height * 3, "an RGB image of {}x{} has {} values", self.width, self.height, self.width * self.height * 3);
-        self.map.iter().flat_map(|&s| self.sample::<3>(rgb, s)).collect()
+        assert_eq!(
+            rgb.len(),
+            self.width * self.height * 3,
+            "an RGB image of {}x{} has {} values",
+            self.width,
+            self.height,
+            self.width * self.height * 3
+        );
+        self.map
+            .iter()
+            .flat_map(|&s| self.sample::<3>(rgb, s))
+            .collect()
     }
 
     /// Bilinear of the 0/1 mask, then at least one half. Why: it puts the edge where
@@ -175,9 +203,19 @@ impl SourceMap {
     /// what the public ZJU loaders get from `cv2.undistort` of a 0/1 `uint8` mask,
     /// whose rounding to the nearest integer is this threshold.
     fn mask(&self, mask: &[bool]) -> Vec<bool> {
-        assert_eq!(mask.len(), self.width * self.height, "a mask of {}x{} has {} values", self.width, self.height, self.width * self.height);
+        assert_eq!(
+            mask.len(),
+            self.width * self.height,
+            "a mask of {}x{} has {} values",
+            self.width,
+            self.height,
+            self.width * self.height
+        );
         let coverage: Vec<f32> = mask.iter().map(|&m| if m { 1.0 } else { 0.0 }).collect();
-        self.map.iter().map(|&s| self.sample::<1>(&coverage, s)[0] >= 0.5).collect()
+        self.map
+            .iter()
+            .map(|&s| self.sample::<1>(&coverage, s)[0] >= 0.5)
+            .collect()
     }
 }
 
@@ -194,7 +232,9 @@ impl Undistorter {
     /// distorted image at `distort(x, y)`, as `cv2.initUndistortRectifyMap(K, D, None,
     /// K, size, CV_32FC1)` computes it (in drape's pixel convention, see the module).
     pub fn new(camera: &Camera, distortion: Distortion) -> Self {
-        Self { map: SourceMap::build(camera, |x, y| distortion.distort(x, y)) }
+        Self {
+            map: SourceMap::build(camera, |x, y| distortion.distort(x, y)),
+        }
     }
 
     pub fn width(&self) -> u32 {
@@ -243,7 +283,13 @@ pub fn distort_mask(camera: &Camera, distortion: Distortion, mask: &[bool]) -> V
 mod tests {
     use super::*;
 
-    const ZJU_LIKE: Distortion = Distortion { k1: -0.3, k2: 0.1, p1: 1e-3, p2: -5e-4, k3: 0.02 };
+    const ZJU_LIKE: Distortion = Distortion {
+        k1: -0.3,
+        k2: 0.1,
+        p1: 1e-3,
+        p2: -5e-4,
+        k3: 0.02,
+    };
 
     #[test]
     fn undistort_normalized_inverts_distort() {
@@ -254,14 +300,24 @@ mod tests {
                 let [xd, yd] = ZJU_LIKE.distort(x, y);
                 let [u, v] = ZJU_LIKE.undistort_normalized(xd, yd);
                 // Newton stops at a residual of 1e-14; the Jacobian is near 1 here.
-                assert!((u - x).abs() < 1e-13 && (v - y).abs() < 1e-13, "({x}, {y}) -> ({xd}, {yd}) -> ({u}, {v})");
+                assert!(
+                    (u - x).abs() < 1e-13 && (v - y).abs() < 1e-13,
+                    "({x}, {y}) -> ({xd}, {yd}) -> ({u}, {v})"
+                );
             }
         }
     }
 
     #[test]
     fn no_distortion_is_the_identity() {
-        let camera = Camera::look_at(DVec3::new(0.0, 0.0, -3.0), DVec3::ZERO, DVec3::NEG_Y, 40.0, 7, 5);
+        let camera = Camera::look_at(
+            DVec3::new(0.0, 0.0, -3.0),
+            DVec3::ZERO,
+            DVec3::NEG_Y,
+            40.0,
+            7,
+            5,
+        );
         let rgb: Vec<f32> = (0..7 * 5 * 3).map(|i| (i % 11) as f32 / 10.0).collect();
         let mask: Vec<bool> = (0..7 * 5).map(|i| i % 3 == 0).collect();
         let u = Undistorter::new(&camera, Distortion::NONE);
@@ -274,13 +330,29 @@ mod tests {
     #[test]
     fn opencv_order() {
         let d = Distortion::from_opencv(&[1.0, 2.0, 3.0, 4.0, 5.0]);
-        assert_eq!(d, Distortion { k1: 1.0, k2: 2.0, p1: 3.0, p2: 4.0, k3: 5.0 });
+        assert_eq!(
+            d,
+            Distortion {
+                k1: 1.0,
+                k2: 2.0,
+                p1: 3.0,
+                p2: 4.0,
+                k3: 5.0
+            }
+        );
         assert_eq!(d.to_opencv(), [1.0, 2.0, 3.0, 4.0, 5.0]);
     }
 
     #[test]
     fn a_nan_source_samples_as_outside() {
-        let camera = Camera::look_at(DVec3::new(0.0, 0.0, -3.0), DVec3::ZERO, DVec3::NEG_Y, 40.0, 4, 4);
+        let camera = Camera::look_at(
+            DVec3::new(0.0, 0.0, -3.0),
+            DVec3::ZERO,
+            DVec3::NEG_Y,
+            40.0,
+            4,
+            4,
+        );
         let map = SourceMap::build(&camera, |_, _| [f64::NAN, 0.0]);
         assert!(map.rgb(&[1.0; 48]).iter().all(|&v| v == 0.0));
         assert!(map.mask(&[true; 16]).iter().all(|&m| !m));

@@ -23,10 +23,18 @@ pub enum DatasetError {
     Image { file: String, problem: String },
     /// A value in a file is wrong: the file, the field, and what is wrong with it.
     #[error("{file}: {field}: {problem}")]
-    Field { file: String, field: String, problem: String },
+    Field {
+        file: String,
+        field: String,
+        problem: String,
+    },
     /// A file the detected layout variant needs does not exist.
     #[error("{file}: missing ({what}; the layout was read as {variant})")]
-    Missing { file: String, what: String, variant: &'static str },
+    Missing {
+        file: String,
+        what: String,
+        variant: &'static str,
+    },
     /// The directory is no layout we know.
     #[error("{dir}: {problem}")]
     Layout { dir: String, problem: String },
@@ -46,18 +54,31 @@ pub enum DatasetError {
 
 impl DatasetError {
     pub fn io(path: &Path, error: std::io::Error) -> Self {
-        Self::Io { file: path.display().to_string(), error }
+        Self::Io {
+            file: path.display().to_string(),
+            error,
+        }
     }
 
     pub fn image(path: &Path, problem: impl Into<String>) -> Self {
-        Self::Image { file: path.display().to_string(), problem: problem.into() }
+        Self::Image {
+            file: path.display().to_string(),
+            problem: problem.into(),
+        }
     }
 
     pub fn missing(path: &Path, what: impl Into<String>, variant: &'static str) -> Self {
-        Self::Missing { file: path.display().to_string(), what: what.into(), variant }
+        Self::Missing {
+            file: path.display().to_string(),
+            what: what.into(),
+            variant,
+        }
     }
 
     pub fn layout(dir: &Path, problem: impl Into<String>) -> Self {
-        Self::Layout { dir: dir.display().to_string(), problem: problem.into() }
+        Self::Layout {
+            dir: dir.display().to_string(),
+            problem: problem.into(),
+        }
     }
 }

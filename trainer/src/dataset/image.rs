@@ -19,7 +19,9 @@ use std::io::Cursor;
 use std::path::Path;
 
 use image::metadata::Orientation;
-use image::{DynamicImage, ExtendedColorType, ImageDecoder as _, ImageError, ImageFormat, ImageReader};
+use image::{
+    DynamicImage, ExtendedColorType, ImageDecoder as _, ImageError, ImageFormat, ImageReader,
+};
 
 use crate::dataset::error::DatasetError;
 
@@ -70,9 +72,16 @@ pub struct RgbImage {
 
 fn reader(path: &Path, bytes: &[u8]) -> Result<ImageReader<Cursor<Vec<u8>>>, DatasetError> {
     // By content, not by name: a PNG called `x.jpg` is still a PNG.
-    let reader = ImageReader::new(Cursor::new(bytes.to_vec())).with_guessed_format().map_err(|e| DatasetError::io(path, e))?;
+    let reader = ImageReader::new(Cursor::new(bytes.to_vec()))
+        .with_guessed_format()
+        .map_err(|e| DatasetError::io(path, e))?;
     match reader.format() {
-        None => return Err(DatasetError::image(path, "not a PNG or JPEG this program reads (unrecognised contents)")),
+        None => {
+            return Err(DatasetError::image(
+                path,
+                "not a PNG or JPEG this program reads (unrecognised contents)",
+            ))
+        }
         Some(ImageFormat::Jpeg) => jpeg_complete(path, bytes)?,
         Some(_) => {}
     }
@@ -111,7 +120,9 @@ fn describe(e: &ImageError) -> String {
     match e {
         ImageError::Unsupported(_) => format!("not a PNG or JPEG this program reads: {detail}"),
         // The bytes are in memory, so the decoder's only I/O error is running out of them.
-        ImageError::Decoding(_) | ImageError::IoError(_) => format!("truncated or corrupt image: {detail}"),
+        ImageError::Decoding(_) | ImageError::IoError(_) => {
+            format!("truncated or corrupt image: {detail}")
+        }
         ImageError::Limits(_) => format!("too large: {detail}"),
         _ => detail.to_string(),
     }
@@ -125,7 +136,12 @@ fn describe(e: &ImageError) -> String {
 /// marker or the next marker. Bytes after the end marker (camera trailers) are allowed.
 /// A cut or corrupt file is [`DatasetError::Image`] for `path`.
 fn jpeg_complete(path: &Path, b: &[u8]) -> Result<(), DatasetError> {
-    let truncated = || DatasetError::image(path, "truncated JPEG (the data ends before its end-of-image marker)");
+    let truncated = || {
+        DatasetError::image(
+            path,
+            "truncated JPEG (the data ends before its end-of-image marker)",
+        )
+    };
     let mut i = 2; // past SOI, which guessing the format checked
     loop {
         // Garbage between segments is skipped, as libjpeg does (with a warning).
@@ -136,7 +152,9 @@ fn jpeg_complete(path: &Path, b: &[u8]) -> Result<(), DatasetError> {
         while i < b.len() && b[i] == 0xFF {
             i += 1;
         }
-        let Some(&marker) = b.get(i) else { return Err(truncated()) };
+        let Some(&marker) = b.get(i) else {
+            return Err(truncated());
+        };
         i += 1;
         match marker {
             0xD9 => return Ok(()),
@@ -144,9 +162,20 @@ fn jpeg_complete(path: &Path, b: &[u8]) -> Result<(), DatasetError> {
             0x01 | 0xD0..=0xD7 => continue,
             _ => {}
         }
-        let Some(len) = b.get(i..i + 2).map(|l| usize::from(u16::from_be_bytes([l[0], l[1]]))) else { return Err(truncated()) };
+        let Some(len) = b
+            .get(i..i + 2)
+            .map(|l| usize::from(u16::from_be_bytes([l[0], l[1]])))
+        else {
+            return Err(truncated());
+        };
         if len < 2 {
-            return Err(DatasetError::image(path, format!("corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})", i - 2)));
+            return Err(DatasetError::image(
+                path,
+                format!(
+                    "corrupt JPEG (segment 0xFF{marker:02X} at byte {} has length {len})",
+                    i - 2
+                ),
+            ));
         }
         i += len;
         if i > b.len() {
@@ -173,7 +202,13 @@ pub fn dimensions(path: &Path) -> Result<(u32, u32), DatasetError> {
     let mut decoder = reader(path, &bytes)?.into_decoder().map_err(named)?;
     let (w, h) = decoder.dimensions();
     check_size(path, (w, h), decoder.total_bytes())?;
-    let turned = matches!(decoder.orientation().map_err(named)?, Orientation::Rotate90 | Orientation::Rotate270 | Orientation::Rotate90FlipH | Orientation::Rotate270FlipH);
+    let turned = matches!(
+        decoder.orientation().map_err(named)?,
+        Orientation::Rotate90
+            | Orientation::Rotate270
+            | Orientation::Rotate90FlipH
+            | Orientation::Rotate270FlipH
+    );
     Ok(if turned { (h, w) } else { (w, h) })
 }
 
@@ -182,40 +217,67 @@ pub fn read_rgb(path: &Path) -> Result<RgbImage, DatasetError> {
     let img = decode(path)?;
     let (width, height) = (img.width(), img.height());
     // `to_rgb32f` divides 8-bit values by 255 and 16-bit ones by 65535, and repeats grey.
-    Ok(RgbImage { width, height, rgb: img.to_rgb32f().into_raw() })
+    Ok(RgbImage {
+        width,
+        height,
+        rgb: img.to_rgb32f().into_raw(),
+    })
 }
 
 /// Reads a mask with the layout's rule.
 pub fn read_mask(path: &Path, rule: MaskRule) -> Result<(u32, u32, Vec<bool>), DatasetError> {
     let img = decode(path)?;
     let (w, h) = (img.width(), img.height());
-    let mask = img.to_rgba16().pixels().map(|p| rule.is_person(p.0[0].max(p.0[1]).max(p.0[2]))).collect();
+    let mask = img
+        .to_rgba16()
+        .pixels()
+        .map(|p| rule.is_person(p.0[0].max(p.0[1]).max(p.0[2])))
+        .collect();
     Ok((w, h, mask))
 }
 
 fn to_bytes(rgb: &[f32]) -> Vec<u8> {
-    rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
+    rgb.iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect()
 }
 
 fn create_parent(path: &Path) -> Result<(), DatasetError> {
     match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e)),
+        Some(dir) if !dir.as_os_str().is_empty() => {
+            std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))
+        }
         _ => Ok(()),
     }
 }
 
-fn save(path: &Path, width: u32, height: u32, bytes: &[u8], color: ExtendedColorType) -> Result<(), DatasetError> {
+fn save(
+    path: &Path,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    color: ExtendedColorType,
+) -> Result<(), DatasetError> {
     create_parent(path)?;
-    let format = image::ImageFormat::from_path(path).map_err(|_| DatasetError::image(path, "unknown image extension (use .png or .jpg)"))?;
+    let format = image::ImageFormat::from_path(path)
+        .map_err(|_| DatasetError::image(path, "unknown image extension (use .png or .jpg)"))?;
     match format {
-        image::ImageFormat::Png => image::save_buffer_with_format(path, bytes, width, height, color, format).map_err(|e| DatasetError::image(path, e.to_string())),
+        image::ImageFormat::Png => {
+            image::save_buffer_with_format(path, bytes, width, height, color, format)
+                .map_err(|e| DatasetError::image(path, e.to_string()))
+        }
         image::ImageFormat::Jpeg => {
             let file = std::fs::File::create(path).map_err(|e| DatasetError::io(path, e))?;
             let mut w = std::io::BufWriter::new(file);
-            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut w, ZJU_JPEG_QUALITY).encode(bytes, width, height, color).map_err(|e| DatasetError::image(path, e.to_string()))?;
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut w, ZJU_JPEG_QUALITY)
+                .encode(bytes, width, height, color)
+                .map_err(|e| DatasetError::image(path, e.to_string()))?;
             std::io::Write::flush(&mut w).map_err(|e| DatasetError::io(path, e))
         }
-        _ => Err(DatasetError::image(path, "unsupported image extension (use .png or .jpg)")),
+        _ => Err(DatasetError::image(
+            path,
+            "unsupported image extension (use .png or .jpg)",
+        )),
     }
 }
 
@@ -226,8 +288,18 @@ pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
 
 /// Writes a mask as an 8-bit grey PNG: `person` where the mask is set, `other` elsewhere
 /// (255 / 0 for ZJU-MoCap and HUGS, 0 / 255 for NeuMan's Detectron2 masks).
-pub fn write_mask_values(path: &Path, width: u32, height: u32, mask: &[bool], person: u8, other: u8) -> Result<(), DatasetError> {
-    let bytes: Vec<u8> = mask.iter().map(|&m| if m { person } else { other }).collect();
+pub fn write_mask_values(
+    path: &Path,
+    width: u32,
+    height: u32,
+    mask: &[bool],
+    person: u8,
+    other: u8,
+) -> Result<(), DatasetError> {
+    let bytes: Vec<u8> = mask
+        .iter()
+        .map(|&m| if m { person } else { other })
+        .collect();
     save(path, width, height, &bytes, ExtendedColorType::L8)
 }
 

@@ -45,7 +45,14 @@ fn parent_folder(dir: &Path, p: &Path) -> String {
 /// Inspects `dir` (a `drape synth` output is inspected through its `neuman/`, the
 /// sequence `drape train` would read).
 pub fn inspect(dir: &Path) -> Inspection {
-    let dir = if !dir.join("sparse").is_dir() && !dir.join("annots.npy").is_file() && dir.join("neuman").join("sparse").is_dir() { dir.join("neuman") } else { dir.to_path_buf() };
+    let dir = if !dir.join("sparse").is_dir()
+        && !dir.join("annots.npy").is_file()
+        && dir.join("neuman").join("sparse").is_dir()
+    {
+        dir.join("neuman")
+    } else {
+        dir.to_path_buf()
+    };
     let mut out = Inspection {
         dir: dir.clone(),
         variant: None,
@@ -62,17 +69,25 @@ pub fn inspect(dir: &Path) -> Inspection {
     let variant = match detect(&dir) {
         Ok(v) => v,
         Err(e) => {
-            out.problem = Some(if dir.exists() { e.to_string() } else { format!("{}: no such directory", dir.display()) });
+            out.problem = Some(if dir.exists() {
+                e.to_string()
+            } else {
+                format!("{}: no such directory", dir.display())
+            });
             return out;
         }
     };
     out.variant = Some(variant.name());
     out.description = Some(variant.describe());
-    out.masks = format!("{} ({})", match variant {
-        Variant::Neuman => "segmentations/",
-        Variant::NeumanHugs => "4d_humans/sam_segmentations/",
-        _ => "mask/ and/or mask_cihp/ beside each image",
-    }, variant.mask_rule().name());
+    out.masks = format!(
+        "{} ({})",
+        match variant {
+            Variant::Neuman => "segmentations/",
+            Variant::NeumanHugs => "4d_humans/sam_segmentations/",
+            _ => "mask/ and/or mask_cihp/ beside each image",
+        },
+        variant.mask_rule().name()
+    );
     let files = match locate(&dir) {
         Ok(f) => f,
         Err(e) => {
@@ -83,28 +98,60 @@ pub fn inspect(dir: &Path) -> Inspection {
     let images = files.images();
     // The loader itself, as training runs it (camera 0 training), so that inspect and
     // `drape train` report the same first problem.
-    out.problem = crate::dataset::loader::load_located(&files, 0).err().map(|e| e.to_string());
+    out.problem = crate::dataset::loader::load_located(&files, 0)
+        .err()
+        .map(|e| e.to_string());
     match &files {
         SequenceFiles::Neuman(n) => {
             out.frames = n.images.len();
             out.cameras = 1;
             out.params = format!("{} (HUGS's SMPL fit)", rel(&dir, &n.smpl));
-            let test = crate::dataset::split::neuman_every_fifth(n.images.len()).iter().filter(|s| **s == crate::dataset::split::Split::Test).count();
-            out.split = format!("every fifth frame from the third held out (HUGS): {} train, {test} test", n.images.len() - test);
+            let test = crate::dataset::split::neuman_every_fifth(n.images.len())
+                .iter()
+                .filter(|s| **s == crate::dataset::split::Split::Test)
+                .count();
+            out.split = format!(
+                "every fifth frame from the third held out (HUGS): {} train, {test} test",
+                n.images.len() - test
+            );
             out.unused = n.unused.clone();
-            if n.images.first().is_some_and(|(_, f)| f.garment_masks.is_some()) {
-                out.masks.push_str("; garment masks in masks_upper/ and masks_lower/");
+            if n.images
+                .first()
+                .is_some_and(|(_, f)| f.garment_masks.is_some())
+            {
+                out.masks
+                    .push_str("; garment masks in masks_upper/ and masks_lower/");
             }
         }
         SequenceFiles::Zju(z) => {
             out.frames = z.frames.len();
             out.cameras = z.annots.cameras.len();
             if let Some((p, _)) = z.frames.first() {
-                out.params = format!("{}{}", parent_folder(&dir, p), if variant == Variant::ZjuCoreView313 { " (1-based, from the frame number in each image's name)" } else { " (numbered by each image's name)" });
+                out.params = format!(
+                    "{}{}",
+                    parent_folder(&dir, p),
+                    if variant == Variant::ZjuCoreView313 {
+                        " (1-based, from the frame number in each image's name)"
+                    } else {
+                        " (numbered by each image's name)"
+                    }
+                );
             }
-            let folders: std::collections::BTreeSet<String> = images.iter().flat_map(|f| f.masks.iter().map(|m| parent_folder(&dir, m))).collect();
-            out.masks = format!("{} ({})", folders.into_iter().collect::<Vec<_>>().join(" + "), variant.mask_rule().name());
-            out.split = format!("camera 0 trains ({} images), the other {} test ({} images)", z.frames.len(), out.cameras.saturating_sub(1), z.frames.len() * out.cameras.saturating_sub(1));
+            let folders: std::collections::BTreeSet<String> = images
+                .iter()
+                .flat_map(|f| f.masks.iter().map(|m| parent_folder(&dir, m)))
+                .collect();
+            out.masks = format!(
+                "{} ({})",
+                folders.into_iter().collect::<Vec<_>>().join(" + "),
+                variant.mask_rule().name()
+            );
+            out.split = format!(
+                "camera 0 trains ({} images), the other {} test ({} images)",
+                z.frames.len(),
+                out.cameras.saturating_sub(1),
+                z.frames.len() * out.cameras.saturating_sub(1)
+            );
         }
     }
     out.image_size = images.first().and_then(|f| dimensions(&f.image).ok());

@@ -45,7 +45,13 @@ pub enum Variant {
 }
 
 impl Variant {
-    pub const ALL: [Variant; 5] = [Variant::Neuman, Variant::NeumanHugs, Variant::ZjuNeuralBody, Variant::ZjuCoreView313, Variant::ZjuRefined];
+    pub const ALL: [Variant; 5] = [
+        Variant::Neuman,
+        Variant::NeumanHugs,
+        Variant::ZjuNeuralBody,
+        Variant::ZjuCoreView313,
+        Variant::ZjuRefined,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -60,16 +66,27 @@ impl Variant {
     /// One line on what the variant is, for `drape inspect`.
     pub fn describe(self) -> &'static str {
         match self {
-            Variant::Neuman => "NeuMan as released (Detectron2 masks in segmentations/) with HUGS's SMPL file",
+            Variant::Neuman => {
+                "NeuMan as released (Detectron2 masks in segmentations/) with HUGS's SMPL file"
+            }
             Variant::NeumanHugs => "NeuMan with HUGS's 4d_humans/ (SAM masks and SMPL file)",
-            Variant::ZjuNeuralBody => "ZJU-MoCap as released for Neural Body (Camera_B*/ at the root)",
-            Variant::ZjuCoreView313 => "ZJU-MoCap CoreView_313/315 naming (1-based frame in the file name)",
-            Variant::ZjuRefined => "ZJU-MoCap refined (GauHuman, GART, instant-nvr; drape synth): images/<camera>/",
+            Variant::ZjuNeuralBody => {
+                "ZJU-MoCap as released for Neural Body (Camera_B*/ at the root)"
+            }
+            Variant::ZjuCoreView313 => {
+                "ZJU-MoCap CoreView_313/315 naming (1-based frame in the file name)"
+            }
+            Variant::ZjuRefined => {
+                "ZJU-MoCap refined (GauHuman, GART, instant-nvr; drape synth): images/<camera>/"
+            }
         }
     }
 
     pub fn is_zju(self) -> bool {
-        matches!(self, Variant::ZjuNeuralBody | Variant::ZjuCoreView313 | Variant::ZjuRefined)
+        matches!(
+            self,
+            Variant::ZjuNeuralBody | Variant::ZjuCoreView313 | Variant::ZjuRefined
+        )
     }
 
     /// The rule that reads the variant's person masks.
@@ -155,11 +172,21 @@ fn exists_or_missing(path: PathBuf, what: &str, variant: Variant) -> Result<Path
 /// read).
 pub fn detect(dir: &Path) -> Result<Variant, DatasetError> {
     if dir.join("sparse").is_dir() {
-        return Ok(if dir.join("4d_humans").join("sam_segmentations").is_dir() { Variant::NeumanHugs } else { Variant::Neuman });
+        return Ok(
+            if dir.join("4d_humans").join("sam_segmentations").is_dir() {
+                Variant::NeumanHugs
+            } else {
+                Variant::Neuman
+            },
+        );
     }
     if dir.join("annots.npy").is_file() {
         let annots = ZjuAnnots::read(dir)?;
-        return Ok(annots.images.first().and_then(|v| v.first()).map_or(Variant::ZjuNeuralBody, |rel| zju_variant(rel)));
+        return Ok(annots
+            .images
+            .first()
+            .and_then(|v| v.first())
+            .map_or(Variant::ZjuNeuralBody, |rel| zju_variant(rel)));
     }
     Err(DatasetError::layout(dir, "neither a NeuMan sequence (sparse/) nor a ZJU-MoCap one (annots.npy), nor a `drape synth` output (neuman/)"))
 }
@@ -181,30 +208,77 @@ pub fn locate(dir: &Path) -> Result<SequenceFiles, DatasetError> {
 
 fn locate_neuman(dir: &Path) -> Result<NeumanFiles, DatasetError> {
     let sam = dir.join("4d_humans").join("sam_segmentations");
-    let variant = if sam.is_dir() { Variant::NeumanHugs } else { Variant::Neuman };
+    let variant = if sam.is_dir() {
+        Variant::NeumanHugs
+    } else {
+        Variant::Neuman
+    };
     let model = ColmapModel::read_text(&dir.join("sparse"))?;
     let smpl = exists_or_missing(
-        dir.join("4d_humans").join("smpl_optimized_aligned_scale.npz"),
+        dir.join("4d_humans")
+            .join("smpl_optimized_aligned_scale.npz"),
         "HUGS's SMPL fit, which drape reads instead of NeuMan's smpl_output_optimized.pkl",
         variant,
     )?;
-    let mut ids: Vec<(u32, String)> = model.images.values().map(|i| (i.id, i.name.clone())).collect();
+    let mut ids: Vec<(u32, String)> = model
+        .images
+        .values()
+        .map(|i| (i.id, i.name.clone()))
+        .collect();
     ids.sort_by(|a, b| a.1.cmp(&b.1));
-    let mask_dir = if variant == Variant::NeumanHugs { sam } else { dir.join("segmentations") };
+    let mask_dir = if variant == Variant::NeumanHugs {
+        sam
+    } else {
+        dir.join("segmentations")
+    };
     let upper = dir.join("masks_upper");
     let mut images = Vec::with_capacity(ids.len());
     for (frame, (id, name)) in ids.into_iter().enumerate() {
-        let image = exists_or_missing(dir.join("images").join(&name), "the frame's image", variant)?;
+        let image =
+            exists_or_missing(dir.join("images").join(&name), "the frame's image", variant)?;
         let mask = exists_or_missing(mask_dir.join(&name), "the frame's person mask", variant)?;
         let garment_masks = if upper.is_dir() {
-            Some((exists_or_missing(upper.join(&name), "the upper garment mask", variant)?, exists_or_missing(dir.join("masks_lower").join(&name), "the lower garment mask", variant)?))
+            Some((
+                exists_or_missing(upper.join(&name), "the upper garment mask", variant)?,
+                exists_or_missing(
+                    dir.join("masks_lower").join(&name),
+                    "the lower garment mask",
+                    variant,
+                )?,
+            ))
         } else {
             None
         };
-        images.push((id, ImageFiles { frame, view: 0, image, masks: vec![mask], garment_masks }));
+        images.push((
+            id,
+            ImageFiles {
+                frame,
+                view: 0,
+                image,
+                masks: vec![mask],
+                garment_masks,
+            },
+        ));
     }
-    let unused = ["depth_maps", "mono_depth", "monocular_depth", "keypoints", "densepose"].iter().filter(|d| dir.join(d).is_dir()).map(|d| format!("{d}/")).collect();
-    Ok(NeumanFiles { dir: dir.into(), variant, model, smpl, images, unused })
+    let unused = [
+        "depth_maps",
+        "mono_depth",
+        "monocular_depth",
+        "keypoints",
+        "densepose",
+    ]
+    .iter()
+    .filter(|d| dir.join(d).is_dir())
+    .map(|d| format!("{d}/"))
+    .collect();
+    Ok(NeumanFiles {
+        dir: dir.into(),
+        variant,
+        model,
+        smpl,
+        images,
+        unused,
+    })
 }
 
 /// The variant an `annots.npy` image path belongs to.
@@ -245,7 +319,10 @@ fn without_extension(rel: &str) -> &str {
 fn zju_mask_candidates(rel: &str, variant: Variant) -> [String; 2] {
     let stem = without_extension(rel);
     if variant == Variant::ZjuRefined {
-        [format!("{}.png", stem.replacen("images", "mask", 1)), format!("{}.png", stem.replacen("images", "mask_cihp", 1))]
+        [
+            format!("{}.png", stem.replacen("images", "mask", 1)),
+            format!("{}.png", stem.replacen("images", "mask_cihp", 1)),
+        ]
     } else {
         [format!("mask/{stem}.png"), format!("mask_cihp/{stem}.png")]
     }
@@ -254,39 +331,83 @@ fn zju_mask_candidates(rel: &str, variant: Variant) -> [String; 2] {
 fn locate_zju(dir: &Path) -> Result<ZjuFiles, DatasetError> {
     let annots = ZjuAnnots::read(dir)?;
     let annots_path = dir.join("annots.npy");
-    let first = annots.images.first().and_then(|v| v.first()).ok_or_else(|| DatasetError::Field {
-        file: annots_path.display().to_string(),
-        field: "ims".into(),
-        problem: "no frames".into(),
-    })?;
+    let first = annots
+        .images
+        .first()
+        .and_then(|v| v.first())
+        .ok_or_else(|| DatasetError::Field {
+            file: annots_path.display().to_string(),
+            field: "ims".into(),
+            problem: "no frames".into(),
+        })?;
     let variant = zju_variant(first);
-    let params_dir = ["smpl_params", "new_params", "params"].iter().map(|d| dir.join(d)).find(|d| d.is_dir());
-    let params_dir = params_dir.ok_or_else(|| DatasetError::missing(&dir.join("smpl_params"), "the SMPL parameters (smpl_params/, new_params/ or params/)", variant.name()))?;
+    let params_dir = ["smpl_params", "new_params", "params"]
+        .iter()
+        .map(|d| dir.join(d))
+        .find(|d| d.is_dir());
+    let params_dir = params_dir.ok_or_else(|| {
+        DatasetError::missing(
+            &dir.join("smpl_params"),
+            "the SMPL parameters (smpl_params/, new_params/ or params/)",
+            variant.name(),
+        )
+    })?;
     let mut frames = Vec::with_capacity(annots.images.len());
     for (f, paths) in annots.images.iter().enumerate() {
         if paths.len() != annots.cameras.len() {
             return Err(DatasetError::Field {
                 file: annots_path.display().to_string(),
                 field: format!("ims[{f}]"),
-                problem: format!("{} images for {} cameras", paths.len(), annots.cameras.len()),
+                problem: format!(
+                    "{} images for {} cameras",
+                    paths.len(),
+                    annots.cameras.len()
+                ),
             });
         }
         let number = zju_frame_number(&paths[0], &annots_path)?;
-        let params = exists_or_missing(params_dir.join(format!("{number}.npy")), "the frame's SMPL parameters", variant)?;
+        let params = exists_or_missing(
+            params_dir.join(format!("{number}.npy")),
+            "the frame's SMPL parameters",
+            variant,
+        )?;
         let mut views = Vec::with_capacity(paths.len());
         for (c, rel) in paths.iter().enumerate() {
             let image = exists_or_missing(dir.join(rel), "the image annots.npy lists", variant)?;
             let candidates = zju_mask_candidates(rel, variant);
-            let masks: Vec<PathBuf> = candidates.iter().map(|m| dir.join(m)).filter(|p| p.is_file()).collect();
+            let masks: Vec<PathBuf> = candidates
+                .iter()
+                .map(|m| dir.join(m))
+                .filter(|p| p.is_file())
+                .collect();
             if masks.is_empty() {
                 // Name the one whose folder exists: that is where the masks are.
                 let top = |c: &String| dir.join(c.split('/').next().unwrap_or(c)).is_dir();
-                let (named, other) = if !top(&candidates[0]) && top(&candidates[1]) { (&candidates[1], &candidates[0]) } else { (&candidates[0], &candidates[1]) };
-                return Err(DatasetError::missing(&dir.join(named), format!("the person mask; nor is there {other}"), variant.name()));
+                let (named, other) = if !top(&candidates[0]) && top(&candidates[1]) {
+                    (&candidates[1], &candidates[0])
+                } else {
+                    (&candidates[0], &candidates[1])
+                };
+                return Err(DatasetError::missing(
+                    &dir.join(named),
+                    format!("the person mask; nor is there {other}"),
+                    variant.name(),
+                ));
             }
-            views.push(ImageFiles { frame: f, view: c, image, masks, garment_masks: None });
+            views.push(ImageFiles {
+                frame: f,
+                view: c,
+                image,
+                masks,
+                garment_masks: None,
+            });
         }
         frames.push((params, views));
     }
-    Ok(ZjuFiles { dir: dir.into(), variant, annots, frames })
+    Ok(ZjuFiles {
+        dir: dir.into(),
+        variant,
+        annots,
+        frames,
+    })
 }

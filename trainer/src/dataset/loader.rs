@@ -20,7 +20,12 @@ use crate::dataset::zju::ZjuSmpl;
 #[derive(Clone, Debug, PartialEq)]
 pub enum BodyParams {
     /// NeuMan/HUGS: SMPL with root rotation, then `scale` and `translation`.
-    Smpl { pose: Pose, betas: Vec<f64>, translation: DVec3, scale: f64 },
+    Smpl {
+        pose: Pose,
+        betas: Vec<f64>,
+        translation: DVec3,
+        scale: f64,
+    },
     /// ZJU-MoCap: root-free SMPL, then `R(Rh)` and `Th`.
     Zju(ZjuSmpl),
 }
@@ -48,7 +53,17 @@ pub struct DatasetFrame {
 impl DatasetFrame {
     /// The person on a constant `background` colour (RGB, 3 floats per pixel).
     pub fn masked_rgb(&self, background: [f32; 3]) -> Vec<f32> {
-        self.mask.iter().enumerate().flat_map(|(i, &m)| if m { [self.rgb[3 * i], self.rgb[3 * i + 1], self.rgb[3 * i + 2]] } else { background }).collect()
+        self.mask
+            .iter()
+            .enumerate()
+            .flat_map(|(i, &m)| {
+                if m {
+                    [self.rgb[3 * i], self.rgb[3 * i + 1], self.rgb[3 * i + 2]]
+                } else {
+                    background
+                }
+            })
+            .collect()
     }
 }
 
@@ -62,13 +77,21 @@ pub enum NeumanSplit {
 }
 
 fn size_mismatch(path: &Path, got: (u32, u32), want: (u32, u32), of: &str) -> DatasetError {
-    DatasetError::image(path, format!("{}x{}, but its {of} is {}x{}", got.0, got.1, want.0, want.1))
+    DatasetError::image(
+        path,
+        format!("{}x{}, but its {of} is {}x{}", got.0, got.1, want.0, want.1),
+    )
 }
 
 fn load_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DatasetError> {
     let img = read_rgb(path)?;
     if (img.width, img.height) != (width, height) {
-        return Err(size_mismatch(path, (img.width, img.height), (width, height), "camera"));
+        return Err(size_mismatch(
+            path,
+            (img.width, img.height),
+            (width, height),
+            "camera",
+        ));
     }
     Ok(img.rgb)
 }
@@ -94,7 +117,11 @@ fn undistorted_mask(undistort: &Option<Undistorter>, mask: Vec<bool>) -> Vec<boo
 /// (the person white, as HUGS's SAM masks are) would train the background as the
 /// person. Where the person would cover most of the frame, refuse, naming the file and
 /// the two conventions.
-pub fn check_not_inverted(variant: Variant, path: &Path, mask: &[bool]) -> Result<(), DatasetError> {
+pub fn check_not_inverted(
+    variant: Variant,
+    path: &Path,
+    mask: &[bool],
+) -> Result<(), DatasetError> {
     let person = mask.iter().filter(|&&m| m).count() as f64 / mask.len().max(1) as f64;
     if variant == Variant::Neuman && person > 0.6 {
         return Err(DatasetError::image(
@@ -107,7 +134,13 @@ pub fn check_not_inverted(variant: Variant, path: &Path, mask: &[bool]) -> Resul
 
 /// The union of an image's person masks.
 /// `of` names what sets the size (the camera, or the image file).
-fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32, of: &str) -> Result<Vec<bool>, DatasetError> {
+fn load_masks(
+    paths: &[PathBuf],
+    rule: MaskRule,
+    width: u32,
+    height: u32,
+    of: &str,
+) -> Result<Vec<bool>, DatasetError> {
     let mut union = vec![false; width as usize * height as usize];
     for path in paths {
         let (w, h, m) = read_mask(path, rule)?;
@@ -122,7 +155,10 @@ fn load_masks(paths: &[PathBuf], rule: MaskRule, width: u32, height: u32, of: &s
 /// Loads a located sequence of either layout, NeuMan with HUGS's split (every fifth
 /// frame held out) and ZJU-MoCap with `zju_train_camera` training. Training and
 /// `drape inspect` both come through here, so they report the same first problem.
-pub fn load_located(files: &SequenceFiles, zju_train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+pub fn load_located(
+    files: &SequenceFiles,
+    zju_train_camera: usize,
+) -> Result<Vec<DatasetFrame>, DatasetError> {
     match files {
         SequenceFiles::Neuman(n) => load_neuman_files(n, NeumanSplit::EveryFifth),
         SequenceFiles::Zju(z) => load_zju_files(z, zju_train_camera),
@@ -134,19 +170,29 @@ pub fn load_located(files: &SequenceFiles, zju_train_camera: usize) -> Result<Ve
 pub fn load_neuman(dir: &Path, split: NeumanSplit) -> Result<Vec<DatasetFrame>, DatasetError> {
     match locate(dir)? {
         SequenceFiles::Neuman(files) => load_neuman_files(&files, split),
-        SequenceFiles::Zju(z) => Err(DatasetError::layout(dir, format!("a ZJU-MoCap sequence ({}), not NeuMan", z.variant.name()))),
+        SequenceFiles::Zju(z) => Err(DatasetError::layout(
+            dir,
+            format!("a ZJU-MoCap sequence ({}), not NeuMan", z.variant.name()),
+        )),
     }
 }
 
 /// Loads a located NeuMan sequence.
-pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<DatasetFrame>, DatasetError> {
+pub fn load_neuman_files(
+    files: &NeumanFiles,
+    split: NeumanSplit,
+) -> Result<Vec<DatasetFrame>, DatasetError> {
     let (dir, model) = (&files.dir, &files.model);
     let smpl = SmplSequence::read_npz(&files.smpl)?;
     if files.images.len() != smpl.len() {
         return Err(DatasetError::Field {
             file: files.smpl.display().to_string(),
             field: "global_orient".into(),
-            problem: format!("{} frames of SMPL parameters for {} registered images", smpl.len(), files.images.len()),
+            problem: format!(
+                "{} frames of SMPL parameters for {} registered images",
+                smpl.len(),
+                files.images.len()
+            ),
         });
     }
     let splits = match split {
@@ -162,7 +208,9 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
         let img = &model.images[id];
         let cam = &model.cameras[&img.camera_id];
         let (camera, distortion) = img.camera_and_distortion(cam)?;
-        let undistort = undistorters.entry(cam.id).or_insert_with(|| (!distortion.is_identity()).then(|| Undistorter::new(&camera, distortion)));
+        let undistort = undistorters.entry(cam.id).or_insert_with(|| {
+            (!distortion.is_identity()).then(|| Undistorter::new(&camera, distortion))
+        });
         let qn = img.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
         let pose_problem = if img.qvec.iter().any(|v| !v.is_finite()) {
             Some(format!("QW QX QY QZ {:?} is not finite", img.qvec))
@@ -174,15 +222,46 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
             None
         };
         if let Some(problem) = pose_problem {
-            return Err(DatasetError::Field { file: sparse.display().to_string(), field: format!("image {} ('{}')", img.id, img.name), problem });
+            return Err(DatasetError::Field {
+                file: sparse.display().to_string(),
+                field: format!("image {} ('{}')", img.id, img.name),
+                problem,
+            });
         }
         let rgb = undistorted_rgb(undistort, load_rgb(&paths.image, cam.width, cam.height)?);
-        let mask = undistorted_mask(undistort, load_masks(&paths.masks, rule, cam.width, cam.height, "camera (cameras.txt)")?);
+        let mask = undistorted_mask(
+            undistort,
+            load_masks(
+                &paths.masks,
+                rule,
+                cam.width,
+                cam.height,
+                "camera (cameras.txt)",
+            )?,
+        );
         check_not_inverted(files.variant, &paths.masks[0], &mask)?;
         let garment_masks = match &paths.garment_masks {
             Some((upper, lower)) => Some((
-                undistorted_mask(undistort, load_masks(std::slice::from_ref(upper), MaskRule::AtLeastHalf, cam.width, cam.height, "camera (cameras.txt)")?),
-                undistorted_mask(undistort, load_masks(std::slice::from_ref(lower), MaskRule::AtLeastHalf, cam.width, cam.height, "camera (cameras.txt)")?),
+                undistorted_mask(
+                    undistort,
+                    load_masks(
+                        std::slice::from_ref(upper),
+                        MaskRule::AtLeastHalf,
+                        cam.width,
+                        cam.height,
+                        "camera (cameras.txt)",
+                    )?,
+                ),
+                undistorted_mask(
+                    undistort,
+                    load_masks(
+                        std::slice::from_ref(lower),
+                        MaskRule::AtLeastHalf,
+                        cam.width,
+                        cam.height,
+                        "camera (cameras.txt)",
+                    )?,
+                ),
             )),
             None => None,
         };
@@ -196,7 +275,12 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
             mask,
             garment_masks,
             camera,
-            body: BodyParams::Smpl { pose: smpl.poses[f], betas: smpl.betas[f].clone(), translation: smpl.translations[f], scale: smpl.scales[f] },
+            body: BodyParams::Smpl {
+                pose: smpl.poses[f],
+                betas: smpl.betas[f].clone(),
+                translation: smpl.translations[f],
+                scale: smpl.scales[f],
+            },
             split: splits[f],
         });
     }
@@ -208,18 +292,28 @@ pub fn load_neuman_files(files: &NeumanFiles, split: NeumanSplit) -> Result<Vec<
 pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
     match locate(dir)? {
         SequenceFiles::Zju(files) => load_zju_files(&files, train_camera),
-        SequenceFiles::Neuman(n) => Err(DatasetError::layout(dir, format!("a NeuMan sequence ({}), not ZJU-MoCap", n.variant.name()))),
+        SequenceFiles::Neuman(n) => Err(DatasetError::layout(
+            dir,
+            format!("a NeuMan sequence ({}), not ZJU-MoCap", n.variant.name()),
+        )),
     }
 }
 
 /// Loads a located ZJU-MoCap sequence.
-pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+pub fn load_zju_files(
+    files: &ZjuFiles,
+    train_camera: usize,
+) -> Result<Vec<DatasetFrame>, DatasetError> {
     let annots = &files.annots;
     if train_camera >= annots.cameras.len() {
         return Err(DatasetError::Field {
             file: files.dir.join("annots.npy").display().to_string(),
             field: "cams".into(),
-            problem: format!("{} cameras, so zju_train_camera = {train_camera} does not exist (0 to {})", annots.cameras.len(), annots.cameras.len().saturating_sub(1)),
+            problem: format!(
+                "{} cameras, so zju_train_camera = {train_camera} does not exist (0 to {})",
+                annots.cameras.len(),
+                annots.cameras.len().saturating_sub(1)
+            ),
         });
     }
     let splits = zju_by_camera(annots.cameras.len(), train_camera);
@@ -234,12 +328,24 @@ pub fn load_zju_files(files: &ZjuFiles, train_camera: usize) -> Result<Vec<Datas
             let img = read_rgb(&paths.image)?;
             let (w, h) = (img.width, img.height);
             let camera = cam.camera(w, h);
-            let undistort = undistorters.entry((paths.view, w, h)).or_insert_with(|| (!cam.distortion().is_identity()).then(|| Undistorter::new(&camera, cam.distortion())));
+            let undistort = undistorters.entry((paths.view, w, h)).or_insert_with(|| {
+                (!cam.distortion().is_identity())
+                    .then(|| Undistorter::new(&camera, cam.distortion()))
+            });
             out.push(DatasetFrame {
                 frame: paths.frame,
                 view: paths.view,
                 rgb: undistorted_rgb(undistort, img.rgb),
-                mask: undistorted_mask(undistort, load_masks(&paths.masks, rule, w, h, &format!("image {}", paths.image.display()))?),
+                mask: undistorted_mask(
+                    undistort,
+                    load_masks(
+                        &paths.masks,
+                        rule,
+                        w,
+                        h,
+                        &format!("image {}", paths.image.display()),
+                    )?,
+                ),
                 image_path: paths.image.clone(),
                 width: w,
                 height: h,

@@ -33,13 +33,43 @@ impl SmplSequence {
         let f = self.len();
         let nb = self.betas.first().map_or(10, Vec::len);
         let mut a = BTreeMap::new();
-        a.insert("global_orient".into(), Array::f64(vec![f, 3], self.poses.iter().flat_map(|p| p[0].to_array()).collect()));
-        a.insert("body_pose".into(), Array::f64(vec![f, 69], self.poses.iter().flat_map(|p| p[1..].iter().flat_map(|r| r.to_array()).collect::<Vec<_>>()).collect()));
-        a.insert("betas".into(), Array::f64(vec![f, nb], self.betas.iter().flatten().copied().collect()));
-        a.insert("transl".into(), Array::f64(vec![f, 3], self.translations.iter().flat_map(|t| t.to_array()).collect()));
+        a.insert(
+            "global_orient".into(),
+            Array::f64(
+                vec![f, 3],
+                self.poses.iter().flat_map(|p| p[0].to_array()).collect(),
+            ),
+        );
+        a.insert(
+            "body_pose".into(),
+            Array::f64(
+                vec![f, 69],
+                self.poses
+                    .iter()
+                    .flat_map(|p| p[1..].iter().flat_map(|r| r.to_array()).collect::<Vec<_>>())
+                    .collect(),
+            ),
+        );
+        a.insert(
+            "betas".into(),
+            Array::f64(vec![f, nb], self.betas.iter().flatten().copied().collect()),
+        );
+        a.insert(
+            "transl".into(),
+            Array::f64(
+                vec![f, 3],
+                self.translations
+                    .iter()
+                    .flat_map(|t| t.to_array())
+                    .collect(),
+            ),
+        );
         a.insert("scale".into(), Array::f64(vec![f], self.scales.clone()));
         if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent).map_err(|error| NpyError::Io { file: parent.display().to_string(), error })?;
+            std::fs::create_dir_all(parent).map_err(|error| NpyError::Io {
+                file: parent.display().to_string(),
+                error,
+            })?;
         }
         npy::write_npz(path, &a)
     }
@@ -49,13 +79,22 @@ impl SmplSequence {
         let a = npy::read_npz(path)?;
         let go = npy::require(&a, &file, "global_orient", &[None, Some(3)])?;
         let f = go.shape[0];
-        let bp = npy::require(&a, &file, "body_pose", &[Some(f), Some(3 * (NUM_JOINTS - 1))])?;
+        let bp = npy::require(
+            &a,
+            &file,
+            "body_pose",
+            &[Some(f), Some(3 * (NUM_JOINTS - 1))],
+        )?;
         let betas = npy::require(&a, &file, "betas", &[Some(f), None])
             .or_else(|_| npy::require(&a, &file, "betas", &[None]))?;
         let tr = npy::require(&a, &file, "transl", &[Some(f), Some(3)])?;
         let scale = npy::require(&a, &file, "scale", &[None])?;
         if scale.data.len() != f && scale.data.len() != 1 {
-            return Err(NpyError::Format { file, key: Some("scale".into()), problem: format!("{} values for {f} frames (need {f} or 1)", scale.data.len()) });
+            return Err(NpyError::Format {
+                file,
+                key: Some("scale".into()),
+                problem: format!("{} values for {f} frames (need {f} or 1)", scale.data.len()),
+            });
         }
         let poses = (0..f)
             .map(|i| {
@@ -70,25 +109,69 @@ impl SmplSequence {
             .collect();
         let nb = *betas.shape.last().expect("betas has a shape");
         if nb == 0 {
-            return Err(NpyError::Format { file, key: Some("betas".into()), problem: format!("shape {:?}: no shape coefficients (SMPL has 10)", betas.shape) });
+            return Err(NpyError::Format {
+                file,
+                key: Some("betas".into()),
+                problem: format!(
+                    "shape {:?}: no shape coefficients (SMPL has 10)",
+                    betas.shape
+                ),
+            });
         }
-        for (key, a) in [("global_orient", go), ("body_pose", bp), ("betas", betas), ("transl", tr), ("scale", scale)] {
+        for (key, a) in [
+            ("global_orient", go),
+            ("body_pose", bp),
+            ("betas", betas),
+            ("transl", tr),
+            ("scale", scale),
+        ] {
             if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
-                return Err(NpyError::Format { file, key: Some(key.into()), problem: format!("value {i} is {} (not finite)", a.data[i]) });
+                return Err(NpyError::Format {
+                    file,
+                    key: Some(key.into()),
+                    problem: format!("value {i} is {} (not finite)", a.data[i]),
+                });
             }
         }
-        if let Some(i) = tr.data.iter().position(|v| v.abs() > crate::motion::MAX_TRANSLATION) {
-            return Err(NpyError::Format { file, key: Some("transl".into()), problem: format!("value {i} is {}; drape takes translations within {} of the origin", tr.data[i], crate::motion::MAX_TRANSLATION) });
+        if let Some(i) = tr
+            .data
+            .iter()
+            .position(|v| v.abs() > crate::motion::MAX_TRANSLATION)
+        {
+            return Err(NpyError::Format {
+                file,
+                key: Some("transl".into()),
+                problem: format!(
+                    "value {i} is {}; drape takes translations within {} of the origin",
+                    tr.data[i],
+                    crate::motion::MAX_TRANSLATION
+                ),
+            });
         }
         if let Some(i) = scale.data.iter().position(|&s| !(s > 0.0 && s < 1e6)) {
-            return Err(NpyError::Format { file, key: Some("scale".into()), problem: format!("value {i} is {}; the scale of a body must be positive", scale.data[i]) });
+            return Err(NpyError::Format {
+                file,
+                key: Some("scale".into()),
+                problem: format!(
+                    "value {i} is {}; the scale of a body must be positive",
+                    scale.data[i]
+                ),
+            });
         }
-        let betas = if betas.shape.len() == 2 { betas.data.chunks_exact(nb).map(<[f64]>::to_vec).collect() } else { vec![betas.data.clone(); f] };
+        let betas = if betas.shape.len() == 2 {
+            betas.data.chunks_exact(nb).map(<[f64]>::to_vec).collect()
+        } else {
+            vec![betas.data.clone(); f]
+        };
         Ok(Self {
             poses,
             betas,
             translations: tr.data.chunks_exact(3).map(DVec3::from_slice).collect(),
-            scales: if scale.data.len() == 1 { vec![scale.data[0]; f] } else { scale.data.clone() },
+            scales: if scale.data.len() == 1 {
+                vec![scale.data[0]; f]
+            } else {
+                scale.data.clone()
+            },
         })
     }
 }

@@ -56,28 +56,67 @@ fn clip_near(tri: [Vertex; 3], near: f64) -> Vec<[Vertex; 3]> {
         let t = (near - a.c[2]) / (b.c[2] - a.c[2]);
         Vertex {
             c: a.c + (b.c - a.c) * t,
-            uv: [a.uv[0] + t * (b.uv[0] - a.uv[0]), a.uv[1] + t * (b.uv[1] - a.uv[1])],
+            uv: [
+                a.uv[0] + t * (b.uv[0] - a.uv[0]),
+                a.uv[1] + t * (b.uv[1] - a.uv[1]),
+            ],
         }
     };
     // Rotate so the odd one out is first, keeping the winding.
-    let odd = if n_in == 1 { inside.iter().position(|&b| b) } else { inside.iter().position(|&b| !b) }.expect("one odd vertex");
+    let odd = if n_in == 1 {
+        inside.iter().position(|&b| b)
+    } else {
+        inside.iter().position(|&b| !b)
+    }
+    .expect("one odd vertex");
     let [a, b, c] = [0, 1, 2].map(|k| (odd + k) % 3);
     let v = &tri;
     if n_in == 1 {
-        vec![[Vertex { c: v[a].c, uv: v[a].uv }, lerp(&v[a], &v[b]), lerp(&v[a], &v[c])]]
+        vec![[
+            Vertex {
+                c: v[a].c,
+                uv: v[a].uv,
+            },
+            lerp(&v[a], &v[b]),
+            lerp(&v[a], &v[c]),
+        ]]
     } else {
         let ab = lerp(&v[b], &v[a]);
         let ac = lerp(&v[c], &v[a]);
         vec![
-            [Vertex { c: ab.c, uv: ab.uv }, Vertex { c: v[b].c, uv: v[b].uv }, Vertex { c: v[c].c, uv: v[c].uv }],
-            [ab, Vertex { c: v[c].c, uv: v[c].uv }, ac],
+            [
+                Vertex { c: ab.c, uv: ab.uv },
+                Vertex {
+                    c: v[b].c,
+                    uv: v[b].uv,
+                },
+                Vertex {
+                    c: v[c].c,
+                    uv: v[c].uv,
+                },
+            ],
+            [
+                ab,
+                Vertex {
+                    c: v[c].c,
+                    uv: v[c].uv,
+                },
+                ac,
+            ],
         ]
     }
 }
 
 /// Renders `drawables` with `samples` x `samples` supersampling; `light` is the
 /// direction towards the light in world space; `ambient` the unlit share.
-pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, background: [f64; 3], light: DVec3, ambient: f64) -> Frame {
+pub fn render(
+    camera: &Camera,
+    drawables: &[Drawable<'_>],
+    samples: u32,
+    background: [f64; 3],
+    light: DVec3,
+    ambient: f64,
+) -> Frame {
     let s = samples.max(1);
     let (w, h) = (camera.width * s, camera.height * s);
     let mut zbuf = vec![f64::INFINITY; (w * h) as usize];
@@ -89,7 +128,10 @@ pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, backgro
         for f in d.faces {
             let [p0, p1, p2] = f.map(|i| d.vertices[i as usize]);
             let n = (p1 - p0).cross(p2 - p0).normalize_or(DVec3::Z);
-            let tri = [0, 1, 2].map(|k| Vertex { c: camera.to_camera(d.vertices[f[k] as usize]), uv: d.uvs.get(f[k] as usize).copied().unwrap_or([0.0, 0.0]) });
+            let tri = [0, 1, 2].map(|k| Vertex {
+                c: camera.to_camera(d.vertices[f[k] as usize]),
+                uv: d.uvs.get(f[k] as usize).copied().unwrap_or([0.0, 0.0]),
+            });
             // Back-face test in camera space: the view ray to the triangle against its normal.
             let cn = (tri[1].c - tri[0].c).cross(tri[2].c - tri[0].c);
             let facing = cn.dot(tri[0].c) < 0.0;
@@ -99,23 +141,42 @@ pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, backgro
             let shade = ambient + (1.0 - ambient) * n.dot(light).abs().max(0.0);
             for t in clip_near(tri, camera.near) {
                 // Screen positions at the supersampled resolution.
-                let sp: Vec<[f64; 2]> = t.iter().map(|v| {
-                    let p = camera.project_camera(v.c);
-                    [p[0] * f64::from(s), p[1] * f64::from(s)]
-                }).collect();
-                let area = (sp[1][0] - sp[0][0]) * (sp[2][1] - sp[0][1]) - (sp[2][0] - sp[0][0]) * (sp[1][1] - sp[0][1]);
+                let sp: Vec<[f64; 2]> = t
+                    .iter()
+                    .map(|v| {
+                        let p = camera.project_camera(v.c);
+                        [p[0] * f64::from(s), p[1] * f64::from(s)]
+                    })
+                    .collect();
+                let area = (sp[1][0] - sp[0][0]) * (sp[2][1] - sp[0][1])
+                    - (sp[2][0] - sp[0][0]) * (sp[1][1] - sp[0][1]);
                 if area.abs() < 1e-12 {
                     continue;
                 }
-                let xmin = sp.iter().map(|p| p[0]).fold(f64::MAX, f64::min).floor().max(0.0) as u32;
-                let xmax = (sp.iter().map(|p| p[0]).fold(f64::MIN, f64::max).ceil() as i64).clamp(0, i64::from(w)) as u32;
-                let ymin = sp.iter().map(|p| p[1]).fold(f64::MAX, f64::min).floor().max(0.0) as u32;
-                let ymax = (sp.iter().map(|p| p[1]).fold(f64::MIN, f64::max).ceil() as i64).clamp(0, i64::from(h)) as u32;
+                let xmin = sp
+                    .iter()
+                    .map(|p| p[0])
+                    .fold(f64::MAX, f64::min)
+                    .floor()
+                    .max(0.0) as u32;
+                let xmax = (sp.iter().map(|p| p[0]).fold(f64::MIN, f64::max).ceil() as i64)
+                    .clamp(0, i64::from(w)) as u32;
+                let ymin = sp
+                    .iter()
+                    .map(|p| p[1])
+                    .fold(f64::MAX, f64::min)
+                    .floor()
+                    .max(0.0) as u32;
+                let ymax = (sp.iter().map(|p| p[1]).fold(f64::MIN, f64::max).ceil() as i64)
+                    .clamp(0, i64::from(h)) as u32;
                 let inv_z = t.each_ref().map(|v| 1.0 / v.c[2]);
                 for y in ymin..ymax {
                     for x in xmin..xmax {
                         let (px, py) = (f64::from(x) + 0.5, f64::from(y) + 0.5);
-                        let e = |a: usize, b: usize| (sp[b][0] - sp[a][0]) * (py - sp[a][1]) - (sp[b][1] - sp[a][1]) * (px - sp[a][0]);
+                        let e = |a: usize, b: usize| {
+                            (sp[b][0] - sp[a][0]) * (py - sp[a][1])
+                                - (sp[b][1] - sp[a][1]) * (px - sp[a][0])
+                        };
                         let (w0, w1, w2) = (e(1, 2) / area, e(2, 0) / area, e(0, 1) / area);
                         if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
                             continue;
@@ -127,7 +188,12 @@ pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, backgro
                         if z >= zbuf[i] {
                             continue;
                         }
-                        let uv = [0, 1].map(|k| (w0 * t[0].uv[k] * inv_z[0] + w1 * t[1].uv[k] * inv_z[1] + w2 * t[2].uv[k] * inv_z[2]) * z);
+                        let uv = [0, 1].map(|k| {
+                            (w0 * t[0].uv[k] * inv_z[0]
+                                + w1 * t[1].uv[k] * inv_z[1]
+                                + w2 * t[2].uv[k] * inv_z[2])
+                                * z
+                        });
                         let c = (d.texture)(uv);
                         zbuf[i] = z;
                         color[i] = c.map(|v| v * shade);
@@ -140,7 +206,13 @@ pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, backgro
     // Box filter down to the output resolution.
     let (ow, oh) = (camera.width, camera.height);
     let n = f64::from(s * s);
-    let mut frame = Frame { width: ow, height: oh, rgb: vec![0.0; (3 * ow * oh) as usize], depth: vec![0.0; (ow * oh) as usize], coverage: vec![vec![0.0; (ow * oh) as usize]; max_id + 1] };
+    let mut frame = Frame {
+        width: ow,
+        height: oh,
+        rgb: vec![0.0; (3 * ow * oh) as usize],
+        depth: vec![0.0; (ow * oh) as usize],
+        coverage: vec![vec![0.0; (ow * oh) as usize]; max_id + 1],
+    };
     for y in 0..oh {
         for x in 0..ow {
             let o = (y * ow + x) as usize;
@@ -159,7 +231,11 @@ pub fn render(camera: &Camera, drawables: &[Drawable<'_>], samples: u32, backgro
             for k in 0..3 {
                 frame.rgb[3 * o + k] = (acc[k] / n) as f32;
             }
-            frame.depth[o] = if nearest.is_finite() { nearest as f32 } else { 0.0 };
+            frame.depth[o] = if nearest.is_finite() {
+                nearest as f32
+            } else {
+                0.0
+            };
         }
     }
     frame

@@ -12,7 +12,15 @@ pub enum Split {
 
 /// NeuMan as HUGS evaluates it: frames 2, 7, 12, ... are test, the rest train.
 pub fn neuman_every_fifth(frames: usize) -> Vec<Split> {
-    (0..frames).map(|i| if i % 5 == 2 { Split::Test } else { Split::Train }).collect()
+    (0..frames)
+        .map(|i| {
+            if i % 5 == 2 {
+                Split::Test
+            } else {
+                Split::Train
+            }
+        })
+        .collect()
 }
 
 /// The paper's 80/10/10 split in time order: the first 80% train, the next 10%
@@ -25,10 +33,28 @@ pub fn neuman_80_10_10(frames: usize) -> Vec<Split> {
         test = test.max(1);
     }
     let train = frames.saturating_sub(val + test);
-    (0..frames).map(|i| if i < train { Split::Train } else if i < train + val { Split::Val } else { Split::Test }).collect()
+    (0..frames)
+        .map(|i| {
+            if i < train {
+                Split::Train
+            } else if i < train + val {
+                Split::Val
+            } else {
+                Split::Test
+            }
+        })
+        .collect()
 }
 
 /// ZJU-MoCap: `train_camera` trains, every other camera tests.
 pub fn zju_by_camera(cameras: usize, train_camera: usize) -> Vec<Split> {
-    (0..cameras).map(|c| if c == train_camera { Split::Train } else { Split::Test }).collect()
+    (0..cameras)
+        .map(|c| {
+            if c == train_camera {
+                Split::Train
+            } else {
+                Split::Test
+            }
+        })
+        .collect()
 }

@@ -13,7 +13,9 @@ fn copy(from: &Path, to: &Path) -> Result<(), DatasetError> {
     if let Some(dir) = to.parent() {
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
     }
-    std::fs::copy(from, to).map(|_| ()).map_err(|e| DatasetError::io(from, e))
+    std::fs::copy(from, to)
+        .map(|_| ())
+        .map_err(|e| DatasetError::io(from, e))
 }
 
 fn copy_tree(from: &Path, to: &Path) -> Result<(), DatasetError> {
@@ -41,7 +43,10 @@ pub fn write_neuman_variant(src: &Path, dst: &Path, variant: Variant) -> Result<
             let sam = dst.join("4d_humans").join("sam_segmentations");
             std::fs::remove_dir_all(&sam).map_err(|e| DatasetError::io(&sam, e))
         }
-        other => Err(DatasetError::layout(dst, format!("{} is not a NeuMan variant", other.name()))),
+        other => Err(DatasetError::layout(
+            dst,
+            format!("{} is not a NeuMan variant", other.name()),
+        )),
     }
 }
 
@@ -58,7 +63,12 @@ pub fn write_zju_variant(src: &Path, dst: &Path, variant: Variant) -> Result<(),
         Variant::ZjuRefined => ("smpl_params", "smpl_vertices", 0),
         Variant::ZjuNeuralBody => ("new_params", "new_vertices", 0),
         Variant::ZjuCoreView313 => ("params", "vertices", 1),
-        other => return Err(DatasetError::layout(dst, format!("{} is not a ZJU-MoCap variant", other.name()))),
+        other => {
+            return Err(DatasetError::layout(
+                dst,
+                format!("{} is not a ZJU-MoCap variant", other.name()),
+            ))
+        }
     };
     let mut images = Vec::with_capacity(annots.images.len());
     for (f, paths) in annots.images.iter().enumerate() {
@@ -85,10 +95,20 @@ pub fn write_zju_variant(src: &Path, dst: &Path, variant: Variant) -> Result<(),
             renamed.push(new);
         }
         images.push(renamed);
-        copy(&src.join("smpl_params").join(format!("{f}.npy")), &dst.join(params_dir).join(format!("{number}.npy")))?;
-        copy(&src.join("vertices").join(format!("{f}.npy")), &dst.join(vertices_dir).join(format!("{number}.npy")))?;
+        copy(
+            &src.join("smpl_params").join(format!("{f}.npy")),
+            &dst.join(params_dir).join(format!("{number}.npy")),
+        )?;
+        copy(
+            &src.join("vertices").join(format!("{f}.npy")),
+            &dst.join(vertices_dir).join(format!("{number}.npy")),
+        )?;
     }
-    ZjuAnnots { cameras: annots.cameras, images }.write(dst)?;
+    ZjuAnnots {
+        cameras: annots.cameras,
+        images,
+    }
+    .write(dst)?;
     Ok(())
 }
 
@@ -96,7 +116,11 @@ pub fn write_zju_variant(src: &Path, dst: &Path, variant: Variant) -> Result<(),
 /// with `distortion` (OpenCV's k1 k2 p1 p2 k3): every image and mask is distorted from
 /// the pinhole render, and `annots.npy` carries the coefficients as the release does.
 /// Loading it must give back the pinhole frames (up to resampling and JPEG).
-pub fn write_zju_distorted(src: &Path, dst: &Path, distortion: &[f64; 5]) -> Result<(), DatasetError> {
+pub fn write_zju_distorted(
+    src: &Path,
+    dst: &Path,
+    distortion: &[f64; 5],
+) -> Result<(), DatasetError> {
     use crate::dataset::distortion::{distort_mask, distort_rgb, Distortion};
     use crate::dataset::image::{read_mask, read_rgb, write_mask, write_rgb, MaskRule};
     let mut annots = ZjuAnnots::read(src)?;
@@ -105,12 +129,28 @@ pub fn write_zju_distorted(src: &Path, dst: &Path, distortion: &[f64; 5]) -> Res
         for (c, rel) in paths.iter().enumerate() {
             let img = read_rgb(&src.join(rel))?;
             let camera = annots.cameras[c].camera(img.width, img.height);
-            write_rgb(&dst.join(rel), img.width, img.height, &distort_rgb(&camera, d, &img.rgb))?;
+            write_rgb(
+                &dst.join(rel),
+                img.width,
+                img.height,
+                &distort_rgb(&camera, d, &img.rgb),
+            )?;
             let (w, h, mask) = read_mask(&src.join(mask_path(rel)), MaskRule::NonZero)?;
-            write_mask(&dst.join(mask_path(rel)), w, h, &distort_mask(&camera, d, &mask))?;
+            write_mask(
+                &dst.join(mask_path(rel)),
+                w,
+                h,
+                &distort_mask(&camera, d, &mask),
+            )?;
         }
-        copy(&src.join("smpl_params").join(format!("{f}.npy")), &dst.join("smpl_params").join(format!("{f}.npy")))?;
-        copy(&src.join("vertices").join(format!("{f}.npy")), &dst.join("vertices").join(format!("{f}.npy")))?;
+        copy(
+            &src.join("smpl_params").join(format!("{f}.npy")),
+            &dst.join("smpl_params").join(format!("{f}.npy")),
+        )?;
+        copy(
+            &src.join("vertices").join(format!("{f}.npy")),
+            &dst.join("vertices").join(format!("{f}.npy")),
+        )?;
     }
     for cam in &mut annots.cameras {
         cam.d = *distortion;

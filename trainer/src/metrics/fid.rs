@@ -54,14 +54,29 @@ pub const BN_EPS: f64 = 0.001;
 const NEGATIVE_TOLERANCE: f64 = 1e-9;
 
 /// The BasicConv2d `name` with its batchnorm folded in.
-fn basic_conv(f: &SafeTensors, name: &str, in_c: usize, out_c: usize, kernel: (usize, usize), stride: usize, pad: (usize, usize)) -> Result<Conv, FidWeightsError> {
-    let w = f.tensor(&format!("{name}.conv.weight"), &[out_c, in_c, kernel.0, kernel.1])?;
+fn basic_conv(
+    f: &SafeTensors,
+    name: &str,
+    in_c: usize,
+    out_c: usize,
+    kernel: (usize, usize),
+    stride: usize,
+    pad: (usize, usize),
+) -> Result<Conv, FidWeightsError> {
+    let w = f.tensor(
+        &format!("{name}.conv.weight"),
+        &[out_c, in_c, kernel.0, kernel.1],
+    )?;
     let gamma = f.tensor(&format!("{name}.bn.weight"), &[out_c])?;
     let beta = f.tensor(&format!("{name}.bn.bias"), &[out_c])?;
     let mean = f.tensor(&format!("{name}.bn.running_mean"), &[out_c])?;
     let var = f.tensor(&format!("{name}.bn.running_var"), &[out_c])?;
     if let Some(v) = var.iter().find(|&&v| f64::from(v) + BN_EPS <= 0.0) {
-        return Err(FidWeightsError::Bad { path: f.path.into(), tensor: format!("{name}.bn.running_var"), detail: format!("a variance {v} at or below -eps") });
+        return Err(FidWeightsError::Bad {
+            path: f.path.into(),
+            tensor: format!("{name}.bn.running_var"),
+            detail: format!("a variance {v} at or below -eps"),
+        });
     }
     let k = in_c * kernel.0 * kernel.1;
     let mut weight = Vec::with_capacity(w.len());
@@ -69,10 +84,22 @@ fn basic_conv(f: &SafeTensors, name: &str, in_c: usize, out_c: usize, kernel: (u
     // y = γ (conv(x) − μ) / √(σ² + ε) + β, with the scale taken into the weights.
     for o in 0..out_c {
         let scale = f64::from(gamma[o]) / (f64::from(var[o]) + BN_EPS).sqrt();
-        weight.extend(w[o * k..(o + 1) * k].iter().map(|&v| (f64::from(v) * scale) as f32));
+        weight.extend(
+            w[o * k..(o + 1) * k]
+                .iter()
+                .map(|&v| (f64::from(v) * scale) as f32),
+        );
         bias.push((f64::from(beta[o]) - f64::from(mean[o]) * scale) as f32);
     }
-    Ok(Conv { in_c, out_c, kernel, stride, pad, weight, bias })
+    Ok(Conv {
+        in_c,
+        out_c,
+        kernel,
+        stride,
+        pad,
+        weight,
+        bias,
+    })
 }
 
 /// A CHW activation.
@@ -109,23 +136,40 @@ impl Conv {
         let (oh, ow) = (out_side(x.h, kh, s, ph), out_side(x.w, kw, s, pw));
         let (k, p) = (self.in_c * kh * kw, oh * ow);
         // A 1 × 1 convolution at stride 1 is a GEMM on the activation itself.
-        let cols: Cow<[f32]> = if (kh, kw, s, ph, pw) == (1, 1, 1, 0, 0) { Cow::Borrowed(&x.data) } else { Cow::Owned(im2col(x, self.kernel, s, self.pad, (oh, ow))) };
+        let cols: Cow<[f32]> = if (kh, kw, s, ph, pw) == (1, 1, 1, 0, 0) {
+            Cow::Borrowed(&x.data)
+        } else {
+            Cow::Owned(im2col(x, self.kernel, s, self.pad, (oh, ow)))
+        };
         let mut out = vec![0.0f32; self.out_c * p];
-        let w = ArrayView2::from_shape((self.out_c, k), &self.weight).expect("weights are out_c x k by construction");
+        let w = ArrayView2::from_shape((self.out_c, k), &self.weight)
+            .expect("weights are out_c x k by construction");
         let c = ArrayView2::from_shape((k, p), &cols).expect("columns are k x p by construction");
-        let mut o = ArrayViewMut2::from_shape((self.out_c, p), &mut out).expect("output is out_c x p by construction");
+        let mut o = ArrayViewMut2::from_shape((self.out_c, p), &mut out)
+            .expect("output is out_c x p by construction");
         general_mat_mul(1.0, &w, &c, 0.0, &mut o);
         for (row, &b) in out.chunks_exact_mut(p).zip(&self.bias) {
             for v in row {
                 *v = (*v + b).max(0.0);
             }
         }
-        Act { c: self.out_c, h: oh, w: ow, data: out }
+        Act {
+            c: self.out_c,
+            h: oh,
+            w: ow,
+            data: out,
+        }
     }
 }
 
 /// The (in_c · kh · kw) × (oh · ow) patch matrix of `x`, zero outside the image.
-fn im2col(x: &Act, (kh, kw): (usize, usize), stride: usize, (ph, pw): (usize, usize), (oh, ow): (usize, usize)) -> Vec<f32> {
+fn im2col(
+    x: &Act,
+    (kh, kw): (usize, usize),
+    stride: usize,
+    (ph, pw): (usize, usize),
+    (oh, ow): (usize, usize),
+) -> Vec<f32> {
     let p = oh * ow;
     let mut cols = vec![0.0f32; x.c * kh * kw * p];
     for c in 0..x.c {
@@ -134,7 +178,9 @@ fn im2col(x: &Act, (kh, kw): (usize, usize), stride: usize, (ph, pw): (usize, us
             for j in 0..kw {
                 let row = &mut cols[((c * kh + i) * kw + j) * p..][..p];
                 for oy in 0..oh {
-                    let Some(iy) = (oy * stride + i).checked_sub(ph).filter(|&y| y < x.h) else { continue };
+                    let Some(iy) = (oy * stride + i).checked_sub(ph).filter(|&y| y < x.h) else {
+                        continue;
+                    };
                     for ox in 0..ow {
                         if let Some(ix) = (ox * stride + j).checked_sub(pw).filter(|&v| v < x.w) {
                             row[oy * ow + ox] = plane[iy * x.w + ix];
@@ -155,8 +201,12 @@ fn max_pool(x: &Act, k: usize, stride: usize, pad: usize) -> Act {
         for oy in 0..oh {
             for ox in 0..ow {
                 let mut m = f32::NEG_INFINITY;
-                for y in (oy * stride).saturating_sub(pad)..(oy * stride + k).saturating_sub(pad).min(x.h) {
-                    for xx in (ox * stride).saturating_sub(pad)..(ox * stride + k).saturating_sub(pad).min(x.w) {
+                for y in (oy * stride).saturating_sub(pad)
+                    ..(oy * stride + k).saturating_sub(pad).min(x.h)
+                {
+                    for xx in (ox * stride).saturating_sub(pad)
+                        ..(ox * stride + k).saturating_sub(pad).min(x.w)
+                    {
                         m = m.max(plane[y * x.w + xx]);
                     }
                 }
@@ -164,7 +214,12 @@ fn max_pool(x: &Act, k: usize, stride: usize, pad: usize) -> Act {
             }
         }
     }
-    Act { c: x.c, h: oh, w: ow, data }
+    Act {
+        c: x.c,
+        h: oh,
+        w: ow,
+        data,
+    }
 }
 
 /// 3 × 3 average pool, stride 1, padding 1, dividing by the pixels inside the image
@@ -174,14 +229,25 @@ fn avg_pool_3x3_same(x: &Act) -> Act {
     for plane in x.data.chunks_exact(x.h * x.w) {
         for y in 0..x.h {
             for xx in 0..x.w {
-                let (ys, xs) = (y.saturating_sub(1)..(y + 2).min(x.h), xx.saturating_sub(1)..(xx + 2).min(x.w));
+                let (ys, xs) = (
+                    y.saturating_sub(1)..(y + 2).min(x.h),
+                    xx.saturating_sub(1)..(xx + 2).min(x.w),
+                );
                 let count = (ys.len() * xs.len()) as f32;
-                let sum: f32 = ys.flat_map(|yy| xs.clone().map(move |xx| (yy, xx))).map(|(yy, xx)| plane[yy * x.w + xx]).sum();
+                let sum: f32 = ys
+                    .flat_map(|yy| xs.clone().map(move |xx| (yy, xx)))
+                    .map(|(yy, xx)| plane[yy * x.w + xx])
+                    .sum();
                 data.push(sum / count);
             }
         }
     }
-    Act { c: x.c, h: x.h, w: x.w, data }
+    Act {
+        c: x.c,
+        h: x.h,
+        w: x.w,
+        data,
+    }
 }
 
 /// The 3 × 3 stride-1 max pool of FIDInceptionE_2's pool branch (padding 1).
@@ -192,9 +258,17 @@ fn max_pool_3x3_same(x: &Act) -> Act {
 /// Channel concatenation of maps of one size.
 fn concat(parts: Vec<Act>) -> Act {
     let (h, w) = (parts[0].h, parts[0].w);
-    assert!(parts.iter().all(|p| p.h == h && p.w == w), "concatenated maps differ in size");
+    assert!(
+        parts.iter().all(|p| p.h == h && p.w == w),
+        "concatenated maps differ in size"
+    );
     let c = parts.iter().map(|p| p.c).sum();
-    Act { c, h, w, data: parts.into_iter().flat_map(|p| p.data).collect() }
+    Act {
+        c,
+        h,
+        w,
+        data: parts.into_iter().flat_map(|p| p.data).collect(),
+    }
 }
 
 /// Mixed_5b/c/d: FIDInceptionA.
@@ -206,18 +280,36 @@ struct BlockA {
 }
 
 impl BlockA {
-    fn load(f: &SafeTensors, name: &str, in_c: usize, pool_features: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
+    fn load(
+        f: &SafeTensors,
+        name: &str,
+        in_c: usize,
+        pool_features: usize,
+    ) -> Result<Self, FidWeightsError> {
+        let c =
+            |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         Ok(Self {
             b1x1: c("branch1x1", in_c, 64, (1, 1), (0, 0))?,
-            b5x5: [c("branch5x5_1", in_c, 48, (1, 1), (0, 0))?, c("branch5x5_2", 48, 64, (5, 5), (2, 2))?],
-            b3x3dbl: [c("branch3x3dbl_1", in_c, 64, (1, 1), (0, 0))?, c("branch3x3dbl_2", 64, 96, (3, 3), (1, 1))?, c("branch3x3dbl_3", 96, 96, (3, 3), (1, 1))?],
+            b5x5: [
+                c("branch5x5_1", in_c, 48, (1, 1), (0, 0))?,
+                c("branch5x5_2", 48, 64, (5, 5), (2, 2))?,
+            ],
+            b3x3dbl: [
+                c("branch3x3dbl_1", in_c, 64, (1, 1), (0, 0))?,
+                c("branch3x3dbl_2", 64, 96, (3, 3), (1, 1))?,
+                c("branch3x3dbl_3", 96, 96, (3, 3), (1, 1))?,
+            ],
             pool: c("branch_pool", in_c, pool_features, (1, 1), (0, 0))?,
         })
     }
 
     fn forward(&self, x: &Act) -> Act {
-        concat(vec![self.b1x1.forward(x), chain(&self.b5x5, x), chain(&self.b3x3dbl, x), self.pool.forward(&avg_pool_3x3_same(x))])
+        concat(vec![
+            self.b1x1.forward(x),
+            chain(&self.b5x5, x),
+            chain(&self.b3x3dbl, x),
+            self.pool.forward(&avg_pool_3x3_same(x)),
+        ])
     }
 }
 
@@ -229,15 +321,24 @@ struct BlockB {
 
 impl BlockB {
     fn load(f: &SafeTensors, name: &str, in_c: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
+        let c =
+            |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
         Ok(Self {
             b3x3: c("branch3x3", in_c, 384, (3, 3), 2, (0, 0))?,
-            b3x3dbl: [c("branch3x3dbl_1", in_c, 64, (1, 1), 1, (0, 0))?, c("branch3x3dbl_2", 64, 96, (3, 3), 1, (1, 1))?, c("branch3x3dbl_3", 96, 96, (3, 3), 2, (0, 0))?],
+            b3x3dbl: [
+                c("branch3x3dbl_1", in_c, 64, (1, 1), 1, (0, 0))?,
+                c("branch3x3dbl_2", 64, 96, (3, 3), 1, (1, 1))?,
+                c("branch3x3dbl_3", 96, 96, (3, 3), 2, (0, 0))?,
+            ],
         })
     }
 
     fn forward(&self, x: &Act) -> Act {
-        concat(vec![self.b3x3.forward(x), chain(&self.b3x3dbl, x), max_pool(x, 3, 2, 0)])
+        concat(vec![
+            self.b3x3.forward(x),
+            chain(&self.b3x3dbl, x),
+            max_pool(x, 3, 2, 0),
+        ])
     }
 }
 
@@ -251,11 +352,16 @@ struct BlockC {
 
 impl BlockC {
     fn load(f: &SafeTensors, name: &str, in_c: usize, c7: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
+        let c =
+            |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         let (row, col) = (((1, 7), (0, 3)), ((7, 1), (3, 0)));
         Ok(Self {
             b1x1: c("branch1x1", in_c, 192, (1, 1), (0, 0))?,
-            b7x7: [c("branch7x7_1", in_c, c7, (1, 1), (0, 0))?, c("branch7x7_2", c7, c7, row.0, row.1)?, c("branch7x7_3", c7, 192, col.0, col.1)?],
+            b7x7: [
+                c("branch7x7_1", in_c, c7, (1, 1), (0, 0))?,
+                c("branch7x7_2", c7, c7, row.0, row.1)?,
+                c("branch7x7_3", c7, 192, col.0, col.1)?,
+            ],
             b7x7dbl: [
                 c("branch7x7dbl_1", in_c, c7, (1, 1), (0, 0))?,
                 c("branch7x7dbl_2", c7, c7, col.0, col.1)?,
@@ -268,7 +374,12 @@ impl BlockC {
     }
 
     fn forward(&self, x: &Act) -> Act {
-        concat(vec![self.b1x1.forward(x), chain(&self.b7x7, x), chain(&self.b7x7dbl, x), self.pool.forward(&avg_pool_3x3_same(x))])
+        concat(vec![
+            self.b1x1.forward(x),
+            chain(&self.b7x7, x),
+            chain(&self.b7x7dbl, x),
+            self.pool.forward(&avg_pool_3x3_same(x)),
+        ])
     }
 }
 
@@ -280,9 +391,13 @@ struct BlockD {
 
 impl BlockD {
     fn load(f: &SafeTensors, name: &str, in_c: usize) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
+        let c =
+            |branch: &str, i, o, k, s, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, s, p);
         Ok(Self {
-            b3x3: [c("branch3x3_1", in_c, 192, (1, 1), 1, (0, 0))?, c("branch3x3_2", 192, 320, (3, 3), 2, (0, 0))?],
+            b3x3: [
+                c("branch3x3_1", in_c, 192, (1, 1), 1, (0, 0))?,
+                c("branch3x3_2", 192, 320, (3, 3), 2, (0, 0))?,
+            ],
             b7x7x3: [
                 c("branch7x7x3_1", in_c, 192, (1, 1), 1, (0, 0))?,
                 c("branch7x7x3_2", 192, 192, (1, 7), 1, (0, 3))?,
@@ -293,7 +408,11 @@ impl BlockD {
     }
 
     fn forward(&self, x: &Act) -> Act {
-        concat(vec![chain(&self.b3x3, x), chain(&self.b7x7x3, x), max_pool(x, 3, 2, 0)])
+        concat(vec![
+            chain(&self.b3x3, x),
+            chain(&self.b7x7x3, x),
+            max_pool(x, 3, 2, 0),
+        ])
     }
 }
 
@@ -318,14 +437,29 @@ struct BlockE {
 }
 
 impl BlockE {
-    fn load(f: &SafeTensors, name: &str, in_c: usize, pool_kind: EPool) -> Result<Self, FidWeightsError> {
-        let c = |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
+    fn load(
+        f: &SafeTensors,
+        name: &str,
+        in_c: usize,
+        pool_kind: EPool,
+    ) -> Result<Self, FidWeightsError> {
+        let c =
+            |branch: &str, i, o, k, p| basic_conv(f, &format!("{name}.{branch}"), i, o, k, 1, p);
         Ok(Self {
             b1x1: c("branch1x1", in_c, 320, (1, 1), (0, 0))?,
             b3x3_1: c("branch3x3_1", in_c, 384, (1, 1), (0, 0))?,
-            b3x3_2: [c("branch3x3_2a", 384, 384, (1, 3), (0, 1))?, c("branch3x3_2b", 384, 384, (3, 1), (1, 0))?],
-            b3x3dbl: [c("branch3x3dbl_1", in_c, 448, (1, 1), (0, 0))?, c("branch3x3dbl_2", 448, 384, (3, 3), (1, 1))?],
-            b3x3dbl_3: [c("branch3x3dbl_3a", 384, 384, (1, 3), (0, 1))?, c("branch3x3dbl_3b", 384, 384, (3, 1), (1, 0))?],
+            b3x3_2: [
+                c("branch3x3_2a", 384, 384, (1, 3), (0, 1))?,
+                c("branch3x3_2b", 384, 384, (3, 1), (1, 0))?,
+            ],
+            b3x3dbl: [
+                c("branch3x3dbl_1", in_c, 448, (1, 1), (0, 0))?,
+                c("branch3x3dbl_2", 448, 384, (3, 3), (1, 1))?,
+            ],
+            b3x3dbl_3: [
+                c("branch3x3dbl_3a", 384, 384, (1, 3), (0, 1))?,
+                c("branch3x3dbl_3b", 384, 384, (3, 1), (1, 0))?,
+            ],
             pool: c("branch_pool", in_c, 192, (1, 1), (0, 0))?,
             pool_kind,
         })
@@ -387,16 +521,38 @@ impl FidInception {
     /// Reads a weights file (see the module header) and checks every tensor: present,
     /// float32, of the right shape, finite and inside the file.
     pub fn load(path: &Path) -> Result<Self, FidWeightsError> {
-        let bytes = std::fs::read(path).map_err(|error| FidWeightsError::Io { path: path.into(), error })?;
+        let bytes = std::fs::read(path).map_err(|error| FidWeightsError::Io {
+            path: path.into(),
+            error,
+        })?;
         let f = SafeTensors::parse(path, &bytes)?;
         Ok(Self {
-            stem: [basic_conv(&f, "Conv2d_1a_3x3", 3, 32, (3, 3), 2, (0, 0))?, basic_conv(&f, "Conv2d_2a_3x3", 32, 32, (3, 3), 1, (0, 0))?, basic_conv(&f, "Conv2d_2b_3x3", 32, 64, (3, 3), 1, (1, 1))?],
-            stem2: [basic_conv(&f, "Conv2d_3b_1x1", 64, 80, (1, 1), 1, (0, 0))?, basic_conv(&f, "Conv2d_4a_3x3", 80, 192, (3, 3), 1, (0, 0))?],
-            a: [BlockA::load(&f, "Mixed_5b", 192, 32)?, BlockA::load(&f, "Mixed_5c", 256, 64)?, BlockA::load(&f, "Mixed_5d", 288, 64)?],
+            stem: [
+                basic_conv(&f, "Conv2d_1a_3x3", 3, 32, (3, 3), 2, (0, 0))?,
+                basic_conv(&f, "Conv2d_2a_3x3", 32, 32, (3, 3), 1, (0, 0))?,
+                basic_conv(&f, "Conv2d_2b_3x3", 32, 64, (3, 3), 1, (1, 1))?,
+            ],
+            stem2: [
+                basic_conv(&f, "Conv2d_3b_1x1", 64, 80, (1, 1), 1, (0, 0))?,
+                basic_conv(&f, "Conv2d_4a_3x3", 80, 192, (3, 3), 1, (0, 0))?,
+            ],
+            a: [
+                BlockA::load(&f, "Mixed_5b", 192, 32)?,
+                BlockA::load(&f, "Mixed_5c", 256, 64)?,
+                BlockA::load(&f, "Mixed_5d", 288, 64)?,
+            ],
             b: BlockB::load(&f, "Mixed_6a", 288)?,
-            c: [BlockC::load(&f, "Mixed_6b", 768, 128)?, BlockC::load(&f, "Mixed_6c", 768, 160)?, BlockC::load(&f, "Mixed_6d", 768, 160)?, BlockC::load(&f, "Mixed_6e", 768, 192)?],
+            c: [
+                BlockC::load(&f, "Mixed_6b", 768, 128)?,
+                BlockC::load(&f, "Mixed_6c", 768, 160)?,
+                BlockC::load(&f, "Mixed_6d", 768, 160)?,
+                BlockC::load(&f, "Mixed_6e", 768, 192)?,
+            ],
             d: BlockD::load(&f, "Mixed_7a", 768)?,
-            e: [BlockE::load(&f, "Mixed_7b", 1280, EPool::Avg)?, BlockE::load(&f, "Mixed_7c", 2048, EPool::Max)?],
+            e: [
+                BlockE::load(&f, "Mixed_7b", 1280, EPool::Avg)?,
+                BlockE::load(&f, "Mixed_7c", 2048, EPool::Max)?,
+            ],
         })
     }
 
@@ -417,12 +573,20 @@ impl FidInception {
             x = e.forward(&x);
         }
         debug_assert_eq!(x.c, FEATURE_DIM);
-        Ok(x.data.chunks_exact(x.h * x.w).map(|plane| (plane.iter().map(|&v| f64::from(v)).sum::<f64>() / plane.len() as f64) as f32).collect())
+        Ok(x.data
+            .chunks_exact(x.h * x.w)
+            .map(|plane| {
+                (plane.iter().map(|&v| f64::from(v)).sum::<f64>() / plane.len() as f64) as f32
+            })
+            .collect())
     }
 
     /// [`features`](Self::features) of several images, one per core at a time, in order.
     pub fn features_of_images(&self, images: &[ImageRef]) -> crate::Result<Vec<Vec<f32>>> {
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(images.len()).max(1);
+        let threads = std::thread::available_parallelism()
+            .map_or(1, |n| n.get())
+            .min(images.len())
+            .max(1);
         let next = std::sync::atomic::AtomicUsize::new(0);
         type Features = crate::Result<Vec<f32>>;
         let done: Vec<Vec<(usize, Features)>> = std::thread::scope(|s| {
@@ -438,12 +602,18 @@ impl FidInception {
                     })
                 })
                 .collect();
-            workers.into_iter().map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
+            workers
+                .into_iter()
+                .map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                .collect()
         });
         // The workers took every index once between them: sorted, one result per image.
         let mut results: Vec<(usize, Features)> = done.into_iter().flatten().collect();
         results.sort_unstable_by_key(|&(i, _)| i);
-        debug_assert!(results.iter().enumerate().all(|(k, &(i, _))| k == i), "an image was skipped or taken twice");
+        debug_assert!(
+            results.iter().enumerate().all(|(k, &(i, _))| k == i),
+            "an image was skipped or taken twice"
+        );
         results.into_iter().map(|(_, r)| r).collect()
     }
 }
@@ -453,10 +623,16 @@ impl FidInception {
 /// antialiasing), then `2x − 1`, in f32 as PyTorch computes them on the CPU.
 fn network_input(rgb: &[f32], width: usize, height: usize) -> crate::Result<Act> {
     if width == 0 || height == 0 || rgb.len() != 3 * width * height {
-        return Err(TrainerError::invalid("FID input", format!("{} values for a {width} x {height} RGB image", rgb.len())));
+        return Err(TrainerError::invalid(
+            "FID input",
+            format!("{} values for a {width} x {height} RGB image", rgb.len()),
+        ));
     }
     if rgb.iter().any(|v| !v.is_finite()) {
-        return Err(TrainerError::numeric("FID input", format!("a non-finite pixel in a {width} x {height} image")));
+        return Err(TrainerError::numeric(
+            "FID input",
+            format!("a non-finite pixel in a {width} x {height} image"),
+        ));
     }
     // Per output index: (first source index, second source index, weight of the second).
     let taps = |n_in: usize| -> Vec<(usize, usize, f32)> {
@@ -477,12 +653,18 @@ fn network_input(rgb: &[f32], width: usize, height: usize) -> crate::Result<Act>
         for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
             let px = |y: usize, x: usize, c: usize| rgb[3 * (y * width + x) + c];
             for c in 0..3 {
-                let v = (1.0 - ly) * ((1.0 - lx) * px(y0, x0, c) + lx * px(y0, x1, c)) + ly * ((1.0 - lx) * px(y1, x0, c) + lx * px(y1, x1, c));
+                let v = (1.0 - ly) * ((1.0 - lx) * px(y0, x0, c) + lx * px(y0, x1, c))
+                    + ly * ((1.0 - lx) * px(y1, x0, c) + lx * px(y1, x1, c));
                 data[c * n + oy * INPUT_SIDE + ox] = 2.0 * v - 1.0;
             }
         }
     }
-    Ok(Act { c: 3, h: INPUT_SIDE, w: INPUT_SIDE, data })
+    Ok(Act {
+        c: 3,
+        h: INPUT_SIDE,
+        w: INPUT_SIDE,
+        data,
+    })
 }
 
 /// Mean and unbiased covariance (divided by n − 1, as `numpy.cov(rowvar=False)`) of
@@ -503,7 +685,14 @@ impl Statistics {
         // Σ = Aᵀ A with A the centred rows scaled by 1/√(n − 1).
         let a = ArrayView2::from_shape((n, dim), &centred).expect("n x dim by construction");
         let mut cov = vec![0.0f64; dim * dim];
-        general_mat_mul(1.0, &a.t(), &a, 0.0, &mut ArrayViewMut2::from_shape((dim, dim), &mut cov).expect("dim x dim by construction"));
+        general_mat_mul(
+            1.0,
+            &a.t(),
+            &a,
+            0.0,
+            &mut ArrayViewMut2::from_shape((dim, dim), &mut cov)
+                .expect("dim x dim by construction"),
+        );
         Ok(Self { dim, mean, cov })
     }
 }
@@ -522,18 +711,34 @@ fn mean_of(features: &[Vec<f32>], dim: usize) -> Vec<f64> {
 fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
     let n = features.len();
     if n < 2 {
-        return Err(TrainerError::invalid("FID features", format!("a covariance needs at least 2 feature vectors, got {n}")));
+        return Err(TrainerError::invalid(
+            "FID features",
+            format!("a covariance needs at least 2 feature vectors, got {n}"),
+        ));
     }
     let dim = features[0].len();
     if dim == 0 || features.iter().any(|f| f.len() != dim) {
-        return Err(TrainerError::invalid("FID features", format!("feature vectors of different or zero lengths (the first has {dim})")));
+        return Err(TrainerError::invalid(
+            "FID features",
+            format!("feature vectors of different or zero lengths (the first has {dim})"),
+        ));
     }
     if features.iter().flatten().any(|v| !v.is_finite()) {
         return Err(TrainerError::numeric("FID", "a non-finite feature"));
     }
     let mean = mean_of(features, dim);
     let s = 1.0 / ((n - 1) as f64).sqrt();
-    Ok((dim, features.iter().flat_map(|f| f.iter().zip(&mean).map(move |(&v, m)| (f64::from(v) - m) * s)).collect()))
+    Ok((
+        dim,
+        features
+            .iter()
+            .flat_map(|f| {
+                f.iter()
+                    .zip(&mean)
+                    .map(move |(&v, m)| (f64::from(v) - m) * s)
+            })
+            .collect(),
+    ))
 }
 
 /// The Fréchet distance between two Gaussians given by their statistics:
@@ -544,14 +749,31 @@ fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
 /// [`frechet_distance_of_features`], which needs it only with 2048 images or more.
 pub fn frechet_distance(a: &Statistics, b: &Statistics) -> crate::Result<f64> {
     let d = a.dim;
-    if b.dim != d || a.mean.len() != d || b.mean.len() != d || a.cov.len() != d * d || b.cov.len() != d * d {
-        return Err(TrainerError::invalid("FID statistics", format!("statistics of different sizes ({} and {})", a.dim, b.dim)));
+    if b.dim != d
+        || a.mean.len() != d
+        || b.mean.len() != d
+        || a.cov.len() != d * d
+        || b.cov.len() != d * d
+    {
+        return Err(TrainerError::invalid(
+            "FID statistics",
+            format!("statistics of different sizes ({} and {})", a.dim, b.dim),
+        ));
     }
-    if a.mean.iter().chain(&a.cov).chain(&b.mean).chain(&b.cov).any(|v| !v.is_finite()) {
+    if a.mean
+        .iter()
+        .chain(&a.cov)
+        .chain(&b.mean)
+        .chain(&b.cov)
+        .any(|v| !v.is_finite())
+    {
         return Err(TrainerError::numeric("FID", "non-finite statistics"));
     }
     let (values, vectors) = symmetric_eigen(symmetrised(&a.cov, d), d, true);
-    let roots = clamped(&values, "the first covariance")?.iter().map(|v| v.sqrt()).collect::<Vec<_>>();
+    let roots = clamped(&values, "the first covariance")?
+        .iter()
+        .map(|v| v.sqrt())
+        .collect::<Vec<_>>();
     // Σ1^½ = V diag(√λ) Vᵀ.
     let mut scaled = vectors.clone();
     for row in scaled.chunks_exact_mut(d) {
@@ -564,7 +786,12 @@ pub fn frechet_distance(a: &Statistics, b: &Statistics) -> crate::Result<f64> {
     let (mu, _) = symmetric_eigen(symmetrised(&product, d), d, false);
     let tr_sqrt: f64 = clamped(&mu, "Σ1^½ Σ2 Σ1^½")?.iter().map(|v| v.sqrt()).sum();
     let trace = |m: &[f64]| (0..d).map(|i| m[i * d + i]).sum::<f64>();
-    let mean_term: f64 = a.mean.iter().zip(&b.mean).map(|(x, y)| (x - y).powi(2)).sum();
+    let mean_term: f64 = a
+        .mean
+        .iter()
+        .zip(&b.mean)
+        .map(|(x, y)| (x - y).powi(2))
+        .sum();
     Ok(mean_term + trace(&a.cov) + trace(&b.cov) - 2.0 * tr_sqrt)
 }
 
@@ -579,7 +806,10 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Re
     let (d, a1) = centred_rows(a)?;
     let (d2, a2) = centred_rows(b)?;
     if d != d2 {
-        return Err(TrainerError::invalid("FID features", format!("feature vectors of lengths {d} and {d2}")));
+        return Err(TrainerError::invalid(
+            "FID features",
+            format!("feature vectors of lengths {d} and {d2}"),
+        ));
     }
     let (n1, n2) = (a.len(), b.len());
     if n1.min(n2) >= d {
@@ -588,7 +818,13 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Re
     let v1 = ArrayView2::from_shape((n1, d), &a1).expect("n1 x d by construction");
     let v2 = ArrayView2::from_shape((n2, d), &a2).expect("n2 x d by construction");
     let mut m = vec![0.0f64; n1 * n2];
-    general_mat_mul(1.0, &v1, &v2.t(), 0.0, &mut ArrayViewMut2::from_shape((n1, n2), &mut m).expect("n1 x n2 by construction"));
+    general_mat_mul(
+        1.0,
+        &v1,
+        &v2.t(),
+        0.0,
+        &mut ArrayViewMut2::from_shape((n1, n2), &mut m).expect("n1 x n2 by construction"),
+    );
     let mv = ArrayView2::from_shape((n1, n2), &m).expect("n1 x n2 by construction");
     let k = n1.min(n2);
     let mut g = vec![0.0f64; k * k];
@@ -611,7 +847,10 @@ pub fn frechet_distance_of_features(a: &[Vec<f32>], b: &[Vec<f32>]) -> crate::Re
 fn clamped(values: &[f64], what: &str) -> crate::Result<Vec<f64>> {
     let largest = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if let Some(v) = values.iter().find(|&&v| v < -NEGATIVE_TOLERANCE * largest) {
-        return Err(TrainerError::numeric("FID", format!("{what} is not positive semidefinite: eigenvalue {v:e} (largest {largest:e})")));
+        return Err(TrainerError::numeric(
+            "FID",
+            format!("{what} is not positive semidefinite: eigenvalue {v:e} (largest {largest:e})"),
+        ));
     }
     Ok(values.iter().map(|&v| v.max(0.0)).collect())
 }
@@ -636,7 +875,13 @@ fn matmul(a: &[f64], b: &[f64], n: usize) -> Vec<f64> {
     let mut c = vec![0.0f64; n * n];
     let av = ArrayView2::from_shape((n, n), a).expect("n x n by construction");
     let bv = ArrayView2::from_shape((n, n), b).expect("n x n by construction");
-    general_mat_mul(1.0, &av, &bv, 0.0, &mut ArrayViewMut2::from_shape((n, n), &mut c).expect("n x n by construction"));
+    general_mat_mul(
+        1.0,
+        &av,
+        &bv,
+        0.0,
+        &mut ArrayViewMut2::from_shape((n, n), &mut c).expect("n x n by construction"),
+    );
     c
 }
 
@@ -660,7 +905,10 @@ pub fn symmetric_eigen(mut a: Vec<f64>, n: usize, vectors: bool) -> (Vec<f64>, V
     }
     for _sweep in 0..100 {
         let total: f64 = a.iter().map(|x| x * x).sum();
-        let off: f64 = (0..n).flat_map(|p| (p + 1..n).map(move |q| (p, q))).map(|(p, q)| 2.0 * a[p * n + q].powi(2)).sum();
+        let off: f64 = (0..n)
+            .flat_map(|p| (p + 1..n).map(move |q| (p, q)))
+            .map(|(p, q)| 2.0 * a[p * n + q].powi(2))
+            .sum();
         // `!(off > ...)` also stops on NaN rather than looping on it.
         if !(off > (f64::EPSILON * f64::EPSILON) * total) {
             break;
@@ -672,7 +920,11 @@ pub fn symmetric_eigen(mut a: Vec<f64>, n: usize, vectors: bool) -> (Vec<f64>, V
                     continue;
                 }
                 let tau = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
-                let t = if tau >= 0.0 { 1.0 / (tau + (1.0 + tau * tau).sqrt()) } else { -1.0 / (-tau + (1.0 + tau * tau).sqrt()) };
+                let t = if tau >= 0.0 {
+                    1.0 / (tau + (1.0 + tau * tau).sqrt())
+                } else {
+                    -1.0 / (-tau + (1.0 + tau * tau).sqrt())
+                };
                 let c = 1.0 / (1.0 + t * t).sqrt();
                 let s = t * c;
                 // A ← Jᵀ A J: columns p, q, then rows p, q.

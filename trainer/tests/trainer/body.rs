@@ -3,7 +3,10 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use drape_trainer::body::kinematics::{da_pose, pose_body, pose_gradient, regress_joints, shaped_vertices, forward_kinematics, t_pose, Pose};
+use drape_trainer::body::kinematics::{
+    da_pose, forward_kinematics, pose_body, pose_gradient, regress_joints, shaped_vertices, t_pose,
+    Pose,
+};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::{SmplModel, NUM_JOINTS};
 use drape_trainer::mesh::{is_watertight, self_intersections, signed_volume};
@@ -25,10 +28,17 @@ fn default_body_is_a_closed_human_sized_mesh() {
     let b = body();
     let n = b.num_vertices();
     assert!((3000..20_000).contains(&n), "{n} vertices");
-    assert!(is_watertight(&b.faces), "every edge is shared by exactly two faces");
-    assert!(signed_volume(&b.v_template, &b.faces) > 0.03, "outward-facing, with a body's volume (m^3)");
+    assert!(
+        is_watertight(&b.faces),
+        "every edge is shared by exactly two faces"
+    );
+    assert!(
+        signed_volume(&b.v_template, &b.faces) > 0.03,
+        "outward-facing, with a body's volume (m^3)"
+    );
     let ys: Vec<f64> = b.v_template.iter().map(|v| v[1]).collect();
-    let height = ys.iter().cloned().fold(f64::MIN, f64::max) - ys.iter().cloned().fold(f64::MAX, f64::min);
+    let height =
+        ys.iter().cloned().fold(f64::MIN, f64::max) - ys.iter().cloned().fold(f64::MAX, f64::min);
     assert!((1.6..1.85).contains(&height), "height {height} m");
     let span = b.v_template.iter().map(|v| v[0]).fold(f64::MIN, f64::max) * 2.0;
     assert!((1.5..1.8).contains(&span), "arm span {span} m in T-pose");
@@ -50,8 +60,14 @@ fn default_body_weights_and_regressor() {
         assert!(w.iter().all(|&x| x >= 0.0));
     }
     let joints = regress_joints(&b, &b.v_template);
-    for (j, (got, want)) in joints.iter().zip(drape_trainer::body::procedural::JOINTS).enumerate() {
-        let d = ((got[0] - want[0]).powi(2) + (got[1] - want[1]).powi(2) + (got[2] - want[2]).powi(2)).sqrt();
+    for (j, (got, want)) in joints
+        .iter()
+        .zip(drape_trainer::body::procedural::JOINTS)
+        .enumerate()
+    {
+        let d =
+            ((got[0] - want[0]).powi(2) + (got[1] - want[1]).powi(2) + (got[2] - want[2]).powi(2))
+                .sqrt();
         // 4 cm: the ring centroid sits on the limb axis, the joints are placed by hand.
         assert!(d < 0.04, "joint {j} regresses {d} m away from its place");
     }
@@ -64,7 +80,12 @@ fn shape_directions_change_height_and_girth() {
     let tall = shaped_vertices(&b, &[2.0]);
     assert!(height(&tall) > height(&b.v_template) * 1.05);
     let wide = shaped_vertices(&b, &[0.0, 2.0]);
-    let waist = |v: &[DVec3]| v.iter().filter(|p| (p[1] - 1.1).abs() < 0.02 && p[0].abs() < 0.3).map(|p| p[0].abs()).fold(0.0, f64::max);
+    let waist = |v: &[DVec3]| {
+        v.iter()
+            .filter(|p| (p[1] - 1.1).abs() < 0.02 && p[0].abs() < 0.3)
+            .map(|p| p[0].abs())
+            .fold(0.0, f64::max)
+    };
     assert!(waist(&wide) > waist(&b.v_template) * 1.1);
 }
 
@@ -80,7 +101,11 @@ fn da_pose_spreads_the_legs() {
     let b = body();
     let posed = pose_body(&b, &[], &da_pose(), DVec3::ZERO);
     // Left ankle (joint 7) moves outward (+x) and up.
-    assert!(posed.joints[7][0] > 0.3 && posed.joints[7][1] > 0.25, "{:?}", posed.joints[7]);
+    assert!(
+        posed.joints[7][0] > 0.3 && posed.joints[7][1] > 0.25,
+        "{:?}",
+        posed.joints[7]
+    );
     assert!(posed.joints[8][0] < -0.3);
 }
 
@@ -90,13 +115,20 @@ fn pose_gradient_matches_finite_differences() {
     let joints = regress_joints(&b, &b.v_template);
     let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
     for (j, p) in pose.iter_mut().enumerate() {
-        *p = DVec3::new(0.3 * ((j * 7 % 5) as f64 - 2.0) / 2.0, 0.2 * ((j * 3 % 4) as f64 - 1.5), 0.25 * ((j % 3) as f64 - 1.0));
+        *p = DVec3::new(
+            0.3 * ((j * 7 % 5) as f64 - 2.0) / 2.0,
+            0.2 * ((j * 3 % 4) as f64 - 1.5),
+            0.25 * ((j % 3) as f64 - 1.0),
+        );
     }
     // A linear loss on the transforms with fixed random-ish weights.
     let weight = |j: usize, r: usize, c: usize| ((j * 31 + r * 7 + c * 3) % 11) as f64 / 11.0 - 0.5;
     let loss = |p: &Pose| {
         let (a, _) = forward_kinematics(&b.parents, &joints, p);
-        (0..NUM_JOINTS).flat_map(|j| (0..3).flat_map(move |r| (0..4).map(move |c| (j, r, c)))).map(|(j, r, c)| weight(j, r, c) * a[j][r][c]).sum::<f64>()
+        (0..NUM_JOINTS)
+            .flat_map(|j| (0..3).flat_map(move |r| (0..4).map(move |c| (j, r, c))))
+            .map(|(j, r, c)| weight(j, r, c) * a[j][r][c])
+            .sum::<f64>()
     };
     let mut grad_a = [[[0.0; 4]; 3]; NUM_JOINTS];
     for j in 0..NUM_JOINTS {
@@ -116,7 +148,11 @@ fn pose_gradient_matches_finite_differences() {
             let mut minus = pose;
             minus[j][i] -= h;
             let numeric = (loss(&plus) - loss(&minus)) / (2.0 * h);
-            assert!((numeric - analytic[j][i]).abs() <= 1e-6 * (1.0 + numeric.abs()), "joint {j} axis {i}: analytic {} numeric {numeric}", analytic[j][i]);
+            assert!(
+                (numeric - analytic[j][i]).abs() <= 1e-6 * (1.0 + numeric.abs()),
+                "joint {j} axis {i}: analytic {} numeric {numeric}",
+                analytic[j][i]
+            );
         }
     }
 }
@@ -139,7 +175,9 @@ fn with_arrays(name: &str, edit: impl FnOnce(&mut BTreeMap<String, Array>)) -> P
 }
 
 fn expect_error(path: &PathBuf, needles: &[&str]) {
-    let err = SmplModel::load_npz(path).expect_err("must not load").to_string();
+    let err = SmplModel::load_npz(path)
+        .expect_err("must not load")
+        .to_string();
     for n in needles {
         assert!(err.contains(n), "'{n}' not in: {err}");
     }

@@ -28,23 +28,61 @@ use drape_tests::num::uniform;
 use drape_tests::reference_python::{case_dir, get, put, run};
 use drape_trainer::camera::Camera;
 use drape_trainer::dataset::colmap::{ColmapCamera, ColmapImage, ColmapModel};
-use drape_trainer::dataset::distortion::{distort_mask, distort_rgb, project, Distortion, Undistorter};
+use drape_trainer::dataset::distortion::{
+    distort_mask, distort_rgb, project, Distortion, Undistorter,
+};
 use glam::DVec3;
 
-const ZJU_LIKE: Distortion = Distortion { k1: -0.3, k2: 0.1, p1: 1e-3, p2: -5e-4, k3: 0.0 };
-const WITH_K3: Distortion = Distortion { k1: -0.28, k2: 0.14, p1: -7e-4, p2: 9e-4, k3: -0.05 };
-const PINCUSHION: Distortion = Distortion { k1: 0.15, k2: -0.05, p1: -8e-4, p2: 1.2e-3, k3: 0.03 };
-const LENSES: [(&str, Distortion); 3] = [("zju_like", ZJU_LIKE), ("with_k3", WITH_K3), ("pincushion", PINCUSHION)];
+const ZJU_LIKE: Distortion = Distortion {
+    k1: -0.3,
+    k2: 0.1,
+    p1: 1e-3,
+    p2: -5e-4,
+    k3: 0.0,
+};
+const WITH_K3: Distortion = Distortion {
+    k1: -0.28,
+    k2: 0.14,
+    p1: -7e-4,
+    p2: 9e-4,
+    k3: -0.05,
+};
+const PINCUSHION: Distortion = Distortion {
+    k1: 0.15,
+    k2: -0.05,
+    p1: -8e-4,
+    p2: 1.2e-3,
+    k3: 0.03,
+};
+const LENSES: [(&str, Distortion); 3] = [
+    ("zju_like", ZJU_LIKE),
+    ("with_k3", WITH_K3),
+    ("pincushion", PINCUSHION),
+];
 
 /// A small camera with unequal focal lengths and an off-centre principal point (so a
 /// swapped axis shows), corners at r ≈ 0.7 like ZJU's. The pose does not matter here.
 fn small_camera() -> Camera {
-    Camera { fx: 90.0, fy: 86.0, cx: 47.3, cy: 41.1, width: 96, height: 80, rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], translation: DVec3::ZERO, near: Camera::NEAR }
+    Camera {
+        fx: 90.0,
+        fy: 86.0,
+        cx: 47.3,
+        cy: 41.1,
+        width: 96,
+        height: 80,
+        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        translation: DVec3::ZERO,
+        near: Camera::NEAR,
+    }
 }
 
 /// OpenCV's K for `camera`'s images: principal point moved by -0.5 (see the header).
 fn opencv_k_for_images(c: &Camera) -> [[f64; 3]; 3] {
-    [[c.fx, 0.0, c.cx - 0.5], [0.0, c.fy, c.cy - 0.5], [0.0, 0.0, 1.0]]
+    [
+        [c.fx, 0.0, c.cx - 0.5],
+        [0.0, c.fy, c.cy - 0.5],
+        [0.0, 0.0, 1.0],
+    ]
 }
 
 /// A smooth random 8-bit image as floats u8/255: per channel a mean plus two plane
@@ -93,9 +131,27 @@ fn opencv_image_case(test: &str, name: &str, d: Distortion) -> std::path::PathBu
     let (w, h) = (cam.width as usize, cam.height as usize);
     let dir = case_dir("opencv-distortion", &format!("{test}_image_{name}"));
     let img = smooth_image(cam.width, cam.height, 7);
-    put(&dir, "image", &[h, w, 3], &img.iter().map(|&v| (f64::from(v) * 255.0).round()).collect::<Vec<_>>());
-    put(&dir, "mask", &[h, w], &test_mask(cam.width, cam.height).iter().map(|&m| f64::from(u8::from(m))).collect::<Vec<_>>());
-    write_case(&dir, serde_json::json!({ "kind": "image", "K": opencv_k_for_images(&cam), "D": d.to_opencv() }));
+    put(
+        &dir,
+        "image",
+        &[h, w, 3],
+        &img.iter()
+            .map(|&v| (f64::from(v) * 255.0).round())
+            .collect::<Vec<_>>(),
+    );
+    put(
+        &dir,
+        "mask",
+        &[h, w],
+        &test_mask(cam.width, cam.height)
+            .iter()
+            .map(|&m| f64::from(u8::from(m)))
+            .collect::<Vec<_>>(),
+    );
+    write_case(
+        &dir,
+        serde_json::json!({ "kind": "image", "K": opencv_k_for_images(&cam), "D": d.to_opencv() }),
+    );
     run("opencv_reference.py", std::slice::from_ref(&dir));
     dir
 }
@@ -116,37 +172,78 @@ fn write_case(dir: &Path, case: serde_json::Value) {
 #[test]
 fn projected_points_match_opencv() {
     // ZJU-like: 1024², f ≈ 1000, the principal point off centre.
-    let mut cam = Camera::look_at(DVec3::new(0.7, -1.4, 3.3), DVec3::new(0.1, -0.9, -0.2), DVec3::NEG_Y, 1000.0, 1024, 1024);
+    let mut cam = Camera::look_at(
+        DVec3::new(0.7, -1.4, 3.3),
+        DVec3::new(0.1, -0.9, -0.2),
+        DVec3::NEG_Y,
+        1000.0,
+        1024,
+        1024,
+    );
     (cam.fy, cam.cx, cam.cy) = (1004.0, 511.2, 515.7);
     // Points spread over the image (normalized |x|, |y| < 0.55, r < 0.78) at depths 1.5
     // to 6, placed in camera space and taken to the world.
     let n = 400;
-    let (xs, ys, zs) = (uniform(n, -0.55, 0.55, 11), uniform(n, -0.55, 0.55, 12), uniform(n, 1.5, 6.0, 13));
+    let (xs, ys, zs) = (
+        uniform(n, -0.55, 0.55, 11),
+        uniform(n, -0.55, 0.55, 12),
+        uniform(n, 1.5, 6.0, 13),
+    );
     let r = cam.rotation;
     let world: Vec<[f64; 3]> = (0..n)
         .map(|i| {
-            let c = [xs[i] * zs[i] - cam.translation[0], ys[i] * zs[i] - cam.translation[1], zs[i] - cam.translation[2]];
+            let c = [
+                xs[i] * zs[i] - cam.translation[0],
+                ys[i] * zs[i] - cam.translation[1],
+                zs[i] - cam.translation[2],
+            ];
             std::array::from_fn(|a| (0..3).map(|k| r[k][a] * c[k]).sum())
         })
         .collect();
     let mut fails = Vec::new();
     for (name, d) in [("zju_like", ZJU_LIKE), ("with_k3", WITH_K3)] {
         let dir = case_dir("opencv-distortion", &format!("project_{name}"));
-        put(&dir, "points", &[n, 3], &world.iter().flatten().copied().collect::<Vec<_>>());
-        let k = [[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]];
-        write_case(&dir, serde_json::json!({ "kind": "project", "K": k, "D": d.to_opencv(), "R": cam.rotation, "t": cam.translation.to_array() }));
+        put(
+            &dir,
+            "points",
+            &[n, 3],
+            &world.iter().flatten().copied().collect::<Vec<_>>(),
+        );
+        let k = [
+            [cam.fx, 0.0, cam.cx],
+            [0.0, cam.fy, cam.cy],
+            [0.0, 0.0, 1.0],
+        ];
+        write_case(
+            &dir,
+            serde_json::json!({ "kind": "project", "K": k, "D": d.to_opencv(), "R": cam.rotation, "t": cam.translation.to_array() }),
+        );
         run("opencv_reference.py", std::slice::from_ref(&dir));
         let (theirs, their_inverse) = (get(&dir, "projected"), get(&dir, "undistorted"));
-        let (mut worst, mut worst_inverse, mut worst_truth, mut shift) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let (mut worst, mut worst_inverse, mut worst_truth, mut shift) =
+            (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for (i, &p) in world.iter().enumerate() {
             let p = DVec3::from_array(p);
             let ours = project(&cam, &d, p);
-            worst = worse(worse(worst, (ours[0] - theirs[2 * i]).abs()), (ours[1] - theirs[2 * i + 1]).abs());
+            worst = worse(
+                worse(worst, (ours[0] - theirs[2 * i]).abs()),
+                (ours[1] - theirs[2 * i + 1]).abs(),
+            );
             let pinhole = cam.project(p).expect("in front");
-            shift = worse(shift, ((ours[0] - pinhole[0]).powi(2) + (ours[1] - pinhole[1]).powi(2)).sqrt());
-            let inv = d.undistort_normalized((ours[0] - cam.cx) / cam.fx, (ours[1] - cam.cy) / cam.fy);
-            worst_inverse = worse(worse(worst_inverse, (inv[0] - their_inverse[2 * i]).abs()), (inv[1] - their_inverse[2 * i + 1]).abs());
-            worst_truth = worse(worse(worst_truth, (inv[0] - xs[i]).abs()), (inv[1] - ys[i]).abs());
+            shift = worse(
+                shift,
+                ((ours[0] - pinhole[0]).powi(2) + (ours[1] - pinhole[1]).powi(2)).sqrt(),
+            );
+            let inv =
+                d.undistort_normalized((ours[0] - cam.cx) / cam.fx, (ours[1] - cam.cy) / cam.fy);
+            worst_inverse = worse(
+                worse(worst_inverse, (inv[0] - their_inverse[2 * i]).abs()),
+                (inv[1] - their_inverse[2 * i + 1]).abs(),
+            );
+            worst_truth = worse(
+                worse(worst_truth, (inv[0] - xs[i]).abs()),
+                (inv[1] - ys[i]).abs(),
+            );
         }
         println!("{name}: projection |ours - cv2.projectPoints| <= {worst:.2e} px (the lens moves points up to {shift:.1} px); undistort_normalized vs cv2.undistortPointsIter {worst_inverse:.2e}, vs the true x/z {worst_truth:.2e}");
         // The same f64 formula on both sides; OpenCV gets R through Rodrigues (a round
@@ -154,7 +251,9 @@ fn projected_points_match_opencv() {
         // differences near 1e-12 px, so 1e-6 px is a wide margin that still catches
         // any wrong term (p1 = 1e-3 alone moves corners by ~0.5 px).
         if !(worst < 1e-6) {
-            fails.push(format!("{name}: projected points differ from cv2.projectPoints by {worst:e} px"));
+            fails.push(format!(
+                "{name}: projected points differ from cv2.projectPoints by {worst:e} px"
+            ));
         }
         // The lens must matter, or the comparison proves nothing.
         if !(shift > 20.0) {
@@ -187,7 +286,10 @@ fn undistortion_map_and_images_match_opencv() {
         for y in 0..h {
             for x in 0..w {
                 let s = u.source(x as u32, y as u32);
-                worst_map = worse(worse(worst_map, (f64::from(s[0]) - map_x[y * w + x]).abs()), (f64::from(s[1]) - map_y[y * w + x]).abs());
+                worst_map = worse(
+                    worse(worst_map, (f64::from(s[0]) - map_x[y * w + x]).abs()),
+                    (f64::from(s[1]) - map_y[y * w + x]).abs(),
+                );
             }
         }
 
@@ -206,9 +308,12 @@ fn undistortion_map_and_images_match_opencv() {
         for y in 0..h {
             for x in 0..w {
                 let s = u.source(x as u32, y as u32);
-                let inside = s[0] >= 1.0 && s[1] >= 1.0 && s[0] <= w as f32 - 2.0 && s[1] <= h as f32 - 2.0;
+                let inside =
+                    s[0] >= 1.0 && s[1] >= 1.0 && s[0] <= w as f32 - 2.0 && s[1] <= h as f32 - 2.0;
                 valid += usize::from(inside);
-                black += usize::from(!(s[0] > -1.0 && s[1] > -1.0 && s[0] < w as f32 && s[1] < h as f32));
+                black += usize::from(
+                    !(s[0] > -1.0 && s[1] > -1.0 && s[0] < w as f32 && s[1] < h as f32),
+                );
                 for c in 0..3 {
                     let i = (y * w + x) * 3 + c;
                     let e = (f64::from(ours[i]) * 255.0 - theirs[i]).abs();
@@ -227,7 +332,10 @@ fn undistortion_map_and_images_match_opencv() {
             fails.push(format!("{name}: the undistorted image differs from cv2.undistort by {worst_valid} levels of 255"));
         }
         if valid <= w * h / 2 {
-            fails.push(format!("{name}: only {valid} of {} pixels are compared", w * h));
+            fails.push(format!(
+                "{name}: only {valid} of {} pixels are compared",
+                w * h
+            ));
         }
     }
     assert!(fails.is_empty(), "{}", fails.join("\n"));
@@ -236,7 +344,15 @@ fn undistortion_map_and_images_match_opencv() {
 /// Pixels of a mask with a neighbour (4-connected) of the other value.
 fn boundary_pixels(mask: &[bool], w: usize, h: usize) -> usize {
     let at = |x: usize, y: usize| mask[y * w + x];
-    (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).filter(|&(x, y)| (x > 0 && at(x - 1, y) != at(x, y)) || (y > 0 && at(x, y - 1) != at(x, y)) || (x + 1 < w && at(x + 1, y) != at(x, y)) || (y + 1 < h && at(x, y + 1) != at(x, y))).count()
+    (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .filter(|&(x, y)| {
+            (x > 0 && at(x - 1, y) != at(x, y))
+                || (y > 0 && at(x, y - 1) != at(x, y))
+                || (x + 1 < w && at(x + 1, y) != at(x, y))
+                || (y + 1 < h && at(x, y + 1) != at(x, y))
+        })
+        .count()
 }
 
 #[test]
@@ -249,7 +365,10 @@ fn undistorted_masks_match_opencv() {
         let ours = Undistorter::new(&cam, d).mask(&test_mask(cam.width, cam.height));
         // Our rule (bilinear of 0/1, then >= 0.5) on OpenCV's side: cv2.undistort of the
         // 0/255 mask, then >= 128 (255 / 2 = 127.5 rounds up to 128).
-        let theirs: Vec<bool> = get(&dir, "mask_undistorted").iter().map(|&v| v >= 128.0).collect();
+        let theirs: Vec<bool> = get(&dir, "mask_undistorted")
+            .iter()
+            .map(|&v| v >= 128.0)
+            .collect();
         let differ = ours.iter().zip(&theirs).filter(|(a, b)| a != b).count();
         let edge = boundary_pixels(&theirs, w, h);
         let inside = theirs.iter().filter(|&&m| m).count();
@@ -261,7 +380,9 @@ fn undistorted_masks_match_opencv() {
             fails.push(format!("{name}: {differ} mask pixels differ from cv2.undistort's, more than 2% of the {edge} edge pixels"));
         }
         if inside <= w * h / 5 {
-            fails.push(format!("{name}: the undistorted mask has only {inside} pixels"));
+            fails.push(format!(
+                "{name}: the undistorted mask has only {inside} pixels"
+            ));
         }
     }
     assert!(fails.is_empty(), "{}", fails.join("\n"));
@@ -280,50 +401,120 @@ fn colmap_distorting_models_parse() {
         7 OPENCV_FISHEYE 800 600 700 705 401.5 299.5 0.1 0.01 0 0\n\
         8 FULL_OPENCV 800 600 700 705 401.5 299.5 -0.3 0.1 0.001 -0.0005 0.02 0 0.5 0\n\
         9 OPENCV 800 600 700 705 401.5 299.5 -0.3 0.1 0.001\n";
-    let images: String = (1..=9).map(|i| format!("{i} 1 0 0 0 0.5 -0.25 3 {i} img{i}.png\n\n")).collect();
+    let images: String = (1..=9)
+        .map(|i| format!("{i} 1 0 0 0 0.5 -0.25 3 {i} img{i}.png\n\n"))
+        .collect();
     std::fs::write(dir.join("cameras.txt"), cameras).expect("cameras.txt");
     std::fs::write(dir.join("images.txt"), images).expect("images.txt");
     std::fs::write(dir.join("points3D.txt"), "").expect("points3D.txt");
     let model = ColmapModel::read_text(&dir).expect("read the model");
     let got = |i: u32| model.images[&i].camera_and_distortion(&model.cameras[&i]);
     let none = Distortion::NONE;
-    let zju = Distortion { k1: -0.3, k2: 0.1, p1: 0.001, p2: -0.0005, k3: 0.0 };
+    let zju = Distortion {
+        k1: -0.3,
+        k2: 0.1,
+        p1: 0.001,
+        p2: -0.0005,
+        k3: 0.0,
+    };
     for (i, k, d, size) in [
-        (1, [500.5, 500.5, 320.25, 240.75], Distortion { k1: -0.0625, ..none }, (640, 480)),
-        (2, [510.0, 510.0, 321.0, 239.0], Distortion { k1: -0.125, k2: 0.03125, ..none }, (640, 480)),
+        (
+            1,
+            [500.5, 500.5, 320.25, 240.75],
+            Distortion {
+                k1: -0.0625,
+                ..none
+            },
+            (640, 480),
+        ),
+        (
+            2,
+            [510.0, 510.0, 321.0, 239.0],
+            Distortion {
+                k1: -0.125,
+                k2: 0.03125,
+                ..none
+            },
+            (640, 480),
+        ),
         (3, [700.0, 705.0, 401.5, 299.5], zju, (800, 600)),
         (4, [700.0, 705.0, 401.5, 299.5], none, (800, 600)),
         (5, [700.0, 700.0, 401.5, 299.5], none, (800, 600)),
-        (6, [700.0, 705.0, 401.5, 299.5], Distortion { k3: 0.02, ..zju }, (800, 600)),
+        (
+            6,
+            [700.0, 705.0, 401.5, 299.5],
+            Distortion { k3: 0.02, ..zju },
+            (800, 600),
+        ),
     ] {
         let (cam, dist) = got(i).unwrap_or_else(|e| panic!("camera {i}: {e}"));
-        assert_eq!([cam.fx, cam.fy, cam.cx, cam.cy], k, "camera {i} ({}) intrinsics", model.cameras[&i].model);
-        assert_eq!(dist, d, "camera {i} ({}) distortion", model.cameras[&i].model);
+        assert_eq!(
+            [cam.fx, cam.fy, cam.cx, cam.cy],
+            k,
+            "camera {i} ({}) intrinsics",
+            model.cameras[&i].model
+        );
+        assert_eq!(
+            dist, d,
+            "camera {i} ({}) distortion",
+            model.cameras[&i].model
+        );
         assert_eq!((cam.width, cam.height), size, "camera {i} size");
-        assert_eq!((cam.translation, cam.rotation[0]), (DVec3::new(0.5, -0.25, 3.0), [1.0, 0.0, 0.0]), "camera {i} pose");
+        assert_eq!(
+            (cam.translation, cam.rotation[0]),
+            (DVec3::new(0.5, -0.25, 3.0), [1.0, 0.0, 0.0]),
+            "camera {i} pose"
+        );
     }
-    let fisheye = got(7).expect_err("OPENCV_FISHEYE is not undistorted").to_string();
-    assert!(fisheye.starts_with("cameras.txt: camera 7 has model OPENCV_FISHEYE, which drape does not undistort"), "{fisheye}");
+    let fisheye = got(7)
+        .expect_err("OPENCV_FISHEYE is not undistorted")
+        .to_string();
+    assert!(
+        fisheye.starts_with(
+            "cameras.txt: camera 7 has model OPENCV_FISHEYE, which drape does not undistort"
+        ),
+        "{fisheye}"
+    );
     assert!(!fisheye.contains('\n'), "one line: {fisheye}");
-    let rational = got(8).expect_err("k5 = 0.5 is the rational model").to_string();
-    assert!(rational.contains("camera 8") && rational.contains("k5 = 0.5"), "{rational}");
+    let rational = got(8)
+        .expect_err("k5 = 0.5 is the rational model")
+        .to_string();
+    assert!(
+        rational.contains("camera 8") && rational.contains("k5 = 0.5"),
+        "{rational}"
+    );
     let short = got(9).expect_err("OPENCV with 7 parameters").to_string();
-    assert!(short.contains("camera 9 (OPENCV) has 7 PARAMS, expected 8 (fx fy cx cy k1 k2 p1 p2)"), "{short}");
+    assert!(
+        short.contains("camera 9 (OPENCV) has 7 PARAMS, expected 8 (fx fy cx cy k1 k2 p1 p2)"),
+        "{short}"
+    );
 
     // The writer: a fixture's camera with a lens reads back as it was written.
     let written = case_dir("opencv-distortion", "colmap_written");
     let base = small_camera();
     let mut out = ColmapModel::default();
     for (i, d) in [(1, ZJU_LIKE), (2, WITH_K3), (3, none)] {
-        out.cameras.insert(i, ColmapCamera::from_camera_and_distortion(i, &base, &d));
-        out.images.insert(i, ColmapImage::from_camera(i, i, format!("{i}.png"), &base));
+        out.cameras
+            .insert(i, ColmapCamera::from_camera_and_distortion(i, &base, &d));
+        out.images
+            .insert(i, ColmapImage::from_camera(i, i, format!("{i}.png"), &base));
     }
     out.write_text(&written).expect("write");
     let back = ColmapModel::read_text(&written).expect("read back");
-    for (i, d, model) in [(1, ZJU_LIKE, "OPENCV"), (2, WITH_K3, "FULL_OPENCV"), (3, none, "PINHOLE")] {
+    for (i, d, model) in [
+        (1, ZJU_LIKE, "OPENCV"),
+        (2, WITH_K3, "FULL_OPENCV"),
+        (3, none, "PINHOLE"),
+    ] {
         assert_eq!(back.cameras[&i].model, model);
-        let (cam, dist) = back.images[&i].camera_and_distortion(&back.cameras[&i]).expect("written camera");
-        assert_eq!((dist, [cam.fx, cam.fy, cam.cx, cam.cy]), (d, [base.fx, base.fy, base.cx, base.cy]), "camera {i}");
+        let (cam, dist) = back.images[&i]
+            .camera_and_distortion(&back.cameras[&i])
+            .expect("written camera");
+        assert_eq!(
+            (dist, [cam.fx, cam.fy, cam.cx, cam.cy]),
+            (d, [base.fx, base.fy, base.cx, base.cy]),
+            "camera {i}"
+        );
     }
 }
 
@@ -345,7 +536,8 @@ fn distorting_then_undistorting_returns_the_image() {
         for y in 3..h - 3 {
             for x in 3..w - 3 {
                 let s = u.source(x as u32, y as u32);
-                if !(s[0] >= 2.0 && s[1] >= 2.0 && s[0] <= w as f32 - 3.0 && s[1] <= h as f32 - 3.0) {
+                if !(s[0] >= 2.0 && s[1] >= 2.0 && s[0] <= w as f32 - 3.0 && s[1] <= h as f32 - 3.0)
+                {
                     continue;
                 }
                 count += 1;
@@ -363,7 +555,9 @@ fn distorting_then_undistorting_returns_the_image() {
         // 0.7×, and they do not cancel (measured 3.6e-3). 0.01; a sample half a pixel
         // off would be |∇f|/2 ≈ 0.03.
         if !(worst < 0.01) {
-            fails.push(format!("{name}: distort_rgb then Undistorter::rgb is {worst} from the image"));
+            fails.push(format!(
+                "{name}: distort_rgb then Undistorter::rgb is {worst} from the image"
+            ));
         }
         if count <= w * h / 2 {
             fails.push(format!("{name}: only {count} interior pixels"));
@@ -371,7 +565,9 @@ fn distorting_then_undistorting_returns_the_image() {
         // Each threshold can move the edge by a fraction of a pixel (measured 11 of 414
         // edge pixels): a twentieth of the edge.
         if differ * 20 > edge {
-            fails.push(format!("{name}: the mask's round trip changes {differ} pixels ({edge} on the edge)"));
+            fails.push(format!(
+                "{name}: the mask's round trip changes {differ} pixels ({edge} on the edge)"
+            ));
         }
     }
     assert!(fails.is_empty(), "{}", fails.join("\n"));

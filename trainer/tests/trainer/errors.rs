@@ -17,7 +17,9 @@ use drape_trainer::TrainerError;
 /// fix a setting.
 fn action(e: &TrainerError) -> &'static str {
     match e {
-        TrainerError::Engine(EngineError::DeviceLost { .. } | EngineError::OutOfDeviceMemory { .. }) => "retry on another device",
+        TrainerError::Engine(
+            EngineError::DeviceLost { .. } | EngineError::OutOfDeviceMemory { .. },
+        ) => "retry on another device",
         TrainerError::Engine(EngineError::TooLarge { .. }) => "choose a smaller size",
         TrainerError::Engine(_) => "report a GPU failure",
         TrainerError::Config { .. } => "fix the setting",
@@ -37,7 +39,11 @@ fn config_with(key: &str, value: serde_json::Value) -> drape_trainer::Result<Tra
 #[test]
 fn a_config_choice_error_names_the_key_and_the_values_it_takes() {
     for (key, value, allowed) in [
-        ("layers.compositing", "blended", "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion"),
+        (
+            "layers.compositing",
+            "blended",
+            "three-pass, three-pass-occlusion, single-pass, fused or fused-occlusion",
+        ),
         ("layers.choice", "cloth+body", "body+cloth+scene"),
         ("layers.cloth_fit", "baggy", "`tight`"),
         ("losses.lpips_net", "squeeze", "`alex`"),
@@ -47,7 +53,10 @@ fn a_config_choice_error_names_the_key_and_the_values_it_takes() {
         match &e {
             TrainerError::Config { key: k, problem } => {
                 assert_eq!(k, key, "{e}");
-                assert!(problem.contains(value) && problem.contains(allowed), "{key}: the value and the allowed ones: {e}");
+                assert!(
+                    problem.contains(value) && problem.contains(allowed),
+                    "{key}: the value and the allowed ones: {e}"
+                );
             }
             other => panic!("{key}: expected a config error, got {other:?}"),
         }
@@ -55,7 +64,10 @@ fn a_config_choice_error_names_the_key_and_the_values_it_takes() {
     }
     // A range checked after deserialising names its key too.
     let e = config_with("layers.decimate", 0.into()).expect_err("decimate 0");
-    assert!(matches!(&e, TrainerError::Config { key, .. } if key == "layers.decimate"), "{e:?}");
+    assert!(
+        matches!(&e, TrainerError::Config { key, .. } if key == "layers.decimate"),
+        "{e:?}"
+    );
     // Each choice round-trips through its serde form.
     for c in Compositing::ALL {
         let back = config_with("layers.compositing", c.name().into()).expect("a named compositing");
@@ -69,14 +81,32 @@ fn a_gpu_failure_is_told_apart_from_a_config_error() {
     // buffers are past the device's maxMemoryAllocationSize.
     let ctx = gpu();
     let rig = Rig::new(default_body(&BodyOptions::default()), &[]);
-    let layer = LayerConfig { triplane_resolution: 8, triplane_channels: 4, decoder_width: 16, ..LayerConfig::default() };
-    let avatar = Avatar::new(&ctx, &[body_init(&rig, 0, 16, 0)], &[layer], &[0.0], None, 10, 1).expect("a small avatar");
-    let side = 1 << 16;
-    let e: TrainerError = match AvatarRenderer::new(&ctx, &avatar, side, side, Compositing::SinglePass) {
-        Ok(_) => panic!("a {side}x{side} frame should be past the device's limits"),
-        Err(e) => e.into(),
+    let layer = LayerConfig {
+        triplane_resolution: 8,
+        triplane_channels: 4,
+        decoder_width: 16,
+        ..LayerConfig::default()
     };
-    assert!(matches!(e.engine(), Some(EngineError::TooLarge { .. })), "{e:?}");
+    let avatar = Avatar::new(
+        &ctx,
+        &[body_init(&rig, 0, 16, 0)],
+        &[layer],
+        &[0.0],
+        None,
+        10,
+        1,
+    )
+    .expect("a small avatar");
+    let side = 1 << 16;
+    let e: TrainerError =
+        match AvatarRenderer::new(&ctx, &avatar, side, side, Compositing::SinglePass) {
+            Ok(_) => panic!("a {side}x{side} frame should be past the device's limits"),
+            Err(e) => e.into(),
+        };
+    assert!(
+        matches!(e.engine(), Some(EngineError::TooLarge { .. })),
+        "{e:?}"
+    );
     assert_eq!(action(&e), "choose a smaller size");
 
     // A lost device or exhausted memory, as the engine reports them, reaches the caller
@@ -85,12 +115,21 @@ fn a_gpu_failure_is_told_apart_from_a_config_error() {
         Err(fail)?;
         Ok(())
     }
-    let lost = step(EngineError::DeviceLost { pass: "splat.raster_fwd".into() }).unwrap_err();
-    let oom = step(EngineError::OutOfDeviceMemory { what: "triplane".into(), bytes: 1 << 40 }).unwrap_err();
+    let lost = step(EngineError::DeviceLost {
+        pass: "splat.raster_fwd".into(),
+    })
+    .unwrap_err();
+    let oom = step(EngineError::OutOfDeviceMemory {
+        what: "triplane".into(),
+        bytes: 1 << 40,
+    })
+    .unwrap_err();
     for e in [&lost, &oom] {
         assert_eq!(action(e), "retry on another device", "{e:?}");
     }
-    assert!(matches!(lost.engine(), Some(EngineError::DeviceLost { pass }) if pass == "splat.raster_fwd"));
+    assert!(
+        matches!(lost.engine(), Some(EngineError::DeviceLost { pass }) if pass == "splat.raster_fwd")
+    );
     let config = config_with("layers.compositing", "blended".into()).unwrap_err();
     assert!(config.engine().is_none());
     assert_ne!(action(&config), action(&lost));

@@ -20,8 +20,8 @@ use drape_engine::ops::cloth_loss::Chamfer;
 use drape_engine::ops::ssim::{reference as ssim_reference, Ssim};
 use drape_engine::Context;
 use drape_tests::gpu;
-use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{to_f32, to_f64, uniform};
+use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::test_picture;
 use drape_trainer::avatar::eval::{crop, mask_bbox, psnr};
 use rand::{Rng, SeedableRng};
@@ -36,7 +36,8 @@ const BORDER: usize = 5;
 fn run_skimage(dir: &Path, case: serde_json::Value) -> serde_json::Value {
     std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
     drape_tests::reference_python::run("skimage_metrics.py", &[dir.to_path_buf()]);
-    serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).expect("results.json")).expect("results json")
+    serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).expect("results.json"))
+        .expect("results json")
 }
 
 /// One image pair: HWC RGB in [0, 1], already rounded to f32 so that both sides see
@@ -51,16 +52,42 @@ struct Pair {
 
 fn noisy(img: &[f32], amplitude: f64, seed: u64) -> Vec<f32> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    img.iter().map(|&v| (f64::from(v) + rng.random_range(-amplitude..amplitude)).clamp(0.0, 1.0) as f32).collect()
+    img.iter()
+        .map(|&v| (f64::from(v) + rng.random_range(-amplitude..amplitude)).clamp(0.0, 1.0) as f32)
+        .collect()
 }
 
 fn pairs() -> Vec<Pair> {
     let pic = |w: u32, h: u32| test_picture(w, h).rgb;
     vec![
-        Pair { name: "noise_64x48", width: 64, height: 48, a: to_f32(&uniform(64 * 48 * 3, 0.0, 1.0, 1)), b: to_f32(&uniform(64 * 48 * 3, 0.0, 1.0, 2)) },
-        Pair { name: "picture_noisy_97x61", width: 97, height: 61, a: pic(97, 61), b: noisy(&pic(97, 61), 0.1, 3) },
-        Pair { name: "picture_noisy_64x48", width: 64, height: 48, a: noisy(&pic(64, 48), 0.03, 4), b: pic(64, 48) },
-        Pair { name: "identical_97x61", width: 97, height: 61, a: pic(97, 61), b: pic(97, 61) },
+        Pair {
+            name: "noise_64x48",
+            width: 64,
+            height: 48,
+            a: to_f32(&uniform(64 * 48 * 3, 0.0, 1.0, 1)),
+            b: to_f32(&uniform(64 * 48 * 3, 0.0, 1.0, 2)),
+        },
+        Pair {
+            name: "picture_noisy_97x61",
+            width: 97,
+            height: 61,
+            a: pic(97, 61),
+            b: noisy(&pic(97, 61), 0.1, 3),
+        },
+        Pair {
+            name: "picture_noisy_64x48",
+            width: 64,
+            height: 48,
+            a: noisy(&pic(64, 48), 0.03, 4),
+            b: pic(64, 48),
+        },
+        Pair {
+            name: "identical_97x61",
+            width: 97,
+            height: 61,
+            a: pic(97, 61),
+            b: pic(97, 61),
+        },
     ]
 }
 
@@ -101,10 +128,23 @@ fn psnr_and_ssim_match_scikit_image() {
     let pairs = pairs();
     let dir = case_dir("skimage-cases", "psnr_ssim");
     for p in &pairs {
-        put(&dir, &format!("{}_a", p.name), &[p.height, p.width, 3], &to_f64(&p.a));
-        put(&dir, &format!("{}_b", p.name), &[p.height, p.width, 3], &to_f64(&p.b));
+        put(
+            &dir,
+            &format!("{}_a", p.name),
+            &[p.height, p.width, 3],
+            &to_f64(&p.a),
+        );
+        put(
+            &dir,
+            &format!("{}_b", p.name),
+            &[p.height, p.width, 3],
+            &to_f64(&p.b),
+        );
     }
-    let results = run_skimage(&dir, serde_json::json!({ "pairs": pairs.iter().map(|p| p.name).collect::<Vec<_>>() }));
+    let results = run_skimage(
+        &dir,
+        serde_json::json!({ "pairs": pairs.iter().map(|p| p.name).collect::<Vec<_>>() }),
+    );
     let mut fails = Vec::new();
     for p in &pairs {
         let r = &results[p.name];
@@ -116,7 +156,10 @@ fn psnr_and_ssim_match_scikit_image() {
         match r["psnr"].as_f64() {
             Some(theirs) => {
                 let e = (ours - theirs).abs();
-                println!("{}: PSNR {ours:.6} dB vs skimage {theirs:.6} dB (|diff| {e:.2e})", p.name);
+                println!(
+                    "{}: PSNR {ours:.6} dB vs skimage {theirs:.6} dB (|diff| {e:.2e})",
+                    p.name
+                );
                 if e > 1e-6 {
                     fails.push(format!("{}: PSNR {ours} vs skimage {theirs}", p.name));
                 }
@@ -125,7 +168,10 @@ fn psnr_and_ssim_match_scikit_image() {
             None => {
                 println!("{}: PSNR {ours} dB vs skimage inf", p.name);
                 if ours != 200.0 {
-                    fails.push(format!("{}: identical images give PSNR {ours}, not the 200 dB cap (skimage: inf)", p.name));
+                    fails.push(format!(
+                        "{}: identical images give PSNR {ours}, not the 200 dB cap (skimage: inf)",
+                        p.name
+                    ));
                 }
             }
         }
@@ -145,28 +191,50 @@ fn psnr_and_ssim_match_scikit_image() {
         // ~3e-8 relative on each tap, ~1e-8 on SSIM (measured 1.4e-8); 1e-7 is still far
         // below any difference of form (padding, window, constants: > 1e-4).
         if cpu_err > 1e-7 {
-            fails.push(format!("{}: CPU SSIM map differs from skimage's on the interior by {cpu_err:e}", p.name));
+            fails.push(format!(
+                "{}: CPU SSIM map differs from skimage's on the interior by {cpu_err:e}",
+                p.name
+            ));
         }
         if (cpu_mean - theirs_mean).abs() > 1e-7 {
-            fails.push(format!("{}: CPU interior SSIM mean {cpu_mean} vs skimage {theirs_mean}", p.name));
+            fails.push(format!(
+                "{}: CPU interior SSIM mean {cpu_mean} vs skimage {theirs_mean}",
+                p.name
+            ));
         }
         // f32 moments: σ² = E[x²] - μ² cancels to ~1e-7 absolute, over C2 = 9e-4 at
         // worst ~1e-4 on one pixel (measured 2.9e-4); 1e-3 per pixel, 1e-5 on the mean
         // (errors average; measured 3.4e-6).
         if gpu_err > 1e-3 {
-            fails.push(format!("{}: GPU SSIM map differs from skimage's on the interior by {gpu_err:e}", p.name));
+            fails.push(format!(
+                "{}: GPU SSIM map differs from skimage's on the interior by {gpu_err:e}",
+                p.name
+            ));
         }
         if (gpu_mean - theirs_mean).abs() > 1e-5 {
-            fails.push(format!("{}: GPU interior SSIM mean {gpu_mean} vs skimage {theirs_mean}", p.name));
+            fails.push(format!(
+                "{}: GPU interior SSIM mean {gpu_mean} vs skimage {theirs_mean}",
+                p.name
+            ));
         }
     }
-    assert!(fails.is_empty(), "{} mismatch(es) against scikit-image:\n{}", fails.len(), fails.join("\n"));
+    assert!(
+        fails.is_empty(),
+        "{} mismatch(es) against scikit-image:\n{}",
+        fails.len(),
+        fails.join("\n")
+    );
 }
 
 /// The bounding box and crop computed directly: min / max of the set pixels'
 /// coordinates (ends exclusive), then the rows and columns inside, pixel by pixel.
 fn direct_crop(mask: &[bool], rgb: &[f32], w: usize) -> Option<(Bbox, Vec<f32>)> {
-    let set: Vec<(usize, usize)> = mask.iter().enumerate().filter(|(_, &m)| m).map(|(i, _)| (i % w, i / w)).collect();
+    let set: Vec<(usize, usize)> = mask
+        .iter()
+        .enumerate()
+        .filter(|(_, &m)| m)
+        .map(|(i, _)| (i % w, i / w))
+        .collect();
     let x0 = set.iter().map(|p| p.0).min()?;
     let x1 = set.iter().map(|p| p.0).max()? + 1;
     let y0 = set.iter().map(|p| p.1).min()?;
@@ -191,7 +259,10 @@ fn human_crop_matches_a_direct_crop() {
     let mut masks: Vec<(String, Vec<bool>)> = vec![
         ("empty".into(), vec![false; w * h]),
         ("single pixel (17, 9)".into(), single(17, 9)),
-        ("single pixel at the last corner".into(), single(w - 1, h - 1)),
+        (
+            "single pixel at the last corner".into(),
+            single(w - 1, h - 1),
+        ),
         ("single pixel at the origin".into(), single(0, 0)),
         ("full".into(), vec![true; w * h]),
     ];
@@ -200,14 +271,20 @@ fn human_crop_matches_a_direct_crop() {
         let (ax, bx) = (rng.random_range(0..w), rng.random_range(0..w));
         let (ay, by) = (rng.random_range(0..h), rng.random_range(0..h));
         let (xr, yr) = (ax.min(bx)..=ax.max(bx), ay.min(by)..=ay.max(by));
-        let m = (0..w * h).map(|i| xr.contains(&(i % w)) && yr.contains(&(i / w)) && rng.random_bool(0.3)).collect();
+        let m = (0..w * h)
+            .map(|i| xr.contains(&(i % w)) && yr.contains(&(i / w)) && rng.random_bool(0.3))
+            .collect();
         masks.push((format!("random {k}"), m));
     }
     let mut fails = Vec::new();
     for (name, mask) in &masks {
         let ours = mask_bbox(mask, w as u32).map(|b| (b, crop(&rgb, w as u32, b)));
         let direct = direct_crop(mask, &rgb, w);
-        println!("{name}: bbox {:?} (direct {:?})", ours.as_ref().map(|o| o.0), direct.as_ref().map(|d| d.0));
+        println!(
+            "{name}: bbox {:?} (direct {:?})",
+            ours.as_ref().map(|o| o.0),
+            direct.as_ref().map(|d| d.0)
+        );
         match (&ours, &direct) {
             (None, None) => {}
             (Some((ob, oc)), Some((db, dc))) => {
@@ -216,33 +293,66 @@ fn human_crop_matches_a_direct_crop() {
                 }
                 // A crop copies pixels: bit-identical.
                 if oc != dc {
-                    fails.push(format!("{name}: crop ({} values) differs from the direct crop ({} values)", oc.len(), dc.len()));
+                    fails.push(format!(
+                        "{name}: crop ({} values) differs from the direct crop ({} values)",
+                        oc.len(),
+                        dc.len()
+                    ));
                 }
             }
-            _ => fails.push(format!("{name}: bbox {:?} vs direct {:?}", ours.as_ref().map(|o| o.0), direct.as_ref().map(|d| d.0))),
+            _ => fails.push(format!(
+                "{name}: bbox {:?} vs direct {:?}",
+                ours.as_ref().map(|o| o.0),
+                direct.as_ref().map(|d| d.0)
+            )),
         }
     }
-    assert!(fails.is_empty(), "{} mismatch(es) against the direct crop:\n{}", fails.len(), fails.join("\n"));
+    assert!(
+        fails.is_empty(),
+        "{} mismatch(es) against the direct crop:\n{}",
+        fails.len(),
+        fails.join("\n")
+    );
 }
 
 /// `½ (mean_p min_q |p - q| + mean_q min_p |q - p|)` by brute force in f64: the plain
 /// Chamfer distance `ops::cloth_loss::ChamferValue::distance` documents, in metres
 /// (eval reports it ×1e3 as mm).
 fn brute_force_chamfer(p: &[[f64; 3]], q: &[[f64; 3]]) -> f64 {
-    let d = |a: &[f64; 3], b: &[f64; 3]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
-    let one_way = |from: &[[f64; 3]], to: &[[f64; 3]]| from.iter().map(|a| to.iter().map(|b| d(a, b)).fold(f64::INFINITY, f64::min)).sum::<f64>() / from.len() as f64;
+    let d = |a: &[f64; 3], b: &[f64; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    let one_way = |from: &[[f64; 3]], to: &[[f64; 3]]| {
+        from.iter()
+            .map(|a| to.iter().map(|b| d(a, b)).fold(f64::INFINITY, f64::min))
+            .sum::<f64>()
+            / from.len() as f64
+    };
     0.5 * (one_way(p, q) + one_way(q, p))
 }
 
 /// The distance eval computes (`eval::cloth_chamfer`: σ = 1, no gradient), on the GPU.
 fn eval_chamfer(ctx: &Context, pred: &[[f64; 3]], target: &[[f64; 3]]) -> f64 {
     let flat = |v: &[[f64; 3]]| to_f32(&v.iter().flatten().copied().collect::<Vec<f64>>());
-    let p = ctx.upload("eval chamfer pred", &flat(pred)).expect("upload");
-    let t = ctx.upload("eval chamfer target", &flat(target)).expect("upload");
+    let p = ctx
+        .upload("eval chamfer pred", &flat(pred))
+        .expect("upload");
+    let t = ctx
+        .upload("eval chamfer target", &flat(target))
+        .expect("upload");
     let mut c = Chamfer::new(ctx, pred.len() as u32, target.len() as u32).expect("chamfer");
     {
         let mut rec = ctx.record("eval chamfer test").expect("record");
-        c.record(&mut rec, &p, pred.len() as u32, &t, target.len() as u32, 1.0, None).expect("record");
+        c.record(
+            &mut rec,
+            &p,
+            pred.len() as u32,
+            &t,
+            target.len() as u32,
+            1.0,
+            None,
+        )
+        .expect("record");
         rec.submit_and_wait().expect("submit");
     }
     c.read_value(ctx).expect("value").distance
@@ -254,10 +364,17 @@ fn shell(n: usize, jitter: f64, seed: u64) -> Vec<[f64; 3]> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     (0..n)
         .map(|_| {
-            let (z, phi): (f64, f64) = (rng.random_range(-1.0..1.0), rng.random_range(0.0..std::f64::consts::TAU));
+            let (z, phi): (f64, f64) = (
+                rng.random_range(-1.0..1.0),
+                rng.random_range(0.0..std::f64::consts::TAU),
+            );
             let s = (1.0 - z * z).sqrt();
             let r = 0.3 + rng.random_range(-jitter..jitter);
-            [(r * s * phi.cos()) as f32 as f64, (1.0 + r * z) as f32 as f64, (r * s * phi.sin()) as f32 as f64]
+            [
+                (r * s * phi.cos()) as f32 as f64,
+                (1.0 + r * z) as f32 as f64,
+                (r * s * phi.sin()) as f32 as f64,
+            ]
         })
         .collect()
 }
@@ -265,23 +382,50 @@ fn shell(n: usize, jitter: f64, seed: u64) -> Vec<[f64; 3]> {
 #[test]
 fn cloth_chamfer_matches_brute_force() {
     let ctx = gpu();
-    let cube = |n: usize, seed: u64| -> Points { uniform(3 * n, -0.5, 0.5, seed).chunks_exact(3).map(|c| [c[0] as f32 as f64, c[1] as f32 as f64, c[2] as f32 as f64]).collect() };
+    let cube = |n: usize, seed: u64| -> Points {
+        uniform(3 * n, -0.5, 0.5, seed)
+            .chunks_exact(3)
+            .map(|c| [c[0] as f32 as f64, c[1] as f32 as f64, c[2] as f32 as f64])
+            .collect()
+    };
     let cases: Vec<(&str, Points, Points)> = vec![
         ("cube 300 x 450", cube(300, 11), cube(450, 12)),
-        ("shell 3000 x 2000", shell(3000, 0.005, 13), shell(2000, 0.005, 14)),
-        ("shell 2500 x 4000, offset", shell(2500, 0.002, 15), shell(4000, 0.002, 16).into_iter().map(|p| [p[0] + 0.004, p[1], p[2]]).collect()),
+        (
+            "shell 3000 x 2000",
+            shell(3000, 0.005, 13),
+            shell(2000, 0.005, 14),
+        ),
+        (
+            "shell 2500 x 4000, offset",
+            shell(2500, 0.002, 15),
+            shell(4000, 0.002, 16)
+                .into_iter()
+                .map(|p| [p[0] + 0.004, p[1], p[2]])
+                .collect(),
+        ),
     ];
     let mut fails = Vec::new();
     for (name, pred, target) in &cases {
         let ours = eval_chamfer(&ctx, pred, target);
         let theirs = brute_force_chamfer(pred, target);
         let rel = (ours - theirs).abs() / theirs;
-        println!("{name}: Chamfer {:.6} mm vs brute force {:.6} mm (relative {rel:.2e})", ours * 1e3, theirs * 1e3);
+        println!(
+            "{name}: Chamfer {:.6} mm vs brute force {:.6} mm (relative {rel:.2e})",
+            ours * 1e3,
+            theirs * 1e3
+        );
         // Same f32 coordinates on both sides; the GPU's squared differences are f32:
         // ~1e-7 relative per pair, averaged over thousands (measured ≤ 1e-8); 1e-6.
         if rel > 1e-6 {
-            fails.push(format!("{name}: Chamfer {ours} m vs brute force {theirs} m (relative {rel:e})"));
+            fails.push(format!(
+                "{name}: Chamfer {ours} m vs brute force {theirs} m (relative {rel:e})"
+            ));
         }
     }
-    assert!(fails.is_empty(), "{} mismatch(es) against brute force:\n{}", fails.len(), fails.join("\n"));
+    assert!(
+        fails.is_empty(),
+        "{} mismatch(es) against brute force:\n{}",
+        fails.len(),
+        fails.join("\n")
+    );
 }

@@ -20,8 +20,14 @@ fn every_corpus_file_and_past_crasher_loads_or_fails_cleanly() {
         let mut n = 0;
         for folder in ["corpus", "regressions"] {
             let dir = root.join(folder).join(name);
-            let Ok(entries) = std::fs::read_dir(&dir) else { continue };
-            let mut files: Vec<PathBuf> = entries.flatten().map(|e| e.path()).filter(|p| p.is_file()).collect();
+            let Ok(entries) = std::fs::read_dir(&dir) else {
+                continue;
+            };
+            let mut files: Vec<PathBuf> = entries
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.is_file())
+                .collect();
             files.sort();
             for path in files {
                 let bytes = std::fs::read(&path).unwrap();
@@ -30,16 +36,33 @@ fn every_corpus_file_and_past_crasher_loads_or_fails_cleanly() {
                 let took = t0.elapsed();
                 n += 1;
                 if let Err(p) = result {
-                    let message = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_default();
+                    let message = p
+                        .downcast_ref::<String>()
+                        .cloned()
+                        .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                        .unwrap_or_default();
                     failures.push(format!("{name}: {}: panicked: {message}", path.display()));
                 } else if took > HANG {
-                    failures.push(format!("{name}: {}: took {:.1} s", path.display(), took.as_secs_f64()));
+                    failures.push(format!(
+                        "{name}: {}: took {:.1} s",
+                        path.display(),
+                        took.as_secs_f64()
+                    ));
                 }
             }
         }
-        assert!(n > 0, "fuzz target '{name}' has no corpus in {}", root.join("corpus").join(name).display());
+        assert!(
+            n > 0,
+            "fuzz target '{name}' has no corpus in {}",
+            root.join("corpus").join(name).display()
+        );
         counts.push(format!("{name} {n}"));
     }
     eprintln!("replayed: {}", counts.join(", "));
-    assert!(failures.is_empty(), "{} inputs failed:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} inputs failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }

@@ -7,7 +7,10 @@ use drape_trainer::dataset::image::{read_mask, read_rgb, MaskRule};
 
 fn max_diff(a: &[f32], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (f64::from(*x) - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (f64::from(*x) - y).abs())
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -18,11 +21,26 @@ fn images_written_by_other_tools_load_with_their_values() {
         // f32 holds v/65535 to ~3e-8: a 16-bit image truncated to 8 bits would be off by up to 1/255.
         ("rgb16.png", "rgb16_expected", 1e-6, "16 bits kept"),
         ("rgba.png", "rgba_expected", 1e-6, "exact 8-bit values"),
-        ("grey_alpha.png", "grey_alpha_expected", 1e-6, "exact 8-bit values"),
+        (
+            "grey_alpha.png",
+            "grey_alpha_expected",
+            1e-6,
+            "exact 8-bit values",
+        ),
         // Two JPEG decoders (libjpeg's and zune-jpeg) may round the IDCT and the colour
         // conversion differently: two 8-bit steps.
-        ("rgb.jpg", "rgb_jpg_expected", 2.0 / 255.0 + 1e-6, "IDCT rounding"),
-        ("cmyk.jpg", "cmyk_expected", 2.0 / 255.0 + 1e-6, "IDCT rounding"),
+        (
+            "rgb.jpg",
+            "rgb_jpg_expected",
+            2.0 / 255.0 + 1e-6,
+            "IDCT rounding",
+        ),
+        (
+            "cmyk.jpg",
+            "cmyk_expected",
+            2.0 / 255.0 + 1e-6,
+            "IDCT rounding",
+        ),
     ] {
         let img = read_rgb(&dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
         assert_eq!((img.width, img.height), (16, 12), "{file}");
@@ -30,12 +48,20 @@ fn images_written_by_other_tools_load_with_their_values() {
         eprintln!("{file}: max difference {d:.2e} ({why})");
         assert!(d <= tol, "{file}: max difference {d} > {tol} ({why})");
     }
-    for (rule, expected) in [(MaskRule::NonZero, "mask16_nonzero"), (MaskRule::AtLeastHalf, "mask16_half")] {
+    for (rule, expected) in [
+        (MaskRule::NonZero, "mask16_nonzero"),
+        (MaskRule::AtLeastHalf, "mask16_half"),
+    ] {
         let (w, h, m) = read_mask(&dir.join("mask16.png"), rule).unwrap();
         assert_eq!((w, h), (16, 12));
         let want: Vec<bool> = get(&dir, expected).iter().map(|&v| v > 0.5).collect();
         assert_eq!(m, want, "{rule:?}");
     }
-    let err = read_rgb(&dir.join("truncated.jpg")).unwrap_err().to_string();
-    assert!(err.contains("truncated.jpg") && err.lines().count() == 1, "{err}");
+    let err = read_rgb(&dir.join("truncated.jpg"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("truncated.jpg") && err.lines().count() == 1,
+        "{err}"
+    );
 }

@@ -43,8 +43,10 @@ struct SourceModule {
 }
 
 fn module_path(relative: &Path) -> ModPath {
-    let mut parts: Vec<String> =
-        relative.iter().map(|p| p.to_string_lossy().into_owned()).collect();
+    let mut parts: Vec<String> = relative
+        .iter()
+        .map(|p| p.to_string_lossy().into_owned())
+        .collect();
     let last = parts.pop().expect("a file name");
     let stem = last.strip_suffix(".rs").expect("a .rs file").to_string();
     if stem != "mod" && !(parts.is_empty() && stem == "lib") {
@@ -286,7 +288,11 @@ fn parse_use_tree(
 
 impl SourceModule {
     fn new(path: ModPath, file: String, src: &str) -> Self {
-        SourceModule { path, file, tokens: tokenize(&blank_comments_and_literals(src)) }
+        SourceModule {
+            path,
+            file,
+            tokens: tokenize(&blank_comments_and_literals(src)),
+        }
     }
 
     /// Every path written in the file: `use` leaves (with the name they bind and
@@ -417,7 +423,9 @@ impl Resolver {
                 if inline_depth == 0 && self.modules.contains(&child) {
                     Some([at.as_slice(), segments].concat())
                 } else {
-                    aliases.get(first).map(|target| [target.as_slice(), &segments[1..]].concat())
+                    aliases
+                        .get(first)
+                        .map(|target| [target.as_slice(), &segments[1..]].concat())
                 }
             }
         }
@@ -429,7 +437,10 @@ impl Resolver {
     fn defining_module(&self, path: &[String]) -> (ModPath, bool) {
         let mut path = path.to_vec();
         for _ in 0..16 {
-            let len = (0..=path.len()).rev().find(|&n| self.modules.contains(&path[..n])).unwrap();
+            let len = (0..=path.len())
+                .rev()
+                .find(|&n| self.modules.contains(&path[..n]))
+                .unwrap();
             let module = path[..len].to_vec();
             if len == path.len() {
                 return (module, true);
@@ -455,7 +466,10 @@ impl ModuleGraph {
     fn build(sources: &[SourceModule]) -> Self {
         let modules: BTreeSet<ModPath> = sources.iter().map(|s| s.path.clone()).collect();
         let paths: Vec<Vec<WrittenPath>> = sources.iter().map(SourceModule::paths).collect();
-        let mut resolver = Resolver { modules, reexports: BTreeMap::new() };
+        let mut resolver = Resolver {
+            modules,
+            reexports: BTreeMap::new(),
+        };
         // Re-exports first (they may chain, so resolve them lazily through `absolute`).
         for (source, written) in sources.iter().zip(&paths) {
             for w in written.iter().filter(|w| w.exported && w.inline_depth == 0) {
@@ -463,7 +477,11 @@ impl ModuleGraph {
                     &w.binds,
                     resolver.absolute(&source.path, 0, &BTreeMap::new(), &w.segments),
                 ) {
-                    resolver.reexports.entry(source.path.clone()).or_default().insert(name.clone(), abs);
+                    resolver
+                        .reexports
+                        .entry(source.path.clone())
+                        .or_default()
+                        .insert(name.clone(), abs);
                 }
             }
         }
@@ -472,7 +490,8 @@ impl ModuleGraph {
             let edges = graph.edges.entry(source.path.clone()).or_default();
             let mut aliases: BTreeMap<String, Vec<String>> = BTreeMap::new();
             for w in written {
-                let Some(abs) = resolver.absolute(&source.path, w.inline_depth, &aliases, &w.segments)
+                let Some(abs) =
+                    resolver.absolute(&source.path, w.inline_depth, &aliases, &w.segments)
                 else {
                     continue;
                 };
@@ -488,7 +507,10 @@ impl ModuleGraph {
                     Some(None) | None => {}
                 }
                 if module != source.path {
-                    edges.entry(module).or_insert(Site { file: source.file.clone(), line: w.line });
+                    edges.entry(module).or_insert(Site {
+                        file: source.file.clone(),
+                        line: w.line,
+                    });
                 }
             }
         }
@@ -587,11 +609,21 @@ impl ModuleGraph {
             .windows(2)
             .map(|pair| {
                 let site = &self.edges[pair[0]][pair[1]];
-                format!("  {} -> {} ({}:{})", join(pair[0]), join(pair[1]), site.file, site.line)
+                format!(
+                    "  {} -> {} ({}:{})",
+                    join(pair[0]),
+                    join(pair[1]),
+                    site.file,
+                    site.line
+                )
             })
             .collect();
         let members: Vec<String> = component.iter().map(join).collect();
-        format!("cycle among {{{}}}:\n{}", members.join(", "), steps.join("\n"))
+        format!(
+            "cycle among {{{}}}:\n{}",
+            members.join(", "),
+            steps.join("\n")
+        )
     }
 }
 
@@ -616,7 +648,11 @@ fn trainer_sources() -> Vec<SourceModule> {
         .map(|file| {
             let relative = file.strip_prefix(&root).unwrap();
             let src = std::fs::read_to_string(file).unwrap();
-            SourceModule::new(module_path(relative), format!("src/{}", relative.display()), &src)
+            SourceModule::new(
+                module_path(relative),
+                format!("src/{}", relative.display()),
+                &src,
+            )
         })
         .collect()
 }
@@ -637,13 +673,21 @@ fn has_edge(graph: &ModuleGraph, from: &[&str], to: &[&str]) -> bool {
 #[test]
 fn trainer_modules_form_no_cycle() {
     let sources = trainer_sources();
-    assert!(sources.len() > 20, "trainer/src has {} files", sources.len());
+    assert!(
+        sources.len() > 20,
+        "trainer/src has {} files",
+        sources.len()
+    );
     let graph = ModuleGraph::build(&sources);
     // The reader sees known edges, so an empty graph cannot pass for an acyclic one.
     assert!(has_edge(&graph, &["avatar", "train"], &["avatar", "step"]));
     assert!(has_edge(&graph, &["avatar", "train"], &["error"]));
     let explanations: Vec<String> = graph.cycles().iter().map(|c| graph.explain(c)).collect();
-    assert!(explanations.is_empty(), "modules of trainer/src import each other:\n{}", explanations.join("\n"));
+    assert!(
+        explanations.is_empty(),
+        "modules of trainer/src import each other:\n{}",
+        explanations.join("\n")
+    );
 }
 
 #[test]
@@ -651,12 +695,21 @@ fn a_back_edge_through_super_or_a_reexport_is_a_cycle() {
     let sources = in_memory(&[
         ("lib.rs", "pub mod a; pub mod b; pub use b::Thing;"),
         // `crate::Thing` is b's, through the root's re-export: the edge is a→b, not a→crate.
-        ("a/mod.rs", "pub mod inner;\nuse crate::Thing;\npub fn f() {}\n"),
+        (
+            "a/mod.rs",
+            "pub mod inner;\nuse crate::Thing;\npub fn f() {}\n",
+        ),
         ("a/inner.rs", "pub struct Inner;\nfn g() { super::f() }\n"),
-        ("b.rs", "pub struct Thing;\nfn h() { let _ = super::a::inner::Inner; }\n"),
+        (
+            "b.rs",
+            "pub struct Thing;\nfn h() { let _ = super::a::inner::Inner; }\n",
+        ),
     ]);
     let graph = ModuleGraph::build(&sources);
-    assert!(!has_edge(&graph, &["a"], &[]), "a names b's Thing, not the root");
+    assert!(
+        !has_edge(&graph, &["a"], &[]),
+        "a names b's Thing, not the root"
+    );
     let cycles = graph.cycles();
     assert_eq!(cycles.len(), 1, "{cycles:?}");
     let text = graph.explain(&cycles[0]);
@@ -685,13 +738,32 @@ fn comments_strings_and_inline_test_modules_make_no_edge() {
 #[test]
 fn the_metrics_name_no_module_of_the_avatar() {
     let graph = ModuleGraph::build(&trainer_sources());
-    let metrics: Vec<&ModPath> = graph.edges.keys().filter(|m| m.first().is_some_and(|s| s == "metrics")).collect();
-    assert_eq!(metrics.len(), 3, "metrics, metrics::fid, metrics::fid_weights: {metrics:?}");
+    let metrics: Vec<&ModPath> = graph
+        .edges
+        .keys()
+        .filter(|m| m.first().is_some_and(|s| s == "metrics"))
+        .collect();
+    assert_eq!(
+        metrics.len(),
+        3,
+        "metrics, metrics::fid, metrics::fid_weights: {metrics:?}"
+    );
     // The reader sees the metrics' known edges, so an empty graph cannot pass.
-    assert!(has_edge(&graph, &["metrics", "fid"], &["metrics", "fid_weights"]));
+    assert!(has_edge(
+        &graph,
+        &["metrics", "fid"],
+        &["metrics", "fid_weights"]
+    ));
     for m in metrics {
         for (to, site) in &graph.edges[m] {
-            assert!(to.first().is_none_or(|s| s != "avatar"), "{} names {} ({}:{}): a metric knows no avatar", join(m), join(to), site.file, site.line);
+            assert!(
+                to.first().is_none_or(|s| s != "avatar"),
+                "{} names {} ({}:{}): a metric knows no avatar",
+                join(m),
+                join(to),
+                site.file,
+                site.line
+            );
         }
     }
 }

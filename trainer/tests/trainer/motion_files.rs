@@ -24,7 +24,12 @@ fn files() -> &'static Path {
 /// Whitespace-separated numbers as numpy's `savetxt('%.17g')` writes them: exact f64.
 fn text_numbers(path: &Path) -> Vec<f64> {
     let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    text.split_whitespace().map(|v| v.parse::<f64>().unwrap_or_else(|e| panic!("{}: '{v}': {e}", path.display()))).collect()
+    text.split_whitespace()
+        .map(|v| {
+            v.parse::<f64>()
+                .unwrap_or_else(|e| panic!("{}: '{v}': {e}", path.display()))
+        })
+        .collect()
 }
 
 fn load(case: &str) -> Motion {
@@ -38,15 +43,34 @@ fn worst_difference(case: &str, m: &Motion) -> (f64, f64) {
     let poses = text_numbers(&expected.join("poses.txt"));
     let trans = text_numbers(&expected.join("trans.txt"));
     assert_eq!(m.len() * 72, poses.len(), "{case}: frames");
-    assert_eq!(m.translations.len() * 3, trans.len(), "{case}: translation frames");
-    assert_eq!(m.fps, text_numbers(&expected.join("fps.txt"))[0], "{case}: fps");
-    let got_poses: Vec<f64> = m.poses.iter().flatten().flat_map(|r| r.to_array()).collect();
+    assert_eq!(
+        m.translations.len() * 3,
+        trans.len(),
+        "{case}: translation frames"
+    );
+    assert_eq!(
+        m.fps,
+        text_numbers(&expected.join("fps.txt"))[0],
+        "{case}: fps"
+    );
+    let got_poses: Vec<f64> = m
+        .poses
+        .iter()
+        .flatten()
+        .flat_map(|r| r.to_array())
+        .collect();
     let got_trans: Vec<f64> = m.translations.iter().flat_map(|t| t.to_array()).collect();
-    (max_abs_diff(&got_poses, &poses), max_abs_diff(&got_trans, &trans))
+    (
+        max_abs_diff(&got_poses, &poses),
+        max_abs_diff(&got_trans, &trans),
+    )
 }
 
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -57,22 +81,45 @@ fn numpy_motions_load_exactly_as_written() {
         assert_eq!(worst_difference(case, &m), (0.0, 0.0), "{case}");
     }
     let m = load("body22");
-    assert!(m.poses.iter().all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO), "22-joint file: hands at rest");
+    assert!(
+        m.poses
+            .iter()
+            .all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO),
+        "22-joint file: hands at rest"
+    );
 }
 
 #[test]
 fn amass_files_load_as_a_y_up_smpl_motion() {
-    for case in ["amass", "amass_object_gender", "amass_bytes_gender", "amass_compressed", "amass_smplx"] {
+    for case in [
+        "amass",
+        "amass_object_gender",
+        "amass_bytes_gender",
+        "amass_compressed",
+        "amass_smplx",
+    ] {
         let m = load(case);
         let (poses, trans) = worst_difference(case, &m);
         // Joints 1-21 and the hands are copied (exact); the root is composed with the
         // -90° x rotation here through quaternions and by scipy through its own route,
         // a few f64 roundings apart on angles below 1.2 rad.
-        assert!(poses <= 1e-14, "{case}: poses differ from the AMASS conversion by {poses:e}");
+        assert!(
+            poses <= 1e-14,
+            "{case}: poses differ from the AMASS conversion by {poses:e}"
+        );
         // A permutation, a sign and one subtraction, as numpy does them: exact.
         assert_eq!(trans, 0.0, "{case}: translation");
-        assert!(m.poses.iter().all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO), "{case}: SMPL's hand joints must be at rest");
-        assert_eq!(m.translations[0], DVec3::ZERO, "{case}: the motion starts where the body stands");
+        assert!(
+            m.poses
+                .iter()
+                .all(|p| p[22] == DVec3::ZERO && p[23] == DVec3::ZERO),
+            "{case}: SMPL's hand joints must be at rest"
+        );
+        assert_eq!(
+            m.translations[0],
+            DVec3::ZERO,
+            "{case}: the motion starts where the body stands"
+        );
     }
     // A subject standing upright in AMASS's z-up world stands upright here: the file's
     // roots are +90° about x composed with turns of at most 0.4 rad per axis.
@@ -90,32 +137,62 @@ fn amass_body_joints_are_the_first_66_columns() {
     let raw = npz.require("poses", &[None, Some(156)]).expect("poses");
     for (f, p) in load("amass").poses.iter().enumerate() {
         for (j, joint) in p.iter().enumerate().take(22).skip(1) {
-            assert_eq!(&joint.to_array()[..], &raw.data[156 * f + 3 * j..156 * f + 3 * j + 3], "frame {f} joint {j}");
+            assert_eq!(
+                &joint.to_array()[..],
+                &raw.data[156 * f + 3 * j..156 * f + 3 * j + 3],
+                "frame {f} joint {j}"
+            );
         }
     }
 }
 
 #[test]
 fn text_and_pickled_entries_do_not_stop_an_archive_but_asking_for_one_says_why() {
-    for (case, descr) in [("amass", "<U4"), ("amass_object_gender", "|O"), ("amass_bytes_gender", "|S6")] {
+    for (case, descr) in [
+        ("amass", "<U4"),
+        ("amass_object_gender", "|O"),
+        ("amass_bytes_gender", "|S6"),
+    ] {
         let path = files().join(format!("{case}.npz"));
         let npz = Npz::read(&path).unwrap_or_else(|e| panic!("{case}: {e}"));
-        assert!(npz.contains("gender") && !npz.arrays.contains_key("gender"), "{case}: gender kept aside");
-        let err = npz.require("gender", &[]).expect_err("text is not decoded").to_string();
-        assert!(err.contains(&path.display().to_string()) && err.contains("['gender']") && err.contains(descr), "{case}: {err}");
-        assert_eq!(drape_trainer::npy::read_npz(&path).expect("read_npz").len(), 5, "{case}: every numeric array");
+        assert!(
+            npz.contains("gender") && !npz.arrays.contains_key("gender"),
+            "{case}: gender kept aside"
+        );
+        let err = npz
+            .require("gender", &[])
+            .expect_err("text is not decoded")
+            .to_string();
+        assert!(
+            err.contains(&path.display().to_string())
+                && err.contains("['gender']")
+                && err.contains(descr),
+            "{case}: {err}"
+        );
+        assert_eq!(
+            drape_trainer::npy::read_npz(&path).expect("read_npz").len(),
+            5,
+            "{case}: every numeric array"
+        );
     }
     // The 0-d float numpy writes for mocap_framerate is a scalar; so is a (1) array.
     let npz = Npz::read(&files().join("amass.npz")).expect("read");
     assert_eq!(npz.scalar("mocap_framerate").expect("0-d"), 120.0);
-    let err = npz.scalar("betas").expect_err("16 values are no scalar").to_string();
+    let err = npz
+        .scalar("betas")
+        .expect_err("16 values are no scalar")
+        .to_string();
     assert!(err.contains("['betas']") && err.contains("[16]"), "{err}");
 }
 
 #[test]
 fn bad_motion_files_are_refused_in_one_line_naming_the_file_and_field() {
     for (case, field, words) in [
-        ("bad_width", "['poses']", &["100 values per frame", "72"][..]),
+        (
+            "bad_width",
+            "['poses']",
+            &["100 values per frame", "72"][..],
+        ),
         ("bad_nan", "['poses']", &["NaN"][..]),
         ("bad_no_poses", "['poses']", &["missing"][..]),
         ("bad_frames", "['trans']", &["5 frames", "6"][..]),
@@ -130,7 +207,10 @@ fn bad_motion_files_are_refused_in_one_line_naming_the_file_and_field() {
             Err(e) => e.to_string(),
         };
         assert!(!err.contains('\n'), "{case}: one line: {err}");
-        assert!(err.contains(&path.display().to_string()) && err.contains(field), "{case}: names the file and {field}: {err}");
+        assert!(
+            err.contains(&path.display().to_string()) && err.contains(field),
+            "{case}: names the file and {field}: {err}"
+        );
         for w in words {
             assert!(err.contains(w), "{case}: says '{w}': {err}");
         }

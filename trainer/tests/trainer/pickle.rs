@@ -21,21 +21,54 @@ fn temp(name: &str) -> PathBuf {
 }
 
 fn annots() -> PyValue {
-    let k = Array::f64(vec![3, 3], vec![500.0, 0.0, 256.0, 0.0, 501.0, 255.5, 0.0, 0.0, 1.0]);
+    let k = Array::f64(
+        vec![3, 3],
+        vec![500.0, 0.0, 256.0, 0.0, 501.0, 255.5, 0.0, 0.0, 1.0],
+    );
     let d = Array::f64(vec![5, 1], vec![0.0; 5]);
-    let r = Array::f64(vec![3, 3], vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+    let r = Array::f64(
+        vec![3, 3],
+        vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+    );
     let t = Array::f64(vec![3, 1], vec![10.0, -20.5, 3000.0]);
     PyValue::dict(vec![
-        ("cams", PyValue::dict(vec![
-            ("K", PyValue::List(vec![PyValue::Array(k.clone()), PyValue::Array(k)])),
-            ("D", PyValue::List(vec![PyValue::Array(d.clone()), PyValue::Array(d)])),
-            ("R", PyValue::List(vec![PyValue::Array(r.clone()), PyValue::Array(r)])),
-            ("T", PyValue::List(vec![PyValue::Array(t.clone()), PyValue::Array(t)])),
-        ])),
-        ("ims", PyValue::List((0..3).map(|f| PyValue::dict(vec![("ims", PyValue::List(vec![
-            PyValue::Str(format!("Camera_B1/{f:06}.jpg")),
-            PyValue::Str(format!("Camera_B2/{f:06}.jpg")),
-        ]))])).collect())),
+        (
+            "cams",
+            PyValue::dict(vec![
+                (
+                    "K",
+                    PyValue::List(vec![PyValue::Array(k.clone()), PyValue::Array(k)]),
+                ),
+                (
+                    "D",
+                    PyValue::List(vec![PyValue::Array(d.clone()), PyValue::Array(d)]),
+                ),
+                (
+                    "R",
+                    PyValue::List(vec![PyValue::Array(r.clone()), PyValue::Array(r)]),
+                ),
+                (
+                    "T",
+                    PyValue::List(vec![PyValue::Array(t.clone()), PyValue::Array(t)]),
+                ),
+            ]),
+        ),
+        (
+            "ims",
+            PyValue::List(
+                (0..3)
+                    .map(|f| {
+                        PyValue::dict(vec![(
+                            "ims",
+                            PyValue::List(vec![
+                                PyValue::Str(format!("Camera_B1/{f:06}.jpg")),
+                                PyValue::Str(format!("Camera_B2/{f:06}.jpg")),
+                            ]),
+                        )])
+                    })
+                    .collect(),
+            ),
+        ),
     ])
 }
 
@@ -47,7 +80,11 @@ fn object_npy_round_trips_in_rust() {
 }
 
 fn python(script: &str) -> std::process::Output {
-    Command::new("python3").arg("-c").arg(script).output().expect("python3 runs")
+    Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .output()
+        .expect("python3 runs")
 }
 
 #[test]
@@ -68,12 +105,27 @@ np.save({theirs:?}, b)
 "#
     );
     let out = python(&script);
-    assert!(out.status.success(), "numpy could not read our annots.npy: {}", String::from_utf8_lossy(&out.stderr));
-    let v = decode_object_npy(&std::fs::read(&theirs).unwrap(), "annots_numpy.npy").expect("we read numpy's pickle");
-    let k = v.get("cams").and_then(|c| c.get("K")).and_then(|k| k.as_list()).and_then(|l| l[0].as_array()).expect("K");
+    assert!(
+        out.status.success(),
+        "numpy could not read our annots.npy: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v = decode_object_npy(&std::fs::read(&theirs).unwrap(), "annots_numpy.npy")
+        .expect("we read numpy's pickle");
+    let k = v
+        .get("cams")
+        .and_then(|c| c.get("K"))
+        .and_then(|k| k.as_list())
+        .and_then(|l| l[0].as_array())
+        .expect("K");
     assert_eq!(k.shape, vec![3, 3]);
     assert_eq!(k.data[5], 5.0);
-    let t = v.get("cams").and_then(|c| c.get("T")).and_then(|k| k.as_list()).and_then(|l| l[0].as_array()).expect("T");
+    let t = v
+        .get("cams")
+        .and_then(|c| c.get("T"))
+        .and_then(|k| k.as_list())
+        .and_then(|l| l[0].as_array())
+        .expect("T");
     assert_eq!(t.shape, vec![3, 1]);
     assert_eq!(v.get("n"), Some(&PyValue::Int(7)));
     assert_eq!(v.get("f"), Some(&PyValue::Float(0.25)));
@@ -89,10 +141,30 @@ fn numpy_files() -> &'static [(String, PathBuf)] {
         let two = case_dir("pickle", "numpy_annots");
         run("write_annots.py", std::slice::from_ref(&two));
         let one = case_dir("pickle", "numpy1_annots");
-        run_with(&clients_python(), "write_annots.py", std::slice::from_ref(&one));
-        let version = |py: &Path| String::from_utf8_lossy(&Command::new(py).args(["-c", "import numpy; print(numpy.__version__)"]).output().expect("python runs").stdout).trim().to_string();
-        let (v2, v1) = (version(&drape_tests::reference_python::python()), version(&clients_python()));
-        assert!(v2.starts_with("2.") && v1.starts_with("1."), "numpy {v2} and {v1}: one 2.x and one 1.x expected");
+        run_with(
+            &clients_python(),
+            "write_annots.py",
+            std::slice::from_ref(&one),
+        );
+        let version = |py: &Path| {
+            String::from_utf8_lossy(
+                &Command::new(py)
+                    .args(["-c", "import numpy; print(numpy.__version__)"])
+                    .output()
+                    .expect("python runs")
+                    .stdout,
+            )
+            .trim()
+            .to_string()
+        };
+        let (v2, v1) = (
+            version(&drape_tests::reference_python::python()),
+            version(&clients_python()),
+        );
+        assert!(
+            v2.starts_with("2.") && v1.starts_with("1."),
+            "numpy {v2} and {v1}: one 2.x and one 1.x expected"
+        );
         vec![(format!("numpy {v2}"), two), (format!("numpy {v1}"), one)]
     })
 }
@@ -104,8 +176,16 @@ fn numpy_cases() -> Vec<(String, PathBuf)> {
     for (numpy, dir) in numpy_files() {
         let text = std::fs::read_to_string(dir.join("cases.txt")).expect("cases.txt");
         let cases: Vec<&str> = text.lines().filter(|l| !l.is_empty()).collect();
-        assert_eq!(cases.len(), 15, "{numpy}: three dtypes by five ways of saving: {cases:?}");
-        out.extend(cases.into_iter().map(|c| (format!("{numpy} {c}"), dir.join(c))));
+        assert_eq!(
+            cases.len(),
+            15,
+            "{numpy}: three dtypes by five ways of saving: {cases:?}"
+        );
+        out.extend(
+            cases
+                .into_iter()
+                .map(|c| (format!("{numpy} {c}"), dir.join(c))),
+        );
     }
     out
 }
@@ -113,7 +193,11 @@ fn numpy_cases() -> Vec<(String, PathBuf)> {
 /// Compares `got` with `expected` exactly, noting the first difference in `failures`.
 fn compare(failures: &mut Vec<String>, what: String, got: &[f64], expected: &[f64]) {
     if got.len() != expected.len() {
-        failures.push(format!("{what}: {} values, expected {}", got.len(), expected.len()));
+        failures.push(format!(
+            "{what}: {} values, expected {}",
+            got.len(),
+            expected.len()
+        ));
     } else if let Some(i) = (0..got.len()).find(|&i| got[i].to_bits() != expected[i].to_bits()) {
         failures.push(format!("{what}[{i}]: {} != {}", got[i], expected[i]));
     }
@@ -135,16 +219,51 @@ fn numpy_written_annots_load_with_the_values_numpy_wrote() {
         // Stacked per camera, as stored: T in millimetres, which the loader divides by 1000.
         let t_mm = get(&expected, "T");
         let t: Vec<f64> = t_mm.iter().map(|v| v / 1000.0).collect();
-        compare(&mut failures, format!("{case} K"), &cams.iter().flat_map(|c| c.k.iter().flatten().copied()).collect::<Vec<_>>(), &get(&expected, "K"));
-        compare(&mut failures, format!("{case} D"), &cams.iter().flat_map(|c| c.d).collect::<Vec<_>>(), &get(&expected, "D"));
-        compare(&mut failures, format!("{case} R"), &cams.iter().flat_map(|c| c.r.iter().flatten().copied()).collect::<Vec<_>>(), &get(&expected, "R"));
-        compare(&mut failures, format!("{case} T"), &cams.iter().flat_map(|c| c.t).collect::<Vec<_>>(), &t);
-        let ims: Vec<Vec<String>> = std::fs::read_to_string(expected.join("ims.txt")).expect("ims.txt").lines().map(|l| l.split('\t').map(str::to_string).collect()).collect();
+        compare(
+            &mut failures,
+            format!("{case} K"),
+            &cams
+                .iter()
+                .flat_map(|c| c.k.iter().flatten().copied())
+                .collect::<Vec<_>>(),
+            &get(&expected, "K"),
+        );
+        compare(
+            &mut failures,
+            format!("{case} D"),
+            &cams.iter().flat_map(|c| c.d).collect::<Vec<_>>(),
+            &get(&expected, "D"),
+        );
+        compare(
+            &mut failures,
+            format!("{case} R"),
+            &cams
+                .iter()
+                .flat_map(|c| c.r.iter().flatten().copied())
+                .collect::<Vec<_>>(),
+            &get(&expected, "R"),
+        );
+        compare(
+            &mut failures,
+            format!("{case} T"),
+            &cams.iter().flat_map(|c| c.t).collect::<Vec<_>>(),
+            &t,
+        );
+        let ims: Vec<Vec<String>> = std::fs::read_to_string(expected.join("ims.txt"))
+            .expect("ims.txt")
+            .lines()
+            .map(|l| l.split('\t').map(str::to_string).collect())
+            .collect();
         if annots.images != ims {
             failures.push(format!("{case} ims: {:?}, expected {ims:?}", annots.images));
         }
     }
-    assert!(failures.is_empty(), "{} problems:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} problems:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]
@@ -160,13 +279,38 @@ fn numpy_written_smpl_params_load_with_the_values_numpy_wrote() {
                     continue;
                 }
             };
-            compare(&mut failures, format!("{case} {frame} poses"), &p.poses, &get(&expected, &format!("smpl{frame}_poses")));
-            compare(&mut failures, format!("{case} {frame} Rh"), &p.rh, &get(&expected, &format!("smpl{frame}_Rh")));
-            compare(&mut failures, format!("{case} {frame} Th"), &p.th, &get(&expected, &format!("smpl{frame}_Th")));
-            compare(&mut failures, format!("{case} {frame} shapes"), &p.shapes, &get(&expected, &format!("smpl{frame}_shapes")));
+            compare(
+                &mut failures,
+                format!("{case} {frame} poses"),
+                &p.poses,
+                &get(&expected, &format!("smpl{frame}_poses")),
+            );
+            compare(
+                &mut failures,
+                format!("{case} {frame} Rh"),
+                &p.rh,
+                &get(&expected, &format!("smpl{frame}_Rh")),
+            );
+            compare(
+                &mut failures,
+                format!("{case} {frame} Th"),
+                &p.th,
+                &get(&expected, &format!("smpl{frame}_Th")),
+            );
+            compare(
+                &mut failures,
+                format!("{case} {frame} shapes"),
+                &p.shapes,
+                &get(&expected, &format!("smpl{frame}_shapes")),
+            );
         }
     }
-    assert!(failures.is_empty(), "{} problems:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} problems:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }
 
 // ---- Python's semantics and hostile input, on hand-made pickles ----
@@ -177,14 +321,20 @@ fn memo_entries_are_references() {
     // fetched by BINGET and appended to; the tuple holds that same list.
     let bytes = b"\x80\x02(]q\x00h\x00th\x00K\x01a0.";
     let one = PyValue::List(vec![PyValue::Int(1)]);
-    assert_eq!(decode(bytes, "memo").unwrap(), PyValue::Tuple(vec![one.clone(), one]));
+    assert_eq!(
+        decode(bytes, "memo").unwrap(),
+        PyValue::Tuple(vec![one.clone(), one])
+    );
 }
 
 /// Every truncation of `bytes` and every byte of it replaced by a few values: the reader
 /// returns (an error or a value), it does not panic.
 fn mutations_do_not_panic(name: &str, bytes: &[u8]) {
     for n in 0..bytes.len() {
-        assert!(decode_object_npy(&bytes[..n], name).is_err(), "{name} cut to {n} bytes");
+        assert!(
+            decode_object_npy(&bytes[..n], name).is_err(),
+            "{name} cut to {n} bytes"
+        );
     }
     let mut copy = bytes.to_vec();
     for i in 0..bytes.len() {
@@ -218,23 +368,40 @@ fn hostile_pickles_are_refused_with_what_is_wrong() {
     for op in [0x8du8, 0x8e, 0x96] {
         let mut b = vec![0x80, 5, op];
         b.extend_from_slice(&u64::MAX.to_le_bytes());
-        assert!(matches!(problem(&b), PickleProblem::Truncated), "opcode 0x{op:02x}");
+        assert!(
+            matches!(problem(&b), PickleProblem::Truncated),
+            "opcode 0x{op:02x}"
+        );
     }
-    assert!(matches!(problem(b"\x80\x02X\xff\xff\xff\xffab"), PickleProblem::Truncated));
+    assert!(matches!(
+        problem(b"\x80\x02X\xff\xff\xff\xffab"),
+        PickleProblem::Truncated
+    ));
     // Lists nested 100 000 deep, and a list that holds itself.
     let mut deep = vec![0x80, 2];
     deep.extend(std::iter::repeat_n(b']', 100_000));
     deep.extend(std::iter::repeat_n(b'a', 99_999));
     deep.push(b'.');
-    assert!(matches!(problem(&deep), PickleProblem::TooDeep { .. }), "{:?}", problem(&deep));
-    assert!(matches!(problem(b"\x80\x02]q\x00h\x00a."), PickleProblem::TooDeep { .. }));
+    assert!(
+        matches!(problem(&deep), PickleProblem::TooDeep { .. }),
+        "{:?}",
+        problem(&deep)
+    );
+    assert!(matches!(
+        problem(b"\x80\x02]q\x00h\x00a."),
+        PickleProblem::TooDeep { .. }
+    ));
     // Each step makes a list of two references to the previous one: 2^40 leaves.
     let mut wide = b"\x80\x02]q\x00".to_vec();
     for _ in 0..40 {
         wide.extend_from_slice(b"](h\x00h\x00eq\x00");
     }
     wide.extend_from_slice(b"h\x00.");
-    assert!(matches!(problem(&wide), PickleProblem::TooLarge { .. }), "{:?}", problem(&wide));
+    assert!(
+        matches!(problem(&wide), PickleProblem::TooLarge { .. }),
+        "{:?}",
+        problem(&wide)
+    );
     // An array whose shape's element count overflows, and one whose data is short.
     let frombuffer = |shape: &[u64], data: &[u8]| {
         let mut b = b"\x80\x04\x8c\x13numpy._core.numeric\x8c\x0b_frombuffer\x93(".to_vec();
@@ -249,14 +416,39 @@ fn hostile_pickles_are_refused_with_what_is_wrong() {
         b.extend_from_slice(b"t\x8c\x01CtR.");
         b
     };
-    let ok = decode(&frombuffer(&[2], &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f, 0, 0, 0, 0, 0, 0, 0, 0x40]), "frombuffer").unwrap();
+    let ok = decode(
+        &frombuffer(
+            &[2],
+            &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f, 0, 0, 0, 0, 0, 0, 0, 0x40],
+        ),
+        "frombuffer",
+    )
+    .unwrap();
     assert_eq!(ok, PyValue::Array(Array::f64(vec![2], vec![1.0, 2.0])));
-    assert!(matches!(problem(&frombuffer(&[1 << 62, 1 << 62], &[0; 8])), PickleProblem::Array { .. }));
-    assert!(matches!(problem(&frombuffer(&[3], &[0; 16])), PickleProblem::Array { .. }));
+    assert!(matches!(
+        problem(&frombuffer(&[1 << 62, 1 << 62], &[0; 8])),
+        PickleProblem::Array { .. }
+    ));
+    assert!(matches!(
+        problem(&frombuffer(&[3], &[0; 16])),
+        PickleProblem::Array { .. }
+    ));
     // Opcodes that reach below a MARK, and a MARK never closed.
-    assert!(matches!(problem(b"\x80\x02K\x01(\x85."), PickleProblem::Opcode { .. }));
-    assert!(matches!(problem(b"\x80\x02](a."), PickleProblem::Opcode { .. }));
-    assert!(matches!(problem(b"\x80\x02(."), PickleProblem::Empty | PickleProblem::Opcode { .. }));
+    assert!(matches!(
+        problem(b"\x80\x02K\x01(\x85."),
+        PickleProblem::Opcode { .. }
+    ));
+    assert!(matches!(
+        problem(b"\x80\x02](a."),
+        PickleProblem::Opcode { .. }
+    ));
+    assert!(matches!(
+        problem(b"\x80\x02(."),
+        PickleProblem::Empty | PickleProblem::Opcode { .. }
+    ));
     // A callable this reader does not call.
-    assert!(matches!(problem(b"\x80\x02cos\nsystem\nX\x02\x00\x00\x00ls\x85R."), PickleProblem::Call { .. }));
+    assert!(matches!(
+        problem(b"\x80\x02cos\nsystem\nX\x02\x00\x00\x00ls\x85R."),
+        PickleProblem::Call { .. }
+    ));
 }

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use drape_trainer::ply::{read, write};
 use drape_engine::ops::splat::scene::GaussianCloud;
+use drape_trainer::ply::{read, write};
 
 fn temp(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("drape-ply-tests-{}", std::process::id()));
@@ -37,13 +37,23 @@ fn round_trip_is_exact_for_every_degree() {
 /// f_rest channel-major, so f_rest_0..14 are the red channel's 15 coefficients.
 #[test]
 fn reads_the_reference_layout_channel_major() {
-    let names: Vec<String> = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    let names: Vec<String> = [
+        "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain((0..45).map(|i| format!("f_rest_{i}")))
+    .chain(
+        [
+            "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+        ]
         .iter()
-        .map(|s| s.to_string())
-        .chain((0..45).map(|i| format!("f_rest_{i}")))
-        .chain(["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"].iter().map(|s| s.to_string()))
-        .collect();
-    let mut header = String::from("ply\nformat binary_little_endian 1.0\ncomment written by a test\nelement vertex 1\n");
+        .map(|s| s.to_string()),
+    )
+    .collect();
+    let mut header = String::from(
+        "ply\nformat binary_little_endian 1.0\ncomment written by a test\nelement vertex 1\n",
+    );
     for n in &names {
         header += &format!("property float {n}\n");
     }
@@ -76,8 +86,13 @@ fn write_degree0(name: &str) -> (PathBuf, Vec<u8>) {
 }
 
 fn expect_error(path: &PathBuf, needle: &str) {
-    let err = read(path).expect_err("a bad file must not load").to_string();
-    assert!(err.contains(&path.display().to_string()), "the error names the file: {err}");
+    let err = read(path)
+        .expect_err("a bad file must not load")
+        .to_string();
+    assert!(
+        err.contains(&path.display().to_string()),
+        "the error names the file: {err}"
+    );
     assert!(err.contains(needle), "'{needle}' not in: {err}");
 }
 
@@ -93,7 +108,11 @@ fn truncated_file_is_reported() {
 #[test]
 fn missing_property_is_named() {
     let (path, bytes) = write_degree0("missing.ply");
-    let text = String::from_utf8_lossy(&bytes).replacen("property float scale_1\n", "property float other\n", 1);
+    let text = String::from_utf8_lossy(&bytes).replacen(
+        "property float scale_1\n",
+        "property float other\n",
+        1,
+    );
     std::fs::write(&path, text.as_bytes()).unwrap();
     expect_error(&path, "missing property 'scale_1'");
 }
@@ -101,8 +120,16 @@ fn missing_property_is_named() {
 #[test]
 fn wrong_property_type_is_named() {
     let (path, bytes) = write_degree0("wrong-type.ply");
-    let end = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
-    let header = String::from_utf8_lossy(&bytes[..end]).replacen("property float opacity", "property uchar opacity", 1);
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
+    let header = String::from_utf8_lossy(&bytes[..end]).replacen(
+        "property float opacity",
+        "property uchar opacity",
+        1,
+    );
     let mut out = header.into_bytes();
     out.extend_from_slice(&bytes[end..]);
     std::fs::write(&path, out).unwrap();
@@ -112,10 +139,12 @@ fn wrong_property_type_is_named() {
 #[test]
 fn vertex_count_larger_than_the_data_is_reported() {
     let (path, bytes) = write_degree0("count.ply");
-    let text = String::from_utf8_lossy(&bytes).replacen("element vertex 10\n", "element vertex 11\n", 1);
+    let text =
+        String::from_utf8_lossy(&bytes).replacen("element vertex 10\n", "element vertex 11\n", 1);
     // Same byte length: only the count changed.
     let mut out = bytes.clone();
-    out[..text.len().min(bytes.len())].copy_from_slice(&text.as_bytes()[..text.len().min(bytes.len())]);
+    out[..text.len().min(bytes.len())]
+        .copy_from_slice(&text.as_bytes()[..text.len().min(bytes.len())]);
     std::fs::write(&path, out).unwrap();
     expect_error(&path, "11 vertices");
 }

@@ -11,21 +11,36 @@ use drape_trainer::body::SmplModel;
 use drape_trainer::dataset::error::DatasetError;
 use drape_trainer::dataset::inspect::inspect;
 use drape_trainer::dataset::layout::{detect, Variant};
-use drape_trainer::dataset::variants::{write_neuman_variant, write_zju_variant};
-use drape_trainer::dataset::loader::{load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit};
+use drape_trainer::dataset::loader::{
+    load_neuman, load_zju, BodyParams, DatasetFrame, NeumanSplit,
+};
 use drape_trainer::dataset::raster::{render, Drawable};
 use drape_trainer::dataset::split::Split;
-use drape_trainer::dataset::synth::{generate, handheld_camera, posed_from_zju, ring_camera, SynthOptions};
+use drape_trainer::dataset::synth::{
+    generate, handheld_camera, posed_from_zju, ring_camera, SynthOptions,
+};
+use drape_trainer::dataset::variants::{write_neuman_variant, write_zju_variant};
 use drape_trainer::garment::load_obj;
 use drape_trainer::motion::{procedural, MotionKind};
 use glam::DVec3;
 
-const OPTIONS: SynthOptions = SynthOptions { width: 64, height: 64, frames: 6, cameras: 2, motion: MotionKind::Walk, seed: 3, samples: 1, garment: drape_trainer::garment::GarmentFit::Tight };
+const OPTIONS: SynthOptions = SynthOptions {
+    width: 64,
+    height: 64,
+    frames: 6,
+    cameras: 2,
+    motion: MotionKind::Walk,
+    seed: 3,
+    samples: 1,
+    garment: drape_trainer::garment::GarmentFit::Tight,
+};
 
 fn base() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("drape-synth-tests-{}", std::process::id())).join("base");
+        let dir = std::env::temp_dir()
+            .join(format!("drape-synth-tests-{}", std::process::id()))
+            .join("base");
         generate(&dir, &OPTIONS, &mut |_, _, _| {}).expect("synth");
         dir
     })
@@ -43,7 +58,11 @@ fn copy(name: &str) -> PathBuf {
         for e in std::fs::read_dir(from).unwrap() {
             let e = e.unwrap();
             let (src, dst) = (e.path(), to.join(e.file_name()));
-            if src.is_dir() { rec(&src, &dst) } else { std::fs::copy(&src, &dst).unwrap(); }
+            if src.is_dir() {
+                rec(&src, &dst)
+            } else {
+                std::fs::copy(&src, &dst).unwrap();
+            }
         }
     }
     let dst = base().parent().unwrap().join(name);
@@ -56,30 +75,65 @@ fn copy(name: &str) -> PathBuf {
 fn loaders_read_every_frame_and_split() {
     let n = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).expect("neuman");
     assert_eq!(n.len(), OPTIONS.frames);
-    assert_eq!(n.iter().filter(|f| f.split == Split::Test).count(), 1, "frame 2 of 6");
-    assert!(n.iter().all(|f| f.garment_masks.is_some() && f.rgb.len() == 64 * 64 * 3));
+    assert_eq!(
+        n.iter().filter(|f| f.split == Split::Test).count(),
+        1,
+        "frame 2 of 6"
+    );
+    assert!(n
+        .iter()
+        .all(|f| f.garment_masks.is_some() && f.rgb.len() == 64 * 64 * 3));
     let z = load_zju(&base().join("zju"), 0).expect("zju");
     assert_eq!(z.len(), OPTIONS.frames * OPTIONS.cameras);
-    assert_eq!(z.iter().filter(|f| f.split == Split::Train).count(), OPTIONS.frames);
+    assert_eq!(
+        z.iter().filter(|f| f.split == Split::Train).count(),
+        OPTIONS.frames
+    );
 }
 
 #[test]
 fn loaded_cameras_project_like_the_generator() {
     let motion = procedural(OPTIONS.motion, OPTIONS.frames, 30.0, 1.0);
-    let points: Vec<DVec3> = model().v_template.iter().step_by(500).map(|v| DVec3::new(v[0], v[1], v[2] + 0.3)).collect();
+    let points: Vec<DVec3> = model()
+        .v_template
+        .iter()
+        .step_by(500)
+        .map(|v| DVec3::new(v[0], v[1], v[2] + 0.3))
+        .collect();
     let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).abs().max((a[1] - b[1]).abs());
     for f in load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap() {
         let t = motion.translations[f.frame];
-        let truth = handheld_camera(f.frame, OPTIONS.frames, DVec3::new(t[0], t[1] + 1.0, t[2]), OPTIONS.seed, 64, 64);
+        let truth = handheld_camera(
+            f.frame,
+            OPTIONS.frames,
+            DVec3::new(t[0], t[1] + 1.0, t[2]),
+            OPTIONS.seed,
+            64,
+            64,
+        );
         for p in &points {
             let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
             // 1e-3 px: the COLMAP text keeps every digit of the quaternion and translation.
-            assert!(close(a, b) < 1e-3, "NeuMan frame {}: {a:?} vs {b:?}", f.frame);
+            assert!(
+                close(a, b) < 1e-3,
+                "NeuMan frame {}: {a:?} vs {b:?}",
+                f.frame
+            );
         }
     }
-    let mean = motion.translations.iter().fold([0.0; 3], |a, t| [a[0] + t[0], a[1] + t[1], a[2] + t[2]]).map(|v| v / OPTIONS.frames as f64);
+    let mean = motion
+        .translations
+        .iter()
+        .fold([0.0; 3], |a, t| [a[0] + t[0], a[1] + t[1], a[2] + t[2]])
+        .map(|v| v / OPTIONS.frames as f64);
     for f in load_zju(&base().join("zju"), 0).unwrap() {
-        let truth = ring_camera(f.view, OPTIONS.cameras, DVec3::new(mean[0], mean[1] + 1.0, mean[2]), 64, 64);
+        let truth = ring_camera(
+            f.view,
+            OPTIONS.cameras,
+            DVec3::new(mean[0], mean[1] + 1.0, mean[2]),
+            64,
+            64,
+        );
         for p in &points {
             let (a, b) = (f.camera.project(*p).unwrap(), truth.project(*p).unwrap());
             // 1e-3 px: T goes through millimetres and back.
@@ -90,7 +144,12 @@ fn loaded_cameras_project_like_the_generator() {
 
 fn posed(frame: &DatasetFrame) -> Vec<DVec3> {
     match &frame.body {
-        BodyParams::Smpl { pose, betas, translation, .. } => pose_body(model(), betas, pose, *translation).vertices,
+        BodyParams::Smpl {
+            pose,
+            betas,
+            translation,
+            ..
+        } => pose_body(model(), betas, pose, *translation).vertices,
         BodyParams::Zju(p) => posed_from_zju(model(), p),
     }
 }
@@ -102,22 +161,62 @@ fn iou_with_reprojected_person(frame: &DatasetFrame) -> f64 {
     let v = posed(frame);
     let garments: Vec<_> = ["tshirt", "pants"]
         .iter()
-        .map(|name| load_obj(&base().join("gt/garments").join(format!("{name}_{:04}.obj", frame.frame)), model()).expect("ground-truth garment"))
+        .map(|name| {
+            load_obj(
+                &base()
+                    .join("gt/garments")
+                    .join(format!("{name}_{:04}.obj", frame.frame)),
+                model(),
+            )
+            .expect("ground-truth garment")
+        })
         .collect();
     let white = |_uv: [f64; 2]| [1.0, 1.0, 1.0];
     let uvs = vec![[0.0; 2]; v.len()];
-    let mut items = vec![Drawable { vertices: &v, faces: &model().faces, uvs: &uvs, object: 1, texture: &white, two_sided: true }];
-    items.extend(garments.iter().map(|g| Drawable { vertices: &g.vertices, faces: &g.faces, uvs: &g.uvs, object: 1, texture: &white, two_sided: true }));
-    let r = render(&frame.camera, &items, OPTIONS.samples, [0.0; 3], DVec3::Y, 1.0);
+    let mut items = vec![Drawable {
+        vertices: &v,
+        faces: &model().faces,
+        uvs: &uvs,
+        object: 1,
+        texture: &white,
+        two_sided: true,
+    }];
+    items.extend(garments.iter().map(|g| Drawable {
+        vertices: &g.vertices,
+        faces: &g.faces,
+        uvs: &g.uvs,
+        object: 1,
+        texture: &white,
+        two_sided: true,
+    }));
+    let r = render(
+        &frame.camera,
+        &items,
+        OPTIONS.samples,
+        [0.0; 3],
+        DVec3::Y,
+        1.0,
+    );
     let person: Vec<bool> = r.coverage[1].iter().map(|&c| c >= 0.5).collect();
-    let inter = person.iter().zip(&frame.mask).filter(|(a, b)| **a && **b).count();
-    let union = person.iter().zip(&frame.mask).filter(|(a, b)| **a || **b).count();
+    let inter = person
+        .iter()
+        .zip(&frame.mask)
+        .filter(|(a, b)| **a && **b)
+        .count();
+    let union = person
+        .iter()
+        .zip(&frame.mask)
+        .filter(|(a, b)| **a || **b)
+        .count();
     inter as f64 / union.max(1) as f64
 }
 
 #[test]
 fn masks_align_with_the_reprojected_person() {
-    let frames = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth).unwrap().into_iter().chain(load_zju(&base().join("zju"), 0).unwrap());
+    let frames = load_neuman(&base().join("neuman"), NeumanSplit::EveryFifth)
+        .unwrap()
+        .into_iter()
+        .chain(load_zju(&base().join("zju"), 0).unwrap());
     let mut worst = 1.0f64;
     for f in frames {
         let iou = iou_with_reprojected_person(&f);
@@ -158,8 +257,16 @@ assert d.shape == (64, 64) and d.dtype == np.float32 and d.max() > 0
         cams = OPTIONS.cameras,
         frames = OPTIONS.frames,
     );
-    let out = std::process::Command::new("python3").arg("-c").arg(script).output().expect("python3 runs");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 fn expect_err(result: Result<Vec<DatasetFrame>, DatasetError>, needles: &[&str]) {
@@ -175,7 +282,10 @@ fn bad_input_is_named() {
     // A missing image.
     let d = copy("missing");
     std::fs::remove_file(d.join("neuman/images/00003.png")).unwrap();
-    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images/00003.png"]);
+    expect_err(
+        load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth),
+        &["images/00003.png"],
+    );
     // A truncated JPEG.
     let d = copy("truncated");
     let p = d.join("zju/images/Camera_B2/000001.jpg");
@@ -184,26 +294,51 @@ fn bad_input_is_named() {
     expect_err(load_zju(&d.join("zju"), 0), &["Camera_B2/000001.jpg"]);
     // A wrong array shape.
     let d = copy("shape");
-    let mut arrays = drape_trainer::npy::read_npz(&d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz")).unwrap();
-    arrays.insert("body_pose".into(), drape_trainer::npy::Array::f64(vec![OPTIONS.frames, 66], vec![0.0; OPTIONS.frames * 66]));
-    drape_trainer::npy::write_npz(&d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz"), &arrays).unwrap();
-    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["smpl_optimized_aligned_scale.npz", "body_pose", "shape"]);
+    let mut arrays =
+        drape_trainer::npy::read_npz(&d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz"))
+            .unwrap();
+    arrays.insert(
+        "body_pose".into(),
+        drape_trainer::npy::Array::f64(vec![OPTIONS.frames, 66], vec![0.0; OPTIONS.frames * 66]),
+    );
+    drape_trainer::npy::write_npz(
+        &d.join("neuman/4d_humans/smpl_optimized_aligned_scale.npz"),
+        &arrays,
+    )
+    .unwrap();
+    expect_err(
+        load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth),
+        &["smpl_optimized_aligned_scale.npz", "body_pose", "shape"],
+    );
     // A NaN pose.
     let d = copy("nan");
     let mut p = drape_trainer::dataset::zju::ZjuSmpl::read(&d.join("zju"), 4).unwrap();
     p.poses[10] = f64::NAN;
     p.write(&d.join("zju"), 4).unwrap();
-    expect_err(load_zju(&d.join("zju"), 0), &["smpl_params/4.npy", "'poses'", "not finite"]);
+    expect_err(
+        load_zju(&d.join("zju"), 0),
+        &["smpl_params/4.npy", "'poses'", "not finite"],
+    );
     // A camera with a singular rotation.
     let d = copy("singular");
     let images = d.join("neuman/sparse/images.txt");
     let text = std::fs::read_to_string(&images).unwrap();
     let broken: Vec<String> = text
         .lines()
-        .map(|l| if l.starts_with("2 ") { let w: Vec<&str> = l.split(' ').collect(); format!("2 0 0 0 0 {}", w[5..].join(" ")) } else { l.to_string() })
+        .map(|l| {
+            if l.starts_with("2 ") {
+                let w: Vec<&str> = l.split(' ').collect();
+                format!("2 0 0 0 0 {}", w[5..].join(" "))
+            } else {
+                l.to_string()
+            }
+        })
         .collect();
     std::fs::write(&images, broken.join("\n") + "\n").unwrap();
-    expect_err(load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth), &["images.txt", "is zero, no rotation"]);
+    expect_err(
+        load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth),
+        &["images.txt", "is zero, no rotation"],
+    );
 }
 
 /// Every published variant, written from the generated sequence (files copied byte
@@ -212,7 +347,11 @@ fn bad_input_is_named() {
 fn every_published_variant_loads_like_the_generated_layout() {
     let root = base().parent().unwrap().join("variants");
     let zju = load_zju(&base().join("zju"), 0).unwrap();
-    for v in [Variant::ZjuRefined, Variant::ZjuNeuralBody, Variant::ZjuCoreView313] {
+    for v in [
+        Variant::ZjuRefined,
+        Variant::ZjuNeuralBody,
+        Variant::ZjuCoreView313,
+    ] {
         let dir = root.join(v.name());
         let _ = std::fs::remove_dir_all(&dir);
         write_zju_variant(&base().join("zju"), &dir, v).unwrap();
@@ -220,10 +359,29 @@ fn every_published_variant_loads_like_the_generated_layout() {
         let got = load_zju(&dir, 0).unwrap_or_else(|e| panic!("{}: {e}", v.name()));
         assert_eq!(got.len(), zju.len(), "{}", v.name());
         for (a, b) in got.iter().zip(&zju) {
-            assert_eq!((a.frame, a.view, a.split), (b.frame, b.view, b.split), "{}", v.name());
+            assert_eq!(
+                (a.frame, a.view, a.split),
+                (b.frame, b.view, b.split),
+                "{}",
+                v.name()
+            );
             // Exact: the same bytes decoded by the same decoder; the same parameter file.
-            assert_eq!(a.rgb, b.rgb, "{} frame {} view {}", v.name(), a.frame, a.view);
-            assert_eq!(a.mask, b.mask, "{} frame {} view {}", v.name(), a.frame, a.view);
+            assert_eq!(
+                a.rgb,
+                b.rgb,
+                "{} frame {} view {}",
+                v.name(),
+                a.frame,
+                a.view
+            );
+            assert_eq!(
+                a.mask,
+                b.mask,
+                "{} frame {} view {}",
+                v.name(),
+                a.frame,
+                a.view
+            );
             assert_eq!(a.body, b.body, "{} frame {}", v.name(), a.frame);
             assert_eq!(a.camera, b.camera, "{}", v.name());
         }
@@ -240,7 +398,10 @@ fn every_published_variant_loads_like_the_generated_layout() {
             // Detectron2's inverted masks and HUGS's SAM masks say the same thing.
             assert_eq!(a.mask, b.mask, "{} frame {}", v.name(), a.frame);
             assert_eq!(a.rgb, b.rgb);
-            assert!(a.mask.iter().any(|&m| m) && a.mask.iter().any(|&m| !m), "a person and a background");
+            assert!(
+                a.mask.iter().any(|&m| m) && a.mask.iter().any(|&m| !m),
+                "a person and a background"
+            );
         }
     }
 }
@@ -255,10 +416,25 @@ fn jpeg_frames_lose_little() {
     let jpg = base().parent().unwrap().join("loss.jpg");
     drape_trainer::dataset::image::write_rgb(&jpg, img.width, img.height, &img.rgb).unwrap();
     let back = drape_trainer::dataset::image::read_rgb(&jpg).unwrap();
-    let mse = img.rgb.iter().zip(&back.rgb).map(|(a, b)| f64::from(a - b).powi(2)).sum::<f64>() / img.rgb.len() as f64;
+    let mse = img
+        .rgb
+        .iter()
+        .zip(&back.rgb)
+        .map(|(a, b)| f64::from(a - b).powi(2))
+        .sum::<f64>()
+        / img.rgb.len() as f64;
     let psnr = -10.0 * mse.log10();
-    let max = img.rgb.iter().zip(&back.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    eprintln!("JPEG q{}: PSNR {psnr:.2} dB, max error {:.1} steps", drape_trainer::dataset::image::ZJU_JPEG_QUALITY, max * 255.0);
+    let max = img
+        .rgb
+        .iter()
+        .zip(&back.rgb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    eprintln!(
+        "JPEG q{}: PSNR {psnr:.2} dB, max error {:.1} steps",
+        drape_trainer::dataset::image::ZJU_JPEG_QUALITY,
+        max * 255.0
+    );
     // 35 dB: quality 95 on 64 px renders with hard edges (room, garments) measured
     // 36.6 dB (max 19 steps, on edges); a lower quality or a decoder in the wrong colour
     // space falls far below.
@@ -285,19 +461,29 @@ fn inspect_names_the_variant_and_the_first_missing_file() {
     }
     // One mask missing: named, with the variant that was assumed.
     let dir = root.join(Variant::ZjuCoreView313.name());
-    let gone = dir.join("mask_cihp/Camera (2)/CoreView_313_Camera_(2)_0004_2019-08-23_16-08-50.592.png");
+    let gone =
+        dir.join("mask_cihp/Camera (2)/CoreView_313_Camera_(2)_0004_2019-08-23_16-08-50.592.png");
     std::fs::remove_file(&gone).unwrap();
     let problem = inspect(&dir).problem.expect("a missing mask is a problem");
-    assert!(problem.contains(&gone.display().to_string()) && problem.contains("zju-coreview313"), "{problem}");
+    assert!(
+        problem.contains(&gone.display().to_string()) && problem.contains("zju-coreview313"),
+        "{problem}"
+    );
     let dir = root.join(Variant::Neuman.name());
     std::fs::remove_file(dir.join("segmentations/00002.png")).unwrap();
     let problem = inspect(&dir).problem.expect("a missing mask is a problem");
-    assert!(problem.contains("segmentations/00002.png") && problem.contains("neuman"), "{problem}");
+    assert!(
+        problem.contains("segmentations/00002.png") && problem.contains("neuman"),
+        "{problem}"
+    );
     // Parameters only NeuMan's own pickle has: the file drape needs is named.
     let dir = root.join(Variant::NeumanHugs.name());
     std::fs::remove_file(dir.join("4d_humans/smpl_optimized_aligned_scale.npz")).unwrap();
     let problem = inspect(&dir).problem.expect("no SMPL file is a problem");
-    assert!(problem.contains("smpl_optimized_aligned_scale.npz") && problem.contains("neuman+hugs"), "{problem}");
+    assert!(
+        problem.contains("smpl_optimized_aligned_scale.npz") && problem.contains("neuman+hugs"),
+        "{problem}"
+    );
 }
 
 /// A ZJU-MoCap sequence seen through the release's kind of lens (non-zero D) loads back
@@ -312,11 +498,23 @@ fn distorted_zju_frames_are_undistorted_at_load() {
     drape_trainer::dataset::variants::write_zju_distorted(&base().join("zju"), &dir, &d).unwrap();
     let pinhole = load_zju(&base().join("zju"), 0).unwrap();
     let got = load_zju(&dir, 0).unwrap();
-    let raw = drape_trainer::dataset::image::read_rgb(&dir.join("images/Camera_B1/000000.jpg")).unwrap();
-    let und = drape_trainer::dataset::distortion::Undistorter::new(&got[0].camera, drape_trainer::dataset::distortion::Distortion::from_opencv(&d));
+    let raw =
+        drape_trainer::dataset::image::read_rgb(&dir.join("images/Camera_B1/000000.jpg")).unwrap();
+    let und = drape_trainer::dataset::distortion::Undistorter::new(
+        &got[0].camera,
+        drape_trainer::dataset::distortion::Distortion::from_opencv(&d),
+    );
     let lens = drape_trainer::dataset::distortion::Distortion::from_opencv(&d);
-    let mean_abs = |x: &[f32], y: &[f32], inside: &[usize]| inside.iter().flat_map(|&i| (0..3).map(move |k| 3 * i + k)).map(|j| f64::from((x[j] - y[j]).abs())).sum::<f64>() / (3 * inside.len()) as f64;
-    let (mut worst_jpeg, mut worst_err, mut worst_iou, mut worst_raw) = (0.0f64, 0.0f64, 1.0f64, f64::INFINITY);
+    let mean_abs = |x: &[f32], y: &[f32], inside: &[usize]| {
+        inside
+            .iter()
+            .flat_map(|&i| (0..3).map(move |k| 3 * i + k))
+            .map(|j| f64::from((x[j] - y[j]).abs()))
+            .sum::<f64>()
+            / (3 * inside.len()) as f64
+    };
+    let (mut worst_jpeg, mut worst_err, mut worst_iou, mut worst_raw) =
+        (0.0f64, 0.0f64, 1.0f64, f64::INFINITY);
     for (a, b) in got.iter().zip(&pinhole) {
         assert_eq!(a.camera, b.camera, "the pinhole camera is unchanged");
         // Interior: pixels whose source lies at least 2 px inside the image (outside it
@@ -329,7 +527,9 @@ fn distorted_zju_frames_are_undistorted_at_load() {
             .collect();
         // What the loader must return, computed in memory: the pinhole frame distorted
         // and undistorted; the file in between adds only a JPEG encoding.
-        let expected = und.rgb(&drape_trainer::dataset::distortion::distort_rgb(&b.camera, lens, &b.rgb));
+        let expected = und.rgb(&drape_trainer::dataset::distortion::distort_rgb(
+            &b.camera, lens, &b.rgb,
+        ));
         worst_jpeg = worst_jpeg.max(mean_abs(&a.rgb, &expected, &inside));
         worst_err = worst_err.max(mean_abs(&a.rgb, &b.rgb, &inside));
         let inter = inside.iter().filter(|&&i| a.mask[i] && b.mask[i]).count();
@@ -344,7 +544,10 @@ fn distorted_zju_frames_are_undistorted_at_load() {
     assert!(worst_jpeg < 2.0 / 255.0, "loaded vs expected: {worst_jpeg}");
     // The two bilinear resamplings blur the 64 px textures (0.03 here); the raw
     // distorted frame is far further off, so the loader did undo the lens.
-    assert!(worst_raw > 2.0 * worst_err, "vs pinhole {worst_err}, raw {worst_raw}");
+    assert!(
+        worst_raw > 2.0 * worst_err,
+        "vs pinhole {worst_err}, raw {worst_raw}"
+    );
     assert!(worst_iou > 0.9, "mask IoU {worst_iou}");
 }
 
@@ -357,10 +560,17 @@ fn inverted_neuman_masks_are_refused() {
     write_neuman_variant(&base().join("neuman"), &dir, Variant::Neuman).unwrap();
     for entry in std::fs::read_dir(dir.join("segmentations")).unwrap() {
         let path = entry.unwrap().path();
-        let (w, h, mask) = drape_trainer::dataset::image::read_mask(&path, drape_trainer::dataset::image::MaskRule::BelowHalf).unwrap();
+        let (w, h, mask) = drape_trainer::dataset::image::read_mask(
+            &path,
+            drape_trainer::dataset::image::MaskRule::BelowHalf,
+        )
+        .unwrap();
         drape_trainer::dataset::image::write_mask(&path, w, h, &mask).unwrap();
     }
-    expect_err(load_neuman(&dir, NeumanSplit::EveryFifth), &["segmentations/00000.png", "sam_segmentations"]);
+    expect_err(
+        load_neuman(&dir, NeumanSplit::EveryFifth),
+        &["segmentations/00000.png", "sam_segmentations"],
+    );
     let problem = inspect(&dir).problem.expect("inverted masks are a problem");
     assert!(problem.contains("segmentations/00000.png"), "{problem}");
 }

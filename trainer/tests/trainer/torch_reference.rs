@@ -16,8 +16,8 @@ use drape_engine::ops::triplane::{Triplane, TriplaneDesc};
 use drape_engine::{BufferDesc, Context};
 use drape_shared::deform::rot6d_to_matrix;
 use drape_tests::gpu;
-use drape_tests::reference_python::{case_dir, get, put};
 use drape_tests::num::{rel_err, to_f32, to_f64, uniform};
+use drape_tests::reference_python::{case_dir, get, put};
 use rand::{Rng, SeedableRng};
 
 fn run_torch(dir: &Path, case: serde_json::Value) {
@@ -40,21 +40,31 @@ fn act_name(a: Activation) -> &'static str {
 fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let params = to_f64(&desc.init_params(17));
     let input = uniform(rows * desc.input, -2.0, 2.0, 3);
-    let head_grads: Vec<Vec<f64>> = desc.heads.iter().enumerate().map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 30 + h as u64)).collect();
+    let head_grads: Vec<Vec<f64>> = desc
+        .heads
+        .iter()
+        .enumerate()
+        .map(|(h, d)| uniform(rows * d.width, -1.0, 1.0, 30 + h as u64))
+        .collect();
     // GPU.
     let mut mlp = Mlp::with_params(ctx, name, desc.clone(), rows, &to_f32(&params)).expect("mlp");
     for (h, g) in head_grads.iter().enumerate() {
         mlp.write_head_grad(ctx, h, &to_f32(g)).expect("head grad");
     }
     let x = ctx.upload("x", &to_f32(&input)).expect("upload");
-    let mut gx = ctx.create_buffer("gx", BufferDesc::gpu_only((input.len().max(1) * 4) as u64)).expect("buffer");
+    let mut gx = ctx
+        .create_buffer("gx", BufferDesc::gpu_only((input.len().max(1) * 4) as u64))
+        .expect("buffer");
     {
         let mut rec = ctx.record("torch check").expect("record");
         mlp.record_forward(&mut rec, &x, rows as u32).expect("fwd");
-        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false).expect("bwd");
+        mlp.record_backward(&mut rec, &x, rows as u32, Some(&gx), false)
+            .expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
-    let heads: Vec<Vec<f64>> = (0..desc.heads.len()).map(|h| to_f64(&mlp.read_head(ctx, h, rows).expect("read"))).collect();
+    let heads: Vec<Vec<f64>> = (0..desc.heads.len())
+        .map(|h| to_f64(&mlp.read_head(ctx, h, rows).expect("read")))
+        .collect();
     let count = mlp.param_count();
     let grads = to_f64(&ctx.read_buffer::<f32>(&mut mlp.grads, count).expect("read"));
     let gpu_gx = to_f64(&ctx.read_buffer::<f32>(&mut gx, input.len()).expect("read"));
@@ -65,12 +75,25 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     let linears = desc.linears();
     let hidden = desc.hidden.len();
     let mut layers = Vec::new();
-    assert!(desc.weight_norm.iter().all(|&l| l < hidden), "{name}: the check covers weight normalisation on hidden layers only");
+    assert!(
+        desc.weight_norm.iter().all(|&l| l < hidden),
+        "{name}: the check covers weight normalisation on hidden layers only"
+    );
     let norms = desc.weight_norm_params();
     for l in 0..hidden {
         let (i, o) = linears[l];
-        put(&dir, &format!("w{l}"), &[o, i], &params[offsets[l].0..offsets[l].0 + o * i]);
-        put(&dir, &format!("b{l}"), &[o], &params[offsets[l].1..offsets[l].1 + o]);
+        put(
+            &dir,
+            &format!("w{l}"),
+            &[o, i],
+            &params[offsets[l].0..offsets[l].0 + o * i],
+        );
+        put(
+            &dir,
+            &format!("b{l}"),
+            &[o],
+            &params[offsets[l].1..offsets[l].1 + o],
+        );
         let mut j = serde_json::json!({ "in": i, "out": o, "act": act_name(desc.hidden[l].1) });
         if let Some(k) = desc.weight_norm.iter().position(|&w| w == l) {
             let g = norms[k].g_off as usize;
@@ -81,7 +104,8 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     }
     let trunk = desc.trunk_width();
     let total: usize = desc.heads.iter().map(|h| h.width).sum();
-    let (mut w, mut b, mut heads_json, mut gy) = (Vec::new(), Vec::new(), Vec::new(), vec![0.0; rows * total]);
+    let (mut w, mut b, mut heads_json, mut gy) =
+        (Vec::new(), Vec::new(), Vec::new(), vec![0.0; rows * total]);
     let mut start = 0;
     for (h, d) in desc.heads.iter().enumerate() {
         let l = hidden + h;
@@ -93,7 +117,8 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
         }
         heads_json.push(j);
         for r in 0..rows {
-            gy[r * total + start..r * total + start + d.width].copy_from_slice(&head_grads[h][r * d.width..(r + 1) * d.width]);
+            gy[r * total + start..r * total + start + d.width]
+                .copy_from_slice(&head_grads[h][r * d.width..(r + 1) * d.width]);
         }
         start += d.width;
     }
@@ -102,46 +127,97 @@ fn check_mlp(ctx: &Context, name: &str, desc: &MlpDesc, rows: usize) {
     layers.push(serde_json::json!({ "in": trunk, "out": total, "act": "none" }));
     put(&dir, "x", &[rows, desc.input], &input);
     put(&dir, "gy", &[rows, total], &gy);
-    run_torch(&dir, serde_json::json!({ "op": "mlp", "layers": layers, "heads": heads_json }));
+    run_torch(
+        &dir,
+        serde_json::json!({ "op": "mlp", "layers": layers, "heads": heads_json }),
+    );
     let ty = get(&dir, "y");
     let tgx = get(&dir, "gx");
     // Forward: f32 GPU sums of up to 128 products against float64 PyTorch.
     let mut start = 0;
     for (h, d) in desc.heads.iter().enumerate() {
-        let t: Vec<f64> = (0..rows).flat_map(|r| ty[r * total + start..r * total + start + d.width].to_vec()).collect();
+        let t: Vec<f64> = (0..rows)
+            .flat_map(|r| ty[r * total + start..r * total + start + d.width].to_vec())
+            .collect();
         let e = rel_err(&heads[h], &t, 1e-3);
-        assert!(e <= 1e-5, "{name}: head {} differs from PyTorch by {e:e} (relative)", d.name);
+        assert!(
+            e <= 1e-5,
+            "{name}: head {} differs from PyTorch by {e:e} (relative)",
+            d.name
+        );
         start += d.width;
     }
     // Gradients are f32 sums over the rows: 1e-4 relative, ten times the outputs'.
     let e = rel_err(&gpu_gx, &tgx, 1e-3);
-    assert!(e <= 1e-4, "{name}: input gradient differs from PyTorch by {e:e}");
+    assert!(
+        e <= 1e-4,
+        "{name}: input gradient differs from PyTorch by {e:e}"
+    );
     for l in 0..hidden {
         let (i, o) = linears[l];
-        let e = rel_err(&grads[offsets[l].0..offsets[l].0 + o * i], &get(&dir, &format!("gw{l}")), 1e-3);
-        assert!(e <= 1e-4, "{name}: weight gradient of layer {l} differs from PyTorch by {e:e}");
-        let e = rel_err(&grads[offsets[l].1..offsets[l].1 + o], &get(&dir, &format!("gb{l}")), 1e-3);
-        assert!(e <= 1e-4, "{name}: bias gradient of layer {l} ({i}->{o}) differs from PyTorch by {e:e}");
+        let e = rel_err(
+            &grads[offsets[l].0..offsets[l].0 + o * i],
+            &get(&dir, &format!("gw{l}")),
+            1e-3,
+        );
+        assert!(
+            e <= 1e-4,
+            "{name}: weight gradient of layer {l} differs from PyTorch by {e:e}"
+        );
+        let e = rel_err(
+            &grads[offsets[l].1..offsets[l].1 + o],
+            &get(&dir, &format!("gb{l}")),
+            1e-3,
+        );
+        assert!(
+            e <= 1e-4,
+            "{name}: bias gradient of layer {l} ({i}->{o}) differs from PyTorch by {e:e}"
+        );
         if let Some(k) = desc.weight_norm.iter().position(|&w| w == l) {
             let g = norms[k].g_off as usize;
             let e = rel_err(&grads[g..g + o], &get(&dir, &format!("gg{l}")), 1e-3);
-            assert!(e <= 1e-4, "{name}: weight-norm g gradient of layer {l} differs from PyTorch by {e:e}");
+            assert!(
+                e <= 1e-4,
+                "{name}: weight-norm g gradient of layer {l} differs from PyTorch by {e:e}"
+            );
         }
     }
-    let (tgw, tgb) = (get(&dir, &format!("gw{hidden}")), get(&dir, &format!("gb{hidden}")));
+    let (tgw, tgb) = (
+        get(&dir, &format!("gw{hidden}")),
+        get(&dir, &format!("gb{hidden}")),
+    );
     let mut row0 = 0;
     for (h, d) in desc.heads.iter().enumerate() {
         let l = hidden + h;
-        let e = rel_err(&grads[offsets[l].0..offsets[l].0 + d.width * trunk], &tgw[row0 * trunk..(row0 + d.width) * trunk], 1e-3);
-        assert!(e <= 1e-4, "{name}: weight gradient of head {} differs from PyTorch by {e:e}", d.name);
-        let e = rel_err(&grads[offsets[l].1..offsets[l].1 + d.width], &tgb[row0..row0 + d.width], 1e-3);
-        assert!(e <= 1e-4, "{name}: bias gradient of head {} differs from PyTorch by {e:e}", d.name);
+        let e = rel_err(
+            &grads[offsets[l].0..offsets[l].0 + d.width * trunk],
+            &tgw[row0 * trunk..(row0 + d.width) * trunk],
+            1e-3,
+        );
+        assert!(
+            e <= 1e-4,
+            "{name}: weight gradient of head {} differs from PyTorch by {e:e}",
+            d.name
+        );
+        let e = rel_err(
+            &grads[offsets[l].1..offsets[l].1 + d.width],
+            &tgb[row0..row0 + d.width],
+            1e-3,
+        );
+        assert!(
+            e <= 1e-4,
+            "{name}: bias gradient of head {} differs from PyTorch by {e:e}",
+            d.name
+        );
         row0 += d.width;
     }
     // The CPU reference agrees too (it is what the other tests trust).
     let saved = drape_engine::ops::nn::reference::forward(desc, &params, &input, rows);
     let (ref_grads, _) = reference::backward(desc, &params, &input, rows, &saved, &head_grads);
-    assert!(rel_err(&ref_grads, &grads, 1e-3) <= 1e-4, "{name}: CPU reference and GPU disagree");
+    assert!(
+        rel_err(&ref_grads, &grads, 1e-3) <= 1e-4,
+        "{name}: CPU reference and GPU disagree"
+    );
 }
 
 #[test]
@@ -164,7 +240,12 @@ fn mlps_match_pytorch() {
     let mut normed = mixed.clone();
     normed.weight_norm = vec![1];
     check_mlp(&ctx, "mixed-weight-norm", &normed, 1000);
-    check_mlp(&ctx, "deformation-weight-norm", &MlpDesc::hugs_deformation(96).with_weight_norm(3), 300);
+    check_mlp(
+        &ctx,
+        "deformation-weight-norm",
+        &MlpDesc::hugs_deformation(96).with_weight_norm(3),
+        300,
+    );
     check_mlp(&ctx, "mixed-one-row", &mixed, 1);
     check_mlp(&ctx, "appearance", &MlpDesc::hugs_appearance(96, 48), 300);
     check_mlp(&ctx, "geometry", &MlpDesc::hugs_geometry(96), 300);
@@ -174,7 +255,12 @@ fn mlps_match_pytorch() {
 #[test]
 fn triplane_matches_grid_sample() {
     let ctx = gpu();
-    let desc = TriplaneDesc { resolution: 13, channels: 6, box_min: [-1.0, -0.3, -2.0], box_max: [0.8, 1.7, 0.5] };
+    let desc = TriplaneDesc {
+        resolution: 13,
+        channels: 6,
+        box_min: [-1.0, -0.3, -2.0],
+        box_max: [0.8, 1.7, 0.5],
+    };
     let planes = uniform(desc.len(), -1.0, 1.0, 8);
     let n = 2000;
     let mut rng = rand::rngs::StdRng::seed_from_u64(9);
@@ -194,19 +280,35 @@ fn triplane_matches_grid_sample() {
         }
     }
     let gfeat = uniform(n * desc.feature_width(), -1.0, 1.0, 10);
-    let mut tp = Triplane::with_planes(&ctx, "torch triplane", desc, &to_f32(&planes)).expect("triplane");
+    let mut tp =
+        Triplane::with_planes(&ctx, "torch triplane", desc, &to_f32(&planes)).expect("triplane");
     let p = ctx.upload("points", &to_f32(&pts)).expect("upload");
     let g = ctx.upload("gfeat", &to_f32(&gfeat)).expect("upload");
-    let mut f = ctx.create_buffer("features", BufferDesc::gpu_only((gfeat.len() * 4) as u64)).expect("buffer");
-    let mut gp = ctx.create_buffer("grad points", BufferDesc::gpu_only((pts.len() * 4) as u64)).expect("buffer");
+    let mut f = ctx
+        .create_buffer("features", BufferDesc::gpu_only((gfeat.len() * 4) as u64))
+        .expect("buffer");
+    let mut gp = ctx
+        .create_buffer("grad points", BufferDesc::gpu_only((pts.len() * 4) as u64))
+        .expect("buffer");
     {
         let mut rec = ctx.record("triplane torch").expect("record");
         tp.record_forward(&mut rec, &p, &f, n as u32).expect("fwd");
-        tp.record_backward(&mut rec, &p, &g, &gp, n as u32, drape_engine::ops::accumulate::Accumulation::Auto).expect("bwd");
+        tp.record_backward(
+            &mut rec,
+            &p,
+            &g,
+            &gp,
+            n as u32,
+            drape_engine::ops::accumulate::Accumulation::Auto,
+        )
+        .expect("bwd");
         rec.submit_and_wait().expect("submit");
     }
     let feat = to_f64(&ctx.read_buffer::<f32>(&mut f, gfeat.len()).expect("read"));
-    let gplanes = to_f64(&ctx.read_buffer::<f32>(&mut tp.grads, desc.len()).expect("read"));
+    let gplanes = to_f64(
+        &ctx.read_buffer::<f32>(&mut tp.grads, desc.len())
+            .expect("read"),
+    );
     let gpoints = to_f64(&ctx.read_buffer::<f32>(&mut gp, pts.len()).expect("read"));
     let dir = case_dir("torch-cases", "triplane");
     let r = desc.resolution as usize;
@@ -214,17 +316,26 @@ fn triplane_matches_grid_sample() {
     put(&dir, "planes", &[3, r, r, c], &planes);
     put(&dir, "points", &[n, 3], &pts);
     put(&dir, "gfeat", &[n, 3 * c], &gfeat);
-    run_torch(&dir, serde_json::json!({ "op": "triplane", "box_min": desc.box_min, "box_max": desc.box_max }));
+    run_torch(
+        &dir,
+        serde_json::json!({ "op": "triplane", "box_min": desc.box_min, "box_max": desc.box_max }),
+    );
     // Four products per feature in f32; the box mapping in f32 moves a sample by
     // ~1e-7 of the box, i.e. ~1e-6 of a texel's value.
     let e = rel_err(&feat, &get(&dir, "feat"), 1e-3);
     assert!(e <= 1e-5, "features differ from grid_sample by {e:e}");
     let e = rel_err(&gplanes, &get(&dir, "gplanes"), 1e-3);
-    assert!(e <= 1e-4, "plane gradient differs from grid_sample's by {e:e}");
+    assert!(
+        e <= 1e-4,
+        "plane gradient differs from grid_sample's by {e:e}"
+    );
     // Point gradients are differences of texels times (R-1)/2 / half-extent: f32
     // rounding of the sample position and of the texel differences, 1e-4 relative.
     let e = rel_err(&gpoints, &get(&dir, "gpoints"), 1e-3);
-    assert!(e <= 1e-4, "point gradient differs from grid_sample's by {e:e}");
+    assert!(
+        e <= 1e-4,
+        "point gradient differs from grid_sample's by {e:e}"
+    );
 }
 
 #[test]
@@ -242,16 +353,28 @@ fn rotation_6d_matches_pytorch() {
     for i in 0..n {
         let v: [f64; 6] = r6[6 * i..6 * i + 6].try_into().expect("6");
         ours.extend(rot6d_to_matrix(v).iter().flatten());
-        let gm = [[g[9 * i], g[9 * i + 1], g[9 * i + 2]], [g[9 * i + 3], g[9 * i + 4], g[9 * i + 5]], [g[9 * i + 6], g[9 * i + 7], g[9 * i + 8]]];
+        let gm = [
+            [g[9 * i], g[9 * i + 1], g[9 * i + 2]],
+            [g[9 * i + 3], g[9 * i + 4], g[9 * i + 5]],
+            [g[9 * i + 6], g[9 * i + 7], g[9 * i + 8]],
+        ];
         ours_g.extend(drape_shared::deform::rot6d_to_matrix_bwd(v, &gm));
     }
     // Both in float64: agreement to rounding.
-    assert!(rel_err(&ours, &tr, 1e-6) <= 1e-12, "6D rotation differs from PyTorch");
-    assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-10, "6D rotation gradient differs from PyTorch");
+    assert!(
+        rel_err(&ours, &tr, 1e-6) <= 1e-12,
+        "6D rotation differs from PyTorch"
+    );
+    assert!(
+        rel_err(&ours_g, &tg, 1e-6) <= 1e-10,
+        "6D rotation gradient differs from PyTorch"
+    );
     // And the GPU's deformation path uses the same functions: a quick consistency
     // check of the CPU reference on one Gaussian with identity transforms.
     let mut host = HostInputs::<f64>::default();
-    host.transforms = (0..24).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).collect();
+    host.transforms = (0..24)
+        .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+        .collect();
     host.means = vec![0.1, 0.2, 0.3];
     host.quats = vec![1.0, 0.0, 0.0, 0.0];
     host.log_scales = vec![-3.0; 3];
@@ -261,9 +384,14 @@ fn rotation_6d_matches_pytorch() {
     host.weights = vec![1.0 / 24.0; 24];
     let out = deform::reference::forward(&host);
     let q = out[0].quat;
-    let back = drape_shared::splat::project::quat_to_mat(drape_shared::splat::project::normalize_quat(q).0);
+    let back = drape_shared::splat::project::quat_to_mat(
+        drape_shared::splat::project::normalize_quat(q).0,
+    );
     let flat: Vec<f64> = back.iter().flatten().copied().collect();
-    assert!(rel_err(&flat, &tr[..9], 1e-6) <= 1e-9, "posed rotation under identity transforms is not R6(r)");
+    assert!(
+        rel_err(&flat, &tr[..9], 1e-6) <= 1e-9,
+        "posed rotation under identity transforms is not R6(r)"
+    );
 }
 
 #[test]
@@ -271,8 +399,15 @@ fn ssim_interior_matches_pytorch_msssim() {
     let ctx = gpu();
     let (w, h) = (48usize, 40usize);
     let mut rng = rand::rngs::StdRng::seed_from_u64(21);
-    let target: Vec<f64> = (0..w * h * 3).map(|i| (0.5 + 0.35 * ((i as f64 * 0.013).sin()) + rng.random_range(-0.1..0.1)).clamp(0.0, 1.0)).collect();
-    let pred: Vec<f64> = target.iter().map(|&v| (v + rng.random_range(-0.2..0.2)).clamp(0.0, 1.0)).collect();
+    let target: Vec<f64> = (0..w * h * 3)
+        .map(|i| {
+            (0.5 + 0.35 * ((i as f64 * 0.013).sin()) + rng.random_range(-0.1..0.1)).clamp(0.0, 1.0)
+        })
+        .collect();
+    let pred: Vec<f64> = target
+        .iter()
+        .map(|&v| (v + rng.random_range(-0.2..0.2)).clamp(0.0, 1.0))
+        .collect();
     let p = ctx.upload("pred", &to_f32(&pred)).expect("upload");
     let t = ctx.upload("target", &to_f32(&target)).expect("upload");
     let mut s = drape_engine::ops::ssim::Ssim::new(&ctx, w as u32, h as u32).expect("ssim");
@@ -301,7 +436,10 @@ fn ssim_interior_matches_pytorch_msssim() {
     run_torch(&dir, serde_json::json!({ "op": "ssim" }));
     let theirs = get(&dir, "ssim")[0];
     // f32 moments on the GPU against float64: 1e-5 relative.
-    assert!((interior - theirs).abs() <= 1e-5 * theirs.abs(), "interior SSIM {interior} vs pytorch-msssim {theirs}");
+    assert!(
+        (interior - theirs).abs() <= 1e-5 * theirs.abs(),
+        "interior SSIM {interior} vs pytorch-msssim {theirs}"
+    );
 }
 
 #[test]
@@ -313,12 +451,15 @@ fn chamfer_geman_mcclure_matches_pytorch() {
     let target = uniform(3 * m, -0.3, 0.3, 42);
     let p = ctx.upload("pred", &to_f32(&pred)).expect("upload");
     let t = ctx.upload("target", &to_f32(&target)).expect("upload");
-    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * n as u64)).expect("buffer");
+    let mut g = ctx
+        .create_buffer("grad", BufferDesc::gpu_only(12 * n as u64))
+        .expect("buffer");
     let mut c = Chamfer::new(&ctx, n as u32, m as u32).expect("chamfer");
     {
         let mut rec = ctx.record("chamfer torch").expect("record");
         rec.fill(&g, 0);
-        c.record(&mut rec, &p, n as u32, &t, m as u32, sigma, Some((&g, 1.0))).expect("record");
+        c.record(&mut rec, &p, n as u32, &t, m as u32, sigma, Some((&g, 1.0)))
+            .expect("record");
         rec.submit_and_wait().expect("submit");
     }
     let loss = c.read_value(&ctx).expect("value").robust;
@@ -329,10 +470,16 @@ fn chamfer_geman_mcclure_matches_pytorch() {
     run_torch(&dir, serde_json::json!({ "op": "chamfer", "sigma": sigma }));
     let theirs = get(&dir, "loss")[0];
     // f32 distances on the GPU against float64 cdist: 1e-5 relative on the loss.
-    assert!((loss - theirs).abs() <= 1e-5 * theirs, "loss {loss} vs PyTorch {theirs}");
+    assert!(
+        (loss - theirs).abs() <= 1e-5 * theirs,
+        "loss {loss} vs PyTorch {theirs}"
+    );
     // Gradients: 1e-4 of the largest (f32 pair terms).
     let e = rel_err(&grad, &get(&dir, "gpred"), 1e-12);
-    assert!(e <= 1e-4, "gradient relative error {e:e} against PyTorch autograd");
+    assert!(
+        e <= 1e-4,
+        "gradient relative error {e:e} against PyTorch autograd"
+    );
 }
 
 #[test]
@@ -349,8 +496,12 @@ fn arap_matches_pytorch() {
             [a, b]
         })
         .collect();
-    let p = ctx.upload("positions", &to_f32(&positions)).expect("upload");
-    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(12 * n as u64)).expect("buffer");
+    let p = ctx
+        .upload("positions", &to_f32(&positions))
+        .expect("upload");
+    let mut g = ctx
+        .create_buffer("grad", BufferDesc::gpu_only(12 * n as u64))
+        .expect("buffer");
     let mut a = Arap::new(&ctx, n as u32, &edges).expect("arap");
     {
         let mut rec = ctx.record("arap torch").expect("record");
@@ -362,13 +513,28 @@ fn arap_matches_pytorch() {
     let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, 3 * n).expect("read"));
     let dir = case_dir("torch-cases", "arap");
     put(&dir, "positions", &[n, 3], &positions);
-    put(&dir, "edges", &[edges.len(), 2], &edges.iter().flatten().map(|&v| f64::from(v)).collect::<Vec<_>>());
+    put(
+        &dir,
+        "edges",
+        &[edges.len(), 2],
+        &edges
+            .iter()
+            .flatten()
+            .map(|&v| f64::from(v))
+            .collect::<Vec<_>>(),
+    );
     run_torch(&dir, serde_json::json!({ "op": "arap" }));
     let theirs = get(&dir, "loss")[0];
     // The f32 variance of lengths ~0.2 (mean subtracted on the GPU): 1e-4 relative.
-    assert!((var - theirs).abs() <= 1e-4 * theirs, "variance {var} vs PyTorch {theirs}");
+    assert!(
+        (var - theirs).abs() <= 1e-4 * theirs,
+        "variance {var} vs PyTorch {theirs}"
+    );
     let e = rel_err(&grad, &get(&dir, "gpositions"), 1e-12);
-    assert!(e <= 1e-4, "gradient relative error {e:e} against PyTorch autograd");
+    assert!(
+        e <= 1e-4,
+        "gradient relative error {e:e} against PyTorch autograd"
+    );
 }
 
 #[test]
@@ -377,31 +543,49 @@ fn lpips_matches_the_lpips_package() {
     let ctx = gpu();
     let (w, h) = (64usize, 48usize);
     let a = uniform(3 * w * h, 0.0, 1.0, 61);
-    let b: Vec<f64> = a.iter().zip(uniform(3 * w * h, -0.3, 0.3, 62)).map(|(x, d)| (x + d).clamp(0.0, 1.0)).collect();
+    let b: Vec<f64> = a
+        .iter()
+        .zip(uniform(3 * w * h, -0.3, 0.3, 62))
+        .map(|(x, d)| (x + d).clamp(0.0, 1.0))
+        .collect();
     let dir = case_dir("torch-cases", "lpips");
     put(&dir, "img0", &[h, w, 3], &a);
     put(&dir, "img1", &[h, w, 3], &b);
-    let converter = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/lpips-to-safetensors.py");
-    run_torch(&dir, serde_json::json!({ "op": "lpips", "net": "alex", "seed": 7, "converter": converter }));
+    let converter =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/lpips-to-safetensors.py");
+    run_torch(
+        &dir,
+        serde_json::json!({ "op": "lpips", "net": "alex", "seed": 7, "converter": converter }),
+    );
     // The weights the package used, through the conversion script, read by drape.
-    let weights = LpipsWeights::load(&dir.join("weights.safetensors"), LpipsNet::Alex).expect("the converted weights load");
+    let weights = LpipsWeights::load(&dir.join("weights.safetensors"), LpipsNet::Alex)
+        .expect("the converted weights load");
     let mut l = Lpips::new(&ctx, &weights, w as u32, h as u32).expect("lpips");
     let pa = ctx.upload("a", &to_f32(&a)).expect("upload");
     let pb = ctx.upload("b", &to_f32(&b)).expect("upload");
-    let mut g = ctx.create_buffer("grad", BufferDesc::gpu_only(4 * a.len() as u64)).expect("buffer");
+    let mut g = ctx
+        .create_buffer("grad", BufferDesc::gpu_only(4 * a.len() as u64))
+        .expect("buffer");
     {
         let mut rec = ctx.record("lpips torch").expect("record");
         rec.fill(&g, 0);
-        l.record(&mut rec, &pa, &pb, Some((&g, 1.0))).expect("record");
+        l.record(&mut rec, &pa, &pb, Some((&g, 1.0)))
+            .expect("record");
         rec.submit_and_wait().expect("submit");
     }
     let value = l.read_value(&ctx).expect("value");
     let grad = to_f64(&ctx.read_buffer::<f32>(&mut g, a.len()).expect("read"));
     let theirs = get(&dir, "lpips")[0];
     // f32 convolutions on the GPU against the package in float64: 1e-4 relative.
-    assert!((value - theirs).abs() <= 1e-4 * theirs, "LPIPS {value} vs the lpips package {theirs}");
+    assert!(
+        (value - theirs).abs() <= 1e-4 * theirs,
+        "LPIPS {value} vs the lpips package {theirs}"
+    );
     let e = rel_err(&grad, &get(&dir, "gimg0"), 1e-12);
-    assert!(e <= 1e-3, "gradient relative error {e:e} against autograd through the lpips package");
+    assert!(
+        e <= 1e-3,
+        "gradient relative error {e:e} against autograd through the lpips package"
+    );
 }
 
 /// The pose-dependent offsets against PyTorch: the rig's pose features against SMPL's
@@ -424,25 +608,46 @@ fn pose_blend_matches_pytorch() {
     put(&dir, "decoded", &[n, 3], &decoded);
     put(&dir, "g", &[n, 3], &g);
     run_torch(&dir, serde_json::json!({ "op": "pose_blend" }));
-    let (tf, to, tg) = (get(&dir, "features"), get(&dir, "offsets"), get(&dir, "gbasis"));
+    let (tf, to, tg) = (
+        get(&dir, "features"),
+        get(&dir, "offsets"),
+        get(&dir, "gbasis"),
+    );
     let mut pose = [glam::DVec3::ZERO; 24];
     for (j, p) in pose.iter_mut().enumerate() {
         *p = glam::DVec3::from_slice(&pose_flat[3 * j..3 * j + 3]);
     }
     let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
-    let ft = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: glam::DVec3::ZERO, scale: 1.0 });
+    let ft = rig.frame(&BodyParams::Smpl {
+        pose,
+        betas: vec![0.0; 10],
+        translation: glam::DVec3::ZERO,
+        scale: 1.0,
+    });
     // f32 features from f64 matrices: rounding only.
-    assert!(rel_err(&to_f64(&ft.pose_features), &tf, 1e-6) <= 1e-6, "pose features differ from SMPL's: {}", rel_err(&to_f64(&ft.pose_features), &tf, 1e-6));
+    assert!(
+        rel_err(&to_f64(&ft.pose_features), &tf, 1e-6) <= 1e-6,
+        "pose features differ from SMPL's: {}",
+        rel_err(&to_f64(&ft.pose_features), &tf, 1e-6)
+    );
     // Both in float64: agreement to rounding.
     let ours = reference::pose_blend_forward(&basis, &tf, &decoded);
-    assert!(rel_err(&ours, &to, 1e-6) <= 1e-12, "offsets differ from PyTorch");
+    assert!(
+        rel_err(&ours, &to, 1e-6) <= 1e-12,
+        "offsets differ from PyTorch"
+    );
     let ours_g = reference::pose_blend_backward(&tf, &g);
-    assert!(rel_err(&ours_g, &tg, 1e-6) <= 1e-12, "basis gradient differs from PyTorch");
+    assert!(
+        rel_err(&ours_g, &tg, 1e-6) <= 1e-12,
+        "basis gradient differs from PyTorch"
+    );
 }
 
 #[test]
 fn skinning_and_its_transform_gradient_match_pytorch() {
-    use drape_engine::ops::deform::{reference::backward as deform_backward, reference::forward as deform_forward, reference};
+    use drape_engine::ops::deform::{
+        reference, reference::backward as deform_backward, reference::forward as deform_forward,
+    };
     use drape_shared::deform::DeformOutput;
     use drape_trainer::avatar::rig::Rig;
     use drape_trainer::body::procedural::{default_body, BodyOptions};
@@ -455,9 +660,17 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
         *p = glam::DVec3::from_slice(&pose_flat[3 * j..3 * j + 3]);
     }
     let rig = Rig::new(default_body(&BodyOptions::default()), &[0.0; 10]);
-    let frame = rig.frame(&BodyParams::Smpl { pose, betas: vec![0.0; 10], translation: glam::DVec3::new(0.1, -0.2, 2.5), scale: 1.0 });
+    let frame = rig.frame(&BodyParams::Smpl {
+        pose,
+        betas: vec![0.0; 10],
+        translation: glam::DVec3::new(0.1, -0.2, 2.5),
+        scale: 1.0,
+    });
     let mut rng = rand::rngs::StdRng::seed_from_u64(71);
-    let mut host = HostInputs::<f64> { transforms: to_f64(&frame.transforms), ..Default::default() };
+    let mut host = HostInputs::<f64> {
+        transforms: to_f64(&frame.transforms),
+        ..Default::default()
+    };
     host.means = uniform(3 * n, -0.8, 0.8, 72);
     host.offsets = uniform(3 * n, -0.05, 0.05, 73);
     host.rot6d = uniform(6 * n, -1.0, 1.0, 74);
@@ -469,11 +682,21 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
         host.quats.extend(q.map(|v| v / norm));
         // Softmax-like weights, some exactly zero (the forward skips those joints; the
         // gradient to their weights is still defined).
-        let w: [f64; 24] = std::array::from_fn(|_| if rng.random_bool(0.3) { 0.0 } else { rng.random_range(0.0..1.0) });
+        let w: [f64; 24] = std::array::from_fn(|_| {
+            if rng.random_bool(0.3) {
+                0.0
+            } else {
+                rng.random_range(0.0..1.0)
+            }
+        });
         let sum: f64 = w.iter().sum::<f64>().max(1e-9);
         host.weights.extend(w.map(|v| v / sum));
     }
-    let (g_mean, g_quat, g_log_scale) = (uniform(3 * n, -1.0, 1.0, 77), uniform(4 * n, -1.0, 1.0, 78), uniform(3 * n, -1.0, 1.0, 79));
+    let (g_mean, g_quat, g_log_scale) = (
+        uniform(3 * n, -1.0, 1.0, 77),
+        uniform(4 * n, -1.0, 1.0, 78),
+        uniform(3 * n, -1.0, 1.0, 79),
+    );
     let dir = case_dir("torch-cases", "deform");
     put(&dir, "transforms", &[24, 3, 4], &host.transforms);
     put(&dir, "means", &[n, 3], &host.means);
@@ -492,8 +715,17 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
     let upstream: Vec<DeformOutput<f64>> = (0..n)
         .map(|i| DeformOutput {
             mean: [g_mean[3 * i], g_mean[3 * i + 1], g_mean[3 * i + 2]],
-            quat: [g_quat[4 * i], g_quat[4 * i + 1], g_quat[4 * i + 2], g_quat[4 * i + 3]],
-            log_scale: [g_log_scale[3 * i], g_log_scale[3 * i + 1], g_log_scale[3 * i + 2]],
+            quat: [
+                g_quat[4 * i],
+                g_quat[4 * i + 1],
+                g_quat[4 * i + 2],
+                g_quat[4 * i + 3],
+            ],
+            log_scale: [
+                g_log_scale[3 * i],
+                g_log_scale[3 * i + 1],
+                g_log_scale[3 * i + 2],
+            ],
         })
         .collect();
     let grads = deform_backward(&host, &upstream);
@@ -502,17 +734,28 @@ fn skinning_and_its_transform_gradient_match_pytorch() {
     let checks: [(&str, Vec<f64>, f64); 8] = [
         ("mean", gather(&|i| out[i].mean.to_vec()), 1e-12),
         ("quat", gather(&|i| out[i].quat.to_vec()), 1e-12),
-        ("gtransforms", reference::transform_grad(&host, &grads), 1e-10),
+        (
+            "gtransforms",
+            reference::transform_grad(&host, &grads),
+            1e-10,
+        ),
         ("gmeans", gather(&|i| grads[i].mean.to_vec()), 1e-10),
         ("goffsets", gather(&|i| grads[i].offset.to_vec()), 1e-10),
         ("grot6d", gather(&|i| grads[i].rot6d.to_vec()), 1e-10),
-        ("glog_scale_deltas", gather(&|i| grads[i].log_scale_delta.to_vec()), 1e-10),
+        (
+            "glog_scale_deltas",
+            gather(&|i| grads[i].log_scale_delta.to_vec()),
+            1e-10,
+        ),
         ("gweights", gather(&|i| grads[i].weights.to_vec()), 1e-10),
     ];
     for (name, ours, tol) in checks {
         let theirs = get(&dir, name);
         assert_eq!(ours.len(), theirs.len(), "{name}: lengths");
         let e = rel_err(&ours, &theirs, 1e-6);
-        assert!(e <= tol, "{name} differs from PyTorch's autograd by {e:e} (relative)");
+        assert!(
+            e <= tol,
+            "{name} differs from PyTorch's autograd by {e:e} (relative)"
+        );
     }
 }

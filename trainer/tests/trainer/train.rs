@@ -6,7 +6,9 @@ use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use drape_tests::gpu;
-use drape_trainer::avatar::cloth_target::{contracted_edges, ground_truth, ground_truth_dir, simulate_sequence};
+use drape_trainer::avatar::cloth_target::{
+    contracted_edges, ground_truth, ground_truth_dir, simulate_sequence,
+};
 use drape_trainer::avatar::composite::Compositing;
 use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::rig::Rig;
@@ -29,7 +31,13 @@ fn data() -> &'static PathBuf {
     D.get_or_init(|| {
         let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-data");
         let _ = std::fs::remove_dir_all(&dir);
-        let o = SynthOptions { width: 64, height: 64, frames: 10, cameras: 2, ..SynthOptions::default() };
+        let o = SynthOptions {
+            width: 64,
+            height: 64,
+            frames: 10,
+            cameras: 2,
+            ..SynthOptions::default()
+        };
         generate(&dir, &o, &mut |_, _, _| {}).expect("synthetic data");
         dir
     })
@@ -59,7 +67,12 @@ fn rig_poses_the_canonical_body_as_the_dataset_parameters_do() {
     let canonical = rig.canonical_vertices();
     for f in seq.frames.iter().chain(zju.frames.iter()).step_by(3) {
         let truth = match &f.body {
-            BodyParams::Smpl { pose, betas, translation, .. } => pose_body(model(), betas, pose, *translation).vertices,
+            BodyParams::Smpl {
+                pose,
+                betas,
+                translation,
+                ..
+            } => pose_body(model(), betas, pose, *translation).vertices,
             BodyParams::Zju(p) => posed_from_zju(model(), p),
         };
         let t = rig.frame(&f.body);
@@ -81,7 +94,12 @@ fn rig_poses_the_canonical_body_as_the_dataset_parameters_do() {
         }
         assert!(checked > 100, "only {checked} rigidly attached vertices");
         // The transforms are stored in f32: ~1e-7 relative on coordinates of a few metres.
-        assert!(worst < 1e-5, "frame {} view {}: rig differs from the dataset's body by {worst} m", f.frame, f.view);
+        assert!(
+            worst < 1e-5,
+            "frame {} view {}: rig differs from the dataset's body by {worst} m",
+            f.frame,
+            f.view
+        );
     }
 }
 
@@ -93,20 +111,45 @@ fn simulated_cloth_targets_match_the_ground_truth_garments_in_both_layouts() {
     for dir in [data().clone(), data().join("zju")] {
         let seq = load_sequence(&dir, 0).expect("sequence");
         let rig = Rig::new(model().clone(), &[0.0; 10]);
-        let sim = simulate_sequence(&rig, drape_trainer::garment::GarmentFit::Tight, &seq.frames, &mut |_, _| {}).expect("simulation");
-        assert_eq!(sim.by_frame.len(), 10, "{}: one mesh per frame", dir.display());
+        let sim = simulate_sequence(
+            &rig,
+            drape_trainer::garment::GarmentFit::Tight,
+            &seq.frames,
+            &mut |_, _| {},
+        )
+        .expect("simulation");
+        assert_eq!(
+            sim.by_frame.len(),
+            10,
+            "{}: one mesh per frame",
+            dir.display()
+        );
         let gt = ground_truth_dir(&seq.dir).expect("the synth output has gt/garments");
         for (&frame, points) in &sim.by_frame {
-            let truth = ground_truth(&gt, &["tshirt", "pants"], frame).expect("read").expect("every frame has garments");
+            let truth = ground_truth(&gt, &["tshirt", "pants"], frame)
+                .expect("read")
+                .expect("every frame has garments");
             assert_eq!(points.len(), truth.len(), "frame {frame}: vertex count");
-            let worst = points.iter().zip(&truth).flat_map(|(a, b)| (0..3).map(move |k| (a[k] - b[k]).abs())).fold(0.0f32, f32::max);
+            let worst = points
+                .iter()
+                .zip(&truth)
+                .flat_map(|(a, b)| (0..3).map(move |k| (a[k] - b[k]).abs()))
+                .fold(0.0f32, f32::max);
             // The same simulation of the same motion, compared through an OBJ with 6
             // decimals: 1e-4 m for NeuMan's parameters (written as f64). ZJU's root is
             // rebuilt from Rh, Th stored as f32 (1e-7 m), which the contact projections
             // amplify over the frames (measured 0.14 mm at frame 1): 2 mm there, still
             // far below what a wrong convention gives (centimetres).
-            let bound = if seq.layout == Layout::ZjuMocap { 2e-3 } else { 1e-4 };
-            assert!(worst < bound, "{}: frame {frame}: simulated garment differs from the ground truth by {worst} m", dir.display());
+            let bound = if seq.layout == Layout::ZjuMocap {
+                2e-3
+            } else {
+                1e-4
+            };
+            assert!(
+                worst < bound,
+                "{}: frame {frame}: simulated garment differs from the ground truth by {worst} m",
+                dir.display()
+            );
         }
     }
 }
@@ -119,7 +162,14 @@ fn the_cloth_fit_of_the_data_gives_its_ground_truth() {
     use drape_trainer::garment::GarmentFit;
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-loose-data");
     let _ = std::fs::remove_dir_all(&dir);
-    let o = SynthOptions { width: 32, height: 32, frames: 4, cameras: 1, garment: GarmentFit::Loose, ..SynthOptions::default() };
+    let o = SynthOptions {
+        width: 32,
+        height: 32,
+        frames: 4,
+        cameras: 1,
+        garment: GarmentFit::Loose,
+        ..SynthOptions::default()
+    };
     generate(&dir, &o, &mut |_, _, _| {}).expect("loose synthetic data");
     let seq = load_sequence(&dir, 0).expect("sequence");
     let rig = Rig::new(model().clone(), &[0.0; 10]);
@@ -130,29 +180,47 @@ fn the_cloth_fit_of_the_data_gives_its_ground_truth() {
         let sim = simulate_sequence(&rig, fit, &seq.frames, &mut |_, _| {}).expect("simulation");
         let mut worst = 0.0f32;
         for (&frame, points) in &sim.by_frame {
-            let truth = ground_truth(&gt, &["tshirt", "pants"], frame).expect("read").expect("garments");
+            let truth = ground_truth(&gt, &["tshirt", "pants"], frame)
+                .expect("read")
+                .expect("garments");
             if points.len() != truth.len() {
                 return None;
             }
-            worst = points.iter().zip(&truth).flat_map(|(a, b)| (0..3).map(move |k| (a[k] - b[k]).abs())).fold(worst, f32::max);
+            worst = points
+                .iter()
+                .zip(&truth)
+                .flat_map(|(a, b)| (0..3).map(move |k| (a[k] - b[k]).abs()))
+                .fold(worst, f32::max);
         }
         Some(worst)
     };
     let (loose, tight) = (distance(GarmentFit::Loose), distance(GarmentFit::Tight));
     eprintln!("simulated vs ground truth on loose data: loose template {loose:?} m, tight template {tight:?} m");
     // Same bound as the tight test above (NeuMan parameters through 6-decimal OBJs).
-    assert!(loose.is_some_and(|d| d < 1e-4), "loose template on loose data: {loose:?} m from the ground truth");
+    assert!(
+        loose.is_some_and(|d| d < 1e-4),
+        "loose template on loose data: {loose:?} m from the ground truth"
+    );
     // The tight T-shirt is another garment: another vertex count, or centimetres off.
-    assert!(tight.is_none_or(|d| d > 1e-2), "the tight template matches loose data: {tight:?}");
+    assert!(
+        tight.is_none_or(|d| d > 1e-2),
+        "the tight template matches loose data: {tight:?}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn contracted_garment_edges_join_the_kept_vertices() {
     // A strip of 2 × 6 vertices in triangles; every third vertex kept.
-    let faces: Vec<[u32; 3]> = (0..5).flat_map(|x| [[x, x + 1, x + 6], [x + 1, x + 7, x + 6]]).collect();
+    let faces: Vec<[u32; 3]> = (0..5)
+        .flat_map(|x| [[x, x + 1, x + 6], [x + 1, x + 7, x + 6]])
+        .collect();
     let full = contracted_edges(12, &faces, 1);
-    assert_eq!(full.len(), 5 + 5 + 6 + 5, "keep = 1 gives the mesh's own edges (rows, rungs, diagonals)");
+    assert_eq!(
+        full.len(),
+        5 + 5 + 6 + 5,
+        "keep = 1 gives the mesh's own edges (rows, rungs, diagonals)"
+    );
     let kept = contracted_edges(12, &faces, 3);
     // Kept vertices 0, 3, 6, 9 become 0..4; the strip stays connected.
     assert!(kept.iter().all(|e| e[0] < e[1] && e[1] < 4), "{kept:?}");
@@ -166,7 +234,10 @@ fn contracted_garment_edges_join_the_kept_vertices() {
             }
         }
     }
-    assert!(reached.iter().all(|&r| r), "contracted graph is not connected: {kept:?}");
+    assert!(
+        reached.iter().all(|&r| r),
+        "contracted graph is not connected: {kept:?}"
+    );
 }
 
 #[test]
@@ -186,61 +257,158 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
         layer.lr_triplane = 3e-3;
         layer.lr_decoders = 3e-3;
     }
-    let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
+    let report = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &config,
+        &out,
+        false,
+        &mut |_| {},
+    )
+    .expect("training");
     eprintln!(
         "held-out PSNR {:.2} -> {:.2} dB full, {:.2} -> {:.2} dB crop; fit mse {:.2e}; {:.2} it/s",
-        report.initial.psnr_full, report.fin.psnr_full, report.initial.psnr_crop, report.fin.psnr_crop, report.fit_mse, report.iterations_per_second
+        report.initial.psnr_full,
+        report.fin.psnr_full,
+        report.initial.psnr_crop,
+        report.fin.psnr_crop,
+        report.fit_mse,
+        report.iterations_per_second
     );
     let names: Vec<&str> = report.gaussians.iter().map(|(n, _)| n.as_str()).collect();
     assert_eq!(names, ["body", "cloth"], "layers built");
-    assert!(report.gaussians.iter().all(|(_, c)| *c > 100), "{:?}", report.gaussians);
+    assert!(
+        report.gaussians.iter().all(|(_, c)| *c > 100),
+        "{:?}",
+        report.gaussians
+    );
     // The skinning-weight fit converges well below the initial error (~2.7e-2): measured
     // 6.1e-3 after these 60 steps with decoders 64 wide (the quick preset's 150 reach 1.1e-3).
-    assert!(report.fit_mse < 1e-2, "skinning weights fitted to mse {}", report.fit_mse);
+    assert!(
+        report.fit_mse < 1e-2,
+        "skinning weights fitted to mse {}",
+        report.fit_mse
+    );
     // The bound: +6 dB over the initial model. 80 steps on 8 training frames
     // with the cloth losses: measured +7.7 dB full (20.79 -> 28.47) and +7.7 dB on the
     // crop (15.90 -> 23.63) with `drape train` on this data and config; run-to-run
     // noise (float atomics) is far below the 1.7 dB margin. (At HUGS's 1e-3 rates the
     // same run gains +4.4 dB in 60 steps and +6.3 dB in 120.)
-    assert!(report.fin.psnr_full >= report.initial.psnr_full + 6.0, "full-image PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
-    assert!(report.fin.psnr_crop >= report.initial.psnr_crop + 6.0, "human-crop PSNR {} -> {}", report.initial.psnr_crop, report.fin.psnr_crop);
+    assert!(
+        report.fin.psnr_full >= report.initial.psnr_full + 6.0,
+        "full-image PSNR {} -> {}",
+        report.initial.psnr_full,
+        report.fin.psnr_full
+    );
+    assert!(
+        report.fin.psnr_crop >= report.initial.psnr_crop + 6.0,
+        "human-crop PSNR {} -> {}",
+        report.initial.psnr_crop,
+        report.fin.psnr_crop
+    );
     // The L1 of the logged steps falls: the mean of the last three below the first.
     let log = std::fs::read_to_string(out.join("log.jsonl")).expect("log");
-    let l1: Vec<f64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json line")["l1"].as_f64().expect("l1")).collect();
+    let l1: Vec<f64> = log
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).expect("json line")["l1"]
+                .as_f64()
+                .expect("l1")
+        })
+        .collect();
     assert!(l1.len() >= 6, "{} log lines", l1.len());
     let tail = l1[l1.len() - 3..].iter().sum::<f64>() / 3.0;
     assert!(tail < l1[0], "L1 {} at the start, {tail} at the end", l1[0]);
     // The cloth layer's physics losses are on by default and are logged; the cloth
     // Gaussians end nearer the ground-truth garments than they started (measured:
     // see the eprintln above).
-    let cloth: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json line")["cloth"].clone()).collect();
-    let term = |k: &str| cloth.iter().map(|c| c[k].as_f64().unwrap_or_else(|| panic!("cloth.{k} missing from the log"))).collect::<Vec<f64>>();
+    let cloth: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).expect("json line")["cloth"].clone())
+        .collect();
+    let term = |k: &str| {
+        cloth
+            .iter()
+            .map(|c| {
+                c[k].as_f64()
+                    .unwrap_or_else(|| panic!("cloth.{k} missing from the log"))
+            })
+            .collect::<Vec<f64>>()
+    };
     // Every loss term falls over the run (each logged step draws another frame, so
     // compare the mean of the last three logged values with the first; measured with
     // this config: sim 0.40 -> 0.23, mask 0.013 -> 0.0075, ARAP 0.0067 -> 0.0027,
     // 1 - SSIM 0.18 -> 0.07).
     let falls = |name: &str, v: &[f64]| {
-        assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{name}: {v:?}");
+        assert!(
+            v.iter().all(|x| x.is_finite() && *x >= 0.0),
+            "{name}: {v:?}"
+        );
         let tail = v[v.len() - 3..].iter().sum::<f64>() / 3.0;
         assert!(tail < v[0], "{name} did not fall: {v:?}");
     };
     for k in ["sim", "mask", "arap"] {
         falls(&format!("cloth.{k}"), &term(k));
     }
-    let dssim: Vec<f64> = log.lines().map(|l| 1.0 - serde_json::from_str::<serde_json::Value>(l).expect("json line")["ssim"].as_f64().expect("ssim")).collect();
+    let dssim: Vec<f64> = log
+        .lines()
+        .map(|l| {
+            1.0 - serde_json::from_str::<serde_json::Value>(l).expect("json line")["ssim"]
+                .as_f64()
+                .expect("ssim")
+        })
+        .collect();
     falls("1 - SSIM", &dssim);
-    let (before, after) = (report.initial.cloth_chamfer.expect("synthetic data has ground-truth garments"), report.fin.cloth_chamfer.expect("chamfer after"));
-    eprintln!("cloth Chamfer to the ground truth {:.2} -> {:.2} mm", 1e3 * before, 1e3 * after);
-    assert!(after < before, "cloth Chamfer to the ground-truth garments {before} -> {after}");
-    for f in ["config.json", "metrics.json", "body_frame0002.ply", "cloth_frame0002.ply", "model.npz", "checkpoint.npz", "novel_pose.png"] {
+    let (before, after) = (
+        report
+            .initial
+            .cloth_chamfer
+            .expect("synthetic data has ground-truth garments"),
+        report.fin.cloth_chamfer.expect("chamfer after"),
+    );
+    eprintln!(
+        "cloth Chamfer to the ground truth {:.2} -> {:.2} mm",
+        1e3 * before,
+        1e3 * after
+    );
+    assert!(
+        after < before,
+        "cloth Chamfer to the ground-truth garments {before} -> {after}"
+    );
+    for f in [
+        "config.json",
+        "metrics.json",
+        "body_frame0002.ply",
+        "cloth_frame0002.ply",
+        "model.npz",
+        "checkpoint.npz",
+        "novel_pose.png",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing from the run directory");
     }
     // A second run into the same (now complete) directory is refused, and leaves it as it was.
-    assert!(out.join("complete").is_file() && !out.join("incomplete").exists(), "a finished run is marked complete");
-    let err = train(&ctx, &seq, model().clone(), &tiny_config(), &out, false, &mut |_| {}).err().expect("a complete run directory refused");
+    assert!(
+        out.join("complete").is_file() && !out.join("incomplete").exists(),
+        "a finished run is marked complete"
+    );
+    let err = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &tiny_config(),
+        &out,
+        false,
+        &mut |_| {},
+    )
+    .err()
+    .expect("a complete run directory refused");
     assert!(matches!(err, TrainerError::Run { .. }), "{err:?}");
     let err = err.to_string();
-    assert!(err.contains("complete run") && err.contains("--force"), "{err}");
+    assert!(
+        err.contains("complete run") && err.contains("--force"),
+        "{err}"
+    );
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -252,7 +420,9 @@ fn the_layers_follow_the_data() {
     let choose = |seq, layers: &str| {
         let mut c = tiny_config();
         c.layers.choice = LayerChoice::parse(layers).unwrap();
-        choose_layers(seq, &c).map(|l| (l.cloth, l.scene)).map_err(|e| e.to_string())
+        choose_layers(seq, &c)
+            .map(|l| (l.cloth, l.scene))
+            .map_err(|e| e.to_string())
     };
     // NeuMan: garment masks and an unmasked scene with sparse points; ZJU-MoCap
     // (as `drape synth` writes it): masked studio frames, no garment masks.
@@ -284,15 +454,36 @@ fn scene_layer_trains_on_the_whole_frame() {
     config.layers.decimate = 8;
     config.schedule.fit_steps = 10;
     config.schedule.steps = 30;
-    let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
-    eprintln!("scene run: held-out whole-frame PSNR {:.2} -> {:.2} dB, crop {:.2} -> {:.2} dB; {:?}", report.initial.psnr_full, report.fin.psnr_full, report.initial.psnr_crop, report.fin.psnr_crop, report.gaussians);
+    let report = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &config,
+        &out,
+        false,
+        &mut |_| {},
+    )
+    .expect("training");
+    eprintln!(
+        "scene run: held-out whole-frame PSNR {:.2} -> {:.2} dB, crop {:.2} -> {:.2} dB; {:?}",
+        report.initial.psnr_full,
+        report.fin.psnr_full,
+        report.initial.psnr_crop,
+        report.fin.psnr_crop,
+        report.gaussians
+    );
     let names: Vec<&str> = report.gaussians.iter().map(|(n, _)| n.as_str()).collect();
     assert_eq!(names, ["body", "cloth", "scene"]);
     // One Gaussian per sparse point (the synthetic room has 560).
     assert_eq!(report.gaussians[2].1, 560);
     // Judged on the whole frame, which only the scene layer can explain: it rises.
     // Measured +3.1 dB (13.2 -> 16.3) over 30 steps at 64 x 64; 1 dB is well above the noise.
-    assert!(report.fin.psnr_full >= report.initial.psnr_full + 1.0, "whole-frame PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
+    assert!(
+        report.fin.psnr_full >= report.initial.psnr_full + 1.0,
+        "whole-frame PSNR {} -> {}",
+        report.initial.psnr_full,
+        report.fin.psnr_full
+    );
     // The model file holds the scene layer, and a body-only model refuses it.
     let arrays = drape_trainer::npy::read_npz(&out.join("model.npz")).expect("model");
     assert_eq!(arrays["scene.means"].shape, vec![560, 3]);
@@ -302,13 +493,28 @@ fn scene_layer_trains_on_the_whole_frame() {
     let appearance_len = |layer: &drape_trainer::avatar::layer::LayerConfig| {
         let features = 3 * layer.triplane_channels as usize;
         let sh_values = 3 * (layer.sh_degree as usize + 1).pow(2);
-        drape_engine::ops::nn::MlpDesc::hugs_appearance(features, sh_values).capped(layer.decoder_width as usize).layout().1
+        drape_engine::ops::nn::MlpDesc::hugs_appearance(features, sh_values)
+            .capped(layer.decoder_width as usize)
+            .layout()
+            .1
     };
     let cloth_appearance = arrays["cloth.appearance"].data.len();
     let body_appearance = arrays["body.appearance"].data.len();
-    assert_eq!((cloth_appearance, body_appearance), (appearance_len(&config.layers.cloth), appearance_len(&config.layers.body)), "appearance decoder sizes (cloth, body) in floats");
-    assert!(cloth_appearance > body_appearance, "the cloth's SH head is wider");
-    let err = checkpoint::read(&out.join("model.npz"), &[], None).expect_err("a scene-less model must refuse it").to_string();
+    assert_eq!(
+        (cloth_appearance, body_appearance),
+        (
+            appearance_len(&config.layers.cloth),
+            appearance_len(&config.layers.body)
+        ),
+        "appearance decoder sizes (cloth, body) in floats"
+    );
+    assert!(
+        cloth_appearance > body_appearance,
+        "the cloth's SH head is wider"
+    );
+    let err = checkpoint::read(&out.join("model.npz"), &[], None)
+        .expect_err("a scene-less model must refuse it")
+        .to_string();
     assert!(err.contains("scene layer"), "{err}");
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -324,7 +530,8 @@ fn fused_compositing_trains_as_the_three_passes_do() {
     let ctx = gpu();
     let seq = load_sequence(data(), 0).expect("NeuMan");
     let run = |compositing: &str| -> Vec<f64> {
-        let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("train-test-{compositing}"));
+        let out =
+            PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("train-test-{compositing}"));
         let _ = std::fs::remove_dir_all(&out);
         let mut config = tiny_config();
         config.layers.choice = LayerChoice::parse("body+cloth+scene").unwrap();
@@ -335,11 +542,19 @@ fn fused_compositing_trains_as_the_three_passes_do() {
         config.schedule.steps = 6;
         config.schedule.log_every = 1;
         let mut l1 = Vec::new();
-        train(&ctx, &seq, model().clone(), &config, &out, false, &mut |p| {
-            if let Progress::Step { l1: v, .. } = p {
-                l1.push(v);
-            }
-        })
+        train(
+            &ctx,
+            &seq,
+            model().clone(),
+            &config,
+            &out,
+            false,
+            &mut |p| {
+                if let Progress::Step { l1: v, .. } = p {
+                    l1.push(v);
+                }
+            },
+        )
         .expect("training");
         let _ = std::fs::remove_dir_all(&out);
         l1
@@ -350,12 +565,20 @@ fn fused_compositing_trains_as_the_three_passes_do() {
     assert_eq!((three.len(), fused.len()), (6, 6), "a loss per step");
     // Step 0 renders the same model: images equal within 1e-5 per value (the fused
     // frame's own test), so the mean absolute error within 1e-5.
-    assert!((three[0] - fused[0]).abs() <= 1e-5, "first loss: three passes {} vs fused {}", three[0], fused[0]);
+    assert!(
+        (three[0] - fused[0]).abs() <= 1e-5,
+        "first loss: three passes {} vs fused {}",
+        three[0],
+        fused[0]
+    );
     // After updates from gradients equal up to f32 rounding, five Adam steps keep the
     // losses within 1e-5 relative (measured: at most 8e-7); a wrong gradient (the
     // matte's colour gradient kept) moves them more (seen: 2e-5 at step 1, 7e-5 at step 5).
     for (k, (a, b)) in three.iter().zip(&fused).enumerate() {
-        assert!((a - b).abs() <= 1e-5 * a, "step {k}: three passes {a} vs fused {b}");
+        assert!(
+            (a - b).abs() <= 1e-5 * a,
+            "step {k}: three passes {a} vs fused {b}"
+        );
     }
     assert!(three[5] < three[0], "the loss falls: {three:?}");
 }
@@ -369,12 +592,32 @@ fn body_layer_trains_on_the_zju_layout() {
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
     config.schedule.steps = 20;
-    let report = train(&ctx, &seq, model().clone(), &config, &out, false, &mut |_| {}).expect("training");
-    eprintln!("ZJU held-out PSNR {:.2} -> {:.2} dB", report.initial.psnr_full, report.fin.psnr_full);
-    assert_eq!(report.fin.frames, 10, "one held-out camera of two, ten frames");
+    let report = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &config,
+        &out,
+        false,
+        &mut |_| {},
+    )
+    .expect("training");
+    eprintln!(
+        "ZJU held-out PSNR {:.2} -> {:.2} dB",
+        report.initial.psnr_full, report.fin.psnr_full
+    );
+    assert_eq!(
+        report.fin.frames, 10,
+        "one held-out camera of two, ten frames"
+    );
     // No garment masks in the ZJU-MoCap layout: no cloth layer (the model is HUGS).
     assert_eq!(report.gaussians.len(), 1, "{:?}", report.gaussians);
-    assert!(report.fin.psnr_full.is_finite() && report.fin.psnr_full > report.initial.psnr_full, "PSNR {} -> {}", report.initial.psnr_full, report.fin.psnr_full);
+    assert!(
+        report.fin.psnr_full.is_finite() && report.fin.psnr_full > report.initial.psnr_full,
+        "PSNR {} -> {}",
+        report.initial.psnr_full,
+        report.fin.psnr_full
+    );
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -395,7 +638,16 @@ fn resume_config(steps: u32) -> TrainConfig {
     // checkpoint at 10, the statistics of 9-12 spanning it. The thresholds are set so
     // that every layer clones, splits and prunes at 64 px (the size prunes from step 12),
     // and reaches the cap.
-    c.densify = drape_trainer::avatar::densify::DensifyConfig { every: 4, from: 4, until: 16, grad_threshold: 2e-5, min_opacity: 0.09, size_prune_after: 8, max_gaussians: 4000, ..Default::default() };
+    c.densify = drape_trainer::avatar::densify::DensifyConfig {
+        every: 4,
+        from: 4,
+        until: 16,
+        grad_threshold: 2e-5,
+        min_opacity: 0.09,
+        size_prune_after: 8,
+        max_gaussians: 4000,
+        ..Default::default()
+    };
     c
 }
 
@@ -408,25 +660,98 @@ fn resume_continues_from_the_checkpoint() {
     let _ = std::fs::remove_dir_all(&base);
     let (whole, split) = (base.join("whole"), base.join("split"));
     // 20 steps at once, and 10 steps then resumed to 20.
-    train(&ctx, &seq, model().clone(), &resume_config(20), &whole, false, &mut |_| {}).expect("uninterrupted run");
-    drape_trainer::avatar::train::train_until(&ctx, &seq, model().clone(), &resume_config(20), &split, false, 10, &mut |_| {}).expect("first half");
+    train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &resume_config(20),
+        &whole,
+        false,
+        &mut |_| {},
+    )
+    .expect("uninterrupted run");
+    drape_trainer::avatar::train::train_until(
+        &ctx,
+        &seq,
+        model().clone(),
+        &resume_config(20),
+        &split,
+        false,
+        10,
+        &mut |_| {},
+    )
+    .expect("first half");
     // A checkpoint write that was killed leaves only a temporary file: ignored.
     std::fs::write(split.join("checkpoint.npz.tmp"), b"PK\x03\x04 half a zip").unwrap();
-    let report = train(&ctx, &seq, model().clone(), &resume_config(20), &split, true, &mut |_| {}).expect("resumed run");
+    let report = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &resume_config(20),
+        &split,
+        true,
+        &mut |_| {},
+    )
+    .expect("resumed run");
     assert_eq!(report.start_step, 10, "resumed from the wrong step");
     let log = std::fs::read_to_string(split.join("log.jsonl")).unwrap();
-    let lines: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    let steps: Vec<u64> = lines.iter().filter(|l| l.get("l1").is_some()).map(|l| l["step"].as_u64().unwrap()).collect();
-    assert_eq!(steps, vec![0, 5, 9, 10, 15, 19], "the log continues where it stopped");
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let steps: Vec<u64> = lines
+        .iter()
+        .filter(|l| l.get("l1").is_some())
+        .map(|l| l["step"].as_u64().unwrap())
+        .collect();
+    assert_eq!(
+        steps,
+        vec![0, 5, 9, 10, 15, 19],
+        "the log continues where it stopped"
+    );
     // Every densification grew and pruned the layers, and the two runs did the same.
-    let densified = |log: &str| -> Vec<serde_json::Value> { log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|l| l.get("densify").is_some()).collect() };
+    let densified = |log: &str| -> Vec<serde_json::Value> {
+        log.lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|l| l.get("densify").is_some())
+            .collect()
+    };
     let events = densified(&log);
-    eprintln!("densification: {}", events.iter().map(|e| e.to_string()).collect::<Vec<_>>().join("\n"));
-    assert_eq!(events.iter().map(|e| e["step"].as_u64().unwrap()).collect::<Vec<_>>(), vec![3, 7, 11, 15], "densified after steps 4, 8, 12, 16");
-    assert_eq!(events, densified(&std::fs::read_to_string(whole.join("log.jsonl")).unwrap()), "the resumed run densified as the uninterrupted one");
+    eprintln!(
+        "densification: {}",
+        events
+            .iter()
+            .map(|e| e.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    assert_eq!(
+        events
+            .iter()
+            .map(|e| e["step"].as_u64().unwrap())
+            .collect::<Vec<_>>(),
+        vec![3, 7, 11, 15],
+        "densified after steps 4, 8, 12, 16"
+    );
+    assert_eq!(
+        events,
+        densified(&std::fs::read_to_string(whole.join("log.jsonl")).unwrap()),
+        "the resumed run densified as the uninterrupted one"
+    );
     for layer in ["body", "cloth", "scene"] {
-        let total = |key: &str| events.iter().map(|e| e["densify"][layer][key].as_u64().unwrap()).sum::<u64>();
-        assert!(total("cloned") > 0 && total("split") > 0 && total("pruned") > 0, "{layer}: cloned {}, split {}, pruned {} over the run", total("cloned"), total("split"), total("pruned"));
+        let total = |key: &str| {
+            events
+                .iter()
+                .map(|e| e["densify"][layer][key].as_u64().unwrap())
+                .sum::<u64>()
+        };
+        assert!(
+            total("cloned") > 0 && total("split") > 0 && total("pruned") > 0,
+            "{layer}: cloned {}, split {}, pruned {} over the run",
+            total("cloned"),
+            total("split"),
+            total("pruned")
+        );
     }
     // After step 12 the body is at its cap; the checkpoint holds its count.
     assert_eq!(events[2]["densify"]["body"]["after"], 4000, "the cap holds");
@@ -437,14 +762,32 @@ fn resume_continues_from_the_checkpoint() {
         let bytes = std::fs::read(dir.join("model.npz")).unwrap();
         bytes.len()
     };
-    assert_eq!(shape(&whole), shape(&split), "model files of different layouts");
+    assert_eq!(
+        shape(&whole),
+        shape(&split),
+        "model files of different layouts"
+    );
     // The refined poses are part of the checkpoint: every frame's Adam count (and so
     // every correction) continues where it stopped.
     // (The scene layer's SH degree, for the checked read.)
     let scene = Some(0);
-    let pose_steps = |dir: &std::path::Path| checkpoint::read(&dir.join("model.npz"), &[], scene).expect("model").poses.expect("refined poses saved").steps;
-    assert_eq!(pose_steps(&whole), pose_steps(&split), "per-frame pose refinement steps after resume");
-    assert_eq!(pose_steps(&whole).iter().sum::<u32>(), 20, "one pose step per training step");
+    let pose_steps = |dir: &std::path::Path| {
+        checkpoint::read(&dir.join("model.npz"), &[], scene)
+            .expect("model")
+            .poses
+            .expect("refined poses saved")
+            .steps
+    };
+    assert_eq!(
+        pose_steps(&whole),
+        pose_steps(&split),
+        "per-frame pose refinement steps after resume"
+    );
+    assert_eq!(
+        pose_steps(&whole).iter().sum::<u32>(),
+        20,
+        "one pose step per training step"
+    );
     let a = drape_trainer::npy::read_npz(&whole.join("model.npz")).unwrap();
     let b = drape_trainer::npy::read_npz(&split.join("model.npz")).unwrap();
     let mut worst = 0.0f64;
@@ -467,16 +810,40 @@ fn resume_continues_from_the_checkpoint() {
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
     std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
-    let err = train(&ctx, &seq, model().clone(), &resume_config(30), &split, true, &mut |_| {}).err().expect("truncated checkpoint refused").to_string();
+    let err = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &resume_config(30),
+        &split,
+        true,
+        &mut |_| {},
+    )
+    .err()
+    .expect("truncated checkpoint refused")
+    .to_string();
     assert!(err.contains("checkpoint.npz"), "{err}");
     // A checkpoint of another model (a different triplane) is refused, naming the array.
     std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
     other.layers.body.triplane_resolution = 16;
-    let err = train(&ctx, &seq, model().clone(), &other, &split, true, &mut |_| {}).err().expect("other model refused");
+    let err = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &other,
+        &split,
+        true,
+        &mut |_| {},
+    )
+    .err()
+    .expect("other model refused");
     assert!(matches!(err, TrainerError::Checkpoint { .. }), "{err:?}");
     let err = err.to_string();
-    assert!(err.contains("checkpoint.npz") && err.contains("body."), "{err}");
+    assert!(
+        err.contains("checkpoint.npz") && err.contains("body."),
+        "{err}"
+    );
     let state = checkpoint::read(&whole.join("model.npz"), &[], scene).expect("header-only read");
     assert_eq!(state.step, 20);
     let _ = std::fs::remove_dir_all(&base);
@@ -496,14 +863,25 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     const HIP: usize = 1;
     // Frame k of the training frames: signs (+,+), (-,+), (+,-), (-,-), ...
     let noise = |k: usize| -> ([f64; 3], [f64; 3]) {
-        let (sx, sy) = (if k % 2 == 0 { 1.0 } else { -1.0 }, if (k / 2) % 2 == 0 { 1.0 } else { -1.0 });
+        let (sx, sy) = (
+            if k % 2 == 0 { 1.0 } else { -1.0 },
+            if (k / 2) % 2 == 0 { 1.0 } else { -1.0 },
+        );
         ([0.08 * sx, 0.06 * sy, 0.0], [0.0, 0.0, 0.2 * sx * sy])
     };
     let ctx = gpu();
     let mut seq = load_sequence(data(), 0).expect("data");
-    for (k, f) in seq.frames.iter_mut().filter(|f| f.split == Split::Train).enumerate() {
+    for (k, f) in seq
+        .frames
+        .iter_mut()
+        .filter(|f| f.split == Split::Train)
+        .enumerate()
+    {
         let (nt, nr) = noise(k);
-        if let BodyParams::Smpl { pose, translation, .. } = &mut f.body {
+        if let BodyParams::Smpl {
+            pose, translation, ..
+        } = &mut f.body
+        {
             for a in 0..3 {
                 translation[a] += nt[a];
                 pose[HIP][a] += nr[a];
@@ -519,7 +897,10 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     c.schedule.lr_pose = 2e-2;
     c.schedule.lr_translation = 1e-2;
     train(&ctx, &seq, model().clone(), &c, &out, false, &mut |_| {}).expect("training");
-    let poses = checkpoint::read(&out.join("model.npz"), &[], None).expect("model").poses.expect("refined poses saved");
+    let poses = checkpoint::read(&out.join("model.npz"), &[], None)
+        .expect("model")
+        .poses
+        .expect("refined poses saved");
     assert_eq!(poses.deltas.len(), 8, "one correction per training frame");
     let norm = |v: [f64; 3]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
     let (mut t_before, mut t_after, mut r_before, mut r_after) = (0.0, 0.0, 0.0, 0.0);
@@ -535,8 +916,14 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     // Measured 800 -> 227 mm and 1.600 -> 1.196 rad. Corrections that were noise (a
     // dozen Adam steps of ±lr in no particular direction) would add to the error, not
     // remove half of it from the translation or a tenth from the hip.
-    assert!(t_after < 0.5 * t_before, "translation error {t_before} -> {t_after}");
-    assert!(r_after < 0.9 * r_before, "hip error {r_before} -> {r_after}");
+    assert!(
+        t_after < 0.5 * t_before,
+        "translation error {t_before} -> {t_after}"
+    );
+    assert!(
+        r_after < 0.9 * r_before,
+        "hip error {r_before} -> {r_after}"
+    );
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -549,28 +936,77 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
     // One training image with a NaN pixel inside the person: SSIM's window spreads it
     // into the gradient of every Gaussian that covers it.
     let mut seq = load_sequence(data(), 0).expect("data");
-    let first_train = seq.frames.iter().position(|f| f.split == Split::Train).unwrap();
+    let first_train = seq
+        .frames
+        .iter()
+        .position(|f| f.split == Split::Train)
+        .unwrap();
     let poison = |f: &mut drape_trainer::dataset::loader::DatasetFrame| {
         let inside = f.mask.iter().position(|&m| m).expect("person visible");
         f.rgb[3 * inside] = f32::NAN;
     };
     poison(&mut seq.frames[first_train]);
-    let report = train(&ctx, &seq, model().clone(), &resume_config(30), &base.join("one"), false, &mut |_| {}).expect("a bad frame does not stop the run");
-    assert!(report.skipped_steps > 0, "the poisoned frame was never drawn or not caught");
+    let report = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &resume_config(30),
+        &base.join("one"),
+        false,
+        &mut |_| {},
+    )
+    .expect("a bad frame does not stop the run");
+    assert!(
+        report.skipped_steps > 0,
+        "the poisoned frame was never drawn or not caught"
+    );
     let model_file = drape_trainer::npy::read_npz(&base.join("one/model.npz")).unwrap();
-    assert!(model_file.values().all(|a| a.data.iter().all(|v| v.is_finite())), "a non-finite value reached the model");
+    assert!(
+        model_file
+            .values()
+            .all(|a| a.data.iter().all(|v| v.is_finite())),
+        "a non-finite value reached the model"
+    );
     let log = std::fs::read_to_string(base.join("one/log.jsonl")).unwrap();
-    assert_eq!(log.lines().filter(|l| l.contains("\"skipped\":true")).count() as u32, report.skipped_steps, "every skipped step is logged");
+    assert_eq!(
+        log.lines()
+            .filter(|l| l.contains("\"skipped\":true"))
+            .count() as u32,
+        report.skipped_steps,
+        "every skipped step is logged"
+    );
     // Every training frame poisoned: the run stops after max_skipped_steps, saying why.
     for f in seq.frames.iter_mut().filter(|f| f.split == Split::Train) {
         poison(f);
     }
     let mut config = resume_config(30);
     config.schedule.max_skipped_steps = 3;
-    let err = train(&ctx, &seq, model().clone(), &config, &base.join("all"), false, &mut |_| {}).err().expect("the run stops");
-    assert!(matches!(err, TrainerError::Numeric { stage: "training", .. }), "{err:?}");
+    let err = train(
+        &ctx,
+        &seq,
+        model().clone(),
+        &config,
+        &base.join("all"),
+        false,
+        &mut |_| {},
+    )
+    .err()
+    .expect("the run stops");
+    assert!(
+        matches!(
+            err,
+            TrainerError::Numeric {
+                stage: "training",
+                ..
+            }
+        ),
+        "{err:?}"
+    );
     let err = err.to_string();
-    assert!(err.contains("3 steps in a row had non-finite gradients"), "{err}");
+    assert!(
+        err.contains("3 steps in a row had non-finite gradients"),
+        "{err}"
+    );
     let _ = std::fs::remove_dir_all(&base);
 }
 
@@ -586,7 +1022,11 @@ fn a_training_step_waits_on_the_host_once() {
     // Without the tests' poisoning of new buffers, which is a submission of its own
     // per buffer made where the host cannot map it (the scratch a backward makes on its
     // first use after densification); a run outside the tests makes them for free.
-    let desc = drape_engine::ContextDesc { force_staging: true, poison_new_buffers: false, ..drape_engine::ContextDesc::for_tests() };
+    let desc = drape_engine::ContextDesc {
+        force_staging: true,
+        poison_new_buffers: false,
+        ..drape_engine::ContextDesc::for_tests()
+    };
     let ctx = drape_tests::gpu_with(&desc);
     let seq = load_sequence(data(), 0).expect("data");
     let base = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-waits");
@@ -596,15 +1036,37 @@ fn a_training_step_waits_on_the_host_once() {
         config.schedule.checkpoint_every = 0;
         config.densify.until = 4;
         config.layers.compositing = Compositing::parse(compositing).unwrap();
-        assert!(config.schedule.refine_pose && config.losses.lambda_mask > 0.0, "the quick preset's pose refiner and mask loss are on");
-        let report = train(&ctx, &seq, model().clone(), &config, &base.join(compositing), false, &mut |_| {}).expect("train");
+        assert!(
+            config.schedule.refine_pose && config.losses.lambda_mask > 0.0,
+            "the quick preset's pose refiner and mask loss are on"
+        );
+        let report = train(
+            &ctx,
+            &seq,
+            model().clone(),
+            &config,
+            &base.join(compositing),
+            false,
+            &mut |_| {},
+        )
+        .expect("train");
         let w = report.host_waits;
         assert!(w.plain_steps >= 4, "{compositing}: {w:?}");
-        assert_eq!(w.plain_max, 1, "{compositing}: the most host waits of a training-only step ({w:?})");
+        assert_eq!(
+            w.plain_max, 1,
+            "{compositing}: the most host waits of a training-only step ({w:?})"
+        );
         // Steps 0, 5 and 9 log (every 5, and the last); 3 also densifies.
         assert_eq!(w.logged_steps, 3, "{compositing}: {w:?}");
-        assert_eq!(w.logged_max, 1, "{compositing}: the most host waits of a step that also logged ({w:?})");
-        assert_eq!(w.plain_steps + w.logged_steps + w.other_steps, 10, "{compositing}: every step counted");
+        assert_eq!(
+            w.logged_max, 1,
+            "{compositing}: the most host waits of a step that also logged ({w:?})"
+        );
+        assert_eq!(
+            w.plain_steps + w.logged_steps + w.other_steps,
+            10,
+            "{compositing}: every step counted"
+        );
     }
     let _ = std::fs::remove_dir_all(&base);
 }

@@ -15,9 +15,9 @@ use drape_shared::splat::layout::MAX_SH_COEFFS;
 use drape_shared::splat::sh::C0;
 
 use crate::buffer::Buffer;
-use crate::ops::splat::scene::GaussianCloud;
 use crate::error::Result;
 use crate::kernels;
+use crate::ops::splat::scene::GaussianCloud;
 use crate::recorder::{flat_grid, Recording};
 
 /// The inputs of one composite: each pass's rgb (3 floats per pixel), the over pass's
@@ -52,11 +52,20 @@ pub struct CompositeGrads<'a> {
 }
 
 fn params(pixels: u32, matte: Option<&Buffer>) -> CompositeParams {
-    CompositeParams { pixels, matte_is_alpha: u32::from(matte.is_none()), _pad: [0; 2] }
+    CompositeParams {
+        pixels,
+        matte_is_alpha: u32::from(matte.is_none()),
+        _pad: [0; 2],
+    }
 }
 
 /// Records the composite of `pixels` pixels into `out` (3 floats per pixel).
-pub fn record_composite<'a>(rec: &mut Recording<'a>, inputs: CompositeInputs<'a>, out: &'a Buffer, pixels: u32) -> Result<()> {
+pub fn record_composite<'a>(
+    rec: &mut Recording<'a>,
+    inputs: CompositeInputs<'a>,
+    out: &'a Buffer,
+    pixels: u32,
+) -> Result<()> {
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte the kernel reads V from the alpha; the binding still needs a buffer.
     rec.dispatch(
@@ -75,8 +84,18 @@ pub fn record_composite<'a>(rec: &mut Recording<'a>, inputs: CompositeInputs<'a>
 
 /// Records the composite's backward from `grad` (the loss's gradient on the
 /// composited rgb); every output of `grads` is written, none accumulated.
-pub fn record_composite_backward<'a>(rec: &mut Recording<'a>, grad: &'a Buffer, inputs: CompositeInputs<'a>, grads: CompositeGrads<'a>, pixels: u32) -> Result<()> {
-    assert_eq!(inputs.matte_rgb.is_some(), grads.matte_rgb.is_some(), "a matte's gradient goes with a matte");
+pub fn record_composite_backward<'a>(
+    rec: &mut Recording<'a>,
+    grad: &'a Buffer,
+    inputs: CompositeInputs<'a>,
+    grads: CompositeGrads<'a>,
+    pixels: u32,
+) -> Result<()> {
+    assert_eq!(
+        inputs.matte_rgb.is_some(),
+        grads.matte_rgb.is_some(),
+        "a matte's gradient goes with a matte"
+    );
     let p = params(pixels, inputs.matte_rgb);
     // Without a matte neither matte binding is touched; they still need buffers.
     rec.dispatch(
@@ -99,12 +118,30 @@ pub fn record_composite_backward<'a>(rec: &mut Recording<'a>, grad: &'a Buffer, 
 
 /// Records `dst[i] += src[src_offset + i]` for `i < len` (floats): one cloud's slice of
 /// a pass's per-Gaussian gradients added into that cloud's own.
-pub fn record_add_slice<'a>(rec: &mut Recording<'a>, src: &'a Buffer, src_offset: u32, dst: &'a Buffer, len: u32) -> Result<()> {
+pub fn record_add_slice<'a>(
+    rec: &mut Recording<'a>,
+    src: &'a Buffer,
+    src_offset: u32,
+    dst: &'a Buffer,
+    len: u32,
+) -> Result<()> {
     if len == 0 {
         return Ok(());
     }
-    let p = SliceParams { len, src_offset, _pad: [0; 2] };
-    rec.dispatch("composite.add_slice", kernels::composite::AddSlice { src: src.read(), dst: dst.write() }, &p, flat_grid(len))
+    let p = SliceParams {
+        len,
+        src_offset,
+        _pad: [0; 2],
+    };
+    rec.dispatch(
+        "composite.add_slice",
+        kernels::composite::AddSlice {
+            src: src.read(),
+            dst: dst.write(),
+        },
+        &p,
+        flat_grid(len),
+    )
 }
 
 /// The degree-0 SH coefficient (all three channels) of a Gaussian in the matte pass:
@@ -146,17 +183,48 @@ pub mod reference {
     use super::*;
 
     /// CPU reference of [`record_composite`] (host slices in the same layout).
-    pub fn forward(base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> Vec<f32> {
-        (0..over_alpha.len()).flat_map(|i| composite(rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i))).collect()
+    pub fn forward(
+        base_rgb: &[f32],
+        over_rgb: &[f32],
+        over_alpha: &[f32],
+        matte_rgb: Option<&[f32]>,
+    ) -> Vec<f32> {
+        (0..over_alpha.len())
+            .flat_map(|i| {
+                composite(
+                    rgb(base_rgb, i),
+                    rgb(over_rgb, i),
+                    over_alpha[i],
+                    visibility(over_alpha, matte_rgb, i),
+                )
+            })
+            .collect()
     }
 
     /// CPU reference of [`record_composite_backward`]: (base rgb, over rgb, over alpha,
     /// matte rgb) gradients (the last empty without a matte).
-    pub fn backward(grad: &[f32], base_rgb: &[f32], over_rgb: &[f32], over_alpha: &[f32], matte_rgb: Option<&[f32]>) -> [Vec<f32>; 4] {
+    pub fn backward(
+        grad: &[f32],
+        base_rgb: &[f32],
+        over_rgb: &[f32],
+        over_alpha: &[f32],
+        matte_rgb: Option<&[f32]>,
+    ) -> [Vec<f32>; 4] {
         let n = over_alpha.len();
-        let mut out = [vec![0.0; 3 * n], vec![0.0; 3 * n], vec![0.0; n], vec![0.0; if matte_rgb.is_some() { 3 * n } else { 0 }]];
+        let mut out = [
+            vec![0.0; 3 * n],
+            vec![0.0; 3 * n],
+            vec![0.0; n],
+            vec![0.0; if matte_rgb.is_some() { 3 * n } else { 0 }],
+        ];
         for i in 0..n {
-            let (gb, go, ga, gm) = composite_grad(rgb(grad, i), rgb(base_rgb, i), rgb(over_rgb, i), over_alpha[i], visibility(over_alpha, matte_rgb, i));
+            let (gb, go, ga, gm) = composite_grad(
+                rgb(grad, i),
+                rgb(base_rgb, i),
+                rgb(over_rgb, i),
+                over_alpha[i],
+                visibility(over_alpha, matte_rgb, i),
+            );
             out[0][3 * i..3 * i + 3].copy_from_slice(&gb);
             out[1][3 * i..3 * i + 3].copy_from_slice(&go);
             if matte_rgb.is_some() {
@@ -170,11 +238,21 @@ pub mod reference {
     }
 
     /// CPU reference of [`record_to_rgba`] (same shared function).
-    pub fn to_rgba(rgb: &[f32], a: &[f32], a_stride: usize, a_is_transmittance: bool, b: Option<(&[f32], usize)>) -> Vec<f32> {
+    pub fn to_rgba(
+        rgb: &[f32],
+        a: &[f32],
+        a_stride: usize,
+        a_is_transmittance: bool,
+        b: Option<(&[f32], usize)>,
+    ) -> Vec<f32> {
         let pixels = rgb.len() / 3;
         let mut out = Vec::with_capacity(4 * pixels);
         for i in 0..pixels {
-            let a = if a_is_transmittance { 1.0 - a[a_stride * i] } else { a[a_stride * i] };
+            let a = if a_is_transmittance {
+                1.0 - a[a_stride * i]
+            } else {
+                a[a_stride * i]
+            };
             let b = b.map_or(0.0, |(b, s)| b[s * i]);
             out.extend_from_slice(&rgb[3 * i..3 * i + 3]);
             out.push(drape_shared::splat::composite::coverage(a, b));
@@ -193,7 +271,9 @@ mod tests {
     fn gradient_matches_central_differences() {
         let mut seed = 7u64;
         let mut next = || {
-            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
             ((seed >> 11) as f64) / ((1u64 << 53) as f64)
         };
         for _ in 0..200 {
@@ -214,14 +294,28 @@ mod tests {
                 let (mut bp, mut bm) = (base, base);
                 bp[k] += h;
                 bm[k] -= h;
-                assert!(((loss(bp, over, a, v) - loss(bm, over, a, v)) / (2.0 * h) - gb[k]).abs() < 1e-7);
+                assert!(
+                    ((loss(bp, over, a, v) - loss(bm, over, a, v)) / (2.0 * h) - gb[k]).abs()
+                        < 1e-7
+                );
                 let (mut op, mut om) = (over, over);
                 op[k] += h;
                 om[k] -= h;
-                assert!(((loss(base, op, a, v) - loss(base, om, a, v)) / (2.0 * h) - go[k]).abs() < 1e-7);
+                assert!(
+                    ((loss(base, op, a, v) - loss(base, om, a, v)) / (2.0 * h) - go[k]).abs()
+                        < 1e-7
+                );
             }
-            assert!(((loss(base, over, a + h, v) - loss(base, over, a - h, v)) / (2.0 * h) - ga).abs() < 1e-6, "alpha");
-            assert!(((loss(base, over, a, v + h) - loss(base, over, a, v - h)) / (2.0 * h) - gv).abs() < 1e-6, "matte");
+            assert!(
+                ((loss(base, over, a + h, v) - loss(base, over, a - h, v)) / (2.0 * h) - ga).abs()
+                    < 1e-6,
+                "alpha"
+            );
+            assert!(
+                ((loss(base, over, a, v + h) - loss(base, over, a, v - h)) / (2.0 * h) - gv).abs()
+                    < 1e-6,
+                "matte"
+            );
         }
         // Where nothing occludes the layer (V = A) the composite is the "over" operator.
         let c = composite([0.2f64, 0.4, 0.6], [0.3, 0.1, 0.05], 0.5, 0.5);
@@ -255,12 +349,48 @@ pub enum Coverage<'a> {
 /// premultiplied RGBA into `out` (4 floats per pixel, row-major from the top row: what
 /// an `R32G32B32A32_SFLOAT` image takes by `Recording::copy_to_image`). The coverage of
 /// a composite is `1 − (1 − A_base)(1 − V)` (`drape_shared::splat::composite::coverage`).
-pub fn record_to_rgba<'a>(rec: &mut Recording<'a>, rgb: &'a Buffer, coverage: Coverage<'a>, out: &'a Buffer, pixels: u32) -> Result<()> {
+pub fn record_to_rgba<'a>(
+    rec: &mut Recording<'a>,
+    rgb: &'a Buffer,
+    coverage: Coverage<'a>,
+    out: &'a Buffer,
+    pixels: u32,
+) -> Result<()> {
     use drape_shared::splat::composite::RgbaParams;
     let (a, b, p) = match coverage {
-        Coverage::Alpha(alpha) => (alpha, alpha, RgbaParams { pixels, a_stride: 1, a_is_transmittance: 0, b_stride: 0 }),
-        Coverage::Two { base: (a, a_stride, t), layer: (b, b_stride) } => (a, b, RgbaParams { pixels, a_stride, a_is_transmittance: u32::from(t), b_stride }),
+        Coverage::Alpha(alpha) => (
+            alpha,
+            alpha,
+            RgbaParams {
+                pixels,
+                a_stride: 1,
+                a_is_transmittance: 0,
+                b_stride: 0,
+            },
+        ),
+        Coverage::Two {
+            base: (a, a_stride, t),
+            layer: (b, b_stride),
+        } => (
+            a,
+            b,
+            RgbaParams {
+                pixels,
+                a_stride,
+                a_is_transmittance: u32::from(t),
+                b_stride,
+            },
+        ),
     };
-    rec.dispatch("composite.to_rgba", kernels::composite::ToRgba { rgb_in: rgb.read(), alpha_a: a.read(), alpha_b: b.read(), rgba: out.write() }, &p, flat_grid(pixels))
+    rec.dispatch(
+        "composite.to_rgba",
+        kernels::composite::ToRgba {
+            rgb_in: rgb.read(),
+            alpha_a: a.read(),
+            alpha_b: b.read(),
+            rgba: out.write(),
+        },
+        &p,
+        flat_grid(pixels),
+    )
 }
-

@@ -6,7 +6,9 @@
 //! when it densifies and prunes (`drape_trainer::avatar::densify`), then starts it
 //! again from zero.
 
-pub use drape_shared::splat::densify::{accumulate, screen_radius, ScreenStatsParams, SCREEN_STATS_FLOATS};
+pub use drape_shared::splat::densify::{
+    accumulate, screen_radius, ScreenStatsParams, SCREEN_STATS_FLOATS,
+};
 use drape_shared::splat::layout::{ProjectedSplat, SPLAT_GRAD_FLOATS};
 
 use crate::buffer::Buffer;
@@ -19,14 +21,37 @@ use crate::recorder::{flat_grid, Recording};
 /// passes) for its Gaussians `[first, first + count)` into `stats` starting at
 /// Gaussian `out_first` ([`SCREEN_STATS_FLOATS`] per Gaussian). Statistics of one
 /// buffer from two renders are ordered by the barrier the recorder derives.
-pub fn record_screen_stats<'a>(rec: &mut Recording<'a>, renderer: &'a SplatRenderer, first: u32, count: u32, stats: &'a Buffer, out_first: u32) -> Result<()> {
+pub fn record_screen_stats<'a>(
+    rec: &mut Recording<'a>,
+    renderer: &'a SplatRenderer,
+    first: u32,
+    count: u32,
+    stats: &'a Buffer,
+    out_first: u32,
+) -> Result<()> {
     if count == 0 {
         return Ok(());
     }
     let (width, height) = renderer.size();
     let (splats, grads) = renderer.splat_buffers();
-    let p = ScreenStatsParams { first, count, out_first, width, height, _pad: [0; 3] };
-    rec.dispatch("splat.screen_stats", kernels::splat::ScreenStats { splats: splats.read(), splat_grads: grads.read(), stats: stats.write() }, &p, flat_grid(count))
+    let p = ScreenStatsParams {
+        first,
+        count,
+        out_first,
+        width,
+        height,
+        _pad: [0; 3],
+    };
+    rec.dispatch(
+        "splat.screen_stats",
+        kernels::splat::ScreenStats {
+            splats: splats.read(),
+            splat_grads: grads.read(),
+            stats: stats.write(),
+        },
+        &p,
+        flat_grid(count),
+    )
 }
 
 /// CPU reference of the screen-space statistics.
@@ -35,12 +60,24 @@ pub mod reference {
 
     /// The CPU reference of [`record_screen_stats`] on read-back splats and per-splat
     /// gradients.
-    pub fn screen_stats(splats: &[ProjectedSplat], splat_grads: &[f32], p: ScreenStatsParams, stats: &mut [f32]) {
+    pub fn screen_stats(
+        splats: &[ProjectedSplat],
+        splat_grads: &[f32],
+        p: ScreenStatsParams,
+        stats: &mut [f32],
+    ) {
         for local in 0..p.count as usize {
             let i = p.first as usize + local;
             let o = SCREEN_STATS_FLOATS * (p.out_first as usize + local);
             let g = i * SPLAT_GRAD_FLOATS;
-            let s = accumulate([stats[o], stats[o + 1], stats[o + 2]], &splats[i], splat_grads[g], splat_grads[g + 1], p.width, p.height);
+            let s = accumulate(
+                [stats[o], stats[o + 1], stats[o + 2]],
+                &splats[i],
+                splat_grads[g],
+                splat_grads[g + 1],
+                p.width,
+                p.height,
+            );
             stats[o..o + 3].copy_from_slice(&s);
         }
     }

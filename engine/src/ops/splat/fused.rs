@@ -67,11 +67,16 @@ impl FusedRenderer {
     pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
         let renderer = SplatRenderer::new(ctx, width, height, max_count)?;
         let pixels = width * height;
-        let image = |name: &str, floats: u32| ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)));
+        let image = |name: &str, floats: u32| {
+            ctx.create_buffer(name, BufferDesc::gpu_only(4 * u64::from(floats)))
+        };
         Ok(Self {
             ctx: ctx.clone(),
             renderer,
-            masks: ctx.create_buffer("fused layer masks", BufferDesc::gpu_only(4 * max_count.max(1) as u64))?,
+            masks: ctx.create_buffer(
+                "fused layer masks",
+                BufferDesc::gpu_only(4 * max_count.max(1) as u64),
+            )?,
             base_rgb: image("fused base rgb", 3 * pixels)?,
             over_rgb: image("fused over rgb", 3 * pixels)?,
             over_alpha: image("fused over alpha", pixels)?,
@@ -83,7 +88,10 @@ impl FusedRenderer {
     }
 
     /// Chooses the rasterizer kernels (see [`SplatRenderer::set_raster_variant`]).
-    pub fn set_raster_variant(&mut self, variant: crate::ops::splat::render::RasterVariant) -> Result<()> {
+    pub fn set_raster_variant(
+        &mut self,
+        variant: crate::ops::splat::render::RasterVariant,
+    ) -> Result<()> {
         self.renderer.set_raster_variant(variant)
     }
 
@@ -94,18 +102,33 @@ impl FusedRenderer {
     }
 
     /// As [`SplatRenderer::prepare_forward`], with the frame's background under the base.
-    pub fn prepare_forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
+    pub fn prepare_forward(
+        &mut self,
+        gaussians: &GaussianBuffers,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
         self.renderer.prepare_forward(gaussians, camera, settings)
     }
 
     /// Records projection, one depth sort, binning and the fused rasterization.
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        gaussians: &'a GaussianBuffers,
+    ) -> Result<()> {
         self.renderer.record_binning(rec, gaussians)?;
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let (kernel, grid) = if self.renderer.half_splats() {
-            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwdHalf, Kernel::SplatCpuRasterizeFusedFwdHalf)
+            self.renderer.raster_dispatch(
+                Kernel::SplatRasterizeFusedFwdHalf,
+                Kernel::SplatCpuRasterizeFusedFwdHalf,
+            )
         } else {
-            self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedFwd, Kernel::SplatCpuRasterizeFusedFwd)
+            self.renderer.raster_dispatch(
+                Kernel::SplatRasterizeFusedFwd,
+                Kernel::SplatCpuRasterizeFusedFwd,
+            )
         };
         rec.dispatch_as(
             "splat.rasterize_fused_fwd",
@@ -132,14 +155,32 @@ impl FusedRenderer {
     /// every Gaussian's parameter gradients (`out`, written, not accumulated), given
     /// the loss's gradients on the three images, for the forward `saved` names. Call
     /// [`Self::prepare_backward`] first (a deterministic backward panics without it).
-    pub fn record_backward<'a>(&'a self, rec: &mut Recording<'a>, saved: &SavedForward, gaussians: &'a GaussianBuffers, grads: FusedGrads<'a>, out: &'a GaussianBuffers, accumulation: Accumulation) -> Result<()> {
+    pub fn record_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        saved: &SavedForward,
+        gaussians: &'a GaussianBuffers,
+        grads: FusedGrads<'a>,
+        out: &'a GaussianBuffers,
+        accumulation: Accumulation,
+    ) -> Result<()> {
         self.renderer.refuse_render_only()?;
-        self.renderer.check_saved("fused backward", saved, gaussians.count)?;
+        self.renderer
+            .check_saved("fused backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
         let (kernel, grid) = match method {
-            Method::FloatAtomics => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdAtomic, Kernel::SplatCpuRasterizeFusedBwdAtomic),
-            Method::CompareAndSwap => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdCas, Kernel::SplatCpuRasterizeFusedBwdCas),
-            Method::FixedPoint => self.renderer.raster_dispatch(Kernel::SplatRasterizeFusedBwdFixed, Kernel::SplatCpuRasterizeFusedBwdFixed),
+            Method::FloatAtomics => self.renderer.raster_dispatch(
+                Kernel::SplatRasterizeFusedBwdAtomic,
+                Kernel::SplatCpuRasterizeFusedBwdAtomic,
+            ),
+            Method::CompareAndSwap => self.renderer.raster_dispatch(
+                Kernel::SplatRasterizeFusedBwdCas,
+                Kernel::SplatCpuRasterizeFusedBwdCas,
+            ),
+            Method::FixedPoint => self.renderer.raster_dispatch(
+                Kernel::SplatRasterizeFusedBwdFixed,
+                Kernel::SplatCpuRasterizeFusedBwdFixed,
+            ),
         };
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let target = self.renderer.grad_target(method);
@@ -164,7 +205,8 @@ impl FusedRenderer {
             &(),
             grid,
         )?;
-        self.renderer.record_grad_resolve(rec, gaussians.count, method)?;
+        self.renderer
+            .record_grad_resolve(rec, gaussians.count, method)?;
         self.renderer.record_project_backward(rec, gaussians, out)
     }
 
@@ -175,7 +217,14 @@ impl FusedRenderer {
     }
 
     /// The backward in one submission (see [`Self::record_backward`]).
-    pub fn backward(&mut self, saved: &SavedForward, gaussians: &GaussianBuffers, grads: FusedGrads<'_>, out: &GaussianBuffers, accumulation: Accumulation) -> Result<PassTimings> {
+    pub fn backward(
+        &mut self,
+        saved: &SavedForward,
+        gaussians: &GaussianBuffers,
+        grads: FusedGrads<'_>,
+        out: &GaussianBuffers,
+        accumulation: Accumulation,
+    ) -> Result<PassTimings> {
         self.prepare_backward(accumulation)?;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("fused backward")?;
@@ -200,7 +249,13 @@ impl FusedRenderer {
     }
 
     /// Renders in one submission (two if the intersections outgrew the buffers).
-    pub fn forward(&mut self, ctx: &Context, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
+    pub fn forward(
+        &mut self,
+        ctx: &Context,
+        gaussians: &GaussianBuffers,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<ForwardStats> {
         self.prepare_forward(gaussians, camera, settings)?;
         let mut rerendered = false;
         loop {
@@ -211,7 +266,11 @@ impl FusedRenderer {
             };
             let stats = self.finish_forward()?;
             if !stats.rerendered {
-                return Ok(ForwardStats { rerendered, timings, ..stats });
+                return Ok(ForwardStats {
+                    rerendered,
+                    timings,
+                    ..stats
+                });
             }
             rerendered = true;
         }
@@ -219,7 +278,12 @@ impl FusedRenderer {
 
     /// The three images, as the composite reads them (the matte is 3 channels).
     pub fn outputs(&self) -> CompositeInputs<'_> {
-        CompositeInputs { base_rgb: &self.base_rgb, over_rgb: &self.over_rgb, over_alpha: &self.over_alpha, matte_rgb: Some(&self.matte_rgb) }
+        CompositeInputs {
+            base_rgb: &self.base_rgb,
+            over_rgb: &self.over_rgb,
+            over_alpha: &self.over_alpha,
+            matte_rgb: Some(&self.matte_rgb),
+        }
     }
 
     /// Per pixel, each state's final transmittance (base, over, matte: 3 floats).

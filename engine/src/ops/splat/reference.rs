@@ -7,8 +7,12 @@
 
 use drape_shared::real::Real;
 use drape_shared::splat::layout::{FrameParams, HalfSplat};
-use drape_shared::splat::project::{project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad};
-use drape_shared::splat::raster::{BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView};
+use drape_shared::splat::project::{
+    project_bwd, project_fwd, tile_rect, Camera, Gaussian, GaussianGrad, Projection, SplatGrad,
+};
+use drape_shared::splat::raster::{
+    BlendSettings, FusedPixel, FusedPixelBwd, PixelBwd, PixelFwd, SplatView,
+};
 
 /// A forward render and what the backward pass needs of it.
 #[derive(Clone, Debug)]
@@ -40,7 +44,14 @@ pub struct ReferenceRender<F> {
 }
 
 fn view<F: Real>(p: &Projection<F>) -> SplatView<F> {
-    SplatView { x: p.x, y: p.y, depth: p.depth, conic: p.conic, opacity: p.opacity, color: p.color }
+    SplatView {
+        x: p.x,
+        y: p.y,
+        depth: p.depth,
+        conic: p.conic,
+        opacity: p.opacity,
+        color: p.color,
+    }
 }
 
 /// Renders `gaussians` with the camera and settings of `frame` (its `count` is ignored).
@@ -51,12 +62,19 @@ pub fn render<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams) -> Refere
 /// [`render`] rasterizing half-precision projected splats, as the GPU does with
 /// `RenderSettings::half_splats`: each splat's view packed to a [`HalfSplat`] and
 /// unpacked (binning from the f32 projection, as there).
-pub fn render_half_splats(gaussians: &[Gaussian<f32>], frame: &FrameParams) -> ReferenceRender<f32> {
+pub fn render_half_splats(
+    gaussians: &[Gaussian<f32>],
+    frame: &FrameParams,
+) -> ReferenceRender<f32> {
     render_with(gaussians, frame, |v| HalfSplat::pack(&v).view())
 }
 
 /// [`render`] with every splat's view passed through `rasterized` before blending.
-fn render_with<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams, rasterized: impl Fn(SplatView<F>) -> SplatView<F>) -> ReferenceRender<F> {
+fn render_with<F: Real>(
+    gaussians: &[Gaussian<F>],
+    frame: &FrameParams,
+    rasterized: impl Fn(SplatView<F>) -> SplatView<F>,
+) -> ReferenceRender<F> {
     let cam = Camera::<F>::from_frame(frame);
     let cfg = BlendSettings::<F>::from_frame(frame);
     let projections: Vec<Projection<F>> = gaussians.iter().map(|g| project_fwd(g, &cam)).collect();
@@ -64,7 +82,16 @@ fn render_with<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams, rasteriz
         .iter()
         .map(|p| {
             p.visible
-                .then(|| tile_rect(p.x, p.y, p.radius, frame.tile_size, frame.tiles_x, frame.tiles_y))
+                .then(|| {
+                    tile_rect(
+                        p.x,
+                        p.y,
+                        p.radius,
+                        frame.tile_size,
+                        frame.tiles_x,
+                        frame.tiles_y,
+                    )
+                })
                 .filter(|r| r[2] > r[0] && r[3] > r[1])
         })
         .collect();
@@ -111,7 +138,13 @@ fn render_with<F: Real>(gaussians: &[Gaussian<F>], frame: &FrameParams, rasteriz
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = PixelFwd::<F>::new();
             for (k, &g) in tile_lists[tile].iter().enumerate() {
-                state.blend(&rasterized(view(&projections[g as usize])), k as u32, fx, fy, &cfg);
+                state.blend(
+                    &rasterized(view(&projections[g as usize])),
+                    k as u32,
+                    fx,
+                    fy,
+                    &cfg,
+                );
                 if state.done {
                     break;
                 }
@@ -166,16 +199,30 @@ pub fn backward<F: Real>(
             }
         }
     }
-    (project_grads(gaussians, &cam, &fwd.projections, &splat_grads), splat_grads)
+    (
+        project_grads(gaussians, &cam, &fwd.projections, &splat_grads),
+        splat_grads,
+    )
 }
 
 /// Every Gaussian's parameter gradients from its splat's (culled ones get zeros).
-fn project_grads<F: Real>(gaussians: &[Gaussian<F>], cam: &Camera<F>, projections: &[Projection<F>], splat_grads: &[SplatGrad<F>]) -> Vec<GaussianGrad<F>> {
+fn project_grads<F: Real>(
+    gaussians: &[Gaussian<F>],
+    cam: &Camera<F>,
+    projections: &[Projection<F>],
+    splat_grads: &[SplatGrad<F>],
+) -> Vec<GaussianGrad<F>> {
     gaussians
         .iter()
         .zip(projections)
         .zip(splat_grads)
-        .map(|((g, p), up)| if p.visible { project_bwd(g, cam, up) } else { GaussianGrad::zero() })
+        .map(|((g, p), up)| {
+            if p.visible {
+                project_bwd(g, cam, up)
+            } else {
+                GaussianGrad::zero()
+            }
+        })
         .collect()
 }
 
@@ -200,7 +247,11 @@ pub struct FusedReference<F> {
 }
 
 /// Runs the fused forward over `fwd`'s merged lists (see [`FusedReference`]).
-pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &FrameParams) -> FusedReference<F> {
+pub fn fused_render<F: Real>(
+    fwd: &ReferenceRender<F>,
+    masks: &[u32],
+    frame: &FrameParams,
+) -> FusedReference<F> {
     let cfg = BlendSettings::<F>::from_frame(frame);
     let pixels = (fwd.width * fwd.height) as usize;
     let z = F::zero();
@@ -220,7 +271,14 @@ pub fn fused_render<F: Real>(fwd: &ReferenceRender<F>, masks: &[u32], frame: &Fr
             let (fx, fy) = (F::of(px as f32 + 0.5), F::of(py as f32 + 0.5));
             let mut state = FusedPixel::<F>::new();
             for (k, &g) in fwd.tile_lists[tile].iter().enumerate() {
-                state.blend(&view(&fwd.projections[g as usize]), masks[g as usize], k as u32, fx, fy, &cfg);
+                state.blend(
+                    &view(&fwd.projections[g as usize]),
+                    masks[g as usize],
+                    k as u32,
+                    fx,
+                    fy,
+                    &cfg,
+                );
                 if state.done() {
                     break;
                 }
@@ -263,7 +321,11 @@ pub fn fused_backward<F: Real>(
             let three = |v: &[F]| [v[3 * p], v[3 * p + 1], v[3 * p + 2]];
             let mut state = FusedPixelBwd::new(
                 three(&fused.transmittances),
-                [fused.ends[3 * p], fused.ends[3 * p + 1], fused.ends[3 * p + 2]],
+                [
+                    fused.ends[3 * p],
+                    fused.ends[3 * p + 1],
+                    fused.ends[3 * p + 2],
+                ],
                 background,
                 three(grad_base),
                 three(grad_over),
@@ -272,11 +334,21 @@ pub fn fused_backward<F: Real>(
             );
             let list = &fwd.tile_lists[tile];
             for (k, &g) in list.iter().enumerate().take(state.end() as usize).rev() {
-                if let Some(d) = state.step(&view(&fwd.projections[g as usize]), masks[g as usize], k as u32, fx, fy, &cfg) {
+                if let Some(d) = state.step(
+                    &view(&fwd.projections[g as usize]),
+                    masks[g as usize],
+                    k as u32,
+                    fx,
+                    fy,
+                    &cfg,
+                ) {
                     splat_grads[g as usize] = splat_grads[g as usize].add(&d);
                 }
             }
         }
     }
-    (project_grads(gaussians, &cam, &fwd.projections, &splat_grads), splat_grads)
+    (
+        project_grads(gaussians, &cam, &fwd.projections, &splat_grads),
+        splat_grads,
+    )
 }

@@ -23,7 +23,10 @@
 
 use drape_shared::adam::ExceedsParams;
 use drape_shared::half::{sh_half_words, ShHalfParams};
-use drape_shared::splat::layout::{sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS, RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES};
+use drape_shared::splat::layout::{
+    sh_coeffs, FrameParams, HalfSplat, ProjectChunk, ProjectedSplat, SplatCounts, MAX_SH_COEFFS,
+    RASTER_BLOCK, SPLAT_GRAD_FLOATS, TILE_SIZES,
+};
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
@@ -46,16 +49,24 @@ const MAX_TILES: u64 = 1 << 24;
 /// `minStorageBufferOffsetAlignment` (at most 256).
 fn project_chunks(ctx: &Context, count: u32, sh_degree: u32) -> Vec<ProjectChunk> {
     let sh_bytes = 12 * sh_coeffs(sh_degree) as u64;
-    let per_chunk = ((ctx.info().max_storage_buffer_range / sh_bytes) / 256 * 256).clamp(256, u64::from(u32::MAX)) as u32;
+    let per_chunk = ((ctx.info().max_storage_buffer_range / sh_bytes) / 256 * 256)
+        .clamp(256, u64::from(u32::MAX)) as u32;
     (0..count.div_ceil(per_chunk))
-        .map(|c| ProjectChunk { first: c * per_chunk, len: per_chunk.min(count - c * per_chunk), _pad: [0; 2] })
+        .map(|c| ProjectChunk {
+            first: c * per_chunk,
+            len: per_chunk.min(count - c * per_chunk),
+            _pad: [0; 2],
+        })
         .collect()
 }
 
 /// The byte range of chunk `c`'s SH in a buffer of SH for every Gaussian.
 fn sh_range(chunk: &ProjectChunk, sh_degree: u32) -> (u64, u64) {
     let sh_bytes = 12 * sh_coeffs(sh_degree) as u64;
-    (u64::from(chunk.first) * sh_bytes, u64::from(chunk.len) * sh_bytes)
+    (
+        u64::from(chunk.first) * sh_bytes,
+        u64::from(chunk.len) * sh_bytes,
+    )
 }
 
 fn f32_buffer(ctx: &Context, name: &str, len: usize) -> Result<Buffer> {
@@ -111,7 +122,14 @@ impl GaussianBuffers {
     pub fn new(ctx: &Context, label: &str, count: usize, sh_degree: u32) -> Result<Self> {
         let k = sh_coeffs(sh_degree);
         Ok(Self {
-            count: u32::try_from(count).map_err(|_| EngineError::too_large("Gaussians", count as u64, u64::from(u32::MAX), "u32 indices"))?,
+            count: u32::try_from(count).map_err(|_| {
+                EngineError::too_large(
+                    "Gaussians",
+                    count as u64,
+                    u64::from(u32::MAX),
+                    "u32 indices",
+                )
+            })?,
             sh_degree,
             means: f32_buffer(ctx, &format!("{label} means"), 3 * count)?,
             log_scales: f32_buffer(ctx, &format!("{label} log_scales"), 3 * count)?,
@@ -133,7 +151,11 @@ impl GaussianBuffers {
     }
 
     /// Copies back to the host (groups are not stored on the GPU; `groups` fills them).
-    pub fn download<G: Copy + Into<u32>>(&mut self, ctx: &Context, groups: &[G]) -> Result<GaussianCloud> {
+    pub fn download<G: Copy + Into<u32>>(
+        &mut self,
+        ctx: &Context,
+        groups: &[G],
+    ) -> Result<GaussianCloud> {
         let n = self.count as usize;
         let k = sh_coeffs(self.sh_degree);
         Ok(GaussianCloud {
@@ -149,7 +171,13 @@ impl GaussianBuffers {
 
     /// The five buffers in binding order.
     pub fn all(&self) -> [&Buffer; 5] {
-        [&self.means, &self.log_scales, &self.quats, &self.opacity_logits, &self.sh]
+        [
+            &self.means,
+            &self.log_scales,
+            &self.quats,
+            &self.opacity_logits,
+            &self.sh,
+        ]
     }
 
     /// Element count of each buffer, in the order of [`all`](Self::all).
@@ -275,12 +303,20 @@ impl SplatRenderer {
     /// A renderer for `width × height` images of up to `max_count` Gaussians (buffers grow with the intersections).
     pub fn new(ctx: &Context, width: u32, height: u32, max_count: usize) -> Result<Self> {
         if width == 0 || height == 0 {
-            return Err(EngineError::Empty { what: "the image", why: "width and height must be at least 1 pixel" });
+            return Err(EngineError::Empty {
+                what: "the image",
+                why: "width and height must be at least 1 pixel",
+            });
         }
         // The depth sort holds every Gaussian (and the count scan one more).
         let sort_limit = u64::from(RadixSort::LIMIT.min(ExclusiveScan::LIMIT - 1));
         if max_count as u64 > sort_limit {
-            return Err(EngineError::too_large("Gaussians", max_count as u64, sort_limit, "one depth sort (65,535 workgroups of its block)"));
+            return Err(EngineError::too_large(
+                "Gaussians",
+                max_count as u64,
+                sort_limit,
+                "one depth sort (65,535 workgroups of its block)",
+            ));
         }
         let n = max_count as u32;
         // In u64: a 100,000 x 100,000 image has more pixels than u32 counts.
@@ -288,22 +324,38 @@ impl SplatRenderer {
         let colour_bytes = 12 * pixels64;
         let binding = ctx.info().max_storage_buffer_range;
         if colour_bytes > binding {
-            return Err(EngineError::too_large(format!("bytes of the colour buffer of a {width}x{height} image"), colour_bytes, binding, "the device's maxStorageBufferRange"));
+            return Err(EngineError::too_large(
+                format!("bytes of the colour buffer of a {width}x{height} image"),
+                colour_bytes,
+                binding,
+                "the device's maxStorageBufferRange",
+            ));
         }
         // The tile ranges are sized for the smallest tile, so every tile size fits.
         let smallest = TILE_SIZES[0];
         let [tiles_x, tiles_y] = tile_grid(width, height, smallest);
         let tiles64 = u64::from(tiles_x) * u64::from(tiles_y);
         let grid = ctx.info().max_compute_workgroup_count;
-        let blocks = raster_grid(RasterVariant::Workgroup, TILE_SIZES[TILE_SIZES.len() - 1], width, height);
+        let blocks = raster_grid(
+            RasterVariant::Workgroup,
+            TILE_SIZES[TILE_SIZES.len() - 1],
+            width,
+            height,
+        );
         if tiles64 > MAX_TILES || blocks[0] > grid[0] || blocks[1] > grid[1] {
-            return Err(EngineError::too_large(format!("{smallest}x{smallest} tiles of a {width}x{height} image"), tiles64, MAX_TILES, "the rasterizer (one workgroup per 16x16 block, within maxComputeWorkGroupCount)"));
+            return Err(EngineError::too_large(
+                format!("{smallest}x{smallest} tiles of a {width}x{height} image"),
+                tiles64,
+                MAX_TILES,
+                "the rasterizer (one workgroup per 16x16 block, within maxComputeWorkGroupCount)",
+            ));
         }
         let pixels = pixels64 as usize;
         let tiles = tiles64 as usize;
         // Two tiles per Gaussian to start with; a frame with more grows it (and is
         // rendered again), so a renderer pays that once.
-        let isect_limit = u64::from(Self::MAX_INTERSECTIONS).min(ctx.info().max_storage_buffer_range / 4);
+        let isect_limit =
+            u64::from(Self::MAX_INTERSECTIONS).min(ctx.info().max_storage_buffer_range / 4);
         let initial_isect = (u64::from(n) * 2).clamp(4096, isect_limit) as u32;
         let splat_bytes = std::mem::size_of::<ProjectedSplat>() as u64;
         Ok(Self {
@@ -311,9 +363,15 @@ impl SplatRenderer {
             width,
             height,
             max_count: n,
-            frame: ctx.create_buffer("splat frame", BufferDesc::gpu_only(std::mem::size_of::<FrameParams>() as u64))?,
+            frame: ctx.create_buffer(
+                "splat frame",
+                BufferDesc::gpu_only(std::mem::size_of::<FrameParams>() as u64),
+            )?,
             frame_params: FrameParams::default(),
-            splats: ctx.create_buffer("splat projected", BufferDesc::gpu_only(splat_bytes * u64::from(n)))?,
+            splats: ctx.create_buffer(
+                "splat projected",
+                BufferDesc::gpu_only(splat_bytes * u64::from(n)),
+            )?,
             depth_keys: f32_buffer(ctx, "splat depth keys", n as usize)?,
             order: f32_buffer(ctx, "splat depth order", n as usize)?,
             counts: f32_buffer(ctx, "splat tile counts", n as usize + 1)?,
@@ -350,7 +408,12 @@ impl SplatRenderer {
     }
 
     /// `variant` as this device runs it for a `width` × `height` image.
-    fn resolve_variant(ctx: &Context, variant: RasterVariant, width: u32, height: u32) -> Result<RasterVariant> {
+    fn resolve_variant(
+        ctx: &Context,
+        variant: RasterVariant,
+        width: u32,
+        height: u32,
+    ) -> Result<RasterVariant> {
         let info = ctx.info();
         let grid = info.max_compute_workgroup_count;
         // The subgroup kernels run one workgroup per 8 × 4 block, at every tile size.
@@ -358,12 +421,16 @@ impl SplatRenderer {
         let fits = blocks.iter().all(|b| b[0] <= grid[0] && b[1] <= grid[1]);
         let tiles = [u64::from(blocks[2][0]), u64::from(blocks[2][1])];
         match variant {
-            RasterVariant::Auto if subgroup_raster_supported(info) && fits => Ok(RasterVariant::Subgroup),
+            RasterVariant::Auto if subgroup_raster_supported(info) && fits => {
+                Ok(RasterVariant::Subgroup)
+            }
             RasterVariant::Auto | RasterVariant::Workgroup => Ok(RasterVariant::Workgroup),
-            RasterVariant::Subgroup if !subgroup_raster_supported(info) => Err(EngineError::MissingFeature {
-                kernel: "splat_cpu::rasterize_fwd",
-                feature: "a CPU device with subgroups of 8 lanes with ballot operations",
-            }),
+            RasterVariant::Subgroup if !subgroup_raster_supported(info) => {
+                Err(EngineError::MissingFeature {
+                    kernel: "splat_cpu::rasterize_fwd",
+                    feature: "a CPU device with subgroups of 8 lanes with ballot operations",
+                })
+            }
             RasterVariant::Subgroup if !fits => Err(EngineError::too_large(
                 "8x4 blocks along an image side for the subgroup rasterizer (one workgroup each)",
                 tiles[1].max(tiles[0]),
@@ -388,8 +455,16 @@ impl SplatRenderer {
 
     /// The kernel of the chosen variant and its dispatch, given the workgroup kernel
     /// and its subgroup twin.
-    pub(crate) fn raster_dispatch(&self, workgroup: Kernel, subgroup: Kernel) -> (Kernel, [u32; 3]) {
-        let kernel = if self.raster == RasterVariant::Subgroup { subgroup } else { workgroup };
+    pub(crate) fn raster_dispatch(
+        &self,
+        workgroup: Kernel,
+        subgroup: Kernel,
+    ) -> (Kernel, [u32; 3]) {
+        let kernel = if self.raster == RasterVariant::Subgroup {
+            subgroup
+        } else {
+            workgroup
+        };
         (kernel, self.raster_grid())
     }
 
@@ -430,11 +505,26 @@ impl SplatRenderer {
         }
         let limit = self.max_intersections();
         if needed > limit {
-            let whose = if limit < u64::from(Self::MAX_INTERSECTIONS) { "the device's maxStorageBufferRange (4 bytes each)" } else { "one radix sort (65,535 workgroups of its block)" };
-            return Err(EngineError::too_large(format!("tile intersections of a {}x{} frame", self.width, self.height), needed, limit, whose));
+            let whose = if limit < u64::from(Self::MAX_INTERSECTIONS) {
+                "the device's maxStorageBufferRange (4 bytes each)"
+            } else {
+                "one radix sort (65,535 workgroups of its block)"
+            };
+            return Err(EngineError::too_large(
+                format!(
+                    "tile intersections of a {}x{} frame",
+                    self.width, self.height
+                ),
+                needed,
+                limit,
+                whose,
+            ));
         }
         let needed = needed as u32;
-        let capacity = needed.checked_next_power_of_two().unwrap_or(needed).min(limit as u32);
+        let capacity = needed
+            .checked_next_power_of_two()
+            .unwrap_or(needed)
+            .min(limit as u32);
         self.resize_intersections(capacity)
     }
 
@@ -456,7 +546,12 @@ impl SplatRenderer {
     pub fn set_intersection_capacity(&mut self, capacity: u32) -> Result<()> {
         let limit = self.max_intersections();
         if u64::from(capacity) > limit {
-            return Err(EngineError::too_large("intersection capacity", capacity.into(), limit, "one radix sort or one buffer binding"));
+            return Err(EngineError::too_large(
+                "intersection capacity",
+                capacity.into(),
+                limit,
+                "one radix sort or one buffer binding",
+            ));
         }
         self.resize_intersections(capacity.max(1))
     }
@@ -472,13 +567,21 @@ impl SplatRenderer {
     /// [`record_forward`](Self::record_forward) and
     /// [`finish_forward`](Self::finish_forward) do the same for several renders in one
     /// recording.
-    pub fn forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<ForwardStats> {
+    pub fn forward(
+        &mut self,
+        gaussians: &GaussianBuffers,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<ForwardStats> {
         self.prepare_forward(gaussians, camera, settings)?;
         let mut timings = self.record_frame(gaussians)?;
         let mut stats = self.finish_forward()?;
         if stats.rerendered {
             timings.extend(self.record_frame(gaussians)?);
-            stats = ForwardStats { rerendered: true, ..self.finish_forward()? };
+            stats = ForwardStats {
+                rerendered: true,
+                ..self.finish_forward()?
+            };
         }
         stats.timings = timings;
         Ok(stats)
@@ -486,10 +589,24 @@ impl SplatRenderer {
 
     /// Checks `gaussians` against the renderer and sets the frame's parameters for
     /// [`record_forward`](Self::record_forward).
-    pub fn prepare_forward(&mut self, gaussians: &GaussianBuffers, camera: &PinholeCamera, settings: &RenderSettings) -> Result<()> {
-        assert_eq!((camera.width, camera.height), (self.width, self.height), "camera size differs from the renderer's");
+    pub fn prepare_forward(
+        &mut self,
+        gaussians: &GaussianBuffers,
+        camera: &PinholeCamera,
+        settings: &RenderSettings,
+    ) -> Result<()> {
+        assert_eq!(
+            (camera.width, camera.height),
+            (self.width, self.height),
+            "camera size differs from the renderer's"
+        );
         if gaussians.count > self.max_count {
-            return Err(EngineError::too_large("Gaussians", gaussians.count.into(), self.max_count.into(), "the renderer's capacity (SplatRenderer::new)"));
+            return Err(EngineError::too_large(
+                "Gaussians",
+                gaussians.count.into(),
+                self.max_count.into(),
+                "the renderer's capacity (SplatRenderer::new)",
+            ));
         }
         settings.validate()?;
         if settings.tile_size < RASTER_BLOCK && self.raster != RasterVariant::Subgroup {
@@ -500,15 +617,26 @@ impl SplatRenderer {
         }
         if settings.half_sh && self.sh_half.is_none() {
             let bytes = 4 * sh_half_words(MAX_SH_COEFFS) as u64 * u64::from(self.max_count.max(1));
-            self.sh_half = Some(self.ctx.create_buffer("splat half-precision sh", BufferDesc::gpu_only(bytes))?);
+            self.sh_half = Some(
+                self.ctx
+                    .create_buffer("splat half-precision sh", BufferDesc::gpu_only(bytes))?,
+            );
         }
         self.half_sh = settings.half_sh;
         if settings.half_splats && self.splats_half.is_none() {
             let bytes = std::mem::size_of::<HalfSplat>() as u64 * u64::from(self.max_count.max(1));
-            self.splats_half = Some(self.ctx.create_buffer("splat projected half", BufferDesc::gpu_only(bytes))?);
+            self.splats_half = Some(
+                self.ctx
+                    .create_buffer("splat projected half", BufferDesc::gpu_only(bytes))?,
+            );
         }
         self.half_splats = settings.half_splats;
-        self.frame_params = frame_params(camera, settings, gaussians.sh_degree, gaussians.count as usize);
+        self.frame_params = frame_params(
+            camera,
+            settings,
+            gaussians.sh_degree,
+            gaussians.count as usize,
+        );
         // The saved state is about to be overwritten: no earlier forward's stands.
         self.frames += 1;
         self.pending = true;
@@ -533,8 +661,22 @@ impl SplatRenderer {
         self.frames += 1;
         self.pending = false;
         // An overflowed frame is rendered again: its state stands for nothing.
-        let saved = if overflowed { SavedForward::default() } else { SavedForward { renderer: self.id, frame: self.frames, count: self.frame_params.count } };
-        Ok(ForwardStats { saved, intersections: total64 as u32, dropped, rerendered: overflowed, timings: PassTimings::default() })
+        let saved = if overflowed {
+            SavedForward::default()
+        } else {
+            SavedForward {
+                renderer: self.id,
+                frame: self.frames,
+                count: self.frame_params.count,
+            }
+        };
+        Ok(ForwardStats {
+            saved,
+            intersections: total64 as u32,
+            dropped,
+            rerendered: overflowed,
+            timings: PassTimings::default(),
+        })
     }
 
     /// The saved state of the forward pass prepared last, before
@@ -544,15 +686,35 @@ impl SplatRenderer {
     /// ([`record_overflow_flag`](Self::record_overflow_flag) raises a guard on the GPU
     /// for what comes after it in the recording).
     pub fn recorded_forward(&self) -> SavedForward {
-        SavedForward { renderer: self.id, frame: if self.pending { self.frames + 1 } else { self.frames }, count: self.frame_params.count }
+        SavedForward {
+            renderer: self.id,
+            frame: if self.pending {
+                self.frames + 1
+            } else {
+                self.frames
+            },
+            count: self.frame_params.count,
+        }
     }
 
     /// Records `counter[0] += 1` if the recorded forward pass's intersections outgrew
     /// the capacity (after [`record_forward`](Self::record_forward) in the same
     /// recording): a guard that work recorded later in the recording reads on the GPU.
-    pub fn record_overflow_flag<'a>(&'a self, rec: &mut Recording<'a>, counter: &'a Buffer) -> Result<()> {
+    pub fn record_overflow_flag<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        counter: &'a Buffer,
+    ) -> Result<()> {
         let p = ExceedsParams::new(u64::from(self.intersection_capacity()));
-        rec.dispatch("guard.intersections", kernels::train::FlagExceeds { value: self.total.read(), counter: counter.write() }, &p, [1, 1, 1])
+        rec.dispatch(
+            "guard.intersections",
+            kernels::train::FlagExceeds {
+                value: self.total.read(),
+                counter: counter.write(),
+            },
+            &p,
+            [1, 1, 1],
+        )
     }
 
     /// Makes what a backward pass with `accumulation` needs (before
@@ -579,12 +741,24 @@ impl SplatRenderer {
         // (`record_project_backward` checks `out` against `gaussians`.)
         self.check_saved("splat backward", saved, gaussians.count)?;
         let method = accumulation.method(&self.ctx);
-        self.record_raster_backward(rec, gaussians.count, grad_rgb, grad_alpha, grad_depth, method)?;
+        self.record_raster_backward(
+            rec,
+            gaussians.count,
+            grad_rgb,
+            grad_alpha,
+            grad_depth,
+            method,
+        )?;
         self.record_project_backward(rec, gaussians, out)
     }
 
     /// Checks that `saved` names this renderer's last forward pass, of `count` Gaussians.
-    pub(crate) fn check_saved(&self, op: &'static str, saved: &SavedForward, count: u32) -> Result<()> {
+    pub(crate) fn check_saved(
+        &self,
+        op: &'static str,
+        saved: &SavedForward,
+        count: u32,
+    ) -> Result<()> {
         let problem = if saved.renderer == 0 {
             "the saved state of no complete forward pass (an overflowed frame's, or a default value)".to_string()
         } else if saved.renderer != self.id {
@@ -592,7 +766,10 @@ impl SplatRenderer {
         } else if saved.frame != self.frames && !(self.pending && saved.frame == self.frames + 1) {
             "the saved state of an earlier forward pass, overwritten since by another".to_string()
         } else if saved.count != count {
-            format!("a forward pass of {} Gaussians, but {count} to back-propagate into", saved.count)
+            format!(
+                "a forward pass of {} Gaussians, but {count} to back-propagate into",
+                saved.count
+            )
         } else {
             return Ok(());
         };
@@ -611,10 +788,17 @@ impl SplatRenderer {
     /// [`finish_forward`](Self::finish_forward). The renders of several renderers
     /// recorded into one recording share only what they read, so the recorder
     /// interleaves them.
-    pub fn record_forward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
+    pub fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        gaussians: &'a GaussianBuffers,
+    ) -> Result<()> {
         self.record_binning(rec, gaussians)?;
         let (kernel, grid) = if self.half_splats {
-            self.raster_dispatch(Kernel::SplatRasterizeFwdHalf, Kernel::SplatCpuRasterizeFwdHalf)
+            self.raster_dispatch(
+                Kernel::SplatRasterizeFwdHalf,
+                Kernel::SplatCpuRasterizeFwdHalf,
+            )
         } else {
             self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatCpuRasterizeFwd)
         };
@@ -644,7 +828,13 @@ impl SplatRenderer {
     /// frame parameters, projected splats (the [`HalfSplat`]s in a half-splat frame),
     /// sorted intersection values, tile ranges.
     pub(crate) fn binned(&self) -> (&Buffer, &Buffer, &Buffer, &Buffer) {
-        let splats = if self.half_splats { self.splats_half.as_ref().expect("prepare_forward makes the half splats") } else { &self.splats };
+        let splats = if self.half_splats {
+            self.splats_half
+                .as_ref()
+                .expect("prepare_forward makes the half splats")
+        } else {
+            &self.splats
+        };
         (&self.frame, splats, &self.isect_values, &self.ranges)
     }
 
@@ -666,14 +856,23 @@ impl SplatRenderer {
     /// Everything of [`record_forward`](Self::record_forward) before rasterization:
     /// projection, depth sort, tile counts, intersections, tile sort and ranges (the
     /// fused rasterizer walks the same lists).
-    pub(crate) fn record_binning<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers) -> Result<()> {
+    pub(crate) fn record_binning<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        gaussians: &'a GaussianBuffers,
+    ) -> Result<()> {
         let n = gaussians.count;
         let fp = &self.frame_params;
         let ctx = self.ctx.clone();
         let capacity = self.intersection_capacity();
         let tiles = fp.tiles_x * fp.tiles_y;
         let tile_bits = 32 - (tiles.max(1) - 1).leading_zeros();
-        let counts_pc = SplatCounts { count: n, intersections: capacity, use_cas: 0, _pad: 0 };
+        let counts_pc = SplatCounts {
+            count: n,
+            intersections: capacity,
+            use_cas: 0,
+            _pad: 0,
+        };
         rec.update(&self.frame, std::slice::from_ref(fp));
         rec.fill(&self.dropped, 0);
         rec.fill(&self.total, 0);
@@ -702,7 +901,8 @@ impl SplatRenderer {
                 groups(chunk.len),
             )?;
         }
-        self.depth_sort.record(rec, &self.depth_keys, &self.order, n, 32)?;
+        self.depth_sort
+            .record(rec, &self.depth_keys, &self.order, n, 32)?;
         rec.dispatch(
             "splat.gather_counts",
             kernels::splat::GatherCounts {
@@ -731,7 +931,14 @@ impl SplatRenderer {
             &counts_pc,
             groups(n),
         )?;
-        self.isect_sort.record_bounded(rec, &self.isect_keys, &self.isect_values, capacity, &self.total, tile_bits)?;
+        self.isect_sort.record_bounded(
+            rec,
+            &self.isect_keys,
+            &self.isect_values,
+            capacity,
+            &self.total,
+            tile_bits,
+        )?;
         rec.dispatch(
             "splat.tile_ranges",
             kernels::splat::TileRanges {
@@ -758,12 +965,25 @@ impl SplatRenderer {
 
     /// The projection of one chunk from half-precision SH: packs the chunk's SH
     /// (`splat.pack_sh_half`), then projects with `splat::project_fwd_sh_half`.
-    fn record_project_sh_half<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, chunk: &ProjectChunk, (offset, bytes): (u64, u64)) -> Result<()> {
-        let sh_half = self.sh_half.as_ref().expect("prepare_forward makes the half-precision SH buffer");
+    fn record_project_sh_half<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        gaussians: &'a GaussianBuffers,
+        chunk: &ProjectChunk,
+        (offset, bytes): (u64, u64),
+    ) -> Result<()> {
+        let sh_half = self
+            .sh_half
+            .as_ref()
+            .expect("prepare_forward makes the half-precision SH buffer");
         let coeffs = sh_coeffs(gaussians.sh_degree);
         let words = sh_half_words(coeffs) as u64 * u64::from(chunk.len);
         let half_offset = 4 * sh_half_words(coeffs) as u64 * u64::from(chunk.first);
-        let params = ShHalfParams { count: chunk.len, coeffs: coeffs as u32, _pad: [0; 2] };
+        let params = ShHalfParams {
+            count: chunk.len,
+            coeffs: coeffs as u32,
+            _pad: [0; 2],
+        };
         rec.dispatch(
             "splat.pack_sh_half",
             kernels::splat::PackShHalf {
@@ -825,7 +1045,16 @@ impl SplatRenderer {
         self.prepare_backward(accumulation)?;
         let ctx = self.ctx.clone();
         let mut rec = ctx.record("splat backward")?;
-        self.record_backward(&mut rec, saved, gaussians, grad_rgb, grad_alpha, grad_depth, out, accumulation)?;
+        self.record_backward(
+            &mut rec,
+            saved,
+            gaussians,
+            grad_rgb,
+            grad_alpha,
+            grad_depth,
+            out,
+            accumulation,
+        )?;
         rec.submit_and_wait()
     }
 
@@ -833,7 +1062,15 @@ impl SplatRenderer {
     /// gradients (`SPLAT_GRAD_FLOATS` per splat, zeroed first) from the loss's gradient
     /// on each pixel's rgb, alpha and depth.
     /// Call [`Self::make_scratch`] for `method` first.
-    fn record_raster_backward<'a>(&'a self, rec: &mut Recording<'a>, count: u32, grad_rgb: &'a Buffer, grad_alpha: &'a Buffer, grad_depth: &'a Buffer, method: Method) -> Result<()> {
+    fn record_raster_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        count: u32,
+        grad_rgb: &'a Buffer,
+        grad_alpha: &'a Buffer,
+        grad_depth: &'a Buffer,
+        method: Method,
+    ) -> Result<()> {
         self.refuse_render_only()?;
         let subgroup = self.raster == RasterVariant::Subgroup;
         let kernel = match method {
@@ -870,9 +1107,20 @@ impl SplatRenderer {
 
     /// Records the projection's backward from the per-splat gradients to every
     /// Gaussian's parameters (`out`, written, not accumulated).
-    pub(crate) fn record_project_backward<'a>(&'a self, rec: &mut Recording<'a>, gaussians: &'a GaussianBuffers, out: &'a GaussianBuffers) -> Result<()> {
-        assert_eq!(out.count, gaussians.count, "gradient buffers are for another cloud");
-        assert_eq!(out.sh_degree, gaussians.sh_degree, "gradient buffers have another SH degree");
+    pub(crate) fn record_project_backward<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        gaussians: &'a GaussianBuffers,
+        out: &'a GaussianBuffers,
+    ) -> Result<()> {
+        assert_eq!(
+            out.count, gaussians.count,
+            "gradient buffers are for another cloud"
+        );
+        assert_eq!(
+            out.sh_degree, gaussians.sh_degree,
+            "gradient buffers have another SH degree"
+        );
         for chunk in project_chunks(&self.ctx, gaussians.count, gaussians.sh_degree) {
             let (offset, bytes) = sh_range(&chunk, gaussians.sh_degree);
             rec.dispatch(
@@ -911,7 +1159,12 @@ impl SplatRenderer {
 
     /// Records the fixed-point sums' conversion into the per-splat gradients of `count`
     /// splats (nothing for the float methods).
-    pub(crate) fn record_grad_resolve<'a>(&'a self, rec: &mut Recording<'a>, count: u32, method: Method) -> Result<()> {
+    pub(crate) fn record_grad_resolve<'a>(
+        &'a self,
+        rec: &mut Recording<'a>,
+        count: u32,
+        method: Method,
+    ) -> Result<()> {
         if let (Method::FixedPoint, Some(fixed)) = (method, &self.fixed) {
             fixed.record_resolve(rec, &self.splat_grads, SPLAT_GRAD_FLOATS as u32 * count)?;
         }
@@ -921,7 +1174,11 @@ impl SplatRenderer {
     /// Makes the fixed-point scratch on the first backward that adds in fixed point.
     pub(crate) fn make_scratch(&mut self, method: Method) -> Result<()> {
         if method == Method::FixedPoint && self.fixed.is_none() {
-            self.fixed = Some(FixedPointScratch::new(&self.ctx, "splat gradients", SPLAT_GRAD_FLOATS as u32 * self.max_count)?);
+            self.fixed = Some(FixedPointScratch::new(
+                &self.ctx,
+                "splat gradients",
+                SPLAT_GRAD_FLOATS as u32 * self.max_count,
+            )?);
         }
         Ok(())
     }
@@ -945,12 +1202,22 @@ impl SplatRenderer {
         self.make_scratch(Method::FixedPoint)?;
         {
             let mut rec = ctx.record("splat contributions")?;
-            self.record_raster_backward(&mut rec, count, &upstream, &zeros, &zeros, Method::FixedPoint)?;
+            self.record_raster_backward(
+                &mut rec,
+                count,
+                &upstream,
+                &zeros,
+                &zeros,
+                Method::FixedPoint,
+            )?;
             rec.submit_and_wait()?;
         }
         let grads = self.read_splat_grads(count as usize)?;
         // Index 6 of a splat's gradient is its colour's red (`SplatGrad::to_array`).
-        Ok(grads.chunks_exact(SPLAT_GRAD_FLOATS).map(|g| g[6]).collect())
+        Ok(grads
+            .chunks_exact(SPLAT_GRAD_FLOATS)
+            .map(|g| g[6])
+            .collect())
     }
 
     /// Sorted intersection keys and values, and the tile ranges, of the last forward
@@ -960,7 +1227,11 @@ impl SplatRenderer {
         let ctx = self.ctx.clone();
         let m = self.intersections as usize;
         let tiles = (self.frame_params.tiles_x * self.frame_params.tiles_y) as usize;
-        Ok((ctx.read_buffer(&mut self.isect_keys, m)?, ctx.read_buffer(&mut self.isect_values, m)?, ctx.read_buffer(&mut self.ranges, 2 * tiles)?))
+        Ok((
+            ctx.read_buffer(&mut self.isect_keys, m)?,
+            ctx.read_buffer(&mut self.isect_values, m)?,
+            ctx.read_buffer(&mut self.ranges, 2 * tiles)?,
+        ))
     }
 
     /// The projected splats of the last forward pass and the per-splat gradients of
@@ -986,7 +1257,12 @@ impl SplatRenderer {
 /// Renders a cloud once and returns the image: the one-call entry point for
 /// applications that embed the engine (a frame loop keeps a [`SplatRenderer`] and
 /// [`GaussianBuffers`] instead, and can read `outputs()` without leaving the GPU).
-pub fn render_image(ctx: &Context, cloud: &GaussianCloud, camera: &PinholeCamera, settings: &RenderSettings) -> Result<(RenderedImage, ForwardStats)> {
+pub fn render_image(
+    ctx: &Context,
+    cloud: &GaussianCloud,
+    camera: &PinholeCamera,
+    settings: &RenderSettings,
+) -> Result<(RenderedImage, ForwardStats)> {
     let gaussians = GaussianBuffers::upload(ctx, "render_image gaussians", cloud)?;
     let mut renderer = SplatRenderer::new(ctx, camera.width, camera.height, cloud.len())?;
     let stats = renderer.forward(&gaussians, camera, settings)?;

@@ -1,12 +1,13 @@
 //! Gaussians on the host, the pinhole camera, and the render settings; turns them into
 //! the kernels' `FrameParams`.
 
+use drape_shared::real::Real;
 use drape_shared::splat::layout::{
-    sh_coeffs, FrameParams, DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_DILATION, DEFAULT_FOV_CLAMP,
-    DEFAULT_MAX_SIGMAS, DEFAULT_TRANSMITTANCE_MIN, MAX_SH_COEFFS, MAX_SH_DEGREE, DEFAULT_TILE_SIZE, TILE_SIZES,
+    sh_coeffs, FrameParams, DEFAULT_ALPHA_MAX, DEFAULT_ALPHA_MIN, DEFAULT_DILATION,
+    DEFAULT_FOV_CLAMP, DEFAULT_MAX_SIGMAS, DEFAULT_TILE_SIZE, DEFAULT_TRANSMITTANCE_MIN,
+    MAX_SH_COEFFS, MAX_SH_DEGREE, TILE_SIZES,
 };
 use drape_shared::splat::project::Gaussian;
-use drape_shared::real::Real;
 
 use crate::error::EngineError;
 
@@ -39,8 +40,14 @@ pub struct GaussianCloud {
 impl GaussianCloud {
     /// An empty cloud of SH degree `sh_degree`.
     pub fn new(sh_degree: u32) -> Self {
-        assert!(sh_degree <= MAX_SH_DEGREE, "SH degree {sh_degree} is above {MAX_SH_DEGREE}");
-        Self { sh_degree, ..Default::default() }
+        assert!(
+            sh_degree <= MAX_SH_DEGREE,
+            "SH degree {sh_degree} is above {MAX_SH_DEGREE}"
+        );
+        Self {
+            sh_degree,
+            ..Default::default()
+        }
     }
 
     /// Gaussians in the cloud.
@@ -81,9 +88,22 @@ impl GaussianCloud {
             *coeffs = [c(self.sh[b]), c(self.sh[b + 1]), c(self.sh[b + 2])];
         }
         Gaussian {
-            mean: [c(self.means[3 * i]), c(self.means[3 * i + 1]), c(self.means[3 * i + 2])],
-            log_scale: [c(self.log_scales[3 * i]), c(self.log_scales[3 * i + 1]), c(self.log_scales[3 * i + 2])],
-            quat: [c(self.quats[4 * i]), c(self.quats[4 * i + 1]), c(self.quats[4 * i + 2]), c(self.quats[4 * i + 3])],
+            mean: [
+                c(self.means[3 * i]),
+                c(self.means[3 * i + 1]),
+                c(self.means[3 * i + 2]),
+            ],
+            log_scale: [
+                c(self.log_scales[3 * i]),
+                c(self.log_scales[3 * i + 1]),
+                c(self.log_scales[3 * i + 2]),
+            ],
+            quat: [
+                c(self.quats[4 * i]),
+                c(self.quats[4 * i + 1]),
+                c(self.quats[4 * i + 2]),
+                c(self.quats[4 * i + 3]),
+            ],
             opacity_logit: c(self.opacity_logits[i]),
             sh,
         }
@@ -108,7 +128,14 @@ impl GaussianCloud {
     /// `n` random Gaussians of group 0 in the box
     /// `[-extent, extent]^2 x [z_min, z_max]`, with scales around `scale`, reproducible
     /// from `seed` (for tests and benchmarks).
-    pub fn random(n: usize, sh_degree: u32, extent: f32, z_range: (f32, f32), scale: f32, seed: u64) -> Self {
+    pub fn random(
+        n: usize,
+        sh_degree: u32,
+        extent: f32,
+        z_range: (f32, f32),
+        scale: f32,
+        seed: u64,
+    ) -> Self {
         use rand::{Rng, SeedableRng};
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let mut cloud = Self::new(sh_degree);
@@ -116,12 +143,25 @@ impl GaussianCloud {
             let mut sh = [[0.0f32; 3]; MAX_SH_COEFFS];
             for (k, c) in sh.iter_mut().enumerate().take(sh_coeffs(sh_degree)) {
                 let amp = if k == 0 { 1.2 } else { 0.3 };
-                *c = [rng.random_range(-amp..amp), rng.random_range(-amp..amp), rng.random_range(-amp..amp)];
+                *c = [
+                    rng.random_range(-amp..amp),
+                    rng.random_range(-amp..amp),
+                    rng.random_range(-amp..amp),
+                ];
             }
             let g = Gaussian {
-                mean: [rng.random_range(-extent..extent), rng.random_range(-extent..extent), rng.random_range(z_range.0..z_range.1)],
+                mean: [
+                    rng.random_range(-extent..extent),
+                    rng.random_range(-extent..extent),
+                    rng.random_range(z_range.0..z_range.1),
+                ],
                 log_scale: [0, 1, 2].map(|_| (scale * rng.random_range(0.3f32..1.5)).ln()),
-                quat: [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)],
+                quat: [
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                ],
                 opacity_logit: rng.random_range(-2.0..3.0),
                 sh,
             };
@@ -164,7 +204,11 @@ fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 }
 
 fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 
 fn normalize(a: [f32; 3]) -> Option<[f32; 3]> {
@@ -176,7 +220,14 @@ impl PinholeCamera {
     /// A camera at `eye` looking at `target` with `up` the world's up direction and a
     /// vertical field of view in degrees. None when eye = target, up is parallel to
     /// the view direction, or the field of view is not in (0, 180).
-    pub fn look_at(eye: [f32; 3], target: [f32; 3], up: [f32; 3], fov_y_degrees: f32, width: u32, height: u32) -> Option<Self> {
+    pub fn look_at(
+        eye: [f32; 3],
+        target: [f32; 3],
+        up: [f32; 3],
+        fov_y_degrees: f32,
+        width: u32,
+        height: u32,
+    ) -> Option<Self> {
         if !(fov_y_degrees > 0.0 && fov_y_degrees < 180.0) || width == 0 || height == 0 {
             return None;
         }
@@ -220,32 +271,77 @@ impl PinholeCamera {
     /// [0, 1], a bad clipping range, a rotation that is not orthonormal): an
     /// [`EngineError::InvalidSetting`] whose `what` is the field's name.
     pub fn validate(&self) -> Result<(), EngineError> {
-        let invalid = |what: &'static str, problem: String| Err(EngineError::InvalidSetting { what, problem });
-        let scalars = [("fx", self.fx), ("fy", self.fy), ("cx", self.cx), ("cy", self.cy), ("near", self.near), ("far", self.far)];
-        let arrays: [(&'static str, &[f32]); 3] = [("rotation", self.rotation.as_flattened()), ("translation", &self.translation), ("background", &self.background)];
-        for (what, v) in scalars.into_iter().chain(arrays.into_iter().flat_map(|(w, a)| a.iter().map(move |&v| (w, v)))) {
+        let invalid = |what: &'static str, problem: String| {
+            Err(EngineError::InvalidSetting { what, problem })
+        };
+        let scalars = [
+            ("fx", self.fx),
+            ("fy", self.fy),
+            ("cx", self.cx),
+            ("cy", self.cy),
+            ("near", self.near),
+            ("far", self.far),
+        ];
+        let arrays: [(&'static str, &[f32]); 3] = [
+            ("rotation", self.rotation.as_flattened()),
+            ("translation", &self.translation),
+            ("background", &self.background),
+        ];
+        for (what, v) in scalars.into_iter().chain(
+            arrays
+                .into_iter()
+                .flat_map(|(w, a)| a.iter().map(move |&v| (w, v))),
+        ) {
             if !v.is_finite() {
                 return invalid(what, format!("{v} is not a finite number"));
             }
         }
         if !(self.fx > 0.0 && self.fy > 0.0) {
             let what = if self.fx > 0.0 { "fy" } else { "fx" };
-            return invalid(what, format!("fx and fy must be positive (fx {}, fy {})", self.fx, self.fy));
+            return invalid(
+                what,
+                format!(
+                    "fx and fy must be positive (fx {}, fy {})",
+                    self.fx, self.fy
+                ),
+            );
         }
         if self.width == 0 || self.height == 0 {
             let what = if self.width == 0 { "width" } else { "height" };
-            return invalid(what, format!("width and height must be positive ({}x{})", self.width, self.height));
+            return invalid(
+                what,
+                format!(
+                    "width and height must be positive ({}x{})",
+                    self.width, self.height
+                ),
+            );
         }
         if self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
-            let what = if self.width > MAX_IMAGE_SIDE { "width" } else { "height" };
-            return invalid(what, format!("{}x{} is larger than {MAX_IMAGE_SIDE} on a side", self.width, self.height));
+            let what = if self.width > MAX_IMAGE_SIDE {
+                "width"
+            } else {
+                "height"
+            };
+            return invalid(
+                what,
+                format!(
+                    "{}x{} is larger than {MAX_IMAGE_SIDE} on a side",
+                    self.width, self.height
+                ),
+            );
         }
         if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
-            return invalid("background", format!("{:?}: each channel in [0, 1]", self.background));
+            return invalid(
+                "background",
+                format!("{:?}: each channel in [0, 1]", self.background),
+            );
         }
         if !(self.near > 0.0 && self.far > self.near) {
             let what = if self.near > 0.0 { "far" } else { "near" };
-            return invalid(what, format!("need 0 < near < far (near {}, far {})", self.near, self.far));
+            return invalid(
+                what,
+                format!("need 0 < near < far (near {}, far {})", self.near, self.far),
+            );
         }
         let r = self.rotation;
         for i in 0..3 {
@@ -253,7 +349,10 @@ impl PinholeCamera {
                 let d = r[i][0] * r[j][0] + r[i][1] * r[j][1] + r[i][2] * r[j][2];
                 let expected = if i == j { 1.0 } else { 0.0 };
                 if (d - expected).abs() > 1e-3 {
-                    return invalid("rotation", format!("not orthonormal (row {i} . row {j} = {d})"));
+                    return invalid(
+                        "rotation",
+                        format!("not orthonormal (row {i} . row {j} = {d})"),
+                    );
                 }
             }
         }
@@ -262,7 +361,10 @@ impl PinholeCamera {
 
     /// The image's grid of tiles of side `tile_size`.
     pub fn tiles(&self, tile_size: u32) -> (u32, u32) {
-        (self.width.div_ceil(tile_size), self.height.div_ceil(tile_size))
+        (
+            self.width.div_ceil(tile_size),
+            self.height.div_ceil(tile_size),
+        )
     }
 }
 
@@ -304,7 +406,10 @@ impl RenderSettings {
     /// ([`EngineError::InvalidSetting`] for `tile_size`).
     pub fn validate(&self) -> Result<(), EngineError> {
         if !TILE_SIZES.contains(&self.tile_size) {
-            return Err(EngineError::InvalidSetting { what: "tile_size", problem: format!("tile size {} is not one of {TILE_SIZES:?}", self.tile_size) });
+            return Err(EngineError::InvalidSetting {
+                what: "tile_size",
+                problem: format!("tile size {} is not one of {TILE_SIZES:?}", self.tile_size),
+            });
         }
         Ok(())
     }
@@ -328,11 +433,18 @@ impl Default for RenderSettings {
 }
 
 /// The kernels' view of a camera, settings and scene size.
-pub fn frame_params(cam: &PinholeCamera, settings: &RenderSettings, sh_degree: u32, count: usize) -> FrameParams {
+pub fn frame_params(
+    cam: &PinholeCamera,
+    settings: &RenderSettings,
+    sh_degree: u32,
+    count: usize,
+) -> FrameParams {
     let (tiles_x, tiles_y) = cam.tiles(settings.tile_size);
     let r = cam.rotation;
     FrameParams {
-        rot: [r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]],
+        rot: [
+            r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2],
+        ],
         trans: cam.translation,
         fx: cam.fx,
         fy: cam.fy,

@@ -24,21 +24,47 @@ pub struct ShSlice<'a> {
 }
 
 fn params(src: (u32, u32), dst: (u32, u32), count: u32) -> ShCopyParams {
-    ShCopyParams { count, src_coeffs: sh_coeffs(src.0) as u32, dst_coeffs: sh_coeffs(dst.0) as u32, src_first: src.1, dst_first: dst.1, _pad: [0; 3] }
+    ShCopyParams {
+        count,
+        src_coeffs: sh_coeffs(src.0) as u32,
+        dst_coeffs: sh_coeffs(dst.0) as u32,
+        src_first: src.1,
+        dst_first: dst.1,
+        _pad: [0; 3],
+    }
 }
 
 /// Records the copy of `count` Gaussians' SH from `src` into `dst`.
-pub fn record_copy_sh<'a>(rec: &mut Recording<'a>, src: ShSlice<'a>, dst: ShSlice<'a>, count: u32) -> Result<()> {
+pub fn record_copy_sh<'a>(
+    rec: &mut Recording<'a>,
+    src: ShSlice<'a>,
+    dst: ShSlice<'a>,
+    count: u32,
+) -> Result<()> {
     if count == 0 {
         return Ok(());
     }
     if src.degree == dst.degree {
         let per = 12 * sh_coeffs(src.degree) as u64;
-        rec.copy_region(src.buffer, per * u64::from(src.first), dst.buffer, per * u64::from(dst.first), per * u64::from(count));
+        rec.copy_region(
+            src.buffer,
+            per * u64::from(src.first),
+            dst.buffer,
+            per * u64::from(dst.first),
+            per * u64::from(count),
+        );
         return Ok(());
     }
     let p = params((src.degree, src.first), (dst.degree, dst.first), count);
-    rec.dispatch("train.copy_sh", kernels::train::CopySh { src: src.buffer.read(), dst: dst.buffer.write() }, &p, flat_grid(p.floats()))
+    rec.dispatch(
+        "train.copy_sh",
+        kernels::train::CopySh {
+            src: src.buffer.read(),
+            dst: dst.buffer.write(),
+        },
+        &p,
+        flat_grid(p.floats()),
+    )
 }
 
 /// CPU reference of the SH copy.
@@ -46,7 +72,13 @@ pub mod reference {
     use super::*;
 
     /// CPU reference: `dst` after the same copy.
-    pub fn copy_sh(src: &[f32], src_degree_first: (u32, u32), dst: &mut [f32], dst_degree_first: (u32, u32), count: u32) {
+    pub fn copy_sh(
+        src: &[f32],
+        src_degree_first: (u32, u32),
+        dst: &mut [f32],
+        dst_degree_first: (u32, u32),
+        count: u32,
+    ) {
         let p = params(src_degree_first, dst_degree_first, count);
         for i in 0..p.floats() {
             let (d, s) = sh_copy_indices(i, &p);

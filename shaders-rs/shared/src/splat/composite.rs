@@ -89,13 +89,23 @@ fn ratio<F: Real>(alpha: F, matte: F) -> (F, F, bool, bool) {
 pub fn composite<F: Real>(base: [F; 3], over: [F; 3], over_alpha: F, matte: F) -> [F; 3] {
     let (r, _, _, _) = ratio(over_alpha, matte);
     let keep = F::one() - matte;
-    [over[0] * r + base[0] * keep, over[1] * r + base[1] * keep, over[2] * r + base[2] * keep]
+    [
+        over[0] * r + base[0] * keep,
+        over[1] * r + base[1] * keep,
+        over[2] * r + base[2] * keep,
+    ]
 }
 
 /// Gradients of one pixel's composite given the loss gradient `grad` on its colour:
 /// (to base, to over, to over_alpha, to matte).
 #[inline]
-pub fn composite_grad<F: Real>(grad: [F; 3], base: [F; 3], over: [F; 3], over_alpha: F, matte: F) -> ([F; 3], [F; 3], F, F) {
+pub fn composite_grad<F: Real>(
+    grad: [F; 3],
+    base: [F; 3],
+    over: [F; 3],
+    over_alpha: F,
+    matte: F,
+) -> ([F; 3], [F; 3], F, F) {
     let (r, a, ratio_free, alpha_free) = ratio(over_alpha, matte);
     let keep = F::one() - matte;
     let g_base = [grad[0] * keep, grad[1] * keep, grad[2] * keep];

@@ -46,7 +46,14 @@ pub fn screen_radius<F: Real>(conic: [F; 3]) -> F {
 /// One frame's contribution to a Gaussian's statistics `stats` (gradient-norm sum,
 /// visible frames, largest radius), from its splat and the splat's gradient on the
 /// pixel centre `(gx, gy)`.
-pub fn accumulate(stats: [f32; 3], splat: &ProjectedSplat, gx: f32, gy: f32, width: u32, height: u32) -> [f32; 3] {
+pub fn accumulate(
+    stats: [f32; 3],
+    splat: &ProjectedSplat,
+    gx: f32,
+    gy: f32,
+    width: u32,
+    height: u32,
+) -> [f32; 3] {
     if splat.tiles == 0 {
         return stats;
     }

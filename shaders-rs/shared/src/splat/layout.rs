@@ -188,7 +188,10 @@ pub fn sh_copy_indices(i: u32, p: &ShCopyParams) -> (usize, Option<usize>) {
     let r = i % per_dst;
     let dst = ((p.dst_first + g) * per_dst + r) as usize;
     if r / 3 < p.src_coeffs {
-        (dst, Some(((p.src_first + g) * 3 * p.src_coeffs + r) as usize))
+        (
+            dst,
+            Some(((p.src_first + g) * 3 * p.src_coeffs + r) as usize),
+        )
     } else {
         (dst, None)
     }

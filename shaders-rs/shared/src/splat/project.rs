@@ -46,7 +46,11 @@ impl<F: Real> Camera<F> {
         let r = p.rot;
         let c = F::of;
         Self {
-            rot: [[c(r[0]), c(r[1]), c(r[2])], [c(r[3]), c(r[4]), c(r[5])], [c(r[6]), c(r[7]), c(r[8])]],
+            rot: [
+                [c(r[0]), c(r[1]), c(r[2])],
+                [c(r[3]), c(r[4]), c(r[5])],
+                [c(r[6]), c(r[7]), c(r[8])],
+            ],
             trans: [c(p.trans[0]), c(p.trans[1]), c(p.trans[2])],
             fx: c(p.fx),
             fy: c(p.fy),
@@ -89,7 +93,8 @@ pub struct Gaussian<F> {
 impl<F: Real> Gaussian<F> {
     /// Every parameter finite (NaN fails).
     pub fn is_finite(&self, degree: u32) -> bool {
-        let mut ok = all_finite(&self.mean) && all_finite(&self.log_scale) && all_finite(&self.quat);
+        let mut ok =
+            all_finite(&self.mean) && all_finite(&self.log_scale) && all_finite(&self.quat);
         ok = ok && self.opacity_logit.is_finite();
         let n = crate::splat::layout::sh_coeffs(degree);
         let mut k = 0;
@@ -120,7 +125,17 @@ pub struct Projection<F> {
 impl<F: Real> Projection<F> {
     fn culled(dropped: bool) -> Self {
         let z = F::zero();
-        Self { visible: false, dropped, x: z, y: z, depth: z, conic: [z; 3], opacity: z, color: [z; 3], radius: [z; 2] }
+        Self {
+            visible: false,
+            dropped,
+            x: z,
+            y: z,
+            depth: z,
+            conic: [z; 3],
+            opacity: z,
+            color: [z; 3],
+            radius: [z; 2],
+        }
     }
 }
 
@@ -138,16 +153,41 @@ pub struct SplatGrad<F> {
 impl<F: Real> SplatGrad<F> {
     pub fn zero() -> Self {
         let z = F::zero();
-        Self { x: z, y: z, conic: [z; 3], opacity: z, color: [z; 3], depth: z }
+        Self {
+            x: z,
+            y: z,
+            conic: [z; 3],
+            opacity: z,
+            color: [z; 3],
+            depth: z,
+        }
     }
 
     /// The flat layout of the gradient buffers (see `SPLAT_GRAD_FLOATS`).
     pub fn to_array(&self) -> [F; 10] {
-        [self.x, self.y, self.conic[0], self.conic[1], self.conic[2], self.opacity, self.color[0], self.color[1], self.color[2], self.depth]
+        [
+            self.x,
+            self.y,
+            self.conic[0],
+            self.conic[1],
+            self.conic[2],
+            self.opacity,
+            self.color[0],
+            self.color[1],
+            self.color[2],
+            self.depth,
+        ]
     }
 
     pub fn from_array(a: &[F; 10]) -> Self {
-        Self { x: a[0], y: a[1], conic: [a[2], a[3], a[4]], opacity: a[5], color: [a[6], a[7], a[8]], depth: a[9] }
+        Self {
+            x: a[0],
+            y: a[1],
+            conic: [a[2], a[3], a[4]],
+            opacity: a[5],
+            color: [a[6], a[7], a[8]],
+            depth: a[9],
+        }
     }
 
     /// The sum of two gradients (written out: no loop for llvmpipe's loop budget).
@@ -156,9 +196,17 @@ impl<F: Real> SplatGrad<F> {
         Self {
             x: self.x + o.x,
             y: self.y + o.y,
-            conic: [self.conic[0] + o.conic[0], self.conic[1] + o.conic[1], self.conic[2] + o.conic[2]],
+            conic: [
+                self.conic[0] + o.conic[0],
+                self.conic[1] + o.conic[1],
+                self.conic[2] + o.conic[2],
+            ],
             opacity: self.opacity + o.opacity,
-            color: [self.color[0] + o.color[0], self.color[1] + o.color[1], self.color[2] + o.color[2]],
+            color: [
+                self.color[0] + o.color[0],
+                self.color[1] + o.color[1],
+                self.color[2] + o.color[2],
+            ],
             depth: self.depth + o.depth,
         }
     }
@@ -177,7 +225,13 @@ pub struct GaussianGrad<F> {
 impl<F: Real> GaussianGrad<F> {
     pub fn zero() -> Self {
         let z = F::zero();
-        Self { mean: [z; 3], log_scale: [z; 3], quat: [z; 4], opacity_logit: z, sh: [[z; 3]; MAX_SH_COEFFS] }
+        Self {
+            mean: [z; 3],
+            log_scale: [z; 3],
+            quat: [z; 4],
+            opacity_logit: z,
+            sh: [[z; 3]; MAX_SH_COEFFS],
+        }
     }
 }
 
@@ -187,9 +241,21 @@ pub fn quat_to_mat<F: Real>(q: [F; 4]) -> M3<F> {
     let one = F::one();
     let two = F::of(2.0);
     [
-        [one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y)],
-        [two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x)],
-        [two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y)],
+        [
+            one - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
+        ],
+        [
+            two * (x * y + w * z),
+            one - two * (x * x + z * z),
+            two * (y * z - w * x),
+        ],
+        [
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            one - two * (x * x + y * y),
+        ],
     ]
 }
 
@@ -240,10 +306,18 @@ fn jvjt<F: Real>(j: &[V3<F>; 2], v: &M3<F>) -> [F; 3] {
 
 fn chain<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Chain<F> {
     let t0 = mat_vec(&cam.rot, g.mean);
-    let t = [t0[0] + cam.trans[0], t0[1] + cam.trans[1], t0[2] + cam.trans[2]];
+    let t = [
+        t0[0] + cam.trans[0],
+        t0[1] + cam.trans[1],
+        t0[2] + cam.trans[2],
+    ];
     let (qn, qnorm) = normalize_quat(g.quat);
     let rq = quat_to_mat(qn);
-    let scale = [g.log_scale[0].exp_k(), g.log_scale[1].exp_k(), g.log_scale[2].exp_k()];
+    let scale = [
+        g.log_scale[0].exp_k(),
+        g.log_scale[1].exp_k(),
+        g.log_scale[2].exp_k(),
+    ];
     let mut m = zero33();
     crate::each_index!(3, i => {
         crate::each_index!(3, k => {
@@ -266,12 +340,45 @@ fn chain<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Chain<F> {
     let v_raw = t[1] / t[2];
     let u_clamped = !(u_raw <= lim_x_pos && u_raw >= -lim_x_neg);
     let v_clamped = !(v_raw <= lim_y_pos && v_raw >= -lim_y_neg);
-    let u = if u_clamped { if u_raw > F::zero() { lim_x_pos } else { -lim_x_neg } } else { u_raw };
-    let v = if v_clamped { if v_raw > F::zero() { lim_y_pos } else { -lim_y_neg } } else { v_raw };
+    let u = if u_clamped {
+        if u_raw > F::zero() {
+            lim_x_pos
+        } else {
+            -lim_x_neg
+        }
+    } else {
+        u_raw
+    };
+    let v = if v_clamped {
+        if v_raw > F::zero() {
+            lim_y_pos
+        } else {
+            -lim_y_neg
+        }
+    } else {
+        v_raw
+    };
     let z = F::zero();
-    let j = [[cam.fx / t[2], z, -cam.fx * u / t[2]], [z, cam.fy / t[2], -cam.fy * v / t[2]]];
+    let j = [
+        [cam.fx / t[2], z, -cam.fx * u / t[2]],
+        [z, cam.fy / t[2], -cam.fy * v / t[2]],
+    ];
     let cov = jvjt(&j, &vc);
-    Chain { t, qn, qnorm, rq, scale, m, vc, j, u, v, u_clamped, v_clamped, cov }
+    Chain {
+        t,
+        qn,
+        qnorm,
+        rq,
+        scale,
+        m,
+        vc,
+        j,
+        u,
+        v,
+        u_clamped,
+        v_clamped,
+        cov,
+    }
 }
 
 /// Antialiasing compensation `sqrt(det(cov) / det(cov + dilation I))` (0 if degenerate).
@@ -279,7 +386,11 @@ fn compensation<F: Real>(cov: [F; 3], dilation: F) -> F {
     let det0 = cov[0] * cov[2] - cov[1] * cov[1];
     let det1 = (cov[0] + dilation) * (cov[2] + dilation) - cov[1] * cov[1];
     let r = det0 / det1;
-    if r > F::zero() { r.sqrt() } else { F::zero() }
+    if r > F::zero() {
+        r.sqrt()
+    } else {
+        F::zero()
+    }
 }
 
 /// Colour from SH at the view direction of `mean`, `+0.5`, before clamping.
@@ -287,7 +398,11 @@ fn sh_color<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> (V3<F>, V3<F>, F) {
     let p = cam.position();
     let d = [g.mean[0] - p[0], g.mean[1] - p[1], g.mean[2] - p[2]];
     let len = dot3(d, d).sqrt();
-    let dir = if len > F::zero() { [d[0] / len, d[1] / len, d[2] / len] } else { [F::zero(), F::zero(), F::one()] };
+    let dir = if len > F::zero() {
+        [d[0] / len, d[1] / len, d[2] / len]
+    } else {
+        [F::zero(), F::zero(), F::one()]
+    };
     let b = sh::basis(cam.sh_degree, dir);
     let mut color = [F::of(0.5); 3];
     crate::each_index!(16, k => {
@@ -357,7 +472,14 @@ pub fn project_fwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>) -> Projection<F> {
 /// Tile rectangle `[x0, x1) x [y0, y1)` covered by a splat at (x, y) with the given
 /// radii, clamped to the image's tiles of side `tile_size`. Clamping happens in
 /// floating point before the conversion, so huge or infinite extents are safe.
-pub fn tile_rect<F: Real>(x: F, y: F, radius: [F; 2], tile_size: u32, tiles_x: u32, tiles_y: u32) -> [u32; 4] {
+pub fn tile_rect<F: Real>(
+    x: F,
+    y: F,
+    radius: [F; 2],
+    tile_size: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+) -> [u32; 4] {
     let ts = F::of(tile_size as f32);
     let tx = F::of(tiles_x as f32);
     let ty = F::of(tiles_y as f32);
@@ -371,7 +493,11 @@ pub fn tile_rect<F: Real>(x: F, y: F, radius: [F; 2], tile_size: u32, tiles_x: u
 }
 
 /// Backward of [`project_fwd`] for a visible Gaussian.
-pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>) -> GaussianGrad<F> {
+pub fn project_bwd<F: Real>(
+    g: &Gaussian<F>,
+    cam: &Camera<F>,
+    up: &SplatGrad<F>,
+) -> GaussianGrad<F> {
     let mut out = GaussianGrad::zero();
     let c = chain(g, cam);
     let two = F::of(2.0);
@@ -384,7 +510,11 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
 
     // Opacity: o = sigmoid(l) * comp.
     let sig = sigmoid(g.opacity_logit);
-    let comp = if cam.antialiased { compensation(c.cov, cam.dilation) } else { F::one() };
+    let comp = if cam.antialiased {
+        compensation(c.cov, cam.dilation)
+    } else {
+        F::one()
+    };
     out.opacity_logit = up.opacity * comp * sig * (F::one() - sig);
     let g_comp = up.opacity * sig;
 
@@ -451,10 +581,25 @@ pub fn project_bwd<F: Real>(g: &Gaussian<F>, cam: &Camera<F>, up: &SplatGrad<F>)
     if c.qnorm > F::zero() {
         let (w, x, y, z) = (c.qn[0], c.qn[1], c.qn[2], c.qn[3]);
         let gr = &g_rq;
-        let gw = two * (-z * gr[0][1] + y * gr[0][2] + z * gr[1][0] - x * gr[1][2] - y * gr[2][0] + x * gr[2][1]);
-        let gx = two * (y * gr[0][1] + z * gr[0][2] + y * gr[1][0] - two * x * gr[1][1] - w * gr[1][2] + z * gr[2][0] + w * gr[2][1] - two * x * gr[2][2]);
-        let gy = two * (-two * y * gr[0][0] + x * gr[0][1] + w * gr[0][2] + x * gr[1][0] + z * gr[1][2] - w * gr[2][0] + z * gr[2][1] - two * y * gr[2][2]);
-        let gz = two * (-two * z * gr[0][0] - w * gr[0][1] + x * gr[0][2] + w * gr[1][0] - two * z * gr[1][1] + y * gr[1][2] + x * gr[2][0] + y * gr[2][1]);
+        let gw = two
+            * (-z * gr[0][1] + y * gr[0][2] + z * gr[1][0] - x * gr[1][2] - y * gr[2][0]
+                + x * gr[2][1]);
+        let gx = two
+            * (y * gr[0][1] + z * gr[0][2] + y * gr[1][0] - two * x * gr[1][1] - w * gr[1][2]
+                + z * gr[2][0]
+                + w * gr[2][1]
+                - two * x * gr[2][2]);
+        let gy = two
+            * (-two * y * gr[0][0] + x * gr[0][1] + w * gr[0][2] + x * gr[1][0] + z * gr[1][2]
+                - w * gr[2][0]
+                + z * gr[2][1]
+                - two * y * gr[2][2]);
+        let gz = two
+            * (-two * z * gr[0][0] - w * gr[0][1] + x * gr[0][2] + w * gr[1][0]
+                - two * z * gr[1][1]
+                + y * gr[1][2]
+                + x * gr[2][0]
+                + y * gr[2][1]);
         let gq = [gw, gx, gy, gz];
         let proj = gq[0] * c.qn[0] + gq[1] * c.qn[1] + gq[2] * c.qn[2] + gq[3] * c.qn[3];
         crate::each_index!(4, k => {

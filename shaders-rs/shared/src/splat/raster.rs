@@ -63,7 +63,14 @@ impl crate::splat::layout::HalfSplat {
         let co = unpack2(self.conic_c_opacity);
         let rg = unpack2(self.rg);
         let bd = unpack2(self.b_depth);
-        SplatView { x: self.x, y: self.y, depth: bd[1], conic: [ab[0], ab[1], co[0]], opacity: co[1], color: [rg[0], rg[1], bd[0]] }
+        SplatView {
+            x: self.x,
+            y: self.y,
+            depth: bd[1],
+            conic: [ab[0], ab[1], co[0]],
+            opacity: co[1],
+            color: [rg[0], rg[1], bd[0]],
+        }
     }
 }
 
@@ -77,7 +84,11 @@ impl SplatView<f32> {
 
 impl<F: Real> BlendSettings<F> {
     pub fn from_frame(p: &crate::splat::layout::FrameParams) -> Self {
-        Self { alpha_min: F::of(p.alpha_min), alpha_max: F::of(p.alpha_max), transmittance_min: F::of(p.transmittance_min) }
+        Self {
+            alpha_min: F::of(p.alpha_min),
+            alpha_max: F::of(p.alpha_max),
+            transmittance_min: F::of(p.transmittance_min),
+        }
     }
 }
 
@@ -103,7 +114,12 @@ pub struct Footprint<F> {
 
 /// The footprint at pixel centre (px, py), or None when the splat is skipped there.
 #[inline]
-pub fn footprint<F: Real>(s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>) -> Option<Footprint<F>> {
+pub fn footprint<F: Real>(
+    s: &SplatView<F>,
+    px: F,
+    py: F,
+    cfg: &BlendSettings<F>,
+) -> Option<Footprint<F>> {
     let dx = s.x - px;
     let dy = s.y - py;
     let half = F::of(0.5);
@@ -117,7 +133,13 @@ pub fn footprint<F: Real>(s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>
     if !(alpha >= cfg.alpha_min) {
         return None;
     }
-    Some(Footprint { dx, dy, gauss, raw_alpha, alpha })
+    Some(Footprint {
+        dx,
+        dy,
+        gauss,
+        raw_alpha,
+        alpha,
+    })
 }
 
 /// Conic condition number `(a + c)² / (ac − b²)` above which [`may_touch_rect`] does not
@@ -138,7 +160,12 @@ const CULL_MAX_CONDITION: f32 = 1.0e4;
 /// 0.01 px and 1e-5 of the centre's coordinates (the rounding of `d`). Degenerate or
 /// non-finite conics are never culled.
 #[inline]
-pub fn may_touch_rect(s: &SplatView<f32>, lo: [f32; 2], hi: [f32; 2], cfg: &BlendSettings<f32>) -> bool {
+pub fn may_touch_rect(
+    s: &SplatView<f32>,
+    lo: [f32; 2],
+    hi: [f32; 2],
+    cfg: &BlendSettings<f32>,
+) -> bool {
     // opacity · e^(-σ) ≤ opacity for σ ≥ 0 (the product rounds to at most opacity).
     if s.opacity < cfg.alpha_min {
         return false;
@@ -176,21 +203,37 @@ pub struct PixelFwd<F> {
 impl<F: Real> PixelFwd<F> {
     pub fn new() -> Self {
         let z = F::zero();
-        Self { transmittance: F::one(), color: [z; 3], depth: z, contributors: 0, blended: 0, done: false }
+        Self {
+            transmittance: F::one(),
+            color: [z; 3],
+            depth: z,
+            contributors: 0,
+            blended: 0,
+            done: false,
+        }
     }
 
     /// Blends the `index`-th splat of the tile list (0-based); sets `done` when the
     /// pixel is saturated.
     #[inline]
     pub fn blend(&mut self, s: &SplatView<F>, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
-        let Some(f) = footprint(s, px, py, cfg) else { return };
+        let Some(f) = footprint(s, px, py, cfg) else {
+            return;
+        };
         self.blend_footprint(&f, s.color, s.depth, index, cfg);
     }
 
     /// [`blend`](Self::blend) with the footprint already computed (the fused
     /// rasterizer blends one footprint into several states) and the colour given.
     #[inline]
-    pub fn blend_footprint(&mut self, f: &Footprint<F>, color: V3<F>, depth: F, index: u32, cfg: &BlendSettings<F>) {
+    pub fn blend_footprint(
+        &mut self,
+        f: &Footprint<F>,
+        color: V3<F>,
+        depth: F,
+        index: u32,
+        cfg: &BlendSettings<F>,
+    ) {
         let next = self.transmittance * (F::one() - f.alpha);
         if !(next > cfg.transmittance_min) {
             self.done = true;
@@ -211,7 +254,11 @@ impl<F: Real> PixelFwd<F> {
     /// Final colour over `background`.
     pub fn rgb(&self, background: V3<F>) -> V3<F> {
         let t = self.transmittance;
-        [self.color[0] + t * background[0], self.color[1] + t * background[1], self.color[2] + t * background[2]]
+        [
+            self.color[0] + t * background[0],
+            self.color[1] + t * background[1],
+            self.color[2] + t * background[2],
+        ]
     }
 }
 
@@ -252,7 +299,11 @@ impl<F: Real> FusedPixel<F> {
     /// pixel) keeps the walk going to the end of the list, where its own pass would
     /// also have ended.
     pub fn new() -> Self {
-        Self { base: PixelFwd::new(), over: PixelFwd::new(), matte: PixelFwd::new() }
+        Self {
+            base: PixelFwd::new(),
+            over: PixelFwd::new(),
+            matte: PixelFwd::new(),
+        }
     }
 
     /// All three states saturated.
@@ -264,11 +315,21 @@ impl<F: Real> FusedPixel<F> {
     /// Blends the `index`-th splat of the merged tile list (0-based), with layer mask
     /// `mask`.
     #[inline]
-    pub fn blend(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) {
+    pub fn blend(
+        &mut self,
+        s: &SplatView<F>,
+        mask: u32,
+        index: u32,
+        px: F,
+        py: F,
+        cfg: &BlendSettings<F>,
+    ) {
         let in_base = mask & FUSED_BASE != 0;
         let in_over = mask & FUSED_OVER != 0;
         let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0;
-        let wanted = (in_base && !self.base.done) || (in_over && !self.over.done) || (in_matte && !self.matte.done);
+        let wanted = (in_base && !self.base.done)
+            || (in_over && !self.over.done)
+            || (in_matte && !self.matte.done);
         if wanted {
             if let Some(f) = footprint(s, px, py, cfg) {
                 if in_base && !self.base.done {
@@ -279,7 +340,8 @@ impl<F: Real> FusedPixel<F> {
                 }
                 if in_matte && !self.matte.done {
                     let m = matte_value::<F>(mask);
-                    self.matte.blend_footprint(&f, [m, m, m], s.depth, index, cfg);
+                    self.matte
+                        .blend_footprint(&f, [m, m, m], s.depth, index, cfg);
                 }
             }
         }
@@ -288,14 +350,22 @@ impl<F: Real> FusedPixel<F> {
     /// The states' final transmittances (base, over, matte): what the backward starts from.
     #[inline]
     pub fn transmittances(&self) -> [F; 3] {
-        [self.base.transmittance, self.over.transmittance, self.matte.transmittance]
+        [
+            self.base.transmittance,
+            self.over.transmittance,
+            self.matte.transmittance,
+        ]
     }
 
     /// The states' ends in the merged list (base, over, matte): one past each one's
     /// last blended splat.
     #[inline]
     pub fn ends(&self) -> [u32; 3] {
-        [self.base.contributors, self.over.contributors, self.matte.contributors]
+        [
+            self.base.contributors,
+            self.over.contributors,
+            self.matte.contributors,
+        ]
     }
 }
 
@@ -333,7 +403,15 @@ impl<F: Real> FusedPixelBwd<F> {
     /// [`FusedPixel::ends`]) and the pixel's upstream gradients: on the base rgb (drawn
     /// over `background`), the over pass's rgb and alpha (over black), and the matte's
     /// value.
-    pub fn new(transmittances: [F; 3], ends: [u32; 3], background: V3<F>, grad_base: V3<F>, grad_over: V3<F>, grad_over_alpha: F, grad_matte: F) -> Self {
+    pub fn new(
+        transmittances: [F; 3],
+        ends: [u32; 3],
+        background: V3<F>,
+        grad_base: V3<F>,
+        grad_over: V3<F>,
+        grad_over_alpha: F,
+        grad_matte: F,
+    ) -> Self {
         let z = F::zero();
         Self {
             base: PixelBwd::new(transmittances[0], background, grad_base, z, z),
@@ -346,7 +424,11 @@ impl<F: Real> FusedPixelBwd<F> {
     /// The furthest end of the three: where the pixel's backward walk starts.
     #[inline]
     pub fn end(&self) -> u32 {
-        let e = if self.ends[0] > self.ends[1] { self.ends[0] } else { self.ends[1] };
+        let e = if self.ends[0] > self.ends[1] {
+            self.ends[0]
+        } else {
+            self.ends[1]
+        };
         if e > self.ends[2] {
             e
         } else {
@@ -358,7 +440,15 @@ impl<F: Real> FusedPixelBwd<F> {
     /// mask `mask`); visit the splats from the last to the first. None when no state
     /// blended it.
     #[inline]
-    pub fn step(&mut self, s: &SplatView<F>, mask: u32, index: u32, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
+    pub fn step(
+        &mut self,
+        s: &SplatView<F>,
+        mask: u32,
+        index: u32,
+        px: F,
+        py: F,
+        cfg: &BlendSettings<F>,
+    ) -> Option<SplatGrad<F>> {
         let in_base = mask & FUSED_BASE != 0 && index < self.ends[0];
         let in_over = mask & FUSED_OVER != 0 && index < self.ends[1];
         let in_matte = mask & (FUSED_MATTE_ZERO | FUSED_MATTE_ONE) != 0 && index < self.ends[2];
@@ -376,7 +466,10 @@ impl<F: Real> FusedPixelBwd<F> {
         }
         if in_matte {
             let m = matte_value::<F>(mask);
-            let v = SplatView { color: [m, m, m], ..*s };
+            let v = SplatView {
+                color: [m, m, m],
+                ..*s
+            };
             let mut g = self.matte.step_footprint(&f, &v, cfg);
             g.color = [F::zero(); 3];
             total = total.add(&g);
@@ -409,17 +502,37 @@ pub struct PixelBwd<F> {
 impl<F: Real> PixelBwd<F> {
     /// Starts from the forward pass's final transmittance and the pixel's upstream
     /// gradients on colour, alpha and depth.
-    pub fn new(final_transmittance: F, background: V3<F>, grad_color: V3<F>, grad_alpha: F, grad_depth: F) -> Self {
+    pub fn new(
+        final_transmittance: F,
+        background: V3<F>,
+        grad_color: V3<F>,
+        grad_alpha: F,
+        grad_depth: F,
+    ) -> Self {
         let t = final_transmittance;
         // Behind the last splat: the background seen through T_final (depth 0 there);
         // the alpha term enters with the opposite sign (alpha = 1 - T_final rises with α).
-        let behind_background = t * (grad_color[0] * background[0] + grad_color[1] * background[1] + grad_color[2] * background[2]);
-        Self { transmittance: t, behind: behind_background - grad_alpha * t, grad_color, grad_depth }
+        let behind_background = t
+            * (grad_color[0] * background[0]
+                + grad_color[1] * background[1]
+                + grad_color[2] * background[2]);
+        Self {
+            transmittance: t,
+            behind: behind_background - grad_alpha * t,
+            grad_color,
+            grad_depth,
+        }
     }
 
     /// The gradient this pixel sends to splat `s` (None when the forward pass skipped it).
     #[inline]
-    pub fn step(&mut self, s: &SplatView<F>, px: F, py: F, cfg: &BlendSettings<F>) -> Option<SplatGrad<F>> {
+    pub fn step(
+        &mut self,
+        s: &SplatView<F>,
+        px: F,
+        py: F,
+        cfg: &BlendSettings<F>,
+    ) -> Option<SplatGrad<F>> {
         let f = footprint(s, px, py, cfg)?;
         Some(self.step_footprint(&f, s, cfg))
     }
@@ -427,15 +540,27 @@ impl<F: Real> PixelBwd<F> {
     /// [`step`](Self::step) with the footprint already computed (the fused backward
     /// steps one footprint through several states).
     #[inline]
-    pub fn step_footprint(&mut self, f: &Footprint<F>, s: &SplatView<F>, cfg: &BlendSettings<F>) -> SplatGrad<F> {
+    pub fn step_footprint(
+        &mut self,
+        f: &Footprint<F>,
+        s: &SplatView<F>,
+        cfg: &BlendSettings<F>,
+    ) -> SplatGrad<F> {
         let one_minus = F::one() - f.alpha;
         self.transmittance = self.transmittance / one_minus;
         let t = self.transmittance;
         let w = f.alpha * t;
         let mut g = SplatGrad::zero();
         // The upstream gradient's projection on this splat's colour and depth.
-        let seen = self.grad_color[0] * s.color[0] + self.grad_color[1] * s.color[1] + self.grad_color[2] * s.color[2] + self.grad_depth * s.depth;
-        g.color = [w * self.grad_color[0], w * self.grad_color[1], w * self.grad_color[2]];
+        let seen = self.grad_color[0] * s.color[0]
+            + self.grad_color[1] * s.color[1]
+            + self.grad_color[2] * s.color[2]
+            + self.grad_depth * s.depth;
+        g.color = [
+            w * self.grad_color[0],
+            w * self.grad_color[1],
+            w * self.grad_color[2],
+        ];
         g.depth = w * self.grad_depth;
         let g_alpha = t * seen - self.behind / one_minus;
         self.behind += w * seen;
@@ -445,7 +570,11 @@ impl<F: Real> PixelBwd<F> {
             g.opacity = f.gauss * g_alpha;
             let g_sigma = -s.opacity * f.gauss * g_alpha;
             let half = F::of(0.5);
-            g.conic = [half * f.dx * f.dx * g_sigma, f.dx * f.dy * g_sigma, half * f.dy * f.dy * g_sigma];
+            g.conic = [
+                half * f.dx * f.dx * g_sigma,
+                f.dx * f.dy * g_sigma,
+                half * f.dy * f.dy * g_sigma,
+            ];
             g.x = (s.conic[0] * f.dx + s.conic[1] * f.dy) * g_sigma;
             g.y = (s.conic[2] * f.dy + s.conic[1] * f.dx) * g_sigma;
         }

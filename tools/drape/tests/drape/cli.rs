@@ -9,13 +9,23 @@ fn demo_sorts_and_agrees_with_the_cpu() {
         .output()
         .expect("drape runs");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
-    assert!(stdout.contains("identical to the CPU's stable sort: yes"), "{stdout}");
+    assert!(
+        out.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("identical to the CPU's stable sort: yes"),
+        "{stdout}"
+    );
 }
 
 #[test]
 fn demo_rejects_a_negative_length_in_one_line() {
-    let out = Command::new(env!("CARGO_BIN_EXE_drape")).args(["demo", "--n", "-1"]).output().expect("drape runs");
+    let out = Command::new(env!("CARGO_BIN_EXE_drape"))
+        .args(["demo", "--n", "-1"])
+        .output()
+        .expect("drape runs");
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");

@@ -57,7 +57,9 @@ const TINY: &str = "[schedule]\nsteps = 2\nfit_steps = 2\ncheckpoint_every = 1\n
 
 /// One directory per test process, so that two runs never share fixtures.
 fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("hostile").join(std::process::id().to_string())
+    PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
+        .join("hostile")
+        .join(std::process::id().to_string())
 }
 
 fn drape() -> Command {
@@ -73,11 +75,41 @@ fn base() -> &'static Path {
         let b = root().join("base");
         let _ = std::fs::remove_dir_all(&b);
         std::fs::create_dir_all(&b).unwrap();
-        let o = drape().args(["synth", "--out"]).arg(b.join("synth")).args(["--size", "32", "--frames", "5", "--cameras", "2", "--samples", "1"]).output().unwrap();
-        assert!(o.status.success(), "base synth: {}", String::from_utf8_lossy(&o.stderr));
+        let o = drape()
+            .args(["synth", "--out"])
+            .arg(b.join("synth"))
+            .args([
+                "--size",
+                "32",
+                "--frames",
+                "5",
+                "--cameras",
+                "2",
+                "--samples",
+                "1",
+            ])
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "base synth: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
         std::fs::write(b.join("tiny.toml"), TINY).unwrap();
-        let o = drape().args(["train", "--data"]).arg(b.join("synth")).arg("--out").arg(b.join("run")).arg("--config").arg(b.join("tiny.toml")).output().unwrap();
-        assert!(o.status.success(), "base run: {}", String::from_utf8_lossy(&o.stderr));
+        let o = drape()
+            .args(["train", "--data"])
+            .arg(b.join("synth"))
+            .arg("--out")
+            .arg(b.join("run"))
+            .arg("--config")
+            .arg(b.join("tiny.toml"))
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "base run: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
         b
     })
 }
@@ -153,7 +185,13 @@ fn number(s: &str) -> f64 {
 
 /// The lines of a text file that are not `#` comments, by index into all lines.
 fn data_line(lines: &[String], n: usize) -> usize {
-    lines.iter().enumerate().filter(|(_, l)| !l.starts_with('#')).nth(n).unwrap_or_else(|| panic!("no data line {n}")).0
+    lines
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| !l.starts_with('#'))
+        .nth(n)
+        .unwrap_or_else(|| panic!("no data line {n}"))
+        .0
 }
 
 fn edit_lines(path: &Path, f: impl FnOnce(&mut Vec<String>)) {
@@ -168,7 +206,11 @@ fn edit_array(a: &mut Array, how: &[&str]) {
         ["set", "all", v] => a.data.iter_mut().for_each(|x| *x = number(v)),
         ["set", i, v] => a.data[i.parse::<usize>().unwrap()] = number(v),
         ["shape", dims] => {
-            let shape: Vec<usize> = if *dims == "-" { vec![] } else { dims.split(',').map(|d| d.parse().unwrap()).collect() };
+            let shape: Vec<usize> = if *dims == "-" {
+                vec![]
+            } else {
+                dims.split(',').map(|d| d.parse().unwrap()).collect()
+            };
             *a = Array::new(a.dtype, shape.clone(), vec![0.0; shape.iter().product()]);
         }
         other => panic!("array edit {other:?}"),
@@ -199,7 +241,11 @@ fn crc32(bytes: &[u8]) -> u32 {
     for &b in bytes {
         c ^= u32::from(b);
         for _ in 0..8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
         }
     }
     !c
@@ -208,7 +254,12 @@ fn crc32(bytes: &[u8]) -> u32 {
 fn apply(d: &Path, op: &str) {
     let words: Vec<&str> = op.split_whitespace().collect();
     let p = |i: usize| d.join(words[i]);
-    let rest = |n: usize| op.splitn(n + 1, char::is_whitespace).nth(n).unwrap_or("").to_string();
+    let rest = |n: usize| {
+        op.splitn(n + 1, char::is_whitespace)
+            .nth(n)
+            .unwrap_or("")
+            .to_string()
+    };
     let b = base();
     match words[0] {
         "neuman" => copy_dir(&b.join("synth/neuman"), &d.join("data")),
@@ -216,19 +267,32 @@ fn apply(d: &Path, op: &str) {
         "synth" => copy_dir(&b.join("synth"), &d.join("data")),
         "run" => copy_dir(&b.join("run"), &d.join("run")),
         "ply" => {
-            let ply = std::fs::read_dir(b.join("run")).unwrap().map(|e| e.unwrap().path()).find(|p| p.extension().is_some_and(|e| e == "ply")).expect("the run's PLY");
+            let ply = std::fs::read_dir(b.join("run"))
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .find(|p| p.extension().is_some_and(|e| e == "ply"))
+                .expect("the run's PLY");
             std::fs::copy(ply, d.join("scene.ply")).unwrap();
         }
         "obj" => {
-            std::fs::copy(b.join("synth/gt/garments/tshirt_0000.obj"), d.join("garment.obj")).unwrap();
+            std::fs::copy(
+                b.join("synth/gt/garments/tshirt_0000.obj"),
+                d.join("garment.obj"),
+            )
+            .unwrap();
         }
         "motion" => {
             let frames: usize = words[1].parse().unwrap();
             // `motion F D`: the root walks D metres along x over the F frames.
             let distance: f64 = words.get(2).map_or(0.0, |w| number(w));
-            let trans: Vec<f64> = (0..frames).flat_map(|f| [distance * f as f64 / (frames.max(2) - 1) as f64, 0.0, 0.0]).collect();
+            let trans: Vec<f64> = (0..frames)
+                .flat_map(|f| [distance * f as f64 / (frames.max(2) - 1) as f64, 0.0, 0.0])
+                .collect();
             let mut a = BTreeMap::new();
-            a.insert("poses".to_string(), Array::f64(vec![frames, 72], vec![0.0; frames * 72]));
+            a.insert(
+                "poses".to_string(),
+                Array::f64(vec![frames, 72], vec![0.0; frames * 72]),
+            );
             a.insert("trans".to_string(), Array::f64(vec![frames, 3], trans));
             a.insert("fps".to_string(), Array::f64(vec![], vec![30.0]));
             npy::write_npz(&d.join("motion.npz"), &a).unwrap();
@@ -241,7 +305,10 @@ fn apply(d: &Path, op: &str) {
         }
         "hex" => {
             let hex: String = rest(2).split_whitespace().collect();
-            let bytes: Vec<u8> = (0..hex.len()).step_by(2).map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap()).collect();
+            let bytes: Vec<u8> = (0..hex.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+                .collect();
             std::fs::write(p(1), bytes).unwrap()
         }
         "repeat" => {
@@ -253,15 +320,24 @@ fn apply(d: &Path, op: &str) {
         }
         "rm" => {
             let path = p(1);
-            if path.is_dir() { std::fs::remove_dir_all(path).unwrap() } else { std::fs::remove_file(path).unwrap() }
+            if path.is_dir() {
+                std::fs::remove_dir_all(path).unwrap()
+            } else {
+                std::fs::remove_file(path).unwrap()
+            }
         }
         "mkdir" => std::fs::create_dir_all(p(1)).unwrap(),
         "trunc" => {
             let bytes = std::fs::read(p(1)).unwrap();
-            std::fs::write(p(1), &bytes[..words[2].parse::<usize>().unwrap().min(bytes.len())]).unwrap()
+            std::fs::write(
+                p(1),
+                &bytes[..words[2].parse::<usize>().unwrap().min(bytes.len())],
+            )
+            .unwrap()
         }
         "field" => {
-            let (line, col): (usize, usize) = (words[2].parse().unwrap(), words[3].parse().unwrap());
+            let (line, col): (usize, usize) =
+                (words[2].parse().unwrap(), words[3].parse().unwrap());
             let value = rest(4);
             edit_lines(&p(1), |lines| {
                 let i = data_line(lines, line);
@@ -294,7 +370,12 @@ fn apply(d: &Path, op: &str) {
                     edit_array(&mut a, &words[3..]);
                     arrays.insert(words[2].to_string(), a);
                 }
-                how => edit_array(arrays.get_mut(words[2]).unwrap_or_else(|| panic!("no key {}", words[2])), how),
+                how => edit_array(
+                    arrays
+                        .get_mut(words[2])
+                        .unwrap_or_else(|| panic!("no key {}", words[2])),
+                    how,
+                ),
             }
             npy::write_npz(&p(1), &arrays).unwrap()
         }
@@ -345,7 +426,11 @@ fn apply(d: &Path, op: &str) {
                 f => panic!("ply field {f}"),
             };
             let n = values.len() / stride;
-            let which: Vec<usize> = if words[1] == "all" { (0..n).collect() } else { vec![words[1].parse().unwrap()] };
+            let which: Vec<usize> = if words[1] == "all" {
+                (0..n).collect()
+            } else {
+                vec![words[1].parse().unwrap()]
+            };
             for i in which {
                 values[stride * i + offset] = v;
                 if words[2] == "quat" {
@@ -379,11 +464,21 @@ fn parse_table() -> Vec<Case> {
             continue;
         }
         let cols: Vec<&str> = line.split(" | ").map(str::trim).collect();
-        assert_eq!(cols.len(), 4, "cases.txt:{}: four columns separated by ' | ' expected: {line}", n + 1);
+        assert_eq!(
+            cols.len(),
+            4,
+            "cases.txt:{}: four columns separated by ' | ' expected: {line}",
+            n + 1
+        );
         cases.push(Case {
             line: n + 1,
             id: cols[0].to_string(),
-            ops: cols[1].split("; ").map(str::trim).filter(|o| !o.is_empty() && *o != "-").map(str::to_string).collect(),
+            ops: cols[1]
+                .split("; ")
+                .map(str::trim)
+                .filter(|o| !o.is_empty() && *o != "-")
+                .map(str::to_string)
+                .collect(),
             args: cols[2].to_string(),
             expect: cols[3].to_string(),
         });
@@ -394,7 +489,12 @@ fn parse_table() -> Vec<Case> {
 /// Runs drape with a hang watchdog; returns (exit code, stdout, stderr, seconds).
 fn run_drape(args: &[String]) -> Result<(Option<i32>, String, String, f64), String> {
     let t0 = Instant::now();
-    let mut child = drape().args(args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().map_err(|e| e.to_string())?;
+    let mut child = drape()
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map_err(|e| e.to_string())?;
     // The pipes are drained on threads so a chatty command cannot block on them.
     let mut so = child.stdout.take().unwrap();
     let mut se = child.stderr.take().unwrap();
@@ -419,24 +519,39 @@ fn run_drape(args: &[String]) -> Result<(Option<i32>, String, String, f64), Stri
         }
         std::thread::sleep(Duration::from_millis(20));
     };
-    Ok((status.code(), out_t.join().unwrap(), err_t.join().unwrap(), t0.elapsed().as_secs_f64()))
+    Ok((
+        status.code(),
+        out_t.join().unwrap(),
+        err_t.join().unwrap(),
+        t0.elapsed().as_secs_f64(),
+    ))
 }
 
 fn split_args(d: &Path, args: &str) -> Vec<String> {
-    args.split_whitespace().map(|a| a.replace("{d}", d.to_str().unwrap())).collect()
+    args.split_whitespace()
+        .map(|a| a.replace("{d}", d.to_str().unwrap()))
+        .collect()
 }
 
 /// The one `error:` line, checked: exit non-zero, no panic, one error line.
-fn one_error(what: &str, (code, _out, err, _): &(Option<i32>, String, String, f64)) -> Result<String, String> {
+fn one_error(
+    what: &str,
+    (code, _out, err, _): &(Option<i32>, String, String, f64),
+) -> Result<String, String> {
     if code == &Some(0) {
-        return Err(format!("{what}: exit 0, an error was expected; stderr: {err}"));
+        return Err(format!(
+            "{what}: exit 0, an error was expected; stderr: {err}"
+        ));
     }
     if err.contains("panicked") || code.is_none() || code == &Some(101) || code == &Some(134) {
         return Err(format!("{what}: crashed (exit {code:?}): {err}"));
     }
     let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
     if errors.len() != 1 {
-        return Err(format!("{what}: {} error lines, one expected: {err}", errors.len()));
+        return Err(format!(
+            "{what}: {} error lines, one expected: {err}",
+            errors.len()
+        ));
     }
     Ok(errors[0].to_string())
 }
@@ -450,7 +565,10 @@ fn run_case(case: &Case) -> Result<(), String> {
         apply(&d, &op.replace("{d}", d.to_str().unwrap()));
     }
     let before = snapshot(&d);
-    let (kind, needle) = case.expect.split_once(' ').unwrap_or((case.expect.as_str(), ""));
+    let (kind, needle) = case
+        .expect
+        .split_once(' ')
+        .unwrap_or((case.expect.as_str(), ""));
     let result: Result<(), String> = match kind {
         "ok" => {
             let r = run_drape(&split_args(&d, &case.args))?;
@@ -459,8 +577,14 @@ fn run_case(case: &Case) -> Result<(), String> {
             }
             for f in needle.split(',').map(str::trim).filter(|f| !f.is_empty()) {
                 match f.strip_prefix('!') {
-                    Some(stale) if d.join(stale).exists() => return Err(format!("accepted, but {stale} of an earlier output is still there")),
-                    None if !d.join(f).exists() => return Err(format!("accepted, but {f} was not written")),
+                    Some(stale) if d.join(stale).exists() => {
+                        return Err(format!(
+                            "accepted, but {stale} of an earlier output is still there"
+                        ))
+                    }
+                    None if !d.join(f).exists() => {
+                        return Err(format!("accepted, but {f} was not written"))
+                    }
                     _ => {}
                 }
             }
@@ -478,12 +602,22 @@ fn run_case(case: &Case) -> Result<(), String> {
             let data = d.join("data");
             let inspect = run_drape(&["inspect".into(), data.display().to_string()])?;
             one_error("inspect", &inspect)?;
-            let problem = inspect.1.lines().find_map(|l| l.trim().strip_prefix("problem: ")).unwrap_or("").to_string();
-            let train = run_drape(&split_args(&d, "train --data {d}/data --out {d}/out --config {d}/tiny.toml"))?;
+            let problem = inspect
+                .1
+                .lines()
+                .find_map(|l| l.trim().strip_prefix("problem: "))
+                .unwrap_or("")
+                .to_string();
+            let train = run_drape(&split_args(
+                &d,
+                "train --data {d}/data --out {d}/out --config {d}/tiny.toml",
+            ))?;
             let line = one_error("train", &train)?;
             let message = line.strip_prefix("error: ").unwrap_or(&line);
             if problem != message {
-                return Err(format!("inspect and train disagree:\n  inspect: {problem}\n  train:   {message}"));
+                return Err(format!(
+                    "inspect and train disagree:\n  inspect: {problem}\n  train:   {message}"
+                ));
             }
             if !message.contains(needle) {
                 return Err(format!("the error does not name '{needle}': {line}"));
@@ -496,7 +630,11 @@ fn run_case(case: &Case) -> Result<(), String> {
     if kind != "ok" {
         let after = snapshot(&d);
         if before != after {
-            let changed: Vec<&String> = after.keys().filter(|k| before.get(*k) != after.get(*k)).chain(before.keys().filter(|k| !after.contains_key(*k))).collect();
+            let changed: Vec<&String> = after
+                .keys()
+                .filter(|k| before.get(*k) != after.get(*k))
+                .chain(before.keys().filter(|k| !after.contains_key(*k)))
+                .collect();
             return Err(format!("the case directory changed: {changed:?}"));
         }
     }
@@ -509,22 +647,45 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
     let cases = parse_table();
     let mut ids = std::collections::HashSet::new();
     for c in &cases {
-        assert!(ids.insert(c.id.clone()), "cases.txt:{}: duplicate id {}", c.line, c.id);
+        assert!(
+            ids.insert(c.id.clone()),
+            "cases.txt:{}: duplicate id {}",
+            c.line,
+            c.id
+        );
     }
     let only = std::env::var("DRAPE_HOSTILE_ONLY").ok();
-    let cases: Vec<&Case> = cases.iter().filter(|c| only.as_deref().is_none_or(|o| o.split(',').any(|o| c.id.starts_with(o)))).collect();
+    let cases: Vec<&Case> = cases
+        .iter()
+        .filter(|c| {
+            only.as_deref()
+                .is_none_or(|o| o.split(',').any(|o| c.id.starts_with(o)))
+        })
+        .collect();
     base();
     let next = AtomicUsize::new(0);
     let failures = Mutex::new(Vec::new());
-    let threads = std::thread::available_parallelism().map_or(2, |n| n.get()).min(4);
+    let threads = std::thread::available_parallelism()
+        .map_or(2, |n| n.get())
+        .min(4);
     std::thread::scope(|s| {
         for _ in 0..threads {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(case) = cases.get(i) else { break };
-                let r = std::panic::catch_unwind(|| run_case(case)).unwrap_or_else(|p| Err(format!("the test's own set-up panicked: {:?}", p.downcast_ref::<String>().cloned().or(p.downcast_ref::<&str>().map(|s| s.to_string())))));
+                let r = std::panic::catch_unwind(|| run_case(case)).unwrap_or_else(|p| {
+                    Err(format!(
+                        "the test's own set-up panicked: {:?}",
+                        p.downcast_ref::<String>()
+                            .cloned()
+                            .or(p.downcast_ref::<&str>().map(|s| s.to_string()))
+                    ))
+                });
                 if let Err(e) = r {
-                    failures.lock().unwrap().push(format!("{} (cases.txt:{}): {e}", case.id, case.line));
+                    failures
+                        .lock()
+                        .unwrap()
+                        .push(format!("{} (cases.txt:{}): {e}", case.id, case.line));
                 }
             });
         }
@@ -533,6 +694,16 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
     if failures.is_empty() {
         let _ = std::fs::remove_dir_all(root());
     }
-    eprintln!("{} hostile cases run, {} failed", cases.len(), failures.len());
-    assert!(failures.is_empty(), "{} of {} hostile cases failed:\n{}", failures.len(), cases.len(), failures.join("\n"));
+    eprintln!(
+        "{} hostile cases run, {} failed",
+        cases.len(),
+        failures.len()
+    );
+    assert!(
+        failures.is_empty(),
+        "{} of {} hostile cases failed:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
 }

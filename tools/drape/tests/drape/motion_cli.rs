@@ -21,12 +21,22 @@ fn python() -> PathBuf {
 
 /// A fresh directory holding every file `write_motions.py` writes.
 fn motion_files(name: &str) -> PathBuf {
-    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("motion-cli").join(name);
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
+        .join("motion-cli")
+        .join(name);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/write_motions.py");
-    let out = Command::new(python()).arg(&script).arg(&d).output().expect("python runs");
-    assert!(out.status.success(), "write_motions.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(python())
+        .arg(&script)
+        .arg(&d)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "write_motions.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     d
 }
 
@@ -37,23 +47,43 @@ fn simulate_takes_an_amass_file() {
     let motion = d.join("amass.npz");
     // Two substeps: the 20 settling frames plus the file's 6 take seconds.
     let o = Command::new(env!("CARGO_BIN_EXE_drape"))
-        .args(["simulate", "--substeps", "2", "--motion", motion.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args([
+            "simulate",
+            "--substeps",
+            "2",
+            "--motion",
+            motion.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .output()
         .expect("drape runs");
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert!(stdout.contains("simulated 6 frames"), "{stdout}");
     for garment in ["tshirt", "pants"] {
         for f in 0..6 {
-            assert!(out.join(format!("{garment}_{f:04}.obj")).is_file(), "{garment} frame {f} missing: {stdout}");
+            assert!(
+                out.join(format!("{garment}_{f:04}.obj")).is_file(),
+                "{garment} frame {f} missing: {stdout}"
+            );
         }
     }
     // The cloth stays on the body. Loose bounds against an exploded simulation (a
     // misread pose): a 6-frame walk measures about 4 mm outside and 7% stretch, this
     // file 6 mm inside and 6%.
     let number_before = |tail: &str| -> f64 {
-        let head = &stdout[..stdout.find(tail).unwrap_or_else(|| panic!("no '{tail}' in: {stdout}"))];
-        head.rsplit(' ').find(|w| !w.is_empty()).and_then(|w| w.parse().ok()).unwrap_or_else(|| panic!("no number before '{tail}': {stdout}"))
+        let head = &stdout[..stdout
+            .find(tail)
+            .unwrap_or_else(|| panic!("no '{tail}' in: {stdout}"))];
+        head.rsplit(' ')
+            .find(|w| !w.is_empty())
+            .and_then(|w| w.parse().ok())
+            .unwrap_or_else(|| panic!("no number before '{tail}': {stdout}"))
     };
     let stretch = number_before("%; wrote");
     assert!(stretch < 30.0, "largest edge stretch {stretch}%: {stdout}");
@@ -68,13 +98,24 @@ fn simulate_refuses_a_bad_motion_file_in_one_line() {
     let d = motion_files("bad");
     let motion = d.join("bad_width.npz");
     let o = Command::new(env!("CARGO_BIN_EXE_drape"))
-        .args(["simulate", "--motion", motion.to_str().unwrap(), "--out", d.join("sim").to_str().unwrap()])
+        .args([
+            "simulate",
+            "--motion",
+            motion.to_str().unwrap(),
+            "--out",
+            d.join("sim").to_str().unwrap(),
+        ])
         .output()
         .expect("drape runs");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
-    assert!(stderr.contains(motion.to_str().unwrap()) && stderr.contains("['poses']") && stderr.contains("100 values per frame"), "{stderr}");
+    assert!(
+        stderr.contains(motion.to_str().unwrap())
+            && stderr.contains("['poses']")
+            && stderr.contains("100 values per frame"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -82,15 +123,30 @@ fn simulate_refuses_an_obj_garment_without_faces_in_one_line_and_writes_nothing(
     let d = std::env::temp_dir().join(format!("drape-obj-no-faces-{}", std::process::id()));
     std::fs::create_dir_all(&d).expect("temp dir");
     let obj = d.join("points_only.obj");
-    std::fs::write(&obj, "# three vertices, no face\nv 0 1.2 0.1\nv 0.1 1.2 0.1\nv 0 1.3 0.1\n").expect("write obj");
+    std::fs::write(
+        &obj,
+        "# three vertices, no face\nv 0 1.2 0.1\nv 0.1 1.2 0.1\nv 0 1.3 0.1\n",
+    )
+    .expect("write obj");
     let out = d.join("sim");
     let o = Command::new(env!("CARGO_BIN_EXE_drape"))
-        .args(["simulate", "--frames", "2", "--garment", obj.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args([
+            "simulate",
+            "--frames",
+            "2",
+            "--garment",
+            obj.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .output()
         .expect("drape runs");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
-    assert!(stderr.contains(obj.to_str().unwrap()) && stderr.contains("no triangles"), "{stderr}");
+    assert!(
+        stderr.contains(obj.to_str().unwrap()) && stderr.contains("no triangles"),
+        "{stderr}"
+    );
     assert!(!out.exists(), "the output directory was created");
 }

@@ -17,12 +17,17 @@ use drape_trainer::ply;
 mod image_io;
 
 fn drape(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_drape")).args(args).output().expect("drape runs")
+    Command::new(env!("CARGO_BIN_EXE_drape"))
+        .args(args)
+        .output()
+        .expect("drape runs")
 }
 
 /// A fresh directory for one test.
 fn case_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("drape-render-formats-{}", std::process::id())).join(name);
+    let d = std::env::temp_dir()
+        .join(format!("drape-render-formats-{}", std::process::id()))
+        .join(name);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
@@ -39,18 +44,35 @@ fn python() -> PathBuf {
         return p.into();
     }
     let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/torch-venv/bin/python");
-    assert!(venv.exists(), "no reference environment at {}: run scripts/torch-env.sh (or set DRAPE_TORCH_PYTHON)", venv.display());
+    assert!(
+        venv.exists(),
+        "no reference environment at {}: run scripts/torch-env.sh (or set DRAPE_TORCH_PYTHON)",
+        venv.display()
+    );
     venv
 }
 
 fn run_python(script: &str, args: &[&str]) -> String {
-    let out = Command::new(python()).arg("-c").arg(script).args(args).output().expect("python runs");
-    assert!(out.status.success(), "python failed: {}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .args(args)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "python failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
 fn read_f32s(path: &Path) -> Vec<f32> {
-    std::fs::read(path).unwrap().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    std::fs::read(path)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
 }
 
 fn assert_one_line_error(out: &Output, needle: &str) {
@@ -71,7 +93,10 @@ fn write_scene(path: &Path) {
     let mut cloud = GaussianCloud::new(0);
     // SH degree 0: colour = 0.5 + C0·sh, C0 = 0.28209479.
     // Red is about 13 px left of centre with a 9 px reach, green 11 px right with 7 px.
-    for (mean, sh) in [([-0.9f32, 0.0, 0.0], [1.7f32, -1.7, -1.7]), ([1.0, 0.0, 1.0], [-1.7, 1.7, -1.7])] {
+    for (mean, sh) in [
+        ([-0.9f32, 0.0, 0.0], [1.7f32, -1.7, -1.7]),
+        ([1.0, 0.0, 1.0], [-1.7, 1.7, -1.7]),
+    ] {
         cloud.means.extend(mean);
         cloud.log_scales.extend([0.2f32.ln(); 3]);
         cloud.quats.extend([1.0, 0.0, 0.0, 0.0]);
@@ -83,10 +108,26 @@ fn write_scene(path: &Path) {
 }
 
 fn render(ply: &Path, out: &Path, extra: &[&str]) {
-    let mut args = vec!["--validation", "render", "--ply", s(ply), "--width", "48", "--height", "40", "--out", s(out)];
+    let mut args = vec![
+        "--validation",
+        "render",
+        "--ply",
+        s(ply),
+        "--width",
+        "48",
+        "--height",
+        "40",
+        "--out",
+        s(out),
+    ];
     args.extend(extra);
     let o = drape(&args);
-    assert!(o.status.success(), "render to {} failed: {}", out.display(), String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "render to {} failed: {}",
+        out.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
 }
 
 /// The .npy through numpy: its shape and dtype as numpy prints them, and its values.
@@ -120,7 +161,11 @@ fn render_writes_the_same_image_as_png_npy_and_exr() {
     // colour of the .npy is the PNG's): at most half an 8-bit step apart, tighter than
     // the one step a truncating writer would need; 1e-3 step for float rounding.
     let png_image = image::open(&png).unwrap();
-    assert_eq!(png_image.color(), image::ColorType::Rgb8, "the PNG is 8-bit RGB, no alpha");
+    assert_eq!(
+        png_image.color(),
+        image::ColorType::Rgb8,
+        "the PNG is 8-bit RGB, no alpha"
+    );
     let png_rgb = png_image.into_rgb8();
     assert_eq!(png_rgb.dimensions(), (W as u32, H as u32));
     let mut worst = 0.0f32;
@@ -129,7 +174,10 @@ fn render_writes_the_same_image_as_png_npy_and_exr() {
             worst = worst.max((a[5 * i + c].clamp(0.0, 1.0) * 255.0 - f32::from(p[c])).abs());
         }
     }
-    assert!(worst <= 0.501, "the .npy colour is {worst} 8-bit steps from the PNG");
+    assert!(
+        worst <= 0.501,
+        "the .npy colour is {worst} 8-bit steps from the PNG"
+    );
 
     // The scene is what was asked for: empty corners (alpha 0, depth 0, black), and
     // each Gaussian's own depth where it covers the pixel (one splat per pixel, so
@@ -151,22 +199,39 @@ fn render_writes_the_same_image_as_png_npy_and_exr() {
         }
         // Premultiplied: no channel above alpha (SH colours here are within [0, 1]).
         for c in 0..3 {
-            assert!(a[5 * i + c] <= alpha + 1e-6, "pixel {i}: colour {} above alpha {alpha}", a[5 * i + c]);
+            assert!(
+                a[5 * i + c] <= alpha + 1e-6,
+                "pixel {i}: colour {} above alpha {alpha}",
+                a[5 * i + c]
+            );
         }
     }
-    assert!(at3 > 20 && at4 > 20, "pixels hit at depth 3: {at3}, at 4: {at4}");
+    assert!(
+        at3 > 20 && at4 > 20,
+        "pixels hit at depth 3: {at3}, at 4: {at4}"
+    );
     // Red Gaussian left of centre, green right (x is not mirrored or transposed).
     let left = px(11, H / 2);
     let right = px(35, H / 2);
-    assert!(left[0] > 0.5 && left[1] < 0.2 && (left[4] - 3.0).abs() < 1e-4, "left {left:?}");
-    assert!(right[1] > 0.3 && right[0] < 0.2 && (right[4] - 4.0).abs() < 1e-4, "right {right:?}");
+    assert!(
+        left[0] > 0.5 && left[1] < 0.2 && (left[4] - 3.0).abs() < 1e-4,
+        "left {left:?}"
+    );
+    assert!(
+        right[1] > 0.3 && right[0] < 0.2 && (right[4] - 4.0).abs() < 1e-4,
+        "right {right:?}"
+    );
 
     // The EXR holds the very floats of the .npy: RGBA here, depth in <stem>.depth.exr.
     let rgba = image::open(&exr).unwrap().into_rgba32f();
     assert_eq!(rgba.dimensions(), (W as u32, H as u32));
     let depth = image::open(dir.join("r.depth.exr")).unwrap().into_rgb32f();
     for (i, (p, d)) in rgba.pixels().zip(depth.pixels()).enumerate() {
-        assert_eq!(p.0, [a[5 * i], a[5 * i + 1], a[5 * i + 2], a[5 * i + 3]], "pixel {i}");
+        assert_eq!(
+            p.0,
+            [a[5 * i], a[5 * i + 1], a[5 * i + 2], a[5 * i + 3]],
+            "pixel {i}"
+        );
         assert_eq!(d.0, [a[5 * i + 4]; 3], "pixel {i}");
     }
 }
@@ -179,24 +244,54 @@ fn float_outputs_do_not_depend_on_the_background() {
     let ply = dir.join("scene.ply");
     write_scene(&ply);
     render(&ply, &dir.join("black.npy"), &[]);
-    render(&ply, &dir.join("blue.npy"), &["--background", "0.2,0.4,0.8"]);
-    render(&ply, &dir.join("blue.png"), &["--background", "0.2,0.4,0.8"]);
+    render(
+        &ply,
+        &dir.join("blue.npy"),
+        &["--background", "0.2,0.4,0.8"],
+    );
+    render(
+        &ply,
+        &dir.join("blue.png"),
+        &["--background", "0.2,0.4,0.8"],
+    );
     let (_, black) = numpy_load(&dir.join("black.npy"));
     let (_, blue) = numpy_load(&dir.join("blue.npy"));
     // Taking the background back out costs float rounding of values <= 1: 1e-6.
     for (i, (x, y)) in black.iter().zip(&blue).enumerate() {
-        assert!((x - y).abs() <= 1e-6, "value {i}: {x} over black, {y} over blue-grey");
+        assert!(
+            (x - y).abs() <= 1e-6,
+            "value {i}: {x} over black, {y} over blue-grey"
+        );
     }
     let png = image::open(dir.join("blue.png")).unwrap().into_rgb8();
-    assert_eq!(png.get_pixel(0, 0).0, [51, 102, 204], "an empty pixel shows the background");
+    assert_eq!(
+        png.get_pixel(0, 0).0,
+        [51, 102, 204],
+        "an empty pixel shows the background"
+    );
 }
 
 #[test]
 fn render_rejects_an_unknown_extension_before_rendering() {
     // The PLY does not exist: the extension is checked first, so that is not the error.
-    let out = drape(&["render", "--ply", "/nonexistent/scene.ply", "--out", "/tmp/frame.tiff"]);
-    assert_one_line_error(&out, "/tmp/frame.tiff: unknown output format '.tiff'; accepted: .png, .npy, .exr");
-    let out = drape(&["render", "--ply", "/nonexistent/scene.ply", "--out", "/tmp/frame"]);
+    let out = drape(&[
+        "render",
+        "--ply",
+        "/nonexistent/scene.ply",
+        "--out",
+        "/tmp/frame.tiff",
+    ]);
+    assert_one_line_error(
+        &out,
+        "/tmp/frame.tiff: unknown output format '.tiff'; accepted: .png, .npy, .exr",
+    );
+    let out = drape(&[
+        "render",
+        "--ply",
+        "/nonexistent/scene.ply",
+        "--out",
+        "/tmp/frame",
+    ]);
     assert_one_line_error(&out, "accepted: .png, .npy, .exr");
 }
 
@@ -216,16 +311,45 @@ fn png_inputs_load_with_their_pixels() {
     let s16 = sample16;
     let s8 = |x, y, c| (s16(x, y, c) >> 8) as u8;
     let p = |n: &str| dir.join(format!("{n}.png"));
-    ImageBuffer::from_fn(w, h, |x, y| Luma([s8(x, y, 0)])).save(p("l8")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| LumaA([s8(x, y, 0), s8(x, y, 3)])).save(p("la8")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| Rgb([s8(x, y, 0), s8(x, y, 1), s8(x, y, 2)])).save(p("rgb8")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| Rgba([s8(x, y, 0), s8(x, y, 1), s8(x, y, 2), s8(x, y, 3)])).save(p("rgba8")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| Luma([s16(x, y, 0)])).save(p("l16")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| LumaA([s16(x, y, 0), s16(x, y, 3)])).save(p("la16")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| Rgb([s16(x, y, 0), s16(x, y, 1), s16(x, y, 2)])).save(p("rgb16")).unwrap();
-    ImageBuffer::from_fn(w, h, |x, y| Rgba([s16(x, y, 0), s16(x, y, 1), s16(x, y, 2), s16(x, y, 3)])).save(p("rgba16")).unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| Luma([s8(x, y, 0)]))
+        .save(p("l8"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| LumaA([s8(x, y, 0), s8(x, y, 3)]))
+        .save(p("la8"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| Rgb([s8(x, y, 0), s8(x, y, 1), s8(x, y, 2)]))
+        .save(p("rgb8"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| {
+        Rgba([s8(x, y, 0), s8(x, y, 1), s8(x, y, 2), s8(x, y, 3)])
+    })
+    .save(p("rgba8"))
+    .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| Luma([s16(x, y, 0)]))
+        .save(p("l16"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| LumaA([s16(x, y, 0), s16(x, y, 3)]))
+        .save(p("la16"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| Rgb([s16(x, y, 0), s16(x, y, 1), s16(x, y, 2)]))
+        .save(p("rgb16"))
+        .unwrap();
+    ImageBuffer::from_fn(w, h, |x, y| {
+        Rgba([s16(x, y, 0), s16(x, y, 1), s16(x, y, 2), s16(x, y, 3)])
+    })
+    .save(p("rgba16"))
+    .unwrap();
     // (name, 16-bit, grey): channel 3 of the pattern is the alpha, never read back.
-    let cases = [("l8", false, true), ("la8", false, true), ("rgb8", false, false), ("rgba8", false, false), ("l16", true, true), ("la16", true, true), ("rgb16", true, false), ("rgba16", true, false)];
+    let cases = [
+        ("l8", false, true),
+        ("la8", false, true),
+        ("rgb8", false, false),
+        ("rgba8", false, false),
+        ("l16", true, true),
+        ("la16", true, true),
+        ("rgb16", true, false),
+        ("rgba16", true, false),
+    ];
     for (name, wide, grey) in cases {
         let image = image_io::read_rgb(&p(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!((image.width, image.height), (w, h), "{name}");
@@ -233,10 +357,17 @@ fn png_inputs_load_with_their_pixels() {
             for x in 0..w {
                 for c in 0..3 {
                     let source = if grey { 0 } else { c };
-                    let expected = if wide { f32::from(s16(x, y, source)) / 65535.0 } else { f32::from(s8(x, y, source)) / 255.0 };
+                    let expected = if wide {
+                        f32::from(s16(x, y, source)) / 65535.0
+                    } else {
+                        f32::from(s8(x, y, source)) / 255.0
+                    };
                     let got = image.rgb[(3 * (y * w + x) + c) as usize];
                     // f32 rounding of v / 65535 is 6e-8; an 8-bit detour would be 2e-3 off.
-                    assert!((got - expected).abs() <= 1e-6, "{name} ({x}, {y}) channel {c}: {got}, expected {expected}");
+                    assert!(
+                        (got - expected).abs() <= 1e-6,
+                        "{name} ({x}, {y}) channel {c}: {got}, expected {expected}"
+                    );
                 }
             }
         }
@@ -244,9 +375,27 @@ fn png_inputs_load_with_their_pixels() {
     // And the binary takes them (the 16-bit and the two with alpha are the new ones).
     for name in ["rgb16", "la8", "rgba8"] {
         let target = dir.join(format!("{name}.png"));
-        let out = drape(&["fit", "--target", s(&target), "--n", "10", "--iters", "1", "--out", s(&dir.join(format!("{name}.ply")))]);
-        assert!(out.status.success(), "fit on {name}: {}", String::from_utf8_lossy(&out.stderr));
-        assert!(String::from_utf8_lossy(&out.stdout).contains("(7x5)"), "{}", String::from_utf8_lossy(&out.stdout));
+        let out = drape(&[
+            "fit",
+            "--target",
+            s(&target),
+            "--n",
+            "10",
+            "--iters",
+            "1",
+            "--out",
+            s(&dir.join(format!("{name}.ply"))),
+        ]);
+        assert!(
+            out.status.success(),
+            "fit on {name}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(
+            String::from_utf8_lossy(&out.stdout).contains("(7x5)"),
+            "{}",
+            String::from_utf8_lossy(&out.stdout)
+        );
     }
 }
 
@@ -292,18 +441,35 @@ fn jpeg_inputs_load_like_libjpeg_decodes_them() {
     let printed = run_python(MAKE_JPEGS, &[s(&dir)]);
     for line in printed.lines() {
         let f: Vec<&str> = line.split_whitespace().collect();
-        let (name, mode, w, h) = (f[0], f[1], f[2].parse::<u32>().unwrap(), f[3].parse::<u32>().unwrap());
+        let (name, mode, w, h) = (
+            f[0],
+            f[1],
+            f[2].parse::<u32>().unwrap(),
+            f[3].parse::<u32>().unwrap(),
+        );
         let path = dir.join(format!("{name}.jpg"));
         let reference = std::fs::read(dir.join(format!("{name}.rgb"))).unwrap();
         let image = image_io::read_rgb(&path).unwrap_or_else(|e| panic!("{name} ({mode}): {e}"));
-        assert_eq!((image.width, image.height), (w, h), "{name}: rotated by its EXIF orientation");
+        assert_eq!(
+            (image.width, image.height),
+            (w, h),
+            "{name}: rotated by its EXIF orientation"
+        );
         // Two decoders of one file may differ in IDCT rounding and chroma upsampling
         // (noise is 4:2:0). Measured against Pillow 13: 0 steps of 255 on the flat 8x8
         // blocks (CMYK included), 4 on noise; allowed 1 and 6. A wrong channel order,
         // CMYK inversion or orientation is off by 100+.
-        let worst = image.rgb.iter().zip(&reference).map(|(&v, &r)| (v * 255.0 - f32::from(r)).abs()).fold(0.0, f32::max);
+        let worst = image
+            .rgb
+            .iter()
+            .zip(&reference)
+            .map(|(&v, &r)| (v * 255.0 - f32::from(r)).abs())
+            .fold(0.0, f32::max);
         let tolerance = if name == "noise" { 6.0 } else { 1.0 };
-        assert!(worst <= tolerance, "{name} ({mode}): {worst} 8-bit steps from Pillow's decode");
+        assert!(
+            worst <= tolerance,
+            "{name} ({mode}): {worst} 8-bit steps from Pillow's decode"
+        );
     }
     // Bytes after the end-of-image marker (camera trailers) are not truncation.
     let mut trailer = std::fs::read(dir.join("rgb.jpg")).unwrap();
@@ -311,9 +477,27 @@ fn jpeg_inputs_load_like_libjpeg_decodes_them() {
     std::fs::write(dir.join("trailer.jpg"), &trailer).unwrap();
     image_io::read_rgb(&dir.join("trailer.jpg")).unwrap();
     // The binary takes a JPEG.
-    let out = drape(&["fit", "--target", s(&dir.join("rgb.jpg")), "--n", "10", "--iters", "1", "--out", s(&dir.join("rgb.ply"))]);
-    assert!(out.status.success(), "fit on a JPEG: {}", String::from_utf8_lossy(&out.stderr));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("(32x24)"), "{}", String::from_utf8_lossy(&out.stdout));
+    let out = drape(&[
+        "fit",
+        "--target",
+        s(&dir.join("rgb.jpg")),
+        "--n",
+        "10",
+        "--iters",
+        "1",
+        "--out",
+        s(&dir.join("rgb.ply")),
+    ]);
+    assert!(
+        out.status.success(),
+        "fit on a JPEG: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("(32x24)"),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
 }
 
 #[test]
@@ -323,21 +507,55 @@ fn truncated_or_foreign_files_fail_in_one_line_naming_them() {
     // The decoder itself reports a file cut inside its headers, but fills one cut in
     // the entropy-coded data with grey: in half, and short of only its last 2 bytes
     // (the end-of-image marker), and a progressive one (several scans) in half.
-    for (name, source, keep) in [("half", "noise.jpg", 0.5), ("no-eoi", "noise.jpg", 1.0), ("progressive-half", "progressive.jpg", 0.5), ("headers", "rgb.jpg", 0.05)] {
+    for (name, source, keep) in [
+        ("half", "noise.jpg", 0.5),
+        ("no-eoi", "noise.jpg", 1.0),
+        ("progressive-half", "progressive.jpg", 0.5),
+        ("headers", "rgb.jpg", 0.05),
+    ] {
         let bytes = std::fs::read(dir.join(source)).unwrap();
-        let cut = if keep == 1.0 { bytes.len() - 2 } else { (bytes.len() as f64 * keep) as usize };
+        let cut = if keep == 1.0 {
+            bytes.len() - 2
+        } else {
+            (bytes.len() as f64 * keep) as usize
+        };
         let target = dir.join(format!("{name}.jpg"));
         std::fs::write(&target, &bytes[..cut]).unwrap();
-        let out = drape(&["fit", "--target", s(&target), "--n", "10", "--iters", "1", "--out", s(&dir.join("x.ply"))]);
+        let out = drape(&[
+            "fit",
+            "--target",
+            s(&target),
+            "--n",
+            "10",
+            "--iters",
+            "1",
+            "--out",
+            s(&dir.join("x.ply")),
+        ]);
         assert_one_line_error(&out, &format!("{}: truncated", target.display()));
     }
     let target = dir.join("corrupt.png");
     std::fs::write(&target, b"\x89PNG\r\n\x1a\nhello").unwrap();
-    let out = drape(&["fit", "--target", s(&target), "--out", s(&dir.join("x.ply"))]);
-    assert_one_line_error(&out, &format!("{}: truncated or corrupt image", target.display()));
+    let out = drape(&[
+        "fit",
+        "--target",
+        s(&target),
+        "--out",
+        s(&dir.join("x.ply")),
+    ]);
+    assert_one_line_error(
+        &out,
+        &format!("{}: truncated or corrupt image", target.display()),
+    );
     // Told apart by content, not by the name.
     let target = dir.join("text.png");
     std::fs::write(&target, b"hello").unwrap();
-    let out = drape(&["fit", "--target", s(&target), "--out", s(&dir.join("x.ply"))]);
+    let out = drape(&[
+        "fit",
+        "--target",
+        s(&target),
+        "--out",
+        s(&dir.join("x.ply")),
+    ]);
     assert_one_line_error(&out, &format!("{}: not a PNG or JPEG", target.display()));
 }

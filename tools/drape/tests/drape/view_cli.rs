@@ -20,7 +20,8 @@ fn drape() -> Command {
 }
 
 fn on_path(tool: &str) -> bool {
-    std::env::var_os("PATH").is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(tool).is_file()))
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(tool).is_file()))
 }
 
 /// An `Xvfb` this test started, killed (by its own pid) when dropped.
@@ -45,7 +46,14 @@ fn start_xvfb() -> Xvfb {
         }
         let display = format!(":{n}");
         let mut child = Command::new("Xvfb")
-            .args([display.as_str(), "-screen", "0", "320x240x24", "-nolisten", "tcp"])
+            .args([
+                display.as_str(),
+                "-screen",
+                "0",
+                "320x240x24",
+                "-nolisten",
+                "tcp",
+            ])
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -70,7 +78,8 @@ fn start_xvfb() -> Xvfb {
 /// The shared tiny run (`DRAPE_TEST_RUN`, made once by the test command; else trained
 /// once in this process).
 fn tiny_run() -> PathBuf {
-    let ctx = drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
+    let ctx =
+        drape_engine::Context::new(&drape_engine::ContextDesc::for_tests()).expect("test device");
     drape_trainer::testing::tiny_run(&ctx).to_path_buf()
 }
 
@@ -94,11 +103,16 @@ fn parse_xwd(bytes: &[u8]) -> (u32, u32, Vec<[u8; 3]>) {
     for y in 0..height as usize {
         for x in 0..width as usize {
             let p = &data[y * bytes_per_line + x * step..][..step];
-            let v = if byte_order == 0 { p.iter().rev().fold(0u32, |a, &b| (a << 8) | u32::from(b)) } else { p.iter().fold(0u32, |a, &b| (a << 8) | u32::from(b)) };
+            let v = if byte_order == 0 {
+                p.iter().rev().fold(0u32, |a, &b| (a << 8) | u32::from(b))
+            } else {
+                p.iter().fold(0u32, |a, &b| (a << 8) | u32::from(b))
+            };
             out.push(masks.map(|m| {
                 let shift = m.trailing_zeros();
                 let max = m >> shift;
-                ((u64::from((v & m) >> shift) * 255 + u64::from(max) / 2) / u64::from(max.max(1))) as u8
+                ((u64::from((v & m) >> shift) * 255 + u64::from(max) / 2) / u64::from(max.max(1)))
+                    as u8
             }));
         }
     }
@@ -107,9 +121,17 @@ fn parse_xwd(bytes: &[u8]) -> (u32, u32, Vec<[u8; 3]>) {
 
 #[test]
 fn view_presents_the_library_render() {
-    assert!(on_path("Xvfb"), "Xvfb is not installed (package xvfb; scripts/setup.sh installs it)");
-    assert!(on_path("xwd"), "xwd is not installed (package x11-apps; scripts/setup.sh installs it)");
-    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("view-cli").join(std::process::id().to_string());
+    assert!(
+        on_path("Xvfb"),
+        "Xvfb is not installed (package xvfb; scripts/setup.sh installs it)"
+    );
+    assert!(
+        on_path("xwd"),
+        "xwd is not installed (package x11-apps; scripts/setup.sh installs it)"
+    );
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
+        .join("view-cli")
+        .join(std::process::id().to_string());
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let run = tiny_run();
@@ -144,21 +166,42 @@ fn view_presents_the_library_render() {
         let _ = stderr.read_to_string(&mut s);
         s
     });
-    let window = rx.recv_timeout(Duration::from_secs(120)).expect("drape view prints `window 0x...` first");
-    let window = window.strip_prefix("window ").unwrap_or_else(|| panic!("first stdout line: {window}")).to_string();
+    let window = rx
+        .recv_timeout(Duration::from_secs(120))
+        .expect("drape view prints `window 0x...` first");
+    let window = window
+        .strip_prefix("window ")
+        .unwrap_or_else(|| panic!("first stdout line: {window}"))
+        .to_string();
     let ready = PathBuf::from(format!("{}.ready", shot.display()));
     let t0 = Instant::now();
     while !ready.exists() {
         if let Ok(Some(status)) = child.try_wait() {
-            panic!("drape view exited ({status}) before {} appeared:\n{}", ready.display(), err_thread.join().unwrap());
+            panic!(
+                "drape view exited ({status}) before {} appeared:\n{}",
+                ready.display(),
+                err_thread.join().unwrap()
+            );
         }
-        assert!(t0.elapsed() < Duration::from_secs(300), "{} did not appear", ready.display());
+        assert!(
+            t0.elapsed() < Duration::from_secs(300),
+            "{} did not appear",
+            ready.display()
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     // The capture, from the X server.
     let xwd_path = dir.join("window.xwd");
-    let o = Command::new("xwd").args(["-id", &window, "-silent", "-display", &x.display, "-out"]).arg(&xwd_path).output().unwrap();
-    assert!(o.status.success(), "xwd: {}", String::from_utf8_lossy(&o.stderr));
+    let o = Command::new("xwd")
+        .args(["-id", &window, "-silent", "-display", &x.display, "-out"])
+        .arg(&xwd_path)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "xwd: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     std::fs::write(PathBuf::from(format!("{}.done", shot.display())), b"").unwrap();
     let t0 = Instant::now();
     let status = loop {
@@ -175,17 +218,48 @@ fn view_presents_the_library_render() {
     let stderr = err_thread.join().unwrap();
     print!("{stdout}");
     assert!(status.success(), "drape view: {status}\n{stderr}");
-    assert!(!stderr.contains("validation:"), "validation messages:\n{stderr}");
+    assert!(
+        !stderr.contains("validation:"),
+        "validation messages:\n{stderr}"
+    );
 
     let (w, h, captured) = parse_xwd(&std::fs::read(&xwd_path).unwrap());
     let reference = image::open(&shot).unwrap().into_rgb16();
-    assert_eq!((w, h), reference.dimensions(), "the window's size is the render's");
+    assert_eq!(
+        (w, h),
+        reference.dimensions(),
+        "the window's size is the render's"
+    );
     // The blit's float -> UNORM conversion: round(clamp(c) * 255).
-    let expected: Vec<[u8; 3]> = reference.pixels().map(|p| p.0.map(|v| ((f64::from(v) / 65535.0) * 255.0).round() as u8)).collect();
-    assert!(expected.iter().any(|p| p.iter().any(|&c| c > 8)), "the reference render is black: nothing to compare");
-    let close = captured.iter().zip(&expected).filter(|(a, b)| a.iter().zip(b.iter()).all(|(&x, &y)| x.abs_diff(y) <= 1)).count();
-    let worst = captured.iter().zip(&expected).flat_map(|(a, b)| a.iter().zip(b.iter()).map(|(&x, &y)| x.abs_diff(y))).max().unwrap_or(0);
+    let expected: Vec<[u8; 3]> = reference
+        .pixels()
+        .map(|p| {
+            p.0.map(|v| ((f64::from(v) / 65535.0) * 255.0).round() as u8)
+        })
+        .collect();
+    assert!(
+        expected.iter().any(|p| p.iter().any(|&c| c > 8)),
+        "the reference render is black: nothing to compare"
+    );
+    let close = captured
+        .iter()
+        .zip(&expected)
+        .filter(|(a, b)| a.iter().zip(b.iter()).all(|(&x, &y)| x.abs_diff(y) <= 1))
+        .count();
+    let worst = captured
+        .iter()
+        .zip(&expected)
+        .flat_map(|(a, b)| a.iter().zip(b.iter()).map(|(&x, &y)| x.abs_diff(y)))
+        .max()
+        .unwrap_or(0);
     let share = close as f64 / expected.len() as f64;
-    println!("view: {w}x{h} window vs library render: {:.3}% of pixels within 1/255 (worst {worst}/255)", 100.0 * share);
-    assert!(share >= 0.999, "only {:.3}% of pixels within 1/255 of the library render (worst {worst})", 100.0 * share);
+    println!(
+        "view: {w}x{h} window vs library render: {:.3}% of pixels within 1/255 (worst {worst}/255)",
+        100.0 * share
+    );
+    assert!(
+        share >= 0.999,
+        "only {:.3}% of pixels within 1/255 of the library render (worst {worst})",
+        100.0 * share
+    );
 }
