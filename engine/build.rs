@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 fn camel(entry: &str) -> String {
     entry
-        .split(|c| c == '_' || c == ':')
+        .split(['_', ':'])
         .filter(|s| !s.is_empty())
         .map(|s| {
             let mut c = s.chars();
@@ -47,6 +47,31 @@ fn main() {
     let mut push_constant = String::new();
     // Rust module -> its kernels' bindings structs.
     let mut structs: std::collections::BTreeMap<String, String> = Default::default();
+    // Which kernels run with which struct: the same bindings in the same order (name and
+    // read-only alike; a texel and a storage read of one binding are alike) and the same
+    // push-constant type.
+    let signatures: Vec<(String, String)> = modules
+        .iter()
+        .map(|m| {
+            let name = m["entry_point"]
+                .as_str()
+                .expect("manifest.json: entry_point");
+            let bindings: Vec<String> = m["bindings"]
+                .as_array()
+                .expect("manifest.json: 'bindings' is not an array")
+                .iter()
+                .map(|b| {
+                    let read_only = b["access"].as_str() != Some("read_write");
+                    format!("{}:{read_only}", b["name"].as_str().unwrap_or_default())
+                })
+                .collect();
+            let push = m
+                .get("push_constant")
+                .and_then(|v| v.as_str())
+                .unwrap_or("");
+            (camel(name), format!("{push}|{}", bindings.join(",")))
+        })
+        .collect();
     for m in modules {
         let name = m["entry_point"]
             .as_str()
@@ -120,6 +145,25 @@ fn main() {
             list.push(format!("self.{binding}.0"));
         }
         let params_ty = params.clone().unwrap_or_else(|| "()".to_string());
+        let own_signature = &signatures.iter().find(|(k, _)| *k == v).expect("listed").1;
+        let fitting: Vec<&str> = signatures
+            .iter()
+            .filter(|(_, sig)| sig == own_signature)
+            .map(|(k, _)| k.as_str())
+            .collect();
+        let choice = format!("{ty}Kernel");
+        let choice_variants: String = fitting
+            .iter()
+            .map(|k| format!("        /// [`Kernel::{k}`](crate::Kernel::{k}).\n        {k},\n"))
+            .collect();
+        let choice_arms: String = fitting
+            .iter()
+            .map(|k| format!("                {choice}::{k} => crate::Kernel::{k},\n"))
+            .collect();
+        let choice_back: String = fitting
+            .iter()
+            .map(|k| format!("                crate::Kernel::{k} => Ok({choice}::{k}),\n"))
+            .collect();
         let params_doc = match &params {
             Some(t) => format!("push constants `{t}`"),
             None => "no push constants".to_string(),
@@ -130,8 +174,32 @@ fn main() {
     pub struct {ty}<'a> {{
 {fields}    }}
 
+    /// The kernels that run with [`{ty}`]'s bindings and push constants: what
+    /// [`Recording::dispatch_as`](crate::Recording::dispatch_as) takes with it.
+    #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+    pub enum {choice} {{
+{choice_variants}    }}
+
+    impl From<{choice}> for crate::Kernel {{
+        fn from(kernel: {choice}) -> crate::Kernel {{
+            match kernel {{
+{choice_arms}            }}
+        }}
+    }}
+
+    impl TryFrom<crate::Kernel> for {choice} {{
+        /// The kernel, which does not run with [`{ty}`].
+        type Error = crate::Kernel;
+        fn try_from(kernel: crate::Kernel) -> Result<Self, crate::Kernel> {{
+            match kernel {{
+{choice_back}                other => Err(other),
+            }}
+        }}
+    }}
+
     impl<'a> crate::bindings::Bindings<'a> for {ty}<'a> {{
         const KERNEL: crate::Kernel = crate::Kernel::{v};
+        type Kernels = {choice};
         type Params = {params_ty};
         type List = [crate::bindings::Bound<'a>; {n}];
         fn into_list(self) -> Self::List {{
@@ -264,5 +332,7 @@ pub mod {module} {{
         .unwrap();
     }
     let out = PathBuf::from(std::env::var("OUT_DIR").unwrap()).join("kernels_generated.rs");
+    // OUT_DIR is cargo's scratch directory, rebuilt from scratch when this fails.
+    #[allow(clippy::disallowed_methods)]
     std::fs::write(out, code).unwrap();
 }

@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
 # The whole test suite, as CI runs it:
+#  0. formatting (rustfmt, every crate) and lints (clippy -D warnings, the workspace's
+#     targets; clippy.toml keeps file writes to drape-io);
 #  1. rebuild the SPIR-V with rust-gpu and fail, naming the module, if any byte
 #     differs from what is committed;
 #  2. the shader builder's own test (a changed kernel source fails the check);
@@ -25,7 +27,7 @@ step() {
     [ -z "$1" ] || echo "== $1"
 }
 
-step "0/4 set-up (Vulkan, lavapipe, validation layers, the shader toolchain, numpy)"
+step "0/5 set-up (Vulkan, lavapipe, validation layers, the shader toolchain, numpy)"
 scripts/setup.sh --shaders
 # A real client of the NumPy files the project writes (pickled annots.npy, .npz).
 if ! python3 -c "import numpy" 2>/dev/null; then
@@ -47,13 +49,23 @@ export DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}"
 # clean clone: disk CI does not have to spare.
 export CARGO_INCREMENTAL=0
 if [ "$DRAPE_DEVICE" = llvmpipe ]; then
-    export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps,subgroup-raster}"
+    export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps,subgroup-raster,subgroup-gemm}"
 fi
 
-step "1/4 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
+step "1/5 formatting and lints: rustfmt --check and clippy -D warnings"
+# The pinned toolchain (rust-toolchain.toml) brings both. The kernels and the shader
+# builder are formatted with the same rustfmt; clippy runs on the workspace only (the
+# kernels build for SPIR-V on the shader builder's nightly, which has no clippy).
+cargo fmt --all --check
+(cd shaders-rs/kernels && cargo fmt --check)
+rustfmt --edition 2021 --check tools/shader-builder/src/main.rs tools/shader-builder/tests/*.rs
+(cd fuzz && cargo fmt --check)
+cargo clippy --workspace --all-targets --locked -- -D warnings
+
+step "2/5 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
 (cd tools/shader-builder && cargo run --release --locked --quiet -- --check)
 
-step "2/4 shader builder tests"
+step "3/5 shader builder tests"
 (cd tools/shader-builder && cargo test --release --locked)
 
 if ! wait "$torch_pid"; then
@@ -74,7 +86,7 @@ export DRAPE_CLIENTS_PYTHON
 # The cluster manifest (scripts/cluster/), validated offline against Kubernetes' schemas.
 scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
-step "3/4 workspace tests on $DRAPE_DEVICE with validation"
+step "4/5 workspace tests on $DRAPE_DEVICE with validation"
 # Build first, every target under the test profile with the tests' feature resolution, so
 # that `cargo test` below finds it all built: the shared run is trained with this build's
 # drape binary, and the C ABI tests link libdrape.so from it (`cargo test` builds rlibs
@@ -91,7 +103,7 @@ DRAPE_TEST_RUN="$PWD/$test_run/run"
 export DRAPE_TEST_RUN
 cargo test --workspace --locked
 
-step "4/4 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
+step "5/5 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
 # The filters pick the modules of the two GPU test binaries (engine: tests/tests/engine,
 # trainer: trainer/tests/trainer) that move buffers between host and device.
 # The two binaries step 3 built, run directly: `cargo test --test engine --test trainer`

@@ -229,7 +229,7 @@ fn guard<T>(
     on_error: T,
     body: impl FnOnce() -> Result<T, Failure>,
 ) -> (T, drape_status) {
-    let result = catch_unwind(AssertUnwindSafe(|| body()));
+    let result = catch_unwind(AssertUnwindSafe(body));
     match result {
         Ok(Ok(v)) => (v, drape_status::DRAPE_OK),
         Ok(Err(Failure(status, message))) => {
@@ -326,6 +326,7 @@ pub unsafe extern "C" fn drape_context_from_vulkan(
         }
         // SAFETY: the signature is vkGetInstanceProcAddr's (the caller passes that function).
         let gipa: vk::PFN_vkGetInstanceProcAddr = unsafe { std::mem::transmute(gipa) };
+        // SAFETY: `gipa` is the caller's vkGetInstanceProcAddr, valid for the process.
         let entry = unsafe {
             drape_engine::ash::Entry::from_static_fn(drape_engine::ash::StaticFn {
                 get_instance_proc_addr: gipa,
@@ -335,6 +336,7 @@ pub unsafe extern "C" fn drape_context_from_vulkan(
         // SAFETY: the caller's handles are valid (the documented contract).
         let instance =
             unsafe { drape_engine::ash::Instance::load(entry.static_fn(), instance_handle) };
+        // SAFETY: the caller's device, created from that instance (the documented contract).
         let device = unsafe {
             drape_engine::ash::Device::load(
                 instance.fp_v1_0(),
@@ -454,7 +456,7 @@ pub unsafe extern "C" fn drape_avatar_default_view(
         with_avatar(avatar, |a| {
             let c = a.default_camera();
             let v = ViewCamera::from_camera(c);
-            // SAFETY (these writes): each pointer is NULL or points at room for its value.
+            // SAFETY: each pointer is NULL or points at room for its value (the contract).
             unsafe {
                 if let Some(out) = camera.as_mut() {
                     *out = drape_camera {

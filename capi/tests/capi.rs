@@ -117,7 +117,7 @@ fn header_is_what_cbindgen_generates_from_the_source() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("include/drape.h");
     let fresh = generated_header();
     if std::env::var("DRAPE_UPDATE_HEADER").is_ok_and(|v| v == "1") {
-        std::fs::write(&path, &fresh).unwrap();
+        drape_io::write(&path, &fresh).unwrap();
     }
     let committed = std::fs::read_to_string(&path).unwrap_or_default();
     assert!(committed == fresh, "{} is stale: a signature changed without regenerating it; run DRAPE_UPDATE_HEADER=1 cargo test -p drape-capi --test capi -- header and commit it", path.display());
@@ -351,10 +351,8 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
         shader_buffer_float32_atomic_add: u32::from(f.shader_buffer_float32_atomic_add),
     };
     // SAFETY: the descriptor holds the test's live handles.
-    assert!(
-        unsafe { drape_context_from_vulkan(&desc) }.is_null(),
-        "a device without vulkanMemoryModel"
-    );
+    let refused = unsafe { drape_context_from_vulkan(&desc) };
+    assert!(refused.is_null(), "a device without vulkanMemoryModel");
     assert!(
         last_error().contains("vulkanMemoryModel"),
         "{}",
@@ -392,10 +390,8 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
     };
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
     // SAFETY: 72 and 3 floats.
-    assert_eq!(
-        unsafe { drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr()) },
-        drape_status::DRAPE_OK
-    );
+    let posed = unsafe { drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr()) };
+    assert_eq!(posed, drape_status::DRAPE_OK);
     let t = host.image_and_readback(w, h);
     let cmd = host.begin();
     let dst = (

@@ -36,7 +36,9 @@
 //! constants (the atomic, compare-and-swap and fixed-point accumulations, the texel
 //! and storage reads of one kernel...) shares one struct:
 //! [`Recording::dispatch_as`](crate::Recording::dispatch_as) takes the kernel as well,
-//! and checks at run time that it is one the struct fits ([`Bindings::fits`]).
+//! as a value of the enum generated beside the struct (`kernels::radix_sort::ScatterKernel`
+//! for `Scatter`), which lists exactly the kernels the struct fits: another kernel
+//! does not compile.
 //!
 //! ```compile_fail,E0063
 //! // A binding left out (`values_out`) does not compile.
@@ -109,6 +111,34 @@
 //!         keys_out: b.write(),
 //!         values_out: b.write(),
 //!         len_words: b.read(),
+//!     }, p, [1, 1, 1]).unwrap();
+//! }
+//! ```
+//!
+//! ```
+//! // A variant chosen at run time among the struct's kernels compiles.
+//! use drape_engine::{kernels, Buffer, Recording};
+//! use kernels::radix_sort::ScatterKernel;
+//! fn pass<'a>(rec: &mut Recording<'a>, b: &'a Buffer, p: &drape_shared::radix_sort::SortPassParams, texel: bool) {
+//!     let kernel = if texel { ScatterKernel::RadixSortChunkScatterTexel } else { ScatterKernel::RadixSortChunkScatter };
+//!     rec.dispatch_as("scatter", kernel, kernels::radix_sort::Scatter {
+//!         keys_in: b.read(),
+//!         values_in: b.read(),
+//!         scanned_histogram: b.read(),
+//!         keys_out: b.write(),
+//!         values_out: b.write(),
+//!         len_words: b.read(),
+//!     }, p, [1, 1, 1]).unwrap();
+//! }
+//! ```
+//!
+//! ```compile_fail,E0308
+//! // A kernel with other bindings (`nn::act_fwd` for `train::add_into`) does not compile.
+//! use drape_engine::{kernels, Buffer, Recording};
+//! fn pass<'a>(rec: &mut Recording<'a>, b: &'a Buffer, p: &drape_shared::adam::LossParams) {
+//!     rec.dispatch_as("add", kernels::nn::ActFwdKernel::NnActFwd, kernels::train::AddInto {
+//!         src: b.read(),
+//!         dst: b.write(),
 //!     }, p, [1, 1, 1]).unwrap();
 //! }
 //! ```
@@ -208,25 +238,16 @@ impl Buffer {
 pub trait Bindings<'a> {
     /// The kernel the struct was generated for.
     const KERNEL: Kernel;
+    /// The kernels that run with this struct (generated as `<Struct>Kernel`): the same
+    /// bindings in the same order, each with the same name and read-only or writable
+    /// alike (a texel and a storage read of one binding are alike: the recorder checks
+    /// at run time that a texel binding gets a whole buffer), and the same push-constant
+    /// type. [`Recording::dispatch_as`](crate::Recording::dispatch_as) takes one.
+    type Kernels: Copy + Into<Kernel>;
     /// The push constants the kernel declares (`()` for none).
     type Params: bytemuck::Pod;
     /// The bindings in binding order (an array: no allocation).
     type List: AsRef<[Bound<'a>]>;
     /// The bindings in binding order.
     fn into_list(self) -> Self::List;
-
-    /// Whether `kernel` can run with these bindings: the same bindings in the same
-    /// order, each with the same name and read-only or writable alike (a texel and a
-    /// storage read of one binding are alike: the recorder checks at run time that a
-    /// texel binding gets a whole buffer), and the same push-constant type.
-    fn fits(kernel: Kernel) -> bool {
-        let (ours, theirs) = (Self::KERNEL.bindings(), kernel.bindings());
-        kernel == Self::KERNEL
-            || (Self::KERNEL.push_constant() == kernel.push_constant()
-                && ours.len() == theirs.len()
-                && ours
-                    .iter()
-                    .zip(theirs)
-                    .all(|(a, b)| a.name == b.name && a.read_only == b.read_only))
-    }
 }

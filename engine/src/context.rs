@@ -43,6 +43,12 @@ pub struct ContextDesc {
     /// barrier orders (what a missing derived barrier would be). Needs the layer's
     /// `VK_EXT_validation_features`; an error without it.
     pub synchronization_validation: bool,
+    /// Bind at most this many bytes through one storage-buffer binding, below the
+    /// device's `maxStorageBufferRange` ([`DeviceInfo::max_storage_buffer_range`] reports
+    /// the smaller): the chunked paths a device with a small limit takes (lavapipe's
+    /// 128 MiB), exercised on a device whose limit is far above any test's scene.
+    /// `for_tests` reads it from `DRAPE_MAX_STORAGE_BUFFER_RANGE`.
+    pub max_storage_buffer_range: Option<u64>,
 }
 
 impl ContextDesc {
@@ -54,6 +60,9 @@ impl ContextDesc {
             poison_new_buffers: true,
             force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
             synchronization_validation: true,
+            max_storage_buffer_range: std::env::var("DRAPE_MAX_STORAGE_BUFFER_RANGE")
+                .ok()
+                .and_then(|v| v.parse().ok()),
         }
     }
 }
@@ -327,7 +336,14 @@ impl Context {
             allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
             debug_utils: parts.debug_utils,
             pipelines: Mutex::new(HashMap::new()),
-            info: parts.info,
+            info: DeviceInfo {
+                max_storage_buffer_range: desc
+                    .max_storage_buffer_range
+                    .map_or(parts.info.max_storage_buffer_range, |cap| {
+                        cap.min(parts.info.max_storage_buffer_range)
+                    }),
+                ..parts.info
+            },
             poison: desc.poison_new_buffers,
             force_staging: desc.force_staging,
             debug_instance,

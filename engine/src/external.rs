@@ -112,7 +112,7 @@ pub fn device_requirements(
     instance: &ash::Instance,
     physical_device: vk::PhysicalDevice,
 ) -> Result<DeviceRequirements> {
-    // SAFETY (this block's queries): the caller's instance and one of its physical devices.
+    // SAFETY: the caller's instance and one of its physical devices.
     let props = unsafe { instance.get_physical_device_properties(physical_device) };
     if props.api_version < vk::API_VERSION_1_2 {
         return Err(EngineError::HostDeviceMissing {

@@ -397,23 +397,18 @@ impl<'a> Recording<'a> {
         )
     }
 
-    /// [`dispatch`](Self::dispatch) for a kernel chosen at run time among variants
-    /// that share `bindings`' struct: panics unless `kernel` fits it
-    /// ([`Bindings::fits`]: the same binding names, accesses and push constants).
+    /// [`dispatch`](Self::dispatch) for a kernel chosen at run time among the variants
+    /// that share `bindings`' struct ([`Bindings::Kernels`]: the same binding names,
+    /// accesses and push constants, so any of them is checked by the compiler).
     pub fn dispatch_as<B: Bindings<'a>>(
         &mut self,
         name: &str,
-        kernel: Kernel,
+        kernel: B::Kernels,
         bindings: B,
         params: &B::Params,
         groups: [u32; 3],
     ) -> Result<()> {
-        assert!(
-            B::fits(kernel),
-            "pass '{name}': kernel {} does not fit the bindings of {}",
-            kernel.entry_point(),
-            B::KERNEL.entry_point()
-        );
+        let kernel: Kernel = kernel.into();
         let list = bindings.into_list();
         self.checked_dispatch(
             name,
@@ -841,28 +836,31 @@ impl<'a> Recording<'a> {
                     self.passes.push(name);
                     self.pass_scopes.push(scope);
                 }
-                // SAFETY (the three below): recording command buffer; the buffers are
-                // borrowed for 'a, were created with transfer usage, and the ranges
-                // were checked when the command was scheduled.
+                // SAFETY: recording command buffer; the buffers are borrowed for 'a,
+                // were created with transfer usage, and the ranges were checked when the
+                // command was scheduled.
                 Command::Copy { src, dst, region } => unsafe {
                     dev.cmd_copy_buffer(self.cmd, src, dst, &[region])
                 },
+                // SAFETY: as for the copy: a recording command buffer and a checked,
+                // borrowed transfer destination.
                 Command::Update { buffer, data } => unsafe {
                     dev.cmd_update_buffer(self.cmd, buffer, 0, &data)
                 },
+                // SAFETY: as for the copy.
                 Command::Fill { buffer, word } => unsafe {
                     dev.cmd_fill_buffer(self.cmd, buffer, 0, vk::WHOLE_SIZE, word)
                 },
-                // SAFETY: as above for the buffer; the image is the host's, valid and in
-                // `layout` by the contract of `copy_to_image`.
                 Command::CopyToImage {
                     src,
                     image,
                     layout,
                     region,
-                } => unsafe {
-                    dev.cmd_copy_buffer_to_image(self.cmd, src, image, layout, &[region])
-                },
+                } => {
+                    // SAFETY: as for the copy for the buffer; the image is the host's,
+                    // valid and in `layout` by the contract of `copy_to_image`.
+                    unsafe { dev.cmd_copy_buffer_to_image(self.cmd, src, image, layout, &[region]) }
+                }
             }
         }
         Ok(())

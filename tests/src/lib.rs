@@ -70,6 +70,8 @@ pub enum Feature {
     Timestamps,
     /// The subgroup rasterizers: a CPU device with subgroups of 8 lanes and ballot.
     SubgroupRaster,
+    /// The subgroup and texel GEMMs (`nn_cpu`): subgroups of 8 lanes with ballot.
+    SubgroupGemm,
 }
 
 impl Feature {
@@ -78,6 +80,7 @@ impl Feature {
             Feature::FloatAtomics => "float-atomics",
             Feature::Timestamps => "timestamps",
             Feature::SubgroupRaster => "subgroup-raster",
+            Feature::SubgroupGemm => "subgroup-gemm",
         }
     }
 
@@ -88,6 +91,7 @@ impl Feature {
             Feature::SubgroupRaster => {
                 drape_engine::ops::splat::render::subgroup_raster_supported(ctx.info())
             }
+            Feature::SubgroupGemm => drape_engine::ops::nn::subgroup_gemm_supported(ctx.info()),
         }
     }
 }
@@ -395,7 +399,8 @@ pub mod splat {
                        v: fn(&ReferenceRender<f32>, usize) -> f32| {
                 r.as_ref().map(|r| v(r, p))
             };
-            let values: [(&str, f32, fn(&ReferenceRender<f32>, usize) -> f32, f32); 5] = [
+            type Channel = fn(&ReferenceRender<f32>, usize) -> f32;
+            let values: [(&str, f32, Channel, f32); 5] = [
                 ("red", image.rgb[3 * p], |r, p| r.rgb[3 * p], 1.0),
                 ("green", image.rgb[3 * p + 1], |r, p| r.rgb[3 * p + 1], 1.0),
                 ("blue", image.rgb[3 * p + 2], |r, p| r.rgb[3 * p + 2], 1.0),
@@ -554,7 +559,7 @@ pub mod reference_python {
         bytes.extend((header.len() as u16).to_le_bytes());
         bytes.extend(header.as_bytes());
         bytes.extend(data.iter().flat_map(|v| v.to_le_bytes()));
-        std::fs::write(dir.join(format!("{name}.npy")), bytes).expect("write npy");
+        drape_io::write(dir.join(format!("{name}.npy")), bytes).expect("write npy");
     }
 
     /// Reads `dir/name.npy` as numpy writes it from the reference scripts: float64,

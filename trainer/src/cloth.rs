@@ -368,7 +368,7 @@ impl ClothSim {
             if let (Some(a), Some(b)) = (&carried_before, &carried_now) {
                 for i in 0..self.positions.len() {
                     if !self.attached[i] {
-                        self.positions[i] = self.positions[i] + (b[i] - a[i]);
+                        self.positions[i] += b[i] - a[i];
                     }
                 }
             }

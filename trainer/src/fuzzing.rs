@@ -43,7 +43,7 @@ fn scratch(name: &str) -> PathBuf {
 fn with_file(name: &str, data: &[u8], f: impl FnOnce(&Path)) {
     let path = scratch(name);
     let _ = std::fs::create_dir_all(path.parent().expect("in a folder"));
-    if std::fs::write(&path, data).is_ok() {
+    if drape_io::write(&path, data).is_ok() {
         f(&path);
     }
 }
@@ -106,7 +106,7 @@ pub fn colmap(data: &[u8]) {
         .iter()
         .zip(files)
     {
-        if std::fs::write(dir.join(name), bytes).is_err() {
+        if drape_io::write(dir.join(name), bytes).is_err() {
             return;
         }
     }

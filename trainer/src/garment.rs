@@ -550,8 +550,15 @@ pub fn write_obj(
     faces: &[[u32; 3]],
     uvs: Option<&[[f64; 2]]>,
 ) -> std::io::Result<()> {
-    use std::io::Write;
-    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
+    drape_io::write_with(path, |out| write_obj_to(out, vertices, faces, uvs))
+}
+
+fn write_obj_to(
+    out: &mut impl std::io::Write,
+    vertices: &[DVec3],
+    faces: &[[u32; 3]],
+    uvs: Option<&[[f64; 2]]>,
+) -> std::io::Result<()> {
     for v in vertices {
         writeln!(out, "v {:.6} {:.6} {:.6}", v[0], v[1], v[2])?;
     }

@@ -16,6 +16,7 @@ pub mod cloth;
 pub mod collider;
 pub mod dataset;
 pub mod error;
+#[cfg(feature = "fuzzing")]
 pub mod fuzzing;
 pub mod garment;
 pub mod grid;
@@ -25,6 +26,7 @@ pub mod motion;
 pub mod npy;
 pub mod pickle;
 pub mod ply;
+#[cfg(feature = "testing")]
 pub mod testing;
 
 pub use error::{Result, TrainerError};

@@ -303,18 +303,26 @@ pub fn write_npz(path: &Path, arrays: &BTreeMap<String, Array>) -> Result<(), Np
         file: file_name.clone(),
         error,
     };
-    let file = std::fs::File::create(path).map_err(io)?;
-    let mut zip = zip::ZipWriter::new(file);
-    let options =
-        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
-    for (key, array) in arrays {
-        zip.start_file(format!("{key}.npy"), options)
-            .map_err(|e| fmt_err(&file_name, Some(key), e.to_string()))?;
-        zip.write_all(&encode(array)).map_err(io)?;
-    }
-    zip.finish()
-        .map_err(|e| fmt_err(&file_name, None, e.to_string()))?;
-    Ok(())
+    // The zip's own errors are carried out of the writer as I/O errors' payloads.
+    let zip_err = |key: Option<&str>, e: zip::result::ZipError| {
+        std::io::Error::other(fmt_err(&file_name, key, e.to_string()))
+    };
+    let written = drape_io::write_with(path, |file| {
+        let mut zip = zip::ZipWriter::new(file);
+        let options = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Stored);
+        for (key, array) in arrays {
+            zip.start_file(format!("{key}.npy"), options)
+                .map_err(|e| zip_err(Some(key), e))?;
+            zip.write_all(&encode(array))?;
+        }
+        zip.finish().map_err(|e| zip_err(None, e))?;
+        Ok(())
+    });
+    written.map_err(|e| match e.downcast::<NpyError>() {
+        Ok(npy) => npy,
+        Err(e) => io(e),
+    })
 }
 
 /// An archive entry whose dtype this module does not decode (text, bytes, pickled

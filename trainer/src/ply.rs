@@ -7,7 +7,6 @@
 //! properties are ignored. A file read holds the avatar's scene group (the format has
 //! no groups).
 
-use std::io::Write;
 use std::path::Path;
 
 use drape_shared::splat::layout::sh_coeffs;
@@ -271,7 +270,5 @@ pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<(), PlyError> {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
-    let mut file = std::fs::File::create(path).map_err(io)?;
-    file.write_all(&out).map_err(io)?;
-    Ok(())
+    drape_io::write(path, &out).map_err(io)
 }

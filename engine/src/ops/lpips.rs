@@ -368,7 +368,7 @@ impl LpipsWeights {
         let mut out = (h.len() as u64).to_le_bytes().to_vec();
         out.extend(h);
         out.extend(body);
-        std::fs::write(path, out)
+        drape_io::write(path, out)
     }
 
     /// The smallest image side the stack accepts (every stage keeps at least one

@@ -37,7 +37,8 @@ use rand::{Rng, SeedableRng};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::{Context, DeviceKind};
 use crate::error::{EngineError, Result};
-use crate::kernels::{self, Kernel};
+use crate::kernels;
+use crate::kernels::nn::{ActBwdKernel, ActFwdKernel, GemmTiledKernel as GemmKernel};
 use crate::recorder::{flat_grid as grid, Recording};
 
 /// An activation after a linear layer.
@@ -655,7 +656,7 @@ impl Mlp {
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (
-                Kernel::NnCpuGemmBlocked,
+                GemmKernel::NnCpuGemmBlocked,
                 [
                     p.n.div_ceil(8 * GEMM_BLOCK),
                     p.m.div_ceil(8 * GEMM_BLOCK),
@@ -669,18 +670,18 @@ impl Mlp {
                 let (kernel, tile_rows) = match variant {
                     GemmVariant::Texel4 => (
                         texel4_grad_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements)
-                            .unwrap_or(Kernel::NnCpuGemmTexel),
+                            .unwrap_or(GemmKernel::NnCpuGemmTexel),
                         GEMM_TX_ROWS,
                     ),
-                    GemmVariant::Texel => (Kernel::NnCpuGemmTexel, GEMM_TX_ROWS),
-                    _ => (Kernel::NnCpuGemmSubgroup, GEMM_SG_ROWS),
+                    GemmVariant::Texel => (GemmKernel::NnCpuGemmTexel, GEMM_TX_ROWS),
+                    _ => (GemmKernel::NnCpuGemmSubgroup, GEMM_SG_ROWS),
                 };
                 let tiles = p.m.div_ceil(tile_rows) * p.n.div_ceil(GEMM_SG_COLS);
                 let x = tiles.min(65_535);
                 (kernel, [x, tiles.div_ceil(x.max(1)), splits])
             }
             _ => (
-                Kernel::NnGemmTiled,
+                GemmKernel::NnGemmTiled,
                 [p.n.div_ceil(GEMM_TILE), p.m.div_ceil(GEMM_TILE), splits],
             ),
         };
@@ -874,7 +875,7 @@ impl Mlp {
                     );
                     rec.dispatch_as(
                         "mlp.act_bwd",
-                        four.map_or(Kernel::NnActBwd, |(_, bwd)| bwd),
+                        four.map_or(ActBwdKernel::NnActBwd, |(_, bwd)| bwd),
                         kernels::nn::ActBwd {
                             pre: layer.pre.read(),
                             post: layer.post.read(),
@@ -1171,72 +1172,18 @@ pub mod reference {
     }
 }
 
-#[cfg(test)]
-mod capped_tests {
-    use super::*;
-
-    #[test]
-    fn fwd_column_tiles_cover_every_column_once() {
-        // The HUGS heads and layers, and every width up to 200.
-        assert_eq!(fwd_column_tiles(1), vec![(0, 1, 4)]);
-        assert_eq!(fwd_column_tiles(3), vec![(0, 3, 4)]);
-        assert_eq!(fwd_column_tiles(6), vec![(0, 6, 8)]);
-        assert_eq!(fwd_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
-        assert_eq!(fwd_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
-        assert_eq!(
-            fwd_column_tiles(49),
-            vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]
-        );
-        assert_eq!(fwd_column_tiles(128), vec![(0, 128, 32)]);
-        for n in 1..=200 {
-            let tiles = fwd_column_tiles(n);
-            let mut next = 0;
-            for &(first, cols, width) in &tiles {
-                assert_eq!(first, next, "n = {n}: {tiles:?}");
-                assert!(
-                    cols > 0 && [32, 16, 8, 4].contains(&width),
-                    "n = {n}: {tiles:?}"
-                );
-                next += cols;
-            }
-            assert_eq!(next, n, "n = {n}: {tiles:?}");
-        }
-    }
-
-    #[test]
-    fn capped_narrows_hidden_layers_only() {
-        let d = MlpDesc::hugs_deformation(48).capped(64);
-        assert_eq!(
-            d.linears(),
-            vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]
-        );
-        let a = MlpDesc::hugs_appearance(48, 3).capped(64);
-        assert_eq!(
-            a,
-            MlpDesc::hugs_appearance(48, 3),
-            "the appearance decoder is 64 wide already"
-        );
-        let g = MlpDesc::hugs_geometry(96).capped(200);
-        assert_eq!(
-            g,
-            MlpDesc::hugs_geometry(96),
-            "a cap above every width changes nothing"
-        );
-    }
-}
-
 /// The element-wise activation kernels that take 4 elements an invocation
 /// (`nn::act_fwd4[_gelu]`, `nn::act_bwd4[_gelu]`: a quarter of llvmpipe's loops over
 /// the lanes, 16-byte accesses on a GPU), where every buffer is whole 16-byte texels
 /// (the engine makes its buffers so): they cover `rows · width` rounded up to 4.
-fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(Kernel, Kernel)> {
+fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(ActFwdKernel, ActBwdKernel)> {
     if buffers.iter().any(|b| b.vk_size() % 16 != 0) {
         return None;
     }
     Some(if act.kind() == drape_shared::nn::ACT_GELU {
-        (Kernel::NnActFwd4Gelu, Kernel::NnActBwd4Gelu)
+        (ActFwdKernel::NnActFwd4Gelu, ActBwdKernel::NnActBwd4Gelu)
     } else {
-        (Kernel::NnActFwd4, Kernel::NnActBwd4)
+        (ActFwdKernel::NnActFwd4, ActBwdKernel::NnActBwd4)
     })
 }
 
@@ -1278,19 +1225,27 @@ fn fwd_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u
 }
 
 /// The forward kernels by tile width: (width, float epilogue, 4-float epilogue).
-const FWD_WIDTHS: [(u32, Kernel, Kernel); 4] = [
+const FWD_WIDTHS: [(u32, GemmKernel, GemmKernel); 4] = [
     (
         32,
-        Kernel::NnCpuGemmFwdCols32,
-        Kernel::NnCpuGemmFwdCols32Vec4,
+        GemmKernel::NnCpuGemmFwdCols32,
+        GemmKernel::NnCpuGemmFwdCols32Vec4,
     ),
     (
         16,
-        Kernel::NnCpuGemmFwdCols16,
-        Kernel::NnCpuGemmFwdCols16Vec4,
+        GemmKernel::NnCpuGemmFwdCols16,
+        GemmKernel::NnCpuGemmFwdCols16Vec4,
     ),
-    (8, Kernel::NnCpuGemmFwdCols8, Kernel::NnCpuGemmFwdCols8Vec4),
-    (4, Kernel::NnCpuGemmFwdCols4, Kernel::NnCpuGemmFwdCols4Vec4),
+    (
+        8,
+        GemmKernel::NnCpuGemmFwdCols8,
+        GemmKernel::NnCpuGemmFwdCols8Vec4,
+    ),
+    (
+        4,
+        GemmKernel::NnCpuGemmFwdCols4,
+        GemmKernel::NnCpuGemmFwdCols4Vec4,
+    ),
 ];
 
 /// What llvmpipe spends on one tile of `width` columns per 4 steps of `k`, in
@@ -1388,11 +1343,11 @@ fn record_fwd<'a>(
 /// (`nn_cpu::gemm_weight_grad_cols4` or `_cols8`) and its tile width, where `C` is at
 /// most 8 wide (the weight gradient of a 1- to 6-wide head, `A = Xᵀ` contiguous along
 /// `m` in whole texels): the column-owning tiles would run 32 columns for 3.
-fn narrow_weight_grad_kernel(p: &GemmParams, a: &Buffer) -> Option<(Kernel, u32)> {
+fn narrow_weight_grad_kernel(p: &GemmParams, a: &Buffer) -> Option<(GemmKernel, u32)> {
     let fits = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && a.vk_size() % 16 == 0;
     match p.n {
-        1..=4 if fits => Some((Kernel::NnCpuGemmWeightGradCols4, 4)),
-        5..=8 if fits => Some((Kernel::NnCpuGemmWeightGradCols8, 8)),
+        1..=4 if fits => Some((GemmKernel::NnCpuGemmWeightGradCols4, 4)),
+        5..=8 if fits => Some((GemmKernel::NnCpuGemmWeightGradCols8, 8)),
         _ => None,
     }
 }
@@ -1414,7 +1369,7 @@ fn texel4_grad_kernel(
     bias: &Buffer,
     c: &Buffer,
     max_texels: u64,
-) -> Option<Kernel> {
+) -> Option<GemmKernel> {
     let whole = |buffer: &Buffer| buffer.vk_size() % 16 == 0;
     // The `c4` epilogues store 4 columns at a time and read the bias as 4-float texels.
     let c_quads =
@@ -1433,11 +1388,65 @@ fn texel4_grad_kernel(
     let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_n4) {
-        (true, true) if c_quads && bias_quads => Some(Kernel::NnCpuGemmInputGradVec4),
-        (true, true) => Some(Kernel::NnCpuGemmInputGrad),
-        (false, true) if a_m4 && c_quads && bias_quads => Some(Kernel::NnCpuGemmWeightGradVec4),
-        (false, true) if c_quads && bias_quads => Some(Kernel::NnCpuGemmBAlongNVec4),
-        (false, true) => Some(Kernel::NnCpuGemmBAlongN),
+        (true, true) if c_quads && bias_quads => Some(GemmKernel::NnCpuGemmInputGradVec4),
+        (true, true) => Some(GemmKernel::NnCpuGemmInputGrad),
+        (false, true) if a_m4 && c_quads && bias_quads => Some(GemmKernel::NnCpuGemmWeightGradVec4),
+        (false, true) if c_quads && bias_quads => Some(GemmKernel::NnCpuGemmBAlongNVec4),
+        (false, true) => Some(GemmKernel::NnCpuGemmBAlongN),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod capped_tests {
+    use super::*;
+
+    #[test]
+    fn fwd_column_tiles_cover_every_column_once() {
+        // The HUGS heads and layers, and every width up to 200.
+        assert_eq!(fwd_column_tiles(1), vec![(0, 1, 4)]);
+        assert_eq!(fwd_column_tiles(3), vec![(0, 3, 4)]);
+        assert_eq!(fwd_column_tiles(6), vec![(0, 6, 8)]);
+        assert_eq!(fwd_column_tiles(24), vec![(0, 16, 16), (16, 8, 8)]);
+        assert_eq!(fwd_column_tiles(48), vec![(0, 32, 32), (32, 16, 16)]);
+        assert_eq!(
+            fwd_column_tiles(49),
+            vec![(0, 32, 32), (32, 16, 16), (48, 1, 4)]
+        );
+        assert_eq!(fwd_column_tiles(128), vec![(0, 128, 32)]);
+        for n in 1..=200 {
+            let tiles = fwd_column_tiles(n);
+            let mut next = 0;
+            for &(first, cols, width) in &tiles {
+                assert_eq!(first, next, "n = {n}: {tiles:?}");
+                assert!(
+                    cols > 0 && [32, 16, 8, 4].contains(&width),
+                    "n = {n}: {tiles:?}"
+                );
+                next += cols;
+            }
+            assert_eq!(next, n, "n = {n}: {tiles:?}");
+        }
+    }
+
+    #[test]
+    fn capped_narrows_hidden_layers_only() {
+        let d = MlpDesc::hugs_deformation(48).capped(64);
+        assert_eq!(
+            d.linears(),
+            vec![(48, 64), (64, 64), (64, 64), (64, 64), (64, 24)]
+        );
+        let a = MlpDesc::hugs_appearance(48, 3).capped(64);
+        assert_eq!(
+            a,
+            MlpDesc::hugs_appearance(48, 3),
+            "the appearance decoder is 64 wide already"
+        );
+        let g = MlpDesc::hugs_geometry(96).capped(200);
+        assert_eq!(
+            g,
+            MlpDesc::hugs_geometry(96),
+            "a cap above every width changes nothing"
+        );
     }
 }

@@ -28,7 +28,11 @@ use drape_shared::radix_sort::{
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::{self, Kernel};
+use crate::kernels;
+use crate::kernels::radix_sort::{
+    ChunkHistogramKernel, ChunkHistogramPairsKernel, ChunkScatterPairsKernel,
+    ChunkScatterUnzipKernel, ChunkScatterZipKernel, HistogramKernel, ScatterKernel,
+};
 use crate::ops::scan::{ExclusiveScan, ScanVariant};
 use crate::recorder::Recording;
 
@@ -262,8 +266,8 @@ impl RadixSort {
         let (histogram, scatter, buckets, blocks, groups) = if chunked {
             let chunks = chunk_count(len);
             (
-                Kernel::RadixSortChunkHistogram,
-                Kernel::RadixSortChunkScatter,
+                HistogramKernel::RadixSortChunkHistogram,
+                ScatterKernel::RadixSortChunkScatter,
                 CHUNK_BUCKETS,
                 chunks,
                 chunks / CHUNK_WORKGROUP_SIZE,
@@ -271,8 +275,8 @@ impl RadixSort {
         } else {
             let blocks = radix_sort::block_count(len);
             (
-                Kernel::RadixSortHistogram,
-                Kernel::RadixSortScatter,
+                HistogramKernel::RadixSortHistogram,
+                ScatterKernel::RadixSortScatter,
                 RADIX_BUCKETS,
                 blocks,
                 blocks,
@@ -304,8 +308,8 @@ impl RadixSort {
                 && src.1.texel_readable(max_texels);
             let (histogram, scatter) = match texel {
                 true => (
-                    Kernel::RadixSortChunkHistogramTexel,
-                    Kernel::RadixSortChunkScatterTexel,
+                    HistogramKernel::RadixSortChunkHistogramTexel,
+                    ScatterKernel::RadixSortChunkScatterTexel,
                 ),
                 false => (histogram, scatter),
             };
@@ -384,13 +388,12 @@ impl RadixSort {
             let (first, last) = (pass == 0, pass + 1 == passes);
             // Unread when unbounded; the pass's input stands in for the binding.
             let len_words = count_words.unwrap_or(if first { keys } else { pairs.0 });
-            let histogram = match (first, texel_inputs, texel_pairs) {
-                (true, true, _) => Kernel::RadixSortChunkHistogramTexel,
-                (true, false, _) => Kernel::RadixSortChunkHistogram,
-                (false, _, true) => Kernel::RadixSortChunkHistogramPairsTexel,
-                (false, _, false) => Kernel::RadixSortChunkHistogramPairs,
-            };
             if first {
+                let histogram = if texel_inputs {
+                    ChunkHistogramKernel::RadixSortChunkHistogramTexel
+                } else {
+                    ChunkHistogramKernel::RadixSortChunkHistogram
+                };
                 let b = kernels::radix_sort::ChunkHistogram {
                     keys: keys.read(),
                     histogram: self.histogram.write(),
@@ -398,6 +401,11 @@ impl RadixSort {
                 };
                 rec.dispatch_as("radix_sort.histogram", histogram, b, &params, groups)?;
             } else {
+                let histogram = if texel_pairs {
+                    ChunkHistogramPairsKernel::RadixSortChunkHistogramPairsTexel
+                } else {
+                    ChunkHistogramPairsKernel::RadixSortChunkHistogramPairs
+                };
                 let b = kernels::radix_sort::ChunkHistogramPairs {
                     pairs: pairs.0.read(),
                     histogram: self.histogram.write(),
@@ -410,9 +418,9 @@ impl RadixSort {
             let scanned_histogram = self.histogram.read();
             if first {
                 let kernel = match (texel_inputs, self.int64_stores) {
-                    (true, true) => Kernel::RadixSortChunkScatterZipTexelU64,
-                    (true, false) => Kernel::RadixSortChunkScatterZipTexel,
-                    (false, _) => Kernel::RadixSortChunkScatterZip,
+                    (true, true) => ChunkScatterZipKernel::RadixSortChunkScatterZipTexelU64,
+                    (true, false) => ChunkScatterZipKernel::RadixSortChunkScatterZipTexel,
+                    (false, _) => ChunkScatterZipKernel::RadixSortChunkScatterZip,
                 };
                 let b = kernels::radix_sort::ChunkScatterZip {
                     keys_in: keys.read(),
@@ -424,9 +432,9 @@ impl RadixSort {
                 rec.dispatch_as("radix_sort.scatter_zip", kernel, b, &params, groups)?;
             } else if last {
                 let kernel = if texel_pairs {
-                    Kernel::RadixSortChunkScatterUnzipTexel
+                    ChunkScatterUnzipKernel::RadixSortChunkScatterUnzipTexel
                 } else {
-                    Kernel::RadixSortChunkScatterUnzip
+                    ChunkScatterUnzipKernel::RadixSortChunkScatterUnzip
                 };
                 let b = kernels::radix_sort::ChunkScatterUnzip {
                     pairs_in: pairs.0.read(),
@@ -438,9 +446,9 @@ impl RadixSort {
                 rec.dispatch_as("radix_sort.scatter_unzip", kernel, b, &params, groups)?;
             } else {
                 let kernel = match (texel_pairs, self.int64_stores) {
-                    (true, true) => Kernel::RadixSortChunkScatterPairsTexelU64,
-                    (true, false) => Kernel::RadixSortChunkScatterPairsTexel,
-                    (false, _) => Kernel::RadixSortChunkScatterPairs,
+                    (true, true) => ChunkScatterPairsKernel::RadixSortChunkScatterPairsTexelU64,
+                    (true, false) => ChunkScatterPairsKernel::RadixSortChunkScatterPairsTexel,
+                    (false, _) => ChunkScatterPairsKernel::RadixSortChunkScatterPairs,
                 };
                 let b = kernels::radix_sort::ChunkScatterPairs {
                     pairs_in: pairs.0.read(),

@@ -14,7 +14,7 @@ use rand::{Rng, SeedableRng};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::{self, Kernel};
+use crate::kernels;
 use crate::ops::accumulate::{Accumulation, FixedPointScratch, Method};
 use crate::recorder::Recording;
 
@@ -203,11 +203,20 @@ impl Triplane {
         let p = self.desc.params(count);
         let method = accumulation.method(rec.context());
         let (kernel, target) = match method {
-            Method::FloatAtomics => (Kernel::TriplaneSampleBwdAtomic, &self.grads),
-            Method::CompareAndSwap => (Kernel::TriplaneSampleBwdCas, &self.grads),
+            Method::FloatAtomics => (
+                kernels::triplane::SampleBwdAtomicKernel::TriplaneSampleBwdAtomic,
+                &self.grads,
+            ),
+            Method::CompareAndSwap => (
+                kernels::triplane::SampleBwdAtomicKernel::TriplaneSampleBwdCas,
+                &self.grads,
+            ),
             Method::FixedPoint => {
                 let fixed = self.fixed.as_ref().expect("Triplane::prepare(ctx, Accumulation::Deterministic) before a deterministic backward");
-                (Kernel::TriplaneSampleBwdFixed, fixed.buffer())
+                (
+                    kernels::triplane::SampleBwdAtomicKernel::TriplaneSampleBwdFixed,
+                    fixed.buffer(),
+                )
             }
         };
         rec.fill(target, 0);

@@ -309,7 +309,10 @@ fn csr_lists_each_edge_at_both_ends() {
 /// empty), a flat sheet, a thin line, duplicated points (ties), all points coincident,
 /// and predictions far outside the target box (whose shell search runs out of budget
 /// and is finished by brute force).
-fn grid_cases() -> Vec<(&'static str, Vec<[f64; 3]>, Vec<[f64; 3]>)> {
+/// A named case: (name, predicted points, target points).
+type GridCase = (&'static str, Vec<[f64; 3]>, Vec<[f64; 3]>);
+
+fn grid_cases() -> Vec<GridCase> {
     let shell = |n: usize, seed: u64, r: f64| -> Vec<[f64; 3]> {
         points(n, seed)
             .into_iter()

@@ -219,7 +219,7 @@ fn bad_weights_files_name_the_file_and_tensor() {
     // Truncated: the last tensor's bytes cut off.
     let path = weights_file("truncated.safetensors", &good);
     let bytes = std::fs::read(&path).unwrap();
-    std::fs::write(&path, &bytes[..bytes.len() - 100]).unwrap();
+    drape_io::write(&path, &bytes[..bytes.len() - 100]).unwrap();
     let e = LpipsWeights::load(&path, net).unwrap_err().to_string();
     assert!(
         e.contains("truncated.safetensors") && e.contains("truncated"),
@@ -228,7 +228,7 @@ fn bad_weights_files_name_the_file_and_tensor() {
     assert!(e.contains("tensor '"), "the message names the tensor: {e}");
     // Not a safetensors file at all.
     let junk = path.with_file_name("junk.safetensors");
-    std::fs::write(&junk, b"PK\x03\x04 a zip").unwrap();
+    drape_io::write(&junk, b"PK\x03\x04 a zip").unwrap();
     let e = LpipsWeights::load(&junk, net).unwrap_err().to_string();
     assert!(
         e.contains("junk.safetensors") && e.contains("not a safetensors"),

@@ -147,12 +147,19 @@ fn mlp_gpu_matches_cpu_reference() {
 /// are 8 lanes with ballot (`report`: say so when they are left out).
 fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
     let mut variants = vec![GemmVariant::Tiled, GemmVariant::Blocked];
-    if subgroup_gemm_supported(ctx.info()) {
+    let supported = if report {
+        drape_tests::has_feature(
+            ctx,
+            drape_tests::Feature::SubgroupGemm,
+            "nn_cpu::gemm_subgroup, nn_cpu::gemm_texel and the 4-float texel GEMMs",
+        )
+    } else {
+        subgroup_gemm_supported(ctx.info())
+    };
+    if supported {
         variants.push(GemmVariant::Subgroup);
         variants.push(GemmVariant::Texel);
         variants.push(GemmVariant::Texel4);
-    } else if report {
-        eprintln!("SKIPPED: nn_cpu::gemm_subgroup, nn_cpu::gemm_texel and the 4-float texel GEMMs (need subgroups of 8 lanes with ballot; {})", ctx.info());
     }
     variants
 }

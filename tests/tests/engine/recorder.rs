@@ -25,59 +25,65 @@ fn groups() -> [u32; 3] {
     [LEN.div_ceil(256), 1, 1]
 }
 
-/// `train::add_into` as a struct of its bindings (`src` read-only, `dst` writable):
-/// a missing, unknown or wrongly accessed binding does not compile (see the
-/// `compile_fail` examples of `drape_engine::bindings`); a kernel chosen at run time
-/// that does not fit the struct is refused before anything is recorded.
+/// The kernels an op chooses at run time for one bindings struct are the generated
+/// `<Struct>Kernel` enum's (a kernel outside it does not compile: see the
+/// `compile_fail` examples of `drape_engine::bindings`). Checked here against the
+/// manifest's declarations: every listed kernel has the struct's binding names,
+/// accesses and push constants, every variant the ops need is listed, and kernels with
+/// other bindings or push constants are not.
 #[test]
-#[should_panic(expected = "does not fit the bindings of train::add_into")]
-fn a_kernel_chosen_at_run_time_must_fit_the_bindings() {
-    let gpu = gpu();
-    let a = gpu.upload("a", &[1.0f32; LEN as usize]).expect("upload");
-    let b = gpu.upload("b", &[2.0f32; LEN as usize]).expect("upload");
-    let mut rec = gpu.record("binding errors").expect("record");
-    // `nn::act_fwd` has bindings `pre`, `post` and other push constants.
-    let _ = rec.dispatch_as(
-        "test.add",
-        Kernel::NnActFwd,
-        kernels::train::AddInto {
-            src: a.read(),
-            dst: b.write(),
-        },
-        &params(),
-        groups(),
-    );
-}
-
-/// Every kernel the ops choose at run time fits the struct they record it with (the
-/// same binding names and accesses, the same push constants), whichever variant the
-/// device gets: the atomic, compare-and-swap and fixed-point accumulations, the
-/// subgroup and half-precision rasterizers, the texel and storage reads.
-#[test]
-fn variants_chosen_at_run_time_fit_the_struct_they_share() {
+fn the_kernels_a_struct_takes_share_its_bindings_and_push_constants() {
     use drape_engine::Bindings;
-    fn all_fit<'a, B: Bindings<'a>>(variants: &[Kernel]) {
-        for &k in variants {
-            assert!(B::fits(k), "{k:?} does not fit {:?}", B::KERNEL);
+    fn same_signature(a: Kernel, b: Kernel) -> bool {
+        a.push_constant() == b.push_constant()
+            && a.bindings().len() == b.bindings().len()
+            && a.bindings()
+                .iter()
+                .zip(b.bindings())
+                .all(|(x, y)| x.name == y.name && x.read_only == y.read_only)
+    }
+    fn takes<'a, B: Bindings<'a>>(variants: &[Kernel])
+    where
+        B::Kernels: TryFrom<Kernel, Error = Kernel>,
+    {
+        for &k in variants.iter().chain([&B::KERNEL]) {
+            let listed: Kernel = B::Kernels::try_from(k)
+                .unwrap_or_else(|k| panic!("{k:?} is not among {:?}'s kernels", B::KERNEL))
+                .into();
+            assert_eq!(listed, k, "the conversion round-trips");
+            assert!(
+                same_signature(B::KERNEL, k),
+                "{k:?} does not fit {:?}",
+                B::KERNEL
+            );
+        }
+        for &k in Kernel::ALL {
+            if B::Kernels::try_from(k).is_ok() {
+                assert!(
+                    same_signature(B::KERNEL, k),
+                    "{k:?} listed for {:?}",
+                    B::KERNEL
+                );
+            }
         }
     }
     use Kernel as K;
-    all_fit::<kernels::radix_sort::Histogram>(&[
+    takes::<kernels::radix_sort::Histogram>(&[
         K::RadixSortChunkHistogram,
         K::RadixSortChunkHistogramTexel,
     ]);
-    all_fit::<kernels::radix_sort::Scatter>(&[
+    takes::<kernels::radix_sort::Scatter>(&[
         K::RadixSortChunkScatter,
         K::RadixSortChunkScatterTexel,
     ]);
-    all_fit::<kernels::radix_sort::ChunkHistogram>(&[K::RadixSortChunkHistogramTexel]);
-    all_fit::<kernels::radix_sort::ChunkHistogramPairs>(&[K::RadixSortChunkHistogramPairsTexel]);
-    all_fit::<kernels::radix_sort::ChunkScatterZip>(&[
+    takes::<kernels::radix_sort::ChunkHistogram>(&[K::RadixSortChunkHistogramTexel]);
+    takes::<kernels::radix_sort::ChunkHistogramPairs>(&[K::RadixSortChunkHistogramPairsTexel]);
+    takes::<kernels::radix_sort::ChunkScatterZip>(&[
         K::RadixSortChunkScatterZipTexel,
         K::RadixSortChunkScatterZipTexelU64,
     ]);
-    all_fit::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
-    all_fit::<kernels::radix_sort::ChunkScatterPairs>(&[
+    takes::<kernels::radix_sort::ChunkScatterUnzip>(&[K::RadixSortChunkScatterUnzipTexel]);
+    takes::<kernels::radix_sort::ChunkScatterPairs>(&[
         K::RadixSortChunkScatterPairsTexel,
         K::RadixSortChunkScatterPairsTexelU64,
     ]);
@@ -89,45 +95,41 @@ fn variants_chosen_at_run_time_fit_the_struct_they_share() {
         })
         .collect();
     assert!(gemms.len() > 10, "{gemms:?}");
-    all_fit::<kernels::nn::GemmTiled>(&gemms);
-    all_fit::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
-    all_fit::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
-    all_fit::<kernels::splat::RasterizeFwd>(&[
+    takes::<kernels::nn::GemmTiled>(&gemms);
+    takes::<kernels::nn::ActFwd>(&[K::NnActFwd4, K::NnActFwd4Gelu]);
+    takes::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
+    takes::<kernels::splat::RasterizeFwd>(&[
         K::SplatRasterizeFwdHalf,
         K::SplatCpuRasterizeFwd,
         K::SplatCpuRasterizeFwdHalf,
     ]);
-    all_fit::<kernels::splat::RasterizeFusedFwd>(&[
+    takes::<kernels::splat::RasterizeFusedFwd>(&[
         K::SplatRasterizeFusedFwdHalf,
         K::SplatCpuRasterizeFusedFwd,
         K::SplatCpuRasterizeFusedFwdHalf,
     ]);
-    all_fit::<kernels::splat::RasterizeBwdAtomic>(&[
+    takes::<kernels::splat::RasterizeBwdAtomic>(&[
         K::SplatRasterizeBwdCas,
         K::SplatRasterizeBwdFixed,
         K::SplatCpuRasterizeBwdAtomic,
         K::SplatCpuRasterizeBwdCas,
         K::SplatCpuRasterizeBwdFixed,
     ]);
-    all_fit::<kernels::splat::RasterizeFusedBwdAtomic>(&[
+    takes::<kernels::splat::RasterizeFusedBwdAtomic>(&[
         K::SplatRasterizeFusedBwdCas,
         K::SplatRasterizeFusedBwdFixed,
         K::SplatCpuRasterizeFusedBwdAtomic,
         K::SplatCpuRasterizeFusedBwdCas,
         K::SplatCpuRasterizeFusedBwdFixed,
     ]);
-    all_fit::<kernels::triplane::SampleBwdAtomic>(&[
+    takes::<kernels::triplane::SampleBwdAtomic>(&[
         K::TriplaneSampleBwdCas,
         K::TriplaneSampleBwdFixed,
     ]);
-    // Other bindings or other push constants do not fit.
-    assert!(!kernels::train::AddInto::fits(K::NnActFwd));
-    assert!(!kernels::splat::RasterizeFwd::fits(
-        K::SplatRasterizeBwdAtomic
-    ));
-    assert!(!kernels::radix_sort::Scatter::fits(
-        K::RadixSortChunkScatterPairs
-    ));
+    // Other bindings or other push constants are not listed.
+    assert!(kernels::train::AddIntoKernel::try_from(K::NnActFwd).is_err());
+    assert!(kernels::splat::RasterizeFwdKernel::try_from(K::SplatRasterizeBwdAtomic).is_err());
+    assert!(kernels::radix_sort::ScatterKernel::try_from(K::RadixSortChunkScatterPairs).is_err());
     assert_eq!(
         K::TrainAddInto.push_constant(),
         "drape_shared::adam::LossParams"
@@ -571,7 +573,7 @@ fn texel_pass(
     };
     rec.dispatch_as(
         "test.gemm",
-        Kernel::NnCpuGemmTexel,
+        kernels::nn::GemmTiledKernel::NnCpuGemmTexel,
         bind(&a, &c, &readback),
         &p,
         [1, 1, 1],
@@ -590,11 +592,11 @@ fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[
 /// [`Buffer::texel`], whole buffers: a range or a writable buffer does not compile.)
 #[test]
 fn texel_bindings_read_whole_buffers_through_their_views() {
-    if !drape_engine::ops::nn::subgroup_gemm_supported(gpu().info()) {
-        eprintln!(
-            "SKIPPED: nn_cpu::gemm_texel needs subgroups of 8 lanes with ballot ({})",
-            gpu().info()
-        );
+    if !drape_tests::has_feature(
+        &gpu(),
+        drape_tests::Feature::SubgroupGemm,
+        "texel_bindings_read_whole_buffers_through_their_views (nn_cpu::gemm_texel)",
+    ) {
         return;
     }
     {

@@ -76,19 +76,16 @@ fn loss(c: &Case, gaussians: &[Gaussian<f64>]) -> f64 {
     l
 }
 
-/// Every parameter as (group, accessor) so one loop perturbs them all.
-fn parameters(
-    k_count: usize,
-) -> Vec<(
+/// One parameter: its group, where it sits in a Gaussian, and its gradient.
+type Parameter = (
     &'static str,
     Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>,
     Box<dyn Fn(&GaussianGrad<f64>) -> f64>,
-)> {
-    let mut out: Vec<(
-        &'static str,
-        Box<dyn Fn(&mut Gaussian<f64>) -> &mut f64>,
-        Box<dyn Fn(&GaussianGrad<f64>) -> f64>,
-    )> = Vec::new();
+);
+
+/// Every parameter as (group, accessor) so one loop perturbs them all.
+fn parameters(k_count: usize) -> Vec<Parameter> {
+    let mut out: Vec<Parameter> = Vec::new();
     for a in 0..3 {
         out.push((
             "means",

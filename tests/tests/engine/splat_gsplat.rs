@@ -272,7 +272,7 @@ fn write_case(dir: &Path, c: &Case) {
         "eps2d": c.settings.dilation,
         "tile_size": 16,
     });
-    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    drape_io::write(dir.join("case.json"), case.to_string()).expect("case.json");
 }
 
 /// Largest `|a - b| / (abs + rel |b|)`: at most 1 when every entry is within tolerance.

@@ -36,6 +36,7 @@ impl DeviceArgs {
             // As in the tests: DRAPE_FORCE_STAGING=1 takes the discrete-GPU data path.
             force_staging: std::env::var("DRAPE_FORCE_STAGING").is_ok_and(|v| v == "1"),
             synchronization_validation: self.validation,
+            max_storage_buffer_range: None,
         })?;
         eprintln!("device: {}", ctx.info());
         Ok(ctx)

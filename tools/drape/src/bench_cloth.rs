@@ -377,7 +377,7 @@ fn motion_name(m: MotionKind) -> &'static str {
 }
 
 fn write(path: &Path, text: &str) -> anyhow::Result<()> {
-    std::fs::write(path, text).with_context(|| format!("{}: cannot write", path.display()))
+    drape_io::write(path, text).with_context(|| format!("{}: cannot write", path.display()))
 }
 
 /// One comparison of the full model with a row: which is better on a metric, or why it

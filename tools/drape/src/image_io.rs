@@ -161,7 +161,7 @@ pub fn write_render(
                 data.extend([px[0], px[1], px[2], image.alpha[i], depth[i]].map(f64::from));
             }
             let array = npy::Array::new(npy::Dtype::F32, vec![h as usize, w as usize, 5], data);
-            std::fs::write(path, npy::encode(&array))
+            drape_io::write(path, npy::encode(&array))
                 .map_err(|e| anyhow!("{}: cannot write: {e}", path.display()))?;
             Ok(vec![path.to_path_buf()])
         }

@@ -109,7 +109,7 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let format = RenderFormat::from_path(&args.out)?;
     let cam = camera(args)?;
     let cloud = ply::read(&args.ply)?;
-    let out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
+    let mut out = drape_cli_support::output::StagedFile::new(&args.out, "--out")?;
     let depth = crate::image_io::depth_exr_path(&args.out);
     anyhow::ensure!(
         format != RenderFormat::Exr || !depth.is_dir(),
@@ -138,18 +138,15 @@ pub fn run(device: &DeviceArgs, args: &RenderArgs) -> anyhow::Result<()> {
     let (image, stats) = render_image(&ctx, &cloud, &cam, &settings)?;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     device.check_validation(&ctx)?;
-    let staged = write_render(out.path(), format, &image, cam.background)?;
-    // The EXR's depth file comes beside it; both are moved into place at the end.
     let mut written = vec![args.out.clone()];
-    let companion = staged
-        .get(1)
-        .map(|p| (p.clone(), crate::image_io::depth_exr_path(&args.out)));
-    out.commit()?;
-    if let Some((from, to)) = companion {
-        std::fs::rename(&from, &to)
-            .map_err(|e| anyhow::anyhow!("{}: cannot move into place: {e}", to.display()))?;
-        written.push(to);
+    if format == RenderFormat::Exr {
+        // The depth file write_render puts beside the staged colour file is committed
+        // with it.
+        out.companion(".depth")?;
+        written.push(depth);
     }
+    write_render(out.path(), format, &image, cam.background)?;
+    out.commit()?;
     eprintln!(
         "rendered {} Gaussians (SH degree {}) at {}x{} in {ms:.1} ms: {} tile intersections, {} blend steps, {} dropped; wrote {}",
         cloud.len(),

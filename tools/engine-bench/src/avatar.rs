@@ -129,7 +129,7 @@ fn render_variant(
             run.dir.display()
         )
     })?;
-    let (body, mut camera) = (frame.body.clone(), frame.camera.clone());
+    let (body, mut camera) = (frame.body.clone(), frame.camera);
     // The held-out view at the benchmark's size (each axis scaled on its own).
     let (sx, sy) = (
         f64::from(w) / f64::from(camera.width),
@@ -154,11 +154,9 @@ fn render_variant(
     let transforms = run.rig.frame(&body);
     let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
     let settings = RenderSettings::default();
-    let (mut totals, mut stages, mut scopes): (
-        Vec<f64>,
-        BTreeMap<String, Vec<f64>>,
-        BTreeMap<String, Vec<f64>>,
-    ) = (Vec::new(), BTreeMap::new(), BTreeMap::new());
+    let mut totals: Vec<f64> = Vec::new();
+    let mut stages: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    let mut scopes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         ctx.start_profile();
         let t0 = Instant::now();

@@ -977,7 +977,7 @@ pub fn run(ctx: &Context, args: &TradeArgs) -> anyhow::Result<serde_json::Value>
 }
 
 fn write(path: &Path, text: &str) -> anyhow::Result<()> {
-    std::fs::write(path, text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+    drape_io::write(path, text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
 fn num(v: &serde_json::Value, digits: usize) -> String {

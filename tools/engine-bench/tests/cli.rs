@@ -551,7 +551,7 @@ fn huge_counts_and_non_finite_plys_are_refused_in_one_line() {
             bytes.extend(value.to_le_bytes());
         }
     }
-    std::fs::write(&ply, bytes).unwrap();
+    drape_io::write(&ply, bytes).unwrap();
     assert_one_line_error(
         &bench(
             &["splat", "--ply", ply.to_str().unwrap(), "--sizes", "32x32"],

@@ -32,7 +32,10 @@ fn check(shaders: &Path) -> (bool, String) {
         .arg(shaders)
         .output()
         .expect("shader-builder runs");
-    (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
 }
 
 #[test]
@@ -51,19 +54,35 @@ fn changed_kernel_source_without_rebuild_fails_the_check() {
         "sum = sum.wrapping_add(data[idx as usize]);",
         "sum = sum.wrapping_add(data[idx as usize] ^ 1);",
     );
-    assert_ne!(text, edited, "the edit must apply to the scan kernel source");
+    assert_ne!(
+        text, edited,
+        "the edit must apply to the scan kernel source"
+    );
     std::fs::write(&source, edited).unwrap();
 
     let (fresh, stderr) = check(&tmp);
     assert!(!fresh, "a changed kernel must fail the check");
-    assert!(stderr.contains("module scan::reduce"), "the stale module is named: {stderr}");
-    assert!(!stderr.contains("module radix_sort::"), "untouched modules are not blamed: {stderr}");
+    assert!(
+        stderr.contains("module scan::reduce"),
+        "the stale module is named: {stderr}"
+    );
+    assert!(
+        !stderr.contains("module radix_sort::"),
+        "untouched modules are not blamed: {stderr}"
+    );
     let _ = std::fs::remove_dir_all(&tmp);
 }
 
 #[test]
 fn baseline_only_is_a_check_not_a_write() {
-    let out = Command::new(env!("CARGO_BIN_EXE_shader-builder")).arg("--baseline-only").output().expect("shader-builder runs");
-    assert_eq!(out.status.code(), Some(2), "a partial write must be refused");
+    let out = Command::new(env!("CARGO_BIN_EXE_shader-builder"))
+        .arg("--baseline-only")
+        .output()
+        .expect("shader-builder runs");
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "a partial write must be refused"
+    );
     assert!(String::from_utf8_lossy(&out.stderr).contains("--baseline-only needs --check"));
 }

@@ -231,20 +231,13 @@ pub fn write_gif(
             ),
         ));
     };
-    let tmp = path.with_extension("gif.tmp");
-    // The gif crate's errors are I/O errors or frames it cannot encode; either way the
-    // temporary file could not be written.
+    // The gif crate's errors are I/O errors or frames it cannot encode; the latter
+    // travel out of the writer as invalid data.
     let err = |e: gif::EncodingError| match e {
-        gif::EncodingError::Io(e) => TrainerError::io(&tmp, e),
-        gif::EncodingError::Format(e) => TrainerError::io(
-            &tmp,
-            std::io::Error::new(std::io::ErrorKind::InvalidData, e),
-        ),
+        gif::EncodingError::Io(e) => e,
+        gif::EncodingError::Format(e) => std::io::Error::new(std::io::ErrorKind::InvalidData, e),
     };
-    {
-        let file = std::io::BufWriter::new(
-            std::fs::File::create(&tmp).map_err(|e| TrainerError::io(&tmp, e))?,
-        );
+    drape_io::write_with(path, |file| {
         let mut encoder = gif::Encoder::new(file, w, h, &[]).map_err(err)?;
         encoder.set_repeat(gif::Repeat::Infinite).map_err(err)?;
         // GIF delays are in hundredths of a second.
@@ -258,11 +251,8 @@ pub fn write_gif(
             frame.delay = delay;
             encoder.write_frame(&frame).map_err(err)?;
         }
-        // The trailer and the buffer's last bytes, written here so that a failure is seen.
-        encoder
-            .into_inner()
-            .and_then(|mut file| std::io::Write::flush(&mut file))
-            .map_err(|e| TrainerError::io(&tmp, e))?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
+        // The trailer, written here so that a failure is seen.
+        encoder.into_inner().map(|_| ())
+    })
+    .map_err(|e| TrainerError::io(path, e))
 }

@@ -175,14 +175,12 @@ pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
             ),
         );
     }
-    let tmp = path.with_extension("npz.tmp");
-    write_npz(&tmp, &a)?;
-    stall_if_asked(&tmp);
-    // The data is on disk before the rename makes it the file.
-    std::fs::File::open(&tmp)
-        .and_then(|f| f.sync_all())
-        .map_err(|e| TrainerError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
+    // Staged beside the checkpoint and moved over it once whole (and on disk): a kill
+    // mid-write leaves the previous checkpoint.
+    let staged = drape_io::StagedFile::new(path).map_err(|e| TrainerError::io(path, e))?;
+    write_npz(staged.path(), &a)?;
+    stall_if_asked(staged.path());
+    staged.commit().map_err(|e| TrainerError::io(path, e))
 }
 
 /// The crash test's hook: with `DRAPE_FAILPOINT=stall-in-checkpoint-write:K`, the

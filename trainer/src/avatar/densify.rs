@@ -418,7 +418,7 @@ fn resized_state(s: &LayerState, p: &Plan, decoded: &[f32]) -> LayerState {
         e.iter()
             .filter_map(|&[a, b]| {
                 (new_index[a as usize] != u32::MAX && new_index[b as usize] != u32::MAX)
-                    .then(|| [new_index[a as usize], new_index[b as usize]])
+                    .then_some([new_index[a as usize], new_index[b as usize]])
             })
             .collect()
     });

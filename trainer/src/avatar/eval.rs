@@ -329,7 +329,7 @@ pub fn write_reports(
         &serde_json::json!({ "evaluated": header, "mean": mean, "frames": frames }),
     )?;
     let path = dir.join("eval.md");
-    std::fs::write(&path, markdown_table(header, mean, frames))
+    drape_io::write(&path, markdown_table(header, mean, frames))
         .map_err(|e| TrainerError::io(&path, e))
 }
 

@@ -40,8 +40,5 @@ pub enum Progress {
 /// Writes `value` as pretty JSON to `path`.
 pub(crate) fn write_json(path: &Path, value: &impl serde::Serialize) -> crate::Result<()> {
     let text = serde_json::to_string_pretty(value).map_err(|e| TrainerError::io(path, e.into()))?;
-    // Written whole to a temporary file, then renamed: never half a file.
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, text + "\n").map_err(|e| TrainerError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| TrainerError::io(path, e))
+    drape_io::write(path, text + "\n").map_err(|e| TrainerError::io(path, e))
 }

@@ -263,7 +263,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         let mut pose: Pose = [DVec3::ZERO; NUM_JOINTS];
         pose.iter_mut()
-            .flat_map(|r| AsMut::<[f64; 3]>::as_mut(r))
+            .flat_map(AsMut::<[f64; 3]>::as_mut)
             .for_each(|v| *v = rng.random_range(-0.6..0.6));
         let mut poses = [0.0; 72];
         poses

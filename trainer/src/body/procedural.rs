@@ -407,7 +407,7 @@ fn relax_on_surface(
                     (f(a) - f(b)) / (2.0 * h)
                 }));
                 let g2 = g.dot(g).max(1e-12);
-                q = q - g * (d / g2);
+                q -= g * (d / g2);
             }
             *p = q;
         }

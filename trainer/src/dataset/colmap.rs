@@ -405,7 +405,7 @@ impl ColmapModel {
             ("points3D.txt", pts),
         ] {
             let path = dir.join(name);
-            std::fs::write(&path, text).map_err(io(&path))?;
+            drape_io::write(&path, text).map_err(io(&path))?;
         }
         Ok(())
     }

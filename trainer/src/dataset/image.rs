@@ -19,6 +19,7 @@ use std::io::Cursor;
 use std::path::Path;
 
 use image::metadata::Orientation;
+use image::ImageEncoder as _;
 use image::{
     DynamicImage, ExtendedColorType, ImageDecoder as _, ImageError, ImageFormat, ImageReader,
 };
@@ -261,24 +262,29 @@ fn save(
     create_parent(path)?;
     let format = image::ImageFormat::from_path(path)
         .map_err(|_| DatasetError::image(path, "unknown image extension (use .png or .jpg)"))?;
-    match format {
-        image::ImageFormat::Png => {
-            image::save_buffer_with_format(path, bytes, width, height, color, format)
-                .map_err(|e| DatasetError::image(path, e.to_string()))
+    // Encoding errors travel out of the writer as I/O errors' payloads.
+    let encoded = |r: image::ImageResult<()>| r.map_err(std::io::Error::other);
+    let written = match format {
+        image::ImageFormat::Png => drape_io::write_with(path, |w| {
+            encoded(image::codecs::png::PngEncoder::new(w).write_image(bytes, width, height, color))
+        }),
+        image::ImageFormat::Jpeg => drape_io::write_with(path, |w| {
+            encoded(
+                image::codecs::jpeg::JpegEncoder::new_with_quality(w, ZJU_JPEG_QUALITY)
+                    .encode(bytes, width, height, color),
+            )
+        }),
+        _ => {
+            return Err(DatasetError::image(
+                path,
+                "unsupported image extension (use .png or .jpg)",
+            ))
         }
-        image::ImageFormat::Jpeg => {
-            let file = std::fs::File::create(path).map_err(|e| DatasetError::io(path, e))?;
-            let mut w = std::io::BufWriter::new(file);
-            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut w, ZJU_JPEG_QUALITY)
-                .encode(bytes, width, height, color)
-                .map_err(|e| DatasetError::image(path, e.to_string()))?;
-            std::io::Write::flush(&mut w).map_err(|e| DatasetError::io(path, e))
-        }
-        _ => Err(DatasetError::image(
-            path,
-            "unsupported image extension (use .png or .jpg)",
-        )),
-    }
+    };
+    written.map_err(|e| match e.downcast::<image::ImageError>() {
+        Ok(e) => DatasetError::image(path, e.to_string()),
+        Err(e) => DatasetError::io(path, e),
+    })
 }
 
 /// Writes RGB floats in [0, 1] as 8-bit PNG or JPEG ([`ZJU_JPEG_QUALITY`]), by extension.

@@ -503,7 +503,7 @@ pub fn generate(
         let depth_path = neuman.join("depths").join(format!("{f:05}.npy"));
         let depth_dir = depth_path.parent().expect("has a parent");
         std::fs::create_dir_all(depth_dir).map_err(|e| TrainerError::io(depth_dir, e))?;
-        std::fs::write(&depth_path, npy::encode(&depth))
+        drape_io::write(&depth_path, npy::encode(&depth))
             .map_err(|e| TrainerError::io(&depth_path, e))?;
         // Every handheld frame has the same intrinsics: one COLMAP camera.
         colmap

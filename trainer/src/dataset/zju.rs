@@ -150,7 +150,7 @@ impl ZjuAnnots {
         );
         let path = dir.join("annots.npy");
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
-        std::fs::write(
+        drape_io::write(
             &path,
             encode_object_npy(&PyValue::dict(vec![("cams", cams), ("ims", ims)])),
         )
@@ -321,7 +321,7 @@ impl ZjuSmpl {
             ("Th", arr(1, 3, self.th.to_vec())),
             ("shapes", arr(1, 10, self.shapes.to_vec())),
         ]);
-        std::fs::write(&path, encode_object_npy(&v)).map_err(|e| DatasetError::io(&path, e))?;
+        drape_io::write(&path, encode_object_npy(&v)).map_err(|e| DatasetError::io(&path, e))?;
         Ok(path)
     }
 
@@ -395,7 +395,7 @@ pub fn write_vertices(dir: &Path, frame: usize, vertices: &[[f64; 3]]) -> Result
         vec![vertices.len(), 3],
         vertices.iter().flatten().copied().collect(),
     );
-    std::fs::write(&path, npy::encode(&a)).map_err(|e| DatasetError::io(&path, e))
+    drape_io::write(&path, npy::encode(&a)).map_err(|e| DatasetError::io(&path, e))
 }
 
 /// Reads `vertices/{frame}.npy`.

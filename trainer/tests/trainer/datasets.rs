@@ -101,14 +101,14 @@ fn colmap_errors_name_file_and_line() {
     let text = std::fs::read_to_string(&images)
         .unwrap()
         .replace(" 1 00001.png", " 9 00001.png");
-    std::fs::write(&images, text).unwrap();
+    drape_io::write(&images, text).unwrap();
     let err = ColmapModel::read_text(&dir).unwrap_err().to_string();
     assert!(
         err.contains("images.txt:") && err.contains("camera 9"),
         "{err}"
     );
     let cams = dir.join("cameras.txt");
-    std::fs::write(&cams, "1 PINHOLE 640 abc 1 2 3 4\n").unwrap();
+    drape_io::write(&cams, "1 PINHOLE 640 abc 1 2 3 4\n").unwrap();
     let err = ColmapModel::read_text(&dir).unwrap_err().to_string();
     assert!(
         err.contains("cameras.txt:1") && err.contains("HEIGHT 'abc'"),

@@ -17,9 +17,9 @@
 //! Without the environment these tests fail (they are not skipped): set
 //! `DRAPE_TORCH_PYTHON` to a Python with opencv-python-headless, or run
 //! `scripts/torch-env.sh`.
-// Tolerance checks are written `!(err < tol)` so that NaN fails them, and maxima go
-// through `worse`, which keeps a NaN (`f64::max` would drop it).
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Tolerance checks are written `!(err < tol)` so that NaN fails them (the workspace
+// allows the negated comparison for this), and maxima go through `worse`, which keeps a
+// NaN (`f64::max` would drop it).
 
 use std::f64::consts::TAU;
 use std::path::Path;
@@ -166,7 +166,7 @@ fn worse(max: f64, e: f64) -> f64 {
 }
 
 fn write_case(dir: &Path, case: serde_json::Value) {
-    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    drape_io::write(dir.join("case.json"), case.to_string()).expect("case.json");
 }
 
 #[test]
@@ -404,9 +404,9 @@ fn colmap_distorting_models_parse() {
     let images: String = (1..=9)
         .map(|i| format!("{i} 1 0 0 0 0.5 -0.25 3 {i} img{i}.png\n\n"))
         .collect();
-    std::fs::write(dir.join("cameras.txt"), cameras).expect("cameras.txt");
-    std::fs::write(dir.join("images.txt"), images).expect("images.txt");
-    std::fs::write(dir.join("points3D.txt"), "").expect("points3D.txt");
+    drape_io::write(dir.join("cameras.txt"), cameras).expect("cameras.txt");
+    drape_io::write(dir.join("images.txt"), images).expect("images.txt");
+    drape_io::write(dir.join("points3D.txt"), "").expect("points3D.txt");
     let model = ColmapModel::read_text(&dir).expect("read the model");
     let got = |i: u32| model.images[&i].camera_and_distortion(&model.cameras[&i]);
     let none = Distortion::NONE;

@@ -34,7 +34,7 @@ type Points = Vec<[f64; 3]>;
 const BORDER: usize = 5;
 
 fn run_skimage(dir: &Path, case: serde_json::Value) -> serde_json::Value {
-    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    drape_io::write(dir.join("case.json"), case.to_string()).expect("case.json");
     drape_tests::reference_python::run("skimage_metrics.py", &[dir.to_path_buf()]);
     serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).expect("results.json"))
         .expect("results json")

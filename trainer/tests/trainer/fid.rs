@@ -23,7 +23,7 @@ fn converter() -> PathBuf {
 }
 
 fn run_reference(dir: &Path, case: serde_json::Value) {
-    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    drape_io::write(dir.join("case.json"), case.to_string()).expect("case.json");
     drape_tests::reference_python::run("fid_reference.py", &[dir.to_path_buf()]);
 }
 
@@ -270,7 +270,7 @@ fn edit_header(
     let mut out = (h.len() as u64).to_le_bytes().to_vec();
     out.extend(h);
     out.extend(&bytes[8 + n..]);
-    std::fs::write(to, out).expect("write");
+    drape_io::write(to, out).expect("write");
 }
 
 #[test]
@@ -321,7 +321,7 @@ fn bad_weights_files_name_the_file_and_the_tensor() {
     );
     // Not a safetensors file; no file.
     let junk = dir.join("junk.safetensors");
-    std::fs::write(&junk, b"not weights").expect("write");
+    drape_io::write(&junk, b"not weights").expect("write");
     expect_err(&junk, &["not a safetensors file"]);
     expect_err(&dir.join("absent.safetensors"), &[]);
 }

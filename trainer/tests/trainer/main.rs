@@ -12,6 +12,7 @@ mod embedding;
 mod errors;
 mod eval_metrics;
 mod fid;
+mod fixtures;
 mod fuzz_corpus;
 mod garments_motions;
 mod image_formats;

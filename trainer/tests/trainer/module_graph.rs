@@ -496,15 +496,12 @@ impl ModuleGraph {
                     continue;
                 };
                 let (module, names_module) = resolver.defining_module(&abs);
-                match &w.binds {
-                    // `use a::b;` of a module only names it: its uses through the alias count.
-                    Some(Some(name)) => {
-                        aliases.insert(name.clone(), abs.clone());
-                        if names_module {
-                            continue;
-                        }
+                // `use a::b;` of a module only names it: its uses through the alias count.
+                if let Some(Some(name)) = &w.binds {
+                    aliases.insert(name.clone(), abs.clone());
+                    if names_module {
+                        continue;
                     }
-                    Some(None) | None => {}
                 }
                 if module != source.path {
                     edges.entry(module).or_insert(Site {

@@ -90,7 +90,7 @@ fn python(script: &str) -> std::process::Output {
 #[test]
 fn numpy_reads_what_we_write_and_we_read_what_numpy_writes() {
     let ours = temp("annots.npy");
-    std::fs::write(&ours, encode_object_npy(&annots())).unwrap();
+    drape_io::write(&ours, encode_object_npy(&annots())).unwrap();
     let theirs = temp("annots_numpy.npy");
     let script = format!(
         r#"

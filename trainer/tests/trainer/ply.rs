@@ -1,7 +1,7 @@
 //! 3DGS PLY import and export: exact round trips, SH degrees, and bad files that must
 //! each give an error naming the file and the problem.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use drape_engine::ops::splat::scene::GaussianCloud;
 use drape_trainer::ply::{read, write};
@@ -63,7 +63,7 @@ fn reads_the_reference_layout_channel_major() {
         bytes.extend_from_slice(&(i as f32).to_le_bytes());
     }
     let path = temp("reference-layout.ply");
-    std::fs::write(&path, bytes).unwrap();
+    drape_io::write(&path, bytes).unwrap();
     let cloud = read(&path).expect("read");
     assert_eq!(cloud.sh_degree, 3);
     // Coefficient k of channel c sits at f_rest_{c*15 + k-1}, i.e. column 9 + c*15 + k-1.
@@ -85,7 +85,7 @@ fn write_degree0(name: &str) -> (PathBuf, Vec<u8>) {
     (path, bytes)
 }
 
-fn expect_error(path: &PathBuf, needle: &str) {
+fn expect_error(path: &Path, needle: &str) {
     let err = read(path)
         .expect_err("a bad file must not load")
         .to_string();
@@ -99,9 +99,9 @@ fn expect_error(path: &PathBuf, needle: &str) {
 #[test]
 fn truncated_file_is_reported() {
     let (path, bytes) = write_degree0("truncated.ply");
-    std::fs::write(&path, &bytes[..bytes.len() - 7]).unwrap();
+    drape_io::write(&path, &bytes[..bytes.len() - 7]).unwrap();
     expect_error(&path, "truncated");
-    std::fs::write(&path, &bytes[..40]).unwrap();
+    drape_io::write(&path, &bytes[..40]).unwrap();
     expect_error(&path, "end_header");
 }
 
@@ -113,7 +113,7 @@ fn missing_property_is_named() {
         "property float other\n",
         1,
     );
-    std::fs::write(&path, text.as_bytes()).unwrap();
+    drape_io::write(&path, text.as_bytes()).unwrap();
     expect_error(&path, "missing property 'scale_1'");
 }
 
@@ -132,7 +132,7 @@ fn wrong_property_type_is_named() {
     );
     let mut out = header.into_bytes();
     out.extend_from_slice(&bytes[end..]);
-    std::fs::write(&path, out).unwrap();
+    drape_io::write(&path, out).unwrap();
     expect_error(&path, "property 'opacity' has type 'uchar'");
 }
 
@@ -145,7 +145,7 @@ fn vertex_count_larger_than_the_data_is_reported() {
     let mut out = bytes.clone();
     out[..text.len().min(bytes.len())]
         .copy_from_slice(&text.as_bytes()[..text.len().min(bytes.len())]);
-    std::fs::write(&path, out).unwrap();
+    drape_io::write(&path, out).unwrap();
     expect_error(&path, "11 vertices");
 }
 

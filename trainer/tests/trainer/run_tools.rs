@@ -18,7 +18,7 @@ use drape_trainer::avatar::run::{OpenRun, RunInfo};
 use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::dataset::loader::BodyParams;
-use drape_trainer::dataset::synth::{generate, SynthOptions};
+
 use drape_trainer::motion::{procedural, MotionKind};
 use drape_trainer::TrainerError;
 use glam::DVec3;
@@ -29,20 +29,8 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-fn data() -> &'static PathBuf {
-    static D: OnceLock<PathBuf> = OnceLock::new();
-    D.get_or_init(|| {
-        let dir = tmp("run-tools-data");
-        let o = SynthOptions {
-            width: 64,
-            height: 64,
-            frames: 10,
-            cameras: 2,
-            ..SynthOptions::default()
-        };
-        generate(&dir, &o, &mut |_, _, _| {}).expect("synthetic data");
-        dir
-    })
+fn data() -> &'static Path {
+    crate::fixtures::small_sequence()
 }
 
 /// Two runs (seeds 1 and 2) of body + cloth, trained 30 steps: enough for the garments

@@ -270,7 +270,7 @@ assert d.shape == (64, 64) and d.dtype == np.float32 and d.max() > 0
 }
 
 fn expect_err(result: Result<Vec<DatasetFrame>, DatasetError>, needles: &[&str]) {
-    let err = result.err().expect("bad data must not load").to_string();
+    let err = result.expect_err("bad data must not load").to_string();
     assert_eq!(err.lines().count(), 1, "one line: {err}");
     for n in needles {
         assert!(err.contains(n), "'{n}' not in: {err}");
@@ -290,7 +290,7 @@ fn bad_input_is_named() {
     let d = copy("truncated");
     let p = d.join("zju/images/Camera_B2/000001.jpg");
     let bytes = std::fs::read(&p).unwrap();
-    std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    drape_io::write(&p, &bytes[..bytes.len() / 2]).unwrap();
     expect_err(load_zju(&d.join("zju"), 0), &["Camera_B2/000001.jpg"]);
     // A wrong array shape.
     let d = copy("shape");
@@ -334,7 +334,7 @@ fn bad_input_is_named() {
             }
         })
         .collect();
-    std::fs::write(&images, broken.join("\n") + "\n").unwrap();
+    drape_io::write(&images, broken.join("\n") + "\n").unwrap();
     expect_err(
         load_neuman(&d.join("neuman"), NeumanSplit::EveryFifth),
         &["images.txt", "is zero, no rotation"],

@@ -21,7 +21,7 @@ use drape_tests::reference_python::{case_dir, get, put};
 use rand::{Rng, SeedableRng};
 
 fn run_torch(dir: &Path, case: serde_json::Value) {
-    std::fs::write(dir.join("case.json"), case.to_string()).expect("case.json");
+    drape_io::write(dir.join("case.json"), case.to_string()).expect("case.json");
     drape_tests::reference_python::run("torch_reference.py", &[dir.to_path_buf()]);
 }
 
@@ -371,17 +371,18 @@ fn rotation_6d_matches_pytorch() {
     );
     // And the GPU's deformation path uses the same functions: a quick consistency
     // check of the CPU reference on one Gaussian with identity transforms.
-    let mut host = HostInputs::<f64>::default();
-    host.transforms = (0..24)
-        .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
-        .collect();
-    host.means = vec![0.1, 0.2, 0.3];
-    host.quats = vec![1.0, 0.0, 0.0, 0.0];
-    host.log_scales = vec![-3.0; 3];
-    host.offsets = vec![0.0; 3];
-    host.rot6d = r6[..6].to_vec();
-    host.log_scale_deltas = vec![0.0; 3];
-    host.weights = vec![1.0 / 24.0; 24];
+    let host = HostInputs::<f64> {
+        transforms: (0..24)
+            .flat_map(|_| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+            .collect(),
+        means: vec![0.1, 0.2, 0.3],
+        quats: vec![1.0, 0.0, 0.0, 0.0],
+        log_scales: vec![-3.0; 3],
+        offsets: vec![0.0; 3],
+        rot6d: r6[..6].to_vec(),
+        log_scale_deltas: vec![0.0; 3],
+        weights: vec![1.0 / 24.0; 24],
+    };
     let out = deform::reference::forward(&host);
     let q = out[0].quat;
     let back = drape_shared::splat::project::quat_to_mat(

@@ -2,7 +2,7 @@
 //! steps on lavapipe → the held-out PSNR rises; both dataset layouts train; the rig
 //! poses the canonical body exactly as the dataset's SMPL parameters do.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use drape_tests::gpu;
@@ -25,22 +25,8 @@ fn model() -> &'static SmplModel {
     M.get_or_init(|| default_body(&BodyOptions::default()))
 }
 
-/// A small synthetic sequence, generated once per test binary.
-fn data() -> &'static PathBuf {
-    static D: OnceLock<PathBuf> = OnceLock::new();
-    D.get_or_init(|| {
-        let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train-test-data");
-        let _ = std::fs::remove_dir_all(&dir);
-        let o = SynthOptions {
-            width: 64,
-            height: 64,
-            frames: 10,
-            cameras: 2,
-            ..SynthOptions::default()
-        };
-        generate(&dir, &o, &mut |_, _, _| {}).expect("synthetic data");
-        dir
-    })
+fn data() -> &'static Path {
+    crate::fixtures::small_sequence()
 }
 
 /// Small enough to run in about a minute on lavapipe: a quarter of the body's
@@ -108,7 +94,7 @@ fn simulated_cloth_targets_match_the_ground_truth_garments_in_both_layouts() {
     // The trainer simulates the garments through the sequence's body parameters; on
     // synthetic data that is the generator's own simulation, so each frame's target
     // must be its ground truth: this checks the NeuMan and ZJU-MoCap conventions.
-    for dir in [data().clone(), data().join("zju")] {
+    for dir in [data().to_path_buf(), data().join("zju")] {
         let seq = load_sequence(&dir, 0).expect("sequence");
         let rig = Rig::new(model().clone(), &[0.0; 10]);
         let sim = simulate_sequence(
@@ -682,7 +668,11 @@ fn resume_continues_from_the_checkpoint() {
     )
     .expect("first half");
     // A checkpoint write that was killed leaves only a temporary file: ignored.
-    std::fs::write(split.join("checkpoint.npz.tmp"), b"PK\x03\x04 half a zip").unwrap();
+    drape_io::write(
+        split.join(".checkpoint.partial-1.npz"),
+        b"PK\x03\x04 half a zip",
+    )
+    .unwrap();
     let report = train(
         &ctx,
         &seq,
@@ -809,7 +799,7 @@ fn resume_continues_from_the_checkpoint() {
     assert!(identical, "the resumed model is not bit-identical: largest relative difference {worst:e} in {worst_key}");
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
-    std::fs::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
+    drape_io::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
     let err = train(
         &ctx,
         &seq,
@@ -824,7 +814,7 @@ fn resume_continues_from_the_checkpoint() {
     .to_string();
     assert!(err.contains("checkpoint.npz"), "{err}");
     // A checkpoint of another model (a different triplane) is refused, naming the array.
-    std::fs::write(split.join("checkpoint.npz"), &bytes).unwrap();
+    drape_io::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
     other.layers.body.triplane_resolution = 16;
     let err = train(

@@ -24,7 +24,7 @@
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::Result;
-use crate::kernels::{self, Kernel};
+use crate::kernels;
 use crate::ops::accumulate::{Accumulation, Method};
 use crate::ops::splat::composite::CompositeInputs;
 use crate::ops::splat::render::{ForwardStats, GaussianBuffers, SavedForward, SplatRenderer};
@@ -121,13 +121,13 @@ impl FusedRenderer {
         let (frame, splats, isect_values, ranges) = self.renderer.binned();
         let (kernel, grid) = if self.renderer.half_splats() {
             self.renderer.raster_dispatch(
-                Kernel::SplatRasterizeFusedFwdHalf,
-                Kernel::SplatCpuRasterizeFusedFwdHalf,
+                kernels::splat::RasterizeFusedFwdKernel::SplatRasterizeFusedFwdHalf,
+                kernels::splat::RasterizeFusedFwdKernel::SplatCpuRasterizeFusedFwdHalf,
             )
         } else {
             self.renderer.raster_dispatch(
-                Kernel::SplatRasterizeFusedFwd,
-                Kernel::SplatCpuRasterizeFusedFwd,
+                kernels::splat::RasterizeFusedFwdKernel::SplatRasterizeFusedFwd,
+                kernels::splat::RasterizeFusedFwdKernel::SplatCpuRasterizeFusedFwd,
             )
         };
         rec.dispatch_as(
@@ -170,16 +170,16 @@ impl FusedRenderer {
         let method = accumulation.method(&self.ctx);
         let (kernel, grid) = match method {
             Method::FloatAtomics => self.renderer.raster_dispatch(
-                Kernel::SplatRasterizeFusedBwdAtomic,
-                Kernel::SplatCpuRasterizeFusedBwdAtomic,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdAtomic,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdAtomic,
             ),
             Method::CompareAndSwap => self.renderer.raster_dispatch(
-                Kernel::SplatRasterizeFusedBwdCas,
-                Kernel::SplatCpuRasterizeFusedBwdCas,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdCas,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdCas,
             ),
             Method::FixedPoint => self.renderer.raster_dispatch(
-                Kernel::SplatRasterizeFusedBwdFixed,
-                Kernel::SplatCpuRasterizeFusedBwdFixed,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdFixed,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdFixed,
             ),
         };
         let (frame, splats, isect_values, ranges) = self.renderer.binned();

@@ -31,7 +31,7 @@ use drape_shared::splat::layout::{
 use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result};
-use crate::kernels::{self, Kernel};
+use crate::kernels;
 use crate::ops::accumulate::{FixedPointScratch, Method};
 use crate::ops::radix_sort::RadixSort;
 use crate::ops::scan::ExclusiveScan;
@@ -455,11 +455,7 @@ impl SplatRenderer {
 
     /// The kernel of the chosen variant and its dispatch, given the workgroup kernel
     /// and its subgroup twin.
-    pub(crate) fn raster_dispatch(
-        &self,
-        workgroup: Kernel,
-        subgroup: Kernel,
-    ) -> (Kernel, [u32; 3]) {
+    pub(crate) fn raster_dispatch<K>(&self, workgroup: K, subgroup: K) -> (K, [u32; 3]) {
         let kernel = if self.raster == RasterVariant::Subgroup {
             subgroup
         } else {
@@ -796,11 +792,14 @@ impl SplatRenderer {
         self.record_binning(rec, gaussians)?;
         let (kernel, grid) = if self.half_splats {
             self.raster_dispatch(
-                Kernel::SplatRasterizeFwdHalf,
-                Kernel::SplatCpuRasterizeFwdHalf,
+                kernels::splat::RasterizeFwdKernel::SplatRasterizeFwdHalf,
+                kernels::splat::RasterizeFwdKernel::SplatCpuRasterizeFwdHalf,
             )
         } else {
-            self.raster_dispatch(Kernel::SplatRasterizeFwd, Kernel::SplatCpuRasterizeFwd)
+            self.raster_dispatch(
+                kernels::splat::RasterizeFwdKernel::SplatRasterizeFwd,
+                kernels::splat::RasterizeFwdKernel::SplatCpuRasterizeFwd,
+            )
         };
         let p = &self.pixels;
         let (_, splats, _, _) = self.binned();
@@ -1030,6 +1029,7 @@ impl SplatRenderer {
 
     /// Gradients of a loss with respect to the parameters of the Gaussians of the last
     /// forward pass, given the loss's gradient on rgb (3 per pixel), alpha and depth.
+    #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &mut self,
         saved: &SavedForward,
@@ -1074,12 +1074,22 @@ impl SplatRenderer {
         self.refuse_render_only()?;
         let subgroup = self.raster == RasterVariant::Subgroup;
         let kernel = match method {
-            Method::FloatAtomics if subgroup => Kernel::SplatCpuRasterizeBwdAtomic,
-            Method::CompareAndSwap if subgroup => Kernel::SplatCpuRasterizeBwdCas,
-            Method::FixedPoint if subgroup => Kernel::SplatCpuRasterizeBwdFixed,
-            Method::FloatAtomics => Kernel::SplatRasterizeBwdAtomic,
-            Method::CompareAndSwap => Kernel::SplatRasterizeBwdCas,
-            Method::FixedPoint => Kernel::SplatRasterizeBwdFixed,
+            Method::FloatAtomics if subgroup => {
+                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdAtomic
+            }
+            Method::CompareAndSwap if subgroup => {
+                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdCas
+            }
+            Method::FixedPoint if subgroup => {
+                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdFixed
+            }
+            Method::FloatAtomics => {
+                kernels::splat::RasterizeBwdAtomicKernel::SplatRasterizeBwdAtomic
+            }
+            Method::CompareAndSwap => {
+                kernels::splat::RasterizeBwdAtomicKernel::SplatRasterizeBwdCas
+            }
+            Method::FixedPoint => kernels::splat::RasterizeBwdAtomicKernel::SplatRasterizeBwdFixed,
         };
         let target = self.grad_target(method);
         rec.fill(target, 0);

@@ -95,7 +95,7 @@ fn base() -> &'static Path {
             "base synth: {}",
             String::from_utf8_lossy(&o.stderr)
         );
-        std::fs::write(b.join("tiny.toml"), TINY).unwrap();
+        drape_io::write(b.join("tiny.toml"), TINY).unwrap();
         let o = drape()
             .args(["train", "--data"])
             .arg(b.join("synth"))
@@ -198,7 +198,7 @@ fn edit_lines(path: &Path, f: impl FnOnce(&mut Vec<String>)) {
     let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let mut lines: Vec<String> = text.split('\n').map(str::to_string).collect();
     f(&mut lines);
-    std::fs::write(path, lines.join("\n")).unwrap();
+    drape_io::write(path, lines.join("\n")).unwrap();
 }
 
 fn edit_array(a: &mut Array, how: &[&str]) {
@@ -301,7 +301,7 @@ fn apply(d: &Path, op: &str) {
             if let Some(parent) = p(1).parent() {
                 std::fs::create_dir_all(parent).unwrap();
             }
-            std::fs::write(p(1), unescape(&rest(2))).unwrap()
+            drape_io::write(p(1), unescape(&rest(2))).unwrap()
         }
         "hex" => {
             let hex: String = rest(2).split_whitespace().collect();
@@ -309,11 +309,11 @@ fn apply(d: &Path, op: &str) {
                 .step_by(2)
                 .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
                 .collect();
-            std::fs::write(p(1), bytes).unwrap()
+            drape_io::write(p(1), bytes).unwrap()
         }
         "repeat" => {
             let n: usize = words[2].parse().unwrap();
-            std::fs::write(p(1), unescape(&rest(3)).repeat(n)).unwrap()
+            drape_io::write(p(1), unescape(&rest(3)).repeat(n)).unwrap()
         }
         "cp" => {
             std::fs::copy(p(1), p(2)).unwrap();
@@ -329,7 +329,7 @@ fn apply(d: &Path, op: &str) {
         "mkdir" => std::fs::create_dir_all(p(1)).unwrap(),
         "trunc" => {
             let bytes = std::fs::read(p(1)).unwrap();
-            std::fs::write(
+            drape_io::write(
                 p(1),
                 &bytes[..words[2].parse::<usize>().unwrap().min(bytes.len())],
             )
@@ -357,7 +357,7 @@ fn apply(d: &Path, op: &str) {
         "append" => {
             let mut bytes = std::fs::read(p(1)).unwrap();
             bytes.extend(unescape(&rest(2)));
-            std::fs::write(p(1), bytes).unwrap()
+            drape_io::write(p(1), bytes).unwrap()
         }
         "npz" => {
             let mut arrays = npy::read_npz(&p(1)).unwrap();
@@ -383,7 +383,7 @@ fn apply(d: &Path, op: &str) {
             let bytes = std::fs::read(p(1)).unwrap();
             let mut a = npy::decode(&bytes, words[1], None).unwrap();
             edit_array(&mut a, &words[3..]);
-            std::fs::write(p(1), npy::encode(&a)).unwrap()
+            drape_io::write(p(1), npy::encode(&a)).unwrap()
         }
         "annots" => {
             use drape_trainer::dataset::zju::ZjuAnnots;
@@ -441,7 +441,7 @@ fn apply(d: &Path, op: &str) {
         }
         "png" => {
             let n = |i: usize| words[i].parse::<u32>().unwrap();
-            std::fs::write(p(1), png_header(n(2), n(3), n(4) as u8, n(5) as u8)).unwrap()
+            drape_io::write(p(1), png_header(n(2), n(3), n(4) as u8, n(5) as u8)).unwrap()
         }
         other => panic!("unknown operation '{other}'"),
     }
@@ -560,7 +560,7 @@ fn run_case(case: &Case) -> Result<(), String> {
     let d = root().join("cases").join(&case.id);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    std::fs::write(d.join("tiny.toml"), TINY).unwrap();
+    drape_io::write(d.join("tiny.toml"), TINY).unwrap();
     for op in &case.ops {
         apply(&d, &op.replace("{d}", d.to_str().unwrap()));
     }

@@ -123,7 +123,7 @@ fn simulate_refuses_an_obj_garment_without_faces_in_one_line_and_writes_nothing(
     let d = std::env::temp_dir().join(format!("drape-obj-no-faces-{}", std::process::id()));
     std::fs::create_dir_all(&d).expect("temp dir");
     let obj = d.join("points_only.obj");
-    std::fs::write(
+    drape_io::write(
         &obj,
         "# three vertices, no face\nv 0 1.2 0.1\nv 0.1 1.2 0.1\nv 0 1.3 0.1\n",
     )

@@ -187,9 +187,9 @@ fn render_names_bad_image_sizes() {
 #[test]
 fn render_reports_a_bad_camera_file_naming_it() {
     let cam = temp("camera.json");
-    std::fs::write(&cam, r#"{"fx": -1, "fy": 100, "cx": 8, "cy": 8, "width": 16, "height": 16, "rotation": [[1,0,0],[0,1,0],[0,0,1]], "translation": [0,0,0]}"#).unwrap();
+    drape_io::write(&cam, r#"{"fx": -1, "fy": 100, "cx": 8, "cy": 8, "width": 16, "height": 16, "rotation": [[1,0,0],[0,1,0],[0,0,1]], "translation": [0,0,0]}"#).unwrap();
     let ply = temp("any.ply");
-    std::fs::write(&ply, b"not a ply").unwrap();
+    drape_io::write(&ply, b"not a ply").unwrap();
     let out = drape(&[
         "render",
         "--ply",
@@ -207,7 +207,7 @@ fn fit_reports_a_truncated_png() {
     let target = temp("truncated.png");
     write_target(&target);
     let bytes = std::fs::read(&target).unwrap();
-    std::fs::write(&target, &bytes[..bytes.len() / 2]).unwrap();
+    drape_io::write(&target, &bytes[..bytes.len() / 2]).unwrap();
     let out = drape(&[
         "fit",
         "--target",

@@ -474,7 +474,7 @@ fn jpeg_inputs_load_like_libjpeg_decodes_them() {
     // Bytes after the end-of-image marker (camera trailers) are not truncation.
     let mut trailer = std::fs::read(dir.join("rgb.jpg")).unwrap();
     trailer.extend(b"\xFF\xD8 trailing bytes");
-    std::fs::write(dir.join("trailer.jpg"), &trailer).unwrap();
+    drape_io::write(dir.join("trailer.jpg"), &trailer).unwrap();
     image_io::read_rgb(&dir.join("trailer.jpg")).unwrap();
     // The binary takes a JPEG.
     let out = drape(&[
@@ -520,7 +520,7 @@ fn truncated_or_foreign_files_fail_in_one_line_naming_them() {
             (bytes.len() as f64 * keep) as usize
         };
         let target = dir.join(format!("{name}.jpg"));
-        std::fs::write(&target, &bytes[..cut]).unwrap();
+        drape_io::write(&target, &bytes[..cut]).unwrap();
         let out = drape(&[
             "fit",
             "--target",
@@ -535,7 +535,7 @@ fn truncated_or_foreign_files_fail_in_one_line_naming_them() {
         assert_one_line_error(&out, &format!("{}: truncated", target.display()));
     }
     let target = dir.join("corrupt.png");
-    std::fs::write(&target, b"\x89PNG\r\n\x1a\nhello").unwrap();
+    drape_io::write(&target, b"\x89PNG\r\n\x1a\nhello").unwrap();
     let out = drape(&[
         "fit",
         "--target",
@@ -549,7 +549,7 @@ fn truncated_or_foreign_files_fail_in_one_line_naming_them() {
     );
     // Told apart by content, not by the name.
     let target = dir.join("text.png");
-    std::fs::write(&target, b"hello").unwrap();
+    drape_io::write(&target, b"hello").unwrap();
     let out = drape(&[
         "fit",
         "--target",

@@ -115,7 +115,7 @@ fn bad_data_directories_are_named() {
         ("images.txt", "1 1 0 0 0 0 0 3 1 00000.png\n\n"),
         ("points3D.txt", "# empty\n"),
     ] {
-        std::fs::write(neuman.join("sparse").join(f), text).unwrap();
+        drape_io::write(neuman.join("sparse").join(f), text).unwrap();
     }
     let e = fails(&neuman, &[], &out);
     assert!(e.contains("smpl_optimized_aligned_scale.npz"), "{e}");
@@ -190,7 +190,7 @@ fn bad_configs_name_the_file_and_field() {
     ];
     for (name, text, field) in cases {
         let path = d.join(name);
-        std::fs::write(&path, text).unwrap();
+        drape_io::write(&path, text).unwrap();
         let e = fails(&data, &["--config", path.to_str().unwrap()], &out);
         assert!(e.contains(name) || e.contains(field), "{name}: {e}");
         assert!(
@@ -327,7 +327,7 @@ fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     let d = dir("sigkill");
     let data = synth_sequence(&d, "64", "8");
     let config = d.join("tiny.toml");
-    std::fs::write(&config, "[schedule]\nsteps = 12\nfit_steps = 10\ncheckpoint_every = 4\nlog_every = 4\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
+    drape_io::write(&config, "[schedule]\nsteps = 12\nfit_steps = 10\ncheckpoint_every = 4\nlog_every = 4\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args([
@@ -361,10 +361,15 @@ fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     );
     child.kill().expect("SIGKILL");
     child.wait().expect("reaped");
-    let tmp = run.join("checkpoint.npz.tmp");
-    assert!(
-        tmp.is_file(),
-        "the half-written temporary file is what the kill left"
+    let staged: Vec<_> = std::fs::read_dir(&run)
+        .expect("the run directory")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".checkpoint.partial-") && n.ends_with(".npz"))
+        .collect();
+    assert_eq!(
+        staged.len(),
+        1,
+        "the half-written staged checkpoint is what the kill left: {staged:?}"
     );
     let ckpt = drape_trainer::npy::read_npz(&run.join("checkpoint.npz"))
         .expect("the previous checkpoint is intact");
@@ -434,7 +439,7 @@ fn eval_animate_and_edit_name_bad_input() {
     );
     // A motion file with 23 joints (69 pose values) names the file and the array.
     let motion = d.join("bad-motion.npz");
-    std::fs::write(&motion, b"not a zip").unwrap();
+    drape_io::write(&motion, b"not a zip").unwrap();
     check(
         &["animate", m, "--motion", motion.to_str().unwrap()],
         &["bad-motion.npz"],
@@ -471,7 +476,7 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
     let data = synth_sequence(&d, "32", "8");
     let config = d.join("tiny.toml");
     // Densified after steps 6, 12 and 18.
-    std::fs::write(&config, "[schedule]\nsteps = 20\nfit_steps = 3\ncheckpoint_every = 100\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
+    drape_io::write(&config, "[schedule]\nsteps = 20\nfit_steps = 3\ncheckpoint_every = 100\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
     let train = |out: &Path| -> Vec<String> {
         [
             "train",
@@ -631,7 +636,7 @@ fn a_second_sigterm_exits_at_once() {
     let d = dir("second-signal");
     let data = synth_sequence(&d, "32", "5");
     let config = d.join("slow-fit.toml");
-    std::fs::write(&config, "[schedule]\nsteps = 5\nfit_steps = 100000\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
+    drape_io::write(&config, "[schedule]\nsteps = 5\nfit_steps = 100000\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args([

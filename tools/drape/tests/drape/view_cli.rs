@@ -202,7 +202,7 @@ fn view_presents_the_library_render() {
         "xwd: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-    std::fs::write(PathBuf::from(format!("{}.done", shot.display())), b"").unwrap();
+    drape_io::write(PathBuf::from(format!("{}.done", shot.display())), b"").unwrap();
     let t0 = Instant::now();
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
