@@ -9,7 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 cargo build --release --locked --quiet -p drape
-# Data from before drape wrote NeuMan's masks as released (no HUGS SAM masks) is made again.
+# Data that lacks NeuMan's sparse/images.txt or the HUGS SAM masks drape synth writes is made again.
 if [ ! -f target/demo-data/neuman/sparse/images.txt ] || [ ! -d target/demo-data/neuman/4d_humans/sam_segmentations ]; then
     rm -rf target/demo-data
     ./target/release/drape synth --out target/demo-data

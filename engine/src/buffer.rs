@@ -41,8 +41,9 @@ impl BufferDesc {
     /// A storage buffer the host rewrites often and kernels only read (a frame's
     /// transforms, target image, ...): host-visible (device-local too where the device
     /// offers such memory), so [`Context::write_buffer`] is a copy into its mapping, with
-    /// no staging buffer and no submission. On an H100, staged, each such write cost
-    /// about 0.6 ms (a buffer, a submission and a wait), seven of them a training step.
+    /// no staging buffer and no submission. A staged write would cost a staging buffer,
+    /// a submission and a wait, several times a training step (docs/performance.md has
+    /// the figures).
     /// The caller must not write it while a submission that reads it is in flight.
     pub fn host_written(size: u64) -> Self {
         Self {

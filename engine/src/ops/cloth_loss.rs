@@ -41,11 +41,11 @@ pub enum NearestSearch {
     Grid,
 }
 
-/// Above this many point pairs `Auto` searches through the grid. Measured on lavapipe
-/// (`engine-bench ops --only chamfer --chamfer-compare N`, loss and gradient): 500²
-/// points 6.0 ms grid / 4.6 ms brute force, 1,000² 8.3 / 21.0, 2,000² 8.1 / 65.3,
-/// 4,000² 17.3 / 312.9, 32,768² 71 / 13,595: the grid has a fixed cost (fills, sort
-/// passes) and then wins from about 700² on.
+/// Above this many point pairs `Auto` searches through the grid. The grid has a fixed
+/// cost (fills, sort passes) that brute force does not, and brute force grows with
+/// `n · m`: 2^19 is about where the two crossed on lavapipe (`engine-bench ops --only
+/// chamfer --chamfer-compare N`; the figures are in docs/performance.md, "SSIM, Chamfer,
+/// triplane").
 pub const AUTO_GRID_PAIRS: u64 = 1 << 19;
 
 /// The grid's scratch: bounds, (cell, point) pairs and their sort, cell ranges, and

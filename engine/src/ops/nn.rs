@@ -237,7 +237,8 @@ impl MlpDesc {
     /// are zero padding, with zero gradients): the forward GEMMs on CPU devices read
     /// `W` and the bias through 4-float texel views, which address whole texels, so a
     /// layer after a head of odd width (the 1-wide opacity before the 48 SH) would
-    /// otherwise fall back to a kernel 2 to 40 times slower.
+    /// otherwise fall back to a much slower kernel (docs/performance.md, "GEMM and the
+    /// decoders").
     fn plain_layout(&self) -> (Vec<(usize, usize)>, usize) {
         let aligned = |at: usize| at.next_multiple_of(4);
         let mut at = 0;
@@ -380,8 +381,8 @@ const MIN_ROWS_PER_SPLIT_CPU: u32 = 1024;
 /// The same on a GPU: a split and an output tile make one workgroup, so the splits are
 /// what fills the device. A decoder layer's weight gradient has 4-12 output tiles; at
 /// the avatar's few thousand Gaussians per layer, 1,024 rows per split would give 12-36
-/// workgroups on an H100's 132 multiprocessors, each walking 1,024 rows alone (measured
-/// there: `mlp.weight_grad` then takes a third of a quick-preset training step's GPU time).
+/// workgroups, far fewer than a large GPU's multiprocessors (an H100 has 132), each
+/// walking 1,024 rows alone (docs/performance.md, H100 "Training", has the figures).
 const MIN_ROWS_PER_SPLIT_GPU: u32 = 128;
 
 /// How many chunks the weight gradient's `rows` are summed in, and the rows per chunk.

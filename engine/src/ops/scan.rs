@@ -12,7 +12,8 @@
 //! from its offset: three dispatches, no barriers. Up to `SERIAL_SCAN_MAX_LEN` elements
 //! (a chunked radix sort's histogram up to 8M keys) one invocation scans them all
 //! instead (`scan::chunk_serial`): on lavapipe each dispatch costs its threads' start and
-//! finish, about 40 µs, more than that walk. The quad holding the last element is
+//! finish, more than that walk (docs/performance.md, "What llvmpipe 22.3 makes of a
+//! kernel"). The quad holding the last element is
 //! written whole, its elements past `len` as they were (buffers are whole 16-byte texels).
 //! No workgroup waits on another. In place; wrapping arithmetic; any length up to
 //! [`ExclusiveScan::max_len`]. CPU reference: `drape_shared::scan::exclusive_scan_in_place`.
@@ -38,7 +39,8 @@ pub enum ScanVariant {
     /// GPU kernels.
     Blocks,
     /// One invocation per long run, no barriers: for llvmpipe, where a workgroup scan's
-    /// barriers are coroutine switches (about 20x faster there at 1M elements).
+    /// barriers are coroutine switches (docs/performance.md, "Sort and scan on lavapipe",
+    /// compares the two variants).
     Chunks,
 }
 

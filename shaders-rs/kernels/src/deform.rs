@@ -177,10 +177,11 @@ const TRANSFORM_GRAD_GROUP: usize = 256;
 
 /// Workgroup (chunk, joint) sums the chunk's share of `∂L/∂A_joint`: each invocation
 /// adds every 256th Gaussian of the chunk, then a tree over the workgroup adds the 256
-/// sums, in an order fixed by the invocation indices (deterministic). One invocation per
-/// (chunk, joint) walking its 1,024 Gaussians alone left a GPU nearly idle at the
-/// avatar's few thousand Gaussians per layer (72 invocations for 3,000: 3.9 ms a call on
-/// an H100).
+/// sums, in an order fixed by the invocation indices (deterministic). A workgroup, not
+/// one invocation, per (chunk, joint): at the avatar's few thousand Gaussians per layer
+/// there are only tens of (chunk, joint) pairs (72 for 3,000), too few invocations to
+/// fill a GPU if each walked its 1,024 Gaussians alone (docs/performance.md, H100
+/// "Training").
 #[spirv(compute(threads(256)))]
 pub fn deform_transform_grad(
     #[spirv(workgroup_id)] group: UVec3,

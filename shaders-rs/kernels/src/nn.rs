@@ -91,8 +91,9 @@ fn store_4x4(
 /// and `B` in workgroup memory (loaded along whichever of their strides is 1, so the
 /// loads coalesce for all three GEMMs of a layer) and every invocation reads 4 + 4
 /// values per 16 multiply-adds. The sums of `k` run in order, so the result does not
-/// depend on scheduling. (A kernel of one row and 32 columns per invocation, reading one
-/// staged value per multiply-add, makes 2.4-3.4 TFLOP/s on an H100.)
+/// depend on scheduling. The 4 × 4 block is what keeps workgroup-memory reads at half a
+/// value per multiply-add; one row and 32 columns per invocation would read one
+/// (docs/performance.md, H100 "Training", compares the two).
 #[spirv(compute(threads(256)))]
 pub fn gemm_tiled(
     #[spirv(workgroup_id)] group: UVec3,

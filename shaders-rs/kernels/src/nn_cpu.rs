@@ -34,9 +34,9 @@
 //!
 //! Each body is written once, generic over the tile width and the epilogue
 //! ([`Epilogue`]), and unrolled with `drape_shared::each_index!` (which takes a const
-//! generic count), so every register is indexed with constants as in the hand-unrolled
-//! macros these replaced: their SPIR-V is the macros' up to the order of declarations
-//! (docs/performance.md, "Kernels as generic functions"). One macro is left, declaring
+//! generic count), so every register is indexed with constants, as if each tile width
+//! were written out by hand (docs/performance.md, "Kernels as generic functions",
+//! compares the SPIR-V with such a hand-written form). One macro declares
 //! the subgroup-tile entry points (rust-gpu cannot make a generic function an entry
 //! point, and their 16 signatures written out are the same 12 lines each).
 

@@ -221,8 +221,8 @@ mod tests {
     use super::{fit_image, FitConfig};
     use crate::image_io::Image;
 
-    /// The bar: PSNR of at least 28 dB on a 64x64 target within 1,000 iterations
-    /// of 2,000 Gaussians.
+    /// The bar `drape fit` is held to: PSNR of at least 28 dB on a 64x64 target within
+    /// 1,000 iterations of 2,000 Gaussians.
     #[test]
     fn fit_reaches_28_db_on_64x64() {
         let gpu = drape_tests::gpu();

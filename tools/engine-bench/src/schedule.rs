@@ -1,9 +1,10 @@
 //! The runs of a benchmark loop: untimed warm-ups, then timed runs.
 //!
-//! A GPU's clocks rest low when it idles (an H100's at 555 of 1,980 MHz) and ramp up
-//! under load, so two warm-up runs of a 2 ms frame measured it up to 5x slow there.
-//! Warm-ups therefore go on until both `--warmup` runs are done and `--warm-seconds`
-//! have passed since the loop began.
+//! A GPU's clocks rest low when it idles and ramp up under load, so a fixed count of
+//! warm-up runs of a short frame can end before the clocks are up, and the timed runs
+//! then measure an idle-clocked GPU (docs/performance.md, "Devices and how to read the
+//! figures"). Warm-ups therefore go on until both `--warmup` runs are done and
+//! `--warm-seconds` have passed since the loop began.
 
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};

@@ -148,7 +148,7 @@ const FLAVOURS: &[Flavour] = &[
             "AtomicFloat32AddEXT",
         ],
     },
-    // Kernels that store u64s (the chunked sort's pairs, one store where two u32s took
+    // Kernels that store u64s (the chunked sort's pairs, one store where two u32s take
     // two: llvmpipe loops over the lanes once per component).
     Flavour {
         features: &["int64"],

@@ -211,9 +211,9 @@ impl TrainConfig {
                 lr_translation: hugs_pose_rate(),
             },
             // HUGS densifies every 600 steps from 15% to 75% of its 20k; here after 100
-            // and 200 of 400, at most 4,096 per layer, to stay near 10 minutes (three
-            // times, to 8,192, takes 860 s); no size prunes within the run (3DGS starts
-            // them at 3,000 steps).
+            // and 200 of 400, at most 4,096 per layer, to keep the quick run short on
+            // lavapipe (docs/performance.md has its time with a third densification, to
+            // 8,192); no size prunes within the run (3DGS starts them at 3,000 steps).
             densify: DensifyConfig {
                 every: 100,
                 from: 100,

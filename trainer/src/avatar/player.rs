@@ -8,9 +8,9 @@
 //!
 //! Each frame in flight has its own copy of the avatar (decoders, posed Gaussians,
 //! renderers, its RGBA buffer): simple and safe, at k times the model's memory (the
-//! decoders' parameters are shared by nothing yet). The player lives in the trainer
-//! because the run format, the rig and the decoders do; the C ABI (`capi/`) depends on
-//! the trainer for it.
+//! decoders' parameters too are copied per frame, not shared). The player lives in the
+//! trainer because the run format, the rig and the decoders do; the C ABI (`capi/`)
+//! depends on the trainer for it.
 //!
 //! A frame whose tile intersections outgrew the renderer's buffers is found when its
 //! slot comes round again: the buffers have grown by then, the frame is counted in

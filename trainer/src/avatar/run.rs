@@ -134,7 +134,12 @@ impl OpenRun {
             }
             (Some(i), None) => i,
             (None, Some(d)) => RunInfo::new(d, body),
-            (None, None) => return Err(TrainerError::run(dir, "no run.json saying which data the run was trained on (a run from before drape 0.1's eval); give --data DIR")),
+            (None, None) => {
+                return Err(TrainerError::run(
+                    dir,
+                    "no run.json saying which data the run was trained on; give --data DIR",
+                ))
+            }
         };
         let body = body.map(Path::to_path_buf).or_else(|| info.body.clone());
         let seq = load_sequence(&info.data, config.zju_train_camera)?;

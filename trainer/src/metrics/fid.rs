@@ -744,9 +744,9 @@ fn centred_rows(features: &[Vec<f32>]) -> crate::Result<(usize, Vec<f64>)> {
 /// The Fréchet distance between two Gaussians given by their statistics:
 /// `|μ1 − μ2|² + tr Σ1 + tr Σ2 − 2 Σᵢ √λᵢ(Σ1^½ Σ2 Σ1^½)`. Two symmetric
 /// eigendecompositions of dim × dim (Jacobi, [`symmetric_eigen`]): fine at tens to
-/// hundreds of dimensions (measured on 2 cores: 0.09 s at 128, 1.4 s at 256, 29 s at
-/// 512); at 2048, n³ or worse, well over 20 minutes, so FID from features uses
-/// [`frechet_distance_of_features`], which needs it only with 2048 images or more.
+/// hundreds of dimensions; at 2048, n³ or worse, far too slow (docs/performance.md,
+/// "Host-side timings"), so FID from features uses [`frechet_distance_of_features`],
+/// which needs it only with 2048 images or more.
 pub fn frechet_distance(a: &Statistics, b: &Statistics) -> crate::Result<f64> {
     let d = a.dim;
     if b.dim != d
@@ -890,9 +890,9 @@ fn matmul(a: &[f64], b: &[f64], n: usize) -> Vec<f64> {
 /// Jacobi rotations (Golub & Van Loan, Algorithm 8.5.3) until the off-diagonal norm is
 /// below machine epsilon times the whole norm. Accurate to roundoff relative to the
 /// largest eigenvalue; each sweep costs about 4 n³ flops (6 n³ with vectors, and 6-10
-/// sweeps), and the rotations walk columns with no blocking: measured with vectors
-/// 0.05 s at 128, 0.9 s at 256, 18 s at 512; at 2048 (64 × 512's n³ at best) 20 minutes
-/// or more. Fine for the tests and for FID's images × images problem; a blocked
+/// sweeps), and the rotations walk columns with no blocking, so 2048 costs at least 64
+/// times 512 (docs/performance.md, "Host-side timings", has the times). Fine for the
+/// tests and for FID's images × images problem; a blocked
 /// tridiagonal solver (LAPACK's dsyevd, nalgebra) is the way to 2048 × 2048.
 pub fn symmetric_eigen(mut a: Vec<f64>, n: usize, vectors: bool) -> (Vec<f64>, Vec<f64>) {
     assert_eq!(a.len(), n * n, "symmetric_eigen: not an n x n matrix");

@@ -347,8 +347,8 @@ fn three_gpu_passes_composite_as_the_cpu_splatter_does() {
             .zip(&want)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0f32, f32::max);
-        // The acceptance bound of the compositing issue: the GPU splatter matches its
-        // CPU reference to ~1e-6 per pass, and the composite cannot amplify that (V/A ≤ 1).
+        // The bound: the GPU splatter matches its CPU reference to ~1e-6 per pass, and
+        // the composite cannot amplify that (V/A ≤ 1).
         assert!(
             worst <= 1e-5,
             "occlusion {occlusion}: max |GPU - CPU| = {worst:e}"

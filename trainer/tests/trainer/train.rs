@@ -276,7 +276,7 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
         "skinning weights fitted to mse {}",
         report.fit_mse
     );
-    // The bound: +6 dB over the initial model. 80 steps on 8 training frames
+    // The bound: +6 dB over the initial model. 80 steps on 8 training frames
     // with the cloth losses: measured +7.7 dB full (20.79 -> 28.47) and +7.7 dB on the
     // crop (15.90 -> 23.63) with `drape train` on this data and config; run-to-run
     // noise (float atomics) is far below the 1.7 dB margin. (At HUGS's 1e-3 rates the
