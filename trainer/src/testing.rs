@@ -10,7 +10,7 @@ use drape_engine::Context;
 use crate::avatar::config::TrainConfig;
 use crate::avatar::inputs::load_sequence;
 use crate::avatar::run::RunInfo;
-use crate::avatar::train::train;
+use crate::avatar::train::TrainJob;
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::dataset::synth::{generate, SynthOptions};
 
@@ -36,15 +36,7 @@ pub fn train_tiny_run(ctx: &Context, dir: &Path) -> crate::Result<PathBuf> {
     let config =
         TrainConfig::quick().with_toml(TINY_RUN_TOML, Path::new("tests/fixtures/tiny-run.toml"))?;
     let run = dir.join("run");
-    train(
-        ctx,
-        &seq,
-        default_body(&BodyOptions::default()),
-        &config,
-        &run,
-        false,
-        &mut |_| {},
-    )?;
+    TrainJob::new(&seq, default_body(&BodyOptions::default()), &config, &run).train(ctx)?;
     RunInfo::new(&data, None).write(&run)?;
     Ok(run)
 }

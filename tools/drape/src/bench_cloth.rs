@@ -34,7 +34,7 @@ use drape_cli_support::DeviceArgs;
 use drape_trainer::avatar::eval::EvalMetrics;
 use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::train::{
-    body_model, load_sequence, train, Preset, Progress, TrainConfig,
+    body_model, load_sequence, Preset, Progress, TrainConfig, TrainJob,
 };
 use drape_trainer::dataset::synth::{generate, SynthOptions};
 use drape_trainer::garment::GarmentFit;
@@ -292,31 +292,35 @@ fn measure(
                 let out = args.out.join("runs").join(&name).join(row.key);
                 let model = body_model(None)?;
                 let t0 = Instant::now();
-                let report = train(&ctx, &seq, model, &config, &out, false, &mut |p| {
-                    match p {
-                        Progress::Fit {
-                            layer, step, total, ..
-                        } => eprint!("\r  fitting {layer} skinning weights {step:>5}/{total}   "),
-                        Progress::Step {
-                            step,
-                            total,
-                            psnr,
-                            it_per_s,
-                            ..
-                        } => eprint!(
+                let report = TrainJob::new(&seq, model, &config, &out)
+                    .progress(&mut |p| {
+                        match p {
+                            Progress::Fit {
+                                layer, step, total, ..
+                            } => {
+                                eprint!("\r  fitting {layer} skinning weights {step:>5}/{total}   ")
+                            }
+                            Progress::Step {
+                                step,
+                                total,
+                                psnr,
+                                it_per_s,
+                                ..
+                            } => eprint!(
                             "\r  step {step:>6}/{total}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "
                         ),
-                        Progress::Simulate { done, total } => {
-                            eprint!("\r  simulating the garments {done:>4}/{total}   ")
+                            Progress::Simulate { done, total } => {
+                                eprint!("\r  simulating the garments {done:>4}/{total}   ")
+                            }
+                            Progress::Densify { .. } => {}
+                            Progress::Eval { done, total } => {
+                                eprint!("\r  evaluating {}/{total}   ", done + 1)
+                            }
                         }
-                        Progress::Densify { .. } => {}
-                        Progress::Eval { done, total } => {
-                            eprint!("\r  evaluating {}/{total}   ", done + 1)
-                        }
-                    }
-                    let _ = std::io::stderr().flush();
-                })
-                .map_err(|e| anyhow::anyhow!("{name} {}: {e}", row.key))?;
+                        let _ = std::io::stderr().flush();
+                    })
+                    .train(&ctx)
+                    .map_err(|e| anyhow::anyhow!("{name} {}: {e}", row.key))?;
                 eprint!("\r{:80}\r", "");
                 let wall = t0.elapsed().as_secs_f64();
                 let m = &report.fin;

@@ -20,7 +20,7 @@ use drape_trainer::avatar::composite::{Compositing, Matte};
 use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::run::RunInfo;
 use drape_trainer::avatar::train::{
-    body_model, load_sequence, train_interruptible, Layout, Outcome, Preset, Progress, TrainConfig,
+    body_model, load_sequence, Layout, Outcome, Preset, Progress, TrainConfig, TrainJob,
 };
 
 /// Options of `drape train`.
@@ -291,16 +291,11 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     if args.profile {
         ctx.start_profile();
     }
-    let outcome = train_interruptible(
-        &ctx,
-        &seq,
-        model,
-        &config,
-        &out,
-        resume,
-        Some(&info),
-        &interrupt,
-        &mut |p| {
+    let outcome = TrainJob::new(&seq, model, &config, &out)
+        .resume(resume)
+        .run_info(&info)
+        .interrupt(&interrupt)
+        .progress(&mut |p| {
             match p {
             Progress::Fit { layer, step, total, mse } => eprint!("\rfitting {layer} skinning weights {step:>5}/{total}  mse {mse:.3e}   "),
             Progress::Step { step, total, l1, psnr, it_per_s } => eprint!("\rstep {step:>6}/{total}  L1 {l1:.4}  PSNR {psnr:5.2} dB  {it_per_s:.2} it/s   "),
@@ -318,8 +313,8 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
             }
         }
             let _ = std::io::stderr().flush();
-        },
-    )?;
+        })
+        .run(&ctx)?;
     eprintln!();
     let report = match outcome {
         Outcome::Finished(report) => report,

@@ -28,7 +28,7 @@ use drape_engine::ops::splat::scene::RenderSettings;
 use drape_engine::{Context, Profile};
 use drape_trainer::avatar::composite::{AvatarRenderer, Compositing};
 use drape_trainer::avatar::run::OpenRun;
-use drape_trainer::avatar::train::{body_model, train_until, Progress};
+use drape_trainer::avatar::train::{body_model, Progress, TrainJob};
 use serde_json::json;
 
 /// Options of `engine-bench avatar`.
@@ -155,6 +155,7 @@ fn render_variant(
     let mut renderer = AvatarRenderer::new(ctx, &run.avatar, w, h, compositing)?;
     let settings = RenderSettings::default();
     let mut totals: Vec<f64> = Vec::new();
+    // Each stage's and GPU scope's times, one per timed run.
     let mut stages: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut scopes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
@@ -270,15 +271,8 @@ fn train_steps(
     config.schedule.log_every = 1;
     let model = body_model(run.info.body.as_deref())?;
     let (mut timed_from, mut timed_to, mut profile) = (None, None, None);
-    let report = train_until(
-        ctx,
-        &run.seq,
-        model,
-        &config,
-        &out,
-        false,
-        total,
-        &mut |p| {
+    let report = TrainJob::new(&run.seq, model, &config, &out)
+        .progress(&mut |p| {
             if let Progress::Step { step, .. } = p {
                 if step == args.train_warmup {
                     ctx.start_profile();
@@ -289,8 +283,8 @@ fn train_steps(
                     profile = ctx.take_profile();
                 }
             }
-        },
-    );
+        })
+        .train(ctx);
     let _ = ctx.take_profile();
     let _ = std::fs::remove_dir_all(&out);
     let report = report?;

@@ -245,6 +245,15 @@ enum Inner {
     Fused(Box<Fused>),
 }
 
+/// The cloth mask loss that [`AvatarRenderer::backward`] back-propagates with the
+/// image's gradient, and the view of the forward it belongs to: where no pass renders
+/// the cloth alone (single-pass compositing), the mask loss renders it from that view.
+pub struct MaskLoss<'a> {
+    pub losses: &'a mut ClothLosses,
+    pub camera: &'a PinholeCamera,
+    pub settings: &'a RenderSettings,
+}
+
 /// The avatar's renderer: forward to an image on the GPU, backward to every layer's
 /// posed-Gaussian gradients.
 pub struct AvatarRenderer {
@@ -612,19 +621,16 @@ impl AvatarRenderer {
     }
 
     /// Back-propagates `grad_rgb` (the loss's gradient on [`rgb`](Self::rgb)) and, with
-    /// `cloth_losses`, the cloth mask loss, through the passes; then
+    /// `mask`, the cloth mask loss, through the passes; then
     /// [`record_scatter`](Self::record_scatter) moves the gradients into every layer.
     /// `zeros` holds at least one zero float per pixel.
-    #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &mut self,
         ctx: &Context,
         avatar: &Avatar,
         grad_rgb: &Buffer,
         zeros: &Buffer,
-        cloth_losses: Option<&mut ClothLosses>,
-        camera: &PinholeCamera,
-        settings: &RenderSettings,
+        mask: Option<MaskLoss<'_>>,
     ) -> Result<()> {
         if self.saved.is_empty() {
             return Err(EngineError::StaleForward {
@@ -635,13 +641,12 @@ impl AvatarRenderer {
         self.prepare_backward(avatar)?;
         {
             let mut rec = ctx.record("avatar backward")?;
-            self.record_backward(&mut rec, avatar, grad_rgb, zeros, cloth_losses.as_deref())?;
+            let cloth_losses = mask.as_ref().map(|m| &*m.losses);
+            self.record_backward(&mut rec, avatar, grad_rgb, zeros, cloth_losses)?;
             rec.submit_and_wait()?;
         }
-        if let (Inner::Single(_), Some(c), Some(cloth)) =
-            (&self.inner, cloth_losses, avatar.cloth())
-        {
-            c.mask_pass(ctx, cloth, camera, settings)?;
+        if let (Inner::Single(_), Some(m), Some(cloth)) = (&self.inner, mask, avatar.cloth()) {
+            m.losses.mask_pass(ctx, cloth, m.camera, m.settings)?;
         }
         Ok(())
     }

@@ -15,7 +15,7 @@ use drape_trainer::avatar::edit::{edit, Edit};
 use drape_trainer::avatar::eval::{evaluate, EvalInputs};
 use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::run::{OpenRun, RunInfo};
-use drape_trainer::avatar::train::{load_sequence, train, TrainConfig};
+use drape_trainer::avatar::train::{load_sequence, TrainConfig, TrainJob};
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::dataset::loader::BodyParams;
 
@@ -67,16 +67,9 @@ fn runs() -> &'static [PathBuf; 2] {
             c.layers.body.pose_offsets = true;
             c.layers.cloth.pose_offsets = true;
             let out = tmp(&format!("run-tools-run{seed}"));
-            train(
-                &ctx,
-                &seq,
-                default_body(&BodyOptions::default()),
-                &c,
-                &out,
-                false,
-                &mut |_| {},
-            )
-            .expect("training");
+            TrainJob::new(&seq, default_body(&BodyOptions::default()), &c, &out)
+                .train(&ctx)
+                .expect("training");
             RunInfo::new(data(), None).write(&out).expect("run.json");
             out
         })

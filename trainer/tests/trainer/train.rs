@@ -12,7 +12,7 @@ use drape_trainer::avatar::cloth_target::{
 use drape_trainer::avatar::composite::Compositing;
 use drape_trainer::avatar::model::LayerChoice;
 use drape_trainer::avatar::rig::Rig;
-use drape_trainer::avatar::train::{load_sequence, train, Layout, TrainConfig};
+use drape_trainer::avatar::train::{load_sequence, Layout, TrainConfig, TrainJob};
 use drape_trainer::body::kinematics::pose_body;
 use drape_trainer::body::procedural::{default_body, BodyOptions};
 use drape_trainer::body::SmplModel;
@@ -210,7 +210,7 @@ fn contracted_garment_edges_join_the_kept_vertices() {
     let kept = contracted_edges(12, &faces, 3);
     // Kept vertices 0, 3, 6, 9 become 0..4; the strip stays connected.
     assert!(kept.iter().all(|e| e[0] < e[1] && e[1] < 4), "{kept:?}");
-    let mut reached = vec![false; 4];
+    let mut reached = [false; 4];
     reached[0] = true;
     for _ in 0..4 {
         for e in &kept {
@@ -243,16 +243,9 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
         layer.lr_triplane = 3e-3;
         layer.lr_decoders = 3e-3;
     }
-    let report = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &config,
-        &out,
-        false,
-        &mut |_| {},
-    )
-    .expect("training");
+    let report = TrainJob::new(&seq, model().clone(), &config, &out)
+        .train(&ctx)
+        .expect("training");
     eprintln!(
         "held-out PSNR {:.2} -> {:.2} dB full, {:.2} -> {:.2} dB crop; fit mse {:.2e}; {:.2} it/s",
         report.initial.psnr_full,
@@ -378,17 +371,9 @@ fn body_layer_trains_on_the_neuman_layout_and_held_out_psnr_rises() {
         out.join("complete").is_file() && !out.join("incomplete").exists(),
         "a finished run is marked complete"
     );
-    let err = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &tiny_config(),
-        &out,
-        false,
-        &mut |_| {},
-    )
-    .err()
-    .expect("a complete run directory refused");
+    let err = TrainJob::new(&seq, model().clone(), &tiny_config(), &out)
+        .train(&ctx)
+        .expect_err("a complete run directory refused");
     assert!(matches!(err, TrainerError::Run { .. }), "{err:?}");
     let err = err.to_string();
     assert!(
@@ -440,16 +425,9 @@ fn scene_layer_trains_on_the_whole_frame() {
     config.layers.decimate = 8;
     config.schedule.fit_steps = 10;
     config.schedule.steps = 30;
-    let report = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &config,
-        &out,
-        false,
-        &mut |_| {},
-    )
-    .expect("training");
+    let report = TrainJob::new(&seq, model().clone(), &config, &out)
+        .train(&ctx)
+        .expect("training");
     eprintln!(
         "scene run: held-out whole-frame PSNR {:.2} -> {:.2} dB, crop {:.2} -> {:.2} dB; {:?}",
         report.initial.psnr_full,
@@ -528,20 +506,14 @@ fn fused_compositing_trains_as_the_three_passes_do() {
         config.schedule.steps = 6;
         config.schedule.log_every = 1;
         let mut l1 = Vec::new();
-        train(
-            &ctx,
-            &seq,
-            model().clone(),
-            &config,
-            &out,
-            false,
-            &mut |p| {
+        TrainJob::new(&seq, model().clone(), &config, &out)
+            .progress(&mut |p| {
                 if let Progress::Step { l1: v, .. } = p {
                     l1.push(v);
                 }
-            },
-        )
-        .expect("training");
+            })
+            .train(&ctx)
+            .expect("training");
         let _ = std::fs::remove_dir_all(&out);
         l1
     };
@@ -578,16 +550,9 @@ fn body_layer_trains_on_the_zju_layout() {
     let _ = std::fs::remove_dir_all(&out);
     let mut config = tiny_config();
     config.schedule.steps = 20;
-    let report = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &config,
-        &out,
-        false,
-        &mut |_| {},
-    )
-    .expect("training");
+    let report = TrainJob::new(&seq, model().clone(), &config, &out)
+        .train(&ctx)
+        .expect("training");
     eprintln!(
         "ZJU held-out PSNR {:.2} -> {:.2} dB",
         report.initial.psnr_full, report.fin.psnr_full
@@ -646,43 +611,23 @@ fn resume_continues_from_the_checkpoint() {
     let _ = std::fs::remove_dir_all(&base);
     let (whole, split) = (base.join("whole"), base.join("split"));
     // 20 steps at once, and 10 steps then resumed to 20.
-    train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &resume_config(20),
-        &whole,
-        false,
-        &mut |_| {},
-    )
-    .expect("uninterrupted run");
-    drape_trainer::avatar::train::train_until(
-        &ctx,
-        &seq,
-        model().clone(),
-        &resume_config(20),
-        &split,
-        false,
-        10,
-        &mut |_| {},
-    )
-    .expect("first half");
+    TrainJob::new(&seq, model().clone(), &resume_config(20), &whole)
+        .train(&ctx)
+        .expect("uninterrupted run");
+    TrainJob::new(&seq, model().clone(), &resume_config(20), &split)
+        .stop_after(10)
+        .train(&ctx)
+        .expect("first half");
     // A checkpoint write that was killed leaves only a temporary file: ignored.
     drape_io::write(
         split.join(".checkpoint.partial-1.npz"),
         b"PK\x03\x04 half a zip",
     )
     .unwrap();
-    let report = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &resume_config(20),
-        &split,
-        true,
-        &mut |_| {},
-    )
-    .expect("resumed run");
+    let report = TrainJob::new(&seq, model().clone(), &resume_config(20), &split)
+        .resume(true)
+        .train(&ctx)
+        .expect("resumed run");
     assert_eq!(report.start_step, 10, "resumed from the wrong step");
     let log = std::fs::read_to_string(split.join("log.jsonl")).unwrap();
     let lines: Vec<serde_json::Value> = log
@@ -800,34 +745,20 @@ fn resume_continues_from_the_checkpoint() {
     // A truncated checkpoint is refused with its name.
     let bytes = std::fs::read(split.join("checkpoint.npz")).unwrap();
     drape_io::write(split.join("checkpoint.npz"), &bytes[..bytes.len() / 2]).unwrap();
-    let err = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &resume_config(30),
-        &split,
-        true,
-        &mut |_| {},
-    )
-    .err()
-    .expect("truncated checkpoint refused")
-    .to_string();
+    let err = TrainJob::new(&seq, model().clone(), &resume_config(30), &split)
+        .resume(true)
+        .train(&ctx)
+        .expect_err("truncated checkpoint refused")
+        .to_string();
     assert!(err.contains("checkpoint.npz"), "{err}");
     // A checkpoint of another model (a different triplane) is refused, naming the array.
     drape_io::write(split.join("checkpoint.npz"), &bytes).unwrap();
     let mut other = resume_config(30);
     other.layers.body.triplane_resolution = 16;
-    let err = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &other,
-        &split,
-        true,
-        &mut |_| {},
-    )
-    .err()
-    .expect("other model refused");
+    let err = TrainJob::new(&seq, model().clone(), &other, &split)
+        .resume(true)
+        .train(&ctx)
+        .expect_err("other model refused");
     assert!(matches!(err, TrainerError::Checkpoint { .. }), "{err:?}");
     let err = err.to_string();
     assert!(
@@ -886,7 +817,9 @@ fn pose_refinement_undoes_perturbed_training_poses() {
     c.schedule.steps = 96;
     c.schedule.lr_pose = 2e-2;
     c.schedule.lr_translation = 1e-2;
-    train(&ctx, &seq, model().clone(), &c, &out, false, &mut |_| {}).expect("training");
+    TrainJob::new(&seq, model().clone(), &c, &out)
+        .train(&ctx)
+        .expect("training");
     let poses = checkpoint::read(&out.join("model.npz"), &[], None)
         .expect("model")
         .poses
@@ -936,16 +869,9 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
         f.rgb[3 * inside] = f32::NAN;
     };
     poison(&mut seq.frames[first_train]);
-    let report = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &resume_config(30),
-        &base.join("one"),
-        false,
-        &mut |_| {},
-    )
-    .expect("a bad frame does not stop the run");
+    let report = TrainJob::new(&seq, model().clone(), &resume_config(30), &base.join("one"))
+        .train(&ctx)
+        .expect("a bad frame does not stop the run");
     assert!(
         report.skipped_steps > 0,
         "the poisoned frame was never drawn or not caught"
@@ -971,17 +897,9 @@ fn steps_with_non_finite_gradients_are_skipped_and_repeated_ones_stop_the_run() 
     }
     let mut config = resume_config(30);
     config.schedule.max_skipped_steps = 3;
-    let err = train(
-        &ctx,
-        &seq,
-        model().clone(),
-        &config,
-        &base.join("all"),
-        false,
-        &mut |_| {},
-    )
-    .err()
-    .expect("the run stops");
+    let err = TrainJob::new(&seq, model().clone(), &config, &base.join("all"))
+        .train(&ctx)
+        .expect_err("the run stops");
     assert!(
         matches!(
             err,
@@ -1030,16 +948,9 @@ fn a_training_step_waits_on_the_host_once() {
             config.schedule.refine_pose && config.losses.lambda_mask > 0.0,
             "the quick preset's pose refiner and mask loss are on"
         );
-        let report = train(
-            &ctx,
-            &seq,
-            model().clone(),
-            &config,
-            &base.join(compositing),
-            false,
-            &mut |_| {},
-        )
-        .expect("train");
+        let report = TrainJob::new(&seq, model().clone(), &config, &base.join(compositing))
+            .train(&ctx)
+            .expect("train");
         let w = report.host_waits;
         assert!(w.plain_steps >= 4, "{compositing}: {w:?}");
         assert_eq!(
