@@ -4,8 +4,9 @@
 //! (the synthetic data), `inspect` (a sequence's layout and problems), `train` (the
 //! avatar), `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic
 //! cloth benchmark), `view` (a real-time viewer of a trained run).
-// `deny`, not `forbid`: `view` is Vulkan host code and allows it for itself (with a
-// SAFETY comment on every block); every other module stays free of unsafe.
+// `deny`, not `forbid`: `view`'s Vulkan host code (its `device`, `swapchain` and `frame`
+// files) allows it for itself (with a SAFETY comment on every block); every other module
+// stays free of unsafe.
 #![deny(unsafe_code)]
 
 use std::process::ExitCode;

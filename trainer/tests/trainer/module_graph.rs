@@ -742,13 +742,14 @@ fn the_metrics_name_no_module_of_the_avatar() {
         .collect();
     assert_eq!(
         metrics.len(),
-        3,
-        "metrics, metrics::fid, metrics::fid_weights: {metrics:?}"
+        6,
+        "metrics, metrics::fid (mod, network, distance, linalg), metrics::fid_weights: \
+         {metrics:?}"
     );
     // The reader sees the metrics' known edges, so an empty graph cannot pass.
     assert!(has_edge(
         &graph,
-        &["metrics", "fid"],
+        &["metrics", "fid", "network"],
         &["metrics", "fid_weights"]
     ));
     for m in metrics {
