@@ -65,7 +65,7 @@ impl Capture {
     ) -> anyhow::Result<()> {
         let rgba = player.render(cam, width, height)?;
         write_png16(&self.shot, width, height, &rgba)?;
-        std::fs::write(marker(&self.shot, "ready"), b"")
+        drape_io::write(marker(&self.shot, "ready"), b"")
             .with_context(|| format!("{}", marker(&self.shot, "ready").display()))?;
         eprintln!(
             "view: wrote {}; presenting the last frame until {} exists",
