@@ -54,7 +54,11 @@ const HANG_SECONDS: u64 = 60;
 const TABLE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/hostile/cases.txt");
 
 /// The training configuration dataset cases train with (they fail before training).
-const TINY: &str = "[schedule]\nsteps = 2\nfit_steps = 2\ncheckpoint_every = 1\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n";
+fn tiny() -> String {
+    crate::fixtures::tiny_body_config(
+        "[schedule]\nsteps = 2\nfit_steps = 2\ncheckpoint_every = 1\nlog_every = 1\n",
+    )
+}
 
 /// One directory per test process, so that two runs never share fixtures.
 fn root() -> PathBuf {
@@ -96,7 +100,7 @@ fn base() -> &'static Path {
             "base synth: {}",
             String::from_utf8_lossy(&o.stderr)
         );
-        drape_io::write(b.join("tiny.toml"), TINY).unwrap();
+        drape_io::write(b.join("tiny.toml"), tiny()).unwrap();
         let o = drape()
             .args(["train", "--data"])
             .arg(b.join("synth"))
@@ -561,7 +565,7 @@ fn run_case(case: &Case) -> Result<(), String> {
     let d = root().join("cases").join(&case.id);
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    drape_io::write(d.join("tiny.toml"), TINY).unwrap();
+    drape_io::write(d.join("tiny.toml"), tiny()).unwrap();
     for op in &case.ops {
         apply(&d, &op.replace("{d}", d.to_str().unwrap()));
     }

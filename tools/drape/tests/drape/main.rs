@@ -3,6 +3,7 @@
 
 mod bench_cloth_cli;
 mod cli;
+mod fixtures;
 mod hostile;
 mod inspect_cli;
 mod motion_cli;

@@ -327,7 +327,13 @@ fn a_run_killed_during_a_checkpoint_write_resumes_from_the_previous_one() {
     let d = dir("sigkill");
     let data = synth_sequence(&d, "64", "8");
     let config = d.join("tiny.toml");
-    drape_io::write(&config, "[schedule]\nsteps = 12\nfit_steps = 10\ncheckpoint_every = 4\nlog_every = 4\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 16\ntriplane_channels = 4\n").unwrap();
+    drape_io::write(
+        &config,
+        crate::fixtures::tiny_body_config(
+            "[schedule]\nsteps = 12\nfit_steps = 10\ncheckpoint_every = 4\nlog_every = 4\n",
+        ),
+    )
+    .unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args([
@@ -476,7 +482,13 @@ fn sigterm_checkpoints_exits_75_and_the_resumed_run_is_bit_identical() {
     let data = synth_sequence(&d, "32", "8");
     let config = d.join("tiny.toml");
     // Densified after steps 6, 12 and 18.
-    drape_io::write(&config, "[schedule]\nsteps = 20\nfit_steps = 3\ncheckpoint_every = 100\nlog_every = 1\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n").unwrap();
+    drape_io::write(
+        &config,
+        crate::fixtures::tiny_body_config(
+            "[schedule]\nsteps = 20\nfit_steps = 3\ncheckpoint_every = 100\nlog_every = 1\n[densify]\nevery = 6\nfrom = 6\nuntil = 18\n",
+        ),
+    )
+    .unwrap();
     let train = |out: &Path| -> Vec<String> {
         [
             "train",
@@ -636,7 +648,11 @@ fn a_second_sigterm_exits_at_once() {
     let d = dir("second-signal");
     let data = synth_sequence(&d, "32", "5");
     let config = d.join("slow-fit.toml");
-    drape_io::write(&config, "[schedule]\nsteps = 5\nfit_steps = 100000\n[layers]\nchoice = \"body\"\ndecimate = 6\n[layers.body]\ntriplane_resolution = 8\ntriplane_channels = 2\n").unwrap();
+    drape_io::write(
+        &config,
+        crate::fixtures::tiny_body_config("[schedule]\nsteps = 5\nfit_steps = 100000\n"),
+    )
+    .unwrap();
     let run = d.join("run");
     let mut child = Command::new(env!("CARGO_BIN_EXE_drape"))
         .args([
