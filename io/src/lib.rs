@@ -84,29 +84,26 @@ pub fn write_with<T>(
     fill: impl FnOnce(&mut io::BufWriter<fs::File>) -> io::Result<T>,
 ) -> io::Result<T> {
     let path = path.as_ref();
-    let staging = Staging::new(sibling(path, "partial")?);
-    let mut writer = io::BufWriter::new(fs::File::create(&staging.0)?);
+    let mut staging = Staging(Some(sibling(path, "partial")?));
+    let staged = staging.0.clone().unwrap_or_default();
+    let mut writer = io::BufWriter::new(fs::File::create(&staged)?);
     let value = fill(&mut writer)?;
     let file = writer.into_inner().map_err(|e| e.into_error())?;
     file.sync_all()?;
     drop(file);
-    fs::rename(&staging.0, path)?;
-    std::mem::forget(staging);
+    fs::rename(&staged, path)?;
+    staging.0 = None;
     Ok(value)
 }
 
-/// A staged path removed when dropped (the write failed or panicked).
-struct Staging(PathBuf);
-
-impl Staging {
-    fn new(path: PathBuf) -> Self {
-        Self(path)
-    }
-}
+/// A staged path removed when dropped while still set (the write failed or panicked).
+struct Staging(Option<PathBuf>);
 
 impl Drop for Staging {
     fn drop(&mut self) {
-        let _ = fs::remove_file(&self.0);
+        if let Some(path) = &self.0 {
+            let _ = fs::remove_file(path);
+        }
     }
 }
 
