@@ -3,7 +3,7 @@
 `drape prepare` decodes, calibrates, fits and writes the dataset in Rust; this script
 only runs the model (there is no Rust port of it) and writes plain files:
 
-  python landmarks.py FRAMES_DIR OUT_DIR [--roi ROI.npy] [--roi-mode blank|crop]
+  python landmarks.py FRAMES_DIR OUT_DIR [--roi ROI.npy]
 
 FRAMES_DIR holds one view's frames as PNG (000000.png, ...), processed in name order
 as ONE video: static_image_mode=False, so the model tracks the person from frame to
@@ -19,7 +19,7 @@ frame (one invocation per view; never mix views in one run). OUT_DIR receives:
                           (mediapipe's normalised coordinates, 0 = the image's left/top
                           edge). z is mediapipe's relative depth (origin at the hips'
                           midpoint, smaller = nearer the camera) scaled like x to pixels
-                          (z * width of the image the model saw).
+                          (z * width).
   world_landmarks.npy     float32 [frames, 33, 3]: mediapipe's metric 3D pose in metres,
                           origin at the hips' midpoint, in the camera's orientation.
   detected.npy            bool [frames]. Rows of frames where nothing was detected are NaN.
@@ -27,11 +27,13 @@ frame (one invocation per view; never mix views in one run). OUT_DIR receives:
 
 --roi ROI.npy: float [frames, 4] boxes x0, y0, x1, y1 in pixels (a NaN row: whole
 frame). Legacy Pose follows ONE person (whichever its detector picked first, then by
-tracking), so this is how the caller makes it follow a chosen one. --roi-mode blank
-(the default) paints everything outside the box black and keeps the frame's size, so
-coordinates and the tracker's state stay those of the full frame even as the box moves;
---roi-mode crop feeds only the box (the person fills more of the detector's input) and
-maps the results back.
+tracking; it may slide onto another person who passes in front), so this is how the
+caller makes it follow a chosen one: everything outside the box is painted black and
+the frame keeps its size, so coordinates and the tracker's state stay those of the full
+frame while the box moves. (Cropping to the box instead fails: mediapipe's segmentation
+smoothing rejects frames whose size changes.) On pose2sim's Demo_MultiPerson, boxes
+projected from another two views' triangulation kept cam01 and cam02 on the chosen
+person in 100/100 frames, where without them both followed the other one.
 
 Deterministic (CPU, XNNPACK, no randomness) and offline: the model files are inside the
 mediapipe 0.10.21 wheel (model_complexity=1; 0 and 2 would download theirs).
@@ -53,7 +55,6 @@ def main():
     ap.add_argument("frames_dir")
     ap.add_argument("out_dir")
     ap.add_argument("--roi", help="float [frames, 4] .npy of x0, y0, x1, y1 boxes (NaN row: whole frame)")
-    ap.add_argument("--roi-mode", choices=["blank", "crop"], default="blank")
     args = ap.parse_args()
 
     names = sorted(n for n in os.listdir(args.frames_dir) if n.lower().endswith(".png"))
@@ -88,15 +89,11 @@ def main():
             bx1, by1 = min(w, int(np.ceil(rois[i, 2]))), min(h, int(np.ceil(rois[i, 3])))
             if bx1 > bx0 and by1 > by0:
                 x0, y0, x1, y1 = bx0, by0, bx1, by1
-        if args.roi_mode == "crop":
-            image = bgr[y0:y1, x0:x1]
-            ox, oy = x0, y0
-        else:
+        image = bgr
+        if (x0, y0, x1, y1) != (0, 0, w, h):
             image = np.zeros_like(bgr)
             image[y0:y1, x0:x1] = bgr[y0:y1, x0:x1]
-            ox, oy = 0, 0
-        ih, iw = image.shape[:2]
-        rgb = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2RGB)
+        rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
         t = time.perf_counter()
         result = pose.process(rgb)
         model_s += time.perf_counter() - t
@@ -105,13 +102,13 @@ def main():
         if result.pose_landmarks is not None:
             detected[i] = True
             # Legacy Pose fills visibility but never presence: NaN when unset.
-            lms[i] = [[l.x * iw + ox, l.y * ih + oy, l.z * iw, l.visibility,
+            lms[i] = [[l.x * w, l.y * h, l.z * w, l.visibility,
                        l.presence if l.HasField("presence") else np.nan]
                       for l in result.pose_landmarks.landmark]
             world[i] = [[l.x, l.y, l.z] for l in result.pose_world_landmarks.landmark]
             if result.segmentation_mask is not None:
                 m = np.clip(result.segmentation_mask, 0.0, 1.0)
-                mask[oy:oy + ih, ox:ox + iw] = np.rint(m * 255.0).astype(np.uint8)
+                mask = np.rint(m * 255.0).astype(np.uint8)
         cv2.imwrite(os.path.join(args.out_dir, "masks", os.path.splitext(name)[0] + ".png"), mask)
 
         ms, model_ms = (1000.0 * v / (i + 1) for v in (time.perf_counter() - start, model_s))
