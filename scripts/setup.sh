@@ -6,7 +6,8 @@ set -euo pipefail
 
 SHADER_TOOLCHAIN=nightly-2026-08-15   # keep in step with tools/shader-builder/rust-toolchain.toml
 # xvfb, x11-apps (xwd) and libxkbcommon-x11-0 (winit's keyboard on X11): `drape view` and its test.
-packages=(libvulkan1 mesa-vulkan-drivers vulkan-validationlayers xvfb x11-apps libxkbcommon-x11-0)
+# ffmpeg (ffprobe too): `drape prepare` decodes the user's videos with it.
+packages=(libvulkan1 mesa-vulkan-drivers vulkan-validationlayers xvfb x11-apps libxkbcommon-x11-0 ffmpeg)
 
 missing=()
 for pkg in "${packages[@]}"; do

@@ -70,7 +70,7 @@ pub enum Feature {
     Timestamps,
     /// The subgroup rasterizers: a CPU device with subgroups of 8 lanes and ballot.
     SubgroupRaster,
-    /// The subgroup and texel GEMMs (`nn_cpu`): subgroups of 8 lanes with ballot.
+    /// The subgroup and texel GEMMs (`nn_lavapipe`): subgroups of 8 lanes with ballot.
     SubgroupGemm,
 }
 

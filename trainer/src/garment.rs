@@ -271,7 +271,9 @@ pub fn tshirt(body: &SmplModel) -> Garment {
 
 /// How the T-shirt sits on the body: the benchmark (`drape bench-cloth`) wants a garment
 /// that moves away from the skin, where cloth and body disagree most.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum GarmentFit {
     /// `tshirt`: 1.5 cm off the skin, hem at the hips (the default).

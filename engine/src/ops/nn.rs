@@ -1,5 +1,5 @@
 //! Multi-layer perceptrons on the GPU (kernels `nn::*` and, on CPU devices,
-//! `nn_cpu::*`): linear layers as a GEMM (workgroup-tiled on GPUs; register-blocked, or
+//! `nn_lavapipe::*`): linear layers as a GEMM (workgroup-tiled on GPUs; register-blocked, or
 //! subgroup and texel-reading kernels on CPU devices: [`GemmVariant`]), GELU / sigmoid / exp / softmax activations, several
 //! output heads on one trunk, forward and backward, and the CPU reference from the same
 //! shared functions (`drape_shared::nn`), generic over f32/f64.
@@ -345,17 +345,17 @@ pub enum GemmVariant {
     Auto,
     /// `nn::gemm_tiled`: slices of `B` staged in workgroup memory.
     Tiled,
-    /// `nn_cpu::gemm_blocked`: 8 × 8 blocks in registers.
+    /// `nn_lavapipe::gemm_blocked`: 8 × 8 blocks in registers.
     Blocked,
-    /// `nn_cpu::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by
+    /// `nn_lavapipe::gemm_subgroup`: 32 × 32 tiles per subgroup of 8, `B` shared by
     /// broadcasts. Needs subgroups of exactly 8 lanes with ballot operations.
     Subgroup,
-    /// `nn_cpu::gemm_texel`: `gemm_subgroup` reading `A` and `B` as uniform texel
+    /// `nn_lavapipe::gemm_texel`: `gemm_subgroup` reading `A` and `B` as uniform texel
     /// buffers (on llvmpipe a gather per read instead of a loop over the lanes; the same
     /// sums in the same order). Same device needs, and both operands within
     /// `maxTexelBufferElements` floats.
     Texel,
-    /// The 4-float texel kernels of `nn_cpu`, chosen by the operands' layout:
+    /// The 4-float texel kernels of `nn_lavapipe`, chosen by the operands' layout:
     /// `gemm_fwd_cols*` for forwards (`record_fwd`), `gemm_input_grad*`,
     /// `gemm_weight_grad_*` or `gemm_b_along_n*` for the backward
     /// (`narrow_weight_grad_kernel`, `texel4_grad_kernel`); `gemm_texel` where none
@@ -366,7 +366,7 @@ pub enum GemmVariant {
     Texel4,
 }
 
-/// Whether the device can run `nn_cpu::gemm_subgroup` (subgroups of 8 lanes, ballot
+/// Whether the device can run `nn_lavapipe::gemm_subgroup` (subgroups of 8 lanes, ballot
 /// operations in compute).
 pub fn subgroup_gemm_supported(info: &crate::DeviceInfo) -> bool {
     info.subgroup_size == 8 && info.subgroup_ballot
@@ -628,9 +628,9 @@ impl Mlp {
         let texel = matches!(variant, GemmVariant::Texel | GemmVariant::Texel4);
         if (texel || variant == GemmVariant::Subgroup) && !subgroup_gemm_supported(info) {
             let kernel = if texel {
-                "nn_cpu::gemm_texel"
+                "nn_lavapipe::gemm_texel"
             } else {
-                "nn_cpu::gemm_subgroup"
+                "nn_lavapipe::gemm_subgroup"
             };
             return Err(EngineError::MissingFeature {
                 kernel,
@@ -657,7 +657,7 @@ impl Mlp {
         }
         let (kernel, groups) = match variant {
             GemmVariant::Blocked => (
-                GemmKernel::NnCpuGemmBlocked,
+                GemmKernel::NnLavapipeGemmBlocked,
                 [
                     p.n.div_ceil(8 * GEMM_BLOCK),
                     p.m.div_ceil(8 * GEMM_BLOCK),
@@ -671,11 +671,11 @@ impl Mlp {
                 let (kernel, tile_rows) = match variant {
                     GemmVariant::Texel4 => (
                         texel4_grad_kernel(&p, a, b, bias, c, info.max_texel_buffer_elements)
-                            .unwrap_or(GemmKernel::NnCpuGemmTexel),
+                            .unwrap_or(GemmKernel::NnLavapipeGemmTexel),
                         GEMM_TX_ROWS,
                     ),
-                    GemmVariant::Texel => (GemmKernel::NnCpuGemmTexel, GEMM_TX_ROWS),
-                    _ => (GemmKernel::NnCpuGemmSubgroup, GEMM_SG_ROWS),
+                    GemmVariant::Texel => (GemmKernel::NnLavapipeGemmTexel, GEMM_TX_ROWS),
+                    _ => (GemmKernel::NnLavapipeGemmSubgroup, GEMM_SG_ROWS),
                 };
                 let tiles = p.m.div_ceil(tile_rows) * p.n.div_ceil(GEMM_SG_COLS);
                 let x = tiles.min(65_535);
@@ -1189,7 +1189,7 @@ fn act4_kernels(act: Activation, buffers: &[&Buffer]) -> Option<(ActFwdKernel, A
 }
 
 /// The bindings every GEMM kernel has (`nn::gemm_tiled`'s struct; the kernels of
-/// `nn_cpu` bind the same names, some of them as texel views of the same buffers), for
+/// `nn_lavapipe` bind the same names, some of them as texel views of the same buffers), for
 /// the kernels chosen at run time (`Recording::dispatch_as`).
 fn gemm_bindings<'a>(
     a: &'a Buffer,
@@ -1205,7 +1205,7 @@ fn gemm_bindings<'a>(
     }
 }
 
-/// Whether the forward 4-float texel GEMMs (`nn_cpu::gemm_fwd_cols*`) fit these operands:
+/// Whether the forward 4-float texel GEMMs (`nn_lavapipe::gemm_fwd_cols*`) fit these operands:
 /// `A` and `B` both contiguous along `k` (`x Wᵀ`), offsets and strides in whole
 /// 16-byte texels, no ones row, nothing added to `C`, and the bias readable as a texel
 /// buffer (the float epilogue fetches it).
@@ -1229,23 +1229,23 @@ fn fwd_fits(p: &GemmParams, a: &Buffer, b: &Buffer, bias: &Buffer, max_texels: u
 const FWD_WIDTHS: [(u32, GemmKernel, GemmKernel); 4] = [
     (
         32,
-        GemmKernel::NnCpuGemmFwdCols32,
-        GemmKernel::NnCpuGemmFwdCols32Vec4,
+        GemmKernel::NnLavapipeGemmFwdCols32,
+        GemmKernel::NnLavapipeGemmFwdCols32Vec4,
     ),
     (
         16,
-        GemmKernel::NnCpuGemmFwdCols16,
-        GemmKernel::NnCpuGemmFwdCols16Vec4,
+        GemmKernel::NnLavapipeGemmFwdCols16,
+        GemmKernel::NnLavapipeGemmFwdCols16Vec4,
     ),
     (
         8,
-        GemmKernel::NnCpuGemmFwdCols8,
-        GemmKernel::NnCpuGemmFwdCols8Vec4,
+        GemmKernel::NnLavapipeGemmFwdCols8,
+        GemmKernel::NnLavapipeGemmFwdCols8Vec4,
     ),
     (
         4,
-        GemmKernel::NnCpuGemmFwdCols4,
-        GemmKernel::NnCpuGemmFwdCols4Vec4,
+        GemmKernel::NnLavapipeGemmFwdCols4,
+        GemmKernel::NnLavapipeGemmFwdCols4Vec4,
     ),
 ];
 
@@ -1295,7 +1295,7 @@ pub fn fwd_column_tiles(n: u32) -> Vec<(u32, u32, u32)> {
     tiles
 }
 
-/// Records a forward GEMM through `nn_cpu::gemm_fwd_cols*` (see [`fwd_fits`]): one dispatch
+/// Records a forward GEMM through `nn_lavapipe::gemm_fwd_cols*` (see [`fwd_fits`]): one dispatch
 /// per run of [`fwd_column_tiles`], each shifted to its first column through the
 /// offsets, with the 4-float epilogue where its columns, `C` and the bias allow.
 fn record_fwd<'a>(
@@ -1341,23 +1341,23 @@ fn record_fwd<'a>(
 }
 
 /// The narrow weight gradient with `k` across the lanes
-/// (`nn_cpu::gemm_weight_grad_cols4` or `_cols8`) and its tile width, where `C` is at
+/// (`nn_lavapipe::gemm_weight_grad_cols4` or `_cols8`) and its tile width, where `C` is at
 /// most 8 wide (the weight gradient of a 1- to 6-wide head, `A = Xᵀ` contiguous along
 /// `m` in whole texels): the column-owning tiles would run 32 columns for 3.
 fn narrow_weight_grad_kernel(p: &GemmParams, a: &Buffer) -> Option<(GemmKernel, u32)> {
     let fits = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && a.vk_size() % 16 == 0;
     match p.n {
-        1..=4 if fits => Some((GemmKernel::NnCpuGemmWeightGradCols4, 4)),
-        5..=8 if fits => Some((GemmKernel::NnCpuGemmWeightGradCols8, 8)),
+        1..=4 if fits => Some((GemmKernel::NnLavapipeGemmWeightGradCols4, 4)),
+        5..=8 if fits => Some((GemmKernel::NnLavapipeGemmWeightGradCols8, 8)),
         _ => None,
     }
 }
 
 /// The 4-float texel GEMM for the backward's operand layouts, if one fits (`Auto` on
-/// CPU devices, where `nn_cpu::gemm_texel` would run; forwards go through
-/// [`record_fwd`]): `nn_cpu::gemm_input_grad_vec4` or `gemm_input_grad` (`A` along `k`,
+/// CPU devices, where `nn_lavapipe::gemm_texel` would run; forwards go through
+/// [`record_fwd`]): `nn_lavapipe::gemm_input_grad_vec4` or `gemm_input_grad` (`A` along `k`,
 /// `B` along `n`: input gradients; the first where `C` and the bias are read and
-/// written 4 floats at a time), `nn_cpu::gemm_weight_grad_vec4` (`A` along `m`, `B`
+/// written 4 floats at a time), `nn_lavapipe::gemm_weight_grad_vec4` (`A` along `m`, `B`
 /// along `n`: weight gradients where `C` takes 4 floats a store), else
 /// `gemm_b_along_n_vec4` or `gemm_b_along_n` (`B` along `n`, `A` in any layout: a
 /// narrow head's input gradient, a weight gradient of odd width). A 4-float view covers
@@ -1389,11 +1389,13 @@ fn texel4_grad_kernel(
     let a_m4 = p.a_sm == 1 && p.a_off % 4 == 0 && p.a_sk % 4 == 0 && whole(a);
     let b_n4 = p.b_sn == 1 && p.b_off % 4 == 0 && p.b_sk % 4 == 0 && whole(b);
     match (a_k4, b_n4) {
-        (true, true) if c_quads && bias_quads => Some(GemmKernel::NnCpuGemmInputGradVec4),
-        (true, true) => Some(GemmKernel::NnCpuGemmInputGrad),
-        (false, true) if a_m4 && c_quads && bias_quads => Some(GemmKernel::NnCpuGemmWeightGradVec4),
-        (false, true) if c_quads && bias_quads => Some(GemmKernel::NnCpuGemmBAlongNVec4),
-        (false, true) => Some(GemmKernel::NnCpuGemmBAlongN),
+        (true, true) if c_quads && bias_quads => Some(GemmKernel::NnLavapipeGemmInputGradVec4),
+        (true, true) => Some(GemmKernel::NnLavapipeGemmInputGrad),
+        (false, true) if a_m4 && c_quads && bias_quads => {
+            Some(GemmKernel::NnLavapipeGemmWeightGradVec4)
+        }
+        (false, true) if c_quads && bias_quads => Some(GemmKernel::NnLavapipeGemmBAlongNVec4),
+        (false, true) => Some(GemmKernel::NnLavapipeGemmBAlongN),
         _ => None,
     }
 }

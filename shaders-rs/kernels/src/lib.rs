@@ -21,13 +21,13 @@ pub mod deform;
 pub mod fixed_point;
 pub mod lpips;
 pub mod nn;
-pub mod nn_cpu;
+pub mod nn_lavapipe;
 pub mod radix_sort;
 pub mod scan;
 pub mod skinning;
 pub mod splat;
 #[cfg(feature = "subgroup-ballot")]
-pub mod splat_cpu;
+pub mod splat_lavapipe;
 pub mod ssim;
 #[cfg(feature = "subgroup-ballot")]
 mod subgroup;

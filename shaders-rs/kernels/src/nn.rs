@@ -2,7 +2,7 @@
 //! backward of `y = x Wᵀ + b`, chosen by strides: see `drape_shared::nn`), the
 //! deterministic reduction of split weight gradients, the activations, softmax and
 //! weight normalisation. The GEMMs tuned for CPU devices (lavapipe) are in
-//! [`crate::nn_cpu`], which the engine records there instead of `gemm_tiled`.
+//! [`crate::nn_lavapipe`], which the engine records there instead of `gemm_tiled`.
 //!
 //! | kernel | what | the engine records it for |
 //! | --- | --- | --- |

@@ -14,7 +14,7 @@
 //! `SPLAT_DROPPED`, and `dropped[0]` counts it; nothing downstream reads it.
 //!
 //! The rasterizers here run one workgroup of 16 × 16 per block of a tile (GPUs);
-//! `splat_cpu` has their twins for CPU devices. Each rasterizer is one generic
+//! `splat_lavapipe` has their twins for CPU devices. Each rasterizer is one generic
 //! function (`rasterize_*_in`) behind thin entry points: by splat layout (f32 or
 //! `_half`), or by how the backward adds into the per-splat gradients
 //! (`atomics::GradAdd`: `_atomic`, `_cas`, `_fixed`).

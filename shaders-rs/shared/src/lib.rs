@@ -24,7 +24,7 @@ const _: () = assert!(splat::layout::MAX_SH_COEFFS == 16);
 /// has (rustc drops the arms of a `match` on a constant after monomorphization; no
 /// branch reaches the SPIR-V). Inside, an index of an array of `W` elements is two
 /// constants, so no bounds check reaches the SPIR-V either: the kernels' generic tiles
-/// (`nn_cpu`) come out as if each width were unrolled by hand.
+/// (`nn_lavapipe`) come out as if each width were unrolled by hand.
 #[macro_export]
 macro_rules! each_index {
     ($n:ident, $i:ident => $body:block) => {{

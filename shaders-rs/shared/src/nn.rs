@@ -14,12 +14,12 @@
 //! Several kernels compute it, the same sums in the same order of `k`: `nn::gemm_tiled`
 //! for GPUs (a 64 × 64 tile per workgroup, slices of `A` and `B` staged in workgroup
 //! memory, a 4 × 4 block of sums per invocation), and for CPU devices the kernels of
-//! `nn_cpu` (see its table): `gemm_subgroup` (lanes of a subgroup of 8 passing values by
+//! `nn_lavapipe` (see its table): `gemm_subgroup` (lanes of a subgroup of 8 passing values by
 //! broadcasts), the texel GEMMs (subgroup tiles reading their operands through texel
 //! views) and `gemm_blocked` (an 8 × 8 block per invocation, for narrow outputs): on
 //! lavapipe, which runs 8 invocations per SIMD instruction, per-invocation indices into
 //! workgroup memory are gathers. The narrow heads' weight gradients
-//! (`nn_cpu::gemm_weight_grad_cols4` / `_cols8`) alone sum `k` in another order
+//! (`nn_lavapipe::gemm_weight_grad_cols4` / `_cols8`) alone sum `k` in another order
 //! (strided by lane).
 
 use crate::real::Real;
@@ -32,17 +32,17 @@ pub const GEMM_BLOCK: u32 = 8;
 /// Depth of one step of `nn::gemm_tiled` through `k` (the staged slices of `A` and `B`
 /// are 16 × 64).
 pub const GEMM_K_STEP: u32 = 16;
-/// Rows of `C` one subgroup of the broadcast kernel (`nn_cpu::gemm_subgroup`) owns: 4
+/// Rows of `C` one subgroup of the broadcast kernel (`nn_lavapipe::gemm_subgroup`) owns: 4
 /// per lane of a subgroup of 8.
 pub const GEMM_SG_ROWS: u32 = 32;
 /// Columns of `C` one subgroup of the broadcast kernel owns.
 pub const GEMM_SG_COLS: u32 = 32;
-/// Rows of the tile of `nn_cpu::gemm_texel` and the other 64 × 32 tiles (8 per lane of
+/// Rows of the tile of `nn_lavapipe::gemm_texel` and the other 64 × 32 tiles (8 per lane of
 /// a subgroup of 8; their columns are `GEMM_SG_COLS`).
 pub const GEMM_TX_ROWS: u32 = 64;
-/// Rows of the tile of the forward GEMMs `nn_cpu::gemm_fwd_cols*` (16 per lane).
+/// Rows of the tile of the forward GEMMs `nn_lavapipe::gemm_fwd_cols*` (16 per lane).
 pub const GEMM_FWD_ROWS: u32 = 128;
-/// Rows of the tile of the narrow weight gradients `nn_cpu::gemm_weight_grad_cols4` /
+/// Rows of the tile of the narrow weight gradients `nn_lavapipe::gemm_weight_grad_cols4` /
 /// `_cols8` (every lane sums all 32, over its own steps of `k`).
 pub const GEMM_NARROW_ROWS: u32 = 32;
 
@@ -53,7 +53,7 @@ pub const GEMM_ACCUMULATE: u32 = 2;
 /// `A[m][k] = 1` for `m = m_count - 1` (the bias row of a transposed weight gradient).
 pub const GEMM_ONES_ROW: u32 = 4;
 
-/// Push constants of `nn::gemm_tiled` and of every `nn_cpu` GEMM. The
+/// Push constants of `nn::gemm_tiled` and of every `nn_lavapipe` GEMM. The
 /// dispatch is `[ceil(n / 64), ceil(m / 64), splits]` (tiled), `[ceil(n / 64),
 /// ceil(m / 64), splits]` (blocked, 8 × 8 invocations of 8 × 8) or
 /// `[x, y, splits]` with `x y >= ceil(m / 32) ceil(n / 32)` (subgroup: one 32 × 32 tile

@@ -107,7 +107,7 @@ fn normed_desc() -> MlpDesc {
 }
 
 /// Widths in multiples of 4: every forward fits the 4-float texel kernels
-/// (`GemmVariant::Texel4`: `nn_cpu::gemm_fwd_cols*` at every tile width, 32, 16, 8 and
+/// (`GemmVariant::Texel4`: `nn_lavapipe::gemm_fwd_cols*` at every tile width, 32, 16, 8 and
 /// 4, with both epilogues), and the gradients of the outputs of 16 or more too (input
 /// gradients `gemm_input_grad*`, weight gradients `gemm_weight_grad_vec4` or
 /// `gemm_b_along_n*`), where
@@ -151,7 +151,7 @@ fn gemm_variants(ctx: &Context, report: bool) -> Vec<GemmVariant> {
         drape_tests::has_feature(
             ctx,
             drape_tests::Feature::SubgroupGemm,
-            "nn_cpu::gemm_subgroup, nn_cpu::gemm_texel and the 4-float texel GEMMs",
+            "nn_lavapipe::gemm_subgroup, nn_lavapipe::gemm_texel and the 4-float texel GEMMs",
         )
     } else {
         subgroup_gemm_supported(ctx.info())

@@ -91,7 +91,8 @@ fn the_kernels_a_struct_takes_share_its_bindings_and_push_constants() {
         .iter()
         .copied()
         .filter(|k| {
-            k.entry_point().starts_with("nn::gemm") || k.entry_point().starts_with("nn_cpu::gemm")
+            k.entry_point().starts_with("nn::gemm")
+                || k.entry_point().starts_with("nn_lavapipe::gemm")
         })
         .collect();
     assert!(gemms.len() > 10, "{gemms:?}");
@@ -100,27 +101,27 @@ fn the_kernels_a_struct_takes_share_its_bindings_and_push_constants() {
     takes::<kernels::nn::ActBwd>(&[K::NnActBwd4, K::NnActBwd4Gelu]);
     takes::<kernels::splat::RasterizeFwd>(&[
         K::SplatRasterizeFwdHalf,
-        K::SplatCpuRasterizeFwd,
-        K::SplatCpuRasterizeFwdHalf,
+        K::SplatLavapipeRasterizeFwd,
+        K::SplatLavapipeRasterizeFwdHalf,
     ]);
     takes::<kernels::splat::RasterizeFusedFwd>(&[
         K::SplatRasterizeFusedFwdHalf,
-        K::SplatCpuRasterizeFusedFwd,
-        K::SplatCpuRasterizeFusedFwdHalf,
+        K::SplatLavapipeRasterizeFusedFwd,
+        K::SplatLavapipeRasterizeFusedFwdHalf,
     ]);
     takes::<kernels::splat::RasterizeBwdAtomic>(&[
         K::SplatRasterizeBwdCas,
         K::SplatRasterizeBwdFixed,
-        K::SplatCpuRasterizeBwdAtomic,
-        K::SplatCpuRasterizeBwdCas,
-        K::SplatCpuRasterizeBwdFixed,
+        K::SplatLavapipeRasterizeBwdAtomic,
+        K::SplatLavapipeRasterizeBwdCas,
+        K::SplatLavapipeRasterizeBwdFixed,
     ]);
     takes::<kernels::splat::RasterizeFusedBwdAtomic>(&[
         K::SplatRasterizeFusedBwdCas,
         K::SplatRasterizeFusedBwdFixed,
-        K::SplatCpuRasterizeFusedBwdAtomic,
-        K::SplatCpuRasterizeFusedBwdCas,
-        K::SplatCpuRasterizeFusedBwdFixed,
+        K::SplatLavapipeRasterizeFusedBwdAtomic,
+        K::SplatLavapipeRasterizeFusedBwdCas,
+        K::SplatLavapipeRasterizeFusedBwdFixed,
     ]);
     takes::<kernels::triplane::SampleBwdAtomic>(&[
         K::TriplaneSampleBwdCas,
@@ -545,7 +546,7 @@ fn recordings_reuse_the_pools_of_finished_ones() {
     );
 }
 
-/// A pass of `nn_cpu::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
+/// A pass of `nn_lavapipe::gemm_texel` (bindings `a`, `b`: texel buffers; `bias`: read; `c`:
 /// written) over 8 × 8 matrices with the bindings `bind` makes of `a`, `c` and a
 /// readback buffer, recorded as the storage GEMM's struct with the kernel chosen at
 /// run time; its dispatch's result.
@@ -573,7 +574,7 @@ fn texel_pass(
     };
     rec.dispatch_as(
         "test.gemm",
-        kernels::nn::GemmTiledKernel::NnCpuGemmTexel,
+        kernels::nn::GemmTiledKernel::NnLavapipeGemmTexel,
         bind(&a, &c, &readback),
         &p,
         [1, 1, 1],
@@ -582,7 +583,12 @@ fn texel_pass(
 
 fn assert_texel_error(result: drape_engine::Result<()>, binding: &str, words: &[&str]) {
     let err = result.expect_err("a wrong texel binding must be refused");
-    assert_binding_error_of(&err, ("test.gemm", "nn_cpu::gemm_texel"), binding, words);
+    assert_binding_error_of(
+        &err,
+        ("test.gemm", "nn_lavapipe::gemm_texel"),
+        binding,
+        words,
+    );
 }
 
 /// Texel bindings read a whole buffer through its `R32_SFLOAT` view: a correct pass
@@ -595,7 +601,7 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
     if !drape_tests::has_feature(
         &gpu(),
         drape_tests::Feature::SubgroupGemm,
-        "texel_bindings_read_whole_buffers_through_their_views (nn_cpu::gemm_texel)",
+        "texel_bindings_read_whole_buffers_through_their_views (nn_lavapipe::gemm_texel)",
     ) {
         return;
     }
@@ -618,7 +624,7 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
         };
         rec.dispatch(
             "test.gemm",
-            kernels::nn_cpu::GemmTexel {
+            kernels::nn_lavapipe::GemmTexel {
                 a: a.texel(),
                 b: a.texel(),
                 bias: a.read(),
@@ -661,8 +667,8 @@ fn texel_bindings_read_whole_buffers_through_their_views() {
 /// declares texel buffers, and the check names the binding.
 #[test]
 fn a_texel_binding_the_module_does_not_declare_is_named() {
-    let original = Kernel::NnCpuGemmTexel.spirv();
-    check_module(Kernel::NnCpuGemmTexel, original).expect("the committed module matches");
+    let original = Kernel::NnLavapipeGemmTexel.spirv();
+    check_module(Kernel::NnLavapipeGemmTexel, original).expect("the committed module matches");
     let words: Vec<u32> = original
         .chunks_exact(4)
         .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
@@ -679,7 +685,7 @@ fn a_texel_binding_the_module_does_not_declare_is_named() {
         at += count;
     }
     assert!(found, "gemm_texel declares a buffer image");
-    let text = check_module(Kernel::NnCpuGemmTexel, &patched)
+    let text = check_module(Kernel::NnLavapipeGemmTexel, &patched)
         .expect_err("no texel buffer")
         .to_string();
     assert!(

@@ -140,6 +140,37 @@ fn simulated_cloth_targets_match_the_ground_truth_garments_in_both_layouts() {
     }
 }
 
+/// A simulation this process ran already is reused: the same inputs give the same
+/// frames at once (one progress report), and a change to any input, here the fit and
+/// then one frame's pose by 1e-9 rad, is simulated anew.
+#[test]
+fn a_repeated_cloth_simulation_is_reused_and_a_changed_one_is_not() {
+    use drape_trainer::garment::GarmentFit;
+    let seq = load_sequence(data(), 0).expect("sequence");
+    let rig = Rig::new(model().clone(), &[0.0; 10]);
+    let run = |fit, frames: &[drape_trainer::dataset::loader::DatasetFrame]| {
+        let mut reports = 0;
+        let sim =
+            simulate_sequence(&rig, fit, frames, &mut |_, _| reports += 1).expect("simulation");
+        (sim.by_frame, reports)
+    };
+    let (first, _) = run(GarmentFit::Tight, &seq.frames);
+    let (again, reports) = run(GarmentFit::Tight, &seq.frames);
+    assert_eq!(reports, 1, "the repeated simulation ran again");
+    assert!(again == first, "the reused frames differ");
+    let (loose, reports) = run(GarmentFit::Loose, &seq.frames);
+    assert!(reports > 1, "another fit was not simulated");
+    assert!(loose != first, "another fit gave the same frames");
+    let mut nudged = seq.frames.clone();
+    let last = nudged.last_mut().unwrap();
+    match &mut last.body {
+        BodyParams::Smpl { pose, .. } => pose[16].x += 1e-9,
+        BodyParams::Zju(p) => p.poses[48] += 1e-9,
+    }
+    let (_, reports) = run(GarmentFit::Tight, &nudged);
+    assert!(reports > 1, "a nudged pose was not simulated");
+}
+
 /// `cloth_fit` reaches the simulation: on a loose sequence (`drape synth --fit loose`)
 /// the trainer's simulated targets are that sequence's ground truth with the loose
 /// T-shirt, and centimetres off with the tight one (the default template).

@@ -122,12 +122,12 @@ impl FusedRenderer {
         let (kernel, grid) = if self.renderer.half_splats() {
             self.renderer.raster_dispatch(
                 kernels::splat::RasterizeFusedFwdKernel::SplatRasterizeFusedFwdHalf,
-                kernels::splat::RasterizeFusedFwdKernel::SplatCpuRasterizeFusedFwdHalf,
+                kernels::splat::RasterizeFusedFwdKernel::SplatLavapipeRasterizeFusedFwdHalf,
             )
         } else {
             self.renderer.raster_dispatch(
                 kernels::splat::RasterizeFusedFwdKernel::SplatRasterizeFusedFwd,
-                kernels::splat::RasterizeFusedFwdKernel::SplatCpuRasterizeFusedFwd,
+                kernels::splat::RasterizeFusedFwdKernel::SplatLavapipeRasterizeFusedFwd,
             )
         };
         rec.dispatch_as(
@@ -171,15 +171,15 @@ impl FusedRenderer {
         let (kernel, grid) = match method {
             Method::FloatAtomics => self.renderer.raster_dispatch(
                 kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdAtomic,
-                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdAtomic,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatLavapipeRasterizeFusedBwdAtomic,
             ),
             Method::CompareAndSwap => self.renderer.raster_dispatch(
                 kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdCas,
-                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdCas,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatLavapipeRasterizeFusedBwdCas,
             ),
             Method::FixedPoint => self.renderer.raster_dispatch(
                 kernels::splat::RasterizeFusedBwdAtomicKernel::SplatRasterizeFusedBwdFixed,
-                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatCpuRasterizeFusedBwdFixed,
+                kernels::splat::RasterizeFusedBwdAtomicKernel::SplatLavapipeRasterizeFusedBwdFixed,
             ),
         };
         let (frame, splats, isect_values, ranges) = self.renderer.binned();

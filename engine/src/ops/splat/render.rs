@@ -427,7 +427,7 @@ impl SplatRenderer {
             RasterVariant::Auto | RasterVariant::Workgroup => Ok(RasterVariant::Workgroup),
             RasterVariant::Subgroup if !subgroup_raster_supported(info) => {
                 Err(EngineError::MissingFeature {
-                    kernel: "splat_cpu::rasterize_fwd",
+                    kernel: "splat_lavapipe::rasterize_fwd",
                     feature: "a CPU device with subgroups of 8 lanes with ballot operations",
                 })
             }
@@ -793,12 +793,12 @@ impl SplatRenderer {
         let (kernel, grid) = if self.half_splats {
             self.raster_dispatch(
                 kernels::splat::RasterizeFwdKernel::SplatRasterizeFwdHalf,
-                kernels::splat::RasterizeFwdKernel::SplatCpuRasterizeFwdHalf,
+                kernels::splat::RasterizeFwdKernel::SplatLavapipeRasterizeFwdHalf,
             )
         } else {
             self.raster_dispatch(
                 kernels::splat::RasterizeFwdKernel::SplatRasterizeFwd,
-                kernels::splat::RasterizeFwdKernel::SplatCpuRasterizeFwd,
+                kernels::splat::RasterizeFwdKernel::SplatLavapipeRasterizeFwd,
             )
         };
         let p = &self.pixels;
@@ -1075,13 +1075,13 @@ impl SplatRenderer {
         let subgroup = self.raster == RasterVariant::Subgroup;
         let kernel = match method {
             Method::FloatAtomics if subgroup => {
-                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdAtomic
+                kernels::splat::RasterizeBwdAtomicKernel::SplatLavapipeRasterizeBwdAtomic
             }
             Method::CompareAndSwap if subgroup => {
-                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdCas
+                kernels::splat::RasterizeBwdAtomicKernel::SplatLavapipeRasterizeBwdCas
             }
             Method::FixedPoint if subgroup => {
-                kernels::splat::RasterizeBwdAtomicKernel::SplatCpuRasterizeBwdFixed
+                kernels::splat::RasterizeBwdAtomicKernel::SplatLavapipeRasterizeBwdFixed
             }
             Method::FloatAtomics => {
                 kernels::splat::RasterizeBwdAtomicKernel::SplatRasterizeBwdAtomic

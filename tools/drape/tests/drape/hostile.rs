@@ -670,6 +670,7 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
     base();
     let next = AtomicUsize::new(0);
     let failures = Mutex::new(Vec::new());
+    let times = Mutex::new(Vec::new());
     let threads = std::thread::available_parallelism()
         .map_or(2, |n| n.get())
         .min(4);
@@ -678,6 +679,7 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(case) = cases.get(i) else { break };
+                let t0 = Instant::now();
                 let r = std::panic::catch_unwind(|| run_case(case)).unwrap_or_else(|p| {
                     Err(format!(
                         "the test's own set-up panicked: {:?}",
@@ -686,6 +688,10 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
                             .or(p.downcast_ref::<&str>().map(|s| s.to_string()))
                     ))
                 });
+                times
+                    .lock()
+                    .unwrap()
+                    .push((t0.elapsed().as_secs_f64(), case.id.as_str()));
                 if let Err(e) = r {
                     failures
                         .lock()
@@ -696,6 +702,14 @@ fn hostile_inputs_fail_in_one_line_and_change_nothing() {
         }
     });
     let failures = failures.into_inner().unwrap();
+    // The slowest cases, set-up included: where the table's time goes.
+    let mut times = times.into_inner().unwrap();
+    times.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let total: f64 = times.iter().map(|t| t.0).sum();
+    eprintln!("hostile cases: {total:.0} s in all; the slowest:");
+    for (secs, id) in times.iter().take(12) {
+        eprintln!("  {secs:6.1} s  {id}");
+    }
     if failures.is_empty() {
         let _ = std::fs::remove_dir_all(root());
     }
