@@ -37,8 +37,8 @@ pub struct VideoInfo {
     pub frames: u64,
     /// Frames per second (the stream's average rate).
     pub fps: f64,
-    /// The display rotation in degrees (0, 90, 180 or 270), as the container holds it;
-    /// ffmpeg applies it when decoding.
+    /// The display rotation in degrees counter-clockwise (0, 90, 180 or 270), as the
+    /// container holds it; ffmpeg applies it when decoding.
     pub rotation: u32,
     pub codec: String,
 }
@@ -127,8 +127,8 @@ fn parse_stream(path: &Path, s: &serde_json::Value) -> anyhow::Result<VideoInfo>
         .or_else(|| rate("r_frame_rate"))
         .unwrap_or(0.0);
     // The display matrix's rotation (ffmpeg 5+: degrees, counter-clockwise positive),
-    // else the older `rotate` tag (degrees clockwise); either way only the quarter
-    // turn matters here: whether width and height swap.
+    // else the older `rotate` tag (degrees clockwise). ffmpeg applies it when decoding;
+    // here it says whether width and height swap, and is reported.
     let side = s["side_data_list"]
         .as_array()
         .into_iter()

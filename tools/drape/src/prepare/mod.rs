@@ -241,13 +241,13 @@ pub fn run(args: &PrepareArgs) -> anyhow::Result<()> {
                 .collect();
             let doc = cameras::document(cal, file, &list);
             let path = out.join("cameras.json");
-            let current = std::fs::read(&path)
-                .ok()
-                .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok());
-            if current.as_ref() == Some(&doc) && !redo(Stage::Cameras) {
+            // Compared as text: the document is written the same way each time (and
+            // serde_json's parser does not promise to round-trip every float).
+            let text = serde_json::to_string_pretty(&doc)? + "\n";
+            if std::fs::read(&path).ok().as_deref() == Some(text.as_bytes()) && !redo(Stage::Cameras) {
                 progress("cameras: cameras.json is up to date (skipped)");
             } else {
-                drape_io::write(&path, serde_json::to_string_pretty(&doc)? + "\n")
+                drape_io::write(&path, text)
                     .with_context(|| format!("{}", path.display()))?;
                 progress(&format!(
                     "cameras: {} cameras from {} ({}) to {}",
