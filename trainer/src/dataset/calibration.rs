@@ -306,7 +306,7 @@ fn child<'a, 'i>(
 
 /// A whole positive number of pixels, at most [`MAX_SIDE`].
 fn pixels(path: &Path, what: &str, v: f64) -> Result<u32, DatasetError> {
-    if !(v >= 1.0 && v <= MAX_SIDE && v.fract() == 0.0) {
+    if !((1.0..=MAX_SIDE).contains(&v) && v.fract() == 0.0) {
         return Err(field(
             path,
             what,
