@@ -1,7 +1,8 @@
 //! `drape`: the product's command line: `demo` (GPU sort checked against the CPU),
 //! `render` (a 3DGS PLY to PNG, .npy or OpenEXR), `fit` (Gaussians fitted to an image),
 //! `body` (the default body as SMPL .npz), `simulate` (garments on a motion), `synth`
-//! (the synthetic data), `inspect` (a sequence's layout and problems), `train` (the
+//! (the synthetic data), `inspect` (a sequence's layout and problems), `prepare` (a
+//! person's videos towards a sequence: frames, cameras, landmarks), `train` (the
 //! avatar), `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic
 //! cloth benchmark), `view` (a real-time viewer of a trained run).
 // `deny`, not `forbid`: `view`'s Vulkan host code (its `device`, `swapchain` and `frame`
@@ -26,6 +27,7 @@ mod fit;
 mod fitting;
 mod image_io;
 mod inspect;
+mod prepare;
 mod render;
 mod train;
 mod view;
@@ -69,6 +71,10 @@ enum Command {
     /// Say which layout and variant a sequence directory is in, its frames, cameras,
     /// image size, masks, parameters and split, and the first problem found.
     Inspect(inspect::InspectArgs),
+    /// From a person's videos (a calibrated rig, or one video) towards a sequence to
+    /// train on: frames (ffmpeg), cameras from the calibration, mediapipe's person masks
+    /// and landmarks; the body fit is not built yet.
+    Prepare(prepare::PrepareArgs),
     /// Train the avatar on a sequence (NeuMan or ZJU-MoCap layout, or `drape synth`
     /// output) and evaluate it on the held-out frames.
     Train(train::TrainArgs),
@@ -141,6 +147,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => body::run_simulate(&args),
         Command::Synth(args) => body::run_synth(&args),
         Command::Inspect(args) => inspect::run(&args),
+        Command::Prepare(args) => prepare::run(&args),
         Command::Train(args) => train::run(&cli.device, &args),
         Command::Eval(args) => eval::run(&cli.device, &args),
         Command::Animate(args) => animate::run(&cli.device, &args),

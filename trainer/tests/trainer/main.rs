@@ -3,6 +3,7 @@
 //! independent Python references (PyTorch, OpenCV, scikit-image, numpy).
 
 mod body;
+mod calibration;
 mod cloth;
 mod composite;
 mod config_layout;

@@ -7,6 +7,7 @@ mod fixtures;
 mod hostile;
 mod inspect_cli;
 mod motion_cli;
+mod prepare_cli;
 mod render_fit;
 mod render_formats;
 mod train_cli;
