@@ -12,7 +12,7 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use serde_json::json;
 
-use super::{progress, read_stamp, View};
+use super::{commit_stage, progress, read_stamp, View};
 
 const SCRIPT: &str = "tools/drape/python/landmarks.py";
 const ENV_SCRIPT: &str = "scripts/prepare-env.sh";
@@ -150,13 +150,7 @@ pub fn stage(
             &format!("landmarks: {}: ", view.name),
             &format!("{SCRIPT} on {}", view.name),
         )?;
-        drape_io::write(
-            staged.path().join("stage.json"),
-            serde_json::to_string_pretty(&key)? + "\n",
-        )?;
-        staged
-            .commit()
-            .with_context(|| format!("{}", dir.display()))?;
+        commit_stage(staged, &dir, &key)?;
         progress(&format!(
             "landmarks: {}: written to {} in {:.1} s",
             view.name,

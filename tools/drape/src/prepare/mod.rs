@@ -345,6 +345,23 @@ fn read_stamp(dir: &Path) -> Option<serde_json::Value> {
     serde_json::from_slice::<serde_json::Value>(&bytes).ok()
 }
 
+/// Writes a stage's stamp (`stage.json`, the inputs that made it) into its staged
+/// directory and commits the directory whole: what [`read_stamp`] compares on a rerun.
+fn commit_stage(
+    staged: drape_io::StagedDir,
+    dir: &Path,
+    key: &serde_json::Value,
+) -> anyhow::Result<()> {
+    drape_io::write(
+        staged.path().join("stage.json"),
+        serde_json::to_string_pretty(key)? + "\n",
+    )?;
+    staged
+        .commit()
+        .with_context(|| format!("{}", dir.display()))?;
+    Ok(())
+}
+
 /// The frames of one view: skipped when `frames/<name>/stage.json` matches.
 fn frames_stage(
     out: &Path,
@@ -383,13 +400,7 @@ fn frames_stage(
     let t0 = Instant::now();
     let staged = drape_io::StagedDir::new(&dir).with_context(|| format!("{}", dir.display()))?;
     let written = frames::decode(&view.video, selection, view.size, staged.path())?;
-    drape_io::write(
-        staged.path().join("stage.json"),
-        serde_json::to_string_pretty(&key)? + "\n",
-    )?;
-    staged
-        .commit()
-        .with_context(|| format!("{}", dir.display()))?;
+    commit_stage(staged, &dir, &key)?;
     progress(&format!(
         "frames: {}: {} frames ({}..{}) at {}x{} to {} in {:.1} s",
         view.name,
