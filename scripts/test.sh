@@ -104,6 +104,9 @@ target/debug/drape train --data "$test_run/synth" --out "$test_run/run" --config
 DRAPE_TEST_RUN="$PWD/$test_run/run"
 export DRAPE_TEST_RUN
 cargo test --workspace --locked
+# The script a lent GPU runs (scripts/gpu-check.sh), on lavapipe at tiny sizes with this
+# build's binaries and the shared run, so that it cannot rot between GPU sessions.
+scripts/gpu-check.sh --short --out target/gpu-check-short 2>&1 | grep '^gpu-check:'
 
 step "5/5 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
 # The filters pick the modules of the two GPU test binaries (engine: tests/tests/engine,

@@ -98,6 +98,15 @@ impl DeviceKind {
     }
 }
 
+/// Device memory held by the engine's allocator ([`Context::memory_in_use`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MemoryInUse {
+    /// Bytes of live allocations.
+    pub allocated_bytes: u64,
+    /// Bytes of the memory blocks the allocations are carved from.
+    pub reserved_bytes: u64,
+}
+
 /// What the chosen device is and can do.
 #[derive(Clone, Debug)]
 pub struct DeviceInfo {
@@ -492,6 +501,23 @@ impl Context {
         self.device
             .fence_waits
             .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Device memory the engine holds now, from its allocator: what its live buffers and
+    /// images use, and the memory blocks it reserved for them (allocations are carved
+    /// from blocks, so `reserved_bytes >= allocated_bytes`). For reports such as "the
+    /// GPU memory an avatar takes": the difference of two readings around a load.
+    pub fn memory_in_use(&self) -> MemoryInUse {
+        let report = self
+            .device
+            .allocator
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .generate_report();
+        MemoryInUse {
+            allocated_bytes: report.total_allocated_bytes,
+            reserved_bytes: report.total_capacity_bytes,
+        }
     }
 
     /// Whether the engine created the device ([`Context::new`]) or borrows the host's

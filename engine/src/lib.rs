@@ -35,7 +35,7 @@ pub mod validation;
 
 pub use bindings::{Bindings, Read, Texel, Write};
 pub use buffer::{Buffer, BufferDesc};
-pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, POISON_WORD};
+pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, MemoryInUse, POISON_WORD};
 pub use error::{EngineError, Result};
 pub use external::{
     device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan,

@@ -210,7 +210,9 @@ fn frames_in_flight(
     use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
     let mut rows = Vec::new();
     for &k in &args.in_flight {
+        let before = ctx.memory_in_use();
         let mut player = AvatarPlayer::load(ctx, &args.run, k as usize)?;
+        let loaded = ctx.memory_in_use();
         let c = player.default_camera();
         let (sx, sy) = (
             f64::from(w) / f64::from(c.width),
@@ -228,6 +230,9 @@ fn frames_in_flight(
             player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
         }
         player.wait_idle()?;
+        // What an app that embeds the avatar holds on the device: the player's weights
+        // and Gaussians, then with its frames' buffers grown to this size.
+        let warm = ctx.memory_in_use();
         let (waits, t0) = (ctx.fence_waits(), Instant::now());
         for _ in 0..args.flight_frames {
             player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
@@ -242,6 +247,8 @@ fn frames_in_flight(
             "ms_per_frame": 1e3 * seconds / f64::from(args.flight_frames),
             "fence_waits_while_submitting": waits_in_loop,
             "overflowed_frames": player.overflowed_frames(),
+            "device_memory_loaded_bytes": loaded.allocated_bytes.saturating_sub(before.allocated_bytes),
+            "device_memory_with_frames_bytes": warm.allocated_bytes.saturating_sub(before.allocated_bytes),
         }));
     }
     Ok(json!({ "width": w, "height": h, "settings": rows }))
@@ -418,10 +425,11 @@ pub fn print_table(r: &serde_json::Value) {
         .flatten()
         .map(|s| {
             format!(
-                "{} in flight {:.2} FPS ({} waits)",
+                "{} in flight {:.2} FPS ({} waits, {:.1} MiB on the device)",
                 s["frames_in_flight"],
                 s["fps"].as_f64().unwrap_or(0.0),
-                s["fence_waits_while_submitting"]
+                s["fence_waits_while_submitting"],
+                s["device_memory_with_frames_bytes"].as_f64().unwrap_or(0.0) / (1024.0 * 1024.0)
             )
         })
         .collect();
