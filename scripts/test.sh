@@ -106,7 +106,12 @@ export DRAPE_TEST_RUN
 cargo test --workspace --locked
 # The script a lent GPU runs (scripts/gpu-check.sh), on lavapipe at tiny sizes with this
 # build's binaries and the shared run, so that it cannot rot between GPU sessions.
-scripts/gpu-check.sh --short --out target/gpu-check-short 2>&1 | grep '^gpu-check:'
+if ! scripts/gpu-check.sh --short --out target/gpu-check-short >target/gpu-check-short.log 2>&1; then
+    cat target/gpu-check-short.log >&2
+    echo "test: scripts/gpu-check.sh --short failed (its log above)" >&2
+    exit 1
+fi
+tail -1 target/gpu-check-short.log
 
 step "5/5 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
 # The filters pick the modules of the two GPU test binaries (engine: tests/tests/engine,
