@@ -191,32 +191,22 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
-        // A submission that was leaked (`mem::forget`) instead of waited may still read
-        // this buffer: its fence is still registered with the device.
-        if !self.private_to_recording {
-            self.device.wait_for_pending();
-        }
-        // SAFETY: no submission of the engine's that may use the buffer is pending (just
-        // waited for); work in the host's command buffers is the host's to finish first
-        // (`HostCommandBuffer::new`'s contract). The views go first.
-        unsafe {
-            if let Some(&view) = self.texel_view.get() {
-                self.device.raw.destroy_buffer_view(view, None);
-            }
-            if let Some(&view) = self.texel4_view.get() {
-                self.device.raw.destroy_buffer_view(view, None);
-            }
-            self.device.raw.destroy_buffer(self.raw, None)
+        let freed = crate::retire::DeferredBuffer {
+            raw: self.raw,
+            views: [
+                self.texel_view.get().copied(),
+                self.texel4_view.get().copied(),
+            ],
+            allocation: self.allocation.take(),
+            name: std::mem::take(&mut self.name),
         };
-        if let Some(a) = self.allocation.take() {
-            let mut alloc = self
-                .device
-                .allocator
-                .lock()
-                .unwrap_or_else(|p| p.into_inner());
-            if let Err(e) = alloc.free(a) {
-                log::error!("freeing buffer '{}': {e}", self.name);
-            }
+        if self.private_to_recording {
+            // SAFETY: used by one recording only, which has completed (see the field).
+            unsafe { freed.destroy(&self.device.raw, &self.device.allocator) };
+        } else {
+            // Submissions still pending (leaked, or frames in flight) may read it: freed
+            // once they finish, without waiting for them here (`crate::retire`).
+            self.device.free_buffer(freed);
         }
     }
 }

@@ -107,6 +107,15 @@ pub struct MemoryInUse {
     pub reserved_bytes: u64,
 }
 
+/// Buffers whose destruction waited for pending work ([`Context::deferred_buffers`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DeferredBuffers {
+    /// Dropped, not yet destroyed: their submissions are still pending.
+    pub waiting: usize,
+    /// Deferred since the context was made.
+    pub total: u64,
+}
+
 /// What the chosen device is and can do.
 #[derive(Clone, Debug)]
 pub struct DeviceInfo {
@@ -187,9 +196,9 @@ pub struct Device {
     /// Fence waits so far (see [`Context::fence_waits`]).
     pub(crate) fence_waits: std::sync::atomic::AtomicU64,
     /// Fences of submissions not yet waited for ([`crate::Submission`] registers its
-    /// fence at submission and removes it when it waits): a buffer waits for them before
-    /// it is freed, so a leaked submission cannot have its buffers freed under it.
-    pub(crate) pending_fences: Mutex<Vec<vk::Fence>>,
+    /// fence at submission and removes it when it waits), and the buffers dropped while
+    /// they may still use them (`crate::retire`).
+    pub(crate) pending: Mutex<crate::retire::PendingWork>,
     /// False for a context over the host's handles ([`Context::from_raw`]): the engine
     /// destroys only what it created, never the device or the instance.
     pub(crate) owns_device: bool,
@@ -360,7 +369,7 @@ impl Context {
             profile: Mutex::new(None),
             submissions: std::sync::atomic::AtomicU64::new(0),
             fence_waits: std::sync::atomic::AtomicU64::new(0),
-            pending_fences: Mutex::new(Vec::new()),
+            pending: Mutex::new(Default::default()),
             owns_device: true,
             recycled_pools: Mutex::new(Vec::new()),
             command_pools_created: std::sync::atomic::AtomicU64::new(0),
@@ -517,6 +526,22 @@ impl Context {
         MemoryInUse {
             allocated_bytes: report.total_allocated_bytes,
             reserved_bytes: report.total_capacity_bytes,
+        }
+    }
+
+    /// Buffers dropped while submissions were pending, whose destruction waits for them
+    /// (`retire` in the engine's source): how many wait now, and how many have so far.
+    /// A frame loop that drops buffers while frames are in flight defers them instead
+    /// of waiting ([`Context::fence_waits`] does not grow); the count now stays bounded.
+    pub fn deferred_buffers(&self) -> DeferredBuffers {
+        let pending = self
+            .device
+            .pending
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        DeferredBuffers {
+            waiting: pending.deferred_now(),
+            total: pending.deferred_total(),
         }
     }
 
@@ -834,34 +859,45 @@ pub(crate) fn describe(instance: &ash::Instance, c: &Candidate, enabled: Enabled
 }
 
 impl Device {
-    /// Waits for every registered submission fence (none, unless submissions are in
-    /// flight or were leaked); counted as one fence wait when there are any.
-    pub(crate) fn wait_for_pending(&self) {
-        // Held while waiting: a submission removes its fence under this lock before it
-        // destroys it, so none is destroyed while waited on here.
-        let fences = self
-            .pending_fences
-            .lock()
-            .unwrap_or_else(|p| p.into_inner());
-        if fences.is_empty() {
-            return;
+    /// Frees the deferred buffers whose submissions have finished (a poll, no wait).
+    pub(crate) fn retire_finished(&self) {
+        let done = {
+            let mut pending = self.pending.lock().unwrap_or_else(|p| p.into_inner());
+            // SAFETY: registered fences are live fences of this device: a submission
+            // removes its fence under this lock before it destroys it.
+            unsafe { pending.take_finished(&self.raw) }
+        };
+        for b in done {
+            // SAFETY: every submission pending at the buffer's drop has finished.
+            unsafe { b.destroy(&self.raw, &self.allocator) };
         }
-        self.fence_waits
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        // SAFETY: registered fences are live fences of this device (see above).
-        let _ = unsafe { self.raw.wait_for_fences(&fences, true, u64::MAX) };
+    }
+
+    /// A dropped buffer's objects: destroyed now when no submission is pending, else
+    /// deferred until those pending now have finished (no wait either way).
+    pub(crate) fn free_buffer(&self, buffer: crate::retire::DeferredBuffer) {
+        let now = self
+            .pending
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .defer(buffer);
+        match now {
+            // SAFETY: no engine submission is pending, so none uses it; work in the
+            // host's command buffers is the host's to finish first (`HostCommandBuffer`).
+            Some(b) => unsafe { b.destroy(&self.raw, &self.allocator) },
+            None => self.retire_finished(),
+        }
     }
 }
 
 impl Drop for Device {
     fn drop(&mut self) {
-        // Fences of leaked submissions: wait for their work, then destroy them.
-        let leaked = std::mem::take(
-            &mut *self
-                .pending_fences
-                .lock()
-                .unwrap_or_else(|p| p.into_inner()),
-        );
+        // Fences of leaked submissions: wait for their work, then destroy them, and the
+        // buffers deferred behind them.
+        let (leaked, deferred) = {
+            let mut pending = self.pending.lock().unwrap_or_else(|p| p.into_inner());
+            (pending.take_fences(), pending.take_deferred())
+        };
         if !leaked.is_empty() {
             // SAFETY: live fences of this device, destroyed once after their work ended.
             unsafe {
@@ -870,6 +906,10 @@ impl Drop for Device {
                     self.raw.destroy_fence(f, None);
                 }
             }
+        }
+        for b in deferred {
+            // SAFETY: every engine submission has finished (waited just above).
+            unsafe { b.destroy(&self.raw, &self.allocator) };
         }
         if self.owns_device {
             // SAFETY: the device is valid; nothing else uses it (we are its last owner).

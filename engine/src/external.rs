@@ -272,7 +272,7 @@ impl Context {
             command_pools_created: Default::default(),
             submissions: Default::default(),
             fence_waits: Default::default(),
-            pending_fences: Mutex::new(Vec::new()),
+            pending: Mutex::new(Default::default()),
             owns_device: false,
             _entry: entry,
         };

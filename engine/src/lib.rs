@@ -30,12 +30,15 @@ pub mod mirror;
 pub mod ops;
 pub mod profile;
 pub mod recorder;
+mod retire;
 pub mod submit;
 pub mod validation;
 
 pub use bindings::{Bindings, Read, Texel, Write};
 pub use buffer::{Buffer, BufferDesc};
-pub use context::{Context, ContextDesc, DeviceInfo, DeviceKind, MemoryInUse, POISON_WORD};
+pub use context::{
+    Context, ContextDesc, DeferredBuffers, DeviceInfo, DeviceKind, MemoryInUse, POISON_WORD,
+};
 pub use error::{EngineError, Result};
 pub use external::{
     device_requirements, DeviceFeatures, DeviceRequirements, ExternalOptions, ExternalVulkan,

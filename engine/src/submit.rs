@@ -69,8 +69,8 @@ pub struct SubmitSync {
 /// A submitted recording: [`wait`](Submission::wait) for it (one fence wait, counted by
 /// [`crate::Context::fence_waits`]) or poll it with [`is_complete`](Submission::is_complete).
 /// The buffers the recording bound stay borrowed until it is waited or dropped; dropping
-/// it without a wait waits. Leaking it (`mem::forget`) leaks its pools and fence, and
-/// every buffer of the context then waits for the work before it is freed.
+/// it without a wait waits. Leaking it (`mem::forget`) leaks its pools and fence; buffers
+/// dropped while its work may run are destroyed after it finishes, without a wait.
 #[must_use = "dropping a submission waits for it"]
 pub struct Submission<'a> {
     rec: Option<Recording<'a>>,
@@ -121,13 +121,13 @@ impl<'a> Recording<'a> {
             unsafe { dev.destroy_fence(fence, None) };
             return Err(crate::error::vk_error("vkQueueSubmit", &label, e));
         }
-        // Registered with the device, so that a leaked Submission's buffers still wait
-        // for it before they are freed (Buffer's Drop).
+        // Registered with the device, so that buffers dropped while it runs (a leaked
+        // Submission's, a frame in flight's) are freed only after it (`crate::retire`).
         ctx.device
-            .pending_fences
+            .pending
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .push(fence);
+            .register(fence);
         Ok(Submission {
             rec: Some(self),
             fence,
@@ -234,17 +234,14 @@ impl<'a> Submission<'a> {
             ));
         }
         {
-            let mut pending = ctx
-                .device
-                .pending_fences
-                .lock()
-                .unwrap_or_else(|p| p.into_inner());
-            pending.retain(|&f| f != self.fence);
+            let mut pending = ctx.device.pending.lock().unwrap_or_else(|p| p.into_inner());
+            pending.unregister(self.fence);
             // SAFETY: signalled, or the device is lost; either way it is unused now, and
-            // no longer registered (removed under the lock wait_for_pending holds).
+            // no longer registered (removed under the lock retire_finished polls under).
             unsafe { dev.destroy_fence(self.fence, None) };
         }
         self.fence = vk::Fence::null();
+        ctx.device.retire_finished();
         match waited {
             Ok(()) => rec.completed(self.started.elapsed().as_secs_f64() * 1e3),
             Err(vk::Result::ERROR_DEVICE_LOST) => Err(EngineError::DeviceLost {
