@@ -103,8 +103,8 @@ def main():
         f"## Avatar (`{pathlib.Path(need(avatar, 'run', 'avatar.json')).name}`, "
         f"Gaussians {need(avatar, 'gaussians', 'avatar.json')})",
         "",
-        "| size | compositing | frame ms | FPS | decoders | skinning | projection | sorts | raster | composite |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| size | compositing | frame ms | FPS | dispatches | barriers | decoders | skinning | projection | sorts | raster | composite |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in need(avatar, "render", "avatar.json"):
         w = "avatar.json render[]"
@@ -113,6 +113,7 @@ def main():
         md.append(
             f"| {r['width']}x{r['height']} | {need(r, 'compositing', w)} "
             f"| {ms(need(r, 'frame_median_ms', w))} | {need(r, 'fps', w):.1f} "
+            f"| {need(r, 'dispatches_per_frame', w)} | {need(r, 'barriers_per_frame', w)} "
             f"| {stage('decoders')} | {stage('skinning')} | {stage('projection')} "
             f"| {stage('sorts', 'binning and sorts')} | {stage('rasterization')} | {stage('composite')} |"
         )

@@ -107,6 +107,25 @@ pub struct MemoryInUse {
     pub reserved_bytes: u64,
 }
 
+/// Dispatches and barriers recorded so far ([`Context::recorded_work`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct RecordedWork {
+    /// `vkCmdDispatch` calls (dispatches of empty grids are skipped, so not counted).
+    pub dispatches: u64,
+    /// `vkCmdPipelineBarrier` calls.
+    pub barriers: u64,
+}
+
+impl std::ops::Sub for RecordedWork {
+    type Output = RecordedWork;
+    fn sub(self, earlier: RecordedWork) -> RecordedWork {
+        RecordedWork {
+            dispatches: self.dispatches - earlier.dispatches,
+            barriers: self.barriers - earlier.barriers,
+        }
+    }
+}
+
 /// Buffers whose destruction waited for pending work ([`Context::deferred_buffers`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeferredBuffers {
@@ -195,6 +214,9 @@ pub struct Device {
     pub(crate) submissions: std::sync::atomic::AtomicU64,
     /// Fence waits so far (see [`Context::fence_waits`]).
     pub(crate) fence_waits: std::sync::atomic::AtomicU64,
+    /// Dispatches and pipeline barriers recorded so far ([`Context::recorded_work`]).
+    pub(crate) dispatches: std::sync::atomic::AtomicU64,
+    pub(crate) barriers: std::sync::atomic::AtomicU64,
     /// Fences of submissions not yet waited for ([`crate::Submission`] registers its
     /// fence at submission and removes it when it waits), and the buffers dropped while
     /// they may still use them (`crate::retire`).
@@ -369,6 +391,8 @@ impl Context {
             profile: Mutex::new(None),
             submissions: std::sync::atomic::AtomicU64::new(0),
             fence_waits: std::sync::atomic::AtomicU64::new(0),
+            dispatches: std::sync::atomic::AtomicU64::new(0),
+            barriers: std::sync::atomic::AtomicU64::new(0),
             pending: Mutex::new(Default::default()),
             owns_device: true,
             recycled_pools: Mutex::new(Vec::new()),
@@ -526,6 +550,18 @@ impl Context {
         MemoryInUse {
             allocated_bytes: report.total_allocated_bytes,
             reserved_bytes: report.total_capacity_bytes,
+        }
+    }
+
+    /// Compute dispatches and pipeline barriers recorded on this device so far (into the
+    /// engine's command buffers or the host's): the difference of two readings around a
+    /// frame is the frame's work as the GPU's front end sees it, which a launch-bound
+    /// frame is made of.
+    pub fn recorded_work(&self) -> RecordedWork {
+        let relaxed = std::sync::atomic::Ordering::Relaxed;
+        RecordedWork {
+            dispatches: self.device.dispatches.load(relaxed),
+            barriers: self.device.barriers.load(relaxed),
         }
     }
 

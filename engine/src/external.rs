@@ -272,6 +272,8 @@ impl Context {
             command_pools_created: Default::default(),
             submissions: Default::default(),
             fence_waits: Default::default(),
+            dispatches: Default::default(),
+            barriers: Default::default(),
             pending: Mutex::new(Default::default()),
             owns_device: false,
             _entry: entry,

@@ -37,7 +37,8 @@ pub mod validation;
 pub use bindings::{Bindings, Read, Texel, Write};
 pub use buffer::{Buffer, BufferDesc};
 pub use context::{
-    Context, ContextDesc, DeferredBuffers, DeviceInfo, DeviceKind, MemoryInUse, POISON_WORD,
+    Context, ContextDesc, DeferredBuffers, DeviceInfo, DeviceKind, MemoryInUse, RecordedWork,
+    POISON_WORD,
 };
 pub use error::{EngineError, Result};
 pub use external::{

@@ -158,8 +158,10 @@ fn render_variant(
     // Each stage's and GPU scope's times, one per timed run.
     let mut stages: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut scopes: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    let mut work = drape_engine::RecordedWork::default();
     for timed in crate::schedule::Runs::new(args.warmup, args.runs) {
         ctx.start_profile();
+        let work_before = ctx.recorded_work();
         let t0 = Instant::now();
         // A viewer poses the avatar every frame: the decoders and skinning run each time.
         run.avatar.set_frame(ctx, &transforms)?;
@@ -170,6 +172,7 @@ fn render_variant(
         }
         renderer.forward(ctx, &run.avatar, &pinhole, &settings)?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
+        work = ctx.recorded_work() - work_before;
         let profile = ctx.take_profile().unwrap_or_default();
         if !timed {
             continue;
@@ -191,6 +194,9 @@ fn render_variant(
         "passes_rendered": if renderer.is_three_pass() && !renderer.is_fused() { 3 } else { 1 },
         "frame_median_ms": frame_ms,
         "fps": 1e3 / frame_ms,
+        // The same every frame (the recordings do not depend on the data).
+        "dispatches_per_frame": work.dispatches,
+        "barriers_per_frame": work.barriers,
         "stages_gpu_ms": stages,
         // Per layer (its decoders and skinning) and per render of the composite.
         "scopes_gpu_ms": scopes.into_iter().map(|(k, v)| (k, median(&v))).collect::<BTreeMap<_, _>>(),
@@ -233,11 +239,12 @@ fn frames_in_flight(
         // What an app that embeds the avatar holds on the device: the player's weights
         // and Gaussians, then with its frames' buffers grown to this size.
         let warm = ctx.memory_in_use();
-        let (waits, t0) = (ctx.fence_waits(), Instant::now());
+        let (waits, work, t0) = (ctx.fence_waits(), ctx.recorded_work(), Instant::now());
         for _ in 0..args.flight_frames {
             player.submit_frame(&cam, w, h, &SubmitSync::default(), None)?;
         }
         let waits_in_loop = ctx.fence_waits() - waits;
+        let work = ctx.recorded_work() - work;
         player.wait_idle()?;
         let seconds = t0.elapsed().as_secs_f64();
         rows.push(json!({
@@ -246,6 +253,8 @@ fn frames_in_flight(
             "fps": f64::from(args.flight_frames) / seconds.max(1e-9),
             "ms_per_frame": 1e3 * seconds / f64::from(args.flight_frames),
             "fence_waits_while_submitting": waits_in_loop,
+            "dispatches_per_frame": work.dispatches as f64 / f64::from(args.flight_frames),
+            "barriers_per_frame": work.barriers as f64 / f64::from(args.flight_frames),
             "overflowed_frames": player.overflowed_frames(),
             "device_memory_loaded_bytes": loaded.allocated_bytes.saturating_sub(before.allocated_bytes),
             "device_memory_with_frames_bytes": warm.allocated_bytes.saturating_sub(before.allocated_bytes),
@@ -409,12 +418,14 @@ pub fn print_table(r: &serde_json::Value) {
             .map(|(k, v)| format!("{k} {:.1}", v.as_f64().unwrap_or(0.0)))
             .collect();
         println!(
-            "  {}x{} {:<22} {:>9.1} ms {:>6.2} FPS | GPU ms: {}",
+            "  {}x{} {:<22} {:>9.1} ms {:>6.2} FPS | {} dispatches, {} barriers | GPU ms: {}",
             c["width"],
             c["height"],
             c["compositing"].as_str().unwrap_or("?"),
             c["frame_median_ms"].as_f64().unwrap_or(0.0),
             c["fps"].as_f64().unwrap_or(0.0),
+            c["dispatches_per_frame"],
+            c["barriers_per_frame"],
             stages.join(", ")
         );
     }

@@ -561,6 +561,16 @@ fn huge_counts_and_non_finite_plys_are_refused_in_one_line() {
     );
 }
 
+/// A three-pass frame of the tiny run at 32x32 (decoders, skinning, three renders, the
+/// composite), as `engine-bench avatar` counted it on lavapipe at `d2709f9`: the
+/// benchmark's frame (pose, then render: two recordings) and the library's (one). A
+/// change that merges passes lowers these; one that adds launches to a frame fails here
+/// until it says so by raising them.
+const FRAME_DISPATCHES_AT_MOST: u64 = 102;
+const FRAME_BARRIERS_AT_MOST: u64 = 40;
+const PLAYER_DISPATCHES_AT_MOST: f64 = 103.0;
+const PLAYER_BARRIERS_AT_MOST: f64 = 39.0;
+
 #[test]
 fn avatar_compares_one_two_and_three_frames_in_flight_in_one_run() {
     let run = tiny_run();
@@ -587,7 +597,21 @@ fn avatar_compares_one_two_and_three_frames_in_flight_in_one_run() {
         .as_array()
         .expect("frames_in_flight settings");
     assert_eq!(settings.len(), 3, "{j}");
+    let frame = &j["render"][0];
+    let counted = |v: &serde_json::Value, key: &str| v[key].as_f64().expect(key);
+    assert!(
+        counted(frame, "dispatches_per_frame") <= FRAME_DISPATCHES_AT_MOST as f64
+            && counted(frame, "barriers_per_frame") <= FRAME_BARRIERS_AT_MOST as f64,
+        "a frame's launches grew past {FRAME_DISPATCHES_AT_MOST} dispatches / \
+         {FRAME_BARRIERS_AT_MOST} barriers: {frame}"
+    );
     for (s, k) in settings.iter().zip(1u64..) {
+        assert!(
+            counted(s, "dispatches_per_frame") <= PLAYER_DISPATCHES_AT_MOST
+                && counted(s, "barriers_per_frame") <= PLAYER_BARRIERS_AT_MOST,
+            "the library frame's launches grew past {PLAYER_DISPATCHES_AT_MOST} dispatches / \
+             {PLAYER_BARRIERS_AT_MOST} barriers: {s}"
+        );
         assert_eq!(s["frames_in_flight"].as_u64(), Some(k), "{s}");
         assert!(s["fps"].as_f64().is_some_and(|f| f > 0.0), "{s}");
         // Frame i waits for frame i - k only: N - k waits while submitting N frames.
