@@ -57,9 +57,11 @@ if [ "$mode" = prepare ]; then
     cargo build --release --locked -p drape -p engine-bench
     rm -rf "$stage"
     mkdir -p "$stage/bin" "$stage/gl"
+    # Stripped and gzipped: the repository and this folder travel within 64 MiB.
     for b in drape engine-bench; do
         cp "target/release/$b" "$stage/bin/"
         strip "$stage/bin/$b"
+        gzip -9 "$stage/bin/$b"
     done
     "$stage/bin/drape" synth --out "$stage/synth" --size 256 --frames 8 --cameras 3 >/dev/null
     DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}" "$stage/bin/drape" train --data "$stage/synth" \
@@ -87,13 +89,17 @@ if [ "$mode" = short ]; then
     train=(--preset quick --config tests/fixtures/tiny-run.toml --steps 3)
     commit="$(git rev-parse --short HEAD 2>/dev/null || echo unknown)"
 else
-    bin="$stage/bin"
     run="$stage/run"
     data="$stage/synth"
-    [ -x "$bin/engine-bench" ] || {
-        echo "gpu-check: $bin/engine-bench is missing: run scripts/gpu-check.sh --prepare here and carry $stage" >&2
+    [ -f "$stage/bin/engine-bench.gz" ] || {
+        echo "gpu-check: $stage/bin/engine-bench.gz is missing: run scripts/gpu-check.sh --prepare here and carry $stage" >&2
         exit 1
     }
+    bin="$(mktemp -d)"
+    for b in drape engine-bench; do
+        gzip -dc "$stage/bin/$b.gz" >"$bin/$b"
+        chmod +x "$bin/$b"
+    done
     if ! ldconfig -p | grep -q libvulkan.so.1; then
         for f in "$stage"/gl/*.deb; do dpkg -x "$f" /; done
         ldconfig
