@@ -442,6 +442,31 @@ impl<T: 'static> FramesInFlight<T> {
         self.next = i;
     }
 
+    /// Gives up slot `i`'s frame recorded into the host's command buffer that the host
+    /// will not submit (it failed to acquire an image, say, and resets or frees that
+    /// command buffer instead): the recording's pools return to the context without its
+    /// timestamps being read, which would wait for work that never runs. The host must
+    /// not submit that command buffer afterwards. An engine frame in the slot was
+    /// submitted already: it is waited for, as usual. Returns whether a host frame was
+    /// given up.
+    pub fn abandon(&mut self, i: usize) -> Result<bool> {
+        assert!(i < self.slots.len(), "slot {i} of {}", self.slots.len());
+        let slot = &mut self.slots[i];
+        slot.last_timings = None;
+        match slot.pending.take() {
+            // Dropping it returns its pools, as after a completed host frame.
+            Some(Pending::Host(host)) => {
+                drop(host);
+                Ok(true)
+            }
+            Some(engine) => {
+                slot.last_timings = Some(engine.finish()?);
+                Ok(false)
+            }
+            None => Ok(false),
+        }
+    }
+
     /// Whether slot `i` has a frame in flight.
     pub fn is_pending(&self, i: usize) -> bool {
         self.slots[i].pending.is_some()

@@ -6,7 +6,7 @@
 //! up as a validation message (and fails the test that caused it).
 
 use drape_engine::kernels::{self, check_module, Kernel};
-use drape_engine::{Buffer, BufferDesc, EngineError, PassTimings};
+use drape_engine::{Buffer, BufferDesc, Context, EngineError, PassTimings};
 use drape_shared::adam::LossParams;
 use drape_shared::nn::GemmParams;
 use drape_tests::gpu;
@@ -821,4 +821,58 @@ fn submit_returns_a_submission_to_poll_and_wait() {
     let _ = s.is_complete().expect("poll");
     let timings = s.wait().expect("wait");
     assert_eq!(timings.passes.len(), 1);
+}
+
+/// A frame recorded into the host's command buffer that the host then does not submit
+/// (it could not present, say, and frees that command buffer) is given up with
+/// `FramesInFlight::abandon`: the slot records again at once, without waiting for
+/// timestamps that will never be written, and the abandoned frame's work never runs.
+#[test]
+fn a_host_frame_never_submitted_can_be_abandoned() {
+    use drape_engine::{FramesInFlight, HostCommandBuffer, Recording, SubmitSync};
+    fn add<'r>(
+        ctx: &Context,
+        (a, b): &'r mut (Buffer, Buffer),
+    ) -> drape_engine::Result<Recording<'r>> {
+        let mut rec = ctx.record("frame")?;
+        let pass = kernels::train::AddInto {
+            src: a.read(),
+            dst: b.write(),
+        };
+        rec.dispatch("add", pass, &params(), groups())?;
+        Ok(rec)
+    }
+    let host = drape_tests::host::Host::new(false);
+    {
+        let ctx = host.context();
+        let a = ctx.upload("a", &[1.0f32; LEN as usize]).expect("upload");
+        let b = ctx.upload("b", &[2.0f32; LEN as usize]).expect("upload");
+        let mut frames = FramesInFlight::new(vec![(a, b)]);
+        let cmd = host.begin();
+        // SAFETY: a primary command buffer of the host's device in the recording state;
+        // it is freed below without being submitted, and the frame is abandoned.
+        let hcb = unsafe { HostCommandBuffer::new(cmd, None) };
+        frames
+            .record_into(&hcb, |slot| add(&ctx, slot))
+            .expect("record into");
+        // SAFETY: never submitted, so not pending; the host's pool made it.
+        unsafe { host.device.free_command_buffers(host.pool, &[cmd]) };
+        assert!(
+            frames.abandon(0).expect("abandon"),
+            "slot 0 held a host frame"
+        );
+        assert!(!frames.is_pending(0));
+        frames
+            .submit(&SubmitSync::default(), |slot| add(&ctx, slot))
+            .expect("the slot's next frame");
+        let (_, (_, b), _) = frames.next_slot().expect("wait for it");
+        let sums: Vec<f32> = ctx.read_buffer(b, LEN as usize).expect("read");
+        assert!(
+            sums.iter().all(|&s| s == 3.0),
+            "one add ran (2 + 1), the abandoned one did not: {:?}",
+            &sums[..4]
+        );
+    }
+    let messages = host.finish();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }
