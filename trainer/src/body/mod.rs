@@ -2,6 +2,7 @@
 //! procedural body in that format, posing (forward kinematics and linear blend
 //! skinning), and Gaussians initialised from a skinned mesh (`gaussians`).
 
+pub mod fit;
 pub mod gaussians;
 pub mod kinematics;
 pub mod model;

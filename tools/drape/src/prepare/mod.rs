@@ -1,7 +1,7 @@
 //! `drape prepare VIDEO... --out DIR`: from a person's videos to a sequence drape
 //! trains on, in stages whose outputs a user can look at and rerun from (issue 55).
-//! Built so far: the first three stages; the body fit and the dataset writing are not,
-//! and the command says so when it reaches them (an error, so that no script takes
+//! Built so far: the first four stages; the dataset writing is not, and the command
+//! says so when it reaches it (an error, so that no script takes
 //! `DIR` for a finished sequence).
 //!
 //! Stages, in order, each writing under `DIR`:
@@ -18,6 +18,10 @@
 //!    `detected.npy`, `frames.txt`: `tools/drape/python/landmarks.py`'s outputs), run in
 //!    the environment `scripts/prepare-env.sh` makes once (mediapipe 0.10.21 under
 //!    `target/prepare-venv`, or `$DRAPE_PREPARE_VENV`).
+//! 4. `body`: the landmarks triangulated across the calibrated views and drape's
+//!    SMPL-format body (with limb lengths) fitted to them, `body/` (`landmarks3d.npy`,
+//!    `smpl_params.npz`, `body_model.npz`, `report.json`: [`body`]). Needs
+//!    `cameras.json` and two views or more.
 //!
 //! Inputs are all checked before anything is written (the calibration read and
 //! matched, every video probed): a bad one is one `error:` line naming the file, and
@@ -30,9 +34,11 @@
 //! rerun skips a stage whose stamp matches its inputs; `--redo STAGE` runs that stage
 //! and those after it again; `--until STAGE` stops after it. Progress goes to stderr.
 
+mod body;
 mod cameras;
 mod frames;
 mod landmarks;
+mod triangulate;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -50,6 +56,7 @@ pub enum Stage {
     Frames,
     Cameras,
     Landmarks,
+    Body,
 }
 
 impl Stage {
@@ -58,6 +65,7 @@ impl Stage {
             Self::Frames => "frames",
             Self::Cameras => "cameras",
             Self::Landmarks => "landmarks",
+            Self::Body => "body",
         }
     }
 }
@@ -70,8 +78,11 @@ rerun with --redo):
   cameras    DIR/cameras.json  (with --calibration; K scaled to the frames)
   landmarks  DIR/landmarks/<camera>/  person masks and 33 landmarks per frame (mediapipe, in a
              Python environment scripts/prepare-env.sh makes once, about 400 MB)
-Not built yet: the body fit, garment masks and writing the sequence drape train reads; the \
-command stops after the landmarks with an error saying so.
+  body       DIR/body/  landmarks triangulated across the views, the body (limb lengths, \
+             per-frame pose) fitted to them, report.json of the reprojection errors \
+             (needs --calibration and two views or more)
+Not built yet: garment masks and writing the sequence drape train reads; the command stops \
+after the body fit with an error saying so.
 
 Example (Pose2Sim's demo; scripts/pose2sim-footage.sh fetches it):
   drape prepare Demo_SinglePerson/videos/cam01.mp4 Demo_SinglePerson/videos/cam03.mp4 \\
@@ -269,10 +280,15 @@ pub fn run(args: &PrepareArgs) -> anyhow::Result<()> {
     if stop(Stage::Landmarks) {
         return Ok(());
     }
+    // 4. body
+    let names: Vec<String> = views.iter().map(|v| v.name.clone()).collect();
+    body::stage(out, &names, redo(Stage::Body))?;
+    if stop(Stage::Body) {
+        return Ok(());
+    }
     bail!(
-        "the body fit is not built yet: drape prepare stopped after the landmarks; {} holds frames/, {}landmarks/, but no sequence drape train reads (issue 55)",
-        out.display(),
-        if calibration.is_some() { "cameras.json, " } else { "" }
+        "writing the sequence is not built yet: drape prepare stopped after the body fit; {} holds frames/, cameras.json, landmarks/, body/, but no sequence drape train reads (issue 55)",
+        out.display()
     )
 }
 
