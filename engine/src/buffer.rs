@@ -76,11 +76,24 @@ impl BufferDesc {
 }
 
 /// A Vulkan buffer with its memory.
+///
+/// Its fields are private: the handle and the size are what `Drop` destroys and what every
+/// copy is bounded by, so safe code reads them and cannot change them.
+///
+/// ```compile_fail
+/// fn grow(b: &mut drape_engine::Buffer) {
+///     b.size = u64::MAX; // private: a copy past the allocation is not expressible
+/// }
+/// ```
+///
+/// ```compile_fail
+/// fn swap(b: &mut drape_engine::Buffer, other: drape_engine::ash::vk::Buffer) {
+///     b.raw = other; // private: Drop destroys only the handle the buffer owns
+/// }
+/// ```
 pub struct Buffer {
-    /// The Vulkan handle, for hosts that record their own commands on it.
-    pub raw: vk::Buffer,
-    /// Bytes the caller asked for.
-    pub size: u64,
+    pub(crate) raw: vk::Buffer,
+    pub(crate) size: u64,
     allocation: Option<Allocation>,
     /// Whether the host may map this buffer's memory (see `ContextDesc::force_staging`).
     host_access: bool,
@@ -99,6 +112,16 @@ pub struct Buffer {
 }
 
 impl Buffer {
+    /// The Vulkan handle, for hosts that record their own commands on it.
+    pub fn raw(&self) -> vk::Buffer {
+        self.raw
+    }
+
+    /// Bytes the caller asked for (the allocation may be larger).
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+
     /// The buffer's debug name (as `VK_EXT_debug_utils` shows it).
     pub fn name(&self) -> &str {
         &self.name

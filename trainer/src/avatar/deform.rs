@@ -212,7 +212,7 @@ impl Deformer {
         rec.copy(
             p.appearance.head_output(1),
             &self.posed.sh,
-            self.posed.sh.size.min(p.appearance.head_output(1).size),
+            self.posed.sh.size().min(p.appearance.head_output(1).size()),
         );
         Ok(())
     }
@@ -242,7 +242,10 @@ impl Deformer {
         rec.copy(
             &self.posed_grads.sh,
             p.appearance.head_grad(1),
-            self.posed_grads.sh.size.min(p.appearance.head_grad(1).size),
+            self.posed_grads
+                .sh
+                .size()
+                .min(p.appearance.head_grad(1).size()),
         );
         let inputs = self.deform_inputs(&p);
         let grads = DeformGrads {
