@@ -10,11 +10,12 @@
 use std::path::{Path, PathBuf};
 
 use drape_engine::Context;
+use drape_trainer::avatar::file::AvatarFile;
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
 use drape_trainer::avatar::run::RunInfo;
 use drape_trainer::dataset::synth::generate;
 use drape_trainer::npy::{decode, encode, Array, Dtype};
-use drape_trainer::testing::{tiny_synth_options, train_tiny_run};
+use drape_trainer::testing::{edit_avatar_header, tiny_synth_options, train_tiny_run};
 
 /// The fixture's renders: 3 images of 64 x 64 premultiplied RGBA.
 const SIZE: u32 = 64;
@@ -133,4 +134,79 @@ fn the_run_directory_renders_the_fixture() {
     let run = fixture_run(&scratch("run-directory"));
     let mut player = AvatarPlayer::load(&ctx, &run, 1).expect("player");
     assert_identical("the run directory", &renders(&mut player), &expected);
+}
+
+/// `drape export` in the library: the fixture's run as a file, then the run and its
+/// dataset deleted; the file alone renders the fixture bit for bit.
+#[test]
+fn the_exported_file_renders_the_fixture_without_its_run_or_dataset() {
+    let ctx = drape_tests::gpu();
+    let expected = fixture_renders();
+    let dir = scratch("exported");
+    let run = fixture_run(&dir);
+    let path = dir.join("tiny.avatar");
+    AvatarFile::from_run(&ctx, &run)
+        .expect("export")
+        .write(&path)
+        .expect("write");
+    std::fs::remove_dir_all(&run).unwrap();
+    std::fs::remove_dir_all(dir.join("synth")).unwrap();
+    let mut player = AvatarPlayer::load(&ctx, &path, 1).expect("the avatar file");
+    assert_identical("the avatar file", &renders(&mut player), &expected);
+    // Two frames in flight: each slot built from the file renders the same.
+    let mut player = AvatarPlayer::load(&ctx, &path, 2).expect("the avatar file");
+    let first = renders(&mut player);
+    assert_identical("two frames in flight", &first, &expected);
+}
+
+/// Another format version, a truncated file and a checksum that does not match the
+/// arrays: each refused with one line naming the file and the reason.
+#[test]
+fn damaged_avatar_files_are_refused_naming_the_file() {
+    let ctx = drape_tests::gpu();
+    let dir = scratch("damaged");
+    let run = fixture_run(&dir);
+    let good = AvatarFile::from_run(&ctx, &run)
+        .expect("export")
+        .to_bytes()
+        .unwrap();
+    let path = dir.join("damaged.avatar");
+    let cases: [(&str, Vec<u8>, &str); 3] = [
+        (
+            "version 2",
+            edit_avatar_header(&good, |h| h["format_version"] = 2.into()),
+            "format version 2, this drape reads version 1",
+        ),
+        (
+            "truncated",
+            good[..good.len() * 2 / 3].to_vec(),
+            "not a readable avatar file",
+        ),
+        (
+            "checksum flipped",
+            edit_avatar_header(&good, |h| {
+                let s = h["checksum"].as_str().unwrap().to_string();
+                let last = if s.ends_with('0') { "1" } else { "0" };
+                h["checksum"] = format!("{}{last}", &s[..s.len() - 1]).into();
+            }),
+            "checksum mismatch",
+        ),
+    ];
+    for (what, bytes, needle) in cases {
+        drape_io::write(&path, &bytes).unwrap();
+        let err = match AvatarFile::read(&path) {
+            Ok(_) => panic!("{what}: read"),
+            Err(e) => e.to_string(),
+        };
+        assert!(
+            err.contains("damaged.avatar") && err.contains(needle) && !err.contains('\n'),
+            "{what}: {err}"
+        );
+        let err = match AvatarPlayer::load(&ctx, &path, 1) {
+            Ok(_) => panic!("{what}: loaded"),
+            Err(e) => e.to_string(),
+        };
+        assert!(err.contains(needle), "{what}: the player says {err}");
+    }
+    AvatarFile::from_bytes(&good, &path).expect("the undamaged bytes read");
 }
