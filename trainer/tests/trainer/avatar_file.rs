@@ -210,3 +210,74 @@ fn damaged_avatar_files_are_refused_naming_the_file() {
     }
     AvatarFile::from_bytes(&good, &path).expect("the undamaged bytes read");
 }
+
+/// `scripts/avatar-reader.py` (numpy and the standard library, no drape code) reads the
+/// exported file, verifies its checksum and gives back the canonical Gaussians bit for
+/// bit as the trained model holds them (`model.npz`); it refuses a flipped checksum.
+#[test]
+fn the_python_reader_reproduces_the_canonical_gaussians() {
+    let ctx = drape_tests::gpu();
+    let dir = scratch("python-reader");
+    let run = fixture_run(&dir);
+    let path = dir.join("tiny.avatar");
+    let file = AvatarFile::from_run(&ctx, &run).expect("export");
+    file.write(&path).expect("write");
+    let python = drape_tests::reference_python::clients_python();
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scripts/avatar-reader.py");
+    let out = dir.join("gaussians.npz");
+    let o = std::process::Command::new(&python)
+        .arg(&script)
+        .arg(&path)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap_or_else(|e| {
+            panic!(
+                "running {} with {}: {e}",
+                script.display(),
+                python.display()
+            )
+        });
+    assert!(
+        o.status.success(),
+        "avatar-reader.py: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let got = drape_trainer::npy::read_npz(&out).expect("the reader's arrays");
+    let model = drape_trainer::npy::read_npz(&run.join("model.npz")).expect("model.npz");
+    let mut compared = 0;
+    for layer in ["body", "cloth"] {
+        for k in ["means", "quats", "log_scales"] {
+            let key = format!("{layer}.{k}");
+            let (g, m) = (&got[&key], &model[&key]);
+            assert_eq!(g.dtype, Dtype::F32, "{key}");
+            assert_eq!(g.shape, m.shape, "{key}");
+            let bits = |a: &Array| {
+                a.data
+                    .iter()
+                    .map(|&v| (v as f32).to_bits())
+                    .collect::<Vec<_>>()
+            };
+            assert!(
+                bits(g) == bits(m),
+                "{key}: the reader's values differ from model.npz's"
+            );
+            compared += g.data.len();
+        }
+    }
+    assert!(compared > 1000, "{compared} values compared");
+    let flipped = edit_avatar_header(&std::fs::read(&path).unwrap(), |h| {
+        h["checksum"] = "crc32:00000000".into()
+    });
+    drape_io::write(&path, flipped).unwrap();
+    let o = std::process::Command::new(&python)
+        .arg(&script)
+        .arg(&path)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("checksum mismatch") && err.contains("tiny.avatar"),
+        "the reader took a flipped checksum: {err}"
+    );
+}
