@@ -99,8 +99,9 @@ struct drape_context *drape_context_from_vulkan(const struct drape_vulkan_desc *
 // are destroyed too.
 enum drape_status drape_context_destroy(struct drape_context *ctx);
 
-// Loads the trained run at `run_dir` (its `run.json` names its data), posed as its
-// first held-out frame. NULL on failure, with the last error naming the path.
+// Loads a trained avatar: an avatar file (`drape export`'s NAME.avatar) or a run
+// directory (its `run.json` names its data) at `run_dir`, posed as its default (a run's
+// first held-out frame). NULL on failure, with the last error naming the path.
 struct drape_avatar *drape_avatar_load(struct drape_context *ctx, const char *run_dir);
 
 // Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72

@@ -393,8 +393,9 @@ pub extern "C" fn drape_context_destroy(ctx: *mut drape_context) -> drape_status
     })
 }
 
-/// Loads the trained run at `run_dir` (its `run.json` names its data), posed as its
-/// first held-out frame. NULL on failure, with the last error naming the path.
+/// Loads a trained avatar: an avatar file (`drape export`'s NAME.avatar) or a run
+/// directory (its `run.json` names its data) at `run_dir`, posed as its default (a run's
+/// first held-out frame). NULL on failure, with the last error naming the path.
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_load(
     ctx: *mut drape_context,

@@ -450,3 +450,122 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
         messages.join("\n")
     );
 }
+
+/// The avatar file through the C ABI: the trainer's fixture run (see
+/// `trainer/tests/fixtures/README.md`) exported, the run and its dataset deleted, and
+/// the file rendered through `drape_avatar_load`, `drape_avatar_default_view`,
+/// `drape_avatar_set_pose` and `drape_avatar_render`: bit-identical to the fixture's
+/// renders (made through the run directory before avatar files existed).
+#[test]
+fn an_avatar_file_renders_the_fixture_through_the_c_abi_without_its_run_or_dataset() {
+    let fixture = root().join("trainer/tests/fixtures/avatar");
+    let expected: Vec<f32> = {
+        let bytes = std::fs::read(fixture.join("renders.npy")).unwrap();
+        let a = drape_trainer::npy::decode(&bytes, "renders.npy", None).unwrap();
+        assert_eq!(a.shape, [3, 64, 64, 4]);
+        a.data.iter().map(|&v| v as f32).collect()
+    };
+    let dir = tmp("avatar-file");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let data = dir.join("synth");
+    drape_trainer::dataset::synth::generate(
+        &data,
+        &drape_trainer::testing::tiny_synth_options(),
+        &mut |_, _, _| {},
+    )
+    .unwrap();
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    for f in ["config.json", "model.npz"] {
+        std::fs::copy(fixture.join("run").join(f), run.join(f)).unwrap();
+    }
+    drape_trainer::avatar::run::RunInfo::new(&data, None)
+        .write(&run)
+        .unwrap();
+    let file = dir.join("tiny.avatar");
+    {
+        let ctx = drape_tests::gpu();
+        drape_trainer::avatar::file::AvatarFile::from_run(&ctx, &run)
+            .unwrap()
+            .write(&file)
+            .unwrap();
+    }
+    std::fs::remove_dir_all(&run).unwrap();
+    std::fs::remove_dir_all(&data).unwrap();
+
+    let name = CString::new(std::env::var("DRAPE_DEVICE").unwrap_or_default()).unwrap();
+    let desc = drape_context_desc {
+        device_name: name.as_ptr(),
+        validation: 1,
+    };
+    // SAFETY: a valid descriptor.
+    let ctx = unsafe { drape_context_create(&desc) };
+    assert!(!ctx.is_null(), "{}", last_error());
+    let path = CString::new(file.to_str().unwrap()).unwrap();
+    // SAFETY: a valid context handle and string.
+    let avatar = unsafe { drape_avatar_load(ctx, path.as_ptr()) };
+    assert!(!avatar.is_null(), "{}", last_error());
+    let mut cam = drape_camera {
+        fx: 0.0,
+        fy: 0.0,
+        cx: 0.0,
+        cy: 0.0,
+        world_to_camera: [0.0; 16],
+        near: 0.0,
+        far: 0.0,
+    };
+    let (mut w, mut h) = (0u32, 0u32);
+    let mut pose = [0f32; 72];
+    let mut trans = [0f32; 3];
+    // SAFETY: a valid avatar handle and room for each value.
+    let s = unsafe {
+        drape_avatar_default_view(
+            avatar,
+            &mut cam,
+            &mut w,
+            &mut h,
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        )
+    };
+    assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+    // The fixture's three images (trainer/tests/trainer/avatar_file.rs `renders`).
+    let k = 64.0 / w as f32;
+    cam.fx *= k;
+    cam.fy *= k;
+    cam.cx *= k;
+    cam.cy *= k;
+    let mut side = cam;
+    side.world_to_camera[3] += 0.3;
+    let mut bent = pose;
+    bent[3 * 16 + 2] -= 0.8;
+    bent[3 * 17 + 2] += 0.8;
+    bent[3 * 4] += 0.6;
+    let mut got = Vec::new();
+    // The first two in the pose the avatar loads in (the file's, in f64: setting it
+    // again through the f32 pose would round it), the third set as the fixture set it.
+    for (camera, p) in [(&cam, None), (&side, None), (&cam, Some(&bent))] {
+        if let Some(p) = p {
+            // SAFETY: a valid avatar handle, 72 and 3 floats.
+            let s = unsafe { drape_avatar_set_pose(avatar, p.as_ptr(), trans.as_ptr()) };
+            assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+        }
+        let mut pixels = vec![0f32; 64 * 64 * 4];
+        // SAFETY: a valid avatar handle and a buffer of 64 x 64 x 4 floats.
+        let s = unsafe { drape_avatar_render(avatar, camera, 64, 64, pixels.as_mut_ptr()) };
+        assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+        got.extend(pixels);
+    }
+    assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    assert_eq!(got.len(), expected.len());
+    if let Some(i) = (0..got.len()).find(|&i| got[i].to_bits() != expected[i].to_bits()) {
+        panic!(
+            "value {i} (image {}) is {}, the fixture has {}",
+            i / (64 * 64 * 4),
+            got[i],
+            expected[i]
+        );
+    }
+}

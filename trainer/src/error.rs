@@ -61,6 +61,9 @@ pub enum TrainerError {
     /// A run directory that cannot be used as asked: the directory and why.
     #[error("{}: {problem}", dir.display())]
     Run { dir: PathBuf, problem: String },
+    /// An avatar file (`.avatar`) that cannot be read or written: the file and why.
+    #[error("{}: {problem}", path.display())]
+    AvatarFile { path: PathBuf, problem: String },
     /// Values became non-finite or left their range (a simulation, a training run, a
     /// metric): the stage and what was seen.
     #[error("{stage}: {problem}")]
@@ -115,6 +118,13 @@ impl TrainerError {
     }
 
     /// [`TrainerError::Run`] for the run directory `dir`.
+    pub fn avatar_file(path: &Path, problem: impl Into<String>) -> Self {
+        Self::AvatarFile {
+            path: path.to_path_buf(),
+            problem: problem.into(),
+        }
+    }
+
     pub fn run(dir: &Path, problem: impl Into<String>) -> Self {
         Self::Run {
             dir: dir.to_path_buf(),

@@ -59,3 +59,28 @@ pub fn tiny_run(ctx: &Context) -> &'static Path {
         train_tiny_run(ctx, &dir).unwrap_or_else(|e| panic!("training the tiny test run: {e}"))
     })
 }
+
+/// An avatar file's bytes with its `header.json` edited by `edit` and the archive
+/// written again (each entry's own CRC right), for tests of what the reader refuses:
+/// another format version, a checksum that does not match.
+pub fn edit_avatar_header(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+    use std::io::{Read, Write};
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes)).expect("an avatar file");
+    let mut out = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let options =
+        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    let mut edit = Some(edit);
+    for i in 0..zip.len() {
+        let mut e = zip.by_index(i).expect("an entry");
+        let mut data = Vec::new();
+        e.read_to_end(&mut data).expect("an entry's bytes");
+        if e.name() == crate::avatar::file::HEADER_ENTRY {
+            let mut v: serde_json::Value = serde_json::from_slice(&data).expect("header.json");
+            (edit.take().expect("one header"))(&mut v);
+            data = serde_json::to_vec_pretty(&v).expect("header.json");
+        }
+        out.start_file(e.name(), options).expect("an entry");
+        out.write_all(&data).expect("an entry");
+    }
+    out.finish().expect("the archive").into_inner()
+}

@@ -1,4 +1,5 @@
-//! `drape animate RUN --motion M`: the trained avatar in a motion it was not trained on
+//! `drape animate RUN --motion M`: the trained avatar (a run directory, or an avatar
+//! file from `drape export`) in a motion it was not trained on
 //! (walk, jog, raise-arms, turn, or an `.npz` motion file as `Motion::load_npz` reads
 //! it: ours, SMPL's first 22 joints, or AMASS), from a camera that orbits it, as
 //! `OUT/frameNNNN.png` and `OUT/animation.gif` at the run's resolution, with the time
@@ -8,14 +9,17 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use drape_cli_support::DeviceArgs;
-use drape_trainer::avatar::animate::{animate, AnimateOptions};
+use drape_trainer::avatar::animate::{animate, animate_avatar, AnimateOptions, AnimateTarget};
+use drape_trainer::avatar::composite::AvatarRenderer;
+use drape_trainer::avatar::file::AvatarFile;
 use drape_trainer::avatar::run::OpenRun;
 use drape_trainer::motion::{procedural, Motion, MotionKind};
 
 /// Options of `drape animate`.
 #[derive(Clone, Debug, clap::Args)]
 pub struct AnimateArgs {
-    /// The run directory (`drape train --out`, or `drape edit --out`).
+    /// The run directory (`drape train --out`, or `drape edit --out`), or an avatar
+    /// file (`drape export`; then the default output is FILE.animate-MOTION beside it).
     pub run: PathBuf,
     /// walk, jog, raise-arms, turn, or a motion file (.npz: poses F×72 or F×66 axis-angle
     /// SMPL joints, trans F×3 metres, fps as a scalar; or an AMASS file: SMPL-H/SMPL-X
@@ -87,26 +91,66 @@ pub fn run(device: &DeviceArgs, args: &AnimateArgs) -> anyhow::Result<()> {
         }
     };
     let ctx = device.open()?;
-    let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
-    let staged = match &args.out {
-        Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
-        None => drape_cli_support::output::StagedDir::new(
-            &run.dir.join(format!("animate-{name}")),
-            "the default output RUN/animate-MOTION",
-            true,
-        )?,
-    };
-    let out = staged.path().to_path_buf();
     let options = AnimateOptions {
         frames: args.frames as usize,
         orbit_degrees: args.orbit,
         background,
         gif: !args.no_gif,
     };
-    let report = animate(&ctx, &mut run, &motion, &options, &out, &mut |k, n| {
+    let progress = &mut |k: usize, n: usize| {
         eprint!("\rrendering {}/{n}   ", k + 1);
         let _ = std::io::stderr().flush();
-    })?;
+    };
+    let (staged, report) = if args.run.is_file() {
+        // An avatar file (`drape export`): no run directory, no dataset.
+        let file = AvatarFile::read(&args.run)?;
+        anyhow::ensure!(
+            args.data.is_none(),
+            "--data: {} is an avatar file, which needs no data",
+            args.run.display()
+        );
+        let staged = match &args.out {
+            Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
+            None => drape_cli_support::output::StagedDir::new(
+                &args.run.with_extension(format!("animate-{name}")),
+                "the default output FILE.animate-MOTION beside the avatar file",
+                true,
+            )?,
+        };
+        let mut avatar = file.build(&ctx)?;
+        let camera = file.default_camera;
+        let mut renderer = AvatarRenderer::new(
+            &ctx,
+            &avatar,
+            camera.width,
+            camera.height,
+            file.layers_config.compositing,
+        )?;
+        let rig = file.rig();
+        let mut target = AnimateTarget {
+            avatar: &mut avatar,
+            renderer: &mut renderer,
+            rig: &rig,
+            anchor_body: &file.default_body,
+            camera,
+        };
+        let out = staged.path().to_path_buf();
+        let report = animate_avatar(&ctx, &mut target, &motion, &options, &out, progress)?;
+        (staged, report)
+    } else {
+        let mut run = OpenRun::open(&ctx, &args.run, args.data.as_deref(), None)?;
+        let staged = match &args.out {
+            Some(o) => drape_cli_support::output::StagedDir::new(o, "--out", false)?,
+            None => drape_cli_support::output::StagedDir::new(
+                &run.dir.join(format!("animate-{name}")),
+                "the default output RUN/animate-MOTION",
+                true,
+            )?,
+        };
+        let out = staged.path().to_path_buf();
+        let report = animate(&ctx, &mut run, &motion, &options, &out, progress)?;
+        (staged, report)
+    };
     eprintln!();
     device.check_validation(&ctx)?;
     let out = staged.target().to_path_buf();

@@ -3,8 +3,9 @@
 //! `body` (the default body as SMPL .npz), `simulate` (garments on a motion), `synth`
 //! (the synthetic data), `inspect` (a sequence's layout and problems), `prepare` (a
 //! person's videos towards a sequence: frames, cameras, landmarks), `train` (the
-//! avatar), `eval`, `animate` and `edit` (a trained run), `bench-cloth` (the synthetic
-//! cloth benchmark), `view` (a real-time viewer of a trained run).
+//! avatar), `eval`, `animate` and `edit` (a trained run), `export` (a trained run as one
+//! `.avatar` file), `bench-cloth` (the synthetic
+//! cloth benchmark), `view` (a real-time viewer of a trained run or an avatar file).
 // `deny`, not `forbid`: `view`'s Vulkan host code (its `device`, `swapchain` and `frame`
 // files) allows it for itself (with a SAFETY comment on every block); every other module
 // stays free of unsafe.
@@ -23,6 +24,7 @@ mod bench_cloth;
 mod body;
 mod edit;
 mod eval;
+mod export;
 mod fit;
 mod fitting;
 mod image_io;
@@ -83,6 +85,7 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Render a trained run in a new motion from an orbiting camera: PNG frames and a GIF.
     Animate(animate::AnimateArgs),
+    Export(export::ExportArgs),
     /// Change a trained run's clothes (remove, recolour, swap) into a new run.
     Edit(edit::EditArgs),
     /// The synthetic cloth benchmark: synthesise loose / tight garment sequences, train
@@ -151,6 +154,7 @@ fn main() -> ExitCode {
         Command::Train(args) => train::run(&cli.device, &args),
         Command::Eval(args) => eval::run(&cli.device, &args),
         Command::Animate(args) => animate::run(&cli.device, &args),
+        Command::Export(args) => export::run(&cli.device, &args),
         Command::Edit(args) => edit::run(&cli.device, &args),
         Command::BenchCloth(args) => bench_cloth::run(&cli.device, &args),
         Command::View(args) => view::run(&cli.device, &args),

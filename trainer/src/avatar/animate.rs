@@ -144,10 +144,6 @@ pub fn animate(
     out: &Path,
     progress: &mut dyn FnMut(usize, usize),
 ) -> crate::Result<AnimateReport> {
-    let frames = options.frames.min(motion.len());
-    if frames == 0 {
-        return Err(TrainerError::invalid("motion", "the motion has no frames"));
-    }
     let anchor: &DatasetFrame = run
         .test_frames()
         .first()
@@ -155,6 +151,41 @@ pub fn animate(
         .or_else(|| run.seq.frames.first())
         .ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?;
     let (anchor_body, start_camera) = (anchor.body.clone(), anchor.camera);
+    let mut target = AnimateTarget {
+        avatar: &mut run.avatar,
+        renderer: &mut run.renderer,
+        rig: &run.rig,
+        anchor_body: &anchor_body,
+        camera: start_camera,
+    };
+    animate_avatar(ctx, &mut target, motion, options, out, progress)
+}
+
+/// What [`animate_avatar`] renders: an avatar and its renderer (of the camera's size),
+/// its rig, and the body and camera the motion and the orbit start from (a run's
+/// first held-out frame's, or an avatar file's defaults).
+pub struct AnimateTarget<'a> {
+    pub avatar: &'a mut crate::avatar::model::Avatar,
+    pub renderer: &'a mut crate::avatar::composite::AvatarRenderer,
+    pub rig: &'a crate::avatar::rig::Rig,
+    pub anchor_body: &'a crate::dataset::loader::BodyParams,
+    pub camera: crate::camera::Camera,
+}
+
+/// [`animate`] of any avatar (a run's, or an avatar file's).
+pub fn animate_avatar(
+    ctx: &drape_engine::Context,
+    run: &mut AnimateTarget<'_>,
+    motion: &Motion,
+    options: &AnimateOptions,
+    out: &Path,
+    progress: &mut dyn FnMut(usize, usize),
+) -> crate::Result<AnimateReport> {
+    let frames = options.frames.min(motion.len());
+    if frames == 0 {
+        return Err(TrainerError::invalid("motion", "the motion has no frames"));
+    }
+    let (anchor_body, start_camera) = (run.anchor_body.clone(), run.camera);
     let (width, height) = (start_camera.width, start_camera.height);
     let rest_pelvis = run.rig.rest_joints()[0];
     let (anchor_pelvis, up) = pelvis_and_up(&run.rig.frame(&anchor_body).transforms, rest_pelvis);
@@ -177,7 +208,7 @@ pub fn animate(
         }
         run.renderer.forward(
             ctx,
-            &run.avatar,
+            run.avatar,
             &cam.to_pinhole(options.background),
             &settings,
         )?;

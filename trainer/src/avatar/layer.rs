@@ -587,16 +587,7 @@ impl HumanLayer {
     pub fn restore(&mut self, ctx: &Context, s: &LayerState) -> Result<()> {
         let n = s.count();
         if n != self.count as usize {
-            let k = sh_coeffs(self.config.sh_degree);
-            let cloud = GaussianCloud {
-                sh_degree: self.config.sh_degree,
-                means: s.means.clone(),
-                log_scales: s.log_scales.clone(),
-                quats: s.quats.clone(),
-                opacity_logits: vec![0.0; n],
-                sh: vec![0.0; 3 * k * n],
-                groups: vec![Layer::Body.group(); n],
-            };
+            let cloud = canonical_cloud(s, self.config.sh_degree);
             let weights = s.weight_targets.as_deref().expect(
                 "checkpoint::read requires the skinning targets of a layer of another count",
             );
@@ -639,6 +630,21 @@ impl HumanLayer {
             g.restore(ctx, &a.m, &a.v, a.step)?;
         }
         Ok(())
+    }
+}
+
+/// A layer state's canonical Gaussians as a cloud to build a layer on (opacity and
+/// colour are the decoders', so zero here).
+pub(crate) fn canonical_cloud(s: &LayerState, sh_degree: u32) -> GaussianCloud {
+    let n = s.count();
+    GaussianCloud {
+        sh_degree,
+        means: s.means.clone(),
+        log_scales: s.log_scales.clone(),
+        quats: s.quats.clone(),
+        opacity_logits: vec![0.0; n],
+        sh: vec![0.0; 3 * sh_coeffs(sh_degree) * n],
+        groups: vec![Layer::Body.group(); n],
     }
 }
 

@@ -10,7 +10,7 @@
 //! (`train`: its config in `config`, its inputs in `inputs`, the avatar it builds in
 //! `assemble`, its progress and JSON files in `report`, the step itself in `step`),
 //! held-out evaluation (`eval`, with FID from `crate::metrics`), and a finished run
-//! opened again (`run`) to animate (`animate`) or edit (`edit`).
+//! opened again (`run`), the trained avatar as one file an app ships (`file`), to animate (`animate`) or edit (`edit`).
 
 pub mod animate;
 pub mod assemble;
@@ -23,6 +23,7 @@ pub mod deform;
 pub mod densify;
 pub mod edit;
 pub mod eval;
+pub mod file;
 pub mod gaussian_layout;
 pub mod groups;
 pub mod inputs;

@@ -45,11 +45,10 @@ use drape_engine::{
 };
 use glam::DVec3;
 
-use crate::avatar::assemble::build_avatar;
 use crate::avatar::composite::AvatarRenderer;
+use crate::avatar::file::AvatarFile;
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::{FrameTransforms, Rig};
-use crate::avatar::run::OpenRun;
 use crate::body::kinematics::Pose;
 use crate::camera::Camera;
 use crate::dataset::loader::BodyParams;
@@ -163,7 +162,7 @@ pub struct AvatarPlayer {
     body: BodyParams,
     transforms: FrameTransforms,
     settings: RenderSettings,
-    /// The first held-out frame's camera and body (the defaults).
+    /// The file's default camera and body (a run's first held-out frame's).
     default_camera: Camera,
     default_body: BodyParams,
     overflowed: u64,
@@ -173,85 +172,70 @@ pub struct AvatarPlayer {
 }
 
 impl AvatarPlayer {
-    /// Opens the run at `dir` (its `run.json` names the data it was trained on) with
-    /// `frames_in_flight` frames in flight (1 to 8), each with its own avatar.
-    pub fn load(ctx: &Context, dir: &Path, frames_in_flight: usize) -> crate::Result<Self> {
+    /// Opens an avatar file (`drape export`'s `NAME.avatar`), or a run directory (its
+    /// `run.json` names the data it was trained on; it is exported in memory and read
+    /// back as a file is, so both load through one path), with `frames_in_flight`
+    /// frames in flight (1 to 8), each with its own avatar.
+    pub fn load(ctx: &Context, path: &Path, frames_in_flight: usize) -> crate::Result<Self> {
         if !(1..=8).contains(&frames_in_flight) {
             return Err(TrainerError::invalid(
                 "frames in flight",
                 format!("{frames_in_flight} (1 to 8)"),
             ));
         }
-        let run = OpenRun::open(ctx, dir, None, None)?;
-        let anchor = run
-            .test_frames()
-            .first()
-            .copied()
-            .or_else(|| run.seq.frames.first())
-            .ok_or_else(|| TrainerError::run(&run.dir, "the run's sequence has no frames"))?
-            .clone();
-        let (width, height) = (anchor.camera.width, anchor.camera.height);
-        let mut slots = Vec::with_capacity(frames_in_flight);
-        let OpenRun {
-            mut avatar,
-            renderer,
-            rig,
-            seq,
-            config,
-            layers,
-            step,
-            ..
-        } = run;
-        // The other slots' avatars restored from the first's state (not read from disk again).
-        let state = if frames_in_flight > 1 {
-            Some(avatar.state(ctx, step)?)
+        let file = if path.is_file() {
+            AvatarFile::read(path)?
         } else {
-            None
+            AvatarFile::from_bytes(&AvatarFile::from_run(ctx, path)?.to_bytes()?, path)?
         };
-        for k in 1..frames_in_flight {
-            let mut a = build_avatar(ctx, &rig, &seq, &config, layers)?;
-            a.restore(ctx, state.as_ref().expect("made for more than one slot"))?;
-            let r = AvatarRenderer::new(ctx, &a, width, height, config.layers.compositing)?;
+        Self::from_file(ctx, &file, frames_in_flight)
+    }
+
+    /// A player of an avatar file already read (see [`load`](Self::load)).
+    pub fn from_file(
+        ctx: &Context,
+        file: &AvatarFile,
+        frames_in_flight: usize,
+    ) -> crate::Result<Self> {
+        if !(1..=8).contains(&frames_in_flight) {
+            return Err(TrainerError::invalid(
+                "frames in flight",
+                format!("{frames_in_flight} (1 to 8)"),
+            ));
+        }
+        let camera = file.default_camera;
+        let (width, height) = (camera.width, camera.height);
+        let compositing = file.layers_config.compositing;
+        let mut slots = Vec::with_capacity(frames_in_flight);
+        for k in 0..frames_in_flight {
+            let avatar = file.build(ctx)?;
+            let renderer = AvatarRenderer::new(ctx, &avatar, width, height, compositing)?;
             let rgba = ctx.create_buffer(
                 &format!("player rgba {k}"),
                 BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)),
             )?;
             slots.push(PlayerFrame {
-                avatar: a,
-                renderer: r,
-                rgba,
-                width,
-                height,
-                compositing: config.layers.compositing,
-            });
-        }
-        let rgba = ctx.create_buffer(
-            "player rgba 0",
-            BufferDesc::gpu_only(16 * u64::from(width) * u64::from(height)),
-        )?;
-        slots.insert(
-            0,
-            PlayerFrame {
                 avatar,
                 renderer,
                 rgba,
                 width,
                 height,
-                compositing: config.layers.compositing,
-            },
-        );
-        let betas = crate::avatar::inputs::betas_of(&anchor);
-        let transforms = rig.frame(&anchor.body);
+                compositing,
+            });
+        }
+        let rig = file.rig();
+        let body = file.default_body.clone();
+        let transforms = rig.frame(&body);
         Ok(Self {
             ctx: ctx.clone(),
             frames: FramesInFlight::new(slots),
+            betas: file.betas.clone(),
             rig,
-            betas,
-            body: anchor.body.clone(),
+            body: body.clone(),
             transforms,
             settings: RenderSettings::default(),
-            default_camera: anchor.camera,
-            default_body: anchor.body.clone(),
+            default_camera: camera,
+            default_body: body,
             overflowed: 0,
             rendered: 0,
             unfinished: vec![false; frames_in_flight],

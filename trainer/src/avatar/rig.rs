@@ -54,6 +54,33 @@ impl Rig {
         }
     }
 
+    /// The rig of a body known only by its joints (an avatar file's): the kinematic
+    /// tree and the shaped body's rest joints, which are all that posing reads. Its
+    /// model has no mesh (no vertices, weights, shape or pose directions), so it poses
+    /// Gaussians but cannot make a layer's initial ones.
+    pub fn from_joints(
+        parents: [i32; NUM_JOINTS],
+        rest_joints: [DVec3; NUM_JOINTS],
+        betas: &[f64],
+    ) -> Self {
+        let (canonical, _) = forward_kinematics(&parents, &rest_joints, &da_pose());
+        Self {
+            model: SmplModel {
+                v_template: Vec::new(),
+                shapedirs: Vec::new(),
+                num_betas: 0,
+                posedirs: Vec::new(),
+                j_regressor: Vec::new(),
+                weights: Vec::new(),
+                parents,
+                faces: Vec::new(),
+            },
+            betas: betas.to_vec(),
+            rest_joints,
+            canonical,
+        }
+    }
+
     /// Rest joint positions of the shaped body.
     pub fn rest_joints(&self) -> [DVec3; NUM_JOINTS] {
         self.rest_joints

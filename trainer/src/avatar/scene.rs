@@ -132,7 +132,7 @@ pub struct SceneLayer {
 }
 
 /// The scene's parameters of `s` as a cloud (to rebuild the layer at its size).
-fn cloud_of(s: &SceneState, sh_degree: u32) -> GaussianCloud {
+pub(crate) fn cloud_of(s: &SceneState, sh_degree: u32) -> GaussianCloud {
     let n = s.params[3].len();
     GaussianCloud {
         sh_degree,

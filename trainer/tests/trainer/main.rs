@@ -2,6 +2,7 @@
 //! GPU paths, training, evaluation and the run tools, against CPU references and the
 //! independent Python references (PyTorch, OpenCV, scikit-image, numpy).
 
+mod avatar_file;
 mod body;
 mod calibration;
 mod cloth;

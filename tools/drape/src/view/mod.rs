@@ -73,7 +73,8 @@ use swapchain::Presenter;
 /// Options of `drape view`.
 #[derive(Clone, Debug, clap::Args)]
 pub struct ViewArgs {
-    /// The run directory (`drape train --out`, or `drape edit --out`).
+    /// The run directory (`drape train --out`, or `drape edit --out`), or an avatar
+    /// file (`drape export`).
     pub run: PathBuf,
     /// walk, run (= jog), jog, raise-arms, turn, or a motion file (.npz, as `drape animate`).
     #[arg(long, default_value = "walk")]

@@ -332,6 +332,30 @@ fn apply(d: &Path, op: &str) {
             }
         }
         "mkdir" => std::fs::create_dir_all(p(1)).unwrap(),
+        // `export RUN FILE`: `drape export RUN --out FILE`.
+        "export" => {
+            let o = drape()
+                .arg("export")
+                .arg(p(1))
+                .arg("--out")
+                .arg(p(2))
+                .output()
+                .unwrap();
+            assert!(
+                o.status.success(),
+                "export: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        // `avatar-header FILE KEY JSON`: the avatar file's header.json KEY set to JSON.
+        "avatar-header" => {
+            let bytes = std::fs::read(p(1)).unwrap();
+            let value: serde_json::Value = serde_json::from_str(&rest(3)).unwrap();
+            let edited = drape_trainer::testing::edit_avatar_header(&bytes, |h| {
+                h[words[2]] = value;
+            });
+            drape_io::write(p(1), edited).unwrap();
+        }
         "trunc" => {
             let bytes = std::fs::read(p(1)).unwrap();
             drape_io::write(
