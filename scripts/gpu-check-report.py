@@ -86,7 +86,7 @@ def main():
     g = need(composite, "gaussians", "composite.json")
     md += [
         "",
-        f"## Composite (body {g['body']:,}, cloth {g['cloth']:,}, scene {g['scene']:,} Gaussians)",
+        f"## Composite (body {need(g, 'body', 'composite.json gaussians'):,}, cloth {need(g, 'cloth', 'composite.json gaussians'):,}, scene {need(g, 'scene', 'composite.json gaussians'):,} Gaussians)",
         "",
         "| size | three passes, serialised ms | overlapped ms | fused ms | one pass ms |",
         "|---|---:|---:|---:|---:|",
@@ -95,7 +95,7 @@ def main():
         w = "composite.json results[]"
         cell = lambda k: ms(need(need(r, k, w), "forward_median_ms", f"{w}.{k}"))  # noqa: E731
         md.append(
-            f"| {r['width']}x{r['height']} | {cell('three_pass_serialised')} "
+            f"| {need(r, 'width', w)}x{need(r, 'height', w)} | {cell('three_pass_serialised')} "
             f"| {cell('three_pass_overlapped')} | {cell('fused')} | {cell('one_pass')} |"
         )
     md += [
@@ -111,7 +111,7 @@ def main():
         st = need(r, "stages_gpu_ms", w)
         stage = lambda *names: ms(next((st[n] for n in names if n in st), None))  # noqa: E731
         md.append(
-            f"| {r['width']}x{r['height']} | {need(r, 'compositing', w)} "
+            f"| {need(r, 'width', w)}x{need(r, 'height', w)} | {need(r, 'compositing', w)} "
             f"| {ms(need(r, 'frame_median_ms', w))} | {need(r, 'fps', w):.1f} "
             f"| {need(r, 'dispatches_per_frame', w)} | {need(r, 'barriers_per_frame', w)} "
             f"| {stage('decoders')} | {stage('skinning')} | {stage('projection')} "
@@ -121,7 +121,7 @@ def main():
     if isinstance(flight, dict):
         md += [
             "",
-            f"Library frames (`AvatarPlayer`) at {flight['width']}x{flight['height']}:",
+            f"Library frames (`AvatarPlayer`) at {need(flight, 'width', 'avatar.json frames_in_flight')}x{need(flight, 'height', 'avatar.json frames_in_flight')}:",
             "",
             "| in flight | FPS | fence waits while submitting | device memory, loaded | with frames |",
             "|---:|---:|---:|---:|---:|",
@@ -131,7 +131,7 @@ def main():
             mib = lambda k: f"{need(s, k, w) / 2**20:.1f} MiB"  # noqa: E731
             md.append(
                 f"| {need(s, 'frames_in_flight', w)} | {need(s, 'fps', w):.1f} "
-                f"| {need(s, 'fence_waits_while_submitting', w)} of {s['frames']} "
+                f"| {need(s, 'fence_waits_while_submitting', w)} of {need(s, 'frames', w)} "
                 f"| {mib('device_memory_loaded_bytes')} | {mib('device_memory_with_frames_bytes')} |"
             )
     tr = need(avatar, "training", "avatar.json")

@@ -63,8 +63,8 @@ if [ "$mode" = prepare ]; then
         strip "$stage/bin/$b"
         gzip -9 "$stage/bin/$b"
     done
-    "$stage/bin/drape" synth --out "$stage/synth" --size 256 --frames 8 --cameras 3 >/dev/null
-    DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}" "$stage/bin/drape" train --data "$stage/synth" \
+    target/release/drape synth --out "$stage/synth" --size 256 --frames 8 --cameras 3 >/dev/null
+    DRAPE_DEVICE="${DRAPE_DEVICE:-llvmpipe}" target/release/drape train --data "$stage/synth" \
         --out "$stage/run" --preset quick --steps "${GPU_CHECK_STEPS:-300}" >/dev/null
     # Only the files rendering reads: checkpoints and previews stay behind.
     rm -f "$stage"/run/*.ply "$stage"/run/checkpoint.npz
@@ -100,7 +100,8 @@ else
         gzip -dc "$stage/bin/$b.gz" >"$bin/$b"
         chmod +x "$bin/$b"
     done
-    if ! ldconfig -p | grep -q libvulkan.so.1; then
+    # (grep without -q reads all its input: no SIGPIPE for ldconfig under pipefail.)
+    if ! ldconfig -p | grep libvulkan.so.1 >/dev/null; then
         for f in "$stage"/gl/*.deb; do dpkg -x "$f" /; done
         ldconfig
     fi
@@ -115,6 +116,15 @@ else
     avatar=(--train-steps 20)
     train=(--preset paper --steps 200)
     commit="$(cat "$stage/commit" 2>/dev/null || git rev-parse --short HEAD)"
+    # run.json names its data by the absolute path it had where --prepare trained it; the
+    # library path (frames in flight) reads it from there: point it at this checkout's.
+    python3 - "$run/run.json" "$(cd "$data" && pwd)" <<'PY'
+import json, sys
+path, data = sys.argv[1], sys.argv[2]
+info = json.load(open(path))
+info["data"] = data
+json.dump(info, open(path, "w"), indent=2)
+PY
 fi
 [ -n "$out" ] || out="$stage/out"
 mkdir -p "$out"
@@ -136,7 +146,11 @@ bench avatar avatar "$run" --data "$data" --sizes "$sizes" --in-flight 1,2,3 "${
 
 echo "gpu-check: drape train ${train[*]} --profile ($((SECONDS - started)) s)" >&2
 train_out="$(mktemp -d)/run"
-"$bin/drape" train --data "$data" --out "$train_out" "${train[@]}" --profile >"$results/train.log" 2>&1
+"$bin/drape" train --data "$data" --out "$train_out" "${train[@]}" --profile >"$results/train.log" 2>&1 || {
+    cat "$results/train.log" >&2
+    echo "gpu-check: drape train failed (its log above)" >&2
+    exit 1
+}
 cp "$train_out/profile.json" "$results/train-profile.json"
 cp "$train_out/profile.txt" "$results/train-profile.txt"
 printf '%s\n' "${train[@]}" >"$results/train-args.txt"

@@ -136,11 +136,15 @@ impl PendingWork {
             if serial > newest_deferred {
                 break;
             }
-            // SAFETY: a live fence of `raw` (the caller's contract). A lost device
-            // reports an error: its work will not run, so it counts as finished.
-            if let Ok(false) = unsafe { raw.get_fence_status(fence) } {
-                oldest_unfinished = serial;
-                break;
+            // SAFETY: a live fence of `raw` (the caller's contract). A lost device's work
+            // will not run, so it counts as finished; any other error leaves the fence's
+            // state unknown, so its buffers stay.
+            match unsafe { raw.get_fence_status(fence) } {
+                Ok(true) | Err(vk::Result::ERROR_DEVICE_LOST) => {}
+                Ok(false) | Err(_) => {
+                    oldest_unfinished = serial;
+                    break;
+                }
             }
         }
         let (done, kept) = std::mem::take(&mut self.deferred)

@@ -117,7 +117,7 @@ impl TrainerError {
         }
     }
 
-    /// [`TrainerError::Run`] for the run directory `dir`.
+    /// [`TrainerError::AvatarFile`] for the avatar file at `path`.
     pub fn avatar_file(path: &Path, problem: impl Into<String>) -> Self {
         Self::AvatarFile {
             path: path.to_path_buf(),
@@ -125,6 +125,7 @@ impl TrainerError {
         }
     }
 
+    /// [`TrainerError::Run`] for the run directory `dir`.
     pub fn run(dir: &Path, problem: impl Into<String>) -> Self {
         Self::Run {
             dir: dir.to_path_buf(),

@@ -335,7 +335,17 @@ impl AvatarFile {
                 "not a readable avatar file (truncated, or not a .avatar archive): {e}"
             ))
         })?;
+        // Entries pointing at shared bytes could otherwise make a small file read as many
+        // times its size: their stored sizes together must fit in the file, once each.
+        const MAX_ENTRIES: usize = 256;
+        if zip.len() > MAX_ENTRIES {
+            return Err(bad(format!(
+                "{} entries (an avatar file has at most {MAX_ENTRIES})",
+                zip.len()
+            )));
+        }
         let mut entries = BTreeMap::new();
+        let mut stored: u64 = 0;
         for i in 0..zip.len() {
             let mut e = zip
                 .by_index(i)
@@ -347,6 +357,21 @@ impl AvatarFile {
                 )));
             }
             let name = e.name().to_string();
+            if name != HEADER_ENTRY && !name.ends_with(".npy") {
+                return Err(bad(format!(
+                    "entry {name}: not {HEADER_ENTRY} or an .npy array"
+                )));
+            }
+            if entries.contains_key(&name) {
+                return Err(bad(format!("entry {name} appears twice")));
+            }
+            stored = stored.saturating_add(e.size());
+            if stored > bytes.len() as u64 {
+                return Err(bad(format!(
+                    "entries' sizes add up to more than the file's {} bytes (a damaged file?)",
+                    bytes.len()
+                )));
+            }
             // A stored entry holds what it occupies: its size is bounded by the file's.
             let mut data = Vec::with_capacity((e.size() as usize).min(bytes.len()));
             e.read_to_end(&mut data)
@@ -420,6 +445,27 @@ impl AvatarFile {
         };
         let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         let len_of = |key: &str| a.get(key).map_or(0, |arr| arr.data.len());
+        // The header is outside the checksum: its sizes are checked as a config's are
+        // (bounded triplanes, decoders and SH degrees), so an edited header is an error,
+        // not a huge allocation or a panic.
+        let header_error =
+            |problem: String| TrainerError::avatar_file(path, format!("{HEADER_ENTRY}: {problem}"));
+        let config = TrainConfig {
+            layers: header.layers_config.clone(),
+            ..TrainConfig::quick()
+        };
+        config
+            .validate()
+            .map_err(|e| header_error(format!("layers_config: {e}")))?;
+        if !matches!(
+            header.layers.iter().map(String::as_str).collect::<Vec<_>>()[..],
+            ["body"] | ["body", "cloth"]
+        ) {
+            return Err(header_error(format!(
+                "layers {:?}: expected [\"body\"] or [\"body\", \"cloth\"]",
+                header.layers
+            )));
+        }
         let mut layers = Vec::new();
         for name in &header.layers {
             let config = match name.as_str() {
@@ -444,9 +490,20 @@ impl AvatarFile {
                 config.triplane_channels as usize,
             );
             let bx = get(&format!("{name}.triplane_box"), Dtype::F32, &[2, 3])?;
-            let decoder = |k: &str| -> crate::Result<Vec<f32>> {
+            let descs = crate::avatar::layer::decoder_descs(config);
+            let decoder = |k: &str, desc: &drape_engine::ops::nn::MlpDesc| {
                 let key = format!("{name}.{k}");
-                Ok(f32s(get(&key, Dtype::F32, &[len_of(&key)])?))
+                let expected = desc.layout().1;
+                if len_of(&key) != expected {
+                    return Err(bad(
+                        &key,
+                        format!(
+                            "{} parameters, but the header's layer sizes make {expected}",
+                            len_of(&key)
+                        ),
+                    ));
+                }
+                Ok(f32s(get(&key, Dtype::F32, &[expected])?))
             };
             layers.push((
                 name.clone(),
@@ -460,9 +517,9 @@ impl AvatarFile {
                         [bx[0] as f32, bx[1] as f32, bx[2] as f32],
                         [bx[3] as f32, bx[4] as f32, bx[5] as f32],
                     ],
-                    appearance: decoder("appearance")?,
-                    geometry: decoder("geometry")?,
-                    deformation: decoder("deformation")?,
+                    appearance: decoder("appearance", &descs[0])?,
+                    geometry: decoder("geometry", &descs[1])?,
+                    deformation: decoder("deformation", &descs[2])?,
                     adam: Vec::new(),
                     weight_targets: None,
                     screen_stats: None,
@@ -504,6 +561,23 @@ impl AvatarFile {
         let rest_joints = std::array::from_fn(|j| DVec3::from_slice(&joints[3 * j..3 * j + 3]));
         let betas = get("rig.betas", Dtype::F64, &[len_of("rig.betas")])?.to_vec();
         let cam = get("default.camera", Dtype::F64, &[5])?;
+        // A default view an app can render: a bounded image and a camera that projects.
+        const MAX_SIDE: u32 = 16_384;
+        if !(1..=MAX_SIDE).contains(&header.width) || !(1..=MAX_SIDE).contains(&header.height) {
+            return Err(header_error(format!(
+                "default image {}x{}: each side 1 to {MAX_SIDE}",
+                header.width, header.height
+            )));
+        }
+        if !(cam[0] > 0.0 && cam[1] > 0.0 && cam[4] > 0.0) {
+            return Err(bad(
+                "default.camera",
+                format!(
+                    "fx {}, fy {}, near {}: each must be positive",
+                    cam[0], cam[1], cam[4]
+                ),
+            ));
+        }
         let rot = get("default.camera_rotation", Dtype::F64, &[3, 3])?;
         let default_camera = Camera {
             fx: cam[0],

@@ -133,6 +133,28 @@ pub struct LayerGroups {
     pub deformation: AdamGroup,
 }
 
+/// The shapes of a layer's three decoders (appearance, geometry, deformation) for
+/// `config`: what a file's decoder weights must fill.
+pub fn decoder_descs(config: &LayerConfig) -> [MlpDesc; 3] {
+    let width = 3 * config.triplane_channels as usize;
+    let sh_values = 3 * sh_coeffs(config.sh_degree);
+    let cap = config.decoder_width as usize;
+    let appearance = MlpDesc::hugs_appearance(width, sh_values).capped(cap);
+    let geometry = MlpDesc::hugs_geometry(width).capped(cap);
+    let mut deformation = MlpDesc::hugs_deformation(width).capped(cap);
+    if config.weight_norm {
+        let last_hidden = deformation.hidden.len() - 1;
+        deformation = deformation.with_weight_norm(last_hidden);
+    }
+    if config.pose_offsets {
+        // Zero weights and bias: no offsets until training moves them (HUGS).
+        deformation
+            .heads
+            .push(HeadDesc::new("pose_blend", POSE_BLEND_FLOATS, Activation::Identity).zero_init());
+    }
+    [appearance, geometry, deformation]
+}
+
 fn set_head_bias(desc: &MlpDesc, params: &mut [f32], head: usize, bias: &[f32]) {
     let (offsets, _) = desc.layout();
     let (w_off, b_off) = offsets[desc.hidden.len() + head];
@@ -190,9 +212,7 @@ impl HumanLayer {
         )?;
         let width = tdesc.feature_width();
         let sh_values = 3 * sh_coeffs(config.sh_degree);
-
-        let cap = config.decoder_width as usize;
-        let appearance_desc = MlpDesc::hugs_appearance(width, sh_values).capped(cap);
+        let [appearance_desc, geometry_desc, deformation_desc] = decoder_descs(config);
         let mut appearance_params = appearance_desc.init_params(seed + 1);
         let opacity_logit = (0.1f32 / 0.9).ln();
         set_head_bias(
@@ -208,22 +228,10 @@ impl HumanLayer {
             1,
             &vec![0.0; sh_values],
         );
-        let geometry_desc = MlpDesc::hugs_geometry(width).capped(cap);
         let mut geometry_params = geometry_desc.init_params(seed + 2);
         set_head_bias(&geometry_desc, &mut geometry_params, 0, &[0.0; 3]);
         set_head_bias(&geometry_desc, &mut geometry_params, 1, &IDENTITY_6D);
         set_head_bias(&geometry_desc, &mut geometry_params, 2, &[0.0; 3]);
-        let mut deformation_desc = MlpDesc::hugs_deformation(width).capped(cap);
-        if config.weight_norm {
-            let last_hidden = deformation_desc.hidden.len() - 1;
-            deformation_desc = deformation_desc.with_weight_norm(last_hidden);
-        }
-        if config.pose_offsets {
-            // Zero weights and bias: no offsets until training moves them (HUGS).
-            deformation_desc.heads.push(
-                HeadDesc::new("pose_blend", POSE_BLEND_FLOATS, Activation::Identity).zero_init(),
-            );
-        }
         let appearance = Mlp::with_params(
             ctx,
             &format!("{name} appearance"),

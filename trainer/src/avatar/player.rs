@@ -453,6 +453,20 @@ impl AvatarPlayer {
         }
     }
 
+    /// Gives up the frame [`record_frame_into`](Self::record_frame_into) recorded into
+    /// slot `slot` when the host will not submit its command buffer after all (it could
+    /// not acquire or present an image, say): the slot is free again at once, and the
+    /// frame's overflow counters are not read (the frame never ran). The host must not
+    /// submit that command buffer afterwards. Returns whether the slot held such a frame.
+    pub fn abandon_frame(&mut self, slot: usize) -> crate::Result<bool> {
+        let abandoned = self.frames.abandon(slot)?;
+        if abandoned {
+            self.unfinished[slot] = false;
+            self.rendered = self.rendered.saturating_sub(1);
+        }
+        Ok(abandoned)
+    }
+
     /// Waits for every frame in flight.
     pub fn wait_idle(&mut self) -> crate::Result<()> {
         Ok(self.frames.wait_all()?)

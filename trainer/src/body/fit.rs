@@ -51,6 +51,7 @@
 use glam::{DMat3, DQuat, DVec3};
 
 use crate::body::kinematics::{forward_kinematics, rodrigues, Pose};
+use crate::body::least_squares::levenberg_marquardt;
 use crate::body::model::{SmplModel, NUM_JOINTS, PARENTS};
 
 /// The first beta index of the limb lengths, and how many there are.
@@ -403,110 +404,6 @@ impl Fit {
     }
 }
 
-/// Solves `(JᵀJ + damping) dx = -Jᵀr` by Cholesky; None if not positive definite.
-fn solve_normal(jtj: &[f64], jtr: &[f64], n: usize) -> Option<Vec<f64>> {
-    let mut l = vec![0.0; n * n];
-    for i in 0..n {
-        for j in 0..=i {
-            let mut s = jtj[i * n + j];
-            for k in 0..j {
-                s -= l[i * n + k] * l[j * n + k];
-            }
-            if i == j {
-                if !(s > 0.0) {
-                    return None;
-                }
-                l[i * n + i] = s.sqrt();
-            } else {
-                l[i * n + j] = s / l[j * n + j];
-            }
-        }
-    }
-    let mut y = vec![0.0; n];
-    for i in 0..n {
-        let s: f64 = (0..i).map(|k| l[i * n + k] * y[k]).sum();
-        y[i] = (-jtr[i] - s) / l[i * n + i];
-    }
-    let mut x = vec![0.0; n];
-    for i in (0..n).rev() {
-        let s: f64 = (i + 1..n).map(|k| l[k * n + i] * x[k]).sum();
-        x[i] = (y[i] - s) / l[i * n + i];
-    }
-    Some(x)
-}
-
-/// Levenberg-Marquardt on `n` parameters: `residuals(state, dx)` at the step `dx`
-/// from `state`, `step(state, dx)` the state moved by it. Returns the final cost.
-fn levenberg_marquardt<S>(
-    state: &mut S,
-    n: usize,
-    iterations: usize,
-    residuals: impl Fn(&S, &[f64]) -> Vec<f64>,
-    step: impl Fn(&S, &[f64]) -> S,
-) -> f64 {
-    let h = 1e-6;
-    let mut lambda = 1e-3;
-    let mut r0 = residuals(state, &vec![0.0; n]);
-    let mut cost: f64 = r0.iter().map(|r| r * r).sum();
-    for _ in 0..iterations {
-        let m = r0.len();
-        let mut jac = vec![0.0; m * n];
-        let mut dx = vec![0.0; n];
-        for k in 0..n {
-            dx[k] = h;
-            let r = residuals(state, &dx);
-            dx[k] = 0.0;
-            for i in 0..m {
-                jac[i * n + k] = (r[i] - r0[i]) / h;
-            }
-        }
-        let mut jtj = vec![0.0; n * n];
-        let mut jtr = vec![0.0; n];
-        for i in 0..m {
-            let row = &jac[i * n..(i + 1) * n];
-            for a in 0..n {
-                if row[a] == 0.0 {
-                    continue;
-                }
-                jtr[a] += row[a] * r0[i];
-                for b in 0..=a {
-                    jtj[a * n + b] += row[a] * row[b];
-                }
-            }
-        }
-        for a in 0..n {
-            for b in 0..a {
-                jtj[b * n + a] = jtj[a * n + b];
-            }
-        }
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut damped = jtj.clone();
-            for a in 0..n {
-                damped[a * n + a] += lambda * (jtj[a * n + a] + 1e-6);
-            }
-            if let Some(dx) = solve_normal(&damped, &jtr, n) {
-                let r = residuals(state, &dx);
-                let c: f64 = r.iter().map(|x| x * x).sum();
-                if c < cost {
-                    *state = step(state, &dx);
-                    r0 = residuals(state, &vec![0.0; n]);
-                    let converged = cost - c < 1e-9 * cost.max(1e-12);
-                    cost = c;
-                    lambda = (lambda * 0.3).max(1e-9);
-                    improved = !converged;
-                    break;
-                }
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    cost
-}
-
 /// The root rotation (body axes to world) from the torso's landmarks, None when
 /// missing. `lh, rh, ls, rs`: marker indices of hips and shoulders.
 fn torso_frame(t: &[(DVec3, f64)], markers: &[Marker]) -> Option<(DMat3, DVec3)> {
@@ -576,23 +473,21 @@ pub fn fit_sequence(
                 let prev = (f > 0).then(|| params[f - 1]);
                 let next = (f + 1 < frames).then(|| params[f + 1]);
                 let mut current = params[f];
+                let problem = FrameProblem {
+                    body,
+                    rest: &rest,
+                    markers,
+                    targets: &targets[f],
+                    robust: &robust[f],
+                    prev: prev.as_ref(),
+                    next: next.as_ref(),
+                    options,
+                };
                 levenberg_marquardt(
                     &mut current,
                     FRAME_PARAMS,
                     if round == 0 && sweep == 0 { 30 } else { 8 },
-                    |current, dx| {
-                        frame_residuals(
-                            body,
-                            &rest,
-                            markers,
-                            &targets[f],
-                            &robust[f],
-                            &current.stepped(dx),
-                            prev.as_ref(),
-                            next.as_ref(),
-                            options,
-                        )
-                    },
+                    |current, dx| frame_residuals(&problem, &current.stepped(dx)),
                     |current, dx| current.stepped(dx),
                 );
                 params[f] = current;
@@ -662,18 +557,32 @@ fn push_marker_residuals(
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn frame_residuals(
-    body: &FitBody,
-    rest: &[DVec3; NUM_JOINTS],
-    markers: &[Marker],
-    targets: &[(DVec3, f64)],
-    robust: &[f64],
-    p: &FrameParams,
-    prev: Option<&FrameParams>,
-    next: Option<&FrameParams>,
-    options: &FitOptions,
-) -> Vec<f64> {
+/// One frame's pose problem: the body at the current shape, the markers with this
+/// frame's targets and robust weights, and the neighbouring frames the smoothness terms
+/// hold fixed.
+struct FrameProblem<'a> {
+    body: &'a FitBody,
+    rest: &'a [DVec3; NUM_JOINTS],
+    markers: &'a [Marker],
+    targets: &'a [(DVec3, f64)],
+    robust: &'a [f64],
+    prev: Option<&'a FrameParams>,
+    next: Option<&'a FrameParams>,
+    options: &'a FitOptions,
+}
+
+/// The residuals of `p` in `problem`: markers, smoothness, prior and limits.
+fn frame_residuals(problem: &FrameProblem, p: &FrameParams) -> Vec<f64> {
+    let FrameProblem {
+        body,
+        rest,
+        markers,
+        targets,
+        robust,
+        prev,
+        next,
+        options,
+    } = *problem;
     let pose = p.as_pose();
     let (_, m) = body.pose(rest, &pose, p.translation, markers);
     let mut r = Vec::with_capacity(markers.len() * 3 + 3 * FRAME_PARAMS);

@@ -171,7 +171,8 @@ fn damaged_avatar_files_are_refused_naming_the_file() {
         .to_bytes()
         .unwrap();
     let path = dir.join("damaged.avatar");
-    let cases: [(&str, Vec<u8>, &str); 3] = [
+    // The header is outside the checksum: an edited one is refused by its own checks.
+    let cases: [(&str, Vec<u8>, &str); 6] = [
         (
             "version 2",
             edit_avatar_header(&good, |h| h["format_version"] = 2.into()),
@@ -190,6 +191,28 @@ fn damaged_avatar_files_are_refused_naming_the_file() {
                 h["checksum"] = format!("{}{last}", &s[..s.len() - 1]).into();
             }),
             "checksum mismatch",
+        ),
+        (
+            "a triplane of terabytes",
+            edit_avatar_header(&good, |h| {
+                h["layers_config"]["body"]["triplane_resolution"] = 1_000_000.into()
+            }),
+            "layers_config",
+        ),
+        (
+            "wider decoders than the arrays",
+            edit_avatar_header(&good, |h| {
+                let w = h["layers_config"]["body"]["decoder_width"]
+                    .as_u64()
+                    .unwrap();
+                h["layers_config"]["body"]["decoder_width"] = (2 * w).into();
+            }),
+            "body.appearance",
+        ),
+        (
+            "a cloth layer alone",
+            edit_avatar_header(&good, |h| h["layers"] = serde_json::json!(["cloth"])),
+            "expected [\"body\"] or [\"body\", \"cloth\"]",
         ),
     ];
     for (what, bytes, needle) in cases {

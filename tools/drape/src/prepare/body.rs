@@ -199,6 +199,13 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
             "the body fit needs two views or more: fitting one view's landmarks is not built yet"
         );
     }
+    // The triangulation keeps each point's views as bits of a u32.
+    if names.len() > 32 {
+        bail!(
+            "the body fit takes at most 32 views ({} given): more is not built yet",
+            names.len()
+        );
+    }
     let (cameras_doc, all_views) = read_cameras(out)?;
     let views: Vec<triangulate::View> = names
         .iter()
@@ -249,6 +256,12 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
 
     let tri = triangulate::triangulate(&views, &tracks, &options);
     let t_tri = t0.elapsed().as_secs_f64();
+    if tri.points.iter().flatten().all(|s| s.is_none()) {
+        bail!(
+            "{}: no landmark was seen in two views at once in any frame, so there is no body to fit (is the person in view of at least two cameras?)",
+            out.join("landmarks").display()
+        );
+    }
     let tri_errors = triangulate::view_errors(&views, &tracks, &tri, &options);
     let mut all_inlier = Vec::new();
     for ((inl, _), v) in tri_errors.iter().zip(&views) {
