@@ -48,7 +48,7 @@ use crate::TrainerError;
 /// (`MlpDesc::layout`).
 pub const FORMAT_VERSION: u32 = 2;
 
-fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
+pub(crate) fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
     Array::new(
         Dtype::F32,
         shape,
@@ -69,39 +69,42 @@ fn edge_array(edges: &[[u32; 2]]) -> Array {
 }
 
 /// Writes `state` to `path` atomically (temporary file, then rename).
+/// A layer's learned arrays (`L.means`, `L.quats`, `L.log_scales`, `L.triplane`,
+/// `L.triplane_box`, the three decoders) as the checkpoint and the avatar file both
+/// store them.
+pub(crate) fn insert_learned_layer(a: &mut BTreeMap<String, Array>, name: &str, l: &LayerState) {
+    let n = l.means.len() / 3;
+    let (r, c) = (l.triplane_size.0 as usize, l.triplane_size.1 as usize);
+    a.insert(format!("{name}.means"), f32_array(vec![n, 3], &l.means));
+    a.insert(format!("{name}.quats"), f32_array(vec![n, 4], &l.quats));
+    a.insert(
+        format!("{name}.log_scales"),
+        f32_array(vec![n, 3], &l.log_scales),
+    );
+    a.insert(
+        format!("{name}.triplane"),
+        f32_array(vec![3, r, r, c], &l.triplane),
+    );
+    a.insert(
+        format!("{name}.triplane_box"),
+        f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()),
+    );
+    for (k, p) in [
+        ("appearance", &l.appearance),
+        ("geometry", &l.geometry),
+        ("deformation", &l.deformation),
+    ] {
+        a.insert(format!("{name}.{k}"), f32_array(vec![p.len()], p));
+    }
+}
+
 pub fn write(path: &Path, state: &ModelState) -> crate::Result<()> {
     let mut a = BTreeMap::new();
     a.insert("format_version".to_string(), u32_array(FORMAT_VERSION));
     a.insert("step".to_string(), u32_array(state.step));
     for (name, l) in &state.layers {
-        let n = l.means.len() / 3;
-        let (r, c) = (l.triplane_size.0 as usize, l.triplane_size.1 as usize);
-        a.insert(format!("{name}.means"), f32_array(vec![n, 3], &l.means));
-        a.insert(format!("{name}.quats"), f32_array(vec![n, 4], &l.quats));
-        a.insert(
-            format!("{name}.log_scales"),
-            f32_array(vec![n, 3], &l.log_scales),
-        );
-        a.insert(
-            format!("{name}.triplane"),
-            f32_array(vec![3, r, r, c], &l.triplane),
-        );
-        a.insert(
-            format!("{name}.triplane_box"),
-            f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()),
-        );
-        a.insert(
-            format!("{name}.appearance"),
-            f32_array(vec![l.appearance.len()], &l.appearance),
-        );
-        a.insert(
-            format!("{name}.geometry"),
-            f32_array(vec![l.geometry.len()], &l.geometry),
-        );
-        a.insert(
-            format!("{name}.deformation"),
-            f32_array(vec![l.deformation.len()], &l.deformation),
-        );
+        let n = l.count();
+        insert_learned_layer(&mut a, name, l);
         for (g, s) in ADAM_GROUPS.iter().zip(&l.adam) {
             a.insert(
                 format!("{name}.adam.{g}.m"),

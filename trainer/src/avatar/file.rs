@@ -34,6 +34,7 @@ use drape_engine::Context;
 use glam::DVec3;
 
 use crate::avatar::assemble::Layers;
+use crate::avatar::checkpoint::{f32_array, insert_learned_layer};
 use crate::avatar::config::{LayersConfig, TrainConfig};
 use crate::avatar::model::Avatar;
 use crate::avatar::rig::Rig;
@@ -104,14 +105,6 @@ pub struct AvatarFile {
 
 const COLOUR: &str = "each layer's appearance decoder gives opacity and SH coefficients of its layers_config sh_degree; colour = SH + 0.5, clamped at 0, in the training images' values; frames are premultiplied RGBA";
 
-fn f32_array(shape: Vec<usize>, data: &[f32]) -> Array {
-    Array::new(
-        Dtype::F32,
-        shape,
-        data.iter().map(|&v| f64::from(v)).collect(),
-    )
-}
-
 fn f64_array(shape: Vec<usize>, data: &[f64]) -> Array {
     Array::new(Dtype::F64, shape, data.to_vec())
 }
@@ -173,29 +166,7 @@ impl AvatarFile {
     fn arrays(&self) -> BTreeMap<String, Array> {
         let mut a = BTreeMap::new();
         for (name, l) in &self.layers {
-            let n = l.count();
-            let (r, c) = (l.triplane_size.0 as usize, l.triplane_size.1 as usize);
-            a.insert(format!("{name}.means"), f32_array(vec![n, 3], &l.means));
-            a.insert(format!("{name}.quats"), f32_array(vec![n, 4], &l.quats));
-            a.insert(
-                format!("{name}.log_scales"),
-                f32_array(vec![n, 3], &l.log_scales),
-            );
-            a.insert(
-                format!("{name}.triplane"),
-                f32_array(vec![3, r, r, c], &l.triplane),
-            );
-            a.insert(
-                format!("{name}.triplane_box"),
-                f32_array(vec![2, 3], &[l.triplane_box[0], l.triplane_box[1]].concat()),
-            );
-            for (k, p) in [
-                ("appearance", &l.appearance),
-                ("geometry", &l.geometry),
-                ("deformation", &l.deformation),
-            ] {
-                a.insert(format!("{name}.{k}"), f32_array(vec![p.len()], p));
-            }
+            insert_learned_layer(&mut a, name, l);
         }
         if let Some((s, _)) = &self.scene {
             let n = s.params[3].len();
