@@ -73,9 +73,10 @@ enum Command {
     /// Say which layout and variant a sequence directory is in, its frames, cameras,
     /// image size, masks, parameters and split, and the first problem found.
     Inspect(inspect::InspectArgs),
-    /// From a person's videos (a calibrated rig, or one video) towards a sequence to
+    /// From a person's videos (a calibrated rig of two views or more) to a sequence to
     /// train on: frames (ffmpeg), cameras from the calibration, mediapipe's person masks
-    /// and landmarks; the body fit is not built yet.
+    /// and landmarks, the body fitted to them, all written as a ZJU-MoCap sequence (one
+    /// video stops before the body fit: not built yet).
     Prepare(prepare::PrepareArgs),
     /// Train the avatar on a sequence (NeuMan or ZJU-MoCap layout, or `drape synth`
     /// output) and evaluate it on the held-out frames.

@@ -70,8 +70,19 @@ pub struct TrainArgs {
     /// Training steps (overrides the preset and the config file).
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=10_000_000))]
     pub steps: Option<u32>,
-    /// An SMPL-format body (.npz, smplx layout); default: the project's procedural body,
-    /// which is also what `drape synth` animates.
+    /// A multi-camera (ZJU-MoCap layout) sequence's training cameras by index, e.g.
+    /// 0,1,2 (default: the config's zju_train_camera, 0 in the presets; sets the
+    /// config's zju_train_cameras).
+    #[arg(long, value_delimiter = ',', conflicts_with = "resume")]
+    pub train_cameras: Vec<usize>,
+    /// Its held-out cameras, e.g. 3 (default: every camera that does not train; sets
+    /// the config's zju_test_cameras).
+    #[arg(long, value_delimiter = ',', conflicts_with = "resume")]
+    pub test_cameras: Vec<usize>,
+    /// An SMPL-format body (.npz, smplx layout); default: the sequence's own
+    /// `body_model.npz` where it has one (`drape prepare` writes it: the body its
+    /// parameters were fitted with), else the project's procedural body, which is also
+    /// what `drape synth` animates.
     #[arg(long)]
     pub body: Option<PathBuf>,
     /// Profile the training steps: GPU time per pass and per stage (from timestamp
@@ -137,6 +148,12 @@ fn load_config(args: &TrainArgs) -> anyhow::Result<TrainConfig> {
     }
     if let Some(s) = args.steps {
         config.schedule.steps = s;
+    }
+    if !args.train_cameras.is_empty() {
+        config.zju_train_cameras = args.train_cameras.clone();
+    }
+    if !args.test_cameras.is_empty() {
+        config.zju_test_cameras = args.test_cameras.clone();
     }
     if let Some(l) = &args.layers {
         config.layers.choice = LayerChoice::parse(l).context("--layers")?;
@@ -215,9 +232,13 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
             dir.display()
         ),
     };
+    let seq = load_sequence(&data, config.camera_split())?;
+    // A sequence `drape prepare` wrote carries the body its parameters were fitted with.
+    let body = body.or_else(|| {
+        Some(seq.dir.join("body_model.npz")).filter(|p| earlier.is_none() && p.is_file())
+    });
     let info = RunInfo::new(&data, body.as_deref());
-    let seq = load_sequence(&data, config.zju_train_camera)?;
-    let model = body_model(args.body.as_deref())?;
+    let model = body_model(body.as_deref())?;
     let ctx = device.open()?;
     let (train_n, test_n) = seq.frames.iter().fold((0, 0), |(a, b), f| match f.split {
         drape_trainer::dataset::split::Split::Train => (a + 1, b),
@@ -235,6 +256,12 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
         seq.frames[0].width,
         seq.frames[0].height
     );
+    if let Some(b) = &body {
+        println!("body: {}", b.display());
+    }
+    if config.layers.choice.cloth.is_none() && !cloth {
+        println!("layers: no cloth layer: the data has no garment masks (masks_upper/, masks_lower/) to train one on");
+    }
     println!("model ({} preset, on {}):", config.preset, ctx.info().name);
     let decoders = |w: u32| {
         if w >= 128 {

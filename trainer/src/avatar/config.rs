@@ -12,6 +12,7 @@ use crate::avatar::densify::DensifyConfig;
 use crate::avatar::layer::LayerConfig;
 use crate::avatar::model::LayerChoice;
 use crate::avatar::scene::SceneConfig;
+use crate::dataset::split::CameraSplit;
 use crate::error::TrainerError;
 use crate::garment::GarmentFit;
 
@@ -31,8 +32,16 @@ pub struct TrainConfig {
     /// Costs two integer atomics per value and gradients rounded to 2^-36.
     #[serde(default)]
     pub deterministic: bool,
-    /// ZJU-MoCap: the training camera's index.
+    /// ZJU-MoCap: the training camera's index (every other camera is held out).
     pub zju_train_camera: usize,
+    /// ZJU-MoCap: several training cameras, e.g. `[0, 1, 2]` (replaces
+    /// `zju_train_camera` when given).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub zju_train_cameras: Vec<usize>,
+    /// ZJU-MoCap: the held-out cameras, e.g. `[3]`; empty: every camera that does not
+    /// train. A camera in neither list is not loaded.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub zju_test_cameras: Vec<usize>,
     /// Which layers, their sizes and rates, and how they become one image.
     pub layers: LayersConfig,
     /// The losses' weights.
@@ -172,6 +181,8 @@ impl TrainConfig {
             seed: 1,
             deterministic: false,
             zju_train_camera: 0,
+            zju_train_cameras: Vec::new(),
+            zju_test_cameras: Vec::new(),
             layers: LayersConfig {
                 choice: LayerChoice::AUTO,
                 subdivision: 0,
@@ -305,6 +316,13 @@ impl TrainConfig {
         migrate_flat_layout(&mut over).map_err(in_file)?;
         let mut base = serde_json::to_value(self)
             .map_err(|e| TrainerError::config("(top level)", e.to_string()))?;
+        // Left out of config.json while empty (so that older runs' files stay as they
+        // were), but a file may set them.
+        if let Some(top) = base.as_object_mut() {
+            for key in ["zju_train_cameras", "zju_test_cameras"] {
+                top.entry(key).or_insert_with(|| serde_json::json!([]));
+            }
+        }
         merge_json(&mut base, &over, "").map_err(in_file)?;
         Self::from_deserializer(base).map_err(in_file)
     }
@@ -684,6 +702,19 @@ impl std::fmt::Display for Preset {
 }
 
 impl TrainConfig {
+    /// A ZJU-MoCap sequence's training and held-out cameras: `zju_train_cameras` and
+    /// `zju_test_cameras` where given, else `zju_train_camera` and every other.
+    pub fn camera_split(&self) -> CameraSplit {
+        CameraSplit {
+            train: if self.zju_train_cameras.is_empty() {
+                vec![self.zju_train_camera]
+            } else {
+                self.zju_train_cameras.clone()
+            },
+            test: (!self.zju_test_cameras.is_empty()).then(|| self.zju_test_cameras.clone()),
+        }
+    }
+
     /// Reads a run's `config.json` (for `--resume`), naming the file on any problem.
     pub fn read_run(dir: &Path) -> crate::Result<Self> {
         let path = dir.join("config.json");

@@ -6,8 +6,9 @@ use std::path::{Path, PathBuf};
 use crate::body::procedural::{default_body, BodyOptions};
 use crate::body::SmplModel;
 use crate::dataset::colmap::ColmapModel;
-use crate::dataset::layout::{locate, SequenceFiles, Variant};
+use crate::dataset::layout::{locate, sequence_root, SequenceFiles, Variant};
 use crate::dataset::loader::{load_located, BodyParams, DatasetFrame};
+use crate::dataset::split::CameraSplit;
 
 /// The on-disk layout a sequence came in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -26,20 +27,20 @@ pub struct Sequence {
 }
 
 /// Loads `dir` in whichever layout and variant it is: NeuMan (`sparse/`), ZJU-MoCap
-/// (`annots.npy`), or the root `drape synth` writes (its `neuman/`).
-pub fn load_sequence(dir: &Path, zju_train_camera: usize) -> crate::Result<Sequence> {
-    if !dir.join("sparse").is_dir()
-        && !dir.join("annots.npy").is_file()
-        && dir.join("neuman").join("sparse").is_dir()
-    {
-        return load_sequence(&dir.join("neuman"), zju_train_camera);
-    }
+/// (`annots.npy`), the root `drape synth` writes (its `neuman/`), or the directory
+/// `drape prepare` writes (its `sequence/`). `zju_cameras`:
+/// a ZJU-MoCap sequence's training and held-out cameras (a camera index: that one
+/// trains, the others are held out; [`TrainConfig::camera_split`]).
+///
+/// [`TrainConfig::camera_split`]: crate::avatar::config::TrainConfig::camera_split
+pub fn load_sequence(dir: &Path, zju_cameras: impl Into<CameraSplit>) -> crate::Result<Sequence> {
+    let dir = &sequence_root(dir);
     let files = locate(dir)?;
     let layout = match &files {
         SequenceFiles::Neuman(_) => Layout::NeuMan,
         SequenceFiles::Zju(_) => Layout::ZjuMocap,
     };
-    let frames = load_located(&files, zju_train_camera)?;
+    let frames = load_located(&files, zju_cameras)?;
     let variant = files.variant();
     Ok(Sequence {
         dir: dir.into(),

@@ -142,7 +142,7 @@ impl OpenRun {
             }
         };
         let body = body.map(Path::to_path_buf).or_else(|| info.body.clone());
-        let seq = load_sequence(&info.data, config.zju_train_camera)?;
+        let seq = load_sequence(&info.data, config.camera_split())?;
         let first = seq
             .frames
             .iter()

@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::dataset::image::dimensions;
-use crate::dataset::layout::{detect, locate, SequenceFiles, Variant};
+use crate::dataset::layout::{detect, locate, sequence_root, SequenceFiles, Variant};
 
 /// What `inspect` found.
 #[derive(Clone, Debug, serde::Serialize)]
@@ -42,17 +42,10 @@ fn parent_folder(dir: &Path, p: &Path) -> String {
     r.split('/').next().map(|s| format!("{s}/")).unwrap_or(r)
 }
 
-/// Inspects `dir` (a `drape synth` output is inspected through its `neuman/`, the
-/// sequence `drape train` would read).
+/// Inspects `dir` (a `drape synth` or `drape prepare` output through the sequence in it
+/// that `drape train` would read: [`sequence_root`]).
 pub fn inspect(dir: &Path) -> Inspection {
-    let dir = if !dir.join("sparse").is_dir()
-        && !dir.join("annots.npy").is_file()
-        && dir.join("neuman").join("sparse").is_dir()
-    {
-        dir.join("neuman")
-    } else {
-        dir.to_path_buf()
-    };
+    let dir = sequence_root(dir);
     let mut out = Inspection {
         dir: dir.clone(),
         variant: None,

@@ -34,6 +34,21 @@ use crate::dataset::error::DatasetError;
 use crate::dataset::image::MaskRule;
 use crate::dataset::zju::ZjuAnnots;
 
+/// The sequence a directory holds: the directory itself, or the one inside a `drape
+/// synth` output (its `neuman/`) or a `drape prepare` output (its `sequence/`).
+pub fn sequence_root(dir: &Path) -> PathBuf {
+    if dir.join("sparse").is_dir() || dir.join("annots.npy").is_file() {
+        return dir.to_path_buf();
+    }
+    if dir.join("neuman").join("sparse").is_dir() {
+        return dir.join("neuman");
+    }
+    if dir.join("prepare.json").is_file() && dir.join("sequence").join("annots.npy").is_file() {
+        return dir.join("sequence");
+    }
+    dir.to_path_buf()
+}
+
 /// A published layout variant.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Variant {

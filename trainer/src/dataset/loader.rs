@@ -13,7 +13,7 @@ use crate::dataset::error::DatasetError;
 use crate::dataset::image::{read_mask, read_rgb, MaskRule};
 use crate::dataset::layout::{locate, NeumanFiles, SequenceFiles, Variant, ZjuFiles};
 use crate::dataset::neuman::SmplSequence;
-use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, zju_by_camera, Split};
+use crate::dataset::split::{neuman_80_10_10, neuman_every_fifth, CameraSplit, Split};
 use crate::dataset::zju::ZjuSmpl;
 
 /// The body's parameters in a frame, in the convention of the layout it came from.
@@ -153,15 +153,16 @@ fn load_masks(
 }
 
 /// Loads a located sequence of either layout, NeuMan with HUGS's split (every fifth
-/// frame held out) and ZJU-MoCap with `zju_train_camera` training. Training and
-/// `drape inspect` both come through here, so they report the same first problem.
+/// frame held out) and ZJU-MoCap with the cameras of `zju_cameras` (a camera index:
+/// that one trains, the others are held out). Training and `drape inspect` both come
+/// through here, so they report the same first problem.
 pub fn load_located(
     files: &SequenceFiles,
-    zju_train_camera: usize,
+    zju_cameras: impl Into<CameraSplit>,
 ) -> Result<Vec<DatasetFrame>, DatasetError> {
     match files {
         SequenceFiles::Neuman(n) => load_neuman_files(n, NeumanSplit::EveryFifth),
-        SequenceFiles::Zju(z) => load_zju_files(z, zju_train_camera),
+        SequenceFiles::Zju(z) => load_zju_files(z, zju_cameras),
     }
 }
 
@@ -288,10 +289,13 @@ pub fn load_neuman_files(
 }
 
 /// Loads a ZJU-MoCap-layout sequence (any variant, see [`crate::dataset::layout`]);
-/// `train_camera` is the training view.
-pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, DatasetError> {
+/// `cameras`: which train and which are held out (a camera index: that one trains).
+pub fn load_zju(
+    dir: &Path,
+    cameras: impl Into<CameraSplit>,
+) -> Result<Vec<DatasetFrame>, DatasetError> {
     match locate(dir)? {
-        SequenceFiles::Zju(files) => load_zju_files(&files, train_camera),
+        SequenceFiles::Zju(files) => load_zju_files(&files, cameras),
         SequenceFiles::Neuman(n) => Err(DatasetError::layout(
             dir,
             format!("a NeuMan sequence ({}), not ZJU-MoCap", n.variant.name()),
@@ -302,21 +306,19 @@ pub fn load_zju(dir: &Path, train_camera: usize) -> Result<Vec<DatasetFrame>, Da
 /// Loads a located ZJU-MoCap sequence.
 pub fn load_zju_files(
     files: &ZjuFiles,
-    train_camera: usize,
+    cameras: impl Into<CameraSplit>,
 ) -> Result<Vec<DatasetFrame>, DatasetError> {
     let annots = &files.annots;
-    if train_camera >= annots.cameras.len() {
-        return Err(DatasetError::Field {
+    let splits = cameras
+        .into()
+        .splits(annots.cameras.len())
+        .map_err(|problem| DatasetError::Field {
             file: files.dir.join("annots.npy").display().to_string(),
             field: "cams".into(),
             problem: format!(
-                "{} cameras, so zju_train_camera = {train_camera} does not exist (0 to {})",
-                annots.cameras.len(),
-                annots.cameras.len().saturating_sub(1)
+                "the training and held-out cameras (zju_train_camera, zju_train_cameras, zju_test_cameras): {problem}"
             ),
-        });
-    }
-    let splits = zju_by_camera(annots.cameras.len(), train_camera);
+        })?;
     let rule = files.variant.mask_rule();
     // Undistortion maps per camera and image size (None for a pinhole).
     let mut undistorters: HashMap<(usize, u32, u32), Option<Undistorter>> = HashMap::new();
@@ -324,6 +326,9 @@ pub fn load_zju_files(
     for (params, views) in &files.frames {
         let body = ZjuSmpl::read_file(params)?;
         for paths in views {
+            let Some(split) = splits[paths.view] else {
+                continue;
+            };
             let cam = &annots.cameras[paths.view];
             let img = read_rgb(&paths.image)?;
             let (w, h) = (img.width, img.height);
@@ -352,7 +357,7 @@ pub fn load_zju_files(
                 garment_masks: None,
                 camera,
                 body: BodyParams::Zju(body.clone()),
-                split: splits[paths.view],
+                split,
             });
         }
     }

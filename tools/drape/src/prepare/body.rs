@@ -39,7 +39,9 @@ use super::{commit_stage, progress, read_stamp};
 const METHOD: &str = "body v1: DLT + one-bad-view rejection + time offsets; limb-length fit";
 
 /// The views of `cameras.json`.
-fn read_cameras(out: &Path) -> anyhow::Result<(serde_json::Value, Vec<triangulate::View>)> {
+pub(super) fn read_cameras(
+    out: &Path,
+) -> anyhow::Result<(serde_json::Value, Vec<triangulate::View>)> {
     let path = out.join("cameras.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?;
     let doc: serde_json::Value =
@@ -91,7 +93,7 @@ fn read_cameras(out: &Path) -> anyhow::Result<(serde_json::Value, Vec<triangulat
 }
 
 /// One view's landmarks (x, y, visibility) and frame names.
-fn read_track(dir: &Path) -> anyhow::Result<(Track, Vec<String>)> {
+pub(super) fn read_track(dir: &Path) -> anyhow::Result<(Track, Vec<String>)> {
     let path = dir.join("landmarks.npy");
     let bytes = std::fs::read(&path).with_context(|| format!("{}", path.display()))?;
     let a = npy::decode(&bytes, &path.display().to_string(), None)?;

@@ -1,8 +1,7 @@
 //! `drape prepare VIDEO... --out DIR`: from a person's videos to a sequence drape
 //! trains on, in stages whose outputs a user can look at and rerun from (issue 55).
-//! Built so far: the first four stages; the dataset writing is not, and the command
-//! says so when it reaches it (an error, so that no script takes
-//! `DIR` for a finished sequence).
+//! Built so far: the five stages for a calibrated rig of two views or more; one view
+//! (the assumed lens, SfM, a monocular fit) stops at the body stage with an error.
 //!
 //! Stages, in order, each writing under `DIR`:
 //! 1. `frames`: each video decoded (`frames`: ffmpeg) to
@@ -22,6 +21,9 @@
 //!    SMPL-format body (with limb lengths) fitted to them, `body/` (`landmarks3d.npy`,
 //!    `smpl_params.npz`, `body_model.npz`, `report.json`: [`body`]). Needs
 //!    `cameras.json` and two views or more.
+//! 5. `sequence`: the frames, masks, cameras and body as one ZJU-MoCap sequence in the
+//!    refined layout, `sequence/` ([`sequence`]), which `drape inspect DIR` and `drape
+//!    train --data DIR` read.
 //!
 //! Inputs are all checked before anything is written (the calibration read and
 //! matched, every video probed): a bad one is one `error:` line naming the file, and
@@ -38,6 +40,7 @@ mod body;
 mod cameras;
 mod frames;
 mod landmarks;
+mod sequence;
 mod triangulate;
 
 use std::path::{Path, PathBuf};
@@ -57,6 +60,7 @@ pub enum Stage {
     Cameras,
     Landmarks,
     Body,
+    Sequence,
 }
 
 impl Stage {
@@ -66,6 +70,7 @@ impl Stage {
             Self::Cameras => "cameras",
             Self::Landmarks => "landmarks",
             Self::Body => "body",
+            Self::Sequence => "sequence",
         }
     }
 }
@@ -81,13 +86,16 @@ rerun with --redo):
   body       DIR/body/  landmarks triangulated across the views, the body (limb lengths, \
              per-frame pose) fitted to them, report.json of the reprojection errors \
              (needs --calibration and two views or more)
-Not built yet: garment masks and writing the sequence drape train reads; the command stops \
-after the body fit with an error saying so.
+  sequence   DIR/sequence/  a ZJU-MoCap sequence (zju-refined): annots.npy, images/, mask/, \
+             smpl_params/, body_model.npz; drape inspect DIR and drape train --data DIR read it
+Not built yet: garment masks (drape train then has no cloth layer, and says so), one video \
+(an assumed lens or SfM, and a fit to one view's landmarks).
 
 Example (Pose2Sim's demo; scripts/pose2sim-footage.sh fetches it):
   drape prepare Demo_SinglePerson/videos/cam01.mp4 Demo_SinglePerson/videos/cam03.mp4 \\
       --calibration Demo_SinglePerson/calibration/Calib.qca.txt --frames 0:60 --every 2 \\
-      --height 540 --out prepared/")]
+      --height 540 --out prepared/
+  drape train --data prepared/ --train-cameras 0 --test-cameras 1 --out run/")]
 pub struct PrepareArgs {
     /// The videos: several synchronised views of a calibrated rig (one per camera; named
     /// after their cameras, as cam01.mp4, or given in the calibration's order), or one
@@ -286,10 +294,13 @@ pub fn run(args: &PrepareArgs) -> anyhow::Result<()> {
     if stop(Stage::Body) {
         return Ok(());
     }
-    bail!(
-        "writing the sequence is not built yet: drape prepare stopped after the body fit; {} holds frames/, cameras.json, landmarks/, body/, but no sequence drape train reads (issue 55)",
+    // 5. sequence
+    sequence::stage(out, &names, redo(Stage::Sequence))?;
+    progress(&format!(
+        "done: {} is a sequence (drape inspect {0}; drape train --data {0})",
         out.display()
-    )
+    ));
+    Ok(())
 }
 
 /// Names for views without a calibration: the videos' file stems, numbered where two
