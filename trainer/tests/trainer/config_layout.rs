@@ -306,3 +306,33 @@ fn a_key_given_twice_in_a_config_json_is_refused() {
         TrainConfig::quick()
     );
 }
+
+/// Several training cameras and named held-out ones come from a config file; unset,
+/// they are not written to `config.json` (older runs' files stay as they were) and the
+/// split is `zju_train_camera` against every other camera.
+#[test]
+fn training_and_held_out_cameras_from_a_config_file() {
+    use drape_trainer::dataset::split::CameraSplit;
+    let quick = TrainConfig::preset(Preset::Quick);
+    assert_eq!(quick.camera_split(), CameraSplit::from(0));
+    let json = serde_json::to_string(&quick).unwrap();
+    assert!(
+        !json.contains("zju_train_cameras") && !json.contains("zju_test_cameras"),
+        "{json}"
+    );
+    let c = quick
+        .with_toml(
+            "zju_train_cameras = [0, 2]\nzju_test_cameras = [1]\n",
+            Path::new("t.toml"),
+        )
+        .expect("the keys are known");
+    assert_eq!(
+        c.camera_split(),
+        CameraSplit {
+            train: vec![0, 2],
+            test: Some(vec![1])
+        }
+    );
+    let json = serde_json::to_string(&c).unwrap();
+    assert!(json.contains("\"zju_train_cameras\":[0,2]"), "{json}");
+}

@@ -420,3 +420,88 @@ fn prepare_errors_name_the_file_and_write_nothing() {
     );
     assert!(!out.exists(), "--out was created");
 }
+
+/// The whole path on real footage, small: cam01 and cam03 (1080 and 1088 wide, so the
+/// sequence stage crops one: 146 wide to 144), frames 0:20 every 4th at height 256 → mediapipe's
+/// landmarks and masks → the body fit → a zju-refined sequence that `drape inspect`
+/// accepts → a few training steps on cam01 with cam03 held out.
+#[test]
+fn prepare_to_training_on_two_pose2sim_views() {
+    let demo = footage();
+    let d = scratch("end-to-end");
+    let out = d.join("out");
+    let o = drape(&[
+        "prepare".as_ref(),
+        demo.join("videos/cam01.mp4").as_os_str(),
+        demo.join("videos/cam03.mp4").as_os_str(),
+        "--calibration".as_ref(),
+        demo.join("calibration/Calib.qca.txt").as_os_str(),
+        "--frames".as_ref(),
+        "0:20".as_ref(),
+        "--every".as_ref(),
+        "4".as_ref(),
+        "--height".as_ref(),
+        "256".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    let err = stderr(&o);
+    assert!(o.status.success(), "drape prepare: {err}");
+    assert!(err.contains("cropped about their centre"), "{err}");
+
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("body/report.json")).unwrap()).unwrap();
+    for v in report["views"].as_array().unwrap() {
+        assert_eq!(v["detection_rate"].as_f64(), Some(1.0), "{v}");
+    }
+    // The bounds on the full footage are 1% (triangulated) and 1.5% (fitted
+    // body); two views of five frames have less to average, so 2x those.
+    let tri = report["triangulation_median_percent_of_height"]
+        .as_f64()
+        .unwrap();
+    let fit = report["fitted_body_median_percent_of_height"]
+        .as_f64()
+        .unwrap();
+    assert!(tri <= 2.0, "triangulated landmarks: {tri}% of the height");
+    assert!(fit <= 3.0, "fitted body: {fit}% of the height");
+
+    let o = drape(&["inspect".as_ref(), out.as_os_str()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "drape inspect: {text}{}", stderr(&o));
+    assert!(text.contains("zju-refined"), "{text}");
+    assert!(text.contains("x 2 cameras, 144x256"), "{text}");
+
+    let run = d.join("run");
+    let o = drape(&[
+        "train".as_ref(),
+        "--data".as_ref(),
+        out.as_os_str(),
+        "--config".as_ref(),
+        repo().join("tests/fixtures/tiny-run.toml").as_os_str(),
+        "--layers".as_ref(),
+        "auto".as_ref(),
+        "--steps".as_ref(),
+        "5".as_ref(),
+        "--train-cameras".as_ref(),
+        "0".as_ref(),
+        "--test-cameras".as_ref(),
+        "1".as_ref(),
+        "--out".as_ref(),
+        run.as_os_str(),
+    ]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "drape train: {text}{}", stderr(&o));
+    assert!(
+        text.contains("body: ") && text.contains("sequence/body_model.npz"),
+        "{text}"
+    );
+    assert!(
+        text.contains("no cloth layer: the data has no garment masks"),
+        "{text}"
+    );
+    assert!(text.contains(" held-out images at "), "{text}");
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    let psnr = metrics["fin"]["psnr_crop"].as_f64();
+    assert!(psnr.is_some_and(f64::is_finite), "{metrics}");
+}
