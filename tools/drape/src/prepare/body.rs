@@ -15,6 +15,7 @@
 //!   reprojection error of the triangulated landmarks (pixels of the frames and % of
 //!   the image height: of the views each point was solved from, and of every view that
 //!   saw it) and of the fitted body's landmarks; the fitted limb lengths; timings.
+//! - `sheet.png`: the fitted body drawn over frames of every view ([`super::sheet`]).
 //!
 //! It needs `cameras.json` (a calibrated rig) and two views or more; one view (a
 //! monocular fit) is not built yet and the stage says so.
@@ -32,11 +33,13 @@ use drape_trainer::npy::{self, Array, Dtype};
 use glam::DVec3;
 use serde_json::json;
 
+use super::sheet;
 use super::triangulate::{self, median_of, Options, Track, Triangulation, LANDMARKS};
 use super::{commit_stage, progress, read_stamp};
 
 /// Bumped when the stage's method changes, so that a rerun redoes it.
-const METHOD: &str = "body v1: DLT + one-bad-view rejection + time offsets; limb-length fit";
+const METHOD: &str =
+    "body v1: DLT + one-bad-view rejection + time offsets; limb-length fit; sheet.png";
 
 /// The views of `cameras.json`.
 pub(super) fn read_cameras(
@@ -323,6 +326,29 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
     }
     .write_npz(&staged.path().join("smpl_params.npz"))?;
     model.write_npz(&staged.path().join("body_model.npz"))?;
+    let t_sheet = Instant::now();
+    let sheet_frames: Vec<sheet::SheetFrame<'_>> = fitted
+        .poses
+        .iter()
+        .zip(&fitted.translations)
+        .map(|(pose, t)| sheet::SheetFrame {
+            pose,
+            translation: *t,
+        })
+        .collect();
+    sheet::write(
+        &staged.path().join("sheet.png"),
+        &sheet::Sheet {
+            frames_dir: &out.join("frames"),
+            views: &views,
+            frame_names: &frame_names,
+            offsets: &tri.offsets,
+            model: &model,
+            betas: &fitted.betas,
+            fitted: &sheet_frames,
+        },
+    )?;
+    let t_sheet = t_sheet.elapsed().as_secs_f64();
 
     let per_view: Vec<serde_json::Value> = views
         .iter()
@@ -366,7 +392,8 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
         "limb_lengths": fit::LIMBS.iter().enumerate().map(|(k, (name, _))| {
             json!({"limb": name, "beta": fitted.betas[fit::LIMB_BETAS.start + k], "scale": 1.0 + 0.1 * fitted.betas[fit::LIMB_BETAS.start + k]})
         }).collect::<Vec<_>>(),
-        "seconds": {"triangulation": t_tri, "fit": t_fit},
+        "seconds": {"triangulation": t_tri, "fit": t_fit, "sheet": t_sheet},
+        "sheet": "sheet.png",
         "rules": {
             "observation": format!("visibility >= {}, weighted by visibility", options.min_visibility),
             "rejection": format!("with 3+ views, the worst view is dropped when its error > {} x the others' median and > {}% of the image height", options.reject_ratio, 100.0 * options.reject_floor),

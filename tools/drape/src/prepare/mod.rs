@@ -41,6 +41,7 @@ mod cameras;
 mod frames;
 mod landmarks;
 mod sequence;
+mod sheet;
 mod triangulate;
 
 use std::path::{Path, PathBuf};
