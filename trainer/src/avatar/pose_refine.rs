@@ -10,8 +10,12 @@
 //! the axis-angles directly, at the same rate, and the translation as well, since
 //! a monocular capture's depth is its least certain part. Each frame's Adam counts its
 //! own steps (a frame is visited on average once per `frames` steps, and its bias
-//! correction must follow its own updates). Held-out frames are rendered with the
-//! data's parameters: there is nothing to refine them from.
+//! correction must follow its own updates). A frame seen by several training cameras
+//! (a multi-camera sequence) has one correction, which every one of its images
+//! trains: the body was in one pose at that instant. A held-out image of a trained
+//! instant (another camera, the same frame) is rendered with that instant's
+//! correction ([`PoseRefiner::body_of_frame`]); held-out instants with the data's
+//! parameters: there is nothing to refine them from.
 
 use crate::avatar::rig::{refined_body, REFINED_PARAMS};
 use crate::dataset::loader::BodyParams;
@@ -22,8 +26,8 @@ const ADAM_EPS: f64 = 1e-15;
 const BETA1: f64 = 0.9;
 const BETA2: f64 = 0.999;
 
-/// Saved state: per frame (by dataset frame number) its correction, Adam moments and
-/// step count.
+/// Saved state: per frame (by dataset frame number, each once) its correction, Adam
+/// moments and step count.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PoseState {
     pub frames: Vec<u32>,
@@ -51,29 +55,54 @@ impl PoseState {
 #[derive(Clone, Debug)]
 pub struct PoseRefiner {
     state: PoseState,
+    /// Per training image, its frame's slot in `state`.
+    slots: Vec<usize>,
     lr_pose: f64,
     lr_translation: f64,
 }
 
 impl PoseRefiner {
-    /// Corrections (all zero) for the training frames `frames` (dataset frame numbers,
-    /// in the order the trainer indexes them).
+    /// Corrections (all zero) for the training images of dataset frames `frames` (in
+    /// the order the trainer indexes its images; a frame seen by several cameras
+    /// appears once per image and gets one correction).
     pub fn new(frames: &[u32], lr_pose: f64, lr_translation: f64) -> Self {
+        let mut unique: Vec<u32> = Vec::new();
+        let slots = frames
+            .iter()
+            .map(|f| match unique.iter().position(|u| u == f) {
+                Some(k) => k,
+                None => {
+                    unique.push(*f);
+                    unique.len() - 1
+                }
+            })
+            .collect();
         Self {
-            state: PoseState::zeros(frames),
+            state: PoseState::zeros(&unique),
+            slots,
             lr_pose,
             lr_translation,
         }
     }
 
-    /// The body parameters training frame `index` is rendered with.
+    /// The body parameters training image `index` is rendered with.
     pub fn body(&self, index: usize, body: &BodyParams) -> BodyParams {
-        refined_body(body, &self.state.deltas[index])
+        refined_body(body, &self.state.deltas[self.slots[index]])
     }
 
-    /// One Adam step on training frame `index` from the gradient on its parameters.
-    /// A non-finite gradient is the caller's to refuse (the step guard).
+    /// The body parameters an image of dataset frame `frame` is rendered with: its
+    /// frame's correction where the frame was trained, else the data's.
+    pub fn body_of_frame(&self, frame: u32, body: &BodyParams) -> BodyParams {
+        match self.state.frames.iter().position(|&f| f == frame) {
+            Some(k) => refined_body(body, &self.state.deltas[k]),
+            None => body.clone(),
+        }
+    }
+
+    /// One Adam step on training image `index`'s frame from the gradient on its
+    /// parameters. A non-finite gradient is the caller's to refuse (the step guard).
     pub fn step(&mut self, index: usize, grad: &[f64; REFINED_PARAMS]) {
+        let index = self.slots[index];
         let s = &mut self.state;
         s.steps[index] += 1;
         let t = s.steps[index] as i32;
@@ -92,9 +121,9 @@ impl PoseRefiner {
         }
     }
 
-    /// The correction of training frame `index`.
+    /// The correction of training image `index`'s frame.
     pub fn delta(&self, index: usize) -> &[f64; REFINED_PARAMS] {
-        &self.state.deltas[index]
+        &self.state.deltas[self.slots[index]]
     }
 
     pub fn state(&self) -> &PoseState {

@@ -409,13 +409,28 @@ fn train_in(
         skipped_steps: run.skips.total,
         host_waits: run.waits,
     };
-    // 3. Held-out evaluation and the run's exports.
+    // 3. Held-out evaluation and the run's exports. A held-out image of a trained
+    //    instant (another camera, the same frame) takes that instant's refined pose.
     let eval_dir = out.join("eval");
+    let refined_tests: Vec<DatasetFrame> = test_frames
+        .iter()
+        .map(|f| {
+            let mut g = (*f).clone();
+            if let Some(r) = refiner.as_ref() {
+                g.body = r.body_of_frame(f.frame as u32, &f.body);
+            }
+            g
+        })
+        .collect();
+    let refined_tests: Vec<&DatasetFrame> = refined_tests.iter().collect();
     let (fin, per_frame) = evaluate(
         ctx,
         &mut avatar,
         &mut renderer,
-        &eval_inputs(Some(&eval_dir)),
+        &EvalInputs {
+            frames: &refined_tests,
+            ..eval_inputs(Some(&eval_dir))
+        },
         progress,
     )?;
     write_reports(
