@@ -165,7 +165,8 @@ enum drape_status drape_avatar_default_view(struct drape_avatar *avatar,
 // Renders the current pose through `camera` into host memory: `rgba_out` holds
 // `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
 // and nothing is written); the first width x height x 4 are written, sRGB-encoded
-// premultiplied RGBA, row-major from the top row. Waits for the GPU, and for every frame
+// premultiplied RGBA (alpha within [0, 1], each colour value within [0, alpha]),
+// row-major from the top row. Waits for the GPU, and for every frame
 // in flight (frames recorded with `drape_avatar_record` must have completed before this
 // call).
 enum drape_status drape_avatar_render(struct drape_avatar *avatar,
@@ -186,7 +187,8 @@ enum drape_status drape_avatar_render(struct drape_avatar *avatar,
 // available to `TRANSFER` / `TRANSFER_WRITE`; after, from `TRANSFER` / `TRANSFER_WRITE`
 // to the application's reads. The work must complete before the avatar records its
 // `frames_in_flight`-th frame after this one (`drape_load_options`; 2 by default) and
-// before it is destroyed. The colour is as `drape_avatar_render`'s.
+// before it is destroyed. The colour is encoded as `drape_avatar_render`'s, but written
+// by the GPU as composited, without that call's clamp of colour to [0, alpha].
 enum drape_status drape_avatar_record(struct drape_avatar *avatar,
                                       const struct drape_camera *camera,
                                       uint32_t width,

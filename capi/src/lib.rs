@@ -613,7 +613,8 @@ pub unsafe extern "C" fn drape_avatar_default_view(
 /// Renders the current pose through `camera` into host memory: `rgba_out` holds
 /// `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
 /// and nothing is written); the first width x height x 4 are written, sRGB-encoded
-/// premultiplied RGBA, row-major from the top row. Waits for the GPU, and for every frame
+/// premultiplied RGBA (alpha within [0, 1], each colour value within [0, alpha]),
+/// row-major from the top row. Waits for the GPU, and for every frame
 /// in flight (frames recorded with `drape_avatar_record` must have completed before this
 /// call).
 #[no_mangle]
@@ -642,7 +643,8 @@ pub unsafe extern "C" fn drape_avatar_render(
                 "rgba_len is {rgba_len} floats; a {width}x{height} image needs {needed}"
             )));
         }
-        let pixels = with_avatar(avatar, |a| Ok(a.render(&cam, width, height)?))?;
+        let mut pixels = with_avatar(avatar, |a| Ok(a.render(&cam, width, height)?))?;
+        clamp_premultiplied(&mut pixels);
         if pixels.len() != needed {
             return Err(Failure(
                 drape_status::DRAPE_ERROR_ENGINE,
@@ -656,6 +658,30 @@ pub unsafe extern "C" fn drape_avatar_render(
     })
 }
 
+/// Makes premultiplied RGBA what the header promises: alpha within [0, 1], each colour
+/// value within [0, alpha]. The spherical-harmonic colours are not clamped on the GPU,
+/// so a composite can exceed its alpha. Values already in range keep their bits (the
+/// fixture's renders pass through unchanged); NaN becomes 0.
+fn clamp_premultiplied(rgba: &mut [f32]) {
+    // `!(v >= lo)` rather than `v < lo`: NaN fails the guard and becomes `lo`.
+    let within = |v: f32, hi: f32| {
+        if !(v >= 0.0) {
+            0.0
+        } else if v > hi {
+            hi
+        } else {
+            v
+        }
+    };
+    for p in rgba.chunks_exact_mut(4) {
+        let a = within(p[3], 1.0);
+        p[3] = a;
+        for c in &mut p[..3] {
+            *c = within(*c, a);
+        }
+    }
+}
+
 /// Records the frame (decoders, skinning, renders, composite, the copy into `target`)
 /// into the application's `cmd` (a `VkCommandBuffer` in the recording state, from a
 /// pool of the context's compute queue family); nothing is submitted and nothing waits
@@ -667,7 +693,8 @@ pub unsafe extern "C" fn drape_avatar_render(
 /// available to `TRANSFER` / `TRANSFER_WRITE`; after, from `TRANSFER` / `TRANSFER_WRITE`
 /// to the application's reads. The work must complete before the avatar records its
 /// `frames_in_flight`-th frame after this one (`drape_load_options`; 2 by default) and
-/// before it is destroyed. The colour is as `drape_avatar_render`'s.
+/// before it is destroyed. The colour is encoded as `drape_avatar_render`'s, but written
+/// by the GPU as composited, without that call's clamp of colour to [0, alpha].
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_record(
     avatar: *mut drape_avatar,
@@ -757,6 +784,44 @@ mod tests {
     use super::*;
     use drape_engine::EngineError;
     use drape_trainer::TrainerError;
+
+    /// Colour over alpha, negative and NaN values are clamped; values in range (-0.0
+    /// too) keep their bits.
+    #[test]
+    fn premultiplied_clamp() {
+        let mut px = [
+            1.3,
+            0.5,
+            -0.1,
+            1.0, //
+            0.2,
+            0.3,
+            0.4,
+            0.25, //
+            f32::NAN,
+            0.1,
+            0.0,
+            1.5, //
+            -0.0,
+            0.1,
+            0.2,
+            0.3, //
+            0.1,
+            0.1,
+            0.1,
+            f32::NAN,
+        ];
+        clamp_premultiplied(&mut px);
+        let expected = [
+            1.0, 0.5, 0.0, 1.0, //
+            0.2, 0.25, 0.25, 0.25, //
+            0.0, 0.1, 0.0, 1.0, //
+            -0.0, 0.1, 0.2, 0.3, //
+            0.0, 0.0, 0.0, 0.0,
+        ];
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&px), bits(&expected), "{px:?}");
+    }
 
     /// What `drape_avatar_load` makes of the player's errors: the engine's status kept
     /// (out of memory its own), a file's error an invalid argument, the path first.

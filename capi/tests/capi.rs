@@ -822,3 +822,66 @@ fn two_avatars_on_one_context_render_from_two_threads() {
     let messages = sink.drain();
     assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }
+
+/// Premultiplied means every colour value within [0, alpha] and alpha within [0, 1]:
+/// over the run's default (first held-out) view, that view moved sideways and closer,
+/// and a posed frame (the fixture's bend: elbows and a knee), at the run's size and at
+/// 96x96. (The spherical-harmonic colours are not clamped on the GPU: without the
+/// C ABI's clamp some pixels of the small run exceed their alpha.)
+#[test]
+fn every_colour_value_is_within_zero_and_its_alpha() {
+    let run = the_run();
+    let (ctx, sink) = validated_context();
+    let (avatar, camera) = posed_avatar(ctx, &run);
+    let mut views = vec![camera];
+    for (axis, shift) in [(3, 0.3), (3, -0.3), (11, -0.5)] {
+        let mut c = camera;
+        c.world_to_camera[axis] += shift;
+        views.push(c);
+    }
+    let mut checked = 0;
+    for posed in [false, true] {
+        if posed {
+            let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+            // SAFETY: a live avatar and room for 72 and 3 floats.
+            unsafe {
+                let s = drape_avatar_default_view(
+                    avatar,
+                    std::ptr::null_mut(),
+                    std::ptr::null_mut(),
+                    std::ptr::null_mut(),
+                    pose.as_mut_ptr(),
+                    trans.as_mut_ptr(),
+                );
+                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+                pose[3 * 16 + 2] -= 0.8;
+                pose[3 * 17 + 2] += 0.8;
+                pose[3 * 4] += 0.6;
+                let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
+                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+            }
+        }
+        for (v, view) in views.iter().enumerate() {
+            for side in [32, 96] {
+                let pixels = render_square(avatar as usize, view, side);
+                for (i, p) in pixels.chunks(4).enumerate() {
+                    assert!(
+                        (0.0..=1.0).contains(&p[3])
+                            && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
+                        "posed {posed}, view {v}, {side}x{side}: pixel {i} is {p:?}"
+                    );
+                }
+                assert!(
+                    pixels.chunks(4).any(|p| p[3] > 0.5),
+                    "view {v} covers some pixels"
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 16);
+    assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
