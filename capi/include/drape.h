@@ -1,8 +1,9 @@
 /* drape: the C ABI of the drape engine (Cloth-HUGS avatars on Vulkan). See README.md, Embedding.
  *
  * Conventions:
- *  - Colour: sRGB-encoded (as the training images were; do not encode it again for an
- *    _SRGB swapchain), premultiplied RGBA floats, row-major from the top row.
+ *  - Colour: premultiplied RGBA floats, row-major from the top row, sRGB-encoded as the
+ *    training images were (do not encode it again for an _SRGB swapchain), or linear
+ *    where the avatar is loaded with DRAPE_COLOUR_LINEAR (drape_avatar_render only).
  *  - Pixels: pixel (i, j) covers [i, i + 1) x [j, j + 1) and is sampled at its centre,
  *    (i + 0.5, j + 0.5), in the pixel coordinates of the camera's cx, cy.
  *  - World frame: SMPL's (y up, metres); cameras in OpenCV's axes (drape_camera).
@@ -21,6 +22,17 @@
 
 #include <stdint.h>
 #include <stddef.h>
+
+// How `drape_avatar_render` encodes colour (`drape_load_options`' `colour`).
+typedef enum drape_colour {
+  // sRGB-encoded, as the training images were (for an 8-bit UNORM target, or a
+  // compositor that works in sRGB): the default.
+  DRAPE_COLOUR_SRGB = 0,
+  // Linear (for an `_SRGB` swapchain, which encodes on write, or a linear
+  // compositor): each pixel unpremultiplied, decoded with the sRGB transfer function
+  // (IEC 61966-2-1), premultiplied again; alpha unchanged.
+  DRAPE_COLOUR_LINEAR = 1,
+} drape_colour;
 
 // What a call returned.
 typedef enum drape_status {
@@ -89,6 +101,10 @@ typedef struct drape_load_options {
   // its own copy of the avatar's per-frame buffers; `drape_avatar_render` waits for
   // all of them whatever the number.
   uint32_t frames_in_flight;
+  // A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
+  // sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with
+  // `DRAPE_COLOUR_LINEAR`.
+  uint32_t colour;
 } drape_load_options;
 
 // A pinhole camera in OpenCV's axes (x right, y down, z forward): intrinsics in pixels
@@ -164,8 +180,9 @@ enum drape_status drape_avatar_default_view(struct drape_avatar *avatar,
 
 // Renders the current pose through `camera` into host memory: `rgba_out` holds
 // `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
-// and nothing is written); the first width x height x 4 are written, sRGB-encoded
-// premultiplied RGBA (alpha within [0, 1], each colour value within [0, alpha]),
+// and nothing is written); the first width x height x 4 are written, premultiplied
+// RGBA (alpha within [0, 1], each colour value within [0, alpha]), sRGB-encoded or
+// linear as the avatar was loaded (`drape_load_options`' `colour`),
 // row-major from the top row. Waits for the GPU, and for every frame
 // in flight (frames recorded with `drape_avatar_record` must have completed before this
 // call).

@@ -163,6 +163,19 @@ pub struct drape_camera {
     pub z_far: f32,
 }
 
+/// How `drape_avatar_render` encodes colour (`drape_load_options`' `colour`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum drape_colour {
+    /// sRGB-encoded, as the training images were (for an 8-bit UNORM target, or a
+    /// compositor that works in sRGB): the default.
+    DRAPE_COLOUR_SRGB = 0,
+    /// Linear (for an `_SRGB` swapchain, which encodes on write, or a linear
+    /// compositor): each pixel unpremultiplied, decoded with the sRGB transfer function
+    /// (IEC 61966-2-1), premultiplied again; alpha unchanged.
+    DRAPE_COLOUR_LINEAR = 1,
+}
+
 /// How `drape_avatar_load` loads an avatar; NULL, or all zeros, for the defaults.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default)]
@@ -172,6 +185,10 @@ pub struct drape_load_options {
     /// its own copy of the avatar's per-frame buffers; `drape_avatar_render` waits for
     /// all of them whatever the number.
     pub frames_in_flight: u32,
+    /// A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
+    /// sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with
+    /// `DRAPE_COLOUR_LINEAR`.
+    pub colour: u32,
 }
 
 /// Frames in flight when `drape_load_options` does not say.
@@ -237,7 +254,13 @@ impl<T> Table<T> {
 /// avatar another while it runs, so that destroying a handle during another thread's
 /// call frees the player when that call ends. A panic while the lock is held poisons
 /// it: the avatar is retired.
-type AvatarCell = Arc<Mutex<AvatarPlayer>>;
+type AvatarCell = Arc<Mutex<Avatar>>;
+
+/// An avatar handle's state: the player and the choices made at load.
+struct Avatar {
+    player: AvatarPlayer,
+    colour: drape_colour,
+}
 
 static CONTEXTS: Mutex<Table<Context>> = Mutex::new(Table::new());
 static AVATARS: Mutex<Table<AvatarCell>> = Mutex::new(Table::new());
@@ -341,7 +364,7 @@ fn context_of(handle: *const drape_context) -> Result<Context, Failure> {
 /// handle up. A poisoned lock (a panic in an earlier call) is a retired avatar.
 fn with_avatar<T>(
     handle: *mut drape_avatar,
-    f: impl FnOnce(&mut AvatarPlayer) -> Result<T, Failure>,
+    f: impl FnOnce(&mut Avatar) -> Result<T, Failure>,
 ) -> Result<T, Failure> {
     let cell = lock(&AVATARS)
         .get_mut(handle as u64)
@@ -516,13 +539,23 @@ pub unsafe extern "C" fn drape_avatar_load(
                 )))
             }
         };
+        let colour = match options.colour {
+            0 => drape_colour::DRAPE_COLOUR_SRGB,
+            1 => drape_colour::DRAPE_COLOUR_LINEAR,
+            n => {
+                return Err(Failure::argument(format!(
+                    "colour is {n} (DRAPE_COLOUR_SRGB 0 or DRAPE_COLOUR_LINEAR 1)"
+                )))
+            }
+        };
         // SAFETY: a non-null path is a nul-terminated string.
         let path = unsafe { CStr::from_ptr(path) }
             .to_string_lossy()
             .into_owned();
         let player = AvatarPlayer::load(&ctx, Path::new(&path), frames as usize)
             .map_err(|e| Failure::from(e).within(&path))?;
-        Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(player))) as *mut drape_avatar)
+        let avatar = Avatar { player, colour };
+        Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(avatar))) as *mut drape_avatar)
     });
     // SAFETY: the caller passes NULL or room for a status.
     if let Some(out) = unsafe { status.as_mut() } {
@@ -550,7 +583,7 @@ pub unsafe extern "C" fn drape_avatar_set_pose(
                 &*(translation as *const [f32; 3]),
             )
         };
-        with_avatar(avatar, |a| Ok(a.set_pose(p, t)?))
+        with_avatar(avatar, |a| Ok(a.player.set_pose(p, t)?))
     })
 }
 
@@ -569,6 +602,7 @@ pub unsafe extern "C" fn drape_avatar_default_view(
 ) -> drape_status {
     status("drape_avatar_default_view", || {
         with_avatar(avatar, |a| {
+            let a = &a.player;
             let c = a.default_camera();
             let v = ViewCamera::from_camera(c);
             // SAFETY: each pointer is NULL or points at room for its value (the contract).
@@ -612,8 +646,9 @@ pub unsafe extern "C" fn drape_avatar_default_view(
 
 /// Renders the current pose through `camera` into host memory: `rgba_out` holds
 /// `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
-/// and nothing is written); the first width x height x 4 are written, sRGB-encoded
-/// premultiplied RGBA (alpha within [0, 1], each colour value within [0, alpha]),
+/// and nothing is written); the first width x height x 4 are written, premultiplied
+/// RGBA (alpha within [0, 1], each colour value within [0, alpha]), sRGB-encoded or
+/// linear as the avatar was loaded (`drape_load_options`' `colour`),
 /// row-major from the top row. Waits for the GPU, and for every frame
 /// in flight (frames recorded with `drape_avatar_record` must have completed before this
 /// call).
@@ -643,8 +678,13 @@ pub unsafe extern "C" fn drape_avatar_render(
                 "rgba_len is {rgba_len} floats; a {width}x{height} image needs {needed}"
             )));
         }
-        let mut pixels = with_avatar(avatar, |a| Ok(a.render(&cam, width, height)?))?;
+        let (mut pixels, colour) = with_avatar(avatar, |a| {
+            Ok((a.player.render(&cam, width, height)?, a.colour))
+        })?;
         clamp_premultiplied(&mut pixels);
+        if colour == drape_colour::DRAPE_COLOUR_LINEAR {
+            srgb_to_linear_premultiplied(&mut pixels);
+        }
         if pixels.len() != needed {
             return Err(Failure(
                 drape_status::DRAPE_ERROR_ENGINE,
@@ -678,6 +718,27 @@ fn clamp_premultiplied(rgba: &mut [f32]) {
         p[3] = a;
         for c in &mut p[..3] {
             *c = within(*c, a);
+        }
+    }
+}
+
+/// sRGB-encoded premultiplied RGBA (clamped: colour within [0, alpha]) to linear
+/// premultiplied: colour / alpha decoded with the sRGB transfer function
+/// (IEC 61966-2-1), times alpha; alpha unchanged, a transparent pixel stays 0.
+fn srgb_to_linear_premultiplied(rgba: &mut [f32]) {
+    let decode = |c: f32| {
+        if c <= 0.04045 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }
+    };
+    for p in rgba.chunks_exact_mut(4) {
+        let a = p[3];
+        if a > 0.0 {
+            for c in &mut p[..3] {
+                *c = decode((*c / a).min(1.0)) * a;
+            }
         }
     }
 }
@@ -717,16 +778,21 @@ pub unsafe extern "C" fn drape_avatar_record(
         if layout != vk::ImageLayout::TRANSFER_DST_OPTIMAL && layout != vk::ImageLayout::GENERAL {
             return Err(Failure::argument(format!("target_layout {target_layout}: the copy needs VK_IMAGE_LAYOUT_TRANSFER_DST_OPTIMAL (7) or VK_IMAGE_LAYOUT_GENERAL (1)")));
         }
-        // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
-        let host = unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
-        // SAFETY: as above.
-        let image =
-            unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
         with_avatar(avatar, |a| {
-            Ok(
-                a.record_frame_into(&cam, width, height, &host, Some(&image))
-                    .map(|_| ())?,
-            )
+            if a.colour != drape_colour::DRAPE_COLOUR_SRGB {
+                return Err(Failure::argument(
+                    "the avatar was loaded with DRAPE_COLOUR_LINEAR, which only drape_avatar_render converts to; the recorded frame is sRGB",
+                ));
+            }
+            // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
+            let host =
+                unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
+            // SAFETY: as above.
+            let image =
+                unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
+            Ok(a.player
+                .record_frame_into(&cam, width, height, &host, Some(&image))
+                .map(|_| ())?)
         })
     })
 }
@@ -768,6 +834,11 @@ pub mod testing {
         status("drape_testing_panic_in_avatar_call", || {
             with_avatar(avatar, |_| panic!("a deliberate panic"))
         })
+    }
+
+    /// The frames in flight `avatar` was loaded with.
+    pub fn frames_in_flight(avatar: *mut drape_avatar) -> Option<usize> {
+        with_avatar(avatar, |a| Ok(a.player.frames_in_flight())).ok()
     }
 
     /// The validation messages collector of `ctx` (opened with validation), to read

@@ -885,3 +885,125 @@ fn every_colour_value_is_within_zero_and_its_alpha() {
     let messages = sink.drain();
     assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }
+
+/// `drape_load_options`: frames in flight as asked (the player's count), out of range
+/// refused; `DRAPE_COLOUR_LINEAR` renders each pixel's colour / alpha decoded with the
+/// sRGB transfer function (computed here in f64) times alpha, alpha unchanged; an
+/// unknown encoding is refused, and so is recording a linear avatar.
+#[test]
+fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
+    let run = the_run();
+    let (ctx, sink) = validated_context();
+    let dir = CString::new(run.to_str().unwrap()).unwrap();
+    let load = |options: drape_load_options| {
+        let mut status = drape_status::DRAPE_ERROR_ENGINE;
+        // SAFETY: a live context, a string, valid options and room for a status.
+        let avatar = unsafe { drape_avatar_load(ctx, dir.as_ptr(), &options, &mut status) };
+        (avatar, status)
+    };
+    for (frames, expected) in [(0, Some(2)), (1, Some(1)), (3, Some(3)), (9, None)] {
+        let (avatar, status) = load(drape_load_options {
+            frames_in_flight: frames,
+            colour: 0,
+        });
+        assert_eq!(
+            drape::testing::frames_in_flight(avatar),
+            expected,
+            "{frames}"
+        );
+        if expected.is_none() {
+            assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+            assert!(
+                last_error().contains("frames_in_flight"),
+                "{}",
+                last_error()
+            );
+        } else {
+            assert_eq!(status, drape_status::DRAPE_OK);
+            assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+        }
+    }
+    let (refused, status) = load(drape_load_options {
+        frames_in_flight: 0,
+        colour: 2,
+    });
+    assert!(refused.is_null());
+    assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+
+    let (srgb, camera) = posed_avatar(ctx, &run);
+    let (linear, status) = load(drape_load_options {
+        frames_in_flight: 0,
+        colour: drape_colour::DRAPE_COLOUR_LINEAR as u32,
+    });
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: live avatars, room for 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            srgb,
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK);
+        let s = drape_avatar_set_pose(linear, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK);
+    }
+    let encoded = render_square(srgb as usize, &camera, 48);
+    let decoded = render_square(linear as usize, &camera, 48);
+    let mut mid_tones = 0;
+    for (e, d) in encoded.chunks(4).zip(decoded.chunks(4)) {
+        assert_eq!(e[3].to_bits(), d[3].to_bits(), "alpha unchanged");
+        for c in 0..3 {
+            let a = f64::from(e[3]);
+            let expected = if a > 0.0 {
+                let v = f64::from(e[c]) / a;
+                let v = if v <= 0.04045 {
+                    v / 12.92
+                } else {
+                    ((v + 0.055) / 1.055).powf(2.4)
+                };
+                v * a
+            } else {
+                0.0
+            };
+            // f32 arithmetic against f64: a few ulps of values at most 1.
+            assert!(
+                (f64::from(d[c]) - expected).abs() <= 1e-6,
+                "{e:?} decoded as {d:?}, expected channel {c} {expected}"
+            );
+            if e[3] > 0.5 && e[c] / e[3] > 0.1 && e[c] / e[3] < 0.9 {
+                mid_tones += 1;
+                assert!(d[c] < e[c], "a mid tone is darker in linear: {e:?} {d:?}");
+            }
+        }
+    }
+    assert!(mid_tones > 0, "the view has mid tones to compare");
+    // SAFETY: a linear avatar is refused before the (dummy, never used) command buffer
+    // and image are looked at.
+    let record = unsafe {
+        drape_avatar_record(
+            linear,
+            &camera,
+            48,
+            48,
+            std::ptr::dangling_mut::<std::ffi::c_void>(),
+            1,
+            7,
+        )
+    };
+    assert_eq!(record, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+    assert!(
+        last_error().contains("DRAPE_COLOUR_LINEAR"),
+        "{}",
+        last_error()
+    );
+    for avatar in [srgb, linear] {
+        assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    }
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
