@@ -161,6 +161,14 @@ struct drape_avatar *drape_avatar_load(struct drape_context *ctx,
                                        const struct drape_load_options *options,
                                        enum drape_status *status);
 
+// As `drape_avatar_load`, from an avatar file's `len` bytes at `data` (read from an
+// archive or an asset pack, say); the library keeps no reference to them.
+struct drape_avatar *drape_avatar_load_memory(struct drape_context *ctx,
+                                              const uint8_t *data,
+                                              size_t len,
+                                              const struct drape_load_options *options,
+                                              enum drape_status *status);
+
 // Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72
 // floats, radians, joint 0 the global orientation), `translation` the root in metres.
 enum drape_status drape_avatar_set_pose(struct drape_avatar *avatar,

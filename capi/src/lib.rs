@@ -42,6 +42,7 @@ use drape_engine::{
     Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer,
     ImageTarget,
 };
+use drape_trainer::avatar::file::AvatarFile;
 use drape_trainer::avatar::player::{smpl_pose_of, AvatarPlayer, ViewCamera};
 
 #[cfg(not(target_pointer_width = "64"))]
@@ -529,30 +530,12 @@ pub unsafe extern "C" fn drape_avatar_load(
             return Err(Failure::argument("path is NULL"));
         }
         // SAFETY: the caller passes NULL or valid options.
-        let options = unsafe { options.as_ref() }.copied().unwrap_or_default();
-        let frames = match options.frames_in_flight {
-            0 => DEFAULT_FRAMES_IN_FLIGHT,
-            n @ 1..=8 => n,
-            n => {
-                return Err(Failure::argument(format!(
-                    "frames_in_flight is {n} (1 to 8, or 0 for the default)"
-                )))
-            }
-        };
-        let colour = match options.colour {
-            0 => drape_colour::DRAPE_COLOUR_SRGB,
-            1 => drape_colour::DRAPE_COLOUR_LINEAR,
-            n => {
-                return Err(Failure::argument(format!(
-                    "colour is {n} (DRAPE_COLOUR_SRGB 0 or DRAPE_COLOUR_LINEAR 1)"
-                )))
-            }
-        };
+        let (frames, colour) = load_options(unsafe { options.as_ref() })?;
         // SAFETY: a non-null path is a nul-terminated string.
         let path = unsafe { CStr::from_ptr(path) }
             .to_string_lossy()
             .into_owned();
-        let player = AvatarPlayer::load(&ctx, Path::new(&path), frames as usize)
+        let player = AvatarPlayer::load(&ctx, Path::new(&path), frames)
             .map_err(|e| Failure::from(e).within(&path))?;
         let avatar = Avatar { player, colour };
         Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(avatar))) as *mut drape_avatar)
@@ -562,6 +545,66 @@ pub unsafe extern "C" fn drape_avatar_load(
         *out = s;
     }
     avatar
+}
+
+/// As `drape_avatar_load`, from an avatar file's `len` bytes at `data` (read from an
+/// archive or an asset pack, say); the library keeps no reference to them.
+#[no_mangle]
+pub unsafe extern "C" fn drape_avatar_load_memory(
+    ctx: *mut drape_context,
+    data: *const u8,
+    len: usize,
+    options: *const drape_load_options,
+    status: *mut drape_status,
+) -> *mut drape_avatar {
+    let (avatar, s) = guard("drape_avatar_load_memory", std::ptr::null_mut(), || {
+        let ctx = context_of(ctx)?;
+        if data.is_null() || len > isize::MAX as usize {
+            return Err(Failure::argument(format!(
+                "data is NULL or len ({len}) too large"
+            )));
+        }
+        // SAFETY: the caller passes NULL or valid options.
+        let (frames, colour) = load_options(unsafe { options.as_ref() })?;
+        // SAFETY: data points at len readable bytes (the contract), not written during
+        // the call.
+        let bytes = unsafe { std::slice::from_raw_parts(data, len) };
+        let name = format!("<{len} bytes in memory>");
+        let player = AvatarFile::from_bytes(bytes, Path::new(&name))
+            .and_then(|file| AvatarPlayer::from_file(&ctx, &file, frames))
+            .map_err(Failure::from)?;
+        let avatar = Avatar { player, colour };
+        Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(avatar))) as *mut drape_avatar)
+    });
+    // SAFETY: the caller passes NULL or room for a status.
+    if let Some(out) = unsafe { status.as_mut() } {
+        *out = s;
+    }
+    avatar
+}
+
+/// Frames in flight and the colour encoding of `options` (None: the defaults).
+fn load_options(options: Option<&drape_load_options>) -> Result<(usize, drape_colour), Failure> {
+    let options = options.copied().unwrap_or_default();
+    let frames = match options.frames_in_flight {
+        0 => DEFAULT_FRAMES_IN_FLIGHT,
+        n @ 1..=8 => n,
+        n => {
+            return Err(Failure::argument(format!(
+                "frames_in_flight is {n} (1 to 8, or 0 for the default)"
+            )))
+        }
+    };
+    let colour = match options.colour {
+        0 => drape_colour::DRAPE_COLOUR_SRGB,
+        1 => drape_colour::DRAPE_COLOUR_LINEAR,
+        n => {
+            return Err(Failure::argument(format!(
+                "colour is {n} (DRAPE_COLOUR_SRGB 0 or DRAPE_COLOUR_LINEAR 1)"
+            )))
+        }
+    };
+    Ok((frames as usize, colour))
 }
 
 /// Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72

@@ -1007,3 +1007,74 @@ fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
     let messages = sink.drain();
     assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }
+
+/// `drape_avatar_load_memory`: the run exported to an avatar file's bytes, loaded from
+/// memory, renders bit-identically to the run loaded from its path; the bytes truncated
+/// are refused as an invalid argument naming them.
+#[test]
+fn an_avatar_loads_from_memory() {
+    let run = the_run();
+    let bytes = {
+        let ctx = drape_tests::gpu();
+        drape_trainer::avatar::file::AvatarFile::from_run(&ctx, &run)
+            .unwrap()
+            .to_bytes()
+            .unwrap()
+    };
+    let (ctx, sink) = validated_context();
+    let (from_path, camera) = posed_avatar(ctx, &run);
+    let mut status = drape_status::DRAPE_ERROR_ENGINE;
+    // SAFETY: a live context and `bytes.len()` readable bytes.
+    let from_memory = unsafe {
+        drape_avatar_load_memory(
+            ctx,
+            bytes.as_ptr(),
+            bytes.len(),
+            std::ptr::null(),
+            &mut status,
+        )
+    };
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: live avatars, room for 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            from_path,
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK);
+        let s = drape_avatar_set_pose(from_memory, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK);
+    }
+    let expected = render_square(from_path as usize, &camera, 48);
+    let got = render_square(from_memory as usize, &camera, 48);
+    assert!(
+        got.iter()
+            .zip(&expected)
+            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        "the avatar from memory renders other pixels than from its path"
+    );
+    // SAFETY: as above, half the bytes.
+    let truncated = unsafe {
+        drape_avatar_load_memory(
+            ctx,
+            bytes.as_ptr(),
+            bytes.len() / 2,
+            std::ptr::null(),
+            &mut status,
+        )
+    };
+    assert!(truncated.is_null());
+    assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+    assert!(last_error().contains("in memory"), "{}", last_error());
+    for avatar in [from_path, from_memory] {
+        assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    }
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
