@@ -98,8 +98,8 @@ typedef struct drape_vulkan_desc {
 typedef struct drape_load_options {
   // Frames in flight, 1 to 8 (0: the default, 2): how many frames
   // `drape_avatar_record` may have recorded whose work has not completed. Each holds
-  // its own copy of the avatar's per-frame buffers; `drape_avatar_render` waits for
-  // all of them whatever the number.
+  // its own copy of the avatar on the device (device memory grows with the number);
+  // `drape_avatar_render` waits for all of them whatever the number.
   uint32_t frames_in_flight;
   // A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
   // sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with

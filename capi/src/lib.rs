@@ -15,8 +15,8 @@
 //! panicked is retired: its state may be half-updated, so every later call on it but
 //! `drape_avatar_destroy` returns `DRAPE_ERROR_INVALID_HANDLE`.
 //!
-//! Conventions: colour is sRGB-encoded (as the training images were), premultiplied
-//! RGBA floats; pixel (i, j) covers [i, i + 1) x [j, j + 1) and is sampled at its
+//! Conventions: colour is sRGB-encoded (as the training images were; linear on request,
+//! `drape_load_options`), premultiplied RGBA floats; pixel (i, j) covers [i, i + 1) x [j, j + 1) and is sampled at its
 //! centre (i + 0.5, j + 0.5), in the pixel coordinates `cx`, `cy` are given in; the
 //! world frame is SMPL's (y up, metres).
 //!
@@ -183,8 +183,8 @@ pub enum drape_colour {
 pub struct drape_load_options {
     /// Frames in flight, 1 to 8 (0: the default, 2): how many frames
     /// `drape_avatar_record` may have recorded whose work has not completed. Each holds
-    /// its own copy of the avatar's per-frame buffers; `drape_avatar_render` waits for
-    /// all of them whatever the number.
+    /// its own copy of the avatar on the device (device memory grows with the number);
+    /// `drape_avatar_render` waits for all of them whatever the number.
     pub frames_in_flight: u32,
     /// A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
     /// sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with
