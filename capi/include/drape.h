@@ -1,4 +1,19 @@
-/* drape: the C ABI of the drape engine (Cloth-HUGS avatars on Vulkan). See README.md, Embedding. */
+/* drape: the C ABI of the drape engine (Cloth-HUGS avatars on Vulkan). See README.md, Embedding.
+ *
+ * Conventions:
+ *  - Colour: premultiplied RGBA floats, row-major from the top row, sRGB-encoded as the
+ *    training images were (do not encode it again for an _SRGB swapchain), or linear
+ *    where the avatar is loaded with DRAPE_COLOUR_LINEAR (drape_avatar_render only).
+ *  - Pixels: pixel (i, j) covers [i, i + 1) x [j, j + 1) and is sampled at its centre,
+ *    (i + 0.5, j + 0.5), in the pixel coordinates of the camera's cx, cy.
+ *  - World frame: SMPL's (y up, metres); cameras in OpenCV's axes (drape_camera).
+ *  - Errors: every function returns a drape_status (DRAPE_OK = 0) or NULL, and sets a
+ *    thread-local message (drape_last_error); no panic crosses the boundary.
+ *  - Threads: any function from any thread. Each avatar has its own lock, held for a
+ *    whole call on it: calls on one avatar take turns, calls on two avatars run at the
+ *    same time. An avatar whose call panicked is retired: every later call on it but
+ *    drape_avatar_destroy returns DRAPE_ERROR_INVALID_HANDLE.
+ */
 
 #ifndef DRAPE_H
 #define DRAPE_H
@@ -7,6 +22,17 @@
 
 #include <stdint.h>
 #include <stddef.h>
+
+// How `drape_avatar_render` encodes colour (`drape_load_options`' `colour`).
+typedef enum drape_colour {
+  // sRGB-encoded, as the training images were (for an 8-bit UNORM target, or a
+  // compositor that works in sRGB): the default.
+  DRAPE_COLOUR_SRGB = 0,
+  // Linear (for an `_SRGB` swapchain, which encodes on write, or a linear
+  // compositor): each pixel unpremultiplied, decoded with the sRGB transfer function
+  // (IEC 61966-2-1), premultiplied again; alpha unchanged.
+  DRAPE_COLOUR_LINEAR = 1,
+} drape_colour;
 
 // What a call returned.
 typedef enum drape_status {
@@ -18,7 +44,10 @@ typedef enum drape_status {
   // The engine or the device failed (the last error says how).
   DRAPE_ERROR_ENGINE = 3,
   // A panic inside the library, caught at the boundary (a bug: please report it).
+  // An avatar whose call panicked is retired (see `drape_avatar_destroy`).
   DRAPE_ERROR_PANIC = 4,
+  // Device or host memory ran out (the last error says allocating what).
+  DRAPE_ERROR_OUT_OF_MEMORY = 5,
 } drape_status;
 
 // A trained avatar ready to render (opaque).
@@ -65,18 +94,33 @@ typedef struct drape_vulkan_desc {
   uint32_t shader_buffer_float32_atomic_add;
 } drape_vulkan_desc;
 
-// A pinhole camera in OpenCV's axes (x right, y down, z forward): intrinsics in pixels,
-// the 4x4 world-to-camera matrix row-major (last row 0 0 0 1), near and far planes in
-// metres. `drape render --camera FILE.json`'s `rotation` is the matrix's upper-left 3x3
-// and its `translation` the last column.
+// How `drape_avatar_load` loads an avatar; NULL, or all zeros, for the defaults.
+typedef struct drape_load_options {
+  // Frames in flight, 1 to 8 (0: the default, 2): how many frames
+  // `drape_avatar_record` may have recorded whose work has not completed. Each holds
+  // its own copy of the avatar on the device (device memory grows with the number);
+  // `drape_avatar_render` waits for all of them whatever the number.
+  uint32_t frames_in_flight;
+  // A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
+  // sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with
+  // `DRAPE_COLOUR_LINEAR`.
+  uint32_t colour;
+} drape_load_options;
+
+// A pinhole camera in OpenCV's axes (x right, y down, z forward): intrinsics in pixels
+// (pixel (i, j) is sampled at its centre, (i + 0.5, j + 0.5)), the 4x4 world-to-camera
+// matrix row-major (last row 0 0 0 1) from the world frame, SMPL's (y up, metres), and
+// the near and far planes in metres (`z_near`, `z_far`: `<windows.h>` defines `near`
+// and `far` as macros). `drape render --camera FILE.json`'s `rotation` is the matrix's
+// upper-left 3x3 and its `translation` the last column.
 typedef struct drape_camera {
   float fx;
   float fy;
   float cx;
   float cy;
   float world_to_camera[16];
-  float near;
-  float far;
+  float z_near;
+  float z_far;
 } drape_camera;
 
 #ifdef __cplusplus
@@ -86,6 +130,13 @@ extern "C" {
 // The last error of the calling thread (empty if none), valid until its next failing
 // call on this thread.
 const char *drape_last_error(void);
+
+// The library's version, "MAJOR.MINOR.PATCH" (a static string).
+const char *drape_version(void);
+
+// The name and meaning of a `drape_status` value (a static string; "unknown status"
+// for a value that is none).
+const char *drape_status_str(int32_t status);
 
 // Opens a context on a device the engine creates (`desc` NULL: the automatic choice,
 // no validation). NULL on failure (see `drape_last_error`).
@@ -100,9 +151,23 @@ struct drape_context *drape_context_from_vulkan(const struct drape_vulkan_desc *
 enum drape_status drape_context_destroy(struct drape_context *ctx);
 
 // Loads a trained avatar: an avatar file (`drape export`'s NAME.avatar) or a run
-// directory (its `run.json` names its data) at `run_dir`, posed as its default (a run's
-// first held-out frame). NULL on failure, with the last error naming the path.
-struct drape_avatar *drape_avatar_load(struct drape_context *ctx, const char *run_dir);
+// directory (its `run.json` names its data) at `path`, posed as its default (a run's
+// first held-out frame), with `options` (NULL: the defaults). NULL on failure, with the
+// last error naming the path; `status` (NULL or room for one) says which failure:
+// `DRAPE_ERROR_INVALID_ARGUMENT` for a file that cannot be read,
+// `DRAPE_ERROR_OUT_OF_MEMORY` or `DRAPE_ERROR_ENGINE` for the device.
+struct drape_avatar *drape_avatar_load(struct drape_context *ctx,
+                                       const char *path,
+                                       const struct drape_load_options *options,
+                                       enum drape_status *status);
+
+// As `drape_avatar_load`, from an avatar file's `len` bytes at `data` (read from an
+// archive or an asset pack, say); the library keeps no reference to them.
+struct drape_avatar *drape_avatar_load_memory(struct drape_context *ctx,
+                                              const uint8_t *data,
+                                              size_t len,
+                                              const struct drape_load_options *options,
+                                              enum drape_status *status);
 
 // Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72
 // floats, radians, joint 0 the global orientation), `translation` the root in metres.
@@ -121,15 +186,20 @@ enum drape_status drape_avatar_default_view(struct drape_avatar *avatar,
                                             float *pose,
                                             float *translation);
 
-// Renders the current pose through `camera` into host memory: `rgba_out` has room for
-// width x height x 4 floats, premultiplied RGBA, row-major from the top row. Waits for
-// the GPU, and for every frame in flight (frames recorded with `drape_avatar_record`
-// must have completed before this call).
+// Renders the current pose through `camera` into host memory: `rgba_out` holds
+// `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
+// and nothing is written); the first width x height x 4 are written, premultiplied
+// RGBA (alpha within [0, 1], each colour value within [0, alpha]), sRGB-encoded or
+// linear as the avatar was loaded (`drape_load_options`' `colour`),
+// row-major from the top row. Waits for the GPU, and for every frame
+// in flight (frames recorded with `drape_avatar_record` must have completed before this
+// call).
 enum drape_status drape_avatar_render(struct drape_avatar *avatar,
                                       const struct drape_camera *camera,
                                       uint32_t width,
                                       uint32_t height,
-                                      float *rgba_out);
+                                      float *rgba_out,
+                                      size_t rgba_len);
 
 // Records the frame (decoders, skinning, renders, composite, the copy into `target`)
 // into the application's `cmd` (a `VkCommandBuffer` in the recording state, from a
@@ -141,7 +211,9 @@ enum drape_status drape_avatar_render(struct drape_avatar *avatar,
 // `GENERAL`) when the work runs. Barriers: before, the image's earlier accesses made
 // available to `TRANSFER` / `TRANSFER_WRITE`; after, from `TRANSFER` / `TRANSFER_WRITE`
 // to the application's reads. The work must complete before the avatar records its
-// second frame after this one (two frames in flight) and before it is destroyed.
+// `frames_in_flight`-th frame after this one (`drape_load_options`; 2 by default) and
+// before it is destroyed. The colour is encoded as `drape_avatar_render`'s, but written
+// by the GPU as composited, without that call's clamp of colour to [0, alpha].
 enum drape_status drape_avatar_record(struct drape_avatar *avatar,
                                       const struct drape_camera *camera,
                                       uint32_t width,
@@ -150,7 +222,9 @@ enum drape_status drape_avatar_record(struct drape_avatar *avatar,
                                       uint64_t target,
                                       int32_t target_layout);
 
-// Destroys an avatar (waiting for its frames in flight).
+// Destroys an avatar, a retired one too (waiting for its frames in flight; while
+// another thread's call on it runs, the handle is gone at once and the avatar is freed
+// when that call returns).
 enum drape_status drape_avatar_destroy(struct drape_avatar *avatar);
 
 #ifdef __cplusplus

@@ -5,8 +5,20 @@
 //! generation-checked table, so a destroyed, forged or null handle is
 //! `DRAPE_ERROR_INVALID_HANDLE`, never undefined behaviour. Every function catches
 //! panics (`DRAPE_ERROR_PANIC`) and sets a thread-local last-error string
-//! ([`drape_last_error`]) on failure; `DRAPE_OK` is 0. Functions are safe to call from
-//! any thread; calls on one table are serialised.
+//! ([`drape_last_error`]) on failure; `DRAPE_OK` is 0.
+//!
+//! Threads: functions are safe to call from any thread. Each avatar has its own lock,
+//! held for a whole call on it (the GPU wait included): calls on one avatar take turns,
+//! calls on two avatars run at the same time (the tables of handles are locked only to
+//! look a handle up). Two avatars of one context share its queue; the engine locks the
+//! queue around each `vkQueueSubmit` only, never across a wait. An avatar whose call
+//! panicked is retired: its state may be half-updated, so every later call on it but
+//! `drape_avatar_destroy` returns `DRAPE_ERROR_INVALID_HANDLE`.
+//!
+//! Conventions: colour is sRGB-encoded (as the training images were; linear on request,
+//! `drape_load_options`), premultiplied RGBA floats; pixel (i, j) covers [i, i + 1) x [j, j + 1) and is sampled at its
+//! centre (i + 0.5, j + 0.5), in the pixel coordinates `cx`, `cy` are given in; the
+//! world frame is SMPL's (y up, metres).
 //!
 //! Queue access over the application's device (`drape_context_from_vulkan`):
 //! `drape_avatar_load`, `drape_avatar_render`, and `drape_avatar_record` at a new image
@@ -23,13 +35,14 @@ use std::cell::RefCell;
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use drape_engine::ash::vk::{self, Handle};
 use drape_engine::{
     Context, ContextDesc, DeviceFeatures, ExternalOptions, ExternalVulkan, HostCommandBuffer,
     ImageTarget,
 };
+use drape_trainer::avatar::file::AvatarFile;
 use drape_trainer::avatar::player::{smpl_pose_of, AvatarPlayer, ViewCamera};
 
 #[cfg(not(target_pointer_width = "64"))]
@@ -49,7 +62,33 @@ pub enum drape_status {
     /// The engine or the device failed (the last error says how).
     DRAPE_ERROR_ENGINE = 3,
     /// A panic inside the library, caught at the boundary (a bug: please report it).
+    /// An avatar whose call panicked is retired (see `drape_avatar_destroy`).
     DRAPE_ERROR_PANIC = 4,
+    /// Device or host memory ran out (the last error says allocating what).
+    DRAPE_ERROR_OUT_OF_MEMORY = 5,
+}
+
+impl drape_status {
+    const ALL: [drape_status; 6] = [
+        drape_status::DRAPE_OK,
+        drape_status::DRAPE_ERROR_INVALID_ARGUMENT,
+        drape_status::DRAPE_ERROR_INVALID_HANDLE,
+        drape_status::DRAPE_ERROR_ENGINE,
+        drape_status::DRAPE_ERROR_PANIC,
+        drape_status::DRAPE_ERROR_OUT_OF_MEMORY,
+    ];
+
+    /// The status's name and meaning, nul-terminated.
+    const fn text(self) -> &'static CStr {
+        match self {
+            drape_status::DRAPE_OK => c"DRAPE_OK: success",
+            drape_status::DRAPE_ERROR_INVALID_ARGUMENT => c"DRAPE_ERROR_INVALID_ARGUMENT: a null pointer, a value out of range, or a file that cannot be read",
+            drape_status::DRAPE_ERROR_INVALID_HANDLE => c"DRAPE_ERROR_INVALID_HANDLE: a null, destroyed, forged or retired handle",
+            drape_status::DRAPE_ERROR_ENGINE => c"DRAPE_ERROR_ENGINE: the engine or the device failed",
+            drape_status::DRAPE_ERROR_PANIC => c"DRAPE_ERROR_PANIC: a panic inside the library, caught (a bug)",
+            drape_status::DRAPE_ERROR_OUT_OF_MEMORY => c"DRAPE_ERROR_OUT_OF_MEMORY: device or host memory ran out",
+        }
+    }
 }
 
 /// A context: the engine on a Vulkan device (opaque).
@@ -107,10 +146,12 @@ pub struct drape_vulkan_desc {
     pub shader_buffer_float32_atomic_add: u32,
 }
 
-/// A pinhole camera in OpenCV's axes (x right, y down, z forward): intrinsics in pixels,
-/// the 4x4 world-to-camera matrix row-major (last row 0 0 0 1), near and far planes in
-/// metres. `drape render --camera FILE.json`'s `rotation` is the matrix's upper-left 3x3
-/// and its `translation` the last column.
+/// A pinhole camera in OpenCV's axes (x right, y down, z forward): intrinsics in pixels
+/// (pixel (i, j) is sampled at its centre, (i + 0.5, j + 0.5)), the 4x4 world-to-camera
+/// matrix row-major (last row 0 0 0 1) from the world frame, SMPL's (y up, metres), and
+/// the near and far planes in metres (`z_near`, `z_far`: `<windows.h>` defines `near`
+/// and `far` as macros). `drape render --camera FILE.json`'s `rotation` is the matrix's
+/// upper-left 3x3 and its `translation` the last column.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct drape_camera {
@@ -119,9 +160,40 @@ pub struct drape_camera {
     pub cx: f32,
     pub cy: f32,
     pub world_to_camera: [f32; 16],
-    pub near: f32,
-    pub far: f32,
+    pub z_near: f32,
+    pub z_far: f32,
 }
+
+/// How `drape_avatar_render` encodes colour (`drape_load_options`' `colour`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum drape_colour {
+    /// sRGB-encoded, as the training images were (for an 8-bit UNORM target, or a
+    /// compositor that works in sRGB): the default.
+    DRAPE_COLOUR_SRGB = 0,
+    /// Linear (for an `_SRGB` swapchain, which encodes on write, or a linear
+    /// compositor): each pixel unpremultiplied, decoded with the sRGB transfer function
+    /// (IEC 61966-2-1), premultiplied again; alpha unchanged.
+    DRAPE_COLOUR_LINEAR = 1,
+}
+
+/// How `drape_avatar_load` loads an avatar; NULL, or all zeros, for the defaults.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default)]
+pub struct drape_load_options {
+    /// Frames in flight, 1 to 8 (0: the default, 2): how many frames
+    /// `drape_avatar_record` may have recorded whose work has not completed. Each holds
+    /// its own copy of the avatar on the device (device memory grows with the number);
+    /// `drape_avatar_render` waits for all of them whatever the number.
+    pub frames_in_flight: u32,
+    /// A `drape_colour` value: `drape_avatar_render`'s colour encoding (0, the default:
+    /// sRGB). `drape_avatar_record` writes sRGB only and refuses an avatar loaded with
+    /// `DRAPE_COLOUR_LINEAR`.
+    pub colour: u32,
+}
+
+/// Frames in flight when `drape_load_options` does not say.
+const DEFAULT_FRAMES_IN_FLIGHT: u32 = 2;
 
 impl drape_camera {
     fn view(&self) -> ViewCamera {
@@ -131,8 +203,8 @@ impl drape_camera {
             cx: self.cx,
             cy: self.cy,
             world_to_camera: self.world_to_camera,
-            near: self.near,
-            far: self.far,
+            near: self.z_near,
+            far: self.z_far,
         }
     }
 }
@@ -179,8 +251,20 @@ impl<T> Table<T> {
     }
 }
 
+/// An avatar behind its own lock. The table holds one reference and each call on the
+/// avatar another while it runs, so that destroying a handle during another thread's
+/// call frees the player when that call ends. A panic while the lock is held poisons
+/// it: the avatar is retired.
+type AvatarCell = Arc<Mutex<Avatar>>;
+
+/// An avatar handle's state: the player and the choices made at load.
+struct Avatar {
+    player: AvatarPlayer,
+    colour: drape_colour,
+}
+
 static CONTEXTS: Mutex<Table<Context>> = Mutex::new(Table::new());
-static AVATARS: Mutex<Table<AvatarPlayer>> = Mutex::new(Table::new());
+static AVATARS: Mutex<Table<AvatarCell>> = Mutex::new(Table::new());
 
 thread_local! {
     static LAST_ERROR: RefCell<CString> = RefCell::new(CString::default());
@@ -199,14 +283,22 @@ impl Failure {
             format!("{what}: a null, destroyed or forged handle"),
         )
     }
+    fn retired() -> Self {
+        Self(
+            drape_status::DRAPE_ERROR_INVALID_HANDLE,
+            "avatar: retired after a panic inside an earlier call on it (its state may be half-updated); destroy it and load it again".into(),
+        )
+    }
+    /// `e` with `context` (a path, say) before its message, the status kept.
+    fn within(self, context: &str) -> Self {
+        Self(self.0, format!("{context}: {}", self.1))
+    }
 }
 
 impl From<drape_trainer::TrainerError> for Failure {
     fn from(e: drape_trainer::TrainerError) -> Self {
         match e {
-            drape_trainer::TrainerError::Engine(e) => {
-                Self(drape_status::DRAPE_ERROR_ENGINE, e.to_string())
-            }
+            drape_trainer::TrainerError::Engine(e) => e.into(),
             e => Self::argument(e.to_string()),
         }
     }
@@ -214,7 +306,13 @@ impl From<drape_trainer::TrainerError> for Failure {
 
 impl From<drape_engine::EngineError> for Failure {
     fn from(e: drape_engine::EngineError) -> Self {
-        Self(drape_status::DRAPE_ERROR_ENGINE, e.to_string())
+        let status = match e {
+            drape_engine::EngineError::OutOfDeviceMemory { .. } => {
+                drape_status::DRAPE_ERROR_OUT_OF_MEMORY
+            }
+            _ => drape_status::DRAPE_ERROR_ENGINE,
+        };
+        Self(status, e.to_string())
     }
 }
 
@@ -263,15 +361,18 @@ fn context_of(handle: *const drape_context) -> Result<Context, Failure> {
         .ok_or_else(|| Failure::handle("context"))
 }
 
+/// Runs `f` on the avatar under its own lock; the table is locked only to look the
+/// handle up. A poisoned lock (a panic in an earlier call) is a retired avatar.
 fn with_avatar<T>(
     handle: *mut drape_avatar,
-    f: impl FnOnce(&mut AvatarPlayer) -> Result<T, Failure>,
+    f: impl FnOnce(&mut Avatar) -> Result<T, Failure>,
 ) -> Result<T, Failure> {
-    let mut avatars = lock(&AVATARS);
-    let player = avatars
+    let cell = lock(&AVATARS)
         .get_mut(handle as u64)
+        .cloned()
         .ok_or_else(|| Failure::handle("avatar"))?;
-    f(player)
+    let mut player = cell.lock().map_err(|_| Failure::retired())?;
+    f(&mut player)
 }
 
 /// The last error of the calling thread (empty if none), valid until its next failing
@@ -279,6 +380,23 @@ fn with_avatar<T>(
 #[no_mangle]
 pub extern "C" fn drape_last_error() -> *const c_char {
     LAST_ERROR.with(|e| e.borrow().as_ptr())
+}
+
+/// The library's version, "MAJOR.MINOR.PATCH" (a static string).
+#[no_mangle]
+pub extern "C" fn drape_version() -> *const c_char {
+    concat!(env!("CARGO_PKG_VERSION"), "\0").as_ptr().cast()
+}
+
+/// The name and meaning of a `drape_status` value (a static string; "unknown status"
+/// for a value that is none).
+#[no_mangle]
+pub extern "C" fn drape_status_str(status: i32) -> *const c_char {
+    drape_status::ALL
+        .iter()
+        .find(|s| **s as i32 == status)
+        .map_or(c"unknown status", |s| s.text())
+        .as_ptr()
 }
 
 /// Opens a context on a device the engine creates (`desc` NULL: the automatic choice,
@@ -394,27 +512,99 @@ pub extern "C" fn drape_context_destroy(ctx: *mut drape_context) -> drape_status
 }
 
 /// Loads a trained avatar: an avatar file (`drape export`'s NAME.avatar) or a run
-/// directory (its `run.json` names its data) at `run_dir`, posed as its default (a run's
-/// first held-out frame). NULL on failure, with the last error naming the path.
+/// directory (its `run.json` names its data) at `path`, posed as its default (a run's
+/// first held-out frame), with `options` (NULL: the defaults). NULL on failure, with the
+/// last error naming the path; `status` (NULL or room for one) says which failure:
+/// `DRAPE_ERROR_INVALID_ARGUMENT` for a file that cannot be read,
+/// `DRAPE_ERROR_OUT_OF_MEMORY` or `DRAPE_ERROR_ENGINE` for the device.
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_load(
     ctx: *mut drape_context,
-    run_dir: *const c_char,
+    path: *const c_char,
+    options: *const drape_load_options,
+    status: *mut drape_status,
 ) -> *mut drape_avatar {
-    guard("drape_avatar_load", std::ptr::null_mut(), || {
+    let (avatar, s) = guard("drape_avatar_load", std::ptr::null_mut(), || {
         let ctx = context_of(ctx)?;
-        if run_dir.is_null() {
-            return Err(Failure::argument("run_dir is NULL"));
+        if path.is_null() {
+            return Err(Failure::argument("path is NULL"));
         }
-        // SAFETY: a non-null run_dir is a nul-terminated string.
-        let dir = unsafe { CStr::from_ptr(run_dir) }
+        // SAFETY: the caller passes NULL or valid options.
+        let (frames, colour) = load_options(unsafe { options.as_ref() })?;
+        // SAFETY: a non-null path is a nul-terminated string.
+        let path = unsafe { CStr::from_ptr(path) }
             .to_string_lossy()
             .into_owned();
-        let player = AvatarPlayer::load(&ctx, Path::new(&dir), 2)
-            .map_err(|e| Failure::argument(format!("{dir}: {e}")))?;
-        Ok(lock(&AVATARS).insert(player) as *mut drape_avatar)
-    })
-    .0
+        let player = AvatarPlayer::load(&ctx, Path::new(&path), frames)
+            .map_err(|e| Failure::from(e).within(&path))?;
+        let avatar = Avatar { player, colour };
+        Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(avatar))) as *mut drape_avatar)
+    });
+    // SAFETY: the caller passes NULL or room for a status.
+    if let Some(out) = unsafe { status.as_mut() } {
+        *out = s;
+    }
+    avatar
+}
+
+/// As `drape_avatar_load`, from an avatar file's `len` bytes at `data` (read from an
+/// archive or an asset pack, say); the library keeps no reference to them.
+#[no_mangle]
+pub unsafe extern "C" fn drape_avatar_load_memory(
+    ctx: *mut drape_context,
+    data: *const u8,
+    len: usize,
+    options: *const drape_load_options,
+    status: *mut drape_status,
+) -> *mut drape_avatar {
+    let (avatar, s) = guard("drape_avatar_load_memory", std::ptr::null_mut(), || {
+        let ctx = context_of(ctx)?;
+        if data.is_null() || len > isize::MAX as usize {
+            return Err(Failure::argument(format!(
+                "data is NULL or len ({len}) too large"
+            )));
+        }
+        // SAFETY: the caller passes NULL or valid options.
+        let (frames, colour) = load_options(unsafe { options.as_ref() })?;
+        // SAFETY: data points at len readable bytes (the contract), not written during
+        // the call.
+        let bytes = unsafe { std::slice::from_raw_parts(data, len) };
+        let name = format!("<{len} bytes in memory>");
+        let player = AvatarFile::from_bytes(bytes, Path::new(&name))
+            .and_then(|file| AvatarPlayer::from_file(&ctx, &file, frames))
+            .map_err(Failure::from)?;
+        let avatar = Avatar { player, colour };
+        Ok(lock(&AVATARS).insert(Arc::new(Mutex::new(avatar))) as *mut drape_avatar)
+    });
+    // SAFETY: the caller passes NULL or room for a status.
+    if let Some(out) = unsafe { status.as_mut() } {
+        *out = s;
+    }
+    avatar
+}
+
+/// Frames in flight and the colour encoding of `options` (None: the defaults).
+fn load_options(options: Option<&drape_load_options>) -> Result<(usize, drape_colour), Failure> {
+    let options = options.copied().unwrap_or_default();
+    let frames = match options.frames_in_flight {
+        0 => DEFAULT_FRAMES_IN_FLIGHT,
+        n @ 1..=8 => n,
+        n => {
+            return Err(Failure::argument(format!(
+                "frames_in_flight is {n} (1 to 8, or 0 for the default)"
+            )))
+        }
+    };
+    let colour = match options.colour {
+        0 => drape_colour::DRAPE_COLOUR_SRGB,
+        1 => drape_colour::DRAPE_COLOUR_LINEAR,
+        n => {
+            return Err(Failure::argument(format!(
+                "colour is {n} (DRAPE_COLOUR_SRGB 0 or DRAPE_COLOUR_LINEAR 1)"
+            )))
+        }
+    };
+    Ok((frames as usize, colour))
 }
 
 /// Poses the avatar: `pose` the SMPL axis-angles of the 24 joints in SMPL order (72
@@ -436,7 +626,7 @@ pub unsafe extern "C" fn drape_avatar_set_pose(
                 &*(translation as *const [f32; 3]),
             )
         };
-        with_avatar(avatar, |a| Ok(a.set_pose(p, t)?))
+        with_avatar(avatar, |a| Ok(a.player.set_pose(p, t)?))
     })
 }
 
@@ -455,6 +645,7 @@ pub unsafe extern "C" fn drape_avatar_default_view(
 ) -> drape_status {
     status("drape_avatar_default_view", || {
         with_avatar(avatar, |a| {
+            let a = &a.player;
             let c = a.default_camera();
             let v = ViewCamera::from_camera(c);
             // SAFETY: each pointer is NULL or points at room for its value (the contract).
@@ -466,8 +657,8 @@ pub unsafe extern "C" fn drape_avatar_default_view(
                         cx: v.cx,
                         cy: v.cy,
                         world_to_camera: v.world_to_camera,
-                        near: v.near,
-                        far: v.far,
+                        z_near: v.near,
+                        z_far: v.far,
                     };
                 }
                 if let Some(w) = width.as_mut() {
@@ -496,10 +687,14 @@ pub unsafe extern "C" fn drape_avatar_default_view(
     })
 }
 
-/// Renders the current pose through `camera` into host memory: `rgba_out` has room for
-/// width x height x 4 floats, premultiplied RGBA, row-major from the top row. Waits for
-/// the GPU, and for every frame in flight (frames recorded with `drape_avatar_record`
-/// must have completed before this call).
+/// Renders the current pose through `camera` into host memory: `rgba_out` holds
+/// `rgba_len` floats, at least width x height x 4 (fewer: `DRAPE_ERROR_INVALID_ARGUMENT`,
+/// and nothing is written); the first width x height x 4 are written, premultiplied
+/// RGBA (alpha within [0, 1], each colour value within [0, alpha]), sRGB-encoded or
+/// linear as the avatar was loaded (`drape_load_options`' `colour`),
+/// row-major from the top row. Waits for the GPU, and for every frame
+/// in flight (frames recorded with `drape_avatar_record` must have completed before this
+/// call).
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_render(
     avatar: *mut drape_avatar,
@@ -507,6 +702,7 @@ pub unsafe extern "C" fn drape_avatar_render(
     width: u32,
     height: u32,
     rgba_out: *mut f32,
+    rgba_len: usize,
 ) -> drape_status {
     status("drape_avatar_render", || {
         // SAFETY: the caller passes NULL or a valid camera.
@@ -516,12 +712,78 @@ pub unsafe extern "C" fn drape_avatar_render(
         if rgba_out.is_null() {
             return Err(Failure::argument("rgba_out is NULL"));
         }
-        let pixels = with_avatar(avatar, |a| Ok(a.render(&cam, width, height)?))?;
-        // SAFETY: the caller's buffer holds width x height x 4 floats (checked against
-        // what was rendered, which is exactly that many).
-        unsafe { std::ptr::copy_nonoverlapping(pixels.as_ptr(), rgba_out, pixels.len()) };
+        let needed = (width as usize)
+            .checked_mul(height as usize)
+            .and_then(|n| n.checked_mul(4))
+            .ok_or_else(|| Failure::argument(format!("{width}x{height} is too large")))?;
+        if rgba_len < needed {
+            return Err(Failure::argument(format!(
+                "rgba_len is {rgba_len} floats; a {width}x{height} image needs {needed}"
+            )));
+        }
+        let (mut pixels, colour) = with_avatar(avatar, |a| {
+            Ok((a.player.render(&cam, width, height)?, a.colour))
+        })?;
+        clamp_premultiplied(&mut pixels);
+        if colour == drape_colour::DRAPE_COLOUR_LINEAR {
+            srgb_to_linear_premultiplied(&mut pixels);
+        }
+        if pixels.len() != needed {
+            return Err(Failure(
+                drape_status::DRAPE_ERROR_ENGINE,
+                format!("rendered {} floats, not {needed}", pixels.len()),
+            ));
+        }
+        // SAFETY: the caller's buffer holds rgba_len >= needed floats (checked above),
+        // and exactly `needed` are copied.
+        unsafe { std::ptr::copy_nonoverlapping(pixels.as_ptr(), rgba_out, needed) };
         Ok(())
     })
+}
+
+/// Makes premultiplied RGBA what the header promises: alpha within [0, 1], each colour
+/// value within [0, alpha]. The spherical-harmonic colours are not clamped on the GPU,
+/// so a composite can exceed its alpha. Values already in range keep their bits (the
+/// fixture's renders pass through unchanged); NaN becomes 0.
+fn clamp_premultiplied(rgba: &mut [f32]) {
+    // `!(v >= lo)` rather than `v < lo`: NaN fails the guard and becomes `lo`.
+    let within = |v: f32, hi: f32| {
+        if !(v >= 0.0) {
+            0.0
+        } else if v > hi {
+            hi
+        } else {
+            v
+        }
+    };
+    for p in rgba.chunks_exact_mut(4) {
+        let a = within(p[3], 1.0);
+        p[3] = a;
+        for c in &mut p[..3] {
+            *c = within(*c, a);
+        }
+    }
+}
+
+/// sRGB-encoded premultiplied RGBA (clamped: colour within [0, alpha]) to linear
+/// premultiplied: colour / alpha decoded with the sRGB transfer function
+/// (IEC 61966-2-1), times alpha; alpha unchanged, a transparent pixel stays 0.
+fn srgb_to_linear_premultiplied(rgba: &mut [f32]) {
+    let decode = |c: f32| {
+        if c <= 0.04045 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }
+    };
+    for p in rgba.chunks_exact_mut(4) {
+        let a = p[3];
+        if a > 0.0 {
+            for c in &mut p[..3] {
+                *c = decode((*c / a).min(1.0)) * a;
+            }
+        }
+    }
 }
 
 /// Records the frame (decoders, skinning, renders, composite, the copy into `target`)
@@ -534,7 +796,9 @@ pub unsafe extern "C" fn drape_avatar_render(
 /// `GENERAL`) when the work runs. Barriers: before, the image's earlier accesses made
 /// available to `TRANSFER` / `TRANSFER_WRITE`; after, from `TRANSFER` / `TRANSFER_WRITE`
 /// to the application's reads. The work must complete before the avatar records its
-/// second frame after this one (two frames in flight) and before it is destroyed.
+/// `frames_in_flight`-th frame after this one (`drape_load_options`; 2 by default) and
+/// before it is destroyed. The colour is encoded as `drape_avatar_render`'s, but written
+/// by the GPU as composited, without that call's clamp of colour to [0, alpha].
 #[no_mangle]
 pub unsafe extern "C" fn drape_avatar_record(
     avatar: *mut drape_avatar,
@@ -557,28 +821,28 @@ pub unsafe extern "C" fn drape_avatar_record(
         if layout != vk::ImageLayout::TRANSFER_DST_OPTIMAL && layout != vk::ImageLayout::GENERAL {
             return Err(Failure::argument(format!("target_layout {target_layout}: the copy needs VK_IMAGE_LAYOUT_TRANSFER_DST_OPTIMAL (7) or VK_IMAGE_LAYOUT_GENERAL (1)")));
         }
-        // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
-        let host = unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
-        // SAFETY: as above.
-        let image =
-            unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
         with_avatar(avatar, |a| {
-            Ok(
-                a.record_frame_into(&cam, width, height, &host, Some(&image))
-                    .map(|_| ())?,
-            )
+            if a.colour != drape_colour::DRAPE_COLOUR_SRGB {
+                return Err(Failure::argument(
+                    "the avatar was loaded with DRAPE_COLOUR_LINEAR, which only drape_avatar_render converts to; the recorded frame is sRGB",
+                ));
+            }
+            // SAFETY: the documented contract above is HostCommandBuffer's and ImageTarget's.
+            let host =
+                unsafe { HostCommandBuffer::new(vk::CommandBuffer::from_raw(cmd as u64), None) };
+            // SAFETY: as above.
+            let image =
+                unsafe { ImageTarget::new(vk::Image::from_raw(target), layout, width, height, 16) };
+            Ok(a.player
+                .record_frame_into(&cam, width, height, &host, Some(&image))
+                .map(|_| ())?)
         })
     })
 }
 
-/// Runs a body that panics through the same guard every C function uses (for the
-/// tests: a panic must come back as `DRAPE_ERROR_PANIC` with a message). Not exported.
-#[doc(hidden)]
-pub fn testing_panic_probe() -> drape_status {
-    status("panic probe", || panic!("a deliberate panic"))
-}
-
-/// Destroys an avatar (waiting for its frames in flight).
+/// Destroys an avatar, a retired one too (waiting for its frames in flight; while
+/// another thread's call on it runs, the handle is gone at once and the avatar is freed
+/// when that call returns).
 #[no_mangle]
 pub extern "C" fn drape_avatar_destroy(avatar: *mut drape_avatar) -> drape_status {
     status("drape_avatar_destroy", || {
@@ -588,4 +852,116 @@ pub extern "C" fn drape_avatar_destroy(avatar: *mut drape_avatar) -> drape_statu
         drop(removed);
         Ok(())
     })
+}
+
+/// Test-only hooks (the `testing` feature, which the tests enable and the shipped
+/// library does not): a panic inside a call, and a context's validation messages.
+/// cbindgen:ignore
+#[cfg(feature = "testing")]
+pub mod testing {
+    use super::*;
+
+    /// Runs a body that panics through the same guard every C function uses (a panic
+    /// must come back as `DRAPE_ERROR_PANIC` with a message).
+    pub fn panic_probe() -> drape_status {
+        status("panic probe", || panic!("a deliberate panic"))
+    }
+
+    /// Panics inside a call on `avatar`, with its lock held, as a bug in the player
+    /// would: the avatar is retired. Exported for the C tests, which declare it
+    /// themselves (it is not in the header).
+    #[no_mangle]
+    pub extern "C" fn drape_testing_panic_in_avatar_call(
+        avatar: *mut drape_avatar,
+    ) -> drape_status {
+        status("drape_testing_panic_in_avatar_call", || {
+            with_avatar(avatar, |_| panic!("a deliberate panic"))
+        })
+    }
+
+    /// The frames in flight `avatar` was loaded with.
+    pub fn frames_in_flight(avatar: *mut drape_avatar) -> Option<usize> {
+        with_avatar(avatar, |a| Ok(a.player.frames_in_flight())).ok()
+    }
+
+    /// The validation messages collector of `ctx` (opened with validation), to read
+    /// after the context and its avatars are gone.
+    pub fn validation_sink(
+        ctx: *mut drape_context,
+    ) -> Option<Arc<drape_engine::validation::ValidationSink>> {
+        context_of(ctx).ok()?.validation_sink()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use drape_engine::EngineError;
+    use drape_trainer::TrainerError;
+
+    /// Colour over alpha, negative and NaN values are clamped; values in range (-0.0
+    /// too) keep their bits.
+    #[test]
+    fn premultiplied_clamp() {
+        let mut px = [
+            1.3,
+            0.5,
+            -0.1,
+            1.0, //
+            0.2,
+            0.3,
+            0.4,
+            0.25, //
+            f32::NAN,
+            0.1,
+            0.0,
+            1.5, //
+            -0.0,
+            0.1,
+            0.2,
+            0.3, //
+            0.1,
+            0.1,
+            0.1,
+            f32::NAN,
+        ];
+        clamp_premultiplied(&mut px);
+        let expected = [
+            1.0, 0.5, 0.0, 1.0, //
+            0.2, 0.25, 0.25, 0.25, //
+            0.0, 0.1, 0.0, 1.0, //
+            -0.0, 0.1, 0.2, 0.3, //
+            0.0, 0.0, 0.0, 0.0,
+        ];
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&px), bits(&expected), "{px:?}");
+    }
+
+    /// What `drape_avatar_load` makes of the player's errors: the engine's status kept
+    /// (out of memory its own), a file's error an invalid argument, the path first.
+    #[test]
+    fn load_failures_keep_the_engines_status() {
+        let oom = TrainerError::Engine(EngineError::OutOfDeviceMemory {
+            what: "player rgba 0".into(),
+            bytes: 1 << 30,
+        });
+        let Failure(status, message) = Failure::from(oom).within("tiny.avatar");
+        assert_eq!(status, drape_status::DRAPE_ERROR_OUT_OF_MEMORY);
+        assert!(
+            message.starts_with("tiny.avatar: out of device memory"),
+            "{message}"
+        );
+        let lost = TrainerError::Engine(EngineError::DeviceLost {
+            pass: "composite".into(),
+        });
+        assert_eq!(Failure::from(lost).0, drape_status::DRAPE_ERROR_ENGINE);
+        let bad_file = TrainerError::AvatarFile {
+            path: "tiny.avatar".into(),
+            problem: "truncated".into(),
+        };
+        assert_eq!(
+            Failure::from(bad_file).0,
+            drape_status::DRAPE_ERROR_INVALID_ARGUMENT
+        );
+    }
 }

@@ -1,7 +1,9 @@
 //! The C ABI as its callers use it: the committed header is what cbindgen generates
 //! now; the C example, compiled with the system's `cc` against it, and the Python
 //! ctypes example render the tiny run's first held-out frame with the same pixels as the
-//! Rust library; a panic, a null, destroyed or forged handle each return an error status.
+//! Rust library; a panic, a null, destroyed or forged handle each return an error status;
+//! two avatars on two threads render at the same time; the C hardening test
+//! (`tests/hardening.c`) retires a panicked avatar and refuses a short output buffer.
 
 use std::ffi::{CStr, CString};
 use std::path::{Path, PathBuf};
@@ -48,12 +50,16 @@ fn lib_dir() -> PathBuf {
             let target_dir = profile_dir.parent().unwrap();
             let mut cargo = Command::new(env!("CARGO"));
             cargo
+                // `--tests` too, so that features resolve as for the tests: the C tests
+                // call the `testing` feature's hook, and the dependencies are the ones
+                // `cargo test` built.
                 .args([
                     "build",
                     "--quiet",
                     "-p",
                     "drape-capi",
                     "--lib",
+                    "--tests",
                     "--target-dir",
                 ])
                 .arg(target_dir)
@@ -169,32 +175,39 @@ fn the_run() -> PathBuf {
     tiny_run(&ctx).to_path_buf()
 }
 
-#[test]
-fn the_c_example_compiles_against_the_header_and_renders_the_librarys_pixels() {
-    let run = the_run();
-    let dir = tmp("c-example");
-    let exe = dir.join("render_avatar");
+/// Compiles the C program `source` against the header and libdrape.so into `exe`.
+fn compile_c(source: &Path, exe: &Path, extra: &[&str]) {
     let lib = lib_dir();
     let o = Command::new("cc")
         .arg("-std=c99")
         .arg("-Wall")
         .arg("-Werror")
+        .args(extra)
         .arg("-I")
         .arg(root().join("capi/include"))
-        .arg(root().join("examples/c/render_avatar.c"))
+        .arg(source)
         .arg("-L")
         .arg(&lib)
         .arg("-ldrape")
         .arg(format!("-Wl,-rpath,{}", lib.display()))
         .arg("-o")
-        .arg(&exe)
+        .arg(exe)
         .output()
         .expect("cc");
     assert!(
         o.status.success(),
-        "cc: {}",
+        "cc {}: {}",
+        source.display(),
         String::from_utf8_lossy(&o.stderr)
     );
+}
+
+#[test]
+fn the_c_example_compiles_against_the_header_and_renders_the_librarys_pixels() {
+    let run = the_run();
+    let dir = tmp("c-example");
+    let exe = dir.join("render_avatar");
+    compile_c(&root().join("examples/c/render_avatar.c"), &exe, &[]);
     let out = dir.join("c.rgba32f");
     let o = Command::new(&exe).arg(&run).arg(&out).output().unwrap();
     assert!(
@@ -261,9 +274,12 @@ fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path
     let ctx = unsafe { drape_context_create(&desc) };
     assert!(!ctx.is_null(), "{}", last_error());
     let missing = CString::new("/nonexistent/run-dir").unwrap();
+    let mut load_status = drape_status::DRAPE_OK;
     // SAFETY: a valid context handle and string.
-    let avatar = unsafe { drape_avatar_load(ctx, missing.as_ptr()) };
+    let avatar =
+        unsafe { drape_avatar_load(ctx, missing.as_ptr(), std::ptr::null(), &mut load_status) };
     assert!(avatar.is_null());
+    assert_eq!(load_status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
     assert!(
         last_error().contains("/nonexistent/run-dir"),
         "{}",
@@ -275,8 +291,8 @@ fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path
         cx: 8.0,
         cy: 8.0,
         world_to_camera: [0.0; 16],
-        near: 0.01,
-        far: 100.0,
+        z_near: 0.01,
+        z_far: 100.0,
     };
     let mut pixels = vec![0f32; 16 * 16 * 4];
     // SAFETY: a forged avatar handle (never dereferenced) and valid buffers.
@@ -287,6 +303,7 @@ fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path
             16,
             16,
             pixels.as_mut_ptr(),
+            pixels.len(),
         )
     };
     assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_HANDLE);
@@ -301,7 +318,7 @@ fn null_destroyed_and_forged_handles_are_errors_and_a_missing_run_names_its_path
 #[test]
 fn a_panic_inside_a_call_is_an_error_status_with_a_message() {
     assert_eq!(
-        drape::testing_panic_probe(),
+        drape::testing::panic_probe(),
         drape_status::DRAPE_ERROR_PANIC
     );
     assert!(
@@ -364,7 +381,8 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
     assert!(!ctx.is_null(), "{}", last_error());
     let dir = CString::new(run.to_str().unwrap()).unwrap();
     // SAFETY: a live context and a string.
-    let avatar = unsafe { drape_avatar_load(ctx, dir.as_ptr()) };
+    let avatar =
+        unsafe { drape_avatar_load(ctx, dir.as_ptr(), std::ptr::null(), std::ptr::null_mut()) };
     assert!(!avatar.is_null(), "{}", last_error());
     let mut camera = drape_camera {
         fx: 0.0,
@@ -372,8 +390,8 @@ fn from_vulkan_and_record_into_the_applications_command_buffer() {
         cx: 0.0,
         cy: 0.0,
         world_to_camera: [0.0; 16],
-        near: 0.0,
-        far: 0.0,
+        z_near: 0.0,
+        z_far: 0.0,
     };
     let (mut w, mut h) = (0u32, 0u32);
     let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
@@ -504,7 +522,8 @@ fn an_avatar_file_renders_the_fixture_through_the_c_abi_without_its_run_or_datas
     assert!(!ctx.is_null(), "{}", last_error());
     let path = CString::new(file.to_str().unwrap()).unwrap();
     // SAFETY: a valid context handle and string.
-    let avatar = unsafe { drape_avatar_load(ctx, path.as_ptr()) };
+    let avatar =
+        unsafe { drape_avatar_load(ctx, path.as_ptr(), std::ptr::null(), std::ptr::null_mut()) };
     assert!(!avatar.is_null(), "{}", last_error());
     let mut cam = drape_camera {
         fx: 0.0,
@@ -512,8 +531,8 @@ fn an_avatar_file_renders_the_fixture_through_the_c_abi_without_its_run_or_datas
         cx: 0.0,
         cy: 0.0,
         world_to_camera: [0.0; 16],
-        near: 0.0,
-        far: 0.0,
+        z_near: 0.0,
+        z_far: 0.0,
     };
     let (mut w, mut h) = (0u32, 0u32);
     let mut pose = [0f32; 72];
@@ -553,7 +572,9 @@ fn an_avatar_file_renders_the_fixture_through_the_c_abi_without_its_run_or_datas
         }
         let mut pixels = vec![0f32; 64 * 64 * 4];
         // SAFETY: a valid avatar handle and a buffer of 64 x 64 x 4 floats.
-        let s = unsafe { drape_avatar_render(avatar, camera, 64, 64, pixels.as_mut_ptr()) };
+        let s = unsafe {
+            drape_avatar_render(avatar, camera, 64, 64, pixels.as_mut_ptr(), pixels.len())
+        };
         assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
         got.extend(pixels);
     }
@@ -568,4 +589,492 @@ fn an_avatar_file_renders_the_fixture_through_the_c_abi_without_its_run_or_datas
             expected[i]
         );
     }
+}
+
+/// `tests/hardening.c`, compiled as a `<windows.h>` user would (`near` and `far` defined
+/// away, `-Wpedantic`): version and status strings, a 1x1 image into 3 floats refused
+/// with nothing written, frames in flight out of range refused at load, and a panic
+/// inside an avatar call retiring that avatar (and only it).
+#[test]
+fn the_c_hardening_test_passes() {
+    let run = the_run();
+    let exe = tmp("c-hardening").join("hardening");
+    compile_c(
+        &root().join("capi/tests/hardening.c"),
+        &exe,
+        &["-Wpedantic", "-Dnear=", "-Dfar="],
+    );
+    let o = Command::new(&exe).arg(&run).output().unwrap();
+    assert!(
+        o.status.success(),
+        "hardening: {}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+#[test]
+fn version_and_status_strings() {
+    // SAFETY: both return static nul-terminated strings.
+    let version = unsafe { CStr::from_ptr(drape_version()) };
+    assert_eq!(version.to_str().unwrap(), env!("CARGO_PKG_VERSION"));
+    for (status, name) in [
+        (drape_status::DRAPE_OK, "DRAPE_OK"),
+        (
+            drape_status::DRAPE_ERROR_INVALID_ARGUMENT,
+            "DRAPE_ERROR_INVALID_ARGUMENT",
+        ),
+        (
+            drape_status::DRAPE_ERROR_INVALID_HANDLE,
+            "DRAPE_ERROR_INVALID_HANDLE",
+        ),
+        (drape_status::DRAPE_ERROR_ENGINE, "DRAPE_ERROR_ENGINE"),
+        (drape_status::DRAPE_ERROR_PANIC, "DRAPE_ERROR_PANIC"),
+        (
+            drape_status::DRAPE_ERROR_OUT_OF_MEMORY,
+            "DRAPE_ERROR_OUT_OF_MEMORY",
+        ),
+    ] {
+        // SAFETY: as above.
+        let text = unsafe { CStr::from_ptr(drape_status_str(status as i32)) };
+        assert!(
+            text.to_str().unwrap().starts_with(&format!("{name}: ")),
+            "{text:?}"
+        );
+    }
+    // SAFETY: as above.
+    let unknown = unsafe { CStr::from_ptr(drape_status_str(-1)) };
+    assert_eq!(unknown.to_str().unwrap(), "unknown status");
+}
+
+/// A context on the test device with validation, and its validation messages' sink.
+fn validated_context() -> (
+    *mut drape_context,
+    std::sync::Arc<drape_engine::validation::ValidationSink>,
+) {
+    let name = CString::new(std::env::var("DRAPE_DEVICE").unwrap_or_default()).unwrap();
+    let desc = drape_context_desc {
+        device_name: name.as_ptr(),
+        validation: 1,
+    };
+    // SAFETY: a valid descriptor.
+    let ctx = unsafe { drape_context_create(&desc) };
+    assert!(!ctx.is_null(), "{}", last_error());
+    let sink = drape::testing::validation_sink(ctx).expect("opened with validation");
+    (ctx, sink)
+}
+
+/// Loads `run` on `ctx` and poses it as its default view; returns the avatar and that
+/// view's camera.
+fn posed_avatar(ctx: *mut drape_context, run: &Path) -> (*mut drape_avatar, drape_camera) {
+    let dir = CString::new(run.to_str().unwrap()).unwrap();
+    // SAFETY: a live context and a string.
+    let avatar =
+        unsafe { drape_avatar_load(ctx, dir.as_ptr(), std::ptr::null(), std::ptr::null_mut()) };
+    assert!(!avatar.is_null(), "{}", last_error());
+    let mut camera = drape_camera {
+        fx: 0.0,
+        fy: 0.0,
+        cx: 0.0,
+        cy: 0.0,
+        world_to_camera: [0.0; 16],
+        z_near: 0.0,
+        z_far: 0.0,
+    };
+    let (mut w, mut h) = (0u32, 0u32);
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: room for each output; 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            avatar,
+            &mut camera,
+            &mut w,
+            &mut h,
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+        let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+    }
+    // The camera scaled from the run's image width to 1 pixel wide.
+    let k = 1.0 / w as f32;
+    camera.fx *= k;
+    camera.fy *= k;
+    camera.cx *= k;
+    camera.cy *= k;
+    (avatar, camera)
+}
+
+/// Renders `side` x `side` pixels of the unit-width `camera` (scaled to that size).
+fn render_square(avatar: usize, camera: &drape_camera, side: u32) -> Vec<f32> {
+    let mut cam = *camera;
+    for v in [&mut cam.fx, &mut cam.fy, &mut cam.cx, &mut cam.cy] {
+        *v *= side as f32;
+    }
+    let mut pixels = vec![0f32; 4 * (side * side) as usize];
+    // SAFETY: a live avatar handle and a buffer of its length.
+    let s = unsafe {
+        drape_avatar_render(
+            avatar as *mut drape_avatar,
+            &cam,
+            side,
+            side,
+            pixels.as_mut_ptr(),
+            pixels.len(),
+        )
+    };
+    assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+    pixels
+}
+
+/// Per-avatar locking: while avatar A renders 1024x1024 on one thread, avatar B's 64x64
+/// render on another thread (started once A's call has begun) returns first. Each avatar
+/// has its own context, so its own queue: lavapipe runs one queue's submissions one
+/// after another on one thread, and two avatars sharing a queue would take turns on
+/// the device whatever the library's locks. Both were rendered once before at 64x64, so
+/// that neither call compiles pipelines. Validation reports nothing.
+#[test]
+fn two_avatars_on_two_threads_render_at_the_same_time() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let run = the_run();
+    let (ctx_a, sink_a) = validated_context();
+    let (ctx_b, sink_b) = validated_context();
+    let (a, camera) = posed_avatar(ctx_a, &run);
+    let (b, _) = posed_avatar(ctx_b, &run);
+    let (a, b) = (a as usize, b as usize);
+    let warm_a = render_square(a, &camera, 64);
+    let warm_b = render_square(b, &camera, 64);
+    assert_eq!(warm_a, warm_b, "two avatars of one run, one view");
+    let finished = AtomicUsize::new(0);
+    let (started_tx, started_rx) = std::sync::mpsc::channel();
+    let (rank_a, rank_b) = std::thread::scope(|s| {
+        let big = s.spawn(|| {
+            started_tx.send(()).unwrap();
+            let pixels = render_square(a, &camera, 1024);
+            (finished.fetch_add(1, Ordering::SeqCst), pixels)
+        });
+        started_rx.recv().unwrap();
+        let small = s.spawn(|| {
+            let pixels = render_square(b, &camera, 64);
+            (finished.fetch_add(1, Ordering::SeqCst), pixels)
+        });
+        let (rank_b, pixels_b) = small.join().unwrap();
+        let (rank_a, pixels_a) = big.join().unwrap();
+        assert_eq!(pixels_b, warm_b, "B's render beside A's");
+        assert!(
+            pixels_a.chunks(4).any(|p| p[3] > 0.5),
+            "A covers some pixels"
+        );
+        (rank_a, rank_b)
+    });
+    assert_eq!(
+        (rank_b, rank_a),
+        (0, 1),
+        "avatar B's 64x64 render returned after avatar A's 1024x1024 one: the avatars took turns"
+    );
+    for avatar in [a, b] {
+        assert_eq!(
+            drape_avatar_destroy(avatar as *mut drape_avatar),
+            drape_status::DRAPE_OK
+        );
+    }
+    for ctx in [ctx_a, ctx_b] {
+        assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    }
+    let messages: Vec<String> = [sink_a, sink_b].iter().flat_map(|s| s.drain()).collect();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
+
+/// Two avatars on one context (one queue) on two threads at once: each renders what it
+/// renders alone, and validation (the queue's external synchronisation included)
+/// reports nothing.
+#[test]
+fn two_avatars_on_one_context_render_from_two_threads() {
+    let run = the_run();
+    let (ctx, sink) = validated_context();
+    let (a, camera) = posed_avatar(ctx, &run);
+    let (b, _) = posed_avatar(ctx, &run);
+    let (a, b) = (a as usize, b as usize);
+    let alone = render_square(a, &camera, 48);
+    std::thread::scope(|s| {
+        let threads = [a, b].map(|avatar| {
+            let camera = &camera;
+            s.spawn(move || {
+                (0..3)
+                    .map(|_| render_square(avatar, camera, 48))
+                    .collect::<Vec<_>>()
+            })
+        });
+        for t in threads {
+            for pixels in t.join().unwrap() {
+                assert_eq!(pixels, alone, "a render beside the other avatar's");
+            }
+        }
+    });
+    for avatar in [a, b] {
+        assert_eq!(
+            drape_avatar_destroy(avatar as *mut drape_avatar),
+            drape_status::DRAPE_OK
+        );
+    }
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
+
+/// Premultiplied means every colour value within [0, alpha] and alpha within [0, 1]:
+/// over the run's default (first held-out) view, that view moved sideways and closer,
+/// and a posed frame (the fixture's bend: elbows and a knee), at the run's size and at
+/// 96x96. (The spherical-harmonic colours are not clamped on the GPU: without the
+/// C ABI's clamp some pixels of the small run exceed their alpha.)
+#[test]
+fn every_colour_value_is_within_zero_and_its_alpha() {
+    let run = the_run();
+    let (ctx, sink) = validated_context();
+    let (avatar, camera) = posed_avatar(ctx, &run);
+    let mut views = vec![camera];
+    for (axis, shift) in [(3, 0.3), (3, -0.3), (11, -0.5)] {
+        let mut c = camera;
+        c.world_to_camera[axis] += shift;
+        views.push(c);
+    }
+    let mut checked = 0;
+    for posed in [false, true] {
+        if posed {
+            let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+            // SAFETY: a live avatar and room for 72 and 3 floats.
+            unsafe {
+                let s = drape_avatar_default_view(
+                    avatar,
+                    std::ptr::null_mut(),
+                    std::ptr::null_mut(),
+                    std::ptr::null_mut(),
+                    pose.as_mut_ptr(),
+                    trans.as_mut_ptr(),
+                );
+                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+                pose[3 * 16 + 2] -= 0.8;
+                pose[3 * 17 + 2] += 0.8;
+                pose[3 * 4] += 0.6;
+                let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
+                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+            }
+        }
+        for (v, view) in views.iter().enumerate() {
+            for side in [32, 96] {
+                let pixels = render_square(avatar as usize, view, side);
+                for (i, p) in pixels.chunks(4).enumerate() {
+                    assert!(
+                        (0.0..=1.0).contains(&p[3])
+                            && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
+                        "posed {posed}, view {v}, {side}x{side}: pixel {i} is {p:?}"
+                    );
+                }
+                assert!(
+                    pixels.chunks(4).any(|p| p[3] > 0.5),
+                    "view {v} covers some pixels"
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 16);
+    assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
+
+/// `drape_load_options`: frames in flight as asked (the player's count), out of range
+/// refused; `DRAPE_COLOUR_LINEAR` renders each pixel's colour / alpha decoded with the
+/// sRGB transfer function (computed here in f64) times alpha, alpha unchanged; an
+/// unknown encoding is refused, and so is recording a linear avatar.
+#[test]
+fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
+    let run = the_run();
+    let (ctx, sink) = validated_context();
+    let dir = CString::new(run.to_str().unwrap()).unwrap();
+    let load = |options: drape_load_options| {
+        let mut status = drape_status::DRAPE_ERROR_ENGINE;
+        // SAFETY: a live context, a string, valid options and room for a status.
+        let avatar = unsafe { drape_avatar_load(ctx, dir.as_ptr(), &options, &mut status) };
+        (avatar, status)
+    };
+    for (frames, expected) in [(0, Some(2)), (1, Some(1)), (3, Some(3)), (9, None)] {
+        let (avatar, status) = load(drape_load_options {
+            frames_in_flight: frames,
+            colour: 0,
+        });
+        assert_eq!(
+            drape::testing::frames_in_flight(avatar),
+            expected,
+            "{frames}"
+        );
+        if expected.is_none() {
+            assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+            assert!(
+                last_error().contains("frames_in_flight"),
+                "{}",
+                last_error()
+            );
+        } else {
+            assert_eq!(status, drape_status::DRAPE_OK);
+            assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+        }
+    }
+    let (refused, status) = load(drape_load_options {
+        frames_in_flight: 0,
+        colour: 2,
+    });
+    assert!(refused.is_null());
+    assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+
+    let (srgb, camera) = posed_avatar(ctx, &run);
+    let (linear, status) = load(drape_load_options {
+        frames_in_flight: 0,
+        colour: drape_colour::DRAPE_COLOUR_LINEAR as u32,
+    });
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: live avatars, room for 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            srgb,
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK);
+        let s = drape_avatar_set_pose(linear, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK);
+    }
+    let encoded = render_square(srgb as usize, &camera, 48);
+    let decoded = render_square(linear as usize, &camera, 48);
+    let mut mid_tones = 0;
+    for (e, d) in encoded.chunks(4).zip(decoded.chunks(4)) {
+        assert_eq!(e[3].to_bits(), d[3].to_bits(), "alpha unchanged");
+        for c in 0..3 {
+            let a = f64::from(e[3]);
+            let expected = if a > 0.0 {
+                let v = f64::from(e[c]) / a;
+                let v = if v <= 0.04045 {
+                    v / 12.92
+                } else {
+                    ((v + 0.055) / 1.055).powf(2.4)
+                };
+                v * a
+            } else {
+                0.0
+            };
+            // f32 arithmetic against f64: a few ulps of values at most 1.
+            assert!(
+                (f64::from(d[c]) - expected).abs() <= 1e-6,
+                "{e:?} decoded as {d:?}, expected channel {c} {expected}"
+            );
+            if e[3] > 0.5 && e[c] / e[3] > 0.1 && e[c] / e[3] < 0.9 {
+                mid_tones += 1;
+                assert!(d[c] < e[c], "a mid tone is darker in linear: {e:?} {d:?}");
+            }
+        }
+    }
+    assert!(mid_tones > 0, "the view has mid tones to compare");
+    // SAFETY: a linear avatar is refused before the (dummy, never used) command buffer
+    // and image are looked at.
+    let record = unsafe {
+        drape_avatar_record(
+            linear,
+            &camera,
+            48,
+            48,
+            std::ptr::dangling_mut::<std::ffi::c_void>(),
+            1,
+            7,
+        )
+    };
+    assert_eq!(record, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+    assert!(
+        last_error().contains("DRAPE_COLOUR_LINEAR"),
+        "{}",
+        last_error()
+    );
+    for avatar in [srgb, linear] {
+        assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    }
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
+}
+
+/// `drape_avatar_load_memory`: the run exported to an avatar file's bytes, loaded from
+/// memory, renders bit-identically to the run loaded from its path; the bytes truncated
+/// are refused as an invalid argument naming them.
+#[test]
+fn an_avatar_loads_from_memory() {
+    let run = the_run();
+    let bytes = {
+        let ctx = drape_tests::gpu();
+        drape_trainer::avatar::file::AvatarFile::from_run(&ctx, &run)
+            .unwrap()
+            .to_bytes()
+            .unwrap()
+    };
+    let (ctx, sink) = validated_context();
+    let (from_path, camera) = posed_avatar(ctx, &run);
+    let mut status = drape_status::DRAPE_ERROR_ENGINE;
+    // SAFETY: a live context and `bytes.len()` readable bytes.
+    let from_memory = unsafe {
+        drape_avatar_load_memory(
+            ctx,
+            bytes.as_ptr(),
+            bytes.len(),
+            std::ptr::null(),
+            &mut status,
+        )
+    };
+    assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: live avatars, room for 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            from_path,
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK);
+        let s = drape_avatar_set_pose(from_memory, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK);
+    }
+    let expected = render_square(from_path as usize, &camera, 48);
+    let got = render_square(from_memory as usize, &camera, 48);
+    assert!(
+        got.iter()
+            .zip(&expected)
+            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        "the avatar from memory renders other pixels than from its path"
+    );
+    // SAFETY: as above, half the bytes.
+    let truncated = unsafe {
+        drape_avatar_load_memory(
+            ctx,
+            bytes.as_ptr(),
+            bytes.len() / 2,
+            std::ptr::null(),
+            &mut status,
+        )
+    };
+    assert!(truncated.is_null());
+    assert_eq!(status, drape_status::DRAPE_ERROR_INVALID_ARGUMENT);
+    assert!(last_error().contains("in memory"), "{}", last_error());
+    for avatar in [from_path, from_memory] {
+        assert_eq!(drape_avatar_destroy(avatar), drape_status::DRAPE_OK);
+    }
+    assert_eq!(drape_context_destroy(ctx), drape_status::DRAPE_OK);
+    let messages = sink.drain();
+    assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }

@@ -1,6 +1,6 @@
 /* Renders a trained drape run through the C ABI: the run's first held-out frame's pose
- * and camera, written as raw little-endian floats (width x height x 4, premultiplied
- * RGBA, top row first) after a one-line text header "W H\n".
+ * and camera, written as raw little-endian floats (width x height x 4, sRGB-encoded
+ * premultiplied RGBA, top row first) after a one-line text header "W H\n".
  *
  *   cc -I capi/include examples/c/render_avatar.c -L target/debug -ldrape -o render_avatar
  *   ./render_avatar RUN_DIR OUT.rgba32f
@@ -22,7 +22,7 @@ int main(int argc, char **argv) {
     }
     drape_context *ctx = drape_context_create(NULL);
     if (!ctx) return fail("drape_context_create");
-    drape_avatar *avatar = drape_avatar_load(ctx, argv[1]);
+    drape_avatar *avatar = drape_avatar_load(ctx, argv[1], NULL, NULL);
     if (!avatar) return fail("drape_avatar_load");
 
     drape_camera camera;
@@ -35,7 +35,7 @@ int main(int argc, char **argv) {
     size_t floats = (size_t)width * height * 4;
     float *rgba = malloc(floats * sizeof(float));
     if (!rgba) return 1;
-    if (drape_avatar_render(avatar, &camera, width, height, rgba) != DRAPE_OK) return fail("drape_avatar_render");
+    if (drape_avatar_render(avatar, &camera, width, height, rgba, floats) != DRAPE_OK) return fail("drape_avatar_render");
 
     FILE *out = fopen(argv[2], "wb");
     if (!out) {
