@@ -241,4 +241,27 @@ mod tests {
         let e = e.to_string();
         assert!(e.contains("[1, 3]") && e.contains("[1, 2]"), "{e}");
     }
+
+    /// Images of one instant (several cameras) share one correction; a held-out image
+    /// of a trained instant takes it, one of an untrained instant the data's pose.
+    #[test]
+    fn cameras_of_one_instant_share_a_correction() {
+        let mut r = PoseRefiner::new(&[3, 5, 3, 5, 7], 0.1, 0.1);
+        assert_eq!(r.state().frames, vec![3, 5, 7]);
+        let mut g = [0.0; REFINED_PARAMS];
+        g[REFINED_PARAMS - 1] = 1.0;
+        r.step(2, &g);
+        assert_ne!(r.delta(0)[REFINED_PARAMS - 1], 0.0);
+        assert_eq!(r.delta(0), r.delta(2), "image 2 is frame 3's other camera");
+        assert_eq!(r.delta(1), &[0.0; REFINED_PARAMS]);
+        let body = BodyParams::Zju(crate::dataset::zju::ZjuSmpl {
+            poses: [0.0; 72],
+            rh: [0.0; 3],
+            th: [0.0; 3],
+            shapes: [0.0; 10],
+        });
+        assert_eq!(r.body_of_frame(3, &body), r.body(0, &body));
+        assert_ne!(r.body_of_frame(3, &body), body);
+        assert_eq!(r.body_of_frame(9, &body), body, "an untrained instant");
+    }
 }
