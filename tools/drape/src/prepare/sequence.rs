@@ -125,7 +125,7 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
             .with_context(|| format!("{}: no camera {n}", out.join("cameras.json").display()))?;
         let d = &cameras_doc["cameras"][i]["distortion"];
         let k: Vec<f64> = (0..4).map(|j| d[j].as_f64().unwrap_or(0.0)).collect();
-        cameras.push(([k[0], k[1], k[2], k[3]], all_views[i].camera.clone()));
+        cameras.push(([k[0], k[1], k[2], k[3]], all_views[i].camera));
         frame_names.push(read_track(&out.join("landmarks").join(n))?.1);
     }
     let counts: Vec<usize> = frame_names.iter().map(Vec::len).collect();
@@ -163,7 +163,7 @@ pub fn stage(out: &Path, names: &[String], redo: bool) -> anyhow::Result<()> {
         .iter()
         .zip(&crops)
         .map(|((d, c), crop)| {
-            let mut c = c.clone();
+            let mut c = *c;
             c.cx -= f64::from(crop.x);
             c.cy -= f64::from(crop.y);
             c.width = crop.width;
