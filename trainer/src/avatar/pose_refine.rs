@@ -38,6 +38,15 @@ pub struct PoseState {
 }
 
 impl PoseState {
+    /// `body` with frame `frame`'s correction where that frame was trained, else as
+    /// the data has it (what a held-out image of that instant is rendered with).
+    pub fn body_of_frame(&self, frame: u32, body: &BodyParams) -> BodyParams {
+        match self.frames.iter().position(|&f| f == frame) {
+            Some(k) => refined_body(body, &self.deltas[k]),
+            None => body.clone(),
+        }
+    }
+
     /// No frame refined yet.
     pub fn zeros(frames: &[u32]) -> Self {
         let z = vec![[0.0; REFINED_PARAMS]; frames.len()];
@@ -93,10 +102,7 @@ impl PoseRefiner {
     /// The body parameters an image of dataset frame `frame` is rendered with: its
     /// frame's correction where the frame was trained, else the data's.
     pub fn body_of_frame(&self, frame: u32, body: &BodyParams) -> BodyParams {
-        match self.state.frames.iter().position(|&f| f == frame) {
-            Some(k) => refined_body(body, &self.state.deltas[k]),
-            None => body.clone(),
-        }
+        self.state.body_of_frame(frame, body)
     }
 
     /// One Adam step on training image `index`'s frame from the gradient on its

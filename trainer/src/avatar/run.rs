@@ -157,6 +157,14 @@ impl OpenRun {
         let mut avatar = build_avatar(ctx, &rig, &seq, &config, layers)?;
         let state = checkpoint::read(&model_path, &avatar.shapes(), avatar.scene_sh_degree())?;
         avatar.restore(ctx, &state)?;
+        // Held-out images of trained instants (another camera, the same frame) take
+        // the instants' refined poses, as training's own evaluation rendered them.
+        let mut seq = seq;
+        if let Some(poses) = &state.poses {
+            for f in seq.frames.iter_mut().filter(|f| f.split == Split::Test) {
+                f.body = poses.body_of_frame(f.frame as u32, &f.body);
+            }
+        }
         let renderer = AvatarRenderer::new(ctx, &avatar, width, height, config.layers.compositing)?;
         Ok(Self {
             dir: dir.to_path_buf(),
