@@ -6,7 +6,6 @@
 //! Drop order is deliberate: recycled command pools and pipelines, then the allocator,
 //! then the device, then the messenger, then the instance.
 
-use std::collections::HashMap;
 use std::ffi::{c_char, CStr, CString};
 use std::fmt;
 use std::mem::ManuallyDrop;
@@ -16,7 +15,8 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::error::{EngineError, Result, VkResultExt};
-use crate::kernels::{self, Kernel, Pipeline};
+use crate::kernels::{self, Kernel, Pipeline, PipelineCache};
+use crate::pools::PoolRecycler;
 use crate::profile::Profile;
 use crate::validation::{self, ValidationSink};
 
@@ -196,7 +196,7 @@ pub struct Device {
     pub(crate) queue: Mutex<vk::Queue>,
     pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
     pub(crate) debug_utils: Option<ash::ext::debug_utils::Device>,
-    pub(crate) pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
+    pub(crate) pipelines: PipelineCache,
     pub(crate) info: DeviceInfo,
     pub(crate) poison: bool,
     /// See [`ContextDesc::force_staging`].
@@ -207,9 +207,7 @@ pub struct Device {
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
     /// Command, descriptor and query pools of finished recordings, for the next ones.
-    pub(crate) recycled_pools: Mutex<Vec<crate::recorder::RecordingPools>>,
-    /// Command pools created so far (see [`Context::command_pools_created`]).
-    pub(crate) command_pools_created: std::sync::atomic::AtomicU64,
+    pub(crate) pools: PoolRecycler,
     /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
     pub(crate) submissions: std::sync::atomic::AtomicU64,
     /// Fence waits so far (see [`Context::fence_waits`]).
@@ -375,7 +373,7 @@ impl Context {
             queue: Mutex::new(parts.queue),
             allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
             debug_utils: parts.debug_utils,
-            pipelines: Mutex::new(HashMap::new()),
+            pipelines: PipelineCache::default(),
             info: DeviceInfo {
                 max_storage_buffer_range: desc
                     .max_storage_buffer_range
@@ -395,8 +393,7 @@ impl Context {
             barriers: std::sync::atomic::AtomicU64::new(0),
             pending: Mutex::new(Default::default()),
             owns_device: true,
-            recycled_pools: Mutex::new(Vec::new()),
-            command_pools_created: std::sync::atomic::AtomicU64::new(0),
+            pools: PoolRecycler::default(),
             _entry: entry,
         };
         let ctx = Context {
@@ -487,14 +484,6 @@ impl Context {
 
     /// The pipeline of `kernel`, created on first use.
     pub(crate) fn pipeline(&self, kernel: Kernel) -> Result<Arc<Pipeline>> {
-        let mut cache = self
-            .device
-            .pipelines
-            .lock()
-            .unwrap_or_else(|p| p.into_inner());
-        if let Some(p) = cache.get(&kernel) {
-            return Ok(p.clone());
-        }
         if kernel.requires_float_atomics() && !self.device.info.float_atomic_add {
             return Err(EngineError::MissingFeature {
                 kernel: kernel.entry_point(),
@@ -513,9 +502,9 @@ impl Context {
                 feature: "subgroup ballot and shuffle operations in compute",
             });
         }
-        let p = Arc::new(Pipeline::create(&self.device, kernel)?);
-        cache.insert(kernel, p.clone());
-        Ok(p)
+        self.device
+            .pipelines
+            .get_or_create(&self.device.raw, kernel)
     }
 
     /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
@@ -601,9 +590,7 @@ impl Context {
     /// How many command pools recordings have created: a frame loop reuses the pools
     /// of finished recordings, so this stays flat (for tests).
     pub fn command_pools_created(&self) -> u64 {
-        self.device
-            .command_pools_created
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.pools.created()
     }
 
     /// Names a Vulkan object for validation messages and captures.
@@ -957,21 +944,8 @@ impl Drop for Device {
         // vkDeviceWaitIdle would need them all externally synchronised): every engine
         // submission holds an Arc<Device> until its fence was waited, so none of the
         // objects below is in use when the last Arc goes.
-        for pools in std::mem::take(
-            &mut *self
-                .recycled_pools
-                .lock()
-                .unwrap_or_else(|p| p.into_inner()),
-        ) {
-            pools.destroy(&self.raw);
-        }
-        let pipelines =
-            std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
-        for (_, p) in pipelines {
-            if let Ok(p) = Arc::try_unwrap(p) {
-                p.destroy(&self.raw);
-            }
-        }
+        self.pools.destroy_all(&self.raw);
+        self.pipelines.destroy_all(&self.raw);
         // SAFETY: dropped exactly once, here, before the device it allocates from.
         unsafe { ManuallyDrop::drop(&mut self.allocator) };
         if !self.owns_device {

@@ -28,6 +28,7 @@ pub mod external;
 pub mod kernels;
 pub mod mirror;
 pub mod ops;
+mod pools;
 pub mod profile;
 pub mod recorder;
 mod retire;

@@ -135,6 +135,11 @@ impl<'a> Recording<'a> {
         })
     }
 
+    /// Ends recording, submits, waits, and returns the GPU time of every pass.
+    pub fn submit_and_wait(self) -> Result<PassTimings> {
+        self.submit(&SubmitSync::default())?.wait()
+    }
+
     /// Emits the recording into the host's command buffer instead of submitting it; the
     /// host submits (and synchronises) it. See the module header for the barriers the
     /// host places around it. On an error the host's command buffer holds part of the

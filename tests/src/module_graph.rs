@@ -706,7 +706,10 @@ mod tests {
                 "pub struct Thing;\nfn h() { let _ = super::a::inner::Inner; }\n",
             ),
         ]);
-        assert!(!graph.has_edge(&["a"], &[]), "a names b's Thing, not the root");
+        assert!(
+            !graph.has_edge(&["a"], &[]),
+            "a names b's Thing, not the root"
+        );
         let cycles = graph.cycles();
         assert_eq!(cycles.len(), 1, "{cycles:?}");
         let text = graph.explain(&cycles[0]);
