@@ -44,10 +44,7 @@ fn the_metrics_name_no_module_of_the_avatar() {
          {metrics:?}"
     );
     // The reader sees the metrics' known edges, so an empty graph cannot pass.
-    assert!(graph.has_edge(
-        &["metrics", "fid", "network"],
-        &["metrics", "fid_weights"]
-    ));
+    assert!(graph.has_edge(&["metrics", "fid", "network"], &["metrics", "fid_weights"]));
     for m in metrics {
         for (to, site) in &graph.edges[m] {
             assert!(
