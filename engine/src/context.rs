@@ -18,6 +18,7 @@ use crate::error::{EngineError, Result, VkResultExt};
 use crate::kernels::{self, Kernel, Pipeline, PipelineCache};
 use crate::pools::PoolRecycler;
 use crate::profile::Profile;
+use crate::requirements::device_requirements;
 use crate::validation::{self, ValidationSink};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
@@ -724,61 +725,25 @@ fn create_device(
     c: Candidate,
     has_debug_utils: bool,
 ) -> Result<DeviceParts> {
-    // SAFETY: a query on a physical device of this instance.
-    let device_exts = unsafe { instance.enumerate_device_extension_properties(c.physical) }
-        .vk("vkEnumerateDeviceExtensionProperties", &c.name)?;
-    let has_float_atomics = device_exts
-        .iter()
-        .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
-
-    let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
-    let mut f12_query = vk::PhysicalDeviceVulkan12Features::default();
-    let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12_query);
-    if has_float_atomics {
-        f2 = f2.push_next(&mut atomic_float);
-    }
-    // SAFETY: valid chain.
-    unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
-    let shader_int64 = f2.features.shader_int64 == vk::TRUE;
-    let float_atomic_add =
-        has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
-    let timeline_semaphore = f12_query.timeline_semaphore == vk::TRUE;
+    // What the engine needs and uses where present, as a host's device would enable it
+    // (choose_device has checked what it requires).
+    let mut requirements = device_requirements(instance, c.physical)?;
+    requirements.queue_family = c.queue_family;
+    let features = requirements.features;
     let info = describe(
         instance,
         &c,
         Enabled {
-            float_atomic_add,
-            shader_int64,
-            timeline_semaphore,
+            float_atomic_add: features.shader_buffer_float32_atomic_add,
+            shader_int64: features.shader_int64,
+            timeline_semaphore: features.timeline_semaphore,
         },
     );
-
-    // The rust-gpu modules declare the VulkanMemoryModel capability.
-    let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
-        .vulkan_memory_model(true)
-        .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE)
-        .timeline_semaphore(timeline_semaphore);
-    let mut enabled_atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
-        .shader_buffer_float32_atomic_add(float_atomic_add);
-    let mut ext_names: Vec<*const c_char> = Vec::new();
-    if float_atomic_add {
-        ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
-    }
-    let priorities = [1.0f32];
-    let queue_info = [vk::DeviceQueueCreateInfo::default()
-        .queue_family_index(c.queue_family)
-        .queue_priorities(&priorities)];
-    let core_features = vk::PhysicalDeviceFeatures::default().shader_int64(info.shader_int64);
-    let mut device_info = vk::DeviceCreateInfo::default()
-        .queue_create_infos(&queue_info)
-        .enabled_extension_names(&ext_names)
-        .enabled_features(&core_features)
-        .push_next(&mut f12);
-    if float_atomic_add {
-        device_info = device_info.push_next(&mut enabled_atomic_float);
-    }
-    // SAFETY: pointers in device_info refer to locals alive for the call.
-    let raw = unsafe { instance.create_device(c.physical, &device_info, None) }
+    let raw = requirements
+        .with_create_info(&[], |device_info| {
+            // SAFETY: pointers in device_info refer to locals alive for the call.
+            unsafe { instance.create_device(c.physical, device_info, None) }
+        })
         .vk("vkCreateDevice", &c.name)?;
     // SAFETY: family and index 0 were requested above.
     let queue = unsafe { raw.get_device_queue(c.queue_family, 0) };

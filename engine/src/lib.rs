@@ -31,6 +31,7 @@ pub mod ops;
 mod pools;
 pub mod profile;
 pub mod recorder;
+mod requirements;
 mod retire;
 pub mod submit;
 pub mod validation;
