@@ -9,6 +9,7 @@
 use std::ffi::{c_char, CStr, CString};
 use std::fmt;
 use std::mem::ManuallyDrop;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::vk;
@@ -127,6 +128,38 @@ impl std::ops::Sub for RecordedWork {
     }
 }
 
+/// What a device has done so far, counted for tests and profiles: read by
+/// [`Context::submission_count`], [`Context::fence_waits`] and [`Context::recorded_work`].
+#[derive(Default)]
+pub(crate) struct Counters {
+    submissions: AtomicU64,
+    fence_waits: AtomicU64,
+    dispatches: AtomicU64,
+    barriers: AtomicU64,
+}
+
+impl Counters {
+    /// One `vkQueueSubmit`.
+    pub(crate) fn submitted(&self) {
+        self.submissions.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// One host wait on a fence.
+    pub(crate) fn waited(&self) {
+        self.fence_waits.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// `n` `vkCmdDispatch` calls.
+    pub(crate) fn dispatched(&self, n: u32) {
+        self.dispatches.fetch_add(u64::from(n), Ordering::Relaxed);
+    }
+
+    /// One `vkCmdPipelineBarrier`.
+    pub(crate) fn barrier(&self) {
+        self.barriers.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
 /// Buffers whose destruction waited for pending work ([`Context::deferred_buffers`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeferredBuffers {
@@ -196,26 +229,16 @@ pub struct Device {
     pub(crate) queue_family: u32,
     pub(crate) queue: Mutex<vk::Queue>,
     pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
-    pub(crate) debug_utils: Option<ash::ext::debug_utils::Device>,
+    pub(crate) debug: DebugHooks,
     pub(crate) pipelines: PipelineCache,
     pub(crate) info: DeviceInfo,
-    pub(crate) poison: bool,
-    /// See [`ContextDesc::force_staging`].
-    pub(crate) force_staging: bool,
-    pub(crate) debug_instance:
-        Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
-    pub(crate) validation: Option<Arc<ValidationSink>>,
+    pub(crate) buffers: BufferPolicy,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
     /// Command, descriptor and query pools of finished recordings, for the next ones.
     pub(crate) pools: PoolRecycler,
-    /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
-    pub(crate) submissions: std::sync::atomic::AtomicU64,
-    /// Fence waits so far (see [`Context::fence_waits`]).
-    pub(crate) fence_waits: std::sync::atomic::AtomicU64,
-    /// Dispatches and pipeline barriers recorded so far ([`Context::recorded_work`]).
-    pub(crate) dispatches: std::sync::atomic::AtomicU64,
-    pub(crate) barriers: std::sync::atomic::AtomicU64,
+    /// Submissions, fence waits, dispatches and barriers so far.
+    pub(crate) counters: Counters,
     /// Fences of submissions not yet waited for ([`crate::Submission`] registers its
     /// fence at submission and removes it when it waits), and the buffers dropped while
     /// they may still use them (`crate::retire`).
@@ -225,6 +248,27 @@ pub struct Device {
     pub(crate) owns_device: bool,
     // Keeps libvulkan loaded for as long as any handle exists.
     pub(crate) _entry: ash::Entry,
+}
+
+/// A device's debug-utils hooks: object names, the engine's own messenger and the sink
+/// of validation messages.
+#[derive(Default)]
+pub(crate) struct DebugHooks {
+    /// Names objects, when the instance has `VK_EXT_debug_utils`.
+    pub(crate) names: Option<ash::ext::debug_utils::Device>,
+    /// The messenger on the engine's own instance (none over a host's), destroyed with it.
+    pub(crate) messenger: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    /// Where validation messages go (none without validation).
+    pub(crate) sink: Option<Arc<ValidationSink>>,
+}
+
+/// How new buffers are made.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct BufferPolicy {
+    /// See [`ContextDesc::poison_new_buffers`].
+    pub(crate) poison: bool,
+    /// See [`ContextDesc::force_staging`].
+    pub(crate) force_staging: bool,
 }
 
 /// A cheap, clonable handle to an open device.
@@ -373,7 +417,11 @@ impl Context {
             queue_family: parts.queue_family,
             queue: Mutex::new(parts.queue),
             allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
-            debug_utils: parts.debug_utils,
+            debug: DebugHooks {
+                names: parts.debug_utils,
+                messenger: debug_instance,
+                sink,
+            },
             pipelines: PipelineCache::default(),
             info: DeviceInfo {
                 max_storage_buffer_range: desc
@@ -383,15 +431,12 @@ impl Context {
                     }),
                 ..parts.info
             },
-            poison: desc.poison_new_buffers,
-            force_staging: desc.force_staging,
-            debug_instance,
-            validation: sink,
+            buffers: BufferPolicy {
+                poison: desc.poison_new_buffers,
+                force_staging: desc.force_staging,
+            },
             profile: Mutex::new(None),
-            submissions: std::sync::atomic::AtomicU64::new(0),
-            fence_waits: std::sync::atomic::AtomicU64::new(0),
-            dispatches: std::sync::atomic::AtomicU64::new(0),
-            barriers: std::sync::atomic::AtomicU64::new(0),
+            counters: Counters::default(),
             pending: Mutex::new(Default::default()),
             owns_device: true,
             pools: PoolRecycler::default(),
@@ -453,7 +498,8 @@ impl Context {
     /// Takes the validation messages collected so far (empty without validation).
     pub fn take_validation_messages(&self) -> Vec<String> {
         self.device
-            .validation
+            .debug
+            .sink
             .as_ref()
             .map(|s| s.drain())
             .unwrap_or_default()
@@ -461,14 +507,14 @@ impl Context {
 
     /// The validation sink, to read messages after the context is dropped.
     pub fn validation_sink(&self) -> Option<Arc<ValidationSink>> {
-        self.device.validation.clone()
+        self.device.debug.sink.clone()
     }
 
     /// Makes one deliberately invalid call (a zero-size buffer) so tests can prove
     /// that validation messages reach the sink. Not for anything else.
     #[doc(hidden)]
     pub fn provoke_validation_error_for_tests(&self) {
-        if self.device.validation.is_none() {
+        if self.device.debug.sink.is_none() {
             return; // without the layer the invalid call would reach the driver
         }
         let info = vk::BufferCreateInfo::default()
@@ -511,9 +557,7 @@ impl Context {
     /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
     /// tests and profiles: a rendered frame should cost one.
     pub fn submission_count(&self) -> u64 {
-        self.device
-            .submissions
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.counters.submissions.load(Ordering::Relaxed)
     }
 
     /// How many times the host has waited on a fence for this device's work (every
@@ -521,9 +565,7 @@ impl Context {
     /// the work had finished by then): a frame loop with k frames in flight waits N - k
     /// times over N frames.
     pub fn fence_waits(&self) -> u64 {
-        self.device
-            .fence_waits
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.counters.fence_waits.load(Ordering::Relaxed)
     }
 
     /// Device memory the engine holds now, from its allocator: what its live buffers and
@@ -548,10 +590,9 @@ impl Context {
     /// frame is the frame's work as the GPU's front end sees it, which a launch-bound
     /// frame is made of.
     pub fn recorded_work(&self) -> RecordedWork {
-        let relaxed = std::sync::atomic::Ordering::Relaxed;
         RecordedWork {
-            dispatches: self.device.dispatches.load(relaxed),
-            barriers: self.device.barriers.load(relaxed),
+            dispatches: self.device.counters.dispatches.load(Ordering::Relaxed),
+            barriers: self.device.counters.barriers.load(Ordering::Relaxed),
         }
     }
 
@@ -596,7 +637,7 @@ impl Context {
 
     /// Names a Vulkan object for validation messages and captures.
     pub(crate) fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
-        if let Some(du) = &self.device.debug_utils {
+        if let Some(du) = &self.device.debug.names {
             let Ok(name) = CString::new(name.replace('\0', " ")) else {
                 return;
             };
@@ -919,7 +960,7 @@ impl Drop for Device {
         // SAFETY: all objects of the device are gone: buffers and recordings hold an
         // Arc<Device>, so none outlives this drop.
         unsafe { self.raw.destroy_device(None) };
-        if let Some((loader, m)) = self.debug_instance.take() {
+        if let Some((loader, m)) = self.debug.messenger.take() {
             // SAFETY: created from this instance, destroyed once, before the instance.
             unsafe { loader.destroy_debug_utils_messenger(m, None) };
         }

@@ -21,7 +21,9 @@ use std::sync::{Arc, Mutex};
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
-use crate::context::{cstr_array, describe, Candidate, Context, Device, DeviceKind, Enabled};
+use crate::context::{
+    cstr_array, describe, BufferPolicy, Candidate, Context, DebugHooks, Device, DeviceKind, Enabled,
+};
 use crate::error::{EngineError, Result};
 pub use crate::requirements::{device_requirements, DeviceFeatures, DeviceRequirements};
 
@@ -165,19 +167,19 @@ impl Context {
             queue_family,
             queue: Mutex::new(queue),
             allocator: ManuallyDrop::new(Mutex::new(allocator)),
-            debug_utils,
+            debug: DebugHooks {
+                names: debug_utils,
+                ..Default::default()
+            },
             pipelines: Default::default(),
             info,
-            poison: options.poison_new_buffers,
-            force_staging: options.force_staging,
-            debug_instance: None,
-            validation: None,
+            buffers: BufferPolicy {
+                poison: options.poison_new_buffers,
+                force_staging: options.force_staging,
+            },
             profile: Mutex::new(None),
             pools: Default::default(),
-            submissions: Default::default(),
-            fence_waits: Default::default(),
-            dispatches: Default::default(),
-            barriers: Default::default(),
+            counters: Default::default(),
             pending: Mutex::new(Default::default()),
             owns_device: false,
             _entry: entry,

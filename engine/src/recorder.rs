@@ -472,10 +472,7 @@ impl<'a> Recording<'a> {
     /// Makes every earlier compute or transfer write visible to every later compute or
     /// transfer access, and orders every earlier access before every later one.
     fn emit_barrier(&self) {
-        self.ctx
-            .device
-            .barriers
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.barrier();
         let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
         let barrier = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
@@ -715,10 +712,7 @@ impl<'a> Recording<'a> {
         for index in 0..dispatches {
             self.timestamp_slot(index)?;
         }
-        self.ctx
-            .device
-            .dispatches
-            .fetch_add(u64::from(dispatches), std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.dispatched(dispatches);
         let mut wave = 0;
         for (w, command) in commands {
             if w != wave {
@@ -981,10 +975,7 @@ impl<'a> Recording<'a> {
     }
 
     fn emit_host_barrier(&self) {
-        self.ctx
-            .device
-            .barriers
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.barrier();
         let to_host = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(vk::AccessFlags::HOST_READ);
