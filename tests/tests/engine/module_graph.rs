@@ -3,12 +3,11 @@
 
 use std::path::Path;
 
-use drape_tests::module_graph::ModuleGraph;
+use drape_tests::module_graph::{join, ModuleGraph};
 
 #[test]
 fn engine_modules_form_no_cycle() {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("../engine/src");
-    let graph = ModuleGraph::of_crate(&src);
+    let graph = engine_graph();
     assert!(
         graph.edges.len() > 20,
         "engine/src has {} files",
@@ -23,4 +22,41 @@ fn engine_modules_form_no_cycle() {
         "modules of engine/src import each other:\n{}",
         explanations.join("\n")
     );
+}
+
+fn engine_graph() -> ModuleGraph {
+    ModuleGraph::of_crate(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../engine/src"))
+}
+
+/// The modules the device is built from name no engine module but the error type: the
+/// recording pools and the pipeline cache work on an `ash::Device`, not on the engine's
+/// `Device`, so `context` can own them without a circle.
+#[test]
+fn the_device_s_parts_are_leaves() {
+    let graph = engine_graph();
+    assert!(graph.has_edge(&["context"], &["pools"]));
+    assert!(graph.has_edge(&["context"], &["kernels"]));
+    for leaf in [
+        "error",
+        "validation",
+        "profile",
+        "retire",
+        "pools",
+        "requirements",
+        "kernels",
+    ] {
+        let edges = graph
+            .edges
+            .get(&vec![leaf.to_string()])
+            .unwrap_or_else(|| panic!("engine/src has no module {leaf}"));
+        for (to, site) in edges {
+            assert!(
+                to.as_slice() == ["error"],
+                "{leaf} names {} ({}:{}): a part of the device names no engine module but error",
+                join(to),
+                site.file,
+                site.line
+            );
+        }
+    }
 }
