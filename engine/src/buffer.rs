@@ -297,7 +297,8 @@ impl Context {
         };
         // Staging and readback buffers are always mapped; forcing staging only stops
         // the host from reaching into device buffers.
-        let host_access = !(self.device.force_staging && desc.location == MemoryLocation::GpuOnly);
+        let host_access =
+            !(self.device.buffers.force_staging && desc.location == MemoryLocation::GpuOnly);
         let mut buffer = Buffer {
             raw,
             size: desc.size,
@@ -315,7 +316,7 @@ impl Context {
         unsafe { dev.bind_buffer_memory(raw, a.memory(), a.offset()) }
             .vk("vkBindBufferMemory", name)?;
         self.set_name(raw, name);
-        if self.device.poison {
+        if self.device.buffers.poison {
             self.poison(&mut buffer)?;
         }
         Ok(buffer)

@@ -6,18 +6,20 @@
 //! Drop order is deliberate: recycled command pools and pipelines, then the allocator,
 //! then the device, then the messenger, then the instance.
 
-use std::collections::HashMap;
 use std::ffi::{c_char, CStr, CString};
 use std::fmt;
 use std::mem::ManuallyDrop;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::error::{EngineError, Result, VkResultExt};
-use crate::kernels::{self, Kernel, Pipeline};
+use crate::kernels::{self, Kernel, Pipeline, PipelineCache};
+use crate::pools::PoolRecycler;
 use crate::profile::Profile;
+use crate::requirements::device_requirements;
 use crate::validation::{self, ValidationSink};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
@@ -126,6 +128,38 @@ impl std::ops::Sub for RecordedWork {
     }
 }
 
+/// What a device has done so far, counted for tests and profiles: read by
+/// [`Context::submission_count`], [`Context::fence_waits`] and [`Context::recorded_work`].
+#[derive(Default)]
+pub(crate) struct Counters {
+    submissions: AtomicU64,
+    fence_waits: AtomicU64,
+    dispatches: AtomicU64,
+    barriers: AtomicU64,
+}
+
+impl Counters {
+    /// One `vkQueueSubmit`.
+    pub(crate) fn submitted(&self) {
+        self.submissions.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// One host wait on a fence.
+    pub(crate) fn waited(&self) {
+        self.fence_waits.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// `n` `vkCmdDispatch` calls.
+    pub(crate) fn dispatched(&self, n: u32) {
+        self.dispatches.fetch_add(u64::from(n), Ordering::Relaxed);
+    }
+
+    /// One `vkCmdPipelineBarrier`.
+    pub(crate) fn barrier(&self) {
+        self.barriers.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
 /// Buffers whose destruction waited for pending work ([`Context::deferred_buffers`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeferredBuffers {
@@ -195,28 +229,16 @@ pub struct Device {
     pub(crate) queue_family: u32,
     pub(crate) queue: Mutex<vk::Queue>,
     pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
-    pub(crate) debug_utils: Option<ash::ext::debug_utils::Device>,
-    pub(crate) pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
+    pub(crate) debug: DebugHooks,
+    pub(crate) pipelines: PipelineCache,
     pub(crate) info: DeviceInfo,
-    pub(crate) poison: bool,
-    /// See [`ContextDesc::force_staging`].
-    pub(crate) force_staging: bool,
-    pub(crate) debug_instance:
-        Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
-    pub(crate) validation: Option<Arc<ValidationSink>>,
+    pub(crate) buffers: BufferPolicy,
     /// Pass and submission times while a profile is on (`Context::start_profile`).
     pub(crate) profile: Mutex<Option<Profile>>,
     /// Command, descriptor and query pools of finished recordings, for the next ones.
-    pub(crate) recycled_pools: Mutex<Vec<crate::recorder::RecordingPools>>,
-    /// Command pools created so far (see [`Context::command_pools_created`]).
-    pub(crate) command_pools_created: std::sync::atomic::AtomicU64,
-    /// `vkQueueSubmit` calls so far (see [`Context::submission_count`]).
-    pub(crate) submissions: std::sync::atomic::AtomicU64,
-    /// Fence waits so far (see [`Context::fence_waits`]).
-    pub(crate) fence_waits: std::sync::atomic::AtomicU64,
-    /// Dispatches and pipeline barriers recorded so far ([`Context::recorded_work`]).
-    pub(crate) dispatches: std::sync::atomic::AtomicU64,
-    pub(crate) barriers: std::sync::atomic::AtomicU64,
+    pub(crate) pools: PoolRecycler,
+    /// Submissions, fence waits, dispatches and barriers so far.
+    pub(crate) counters: Counters,
     /// Fences of submissions not yet waited for ([`crate::Submission`] registers its
     /// fence at submission and removes it when it waits), and the buffers dropped while
     /// they may still use them (`crate::retire`).
@@ -226,6 +248,27 @@ pub struct Device {
     pub(crate) owns_device: bool,
     // Keeps libvulkan loaded for as long as any handle exists.
     pub(crate) _entry: ash::Entry,
+}
+
+/// A device's debug-utils hooks: object names, the engine's own messenger and the sink
+/// of validation messages.
+#[derive(Default)]
+pub(crate) struct DebugHooks {
+    /// Names objects, when the instance has `VK_EXT_debug_utils`.
+    pub(crate) names: Option<ash::ext::debug_utils::Device>,
+    /// The messenger on the engine's own instance (none over a host's), destroyed with it.
+    pub(crate) messenger: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    /// Where validation messages go (none without validation).
+    pub(crate) sink: Option<Arc<ValidationSink>>,
+}
+
+/// How new buffers are made.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct BufferPolicy {
+    /// See [`ContextDesc::poison_new_buffers`].
+    pub(crate) poison: bool,
+    /// See [`ContextDesc::force_staging`].
+    pub(crate) force_staging: bool,
 }
 
 /// A cheap, clonable handle to an open device.
@@ -374,8 +417,12 @@ impl Context {
             queue_family: parts.queue_family,
             queue: Mutex::new(parts.queue),
             allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
-            debug_utils: parts.debug_utils,
-            pipelines: Mutex::new(HashMap::new()),
+            debug: DebugHooks {
+                names: parts.debug_utils,
+                messenger: debug_instance,
+                sink,
+            },
+            pipelines: PipelineCache::default(),
             info: DeviceInfo {
                 max_storage_buffer_range: desc
                     .max_storage_buffer_range
@@ -384,19 +431,15 @@ impl Context {
                     }),
                 ..parts.info
             },
-            poison: desc.poison_new_buffers,
-            force_staging: desc.force_staging,
-            debug_instance,
-            validation: sink,
+            buffers: BufferPolicy {
+                poison: desc.poison_new_buffers,
+                force_staging: desc.force_staging,
+            },
             profile: Mutex::new(None),
-            submissions: std::sync::atomic::AtomicU64::new(0),
-            fence_waits: std::sync::atomic::AtomicU64::new(0),
-            dispatches: std::sync::atomic::AtomicU64::new(0),
-            barriers: std::sync::atomic::AtomicU64::new(0),
+            counters: Counters::default(),
             pending: Mutex::new(Default::default()),
             owns_device: true,
-            recycled_pools: Mutex::new(Vec::new()),
-            command_pools_created: std::sync::atomic::AtomicU64::new(0),
+            pools: PoolRecycler::default(),
             _entry: entry,
         };
         let ctx = Context {
@@ -455,7 +498,8 @@ impl Context {
     /// Takes the validation messages collected so far (empty without validation).
     pub fn take_validation_messages(&self) -> Vec<String> {
         self.device
-            .validation
+            .debug
+            .sink
             .as_ref()
             .map(|s| s.drain())
             .unwrap_or_default()
@@ -463,14 +507,14 @@ impl Context {
 
     /// The validation sink, to read messages after the context is dropped.
     pub fn validation_sink(&self) -> Option<Arc<ValidationSink>> {
-        self.device.validation.clone()
+        self.device.debug.sink.clone()
     }
 
     /// Makes one deliberately invalid call (a zero-size buffer) so tests can prove
     /// that validation messages reach the sink. Not for anything else.
     #[doc(hidden)]
     pub fn provoke_validation_error_for_tests(&self) {
-        if self.device.validation.is_none() {
+        if self.device.debug.sink.is_none() {
             return; // without the layer the invalid call would reach the driver
         }
         let info = vk::BufferCreateInfo::default()
@@ -487,14 +531,6 @@ impl Context {
 
     /// The pipeline of `kernel`, created on first use.
     pub(crate) fn pipeline(&self, kernel: Kernel) -> Result<Arc<Pipeline>> {
-        let mut cache = self
-            .device
-            .pipelines
-            .lock()
-            .unwrap_or_else(|p| p.into_inner());
-        if let Some(p) = cache.get(&kernel) {
-            return Ok(p.clone());
-        }
         if kernel.requires_float_atomics() && !self.device.info.float_atomic_add {
             return Err(EngineError::MissingFeature {
                 kernel: kernel.entry_point(),
@@ -513,17 +549,15 @@ impl Context {
                 feature: "subgroup ballot and shuffle operations in compute",
             });
         }
-        let p = Arc::new(Pipeline::create(&self.device, kernel)?);
-        cache.insert(kernel, p.clone());
-        Ok(p)
+        self.device
+            .pipelines
+            .get_or_create(&self.device.raw, kernel)
     }
 
     /// How many command buffers this device has submitted (`vkQueueSubmit` calls), for
     /// tests and profiles: a rendered frame should cost one.
     pub fn submission_count(&self) -> u64 {
-        self.device
-            .submissions
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.counters.submissions.load(Ordering::Relaxed)
     }
 
     /// How many times the host has waited on a fence for this device's work (every
@@ -531,9 +565,7 @@ impl Context {
     /// the work had finished by then): a frame loop with k frames in flight waits N - k
     /// times over N frames.
     pub fn fence_waits(&self) -> u64 {
-        self.device
-            .fence_waits
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.counters.fence_waits.load(Ordering::Relaxed)
     }
 
     /// Device memory the engine holds now, from its allocator: what its live buffers and
@@ -558,10 +590,9 @@ impl Context {
     /// frame is the frame's work as the GPU's front end sees it, which a launch-bound
     /// frame is made of.
     pub fn recorded_work(&self) -> RecordedWork {
-        let relaxed = std::sync::atomic::Ordering::Relaxed;
         RecordedWork {
-            dispatches: self.device.dispatches.load(relaxed),
-            barriers: self.device.barriers.load(relaxed),
+            dispatches: self.device.counters.dispatches.load(Ordering::Relaxed),
+            barriers: self.device.counters.barriers.load(Ordering::Relaxed),
         }
     }
 
@@ -601,14 +632,12 @@ impl Context {
     /// How many command pools recordings have created: a frame loop reuses the pools
     /// of finished recordings, so this stays flat (for tests).
     pub fn command_pools_created(&self) -> u64 {
-        self.device
-            .command_pools_created
-            .load(std::sync::atomic::Ordering::Relaxed)
+        self.device.pools.created()
     }
 
     /// Names a Vulkan object for validation messages and captures.
     pub(crate) fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
-        if let Some(du) = &self.device.debug_utils {
+        if let Some(du) = &self.device.debug.names {
             let Ok(name) = CString::new(name.replace('\0', " ")) else {
                 return;
             };
@@ -737,61 +766,25 @@ fn create_device(
     c: Candidate,
     has_debug_utils: bool,
 ) -> Result<DeviceParts> {
-    // SAFETY: a query on a physical device of this instance.
-    let device_exts = unsafe { instance.enumerate_device_extension_properties(c.physical) }
-        .vk("vkEnumerateDeviceExtensionProperties", &c.name)?;
-    let has_float_atomics = device_exts
-        .iter()
-        .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME));
-
-    let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
-    let mut f12_query = vk::PhysicalDeviceVulkan12Features::default();
-    let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12_query);
-    if has_float_atomics {
-        f2 = f2.push_next(&mut atomic_float);
-    }
-    // SAFETY: valid chain.
-    unsafe { instance.get_physical_device_features2(c.physical, &mut f2) };
-    let shader_int64 = f2.features.shader_int64 == vk::TRUE;
-    let float_atomic_add =
-        has_float_atomics && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
-    let timeline_semaphore = f12_query.timeline_semaphore == vk::TRUE;
+    // What the engine needs and uses where present, as a host's device would enable it
+    // (choose_device has checked what it requires).
+    let mut requirements = device_requirements(instance, c.physical)?;
+    requirements.queue_family = c.queue_family;
+    let features = requirements.features;
     let info = describe(
         instance,
         &c,
         Enabled {
-            float_atomic_add,
-            shader_int64,
-            timeline_semaphore,
+            float_atomic_add: features.shader_buffer_float32_atomic_add,
+            shader_int64: features.shader_int64,
+            timeline_semaphore: features.timeline_semaphore,
         },
     );
-
-    // The rust-gpu modules declare the VulkanMemoryModel capability.
-    let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
-        .vulkan_memory_model(true)
-        .vulkan_memory_model_device_scope(f12_query.vulkan_memory_model_device_scope == vk::TRUE)
-        .timeline_semaphore(timeline_semaphore);
-    let mut enabled_atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
-        .shader_buffer_float32_atomic_add(float_atomic_add);
-    let mut ext_names: Vec<*const c_char> = Vec::new();
-    if float_atomic_add {
-        ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
-    }
-    let priorities = [1.0f32];
-    let queue_info = [vk::DeviceQueueCreateInfo::default()
-        .queue_family_index(c.queue_family)
-        .queue_priorities(&priorities)];
-    let core_features = vk::PhysicalDeviceFeatures::default().shader_int64(info.shader_int64);
-    let mut device_info = vk::DeviceCreateInfo::default()
-        .queue_create_infos(&queue_info)
-        .enabled_extension_names(&ext_names)
-        .enabled_features(&core_features)
-        .push_next(&mut f12);
-    if float_atomic_add {
-        device_info = device_info.push_next(&mut enabled_atomic_float);
-    }
-    // SAFETY: pointers in device_info refer to locals alive for the call.
-    let raw = unsafe { instance.create_device(c.physical, &device_info, None) }
+    let raw = requirements
+        .with_create_info(&[], |device_info| {
+            // SAFETY: pointers in device_info refer to locals alive for the call.
+            unsafe { instance.create_device(c.physical, device_info, None) }
+        })
         .vk("vkCreateDevice", &c.name)?;
     // SAFETY: family and index 0 were requested above.
     let queue = unsafe { raw.get_device_queue(c.queue_family, 0) };
@@ -957,21 +950,8 @@ impl Drop for Device {
         // vkDeviceWaitIdle would need them all externally synchronised): every engine
         // submission holds an Arc<Device> until its fence was waited, so none of the
         // objects below is in use when the last Arc goes.
-        for pools in std::mem::take(
-            &mut *self
-                .recycled_pools
-                .lock()
-                .unwrap_or_else(|p| p.into_inner()),
-        ) {
-            pools.destroy(&self.raw);
-        }
-        let pipelines =
-            std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
-        for (_, p) in pipelines {
-            if let Ok(p) = Arc::try_unwrap(p) {
-                p.destroy(&self.raw);
-            }
-        }
+        self.pools.destroy_all(&self.raw);
+        self.pipelines.destroy_all(&self.raw);
         // SAFETY: dropped exactly once, here, before the device it allocates from.
         unsafe { ManuallyDrop::drop(&mut self.allocator) };
         if !self.owns_device {
@@ -980,7 +960,7 @@ impl Drop for Device {
         // SAFETY: all objects of the device are gone: buffers and recordings hold an
         // Arc<Device>, so none outlives this drop.
         unsafe { self.raw.destroy_device(None) };
-        if let Some((loader, m)) = self.debug_instance.take() {
+        if let Some((loader, m)) = self.debug.messenger.take() {
             // SAFETY: created from this instance, destroyed once, before the instance.
             unsafe { loader.destroy_debug_utils_messenger(m, None) };
         }

@@ -8,12 +8,13 @@
 //! point, workgroup size or bindings disagree with the manifest, instead of failing
 //! deep inside a dispatch.
 
+use std::collections::HashMap;
 use std::ffi::CString;
+use std::sync::{Arc, Mutex};
 
 use ash::vk;
 use drape_shared::spirv_module;
 
-use crate::context::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 
 include!(concat!(env!("OUT_DIR"), "/kernels_generated.rs"));
@@ -157,7 +158,7 @@ pub fn check_module(kernel: Kernel, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
-/// A compute pipeline with its layouts. Destroyed by the [`Device`] that owns it.
+/// A compute pipeline with its layouts. Destroyed by the [`PipelineCache`] that owns it.
 pub struct Pipeline {
     /// The pipeline handle.
     pub raw: vk::Pipeline,
@@ -170,8 +171,7 @@ pub struct Pipeline {
 }
 
 impl Pipeline {
-    pub(crate) fn create(device: &Device, kernel: Kernel) -> Result<Self> {
-        let dev = &device.raw;
+    pub(crate) fn create(dev: &ash::Device, kernel: Kernel) -> Result<Self> {
         let what = kernel.entry_point();
         let bindings: Vec<vk::DescriptorSetLayoutBinding> = (0..kernel.binding_count())
             .map(|b| {
@@ -263,6 +263,38 @@ impl Pipeline {
             }
             dev.destroy_pipeline_layout(self.layout, None);
             dev.destroy_descriptor_set_layout(self.set_layout, None);
+        }
+    }
+}
+
+/// A device's compute pipelines, each created on first use and destroyed with the cache's
+/// owner (it needs only the `ash::Device`, not the engine's device).
+#[derive(Default)]
+pub(crate) struct PipelineCache {
+    pipelines: Mutex<HashMap<Kernel, Arc<Pipeline>>>,
+}
+
+impl PipelineCache {
+    /// The pipeline of `kernel` on `dev`, created on first use.
+    pub(crate) fn get_or_create(&self, dev: &ash::Device, kernel: Kernel) -> Result<Arc<Pipeline>> {
+        let mut cache = self.pipelines.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(p) = cache.get(&kernel) {
+            return Ok(p.clone());
+        }
+        let p = Arc::new(Pipeline::create(dev, kernel)?);
+        cache.insert(kernel, p.clone());
+        Ok(p)
+    }
+
+    /// Destroys every pipeline no recording holds any more (the device's drop, when no
+    /// command buffer uses them; `dev` made them).
+    pub(crate) fn destroy_all(&self, dev: &ash::Device) {
+        let pipelines =
+            std::mem::take(&mut *self.pipelines.lock().unwrap_or_else(|p| p.into_inner()));
+        for (_, p) in pipelines {
+            if let Ok(p) = Arc::try_unwrap(p) {
+                p.destroy(dev);
+            }
         }
     }
 }

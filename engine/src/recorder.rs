@@ -32,6 +32,7 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::context::Context;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::kernels::{Kernel, PUSH_CONSTANT_BYTES};
+use crate::pools::RecordingPools;
 
 /// Descriptor sets per descriptor pool; another pool is made when one fills up.
 const SETS_PER_POOL: u32 = 64;
@@ -141,34 +142,6 @@ fn union_ms(mut spans: Vec<(f64, f64)>) -> f64 {
     busy + current.map_or(0.0, |(s, e)| e - s)
 }
 
-/// The Vulkan objects a recording records with: kept by the device between
-/// recordings (reset, not destroyed), so a frame loop creates none of them per frame.
-pub(crate) struct RecordingPools {
-    command_pool: vk::CommandPool,
-    cmd: vk::CommandBuffer,
-    descriptor_pools: Vec<vk::DescriptorPool>,
-    query_pools: Vec<vk::QueryPool>,
-}
-
-impl RecordingPools {
-    pub(crate) fn destroy(self, dev: &ash::Device) {
-        // SAFETY: called by the owner when no command buffer of these pools is pending.
-        unsafe {
-            for pool in self.query_pools {
-                dev.destroy_query_pool(pool, None);
-            }
-            for pool in self.descriptor_pools {
-                dev.destroy_descriptor_pool(pool, None);
-            }
-            dev.destroy_command_pool(self.command_pool, None);
-        }
-    }
-}
-
-/// Most sets of pools the device keeps for reuse (more recordings alive at once make
-/// their own and destroy them).
-const RECYCLED_POOLS: usize = 8;
-
 /// One command buffer being recorded.
 pub struct Recording<'a> {
     ctx: Context,
@@ -205,45 +178,10 @@ impl Context {
     /// Starts a command buffer; `label` names it in errors.
     pub fn record<'a>(&self, label: &str) -> Result<Recording<'a>> {
         let dev = &self.device.raw;
-        let recycled = self
+        let pools = self
             .device
-            .recycled_pools
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .pop();
-        let pools = match recycled {
-            Some(p) => p,
-            None => {
-                let pool_info = vk::CommandPoolCreateInfo::default()
-                    .queue_family_index(self.device.queue_family)
-                    .flags(vk::CommandPoolCreateFlags::TRANSIENT);
-                // SAFETY: valid device and create info.
-                let command_pool = unsafe { dev.create_command_pool(&pool_info, None) }
-                    .vk("vkCreateCommandPool", label)?;
-                self.device
-                    .command_pools_created
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let alloc = vk::CommandBufferAllocateInfo::default()
-                    .command_pool(command_pool)
-                    .level(vk::CommandBufferLevel::PRIMARY)
-                    .command_buffer_count(1);
-                // SAFETY: the pool was just created on this device.
-                let cmd = match unsafe { dev.allocate_command_buffers(&alloc) } {
-                    Ok(c) => c[0],
-                    Err(e) => {
-                        // SAFETY: created above, unused.
-                        unsafe { dev.destroy_command_pool(command_pool, None) };
-                        return Err(crate::error::vk_error("vkAllocateCommandBuffers", label, e));
-                    }
-                };
-                RecordingPools {
-                    command_pool,
-                    cmd,
-                    descriptor_pools: Vec::new(),
-                    query_pools: Vec::new(),
-                }
-            }
-        };
+            .pools
+            .take(dev, self.device.queue_family, label)?;
         let cmd = pools.cmd;
         let rec = Recording {
             ctx: self.clone(),
@@ -534,10 +472,7 @@ impl<'a> Recording<'a> {
     /// Makes every earlier compute or transfer write visible to every later compute or
     /// transfer access, and orders every earlier access before every later one.
     fn emit_barrier(&self) {
-        self.ctx
-            .device
-            .barriers
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.barrier();
         let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
         let barrier = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
@@ -777,10 +712,7 @@ impl<'a> Recording<'a> {
         for index in 0..dispatches {
             self.timestamp_slot(index)?;
         }
-        self.ctx
-            .device
-            .dispatches
-            .fetch_add(u64::from(dispatches), std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.dispatched(dispatches);
         let mut wave = 0;
         for (w, command) in commands {
             if w != wave {
@@ -970,11 +902,6 @@ impl<'a> Recording<'a> {
         )))
     }
 
-    /// Ends recording, submits, waits, and returns the GPU time of every pass.
-    pub fn submit_and_wait(self) -> Result<PassTimings> {
-        self.submit(&crate::submit::SubmitSync::default())?.wait()
-    }
-
     /// Records the scheduled commands and the final barrier that makes the results
     /// visible to the host, and ends the command buffer.
     pub(crate) fn end(&mut self) -> Result<()> {
@@ -1043,23 +970,12 @@ impl<'a> Recording<'a> {
         self.reusable = false;
         // The breadcrumbs may still be written by the pending work: forgotten too.
         std::mem::forget(std::mem::take(&mut self.breadcrumbs));
-        let _ = std::mem::replace(
-            &mut self.pools,
-            RecordingPools {
-                command_pool: vk::CommandPool::null(),
-                cmd: vk::CommandBuffer::null(),
-                descriptor_pools: Vec::new(),
-                query_pools: Vec::new(),
-            },
-        );
+        let _ = std::mem::replace(&mut self.pools, RecordingPools::empty());
         self.leaked = true;
     }
 
     fn emit_host_barrier(&self) {
-        self.ctx
-            .device
-            .barriers
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.ctx.device.counters.barrier();
         let to_host = vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(vk::AccessFlags::HOST_READ);
@@ -1152,37 +1068,12 @@ impl Drop for Recording<'_> {
             return;
         }
         let dev = &self.ctx.device.raw;
-        let pools = std::mem::replace(
-            &mut self.pools,
-            RecordingPools {
-                command_pool: vk::CommandPool::null(),
-                cmd: vk::CommandBuffer::null(),
-                descriptor_pools: Vec::new(),
-                query_pools: Vec::new(),
-            },
-        );
+        let pools = std::mem::replace(&mut self.pools, RecordingPools::empty());
         if self.reusable {
             // SAFETY: the command buffer was never submitted or its submission was
-            // waited for, so nothing of these pools is in use; resetting returns the
-            // command buffer to its initial state and frees every set.
-            let reset = unsafe {
-                dev.reset_command_pool(pools.command_pool, vk::CommandPoolResetFlags::empty())
-                    .and_then(|()| {
-                        pools.descriptor_pools.iter().try_for_each(|&p| {
-                            dev.reset_descriptor_pool(p, vk::DescriptorPoolResetFlags::empty())
-                        })
-                    })
-            };
-            let mut recycled = self
-                .ctx
-                .device
-                .recycled_pools
-                .lock()
-                .unwrap_or_else(|p| p.into_inner());
-            if reset.is_ok() && recycled.len() < RECYCLED_POOLS {
-                recycled.push(pools);
-                return;
-            }
+            // waited for, so nothing of these pools is in use.
+            unsafe { self.ctx.device.pools.recycle(dev, pools) };
+            return;
         }
         // SAFETY (in destroy): not reusable means a failed submission, after which the
         // device is lost or the wait failed; nothing more will run on these objects.

@@ -105,9 +105,7 @@ impl<'a> Recording<'a> {
         if !sync.wait.is_empty() || !sync.signal.is_empty() {
             submit = submit.push_next(&mut timeline);
         }
-        ctx.device
-            .submissions
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ctx.device.counters.submitted();
         self.set_reusable(false);
         let result = {
             let queue = ctx.device.queue.lock().unwrap_or_else(|p| p.into_inner());
@@ -133,6 +131,11 @@ impl<'a> Recording<'a> {
             fence,
             started: Instant::now(),
         })
+    }
+
+    /// Ends recording, submits, waits, and returns the GPU time of every pass.
+    pub fn submit_and_wait(self) -> Result<PassTimings> {
+        self.submit(&SubmitSync::default())?.wait()
     }
 
     /// Emits the recording into the host's command buffer instead of submitting it; the
@@ -217,9 +220,7 @@ impl<'a> Submission<'a> {
         let mut rec = self.rec.take().expect("waited once");
         let ctx = rec.context().clone();
         let dev = &ctx.device.raw;
-        ctx.device
-            .fence_waits
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ctx.device.counters.waited();
         // SAFETY: the fence belongs to this device and was submitted with the recording;
         // only this submission destroys it.
         let waited = unsafe { dev.wait_for_fences(&[self.fence], true, u64::MAX) };

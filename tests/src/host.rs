@@ -76,35 +76,18 @@ impl Host {
                 name.contains(&wanted) && props.api_version >= vk::API_VERSION_1_2
             })
             .expect("the test device");
-        let req = device_requirements(&instance, physical).expect("requirements");
-        let mut f = req.features;
-        let mut extensions: Vec<CString> =
-            req.extensions.iter().map(|e| CString::from(*e)).collect();
+        let mut req = device_requirements(&instance, physical).expect("requirements");
         if without_float_atomics {
-            f.shader_buffer_float32_atomic_add = false;
-            extensions.clear();
+            req.features.shader_buffer_float32_atomic_add = false;
+            req.extensions.clear();
         }
-        let ext_ptrs: Vec<_> = extensions.iter().map(|e| e.as_ptr()).collect();
-        let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
-            .vulkan_memory_model(f.vulkan_memory_model)
-            .vulkan_memory_model_device_scope(f.vulkan_memory_model_device_scope)
-            .timeline_semaphore(f.timeline_semaphore);
-        let mut atomics = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
-            .shader_buffer_float32_atomic_add(true);
-        let core = vk::PhysicalDeviceFeatures::default().shader_int64(f.shader_int64);
-        let priorities = [1.0];
-        let queues = [vk::DeviceQueueCreateInfo::default()
-            .queue_family_index(req.queue_family)
-            .queue_priorities(&priorities)];
-        let mut info = vk::DeviceCreateInfo::default()
-            .queue_create_infos(&queues)
-            .enabled_extension_names(&ext_ptrs)
-            .enabled_features(&core)
-            .push_next(&mut f12);
-        if f.shader_buffer_float32_atomic_add {
-            info = info.push_next(&mut atomics);
-        }
-        let device = unsafe { instance.create_device(physical, &info, None) }.expect("device");
+        let f = req.features;
+        let extensions: Vec<CString> = req.extensions.iter().map(|e| CString::from(*e)).collect();
+        let device = req
+            .with_create_info(&[], |info| unsafe {
+                instance.create_device(physical, info, None)
+            })
+            .expect("device");
         let queue = unsafe { device.get_device_queue(req.queue_family, 0) };
         let pool = unsafe {
             device.create_command_pool(

@@ -160,6 +160,7 @@ impl Pattern {
 }
 
 pub mod host;
+pub mod module_graph;
 
 pub mod num {
     //! Numbers for the op tests: random inputs, conversions, and the one error measure

@@ -6,6 +6,7 @@ mod cloth_loss;
 mod half_precision;
 mod lpips;
 mod mirror;
+mod module_graph;
 mod nn;
 mod recorder;
 mod runtime;

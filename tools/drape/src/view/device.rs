@@ -240,33 +240,16 @@ impl Gpu {
         };
 
         // What the engine needs, enabled on the viewer's device.
-        let requirements = drape_engine::device_requirements(&instance, physical)?;
-        let f = requirements.features;
-        let mut device_exts: Vec<&CStr> = requirements.extensions.clone();
-        device_exts.push(ash::khr::swapchain::NAME);
-        let device_ext_ptrs: Vec<_> = device_exts.iter().map(|e| e.as_ptr()).collect();
-        let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
-            .vulkan_memory_model(f.vulkan_memory_model)
-            .vulkan_memory_model_device_scope(f.vulkan_memory_model_device_scope)
-            .timeline_semaphore(f.timeline_semaphore);
-        let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
-            .shader_buffer_float32_atomic_add(f.shader_buffer_float32_atomic_add);
-        let core = vk::PhysicalDeviceFeatures::default().shader_int64(f.shader_int64);
-        let priorities = [1.0f32];
-        let queue_info = [vk::DeviceQueueCreateInfo::default()
-            .queue_family_index(queue_family)
-            .queue_priorities(&priorities)];
-        let mut dci = vk::DeviceCreateInfo::default()
-            .queue_create_infos(&queue_info)
-            .enabled_extension_names(&device_ext_ptrs)
-            .enabled_features(&core)
-            .push_next(&mut f12);
-        if f.shader_buffer_float32_atomic_add {
-            dci = dci.push_next(&mut atomic_float);
-        }
-        // SAFETY: every pointer in `dci` refers to locals alive for the call.
-        let device =
-            unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice")?;
+        let mut requirements = drape_engine::device_requirements(&instance, physical)?;
+        // One queue of the family that presents (graphics + compute), which need not be
+        // the first with compute.
+        requirements.queue_family = queue_family;
+        let device = requirements
+            .with_create_info(&[ash::khr::swapchain::NAME], |dci| {
+                // SAFETY: every pointer in `dci` refers to locals alive for the call.
+                unsafe { instance.create_device(physical, dci, None) }
+            })
+            .context("vkCreateDevice")?;
         // SAFETY: family `queue_family`, index 0 was requested above.
         let queue = unsafe { device.get_device_queue(queue_family, 0) };
         // Nothing below can fail: the Gpu owns everything now, and its Drop undoes it.
