@@ -259,6 +259,11 @@ pub fn run(device: &DeviceArgs, args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(b) = &body {
         println!("body: {}", b.display());
     }
+    if seq.layout == Layout::NeuMan
+        && !(config.zju_train_cameras.is_empty() && config.zju_test_cameras.is_empty())
+    {
+        eprintln!("warning: --train-cameras/--test-cameras (zju_train_cameras, zju_test_cameras) split a multi-camera sequence; {} is monocular (NeuMan), whose split is by frame, so they are not used", seq.dir.display());
+    }
     if config.layers.choice.cloth.is_none() && !cloth {
         println!("layers: no cloth layer: the data has no garment masks (masks_upper/, masks_lower/) to train one on");
     }

@@ -629,7 +629,7 @@ fn merge_json(
                     None => {
                         return Err(TrainerError::config(
                             key,
-                            "unknown key (a run's config.json lists every key)",
+                            "unknown key (a run's config.json lists every key but the empty zju_train_cameras and zju_test_cameras)",
                         ))
                     }
                 }

@@ -40,11 +40,21 @@ pub struct PoseState {
 impl PoseState {
     /// `body` with frame `frame`'s correction where that frame was trained, else as
     /// the data has it (what a held-out image of that instant is rendered with).
+    /// A state saved with one correction per image (a frame number repeated: drape
+    /// before the corrections were shared per instant) has no one correction per
+    /// instant, and its held-out images keep the data's pose, as they were evaluated.
     pub fn body_of_frame(&self, frame: u32, body: &BodyParams) -> BodyParams {
-        match self.frames.iter().position(|&f| f == frame) {
-            Some(k) => refined_body(body, &self.deltas[k]),
-            None => body.clone(),
+        let mut at = self.frames.iter().enumerate().filter(|(_, &f)| f == frame);
+        match (at.next(), at.next()) {
+            (Some((k, _)), None) if !self.per_image() => refined_body(body, &self.deltas[k]),
+            _ => body.clone(),
         }
+    }
+
+    /// Whether a frame number repeats (corrections saved per image, not per instant).
+    pub fn per_image(&self) -> bool {
+        let mut seen = std::collections::BTreeSet::new();
+        !self.frames.iter().all(|f| seen.insert(*f))
     }
 
     /// No frame refined yet.
@@ -138,6 +148,12 @@ impl PoseRefiner {
 
     /// Restores saved corrections; the frames must be this run's, in its order.
     pub fn restore(&mut self, state: PoseState) -> crate::Result<()> {
+        if state.per_image() {
+            return Err(TrainerError::invalid(
+                "refined poses",
+                "saved one per image by a drape before they were shared per frame instant: this run cannot resume from them (train it afresh)",
+            ));
+        }
         if state.frames != self.state.frames {
             return Err(TrainerError::invalid(
                 "refined poses",
@@ -269,5 +285,27 @@ mod tests {
         assert_eq!(r.body_of_frame(3, &body), r.body(0, &body));
         assert_ne!(r.body_of_frame(3, &body), body);
         assert_eq!(r.body_of_frame(9, &body), body, "an untrained instant");
+    }
+
+    /// A state saved per image (a frame number repeated) keeps the data's pose for
+    /// held-out images and cannot be resumed from.
+    #[test]
+    fn a_state_saved_per_image_is_not_taken_for_one_per_instant() {
+        let mut old = PoseState::zeros(&[3, 5, 3]);
+        old.deltas[0][REFINED_PARAMS - 1] = 0.5;
+        // Frame 5 appears once, but its correction too is one image's.
+        old.deltas[1][REFINED_PARAMS - 1] = 0.5;
+        assert!(old.per_image());
+        let body = BodyParams::Zju(crate::dataset::zju::ZjuSmpl {
+            poses: [0.0; 72],
+            rh: [0.0; 3],
+            th: [0.0; 3],
+            shapes: [0.0; 10],
+        });
+        assert_eq!(old.body_of_frame(3, &body), body);
+        assert_eq!(old.body_of_frame(5, &body), body);
+        let mut r = PoseRefiner::new(&[3, 5, 3], 0.1, 0.1);
+        let e = r.restore(old).expect_err("refused").to_string();
+        assert!(e.contains("saved one per image"), "{e}");
     }
 }

@@ -19,13 +19,14 @@
 //!   `drape train` uses when no `--body` is given.
 //!
 //! Sizes: the trainer takes one image size. Views whose frames differ (Pose2Sim's cam03
-//! is 1088 wide where the others are 1080, so 146 against 144 at `--height 256`) are
+//! and cam04 are 1088 wide where cam01 and cam02 are 1080, so 146 against 144 at
+//! `--height 256`) are
 //! cropped about their centre to the smallest width and height, and their principal
 //! point moves with the crop (a warning where more than 2% of a side goes).
 //!
 //! Time offsets: the body stage found each view's offset against the first (Pose2Sim's
 //! cam03: 5 frames); a body frame `f` is paired with view `v`'s frame `f + offset_v`
-//! (rounded), and a frame that some view does not have is left out.
+//! (rounded half up), and a frame that some view does not have is left out.
 
 use std::path::Path;
 
@@ -43,7 +44,8 @@ use super::body::{read_cameras, read_track};
 use super::{commit_stage, progress, read_stamp};
 
 /// Bumped when the stage's method changes, so that a rerun redoes it.
-const METHOD: &str = "sequence v2: zju-refined, masks at one half, offsets rounded, one size";
+const METHOD: &str =
+    "sequence v3: zju-refined, masks at one half, offsets rounded half up, one size";
 
 /// Each view's time offset in frames, from the body stage's `report.json`.
 fn time_offsets(out: &Path, names: &[String]) -> anyhow::Result<Vec<f64>> {
@@ -75,7 +77,8 @@ pub(super) fn paired_frames(
                 .iter()
                 .zip(view_frames)
                 .map(|(d, &n)| {
-                    let i = (f as f64 + d).round();
+                    // Half up, the same way for every frame.
+                    let i = (f as f64 + d + 0.5).floor();
                     (i >= 0.0 && (i as usize) < n).then_some(i as usize)
                 })
                 .collect()
@@ -362,8 +365,8 @@ mod tests {
     #[test]
     fn frames_pair_at_the_time_offsets() {
         let pairs = paired_frames(4, &[0.0, 2.0, -0.5], &[4, 5, 4]);
-        // View 2 at -0.5 rounds half away from zero: frame 0 -> -1 (none), 1 -> 1.
-        assert_eq!(pairs[0], None);
+        // View 2 at -0.5 rounds half up: frame 0 -> 0, 1 -> 1.
+        assert_eq!(pairs[0], Some(vec![0, 2, 0]));
         assert_eq!(pairs[1], Some(vec![1, 3, 1]));
         assert_eq!(pairs[2], Some(vec![2, 4, 2]));
         // View 1 has 5 frames: 3 + 2 = 5 is past its end.

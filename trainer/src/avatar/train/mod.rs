@@ -412,17 +412,23 @@ fn train_in(
     // 3. Held-out evaluation and the run's exports. A held-out image of a trained
     //    instant (another camera, the same frame) takes that instant's refined pose.
     let eval_dir = out.join("eval");
-    let refined_tests: Vec<DatasetFrame> = test_frames
+    // Copies only of the images whose body changes (none without refinement, or for
+    // a monocular sequence, whose held-out instants were not trained).
+    let refined: Vec<Option<DatasetFrame>> = test_frames
         .iter()
         .map(|f| {
-            let mut g = (*f).clone();
-            if let Some(r) = refiner.as_ref() {
-                g.body = r.body_of_frame(f.frame as u32, &f.body);
-            }
-            g
+            let body = refiner.as_ref()?.body_of_frame(f.frame as u32, &f.body);
+            (body != f.body).then(|| DatasetFrame {
+                body,
+                ..(*f).clone()
+            })
         })
         .collect();
-    let refined_tests: Vec<&DatasetFrame> = refined_tests.iter().collect();
+    let refined_tests: Vec<&DatasetFrame> = test_frames
+        .iter()
+        .zip(&refined)
+        .map(|(f, r)| r.as_ref().unwrap_or(f))
+        .collect();
     let (fin, per_frame) = evaluate(
         ctx,
         &mut avatar,
