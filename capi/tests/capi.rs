@@ -890,6 +890,25 @@ fn every_colour_value_is_within_zero_and_its_alpha() {
 /// refused; `DRAPE_COLOUR_LINEAR` renders each pixel's colour / alpha decoded with the
 /// sRGB transfer function (computed here in f64) times alpha, alpha unchanged; an
 /// unknown encoding is refused, and so is recording a linear avatar.
+/// Poses `avatar` as `like` is posed (its default view's pose and translation).
+fn pose_like(avatar: *mut drape_avatar, like: *mut drape_avatar) {
+    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
+    // SAFETY: live avatars, room for 72 and 3 floats.
+    unsafe {
+        let s = drape_avatar_default_view(
+            like,
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            pose.as_mut_ptr(),
+            trans.as_mut_ptr(),
+        );
+        assert_eq!(s, drape_status::DRAPE_OK);
+        let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
+        assert_eq!(s, drape_status::DRAPE_OK);
+    }
+}
+
 #[test]
 fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
     let run = the_run();
@@ -936,21 +955,7 @@ fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
         colour: drape_colour::DRAPE_COLOUR_LINEAR as u32,
     });
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
-    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
-    // SAFETY: live avatars, room for 72 and 3 floats.
-    unsafe {
-        let s = drape_avatar_default_view(
-            srgb,
-            std::ptr::null_mut(),
-            std::ptr::null_mut(),
-            std::ptr::null_mut(),
-            pose.as_mut_ptr(),
-            trans.as_mut_ptr(),
-        );
-        assert_eq!(s, drape_status::DRAPE_OK);
-        let s = drape_avatar_set_pose(linear, pose.as_ptr(), trans.as_ptr());
-        assert_eq!(s, drape_status::DRAPE_OK);
-    }
+    pose_like(linear, srgb);
     let encoded = render_square(srgb as usize, &camera, 48);
     let decoded = render_square(linear as usize, &camera, 48);
     let mut mid_tones = 0;
@@ -1035,21 +1040,7 @@ fn an_avatar_loads_from_memory() {
         )
     };
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
-    let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
-    // SAFETY: live avatars, room for 72 and 3 floats.
-    unsafe {
-        let s = drape_avatar_default_view(
-            from_path,
-            std::ptr::null_mut(),
-            std::ptr::null_mut(),
-            std::ptr::null_mut(),
-            pose.as_mut_ptr(),
-            trans.as_mut_ptr(),
-        );
-        assert_eq!(s, drape_status::DRAPE_OK);
-        let s = drape_avatar_set_pose(from_memory, pose.as_ptr(), trans.as_ptr());
-        assert_eq!(s, drape_status::DRAPE_OK);
-    }
+    pose_like(from_memory, from_path);
     let expected = render_square(from_path as usize, &camera, 48);
     let got = render_square(from_memory as usize, &camera, 48);
     assert!(
