@@ -65,10 +65,17 @@ rustfmt --edition 2021 --check tools/shader-builder/src/main.rs tools/shader-bui
 cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
 
 step "2/5 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
-(cd tools/shader-builder && cargo run --release --locked --quiet -- --check)
+# rust-gpu's backend (rustc_codegen_spirv and the SPIRV-Tools C++ it links: about 15
+# minutes on 2 cores) and `core` / spirv-std for the SPIR-V target are built once per
+# machine into a cache outside the clone, as cargo-gpu caches the backend, and reused by
+# later clones; the kernels and the builder itself are compiled from this clone's source
+# every run (cargo tells a clone's path packages apart). DRAPE_SHADER_CACHE moves it.
+shader_cache="${DRAPE_SHADER_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/drape/shader-builder}"
+mkdir -p "$shader_cache"
+(cd tools/shader-builder && CARGO_TARGET_DIR="$shader_cache" cargo run --release --locked --quiet -- --check)
 
 step "3/5 shader builder tests"
-(cd tools/shader-builder && cargo test --release --locked)
+(cd tools/shader-builder && CARGO_TARGET_DIR="$shader_cache" cargo test --release --locked)
 
 if ! wait "$torch_pid"; then
     cat "$torch_log" >&2

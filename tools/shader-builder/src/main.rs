@@ -161,6 +161,17 @@ const FLAVOURS: &[Flavour] = &[
     },
 ];
 
+/// Where the kernels' builds keep their target directories: beside the builder's own
+/// build. `CARGO_TARGET_DIR`, when set, moves both (the test command points it at a cache
+/// outside the clone, so that a fresh clone compiles the kernels from its own source but
+/// not `core` and spirv-std for the SPIR-V target again); else `target/` here.
+fn kernel_target_root() -> PathBuf {
+    match std::env::var_os("CARGO_TARGET_DIR") {
+        Some(dir) if !dir.is_empty() => PathBuf::from(dir),
+        _ => Path::new(env!("CARGO_MANIFEST_DIR")).join("target"),
+    }
+}
+
 fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<u8>>, String> {
     let kernels = shaders.join("kernels");
     // One target directory per configuration, shared by every build (also of temporary
@@ -171,9 +182,7 @@ fn build_once(shaders: &Path, flavour: &Flavour) -> Result<BTreeMap<String, Vec<
     } else {
         format!("spirv-kernels-{}", flavour.features.join("-"))
     };
-    let target_dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("target")
-        .join(dir);
+    let target_dir = kernel_target_root().join(dir);
     let mut builder = SpirvBuilder::new(&kernels, TARGET);
     builder.multimodule = true;
     builder.release = true;
