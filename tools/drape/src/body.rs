@@ -66,6 +66,11 @@ pub struct SimulateArgs {
     /// in its rest pose (the T-pose, arms out).
     #[arg(long)]
     pub garment: Vec<PathBuf>,
+    /// Frames simulated before the motion starts (not written), blending from the pose
+    /// the garments were made in into the motion's first pose, so that the cloth has
+    /// settled under gravity by frame 0. Fewer is faster; 0 starts the motion at once.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 20, value_parser = clap::value_parser!(u32).range(0..=1000))]
+    pub settle: u32,
     /// Output directory for <garment>_<frame>.obj.
     #[arg(long)]
     pub out: PathBuf,
@@ -119,10 +124,15 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
         motion.len()
     );
     let t0 = std::time::Instant::now();
-    let result =
-        simulate_with_progress(&body, &garments, &motion, params, 20, &mut |done, total| {
-            eprint!("\rframe {done:>5}/{total} (20 settling)   ")
-        });
+    let settle = args.settle as usize;
+    let result = simulate_with_progress(
+        &body,
+        &garments,
+        &motion,
+        params,
+        settle,
+        &mut |done, total| eprint!("\rframe {done:>5}/{total} ({settle} settling)   "),
+    );
     eprintln!();
     let seconds = t0.elapsed().as_secs_f64();
     anyhow::ensure!(
@@ -138,9 +148,9 @@ pub fn run_simulate(args: &SimulateArgs) -> anyhow::Result<()> {
     }
     out.commit()?;
     println!(
-        "simulated {} frames in {seconds:.1} s ({:.2} frames/s, 20 settling frames included): deepest cloth vertex {:.1} mm {} the body (margin {:.1} mm), largest edge stretch {:.1}%; wrote {}",
+        "simulated {} frames in {seconds:.1} s ({:.2} frames/s, {settle} settling frames included): deepest cloth vertex {:.1} mm {} the body (margin {:.1} mm), largest edge stretch {:.1}%; wrote {}",
         result.frames.len(),
-        (result.frames.len() + 20) as f64 / seconds,
+        (result.frames.len() + settle) as f64 / seconds,
         result.max_penetration.abs() * 1e3,
         if result.max_penetration > 0.0 { "inside" } else { "outside" },
         params.margin * 1e3,
