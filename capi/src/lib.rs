@@ -721,10 +721,10 @@ pub unsafe extern "C" fn drape_avatar_render(
                 "rgba_len is {rgba_len} floats; a {width}x{height} image needs {needed}"
             )));
         }
+        // The player returns premultiplied RGBA clamped to [0, alpha].
         let (mut pixels, colour) = with_avatar(avatar, |a| {
             Ok((a.player.render(&cam, width, height)?, a.colour))
         })?;
-        clamp_premultiplied(&mut pixels);
         if colour == drape_colour::DRAPE_COLOUR_LINEAR {
             srgb_to_linear_premultiplied(&mut pixels);
         }
@@ -739,30 +739,6 @@ pub unsafe extern "C" fn drape_avatar_render(
         unsafe { std::ptr::copy_nonoverlapping(pixels.as_ptr(), rgba_out, needed) };
         Ok(())
     })
-}
-
-/// Makes premultiplied RGBA what the header promises: alpha within [0, 1], each colour
-/// value within [0, alpha]. The spherical-harmonic colours are not clamped on the GPU,
-/// so a composite can exceed its alpha. Values already in range keep their bits (the
-/// fixture's renders pass through unchanged); NaN becomes 0.
-fn clamp_premultiplied(rgba: &mut [f32]) {
-    // `!(v >= lo)` rather than `v < lo`: NaN fails the guard and becomes `lo`.
-    let within = |v: f32, hi: f32| {
-        if !(v >= 0.0) {
-            0.0
-        } else if v > hi {
-            hi
-        } else {
-            v
-        }
-    };
-    for p in rgba.chunks_exact_mut(4) {
-        let a = within(p[3], 1.0);
-        p[3] = a;
-        for c in &mut p[..3] {
-            *c = within(*c, a);
-        }
-    }
 }
 
 /// sRGB-encoded premultiplied RGBA (clamped: colour within [0, alpha]) to linear
@@ -898,44 +874,6 @@ mod tests {
     use super::*;
     use drape_engine::EngineError;
     use drape_trainer::TrainerError;
-
-    /// Colour over alpha, negative and NaN values are clamped; values in range (-0.0
-    /// too) keep their bits.
-    #[test]
-    fn premultiplied_clamp() {
-        let mut px = [
-            1.3,
-            0.5,
-            -0.1,
-            1.0, //
-            0.2,
-            0.3,
-            0.4,
-            0.25, //
-            f32::NAN,
-            0.1,
-            0.0,
-            1.5, //
-            -0.0,
-            0.1,
-            0.2,
-            0.3, //
-            0.1,
-            0.1,
-            0.1,
-            f32::NAN,
-        ];
-        clamp_premultiplied(&mut px);
-        let expected = [
-            1.0, 0.5, 0.0, 1.0, //
-            0.2, 0.25, 0.25, 0.25, //
-            0.0, 0.1, 0.0, 1.0, //
-            -0.0, 0.1, 0.2, 0.3, //
-            0.0, 0.0, 0.0, 0.0,
-        ];
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        assert_eq!(bits(&px), bits(&expected), "{px:?}");
-    }
 
     /// What `drape_avatar_load` makes of the player's errors: the engine's status kept
     /// (out of memory its own), a file's error an invalid argument, the path first.

@@ -427,7 +427,8 @@ impl AvatarPlayer {
     }
 
     /// Renders the current pose through `camera` and reads it back: `width` x `height` x
-    /// 4 floats, premultiplied RGBA, row-major from the top row. Waits for every frame in
+    /// 4 floats, premultiplied RGBA (alpha within [0, 1], each colour value within
+    /// [0, alpha]: [`clamp_premultiplied`]), row-major from the top row. Waits for every frame in
     /// flight (a convenience for callers that want pixels, not a frame loop; frames
     /// recorded into the host's command buffers must have completed). A frame that
     /// outgrew its renderer's buffers is rendered again in the same slot, whose buffers
@@ -449,7 +450,9 @@ impl AvatarPlayer {
                 continue;
             }
             let pixels = 4 * width as usize * height as usize;
-            return Ok(self.ctx.read_buffer(&mut frame.rgba, pixels)?);
+            let mut rgba = self.ctx.read_buffer(&mut frame.rgba, pixels)?;
+            clamp_premultiplied(&mut rgba);
+            return Ok(rgba);
         }
     }
 
@@ -470,6 +473,30 @@ impl AvatarPlayer {
     /// Waits for every frame in flight.
     pub fn wait_idle(&mut self) -> crate::Result<()> {
         Ok(self.frames.wait_all()?)
+    }
+}
+
+/// Makes premultiplied RGBA what [`AvatarPlayer::render`] promises: alpha within
+/// [0, 1], each colour value within [0, alpha]. The spherical-harmonic colours are not
+/// clamped on the GPU, so a composite can exceed its alpha (frames recorded into a host's
+/// image are not clamped). Values already in range keep their bits; NaN becomes 0.
+pub fn clamp_premultiplied(rgba: &mut [f32]) {
+    // `!(v >= lo)` rather than `v < lo`: NaN fails the guard and becomes `lo`.
+    let within = |v: f32, hi: f32| {
+        if !(v >= 0.0) {
+            0.0
+        } else if v > hi {
+            hi
+        } else {
+            v
+        }
+    };
+    for p in rgba.chunks_exact_mut(4) {
+        let a = within(p[3], 1.0);
+        p[3] = a;
+        for c in &mut p[..3] {
+            *c = within(*c, a);
+        }
     }
 }
 
@@ -503,5 +530,48 @@ pub fn smpl_pose_of(body: &BodyParams) -> Option<([f32; 72], [f32; 3])> {
             Some((p, translation.as_vec3().to_array()))
         }
         BodyParams::Zju(_) => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Colour over alpha, negative and NaN values are clamped; values in range (-0.0
+    /// too) keep their bits.
+    #[test]
+    fn premultiplied_clamp() {
+        let mut px = [
+            1.3,
+            0.5,
+            -0.1,
+            1.0, //
+            0.2,
+            0.3,
+            0.4,
+            0.25, //
+            f32::NAN,
+            0.1,
+            0.0,
+            1.5, //
+            -0.0,
+            0.1,
+            0.2,
+            0.3, //
+            0.1,
+            0.1,
+            0.1,
+            f32::NAN,
+        ];
+        clamp_premultiplied(&mut px);
+        let expected = [
+            1.0, 0.5, 0.0, 1.0, //
+            0.2, 0.25, 0.25, 0.25, //
+            0.0, 0.1, 0.0, 1.0, //
+            -0.0, 0.1, 0.2, 0.3, //
+            0.0, 0.0, 0.0, 0.0,
+        ];
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&px), bits(&expected), "{px:?}");
     }
 }

@@ -136,6 +136,51 @@ fn the_run_directory_renders_the_fixture() {
     assert_identical("the run directory", &renders(&mut player), &expected);
 }
 
+/// Premultiplied means each colour value within [0, alpha] and alpha within [0, 1]: the
+/// player's renders of every held-out image of the small run (its camera and body), and
+/// of the fixture's views (posed: arms and a knee bent), at 64 x 64. The
+/// spherical-harmonic colours are not clamped on the GPU: without the player's clamp
+/// the posed and the held-out renders of this run exceed their alpha.
+#[test]
+fn every_colour_value_the_player_returns_is_within_zero_and_its_alpha() {
+    let ctx = drape_tests::gpu();
+    let run = fixture_run(&scratch("premultiplied"));
+    let seq = drape_trainer::avatar::inputs::load_sequence(&run.join("../synth"), 0)
+        .expect("the fixture's sequence");
+    let mut player = AvatarPlayer::load(&ctx, &run, 1).expect("player");
+    let mut images: Vec<(String, Vec<f32>)> = Vec::new();
+    for f in seq
+        .frames
+        .iter()
+        .filter(|f| f.split == drape_trainer::dataset::split::Split::Test)
+    {
+        player.set_body(f.body.clone());
+        let cam = ViewCamera::from_camera(&f.camera);
+        let rgba = player
+            .render(&cam, f.width, f.height)
+            .expect("held-out view");
+        images.push((format!("held-out frame {} view {}", f.frame, f.view), rgba));
+    }
+    assert!(!images.is_empty(), "the small run holds images out");
+    let rgba = renders(&mut player);
+    let per = 4 * (SIZE * SIZE) as usize;
+    for (k, image) in rgba.chunks(per).enumerate() {
+        images.push((format!("fixture view {k}"), image.to_vec()));
+    }
+    for (what, rgba) in &images {
+        for (i, p) in rgba.chunks(4).enumerate() {
+            assert!(
+                (0.0..=1.0).contains(&p[3]) && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
+                "{what}: pixel {i} is {p:?}"
+            );
+        }
+        assert!(
+            rgba.chunks(4).any(|p| p[3] > 0.5),
+            "{what} covers some pixels"
+        );
+    }
+}
+
 /// `drape export` in the library: the fixture's run as a file, then the run and its
 /// dataset deleted; the file alone renders the fixture bit for bit.
 #[test]
