@@ -826,8 +826,9 @@ fn two_avatars_on_one_context_render_from_two_threads() {
 /// Premultiplied means every colour value within [0, alpha] and alpha within [0, 1]:
 /// over the run's default (first held-out) view, that view moved sideways and closer,
 /// and a posed frame (the fixture's bend: elbows and a knee), at the run's size and at
-/// 96x96. (The spherical-harmonic colours are not clamped on the GPU: without the
-/// C ABI's clamp some pixels of the small run exceed their alpha.)
+/// 96x96. (The spherical-harmonic colours are not clamped on the GPU; the player clamps
+/// what it reads back, which the trainer's `avatar_file` test shows on colours raised
+/// above their alpha: this run's stay near 0.5.)
 #[test]
 fn every_colour_value_is_within_zero_and_its_alpha() {
     let run = the_run();

@@ -137,23 +137,62 @@ fn the_run_directory_renders_the_fixture() {
 }
 
 /// Premultiplied means each colour value within [0, alpha] and alpha within [0, 1]: the
-/// player's renders of every held-out image of the small run (its camera and body), and
-/// of the fixture's views (posed: arms and a knee bent), at 64 x 64. The
-/// spherical-harmonic colours are not clamped on the GPU: without the player's clamp
-/// the posed and the held-out renders of this run exceed their alpha.
+/// player's renders of the small test run (the one the test command trains) through
+/// every held-out image's camera and body, and through its default camera, that camera
+/// moved 0.3 m to either side and 0.5 m closer, at 32 x 32 and 96 x 96, at rest and
+/// posed (arms and a knee bent). The spherical-harmonic colours are not clamped on the
+/// GPU; this run's colours stay near 0.5, so the same avatar with its SH biases raised
+/// renders colours far above their alpha, which the player's clamp must bound.
 #[test]
 fn every_colour_value_the_player_returns_is_within_zero_and_its_alpha() {
     let ctx = drape_tests::gpu();
-    let run = fixture_run(&scratch("premultiplied"));
-    let seq = drape_trainer::avatar::inputs::load_sequence(&run.join("../synth"), 0)
-        .expect("the fixture's sequence");
-    let mut player = AvatarPlayer::load(&ctx, &run, 1).expect("player");
+    let run = drape_trainer::testing::tiny_run(&ctx);
+    let info = RunInfo::read(run)
+        .expect("run.json")
+        .expect("the test run records its data");
+    let seq = drape_trainer::avatar::inputs::load_sequence(&info.data, 0)
+        .expect("the test run's sequence");
+    // The same avatar with every SH head bias raised by 40: colours above their alpha.
+    let mut hot = AvatarFile::from_run(&ctx, run).expect("the run as an avatar file");
+    for (name, layer) in &mut hot.layers {
+        let config = match name.as_str() {
+            "body" => &hot.layers_config.body,
+            _ => &hot.layers_config.cloth,
+        };
+        let [appearance, _, _] = drape_trainer::avatar::layer::decoder_descs(config);
+        let sh = appearance
+            .heads
+            .iter()
+            .position(|h| h.name == "sh")
+            .expect("an SH head");
+        let (offsets, _) = appearance.layout();
+        let bias = offsets[appearance.hidden.len() + sh].1;
+        for b in &mut layer.appearance[bias..bias + appearance.heads[sh].width] {
+            *b += 40.0;
+        }
+    }
+    let hot_path = scratch("premultiplied").join("hot.avatar");
+    hot.write(&hot_path).expect("write the scaled avatar");
+    check_premultiplied(&ctx, run, &seq, false);
+    check_premultiplied(&ctx, &hot_path, &seq, true);
+}
+
+/// Renders `path` through the views above and checks each value's range, and that each
+/// render shows the person (alpha above 1/2 somewhere); `saturated`: and that some
+/// pixel's colour is at its alpha (the clamp's bound: the raised biases worked).
+fn check_premultiplied(
+    ctx: &Context,
+    path: &Path,
+    seq: &drape_trainer::avatar::inputs::Sequence,
+    saturated: bool,
+) {
+    let mut player = AvatarPlayer::load(ctx, path, 1).expect("player");
     let mut images: Vec<(String, Vec<f32>)> = Vec::new();
-    for f in seq
+    let held_out = seq
         .frames
         .iter()
-        .filter(|f| f.split == drape_trainer::dataset::split::Split::Test)
-    {
+        .filter(|f| f.split == drape_trainer::dataset::split::Split::Test);
+    for f in held_out {
         player.set_body(f.body.clone());
         let cam = ViewCamera::from_camera(&f.camera);
         let rgba = player
@@ -162,23 +201,60 @@ fn every_colour_value_the_player_returns_is_within_zero_and_its_alpha() {
         images.push((format!("held-out frame {} view {}", f.frame, f.view), rgba));
     }
     assert!(!images.is_empty(), "the small run holds images out");
-    let rgba = renders(&mut player);
-    let per = 4 * (SIZE * SIZE) as usize;
-    for (k, image) in rgba.chunks(per).enumerate() {
-        images.push((format!("fixture view {k}"), image.to_vec()));
+    player.set_body(player.default_body().clone());
+    let camera = player.default_camera().clone();
+    let mut views = vec![camera.clone()];
+    for (axis, shift) in [(0, 0.3), (0, -0.3), (2, -0.5)] {
+        let mut c = camera.clone();
+        c.translation[axis] += shift;
+        views.push(c);
     }
+    for posed in [false, true] {
+        if posed {
+            let (mut pose, translation) =
+                drape_trainer::avatar::player::smpl_pose_of(player.default_body())
+                    .expect("an SMPL body");
+            pose[3 * 16 + 2] -= 0.8;
+            pose[3 * 17 + 2] += 0.8;
+            pose[3 * 4] += 0.6;
+            player.set_pose(&pose, &translation).expect("pose");
+        }
+        for (v, view) in views.iter().enumerate() {
+            for side in [32u32, 96] {
+                let k = side as f32 / view.width as f32;
+                let mut cam = ViewCamera::from_camera(view);
+                cam.fx *= k;
+                cam.fy *= k;
+                cam.cx *= k;
+                cam.cy *= k;
+                let rgba = player.render(&cam, side, side).expect("render");
+                images.push((format!("posed {posed}, view {v}, {side}x{side}"), rgba));
+            }
+        }
+    }
+    let mut at_alpha = 0;
     for (what, rgba) in &images {
         for (i, p) in rgba.chunks(4).enumerate() {
             assert!(
                 (0.0..=1.0).contains(&p[3]) && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
-                "{what}: pixel {i} is {p:?}"
+                "{}: {what}: pixel {i} is {p:?}",
+                path.display()
             );
         }
         assert!(
             rgba.chunks(4).any(|p| p[3] > 0.5),
             "{what} covers some pixels"
         );
+        at_alpha += rgba
+            .chunks(4)
+            .filter(|p| p[3] > 0.5 && p[..3].contains(&p[3]))
+            .count();
     }
+    assert!(
+        !saturated || at_alpha > 0,
+        "{}: no colour reaches its alpha",
+        path.display()
+    );
 }
 
 /// `drape export` in the library: the fixture's run as a file, then the run and its
