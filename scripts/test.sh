@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The whole test suite, as CI runs it:
-#  0. formatting (rustfmt, every crate) and lints (clippy -D warnings, the workspace's
-#     targets; clippy.toml keeps file writes to drape-io);
+#  0. formatting (rustfmt, every crate) and lints (clippy -D warnings on the workspace's
+#     targets, run by the test build itself; clippy.toml keeps file writes to drape-io);
 #  1. rebuild the SPIR-V with rust-gpu and fail, naming the module, if any byte
 #     differs from what is committed;
 #  2. the shader builder's own test (a changed kernel source fails the check);
@@ -52,17 +52,13 @@ if [ "$DRAPE_DEVICE" = llvmpipe ]; then
     export DRAPE_EXPECT_FEATURES="${DRAPE_EXPECT_FEATURES:-float-atomics,timestamps,subgroup-raster,subgroup-gemm}"
 fi
 
-step "1/5 formatting and lints: rustfmt --check, clippy -D warnings"
-# The pinned toolchain (rust-toolchain.toml) brings both. The kernels and the shader
-# builder are formatted with the same rustfmt; clippy runs on the workspace only (the
-# kernels build for SPIR-V on the shader builder's nightly, which has no clippy). Clippy
-# runs alone: beside the shader build (whose SPIRV-Tools C++ compile takes both cores)
-# it cost that step more than its own 6 minutes.
+step "1/5 formatting: rustfmt --check (the lints run with the test build, step 4)"
+# The pinned toolchain (rust-toolchain.toml) brings rustfmt and clippy. The kernels and
+# the shader builder are formatted with the same rustfmt.
 cargo fmt --all --check
 (cd shaders-rs/kernels && cargo fmt --check)
 rustfmt --edition 2021 --check tools/shader-builder/src/main.rs tools/shader-builder/tests/*.rs
 (cd fuzz && cargo fmt --check)
-cargo clippy --workspace --all-targets --locked --quiet -- -D warnings
 
 step "2/5 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
 # rust-gpu's backend (rustc_codegen_spirv and the SPIRV-Tools C++ it links: about 15
@@ -95,7 +91,16 @@ export DRAPE_CLIENTS_PYTHON
 # The cluster manifest (scripts/cluster/), validated offline against Kubernetes' schemas.
 scripts/cluster/check-k8s-manifest.sh "$DRAPE_CLIENTS_PYTHON"
 
-step "4/5 workspace tests on $DRAPE_DEVICE with validation"
+step "4/5 lints and workspace tests on $DRAPE_DEVICE with validation"
+# Clippy (-D warnings) runs as the test build compiles each workspace crate: clippy-driver
+# as the workspace's rustc wrapper is what `cargo clippy` runs, here with code generation,
+# so the lints cost no separate check of the workspace (a `cargo clippy` step took 6
+# minutes on 2 cores). Exported for every cargo call below, whose builds must match this
+# one's (a different wrapper would rebuild the workspace). Clippy covers the workspace
+# only: the kernels build for SPIR-V on the shader builder's nightly, which has no clippy.
+RUSTC_WORKSPACE_WRAPPER="$(rustup which clippy-driver)"
+export RUSTC_WORKSPACE_WRAPPER
+export CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
 # Build first, every target under the test profile with the tests' feature resolution, so
 # that `cargo test` below finds it all built: the shared run is trained with this build's
 # drape binary, and the C ABI tests link libdrape.so from it (`cargo test` builds rlibs
