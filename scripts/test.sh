@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
-# The whole test suite, as CI runs it:
-#  0. formatting (rustfmt, every crate) and lints (clippy -D warnings on the workspace's
-#     targets, run by the test build itself; clippy.toml keeps file writes to drape-io);
-#  1. rebuild the SPIR-V with rust-gpu and fail, naming the module, if any byte
+# The whole test suite, as CI runs it (the steps as they print):
+#  1. formatting (rustfmt, every crate);
+#  2. rebuild the SPIR-V with rust-gpu and fail, naming the module, if any byte
 #     differs from what is committed;
-#  2. the shader builder's own test (a changed kernel source fails the check);
-#  3. every workspace test on lavapipe with validation layers on (any validation
-#     message fails the test that caused it);
-#  4. the engine's GPU tests again with DRAPE_FORCE_STAGING=1: uploads, readbacks and
+#  3. the shader builder's own test (a changed kernel source fails the check);
+#  4. lints (clippy -D warnings on the workspace's targets, run by the test build itself;
+#     clippy.toml keeps file writes to drape-io), then every workspace test on lavapipe
+#     with validation layers on (any validation message fails the test that caused it);
+#  5. the engine's GPU tests again with DRAPE_FORCE_STAGING=1: uploads, readbacks and
 #     buffer poisoning through staging copies, the path a discrete GPU takes (lavapipe
 #     maps every buffer otherwise).
 # A test that needs a device feature reports "SKIPPED: ..." without it; on lavapipe
@@ -35,7 +35,7 @@ if ! python3 -c "import numpy" 2>/dev/null; then
     python3 -m pip install -q numpy
 fi
 # The independent reference for the neural ops: PyTorch (CPU) in target/torch-venv. Its
-# first install (mostly download) runs while steps 1 and 2 compile; step 3 waits for it.
+# first install (mostly download) runs while steps 1 to 3 do; step 4 waits for it.
 mkdir -p target
 torch_log=target/torch-env.log
 scripts/torch-env.sh >"$torch_log.out" 2>"$torch_log" &
@@ -63,15 +63,24 @@ rustfmt --edition 2021 --check tools/shader-builder/src/main.rs tools/shader-bui
 step "2/5 SPIR-V freshness (rust-gpu rebuild; the first build of the backend takes minutes)"
 # rust-gpu's backend (rustc_codegen_spirv and the SPIRV-Tools C++ it links: about 15
 # minutes on 2 cores) and `core` / spirv-std for the SPIR-V target are built once per
-# machine into a cache outside the clone, as cargo-gpu caches the backend, and reused by
-# later clones; the kernels and the builder itself are compiled from this clone's source
-# every run (cargo tells a clone's path packages apart). DRAPE_SHADER_CACHE moves it.
+# machine into a cache outside the clone (about 3 GB; DRAPE_SHADER_CACHE moves it), as
+# cargo-gpu caches the backend, and reused by later clones. What this clone's source
+# makes (the builder, drape-shared, the kernels) is compiled again every run: their
+# fingerprints are removed first, so that no file time (a copy that kept old ones, at a
+# path used before) can make an earlier build look fresh. One run at a time holds the
+# cache (steps 2 and 3 share its outputs).
 shader_cache="${DRAPE_SHADER_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/drape/shader-builder}"
 mkdir -p "$shader_cache"
+shader_cache="$(cd "$shader_cache" && pwd)"
+exec 9>"$shader_cache/.lock"
+flock 9
+(cd "$shader_cache" && find . -type d -name fingerprint \( -path '*/build/shader-builder/*' \
+    -o -path '*/build/drape-shared/*' -o -path '*/build/drape-kernels/*' \) -prune -exec rm -rf {} +)
 (cd tools/shader-builder && CARGO_TARGET_DIR="$shader_cache" cargo run --release --locked --quiet -- --check)
 
 step "3/5 shader builder tests"
 (cd tools/shader-builder && CARGO_TARGET_DIR="$shader_cache" cargo test --release --locked)
+exec 9>&-
 
 if ! wait "$torch_pid"; then
     cat "$torch_log" >&2
@@ -95,9 +104,12 @@ step "4/5 lints and workspace tests on $DRAPE_DEVICE with validation"
 # Clippy (-D warnings) runs as the test build compiles each workspace crate: clippy-driver
 # as the workspace's rustc wrapper is what `cargo clippy` runs, here with code generation,
 # so the lints cost no separate check of the workspace (a `cargo clippy` step took 6
-# minutes on 2 cores). Exported for every cargo call below, whose builds must match this
-# one's (a different wrapper would rebuild the workspace). Clippy covers the workspace
-# only: the kernels build for SPIR-V on the shader builder's nightly, which has no clippy.
+# minutes on 2 cores). The price: clippy-driver compiles with MIR optimisations off and
+# without the MIR passes that check raw-pointer dereferences for null and alignment at
+# run time (std's own checks, slice::from_raw_parts's included, stay), so the workspace's
+# tests run without those two checks. Exported for every cargo call below, whose builds
+# must match this one's (another wrapper would rebuild the workspace). Clippy covers the
+# workspace only: the kernels build for SPIR-V on the builder's nightly, without clippy.
 RUSTC_WORKSPACE_WRAPPER="$(rustup which clippy-driver)"
 export RUSTC_WORKSPACE_WRAPPER
 export CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
@@ -128,15 +140,15 @@ tail -1 target/gpu-check-short.log
 step "5/5 the engine's GPU tests through staging buffers (DRAPE_FORCE_STAGING=1)"
 # The filters pick the modules of the two GPU test binaries (engine: tests/tests/engine,
 # trainer: trainer/tests/trainer) that move buffers between host and device.
-# The two binaries step 3 built, run directly: `cargo test --test engine --test trainer`
+# The two binaries step 4 built, run directly: `cargo test --test engine --test trainer`
 # would resolve features for those targets alone and recompile the trainer (45 s).
-binaries=$(cargo test --workspace --locked --no-run --message-format=json 2>/dev/null | python3 -c '
+binaries=$(cargo test --workspace --locked --no-run --message-format=json 2>target/no-run.log | python3 -c '
 import json, os, sys
 for line in sys.stdin:
     m = json.loads(line)
     if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"] and m["target"]["name"] in ("engine", "trainer"):
         print(os.path.dirname(m["manifest_path"]) + "\t" + m["executable"])
-')
+') || { cat target/no-run.log >&2; echo "test: cargo test --no-run failed (its log above)" >&2; exit 1; }
 [ "$(echo "$binaries" | wc -l)" = 2 ] || { echo "test: expected the engine and trainer test binaries, got: $binaries" >&2; exit 1; }
 # A transfer goes through one staging buffer whatever its size, so the tests whose
 # subject is size (millions of keys, the 100k-row GEMMs, the densest tiles) ran in step 4

@@ -41,6 +41,31 @@ pub fn train_tiny_run(ctx: &Context, dir: &Path) -> crate::Result<PathBuf> {
     Ok(run)
 }
 
+/// `run` as an avatar file at `path` with every layer's SH head bias raised by 40: its
+/// colours rise far above their alpha (the test run's stay near 0.5), for the tests of
+/// the premultiplied clamp the player and the C ABI promise.
+pub fn write_saturated_avatar(ctx: &Context, run: &Path, path: &Path) -> crate::Result<()> {
+    let mut file = crate::avatar::file::AvatarFile::from_run(ctx, run)?;
+    for (name, layer) in &mut file.layers {
+        let config = match name.as_str() {
+            "body" => &file.layers_config.body,
+            _ => &file.layers_config.cloth,
+        };
+        let [appearance, _, _] = crate::avatar::layer::decoder_descs(config);
+        let sh = appearance
+            .heads
+            .iter()
+            .position(|h| h.name == "sh")
+            .expect("the appearance decoder has an SH head");
+        let (offsets, _) = appearance.layout();
+        let bias = offsets[appearance.hidden.len() + sh].1;
+        for b in &mut layer.appearance[bias..bias + appearance.heads[sh].width] {
+            *b += 40.0;
+        }
+    }
+    file.write(path)
+}
+
 /// The shared tiny run: `DRAPE_TEST_RUN` if set (it must hold `model.npz`), else one
 /// trained once per process under the system's temporary directory.
 pub fn tiny_run(ctx: &Context) -> &'static Path {

@@ -152,27 +152,9 @@ fn every_colour_value_the_player_returns_is_within_zero_and_its_alpha() {
         .expect("the test run records its data");
     let seq = drape_trainer::avatar::inputs::load_sequence(&info.data, 0)
         .expect("the test run's sequence");
-    // The same avatar with every SH head bias raised by 40: colours above their alpha.
-    let mut hot = AvatarFile::from_run(&ctx, run).expect("the run as an avatar file");
-    for (name, layer) in &mut hot.layers {
-        let config = match name.as_str() {
-            "body" => &hot.layers_config.body,
-            _ => &hot.layers_config.cloth,
-        };
-        let [appearance, _, _] = drape_trainer::avatar::layer::decoder_descs(config);
-        let sh = appearance
-            .heads
-            .iter()
-            .position(|h| h.name == "sh")
-            .expect("an SH head");
-        let (offsets, _) = appearance.layout();
-        let bias = offsets[appearance.hidden.len() + sh].1;
-        for b in &mut layer.appearance[bias..bias + appearance.heads[sh].width] {
-            *b += 40.0;
-        }
-    }
     let hot_path = scratch("premultiplied").join("hot.avatar");
-    hot.write(&hot_path).expect("write the scaled avatar");
+    drape_trainer::testing::write_saturated_avatar(&ctx, run, &hot_path)
+        .expect("the saturated avatar");
     check_premultiplied(&ctx, run, &seq, false);
     check_premultiplied(&ctx, &hot_path, &seq, true);
 }

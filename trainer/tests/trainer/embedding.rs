@@ -14,7 +14,7 @@ use drape_engine::ash::vk;
 use drape_engine::ops::accumulate::{Accumulation, Method};
 use drape_engine::{Context, ExternalOptions, HostCommandBuffer, ImageTarget, SubmitSync};
 use drape_tests::host::Host;
-use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
+use drape_trainer::avatar::player::{clamp_premultiplied, AvatarPlayer, ViewCamera};
 use drape_trainer::testing::tiny_run;
 
 /// Largest difference between the from_raw and owned-context renders: the same device
@@ -108,7 +108,9 @@ fn from_raw_renders_into_the_hosts_image_and_signals_its_timeline_semaphore() {
         let cmd = host.begin();
         host.record_readback(cmd, &t);
         host.submit(cmd, Some((semaphore, 1)));
-        let got = host.read(&t);
+        // The image a frame is recorded into is not clamped; `render` reads back clamped.
+        let mut got = host.read(&t);
+        clamp_premultiplied(&mut got);
         let d = max_difference(&got, &expected);
         assert!(
             d <= SAME_DEVICE_TOLERANCE,
@@ -246,7 +248,9 @@ fn record_into_host(documented_after_barrier: bool) -> (Vec<f32>, [u64; 2], Vec<
 #[test]
 fn recorded_into_the_hosts_command_buffer_with_the_documented_barriers_has_no_hazard() {
     let (expected, ..) = owned_render();
-    let (pixels, stamps, messages) = record_into_host(true);
+    let (mut pixels, stamps, messages) = record_into_host(true);
+    // The host's image is not clamped; `render` reads back clamped.
+    clamp_premultiplied(&mut pixels);
     assert!(
         messages.is_empty(),
         "synchronization validation:\n{}",
