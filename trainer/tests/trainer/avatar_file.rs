@@ -184,10 +184,10 @@ fn check_premultiplied(
     }
     assert!(!images.is_empty(), "the small run holds images out");
     player.set_body(player.default_body().clone());
-    let camera = player.default_camera().clone();
-    let mut views = vec![camera.clone()];
+    let camera = *player.default_camera();
+    let mut views = vec![camera];
     for (axis, shift) in [(0, 0.3), (0, -0.3), (2, -0.5)] {
-        let mut c = camera.clone();
+        let mut c = camera;
         c.translation[axis] += shift;
         views.push(c);
     }
