@@ -139,11 +139,17 @@ fn load_motion(spec: &str, min_frames: usize) -> anyhow::Result<Motion> {
 pub fn run(device: &drape_cli_support::DeviceArgs, args: &ViewArgs) -> anyhow::Result<()> {
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let motion = load_motion(&args.motion, args.frames.unwrap_or(0) as usize)?;
-    anyhow::ensure!(
-        args.run.join("run.json").is_file(),
-        "{}: not a run directory (no run.json)",
-        args.run.display()
-    );
+    if args.run.is_file() {
+        // Read once before the window opens, so that a damaged file is one error naming
+        // it (without a window system too), not a window that closes.
+        drape_trainer::avatar::file::AvatarFile::read(&args.run)?;
+    } else {
+        anyhow::ensure!(
+            args.run.join("run.json").is_file(),
+            "{}: neither an avatar file nor a run directory (no run.json)",
+            args.run.display()
+        );
+    }
     let validation = device.validation || std::env::var("DRAPE_VALIDATION").is_ok_and(|v| v == "1");
     let device_name = device
         .device

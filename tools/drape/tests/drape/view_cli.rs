@@ -1,4 +1,6 @@
-//! `drape view` end to end on a virtual X server: the shared tiny run, three frames
+//! `drape view` end to end on a virtual X server: the shared tiny run exported as an
+//! avatar file (`drape export`) and viewed from the file alone (a copy of the file in a
+//! directory of its own, no run directory or dataset beside it), three frames
 //! presented through the viewer's own swapchain (validation on), the window captured
 //! from the X server with `xwd` and compared with the library's render of the same
 //! frame that the viewer writes next to it (`--screenshot`), then the viewer told to
@@ -135,11 +137,24 @@ fn view_presents_the_library_render() {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let run = tiny_run();
+    let avatar = dir.join("tiny.avatar");
+    let o = drape()
+        .arg("export")
+        .arg(&run)
+        .arg("--out")
+        .arg(&avatar)
+        .output()
+        .expect("drape export runs");
+    assert!(
+        o.status.success(),
+        "drape export: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let x = start_xvfb();
     let shot = dir.join("S.png");
     let mut child = drape()
         .arg("view")
-        .arg(&run)
+        .arg(&avatar)
         .args(["--frames", "3", "--screenshot"])
         .arg(&shot)
         .env("DISPLAY", &x.display)
