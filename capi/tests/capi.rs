@@ -839,42 +839,18 @@ fn every_colour_value_is_within_zero_and_its_alpha() {
     let mut at_alpha = 0;
     for posed in [false, true] {
         if posed {
-            let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
-            // SAFETY: a live avatar and room for 72 and 3 floats.
-            unsafe {
-                let s = drape_avatar_default_view(
-                    avatar,
-                    std::ptr::null_mut(),
-                    std::ptr::null_mut(),
-                    std::ptr::null_mut(),
-                    pose.as_mut_ptr(),
-                    trans.as_mut_ptr(),
-                );
-                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+            pose_like(avatar, avatar, |pose| {
                 pose[3 * 16 + 2] -= 0.8;
                 pose[3 * 17 + 2] += 0.8;
                 pose[3 * 4] += 0.6;
-                let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
-                assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
-            }
+            });
         }
         for side in [32, 96] {
             let pixels = render_square(avatar as usize, &camera, side);
-            for (i, p) in pixels.chunks(4).enumerate() {
-                assert!(
-                    (0.0..=1.0).contains(&p[3])
-                        && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
-                    "posed {posed}, {side}x{side}: pixel {i} is {p:?}"
-                );
-            }
-            assert!(
-                pixels.chunks(4).any(|p| p[3] > 0.5),
-                "posed {posed}, {side}x{side}: the avatar covers some pixels"
+            at_alpha += drape_tests::premultiplied_at_alpha(
+                &pixels,
+                &format!("posed {posed}, {side}x{side}"),
             );
-            at_alpha += pixels
-                .chunks(4)
-                .filter(|p| p[3] > 0.5 && p[..3].contains(&p[3]))
-                .count();
         }
     }
     assert!(
@@ -887,12 +863,13 @@ fn every_colour_value_is_within_zero_and_its_alpha() {
     assert!(messages.is_empty(), "validation:\n{}", messages.join("\n"));
 }
 
-/// `drape_load_options`: frames in flight as asked (the player's count), out of range
-/// refused; `DRAPE_COLOUR_LINEAR` renders each pixel's colour / alpha decoded with the
-/// sRGB transfer function (computed here in f64) times alpha, alpha unchanged; an
-/// unknown encoding is refused, and so is recording a linear avatar.
-/// Poses `avatar` as `like` is posed (its default view's pose and translation).
-fn pose_like(avatar: *mut drape_avatar, like: *mut drape_avatar) {
+/// Poses `avatar` as `like`'s default view is posed (its pose and translation), the pose
+/// changed by `edit` first.
+fn pose_like(
+    avatar: *mut drape_avatar,
+    like: *mut drape_avatar,
+    edit: impl FnOnce(&mut [f32; 72]),
+) {
     let (mut pose, mut trans) = ([0f32; 72], [0f32; 3]);
     // SAFETY: live avatars, room for 72 and 3 floats.
     unsafe {
@@ -904,12 +881,17 @@ fn pose_like(avatar: *mut drape_avatar, like: *mut drape_avatar) {
             pose.as_mut_ptr(),
             trans.as_mut_ptr(),
         );
-        assert_eq!(s, drape_status::DRAPE_OK);
+        assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
+        edit(&mut pose);
         let s = drape_avatar_set_pose(avatar, pose.as_ptr(), trans.as_ptr());
-        assert_eq!(s, drape_status::DRAPE_OK);
+        assert_eq!(s, drape_status::DRAPE_OK, "{}", last_error());
     }
 }
 
+/// `drape_load_options`: frames in flight as asked (the player's count), out of range
+/// refused; `DRAPE_COLOUR_LINEAR` renders each pixel's colour / alpha decoded with the
+/// sRGB transfer function (computed here in f64) times alpha, alpha unchanged; an
+/// unknown encoding is refused, and so is recording a linear avatar.
 #[test]
 fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
     let run = the_run();
@@ -956,7 +938,7 @@ fn load_options_choose_frames_in_flight_and_the_colour_encoding() {
         colour: drape_colour::DRAPE_COLOUR_LINEAR as u32,
     });
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
-    pose_like(linear, srgb);
+    pose_like(linear, srgb, |_| {});
     let encoded = render_square(srgb as usize, &camera, 48);
     let decoded = render_square(linear as usize, &camera, 48);
     let mut mid_tones = 0;
@@ -1041,7 +1023,7 @@ fn an_avatar_loads_from_memory() {
         )
     };
     assert_eq!(status, drape_status::DRAPE_OK, "{}", last_error());
-    pose_like(from_memory, from_path);
+    pose_like(from_memory, from_path, |_| {});
     let expected = render_square(from_path as usize, &camera, 48);
     let got = render_square(from_memory as usize, &camera, 48);
     assert!(

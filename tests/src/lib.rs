@@ -159,6 +159,26 @@ impl Pattern {
     }
 }
 
+/// Checks that `rgba` (4 floats a pixel) is premultiplied, as the player and the C ABI
+/// promise: alpha within [0, 1] and each colour value within [0, alpha]; and that it
+/// shows something (alpha above 1/2 somewhere). Returns how many of those covered pixels
+/// have a colour value at its alpha (the clamp's bound). `what` names the image.
+pub fn premultiplied_at_alpha(rgba: &[f32], what: &str) -> usize {
+    for (i, p) in rgba.chunks(4).enumerate() {
+        assert!(
+            (0.0..=1.0).contains(&p[3]) && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
+            "{what}: pixel {i} is {p:?}"
+        );
+    }
+    assert!(
+        rgba.chunks(4).any(|p| p[3] > 0.5),
+        "{what}: the avatar covers some pixels"
+    );
+    rgba.chunks(4)
+        .filter(|p| p[3] > 0.5 && p[..3].contains(&p[3]))
+        .count()
+}
+
 pub mod host;
 pub mod module_graph;
 

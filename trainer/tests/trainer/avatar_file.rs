@@ -13,6 +13,7 @@ use drape_engine::Context;
 use drape_trainer::avatar::file::AvatarFile;
 use drape_trainer::avatar::player::{AvatarPlayer, ViewCamera};
 use drape_trainer::avatar::run::RunInfo;
+use drape_trainer::camera::Camera;
 use drape_trainer::dataset::synth::generate;
 use drape_trainer::npy::{decode, encode, Array, Dtype};
 use drape_trainer::testing::{edit_avatar_header, tiny_synth_options, train_tiny_run};
@@ -30,17 +31,30 @@ fn scratch(name: &str) -> PathBuf {
     drape_tests::reference_python::case_dir("avatar-file", name)
 }
 
-/// The run's default camera at 64 x 64 (the run's images are 32 x 32: the
-/// intrinsics scale with the image).
-fn camera_64(player: &AvatarPlayer) -> ViewCamera {
-    let c = player.default_camera();
-    let k = SIZE as f32 / c.width as f32;
-    let mut cam = ViewCamera::from_camera(c);
+/// `camera` for a square image `side` pixels wide (the intrinsics scale with the image).
+fn camera_at(camera: &Camera, side: u32) -> ViewCamera {
+    let k = side as f32 / camera.width as f32;
+    let mut cam = ViewCamera::from_camera(camera);
     cam.fx *= k;
     cam.fy *= k;
     cam.cx *= k;
     cam.cy *= k;
     cam
+}
+
+/// The run's default camera at 64 x 64 (the run's images are 32 x 32).
+fn camera_64(player: &AvatarPlayer) -> ViewCamera {
+    camera_at(player.default_camera(), SIZE)
+}
+
+/// Poses `player` as its default body with the arms and a knee bent.
+fn bend(player: &mut AvatarPlayer) {
+    let (mut pose, translation) =
+        drape_trainer::avatar::player::smpl_pose_of(player.default_body()).expect("an SMPL body");
+    pose[3 * 16 + 2] -= 0.8; // left shoulder
+    pose[3 * 17 + 2] += 0.8; // right shoulder
+    pose[3 * 4] += 0.6; // left knee
+    player.set_pose(&pose, &translation).expect("pose");
 }
 
 /// The fixture's images, in order: the default (held-out) camera and pose; a camera
@@ -51,12 +65,7 @@ fn renders(player: &mut AvatarPlayer) -> Vec<f32> {
     let mut side = cam;
     side.world_to_camera[3] += 0.3;
     out.extend(player.render(&side, SIZE, SIZE).expect("side view"));
-    let (mut pose, translation) =
-        drape_trainer::avatar::player::smpl_pose_of(player.default_body()).expect("an SMPL body");
-    pose[3 * 16 + 2] -= 0.8; // left shoulder
-    pose[3 * 17 + 2] += 0.8; // right shoulder
-    pose[3 * 4] += 0.6; // left knee
-    player.set_pose(&pose, &translation).expect("pose");
+    bend(player);
     out.extend(player.render(&cam, SIZE, SIZE).expect("posed"));
     out
 }
@@ -193,44 +202,21 @@ fn check_premultiplied(
     }
     for posed in [false, true] {
         if posed {
-            let (mut pose, translation) =
-                drape_trainer::avatar::player::smpl_pose_of(player.default_body())
-                    .expect("an SMPL body");
-            pose[3 * 16 + 2] -= 0.8;
-            pose[3 * 17 + 2] += 0.8;
-            pose[3 * 4] += 0.6;
-            player.set_pose(&pose, &translation).expect("pose");
+            bend(&mut player);
         }
         for (v, view) in views.iter().enumerate() {
             for side in [32u32, 96] {
-                let k = side as f32 / view.width as f32;
-                let mut cam = ViewCamera::from_camera(view);
-                cam.fx *= k;
-                cam.fy *= k;
-                cam.cx *= k;
-                cam.cy *= k;
-                let rgba = player.render(&cam, side, side).expect("render");
+                let rgba = player
+                    .render(&camera_at(view, side), side, side)
+                    .expect("render");
                 images.push((format!("posed {posed}, view {v}, {side}x{side}"), rgba));
             }
         }
     }
     let mut at_alpha = 0;
     for (what, rgba) in &images {
-        for (i, p) in rgba.chunks(4).enumerate() {
-            assert!(
-                (0.0..=1.0).contains(&p[3]) && p[..3].iter().all(|&c| (0.0..=p[3]).contains(&c)),
-                "{}: {what}: pixel {i} is {p:?}",
-                path.display()
-            );
-        }
-        assert!(
-            rgba.chunks(4).any(|p| p[3] > 0.5),
-            "{what} covers some pixels"
-        );
-        at_alpha += rgba
-            .chunks(4)
-            .filter(|p| p[3] > 0.5 && p[..3].contains(&p[3]))
-            .count();
+        at_alpha +=
+            drape_tests::premultiplied_at_alpha(rgba, &format!("{}: {what}", path.display()));
     }
     assert!(
         !saturated || at_alpha > 0,
